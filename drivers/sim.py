@@ -1,0 +1,309 @@
+"""Simulated gantry: the physical plant of paper eq. (1)+(3) per axis behind the Driver interface.
+
+Each ``write()`` holds the commanded voltage over one period (zero-order hold) and integrates
+
+    M ẍ = F_m(u)·(1 + ripple(x)) − B ẋ − A_f S_f(ẋ) + F_0 + F_effects(x, ẋ, t) + F_noise
+
+with ``substeps`` RK4 steps per period (spec §5.5); ``read()`` returns the position quantised
+to the encoder resolution (0.5 µm, spec §6.1). The plant advances exactly one period per
+write, so a run is the same whether the loop is paced by the wall clock or a virtual clock,
+and the same seed gives the same noise.
+
+Effects the controllers' model does not have (all off by default), forces in N:
+  * cogging: Σ_k A_k sin(2π k x / P + φ_k)                        (detent force, position-periodic)
+  * force_ripple: F_m · Σ_k r_k sin(2π k x / P + φ_k)             (proportional to the thrust)
+  * stribeck: −F_s exp(−(ẋ/v_s)²) S_f(ẋ)                          (friction hump at low speed)
+  * asymmetric_friction: −(ΔF_c S_f(ẋ) + ΔB ẋ) for ẋ > 0           (direction-dependent friction)
+  * position_dependent_friction: −c (x − x_ref) S_f(ẋ)              (Coulomb level varying with x)
+  * spring: −k (x − x_0)                                           (cable carrier)
+  * payload_change: mass += Δm from t_change on
+  * periodic_disturbance: A sin(2π f t + φ)                        (time-periodic)
+plus ``input_delay_s`` (whole samples of transport delay) and ``force_noise_N`` (Gaussian,
+held per period, seeded).
+
+Fault injection for tests (:meth:`SimDriver.inject`): read errors, NaN positions, encoder
+jumps and amplifier faults for a number of cycles.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated
+
+import numpy as np
+from pydantic import Field
+
+from motorctl.driver import Driver, StrictModel
+from motorctl.model import PhysicalAxis
+
+Pos = Annotated[float, Field(gt=0)]
+NonNeg = Annotated[float, Field(ge=0)]
+_TWO_OVER_PI = 2.0 / math.pi
+_SF = 900.0
+
+
+class Cogging(StrictModel):
+    amplitudes_N: list[float] = Field(min_length=1)
+    period_m: Pos
+    phases_rad: list[float] = []
+
+
+class ForceRipple(StrictModel):
+    fractions: list[float] = Field(min_length=1)
+    period_m: Pos
+    phases_rad: list[float] = []
+
+
+class Stribeck(StrictModel):
+    force_N: NonNeg
+    velocity_m_per_s: Pos
+
+
+class AsymmetricFriction(StrictModel):
+    coulomb_N: float = 0.0
+    viscous_N_s_per_m: float = 0.0
+
+
+class PositionDependentFriction(StrictModel):
+    coulomb_slope_N_per_m: float
+    reference_m: float = 0.0
+
+
+class Spring(StrictModel):
+    stiffness_N_per_m: float
+    rest_position_m: float = 0.0
+
+
+class PayloadChange(StrictModel):
+    t_change_s: NonNeg
+    mass_kg: float
+
+
+class PeriodicDisturbance(StrictModel):
+    amplitude_N: float
+    frequency_Hz: Pos
+    phase_rad: float = 0.0
+
+
+class Effects(StrictModel):
+    cogging: Cogging | None = None
+    force_ripple: ForceRipple | None = None
+    stribeck: Stribeck | None = None
+    asymmetric_friction: AsymmetricFriction | None = None
+    position_dependent_friction: PositionDependentFriction | None = None
+    spring: Spring | None = None
+    payload_change: PayloadChange | None = None
+    periodic_disturbance: PeriodicDisturbance | None = None
+
+
+class SimAxisOptions(StrictModel):
+    """Per-axis plant (YAML ``axes.NAME.driver``); SI units, paper eq. (1) and (3)."""
+
+    mass_kg: Pos
+    a1_N_per_V: Pos
+    a2_N_per_V2: float = 0.0
+    a3_N_per_V3: float = 0.0
+    viscous_N_s_per_m: NonNeg = 0.0
+    coulomb_N: NonNeg = 0.0
+    offset_N: float = 0.0
+    initial_position_m: float = 0.0
+    encoder_resolution_m: Pos = 0.5e-6
+    input_delay_s: NonNeg = 0.0
+    force_noise_N: NonNeg = 0.0
+    effects: Effects = Effects()
+
+    def physical(self) -> PhysicalAxis:
+        return PhysicalAxis(self.mass_kg, self.a1_N_per_V, self.a2_N_per_V2, self.a3_N_per_V3,
+                            self.viscous_N_s_per_m, self.coulomb_N, self.offset_N)
+
+
+class SimOptions(StrictModel):
+    """Driver-level options (YAML ``driver:``)."""
+
+    seed: int = 0
+    substeps: Annotated[int, Field(ge=1, le=100)] = 4
+
+
+class AxisPlant:
+    """One simulated axis. ``step(u, dt)`` integrates one ZOH period; pure floats, no arrays."""
+
+    def __init__(self, opt: SimAxisOptions, period_s: float, rng: np.random.Generator, substeps: int):
+        self.opt = opt
+        self.x = float(opt.initial_position_m)
+        self.xd = 0.0
+        self.t = 0.0
+        self.m = opt.mass_kg
+        self.a1, self.a2, self.a3 = opt.a1_N_per_V, opt.a2_N_per_V2, opt.a3_N_per_V3
+        self.b = opt.viscous_N_s_per_m
+        self.fc = opt.coulomb_N
+        self.f0 = opt.offset_N
+        self.q = opt.encoder_resolution_m
+        self.substeps = substeps
+        self.h = period_s / substeps
+        self.rng = rng
+        self.noise = opt.force_noise_N
+        n_delay = int(round(opt.input_delay_s / period_s))
+        self._delay = [0.0] * n_delay
+        self._di = 0
+        eff = opt.effects
+        self.cog = eff.cogging
+        if self.cog is not None:
+            ph = list(self.cog.phases_rad) + [0.0] * len(self.cog.amplitudes_N)
+            self._cog = [(a, 2 * math.pi * (k + 1) / self.cog.period_m, ph[k])
+                         for k, a in enumerate(self.cog.amplitudes_N)]
+        self.rip = eff.force_ripple
+        if self.rip is not None:
+            ph = list(self.rip.phases_rad) + [0.0] * len(self.rip.fractions)
+            self._rip = [(r, 2 * math.pi * (k + 1) / self.rip.period_m, ph[k])
+                         for k, r in enumerate(self.rip.fractions)]
+        self.strib = eff.stribeck
+        self.asym = eff.asymmetric_friction
+        self.pdf = eff.position_dependent_friction
+        self.spring = eff.spring
+        self.payload = eff.payload_change
+        self.pdist = eff.periodic_disturbance
+        self.f_noise = 0.0
+
+    def _acc(self, x: float, v: float, t: float, u: float) -> float:
+        fm = self.a1 * u + self.a2 * u * abs(u) + self.a3 * u * u * u
+        if self.rip is not None:
+            r = 0.0
+            for amp, k, ph in self._rip:
+                r += amp * math.sin(k * x + ph)
+            fm *= 1.0 + r
+        sf = _TWO_OVER_PI * math.atan(_SF * v)
+        f = fm - self.b * v - self.fc * sf + self.f0 + self.f_noise
+        if self.cog is not None:
+            for amp, k, ph in self._cog:
+                f += amp * math.sin(k * x + ph)
+        if self.strib is not None:
+            vs = v / self.strib.velocity_m_per_s
+            f -= self.strib.force_N * math.exp(-vs * vs) * sf
+        if self.asym is not None and v > 0.0:
+            f -= self.asym.coulomb_N * sf + self.asym.viscous_N_s_per_m * v
+        if self.pdf is not None:
+            f -= self.pdf.coulomb_slope_N_per_m * (x - self.pdf.reference_m) * sf
+        if self.spring is not None:
+            f -= self.spring.stiffness_N_per_m * (x - self.spring.rest_position_m)
+        if self.pdist is not None:
+            p = self.pdist
+            f += p.amplitude_N * math.sin(2.0 * math.pi * p.frequency_Hz * t + p.phase_rad)
+        m = self.m
+        if self.payload is not None and t >= self.payload.t_change_s:
+            m += self.payload.mass_kg
+        return f / m
+
+    def mass_at(self, t: float) -> float:
+        """Moving mass [kg] at plant time t (payload change included)."""
+        if self.payload is not None and t >= self.payload.t_change_s:
+            return self.m + self.payload.mass_kg
+        return self.m
+
+    def step(self, u: float) -> None:
+        """Hold u [V] (after the input delay) over one period; RK4 with ``substeps`` steps."""
+        if self._delay:
+            i = self._di
+            u, self._delay[i] = self._delay[i], u
+            self._di = (i + 1) % len(self._delay)
+        if self.noise > 0.0:
+            self.f_noise = self.noise * float(self.rng.standard_normal())
+        h = self.h
+        x, v, t = self.x, self.xd, self.t
+        acc = self._acc
+        for _ in range(self.substeps):
+            k1x, k1v = v, acc(x, v, t, u)
+            k2x, k2v = v + 0.5 * h * k1v, acc(x + 0.5 * h * k1x, v + 0.5 * h * k1v, t + 0.5 * h, u)
+            k3x, k3v = v + 0.5 * h * k2v, acc(x + 0.5 * h * k2x, v + 0.5 * h * k2v, t + 0.5 * h, u)
+            k4x, k4v = v + h * k3v, acc(x + h * k3x, v + h * k3v, t + h, u)
+            x += h / 6.0 * (k1x + 2.0 * k2x + 2.0 * k3x + k4x)
+            v += h / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v)
+            t += h
+        self.x, self.xd, self.t = x, v, t
+
+    def measured(self) -> float:
+        """Encoder reading [m]: x quantised to the resolution q (spec §5.1)."""
+        q = self.q
+        return q * round(self.x / q)
+
+
+class SimDriver(Driver):
+    """The simulated gantry (default driver; used by CI). See the module docstring."""
+
+    Options = SimOptions
+    AxisOptions = SimAxisOptions
+
+    def __init__(self, options: SimOptions, axis_options: dict, period_s: float):
+        super().__init__(options, axis_options, period_s)
+        rng = np.random.default_rng(options.seed)
+        seeds = rng.integers(0, 2**63 - 1, size=len(self.axis_names))
+        self.plants = [AxisPlant(axis_options[name], period_s, np.random.default_rng(int(s)),
+                                 options.substeps)
+                       for name, s in zip(self.axis_names, seeds)]
+        self.amp_enabled = np.zeros(len(self.plants), dtype=bool)
+        self._inject = [[0, 0, 0, 0] for _ in self.plants]  # cycles left: read_error, nan, amp_fault; jump flag
+        self._jump_m = [0.0] * len(self.plants)
+        for i, p in enumerate(self.plants):
+            self.position_m[i] = p.measured()
+
+    def read(self) -> None:
+        pos = self.position_m
+        for i, plant in enumerate(self.plants):
+            inj = self._inject[i]
+            if inj[0] > 0:
+                inj[0] -= 1
+                self.read_error[i] = True
+                continue
+            self.read_error[i] = False
+            if inj[1] > 0:
+                inj[1] -= 1
+                pos[i] = math.nan
+                continue
+            pos[i] = plant.measured() + self._jump_m[i]
+            self.amp_fault[i] = inj[2] > 0
+            if inj[2] > 0:
+                inj[2] -= 1
+
+    def write(self, u_V: np.ndarray, enable: np.ndarray) -> None:
+        for i, plant in enumerate(self.plants):
+            on = bool(enable[i]) and not self.amp_fault[i]
+            self.amp_enabled[i] = on
+            u = float(u_V[i]) if on else 0.0
+            if u != u:  # NaN never reaches the amplifier
+                u = 0.0
+            plant.step(u)
+
+    def close(self) -> None:
+        self.amp_enabled[:] = False
+
+    def inject(self, kind: str, axis: str, cycles: int = 1, jump_m: float = 0.0) -> None:
+        """Inject a fault on ``axis`` for ``cycles`` reads (tests only, not inside the cycle).
+
+        kind: 'read_error' (exchange fails), 'nan' (position NaN), 'amp_fault' (amplifier
+        reports a fault), 'encoder_jump' (a permanent offset of ``jump_m`` [m]).
+        Raises:
+            ValueError: unknown kind or axis.
+        """
+        if axis not in self.axis_names:
+            raise ValueError(f"unknown axis {axis!r}; axes: {', '.join(self.axis_names)}")
+        i = self.axis_names.index(axis)
+        slots = {"read_error": 0, "nan": 1, "amp_fault": 2}
+        if kind == "encoder_jump":
+            self._jump_m[i] += jump_m
+        elif kind in slots:
+            self._inject[i][slots[kind]] = int(cycles)
+        else:
+            raise ValueError(f"unknown fault kind {kind!r}; allowed: read_error, nan, amp_fault, encoder_jump")
+
+    def describe(self) -> dict:
+        """Simulated truth per axis for the log header: θ (6), A1, and the effects switched on."""
+        out = {}
+        for name, p in zip(self.axis_names, self.plants):
+            opt = p.opt
+            out[name] = {
+                "theta_true": opt.physical().theta().tolist(),
+                "a1_N_per_V": opt.a1_N_per_V,
+                "effects": opt.effects.model_dump(exclude_none=True),
+                "input_delay_s": opt.input_delay_s,
+                "force_noise_N": opt.force_noise_N,
+            }
+        return {"simulated": out}

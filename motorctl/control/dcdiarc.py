@@ -1,0 +1,217 @@
+"""The DCDIARC law of Chen, Yao & Wang (2013): C2 (cubic model) and C1 (linear model).
+
+Per sample k (spec §5.2)::
+
+    x2   = (y[k] − y[k−1]) / Ts                                   backward difference
+    estimator.update(x2, u[k−1])                                  eq. (25)-(28), (7)-(8)
+    e    = y − x_d,  p = ė + k1 e                                 eq. (11)
+    d̂0  ← clip(d̂0 + Ts γ_d p, ±d̂_max)                            eq. (19)
+    v_a1 = θ̂1 ẍ_d + θ̂2 ẋ_d + θ̂3 S_f(ẋ_d) − θ̂4                   eq. (13), desired compensation
+    v_a2 = −d̂0                                                   eq. (18)
+    v_s  = −k_s p              (experiment mode, k_s = 95)
+         = −(k_s1 + k_s2) p    (theory mode, eq. 22)
+    v    = v_a1 + v_a2 + v_s
+    u    = f_u⁻¹(v; θ̂5, θ̂6, u_M), clipped to ±u_lim                eq. (9), C2 only; C1: u = v
+
+C1 is the same class with four parameters (θ5 = θ6 ≡ 0, no inversion), spec §3.5.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from motorctl.control.estimator import LeastSquaresEstimator
+from motorctl.control.inversion import invert_cubic
+from motorctl.model import S_F_GAIN, s_f_scalar
+
+
+@dataclass(frozen=True)
+class ControllerParams:
+    """All settings of one DCDIARC controller (spec §6.2, §7). Vectors have 4 (C1) or 6 (C2) entries.
+
+    Attributes:
+        kind: "c1" or "c2".  mode: "experiment" (constant k_s) or "theory" (k_s1 + k_s2, eq. 22).
+        k_s [V s/m], k1 [1/s], gamma_d [V/m], d_hat_max [V].
+        theta_min, theta_max, theta_hat0: the box Ω_θ and θ̂(0).  gamma0: diagonal of Γ(0).
+        omega_f [rad/s]: H_f corner.  mu [1/s], nu, rho_M: LS settings (eq. 27).
+        u_lim [V]: actuator limit u_M of Assumption 2 and the output clamp.
+        k2 [V s/m], eta [V²·... ], delta_d [V]: theory-mode design numbers (eq. 14-15, 22).
+        k_s1: theory-mode k_s1; None computes the smallest value meeting the bound of spec §3.3.
+    """
+
+    kind: str
+    theta_min: tuple
+    theta_max: tuple
+    theta_hat0: tuple
+    gamma0: tuple
+    mode: str = "experiment"
+    k_s: float = 95.0
+    k1: float = 250.0
+    gamma_d: float = 500.0
+    d_hat_max: float = 1.0
+    omega_f: float = 200.0
+    mu: float = 0.0
+    nu: float = 0.0
+    rho_M: float = 1000.0
+    u_lim: float = 10.0
+    k2: float = 10.0
+    eta: float = 0.05
+    delta_d: float = 0.3
+    k_s1: float | None = None
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def n_theta(self) -> int:
+        return 6 if self.kind == "c2" else 4
+
+
+def theory_k_s1(theta_min, theta_max, k1: float, k2: float) -> float:
+    """Smallest k_s1 meeting the PSD condition of spec §3.3 (paper eq. 14-15, as reconstructed).
+
+    k_s1 ≥ k2 + θ1 k1 − θ2 − θ3 g + (θ2 + θ3 g)²/(2 θ1 k1) for all θ ∈ Ω_θ, 0 ≤ g ≤ 1800/π.
+    The right side is convex in g and in (θ2, θ3), so the maximum over the box corners and the
+    end points of g is exact; a grid in g guards the corner enumeration.
+    """
+    g_max = 2.0 * S_F_GAIN / math.pi
+    worst = -math.inf
+    for t1 in (theta_min[0], theta_max[0]):
+        for t2 in (theta_min[1], theta_max[1]):
+            for t3 in (theta_min[2], theta_max[2]):
+                for g in np.linspace(0.0, g_max, 65):
+                    val = k2 + t1 * k1 - t2 - t3 * g + (t2 + t3 * g) ** 2 / (2.0 * t1 * k1)
+                    worst = max(worst, val)
+    return float(worst)
+
+
+class DCDIARC:
+    """One axis of C1 or C2. Call :meth:`update` once per sample; it returns u [V].
+
+    Args:
+        params: :class:`ControllerParams`.
+        ts: sample period [s].
+    Raises:
+        ValueError: inconsistent parameter sizes, θ̂(0) outside the box, unknown kind/mode.
+    """
+
+    def __init__(self, params: ControllerParams, ts: float):
+        if params.kind not in ("c1", "c2"):
+            raise ValueError(f"controller kind must be 'c1' or 'c2', got {params.kind!r}")
+        if params.mode not in ("experiment", "theory"):
+            raise ValueError(f"controller mode must be 'experiment' or 'theory', got {params.mode!r}")
+        n = params.n_theta
+        self.params = params
+        self.kind = params.kind
+        self.n_theta = n
+        self.ts = float(ts)
+        self.estimator = LeastSquaresEstimator(
+            params.theta_hat0[:n], params.theta_min[:n], params.theta_max[:n],
+            np.diag(params.gamma0[:n]), params.omega_f, ts, params.mu, params.nu, params.rho_M)
+        self.theta_hat = self.estimator.theta_hat  # shared list, updated in place
+        self.k_s = float(params.k_s)
+        self.k1 = float(params.k1)
+        self.gamma_d = float(params.gamma_d)
+        self.d_hat_max = float(params.d_hat_max)
+        self.u_lim = float(params.u_lim)
+        self.theory = params.mode == "theory"
+        th_span = [params.theta_max[i] - params.theta_min[i] for i in range(n)]
+        self._theta_span = th_span
+        if self.theory:
+            self.k_s1 = (theory_k_s1(params.theta_min, params.theta_max, self.k1, params.k2)
+                         if params.k_s1 is None else float(params.k_s1))
+        else:
+            self.k_s1 = self.k_s
+        self._eta4 = 4.0 * params.eta
+        self._delta_d = float(params.delta_d)
+        # outputs of the last step (for logging)
+        self.y_prev = 0.0
+        self.u = 0.0
+        self.v = 0.0
+        self.e = 0.0
+        self.p = 0.0
+        self.x2 = 0.0
+        self.d_hat0 = 0.0
+        self.k_s_eff = self.k_s1
+        self._started = False
+
+    def reset(self, y0: float, keep_theta: bool = True) -> None:
+        """Start (or restart) from the measured position y0 [m] with u = 0 and d̂0 = 0.
+
+        θ̂ and Γ are kept unless keep_theta is False (then θ̂(0), Γ(0) are restored).
+        """
+        if not keep_theta:
+            p = self.params
+            n = self.n_theta
+            self.estimator.__init__(p.theta_hat0[:n], p.theta_min[:n], p.theta_max[:n],
+                                    np.diag(p.gamma0[:n]), p.omega_f, self.ts, p.mu, p.nu, p.rho_M)
+            self.theta_hat = self.estimator.theta_hat
+        self.estimator.reset_filters()
+        self.y_prev = float(y0)
+        self.u = 0.0
+        self.v = 0.0
+        self.d_hat0 = 0.0
+        self._started = True
+
+    def update(self, y: float, x_d: float, xd_dot: float, xd_ddot: float) -> float:
+        """One control sample (spec §5.2). Returns u [V], |u| ≤ u_lim.
+
+        Args:
+            y: measured position [m]. x_d, xd_dot, xd_ddot: desired position [m],
+            velocity [m/s] and acceleration [m/s²] at this sample.
+        """
+        if not self._started:
+            self.reset(y)
+        ts = self.ts
+        x2 = (y - self.y_prev) / ts
+        self.y_prev = y
+        self.x2 = x2
+        est = self.estimator
+        est.update(x2, self.u)
+        th = self.theta_hat
+        e = y - x_d
+        p = (x2 - xd_dot) + self.k1 * e
+        d0 = self.d_hat0 + ts * self.gamma_d * p
+        dmax = self.d_hat_max
+        if d0 > dmax:
+            d0 = dmax
+        elif d0 < -dmax:
+            d0 = -dmax
+        self.d_hat0 = d0
+        sfd = s_f_scalar(xd_dot)
+        va1 = th[0] * xd_ddot + th[1] * xd_dot + th[2] * sfd - th[3]
+        if self.theory:
+            # k_s2 = (d̂_max + Σ θ_Mi |φ_di| + δ_d)² / (4η), eq. (22), componentwise bound,
+            # with the previous u in φ_d to break the algebraic loop (spec §3.3).
+            span = self._theta_span
+            h = (span[0] * abs(xd_ddot) + span[1] * abs(xd_dot) + span[2] * abs(sfd) + span[3])
+            if self.n_theta == 6:
+                up = self.u
+                h += span[4] * up * up + span[5] * abs(up * up * up)
+            h += dmax + self._delta_d
+            ks = self.k_s1 + h * h / self._eta4
+        else:
+            ks = self.k_s
+        self.k_s_eff = ks
+        v = va1 - d0 - ks * p
+        ulim = self.u_lim
+        if self.n_theta == 6:
+            u = invert_cubic(v, th[4], th[5], ulim)
+        else:
+            u = v
+        if u > ulim:
+            u = ulim
+        elif u < -ulim:
+            u = -ulim
+        self.e = e
+        self.p = p
+        self.v = v
+        self.u = u
+        return u
+
+    def theta_vector(self) -> np.ndarray:
+        """θ̂ padded to 6 entries (θ̂5 = θ̂6 = 0 for C1), new array (not for the cycle)."""
+        out = np.zeros(6)
+        out[: self.n_theta] = self.theta_hat
+        return out

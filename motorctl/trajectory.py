@@ -1,0 +1,149 @@
+"""Desired trajectories x_d(t), ẋ_d(t), ẍ_d(t): jerk-limited point-to-point moves, repeated programs, hold.
+
+A move from rest to rest over a distance D uses the 7-segment jerk-limited profile (jerk ±j,
+acceleration ≤ a_max, velocity ≤ v_max): jerk-up, constant acceleration, jerk-down, cruise,
+and the mirror image. When D is too short to reach v_max (or a_max), the peak velocity is
+lowered by bisection until the profile fits exactly. The X program of the paper's Fig. 3
+(0 ↔ 0.4 m, 2 m/s, 40 m/s², 4000 m/s³) takes 0.26 s a move (spec §7).
+
+Sampling (:meth:`Program.sample`) is pure float arithmetic on precomputed segments, cheap
+enough for the 5 kHz cycle; at and after the end of a move the position is the end point
+exactly.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from dataclasses import dataclass
+
+
+def _accel_phase(v: float, a_max: float, j_max: float) -> tuple[float, float]:
+    """(T_j, T_a) to go from rest to velocity v with jerk j_max and acceleration ≤ a_max."""
+    if v * j_max <= a_max * a_max:
+        return math.sqrt(v / j_max), 0.0
+    tj = a_max / j_max
+    return tj, v / a_max - tj
+
+
+@dataclass(frozen=True)
+class Move:
+    """One rest-to-rest jerk-limited move from ``start`` to ``end`` [m] beginning at ``t0`` [s].
+
+    Raises:
+        ValueError: a limit is not positive.
+    """
+
+    start: float
+    end: float
+    v_max: float
+    a_max: float
+    j_max: float
+    t0: float = 0.0
+
+    def __post_init__(self):
+        for name in ("v_max", "a_max", "j_max"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        dist = abs(self.end - self.start)
+        sgn = 1.0 if self.end >= self.start else -1.0
+        v = self.v_max
+        tj, ta = _accel_phase(v, self.a_max, self.j_max)
+        if dist < v * (2 * tj + ta):
+            lo, hi = 0.0, v
+            for _ in range(200):
+                mid = 0.5 * (lo + hi)
+                tj, ta = _accel_phase(mid, self.a_max, self.j_max)
+                if mid * (2 * tj + ta) > dist:
+                    hi = mid
+                else:
+                    lo = mid
+            v = lo
+            tj, ta = _accel_phase(v, self.a_max, self.j_max)
+        tv = (dist - v * (2 * tj + ta)) / v if v > 0 else 0.0
+        tv = max(tv, 0.0)
+        j = self.j_max * sgn
+        durations = [tj, ta, tj, tv, tj, ta, tj]
+        jerks = [j, 0.0, -j, 0.0, -j, 0.0, j]
+        # integrate segment start states exactly
+        starts, states = [], []
+        t, p, vel, acc = self.t0, self.start, 0.0, 0.0
+        for d, jj in zip(durations, jerks):
+            starts.append(t)
+            states.append((p, vel, acc, jj))
+            p += vel * d + acc * d * d / 2 + jj * d**3 / 6
+            vel += acc * d + jj * d * d / 2
+            acc += jj * d
+            t += d
+        object.__setattr__(self, "_starts", starts)
+        object.__setattr__(self, "_states", states)
+        object.__setattr__(self, "duration", sum(durations))
+        object.__setattr__(self, "peak_velocity", v)
+
+    def sample(self, t: float) -> tuple[float, float, float]:
+        """(x_d [m], ẋ_d [m/s], ẍ_d [m/s²]) at time t [s]; rest at start/end outside the move."""
+        if t <= self.t0:
+            return self.start, 0.0, 0.0
+        if t >= self.t0 + self.duration:
+            return self.end, 0.0, 0.0
+        i = bisect.bisect_right(self._starts, t) - 1
+        p, v, a, j = self._states[i]
+        d = t - self._starts[i]
+        return (p + v * d + a * d * d / 2 + j * d * d * d / 6, v + a * d + j * d * d / 2, a + j * d)
+
+
+class Program:
+    """A repeated point-to-point program: moves at fixed times within a period, or a hold.
+
+    Args:
+        points: positions visited in turn [m] (≥ 1 entry; one entry = hold there).
+        move_times: start time of each move within the period [s], one per point (the move
+            at move_times[i] goes to points[(i+1) % len(points)]).
+        period: repetition period [s]; 0 = play once and stay at the last point.
+        v_max, a_max, j_max: limits [m/s, m/s², m/s³].
+        t_start: program time zero [s].
+    Raises:
+        ValueError: moves overlap, do not fit in the period, or limits are not positive.
+    """
+
+    def __init__(self, points, move_times, period: float, v_max: float, a_max: float,
+                 j_max: float, t_start: float = 0.0):
+        self.points = [float(p) for p in points]
+        if not self.points:
+            raise ValueError("a program needs at least one point")
+        self.period = float(period)
+        self.t_start = float(t_start)
+        self.moves: list[Move] = []
+        if len(self.points) > 1:
+            if len(move_times) != len(self.points):
+                raise ValueError("move_times needs one start time per point")
+            n = len(self.points)
+            for i, t0 in enumerate(move_times):
+                self.moves.append(Move(self.points[i], self.points[(i + 1) % n], v_max, a_max,
+                                       j_max, float(t0)))
+            for a, b in zip(self.moves, self.moves[1:]):
+                if a.t0 + a.duration > b.t0 + 1e-12:
+                    raise ValueError(f"move at {a.t0} s (duration {a.duration:.3f} s) overlaps the move at {b.t0} s")
+            last = self.moves[-1]
+            if self.period > 0 and last.t0 + last.duration > self.period + 1e-12:
+                raise ValueError(f"moves do not fit in the period {self.period} s")
+        self._move_t0 = [m.t0 for m in self.moves]
+
+    @classmethod
+    def hold(cls, position: float = 0.0) -> "Program":
+        """Stay at ``position`` [m]."""
+        return cls([position], [], 0.0, 1.0, 1.0, 1.0)
+
+    def sample(self, t: float) -> tuple[float, float, float]:
+        """(x_d, ẋ_d, ẍ_d) at absolute time t [s]. Pure floats, no allocation beyond the tuple."""
+        if not self.moves:
+            return self.points[0], 0.0, 0.0
+        tau = t - self.t_start
+        if tau < 0.0:
+            return self.points[0], 0.0, 0.0
+        if self.period > 0.0:
+            tau = math.fmod(tau, self.period)
+        i = bisect.bisect_right(self._move_t0, tau) - 1
+        if i < 0:
+            return self.moves[0].start, 0.0, 0.0
+        return self.moves[i].sample(tau)
