@@ -19,7 +19,7 @@ C1 is the same class with four parameters (θ5 = θ6 ≡ 0, no inversion), spec 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -61,7 +61,7 @@ class ControllerParams:
     eta: float = 0.05
     delta_d: float = 0.3
     k_s1: float | None = None
-    extra: dict = field(default_factory=dict)
+    compensation: object = None   # CompensationConfig or None
 
     @property
     def n_theta(self) -> int:

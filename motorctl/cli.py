@@ -1,0 +1,196 @@
+"""The ``motorctl`` command line.
+
+Local subcommands: ``run``, ``compare``, ``check-config``, ``plot``. Further subcommands come
+from the modules in :data:`COMMAND_MODULES`, each with ``register(parser, subparsers)`` adding
+its parsers with ``set_defaults(func=handler)``; a handler returns the exit code.
+
+Exit codes: 0 success, 1 the job ran but failed (fault, comparison bound), 2 bad input
+(config, arguments, data): one clear line on stderr, nothing started.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+
+DEFAULT_CONFIG = "configs/gantry.yaml"
+
+#: Modules that add subcommands (daemon control, emulator, identification).
+COMMAND_MODULES = ("motorctl.ctl", "motorctl.ident.cli", "motorctl_drivers.emulator")
+
+
+class UsageError(Exception):
+    """Bad input found by a handler: printed as one line, exit code 2."""
+
+
+def _default_config() -> str:
+    return DEFAULT_CONFIG
+
+
+def _load(path: str, check_budget: bool = True):
+    from motorctl.config import load_config
+    return load_config(path, check_budget=check_budget)
+
+
+def _print_table(rows: list[list[str]], out) -> None:
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    for r in rows:
+        out.write("  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))) + "\n")
+
+
+# --------------------------------------------------------------------------- run
+def cmd_run(args) -> int:
+    from motorctl.job import run_job
+    loaded = _load(args.config)
+    axes = _select_axes(loaded, args.axis)
+    res = run_job(loaded, axes=axes, controller=args.controller, duration_s=args.duration,
+                  clock="virtual" if args.virtual_clock else None, log_path=args.log,
+                  realtime_policy=args.realtime)
+    out = sys.stdout
+    rows = [["axis", "ctrl", "e_M um", "e_F um", "L2[e] um", "u_peak V", "fault"]]
+    for a, r in res.axes.items():
+        rows.append([a, r["controller"], f"{r.get('e_M_um', float('nan')):.2f}",
+                     f"{r.get('e_F_um', float('nan')):.2f}", f"{r.get('L2_um', float('nan')):.3f}",
+                     f"{r.get('u_peak_V', float('nan')):.2f}", r["fault"] or "-"])
+    _print_table(rows, out)
+    tm = res.timing
+    if tm.get("cycles"):
+        out.write(f"loop: {tm['cycles']} cycles at {1 / loaded.period_s:.0f} Hz "
+                  f"({'virtual' if args.virtual_clock or loaded.cfg.loop.clock == 'virtual' else 'wall'} clock); "
+                  f"turnaround p50 {tm['turnaround_p50_us']:.1f} / p99 {tm['turnaround_p99_us']:.1f} / "
+                  f"p99.9 {tm['turnaround_p999_us']:.1f} / max {tm['turnaround_max_us']:.1f} us; "
+                  f"lateness p99 {tm['lateness_p99_us']:.1f} us; overruns {tm['overruns']}\n")
+    rt = res.realtime
+    out.write("realtime: " + ", ".join(f"{k} {'yes' if v['obtained'] else 'no'} ({v['detail']})"
+                                       for k, v in rt.items()) + "\n")
+    if res.log_path:
+        out.write(f"log: {res.log_path}\n")
+    if res.stopped_by_signal:
+        out.write(f"stopped by {res.stopped_by_signal}: all axes at 0 V, amplifiers off\n")
+    return 1 if any(r["fault"] for r in res.axes.values()) else 0
+
+
+def _select_axes(loaded, axis):
+    if axis is None:
+        return None
+    if axis not in loaded.axes:
+        raise UsageError(f"{loaded.path}: no axis {axis!r}; axes: {', '.join(loaded.axes)}")
+    return [axis]
+
+
+# --------------------------------------------------------------------------- compare
+def cmd_compare(args) -> int:
+    from motorctl.job import run_job
+    from motorctl.metrics import PAPER_TABLES
+    loaded = _load(args.config)
+    results = {}
+    for kind in ("c1", "c2"):
+        res = run_job(loaded, controller=kind, duration_s=args.duration,
+                      clock="wall" if args.wall_clock else "virtual")
+        for a, r in res.axes.items():
+            results.setdefault(a, {})[kind] = {k: r[k] for k in ("e_M_um", "e_F_um", "L2_um", "u_peak_V")}
+    if args.json:
+        sys.stdout.write(json.dumps(results) + "\n")
+        return 0
+    out = sys.stdout
+    keys = (("e_M_um", "e_M um"), ("e_F_um", "e_F um"), ("L2_um", "L2[e] um"), ("u_peak_V", "u_peak V"))
+    for a, r in results.items():
+        out.write(f"\naxis {a} ({args.duration or loaded.cfg.loop.duration_s:g} s, same seeded plant)\n")
+        paper = PAPER_TABLES.get(a)
+        rows = [["index", "C1", "C2", "C2/C1"] + (["paper C1", "paper C2", "paper C2/C1"] if paper else [])]
+        for k, label in keys:
+            row = [label, f"{r['c1'][k]:.2f}", f"{r['c2'][k]:.2f}", f"{r['c2'][k] / r['c1'][k]:.2f}"]
+            if paper:
+                row += [f"{paper['c1'][k]:.2f}", f"{paper['c2'][k]:.2f}", f"{paper['c2'][k] / paper['c1'][k]:.2f}"]
+            rows.append(row)
+        _print_table(rows, out)
+    return 0
+
+
+# --------------------------------------------------------------------------- check-config
+def cmd_check_config(args) -> int:
+    loaded = _load(args.config)
+    drv = loaded.make_driver()
+    b = drv.budget(loaded.cfg.loop.rate_hz)
+    sys.stdout.write(f"{loaded.path}: ok: {len(loaded.axes)} axes ({', '.join(loaded.axes)}), "
+                     f"driver {loaded.cfg.driver.type}, {loaded.cfg.loop.rate_hz:g} Hz")
+    if b.max_rate_hz != float("inf"):
+        sys.stdout.write(f"; bus {b.cycle_time_s * 1e6:.1f} us per cycle, max {b.max_rate_hz:.0f} Hz ({b.detail})")
+    sys.stdout.write("\n")
+    return 0
+
+
+# --------------------------------------------------------------------------- plot
+def cmd_plot(args) -> int:
+    from motorctl.plots import plot_log
+    files = plot_log(args.log, args.out)
+    for f in files:
+        sys.stdout.write(f"{f}\n")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="motorctl", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+
+    r = sub.add_parser("run", help="run the servo loop on a config (the main job)")
+    r.add_argument("config", nargs="?", default=_default_config())
+    r.add_argument("--axis", help="run only this axis")
+    r.add_argument("--controller", choices=("c1", "c2"), help="override every axis's controller")
+    r.add_argument("--duration", type=float, help="run length in s (default: loop.duration_s)")
+    r.add_argument("--log", help="write the run log here")
+    r.add_argument("--virtual-clock", action="store_true", help="run as fast as possible (same results)")
+    r.add_argument("--realtime", choices=("off", "best_effort", "required"),
+                   help="override loop.realtime.policy")
+    r.set_defaults(func=cmd_run)
+
+    c = sub.add_parser("compare", help="C1 against C2 on the same seeded plant, beside the paper's tables")
+    c.add_argument("config", nargs="?", default=_default_config())
+    c.add_argument("--duration", type=float, help="run length in s (default: loop.duration_s = 40)")
+    c.add_argument("--json", action="store_true", help="print one JSON object and nothing else")
+    c.add_argument("--wall-clock", action="store_true", help="pace by the wall clock (default: virtual)")
+    c.set_defaults(func=cmd_compare)
+
+    k = sub.add_parser("check-config", help="check a config; exit 0 if it is valid")
+    k.add_argument("config", nargs="?", default=_default_config())
+    k.set_defaults(func=cmd_check_config)
+
+    pl = sub.add_parser("plot", help="PNG figures of a run log (like the paper's Figs. 4-12)")
+    pl.add_argument("log")
+    pl.add_argument("--out", default=None, help="output directory (default: LOG without suffix + '_plots')")
+    pl.set_defaults(func=cmd_plot)
+
+    for mod in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(mod)
+        except ModuleNotFoundError as exc:
+            if exc.name and mod.startswith(exc.name):
+                continue  # that part is not installed
+            raise
+        module.register(p, sub)
+    return p
+
+
+def main(argv=None) -> int:
+    from motorctl.config import ConfigError
+    from motorctl.runlog import LogError
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (ConfigError, UsageError, LogError) as exc:
+        sys.stderr.write(f"motorctl: error: {exc}\n")
+        return 2
+    except FileNotFoundError as exc:
+        sys.stderr.write(f"motorctl: error: {exc.filename}: no such file\n")
+        return 2
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
+

@@ -1,0 +1,355 @@
+"""Strict YAML configuration: one clear error naming the file and the key, nothing started.
+
+Checks, in order:
+  1. YAML syntax and **duplicate keys** (PyYAML silently keeps the last one; we refuse).
+  2. The schema (pydantic, strict): unknown keys, wrong types, out-of-range values.
+  3. The driver's own option schemas (found through the ``motorctl.drivers`` entry points).
+  4. Cross-field rules: θ_min ≤ θ̂(0) ≤ θ_max, θ_min < θ_max, λ_max(Γ(0)) ≤ ρ_M, the paper's
+     Assumption 2 (f_u monotonic on |u| ≤ u_lim over the θ5/θ6 box), trajectory moves fit
+     their period, soft limits contain the program.
+
+The layout (see ``configs/gantry.yaml``)::
+
+    loop:    {rate_hz, clock, realtime: {...}}
+    driver:  {type: sim, <driver options>}
+    axes:
+      X:
+        driver:     {<per-axis driver options>}
+        controller: {type: c1|c2, mode, k_s, k1, gamma_d, d_hat_max, u_lim, theta_min, theta_max,
+                     theta_hat0, gamma0, filter: {omega_f}, mu, nu, rho_M, theory: {...}}
+        trajectory: {points, move_times_s, period_s, v_max, a_max, j_max}
+        limits:     {soft_min_m, soft_max_m, following_error_m, min_following_error_m, ...}
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal, get_args, get_origin
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, Field, ValidationError
+
+from motorctl.compensation import CompensationConfig
+from motorctl.control.dcdiarc import ControllerParams
+from motorctl.driver import Driver, StrictModel, load_driver_class
+from motorctl.model import assumption2_margin
+from motorctl.trajectory import Program
+
+Pos = Annotated[float, Field(gt=0)]
+NonNeg = Annotated[float, Field(ge=0)]
+Vec6 = Annotated[list[float], Field(min_length=6, max_length=6)]
+
+
+class ConfigError(ValueError):
+    """A config file is wrong. ``str()`` is the one-line message: ``FILE: KEY: what, allowed``."""
+
+    def __init__(self, file: str, key: str, message: str):
+        self.file, self.key, self.message = str(file), key, message
+        super().__init__(f"{file}: {key}: {message}" if key else f"{file}: {message}")
+
+
+# --------------------------------------------------------------------------- YAML
+class _StrictLoader(yaml.SafeLoader):
+    """SafeLoader that refuses duplicate mapping keys."""
+
+
+def _construct_mapping(loader, node, deep=False):
+    seen = {}
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=deep)
+        if key in seen:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"duplicate key {key!r} (first at line {seen[key] + 1})", key_node.start_mark)
+        seen[key] = key_node.start_mark.line
+    return loader.construct_mapping(node, deep=deep)
+
+
+_StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
+
+
+def load_yaml(path: str | Path) -> dict:
+    """Parse a YAML file strictly. Raises ConfigError on a missing file, syntax error or duplicate key."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(path, "", f"cannot read the file ({exc.strerror or exc})") from None
+    try:
+        data = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 (SafeLoader subclass)
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark
+        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise ConfigError(path, where, exc.problem or str(exc)) from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(path, "", f"not valid YAML ({exc})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(path, "", "the top level must be a mapping with 'loop', 'driver' and 'axes'")
+    return data
+
+
+# --------------------------------------------------------------------------- schema
+class RealtimeConfig(StrictModel):
+    """Real-time set-up of the loop process (reported either way; ``required`` refuses to start)."""
+
+    policy: Literal["off", "best_effort", "required"] = "best_effort"
+    priority: Annotated[int, Field(ge=1, le=99)] = 80
+    cpu: Annotated[int, Field(ge=0)] | None = None
+    lock_memory: bool = True
+    spin_us: Annotated[float, Field(ge=0, le=1000)] = 60.0
+
+
+class LoopConfig(StrictModel):
+    rate_hz: Annotated[float, Field(gt=0, le=20000)] = 5000.0
+    clock: Literal["wall", "virtual"] = "wall"
+    duration_s: Annotated[float, Field(gt=0)] = 40.0
+    realtime: RealtimeConfig = RealtimeConfig()
+
+
+class FilterConfig(StrictModel):
+    omega_f: Pos = 200.0
+
+
+class TheoryConfig(StrictModel):
+    """Theory-mode design numbers (eq. 14-15, 22): k2 [V s/m], eta, delta_d [V], optional k_s1."""
+
+    k2: Pos = 10.0
+    eta: Pos = 0.05
+    delta_d: NonNeg = 0.3
+    k_s1: Pos | None = None
+
+
+class ControllerConfig(StrictModel):
+    type: Literal["c1", "c2"] = "c2"
+    mode: Literal["experiment", "theory"] = "experiment"
+    k_s: Pos = 95.0
+    k1: Pos = 250.0
+    gamma_d: NonNeg = 500.0
+    d_hat_max: NonNeg = 1.0
+    u_lim: Pos = 10.0
+    theta_min: Vec6
+    theta_max: Vec6
+    theta_hat0: Vec6
+    gamma0: Annotated[list[Pos], Field(min_length=6, max_length=6)]
+    filter: FilterConfig = FilterConfig()
+    mu: NonNeg = 0.0
+    nu: NonNeg = 0.0
+    rho_M: Pos = 1000.0
+    theory: TheoryConfig = TheoryConfig()
+    compensation: CompensationConfig = CompensationConfig()
+
+    def params(self, kind: str | None = None) -> ControllerParams:
+        """The controller's parameters; ``kind`` overrides ``type`` (C1 takes the first 4 entries)."""
+        return ControllerParams(
+            kind=kind or self.type, mode=self.mode, k_s=self.k_s, k1=self.k1, gamma_d=self.gamma_d,
+            d_hat_max=self.d_hat_max, u_lim=self.u_lim, theta_min=tuple(self.theta_min),
+            theta_max=tuple(self.theta_max), theta_hat0=tuple(self.theta_hat0),
+            gamma0=tuple(self.gamma0), omega_f=self.filter.omega_f, mu=self.mu, nu=self.nu,
+            rho_M=self.rho_M, k2=self.theory.k2, eta=self.theory.eta,
+            delta_d=self.theory.delta_d, k_s1=self.theory.k_s1,
+            compensation=None if self.compensation.is_empty() else self.compensation)
+
+
+class TrajectoryConfig(StrictModel):
+    """Repeated point-to-point program (one point = hold). Times in s, limits in SI."""
+
+    points: Annotated[list[float], Field(min_length=1)] = [0.0]
+    move_times_s: list[NonNeg] = []
+    period_s: NonNeg = 0.0
+    v_max: Pos = 1.0
+    a_max: Pos = 10.0
+    j_max: Pos = 1000.0
+    start_s: NonNeg = 0.0
+
+    def program(self, offset: float = 0.0) -> Program:
+        return Program([p + offset for p in self.points], self.move_times_s, self.period_s,
+                       self.v_max, self.a_max, self.j_max, self.start_s)
+
+
+class LimitsConfig(StrictModel):
+    """Supervisor limits (LinuxCNC semantics). Lengths in m, velocities in m/s.
+
+    following_error_m applies at max_velocity_m_per_s and scales with |ẋ_d| down to
+    min_following_error_m; encoder_jump_m is the largest position change one cycle may show.
+    """
+
+    soft_min_m: float = -1.0
+    soft_max_m: float = 1.0
+    following_error_m: Pos = 0.002
+    min_following_error_m: Pos = 0.0005
+    max_velocity_m_per_s: Pos = 3.0
+    encoder_jump_m: Pos = 0.005
+    error_bucket_increment: Annotated[int, Field(ge=1)] = 10
+    error_bucket_decrement: Annotated[int, Field(ge=1)] = 1
+    error_bucket_limit: Annotated[int, Field(ge=1)] = 100
+
+
+class AxisConfig(StrictModel):
+    driver: dict = {}
+    controller: ControllerConfig
+    trajectory: TrajectoryConfig = TrajectoryConfig()
+    limits: LimitsConfig = LimitsConfig()
+
+
+class DriverSection(StrictModel):
+    type: str = "sim"
+    model_config = StrictModel.model_config | {"extra": "allow"}
+
+
+class GantryConfig(StrictModel):
+    loop: LoopConfig = LoopConfig()
+    driver: DriverSection = DriverSection()
+    axes: Annotated[dict[str, AxisConfig], Field(min_length=1)]
+
+
+class LoadedConfig:
+    """A validated config: ``raw`` (schema model), the driver class and its parsed options."""
+
+    def __init__(self, path: Path, cfg: GantryConfig, driver_cls: type[Driver],
+                 driver_options, axis_driver_options: dict):
+        self.path = path
+        self.cfg = cfg
+        self.driver_cls = driver_cls
+        self.driver_options = driver_options
+        self.axis_driver_options = axis_driver_options
+
+    @property
+    def axes(self) -> dict[str, AxisConfig]:
+        return self.cfg.axes
+
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.cfg.loop.rate_hz
+
+    def make_driver(self, axis_names=None) -> Driver:
+        names = list(axis_names) if axis_names else list(self.axes)
+        return self.driver_cls(self.driver_options, {a: self.axis_driver_options[a] for a in names},
+                               self.period_s)
+
+
+def _fmt_loc(prefix: str, loc) -> str:
+    parts = [prefix] if prefix else []
+    for item in loc:
+        if isinstance(item, int):
+            parts[-1] = f"{parts[-1]}[{item}]" if parts else f"[{item}]"
+        else:
+            parts.append(str(item))
+    return ".".join(parts)
+
+
+def _validate(path: Path, model, data, prefix: str = ""):
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = tuple(x for x in err["loc"] if not (isinstance(x, str) and x.startswith("function-")))
+        key = _fmt_loc(prefix, loc)
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            allowed = ", ".join(model_fields_at(model, loc[:-1])) or "none"
+            msg = f"unknown key; allowed here: {allowed}"
+        elif "input" in err and err["type"] != "missing":
+            msg = f"{msg} (got {err['input']!r})"
+        more = f" (and {len(exc.errors()) - 1} more problem(s))" if len(exc.errors()) > 1 else ""
+        raise ConfigError(path, key, msg + more) from None
+
+
+def _submodel(ann):
+    """(model class, keyed) found inside an annotation: M, M | None, Annotated[M, ...], dict[str, M]."""
+    if isinstance(ann, type) and issubclass(ann, BaseModel):
+        return ann, False
+    keyed = get_origin(ann) is dict
+    for arg in get_args(ann):
+        found, _ = _submodel(arg)
+        if found is not None:
+            return found, keyed
+    return None, False
+
+
+def model_fields_at(model, loc) -> list[str]:
+    """Field names of the sub-model reached by following ``loc`` (for 'allowed keys' hints)."""
+    cur, skip = model, False
+    for item in loc:
+        if skip:  # a dict key such as an axis name
+            skip = False
+            continue
+        field = cur.model_fields.get(item) if cur is not None else None
+        if field is None:
+            return []
+        cur, skip = _submodel(field.annotation)
+    return list(cur.model_fields) if cur is not None else []
+
+
+def _cross_checks(path: Path, cfg: GantryConfig) -> None:
+    for name, ax in cfg.axes.items():
+        c = ax.controller
+        pre = f"axes.{name}.controller"
+        for i in range(6):
+            if not c.theta_min[i] < c.theta_max[i] and not (i >= 4 and c.theta_min[i] == c.theta_max[i] == 0):
+                raise ConfigError(path, f"{pre}.theta_min[{i}]",
+                                  f"must be below theta_max[{i}] ({c.theta_min[i]} >= {c.theta_max[i]})")
+            if not c.theta_min[i] <= c.theta_hat0[i] <= c.theta_max[i]:
+                raise ConfigError(path, f"{pre}.theta_hat0[{i}]",
+                                  f"{c.theta_hat0[i]} is outside [theta_min, theta_max] = "
+                                  f"[{c.theta_min[i]}, {c.theta_max[i]}]")
+        if c.theta_min[0] <= 0:
+            raise ConfigError(path, f"{pre}.theta_min[0]",
+                              f"theta1 = M/A1 must be bounded away from 0 (got {c.theta_min[0]}); allowed: > 0")
+        if max(c.gamma0) > c.rho_M:
+            raise ConfigError(path, f"{pre}.gamma0",
+                              f"largest entry {max(c.gamma0)} exceeds rho_M = {c.rho_M} (eq. 27 needs ||Gamma(0)|| <= rho_M)")
+        margin = assumption2_margin((c.theta_min[4], c.theta_max[4]), (c.theta_min[5], c.theta_max[5]), c.u_lim)
+        if margin <= 0:
+            raise ConfigError(path, f"{pre}.theta_min",
+                              f"bounds break Assumption 2: f_u(u) = u + theta5 u|u| + theta6 u^3 is not "
+                              f"monotonic on |u| <= u_lim = {c.u_lim} V (min slope {margin:.3g}); "
+                              f"raise theta_min[4]/theta_min[5] or lower u_lim")
+        t = ax.trajectory
+        tpre = f"axes.{name}.trajectory"
+        if len(t.points) > 1 and len(t.move_times_s) != len(t.points):
+            raise ConfigError(path, f"{tpre}.move_times_s",
+                              f"needs one start time per point ({len(t.points)}), got {len(t.move_times_s)}")
+        try:
+            prog = t.program()
+        except ValueError as exc:
+            raise ConfigError(path, tpre, str(exc)) from None
+        lim = ax.limits
+        lpre = f"axes.{name}.limits"
+        if not lim.soft_min_m < lim.soft_max_m:
+            raise ConfigError(path, f"{lpre}.soft_min_m", "must be below soft_max_m")
+        lo, hi = min(prog.points), max(prog.points)
+        if lo < lim.soft_min_m or hi > lim.soft_max_m:
+            raise ConfigError(path, f"{tpre}.points",
+                              f"program spans [{lo}, {hi}] m, outside the soft limits "
+                              f"[{lim.soft_min_m}, {lim.soft_max_m}] m")
+        if lim.min_following_error_m > lim.following_error_m:
+            raise ConfigError(path, f"{lpre}.min_following_error_m", "must not exceed following_error_m")
+
+
+def load_config(path: str | Path, check_budget: bool = True) -> LoadedConfig:
+    """Load and fully check a config. Raises :class:`ConfigError` (one clear line) on any problem."""
+    path = Path(path)
+    data = load_yaml(path)
+    cfg = _validate(path, GantryConfig, data)
+    dtype = cfg.driver.type
+    try:
+        driver_cls = load_driver_class(dtype)
+    except KeyError as exc:
+        raise ConfigError(path, "driver.type", str(exc.args[0])) from None
+    dopts = {k: v for k, v in (cfg.driver.model_extra or {}).items()}
+    driver_options = _validate(path, driver_cls.Options, dopts, "driver")
+    axis_opts = {}
+    for name, ax in cfg.axes.items():
+        axis_opts[name] = _validate(path, driver_cls.AxisOptions, ax.driver, f"axes.{name}.driver")
+    _cross_checks(path, cfg)
+    loaded = LoadedConfig(path, cfg, driver_cls, driver_options, axis_opts)
+    if check_budget:
+        rate = cfg.loop.rate_hz
+        b = loaded.make_driver().budget(rate)
+        if rate > b.max_rate_hz:
+            hint = f"; {b.suggestion}" if b.suggestion else ""
+            raise ConfigError(path, "loop.rate_hz",
+                              f"{rate:g} Hz is more than the bus can carry: {b.detail} "
+                              f"(bus time {b.cycle_time_s * 1e6:.1f} us per cycle, at most "
+                              f"{b.max_rate_hz:.0f} Hz){hint}")
+    return loaded
