@@ -329,7 +329,12 @@ def _cross_checks(path: Path, cfg: GantryConfig) -> None:
 def load_config(path: str | Path, check_budget: bool = True) -> LoadedConfig:
     """Load and fully check a config. Raises :class:`ConfigError` (one clear line) on any problem."""
     path = Path(path)
-    data = load_yaml(path)
+    return config_from_dict(load_yaml(path), path, check_budget)
+
+
+def config_from_dict(data: dict, source: str | Path = "<dict>", check_budget: bool = True) -> LoadedConfig:
+    """Check a config given as a dict (the parsed YAML); ``source`` names it in errors."""
+    path = Path(source)
     cfg = _validate(path, GantryConfig, data)
     dtype = cfg.driver.type
     try:
