@@ -23,9 +23,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from motorctl.control.estimator import LeastSquaresEstimator
+from motorctl.compensation import Compensation
+from motorctl.control._jit import njit
+from motorctl.control.estimator import LeastSquaresEstimator, ls_update, s_f_jit
 from motorctl.control.inversion import invert_cubic
-from motorctl.model import S_F_GAIN, s_f_scalar
+from motorctl.model import S_F_GAIN
 
 
 @dataclass(frozen=True)
@@ -86,12 +88,78 @@ def theory_k_s1(theta_min, theta_max, k1: float, k2: float) -> float:
     return float(worst)
 
 
+# state vector of the law (outputs of the last sample)
+S_Y_PREV, S_U, S_V, S_E, S_P, S_X2, S_D0, S_KS = range(8)
+# parameter vector of the law
+P_TS, P_K1, P_KS, P_GD, P_DMAX, P_ULIM, P_THEORY, P_KS1, P_ETA4, P_DELTA = range(10)
+
+
+@njit
+def dcdiarc_step(y, x_d, xd_dot, xd_ddot, v_comp, st, prm, span, th, gam, tmin, tmax, zf, zd,
+                 inp, flt, phi, g, z, piv, pividx, active, opts, res):
+    """One sample of the DCDIARC law (spec §5.2); returns u [V]. State arrays updated in place.
+
+    Args:
+        y [m], x_d [m], xd_dot [m/s], xd_ddot [m/s²]: measurement and desired trajectory.
+        v_comp [V]: identified-effect compensation d̂_eff(x_d, ẋ_d, t) (0 when none).
+        st (8,): law state (S_* indices). prm (10,): law parameters (P_* indices).
+        span (n,): θ_max − θ_min (theory-mode k_s2). The rest: the estimator's arrays.
+    """
+    ts = prm[P_TS]
+    x2 = (y - st[S_Y_PREV]) / ts
+    st[S_Y_PREV] = y
+    st[S_X2] = x2
+    ls_update(x2, st[S_U], th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv, pividx,
+              active, opts, res)
+    n = th.shape[0]
+    e = y - x_d
+    p = (x2 - xd_dot) + prm[P_K1] * e
+    dmax = prm[P_DMAX]
+    d0 = st[S_D0] + ts * prm[P_GD] * p                                   # eq. (19)
+    if d0 > dmax:
+        d0 = dmax
+    elif d0 < -dmax:
+        d0 = -dmax
+    st[S_D0] = d0
+    sfd = s_f_jit(xd_dot)
+    va1 = th[0] * xd_ddot + th[1] * xd_dot + th[2] * sfd - th[3] - v_comp  # eq. (13)
+    if prm[P_THEORY] > 0.0:
+        # k_s2 = (d̂_max + Σ θ_Mi |φ_di| + δ_d)² / (4η), eq. (22), componentwise bound, with the
+        # previous u in φ_d to break the algebraic loop (spec §3.3).
+        hb = span[0] * abs(xd_ddot) + span[1] * abs(xd_dot) + span[2] * abs(sfd) + span[3]
+        if n == 6:
+            up = st[S_U]
+            hb += span[4] * up * up + span[5] * abs(up * up * up)
+        hb += dmax + prm[P_DELTA]
+        ks = prm[P_KS1] + hb * hb / prm[P_ETA4]
+    else:
+        ks = prm[P_KS]
+    st[S_KS] = ks
+    v = va1 - d0 - ks * p
+    ulim = prm[P_ULIM]
+    if n == 6:
+        u = invert_cubic(v, th[4], th[5], ulim)                            # eq. (9)
+    else:
+        u = v
+    if u > ulim:
+        u = ulim
+    elif u < -ulim:
+        u = -ulim
+    st[S_E] = e
+    st[S_P] = p
+    st[S_V] = v
+    st[S_U] = u
+    return u
+
+
 class DCDIARC:
     """One axis of C1 or C2. Call :meth:`update` once per sample; it returns u [V].
 
     Args:
         params: :class:`ControllerParams`.
         ts: sample period [s].
+    Attributes (of the last sample): u, v [V], e [m], p [m/s], x2 [m/s], d_hat0 [V],
+        k_s_eff [V s/m]; theta_hat (n,) and estimator.gamma (n, n) are live arrays.
     Raises:
         ValueError: inconsistent parameter sizes, θ̂(0) outside the box, unknown kind/mode.
     """
@@ -106,35 +174,36 @@ class DCDIARC:
         self.kind = params.kind
         self.n_theta = n
         self.ts = float(ts)
-        self.estimator = LeastSquaresEstimator(
-            params.theta_hat0[:n], params.theta_min[:n], params.theta_max[:n],
-            np.diag(params.gamma0[:n]), params.omega_f, ts, params.mu, params.nu, params.rho_M)
-        self.theta_hat = self.estimator.theta_hat  # shared list, updated in place
-        self.k_s = float(params.k_s)
-        self.k1 = float(params.k1)
-        self.gamma_d = float(params.gamma_d)
-        self.d_hat_max = float(params.d_hat_max)
-        self.u_lim = float(params.u_lim)
+        self.estimator = self._new_estimator()
         self.theory = params.mode == "theory"
-        th_span = [params.theta_max[i] - params.theta_min[i] for i in range(n)]
-        self._theta_span = th_span
         if self.theory:
-            self.k_s1 = (theory_k_s1(params.theta_min, params.theta_max, self.k1, params.k2)
-                         if params.k_s1 is None else float(params.k_s1))
+            k_s1 = (theory_k_s1(params.theta_min, params.theta_max, params.k1, params.k2)
+                    if params.k_s1 is None else float(params.k_s1))
         else:
-            self.k_s1 = self.k_s
-        self._eta4 = 4.0 * params.eta
-        self._delta_d = float(params.delta_d)
-        # outputs of the last step (for logging)
-        self.y_prev = 0.0
-        self.u = 0.0
-        self.v = 0.0
-        self.e = 0.0
-        self.p = 0.0
-        self.x2 = 0.0
-        self.d_hat0 = 0.0
-        self.k_s_eff = self.k_s1
+            k_s1 = float(params.k_s)
+        self.k_s1 = k_s1
+        self._prm = np.array([ts, params.k1, params.k_s, params.gamma_d, params.d_hat_max,
+                              params.u_lim, 1.0 if self.theory else 0.0, k_s1, 4.0 * params.eta,
+                              params.delta_d], dtype=float)
+        self._span = np.array([params.theta_max[i] - params.theta_min[i] for i in range(n)])
+        self._st = np.zeros(8)
+        self._st[S_KS] = k_s1
+        self.compensation = (Compensation(params.compensation)
+                             if params.compensation is not None else None)
         self._started = False
+        self._bind()
+        # compile (or load the cached machine code) now, on copies of the state, so that the
+        # first servo cycle never pays for it
+        dcdiarc_step(0.0, 0.0, 0.0, 0.0, 0.0, *(a.copy() for a in self._args))
+
+    def _new_estimator(self) -> LeastSquaresEstimator:
+        p, n = self.params, self.n_theta
+        return LeastSquaresEstimator(p.theta_hat0[:n], p.theta_min[:n], p.theta_max[:n],
+                                     np.diag(p.gamma0[:n]), p.omega_f, self.ts, p.mu, p.nu, p.rho_M)
+
+    def _bind(self) -> None:
+        self.theta_hat = self.estimator.theta_hat
+        self._args = (self._st, self._prm, self._span) + self.estimator.kernel_args()
 
     def reset(self, y0: float, keep_theta: bool = True) -> None:
         """Start (or restart) from the measured position y0 [m] with u = 0 and d̂0 = 0.
@@ -142,73 +211,38 @@ class DCDIARC:
         θ̂ and Γ are kept unless keep_theta is False (then θ̂(0), Γ(0) are restored).
         """
         if not keep_theta:
-            p = self.params
-            n = self.n_theta
-            self.estimator.__init__(p.theta_hat0[:n], p.theta_min[:n], p.theta_max[:n],
-                                    np.diag(p.gamma0[:n]), p.omega_f, self.ts, p.mu, p.nu, p.rho_M)
-            self.theta_hat = self.estimator.theta_hat
+            self.estimator = self._new_estimator()
+            self._bind()
         self.estimator.reset_filters()
-        self.y_prev = float(y0)
-        self.u = 0.0
-        self.v = 0.0
-        self.d_hat0 = 0.0
+        st = self._st
+        st[S_Y_PREV] = y0
+        st[S_U] = 0.0
+        st[S_V] = 0.0
+        st[S_D0] = 0.0
         self._started = True
 
-    def update(self, y: float, x_d: float, xd_dot: float, xd_ddot: float) -> float:
+    def update(self, y: float, x_d: float, xd_dot: float, xd_ddot: float, t: float = 0.0) -> float:
         """One control sample (spec §5.2). Returns u [V], |u| ≤ u_lim.
 
         Args:
             y: measured position [m]. x_d, xd_dot, xd_ddot: desired position [m],
-            velocity [m/s] and acceleration [m/s²] at this sample.
+            velocity [m/s] and acceleration [m/s²] at this sample. t: time [s] (used only by
+            a time-periodic compensation term).
         """
         if not self._started:
             self.reset(y)
-        ts = self.ts
-        x2 = (y - self.y_prev) / ts
-        self.y_prev = y
-        self.x2 = x2
-        est = self.estimator
-        est.update(x2, self.u)
-        th = self.theta_hat
-        e = y - x_d
-        p = (x2 - xd_dot) + self.k1 * e
-        d0 = self.d_hat0 + ts * self.gamma_d * p
-        dmax = self.d_hat_max
-        if d0 > dmax:
-            d0 = dmax
-        elif d0 < -dmax:
-            d0 = -dmax
-        self.d_hat0 = d0
-        sfd = s_f_scalar(xd_dot)
-        va1 = th[0] * xd_ddot + th[1] * xd_dot + th[2] * sfd - th[3]
-        if self.theory:
-            # k_s2 = (d̂_max + Σ θ_Mi |φ_di| + δ_d)² / (4η), eq. (22), componentwise bound,
-            # with the previous u in φ_d to break the algebraic loop (spec §3.3).
-            span = self._theta_span
-            h = (span[0] * abs(xd_ddot) + span[1] * abs(xd_dot) + span[2] * abs(sfd) + span[3])
-            if self.n_theta == 6:
-                up = self.u
-                h += span[4] * up * up + span[5] * abs(up * up * up)
-            h += dmax + self._delta_d
-            ks = self.k_s1 + h * h / self._eta4
-        else:
-            ks = self.k_s
-        self.k_s_eff = ks
-        v = va1 - d0 - ks * p
-        ulim = self.u_lim
-        if self.n_theta == 6:
-            u = invert_cubic(v, th[4], th[5], ulim)
-        else:
-            u = v
-        if u > ulim:
-            u = ulim
-        elif u < -ulim:
-            u = -ulim
-        self.e = e
-        self.p = p
-        self.v = v
-        self.u = u
-        return u
+        comp = self.compensation
+        v_comp = comp.value(x_d, xd_dot, t) if comp is not None else 0.0
+        return dcdiarc_step(y, x_d, xd_dot, xd_ddot, v_comp, *self._args)
+
+    # outputs of the last sample (float reads of the state vector)
+    u = property(lambda self: float(self._st[S_U]))
+    v = property(lambda self: float(self._st[S_V]))
+    e = property(lambda self: float(self._st[S_E]))
+    p = property(lambda self: float(self._st[S_P]))
+    x2 = property(lambda self: float(self._st[S_X2]))
+    d_hat0 = property(lambda self: float(self._st[S_D0]))
+    k_s_eff = property(lambda self: float(self._st[S_KS]))
 
     def theta_vector(self) -> np.ndarray:
         """θ̂ padded to 6 entries (θ̂5 = θ̂6 = 0 for C1), new array (not for the cycle)."""

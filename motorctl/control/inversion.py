@@ -16,10 +16,13 @@ from __future__ import annotations
 
 import math
 
+from motorctl.control._jit import njit
+
 _MAX_ITER = 60
 _TOL = 1e-13
 
 
+@njit
 def invert_cubic(v: float, theta5: float, theta6: float, u_max: float) -> float:
     """Return u with u + θ5 u|u| + θ6 u³ = v and |u| ≤ u_max (paper eq. 9, spec §3.4).
 
@@ -30,7 +33,7 @@ def invert_cubic(v: float, theta5: float, theta6: float, u_max: float) -> float:
         u_max: the voltage limit u_M [V], > 0.
     Returns:
         u [V], |u| ≤ u_max; saturates at ±u_max when |v| ≥ f(u_max).
-    Allocates no containers; pure float arithmetic.
+    Pure float arithmetic (numba-compiled; callable from Python and from other kernels).
     """
     if v >= 0.0:
         s = 1.0
