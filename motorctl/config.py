@@ -10,7 +10,8 @@ Checks, in order:
 
 The layout (see ``configs/gantry.yaml``)::
 
-    loop:    {rate_hz, clock, realtime: {...}}
+    loop:    {rate_hz, clock, realtime: {...}, overrun_policy, overrun_hold_cycles, overrun_ramp_s}
+    daemon:  {socket, group, log_dir, flush_s, event_before_s, event_after_s, stop_settle_s, ...}
     driver:  {type: sim, <driver options>}
     axes:
       X:
@@ -100,10 +101,43 @@ class RealtimeConfig(StrictModel):
 
 
 class LoopConfig(StrictModel):
+    """Loop rate, clock, run length, real-time set-up and the overrun policy.
+
+    overrun_policy: 'count' (count and skip missed periods, ros2_control's rule) or 'ramp'
+    (on a missed period every driven axis holds its last output for overrun_hold_cycles,
+    ramps it to 0 V over overrun_ramp_s, then the amplifier is disabled and FAULT_OVERRUN
+    latches).
+    """
+
     rate_hz: Annotated[float, Field(gt=0, le=20000)] = 5000.0
     clock: Literal["wall", "virtual"] = "wall"
     duration_s: Annotated[float, Field(gt=0)] = 40.0
     realtime: RealtimeConfig = RealtimeConfig()
+    overrun_policy: Literal["count", "ramp"] = "count"
+    overrun_hold_cycles: Annotated[int, Field(ge=0, le=1000)] = 5
+    overrun_ramp_s: Annotated[float, Field(ge=0, le=1.0)] = 0.01
+
+
+class DaemonConfig(StrictModel):
+    """The service (``motorctl daemon``): control socket, run logs, flight recorder, stop ramp.
+
+    socket: Unix-domain control socket path (mode 0660); group: its group (name or gid;
+    None = the daemon's own group); log_dir: where run logs go; flush_s: longest time between
+    two fdatasync of the run log [s]; event_before_s / event_after_s: the window kept around
+    each fault or overrun in an event log [s]; max_event_logs: per run; stop_settle_s: how
+    long an axis holds its final position before 0 V and amplifier off [s];
+    allow_fault_injection: accept ``motorctl inject`` (simulated driver only).
+    """
+
+    socket: str = "/run/motorctl/motorctl.sock"
+    group: str | int | None = None
+    log_dir: str = "/var/log/motorctl"
+    flush_s: Annotated[float, Field(gt=0, le=1.0)] = 0.5
+    event_before_s: Annotated[float, Field(ge=0, le=10.0)] = 2.0
+    event_after_s: Annotated[float, Field(ge=0, le=10.0)] = 1.0
+    max_event_logs: Annotated[int, Field(ge=0)] = 20
+    stop_settle_s: Annotated[float, Field(ge=0, le=5.0)] = 0.1
+    allow_fault_injection: bool = False
 
 
 class FilterConfig(StrictModel):
@@ -198,6 +232,7 @@ class DriverSection(StrictModel):
 
 class GantryConfig(StrictModel):
     loop: LoopConfig = LoopConfig()
+    daemon: DaemonConfig = DaemonConfig()
     driver: DriverSection = DriverSection()
     axes: Annotated[dict[str, AxisConfig], Field(min_length=1)]
 
