@@ -22,12 +22,19 @@ plus ``input_delay_s`` (whole samples of transport delay) and ``force_noise_N`` 
 held per period, seeded).
 
 Fault injection for tests (:meth:`SimDriver.inject`): read errors, NaN positions, encoder
-jumps and amplifier faults for a number of cycles.
+jumps, amplifier faults and an external push force for a number of cycles.
+
+Command watchdog (``watchdog_s`` > 0, like a real drive's: LinuxCNC hm2 ``timeout_ns``, CiA 402
+0x6007, Klipper ``maximum_mcu_duration``): when no ``write`` arrives for ``watchdog_s`` of wall
+time (CLOCK_MONOTONIC), the drive drops to 0 V with the amplifier off for the whole gap (the
+plant coasts at 0 V over the missed periods, at most ``watchdog_max_catchup`` of them) and
+reports an amplifier fault once, which the supervisor latches.
 """
 
 from __future__ import annotations
 
 import math
+import time
 from typing import Annotated
 
 import numpy as np
@@ -122,6 +129,8 @@ class SimOptions(StrictModel):
 
     seed: int = 0
     substeps: Annotated[int, Field(ge=1, le=100)] = 4
+    watchdog_s: NonNeg = 0.0          # 0 = no command watchdog (virtual clock runs)
+    watchdog_max_catchup: Annotated[int, Field(ge=0)] = 5000
 
 
 class AxisPlant:
@@ -163,6 +172,7 @@ class AxisPlant:
         self.payload = eff.payload_change
         self.pdist = eff.periodic_disturbance
         self.f_noise = 0.0
+        self.f_ext = 0.0   # external force [N] (fault injection: a push)
 
     def _acc(self, x: float, v: float, t: float, u: float) -> float:
         fm = self.a1 * u + self.a2 * u * abs(u) + self.a3 * u * u * u
@@ -172,7 +182,7 @@ class AxisPlant:
                 r += amp * math.sin(k * x + ph)
             fm *= 1.0 + r
         sf = _TWO_OVER_PI * math.atan(_SF * v)
-        f = fm - self.b * v - self.fc * sf + self.f0 + self.f_noise
+        f = fm - self.b * v - self.fc * sf + self.f0 + self.f_noise + self.f_ext
         if self.cog is not None:
             for amp, k, ph in self._cog:
                 f += amp * math.sin(k * x + ph)
@@ -240,13 +250,38 @@ class SimDriver(Driver):
                                  options.substeps)
                        for name, s in zip(self.axis_names, seeds)]
         self.amp_enabled = np.zeros(len(self.plants), dtype=bool)
-        self._inject = [[0, 0, 0, 0] for _ in self.plants]  # cycles left: read_error, nan, amp_fault; jump flag
+        self._inject = [[0, 0, 0, 0] for _ in self.plants]  # cycles left: read_error, nan, amp_fault, push
         self._jump_m = [0.0] * len(self.plants)
+        self._push_N = [0.0] * len(self.plants)
+        self.applied_u = np.zeros(len(self.plants))   # voltage at the amplifier output [V]
+        self.watchdog_ns = int(options.watchdog_s * 1e9)
+        self.watchdog_bites = 0
+        self._last_write_ns = 0
+        self._period_ns = int(round(period_s * 1e9))
         for i, p in enumerate(self.plants):
             self.position_m[i] = p.measured()
 
+    def _watchdog(self) -> None:
+        now = time.monotonic_ns()
+        gap = now - self._last_write_ns
+        if gap <= self.watchdog_ns:
+            return
+        self.watchdog_bites += 1
+        self.amp_enabled[:] = False
+        self.applied_u[:] = 0.0
+        n = min(gap // self._period_ns, self.options.watchdog_max_catchup)
+        for plant in self.plants:
+            for _ in range(n):
+                plant.step(0.0)
+        self.amp_fault[:] = True
+        self._bitten = True
+        self._last_write_ns = now
+
     def read(self) -> None:
         pos = self.position_m
+        self._bitten = False
+        if self.watchdog_ns and self._last_write_ns:
+            self._watchdog()
         for i, plant in enumerate(self.plants):
             inj = self._inject[i]
             if inj[0] > 0:
@@ -259,7 +294,7 @@ class SimDriver(Driver):
                 pos[i] = math.nan
                 continue
             pos[i] = plant.measured() + self._jump_m[i]
-            self.amp_fault[i] = inj[2] > 0
+            self.amp_fault[i] = inj[2] > 0 or self._bitten
             if inj[2] > 0:
                 inj[2] -= 1
 
@@ -270,29 +305,45 @@ class SimDriver(Driver):
             u = float(u_V[i]) if on else 0.0
             if u != u:  # NaN never reaches the amplifier
                 u = 0.0
+            self.applied_u[i] = u
+            inj = self._inject[i]
+            if inj[3] > 0:
+                inj[3] -= 1
+                plant.f_ext = self._push_N[i]
+            else:
+                plant.f_ext = 0.0
             plant.step(u)
+        if self.watchdog_ns:
+            self._last_write_ns = time.monotonic_ns()
 
     def close(self) -> None:
         self.amp_enabled[:] = False
+        self.applied_u[:] = 0.0
 
-    def inject(self, kind: str, axis: str, cycles: int = 1, jump_m: float = 0.0) -> None:
+    FAULT_KINDS = ("read_error", "nan", "amp_fault", "encoder_jump", "push")
+
+    def inject(self, kind: str, axis: str, cycles: int = 1, jump_m: float = 0.0,
+               force_N: float = 0.0) -> None:
         """Inject a fault on ``axis`` for ``cycles`` reads (tests only, not inside the cycle).
 
         kind: 'read_error' (exchange fails), 'nan' (position NaN), 'amp_fault' (amplifier
-        reports a fault), 'encoder_jump' (a permanent offset of ``jump_m`` [m]).
+        reports a fault), 'encoder_jump' (a permanent offset of ``jump_m`` [m]), 'push' (an
+        external force ``force_N`` [N] on the carriage for ``cycles`` periods).
         Raises:
             ValueError: unknown kind or axis.
         """
         if axis not in self.axis_names:
             raise ValueError(f"unknown axis {axis!r}; axes: {', '.join(self.axis_names)}")
         i = self.axis_names.index(axis)
-        slots = {"read_error": 0, "nan": 1, "amp_fault": 2}
+        slots = {"read_error": 0, "nan": 1, "amp_fault": 2, "push": 3}
         if kind == "encoder_jump":
             self._jump_m[i] += jump_m
         elif kind in slots:
+            if kind == "push":
+                self._push_N[i] = float(force_N)
             self._inject[i][slots[kind]] = int(cycles)
         else:
-            raise ValueError(f"unknown fault kind {kind!r}; allowed: read_error, nan, amp_fault, encoder_jump")
+            raise ValueError(f"unknown fault kind {kind!r}; allowed: {', '.join(self.FAULT_KINDS)}")
 
     def describe(self) -> dict:
         """Simulated truth per axis for the log header: θ (6), A1, and the effects switched on."""

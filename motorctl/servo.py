@@ -23,6 +23,25 @@ for the same seed (the simulated plant advances one period per write either way)
 Nothing in the cycle allocates a container, blocks, or logs: rows go into a preallocated
 float64 buffer through a memoryview and are written to the run log after (or outside) the
 cycle.
+
+Per-axis sequencing (used by the daemon; :meth:`run` alone keeps the old behaviour: every axis
+follows its program at t = k·Ts from the first cycle)::
+
+    IDLE      0 V, amplifier off; x_d recorded as the measured position
+    APPROACH  a jerk-limited Move from where the axis stands to the program's start
+              (the controller was reset from the measured position: bumpless start)
+    PROGRAM   the configured program, local time t − t_start
+    HOLD      after a stop request the program runs to its next rest point (so the ramp to
+              rest is the program's own jerk-limited profile), holds there stop_settle cycles,
+              then 0 V, amplifier off, IDLE
+
+Commands (:meth:`start_axis`, :meth:`stop_axis`, :meth:`switch_axis`, :meth:`fault_reset`)
+are called between cycles (in the ``on_slack`` hook), never inside one; a switch swaps to a
+controller built beforehand and takes effect at the next cycle boundary.
+
+Overrun policy ('count' or 'ramp', see ``LoopConfig``): with 'ramp', a missed period makes
+every driven axis hold its last output for ``overrun_hold`` cycles, ramp to 0 V over
+``overrun_ramp`` cycles, then latch FAULT_OVERRUN (0 V, amplifier off).
 """
 
 from __future__ import annotations
@@ -32,10 +51,13 @@ import time
 import numpy as np
 
 from motorctl.runlog import AXIS_FIELDS, CYCLE_FIELDS, columns_for
-from motorctl.safety import FAULT_SHUTDOWN, Supervisor
+from motorctl.safety import FAULT_OVERRUN, FAULT_SHUTDOWN, Supervisor
 
 _NA = len(AXIS_FIELDS)
 _NC = len(CYCLE_FIELDS)
+
+IDLE, APPROACH, PROGRAM, HOLD = 0, 1, 2, 3
+MODE_NAMES = {IDLE: "disabled", APPROACH: "approach", PROGRAM: "tracking", HOLD: "stopping"}
 
 
 class ServoLoop:
@@ -50,10 +72,19 @@ class ServoLoop:
         capacity: rows of the record buffer; the buffer is a ring when a run is longer.
         clock: 'wall' (paced by CLOCK_MONOTONIC) or 'virtual' (as fast as possible).
         spin_us: busy-wait tail before each deadline [µs] (wall clock only).
+        buffer: optional preallocated record buffer, shape (capacity, len(columns)) float64
+            (e.g. a shared-memory ring drained by another process).
+        heartbeat: optional int64 array; element 0 is set to the number of executed cycles
+            after every cycle (rows below it are complete), LinuxCNC's ``threadbeat``.
+        on_slack: optional callable(loop) run after every cycle, outside the timed part
+            (command mailbox, status publishing); it must return quickly and not block.
+        overrun_policy: 'count' or 'ramp'; overrun_hold, overrun_ramp: cycles (ramp policy).
     """
 
     def __init__(self, driver, controllers, programs, supervisor: Supervisor, period_s: float,
-                 capacity: int, clock: str = "wall", spin_us: float = 60.0):
+                 capacity: int, clock: str = "wall", spin_us: float = 60.0, buffer=None,
+                 heartbeat=None, on_slack=None, overrun_policy: str = "count",
+                 overrun_hold: int = 5, overrun_ramp: int = 50):
         if clock not in ("wall", "virtual"):
             raise ValueError(f"clock must be 'wall' or 'virtual', got {clock!r}")
         n = len(driver.axis_names)
@@ -71,12 +102,34 @@ class ServoLoop:
         self.columns = columns_for(self.axis_names)
         self.width = len(self.columns)
         self.capacity = int(capacity)
-        self.buf = np.zeros((self.capacity, self.width))
+        if buffer is None:
+            self.buf = np.zeros((self.capacity, self.width))
+        else:
+            if buffer.shape != (self.capacity, self.width) or buffer.dtype != np.float64:
+                raise ValueError(f"buffer must be float64 of shape {(self.capacity, self.width)}")
+            self.buf = buffer
         self._mv = memoryview(self.buf.reshape(-1))
+        self.heartbeat = heartbeat
+        self.on_slack = on_slack
+        if overrun_policy not in ("count", "ramp"):
+            raise ValueError(f"overrun_policy must be 'count' or 'ramp', got {overrun_policy!r}")
+        self.overrun_policy = overrun_policy
+        self.overrun_hold = int(overrun_hold)
+        self.overrun_ramp = max(int(overrun_ramp), 1)
         self.u_out = np.zeros(n)
         self.enable_out = np.zeros(n, dtype=bool)
         self.enabled = [True] * n       # operator's request per axis
         self._running = [False] * n     # controller was driving last cycle
+        self.mode = [PROGRAM] * n       # sequencing state per axis (see module docstring)
+        self.k_start = [0] * n          # cycle at which the current segment's time is zero
+        self.approach = [None] * n      # Move of the approach segment
+        self.hold_x = [0.0] * n         # held position in HOLD [m]
+        self.settle_left = [0] * n      # HOLD cycles left before 0 V
+        self.stop_req = [False] * n
+        self.stop_settle = 0            # cycles (set by the daemon)
+        self.disable_on_fault = False   # daemon: a fault also drops the operator's request
+        self.ovr_left = [0] * n         # overrun reaction cycles left per axis
+        self.u_last = [0.0] * n         # last output written [V]
         self.k = 0                      # executed cycles
         self.overruns = 0
         self.stop_requested = False
@@ -138,6 +191,20 @@ class ServoLoop:
         n = len(self.axis_names)
         rng = range(n)
         faults = sup.fault
+        mode = self.mode
+        kst = self.k_start
+        appr = self.approach
+        hold_x = self.hold_x
+        settle = self.settle_left
+        stop_req = self.stop_req
+        ovr_left = self.ovr_left
+        u_last = self.u_last
+        ramp_policy = self.overrun_policy == "ramp"
+        ovr_total = self.overrun_hold + self.overrun_ramp
+        ovr_ramp = float(self.overrun_ramp)
+        hb = self.heartbeat
+        slack = self.on_slack
+        dis_on_fault = self.disable_on_fault
         deadline = mono() + period
         done = 0
         for _ in range(n_cycles):
@@ -155,6 +222,10 @@ class ServoLoop:
                     missed = late // period
                     self.overruns += missed
                     deadline += missed * period
+                    if ramp_policy:
+                        for i in rng:
+                            if running[i] and ovr_left[i] == 0:
+                                ovr_left[i] = ovr_total
                 deadline += period
             else:
                 late = 0
@@ -166,22 +237,68 @@ class ServoLoop:
             base = (k % cap) * width
             for i in rng:
                 # a write error last cycle counts like a read error this cycle
-                ok = sup.check_input(i, pos[i], rerr[i] or werr[i], ampf[i]) and enabled[i]
+                y = pos[i]
+                ok = sup.check_input(i, y, rerr[i] or werr[i], ampf[i]) and enabled[i]
                 c = ctrls[i]
-                xd, vd, ad = progs[i].sample(t)
+                m = mode[i]
+                if m == PROGRAM:
+                    xd, vd, ad = progs[i].sample((k - kst[i]) * ts)
+                elif m == APPROACH:
+                    mv_ = appr[i]
+                    tl = (k - kst[i]) * ts
+                    xd, vd, ad = mv_.sample(mv_.t0 + tl)
+                    if tl >= mv_.duration:
+                        mode[i] = PROGRAM
+                        kst[i] = k + 1
+                elif m == HOLD:
+                    xd = hold_x[i]
+                    vd = ad = 0.0
+                    s_ = settle[i] - 1
+                    settle[i] = s_
+                    if s_ <= 0:
+                        mode[i] = IDLE
+                        enabled[i] = False
+                        stop_req[i] = False
+                        ok = False
+                else:
+                    xd = y
+                    vd = ad = 0.0
+                    ok = False
+                if stop_req[i] and (m == PROGRAM or m == APPROACH) and vd == 0.0 and ad == 0.0:
+                    mode[i] = HOLD
+                    hold_x[i] = xd
+                    settle[i] = self.stop_settle
                 if ok:
-                    if not running[i]:
-                        c.reset(pos[i])
-                        running[i] = True
-                    u = c.update(pos[i], xd, vd, ad)
-                    ok = sup.check_output(i, c.e, vd, u)
+                    n_o = ovr_left[i]
+                    if n_o > 0:
+                        # overrun policy 'ramp': hold the last output, ramp it to 0 V, latch
+                        n_o -= 1
+                        ovr_left[i] = n_o
+                        u = u_last[i]
+                        if n_o < ovr_ramp:
+                            u = u * n_o / (n_o + 1.0)
+                        if n_o == 0:
+                            sup.trip(i, FAULT_OVERRUN)
+                            ok = False
+                    else:
+                        if not running[i]:
+                            c.reset(y)
+                            running[i] = True
+                        u = c.update(y, xd, vd, ad)
+                        ok = sup.check_output(i, c.e, vd, u)
                 if not ok:
                     running[i] = False
+                    ovr_left[i] = 0
                     u = 0.0
+                    if dis_on_fault and faults[i] and mode[i] != IDLE:
+                        mode[i] = IDLE
+                        enabled[i] = False
+                        stop_req[i] = False
                 uo[i] = u
+                u_last[i] = u
                 en[i] = ok
                 b = base + _NC + i * _NA
-                mv[b] = pos[i]
+                mv[b] = y
                 mv[b + 1] = xd
                 mv[b + 2] = vd
                 mv[b + 3] = ad
@@ -208,7 +325,65 @@ class ServoLoop:
             mv[base + 6] = self.overruns
             self.k = k + 1
             done += 1
+            if hb is not None:
+                hb[0] = k + 1
+            if slack is not None:
+                slack(self)
         return done
+
+    # ------------------------------------------------------------------ per-axis commands
+    # Called between cycles (from on_slack or before run), never from inside a cycle.
+    def idle_all(self) -> None:
+        """Every axis IDLE and not requested (the daemon's state at start-up)."""
+        for i in range(len(self.axis_names)):
+            self.mode[i] = IDLE
+            self.enabled[i] = False
+            self.stop_req[i] = False
+            self._running[i] = False
+
+    def start_axis(self, i: int, approach, controller=None) -> None:
+        """Enable axis i: reset its controller from the measured position, then follow the
+        jerk-limited ``approach`` (a ``trajectory.Move`` from where the axis stands to the
+        program's start) and the program after it. ``controller`` replaces the axis's
+        controller when given (built beforehand). Raises RuntimeError if the axis is faulted."""
+        if self.supervisor.fault[i]:
+            raise RuntimeError(f"axis {self.axis_names[i]} is in fault: {self.supervisor.reason(i)}")
+        if controller is not None:
+            self.controllers[i] = controller
+        y = float(self.driver.position_m[i])
+        self.controllers[i].reset(y)
+        self._running[i] = True
+        self.approach[i] = approach
+        self.k_start[i] = self.k
+        self.stop_req[i] = False
+        self.ovr_left[i] = 0
+        self.mode[i] = APPROACH
+        self.enabled[i] = True
+
+    def stop_axis(self, i: int) -> None:
+        """Ask axis i to come to rest along its jerk-limited profile, then 0 V, amplifier off."""
+        if self.mode[i] != IDLE:
+            self.stop_req[i] = True
+
+    def switch_axis(self, i: int, controller, keep_theta: bool = True) -> None:
+        """Swap axis i's controller for ``controller`` (built beforehand) at this cycle
+        boundary. The incoming controller inherits θ̂ (the common entries) and starts from the
+        measured position, so the output does not jump by more than the d̂0 it loses."""
+        old = self.controllers[i]
+        if controller is old:
+            return
+        if keep_theta:
+            n = min(old.n_theta, controller.n_theta)
+            controller.theta_hat[:n] = old.theta_hat[:n]
+        if self._running[i]:
+            controller.reset(float(self.driver.position_m[i]))
+        self.controllers[i] = controller
+
+    def fault_reset(self, i: int) -> tuple[bool, str]:
+        """Clear axis i's latched fault if the cause is gone; the axis stays disabled."""
+        ok, why = self.supervisor.reset(i, float(self.driver.position_m[i]),
+                                        bool(self.driver.amp_fault[i]))
+        return ok, why
 
     def shutdown_faults(self) -> None:
         """Latch FAULT_SHUTDOWN on every axis (SIGTERM / exit)."""
