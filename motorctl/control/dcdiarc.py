@@ -96,7 +96,7 @@ P_TS, P_K1, P_KS, P_GD, P_DMAX, P_ULIM, P_THEORY, P_KS1, P_ETA4, P_DELTA = range
 
 @njit
 def dcdiarc_step(y, x_d, xd_dot, xd_ddot, v_comp, st, prm, span, th, gam, tmin, tmax, zf, zd,
-                 inp, flt, phi, g, z, piv, pividx, active, opts, res):
+                 inp, flt, phi, g, z, piv, coef, vec, pividx, active, opts, res):
     """One sample of the DCDIARC law (spec §5.2); returns u [V]. State arrays updated in place.
 
     Args:
@@ -109,8 +109,8 @@ def dcdiarc_step(y, x_d, xd_dot, xd_ddot, v_comp, st, prm, span, th, gam, tmin, 
     x2 = (y - st[S_Y_PREV]) / ts
     st[S_Y_PREV] = y
     st[S_X2] = x2
-    ls_update(x2, st[S_U], th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv, pividx,
-              active, opts, res)
+    ls_update(x2, st[S_U], th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv, coef, vec,
+              pividx, active, opts, res)
     n = th.shape[0]
     e = y - x_d
     p = (x2 - xd_dot) + prm[P_K1] * e

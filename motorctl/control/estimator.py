@@ -52,65 +52,102 @@ def zoh_filter_matrices(omega_f: float, ts: float) -> tuple[np.ndarray, np.ndarr
 
 
 @njit
-def project_box(z, th, tmin, tmax, gam, piv, pividx, active):
-    """Γ-weighted box projection (eq. 8) in place on ζ = Γτ (spec §2.2 active-set rule).
+def project_box(z, th, tmin, tmax, gam, piv, coef, vec, pividx, active):
+    """Γ-weighted box projection (eq. 8) in place on ζ = Γτ, exact at edges and corners.
 
-    Faces are eliminated one at a time on (Γ, ζ): block Gaussian elimination, so the result
-    equals ζ − Γ[:, A] Γ[A, A]⁻¹ ζ[A] for the final active set A. Only the Schur-updated columns
-    of the active indices are formed (O(n·|A|) each), in the preallocated ``piv`` (n, n).
+    On a box the outward normals are ±e_i, so Proj(ζ) = ζ − Γ[:, A] λ with λ = Γ[A, A]⁻¹ ζ[A]
+    for the set A of closed faces. A face is closed when the step would leave the box through it
+    and its multiplier has the outward sign (λ_i ≥ 0 on an upper face, ≤ 0 on a lower face): the
+    KKT conditions of the projection onto the tangent cone in the Γ⁻¹ metric. This is what makes
+    P2, θ̃ᵀ(Γ⁻¹Proj(Γτ) − τ) ≤ 0, hold at corners too; the add-only rule of spec §2.2 can close
+    a face whose multiplier has the wrong sign when Γ couples two bounded parameters.
+
+    Primal active set: start empty; eliminate the closed faces one at a time on (Γ, ζ) (block
+    Gaussian elimination: only the Schur-updated columns of the closed indices are formed,
+    O(n·|A|) each); recover λ by back substitution; open the face with the worst wrong-sign
+    multiplier, else close the worst violated face, else stop. Bounded by 4n rounds.
 
     Args:
-        z: ζ, shape (n,), modified in place. th, tmin, tmax: θ̂ and the box, (n,).
-        gam: Γ, (n, n) SPD. piv (n, n), pividx (n,) int, active (n,) bool: scratch.
+        z: ζ, shape (n,), replaced by Proj(ζ). th, tmin, tmax: θ̂ and the box, (n,).
+        gam: Γ, (n, n) SPD. Scratch: piv (n, n), coef (n, n), vec (3, n), pividx (n,) int64,
+        active (n,) bool.
     Returns:
-        The number of active faces.
+        The number of closed faces.
     """
     n = th.shape[0]
+    zeta = vec[0]
+    mu = vec[1]
+    lam = vec[2]
     for i in range(n):
+        zeta[i] = z[i]
         active[i] = False
     m = 0
-    added = True
-    while added:
-        added = False
+    for _round in range(4 * n):
+        # eliminate the closed faces (in index order) on a fresh copy of ζ
+        for i in range(n):
+            z[i] = zeta[i]
+        m = 0
         for j in range(n):
-            if active[j]:
+            if not active[j]:
                 continue
-            zj = z[j]
-            if not ((zj > 0.0 and th[j] >= tmax[j]) or (zj < 0.0 and th[j] <= tmin[j])):
-                continue
-            active[j] = True
-            added = True
             for a in range(n):
                 piv[m, a] = gam[j, a]
             for q in range(m):
                 iq = pividx[q]
                 r = piv[m, iq] / piv[q, iq]
+                coef[m, q] = r
                 if r != 0.0:
                     for a in range(n):
                         piv[m, a] -= r * piv[q, a]
             pividx[m] = j
-            cjj = piv[m, j]
-            m += 1
-            if cjj <= 0.0:  # cannot happen for SPD Γ; keep the face closed regardless
-                z[j] = 0.0
-                continue
-            f = z[j] / cjj
+            f = z[j] / piv[m, j]
+            mu[m] = f
             for a in range(n):
-                z[a] -= piv[m - 1, a] * f
+                z[a] -= piv[m, a] * f
             z[j] = 0.0
+            m += 1
+        # multipliers λ of Γ[:, A] λ = Σ μ_m P_m, P_m = Γ e_{i_m} − Σ_{q<m} coef[m, q] P_q
+        for mm in range(m - 1, -1, -1):
+            lam[mm] = mu[mm]
+            for q in range(mm):
+                mu[q] -= lam[mm] * coef[mm, q]
+        worst = -1
+        worst_val = 0.0
+        for mm in range(m):
+            j = pividx[mm]
+            bad = -lam[mm] if th[j] >= tmax[j] else lam[mm]  # > 0 means wrong sign
+            if bad > worst_val:
+                worst_val = bad
+                worst = j
+        if worst >= 0:
+            active[worst] = False
+            continue
+        worst_val = 0.0
+        for j in range(n):
+            if active[j]:
+                continue
+            if th[j] >= tmax[j] and z[j] > worst_val:
+                worst_val = z[j]
+                worst = j
+            elif th[j] <= tmin[j] and -z[j] > worst_val:
+                worst_val = -z[j]
+                worst = j
+        if worst < 0:
+            break
+        active[worst] = True
     return m
 
 
 @njit
-def ls_update(x2, u_prev, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv, pividx, active,
-              opts, res):
+def ls_update(x2, u_prev, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv, coef, vec,
+              pividx, active, opts, res):
     """One estimator sample (spec §5.2 step 2); see the module docstring. All arrays preallocated.
 
     Args:
         x2: measured velocity over the interval just ended [m/s]; u_prev: input held over it [V].
         th (n,), gam (n, n), tmin/tmax (n,): θ̂, Γ, box — updated in place.
         zf, zd, inp (nch,): filter states and inputs. flt (6,): a11 a12 a21 a22 b1 b2.
-        phi, g, z (n,), piv (n, n), pividx (n,), active (n,): outputs/scratch.
+        phi, g, z (n,), piv, coef (n, n), vec (3, n), pividx (n,), active (n,): outputs/scratch.
         opts (4,): Ts, μ, ν, ρ_M. res (2,): out ε, frozen (0/1).
     """
     n = th.shape[0]
@@ -176,7 +213,7 @@ def ls_update(x2, u_prev, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv,
         f = k
     for i in range(n):
         z[i] = g[i] * f
-    project_box(z, th, tmin, tmax, gam, piv, pividx, active)
+    project_box(z, th, tmin, tmax, gam, piv, coef, vec, pividx, active)
     for i in range(n):
         val = th[i] + ts * z[i]
         if val > tmax[i]:
@@ -229,6 +266,8 @@ class LeastSquaresEstimator:
         self._g = np.zeros(n)
         self._z = np.zeros(n)
         self._piv = np.zeros((n, n))
+        self._coef = np.zeros((n, n))
+        self._vec = np.zeros((3, n))
         self._pividx = np.zeros(n, dtype=np.int64)
         self._active = np.zeros(n, dtype=np.bool_)
         self.opts = np.array([ts, mu, nu, rho_M], dtype=float)
@@ -247,8 +286,8 @@ class LeastSquaresEstimator:
     def kernel_args(self) -> tuple:
         """The preallocated arrays the kernel works on, in ``ls_update`` order after (x2, u_prev)."""
         return (self.theta_hat, self.gamma, self.theta_min, self.theta_max, self.zf, self.zd,
-                self._inp, self.flt, self.phi, self._g, self._z, self._piv, self._pividx,
-                self._active, self.opts, self.res)
+                self._inp, self.flt, self.phi, self._g, self._z, self._piv, self._coef, self._vec,
+                self._pividx, self._active, self.opts, self.res)
 
     def update(self, x2: float, u_prev: float) -> None:
         """One estimator sample (spec §5.2 step 2).

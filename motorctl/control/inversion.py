@@ -58,6 +58,8 @@ def invert_cubic(v: float, theta5: float, theta6: float, u_max: float) -> float:
     r = w if w < u_max else u_max
     for _ in range(_MAX_ITER):
         g = r + theta5 * r * r + theta6 * r * r * r - w
+        if g == 0.0:
+            break
         if g > 0.0:
             hi = r
         else:
@@ -65,7 +67,7 @@ def invert_cubic(v: float, theta5: float, theta6: float, u_max: float) -> float:
         dg = 1.0 + 2.0 * theta5 * r + 3.0 * theta6 * r * r
         if dg > 0.0:
             r_new = r - g / dg
-            if r_new <= lo or r_new >= hi:
+            if r_new < lo or r_new > hi:  # Newton left the bracket: bisect
                 r_new = 0.5 * (lo + hi)
         else:
             r_new = 0.5 * (lo + hi)
