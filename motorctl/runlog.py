@@ -50,19 +50,36 @@ class LogWriter:
     Args:
         path: file to create (truncated if it exists).
         header: JSON-able dict; ``columns`` is required.
+        reserve: extra header bytes (spaces after the JSON) so that :meth:`update_header`
+            can later add facts known only after the start (the flight recorder's real-time
+            report, the end of the run) without moving the records.
     """
 
-    def __init__(self, path: str, header: dict):
+    def __init__(self, path: str, header: dict, reserve: int = 0):
         if "columns" not in header:
             raise ValueError("header needs 'columns'")
         self.path = str(path)
         self.width = len(header["columns"])
+        self._columns = list(header["columns"])
         blob = json.dumps(header).encode()
+        blob += b" " * int(reserve)
         pad = (-(len(MAGIC) + 8 + len(blob))) % 8
         blob += b" " * pad
+        self._hlen = len(blob)
         self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         os.write(self._fd, MAGIC + struct.pack("<Q", len(blob)) + blob)
         self.rows_written = 0
+
+    def update_header(self, header: dict) -> bool:
+        """Rewrite the JSON header in place (same columns). Returns False, leaving the file
+        unchanged, when the new header does not fit in the space reserved at creation."""
+        if list(header.get("columns", [])) != self._columns:
+            raise ValueError("update_header cannot change the columns")
+        blob = json.dumps(header).encode()
+        if len(blob) > self._hlen:
+            return False
+        os.pwrite(self._fd, blob + b" " * (self._hlen - len(blob)), len(MAGIC) + 8)
+        return True
 
     def append(self, rows: np.ndarray) -> None:
         """Append records, shape (k, W) float64 (C-contiguous)."""
@@ -78,6 +95,13 @@ class LogWriter:
     def flush(self) -> None:
         """Push written records to the storage device (fdatasync)."""
         os.fdatasync(self._fd)
+
+    def release(self) -> None:
+        """Close this process's descriptor without syncing (after ``fork``, in the process
+        that will not write; the other process keeps appending)."""
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
 
     def close(self) -> None:
         if self._fd >= 0:

@@ -1,0 +1,260 @@
+"""Daemon subcommands of ``motorctl``: ``daemon``, ``start``, ``stop``, ``status``,
+``fault-reset``, ``switch``, ``export`` (and ``inject`` for the simulated driver), plus the
+global ``--socket PATH`` option.
+
+The client commands talk to ``motorctl daemon`` over its Unix control socket (default
+``/run/motorctl/motorctl.sock``, or ``$MOTORCTL_SOCKET``); the socket's mode (0660) and group
+decide who may command the machine. Exit codes: 0 done; 1 the daemon refused or is not
+reachable (not running, permission denied, axis in fault, stop not finished in time);
+2 bad input (unknown axis or controller, unreadable log). Errors are one line on stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import socket
+import sys
+import time
+
+DEFAULT_SOCKET = "/run/motorctl/motorctl.sock"
+
+
+class DaemonUnreachable(Exception):
+    """Printed as one line; exit code 1."""
+
+
+def socket_path(args) -> str:
+    return getattr(args, "socket", None) or os.environ.get("MOTORCTL_SOCKET") or DEFAULT_SOCKET
+
+
+def call(path: str, request: dict, timeout_s: float = 5.0) -> dict:
+    """Send one request to the daemon and return its answer (a dict with 'ok').
+
+    Raises:
+        DaemonUnreachable: no daemon at ``path``, permission denied, or no answer in time.
+    """
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(timeout_s)
+    try:
+        try:
+            s.connect(path)
+        except (FileNotFoundError, ConnectionRefusedError):
+            raise DaemonUnreachable(f"the daemon is not running (nothing answers at {path})") from None
+        except PermissionError:
+            raise DaemonUnreachable(f"permission denied on {path}: commanding the machine needs "
+                                    f"membership of the socket's group") from None
+        except OSError as exc:
+            raise DaemonUnreachable(f"cannot reach the daemon at {path}: {exc.strerror or exc}") from None
+        try:
+            s.sendall((json.dumps(request) + "\n").encode())
+            buf = b""
+            while b"\n" not in buf:
+                chunk = s.recv(65536)
+                if not chunk:
+                    break
+                buf += chunk
+        except socket.timeout:
+            raise DaemonUnreachable(f"the daemon at {path} did not answer within {timeout_s:g} s") from None
+        except OSError as exc:
+            raise DaemonUnreachable(f"lost the connection to the daemon at {path}: {exc.strerror or exc}") from None
+    finally:
+        s.close()
+    if not buf:
+        raise DaemonUnreachable(f"the daemon at {path} closed the connection without answering")
+    return json.loads(buf.split(b"\n", 1)[0].decode())
+
+
+def _checked(args, request: dict, timeout_s: float = 5.0) -> dict:
+    from motorctl.cli import UsageError
+    ans = call(socket_path(args), request, timeout_s)
+    if not ans.get("ok"):
+        if ans.get("usage"):
+            raise UsageError(ans.get("error", "refused"))
+        raise DaemonUnreachable(ans.get("error", "refused"))
+    return ans
+
+
+def _wrap(handler):
+    def run(args) -> int:
+        try:
+            return handler(args)
+        except DaemonUnreachable as exc:
+            sys.stderr.write(f"motorctl: error: {exc}\n")
+            return 1
+    return run
+
+
+# --------------------------------------------------------------------------- handlers
+def cmd_daemon(args) -> int:
+    from motorctl.daemon import DaemonError, run_daemon
+    try:
+        return run_daemon(args.config, args.daemon_socket or args.socket, args.log_dir)
+    except DaemonError as exc:
+        sys.stderr.write(f"motorctl: error: {exc}\n")
+        return 1
+
+
+def cmd_start(args) -> int:
+    req = {"cmd": "start", "axis": args.axis}
+    if args.controller:
+        req["controller"] = args.controller
+    ans = _checked(args, req)
+    sys.stdout.write(f"{args.axis}: enabled on {ans.get('controller')}, approach "
+                     f"{ans.get('approach_m', 0.0) * 1000:+.3f} mm in {ans.get('approach_s', 0.0):.3f} s, "
+                     f"then the program\n")
+    return 0
+
+
+def cmd_stop(args) -> int:
+    ans = _checked(args, {"cmd": "stop", "axis": args.axis})
+    bound = float(ans.get("bound_s", 2.0))
+    if args.no_wait or ans.get("was") == "disabled":
+        sys.stdout.write(f"{args.axis}: {'already disabled' if ans.get('was') == 'disabled' else 'stopping'}\n")
+        return 0
+    t0 = time.monotonic()
+    deadline = t0 + bound + 1.0
+    while time.monotonic() < deadline:
+        st = _checked(args, {"cmd": "status", "axis": args.axis})["status"]["axes"][args.axis]
+        if st["state"] != "enabled":
+            what = "0 V, amplifier off" if st["state"] == "disabled" else f"fault: {st['fault']}"
+            sys.stdout.write(f"{args.axis}: stopped in {time.monotonic() - t0:.3f} s ({what})\n")
+            return 0 if st["state"] == "disabled" else 1
+        time.sleep(0.01)
+    raise DaemonUnreachable(f"axis {args.axis} did not come to rest within {bound + 1.0:.2f} s")
+
+
+def cmd_switch(args) -> int:
+    ans = _checked(args, {"cmd": "switch", "axis": args.axis, "controller": args.controller})
+    sys.stdout.write(f"{args.axis}: {ans.get('from')} -> {args.controller} at cycle {ans.get('cycle')}\n")
+    return 0
+
+
+def cmd_fault_reset(args) -> int:
+    ans = call(socket_path(args), {"cmd": "fault-reset", "axis": args.axis})
+    if not ans.get("ok"):
+        from motorctl.cli import UsageError
+        if ans.get("usage"):
+            raise UsageError(ans["error"])
+        raise DaemonUnreachable(f"fault-reset {args.axis} refused: {ans.get('error')}")
+    was = ans.get("was") or "no fault was latched"
+    sys.stdout.write(f"{args.axis}: fault cleared ({was}); the axis stays disabled\n")
+    return 0
+
+
+def cmd_inject(args) -> int:
+    ans = _checked(args, {"cmd": "inject", "axis": args.axis, "kind": args.kind,
+                          "cycles": args.cycles, "jump_m": args.jump_m, "force_N": args.force_n})
+    sys.stdout.write(f"{args.axis}: injected {args.kind} at cycle {ans.get('cycle')}\n")
+    return 0
+
+
+def _us(x) -> str:
+    return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.1f}"
+
+
+def cmd_status(args) -> int:
+    req = {"cmd": "status"}
+    if args.axis:
+        req["axis"] = args.axis
+    st = _checked(args, req)["status"]
+    if args.json:
+        sys.stdout.write(json.dumps(st) + "\n")
+        return 0
+    from motorctl.cli import _print_table
+    rows = [["axis", "state", "ctrl", "y mm", "e um", "turn p50/p99/max us", "late p99/max us",
+             "theta_hat", "fault"]]
+    for a, s in st["axes"].items():
+        tm = s["timing_since_start"]
+        state = s["state"] if s["state"] != "enabled" else f"enabled/{s['phase']}"
+        rows.append([a, state, s["controller"], f"{s['y_m'] * 1e3:.4f}",
+                     f"{s['following_error_m'] * 1e6:.2f}" if s["state"] == "enabled" else "-",
+                     f"{_us(tm['turnaround_p50_us'])}/{_us(tm['turnaround_p99_us'])}/{_us(tm['turnaround_max_us'])}",
+                     f"{_us(tm['lateness_p99_us'])}/{_us(tm['lateness_max_us'])}",
+                     "[" + ", ".join(f"{x:.4g}" for x in s.get("theta_hat", [])) + "]",
+                     s["fault"] or "-"])
+    out = sys.stdout
+    _print_table(rows, out)
+    lp = st["loop"]
+    out.write(f"loop: {lp['cycles']} cycles at {lp['rate_hz']:.0f} Hz; turnaround p50 "
+              f"{_us(lp['turnaround_p50_us'])} / p99 {_us(lp['turnaround_p99_us'])} / p99.9 "
+              f"{_us(lp['turnaround_p999_us'])} / max {_us(lp['turnaround_max_us'])} us; lateness p99 "
+              f"{_us(lp['lateness_p99_us'])} / max {_us(lp['lateness_max_us'])} us; overruns {lp['overruns']}\n")
+    out.write(f"realtime: {st['realtime_summary']}\n")
+    pr = st["process"]
+    out.write(f"processes: loop pid {pr.get('loop_pid')} ({pr.get('python_threads')} python thread(s), "
+              f"cpus {pr.get('cpu_affinity')}), I/O pid {pr.get('io_pid')}\n")
+    lg = st["log"]
+    out.write(f"log: {lg['path']} ({lg['rows']} rows, {lg['rows_flushed']} flushed, flush every "
+              f"{lg['flush_s']:g} s, {len(lg['events'])} event log(s), {lg['lost_rows']} rows lost)\n")
+    return 0
+
+
+def cmd_export(args) -> int:
+    from motorctl.recorder import export_csv, export_mat
+    from motorctl.runlog import read_log
+    log = read_log(args.log)
+    if args.csv:
+        n = export_csv(log, args.csv)
+        out = args.csv
+    else:
+        n = export_mat(log, args.mat)
+        out = args.mat
+    extra = f" (a partial last record of {log.truncated_bytes} bytes dropped)" if log.truncated_bytes else ""
+    sys.stdout.write(f"{out}: {n} rows x {len(log.columns)} columns{extra}\n")
+    return 0
+
+
+# --------------------------------------------------------------------------- parsers
+def register(parser: argparse.ArgumentParser, sub) -> None:
+    """Add the daemon subcommands and the global ``--socket PATH`` option."""
+    parser.add_argument("--socket", default=None, metavar="PATH",
+                        help=f"the daemon's control socket (default: $MOTORCTL_SOCKET or {DEFAULT_SOCKET})")
+
+    def client(name, help_, handler):
+        p = sub.add_parser(name, help=help_)
+        p.add_argument("--socket", default=argparse.SUPPRESS, metavar="PATH", help="the daemon's control socket")
+        p.set_defaults(func=_wrap(handler))
+        return p
+
+    d = sub.add_parser("daemon", help="run the servo loop as a service (systemd Type=notify)")
+    d.add_argument("config")
+    d.add_argument("--socket", dest="daemon_socket", default=None, metavar="PATH",
+                   help="control socket (default: daemon.socket of the config)")
+    d.add_argument("--log-dir", default=None, help="run log directory (default: daemon.log_dir)")
+    d.set_defaults(func=cmd_daemon)
+
+    p = client("start", "enable an axis: bumpless approach from where it stands, then its program", cmd_start)
+    p.add_argument("axis")
+    p.add_argument("--controller", choices=("c1", "c2"), help="controller to run (default: the current one)")
+
+    p = client("stop", "bring an axis to rest, then 0 V and amplifier off", cmd_stop)
+    p.add_argument("axis")
+    p.add_argument("--no-wait", action="store_true", help="return at once instead of waiting for rest")
+
+    p = client("status", "state of the axes, the loop, the real-time set-up and the log", cmd_status)
+    p.add_argument("axis", nargs="?")
+    p.add_argument("--json", action="store_true", help="one JSON object")
+
+    p = client("fault-reset", "clear an axis's latched fault (only when its cause is gone)", cmd_fault_reset)
+    p.add_argument("axis")
+
+    p = client("switch", "switch an axis's controller at a cycle boundary", cmd_switch)
+    p.add_argument("axis")
+    p.add_argument("--controller", choices=("c1", "c2"), required=True)
+
+    p = client("inject", "inject a fault into the simulated driver (daemon.allow_fault_injection)", cmd_inject)
+    p.add_argument("axis")
+    p.add_argument("kind", choices=("read_error", "nan", "amp_fault", "encoder_jump", "push"))
+    p.add_argument("--cycles", type=int, default=1)
+    p.add_argument("--jump-m", type=float, default=0.0)
+    p.add_argument("--force-n", type=float, default=0.0)
+
+    e = sub.add_parser("export", help="convert a run log to CSV or MATLAB .mat")
+    e.add_argument("log")
+    g = e.add_mutually_exclusive_group(required=True)
+    g.add_argument("--csv", metavar="OUT")
+    g.add_argument("--mat", metavar="OUT")
+    e.set_defaults(func=cmd_export)
