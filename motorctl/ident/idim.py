@@ -1,0 +1,197 @@
+"""IDIM-LS pre-processing and the nominal fit (issue 5, item 2).
+
+Practice of the EMPS benchmark (Janot, Gautier, Brunot, "Data Set and Reference Models of EMPS",
+2019, §3): zero-phase Butterworth low-pass of the position (order 4, cut-off ω_fq), central
+differences for velocity and acceleration, then *parallel decimation*: the same low-pass +
+down-sampling (:func:`scipy.signal.decimate`, zero phase) applied to every regressor column and
+to the input, and ordinary least squares on the decimated system, eq. (10):
+θ̂ = (Φ_Fpᵀ Φ_Fp)⁻¹ Φ_Fpᵀ y_Fp, with σ̂² = ‖y − Φθ̂‖²/(N − p) and cov θ̂ = σ̂² (ΦᵀΦ)⁻¹.
+
+The nominal model is the paper's eq. (4) written as u = Φ θ (:func:`motorctl.model.idim_regressor`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from functools import lru_cache
+
+from scipy.signal import butter, cheby1, filtfilt, sosfiltfilt
+
+from motorctl.model import N_THETA_CUBIC, N_THETA_LINEAR, idim_regressor
+
+#: |u| [V] that the 99.5th percentile of the input must reach for θ5, θ6 (u|u|, u³) to be fitted:
+#: below it the cubic terms differ from a straight line by less than the residual (θ5 ~ −0.01 /V
+#: gives u|u|θ5 ≈ 0.09 V at 3 V) and are collinear with θ1..θ3 under closed-loop excitation.
+CUBIC_MIN_INPUT_V = 3.0
+#: Samples (decimated) dropped at each end: the zero-phase filters' transients.
+EDGE_S = 0.1
+
+
+def default_filters(fs: float) -> tuple[float, int]:
+    """Position cut-off [Hz] and decimation factor for a sample rate ``fs`` [Hz].
+
+    ω_fq = min(fs/10, 250 Hz) (≥ 5 ω_dyn for closed-loop bandwidths up to 50 Hz; 100 Hz for
+    the 1 kHz EMPS data as in its script), n_d = fs/ω_fq, so the parallel filter's cut-off
+    (0.4 fs/n_d = 0.4 ω_fq) sits below the position filter (EMPS description §3.2: ω_Fp ≥ 2 ω_dyn).
+    """
+    fq = min(fs / 10.0, 250.0)
+    nd = max(1, int(round(fs / fq)))
+    return fq, nd
+
+
+def _stages(nd: int) -> list[int]:
+    """Split a decimation factor into stages ≤ 13 (scipy's advice for IIR decimation)."""
+    out, n = [], nd
+    for f in range(13, 1, -1):
+        while n % f == 0 and n > 1:
+            out.append(f)
+            n //= f
+    if n != 1:  # a prime > 13: decimate once by it (FIR is safe for any factor)
+        out.append(n)
+    return out or [1]
+
+
+@lru_cache(maxsize=32)
+def _decimation_sos(q: int) -> np.ndarray:
+    """The anti-aliasing filter of :func:`scipy.signal.decimate` (ftype='iir'): Chebyshev I,
+    order 8, 0.05 dB ripple, cut-off 0.8 of the new Nyquist frequency (designed once per q)."""
+    return cheby1(8, 0.05, 0.8 / q, output="sos")
+
+
+def parallel_decimate(m: np.ndarray, nd: int) -> np.ndarray:
+    """Same zero-phase low-pass + down-sampling on every column (EMPS §3.2, "decimate" process).
+
+    Equivalent to ``scipy.signal.decimate(m, q, ftype='iir', axis=0, zero_phase=True)`` per
+    stage (stages ≤ 13), with the filter designed once per factor.
+
+    Args:
+        m: shape (N,) or (N, k). nd: decimation factor ≥ 1.
+    Returns:
+        Shape (ceil(N/nd),) or (ceil(N/nd), k).
+    """
+    out = np.asarray(m, dtype=float)
+    if nd <= 1:
+        return out
+    for q in _stages(nd):
+        out = sosfiltfilt(_decimation_sos(q), out, axis=0)[::q]
+    return out
+
+
+@dataclass
+class Prepared:
+    """Filtered signals at full rate and the decimation set-up.
+
+    Attributes:
+        t, x, v, a, u: full rate (N,): time [s], filtered position [m], velocity [m/s],
+            acceleration [m/s²], input [V]. y: raw position [m]. fs [Hz], fq [Hz] (position
+            cut-off), nd (decimation factor). keep: slice of decimated samples kept (edges off).
+        t_d, x_d, v_d, a_d, u_d: the decimated versions (M,) over ``keep``.
+    """
+
+    t: np.ndarray
+    y: np.ndarray
+    x: np.ndarray
+    v: np.ndarray
+    a: np.ndarray
+    u: np.ndarray
+    fs: float
+    fq: float
+    nd: int
+    keep: slice
+    t_d: np.ndarray = None
+    x_d: np.ndarray = None
+    v_d: np.ndarray = None
+    a_d: np.ndarray = None
+    u_d: np.ndarray = None
+
+    def dec(self, cols: np.ndarray) -> np.ndarray:
+        """Parallel-decimate full-rate columns (N,) or (N, k) and drop the edges."""
+        return parallel_decimate(cols, self.nd)[self.keep]
+
+
+def prepare(t, y, u, fq: float | None = None, nd: int | None = None) -> Prepared:
+    """Zero-phase Butterworth (order 4) on y, central differences, decimation set-up.
+
+    Args:
+        t [s], y [m], u [V]: shape (N,), uniform sampling.
+        fq: position cut-off [Hz]; nd: decimation factor (defaults: :func:`default_filters`).
+    Raises:
+        ValueError: cut-off not below the Nyquist frequency.
+    """
+    t, y, u = (np.asarray(a, dtype=float) for a in (t, y, u))
+    ts = (t[-1] - t[0]) / (len(t) - 1)
+    fs = 1.0 / ts
+    dfq, dnd = default_filters(fs)
+    fq = float(fq or dfq)
+    nd = int(nd or dnd)
+    if not 0 < fq < fs / 2:
+        raise ValueError(f"position cut-off {fq} Hz must be in (0, {fs / 2:g}) Hz")
+    b, a_ = butter(4, fq / (fs / 2))
+    x = filtfilt(b, a_, y - y[0]) + y[0]
+    v = np.gradient(x, ts)          # central differences (one-sided at the ends)
+    acc = np.gradient(v, ts)
+    n_dec = -(-len(t) // nd)
+    edge = int(np.ceil(EDGE_S * fs / nd)) + 2
+    keep = slice(edge, n_dec - edge)
+    p = Prepared(t=t, y=y, x=x, v=v, a=acc, u=u, fs=fs, fq=fq, nd=nd, keep=keep)
+    p.t_d = t[::nd][keep]
+    dec = p.dec(np.column_stack([x, v, acc, u]))
+    p.x_d, p.v_d, p.a_d, p.u_d = dec.T
+    return p
+
+
+def nominal_columns(p: Prepared, n_theta: int, u_full: np.ndarray | None = None) -> np.ndarray:
+    """Decimated nominal regressor Φ_Fp, shape (M, n_theta) (columns of eq. 4, see model.py)."""
+    u = p.u if u_full is None else u_full
+    return p.dec(idim_regressor(p.a, p.v, u, n_theta))
+
+
+@dataclass
+class LSFit:
+    """Ordinary LS on decimated data: coefficients, std, residual, condition number."""
+
+    coef: np.ndarray
+    std: np.ndarray
+    residual: np.ndarray
+    cond: float
+
+    @property
+    def rms(self) -> float:
+        return float(np.sqrt(np.mean(self.residual ** 2)))
+
+
+def ls(phi: np.ndarray, target: np.ndarray) -> LSFit:
+    """θ̂ = argmin ‖target − Φθ‖ (numpy.linalg.lstsq); std from σ̂²(ΦᵀΦ)⁻¹ (EMPS eq. 10).
+
+    Args:
+        phi: (M, p). target: (M,).
+    """
+    coef, *_ = np.linalg.lstsq(phi, target, rcond=None)
+    r = target - phi @ coef
+    m, k = phi.shape
+    s2 = float(r @ r) / max(m - k, 1)
+    try:
+        cov = s2 * np.linalg.inv(phi.T @ phi)
+        std = np.sqrt(np.abs(np.diag(cov)))
+    except np.linalg.LinAlgError:
+        std = np.full(k, np.inf)
+    return LSFit(coef=coef, std=std, residual=r, cond=float(np.linalg.cond(phi)))
+
+
+def choose_n_theta(u: np.ndarray, forced: int | None = None) -> tuple[int, str]:
+    """θ1..θ6 or θ1..θ4, with the reason (issue 5, item 2).
+
+    Args:
+        u: input [V], shape (N,). forced: 4 or 6 to override.
+    """
+    reach = float(np.percentile(np.abs(u), 99.5))
+    if forced in (N_THETA_LINEAR, N_THETA_CUBIC):
+        return forced, f"n_theta={forced} requested (|u| reaches {reach:.2f} V at the 99.5th percentile)"
+    if reach >= CUBIC_MIN_INPUT_V:
+        return N_THETA_CUBIC, (f"theta1..theta6: |u| reaches {reach:.2f} V (99.5th percentile) >= "
+                               f"{CUBIC_MIN_INPUT_V:g} V, where u|u| and u^3 depart from u enough to be identified")
+    return N_THETA_LINEAR, (f"theta1..theta4: |u| reaches only {reach:.2f} V (99.5th percentile) < "
+                            f"{CUBIC_MIN_INPUT_V:g} V; there u|u| and u^3 are nearly collinear with u "
+                            "and the cubic terms theta5, theta6 are not identifiable")

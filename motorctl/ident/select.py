@@ -1,0 +1,382 @@
+"""Nominal fit, effect search and forward selection (issue 5, items 2-4).
+
+Decision rule (design note ``residual-analysis.md`` §0): a candidate effect, re-fitted *jointly*
+with the nominal θ, is accepted only when all three agree:
+
+1. held-out gain: the RMS of the 2-fold cross-validated residual over interleaved blocks
+   (blocks of :data:`BLOCK_S`, assigned to the two folds by a fixed pseudo-random draw so that no
+   periodic trajectory lands in one fold) drops by at least :data:`MIN_HELDOUT_GAIN`;
+2. information criterion: BIC = M ln(SSE/M) + k ln M drops by at least :data:`MIN_BIC_DROP`
+   (k counts the columns and the searched parameter);
+3. plausibility: the effect's coefficients are significant (Wald statistic per column ≥
+   :data:`MIN_WALD`), its parameters are inside their physical range (searched parameter not at
+   the edge of its grid, amplitudes below half the input range, ...), and the nominal θ stay
+   physical (θ1 > 0, θ2, θ3 not significantly negative).
+
+Accepted effects are added one at a time (the best held-out gain first) and everything is
+re-fitted, until no candidate passes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from motorctl.ident import effects as fx
+from motorctl.ident.data import Record
+from motorctl.ident.idim import Prepared, choose_n_theta, ls, nominal_columns, prepare
+
+BLOCK_S = 0.5
+MIN_HELDOUT_GAIN = 0.03
+MIN_BIC_DROP = 10.0
+MIN_WALD = 25.0
+MAX_EFFECTS = 3
+FRICTION_SHAPES = ("sf", "sign")
+
+
+@dataclass
+class Term:
+    """One effect in the model: family, searched value h, decimated columns (M, k), input delay."""
+
+    family: str
+    h: float | None
+    cols: np.ndarray | None
+    delay: float = 0.0
+
+
+@dataclass
+class Evaluated:
+    term: Term
+    heldout_rms: float
+    fit: object            # LSFit on all data
+    bic: float
+    ok: bool = False
+    reasons: list = field(default_factory=list)
+
+
+class Identifier:
+    """IDIM-LS identification of one record (see the module docstring).
+
+    Args:
+        rec: a checked :class:`~motorctl.ident.data.Record`.
+        n_theta: 4 or 6 to force the nominal structure (default: :func:`choose_n_theta`).
+        friction: 'sf' (the paper's S_f(ẋ) = (2/π)atan(900ẋ)) or 'sign' (the EMPS reference
+            model's sign(ẋ)) for the Coulomb column.
+        fq, nd: position cut-off [Hz] and decimation factor (default: idim.default_filters).
+        families: effect families to search (default: all).
+    """
+
+    def __init__(self, rec: Record, n_theta: int | None = None, friction: str = "sf",
+                 fq: float | None = None, nd: int | None = None, families=None, seed: int = 0):
+        if friction not in FRICTION_SHAPES:
+            raise ValueError(f"friction shape {friction!r}; allowed: {', '.join(FRICTION_SHAPES)}")
+        self.rec = rec
+        self.friction = friction
+        self.p: Prepared = prepare(rec.t, rec.y, rec.u, fq, nd)
+        self.n_theta, self.n_theta_reason = choose_n_theta(rec.u, n_theta)
+        self.families = list(families or fx.FAMILIES)
+        p = self.p
+        m = len(p.t_d)
+        blk = np.floor((p.t_d - p.t_d[0]) / BLOCK_S).astype(int)
+        nb = blk.max() + 1
+        rng = np.random.default_rng(seed)
+        assign = np.zeros(nb, dtype=int)
+        assign[rng.permutation(nb)[: nb // 2]] = 1
+        self.fold = assign[blk]
+        self.m = m
+        self._phi_cache = {}
+        #: the logged input is held over the period (ZOH): seen from the central-difference
+        #: acceleration at t_k it acts half a sample late (u_{k-1}, u_k weigh equally).
+        self.zoh = 0.5
+        self.moving = np.abs(p.v_d) > 0.02 * np.max(np.abs(p.v_d))
+        self.stroke = float(np.ptp(p.x_d))
+
+    # ------------------------------------------------------------------ building blocks
+    def nominal_phi(self, delay: float = 0.0) -> np.ndarray:
+        key = round(delay, 6)
+        if key not in self._phi_cache:
+            if len(self._phi_cache) > 256:
+                self._phi_cache.clear()
+            p = self.p
+            u = self.delayed_u(delay)
+            phi = nominal_columns(p, self.n_theta, u)
+            if self.friction == "sign":
+                phi[:, 2] = p.dec(np.sign(p.v))
+            self._phi_cache[key] = phi
+        return self._phi_cache[key]
+
+    def delayed_u(self, delay: float) -> np.ndarray:
+        """u(t − delay·Ts) at full rate, fractional delays by linear interpolation."""
+        u = self.p.u
+        if delay <= 0:
+            return u
+        n = np.arange(len(u), dtype=float) - delay
+        return np.interp(n, np.arange(len(u)), u)
+
+    def target(self, delay: float = 0.0) -> np.ndarray:
+        key = ("y", round(delay, 6))
+        if key not in self._phi_cache:
+            self._phi_cache[key] = self.p.u_d if delay <= 0 else self.p.dec(self.delayed_u(delay))
+        return self._phi_cache[key]
+
+    def design(self, terms: list) -> tuple[np.ndarray, np.ndarray]:
+        delay = self.zoh + sum(t.delay for t in terms)
+        cols = [self.nominal_phi(delay)] + [t.cols for t in terms if t.cols is not None]
+        return np.column_stack(cols), self.target(delay)
+
+    def heldout(self, phi: np.ndarray, y: np.ndarray) -> float:
+        """2-fold cross-validated residual RMS over the interleaved blocks."""
+        sse = 0.0
+        for k in (0, 1):
+            tr, te = self.fold == k, self.fold != k
+            coef = _coef(phi[tr], y[tr])
+            r = y[te] - phi[te] @ coef
+            sse += float(r @ r)
+        return math.sqrt(sse / len(y))
+
+    def evaluate(self, terms: list) -> Evaluated:
+        phi, y = self.design(terms)
+        fit = ls(phi, y)
+        k = phi.shape[1] + sum(1 for t in terms if t.h is not None)
+        sse = float(fit.residual @ fit.residual)
+        bic = self.m * math.log(sse / self.m) + k * math.log(self.m)
+        return Evaluated(term=terms[-1] if terms else None, heldout_rms=self.heldout(phi, y), fit=fit, bic=bic)
+
+    def dec_cols(self, family: str, h) -> np.ndarray | None:
+        c = fx.columns(family, h, self.p)
+        return None if c is None else self.p.dec(c)
+
+    # ------------------------------------------------------------------ candidate search
+    def _sse(self, terms):
+        phi, y = self.design(terms)
+        r = y - phi @ _coef(phi, y)
+        return float(r @ r)
+
+    def _best_over(self, family, grid, base, cols_fn=None):
+        """Searched parameter by joint LS over a grid (all data); returns (h, Term, sse list)."""
+        best = None
+        sses = []
+        for h in grid:
+            term = Term(family, float(h), cols_fn(h) if cols_fn else self.dec_cols(family, h))
+            sse = self._sse(base + [term])
+            sses.append(sse)
+            if best is None or sse < best[0]:
+                best = (sse, term)
+        return best[1], np.array(sses)
+
+    def search(self, family: str, base: list, residual: np.ndarray) -> Evaluated | None:
+        """Best candidate of ``family`` given the already selected ``base`` terms."""
+        p = self.p
+        edge_note = None
+        if family in ("cogging", "force_ripple"):
+            grid = fx.period_grid(self.stroke)
+            if grid.size == 0 or self.moving.sum() < 50:
+                return None
+            mv = self.moving
+            if family == "cogging":
+                peaks = fx.peak_periods(p.x_d[mv], residual[mv], grid)
+            else:
+                big = mv & (np.abs(p.u_d) > 0.3 * np.max(np.abs(p.u_d)))
+                if big.sum() < 50:
+                    return None
+                peaks = fx.peak_periods(p.x_d[big], residual[big] / p.u_d[big], grid)
+            best = None
+            for pk in peaks:
+                term, _ = self._best_over(family, fx.refine(pk, 0.04, 17), base)
+                term, _ = self._best_over(family, fx.refine(term.h, 0.005, 11), base)
+                sse = self._sse(base + [term])
+                if best is None or sse < best[0]:
+                    best = (sse, term)
+            term = best[1]
+            if term.h <= grid[1] or term.h >= grid[-2]:
+                edge_note = f"period {term.h:.4g} m at the edge of the searched range"
+        elif family == "stribeck":
+            grid = np.exp(np.linspace(math.log(2e-3), math.log(max(0.5 * np.max(np.abs(p.v)), 3e-3)), 24))
+            term, sses = self._best_over(family, grid, base)
+            i = int(np.argmin(sses))
+            if i in (0, len(grid) - 1):
+                edge_note = f"Stribeck velocity {term.h:.3g} m/s at the edge of the searched range"
+            else:
+                term, _ = self._best_over(family, np.exp(np.linspace(math.log(grid[i - 1]), math.log(grid[i + 1]), 9)), base)
+        elif family == "payload_change":
+            lo, hi = p.t_d[0] + 1.0, p.t_d[-1] - 1.0
+            if hi <= lo:
+                return None
+            a_d = p.a_d
+            coarse = np.arange(lo, hi, 0.05)
+
+            def approx(h):
+                return (a_d * (p.t_d >= h))[:, None]
+            _, sses = self._best_over(family, coarse, base, approx)
+            smin = sses.min()
+            # flat minimum (no acceleration between two moves): take the middle of the flat set
+            near = coarse[sses <= smin + 1e-6 * max(smin, 1e-300) + 1e-12]
+            h = float(0.5 * (near.min() + near.max()))
+            term = Term(family, h, self.dec_cols(family, h))
+        elif family == "input_delay":
+            dmax = max(3, min(int(round(0.005 * p.fs)), 40))
+            grid = np.arange(0, dmax + 1)
+            sses = np.array([self._sse(base + [Term(family, float(d), None, float(d))]) for d in grid])
+            i = int(np.argmin(sses))
+            d = float(grid[i])
+            if 0 < i < len(grid) - 1:
+                s0, s1, s2 = sses[i - 1], sses[i], sses[i + 1]
+                den = s0 - 2 * s1 + s2
+                if den > 0:
+                    d += 0.5 * (s0 - s2) / den
+            if i == 0:
+                return None
+            if i == len(grid) - 1:
+                edge_note = f"delay {d:g} samples at the edge of the searched range"
+            term = Term(family, d, None, d)
+        elif family == "periodic_disturbance":
+            fs_d = p.fs / p.nd
+            freqs = np.arange(0.5, 0.35 * fs_d, 0.02)
+            pw = _time_periodogram(p.t_d, residual, freqs)
+            loc = np.flatnonzero((pw[1:-1] > pw[:-2]) & (pw[1:-1] >= pw[2:])) + 1
+            loc = loc[np.argsort(pw[loc])[::-1]][:3]
+            best = None
+            for i in loc:
+                term, _ = self._best_over(family, np.linspace(freqs[i] - 0.02, freqs[i] + 0.02, 9), base)
+                sse = self._sse(base + [term])
+                if best is None or sse < best[0]:
+                    best = (sse, term)
+            if best is None:
+                return None
+            term = best[1]
+        else:
+            term = Term(family, None, self.dec_cols(family, None))
+        ev = self.evaluate(base + [term])
+        ev.term = term
+        if edge_note:
+            ev.reasons.append(edge_note)
+        return ev
+
+    # ------------------------------------------------------------------ judging
+    def plausible(self, ev: Evaluated, base: list) -> list:
+        """Reasons why the candidate is not physically plausible (empty list: plausible)."""
+        reasons = list(ev.reasons)
+        term, fit = ev.term, ev.fit
+        nt = self.n_theta
+        th, sd = fit.coef[:nt], fit.std[:nt]
+        if th[0] <= 0:
+            reasons.append("theta1 <= 0")
+        for i in (1, 2):
+            if th[i] < -3 * sd[i]:
+                reasons.append(f"theta{i + 1} significantly negative")
+        if term.cols is not None:
+            k = term.cols.shape[1]
+            beta = fit.coef[-k:]
+            bstd = fit.std[-k:]
+            wald = float(np.sum((beta / bstd) ** 2)) / k
+            if wald < MIN_WALD:
+                reasons.append(f"coefficients not significant (Wald/column {wald:.1f} < {MIN_WALD:g})")
+            contrib = term.cols @ beta
+            u_range = float(np.percentile(np.abs(self.p.u_d), 99))
+            if np.max(np.abs(contrib)) > 0.5 * u_range and term.family != "payload_change":
+                reasons.append("effect larger than half the input range")
+            fam = term.family
+            if fam == "stribeck" and beta[0] <= 0:
+                reasons.append("Stribeck force must be positive (extra friction at low speed)")
+            if fam == "force_ripple" and np.max(np.hypot(beta[0::2], beta[1::2])) > 0.3:
+                reasons.append("ripple fraction above 0.3")
+            if fam == "position_dependent_friction":
+                x = self.p.x_d
+                if min(th[2] + beta[0] * x.min(), th[2] + beta[0] * x.max()) < 0:
+                    reasons.append("Coulomb level would turn negative over the stroke")
+            if fam == "payload_change":
+                if th[0] + beta[0] <= 0 or abs(beta[0]) > 2 * th[0]:
+                    reasons.append("mass step not plausible (|dM| > 2 M or mass <= 0)")
+        return reasons
+
+    def judge(self, ev: Evaluated, current: Evaluated, base: list) -> Evaluated:
+        gain = 1.0 - ev.heldout_rms / current.heldout_rms
+        reasons = self.plausible(ev, base)
+        if gain < MIN_HELDOUT_GAIN:
+            reasons.append(f"held-out gain {100 * gain:.1f} % < {100 * MIN_HELDOUT_GAIN:g} %")
+        if current.bic - ev.bic < MIN_BIC_DROP:
+            reasons.append(f"BIC drop {current.bic - ev.bic:.1f} < {MIN_BIC_DROP:g}")
+        ev.reasons = reasons
+        ev.ok = not reasons
+        ev.gain = gain
+        return ev
+
+    # ------------------------------------------------------------------ the whole procedure
+    def run(self, max_effects: int = MAX_EFFECTS) -> dict:
+        """Nominal fit, forward selection; returns a result dict (see :func:`summarise`)."""
+        nominal = self.evaluate([])
+        base: list = []
+        current = nominal
+        steps = []
+        accepted = []
+        for _ in range(max_effects):
+            residual = current.fit.residual
+            cands = []
+            for fam in self.families:
+                if any(t.family == fam for t in base):
+                    continue
+                if fam == "input_delay" and any(t.delay for t in base):
+                    continue
+                ev = self.search(fam, base, residual)
+                if ev is None:
+                    continue
+                cands.append(self.judge(ev, current, base))
+            steps.append(cands)
+            good = [c for c in cands if c.ok]
+            if not good:
+                break
+            best = max(good, key=lambda c: c.gain)
+            accepted.append((best, current.heldout_rms))
+            base = base + [best.term]
+            current = best
+        self.nominal, self.final, self.terms, self.steps, self.accepted = nominal, current, base, steps, accepted
+        return self
+
+    # ------------------------------------------------------------------ read-outs
+    def coef_split(self, ev: Evaluated, terms: list) -> tuple[np.ndarray, list]:
+        nt = self.n_theta
+        th = ev.fit.coef[:nt]
+        out, i = [], nt
+        for t in terms:
+            k = 0 if t.cols is None else t.cols.shape[1]
+            out.append(ev.fit.coef[i:i + k])
+            i += k
+        return th, out
+
+    def residual_full(self, terms: list, ev: Evaluated) -> np.ndarray:
+        return ev.fit.residual
+
+    def predict_on(self, other: "Identifier", terms: list, ev: Evaluated) -> np.ndarray:
+        """Residual on another record of the model fitted here (nominal + ``terms``), decimated (M2,)."""
+        th, betas = self.coef_split(ev, terms)
+        new_terms = []
+        for t, b in zip(terms, betas):
+            cols = other.dec_cols(t.family, t.h) if t.cols is not None else None
+            new_terms.append(Term(t.family, t.h, cols, t.delay))
+        other.n_theta = self.n_theta
+        phi, y = other.design(new_terms)
+        coef = np.concatenate([th] + [b for b in betas])
+        return y - phi @ coef
+
+
+def _time_periodogram(t, r, freqs):
+    """|DFT|² of r (uniform time t) at ``freqs`` [Hz] (zero-padded FFT, linear interpolation)."""
+    ts = (t[-1] - t[0]) / (len(t) - 1)
+    df = freqs[1] - freqs[0]
+    nfft = int(2 ** math.ceil(math.log2(max(len(r), 1.0 / (ts * df)))))
+    spec = np.abs(np.fft.rfft((r - r.mean()) * np.hanning(len(r)), nfft)) ** 2
+    f = np.fft.rfftfreq(nfft, ts)
+    return np.interp(freqs, f, spec)
+
+
+def _coef(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """LS coefficients by column-scaled normal equations (fast path; lstsq if singular)."""
+    sc = np.sqrt(np.einsum("ij,ij->j", phi, phi))
+    sc[sc == 0] = 1.0
+    a = phi / sc
+    try:
+        return np.linalg.solve(a.T @ a, a.T @ y) / sc
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(phi, y, rcond=None)[0]
