@@ -9,7 +9,10 @@ in input units (V, i.e. force / A1), and subtracted in v_a1:
     v_a1 = θ̂1 ẍ_d + θ̂2 ẋ_d + θ̂3 S_f(ẋ_d) − θ̂4 − d̂_eff(x_d, ẋ_d, t)
 
 Amplitudes are fixed from the fit (the fast d̂0 term still absorbs what is left).
-YAML: ``axes.NAME.controller.compensation``.
+YAML: ``axes.NAME.controller.compensation``. Families: cogging, spring, periodic_disturbance,
+stribeck, asymmetric_friction, position_dependent_friction (the additive forces of
+``motorctl_drivers.sim``; force ripple, payload change and input delay are not additive in
+(x_d, ẋ_d, t) and have no term here).
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from typing import Annotated
 from pydantic import Field
 
 from motorctl.driver import StrictModel
+from motorctl.model import s_f_scalar
 
 Pos = Annotated[float, Field(gt=0)]
 
@@ -47,13 +51,37 @@ class FourierTime(StrictModel):
     cos_V: list[float] = []
 
 
+class StribeckComp(StrictModel):
+    """−F_s exp(−(ẋ/v_s)²) S_f(ẋ) [V]: friction hump at low speed (force / A1)."""
+
+    force_V: float
+    velocity_m_per_s: Pos
+
+
+class AsymmetricFrictionComp(StrictModel):
+    """−(ΔF_c S_f(ẋ) + ΔB ẋ) for ẋ > 0 only [V]: direction-dependent friction (force / A1)."""
+
+    coulomb_V: float = 0.0
+    viscous_V_s_per_m: float = 0.0
+
+
+class PositionFrictionComp(StrictModel):
+    """−c (x − x_ref) S_f(ẋ) [V]: Coulomb level varying with position (force / A1)."""
+
+    coulomb_slope_V_per_m: float
+    reference_m: float = 0.0
+
+
 class CompensationConfig(StrictModel):
     cogging: FourierPosition | None = None
     spring: SpringComp | None = None
     periodic_disturbance: FourierTime | None = None
+    stribeck: StribeckComp | None = None
+    asymmetric_friction: AsymmetricFrictionComp | None = None
+    position_dependent_friction: PositionFrictionComp | None = None
 
     def is_empty(self) -> bool:
-        return self.cogging is None and self.spring is None and self.periodic_disturbance is None
+        return all(getattr(self, k) is None for k in type(self).model_fields)
 
 
 class Compensation:
@@ -77,6 +105,9 @@ class Compensation:
             b = list(d.cos_V) + [0.0] * (n - len(d.cos_V))
             self._pd = [(w * (k + 1), a[k], b[k]) for k in range(n)]
         self._spring = cfg.spring
+        self._strib = cfg.stribeck
+        self._asym = cfg.asymmetric_friction
+        self._pdf = cfg.position_dependent_friction
 
     def value(self, x_d: float, xd_dot: float, t: float) -> float:
         """d̂_eff [V] at the desired position x_d [m], velocity ẋ_d [m/s] and time t [s]."""
@@ -89,4 +120,13 @@ class Compensation:
         if self._pd is not None:
             for w, a, b in self._pd:
                 d += a * math.sin(w * t) + b * math.cos(w * t)
+        if self._strib is not None or self._asym is not None or self._pdf is not None:
+            sf = s_f_scalar(xd_dot)
+            if self._strib is not None:
+                z = xd_dot / self._strib.velocity_m_per_s
+                d -= self._strib.force_V * math.exp(-z * z) * sf
+            if self._asym is not None and xd_dot > 0.0:
+                d -= self._asym.coulomb_V * sf + self._asym.viscous_V_s_per_m * xd_dot
+            if self._pdf is not None:
+                d -= self._pdf.coulomb_slope_V_per_m * (x_d - self._pdf.reference_m) * sf
         return d

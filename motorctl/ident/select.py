@@ -28,7 +28,7 @@ from motorctl.ident import effects as fx
 from motorctl.ident.data import Record
 from motorctl.ident.idim import Prepared, choose_n_theta, ls, nominal_columns, prepare
 
-BLOCK_S = 0.5
+BLOCK_S = 0.25
 MIN_HELDOUT_GAIN = 0.03
 MIN_BIC_DROP = 10.0
 MIN_WALD = 25.0

@@ -23,7 +23,7 @@ EXAMPLES = {
     "position_dependent_friction": {"position_dependent_friction": {"coulomb_slope_N_per_m": 40.0,
                                                                     "reference_m": 0.2}},
     "spring": {"spring": {"stiffness_N_per_m": 100.0, "rest_position_m": 0.1}},
-    "payload_change": {"payload_change": {"t_change_s": 4.65, "mass_kg": 4.0}},
+    "payload_change": {"payload_change": {"t_change_s": 4.65, "mass_kg": 2.0}},
     "periodic_disturbance": {"periodic_disturbance": {"amplitude_N": 6.0, "frequency_Hz": 7.3,
                                                       "phase_rad": 0.4}},
     "input_delay": {"input_delay_s": 0.0006},
@@ -46,6 +46,11 @@ def gantry_dict(axis: str = "X", effect: dict | None = None, seed: int = 1, nois
     d["driver"]["seed"] = int(seed)
     drv = d["axes"][axis]["driver"]
     drv["force_noise_N"] = float(noise_N)
+    # an undeclared effect can raise the tracking error well above the production limits:
+    # widen the following-error window so the supervisor does not cut the record short
+    lim = d["axes"][axis]["limits"]
+    lim["following_error_m"] = max(lim["following_error_m"], 0.01)
+    lim["min_following_error_m"] = max(lim["min_following_error_m"], 0.005)
     for k, v in (effect or {}).items():
         if k == "input_delay_s":
             drv["input_delay_s"] = v
