@@ -1,0 +1,164 @@
+"""Helpers for the daemon tests: a test config, a daemon subprocess that is always killed in
+teardown, and the CLI run as a subprocess (the operator's view). No tests in this module."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+GANTRY = REPO / "configs" / "gantry.yaml"
+
+
+def make_config(tmp: Path, *, fault_axis: bool = False, watchdog_s: float = 0.0,
+                policy: str = "off", extra_daemon: dict | None = None, name: str = "cfg.yaml") -> Path:
+    """A copy of configs/gantry.yaml for tests: realtime off, socket and logs under tmp,
+    fault injection on, short recorder windows. ``fault_axis``: X holds at 0 with a soft
+    minimum 0.5 mm below it and a 1 mm following-error floor (push → soft limit or following
+    error), and no offset force (so it does not creep while disabled)."""
+    d = yaml.safe_load(GANTRY.read_text())
+    d["loop"]["realtime"]["policy"] = policy
+    d["driver"]["watchdog_s"] = watchdog_s
+    d["daemon"].update(socket=str(tmp / "motorctl.sock"), log_dir=str(tmp / "logs"),
+                       allow_fault_injection=True, flush_s=0.2, event_before_s=0.2,
+                       event_after_s=0.1, stop_settle_s=0.05)
+    if extra_daemon:
+        d["daemon"].update(extra_daemon)
+    if fault_axis:
+        x = d["axes"]["X"]
+        x["driver"]["offset_N"] = 0.0
+        x["trajectory"] = {"points": [0.0]}
+        x["limits"].update(soft_min_m=-0.0005, min_following_error_m=0.001, following_error_m=0.002)
+    p = tmp / name
+    p.write_text(yaml.safe_dump(d))
+    return p
+
+
+_MAIN = "import sys; from motorctl.cli import main; sys.exit(main())"
+
+
+def cli(sock: Path | str | None, *args, timeout: float = 30.0, **kw) -> subprocess.CompletedProcess:
+    """Run ``motorctl [--socket SOCK] ARGS`` as a subprocess (the operator's command line)."""
+    cmd = [sys.executable, "-c", _MAIN]
+    if sock is not None:
+        cmd += ["--socket", str(sock)]
+    return subprocess.run(cmd + [str(a) for a in args], capture_output=True, text=True,
+                          timeout=timeout, cwd=str(REPO), **kw)
+
+
+class Result:
+    def __init__(self, returncode: int, stdout: str, stderr: str):
+        self.returncode, self.stdout, self.stderr = returncode, stdout, stderr
+
+
+def ctl(sock: Path | str | None, *args) -> Result:
+    """``motorctl [--socket SOCK] ARGS`` through ``motorctl.cli.main`` in this process: the same
+    parser, handlers, output and exit code as the command line, without paying the 1-3 s
+    interpreter start-up and imports of a subprocess on every call."""
+    import contextlib
+    import io
+
+    from motorctl.cli import main
+    argv = (["--socket", str(sock)] if sock is not None else []) + [str(a) for a in args]
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(argv)
+    return Result(code, out.getvalue(), err.getvalue())
+
+
+def status(sock) -> dict:
+    """The daemon's status through the client library (cheap, for polling)."""
+    from motorctl.ctl import call
+    ans = call(str(sock), {"cmd": "status"})
+    assert ans["ok"], ans
+    return ans["status"]
+
+
+def cli_status(sock) -> dict:
+    """``motorctl status --json`` as a subprocess."""
+    r = cli(sock, "status", "--json")
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)
+
+
+def wait_for(pred, timeout: float, what: str, interval: float = 0.05):
+    end = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < end:
+        last = pred()
+        if last:
+            return last
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what} (last: {last!r})")
+
+
+class Daemon:
+    """``motorctl daemon CONFIG`` as a subprocess; :meth:`kill` in teardown, always."""
+
+    def __init__(self, config: Path, sock: Path, extra_args=(), env=None, preexec=None):
+        self.config, self.sock = config, sock
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", _MAIN, "daemon", str(config), "--socket", str(sock),
+             *extra_args],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=str(REPO),
+            env=env, preexec_fn=preexec)
+        self.io_pid = None
+
+    def wait_ready(self, timeout: float = 60.0) -> dict:
+        def ready():
+            if self.proc.poll() is not None:
+                raise AssertionError(f"daemon exited {self.proc.returncode}: {self.proc.stderr.read()}")
+            if not self.sock.exists():
+                return None
+            try:
+                st = status(self.sock)
+            except Exception:
+                return None
+            return st if st["process"].get("loop_pid") and st["loop"]["cycles"] > 0 else None
+        st = wait_for(ready, timeout, "the daemon to run")
+        self.io_pid = st["process"]["io_pid"]
+        return st
+
+    def terminate(self, timeout: float = 20.0) -> tuple[int, str, str]:
+        self.proc.send_signal(signal.SIGTERM)
+        out, err = self.proc.communicate(timeout=timeout)
+        return self.proc.returncode, out, err
+
+    def kill(self) -> None:
+        for pid in (self.proc.pid, self.io_pid):
+            if pid:
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except (ProcessLookupError, PermissionError):
+                    pass
+        try:
+            self.proc.communicate(timeout=10)
+        except (subprocess.TimeoutExpired, ValueError):
+            pass
+        if self.io_pid:
+            end = time.monotonic() + 5
+            while time.monotonic() < end and _alive(self.io_pid):
+                time.sleep(0.02)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie counts as gone
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def run_log_path(st: dict) -> str:
+    return st["log"]["path"]
