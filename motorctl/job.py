@@ -11,6 +11,7 @@ import datetime as _dt
 import signal
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
 
 import numpy as np
 
@@ -132,6 +133,7 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
             "driver": driver.describe(),
             "stopped_by_signal": result.stopped_by_signal,
         }
+        Path(log_path).parent.mkdir(parents=True, exist_ok=True)
         with LogWriter(log_path, header) as w:
             w.append(np.ascontiguousarray(rows))
         result.log_path = str(log_path)
