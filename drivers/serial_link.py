@@ -1,0 +1,364 @@
+"""Serial driver (pyserial): one compact binary exchange per cycle for the whole axis group.
+
+Frames (our layout; multi-byte fields little-endian, CRC big-endian)::
+
+    command  A5 | addr | seq | n | n × (node, flags, u int16) | CRC-16   flags bit0 = amplifier enable
+    query    A6 | addr | seq | n | n × (node)                 | CRC-16   (positions only, no plant step)
+    reply    5A | addr | seq | n | n × (node, status, counts int32) | CRC-16   status bit0 = amp
+                                                                       fault, bit1 = amplifier on
+    error    5B | addr | seq | n | code |                 CRC-16     (the device refused the command)
+
+CRC-16/CCITT-FALSE (polynomial 0x1021, initial value 0xFFFF, no reflection) over every byte
+before it, via :func:`binascii.crc_hqx`. ``seq`` is the cycle counter mod 256: the reply carries
+the command's, so a stale or late reply is recognised. ``u`` is the voltage scaled so that
+±32767 = ±``voltage_full_scale_V``; counts are the 32-bit encoder counter (wraps, unwrapped by
+the driver). ``node`` is the axis's drive number on the link (``axes.NAME.driver.node``), so a
+frame may carry any subset of the axes.
+
+YAML (``driver:``)::
+
+    type: serial
+    port: /dev/ttyS4 | socket://127.0.0.1:5020 | /tmp/motorctl-pty   (pyserial URL or device)
+    baudrate: 3000000
+    address: 1
+    low_latency: true            # ASYNC_LOW_LATENCY where the port supports it (reported)
+    voltage_full_scale_V: 10.0
+    bits_per_char: 10            # 8N1
+    turnaround_chars: 1.0        # line turnaround per exchange, in characters (budget)
+    device_latency_s: 10.0e-6    # the drive's answer time (budget)
+    timeout_s, round_trip_s, max_bus_load, emulator: see proto_common.CommonOptions
+
+per axis (``axes.NAME.driver``): ``node`` (0-255), ``encoder_m_per_count`` [m], ``plant``
+(emulator only).
+"""
+
+from __future__ import annotations
+
+import binascii
+import math
+import struct
+from typing import Annotated
+
+import numpy as np
+from pydantic import Field
+
+from motorctl.driver import BusBudget, StrictModel
+from motorctl_drivers.proto_common import (CommonOptions, EncoderUnwrap, PlantBank, SplitPhaseDriver,
+                                           StreamEndpoint, make_budget, serve_forever, volts_to_counts,
+                                           counts_to_volts)
+from motorctl_drivers.sim import SimAxisOptions
+
+CMD, QUERY, REPLY, ERROR = 0xA5, 0xA6, 0x5A, 0x5B
+_HEAD = 4
+_CMD_ITEM = struct.Struct("<BBh")
+_QUERY_ITEM = struct.Struct("<B")
+_REPLY_ITEM = struct.Struct("<BBI")
+MAX_AXES = 32
+STANDARD_BAUDS = (115200, 230400, 460800, 921600, 1000000, 2000000, 3000000, 4000000, 6000000, 12000000)
+
+
+def crc16(data: bytes) -> int:
+    """CRC-16/CCITT-FALSE of ``data`` (poly 0x1021, init 0xFFFF): ``binascii.crc_hqx``."""
+    return binascii.crc_hqx(data, 0xFFFF)
+
+
+def frame_length(kind: int, n: int) -> int:
+    """Length in bytes of a frame of ``kind`` carrying ``n`` axes."""
+    body = {CMD: _CMD_ITEM.size * n, QUERY: _QUERY_ITEM.size * n, REPLY: _REPLY_ITEM.size * n, ERROR: 1}[kind]
+    return _HEAD + body + 2
+
+
+def _seal(buf: bytearray) -> bytes:
+    buf[-2:] = crc16(bytes(buf[:-2])).to_bytes(2, "big")
+    return bytes(buf)
+
+
+def encode_command(address: int, seq: int, items) -> bytes:
+    """Command frame. ``items``: per axis (node, enable: bool, u_counts: int16)."""
+    buf = bytearray(frame_length(CMD, len(items)))
+    buf[0:4] = bytes((CMD, address, seq & 0xFF, len(items)))
+    for k, (node, en, c) in enumerate(items):
+        _CMD_ITEM.pack_into(buf, _HEAD + k * _CMD_ITEM.size, node, 1 if en else 0, c)
+    return _seal(buf)
+
+
+def encode_query(address: int, seq: int, nodes) -> bytes:
+    buf = bytearray(frame_length(QUERY, len(nodes)))
+    buf[0:4] = bytes((QUERY, address, seq & 0xFF, len(nodes)))
+    buf[4:4 + len(nodes)] = bytes(nodes)
+    return _seal(buf)
+
+
+def encode_reply(address: int, seq: int, items) -> bytes:
+    """Reply frame. ``items``: per axis (node, status: int, counts: int, taken mod 2^32)."""
+    buf = bytearray(frame_length(REPLY, len(items)))
+    buf[0:4] = bytes((REPLY, address, seq & 0xFF, len(items)))
+    for k, (node, st, c) in enumerate(items):
+        _REPLY_ITEM.pack_into(buf, _HEAD + k * _REPLY_ITEM.size, node, st, c & 0xFFFFFFFF)
+    return _seal(buf)
+
+
+def encode_error(address: int, seq: int, n: int, code: int) -> bytes:
+    buf = bytearray(frame_length(ERROR, n))
+    buf[0:4] = bytes((ERROR, address, seq & 0xFF, n))
+    buf[4] = code
+    return _seal(buf)
+
+
+def decode_body(kind: int, n: int, frame: bytes) -> list:
+    """Items of a checked frame: CMD → [(node, enable, u_counts)], REPLY → [(node, status,
+    counts_u32)], QUERY → [node], ERROR → [code]."""
+    if kind == CMD:
+        return [(nd, bool(f & 1), c) for nd, f, c in
+                (_CMD_ITEM.unpack_from(frame, _HEAD + k * _CMD_ITEM.size) for k in range(n))]
+    if kind == REPLY:
+        return [_REPLY_ITEM.unpack_from(frame, _HEAD + k * _REPLY_ITEM.size) for k in range(n)]
+    if kind == QUERY:
+        return list(frame[_HEAD:_HEAD + n])
+    return [frame[4]]
+
+
+class FrameParser:
+    """Cuts frames out of a byte stream: hunts for a start byte, waits for the whole frame,
+    checks the CRC; a bad frame costs one byte of resync and counts in ``bad_frames``."""
+
+    def __init__(self, kinds=(CMD, QUERY, REPLY, ERROR)):
+        self.buf = bytearray()
+        self.kinds = set(kinds)
+        self.bad_frames = 0
+
+    def feed(self, data: bytes) -> list[tuple[int, int, int, int, bytes]]:
+        """Add bytes; return the complete good frames as (kind, address, seq, n, frame)."""
+        buf = self.buf
+        buf += data
+        out = []
+        i = 0
+        while len(buf) - i >= _HEAD + 2:
+            kind = buf[i]
+            n = buf[i + 3]
+            if kind not in self.kinds or not 1 <= n <= MAX_AXES:
+                i += 1
+                continue
+            size = frame_length(kind, n)
+            if len(buf) - i < size:
+                break
+            frame = bytes(buf[i:i + size])
+            if crc16(frame[:-2]) != int.from_bytes(frame[-2:], "big"):
+                self.bad_frames += 1
+                i += 1
+                continue
+            out.append((kind, frame[1], frame[2], n, frame))
+            i += size
+        del buf[:i]
+        return out
+
+
+class SerialOptions(CommonOptions):
+    """YAML ``driver:`` of the serial driver (see the module docstring)."""
+
+    port: str
+    baudrate: Annotated[int, Field(gt=0)] = 3_000_000
+    address: Annotated[int, Field(ge=0, le=255)] = 1
+    low_latency: bool = True
+    voltage_full_scale_V: Annotated[float, Field(gt=0)] = 10.0
+    bits_per_char: Annotated[int, Field(ge=7, le=12)] = 10
+    turnaround_chars: Annotated[float, Field(ge=0)] = 1.0
+    device_latency_s: Annotated[float, Field(ge=0)] = 10e-6
+
+
+class SerialAxisOptions(StrictModel):
+    """YAML ``axes.NAME.driver`` of the serial driver."""
+
+    node: Annotated[int, Field(ge=0, le=255)]
+    encoder_m_per_count: Annotated[float, Field(gt=0)] = 0.5e-6
+    plant: SimAxisOptions | None = None
+
+
+class SerialDriver(SplitPhaseDriver):
+    """The serial-link driver (pyserial). See the module docstring for frame and settings."""
+
+    Options = SerialOptions
+    AxisOptions = SerialAxisOptions
+
+    def __init__(self, options: SerialOptions, axis_options: dict, period_s: float):
+        super().__init__(options, axis_options, period_s)
+        n = len(self.axis_names)
+        if n > MAX_AXES:
+            raise ValueError(f"serial frame carries at most {MAX_AXES} axes")
+        self._unwrap = [EncoderUnwrap(32) for _ in range(n)]
+        self._m_per_count = [axis_options[a].encoder_m_per_count for a in self.axis_names]
+        self.port = None
+        self.parser = FrameParser((REPLY, ERROR))
+        self.low_latency = "off"
+        self._nodes = [axis_options[a].node for a in self.axis_names]
+        if len(set(self._nodes)) != n:
+            raise ValueError(f"serial: two axes share a node number ({self._nodes})")
+        self._index = {nd: i for i, nd in enumerate(self._nodes)}
+        self._items = [(nd, False, 0) for nd in self._nodes]
+
+    def open(self) -> None:
+        import serial
+        o = self.options
+        if "://" in o.port:
+            self.port = serial.serial_for_url(o.port, baudrate=o.baudrate, timeout=0, write_timeout=0)
+            if o.port.startswith("socket://"):
+                import socket
+                self.port._socket.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        else:
+            self.port = serial.Serial(o.port, baudrate=o.baudrate, timeout=0, write_timeout=0)
+        if o.low_latency:
+            try:
+                self.port.set_low_latency_mode(True)
+                self.low_latency = "on"
+            except (AttributeError, ValueError, OSError) as exc:
+                self.low_latency = f"not supported ({type(exc).__name__})"
+        self.port.reset_input_buffer()
+        self.parser = FrameParser((REPLY, ERROR))
+        self.connected = True
+        self._first_reading()
+
+    def close(self) -> None:
+        if self.port is None:
+            return
+        try:
+            n = len(self.axis_names)
+            self.seq = (self.seq + 1) & self.SEQ_MASK
+            self.port.write(encode_command(self.options.address, self.seq, [(nd, False, 0) for nd in self._nodes]))
+            self.port.flush()
+        except Exception:  # noqa: BLE001  (closing anyway)
+            pass
+        self.port.close()
+        self.port = None
+        self.connected = False
+
+    def _transmit_query(self, seq: int) -> None:
+        self.port.write(encode_query(self.options.address, seq, self._nodes))
+
+    def _transmit(self, seq: int, u_V: np.ndarray, enable: np.ndarray) -> None:
+        fs = self.options.voltage_full_scale_V
+        items = self._items
+        nodes = self._nodes
+        for i in range(len(items)):
+            en = bool(enable[i])
+            items[i] = (nodes[i], en, volts_to_counts(float(u_V[i]), fs, 16) if en else 0)
+        self.port.write(encode_command(self.options.address, seq, items))
+
+    def _receive(self) -> None:
+        data = self.port.read(4096)   # timeout=0: what has arrived, never waits
+        if not data:
+            return
+        frames = self.parser.feed(data)
+        self.counters["bad_frames"] = self.parser.bad_frames
+        addr = self.options.address
+        index = self._index
+        for kind, a, seq, m, frame in frames:
+            if a != addr:
+                continue
+            if kind == ERROR:
+                if seq == self.seq:
+                    self.counters["exceptions"] += 1
+                continue
+            for node, status, raw in decode_body(REPLY, m, frame):
+                i = index.get(node)
+                if i is not None:
+                    self._accept(i, seq, raw, bool(status & 1))
+
+    def budget(self, rate_hz: float) -> BusBudget:
+        """Characters and gaps on the wire for one exchange of the whole group.
+
+        wire = (request + reply bytes + turnaround_chars) × bits_per_char / baudrate
+               + device_latency_s   (8N1: 10 bits per byte)
+        """
+        o = self.options
+        n = len(self.axis_names)
+        chars = frame_length(CMD, n) + frame_length(REPLY, n)
+        fixed = o.device_latency_s + o.round_trip_s
+        wire = (chars + o.turnaround_chars) * o.bits_per_char / o.baudrate + o.device_latency_s
+        room = o.max_bus_load / rate_hz - fixed
+        need = (chars + o.turnaround_chars) * o.bits_per_char / room if room > 0 else math.inf
+        fit = next((b for b in STANDARD_BAUDS if b >= need), None)
+        fits = (f"raise driver.baudrate to {fit} (needs {need / 1e6:.2f} Mbaud)" if fit
+                else "no baud rate carries it: lower round_trip_s (faster host) or fewer axes per link")
+        what = (f"serial {o.baudrate} baud, {n} axes: {frame_length(CMD, n)} B command + "
+                f"{frame_length(REPLY, n)} B reply + {o.turnaround_chars:g} char turnaround at "
+                f"{o.bits_per_char} bits/char + {o.device_latency_s * 1e6:.0f} us device latency")
+        return make_budget(rate_hz, wire, o.round_trip_s, o.max_bus_load, what, fits)
+
+    def describe(self) -> dict:
+        d = super().describe()
+        d.update(transport="serial", port=self.options.port, baudrate=self.options.baudrate,
+                 low_latency=self.low_latency)
+        return d
+
+
+# --------------------------------------------------------------------------- device side
+class SerialDevice:
+    """The emulated drive group behind a serial link (``motorctl emulate --transport serial``).
+
+    Listens on ``driver.port`` (socket:// → TCP server on that address; a path → a pty whose
+    slave is linked there), answers command and query frames for ``driver.address``.
+    """
+
+    def __init__(self, options: SerialOptions, axis_options: dict, bank: PlantBank):
+        self.o = options
+        self.m_per_count = [axis_options[a].encoder_m_per_count for a in bank.names]
+        self.index = {axis_options[a].node: i for i, a in enumerate(bank.names)}
+        self.bank = bank
+        self.ep = StreamEndpoint(options.port)
+        self.parser = FrameParser((CMD, QUERY))
+        self._last_reply = None
+
+    def _reply(self, seq: int, nodes) -> bytes:
+        b = self.bank
+        items = []
+        for nd in nodes:
+            i = self.index[nd]
+            items.append((nd, (1 if b.amp_fault[i] else 0) | (2 if b.enabled[i] else 0),
+                          b.counts(i, self.m_per_count[i])))
+        return encode_reply(self.o.address, seq, items)
+
+    def poll(self, timeout_s: float) -> None:
+        import time
+        data = self.ep.wait(timeout_s)
+        if not data:
+            return
+        b = self.bank
+        for kind, addr, seq, m, frame in self.parser.feed(data):
+            if addr != self.o.address:
+                continue
+            if kind == QUERY:
+                nodes = [nd for nd in decode_body(QUERY, m, frame) if nd in self.index]
+                self.ep.send(self._reply(seq, nodes))
+                continue
+            items = [it for it in decode_body(CMD, m, frame) if it[0] in self.index]
+            nodes = [it[0] for it in items]
+            fault = b.next_fault([self.index[nd] for nd in nodes])
+            if fault == "exception":
+                self.ep.send(encode_error(self.o.address, seq, m, 4))
+                continue
+            if fault == "disconnect":
+                self.ep.disconnect()
+                return
+            for nd, en, c in items:
+                b.command(self.index[nd], counts_to_volts(c, self.o.voltage_full_scale_V, 16), en)
+            reply = self._reply(seq, nodes)
+            if fault in ("drop", "bus_off"):
+                pass
+            elif fault == "stale" and self._last_reply is not None:
+                self.ep.send(self._last_reply)
+            elif fault == "corrupt":
+                bad = bytearray(reply)
+                bad[-1] ^= 0xFF
+                self.ep.send(bytes(bad))
+            else:
+                if fault == "late":
+                    time.sleep(b.opts.late_s)
+                self.ep.send(reply)
+            self._last_reply = reply
+
+    def serve(self, stop=None, duration_s=None) -> None:
+        try:
+            serve_forever(self.poll, self.bank, stop, duration_s)
+        finally:
+            self.ep.close()
+
