@@ -40,6 +40,9 @@ def register(parser, subparsers) -> None:
                    help="force theta1..theta4 or theta1..theta6 (default: chosen from the input range)")
     p.add_argument("--friction", choices=("sf", "sign"), default="sf",
                    help="Coulomb shape: the paper's S_f (default) or sign() as in the EMPS reference model")
+    p.add_argument("--zoh-delay", type=float, default=None, metavar="SAMPLES",
+                   help="input-to-acceleration delay of the logged input (default 0.5 for run logs: "
+                        "zero-order hold; 0 for CSV/MAT)")
     p.add_argument("--no-closed-loop", action="store_true", help="skip the closed-loop before/after runs")
     p.add_argument("--closed-loop-duration", type=float, default=8.0, help="seconds per closed-loop run")
     p.set_defaults(func=cmd_identify)
@@ -104,7 +107,7 @@ def summarise(idf: Identifier) -> dict:
 
 def validation(idf: Identifier, rec2) -> dict:
     """Residual RMS on a second record of the nominal and the augmented model fitted on DATA."""
-    other = Identifier(rec2, n_theta=idf.n_theta, friction=idf.friction)
+    other = Identifier(rec2, n_theta=idf.n_theta, friction=idf.friction, zoh_delay=idf.zoh)
     g = idf.rec.gain or 1.0
     r0 = idf.predict_on(other, [], idf.nominal)
     r1 = idf.predict_on(other, idf.terms, idf.final)
@@ -208,7 +211,9 @@ def cmd_identify(args) -> int:
         raise UsageError(f"{exc.filename}: is a directory; DATA must be a file") from None
     if args.closed_loop_duration <= 0:
         raise UsageError(f"--closed-loop-duration {args.closed_loop_duration}: must be > 0 s")
-    idf = Identifier(rec, n_theta=args.n_theta, friction=args.friction).run()
+    if args.zoh_delay is not None and not 0 <= args.zoh_delay <= 10:
+        raise UsageError(f"--zoh-delay {args.zoh_delay}: must be within 0..10 samples")
+    idf = Identifier(rec, n_theta=args.n_theta, friction=args.friction, zoh_delay=args.zoh_delay).run()
     s = summarise(idf)
     s["validation"] = validation(idf, rec2) if rec2 is not None else None
     s["closed_loop"] = None

@@ -9,7 +9,7 @@ frequency). The force the effect adds to the plant is then F_eff = −A1·Cβ (N
 family                          plant force F_eff [N]                columns C (u = Φθ + Cβ)
 ==============================  ===================================  ======================
 cogging                         Σ A_k sin(2πkx/P + φ_k)              sin, cos(2πkx/P), k ≤ K
-force_ripple                    F_m Σ r_k sin(2πkx/P + φ_k)          u·sin, u·cos(2πkx/P)
+force_ripple                    F_m Σ r_k sin(2πkx/P + φ_k)          f_u(u)·sin, ·cos(2πkx/P)
 stribeck                        −F_s exp(−(ẋ/v_s)²) S_f(ẋ)           exp(−(ẋ/v_s)²) S_f(ẋ)
 asymmetric_friction             −(ΔF_c S_f(ẋ) + ΔB ẋ), ẋ > 0 only    S_f(ẋ)·[ẋ>0], ẋ·[ẋ>0]
 position_dependent_friction     −c (x − x_ref) S_f(ẋ)                x·S_f(ẋ)
@@ -46,14 +46,17 @@ class Candidate:
 
 # ---------------------------------------------------------------------------- column builders
 def _fourier(z: np.ndarray, period: float, k: int, scale=None) -> np.ndarray:
-    w = 2.0 * np.pi / period
-    cols = []
-    for j in range(1, k + 1):
-        s, c = np.sin(j * w * z), np.cos(j * w * z)
-        if scale is not None:
-            s, c = s * scale, c * scale
-        cols += [s, c]
-    return np.column_stack(cols)
+    ph = (2.0 * np.pi / period) * z
+    s1, c1 = np.sin(ph), np.cos(ph)
+    out = np.empty((len(z), 2 * k))
+    s, c = s1, c1
+    for j in range(k):
+        if j:  # angle addition: sin((j+1)φ), cos((j+1)φ) from sin(jφ), cos(jφ)
+            s, c = s * c1 + c * s1, c * c1 - s * s1
+        out[:, 2 * j], out[:, 2 * j + 1] = s, c
+    if scale is not None:
+        out *= scale[:, None]
+    return out
 
 
 def columns(family: str, h, p) -> np.ndarray | None:
@@ -62,7 +65,8 @@ def columns(family: str, h, p) -> np.ndarray | None:
     if family == "cogging":
         return _fourier(x, h, N_HARMONICS)
     if family == "force_ripple":
-        return _fourier(x, h, N_HARMONICS, scale=u)
+        # ripple multiplies the thrust F_m(u)/A1 = f_u(u) (nominal θ5, θ6 when fitted)
+        return _fourier(x, h, N_HARMONICS, scale=getattr(p, "fu", None) if getattr(p, "fu", None) is not None else u)
     if family == "stribeck":
         return (np.exp(-(v / h) ** 2) * s_f(v))[:, None]
     if family == "asymmetric_friction":
@@ -79,6 +83,14 @@ def columns(family: str, h, p) -> np.ndarray | None:
     if family == "input_delay":
         return None
     raise ValueError(f"unknown effect family {family!r}; families: {', '.join(FAMILIES)}")
+
+
+def columns_fast(family: str, h, p) -> np.ndarray | None:
+    """The columns of :func:`columns` evaluated on the *decimated* signals (M, k): a cheap
+    approximation for the grid searches (the exact columns are filtered at full rate)."""
+    from types import SimpleNamespace
+    q = SimpleNamespace(x=p.x_d, v=p.v_d, a=p.a_d, u=p.u_d, t=p.t_d)
+    return columns(family, h, q)
 
 
 def delayed(u: np.ndarray, d: int) -> np.ndarray:

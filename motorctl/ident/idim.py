@@ -105,6 +105,7 @@ class Prepared:
     v_d: np.ndarray = None
     a_d: np.ndarray = None
     u_d: np.ndarray = None
+    fu: np.ndarray = None      # thrust shape f_u(u) [V] once the nominal θ5, θ6 are known (N,)
 
     def dec(self, cols: np.ndarray) -> np.ndarray:
         """Parallel-decimate full-rate columns (N,) or (N, k) and drop the edges."""

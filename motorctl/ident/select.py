@@ -26,13 +26,16 @@ import numpy as np
 
 from motorctl.ident import effects as fx
 from motorctl.ident.data import Record
-from motorctl.ident.idim import Prepared, choose_n_theta, ls, nominal_columns, prepare
+from motorctl.ident.idim import Prepared, choose_n_theta, ls, prepare
+from motorctl.model import f_u, s_f
 
 BLOCK_S = 0.25
 MIN_HELDOUT_GAIN = 0.03
 MIN_BIC_DROP = 10.0
 MIN_WALD = 25.0
 MAX_EFFECTS = 3
+#: Periodogram peaks refined by the joint fit (position- and time-periodic families).
+N_PEAKS = 2
 FRICTION_SHAPES = ("sf", "sign")
 
 
@@ -66,16 +69,20 @@ class Identifier:
             model's sign(ẋ)) for the Coulomb column.
         fq, nd: position cut-off [Hz] and decimation factor (default: idim.default_filters).
         families: effect families to search (default: all).
+        zoh_delay: delay [samples] between the logged input and the acceleration it causes
+            (default 0.5 for motorctl run logs, whose input is a zero-order hold, 0 otherwise).
     """
 
     def __init__(self, rec: Record, n_theta: int | None = None, friction: str = "sf",
-                 fq: float | None = None, nd: int | None = None, families=None, seed: int = 0):
+                 fq: float | None = None, nd: int | None = None, families=None, seed: int = 0,
+                 zoh_delay: float | None = None):
         if friction not in FRICTION_SHAPES:
             raise ValueError(f"friction shape {friction!r}; allowed: {', '.join(FRICTION_SHAPES)}")
         self.rec = rec
         self.friction = friction
         self.p: Prepared = prepare(rec.t, rec.y, rec.u, fq, nd)
         self.n_theta, self.n_theta_reason = choose_n_theta(rec.u, n_theta)
+        self._n_theta_forced = n_theta is not None
         self.families = list(families or fx.FAMILIES)
         p = self.p
         m = len(p.t_d)
@@ -87,23 +94,27 @@ class Identifier:
         self.fold = assign[blk]
         self.m = m
         self._phi_cache = {}
-        #: the logged input is held over the period (ZOH): seen from the central-difference
-        #: acceleration at t_k it acts half a sample late (u_{k-1}, u_k weigh equally).
-        self.zoh = 0.5
+        #: in a motorctl run log u_k is written after y_k is read and held over the period (ZOH):
+        #: seen from the central-difference acceleration at t_k it acts half a sample late
+        #: (u_{k-1}, u_k weigh equally). Other files: timing unknown, 0 unless told.
+        self.zoh = float(zoh_delay if zoh_delay is not None else (0.5 if rec.header else 0.0))
         self.moving = np.abs(p.v_d) > 0.02 * np.max(np.abs(p.v_d))
         self.stroke = float(np.ptp(p.x_d))
 
     # ------------------------------------------------------------------ building blocks
     def nominal_phi(self, delay: float = 0.0) -> np.ndarray:
-        key = round(delay, 6)
+        key = (round(delay, 6), self.n_theta)
         if key not in self._phi_cache:
             if len(self._phi_cache) > 256:
                 self._phi_cache.clear()
             p = self.p
-            u = self.delayed_u(delay)
-            phi = nominal_columns(p, self.n_theta, u)
-            if self.friction == "sign":
-                phi[:, 2] = p.dec(np.sign(p.v))
+            if "fixed" not in self._phi_cache:
+                sf = np.sign(p.v) if self.friction == "sign" else s_f(p.v)
+                self._phi_cache["fixed"] = p.dec(np.column_stack([p.a, p.v, sf, -np.ones_like(p.v)]))
+            phi = self._phi_cache["fixed"]
+            if self.n_theta == 6:
+                u = self.delayed_u(delay)
+                phi = np.column_stack([phi, p.dec(np.column_stack([-u * np.abs(u), -u ** 3]))])
             self._phi_cache[key] = phi
         return self._phi_cache[key]
 
@@ -155,7 +166,9 @@ class Identifier:
         return float(r @ r)
 
     def _best_over(self, family, grid, base, cols_fn=None):
-        """Searched parameter by joint LS over a grid (all data); returns (h, Term, sse list)."""
+        """Searched parameter by joint LS over a grid (all data); ``cols_fn`` may give cheap
+        approximate columns (:func:`effects.columns_fast`), the best one then gets its exact
+        columns. Returns (Term, SSE per grid value)."""
         best = None
         sses = []
         for h in grid:
@@ -164,7 +177,33 @@ class Identifier:
             sses.append(sse)
             if best is None or sse < best[0]:
                 best = (sse, term)
-        return best[1], np.array(sses)
+        term = best[1]
+        term.cols = self.dec_cols(family, term.h)
+        return term, np.array(sses)
+
+    def _delay_sses(self, base: list, grid: np.ndarray) -> np.ndarray:
+        """Joint-LS SSE for extra input delays ``grid`` [samples]: the decimated u, u|u|, u³ are
+        shifted by a fractional number of decimated samples (FFT phase shift of band-limited
+        signals) instead of being re-filtered for every candidate."""
+        p = self.p
+        key = ("u3", self.zoh)
+        if key not in self._phi_cache:
+            u0 = self.delayed_u(self.zoh)
+            self._phi_cache[key] = p.dec(np.column_stack([u0, u0 * np.abs(u0), u0 ** 3]))
+        ud = self._phi_cache[key]
+        spec = np.fft.rfft(ud, axis=0)
+        w = 2 * np.pi * np.fft.rfftfreq(ud.shape[0])
+        phi0, _ = self.design(base)
+        out = []
+        for d in grid:
+            sh = np.fft.irfft(spec * np.exp(-1j * w * (d / p.nd))[:, None], n=ud.shape[0], axis=0)
+            phi = phi0.copy()
+            if self.n_theta == 6:
+                phi[:, 4], phi[:, 5] = -sh[:, 1], -sh[:, 2]
+            y = sh[:, 0]
+            r = (y - phi @ _coef(phi, y))[4:-4]
+            out.append(float(r @ r))
+        return np.array(out)
 
     def search(self, family: str, base: list, residual: np.ndarray) -> Evaluated | None:
         """Best candidate of ``family`` given the already selected ``base`` terms."""
@@ -176,16 +215,16 @@ class Identifier:
                 return None
             mv = self.moving
             if family == "cogging":
-                peaks = fx.peak_periods(p.x_d[mv], residual[mv], grid)
+                peaks = fx.peak_periods(p.x_d[mv], residual[mv], grid, N_PEAKS)
             else:
                 big = mv & (np.abs(p.u_d) > 0.3 * np.max(np.abs(p.u_d)))
                 if big.sum() < 50:
                     return None
-                peaks = fx.peak_periods(p.x_d[big], residual[big] / p.u_d[big], grid)
+                peaks = fx.peak_periods(p.x_d[big], residual[big] / p.u_d[big], grid, N_PEAKS)
             best = None
             for pk in peaks:
-                term, _ = self._best_over(family, fx.refine(pk, 0.04, 17), base)
-                term, _ = self._best_over(family, fx.refine(term.h, 0.005, 11), base)
+                term, _ = self._best_over(family, fx.refine(pk, 0.03, 13), base)
+                term, _ = self._best_over(family, fx.refine(term.h, 0.005, 7), base)
                 sse = self._sse(base + [term])
                 if best is None or sse < best[0]:
                     best = (sse, term)
@@ -218,7 +257,7 @@ class Identifier:
         elif family == "input_delay":
             dmax = max(3, min(int(round(0.005 * p.fs)), 40))
             grid = np.arange(0, dmax + 1)
-            sses = np.array([self._sse(base + [Term(family, float(d), None, float(d))]) for d in grid])
+            sses = self._delay_sses(base, grid)
             i = int(np.argmin(sses))
             d = float(grid[i])
             if 0 < i < len(grid) - 1:
@@ -236,10 +275,11 @@ class Identifier:
             freqs = np.arange(0.5, 0.35 * fs_d, 0.02)
             pw = _time_periodogram(p.t_d, residual, freqs)
             loc = np.flatnonzero((pw[1:-1] > pw[:-2]) & (pw[1:-1] >= pw[2:])) + 1
-            loc = loc[np.argsort(pw[loc])[::-1]][:3]
+            loc = loc[np.argsort(pw[loc])[::-1]][:N_PEAKS]
             best = None
             for i in loc:
-                term, _ = self._best_over(family, np.linspace(freqs[i] - 0.02, freqs[i] + 0.02, 9), base)
+                term, _ = self._best_over(family, np.linspace(freqs[i] - 0.02, freqs[i] + 0.02, 9), base,
+                                          lambda h: fx.columns_fast(family, h, p))
                 sse = self._sse(base + [term])
                 if best is None or sse < best[0]:
                     best = (sse, term)
@@ -307,6 +347,25 @@ class Identifier:
     def run(self, max_effects: int = MAX_EFFECTS) -> dict:
         """Nominal fit, forward selection; returns a result dict (see :func:`summarise`)."""
         nominal = self.evaluate([])
+        if self.n_theta == 6 and not self._n_theta_forced:
+            th, sd = nominal.fit.coef, nominal.fit.std
+            self.n_theta = 4
+            lin = self.evaluate([])
+            gain = 1.0 - nominal.heldout_rms / lin.heldout_rms
+            if th[4] > 3 * sd[4] or th[5] > 3 * sd[5]:
+                self.n_theta_reason += (f"; but the fit gives theta5 = {th[4]:.3g}, theta6 = {th[5]:.3g} 1/V^2 with a "
+                                        "significantly positive term (the paper's force curve has A2, A3 <= 0): "
+                                        "the cubic terms absorb something else, so theta1..theta4 are kept")
+                nominal = lin
+            elif gain < MIN_HELDOUT_GAIN:
+                self.n_theta_reason += (f"; but theta5, theta6 lower the held-out residual by only {100 * gain:.1f} % "
+                                        f"(< {100 * MIN_HELDOUT_GAIN:g} %), so theta1..theta4 are kept")
+                nominal = lin
+            else:
+                self.n_theta = 6
+        if self.n_theta == 6:   # thrust shape f_u(u) = u + θ5 u|u| + θ6 u³ for the ripple family
+            th = nominal.fit.coef
+            self.p.fu = f_u(self.p.u, th[4], th[5])
         base: list = []
         current = nominal
         steps = []

@@ -1,0 +1,113 @@
+"""Report of ``motorctl identify --report DIR``: report.txt, summary.json and PNG figures.
+
+Figures (matplotlib, Agg backend):
+  * residual_position.png, residual_velocity.png, residual_time.png: the decimated residual of
+    the nominal and of the augmented model against position, velocity and time;
+  * spatial_periodogram.png: least-squares periodogram of the nominal residual with position as
+    the abscissa (moving samples), periods on the x axis;
+  * effect_shape.png: each found effect's fitted term (force or input units) against its
+    natural variable.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+
+from motorctl.ident import effects as fx
+
+
+def write_report(idf, summary: dict, out_dir: str, text: str) -> list:
+    """Write the report files into ``out_dir`` (created). Returns the paths written.
+
+    Raises:
+        OSError: the directory cannot be created or written.
+    """
+    os.makedirs(out_dir, exist_ok=True)
+    paths = []
+    p = os.path.join(out_dir, "report.txt")
+    with open(p, "w") as fh:
+        fh.write(text)
+    paths.append(p)
+    p = os.path.join(out_dir, "summary.json")
+    with open(p, "w") as fh:
+        json.dump(summary, fh, indent=1, default=float)
+    paths.append(p)
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:  # pragma: no cover - matplotlib is in the plot/test extras
+        return paths
+    g = idf.rec.gain or 1.0
+    unit = summary["residual_unit"]
+    pr = idf.p
+    r0 = g * idf.nominal.fit.residual
+    r1 = g * idf.final.fit.residual
+    for name, xv, xl in (("position", pr.x_d, "position [m]"), ("velocity", pr.v_d, "velocity [m/s]"),
+                         ("time", pr.t_d, "time [s]")):
+        fig, ax = plt.subplots(figsize=(8, 4.5))
+        ax.plot(xv, r0, ".", ms=2, alpha=0.5, label=f"nominal (RMS {np.sqrt(np.mean(r0**2)):.3g} {unit})")
+        ax.plot(xv, r1, ".", ms=2, alpha=0.5, label=f"augmented (RMS {np.sqrt(np.mean(r1**2)):.3g} {unit})")
+        ax.set_xlabel(xl)
+        ax.set_ylabel(f"residual [{unit}]")
+        ax.set_title(f"IDIM residual against {name}")
+        ax.legend(loc="upper right")
+        ax.grid(alpha=0.3)
+        fig.tight_layout()
+        p = os.path.join(out_dir, f"residual_{name}.png")
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        paths.append(p)
+    grid = fx.period_grid(idf.stroke)
+    if grid.size and idf.moving.sum() > 50:
+        mv = idf.moving
+        pw = fx.spatial_periodogram(pr.x_d[mv], idf.nominal.fit.residual[mv], grid)
+        fig, ax = plt.subplots(figsize=(8, 4.5))
+        ax.semilogx(grid * 1e3, pw)
+        for e in summary["effects"]:
+            if "period_m" in e["parameters"]:
+                ax.axvline(e["parameters"]["period_m"] * 1e3, color="r", ls="--", label=f"{e['name']}")
+        ax.set_xlabel("period [mm]")
+        ax.set_ylabel("normalised LS power")
+        ax.set_title("spatial periodogram of the nominal residual (moving samples)")
+        if summary["effects"]:
+            ax.legend()
+        ax.grid(alpha=0.3, which="both")
+        fig.tight_layout()
+        p = os.path.join(out_dir, "spatial_periodogram.png")
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        paths.append(p)
+    if idf.terms:
+        _, betas = idf.coef_split(idf.final, idf.terms)
+        n = len(idf.terms)
+        fig, axes = plt.subplots(n, 1, figsize=(8, 3.2 * n), squeeze=False)
+        for ax, t, b in zip(axes[:, 0], idf.terms, betas):
+            if t.cols is not None:
+                contrib = -g * (t.cols @ b)   # the force the effect adds to the plant
+                xv, xl = {"cogging": (pr.x_d, "position [m]"), "force_ripple": (pr.x_d, "position [m]"),
+                          "spring": (pr.x_d, "position [m]"),
+                          "position_dependent_friction": (pr.x_d, "position [m]"),
+                          "stribeck": (pr.v_d, "velocity [m/s]"),
+                          "asymmetric_friction": (pr.v_d, "velocity [m/s]")}.get(t.family, (pr.t_d, "time [s]"))
+                o = np.argsort(xv)
+                ax.plot(xv[o], contrib[o], "-", lw=1)
+                ax.set_xlabel(xl)
+                ax.set_ylabel(f"effect force [{unit}]")
+            else:
+                ax.plot(pr.t_d, g * idf.target(idf.zoh + t.delay) - g * pr.u_d, lw=0.8)
+                ax.set_xlabel("time [s]")
+                ax.set_ylabel(f"u(t - tau) - u(t) [{unit}]")
+            ax.set_title(f"{t.family}: " + ", ".join(
+                f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                for k, v in fx.parameters(t.family, t.h, b, idf.rec.gain, pr.fs).items()), fontsize=9)
+            ax.grid(alpha=0.3)
+        fig.tight_layout()
+        p = os.path.join(out_dir, "effect_shape.png")
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        paths.append(p)
+    return paths
