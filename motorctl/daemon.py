@@ -330,7 +330,7 @@ def _loop_main(sh: _Shared, driver, ctrls, sup, io_pid: int, cmds: Mailbox, repl
 
     def handle(m: dict) -> dict:
         op, i = m.get("op"), m.get("axis", -1)
-        r = {"id": m.get("id"), "ok": True}
+        r = {"id": m.get("id"), "ok": True, "cycle": loop.k}
         try:
             if op == "start":
                 if sup.fault[i]:
@@ -509,6 +509,7 @@ class _IO:
         self.last_hb = 0
         self.last_status = 0.0
         self.exit_reason = ""
+        self.audit: list[dict] = []      # commands applied by the loop, with their cycle
 
     # ---- commands from clients
     def axis_index(self, req) -> int:
@@ -520,7 +521,7 @@ class _IO:
     def to_loop(self, conn, msg: dict, post=None) -> None:
         msg["id"] = self.next_id
         self.next_id += 1
-        self.pending[msg["id"]] = (conn, time.monotonic() + 2.0, post)
+        self.pending[msg["id"]] = (conn, time.monotonic() + 2.0, post, msg)
         self.cmds.send(msg)
         ctl = self.sh.ring.ctl
         ctl[CTL_CMD_SEQ] = int(ctl[CTL_CMD_SEQ]) + 1
@@ -669,8 +670,13 @@ class _IO:
         entry = self.pending.pop(m.get("id"), None)
         if entry is None:
             return
-        conn, _, post = entry
+        conn, _, post, req = entry
         m.pop("id", None)
+        if m.get("ok"):
+            self.audit.append({"cycle": m.get("cycle"), "op": req.get("op"),
+                               "axis": self.sh.names[req["axis"]],
+                               **({"controller": req["controller"]} if req.get("controller") else {}),
+                               **({"kind": req["kind"]} if req.get("kind") else {})})
         if post and m.get("ok"):
             m.update(post)
         self.respond(conn, m)
@@ -745,7 +751,7 @@ class _IO:
                 else:
                     self.on_client(key.fileobj)
             now = time.monotonic()
-            for rid, (conn, deadline, _) in list(self.pending.items()):
+            for rid, (conn, deadline, _, _) in list(self.pending.items()):
                 if now > deadline:
                     self.pending.pop(rid)
                     self.respond(conn, {"ok": False, "error": "the loop did not answer within 2 s"})
@@ -755,6 +761,15 @@ class _IO:
             self.notify(now)
         # the loop process ended (normally, or killed): keep everything it published
         try:
+            self.drainer.poll()
+            self.header["commands"] = self.audit
+            self.header["events"] = self.drainer.events
+            self.header["ended"] = {"reason": self.exit_reason or "loop process killed",
+                                    "cycles": self.sh.ring.published(),
+                                    "lost_rows": self.drainer.lost_rows}
+            if not self.writer.update_header(self.header):
+                self.header["commands"] = self.audit[-50:]
+                self.writer.update_header(self.header)
             self.drainer.finish()
         finally:
             self.lsock.close()

@@ -46,6 +46,7 @@ every driven axis hold its last output for ``overrun_hold`` cycles, ramp to 0 V 
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -128,6 +129,9 @@ class ServoLoop:
         self.stop_req = [False] * n
         self.stop_settle = 0            # cycles (set by the daemon)
         self.disable_on_fault = False   # daemon: a fault also drops the operator's request
+        self.blend_cycles = max(int(round(0.01 / period_s)), 1)  # bumpless switch window
+        self.blend_left = [0] * n       # switch blend cycles left per axis
+        self.blend_off = [math.nan] * n  # output offset being faded out [V] (NaN: not yet taken)
         self.ovr_left = [0] * n         # overrun reaction cycles left per axis
         self.u_last = [0.0] * n         # last output written [V]
         self.k = 0                      # executed cycles
@@ -205,6 +209,9 @@ class ServoLoop:
         hb = self.heartbeat
         slack = self.on_slack
         dis_on_fault = self.disable_on_fault
+        bl_left = self.blend_left
+        bl_off = self.blend_off
+        bl_n = float(self.blend_cycles)
         deadline = mono() + period
         done = 0
         for _ in range(n_cycles):
@@ -285,6 +292,16 @@ class ServoLoop:
                             c.reset(y)
                             running[i] = True
                         u = c.update(y, xd, vd, ad)
+                        nb = bl_left[i]
+                        if nb > 0:
+                            # bumpless switch: the step between the outgoing controller's last
+                            # output and the incoming one's first fades out linearly
+                            off = bl_off[i]
+                            if off != off:
+                                off = u_last[i] - u
+                                bl_off[i] = off
+                            u += off * nb / bl_n
+                            bl_left[i] = nb - 1
                         ok = sup.check_output(i, c.e, vd, u)
                 if not ok:
                     running[i] = False
@@ -368,7 +385,9 @@ class ServoLoop:
     def switch_axis(self, i: int, controller, keep_theta: bool = True) -> None:
         """Swap axis i's controller for ``controller`` (built beforehand) at this cycle
         boundary. The incoming controller inherits θ̂ (the common entries) and starts from the
-        measured position, so the output does not jump by more than the d̂0 it loses."""
+        measured position; the difference between the outgoing controller's last output and
+        the incoming one's first is added and faded out linearly over 10 ms (classic bumpless
+        transfer), so the output does not step at the switch."""
         old = self.controllers[i]
         if controller is old:
             return
@@ -377,6 +396,8 @@ class ServoLoop:
             controller.theta_hat[:n] = old.theta_hat[:n]
         if self._running[i]:
             controller.reset(float(self.driver.position_m[i]))
+            self.blend_off[i] = math.nan
+            self.blend_left[i] = self.blend_cycles
         self.controllers[i] = controller
 
     def fault_reset(self, i: int) -> tuple[bool, str]:

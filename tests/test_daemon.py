@@ -17,7 +17,7 @@ TS = 1.0 / 5000
 
 @pytest.fixture
 def daemon(tmp_path):
-    cfg = make_config(tmp_path)
+    cfg = make_config(tmp_path, busy_y=True)
     d = Daemon(cfg, tmp_path / "motorctl.sock")
     try:
         d.wait_ready()
@@ -67,7 +67,7 @@ def test_operator_session_start_stop_switch_sigterm(daemon):
 
     # switch Y C2 -> C1 -> C2 while it runs its program
     cycles = []
-    for kind in ("c1", "c2"):
+    for kind in ("c1", "c2", "c1", "c2"):
         c0 = status(sock)["loop"]["cycles"]
         wait_for(lambda: status(sock)["loop"]["cycles"] > c0 + 1500, 20, "0.3 s of Y")
         r = ctl(sock, "switch", "Y", "--controller", kind)

@@ -18,9 +18,11 @@ GANTRY = REPO / "configs" / "gantry.yaml"
 
 
 def make_config(tmp: Path, *, fault_axis: bool = False, watchdog_s: float = 0.0,
-                policy: str = "off", extra_daemon: dict | None = None, name: str = "cfg.yaml") -> Path:
+                policy: str = "off", extra_daemon: dict | None = None, name: str = "cfg.yaml",
+                busy_y: bool = False) -> Path:
     """A copy of configs/gantry.yaml for tests: realtime off, socket and logs under tmp,
-    fault injection on, short recorder windows. ``fault_axis``: X holds at 0 with a soft
+    fault injection on, short recorder windows. ``busy_y``: Y's program is mostly moving.
+    ``fault_axis``: X holds at 0 with a soft
     minimum 0.5 mm below it and a 1 mm following-error floor (push → soft limit or following
     error), and no offset force (so it does not creep while disabled)."""
     d = yaml.safe_load(GANTRY.read_text())
@@ -31,6 +33,11 @@ def make_config(tmp: Path, *, fault_axis: bool = False, watchdog_s: float = 0.0,
                        event_after_s=0.1, stop_settle_s=0.05)
     if extra_daemon:
         d["daemon"].update(extra_daemon)
+    if busy_y:   # Y moves 0 <-> 0.4 m about 85 % of the time (a switch is likely mid-move)
+        d["axes"]["Y"]["trajectory"].update(move_times_s=[0.0, 0.6], period_s=1.2)
+        # C1 on Y follows within about 0.3 mm at the ends of moves: the gantry.yaml floor
+        # (0.3 mm) would trip now and then while C1 is switched in
+        d["axes"]["Y"]["limits"].update(min_following_error_m=0.001, following_error_m=0.002)
     if fault_axis:
         x = d["axes"]["X"]
         x["driver"]["offset_N"] = 0.0
