@@ -510,6 +510,7 @@ class _IO:
         self.last_status = 0.0
         self.exit_reason = ""
         self.audit: list[dict] = []      # commands applied by the loop, with their cycle
+        self._reported = 0
 
     # ---- commands from clients
     def axis_index(self, req) -> int:
@@ -756,6 +757,7 @@ class _IO:
                     self.pending.pop(rid)
                     self.respond(conn, {"ok": False, "error": "the loop did not answer within 2 s"})
             self.drainer.poll()
+            self.report_faults()
             self.drainer.cut_events()
             self.drainer.maybe_flush()
             self.notify(now)
@@ -778,6 +780,20 @@ class _IO:
             except OSError:
                 pass
         return 0
+
+    def report_faults(self) -> None:
+        """One line on stderr (the journal) per fault onset: reported once, not per cycle."""
+        evs = self.drainer.events + self.drainer.pending
+        for e in evs[self._reported:]:
+            if e["kind"].startswith("fault-"):
+                i = self.sh.names.index(e["kind"][6:])
+                st = self.sh.ring.status[i]
+                bits = int(st[ST_FAULT]) or int(e.get("value", 0))
+                sys.stderr.write(f"motorctl daemon: axis {self.sh.names[i]} fault at t = "
+                                 f"{e['k'] * self.sh.period_s if 'k' in e else e['t_s']:.4f} s: "
+                                 f"{describe_faults(bits)} (value {st[ST_VALUE]:.6g}, limit "
+                                 f"{st[ST_LIMIT]:.6g}); 0 V, amplifier off, latched\n")
+        self._reported = len(evs)
 
     def notify(self, now: float) -> None:
         hb = self.sh.ring.published()

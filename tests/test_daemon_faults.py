@@ -1,0 +1,92 @@
+"""Faults through the simulated driver's fault injection, on the real daemon, via the CLI.
+
+Each fault must give 0 V and amplifier off in the cycle it is detected (checked in the run log),
+a latched fault with its reason in ``status``, ``start`` refused while latched, ``fault-reset``
+refused while the cause persists and working once it is gone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_daemon_helpers import Daemon, ctl, make_config, status, wait_for
+
+from motorctl.runlog import read_log
+from motorctl.safety import (FAULT_AMP_FAULT, FAULT_FOLLOWING_ERROR, FAULT_IO_ERROR, FAULT_NAN,
+                             FAULT_SOFT_LIMIT)
+
+# (injection args, fault bit, reason in status, what blocks the reset until it is gone)
+FAULTS = [
+    (["push", "--force-n", "1500", "--cycles", "20"], FAULT_FOLLOWING_ERROR, "following error", None),
+    (["read_error", "--cycles", "20"], FAULT_IO_ERROR, "driver error bucket full", None),
+    (["nan", "--cycles", "1"], FAULT_NAN, "NaN/inf", None),
+    (["amp_fault", "--cycles", "2500"], FAULT_AMP_FAULT, "amplifier fault", "amplifier still reports"),
+    (["push", "--force-n", "-1500", "--cycles", "20"], FAULT_SOFT_LIMIT, "soft limit", "outside the soft limits"),
+]
+
+
+@pytest.fixture
+def fault_daemon(tmp_path):
+    cfg = make_config(tmp_path, fault_axis=True)
+    d = Daemon(cfg, tmp_path / "motorctl.sock")
+    try:
+        d.wait_ready()
+        yield d
+    finally:
+        d.kill()
+
+
+def test_injected_faults_latch_zero_volts_and_reset(fault_daemon):
+    sock = fault_daemon.sock
+    x = lambda: status(sock)["axes"]["X"]  # noqa: E731
+    log_path = status(sock)["log"]["path"]
+    for args, bit, reason, blocker in FAULTS:
+        r = ctl(sock, "start", "X")
+        assert r.returncode == 0, r.stderr
+        wait_for(lambda: x()["phase"] == "tracking" and x()["state"] == "enabled", 20, "X tracking")
+        r = ctl(sock, "inject", "X", *args)
+        assert r.returncode == 0, r.stderr
+        st = wait_for(lambda: (s := x())["state"] == "fault" and s, 20, f"{reason} fault")
+        assert reason in st["fault"] and st["fault_bits"] & bit
+        assert not st["amplifier_enabled"] and st["u_V"] == 0.0
+        # latched: start refused with one clear line
+        r = ctl(sock, "start", "X")
+        assert r.returncode == 1 and "in fault" in r.stderr and r.stderr.count("\n") == 1
+        if blocker == "amplifier still reports":
+            r = ctl(sock, "fault-reset", "X")
+            assert r.returncode == 1 and blocker in r.stderr
+            c0 = status(sock)["loop"]["cycles"]
+            wait_for(lambda: status(sock)["loop"]["cycles"] > c0 + 2600, 30, "the amplifier fault to clear")
+        elif blocker == "outside the soft limits":
+            r = ctl(sock, "fault-reset", "X")
+            assert r.returncode == 1 and blocker in r.stderr, r.stderr
+            # push the carriage back inside by hand (the amplifier is off)
+            assert ctl(sock, "inject", "X", "push", "--force-n", "300", "--cycles", "100").returncode == 0
+            wait_for(lambda: x()["y_m"] > 0.0, 20, "X back inside the soft limits")
+            c0 = status(sock)["loop"]["cycles"]
+            wait_for(lambda: status(sock)["loop"]["cycles"] > c0 + 1000, 20, "X at rest")
+        r = ctl(sock, "fault-reset", "X")
+        assert r.returncode == 0, r.stderr
+        assert "stays disabled" in r.stdout
+        st = x()
+        assert st["state"] == "disabled" and st["fault"] == ""
+        assert status(sock)["axes"]["Y"]["state"] == "disabled", "the other axis is not touched"
+    code, _, err = fault_daemon.terminate()
+    assert code == 0
+    assert sum("axis X fault" in line for line in err.splitlines()) == len(FAULTS), "reported once each"
+
+    log = read_log(log_path)
+    fb, u, en = log.col("X.fault_bits"), log.col("X.u"), log.col("X.enabled")
+    onsets = np.flatnonzero((fb[1:] != 0) & (fb[:-1] == 0)) + 1
+    # the 5 injected faults and the shutdown latch of SIGTERM on a disabled axis: none
+    assert len(onsets) == len(FAULTS)
+    for k, (_, bit, _, _) in zip(onsets, FAULTS):
+        assert int(fb[k]) & bit
+        assert en[k - 1] == 1.0, "the axis was driven the cycle before"
+        assert u[k] == 0.0 and en[k] == 0.0, "0 V and amplifier off in the cycle of the fault"
+    events = [e for e in log.header["events"] if e["kind"] == "fault-X"]
+    assert len(events) == len(FAULTS)
+    for e, k in zip(events, onsets):
+        ev = read_log(e["path"])
+        assert ev.header["event"]["cycle"] == k
+        t = ev.col("t")
+        assert t[0] < k * log.header["period_s"] < t[-1], "the window holds before and after"
