@@ -87,6 +87,8 @@ def cmd_emulate(args) -> int:
     sys.stdout.flush()
     dev.serve(stop=lambda: bool(stop), duration_s=args.duration)
     sys.stdout.write(f"stopped: commands {dict(zip(b.names, b.commands))}, "
+                     f"applied_V {dict(zip(b.names, b.applied_V))}, "
+                     f"amp_fault {dict(zip(b.names, b.amp_fault))}, "
                      f"watchdog trips {b.watchdog_trips}\n")
     sys.stdout.flush()
     return 0

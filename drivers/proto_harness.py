@@ -1,0 +1,207 @@
+"""Run a bus driver against the gantry I/O emulator on one machine (tests, benchmarks, trials).
+
+* :func:`loopback_config`: a copy of a driver config aimed at this machine: serial on
+  ``socket://127.0.0.1:PORT``, Modbus TCP on ``127.0.0.1:PORT``, CAN on python-can's
+  ``udp_multicast`` (a free UDP port, group 239.77.67.1).
+* :class:`NetNamespace`: a private network namespace (``unshare -n``, root only) with ``lo``
+  up and a route for 224.0.0.0/4 via ``lo``; commands run in it through ``nsenter``. CAN over
+  udp_multicast is only ever used inside one, so no multicast leaves the machine.
+* :class:`Emulator`: ``motorctl emulate`` as a child process (waits for its ``ready`` line,
+  killed on exit).
+* :func:`motorctl_cmd`: the argv that runs the motorctl CLI with this interpreter.
+* :func:`sim_twin`: the sim-driver config of the same plant and seed (the reference run).
+
+Every child is started in its own session and killed by its pid on exit.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+from motorctl.config import load_yaml
+
+CAN_GROUP = "239.77.67.1"
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    """A free port on 127.0.0.1 (TCP by default; ``socket.SOCK_DGRAM`` for UDP)."""
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def loopback_config(base: str | Path | dict, out_dir: str | Path, rate_hz: float | None = None,
+                    driver: dict | None = None, name: str | None = None) -> tuple[dict, Path]:
+    """Copy a driver config, aim it at this machine, write it to ``out_dir``; returns (dict, path).
+
+    ``driver``: extra keys merged into the ``driver:`` section (``emulator`` merged one level deep).
+    """
+    d = copy.deepcopy(base) if isinstance(base, dict) else load_yaml(base)
+    drv = d["driver"]
+    t = drv["type"]
+    if t == "serial":
+        drv["port"] = f"socket://127.0.0.1:{free_port()}"
+    elif t == "modbus":
+        if drv.get("transport", "tcp") == "tcp":
+            drv["host"], drv["port"] = "127.0.0.1", free_port()
+        else:
+            drv["serial_port"] = f"socket://127.0.0.1:{free_port()}"
+    elif t == "can":
+        drv.update(interface="udp_multicast", channel=CAN_GROUP,
+                   bus_options={"port": free_port(socket.SOCK_DGRAM)})
+    for k, v in (driver or {}).items():
+        if k == "emulator":
+            drv.setdefault("emulator", {}).update(v)
+        else:
+            drv[k] = v
+    if rate_hz is not None:
+        d["loop"]["rate_hz"] = rate_hz
+    path = Path(out_dir) / f"{name or t}.yaml"
+    path.write_text(yaml.safe_dump(d, sort_keys=False))
+    return d, path
+
+
+def sim_twin(d: dict) -> dict:
+    """The same config on the sim driver: seed and substeps from ``driver.emulator``, each
+    axis's plant from ``axes.NAME.driver.plant``."""
+    s = copy.deepcopy(d)
+    emu = d["driver"].get("emulator", {})
+    s["driver"] = {"type": "sim", "seed": emu.get("seed", 0), "substeps": emu.get("substeps", 4)}
+    for ax in s["axes"].values():
+        ax["driver"] = ax["driver"]["plant"]
+    return s
+
+
+def motorctl_cmd(*args: str) -> list[str]:
+    """argv running the motorctl CLI with this Python."""
+    return [sys.executable, "-m", "motorctl.cli", *args]
+
+
+def _kill(proc: subprocess.Popen, sig=signal.SIGKILL) -> None:
+    if proc.poll() is None:
+        try:
+            os.killpg(proc.pid, sig)     # the child's own session: its pid is the group id
+        except ProcessLookupError:
+            pass
+    try:
+        proc.wait(timeout=5)
+    except subprocess.TimeoutExpired:
+        pass
+
+
+class NetNamespace:
+    """A private network namespace held by a ``sleep`` child; ``prefix`` runs a command in it."""
+
+    def __init__(self):
+        self.proc = None
+        self.prefix: list[str] = []
+
+    def __enter__(self):
+        self.proc = subprocess.Popen(
+            ["unshare", "-n", "--", "sh", "-c",
+             "ip link set lo up && ip route add 224.0.0.0/4 dev lo && echo ok && exec sleep 600"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+        line = self.proc.stdout.readline().strip()
+        if line != "ok":
+            err = self.proc.stderr.read() if self.proc.poll() is not None else ""
+            _kill(self.proc)
+            raise RuntimeError(f"cannot make a network namespace (needs root, unshare, ip): {err.strip()}")
+        self.prefix = ["nsenter", "-t", str(self.proc.pid), "-n", "--"]
+        return self
+
+    def __exit__(self, *exc):
+        _kill(self.proc)
+
+
+class Emulator:
+    """``motorctl emulate`` in a child process (optionally inside a namespace ``prefix``)."""
+
+    def __init__(self, transport: str, config: str | Path, faults=(), prefix=(), extra=()):
+        self.argv = [*prefix, *motorctl_cmd("emulate", "--transport", transport, str(config),
+                                            *[a for f in faults for a in ("--fault", f)], *extra)]
+        self.proc = None
+        self.ready = ""
+        self.stderr_path = None
+
+    def __enter__(self):
+        import tempfile
+        self._err = tempfile.NamedTemporaryFile("w+", prefix="emulator-", suffix=".err", delete=False)
+        self.stderr_path = self._err.name
+        self.proc = subprocess.Popen(self.argv, stdout=subprocess.PIPE, stderr=self._err, text=True,
+                                     start_new_session=True)
+        self.ready = self.proc.stdout.readline().strip()
+        if not self.ready.startswith("ready:"):
+            _kill(self.proc)
+            raise RuntimeError(f"emulator did not start: {self.ready!r} {self.stderr()}")
+        return self
+
+    def stderr(self) -> str:
+        try:
+            return Path(self.stderr_path).read_text()
+        except (OSError, TypeError):
+            return ""
+
+    def stop(self) -> str:
+        """SIGTERM, wait, return what it printed after the ready line."""
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGTERM)
+        try:
+            out, _ = self.proc.communicate(timeout=5)
+        except subprocess.TimeoutExpired:
+            _kill(self.proc)
+            out = ""
+        return out or ""
+
+    def __exit__(self, *exc):
+        _kill(self.proc)
+        self._err.close()
+        try:
+            os.unlink(self.stderr_path)
+        except OSError:
+            pass
+
+
+def run_cli(argv: list[str], prefix=(), timeout_s: float = 60.0) -> subprocess.CompletedProcess:
+    """Run a motorctl command (with an optional namespace prefix), bounded in time."""
+    proc = subprocess.Popen([*prefix, *motorctl_cmd(*argv)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=timeout_s)
+    finally:
+        _kill(proc)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
+def parse_run_table(stdout: str) -> dict:
+    """Axis rows of ``motorctl run``'s table → {axis: {e_M_um, e_F_um, L2_um, u_peak_V, fault}}."""
+    out = {}
+    for line in stdout.splitlines():
+        parts = line.split()
+        if len(parts) >= 7 and parts[1] in ("c1", "c2"):
+            try:
+                vals = [float(x) for x in parts[2:6]]
+            except ValueError:
+                continue
+            fault = " ".join(parts[6:])
+            out[parts[0]] = dict(zip(("e_M_um", "e_F_um", "L2_um", "u_peak_V"), vals),
+                                 fault="" if fault == "-" else fault)
+    return out
+
+
+def wait_for(pred, timeout_s: float, step_s: float = 0.05) -> bool:
+    """Poll ``pred()`` until true or ``timeout_s`` has passed (bounded)."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(step_s)
+    return bool(pred())

@@ -1,0 +1,197 @@
+"""Frame encoders and decoders of the bus drivers: CRC, byte order, scaling, sign, counter wrap,
+frame sizes and bus-time arithmetic, register plans, fault specs."""
+
+from __future__ import annotations
+
+import pytest
+
+from motorctl_drivers import can_bus, modbus, serial_link
+from motorctl_drivers.proto_common import (EncoderUnwrap, FaultSpec, counts_to_volts, to_signed,
+                                           to_unsigned, volts_to_counts)
+
+
+# --------------------------------------------------------------------------- scaling, sign, wrap
+def test_voltage_scaling_sign_and_saturation():
+    assert volts_to_counts(10.0, 10.0, 16) == 32767
+    assert volts_to_counts(-10.0, 10.0, 16) == -32767
+    assert volts_to_counts(25.0, 10.0, 16) == 32767          # saturates, never wraps
+    assert volts_to_counts(-25.0, 10.0, 16) == -32767
+    assert volts_to_counts(float("nan"), 10.0, 16) == 0      # NaN never reaches the amplifier
+    c = volts_to_counts(-1.2345, 10.0, 16)
+    assert c < 0 and abs(counts_to_volts(c, 10.0, 16) + 1.2345) <= 10.0 / 32767
+    assert to_unsigned(-1, 16) == 0xFFFF and to_signed(0xFFFF, 16) == -1
+    assert to_signed(0x7FFF, 16) == 32767 and to_signed(0x8000, 16) == -32768
+
+
+@pytest.mark.parametrize("bits", [16, 24, 32])
+def test_encoder_counter_wrap_both_ways(bits):
+    mod = 1 << bits
+    u = EncoderUnwrap(bits)
+    assert u.update(mod - 3) == -3                 # first reading taken as signed
+    assert u.update(2) == 2                        # forward across the wrap: +5 counts
+    assert u.update(mod - 10) == -10               # backward across the wrap
+    start = mod // 2 - 5                           # cross the signed boundary too
+    u2 = EncoderUnwrap(bits)
+    u2.update(start)
+    assert u2.update((start + 100) % mod) == start + 100
+
+
+def test_encoder_unwrap_follows_a_long_travel():
+    u = EncoderUnwrap(16)
+    true = 0
+    for _ in range(2000):                          # 2000 × 1000 counts: 30 wraps of 16 bits
+        true += 1000
+        got = u.update(true % 65536)
+    assert got == true
+
+
+# --------------------------------------------------------------------------- serial frames
+def test_serial_crc_is_ccitt_false():
+    assert serial_link.crc16(b"123456789") == 0x29B1      # CRC-16/CCITT-FALSE check value
+
+
+def test_serial_command_roundtrip_layout_and_byte_order():
+    f = serial_link.encode_command(7, 300, [(1, True, -2), (2, False, 0x1234)])
+    assert len(f) == serial_link.frame_length(serial_link.CMD, 2) == 14
+    assert f[:4] == bytes((0xA5, 7, 300 & 0xFF, 2))
+    assert f[4:8] == bytes((1, 1, 0xFE, 0xFF))             # node, flags, int16 little-endian -2
+    assert f[8:12] == bytes((2, 0, 0x34, 0x12))
+    assert int.from_bytes(f[-2:], "big") == serial_link.crc16(f[:-2])
+    p = serial_link.FrameParser()
+    ((kind, addr, seq, n, frame),) = p.feed(f)
+    assert (kind, addr, seq, n) == (serial_link.CMD, 7, 44, 2)
+    assert serial_link.decode_body(kind, n, frame) == [(1, True, -2), (2, False, 0x1234)]
+
+
+def test_serial_reply_counts_wrap_to_u32_and_back():
+    f = serial_link.encode_reply(1, 9, [(3, 1, -5)])
+    ((kind, _, _, n, frame),) = serial_link.FrameParser().feed(f)
+    ((node, status, raw),) = serial_link.decode_body(kind, n, frame)
+    assert (node, status, raw) == (3, 1, 2**32 - 5)
+    assert to_signed(raw, 32) == -5
+
+
+def test_serial_parser_rejects_bad_crc_and_resyncs_in_a_stream():
+    good = serial_link.encode_reply(1, 5, [(1, 0, 1000), (2, 0, 2000)])
+    bad = bytearray(good)
+    bad[6] ^= 0x01                                          # one flipped bit in the payload
+    p = serial_link.FrameParser()
+    stream = b"\x00\x17" + bytes(bad) + good[:5]
+    assert p.feed(stream) == []
+    frames = p.feed(good[5:])                               # the rest arrives later
+    assert len(frames) == 1 and frames[0][2] == 5
+    assert p.bad_frames >= 1
+
+
+def test_serial_query_and_error_frames():
+    q = serial_link.encode_query(1, 3, [4, 5])
+    ((kind, _, seq, n, frame),) = serial_link.FrameParser().feed(q)
+    assert kind == serial_link.QUERY and serial_link.decode_body(kind, n, frame) == [4, 5]
+    e = serial_link.encode_error(1, 3, 2, 4)
+    ((kind, _, _, n, frame),) = serial_link.FrameParser().feed(e)
+    assert kind == serial_link.ERROR and serial_link.decode_body(kind, n, frame) == [4]
+
+
+# --------------------------------------------------------------------------- CAN layout and bits
+def test_can_pack_unpack_byte_order_and_sign():
+    buf = bytearray(8)
+    le = can_bus.IntField(offset=0, size=2, byteorder="little")
+    be = can_bus.IntField(offset=2, size=3, byteorder="big")
+    can_bus.pack_int(buf, le, -2)
+    can_bus.pack_int(buf, be, 0x123456)
+    assert buf[:5] == bytes((0xFE, 0xFF, 0x12, 0x34, 0x56))
+    assert to_signed(can_bus.unpack_uint(buf, le), 16) == -2
+    assert can_bus.unpack_uint(buf, be) == 0x123456
+
+
+@pytest.mark.parametrize("n,nominal,worst", [(8, 111, 135), (4, 79, 95), (2, 63, 75)])
+def test_classic_can_frame_bits_match_the_budget_table(n, nominal, worst):
+    bits, data = can_bus.frame_bits(n, fd=False, extended_id=False)
+    assert bits == worst and data == 0.0
+    assert (44 + 8 * n + 3) == nominal
+
+
+def test_can_fd_frame_time_matches_the_budget_table():
+    nom, dat = can_bus.frame_bits(8, fd=True, extended_id=False)
+    assert nom / 1e6 + dat / 5e6 == pytest.approx(56.6e-6, abs=0.1e-6)   # 1M/5M
+    assert nom / 1e6 + dat / 2e6 == pytest.approx(90.5e-6, abs=0.1e-6)   # 1M/2M
+
+
+def test_can_fd_lengths_and_classic_limit():
+    assert can_bus.frame_length(10, fd=True) == 12
+    assert can_bus.frame_length(33, fd=True) == 48
+    with pytest.raises(ValueError, match="classic CAN"):
+        can_bus.frame_length(9, fd=False)
+
+
+def _can_axis(cmd_id, fb_id, v_off, c_off, bit, seq=None):
+    return can_bus.CanAxisOptions(
+        command={"id": cmd_id, "voltage": {"offset": v_off, "size": 2}, "enable": {"byte": 4, "bit": bit},
+                 "sequence_byte": seq},
+        feedback={"id": fb_id, "counts": {"offset": c_off, "size": 4}, "fault": {"byte": 8, "bit": bit},
+                  "sequence_byte": None if seq is None else 9})
+
+
+def test_can_frames_group_axes_sharing_an_id():
+    ax = {"X": _can_axis(0x200, 0x180, 0, 0, 0, 5), "Y": _can_axis(0x200, 0x180, 2, 4, 1, 5)}
+    (cmd,) = can_bus.build_frames(["X", "Y"], ax, "command", fd=True)
+    (fb,) = can_bus.build_frames(["X", "Y"], ax, "feedback", fd=True)
+    assert cmd.axes == [0, 1] and cmd.length == 6 and cmd.seq_byte == 5
+    assert fb.length == 12                                   # 10 bytes → next FD length
+
+
+def test_can_overlapping_fields_are_refused():
+    ax = {"X": _can_axis(0x200, 0x180, 0, 0, 0), "Y": _can_axis(0x200, 0x181, 1, 0, 1)}
+    with pytest.raises(ValueError, match="byte 1"):
+        can_bus.build_frames(["X", "Y"], ax, "command", fd=False)
+
+
+# --------------------------------------------------------------------------- Modbus
+@pytest.mark.parametrize("order", ["big", "little"])
+def test_modbus_counts_word_order_and_wrap(order):
+    r0, r1 = modbus.split_counts(-2, order)
+    assert {r0, r1} == {0xFFFF, 0xFFFE}
+    assert (r0, r1) == ((0xFFFF, 0xFFFE) if order == "big" else (0xFFFE, 0xFFFF))
+    assert to_signed(modbus.join_counts(r0, r1, order), 32) == -2
+    assert modbus.join_counts(*modbus.split_counts(0x12345678, order), order) == 0x12345678
+
+
+def test_modbus_rtu_crc_from_pymodbus():
+    from pymodbus.framer import FramerRTU
+    from pymodbus.pdu import DecodePDU
+    from pymodbus.pdu.register_message import ReadHoldingRegistersRequest
+    frame = FramerRTU(DecodePDU(is_server=False)).buildFrame(
+        ReadHoldingRegistersRequest(address=0, count=1, dev_id=1))
+    assert frame == bytes.fromhex("010300000001840a")       # the classic Modbus RTU example
+
+
+def _mb_axis(v, c, counts, status):
+    return modbus.ModbusAxisOptions(voltage_register=v, control_register=c, counts_register=counts,
+                                    status_register=status)
+
+
+def test_modbus_register_plan_is_one_fc23():
+    opts = modbus.ModbusOptions(sequence_register=4, sequence_echo_register=106)
+    ax = {"X": _mb_axis(0, 1, 100, 102), "Y": _mb_axis(2, 3, 103, 105)}
+    plan = modbus.RegisterPlan(["X", "Y"], ax, opts)
+    assert plan.write_address == 0 and len(plan.write_slots) == 5
+    assert (plan.read_address, plan.read_count) == (100, 7)
+
+
+def test_modbus_register_plan_refuses_gaps_and_reuse():
+    opts = modbus.ModbusOptions()
+    with pytest.raises(ValueError, match="not contiguous"):
+        modbus.RegisterPlan(["X", "Y"], {"X": _mb_axis(0, 1, 100, 102), "Y": _mb_axis(5, 6, 103, 105)}, opts)
+    with pytest.raises(ValueError, match="used twice"):
+        modbus.RegisterPlan(["X", "Y"], {"X": _mb_axis(0, 1, 100, 102), "Y": _mb_axis(1, 2, 103, 105)}, opts)
+
+
+# --------------------------------------------------------------------------- fault specs
+def test_fault_spec_parsing():
+    f = FaultSpec.parse("drop:X:2000:5")
+    assert (f.kind, f.axis, f.start, f.count) == ("drop", "X", 2000, 5)
+    assert FaultSpec.parse("bus_off").axis == "*"
+    with pytest.raises(ValueError, match="unknown kind"):
+        FaultSpec.parse("explode:X")
+    with pytest.raises(ValueError, match="integers"):
+        FaultSpec.parse("drop:X:soon")
