@@ -1,0 +1,170 @@
+"""The flight recorder: ring → drainer → run log, crash safety (kill -9), event windows,
+CSV/MAT export, and the simulated drive's command watchdog."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+from test_daemon_helpers import Daemon, _alive, ctl, make_config, status, wait_for
+
+from motorctl.config import load_config
+from motorctl.recorder import Drainer, SharedRing, export_csv, export_mat, mat_name
+from motorctl.runlog import LogWriter, columns_for, read_log
+
+TS = 1.0 / 5000
+
+
+def _ring_and_drainer(tmp_path, cap=1000, before=0.01, after=0.01, max_events=20):
+    cols = columns_for(["X"])
+    ring = SharedRing(cap, len(cols), 1)
+    hdr = {"columns": cols, "axes": ["X"], "period_s": TS}
+    w = LogWriter(str(tmp_path / "run.mlog"), hdr)
+    dr = Drainer(ring, w, hdr, ["X"], TS, flush_s=0.1, event_before_s=before, event_after_s=after,
+                 max_events=max_events)
+    return cols, ring, dr
+
+
+def _publish(ring, cols, k0, n, fault_at=None):
+    ci = {c: j for j, c in enumerate(cols)}
+    for k in range(k0, k0 + n):
+        r = ring.rows[k % ring.capacity]
+        r[:] = 0.0
+        r[ci["t"]] = k * TS
+        r[ci["turnaround_ns"]] = 20000.0 + k % 7
+        r[ci["X.enabled"]] = 1.0
+        r[ci["X.fault_bits"]] = 1.0 if fault_at is not None and k >= fault_at else 0.0
+        ring.ctl[0] = k + 1
+
+
+def test_drainer_copies_every_row_in_order_and_cuts_an_event_window(tmp_path):
+    cols, ring, dr = _ring_and_drainer(tmp_path)
+    _publish(ring, cols, 0, 700)
+    assert dr.poll() == 700
+    _publish(ring, cols, 700, 600, fault_at=900)     # wraps the 1000-row ring
+    dr.poll()
+    dr.cut_events()
+    dr.finish()
+    log = read_log(str(tmp_path / "run.mlog"))
+    assert np.array_equal(log.col("t"), np.arange(1300) * TS)
+    assert dr.lost_rows == 0
+    assert len(dr.events) == 1 and dr.events[0]["cycle"] == 900
+    ev = read_log(dr.events[0]["path"])
+    t = ev.col("t")
+    assert t[0] == pytest.approx((900 - 50) * TS) and t[-1] == pytest.approx((900 + 49) * TS)
+    assert dr.loop_stats.cycles == 1300 and dr.loop_stats.summary()["turnaround_max_us"] == pytest.approx(20.006)
+
+
+def test_drainer_counts_rows_it_fell_behind_on_instead_of_reading_them_torn(tmp_path):
+    cols, ring, dr = _ring_and_drainer(tmp_path)
+    _publish(ring, cols, 0, 2500)                      # 2.5 rings without a drain
+    dr.poll()
+    assert dr.lost_rows == 1500
+    dr.finish()
+    t = read_log(str(tmp_path / "run.mlog")).col("t")
+    assert np.array_equal(t, np.arange(1500, 2500) * TS)
+
+
+def test_export_csv_and_mat(tmp_path):
+    from scipy.io import loadmat
+    cols, ring, dr = _ring_and_drainer(tmp_path)
+    _publish(ring, cols, 0, 300)
+    dr.finish()
+    log = read_log(str(tmp_path / "run.mlog"))
+    r = ctl(None, "export", tmp_path / "run.mlog", "--csv", tmp_path / "run.csv")
+    assert r.returncode == 0, r.stderr
+    with open(tmp_path / "run.csv") as fh:
+        rows = list(csv.reader(fh))
+    assert rows[0] == cols and len(rows) == 301
+    assert float(rows[5][0]) == pytest.approx(4 * TS)
+    r = ctl(None, "export", tmp_path / "run.mlog", "--mat", tmp_path / "run.mat")
+    assert r.returncode == 0, r.stderr
+    m = loadmat(str(tmp_path / "run.mat"))
+    assert m["data"].shape == (300, len(cols))
+    assert np.array_equal(m[mat_name("X.enabled")].ravel(), log.col("X.enabled"))
+    r = ctl(None, "export", tmp_path / "nope.mlog", "--csv", tmp_path / "x.csv")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1
+
+
+def test_sim_watchdog_drops_to_zero_volts_when_commands_stop(gantry_yaml):
+    from motorctl.config import config_from_dict
+    import yaml
+    d = yaml.safe_load(open(gantry_yaml))
+    d["driver"]["watchdog_s"] = 0.02
+    drv = config_from_dict(d).make_driver()
+    drv.read()
+    drv.write(np.array([5.0, 5.0]), np.array([True, True]))
+    assert drv.amp_enabled.all() and drv.applied_u[0] == 5.0
+    v_before = drv.plants[0].xd
+    drv.read()                                   # in time: nothing happens
+    assert not drv.amp_fault.any() and drv.watchdog_bites == 0
+    for _ in range(50):
+        drv.write(np.array([5.0, 5.0]), np.array([True, True]))
+    v_at_last_write = drv.plants[0].xd
+    assert v_at_last_write > v_before
+    t_at_last_write = drv.plants[0].t
+    time.sleep(0.1)                              # the host stops commanding
+    drv.read()
+    assert drv.watchdog_bites == 1
+    assert not drv.amp_enabled.any() and np.all(drv.applied_u == 0.0)
+    assert drv.amp_fault.all(), "the drive reports the bite (the supervisor latches it)"
+    # the plant coasted through the gap at 0 V: time went on, friction slowed it down
+    assert drv.plants[0].t - t_at_last_write > 0.09
+    assert drv.plants[0].xd < 0.5 * v_at_last_write
+
+
+def test_kill_9_log_readable_up_to_last_flush(tmp_path):
+    cfg = make_config(tmp_path)
+    d = Daemon(cfg, tmp_path / "motorctl.sock")
+    try:
+        d.wait_ready()
+        assert ctl(d.sock, "start", "X").returncode == 0
+        flushed = wait_for(lambda: (s := status(d.sock))["log"]["rows_flushed"] > 5000 and s, 30,
+                           "5000 rows flushed")
+        rows_flushed = flushed["log"]["rows_flushed"]
+        path = flushed["log"]["path"]
+        loop_pid, io_pid = flushed["process"]["loop_pid"], flushed["process"]["io_pid"]
+        # kill -9 both processes at once (systemd's final SIGKILL of the cgroup)
+        os.kill(io_pid, signal.SIGKILL)
+        os.kill(loop_pid, signal.SIGKILL)
+        d.proc.wait(timeout=10)
+    finally:
+        d.kill()
+    log = read_log(path)
+    n = log.data.shape[0]
+    assert n >= rows_flushed, "everything flushed before the kill is readable"
+    assert np.array_equal(log.col("t"), np.arange(n) * TS), "contiguous, no torn record"
+    assert log.header["realtime"]["gc"]["obtained"]
+
+
+def test_kill_9_of_the_loop_process_recorder_keeps_everything_published(tmp_path):
+    cfg = make_config(tmp_path)
+    d = Daemon(cfg, tmp_path / "motorctl.sock")
+    try:
+        st = d.wait_ready()
+        path = st["log"]["path"]
+        c0 = st["loop"]["cycles"]
+        os.kill(d.proc.pid, signal.SIGKILL)
+        d.proc.wait(timeout=10)
+        wait_for(lambda: not _alive(d.io_pid), 10, "the I/O process to finish and exit")
+    finally:
+        d.kill()
+    log = read_log(path)
+    assert log.data.shape[0] >= c0
+    assert log.header["ended"]["reason"] == "loop process killed"
+    assert log.header["ended"]["lost_rows"] == 0
+    assert log.data.shape[0] == log.header["ended"]["cycles"]
+    assert not (tmp_path / "motorctl.sock").exists()
+
+
+def test_flush_interval_config_is_bounded(gantry_yaml, tmp_path):
+    text = gantry_yaml.read_text().replace("flush_s: 0.5", "flush_s: 0.5\n  bogus: 1")
+    p = tmp_path / "c.yaml"
+    p.write_text(text)
+    from motorctl.config import ConfigError
+    with pytest.raises(ConfigError, match="daemon.bogus"):
+        load_config(p)
