@@ -45,10 +45,16 @@ def cmd_run(args) -> int:
     from motorctl.job import run_job
     loaded = _load(args.config)
     axes = _select_axes(loaded, args.axis)
+    out = sys.stdout
+
+    def announce(names, n_cycles, clock):
+        out.write(f"running {', '.join(names)} at {1 / loaded.period_s:.0f} Hz for "
+                  f"{n_cycles * loaded.period_s:g} s ({clock} clock); SIGINT/SIGTERM stops at 0 V\n")
+        out.flush()
+
     res = run_job(loaded, axes=axes, controller=args.controller, duration_s=args.duration,
                   clock="virtual" if args.virtual_clock else None, log_path=args.log,
-                  realtime_policy=args.realtime)
-    out = sys.stdout
+                  realtime_policy=args.realtime, on_start=announce)
     rows = [["axis", "ctrl", "e_M um", "e_F um", "L2[e] um", "u_peak V", "fault"]]
     for a, r in res.axes.items():
         rows.append([a, r["controller"], f"{r.get('e_M_um', float('nan')):.2f}",
@@ -176,17 +182,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     from motorctl.config import ConfigError
+    from motorctl.rt import RealtimeError
     from motorctl.runlog import LogError
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ConfigError, UsageError, LogError) as exc:
+    except (ConfigError, UsageError, LogError, RealtimeError) as exc:
         sys.stderr.write(f"motorctl: error: {exc}\n")
         return 2
     except FileNotFoundError as exc:
         sys.stderr.write(f"motorctl: error: {exc.filename}: no such file\n")
         return 2
+    except OSError as exc:  # a driver that cannot reach its device, a log that cannot be written
+        sys.stderr.write(f"motorctl: error: {exc}\n")
+        return 1
     except BrokenPipeError:
         return 0
 

@@ -50,7 +50,8 @@ def build_controllers(loaded: LoadedConfig, axes: list, controller: str | None) 
 
 def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | None = None,
             duration_s: float | None = None, clock: str | None = None,
-            log_path: str | None = None, realtime_policy: str | None = None) -> JobResult:
+            log_path: str | None = None, realtime_policy: str | None = None,
+            on_start=None) -> JobResult:
     """Run the loop on the configured driver and return the indexes (see :class:`JobResult`).
 
     Args:
@@ -59,6 +60,11 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
         duration_s: run length [s] (default: loop.duration_s). clock: 'wall' | 'virtual'.
         log_path: where to write the run log (None: no file).
         realtime_policy: override of loop.realtime.policy ('off' with the virtual clock).
+        on_start: called with (axes, n_cycles, clock) once the driver is open, just before
+            the first cycle (e.g. to tell the operator the loop runs).
+    Raises:
+        RealtimeError: ``realtime: required`` refused (before the driver is opened).
+        OSError: the driver cannot reach its device.
     """
     cfg = loaded.cfg
     names = list(axes) if axes else list(loaded.axes)
@@ -81,25 +87,32 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
         stopped.append(signal.Signals(signum).name)
         loop.request_stop()
 
+    started = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
-    driver.open()
     try:
-        rep = setup_realtime(policy, rt_cfg.priority, rt_cfg.cpu, rt_cfg.lock_memory)
-        result.realtime = rep.as_dict()
+        # real-time set-up first: with `realtime: required` a refusal raises before the driver
+        # is opened, so nothing starts
+        result.realtime = setup_realtime(policy, rt_cfg.priority, rt_cfg.cpu, rt_cfg.lock_memory).as_dict()
+        driver.open()
         try:
+            if on_start is not None:
+                on_start(names, n_cycles, clock)
             result.cycles = loop.run(n_cycles)
         finally:
-            restore()
+            if stopped:
+                loop.shutdown_faults()
+            try:
+                loop.safe_output()
+            finally:
+                driver.close()
     finally:
-        if stopped:
-            loop.shutdown_faults()
-        try:
-            loop.safe_output()
-        finally:
-            driver.close()
-            for s, h in old.items():
-                signal.signal(s, h)
-    result.stopped_by_signal = stopped[0] if stopped else ""
+        restore()
+        for s, h in old.items():
+            signal.signal(s, h)
+        result.stopped_by_signal = stopped[0] if stopped else ""
+        # what was recorded reaches the log on every exit path, an exception included
+        if log_path and loop.k > 0:
+            _write_log(log_path, loaded, loop, driver, ctrls, names, clock, started, result)
 
     rows = loop.rows()
     t = rows[:, 0]
@@ -115,26 +128,27 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
         entry["theta_hat"] = ctrls[i].theta_vector().tolist()
         result.axes[a] = entry
     result.timing = timing_stats(rows[:, 2], rows[:, 1], loop.overruns)
-
-    if log_path:
-        header = {
-            "format": 1,
-            "software": f"motorctl {software_version()}",
-            "started": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-            "config_file": str(loaded.path),
-            "config": cfg.model_dump(mode="json"),
-            "driver_type": cfg.driver.type,
-            "axes": names,
-            "controllers": {a: ctrls[i].kind for i, a in enumerate(names)},
-            "period_s": loaded.period_s,
-            "clock": clock,
-            "realtime": result.realtime,
-            "columns": loop.columns,
-            "driver": driver.describe(),
-            "stopped_by_signal": result.stopped_by_signal,
-        }
-        Path(log_path).parent.mkdir(parents=True, exist_ok=True)
-        with LogWriter(log_path, header) as w:
-            w.append(np.ascontiguousarray(rows))
-        result.log_path = str(log_path)
     return result
+
+
+def _write_log(log_path, loaded, loop, driver, ctrls, names, clock, started, result) -> None:
+    header = {
+        "format": 1,
+        "software": f"motorctl {software_version()}",
+        "started": started,
+        "config_file": str(loaded.path),
+        "config": loaded.cfg.model_dump(mode="json"),
+        "driver_type": loaded.cfg.driver.type,
+        "axes": names,
+        "controllers": {a: ctrls[i].kind for i, a in enumerate(names)},
+        "period_s": loaded.period_s,
+        "clock": clock,
+        "realtime": result.realtime,
+        "columns": loop.columns,
+        "driver": driver.describe(),
+        "stopped_by_signal": result.stopped_by_signal,
+    }
+    Path(log_path).parent.mkdir(parents=True, exist_ok=True)
+    with LogWriter(log_path, header) as w:
+        w.append(np.ascontiguousarray(loop.rows()))
+    result.log_path = str(log_path)

@@ -85,7 +85,9 @@ def test_sigterm_stops_a_wall_clock_run_safely(tmp_path, gantry_yaml):
                           "--log", str(log), "--realtime", "off"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        time.sleep(4.0)
+        first = p.stdout.readline()  # printed once the driver is open, just before the first cycle
+        assert first.startswith("running X, Y at 5000 Hz"), first
+        time.sleep(1.0)
         p.send_signal(signal.SIGTERM)
         out, err = p.communicate(timeout=60)
     finally:

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from motorctl.compensation import Compensation
+from motorctl.compensation import Compensation, CompensationConfig
 from motorctl.control._jit import njit
 from motorctl.control.estimator import LeastSquaresEstimator, ls_update, s_f_jit
 from motorctl.control.inversion import invert_cubic
@@ -63,7 +63,7 @@ class ControllerParams:
     eta: float = 0.05
     delta_d: float = 0.3
     k_s1: float | None = None
-    compensation: object = None   # CompensationConfig or None
+    compensation: CompensationConfig | None = None
 
     @property
     def n_theta(self) -> int:
