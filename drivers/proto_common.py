@@ -395,6 +395,8 @@ class PlantBank:
     def command(self, i: int, u_V: float, enable: bool) -> None:
         """Apply one valid command to axis i: hold u_V for one period (0 V when disabled or faulted)."""
         self.last_cmd[i] = time.monotonic()
+        if self.commands[i] == 0:
+            self.log(f"first command {self.names[i]}")
         self.commands[i] += 1
         if not enable:
             self.amp_fault[i] = False   # a disabled command resets a latched fault, as a drive's reset

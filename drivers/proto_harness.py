@@ -70,6 +70,36 @@ def loopback_config(base: str | Path | dict, out_dir: str | Path, rate_hz: float
     return d, path
 
 
+#: Host round trip of one exchange on loopback (p99, emulator at SCHED_FIFO 90), measured with
+#: benchmarks/bench_transports.py on the 2-core development VM when it was quiet. The budget
+#: adds it to the wire time of the shipped config; :func:`loopback_rate` takes the highest rate
+#: on a 500 Hz grid that budget allows.
+LOOPBACK_ROUND_TRIP_S = {"serial": 190e-6, "can": 270e-6, "modbus": 400e-6}
+
+
+def loopback_rate(d: dict) -> float:
+    """The highest loop rate (multiple of 500 Hz) the driver's budget allows for config ``d``."""
+    import math
+
+    from motorctl.config import config_from_dict
+    b = config_from_dict(d, "<loopback>", check_budget=False).make_driver().budget(1000.0)
+    return float(math.floor(b.max_rate_hz / 500.0) * 500)
+
+
+def loopback_e2e_config(transport: str, configs_dir: str | Path, out_dir: str | Path,
+                        watchdog_s: float = 0.2, name: str | None = None) -> tuple[dict, Path, float]:
+    """configs/gantry-<transport>.yaml aimed at this machine, with the measured loopback round
+    trip, at the highest rate its budget allows. Returns (dict, path, rate_hz)."""
+    rt = LOOPBACK_ROUND_TRIP_S[transport]
+    d, _ = loopback_config(Path(configs_dir) / f"gantry-{transport}.yaml", out_dir,
+                           driver={"round_trip_s": rt, "emulator": {"watchdog_s": watchdog_s}}, name=name)
+    rate = loopback_rate(d)
+    d["loop"]["rate_hz"] = rate
+    path = Path(out_dir) / f"{name or transport}.yaml"
+    path.write_text(yaml.safe_dump(d, sort_keys=False))
+    return d, path, rate
+
+
 def sim_twin(d: dict) -> dict:
     """The same config on the sim driver: seed and substeps from ``driver.emulator``, each
     axis's plant from ``axes.NAME.driver.plant``."""
