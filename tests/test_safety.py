@@ -1,0 +1,166 @@
+"""The supervisor and the loop's per-axis sequencing, in-process on the simulated driver with
+the virtual clock (deterministic), plus the overrun policy on the wall clock."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import yaml
+
+from motorctl.config import config_from_dict
+from motorctl.control.dcdiarc import DCDIARC
+from motorctl.safety import (FAULT_ENCODER_JUMP, FAULT_FOLLOWING_ERROR, FAULT_OVERRUN, Supervisor,
+                             describe_faults)
+from motorctl.servo import APPROACH, HOLD, IDLE, PROGRAM, ServoLoop
+from motorctl.trajectory import Move
+
+
+def _loop(gantry_yaml, clock="virtual", policy="count", axes=("X",), edit=None):
+    d = yaml.safe_load(open(gantry_yaml))
+    if edit:
+        edit(d)
+    ld = config_from_dict(d)
+    names = list(axes)
+    drv = ld.make_driver(names)
+    ctrls = [DCDIARC(ld.axes[a].controller.params(), ld.period_s) for a in names]
+    sup = Supervisor([ld.axes[a].limits for a in names])
+    lp = ServoLoop(drv, ctrls, [ld.axes[a].trajectory.program() for a in names], sup, ld.period_s,
+                   capacity=50000, clock=clock, spin_us=50, overrun_policy=policy,
+                   overrun_hold=5, overrun_ramp=50)
+    lp.idle_all()
+    lp.disable_on_fault = True
+    lp.stop_settle = 100
+    return ld, drv, sup, lp
+
+
+def _col(lp, name):
+    return lp.rows()[:, lp.columns.index(name)]
+
+
+def test_supervisor_following_error_limit_scales_with_velocity_and_has_a_floor(gantry_yaml):
+    ld = config_from_dict(yaml.safe_load(open(gantry_yaml)))
+    lim = ld.axes["X"].limits                  # 1 mm at 2 m/s, floor 0.3 mm
+    sup = Supervisor([lim])
+    assert sup.check_output(0, 0.00029, 0.0, 1.0)
+    assert not sup.check_output(0, 0.00031, 0.0, 1.0)
+    sup.reset(0, 0.0, False)
+    assert sup.check_output(0, 0.0009, 2.0, 1.0)      # 0.9 mm allowed at 2 m/s
+    assert not sup.check_output(0, 0.0006, 1.0, 1.0)  # 0.5 mm at 1 m/s
+    assert sup.fault[0] == FAULT_FOLLOWING_ERROR and "following error" in sup.reason(0)
+
+
+def test_supervisor_encoder_jump_and_reset_refused_while_cause_persists(gantry_yaml):
+    ld = config_from_dict(yaml.safe_load(open(gantry_yaml)))
+    sup = Supervisor([ld.axes["X"].limits])
+    assert sup.check_input(0, 0.1, False, False)
+    assert not sup.check_input(0, 0.1 + 0.003, False, False)
+    assert sup.fault[0] == FAULT_ENCODER_JUMP
+    assert sup.reset(0, 0.5, False) == (False, sup.reset(0, 0.5, False)[1])
+    assert "outside the soft limits" in sup.reset(0, 0.5, False)[1]
+    assert "amplifier" in sup.reset(0, 0.1, True)[1]
+    assert "not finite" in sup.reset(0, float("nan"), False)[1]
+    assert sup.reset(0, 0.1, False) == (True, "")
+    assert describe_faults(0) == "none"
+
+
+def test_axis_starts_disabled_then_bumpless_approach_program_and_stop(gantry_yaml):
+    ld, drv, sup, lp = _loop(gantry_yaml)
+    lp.run(100)
+    assert not _col(lp, "X.enabled").any() and np.all(_col(lp, "X.u") == 0.0)
+    # the carriage was moved by hand while disabled: start from where it stands
+    drv.inject("push", "X", 50, force_N=400.0)
+    lp.run(2000)
+    y0 = float(drv.position_m[0])
+    assert y0 > 0.002
+    tc = ld.axes["X"].trajectory
+    k0 = lp.k
+    lp.start_axis(0, Move(y0, 0.0, tc.v_max, tc.a_max, tc.j_max))
+    assert lp.mode[0] == APPROACH
+    lp.run(3000)
+    u, e, xd = _col(lp, "X.u"), _col(lp, "X.e"), _col(lp, "X.x_d")
+    assert abs(u[k0]) < 0.5, f"first output step {u[k0]:.3f} V"
+    assert xd[k0] == pytest.approx(y0) and abs(e[k0]) < 1e-6
+    assert np.max(np.abs(np.diff(u[k0:k0 + 50]))) < 1.0, "no kick in the first cycles"
+    assert lp.mode[0] == PROGRAM and sup.fault[0] == 0
+    # stop in the middle of a move: it finishes the move (jerk-limited), holds, then 0 V
+    while True:
+        lp.run(1)
+        if abs(_col(lp, "X.xd_dot")[-1]) > 1.0:
+            break
+    k_stop = lp.k
+    lp.stop_axis(0)
+    lp.run(3000)
+    en, vd = _col(lp, "X.enabled"), _col(lp, "X.xd_dot")
+    off = k_stop + int(np.flatnonzero(en[k_stop:] == 0)[0])
+    assert lp.mode[0] == IDLE and not lp.enabled[0]
+    assert (off - k_stop) * lp.period_s < 0.26 + 0.02 + 0.01, "bounded: the move's rest + settle"
+    assert np.all(vd[off - 100:off] == 0.0)
+    assert np.all(_col(lp, "X.u")[off:] == 0.0) and not drv.amp_enabled[0]
+
+
+def test_fault_drops_the_operator_request_so_reset_never_moves_the_axis(gantry_yaml):
+    ld, drv, sup, lp = _loop(gantry_yaml)
+    tc = ld.axes["X"].trajectory
+    lp.start_axis(0, Move(float(drv.position_m[0]), 0.0, tc.v_max, tc.a_max, tc.j_max))
+    lp.run(500)
+    drv.inject("nan", "X", 1)
+    lp.run(1)
+    assert _col(lp, "X.u")[-1] == 0.0 and _col(lp, "X.enabled")[-1] == 0.0
+    assert lp.mode[0] == IDLE and not lp.enabled[0]
+    with pytest.raises(RuntimeError, match="in fault"):
+        lp.start_axis(0, Move(0.0, 0.0, 1, 1, 1))
+    lp.run(10)
+    assert lp.fault_reset(0) == (True, "")
+    lp.run(100)
+    assert not _col(lp, "X.enabled")[-100:].any(), "reset does not re-enable"
+
+
+def test_overrun_policy_ramp_holds_then_ramps_to_zero_and_latches(gantry_yaml):
+    ld, drv, sup, lp = _loop(gantry_yaml, clock="wall", policy="ramp")
+    tc = ld.axes["X"].trajectory
+    lp.start_axis(0, Move(float(drv.position_m[0]), 0.0, tc.v_max, tc.a_max, tc.j_max))
+    state = {"n": 0}
+
+    def stall(loop):
+        state["n"] += 1
+        if state["n"] == 200:
+            time.sleep(0.003)                  # 15 periods late: an overrun for sure
+
+    lp.on_slack = stall
+    lp.run(400)
+    assert lp.overruns >= 1
+    u, en, fb = _col(lp, "X.u"), _col(lp, "X.enabled"), _col(lp, "X.fault_bits")
+    ovr = _col(lp, "overruns")
+    k = int(np.flatnonzero(ovr > 0)[0])         # the first late cycle (ours or the machine's)
+    assert np.all(u[k:k + 5] == u[k - 1]), "hold the last output"
+    ramp = u[k + 5:k + 55]
+    assert abs(ramp[-1]) <= abs(u[k - 1]) / 50 + 1e-12
+    assert np.all(np.abs(np.diff(ramp)) <= abs(u[k - 1]) / 50 + 1e-9), "a linear ramp to 0 V"
+    first = int(np.flatnonzero(fb)[0])
+    assert int(fb[first]) & FAULT_OVERRUN and u[first] == 0.0 and en[first] == 0.0
+    assert first == k + 54, "5 cycles held, 50 ramping (the last one at 0 V)"
+    assert "overrun" in sup.reason(0)
+
+
+def test_overrun_policy_count_only_counts(gantry_yaml):
+    ld, drv, sup, lp = _loop(gantry_yaml, clock="wall", policy="count")
+    tc = ld.axes["X"].trajectory
+    lp.start_axis(0, Move(float(drv.position_m[0]), 0.0, tc.v_max, tc.a_max, tc.j_max))
+    lp.on_slack = lambda loop: time.sleep(0.003) if loop.k == 200 else None
+    lp.run(400)
+    assert lp.overruns >= 1 and sup.fault[0] == 0 and lp.mode[0] in (APPROACH, PROGRAM, HOLD)
+
+
+def test_run_keeps_the_legacy_behaviour(gantry_yaml):
+    """Without the daemon's sequencing every axis follows its program from t = 0."""
+    d = yaml.safe_load(open(gantry_yaml))
+    ld = config_from_dict(d)
+    drv = ld.make_driver(["X"])
+    c = [DCDIARC(ld.axes["X"].controller.params(), ld.period_s)]
+    lp = ServoLoop(drv, c, [ld.axes["X"].trajectory.program()], Supervisor([ld.axes["X"].limits]),
+                   ld.period_s, capacity=5000, clock="virtual")
+    assert lp.run(5000) == 5000
+    assert _col(lp, "X.enabled").all()
+    assert _col(lp, "X.x_d")[-1] == pytest.approx(ld.axes["X"].trajectory.program().sample(4999 * ld.period_s)[0])
