@@ -1,0 +1,147 @@
+"""The daemon as a system service: systemd unit files, the sd_notify protocol (READY, STATUS,
+WATCHDOG only while the loop's heartbeat advances, STOPPING), socket permissions, and
+``realtime: required`` refusing to start."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import time
+
+import pytest
+from test_daemon_helpers import REPO, Daemon, cli, make_config, status, wait_for
+
+SYSTEMD_ANALYZE = shutil.which("systemd-analyze")
+SETPRIV = shutil.which("setpriv")
+
+
+@pytest.mark.skipif(SYSTEMD_ANALYZE is None, reason="systemd-analyze not installed")
+@pytest.mark.parametrize("unit,instance", [("motorctl.service", "motorctl.service"),
+                                           ("motorctl@.service", "motorctl@xy.service")])
+def test_unit_files_verify_clean(tmp_path, unit, instance):
+    exe = shutil.which("motorctl") or "/usr/local/bin/motorctl"
+    text = (REPO / "systemd" / unit).read_text()
+    for key in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "CPUSchedulingPolicy=fifo",
+                "LimitRTPRIO=", "LimitMEMLOCK=infinity", "RuntimeDirectory=", "NotifyAccess=all",
+                "KillMode=mixed"):
+        assert key in text, key
+    assert "Restart=always" not in text
+    # verify with the installed executable path (verify checks that ExecStart exists)
+    (tmp_path / unit).write_text(text.replace("/usr/local/bin/motorctl", exe))
+    if instance != unit:
+        (tmp_path / instance).write_text(text.replace("/usr/local/bin/motorctl", exe))
+    r = subprocess.run([SYSTEMD_ANALYZE, "verify", str(tmp_path / instance)],
+                       capture_output=True, text=True, timeout=60)
+    ours = [ln for ln in (r.stdout + r.stderr).splitlines() if str(tmp_path) in ln]
+    assert r.returncode == 0 and not ours, r.stdout + r.stderr
+
+
+class _NotifySocket:
+    def __init__(self, path):
+        self.path = str(path)
+        self.s = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.s.bind(self.path)
+        self.s.setblocking(False)
+        self.msgs: list[tuple[float, str]] = []
+
+    def drain(self):
+        while True:
+            try:
+                self.msgs.append((time.monotonic(), self.s.recv(4096).decode()))
+            except BlockingIOError:
+                return self.msgs
+
+    def has(self, text, since=0.0):
+        return any(text in m for t, m in self.drain() if t >= since)
+
+
+def test_sd_notify_ready_status_watchdog_only_while_the_loop_runs_and_stopping(tmp_path):
+    ns = _NotifySocket(tmp_path / "notify.sock")
+    env = dict(os.environ, NOTIFY_SOCKET=ns.path, WATCHDOG_USEC="200000")
+    cfg = make_config(tmp_path)
+    d = Daemon(cfg, tmp_path / "motorctl.sock", env=env)
+    try:
+        d.wait_ready()
+        wait_for(lambda: ns.has("READY=1"), 10, "READY=1")
+        wait_for(lambda: ns.has("WATCHDOG=1"), 10, "WATCHDOG=1")
+        wait_for(lambda: ns.has("STATUS=X disabled; Y disabled"), 10, "STATUS=")
+        # stall the loop process (the heartbeat stops): the pings must stop
+        os.kill(d.proc.pid, signal.SIGSTOP)
+        try:
+            time.sleep(0.3)                      # let pings already decided arrive
+            ns.drain()
+            t_stall = time.monotonic()
+            time.sleep(1.0)                      # 10 watchdog half-periods
+            assert not ns.has("WATCHDOG=1", since=t_stall), "pinged while the loop was stalled"
+        finally:
+            os.kill(d.proc.pid, signal.SIGCONT)
+        t_cont = time.monotonic()
+        wait_for(lambda: ns.has("WATCHDOG=1", since=t_cont), 10, "WATCHDOG=1 after resume")
+        code, _, err = d.terminate()
+        assert code == 0, err
+        assert ns.has("STOPPING=1")
+    finally:
+        d.kill()
+
+
+def _drop(*caps):
+    """setpriv prefix: run as root without these capabilities (root keeps its uid)."""
+    spec = ",".join(f"-{c}" for c in caps)
+    return [SETPRIV, "--bounding-set", spec, "--inh-caps", spec, "--"]
+
+
+@pytest.mark.skipif(SETPRIV is None, reason="setpriv not installed")
+def test_realtime_required_refuses_to_start_when_fifo_is_refused(tmp_path):
+    cfg = make_config(tmp_path, policy="required")
+    import sys
+    r = subprocess.run(_drop("sys_nice", "ipc_lock") + [
+        sys.executable, "-c", "import sys; from motorctl.cli import main; sys.exit(main())",
+        "daemon", str(cfg)], capture_output=True, text=True, timeout=60, cwd=str(REPO))
+    assert r.returncode == 1, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "realtime: required" in lines[0] and "sched_fifo" in lines[0]
+    assert not (tmp_path / "motorctl.sock").exists()
+
+
+@pytest.mark.skipif(SETPRIV is None, reason="setpriv not installed")
+def test_socket_permissions(tmp_path):
+    import sys
+    main = [sys.executable, "-c", "import sys; from motorctl.cli import main; sys.exit(main())"]
+    # the daemon cannot create its socket in a directory it may not write to
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o555)
+    cfg = make_config(tmp_path)
+    r = subprocess.run(_drop("dac_override", "dac_read_search") + main + [
+        "daemon", str(cfg), "--socket", str(locked / "m.sock")],
+        capture_output=True, text=True, timeout=60, cwd=str(REPO))
+    assert r.returncode == 1 and r.stderr.count("\n") == 1, r.stderr
+    assert "Permission denied" in r.stderr and str(locked / "m.sock") in r.stderr
+    # a client outside the socket's group gets a clear "permission denied"
+    d = Daemon(cfg, tmp_path / "motorctl.sock")
+    try:
+        d.wait_ready()
+        st = os.stat(d.sock)
+        assert st.st_mode & 0o777 == 0o660
+        os.chown(d.sock, 65534, 65534)           # owned by nobody:nogroup, mode 0660
+        r = subprocess.run(_drop("dac_override", "dac_read_search") + main + [
+            "--socket", str(d.sock), "start", "X"], capture_output=True, text=True, timeout=60,
+            cwd=str(REPO))
+        assert r.returncode == 1 and "permission denied" in r.stderr and r.stderr.count("\n") == 1
+        assert status(d.sock)["axes"]["X"]["state"] == "disabled", "nothing moved"
+    finally:
+        d.kill()
+
+
+def test_second_daemon_on_the_same_socket_is_refused(tmp_path):
+    cfg = make_config(tmp_path)
+    d = Daemon(cfg, tmp_path / "motorctl.sock")
+    try:
+        d.wait_ready()
+        r = cli(None, "daemon", cfg, "--socket", d.sock)
+        assert r.returncode == 1 and "already serving" in r.stderr and r.stderr.count("\n") == 1
+        assert status(d.sock)["loop"]["cycles"] > 0
+    finally:
+        d.kill()
