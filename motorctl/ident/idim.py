@@ -22,9 +22,10 @@ from scipy.signal import butter, cheby1, filtfilt, sosfiltfilt
 from motorctl.model import N_THETA_CUBIC, N_THETA_LINEAR, idim_regressor
 
 #: |u| [V] that the 99.5th percentile of the input must reach for θ5, θ6 (u|u|, u³) to be fitted:
-#: below it the cubic terms differ from a straight line by less than the residual (θ5 ~ −0.01 /V
-#: gives u|u|θ5 ≈ 0.09 V at 3 V) and are collinear with θ1..θ3 under closed-loop excitation.
-CUBIC_MIN_INPUT_V = 3.0
+#: half the actuator range u_M = 10 V (paper-spec §1.2). Below it the paper's force curve departs
+#: from a straight line by less than ~7 % (θ5 = −0.013 /V: θ5|u| = 0.065 at 5 V) and u|u|, u³
+#: are nearly collinear with u, hence with θ1..θ3 under closed-loop excitation.
+CUBIC_MIN_INPUT_V = 5.0
 #: Samples (decimated) dropped at each end: the zero-phase filters' transients.
 EDGE_S = 0.1
 

@@ -10,8 +10,9 @@ with the nominal θ, is accepted only when all three agree:
    (k counts the columns and the searched parameter);
 3. plausibility: the effect's coefficients are significant (Wald statistic per column ≥
    :data:`MIN_WALD`), its parameters are inside their physical range (searched parameter not at
-   the edge of its grid, amplitudes below half the input range, ...), and the nominal θ stay
-   physical (θ1 > 0, θ2, θ3 not significantly negative).
+   the edge of its grid, amplitudes below half the input range, a position-periodic force the
+   same in both directions of motion, ...), and the nominal θ stay physical (θ1 > 0, θ2, θ3
+   not significantly negative).
 
 Accepted effects are added one at a time (the best held-out gain first) and everything is
 re-fitted, until no candidate passes.
@@ -34,6 +35,8 @@ MIN_HELDOUT_GAIN = 0.03
 MIN_BIC_DROP = 10.0
 MIN_WALD = 25.0
 MAX_EFFECTS = 3
+#: Least agreement of a position-periodic force fitted on each direction of motion separately.
+MIN_DIRECTION_AGREEMENT = 0.5
 #: Periodogram peaks refined by the joint fit (position- and time-periodic families).
 N_PEAKS = 2
 FRICTION_SHAPES = ("sf", "sign")
@@ -318,6 +321,12 @@ class Identifier:
             if np.max(np.abs(contrib)) > 0.5 * u_range and term.family != "payload_change":
                 reasons.append("effect larger than half the input range")
             fam = term.family
+            if fam in ("cogging", "force_ripple"):
+                agree = self.direction_agreement(term, base)
+                if agree < MIN_DIRECTION_AGREEMENT:
+                    reasons.append(f"not the same force in both directions (agreement {agree:.2f} < "
+                                   f"{MIN_DIRECTION_AGREEMENT:g}): a position-periodic force does not "
+                                   "depend on the direction of motion")
             if fam == "stribeck" and beta[0] <= 0:
                 reasons.append("Stribeck force must be positive (extra friction at low speed)")
             if fam == "force_ripple" and np.max(np.hypot(beta[0::2], beta[1::2])) > 0.3:
@@ -330,6 +339,22 @@ class Identifier:
                 if th[0] + beta[0] <= 0 or abs(beta[0]) > 2 * th[0]:
                     reasons.append("mass step not plausible (|dM| > 2 M or mass <= 0)")
         return reasons
+
+    def direction_agreement(self, term: Term, base: list) -> float:
+        """1 − ‖β₊ − β₋‖/(‖β₊‖ + ‖β₋‖) for the effect's coefficients fitted jointly with the
+        nominal θ on the samples moving forward (β₊) and backward (β₋) separately (1: the same
+        force both ways, as cogging and ripple must be; ≤ 0: unrelated)."""
+        phi, y = self.design(base + [term])
+        k = term.cols.shape[1]
+        betas = []
+        for sel in (self.p.v_d > 0, self.p.v_d < 0):
+            sel = sel & self.moving
+            if sel.sum() < 4 * phi.shape[1]:
+                return 0.0
+            betas.append(_coef(phi[sel], y[sel])[-k:])
+        bp, bm = betas
+        den = np.linalg.norm(bp) + np.linalg.norm(bm)
+        return float(1.0 - np.linalg.norm(bp - bm) / den) if den > 0 else 0.0
 
     def judge(self, ev: Evaluated, current: Evaluated, base: list) -> Evaluated:
         gain = 1.0 - ev.heldout_rms / current.heldout_rms
@@ -344,25 +369,45 @@ class Identifier:
         return ev
 
     # ------------------------------------------------------------------ the whole procedure
-    def run(self, max_effects: int = MAX_EFFECTS) -> dict:
-        """Nominal fit, forward selection; returns a result dict (see :func:`summarise`)."""
-        nominal = self.evaluate([])
+    def run(self, max_effects: int = MAX_EFFECTS) -> "Identifier":
+        """Nominal fit and forward selection (results in ``nominal``, ``final``, ``terms``,
+        ``steps``, ``accepted``).
+
+        θ5, θ6 are kept only when, with the selected effects, they lower the held-out residual
+        by at least :data:`MIN_HELDOUT_GAIN` and are not significantly positive (the paper's force curve has A2, A3 ≤ 0; a positive cubic term absorbs
+        something else); otherwise the selection is redone with θ1..θ4, and the reason says so.
+        """
+        self._select(self.evaluate([]), max_effects)
         if self.n_theta == 6 and not self._n_theta_forced:
-            th, sd = nominal.fit.coef, nominal.fit.std
+            th = self.final.fit.coef
+            six = self.final.heldout_rms
+            # f_u(u)/u − 1 = θ5 r + θ6 r² at r = |u|max/2 and |u|max, with its standard deviation
+            phi, y = self.design(list(self.terms))
+            cov = _cov(phi, self.final.fit.residual)[4:6, 4:6]
+            r_max = float(np.percentile(np.abs(self.p.u), 99.5))
+            rising = []
+            for r in (0.5 * r_max, r_max):
+                g = np.array([r, r * r])
+                rising.append(float(g @ th[4:6]) > 3.0 * math.sqrt(max(float(g @ cov @ g), 0.0)))
             self.n_theta = 4
-            lin = self.evaluate([])
-            gain = 1.0 - nominal.heldout_rms / lin.heldout_rms
-            if th[4] > 3 * sd[4] or th[5] > 3 * sd[5]:
-                self.n_theta_reason += (f"; but the fit gives theta5 = {th[4]:.3g}, theta6 = {th[5]:.3g} 1/V^2 with a "
-                                        "significantly positive term (the paper's force curve has A2, A3 <= 0): "
-                                        "the cubic terms absorb something else, so theta1..theta4 are kept")
-                nominal = lin
+            four = self.evaluate(list(self.terms)).heldout_rms
+            gain = 1.0 - six / four
+            if any(rising):
+                self.n_theta_reason += (f"; but with the effects modelled the fit gives theta5 = {th[4]:.3g} 1/V, "
+                                        f"theta6 = {th[5]:.3g} 1/V^2, a force constant that rises significantly with "
+                                        "|u| (the paper's force curve saturates, A2, A3 <= 0): the cubic terms absorb "
+                                        "something else, so theta1..theta4 are kept")
             elif gain < MIN_HELDOUT_GAIN:
                 self.n_theta_reason += (f"; but theta5, theta6 lower the held-out residual by only {100 * gain:.1f} % "
                                         f"(< {100 * MIN_HELDOUT_GAIN:g} %), so theta1..theta4 are kept")
-                nominal = lin
             else:
                 self.n_theta = 6
+                return self
+            self.p.fu = None
+            self._select(self.evaluate([]), max_effects)
+        return self
+
+    def _select(self, nominal: Evaluated, max_effects: int) -> "Identifier":
         if self.n_theta == 6:   # thrust shape f_u(u) = u + θ5 u|u| + θ6 u³ for the ripple family
             th = nominal.fit.coef
             self.p.fu = f_u(self.p.u, th[4], th[5])
@@ -428,6 +473,12 @@ def _time_periodogram(t, r, freqs):
     spec = np.abs(np.fft.rfft((r - r.mean()) * np.hanning(len(r)), nfft)) ** 2
     f = np.fft.rfftfreq(nfft, ts)
     return np.interp(freqs, f, spec)
+
+
+def _cov(phi: np.ndarray, residual: np.ndarray) -> np.ndarray:
+    """σ̂² (ΦᵀΦ)⁻¹ of an LS fit (p, p)."""
+    m, k = phi.shape
+    return float(residual @ residual) / max(m - k, 1) * np.linalg.pinv(phi.T @ phi)
 
 
 def _coef(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
