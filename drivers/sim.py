@@ -48,6 +48,36 @@ NonNeg = Annotated[float, Field(ge=0)]
 _TWO_OVER_PI = 2.0 / math.pi
 _SF = 900.0
 
+try:  # the plain plant (no extra effects) is compiled: ~1 µs a period instead of ~12 µs
+    from numba import njit as _njit
+    _jit = _njit(cache=True, nogil=True)
+except ImportError:  # pragma: no cover - numba missing: the same function in Python
+    def _jit(f):
+        return f
+
+
+@_jit
+def _rk4_plain(x, v, t, u, h, n, m, a1, a2, a3, b, fc, f0, f_noise, f_ext):
+    """``n`` RK4 steps of eq. (1) with the force curve of eq. (3) and smooth Coulomb friction,
+    the same operations in the same order as :meth:`AxisPlant._acc` without effects."""
+    fm = a1 * u + a2 * u * abs(u) + a3 * u * u * u
+    for _ in range(n):
+        sf = _TWO_OVER_PI * math.atan(_SF * v)
+        k1x, k1v = v, (fm - b * v - fc * sf + f0 + f_noise + f_ext) / m
+        v2 = v + 0.5 * h * k1v
+        sf = _TWO_OVER_PI * math.atan(_SF * v2)
+        k2x, k2v = v2, (fm - b * v2 - fc * sf + f0 + f_noise + f_ext) / m
+        v3 = v + 0.5 * h * k2v
+        sf = _TWO_OVER_PI * math.atan(_SF * v3)
+        k3x, k3v = v3, (fm - b * v3 - fc * sf + f0 + f_noise + f_ext) / m
+        v4 = v + h * k3v
+        sf = _TWO_OVER_PI * math.atan(_SF * v4)
+        k4x, k4v = v4, (fm - b * v4 - fc * sf + f0 + f_noise + f_ext) / m
+        x += h / 6.0 * (k1x + 2.0 * k2x + 2.0 * k3x + k4x)
+        v += h / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v)
+        t += h
+    return x, v, t
+
 
 class Cogging(StrictModel):
     amplitudes_N: list[float] = Field(min_length=1)
@@ -173,6 +203,12 @@ class AxisPlant:
         self.pdist = eff.periodic_disturbance
         self.f_noise = 0.0
         self.f_ext = 0.0   # external force [N] (fault injection: a push)
+        # no position/time-dependent effect: the compiled plain integrator applies
+        self._plain = all(e is None for e in (self.cog, self.rip, self.strib, self.asym, self.pdf,
+                                              self.spring, self.payload, self.pdist))
+        if self._plain:
+            _rk4_plain(0.0, 0.0, 0.0, 0.0, self.h, 1, self.m, self.a1, self.a2, self.a3, self.b,
+                       self.fc, self.f0, 0.0, 0.0)   # compile (or load the cache) now
 
     def _acc(self, x: float, v: float, t: float, u: float) -> float:
         fm = self.a1 * u + self.a2 * u * abs(u) + self.a3 * u * u * u
@@ -218,6 +254,11 @@ class AxisPlant:
         if self.noise > 0.0:
             self.f_noise = self.noise * float(self.rng.standard_normal())
         h = self.h
+        if self._plain:
+            self.x, self.xd, self.t = _rk4_plain(self.x, self.xd, self.t, u, h, self.substeps,
+                                                 self.m, self.a1, self.a2, self.a3, self.b,
+                                                 self.fc, self.f0, self.f_noise, self.f_ext)
+            return
         x, v, t = self.x, self.xd, self.t
         acc = self._acc
         for _ in range(self.substeps):
