@@ -21,6 +21,10 @@ from motorctl.ident.select import Identifier, Term
 from motorctl.model import THETA_NAMES
 
 
+#: Horizon of the simulated-position fit % (motorctl.ident.simfit) [s].
+SIM_WINDOW_S = 0.2
+
+
 def register(parser, subparsers) -> None:
     """Add the ``identify`` subcommand (called by :func:`motorctl.cli.build_parser`)."""
     p = subparsers.add_parser("identify", help="fit the model to measured data, trace the residual to "
@@ -92,16 +96,19 @@ def summarise(idf: Identifier) -> dict:
             "parameters": fx.parameters(term.family, term.h, beta, rec.gain, idf.p.fs),
             "heldout_rms_before": g * before,
             "heldout_rms_after": g * ev.heldout_rms,
-            "bic_drop": None,
         })
-    for e, (ev, _) in zip(effects, idf.accepted):
-        e.pop("bic_drop")
     out["effects"] = effects
     out["augmented"] = {"theta": [float(v) for v in th], "residual_rms": g * idf.final.fit.rms,
                         "heldout_rms": g * idf.final.heldout_rms}
+    from motorctl.ident.simfit import simulation_fit
+    out["nominal"]["simulation_fit_percent"] = simulation_fit(idf, [], idf.nominal, SIM_WINDOW_S)
+    out["augmented"]["simulation_fit_percent"] = simulation_fit(idf, idf.terms, idf.final, SIM_WINDOW_S)
+    out["simulation_window_s"] = SIM_WINDOW_S
+    chosen = [ev for ev, _ in idf.accepted]
     out["candidates"] = [
         [{"name": c.term.family, "searched": _r(c.term.h), "heldout_gain_percent": 100 * c.gain,
-          "accepted": c.ok, "reasons": c.reasons} for c in step] for step in idf.steps]
+          "accepted": c.ok, "selected": any(c is e for e in chosen), "reasons": c.reasons} for c in step]
+        for step in idf.steps]
     return out
 
 
@@ -181,11 +188,15 @@ def text_report(s: dict) -> str:
         lines.append(f"  held-out RMS {e['heldout_rms_before']:.4g} -> {e['heldout_rms_after']:.4g} {u}")
     a = s["augmented"]
     lines.append(f"augmented model: residual RMS {a['residual_rms']:.4g} {u}, held-out RMS {a['heldout_rms']:.4g} {u}")
+    if n.get("simulation_fit_percent") is not None:
+        lines.append(f"simulated position fit ({s['simulation_window_s']:g} s windows from the measured state): "
+                     f"nominal {n['simulation_fit_percent']:.3f} %, augmented {a['simulation_fit_percent']:.3f} %")
     lines.append("candidates per forward-selection step:")
     for i, step in enumerate(s["candidates"]):
         for c in sorted(step, key=lambda c: -c["heldout_gain_percent"]):
-            lines.append(f"  step {i + 1}: {c['name']:28s} held-out gain {c['heldout_gain_percent']:7.2f} % "
-                         f"{'ACCEPTED' if c['accepted'] else 'rejected: ' + '; '.join(c['reasons'])}")
+            verdict = ("SELECTED" if c.get("selected") else "passes (a better one was selected)") if c["accepted"] \
+                else "rejected: " + "; ".join(c["reasons"])
+            lines.append(f"  step {i + 1}: {c['name']:28s} held-out gain {c['heldout_gain_percent']:7.2f} % {verdict}")
     if s.get("validation"):
         v = s["validation"]
         lines.append(f"validation on {v['source']}: residual RMS {v['residual_rms_before']:.4g} -> "

@@ -269,7 +269,10 @@ class Identifier:
                 if den > 0:
                     d += 0.5 * (s0 - s2) / den
             if i == 0:
-                return None
+                ev = self.evaluate(base + [Term(family, 0.0, None, 0.0)])
+                ev.term = Term(family, 0.0, None, 0.0)
+                ev.reasons.append("best delay is 0 samples beyond the zero-order hold")
+                return ev
             if i == len(grid) - 1:
                 edge_note = f"delay {d:g} samples at the edge of the searched range"
             term = Term(family, d, None, d)
