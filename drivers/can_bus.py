@@ -237,6 +237,10 @@ class CanDriver(SplitPhaseDriver):
             kw.setdefault("fd", o.fd)
         self.bus = can.Bus(interface=o.interface, channel=o.channel, **kw)
         self._msgs = [self._message(f.id, f.length) for f in self.cmd_frames]
+        try:
+            self._set_wait_fd(self.bus.fileno())
+        except (NotImplementedError, AttributeError, OSError):
+            self._set_wait_fd(None)          # e.g. 'virtual': no descriptor, poll
         self.connected = True
         while self.bus.recv(timeout=0) is not None:   # stale frames from before
             pass

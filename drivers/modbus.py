@@ -203,6 +203,7 @@ class ModbusDriver(SplitPhaseDriver):
                 self.port = serial.Serial(o.serial_port, baudrate=o.baudrate, parity="E", timeout=0,
                                           write_timeout=0)
         self.buf = bytearray()
+        self._set_wait_fd(self.sock.fileno() if self.sock is not None else self.port.fileno())
         self.connected = True
         self._first_reading()
 

@@ -27,6 +27,7 @@
 from __future__ import annotations
 
 import math
+import select
 import sys
 import time
 from typing import Annotated, Literal
@@ -154,12 +155,18 @@ class CommonOptions(StrictModel):
     round_trip_s: measured host round trip of one exchange on this machine [s] (driver stack
         + device answering; ``benchmarks/bench_transports.py`` measures it). Added to the wire
         time in the budget; 0 means 'wire only'.
+    wait: how ``read()`` waits for the answer until ``timeout_s``: 'select' sleeps in
+        select() on the transport's file descriptor (never past the deadline; the CPU is free
+        meanwhile, so a SCHED_FIFO loop stays clear of RT throttling), 'spin' polls without
+        sleeping (lowest latency, for an isolated core). Transports without a descriptor
+        (python-can 'virtual') always spin.
     max_bus_load: the fraction of the period the bus may be busy (0.8 leaves room for
         retries and other traffic).
     emulator: the emulated device's settings (``motorctl emulate`` only; the driver ignores it).
     """
 
     timeout_s: Annotated[float, Field(gt=0)] | None = None
+    wait: Literal["select", "spin"] = "select"
     round_trip_s: Annotated[float, Field(ge=0)] = 0.0
     max_bus_load: Annotated[float, Field(gt=0, le=1)] = 0.8
     emulator: EmulatorOptions = EmulatorOptions()
@@ -210,11 +217,16 @@ class SplitPhaseDriver(Driver):
         self._y_last = [math.nan] * n        # last measured position [m]
         self._lost = [0] * n                 # consecutive lost answers per axis
         self._query = False                  # open()'s query: any sequence number will do
+        self._wait_fds: list = []            # descriptors read() may select() on
         self._any_lost = False
         self._unwrap: list[EncoderUnwrap] = []
         self._m_per_count = [1.0] * n
         self.connected = False
         self.counters = {"timeouts": 0, "stale": 0, "bad_frames": 0, "exceptions": 0, "send_errors": 0}
+
+    def _set_wait_fd(self, fd) -> None:
+        """Called by ``open()`` with the transport's file descriptor (None: none, spin)."""
+        self._wait_fds = [fd] if fd is not None and fd >= 0 and self.options.wait == "select" else []
 
     # --- hooks
     def _transmit(self, seq: int, u_V: np.ndarray, enable: np.ndarray) -> None:  # pragma: no cover
@@ -249,11 +261,17 @@ class SplitPhaseDriver(Driver):
         got = self._got
         clock = time.perf_counter
         deadline = clock() + self.timeout_s
+        fds = self._wait_fds
         try:
             while True:
                 self._receive()
-                if got.all() or clock() >= deadline:
+                if got.all():
                     break
+                left = deadline - clock()
+                if left <= 0.0:
+                    break
+                if fds:
+                    select.select(fds, (), (), left)
         except Exception:  # noqa: BLE001  (a transport error inside the cycle is a read error)
             self.connected = False
         if not got.all():

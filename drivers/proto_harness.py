@@ -75,6 +75,9 @@ def loopback_config(base: str | Path | dict, out_dir: str | Path, rate_hz: float
 #: adds it to the wire time of the shipped config; :func:`loopback_rate` takes the highest rate
 #: on a 500 Hz grid that budget allows.
 LOOPBACK_ROUND_TRIP_S = {"serial": 190e-6, "can": 270e-6, "modbus": 400e-6}
+#: read timeout of the loopback runs, in periods: the answer then has 1.75 periods from the
+#: send; the rest of the cycle (control, write: ~60 us for two axes) still fits at ≤ 2.5 kHz.
+LOOPBACK_TIMEOUT_PERIODS = 0.75
 
 
 def loopback_rate(d: dict) -> float:
@@ -87,14 +90,25 @@ def loopback_rate(d: dict) -> float:
 
 
 def loopback_e2e_config(transport: str, configs_dir: str | Path, out_dir: str | Path,
-                        watchdog_s: float = 0.2, name: str | None = None) -> tuple[dict, Path, float]:
+                        watchdog_s: float = 0.2, name: str | None = None,
+                        emulator: dict | None = None) -> tuple[dict, Path, float]:
     """configs/gantry-<transport>.yaml aimed at this machine, with the measured loopback round
-    trip, at the highest rate its budget allows. Returns (dict, path, rate_hz)."""
+    trip, at the highest rate its budget allows, read timeout ``LOOPBACK_TIMEOUT_PERIODS``,
+    ``limits.encoder_jump_m`` scaled to the new period (the same jump speed).
+    Returns (dict, path, rate_hz).
+    ``emulator``: more ``driver.emulator`` settings (e.g. late_s)."""
     rt = LOOPBACK_ROUND_TRIP_S[transport]
+    emu = {"watchdog_s": watchdog_s, **(emulator or {})}
     d, _ = loopback_config(Path(configs_dir) / f"gantry-{transport}.yaml", out_dir,
-                           driver={"round_trip_s": rt, "emulator": {"watchdog_s": watchdog_s}}, name=name)
+                           driver={"round_trip_s": rt, "emulator": emu}, name=name)
     rate = loopback_rate(d)
+    base_rate = d["loop"]["rate_hz"]
+    for ax in d["axes"].values():        # keep the encoder-jump speed (e.g. 2 mm per 0.2 ms = 10 m/s)
+        lim = ax.get("limits", {})
+        if "encoder_jump_m" in lim:
+            lim["encoder_jump_m"] = lim["encoder_jump_m"] * base_rate / rate
     d["loop"]["rate_hz"] = rate
+    d["driver"]["timeout_s"] = LOOPBACK_TIMEOUT_PERIODS / rate
     path = Path(out_dir) / f"{name or transport}.yaml"
     path.write_text(yaml.safe_dump(d, sort_keys=False))
     return d, path, rate

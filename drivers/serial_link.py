@@ -213,6 +213,7 @@ class SerialDriver(SplitPhaseDriver):
             except (AttributeError, ValueError, OSError) as exc:
                 self.low_latency = f"not supported ({type(exc).__name__})"
         self.port.reset_input_buffer()
+        self._set_wait_fd(self.port.fileno())
         self.parser = FrameParser((REPLY, ERROR))
         self.connected = True
         self._first_reading()
