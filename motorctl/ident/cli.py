@@ -17,7 +17,7 @@ import numpy as np
 
 from motorctl.ident import effects as fx
 from motorctl.ident.data import load_record
-from motorctl.ident.select import Identifier, Term
+from motorctl.ident.select import Identifier
 from motorctl.model import THETA_NAMES
 
 
@@ -263,4 +263,4 @@ def _json_default(o):
     raise TypeError(type(o).__name__)
 
 
-__all__ = ["register", "cmd_identify", "summarise", "closed_loop", "Term"]
+__all__ = ["register", "cmd_identify", "summarise", "validation", "closed_loop", "text_report"]

@@ -452,9 +452,6 @@ class Identifier:
             i += k
         return th, out
 
-    def residual_full(self, terms: list, ev: Evaluated) -> np.ndarray:
-        return ev.fit.residual
-
     def predict_on(self, other: "Identifier", terms: list, ev: Evaluated) -> np.ndarray:
         """Residual on another record of the model fitted here (nominal + ``terms``), decimated (M2,)."""
         th, betas = self.coef_split(ev, terms)
