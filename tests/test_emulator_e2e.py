@@ -75,6 +75,9 @@ def test_closed_loop_through_the_protocol_matches_the_sim_driver(transport, tmp_
     assert set(got) == {"X", "Y"}, f"rc {r.returncode}\n{r.stdout}\n{r.stderr}\n{emu_err}"
     assert f"at {rate:.0f} Hz (wall clock)" in r.stdout
     ref = _sim_reference(rate)
+    for axis in ("X", "Y"):   # shown with pytest -s: the figures of the closing note
+        print(f"{transport} {rate:.0f} Hz {axis}: " + ", ".join(
+            f"{k} {got[axis][k]:.2f} (sim {ref[axis][k]:.2f})" for k in ("e_M_um", "e_F_um", "L2_um")))
     for axis in ("X", "Y"):
         assert got[axis]["fault"] == "", f"{transport} {axis}: {got[axis]['fault']}\n{r.stdout}"
         for key in ("e_M_um", "e_F_um", "L2_um"):
