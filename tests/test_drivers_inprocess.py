@@ -85,3 +85,39 @@ def test_modbus_rtu_over_a_pty(tmp_path):
     assert moved[0] > 0 and moved[1] < 0, moved
     assert errors <= 4
     assert fault.all()
+
+
+def test_lost_link_is_flagged_every_cycle_and_reconnect_happens_outside_the_loop(tmp_path):
+    import time
+
+    from motorctl_drivers.proto_common import FaultSpec
+    from motorctl_drivers.proto_harness import free_port
+    d = _config("gantry-serial.yaml", tmp_path, port=f"socket://127.0.0.1:{free_port()}")
+    loaded = config_from_dict(d, "<inprocess>", check_budget=False)
+    dev = build_device(loaded, [FaultSpec.parse("disconnect:*:5:1")])
+    stop = threading.Event()
+    th = threading.Thread(target=dev.serve, kwargs={"stop": stop.is_set}, daemon=True)
+    th.start()
+    drv = loaded.make_driver()
+    try:
+        drv.open()
+        u, en = np.zeros(2), np.ones(2, dtype=bool)
+        flags = []
+        for _ in range(12):                        # command 5 drops the link
+            drv.write(u, en)
+            time.sleep(0.002)
+            drv.read()
+            flags.append(bool(drv.read_error.any() or drv.write_error.any()))
+        assert not any(flags[:5]) and all(flags[6:]), flags
+        assert not drv.connected
+        drv.reconnect()                            # blocking, outside the cycle
+        assert drv.connected
+        drv.write(u, np.zeros(2, dtype=bool))      # the loop decides what to enable: here nothing
+        time.sleep(0.002)
+        drv.read()
+        assert not drv.read_error.any() and not drv.write_error.any()
+        assert dev.bank.enabled == [False, False]  # the device saw the axes disabled
+    finally:
+        drv.close()
+        stop.set()
+        th.join(timeout=5)
