@@ -289,6 +289,7 @@ def run_daemon(config_path: str, socket_path: str | None = None, log_dir: str | 
     # ---- the loop process
     os.close(cmd_w)
     os.close(rep_r)
+    os.set_blocking(rep_w, False)   # a stalled I/O process must never block the loop
     lsock.close()
     writer.release()
     return _loop_main(sh, driver, ctrls, sup, pid, Mailbox(rfd=cmd_r), Mailbox(wfd=rep_w), out)
@@ -313,7 +314,8 @@ def _loop_main(sh: _Shared, driver, ctrls, sup, io_pid: int, cmds: Mailbox, repl
     loop.stop_settle = int(round(d.stop_settle_s / sh.period_s))
     ctl = memoryview(ring.ctl)
     smv = memoryview(ring.status.reshape(-1))
-    state = {"seen": 0, "term": "", "tail": -1, "io_dead": False, "started_k": [0] * n}
+    state = {"seen": 0, "term": "", "tail": -1, "io_dead": False, "started_k": [0] * n,
+             "replies_dropped": 0}
     allow_inject = d.allow_fault_injection and hasattr(driver, "inject")
 
     def publish() -> None:
@@ -388,6 +390,8 @@ def _loop_main(sh: _Shared, driver, ctrls, sup, io_pid: int, cmds: Mailbox, repl
                 for m in msgs:
                     try:
                         replies.send(handle(m))
+                    except BlockingIOError:
+                        state["replies_dropped"] += 1     # pipe full: the client times out
                     except OSError:
                         state["io_dead"] = True
         if state["term"] and state["tail"] < 0:
@@ -455,6 +459,7 @@ def _loop_main(sh: _Shared, driver, ctrls, sup, io_pid: int, cmds: Mailbox, repl
                 restore()
                 sd_notify("STOPPING=1")
                 try:
+                    os.set_blocking(replies.wfd, True)   # the loop has ended: waiting is fine
                     replies.send({"op": "exit", "reason": state["term"] or "loop ended"})
                 except OSError:
                     pass

@@ -243,10 +243,12 @@ class Drainer:
         self._prev_ovr = float(ovr[-1])
 
     def _event(self, k: int, kind: str, value: int) -> None:
-        for p in self.pending:             # merge into an open window
+        for p in self.pending:             # merge into an open window of the same kind
             if p["k"] <= k < p["k"] + self.after:
-                p["also"].append(kind)
-                return
+                if p["kind"] == kind:
+                    p["also"].append(kind)
+                    return
+                p["also"].append(kind)     # noted there, and still an event of its own
         if len(self.events) + len(self.pending) >= self.max_events:
             self.events_dropped += 1
             return

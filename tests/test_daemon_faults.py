@@ -72,7 +72,7 @@ def test_injected_faults_latch_zero_volts_and_reset(fault_daemon):
         assert status(sock)["axes"]["Y"]["state"] == "disabled", "the other axis is not touched"
     code, _, err = fault_daemon.terminate()
     assert code == 0
-    assert sum("axis X fault" in line for line in err.splitlines()) == len(FAULTS), "reported once each"
+    assert sum("axis X fault" in line for line in err.splitlines()) == len(FAULTS), err
 
     log = read_log(log_path)
     fb, u, en = log.col("X.fault_bits"), log.col("X.u"), log.col("X.enabled")
