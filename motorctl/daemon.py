@@ -769,6 +769,7 @@ class _IO:
         # the loop process ended (normally, or killed): keep everything it published
         try:
             self.drainer.poll()
+            self.report_faults()
             self.header["commands"] = self.audit
             self.header["events"] = self.drainer.events
             self.header["ended"] = {"reason": self.exit_reason or "loop process killed",
@@ -788,17 +789,15 @@ class _IO:
 
     def report_faults(self) -> None:
         """One line on stderr (the journal) per fault onset: reported once, not per cycle."""
-        evs = self.drainer.events + self.drainer.pending
-        for e in evs[self._reported:]:
-            if e["kind"].startswith("fault-"):
-                i = self.sh.names.index(e["kind"][6:])
-                st = self.sh.ring.status[i]
-                bits = int(st[ST_FAULT]) or int(e.get("value", 0))
-                sys.stderr.write(f"motorctl daemon: axis {self.sh.names[i]} fault at t = "
-                                 f"{e['k'] * self.sh.period_s if 'k' in e else e['t_s']:.4f} s: "
-                                 f"{describe_faults(bits)} (value {st[ST_VALUE]:.6g}, limit "
-                                 f"{st[ST_LIMIT]:.6g}); 0 V, amplifier off, latched\n")
-        self._reported = len(evs)
+        onsets = self.drainer.fault_onsets
+        for e in onsets[self._reported:]:
+            i = self.sh.names.index(e["axis"])
+            st = self.sh.ring.status[i]
+            sys.stderr.write(f"motorctl daemon: axis {e['axis']} fault at t = "
+                             f"{e['k'] * self.sh.period_s:.4f} s: {describe_faults(e['bits'])} "
+                             f"(value {st[ST_VALUE]:.6g}, limit {st[ST_LIMIT]:.6g}); 0 V, "
+                             f"amplifier off, latched\n")
+        self._reported = len(onsets)
 
     def notify(self, now: float) -> None:
         hb = self.sh.ring.published()

@@ -174,6 +174,7 @@ class Drainer:
         self.pending: list[dict] = []    # events waiting for their after-window
         self.events: list[dict] = []     # events recorded (with their event log path)
         self.events_dropped = 0
+        self.fault_onsets: list[dict] = []   # every fault onset, for the once-only report
         self.overrun_spacing = int(round(10.0 / period_s))
         self._last_overrun_k = -(1 << 62)
 
@@ -243,6 +244,8 @@ class Drainer:
         self._prev_ovr = float(ovr[-1])
 
     def _event(self, k: int, kind: str, value: int) -> None:
+        if kind.startswith("fault-"):
+            self.fault_onsets.append({"k": k, "axis": kind[6:], "bits": value})
         for p in self.pending:             # merge into an open window of the same kind
             if p["k"] <= k < p["k"] + self.after:
                 if p["kind"] == kind:
