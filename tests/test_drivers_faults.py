@@ -23,18 +23,27 @@ from motorctl_drivers.proto_harness import (Emulator, NetNamespace, loopback_e2e
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 #: Below the limit: each burst adds ≤ 10 × (cycles lost) to a bucket of 100, which drains by 1
-#: per clean cycle between bursts (150 cycles apart). The bursts fall while both axes are at
-#: rest (the first move starts at 0.5 s = cycle 1000 at 2000 Hz, 1250 at 2500 Hz): at full speed
-#: a burst of lost answers also trips the supervisor's encoder-jump check (10 m/s: 5 mm at
-#: 2 kHz), whose reference position stands still while answers are lost (motorctl/safety.py),
-#: a separate protection not tested here. Then a lasting loss from command LASTING_START on
-#: (serial: the link is disconnected; CAN: the node goes bus-off; Modbus: the TCP connection
-#: is dropped).
-TRANSIENT = ["drop:*:200:3", "corrupt:*:350:3", "stale:*:500:2", "exception:*:650:2", "late:*:800:1"]
+#: per clean cycle between bursts (60 ms apart: ≥ 60 cycles). A long burst at full speed would trip
+#: the supervisor's encoder-jump check (scaled to 10 m/s by the loopback config), whose
+#: reference position stands still while answers are lost (motorctl/safety.py), a separate
+#: protection not tested here; these bursts lose at most a few cycles. Then a lasting loss from
+#: LASTING_T on (serial: the link is disconnected; CAN: the node goes bus-off;
+#: Modbus: the TCP connection is dropped).
+#: All of it happens while both axes are at rest (the first move starts at 0.5 s), so the
+#: tracking of the moves plays no part. (kind, time [s], count): the start in commands is
+#: time × rate.
+TRANSIENT = [("drop", 0.10, 3), ("corrupt", 0.16, 3), ("stale", 0.22, 2), ("exception", 0.28, 2),
+             ("late", 0.34, 1)]
 LATE_S = 0.001
-LASTING_START = 950
-LASTING = {"serial": f"disconnect:*:{LASTING_START}:1", "can": f"bus_off:*:{LASTING_START}:100000",
-           "modbus": f"disconnect:*:{LASTING_START}:1"}
+LASTING_T = 0.42
+LASTING = {"serial": ("disconnect", 1), "can": ("bus_off", 100000), "modbus": ("disconnect", 1)}
+
+
+def _faults(transport: str, rate: float) -> tuple[list[str], int]:
+    out = [f"{kind}:*:{round(t * rate)}:{n}" for kind, t, n in TRANSIENT]
+    kind, n = LASTING[transport]
+    start = round(LASTING_T * rate)
+    return out + [f"{kind}:*:{start}:{n}"], start
 
 
 @pytest.mark.parametrize("transport", ["serial", "can", "modbus"])
@@ -44,8 +53,10 @@ def test_transient_faults_keep_running_and_a_lasting_loss_faults_to_0V_in_the_sa
     ns = NetNamespace() if transport == "can" else None
     prefix = ns.__enter__().prefix if ns else ()
     try:
-        with Emulator(transport, cfg, faults=TRANSIENT + [LASTING[transport]], prefix=prefix) as emu:
-            r = run_cli(["run", str(cfg), "--controller", "c2", "--duration", "0.6", "--log", str(log_path)],
+        faults, lasting_start = _faults(transport, rate)
+        with Emulator(transport, cfg, faults=faults, prefix=prefix) as emu:
+            duration = f"{LASTING_T + 0.06:.3f}"
+            r = run_cli(["run", str(cfg), "--controller", "c2", "--duration", duration, "--log", str(log_path)],
                         prefix=prefix, timeout_s=90)
             err = emu.stderr()
     finally:
@@ -69,9 +80,9 @@ def test_transient_faults_keep_running_and_a_lasting_loss_faults_to_0V_in_the_sa
         k = int(np.argmax(bits != 0))
         # ... without stopping the axis: no fault, never disabled, until the lasting loss
         assert bits[k] == FAULT_IO_ERROR and not bits[:k].any() and enabled[:k].min() == 1.0
-        # the loss starts with command LASTING_START (answered in the next cycle); the bucket
+        # the loss starts with command `lasting_start` (answered in the next cycle); the bucket
         # (+10 per failed exchange, limit 100) is full after about ten cycles
-        assert LASTING_START + 1 <= k <= LASTING_START + 1 + 15, k
+        assert lasting_start + 1 <= k <= lasting_start + 1 + 15, (k, lasting_start)
         # 0 V and amplifier off in the very cycle the fault latches, and from then on
         assert u[k] == 0.0 and enabled[k] == 0.0
         assert (u[k:] == 0.0).all() and (enabled[k:] == 0.0).all()
