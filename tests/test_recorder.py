@@ -168,3 +168,32 @@ def test_flush_interval_config_is_bounded(gantry_yaml, tmp_path):
     from motorctl.config import ConfigError
     with pytest.raises(ConfigError, match="daemon.bogus"):
         load_config(p)
+
+
+def test_stalled_loop_sim_drive_watchdog_drops_to_zero_volts(tmp_path):
+    """Commands stop arriving (the loop process is stopped): the simulated drive's watchdog
+    puts the axis at 0 V with the amplifier off; the daemon latches the amplifier fault."""
+    cfg = make_config(tmp_path, watchdog_s=0.5)
+    d = Daemon(cfg, tmp_path / "motorctl.sock")
+    try:
+        d.wait_ready()
+        assert ctl(d.sock, "start", "X").returncode == 0
+        wait_for(lambda: status(d.sock)["axes"]["X"]["phase"] == "tracking", 20, "X tracking")
+        k_stop = status(d.sock)["loop"]["cycles"]
+        os.kill(d.proc.pid, signal.SIGSTOP)
+        time.sleep(1.0)
+        os.kill(d.proc.pid, signal.SIGCONT)
+        st = wait_for(lambda: (s := status(d.sock)["axes"]["X"])["state"] == "fault" and s, 20,
+                      "the amplifier fault")
+        assert "amplifier fault" in st["fault"] and not st["amplifier_enabled"]
+        path = status(d.sock)["log"]["path"]
+        code, _, _ = d.terminate()
+        assert code == 0
+    finally:
+        d.kill()
+    log = read_log(path)
+    late, fb = log.col("lateness_ns"), log.col("X.fault_bits")
+    gap = k_stop + int(np.argmax(late[k_stop:] > 0.5e9))      # the first cycle after the stall
+    assert late[gap] > 0.9e9
+    assert log.col("X.enabled")[gap - 1] == 1.0
+    assert fb[gap] != 0 and log.col("X.u")[gap] == 0.0 and log.col("X.enabled")[gap] == 0.0
