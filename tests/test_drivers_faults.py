@@ -79,10 +79,11 @@ def test_transient_faults_keep_running_and_a_lasting_loss_faults_to_0V_in_the_sa
         u = log.col(f"{a}.u")
         k = int(np.argmax(bits != 0))
         # ... without stopping the axis: no fault, never disabled, until the lasting loss
-        assert bits[k] == FAULT_IO_ERROR and not bits[:k].any() and enabled[:k].min() == 1.0
+        why = f"{a}: first fault {bits[k]} at cycle {k}, lasting loss from command {lasting_start}; {c}"
+        assert bits[k] == FAULT_IO_ERROR and not bits[:k].any() and enabled[:k].min() == 1.0, why
         # the loss starts with command `lasting_start` (answered in the next cycle); the bucket
         # (+10 per failed exchange, limit 100) is full after about ten cycles
-        assert lasting_start + 1 <= k <= lasting_start + 1 + 15, (k, lasting_start)
+        assert lasting_start + 1 <= k <= lasting_start + 1 + 15, why
         # 0 V and amplifier off in the very cycle the fault latches, and from then on
         assert u[k] == 0.0 and enabled[k] == 0.0
         assert (u[k:] == 0.0).all() and (enabled[k:] == 0.0).all()
