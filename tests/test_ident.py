@@ -251,3 +251,27 @@ def test_bad_log_axis_and_missing_file_exit_2(logs, tmp_path, capsys):
     bad.write_bytes(b"MOTORCTL-RUNLOG\n" + b"\x01")
     assert main(["identify", str(bad)]) == 2
     assert "header cut short" in capsys.readouterr().err
+
+
+def test_csv_with_gain_and_config_runs_closed_loop(logs, tmp_path, capsys):
+    """The same spring log as a CSV (t,y,u in SI, A1 via --gain), the plant via --config."""
+    import yaml
+
+    from motorctl.ident.synth import gantry_dict
+    from motorctl.runlog import read_log
+    log = read_log(logs["spring"])
+    ax = log.axis("X")
+    on = ax["enabled"] > 0.5
+    path = _csv(tmp_path / "spring.csv", np.column_stack([log.col("t"), ax["y"], ax["u"]])[on])
+    cfg = tmp_path / "plant.yaml"
+    cfg.write_text(yaml.safe_dump(gantry_dict("X", EXAMPLES["spring"])))
+    rc = main(["identify", path, "--gain", "80", "--zoh-delay", "0.5", "--config", str(cfg), "--json",
+               "--closed-loop-duration", "4"])
+    s = json.loads(capsys.readouterr().out)
+    assert rc == 0 and s["residual_unit"] == "N"
+    assert [e["name"] for e in s["effects"]] == ["spring"]
+    assert abs(s["effects"][0]["parameters"]["stiffness_N_per_m"] / 100.0 - 1) < 0.05
+    cl = s["closed_loop"]
+    assert cl["compensation"]["spring"]["stiffness_V_per_m"] > 0
+    for k in ("e_M_um", "e_F_um", "L2_um"):
+        assert cl["after"][k] < cl["before"][k], (k, cl)
