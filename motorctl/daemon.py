@@ -318,8 +318,11 @@ def _loop_main(sh: _Shared, driver, ctrls, sup, io_pid: int, cmds: Mailbox, repl
              "replies_dropped": 0}
     allow_inject = d.allow_fault_injection and hasattr(driver, "inject")
 
+    published_fault = [0] * n
+
     def publish() -> None:
         for i in range(n):
+            published_fault[i] = sup.fault[i]
             b = i * ST_SIZE
             smv[b + ST_MODE] = float(loop.mode[i])
             smv[b + ST_KIND] = KINDS[kinds[i]]
@@ -407,6 +410,11 @@ def _loop_main(sh: _Shared, driver, ctrls, sup, io_pid: int, cmds: Mailbox, repl
                 lp.request_stop()
         if k % 25 == 0:
             publish()
+        else:
+            for i in range(n):                  # a new fault is published at once
+                if sup.fault[i] != published_fault[i]:
+                    publish()
+                    break
         if k % 5000 == 2500:                     # about once a second: is the recorder alive?
             try:
                 if os.waitpid(io_pid, os.WNOHANG)[0] != 0:
