@@ -455,6 +455,8 @@ class Identifier:
     def predict_on(self, other: "Identifier", terms: list, ev: Evaluated) -> np.ndarray:
         """Residual on another record of the model fitted here (nominal + ``terms``), decimated (M2,)."""
         th, betas = self.coef_split(ev, terms)
+        other.n_theta = self.n_theta
+        other.p.fu = f_u(other.p.u, th[4], th[5]) if self.n_theta == 6 else None
         new_terms = []
         for t, b in zip(terms, betas):
             cols = other.dec_cols(t.family, t.h) if t.cols is not None else None
