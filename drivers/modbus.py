@@ -179,6 +179,8 @@ class ModbusDriver(SplitPhaseDriver):
         self._ax = [axis_options[a] for a in self.axis_names]
         self._unwrap = [EncoderUnwrap(32) for _ in self._ax]
         self._m_per_count = [o.encoder_m_per_count for o in self._ax]
+        from pymodbus.pdu.register_message import ReadHoldingRegistersRequest, ReadWriteMultipleRegistersRequest
+        self._fc03, self._fc23 = ReadHoldingRegistersRequest, ReadWriteMultipleRegistersRequest
         framer = FramerSocket if options.transport == "tcp" else FramerRTU
         self.framer = framer(DecodePDU(is_server=False))
         self.sock = None
@@ -243,14 +245,12 @@ class ModbusDriver(SplitPhaseDriver):
 
     # --- cycle
     def _transmit_query(self, seq: int) -> None:
-        from pymodbus.pdu.register_message import ReadHoldingRegistersRequest
         p = self.plan
-        req = ReadHoldingRegistersRequest(address=p.read_address, count=p.read_count,
-                                          dev_id=self.options.unit_id, transaction_id=seq)
+        req = self._fc03(address=p.read_address, count=p.read_count, dev_id=self.options.unit_id,
+                         transaction_id=seq)
         self._send(self.framer.buildFrame(req))
 
     def _transmit(self, seq: int, u_V: np.ndarray, enable: np.ndarray) -> None:
-        from pymodbus.pdu.register_message import ReadWriteMultipleRegistersRequest
         p = self.plan
         regs = self._regs
         ax = self._ax
@@ -262,9 +262,8 @@ class ModbusDriver(SplitPhaseDriver):
                 regs[k] = (1 << ax[i].enable_bit) if enable[i] else 0
             else:
                 regs[k] = seq & 0xFFFF
-        req = ReadWriteMultipleRegistersRequest(read_address=p.read_address, read_count=p.read_count,
-                                                write_address=p.write_address, write_registers=regs,
-                                                dev_id=self.options.unit_id, transaction_id=seq)
+        req = self._fc23(read_address=p.read_address, read_count=p.read_count, write_address=p.write_address,
+                         write_registers=regs, dev_id=self.options.unit_id, transaction_id=seq)
         self._send(self.framer.buildFrame(req))
 
     def _receive(self) -> None:
