@@ -192,6 +192,8 @@ class ModbusDriver(SplitPhaseDriver):
     def open(self) -> None:
         if self.plan is None:
             raise ValueError(f"modbus register map: {self.plan_error}")
+        import logging   # a frame that does not decode is counted, not logged from inside the cycle
+        logging.getLogger("pymodbus").setLevel(logging.ERROR)
         o = self.options
         if o.transport == "tcp":
             self.sock = socket.create_connection((o.host, o.port), timeout=2.0)
