@@ -37,12 +37,19 @@ def _first_enabled_row(log, axis, after=0):
     return after + int(idx[0])
 
 
-def test_operator_session_start_stop_switch_sigterm(daemon):
+def test_operator_session_start_stop_switch_sigterm(daemon, tmp_path):
     sock = daemon.sock
     st = cli_status(sock)
     assert all(a["state"] == "disabled" for a in st["axes"].values()), "every axis starts disabled"
     assert all(not a["amplifier_enabled"] for a in st["axes"].values())
     assert st["realtime"]["gc"]["obtained"] and st["process"]["python_threads"] == 1
+
+    # bad input: one clear line, non-zero exit, nothing moved
+    r = cli(sock, "start", "Z")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "unknown axis 'Z'" in r.stderr
+    r = ctl(tmp_path / "nothing.sock", "status")
+    assert r.returncode == 1 and "not running" in r.stderr and r.stderr.count("\n") == 1
+    assert all(a["state"] == "disabled" for a in status(sock)["axes"].values()), "nothing moved"
 
     r = cli(sock, "start", "X")
     assert r.returncode == 0, r.stderr
@@ -124,18 +131,6 @@ def test_operator_session_start_stop_switch_sigterm(daemon):
         assert np.max(np.abs(log.col("Y.e")[row:row + 2500])) < 5e-4
 
 
-def test_bad_input_one_line_errors(daemon, tmp_path):
-    sock = daemon.sock
-    r = cli(sock, "start", "Z")
-    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "unknown axis 'Z'" in r.stderr
-    r = ctl(sock, "switch", "X", "--controller", "c1")
-    assert r.returncode == 0  # switching a disabled axis is allowed (takes effect at start)
-    r = ctl(tmp_path / "nothing.sock", "status")
-    assert r.returncode == 1 and "not running" in r.stderr and r.stderr.count("\n") == 1
-    s = status(sock)
-    assert all(a["state"] == "disabled" for a in s["axes"].values()), "nothing moved"
-
-
 def test_malformed_config_refused(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("loop:\n  rate_hz: 5000\n  rate_hz: 4000\naxes: {}\n")
@@ -145,5 +140,5 @@ def test_malformed_config_refused(tmp_path):
     cfg = make_config(tmp_path)
     text = cfg.read_text().replace("flush_s: 0.2", "flush_s: 3.0")
     cfg.write_text(text)
-    r = cli(None, "daemon", cfg)
+    r = ctl(None, "daemon", cfg)           # in-process: the check happens before anything starts
     assert r.returncode == 2 and "daemon.flush_s" in r.stderr and r.stderr.count("\n") == 1
