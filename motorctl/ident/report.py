@@ -73,7 +73,7 @@ def write_report(idf, summary: dict, out_dir: str, text: str) -> list:
         ax.set_xlabel("period [mm]")
         ax.set_ylabel("normalised LS power")
         ax.set_title("spatial periodogram of the nominal residual (moving samples)")
-        if summary["effects"]:
+        if any("period_m" in e["parameters"] for e in summary["effects"]):
             ax.legend()
         ax.grid(alpha=0.3, which="both")
         fig.tight_layout()
@@ -86,24 +86,17 @@ def write_report(idf, summary: dict, out_dir: str, text: str) -> list:
         n = len(idf.terms)
         fig, axes = plt.subplots(n, 1, figsize=(8, 3.2 * n), squeeze=False)
         for ax, t, b in zip(axes[:, 0], idf.terms, betas):
-            if t.cols is not None:
-                contrib = -g * (t.cols @ b)   # the force the effect adds to the plant
-                xv, xl = {"cogging": (pr.x_d, "position [m]"), "force_ripple": (pr.x_d, "position [m]"),
-                          "spring": (pr.x_d, "position [m]"),
-                          "position_dependent_friction": (pr.x_d, "position [m]"),
-                          "stribeck": (pr.v_d, "velocity [m/s]"),
-                          "asymmetric_friction": (pr.v_d, "velocity [m/s]")}.get(t.family, (pr.t_d, "time [s]"))
-                o = np.argsort(xv)
-                ax.plot(xv[o], contrib[o], "-", lw=1)
+            shape = effect_shape(idf, t, b)
+            if shape is not None:
+                xv, yv, xl, yl = shape
+                ax.plot(xv, yv, "-", lw=1)
                 ax.set_xlabel(xl)
-                ax.set_ylabel(f"effect force [{unit}]")
+                ax.set_ylabel(yl.replace("UNIT", unit))
             else:
                 ax.plot(pr.t_d, g * idf.target(idf.zoh + t.delay) - g * pr.u_d, lw=0.8)
                 ax.set_xlabel("time [s]")
-                ax.set_ylabel(f"u(t - tau) - u(t) [{unit}]")
-            ax.set_title(f"{t.family}: " + ", ".join(
-                f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
-                for k, v in fx.parameters(t.family, t.h, b, idf.rec.gain, pr.fs).items()), fontsize=9)
+                ax.set_ylabel(f"A1 (u(t - tau) - u(t)) [{unit}]")
+            ax.set_title(f"{t.family}: " + _fmt(fx.parameters(t.family, t.h, b, idf.rec.gain, pr.fs)), fontsize=9)
             ax.grid(alpha=0.3)
         fig.tight_layout()
         p = os.path.join(out_dir, "effect_shape.png")
@@ -111,3 +104,60 @@ def write_report(idf, summary: dict, out_dir: str, text: str) -> list:
         plt.close(fig)
         paths.append(p)
     return paths
+
+
+def _fmt(params: dict) -> str:
+    out = []
+    for k, v in params.items():
+        if isinstance(v, list):
+            out.append(f"{k} [" + ", ".join(f"{x:.3g}" for x in v) + "]")
+        else:
+            out.append(f"{k} {v:.4g}")
+    return ", ".join(out)
+
+
+def effect_shape(idf, term, beta):
+    """The found effect's force on a grid of its natural variable, unfiltered.
+
+    Returns:
+        (x (K,), y (K,), x label, y label with UNIT for N or V), or None for an input delay.
+    """
+    from types import SimpleNamespace
+    if term.cols is None:
+        return None
+    pr = idf.p
+    g = idf.rec.gain or 1.0
+    fam = term.family
+    k = 2000
+    x_hi = pr.x_d.max()
+    if fam in ("cogging", "force_ripple"):   # four periods are enough to see the shape
+        x_hi = min(x_hi, pr.x_d.min() + 4.0 * term.h)
+    xs = np.linspace(pr.x_d.min(), x_hi, k)
+    vmax = float(np.max(np.abs(pr.v_d)))
+    vs = np.linspace(-vmax, vmax, k)
+    zero, one = np.zeros(k), np.ones(k)
+    if fam in ("cogging", "spring", "position_dependent_friction"):
+        v = np.full(k, 0.1 * vmax) if fam == "position_dependent_friction" else zero
+        q = SimpleNamespace(x=xs, v=v, a=zero, u=zero, t=zero, fu=None)
+        lab = ("position [m]", "effect force [UNIT]" + (" (moving forward)" if fam != "cogging" else ""))
+        xv = xs
+    elif fam == "force_ripple":
+        q = SimpleNamespace(x=xs, v=zero, a=zero, u=one, t=zero, fu=None)
+        return xs, -(fx.columns(fam, term.h, q) @ beta), "position [m]", "ripple fraction of the thrust [-]"
+    elif fam in ("stribeck", "asymmetric_friction"):
+        q = SimpleNamespace(x=zero, v=vs, a=zero, u=zero, t=zero, fu=None)
+        lab = ("velocity [m/s]", "effect force [UNIT]")
+        xv = vs
+    elif fam == "payload_change":
+        ts = np.linspace(pr.t_d[0], pr.t_d[-1], k)
+        q = SimpleNamespace(x=zero, v=zero, a=one, u=zero, t=ts, fu=None)
+        unit_m = "kg" if idf.rec.gain else "V s^2/m"
+        return ts, g * (fx.columns(fam, term.h, q) @ beta), "time [s]", f"mass step [{unit_m}]"
+    elif fam == "periodic_disturbance":
+        ts = pr.t_d[0] + np.linspace(0, 3.0 / term.h, k)
+        q = SimpleNamespace(x=zero, v=zero, a=zero, u=zero, t=ts, fu=None)
+        lab = ("time [s]", "effect force [UNIT]")
+        xv = ts
+    else:
+        return None
+    return xv, -g * (fx.columns(fam, term.h, q) @ beta), lab[0], lab[1]
