@@ -41,9 +41,11 @@ def main(argv=None) -> int:
     regenerate = True
     if os.path.exists(path):
         log = read_log(path)
-        regenerate = abs(log.data.shape[0] * log.header["period_s"] - args.duration) > 1e-6 or \
-            log.header.get("driver", {}).get("simulated", {}).get("X", {}).get("effects") != \
-            EXAMPLES[args.effect].get(args.effect, {})
+        truth = log.header.get("driver", {}).get("simulated", {}).get("X", {})
+        want = EXAMPLES[args.effect]
+        same = (truth.get("input_delay_s") == want["input_delay_s"]) if "input_delay_s" in want \
+            else truth.get("effects") == want
+        regenerate = abs(log.data.shape[0] * log.header["period_s"] - args.duration) > 1e-6 or not same
     if regenerate:
         t0 = time.perf_counter()
         make_log(path, EXAMPLES[args.effect], duration_s=args.duration, seed=1)
