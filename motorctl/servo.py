@@ -291,7 +291,7 @@ class ServoLoop:
                         if not running[i]:
                             c.reset(y)
                             running[i] = True
-                        u = c.update(y, xd, vd, ad)
+                        u = c.update(y, xd, vd, ad, t)
                         nb = bl_left[i]
                         if nb > 0:
                             # bumpless switch: the step between the outgoing controller's last
