@@ -94,8 +94,7 @@ def loopback_e2e_config(transport: str, configs_dir: str | Path, out_dir: str | 
                         watchdog_s: float = 0.2, name: str | None = None,
                         emulator: dict | None = None) -> tuple[dict, Path, float]:
     """configs/gantry-<transport>.yaml aimed at this machine, with the measured loopback round
-    trip, at the highest rate its budget allows, read timeout ``LOOPBACK_TIMEOUT_PERIODS``,
-    ``limits.encoder_jump_m`` scaled to the new period (the same jump speed).
+    trip, at the highest rate its budget allows, read timeout ``LOOPBACK_TIMEOUT_PERIODS``.
     Returns (dict, path, rate_hz).
     ``emulator``: more ``driver.emulator`` settings (e.g. late_s)."""
     rt = LOOPBACK_ROUND_TRIP_S[transport]
@@ -103,11 +102,6 @@ def loopback_e2e_config(transport: str, configs_dir: str | Path, out_dir: str | 
     d, _ = loopback_config(Path(configs_dir) / f"gantry-{transport}.yaml", out_dir,
                            driver={"round_trip_s": rt, "emulator": emu}, name=name)
     rate = loopback_rate(d)
-    base_rate = d["loop"]["rate_hz"]
-    for ax in d["axes"].values():        # keep the encoder-jump speed (e.g. 2 mm per 0.2 ms = 10 m/s)
-        lim = ax.get("limits", {})
-        if "encoder_jump_m" in lim:
-            lim["encoder_jump_m"] = lim["encoder_jump_m"] * base_rate / rate
     d["loop"]["rate_hz"] = rate
     d["driver"]["timeout_s"] = LOOPBACK_TIMEOUT_PERIODS / rate
     path = Path(out_dir) / f"{name or transport}.yaml"
@@ -227,18 +221,20 @@ def run_cli(argv: list[str], prefix=(), timeout_s: float = 60.0) -> subprocess.C
 
 
 def parse_run_table(stdout: str) -> dict:
-    """Axis rows of ``motorctl run``'s table → {axis: {e_M_um, e_F_um, L2_um, u_peak_V, fault}}."""
+    """Axis rows of ``motorctl run``'s table →
+    {axis: {e_M_um, e_F_um, L2_um, u_peak_V, io_errors, fault}}."""
     out = {}
     for line in stdout.splitlines():
         parts = line.split()
-        if len(parts) >= 7 and parts[1] in ("c1", "c2"):
+        if len(parts) >= 8 and parts[1] in ("c1", "c2"):
             try:
                 vals = [float(x) for x in parts[2:6]]
+                io_errors = int(parts[6])
             except ValueError:
                 continue
-            fault = " ".join(parts[6:])
+            fault = " ".join(parts[7:])
             out[parts[0]] = dict(zip(("e_M_um", "e_F_um", "L2_um", "u_peak_V"), vals),
-                                 fault="" if fault == "-" else fault)
+                                 io_errors=io_errors, fault="" if fault == "-" else fault)
     return out
 
 

@@ -55,11 +55,11 @@ def cmd_run(args) -> int:
     res = run_job(loaded, axes=axes, controller=args.controller, duration_s=args.duration,
                   clock="virtual" if args.virtual_clock else None, log_path=args.log,
                   realtime_policy=args.realtime, on_start=announce)
-    rows = [["axis", "ctrl", "e_M um", "e_F um", "L2[e] um", "u_peak V", "fault"]]
+    rows = [["axis", "ctrl", "e_M um", "e_F um", "L2[e] um", "u_peak V", "io errors", "fault"]]
     for a, r in res.axes.items():
         rows.append([a, r["controller"], f"{r.get('e_M_um', float('nan')):.2f}",
                      f"{r.get('e_F_um', float('nan')):.2f}", f"{r.get('L2_um', float('nan')):.3f}",
-                     f"{r.get('u_peak_V', float('nan')):.2f}", r["fault"] or "-"])
+                     f"{r.get('u_peak_V', float('nan')):.2f}", str(r["io_errors"]), r["fault"] or "-"])
     _print_table(rows, out)
     tm = res.timing
     if tm.get("cycles"):

@@ -27,12 +27,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Literal, get_args, get_origin
 
-import numpy as np
 import yaml
 from pydantic import BaseModel, Field, ValidationError
 
 from motorctl.compensation import CompensationConfig
-from motorctl.control.dcdiarc import ControllerParams
+from motorctl.control.params import ControllerParams
 from motorctl.driver import Driver, StrictModel, load_driver_class
 from motorctl.model import assumption2_margin
 from motorctl.trajectory import Program
@@ -204,7 +203,8 @@ class LimitsConfig(StrictModel):
     """Supervisor limits (LinuxCNC semantics). Lengths in m, velocities in m/s.
 
     following_error_m applies at max_velocity_m_per_s and scales with |ẋ_d| down to
-    min_following_error_m; encoder_jump_m is the largest position change one cycle may show.
+    min_following_error_m; encoder_max_speed_m_per_s bounds the speed a change of the encoder
+    reading may show (over the cycles since the last good reading): no physical motion is faster.
     """
 
     soft_min_m: float = -1.0
@@ -212,7 +212,7 @@ class LimitsConfig(StrictModel):
     following_error_m: Pos = 0.002
     min_following_error_m: Pos = 0.0005
     max_velocity_m_per_s: Pos = 3.0
-    encoder_jump_m: Pos = 0.005
+    encoder_max_speed_m_per_s: Pos = 10.0
     error_bucket_increment: Annotated[int, Field(ge=1)] = 10
     error_bucket_decrement: Annotated[int, Field(ge=1)] = 1
     error_bucket_limit: Annotated[int, Field(ge=1)] = 100

@@ -259,7 +259,7 @@ def run_daemon(config_path: str, socket_path: str | None = None, log_dir: str | 
     ctrls = {k: [DCDIARC(loaded.axes[a].controller.params(k), sh.period_s) for a in names]
              for k in KINDS}
     driver = loaded.make_driver(names)
-    sup = Supervisor([loaded.axes[a].limits for a in names])
+    sup = Supervisor([loaded.axes[a].limits for a in names], loaded.period_s)
 
     lsock = bind_control_socket(sock_path, d.group)
     try:

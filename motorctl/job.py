@@ -77,7 +77,7 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
     driver = loaded.make_driver(names)
     ctrls = build_controllers(loaded, names, controller)
     programs = [loaded.axes[a].trajectory.program() for a in names]
-    sup = Supervisor([loaded.axes[a].limits for a in names])
+    sup = Supervisor([loaded.axes[a].limits for a in names], loaded.period_s)
     loop = ServoLoop(driver, ctrls, programs, sup, loaded.period_s, capacity=max(n_cycles, 1),
                      clock=clock, spin_us=rt_cfg.spin_us)
     result = JobResult()

@@ -6,7 +6,8 @@ Checks per axis (see ``LimitsConfig``):
   * NaN/inf in the measured position or in the computed output;
   * driver errors through a leaky bucket (hm2_eth's rule): +increment per failed exchange,
     −decrement per clean one, fault at the limit;
-  * encoder sanity: a one-cycle jump larger than ``encoder_jump_m``;
+  * encoder sanity: a change of the reading faster than ``encoder_max_speed_m_per_s`` over the
+    cycles since the last good reading (lost answers widen the allowance, any loop rate);
   * soft position limits;
   * velocity-scaled following error: limit = max(min_fe, fe·|ẋ_d|/v_max) (motion/control.c);
   * amplifier fault reported by the drive;
@@ -50,13 +51,14 @@ class Supervisor:
 
     Args:
         limits: one ``LimitsConfig`` per axis, in loop order.
+        period_s: loop period [s] (turns the encoder speed bound into a per-cycle one).
     Attributes:
         fault: list[int] of latched fault bits per axis (0 = healthy).
         detail: list[str] the first fault's reason per axis (set outside the hot path on read).
         fe_peak: list[float] high-water mark of |following error| [m] per axis.
     """
 
-    def __init__(self, limits: list):
+    def __init__(self, limits: list, period_s: float):
         n = len(limits)
         self.limits = limits
         self.fault = [0] * n
@@ -71,7 +73,8 @@ class Supervisor:
         self._fe = [lim.following_error_m for lim in limits]
         self._fe_min = [lim.min_following_error_m for lim in limits]
         self._vmax = [lim.max_velocity_m_per_s for lim in limits]
-        self._jump = [lim.encoder_jump_m for lim in limits]
+        self._jump = [lim.encoder_max_speed_m_per_s * period_s for lim in limits]  # per cycle
+        self._gap = [0] * n               # cycles since the last good reading
         self._inc = [lim.error_bucket_increment for lim in limits]
         self._dec = [lim.error_bucket_decrement for lim in limits]
         self._blim = [lim.error_bucket_limit for lim in limits]
@@ -86,6 +89,7 @@ class Supervisor:
         """Check axis i's reading before control. Returns True when the axis may be driven."""
         if io_error:
             self.io_errors[i] += 1
+            self._gap[i] += 1
             b = self.bucket[i] + self._inc[i]
             self.bucket[i] = b
             if b >= self._blim[i]:
@@ -99,8 +103,10 @@ class Supervisor:
             self._trip(i, FAULT_NAN, y, 0.0)
             return False
         last = self.y_last[i]
-        if last == last and abs(y - last) > self._jump[i]:
-            self._trip(i, FAULT_ENCODER_JUMP, y - last, self._jump[i])
+        allowed = self._jump[i] * (self._gap[i] + 1)
+        self._gap[i] = 0
+        if last == last and abs(y - last) > allowed:
+            self._trip(i, FAULT_ENCODER_JUMP, y - last, allowed)
         self.y_last[i] = y
         if y < self._soft_lo[i]:
             self._trip(i, FAULT_SOFT_LIMIT, y, self._soft_lo[i])

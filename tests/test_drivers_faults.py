@@ -23,10 +23,7 @@ from motorctl_drivers.proto_harness import (Emulator, NetNamespace, loopback_e2e
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 #: Below the limit: each burst adds ≤ 10 × (cycles lost) to a bucket of 100, which drains by 1
-#: per clean cycle between bursts (60 ms apart: ≥ 60 cycles). A long burst at full speed would trip
-#: the supervisor's encoder-jump check (scaled to 10 m/s by the loopback config), whose
-#: reference position stands still while answers are lost (motorctl/safety.py), a separate
-#: protection not tested here; these bursts lose at most a few cycles. Then a lasting loss from
+#: per clean cycle between bursts (60 ms apart: ≥ 60 cycles). Then a lasting loss from
 #: LASTING_T on (serial: the link is disconnected; CAN: the node goes bus-off;
 #: Modbus: the TCP connection is dropped).
 #: All of it happens while both axes are at rest (the first move starts at 0.5 s), so the

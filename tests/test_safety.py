@@ -25,7 +25,7 @@ def _loop(gantry_yaml, clock="virtual", policy="count", axes=("X",), edit=None):
     names = list(axes)
     drv = ld.make_driver(names)
     ctrls = [DCDIARC(ld.axes[a].controller.params(), ld.period_s) for a in names]
-    sup = Supervisor([ld.axes[a].limits for a in names])
+    sup = Supervisor([ld.axes[a].limits for a in names], ld.period_s)
     lp = ServoLoop(drv, ctrls, [ld.axes[a].trajectory.program() for a in names], sup, ld.period_s,
                    capacity=50000, clock=clock, spin_us=50, overrun_policy=policy,
                    overrun_hold=5, overrun_ramp=50)
@@ -42,7 +42,7 @@ def _col(lp, name):
 def test_supervisor_following_error_limit_scales_with_velocity_and_has_a_floor(gantry_yaml):
     ld = config_from_dict(yaml.safe_load(open(gantry_yaml)))
     lim = ld.axes["X"].limits                  # 1 mm at 2 m/s, floor 0.3 mm
-    sup = Supervisor([lim])
+    sup = Supervisor([lim], ld.period_s)
     assert sup.check_output(0, 0.00029, 0.0, 1.0)
     assert not sup.check_output(0, 0.00031, 0.0, 1.0)
     sup.reset(0, 0.0, False)
@@ -53,10 +53,15 @@ def test_supervisor_following_error_limit_scales_with_velocity_and_has_a_floor(g
 
 def test_supervisor_encoder_jump_and_reset_refused_while_cause_persists(gantry_yaml):
     ld = config_from_dict(yaml.safe_load(open(gantry_yaml)))
-    sup = Supervisor([ld.axes["X"].limits])
+    sup = Supervisor([ld.axes["X"].limits], ld.period_s)
     assert sup.check_input(0, 0.1, False, False)
-    assert not sup.check_input(0, 0.1 + 0.003, False, False)
+    # 10 m/s at 5 kHz allows 2 mm per cycle; two lost answers widen it to 6 mm
+    assert sup.check_input(0, 0.1019, False, False)
+    assert sup.check_input(0, 0.0, True, False) and sup.check_input(0, 0.0, True, False)
+    assert sup.check_input(0, 0.1019 + 0.0059, False, False)
+    assert not sup.check_input(0, 0.1078 + 0.0021, False, False)
     assert sup.fault[0] == FAULT_ENCODER_JUMP
+    assert "limit 0.002" in sup.reason(0)
     assert sup.reset(0, 0.5, False) == (False, sup.reset(0, 0.5, False)[1])
     assert "outside the soft limits" in sup.reset(0, 0.5, False)[1]
     assert "amplifier" in sup.reset(0, 0.1, True)[1]
@@ -159,7 +164,7 @@ def test_run_keeps_the_legacy_behaviour(gantry_yaml):
     ld = config_from_dict(d)
     drv = ld.make_driver(["X"])
     c = [DCDIARC(ld.axes["X"].controller.params(), ld.period_s)]
-    lp = ServoLoop(drv, c, [ld.axes["X"].trajectory.program()], Supervisor([ld.axes["X"].limits]),
+    lp = ServoLoop(drv, c, [ld.axes["X"].trajectory.program()], Supervisor([ld.axes["X"].limits], ld.period_s),
                    ld.period_s, capacity=5000, clock="virtual")
     assert lp.run(5000) == 5000
     assert _col(lp, "X.enabled").all()
