@@ -84,8 +84,12 @@ def test_injected_faults_latch_zero_volts_and_reset(fault_daemon):
         assert en[k - 1] == 1.0, "the axis was driven the cycle before"
         assert u[k] == 0.0 and en[k] == 0.0, "0 V and amplifier off in the cycle of the fault"
     events = [e for e in log.header["events"] if e["kind"] == "fault-X"]
-    assert len(events) == len(FAULTS)
-    for e, k in zip(events, onsets):
+    # a fault inside the after-window of an earlier one of the same kind is kept in that
+    # window's log (listed under "also") rather than in a log of its own
+    assert sum(1 + e["also"].count("fault-X") for e in events) == len(FAULTS)
+    for e in events:
+        k = e["cycle"]
+        assert k in onsets
         ev = read_log(e["path"])
         assert ev.header["event"]["cycle"] == k
         t = ev.col("t")
