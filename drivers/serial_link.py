@@ -222,7 +222,6 @@ class SerialDriver(SplitPhaseDriver):
         if self.port is None:
             return
         try:
-            n = len(self.axis_names)
             self.seq = (self.seq + 1) & self.SEQ_MASK
             self.port.write(encode_command(self.options.address, self.seq, [(nd, False, 0) for nd in self._nodes]))
             self.port.flush()

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_daemon_helpers import Daemon, cli, cli_status, ctl, make_config, status, wait_for
+from test_daemon_helpers import cli, cli_status, ctl, make_config, running_daemon, status, wait_for
 
 from motorctl.runlog import read_log
 from motorctl.safety import FAULT_SHUTDOWN
@@ -17,13 +17,8 @@ TS = 1.0 / 5000
 
 @pytest.fixture
 def daemon(tmp_path):
-    cfg = make_config(tmp_path, busy_y=True)
-    d = Daemon(cfg, tmp_path / "motorctl.sock")
-    try:
-        d.wait_ready()
+    with running_daemon(tmp_path, busy_y=True) as d:
         yield d
-    finally:
-        d.kill()
 
 
 def _phase(sock, axis):

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_daemon_helpers import Daemon, ctl, make_config, status, wait_for
+from test_daemon_helpers import ctl, running_daemon, status, wait_for
 
 from motorctl.runlog import read_log
 from motorctl.safety import (FAULT_AMP_FAULT, FAULT_FOLLOWING_ERROR, FAULT_IO_ERROR, FAULT_NAN,
@@ -26,13 +26,8 @@ FAULTS = [
 
 @pytest.fixture
 def fault_daemon(tmp_path):
-    cfg = make_config(tmp_path, fault_axis=True)
-    d = Daemon(cfg, tmp_path / "motorctl.sock")
-    try:
-        d.wait_ready()
+    with running_daemon(tmp_path, fault_axis=True) as d:
         yield d
-    finally:
-        d.kill()
 
 
 def test_injected_faults_latch_zero_volts_and_reset(fault_daemon):

@@ -3,6 +3,7 @@ teardown, and the CLI run as a subprocess (the operator's view). No tests in thi
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -169,3 +170,14 @@ def _alive(pid: int) -> bool:
 
 def run_log_path(st: dict) -> str:
     return st["log"]["path"]
+
+
+@contextlib.contextmanager
+def running_daemon(tmp: Path, **config_kw):
+    """A daemon on ``make_config(tmp, **config_kw)``, ready; killed on exit (bounded)."""
+    d = Daemon(make_config(tmp, **config_kw), tmp / "motorctl.sock")
+    try:
+        d.wait_ready()
+        yield d
+    finally:
+        d.kill()

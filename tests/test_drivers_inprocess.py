@@ -5,6 +5,7 @@ the thread shares the GIL, so the read timeout is long."""
 
 from __future__ import annotations
 
+import contextlib
 import threading
 from pathlib import Path
 
@@ -26,13 +27,28 @@ def _config(name: str, tmp_path, **driver) -> dict:
     return d
 
 
-def _exchange(d: dict, cycles: int = 40):
-    import time
-    loaded = config_from_dict(d, "<inprocess>", check_budget=False)
-    dev = build_device(loaded)
+@contextlib.contextmanager
+def _serving(loaded, faults=()):
+    """The emulated device of ``loaded`` served from a thread of this process (bounded join)."""
+    dev = build_device(loaded, list(faults))
     stop = threading.Event()
     th = threading.Thread(target=dev.serve, kwargs={"stop": stop.is_set}, daemon=True)
     th.start()
+    try:
+        yield dev
+    finally:
+        stop.set()
+        th.join(timeout=5)
+
+
+def _exchange(d: dict, cycles: int = 40):
+    loaded = config_from_dict(d, "<inprocess>", check_budget=False)
+    with _serving(loaded) as dev:
+        return _drive(loaded, dev, cycles)
+
+
+def _drive(loaded, dev, cycles: int):
+    import time
     drv = loaded.make_driver()
     try:
         drv.open()
@@ -55,8 +71,6 @@ def _exchange(d: dict, cycles: int = 40):
     finally:
         if drv.connected:
             drv.close()
-        stop.set()
-        th.join(timeout=5)
 
 
 @pytest.mark.parametrize("fd", [False, True])
@@ -94,30 +108,25 @@ def test_lost_link_is_flagged_every_cycle_and_reconnect_happens_outside_the_loop
     from motorctl_drivers.proto_harness import free_port
     d = _config("gantry-serial.yaml", tmp_path, port=f"socket://127.0.0.1:{free_port()}")
     loaded = config_from_dict(d, "<inprocess>", check_budget=False)
-    dev = build_device(loaded, [FaultSpec.parse("disconnect:*:5:1")])
-    stop = threading.Event()
-    th = threading.Thread(target=dev.serve, kwargs={"stop": stop.is_set}, daemon=True)
-    th.start()
-    drv = loaded.make_driver()
-    try:
-        drv.open()
-        u, en = np.zeros(2), np.ones(2, dtype=bool)
-        flags = []
-        for _ in range(12):                        # command 5 drops the link
-            drv.write(u, en)
+    with _serving(loaded, [FaultSpec.parse("disconnect:*:5:1")]) as dev:
+        drv = loaded.make_driver()
+        try:
+            drv.open()
+            u, en = np.zeros(2), np.ones(2, dtype=bool)
+            flags = []
+            for _ in range(12):                        # command 5 drops the link
+                drv.write(u, en)
+                time.sleep(0.01)
+                drv.read()
+                flags.append(bool(drv.read_error.any() or drv.write_error.any()))
+            assert not any(flags[:5]) and all(flags[6:]), flags
+            assert not drv.connected
+            drv.reconnect()                            # blocking, outside the cycle
+            assert drv.connected
+            drv.write(u, np.zeros(2, dtype=bool))      # the loop decides what to enable: here nothing
             time.sleep(0.01)
             drv.read()
-            flags.append(bool(drv.read_error.any() or drv.write_error.any()))
-        assert not any(flags[:5]) and all(flags[6:]), flags
-        assert not drv.connected
-        drv.reconnect()                            # blocking, outside the cycle
-        assert drv.connected
-        drv.write(u, np.zeros(2, dtype=bool))      # the loop decides what to enable: here nothing
-        time.sleep(0.01)
-        drv.read()
-        assert not drv.read_error.any() and not drv.write_error.any()
-        assert dev.bank.enabled == [False, False]  # the device saw the axes disabled
-    finally:
-        drv.close()
-        stop.set()
-        th.join(timeout=5)
+            assert not drv.read_error.any() and not drv.write_error.any()
+            assert dev.bank.enabled == [False, False]  # the device saw the axes disabled
+        finally:
+            drv.close()

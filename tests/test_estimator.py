@@ -104,7 +104,6 @@ def test_estimator_converges_and_gamma_stays_spd():
 
 
 def test_forgetting_with_freeze_keeps_gamma_bounded():
-    theta = np.array([0.16, 0.22, 0.25, -0.05, -0.013, -0.0015])
     est = LeastSquaresEstimator([0.2, 0.2, 0.1, 0.0, 0.0, 0.0], TMIN, TMAX, GAMMA0, 200.0, 2e-4,
                                 mu=5.0, rho_M=1000.0)
     # no excitation: with forgetting Gamma grows until the freeze branch of eq. (27) holds it

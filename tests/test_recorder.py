@@ -13,7 +13,7 @@ import pytest
 from test_daemon_helpers import Daemon, _alive, ctl, make_config, status, wait_for
 
 from motorctl.config import load_config
-from motorctl.recorder import Drainer, SharedRing, export_csv, export_mat, mat_name
+from motorctl.recorder import Drainer, SharedRing, mat_name
 from motorctl.runlog import LogWriter, columns_for, read_log
 
 TS = 1.0 / 5000
