@@ -261,6 +261,15 @@ class LoadedConfig:
         return self.driver_cls(self.driver_options, {a: self.axis_driver_options[a] for a in names},
                                self.period_s)
 
+    def make_controllers(self, axis_names=None, kind: str | None = None) -> list:
+        """One DCDIARC per axis, in order; ``kind`` ('c1'/'c2') overrides the config's type.
+
+        Building compiles (or loads the cached) control kernels, so it is done before any cycle.
+        """
+        from motorctl.control.dcdiarc import DCDIARC  # the kernels load only when needed
+        names = list(axis_names) if axis_names else list(self.axes)
+        return [DCDIARC(self.axes[a].controller.params(kind), self.period_s) for a in names]
+
 
 def _fmt_loc(prefix: str, loc) -> str:
     parts = [prefix] if prefix else []

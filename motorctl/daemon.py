@@ -255,9 +255,7 @@ def run_daemon(config_path: str, socket_path: str | None = None, log_dir: str | 
     sh = _Shared(loaded, sock_path, log_path)
     names = sh.names
     # controllers for both kinds, built (and compiled) before anything runs: a switch is a swap
-    from motorctl.control.dcdiarc import DCDIARC
-    ctrls = {k: [DCDIARC(loaded.axes[a].controller.params(k), sh.period_s) for a in names]
-             for k in KINDS}
+    ctrls = {k: loaded.make_controllers(names, k) for k in KINDS}
     driver = loaded.make_driver(names)
     sup = Supervisor([loaded.axes[a].limits for a in names], loaded.period_s)
 

@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 
 from motorctl.config import LoadedConfig
-from motorctl.control.dcdiarc import DCDIARC
 from motorctl.metrics import timing_stats, tracking_indexes
 from motorctl.rt import restore, setup_realtime
 from motorctl.runlog import LogWriter
@@ -41,11 +40,6 @@ class JobResult:
     cycles: int = 0
     stopped_by_signal: str = ""
     log_path: str | None = None
-
-
-def build_controllers(loaded: LoadedConfig, axes: list, controller: str | None) -> list:
-    """One DCDIARC per axis; ``controller`` ('c1'/'c2') overrides the config's type."""
-    return [DCDIARC(loaded.axes[a].controller.params(controller), loaded.period_s) for a in axes]
 
 
 def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | None = None,
@@ -75,7 +69,7 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
     policy = realtime_policy or ("off" if clock == "virtual" else rt_cfg.policy)
 
     driver = loaded.make_driver(names)
-    ctrls = build_controllers(loaded, names, controller)
+    ctrls = loaded.make_controllers(names, controller)
     programs = [loaded.axes[a].trajectory.program() for a in names]
     sup = Supervisor([loaded.axes[a].limits for a in names], loaded.period_s)
     loop = ServoLoop(driver, ctrls, programs, sup, loaded.period_s, capacity=max(n_cycles, 1),
