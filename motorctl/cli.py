@@ -25,10 +25,6 @@ class UsageError(Exception):
     """Bad input found by a handler: printed as one line, exit code 2."""
 
 
-def _default_config() -> str:
-    return DEFAULT_CONFIG
-
-
 def _load(path: str, check_budget: bool = True):
     from motorctl.config import load_config
     return load_config(path, check_budget=check_budget)
@@ -143,7 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
 
     r = sub.add_parser("run", help="run the servo loop on a config (the main job)")
-    r.add_argument("config", nargs="?", default=_default_config())
+    r.add_argument("config", nargs="?", default=DEFAULT_CONFIG)
     r.add_argument("--axis", help="run only this axis")
     r.add_argument("--controller", choices=("c1", "c2"), help="override every axis's controller")
     r.add_argument("--duration", type=float, help="run length in s (default: loop.duration_s)")
@@ -154,14 +150,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_run)
 
     c = sub.add_parser("compare", help="C1 against C2 on the same seeded plant, beside the paper's tables")
-    c.add_argument("config", nargs="?", default=_default_config())
+    c.add_argument("config", nargs="?", default=DEFAULT_CONFIG)
     c.add_argument("--duration", type=float, help="run length in s (default: loop.duration_s = 40)")
     c.add_argument("--json", action="store_true", help="print one JSON object and nothing else")
     c.add_argument("--wall-clock", action="store_true", help="pace by the wall clock (default: virtual)")
     c.set_defaults(func=cmd_compare)
 
     k = sub.add_parser("check-config", help="check a config; exit 0 if it is valid")
-    k.add_argument("config", nargs="?", default=_default_config())
+    k.add_argument("config", nargs="?", default=DEFAULT_CONFIG)
     k.set_defaults(func=cmd_check_config)
 
     pl = sub.add_parser("plot", help="PNG figures of a run log (like the paper's Figs. 4-12)")
