@@ -122,7 +122,7 @@ def sim_twin(d: dict) -> dict:
 
 def motorctl_cmd(*args: str) -> list[str]:
     """argv running the motorctl CLI with this Python."""
-    return [sys.executable, "-m", "motorctl.cli", *args]
+    return [sys.executable, "-m", "motorctl", *args]
 
 
 def _kill(proc: subprocess.Popen, sig=signal.SIGKILL) -> None:

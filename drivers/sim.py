@@ -298,15 +298,20 @@ class SimDriver(Driver):
         self.watchdog_ns = int(options.watchdog_s * 1e9)
         self.watchdog_bites = 0
         self._last_write_ns = 0
+        self._bite_pending = False
         self._period_ns = int(round(period_s * 1e9))
         for i, p in enumerate(self.plants):
             self.position_m[i] = p.measured()
 
-    def _watchdog(self) -> None:
+    def _watchdog(self) -> bool:
+        """The drive's command watchdog, checked at every exchange (read and write): a stall
+        anywhere in the host's cycle (between read and write included) counts from the last
+        command received. Returns True when it bites; the fault is then reported by the next
+        read (it stays pending until one has seen it)."""
         now = time.monotonic_ns()
         gap = now - self._last_write_ns
         if gap <= self.watchdog_ns:
-            return
+            return False
         self.watchdog_bites += 1
         self.amp_enabled[:] = False
         self.applied_u[:] = 0.0
@@ -314,34 +319,41 @@ class SimDriver(Driver):
         for plant in self.plants:
             for _ in range(n):
                 plant.step(0.0)
-        self.amp_fault[:] = True
-        self._bitten = True
+        self._bite_pending = True
         self._last_write_ns = now
+        return True
 
     def read(self) -> None:
         pos = self.position_m
-        self._bitten = False
         if self.watchdog_ns and self._last_write_ns:
             self._watchdog()
+        bitten = self._bite_pending
+        self._bite_pending = False
         for i, plant in enumerate(self.plants):
             inj = self._inject[i]
             if inj[0] > 0:
                 inj[0] -= 1
                 self.read_error[i] = True
+                if bitten:
+                    self.amp_fault[i] = True
                 continue
             self.read_error[i] = False
             if inj[1] > 0:
                 inj[1] -= 1
                 pos[i] = math.nan
+                if bitten:
+                    self.amp_fault[i] = True
                 continue
             pos[i] = plant.measured() + self._jump_m[i]
-            self.amp_fault[i] = inj[2] > 0 or self._bitten
+            self.amp_fault[i] = inj[2] > 0 or bitten
             if inj[2] > 0:
                 inj[2] -= 1
 
     def write(self, u_V: np.ndarray, enable: np.ndarray) -> None:
+        # a command that arrives after the watchdog expired finds the amplifier already off
+        bitten = bool(self.watchdog_ns and self._last_write_ns and self._watchdog())
         for i, plant in enumerate(self.plants):
-            on = bool(enable[i]) and not self.amp_fault[i]
+            on = bool(enable[i]) and not self.amp_fault[i] and not bitten
             self.amp_enabled[i] = on
             u = float(u_V[i]) if on else 0.0
             if u != u:  # NaN never reaches the amplifier

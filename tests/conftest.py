@@ -1,10 +1,30 @@
-"""Shared fixtures: paths of the repository and of the paper's gantry config."""
+"""Shared fixtures: paths of the repository and of the paper's gantry config, and the motorctl
+program as this interpreter runs it (never looked up on PATH or at a fixed system path)."""
 
+import sys
+import sysconfig
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+
+#: argv prefix that runs the motorctl CLI with the interpreter running the tests
+MOTORCTL = [sys.executable, "-m", "motorctl"]
+
+
+def console_script() -> Path:
+    """The ``motorctl`` console script installed beside this interpreter (e.g. .venv/bin).
+
+    Raises:
+        AssertionError: the project is not installed into this interpreter's environment.
+    """
+    for d in (Path(sys.executable).parent, Path(sysconfig.get_path("scripts"))):
+        exe = d / "motorctl"
+        if exe.is_file():
+            return exe
+    raise AssertionError(f"no motorctl console script beside {sys.executable}: install the "
+                         f"project into this environment (pip install -e .)")
 
 
 @pytest.fixture(scope="session")

@@ -9,6 +9,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import MOTORCTL, console_script
 
 from motorctl.cli import main
 from motorctl.runlog import read_log
@@ -67,8 +68,9 @@ def test_plot_rejects_a_non_log(tmp_path, capsys):
 
 
 def test_console_script_compare_json_short(gantry_yaml):
-    # the installed console script, as a user runs it: stdout is exactly one JSON object
-    p = subprocess.run(["motorctl", "compare", str(gantry_yaml), "--duration", "2", "--json"],
+    # the installed console script (beside this interpreter), as a user runs it: stdout is
+    # exactly one JSON object
+    p = subprocess.run([str(console_script()), "compare", str(gantry_yaml), "--duration", "2", "--json"],
                        capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
     obj = json.loads(p.stdout)
@@ -81,7 +83,7 @@ def test_console_script_compare_json_short(gantry_yaml):
 
 def test_sigterm_stops_a_wall_clock_run_safely(tmp_path, gantry_yaml):
     log = tmp_path / "term.mclog"
-    p = subprocess.Popen([sys.executable, "-m", "motorctl.cli", "run", str(gantry_yaml), "--duration", "60",
+    p = subprocess.Popen([*MOTORCTL, "run", str(gantry_yaml), "--duration", "60",
                           "--log", str(log), "--realtime", "off"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

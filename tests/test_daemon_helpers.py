@@ -8,11 +8,11 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import yaml
+from conftest import MOTORCTL
 
 REPO = Path(__file__).resolve().parents[1]
 GANTRY = REPO / "configs" / "gantry.yaml"
@@ -49,12 +49,11 @@ def make_config(tmp: Path, *, fault_axis: bool = False, watchdog_s: float = 0.0,
     return p
 
 
-_MAIN = "import sys; from motorctl.cli import main; sys.exit(main())"
 
 
 def cli(sock: Path | str | None, *args, timeout: float = 30.0, **kw) -> subprocess.CompletedProcess:
     """Run ``motorctl [--socket SOCK] ARGS`` as a subprocess (the operator's command line)."""
-    cmd = [sys.executable, "-c", _MAIN]
+    cmd = list(MOTORCTL)
     if sock is not None:
         cmd += ["--socket", str(sock)]
     return subprocess.run(cmd + [str(a) for a in args], capture_output=True, text=True,
@@ -113,7 +112,7 @@ class Daemon:
     def __init__(self, config: Path, sock: Path, extra_args=(), env=None, preexec=None):
         self.config, self.sock = config, sock
         self.proc = subprocess.Popen(
-            [sys.executable, "-c", _MAIN, "daemon", str(config), "--socket", str(sock),
+            [*MOTORCTL, "daemon", str(config), "--socket", str(sock),
              *extra_args],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=str(REPO),
             env=env, preexec_fn=preexec)

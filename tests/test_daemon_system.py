@@ -5,6 +5,7 @@ WATCHDOG only while the loop's heartbeat advances, STOPPING), socket permissions
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import signal
 import socket
@@ -12,6 +13,7 @@ import subprocess
 import time
 
 import pytest
+from conftest import MOTORCTL, console_script
 from test_daemon_helpers import REPO, Daemon, ctl, make_config, status, wait_for
 
 SYSTEMD_ANALYZE = shutil.which("systemd-analyze")
@@ -22,17 +24,19 @@ SETPRIV = shutil.which("setpriv")
 @pytest.mark.parametrize("unit,instance", [("motorctl.service", "motorctl.service"),
                                            ("motorctl@.service", "motorctl@xy.service")])
 def test_unit_files_verify_clean(tmp_path, unit, instance):
-    exe = shutil.which("motorctl") or "/usr/local/bin/motorctl"
+    exe = str(console_script())   # the script beside this interpreter, never PATH
     text = (REPO / "systemd" / unit).read_text()
     for key in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "CPUSchedulingPolicy=fifo",
                 "LimitRTPRIO=", "LimitMEMLOCK=infinity", "RuntimeDirectory=", "NotifyAccess=all",
                 "KillMode=mixed"):
         assert key in text, key
     assert "Restart=always" not in text
-    # verify with the installed executable path (verify checks that ExecStart exists)
-    (tmp_path / unit).write_text(text.replace("/usr/local/bin/motorctl", exe))
+    # ExecStart rewritten to the console script under test (verify checks that it exists)
+    text, n = re.subn(r"^ExecStart=\S+", f"ExecStart={exe}", text, flags=re.M)
+    assert n == 1, "one ExecStart line"
+    (tmp_path / unit).write_text(text)
     if instance != unit:
-        (tmp_path / instance).write_text(text.replace("/usr/local/bin/motorctl", exe))
+        (tmp_path / instance).write_text(text)
     r = subprocess.run([SYSTEMD_ANALYZE, "verify", str(tmp_path / instance)],
                        capture_output=True, text=True, timeout=60)
     ours = [ln for ln in (r.stdout + r.stderr).splitlines() if str(tmp_path) in ln]
@@ -96,10 +100,7 @@ def _drop(*caps):
 @pytest.mark.skipif(SETPRIV is None, reason="setpriv not installed")
 def test_realtime_required_refuses_to_start_when_fifo_is_refused(tmp_path):
     cfg = make_config(tmp_path, policy="required")
-    import sys
-    r = subprocess.run(_drop("sys_nice", "ipc_lock") + [
-        sys.executable, "-c", "import sys; from motorctl.cli import main; sys.exit(main())",
-        "daemon", str(cfg)], capture_output=True, text=True, timeout=60, cwd=str(REPO))
+    r = subprocess.run(_drop("sys_nice", "ipc_lock") + [*MOTORCTL, "daemon", str(cfg)], capture_output=True, text=True, timeout=60, cwd=str(REPO))
     assert r.returncode == 1, r.stderr
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "realtime: required" in lines[0] and "sched_fifo" in lines[0]
@@ -108,8 +109,7 @@ def test_realtime_required_refuses_to_start_when_fifo_is_refused(tmp_path):
 
 @pytest.mark.skipif(SETPRIV is None, reason="setpriv not installed")
 def test_socket_permissions(tmp_path):
-    import sys
-    main = [sys.executable, "-c", "import sys; from motorctl.cli import main; sys.exit(main())"]
+    main = list(MOTORCTL)
     # the daemon cannot create its socket in a directory it may not write to
     locked = tmp_path / "locked"
     locked.mkdir(mode=0o555)

@@ -5,12 +5,14 @@ import subprocess
 
 import pytest
 
+from conftest import MOTORCTL
+
 from motorctl.metrics import PAPER_TABLES
 
 
 @pytest.fixture(scope="module")
 def compare(gantry_yaml):
-    p = subprocess.run(["motorctl", "compare", str(gantry_yaml), "--json"],
+    p = subprocess.run([*MOTORCTL, "compare", str(gantry_yaml), "--json"],
                        capture_output=True, text=True, timeout=900)
     assert p.returncode == 0, p.stderr
     return json.loads(p.stdout)
