@@ -24,7 +24,7 @@ import yaml
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from test_daemon_helpers import Daemon, ctl, make_config, status, wait_for  # noqa: E402
 
-from motorctl.runlog import MAGIC
+from motorctl.recorder.runlog import MAGIC
 
 CYCLES = int(os.environ.get("MOTORCTL_BENCH_CYCLES", "1000000"))
 CPU = int(os.environ.get("MOTORCTL_BENCH_CPU", "1"))

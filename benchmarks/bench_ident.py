@@ -35,7 +35,7 @@ def main(argv=None) -> int:
 
     from motorctl.cli import main as cli_main
     from motorctl.ident.synth import EXAMPLES, make_log
-    from motorctl.runlog import read_log
+    from motorctl.recorder.runlog import read_log
 
     path = args.keep_log
     regenerate = True

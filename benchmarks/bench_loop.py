@@ -22,14 +22,14 @@ import numpy as np
 
 from motorctl.config import load_config
 from motorctl.control.dcdiarc import DCDIARC
-from motorctl.job import run_job
-from motorctl.rt import RealtimeError
+from motorctl.app.job import run_job
+from motorctl.loop.rt import RealtimeError
 
 
 def step_cost(loaded, axis: str, kind: str, steps: int) -> np.ndarray:
     ts = loaded.period_s
     drv = loaded.make_driver([axis])
-    ctrl = DCDIARC(loaded.axes[axis].controller.params(kind), ts)
+    ctrl = DCDIARC(loaded.axes[axis].controller, ts, kind)
     prog = loaded.axes[axis].trajectory.program()
     u = np.zeros(1)
     en = np.ones(1, dtype=bool)

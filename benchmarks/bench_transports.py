@@ -37,7 +37,7 @@ def inner(config: str, exchanges: int, cycles: int) -> dict:
     import gc
 
     from motorctl.config import load_config
-    from motorctl.job import run_job
+    from motorctl.app.job import run_job
     loaded = load_config(config, check_budget=False)
     drv = loaded.make_driver()
     drv.timeout_s = 0.02
@@ -84,7 +84,7 @@ def inner(config: str, exchanges: int, cycles: int) -> dict:
 
 
 def measure(transport: str, tmp: Path, exchanges: int, cycles: int) -> dict:
-    from motorctl_drivers.proto_harness import Emulator, NetNamespace, loopback_config
+    from motorctl_emulators.harness import Emulator, NetNamespace, loopback_config
     _, cfg = loopback_config(ROOT / "configs" / f"gantry-{transport}.yaml", tmp, rate_hz=2000,
                              driver={"emulator": {"watchdog_s": 1.0}})
     cmd = [sys.executable, __file__, "--inner", str(cfg), "--exchanges", str(exchanges),

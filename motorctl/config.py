@@ -30,15 +30,14 @@ from typing import Annotated, Literal, get_args, get_origin
 import yaml
 from pydantic import BaseModel, Field, ValidationError
 
-from motorctl.compensation import CompensationConfig
-from motorctl.control.params import ControllerParams
-from motorctl.driver import Driver, StrictModel, load_driver_class
+from motorctl.control import CONTROLLER_NAMES, configured_controllers, make_controller
+from motorctl.control.params import ControllerConfig
+from motorctl.driver import Driver, load_driver_class
+from motorctl.schema import NonNeg, Pos, StrictModel
 from motorctl.model import assumption2_margin
-from motorctl.trajectory import Program
+from motorctl.loop.timebase import Timebase
+from motorctl.loop.trajectory import Program
 
-Pos = Annotated[float, Field(gt=0)]
-NonNeg = Annotated[float, Field(ge=0)]
-Vec6 = Annotated[list[float], Field(min_length=6, max_length=6)]
 
 
 class ConfigError(ValueError):
@@ -139,50 +138,6 @@ class DaemonConfig(StrictModel):
     allow_fault_injection: bool = False
 
 
-class FilterConfig(StrictModel):
-    omega_f: Pos = 200.0
-
-
-class TheoryConfig(StrictModel):
-    """Theory-mode design numbers (eq. 14-15, 22): k2 [V s/m], eta, delta_d [V], optional k_s1."""
-
-    k2: Pos = 10.0
-    eta: Pos = 0.05
-    delta_d: NonNeg = 0.3
-    k_s1: Pos | None = None
-
-
-class ControllerConfig(StrictModel):
-    type: Literal["c1", "c2"] = "c2"
-    mode: Literal["experiment", "theory"] = "experiment"
-    k_s: Pos = 95.0
-    k1: Pos = 250.0
-    gamma_d: NonNeg = 500.0
-    d_hat_max: NonNeg = 1.0
-    u_lim: Pos = 10.0
-    theta_min: Vec6
-    theta_max: Vec6
-    theta_hat0: Vec6
-    gamma0: Annotated[list[Pos], Field(min_length=6, max_length=6)]
-    filter: FilterConfig = FilterConfig()
-    mu: NonNeg = 0.0
-    nu: NonNeg = 0.0
-    rho_M: Pos = 1000.0
-    theory: TheoryConfig = TheoryConfig()
-    compensation: CompensationConfig = CompensationConfig()
-
-    def params(self, kind: str | None = None) -> ControllerParams:
-        """The controller's parameters; ``kind`` overrides ``type`` (C1 takes the first 4 entries)."""
-        return ControllerParams(
-            kind=kind or self.type, mode=self.mode, k_s=self.k_s, k1=self.k1, gamma_d=self.gamma_d,
-            d_hat_max=self.d_hat_max, u_lim=self.u_lim, theta_min=tuple(self.theta_min),
-            theta_max=tuple(self.theta_max), theta_hat0=tuple(self.theta_hat0),
-            gamma0=tuple(self.gamma0), omega_f=self.filter.omega_f, mu=self.mu, nu=self.nu,
-            rho_M=self.rho_M, k2=self.theory.k2, eta=self.theory.eta,
-            delta_d=self.theory.delta_d, k_s1=self.theory.k_s1,
-            compensation=None if self.compensation.is_empty() else self.compensation)
-
-
 class TrajectoryConfig(StrictModel):
     """Repeated point-to-point program (one point = hold). Times in s, limits in SI."""
 
@@ -256,19 +211,35 @@ class LoadedConfig:
     def period_s(self) -> float:
         return 1.0 / self.cfg.loop.rate_hz
 
+    @property
+    def timebase(self) -> Timebase:
+        """The loop's :class:`Timebase` (the one seconds → cycles conversion)."""
+        return Timebase(self.period_s)
+
     def make_driver(self, axis_names=None) -> Driver:
         names = list(axis_names) if axis_names else list(self.axes)
         return self.driver_cls(self.driver_options, {a: self.axis_driver_options[a] for a in names},
                                self.period_s)
 
     def make_controllers(self, axis_names=None, kind: str | None = None) -> list:
-        """One DCDIARC per axis, in order; ``kind`` ('c1'/'c2') overrides the config's type.
+        """One controller per axis, in order; ``kind`` (a name of :data:`CONTROLLER_NAMES`)
+        overrides the config's ``type``.
 
         Building compiles (or loads the cached) control kernels, so it is done before any cycle.
+        Raises:
+            ConfigError: ``kind`` is not configured for one of the axes.
         """
-        from motorctl.control.dcdiarc import DCDIARC  # the kernels load only when needed
         names = list(axis_names) if axis_names else list(self.axes)
-        return [DCDIARC(self.axes[a].controller.params(kind), self.period_s) for a in names]
+        out = []
+        for a in names:
+            section = self.axes[a].controller
+            k = kind or section.type
+            if k not in configured_controllers(section):
+                raise ConfigError(self.path, f"axes.{a}.controller",
+                                  f"controller {k!r} is not configured for this axis; configured: "
+                                  f"{', '.join(configured_controllers(section))}")
+            out.append(make_controller(section, k, self.period_s))
+        return out
 
 
 def _fmt_loc(prefix: str, loc) -> str:
@@ -328,6 +299,12 @@ def _cross_checks(path: Path, cfg: GantryConfig) -> None:
     for name, ax in cfg.axes.items():
         c = ax.controller
         pre = f"axes.{name}.controller"
+        if c.type not in configured_controllers(c):
+            known = c.type in CONTROLLER_NAMES
+            raise ConfigError(path, f"{pre}.type",
+                              f"{c.type!r} " + ("needs its settings key in this section (e.g. 'pid:')"
+                                                if known else "is not a controller")
+                              + f"; allowed here: {', '.join(configured_controllers(c))}")
         for i in range(6):
             if not c.theta_min[i] < c.theta_max[i] and not (i >= 4 and c.theta_min[i] == c.theta_max[i] == 0):
                 raise ConfigError(path, f"{pre}.theta_min[{i}]",

@@ -1,18 +1,32 @@
 """The driver interface: one bus exchange per cycle for every axis of a group.
 
-Lifecycle (ros2_control's, with LinuxCNC's canonical analog-out semantics)::
+Lifecycle (ros2_control's hardware lifecycle; python-can's ``BusABC`` rule: a public method
+around a private hook, the hook is what a driver writes)::
 
-    Driver(options, axis_options, period_s)   parse only; no I/O
-    open()                                    talk to the device, check it answers (may block)
+    Driver(options, axis_options, period_s)   parse only; no I/O                 unconfigured
+    configure()  -> _configure()              reach the device, check it answers, read and
+                                              set its parameters, measure round trips
+                                              (may block)                         inactive
+    activate()   -> _activate()               start cyclic exchange (e.g. CiA 402: NMT
+                                              operational, SYNC); every amplifier still
+                                              disabled (may block)                active
     read() / write(u_V, enable)               cyclic, inside the 5 kHz loop: never block past
                                               the deadline, never raise, never allocate arrays
-    close()                                   0 V, amplifier off, release (may block)
+    deactivate() -> _deactivate()             0 V with every amplifier disabled, stop cyclic
+                                              exchange (may block)                inactive
+    close()      -> _close()                  release the transport (deactivates first if
+                                              needed; idempotent)                 finalized
 
-Channels per axis (the same for every transport): ``encoder_in`` → :attr:`position_m` [m]
-(counts × scale), ``voltage_out`` → ``write(u_V, enable)`` [V]; ``enable = False`` means 0 V
-at the hardware. Per-axis health flags are set by read/write instead of raising:
-:attr:`read_error`, :attr:`write_error` (this cycle's exchange failed) and :attr:`amp_fault`
-(the amplifier reports a fault). The supervisor turns them into faults.
+An amplifier is enabled per axis, cycle by cycle, through the ``enable`` argument of
+:meth:`Driver.write` (a drive's own power state machine, where it has one, is stepped by
+the driver from that request without blocking).
+
+Named interfaces per axis (ros2_control's command/state interfaces, LinuxCNC's canonical
+channels), with limits: command ``voltage_out`` [V] within ±:meth:`Driver.voltage_limit_V`
+and ``enable``; state ``position`` [m] (:attr:`position_m`), ``amp_fault``. Per-axis health
+flags are set by read/write instead of raising: :attr:`read_error`, :attr:`write_error` (this
+cycle's exchange failed) and :attr:`amp_fault` (the amplifier reports a fault). The supervisor
+turns them into faults.
 
 Drivers register under the entry-point group ``motorctl.drivers`` (as python-can interfaces do
 under ``can.interface``); :func:`load_driver_class` finds them. The core never imports a
@@ -27,15 +41,11 @@ from importlib.metadata import entry_points
 from typing import ClassVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel
+
+from motorctl.schema import StrictModel
 
 ENTRY_POINT_GROUP = "motorctl.drivers"
-
-
-class StrictModel(BaseModel):
-    """Base of every YAML-facing options model: unknown keys are errors, numbers stay numbers."""
-
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
 
 class NoOptions(StrictModel):
@@ -59,16 +69,36 @@ class BusBudget:
     suggestion: str = ""
 
 
+@dataclass(frozen=True)
+class Interface:
+    """A named command or state interface of one axis, with its unit and limits."""
+
+    name: str
+    unit: str
+    min: float
+    max: float
+
+
+class LifecycleError(RuntimeError):
+    """A lifecycle method was called in a state that does not allow it."""
+
+
 class Driver(abc.ABC):
     """Base class of every I/O driver (sim, CAN, serial, Modbus, ...).
 
-    Subclasses set ``Options`` and ``AxisOptions`` (pydantic models, strict) and implement
-    :meth:`read` and :meth:`write`.
+    Subclasses set ``Options`` and ``AxisOptions`` (pydantic models, strict), implement
+    :meth:`read` and :meth:`write`, and override the lifecycle hooks they need
+    (:meth:`_configure`, :meth:`_activate`, :meth:`_deactivate`, :meth:`_close`) and
+    :meth:`_full_scale_V`.
 
     Args:
         options: an ``Options`` instance (the YAML ``driver:`` section without ``type``).
         axis_options: axis name → ``AxisOptions`` instance (``axes.NAME.driver``), in loop order.
         period_s: loop period [s].
+    Attributes:
+        state (str): "unconfigured", "inactive", "active" or "finalized".
+        position_m (np.ndarray): (n_axes,) positions of the last read [m].
+        read_error, write_error, amp_fault (np.ndarray): (n_axes,) bool health flags.
     """
 
     Options: ClassVar[type[BaseModel]] = NoOptions
@@ -84,13 +114,76 @@ class Driver(abc.ABC):
         self.read_error = np.zeros(n, dtype=bool)
         self.write_error = np.zeros(n, dtype=bool)
         self.amp_fault = np.zeros(n, dtype=bool)
+        self.state = "unconfigured"
 
-    def open(self) -> None:
-        """Connect and check the device answers. May block; never called inside the cycle."""
+    # ------------------------------------------------------------------ lifecycle
+    def configure(self) -> None:
+        """Reach the device and set it up (may block; never inside the cycle).
+
+        Raises:
+            LifecycleError: not unconfigured. OSError: the device cannot be reached.
+        """
+        self._require("configure", "unconfigured")
+        self._configure()
+        self.state = "inactive"
+
+    def activate(self) -> None:
+        """Start cyclic exchange with every amplifier disabled (may block).
+
+        Raises:
+            LifecycleError: not inactive. OSError: the device refused.
+        """
+        self._require("activate", "inactive")
+        self._activate()
+        self.state = "active"
+
+    def deactivate(self) -> None:
+        """0 V with every amplifier disabled, then stop cyclic exchange. No-op unless active."""
+        if self.state != "active":
+            return
+        try:
+            self.write(np.zeros(len(self.axis_names)), np.zeros(len(self.axis_names), dtype=bool))
+        finally:
+            try:
+                self._deactivate()
+            finally:
+                self.state = "inactive"
 
     def close(self) -> None:
-        """Command 0 V with the amplifier disabled and release the transport. May block."""
+        """Deactivate if needed and release the transport. Idempotent; may block."""
+        if self.state == "finalized":
+            return
+        try:
+            self.deactivate()
+        finally:
+            try:
+                self._close()
+            finally:
+                self.state = "finalized"
 
+    def open(self) -> None:
+        """:meth:`configure` then :meth:`activate` (for tools and tests)."""
+        self.configure()
+        self.activate()
+
+    def _require(self, what: str, state: str) -> None:
+        if self.state != state:
+            raise LifecycleError(f"{type(self).__name__}.{what}() needs state {state!r}, "
+                                 f"the driver is {self.state!r}")
+
+    def _configure(self) -> None:
+        """Hook: connect and check the device answers."""
+
+    def _activate(self) -> None:
+        """Hook: start cyclic exchange."""
+
+    def _deactivate(self) -> None:
+        """Hook: stop cyclic exchange (0 V and amplifiers off were already written)."""
+
+    def _close(self) -> None:
+        """Hook: release the transport."""
+
+    # ------------------------------------------------------------------ cyclic
     @abc.abstractmethod
     def read(self) -> None:
         """Fill :attr:`position_m` (and the health flags) for every axis. One exchange."""
@@ -101,6 +194,25 @@ class Driver(abc.ABC):
 
         Where ``enable[i]`` is False the hardware must see 0 V and the amplifier off.
         """
+
+    # ------------------------------------------------------------------ interfaces
+    def _full_scale_V(self, axis: str) -> float:
+        """Hook: the largest |voltage| the drive of ``axis`` can be commanded [V]."""
+        return float("inf")
+
+    def voltage_limit_V(self, axis: str) -> float:
+        """Full scale of ``axis``'s ``voltage_out`` [V] (inf where nothing limits it)."""
+        return self._full_scale_V(axis)
+
+    def command_interfaces(self, axis: str) -> tuple[Interface, ...]:
+        """``voltage_out`` [V] and ``enable`` of one axis, with their limits."""
+        fs = self.voltage_limit_V(axis)
+        return (Interface("voltage_out", "V", -fs, fs), Interface("enable", "bool", 0.0, 1.0))
+
+    def state_interfaces(self, axis: str) -> tuple[Interface, ...]:
+        """``position`` [m] and ``amp_fault`` of one axis."""
+        inf = float("inf")
+        return (Interface("position", "m", -inf, inf), Interface("amp_fault", "bool", 0.0, 1.0))
 
     def budget(self, rate_hz: float) -> BusBudget:
         """Bus time per cycle and the highest sustainable rate; default: not bus-limited."""

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from motorctl.runlog import read_log
+from motorctl.recorder.runlog import read_log
 
 _MAX_POINTS = 20000
 
@@ -24,7 +24,7 @@ def plot_log(log_path: str, out_dir: str | None = None) -> list[str]:
     """Write the figures of ``log_path`` as PNG files; returns their paths.
 
     Raises:
-        motorctl.runlog.LogError: not a run log. OSError: cannot write ``out_dir``.
+        motorctl.recorder.runlog.LogError: not a run log. OSError: cannot write ``out_dir``.
     """
     import matplotlib
     matplotlib.use("Agg")

@@ -12,7 +12,7 @@ import pytest
 from conftest import MOTORCTL, console_script
 
 from motorctl.cli import main
-from motorctl.runlog import read_log
+from motorctl.recorder.runlog import read_log
 
 
 def test_run_prints_indexes_and_writes_a_log(tmp_path, capsys, gantry_yaml):

@@ -42,7 +42,7 @@ CASES = [
     ("axes.X.controller.k_sx", 95.0, "axes.X.controller.k_sx", "unknown key; allowed here: type, mode, k_s"),
     ("axes.X.controller.k_s", "ninety-five", "axes.X.controller.k_s", "valid number"),
     ("axes.X.controller.k_s", -1.0, "axes.X.controller.k_s", "greater than 0"),
-    ("axes.X.controller.type", "c3", "axes.X.controller.type", "'c1' or 'c2'"),
+    ("axes.X.controller.type", "c3", "axes.X.controller.type", "allowed here: c1, c2"),
     ("axes.X.controller.theta_min", [0.05, 0.08, 0.05, -0.5, -0.015], "axes.X.controller.theta_min", "at least 6"),
     ("axes.X.controller.theta_hat0", [0.4, 0.2, 0.1, 0.0, 0.0, 0.0], "axes.X.controller.theta_hat0[0]", "outside [theta_min, theta_max]"),
     ("axes.X.controller.theta_min", [0.05, 0.08, 0.05, -0.5, -0.03, -0.003], "axes.X.controller.theta_min", "Assumption 2"),

@@ -6,18 +6,23 @@ import numpy as np
 import pytest
 
 from motorctl.config import load_config
-from motorctl.control.dcdiarc import DCDIARC, ControllerParams, theory_k_s1
+from motorctl.control.dcdiarc import DCDIARC, theory_k_s1
+from motorctl.control.params import ControllerConfig
 from motorctl.model import f_u
 
 TS = 2e-4
-X_PARAMS = dict(theta_min=(0.05, 0.08, 0.05, -0.5, -0.015, -0.002),
-                theta_max=(0.3, 0.5, 0.5, 0.5, 0.0, 0.0),
-                theta_hat0=(0.2, 0.2, 0.1, 0.0, 0.0, 0.0),
-                gamma0=(2.0, 50.0, 100.0, 500.0, 0.05, 0.005))
+X_PARAMS = dict(theta_min=[0.05, 0.08, 0.05, -0.5, -0.015, -0.002],
+                theta_max=[0.3, 0.5, 0.5, 0.5, 0.0, 0.0],
+                theta_hat0=[0.2, 0.2, 0.1, 0.0, 0.0, 0.0],
+                gamma0=[2.0, 50.0, 100.0, 500.0, 0.05, 0.005])
+
+
+def _section(**kw) -> ControllerConfig:
+    return ControllerConfig.model_validate({**X_PARAMS, **kw})
 
 
 def test_d_hat0_stays_within_its_bound_and_u_within_u_lim():
-    c = DCDIARC(ControllerParams(kind="c2", **X_PARAMS), TS)
+    c = DCDIARC(_section(), TS, "c2")
     rng = np.random.default_rng(3)
     for k in range(5000):
         u = c.update(rng.normal() * 0.01, 0.0, rng.normal(), rng.normal() * 50)
@@ -27,12 +32,12 @@ def test_d_hat0_stays_within_its_bound_and_u_within_u_lim():
 
 
 def test_c1_has_four_parameters_and_no_inversion():
-    c = DCDIARC(ControllerParams(kind="c1", **X_PARAMS), TS)
+    c = DCDIARC(_section(), TS, "c1")
     assert c.n_theta == 4 and c.theta_hat.shape == (4,)
     c.reset(0.0)
     u = c.update(1e-6, 0.0, 0.1, 1.0)
     assert u == pytest.approx(c.v)  # u = v for C1 when not saturated
-    c2 = DCDIARC(ControllerParams(kind="c2", **{**X_PARAMS, "theta_hat0": (0.2, 0.2, 0.1, 0.0, -0.015, -0.002)}), TS)
+    c2 = DCDIARC(_section(theta_hat0=[0.2, 0.2, 0.1, 0.0, -0.015, -0.002]), TS, "c2")
     c2.reset(0.0)
     u2 = c2.update(1e-6, 0.0, 0.0, 30.0)
     assert abs(u2) < 10.0  # not saturated, so f_u(u) = v exactly
@@ -40,7 +45,7 @@ def test_c1_has_four_parameters_and_no_inversion():
 
 
 def test_step_allocates_nothing():
-    c = DCDIARC(ControllerParams(kind="c2", **X_PARAMS), TS)
+    c = DCDIARC(_section(), TS, "c2")
     for k in range(100):
         c.update(1e-6 * k, 0.0, 0.1, 1.0)
     tracemalloc.start()
@@ -57,13 +62,15 @@ def test_theory_mode_gain():
     ks1 = theory_k_s1(X_PARAMS["theta_min"], X_PARAMS["theta_max"], 250.0, 10.0)
     # the bound is large because g reaches 1800/pi at zero velocity (spec §3.3)
     assert ks1 > 1000
-    c = DCDIARC(ControllerParams(kind="c2", mode="theory", k_s1=300.0, **X_PARAMS), TS)
+    c = DCDIARC(_section(mode="theory", theory={"k_s1": 300.0}), TS, "c2")
     c.reset(0.0)
     c.update(1e-5, 0.0, 1.0, 10.0)
     # k_s2 = (d_max + sum span_i |phi_d,i| + delta_d)^2 / (4 eta) > 0
     assert c.k_s_eff > 300.0
     with pytest.raises(ValueError, match="mode"):
-        DCDIARC(ControllerParams(kind="c2", mode="bogus", **X_PARAMS), TS)
+        _section(mode="bogus")
+    with pytest.raises(ValueError, match="kind"):
+        DCDIARC(_section(), TS, "c3")
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +78,7 @@ def converged_run(gantry_yaml):
     """40 s of the X program with C2 on the clean simulated plant, Gamma checked throughout."""
     loaded = load_config(gantry_yaml)
     drv = loaded.make_driver(["X"])
-    ctrl = DCDIARC(loaded.axes["X"].controller.params("c2"), TS)
+    ctrl = DCDIARC(loaded.axes["X"].controller, TS, "c2")
     prog = loaded.axes["X"].trajectory.program()
     u = np.zeros(1)
     en = np.ones(1, dtype=bool)

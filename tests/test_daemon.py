@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from test_daemon_helpers import cli, cli_status, ctl, make_config, running_daemon, status, wait_for
 
-from motorctl.runlog import read_log
-from motorctl.safety import FAULT_SHUTDOWN
+from motorctl.recorder.runlog import read_log
+from motorctl.loop.safety import FAULT_SHUTDOWN
 
 TS = 1.0 / 5000
 

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from test_daemon_helpers import ctl, running_daemon, status, wait_for
 
-from motorctl.runlog import read_log
-from motorctl.safety import (FAULT_AMP_FAULT, FAULT_FOLLOWING_ERROR, FAULT_IO_ERROR, FAULT_NAN,
+from motorctl.recorder.runlog import read_log
+from motorctl.loop.safety import (FAULT_AMP_FAULT, FAULT_FOLLOWING_ERROR, FAULT_IO_ERROR, FAULT_NAN,
                              FAULT_SOFT_LIMIT)
 
 # (injection args, fault bit, reason in status, what blocks the reset until it is gone)

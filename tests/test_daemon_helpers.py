@@ -82,7 +82,7 @@ def ctl(sock: Path | str | None, *args) -> Result:
 
 def status(sock) -> dict:
     """The daemon's status through the client library (cheap, for polling)."""
-    from motorctl.ctl import call
+    from motorctl.cli.operator import call
     ans = call(str(sock), {"cmd": "status"})
     assert ans["ok"], ans
     return ans["status"]

@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from motorctl.runlog import read_log
-from motorctl.safety import FAULT_IO_ERROR
-from motorctl_drivers.proto_harness import (Emulator, NetNamespace, loopback_e2e_config, parse_run_table,
+from motorctl.recorder.runlog import read_log
+from motorctl.loop.safety import FAULT_IO_ERROR
+from motorctl_emulators.harness import (Emulator, NetNamespace, loopback_e2e_config, parse_run_table,
                                             run_cli)
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"

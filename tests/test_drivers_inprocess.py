@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from motorctl.config import config_from_dict, load_yaml
-from motorctl_drivers.emulator import build_device
+from motorctl_emulators.cli import build_device
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
@@ -105,7 +105,7 @@ def test_lost_link_is_flagged_every_cycle_and_reconnect_happens_outside_the_loop
     import time
 
     from motorctl_drivers.proto_common import FaultSpec
-    from motorctl_drivers.proto_harness import free_port
+    from motorctl_emulators.harness import free_port
     d = _config("gantry-serial.yaml", tmp_path, port=f"socket://127.0.0.1:{free_port()}")
     loaded = config_from_dict(d, "<inprocess>", check_budget=False)
     with _serving(loaded, [FaultSpec.parse("disconnect:*:5:1")]) as dev:

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from motorctl.config import config_from_dict, load_yaml
-from motorctl.job import run_job
-from motorctl.runlog import read_log
+from motorctl.app.job import run_job
+from motorctl.recorder.runlog import read_log
 
 DURATION = 8.0  # two trajectory periods
 

@@ -23,8 +23,8 @@ from pathlib import Path
 import pytest
 
 from motorctl.config import config_from_dict
-from motorctl.job import run_job
-from motorctl_drivers.proto_harness import (Emulator, NetNamespace, loopback_e2e_config, motorctl_cmd,
+from motorctl.app.job import run_job
+from motorctl_emulators.harness import (Emulator, NetNamespace, loopback_e2e_config, motorctl_cmd,
                                             parse_run_table, run_cli, sim_twin, wait_for)
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -84,7 +84,7 @@ def test_closed_loop_through_the_protocol_matches_the_sim_driver(transport, tmp_
             want = ref[axis][key]
             assert abs(got[axis][key] - want) <= TOLERANCE * want, (
                 f"{transport} at {rate:.0f} Hz, axis {axis}: {key} {got[axis][key]:.3f} vs sim {want:.3f}\n{r.stdout}")
-    from motorctl.runlog import read_log
+    from motorctl.recorder.runlog import read_log
     hdr = read_log(str(log)).header
     assert hdr["driver"]["transport"].startswith(transport)
 

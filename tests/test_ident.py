@@ -265,7 +265,7 @@ def test_csv_with_gain_and_config_runs_closed_loop(logs, tmp_path, capsys):
     import yaml
 
     from motorctl.ident.synth import gantry_dict
-    from motorctl.runlog import read_log
+    from motorctl.recorder.runlog import read_log
     log = read_log(logs["spring"])
     ax = log.axis("X")
     on = ax["enabled"] > 0.5

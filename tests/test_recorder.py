@@ -13,8 +13,11 @@ import pytest
 from test_daemon_helpers import Daemon, _alive, ctl, make_config, status, wait_for
 
 from motorctl.config import load_config
-from motorctl.recorder import Drainer, SharedRing, mat_name
-from motorctl.runlog import LogWriter, columns_for, read_log
+from motorctl.loop.records import columns_for
+from motorctl.loop.timebase import Timebase
+from motorctl.recorder.export import mat_name
+from motorctl.recorder.flight import Drainer, SharedRing
+from motorctl.recorder.runlog import LogWriter, read_log
 
 TS = 1.0 / 5000
 
@@ -24,7 +27,7 @@ def _ring_and_drainer(tmp_path, cap=1000, before=0.01, after=0.01, max_events=20
     ring = SharedRing(cap, len(cols), 1)
     hdr = {"columns": cols, "axes": ["X"], "period_s": TS}
     w = LogWriter(str(tmp_path / "run.mlog"), hdr)
-    dr = Drainer(ring, w, hdr, ["X"], TS, flush_s=0.1, event_before_s=before, event_after_s=after,
+    dr = Drainer(ring, w, hdr, ["X"], Timebase(TS), flush_s=0.1, event_before_s=before, event_after_s=after,
                  max_events=max_events)
     return cols, ring, dr
 

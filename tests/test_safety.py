@@ -10,29 +10,25 @@ import pytest
 import yaml
 
 from motorctl.config import config_from_dict
-from motorctl.control.dcdiarc import DCDIARC
-from motorctl.safety import (FAULT_ENCODER_JUMP, FAULT_FOLLOWING_ERROR, FAULT_OVERRUN, Supervisor,
+from motorctl.app.build import build
+from motorctl.loop.safety import (FAULT_ENCODER_JUMP, FAULT_FOLLOWING_ERROR, FAULT_OVERRUN, Supervisor,
                              describe_faults)
-from motorctl.servo import APPROACH, HOLD, IDLE, PROGRAM, ServoLoop
-from motorctl.trajectory import Move
+from motorctl.loop.servo import APPROACH, HOLD, IDLE, PROGRAM
+from motorctl.loop.trajectory import Move
 
 
 def _loop(gantry_yaml, clock="virtual", policy="count", axes=("X",), edit=None):
+    """The daemon's loop (operated axes) built the one way, with the overrun policy, a 5-cycle
+    hold, a 50-cycle (10 ms) ramp and a 100-cycle (20 ms) settle."""
     d = yaml.safe_load(open(gantry_yaml))
+    d["loop"].update(overrun_policy=policy, overrun_hold_cycles=5, overrun_ramp_s=0.01)
+    d["loop"]["realtime"]["spin_us"] = 50
+    d["daemon"]["stop_settle_s"] = 0.02
     if edit:
         edit(d)
     ld = config_from_dict(d)
-    names = list(axes)
-    drv = ld.make_driver(names)
-    ctrls = [DCDIARC(ld.axes[a].controller.params(), ld.period_s) for a in names]
-    sup = Supervisor([ld.axes[a].limits for a in names], ld.period_s)
-    lp = ServoLoop(drv, ctrls, [ld.axes[a].trajectory.program() for a in names], sup, ld.period_s,
-                   capacity=50000, clock=clock, spin_us=50, overrun_policy=policy,
-                   overrun_hold=5, overrun_ramp=50)
-    lp.idle_all()
-    lp.disable_on_fault = True
-    lp.stop_settle = 100
-    return ld, drv, sup, lp
+    asm = build(ld, list(axes), clock=clock, capacity=50000, operated=True)
+    return ld, asm.driver, asm.supervisor, asm.loop
 
 
 def _col(lp, name):
@@ -162,10 +158,7 @@ def test_run_keeps_the_legacy_behaviour(gantry_yaml):
     """Without the daemon's sequencing every axis follows its program from t = 0."""
     d = yaml.safe_load(open(gantry_yaml))
     ld = config_from_dict(d)
-    drv = ld.make_driver(["X"])
-    c = [DCDIARC(ld.axes["X"].controller.params(), ld.period_s)]
-    lp = ServoLoop(drv, c, [ld.axes["X"].trajectory.program()], Supervisor([ld.axes["X"].limits], ld.period_s),
-                   ld.period_s, capacity=5000, clock="virtual")
+    lp = build(ld, ["X"], clock="virtual", capacity=5000).loop
     assert lp.run(5000) == 5000
     assert _col(lp, "X.enabled").all()
     assert _col(lp, "X.x_d")[-1] == pytest.approx(ld.axes["X"].trajectory.program().sample(4999 * ld.period_s)[0])

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from motorctl.config import load_config
-from motorctl.job import run_job
+from motorctl.app.job import run_job
 from motorctl_drivers.sim import AxisPlant, SimAxisOptions
 
 TS = 2e-4

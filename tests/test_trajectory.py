@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from motorctl.trajectory import Move, Program
+from motorctl.loop.trajectory import Move, Program
 
 
 def _samples(move, dt=1e-5):

@@ -20,13 +20,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from motorctl.compensation import Compensation
 from motorctl.control._jit import njit
+from motorctl.control.base import SIG_D0, SIG_E, SIG_P, SIG_THETA, SIG_V, SIG_X2, Controller
 from motorctl.control.estimator import LeastSquaresEstimator, ls_update, s_f_jit
 from motorctl.control.inversion import invert_cubic
-from motorctl.control.params import ControllerParams, theory_k_s1
+from motorctl.control.params import ControllerConfig, theory_k_s1
+from motorctl.effects.compensation import Compensation
 
-__all__ = ["DCDIARC", "ControllerParams", "dcdiarc_step", "theory_k_s1"]
+__all__ = ["DCDIARC", "dcdiarc_step", "theory_k_s1"]
 
 
 # state vector of the law (outputs of the last sample)
@@ -36,13 +37,15 @@ P_TS, P_K1, P_KS, P_GD, P_DMAX, P_ULIM, P_THEORY, P_KS1, P_ETA4, P_DELTA = range
 
 
 @njit
-def dcdiarc_step(y, x_d, xd_dot, xd_ddot, v_comp, st, prm, span, th, gam, tmin, tmax, zf, zd,
+def dcdiarc_step(y, x_d, xd_dot, xd_ddot, v_comp, sig, st, prm, span, th, gam, tmin, tmax, zf, zd,
                  inp, flt, phi, g, z, piv, coef, vec, pividx, active, opts, res):
     """One sample of the DCDIARC law (spec §5.2); returns u [V]. State arrays updated in place.
 
     Args:
         y [m], x_d [m], xd_dot [m/s], xd_ddot [m/s²]: measurement and desired trajectory.
         v_comp [V]: identified-effect compensation d̂_eff(x_d, ẋ_d, t) (0 when none).
+        sig (N_SIGNALS,): the published signals (motorctl.loop.records.CONTROLLER_SIGNALS),
+            written at the end of the sample; θ̂ entries beyond n stay as they are (NaN).
         st (8,): law state (S_* indices). prm (10,): law parameters (P_* indices).
         span (n,): θ_max − θ_min (theory-mode k_s2). The rest: the estimator's arrays.
     """
@@ -90,61 +93,79 @@ def dcdiarc_step(y, x_d, xd_dot, xd_ddot, v_comp, st, prm, span, th, gam, tmin, 
     st[S_P] = p
     st[S_V] = v
     st[S_U] = u
+    sig[SIG_V] = v
+    sig[SIG_E] = e
+    sig[SIG_P] = p
+    sig[SIG_X2] = x2
+    for j in range(n):
+        sig[SIG_THETA + j] = th[j]
+    sig[SIG_D0] = d0
     return u
 
 
-class DCDIARC:
+class DCDIARC(Controller):
     """One axis of C1 or C2. Call :meth:`update` once per sample; it returns u [V].
 
     Args:
-        params: :class:`ControllerParams`.
+        config: the axis's ``controller:`` section (:class:`ControllerConfig`).
         ts: sample period [s].
+        kind: "c1" (linear force model, θ1..θ4, no inversion) or "c2" (cubic, θ1..θ6).
     Attributes (of the last sample): u, v [V], e [m], p [m/s], x2 [m/s], d_hat0 [V],
-        k_s_eff [V s/m]; theta_hat (n,) and estimator.gamma (n, n) are live arrays.
+        k_s_eff [V s/m]; theta_hat (n,) and estimator.gamma (n, n) are live arrays;
+        signals (see :class:`motorctl.control.base.Controller`).
     Raises:
-        ValueError: inconsistent parameter sizes, θ̂(0) outside the box, unknown kind/mode.
+        ValueError: unknown kind or mode.
     """
 
-    def __init__(self, params: ControllerParams, ts: float):
-        if params.kind not in ("c1", "c2"):
-            raise ValueError(f"controller kind must be 'c1' or 'c2', got {params.kind!r}")
-        if params.mode not in ("experiment", "theory"):
-            raise ValueError(f"controller mode must be 'experiment' or 'theory', got {params.mode!r}")
-        n = params.n_theta
-        self.params = params
-        self.kind = params.kind
-        self.n_theta = n
-        self.ts = float(ts)
+    def __init__(self, config: ControllerConfig, ts: float, kind: str = "c2"):
+        if kind not in ("c1", "c2"):
+            raise ValueError(f"DCDIARC kind must be 'c1' or 'c2', got {kind!r}")
+        if config.mode not in ("experiment", "theory"):
+            raise ValueError(f"controller mode must be 'experiment' or 'theory', got {config.mode!r}")
+        n = 6 if kind == "c2" else 4
+        super().__init__(ts, config.u_lim, n)
+        self.name = kind
+        self.kind = kind
+        self.config = config
+        params = config
         self.estimator = self._new_estimator()
         self.theory = params.mode == "theory"
+        th = params.theory
         if self.theory:
-            k_s1 = (theory_k_s1(params.theta_min, params.theta_max, params.k1, params.k2)
-                    if params.k_s1 is None else float(params.k_s1))
+            k_s1 = (theory_k_s1(params.theta_min, params.theta_max, params.k1, th.k2)
+                    if th.k_s1 is None else float(th.k_s1))
         else:
             k_s1 = float(params.k_s)
         self.k_s1 = k_s1
         self._prm = np.array([ts, params.k1, params.k_s, params.gamma_d, params.d_hat_max,
-                              params.u_lim, 1.0 if self.theory else 0.0, k_s1, 4.0 * params.eta,
-                              params.delta_d], dtype=float)
+                              params.u_lim, 1.0 if self.theory else 0.0, k_s1, 4.0 * th.eta,
+                              th.delta_d], dtype=float)
         self._span = np.array([params.theta_max[i] - params.theta_min[i] for i in range(n)])
         self._st = np.zeros(8)
         self._st[S_KS] = k_s1
-        self.compensation = (Compensation(params.compensation)
-                             if params.compensation is not None else None)
+        self.compensation = (None if params.compensation.is_empty()
+                             else Compensation(params.compensation))
         self._started = False
         self._bind()
         # compile (or load the cached machine code) now, on copies of the state, so that the
         # first servo cycle never pays for it
         dcdiarc_step(0.0, 0.0, 0.0, 0.0, 0.0, *(a.copy() for a in self._args))
 
+    @classmethod
+    def from_config(cls, section: ControllerConfig, ts: float, name: str) -> "DCDIARC":
+        """C1 or C2 (``name``) from an axis's ``controller:`` section."""
+        return cls(section, ts, name)
+
     def _new_estimator(self) -> LeastSquaresEstimator:
-        p, n = self.params, self.n_theta
+        p, n = self.config, self.n_theta
         return LeastSquaresEstimator(p.theta_hat0[:n], p.theta_min[:n], p.theta_max[:n],
-                                     np.diag(p.gamma0[:n]), p.omega_f, self.ts, p.mu, p.nu, p.rho_M)
+                                     np.diag(p.gamma0[:n]), p.filter.omega_f, self.ts, p.mu, p.nu,
+                                     p.rho_M)
 
     def _bind(self) -> None:
         self.theta_hat = self.estimator.theta_hat
-        self._args = (self._st, self._prm, self._span) + self.estimator.kernel_args()
+        self.signals[SIG_THETA:SIG_THETA + self.n_theta] = self.theta_hat
+        self._args = (self.signals, self._st, self._prm, self._span) + self.estimator.kernel_args()
 
     def reset(self, y0: float, keep_theta: bool = True) -> None:
         """Start (or restart) from the measured position y0 [m] with u = 0 and d̂0 = 0.
@@ -179,14 +200,8 @@ class DCDIARC:
     # outputs of the last sample (float reads of the state vector)
     u = property(lambda self: float(self._st[S_U]))
     v = property(lambda self: float(self._st[S_V]))
-    e = property(lambda self: float(self._st[S_E]))
     p = property(lambda self: float(self._st[S_P]))
     x2 = property(lambda self: float(self._st[S_X2]))
     d_hat0 = property(lambda self: float(self._st[S_D0]))
     k_s_eff = property(lambda self: float(self._st[S_KS]))
 
-    def theta_vector(self) -> np.ndarray:
-        """θ̂ padded to 6 entries (θ̂5 = θ̂6 = 0 for C1), new array (not for the cycle)."""
-        out = np.zeros(6)
-        out[: self.n_theta] = self.theta_hat
-        return out

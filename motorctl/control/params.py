@@ -1,55 +1,97 @@
-"""Settings of one DCDIARC controller and the theory-mode gain bound (no compiled code here,
-so a config can be loaded and checked without loading the control kernels)."""
+"""The settings of every controller of an axis (one schema) and the theory-mode gain bound (no
+compiled code here, so a config can be loaded and checked without loading the control kernels)."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from typing import Annotated, Literal
 
 import numpy as np
+from pydantic import Field
 
-from motorctl.compensation import CompensationConfig
+from motorctl.effects.compensation import CompensationConfig
 from motorctl.model import S_F_GAIN
+from motorctl.schema import NonNeg, Pos, StrictModel, Vec6
 
 
-@dataclass(frozen=True)
-class ControllerParams:
-    """All settings of one DCDIARC controller (spec §6.2, §7). Vectors have 4 (C1) or 6 (C2) entries.
+class FilterConfig(StrictModel):
+    """H_f = ω_f²/(s + ω_f)² of the estimator's regressor (spec §5.2) [S]."""
+
+    omega_f: Pos = 200.0
+
+
+class TheoryConfig(StrictModel):
+    """Theory-mode design numbers (eq. 14-15, 22): k2 [V s/m], eta, delta_d [V], optional k_s1."""
+
+    k2: Pos = 10.0
+    eta: Pos = 0.05
+    delta_d: NonNeg = 0.3
+    k_s1: Pos | None = None
+
+
+class PidConfig(StrictModel):
+    """LinuxCNC ``pid`` gains (hal/components/pid.c, its manual page), in SI units.
+
+    error = command − feedback = x_d − y; a gain of 0 (or a limit of 0) switches that term
+    (or that limit) off, as in LinuxCNC.
 
     Attributes:
-        kind: "c1" or "c2".  mode: "experiment" (constant k_s) or "theory" (k_s1 + k_s2, eq. 22).
-        k_s [V s/m], k1 [1/s], gamma_d [V/m], d_hat_max [V].
-        theta_min, theta_max, theta_hat0: the box Ω_θ and θ̂(0).  gamma0: diagonal of Γ(0).
-        omega_f [rad/s]: H_f corner.  mu [1/s], nu, rho_M: LS settings (eq. 27).
-        u_lim [V]: actuator limit u_M of Assumption 2 and the output clamp.
-        k2 [V s/m], eta [V²·... ], delta_d [V]: theory-mode design numbers (eq. 14-15, 22).
-        k_s1: theory-mode k_s1; None computes the smallest value meeting the bound of spec §3.3.
+        P [V/m], I [V/(m s)], D [V s/m]: feedback gains.
+        FF0 [V/m], FF1 [V s/m], FF2 [V s²/m]: feedforward of the command, its velocity and
+            its acceleration.
+        bias [V]: constant output offset.
+        deadband [m]: |error| below it counts as 0 (above it, error is reduced by it).
+        maxerror [m], maxerror_i [m s]: limits of the error and of its integral (0 = none).
+        maxoutput [V]: output limit (0 = u_lim of the section).
     """
 
-    kind: str
-    theta_min: tuple
-    theta_max: tuple
-    theta_hat0: tuple
-    gamma0: tuple
-    mode: str = "experiment"
-    k_s: float = 95.0
-    k1: float = 250.0
-    gamma_d: float = 500.0
-    d_hat_max: float = 1.0
-    omega_f: float = 200.0
-    mu: float = 0.0
-    nu: float = 0.0
-    rho_M: float = 1000.0
-    u_lim: float = 10.0
-    k2: float = 10.0
-    eta: float = 0.05
-    delta_d: float = 0.3
-    k_s1: float | None = None
-    compensation: CompensationConfig | None = None
+    P: NonNeg = 0.0
+    I: NonNeg = 0.0
+    D: NonNeg = 0.0
+    FF0: float = 0.0
+    FF1: float = 0.0
+    FF2: float = 0.0
+    bias: float = 0.0
+    deadband: NonNeg = 0.0
+    maxerror: NonNeg = 0.0
+    maxerror_i: NonNeg = 0.0
+    maxoutput: NonNeg = 0.0
 
-    @property
-    def n_theta(self) -> int:
-        return 6 if self.kind == "c2" else 4
+
+class ControllerConfig(StrictModel):
+    """An axis's ``controller:`` section: the one schema of every controller's settings.
+
+    ``type`` names the active controller (:data:`motorctl.control.CONTROLLERS`). C1 and C2 (the
+    DCDIARC law, spec §6.2, §7) read the top-level keys; C1 uses the first four entries of
+    the 6-vectors. A PID reads ``pid`` (and ``u_lim``). Every controller of the section can
+    be switched to at run time.
+
+    Attributes:
+        mode: "experiment" (constant k_s) or "theory" (k_s1 + k_s2, eq. 22).
+        k_s [V s/m], k1 [1/s], gamma_d [V/m], d_hat_max [V], u_lim [V] (u_M of Assumption 2
+        and the output clamp). theta_min, theta_max, theta_hat0: the box Ω_θ and θ̂(0).
+        gamma0: diagonal of Γ(0). filter.omega_f [rad/s]. mu [1/s], nu, rho_M: LS settings
+        (eq. 27). theory: theory-mode numbers. compensation: identified effects (eq. 13).
+    """
+
+    type: str = "c2"
+    mode: Literal["experiment", "theory"] = "experiment"
+    k_s: Pos = 95.0
+    k1: Pos = 250.0
+    gamma_d: NonNeg = 500.0
+    d_hat_max: NonNeg = 1.0
+    u_lim: Pos = 10.0
+    theta_min: Vec6
+    theta_max: Vec6
+    theta_hat0: Vec6
+    gamma0: Annotated[list[Pos], Field(min_length=6, max_length=6)]
+    filter: FilterConfig = FilterConfig()
+    mu: NonNeg = 0.0
+    nu: NonNeg = 0.0
+    rho_M: Pos = 1000.0
+    theory: TheoryConfig = TheoryConfig()
+    compensation: CompensationConfig = CompensationConfig()
+    pid: PidConfig | None = None
 
 
 def theory_k_s1(theta_min, theta_max, k1: float, k2: float) -> float:

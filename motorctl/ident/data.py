@@ -1,7 +1,7 @@
 """Reading identification data: motorctl run logs, CSV files and MATLAB files (issue 5, item 1).
 
 All readers return a :class:`Record` (SI units: t [s], y [m], u [V], optional yd [m]) after the
-same checks (:func:`check_record`); bad data raise :class:`motorctl.runlog.LogError` with one line
+same checks (:func:`check_record`); bad data raise :class:`motorctl.recorder.runlog.LogError` with one line
 naming the file, the column and what is allowed.
 """
 
@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from motorctl.runlog import LogError, MAGIC, read_log
+from motorctl.recorder.runlog import LogError, MAGIC, read_log
 
 #: Shortest record accepted [s] and fewest samples (the IDIM filters need some length).
 MIN_DURATION_S = 1.0

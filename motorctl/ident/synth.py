@@ -66,8 +66,8 @@ def make_log(path: str, effect: dict | None = None, duration_s: float = 8.0, see
     """Run the simulated axis (C2, virtual clock) and write the run log to ``path``.
 
     Returns:
-        The :class:`motorctl.job.JobResult`.
+        The :class:`motorctl.app.job.JobResult`.
     """
-    from motorctl.job import run_job
+    from motorctl.app.job import run_job
     loaded = config_from_dict(gantry_dict(axis, effect, seed, noise_N, compensation), f"<synthetic {axis}>")
     return run_job(loaded, duration_s=duration_s, clock="virtual", log_path=str(path))

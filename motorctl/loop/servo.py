@@ -51,11 +51,12 @@ import time
 
 import numpy as np
 
-from motorctl.runlog import AXIS_FIELDS, CYCLE_FIELDS, columns_for
-from motorctl.safety import FAULT_OVERRUN, FAULT_SHUTDOWN, Supervisor
+from motorctl.loop.records import CONTROLLER_SIGNALS, N_SIGNALS, RecordLayout
+from motorctl.loop.safety import FAULT_OVERRUN, FAULT_SHUTDOWN, Supervisor
+from motorctl.loop.timebase import Timebase
 
-_NA = len(AXIS_FIELDS)
-_NC = len(CYCLE_FIELDS)
+#: bumpless switch: the output step between two controllers fades out over this time [s]
+SWITCH_BLEND_S = 0.01
 
 IDLE, APPROACH, PROGRAM, HOLD = 0, 1, 2, 3
 MODE_NAMES = {IDLE: "disabled", APPROACH: "approach", PROGRAM: "tracking", HOLD: "stopping"}
@@ -65,43 +66,56 @@ class ServoLoop:
     """Run read → control → write cycles for every axis of one driver.
 
     Args:
-        driver: an opened :class:`motorctl.driver.Driver`.
-        controllers: list of controllers (``DCDIARC``), one per driver axis, in driver order.
+        driver: an active :class:`motorctl.driver.Driver`.
+        controllers: list of :class:`motorctl.control.base.Controller`, one per driver axis,
+            in driver order.
         programs: list of trajectories (``Program``), one per axis.
         supervisor: :class:`Supervisor` for the same axes.
-        period_s: loop period [s].
+        timebase: :class:`Timebase` of the loop (period; seconds → cycles).
         capacity: rows of the record buffer; the buffer is a ring when a run is longer.
         clock: 'wall' (paced by CLOCK_MONOTONIC) or 'virtual' (as fast as possible).
         spin_us: busy-wait tail before each deadline [µs] (wall clock only).
-        buffer: optional preallocated record buffer, shape (capacity, len(columns)) float64
+        buffer: optional preallocated record buffer, shape (capacity, layout.width) float64
             (e.g. a shared-memory ring drained by another process).
         heartbeat: optional int64 array; element 0 is set to the number of executed cycles
             after every cycle (rows below it are complete), LinuxCNC's ``threadbeat``.
         on_slack: optional callable(loop) run after every cycle, outside the timed part
             (command mailbox, status publishing); it must return quickly and not block.
-        overrun_policy: 'count' or 'ramp'; overrun_hold, overrun_ramp: cycles (ramp policy).
+        overrun_policy: 'count' or 'ramp'; overrun_hold: cycles; overrun_ramp_s: [s].
+        stop_settle_s: how long a stopped axis holds its final position before 0 V [s].
+        operated: True for the daemon: every axis starts IDLE and is enabled by
+            :meth:`start_axis`; a fault also drops the operator's request. False (``run``):
+            every axis follows its program from the first cycle.
+    Raises:
+        ValueError: a wrong clock or policy, one controller or program too few or many, a
+            buffer of the wrong shape.
     """
 
-    def __init__(self, driver, controllers, programs, supervisor: Supervisor, period_s: float,
+    def __init__(self, driver, controllers, programs, supervisor: Supervisor, timebase: Timebase,
                  capacity: int, clock: str = "wall", spin_us: float = 60.0, buffer=None,
                  heartbeat=None, on_slack=None, overrun_policy: str = "count",
-                 overrun_hold: int = 5, overrun_ramp: int = 50):
+                 overrun_hold: int = 5, overrun_ramp_s: float = 0.01, stop_settle_s: float = 0.0,
+                 operated: bool = False):
         if clock not in ("wall", "virtual"):
             raise ValueError(f"clock must be 'wall' or 'virtual', got {clock!r}")
         n = len(driver.axis_names)
         if len(controllers) != n or len(programs) != n:
             raise ValueError("one controller and one program per driver axis")
+        if overrun_policy not in ("count", "ramp"):
+            raise ValueError(f"overrun_policy must be 'count' or 'ramp', got {overrun_policy!r}")
         self.driver = driver
         self.axis_names = list(driver.axis_names)
         self.controllers = list(controllers)
         self.programs = list(programs)
         self.supervisor = supervisor
-        self.period_s = float(period_s)
-        self.period_ns = int(round(period_s * 1e9))
+        self.timebase = timebase
+        self.period_s = timebase.period_s
+        self.period_ns = timebase.period_ns
         self.clock = clock
         self.spin_ns = int(spin_us * 1000)
-        self.columns = columns_for(self.axis_names)
-        self.width = len(self.columns)
+        self.layout = RecordLayout(self.axis_names)
+        self.columns = self.layout.columns
+        self.width = self.layout.width
         self.capacity = int(capacity)
         if buffer is None:
             self.buf = np.zeros((self.capacity, self.width))
@@ -112,11 +126,11 @@ class ServoLoop:
         self._mv = memoryview(self.buf.reshape(-1))
         self.heartbeat = heartbeat
         self.on_slack = on_slack
-        if overrun_policy not in ("count", "ramp"):
-            raise ValueError(f"overrun_policy must be 'count' or 'ramp', got {overrun_policy!r}")
         self.overrun_policy = overrun_policy
         self.overrun_hold = int(overrun_hold)
-        self.overrun_ramp = max(int(overrun_ramp), 1)
+        self.overrun_ramp = timebase.cycles(overrun_ramp_s, minimum=1)
+        self.stop_settle = timebase.cycles(stop_settle_s)
+        self.disable_on_fault = bool(operated)
         self.u_out = np.zeros(n)
         self.enable_out = np.zeros(n, dtype=bool)
         self.enabled = [True] * n       # operator's request per axis
@@ -127,9 +141,7 @@ class ServoLoop:
         self.hold_x = [0.0] * n         # held position in HOLD [m]
         self.settle_left = [0] * n      # HOLD cycles left before 0 V
         self.stop_req = [False] * n
-        self.stop_settle = 0            # cycles (set by the daemon)
-        self.disable_on_fault = False   # daemon: a fault also drops the operator's request
-        self.blend_cycles = max(int(round(0.01 / period_s)), 1)  # bumpless switch window
+        self.blend_cycles = timebase.cycles(SWITCH_BLEND_S, minimum=1)
         self.blend_left = [0] * n       # switch blend cycles left per axis
         self.blend_off = [math.nan] * n  # output offset being faded out [V] (NaN: not yet taken)
         self.ovr_left = [0] * n         # overrun reaction cycles left per axis
@@ -137,6 +149,16 @@ class ServoLoop:
         self.k = 0                      # executed cycles
         self.overruns = 0
         self.stop_requested = False
+        # offsets of the record, found by name once
+        lay = self.layout
+        self._o_cycle = tuple(lay.cycle(f) for f in ("t", "lateness_ns", "turnaround_ns", "read_ns",
+                                                      "control_ns", "write_ns", "overruns"))
+        self._o_axis = tuple(lay.axis_field(f) for f in ("y", "x_d", "xd_dot", "xd_ddot", "u",
+                                                          "enabled", "fault_bits"))
+        self._o_sig = lay.axis_field(next(iter(CONTROLLER_SIGNALS)))
+        self._axis_base = tuple(lay.axis_base(i) for i in range(n))
+        if operated:
+            self.idle_all()
 
     # ------------------------------------------------------------------ control plane
     def request_stop(self) -> None:
@@ -212,6 +234,12 @@ class ServoLoop:
         bl_left = self.blend_left
         bl_off = self.blend_off
         bl_n = float(self.blend_cycles)
+        oc_t, oc_late, oc_turn, oc_read, oc_ctrl, oc_write, oc_ovr = self._o_cycle
+        o_y, o_xd, o_vd, o_ad, o_u, o_en, o_fb = self._o_axis
+        o_sig = self._o_sig
+        nsig = N_SIGNALS
+        sig_e = list(CONTROLLER_SIGNALS).index("e")
+        abase = self._axis_base
         deadline = mono() + period
         done = 0
         for _ in range(n_cycles):
@@ -302,7 +330,7 @@ class ServoLoop:
                                 bl_off[i] = off
                             u += off * nb / bl_n
                             bl_left[i] = nb - 1
-                        ok = sup.check_output(i, c.e, vd, u)
+                        ok = sup.check_output(i, c.signals[sig_e], vd, u)
                 if not ok:
                     running[i] = False
                     ovr_left[i] = 0
@@ -314,32 +342,28 @@ class ServoLoop:
                 uo[i] = u
                 u_last[i] = u
                 en[i] = ok
-                b = base + _NC + i * _NA
-                mv[b] = y
-                mv[b + 1] = xd
-                mv[b + 2] = vd
-                mv[b + 3] = ad
-                mv[b + 4] = u
-                mv[b + 5] = c.v
-                mv[b + 6] = c.e
-                mv[b + 7] = c.p
-                mv[b + 8] = c.x2
-                th = c.theta_hat
-                for j in range(c.n_theta):
-                    mv[b + 9 + j] = th[j]
-                mv[b + 15] = c.d_hat0
-                mv[b + 16] = 1.0 if ok else 0.0
-                mv[b + 17] = faults[i]
+                b = base + abase[i]
+                mv[b + o_y] = y
+                mv[b + o_xd] = xd
+                mv[b + o_vd] = vd
+                mv[b + o_ad] = ad
+                mv[b + o_u] = u
+                sg = c.signals
+                bs = b + o_sig
+                for j in range(nsig):
+                    mv[bs + j] = sg[j]
+                mv[b + o_en] = 1.0 if ok else 0.0
+                mv[b + o_fb] = faults[i]
             t2 = mono()
             drv.write(uo, en)
             t3 = mono()
-            mv[base] = t
-            mv[base + 1] = late
-            mv[base + 2] = t3 - t0
-            mv[base + 3] = t1 - t0
-            mv[base + 4] = t2 - t1
-            mv[base + 5] = t3 - t2
-            mv[base + 6] = self.overruns
+            mv[base + oc_t] = t
+            mv[base + oc_late] = late
+            mv[base + oc_turn] = t3 - t0
+            mv[base + oc_read] = t1 - t0
+            mv[base + oc_ctrl] = t2 - t1
+            mv[base + oc_write] = t3 - t2
+            mv[base + oc_ovr] = self.overruns
             self.k = k + 1
             done += 1
             if hb is not None:
@@ -392,8 +416,7 @@ class ServoLoop:
         if controller is old:
             return
         if keep_theta:
-            n = min(old.n_theta, controller.n_theta)
-            controller.theta_hat[:n] = old.theta_hat[:n]
+            controller.inherit(old)
         if self._running[i]:
             controller.reset(float(self.driver.position_m[i]))
             self.blend_off[i] = math.nan

@@ -19,6 +19,8 @@ import socket
 import sys
 import time
 
+from motorctl.control import CONTROLLER_NAMES
+
 DEFAULT_SOCKET = "/run/motorctl/motorctl.sock"
 
 
@@ -89,7 +91,7 @@ def _wrap(handler):
 
 # --------------------------------------------------------------------------- handlers
 def cmd_daemon(args) -> int:
-    from motorctl.daemon import DaemonError, run_daemon
+    from motorctl.app.daemon import DaemonError, run_daemon
     try:
         return run_daemon(args.config, args.daemon_socket or args.socket, args.log_dir)
     except DaemonError as exc:
@@ -163,7 +165,7 @@ def cmd_status(args) -> int:
     if args.json:
         sys.stdout.write(json.dumps(st) + "\n")
         return 0
-    from motorctl.cli import _print_table
+    from motorctl.cli import print_table
     rows = [["axis", "state", "ctrl", "y mm", "e um", "turn p50/p99/max us", "late p99/max us",
              "theta_hat", "fault"]]
     for a, s in st["axes"].items():
@@ -176,7 +178,7 @@ def cmd_status(args) -> int:
                      "[" + ", ".join(f"{x:.4g}" for x in s.get("theta_hat", [])) + "]",
                      s["fault"] or "-"])
     out = sys.stdout
-    _print_table(rows, out)
+    print_table(rows, out)
     lp = st["loop"]
     out.write(f"loop: {lp['cycles']} cycles at {lp['rate_hz']:.0f} Hz; turnaround p50 "
               f"{_us(lp['turnaround_p50_us'])} / p99 {_us(lp['turnaround_p99_us'])} / p99.9 "
@@ -193,8 +195,8 @@ def cmd_status(args) -> int:
 
 
 def cmd_export(args) -> int:
-    from motorctl.recorder import export_csv, export_mat
-    from motorctl.runlog import read_log
+    from motorctl.recorder.export import export_csv, export_mat
+    from motorctl.recorder.runlog import read_log
     log = read_log(args.log)
     if args.csv:
         n = export_csv(log, args.csv)
@@ -228,7 +230,7 @@ def register(parser: argparse.ArgumentParser, sub) -> None:
 
     p = client("start", "enable an axis: bumpless approach from where it stands, then its program", cmd_start)
     p.add_argument("axis")
-    p.add_argument("--controller", choices=("c1", "c2"), help="controller to run (default: the current one)")
+    p.add_argument("--controller", choices=CONTROLLER_NAMES, help="controller to run (default: the current one)")
 
     p = client("stop", "bring an axis to rest, then 0 V and amplifier off", cmd_stop)
     p.add_argument("axis")
@@ -243,7 +245,7 @@ def register(parser: argparse.ArgumentParser, sub) -> None:
 
     p = client("switch", "switch an axis's controller at a cycle boundary", cmd_switch)
     p.add_argument("axis")
-    p.add_argument("--controller", choices=("c1", "c2"), required=True)
+    p.add_argument("--controller", choices=CONTROLLER_NAMES, required=True)
 
     p = client("inject", "inject a fault into the simulated driver (daemon.allow_fault_injection)", cmd_inject)
     p.add_argument("axis")

@@ -22,7 +22,7 @@ from typing import Annotated
 
 from pydantic import Field
 
-from motorctl.driver import StrictModel
+from motorctl.schema import StrictModel
 from motorctl.model import s_f_scalar
 
 Pos = Annotated[float, Field(gt=0)]

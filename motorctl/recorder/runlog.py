@@ -12,8 +12,8 @@ the start time and what the driver reports (e.g. the simulated truth). Records a
 appended, so a reader of a file that was cut short (a crash, ``kill -9``) drops at most the one
 partial record at the end and keeps everything flushed before.
 
-Columns: cycle-wide ``t`` [s], ``lateness_ns``, ``turnaround_ns``, ``read_ns``, ``control_ns``,
-``write_ns``, ``overruns``; then per axis ``AXIS.<field>`` for :data:`AXIS_FIELDS`.
+Columns: the record layout of :mod:`motorctl.loop.records` (names in ``columns``, units in
+``units``); readers index by name.
 """
 
 from __future__ import annotations
@@ -25,19 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from motorctl.loop.records import AXIS_FIELDS
+
 MAGIC = b"MOTORCTL-RUNLOG\n"
-CYCLE_FIELDS = ("t", "lateness_ns", "turnaround_ns", "read_ns", "control_ns", "write_ns", "overruns")
-AXIS_FIELDS = ("y", "x_d", "xd_dot", "xd_ddot", "u", "v", "e", "p", "x2",
-               "theta_hat1", "theta_hat2", "theta_hat3", "theta_hat4", "theta_hat5", "theta_hat6",
-               "d_hat0", "enabled", "fault_bits")
-
-
-def columns_for(axis_names) -> list[str]:
-    """Column names of a log for these axes (order of the record)."""
-    cols = list(CYCLE_FIELDS)
-    for a in axis_names:
-        cols += [f"{a}.{f}" for f in AXIS_FIELDS]
-    return cols
 
 
 class LogError(ValueError):
@@ -137,10 +127,10 @@ class RunLog:
         return list(self.header.get("axes", []))
 
     def axis(self, name: str) -> dict:
-        """All columns of one axis as {field: array (N,)}."""
+        """All columns of one axis as {field: array (N,)} (fields the log lacks are left out)."""
         if name not in self.axes:
             raise KeyError(f"no axis {name!r} in the log; axes: {', '.join(self.axes)}")
-        return {f: self.col(f"{name}.{f}") for f in AXIS_FIELDS}
+        return {f: self.col(f"{name}.{f}") for f in AXIS_FIELDS if f"{name}.{f}" in self.columns}
 
 
 def read_log(path: str) -> RunLog:

@@ -136,7 +136,7 @@ def closed_loop(idf: Identifier, cfg: dict, axis: str, duration_s: float) -> dic
     import copy
 
     from motorctl.config import config_from_dict
-    from motorctl.job import run_job
+    from motorctl.app.job import run_job
     th, betas = idf.coef_split(idf.final, idf.terms)
     comp = {}
     for t, b in zip(idf.terms, betas):

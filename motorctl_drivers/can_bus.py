@@ -46,7 +46,8 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field
 
-from motorctl.driver import BusBudget, StrictModel
+from motorctl.driver import BusBudget
+from motorctl.schema import StrictModel
 from motorctl_drivers.proto_common import (CommonOptions, EncoderUnwrap, PlantBank, SplitPhaseDriver,
                                            counts_to_volts, make_budget, serve_forever, to_signed,
                                            to_unsigned, volts_to_counts)
@@ -225,7 +226,7 @@ class CanDriver(SplitPhaseDriver):
                            dlc=0 if remote else length, data=None if remote else bytearray(length), is_fd=fd,
                            bitrate_switch=fd, check=True)
 
-    def open(self) -> None:
+    def _configure(self) -> None:
         import can
         o = self.options
         kw = dict(o.bus_options)
@@ -246,7 +247,7 @@ class CanDriver(SplitPhaseDriver):
             pass
         self._first_reading()
 
-    def close(self) -> None:
+    def _close(self) -> None:
         if self.bus is None:
             return
         try:

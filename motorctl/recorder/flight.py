@@ -1,7 +1,7 @@
 """The flight recorder: a preallocated shared-memory ring of cycle records, drained by another
 process to an append-only run log, plus event logs around every fault and overrun.
 
-Shape of the data (the layout of :func:`motorctl.runlog.columns_for`): one float64 row per
+Shape of the data (:class:`motorctl.loop.records.RecordLayout`): one float64 row per
 cycle with ``t``, lateness, turnaround and per-phase times [ns], overruns, and per axis y, x_d,
 ẋ_d, ẍ_d, u, v, e, p, x2, θ̂1..θ̂6, d̂0, enabled and the fault bits.
 
@@ -22,29 +22,24 @@ Who does what:
 
 The ordering argument (row stores before the heartbeat store, heartbeat load before the row
 loads) holds on x86-64's total store order; on weakly ordered CPUs a fence would be needed.
-
-Also here: :func:`export_csv` and :func:`export_mat` (``motorctl export``).
 """
 
 from __future__ import annotations
 
-import csv
 import mmap
 import time
 
 import numpy as np
 
-from motorctl.runlog import AXIS_FIELDS, CYCLE_FIELDS, LogWriter, RunLog
+from motorctl.recorder.runlog import LogWriter
 
 CTL_HEARTBEAT = 0     # cycles executed and published (rows below are complete)
 CTL_CMD_SEQ = 1       # bumped by the I/O process after it queued a command for the loop
 CTL_STATE = 2         # loop state: 0 starting, 1 running, 2 stopping, 3 ended
 CTL_SIZE = 16
 
-# per-axis status published by the loop (outside the cycle), float64
-ST_MODE, ST_KIND, ST_FAULT, ST_VALUE, ST_LIMIT, ST_IO_ERRORS, ST_FE_PEAK, ST_STARTED_K = range(8)
-ST_SIZE = 8
-
+#: at most one overrun event log per this time [s] (overruns come in floods when loaded)
+OVERRUN_EVENT_SPACING_S = 10.0
 _HIST_BIN_NS = 250.0
 _HIST_BINS = 40000    # 0 .. 10 ms
 
@@ -55,20 +50,24 @@ class SharedRing:
     Args:
         capacity: rows in the ring (choose ≥ (event_before_s + event_after_s + 2 s) · rate).
         width: floats per row (``len(columns)``). n_axes: axes of the loop.
+        status_width: floats of the per-axis status block (the daemon's, published by the
+            loop between cycles).
     Attributes:
-        rows: (capacity, width) float64 view; ctl: (CTL_SIZE,) int64; status: (n_axes, ST_SIZE).
+        rows: (capacity, width) float64 view; ctl: (CTL_SIZE,) int64; status: (n_axes,
+        status_width) float64.
     """
 
-    def __init__(self, capacity: int, width: int, n_axes: int):
+    def __init__(self, capacity: int, width: int, n_axes: int, status_width: int = 0):
         self.capacity, self.width, self.n_axes = int(capacity), int(width), int(n_axes)
-        nbytes = 8 * (CTL_SIZE + self.n_axes * ST_SIZE + self.capacity * self.width)
+        sw = self.status_width = int(status_width)
+        nbytes = 8 * (CTL_SIZE + self.n_axes * sw + self.capacity * self.width)
         self._mm = mmap.mmap(-1, nbytes, flags=mmap.MAP_SHARED)
         buf = np.frombuffer(self._mm, dtype=np.uint8)
         off = 0
         self.ctl = buf[off:off + 8 * CTL_SIZE].view(np.int64)
         off += 8 * CTL_SIZE
-        self.status = buf[off:off + 8 * self.n_axes * ST_SIZE].view(np.float64).reshape(self.n_axes, ST_SIZE)
-        off += 8 * self.n_axes * ST_SIZE
+        self.status = buf[off:off + 8 * self.n_axes * sw].view(np.float64).reshape(self.n_axes, sw)
+        off += 8 * self.n_axes * sw
         self.rows = buf[off:].view(np.float64).reshape(self.capacity, self.width)
 
     def published(self) -> int:
@@ -136,20 +135,21 @@ class Drainer:
     Args:
         ring: the shared ring. writer: an open :class:`LogWriter` with the same columns.
         header: the run log's header (copied into event logs). axis_names: loop order.
-        period_s: loop period [s]. flush_s: longest time between fdatasync calls [s].
+        timebase: the loop's :class:`~motorctl.loop.timebase.Timebase`. flush_s: longest
+        time between fdatasync calls [s].
         event_before_s, event_after_s: window kept around each fault/overrun [s].
         max_events: event logs per run (later events are only counted).
     """
 
-    def __init__(self, ring: SharedRing, writer: LogWriter, header: dict, axis_names, period_s: float,
+    def __init__(self, ring: SharedRing, writer: LogWriter, header: dict, axis_names, timebase,
                  flush_s: float = 0.5, event_before_s: float = 2.0, event_after_s: float = 1.0,
                  max_events: int = 20):
         self.ring, self.writer, self.header = ring, writer, header
         self.axis_names = list(axis_names)
-        self.period_s = float(period_s)
+        self.period_s = timebase.period_s
         self.flush_s = float(flush_s)
-        self.before = int(round(event_before_s / period_s))
-        self.after = int(round(event_after_s / period_s))
+        self.before = timebase.cycles(event_before_s)
+        self.after = timebase.cycles(event_after_s)
         self.max_events = int(max_events)
         cols = list(header["columns"])
         self._c_turn = cols.index("turnaround_ns")
@@ -175,7 +175,7 @@ class Drainer:
         self.events: list[dict] = []     # events recorded (with their event log path)
         self.events_dropped = 0
         self.fault_onsets: list[dict] = []   # every fault onset, for the once-only report
-        self.overrun_spacing = int(round(10.0 / period_s))
+        self.overrun_spacing = timebase.cycles(OVERRUN_EVENT_SPACING_S)
         self._last_overrun_k = -(1 << 62)
 
     # ------------------------------------------------------------------ draining
@@ -318,37 +318,4 @@ class Drainer:
         self.writer.close()
 
 
-# --------------------------------------------------------------------------- export
-def export_csv(log: RunLog, out: str) -> int:
-    """Write a run log as CSV (one header line with the column names). Returns rows written."""
-    with open(out, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(log.columns)
-        w.writerows(log.data.tolist())
-    return log.data.shape[0]
-
-
-def mat_name(column: str) -> str:
-    """MATLAB variable name of a column: 'X.theta_hat1' → 'X_theta_hat1'."""
-    name = "".join(ch if ch.isalnum() or ch == "_" else "_" for ch in column)
-    return name if name[:1].isalpha() else "v_" + name
-
-
-def export_mat(log: RunLog, out: str) -> int:
-    """Write a run log as a MATLAB .mat file (scipy.io.savemat, format 5).
-
-    Variables: ``data`` (N, W), ``columns`` (cell array of names), ``period_s``, ``axes``, and
-    one (N, 1) column vector per column named by :func:`mat_name`. Returns rows written.
-    """
-    from scipy.io import savemat
-    d = {"data": log.data, "columns": np.array(log.columns, dtype=object),
-         "period_s": float(log.header.get("period_s", 0.0)),
-         "axes": np.array(log.axes, dtype=object)}
-    for j, c in enumerate(log.columns):
-        d[mat_name(c)] = log.data[:, j:j + 1]
-    savemat(out, d, do_compression=False, oned_as="column")
-    return log.data.shape[0]
-
-
-__all__ = ["SharedRing", "Drainer", "export_csv", "export_mat", "hist_percentiles",
-           "AXIS_FIELDS", "CYCLE_FIELDS"]
+__all__ = ["SharedRing", "Drainer", "hist_percentiles"]

@@ -42,7 +42,8 @@ from typing import Annotated
 import numpy as np
 from pydantic import Field
 
-from motorctl.driver import BusBudget, StrictModel
+from motorctl.driver import BusBudget
+from motorctl.schema import StrictModel
 from motorctl_drivers.proto_common import (CommonOptions, EncoderUnwrap, PlantBank, SplitPhaseDriver,
                                            StreamEndpoint, make_budget, serve_forever, volts_to_counts,
                                            counts_to_volts)
@@ -196,7 +197,7 @@ class SerialDriver(SplitPhaseDriver):
         self._index = {nd: i for i, nd in enumerate(self._nodes)}
         self._items = [(nd, False, 0) for nd in self._nodes]
 
-    def open(self) -> None:
+    def _configure(self) -> None:
         import serial
         o = self.options
         if "://" in o.port:
@@ -218,7 +219,7 @@ class SerialDriver(SplitPhaseDriver):
         self.connected = True
         self._first_reading()
 
-    def close(self) -> None:
+    def _close(self) -> None:
         if self.port is None:
             return
         try:

@@ -35,7 +35,8 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field
 
-from motorctl.driver import BusBudget, Driver, StrictModel
+from motorctl.driver import BusBudget, Driver
+from motorctl.schema import StrictModel
 from motorctl_drivers.sim import AxisPlant, SimAxisOptions
 
 FAULT_KINDS = ("drop", "late", "corrupt", "stale", "exception", "disconnect", "bus_off")
@@ -354,10 +355,11 @@ class SplitPhaseDriver(Driver):
         """Close and open the transport again (blocking; call outside the loop). The axes stay
         faulted in the supervisor until an operator resets them: nothing is re-enabled here."""
         try:
-            self.close()
+            self._close()
         except Exception:  # noqa: BLE001
             pass
-        self.open()
+        self._configure()
+        self._activate()
 
     def describe(self) -> dict:
         return {"timeout_s": self.timeout_s, "counters": dict(self.counters)}

@@ -53,8 +53,7 @@ class Supervisor:
         limits: one ``LimitsConfig`` per axis, in loop order.
         period_s: loop period [s] (turns the encoder speed bound into a per-cycle one).
     Attributes:
-        fault: list[int] of latched fault bits per axis (0 = healthy).
-        detail: list[str] the first fault's reason per axis (set outside the hot path on read).
+        fault: list[int] of latched fault bits per axis (0 = healthy); :meth:`reason` words them.
         fe_peak: list[float] high-water mark of |following error| [m] per axis.
     """
 

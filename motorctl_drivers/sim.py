@@ -40,7 +40,8 @@ from typing import Annotated
 import numpy as np
 from pydantic import Field
 
-from motorctl.driver import Driver, StrictModel
+from motorctl.driver import Driver
+from motorctl.schema import StrictModel
 from motorctl.model import PhysicalAxis
 
 Pos = Annotated[float, Field(gt=0)]
@@ -369,7 +370,7 @@ class SimDriver(Driver):
         if self.watchdog_ns:
             self._last_write_ns = time.monotonic_ns()
 
-    def close(self) -> None:
+    def _close(self) -> None:
         self.amp_enabled[:] = False
         self.applied_u[:] = 0.0
 

@@ -48,7 +48,8 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field
 
-from motorctl.driver import BusBudget, StrictModel
+from motorctl.driver import BusBudget
+from motorctl.schema import StrictModel
 from motorctl_drivers.proto_common import (CommonOptions, EncoderUnwrap, PlantBank, SplitPhaseDriver,
                                            StreamEndpoint, counts_to_volts, make_budget, serve_forever,
                                            to_signed, to_unsigned, volts_to_counts)
@@ -189,7 +190,7 @@ class ModbusDriver(SplitPhaseDriver):
         self._regs = [0] * (len(self.plan.write_slots) if self.plan else 0)
 
     # --- link
-    def open(self) -> None:
+    def _configure(self) -> None:
         if self.plan is None:
             raise ValueError(f"modbus register map: {self.plan_error}")
         import logging   # a frame that does not decode is counted, not logged from inside the cycle
@@ -211,7 +212,7 @@ class ModbusDriver(SplitPhaseDriver):
         self.connected = True
         self._first_reading()
 
-    def close(self) -> None:
+    def _close(self) -> None:
         if self.sock is None and self.port is None:
             return
         try:

@@ -1,28 +1,12 @@
-"""The ``motorctl`` command line.
-
-Local subcommands: ``run``, ``compare``, ``check-config``, ``plot``. Further subcommands come
-from the modules in :data:`COMMAND_MODULES`, each with ``register(parser, subparsers)`` adding
-its parsers with ``set_defaults(func=handler)``; a handler returns the exit code.
-
-Exit codes: 0 success, 1 the job ran but failed (fault, comparison bound), 2 bad input
-(config, arguments, data): one clear line on stderr, nothing started.
-"""
+"""``motorctl run``, ``compare``, ``check-config`` and ``plot``: the job on a config."""
 
 from __future__ import annotations
 
-import argparse
-import importlib
 import json
 import sys
 
-DEFAULT_CONFIG = "configs/gantry.yaml"
-
-#: Modules that add subcommands (daemon control, emulator, identification).
-COMMAND_MODULES = ("motorctl.ctl", "motorctl.ident.cli", "motorctl_drivers.emulator")
-
-
-class UsageError(Exception):
-    """Bad input found by a handler: printed as one line, exit code 2."""
+from motorctl.cli import DEFAULT_CONFIG, UsageError, print_table
+from motorctl.control import CONTROLLER_NAMES
 
 
 def _load(path: str, check_budget: bool = True):
@@ -30,15 +14,9 @@ def _load(path: str, check_budget: bool = True):
     return load_config(path, check_budget=check_budget)
 
 
-def _print_table(rows: list[list[str]], out) -> None:
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    for r in rows:
-        out.write("  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))) + "\n")
-
-
 # --------------------------------------------------------------------------- run
 def cmd_run(args) -> int:
-    from motorctl.job import run_job
+    from motorctl.app.job import run_job
     loaded = _load(args.config)
     axes = _select_axes(loaded, args.axis)
     out = sys.stdout
@@ -56,7 +34,7 @@ def cmd_run(args) -> int:
         rows.append([a, r["controller"], f"{r.get('e_M_um', float('nan')):.2f}",
                      f"{r.get('e_F_um', float('nan')):.2f}", f"{r.get('L2_um', float('nan')):.3f}",
                      f"{r.get('u_peak_V', float('nan')):.2f}", str(r["io_errors"]), r["fault"] or "-"])
-    _print_table(rows, out)
+    print_table(rows, out)
     tm = res.timing
     if tm.get("cycles"):
         out.write(f"loop: {tm['cycles']} cycles at {1 / loaded.period_s:.0f} Hz "
@@ -83,12 +61,21 @@ def _select_axes(loaded, axis):
 
 
 # --------------------------------------------------------------------------- compare
+def compared_controllers(loaded) -> list[str]:
+    """The controllers ``compare`` runs: those configured on every axis, in registry order
+    (C1 and C2 always; a PID when every axis names its gains)."""
+    from motorctl.control import configured_controllers
+    sets = [set(configured_controllers(ax.controller)) for ax in loaded.axes.values()]
+    return [n for n in CONTROLLER_NAMES if all(n in s for s in sets)]
+
+
 def cmd_compare(args) -> int:
-    from motorctl.job import run_job
+    from motorctl.app.job import run_job
     from motorctl.metrics import PAPER_TABLES
     loaded = _load(args.config)
+    kinds = compared_controllers(loaded)
     results = {}
-    for kind in ("c1", "c2"):
+    for kind in kinds:
         res = run_job(loaded, controller=kind, duration_s=args.duration,
                       clock="wall" if args.wall_clock else "virtual")
         for a, r in res.axes.items():
@@ -101,13 +88,14 @@ def cmd_compare(args) -> int:
     for a, r in results.items():
         out.write(f"\naxis {a} ({args.duration or loaded.cfg.loop.duration_s:g} s, same seeded plant)\n")
         paper = PAPER_TABLES.get(a)
-        rows = [["index", "C1", "C2", "C2/C1"] + (["paper C1", "paper C2", "paper C2/C1"] if paper else [])]
+        rows = [["index"] + [k.upper() for k in kinds] + ["C2/C1"]
+                + (["paper C1", "paper C2", "paper C2/C1"] if paper else [])]
         for k, label in keys:
-            row = [label, f"{r['c1'][k]:.2f}", f"{r['c2'][k]:.2f}", f"{r['c2'][k] / r['c1'][k]:.2f}"]
+            row = [label] + [f"{r[kind][k]:.2f}" for kind in kinds] + [f"{r['c2'][k] / r['c1'][k]:.2f}"]
             if paper:
                 row += [f"{paper['c1'][k]:.2f}", f"{paper['c2'][k]:.2f}", f"{paper['c2'][k] / paper['c1'][k]:.2f}"]
             rows.append(row)
-        _print_table(rows, out)
+        print_table(rows, out)
     return 0
 
 
@@ -133,15 +121,12 @@ def cmd_plot(args) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="motorctl", description=__doc__.splitlines()[0])
-    sub = p.add_subparsers(dest="command", metavar="COMMAND")
-    sub.required = True
 
+def register(parser, sub) -> None:
     r = sub.add_parser("run", help="run the servo loop on a config (the main job)")
     r.add_argument("config", nargs="?", default=DEFAULT_CONFIG)
     r.add_argument("--axis", help="run only this axis")
-    r.add_argument("--controller", choices=("c1", "c2"), help="override every axis's controller")
+    r.add_argument("--controller", choices=CONTROLLER_NAMES, help="override every axis's controller")
     r.add_argument("--duration", type=float, help="run length in s (default: loop.duration_s)")
     r.add_argument("--log", help="write the run log here")
     r.add_argument("--virtual-clock", action="store_true", help="run as fast as possible (same results)")
@@ -149,7 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override loop.realtime.policy")
     r.set_defaults(func=cmd_run)
 
-    c = sub.add_parser("compare", help="C1 against C2 on the same seeded plant, beside the paper's tables")
+    c = sub.add_parser("compare", help="C1, C2 (and a PID where configured) on the same seeded plant, beside the paper's tables")
     c.add_argument("config", nargs="?", default=DEFAULT_CONFIG)
     c.add_argument("--duration", type=float, help="run length in s (default: loop.duration_s = 40)")
     c.add_argument("--json", action="store_true", help="print one JSON object and nothing else")
@@ -164,39 +149,4 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("log")
     pl.add_argument("--out", default=None, help="output directory (default: LOG without suffix + '_plots')")
     pl.set_defaults(func=cmd_plot)
-
-    for mod in COMMAND_MODULES:
-        try:
-            module = importlib.import_module(mod)
-        except ModuleNotFoundError as exc:
-            if exc.name and mod.startswith(exc.name):
-                continue  # that part is not installed
-            raise
-        module.register(p, sub)
-    return p
-
-
-def main(argv=None) -> int:
-    from motorctl.config import ConfigError
-    from motorctl.rt import RealtimeError
-    from motorctl.runlog import LogError
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except (ConfigError, UsageError, LogError, RealtimeError) as exc:
-        sys.stderr.write(f"motorctl: error: {exc}\n")
-        return 2
-    except FileNotFoundError as exc:
-        sys.stderr.write(f"motorctl: error: {exc.filename}: no such file\n")
-        return 2
-    except OSError as exc:  # a driver that cannot reach its device, a log that cannot be written
-        sys.stderr.write(f"motorctl: error: {exc}\n")
-        return 1
-    except BrokenPipeError:
-        return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
 

@@ -1,0 +1,159 @@
+"""``motorctl daemon CONFIG``: the long-running service that runs the 5 kHz loop.
+
+Two processes, so that nothing can block the loop (docs/daemon.md):
+
+* the **loop process** (the main PID; SCHED_FIFO, mlockall, gc frozen and disabled, pinned to a
+  CPU): one thread, the servo loop on the driver, recording into a shared-memory ring
+  (:class:`~motorctl.recorder.flight.SharedRing`) with a shared heartbeat; commands are applied
+  between cycles (:mod:`.loop_side`);
+* the **I/O process** (forked before the real-time set-up; SCHED_OTHER, on the other CPUs):
+  the control socket, the run log and event logs, ``status``, systemd's notify protocol
+  (:mod:`.io_side`). Wire formats: :mod:`.protocol`; the status block: :mod:`.status`.
+
+Every axis starts disabled (0 V, amplifier off) and only an operator's ``start`` enables it,
+so a restart by systemd never re-enables an axis. SIGTERM/SIGINT: every driven axis latches
+FAULT_SHUTDOWN and goes to 0 V with the amplifier off at the next cycle, a few more cycles are
+recorded, the I/O process drains, flushes and closes the log, then the daemon exits 0.
+``kill -9`` of the loop process: the I/O process sees the reply pipe close, drains what the
+loop published and closes the log. If the I/O process dies, the loop faults every axis and
+exits non-zero (no motion without a recorder).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import signal
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from motorctl.app.build import Assembly, build, log_header
+from motorctl.app.daemon.io_side import io_main
+from motorctl.app.daemon.loop_side import LoopSide
+from motorctl.app.daemon.notify import sd_notify
+from motorctl.app.daemon.protocol import DaemonError, Mailbox, bind_control_socket
+from motorctl.app.daemon.status import ST_SIZE
+from motorctl.config import ConfigError, load_config
+from motorctl.recorder.flight import SharedRing
+from motorctl.recorder.runlog import LogWriter
+
+#: seconds of records the shared ring holds beyond the event window
+RING_SPARE_S = 3.0
+#: extra time a stop may take beyond the longest move and the settle time [s]
+STOP_MARGIN_S = 0.05
+#: header bytes reserved for what is known only later (real-time report, commands, end)
+HEADER_RESERVE = 16384
+
+
+@dataclass
+class DaemonPlan:
+    """What both processes know after the fork (built before it)."""
+
+    asm: Assembly
+    ring: SharedRing
+    socket_path: str
+    log_path: str
+    header: dict
+    stop_bound_s: list
+
+
+def plan_daemon(config_path: str, socket_path: str | None, log_dir: str | None) -> DaemonPlan:
+    """Load the config, build the loop on a shared ring, choose the log path.
+
+    Raises:
+        ConfigError: the config is wrong. DaemonError: the log directory cannot be created.
+    """
+    loaded = load_config(config_path)
+    cfg = loaded.cfg
+    d = cfg.daemon
+    if cfg.loop.clock != "wall":
+        raise ConfigError(loaded.path, "loop.clock", "the daemon runs on the wall clock; set clock: wall")
+    ldir = Path(log_dir or d.log_dir)
+    try:
+        ldir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DaemonError(f"cannot create the log directory {ldir}: {exc.strerror}") from None
+    stamp = _dt.datetime.now().strftime("%Y%m%dT%H%M%S")
+    log_path = str(ldir / f"motorctl-{stamp}-{os.getpid()}.mlog")
+    names = list(loaded.axes)
+    tb = loaded.timebase
+    from motorctl.loop.records import RecordLayout
+    width = RecordLayout(names).width
+    ring = SharedRing(tb.cycles(d.event_before_s + d.event_after_s + RING_SPARE_S), width,
+                      len(names), ST_SIZE)
+    # every configured controller of every axis is built (and compiled) before anything runs:
+    # a switch is a swap
+    asm = build(loaded, names, clock="wall", capacity=ring.capacity, buffer=ring.rows,
+                heartbeat=memoryview(ring.ctl), operated=True, all_controllers=True)
+    stop_bound = []
+    for prog in asm.programs:
+        longest = max((m.duration for m in prog.moves), default=0.0)
+        stop_bound.append(longest + d.stop_settle_s + STOP_MARGIN_S)
+    header = log_header(asm, kind="daemon run log", realtime="pending")
+    return DaemonPlan(asm, ring, socket_path or d.socket, log_path, header, stop_bound)
+
+
+def run_daemon(config_path: str, socket_path: str | None = None, log_dir: str | None = None,
+               out=sys.stderr) -> int:
+    """Run the service until SIGTERM/SIGINT. Returns the exit code (0 after a signal).
+
+    Raises:
+        ConfigError: the config is wrong (exit 2 in the CLI).
+        DaemonError: the socket or the log cannot be created (exit 1).
+    """
+    plan = plan_daemon(config_path, socket_path, log_dir)
+    lsock = bind_control_socket(plan.socket_path, plan.asm.loaded.cfg.daemon.group)
+    try:
+        writer = LogWriter(plan.log_path, plan.header, reserve=HEADER_RESERVE)
+    except OSError as exc:
+        lsock.close()
+        Path(plan.socket_path).unlink(missing_ok=True)
+        raise DaemonError(f"cannot create the run log {plan.log_path}: {exc.strerror}") from None
+    cmd_r, cmd_w = os.pipe()
+    rep_r, rep_w = os.pipe()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    pid = os.fork()
+    if pid == 0:                                   # ---- the I/O process
+        code = 1
+        try:
+            os.close(cmd_r)
+            os.close(rep_w)
+            code = io_main(plan, lsock, writer, Mailbox(wfd=cmd_w), Mailbox(rfd=rep_r))
+        except BaseException as exc:               # noqa: BLE001 - last resort, one line
+            try:
+                sys.stderr.write(f"motorctl daemon (I/O process): {type(exc).__name__}: {exc}\n")
+            except Exception:
+                pass
+        finally:
+            os._exit(code)
+    # ---- the loop process
+    os.close(cmd_w)
+    os.close(rep_r)
+    os.set_blocking(rep_w, False)   # a stalled I/O process must never block the loop
+    lsock.close()
+    writer.release()
+    side = LoopSide(plan.asm, plan.ring, pid, Mailbox(rfd=cmd_r), Mailbox(wfd=rep_w),
+                    plan.socket_path, plan.log_path, out)
+    return side.run(_reap)
+
+
+def _reap(pid: int, timeout_s: float) -> None:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        try:
+            if os.waitpid(pid, os.WNOHANG)[0] != 0:
+                return
+        except ChildProcessError:
+            return
+        time.sleep(0.01)
+    try:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+    except (ProcessLookupError, ChildProcessError):
+        pass
+
+
+__all__ = ["run_daemon", "plan_daemon", "sd_notify", "bind_control_socket", "DaemonError", "Mailbox"]

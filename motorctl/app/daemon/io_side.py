@@ -1,0 +1,315 @@
+"""The daemon's I/O process: serves the control socket, forwards commands to the loop process,
+drains the shared ring to the run log (:class:`motorctl.recorder.flight.Drainer`), cuts event
+logs, reports fault onsets to the journal and speaks systemd's notify protocol (``READY=1``
+once the loop runs, ``STATUS=``, ``WATCHDOG=1`` only while the loop's heartbeat advances,
+``STOPPING=1``). It never touches the driver; the loop process checks and applies every
+command (:mod:`motorctl.app.daemon.loop_side`).
+"""
+
+from __future__ import annotations
+
+import os
+import selectors
+import signal
+import sys
+import time
+
+from motorctl.app.daemon.notify import sd_notify, watchdog_ping_interval_s
+from motorctl.app.daemon.protocol import (LineBuffer, Mailbox, Request, RequestError, encode_answer,
+                                          parse_request)
+from motorctl.app.daemon.status import ST, axis_status
+from motorctl.loop.safety import describe_faults
+from motorctl.loop.trajectory import Move
+from motorctl.recorder.flight import CTL_CMD_SEQ, CTL_STATE, Drainer
+from motorctl.recorder.runlog import LogWriter
+
+#: a command the loop has not answered within this time is answered with an error [s]
+LOOP_ANSWER_S = 2.0
+#: how often the I/O process wakes when nothing happens [s]
+IDLE_WAKE_S = 0.02
+#: STATUS= line to systemd at most this often [s]
+STATUS_LINE_S = 2.0
+
+
+class IOSide:
+    """The I/O process after the fork. ``plan`` is the daemon's :class:`DaemonPlan`."""
+
+    def __init__(self, plan, lsock, writer: LogWriter, cmds: Mailbox, replies: Mailbox):
+        self.plan, self.lsock, self.cmds, self.replies = plan, lsock, cmds, replies
+        asm = plan.asm
+        self.names = asm.names
+        self.layout = asm.loop.layout
+        self.controllers = [list(b) for b in asm.bank]
+        d = asm.loaded.cfg.daemon
+        self.header = plan.header
+        self.writer = writer
+        self.drainer = Drainer(plan.ring, writer, self.header, self.names, asm.loaded.timebase,
+                               d.flush_s, d.event_before_s, d.event_after_s, d.max_event_logs)
+        self.ready: dict | None = None
+        self.fatal = ""
+        self.pending: dict[int, tuple] = {}
+        self.buffers: dict = {}
+        self.next_id = 1
+        self.sel = selectors.DefaultSelector()
+        self.started = time.monotonic()
+        self.notified_ready = False
+        self.watchdog_s = watchdog_ping_interval_s(os.getppid())
+        self.last_ping = time.monotonic()
+        self.last_hb = 0
+        self.last_status = 0.0
+        self.exit_reason = ""
+        self.audit: list[dict] = []      # commands applied by the loop, with their cycle
+        self._reported = 0
+
+    # ------------------------------------------------------------------ requests
+    def to_loop(self, conn, msg: dict, post=None) -> None:
+        msg["id"] = self.next_id
+        self.next_id += 1
+        self.pending[msg["id"]] = (conn, time.monotonic() + LOOP_ANSWER_S, post, msg)
+        self.cmds.send(msg)
+        ctl = self.plan.ring.ctl
+        ctl[CTL_CMD_SEQ] = int(ctl[CTL_CMD_SEQ]) + 1
+
+    def request(self, conn, req: Request) -> dict | None:
+        """Answer now (a dict) or forward to the loop (None: the answer comes later)."""
+        if self.fatal:
+            return {"ok": False, "error": self.fatal}
+        i = req.axis
+        if req.cmd == "status":
+            st = self.status()
+            if i is not None:
+                st["axes"] = {self.names[i]: st["axes"][self.names[i]]}
+            return {"ok": True, "status": st}
+        if self.ready is None:
+            return {"ok": False, "error": "the loop is not running yet; retry in a moment"}
+        if req.cmd == "start":
+            # the approach from where the axis stands to the program's start; the loop checks
+            # the axis's state and that it has not moved since
+            ax = self.axis_status(i)
+            tc = self.plan.asm.loaded.axes[self.names[i]].trajectory
+            x0 = self.plan.asm.programs[i].sample(0.0)[0]
+            mv = Move(float(ax["y_m"]), float(x0), tc.v_max, tc.a_max, tc.j_max, 0.0)
+            self.to_loop(conn, {"op": "start", "axis": i, "controller": req.controller, "move": mv},
+                         post={"approach_s": mv.duration, "approach_m": x0 - ax["y_m"]})
+        elif req.cmd == "stop":
+            self.to_loop(conn, {"op": "stop", "axis": i}, post={"bound_s": self.plan.stop_bound_s[i]})
+        elif req.cmd == "switch":
+            self.to_loop(conn, {"op": "switch", "axis": i, "controller": req.controller})
+        elif req.cmd == "fault-reset":
+            self.to_loop(conn, {"op": "fault_reset", "axis": i})
+        elif req.cmd == "inject":
+            self.to_loop(conn, {"op": "inject", "axis": i, "inject": req.inject})
+        return None
+
+    # ------------------------------------------------------------------ status
+    def axis_status(self, i: int) -> dict:
+        ring = self.plan.ring
+        out = axis_status(i, self.names[i], ring.status[i], ring.latest(), self.layout)
+        out["timing_since_start"] = self.drainer.axis_stats[i].summary()
+        out["stop_bound_s"] = self.plan.stop_bound_s[i]
+        return out
+
+    def status(self) -> dict:
+        dr = self.drainer
+        ring = self.plan.ring
+        ready = self.ready or {}
+        return {
+            "axes": {a: self.axis_status(i) for i, a in enumerate(self.names)},
+            "loop": {"rate_hz": 1.0 / self.plan.asm.loaded.period_s, "cycles": ring.published(),
+                     "overruns": dr.overruns, "state": int(ring.ctl[CTL_STATE]),
+                     "phase_max_us": {k: v / 1000.0 for k, v in zip(("read", "control", "write"),
+                                                                    dr.phase_max_ns)},
+                     **dr.loop_stats.summary()},
+            "realtime": ready.get("realtime", {}),
+            "realtime_summary": ready.get("realtime_summary", "pending"),
+            "process": {k: ready.get(k) for k in ("loop_pid", "python_threads", "native_threads",
+                                                  "cpu_affinity", "switch_interval_s")}
+                       | {"io_pid": os.getpid(), "uptime_s": time.monotonic() - self.started},
+            "log": {"path": self.plan.log_path, "rows": self.writer.rows_written,
+                    "rows_flushed": dr.flushed_rows, "lost_rows": dr.lost_rows,
+                    "flush_s": dr.flush_s, "flushes": dr.flushes,
+                    "max_flush_gap_s": dr.max_flush_gap_s, "events": dr.events,
+                    "events_pending": len(dr.pending), "events_dropped": dr.events_dropped},
+            "socket": self.plan.socket_path,
+        }
+
+    def summary_line(self) -> str:
+        parts = []
+        for i, a in enumerate(self.names):
+            s = self.axis_status(i)
+            parts.append(f"{a} {s['state']}" + (f" ({s['fault']})" if s["fault"] else ""))
+        return "; ".join(parts) + f"; overruns {self.drainer.overruns}"
+
+    # ------------------------------------------------------------------ replies from the loop
+    def on_reply(self, m: dict) -> None:
+        op = m.get("op")
+        if op == "ready":
+            self.ready = m
+            self.header["realtime"] = m["realtime"]
+            self.header["process"] = {k: m[k] for k in ("loop_pid", "python_threads",
+                                                       "native_threads", "cpu_affinity")}
+            self.writer.update_header(self.header)
+            loop_cpus = set(m.get("cpu_affinity") or [])
+            others = set(os.sched_getaffinity(0)) - loop_cpus
+            if loop_cpus and others and len(loop_cpus) == 1:
+                try:
+                    os.sched_setaffinity(0, others)
+                except OSError:
+                    pass
+            return
+        if op == "fatal":
+            self.fatal = m["error"]
+            return
+        if op == "exit":
+            self.exit_reason = m.get("reason", "")
+            return
+        entry = self.pending.pop(m.get("id"), None)
+        if entry is None:
+            return
+        conn, _, post, req = entry
+        m.pop("id", None)
+        if m.get("ok"):
+            self.audit.append({"cycle": m.get("cycle"), "op": req.get("op"),
+                               "axis": self.names[req["axis"]],
+                               **({"controller": req["controller"]} if req.get("controller") else {}),
+                               **({"kind": req["inject"]["kind"]} if req.get("inject") else {})})
+        if post and m.get("ok"):
+            m.update(post)
+        self.respond(conn, m)
+
+    # ------------------------------------------------------------------ clients
+    def forget(self, conn) -> None:
+        try:
+            self.sel.unregister(conn)
+        except (KeyError, ValueError):
+            pass
+        self.buffers.pop(conn, None)
+
+    def respond(self, conn, obj: dict) -> None:
+        try:
+            conn.setblocking(True)
+            conn.settimeout(1.0)
+            conn.sendall(encode_answer(obj))
+        except OSError:
+            pass
+        finally:
+            self.forget(conn)
+            conn.close()
+
+    def on_client(self, conn) -> None:
+        try:
+            data = conn.recv(65536)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            data = b""
+        if not data:
+            self.forget(conn)
+            conn.close()
+            return
+        try:
+            line = self.buffers.setdefault(conn, LineBuffer()).feed(data)
+            if line is None:
+                return
+            ans = self.request(conn, parse_request(line, self.names, self.controllers))
+        except RequestError as exc:
+            ans = {"ok": False, "error": str(exc), "usage": True}
+        if ans is not None:
+            self.respond(conn, ans)
+        else:
+            self.forget(conn)              # the answer comes from the loop
+
+    # ------------------------------------------------------------------ the run
+    def run(self) -> int:
+        self.lsock.setblocking(False)
+        self.sel.register(self.lsock, selectors.EVENT_READ, "listen")
+        self.sel.register(self.replies.rfd, selectors.EVENT_READ, "loop")
+        loop_gone = False
+        while not loop_gone:
+            for key, _ in self.sel.select(timeout=IDLE_WAKE_S):
+                if key.data == "listen":
+                    try:
+                        conn, _ = self.lsock.accept()
+                    except (BlockingIOError, InterruptedError):
+                        continue
+                    conn.setblocking(False)
+                    self.sel.register(conn, selectors.EVENT_READ, "client")
+                elif key.data == "loop":
+                    msgs = self.replies.recv()
+                    if msgs is None:
+                        loop_gone = True
+                        break
+                    for m in msgs:
+                        self.on_reply(m)
+                else:
+                    self.on_client(key.fileobj)
+            now = time.monotonic()
+            for rid, (conn, deadline, _, _) in list(self.pending.items()):
+                if now > deadline:
+                    self.pending.pop(rid)
+                    self.respond(conn, {"ok": False, "error": f"the loop did not answer within "
+                                                              f"{LOOP_ANSWER_S:g} s"})
+            self.drainer.poll()
+            self.report_faults()
+            self.drainer.cut_events()
+            self.drainer.maybe_flush()
+            self.notify(now)
+        # the loop process ended (normally, or killed): keep everything it published
+        try:
+            self.drainer.poll()
+            self.report_faults()
+            self.header["commands"] = self.audit
+            self.header["events"] = self.drainer.events
+            self.header["ended"] = {"reason": self.exit_reason or "loop process killed",
+                                    "cycles": self.plan.ring.published(),
+                                    "lost_rows": self.drainer.lost_rows}
+            if not self.writer.update_header(self.header):
+                self.header["commands"] = self.audit[-50:]
+                self.writer.update_header(self.header)
+            self.drainer.finish()
+        finally:
+            self.lsock.close()
+            try:
+                os.unlink(self.plan.socket_path)
+            except OSError:
+                pass
+        return 0
+
+    def report_faults(self) -> None:
+        """One line on stderr (the journal) per fault onset: reported once, not per cycle."""
+        onsets = self.drainer.fault_onsets
+        for e in onsets[self._reported:]:
+            i = self.names.index(e["axis"])
+            st = self.plan.ring.status[i]
+            sys.stderr.write(f"motorctl daemon: axis {e['axis']} fault at t = "
+                             f"{e['k'] * self.plan.asm.loaded.period_s:.4f} s: "
+                             f"{describe_faults(e['bits'])} (value {st[ST['value']]:.6g}, "
+                             f"limit {st[ST['limit']]:.6g}); 0 V, amplifier off, latched\n")
+        self._reported = len(onsets)
+
+    def notify(self, now: float) -> None:
+        hb = self.plan.ring.published()
+        if self.ready is not None and not self.notified_ready and hb > 0:
+            sd_notify("READY=1\nSTATUS=" + self.summary_line())
+            self.notified_ready = True
+            self.last_status = now
+        if self.watchdog_s and now - self.last_ping >= self.watchdog_s:
+            if hb != self.last_hb:           # only while the loop's heartbeat advances
+                sd_notify("WATCHDOG=1")
+                self.last_hb = hb
+                self.last_ping = now
+        if self.notified_ready and now - self.last_status >= STATUS_LINE_S:
+            sd_notify("STATUS=" + self.summary_line())
+            self.last_status = now
+
+
+def io_main(plan, lsock, writer: LogWriter, cmds: Mailbox, replies: Mailbox) -> int:
+    """Entry of the I/O process: ignore the signals (the loop process says when to go),
+    SCHED_OTHER, serve until the loop process ends."""
+    for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+        signal.signal(s, signal.SIG_IGN)
+    try:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except OSError:
+        pass
+    return IOSide(plan, lsock, writer, cmds, replies).run()

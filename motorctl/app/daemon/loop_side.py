@@ -1,0 +1,213 @@
+"""The daemon's loop process: the servo loop, and between cycles the commands from the I/O
+process, the status block, signals and the recorder's liveness.
+
+One thread; no file or socket I/O inside a cycle. Commands arrive in the ``on_slack`` hook
+(after a cycle, outside its timed part): the loop looks at a shared command sequence number
+and only then reads the command pipe (non-blocking), applies each command at the cycle
+boundary and answers on the reply pipe (non-blocking: a stalled I/O process never blocks the
+loop). Every command's checks are made here, against the live state (the one place).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import threading
+
+from motorctl.app.build import Assembly, shutdown, start
+from motorctl.app.daemon.notify import sd_notify
+from motorctl.app.daemon.protocol import Mailbox
+from motorctl.app.daemon.status import StatusPublisher
+from motorctl.loop.rt import RealtimeError
+from motorctl.loop.safety import FAULT_SHUTDOWN
+from motorctl.loop.servo import IDLE, MODE_NAMES
+from motorctl.recorder.flight import CTL_CMD_SEQ, CTL_STATE, SharedRing
+
+#: how often the loop checks that the I/O process (the recorder) is alive [s]
+RECORDER_CHECK_S = 1.0
+#: how often the status block is refreshed besides every fault change [s]
+STATUS_PUBLISH_S = 0.005
+#: cycles recorded after a SIGTERM before the loop ends (the 0 V rows reach the log)
+SHUTDOWN_TAIL_CYCLES = 10
+#: a start is refused when the axis moved more than this since the approach was planned [m]
+START_MOVED_M = 1e-3
+
+STATE_STARTING, STATE_RUNNING, STATE_STOPPING, STATE_ENDED = 0, 1, 2, 3
+
+
+class LoopSide:
+    """The loop process after the fork.
+
+    Args:
+        asm: the built loop (every configured controller per axis in ``asm.bank``).
+        ring: the shared ring the loop records into. io_pid: the I/O process.
+        cmds: mailbox of commands (read side). replies: mailbox of answers (write side,
+        non-blocking). out: where the one-line start and stop messages go.
+    """
+
+    def __init__(self, asm: Assembly, ring: SharedRing, io_pid: int, cmds: Mailbox,
+                 replies: Mailbox, socket_path: str, log_path: str, out=sys.stderr):
+        self.asm, self.ring, self.io_pid = asm, ring, io_pid
+        self.cmds, self.replies, self.out = cmds, replies, out
+        self.socket_path, self.log_path = socket_path, log_path
+        self.loop = asm.loop
+        self.names = asm.names
+        self.ctl = memoryview(ring.ctl)
+        self.status = StatusPublisher(ring.status, self.loop, asm.active)
+        tb = asm.loaded.timebase
+        self.check_every = tb.cycles(RECORDER_CHECK_S, minimum=1)
+        self.publish_every = tb.cycles(STATUS_PUBLISH_S, minimum=1)
+        d = asm.loaded.cfg.daemon
+        self.allow_inject = d.allow_fault_injection and hasattr(asm.driver, "inject")
+        self.seen = 0
+        self.term = ""
+        self.tail = -1
+        self.io_dead = False
+        self.replies_dropped = 0
+        self.loop.on_slack = self.on_slack
+
+    # ------------------------------------------------------------------ commands
+    def apply(self, m: dict) -> dict:
+        """Apply one command at the cycle boundary; the answer to send back."""
+        loop, sup, names = self.loop, self.loop.supervisor, self.names
+        op, i = m.get("op"), m.get("axis", -1)
+        r = {"id": m.get("id"), "ok": True, "cycle": loop.k}
+        try:
+            if op == "start":
+                if sup.fault[i]:
+                    return {**r, "ok": False, "error": f"axis {names[i]} is in fault: {sup.reason(i)}; "
+                                                      f"run 'motorctl fault-reset {names[i]}' first"}
+                if loop.mode[i] != IDLE:
+                    return {**r, "ok": False, "error": f"axis {names[i]} is already enabled "
+                                                      f"({MODE_NAMES[loop.mode[i]]})"}
+                mv = m["move"]
+                y = float(self.asm.driver.position_m[i])
+                if abs(mv.start - y) > START_MOVED_M:
+                    return {**r, "ok": False, "error": f"axis {names[i]} moved while the start was "
+                                                      f"prepared ({mv.start:.6f} -> {y:.6f} m); retry"}
+                k = m.get("controller") or self.asm.active[i]
+                self._switch(i, k)
+                loop.start_axis(i, mv)
+                self.status.started_k[i] = loop.k
+                r["controller"] = k
+            elif op == "stop":
+                r["was"] = MODE_NAMES[loop.mode[i]]
+                loop.stop_axis(i)
+            elif op == "switch":
+                r["from"] = self.asm.active[i]
+                self._switch(i, m["controller"])
+                r["cycle"] = loop.k
+            elif op == "fault_reset":
+                was = sup.reason(i)
+                ok, why = loop.fault_reset(i)
+                r.update(ok=ok, error=why, was=was)
+            elif op == "inject":
+                if not self.allow_inject:
+                    return {**r, "ok": False, "error": "fault injection is off (daemon.allow_fault_"
+                                                      "injection: true, simulated driver only)"}
+                inj = m["inject"]
+                self.asm.driver.inject(inj["kind"], names[i], inj["cycles"], jump_m=inj["jump_m"],
+                                       force_N=inj["force_N"])
+                r["cycle"] = loop.k
+            else:
+                return {**r, "ok": False, "error": f"unknown operation {op!r}"}
+        except Exception as exc:  # noqa: BLE001 - a bad command never stops the loop
+            return {**r, "ok": False, "error": f"{type(exc).__name__}: {exc}"}
+        finally:
+            self.status.publish()
+        return r
+
+    def _switch(self, i: int, name: str) -> None:
+        self.loop.switch_axis(i, self.asm.controller(i, name))
+        self.asm.active[i] = name
+
+    # ------------------------------------------------------------------ between cycles
+    def on_slack(self, lp) -> None:
+        k = lp.k
+        ctl = self.ctl
+        seq = ctl[CTL_CMD_SEQ]
+        if seq != self.seen:
+            self.seen = seq
+            msgs = self.cmds.recv()
+            for m in msgs or ():
+                try:
+                    self.replies.send(self.apply(m))
+                except BlockingIOError:
+                    self.replies_dropped += 1     # pipe full: the client times out
+                except OSError:
+                    self.io_dead = True
+        if self.term and self.tail < 0:
+            for i in range(len(self.names)):
+                if lp.mode[i] != IDLE:
+                    lp.supervisor.trip(i, FAULT_SHUTDOWN)
+            lp.idle_all()
+            self.tail = SHUTDOWN_TAIL_CYCLES
+            ctl[CTL_STATE] = STATE_STOPPING
+        elif self.tail > 0:
+            self.tail -= 1
+            if self.tail == 0:
+                lp.request_stop()
+        if k % self.publish_every == 0 or self.status.fault_changed():
+            self.status.publish()             # a new fault is published at once
+        if k % self.check_every == self.check_every // 2:
+            try:
+                if os.waitpid(self.io_pid, os.WNOHANG)[0] != 0:
+                    self.io_dead = True
+            except ChildProcessError:
+                self.io_dead = True
+            if self.io_dead and not self.term:
+                self.term = "recorder process died"
+
+    def on_signal(self, signum, _frame) -> None:
+        if not self.term:
+            self.term = signal.Signals(signum).name
+
+    # ------------------------------------------------------------------ the run
+    def run(self, reap) -> int:
+        """Start the driver and the real-time set-up, run until a signal, shut down.
+        ``reap(pid, timeout_s)`` waits for the I/O process. Returns the exit code."""
+        asm, loop, ctl = self.asm, self.loop, self.ctl
+        rtc = asm.loaded.cfg.loop.realtime
+        old = {s: signal.signal(s, self.on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+        self.status.publish()
+        try:
+            try:
+                rep = start(asm, rtc.policy)
+            except RealtimeError as exc:
+                self.replies.send({"op": "fatal", "error": str(exc)})
+                self.out.write(f"motorctl: error: {exc}\n")
+                return 1
+            self.replies.send({"op": "ready", "realtime": rep.as_dict(),
+                               "realtime_summary": rep.summary(), "loop_pid": os.getpid(),
+                               "python_threads": threading.active_count(),
+                               "native_threads": len(os.listdir("/proc/self/task")),
+                               "cpu_affinity": sorted(os.sched_getaffinity(0)),
+                               "switch_interval_s": sys.getswitchinterval()})
+            self.out.write(f"motorctl daemon: {len(self.names)} axes ({', '.join(self.names)}) at "
+                           f"{1 / asm.loaded.period_s:.0f} Hz, all disabled; socket "
+                           f"{self.socket_path}; log {self.log_path}; realtime: {rep.summary()}\n")
+            self.out.flush()
+            ctl[CTL_STATE] = STATE_RUNNING
+            loop.run(1 << 62)
+        finally:
+            try:
+                shutdown(asm)
+            finally:
+                ctl[CTL_STATE] = STATE_ENDED
+                for s_, h in old.items():
+                    signal.signal(s_, h)
+                sd_notify("STOPPING=1")
+                try:
+                    os.set_blocking(self.replies.wfd, True)   # the loop has ended: waiting is fine
+                    self.replies.send({"op": "exit", "reason": self.term or "loop ended"})
+                except OSError:
+                    pass
+                os.close(self.replies.wfd)
+                reap(self.io_pid, 15.0)
+        if self.io_dead:
+            self.out.write("motorctl: error: the recorder process died; all axes at 0 V, amplifiers off\n")
+            return 1
+        self.out.write(f"motorctl daemon: stopped by {self.term or 'loop end'}: all axes at 0 V, "
+                       f"amplifiers off; log {self.log_path}\n")
+        return 0

@@ -1,0 +1,217 @@
+"""The daemon's wire formats: the control socket (one JSON object per line each way) and the
+pipes between its two processes (length-prefixed pickled messages).
+
+Socket requests (``motorctl.cli.operator`` is the client)::
+
+    {"cmd": "status", "axis": "X"?}
+    {"cmd": "start", "axis": "X", "controller": "c2"?}
+    {"cmd": "stop" | "fault-reset", "axis": "X"}
+    {"cmd": "switch", "axis": "X", "controller": "pid"}
+    {"cmd": "inject", "axis": "X", "kind": "...", "cycles": 1, "jump_m": 0.0, "force_N": 0.0}
+
+Answers: ``{"ok": true, ...}`` or ``{"ok": false, "error": "...", "usage": bool}`` (``usage``:
+the request itself was wrong, exit code 2 in the client).
+"""
+
+from __future__ import annotations
+
+import grp
+import json
+import os
+import pickle
+import socket
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+#: the longest request line accepted [bytes]; a longer one is refused and the connection closed
+MAX_REQUEST_BYTES = 65536
+#: commands of the socket protocol
+COMMANDS = ("status", "start", "stop", "switch", "fault-reset", "inject")
+#: commands that need an axis
+AXIS_COMMANDS = ("start", "stop", "switch", "fault-reset", "inject")
+
+
+class DaemonError(RuntimeError):
+    """The daemon cannot start (one line, e.g. the socket cannot be created)."""
+
+
+class RequestError(ValueError):
+    """A request is wrong (unknown command, axis or controller; bad JSON): a usage error."""
+
+
+@dataclass(frozen=True)
+class Request:
+    """A checked request. ``axis`` is the axis index (None for a status of every axis)."""
+
+    cmd: str
+    axis: int | None
+    controller: str | None = None
+    inject: dict | None = None
+
+
+def parse_request(line: bytes, axis_names: list, controllers: list) -> Request:
+    """Check one request line against the daemon's axes and each axis's configured
+    controllers (``controllers[i]``: names). Raises :class:`RequestError` (one line)."""
+    try:
+        req = json.loads(line.decode())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise RequestError(f"bad request: {exc}") from None
+    if not isinstance(req, dict):
+        raise RequestError("bad request: not a JSON object")
+    cmd = req.get("cmd")
+    if cmd not in COMMANDS:
+        raise RequestError(f"unknown command {cmd!r}; allowed: {', '.join(COMMANDS)}")
+    a = req.get("axis")
+    if a is None and cmd not in AXIS_COMMANDS:
+        return Request(cmd, None)
+    if a not in axis_names:
+        raise RequestError(f"unknown axis {a!r}; axes: {', '.join(axis_names)}")
+    i = axis_names.index(a)
+    ctrl = req.get("controller")
+    if ctrl is not None or cmd == "switch":
+        if cmd not in ("start", "switch") or ctrl not in controllers[i]:
+            raise RequestError(f"unknown controller {ctrl!r} for axis {a}; allowed: "
+                               f"{', '.join(controllers[i])}")
+    inject = None
+    if cmd == "inject":
+        try:
+            inject = {"kind": str(req.get("kind")), "cycles": int(req.get("cycles", 1)),
+                      "jump_m": float(req.get("jump_m", 0.0)),
+                      "force_N": float(req.get("force_N", 0.0))}
+        except (TypeError, ValueError) as exc:
+            raise RequestError(f"bad inject request: {exc}") from None
+    return Request(cmd, i, ctrl, inject)
+
+
+def encode_answer(obj: dict) -> bytes:
+    """One answer line."""
+    return (json.dumps(obj) + "\n").encode()
+
+
+class LineBuffer:
+    """Per-connection framing: bytes in, complete lines out, survives partial reads.
+
+    Raises:
+        RequestError: a line longer than :data:`MAX_REQUEST_BYTES`.
+    """
+
+    def __init__(self):
+        self._buf = b""
+
+    def feed(self, data: bytes) -> bytes | None:
+        """Add received bytes; the first complete line (without its newline) or None."""
+        self._buf += data
+        if b"\n" in self._buf:
+            line, _, self._buf = self._buf.partition(b"\n")
+            if len(line) > MAX_REQUEST_BYTES:
+                raise RequestError(f"request longer than {MAX_REQUEST_BYTES} bytes")
+            return line
+        if len(self._buf) > MAX_REQUEST_BYTES:
+            raise RequestError(f"request longer than {MAX_REQUEST_BYTES} bytes")
+        return None
+
+
+# --------------------------------------------------------------------------- the socket
+def _resolve_group(group) -> int | None:
+    if group is None:
+        return None
+    if isinstance(group, int):
+        return group
+    try:
+        return grp.getgrnam(group).gr_gid
+    except KeyError:
+        raise DaemonError(f"daemon.group: no group named {group!r}") from None
+
+
+def bind_control_socket(path: str, group=None, backlog: int = 64) -> socket.socket:
+    """Create the listening Unix socket at ``path`` with mode 0660 and the given group.
+
+    A stale socket file is replaced; a live one (another daemon answers) is an error.
+    Raises:
+        DaemonError: one line naming the path and the reason (permission, missing directory,
+        another daemon running, unknown group).
+    """
+    gid = _resolve_group(group)
+    p = Path(path)
+    if not p.parent.exists() and str(p.parent).startswith("/run/motorctl"):
+        try:
+            os.makedirs(p.parent, mode=0o750, exist_ok=True)
+        except OSError as exc:
+            raise DaemonError(f"cannot create {p.parent}: {exc.strerror}") from None
+    if p.exists() or p.is_socket():
+        probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            probe.connect(str(p))
+            probe.close()
+            raise DaemonError(f"another daemon is already serving {p}")
+        except (ConnectionRefusedError, FileNotFoundError):
+            pass
+        except PermissionError:
+            raise DaemonError(f"cannot use the control socket {p}: permission denied") from None
+        finally:
+            probe.close()
+        try:
+            p.unlink()
+        except OSError as exc:
+            raise DaemonError(f"cannot replace the stale socket {p}: {exc.strerror}") from None
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
+    old = os.umask(0o117)
+    try:
+        s.bind(str(p))
+    except OSError as exc:
+        s.close()
+        raise DaemonError(f"cannot create the control socket {p}: {exc.strerror}") from None
+    finally:
+        os.umask(old)
+    try:
+        os.chmod(p, 0o660)
+        if gid is not None:
+            os.chown(p, -1, gid)
+    except OSError as exc:
+        s.close()
+        p.unlink(missing_ok=True)
+        raise DaemonError(f"cannot set the group/mode of {p}: {exc.strerror}") from None
+    s.listen(backlog)
+    return s
+
+
+# --------------------------------------------------------------------------- the pipes
+_HDR = struct.Struct("<I")
+
+
+class Mailbox:
+    """Length-prefixed pickled messages over a pipe; the read side is non-blocking."""
+
+    def __init__(self, rfd: int | None = None, wfd: int | None = None):
+        self.rfd, self.wfd = rfd, wfd
+        self._buf = b""
+        if rfd is not None:
+            os.set_blocking(rfd, False)
+
+    def send(self, obj) -> None:
+        data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+        os.write(self.wfd, _HDR.pack(len(data)) + data)
+
+    def recv(self) -> list | None:
+        """Messages available now ([] if none); None when the writer has closed the pipe."""
+        eof = False
+        while True:
+            try:
+                chunk = os.read(self.rfd, 65536)
+            except BlockingIOError:
+                break
+            if not chunk:
+                eof = True
+                break
+            self._buf += chunk
+        out = []
+        while len(self._buf) >= 4:
+            (n,) = _HDR.unpack_from(self._buf)
+            if len(self._buf) < 4 + n:
+                break
+            out.append(pickle.loads(self._buf[4:4 + n]))
+            self._buf = self._buf[4 + n:]
+        if eof and not out:
+            return None
+        return out

@@ -1,0 +1,75 @@
+"""The ``motorctl`` command line.
+
+Subcommands come from the modules in :data:`COMMAND_MODULES` (``run``, ``compare``,
+``check-config``, ``plot`` in :mod:`motorctl.cli.run`; the daemon and its operator commands in
+:mod:`motorctl.cli.operator`; ``identify`` in :mod:`motorctl.cli.identify`) and from other
+installed packages through the ``motorctl.commands`` entry points, each a
+``register(parser, subparsers)`` adding its parsers with ``set_defaults(func=handler)``; a
+handler returns the exit code.
+
+Exit codes: 0 success, 1 the job ran but failed (fault, comparison bound), 2 bad input
+(config, arguments, data): one clear line on stderr, nothing started.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+from importlib.metadata import entry_points
+import sys
+
+DEFAULT_CONFIG = "configs/gantry.yaml"
+
+#: Modules of this package that add subcommands (the job, daemon control, identification). Other
+#: installed packages add theirs through the ``motorctl.commands`` entry-point group (a
+#: ``register(parser, subparsers)`` function), e.g. ``motorctl emulate``.
+COMMAND_MODULES = ("motorctl.cli.run", "motorctl.cli.operator", "motorctl.cli.identify")
+COMMAND_GROUP = "motorctl.commands"
+
+
+class UsageError(Exception):
+    """Bad input found by a handler: printed as one line, exit code 2."""
+
+
+def print_table(rows: list[list[str]], out) -> None:
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    for r in rows:
+        out.write("  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))) + "\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="motorctl", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+
+    for mod in COMMAND_MODULES:
+        importlib.import_module(mod).register(p, sub)
+    for ep in sorted(entry_points(group=COMMAND_GROUP), key=lambda e: e.name):
+        ep.load()(p, sub)
+    return p
+
+
+def main(argv=None) -> int:
+    from motorctl.config import ConfigError
+    from motorctl.loop.rt import RealtimeError
+    from motorctl.recorder.runlog import LogError
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (ConfigError, UsageError, LogError, RealtimeError) as exc:
+        sys.stderr.write(f"motorctl: error: {exc}\n")
+        return 2
+    except FileNotFoundError as exc:
+        sys.stderr.write(f"motorctl: error: {exc.filename}: no such file\n")
+        return 2
+    except BrokenPipeError:   # the reader went away (e.g. `motorctl status | head`)
+        return 0
+    except OSError as exc:  # a driver that cannot reach its device, a log that cannot be written
+        sys.stderr.write(f"motorctl: error: {exc}\n")
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
+

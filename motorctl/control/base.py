@@ -1,0 +1,93 @@
+"""The controller interface: what the servo loop and the recorder read from a controller.
+
+A controller is one axis's control law. The loop calls :meth:`Controller.reset` when the axis
+is enabled (bumpless start from the measured position) and :meth:`Controller.update` once per
+sample; after each sample the controller's :attr:`Controller.signals` hold the values of
+:data:`motorctl.loop.records.CONTROLLER_SIGNALS` (NaN for a signal the law does not have). The
+loop copies that block into the cycle record and reads the tracking error ``e`` for the
+following-error check; nothing else is read, so any law that fills these slots can be driven,
+recorded, switched and compared.
+
+Controllers are chosen by name (:data:`motorctl.control.CONTROLLERS`); each class reads its
+own part of an axis's ``controller:`` config section (Klipper's rule) in :meth:`from_config`.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import ClassVar
+
+import numpy as np
+
+from motorctl.loop.records import CONTROLLER_SIGNALS, N_SIGNALS
+
+#: offsets into :attr:`Controller.signals`
+SIG = {name: j for j, name in enumerate(CONTROLLER_SIGNALS)}
+SIG_V, SIG_E, SIG_P, SIG_X2 = SIG["v"], SIG["e"], SIG["p"], SIG["x2"]
+SIG_THETA = SIG["theta_hat1"]
+SIG_D0 = SIG["d_hat0"]
+
+
+class Controller(abc.ABC):
+    """Base of every controller (C1, C2, PID, ...).
+
+    Attributes:
+        name (str): registry name, e.g. "c2".
+        ts (float): sample period [s].
+        u_lim (float): output limit [V]; :meth:`update` returns |u| ≤ u_lim.
+        n_theta (int): number of adapted parameters θ̂ (0 for a fixed-gain law).
+        theta_hat (np.ndarray): shape (n_theta,), live view of θ̂.
+        signals (np.ndarray): shape (N_SIGNALS,) float64, the published signals of the last
+            sample (see the module docstring); NaN where the law has no such signal.
+    """
+
+    name: ClassVar[str] = ""
+
+    def __init__(self, ts: float, u_lim: float, n_theta: int = 0):
+        self.ts = float(ts)
+        self.u_lim = float(u_lim)
+        self.n_theta = int(n_theta)
+        self.signals = np.full(N_SIGNALS, np.nan)
+        self.theta_hat = np.zeros(self.n_theta)
+
+    @classmethod
+    @abc.abstractmethod
+    def from_config(cls, section, ts: float, name: str) -> "Controller":
+        """Build from an axis's ``controller:`` section (a checked ``ControllerConfig``).
+
+        Raises:
+            ValueError: the section does not configure this controller.
+        """
+
+    @classmethod
+    def configured(cls, section) -> bool:
+        """True when ``section`` holds what this controller needs (so it can be selected)."""
+        return True
+
+    @abc.abstractmethod
+    def reset(self, y0: float) -> None:
+        """Start (or restart) from the measured position y0 [m] with zero output."""
+
+    @abc.abstractmethod
+    def update(self, y: float, x_d: float, xd_dot: float, xd_ddot: float, t: float) -> float:
+        """One sample: measured position y [m], desired position [m], velocity [m/s] and
+        acceleration [m/s²], time t [s]. Returns u [V], |u| ≤ u_lim; fills :attr:`signals`.
+        Never allocates a container, blocks or logs (it runs inside the 5 kHz cycle)."""
+
+    @property
+    def e(self) -> float:
+        """Tracking error of the last sample, y − x_d [m]."""
+        return float(self.signals[SIG_E])
+
+    def inherit(self, other: "Controller") -> None:
+        """Take over what ``other`` has learned (called at a switch, between cycles): by
+        default the common leading entries of θ̂."""
+        n = min(self.n_theta, other.n_theta)
+        if n:
+            self.theta_hat[:n] = other.theta_hat[:n]
+
+    def theta_vector(self) -> np.ndarray:
+        """θ̂ padded with NaN to 6 entries (a new array; not for the cycle)."""
+        out = np.full(6, np.nan)
+        out[: self.n_theta] = self.theta_hat
+        return out

@@ -1,0 +1,108 @@
+"""The cycle record, declared once by name (and unit): what the loop writes every cycle.
+
+One float64 row per cycle: the cycle-wide fields, then for every axis the axis fields under
+``AXIS.<field>``. The loop, the flight recorder, the daemon's status, the run-log reader, the
+exporters and the plots all index a row by these names through :class:`RecordLayout`, never by
+a hand-counted offset.
+
+The controller block (:data:`CONTROLLER_SIGNALS`) is what every controller publishes after
+each sample (:class:`motorctl.control.base.Controller`); a signal a controller does not have
+(θ̂5/θ̂6 for C1, θ̂ and d̂0 for a PID) is NaN, never a stale value of another controller.
+"""
+
+from __future__ import annotations
+
+#: cycle-wide fields: name -> unit
+CYCLE_FIELDS: dict[str, str] = {
+    "t": "s",                  # program time k·Ts of this cycle
+    "lateness_ns": "ns",       # wake − deadline
+    "turnaround_ns": "ns",     # read start → write end
+    "read_ns": "ns",
+    "control_ns": "ns",
+    "write_ns": "ns",
+    "overruns": "1",           # missed periods so far
+}
+
+#: what a controller publishes after each sample: name -> unit (paper's symbols, eq. 11-19)
+CONTROLLER_SIGNALS: dict[str, str] = {
+    "v": "V",                  # the law's output before the input inversion
+    "e": "m",                  # tracking error y − x_d
+    "p": "m/s",                # p = ė + k1 e (eq. 11); PID: the derivative of the error
+    "x2": "m/s",               # velocity estimate (backward difference)
+    "theta_hat1": "V s^2/m",
+    "theta_hat2": "V s/m",
+    "theta_hat3": "V",
+    "theta_hat4": "V",
+    "theta_hat5": "1/V",
+    "theta_hat6": "1/V^2",
+    "d_hat0": "V",             # fast disturbance compensation (eq. 19)
+}
+N_SIGNALS = len(CONTROLLER_SIGNALS)
+N_THETA_MAX = 6
+
+#: per-axis fields: name -> unit. The controller block is contiguous (the loop copies it).
+AXIS_FIELDS: dict[str, str] = {
+    "y": "m",
+    "x_d": "m",
+    "xd_dot": "m/s",
+    "xd_ddot": "m/s^2",
+    "u": "V",
+    **CONTROLLER_SIGNALS,
+    "enabled": "1",            # amplifier enable written this cycle
+    "fault_bits": "1",         # latched fault bits (motorctl.loop.safety)
+}
+
+
+class RecordLayout:
+    """Column names, units and offsets of the record for a list of axes.
+
+    Args:
+        axis_names: axes in loop order.
+    Attributes:
+        columns (list[str]): ``t, lateness_ns, ..., X.y, X.x_d, ...``; width = len(columns).
+        units (list[str]): the unit of every column.
+    """
+
+    def __init__(self, axis_names):
+        self.axis_names = list(axis_names)
+        self.columns = list(CYCLE_FIELDS)
+        self.units = list(CYCLE_FIELDS.values())
+        for a in self.axis_names:
+            self.columns += [f"{a}.{f}" for f in AXIS_FIELDS]
+            self.units += list(AXIS_FIELDS.values())
+        self.width = len(self.columns)
+        self._index = {c: j for j, c in enumerate(self.columns)}
+
+    def cycle(self, field: str) -> int:
+        """Offset of a cycle-wide field in a row. Raises KeyError for an unknown field."""
+        if field not in CYCLE_FIELDS:
+            raise KeyError(f"no cycle field {field!r}; fields: {', '.join(CYCLE_FIELDS)}")
+        return self._index[field]
+
+    def axis_base(self, i: int) -> int:
+        """Offset of axis i's first field in a row."""
+        return len(CYCLE_FIELDS) + i * len(AXIS_FIELDS)
+
+    @staticmethod
+    def axis_field(field: str) -> int:
+        """Offset of a per-axis field from the axis's base. Raises KeyError if unknown."""
+        try:
+            return list(AXIS_FIELDS).index(field)
+        except ValueError:
+            raise KeyError(f"no axis field {field!r}; fields: {', '.join(AXIS_FIELDS)}") from None
+
+    def index(self, column: str) -> int:
+        """Offset of a full column name (``"t"``, ``"X.u"``). Raises KeyError if unknown."""
+        try:
+            return self._index[column]
+        except KeyError:
+            raise KeyError(f"no column {column!r}; columns: {', '.join(self.columns)}") from None
+
+    def header(self) -> dict:
+        """The layout's part of a run-log header: ``columns`` and ``units``."""
+        return {"columns": list(self.columns), "units": list(self.units)}
+
+
+def columns_for(axis_names) -> list[str]:
+    """Column names of a record for these axes (order of the row)."""
+    return RecordLayout(axis_names).columns

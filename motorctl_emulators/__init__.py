@@ -1,0 +1,1 @@
+"""motorctl_emulators"""
