@@ -369,9 +369,11 @@ def config_from_dict(data: dict, source: str | Path = "<dict>", check_budget: bo
         axis_opts[name] = _validate(path, driver_cls.AxisOptions, ax.driver, f"axes.{name}.driver")
     _cross_checks(path, cfg)
     loaded = LoadedConfig(path, cfg, driver_cls, driver_options, axis_opts)
+    driver = loaded.make_driver()          # parse only: no I/O
+    _check_command_limits(path, cfg, driver)
     if check_budget:
         rate = cfg.loop.rate_hz
-        b = loaded.make_driver().budget(rate)
+        b = driver.budget(rate)
         if rate > b.max_rate_hz:
             hint = f"; {b.suggestion}" if b.suggestion else ""
             raise ConfigError(path, "loop.rate_hz",
@@ -379,3 +381,17 @@ def config_from_dict(data: dict, source: str | Path = "<dict>", check_budget: bo
                               f"(bus time {b.cycle_time_s * 1e6:.1f} us per cycle, at most "
                               f"{b.max_rate_hz:.0f} Hz){hint}")
     return loaded
+
+
+def _check_command_limits(path: Path, cfg: GantryConfig, driver: Driver) -> None:
+    """The controller's output limit must fit the driver's ``voltage_out`` interface: a u_lim
+    above the drive's full scale would be clipped by the drive while the log records the
+    unclipped value."""
+    for name, ax in cfg.axes.items():
+        fs = driver.voltage_limit_V(name)
+        if ax.controller.u_lim > fs:
+            raise ConfigError(path, f"axes.{name}.controller.u_lim",
+                              f"{ax.controller.u_lim:g} V is above the {cfg.driver.type} driver's "
+                              f"full scale of {fs:g} V (its voltage_out limit): the drive would "
+                              f"clip what the log records; set u_lim to {fs:g} or less, or raise "
+                              f"the driver's full scale")

@@ -41,7 +41,7 @@ def _publish(ring, cols, k0, n, fault_at=None):
         r[ci["turnaround_ns"]] = 20000.0 + k % 7
         r[ci["X.enabled"]] = 1.0
         r[ci["X.fault_bits"]] = 1.0 if fault_at is not None and k >= fault_at else 0.0
-        ring.ctl[0] = k + 1
+        ring.publish(k + 1)
 
 
 def test_drainer_copies_every_row_in_order_and_cuts_an_event_window(tmp_path):

@@ -77,8 +77,10 @@ class ServoLoop:
         spin_us: busy-wait tail before each deadline [µs] (wall clock only).
         buffer: optional preallocated record buffer, shape (capacity, layout.width) float64
             (e.g. a shared-memory ring drained by another process).
-        heartbeat: optional int64 array; element 0 is set to the number of executed cycles
-            after every cycle (rows below it are complete), LinuxCNC's ``threadbeat``.
+        heartbeat: optional object with ``publish(k)``, called with the number of executed
+            cycles after every cycle (rows below it are complete), LinuxCNC's ``threadbeat``
+            (the shared ring: :meth:`motorctl.recorder.flight.SharedRing.publish`, a release
+            store).
         on_slack: optional callable(loop) run after every cycle, outside the timed part
             (command mailbox, status publishing); it must return quickly and not block.
         overrun_policy: 'count' or 'ramp'; overrun_hold: cycles; overrun_ramp_s: [s].
@@ -367,7 +369,7 @@ class ServoLoop:
             self.k = k + 1
             done += 1
             if hb is not None:
-                hb[0] = k + 1
+                hb.publish(k + 1)
             if slack is not None:
                 slack(self)
         return done

@@ -8,8 +8,8 @@ cycle with ``t``, lateness, turnaround and per-phase times [ns], overruns, and p
 Who does what:
   * the loop process (5 kHz, SCHED_FIFO) writes row ``k`` at ``k % capacity`` of
     :attr:`SharedRing.rows` through a memoryview, then publishes ``k + 1`` in
-    ``ctl[CTL_HEARTBEAT]`` (the heartbeat; LinuxCNC's ``threadbeat``). Nothing else: no
-    syscall, no allocation;
+    ``ctl[CTL_HEARTBEAT]`` (:meth:`SharedRing.publish`, the heartbeat; LinuxCNC's
+    ``threadbeat``). Nothing else: no syscall, no allocation;
   * the I/O process (SCHED_OTHER) runs a :class:`Drainer` that copies the new rows out of the
     ring, appends them to the run log (``os.write``), and ``fdatasync``\\ s at least every
     ``flush_s``. A crash (``kill -9``) of either process loses at most the rows after the
@@ -20,8 +20,9 @@ Who does what:
     increasing), the drainer also writes an event log holding ``event_before_s`` before and
     ``event_after_s`` after it (the hm2 TRACER idea, LinuxCNC#4236), in the run-log format.
 
-The ordering argument (row stores before the heartbeat store, heartbeat load before the row
-loads) holds on x86-64's total store order; on weakly ordered CPUs a fence would be needed.
+Ordering: the loop's row stores come before its heartbeat store, and the drainer's heartbeat
+load before its row loads, through explicit fences (:mod:`motorctl.recorder.ordering`), so the
+argument holds on weakly ordered CPUs too, not only on x86-64's total store order.
 """
 
 from __future__ import annotations
@@ -30,6 +31,8 @@ import mmap
 import time
 
 import numpy as np
+
+from motorctl.recorder.ordering import load_acquire, store_release, warm_up
 
 from motorctl.recorder.runlog import LogWriter
 
@@ -69,10 +72,15 @@ class SharedRing:
         self.status = buf[off:off + 8 * self.n_axes * sw].view(np.float64).reshape(self.n_axes, sw)
         off += 8 * self.n_axes * sw
         self.rows = buf[off:].view(np.float64).reshape(self.capacity, self.width)
+        warm_up()
+
+    def publish(self, k: int) -> None:
+        """Loop side: ``k`` cycles are complete (a release store after the rows' stores)."""
+        store_release(self.ctl, CTL_HEARTBEAT, k)
 
     def published(self) -> int:
-        """Rows written so far (the heartbeat)."""
-        return int(self.ctl[CTL_HEARTBEAT])
+        """Rows written so far (the heartbeat; an acquire load before any row is read)."""
+        return int(load_acquire(self.ctl, CTL_HEARTBEAT))
 
     def latest(self) -> np.ndarray | None:
         """A copy of the newest complete row, or None before the first cycle."""

@@ -86,7 +86,7 @@ def plan_daemon(config_path: str, socket_path: str | None, log_dir: str | None) 
     # every configured controller of every axis is built (and compiled) before anything runs:
     # a switch is a swap
     asm = build(loaded, names, clock="wall", capacity=ring.capacity, buffer=ring.rows,
-                heartbeat=memoryview(ring.ctl), operated=True, all_controllers=True)
+                heartbeat=ring, operated=True, all_controllers=True)
     stop_bound = []
     for prog in asm.programs:
         longest = max((m.duration for m in prog.moves), default=0.0)

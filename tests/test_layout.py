@@ -1,0 +1,75 @@
+"""The house's rules, read from the source (ast): imports flow one way (docs/architecture.md)."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+#: package prefix -> prefixes it must never import
+FORBIDDEN = {
+    "motorctl": ("motorctl_drivers", "motorctl_emulators"),
+    "motorctl_drivers": ("motorctl_emulators", "motorctl.app", "motorctl.cli", "motorctl.ident"),
+    "motorctl.model": ("motorctl.",),
+    "motorctl.schema": ("motorctl.",),
+    "motorctl.effects": ("motorctl.control", "motorctl.loop", "motorctl.app", "motorctl.cli",
+                         "motorctl.recorder", "motorctl.ident", "motorctl.config"),
+    "motorctl.control": ("motorctl.app", "motorctl.cli", "motorctl.recorder", "motorctl.ident",
+                         "motorctl.config", "motorctl.loop.servo", "motorctl.loop.safety"),
+    "motorctl.loop": ("motorctl.app", "motorctl.cli", "motorctl.recorder", "motorctl.ident",
+                      "motorctl.config", "motorctl.control"),
+    "motorctl.recorder": ("motorctl.app", "motorctl.cli", "motorctl.control", "motorctl.ident"),
+    "motorctl.app": ("motorctl.cli",),
+    "motorctl.ident": ("motorctl.cli",),
+}
+
+
+def _modules():
+    for pkg in ("motorctl", "motorctl_drivers", "motorctl_emulators"):
+        for path in sorted((REPO / pkg).rglob("*.py")):
+            rel = path.relative_to(REPO).with_suffix("")
+            parts = list(rel.parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            yield ".".join(parts), path
+
+
+def _imports(path: Path) -> list[str]:
+    out = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.append(node.module)
+    return out
+
+
+def _matches(name: str, prefix: str) -> bool:
+    return name == prefix.rstrip(".") or name.startswith(prefix if prefix.endswith(".") else prefix + ".")
+
+
+@pytest.mark.parametrize("module,path", list(_modules()), ids=lambda x: str(x))
+def test_imports_flow_one_way(module, path):
+    bad = []
+    for owner, forbidden in FORBIDDEN.items():
+        if not _matches(module, owner):
+            continue
+        for imp in _imports(path):
+            for f in forbidden:
+                if _matches(imp, f) and not _matches(imp, module):
+                    bad.append(f"{module} imports {imp} (rule: {owner} must not import {f})")
+    assert not bad, "\n".join(bad)
+
+
+def test_the_loop_is_built_in_one_place():
+    """Only motorctl/app/build.py constructs a ServoLoop or a Supervisor in production code."""
+    builders = []
+    for module, path in _modules():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
+                    and node.func.id in ("ServoLoop", "Supervisor")):
+                builders.append(module)
+    assert set(builders) == {"motorctl.app.build"}, builders
