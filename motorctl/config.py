@@ -33,11 +33,12 @@ from pydantic import BaseModel, Field, ValidationError
 from motorctl.control import CONTROLLER_NAMES, configured_controllers, make_controller
 from motorctl.control.params import ControllerConfig
 from motorctl.driver import Driver, load_driver_class
-from motorctl.schema import NonNeg, Pos, StrictModel
-from motorctl.model import assumption2_margin
+from motorctl.loop.rt import RealtimeConfig
+from motorctl.loop.safety import LimitsConfig
 from motorctl.loop.timebase import Timebase
-from motorctl.loop.trajectory import Program
-
+from motorctl.loop.trajectory import TrajectoryConfig
+from motorctl.model import assumption2_margin
+from motorctl.schema import StrictModel
 
 
 class ConfigError(ValueError):
@@ -88,16 +89,6 @@ def load_yaml(path: str | Path) -> dict:
 
 
 # --------------------------------------------------------------------------- schema
-class RealtimeConfig(StrictModel):
-    """Real-time set-up of the loop process (reported either way; ``required`` refuses to start)."""
-
-    policy: Literal["off", "best_effort", "required"] = "best_effort"
-    priority: Annotated[int, Field(ge=1, le=99)] = 80
-    cpu: Annotated[int, Field(ge=0)] | None = None
-    lock_memory: bool = True
-    spin_us: Annotated[float, Field(ge=0, le=1000)] = 60.0
-
-
 class LoopConfig(StrictModel):
     """Loop rate, clock, run length, real-time set-up and the overrun policy.
 
@@ -136,41 +127,6 @@ class DaemonConfig(StrictModel):
     max_event_logs: Annotated[int, Field(ge=0)] = 20
     stop_settle_s: Annotated[float, Field(ge=0, le=5.0)] = 0.1
     allow_fault_injection: bool = False
-
-
-class TrajectoryConfig(StrictModel):
-    """Repeated point-to-point program (one point = hold). Times in s, limits in SI."""
-
-    points: Annotated[list[float], Field(min_length=1)] = [0.0]
-    move_times_s: list[NonNeg] = []
-    period_s: NonNeg = 0.0
-    v_max: Pos = 1.0
-    a_max: Pos = 10.0
-    j_max: Pos = 1000.0
-    start_s: NonNeg = 0.0
-
-    def program(self, offset: float = 0.0) -> Program:
-        return Program([p + offset for p in self.points], self.move_times_s, self.period_s,
-                       self.v_max, self.a_max, self.j_max, self.start_s)
-
-
-class LimitsConfig(StrictModel):
-    """Supervisor limits (LinuxCNC semantics). Lengths in m, velocities in m/s.
-
-    following_error_m applies at max_velocity_m_per_s and scales with |ẋ_d| down to
-    min_following_error_m; encoder_max_speed_m_per_s bounds the speed a change of the encoder
-    reading may show (over the cycles since the last good reading): no physical motion is faster.
-    """
-
-    soft_min_m: float = -1.0
-    soft_max_m: float = 1.0
-    following_error_m: Pos = 0.002
-    min_following_error_m: Pos = 0.0005
-    max_velocity_m_per_s: Pos = 3.0
-    encoder_max_speed_m_per_s: Pos = 10.0
-    error_bucket_increment: Annotated[int, Field(ge=1)] = 10
-    error_bucket_decrement: Annotated[int, Field(ge=1)] = 1
-    error_bucket_limit: Annotated[int, Field(ge=1)] = 100
 
 
 class AxisConfig(StrictModel):

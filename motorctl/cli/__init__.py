@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
-from importlib.metadata import entry_points
 import sys
+from importlib.metadata import entry_points
 
 DEFAULT_CONFIG = "configs/gantry.yaml"
 

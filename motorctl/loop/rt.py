@@ -19,6 +19,11 @@ import ctypes.util
 import gc
 import os
 from dataclasses import dataclass, field
+from typing import Annotated, Literal
+
+from pydantic import Field
+
+from motorctl.schema import StrictModel
 
 MCL_CURRENT = 1
 MCL_FUTURE = 2
@@ -130,3 +135,13 @@ def restore() -> None:
         pass
     gc.enable()
     gc.unfreeze()
+
+
+class RealtimeConfig(StrictModel):
+    """Real-time set-up of the loop process (reported either way; ``required`` refuses to start)."""
+
+    policy: Literal["off", "best_effort", "required"] = "best_effort"
+    priority: Annotated[int, Field(ge=1, le=99)] = 80
+    cpu: Annotated[int, Field(ge=0)] | None = None
+    lock_memory: bool = True
+    spin_us: Annotated[float, Field(ge=0, le=1000)] = 60.0

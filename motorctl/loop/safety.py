@@ -19,6 +19,11 @@ Everything here is plain float/int arithmetic on preallocated lists.
 from __future__ import annotations
 
 import math
+from typing import Annotated
+
+from pydantic import Field
+
+from motorctl.schema import Pos, StrictModel
 
 FAULT_FOLLOWING_ERROR = 1
 FAULT_SOFT_LIMIT = 2
@@ -159,3 +164,22 @@ class Supervisor:
         self.y_last[i] = y
         self.fe_peak[i] = 0.0
         return True, ""
+
+
+class LimitsConfig(StrictModel):
+    """Supervisor limits (LinuxCNC semantics). Lengths in m, velocities in m/s.
+
+    following_error_m applies at max_velocity_m_per_s and scales with |ẋ_d| down to
+    min_following_error_m; encoder_max_speed_m_per_s bounds the speed a change of the encoder
+    reading may show (over the cycles since the last good reading): no physical motion is faster.
+    """
+
+    soft_min_m: float = -1.0
+    soft_max_m: float = 1.0
+    following_error_m: Pos = 0.002
+    min_following_error_m: Pos = 0.0005
+    max_velocity_m_per_s: Pos = 3.0
+    encoder_max_speed_m_per_s: Pos = 10.0
+    error_bucket_increment: Annotated[int, Field(ge=1)] = 10
+    error_bucket_decrement: Annotated[int, Field(ge=1)] = 1
+    error_bucket_limit: Annotated[int, Field(ge=1)] = 100

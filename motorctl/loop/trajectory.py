@@ -16,6 +16,11 @@ from __future__ import annotations
 import bisect
 import math
 from dataclasses import dataclass
+from typing import Annotated
+
+from pydantic import Field
+
+from motorctl.schema import NonNeg, Pos, StrictModel
 
 
 def _accel_phase(v: float, a_max: float, j_max: float) -> tuple[float, float]:
@@ -147,3 +152,19 @@ class Program:
         if i < 0:
             return self.moves[0].start, 0.0, 0.0
         return self.moves[i].sample(tau)
+
+
+class TrajectoryConfig(StrictModel):
+    """Repeated point-to-point program (one point = hold). Times in s, limits in SI."""
+
+    points: Annotated[list[float], Field(min_length=1)] = [0.0]
+    move_times_s: list[NonNeg] = []
+    period_s: NonNeg = 0.0
+    v_max: Pos = 1.0
+    a_max: Pos = 10.0
+    j_max: Pos = 1000.0
+    start_s: NonNeg = 0.0
+
+    def program(self, offset: float = 0.0) -> Program:
+        return Program([p + offset for p in self.points], self.move_times_s, self.period_s,
+                       self.v_max, self.a_max, self.j_max, self.start_s)

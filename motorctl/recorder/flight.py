@@ -33,7 +33,6 @@ import time
 import numpy as np
 
 from motorctl.recorder.ordering import load_acquire, store_release, warm_up
-
 from motorctl.recorder.runlog import LogWriter
 
 CTL_HEARTBEAT = 0     # cycles executed and published (rows below are complete)

@@ -15,8 +15,14 @@ import sys
 import time
 
 from motorctl.app.daemon.notify import sd_notify, watchdog_ping_interval_s
-from motorctl.app.daemon.protocol import (LineBuffer, Mailbox, Request, RequestError, encode_answer,
-                                          parse_request)
+from motorctl.app.daemon.protocol import (
+    LineBuffer,
+    Mailbox,
+    Request,
+    RequestError,
+    encode_answer,
+    parse_request,
+)
 from motorctl.app.daemon.status import ST, axis_status
 from motorctl.loop.safety import describe_faults
 from motorctl.loop.trajectory import Move
