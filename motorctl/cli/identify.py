@@ -20,7 +20,6 @@ from motorctl.ident.data import load_record
 from motorctl.ident.select import Identifier
 from motorctl.model import THETA_NAMES
 
-
 #: Horizon of the simulated-position fit % (motorctl.ident.simfit) [s].
 SIM_WINDOW_S = 0.2
 
@@ -135,8 +134,8 @@ def closed_loop(idf: Identifier, cfg: dict, axis: str, duration_s: float) -> dic
     """
     import copy
 
-    from motorctl.config import config_from_dict
     from motorctl.app.job import run_job
+    from motorctl.config import config_from_dict
     th, betas = idf.coef_split(idf.final, idf.terms)
     comp = {}
     for t, b in zip(idf.terms, betas):

@@ -21,7 +21,15 @@ from __future__ import annotations
 import numpy as np
 
 from motorctl.control._jit import njit
-from motorctl.control.base import SIG_D0, SIG_E, SIG_P, SIG_THETA, SIG_V, SIG_X2, Controller
+from motorctl.control.base import (
+    SIG_D0,
+    SIG_E,
+    SIG_P,
+    SIG_THETA,
+    SIG_V,
+    SIG_X2,
+    Controller,
+)
 from motorctl.control.estimator import LeastSquaresEstimator, ls_update, s_f_jit
 from motorctl.control.inversion import invert_cubic
 from motorctl.control.params import ControllerConfig, theory_k_s1
