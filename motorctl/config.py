@@ -24,15 +24,17 @@ The layout (see ``configs/gantry.yaml``)::
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Annotated, Literal, get_args, get_origin
 
 import yaml
-from pydantic import BaseModel, Field, ValidationError
+from pydantic import BaseModel, Field, StringConstraints, ValidationError
 
 from motorctl.control import CONTROLLER_NAMES, configured_controllers, make_controller
 from motorctl.control.params import ControllerConfig
 from motorctl.driver import Driver, load_driver_class
+from motorctl.inputs import MAX_CONFIG_BYTES, InputError, read_text, summarize
 from motorctl.loop.rt import RealtimeConfig
 from motorctl.loop.safety import LimitsConfig
 from motorctl.loop.timebase import Timebase
@@ -51,7 +53,14 @@ class ConfigError(ValueError):
 
 # --------------------------------------------------------------------------- YAML
 class _StrictLoader(yaml.SafeLoader):
-    """SafeLoader that refuses duplicate mapping keys."""
+    """SafeLoader that refuses duplicate mapping keys and reads YAML 1.2 floats: ``5e3`` and
+    ``1e-6`` are numbers (YAML 1.1, PyYAML's default, reads them as strings)."""
+
+
+_StrictLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."))
 
 
 def _construct_mapping(loader, node, deep=False):
@@ -69,12 +78,19 @@ _StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _c
 
 
 def load_yaml(path: str | Path) -> dict:
-    """Parse a YAML file strictly. Raises ConfigError on a missing file, syntax error or duplicate key."""
+    """Parse a YAML config file strictly (a regular UTF-8 file of at most
+    :data:`motorctl.inputs.MAX_CONFIG_BYTES`).
+
+    Raises:
+        ConfigError: missing, not a regular file, too large, not UTF-8, a syntax error, a
+        duplicate key, or a top level that is not a mapping.
+    """
     path = Path(path)
     try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ConfigError(path, "", f"cannot read the file ({exc.strerror or exc})") from None
+        text = read_text(path, "config", MAX_CONFIG_BYTES)
+    except InputError as exc:
+        msg = str(exc)
+        raise ConfigError(path, "", msg[len(str(path)) + 2:] if msg.startswith(f"{path}: ") else msg) from None
     try:
         data = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 (SafeLoader subclass)
     except yaml.MarkedYAMLError as exc:
@@ -141,11 +157,15 @@ class DriverSection(StrictModel):
     model_config = StrictModel.model_config | {"extra": "allow"}
 
 
+#: an axis name: a letter, then letters, digits or '_' (it is a column prefix and a CLI word)
+AxisName = Annotated[str, StringConstraints(pattern=r"^[A-Za-z][A-Za-z0-9_]{0,31}$")]
+
+
 class GantryConfig(StrictModel):
     loop: LoopConfig = LoopConfig()
     daemon: DaemonConfig = DaemonConfig()
     driver: DriverSection = DriverSection()
-    axes: Annotated[dict[str, AxisConfig], Field(min_length=1)]
+    axes: Annotated[dict[AxisName, AxisConfig], Field(min_length=1)]
 
 
 class LoadedConfig:
@@ -214,13 +234,19 @@ def _validate(path: Path, model, data, prefix: str = ""):
     except ValidationError as exc:
         err = exc.errors()[0]
         loc = tuple(x for x in err["loc"] if not (isinstance(x, str) and x.startswith("function-")))
-        key = _fmt_loc(prefix, loc)
         msg = err["msg"]
-        if err["type"] == "extra_forbidden":
+        if loc and loc[-1] == "[key]":         # a mapping key itself is wrong (an axis name)
+            loc = loc[:-2]
+            msg = f"{summarize(err['input'])} is not a valid name: {msg}"
+        key = _fmt_loc(prefix, loc)
+        if err["type"] == "string_pattern_mismatch" and "is not a valid name" in msg:
+            msg = (f"{summarize(err['input'])} is not a valid name; allowed: a letter, then "
+                   f"letters, digits or '_' (at most 32)")
+        elif err["type"] == "extra_forbidden":
             allowed = ", ".join(model_fields_at(model, loc[:-1])) or "none"
             msg = f"unknown key; allowed here: {allowed}"
-        elif "input" in err and err["type"] != "missing":
-            msg = f"{msg} (got {err['input']!r})"
+        elif "input" in err and err["type"] != "missing" and "is not a valid name" not in msg:
+            msg = f"{msg} (got {summarize(err['input'])})"
         more = f" (and {len(exc.errors()) - 1} more problem(s))" if len(exc.errors()) > 1 else ""
         raise ConfigError(path, key, msg + more) from None
 
@@ -325,7 +351,10 @@ def config_from_dict(data: dict, source: str | Path = "<dict>", check_budget: bo
         axis_opts[name] = _validate(path, driver_cls.AxisOptions, ax.driver, f"axes.{name}.driver")
     _cross_checks(path, cfg)
     loaded = LoadedConfig(path, cfg, driver_cls, driver_options, axis_opts)
-    driver = loaded.make_driver()          # parse only: no I/O
+    try:
+        driver = loaded.make_driver()      # parse only: no I/O; checks what spans axes
+    except ValueError as exc:              # e.g. two axes' fields on the same CAN bytes
+        raise ConfigError(path, "driver", str(exc)) from None
     _check_command_limits(path, cfg, driver)
     if check_budget:
         rate = cfg.loop.rate_hz

@@ -1,6 +1,6 @@
 """The base of every YAML-facing settings model, and the number types they share.
 
-Strict: an unknown key is an error and numbers stay numbers (no "5" for 5). Each settings
+Strict: an unknown key is an error, numbers stay numbers (no "5" for 5) and are finite. Each settings
 model lives beside the code that reads it (Klipper's rule: an object reads its own section);
 ``motorctl.config`` composes them into the file's schema and adds the cross-field checks.
 """
@@ -20,6 +20,8 @@ Vec6 = Annotated[list[float], Field(min_length=6, max_length=6)]
 
 
 class StrictModel(BaseModel):
-    """Base of every YAML-facing options model: unknown keys are errors, numbers stay numbers."""
+    """Base of every YAML-facing options model: unknown keys are errors, numbers stay numbers,
+    and every float is finite (``.inf`` and ``.nan`` are refused: an infinite following-error
+    limit would switch the protection off by accident)."""
 
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)

@@ -15,8 +15,31 @@ import numpy as np
 
 from motorctl.app.build import build, log_header, shutdown, start
 from motorctl.config import LoadedConfig
+from motorctl.inputs import InputError
+from motorctl.loop.records import RecordLayout
 from motorctl.metrics import timing_stats, tracking_indexes
 from motorctl.recorder.runlog import LogWriter
+
+
+#: largest in-memory record of one run [bytes] (the daemon records into a ring instead)
+MAX_RECORD_BYTES = 2 << 30
+
+
+def _check_record_size(loaded: LoadedConfig, axes, duration: float, n_cycles: int) -> None:
+    """A run keeps every row in memory: refuse, before anything starts, a duration whose
+    record does not fit in :data:`MAX_RECORD_BYTES` (or that is shorter than one period)."""
+    names = list(axes) if axes else list(loaded.axes)
+    width = RecordLayout(names).width
+    if n_cycles < 1:
+        raise InputError(f"duration {duration:g} s is shorter than one period "
+                         f"({loaded.period_s:g} s)")
+    if n_cycles * width * 8 > MAX_RECORD_BYTES:
+        fit_s = MAX_RECORD_BYTES // (width * 8) * loaded.period_s
+        raise InputError(f"duration {duration:g} s: {n_cycles} cycles of {width} columns need "
+                         f"{n_cycles * width * 8 / 2**30:.1f} GiB of records; at most "
+                         f"{fit_s:.0f} s fit in {MAX_RECORD_BYTES / 2**30:.0f} GiB at "
+                         f"{1 / loaded.period_s:g} Hz with {len(names)} axes (the daemon "
+                         f"records without a limit)")
 
 
 @dataclass
@@ -55,6 +78,7 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
     duration = float(duration_s if duration_s is not None else cfg.loop.duration_s)
     clock = clock or cfg.loop.clock
     n_cycles = loaded.timebase.cycles(duration)
+    _check_record_size(loaded, axes, duration, n_cycles)
     policy = realtime_policy or ("off" if clock == "virtual" else cfg.loop.realtime.policy)
     asm = build(loaded, axes, controller, clock=clock, capacity=max(n_cycles, 1))
     loop, names = asm.loop, asm.names

@@ -31,6 +31,23 @@ class UsageError(Exception):
     """Bad input found by a handler: printed as one line, exit code 2."""
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (``motorctl: error: ...``, exit 2), as every other bad
+    input gets; ``--help`` still prints the usage."""
+
+    def error(self, message):
+        self.exit(2, f"motorctl: error: {self.prog}: {message}\n")
+
+
+def seconds(text: str) -> float:
+    """argparse type of a duration [s]: finite and > 0 (at most 10^6 s)."""
+    from motorctl.inputs import InputError, finite_number
+    try:
+        return finite_number(text, "duration", 0.0, 1e6)
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[1]) from None
+
+
 def print_table(rows: list[list[str]], out) -> None:
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     for r in rows:
@@ -38,7 +55,7 @@ def print_table(rows: list[list[str]], out) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="motorctl", description=__doc__.splitlines()[0])
+    p = Parser(prog="motorctl", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
 
@@ -51,13 +68,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     from motorctl.config import ConfigError
+    from motorctl.inputs import InputError
     from motorctl.loop.rt import RealtimeError
     from motorctl.recorder.runlog import LogError
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:               # --help (0) or a one-line usage error (2)
+        return int(exc.code or 0)
     try:
         return int(args.func(args) or 0)
-    except (ConfigError, UsageError, LogError, RealtimeError) as exc:
+    except (ConfigError, UsageError, InputError, LogError, RealtimeError) as exc:
         sys.stderr.write(f"motorctl: error: {exc}\n")
         return 2
     except FileNotFoundError as exc:

@@ -214,6 +214,9 @@ def text_report(s: dict) -> str:
 # ---------------------------------------------------------------------------- command
 def cmd_identify(args) -> int:
     from motorctl.cli import UsageError
+    from motorctl.inputs import writable_dir
+    if args.report:
+        writable_dir(args.report, "report")        # before the (long) fit
     try:
         rec = load_record(args.data, args.mapping, args.gain, args.axis)
         rec2 = load_record(args.validate, args.mapping, args.gain, args.axis) if args.validate else None

@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 import sys
 
-from motorctl.cli import DEFAULT_CONFIG, UsageError, print_table
+from motorctl.cli import DEFAULT_CONFIG, UsageError, print_table, seconds
+from motorctl.inputs import writable_dir, writable_file
 from motorctl.control import CONTROLLER_NAMES
 
 
@@ -19,6 +20,8 @@ def cmd_run(args) -> int:
     from motorctl.app.job import run_job
     loaded = _load(args.config)
     axes = _select_axes(loaded, args.axis)
+    if args.log:
+        writable_file(args.log, "run log")        # before anything runs
     out = sys.stdout
 
     def announce(names, n_cycles, clock):
@@ -115,6 +118,8 @@ def cmd_check_config(args) -> int:
 # --------------------------------------------------------------------------- plot
 def cmd_plot(args) -> int:
     from motorctl.plots import plot_log
+    if args.out:
+        writable_dir(args.out, "plot")
     files = plot_log(args.log, args.out)
     for f in files:
         sys.stdout.write(f"{f}\n")
@@ -127,7 +132,7 @@ def register(parser, sub) -> None:
     r.add_argument("config", nargs="?", default=DEFAULT_CONFIG)
     r.add_argument("--axis", help="run only this axis")
     r.add_argument("--controller", choices=CONTROLLER_NAMES, help="override every axis's controller")
-    r.add_argument("--duration", type=float, help="run length in s (default: loop.duration_s)")
+    r.add_argument("--duration", type=seconds, help="run length in s (default: loop.duration_s)")
     r.add_argument("--log", help="write the run log here")
     r.add_argument("--virtual-clock", action="store_true", help="run as fast as possible (same results)")
     r.add_argument("--realtime", choices=("off", "best_effort", "required"),
@@ -136,7 +141,7 @@ def register(parser, sub) -> None:
 
     c = sub.add_parser("compare", help="C1, C2 (and a PID where configured) on the same seeded plant, beside the paper's tables")
     c.add_argument("config", nargs="?", default=DEFAULT_CONFIG)
-    c.add_argument("--duration", type=float, help="run length in s (default: loop.duration_s = 40)")
+    c.add_argument("--duration", type=seconds, help="run length in s (default: loop.duration_s = 40)")
     c.add_argument("--json", action="store_true", help="print one JSON object and nothing else")
     c.add_argument("--wall-clock", action="store_true", help="pace by the wall clock (default: virtual)")
     c.set_defaults(func=cmd_compare)
