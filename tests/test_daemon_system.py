@@ -43,6 +43,26 @@ def test_unit_files_verify_clean(tmp_path, unit, instance):
     assert r.returncode == 0 and not ours, r.stdout + r.stderr
 
 
+@pytest.mark.skipif(SYSTEMD_ANALYZE is None, reason="systemd-analyze not installed")
+@pytest.mark.parametrize("unit,instance", [("motorctl.service", "motorctl.service"),
+                                           ("motorctl@.service", "motorctl@xy.service")])
+def test_units_are_sandboxed(tmp_path, unit, instance):
+    """systemd's own exposure scale: 3.0 or lower, with what the loop needs kept open."""
+    exe = str(console_script())
+    text = re.sub(r"^ExecStart=\S+", f"ExecStart={exe}", (REPO / "systemd" / unit).read_text(),
+                  flags=re.M)
+    for key in ("RestrictRealtime=no", "LimitMEMLOCK=infinity", "AF_UNIX", "AF_CAN", "AF_INET",
+                "LimitNOFILE=", "NoNewPrivileges=yes", "ProtectSystem=strict",
+                "NUMBA_CACHE_DIR=", "CacheDirectory="):
+        assert key in text, key
+    (tmp_path / instance).write_text(text)
+    r = subprocess.run([SYSTEMD_ANALYZE, "security", "--offline=true", str(tmp_path / instance)],
+                       capture_output=True, text=True, timeout=60)
+    m = re.search(r"Overall exposure level for \S+: ([0-9.]+)", r.stdout + r.stderr)
+    assert m, r.stdout + r.stderr
+    assert float(m.group(1)) <= 3.0, r.stdout
+
+
 class _NotifySocket:
     def __init__(self, path):
         self.path = str(path)

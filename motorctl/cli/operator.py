@@ -33,35 +33,48 @@ def socket_path(args) -> str:
 
 
 def call(path: str, request: dict, timeout_s: float = 5.0) -> dict:
-    """Send one request to the daemon and return its answer (a dict with 'ok').
+    """Send one request to the daemon and return its answer (a dict with 'ok'). A full
+    connection queue (many operators at once) is waited out with backoff within the timeout.
 
     Raises:
         DaemonUnreachable: no daemon at ``path``, permission denied, or no answer in time.
     """
-    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    s.settimeout(timeout_s)
-    try:
+    deadline = time.monotonic() + timeout_s
+    pause = 0.005
+    while True:
+        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        s.settimeout(timeout_s)
         try:
             s.connect(path)
-        except (FileNotFoundError, ConnectionRefusedError):
-            raise DaemonUnreachable(f"the daemon is not running (nothing answers at {path})") from None
-        except PermissionError:
-            raise DaemonUnreachable(f"permission denied on {path}: commanding the machine needs "
-                                    f"membership of the socket's group") from None
+            break
+        except BlockingIOError:
+            s.close()
+            # the daemon's listen backlog is full (many operators at once): queue up
+            if time.monotonic() + pause > deadline:
+                raise DaemonUnreachable(f"the daemon at {path} is busy (connection queue "
+                                        f"full for {timeout_s:g} s)") from None
+            time.sleep(pause)
+            pause = min(pause * 2, 0.1)
         except OSError as exc:
+            s.close()
+            if isinstance(exc, (FileNotFoundError, ConnectionRefusedError)):
+                raise DaemonUnreachable(f"the daemon is not running (nothing answers at {path})") from None
+            if isinstance(exc, PermissionError):
+                raise DaemonUnreachable(f"permission denied on {path}: commanding the machine needs "
+                                        f"membership of the socket's group") from None
             raise DaemonUnreachable(f"cannot reach the daemon at {path}: {exc.strerror or exc}") from None
-        try:
-            s.sendall((json.dumps(request) + "\n").encode())
-            buf = b""
-            while b"\n" not in buf:
-                chunk = s.recv(65536)
-                if not chunk:
-                    break
-                buf += chunk
-        except socket.timeout:
-            raise DaemonUnreachable(f"the daemon at {path} did not answer within {timeout_s:g} s") from None
-        except OSError as exc:
-            raise DaemonUnreachable(f"lost the connection to the daemon at {path}: {exc.strerror or exc}") from None
+    try:
+        s.sendall((json.dumps(request) + "\n").encode())
+        buf = b""
+        while b"\n" not in buf:
+            chunk = s.recv(65536)
+            if not chunk:
+                break
+            buf += chunk
+    except socket.timeout:
+        raise DaemonUnreachable(f"the daemon at {path} did not answer within {timeout_s:g} s") from None
+    except OSError as exc:
+        raise DaemonUnreachable(f"lost the connection to the daemon at {path}: {exc.strerror or exc}") from None
     finally:
         s.close()
     if not buf:

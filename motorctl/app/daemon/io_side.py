@@ -35,6 +35,12 @@ LOOP_ANSWER_S = 2.0
 IDLE_WAKE_S = 0.02
 #: STATUS= line to systemd at most this often [s]
 STATUS_LINE_S = 2.0
+#: most client connections open at once; the oldest idle one is closed to admit a new one
+MAX_CLIENTS = 64
+#: a connection without a complete request after this time is closed [s]
+CLIENT_IDLE_S = 5.0
+#: after running out of file descriptors, accept nothing for this long [s]
+EMFILE_PAUSE_S = 0.1
 
 
 class IOSide:
@@ -55,6 +61,9 @@ class IOSide:
         self.fatal = ""
         self.pending: dict[int, tuple] = {}
         self.buffers: dict = {}
+        self.clients: dict = {}          # conn -> time it connected (waiting for its request)
+        self.accept_paused_until = 0.0
+        self.clients_refused = 0
         self.next_id = 1
         self.sel = selectors.DefaultSelector()
         self.started = time.monotonic()
@@ -137,6 +146,8 @@ class IOSide:
                     "max_flush_gap_s": dr.max_flush_gap_s, "events": dr.events,
                     "events_pending": len(dr.pending), "events_dropped": dr.events_dropped},
             "socket": self.plan.socket_path,
+            "clients": {"open": len(self.clients), "refused": self.clients_refused,
+                        "max": MAX_CLIENTS},
         }
 
     def summary_line(self) -> str:
@@ -190,11 +201,50 @@ class IOSide:
         except (KeyError, ValueError):
             pass
         self.buffers.pop(conn, None)
+        self.clients.pop(conn, None)
+
+    def drop(self, conn) -> None:
+        """Close a client connection that will get no answer."""
+        self.forget(conn)
+        try:
+            conn.close()
+        except OSError:
+            pass
+
+    def accept(self, now: float) -> None:
+        """Accept the waiting clients (at most :data:`MAX_CLIENTS` per wake). At the connection
+        cap the oldest waiting client is dropped; out of descriptors (EMFILE/ENFILE), idle
+        clients are dropped and accepting pauses briefly, so no client can take the I/O
+        process (and with it every axis) down."""
+        if now < self.accept_paused_until:
+            return
+        for _ in range(MAX_CLIENTS):
+            if len(self.clients) >= MAX_CLIENTS:
+                oldest = min(self.clients, key=self.clients.get)
+                self.drop(oldest)
+                self.clients_refused += 1
+            try:
+                conn, _ = self.lsock.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:                  # EMFILE, ENFILE, ENOBUFS ...
+                for c in [c for c, t in self.clients.items() if now - t > 0.5]:
+                    self.drop(c)
+                self.clients_refused += 1
+                self.accept_paused_until = now + EMFILE_PAUSE_S
+                return
+            conn.setblocking(False)
+            self.sel.register(conn, selectors.EVENT_READ, "client")
+            self.clients[conn] = now
+
+    def expire_clients(self, now: float) -> None:
+        for c in [c for c, t in self.clients.items() if now - t > CLIENT_IDLE_S]:
+            self.drop(c)
 
     def respond(self, conn, obj: dict) -> None:
         try:
             conn.setblocking(True)
-            conn.settimeout(1.0)
+            conn.settimeout(0.5)         # a client that does not read cannot stall us long
             conn.sendall(encode_answer(obj))
         except OSError:
             pass
@@ -222,8 +272,8 @@ class IOSide:
             ans = {"ok": False, "error": str(exc), "usage": True}
         if ans is not None:
             self.respond(conn, ans)
-        else:
-            self.forget(conn)              # the answer comes from the loop
+        else:                              # the answer comes from the loop
+            self.forget(conn)
 
     # ------------------------------------------------------------------ the run
     def run(self) -> int:
@@ -234,12 +284,7 @@ class IOSide:
         while not loop_gone:
             for key, _ in self.sel.select(timeout=IDLE_WAKE_S):
                 if key.data == "listen":
-                    try:
-                        conn, _ = self.lsock.accept()
-                    except (BlockingIOError, InterruptedError):
-                        continue
-                    conn.setblocking(False)
-                    self.sel.register(conn, selectors.EVENT_READ, "client")
+                    self.accept(time.monotonic())
                 elif key.data == "loop":
                     msgs = self.replies.recv()
                     if msgs is None:
@@ -250,6 +295,7 @@ class IOSide:
                 else:
                     self.on_client(key.fileobj)
             now = time.monotonic()
+            self.expire_clients(now)
             for rid, (conn, deadline, _, _) in list(self.pending.items()):
                 if now > deadline:
                     self.pending.pop(rid)

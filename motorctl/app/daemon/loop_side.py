@@ -24,8 +24,9 @@ from motorctl.loop.safety import FAULT_SHUTDOWN
 from motorctl.loop.servo import IDLE, MODE_NAMES
 from motorctl.recorder.flight import CTL_CMD_SEQ, CTL_STATE, SharedRing
 
-#: how often the loop checks that the I/O process (the recorder) is alive [s]
-RECORDER_CHECK_S = 1.0
+#: how often the loop checks that the I/O process (the recorder) is alive [s] (a waitpid
+#: between cycles, every few cycles: a dead recorder is noticed within a millisecond or two)
+RECORDER_CHECK_S = 0.002
 #: how often the status block is refreshed besides every fault change [s]
 STATUS_PUBLISH_S = 0.005
 #: cycles recorded after a SIGTERM before the loop ends (the 0 V rows reach the log)
