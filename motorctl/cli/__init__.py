@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from importlib.metadata import entry_points
 
@@ -85,10 +86,22 @@ def main(argv=None) -> int:
         sys.stderr.write(f"motorctl: error: {exc.filename}: no such file\n")
         return 2
     except BrokenPipeError:   # the reader went away (e.g. `motorctl status | head`)
+        _quiet_stdout()
         return 0
     except OSError as exc:  # a driver that cannot reach its device, a log that cannot be written
         sys.stderr.write(f"motorctl: error: {exc}\n")
         return 1
+
+
+def _quiet_stdout() -> None:
+    """After the reader of stdout went away, point stdout at /dev/null so the interpreter's
+    final flush does not print a second 'Broken pipe' error."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):
+        pass
 
 
 if __name__ == "__main__":
