@@ -2,9 +2,10 @@
 
 Rerun:  python benchmarks/bench_loop.py [--config configs/gantry.yaml] [--seconds 60] [--steps 50000]
 
-Part 1, step cost: each axis's controller (C1, then C2) runs in closed loop with the simulated
-plant for --steps samples of its program; only ``controller.update()`` is timed
-(perf_counter_ns around each call, so the figure includes the Python→kernel dispatch).
+Part 1, step cost: each axis's controllers (C1, C2, and the PID+FF where the axis configures
+``pid:``) run in closed loop with the simulated plant for --steps samples of its program; only
+``controller.update()`` is timed (perf_counter_ns around each call, so the figure includes the
+Python→kernel dispatch).
 Part 2, the loop: ``motorctl run`` with both axes on C2 against the wall clock for --seconds,
 once with SCHED_FIFO + mlockall (policy required) and once without (policy off); turnaround
 (read start → write end, including the plant's RK4 in the simulated driver's write), wake
@@ -20,16 +21,16 @@ import time
 
 import numpy as np
 
-from motorctl.config import load_config
-from motorctl.control.dcdiarc import DCDIARC
 from motorctl.app.job import run_job
+from motorctl.config import load_config
+from motorctl.control import configured_controllers, make_controller
 from motorctl.loop.rt import RealtimeError
 
 
 def step_cost(loaded, axis: str, kind: str, steps: int) -> np.ndarray:
     ts = loaded.period_s
     drv = loaded.make_driver([axis])
-    ctrl = DCDIARC(loaded.axes[axis].controller, ts, kind)
+    ctrl = make_controller(loaded.axes[axis].controller, kind, ts)
     prog = loaded.axes[axis].trajectory.program()
     u = np.zeros(1)
     en = np.ones(1, dtype=bool)
@@ -60,12 +61,15 @@ def main() -> None:
     print(f"{'axis':4} {'ctrl':4} {'median':>8} {'p99':>8} {'max':>8}")
     med = {}
     for axis in loaded.axes:
-        for kind in ("c1", "c2"):
+        kinds = [k for k in ("c1", "c2", "pid") if k in configured_controllers(loaded.axes[axis].controller)]
+        for kind in kinds:
             c = step_cost(loaded, axis, kind, args.steps)
             med[axis, kind] = np.median(c)
             print(f"{axis:4} {kind:4} {np.median(c):8.2f} {np.percentile(c, 99):8.2f} {c.max():8.1f}")
         print(f"{axis:4} C2/C1 median ratio {med[axis, 'c2'] / med[axis, 'c1']:.2f} "
               f"(paper's dSPACE: 14 us / 10 us = 1.40)")
+        if "pid" in kinds:
+            print(f"{axis:4} PID/C2 median ratio {med[axis, 'pid'] / med[axis, 'c2']:.2f}")
     print(f"\n## {args.seconds:g} s wall-clock loop at {loaded.cfg.loop.rate_hz:g} Hz, axes {', '.join(loaded.axes)} on C2")
     for policy in ("required", "off"):
         label = "SCHED_FIFO + mlockall" if policy == "required" else "SCHED_OTHER"

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from motorctl.control._jit import njit
+from motorctl.jit import njit
 from motorctl.control.base import (
     SIG_D0,
     SIG_E,

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import expm
 
-from motorctl.control._jit import njit
+from motorctl.jit import njit
 from motorctl.model import s_f_scalar
 
 # indices into the option vector passed to the kernel

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 
-from motorctl.control._jit import njit
+from motorctl.jit import njit
 
 _MAX_ITER = 60
 _TOL = 1e-13

@@ -30,19 +30,25 @@ class TheoryConfig(StrictModel):
 
 
 class PidConfig(StrictModel):
-    """LinuxCNC ``pid`` gains (hal/components/pid.c, its manual page), in SI units.
+    """LinuxCNC ``pid`` gains and limits (hal/components/pid.c, manual page pid(9)), in SI units.
 
-    error = command − feedback = x_d − y; a gain of 0 (or a limit of 0) switches that term
-    (or that limit) off, as in LinuxCNC.
+    Read by :class:`motorctl.control.pid.PID` (the per-sample calculation is in its module
+    docstring). LinuxCNC's error = command − feedback = x_d − y (the opposite sign of the
+    published tracking error e = y − x_d); the output u [V] pushes +x. A gain of 0 (or a limit
+    of 0) switches that term (or that limit) off, as in LinuxCNC. Unlike LinuxCNC, FF1 and FF2
+    (and the command part of the D term) use the trajectory's analytic ẋ_d and ẍ_d.
 
     Attributes:
-        P [V/m], I [V/(m s)], D [V s/m]: feedback gains.
-        FF0 [V/m], FF1 [V s/m], FF2 [V s²/m]: feedforward of the command, its velocity and
-            its acceleration.
-        bias [V]: constant output offset.
-        deadband [m]: |error| below it counts as 0 (above it, error is reduced by it).
-        maxerror [m], maxerror_i [m s]: limits of the error and of its integral (0 = none).
-        maxoutput [V]: output limit (0 = u_lim of the section).
+        P [V/m], I [V/(m s)], D [V s/m]: feedback gains on the error, its integral and its
+            derivative (ẋ_d − ẏ); ≥ 0.
+        FF0 [V/m], FF1 [V s/m], FF2 [V s²/m]: feedforward of the command x_d, its velocity ẋ_d
+            and its acceleration ẍ_d (for this plant FF1 ≈ θ2, FF2 ≈ θ1 of the model, eq. 4).
+        bias [V]: constant output offset (≈ −θ4).
+        deadband [m]: |error| ≤ deadband counts as 0; above it the error is reduced by it. ≥ 0.
+        maxerror [m]: the error is clipped to ±maxerror before the deadband (0 = none).
+        maxerror_i [m s]: the integral of the error is clipped to ±maxerror_i (0 = none).
+        maxoutput [V]: output limit; the output is clipped to ±min(maxoutput, u_lim)
+            (0 = u_lim of the section).
     """
 
     P: NonNeg = 0.0

@@ -19,7 +19,7 @@ from numba import config as _numba_config
 from numba import types
 from numba.extending import intrinsic
 
-from motorctl.control._jit import njit
+from motorctl.jit import njit
 
 FENCED = not _numba_config.DISABLE_JIT
 

@@ -1,0 +1,191 @@
+"""LinuxCNC's ``pid`` HAL component (P, I, D with FF0, FF1, FF2, bias and limits) as a controller.
+
+Source of the semantics: LinuxCNC ``src/hal/components/pid.c`` and its manual page pid(9)
+(the code is not copied; the per-period calculation is restated here in this project's units
+and names). Per sample k, with Ts the sample period::
+
+    ε    = x_d − y                        LinuxCNC ``error`` = command − feedback   [m]
+    ε    ← clip(ε, ±maxerror)             (maxerror > 0)
+    ε    ← 0            if |ε| ≤ deadband
+           ε ∓ deadband otherwise         (the error is reduced by the deadband)
+    εI  += ε Ts         only if ε·s ≤ 0, s = +1/−1 when the last output was clamped high/low,
+                        else 0 (anti-windup: no integration further into the limit)
+    εI   ← clip(εI, ±maxerror_i)          (maxerror_i > 0)
+    x2   = (y[k] − y[k−1]) / Ts           feedback derivative (LinuxCNC feedback-deriv)
+    εD   = ẋ_d − x2                       command-deriv − feedback-deriv (LinuxCNC ≥ 2.7)
+    v    = bias + P ε + I εI + D εD + FF0 x_d + FF1 ẋ_d + FF2 ẍ_d
+    u    = clip(v, ±u_max),  u_max = min(maxoutput, u_lim) (maxoutput = 0: u_lim)
+
+Published signals (:data:`motorctl.loop.records.CONTROLLER_SIGNALS`): ``v`` [V] (before the
+clamp), ``e = y − x_d = −error`` [m] (raw, before maxerror and deadband), ``p = ė = x2 − ẋ_d``
+[m/s] (the error derivative in this project's sign, = −εD), ``x2`` [m/s]; θ̂1..θ̂6 and d̂0 are
+NaN (a fixed-gain law, n_theta = 0).
+
+Deviations from LinuxCNC, all deliberate:
+
+* FF1 and FF2 use the trajectory's analytic velocity ẋ_d and acceleration ẍ_d instead of
+  differencing the command (LinuxCNC's ``command-deriv`` pin wired to the planner's velocity;
+  LinuxCNC differences command-deriv for FF2, we use ẍ_d). The D term uses ẋ_d the same way.
+* the error is ``command − feedback`` of the same sample (``error-previous-target`` = 0): the
+  loop reads y[k] and samples x_d(k Ts) at the same instant.
+* the output is always clamped (to u_lim when maxoutput = 0, where LinuxCNC has no limit), so
+  the anti-windup acts on that clamp too. maxerrorD, maxcmdD, maxcmdDD and index-enable are
+  not offered (no field in :class:`motorctl.control.params.PidConfig`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from motorctl.jit import njit
+from motorctl.control.base import SIG_E, SIG_P, SIG_V, SIG_X2, Controller
+from motorctl.control.params import ControllerConfig, PidConfig
+
+__all__ = ["PID", "pid_step"]
+
+# state vector (what the next sample needs, and the last sample's values)
+S_Y_PREV, S_EI, S_LIMIT, S_U, S_V, S_ERR, S_ED, S_X2 = range(8)
+# parameter vector
+(P_TS, P_P, P_I, P_D, P_FF0, P_FF1, P_FF2, P_BIAS, P_DB, P_MAXE, P_MAXEI, P_UMAX) = range(12)
+N_STATE, N_PRM = 8, 12
+
+
+@njit
+def pid_step(y, x_d, xd_dot, xd_ddot, sig, st, prm):
+    """One period of LinuxCNC's pid calculation (module docstring); returns u [V].
+
+    Args:
+        y [m], x_d [m], xd_dot [m/s], xd_ddot [m/s²]: feedback and command with its analytic
+            derivatives.
+        sig (N_SIGNALS,) float64: the published signals; v, e, p, x2 written here.
+        st (8,) float64: state (S_* indices), updated in place.
+        prm (12,) float64: Ts [s], P, I, D, FF0, FF1, FF2, bias, deadband, maxerror,
+            maxerror_i, u_max (P_* indices); a limit of 0 means none (u_max > 0 always).
+    """
+    ts = prm[P_TS]
+    err = x_d - y                          # LinuxCNC error = command − feedback
+    t = err
+    maxe = prm[P_MAXE]
+    if maxe > 0.0:
+        if t > maxe:
+            t = maxe
+        elif t < -maxe:
+            t = -maxe
+    db = prm[P_DB]
+    if t > db:
+        t -= db
+    elif t < -db:
+        t += db
+    else:
+        t = 0.0
+    ei = st[S_EI]
+    if t * st[S_LIMIT] <= 0.0:             # not integrating further into the output limit
+        ei += t * ts
+    maxei = prm[P_MAXEI]
+    if maxei > 0.0:
+        if ei > maxei:
+            ei = maxei
+        elif ei < -maxei:
+            ei = -maxei
+    x2 = (y - st[S_Y_PREV]) / ts
+    ed = xd_dot - x2                       # command-deriv − feedback-deriv
+    v = (prm[P_BIAS] + prm[P_P] * t + prm[P_I] * ei + prm[P_D] * ed
+         + prm[P_FF0] * x_d + prm[P_FF1] * xd_dot + prm[P_FF2] * xd_ddot)
+    umax = prm[P_UMAX]
+    if v > umax:
+        u = umax
+        lim = 1.0
+    elif v < -umax:
+        u = -umax
+        lim = -1.0
+    else:
+        u = v
+        lim = 0.0
+    st[S_Y_PREV] = y
+    st[S_EI] = ei
+    st[S_LIMIT] = lim
+    st[S_U] = u
+    st[S_V] = v
+    st[S_ERR] = err
+    st[S_ED] = ed
+    st[S_X2] = x2
+    sig[SIG_V] = v
+    sig[SIG_E] = -err
+    sig[SIG_P] = -ed
+    sig[SIG_X2] = x2
+    return u
+
+
+class PID(Controller):
+    """LinuxCNC's ``pid`` for one axis, with feedforward. Call :meth:`update` once per sample.
+
+    Args:
+        gains: the axis's :class:`PidConfig` (SI units; 0 switches a term or limit off).
+        ts: sample period Ts [s] (> 0).
+        u_lim: the section's output limit [V] (> 0); |u| ≤ min(maxoutput or u_lim, u_lim).
+    Attributes (of the last sample): u, v [V], e [m] (y − x_d), p [m/s] (ė), x2 [m/s],
+        error_i [m s] (the integrator εI), saturated (bool); signals (N_SIGNALS,) as in
+        :class:`motorctl.control.base.Controller`, θ̂ and d̂0 entries NaN; theta_hat shape (0,).
+    Raises:
+        ValueError: ts or u_lim not > 0.
+    """
+
+    name = "pid"
+
+    def __init__(self, gains: PidConfig, ts: float, u_lim: float):
+        if not ts > 0.0 or not u_lim > 0.0:
+            raise ValueError(f"PID needs ts > 0 and u_lim > 0, got ts={ts!r}, u_lim={u_lim!r}")
+        super().__init__(ts, u_lim, 0)
+        self.gains = gains
+        g = gains
+        self.u_max = min(g.maxoutput, float(u_lim)) if g.maxoutput > 0.0 else float(u_lim)
+        self._prm = np.array([ts, g.P, g.I, g.D, g.FF0, g.FF1, g.FF2, g.bias, g.deadband,
+                              g.maxerror, g.maxerror_i, self.u_max], dtype=float)
+        self._st = np.zeros(N_STATE)
+        self._started = False
+        # compile (or load the cached machine code) now, on copies, so the first cycle does not
+        pid_step(0.0, 0.0, 0.0, 0.0, self.signals.copy(), self._st.copy(), self._prm)
+
+    @classmethod
+    def configured(cls, section: ControllerConfig) -> bool:
+        """True when the section has a ``pid:`` key."""
+        return section.pid is not None
+
+    @classmethod
+    def from_config(cls, section: ControllerConfig, ts: float, name: str = "pid") -> PID:
+        """From an axis's ``controller:`` section: its ``pid`` gains and ``u_lim``.
+
+        Raises:
+            ValueError: the section has no ``pid:`` key.
+        """
+        if section.pid is None:
+            raise ValueError("the controller section has no 'pid:' gains")
+        return cls(section.pid, ts, section.u_lim)
+
+    def reset(self, y0: float) -> None:
+        """Bumpless (re)start from the measured position y0 [m]: integrator 0, not in the
+        limit, previous feedback y0 (so the first feedback derivative is 0), u = 0."""
+        st = self._st
+        st[:] = 0.0
+        st[S_Y_PREV] = y0
+        self._started = True
+
+    def update(self, y: float, x_d: float, xd_dot: float, xd_ddot: float, t: float = 0.0) -> float:
+        """One sample. Returns u [V], |u| ≤ u_max; fills :attr:`signals` (v, e, p, x2).
+
+        Args:
+            y: measured position [m]. x_d, xd_dot, xd_ddot: desired position [m], velocity
+            [m/s], acceleration [m/s²] (analytic, used for FF1, FF2 and the D term).
+            t: time [s] (unused; the law is time-invariant).
+        """
+        if not self._started:
+            self.reset(y)
+        return pid_step(y, x_d, xd_dot, xd_ddot, self.signals, self._st, self._prm)
+
+    # outputs of the last sample (float reads of the state vector)
+    u = property(lambda self: float(self._st[S_U]))
+    v = property(lambda self: float(self._st[S_V]))
+    p = property(lambda self: -float(self._st[S_ED]))
+    x2 = property(lambda self: float(self._st[S_X2]))
+    error_i = property(lambda self: float(self._st[S_EI]))
+    saturated = property(lambda self: self._st[S_LIMIT] != 0.0)
