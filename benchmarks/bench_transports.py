@@ -85,15 +85,15 @@ def inner(config: str, exchanges: int, cycles: int) -> dict:
 
 def measure(transport: str, tmp: Path, exchanges: int, cycles: int) -> dict:
     from motorctl_emulators.harness import Emulator, NetNamespace, loopback_config
-    _, cfg = loopback_config(ROOT / "configs" / f"gantry-{transport}.yaml", tmp, rate_hz=2000,
-                             driver={"emulator": {"watchdog_s": 1.0}})
+    _, cfg = loopback_config(ROOT / "configs" / f"gantry-{transport}.yaml", tmp, rate_hz=2000)
+    emulator = dict(plant=ROOT / "configs" / "gantry.yaml", watchdog_s=1.0)
     cmd = [sys.executable, __file__, "--inner", str(cfg), "--exchanges", str(exchanges),
            "--cycles", str(cycles)]
     if transport == "can":
-        with NetNamespace() as ns, Emulator("can", cfg, prefix=ns.prefix):
+        with NetNamespace() as ns, Emulator("can", cfg, prefix=ns.prefix, **emulator):
             out = subprocess.run([*ns.prefix, *cmd], capture_output=True, text=True, timeout=300)
     else:
-        with Emulator(transport, cfg):
+        with Emulator(transport, cfg, **emulator):
             out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     if out.returncode != 0:
         raise RuntimeError(f"{transport}: {out.stderr.strip()[-2000:]}")

@@ -17,7 +17,7 @@ YAML (``driver:``)::
     fd: false                # CAN FD frames (data phase at data_bitrate, bit-rate switch on)
     data_bitrate: 5000000
     extended_id: false       # 29-bit identifiers
-    timeout_s, round_trip_s, max_bus_load, emulator: see proto_common.CommonOptions
+    timeout_s, wait, round_trip_s, max_bus_load: see split_phase.CommonOptions
 
 per axis (``axes.NAME.driver``)::
 
@@ -27,20 +27,21 @@ per axis (``axes.NAME.driver``)::
                fault: {byte: 8, bit: 0}, sequence_byte: 9}
     voltage_full_scale_V: 10.0     # ±full-scale count of the voltage field ↔ ±this [V]
     encoder_m_per_count: 0.5e-6    # [m]; the counts field wraps at 2^(8 size), unwrapped here
-    plant: {...}                   # the emulator's plant (sim driver's axis options)
 
 The voltage field is a signed integer of ``size`` bytes; the counts field is an unsigned
 counter of ``size`` bytes (2-4) that wraps; ``sequence_byte`` (optional, per frame) carries the
 cycle counter mod 256 in the command and its echo in the feedback, so stale frames are
 recognised. Frame length is the end of the last field, rounded up to a valid CAN FD length.
-``open()`` asks for the feedback frames with remote frames (RTR, classic format), which the
-device answers without stepping the plant.
+``configure()`` asks for the feedback frames with remote frames (RTR, classic format), which
+the device answers without stepping the plant. An error frame on the bus counts as an error
+answer. Frame formats and bit counts: ISO 11898-1:2015 (classic CAN and CAN FD).
+
+The voltage limit of an axis (its ``voltage_out`` interface) is ``voltage_full_scale_V``.
 """
 
 from __future__ import annotations
 
 import math
-import time
 from typing import Annotated, Literal
 
 import numpy as np
@@ -48,10 +49,8 @@ from pydantic import Field
 
 from motorctl.driver import BusBudget
 from motorctl.schema import StrictModel
-from motorctl_drivers.proto_common import (CommonOptions, EncoderUnwrap, PlantBank, SplitPhaseDriver,
-                                           counts_to_volts, make_budget, serve_forever, to_signed,
-                                           to_unsigned, volts_to_counts)
-from motorctl_drivers.sim import SimAxisOptions
+from motorctl_drivers.split_phase import (CommonOptions, EncoderUnwrap, SplitPhaseDriver, make_budget,
+                                          to_unsigned, volts_to_counts)
 
 FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 
@@ -103,7 +102,6 @@ class CanAxisOptions(StrictModel):
     feedback: FeedbackLayout
     voltage_full_scale_V: Annotated[float, Field(gt=0)] = 10.0
     encoder_m_per_count: Annotated[float, Field(gt=0)] = 0.5e-6
-    plant: SimAxisOptions | None = None
 
 
 def frame_length(n_bytes: int, fd: bool) -> int:
@@ -149,17 +147,19 @@ def pack_int(buf: bytearray, f: IntField, value: int) -> None:
 
 
 def unpack_uint(data, f: IntField) -> int:
+    """The unsigned integer of field ``f`` in ``data`` (``f.size`` bytes, ``f.byteorder``)."""
     return int.from_bytes(data[f.offset:f.offset + f.size], f.byteorder)
 
 
-class _Frame:
-    """One arbitration ID of the layout: its length, the axes on it, its sequence byte."""
+class Frame:
+    """One arbitration ID of the layout: ``id``, ``length`` [bytes], ``axes`` (indexes of the
+    axes it carries), ``seq_byte`` (index of the sequence byte, or None)."""
 
     def __init__(self, fid: int, axes: list[int], length: int, seq_byte: int | None):
         self.id, self.axes, self.length, self.seq_byte = fid, axes, length, seq_byte
 
 
-def build_frames(names, axis_options, kind: str, fd: bool) -> list[_Frame]:
+def build_frames(names, axis_options, kind: str, fd: bool) -> list[Frame]:
     """Group the axes by the ID of their ``kind`` ('command' or 'feedback') frame; check that
     fields do not overlap and that axes sharing a frame share its sequence byte.
 
@@ -195,8 +195,27 @@ def build_frames(names, axis_options, kind: str, fd: bool) -> list[_Frame]:
             if seq in used:
                 raise ValueError(f"{kind} frame 0x{fid:X}: sequence byte {seq} used by {used[seq]}")
             end = max(end, seq + 1)
-        frames.append(_Frame(fid, idx, frame_length(end, fd), seq))
+        frames.append(Frame(fid, idx, frame_length(end, fd), seq))
     return frames
+
+
+def open_bus(options: CanOptions):
+    """The python-can bus of ``options`` (``can.Bus(interface, channel, **bus_options)``; the bit
+    rates are passed to interfaces that set them, ``fd`` to every interface but udp_multicast,
+    which takes FD frames anyway). Used by the driver and by its emulated device.
+
+    Raises:
+        can.CanError, OSError: the interface cannot be opened.
+    """
+    import can
+    kw = dict(options.bus_options)
+    if options.interface not in ("virtual", "udp_multicast"):
+        kw.setdefault("bitrate", options.bitrate)
+        if options.fd:
+            kw.setdefault("data_bitrate", options.data_bitrate)
+    if options.interface != "udp_multicast":
+        kw.setdefault("fd", options.fd)
+    return can.Bus(interface=options.interface, channel=options.channel, **kw)
 
 
 # --------------------------------------------------------------------------- driver
@@ -226,38 +245,24 @@ class CanDriver(SplitPhaseDriver):
                            dlc=0 if remote else length, data=None if remote else bytearray(length), is_fd=fd,
                            bitrate_switch=fd, check=True)
 
-    def _configure(self) -> None:
-        import can
-        o = self.options
-        kw = dict(o.bus_options)
-        if o.interface not in ("virtual", "udp_multicast"):
-            kw.setdefault("bitrate", o.bitrate)
-            if o.fd:
-                kw.setdefault("data_bitrate", o.data_bitrate)
-        if o.interface != "udp_multicast":
-            kw.setdefault("fd", o.fd)
-        self.bus = can.Bus(interface=o.interface, channel=o.channel, **kw)
+    def _open_transport(self) -> None:
+        self.bus = open_bus(self.options)
         self._msgs = [self._message(f.id, f.length) for f in self.cmd_frames]
         try:
             self._set_wait_fd(self.bus.fileno())
         except (NotImplementedError, AttributeError, OSError):
             self._set_wait_fd(None)          # e.g. 'virtual': no descriptor, poll
-        self.connected = True
         while self.bus.recv(timeout=0) is not None:   # stale frames from before
             pass
-        self._first_reading()
 
-    def _close(self) -> None:
-        if self.bus is None:
-            return
-        try:
-            self._transmit((self.seq + 1) & 0xFF, np.zeros(len(self.axis_names)),
-                           np.zeros(len(self.axis_names), dtype=bool))
-        except Exception:  # noqa: BLE001  (closing anyway)
-            pass
-        self.bus.shutdown()
-        self.bus = None
-        self.connected = False
+    def _release_transport(self) -> None:
+        if self.bus is not None:
+            bus, self.bus = self.bus, None
+            bus.shutdown()
+
+    def _full_scale_V(self, axis: str) -> float:
+        """``axes.NAME.driver.voltage_full_scale_V`` [V]: the ±full-scale count of the voltage field."""
+        return float(self.axis_options[axis].voltage_full_scale_V)
 
     def _transmit_query(self, seq: int) -> None:
         for f in self.fb_frames:
@@ -294,7 +299,7 @@ class CanDriver(SplitPhaseDriver):
             if msg is None:
                 return
             if msg.is_error_frame:
-                self.counters["exceptions"] += 1
+                self._accept_error(None)      # an error frame carries no sequence number
                 continue
             f = fb.get(msg.arbitration_id)
             if f is None or msg.is_remote_frame:
@@ -353,101 +358,3 @@ class CanDriver(SplitPhaseDriver):
                  bitrate=o.bitrate, data_bitrate=o.data_bitrate if o.fd else None,
                  command_ids=[f.id for f in self.cmd_frames], feedback_ids=[f.id for f in self.fb_frames])
         return d
-
-
-# --------------------------------------------------------------------------- device side
-class CanDevice:
-    """The emulated drive(s) on the CAN bus (``motorctl emulate --transport can``).
-
-    A command frame steps the axes it carries and is answered with the feedback frames of
-    those axes (sequence byte echoed); a remote frame on a feedback ID is answered without a
-    step. Faults: drop, late, corrupt (a frame shorter than the layout), stale (the previous
-    feedback again), exception (an error frame instead of the answer), disconnect and bus_off
-    (the node is silent: it neither applies nor answers).
-    """
-
-    def __init__(self, options: CanOptions, axis_options: dict, bank: PlantBank):
-        import can
-        self.o = options
-        self.bank = bank
-        names = bank.names
-        self.lay = [axis_options[a] for a in names]
-        self.cmd = {f.id: f for f in build_frames(names, axis_options, "command", options.fd)}
-        self.fb = build_frames(names, axis_options, "feedback", options.fd)
-        self.fb_of_axis = {i: f for f in self.fb for i in f.axes}
-        kw = dict(options.bus_options)
-        if options.interface != "udp_multicast":
-            kw.setdefault("fd", options.fd)
-        self.bus = can.Bus(interface=options.interface, channel=options.channel, **kw)
-        self.last = {}
-
-    def _feedback(self, f: _Frame, seq: int):
-        import can
-        b = self.bank
-        data = bytearray(f.length)
-        for i in f.axes:
-            fl = self.lay[i].feedback
-            c = b.counts(i, self.lay[i].encoder_m_per_count)
-            pack_int(data, fl.counts, c)
-            if b.amp_fault[i]:
-                data[fl.fault.byte] |= 1 << fl.fault.bit
-        if f.seq_byte is not None:
-            data[f.seq_byte] = seq
-        fd = self.o.fd
-        return can.Message(arbitration_id=f.id, is_extended_id=self.o.extended_id, data=data,
-                           is_fd=fd, bitrate_switch=fd)
-
-    def poll(self, timeout_s: float) -> None:
-        import can
-        msg = self.bus.recv(timeout=timeout_s)
-        if msg is None or msg.is_error_frame:
-            return
-        b = self.bank
-        if msg.is_remote_frame:
-            for f in self.fb:
-                if f.id == msg.arbitration_id:
-                    self.bus.send(self._feedback(f, 0))
-            return
-        f = self.cmd.get(msg.arbitration_id)
-        if f is None or len(msg.data) < f.length:
-            return
-        data = msg.data
-        seq = data[f.seq_byte] if f.seq_byte is not None else 0
-        fault = b.next_fault(f.axes)
-        if fault in ("disconnect", "bus_off"):
-            return
-        if fault == "exception":
-            self.bus.send(can.Message(arbitration_id=0, is_error_frame=True, is_extended_id=False))
-            return
-        for i in f.axes:
-            c = self.lay[i].command
-            raw = unpack_uint(data, c.voltage)
-            u = counts_to_volts(to_signed(raw, 8 * c.voltage.size), self.lay[i].voltage_full_scale_V,
-                                8 * c.voltage.size)
-            b.command(i, u, bool(data[c.enable.byte] >> c.enable.bit & 1))
-        if fault == "drop":
-            return
-        done = set()
-        for i in f.axes:
-            fbf = self.fb_of_axis[i]
-            if fbf.id in done:
-                continue
-            done.add(fbf.id)
-            reply = self._feedback(fbf, seq)
-            if fault == "stale" and fbf.id in self.last:
-                self.bus.send(self.last[fbf.id])
-            elif fault == "corrupt":
-                bad = can.Message(arbitration_id=fbf.id, is_extended_id=self.o.extended_id,
-                                  data=reply.data[:max(0, fbf.length - 3)], is_fd=self.o.fd)
-                self.bus.send(bad)
-            else:
-                if fault == "late":
-                    time.sleep(b.opts.late_s)
-                self.bus.send(reply)
-            self.last[fbf.id] = reply
-
-    def serve(self, stop=None, duration_s=None) -> None:
-        try:
-            serve_forever(self.poll, self.bank, stop, duration_s)
-        finally:
-            self.bus.shutdown()

@@ -6,8 +6,8 @@ echo) lie within 125 registers, so that one **Read/Write Multiple Registers (FC2
 cycle carries the whole group: the write is applied first, then the read (Modbus Application
 Protocol v1.1b3 §6.17), so its answer is the position one period after the command. It is sent
 in ``write()`` and collected in the next ``read()`` (split phase, non-blocking sockets: the
-pymodbus client would block for the answer). ``open()`` reads the feedback block with FC03
-(no step).
+pymodbus client would block for the answer). ``configure()`` reads the feedback block with
+FC03 (no step). An exception response counts as an error answer.
 
 Encoding (pymodbus ``FramerSocket`` / ``FramerRTU``, whose CRC is the Modbus CRC-16,
 polynomial 0xA001 reflected, initial 0xFFFF): the voltage register is a signed 16-bit value,
@@ -30,19 +30,19 @@ YAML (``driver:``)::
     unit_id: 1
     sequence_register: 4         # optional: written with the cycle counter
     sequence_echo_register: 106  # optional: the device's echo of it
-    timeout_s, round_trip_s (tcp: the measured request/answer time, default 400 us),
-    max_bus_load, emulator: see proto_common.CommonOptions
+    timeout_s, wait, round_trip_s (tcp: the measured request/answer time, default 400 us),
+    max_bus_load: see split_phase.CommonOptions
 
 per axis (``axes.NAME.driver``): voltage_register, control_register + enable_bit,
 counts_register (+1), word_order, status_register + fault_bit, voltage_full_scale_V,
-encoder_m_per_count, plant (emulator only).
+encoder_m_per_count. The voltage limit of an axis (its ``voltage_out`` interface) is its
+``voltage_full_scale_V``.
 """
 
 from __future__ import annotations
 
 import math
 import socket
-import time
 from typing import Annotated, Literal
 
 import numpy as np
@@ -50,10 +50,8 @@ from pydantic import Field
 
 from motorctl.driver import BusBudget
 from motorctl.schema import StrictModel
-from motorctl_drivers.proto_common import (CommonOptions, EncoderUnwrap, PlantBank, SplitPhaseDriver,
-                                           StreamEndpoint, counts_to_volts, make_budget, serve_forever,
-                                           to_signed, to_unsigned, volts_to_counts)
-from motorctl_drivers.sim import SimAxisOptions
+from motorctl_drivers.split_phase import (CommonOptions, EncoderUnwrap, SplitPhaseDriver, make_budget,
+                                          to_unsigned, volts_to_counts)
 
 Reg = Annotated[int, Field(ge=0, le=0xFFFF)]
 FC23_MAX_READ, FC23_MAX_WRITE = 125, 121
@@ -88,7 +86,6 @@ class ModbusAxisOptions(StrictModel):
     fault_bit: Annotated[int, Field(ge=0, le=15)] = 0
     voltage_full_scale_V: Annotated[float, Field(gt=0)] = 10.0
     encoder_m_per_count: Annotated[float, Field(gt=0)] = 0.5e-6
-    plant: SimAxisOptions | None = None
 
 
 def split_counts(counts: int, word_order: str) -> tuple[int, int]:
@@ -103,10 +100,11 @@ def join_counts(r0: int, r1: int, word_order: str) -> int:
     return (r0 << 16 | r1) if word_order == "big" else (r1 << 16 | r0)
 
 
-def _frames(framer, buf: bytearray):
+def decode_frames(framer, buf: bytearray):
     """Cut the complete ADUs out of ``buf`` (consumed in place) with the pymodbus framer's
-    ``decode`` (MBAP or RTU with CRC check) and decode each PDU. Yields the PDU, or None for a
-    frame that failed its CRC or does not decode."""
+    ``decode`` (MBAP or RTU with CRC check) and decode each PDU. Yields the PDU (with
+    ``dev_id`` and ``transaction_id`` set from the ADU), or None for a frame that failed its
+    CRC or does not decode. Used by the driver and by its emulated device."""
     while buf:
         used, dev_id, tid, frame = framer.decode(bytes(buf))
         if used == 0:
@@ -190,7 +188,13 @@ class ModbusDriver(SplitPhaseDriver):
         self._regs = [0] * (len(self.plan.write_slots) if self.plan else 0)
 
     # --- link
-    def _configure(self) -> None:
+    def _open_transport(self) -> None:
+        """Open the TCP connection or the RTU serial port.
+
+        Raises:
+            ValueError: the register map needs more than one FC23 request (found at parse time).
+            OSError: the link cannot be opened.
+        """
         if self.plan is None:
             raise ValueError(f"modbus register map: {self.plan_error}")
         import logging   # a frame that does not decode is counted, not logged from inside the cycle
@@ -209,24 +213,18 @@ class ModbusDriver(SplitPhaseDriver):
                                           write_timeout=0)
         self.buf = bytearray()
         self._set_wait_fd(self.sock.fileno() if self.sock is not None else self.port.fileno())
-        self.connected = True
-        self._first_reading()
 
-    def _close(self) -> None:
-        if self.sock is None and self.port is None:
-            return
-        try:
-            n = len(self.axis_names)
-            self._transmit((self.seq + 1) & self.SEQ_MASK, np.zeros(n), np.zeros(n, dtype=bool))
-            time.sleep(0.002)
-        except Exception:  # noqa: BLE001  (closing anyway)
-            pass
-        if self.sock is not None:
-            self.sock.close()
-        if self.port is not None:
-            self.port.close()
+    def _release_transport(self) -> None:
+        sock, port = self.sock, self.port
         self.sock = self.port = None
-        self.connected = False
+        if sock is not None:
+            sock.close()
+        if port is not None:
+            port.close()
+
+    def _full_scale_V(self, axis: str) -> float:
+        """``axes.NAME.driver.voltage_full_scale_V`` [V]: the voltage register's ±32767."""
+        return float(self.axis_options[axis].voltage_full_scale_V)
 
     def _send(self, frame: bytes) -> None:
         if self.sock is not None:
@@ -275,7 +273,7 @@ class ModbusDriver(SplitPhaseDriver):
             return
         buf = self.buf
         buf += data
-        for pdu in _frames(self.framer, buf):
+        for pdu in decode_frames(self.framer, buf):
             if pdu is None:
                 self.counters["bad_frames"] += 1
             else:
@@ -290,8 +288,7 @@ class ModbusDriver(SplitPhaseDriver):
         else:
             seq = self.seq
         if pdu.isError():
-            if seq == self.seq:
-                self.counters["exceptions"] += 1
+            self._accept_error(seq)
             return
         regs = pdu.registers
         base = self.plan.read_address
@@ -342,139 +339,3 @@ class ModbusDriver(SplitPhaseDriver):
                      "write": [self.plan.write_address, len(self.plan.write_slots)],
                      "read": [self.plan.read_address, self.plan.read_count]})
         return d
-
-
-# --------------------------------------------------------------------------- device side
-class ModbusDevice:
-    """The emulated Modbus device (``motorctl emulate --transport modbus``).
-
-    Holding registers as in the map. FC03/FC04 read; FC06, FC16 and FC23 write (FC23 then
-    reads). A write that covers an axis's voltage register is a command for that axis: the
-    plant steps one period and the feedback registers are updated before any read. Faults:
-    drop, late, corrupt (bad CRC on RTU, a broken MBAP length on TCP), stale (the previous
-    answer again), exception (exception code 0x04, device failure; the command is not applied),
-    disconnect (TCP: close the connection), bus_off (as drop).
-    """
-
-    def __init__(self, options: ModbusOptions, axis_options: dict, bank: PlantBank):
-        from pymodbus.framer import FramerRTU, FramerSocket
-        from pymodbus.pdu import DecodePDU
-        self.o = options
-        self.bank = bank
-        self.ax = [axis_options[a] for a in bank.names]
-        RegisterPlan(bank.names, axis_options, options)   # the same checks as the driver
-        self.regs = [0] * 0x10000
-        self.by_voltage = {a.voltage_register: i for i, a in enumerate(self.ax)}
-        if options.transport == "tcp":
-            self.framer = FramerSocket(DecodePDU(is_server=True))
-            url = f"tcp://{options.host}:{options.port}"
-        else:
-            self.framer = FramerRTU(DecodePDU(is_server=True))
-            url = options.serial_port
-        self.ep = StreamEndpoint(url)
-        self.buf = bytearray()
-        self.last = None
-        self._update_feedback()
-
-    def _update_feedback(self) -> None:
-        b, r = self.bank, self.regs
-        for i, a in enumerate(self.ax):
-            r0, r1 = split_counts(b.counts(i, a.encoder_m_per_count), a.word_order)
-            r[a.counts_register], r[a.counts_register + 1] = r0, r1
-            st = r[a.status_register] & ~(1 << a.fault_bit)
-            r[a.status_register] = st | ((1 << a.fault_bit) if b.amp_fault[i] else 0)
-        if self.o.sequence_echo_register is not None and self.o.sequence_register is not None:
-            r[self.o.sequence_echo_register] = r[self.o.sequence_register]
-
-    def _write(self, address: int, values) -> list[int]:
-        """Store registers; return the axes whose voltage register was written."""
-        hit = []
-        for k, v in enumerate(values):
-            self.regs[address + k] = v & 0xFFFF
-            i = self.by_voltage.get(address + k)
-            if i is not None:
-                hit.append(i)
-        return hit
-
-    def _apply(self, axes) -> None:
-        b = self.bank
-        for i in axes:
-            a = self.ax[i]
-            u = counts_to_volts(to_signed(self.regs[a.voltage_register], 16), a.voltage_full_scale_V, 16)
-            b.command(i, u, bool(self.regs[a.control_register] >> a.enable_bit & 1))
-
-    def _respond(self, req):
-        from pymodbus.pdu import ExceptionResponse
-        from pymodbus.pdu.register_message import (ReadHoldingRegistersResponse, ReadInputRegistersResponse,
-                                                   ReadWriteMultipleRegistersResponse,
-                                                   WriteMultipleRegistersResponse, WriteSingleRegisterResponse)
-        fc = req.function_code
-        kw = dict(dev_id=req.dev_id, transaction_id=req.transaction_id)
-        if fc in (3, 4):
-            self._update_feedback()
-            cls = ReadHoldingRegistersResponse if fc == 3 else ReadInputRegistersResponse
-            return cls(registers=self.regs[req.address:req.address + req.count], **kw), None
-        if fc in (6, 16, 23):
-            if fc == 23:
-                addr, values = req.write_address, req.write_registers
-            elif fc == 16:
-                addr, values = req.address, req.registers
-            else:
-                addr, values = req.address, req.registers[:1]
-            axes = [self.by_voltage[r] for r in range(addr, addr + len(values)) if r in self.by_voltage]
-            fault = self.bank.next_fault(axes) if axes else None
-            if fault == "exception":
-                return ExceptionResponse(fc, 0x04, device_id=req.dev_id, transaction=req.transaction_id), None
-            if fault == "disconnect":
-                return None, "disconnect"
-            self._apply(self._write(addr, values))
-            self._update_feedback()
-            if fc == 23:
-                rsp = ReadWriteMultipleRegistersResponse(
-                    registers=self.regs[req.read_address:req.read_address + req.read_count], **kw)
-            elif fc == 16:
-                rsp = WriteMultipleRegistersResponse(address=addr, count=len(values), **kw)
-            else:
-                rsp = WriteSingleRegisterResponse(address=addr, registers=list(values), **kw)
-            return rsp, fault
-        return ExceptionResponse(fc, 0x01, device_id=req.dev_id, transaction=req.transaction_id), None
-
-    def poll(self, timeout_s: float) -> None:
-        data = self.ep.wait(timeout_s)
-        if not data:
-            return
-        self.buf += data
-        for req in _frames(self.framer, self.buf):
-            if req is None:
-                continue
-            if self.o.transport == "rtu" and req.dev_id not in (0, self.o.unit_id):
-                continue
-            rsp, fault = self._respond(req)
-            if fault == "disconnect":
-                self.ep.disconnect()
-                self.buf.clear()
-                return
-            frame = self.framer.buildFrame(rsp)
-            if fault in ("drop", "bus_off"):
-                pass
-            elif fault == "stale" and self.last is not None:
-                self.ep.send(self.last)
-            elif fault == "corrupt":
-                bad = bytearray(frame)
-                if self.o.transport == "rtu":
-                    bad[-1] ^= 0xFF
-                else:
-                    bad[8] = 0xFF        # byte count beyond the frame: the PDU does not decode
-                self.ep.send(bytes(bad))
-            else:
-                if fault == "late":
-                    time.sleep(self.bank.opts.late_s)
-                self.ep.send(frame)
-            if req.function_code in (6, 16, 23):
-                self.last = frame
-
-    def serve(self, stop=None, duration_s=None) -> None:
-        try:
-            serve_forever(self.poll, self.bank, stop, duration_s)
-        finally:
-            self.ep.close()

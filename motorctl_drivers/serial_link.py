@@ -26,10 +26,12 @@ YAML (``driver:``)::
     bits_per_char: 10            # 8N1
     turnaround_chars: 1.0        # line turnaround per exchange, in characters (budget)
     device_latency_s: 10.0e-6    # the drive's answer time (budget)
-    timeout_s, round_trip_s, max_bus_load, emulator: see proto_common.CommonOptions
+    timeout_s, wait, round_trip_s, max_bus_load: see split_phase.CommonOptions
 
-per axis (``axes.NAME.driver``): ``node`` (0-255), ``encoder_m_per_count`` [m], ``plant``
-(emulator only).
+per axis (``axes.NAME.driver``): ``node`` (0-255), ``encoder_m_per_count`` [m].
+
+The voltage limit of every axis (its ``voltage_out`` interface) is ``voltage_full_scale_V``.
+An error frame answers the command it names by ``seq``: no axis of it is applied or answered.
 """
 
 from __future__ import annotations
@@ -44,10 +46,8 @@ from pydantic import Field
 
 from motorctl.driver import BusBudget
 from motorctl.schema import StrictModel
-from motorctl_drivers.proto_common import (CommonOptions, EncoderUnwrap, PlantBank, SplitPhaseDriver,
-                                           StreamEndpoint, make_budget, serve_forever, volts_to_counts,
-                                           counts_to_volts)
-from motorctl_drivers.sim import SimAxisOptions
+from motorctl_drivers.split_phase import (CommonOptions, EncoderUnwrap, SplitPhaseDriver, make_budget,
+                                          volts_to_counts)
 
 CMD, QUERY, REPLY, ERROR = 0xA5, 0xA6, 0x5A, 0x5B
 _HEAD = 4
@@ -172,7 +172,6 @@ class SerialAxisOptions(StrictModel):
 
     node: Annotated[int, Field(ge=0, le=255)]
     encoder_m_per_count: Annotated[float, Field(gt=0)] = 0.5e-6
-    plant: SimAxisOptions | None = None
 
 
 class SerialDriver(SplitPhaseDriver):
@@ -197,7 +196,7 @@ class SerialDriver(SplitPhaseDriver):
         self._index = {nd: i for i, nd in enumerate(self._nodes)}
         self._items = [(nd, False, 0) for nd in self._nodes]
 
-    def _configure(self) -> None:
+    def _open_transport(self) -> None:
         import serial
         o = self.options
         if "://" in o.port:
@@ -216,21 +215,15 @@ class SerialDriver(SplitPhaseDriver):
         self.port.reset_input_buffer()
         self._set_wait_fd(self.port.fileno())
         self.parser = FrameParser((REPLY, ERROR))
-        self.connected = True
-        self._first_reading()
 
-    def _close(self) -> None:
-        if self.port is None:
-            return
-        try:
-            self.seq = (self.seq + 1) & self.SEQ_MASK
-            self.port.write(encode_command(self.options.address, self.seq, [(nd, False, 0) for nd in self._nodes]))
-            self.port.flush()
-        except Exception:  # noqa: BLE001  (closing anyway)
-            pass
-        self.port.close()
-        self.port = None
-        self.connected = False
+    def _release_transport(self) -> None:
+        if self.port is not None:
+            port, self.port = self.port, None
+            port.close()
+
+    def _full_scale_V(self, axis: str) -> float:
+        """``driver.voltage_full_scale_V`` [V] (one for the link): u = ±32767 ↔ ±this."""
+        return float(self.options.voltage_full_scale_V)
 
     def _transmit_query(self, seq: int) -> None:
         self.port.write(encode_query(self.options.address, seq, self._nodes))
@@ -256,8 +249,7 @@ class SerialDriver(SplitPhaseDriver):
             if a != addr:
                 continue
             if kind == ERROR:
-                if seq == self.seq:
-                    self.counters["exceptions"] += 1
+                self._accept_error(seq)
                 continue
             for node, status, raw in decode_body(REPLY, m, frame):
                 i = index.get(node)
@@ -290,76 +282,3 @@ class SerialDriver(SplitPhaseDriver):
         d.update(transport="serial", port=self.options.port, baudrate=self.options.baudrate,
                  low_latency=self.low_latency)
         return d
-
-
-# --------------------------------------------------------------------------- device side
-class SerialDevice:
-    """The emulated drive group behind a serial link (``motorctl emulate --transport serial``).
-
-    Listens on ``driver.port`` (socket:// → TCP server on that address; a path → a pty whose
-    slave is linked there), answers command and query frames for ``driver.address``.
-    """
-
-    def __init__(self, options: SerialOptions, axis_options: dict, bank: PlantBank):
-        self.o = options
-        self.m_per_count = [axis_options[a].encoder_m_per_count for a in bank.names]
-        self.index = {axis_options[a].node: i for i, a in enumerate(bank.names)}
-        self.bank = bank
-        self.ep = StreamEndpoint(options.port)
-        self.parser = FrameParser((CMD, QUERY))
-        self._last_reply = None
-
-    def _reply(self, seq: int, nodes) -> bytes:
-        b = self.bank
-        items = []
-        for nd in nodes:
-            i = self.index[nd]
-            items.append((nd, (1 if b.amp_fault[i] else 0) | (2 if b.enabled[i] else 0),
-                          b.counts(i, self.m_per_count[i])))
-        return encode_reply(self.o.address, seq, items)
-
-    def poll(self, timeout_s: float) -> None:
-        import time
-        data = self.ep.wait(timeout_s)
-        if not data:
-            return
-        b = self.bank
-        for kind, addr, seq, m, frame in self.parser.feed(data):
-            if addr != self.o.address:
-                continue
-            if kind == QUERY:
-                nodes = [nd for nd in decode_body(QUERY, m, frame) if nd in self.index]
-                self.ep.send(self._reply(seq, nodes))
-                continue
-            items = [it for it in decode_body(CMD, m, frame) if it[0] in self.index]
-            nodes = [it[0] for it in items]
-            fault = b.next_fault([self.index[nd] for nd in nodes])
-            if fault == "exception":
-                self.ep.send(encode_error(self.o.address, seq, m, 4))
-                continue
-            if fault == "disconnect":
-                self.ep.disconnect()
-                return
-            for nd, en, c in items:
-                b.command(self.index[nd], counts_to_volts(c, self.o.voltage_full_scale_V, 16), en)
-            reply = self._reply(seq, nodes)
-            if fault in ("drop", "bus_off"):
-                pass
-            elif fault == "stale" and self._last_reply is not None:
-                self.ep.send(self._last_reply)
-            elif fault == "corrupt":
-                bad = bytearray(reply)
-                bad[-1] ^= 0xFF
-                self.ep.send(bytes(bad))
-            else:
-                if fault == "late":
-                    time.sleep(b.opts.late_s)
-                self.ep.send(reply)
-            self._last_reply = reply
-
-    def serve(self, stop=None, duration_s=None) -> None:
-        try:
-            serve_forever(self.poll, self.bank, stop, duration_s)
-        finally:
-            self.ep.close()
-

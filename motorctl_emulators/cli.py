@@ -1,70 +1,71 @@
 """``motorctl emulate``: the gantry I/O emulator, the device side of a bus driver in its own process.
 
-It reads the same YAML as the driver (``driver.type`` must be the ``--transport``): the device
-settings from ``driver:``, the plant of every axis from ``axes.NAME.driver.plant`` (a
-:class:`motorctl_drivers.sim.SimAxisOptions`, the sim driver's per-axis plant) and seed,
-substeps, watchdog and injected faults from ``driver.emulator``. The plant advances one loop
-period (``1/loop.rate_hz``) per valid command it receives, as an encoder-counter plus
-amplifier-input module paced by its master would; with the same plant and seed a run through
-the emulator meets the same plant as a run on the sim driver.
+    motorctl emulate --transport can|serial|modbus CONFIG [--plant PLANT] [--watchdog S]
+                     [--late S] [--fault KIND[:AXIS[:START[:COUNT]]]] [--duration S] [--priority N]
 
-Watchdog: no valid command for ``driver.emulator.watchdog_s`` → 0 V and an amplifier fault
-(reported in every reply, latched until a command with the amplifier disabled).
+CONFIG is the driver's own YAML (``driver.type`` must be the ``--transport``): the device
+listens where the driver connects and decodes its layout. PLANT is a simulated-gantry config
+(default ``configs/gantry.yaml``, the one ``motorctl run`` uses): its ``driver:`` section (type
+``sim``) gives seed, substeps and the watchdog, its ``axes.NAME.driver`` the plant of each axis
+of CONFIG. The plant advances one loop period of CONFIG (``1/loop.rate_hz``) per valid command,
+as an encoder-counter plus amplifier-input module paced by its master would; a run through the
+emulator meets the same plant and noise as a run of PLANT's sim driver at that rate.
 
-Fault injection: ``--fault KIND[:AXIS[:START[:COUNT]]]`` (repeatable; also
-``driver.emulator.faults``), KIND one of drop, late, corrupt, stale, exception, disconnect,
-bus_off; START counts the command frames the device has received (0-based).
+Watchdog: no valid command for ``--watchdog`` seconds (default: PLANT's ``driver.watchdog_s``
+when > 0, else 0.05 s) → 0 V and an amplifier fault (reported in every answer, latched until a
+command with the amplifier disabled).
 
-The first line on stdout is ``ready: ...`` once the device listens. SIGTERM/SIGINT end it.
+Fault injection: ``--fault KIND[:AXIS[:START[:COUNT]]]`` (repeatable), KIND one of drop, late
+(answer after ``--late`` seconds), corrupt, stale, exception, disconnect, bus_off; START counts
+the command frames the device has received (0-based).
+
+The first line on stdout is ``ready: ...`` once the device listens. SIGTERM/SIGINT end it with
+a ``stopped: ...`` line. The device classes come from the ``motorctl.emulators`` entry points.
 """
 
 from __future__ import annotations
 
+import argparse
 import signal
 import sys
 
-TRANSPORTS = ("can", "serial", "modbus")
+from motorctl_emulators.device import available_devices, build_device
+from motorctl_emulators.plant_bank import DEFAULT_LATE_S, FaultSpec
+
+#: PLANT when ``--plant`` is not given (relative to the working directory, as ``motorctl run``'s CONFIG)
+DEFAULT_PLANT = "configs/gantry.yaml"
 
 
-def build_device(loaded, faults=()):
-    """The device object (``.serve(stop, duration_s)``, ``.bank``) for a checked config."""
-    from motorctl_drivers.proto_common import PlantBank
-    dtype = loaded.cfg.driver.type
-    names = list(loaded.axes)
-    missing = [a for a in names if getattr(loaded.axis_driver_options[a], "plant", None) is None]
-    if missing:
-        raise ValueError(f"axes {', '.join(missing)} have no driver.plant section: the emulator "
-                         f"needs the plant of every axis")
-    bank = PlantBank(names, [loaded.axis_driver_options[a].plant for a in names], loaded.period_s,
-                     loaded.driver_options.emulator, list(faults))
-    if dtype == "serial":
-        from motorctl_drivers.serial_link import SerialDevice
-        return SerialDevice(loaded.driver_options, loaded.axis_driver_options, bank)
-    if dtype == "can":
-        from motorctl_drivers.can_bus import CanDevice
-        return CanDevice(loaded.driver_options, loaded.axis_driver_options, bank)
-    if dtype == "modbus":
-        from motorctl_drivers.modbus import ModbusDevice
-        return ModbusDevice(loaded.driver_options, loaded.axis_driver_options, bank)
-    raise ValueError(f"driver type {dtype!r} has no emulator; emulated: {', '.join(TRANSPORTS)}")
+def _fault(text: str) -> FaultSpec:
+    try:
+        return FaultSpec.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _seconds(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: a time in seconds, > 0")
+    return v
 
 
 def cmd_emulate(args) -> int:
-    from motorctl.cli import UsageError
     from motorctl.config import ConfigError, load_config
-    from motorctl_drivers.proto_common import FaultSpec
-    try:
-        loaded = load_config(args.config, check_budget=False)
-    except ConfigError as exc:
-        raise UsageError(str(exc)) from None
+    loaded = load_config(args.config, check_budget=False)
     if loaded.cfg.driver.type != args.transport:
-        raise UsageError(f"{args.config}: driver.type is {loaded.cfg.driver.type!r}, "
-                         f"not the --transport {args.transport!r}")
+        raise ConfigError(args.config, "driver.type", f"{loaded.cfg.driver.type!r} is not the "
+                          f"--transport {args.transport!r}")
     try:
-        faults = [FaultSpec.parse(f) for f in args.fault or ()]
-        dev = build_device(loaded, faults)
-    except (ValueError, OSError) as exc:
-        raise UsageError(f"{args.config}: {exc}") from None
+        dev = build_device(loaded, args.plant, watchdog_s=args.watchdog, late_s=args.late,
+                           faults=args.fault or ())
+    except ConfigError:
+        raise
+    except ValueError as exc:     # a fault on an unknown axis, a layout the device cannot serve
+        raise ConfigError(args.config, "", str(exc)) from None
     rt = "SCHED_OTHER"
     if args.priority > 0:
         import os
@@ -81,9 +82,9 @@ def cmd_emulate(args) -> int:
     for s in (signal.SIGTERM, signal.SIGINT):
         signal.signal(s, lambda signum, _f: stop.append(signum))
     b = dev.bank
-    sys.stdout.write(f"ready: {args.transport} emulator, axes {', '.join(b.names)}, "
+    sys.stdout.write(f"ready: {args.transport} emulator, axes {', '.join(b.names)}, plant {args.plant}, "
                      f"{1 / loaded.period_s:g} Hz plant period, watchdog "
-                     f"{b.opts.watchdog_s * 1e3:g} ms, {len(b.faults)} faults scheduled, {rt}\n")
+                     f"{b.watchdog_s * 1e3:g} ms, {len(b.faults)} faults scheduled, {rt}\n")
     sys.stdout.flush()
     dev.serve(stop=lambda: bool(stop), duration_s=args.duration)
     sys.stdout.write(f"stopped: commands {dict(zip(b.names, b.commands))}, "
@@ -95,14 +96,22 @@ def cmd_emulate(args) -> int:
 
 
 def register(parser, subparsers) -> None:
-    """Add the ``emulate`` subcommand to the motorctl CLI."""
-    e = subparsers.add_parser("emulate", help="run the gantry I/O emulator (device side of a bus driver)")
-    e.add_argument("--transport", required=True, choices=TRANSPORTS)
-    e.add_argument("config", help="the driver's YAML (plant under axes.NAME.driver.plant)")
-    e.add_argument("--fault", action="append", metavar="KIND[:AXIS[:START[:COUNT]]]",
+    """Add the ``emulate`` subcommand to the motorctl CLI (entry point ``motorctl.commands``)."""
+    e = subparsers.add_parser("emulate", help="run the gantry I/O emulator (device side of a bus driver)",
+                              description=__doc__.split("\n\n")[2])
+    e.add_argument("--transport", required=True, choices=sorted(available_devices()))
+    e.add_argument("config", help="the bus driver's YAML (driver.type = --transport)")
+    e.add_argument("--plant", default=DEFAULT_PLANT,
+                   help=f"simulated-gantry config giving the plant of each axis, seed, substeps and "
+                        f"watchdog (driver.type: sim); default {DEFAULT_PLANT}")
+    e.add_argument("--watchdog", type=_seconds, metavar="S",
+                   help="command watchdog [s]; default: the plant config's driver.watchdog_s, else 0.05")
+    e.add_argument("--late", type=_seconds, default=DEFAULT_LATE_S, metavar="S",
+                   help=f"delay of a 'late' answer [s]; default {DEFAULT_LATE_S}")
+    e.add_argument("--fault", type=_fault, action="append", metavar="KIND[:AXIS[:START[:COUNT]]]",
                    help="inject a fault (repeatable): drop, late, corrupt, stale, exception, "
                         "disconnect, bus_off")
-    e.add_argument("--duration", type=float, help="stop after this many seconds")
+    e.add_argument("--duration", type=_seconds, metavar="S", help="stop after this many seconds")
     e.add_argument("--priority", type=int, default=90,
                    help="SCHED_FIFO priority of the emulator (0: normal scheduling); default 90, above the "
                         "loop's 80: it stands in for hardware, which never waits for the host")

@@ -7,9 +7,10 @@
   up and a route for 224.0.0.0/4 via ``lo``; commands run in it through ``nsenter``. CAN over
   udp_multicast is only ever used inside one, so no multicast leaves the machine.
 * :class:`Emulator`: ``motorctl emulate`` as a child process (waits for its ``ready`` line,
-  killed on exit).
+  killed on exit), its plant from a simulated-gantry config (``--plant``).
 * :func:`motorctl_cmd`: the argv that runs the motorctl CLI with this interpreter.
-* :func:`sim_twin`: the sim-driver config of the same plant and seed (the reference run).
+* :func:`sim_twin`: a driver config run on the sim driver with the emulator's plant config (the
+  reference run).
 
 Every child is started in its own session and killed by its pid on exit.
 """
@@ -43,7 +44,7 @@ def loopback_config(base: str | Path | dict, out_dir: str | Path, rate_hz: float
                     driver: dict | None = None, name: str | None = None) -> tuple[dict, Path]:
     """Copy a driver config, aim it at this machine, write it to ``out_dir``; returns (dict, path).
 
-    ``driver``: extra keys merged into the ``driver:`` section (``emulator`` merged one level deep).
+    ``driver``: extra keys set in the ``driver:`` section.
     """
     d = copy.deepcopy(base) if isinstance(base, dict) else load_yaml(base)
     drv = d["driver"]
@@ -58,11 +59,7 @@ def loopback_config(base: str | Path | dict, out_dir: str | Path, rate_hz: float
     elif t == "can":
         drv.update(interface="udp_multicast", channel=CAN_GROUP,
                    bus_options={"port": free_port(socket.SOCK_DGRAM)})
-    for k, v in (driver or {}).items():
-        if k == "emulator":
-            drv.setdefault("emulator", {}).update(v)
-        else:
-            drv[k] = v
+    drv.update(driver or {})
     if rate_hz is not None:
         d["loop"]["rate_hz"] = rate_hz
     path = Path(out_dir) / f"{name or t}.yaml"
@@ -79,6 +76,9 @@ LOOPBACK_ROUND_TRIP_S = {"serial": 225e-6, "can": 515e-6, "modbus": 434e-6}
 #: read timeout of the loopback runs, in periods: the answer then has 1.75 periods from the
 #: send; the rest of the cycle (control, write: ~60 us for two axes) still fits at ≤ 2.5 kHz.
 LOOPBACK_TIMEOUT_PERIODS = 0.75
+#: the emulator's watchdog in the loopback runs [s]: long enough that the loaded shared VM does
+#: not trip it mid-run, short enough that a killed driver is noticed at once
+LOOPBACK_WATCHDOG_S = 0.2
 
 
 def loopback_rate(d: dict) -> float:
@@ -91,16 +91,13 @@ def loopback_rate(d: dict) -> float:
 
 
 def loopback_e2e_config(transport: str, configs_dir: str | Path, out_dir: str | Path,
-                        watchdog_s: float = 0.2, name: str | None = None,
-                        emulator: dict | None = None) -> tuple[dict, Path, float]:
+                        name: str | None = None) -> tuple[dict, Path, float]:
     """configs/gantry-<transport>.yaml aimed at this machine, with the measured loopback round
     trip, at the highest rate its budget allows, read timeout ``LOOPBACK_TIMEOUT_PERIODS``.
-    Returns (dict, path, rate_hz).
-    ``emulator``: more ``driver.emulator`` settings (e.g. late_s)."""
+    Returns (dict, path, rate_hz)."""
     rt = LOOPBACK_ROUND_TRIP_S[transport]
-    emu = {"watchdog_s": watchdog_s, **(emulator or {})}
     d, _ = loopback_config(Path(configs_dir) / f"gantry-{transport}.yaml", out_dir,
-                           driver={"round_trip_s": rt, "emulator": emu}, name=name)
+                           driver={"round_trip_s": rt}, name=name)
     rate = loopback_rate(d)
     d["loop"]["rate_hz"] = rate
     d["driver"]["timeout_s"] = LOOPBACK_TIMEOUT_PERIODS / rate
@@ -109,14 +106,15 @@ def loopback_e2e_config(transport: str, configs_dir: str | Path, out_dir: str | 
     return d, path, rate
 
 
-def sim_twin(d: dict) -> dict:
-    """The same config on the sim driver: seed and substeps from ``driver.emulator``, each
-    axis's plant from ``axes.NAME.driver.plant``."""
+def sim_twin(d: dict, plant: str | Path) -> dict:
+    """Driver config ``d`` on the sim driver of the emulator's plant config ``plant``: its
+    ``driver:`` section and each axis's ``axes.NAME.driver`` (the plant), everything else
+    (loop rate, controllers, programs, limits) from ``d``."""
+    p = load_yaml(plant)
     s = copy.deepcopy(d)
-    emu = d["driver"].get("emulator", {})
-    s["driver"] = {"type": "sim", "seed": emu.get("seed", 0), "substeps": emu.get("substeps", 4)}
-    for ax in s["axes"].values():
-        ax["driver"] = ax["driver"]["plant"]
+    s["driver"] = copy.deepcopy(p["driver"])
+    for name, ax in s["axes"].items():
+        ax["driver"] = copy.deepcopy(p["axes"][name]["driver"])
     return s
 
 
@@ -162,10 +160,20 @@ class NetNamespace:
 
 
 class Emulator:
-    """``motorctl emulate`` in a child process (optionally inside a namespace ``prefix``)."""
+    """``motorctl emulate`` in a child process (optionally inside a namespace ``prefix``).
 
-    def __init__(self, transport: str, config: str | Path, faults=(), prefix=(), extra=()):
-        self.argv = [*prefix, *motorctl_cmd("emulate", "--transport", transport, str(config),
+    ``plant``: the simulated-gantry config (``--plant``; None: the command's default);
+    ``watchdog_s``, ``late_s``: ``--watchdog``, ``--late`` (None: the command's defaults);
+    ``faults``: ``--fault`` specs; ``extra``: more arguments.
+    """
+
+    def __init__(self, transport: str, config: str | Path, plant: str | Path | None = None, faults=(),
+                 watchdog_s: float | None = None, late_s: float | None = None, prefix=(), extra=()):
+        opts = [] if plant is None else ["--plant", str(plant)]
+        for flag, v in (("--watchdog", watchdog_s), ("--late", late_s)):
+            if v is not None:
+                opts += [flag, repr(float(v))]
+        self.argv = [*prefix, *motorctl_cmd("emulate", "--transport", transport, str(config), *opts,
                                             *[a for f in faults for a in ("--fault", f)], *extra)]
         self.proc = None
         self.ready = ""

@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 
 from motorctl_drivers import can_bus, modbus, serial_link
-from motorctl_drivers.proto_common import (EncoderUnwrap, FaultSpec, counts_to_volts, to_signed,
-                                           to_unsigned, volts_to_counts)
+from motorctl_drivers.split_phase import EncoderUnwrap, counts_to_volts, to_signed, to_unsigned, volts_to_counts
+from motorctl_emulators.plant_bank import FaultSpec
 
 
 # --------------------------------------------------------------------------- scaling, sign, wrap

@@ -17,10 +17,11 @@ import pytest
 
 from motorctl.recorder.runlog import read_log
 from motorctl.loop.safety import FAULT_IO_ERROR
-from motorctl_emulators.harness import (Emulator, NetNamespace, loopback_e2e_config, parse_run_table,
-                                            run_cli)
+from motorctl_emulators.harness import (LOOPBACK_WATCHDOG_S, Emulator, NetNamespace, loopback_e2e_config,
+                                        parse_run_table, run_cli)
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+PLANT = CONFIGS / "gantry.yaml"
 
 #: Below the limit: each burst adds ≤ 10 × (cycles lost) to a bucket of 100, which drains by 1
 #: per clean cycle between bursts (60 ms apart: ≥ 60 cycles). Then a lasting loss from
@@ -45,13 +46,14 @@ def _faults(transport: str, rate: float) -> tuple[list[str], int]:
 
 @pytest.mark.parametrize("transport", ["serial", "can", "modbus"])
 def test_transient_faults_keep_running_and_a_lasting_loss_faults_to_0V_in_the_same_cycle(transport, tmp_path):
-    d, cfg, rate = loopback_e2e_config(transport, CONFIGS, tmp_path, emulator={"late_s": LATE_S})
+    d, cfg, rate = loopback_e2e_config(transport, CONFIGS, tmp_path)
     log_path = tmp_path / "run.log"
     ns = NetNamespace() if transport == "can" else None
     prefix = ns.__enter__().prefix if ns else ()
     try:
         faults, lasting_start = _faults(transport, rate)
-        with Emulator(transport, cfg, faults=faults, prefix=prefix) as emu:
+        with Emulator(transport, cfg, plant=PLANT, faults=faults, watchdog_s=LOOPBACK_WATCHDOG_S,
+                      late_s=LATE_S, prefix=prefix) as emu:
             duration = f"{LASTING_T + 0.06:.3f}"
             r = run_cli(["run", str(cfg), "--controller", "c2", "--duration", duration, "--log", str(log_path)],
                         prefix=prefix, timeout_s=90)

@@ -13,16 +13,19 @@ import numpy as np
 import pytest
 
 from motorctl.config import config_from_dict, load_yaml
-from motorctl_emulators.cli import build_device
+from motorctl.driver import LifecycleError
+from motorctl_emulators.device import build_device
+from motorctl_emulators.plant_bank import FaultSpec
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+PLANT = CONFIGS / "gantry.yaml"        # the emulator's plant: the simulated gantry
+WATCHDOG_S = 0.05
 
 
 def _config(name: str, tmp_path, **driver) -> dict:
     d = load_yaml(CONFIGS / name)
     d["loop"]["rate_hz"] = 1000
     d["driver"].update(timeout_s=0.0009, wait="spin")
-    d["driver"]["emulator"]["watchdog_s"] = 0.05
     d["driver"].update(driver)
     return d
 
@@ -30,7 +33,7 @@ def _config(name: str, tmp_path, **driver) -> dict:
 @contextlib.contextmanager
 def _serving(loaded, faults=()):
     """The emulated device of ``loaded`` served from a thread of this process (bounded join)."""
-    dev = build_device(loaded, list(faults))
+    dev = build_device(loaded, PLANT, watchdog_s=WATCHDOG_S, faults=list(faults))
     stop = threading.Event()
     th = threading.Thread(target=dev.serve, kwargs={"stop": stop.is_set}, daemon=True)
     th.start()
@@ -66,11 +69,12 @@ def _drive(loaded, dev, cycles: int):
         time.sleep(0.15)
         drv._first_reading(timeout_s=1.0)
         fault_after_watchdog = drv.amp_fault.copy()
-        drv.close()
+        drv.close()                           # deactivate (0 V, disabled, answer awaited), release
+        assert drv.state == "finalized" and not drv.connected
+        assert dev.bank.applied_V == [0.0, 0.0] and dev.bank.enabled == [False, False]
         return moved, errors, fault_after_watchdog, dev.bank
     finally:
-        if drv.connected:
-            drv.close()
+        drv.close()                           # idempotent
 
 
 @pytest.mark.parametrize("fd", [False, True])
@@ -104,7 +108,6 @@ def test_modbus_rtu_over_a_pty(tmp_path):
 def test_lost_link_is_flagged_every_cycle_and_reconnect_happens_outside_the_loop(tmp_path):
     import time
 
-    from motorctl_drivers.proto_common import FaultSpec
     from motorctl_emulators.harness import free_port
     d = _config("gantry-serial.yaml", tmp_path, port=f"socket://127.0.0.1:{free_port()}")
     loaded = config_from_dict(d, "<inprocess>", check_budget=False)
@@ -130,3 +133,64 @@ def test_lost_link_is_flagged_every_cycle_and_reconnect_happens_outside_the_loop
             assert dev.bank.enabled == [False, False]  # the device saw the axes disabled
         finally:
             drv.close()
+
+
+def test_lifecycle_deactivate_reaches_the_device_and_activate_starts_again(tmp_path):
+    """configure → activate → cycles → deactivate (the device has applied 0 V with the amplifier
+    off when it returns) → activate again → close; nothing outside that order is allowed."""
+    import time
+    d = _config("gantry-serial.yaml", tmp_path, port=str(tmp_path / "ttyLC"))
+    loaded = config_from_dict(d, "<inprocess>", check_budget=False)
+    with _serving(loaded) as dev:
+        drv = loaded.make_driver()
+        try:
+            with pytest.raises(LifecycleError):
+                drv.activate()                     # not configured yet
+            drv.configure()
+            assert drv.state == "inactive" and drv.connected and dev.bank.commands == [0, 0]
+            drv.activate()
+            for _ in range(5):
+                drv.write(np.array([1.0, 1.0]), np.ones(2, dtype=bool))
+                time.sleep(0.003)
+                drv.read()
+            assert dev.bank.enabled == [True, True]
+            drv.deactivate()
+            assert drv.state == "inactive"
+            assert dev.bank.enabled == [False, False] and dev.bank.applied_V == [0.0, 0.0]
+            drv.activate()
+            drv.read()                              # nothing outstanding after a re-activation
+            assert not drv.read_error.any()
+            drv.close()
+            assert drv.state == "finalized"
+            with pytest.raises(LifecycleError):
+                drv.reconnect()                     # a closed driver stays closed
+        finally:
+            drv.close()
+
+
+def test_configure_releases_the_link_when_the_device_does_not_answer(tmp_path, monkeypatch):
+    import os
+    master, slave = os.openpty()                    # a port with nobody behind it
+    try:
+        d = _config("gantry-serial.yaml", tmp_path, port=os.ttyname(slave))
+        drv = config_from_dict(d, "<inprocess>", check_budget=False).make_driver()
+        monkeypatch.setattr(drv, "CONFIGURE_TIMEOUT_S", 0.05)
+        with pytest.raises(ConnectionError, match="no answer"):
+            drv.configure()
+        assert drv.state == "unconfigured" and drv.port is None and not drv.connected
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+@pytest.mark.parametrize("name", ["gantry-can.yaml", "gantry-can-classic.yaml", "gantry-serial.yaml",
+                                  "gantry-modbus.yaml"])
+def test_voltage_out_limit_is_the_drive_full_scale(name, tmp_path):
+    d = _config(name, tmp_path)
+    per_axis = "voltage_full_scale_V" in d["axes"]["X"]["driver"]
+    (d["axes"]["X"]["driver"] if per_axis else d["driver"])["voltage_full_scale_V"] = 12.0
+    drv = config_from_dict(d, "<inprocess>", check_budget=False).make_driver()
+    assert drv.voltage_limit_V("X") == 12.0
+    assert drv.voltage_limit_V("Y") == (10.0 if per_axis else 12.0)
+    vout = {i.name: i for i in drv.command_interfaces("X")}["voltage_out"]
+    assert (vout.min, vout.max) == (-12.0, 12.0)

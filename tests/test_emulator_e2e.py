@@ -24,10 +24,11 @@ import pytest
 
 from motorctl.config import config_from_dict
 from motorctl.app.job import run_job
-from motorctl_emulators.harness import (Emulator, NetNamespace, loopback_e2e_config, motorctl_cmd,
-                                            parse_run_table, run_cli, sim_twin, wait_for)
+from motorctl_emulators.harness import (LOOPBACK_WATCHDOG_S, Emulator, NetNamespace, loopback_e2e_config,
+                                        motorctl_cmd, parse_run_table, run_cli, sim_twin, wait_for)
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+PLANT = CONFIGS / "gantry.yaml"        # the emulator's plant: the simulated gantry
 DURATION_S = 3.0
 EXPECTED_RATE_HZ = {"serial": 2000.0, "can": 1000.0, "modbus": 1500.0}
 TOLERANCE = 0.20
@@ -35,12 +36,13 @@ TOLERANCE = 0.20
 
 @functools.lru_cache(maxsize=None)
 def _sim_reference(rate: float) -> dict:
-    """The sim-driver run at ``rate`` (every transport's config holds the same plant and seed)."""
+    """The sim-driver run at ``rate`` on the emulator's plant config (the transports' configs
+    share controllers and programs, so one reference serves them all)."""
     import tempfile
     with tempfile.TemporaryDirectory() as tmp:
         d, _, _ = loopback_e2e_config("serial", CONFIGS, tmp)
     d["loop"]["rate_hz"] = rate
-    res = run_job(config_from_dict(sim_twin(d), "sim-twin"), controller="c2", duration_s=DURATION_S,
+    res = run_job(config_from_dict(sim_twin(d, PLANT), "sim-twin"), controller="c2", duration_s=DURATION_S,
                   clock="virtual")
     return {a: dict(r) for a, r in res.axes.items()}
 
@@ -67,7 +69,7 @@ def test_closed_loop_through_the_protocol_matches_the_sim_driver(transport, tmp_
     assert rate == EXPECTED_RATE_HZ[transport], f"{transport}: budget now allows {rate} Hz"
     prefix = namespace_for(transport)
     log = tmp_path / "run.log"
-    with Emulator(transport, cfg, prefix=prefix) as emu:
+    with Emulator(transport, cfg, plant=PLANT, watchdog_s=LOOPBACK_WATCHDOG_S, prefix=prefix) as emu:
         r = run_cli(["run", str(cfg), "--controller", "c2", "--duration", str(DURATION_S), "--log", str(log)],
                     prefix=prefix, timeout_s=90)
         emu_err = emu.stderr()
@@ -91,9 +93,9 @@ def test_closed_loop_through_the_protocol_matches_the_sim_driver(transport, tmp_
 
 @pytest.mark.parametrize("transport", ["serial", "can", "modbus"])
 def test_emulator_watchdog_zeroes_output_when_the_driver_is_killed(transport, tmp_path, namespace_for):
-    d, cfg, rate = loopback_e2e_config(transport, CONFIGS, tmp_path, watchdog_s=0.05)
+    d, cfg, rate = loopback_e2e_config(transport, CONFIGS, tmp_path)
     prefix = namespace_for(transport)
-    with Emulator(transport, cfg, prefix=prefix) as emu:
+    with Emulator(transport, cfg, plant=PLANT, watchdog_s=0.05, prefix=prefix) as emu:
         run = subprocess.Popen([*prefix, *motorctl_cmd("run", str(cfg), "--duration", "60")],
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
         try:

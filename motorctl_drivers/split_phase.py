@@ -1,0 +1,399 @@
+"""The host side the CAN, serial and Modbus drivers share (one place each).
+
+* :func:`volts_to_counts` / :func:`counts_to_volts`: the voltage command as a scaled signed
+  integer (full scale ``full_scale_V`` ↔ the largest count of a ``bits``-wide signed field);
+  :func:`to_unsigned` / :func:`to_signed`: two's complement on the wire. The emulated devices
+  (``motorctl_emulators``) decode with the same functions.
+* :class:`EncoderUnwrap`: a ``bits``-wide wrapping encoder counter → a continuous count
+  (the difference of two readings modulo 2^bits, taken as the shortest signed step).
+* :class:`CommonOptions`: the settings every bus driver has; :func:`make_budget`: the bus
+  budget from the wire time and the measured host round trip.
+* :class:`SplitPhaseDriver`: the cycle shared by the bus drivers. ``write()`` sends the command
+  of cycle k with sequence number k (non-blocking); the device applies it for one period and
+  answers with the encoder reading at the end of that period; ``read()`` of cycle k+1 polls
+  (never blocks) for that answer until ``timeout_s`` (shorter than the period) has passed.
+  This is LinuxCNC hostmot2's split-phase read-request/read: one exchange per cycle, and the
+  same data flow as the simulated driver (write steps the plant, the next read sees it).
+  A missing, late, stale (wrong sequence) or corrupt answer, or an error answer, sets
+  ``read_error`` for the axes it carried; the position is extrapolated by the last measured
+  one-cycle step for up to ``EXTRAPOLATE_CYCLES`` consecutive losses, then held (LinuxCNC's
+  advice for a transient packet loss is to stand in for the feedback; the supervisor's leaky
+  bucket still counts the cycle and faults the axis when losses persist). A failed send sets
+  ``write_error``. Nothing raises inside the cycle.
+"""
+
+from __future__ import annotations
+
+import math
+import select
+import time
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import Field
+
+from motorctl.driver import BusBudget, Driver, LifecycleError
+from motorctl.schema import StrictModel
+
+
+# --------------------------------------------------------------------------- scaling
+def volts_to_counts(u_V: float, full_scale_V: float, bits: int) -> int:
+    """Voltage [V] → signed integer of ``bits`` bits, full scale ±``full_scale_V``; saturates; NaN → 0."""
+    top = (1 << (bits - 1)) - 1
+    if not (u_V == u_V):
+        return 0
+    c = round(u_V / full_scale_V * top)
+    return top if c > top else (-top if c < -top else int(c))
+
+
+def counts_to_volts(c: int, full_scale_V: float, bits: int) -> float:
+    """Signed integer of ``bits`` bits → voltage [V] (inverse of :func:`volts_to_counts`)."""
+    return c * full_scale_V / ((1 << (bits - 1)) - 1)
+
+
+def to_unsigned(value: int, bits: int) -> int:
+    """Two's complement of ``value`` in ``bits`` bits (the wire form of a signed field)."""
+    return value & ((1 << bits) - 1)
+
+
+def to_signed(raw: int, bits: int) -> int:
+    """Unsigned ``bits``-bit wire value → signed int."""
+    half = 1 << (bits - 1)
+    return raw - (1 << bits) if raw >= half else raw
+
+
+class EncoderUnwrap:
+    """A wrapping ``bits``-wide encoder counter → a continuous count.
+
+    ``update(raw)`` takes the unsigned wire value and returns the continuous count: the first
+    reading is taken as a signed value, every later one adds the shortest signed step from
+    the previous reading modulo 2^bits (valid while the axis moves less than half the counter
+    range per cycle: 2^23 counts = 4.2 m at 0.5 µm for 24 bits).
+    """
+
+    def __init__(self, bits: int):
+        self.bits = bits
+        self.mod = 1 << bits
+        self.half = 1 << (bits - 1)
+        self.last = -1
+        self.total = 0
+
+    def update(self, raw: int) -> int:
+        if self.last < 0:
+            self.total = to_signed(raw, self.bits)
+        else:
+            d = (raw - self.last) & (self.mod - 1)
+            if d >= self.half:
+                d -= self.mod
+            self.total += d
+        self.last = raw
+        return self.total
+
+
+# --------------------------------------------------------------------------- settings, budget
+class CommonOptions(StrictModel):
+    """Settings every bus driver has (merged into each driver's ``Options``).
+
+    timeout_s: how long ``read()`` polls for the answer [s]; default half the period; capped
+        at 0.8 of the period (the rest of the cycle needs the time).
+    round_trip_s: measured host round trip of one exchange on this machine [s] (driver stack
+        + device answering; ``benchmarks/bench_transports.py`` measures it). Added to the wire
+        time in the budget; 0 means 'wire only'.
+    wait: how ``read()`` waits for the answer until ``timeout_s``: 'select' sleeps in
+        select() on the transport's file descriptor (never past the deadline; the CPU is free
+        meanwhile, so a SCHED_FIFO loop stays clear of RT throttling), 'spin' polls without
+        sleeping (lowest latency, for an isolated core). Transports without a descriptor
+        (python-can 'virtual') always spin.
+    max_bus_load: the fraction of the period the bus may be busy (0.8 leaves room for
+        retries and other traffic).
+    """
+
+    timeout_s: Annotated[float, Field(gt=0)] | None = None
+    wait: Literal["select", "spin"] = "select"
+    round_trip_s: Annotated[float, Field(ge=0)] = 0.0
+    max_bus_load: Annotated[float, Field(gt=0, le=1)] = 0.8
+
+
+def make_budget(rate_hz: float, wire_s: float, round_trip_s: float, max_load: float,
+                what: str, fits: str) -> BusBudget:
+    """Budget from the wire time [s] and the host round trip [s] of one cycle.
+
+    ``what``: the wire arithmetic, one line. ``fits``: a setting that would carry ``rate_hz``.
+    max rate = ``max_load`` / (wire + round trip) [Hz].
+    """
+    cycle = wire_s + round_trip_s
+    max_rate = max_load / cycle if cycle > 0 else float("inf")
+    detail = (f"{what}; wire {wire_s * 1e6:.1f} us + measured round trip {round_trip_s * 1e6:.1f} us "
+              f"= {cycle * 1e6:.1f} us per cycle, {cycle * rate_hz * 100:.0f}% of the "
+              f"{1e6 / rate_hz:.0f} us period at {rate_hz:g} Hz (limit {max_load * 100:.0f}% load)")
+    suggestion = ""
+    if rate_hz > max_rate:
+        suggestion = f"set loop.rate_hz to {math.floor(max_rate):d} or less, or {fits}"
+    return BusBudget(cycle_time_s=cycle, max_rate_hz=max_rate, detail=detail, suggestion=suggestion)
+
+
+# --------------------------------------------------------------------------- the driver
+class SplitPhaseDriver(Driver):
+    """Base of the bus drivers (see the module docstring for the cycle).
+
+    Subclasses implement the transport:
+
+    * ``_open_transport()``: open the link (may block); call :meth:`_set_wait_fd`.
+    * ``_release_transport()``: close the link; idempotent, never raises for a dead link.
+    * ``_transmit(seq, u_V, enable)``: send the command (never block; a failed frame of a
+      multi-frame transport sets ``write_error`` for its axes).
+    * ``_transmit_query(seq)``: send a request for every axis's position that does not step
+      the plant (serial query frame, CAN remote frames, Modbus FC03).
+    * ``_receive()``: drain what has arrived without blocking and call :meth:`_accept` for
+      each axis answer that decodes and passes its CRC, :meth:`_accept_error` for an error
+      answer.
+
+    and :meth:`Driver._full_scale_V` from their settings. The lifecycle hooks are here:
+    ``_configure`` opens the transport and checks the device answers (:meth:`_first_reading`),
+    ``_activate`` starts the cycle from rest, ``_deactivate`` waits for the answer to the
+    0 V command, ``_close`` releases the transport; :meth:`reconnect` re-opens a lost link.
+
+    Counters (for ``describe()`` and the benchmark): timeouts, stale, bad_frames, exceptions,
+    send_errors.
+    """
+
+    SEQ_MASK = 0xFF
+    EXTRAPOLATE_CYCLES = 8
+    WARMUP_QUERIES = 50
+    #: how long ``_configure`` waits for the device's first answer [s]
+    CONFIGURE_TIMEOUT_S = 1.0
+    #: how long ``_deactivate`` waits for the answer to the final 0 V command [s]
+    DEACTIVATE_TIMEOUT_S = 0.05
+
+    def __init__(self, options, axis_options, period_s):
+        super().__init__(options, axis_options, period_s)
+        n = len(self.axis_names)
+        t = options.timeout_s if options.timeout_s is not None else 0.5 * period_s
+        self.timeout_s = min(t, 0.8 * period_s)
+        self.seq = 0
+        self._outstanding = False
+        self._got = np.zeros(n, dtype=bool)
+        self._step = [0.0] * n               # last measured one-cycle step [m] (extrapolation)
+        self._y_last = [math.nan] * n        # last measured position [m]
+        self._lost = [0] * n                 # consecutive lost answers per axis
+        self._query = False                  # a position query: any sequence number will do
+        self._wait_fds: list = []            # descriptors read() may select() on
+        self._any_lost = False
+        self._unwrap: list[EncoderUnwrap] = []
+        self._m_per_count = [1.0] * n
+        self.connected = False
+        self.counters = {"timeouts": 0, "stale": 0, "bad_frames": 0, "exceptions": 0, "send_errors": 0}
+
+    def _set_wait_fd(self, fd) -> None:
+        """Called by ``_open_transport()`` with the transport's file descriptor (None: none, spin)."""
+        self._wait_fds = [fd] if fd is not None and fd >= 0 and self.options.wait == "select" else []
+
+    # --- transport hooks (subclasses)
+    def _open_transport(self) -> None:  # pragma: no cover
+        raise NotImplementedError
+
+    def _release_transport(self) -> None:  # pragma: no cover
+        raise NotImplementedError
+
+    def _transmit(self, seq: int, u_V: np.ndarray, enable: np.ndarray) -> None:  # pragma: no cover
+        raise NotImplementedError
+
+    def _transmit_query(self, seq: int) -> None:  # pragma: no cover
+        raise NotImplementedError
+
+    def _receive(self) -> None:  # pragma: no cover
+        raise NotImplementedError
+
+    # --- lifecycle hooks
+    def _configure(self) -> None:
+        """Open the transport and check that every axis answers (:meth:`_first_reading`).
+
+        Raises:
+            OSError: the link cannot be opened. ConnectionError: the device did not answer
+            within ``CONFIGURE_TIMEOUT_S`` (the transport is released again).
+        """
+        self._open_transport()
+        self.connected = True
+        try:
+            self._first_reading(self.CONFIGURE_TIMEOUT_S)
+        except BaseException:
+            self._close()
+            raise
+
+    def _activate(self) -> None:
+        """Start the cycle from rest: nothing outstanding, no extrapolation carried over from
+        an earlier activation. The protocols have nothing to start on the device: the
+        amplifier enable travels in every command."""
+        n = len(self.axis_names)
+        self._outstanding = False
+        self._got[:] = False
+        self._step[:] = [0.0] * n
+        self._lost[:] = [0] * n
+        self._any_lost = False
+        self.read_error[:] = False
+        self.write_error[:] = False
+
+    def _deactivate(self) -> None:
+        """Wait (at most ``DEACTIVATE_TIMEOUT_S``) for the answer to the 0 V, amplifiers-off
+        command the base class has just written, so the device has applied it and nothing is
+        in flight. A dead link is left as it is (``connected`` False)."""
+        if not (self._outstanding and self.connected):
+            self._outstanding = False
+            return
+        try:
+            self.exchange_blocking(self.DEACTIVATE_TIMEOUT_S)
+        except Exception:  # noqa: BLE001  (stopping anyway)
+            self.connected = False
+        self._outstanding = False
+
+    def _close(self) -> None:
+        """Release the transport (sends nothing: 0 V was written by ``deactivate()``)."""
+        self.connected = False
+        self._outstanding = False
+        self._release_transport()
+
+    def reconnect(self) -> None:
+        """Release and re-open the transport (blocking; call outside the loop), then check the
+        device answers as ``configure()`` does. Sends no command: the axes stay faulted in the
+        supervisor until an operator resets them, and the next ``write()`` decides what is
+        enabled; nothing is re-enabled here.
+
+        Raises:
+            LifecycleError: the driver is not configured (unconfigured or closed).
+            OSError, ConnectionError: as :meth:`_configure` (``connected`` stays False).
+        """
+        if self.state not in ("inactive", "active"):
+            raise LifecycleError(f"{type(self).__name__}.reconnect() needs a configured driver, "
+                                 f"the driver is {self.state!r}")
+        try:
+            self._close()
+        except Exception:  # noqa: BLE001  (a dead link may refuse to close cleanly)
+            pass
+        self._configure()
+        if self.state == "active":
+            self._activate()
+
+    # --- answers
+    def _accept(self, i: int, seq: int, raw_counts: int, fault: bool) -> None:
+        """Take axis i's answer if it carries the expected sequence number (else: stale)."""
+        if not self._outstanding or (seq != self.seq and not self._query):
+            self.counters["stale"] += 1
+            return
+        if self._got[i]:
+            return
+        self._got[i] = True
+        y = self._unwrap[i].update(raw_counts) * self._m_per_count[i]
+        self._step[i] = y - self._y_last[i] if self._y_last[i] == self._y_last[i] else 0.0
+        self._y_last[i] = y
+        self.position_m[i] = y
+        self.amp_fault[i] = fault
+
+    def _accept_error(self, seq: int | None) -> None:
+        """An error answer (serial error frame, Modbus exception, CAN error frame) came in.
+
+        The axes of the request get no position from it, so ``read()`` flags them; the answer
+        is counted in ``exceptions`` when it answers the outstanding request (``seq`` is
+        its sequence number; None where the transport carries none, e.g. a CAN error frame),
+        in ``stale`` when it answers an older one.
+        """
+        if seq is not None and (not self._outstanding or (seq != self.seq and not self._query)):
+            self.counters["stale"] += 1
+            return
+        self.counters["exceptions"] += 1
+
+    # --- cycle
+    def read(self) -> None:
+        if not self._outstanding:
+            self.read_error[:] = False
+            return
+        got = self._got
+        clock = time.perf_counter
+        deadline = clock() + self.timeout_s
+        fds = self._wait_fds
+        try:
+            while True:
+                self._receive()
+                if got.all():
+                    break
+                left = deadline - clock()
+                if left <= 0.0:
+                    break
+                if fds:
+                    select.select(fds, (), (), left)
+        except Exception:  # noqa: BLE001  (a transport error inside the cycle is a read error)
+            self.connected = False
+        if not got.all():
+            self.counters["timeouts"] += 1
+            pos, step, lost = self.position_m, self._step, self._lost
+            for i in range(len(got)):
+                if not got[i]:   # stand in for a lost answer (still flagged as read_error):
+                    lost[i] += 1  # hold the last velocity for EXTRAPOLATE_CYCLES, then the position
+                    if lost[i] <= self.EXTRAPOLATE_CYCLES:
+                        pos[i] += step[i]
+                else:
+                    lost[i] = 0
+        elif self._any_lost:
+            self._lost[:] = [0] * len(got)
+        np.logical_not(got, out=self.read_error)
+        self._any_lost = not got.all()
+        self._outstanding = False
+
+    def write(self, u_V: np.ndarray, enable: np.ndarray) -> None:
+        self.seq = (self.seq + 1) & self.SEQ_MASK
+        self._got[:] = False
+        if not self.connected:
+            self.write_error[:] = True
+            return
+        self.write_error[:] = False
+        try:
+            self._transmit(self.seq, u_V, enable)
+        except Exception:  # noqa: BLE001
+            self.counters["send_errors"] += 1
+            self.write_error[:] = True
+            self.connected = False
+            return
+        self._outstanding = True
+
+    # --- blocking exchanges (outside the loop)
+    def _first_reading(self, timeout_s: float = 1.0) -> None:
+        """Blocking queries of every axis's position (no plant step): the first must answer
+        within ``timeout_s`` [s]; ``WARMUP_QUERIES`` more warm up both ends' code paths and
+        caches (the first exchanges of a fresh link are several times slower).
+
+        Raises:
+            ConnectionError: the device did not answer within ``timeout_s``.
+        """
+        self._query_once(timeout_s)
+        for _ in range(self.WARMUP_QUERIES):
+            self._query_once(timeout_s)
+
+    def _query_once(self, timeout_s: float) -> None:
+        self.seq = (self.seq + 1) & self.SEQ_MASK
+        self._got[:] = False
+        self._outstanding = True
+        self._query = True
+        try:
+            self._transmit_query(self.seq)
+            ok = self.exchange_blocking(timeout_s)
+        finally:
+            self._query = False
+        if not ok:
+            missing = [a for a, g in zip(self.axis_names, self._got) if not g]
+            raise ConnectionError(f"{type(self).__name__}: no answer from axes {', '.join(missing)} "
+                                  f"within {timeout_s:g} s")
+        self.read_error[:] = False
+        self.write_error[:] = False
+
+    def exchange_blocking(self, timeout_s: float) -> bool:
+        """Wait (blocking, outside the loop) up to ``timeout_s`` [s] for the outstanding
+        answer; True when every axis answered."""
+        deadline = time.perf_counter() + timeout_s
+        while not self._got.all() and time.perf_counter() < deadline:
+            self._receive()
+            time.sleep(0.0002)
+        ok = bool(self._got.all())
+        self._outstanding = False
+        return ok
+
+    def describe(self) -> dict:
+        return {"timeout_s": self.timeout_s, "counters": dict(self.counters)}

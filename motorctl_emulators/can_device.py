@@ -1,0 +1,104 @@
+"""The emulated drive(s) on the CAN bus (``motorctl emulate --transport can``).
+
+Frame layout, bus options and codecs are the driver's (:mod:`motorctl_drivers.can_bus`).
+"""
+
+from __future__ import annotations
+
+import time
+
+from motorctl_drivers.can_bus import CanOptions, Frame, build_frames, open_bus, pack_int, unpack_uint
+from motorctl_drivers.split_phase import counts_to_volts, to_signed
+from motorctl_emulators.device import Device
+from motorctl_emulators.plant_bank import PlantBank
+
+
+class CanDevice(Device):
+    """A command frame steps the axes it carries and is answered with the feedback frames of
+    those axes (sequence byte echoed); a remote frame on a feedback ID is answered without a
+    step. Faults: drop, late, corrupt (a frame shorter than the layout), stale (the previous
+    feedback again), exception (an error frame instead of the answer), disconnect and bus_off
+    (the node is silent: it neither applies nor answers).
+
+    Raises:
+        ValueError: the layout does not build (as the driver's). can.CanError, OSError: the bus
+        cannot be opened.
+    """
+
+    def __init__(self, options: CanOptions, axis_options: dict, bank: PlantBank):
+        super().__init__(options, axis_options, bank)
+        names = bank.names
+        self.lay = [axis_options[a] for a in names]
+        self.cmd = {f.id: f for f in build_frames(names, axis_options, "command", options.fd)}
+        self.fb = build_frames(names, axis_options, "feedback", options.fd)
+        self.fb_of_axis = {i: f for f in self.fb for i in f.axes}
+        self.bus = open_bus(options)
+        self.last = {}
+
+    def _feedback(self, f: Frame, seq: int):
+        import can
+        b = self.bank
+        data = bytearray(f.length)
+        for i in f.axes:
+            fl = self.lay[i].feedback
+            pack_int(data, fl.counts, b.counts(i, self.lay[i].encoder_m_per_count))
+            if b.amp_fault[i]:
+                data[fl.fault.byte] |= 1 << fl.fault.bit
+        if f.seq_byte is not None:
+            data[f.seq_byte] = seq
+        fd = self.options.fd
+        return can.Message(arbitration_id=f.id, is_extended_id=self.options.extended_id, data=data,
+                           is_fd=fd, bitrate_switch=fd)
+
+    def poll(self, timeout_s: float) -> None:
+        import can
+        msg = self.bus.recv(timeout=timeout_s)
+        if msg is None or msg.is_error_frame:
+            return
+        b = self.bank
+        if msg.is_remote_frame:
+            for f in self.fb:
+                if f.id == msg.arbitration_id:
+                    self.bus.send(self._feedback(f, 0))
+            return
+        f = self.cmd.get(msg.arbitration_id)
+        if f is None or len(msg.data) < f.length:
+            return
+        data = msg.data
+        seq = data[f.seq_byte] if f.seq_byte is not None else 0
+        fault = b.next_fault(f.axes)
+        if fault in ("disconnect", "bus_off"):
+            return
+        if fault == "exception":
+            self.bus.send(can.Message(arbitration_id=0, is_error_frame=True, is_extended_id=False))
+            return
+        for i in f.axes:
+            c = self.lay[i].command
+            bits = 8 * c.voltage.size
+            u = counts_to_volts(to_signed(unpack_uint(data, c.voltage), bits), self.lay[i].voltage_full_scale_V, bits)
+            b.command(i, u, bool(data[c.enable.byte] >> c.enable.bit & 1))
+        if fault == "drop":
+            return
+        done = set()
+        for i in f.axes:
+            fbf = self.fb_of_axis[i]
+            if fbf.id in done:
+                continue
+            done.add(fbf.id)
+            reply = self._feedback(fbf, seq)
+            if fault == "stale" and fbf.id in self.last:
+                self.bus.send(self.last[fbf.id])
+            elif fault == "corrupt":
+                bad = can.Message(arbitration_id=fbf.id, is_extended_id=self.options.extended_id,
+                                  data=reply.data[:max(0, fbf.length - 3)], is_fd=self.options.fd)
+                self.bus.send(bad)
+            else:
+                if fault == "late":
+                    time.sleep(b.late_s)
+                self.bus.send(reply)
+            self.last[fbf.id] = reply
+
+    def close(self) -> None:
+        if self.bus is not None:
+            bus, self.bus = self.bus, None
+            bus.shutdown()

@@ -1,0 +1,194 @@
+"""The emulated axes behind every device: plants, command watchdog, amplifier state, faults.
+
+The plant of each axis is the sim driver's (:class:`motorctl_drivers.sim.AxisPlant`, built and
+seeded by :class:`~motorctl_drivers.sim.SimDriver` itself), taken from a simulated-gantry config
+(``driver: {type: sim, seed, substeps, watchdog_s}``, ``axes.NAME.driver`` = the plant of NAME,
+e.g. ``configs/gantry.yaml``): with the same config a run through the emulator meets the same
+plant and noise as a run on the sim driver. Each valid command steps its axis one loop period.
+
+Watchdog (a drive's command timeout: LinuxCNC hm2 ``timeout_ns``, CiA 402 0x6007): no valid
+command for ``watchdog_s`` → 0 V and an amplifier fault, latched until a command with the
+amplifier disabled (a drive's fault reset).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field
+
+from motorctl.schema import StrictModel
+from motorctl_drivers.sim import SimAxisOptions, SimDriver, SimOptions
+
+FAULT_KINDS = ("drop", "late", "corrupt", "stale", "exception", "disconnect", "bus_off")
+#: the watchdog when neither ``--watchdog`` nor the plant config's ``driver.watchdog_s`` sets one [s]
+DEFAULT_WATCHDOG_S = 0.05
+#: delay of a 'late' answer [s]
+DEFAULT_LATE_S = 0.002
+
+
+class FaultSpec(StrictModel):
+    """One injected fault: ``kind`` on ``axis`` ('*' = every axis / the whole frame) for
+    ``count`` commands, starting at the ``start``-th command the device receives (0-based).
+
+    Kinds: drop (no reply), late (reply after ``late_s``), corrupt (bad CRC / bad frame),
+    stale (the previous reply again, old sequence number), exception (an error reply:
+    Modbus exception 0x04, or the frame's error flag), disconnect (close the link / stop
+    answering), bus_off (CAN: the node leaves the bus, nothing sent or answered).
+    """
+
+    kind: Literal["drop", "late", "corrupt", "stale", "exception", "disconnect", "bus_off"]
+    axis: str = "*"
+    start: Annotated[int, Field(ge=0)] = 0
+    count: Annotated[int, Field(ge=1)] = 1
+
+    @classmethod
+    def parse(cls, text: str) -> "FaultSpec":
+        """``KIND[:AXIS[:START[:COUNT]]]`` (CLI form), e.g. ``drop:X:2000:5``. Raises ValueError."""
+        parts = text.split(":")
+        if not parts[0] or len(parts) > 4:
+            raise ValueError(f"fault {text!r}: expected KIND[:AXIS[:START[:COUNT]]]")
+        if parts[0] not in FAULT_KINDS:
+            raise ValueError(f"fault {text!r}: unknown kind {parts[0]!r}; allowed: {', '.join(FAULT_KINDS)}")
+        kw = {"kind": parts[0]}
+        try:
+            if len(parts) > 1 and parts[1]:
+                kw["axis"] = parts[1]
+            if len(parts) > 2:
+                kw["start"] = int(parts[2])
+            if len(parts) > 3:
+                kw["count"] = int(parts[3])
+        except ValueError:
+            raise ValueError(f"fault {text!r}: START and COUNT are integers") from None
+        return cls(**kw)
+
+
+class PlantBank:
+    """The emulated axes.
+
+    Args:
+        sim_options: the plant config's ``driver:`` section (seed, substeps).
+        plants: axis name → its plant (``SimAxisOptions``), in the driver config's axis order
+            (the order decides each axis's noise seed, as in the sim driver).
+        period_s: loop period [s]: one valid command = one period of plant time.
+        watchdog_s: command watchdog [s] (> 0). late_s: delay of a 'late' answer [s].
+        faults: the fault schedule (:class:`FaultSpec`). log: one-line messages (default stderr).
+    Raises:
+        ValueError: a fault names an axis that is not in ``plants``; watchdog_s ≤ 0.
+    """
+
+    def __init__(self, sim_options: SimOptions, plants: dict[str, SimAxisOptions], period_s: float, *,
+                 watchdog_s: float = DEFAULT_WATCHDOG_S, late_s: float = DEFAULT_LATE_S,
+                 faults=(), log=None):
+        if not watchdog_s > 0:
+            raise ValueError(f"watchdog {watchdog_s!r} s: must be > 0")
+        self.names = list(plants)
+        self.plants = SimDriver(sim_options, dict(plants), period_s).plants   # the sim driver's seeding
+        self.watchdog_s = float(watchdog_s)
+        self.late_s = float(late_s)
+        n = len(self.names)
+        self.amp_fault = [False] * n
+        self.applied_V = [0.0] * n
+        self.enabled = [False] * n
+        self.commands = [0] * n          # valid commands applied per axis
+        self.received = [0] * n          # command frames received per axis (the fault schedule's clock)
+        self.last_cmd = [math.nan] * n   # monotonic time of the last valid command
+        self.watchdog_trips = 0
+        self.faults = list(faults)
+        for f in self.faults:
+            if f.axis != "*" and f.axis not in self.names:
+                raise ValueError(f"fault on unknown axis {f.axis!r}; axes: {', '.join(self.names)}")
+        self.log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
+
+    def next_fault(self, axes) -> str | None:
+        """Count one received command frame for ``axes`` (indexes) and return the fault
+        scheduled for it (None: answer normally). A frame-level fault hits every axis it carries."""
+        kind = None
+        for f in self.faults:
+            for k in axes:
+                if f.axis in ("*", self.names[k]) and f.start <= self.received[k] < f.start + f.count:
+                    kind = f.kind
+                    break
+            if kind:
+                break
+        for k in axes:
+            self.received[k] += 1
+        return kind
+
+    def command(self, i: int, u_V: float, enable: bool) -> None:
+        """Apply one valid command to axis i: hold u_V [V] for one period (0 V when disabled or faulted)."""
+        self.last_cmd[i] = time.monotonic()
+        if self.commands[i] == 0:
+            self.log(f"first command {self.names[i]}")
+        self.commands[i] += 1
+        if not enable:
+            self.amp_fault[i] = False   # a disabled command resets a latched fault, as a drive's reset
+        on = enable and not self.amp_fault[i]
+        u = u_V if on and u_V == u_V else 0.0
+        self.enabled[i] = on
+        self.applied_V[i] = u
+        self.plants[i].step(u)
+
+    def counts(self, i: int, m_per_count: float) -> int:
+        """Axis i's encoder count: the plant's quantised position [m] in counts of ``m_per_count`` [m]."""
+        return int(round(self.plants[i].measured() / m_per_count))
+
+    def check_watchdog(self) -> float:
+        """Trip the watchdog of every axis whose last command is older than ``watchdog_s``.
+
+        Returns the seconds until the next check is due (for the server's select timeout).
+        """
+        now = time.monotonic()
+        wd = self.watchdog_s
+        due = wd
+        for i, t in enumerate(self.last_cmd):
+            if t != t:
+                continue
+            left = t + wd - now
+            if left <= 0:
+                if not self.amp_fault[i] or self.applied_V[i] != 0.0:
+                    self.amp_fault[i] = True
+                    self.applied_V[i] = 0.0
+                    self.enabled[i] = False
+                    self.watchdog_trips += 1
+                    self.log(f"watchdog {self.names[i]}: no command for {wd * 1e3:.1f} ms: "
+                             f"0 V, amplifier fault")
+                self.last_cmd[i] = math.nan
+            else:
+                due = min(due, left)
+        return due
+
+
+def load_plant(plant_config: str | Path, names: list[str], period_s: float, *,
+               watchdog_s: float | None = None, late_s: float = DEFAULT_LATE_S, faults=(),
+               log=None) -> PlantBank:
+    """The :class:`PlantBank` of axes ``names`` from a simulated-gantry config.
+
+    ``watchdog_s`` None: the plant config's ``driver.watchdog_s`` when it is > 0, else
+    :data:`DEFAULT_WATCHDOG_S` (an emulated drive always has a watchdog).
+
+    Raises:
+        motorctl.config.ConfigError: the file is not a valid config, its driver is not ``sim``,
+            or it has no plant for one of ``names``.
+        ValueError: as :class:`PlantBank`.
+    """
+    from motorctl.config import ConfigError, load_config
+    loaded = load_config(plant_config, check_budget=False)
+    sim = loaded.driver_options
+    if not isinstance(sim, SimOptions):
+        raise ConfigError(plant_config, "driver.type",
+                          f"{loaded.cfg.driver.type!r}: the emulator's plant comes from a simulated-gantry "
+                          f"config (driver.type: sim, the plant of each axis under axes.NAME.driver)")
+    missing = [a for a in names if a not in loaded.axes]
+    if missing:
+        raise ConfigError(plant_config, "axes",
+                          f"no plant for axis {', '.join(missing)} of the driver config; "
+                          f"axes here: {', '.join(loaded.axes)}")
+    if watchdog_s is None:
+        watchdog_s = sim.watchdog_s if sim.watchdog_s > 0 else DEFAULT_WATCHDOG_S
+    return PlantBank(sim, {a: loaded.axis_driver_options[a] for a in names}, period_s,
+                     watchdog_s=watchdog_s, late_s=late_s, faults=faults, log=log)

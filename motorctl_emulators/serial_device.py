@@ -1,0 +1,85 @@
+"""The emulated drive group behind a serial link (``motorctl emulate --transport serial``).
+
+Frames and CRC are the driver's (:mod:`motorctl_drivers.serial_link`).
+"""
+
+from __future__ import annotations
+
+import time
+
+from motorctl_drivers.serial_link import (CMD, QUERY, FrameParser, SerialOptions, decode_body, encode_error,
+                                          encode_reply)
+from motorctl_drivers.split_phase import counts_to_volts
+from motorctl_emulators.device import Device
+from motorctl_emulators.plant_bank import PlantBank
+from motorctl_emulators.stream import StreamEndpoint
+
+
+class SerialDevice(Device):
+    """Listens on ``driver.port`` (socket:// → a TCP server on that address; a path → a pty whose
+    slave is linked there) and answers command and query frames for ``driver.address``.
+    Faults: drop and bus_off (no answer), late, corrupt (bad CRC), stale (the previous reply),
+    exception (an error frame, the command not applied), disconnect (close the connection).
+
+    Raises:
+        OSError: the endpoint cannot be opened.
+    """
+
+    def __init__(self, options: SerialOptions, axis_options: dict, bank: PlantBank):
+        super().__init__(options, axis_options, bank)
+        self.m_per_count = [axis_options[a].encoder_m_per_count for a in bank.names]
+        self.index = {axis_options[a].node: i for i, a in enumerate(bank.names)}
+        self.ep = StreamEndpoint(options.port)
+        self.parser = FrameParser((CMD, QUERY))
+        self._last_reply = None
+
+    def _reply(self, seq: int, nodes) -> bytes:
+        b = self.bank
+        items = []
+        for nd in nodes:
+            i = self.index[nd]
+            items.append((nd, (1 if b.amp_fault[i] else 0) | (2 if b.enabled[i] else 0),
+                          b.counts(i, self.m_per_count[i])))
+        return encode_reply(self.options.address, seq, items)
+
+    def poll(self, timeout_s: float) -> None:
+        data = self.ep.wait(timeout_s)
+        if not data:
+            return
+        b = self.bank
+        address = self.options.address
+        for kind, addr, seq, m, frame in self.parser.feed(data):
+            if addr != address:
+                continue
+            if kind == QUERY:
+                nodes = [nd for nd in decode_body(QUERY, m, frame) if nd in self.index]
+                self.ep.send(self._reply(seq, nodes))
+                continue
+            items = [it for it in decode_body(CMD, m, frame) if it[0] in self.index]
+            nodes = [it[0] for it in items]
+            fault = b.next_fault([self.index[nd] for nd in nodes])
+            if fault == "exception":
+                self.ep.send(encode_error(address, seq, m, 4))
+                continue
+            if fault == "disconnect":
+                self.ep.disconnect()
+                return
+            for nd, en, c in items:
+                b.command(self.index[nd], counts_to_volts(c, self.options.voltage_full_scale_V, 16), en)
+            reply = self._reply(seq, nodes)
+            if fault in ("drop", "bus_off"):
+                pass
+            elif fault == "stale" and self._last_reply is not None:
+                self.ep.send(self._last_reply)
+            elif fault == "corrupt":
+                bad = bytearray(reply)
+                bad[-1] ^= 0xFF
+                self.ep.send(bytes(bad))
+            else:
+                if fault == "late":
+                    time.sleep(b.late_s)
+                self.ep.send(reply)
+            self._last_reply = reply
+
+    def close(self) -> None:
+        self.ep.close()
