@@ -134,3 +134,16 @@ def finite_number(text: str, name: str, lo: float, hi: float, lo_open: bool = Tr
         rng = f"{'(' if lo_open else '['}{lo:g}, {hi:g}]"
         raise InputError(f"{name}: {summarize(text)} is outside {rng}")
     return x
+
+
+def seconds_arg(text: str) -> float:
+    """argparse ``type=`` of a duration [s]: finite, > 0, at most 10^6 s.
+
+    Raises:
+        argparse.ArgumentTypeError: with the allowed range (argparse makes it one line).
+    """
+    import argparse
+    try:
+        return finite_number(text, "duration", 0.0, 1e6)
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[1]) from None

@@ -29,6 +29,7 @@ import argparse
 import signal
 import sys
 
+from motorctl.inputs import seconds_arg
 from motorctl_emulators.device import available_devices, build_device
 from motorctl_emulators.plant_bank import DEFAULT_LATE_S, FaultSpec
 
@@ -41,16 +42,6 @@ def _fault(text: str) -> FaultSpec:
         return FaultSpec.parse(text)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def _seconds(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        v = float("nan")
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"{text!r}: a time in seconds, > 0")
-    return v
 
 
 def cmd_emulate(args) -> int:
@@ -104,14 +95,14 @@ def register(parser, subparsers) -> None:
     e.add_argument("--plant", default=DEFAULT_PLANT,
                    help=f"simulated-gantry config giving the plant of each axis, seed, substeps and "
                         f"watchdog (driver.type: sim); default {DEFAULT_PLANT}")
-    e.add_argument("--watchdog", type=_seconds, metavar="S",
+    e.add_argument("--watchdog", type=seconds_arg, metavar="S",
                    help="command watchdog [s]; default: the plant config's driver.watchdog_s, else 0.05")
-    e.add_argument("--late", type=_seconds, default=DEFAULT_LATE_S, metavar="S",
+    e.add_argument("--late", type=seconds_arg, default=DEFAULT_LATE_S, metavar="S",
                    help=f"delay of a 'late' answer [s]; default {DEFAULT_LATE_S}")
     e.add_argument("--fault", type=_fault, action="append", metavar="KIND[:AXIS[:START[:COUNT]]]",
                    help="inject a fault (repeatable): drop, late, corrupt, stale, exception, "
                         "disconnect, bus_off")
-    e.add_argument("--duration", type=_seconds, metavar="S", help="stop after this many seconds")
+    e.add_argument("--duration", type=seconds_arg, metavar="S", help="stop after this many seconds")
     e.add_argument("--priority", type=int, default=90,
                    help="SCHED_FIFO priority of the emulator (0: normal scheduling); default 90, above the "
                         "loop's 80: it stands in for hardware, which never waits for the host")

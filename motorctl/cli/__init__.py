@@ -40,14 +40,6 @@ class Parser(argparse.ArgumentParser):
         self.exit(2, f"motorctl: error: {self.prog}: {message}\n")
 
 
-def seconds(text: str) -> float:
-    """argparse type of a duration [s]: finite and > 0 (at most 10^6 s)."""
-    from motorctl.inputs import InputError, finite_number
-    try:
-        return finite_number(text, "duration", 0.0, 1e6)
-    except InputError as exc:
-        raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[1]) from None
-
 
 def print_table(rows: list[list[str]], out) -> None:
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]

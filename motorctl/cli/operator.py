@@ -208,9 +208,9 @@ def cmd_status(args) -> int:
 
 
 def cmd_export(args) -> int:
+    from motorctl.inputs import writable_file
     from motorctl.recorder.export import export_csv, export_mat
     from motorctl.recorder.runlog import read_log
-    from motorctl.inputs import writable_file
     writable_file(args.csv or args.mat, "export")   # before the log is read
     log = read_log(args.log)
     if args.csv:

@@ -5,9 +5,10 @@ from __future__ import annotations
 import json
 import sys
 
-from motorctl.cli import DEFAULT_CONFIG, UsageError, print_table, seconds
-from motorctl.inputs import writable_dir, writable_file
+from motorctl.cli import DEFAULT_CONFIG, UsageError, print_table
 from motorctl.control import CONTROLLER_NAMES
+from motorctl.inputs import seconds_arg as seconds
+from motorctl.inputs import writable_dir, writable_file
 
 
 def _load(path: str, check_budget: bool = True):
