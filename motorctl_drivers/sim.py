@@ -9,17 +9,14 @@ to the encoder resolution (0.5 µm, spec §6.1). The plant advances exactly one 
 write, so a run is the same whether the loop is paced by the wall clock or a virtual clock,
 and the same seed gives the same noise.
 
-Effects the controllers' model does not have (all off by default), forces in N:
-  * cogging: Σ_k A_k sin(2π k x / P + φ_k)                        (detent force, position-periodic)
-  * force_ripple: F_m · Σ_k r_k sin(2π k x / P + φ_k)             (proportional to the thrust)
-  * stribeck: −F_s exp(−(ẋ/v_s)²) S_f(ẋ)                          (friction hump at low speed)
-  * asymmetric_friction: −(ΔF_c S_f(ẋ) + ΔB ẋ) for ẋ > 0           (direction-dependent friction)
-  * position_dependent_friction: −c (x − x_ref) S_f(ẋ)              (Coulomb level varying with x)
-  * spring: −k (x − x_0)                                           (cable carrier)
-  * payload_change: mass += Δm from t_change on
-  * periodic_disturbance: A sin(2π f t + φ)                        (time-periodic)
-plus ``input_delay_s`` (whole samples of transport delay) and ``force_noise_N`` (Gaussian,
-held per period, seeded).
+Effects the controllers' model does not have (all off by default): one key per effect family
+under ``axes.NAME.driver.effects`` (cogging, force ripple, Stribeck, asymmetric and
+position-dependent friction, spring, payload change, periodic disturbance), plus
+``input_delay_s`` (whole samples of transport delay, the input_delay family) and
+``force_noise_N`` (Gaussian, held per period, seeded). Each family's options model and what it
+does to the plant (:class:`motorctl.effects.base.PlantTerm`: a force F_eff [N], a factor on the
+thrust, a mass change, a delayed input) live in its module ``motorctl/effects/<name>.py``; the
+plant finds them through the registry :data:`motorctl.effects.FAMILIES`.
 
 Fault injection for tests (:meth:`SimDriver.inject`): read errors, NaN positions, encoder
 jumps, amplifier faults and an external push force for a number of cycles.
@@ -41,38 +38,31 @@ import numpy as np
 from pydantic import Field
 
 from motorctl.driver import Driver
-from motorctl.schema import StrictModel
-from motorctl.model import PhysicalAxis
+from motorctl.effects import FAMILIES, effects_model
+from motorctl.jit import njit
+from motorctl.model import S_F_GAIN, PhysicalAxis
+from motorctl.schema import NonNeg, Pos, StrictModel
 
-Pos = Annotated[float, Field(gt=0)]
-NonNeg = Annotated[float, Field(ge=0)]
 _TWO_OVER_PI = 2.0 / math.pi
-_SF = 900.0
-
-try:  # the plain plant (no extra effects) is compiled: ~1 µs a period instead of ~12 µs
-    from numba import njit as _njit
-    _jit = _njit(cache=True, nogil=True)
-except ImportError:  # pragma: no cover - numba missing: the same function in Python
-    def _jit(f):
-        return f
+# the plain plant (no extra effects) is compiled: ~1 µs a period instead of ~12 µs
 
 
-@_jit
+@njit
 def _rk4_plain(x, v, t, u, h, n, m, a1, a2, a3, b, fc, f0, f_noise, f_ext):
     """``n`` RK4 steps of eq. (1) with the force curve of eq. (3) and smooth Coulomb friction,
     the same operations in the same order as :meth:`AxisPlant._acc` without effects."""
     fm = a1 * u + a2 * u * abs(u) + a3 * u * u * u
     for _ in range(n):
-        sf = _TWO_OVER_PI * math.atan(_SF * v)
+        sf = _TWO_OVER_PI * math.atan(S_F_GAIN * v)
         k1x, k1v = v, (fm - b * v - fc * sf + f0 + f_noise + f_ext) / m
         v2 = v + 0.5 * h * k1v
-        sf = _TWO_OVER_PI * math.atan(_SF * v2)
+        sf = _TWO_OVER_PI * math.atan(S_F_GAIN * v2)
         k2x, k2v = v2, (fm - b * v2 - fc * sf + f0 + f_noise + f_ext) / m
         v3 = v + 0.5 * h * k2v
-        sf = _TWO_OVER_PI * math.atan(_SF * v3)
+        sf = _TWO_OVER_PI * math.atan(S_F_GAIN * v3)
         k3x, k3v = v3, (fm - b * v3 - fc * sf + f0 + f_noise + f_ext) / m
         v4 = v + h * k3v
-        sf = _TWO_OVER_PI * math.atan(_SF * v4)
+        sf = _TWO_OVER_PI * math.atan(S_F_GAIN * v4)
         k4x, k4v = v4, (fm - b * v4 - fc * sf + f0 + f_noise + f_ext) / m
         x += h / 6.0 * (k1x + 2.0 * k2x + 2.0 * k3x + k4x)
         v += h / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v)
@@ -80,58 +70,9 @@ def _rk4_plain(x, v, t, u, h, n, m, a1, a2, a3, b, fc, f0, f_noise, f_ext):
     return x, v, t
 
 
-class Cogging(StrictModel):
-    amplitudes_N: list[float] = Field(min_length=1)
-    period_m: Pos
-    phases_rad: list[float] = []
-
-
-class ForceRipple(StrictModel):
-    fractions: list[float] = Field(min_length=1)
-    period_m: Pos
-    phases_rad: list[float] = []
-
-
-class Stribeck(StrictModel):
-    force_N: NonNeg
-    velocity_m_per_s: Pos
-
-
-class AsymmetricFriction(StrictModel):
-    coulomb_N: float = 0.0
-    viscous_N_s_per_m: float = 0.0
-
-
-class PositionDependentFriction(StrictModel):
-    coulomb_slope_N_per_m: float
-    reference_m: float = 0.0
-
-
-class Spring(StrictModel):
-    stiffness_N_per_m: float
-    rest_position_m: float = 0.0
-
-
-class PayloadChange(StrictModel):
-    t_change_s: NonNeg
-    mass_kg: float
-
-
-class PeriodicDisturbance(StrictModel):
-    amplitude_N: float
-    frequency_Hz: Pos
-    phase_rad: float = 0.0
-
-
-class Effects(StrictModel):
-    cogging: Cogging | None = None
-    force_ripple: ForceRipple | None = None
-    stribeck: Stribeck | None = None
-    asymmetric_friction: AsymmetricFriction | None = None
-    position_dependent_friction: PositionDependentFriction | None = None
-    spring: Spring | None = None
-    payload_change: PayloadChange | None = None
-    periodic_disturbance: PeriodicDisturbance | None = None
+#: ``axes.NAME.driver.effects``: one optional key per simulated effect family (the registry's
+#: families with ``sim_options``, e.g. ``cogging: {amplitudes_N: [...], period_m: ...}``).
+Effects = effects_model(__name__)
 
 
 class SimAxisOptions(StrictModel):
@@ -182,76 +123,52 @@ class AxisPlant:
         self.h = period_s / substeps
         self.rng = rng
         self.noise = opt.force_noise_N
-        n_delay = int(round(opt.input_delay_s / period_s))
-        self._delay = [0.0] * n_delay
-        self._di = 0
-        eff = opt.effects
-        self.cog = eff.cogging
-        if self.cog is not None:
-            ph = list(self.cog.phases_rad) + [0.0] * len(self.cog.amplitudes_N)
-            self._cog = [(a, 2 * math.pi * (k + 1) / self.cog.period_m, ph[k])
-                         for k, a in enumerate(self.cog.amplitudes_N)]
-        self.rip = eff.force_ripple
-        if self.rip is not None:
-            ph = list(self.rip.phases_rad) + [0.0] * len(self.rip.fractions)
-            self._rip = [(r, 2 * math.pi * (k + 1) / self.rip.period_m, ph[k])
-                         for k, r in enumerate(self.rip.fractions)]
-        self.strib = eff.stribeck
-        self.asym = eff.asymmetric_friction
-        self.pdf = eff.position_dependent_friction
-        self.spring = eff.spring
-        self.payload = eff.payload_change
-        self.pdist = eff.periodic_disturbance
         self.f_noise = 0.0
         self.f_ext = 0.0   # external force [N] (fault injection: a push)
+        # the effects switched on, in registry order (motorctl.effects.FAMILIES)
+        terms = []
+        for fam in FAMILIES.values():
+            cfg = fam.sim_config(opt)
+            term = fam.plant_term(cfg, period_s) if cfg is not None else None
+            if term is not None:
+                terms.append(term)
+        self._thrust = tuple(t.thrust for t in terms if t.thrust is not None)
+        self._forces = tuple(t.force for t in terms if t.force is not None)
+        self._masses = tuple(t.mass for t in terms if t.mass is not None)
+        self._inputs = tuple(t.input for t in terms if t.input is not None)
         # no position/time-dependent effect: the compiled plain integrator applies
-        self._plain = all(e is None for e in (self.cog, self.rip, self.strib, self.asym, self.pdf,
-                                              self.spring, self.payload, self.pdist))
+        self._plain = not (self._thrust or self._forces or self._masses)
         if self._plain:
             _rk4_plain(0.0, 0.0, 0.0, 0.0, self.h, 1, self.m, self.a1, self.a2, self.a3, self.b,
                        self.fc, self.f0, 0.0, 0.0)   # compile (or load the cache) now
 
     def _acc(self, x: float, v: float, t: float, u: float) -> float:
+        """ẍ [m/s²] at position x [m], velocity v [m/s], plant time t [s] under input u [V]:
+        eq. (1) with the force curve of eq. (3), smooth Coulomb friction and the effects'
+        hooks (thrust factor, forces, mass) in registry order."""
         fm = self.a1 * u + self.a2 * u * abs(u) + self.a3 * u * u * u
-        if self.rip is not None:
-            r = 0.0
-            for amp, k, ph in self._rip:
-                r += amp * math.sin(k * x + ph)
-            fm *= 1.0 + r
-        sf = _TWO_OVER_PI * math.atan(_SF * v)
+        for thrust in self._thrust:
+            fm = thrust(fm, x)
+        sf = _TWO_OVER_PI * math.atan(S_F_GAIN * v)
         f = fm - self.b * v - self.fc * sf + self.f0 + self.f_noise + self.f_ext
-        if self.cog is not None:
-            for amp, k, ph in self._cog:
-                f += amp * math.sin(k * x + ph)
-        if self.strib is not None:
-            vs = v / self.strib.velocity_m_per_s
-            f -= self.strib.force_N * math.exp(-vs * vs) * sf
-        if self.asym is not None and v > 0.0:
-            f -= self.asym.coulomb_N * sf + self.asym.viscous_N_s_per_m * v
-        if self.pdf is not None:
-            f -= self.pdf.coulomb_slope_N_per_m * (x - self.pdf.reference_m) * sf
-        if self.spring is not None:
-            f -= self.spring.stiffness_N_per_m * (x - self.spring.rest_position_m)
-        if self.pdist is not None:
-            p = self.pdist
-            f += p.amplitude_N * math.sin(2.0 * math.pi * p.frequency_Hz * t + p.phase_rad)
+        for force in self._forces:
+            f = force(f, x, v, t, sf)
         m = self.m
-        if self.payload is not None and t >= self.payload.t_change_s:
-            m += self.payload.mass_kg
+        for mass in self._masses:
+            m = mass(m, t)
         return f / m
 
     def mass_at(self, t: float) -> float:
         """Moving mass [kg] at plant time t (payload change included)."""
-        if self.payload is not None and t >= self.payload.t_change_s:
-            return self.m + self.payload.mass_kg
-        return self.m
+        m = self.m
+        for mass in self._masses:
+            m = mass(m, t)
+        return m
 
     def step(self, u: float) -> None:
         """Hold u [V] (after the input delay) over one period; RK4 with ``substeps`` steps."""
-        if self._delay:
-            i = self._di
-            u, self._delay[i] = self._delay[i], u
-            self._di = (i + 1) % len(self._delay)
+        for delay in self._inputs:
+            u = delay(u)
         if self.noise > 0.0:
             self.f_noise = self.noise * float(self.rng.standard_normal())
         h = self.h

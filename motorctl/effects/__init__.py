@@ -1,1 +1,131 @@
-"""effects"""
+"""Effect families: one module per identified physical effect, found through :data:`FAMILIES`.
+
+Each module ``motorctl/effects/<name>.py`` holds everything about one family (the interface is
+:class:`motorctl.effects.base.EffectFamily`): the simulator's options and plant term, the
+identification's regressor columns, searched parameter, plausibility checks and parameter
+names, the compensation's options and term, and the report figure. The simulator
+(``motorctl_drivers.sim``), ``motorctl identify`` (``motorctl.ident``), the compensation
+(:mod:`motorctl.effects.compensation`) and the report iterate this registry and name no family.
+
+==============================  ===================================  ======================
+family                          plant force F_eff [N]                columns C (u = Φθ + Cβ)
+==============================  ===================================  ======================
+cogging                         Σ A_k sin(2πkx/P + φ_k)              sin, cos(2πkx/P), k ≤ 2
+force_ripple                    F_m Σ r_k sin(2πkx/P + φ_k)          f_u(u)·sin, ·cos(2πkx/P)
+stribeck                        −F_s exp(−(ẋ/v_s)²) S_f(ẋ)           exp(−(ẋ/v_s)²) S_f(ẋ)
+asymmetric_friction             −(ΔF_c S_f(ẋ) + ΔB ẋ), ẋ > 0 only    S_f(ẋ)·[ẋ>0], ẋ·[ẋ>0]
+position_dependent_friction     −c (x − x_ref) S_f(ẋ)                x·S_f(ẋ)
+spring                          −k (x − x_0)                         x
+payload_change                  Δm ẍ from t_c on (mass step)         ẍ·[t ≥ t_c]
+input_delay                     u acts τ later                       target u(t − τ) instead of u
+periodic_disturbance            A sin(2πft + φ)                      sin, cos(2πft)
+==============================  ===================================  ======================
+
+F_eff = −A1·Cβ; x_ref, x_0 are absorbed by θ3, θ4 (only the slope/stiffness is identifiable).
+Compensable (additive in (x_d, ẋ_d, t)): cogging, stribeck, asymmetric_friction,
+position_dependent_friction, spring, periodic_disturbance.
+
+The order of :data:`FAMILIES` is fixed: it is the order of the identification's candidates and
+of the plant's force terms (float sums: do not reorder existing entries).
+
+Adding a family: a module with an :class:`~motorctl.effects.base.EffectFamily` subclass and a
+``FAMILY`` instance, its tests, and one entry in :data:`FAMILIES`. The YAML schemas
+(``axes.NAME.driver.effects``, ``axes.NAME.controller.compensation``) are built from the
+registry when their modules are imported (:func:`effects_model`, :func:`compensation_model`).
+"""
+
+from __future__ import annotations
+
+from pydantic import create_model
+
+from motorctl.effects import (
+    asymmetric_friction,
+    cogging,
+    force_ripple,
+    input_delay,
+    payload_change,
+    periodic_disturbance,
+    position_dependent_friction,
+    spring,
+    stribeck,
+)
+from motorctl.effects.base import EffectFamily, PlantTerm, Signals
+from motorctl.schema import StrictModel
+
+#: name -> family, in the fixed order described in the module docstring.
+FAMILIES: dict[str, EffectFamily] = {m.FAMILY.name: m.FAMILY for m in (
+    cogging, force_ripple, stribeck, asymmetric_friction, position_dependent_friction, spring,
+    payload_change, input_delay, periodic_disturbance)}
+
+
+def family(name: str) -> EffectFamily:
+    """The registered family ``name``.
+
+    Raises:
+        ValueError: unknown name (the message lists the families).
+    """
+    try:
+        return FAMILIES[name]
+    except KeyError:
+        raise ValueError(f"unknown effect family {name!r}; families: {', '.join(FAMILIES)}") from None
+
+
+def simulated() -> list[EffectFamily]:
+    """Families with an ``axes.NAME.driver.effects`` entry, in registry order."""
+    return [f for f in FAMILIES.values() if f.sim_options is not None]
+
+
+def compensable() -> list[EffectFamily]:
+    """Families with a compensation term, by :attr:`~EffectFamily.compensation_rank` (ties in
+    registry order): the order of ``CompensationConfig``'s keys and of the sum d̂_eff."""
+    fams = list(FAMILIES.values())
+    return sorted((f for f in fams if f.comp_options is not None),
+                  key=lambda f: (f.compensation_rank, fams.index(f)))
+
+
+def effects_model(module: str | None = None) -> type[StrictModel]:
+    """The options model of ``axes.NAME.driver.effects`` (``Effects``): one optional key per
+    :func:`simulated` family, each validated by its ``sim_options``; all off by default.
+
+    Args:
+        module: the ``__module__`` the model is published in (so that it pickles by reference).
+    """
+    fields = {f.name: (f.sim_options | None, None) for f in simulated()}
+    return create_model("Effects", __base__=StrictModel, __module__=module or __name__,
+                        __doc__="Simulated effects (all off by default), one key per effect family "
+                                "(motorctl.effects).", **fields)
+
+
+class CompensationBase(StrictModel):
+    """Base of ``CompensationConfig`` (see :func:`compensation_model`)."""
+
+    def is_empty(self) -> bool:
+        """True when no family is compensated."""
+        return all(getattr(self, k) is None for k in type(self).model_fields)
+
+
+def compensation_model(module: str | None = None) -> type[CompensationBase]:
+    """The options model of ``axes.NAME.controller.compensation`` (``CompensationConfig``): one
+    optional key per :func:`compensable` family, each validated by its ``comp_options``.
+
+    Args:
+        module: the ``__module__`` the model is published in (so that it pickles by reference).
+    """
+    fields = {f.name: (f.comp_options | None, None) for f in compensable()}
+    return create_model("CompensationConfig", __base__=CompensationBase, __module__=module or __name__,
+                        __doc__="Identified effects compensated in v_a1 (eq. 13), one key per "
+                                "compensable effect family (motorctl.effects); V units.", **fields)
+
+
+__all__ = [
+    "FAMILIES",
+    "CompensationBase",
+    "EffectFamily",
+    "PlantTerm",
+    "Signals",
+    "compensable",
+    "compensation_model",
+    "effects_model",
+    "family",
+    "simulated",
+]

@@ -6,7 +6,7 @@ Figures (matplotlib, Agg backend):
   * spatial_periodogram.png: least-squares periodogram of the nominal residual with position as
     the abscissa (moving samples), periods on the x axis;
   * effect_shape.png: each found effect's fitted term (force or input units) against its
-    natural variable.
+    natural variable (the family's :meth:`~motorctl.effects.base.EffectFamily.shape`).
 """
 
 from __future__ import annotations
@@ -16,7 +16,8 @@ import os
 
 import numpy as np
 
-from motorctl.ident import effects as fx
+from motorctl.effects import family as effect_family
+from motorctl.effects.periodic import period_grid, spatial_periodogram
 
 
 def write_report(idf, summary: dict, out_dir: str, text: str) -> list:
@@ -61,10 +62,10 @@ def write_report(idf, summary: dict, out_dir: str, text: str) -> list:
         fig.savefig(p, dpi=110)
         plt.close(fig)
         paths.append(p)
-    grid = fx.period_grid(idf.stroke)
+    grid = period_grid(idf.stroke)
     if grid.size and idf.moving.sum() > 50:
         mv = idf.moving
-        pw = fx.spatial_periodogram(pr.x_d[mv], idf.nominal.fit.residual[mv], grid)
+        pw = spatial_periodogram(pr.x_d[mv], idf.nominal.fit.residual[mv], grid)
         fig, ax = plt.subplots(figsize=(8, 4.5))
         ax.semilogx(grid * 1e3, pw)
         for e in summary["effects"]:
@@ -86,17 +87,14 @@ def write_report(idf, summary: dict, out_dir: str, text: str) -> list:
         n = len(idf.terms)
         fig, axes = plt.subplots(n, 1, figsize=(8, 3.2 * n), squeeze=False)
         for ax, t, b in zip(axes[:, 0], idf.terms, betas):
+            fam = effect_family(t.family)
             shape = effect_shape(idf, t, b)
             if shape is not None:
                 xv, yv, xl, yl = shape
                 ax.plot(xv, yv, "-", lw=1)
                 ax.set_xlabel(xl)
                 ax.set_ylabel(yl.replace("UNIT", unit))
-            else:
-                ax.plot(pr.t_d, g * idf.target(idf.zoh + t.delay) - g * pr.u_d, lw=0.8)
-                ax.set_xlabel("time [s]")
-                ax.set_ylabel(f"A1 (u(t - tau) - u(t)) [{unit}]")
-            ax.set_title(f"{t.family}: " + _fmt(fx.parameters(t.family, t.h, b, idf.rec.gain, pr.fs)), fontsize=9)
+            ax.set_title(f"{t.family}: " + _fmt(fam.parameters(t.h, b, idf.rec.gain, pr.fs)), fontsize=9)
             ax.grid(alpha=0.3)
         fig.tight_layout()
         p = os.path.join(out_dir, "effect_shape.png")
@@ -117,47 +115,13 @@ def _fmt(params: dict) -> str:
 
 
 def effect_shape(idf, term, beta):
-    """The found effect's force on a grid of its natural variable, unfiltered.
+    """The found effect's term on a grid of its natural variable, unfiltered (the family's
+    :meth:`~motorctl.effects.base.EffectFamily.shape`).
 
+    Args:
+        idf: the run identifier. term: a selected term. beta: its coefficients (k,).
     Returns:
-        (x (K,), y (K,), x label, y label with UNIT for N or V), or None for an input delay.
+        (x (K,), y (K,), x label, y label with UNIT for N or V), or None when the family has no
+        figure.
     """
-    from types import SimpleNamespace
-    if term.cols is None:
-        return None
-    pr = idf.p
-    g = idf.rec.gain or 1.0
-    fam = term.family
-    k = 2000
-    x_hi = pr.x_d.max()
-    if fam in ("cogging", "force_ripple"):   # four periods are enough to see the shape
-        x_hi = min(x_hi, pr.x_d.min() + 4.0 * term.h)
-    xs = np.linspace(pr.x_d.min(), x_hi, k)
-    vmax = float(np.max(np.abs(pr.v_d)))
-    vs = np.linspace(-vmax, vmax, k)
-    zero, one = np.zeros(k), np.ones(k)
-    if fam in ("cogging", "spring", "position_dependent_friction"):
-        v = np.full(k, 0.1 * vmax) if fam == "position_dependent_friction" else zero
-        q = SimpleNamespace(x=xs, v=v, a=zero, u=zero, t=zero, fu=None)
-        lab = ("position [m]", "effect force [UNIT]" + (" (moving forward)" if fam != "cogging" else ""))
-        xv = xs
-    elif fam == "force_ripple":
-        q = SimpleNamespace(x=xs, v=zero, a=zero, u=one, t=zero, fu=None)
-        return xs, -(fx.columns(fam, term.h, q) @ beta), "position [m]", "ripple fraction of the thrust [-]"
-    elif fam in ("stribeck", "asymmetric_friction"):
-        q = SimpleNamespace(x=zero, v=vs, a=zero, u=zero, t=zero, fu=None)
-        lab = ("velocity [m/s]", "effect force [UNIT]")
-        xv = vs
-    elif fam == "payload_change":
-        ts = np.linspace(pr.t_d[0], pr.t_d[-1], k)
-        q = SimpleNamespace(x=zero, v=zero, a=one, u=zero, t=ts, fu=None)
-        unit_m = "kg" if idf.rec.gain else "V s^2/m"
-        return ts, g * (fx.columns(fam, term.h, q) @ beta), "time [s]", f"mass step [{unit_m}]"
-    elif fam == "periodic_disturbance":
-        ts = pr.t_d[0] + np.linspace(0, 3.0 / term.h, k)
-        q = SimpleNamespace(x=zero, v=zero, a=zero, u=zero, t=ts, fu=None)
-        lab = ("time [s]", "effect force [UNIT]")
-        xv = ts
-    else:
-        return None
-    return xv, -g * (fx.columns(fam, term.h, q) @ beta), lab[0], lab[1]
+    return effect_family(term.family).shape(idf, term.h, beta, idf.rec.gain)

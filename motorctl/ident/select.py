@@ -16,6 +16,12 @@ with the nominal θ, is accepted only when all three agree:
 
 Accepted effects are added one at a time (the best held-out gain first) and everything is
 re-fitted, until no candidate passes.
+
+The candidate families come from the registry :data:`motorctl.effects.FAMILIES`; each family's
+columns, search over its parameter and its own plausibility checks are in its module
+(``motorctl/effects/<name>.py``). The :class:`Identifier` is the context those use
+(:class:`motorctl.effects.base.SearchContext`: ``term``, ``best_over``, ``sse``,
+``delay_sses``, ``direction_agreement``, ``target``).
 """
 
 from __future__ import annotations
@@ -25,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from motorctl.ident import effects as fx
+from motorctl.effects import FAMILIES, family as effect_family
 from motorctl.ident.data import Record
 from motorctl.ident.idim import Prepared, choose_n_theta, ls, prepare
 from motorctl.model import f_u, s_f
@@ -35,10 +41,6 @@ MIN_HELDOUT_GAIN = 0.03
 MIN_BIC_DROP = 10.0
 MIN_WALD = 25.0
 MAX_EFFECTS = 3
-#: Least agreement of a position-periodic force fitted on each direction of motion separately.
-MIN_DIRECTION_AGREEMENT = 0.5
-#: Periodogram peaks refined by the joint fit (position- and time-periodic families).
-N_PEAKS = 2
 FRICTION_SHAPES = ("sf", "sign")
 
 
@@ -71,9 +73,12 @@ class Identifier:
         friction: 'sf' (the paper's S_f(ẋ) = (2/π)atan(900ẋ)) or 'sign' (the EMPS reference
             model's sign(ẋ)) for the Coulomb column.
         fq, nd: position cut-off [Hz] and decimation factor (default: idim.default_filters).
-        families: effect families to search (default: all).
+        families: effect family names to search (default: all of the registry, in its order).
         zoh_delay: delay [samples] between the logged input and the acceleration it causes
             (default 0.5 for motorctl run logs, whose input is a zero-order hold, 0 otherwise).
+
+    Raises:
+        ValueError: unknown friction shape or effect family.
     """
 
     def __init__(self, rec: Record, n_theta: int | None = None, friction: str = "sf",
@@ -86,7 +91,9 @@ class Identifier:
         self.p: Prepared = prepare(rec.t, rec.y, rec.u, fq, nd)
         self.n_theta, self.n_theta_reason = choose_n_theta(rec.u, n_theta)
         self._n_theta_forced = n_theta is not None
-        self.families = list(families or fx.FAMILIES)
+        self.families = list(families or FAMILIES)
+        for name in self.families:
+            effect_family(name)   # ValueError naming the known families
         p = self.p
         m = len(p.t_d)
         blk = np.floor((p.t_d - p.t_d[0]) / BLOCK_S).astype(int)
@@ -159,24 +166,30 @@ class Identifier:
         return Evaluated(term=terms[-1] if terms else None, heldout_rms=self.heldout(phi, y), fit=fit, bic=bic)
 
     def dec_cols(self, family: str, h) -> np.ndarray | None:
-        c = fx.columns(family, h, self.p)
+        """Decimated columns (M, k) of ``family`` at h (None when it adds no columns)."""
+        c = effect_family(family).columns(h, self.p)
         return None if c is None else self.p.dec(c)
 
     # ------------------------------------------------------------------ candidate search
-    def _sse(self, terms):
+    def term(self, family: str, h) -> Term:
+        """The term of ``family`` at h with its exact decimated columns and input shift."""
+        return Term(family, h, self.dec_cols(family, h), effect_family(family).input_shift(h))
+
+    def sse(self, terms):
+        """SSE of the joint LS fit of the nominal model plus ``terms`` (decimated, V²)."""
         phi, y = self.design(terms)
         r = y - phi @ _coef(phi, y)
         return float(r @ r)
 
-    def _best_over(self, family, grid, base, cols_fn=None):
+    def best_over(self, family, grid, base, cols_fn=None):
         """Searched parameter by joint LS over a grid (all data); ``cols_fn`` may give cheap
-        approximate columns (:func:`effects.columns_fast`), the best one then gets its exact
-        columns. Returns (Term, SSE per grid value)."""
+        approximate columns (e.g. on the decimated signals), the best one then gets its exact
+        columns. Returns (Term, SSE per grid value (K,))."""
         best = None
         sses = []
         for h in grid:
             term = Term(family, float(h), cols_fn(h) if cols_fn else self.dec_cols(family, h))
-            sse = self._sse(base + [term])
+            sse = self.sse(base + [term])
             sses.append(sse)
             if best is None or sse < best[0]:
                 best = (sse, term)
@@ -184,7 +197,7 @@ class Identifier:
         term.cols = self.dec_cols(family, term.h)
         return term, np.array(sses)
 
-    def _delay_sses(self, base: list, grid: np.ndarray) -> np.ndarray:
+    def delay_sses(self, base: list, grid: np.ndarray) -> np.ndarray:
         """Joint-LS SSE for extra input delays ``grid`` [samples]: the decimated u, u|u|, u³ are
         shifted by a fractional number of decimated samples (FFT phase shift of band-limited
         signals) instead of being re-filtered for every candidate."""
@@ -209,95 +222,18 @@ class Identifier:
         return np.array(out)
 
     def search(self, family: str, base: list, residual: np.ndarray) -> Evaluated | None:
-        """Best candidate of ``family`` given the already selected ``base`` terms."""
-        p = self.p
-        edge_note = None
-        if family in ("cogging", "force_ripple"):
-            grid = fx.period_grid(self.stroke)
-            if grid.size == 0 or self.moving.sum() < 50:
-                return None
-            mv = self.moving
-            if family == "cogging":
-                peaks = fx.peak_periods(p.x_d[mv], residual[mv], grid, N_PEAKS)
-            else:
-                big = mv & (np.abs(p.u_d) > 0.3 * np.max(np.abs(p.u_d)))
-                if big.sum() < 50:
-                    return None
-                peaks = fx.peak_periods(p.x_d[big], residual[big] / p.u_d[big], grid, N_PEAKS)
-            best = None
-            for pk in peaks:
-                term, _ = self._best_over(family, fx.refine(pk, 0.03, 13), base)
-                term, _ = self._best_over(family, fx.refine(term.h, 0.005, 7), base)
-                sse = self._sse(base + [term])
-                if best is None or sse < best[0]:
-                    best = (sse, term)
-            term = best[1]
-            if term.h <= grid[1] or term.h >= grid[-2]:
-                edge_note = f"period {term.h:.4g} m at the edge of the searched range"
-        elif family == "stribeck":
-            grid = np.exp(np.linspace(math.log(2e-3), math.log(max(0.5 * np.max(np.abs(p.v)), 3e-3)), 24))
-            term, sses = self._best_over(family, grid, base)
-            i = int(np.argmin(sses))
-            if i in (0, len(grid) - 1):
-                edge_note = f"Stribeck velocity {term.h:.3g} m/s at the edge of the searched range"
-            else:
-                term, _ = self._best_over(family, np.exp(np.linspace(math.log(grid[i - 1]), math.log(grid[i + 1]), 9)), base)
-        elif family == "payload_change":
-            lo, hi = p.t_d[0] + 1.0, p.t_d[-1] - 1.0
-            if hi <= lo:
-                return None
-            a_d = p.a_d
-            coarse = np.arange(lo, hi, 0.05)
-
-            def approx(h):
-                return (a_d * (p.t_d >= h))[:, None]
-            _, sses = self._best_over(family, coarse, base, approx)
-            smin = sses.min()
-            # flat minimum (no acceleration between two moves): take the middle of the flat set
-            near = coarse[sses <= smin + 1e-6 * max(smin, 1e-300) + 1e-12]
-            h = float(0.5 * (near.min() + near.max()))
-            term = Term(family, h, self.dec_cols(family, h))
-        elif family == "input_delay":
-            dmax = max(3, min(int(round(0.005 * p.fs)), 40))
-            grid = np.arange(0, dmax + 1)
-            sses = self._delay_sses(base, grid)
-            i = int(np.argmin(sses))
-            d = float(grid[i])
-            if 0 < i < len(grid) - 1:
-                s0, s1, s2 = sses[i - 1], sses[i], sses[i + 1]
-                den = s0 - 2 * s1 + s2
-                if den > 0:
-                    d += 0.5 * (s0 - s2) / den
-            if i == 0:
-                ev = self.evaluate(base + [Term(family, 0.0, None, 0.0)])
-                ev.term = Term(family, 0.0, None, 0.0)
-                ev.reasons.append("best delay is 0 samples beyond the zero-order hold")
-                return ev
-            if i == len(grid) - 1:
-                edge_note = f"delay {d:g} samples at the edge of the searched range"
-            term = Term(family, d, None, d)
-        elif family == "periodic_disturbance":
-            fs_d = p.fs / p.nd
-            freqs = np.arange(0.5, 0.35 * fs_d, 0.02)
-            pw = _time_periodogram(p.t_d, residual, freqs)
-            loc = np.flatnonzero((pw[1:-1] > pw[:-2]) & (pw[1:-1] >= pw[2:])) + 1
-            loc = loc[np.argsort(pw[loc])[::-1]][:N_PEAKS]
-            best = None
-            for i in loc:
-                term, _ = self._best_over(family, np.linspace(freqs[i] - 0.02, freqs[i] + 0.02, 9), base,
-                                          lambda h: fx.columns_fast(family, h, p))
-                sse = self._sse(base + [term])
-                if best is None or sse < best[0]:
-                    best = (sse, term)
-            if best is None:
-                return None
-            term = best[1]
-        else:
-            term = Term(family, None, self.dec_cols(family, None))
+        """Best candidate of ``family`` given the already selected ``base`` terms, evaluated
+        (None when the record cannot show the effect). The search itself is the family's
+        (:meth:`motorctl.effects.base.EffectFamily.search`); its note (e.g. the parameter at the
+        edge of its grid) becomes a reason against the candidate."""
+        found = effect_family(family).search(self, base, residual)
+        if found is None:
+            return None
+        term, note = found
         ev = self.evaluate(base + [term])
         ev.term = term
-        if edge_note:
-            ev.reasons.append(edge_note)
+        if note:
+            ev.reasons.append(note)
         return ev
 
     # ------------------------------------------------------------------ judging
@@ -321,26 +257,10 @@ class Identifier:
                 reasons.append(f"coefficients not significant (Wald/column {wald:.1f} < {MIN_WALD:g})")
             contrib = term.cols @ beta
             u_range = float(np.percentile(np.abs(self.p.u_d), 99))
-            if np.max(np.abs(contrib)) > 0.5 * u_range and term.family != "payload_change":
+            fam = effect_family(term.family)
+            if np.max(np.abs(contrib)) > 0.5 * u_range and fam.force_bounded_by_input:
                 reasons.append("effect larger than half the input range")
-            fam = term.family
-            if fam in ("cogging", "force_ripple"):
-                agree = self.direction_agreement(term, base)
-                if agree < MIN_DIRECTION_AGREEMENT:
-                    reasons.append(f"not the same force in both directions (agreement {agree:.2f} < "
-                                   f"{MIN_DIRECTION_AGREEMENT:g}): a position-periodic force does not "
-                                   "depend on the direction of motion")
-            if fam == "stribeck" and beta[0] <= 0:
-                reasons.append("Stribeck force must be positive (extra friction at low speed)")
-            if fam == "force_ripple" and np.max(np.hypot(beta[0::2], beta[1::2])) > 0.3:
-                reasons.append("ripple fraction above 0.3")
-            if fam == "position_dependent_friction":
-                x = self.p.x_d
-                if min(th[2] + beta[0] * x.min(), th[2] + beta[0] * x.max()) < 0:
-                    reasons.append("Coulomb level would turn negative over the stroke")
-            if fam == "payload_change":
-                if th[0] + beta[0] <= 0 or abs(beta[0]) > 2 * th[0]:
-                    reasons.append("mass step not plausible (|dM| > 2 M or mass <= 0)")
+            reasons += fam.plausible(self, term, beta, th, base)
         return reasons
 
     def direction_agreement(self, term: Term, base: list) -> float:
@@ -424,7 +344,7 @@ class Identifier:
             for fam in self.families:
                 if any(t.family == fam for t in base):
                     continue
-                if fam == "input_delay" and any(t.delay for t in base):
+                if effect_family(fam).shifts_input and any(t.delay for t in base):
                     continue
                 ev = self.search(fam, base, residual)
                 if ev is None:
@@ -465,16 +385,6 @@ class Identifier:
         phi, y = other.design(new_terms)
         coef = np.concatenate([th] + [b for b in betas])
         return y - phi @ coef
-
-
-def _time_periodogram(t, r, freqs):
-    """|DFT|² of r (uniform time t) at ``freqs`` [Hz] (zero-padded FFT, linear interpolation)."""
-    ts = (t[-1] - t[0]) / (len(t) - 1)
-    df = freqs[1] - freqs[0]
-    nfft = int(2 ** math.ceil(math.log2(max(len(r), 1.0 / (ts * df)))))
-    spec = np.abs(np.fft.rfft((r - r.mean()) * np.hanning(len(r)), nfft)) ** 2
-    f = np.fft.rfftfreq(nfft, ts)
-    return np.interp(freqs, f, spec)
 
 
 def _cov(phi: np.ndarray, residual: np.ndarray) -> np.ndarray:

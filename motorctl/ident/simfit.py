@@ -13,11 +13,10 @@ over all windows. The model is u = Φθ + Cβ (idim.py, effects.py) solved for t
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 
-from motorctl.ident import effects as fx
+from motorctl.effects import family as effect_family
+from motorctl.effects.base import Signals
 from motorctl.model import f_u, idim_regressor
 
 
@@ -48,6 +47,7 @@ def simulation_fit(idf, terms: list, ev, window_s: float = 0.2) -> float | None:
     err2 = []
     dy_all = []
     fu_coef = (th[4], th[5]) if nt == 6 else None
+    families = [effect_family(t.family) for t in terms]
     for k in range(length):
         idx = starts + k
         uk = u[idx]
@@ -60,11 +60,10 @@ def simulation_fit(idf, terms: list, ev, window_s: float = 0.2) -> float | None:
             if idf.friction == "sign":
                 phi[:, 2] = np.sign(v)
             val = phi @ th
-            q = SimpleNamespace(x=x, v=v, a=a_val, u=uk, t=p.t[idx],
-                                fu=f_u(uk, *fu_coef) if fu_coef else None)
-            for t, b in zip(terms, betas):
+            q = Signals(x, v, a_val, uk, p.t[idx], f_u(uk, *fu_coef) if fu_coef else None)
+            for fam, t, b in zip(families, terms, betas):
                 if t.cols is not None:
-                    val = val + fx.columns(t.family, t.h, q) @ b
+                    val = val + fam.columns(t.h, q) @ b
             rest_cols.append(val)
         m_eff = rest_cols[1] - rest_cols[0]
         acc = (uk - rest_cols[0]) / np.where(np.abs(m_eff) > 1e-12, m_eff, 1e-12)

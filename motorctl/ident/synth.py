@@ -2,7 +2,8 @@
 effect the controller's config does not declare (issue 5, "What it must show").
 
 The configs come from ``configs/gantry.yaml`` (one axis, virtual clock). Effect parameters are
-in the simulator's YAML form (``motorctl_drivers.sim``, ``axes.NAME.driver.effects``).
+in the simulator's YAML form (``motorctl_drivers.sim``, ``axes.NAME.driver.effects``); the
+examples are the families' own (:attr:`motorctl.effects.base.EffectFamily.example`).
 """
 
 from __future__ import annotations
@@ -11,23 +12,14 @@ import copy
 from pathlib import Path
 
 from motorctl.config import config_from_dict, load_yaml
+from motorctl.effects import FAMILIES
 
 GANTRY = Path(__file__).resolve().parents[2] / "configs" / "gantry.yaml"
 
-#: One example per family (X axis of the gantry: M = 12.8 kg, A1 = 80 N/V, stroke 0.4 m).
-EXAMPLES = {
-    "cogging": {"cogging": {"amplitudes_N": [12.0, 4.0], "period_m": 0.032, "phases_rad": [0.3, 1.0]}},
-    "force_ripple": {"force_ripple": {"fractions": [0.06], "period_m": 0.045, "phases_rad": [0.5]}},
-    "stribeck": {"stribeck": {"force_N": 20.0, "velocity_m_per_s": 0.05}},
-    "asymmetric_friction": {"asymmetric_friction": {"coulomb_N": 10.0, "viscous_N_s_per_m": 20.0}},
-    "position_dependent_friction": {"position_dependent_friction": {"coulomb_slope_N_per_m": 40.0,
-                                                                    "reference_m": 0.2}},
-    "spring": {"spring": {"stiffness_N_per_m": 100.0, "rest_position_m": 0.1}},
-    "payload_change": {"payload_change": {"t_change_s": 4.65, "mass_kg": 2.0}},
-    "periodic_disturbance": {"periodic_disturbance": {"amplitude_N": 6.0, "frequency_Hz": 7.3,
-                                                      "phase_rad": 0.4}},
-    "input_delay": {"input_delay_s": 0.0006},
-}
+#: One example per family (X axis of the gantry: M = 12.8 kg, A1 = 80 N/V, stroke 0.4 m), a
+#: fragment of ``axes.NAME.driver``: {"cogging": {...}} (an ``effects:`` entry) or
+#: {"input_delay_s": τ} (an axis-level driver key).
+EXAMPLES = {name: copy.deepcopy(fam.example) for name, fam in FAMILIES.items()}
 
 
 def gantry_dict(axis: str = "X", effect: dict | None = None, seed: int = 1, noise_N: float = 1.0,
@@ -35,8 +27,9 @@ def gantry_dict(axis: str = "X", effect: dict | None = None, seed: int = 1, nois
     """Config dict of one gantry axis with ``effect`` on the plant (undeclared to the controller).
 
     Args:
-        axis: 'X' or 'Y'. effect: {"cogging": {...}} (an entry of ``effects:``) or
-            {"input_delay_s": τ}. seed: driver seed. noise_N: plant force noise std [N].
+        axis: 'X' or 'Y'. effect: {"cogging": {...}} (an entry of ``effects:``, a key naming a
+            family with simulator options) or {"input_delay_s": τ} (any other key: an axis-level
+            driver option). seed: driver seed. noise_N: plant force noise std [N].
         compensation: the controller's ``compensation`` dict (None: none).
     """
     d = copy.deepcopy(load_yaml(str(GANTRY)))
@@ -52,10 +45,10 @@ def gantry_dict(axis: str = "X", effect: dict | None = None, seed: int = 1, nois
     lim["following_error_m"] = max(lim["following_error_m"], 0.01)
     lim["min_following_error_m"] = max(lim["min_following_error_m"], 0.005)
     for k, v in (effect or {}).items():
-        if k == "input_delay_s":
-            drv["input_delay_s"] = v
-        else:
+        if k in FAMILIES and FAMILIES[k].sim_options is not None:
             drv.setdefault("effects", {})[k] = copy.deepcopy(v)
+        else:
+            drv[k] = copy.deepcopy(v)
     if compensation:
         d["axes"][axis]["controller"]["compensation"] = copy.deepcopy(compensation)
     return d

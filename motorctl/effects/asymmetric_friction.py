@@ -1,0 +1,90 @@
+"""Asymmetric (direction-dependent) friction: different Coulomb and viscous levels forward.
+
+Physical model (the EMPS reference model has separate F_c, F_v per direction; the nominal θ2,
+θ3 carry the backward level, this family the difference):
+
+    F_eff(ẋ) = −(ΔF_c S_f(ẋ) + ΔB ẋ)   for ẋ > 0,   0 otherwise                   [N]
+
+Identification: columns S_f(ẋ)·[ẋ > 0], ẋ·[ẋ > 0] (no searched parameter). Compensation:
+d̂_eff(ẋ_d) = −(ΔF_V S_f(ẋ_d) + ΔB_V ẋ_d) for ẋ_d > 0 [V].
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from motorctl.effects.base import EffectFamily, PlantTerm, Signals
+from motorctl.effects.stribeck import velocity_grid
+from motorctl.model import s_f
+from motorctl.schema import StrictModel
+
+
+class AsymmetricFriction(StrictModel):
+    """Simulated asymmetric friction, ``axes.NAME.driver.effects.asymmetric_friction``:
+    −(ΔF_c S_f(ẋ) + ΔB ẋ) for ẋ > 0 [N]. coulomb_N: ΔF_c [N]. viscous_N_s_per_m: ΔB [N·s/m]."""
+
+    coulomb_N: float = 0.0
+    viscous_N_s_per_m: float = 0.0
+
+
+class AsymmetricFrictionComp(StrictModel):
+    """Asymmetric friction compensation, ``axes.NAME.controller.compensation.asymmetric_friction``:
+    −(ΔF S_f(ẋ) + ΔB ẋ) for ẋ > 0 [V]. coulomb_V [V], viscous_V_s_per_m [V·s/m] (force / A1)."""
+
+    coulomb_V: float = 0.0
+    viscous_V_s_per_m: float = 0.0
+
+
+class AsymmetricFrictionFamily(EffectFamily):
+    name = "asymmetric_friction"
+    plant_force = "−(ΔF_c S_f(ẋ) + ΔB ẋ), ẋ > 0 only"
+    sim_options = AsymmetricFriction
+    example: ClassVar[dict] = {"asymmetric_friction": {"coulomb_N": 10.0, "viscous_N_s_per_m": 20.0}}
+    comp_options = AsymmetricFrictionComp
+    comp_needs_sf = True
+    compensation_rank = 5
+
+    # simulator
+    def plant_term(self, o: AsymmetricFriction, period_s):
+        c, b = o.coulomb_N, o.viscous_N_s_per_m
+
+        def force(f, x, v, t, sf):
+            return f - (c * sf + b * v) if v > 0.0 else f
+        return PlantTerm(force=force)
+
+    # identification
+    def columns(self, h, p):
+        """S_f(ẋ)·[ẋ > 0], ẋ·[ẋ > 0], (N, 2); h unused."""
+        v = p.v
+        pos = (v > 0).astype(float)
+        return np.column_stack([s_f(v) * pos, v * pos])
+
+    def parameters(self, h, beta, gain, fs):
+        g, unit = (gain, "N") if gain else (1.0, "V")
+        return {f"coulomb_{unit}": float(g * beta[0]), f"viscous_{unit}_s_per_m": float(g * beta[1])}
+
+    # compensation
+    def compensation(self, h, beta):
+        return {"coulomb_V": float(beta[0]), "viscous_V_s_per_m": float(beta[1])}
+
+    def compensation_for(self, o: AsymmetricFriction, a1):
+        return {"coulomb_V": o.coulomb_N / a1, "viscous_V_s_per_m": o.viscous_N_s_per_m / a1}
+
+    def compensator(self, o: AsymmetricFrictionComp):
+        c, b = o.coulomb_V, o.viscous_V_s_per_m
+
+        def add(d, x, v, t, sf):
+            return d - (c * sf + b * v) if v > 0.0 else d
+        return add
+
+    # report
+    def shape(self, ctx, h, beta, gain):
+        vs = velocity_grid(ctx)
+        zero = np.zeros_like(vs)
+        y = -(gain or 1.0) * (self.columns(h, Signals(zero, vs, zero, zero, zero)) @ beta)
+        return vs, y, "velocity [m/s]", "effect force [UNIT]"
+
+
+FAMILY = AsymmetricFrictionFamily()

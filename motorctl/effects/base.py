@@ -1,0 +1,256 @@
+"""The effect-family interface: one physical effect in every place the project meets it.
+
+The paper's model (eq. 4) lumps every unmodelled force into d̃. An *effect family* is one named
+physical cause of part of d̃ (cogging, Stribeck friction, a spring, ...). Its module
+(``motorctl/effects/<name>.py``) holds, together:
+
+* **simulator** (``motorctl_drivers.sim``): :attr:`EffectFamily.sim_options`, the options model
+  of ``axes.NAME.driver.effects.<name>``, and :meth:`EffectFamily.plant_term`, what the effect
+  does to the simulated plant (a force, a factor on the thrust, a mass change, a transform of
+  the input; see :class:`PlantTerm`);
+* **identification** (``motorctl identify``, ``motorctl.ident``): :meth:`EffectFamily.columns`
+  (regressor columns C(h)), :meth:`EffectFamily.search` (the searched parameter h and its grid),
+  :meth:`EffectFamily.plausible` (physical checks), :meth:`EffectFamily.parameters` (names with
+  units);
+* **compensation** (the controller, eq. 13): :attr:`EffectFamily.comp_options`, the options model
+  of ``axes.NAME.controller.compensation.<name>``, and :meth:`EffectFamily.compensator`, its term
+  d̂_eff [V] evaluated inside the 5 kHz cycle; :meth:`EffectFamily.compensation` turns a fit into
+  such an entry;
+* **report**: :meth:`EffectFamily.shape`, the fitted term against its natural variable.
+
+Sign conventions, the same for every family (F_eff: the force the effect adds to the plant):
+
+    plant (motorctl_drivers.sim):   M ẍ = F_m(u)(1 + ripple) − B ẋ − A_f S_f(ẋ) + F_0 + F_eff      [N]
+    identification (u = Φθ + Cβ):   F_eff = −A1·Cβ                                                [N]
+    compensation:                   d̂_eff = F_eff / A1 = −Cβ, v_a1 = … − d̂_eff (eq. 13)          [V]
+
+so the controller's input gains −d̂_eff = −F_eff/A1, which cancels the effect's force.
+The families are found through the registry :data:`motorctl.effects.FAMILIES`; this module
+imports nothing of the simulator, the identification or the application.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, ClassVar, Protocol
+
+import numpy as np
+
+from motorctl.schema import StrictModel
+
+
+class PlantTerm:
+    """What one effect does to one simulated axis, built once from its options (pure floats).
+
+    A hook is None when the effect has no such part. :class:`motorctl_drivers.sim.AxisPlant`
+    calls the hooks of all active effects in registry order, inside every RK4 stage:
+
+    * ``thrust(fm, x) -> fm'``: the motor force F_m(u) [N] at position x [m], modified (ripple);
+    * ``force(f, x, v, t, sf) -> f + F_eff``: adds the effect's force [N] at position x [m],
+      velocity v [m/s], plant time t [s]; ``sf`` = S_f(v) (already computed by the plant);
+    * ``mass(m, t) -> m'``: the moving mass [kg] at plant time t [s];
+    * ``input(u) -> u'``: the input [V] that reaches the amplifier this period (called once per
+      period, before integrating; may keep state, e.g. a delay line).
+    """
+
+    __slots__ = ("force", "input", "mass", "thrust")
+
+    def __init__(self, thrust: Callable | None = None, force: Callable | None = None,
+                 mass: Callable | None = None, input: Callable | None = None):
+        self.thrust, self.force, self.mass, self.input = thrust, force, mass, input
+
+
+class Signals:
+    """Signals regressor columns are built from (identification, report), each shape (N,).
+
+    Attributes:
+        x: position [m]. v: velocity [m/s]. a: acceleration [m/s²]. u: input [V]. t: time [s].
+        fu: thrust shape f_u(u) = u + θ5 u|u| + θ6 u³ [V] (paper eq. 9) when the nominal θ5, θ6
+            are fitted, else None (then the thrust is taken proportional to u).
+    """
+
+    __slots__ = ("a", "fu", "t", "u", "v", "x")
+
+    def __init__(self, x, v, a, u, t, fu=None):
+        self.x, self.v, self.a, self.u, self.t, self.fu = x, v, a, u, t, fu
+
+    @classmethod
+    def decimated(cls, p) -> Signals:
+        """The decimated signals of a prepared record ``p`` (x_d, v_d, a_d, u_d, t_d; fu None):
+        cheap approximate columns for grid searches."""
+        return cls(p.x_d, p.v_d, p.a_d, p.u_d, p.t_d)
+
+
+class SearchContext(Protocol):
+    """What a family's search, plausibility check and report shape may use of the identifier
+    (:class:`motorctl.ident.select.Identifier` provides it; families never import it).
+
+    Attributes:
+        p: the prepared record: full rate x, v, a, u, t (N,) and fu; decimated x_d, v_d, a_d,
+            u_d, t_d (M,); fs [Hz] sample rate, nd decimation factor.
+        stroke: position range of the record [m]. moving: bool (M,), the axis is moving.
+        zoh: input-to-acceleration delay of the logged input [samples].
+    """
+
+    p: Any
+    stroke: float
+    moving: np.ndarray
+    zoh: float
+
+    def term(self, family: str, h) -> Any:
+        """A model term of ``family`` at h with its exact decimated columns (and input shift)."""
+
+    def best_over(self, family: str, grid, base: list, cols_fn=None) -> tuple[Any, np.ndarray]:
+        """The term minimising the joint-LS SSE over ``grid`` (K,), and the SSE per value (K,).
+        ``cols_fn(h)`` may give cheap approximate decimated columns (M, k) for the scan."""
+
+    def sse(self, terms: list) -> float:
+        """SSE of the joint LS fit of the nominal model plus ``terms``."""
+
+    def delay_sses(self, base: list, grid) -> np.ndarray:
+        """Joint-LS SSE (K,) with the input shifted by ``grid`` (K,) extra samples."""
+
+    def direction_agreement(self, term, base: list) -> float:
+        """1 − ‖β₊ − β₋‖/(‖β₊‖ + ‖β₋‖) of the term fitted on forward / backward motion."""
+
+    def target(self, delay: float) -> np.ndarray:
+        """The decimated input u(t − delay·Ts) (M,)."""
+
+
+class EffectFamily:
+    """Base of every effect family (see the module docstring). Subclasses set the class
+    attributes and override the methods of the parts they have; one instance is registered in
+    :data:`motorctl.effects.FAMILIES`.
+
+    Attributes:
+        name: registry name, also the YAML key under ``effects:`` and ``compensation:``.
+        plant_force: the force F_eff the effect adds to the plant, as a formula (docs, report).
+        searched: the searched parameter h and its unit (None: none; the columns are linear).
+        sim_options: options model of ``axes.NAME.driver.effects.<name>`` (None: the family has
+            no entry there, its simulator option lives elsewhere; see :meth:`sim_config`).
+        example: a fragment of ``axes.NAME.driver`` switching the effect on, sized for the X axis
+            of configs/gantry.yaml (M = 12.8 kg, A1 = 80 N/V, stroke 0.4 m); synthetic logs,
+            tests and benchmarks use it.
+        force_bounded_by_input: identification rejects a fitted term Cβ larger than half the
+            input range (False for a term that is part of the inertial force, a mass step).
+        shifts_input: the family delays the input instead of adding columns (at most one such
+            term in a model).
+        comp_options: options model of ``axes.NAME.controller.compensation.<name>`` (None: the
+            effect is not an additive force in (x_d, ẋ_d, t) and cannot be compensated).
+        comp_needs_sf: the compensation term uses S_f(ẋ_d) (computed once per cycle for all).
+        compensation_rank: position of the term in ``CompensationConfig`` and in the sum d̂_eff
+            (increasing; ties in registry order). Float addition is not associative: the ranks
+            of the first six compensable families keep the sum bit-identical to the code before
+            the registry; a new family keeps the default and comes after them.
+    """
+
+    name: ClassVar[str] = ""
+    plant_force: ClassVar[str] = ""
+    searched: ClassVar[str | None] = None
+    sim_options: ClassVar[type[StrictModel] | None] = None
+    example: ClassVar[dict] = {}
+    force_bounded_by_input: ClassVar[bool] = True
+    shifts_input: ClassVar[bool] = False
+    comp_options: ClassVar[type[StrictModel] | None] = None
+    comp_needs_sf: ClassVar[bool] = False
+    compensation_rank: ClassVar[int] = 100
+
+    def __repr__(self) -> str:
+        return f"<effect family {self.name}>"
+
+    @property
+    def compensable(self) -> bool:
+        """True when the family has a compensation term (:attr:`comp_options` set)."""
+        return self.comp_options is not None
+
+    # ------------------------------------------------------------------ simulator
+    def sim_config(self, axis_options):
+        """This family's options in a checked ``axes.NAME.driver`` section (a
+        ``SimAxisOptions``), or None when the effect is off. Default: ``effects.<name>``."""
+        return getattr(axis_options.effects, self.name, None)
+
+    def plant_term(self, options, period_s: float) -> PlantTerm | None:
+        """The effect's hooks into one simulated axis (see :class:`PlantTerm`), built once.
+
+        Args:
+            options: what :meth:`sim_config` returned (not None). period_s: control period [s].
+        Returns:
+            The hooks, or None when the options make the effect vanish.
+        """
+        raise NotImplementedError(f"effect family {self.name!r} has no simulator part")
+
+    # ------------------------------------------------------------------ identification
+    def columns(self, h, p) -> np.ndarray | None:
+        """Regressor columns C(h), shape (N, k), input units (u = Φθ + Cβ), on the signals of
+        ``p`` (:class:`Signals` or a prepared record); None when the family adds no columns."""
+        raise NotImplementedError(f"effect family {self.name!r} has no regressor columns")
+
+    def search(self, ctx: SearchContext, base: list, residual: np.ndarray):
+        """The best term of this family given the already selected ``base`` terms.
+
+        Args:
+            ctx: the identifier (:class:`SearchContext`). base: selected terms.
+            residual: decimated residual of the current model (M,) [V].
+        Returns:
+            (term, note): the term (from ``ctx.term`` / ``ctx.best_over``) and a reason that
+            makes it implausible (e.g. the searched parameter at the edge of its grid) or None;
+            or None when the record cannot show this effect. Default (no searched parameter):
+            the term with its columns, no note.
+        """
+        return ctx.term(self.name, None), None
+
+    def plausible(self, ctx: SearchContext, term, beta: np.ndarray, theta: np.ndarray,
+                  base: list) -> list[str]:
+        """Reasons why a fitted term is not physically plausible (empty: plausible).
+
+        Args:
+            term: the candidate term (term.h the searched value). beta: its coefficients (k,).
+            theta: the nominal θ̂ of the same joint fit (n_theta,) [θ1 V·s²/m, θ2 V·s/m, θ3 V,
+                θ4 V, θ5 1/V, θ6 1/V²]. base: the terms selected before.
+        """
+        return []
+
+    def parameters(self, h, beta: np.ndarray, gain: float | None, fs: float) -> dict:
+        """Physical parameters of a fitted term, names ending in their unit: forces in N when
+        the gain A1 [N/V] is known, else in V (force / A1). fs: sample rate [Hz]."""
+        raise NotImplementedError
+
+    def input_shift(self, h) -> float:
+        """Extra delay of the input [samples] this term applies (0 for additive columns)."""
+        return 0.0
+
+    # ------------------------------------------------------------------ compensation
+    def compensation(self, h, beta: np.ndarray) -> dict | None:
+        """The ``controller.compensation.<name>`` options (V units) of a fitted term, i.e.
+        d̂_eff = −C(h)β, or None when the family cannot be compensated."""
+        return None
+
+    def compensation_for(self, options, a1: float) -> dict:
+        """The ``controller.compensation.<name>`` options that cancel a known simulated effect
+        ``options`` (a :attr:`sim_options` instance) on a plant with force gain a1 [N/V]:
+        d̂_eff = F_eff / a1.
+
+        Raises:
+            NotImplementedError: the family is not compensable.
+        """
+        raise NotImplementedError(f"effect family {self.name!r} cannot be compensated")
+
+    def compensator(self, options) -> Callable[[float, float, float, float, float], float]:
+        """The compensation term, built once from ``options`` (a :attr:`comp_options` instance):
+        ``add(d, x_d, xd_dot, t, sf) -> d + d̂_eff(x_d, ẋ_d, t)`` [V], with x_d [m], ẋ_d [m/s],
+        t [s] and sf = S_f(ẋ_d) (0.0 unless :attr:`comp_needs_sf`). Runs inside the 5 kHz
+        cycle: pure floats, no container built per call.
+
+        Raises:
+            NotImplementedError: the family is not compensable.
+        """
+        raise NotImplementedError(f"effect family {self.name!r} cannot be compensated")
+
+    # ------------------------------------------------------------------ report
+    def shape(self, ctx: SearchContext, h, beta: np.ndarray, gain: float | None):
+        """The fitted term against its natural variable, unfiltered, for the report figure.
+
+        Returns:
+            (x (K,), y (K,), x label, y label with UNIT standing for N or V), or None.
+        """
+        return

@@ -1,0 +1,88 @@
+"""Input delay: the drive applies the commanded voltage τ later (transport delay of the drive's
+input stage or fieldbus), in whole control periods in the simulator.
+
+Physical model: u_applied(t) = u(t − τ). Its simulator option is the axis-level
+``axes.NAME.driver.input_delay_s`` (not an ``effects:`` entry). Identification: no columns; the
+regression target becomes u(t − τ), τ from 0 to 5 ms in samples (FFT fractional shift of the
+decimated input), then a parabolic refinement. Not compensable (not an additive force).
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from motorctl.effects.base import EffectFamily, PlantTerm
+
+
+def delay_line(n: int):
+    """A delay of n ≥ 1 periods: ``delay(u) -> u`` of n calls ago (0.0 before that), one call
+    per period; pure floats (a ring buffer built once)."""
+    buf = [0.0] * n
+    i = 0
+
+    def delay(u):
+        nonlocal i
+        out = buf[i]
+        buf[i] = u
+        i = (i + 1) % n
+        return out
+    return delay
+
+
+class InputDelayFamily(EffectFamily):
+    name = "input_delay"
+    plant_force = "u acts τ later"
+    searched = "delay τ [samples]"
+    example: ClassVar[dict] = {"input_delay_s": 0.0006}
+    shifts_input = True
+
+    # simulator
+    def sim_config(self, axis_options):
+        """``input_delay_s`` [s] of the axis, or None when 0."""
+        d = axis_options.input_delay_s
+        return d if d > 0 else None
+
+    def plant_term(self, delay_s, period_s):
+        """Delay line of round(delay_s / period_s) periods (None when that is 0)."""
+        n = round(delay_s / period_s)
+        return PlantTerm(input=delay_line(n)) if n > 0 else None
+
+    # identification
+    def columns(self, h, p):
+        """None: the family shifts the target instead of adding columns."""
+        return
+
+    def input_shift(self, h):
+        return float(h) if h else 0.0
+
+    def search(self, ctx, base, residual):
+        p = ctx.p
+        dmax = max(3, min(round(0.005 * p.fs), 40))
+        grid = np.arange(0, dmax + 1)
+        sses = ctx.delay_sses(base, grid)
+        i = int(np.argmin(sses))
+        d = float(grid[i])
+        if 0 < i < len(grid) - 1:   # parabola through the three SSEs around the minimum
+            s0, s1, s2 = sses[i - 1], sses[i], sses[i + 1]
+            den = s0 - 2 * s1 + s2
+            if den > 0:
+                d += 0.5 * (s0 - s2) / den
+        if i == 0:
+            return ctx.term(self.name, 0.0), "best delay is 0 samples beyond the zero-order hold"
+        note = f"delay {d:g} samples at the edge of the searched range" if i == len(grid) - 1 else None
+        return ctx.term(self.name, d), note
+
+    def parameters(self, h, beta, gain, fs):
+        return {"delay_samples": float(h), "delay_s": float(h) / fs}
+
+    # report
+    def shape(self, ctx, h, beta, gain):
+        """A1 (u(t − τ) − u(t)) against time: what the delay changes in the input."""
+        g = gain or 1.0
+        pr = ctx.p
+        return pr.t_d, g * ctx.target(ctx.zoh + h) - g * pr.u_d, "time [s]", "A1 (u(t - tau) - u(t)) [UNIT]"
+
+
+FAMILY = InputDelayFamily()

@@ -1,0 +1,84 @@
+"""Payload change: the moving mass steps by Δm at time t_c (a part loaded on the carriage).
+
+Physical model: M(t) = M + Δm·[t ≥ t_c] in M ẍ = …, i.e. F_eff = −Δm ẍ·[t ≥ t_c] [N] seen
+from the nominal model. Identification: column ẍ·[t ≥ t_c] (a step of θ1), t_c searched on a
+50 ms grid (middle of a flat minimum). Not compensable: it is a mass, not an additive force in
+(x_d, ẋ_d, t) (the adaptation of θ̂1 follows it).
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from motorctl.effects.base import EffectFamily, PlantTerm, Signals
+from motorctl.effects.periodic import SHAPE_POINTS
+from motorctl.schema import NonNeg, StrictModel
+
+
+class PayloadChange(StrictModel):
+    """Simulated payload change, ``axes.NAME.driver.effects.payload_change``: the mass grows by
+    mass_kg [kg] (may be negative) from plant time t_change_s [s] on."""
+
+    t_change_s: NonNeg
+    mass_kg: float
+
+
+class PayloadChangeFamily(EffectFamily):
+    name = "payload_change"
+    plant_force = "mass step Δm from t_c on"
+    searched = "change time t_c [s]"
+    sim_options = PayloadChange
+    example: ClassVar[dict] = {"payload_change": {"t_change_s": 4.65, "mass_kg": 2.0}}
+    force_bounded_by_input = False
+
+    # simulator
+    def plant_term(self, o: PayloadChange, period_s):
+        tc, dm = o.t_change_s, o.mass_kg
+
+        def mass(m, t):
+            return m + dm if t >= tc else m
+        return PlantTerm(mass=mass)
+
+    # identification
+    def columns(self, h, p):
+        """ẍ·[t ≥ h], (N, 1); h: change time t_c [s]."""
+        return (p.a * (p.t >= h))[:, None]
+
+    def search(self, ctx, base, residual):
+        p = ctx.p
+        lo, hi = p.t_d[0] + 1.0, p.t_d[-1] - 1.0
+        if hi <= lo:
+            return None
+        a_d, t_d = p.a_d, p.t_d
+        coarse = np.arange(lo, hi, 0.05)
+
+        def approx(h):
+            return (a_d * (t_d >= h))[:, None]
+        _, sses = ctx.best_over(self.name, coarse, base, approx)
+        smin = sses.min()
+        # flat minimum (no acceleration between two moves): take the middle of the flat set
+        near = coarse[sses <= smin + 1e-6 * max(smin, 1e-300) + 1e-12]
+        h = float(0.5 * (near.min() + near.max()))
+        return ctx.term(self.name, h), None
+
+    def plausible(self, ctx, term, beta, theta, base):
+        if theta[0] + beta[0] <= 0 or abs(beta[0]) > 2 * theta[0]:
+            return ["mass step not plausible (|dM| > 2 M or mass <= 0)"]
+        return []
+
+    def parameters(self, h, beta, gain, fs):
+        g = gain if gain else 1.0
+        return {"t_change_s": float(h), "mass_kg" if gain else "theta1_step_V_s2_per_m": float(g * beta[0])}
+
+    # report
+    def shape(self, ctx, h, beta, gain):
+        pr = ctx.p
+        ts = np.linspace(pr.t_d[0], pr.t_d[-1], SHAPE_POINTS)
+        zero = np.zeros_like(ts)
+        y = (gain or 1.0) * (self.columns(h, Signals(zero, zero, np.ones_like(ts), zero, ts)) @ beta)
+        return ts, y, "time [s]", f"mass step [{'kg' if gain else 'V s^2/m'}]"
+
+
+FAMILY = PayloadChangeFamily()

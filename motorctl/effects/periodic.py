@@ -1,0 +1,203 @@
+"""Helpers shared by the periodic families: Fourier columns, periodograms, search grids, and the
+position-periodic search of cogging and force ripple (not a family itself).
+
+Position-periodic search (design note ``residual-analysis.md``): the period P is taken from the
+peaks of a least-squares (Lomb-Scargle) periodogram of the residual against **position**
+(moving samples, P from 1 mm to min(0.1 m, stroke/3)), then refined by the joint LS fit on
+grids at ±3 % and ±0.5 % of each peak.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.signal import lombscargle
+
+from motorctl.effects.base import EffectFamily
+
+#: Harmonics fitted for position- and time-periodic families.
+N_HARMONICS = 2
+#: Periodogram peaks refined by the joint fit (position- and time-periodic families).
+N_PEAKS = 2
+#: Least agreement of a position-periodic force fitted on each direction of motion separately.
+MIN_DIRECTION_AGREEMENT = 0.5
+#: Points of a report figure's curve.
+SHAPE_POINTS = 2000
+
+
+# ---------------------------------------------------------------------------- columns
+def fourier(z: np.ndarray, period: float, k: int, scale=None) -> np.ndarray:
+    """sin, cos(2π j z / period) for j = 1..k, interleaved, shape (N, 2k).
+
+    Args:
+        z: abscissa (N,), position [m] or time [s]. period: same unit as z (> 0).
+        k: harmonics. scale: optional (N,) multiplying every column (force ripple: f_u(u)).
+    """
+    ph = (2.0 * np.pi / period) * z
+    s1, c1 = np.sin(ph), np.cos(ph)
+    out = np.empty((len(z), 2 * k))
+    s, c = s1, c1
+    for j in range(k):
+        if j:  # angle addition: sin((j+1)φ), cos((j+1)φ) from sin(jφ), cos(jφ)
+            s, c = s * c1 + c * s1, c * c1 - s * s1
+        out[:, 2 * j], out[:, 2 * j + 1] = s, c
+    if scale is not None:
+        out *= scale[:, None]
+    return out
+
+
+def amplitudes_phases(beta: np.ndarray, g: float) -> tuple[np.ndarray, np.ndarray]:
+    """Amplitudes g·|(s_k, c_k)| and phases φ_k of F = −g Σ (s_k sin + c_k cos) = Σ A_k sin(· + φ_k),
+    for interleaved coefficients beta = (s_1, c_1, s_2, c_2, ...) (2K,). Returns two (K,) arrays."""
+    s, c = beta[0::2], beta[1::2]
+    return g * np.hypot(s, c), np.arctan2(-c, -s)
+
+
+def harmonics(w: float, sin_V: list, cos_V: list) -> tuple:
+    """((w·k, a_k, b_k), ...) for k = 1..max(len): the shorter list padded with zeros."""
+    n = max(len(sin_V), len(cos_V))
+    a = list(sin_V) + [0.0] * (n - len(sin_V))
+    b = list(cos_V) + [0.0] * (n - len(cos_V))
+    return tuple((w * (k + 1), a[k], b[k]) for k in range(n))
+
+
+def fourier_term(harm: tuple, on_time: bool):
+    """The compensation term Σ_k a_k sin(w_k z) + b_k cos(w_k z) [V] of :func:`harmonics`, with
+    z = x_d [m] (position) or t [s] (``on_time``), as ``add(d, x_d, xd_dot, t, sf)``.
+
+    Harmonics are added to d one at a time, in order (the same float operations for any n);
+    one or two harmonics (the fitted case) are unrolled: this runs inside the 5 kHz cycle."""
+    sin, cos = math.sin, math.cos
+    if len(harm) == 1:
+        ((w1, a1, b1),) = harm
+
+        def add1(d, x, v, t, sf):
+            z = t if on_time else x
+            return d + (a1 * sin(w1 * z) + b1 * cos(w1 * z))
+        return add1
+    if len(harm) == 2:
+        (w1, a1, b1), (w2, a2, b2) = harm
+
+        def add2(d, x, v, t, sf):
+            z = t if on_time else x
+            d += a1 * sin(w1 * z) + b1 * cos(w1 * z)
+            return d + (a2 * sin(w2 * z) + b2 * cos(w2 * z))
+        return add2
+    if on_time:
+        def add(d, x, v, t, sf):
+            for w, a, b in harm:
+                d += a * sin(w * t) + b * cos(w * t)
+            return d
+    else:
+        def add(d, x, v, t, sf):
+            for w, a, b in harm:
+                d += a * sin(w * x) + b * cos(w * x)
+            return d
+    return add
+
+
+def sin_cos_of(amplitude: float, phase: float) -> tuple[float, float]:
+    """A sin(z + φ) = (A cos φ) sin z + (A sin φ) cos z: the (sin, cos) coefficients."""
+    return amplitude * math.cos(phase), amplitude * math.sin(phase)
+
+
+# ---------------------------------------------------------------------------- search grids
+def spatial_periodogram(x: np.ndarray, r: np.ndarray, periods: np.ndarray) -> np.ndarray:
+    """Least-squares (Lomb-Scargle) periodogram of r against position x (uneven abscissa).
+
+    Args:
+        x [m], r: shape (M,), samples with the axis moving. periods [m]: shape (K,).
+    Returns:
+        Normalised power (K,) (:func:`scipy.signal.lombscargle`, angular frequencies 2π/P).
+    """
+    return lombscargle(x, r - r.mean(), 2.0 * np.pi / periods, normalize=True)
+
+
+def peak_periods(x, r, periods, n_peaks=3) -> list:
+    """The ``n_peaks`` highest local maxima of the spatial periodogram, as periods [m]."""
+    pw = spatial_periodogram(x, r, periods)
+    loc = np.flatnonzero((pw[1:-1] > pw[:-2]) & (pw[1:-1] >= pw[2:])) + 1
+    loc = loc[np.argsort(pw[loc])[::-1]][:n_peaks]
+    return [float(periods[i]) for i in loc]
+
+
+def period_grid(stroke: float) -> np.ndarray:
+    """Plausible cogging / ripple periods [m]: 1 mm .. min(0.1 m, stroke/3), 0.2 % steps.
+    Empty (0,) when the stroke [m] is too short."""
+    hi = min(0.1, stroke / 3.0)
+    lo = 1e-3
+    if hi <= lo * 1.5:
+        return np.array([])
+    return np.exp(np.arange(math.log(lo), math.log(hi), 0.002))
+
+
+def refine(center: float, rel: float, n: int) -> np.ndarray:
+    """n values from center·(1 − rel) to center·(1 + rel)."""
+    return center * (1.0 + np.linspace(-rel, rel, n))
+
+
+def time_periodogram(t, r, freqs):
+    """|DFT|² of r (uniform time t [s], (M,)) at ``freqs`` [Hz] (K,) (zero-padded FFT of the
+    Hann-windowed, mean-removed r, linearly interpolated). Returns (K,)."""
+    ts = (t[-1] - t[0]) / (len(t) - 1)
+    df = freqs[1] - freqs[0]
+    nfft = int(2 ** math.ceil(math.log2(max(len(r), 1.0 / (ts * df)))))
+    spec = np.abs(np.fft.rfft((r - r.mean()) * np.hanning(len(r)), nfft)) ** 2
+    f = np.fft.rfftfreq(nfft, ts)
+    return np.interp(freqs, f, spec)
+
+
+def local_peaks(pw: np.ndarray, n: int) -> np.ndarray:
+    """Indices of the ``n`` highest local maxima of ``pw`` (K,), highest first."""
+    loc = np.flatnonzero((pw[1:-1] > pw[:-2]) & (pw[1:-1] >= pw[2:])) + 1
+    return loc[np.argsort(pw[loc])[::-1]][:n]
+
+
+# ---------------------------------------------------------------------------- position-periodic
+class PositionPeriodic(EffectFamily):
+    """Common search and checks of the position-periodic families (cogging, force ripple)."""
+
+    searched = "period P [m]"
+
+    def peak_data(self, ctx, residual: np.ndarray):
+        """(x [m], r) (M',) of the samples whose spatial periodogram gives the candidate
+        periods, or None when there are too few."""
+        raise NotImplementedError
+
+    def search(self, ctx, base, residual):
+        grid = period_grid(ctx.stroke)
+        if grid.size == 0 or ctx.moving.sum() < 50:
+            return None
+        data = self.peak_data(ctx, residual)
+        if data is None:
+            return None
+        best = None
+        for pk in peak_periods(data[0], data[1], grid, N_PEAKS):
+            term, _ = ctx.best_over(self.name, refine(pk, 0.03, 13), base)
+            term, _ = ctx.best_over(self.name, refine(term.h, 0.005, 7), base)
+            sse = ctx.sse(base + [term])
+            if best is None or sse < best[0]:
+                best = (sse, term)
+        if best is None:   # no periodogram peak at all
+            return None
+        term = best[1]
+        note = None
+        if term.h <= grid[1] or term.h >= grid[-2]:
+            note = f"period {term.h:.4g} m at the edge of the searched range"
+        return term, note
+
+    def plausible(self, ctx, term, beta, theta, base):
+        agree = ctx.direction_agreement(term, base)
+        if agree < MIN_DIRECTION_AGREEMENT:
+            return [(f"not the same force in both directions (agreement {agree:.2f} < "
+                     f"{MIN_DIRECTION_AGREEMENT:g}): a position-periodic force does not "
+                     "depend on the direction of motion")]
+        return []
+
+    @staticmethod
+    def position_grid(ctx, period: float) -> np.ndarray:
+        """Positions [m] over at most four periods of the record's range (K,), for the report."""
+        pr = ctx.p
+        x_hi = min(pr.x_d.max(), pr.x_d.min() + 4.0 * period)
+        return np.linspace(pr.x_d.min(), x_hi, SHAPE_POINTS)

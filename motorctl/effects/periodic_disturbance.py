@@ -1,0 +1,117 @@
+"""Time-periodic disturbance (an unbalanced neighbour machine, a pump, mains vibration).
+
+Physical model:
+
+    F_eff(t) = A sin(2π f t + φ)                                                     [N]
+
+Identification: columns sin, cos(2π f t); f from the peaks of the residual's spectrum against
+time, refined by the joint LS fit. Compensation: d̂_eff(t) = Σ_k a_k sin(2π k f t) +
+b_k cos(2π k f t) [V].
+"""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import numpy as np
+
+from motorctl.effects.base import EffectFamily, PlantTerm, Signals
+from motorctl.effects.periodic import (
+    N_PEAKS,
+    SHAPE_POINTS,
+    amplitudes_phases,
+    fourier,
+    fourier_term,
+    harmonics,
+    local_peaks,
+    sin_cos_of,
+    time_periodogram,
+)
+from motorctl.schema import Pos, StrictModel
+
+#: Frequency grid step [Hz] of the spectrum search.
+DF_HZ = 0.02
+
+
+class PeriodicDisturbance(StrictModel):
+    """Simulated disturbance, ``axes.NAME.driver.effects.periodic_disturbance``:
+    A sin(2π f t + φ) [N]. amplitude_N: A [N]. frequency_Hz: f [Hz]. phase_rad: φ [rad]."""
+
+    amplitude_N: float
+    frequency_Hz: Pos
+    phase_rad: float = 0.0
+
+
+class FourierTime(StrictModel):
+    """Compensation, ``axes.NAME.controller.compensation.periodic_disturbance``:
+    Σ_k a_k sin(2π k f t) + b_k cos(2π k f t) [V] (force / A1); shorter list padded with 0."""
+
+    frequency_Hz: Pos
+    sin_V: list[float] = []
+    cos_V: list[float] = []
+
+
+class PeriodicDisturbanceFamily(EffectFamily):
+    name = "periodic_disturbance"
+    plant_force = "A sin(2πft + φ)"
+    searched = "frequency f [Hz]"
+    sim_options = PeriodicDisturbance
+    example: ClassVar[dict] = {"periodic_disturbance": {"amplitude_N": 6.0, "frequency_Hz": 7.3, "phase_rad": 0.4}}
+    comp_options = FourierTime
+    compensation_rank = 3
+
+    # simulator
+    def plant_term(self, o: PeriodicDisturbance, period_s):
+        a, w, ph = o.amplitude_N, 2.0 * math.pi * o.frequency_Hz, o.phase_rad
+        sin = math.sin
+
+        def force(f, x, v, t, sf):
+            return f + a * sin(w * t + ph)
+        return PlantTerm(force=force)
+
+    # identification
+    def columns(self, h, p):
+        """sin, cos(2π h t), (N, 2); h: frequency f [Hz]."""
+        return fourier(p.t, 1.0 / h, 1)
+
+    def search(self, ctx, base, residual):
+        p = ctx.p
+        fs_d = p.fs / p.nd   # decimated sample rate [Hz]
+        freqs = np.arange(0.5, 0.35 * fs_d, DF_HZ)
+        pw = time_periodogram(p.t_d, residual, freqs)
+        fast = Signals.decimated(p)
+        best = None
+        for i in local_peaks(pw, N_PEAKS):
+            grid = np.linspace(freqs[i] - DF_HZ, freqs[i] + DF_HZ, 9)
+            term, _ = ctx.best_over(self.name, grid, base, lambda h: self.columns(h, fast))
+            sse = ctx.sse(base + [term])
+            if best is None or sse < best[0]:
+                best = (sse, term)
+        return None if best is None else (best[1], None)
+
+    def parameters(self, h, beta, gain, fs):
+        g, unit = (gain, "N") if gain else (1.0, "V")
+        amp, ph = amplitudes_phases(beta, g)
+        return {"frequency_Hz": float(h), f"amplitude_{unit}": float(amp[0]), "phase_rad": float(ph[0])}
+
+    # compensation
+    def compensation(self, h, beta):
+        return {"frequency_Hz": float(h), "sin_V": [float(-beta[0])], "cos_V": [float(-beta[1])]}
+
+    def compensation_for(self, o: PeriodicDisturbance, a1):
+        s, c = sin_cos_of(o.amplitude_N / a1, o.phase_rad)
+        return {"frequency_Hz": o.frequency_Hz, "sin_V": [s], "cos_V": [c]}
+
+    def compensator(self, o: FourierTime):
+        return fourier_term(harmonics(2.0 * math.pi * o.frequency_Hz, o.sin_V, o.cos_V), on_time=True)
+
+    # report
+    def shape(self, ctx, h, beta, gain):
+        ts = ctx.p.t_d[0] + np.linspace(0, 3.0 / h, SHAPE_POINTS)
+        zero = np.zeros_like(ts)
+        y = -(gain or 1.0) * (self.columns(h, Signals(zero, zero, zero, zero, ts)) @ beta)
+        return ts, y, "time [s]", "effect force [UNIT]"
+
+
+FAMILY = PeriodicDisturbanceFamily()

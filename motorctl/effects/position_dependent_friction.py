@@ -1,0 +1,97 @@
+"""Position-dependent friction: a Coulomb level that varies linearly along the stroke (guide
+preload or lubrication changing with position).
+
+Physical model:
+
+    F_eff(x, ẋ) = −c (x − x_ref) S_f(ẋ)                                             [N]
+
+Identification: column x·S_f(ẋ) (x_ref is absorbed by θ3, only the slope c is identifiable).
+Compensation: d̂_eff(x_d, ẋ_d) = −c_V (x_d − x_ref) S_f(ẋ_d) [V].
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from motorctl.effects.base import EffectFamily, PlantTerm, Signals
+from motorctl.effects.periodic import SHAPE_POINTS
+from motorctl.model import s_f
+from motorctl.schema import StrictModel
+
+
+class PositionDependentFriction(StrictModel):
+    """Simulated position-dependent friction,
+    ``axes.NAME.driver.effects.position_dependent_friction``: −c (x − x_ref) S_f(ẋ) [N].
+    coulomb_slope_N_per_m: c [N/m]. reference_m: x_ref [m]."""
+
+    coulomb_slope_N_per_m: float
+    reference_m: float = 0.0
+
+
+class PositionFrictionComp(StrictModel):
+    """Compensation, ``axes.NAME.controller.compensation.position_dependent_friction``:
+    −c (x − x_ref) S_f(ẋ) [V]. coulomb_slope_V_per_m: c (force / A1) [V/m]. reference_m [m]."""
+
+    coulomb_slope_V_per_m: float
+    reference_m: float = 0.0
+
+
+class PositionDependentFrictionFamily(EffectFamily):
+    name = "position_dependent_friction"
+    plant_force = "−c (x − x_ref) S_f(ẋ)"
+    sim_options = PositionDependentFriction
+    example: ClassVar[dict] = {"position_dependent_friction": {"coulomb_slope_N_per_m": 40.0, "reference_m": 0.2}}
+    comp_options = PositionFrictionComp
+    comp_needs_sf = True
+    compensation_rank = 6
+
+    # simulator
+    def plant_term(self, o: PositionDependentFriction, period_s):
+        c, xr = o.coulomb_slope_N_per_m, o.reference_m
+
+        def force(f, x, v, t, sf):
+            return f - c * (x - xr) * sf
+        return PlantTerm(force=force)
+
+    # identification
+    def columns(self, h, p):
+        """x·S_f(ẋ), (N, 1); h unused."""
+        return (p.x * s_f(p.v))[:, None]
+
+    def plausible(self, ctx, term, beta, theta, base):
+        x = ctx.p.x_d
+        if min(theta[2] + beta[0] * x.min(), theta[2] + beta[0] * x.max()) < 0:
+            return ["Coulomb level would turn negative over the stroke"]
+        return []
+
+    def parameters(self, h, beta, gain, fs):
+        g, unit = (gain, "N") if gain else (1.0, "V")
+        return {f"coulomb_slope_{unit}_per_m": float(g * beta[0])}
+
+    # compensation
+    def compensation(self, h, beta):
+        return {"coulomb_slope_V_per_m": float(beta[0]), "reference_m": 0.0}
+
+    def compensation_for(self, o: PositionDependentFriction, a1):
+        return {"coulomb_slope_V_per_m": o.coulomb_slope_N_per_m / a1, "reference_m": o.reference_m}
+
+    def compensator(self, o: PositionFrictionComp):
+        c, xr = o.coulomb_slope_V_per_m, o.reference_m
+
+        def add(d, x, v, t, sf):
+            return d - c * (x - xr) * sf
+        return add
+
+    # report
+    def shape(self, ctx, h, beta, gain):
+        pr = ctx.p
+        xs = np.linspace(pr.x_d.min(), pr.x_d.max(), SHAPE_POINTS)
+        zero = np.zeros_like(xs)
+        v = np.full_like(xs, 0.1 * float(np.max(np.abs(pr.v_d))))
+        y = -(gain or 1.0) * (self.columns(h, Signals(xs, v, zero, zero, zero)) @ beta)
+        return xs, y, "position [m]", "effect force [UNIT] (moving forward)"
+
+
+FAMILY = PositionDependentFrictionFamily()

@@ -1,0 +1,86 @@
+"""Spring: a restoring force linear in position (cable carrier, bellows).
+
+Physical model (Hooke):
+
+    F_eff(x) = −k (x − x_0)                                                          [N]
+
+Identification: column x (x_0 is absorbed by θ4, only the stiffness k is identifiable).
+Compensation: d̂_eff(x_d) = −k_V (x_d − x_0) [V].
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from motorctl.effects.base import EffectFamily, PlantTerm, Signals
+from motorctl.effects.periodic import SHAPE_POINTS
+from motorctl.schema import StrictModel
+
+
+class Spring(StrictModel):
+    """Simulated spring, ``axes.NAME.driver.effects.spring``: −k (x − x_0) [N].
+    stiffness_N_per_m: k [N/m]. rest_position_m: x_0 [m]."""
+
+    stiffness_N_per_m: float
+    rest_position_m: float = 0.0
+
+
+class SpringComp(StrictModel):
+    """Spring compensation, ``axes.NAME.controller.compensation.spring``: −k (x − x_0) [V].
+    stiffness_V_per_m: k (force / A1) [V/m]. rest_position_m: x_0 [m]."""
+
+    stiffness_V_per_m: float
+    rest_position_m: float = 0.0
+
+
+class SpringFamily(EffectFamily):
+    name = "spring"
+    plant_force = "−k (x − x_0)"
+    sim_options = Spring
+    example: ClassVar[dict] = {"spring": {"stiffness_N_per_m": 100.0, "rest_position_m": 0.1}}
+    comp_options = SpringComp
+    compensation_rank = 2
+
+    # simulator
+    def plant_term(self, o: Spring, period_s):
+        k, x0 = o.stiffness_N_per_m, o.rest_position_m
+
+        def force(f, x, v, t, sf):
+            return f - k * (x - x0)
+        return PlantTerm(force=force)
+
+    # identification
+    def columns(self, h, p):
+        """x, (N, 1); h unused."""
+        return p.x[:, None]
+
+    def parameters(self, h, beta, gain, fs):
+        g, unit = (gain, "N") if gain else (1.0, "V")
+        return {f"stiffness_{unit}_per_m": float(g * beta[0])}
+
+    # compensation
+    def compensation(self, h, beta):
+        return {"stiffness_V_per_m": float(beta[0]), "rest_position_m": 0.0}
+
+    def compensation_for(self, o: Spring, a1):
+        return {"stiffness_V_per_m": o.stiffness_N_per_m / a1, "rest_position_m": o.rest_position_m}
+
+    def compensator(self, o: SpringComp):
+        k, x0 = o.stiffness_V_per_m, o.rest_position_m
+
+        def add(d, x, v, t, sf):
+            return d - k * (x - x0)
+        return add
+
+    # report
+    def shape(self, ctx, h, beta, gain):
+        pr = ctx.p
+        xs = np.linspace(pr.x_d.min(), pr.x_d.max(), SHAPE_POINTS)
+        zero = np.zeros_like(xs)
+        y = -(gain or 1.0) * (self.columns(h, Signals(xs, zero, zero, zero, zero)) @ beta)
+        return xs, y, "position [m]", "effect force [UNIT]"
+
+
+FAMILY = SpringFamily()

@@ -1,0 +1,116 @@
+"""Stribeck friction: extra friction at low speed (the friction hump before full lubrication).
+
+Physical model (Stribeck curve with the paper's smooth sign S_f(ẋ) = (2/π) atan(900 ẋ)):
+
+    F_eff(ẋ) = −F_s exp(−(ẋ/v_s)²) S_f(ẋ)                                          [N]
+
+Identification: column exp(−(ẋ/v_s)²) S_f(ẋ), v_s searched on a log grid from 2 mm/s to half
+the peak speed, then refined. Compensation: d̂_eff(ẋ_d) = −F_V exp(−(ẋ_d/v_s)²) S_f(ẋ_d) [V].
+"""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import numpy as np
+
+from motorctl.effects.base import EffectFamily, PlantTerm, Signals
+from motorctl.effects.periodic import SHAPE_POINTS
+from motorctl.model import s_f
+from motorctl.schema import NonNeg, Pos, StrictModel
+
+
+class Stribeck(StrictModel):
+    """Simulated Stribeck friction, ``axes.NAME.driver.effects.stribeck``:
+    −F_s exp(−(ẋ/v_s)²) S_f(ẋ) [N]. force_N: F_s [N] (≥ 0). velocity_m_per_s: v_s [m/s]."""
+
+    force_N: NonNeg
+    velocity_m_per_s: Pos
+
+
+class StribeckComp(StrictModel):
+    """Stribeck compensation, ``axes.NAME.controller.compensation.stribeck``:
+    −F exp(−(ẋ/v_s)²) S_f(ẋ) [V]. force_V: F (force / A1) [V]. velocity_m_per_s: v_s [m/s]."""
+
+    force_V: float
+    velocity_m_per_s: Pos
+
+
+def velocity_grid(ctx) -> np.ndarray:
+    """Velocities [m/s] over ± the record's peak decimated speed (SHAPE_POINTS,), for the report."""
+    vmax = float(np.max(np.abs(ctx.p.v_d)))
+    return np.linspace(-vmax, vmax, SHAPE_POINTS)
+
+
+class StribeckFamily(EffectFamily):
+    name = "stribeck"
+    plant_force = "−F_s exp(−(ẋ/v_s)²) S_f(ẋ)"
+    searched = "Stribeck velocity v_s [m/s]"
+    sim_options = Stribeck
+    example: ClassVar[dict] = {"stribeck": {"force_N": 20.0, "velocity_m_per_s": 0.05}}
+    comp_options = StribeckComp
+    comp_needs_sf = True
+    compensation_rank = 4
+
+    # simulator
+    def plant_term(self, o: Stribeck, period_s):
+        fs, vs = o.force_N, o.velocity_m_per_s
+        exp = math.exp
+
+        def force(f, x, v, t, sf):
+            z = v / vs
+            return f - fs * exp(-z * z) * sf
+        return PlantTerm(force=force)
+
+    # identification
+    def columns(self, h, p):
+        """exp(−(ẋ/h)²) S_f(ẋ), (N, 1); h: Stribeck velocity v_s [m/s]."""
+        v = p.v
+        return (np.exp(-(v / h) ** 2) * s_f(v))[:, None]
+
+    def search(self, ctx, base, residual):
+        p = ctx.p
+        grid = np.exp(np.linspace(math.log(2e-3), math.log(max(0.5 * np.max(np.abs(p.v)), 3e-3)), 24))
+        term, sses = ctx.best_over(self.name, grid, base)
+        i = int(np.argmin(sses))
+        if i in (0, len(grid) - 1):
+            return term, f"Stribeck velocity {term.h:.3g} m/s at the edge of the searched range"
+        fine = np.exp(np.linspace(math.log(grid[i - 1]), math.log(grid[i + 1]), 9))
+        term, _ = ctx.best_over(self.name, fine, base)
+        return term, None
+
+    def plausible(self, ctx, term, beta, theta, base):
+        if beta[0] <= 0:
+            return ["Stribeck force must be positive (extra friction at low speed)"]
+        return []
+
+    def parameters(self, h, beta, gain, fs):
+        g, unit = (gain, "N") if gain else (1.0, "V")
+        return {"stribeck_velocity_m_per_s": float(h), f"force_{unit}": float(g * beta[0])}
+
+    # compensation
+    def compensation(self, h, beta):
+        return {"force_V": float(beta[0]), "velocity_m_per_s": float(h)}
+
+    def compensation_for(self, o: Stribeck, a1):
+        return {"force_V": o.force_N / a1, "velocity_m_per_s": o.velocity_m_per_s}
+
+    def compensator(self, o: StribeckComp):
+        fv, vs = o.force_V, o.velocity_m_per_s
+        exp = math.exp
+
+        def add(d, x, v, t, sf):
+            z = v / vs
+            return d - fv * exp(-z * z) * sf
+        return add
+
+    # report
+    def shape(self, ctx, h, beta, gain):
+        vs = velocity_grid(ctx)
+        zero = np.zeros_like(vs)
+        y = -(gain or 1.0) * (self.columns(h, Signals(zero, vs, zero, zero, zero)) @ beta)
+        return vs, y, "velocity [m/s]", "effect force [UNIT]"
+
+
+FAMILY = StribeckFamily()
