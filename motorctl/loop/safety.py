@@ -33,6 +33,7 @@ FAULT_AMP_FAULT = 16
 FAULT_ENCODER_JUMP = 32
 FAULT_OVERRUN = 64
 FAULT_SHUTDOWN = 128
+FAULT_RECORDER = 256
 
 FAULT_NAMES = {
     FAULT_FOLLOWING_ERROR: "following error",
@@ -43,12 +44,18 @@ FAULT_NAMES = {
     FAULT_ENCODER_JUMP: "encoder jump",
     FAULT_OVERRUN: "overrun",
     FAULT_SHUTDOWN: "shutdown",
+    FAULT_RECORDER: "recorder",
 }
 
 
 def describe_faults(bits: int) -> str:
     """Human-readable list of the fault bits, e.g. 'following error, soft limit'."""
     return ", ".join(name for bit, name in FAULT_NAMES.items() if bits & bit) or "none"
+
+
+#: how far an axis being recovered (jogged back inside its soft limits) may move outwards
+#: from the farthest-in position it reached before the soft limit trips again [m]
+RECOVERY_MARGIN_M = 0.0005
 
 
 class Supervisor:
@@ -74,6 +81,10 @@ class Supervisor:
         self.io_errors = [0] * n          # total failed exchanges (counted, even below the limit)
         self._soft_lo = [lim.soft_min_m for lim in limits]
         self._soft_hi = [lim.soft_max_m for lim in limits]
+        # the window the position is checked against: the soft limits, widened to where the
+        # axis stands during a recovery (begin_recovery) and narrowing as it comes back in
+        self._lo = list(self._soft_lo)
+        self._hi = list(self._soft_hi)
         self._fe = [lim.following_error_m for lim in limits]
         self._fe_min = [lim.min_following_error_m for lim in limits]
         self._vmax = [lim.max_velocity_m_per_s for lim in limits]
@@ -112,10 +123,16 @@ class Supervisor:
         if last == last and abs(y - last) > allowed:
             self._trip(i, FAULT_ENCODER_JUMP, y - last, allowed)
         self.y_last[i] = y
-        if y < self._soft_lo[i]:
-            self._trip(i, FAULT_SOFT_LIMIT, y, self._soft_lo[i])
-        elif y > self._soft_hi[i]:
-            self._trip(i, FAULT_SOFT_LIMIT, y, self._soft_hi[i])
+        lo, hi = self._lo[i], self._hi[i]
+        if y < lo:
+            self._trip(i, FAULT_SOFT_LIMIT, y, lo)
+        elif y > hi:
+            self._trip(i, FAULT_SOFT_LIMIT, y, hi)
+        elif lo != self._soft_lo[i] or hi != self._soft_hi[i]:
+            # recovering: the window follows the axis in, never out (RECOVERY_MARGIN_M slack)
+            m = RECOVERY_MARGIN_M
+            self._lo[i] = max(lo, min(y - m, self._soft_lo[i]))
+            self._hi[i] = min(hi, max(y + m, self._soft_hi[i]))
         return self.fault[i] == 0
 
     def check_output(self, i: int, e: float, xd_dot: float, u: float) -> bool:
@@ -159,10 +176,36 @@ class Supervisor:
                            f"[{self._soft_lo[i]}, {self._soft_hi[i]}] m")
         if amp_fault:
             return False, "the amplifier still reports a fault"
+        self._clear(i, y)
+        self._lo[i], self._hi[i] = self._soft_lo[i], self._soft_hi[i]
+        return True, ""
+
+    def _clear(self, i: int, y: float) -> None:
         self.fault[i] = 0
         self.bucket[i] = 0
         self.y_last[i] = y
         self.fe_peak[i] = 0.0
+
+    def begin_recovery(self, i: int, y: float, target: float, amp_fault: bool) -> tuple[bool, str]:
+        """Let axis i be moved back inside its soft limits (a jog to ``target`` [m], outside
+        the cycle). Allowed when the soft limit is the only latched fault, the position y [m]
+        is finite, the target lies inside the limits and the amplifier is healthy. The latch is
+        cleared and the position window widened to where the axis stands (plus
+        RECOVERY_MARGIN_M); it narrows as the axis comes in, so moving further out trips the
+        soft limit again. Returns (allowed, why_not)."""
+        if not (y - y == 0.0):
+            return False, "position reading is not finite"
+        other = self.fault[i] & ~FAULT_SOFT_LIMIT
+        if other:
+            return False, f"other faults are latched ({describe_faults(other)}); reset them first"
+        lo, hi = self._soft_lo[i], self._soft_hi[i]
+        if not lo <= target <= hi:
+            return False, f"target {target:.6f} m is outside the soft limits [{lo}, {hi}] m"
+        if amp_fault:
+            return False, "the amplifier still reports a fault"
+        self._clear(i, y)
+        m = RECOVERY_MARGIN_M
+        self._lo[i], self._hi[i] = min(lo, y - m), max(hi, y + m)
         return True, ""
 
 

@@ -34,6 +34,8 @@ follows its program at t = k·Ts from the first cycle)::
     HOLD      after a stop request the program runs to its next rest point (so the ramp to
               rest is the program's own jerk-limited profile), holds there stop_settle cycles,
               then 0 V, amplifier off, IDLE
+    JOG       a jerk-limited Move to a target at reduced speed (operator's jog, e.g. back
+              inside the soft limits), then HOLD
 
 Commands (:meth:`start_axis`, :meth:`stop_axis`, :meth:`switch_axis`, :meth:`fault_reset`)
 are called between cycles (in the ``on_slack`` hook), never inside one; a switch swaps to a
@@ -58,8 +60,9 @@ from motorctl.loop.timebase import Timebase
 #: bumpless switch: the output step between two controllers fades out over this time [s]
 SWITCH_BLEND_S = 0.01
 
-IDLE, APPROACH, PROGRAM, HOLD = 0, 1, 2, 3
-MODE_NAMES = {IDLE: "disabled", APPROACH: "approach", PROGRAM: "tracking", HOLD: "stopping"}
+IDLE, APPROACH, PROGRAM, HOLD, JOG = 0, 1, 2, 3, 4
+MODE_NAMES = {IDLE: "disabled", APPROACH: "approach", PROGRAM: "tracking", HOLD: "stopping",
+              JOG: "jog"}
 
 
 class ServoLoop:
@@ -287,6 +290,14 @@ class ServoLoop:
                     if tl >= mv_.duration:
                         mode[i] = PROGRAM
                         kst[i] = k + 1
+                elif m == JOG:
+                    mv_ = appr[i]
+                    tl = (k - kst[i]) * ts
+                    xd, vd, ad = mv_.sample(mv_.t0 + tl)
+                    if tl >= mv_.duration:         # arrived: hold, then 0 V, amplifier off
+                        mode[i] = HOLD
+                        hold_x[i] = xd
+                        settle[i] = self.stop_settle
                 elif m == HOLD:
                     xd = hold_x[i]
                     vd = ad = 0.0
@@ -401,6 +412,26 @@ class ServoLoop:
         self.stop_req[i] = False
         self.ovr_left[i] = 0
         self.mode[i] = APPROACH
+        self.enabled[i] = True
+
+    def jog_axis(self, i: int, move, controller=None) -> None:
+        """Move axis i along the jerk-limited ``move`` (from where it stands), hold at its end
+        for the settle time, then 0 V and amplifier off (IDLE). Used to bring an axis back
+        inside its soft limits (:meth:`Supervisor.begin_recovery`) or to position it.
+        Raises RuntimeError if the axis is faulted or not idle."""
+        if self.supervisor.fault[i]:
+            raise RuntimeError(f"axis {self.axis_names[i]} is in fault: {self.supervisor.reason(i)}")
+        if self.mode[i] != IDLE:
+            raise RuntimeError(f"axis {self.axis_names[i]} is not disabled ({MODE_NAMES[self.mode[i]]})")
+        if controller is not None:
+            self.controllers[i] = controller
+        self.controllers[i].reset(float(self.driver.position_m[i]))
+        self._running[i] = True
+        self.approach[i] = move
+        self.k_start[i] = self.k
+        self.stop_req[i] = False
+        self.ovr_left[i] = 0
+        self.mode[i] = JOG
         self.enabled[i] = True
 
     def stop_axis(self, i: int) -> None:
