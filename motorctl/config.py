@@ -29,7 +29,8 @@ from pathlib import Path
 from typing import Annotated, Literal, get_args, get_origin
 
 import yaml
-from pydantic import BaseModel, Field, StringConstraints, ValidationError
+from pydantic import BaseModel, Field, StringConstraints, ValidationError, ValidationInfo, field_validator
+from pydantic_core import PydanticCustomError
 
 from motorctl.control import CONTROLLER_NAMES, configured_controllers, make_controller
 from motorctl.control.params import ControllerConfig
@@ -128,10 +129,17 @@ class DaemonConfig(StrictModel):
 
     socket: Unix-domain control socket path (mode 0660); group: its group (name or gid;
     None = the daemon's own group); log_dir: where run logs go; flush_s: longest time between
-    two fdatasync of the run log [s]; event_before_s / event_after_s: the window kept around
+    two fdatasync of the run log [s] (the loop latches every axis when the recorder stalls
+    for 2·flush_s + 1 s); event_before_s / event_after_s: the window kept around
     each fault or overrun in an event log [s]; max_event_logs: per run; stop_settle_s: how
     long an axis holds its final position before 0 V and amplifier off [s];
     allow_fault_injection: accept ``motorctl inject`` (simulated driver only).
+
+    Retention of ``log_dir`` (docs/daemon.md): log_segment_bytes: largest run-log segment
+    [bytes]; log_segment_s: a segment is closed at this age at the latest [s];
+    log_budget_bytes: most bytes of run logs and event logs kept in log_dir (at least two
+    segments) [bytes]; log_max_age_s: routine segments older than this are deleted [s]
+    (event logs go only when the budget needs it, after the routine segments).
     """
 
     socket: str = "/run/motorctl/motorctl.sock"
@@ -143,6 +151,20 @@ class DaemonConfig(StrictModel):
     max_event_logs: Annotated[int, Field(ge=0)] = 20
     stop_settle_s: Annotated[float, Field(ge=0, le=5.0)] = 0.1
     allow_fault_injection: bool = False
+    log_segment_bytes: Annotated[int, Field(ge=1 << 20, le=1 << 40)] = 512 << 20
+    log_segment_s: Annotated[float, Field(ge=1.0, le=7 * 86400.0)] = 3600.0
+    log_budget_bytes: Annotated[int, Field(ge=2 << 20, le=1 << 50)] = 16 << 30
+    log_max_age_s: Annotated[float, Field(ge=60.0, le=3650 * 86400.0)] = 30 * 86400.0
+
+    @field_validator("log_budget_bytes")
+    @classmethod
+    def _budget_holds_two_segments(cls, v: int, info: ValidationInfo) -> int:
+        seg = info.data.get("log_segment_bytes")
+        if seg is not None and v < 2 * seg:
+            raise PydanticCustomError(
+                "budget_too_small", "less than two segments; allowed: at least "
+                "2 x log_segment_bytes = {need}", {"need": 2 * seg})
+        return v
 
 
 class AxisConfig(StrictModel):

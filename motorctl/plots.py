@@ -11,9 +11,35 @@ from pathlib import Path
 
 import numpy as np
 
-from motorctl.recorder.runlog import read_log
+from motorctl.recorder.runlog import LogError, RunLog
+from motorctl.recorder.segments import read_run
 
 _MAX_POINTS = 20000
+#: the columns the figures of an axis need (besides t)
+_AXIS_NEEDS = ("x_d", "xd_dot", "xd_ddot", "u", "e") + tuple(f"theta_hat{i}" for i in range(1, 7))
+
+
+def _get(d, *keys, default=None):
+    """``d[k1][k2]...`` of a header, or ``default`` when a level is missing or not a mapping."""
+    for k in keys:
+        if not isinstance(d, dict) or k not in d:
+            return default
+        d = d[k]
+    return d
+
+
+def _read(log_path: str) -> RunLog:
+    """The run (a run log, or a daemon's segments as one run) with the columns the figures
+    need. Raises LogError (one line) when it has no records or lacks a column."""
+    log = read_run(log_path)
+    need = ["t"] + [f"{a}.{f}" for a in log.axes for f in _AXIS_NEEDS]
+    missing = [c for c in need if c not in log.columns]
+    if missing:
+        raise LogError(f"{log_path}: no column {missing[0]!r} for the figures "
+                       f"({len(missing)} missing)")
+    if log.data.shape[0] == 0:
+        raise LogError(f"{log_path}: the run log has no records")
+    return log
 
 
 def _thin(n: int) -> slice:
@@ -30,18 +56,15 @@ def plot_log(log_path: str, out_dir: str | None = None) -> list[str]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    log = read_log(log_path)
+    log = _read(log_path)
     out = Path(out_dir) if out_dir else Path(str(log_path).rsplit(".", 1)[0] + "_plots")
     out.mkdir(parents=True, exist_ok=True)
     t = log.col("t")
     sl = _thin(t.size)
-    truth = log.header.get("driver", {}).get("simulated", {})
-    ctrls = log.header.get("controllers", {})
-    cfg_axes = log.header.get("config", {}).get("axes", {})
     files = []
     for ax in log.axes:
         a = log.axis(ax)
-        kind = ctrls.get(ax, "?").upper()
+        kind = str(_get(log.header, "controllers", ax, default="?")).upper()
         tag = f"{ax} axis, {kind}"
 
         fig, axs = plt.subplots(3, 1, sharex=True, figsize=(8, 6))
@@ -65,7 +88,8 @@ def plot_log(log_path: str, out_dir: str | None = None) -> list[str]:
         axs[0].set_ylabel("e [um]")
         axs[0].set_title(f"Tracking error ({tag}): e_M = {np.max(np.abs(e_um)):.1f} um, "
                          f"L2[e] = {np.sqrt(np.mean(e_um ** 2)):.2f} um")
-        period = float(cfg_axes.get(ax, {}).get("trajectory", {}).get("period_s", 0.0) or 0.0)
+        period = _get(log.header, "config", "axes", ax, "trajectory", "period_s", default=0.0)
+        period = float(period) if isinstance(period, (int, float)) and np.isfinite(period) else 0.0
         if period <= 0 or t[-1] - t[0] < period:
             period = min(4.0, float(t[-1] - t[0]))
         win = t >= t[-1] - period
@@ -77,7 +101,10 @@ def plot_log(log_path: str, out_dir: str | None = None) -> list[str]:
 
         n = 6 if kind == "C2" else 4
         fig, axs = plt.subplots(n, 1, sharex=True, figsize=(8, 1.6 * n + 1))
-        th_true = truth.get(ax, {}).get("theta_true")
+        th_true = _get(log.header, "driver", "simulated", ax, "theta_true")
+        if not (isinstance(th_true, list) and len(th_true) >= n
+                and all(isinstance(x, (int, float)) for x in th_true[:n])):
+            th_true = None
         for i in range(n):
             axs[i].plot(t[sl], a[f"theta_hat{i + 1}"][sl], lw=0.8, label="estimate")
             if th_true is not None:
@@ -97,3 +124,41 @@ def _save(fig, path: Path) -> str:
     import matplotlib.pyplot as plt
     plt.close(fig)
     return str(path)
+
+
+def plot_compare_errors(t: np.ndarray, errors: dict, periods: dict, out_dir: str,
+                        title: str = "") -> list[str]:
+    """The tracking error of the last trajectory period of each controller, overlaid (like the
+    paper's Figs. 5 and 9), one PNG per axis: ``<out_dir>/<axis>_compare_error.png``.
+
+    Args:
+        t: time [s], shape (N,), shared by the runs (same config, same duration).
+        errors: {axis: {controller name: e [m], shape (N,)}}.
+        periods: {axis: trajectory period [s]} (≤ 0 or longer than the run: the last 4 s).
+        out_dir: created if missing. title: appended to each figure's title.
+    Returns: the paths written.
+    Raises: OSError: cannot write ``out_dir``.
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = []
+    for ax, per_ctrl in errors.items():
+        period = float(periods.get(ax, 0.0) or 0.0)
+        if period <= 0 or t[-1] - t[0] < period:
+            period = min(4.0, float(t[-1] - t[0]))
+        win = t >= t[-1] - period
+        fig, axp = plt.subplots(figsize=(8, 4))
+        for kind, e in per_ctrl.items():
+            e_um = np.asarray(e)[win] * 1e6
+            axp.plot(t[win], e_um, lw=0.8, label=f"{kind.upper()}: e_M {np.max(np.abs(e_um)):.1f} um, "
+                                                 f"L2 {np.sqrt(np.mean(e_um ** 2)):.2f} um")
+        axp.set_xlabel("t [s]")
+        axp.set_ylabel("e [um]")
+        axp.set_title(f"Tracking error over one period, {ax} axis{(', ' + title) if title else ''}")
+        axp.legend(loc="best", fontsize=8)
+        files.append(_save(fig, out / f"{ax}_compare_error.png"))
+    return files

@@ -1,11 +1,15 @@
 """The flight recorder: ring → drainer → run log, crash safety (kill -9), event windows,
-CSV/MAT export, and the simulated drive's command watchdog."""
+a failed write (ENOSPC) never losing or tearing a record, CSV/MAT export, run logs with a bad
+header or a non-file path refused in one line, and the simulated drive's command watchdog."""
 
 from __future__ import annotations
 
 import csv
+import errno
+import json
 import os
 import signal
+import struct
 import time
 
 import numpy as np
@@ -16,17 +20,22 @@ from motorctl.config import load_config
 from motorctl.loop.records import columns_for
 from motorctl.loop.timebase import Timebase
 from motorctl.recorder.export import mat_name
-from motorctl.recorder.flight import Drainer, SharedRing
-from motorctl.recorder.runlog import LogWriter, read_log
+from motorctl.recorder.flight import CTL_REC_FAULT, REC_DISK_FULL, REC_OK, Drainer, SharedRing
+from motorctl.recorder.runlog import MAGIC, LogError, read_log
+from motorctl.recorder.segments import SegmentWriter
 
 TS = 1.0 / 5000
+
+
+RUN = "motorctl-20240101T000000-1.mlog"
+SEG1 = "motorctl-20240101T000000-1.0001.mlog"
 
 
 def _ring_and_drainer(tmp_path, cap=1000, before=0.01, after=0.01, max_events=20):
     cols = columns_for(["X"])
     ring = SharedRing(cap, len(cols), 1)
     hdr = {"columns": cols, "axes": ["X"], "period_s": TS}
-    w = LogWriter(str(tmp_path / "run.mlog"), hdr)
+    w = SegmentWriter(str(tmp_path / RUN), hdr)
     dr = Drainer(ring, w, hdr, ["X"], Timebase(TS), flush_s=0.1, event_before_s=before, event_after_s=after,
                  max_events=max_events)
     return cols, ring, dr
@@ -52,7 +61,8 @@ def test_drainer_copies_every_row_in_order_and_cuts_an_event_window(tmp_path):
     dr.poll()
     dr.cut_events()
     dr.finish()
-    log = read_log(str(tmp_path / "run.mlog"))
+    dr.close()
+    log = read_log(str(tmp_path / SEG1))
     assert np.array_equal(log.col("t"), np.arange(1300) * TS)
     assert dr.lost_rows == 0
     assert len(dr.events) == 1 and dr.events[0]["cycle"] == 900
@@ -64,12 +74,53 @@ def test_drainer_copies_every_row_in_order_and_cuts_an_event_window(tmp_path):
 
 def test_drainer_counts_rows_it_fell_behind_on_instead_of_reading_them_torn(tmp_path):
     cols, ring, dr = _ring_and_drainer(tmp_path)
-    _publish(ring, cols, 0, 2500)                      # 2.5 rings without a drain
+    _publish(ring, cols, 0, 700)
+    dr.poll()
+    _publish(ring, cols, 700, 2500)                    # 2.5 rings without a drain
     dr.poll()
     assert dr.lost_rows == 1500
     dr.finish()
-    t = read_log(str(tmp_path / "run.mlog")).col("t")
-    assert np.array_equal(t, np.arange(1500, 2500) * TS)
+    dr.close()
+    # the gap starts a new segment: each segment's rows are its cycles without a gap
+    assert np.array_equal(read_log(str(tmp_path / SEG1)).col("t"), np.arange(700) * TS)
+    seg2 = read_log(str(tmp_path / SEG1.replace("0001", "0002")))
+    assert seg2.header["segment"]["first_cycle"] == 2200
+    assert np.array_equal(seg2.col("t"), np.arange(2200, 3200) * TS)
+
+
+def test_a_failed_write_keeps_the_rows_and_leaves_no_partial_record(tmp_path, monkeypatch):
+    """ENOSPC in the middle of a write: the file is cut back to its last whole record, the
+    drainer sets the recorder fault in the ring's control words (never raises), keeps the
+    rows in the ring and writes them once the disk has room again: nothing lost, nothing torn."""
+    cols, ring, dr = _ring_and_drainer(tmp_path)
+    _publish(ring, cols, 0, 100)
+    dr.poll()
+    real_write = os.write
+    full = {"on": True}
+    fd = dr.writer.cur._fd
+
+    def write(f, data):
+        if f == fd and full["on"]:
+            real_write(f, bytes(data)[:100])     # a partial record reaches the file, then:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_write(f, data)
+    monkeypatch.setattr(os, "write", write)
+    _publish(ring, cols, 100, 300)
+    assert dr.poll() == 0
+    assert dr.fault == REC_DISK_FULL and ring.ctl[CTL_REC_FAULT] == REC_DISK_FULL
+    assert "log disk full" in dr.error
+    assert os.path.getsize(tmp_path / SEG1) == dr.writer.cur.size, "cut back to whole records"
+    assert read_log(str(tmp_path / SEG1)).data.shape[0] == 100
+    full["on"] = False
+    _publish(ring, cols, 400, 200)
+    dr._retry_at = 0.0                            # (the retry interval has passed)
+    assert dr.poll() == 500
+    assert dr.fault == REC_OK and ring.ctl[CTL_REC_FAULT] == REC_OK and dr.lost_rows == 0
+    dr.finish()
+    dr.close()
+    log = read_log(str(tmp_path / SEG1))
+    assert log.truncated_bytes == 0
+    assert np.array_equal(log.col("t"), np.arange(600) * TS)
 
 
 def test_export_csv_and_mat(tmp_path):
@@ -77,18 +128,22 @@ def test_export_csv_and_mat(tmp_path):
     cols, ring, dr = _ring_and_drainer(tmp_path)
     _publish(ring, cols, 0, 300)
     dr.finish()
-    log = read_log(str(tmp_path / "run.mlog"))
-    r = ctl(None, "export", tmp_path / "run.mlog", "--csv", tmp_path / "run.csv")
+    dr.close()
+    log = read_log(str(tmp_path / SEG1))
+    r = ctl(None, "export", tmp_path / RUN, "--csv", tmp_path / "run.csv")
     assert r.returncode == 0, r.stderr
     with open(tmp_path / "run.csv") as fh:
         rows = list(csv.reader(fh))
     assert rows[0] == cols and len(rows) == 301
     assert float(rows[5][0]) == pytest.approx(4 * TS)
-    r = ctl(None, "export", tmp_path / "run.mlog", "--mat", tmp_path / "run.mat")
+    r = ctl(None, "export", tmp_path / SEG1, "--mat", tmp_path / "run.mat")
     assert r.returncode == 0, r.stderr
     m = loadmat(str(tmp_path / "run.mat"))
     assert m["data"].shape == (300, len(cols))
+    assert np.array_equal(m["data"], log.data), "column-major layout of the streamed matrix"
     assert np.array_equal(m[mat_name("X.enabled")].ravel(), log.col("X.enabled"))
+    assert [str(c[0]) for c in m["columns"].ravel()] == cols
+    assert m["period_s"].item() == TS
     r = ctl(None, "export", tmp_path / "nope.mlog", "--csv", tmp_path / "x.csv")
     assert r.returncode == 2 and r.stderr.count("\n") == 1
 
@@ -217,3 +272,68 @@ def test_stalled_loop_sim_drive_watchdog_drops_to_zero_volts(tmp_path):
     assert late[gap] > 1.8 * watchdog_s * 1e9
     assert log.col("X.enabled")[gap - 1] == 1.0
     assert fb[gap] != 0 and log.col("X.u")[gap] == 0.0 and log.col("X.enabled")[gap] == 0.0
+
+
+def _raw_log(path, header, rows=b""):
+    """A file in the run-log layout with any JSON header (valid or not)."""
+    blob = json.dumps(header).encode()
+    blob += b" " * ((-(len(MAGIC) + 8 + len(blob))) % 8)
+    path.write_bytes(MAGIC + struct.pack("<Q", len(blob)) + blob + rows)
+    return path
+
+
+BAD_HEADERS = [
+    (["t", "X.y"], "not an object"),
+    ({"columns": ["t", "X.y"], "axes": 5}, "'axes' is not a list of names"),
+    ({"columns": ["t", "X.y"], "axes": "X"}, "'axes' is not a list of names"),
+    ({"columns": ["t", "X.y"], "axes": [1]}, "'axes' is not a list of names"),
+    ({"columns": [1, 2]}, "'columns' is not a non-empty list of names"),
+    ({"columns": "t"}, "'columns' is not a non-empty list of names"),
+    ({"axes": ["X"]}, "'columns' is not a non-empty list of names"),
+    ({"columns": ["t", "t"]}, "column 't' appears twice"),
+    ({"columns": ["t"], "period_s": "fast"}, "'period_s' is not a positive number"),
+    ("just a string", "not an object"),
+]
+
+
+@pytest.mark.parametrize("header,why", BAD_HEADERS, ids=[w for _, w in BAD_HEADERS])
+def test_a_bad_header_is_one_line_in_read_log_export_and_plot(tmp_path, header, why):
+    bad = _raw_log(tmp_path / "bad.mlog", header, np.zeros(4).tobytes())
+    with pytest.raises(LogError) as ei:
+        read_log(str(bad))
+    msg = str(ei.value)
+    assert msg.startswith(f"{bad}: ") and why in msg and "\n" not in msg
+    for args in (["export", bad, "--csv", tmp_path / "o.csv"], ["export", bad, "--mat", tmp_path / "o.mat"],
+                 ["plot", bad, "--out", tmp_path / "fig"]):
+        r = ctl(None, *args)
+        assert r.returncode == 2, (args, r.stderr)
+        assert r.stderr.count("\n") == 1 and why in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_a_header_whose_axes_lack_columns_is_refused_by_plot_in_one_line(tmp_path):
+    bad = _raw_log(tmp_path / "ax.mlog", {"columns": ["t"], "axes": ["X"], "period_s": TS},
+                   np.arange(4.0).tobytes())
+    r = ctl(None, "plot", bad, "--out", tmp_path / "fig")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "no column 'X.x_d'" in r.stderr, r.stderr
+    r = ctl(None, "export", bad, "--csv", tmp_path / "o.csv")     # export needs no axis columns
+    assert r.returncode == 0 and "4 rows x 1 columns" in r.stdout, r.stderr
+
+
+@pytest.mark.parametrize("kind", ["fifo", "directory", "device"])
+def test_a_log_path_that_is_not_a_regular_file_is_one_line(tmp_path, kind):
+    if kind == "fifo":
+        p = tmp_path / "pipe.mlog"
+        os.mkfifo(p)                     # reading it would block forever
+        word = "FIFO"
+    elif kind == "directory":
+        p = tmp_path / "dir.mlog"
+        p.mkdir()
+        word = "directory"
+    else:
+        p = "/dev/zero"                  # reading it would never end
+        word = "device"
+    with pytest.raises(LogError, match=word):
+        read_log(str(p))
+    for args in (["export", p, "--csv", tmp_path / "o.csv"], ["plot", p, "--out", tmp_path / "fig"]):
+        r = ctl(None, *args)
+        assert r.returncode == 2 and r.stderr.count("\n") == 1 and word in r.stderr, r.stderr

@@ -159,6 +159,26 @@ def cmd_fault_reset(args) -> int:
     return 0
 
 
+def cmd_jog(args) -> int:
+    ans = _checked(args, {"cmd": "jog", "axis": args.axis, "to_m": args.to_m, "speed": args.speed})
+    sys.stdout.write(f"{args.axis}: jogging {ans.get('from_m', float('nan')):.6f} -> {args.to_m:.6f} m "
+                     f"in {ans.get('move_s', 0.0):.3f} s"
+                     + (" (recovering from outside the soft limits)" if ans.get("recovery") else "")
+                     + "\n")
+    bound = float(ans.get("move_s", 0.0)) + float(ans.get("bound_s", 1.0)) + 1.0
+    t0 = time.monotonic()
+    while time.monotonic() < t0 + bound:
+        st = _checked(args, {"cmd": "status", "axis": args.axis})["status"]["axes"][args.axis]
+        if st["state"] != "enabled":
+            if st["state"] == "fault":
+                sys.stdout.write(f"{args.axis}: fault during the jog: {st['fault']}\n")
+                return 1
+            sys.stdout.write(f"{args.axis}: at {st['y_m']:.6f} m, 0 V, amplifier off\n")
+            return 0
+        time.sleep(0.02)
+    raise DaemonUnreachable(f"axis {args.axis} did not finish the jog within {bound:.2f} s")
+
+
 def cmd_inject(args) -> int:
     ans = _checked(args, {"cmd": "inject", "axis": args.axis, "kind": args.kind,
                           "cycles": args.cycles, "jump_m": args.jump_m, "force_N": args.force_n})
@@ -208,19 +228,32 @@ def cmd_status(args) -> int:
 
 
 def cmd_export(args) -> int:
-    from motorctl.inputs import writable_file
+    """A run log, or a daemon's run (its name or any segment: every kept segment in order),
+    to CSV or .mat, streamed chunk by chunk (memory bounded whatever the log length)."""
+    from motorctl.inputs import InputError, writable_file
     from motorctl.recorder.export import export_csv, export_mat
-    from motorctl.recorder.runlog import read_log
-    writable_file(args.csv or args.mat, "export")   # before the log is read
-    log = read_log(args.log)
+    from motorctl.recorder.segments import open_run
+    out = args.csv or args.mat
+    writable_file(out, "export")                    # before the log is read
+    run = open_run(args.log)
+    notes = []
     if args.csv:
-        n = export_csv(log, args.csv)
-        out = args.csv
+        n = export_csv(run, out)
     else:
-        n = export_mat(log, args.mat)
-        out = args.mat
-    extra = f" (a partial last record of {log.truncated_bytes} bytes dropped)" if log.truncated_bytes else ""
-    sys.stdout.write(f"{out}: {n} rows x {len(log.columns)} columns{extra}\n")
+        try:
+            n, notes = export_mat(run, out)
+        except ValueError as exc:
+            raise InputError(f"{args.log}: {exc}") from None
+    if len(run.segments) > 1:
+        notes.append(f"{len(run.segments)} segments")
+    gaps = run.gaps
+    if gaps:
+        notes.append(f"{sum(g for _, g in gaps)} rows missing between segments (first at cycle "
+                     f"{gaps[0][0]})")
+    if run.truncated_bytes:
+        notes.append(f"a partial last record of {run.truncated_bytes} bytes dropped")
+    extra = f" ({'; '.join(notes)})" if notes else ""
+    sys.stdout.write(f"{out}: {n} rows x {len(run.columns)} columns{extra}\n")
     return 0
 
 
@@ -262,6 +295,13 @@ def register(parser: argparse.ArgumentParser, sub) -> None:
     p.add_argument("axis")
     p.add_argument("--controller", choices=CONTROLLER_NAMES, required=True)
 
+    p = client("jog", "move a disabled axis to a position at reduced speed, then 0 V (also back "
+                      "inside its soft limits after a soft-limit fault)", cmd_jog)
+    p.add_argument("axis")
+    p.add_argument("to_m", type=float, metavar="TO_M", help="target position [m], inside the soft limits")
+    p.add_argument("--speed", type=float, default=0.1,
+                   help="fraction of the axis's v_max and a_max (default 0.1, at most 0.5)")
+
     p = client("inject", "inject a fault into the simulated driver (daemon.allow_fault_injection)", cmd_inject)
     p.add_argument("axis")
     p.add_argument("kind", choices=("read_error", "nan", "amp_fault", "encoder_jump", "push"))
@@ -269,8 +309,10 @@ def register(parser: argparse.ArgumentParser, sub) -> None:
     p.add_argument("--jump-m", type=float, default=0.0)
     p.add_argument("--force-n", type=float, default=0.0)
 
-    e = sub.add_parser("export", help="convert a run log to CSV or MATLAB .mat")
-    e.add_argument("log")
+    e = sub.add_parser("export", help="convert a run log (or a daemon's set of segments) to CSV or "
+                                      "MATLAB .mat, streamed")
+    e.add_argument("log", help="a run log, or a daemon run's name or any of its segments "
+                               "(every kept segment is read, in order)")
     g = e.add_mutually_exclusive_group(required=True)
     g.add_argument("--csv", metavar="OUT")
     g.add_argument("--mat", metavar="OUT")

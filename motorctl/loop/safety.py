@@ -186,6 +186,10 @@ class Supervisor:
         self.y_last[i] = y
         self.fe_peak[i] = 0.0
 
+    def inside(self, i: int, x: float) -> bool:
+        """True when position x [m] lies within axis i's soft limits."""
+        return self._soft_lo[i] <= x <= self._soft_hi[i]
+
     def begin_recovery(self, i: int, y: float, target: float, amp_fault: bool) -> tuple[bool, str]:
         """Let axis i be moved back inside its soft limits (a jog to ``target`` [m], outside
         the cycle). Allowed when the soft limit is the only latched fault, the position y [m]

@@ -1,21 +1,46 @@
-"""``motorctl export``: a run log as CSV or as a MATLAB .mat file."""
+"""``motorctl export``: a run (one run log, or a daemon's set of segments read as one run) as CSV
+or as a MATLAB .mat file, streamed: the records are read and written chunk by chunk, so memory
+stays bounded (a few tens of MB) whatever the length of the log.
+
+The input is a :class:`motorctl.recorder.segments.Run` (:func:`~motorctl.recorder.segments.
+open_run`), or anything with ``columns``, ``header``, ``axes``, ``n_rows`` and ``chunks(rows)``.
+"""
 
 from __future__ import annotations
 
 import csv
+import os
+import struct
 
 import numpy as np
 
-from motorctl.recorder.runlog import RunLog
+#: rows per chunk written to CSV (the csv module turns each chunk into Python floats)
+CSV_CHUNK_ROWS = 4096
+#: rows per chunk written to .mat
+MAT_CHUNK_ROWS = 65536
+#: largest variable of a MAT v5 file [bytes] (MATLAB's limit for -v6/-v7 files)
+MAT5_MAX_VAR_BYTES = (1 << 31) - 1
+
+# MAT v5 element types and the double class (MATLAB "MAT-File Format", 2023)
+_MI_INT8, _MI_INT32, _MI_UINT32, _MI_DOUBLE, _MI_MATRIX = 1, 5, 6, 9, 14
+_MX_DOUBLE_CLASS = 6
 
 
-def export_csv(log: RunLog, out: str) -> int:
-    """Write a run log as CSV (one header line with the column names). Returns rows written."""
+def export_csv(run, out: str, chunk_rows: int = CSV_CHUNK_ROWS) -> int:
+    """Write a run as CSV (one header line with the column names, then one line per record,
+    floats as Python writes them). Returns the rows written.
+
+    Raises:
+        LogError: the log changed while it was read. OSError: reading or writing failed.
+    """
+    n = 0
     with open(out, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(log.columns)
-        w.writerows(log.data.tolist())
-    return log.data.shape[0]
+        w.writerow(run.columns)
+        for chunk in run.chunks(chunk_rows):
+            w.writerows(chunk.tolist())
+            n += chunk.shape[0]
+    return n
 
 
 def mat_name(column: str) -> str:
@@ -24,19 +49,72 @@ def mat_name(column: str) -> str:
     return name if name[:1].isalpha() else "v_" + name
 
 
-def export_mat(log: RunLog, out: str) -> int:
-    """Write a run log as a MATLAB .mat file (scipy.io.savemat, format 5).
+def _pad8(n: int) -> int:
+    return (n + 7) & ~7
 
-    Variables: ``data`` (N, W), ``columns`` (cell array of names), ``period_s``, ``axes``, and
-    one (N, 1) column vector per column named by :func:`mat_name`. Returns rows written.
+
+def _double_matrix_head(name: str, rows: int, cols: int) -> bytes:
+    """The MAT v5 element of a real double matrix up to its data: miMATRIX tag, array flags,
+    dimensions, name, miDOUBLE tag (the rows·cols float64 in column-major order follow)."""
+    nm = name.encode("ascii")
+    nbytes = rows * cols * 8
+    body = (struct.pack("<II", _MI_UINT32, 8) + struct.pack("<II", _MX_DOUBLE_CLASS, 0)
+            + struct.pack("<II", _MI_INT32, 8) + struct.pack("<ii", rows, cols)
+            + struct.pack("<II", _MI_INT8, len(nm)) + nm + b"\0" * (_pad8(len(nm)) - len(nm))
+            + struct.pack("<II", _MI_DOUBLE, nbytes))
+    return struct.pack("<II", _MI_MATRIX, len(body) + nbytes) + body
+
+
+def export_mat(run, out: str, chunk_rows: int = MAT_CHUNK_ROWS) -> tuple[int, list[str]]:
+    """Write a run as a MATLAB .mat file (format 5, uncompressed), streamed.
+
+    Variables: ``columns`` (cell array of names), ``period_s``, ``axes`` (scipy.io.savemat),
+    then one (N, 1) column vector per column named by :func:`mat_name`, and ``data`` (N, W)
+    when it fits a MAT v5 variable (2 GB; else it is left out and a note says so). The
+    vectors are laid out first and filled chunk by chunk (one pass over the log).
+
+    Returns:
+        (rows written, notes). Raises: LogError, OSError; ValueError (a column is too long
+        for a MAT v5 variable: use CSV).
     """
     from scipy.io import savemat
-    d = {"data": log.data, "columns": np.array(log.columns, dtype=object),
-         "period_s": float(log.header.get("period_s", 0.0)),
-         "axes": np.array(log.axes, dtype=object)}
-    for j, c in enumerate(log.columns):
-        d[mat_name(c)] = log.data[:, j:j + 1]
-    savemat(out, d, do_compression=False, oned_as="column")
-    return log.data.shape[0]
-
-
+    n, cols = int(run.n_rows), list(run.columns)
+    w = len(cols)
+    notes = []
+    if n * 8 > MAT5_MAX_VAR_BYTES:
+        raise ValueError(f"{n} records are too many for a .mat (v5) file: a column would "
+                         f"exceed 2 GB; export to CSV instead")
+    big = [(mat_name(c), 1) for c in cols]
+    with_data = n * w * 8 <= MAT5_MAX_VAR_BYTES
+    if with_data:
+        big.append(("data", w))
+    else:
+        notes.append(f"the (N, W) 'data' matrix ({n * w * 8 / 1e9:.2f} GB) is over the MAT v5 "
+                     f"limit of 2 GB and is left out; every column is in its own variable")
+    period = run.header.get("period_s", 0.0) or 0.0
+    with open(out, "wb") as fh:
+        savemat(fh, {"columns": np.array(cols, dtype=object), "period_s": float(period),
+                     "axes": np.array(run.axes, dtype=object)},
+                do_compression=False, oned_as="column")
+        fh.flush()
+        fd = fh.fileno()
+        pos = fh.tell()
+        data_at = []                         # file offset of each variable's data
+        for name, width in big:
+            head = _double_matrix_head(name, n, width)
+            os.pwrite(fd, head, pos)
+            data_at.append(pos + len(head))
+            pos += len(head) + n * width * 8
+        os.ftruncate(fd, pos)
+        i0 = 0
+        for chunk in run.chunks(chunk_rows):
+            k = chunk.shape[0]
+            if i0 + k > n:
+                break
+            for j in range(w):
+                col = np.ascontiguousarray(chunk[:, j], dtype="<f8").tobytes()
+                os.pwrite(fd, col, data_at[j] + 8 * i0)
+                if with_data:                # column-major: column j holds rows 0..N-1
+                    os.pwrite(fd, col, data_at[w] + 8 * (j * n + i0))
+            i0 += k
+    return i0, notes

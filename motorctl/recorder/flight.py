@@ -11,11 +11,19 @@ Who does what:
     ``ctl[CTL_HEARTBEAT]`` (:meth:`SharedRing.publish`, the heartbeat; LinuxCNC's
     ``threadbeat``). Nothing else: no syscall, no allocation;
   * the I/O process (SCHED_OTHER) runs a :class:`Drainer` that copies the new rows out of the
-    ring, appends them to the run log (``os.write``), and ``fdatasync``\\ s at least every
-    ``flush_s``. A crash (``kill -9``) of either process loses at most the rows after the
-    last flush; ``read_log`` drops a partial last record. If the drainer falls more than a
-    ring behind, the overwritten rows are counted in :attr:`Drainer.lost_rows`, never read
-    torn (the heartbeat is re-read after the copy);
+    ring, appends them to the run log's segments (:class:`~motorctl.recorder.segments.
+    SegmentWriter`, ``os.write``), and ``fdatasync``\\ s at least every ``flush_s``. A crash
+    (``kill -9``) of either process loses at most the rows after the last flush; ``read_log``
+    drops a partial last record. If the drainer falls more than a ring behind, the
+    overwritten rows are counted in :attr:`Drainer.lost_rows`, never read torn (the heartbeat
+    is re-read after the copy);
+  * a write that fails (a full disk: ENOSPC; any OSError) never ends the I/O process: the
+    drainer sets a recorder fault code in ``ctl[CTL_REC_FAULT]`` (the loop side latches every
+    axis with FAULT_RECORDER between cycles), keeps the rows it could not write in the ring
+    and retries every :data:`RETRY_S`; rows the ring overwrote meanwhile count as lost;
+  * the I/O process bumps ``ctl[CTL_REC_BEAT]`` at every wake; the loop side watches it
+    between cycles and latches every axis when it stops for longer than the stall bound
+    (``2·flush_s + 1 s``, :func:`stall_bound_s`);
   * around each fault (a fault bit appearing on an axis) or overrun (the overrun counter
     increasing), the drainer also writes an event log holding ``event_before_s`` before and
     ``event_after_s`` after it (the hm2 TRACER idea, LinuxCNC#4236), in the run-log format.
@@ -27,7 +35,9 @@ argument holds on weakly ordered CPUs too, not only on x86-64's total store orde
 
 from __future__ import annotations
 
+import errno
 import mmap
+import os
 import time
 
 import numpy as np
@@ -38,7 +48,18 @@ from motorctl.recorder.runlog import LogWriter
 CTL_HEARTBEAT = 0     # cycles executed and published (rows below are complete)
 CTL_CMD_SEQ = 1       # bumped by the I/O process after it queued a command for the loop
 CTL_STATE = 2         # loop state: 0 starting, 1 running, 2 stopping, 3 ended
+CTL_REC_FAULT = 3     # I/O process: REC_OK, or why its drainer cannot write the log
+CTL_REC_BEAT = 4      # I/O process: bumped at every wake (the loop side watches it)
+CTL_SEGMENT = 5       # I/O process: the run-log segment being written (1, 2, ...)
+CTL_REC_LATCHED = 6   # loop side: the REC_* code it latched the axes with (0: none)
 CTL_SIZE = 16
+
+#: recorder fault codes (``ctl[CTL_REC_FAULT]``, ``ctl[CTL_REC_LATCHED]``) and their reasons
+REC_OK, REC_DISK_FULL, REC_WRITE_ERROR, REC_STALLED, REC_DIED = 0, 1, 2, 3, 4
+REC_REASONS = {REC_DISK_FULL: "log disk full", REC_WRITE_ERROR: "log write error",
+               REC_STALLED: "recorder stalled", REC_DIED: "recorder died"}
+#: after a failed write the drainer tries again this often [s]
+RETRY_S = 0.2
 
 #: at most one overrun event log per this time [s] (overruns come in floods when loaded)
 OVERRUN_EVENT_SPACING_S = 10.0
@@ -87,6 +108,13 @@ class SharedRing:
         if k == 0:
             return None
         return self.rows[(k - 1) % self.capacity].copy()
+
+
+def stall_bound_s(flush_s: float) -> float:
+    """Longest the I/O process may go without a wake before the loop latches every axis
+    with "recorder stalled" [s]: two flush intervals and a second (the documented bound on
+    motion that is not logged)."""
+    return 2.0 * float(flush_s) + 1.0
 
 
 def hist_percentiles(hist: np.ndarray, qs=(50.0, 99.0, 99.9)) -> list[float]:
@@ -140,15 +168,22 @@ class Drainer:
     """Copy new rows from a :class:`SharedRing` into a run log; flush; cut event logs.
 
     Args:
-        ring: the shared ring. writer: an open :class:`LogWriter` with the same columns.
+        ring: the shared ring. writer: an open
+        :class:`~motorctl.recorder.segments.SegmentWriter` with the same columns.
         header: the run log's header (copied into event logs). axis_names: loop order.
         timebase: the loop's :class:`~motorctl.loop.timebase.Timebase`. flush_s: longest
         time between fdatasync calls [s].
         event_before_s, event_after_s: window kept around each fault/overrun [s].
         max_events: event logs per run (later events are only counted).
+    Attributes:
+        drained: next cycle to account (statistics, events); written: next cycle to write
+        (behind ``drained`` while writes fail); lost_rows: published rows in no segment;
+        fault: REC_OK or the REC_* code of the last failed write/flush (also in
+        ``ring.ctl[CTL_REC_FAULT]``); error: its message; write_errors: failures so far.
+    None of the methods raises OSError: a failed write sets ``fault`` and is retried.
     """
 
-    def __init__(self, ring: SharedRing, writer: LogWriter, header: dict, axis_names, timebase,
+    def __init__(self, ring: SharedRing, writer, header: dict, axis_names, timebase,
                  flush_s: float = 0.5, event_before_s: float = 2.0, event_after_s: float = 1.0,
                  max_events: int = 20):
         self.ring, self.writer, self.header = ring, writer, header
@@ -165,12 +200,17 @@ class Drainer:
         self._c_phase = [cols.index(c) for c in ("read_ns", "control_ns", "write_ns")]
         self._c_fault = [cols.index(f"{a}.fault_bits") for a in self.axis_names]
         self._c_en = [cols.index(f"{a}.enabled") for a in self.axis_names]
-        self.drained = 0                 # next cycle index to copy
+        self.drained = 0                 # next cycle index to account
+        self.written = 0                 # next cycle index to write
         self.lost_rows = 0
         self.flushed_rows = 0
         self.last_flush = time.monotonic()
         self.flushes = 0
         self.max_flush_gap_s = 0.0
+        self.fault = REC_OK
+        self.error = ""
+        self.write_errors = 0
+        self._retry_at = 0.0
         self.loop_stats = _Stats()
         self.axis_stats = [_Stats() for _ in self.axis_names]
         self.phase_max_ns = [0.0, 0.0, 0.0]
@@ -184,6 +224,7 @@ class Drainer:
         self.fault_onsets: list[dict] = []   # every fault onset, for the once-only report
         self.overrun_spacing = timebase.cycles(OVERRUN_EVENT_SPACING_S)
         self._last_overrun_k = -(1 << 62)
+        ring.ctl[CTL_SEGMENT] = writer.index
 
     # ------------------------------------------------------------------ draining
     def _copy(self, start: int, stop: int) -> np.ndarray:
@@ -195,29 +236,67 @@ class Drainer:
             return self.ring.rows[a:b].copy()
         return np.concatenate([self.ring.rows[a:], self.ring.rows[:b]])
 
-    def poll(self) -> int:
-        """Drain the rows published since the last call; returns how many were appended."""
-        ring, cap = self.ring, self.ring.capacity
-        k = ring.published()
-        start = self.drained
-        if k <= start:
-            return 0
-        if k - start > cap:
-            self.lost_rows += k - cap - start
-            start = k - cap
-        rows = self._copy(start, k)
-        k2 = ring.published()
-        torn = k2 - cap - start      # rows the loop overwrote while we copied
+    def _take(self, start: int, stop: int) -> tuple[np.ndarray, int]:
+        """Rows [start, stop) still in the ring, never torn: (rows, cycle of rows[0])."""
+        cap = self.ring.capacity
+        start = max(start, stop - cap)
+        rows = self._copy(start, stop)
+        torn = self.ring.published() - cap - start      # overwritten while we copied
         if torn > 0:
-            self.lost_rows += torn
-            rows = rows[torn:]
-            start += torn
-        self.drained = k
+            rows, start = rows[torn:], start + torn
+        return rows, start
+
+    def poll(self) -> int:
+        """Account the rows published since the last call (statistics, events) and write
+        what the log still lacks; returns the rows written."""
+        k = self.ring.published()
+        fresh = None
+        if k > self.drained:
+            in_step = self.written == self.drained
+            rows, start = self._take(self.drained, k)
+            if rows.shape[0]:
+                self._account(rows, start)
+            self.drained = k
+            fresh = (rows, start) if in_step else None
+        return self._write(k, fresh)
+
+    def _write(self, k: int, fresh) -> int:
+        if self.written >= k:
+            return 0
+        now = time.monotonic()
+        if self.fault and now < self._retry_at:
+            return 0
+        rows, start = fresh if fresh is not None else self._take(self.written, k)
+        if start > self.written:            # overwritten before they were written
+            self.lost_rows += start - self.written
+            self.written = start
         if rows.shape[0] == 0:
             return 0
-        self.writer.append(rows)
-        self._account(rows, start)
+        try:
+            self.writer.append(rows, start)
+        except OSError as exc:
+            if start < self.writer.next_cycle <= k:      # the part written before the error
+                self.written = self.writer.next_cycle
+            self._failed(exc, now)
+            return 0
+        finally:
+            self.ring.ctl[CTL_SEGMENT] = self.writer.index
+        self.written = k
+        if self.fault:
+            self._recovered()
         return rows.shape[0]
+
+    def _failed(self, exc: OSError, now: float) -> None:
+        code = REC_DISK_FULL if exc.errno in (errno.ENOSPC, errno.EDQUOT) else REC_WRITE_ERROR
+        self.fault = code
+        self.error = f"{REC_REASONS[code]}: {exc.strerror or exc}"
+        self.write_errors += 1
+        self._retry_at = now + RETRY_S
+        self.ring.ctl[CTL_REC_FAULT] = code
+
+    def _recovered(self) -> None:
+        self.fault = REC_OK
+        self.ring.ctl[CTL_REC_FAULT] = REC_OK
 
     def _account(self, rows: np.ndarray, start: int) -> None:
         turn = rows[:, self._c_turn]
@@ -288,16 +367,24 @@ class Drainer:
             if self.ring.published() - cap > start:      # overwritten while copying
                 cut = self.ring.published() - cap - start
                 rows, start = rows[cut:], start + cut
-            base = self.writer.path[:-5] if self.writer.path.endswith(".mlog") else self.writer.path
+            run = self.writer.run_path
+            base = run[:-5] if run.endswith(".mlog") else run
             path = f"{base}.event{len(self.events) + 1:02d}-{p['kind']}.mlog"
             hdr = dict(self.header)
             hdr["event"] = {"kind": p["kind"], "value": p["value"], "also": p["also"],
                             "cycle": p["k"], "t_s": p["k"] * self.period_s,
                             "first_cycle": start, "rows": int(rows.shape[0])}
+            retention = self.writer.retention
+            if retention is not None:       # room for it within the budget first
+                retention.prune(extra_bytes=rows.nbytes + 65536)   # (+ its header)
             try:
                 with LogWriter(path, hdr) as w:
                     w.append(rows)
-            except OSError as exc:
+            except OSError as exc:         # (a full disk) no partial event log stays behind
+                try:
+                    os.unlink(path)
+                except OSError:
+                    pass
                 path = f"(not written: {exc.strerror})"
             self.pending.remove(p)
             self.events.append({"kind": p["kind"], "cycle": p["k"], "t_s": p["k"] * self.period_s,
@@ -306,11 +393,16 @@ class Drainer:
         return done
 
     def maybe_flush(self, force: bool = False) -> bool:
-        """fdatasync the run log when ``flush_s`` has passed since the last one (or force)."""
+        """fdatasync the run log when ``flush_s`` has passed since the last one (or force).
+        A failed fdatasync sets the fault (and is retried at the next call)."""
         now = time.monotonic()
         if not force and now - self.last_flush < self.flush_s:
             return False
-        self.writer.flush()
+        try:
+            self.writer.flush()
+        except OSError as exc:
+            self._failed(exc, now)
+            return False
         self.max_flush_gap_s = max(self.max_flush_gap_s, now - self.last_flush)
         self.last_flush = now
         self.flushed_rows = self.writer.rows_written
@@ -318,11 +410,23 @@ class Drainer:
         return True
 
     def finish(self) -> None:
-        """Drain everything published, cut pending event logs, flush and close the log."""
+        """Drain everything published (one last try even after a failed write; what still
+        cannot be written counts as lost) and cut the pending event logs. Then the caller
+        writes the end record and calls :meth:`close`."""
+        self._retry_at = 0.0
         self.poll()
+        if self.written < self.drained:
+            self.lost_rows += self.drained - self.written
+            self.written = self.drained
         self.cut_events(force=True)
+
+    def close(self) -> None:
+        """Flush and close the run log (a failure is kept in ``fault``/``error``)."""
         self.maybe_flush(force=True)
-        self.writer.close()
+        try:
+            self.writer.close()
+        except OSError as exc:
+            self._failed(exc, time.monotonic())
 
 
-__all__ = ["SharedRing", "Drainer", "hist_percentiles"]
+__all__ = ["SharedRing", "Drainer", "hist_percentiles", "stall_bound_s", "REC_REASONS"]

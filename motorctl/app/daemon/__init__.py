@@ -15,8 +15,13 @@ so a restart by systemd never re-enables an axis. SIGTERM/SIGINT: every driven a
 FAULT_SHUTDOWN and goes to 0 V with the amplifier off at the next cycle, a few more cycles are
 recorded, the I/O process drains, flushes and closes the log, then the daemon exits 0.
 ``kill -9`` of the loop process: the I/O process sees the reply pipe close, drains what the
-loop published and closes the log. If the I/O process dies, the loop faults every axis and
-exits non-zero (no motion without a recorder).
+loop published and closes the log. If the I/O process dies, the loop latches every axis with
+FAULT_RECORDER, ends, writes the end record into the run log itself, removes the socket and
+exits non-zero (no motion without a recorder). A recorder that cannot write (a full disk) or
+stalls latches every axis the same way while the daemon keeps serving ``status``.
+
+The run log is a numbered set of segments kept within ``daemon.log_budget_bytes`` and
+``log_max_age_s`` (:mod:`motorctl.recorder.segments`).
 """
 
 from __future__ import annotations
@@ -37,7 +42,7 @@ from motorctl.app.daemon.protocol import DaemonError, Mailbox, bind_control_sock
 from motorctl.app.daemon.status import ST_SIZE
 from motorctl.config import ConfigError, load_config
 from motorctl.recorder.flight import SharedRing
-from motorctl.recorder.runlog import LogWriter
+from motorctl.recorder.segments import Retention, SegmentWriter
 
 #: seconds of records the shared ring holds beyond the event window
 RING_SPARE_S = 3.0
@@ -54,7 +59,7 @@ class DaemonPlan:
     asm: Assembly
     ring: SharedRing
     socket_path: str
-    log_path: str
+    log_path: str          # the run's name (DIR/motorctl-STAMP-PID.mlog); segments .0001.mlog ...
     header: dict
     stop_bound_s: list
 
@@ -104,9 +109,15 @@ def run_daemon(config_path: str, socket_path: str | None = None, log_dir: str | 
         DaemonError: the socket or the log cannot be created (exit 1).
     """
     plan = plan_daemon(config_path, socket_path, log_dir)
-    lsock = bind_control_socket(plan.socket_path, plan.asm.loaded.cfg.daemon.group)
+    d = plan.asm.loaded.cfg.daemon
+    lsock = bind_control_socket(plan.socket_path, d.group)
+    retention = Retention(str(Path(plan.log_path).parent), d.log_budget_bytes,
+                          d.log_segment_bytes, d.log_max_age_s,
+                          row_bytes_per_s=8.0 * plan.ring.width / plan.asm.loaded.period_s)
     try:
-        writer = LogWriter(plan.log_path, plan.header, reserve=HEADER_RESERVE)
+        writer = SegmentWriter(plan.log_path, plan.header, reserve=HEADER_RESERVE,
+                               segment_bytes=d.log_segment_bytes, segment_s=d.log_segment_s,
+                               retention=retention)
     except OSError as exc:
         lsock.close()
         Path(plan.socket_path).unlink(missing_ok=True)
@@ -140,20 +151,23 @@ def run_daemon(config_path: str, socket_path: str | None = None, log_dir: str | 
     return side.run(_reap)
 
 
-def _reap(pid: int, timeout_s: float) -> None:
+def _reap(pid: int, timeout_s: float) -> int | None:
+    """Wait up to ``timeout_s`` for the I/O process, then SIGKILL it. Returns its wait
+    status, or None when it had been reaped already."""
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
         try:
-            if os.waitpid(pid, os.WNOHANG)[0] != 0:
-                return
+            got, st = os.waitpid(pid, os.WNOHANG)
         except ChildProcessError:
-            return
+            return None
+        if got != 0:
+            return st
         time.sleep(0.01)
     try:
         os.kill(pid, signal.SIGKILL)
-        os.waitpid(pid, 0)
+        return os.waitpid(pid, 0)[1]
     except (ProcessLookupError, ChildProcessError):
-        pass
+        return None
 
 
 __all__ = ["run_daemon", "plan_daemon", "sd_notify", "bind_control_socket", "DaemonError", "Mailbox"]

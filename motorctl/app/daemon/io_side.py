@@ -1,9 +1,15 @@
 """The daemon's I/O process: serves the control socket, forwards commands to the loop process,
-drains the shared ring to the run log (:class:`motorctl.recorder.flight.Drainer`), cuts event
-logs, reports fault onsets to the journal and speaks systemd's notify protocol (``READY=1``
-once the loop runs, ``STATUS=``, ``WATCHDOG=1`` only while the loop's heartbeat advances,
-``STOPPING=1``). It never touches the driver; the loop process checks and applies every
-command (:mod:`motorctl.app.daemon.loop_side`).
+drains the shared ring to the run log's segments (:class:`motorctl.recorder.flight.Drainer`,
+:class:`motorctl.recorder.segments.SegmentWriter`), keeps ``log_dir`` within its budget
+(:class:`~motorctl.recorder.segments.Retention`), cuts event logs, reports fault onsets to the
+journal and speaks systemd's notify protocol (``READY=1`` once the loop runs, ``STATUS=``,
+``WATCHDOG=1`` only while the loop's heartbeat advances, ``STOPPING=1``). It never touches the
+driver; the loop process checks and applies every command (:mod:`motorctl.app.daemon.loop_side`).
+
+It bumps ``ctl[CTL_REC_BEAT]`` at every wake (the loop latches every axis when that stops for
+longer than the stall bound). A run log it cannot write (a full disk) never ends it: the
+drainer sets the recorder fault, the loop latches the axes, and ``status`` keeps answering
+with the reason; the end record goes into the header (reserved space) at the exit.
 """
 
 from __future__ import annotations
@@ -23,11 +29,18 @@ from motorctl.app.daemon.protocol import (
     encode_answer,
     parse_request,
 )
-from motorctl.app.daemon.status import ST, axis_status
-from motorctl.loop.safety import describe_faults
+from motorctl.app.daemon.status import ST, axis_status, fault_text
 from motorctl.loop.trajectory import Move
-from motorctl.recorder.flight import CTL_CMD_SEQ, CTL_STATE, Drainer
-from motorctl.recorder.runlog import LogWriter
+from motorctl.recorder.flight import (
+    CTL_CMD_SEQ,
+    CTL_REC_BEAT,
+    CTL_REC_LATCHED,
+    CTL_STATE,
+    REC_REASONS,
+    Drainer,
+)
+from motorctl.recorder.runlog import LogError
+from motorctl.recorder.segments import SegmentWriter
 
 #: a command the loop has not answered within this time is answered with an error [s]
 LOOP_ANSWER_S = 2.0
@@ -46,7 +59,7 @@ EMFILE_PAUSE_S = 0.1
 class IOSide:
     """The I/O process after the fork. ``plan`` is the daemon's :class:`DaemonPlan`."""
 
-    def __init__(self, plan, lsock, writer: LogWriter, cmds: Mailbox, replies: Mailbox):
+    def __init__(self, plan, lsock, writer: SegmentWriter, cmds: Mailbox, replies: Mailbox):
         self.plan, self.lsock, self.cmds, self.replies = plan, lsock, cmds, replies
         asm = plan.asm
         self.names = asm.names
@@ -55,6 +68,7 @@ class IOSide:
         d = asm.loaded.cfg.daemon
         self.header = plan.header
         self.writer = writer
+        self.retention = writer.retention
         self.drainer = Drainer(plan.ring, writer, self.header, self.names, asm.loaded.timebase,
                                d.flush_s, d.event_before_s, d.event_after_s, d.max_event_logs)
         self.ready: dict | None = None
@@ -75,6 +89,7 @@ class IOSide:
         self.exit_reason = ""
         self.audit: list[dict] = []      # commands applied by the loop, with their cycle
         self._reported = 0
+        self._rec_reported = ""
 
     # ------------------------------------------------------------------ requests
     def to_loop(self, conn, msg: dict, post=None) -> None:
@@ -114,12 +129,24 @@ class IOSide:
             self.to_loop(conn, {"op": "fault_reset", "axis": i})
         elif req.cmd == "inject":
             self.to_loop(conn, {"op": "inject", "axis": i, "inject": req.inject})
+        elif req.cmd == "jog":
+            # a jerk-limited move at a fraction of the axis's limits from where it stands; the
+            # loop checks the state (idle, or a soft-limit fault it may recover from)
+            ax = self.axis_status(i)
+            tc = self.plan.asm.loaded.axes[self.names[i]].trajectory
+            f = req.jog["speed"]
+            y0 = float(ax["y_m"])
+            mv = Move(y0, req.jog["to_m"], f * tc.v_max, f * tc.a_max, tc.j_max, 0.0)
+            self.to_loop(conn, {"op": "jog", "axis": i, "move": mv},
+                         post={"from_m": y0, "move_s": mv.duration,
+                               "bound_s": self.plan.stop_bound_s[i]})
         return None
 
     # ------------------------------------------------------------------ status
     def axis_status(self, i: int) -> dict:
         ring = self.plan.ring
-        out = axis_status(i, self.names[i], ring.status[i], ring.latest(), self.layout)
+        out = axis_status(i, self.names[i], ring.status[i], ring.latest(), self.layout,
+                          REC_REASONS.get(int(ring.ctl[CTL_REC_LATCHED]), ""))
         out["timing_since_start"] = self.drainer.axis_stats[i].summary()
         out["stop_bound_s"] = self.plan.stop_bound_s[i]
         return out
@@ -140,11 +167,15 @@ class IOSide:
             "process": {k: ready.get(k) for k in ("loop_pid", "python_threads", "native_threads",
                                                   "cpu_affinity", "switch_interval_s")}
                        | {"io_pid": os.getpid(), "uptime_s": time.monotonic() - self.started},
-            "log": {"path": self.plan.log_path, "rows": self.writer.rows_written,
+            "log": {"path": self.writer.path, "run": self.plan.log_path,
+                    "segment": self.writer.index, "rows": self.writer.rows_written,
                     "rows_flushed": dr.flushed_rows, "lost_rows": dr.lost_rows,
                     "flush_s": dr.flush_s, "flushes": dr.flushes,
                     "max_flush_gap_s": dr.max_flush_gap_s, "events": dr.events,
-                    "events_pending": len(dr.pending), "events_dropped": dr.events_dropped},
+                    "events_pending": len(dr.pending), "events_dropped": dr.events_dropped,
+                    "recorder_fault": REC_REASONS.get(dr.fault, ""), "error": dr.error,
+                    "write_errors": dr.write_errors, "rows_unwritten": dr.drained - dr.written,
+                    "retention": self.retention.figures() if self.retention else {}},
             "socket": self.plan.socket_path,
             "clients": {"open": len(self.clients), "refused": self.clients_refused,
                         "max": MAX_CLIENTS},
@@ -165,7 +196,10 @@ class IOSide:
             self.header["realtime"] = m["realtime"]
             self.header["process"] = {k: m[k] for k in ("loop_pid", "python_threads",
                                                        "native_threads", "cpu_affinity")}
-            self.writer.update_header(self.header)
+            try:
+                self.writer.update_header(self.header)
+            except (OSError, LogError):
+                pass                         # later segments carry it; the drainer reports the disk
             loop_cpus = set(m.get("cpu_affinity") or [])
             others = set(os.sched_getaffinity(0)) - loop_cpus
             if loop_cpus and others and len(loop_cpus) == 1:
@@ -281,7 +315,9 @@ class IOSide:
         self.sel.register(self.lsock, selectors.EVENT_READ, "listen")
         self.sel.register(self.replies.rfd, selectors.EVENT_READ, "loop")
         loop_gone = False
+        ctl = self.plan.ring.ctl
         while not loop_gone:
+            ctl[CTL_REC_BEAT] = int(ctl[CTL_REC_BEAT]) + 1     # "the recorder is awake"
             for key, _ in self.sel.select(timeout=IDLE_WAKE_S):
                 if key.data == "listen":
                     self.accept(time.monotonic())
@@ -305,20 +341,24 @@ class IOSide:
             self.report_faults()
             self.drainer.cut_events()
             self.drainer.maybe_flush()
+            if self.retention is not None:
+                self.retention.maybe_prune(now)
+            self.report_recorder()
             self.notify(now)
         # the loop process ended (normally, or killed): keep everything it published
         try:
-            self.drainer.poll()
+            dr = self.drainer
+            dr.finish()
             self.report_faults()
+            self.report_recorder()
             self.header["commands"] = self.audit
-            self.header["events"] = self.drainer.events
+            self.header["events"] = dr.events
             self.header["ended"] = {"reason": self.exit_reason or "loop process killed",
                                     "cycles": self.plan.ring.published(),
-                                    "lost_rows": self.drainer.lost_rows}
-            if not self.writer.update_header(self.header):
-                self.header["commands"] = self.audit[-50:]
-                self.writer.update_header(self.header)
-            self.drainer.finish()
+                                    "lost_rows": dr.lost_rows,
+                                    **({"recorder": dr.error} if dr.write_errors else {})}
+            self.write_end_record()
+            dr.close()
         finally:
             self.lsock.close()
             try:
@@ -327,16 +367,42 @@ class IOSide:
                 pass
         return 0
 
+    def write_end_record(self) -> None:
+        """The header with ``ended`` into the segment being written (in place, reserved
+        space: it needs no new blocks on a full disk); commands trimmed if they do not fit."""
+        try:
+            if not self.writer.update_header(self.header):
+                self.header["commands"] = self.audit[-50:]
+                self.writer.update_header(self.header)
+        except (OSError, LogError) as exc:
+            sys.stderr.write(f"motorctl daemon: cannot write the end record into "
+                             f"{self.writer.path}: {getattr(exc, 'strerror', None) or exc}\n")
+
+    def report_recorder(self) -> None:
+        """One line on stderr when the run log stops being written and when it recovers."""
+        dr = self.drainer
+        now = dr.error if dr.fault else ""
+        if now != self._rec_reported:
+            if now:
+                sys.stderr.write(f"motorctl daemon: cannot write the run log {self.writer.path}: "
+                                 f"{now}; every axis latched (recorder), retrying\n")
+            else:
+                sys.stderr.write(f"motorctl daemon: the run log is written again "
+                                 f"({dr.lost_rows} rows lost); axes stay latched until "
+                                 f"fault-reset\n")
+            self._rec_reported = now
+
     def report_faults(self) -> None:
         """One line on stderr (the journal) per fault onset: reported once, not per cycle."""
         onsets = self.drainer.fault_onsets
         for e in onsets[self._reported:]:
             i = self.names.index(e["axis"])
             st = self.plan.ring.status[i]
+            why = fault_text(e["bits"], st[ST["value"]], st[ST["limit"]],
+                             REC_REASONS.get(int(self.plan.ring.ctl[CTL_REC_LATCHED]), ""))
             sys.stderr.write(f"motorctl daemon: axis {e['axis']} fault at t = "
                              f"{e['k'] * self.plan.asm.loaded.period_s:.4f} s: "
-                             f"{describe_faults(e['bits'])} (value {st[ST['value']]:.6g}, "
-                             f"limit {st[ST['limit']]:.6g}); 0 V, amplifier off, latched\n")
+                             f"{why}; 0 V, amplifier off, latched\n")
         self._reported = len(onsets)
 
     def notify(self, now: float) -> None:
@@ -355,7 +421,7 @@ class IOSide:
             self.last_status = now
 
 
-def io_main(plan, lsock, writer: LogWriter, cmds: Mailbox, replies: Mailbox) -> int:
+def io_main(plan, lsock, writer: SegmentWriter, cmds: Mailbox, replies: Mailbox) -> int:
     """Entry of the I/O process: ignore the signals (the loop process says when to go),
     SCHED_OTHER, serve until the loop process ends."""
     for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):

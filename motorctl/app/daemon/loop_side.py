@@ -1,11 +1,18 @@
 """The daemon's loop process: the servo loop, and between cycles the commands from the I/O
-process, the status block, signals and the recorder's liveness.
+process, the status block, signals and the recorder's health.
 
 One thread; no file or socket I/O inside a cycle. Commands arrive in the ``on_slack`` hook
 (after a cycle, outside its timed part): the loop looks at a shared command sequence number
 and only then reads the command pipe (non-blocking), applies each command at the cycle
 boundary and answers on the reply pipe (non-blocking: a stalled I/O process never blocks the
 loop). Every command's checks are made here, against the live state (the one place).
+
+The recorder check (every :data:`RECORDER_CHECK_S`, a few integer compares and a ``waitpid``)
+latches FAULT_RECORDER on every axis when the I/O process reports that it cannot write the run
+log (``ctl[CTL_REC_FAULT]``: "log disk full"), when its wake counter (``ctl[CTL_REC_BEAT]``)
+has not moved for the stall bound (``2·flush_s + 1 s`` of loop periods: "recorder stalled"),
+or when it died ("recorder died"; the loop then ends, writes the end record into the run log
+itself and removes the socket). ``fault-reset`` is refused while the cause persists.
 """
 
 from __future__ import annotations
@@ -20,12 +27,27 @@ from motorctl.app.daemon.notify import sd_notify
 from motorctl.app.daemon.protocol import Mailbox
 from motorctl.app.daemon.status import StatusPublisher
 from motorctl.loop.rt import RealtimeError
-from motorctl.loop.safety import FAULT_SHUTDOWN
+from motorctl.loop.safety import FAULT_RECORDER, FAULT_SHUTDOWN
 from motorctl.loop.servo import IDLE, MODE_NAMES
-from motorctl.recorder.flight import CTL_CMD_SEQ, CTL_STATE, SharedRing
+from motorctl.recorder.flight import (
+    CTL_CMD_SEQ,
+    CTL_REC_BEAT,
+    CTL_REC_FAULT,
+    CTL_REC_LATCHED,
+    CTL_SEGMENT,
+    CTL_STATE,
+    REC_DIED,
+    REC_REASONS,
+    REC_STALLED,
+    SharedRing,
+    stall_bound_s,
+)
+from motorctl.recorder.runlog import LogError
+from motorctl.recorder.segments import close_orphaned, segment_path
 
-#: how often the loop checks that the I/O process (the recorder) is alive [s] (a waitpid
-#: between cycles, every few cycles: a dead recorder is noticed within a millisecond or two)
+#: how often the loop checks the I/O process (the recorder) [s] (a waitpid and the shared
+#: recorder words between cycles, every few cycles: a dead recorder is noticed within a
+#: millisecond or two)
 RECORDER_CHECK_S = 0.002
 #: how often the status block is refreshed besides every fault change [s]
 STATUS_PUBLISH_S = 0.005
@@ -60,6 +82,10 @@ class LoopSide:
         self.check_every = tb.cycles(RECORDER_CHECK_S, minimum=1)
         self.publish_every = tb.cycles(STATUS_PUBLISH_S, minimum=1)
         d = asm.loaded.cfg.daemon
+        self.stall_cycles = tb.cycles_ceil(stall_bound_s(d.flush_s))
+        self.io_beat = -1               # the I/O process's wake counter last seen ...
+        self.io_beat_n = 0              # ... and the loop period (k + missed) it was seen at
+        self.io_status = None           # the I/O process's wait status once it is gone
         self.allow_inject = d.allow_fault_injection and hasattr(asm.driver, "inject")
         self.seen = 0
         self.term = ""
@@ -100,9 +126,35 @@ class LoopSide:
                 self._switch(i, m["controller"])
                 r["cycle"] = loop.k
             elif op == "fault_reset":
+                trouble = self.recorder_trouble(loop)
+                if trouble:
+                    return {**r, "ok": False, "error": f"the recorder is still faulted "
+                                                      f"({REC_REASONS[trouble]})"}
                 was = sup.reason(i)
                 ok, why = loop.fault_reset(i)
                 r.update(ok=ok, error=why, was=was)
+            elif op == "jog":
+                mv = m["move"]
+                y = float(self.asm.driver.position_m[i])
+                if abs(mv.start - y) > START_MOVED_M:
+                    return {**r, "ok": False, "error": f"axis {names[i]} moved while the jog was "
+                                                      f"prepared ({mv.start:.6f} -> {y:.6f} m); retry"}
+                if loop.mode[i] != IDLE:
+                    return {**r, "ok": False, "error": f"axis {names[i]} is enabled "
+                                                      f"({MODE_NAMES[loop.mode[i]]}); stop it first"}
+                if sup.fault[i]:
+                    trouble = self.recorder_trouble(loop)
+                    if trouble:
+                        return {**r, "ok": False, "error": f"the recorder is still faulted "
+                                                          f"({REC_REASONS[trouble]})"}
+                    ok, why = sup.begin_recovery(i, y, mv.end, bool(self.asm.driver.amp_fault[i]))
+                    if not ok:
+                        return {**r, "ok": False, "error": f"jog {names[i]} refused: {why}"}
+                    r["recovery"] = True
+                elif not sup.inside(i, mv.end):
+                    return {**r, "ok": False, "error": f"jog {names[i]} refused: target "
+                                                      f"{mv.end:.6f} m is outside the soft limits"}
+                loop.jog_axis(i, mv)
             elif op == "inject":
                 if not self.allow_inject:
                     return {**r, "ok": False, "error": "fault injection is off (daemon.allow_fault_"
@@ -152,13 +204,63 @@ class LoopSide:
         if k % self.publish_every == 0 or self.status.fault_changed():
             self.status.publish()             # a new fault is published at once
         if k % self.check_every == self.check_every // 2:
+            self.check_recorder(lp)
+
+    def recorder_trouble(self, lp) -> int:
+        """The REC_* code of what is wrong with the recorder now (0: nothing). Cheap: a few
+        integer compares on the shared control words."""
+        if self.io_dead:
+            return REC_DIED
+        ctl = self.ctl
+        code = ctl[CTL_REC_FAULT]
+        if code:
+            return code
+        n = lp.k + lp.overruns           # loop periods elapsed, missed ones included
+        beat = ctl[CTL_REC_BEAT]
+        if beat != self.io_beat:
+            self.io_beat = beat
+            self.io_beat_n = n
+        elif n - self.io_beat_n > self.stall_cycles:
+            return REC_STALLED
+        return 0
+
+    def check_recorder(self, lp) -> None:
+        """Between cycles: is the I/O process alive, writing and awake? If not, latch
+        FAULT_RECORDER on every axis (0 V, amplifier off from the next cycle)."""
+        if not self.io_dead:
             try:
-                if os.waitpid(self.io_pid, os.WNOHANG)[0] != 0:
-                    self.io_dead = True
+                pid, st = os.waitpid(self.io_pid, os.WNOHANG)
+                if pid != 0:
+                    self.io_dead, self.io_status = True, st
             except ChildProcessError:
                 self.io_dead = True
-            if self.io_dead and not self.term:
-                self.term = "recorder process died"
+        code = self.recorder_trouble(lp)
+        if code:
+            sup = lp.supervisor
+            for i in range(len(self.names)):
+                if not sup.fault[i] & FAULT_RECORDER:
+                    sup.trip(i, FAULT_RECORDER)
+                    self.ctl[CTL_REC_LATCHED] = code
+        if self.io_dead and not self.term:
+            self.term = "recorder process died"
+
+    def finish_for_recorder(self) -> None:
+        """After the loop has ended, when the I/O process did not finish the run log: append
+        what the ring still holds, write the end record (reopening the segment being
+        written), and remove the control socket."""
+        index = int(self.ctl[CTL_SEGMENT]) or 1
+        try:
+            why = "recorder died" if self.io_dead else "recorder did not finish (killed)"
+            ended = close_orphaned(self.log_path, index, self.ring,
+                                   {"reason": self.term or "loop ended", "recorder": why})
+            self.out.write(f"motorctl daemon: end record written by the loop process into "
+                           f"{segment_path(self.log_path, index)} ({ended['lost_rows']} rows lost)\n")
+        except (LogError, OSError) as exc:
+            self.out.write(f"motorctl daemon: cannot write the end record: {exc}\n")
+        try:
+            os.unlink(self.socket_path)
+        except OSError:
+            pass
 
     def on_signal(self, signum, _frame) -> None:
         if not self.term:
@@ -205,9 +307,15 @@ class LoopSide:
                 except OSError:
                     pass
                 os.close(self.replies.wfd)
-                reap(self.io_pid, 15.0)
-        if self.io_dead:
-            self.out.write("motorctl: error: the recorder process died; all axes at 0 V, amplifiers off\n")
+                st = reap(self.io_pid, 15.0)
+                if self.io_status is None:
+                    self.io_status = st
+        if not (self.io_status is not None and os.WIFEXITED(self.io_status)
+                and os.WEXITSTATUS(self.io_status) == 0):
+            self.finish_for_recorder()
+            what = "died" if self.io_dead else "did not finish"
+            self.out.write(f"motorctl: error: the recorder process {what}; all axes at 0 V, "
+                           f"amplifiers off; log {self.log_path}\n")
             return 1
         self.out.write(f"motorctl daemon: stopped by {self.term or 'loop end'}: all axes at 0 V, "
                        f"amplifiers off; log {self.log_path}\n")

@@ -8,6 +8,7 @@ Socket requests (``motorctl.cli.operator`` is the client)::
     {"cmd": "stop" | "fault-reset", "axis": "X"}
     {"cmd": "switch", "axis": "X", "controller": "pid"}
     {"cmd": "inject", "axis": "X", "kind": "...", "cycles": 1, "jump_m": 0.0, "force_N": 0.0}
+    {"cmd": "jog", "axis": "X", "to_m": 0.0, "speed": 0.1}    (speed: fraction of v_max, a_max)
 
 Answers: ``{"ok": true, ...}`` or ``{"ok": false, "error": "...", "usage": bool}`` (``usage``:
 the request itself was wrong, exit code 2 in the client).
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import grp
 import json
+import math
 import os
 import pickle
 import socket
@@ -27,9 +29,11 @@ from pathlib import Path
 #: the longest request line accepted [bytes]; a longer one is refused and the connection closed
 MAX_REQUEST_BYTES = 65536
 #: commands of the socket protocol
-COMMANDS = ("status", "start", "stop", "switch", "fault-reset", "inject")
+COMMANDS = ("status", "start", "stop", "switch", "fault-reset", "inject", "jog")
 #: commands that need an axis
-AXIS_COMMANDS = ("start", "stop", "switch", "fault-reset", "inject")
+AXIS_COMMANDS = ("start", "stop", "switch", "fault-reset", "inject", "jog")
+#: a jog's speed and acceleration as a fraction of the axis's v_max and a_max: (0, MAX_JOG_SPEED]
+MAX_JOG_SPEED = 0.5
 
 
 class DaemonError(RuntimeError):
@@ -48,6 +52,7 @@ class Request:
     axis: int | None
     controller: str | None = None
     inject: dict | None = None
+    jog: dict | None = None
 
 
 def parse_request(line: bytes, axis_names: list, controllers: list) -> Request:
@@ -81,7 +86,17 @@ def parse_request(line: bytes, axis_names: list, controllers: list) -> Request:
                       "force_N": float(req.get("force_N", 0.0))}
         except (TypeError, ValueError) as exc:
             raise RequestError(f"bad inject request: {exc}") from None
-    return Request(cmd, i, ctrl, inject)
+    jog = None
+    if cmd == "jog":
+        try:
+            to_m, speed = float(req["to_m"]), float(req.get("speed", 0.1))
+        except (KeyError, TypeError, ValueError):
+            raise RequestError("jog needs 'to_m' (a position in m) and an optional 'speed'") from None
+        if not math.isfinite(to_m) or not 0.0 < speed <= MAX_JOG_SPEED:
+            raise RequestError(f"jog: to_m must be finite and speed within (0, {MAX_JOG_SPEED}] "
+                               f"(got {to_m}, {speed})")
+        jog = {"to_m": to_m, "speed": speed}
+    return Request(cmd, i, ctrl, inject, jog)
 
 
 def encode_answer(obj: dict) -> bytes:

@@ -13,7 +13,7 @@ import math
 
 from motorctl.control import CONTROLLER_NAMES
 from motorctl.loop.records import RecordLayout
-from motorctl.loop.safety import describe_faults
+from motorctl.loop.safety import FAULT_RECORDER, describe_faults
 from motorctl.loop.servo import IDLE, MODE_NAMES
 
 ST_FIELDS = ("mode", "controller", "fault", "value", "limit", "io_errors", "fe_peak", "started_k")
@@ -55,17 +55,27 @@ class StatusPublisher:
         return any(fault[i] != self._published_fault[i] for i in range(len(self.active)))
 
 
-def axis_status(i: int, name: str, status_row, row, layout: RecordLayout) -> dict:
+def fault_text(bits: int, value: float, limit: float, recorder: str = "") -> str:
+    """One line for latched fault bits: their names, the value and limit of the first one,
+    and for FAULT_RECORDER why (``recorder``, e.g. "log disk full"); "" when no fault."""
+    if not bits:
+        return ""
+    if bits == FAULT_RECORDER:
+        return f"{describe_faults(bits)}: {recorder or 'fault'}"
+    text = f"{describe_faults(bits)} (value {value:.6g}, limit {limit:.6g})"
+    return text + (f"; recorder: {recorder}" if bits & FAULT_RECORDER and recorder else "")
+
+
+def axis_status(i: int, name: str, status_row, row, layout: RecordLayout, recorder: str = "") -> dict:
     """I/O side: one axis's status from its status block and the newest record row (or
-    None before the first cycle)."""
+    None before the first cycle); ``recorder``: why FAULT_RECORDER latched (if it did)."""
     bits = int(status_row[ST["fault"]])
     mode = int(status_row[ST["mode"]])
     out = {"axis": name,
            "state": "fault" if bits else ("disabled" if mode == IDLE else "enabled"),
            "phase": MODE_NAMES.get(mode, "?"),
            "fault_bits": bits,
-           "fault": (f"{describe_faults(bits)} (value {status_row[ST['value']]:.6g}, "
-                     f"limit {status_row[ST['limit']]:.6g})" if bits else ""),
+           "fault": fault_text(bits, status_row[ST["value"]], status_row[ST["limit"]], recorder),
            "controller": CONTROLLER_NAMES[int(status_row[ST["controller"]])]}
     if row is not None:
         def f(field):
