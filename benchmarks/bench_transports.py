@@ -1,12 +1,13 @@
 """Per transport on loopback: round trip of one exchange (median / p99) and the loop rate
 actually sustained with two axes, each against ``motorctl emulate`` in its own process.
 
-    python benchmarks/bench_transports.py [--transports serial,can,modbus] [--exchanges 3000]
+    python benchmarks/bench_transports.py [--transports serial,can,canopen,modbus] [--exchanges 3000]
                                           [--cycles 4000]
 
 * serial: pyserial ``socket://127.0.0.1:PORT``; modbus: Modbus TCP on 127.0.0.1 (pymodbus
-  framer, FC23); can: python-can ``udp_multicast`` inside a private network namespace
-  (needs root: unshare/nsenter), the measuring process runs in the namespace too.
+  framer, FC23); can and canopen (CiA 402 drives: RPDOs + SYNC out, TPDOs back): python-can
+  ``udp_multicast`` inside a private network namespace (needs root: unshare/nsenter), the
+  measuring process runs in the namespace too.
 * round trip: ``write()`` (0 V, amplifier off, one period of plant) then ``read()`` polling for
   the answer, timed from the send to the decoded answer; the emulator runs at SCHED_FIFO 90,
   the measuring process at normal priority.
@@ -36,8 +37,8 @@ def inner(config: str, exchanges: int, cycles: int) -> dict:
     """Measure in this process against an emulator that is already serving ``config``."""
     import gc
 
-    from motorctl.config import load_config
     from motorctl.app.job import run_job
+    from motorctl.config import load_config
     loaded = load_config(config, check_budget=False)
     drv = loaded.make_driver()
     drv.timeout_s = 0.02
@@ -85,12 +86,13 @@ def inner(config: str, exchanges: int, cycles: int) -> dict:
 
 def measure(transport: str, tmp: Path, exchanges: int, cycles: int) -> dict:
     from motorctl_emulators.harness import Emulator, NetNamespace, loopback_config
-    _, cfg = loopback_config(ROOT / "configs" / f"gantry-{transport}.yaml", tmp, rate_hz=2000)
+    _, cfg = loopback_config(ROOT / "configs" / f"gantry-{transport}.yaml", tmp, rate_hz=1000,
+                             driver={"round_trip_s": 0.0})
     emulator = dict(plant=ROOT / "configs" / "gantry.yaml", watchdog_s=1.0)
     cmd = [sys.executable, __file__, "--inner", str(cfg), "--exchanges", str(exchanges),
            "--cycles", str(cycles)]
-    if transport == "can":
-        with NetNamespace() as ns, Emulator("can", cfg, prefix=ns.prefix, **emulator):
+    if transport in ("can", "canopen"):
+        with NetNamespace() as ns, Emulator(transport, cfg, prefix=ns.prefix, **emulator):
             out = subprocess.run([*ns.prefix, *cmd], capture_output=True, text=True, timeout=300)
     else:
         with Emulator(transport, cfg, **emulator):
@@ -102,7 +104,7 @@ def measure(transport: str, tmp: Path, exchanges: int, cycles: int) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--transports", default="serial,can,modbus")
+    ap.add_argument("--transports", default="serial,can,canopen,modbus")
     ap.add_argument("--exchanges", type=int, default=3000)
     ap.add_argument("--cycles", type=int, default=4000)
     ap.add_argument("--inner", help=argparse.SUPPRESS)

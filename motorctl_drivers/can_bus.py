@@ -49,8 +49,15 @@ from pydantic import Field
 
 from motorctl.driver import BusBudget
 from motorctl.schema import StrictModel
-from motorctl_drivers.split_phase import (CommonOptions, EncoderUnwrap, SplitPhaseDriver, make_budget,
-                                          to_unsigned, volts_to_counts)
+from motorctl_drivers.split_phase import (
+    CommonOptions,
+    EncoderUnwrap,
+    SplitPhaseDriver,
+    make_budget,
+    open_error,
+    to_unsigned,
+    volts_to_counts,
+)
 
 FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 
@@ -199,13 +206,14 @@ def build_frames(names, axis_options, kind: str, fd: bool) -> list[Frame]:
     return frames
 
 
-def open_bus(options: CanOptions):
+def open_bus(options):
     """The python-can bus of ``options`` (``can.Bus(interface, channel, **bus_options)``; the bit
     rates are passed to interfaces that set them, ``fd`` to every interface but udp_multicast,
-    which takes FD frames anyway). Used by the driver and by its emulated device.
+    which takes FD frames anyway). Used by the CAN and CANopen drivers and their emulated devices.
 
     Raises:
-        can.CanError, OSError: the interface cannot be opened.
+        OSError: the interface cannot be opened (one line: the interface, the channel and why;
+            python-can's CanError and a missing interface module are turned into it).
     """
     import can
     kw = dict(options.bus_options)
@@ -215,7 +223,10 @@ def open_bus(options: CanOptions):
             kw.setdefault("data_bitrate", options.data_bitrate)
     if options.interface != "udp_multicast":
         kw.setdefault("fd", options.fd)
-    return can.Bus(interface=options.interface, channel=options.channel, **kw)
+    try:
+        return can.Bus(interface=options.interface, channel=options.channel, **kw)
+    except (can.CanError, OSError, ImportError, ValueError, TypeError) as exc:
+        raise open_error("CAN interface", f"{options.interface}:{options.channel}", exc) from None
 
 
 # --------------------------------------------------------------------------- driver
@@ -324,8 +335,9 @@ class CanDriver(SplitPhaseDriver):
         what = (f"{kind}, {len(self.axis_names)} axes: {len(self.cmd_frames)} command + "
                 f"{len(self.fb_frames)} feedback frames of {'/'.join(str(n) for n in frames)} B, "
                 f"worst-case stuffing")
+        rt, source = self.budget_round_trip()
         # settings that would carry the rate, cheapest change first
-        room = o.max_bus_load / rate_hz - o.round_trip_s
+        room = o.max_bus_load / rate_hz - rt
         fits = []
         grouped = [min(sum(f.length for f in self.cmd_frames), 64),
                    min(sum(f.length for f in self.fb_frames), 64)]
@@ -341,7 +353,7 @@ class CanDriver(SplitPhaseDriver):
                 fits.append(f"{label} ({t * 1e6:.1f} us per cycle)")
                 break
         fit = fits[0] if fits else "fewer axes per bus (no CAN setting carries this rate)"
-        return make_budget(rate_hz, wire, o.round_trip_s, o.max_bus_load, what, fit)
+        return make_budget(rate_hz, wire, rt, o.max_bus_load, what, fit, source)
 
     def _wire(self, lengths, fd: bool, data_bitrate: int) -> float:
         o = self.options

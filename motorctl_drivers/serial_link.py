@@ -7,6 +7,11 @@ Frames (our layout; multi-byte fields little-endian, CRC big-endian)::
     reply    5A | addr | seq | n | n × (node, status, counts int32) | CRC-16   status bit0 = amp
                                                                        fault, bit1 = amplifier on
     error    5B | addr | seq | n | code |                 CRC-16     (the device refused the command)
+    config   A7 | addr | seq | 1 | watchdog uint16 |      CRC-16     watchdog in units of 100 us
+    ack      5C | addr | seq | 1 | watchdog uint16 |      CRC-16     the watchdog the device applies
+
+The protocol byte by byte, with line settings, RS-485 direction, when counts are latched and
+the watchdog: docs/serial-protocol.md (firmware can be written from it alone).
 
 CRC-16/CCITT-FALSE (polynomial 0x1021, initial value 0xFFFF, no reflection) over every byte
 before it, via :func:`binascii.crc_hqx`. ``seq`` is the cycle counter mod 256: the reply carries
@@ -28,6 +33,9 @@ YAML (``driver:``)::
     device_latency_s: 10.0e-6    # the drive's answer time (budget)
     timeout_s, wait, round_trip_s, max_bus_load: see split_phase.CommonOptions
 
+    watchdog_s: 0.05             # the device's command watchdog, set in configure() (config frame)
+    rs485: false                 # RS-485 direction by the UART (TIOCSRS485) where it has it
+
 per axis (``axes.NAME.driver``): ``node`` (0-255), ``encoder_m_per_count`` [m].
 
 The voltage limit of every axis (its ``voltage_out`` interface) is ``voltage_full_scale_V``.
@@ -39,6 +47,7 @@ from __future__ import annotations
 import binascii
 import math
 import struct
+import time
 from typing import Annotated
 
 import numpy as np
@@ -46,10 +55,20 @@ from pydantic import Field
 
 from motorctl.driver import BusBudget
 from motorctl.schema import StrictModel
-from motorctl_drivers.split_phase import (CommonOptions, EncoderUnwrap, SplitPhaseDriver, make_budget,
-                                          volts_to_counts)
+from motorctl_drivers.split_phase import (
+    CommonOptions,
+    EncoderUnwrap,
+    SplitPhaseDriver,
+    make_budget,
+    open_error,
+    volts_to_counts,
+)
 
-CMD, QUERY, REPLY, ERROR = 0xA5, 0xA6, 0x5A, 0x5B
+CMD, QUERY, REPLY, ERROR, CONFIG, ACK = 0xA5, 0xA6, 0x5A, 0x5B, 0xA7, 0x5C
+#: error codes of an error frame (docs/serial-protocol.md)
+ERROR_CODES = {1: "bad request (unknown node or item count)", 2: "value out of range",
+               3: "not allowed now", 4: "device failure"}
+WATCHDOG_UNIT_S = 100e-6
 _HEAD = 4
 _CMD_ITEM = struct.Struct("<BBh")
 _QUERY_ITEM = struct.Struct("<B")
@@ -65,7 +84,8 @@ def crc16(data: bytes) -> int:
 
 def frame_length(kind: int, n: int) -> int:
     """Length in bytes of a frame of ``kind`` carrying ``n`` axes."""
-    body = {CMD: _CMD_ITEM.size * n, QUERY: _QUERY_ITEM.size * n, REPLY: _REPLY_ITEM.size * n, ERROR: 1}[kind]
+    body = {CMD: _CMD_ITEM.size * n, QUERY: _QUERY_ITEM.size * n, REPLY: _REPLY_ITEM.size * n, ERROR: 1,
+            CONFIG: 2, ACK: 2}[kind]
     return _HEAD + body + 2
 
 
@@ -106,6 +126,15 @@ def encode_error(address: int, seq: int, n: int, code: int) -> bytes:
     return _seal(buf)
 
 
+def encode_config(address: int, seq: int, watchdog_units: int, kind: int = CONFIG) -> bytes:
+    """Config frame (or, with ``kind=ACK``, its acknowledgement): the watchdog in units of
+    100 us (uint16 little-endian, 1-65535)."""
+    buf = bytearray(frame_length(kind, 1))
+    buf[0:4] = bytes((kind, address, seq & 0xFF, 1))
+    buf[4:6] = int(watchdog_units).to_bytes(2, "little")
+    return _seal(buf)
+
+
 def decode_body(kind: int, n: int, frame: bytes) -> list:
     """Items of a checked frame: CMD → [(node, enable, u_counts)], REPLY → [(node, status,
     counts_u32)], QUERY → [node], ERROR → [code]."""
@@ -116,6 +145,8 @@ def decode_body(kind: int, n: int, frame: bytes) -> list:
         return [_REPLY_ITEM.unpack_from(frame, _HEAD + k * _REPLY_ITEM.size) for k in range(n)]
     if kind == QUERY:
         return list(frame[_HEAD:_HEAD + n])
+    if kind in (CONFIG, ACK):
+        return [int.from_bytes(frame[4:6], "little")]
     return [frame[4]]
 
 
@@ -123,7 +154,7 @@ class FrameParser:
     """Cuts frames out of a byte stream: hunts for a start byte, waits for the whole frame,
     checks the CRC; a bad frame costs one byte of resync and counts in ``bad_frames``."""
 
-    def __init__(self, kinds=(CMD, QUERY, REPLY, ERROR)):
+    def __init__(self, kinds=(CMD, QUERY, REPLY, ERROR, CONFIG, ACK)):
         self.buf = bytearray()
         self.kinds = set(kinds)
         self.bad_frames = 0
@@ -137,7 +168,7 @@ class FrameParser:
         while len(buf) - i >= _HEAD + 2:
             kind = buf[i]
             n = buf[i + 3]
-            if kind not in self.kinds or not 1 <= n <= MAX_AXES:
+            if kind not in self.kinds or not 1 <= n <= MAX_AXES or (kind in (CONFIG, ACK) and n != 1):
                 i += 1
                 continue
             size = frame_length(kind, n)
@@ -165,6 +196,8 @@ class SerialOptions(CommonOptions):
     bits_per_char: Annotated[int, Field(ge=7, le=12)] = 10
     turnaround_chars: Annotated[float, Field(ge=0)] = 1.0
     device_latency_s: Annotated[float, Field(ge=0)] = 10e-6
+    watchdog_s: Annotated[float, Field(ge=100e-6, le=6.5535)] | None = 0.05
+    rs485: bool = False
 
 
 class SerialAxisOptions(StrictModel):
@@ -188,8 +221,10 @@ class SerialDriver(SplitPhaseDriver):
         self._unwrap = [EncoderUnwrap(32) for _ in range(n)]
         self._m_per_count = [axis_options[a].encoder_m_per_count for a in self.axis_names]
         self.port = None
-        self.parser = FrameParser((REPLY, ERROR))
+        self.parser = FrameParser((REPLY, ERROR, ACK))
         self.low_latency = "off"
+        self.watchdog = "not set (the device keeps its own)"
+        self._ack = None
         self._nodes = [axis_options[a].node for a in self.axis_names]
         if len(set(self._nodes)) != n:
             raise ValueError(f"serial: two axes share a node number ({self._nodes})")
@@ -197,15 +232,33 @@ class SerialDriver(SplitPhaseDriver):
         self._items = [(nd, False, 0) for nd in self._nodes]
 
     def _open_transport(self) -> None:
+        """Open the port (8N1 at ``baudrate``; RS-485 direction control when ``rs485``).
+
+        Raises:
+            OSError: the port is missing, not permitted, or refuses a line setting (one line).
+        """
         import serial
         o = self.options
-        if "://" in o.port:
-            self.port = serial.serial_for_url(o.port, baudrate=o.baudrate, timeout=0, write_timeout=0)
-            if o.port.startswith("socket://"):
-                import socket
-                self.port._socket.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        else:
-            self.port = serial.Serial(o.port, baudrate=o.baudrate, timeout=0, write_timeout=0)
+        try:
+            if "://" in o.port:
+                self.port = serial.serial_for_url(o.port, baudrate=o.baudrate, timeout=0, write_timeout=0)
+                if o.port.startswith("socket://"):
+                    import socket
+                    self.port._socket.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            else:
+                self.port = serial.Serial(o.port, baudrate=o.baudrate, timeout=0, write_timeout=0)
+            if o.rs485:
+                import serial.rs485
+                self.port.rs485_mode = serial.rs485.RS485Settings()
+        except (serial.SerialException, OSError, ValueError) as exc:
+            if self.port is not None:
+                try:
+                    self.port.close()
+                except Exception:  # noqa: BLE001
+                    pass
+                self.port = None
+            raise open_error("serial port", f"{o.port} ({o.baudrate} baud 8N1{', RS-485' if o.rs485 else ''})",
+                             exc) from None
         if o.low_latency:
             try:
                 self.port.set_low_latency_mode(True)
@@ -214,7 +267,47 @@ class SerialDriver(SplitPhaseDriver):
                 self.low_latency = f"not supported ({type(exc).__name__})"
         self.port.reset_input_buffer()
         self._set_wait_fd(self.port.fileno())
-        self.parser = FrameParser((REPLY, ERROR))
+        self.parser = FrameParser((REPLY, ERROR, ACK))
+
+    def _configure(self) -> None:
+        """As every bus driver (open, first reading, timed exchanges), after setting the
+        device's command watchdog with a config frame (``watchdog_s``; the ack must carry a
+        watchdog no longer than asked).
+
+        Raises:
+            OSError: the port cannot be opened; the device refuses or lengthens the watchdog.
+            ConnectionError: the device does not answer.
+        """
+        self._open_transport()
+        self.connected = True
+        try:
+            if self.options.watchdog_s is not None:
+                self._set_watchdog(self.options.watchdog_s)
+            self._first_reading(self.CONFIGURE_TIMEOUT_S)
+        except BaseException:
+            self._close()
+            raise
+
+    def _set_watchdog(self, seconds: float) -> None:
+        units = max(1, min(0xFFFF, round(seconds / WATCHDOG_UNIT_S)))
+        self.seq = (self.seq + 1) & self.SEQ_MASK
+        self._ack = None
+        self.port.write(encode_config(self.options.address, self.seq, units))
+        deadline = time.perf_counter() + self.CONFIGURE_TIMEOUT_S
+        while self._ack is None and time.perf_counter() < deadline:
+            self._receive()
+            time.sleep(0.0002)
+        if self._ack is None:
+            raise ConnectionError(f"serial device {self.options.address} on {self.options.port}: no answer to the "
+                                  f"watchdog config frame within {self.CONFIGURE_TIMEOUT_S:g} s")
+        kind, value = self._ack
+        if kind == ERROR:
+            raise OSError(f"serial device {self.options.address}: watchdog {seconds * 1e3:g} ms refused: error "
+                          f"{value} ({ERROR_CODES.get(value, 'unknown')})")
+        if value > units:
+            raise OSError(f"serial device {self.options.address}: watchdog set to {value * 0.1:g} ms, longer than "
+                          f"the {units * 0.1:g} ms asked for")
+        self.watchdog = f"{value * 0.1:g} ms (config frame, acknowledged)"
 
     def _release_transport(self) -> None:
         if self.port is not None:
@@ -248,6 +341,10 @@ class SerialDriver(SplitPhaseDriver):
         for kind, a, seq, m, frame in frames:
             if a != addr:
                 continue
+            if kind == ACK or (kind == ERROR and self._ack is None and not self._outstanding):
+                if seq == self.seq:
+                    self._ack = (kind, decode_body(kind, m, frame)[0])
+                continue
             if kind == ERROR:
                 self._accept_error(seq)
                 continue
@@ -264,8 +361,9 @@ class SerialDriver(SplitPhaseDriver):
         """
         o = self.options
         n = len(self.axis_names)
+        rt, source = self.budget_round_trip()
         chars = frame_length(CMD, n) + frame_length(REPLY, n)
-        fixed = o.device_latency_s + o.round_trip_s
+        fixed = o.device_latency_s + rt
         wire = (chars + o.turnaround_chars) * o.bits_per_char / o.baudrate + o.device_latency_s
         room = o.max_bus_load / rate_hz - fixed
         need = (chars + o.turnaround_chars) * o.bits_per_char / room if room > 0 else math.inf
@@ -275,10 +373,10 @@ class SerialDriver(SplitPhaseDriver):
         what = (f"serial {o.baudrate} baud, {n} axes: {frame_length(CMD, n)} B command + "
                 f"{frame_length(REPLY, n)} B reply + {o.turnaround_chars:g} char turnaround at "
                 f"{o.bits_per_char} bits/char + {o.device_latency_s * 1e6:.0f} us device latency")
-        return make_budget(rate_hz, wire, o.round_trip_s, o.max_bus_load, what, fits)
+        return make_budget(rate_hz, wire, rt, o.max_bus_load, what, fits, source)
 
     def describe(self) -> dict:
         d = super().describe()
         d.update(transport="serial", port=self.options.port, baudrate=self.options.baudrate,
-                 low_latency=self.low_latency)
+                 low_latency=self.low_latency, watchdog=self.watchdog)
         return d

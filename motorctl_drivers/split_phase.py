@@ -96,9 +96,11 @@ class CommonOptions(StrictModel):
 
     timeout_s: how long ``read()`` polls for the answer [s]; default half the period; capped
         at 0.8 of the period (the rest of the cycle needs the time).
-    round_trip_s: measured host round trip of one exchange on this machine [s] (driver stack
-        + device answering; ``benchmarks/bench_transports.py`` measures it). Added to the wire
-        time in the budget; 0 means 'wire only'.
+    round_trip_s: host round trip of one exchange on this machine [s] (driver stack + device
+        answering; ``configure()`` measures it, ``benchmarks/bench_transports.py`` too). Added
+        to the wire time in the budget. None (default): the median measured by ``configure()``
+        once the driver is configured, before that the driver's ``DEFAULT_ROUND_TRIP_S`` (an
+        assumption, named as such in the budget); never 0 unless set so explicitly.
     wait: how ``read()`` waits for the answer until ``timeout_s``: 'select' sleeps in
         select() on the transport's file descriptor (never past the deadline; the CPU is free
         meanwhile, so a SCHED_FIFO loop stays clear of RT throttling), 'spin' polls without
@@ -110,26 +112,65 @@ class CommonOptions(StrictModel):
 
     timeout_s: Annotated[float, Field(gt=0)] | None = None
     wait: Literal["select", "spin"] = "select"
-    round_trip_s: Annotated[float, Field(ge=0)] = 0.0
+    round_trip_s: Annotated[float, Field(ge=0)] | None = None
     max_bus_load: Annotated[float, Field(gt=0, le=1)] = 0.8
 
 
 def make_budget(rate_hz: float, wire_s: float, round_trip_s: float, max_load: float,
-                what: str, fits: str) -> BusBudget:
+                what: str, fits: str, source: str = "measured") -> BusBudget:
     """Budget from the wire time [s] and the host round trip [s] of one cycle.
 
     ``what``: the wire arithmetic, one line. ``fits``: a setting that would carry ``rate_hz``.
+    ``source``: where the round trip comes from ('measured', 'configured', 'assumed').
     max rate = ``max_load`` / (wire + round trip) [Hz].
     """
     cycle = wire_s + round_trip_s
     max_rate = max_load / cycle if cycle > 0 else float("inf")
-    detail = (f"{what}; wire {wire_s * 1e6:.1f} us + measured round trip {round_trip_s * 1e6:.1f} us "
+    detail = (f"{what}; wire {wire_s * 1e6:.1f} us + {source} round trip {round_trip_s * 1e6:.1f} us "
               f"= {cycle * 1e6:.1f} us per cycle, {cycle * rate_hz * 100:.0f}% of the "
               f"{1e6 / rate_hz:.0f} us period at {rate_hz:g} Hz (limit {max_load * 100:.0f}% load)")
     suggestion = ""
     if rate_hz > max_rate:
         suggestion = f"set loop.rate_hz to {math.floor(max_rate):d} or less, or {fits}"
     return BusBudget(cycle_time_s=cycle, max_rate_hz=max_rate, detail=detail, suggestion=suggestion)
+
+
+def round_trip_stats(samples_s) -> dict:
+    """Median and maximum [s] of measured exchange times ``samples_s`` (a sequence of floats)."""
+    xs = sorted(samples_s)
+    n = len(xs)
+    if n == 0:
+        return {"n": 0, "median_s": None, "max_s": None}
+    med = xs[n // 2] if n % 2 else 0.5 * (xs[n // 2 - 1] + xs[n // 2])
+    return {"n": n, "median_s": med, "max_s": xs[-1]}
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception as one line (its first line; the type name when it has no text)."""
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
+def open_error(what: str, where: str, exc: BaseException) -> OSError:
+    """A one-line :class:`OSError` for a link that cannot be opened or set up (``what``: e.g.
+    'serial port', ``where``: its name), saying whether it is missing, refused (permission) or
+    refused a line setting. The CLI prints it as ``motorctl: error: ...`` (no traceback)."""
+    import errno as _errno
+    err = getattr(exc, "errno", None)
+    msg = one_line(exc)
+    low = msg.lower()
+    if err == _errno.ENOENT or "no such file" in low or ("could not open port" in low and "no such" in low):
+        why = "no such device"
+    elif err in (_errno.EACCES, _errno.EPERM) or "permission denied" in low:
+        why = "permission denied (add the user to the device's group, e.g. dialout)"
+    elif err in (_errno.ECONNREFUSED,) or "connection refused" in low:
+        why = "connection refused (nothing listens there)"
+    elif err in (_errno.EINVAL, _errno.ENOTTY) or "invalid" in low or "not supported" in low \
+            or "unsupported" in low or "inappropriate ioctl" in low:
+        why = f"the line settings were refused ({msg})"
+    else:
+        why = msg
+    return OSError(f"{what} {where}: {why}")
 
 
 # --------------------------------------------------------------------------- the driver
@@ -160,6 +201,12 @@ class SplitPhaseDriver(Driver):
     SEQ_MASK = 0xFF
     EXTRAPOLATE_CYCLES = 8
     WARMUP_QUERIES = 50
+    #: the round trip the budget assumes before ``configure()`` has measured one and none is
+    #: configured [s] (a host with a USB or PCIe adapter, not this machine's loopback)
+    DEFAULT_ROUND_TRIP_S = 100e-6
+    #: a later answer for an axis that already has one this cycle replaces it (counted stale):
+    #: for transports without a sequence number (CANopen PDOs), the newest frame is the freshest
+    LAST_WINS = False
     #: how long ``_configure`` waits for the device's first answer [s]
     CONFIGURE_TIMEOUT_S = 1.0
     #: how long ``_deactivate`` waits for the answer to the final 0 V command [s]
@@ -181,7 +228,9 @@ class SplitPhaseDriver(Driver):
         self._any_lost = False
         self._unwrap: list[EncoderUnwrap] = []
         self._m_per_count = [1.0] * n
+        self._offset_m = [0.0] * n
         self.connected = False
+        self.round_trip = round_trip_stats(())      # measured by configure()
         self.counters = {"timeouts": 0, "stale": 0, "bad_frames": 0, "exceptions": 0, "send_errors": 0}
 
     def _set_wait_fd(self, fd) -> None:
@@ -280,9 +329,16 @@ class SplitPhaseDriver(Driver):
             self.counters["stale"] += 1
             return
         if self._got[i]:
+            if self.LAST_WINS:          # a newer frame of the same axis: the older one was late
+                self.counters["stale"] += 1
+                y = self._unwrap[i].update(raw_counts) * self._m_per_count[i] + self._offset_m[i]
+                self._step[i] += y - self._y_last[i]
+                self._y_last[i] = y
+                self.position_m[i] = y
+                self.amp_fault[i] = fault
             return
         self._got[i] = True
-        y = self._unwrap[i].update(raw_counts) * self._m_per_count[i]
+        y = self._unwrap[i].update(raw_counts) * self._m_per_count[i] + self._offset_m[i]
         self._step[i] = y - self._y_last[i] if self._y_last[i] == self._y_last[i] else 0.0
         self._y_last[i] = y
         self.position_m[i] = y
@@ -364,8 +420,13 @@ class SplitPhaseDriver(Driver):
             ConnectionError: the device did not answer within ``timeout_s``.
         """
         self._query_once(timeout_s)
+        clock = time.perf_counter
+        times = []
         for _ in range(self.WARMUP_QUERIES):
+            t0 = clock()
             self._query_once(timeout_s)
+            times.append(clock() - t0)
+        self.round_trip = round_trip_stats(times)
 
     def _query_once(self, timeout_s: float) -> None:
         self.seq = (self.seq + 1) & self.SEQ_MASK
@@ -395,5 +456,27 @@ class SplitPhaseDriver(Driver):
         self._outstanding = False
         return ok
 
+    def budget_round_trip(self) -> tuple[float, str]:
+        """The round trip [s] the budget uses and where it comes from: ``round_trip_s`` when
+        configured, else the median ``configure()`` measured, else ``DEFAULT_ROUND_TRIP_S``."""
+        if self.options.round_trip_s is not None:
+            return float(self.options.round_trip_s), "configured"
+        if self.round_trip.get("median_s") is not None:
+            return float(self.round_trip["median_s"]), "measured"
+        return float(self.DEFAULT_ROUND_TRIP_S), "assumed"
+
     def describe(self) -> dict:
-        return {"timeout_s": self.timeout_s, "counters": dict(self.counters)}
+        rt = self.round_trip
+        used, source = self.budget_round_trip()
+        d = {"timeout_s": self.timeout_s, "counters": dict(self.counters),
+             "round_trip": {"n": rt["n"],
+                            "median_us": None if rt["median_s"] is None else round(rt["median_s"] * 1e6, 1),
+                            "max_us": None if rt["max_s"] is None else round(rt["max_s"] * 1e6, 1),
+                            "budget_us": round(used * 1e6, 1), "budget_source": source}}
+        try:
+            b = self.budget(1.0 / self.period_s)
+            d["budget"] = {"cycle_us": round(b.cycle_time_s * 1e6, 1), "max_rate_hz": round(b.max_rate_hz, 1),
+                           "fits": bool(1.0 / self.period_s <= b.max_rate_hz), "detail": b.detail}
+        except Exception as exc:  # noqa: BLE001  (a report must not fail the run)
+            d["budget"] = {"error": one_line(exc)}
+        return d

@@ -5,7 +5,8 @@
 * :mod:`~motorctl_emulators.device`: the device base class, the ``motorctl.emulators`` entry
   points (transport name → device class) and :func:`~motorctl_emulators.device.build_device`.
 * :mod:`~motorctl_emulators.can_device`, :mod:`~motorctl_emulators.serial_device`,
-  :mod:`~motorctl_emulators.modbus_device`: the devices; :mod:`~motorctl_emulators.stream`:
+  :mod:`~motorctl_emulators.modbus_device`, :mod:`~motorctl_emulators.cia402_device` (CiA 402
+  drives on canopen's ``LocalNode``): the devices; :mod:`~motorctl_emulators.stream`:
   the device end of a byte stream (TCP listener or pty).
 * :mod:`~motorctl_emulators.cli`: ``motorctl emulate``; :mod:`~motorctl_emulators.harness`:
   driver and emulator as processes on one machine (tests, benchmark).

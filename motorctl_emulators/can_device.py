@@ -7,7 +7,14 @@ from __future__ import annotations
 
 import time
 
-from motorctl_drivers.can_bus import CanOptions, Frame, build_frames, open_bus, pack_int, unpack_uint
+from motorctl_drivers.can_bus import (
+    CanOptions,
+    Frame,
+    build_frames,
+    open_bus,
+    pack_int,
+    unpack_uint,
+)
 from motorctl_drivers.split_phase import counts_to_volts, to_signed
 from motorctl_emulators.device import Device
 from motorctl_emulators.plant_bank import PlantBank

@@ -1,6 +1,6 @@
 """``motorctl emulate``: the gantry I/O emulator, the device side of a bus driver in its own process.
 
-    motorctl emulate --transport can|serial|modbus CONFIG [--plant PLANT] [--watchdog S]
+    motorctl emulate --transport can|canopen|serial|modbus CONFIG [--plant PLANT] [--watchdog S]
                      [--late S] [--fault KIND[:AXIS[:START[:COUNT]]]] [--duration S] [--priority N]
 
 CONFIG is the driver's own YAML (``driver.type`` must be the ``--transport``): the device
@@ -16,8 +16,10 @@ when > 0, else 0.05 s) → 0 V and an amplifier fault (reported in every answer,
 command with the amplifier disabled).
 
 Fault injection: ``--fault KIND[:AXIS[:START[:COUNT]]]`` (repeatable), KIND one of drop, late
-(answer after ``--late`` seconds), corrupt, stale, exception, disconnect, bus_off; START counts
-the command frames the device has received (0-based).
+(answer after ``--late`` seconds), corrupt, stale, exception, disconnect, bus_off, emcy[=CODE]
+(CANopen: the drive faults with that EMCY error code); START counts the command frames the
+device has received (CANopen: SYNCs; 0-based). A CANopen drive's watchdog is its heartbeat
+consumer, set by the host (0x1016); ``--watchdog`` does not apply to it.
 
 The first line on stdout is ``ready: ...`` once the device listens. SIGTERM/SIGINT end it with
 a ``stopped: ...`` line. The device classes come from the ``motorctl.emulators`` entry points.
@@ -101,7 +103,7 @@ def register(parser, subparsers) -> None:
                    help=f"delay of a 'late' answer [s]; default {DEFAULT_LATE_S}")
     e.add_argument("--fault", type=_fault, action="append", metavar="KIND[:AXIS[:START[:COUNT]]]",
                    help="inject a fault (repeatable): drop, late, corrupt, stale, exception, "
-                        "disconnect, bus_off")
+                        "disconnect, bus_off, emcy[=CODE] (CANopen)")
     e.add_argument("--duration", type=seconds_arg, metavar="S", help="stop after this many seconds")
     e.add_argument("--priority", type=int, default=90,
                    help="SCHED_FIFO priority of the emulator (0: normal scheduling); default 90, above the "

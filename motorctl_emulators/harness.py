@@ -1,7 +1,7 @@
 """Run a bus driver against the gantry I/O emulator on one machine (tests, benchmarks, trials).
 
 * :func:`loopback_config`: a copy of a driver config aimed at this machine: serial on
-  ``socket://127.0.0.1:PORT``, Modbus TCP on ``127.0.0.1:PORT``, CAN on python-can's
+  ``socket://127.0.0.1:PORT``, Modbus TCP on ``127.0.0.1:PORT``, CAN and CANopen on python-can's
   ``udp_multicast`` (a free UDP port, group 239.77.67.1).
 * :class:`NetNamespace`: a private network namespace (``unshare -n``, root only) with ``lo``
   up and a route for 224.0.0.0/4 via ``lo``; commands run in it through ``nsenter``. CAN over
@@ -56,7 +56,7 @@ def loopback_config(base: str | Path | dict, out_dir: str | Path, rate_hz: float
             drv["host"], drv["port"] = "127.0.0.1", free_port()
         else:
             drv["serial_port"] = f"socket://127.0.0.1:{free_port()}"
-    elif t == "can":
+    elif t in ("can", "canopen"):
         drv.update(interface="udp_multicast", channel=CAN_GROUP,
                    bus_options={"port": free_port(socket.SOCK_DGRAM)})
     drv.update(driver or {})
@@ -69,10 +69,11 @@ def loopback_config(base: str | Path | dict, out_dir: str | Path, rate_hz: float
 
 #: Host round trip of one exchange on loopback (p99, emulator at SCHED_FIFO 90), measured with
 #: benchmarks/bench_transports.py on the shared 2-core development VM under its usual load
-#: (load average ~2.8 from other jobs; idle, serial was 64 us). The budget adds it to the wire
+#: (load average ~2.8 from other jobs; idle, serial was 64 us; canopen: RPDOs + SYNC out, TPDOs
+#: back through canopen's device side, measured at load average 5.9). The budget adds it to the wire
 #: time of the shipped config; :func:`loopback_rate` takes the highest rate on a 500 Hz grid
 #: that budget allows.
-LOOPBACK_ROUND_TRIP_S = {"serial": 225e-6, "can": 515e-6, "modbus": 434e-6}
+LOOPBACK_ROUND_TRIP_S = {"serial": 225e-6, "can": 515e-6, "modbus": 434e-6, "canopen": 445e-6}
 #: read timeout of the loopback runs, in periods: the answer then has 1.75 periods from the
 #: send; the rest of the cycle (control, write: ~60 us for two axes) still fits at ≤ 2.5 kHz.
 LOOPBACK_TIMEOUT_PERIODS = 0.75
@@ -101,6 +102,8 @@ def loopback_e2e_config(transport: str, configs_dir: str | Path, out_dir: str | 
     rate = loopback_rate(d)
     d["loop"]["rate_hz"] = rate
     d["driver"]["timeout_s"] = LOOPBACK_TIMEOUT_PERIODS / rate
+    if d["driver"]["type"] == "serial":     # the device watchdog the driver sets in configure()
+        d["driver"]["watchdog_s"] = LOOPBACK_WATCHDOG_S
     path = Path(out_dir) / f"{name or transport}.yaml"
     path.write_text(yaml.safe_dump(d, sort_keys=False))
     return d, path, rate

@@ -1,150 +1,264 @@
 """The emulated Modbus device (``motorctl emulate --transport modbus``).
 
-Register map, framing and codecs are the driver's (:mod:`motorctl_drivers.modbus`); function
-codes as in the Modbus Application Protocol v1.1b3 (§6.3 FC03, §6.4 FC04, §6.6 FC06, §6.12
-FC16, §6.17 FC23; exception codes §7).
+Register map and value codecs are the driver's (:mod:`motorctl_drivers.modbus`); function codes
+as in the Modbus Application Protocol V1.1b3 (§6.1 FC01, §6.2 FC02, §6.3 FC03, §6.4 FC04, §6.5
+FC05, §6.6 FC06, §6.11 FC15, §6.12 FC16, §6.17 FC23; exception codes §7); framing: MBAP
+(Modbus Messaging on TCP/IP V1.0b) or RTU with the CRC of Modbus over Serial Line V1.02.
 """
 
 from __future__ import annotations
 
+import struct
 import time
 
-from motorctl_drivers.modbus import ModbusOptions, RegisterPlan, decode_frames, split_counts
-from motorctl_drivers.split_phase import counts_to_volts, to_signed
+from motorctl_drivers.modbus import (
+    ModbusOptions,
+    RegisterPlan,
+    crc16,
+    registers_to_value,
+    value_to_registers,
+)
 from motorctl_emulators.device import Device
 from motorctl_emulators.plant_bank import PlantBank
 from motorctl_emulators.stream import StreamEndpoint
 
+_MBAP = struct.Struct(">HHHB")
+
 
 class ModbusDevice(Device):
-    """Holding registers as in the map. FC03/FC04 read; FC06, FC16 and FC23 write (FC23 then
-    reads). A write that covers an axis's voltage register is a command for that axis: the
-    plant steps one period and the feedback registers are updated before any read. Faults:
-    drop, late, corrupt (bad CRC on RTU, a broken MBAP length on TCP), stale (the previous
-    answer again), exception (exception code 0x04, device failure; the command is not applied),
-    disconnect (TCP: close the connection), bus_off (as drop).
+    """Holding and input registers, coils and discrete inputs as in the map (every unit of the
+    map answers). FC01-06, 15, 16 and 23; others get exception 01. A write to an axis's voltage
+    register is that axis's command; it is applied (the plant steps one period, the position
+    and fault fields are updated) when the axis's position is next read, so the answer carries
+    the position one period after the command, as with FC23 (write, then read). Faults, counted
+    per command: drop, late, corrupt (bad CRC on RTU, a broken MBAP length on TCP), stale (the
+    previous answer again), exception (exception 0x04, server device failure; the command is not
+    applied), disconnect (TCP: close the connection), bus_off (as drop). With ``fc23: no`` in
+    the driver config the device has no FC23 (exception 01).
 
     Raises:
-        ValueError: the register map needs more than one FC23 request (the driver's check).
+        ValueError: the register map cannot be served (the driver's checks).
         OSError: the endpoint cannot be opened.
     """
 
     def __init__(self, options: ModbusOptions, axis_options: dict, bank: PlantBank):
-        from pymodbus.framer import FramerRTU, FramerSocket
-        from pymodbus.pdu import DecodePDU
         super().__init__(options, axis_options, bank)
-        self.ax = [axis_options[a] for a in bank.names]
-        RegisterPlan(bank.names, axis_options, options)   # the same checks as the driver
-        self.regs = [0] * 0x10000
-        self.by_voltage = {a.voltage_register: i for i, a in enumerate(self.ax)}
-        if options.transport == "tcp":
-            self.framer = FramerSocket(DecodePDU(is_server=True))
-            url = f"tcp://{options.host}:{options.port}"
-        else:
-            self.framer = FramerRTU(DecodePDU(is_server=True))
-            url = options.serial_port
-        self.ep = StreamEndpoint(url)
+        names = bank.names
+        self.ax = [axis_options[a] for a in names]
+        self.plan = RegisterPlan(names, axis_options, options)        # the same checks as the driver
+        self.units = {u for _h, _p, u in self.plan.devices}
+        self.tables = {"holding": [0] * 0x10000, "input": [0] * 0x10000, "coil": [False] * 0x10000,
+                       "discrete": [False] * 0x10000}
+        self.has_fc23 = options.fc23 != "no"
+        self.by_voltage = {}
+        for i, a in enumerate(self.ax):
+            for k in range(a.voltage.nregs):
+                self.by_voltage[(self.plan.devices[self.plan.dev_of[i]][2], a.voltage.address + k)] = i
+        self.pending = [None] * len(self.ax)      # the fault drawn for an axis's unapplied command
+        self.tcp = options.transport == "tcp"
+        self.ep = StreamEndpoint(f"tcp://{options.host}:{options.port}" if self.tcp else options.serial_port)
         self.buf = bytearray()
         self.last = None
-        self._update_feedback()
+        for i in range(len(self.ax)):
+            self._feedback(i)
 
-    def _update_feedback(self) -> None:
-        b, r, o = self.bank, self.regs, self.options
+    # ------------------------------------------------------------------ the axes
+    def _bit(self, b, value: bool | None = None):
+        t = self.tables[b.table]
+        if b.table in ("coil", "discrete"):
+            if value is None:
+                return t[b.address] == (b.active == "high")
+            t[b.address] = value == (b.active == "high")
+            return None
+        if value is None:
+            return bool(t[b.address] >> b.bit & 1) == (b.active == "high")
+        on = value == (b.active == "high")
+        t[b.address] = (t[b.address] & ~(1 << b.bit) & 0xFFFF) | ((1 << b.bit) if on else 0)
+        return None
+
+    def _feedback(self, i: int) -> None:
+        a, b = self.ax[i], self.bank
+        pos = b.plants[i].measured()
+        raw = (pos - a.position.offset) / a.position.scale
+        raw = raw if a.position.type == "float32" else int(round(raw))
+        t = self.tables[a.position.table]
+        for k, w in enumerate(value_to_registers(a.position, raw)):
+            t[a.position.address + k] = w
+        if a.fault is not None:
+            self._bit(a.fault, b.amp_fault[i])
+
+    def _apply(self, i: int) -> None:
+        a = self.ax[i]
+        t = self.tables["holding"]
+        raw = registers_to_value(a.voltage, [t[a.voltage.address + k] for k in range(a.voltage.nregs)])
+        if a.voltage.type in ("int16", "int32"):
+            bits = 16 * a.voltage.nregs
+            raw = raw - (1 << bits) if raw >= 1 << (bits - 1) else raw
+        u = raw * a.voltage_scale() + a.voltage.offset
+        self.bank.command(i, u, self._bit(a.enable))
+        self._feedback(i)
+
+    def _step_if_read(self, unit: int, table: str, address: int, count: int) -> None:
+        """Apply the pending command of every axis whose position lies in what is read."""
         for i, a in enumerate(self.ax):
-            r0, r1 = split_counts(b.counts(i, a.encoder_m_per_count), a.word_order)
-            r[a.counts_register], r[a.counts_register + 1] = r0, r1
-            st = r[a.status_register] & ~(1 << a.fault_bit)
-            r[a.status_register] = st | ((1 << a.fault_bit) if b.amp_fault[i] else 0)
-        if o.sequence_echo_register is not None and o.sequence_register is not None:
-            r[o.sequence_echo_register] = r[o.sequence_register]
+            if self.pending[i] is not None and a.position.table == table and \
+                    self.plan.devices[self.plan.dev_of[i]][2] == unit and \
+                    address <= a.position.address < address + count:
+                self.pending[i] = None
+                self._apply(i)
 
-    def _write(self, address: int, values) -> list[int]:
-        """Store registers; return the axes whose voltage register was written."""
-        hit = []
-        for k, v in enumerate(values):
-            self.regs[address + k] = v & 0xFFFF
-            i = self.by_voltage.get(address + k)
-            if i is not None:
-                hit.append(i)
-        return hit
+    # ------------------------------------------------------------------ requests
+    def _request_len(self, buf) -> int:
+        """RTU: the length of the request at the start of ``buf`` (0: not complete yet)."""
+        if len(buf) < 2:
+            return 0
+        fc = buf[1]
+        if fc in (1, 2, 3, 4, 5, 6):
+            return 8
+        if fc in (15, 16):
+            return 9 + buf[6] if len(buf) >= 7 else 0
+        if fc == 23:
+            return 13 + buf[10] if len(buf) >= 11 else 0
+        return 4
 
-    def _apply(self, axes) -> None:
+    def _handle(self, unit: int, pdu: bytes):
+        """(answer PDU, fault) for request ``pdu`` of ``unit``."""
+        fc = pdu[0]
         b = self.bank
-        for i in axes:
-            a = self.ax[i]
-            u = counts_to_volts(to_signed(self.regs[a.voltage_register], 16), a.voltage_full_scale_V, 16)
-            b.command(i, u, bool(self.regs[a.control_register] >> a.enable_bit & 1))
+        t = self.tables
+        try:
+            if fc in (1, 2, 3, 4):
+                addr, count = struct.unpack_from(">HH", pdu, 1)
+                table = {1: "coil", 2: "discrete", 3: "holding", 4: "input"}[fc]
+                self._step_if_read(unit, table, addr, count)
+                for i in range(len(self.ax)):     # faults (e.g. the watchdog) show in every answer
+                    self._feedback(i)
+                if fc in (1, 2):
+                    bits = t[table][addr:addr + count]
+                    data = bytearray((count + 7) // 8)
+                    for k, v in enumerate(bits):
+                        if v:
+                            data[k // 8] |= 1 << (k % 8)
+                    return bytes((fc, len(data))) + bytes(data), None
+                regs = t[table][addr:addr + count]
+                return bytes((fc, 2 * count)) + b"".join(struct.pack(">H", r) for r in regs), None
+            if fc in (5, 6, 15, 16, 23):
+                if fc == 23 and not self.has_fc23:
+                    return bytes((0x80 | fc, 1)), None
+                if fc == 5:
+                    addr, val = struct.unpack_from(">HH", pdu, 1)
+                    writes = [("coil", addr, val == 0xFF00)]
+                elif fc == 6:
+                    addr, val = struct.unpack_from(">HH", pdu, 1)
+                    writes = [("holding", addr, val)]
+                elif fc == 15:
+                    addr, count = struct.unpack_from(">HH", pdu, 1)
+                    writes = [("coil", addr + k, bool(pdu[6 + k // 8] >> (k % 8) & 1)) for k in range(count)]
+                elif fc == 16:
+                    addr, count = struct.unpack_from(">HH", pdu, 1)
+                    writes = [("holding", addr + k, struct.unpack_from(">H", pdu, 6 + 2 * k)[0]) for k in range(count)]
+                else:
+                    raddr, rcount, addr, count = struct.unpack_from(">HHHH", pdu, 1)
+                    writes = [("holding", addr + k, struct.unpack_from(">H", pdu, 10 + 2 * k)[0]) for k in range(count)]
+                axes = sorted({self.by_voltage[(unit, a)] for tb, a, _ in writes
+                               if tb == "holding" and (unit, a) in self.by_voltage})
+                fault = b.next_fault(axes) if axes else None
+                if fault == "exception":
+                    return bytes((0x80 | fc, 4)), None
+                if fault == "disconnect":
+                    return None, "disconnect"
+                for tb, a, v in writes:
+                    t[tb][a] = v
+                o = self.options
+                if o.sequence_register is not None and o.sequence_echo_register is not None:
+                    t["holding"][o.sequence_echo_register] = t["holding"][o.sequence_register]
+                for i in axes:
+                    self.pending[i] = fault or "ok"
+                if fc == 23:
+                    self._step_if_read(unit, "holding", raddr, rcount)
+                    for i in range(len(self.ax)):
+                        self._feedback(i)
+                    regs = t["holding"][raddr:raddr + rcount]
+                    rsp = bytes((fc, 2 * rcount)) + b"".join(struct.pack(">H", r) for r in regs)
+                elif fc in (5, 6):
+                    rsp = pdu[:5]
+                else:
+                    rsp = pdu[:5]
+                return rsp, fault
+            return bytes((0x80 | fc, 1)), None
+        except (struct.error, IndexError):
+            return bytes((0x80 | fc, 3)), None
 
-    def _respond(self, req):
-        from pymodbus.pdu import ExceptionResponse
-        from pymodbus.pdu.register_message import (ReadHoldingRegistersResponse, ReadInputRegistersResponse,
-                                                   ReadWriteMultipleRegistersResponse,
-                                                   WriteMultipleRegistersResponse, WriteSingleRegisterResponse)
-        fc = req.function_code
-        kw = dict(dev_id=req.dev_id, transaction_id=req.transaction_id)
-        if fc in (3, 4):
-            self._update_feedback()
-            cls = ReadHoldingRegistersResponse if fc == 3 else ReadInputRegistersResponse
-            return cls(registers=self.regs[req.address:req.address + req.count], **kw), None
-        if fc in (6, 16, 23):
-            if fc == 23:
-                addr, values = req.write_address, req.write_registers
-            elif fc == 16:
-                addr, values = req.address, req.registers
+    def _frame(self, tid: int, unit: int, pdu: bytes) -> bytes:
+        if self.tcp:
+            return _MBAP.pack(tid, 0, len(pdu) + 1, unit) + pdu
+        body = bytes((unit,)) + pdu
+        c = crc16(body)
+        return body + bytes((c & 0xFF, c >> 8))
+
+    def _requests(self):
+        buf = self.buf
+        while buf:
+            if self.tcp:
+                if len(buf) < 8:
+                    return
+                tid, proto, length, unit = _MBAP.unpack_from(buf, 0)
+                if len(buf) < 6 + length:
+                    return
+                pdu = bytes(buf[7:6 + length])
+                del buf[:6 + length]
+                yield tid, unit, pdu
             else:
-                addr, values = req.address, req.registers[:1]
-            axes = [self.by_voltage[r] for r in range(addr, addr + len(values)) if r in self.by_voltage]
-            fault = self.bank.next_fault(axes) if axes else None
-            if fault == "exception":
-                return ExceptionResponse(fc, 0x04, device_id=req.dev_id, transaction=req.transaction_id), None
-            if fault == "disconnect":
-                return None, "disconnect"
-            self._apply(self._write(addr, values))
-            self._update_feedback()
-            if fc == 23:
-                rsp = ReadWriteMultipleRegistersResponse(
-                    registers=self.regs[req.read_address:req.read_address + req.read_count], **kw)
-            elif fc == 16:
-                rsp = WriteMultipleRegistersResponse(address=addr, count=len(values), **kw)
-            else:
-                rsp = WriteSingleRegisterResponse(address=addr, registers=list(values), **kw)
-            return rsp, fault
-        return ExceptionResponse(fc, 0x01, device_id=req.dev_id, transaction=req.transaction_id), None
+                n = self._request_len(buf)
+                if n == 0 or len(buf) < n:
+                    return
+                frame = bytes(buf[:n])
+                if crc16(frame[:-2]) != frame[-2] | frame[-1] << 8:
+                    del buf[0]               # resync: not a frame that starts here
+                    continue
+                del buf[:n]
+                yield 0, frame[0], frame[1:-2]
 
     def poll(self, timeout_s: float) -> None:
         data = self.ep.wait(timeout_s)
         if not data:
             return
-        o = self.options
         self.buf += data
-        for req in decode_frames(self.framer, self.buf):
-            if req is None:
+        for tid, unit, pdu in self._requests():
+            if unit not in self.units and not (self.tcp and unit == 0):
                 continue
-            if o.transport == "rtu" and req.dev_id not in (0, o.unit_id):
-                continue
-            rsp, fault = self._respond(req)
+            rsp, fault = self._handle(unit, pdu)
+            # a dropped, late or stale answer still applied its command when read; the drawn
+            # fault of a write decides the answer to the position read that applies it
+            if fault is None and pdu[0] in (1, 2, 3, 4):
+                fault = self._read_fault
+                self._read_fault = None
+            elif pdu[0] in (5, 6, 15, 16) and fault not in (None, "disconnect"):
+                self._read_fault, fault = fault, None
             if fault == "disconnect":
                 self.ep.disconnect()
                 self.buf.clear()
                 return
-            frame = self.framer.buildFrame(rsp)
+            frame = self._frame(tid, unit, rsp)
             if fault in ("drop", "bus_off"):
                 pass
             elif fault == "stale" and self.last is not None:
                 self.ep.send(self.last)
             elif fault == "corrupt":
                 bad = bytearray(frame)
-                if o.transport == "rtu":
-                    bad[-1] ^= 0xFF
+                if self.tcp:
+                    bad[4:6] = (len(bad) + 40).to_bytes(2, "big")[:2]   # a length beyond the frame
+                    bad[7] = 0x63
                 else:
-                    bad[8] = 0xFF        # byte count beyond the frame: the PDU does not decode
+                    bad[-1] ^= 0xFF
                 self.ep.send(bytes(bad))
             else:
                 if fault == "late":
                     time.sleep(self.bank.late_s)
                 self.ep.send(frame)
-            if req.function_code in (6, 16, 23):
-                self.last = frame
+            self.last = frame
+
+    _read_fault = None
 
     def close(self) -> None:
         self.ep.close()

@@ -24,7 +24,9 @@ from pydantic import Field
 from motorctl.schema import StrictModel
 from motorctl_drivers.sim import SimAxisOptions, SimDriver, SimOptions
 
-FAULT_KINDS = ("drop", "late", "corrupt", "stale", "exception", "disconnect", "bus_off")
+FAULT_KINDS = ("drop", "late", "corrupt", "stale", "exception", "disconnect", "bus_off", "emcy")
+#: the error code of an ``emcy`` fault without ``=CODE`` (CiA 402: continuous over-current)
+DEFAULT_EMCY_CODE = 0x2310
 #: the watchdog when neither ``--watchdog`` nor the plant config's ``driver.watchdog_s`` sets one [s]
 DEFAULT_WATCHDOG_S = 0.05
 #: delay of a 'late' answer [s]
@@ -38,23 +40,35 @@ class FaultSpec(StrictModel):
     Kinds: drop (no reply), late (reply after ``late_s``), corrupt (bad CRC / bad frame),
     stale (the previous reply again, old sequence number), exception (an error reply:
     Modbus exception 0x04, or the frame's error flag), disconnect (close the link / stop
-    answering), bus_off (CAN: the node leaves the bus, nothing sent or answered).
+    answering), bus_off (CAN: the node leaves the bus, nothing sent or answered), emcy (a
+    CiA 402 drive faults and sends an EMCY with error code ``code``; ``emcy=0x4310`` in the CLI
+    form, default :data:`DEFAULT_EMCY_CODE`).
     """
 
-    kind: Literal["drop", "late", "corrupt", "stale", "exception", "disconnect", "bus_off"]
+    kind: Literal["drop", "late", "corrupt", "stale", "exception", "disconnect", "bus_off", "emcy"]
     axis: str = "*"
     start: Annotated[int, Field(ge=0)] = 0
     count: Annotated[int, Field(ge=1)] = 1
+    code: Annotated[int, Field(ge=1, le=0xFFFF)] = DEFAULT_EMCY_CODE
 
     @classmethod
     def parse(cls, text: str) -> "FaultSpec":
-        """``KIND[:AXIS[:START[:COUNT]]]`` (CLI form), e.g. ``drop:X:2000:5``. Raises ValueError."""
+        """``KIND[=CODE][:AXIS[:START[:COUNT]]]`` (CLI form), e.g. ``drop:X:2000:5``,
+        ``emcy=0x2310:X:500``. Raises ValueError."""
         parts = text.split(":")
         if not parts[0] or len(parts) > 4:
             raise ValueError(f"fault {text!r}: expected KIND[:AXIS[:START[:COUNT]]]")
-        if parts[0] not in FAULT_KINDS:
-            raise ValueError(f"fault {text!r}: unknown kind {parts[0]!r}; allowed: {', '.join(FAULT_KINDS)}")
-        kw = {"kind": parts[0]}
+        kind, _, code = parts[0].partition("=")
+        if kind not in FAULT_KINDS:
+            raise ValueError(f"fault {text!r}: unknown kind {kind!r}; allowed: {', '.join(FAULT_KINDS)}")
+        kw = {"kind": kind}
+        if code:
+            if kind != "emcy":
+                raise ValueError(f"fault {text!r}: only emcy takes =CODE")
+            try:
+                kw["code"] = int(code, 0)
+            except ValueError:
+                raise ValueError(f"fault {text!r}: CODE is an integer (e.g. 0x2310)") from None
         try:
             if len(parts) > 1 and parts[1]:
                 kw["axis"] = parts[1]
@@ -107,17 +121,22 @@ class PlantBank:
     def next_fault(self, axes) -> str | None:
         """Count one received command frame for ``axes`` (indexes) and return the fault
         scheduled for it (None: answer normally). A frame-level fault hits every axis it carries."""
-        kind = None
+        spec = self.next_fault_spec(axes)
+        return spec.kind if spec is not None else None
+
+    def next_fault_spec(self, axes) -> FaultSpec | None:
+        """As :meth:`next_fault`, returning the whole :class:`FaultSpec` (e.g. an EMCY's code)."""
+        found = None
         for f in self.faults:
             for k in axes:
                 if f.axis in ("*", self.names[k]) and f.start <= self.received[k] < f.start + f.count:
-                    kind = f.kind
+                    found = f
                     break
-            if kind:
+            if found:
                 break
         for k in axes:
             self.received[k] += 1
-        return kind
+        return found
 
     def command(self, i: int, u_V: float, enable: bool) -> None:
         """Apply one valid command to axis i: hold u_V [V] for one period (0 V when disabled or faulted)."""

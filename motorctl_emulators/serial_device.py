@@ -7,8 +7,19 @@ from __future__ import annotations
 
 import time
 
-from motorctl_drivers.serial_link import (CMD, QUERY, FrameParser, SerialOptions, decode_body, encode_error,
-                                          encode_reply)
+from motorctl_drivers.serial_link import (
+    ACK,
+    CMD,
+    CONFIG,
+    QUERY,
+    WATCHDOG_UNIT_S,
+    FrameParser,
+    SerialOptions,
+    decode_body,
+    encode_config,
+    encode_error,
+    encode_reply,
+)
 from motorctl_drivers.split_phase import counts_to_volts
 from motorctl_emulators.device import Device
 from motorctl_emulators.plant_bank import PlantBank
@@ -30,7 +41,7 @@ class SerialDevice(Device):
         self.m_per_count = [axis_options[a].encoder_m_per_count for a in bank.names]
         self.index = {axis_options[a].node: i for i, a in enumerate(bank.names)}
         self.ep = StreamEndpoint(options.port)
-        self.parser = FrameParser((CMD, QUERY))
+        self.parser = FrameParser((CMD, QUERY, CONFIG))
         self._last_reply = None
 
     def _reply(self, seq: int, nodes) -> bytes:
@@ -54,6 +65,15 @@ class SerialDevice(Device):
             if kind == QUERY:
                 nodes = [nd for nd in decode_body(QUERY, m, frame) if nd in self.index]
                 self.ep.send(self._reply(seq, nodes))
+                continue
+            if kind == CONFIG:                 # the host sets the command watchdog
+                units = decode_body(CONFIG, m, frame)[0]
+                if units == 0:
+                    self.ep.send(encode_error(address, seq, 1, 2))
+                    continue
+                b.watchdog_s = units * WATCHDOG_UNIT_S
+                b.log(f"watchdog set to {b.watchdog_s * 1e3:g} ms by the host")
+                self.ep.send(encode_config(address, seq, units, ACK))
                 continue
             items = [it for it in decode_body(CMD, m, frame) if it[0] in self.index]
             nodes = [it[0] for it in items]

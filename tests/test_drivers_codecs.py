@@ -6,7 +6,13 @@ from __future__ import annotations
 import pytest
 
 from motorctl_drivers import can_bus, modbus, serial_link
-from motorctl_drivers.split_phase import EncoderUnwrap, counts_to_volts, to_signed, to_unsigned, volts_to_counts
+from motorctl_drivers.split_phase import (
+    EncoderUnwrap,
+    counts_to_volts,
+    to_signed,
+    to_unsigned,
+    volts_to_counts,
+)
 from motorctl_emulators.plant_bank import FaultSpec
 
 
@@ -147,43 +153,85 @@ def test_can_overlapping_fields_are_refused():
 
 
 # --------------------------------------------------------------------------- Modbus
-@pytest.mark.parametrize("order", ["big", "little"])
-def test_modbus_counts_word_order_and_wrap(order):
-    r0, r1 = modbus.split_counts(-2, order)
-    assert {r0, r1} == {0xFFFF, 0xFFFE}
-    assert (r0, r1) == ((0xFFFF, 0xFFFE) if order == "big" else (0xFFFE, 0xFFFF))
-    assert to_signed(modbus.join_counts(r0, r1, order), 32) == -2
-    assert modbus.join_counts(*modbus.split_counts(0x12345678, order), order) == 0x12345678
+@pytest.mark.parametrize("word_order", ["big", "little"])
+@pytest.mark.parametrize("dtype", ["int16", "uint16", "int32", "uint32", "float32"])
+def test_modbus_values_match_pymodbus_conversion(dtype, word_order):
+    """Our register codec against pymodbus's own (ModbusClientMixin.convert_*_registers)."""
+    from pymodbus.client.mixin import ModbusClientMixin as M
+    v = modbus.Value(address=0, type=dtype, word_order=word_order)
+    x = {"int16": -1234, "uint16": 54321, "int32": -123456789, "uint32": 3_000_000_000, "float32": -1.5e-3}[dtype]
+    dt = getattr(M.DATATYPE, dtype.upper())
+    raw = x & ((1 << (16 * v.nregs)) - 1) if dtype != "float32" else x
+    regs = modbus.value_to_registers(v, raw)
+    assert list(regs) == M.convert_to_registers(x, dt, word_order=word_order)
+    back = modbus.registers_to_value(v, regs)
+    assert back == pytest.approx(raw) if dtype == "float32" else back == raw
+    le = modbus.Value(address=0, type=dtype, word_order=word_order, byte_order="little")
+    swapped = modbus.value_to_registers(le, raw)       # byte order: each register's two bytes swapped
+    assert [((r & 0xFF) << 8) | (r >> 8) for r in swapped] == list(regs)
+    assert modbus.registers_to_value(le, swapped) == back
 
 
-def test_modbus_rtu_crc_from_pymodbus():
-    from pymodbus.framer import FramerRTU
+def test_modbus_voltage_scale_offset_and_saturation():
+    v = modbus.Value(address=0, type="uint16", scale=20.0 / 65535, offset=-10.0)     # 0..65535 = -10..+10 V
+    assert modbus.volts_to_raw(v, -10.0, v.scale) == 0 and modbus.volts_to_raw(v, 10.0, v.scale) == 65535
+    assert modbus.volts_to_raw(v, 0.0, v.scale) == 32768 and modbus.volts_to_raw(v, 99.0, v.scale) == 65535
+    i16 = modbus.Value(address=0, type="int16")
+    assert modbus.volts_to_raw(i16, float("nan"), 10 / 32767) == 0       # NaN never reaches the amplifier
+    assert modbus.volts_to_raw(i16, -25.0, 10 / 32767) == -32768
+
+
+def test_modbus_rtu_crc_and_frames_match_pymodbus():
+    from pymodbus.framer import FramerRTU, FramerSocket
     from pymodbus.pdu import DecodePDU
-    from pymodbus.pdu.register_message import ReadHoldingRegistersRequest
-    frame = FramerRTU(DecodePDU(is_server=False)).buildFrame(
-        ReadHoldingRegistersRequest(address=0, count=1, dev_id=1))
-    assert frame == bytes.fromhex("010300000001840a")       # the classic Modbus RTU example
+    assert modbus.crc16(bytes.fromhex("010300000001")) == 0x0A84    # the classic Modbus RTU example
+    r = modbus.Request(23, 7, 0, address=100, count=7, waddress=0, wcount=5)
+    r.build(tcp=False)
+    r.frame[r.pdu_off + r.data_off:r.pdu_off + r.data_off + 10] = bytes(range(10))
+    c = modbus.crc16(r.frame[:-2])
+    r.frame[-2:] = bytes((c & 0xFF, c >> 8))
+    used, dev, _tid, pdu = FramerRTU(DecodePDU(is_server=True)).decode(bytes(r.frame))
+    req = DecodePDU(is_server=True).decode(pdu)
+    assert used == len(r.frame) and dev == 7 and req.function_code == 23
+    assert (req.read_address, req.read_count, req.write_address) == (100, 7, 0)
+    assert req.write_registers == [0x0001, 0x0203, 0x0405, 0x0607, 0x0809]
+    t = modbus.Request(16, 3, 0, waddress=2, wcount=2)
+    t.build(tcp=True)
+    t.frame[0:2] = (0x1234).to_bytes(2, "big")
+    used, dev, tid, pdu = FramerSocket(DecodePDU(is_server=True)).decode(bytes(t.frame))
+    assert (used, dev, tid) == (len(t.frame), 3, 0x1234)
+    assert DecodePDU(is_server=True).decode(pdu).function_code == 16
 
 
-def _mb_axis(v, c, counts, status):
-    return modbus.ModbusAxisOptions(voltage_register=v, control_register=c, counts_register=counts,
-                                    status_register=status)
+def _mb_axis(v, c, pos, status, **kw):
+    return modbus.ModbusAxisOptions(voltage={"address": v}, enable={"address": c, "bit": 0},
+                                    position={"address": pos, "type": "uint32", "scale": 0.5e-6},
+                                    fault={"address": status}, **kw)
 
 
-def test_modbus_register_plan_is_one_fc23():
+def test_modbus_register_plan_one_fc23_where_the_device_has_it():
     opts = modbus.ModbusOptions(sequence_register=4, sequence_echo_register=106)
     ax = {"X": _mb_axis(0, 1, 100, 102), "Y": _mb_axis(2, 3, 103, 105)}
-    plan = modbus.RegisterPlan(["X", "Y"], ax, opts)
-    assert plan.write_address == 0 and len(plan.write_slots) == 5
-    assert (plan.read_address, plan.read_count) == (100, 7)
+    assert modbus.RegisterPlan(["X", "Y"], ax, opts, fc23={0: True}).summary() == \
+        ["FC23 unit 1 write 0+5 read 100+7"]
+    assert modbus.RegisterPlan(["X", "Y"], ax, opts, fc23={0: False}).summary() == \
+        ["FC16 unit 1 write 0+5", "FC03 unit 1 read 100+7"]
 
 
-def test_modbus_register_plan_refuses_gaps_and_reuse():
-    opts = modbus.ModbusOptions()
-    with pytest.raises(ValueError, match="not contiguous"):
-        modbus.RegisterPlan(["X", "Y"], {"X": _mb_axis(0, 1, 100, 102), "Y": _mb_axis(5, 6, 103, 105)}, opts)
+def test_modbus_register_plan_coils_discrete_inputs_and_units():
+    ax = {"X": modbus.ModbusAxisOptions(voltage={"address": 10}, enable={"table": "coil", "address": 0},
+                                        position={"table": "input", "address": 0, "type": "int32", "scale": 1e-6},
+                                        fault={"table": "discrete", "address": 3, "active": "low"}),
+          "Y": modbus.ModbusAxisOptions(unit_id=2, voltage={"address": 10, "type": "float32", "scale": 1.0},
+                                        enable={"table": "coil", "address": 0},
+                                        position={"table": "input", "address": 0, "type": "float32", "scale": 1.0})}
+    plan = modbus.RegisterPlan(["X", "Y"], ax, modbus.ModbusOptions(unit_id=1))
+    assert plan.summary() == ["FC06 unit 1 write 10+1", "FC05 unit 1 write 0+1", "FC04 unit 1 read 0+2",
+                              "FC02 unit 1 read 3+1", "FC16 unit 2 write 10+2", "FC05 unit 2 write 0+1",
+                              "FC04 unit 2 read 0+2"]
     with pytest.raises(ValueError, match="used twice"):
-        modbus.RegisterPlan(["X", "Y"], {"X": _mb_axis(0, 1, 100, 102), "Y": _mb_axis(1, 2, 103, 105)}, opts)
+        modbus.RegisterPlan(["X", "Y"], {"X": _mb_axis(0, 1, 100, 102), "Y": _mb_axis(1, 2, 103, 105)},
+                            modbus.ModbusOptions())
 
 
 # --------------------------------------------------------------------------- fault specs
@@ -195,3 +243,8 @@ def test_fault_spec_parsing():
         FaultSpec.parse("explode:X")
     with pytest.raises(ValueError, match="integers"):
         FaultSpec.parse("drop:X:soon")
+    e = FaultSpec.parse("emcy=0x4310:Y:700")
+    assert (e.kind, e.code, e.axis, e.start) == ("emcy", 0x4310, "Y", 700)
+    assert FaultSpec.parse("emcy").code == 0x2310
+    with pytest.raises(ValueError, match="only emcy"):
+        FaultSpec.parse("drop=3")

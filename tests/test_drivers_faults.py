@@ -15,13 +15,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from motorctl.recorder.runlog import read_log
 from motorctl.loop.safety import FAULT_IO_ERROR
-from motorctl_emulators.harness import (LOOPBACK_WATCHDOG_S, Emulator, NetNamespace, loopback_e2e_config,
-                                        parse_run_table, run_cli)
+from motorctl.recorder.runlog import read_log
+from motorctl_emulators.harness import (
+    LOOPBACK_WATCHDOG_S,
+    Emulator,
+    NetNamespace,
+    loopback_e2e_config,
+    parse_run_table,
+    run_cli,
+)
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-PLANT = CONFIGS / "gantry.yaml"
+PLANT = CONFIGS / ("gantry-rigid.yaml" if (CONFIGS / "gantry-rigid.yaml").exists() else "gantry.yaml")
 
 #: Below the limit: each burst adds ≤ 10 × (cycles lost) to a bucket of 100, which drains by 1
 #: per clean cycle between bursts (60 ms apart: ≥ 60 cycles). Then a lasting loss from
@@ -32,7 +38,7 @@ PLANT = CONFIGS / "gantry.yaml"
 #: time × rate.
 TRANSIENT = [("drop", 0.10, 3), ("corrupt", 0.16, 3), ("stale", 0.22, 2), ("exception", 0.28, 2),
              ("late", 0.34, 1)]
-LATE_S = 0.001
+LATE_S = 0.002     # later than the next read window (1.75 periods at 1000 Hz) on every transport
 LASTING_T = 0.42
 LASTING = {"serial": ("disconnect", 1), "can": ("bus_off", 100000), "modbus": ("disconnect", 1)}
 

@@ -194,3 +194,33 @@ def test_voltage_out_limit_is_the_drive_full_scale(name, tmp_path):
     assert drv.voltage_limit_V("Y") == (10.0 if per_axis else 12.0)
     vout = {i.name: i for i in drv.command_interfaces("X")}["voltage_out"]
     assert (vout.min, vout.max) == (-12.0, 12.0)
+
+
+@pytest.mark.parametrize("name", ["gantry-serial.yaml", "gantry-modbus.yaml"])
+def test_port_failures_are_one_clear_line(name, tmp_path):
+    """A missing device and a path that is no tty (its line settings are refused) give one line
+    naming the port and why, and `motorctl run` prints it without a traceback."""
+    import yaml
+
+    from motorctl_emulators.harness import run_cli
+    not_a_tty = tmp_path / "plainfile"
+    not_a_tty.write_text("")
+    for port, why in ((str(tmp_path / "ttyNONE"), "no such device"),
+                      (str(not_a_tty), "line settings were refused")):
+        extra = {"port": port} if name == "gantry-serial.yaml" else {"transport": "rtu", "serial_port": port,
+                                                                    "parity": "O", "stopbits": 2}
+        d = _config(name, tmp_path, **extra)
+        drv = config_from_dict(d, "<ports>", check_budget=False).make_driver()
+        with pytest.raises(OSError) as exc:
+            drv.configure()
+        msg = str(exc.value)
+        assert port in msg and why in msg and "\n" not in msg, msg
+        if name == "gantry-modbus.yaml":
+            assert "8O2" in msg                                   # the line settings asked for
+        assert drv.state == "unconfigured"
+        d["loop"]["rate_hz"] = 100                                # a rate every transport's budget takes
+        cfg = tmp_path / "cfg.yaml"
+        cfg.write_text(yaml.safe_dump(d))
+        r = run_cli(["run", str(cfg), "--duration", "0.1"], timeout_s=60)
+        assert r.returncode == 1 and r.stderr.startswith("motorctl: error: ") and "Traceback" not in r.stderr, r.stderr
+        assert why in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr

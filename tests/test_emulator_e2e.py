@@ -5,11 +5,16 @@ compared with the sim driver on the same plant and seed at the same loop rate.
 Rates (the highest each budget allows on this machine, :func:`loopback_rate`): the shipped
 config's wire time plus the loopback round trip p99 measured here (``LOOPBACK_ROUND_TRIP_S``),
 at most 80 % load, on a 500 Hz grid: serial 3 Mbaud 120 µs + 225 µs → 2000 Hz; CAN FD 1M/5M
-group frames 117 µs + 515 µs (python-can udp_multicast) → 1000 Hz; Modbus TCP 434 µs → 1500 Hz.
+group frames 117 µs + 515 µs (python-can udp_multicast) → 1000 Hz; Modbus TCP 434 µs → 1500 Hz;
+CANopen (CiA 402 drives on canopen's device side, classic CAN 1 Mbit/s: SYNC + 2 RPDO + 2 TPDO
+475 µs) + 445 µs → 500 Hz.
 
-CAN runs over python-can's udp_multicast inside a private network namespace the test makes
-(``unshare -n``, lo up, 224.0.0.0/4 via lo); serial over ``socket://127.0.0.1``; Modbus TCP on
-127.0.0.1. Also: the emulator's watchdog zeroes its output when the driver process is killed.
+CAN and CANopen run over python-can's udp_multicast inside a private network namespace the test
+makes (``unshare -n``, lo up, 224.0.0.0/4 via lo); serial over ``socket://127.0.0.1``; Modbus TCP
+on 127.0.0.1. Also: the emulator's watchdog zeroes its output when the driver process is killed.
+
+The plant is the paper's rigid one (``configs/gantry-rigid.yaml``): these tests are about the
+transports; the unmodelled dynamics of ``configs/gantry.yaml`` are the controllers' business.
 """
 
 from __future__ import annotations
@@ -22,15 +27,25 @@ from pathlib import Path
 
 import pytest
 
-from motorctl.config import config_from_dict
 from motorctl.app.job import run_job
-from motorctl_emulators.harness import (LOOPBACK_WATCHDOG_S, Emulator, NetNamespace, loopback_e2e_config,
-                                        motorctl_cmd, parse_run_table, run_cli, sim_twin, wait_for)
+from motorctl.config import config_from_dict
+from motorctl_emulators.harness import (
+    LOOPBACK_WATCHDOG_S,
+    Emulator,
+    NetNamespace,
+    loopback_e2e_config,
+    motorctl_cmd,
+    parse_run_table,
+    run_cli,
+    sim_twin,
+    wait_for,
+)
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-PLANT = CONFIGS / "gantry.yaml"        # the emulator's plant: the simulated gantry
+#: the emulator's plant: the simulated gantry (the paper's rigid plant where the config exists)
+PLANT = CONFIGS / ("gantry-rigid.yaml" if (CONFIGS / "gantry-rigid.yaml").exists() else "gantry.yaml")
 DURATION_S = 3.0
-EXPECTED_RATE_HZ = {"serial": 2000.0, "can": 1000.0, "modbus": 1500.0}
+EXPECTED_RATE_HZ = {"serial": 2000.0, "can": 1000.0, "modbus": 1500.0, "canopen": 500.0}
 TOLERANCE = 0.20
 
 
@@ -53,7 +68,7 @@ def namespace_for():
     held = []
 
     def make(transport):
-        if transport != "can":
+        if transport not in ("can", "canopen"):
             return ()
         ns = NetNamespace().__enter__()
         held.append(ns)
@@ -63,7 +78,7 @@ def namespace_for():
         ns.__exit__(None, None, None)
 
 
-@pytest.mark.parametrize("transport", ["serial", "can", "modbus"])
+@pytest.mark.parametrize("transport", ["serial", "can", "modbus", "canopen"])
 def test_closed_loop_through_the_protocol_matches_the_sim_driver(transport, tmp_path, namespace_for):
     d, cfg, rate = loopback_e2e_config(transport, CONFIGS, tmp_path)
     assert rate == EXPECTED_RATE_HZ[transport], f"{transport}: budget now allows {rate} Hz"
@@ -101,14 +116,16 @@ def test_emulator_watchdog_zeroes_output_when_the_driver_is_killed(transport, tm
         try:
             assert wait_for(lambda: "first command Y" in emu.stderr(), 30.0), emu.stderr()
             assert wait_for(lambda: False, 0.3) is False          # let it drive a little
-            assert "watchdog" not in emu.stderr()
+            assert "watchdog X:" not in emu.stderr() and "watchdog Y:" not in emu.stderr()   # no trip yet
             os.killpg(run.pid, signal.SIGKILL)                     # the driver dies mid-motion
             run.wait(timeout=10)
         finally:
             if run.poll() is None:
                 os.killpg(run.pid, signal.SIGKILL)
                 run.wait(timeout=10)
-        assert wait_for(lambda: "watchdog X" in emu.stderr() and "watchdog Y" in emu.stderr(), 5.0), emu.stderr()
+        assert wait_for(lambda: "watchdog X:" in emu.stderr() and "watchdog Y:" in emu.stderr(), 5.0), emu.stderr()
+        if transport == "serial":         # the driver set the device's watchdog in configure()
+            assert f"watchdog set to {LOOPBACK_WATCHDOG_S * 1e3:g} ms by the host" in emu.stderr()
         if transport != "can":            # a fresh master sees the latched amplifier fault
             from motorctl.config import load_config
             drv = load_config(cfg, check_budget=False).make_driver()

@@ -23,7 +23,7 @@ REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("motorctl", "motorctl_drivers", "motorctl_emulators")
 #: device-side names that must not appear in motorctl_drivers (besides any class named *Device)
 EMULATOR_NAMES = {"PlantBank", "StreamEndpoint", "FaultSpec", "EmulatorOptions", "serve_forever"}
-TRANSPORTS = {"can", "serial", "modbus"}
+TRANSPORTS = {"can", "serial", "modbus", "canopen"}
 
 
 def imports_of(tree: ast.AST, module: str) -> set[str]:
@@ -86,7 +86,8 @@ def _wheel_modules(zf: zipfile.ZipFile, package: str) -> dict[str, ast.Module]:
 def test_wheel_drivers_hold_no_emulator_code(wheel):
     mods = _wheel_modules(wheel, "motorctl_drivers")
     assert {"motorctl_drivers.sim", "motorctl_drivers.can_bus", "motorctl_drivers.serial_link",
-            "motorctl_drivers.modbus", "motorctl_drivers.split_phase"} <= set(mods), sorted(mods)
+            "motorctl_drivers.modbus", "motorctl_drivers.split_phase", "motorctl_drivers.canopen_cia402",
+            "motorctl_drivers.cia402"} <= set(mods), sorted(mods)
     for mod, tree in mods.items():
         bad = sorted(m for m in imports_of(tree, mod) if m.split(".")[0] == "motorctl_emulators")
         assert not bad, f"{mod} imports {bad}"
@@ -94,7 +95,8 @@ def test_wheel_drivers_hold_no_emulator_code(wheel):
         device_side = sorted(n for n in names if n in EMULATOR_NAMES or n.endswith("Device"))
         assert not device_side, f"{mod} defines device-side code: {device_side}"
     # and the emulators are shipped as their own package
-    assert {f"motorctl_emulators.{t}_device" for t in TRANSPORTS} <= set(_wheel_modules(wheel, "motorctl_emulators"))
+    assert {f"motorctl_emulators.{t}_device" for t in TRANSPORTS - {"canopen"}} | {"motorctl_emulators.cia402_device"} \
+        <= set(_wheel_modules(wheel, "motorctl_emulators"))
 
 
 def test_wheel_declares_the_emulator_entry_points(wheel):
@@ -114,7 +116,7 @@ def test_installed_emulator_entry_points_resolve_to_devices():
     for name in names:
         cls = load_device_class(name)
         assert issubclass(cls, Device) and cls.__module__.startswith("motorctl_emulators.")
-    with pytest.raises(KeyError, match="installed: can, modbus, serial"):
+    with pytest.raises(KeyError, match="installed: can, canopen, modbus, serial"):
         load_device_class("sim")
 
 

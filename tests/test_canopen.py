@@ -1,0 +1,246 @@
+"""CANopen CiA 402: the profile logic (cia402.py) and the driver against drives built on canopen's
+own device side (``canopen.LocalNode``, motorctl_emulators/cia402_device.py), on python-can's
+``virtual`` bus in this process (the drives in a thread; functional, no timing)."""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from motorctl.config import ConfigError, config_from_dict, load_yaml
+from motorctl_drivers import cia402
+from motorctl_emulators.device import build_device
+from motorctl_emulators.plant_bank import FaultSpec
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+PLANT = CONFIGS / ("gantry-rigid.yaml" if (CONFIGS / "gantry-rigid.yaml").exists() else "gantry.yaml")
+
+
+# --------------------------------------------------------------------------- profile logic
+@pytest.mark.parametrize("sw, state", [(0x0000, cia402.NOT_READY), (0x0250, cia402.SWITCH_ON_DISABLED),
+                                       (0x0231, cia402.READY_TO_SWITCH_ON), (0x0233, cia402.SWITCHED_ON),
+                                       (0x0237, cia402.OPERATION_ENABLED), (0x0217, cia402.QUICK_STOP_ACTIVE),
+                                       (0x021F, cia402.FAULT_REACTION_ACTIVE), (0x0208, cia402.FAULT),
+                                       (0x0228, cia402.FAULT)])
+def test_statusword_decoding(sw, state):
+    assert cia402.decode_state(sw) == state
+
+
+def test_power_state_machine_enables_step_by_step_and_resets_faults_on_a_rising_edge():
+    sm = cia402.PowerStateMachine()
+    assert sm.step(0x0250, True) == cia402.CW_SHUTDOWN and not sm.enabled
+    assert sm.step(0x0250, True) == cia402.CW_SHUTDOWN          # not confirmed yet: asked again
+    assert sm.step(0x0231, True) == cia402.CW_SWITCH_ON
+    assert sm.step(0x0233, True) == cia402.CW_ENABLE_OPERATION and not sm.enabled
+    assert sm.step(0x0237, True) == cia402.CW_ENABLE_OPERATION and sm.enabled
+    assert sm.step(0x0237, False) == cia402.CW_DISABLE_VOLTAGE and sm.enabled   # the drive has not left yet
+    assert sm.step(0x0208, True) == cia402.CW_DISABLE_VOLTAGE and sm.fault      # enabled: never reset
+    cws = [sm.step(0x0208, False) for _ in range(2 * sm.RESET_RETRY_CYCLES)]
+    edges = [k for k in range(1, len(cws)) if cws[k] & 0x80 and not cws[k - 1] & 0x80]
+    assert len(edges) == 2 and all(c in (0, 0x80) for c in cws)                 # rising edges of bit 7
+    assert sm.step(0x0250, False) == cia402.CW_DISABLE_VOLTAGE and not sm.fault
+
+
+def test_error_codes_and_scaling():
+    assert cia402.describe_error(0x2310) == "0x2310 continuous over-current"
+    assert cia402.error_meaning(0x8130) == "life guard error or heartbeat error"
+    assert cia402.error_meaning(0x2311) == "continuous over-current (group)"
+    assert cia402.error_meaning(0xFF42) == "device specific"
+    assert cia402.volts_to_permille(10.0, 10.0, 1000) == 1000
+    assert cia402.volts_to_permille(-25.0, 10.0, 1000) == -1000          # saturates
+    assert cia402.volts_to_permille(float("nan"), 10.0, 1000) == 0
+    assert cia402.permille_to_volts(-500, 10.0, 1000) == -5.0
+
+
+# --------------------------------------------------------------------------- driver and drives
+def _config(tmp_path, **driver) -> dict:
+    d = load_yaml(CONFIGS / "gantry-canopen.yaml")
+    d["loop"]["rate_hz"] = 500
+    d["driver"].update(interface="virtual", channel=f"co-{tmp_path.name}", timeout_s=0.0015, wait="spin",
+                       round_trip_exchanges=20)
+    d["driver"].update(driver)
+    return d
+
+
+@contextlib.contextmanager
+def _drives(loaded, faults=()):
+    dev = build_device(loaded, PLANT, faults=list(faults))
+    stop = threading.Event()
+    th = threading.Thread(target=dev.serve, kwargs={"stop": stop.is_set}, daemon=True)
+    th.start()
+    try:
+        yield dev
+    finally:
+        stop.set()
+        th.join(timeout=5)
+
+
+def _cycle(drv, u, en, n=1, sleep=0.003):
+    for _ in range(n):
+        drv.write(np.asarray(u, dtype=float), np.asarray(en, dtype=bool))
+        time.sleep(sleep)
+        drv.read()
+
+
+def test_configure_maps_pdos_checks_scales_and_measures_the_round_trip(tmp_path):
+    loaded = config_from_dict(_config(tmp_path), "<co>", check_budget=False)
+    with _drives(loaded) as dev:
+        drv = loaded.make_driver()
+        try:
+            drv.configure()
+            d = drv.describe()
+            x = d["drives"]["X"]
+            assert x["device_type"] == "0x00020192" and x["state"] == "Switch on disabled"
+            assert x["rpdo"] == {"cob_id": "0x201", "map": ["0x6040:00/16", "0x6071:00/16"], "transmission_type": 1}
+            assert x["tpdo"] == {"cob_id": "0x181", "map": ["0x6041:00/16", "0x6064:00/32"], "transmission_type": 1}
+            assert x["scale"] == {"permille_per_V": 100.0, "m_per_count": 0.5e-6}
+            rt = d["round_trip"]
+            assert rt["n"] == 20 and 0 < rt["median_us"] <= rt["max_us"] and rt["budget_source"] == "configured"
+            node = dev.drives[0].node                    # what the drive holds, read on its side
+            assert node.sdo[0x6060].raw == 10 and node.sdo[0x1017].raw == 10
+            assert node.sdo[0x6007].raw == 1 and node.sdo[0x1006].raw == 2000
+            assert node.sdo[0x1800][1].raw == 0x40000181            # TPDO valid, no RTR
+            drv.activate()
+            assert node.nmt.state == "OPERATIONAL" and node.sdo[0x1016][1].raw == (127 << 16) | 50
+        finally:
+            drv.close()
+        assert node.nmt.state == "PRE-OPERATIONAL" and node.sdo[0x1016][1].raw == 0
+
+
+def test_enable_walks_the_state_machine_and_torque_flows_only_in_operation_enabled(tmp_path):
+    loaded = config_from_dict(_config(tmp_path), "<co>", check_budget=False)
+    with _drives(loaded) as dev:
+        drv = loaded.make_driver()
+        try:
+            drv.open()
+            y0 = drv.position_m.copy()
+            seen = []
+            for _ in range(12):
+                _cycle(drv, [3.0, -3.0], [True, True])
+                seen.append((drv.describe()["drives"]["X"]["state"], dev.bank.applied_V[0]))
+                if drv._sm[0].enabled:
+                    break
+            assert [s for s, _ in seen][-1] == "Operation enabled"
+            assert all(v == 0.0 for s, v in seen[:-1]), seen        # no torque before Operation enabled
+            _cycle(drv, [3.0, -3.0], [True, True], n=30)
+            assert dev.bank.applied_V[0] == pytest.approx(3.0, abs=0.02)     # 300 per mille <-> 3 V
+            moved = drv.position_m - y0
+            assert moved[0] > 0 and moved[1] < 0, moved
+            assert not drv.read_error.any() and not drv.amp_fault.any()
+            trace = [t.split(" ", 1)[1] for t in drv.describe()["drives"]["X"]["statusword_trace"]]
+            assert trace[:4] == ["Switch on disabled", "Ready to switch on", "Switched on", "Operation enabled"]
+            _cycle(drv, [3.0, 3.0], [False, True], n=3)             # X disabled: Disable voltage
+            assert drv.describe()["drives"]["X"]["state"] == "Switch on disabled" and dev.bank.applied_V[0] == 0.0
+        finally:
+            drv.close()
+        assert dev.bank.applied_V == [0.0, 0.0]
+
+
+def test_emcy_latches_an_amplifier_fault_naming_the_code_and_a_disabled_axis_resets_it(tmp_path):
+    loaded = config_from_dict(_config(tmp_path), "<co>", check_budget=False)
+    with _drives(loaded, [FaultSpec.parse("emcy=0x2310:X:20")]) as dev:
+        drv = loaded.make_driver()
+        try:
+            drv.open()
+            for _ in range(40):
+                _cycle(drv, [1.0, 1.0], [True, True])
+                if drv.amp_fault[0]:
+                    break
+            assert drv.amp_fault[0] and not drv.amp_fault[1]
+            reason = drv.fault_reason(0)
+            assert "0x2310 continuous over-current" in reason and "node 1 (axis X)" in reason
+            _cycle(drv, [1.0, 1.0], [True, True], n=3)               # still requested: stays latched
+            assert drv.amp_fault[0] and dev.bank.applied_V[0] == 0.0
+            for _ in range(20):                                       # the supervisor disables the axis
+                _cycle(drv, [0.0, 1.0], [False, True])
+                if not drv.amp_fault[0]:
+                    break
+            assert not drv.amp_fault[0] and drv.fault_reason(0) == ""
+            assert drv.describe()["emcy"] == {"X": "0x2310 continuous over-current"}   # the history stays
+            trace = [t.split(" ", 1)[1] for t in drv.describe()["drives"]["X"]["statusword_trace"]]
+            assert "Fault" in trace and trace[-1] == "Switch on disabled"
+        finally:
+            drv.close()
+
+
+def test_a_missing_drive_heartbeat_is_a_read_error(tmp_path):
+    loaded = config_from_dict(_config(tmp_path), "<co>", check_budget=False)
+    with _drives(loaded) as dev:
+        drv = loaded.make_driver()
+        try:
+            drv.open()
+            _cycle(drv, [0, 0], [False, False], n=10, sleep=0.002)
+            assert not drv.read_error.any()
+            dev.drives[1].node.nmt.stop_heartbeat()                   # Y's heartbeat producer stops
+            errors = []
+            for _ in range(40):                                       # 40 x ~3 ms > 50 ms timeout
+                _cycle(drv, [0, 0], [False, False], sleep=0.002)
+                errors.append(tuple(drv.read_error))
+            assert errors[-1] == (False, True) and drv.counters["heartbeat_lost"] > 0
+        finally:
+            drv.close()
+
+
+def test_the_drives_heartbeat_consumer_stops_the_motor_when_the_host_goes_silent(tmp_path):
+    loaded = config_from_dict(_config(tmp_path, abort_connection_option=2), "<co>", check_budget=False)
+    with _drives(loaded) as dev:
+        drv = loaded.make_driver()
+        try:
+            drv.open()
+            for _ in range(40):
+                _cycle(drv, [2.0, 2.0], [True, True], sleep=0.002)
+            assert dev.bank.applied_V[0] != 0.0
+            t0 = time.monotonic()                                    # the host stops cycling
+            while time.monotonic() - t0 < 1.0 and dev.bank.applied_V[0] != 0.0:
+                time.sleep(0.005)
+            assert dev.bank.applied_V == [0.0, 0.0]
+            assert time.monotonic() - t0 < 0.05 + 0.1                # consumer 50 ms (+ the thread's slack)
+            assert dev.drives[0].state == cia402.SWITCH_ON_DISABLED   # option 2: disable voltage
+        finally:
+            drv.close()
+
+
+def test_configure_refuses_a_wrong_scale_and_releases_the_bus(tmp_path):
+    d = _config(tmp_path)
+    d["axes"]["X"]["driver"]["rated_torque"] = 1234                  # the drive says 100000
+    loaded = config_from_dict(d, "<co>", check_budget=False)
+    with _drives(loaded):
+        drv = loaded.make_driver()
+        with pytest.raises(OSError, match=r"rated torque 0x6076 is 100000, the config says 1234"):
+            drv.configure()
+        assert drv.state == "unconfigured" and drv.bus is None
+        d["axes"]["X"]["driver"].pop("rated_torque")
+        d["axes"]["X"]["driver"]["full_scale_permille"] = 3500      # above max torque 0x6072 = 3000
+        drv = config_from_dict(d, "<co>", check_budget=False).make_driver()
+        with pytest.raises(OSError, match="above the drive's max torque 0x6072 = 3000"):
+            drv.configure()
+        d["axes"]["X"]["driver"]["sdo"] = [{"index": 0x6072, "value": 4000, "size": 2}]   # raise it by SDO
+        drv = config_from_dict(d, "<co>", check_budget=False).make_driver()
+        try:
+            drv.configure()
+            assert drv.describe()["drives"]["X"]["max_torque_permille"] == 4000
+        finally:
+            drv.close()
+
+
+def test_no_drive_is_a_one_line_connection_error(tmp_path):
+    drv = config_from_dict(_config(tmp_path, sdo_timeout_s=0.05), "<co>", check_budget=False).make_driver()
+    with pytest.raises(ConnectionError) as exc:
+        drv.configure()
+    assert "\n" not in str(exc.value) and "canopen node 1 (axis X): no SDO answer reading 0x1000:00" in str(exc.value)
+    assert drv.bus is None
+
+
+def test_config_checks(tmp_path):
+    d = _config(tmp_path)
+    d["axes"]["Y"]["driver"]["node_id"] = 1
+    with pytest.raises(ConfigError, match="share a node_id"):
+        config_from_dict(d, "<co>", check_budget=False)
+    d = _config(tmp_path, heartbeat_consumer_ms=15)
+    with pytest.raises(ConfigError, match="at least twice"):
+        config_from_dict(d, "<co>", check_budget=False)

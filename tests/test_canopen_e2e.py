@@ -1,0 +1,121 @@
+"""CANopen CiA 402 end to end: ``motorctl run`` against CiA 402 drives built on canopen's device
+side (``motorctl emulate --transport canopen``) in their own process, over python-can's
+``udp_multicast`` inside a private network namespace the test makes. The closed loop against the
+sim driver is in tests/test_emulator_e2e.py (500 Hz: classic CAN 1 Mbit/s, SYNC + 2 RPDO + 2 TPDO
+475 us + the loopback round trip 445 us). Here:
+
+* an EMCY injected into X mid-move latches an amplifier fault that names its code (the run
+  report's log header), the drive goes through Fault reaction active into Fault and is reset by a
+  rising edge of controlword bit 7 once the axis is disabled; Y keeps running; the statusword
+  sequence of the enable is Switch on disabled → Ready to switch on → Switched on → Operation
+  enabled, each step asked for by the controlword and confirmed by the statusword;
+* SIGKILL of ``motorctl run`` stops the torque on the drive side: its heartbeat consumer (0x1016,
+  50 ms) expires and the abort connection option (0x6007 = 1, fault) sets the torque to 0.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+
+from motorctl.recorder.runlog import read_log
+from motorctl_emulators.harness import (
+    Emulator,
+    NetNamespace,
+    loopback_e2e_config,
+    motorctl_cmd,
+    parse_run_table,
+    run_cli,
+    wait_for,
+)
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+PLANT = CONFIGS / ("gantry-rigid.yaml" if (CONFIGS / "gantry-rigid.yaml").exists() else "gantry.yaml")
+CONSUMER_S = 0.050          # heartbeat_consumer_ms of configs/gantry-canopen.yaml
+
+
+def test_emcy_latches_a_fault_naming_its_code_and_the_enable_follows_the_state_machine(tmp_path):
+    d, cfg, rate = loopback_e2e_config("canopen", CONFIGS, tmp_path)
+    assert rate == 500.0 and d["driver"]["heartbeat_consumer_ms"] == CONSUMER_S * 1e3
+    # here the EMCY is the only fault wanted: a loaded VM's stall of the run must not reach the
+    # drives' heartbeat consumers (the SIGKILL test below keeps the shipped 50 ms)
+    d["driver"].update(heartbeat_consumer_ms=1000, drive_heartbeat_timeout_ms=1000)
+    cfg.write_text(__import__("yaml").safe_dump(d, sort_keys=False))
+    start = round(0.8 * rate)                       # the SYNC count 0.8 s in: X is moving
+    log_path = tmp_path / "run.log"
+    with NetNamespace() as ns, Emulator("canopen", cfg, plant=PLANT, prefix=ns.prefix,
+                                        faults=[f"emcy=0x2310:X:{start}"]) as emu:
+        r = run_cli(["run", str(cfg), "--controller", "c2", "--duration", "1.2", "--log", str(log_path)],
+                    prefix=ns.prefix, timeout_s=90)
+        err = emu.stderr()
+    table = parse_run_table(r.stdout)
+    assert set(table) == {"X", "Y"}, f"{r.stdout}\n{r.stderr}\n{err}"
+    assert r.returncode == 1 and "amplifier fault" in table["X"]["fault"] and table["Y"]["fault"] == "", r.stdout
+    # the drive's side: the statusword sequence, each transition asked for by its controlword
+    steps = re.findall(r"^X: (.+?) -> (.+?) \(controlword (0x[0-9A-F]{4}), statusword (0x[0-9A-F]{4})\)$", err, re.M)
+    assert steps[:3] == [("Switch on disabled", "Ready to switch on", "0x0006", "0x0231"),
+                         ("Ready to switch on", "Switched on", "0x0007", "0x0233"),
+                         ("Switched on", "Operation enabled", "0x000F", "0x0237")], err
+    assert steps[3][:2] == ("Operation enabled", "Fault reaction active") and steps[4][:2] == \
+        ("Fault reaction active", "Fault"), err
+    assert steps[5] == ("Fault", "Switch on disabled", "0x0080", "0x0240"), err    # reset: rising edge of bit 7
+    assert "X: fault 0x2310 continuous over-current (injected)" in err
+    # the host's side: the run report names the code; the trace is the statusword's
+    log = read_log(str(log_path))
+    drv = log.header["driver"]
+    assert drv["emcy"] == {"X": "0x2310 continuous over-current"}
+    assert drv["drives"]["X"]["emcy"]["code"] == "0x2310" and drv["drives"]["Y"]["emcy"] is None
+    trace = [t.split(" ", 1)[1] for t in drv["drives"]["X"]["statusword_trace"]]
+    assert trace[:4] == ["Switch on disabled", "Ready to switch on", "Switched on", "Operation enabled"]
+    assert "Fault" in trace
+    # 0 V and disabled from the cycle the fault latched, Y untouched
+    bits, u, en = log.col("X.fault_bits").astype(int), log.col("X.u"), log.col("X.enabled")
+    k = int(np.argmax(bits != 0))
+    assert 0.8 * rate <= k <= 0.8 * rate + 10, k
+    assert (u[k:] == 0.0).all() and (en[k:] == 0.0).all() and en[:k].min() == 1.0
+    assert not log.col("Y.fault_bits").any()
+    print(f"canopen statusword sequence (X): {' -> '.join(trace)}")
+
+
+def test_sigkill_of_the_host_stops_the_torque_through_the_drives_heartbeat_consumer(tmp_path):
+    d, cfg, rate = loopback_e2e_config("canopen", CONFIGS, tmp_path)
+    with NetNamespace() as ns, Emulator("canopen", cfg, plant=PLANT, prefix=ns.prefix) as emu:
+        run = subprocess.Popen([*ns.prefix, *motorctl_cmd("run", str(cfg), "--duration", "60")],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+        try:
+            assert wait_for(lambda: "X: Switched on -> Operation enabled" in emu.stderr()
+                            and "Y: Switched on -> Operation enabled" in emu.stderr(), 30.0), emu.stderr()
+            time.sleep(0.8)                                       # moving (the first move starts at 0.5 s)
+            assert "heartbeat consumer" not in emu.stderr()
+            t_kill = time.monotonic()
+            os.killpg(run.pid, signal.SIGKILL)                     # the host dies mid-motion
+            run.wait(timeout=10)
+        finally:
+            if run.poll() is None:
+                os.killpg(run.pid, signal.SIGKILL)
+                run.wait(timeout=10)
+        assert wait_for(lambda: emu.stderr().count("heartbeat consumer") >= 2, 5.0), emu.stderr()
+        err = emu.stderr()
+        out = emu.stop()
+    trips = re.findall(r"^heartbeat consumer (\w): no heartbeat from node 127 for 50 ms "
+                       r"\(last at t=([\d.]+), now t=([\d.]+)\): abort connection option 1 \(fault signal\): "
+                       r"torque 0$", err, re.M)
+    assert {a for a, _, _ in trips} == {"X", "Y"}, err
+    for axis, last, now in trips:
+        # the last heartbeat came before the kill; the drive acted within its consumer time
+        # (+ 10 ms: the drive polls every 5 ms, and the host's heartbeat period is 10 ms)
+        assert float(last) <= t_kill + 0.002 and float(now) - t_kill <= CONSUMER_S + 0.010 + 0.010, \
+            (axis, float(last) - t_kill, float(now) - t_kill)
+        assert float(now) - float(last) >= CONSUMER_S
+        print(f"heartbeat consumer {axis}: torque 0 {(float(now) - t_kill) * 1e3:.1f} ms after SIGKILL, "
+              f"{(float(now) - float(last)) * 1e3:.1f} ms after the last host heartbeat")
+    assert re.search(r"^X: fault 0x8130 life guard error or heartbeat error", err, re.M), err
+    stopped = [ln for ln in out.splitlines() if ln.startswith("stopped:")]
+    assert stopped and "applied_V {'X': 0.0, 'Y': 0.0}" in stopped[0], out
+    assert "amp_fault {'X': True, 'Y': True}" in stopped[0]

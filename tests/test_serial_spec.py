@@ -1,0 +1,207 @@
+"""docs/serial-protocol.md as a specification: a device written in this file from that page alone
+(its own CRC, framing and scaling; nothing imported from motorctl_drivers.serial_link) against the
+production serial driver over a pty pair, closing a position loop (a PD law here, on a
+simulated mass behind the device), with the watchdog config, the fault latch and reset, an error
+frame and a garbage burst on the line."""
+
+from __future__ import annotations
+
+import os
+import select
+import struct
+import threading
+import time
+import tty
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from motorctl.config import config_from_dict, load_yaml
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+# --------------------------------------------------------------------------- the device (from the doc)
+def crc_ccitt_false(data: bytes) -> int:
+    """CRC-16/CCITT-FALSE: poly 0x1021, init 0xFFFF, no reflection, no final XOR."""
+    crc = 0xFFFF
+    for b in data:
+        crc ^= b << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x1021) & 0xFFFF if crc & 0x8000 else (crc << 1) & 0xFFFF
+    return crc
+
+
+def seal(body: bytes) -> bytes:
+    return body + crc_ccitt_false(body).to_bytes(2, "big")
+
+
+LENGTH = {0xA5: lambda n: 6 + 4 * n, 0xA6: lambda n: 6 + n, 0xA7: lambda n: 8}
+N_OK = {0xA5: range(1, 33), 0xA6: range(1, 33), 0xA7: range(1, 2)}
+
+
+class SpecDevice:
+    """A bridge with channels ``nodes``; each channel drives a mass of ``gain`` m/s² per volt,
+    full scale 10 V, 0.5 µm per count, stepped ``dt`` per command (a device paced by its master)."""
+
+    def __init__(self, fd: int, address: int, nodes, dt: float, gain: float = 2.0):
+        self.fd, self.address, self.dt, self.gain = fd, address, dt, gain
+        self.x = {n: 0.0 for n in nodes}
+        self.v = {n: 0.0 for n in nodes}
+        self.u = {n: 0.0 for n in nodes}
+        self.on = {n: False for n in nodes}
+        self.fault = {n: False for n in nodes}
+        self.watchdog_s = 0.05
+        self.last_cmd = None
+        self.buf = bytearray()
+        self.log: list[str] = []
+        self.refuse_next = False
+        self.garbage_next = False
+        self.stop = threading.Event()
+
+    def counts(self, n: int) -> int:
+        return round(self.x[n] / 0.5e-6) & 0xFFFFFFFF
+
+    def handle(self, frame: bytes) -> None:
+        kind, addr, seq, n = frame[0], frame[1], frame[2], frame[3]
+        if addr != self.address:
+            return
+        if kind == 0xA7:
+            wd = struct.unpack_from("<H", frame, 4)[0]
+            if wd == 0:
+                os.write(self.fd, seal(bytes((0x5B, addr, seq, n, 2))))
+                return
+            self.watchdog_s = wd * 100e-6
+            self.log.append(f"watchdog {wd}")
+            os.write(self.fd, seal(bytes((0x5C, addr, seq, 1)) + struct.pack("<H", wd)))
+            return
+        if kind == 0xA6:
+            nodes = [frame[4 + k] for k in range(n) if frame[4 + k] in self.x]
+            items = [(nd, self.status(nd), self.counts(nd)) for nd in nodes]
+        else:
+            if self.refuse_next:
+                self.refuse_next = False
+                os.write(self.fd, seal(bytes((0x5B, addr, seq, n, 4))))
+                return
+            items = []
+            for k in range(n):
+                nd, flags, u = struct.unpack_from("<BBh", frame, 4 + 4 * k)
+                if nd not in self.x:
+                    continue
+                latched = self.counts(nd)                       # 1. latch
+                en = bool(flags & 1)
+                if not en:
+                    self.fault[nd] = False                      # 3. reset (with 2.)
+                self.on[nd] = en and not self.fault[nd]
+                self.u[nd] = u / 32767 * 10.0 if self.on[nd] else 0.0
+                items.append((nd, self.status(nd), latched))
+            if not items:
+                os.write(self.fd, seal(bytes((0x5B, addr, seq, n, 1))))
+                return
+            self.last_cmd = time.monotonic()
+            for nd in self.x:                                    # the period of this command
+                self.v[nd] += self.gain * self.u[nd] * self.dt
+                self.x[nd] += self.v[nd] * self.dt
+        body = bytes((0x5A, addr, seq, len(items))) + b"".join(struct.pack("<BBI", nd, st, c) for nd, st, c in items)
+        if self.garbage_next:
+            self.garbage_next = False
+            os.write(self.fd, bytes((0x5A, addr, 0x5A, 0x33, 0xA6, 0x02)) + seal(body)[:-1] + b"\x00")
+            return
+        os.write(self.fd, seal(body))
+
+    def status(self, nd: int) -> int:
+        return (1 if self.fault[nd] else 0) | (2 if self.on[nd] else 0)
+
+    def check_watchdog(self) -> None:
+        if self.last_cmd is not None and time.monotonic() - self.last_cmd > self.watchdog_s:
+            for nd in self.x:
+                self.fault[nd], self.on[nd], self.u[nd] = True, False, 0.0
+            self.last_cmd = None
+            self.log.append("watchdog tripped")
+
+    def serve(self) -> None:
+        while not self.stop.is_set():
+            r, _, _ = select.select([self.fd], [], [], 0.005)
+            self.check_watchdog()
+            if not r:
+                continue
+            self.buf += os.read(self.fd, 4096)
+            buf = self.buf
+            while len(buf) >= 4:                                 # scan, wait, check (the doc's rules)
+                kind, n = buf[0], buf[3]
+                if kind not in LENGTH or n not in N_OK[kind]:
+                    del buf[0]
+                    continue
+                size = LENGTH[kind](n)
+                if len(buf) < size:
+                    break
+                frame = bytes(buf[:size])
+                if crc_ccitt_false(frame[:-2]) != int.from_bytes(frame[-2:], "big"):
+                    del buf[0]
+                    continue
+                del buf[:size]
+                self.handle(frame)
+
+
+# --------------------------------------------------------------------------- the test
+def test_a_device_written_from_the_spec_closes_the_loop_over_a_pty(tmp_path):
+    assert crc_ccitt_false(b"123456789") == 0x29B1                 # the doc's check value
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    rate = 500.0
+    dev = SpecDevice(master, address=1, nodes=(1, 2), dt=1.0 / rate)
+    th = threading.Thread(target=dev.serve, daemon=True)
+    th.start()
+    d = load_yaml(CONFIGS / "gantry-serial.yaml")
+    d["loop"]["rate_hz"] = rate
+    d["driver"].update(port=os.ttyname(slave), baudrate=115200, timeout_s=0.0015, wait="select",
+                       watchdog_s=0.08, round_trip_s=0.0005)
+    drv = config_from_dict(d, "<spec>", check_budget=False).make_driver()
+    try:
+        drv.open()
+        assert dev.log[0] == "watchdog 800" and dev.watchdog_s == pytest.approx(0.08)
+        assert drv.describe()["watchdog"] == "80 ms (config frame, acknowledged)"
+        target = np.array([0.002, -0.001])                         # 2 mm and -1 mm
+        y0 = drv.position_m.copy()
+        kp, kd = 2000.0, 60.0                                       # V/m, V s/m on a 2 m/s^2/V mass
+        prev = np.zeros(2)
+        errs = 0
+        for k in range(600):                                        # bounded: 1.2 s of plant time
+            e = target - (drv.position_m - y0)
+            u = np.clip(kp * e + kd * (e - prev) * rate, -10.0, 10.0)
+            prev = e
+            if k == 300:
+                dev.refuse_next = True                             # one error frame (code 4)
+            if k == 350:
+                dev.garbage_next = True                            # junk + a reply with a bad CRC
+            drv.write(u, np.ones(2, dtype=bool))
+            time.sleep(0.001)
+            drv.read()
+            errs += int(drv.read_error.any())
+        final = drv.position_m - y0
+        assert np.all(np.abs(final - target) < 50e-6), final        # settled within 50 um
+        assert dev.on == {1: True, 2: True} and not any(dev.fault.values())
+        assert drv.counters["exceptions"] == 1 and drv.counters["bad_frames"] >= 1, drv.counters
+        assert errs <= 30, (errs, drv.counters)                     # the two injected, and a loaded VM's slips
+        # the watchdog: stop commanding, the device faults both channels; a disabled command resets
+        time.sleep(0.15)
+        assert "watchdog tripped" in dev.log and all(dev.fault.values())
+        drv.write(np.zeros(2), np.ones(2, dtype=bool))
+        time.sleep(0.005)
+        drv.read()
+        assert drv.amp_fault.all()                                  # status bit 0 in the reply
+        drv.write(np.zeros(2), np.zeros(2, dtype=bool))
+        time.sleep(0.005)
+        drv.read()
+        drv.write(np.zeros(2), np.zeros(2, dtype=bool))
+        time.sleep(0.005)
+        drv.read()
+        assert not drv.amp_fault.any() and dev.u == {1: 0.0, 2: 0.0}
+    finally:
+        drv.close()
+        dev.stop.set()
+        th.join(timeout=2)
+        os.close(master)
+        os.close(slave)
