@@ -18,6 +18,26 @@ does to the plant (:class:`motorctl.effects.base.PlantTerm`: a force F_eff [N], 
 thrust, a mass change, a delayed input) live in its module ``motorctl/effects/<name>.py``; the
 plant finds them through the registry :data:`motorctl.effects.FAMILIES`.
 
+Unmodelled dynamics the paper neglects (§II; all off by default, each an option of
+``axes.NAME.driver``; with all of them off the plant is bitwise the rigid one above):
+
+* structural mode (``mode_hz`` > 0): the mass splits into the carriage (encoder, motor, friction)
+  m_c = (1 − f) M and a load m_l = f M (``mode_load_fraction`` f), coupled by a spring k and a
+  damper c with the free-free mode at ``mode_hz`` [Hz] and damping ratio ``mode_damping``:
+  k = ω² μ, c = 2 ζ ω μ, μ = m_c m_l / M (reduced mass). The encoder reads the carriage
+  (collocated), so force → y shows an antiresonance at ω √(1 − f) below the resonance at ω.
+* current loop (``current_loop_hz`` > 0): the motor force follows F_m(u) through a first-order
+  low-pass of bandwidth ``current_loop_hz`` [Hz] (−3 dB), integrated exactly under the ZOH; and
+  ``current_loop_delay_s`` [s] of transport delay before it (any value: whole periods by a delay
+  line, the fraction as a switching instant inside the period).
+* encoder errors (drawn once per period after integrating, seeded): Gaussian position noise of
+  standard deviation ``encoder_noise_m`` and the interpolation (sub-divisional) error
+  ``encoder_interpolation_m`` · sin(2π x / ``encoder_signal_period_m``), both before the
+  quantisation to ``encoder_resolution_m``.
+
+Without effect hooks, these run in a second compiled kernel (``_rk4_flex``); with hooks, in the
+general Python path (same equations).
+
 Fault injection for tests (:meth:`SimDriver.inject`): read errors, NaN positions, encoder
 jumps, amplifier faults and an external push force for a number of cycles.
 
@@ -39,6 +59,7 @@ from pydantic import Field
 
 from motorctl.driver import Driver
 from motorctl.effects import FAMILIES, effects_model
+from motorctl.effects.input_delay import delay_line
 from motorctl.jit import njit
 from motorctl.model import S_F_GAIN, PhysicalAxis
 from motorctl.schema import NonNeg, Pos, StrictModel
@@ -70,6 +91,61 @@ def _rk4_plain(x, v, t, u, h, n, m, a1, a2, a3, b, fc, f0, f_noise, f_ext):
     return x, v, t
 
 
+@njit
+def _force_at(tau, f_start, f_prev, f_cur, delta, tau_i):
+    """Motor force [N] at time ``tau`` [s] into the period: the command is ``f_prev`` before
+    ``delta`` [s] and ``f_cur`` after it; first-order lag of time constant ``tau_i`` [s] (0: none)
+    starting from ``f_start`` (exact solution under the piecewise-constant command)."""
+    if tau_i <= 0.0:
+        return f_prev if tau < delta else f_cur
+    if tau < delta:
+        return f_prev + (f_start - f_prev) * math.exp(-tau / tau_i)
+    fd = f_prev + (f_start - f_prev) * math.exp(-delta / tau_i)
+    return f_cur + (fd - f_cur) * math.exp(-(tau - delta) / tau_i)
+
+
+@njit
+def _acc_flex(fm, x1, v1, x2, v2, mc, ml, ks, cs, b, fc, f0, f_noise, f_ext):
+    """Accelerations [m/s²] of carriage and load under motor force fm [N] (``ml`` = 0: rigid)."""
+    sf = _TWO_OVER_PI * math.atan(S_F_GAIN * v1)
+    f = fm - b * v1 - fc * sf + f0 + f_noise + f_ext
+    if ml > 0.0:
+        fsp = ks * (x1 - x2) + cs * (v1 - v2)
+        return (f - fsp) / mc, fsp / ml
+    a = f / mc
+    return a, a
+
+
+@njit
+def _rk4_flex(xc, vc, xl, vl, t, f_start, f_prev, f_cur, delta, tau_i, h, n, mc, ml, ks, cs,
+              b, fc, f0, f_noise, f_ext):
+    """``n`` RK4 steps of the two-mass plant (carriage xc, vc; load xl, vl) with the motor force
+    of :func:`_force_at`; ``ml`` = 0 means no structural mode (one rigid mass ``mc``). Returns
+    xc, vc, xl, vl, t and the force at the end of the period."""
+    tau = 0.0
+    for _ in range(n):
+        fm = _force_at(tau, f_start, f_prev, f_cur, delta, tau_i)
+        a1c, a1l = _acc_flex(fm, xc, vc, xl, vl, mc, ml, ks, cs, b, fc, f0, f_noise, f_ext)
+        fm = _force_at(tau + 0.5 * h, f_start, f_prev, f_cur, delta, tau_i)
+        v2c, v2l = vc + 0.5 * h * a1c, vl + 0.5 * h * a1l
+        a2c, a2l = _acc_flex(fm, xc + 0.5 * h * vc, v2c, xl + 0.5 * h * vl, v2l,
+                             mc, ml, ks, cs, b, fc, f0, f_noise, f_ext)
+        v3c, v3l = vc + 0.5 * h * a2c, vl + 0.5 * h * a2l
+        a3c, a3l = _acc_flex(fm, xc + 0.5 * h * v2c, v3c, xl + 0.5 * h * v2l, v3l,
+                             mc, ml, ks, cs, b, fc, f0, f_noise, f_ext)
+        fm = _force_at(tau + h, f_start, f_prev, f_cur, delta, tau_i)
+        v4c, v4l = vc + h * a3c, vl + h * a3l
+        a4c, a4l = _acc_flex(fm, xc + h * v3c, v4c, xl + h * v3l, v4l,
+                             mc, ml, ks, cs, b, fc, f0, f_noise, f_ext)
+        xc += h / 6.0 * (vc + 2.0 * v2c + 2.0 * v3c + v4c)
+        xl += h / 6.0 * (vl + 2.0 * v2l + 2.0 * v3l + v4l)
+        vc += h / 6.0 * (a1c + 2.0 * a2c + 2.0 * a3c + a4c)
+        vl += h / 6.0 * (a1l + 2.0 * a2l + 2.0 * a3l + a4l)
+        t += h
+        tau += h
+    return xc, vc, xl, vl, t, _force_at(tau, f_start, f_prev, f_cur, delta, tau_i)
+
+
 #: ``axes.NAME.driver.effects``: one optional key per simulated effect family (the registry's
 #: families with ``sim_options``, e.g. ``cogging: {amplitudes_N: [...], period_m: ...}``).
 Effects = effects_model(__name__)
@@ -87,13 +163,42 @@ class SimAxisOptions(StrictModel):
     offset_N: float = 0.0
     initial_position_m: float = 0.0
     encoder_resolution_m: Pos = 0.5e-6
-    input_delay_s: NonNeg = 0.0
-    force_noise_N: NonNeg = 0.0
+    input_delay_s: Annotated[float, Field(ge=0.0, le=0.1)] = 0.0     # transport delay [s]
+    force_noise_N: Annotated[float, Field(ge=0.0, le=1e4)] = 0.0    # force noise, std [N]
     effects: Effects = Effects()
+    # unmodelled dynamics (module docstring; 0 = off)
+    mode_hz: Annotated[float, Field(ge=0.0, le=1e5)] = 0.0   # structural mode, free-free [Hz]
+    mode_damping: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.02   # its damping ratio [-]
+    mode_load_fraction: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.3  # m_l / M [-]
+    current_loop_hz: Annotated[float, Field(ge=0.0, le=1e6)] = 0.0   # current-loop bandwidth [Hz]
+    current_loop_delay_s: Annotated[float, Field(ge=0.0, le=0.1)] = 0.0  # delay before it [s]
+    encoder_noise_m: Annotated[float, Field(ge=0.0, le=0.01)] = 0.0  # position noise, std [m]
+    encoder_interpolation_m: Annotated[float, Field(ge=0.0, le=0.01)] = 0.0  # interpolation error [m]
+    encoder_signal_period_m: Pos = 20e-6     # scale (signal) period of the interpolation error [m]
+
+    def flexible(self) -> bool:
+        """True when a structural mode or an amplifier current loop / delay is switched on."""
+        return self.mode_hz > 0.0 or self.current_loop_hz > 0.0 or self.current_loop_delay_s > 0.0
+
+    def mode_coefficients(self) -> tuple[float, float, float, float]:
+        """(m_c [kg], m_l [kg], k [N/m], c [N s/m]) of the structural mode; m_l = k = c = 0
+        when it is off."""
+        if self.mode_hz <= 0.0:
+            return self.mass_kg, 0.0, 0.0, 0.0
+        f = self.mode_load_fraction
+        mc, ml = (1.0 - f) * self.mass_kg, f * self.mass_kg
+        mu = mc * ml / self.mass_kg
+        w = 2.0 * math.pi * self.mode_hz
+        return mc, ml, w * w * mu, 2.0 * self.mode_damping * w * mu
 
     def physical(self) -> PhysicalAxis:
         return PhysicalAxis(self.mass_kg, self.a1_N_per_V, self.a2_N_per_V2, self.a3_N_per_V3,
                             self.viscous_N_s_per_m, self.coulomb_N, self.offset_N)
+
+
+_UNMODELLED = ("mode_hz", "mode_damping", "mode_load_fraction", "current_loop_hz",
+               "current_loop_delay_s", "encoder_noise_m", "encoder_interpolation_m",
+               "encoder_signal_period_m")
 
 
 class SimOptions(StrictModel):
@@ -137,7 +242,26 @@ class AxisPlant:
         self._masses = tuple(t.mass for t in terms if t.mass is not None)
         self._inputs = tuple(t.input for t in terms if t.input is not None)
         # no position/time-dependent effect: the compiled plain integrator applies
-        self._plain = not (self._thrust or self._forces or self._masses)
+        self._hooks = bool(self._thrust or self._forces or self._masses)
+        self._flex = opt.flexible()
+        self._plain = not (self._hooks or self._flex)
+        # unmodelled dynamics (module docstring)
+        self.mc, self.ml, self.ks, self.cs = opt.mode_coefficients()
+        self.xl, self.vl = self.x, 0.0     # load position [m] and velocity [m/s]
+        self.tau_i = 1.0 / (2.0 * math.pi * opt.current_loop_hz) if opt.current_loop_hz > 0 else 0.0
+        n_del = int(math.floor(opt.current_loop_delay_s / period_s + 1e-9))
+        self.delta = max(0.0, opt.current_loop_delay_s - n_del * period_s)
+        self._fdelay = delay_line(n_del) if n_del > 0 else None
+        self.F = 0.0          # motor force at the end of the last period [N]
+        self.f_prev = 0.0     # force command of the last period [N] (fractional delay)
+        self.period_s = period_s
+        self.enc_sigma = opt.encoder_noise_m
+        self.enc_amp = opt.encoder_interpolation_m
+        self.enc_k = 2.0 * math.pi / opt.encoder_signal_period_m
+        self.enc_noise = 0.0
+        if self._flex and not self._hooks:
+            _rk4_flex(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, self.tau_i, self.h, 1,
+                      self.mc, self.ml, self.ks, self.cs, self.b, self.fc, self.f0, 0.0, 0.0)
         if self._plain:
             _rk4_plain(0.0, 0.0, 0.0, 0.0, self.h, 1, self.m, self.a1, self.a2, self.a3, self.b,
                        self.fc, self.f0, 0.0, 0.0)   # compile (or load the cache) now
@@ -176,7 +300,74 @@ class AxisPlant:
             self.x, self.xd, self.t = _rk4_plain(self.x, self.xd, self.t, u, h, self.substeps,
                                                  self.m, self.a1, self.a2, self.a3, self.b,
                                                  self.fc, self.f0, self.f_noise, self.f_ext)
+            if self.enc_sigma > 0.0:
+                self.enc_noise = self.enc_sigma * float(self.rng.standard_normal())
             return
+        if self._flex:
+            self._step_flex(u)
+        else:
+            self._step_rigid(u)
+        if self.enc_sigma > 0.0:
+            self.enc_noise = self.enc_sigma * float(self.rng.standard_normal())
+
+    def _step_flex(self, u: float) -> None:
+        """One period of the plant with the structural mode and/or the current loop."""
+        f_cur = self.a1 * u + self.a2 * u * abs(u) + self.a3 * u * u * u
+        if self._fdelay is not None:
+            f_cur = self._fdelay(f_cur)
+        f_prev, self.f_prev = self.f_prev, f_cur
+        if not self._hooks:
+            (self.x, self.xd, self.xl, self.vl, self.t, self.F) = _rk4_flex(
+                self.x, self.xd, self.xl, self.vl, self.t, self.F, f_prev, f_cur, self.delta,
+                self.tau_i, self.h, self.substeps, self.mc, self.ml, self.ks, self.cs, self.b,
+                self.fc, self.f0, self.f_noise, self.f_ext)
+            return
+        # general path: the same equations with the effects' hooks (python)
+        h, F0, d, ti = self.h, self.F, self.delta, self.tau_i
+        ml0, m_tot = self.ml, self.m
+
+        def acc(xc, vc, xl, vl, t, tau):
+            fm = _force_at(tau, F0, f_prev, f_cur, d, ti)
+            for thrust in self._thrust:
+                fm = thrust(fm, xc)
+            sf = _TWO_OVER_PI * math.atan(S_F_GAIN * vc)
+            f = fm - self.b * vc - self.fc * sf + self.f0 + self.f_noise + self.f_ext
+            for force in self._forces:
+                f = force(f, xc, vc, t, sf)
+            m = m_tot
+            for mass in self._masses:
+                m = mass(m, t)
+            if ml0 > 0.0:   # a mass change is the load's
+                fsp = self.ks * (xc - xl) + self.cs * (vc - vl)
+                ac = (f - fsp) / self.mc
+                return ac, fsp / (ml0 + m - m_tot)
+            ac = f / m
+            return ac, ac
+
+        xc, vc, xl, vl, t = self.x, self.xd, self.xl, self.vl, self.t
+        tau = 0.0
+        for _ in range(self.substeps):
+            a1c, a1l = acc(xc, vc, xl, vl, t, tau)
+            a2c, a2l = acc(xc + 0.5 * h * vc, vc + 0.5 * h * a1c, xl + 0.5 * h * vl,
+                           vl + 0.5 * h * a1l, t + 0.5 * h, tau + 0.5 * h)
+            v2c, v2l = vc + 0.5 * h * a1c, vl + 0.5 * h * a1l
+            a3c, a3l = acc(xc + 0.5 * h * v2c, vc + 0.5 * h * a2c, xl + 0.5 * h * v2l,
+                           vl + 0.5 * h * a2l, t + 0.5 * h, tau + 0.5 * h)
+            v3c, v3l = vc + 0.5 * h * a2c, vl + 0.5 * h * a2l
+            a4c, a4l = acc(xc + h * v3c, vc + h * a3c, xl + h * v3l, vl + h * a3l, t + h, tau + h)
+            v4c, v4l = vc + h * a3c, vl + h * a3l
+            xc += h / 6.0 * (vc + 2.0 * v2c + 2.0 * v3c + v4c)
+            xl += h / 6.0 * (vl + 2.0 * v2l + 2.0 * v3l + v4l)
+            vc += h / 6.0 * (a1c + 2.0 * a2c + 2.0 * a3c + a4c)
+            vl += h / 6.0 * (a1l + 2.0 * a2l + 2.0 * a3l + a4l)
+            t += h
+            tau += h
+        self.x, self.xd, self.xl, self.vl, self.t = xc, vc, xl, vl, t
+        self.F = _force_at(tau, F0, f_prev, f_cur, d, ti)
+
+    def _step_rigid(self, u: float) -> None:
+        """One period of the rigid plant with the effects' hooks (python)."""
+        h = self.h
         x, v, t = self.x, self.xd, self.t
         acc = self._acc
         for _ in range(self.substeps):
@@ -192,6 +383,9 @@ class AxisPlant:
     def measured(self) -> float:
         """Encoder reading [m]: x quantised to the resolution q (spec §5.1)."""
         q = self.q
+        if self.enc_amp > 0.0 or self.enc_sigma > 0.0:
+            x = self.x + self.enc_amp * math.sin(self.enc_k * self.x) + self.enc_noise
+            return q * round(x / q)
         return q * round(self.x / q)
 
 
@@ -328,4 +522,7 @@ class SimDriver(Driver):
                 "input_delay_s": opt.input_delay_s,
                 "force_noise_N": opt.force_noise_N,
             }
+            extra = {k: getattr(opt, k) for k in _UNMODELLED if getattr(opt, k)}
+            if extra:
+                out[name]["unmodelled"] = extra
         return {"simulated": out}

@@ -34,4 +34,14 @@ def repo() -> Path:
 
 @pytest.fixture(scope="session")
 def gantry_yaml(repo) -> Path:
+    """The paper's gantry on the rigid plant (configs/gantry-rigid.yaml): the model the
+    paper's figures, the estimator's convergence and the loop's sequencing tests are stated
+    on. The default config (configs/gantry.yaml, with the unmodelled dynamics) is
+    :func:`default_yaml`."""
+    return repo / "configs" / "gantry-rigid.yaml"
+
+
+@pytest.fixture(scope="session")
+def default_yaml(repo) -> Path:
+    """configs/gantry.yaml: the default of every command (the realistic plant)."""
     return repo / "configs" / "gantry.yaml"

@@ -100,3 +100,14 @@ def test_sigterm_stops_a_wall_clock_run_safely(tmp_path, gantry_yaml):
     assert 0 < rl.data.shape[0] < 60 * 5000
     assert rl.header["stopped_by_signal"] == "SIGTERM"
     assert os.path.getsize(log) > 0
+
+
+def test_the_default_config_runs_without_a_fault(capsys, default_yaml):
+    """configs/gantry.yaml (structural modes, current loop, encoder noise) at its chosen gains:
+    every controller configured runs a short virtual-clock program without a fault."""
+    for kind in ("c1", "c2", "pid"):
+        code = main(["run", str(default_yaml), "--duration", "3", "--virtual-clock", "--controller", kind])
+        out = capsys.readouterr().out
+        assert code == 0, out
+        rows = [ln.split() for ln in out.splitlines() if ln.split()[:1] in (["X"], ["Y"])]
+        assert [r[1] for r in rows] == [kind, kind] and all(r[-1] == "-" for r in rows), out

@@ -15,7 +15,7 @@ import yaml
 from conftest import MOTORCTL
 
 REPO = Path(__file__).resolve().parents[1]
-GANTRY = REPO / "configs" / "gantry.yaml"
+GANTRY = REPO / "configs" / "gantry-rigid.yaml"   # the rigid plant the thresholds were set on
 
 
 def make_config(tmp: Path, *, fault_axis: bool = False, watchdog_s: float = 0.0,

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
+import tempfile
 
 from motorctl.cli import DEFAULT_CONFIG, UsageError, print_table
 from motorctl.control import CONTROLLER_NAMES
@@ -78,12 +80,30 @@ def cmd_compare(args) -> int:
     from motorctl.metrics import PAPER_TABLES
     loaded = _load(args.config)
     kinds = compared_controllers(loaded)
+    if args.plot:
+        writable_dir(args.plot, "plot")           # before anything runs
     results = {}
-    for kind in kinds:
-        res = run_job(loaded, controller=kind, duration_s=args.duration,
-                      clock="wall" if args.wall_clock else "virtual")
-        for a, r in res.axes.items():
-            results.setdefault(a, {})[kind] = {k: r[k] for k in ("e_M_um", "e_F_um", "L2_um", "u_peak_V")}
+    errors, t = {}, None
+    with tempfile.TemporaryDirectory(prefix="motorctl-compare-") as tmp:
+        for kind in kinds:
+            log = os.path.join(tmp, f"{kind}.log") if args.plot else None
+            res = run_job(loaded, controller=kind, duration_s=args.duration,
+                          clock="wall" if args.wall_clock else "virtual", log_path=log)
+            for a, r in res.axes.items():
+                results.setdefault(a, {})[kind] = {k: r[k] for k in ("e_M_um", "e_F_um", "L2_um", "u_peak_V")}
+            if log:
+                from motorctl.recorder.runlog import read_log
+                rl = read_log(log)
+                t = rl.col("t")
+                for a in rl.axes:
+                    errors.setdefault(a, {})[kind] = rl.axis(a)["e"].copy()
+    if args.plot and t is not None:
+        from motorctl.plots import plot_compare_errors
+        periods = {a: loaded.axes[a].trajectory.period_s for a in errors}
+        files = plot_compare_errors(t, errors, periods, args.plot, title=os.path.basename(str(args.config)))
+        if not args.json:
+            for f in files:
+                sys.stdout.write(f"{f}\n")
     if args.json:
         sys.stdout.write(json.dumps(results) + "\n")
         return 0
@@ -145,6 +165,8 @@ def register(parser, sub) -> None:
     c.add_argument("--duration", type=seconds, help="run length in s (default: loop.duration_s = 40)")
     c.add_argument("--json", action="store_true", help="print one JSON object and nothing else")
     c.add_argument("--wall-clock", action="store_true", help="pace by the wall clock (default: virtual)")
+    c.add_argument("--plot", metavar="DIR", default=None,
+                   help="also write DIR/<axis>_compare_error.png: one period's error of each controller overlaid")
     c.set_defaults(func=cmd_compare)
 
     k = sub.add_parser("check-config", help="check a config; exit 0 if it is valid")
