@@ -60,3 +60,35 @@ def timing_stats(turnaround_ns: np.ndarray, lateness_ns: np.ndarray, overruns: i
         "lateness_max_us": float(la.max()),
         "overruns": int(overruns),
     }
+
+
+def settled_mask(t: np.ndarray, period_s: float, settle_periods: int = 1) -> np.ndarray:
+    """Samples past the settling of a periodic program: t − t[0] ≥ settle_periods·period_s.
+
+    Used by :func:`settled_indexes` so that two runs (before/after, ``compare-runs``) exclude
+    the adaptation transient the same way.
+
+    Args:
+        t: program time of each sample [s], shape (N,). period_s: program period [s] (≤ 0: no
+            period known, nothing is excluded). settle_periods: whole periods to exclude.
+    Returns:
+        bool (N,); all True when excluding would leave less than one period.
+    """
+    t = np.asarray(t, dtype=float)
+    if period_s <= 0 or t.size == 0:
+        return np.ones(t.shape, dtype=bool)
+    m = (t - t[0]) >= settle_periods * period_s
+    if t[-1] - t[0] < (settle_periods + 1) * period_s:
+        return np.ones(t.shape, dtype=bool)
+    return m
+
+
+def settled_indexes(t: np.ndarray, e: np.ndarray, u: np.ndarray, period_s: float,
+                    settle_periods: int = 1) -> dict:
+    """:func:`tracking_indexes` over the settled part (:func:`settled_mask`), e_F over the last
+    period; plus ``settled_from_s``, the program time the evaluation starts at [s]."""
+    t, e, u = (np.asarray(a, dtype=float) for a in (t, e, u))
+    m = settled_mask(t, period_s, settle_periods)
+    out = tracking_indexes(t[m], e[m], u[m], period_s if period_s > 0 else 0.0)
+    out["settled_from_s"] = float(t[m][0] - t[0]) if m.any() else 0.0
+    return out

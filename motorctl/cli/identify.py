@@ -3,6 +3,11 @@
     motorctl identify DATA [--axis A] [--map t=..,y=..,u=..,yd=..] [--gain G] [--config CFG]
                       [--validate DATA2] [--json] [--report DIR] [--n-theta 4|6]
                       [--friction sf|sign] [--no-closed-loop] [--closed-loop-duration S]
+                      [--write-config OUT.yaml]
+
+``--write-config`` writes the axis config (``--config``, or the config in a run log's header)
+with the found effects as ``controller.compensation``, θ̂(0) from the fit and the box widened
+where the fit lies outside it, every change commented with its figure (:func:`tuned_config`).
 
 Exit codes: 0 done (with or without an effect found), 2 bad input (one line on stderr).
 """
@@ -48,6 +53,9 @@ def register(parser, subparsers) -> None:
                         "zero-order hold; 0 for CSV/MAT)")
     p.add_argument("--no-closed-loop", action="store_true", help="skip the closed-loop before/after runs")
     p.add_argument("--closed-loop-duration", type=float, default=8.0, help="seconds per closed-loop run")
+    p.add_argument("--write-config", default=None, metavar="OUT.yaml",
+                   help="write the config (--config, or the run log's) with the found effects compensated "
+                        "and theta_hat0 from the fit, ready for `motorctl run`")
     p.set_defaults(func=cmd_identify)
 
 
@@ -69,6 +77,7 @@ def summarise(idf: Identifier) -> dict:
         "samples": int(rec.n),
         "period_s": rec.period_s,
         "filters": {"position_lowpass_Hz": idf.p.fq, "decimation": idf.p.nd, "zoh_delay_samples": idf.zoh,
+                    "zoh_source": idf.zoh_source,
                     "block_s": 0.25, "friction_shape": idf.friction},
         "residual_unit": unit,
         "gain_N_per_V": rec.gain,
@@ -121,6 +130,161 @@ def validation(idf: Identifier, rec2) -> dict:
             "residual_rms_after": g * float(np.sqrt(np.mean(r1 ** 2)))}
 
 
+# ---------------------------------------------------------------------------- fit -> controller
+def compensation_from_fit(idf: Identifier) -> tuple[dict, np.ndarray, list]:
+    """The ``controller.compensation`` of the found effects and the θ̂(0) that goes with it.
+
+    Returns:
+        (compensation {family: options} (V units, d̂_eff = −Cβ), θ (n_theta,) = the jointly
+        fitted nominal θ re-expressed about each term's reference
+        (:meth:`motorctl.effects.base.EffectFamily.theta_shift`), names of found families that
+        have no compensation term).
+    """
+    th, betas = idf.coef_split(idf.final, idf.terms)
+    theta = np.array(th, dtype=float)
+    comp, skipped = {}, []
+    for t, b in zip(idf.terms, betas):
+        c = fx.compensation(t.family, t.h, b, idf.p)
+        if c:
+            comp.update(c)
+            theta = theta + fx.family(t.family).theta_shift(c[t.family], idf.n_theta)
+        else:
+            skipped.append(t.family)
+    return comp, theta, skipped
+
+
+#: margin added beyond a fitted θ that lies outside the configured box (fraction of |θ|, and
+#: at least this fraction of the box's width)
+BOX_MARGIN = 0.2
+
+
+def tuned_config(idf: Identifier, s: dict, base: dict, axis: str, base_name: str) -> tuple[dict, str]:
+    """The config ``base`` with axis ``axis`` tuned from the identification, and its YAML text.
+
+    Changes, each commented in the text with its figure: ``controller.compensation`` = the found
+    effects (:func:`compensation_from_fit`); ``theta_hat0`` = the fitted θ (θ1..θ4 only when the
+    fit has four parameters; θ5, θ6 clipped into the box, which Assumption 2 checks); where a
+    fitted θ_i (i ≤ 4) lies outside [theta_min, theta_max] the bound moves past it by
+    :data:`BOX_MARGIN`. Nothing else changes.
+
+    Args:
+        s: the summary (:func:`summarise`). base: a config dict (parsed YAML). axis: its axis.
+        base_name: where ``base`` came from (named in the header comment).
+    Returns:
+        (the new config dict, its YAML text with comments).
+    """
+    import copy
+
+    import yaml
+
+    cfg = copy.deepcopy(base)
+    ctl = cfg["axes"][axis]["controller"]
+    comp, theta, skipped = compensation_from_fit(idf)
+    nt = idf.n_theta
+    unit = s["residual_unit"]
+    notes = _set_theta0(ctl, theta[:nt])
+    t0, lo, hi = ctl["theta_hat0"], ctl["theta_min"], ctl["theta_max"]
+    if comp:
+        ctl["compensation"] = copy.deepcopy(comp)
+    else:
+        ctl.pop("compensation", None)
+    # YAML text: dump with placeholders, then put the commented sections in their place
+    marks = {"theta_hat0": "@@T0@@", "theta_min": "@@TMIN@@", "theta_max": "@@TMAX@@", "compensation": "@@COMP@@"}
+    draft = copy.deepcopy(cfg)
+    dctl = draft["axes"][axis]["controller"]
+    for k, m in marks.items():
+        dctl[k] = m
+    text = yaml.safe_dump(draft, sort_keys=False, default_flow_style=False, allow_unicode=True, width=100)
+    std = s["nominal"]["theta_std"]
+    fit_line = ", ".join(f"theta{i + 1} {theta[i]:.5g} +- {std[i]:.2g}" for i in range(nt))
+    out = []
+    for line in text.splitlines():
+        stripped = line.strip()
+        key = stripped.split(":", 1)[0]
+        if key in marks and marks[key] in stripped:
+            ind = line[: len(line) - len(line.lstrip())]
+            if key == "theta_hat0":
+                out.append(f"{ind}# motorctl identify: theta_hat0 from the joint fit ({fit_line}); "
+                           f"{nt} parameters fitted")
+                for i, n in sorted(notes.items()):
+                    out.append(f"{ind}#   theta{i + 1}: {n}")
+                out.append(f"{ind}theta_hat0: {_flow(t0)}")
+            elif key == "theta_min":
+                out.append(f"{ind}theta_min: {_flow(lo)}" + _changed(base, axis, "theta_min", lo))
+            elif key == "theta_max":
+                out.append(f"{ind}theta_max: {_flow(hi)}" + _changed(base, axis, "theta_max", hi))
+            else:
+                if not comp:
+                    out.append(f"{ind}# motorctl identify: no compensable effect found"
+                               + (f" ({', '.join(skipped)} has no compensation term)" if skipped else ""))
+                    continue
+                out.append(f"{ind}# motorctl identify: the found effects, compensated in v_a1 (eq. 13) and "
+                           f"told to the estimator (u + d_eff)")
+                for e in s["effects"]:
+                    pars = ", ".join(f"{k} {_fig(v)}" for k, v in e["parameters"].items())
+                    tag = "compensated" if e["name"] in comp else "NOT compensable (no term in x_d, xd_dot, t)"
+                    out.append(f"{ind}#   {e['name']}: {pars}; held-out RMS {e['heldout_rms_before']:.4g} -> "
+                               f"{e['heldout_rms_after']:.4g} {unit}; {tag}")
+                body = yaml.safe_dump({"compensation": comp}, sort_keys=False, default_flow_style=False, width=100)
+                out.extend(ind + b for b in body.splitlines())
+        else:
+            out.append(line)
+    head = [f"# tuned by `motorctl identify {s['source']} --write-config` from {base_name}, axis {axis}",
+            f"# nominal held-out residual RMS {s['nominal']['heldout_rms']:.4g} {unit}, augmented "
+            f"{s['augmented']['heldout_rms']:.4g} {unit}"]
+    if not s["effects"]:
+        head.append("# no effect found: only theta_hat0 (and the box where needed) changed")
+    return cfg, "\n".join(head + out) + "\n"
+
+
+def _set_theta0(ctl: dict, theta) -> dict:
+    """Set ``theta_hat0`` of a controller section (dict) to the fitted ``theta`` (4 or 6), with
+    the rules of :func:`tuned_config` (θ5, θ6 clipped into the box, the box widened past a
+    θ1..θ4 outside it). Returns {index: note}."""
+    t0 = [float(v) for v in ctl["theta_hat0"]]
+    lo = [float(v) for v in ctl["theta_min"]]
+    hi = [float(v) for v in ctl["theta_max"]]
+    notes = {}
+    for i in range(min(len(theta), len(t0))):
+        v = float(theta[i])
+        if i >= 4:
+            c = min(max(v, lo[i]), hi[i])
+            notes[i] = f"fit {v:.5g}" + ("" if c == v else f", clipped into the box [{lo[i]:g}, {hi[i]:g}]")
+            v = c
+        else:
+            w = BOX_MARGIN * max(abs(v), hi[i] - lo[i])
+            if v < lo[i]:
+                notes[i] = f"fit {v:.5g} < theta_min {lo[i]:g}: theta_min widened"
+                lo[i] = max(v - w, 0.5 * v) if i == 0 else v - w
+            elif v > hi[i]:
+                notes[i] = f"fit {v:.5g} > theta_max {hi[i]:g}: theta_max widened"
+                hi[i] = v + w
+            else:
+                notes[i] = f"fit {v:.5g}"
+        t0[i] = round(v, 6)
+    ctl["theta_hat0"] = t0
+    ctl["theta_min"] = [round(v, 6) for v in lo]
+    ctl["theta_max"] = [round(v, 6) for v in hi]
+    return notes
+
+
+def _fig(v) -> str:
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_fig(x) for x in v) + "]"
+    return f"{v:.5g}" if isinstance(v, (int, float)) else str(v)
+
+
+def _flow(v: list) -> str:
+    return "[" + ", ".join(f"{x:.6g}" for x in v) + "]"
+
+
+def _changed(base: dict, axis: str, key: str, new: list) -> str:
+    old = [float(v) for v in base["axes"][axis]["controller"][key]]
+    if old == [float(v) for v in new]:
+        return ""
+    return f"  # motorctl identify: was {_flow(old)} (the fit lies outside)"
+
+
 # ---------------------------------------------------------------------------- closed loop
 def closed_loop(idf: Identifier, cfg: dict, axis: str, duration_s: float) -> dict | None:
     """C2 alone vs C2 with the found effects compensated, both on the plant of ``cfg``.
@@ -136,12 +300,7 @@ def closed_loop(idf: Identifier, cfg: dict, axis: str, duration_s: float) -> dic
 
     from motorctl.app.job import run_job
     from motorctl.config import config_from_dict
-    th, betas = idf.coef_split(idf.final, idf.terms)
-    comp = {}
-    for t, b in zip(idf.terms, betas):
-        c = fx.compensation(t.family, t.h, b)
-        if c:
-            comp.update(c)
+    comp, theta_aug, _skipped = compensation_from_fit(idf)
     if not comp:
         return None
     base = copy.deepcopy(cfg)
@@ -153,6 +312,10 @@ def closed_loop(idf: Identifier, cfg: dict, axis: str, duration_s: float) -> dic
     ctl["type"] = "c2"
     after = copy.deepcopy(base)
     after["axes"][axis]["controller"]["compensation"] = comp
+    # each run starts from its own fitted model: the nominal θ alone, the augmented θ (about
+    # the emitted references) with the compensation
+    _set_theta0(base["axes"][axis]["controller"], idf.nominal.fit.coef[:idf.n_theta])
+    _set_theta0(after["axes"][axis]["controller"], theta_aug)
     res = {}
     for name, d in (("before", base), ("after", after)):
         loaded = config_from_dict(d, f"<identify closed loop: {name}>")
@@ -173,6 +336,8 @@ def text_report(s: dict) -> str:
              f"  {s['samples']} samples at {1 / s['period_s']:.0f} Hz; position low-pass "
              f"{s['filters']['position_lowpass_Hz']:g} Hz, decimation {s['filters']['decimation']}, "
              f"friction shape {s['filters']['friction_shape']}",
+             f"  zero-order hold: input shifted by {s['filters']['zoh_delay_samples']:g} sample "
+             f"({s['filters'].get('zoh_source', '')})",
              f"nominal model: {n['n_theta_reason']}",
              f"  condition number {n['condition_number']:.1f}"]
     for name, v, sd in zip(n["theta_names"], n["theta"], n["theta_std"]):
@@ -226,6 +391,24 @@ def cmd_identify(args) -> int:
         raise UsageError(f"--closed-loop-duration {args.closed_loop_duration}: must be > 0 s")
     if args.zoh_delay is not None and not 0 <= args.zoh_delay <= 10:
         raise UsageError(f"--zoh-delay {args.zoh_delay}: must be within 0..10 samples")
+    base_cfg, base_name = None, None
+    if args.config:
+        from motorctl.config import load_yaml
+        base_cfg, base_name = load_yaml(args.config), args.config
+    elif rec.header.get("config"):
+        base_cfg, base_name = rec.header["config"], f"the config in {rec.source}'s header"
+    if args.write_config:
+        if base_cfg is None:
+            raise UsageError(f"--write-config {args.write_config}: needs a config to start from "
+                             f"(--config BASE.yaml; {args.data} carries none)")
+        w_axis = rec.axis or args.axis or next(iter(base_cfg.get("axes", {})), None)
+        if w_axis not in base_cfg.get("axes", {}):
+            raise UsageError(f"{base_name}: no axis {w_axis!r} in the config; "
+                             f"axes: {', '.join(base_cfg.get('axes', {}))}")
+        try:
+            open(args.write_config, "a").close()
+        except OSError as exc:
+            raise UsageError(f"--write-config {args.write_config}: cannot write ({exc.strerror})") from None
     idf = Identifier(rec, n_theta=args.n_theta, friction=args.friction, zoh_delay=args.zoh_delay).run()
     s = summarise(idf)
     s["validation"] = validation(idf, rec2) if rec2 is not None else None
@@ -247,6 +430,13 @@ def cmd_identify(args) -> int:
             s["closed_loop"] = closed_loop(idf, cfg, axis, args.closed_loop_duration)
             if s["closed_loop"] is None:
                 s["closed_loop_note"] = "not run (the found effect has no additive compensation term)"
+    if args.write_config:
+        from motorctl.config import config_from_dict
+        new_cfg, text = tuned_config(idf, s, base_cfg, w_axis, base_name)
+        config_from_dict(new_cfg, args.write_config, check_budget=False)   # what check-config checks
+        with open(args.write_config, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        s["written_config"] = args.write_config
     if args.report:
         from motorctl.ident.report import write_report
         write_report(idf, s, args.report, text_report(s))
@@ -265,4 +455,5 @@ def _json_default(o):
     raise TypeError(type(o).__name__)
 
 
-__all__ = ["register", "cmd_identify", "summarise", "validation", "closed_loop", "text_report"]
+__all__ = ["register", "cmd_identify", "summarise", "validation", "closed_loop", "text_report",
+           "compensation_from_fit", "tuned_config"]

@@ -3,7 +3,7 @@
 Per sample k (spec §5.2)::
 
     x2   = (y[k] − y[k−1]) / Ts                                   backward difference
-    estimator.update(x2, u[k−1])                                  eq. (25)-(28), (7)-(8)
+    estimator.update(x2, u[k−1] + d̂_eff[k−1])                     eq. (25)-(28), (7)-(8)
     e    = y − x_d,  p = ė + k1 e                                 eq. (11)
     d̂0  ← clip(d̂0 + Ts γ_d p, ±d̂_max)                            eq. (19)
     v_a1 = θ̂1 ẍ_d + θ̂2 ẋ_d + θ̂3 S_f(ẋ_d) − θ̂4                   eq. (13), desired compensation
@@ -14,6 +14,12 @@ Per sample k (spec §5.2)::
     u    = f_u⁻¹(v; θ̂5, θ̂6, u_M), clipped to ±u_lim                eq. (9), C2 only; C1: u = v
 
 C1 is the same class with four parameters (θ5 = θ6 ≡ 0, no inversion), spec §3.5.
+
+Identified-effect compensation d̂_eff (motorctl.effects.compensation; 0 when none) is part of
+the model both places use: v_a1 subtracts it (eq. 13) and the estimator sees the input
+u + d̂_eff (eq. 4 with d_eff ≈ d̂_eff moved next to u), aligned with the u it was held with
+(the d̂_eff of sample k−1 goes with u[k−1]). Feeding the estimator u alone would make θ̂4, θ̂3,
+... absorb the effect's mean while v_a1 subtracts the whole effect: counted twice.
 """
 
 from __future__ import annotations
@@ -39,7 +45,8 @@ __all__ = ["DCDIARC", "dcdiarc_step", "theory_k_s1"]
 
 
 # state vector of the law (outputs of the last sample)
-S_Y_PREV, S_U, S_V, S_E, S_P, S_X2, S_D0, S_KS = range(8)
+S_Y_PREV, S_U, S_V, S_E, S_P, S_X2, S_D0, S_KS, S_DC = range(9)
+N_STATE = 9
 # parameter vector of the law
 P_TS, P_K1, P_KS, P_GD, P_DMAX, P_ULIM, P_THEORY, P_KS1, P_ETA4, P_DELTA = range(10)
 
@@ -54,14 +61,15 @@ def dcdiarc_step(y, x_d, xd_dot, xd_ddot, v_comp, sig, st, prm, span, th, gam, t
         v_comp [V]: identified-effect compensation d̂_eff(x_d, ẋ_d, t) (0 when none).
         sig (N_SIGNALS,): the published signals (motorctl.loop.records.CONTROLLER_SIGNALS),
             written at the end of the sample; θ̂ entries beyond n stay as they are (NaN).
-        st (8,): law state (S_* indices). prm (10,): law parameters (P_* indices).
+        st (N_STATE,): law state (S_* indices; S_DC: the d̂_eff held with S_U).
+        prm (10,): law parameters (P_* indices).
         span (n,): θ_max − θ_min (theory-mode k_s2). The rest: the estimator's arrays.
     """
     ts = prm[P_TS]
     x2 = (y - st[S_Y_PREV]) / ts
     st[S_Y_PREV] = y
     st[S_X2] = x2
-    ls_update(x2, st[S_U], th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv, coef, vec,
+    ls_update(x2, st[S_U], st[S_DC], th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv, coef, vec,
               pividx, active, opts, res)
     n = th.shape[0]
     e = y - x_d
@@ -101,6 +109,7 @@ def dcdiarc_step(y, x_d, xd_dot, xd_ddot, v_comp, sig, st, prm, span, th, gam, t
     st[S_P] = p
     st[S_V] = v
     st[S_U] = u
+    st[S_DC] = v_comp
     sig[SIG_V] = v
     sig[SIG_E] = e
     sig[SIG_P] = p
@@ -149,7 +158,7 @@ class DCDIARC(Controller):
                               params.u_lim, 1.0 if self.theory else 0.0, k_s1, 4.0 * th.eta,
                               th.delta_d], dtype=float)
         self._span = np.array([params.theta_max[i] - params.theta_min[i] for i in range(n)])
-        self._st = np.zeros(8)
+        self._st = np.zeros(N_STATE)
         self._st[S_KS] = k_s1
         self.compensation = (None if params.compensation.is_empty()
                              else Compensation(params.compensation))
@@ -187,6 +196,7 @@ class DCDIARC(Controller):
         st = self._st
         st[S_Y_PREV] = y0
         st[S_U] = 0.0
+        st[S_DC] = 0.0
         st[S_V] = 0.0
         st[S_D0] = 0.0
         self._started = True

@@ -2,9 +2,14 @@
 
 Per sample (Ts), with time-aligned inputs (spec §5.2):
 
-1. Filter the pair describing the interval just ended, (x2[k], S_f(x2[k]), 1, u[k−1],
+1. Filter the pair describing the interval just ended, (x2[k], S_f(x2[k]), 1, u[k−1] + d̂_eff[k−1],
    u|u|[k−1], u³[k−1]), through H_f(s) = ω_f²/(s + ω_f)² discretised by exact ZOH (spec §5.3).
    Each channel has the two states (•_f, d•_f/dt), so ẋ2f needs no differentiation.
+   d̂_eff [V] is the identified-effect compensation term (motorctl.effects) in force of the
+   interval: with it compensated, the model the law and the estimator share is eq. (4) with
+   d̃ = d_eff + d̃', θ1 ẋ2 = (u + d_eff) − θ2 x2 − ..., so the input the model sees is u + d̂_eff
+   (0 when nothing is compensated: the paper's estimator). Without it θ̂ would absorb the
+   effect's mean while v_a1 subtracts the whole effect again (double counting).
 2. φ_f = [−ẋ2f, −x2f, −S_ff, 1_f, (u|u|)_f, (u³)_f] (eq. 25), ε = −φ_fᵀθ̂ − u_f (eq. 26).
 3. Γ by the information-form (matrix-inversion lemma) update of eq. (27) with forgetting μ,
    normalisation ν and the freeze branch λ_max(Γ) > ρ_M (spec §5.4): with g = Γφ,
@@ -139,12 +144,15 @@ def project_box(z, th, tmin, tmax, gam, piv, coef, vec, pividx, active):
 
 
 @njit
-def ls_update(x2, u_prev, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv, coef, vec,
+def ls_update(x2, u_prev, d_prev, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv, coef, vec,
               pividx, active, opts, res):
     """One estimator sample (spec §5.2 step 2); see the module docstring. All arrays preallocated.
 
     Args:
         x2: measured velocity over the interval just ended [m/s]; u_prev: input held over it [V].
+        d_prev: the compensated effect d̂_eff [V] (paper input units, eq. 4: acts like +u) the
+            law assumed over that interval, 0 when none; the linear input channel is
+            u_prev + d_prev, the thrust-shape channels u|u|, u³ stay on u_prev.
         th (n,), gam (n, n), tmin/tmax (n,): θ̂, Γ, box — updated in place.
         zf, zd, inp (nch,): filter states and inputs. flt (6,): a11 a12 a21 a22 b1 b2.
         phi, g, z (n,), piv, coef (n, n), vec (3, n), pividx (n,), active (n,): outputs/scratch.
@@ -155,7 +163,7 @@ def ls_update(x2, u_prev, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv,
     inp[0] = x2
     inp[1] = s_f_jit(x2)
     inp[2] = 1.0
-    inp[3] = u_prev
+    inp[3] = u_prev + d_prev
     if nch == 6:
         inp[4] = u_prev * abs(u_prev)
         inp[5] = u_prev * u_prev * u_prev
@@ -284,19 +292,22 @@ class LeastSquaresEstimator:
         return bool(self.res[_R_FROZEN])
 
     def kernel_args(self) -> tuple:
-        """The preallocated arrays the kernel works on, in ``ls_update`` order after (x2, u_prev)."""
+        """The preallocated arrays the kernel works on, in ``ls_update`` order after
+        (x2, u_prev, d_prev)."""
         return (self.theta_hat, self.gamma, self.theta_min, self.theta_max, self.zf, self.zd,
                 self._inp, self.flt, self.phi, self._g, self._z, self._piv, self._coef, self._vec,
                 self._pividx, self._active, self.opts, self.res)
 
-    def update(self, x2: float, u_prev: float) -> None:
+    def update(self, x2: float, u_prev: float, d_prev: float = 0.0) -> None:
         """One estimator sample (spec §5.2 step 2).
 
         Args:
             x2: measured velocity over the interval just ended [m/s] (backward difference).
             u_prev: the input held over that interval [V].
+            d_prev: the compensated effect d̂_eff over that interval [V] (0: none); the model's
+                input is u_prev + d_prev (see the module docstring).
         """
-        ls_update(x2, u_prev, *self.kernel_args())
+        ls_update(x2, u_prev, d_prev, *self.kernel_args())
 
     def reset_filters(self) -> None:
         """Zero the H_f states (used when an axis is (re)started)."""

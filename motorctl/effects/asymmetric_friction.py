@@ -66,7 +66,7 @@ class AsymmetricFrictionFamily(EffectFamily):
         return {f"coulomb_{unit}": float(g * beta[0]), f"viscous_{unit}_s_per_m": float(g * beta[1])}
 
     # compensation
-    def compensation(self, h, beta):
+    def compensation(self, h, beta, signals=None):
         return {"coulomb_V": float(beta[0]), "viscous_V_s_per_m": float(beta[1])}
 
     def compensation_for(self, o: AsymmetricFriction, a1):

@@ -220,10 +220,23 @@ class EffectFamily:
         return 0.0
 
     # ------------------------------------------------------------------ compensation
-    def compensation(self, h, beta: np.ndarray) -> dict | None:
+    def compensation(self, h, beta: np.ndarray, signals: Signals | None = None) -> dict | None:
         """The ``controller.compensation.<name>`` options (V units) of a fitted term, i.e.
-        d̂_eff = −C(h)β, or None when the family cannot be compensated."""
+        d̂_eff = −C(h)β, or None when the family cannot be compensated.
+
+        Args:
+            signals: the record's signals (:class:`Signals`, (N,) each), for a family whose
+                columns leave a reference unidentifiable (θ3 or θ4 absorb it): the emitted
+                reference is then the record's own (see :meth:`theta_shift`). None: 0.
+        """
         return None
+
+    def theta_shift(self, entry: dict, n_theta: int) -> np.ndarray:
+        """Δθ (n_theta,) that re-expresses the jointly fitted nominal θ for the compensation
+        ``entry`` (from :meth:`compensation`): the fit gives θ_fit and the term Cβ; writing the
+        term about a reference r moves the constant part β·r between the term and θ3 or θ4, so
+        the θ̂(0) that goes with ``entry`` is θ_fit + Δθ. Default: zeros (no reference)."""
+        return np.zeros(n_theta)
 
     def compensation_for(self, options, a1: float) -> dict:
         """The ``controller.compensation.<name>`` options that cancel a known simulated effect

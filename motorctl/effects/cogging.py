@@ -89,7 +89,7 @@ class CoggingFamily(PositionPeriodic):
                 "phases_rad": [float(p) for p in ph]}
 
     # compensation
-    def compensation(self, h, beta):
+    def compensation(self, h, beta, signals=None):
         return {"period_m": float(h), "sin_V": [float(-b) for b in beta[0::2]],
                 "cos_V": [float(-b) for b in beta[1::2]]}
 

@@ -31,6 +31,11 @@ def delay_line(n: int):
     return delay
 
 
+#: a total input delay (hold + found) within this distance of half a sample is the zero-order
+#: hold of a sampled-data loop, not an effect [samples] (motorctl.ident.select.HOLD_TOLERANCE)
+HOLD_TOLERANCE = 0.15
+
+
 class InputDelayFamily(EffectFamily):
     name = "input_delay"
     plant_force = "u acts τ later"
@@ -71,6 +76,10 @@ class InputDelayFamily(EffectFamily):
                 d += 0.5 * (s0 - s2) / den
         if i == 0:
             return ctx.term(self.name, 0.0), "best delay is 0 samples beyond the zero-order hold"
+        total = ctx.zoh + d
+        if abs(total - 0.5) <= HOLD_TOLERANCE:
+            return ctx.term(self.name, d), (f"total input delay {total:.2f} sample is the zero-order hold of a "
+                                            "sampled-data loop (half a sample), not an effect")
         note = f"delay {d:g} samples at the edge of the searched range" if i == len(grid) - 1 else None
         return ctx.term(self.name, d), note
 

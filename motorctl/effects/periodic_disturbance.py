@@ -96,7 +96,7 @@ class PeriodicDisturbanceFamily(EffectFamily):
         return {"frequency_Hz": float(h), f"amplitude_{unit}": float(amp[0]), "phase_rad": float(ph[0])}
 
     # compensation
-    def compensation(self, h, beta):
+    def compensation(self, h, beta, signals=None):
         return {"frequency_Hz": float(h), "sin_V": [float(-beta[0])], "cos_V": [float(-beta[1])]}
 
     def compensation_for(self, o: PeriodicDisturbance, a1):

@@ -6,7 +6,10 @@ Physical model:
     F_eff(x, ẋ) = −c (x − x_ref) S_f(ẋ)                                             [N]
 
 Identification: column x·S_f(ẋ) (x_ref is absorbed by θ3, only the slope c is identifiable).
-Compensation: d̂_eff(x_d, ẋ_d) = −c_V (x_d − x_ref) S_f(ẋ_d) [V].
+Compensation: d̂_eff(x_d, ẋ_d) = −c_V (x_d − x_ref) S_f(ẋ_d) [V]. The emitted x_ref is the
+record's mean position weighted by |S_f(ẋ)| (where friction acts), so the term has zero mean
+over the identified motion and θ3 keeps the mean Coulomb level (the fitted θ3 re-expressed
+about x_ref, :meth:`PositionDependentFrictionFamily.theta_shift`: θ3 + c_V x_ref).
 """
 
 from __future__ import annotations
@@ -71,8 +74,20 @@ class PositionDependentFrictionFamily(EffectFamily):
         return {f"coulomb_slope_{unit}_per_m": float(g * beta[0])}
 
     # compensation
-    def compensation(self, h, beta):
-        return {"coulomb_slope_V_per_m": float(beta[0]), "reference_m": 0.0}
+    def compensation(self, h, beta, signals=None):
+        """x_ref: the record's mean position weighted by |S_f(ẋ)| (0 without ``signals``)."""
+        xr = 0.0
+        if signals is not None:
+            w = np.abs(s_f(signals.v))
+            xr = float(np.sum(w * signals.x) / np.sum(w)) if np.sum(w) > 0 else float(np.mean(signals.x))
+        return {"coulomb_slope_V_per_m": float(beta[0]), "reference_m": xr}
+
+    def theta_shift(self, entry, n_theta):
+        """u = … + θ3 S_f + c_V x S_f = … + (θ3 + c_V x_ref) S_f + c_V (x − x_ref) S_f:
+        Δθ3 = c_V x_ref."""
+        d = np.zeros(n_theta)
+        d[2] = entry["coulomb_slope_V_per_m"] * entry["reference_m"]
+        return d
 
     def compensation_for(self, o: PositionDependentFriction, a1):
         return {"coulomb_slope_V_per_m": o.coulomb_slope_N_per_m / a1, "reference_m": o.reference_m}

@@ -5,7 +5,9 @@ Physical model (Hooke):
     F_eff(x) = −k (x − x_0)                                                          [N]
 
 Identification: column x (x_0 is absorbed by θ4, only the stiffness k is identifiable).
-Compensation: d̂_eff(x_d) = −k_V (x_d − x_0) [V].
+Compensation: d̂_eff(x_d) = −k_V (x_d − x_0) [V]. The emitted x_0 is the record's mean position,
+so that the term has zero mean over the identified motion and the nominal θ4 keeps the mean
+force (the fitted θ4 re-expressed about x_0, :meth:`SpringFamily.theta_shift`: θ4 − k_V x_0).
 """
 
 from __future__ import annotations
@@ -61,8 +63,16 @@ class SpringFamily(EffectFamily):
         return {f"stiffness_{unit}_per_m": float(g * beta[0])}
 
     # compensation
-    def compensation(self, h, beta):
-        return {"stiffness_V_per_m": float(beta[0]), "rest_position_m": 0.0}
+    def compensation(self, h, beta, signals=None):
+        """x_0: the record's mean position (0 without ``signals``)."""
+        x0 = float(np.mean(signals.x)) if signals is not None else 0.0
+        return {"stiffness_V_per_m": float(beta[0]), "rest_position_m": x0}
+
+    def theta_shift(self, entry, n_theta):
+        """u = … − θ4 + k_V x = … − (θ4 − k_V x_0) + k_V (x − x_0): Δθ4 = −k_V x_0."""
+        d = np.zeros(n_theta)
+        d[3] = -entry["stiffness_V_per_m"] * entry["rest_position_m"]
+        return d
 
     def compensation_for(self, o: Spring, a1):
         return {"stiffness_V_per_m": o.stiffness_N_per_m / a1, "rest_position_m": o.rest_position_m}

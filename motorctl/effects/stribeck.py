@@ -90,7 +90,7 @@ class StribeckFamily(EffectFamily):
         return {"stribeck_velocity_m_per_s": float(h), f"force_{unit}": float(g * beta[0])}
 
     # compensation
-    def compensation(self, h, beta):
+    def compensation(self, h, beta, signals=None):
         return {"force_V": float(beta[0]), "velocity_m_per_s": float(h)}
 
     def compensation_for(self, o: Stribeck, a1):

@@ -10,6 +10,8 @@ their columns, searches, checks and parameter names live one module each in ``mo
 
 from __future__ import annotations
 
+import inspect
+
 import numpy as np
 
 from motorctl.effects import FAMILIES, family
@@ -62,12 +64,18 @@ def parameters(name: str, h, beta: np.ndarray, gain: float | None, fs: float) ->
     return family(name).parameters(h, beta, gain, fs)
 
 
-def compensation(name: str, h, beta: np.ndarray) -> dict | None:
+def compensation(name: str, h, beta: np.ndarray, signals=None) -> dict | None:
     """The ``controller.compensation`` YAML entry ``{name: {...}}`` (V units, d̂_eff = −Cβ) of a
     found effect, or None when the family has no compensation term d̂_eff(x_d, ẋ_d, t).
+    ``signals`` (:class:`~motorctl.effects.base.Signals` of the record) give the references a
+    family takes from the record (spring x_0, position-dependent friction x_ref).
 
     Raises:
         ValueError: unknown family.
     """
-    entry = family(name).compensation(h, beta)
+    fam = family(name)
+    if "signals" in inspect.signature(fam.compensation).parameters:
+        entry = fam.compensation(h, beta, signals=signals)
+    else:                       # a family written before the references came from the record
+        entry = fam.compensation(h, beta)
     return None if entry is None else {name: entry}

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from motorctl.effects import FAMILIES, family as effect_family
+from motorctl.effects.input_delay import HOLD_TOLERANCE
 from motorctl.ident.data import Record
 from motorctl.ident.idim import Prepared, choose_n_theta, ls, prepare
 from motorctl.model import f_u, s_f
@@ -42,6 +43,14 @@ MIN_BIC_DROP = 10.0
 MIN_WALD = 25.0
 MAX_EFFECTS = 3
 FRICTION_SHAPES = ("sf", "sign")
+#: delays searched for the zero-order hold of a CSV/MAT record [samples]
+HOLD_GRID = np.arange(0.0, 1.5 + 1e-9, 0.05)
+
+
+def is_hold(delay_samples: float) -> bool:
+    """True when an input-to-acceleration delay [samples] is consistent with the half sample of a
+    zero-order hold (a sampled-data loop, u held over the period; motorctl.effects.input_delay)."""
+    return abs(delay_samples - 0.5) <= HOLD_TOLERANCE
 
 
 @dataclass
@@ -107,9 +116,22 @@ class Identifier:
         #: in a motorctl run log u_k is written after y_k is read and held over the period (ZOH):
         #: seen from the central-difference acceleration at t_k it acts half a sample late
         #: (u_{k-1}, u_k weigh equally). Other files: timing unknown, 0 unless told.
-        self.zoh = float(zoh_delay if zoh_delay is not None else (0.5 if rec.header else 0.0))
         self.moving = np.abs(p.v_d) > 0.02 * np.max(np.abs(p.v_d))
         self.stroke = float(np.ptp(p.x_d))
+        if zoh_delay is not None:
+            self.zoh, self.zoh_source = float(zoh_delay), "given (--zoh-delay)"
+        elif rec.header:
+            self.zoh, self.zoh_source = 0.5, "run log: the input is a zero-order hold"
+        else:
+            # a CSV/MAT record of a sampled-data loop carries the same hold; find it in the data
+            self.zoh = 0.0
+            best = self.best_delay(HOLD_GRID)
+            if is_hold(best):
+                self.zoh = 0.5
+                self.zoh_source = (f"detected: the best input delay of the nominal model, {best:.2f} sample, "
+                                   "is the zero-order hold of a sampled-data loop")
+            else:
+                self.zoh_source = f"none detected (best input delay of the nominal model in 0..1.5 sample: {best:.2f})"
 
     # ------------------------------------------------------------------ building blocks
     def nominal_phi(self, delay: float = 0.0) -> np.ndarray:
@@ -169,6 +191,11 @@ class Identifier:
         """Decimated columns (M, k) of ``family`` at h (None when it adds no columns)."""
         c = effect_family(family).columns(h, self.p)
         return None if c is None else self.p.dec(c)
+
+    def best_delay(self, grid) -> float:
+        """The input delay [samples] in ``grid`` (K,) minimising the nominal model's SSE."""
+        sses = self.delay_sses([], np.asarray(grid, dtype=float))
+        return float(grid[int(np.argmin(sses))]) + self.zoh
 
     # ------------------------------------------------------------------ candidate search
     def term(self, family: str, h) -> Term:

@@ -1,0 +1,80 @@
+"""``motorctl compare-runs BEFORE AFTER``: same program periods, settling excluded the same way."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from motorctl.cli import main
+from motorctl.cli.runs import compare_axis, window
+from motorctl.ident.synth import make_log
+from motorctl.metrics import tracking_indexes
+
+
+def _rec(t0, t1, ts=1e-3, scale=1.0):
+    t = np.arange(t0, t1, ts)
+    e = scale * 1e-5 * np.sin(2 * np.pi * t) * (1 + 5 * (t < 1.0))   # big transient in period 0
+    u = scale * np.cos(2 * np.pi * t)
+    return t, e, u
+
+
+def test_window_whole_common_periods_after_settling():
+    tb, ta = np.arange(0, 8, 1e-3), np.arange(0, 12, 1e-3)
+    assert window(tb, ta, 4.0, 1) == (4.0, 8.0)
+    assert window(tb, ta, 2.0, 1) == (2.0, 8.0)
+    assert window(tb, ta, None, 1)[0] == 0.0
+    with pytest.raises(ValueError):
+        window(np.arange(0, 1, 1e-3), np.arange(2, 3, 1e-3), 1.0, 1)
+
+
+def test_compare_axis_ratio_and_settling_excluded():
+    b = _rec(0, 5)
+    a = _rec(0, 7, scale=0.5)        # longer: only the common periods count
+    r = compare_axis(b, a, 1.0, 1)
+    assert r["window_s"] == [1.0, 5.0]
+    # the transient of the first period is out: e_M is the steady amplitude
+    assert r["before"]["e_M_um"] == pytest.approx(10.0, rel=1e-3)
+    assert r["ratio"]["L2_um"] == pytest.approx(0.5, rel=1e-6)
+    assert r["ratio"]["u_peak_V"] == pytest.approx(0.5, rel=1e-6)
+    m = (b[0] >= 1.0) & (b[0] < 5.0)
+    ref = tracking_indexes(b[0][m], b[1][m], b[2][m], 1.0)
+    assert r["before"]["L2_um"] == pytest.approx(ref["L2_um"])
+    assert r["before"]["e_F_um"] == pytest.approx(ref["e_F_um"])
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cr")
+    before, after = d / "before.mclog", d / "after.mclog"
+    eff = {"spring": {"stiffness_N_per_m": 100.0, "rest_position_m": 0.1}}
+    make_log(str(before), eff, duration_s=8.0, seed=1)
+    make_log(str(after), eff, duration_s=12.0, seed=1,
+             compensation={"spring": {"stiffness_V_per_m": 1.25, "rest_position_m": 0.1}})
+    return str(before), str(after)
+
+
+def test_compare_runs_cli(logs, tmp_path, capsys):
+    before, after = logs
+    assert main(["compare-runs", before, before, "--json"]) == 0
+    same = json.loads(capsys.readouterr().out)["axes"]["X"]
+    assert same["window_s"] == [4.0, 8.0]          # period 4 s from the header, first excluded
+    assert all(v == pytest.approx(1.0) for v in same["ratio"].values())
+    out = tmp_path / "fig"
+    assert main(["compare-runs", before, after, "--json", "--out", str(out)]) == 0
+    r = json.loads(capsys.readouterr().out)
+    x = r["axes"]["X"]
+    assert x["window_s"] == [4.0, 8.0]             # aligned by program time: the common periods
+    assert x["before"]["cycles"] == x["after"]["cycles"] == 20000
+    assert x["ratio"]["L2_um"] < 0.95               # the spring compensated
+    assert (out / "compare_runs_X.png").stat().st_size > 1000
+    assert main(["compare-runs", before, after]) == 0
+    assert "ratio" in capsys.readouterr().out
+
+
+def test_compare_runs_bad_input(logs, tmp_path):
+    before, _ = logs
+    assert main(["compare-runs", before, str(tmp_path / "missing.mclog")]) == 2
+    assert main(["compare-runs", before, before, "--axis", "Z"]) == 2
+    assert main(["compare-runs", before, before, "--period", "-1"]) == 2
