@@ -224,6 +224,12 @@ def cmd_status(args) -> int:
     lg = st["log"]
     out.write(f"log: {lg['path']} ({lg['rows']} rows, {lg['rows_flushed']} flushed, flush every "
               f"{lg['flush_s']:g} s, {len(lg['events'])} event log(s), {lg['lost_rows']} rows lost)\n")
+    rt = lg.get("retention") or {}
+    if rt:
+        out.write(f"retention: {rt['bytes_per_s'] / 1e6:.2f} MB/s, {rt['kept_bytes'] / 1e6:.1f} of "
+                  f"{rt['budget_bytes'] / 1e6:.0f} MB kept in {rt['kept_segments']} segment(s) and "
+                  f"{rt['kept_events']} event log(s); the budget holds {rt['days_at_budget']:.2f} "
+                  f"days of routine rows\n")
     return 0
 
 

@@ -400,29 +400,21 @@ class ServoLoop:
         jerk-limited ``approach`` (a ``trajectory.Move`` from where the axis stands to the
         program's start) and the program after it. ``controller`` replaces the axis's
         controller when given (built beforehand). Raises RuntimeError if the axis is faulted."""
-        if self.supervisor.fault[i]:
-            raise RuntimeError(f"axis {self.axis_names[i]} is in fault: {self.supervisor.reason(i)}")
-        if controller is not None:
-            self.controllers[i] = controller
-        y = float(self.driver.position_m[i])
-        self.controllers[i].reset(y)
-        self._running[i] = True
-        self.approach[i] = approach
-        self.k_start[i] = self.k
-        self.stop_req[i] = False
-        self.ovr_left[i] = 0
-        self.mode[i] = APPROACH
-        self.enabled[i] = True
+        self._enable(i, APPROACH, approach, controller)
 
     def jog_axis(self, i: int, move, controller=None) -> None:
         """Move axis i along the jerk-limited ``move`` (from where it stands), hold at its end
         for the settle time, then 0 V and amplifier off (IDLE). Used to bring an axis back
         inside its soft limits (:meth:`Supervisor.begin_recovery`) or to position it.
         Raises RuntimeError if the axis is faulted or not idle."""
-        if self.supervisor.fault[i]:
-            raise RuntimeError(f"axis {self.axis_names[i]} is in fault: {self.supervisor.reason(i)}")
         if self.mode[i] != IDLE:
             raise RuntimeError(f"axis {self.axis_names[i]} is not disabled ({MODE_NAMES[self.mode[i]]})")
+        self._enable(i, JOG, move, controller)
+
+    def _enable(self, i: int, mode: int, move, controller) -> None:
+        """Bumpless enable of axis i into ``mode`` along ``move`` (between cycles)."""
+        if self.supervisor.fault[i]:
+            raise RuntimeError(f"axis {self.axis_names[i]} is in fault: {self.supervisor.reason(i)}")
         if controller is not None:
             self.controllers[i] = controller
         self.controllers[i].reset(float(self.driver.position_m[i]))
@@ -431,7 +423,7 @@ class ServoLoop:
         self.k_start[i] = self.k
         self.stop_req[i] = False
         self.ovr_left[i] = 0
-        self.mode[i] = JOG
+        self.mode[i] = mode
         self.enabled[i] = True
 
     def stop_axis(self, i: int) -> None:
