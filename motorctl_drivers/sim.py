@@ -175,6 +175,10 @@ class SimAxisOptions(StrictModel):
     encoder_noise_m: Annotated[float, Field(ge=0.0, le=0.01)] = 0.0  # position noise, std [m]
     encoder_interpolation_m: Annotated[float, Field(ge=0.0, le=0.01)] = 0.0  # interpolation error [m]
     encoder_signal_period_m: Pos = 20e-6     # scale (signal) period of the interpolation error [m]
+    # stiction (Karnopp): a carriage at rest stays at rest while the applied force is below
+    # the breakaway force (the smooth Coulomb term S_f cannot hold a disabled axis still)
+    stiction_N: Annotated[float, Field(ge=0.0, le=1e5)] = 0.0    # breakaway force [N]; 0 = off
+    stiction_velocity_m_per_s: Annotated[float, Field(gt=0.0, le=0.1)] = 1e-4  # "at rest" below [m/s]
 
     def flexible(self) -> bool:
         """True when a structural mode or an amplifier current loop / delay is switched on."""
@@ -230,6 +234,8 @@ class AxisPlant:
         self.noise = opt.force_noise_N
         self.f_noise = 0.0
         self.f_ext = 0.0   # external force [N] (fault injection: a push)
+        self.stiction = opt.stiction_N
+        self.stick_v = opt.stiction_velocity_m_per_s
         # the effects switched on, in registry order (motorctl.effects.FAMILIES)
         terms = []
         for fam in FAMILIES.values():
@@ -295,20 +301,33 @@ class AxisPlant:
             u = delay(u)
         if self.noise > 0.0:
             self.f_noise = self.noise * float(self.rng.standard_normal())
+        if self.stiction > 0.0 and self._stuck(u):
+            x, xl = self.x, self.xl
+            self._integrate(u)                 # time, delays and the current loop go on
+            self.x, self.xd, self.xl, self.vl = x, 0.0, xl, 0.0
+        else:
+            self._integrate(u)
+        if self.enc_sigma > 0.0:
+            self.enc_noise = self.enc_sigma * float(self.rng.standard_normal())
+
+    def _stuck(self, u: float) -> bool:
+        """Karnopp stiction: the carriage is at rest (|ẋ| below the band) and the force applied
+        to it at rest (motor, offset, noise, external push) is within the breakaway force."""
+        if abs(self.xd) >= self.stick_v:
+            return False
+        f = self.a1 * u + self.a2 * u * abs(u) + self.a3 * u * u * u + self.f0 + self.f_noise + self.f_ext
+        return abs(f) <= self.stiction
+
+    def _integrate(self, u: float) -> None:
         h = self.h
         if self._plain:
             self.x, self.xd, self.t = _rk4_plain(self.x, self.xd, self.t, u, h, self.substeps,
                                                  self.m, self.a1, self.a2, self.a3, self.b,
                                                  self.fc, self.f0, self.f_noise, self.f_ext)
-            if self.enc_sigma > 0.0:
-                self.enc_noise = self.enc_sigma * float(self.rng.standard_normal())
-            return
-        if self._flex:
+        elif self._flex:
             self._step_flex(u)
         else:
             self._step_rigid(u)
-        if self.enc_sigma > 0.0:
-            self.enc_noise = self.enc_sigma * float(self.rng.standard_normal())
 
     def _step_flex(self, u: float) -> None:
         """One period of the plant with the structural mode and/or the current loop."""

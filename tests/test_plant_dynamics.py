@@ -110,8 +110,8 @@ def _run(raw, axis, kind, gains, seconds=1.5):
     ("pid", {"P": 6e5, "I": 1e8, "D": 180.0, "maxerror_i": 1e-8}),
     ("c2", {"k_s": 180.0, "k1": 3333.0}),
 ])
-def test_gains_far_beyond_the_chosen_ones_destabilise_the_default_plant(gantry_yaml, kind, high):
-    raw = load_yaml(gantry_yaml)
+def test_gains_far_beyond_the_chosen_ones_destabilise_the_default_plant(default_yaml, kind, high):
+    raw = load_yaml(default_yaml)
     chosen = _run(raw, "X", kind, {})
     assert not chosen["fault"]
     hi = _run(raw, "X", kind, high)
