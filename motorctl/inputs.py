@@ -45,7 +45,7 @@ def regular_file(path: str | Path, what: str, max_bytes: int) -> os.stat_result:
         raise InputError(f"{path}: is a directory; a {what} file is needed")
     if not stat.S_ISREG(st.st_mode):
         kind = "a FIFO" if stat.S_ISFIFO(st.st_mode) else "a device or socket"
-        raise InputError(f"{path}: is {kind}, not a regular file; a {what} must be a file")
+        raise InputError(f"{path}: is {kind}, not a regular file; the {what} must be a regular file")
     if st.st_size > max_bytes:
         raise InputError(f"{path}: {st.st_size} bytes is too large for a {what} "
                          f"(at most {max_bytes} bytes)")

@@ -24,6 +24,7 @@ from motorctl.ident import effects as fx
 from motorctl.ident.data import load_record
 from motorctl.ident.select import Identifier
 from motorctl.model import THETA_NAMES
+from motorctl.recorder.runlog import LogError
 
 #: Horizon of the simulated-position fit % (motorctl.ident.simfit) [s].
 SIM_WINDOW_S = 0.2
@@ -379,23 +380,23 @@ def text_report(s: dict) -> str:
 # ---------------------------------------------------------------------------- command
 def cmd_identify(args) -> int:
     from motorctl.cli import UsageError
-    from motorctl.inputs import writable_dir
+    from motorctl.inputs import writable_dir, writable_file
     if args.report:
-        writable_dir(args.report, "report")        # before the (long) fit
+        writable_dir(args.report, "report")        # before reading DATA and the (long) fit
+    if not (math.isfinite(args.closed_loop_duration) and 0 < args.closed_loop_duration <= 1e4):
+        raise UsageError(f"--closed-loop-duration {args.closed_loop_duration}: must be within (0, 10000] s")
+    if args.zoh_delay is not None and not (math.isfinite(args.zoh_delay) and 0 <= args.zoh_delay <= 10):
+        raise UsageError(f"--zoh-delay {args.zoh_delay}: must be within 0..10 samples")
     try:
         rec = load_record(args.data, args.mapping, args.gain, args.axis)
         rec2 = load_record(args.validate, args.mapping, args.gain, args.axis) if args.validate else None
     except IsADirectoryError as exc:
         raise UsageError(f"{exc.filename}: is a directory; DATA must be a file") from None
-    if args.closed_loop_duration <= 0:
-        raise UsageError(f"--closed-loop-duration {args.closed_loop_duration}: must be > 0 s")
-    if args.zoh_delay is not None and not 0 <= args.zoh_delay <= 10:
-        raise UsageError(f"--zoh-delay {args.zoh_delay}: must be within 0..10 samples")
     base_cfg, base_name = None, None
     if args.config:
         from motorctl.config import load_yaml
         base_cfg, base_name = load_yaml(args.config), args.config
-    elif rec.header.get("config"):
+    elif isinstance(rec.header.get("config"), dict) and isinstance(rec.header["config"].get("axes"), dict):
         base_cfg, base_name = rec.header["config"], f"the config in {rec.source}'s header"
     if args.write_config:
         if base_cfg is None:
@@ -405,12 +406,26 @@ def cmd_identify(args) -> int:
         if w_axis not in base_cfg.get("axes", {}):
             raise UsageError(f"{base_name}: no axis {w_axis!r} in the config; "
                              f"axes: {', '.join(base_cfg.get('axes', {}))}")
-        try:
-            open(args.write_config, "a").close()
-        except OSError as exc:
-            raise UsageError(f"--write-config {args.write_config}: cannot write ({exc.strerror})") from None
-    idf = Identifier(rec, n_theta=args.n_theta, friction=args.friction, zoh_delay=args.zoh_delay).run()
-    s = summarise(idf)
+        writable_file(args.write_config, "--write-config output")   # leaves no empty file behind
+    # numpy's overflow/invalid warnings would add lines to stderr on a degenerate record; the
+    # results are checked for finiteness and physical meaning instead (_check_physical)
+    def quiet():
+        return np.errstate(all="ignore")
+
+    try:
+        with quiet():
+            idf = Identifier(rec, n_theta=args.n_theta, friction=args.friction, zoh_delay=args.zoh_delay).run()
+    except (np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
+        if isinstance(exc, (UsageError, LogError)):
+            raise
+        msg = " ".join(str(exc).split())[:120]
+        raise LogError(f"{rec.source}: the fit failed on this record ({type(exc).__name__}: {msg}); "
+                       "check the units (t s, y m, u V) and that the axis moves with a varying input") from None
+    _check_physical(rec, idf.nominal.fit.coef[0], None)
+    with quiet():
+        s = summarise(idf)
+    _check_physical(rec, s["nominal"]["theta"][0], (s["nominal"].get("simulation_fit_percent"),
+                                                    s["augmented"].get("simulation_fit_percent")))
     s["validation"] = validation(idf, rec2) if rec2 is not None else None
     s["closed_loop"] = None
     if not args.no_closed_loop and idf.terms:
@@ -418,7 +433,7 @@ def cmd_identify(args) -> int:
         if args.config:
             from motorctl.config import load_yaml
             cfg = load_yaml(args.config)
-        elif rec.header.get("config") and rec.header.get("driver_type") == "sim":
+        elif base_cfg is not None and not args.config and rec.header.get("driver_type") == "sim":
             cfg = rec.header["config"]
         if cfg is None:
             s["closed_loop_note"] = "not run (no simulated plant: pass --config with the plant carrying the effect)"
@@ -445,6 +460,31 @@ def cmd_identify(args) -> int:
     else:
         sys.stdout.write(text_report(s))
     return 0
+
+
+#: causes to check when a fit is physically meaningless
+_CAUSES = ("check the sign of u (a positive u must push y positive), the units of y (m) and u "
+           "(V, or N without --gain) and the time base (t in s)")
+
+
+def _check_physical(rec, theta1, sim_fits) -> None:
+    """Refuse (LogError, exit 2) a fit without physical meaning: θ1 = M/A1 <= 0 (a negative or
+    zero mass), or a simulated position fit below 0 % for both the nominal and the augmented
+    model (worse than a constant). ``sim_fits``: (nominal %, augmented %) or None (not yet)."""
+    th1 = float(theta1)
+    if not (math.isfinite(th1) and th1 > 0):
+        raise LogError(f"{rec.source}: the fit gives theta1 = {th1:.4g} <= 0 (a mass that is not positive), "
+                       f"so the record does not follow the model; {_CAUSES}")
+    if sim_fits is None:
+        return
+    fits = [float(f) for f in sim_fits if f is not None]
+    if fits and not any(math.isfinite(f) for f in fits):
+        raise LogError(f"{rec.source}: the fitted model's simulated position diverges (fit % not finite), "
+                       f"so the record does not follow the model; {_CAUSES}")
+    fits = [f for f in fits if math.isfinite(f)]
+    if fits and max(fits) < 0:
+        raise LogError(f"{rec.source}: the fitted model simulates the position worse than a constant "
+                       f"(simulated position fit {max(fits):.4g} % < 0 %); {_CAUSES}")
 
 
 def _json_default(o):
