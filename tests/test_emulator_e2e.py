@@ -26,6 +26,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
+import yaml
 
 from motorctl.app.job import run_job
 from motorctl.config import config_from_dict
@@ -81,6 +82,14 @@ def namespace_for():
 @pytest.mark.parametrize("transport", ["serial", "can", "modbus", "canopen"])
 def test_closed_loop_through_the_protocol_matches_the_sim_driver(transport, tmp_path, namespace_for):
     d, cfg, rate = loopback_e2e_config(transport, CONFIGS, tmp_path)
+    # On a loaded 2-core machine loopback delivery can stall for milliseconds (softirq work
+    # deferred to ksoftirqd, which SCHED_OTHER load competes with): one such stall once lost 14
+    # exchanges in a row and filled the default bucket (+10 per lost exchange, limit 100). This
+    # test is about tracking through the protocol, so the bucket tolerates a burst of 60 lost
+    # exchanges; test_drivers_faults keeps the default and checks the bucket itself.
+    for ax in d["axes"].values():
+        ax["limits"]["error_bucket_limit"] = 600
+    cfg.write_text(yaml.safe_dump(d, sort_keys=False))
     assert rate == EXPECTED_RATE_HZ[transport], f"{transport}: budget now allows {rate} Hz"
     prefix = namespace_for(transport)
     log = tmp_path / "run.log"
