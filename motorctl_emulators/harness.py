@@ -17,12 +17,14 @@ Every child is started in its own session and killed by its pid on exit.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import os
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -257,3 +259,17 @@ def wait_for(pred, timeout_s: float, step_s: float = 0.05) -> bool:
             return True
         time.sleep(step_s)
     return bool(pred())
+
+
+@contextlib.contextmanager
+def device_thread(dev):
+    """Serve the emulated device ``dev`` from a daemon thread of this process (in-process
+    tests over python-can's virtual bus); stopped and joined (bounded, 5 s) on exit."""
+    stop = threading.Event()
+    th = threading.Thread(target=dev.serve, kwargs={"stop": stop.is_set}, daemon=True)
+    th.start()
+    try:
+        yield dev
+    finally:
+        stop.set()
+        th.join(timeout=5)

@@ -9,6 +9,9 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
+#: the plant the emulators run behind their protocols in the tests: the paper's rigid gantry
+RIGID_PLANT = REPO / "configs" / "gantry-rigid.yaml"
+
 #: argv prefix that runs the motorctl CLI with the interpreter running the tests
 MOTORCTL = [sys.executable, "-m", "motorctl"]
 

@@ -5,20 +5,21 @@ own device side (``canopen.LocalNode``, motorctl_emulators/cia402_device.py), on
 from __future__ import annotations
 
 import contextlib
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import RIGID_PLANT
 
 from motorctl.config import ConfigError, config_from_dict, load_yaml
 from motorctl_drivers import cia402
 from motorctl_emulators.device import build_device
+from motorctl_emulators.harness import device_thread
 from motorctl_emulators.plant_bank import FaultSpec
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-PLANT = CONFIGS / ("gantry-rigid.yaml" if (CONFIGS / "gantry-rigid.yaml").exists() else "gantry.yaml")
+PLANT = RIGID_PLANT
 
 
 # --------------------------------------------------------------------------- profile logic
@@ -69,15 +70,8 @@ def _config(tmp_path, **driver) -> dict:
 
 @contextlib.contextmanager
 def _drives(loaded, faults=()):
-    dev = build_device(loaded, PLANT, faults=list(faults))
-    stop = threading.Event()
-    th = threading.Thread(target=dev.serve, kwargs={"stop": stop.is_set}, daemon=True)
-    th.start()
-    try:
+    with device_thread(build_device(loaded, PLANT, faults=list(faults))) as dev:
         yield dev
-    finally:
-        stop.set()
-        th.join(timeout=5)
 
 
 def _cycle(drv, u, en, n=1, sleep=0.003):

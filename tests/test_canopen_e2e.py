@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from conftest import RIGID_PLANT
 
 from motorctl.recorder.runlog import read_log
 from motorctl_emulators.harness import (
@@ -36,7 +37,7 @@ from motorctl_emulators.harness import (
 )
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-PLANT = CONFIGS / ("gantry-rigid.yaml" if (CONFIGS / "gantry-rigid.yaml").exists() else "gantry.yaml")
+PLANT = RIGID_PLANT
 CONSUMER_S = 0.050          # heartbeat_consumer_ms of configs/gantry-canopen.yaml
 
 

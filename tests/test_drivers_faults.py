@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import RIGID_PLANT
 
 from motorctl.loop.safety import FAULT_IO_ERROR
 from motorctl.recorder.runlog import read_log
@@ -27,7 +28,7 @@ from motorctl_emulators.harness import (
 )
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-PLANT = CONFIGS / ("gantry-rigid.yaml" if (CONFIGS / "gantry-rigid.yaml").exists() else "gantry.yaml")
+PLANT = RIGID_PLANT
 
 #: Below the limit: each burst adds ≤ 10 × (cycles lost) to a bucket of 100, which drains by 1
 #: per clean cycle between bursts (60 ms apart: ≥ 60 cycles). Then a lasting loss from

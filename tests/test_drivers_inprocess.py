@@ -6,7 +6,6 @@ the thread shares the GIL, so the read timeout is long."""
 from __future__ import annotations
 
 import contextlib
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +14,7 @@ import pytest
 from motorctl.config import config_from_dict, load_yaml
 from motorctl.driver import LifecycleError
 from motorctl_emulators.device import build_device
+from motorctl_emulators.harness import device_thread
 from motorctl_emulators.plant_bank import FaultSpec
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -33,15 +33,8 @@ def _config(name: str, tmp_path, **driver) -> dict:
 @contextlib.contextmanager
 def _serving(loaded, faults=()):
     """The emulated device of ``loaded`` served from a thread of this process (bounded join)."""
-    dev = build_device(loaded, PLANT, watchdog_s=WATCHDOG_S, faults=list(faults))
-    stop = threading.Event()
-    th = threading.Thread(target=dev.serve, kwargs={"stop": stop.is_set}, daemon=True)
-    th.start()
-    try:
+    with device_thread(build_device(loaded, PLANT, watchdog_s=WATCHDOG_S, faults=list(faults))) as dev:
         yield dev
-    finally:
-        stop.set()
-        th.join(timeout=5)
 
 
 def _exchange(d: dict, cycles: int = 40):

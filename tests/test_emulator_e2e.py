@@ -27,6 +27,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from conftest import RIGID_PLANT
 
 from motorctl.app.job import run_job
 from motorctl.config import config_from_dict
@@ -44,7 +45,7 @@ from motorctl_emulators.harness import (
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 #: the emulator's plant: the simulated gantry (the paper's rigid plant where the config exists)
-PLANT = CONFIGS / ("gantry-rigid.yaml" if (CONFIGS / "gantry-rigid.yaml").exists() else "gantry.yaml")
+PLANT = RIGID_PLANT
 DURATION_S = 3.0
 EXPECTED_RATE_HZ = {"serial": 2000.0, "can": 1000.0, "modbus": 1500.0, "canopen": 500.0}
 TOLERANCE = 0.20

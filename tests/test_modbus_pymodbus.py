@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import RIGID_PLANT
 
 from motorctl.config import config_from_dict, load_yaml
 from motorctl_emulators.harness import free_port, parse_run_table, run_cli
@@ -44,7 +45,7 @@ from motorctl_emulators.plant_bank import load_plant
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 #: a holding register of the test device: writing k + 1 there faults axis k's amplifier
 FAULT_REGISTER = 250
-PLANT = CONFIGS / ("gantry-rigid.yaml" if (CONFIGS / "gantry-rigid.yaml").exists() else "gantry.yaml")
+PLANT = RIGID_PLANT
 
 
 # --------------------------------------------------------------------------- the device (pymodbus)
