@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from conftest import RIGID_PLANT
 
 from motorctl.loop.safety import FAULT_IO_ERROR
@@ -41,6 +42,11 @@ TRANSIENT = [("drop", 0.10, 3), ("corrupt", 0.16, 3), ("stale", 0.22, 2), ("exce
              ("late", 0.34, 1)]
 LATE_S = 0.002     # later than the next read window (1.75 periods at 1000 Hz) on every transport
 LASTING_T = 0.42
+#: the axes' error bucket limit (+10 per failed exchange, −1 per clean one). The default, 100,
+#: is checked by test_daemon_faults; here 300, because under a 2-core load the loopback peer
+#: itself was seen to lose 34 exchanges in a short stretch (filling 100 before the planned
+#: loss). The planned transient bursts (≤ 3 exchanges, 60 ms apart) stay far below either.
+BUCKET_LIMIT = 300
 LASTING = {"serial": ("disconnect", 1), "can": ("bus_off", 100000), "modbus": ("disconnect", 1)}
 
 
@@ -54,6 +60,9 @@ def _faults(transport: str, rate: float) -> tuple[list[str], int]:
 @pytest.mark.parametrize("transport", ["serial", "can", "modbus"])
 def test_transient_faults_keep_running_and_a_lasting_loss_faults_to_0V_in_the_same_cycle(transport, tmp_path):
     d, cfg, rate = loopback_e2e_config(transport, CONFIGS, tmp_path)
+    for ax in d["axes"].values():
+        ax["limits"]["error_bucket_limit"] = BUCKET_LIMIT
+    cfg.write_text(yaml.safe_dump(d, sort_keys=False))
     log_path = tmp_path / "run.log"
     ns = NetNamespace() if transport == "can" else None
     prefix = ns.__enter__().prefix if ns else ()
@@ -88,8 +97,8 @@ def test_transient_faults_keep_running_and_a_lasting_loss_faults_to_0V_in_the_sa
         why = f"{a}: first fault {bits[k]} at cycle {k}, lasting loss from command {lasting_start}; {c}"
         assert bits[k] == FAULT_IO_ERROR and not bits[:k].any() and enabled[:k].min() == 1.0, why
         # the loss starts with command `lasting_start` (answered in the next cycle); the bucket
-        # (+10 per failed exchange, limit 100) is full after about ten cycles
-        assert lasting_start + 1 <= k <= lasting_start + 1 + 15, why
+        # (+10 per failed exchange, limit BUCKET_LIMIT) is full after BUCKET_LIMIT / 10 cycles
+        assert lasting_start + 1 <= k <= lasting_start + 1 + BUCKET_LIMIT // 10 + 5, why
         # 0 V and amplifier off in the very cycle the fault latches, and from then on
         assert u[k] == 0.0 and enabled[k] == 0.0
         assert (u[k:] == 0.0).all() and (enabled[k:] == 0.0).all()
