@@ -1,7 +1,12 @@
 """Soak: the daemon for N minutes at 5 kHz on the simulated gantry with a small log budget.
 
 Both axes run their programs; every ``--fault-every`` seconds X gets a NaN injected (a fault
-and its event log), is reset and started again. Every ``--poll`` seconds the script prints the
+and its event log), is reset and started again. The default cadence (90 s: six faults in ten
+minutes) is chosen so that every event window fits: a fault window is 3 s of rows (5.2 MB),
+an overrun window 0.2 s (0.34 MB, at most ``max_event_logs`` / 2 of them), and event logs may
+hold the budget less two segments (40 MB of 50): at most seven fault windows and ten overrun
+windows. A faster cadence shows the other half of the policy: the oldest overrun, then fault
+event logs go once event logs alone would break the budget. Every ``--poll`` seconds the script prints the
 bytes per second, the bytes kept in ``log_dir`` against the budget (the status figure and a
 scan of the directory), the segments and event logs kept, and the daemon's memory (loop and
 I/O process RSS). At the end it stops the daemon (SIGTERM) and exports the rotated set
@@ -91,7 +96,7 @@ def main() -> int:
     ap.add_argument("--budget-mb", type=float, default=50.0)
     ap.add_argument("--segment-mb", type=float, default=5.0)
     ap.add_argument("--poll", type=float, default=10.0, help="seconds between status lines")
-    ap.add_argument("--fault-every", type=float, default=30.0, help="seconds between injected faults")
+    ap.add_argument("--fault-every", type=float, default=90.0, help="seconds between injected faults")
     ap.add_argument("--keep", action="store_true", help="keep the temporary directory")
     a = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="motorctl-soak-"))

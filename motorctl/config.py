@@ -131,7 +131,8 @@ class DaemonConfig(StrictModel):
     None = the daemon's own group); log_dir: where run logs go; flush_s: longest time between
     two fdatasync of the run log [s] (the loop latches every axis when the recorder stalls
     for 2·flush_s + 1 s); event_before_s / event_after_s: the window kept around
-    each fault or overrun in an event log [s]; max_event_logs: per run; stop_settle_s: how
+    each fault in an event log [s]; overrun_event_before_s / overrun_event_after_s: the
+    (shorter) window kept around an overrun [s]; max_event_logs: per run; stop_settle_s: how
     long an axis holds its final position before 0 V and amplifier off [s];
     allow_fault_injection: accept ``motorctl inject`` (simulated driver only).
 
@@ -139,7 +140,8 @@ class DaemonConfig(StrictModel):
     [bytes]; log_segment_s: a segment is closed at this age at the latest [s];
     log_budget_bytes: most bytes of run logs and event logs kept in log_dir (at least two
     segments) [bytes]; log_max_age_s: routine segments older than this are deleted [s]
-    (event logs go only when the budget needs it, after the routine segments).
+    (event logs go only when the budget needs it, after the routine segments, or when they
+    hold more than the budget less two segments).
     """
 
     socket: str = "/run/motorctl/motorctl.sock"
@@ -148,6 +150,8 @@ class DaemonConfig(StrictModel):
     flush_s: Annotated[float, Field(gt=0, le=1.0)] = 0.5
     event_before_s: Annotated[float, Field(ge=0, le=10.0)] = 2.0
     event_after_s: Annotated[float, Field(ge=0, le=10.0)] = 1.0
+    overrun_event_before_s: Annotated[float, Field(ge=0, le=10.0)] = 0.1
+    overrun_event_after_s: Annotated[float, Field(ge=0, le=10.0)] = 0.1
     max_event_logs: Annotated[int, Field(ge=0)] = 20
     stop_settle_s: Annotated[float, Field(ge=0, le=5.0)] = 0.1
     allow_fault_injection: bool = False

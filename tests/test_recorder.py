@@ -31,23 +31,25 @@ RUN = "motorctl-20240101T000000-1.mlog"
 SEG1 = "motorctl-20240101T000000-1.0001.mlog"
 
 
-def _ring_and_drainer(tmp_path, cap=1000, before=0.01, after=0.01, max_events=20):
+def _ring_and_drainer(tmp_path, cap=1000, before=0.01, after=0.01, max_events=20,
+                      overrun_before=0.1, overrun_after=0.1):
     cols = columns_for(["X"])
     ring = SharedRing(cap, len(cols), 1)
     hdr = {"columns": cols, "axes": ["X"], "period_s": TS}
     w = SegmentWriter(str(tmp_path / RUN), hdr)
     dr = Drainer(ring, w, hdr, ["X"], Timebase(TS), flush_s=0.1, event_before_s=before, event_after_s=after,
-                 max_events=max_events)
+                 max_events=max_events, overrun_before_s=overrun_before, overrun_after_s=overrun_after)
     return cols, ring, dr
 
 
-def _publish(ring, cols, k0, n, fault_at=None):
+def _publish(ring, cols, k0, n, fault_at=None, overrun_at=None):
     ci = {c: j for j, c in enumerate(cols)}
     for k in range(k0, k0 + n):
         r = ring.rows[k % ring.capacity]
         r[:] = 0.0
         r[ci["t"]] = k * TS
         r[ci["turnaround_ns"]] = 20000.0 + k % 7
+        r[ci["overruns"]] = 1.0 if overrun_at is not None and k >= overrun_at else 0.0
         r[ci["X.enabled"]] = 1.0
         r[ci["X.fault_bits"]] = 1.0 if fault_at is not None and k >= fault_at else 0.0
         ring.publish(k + 1)
@@ -70,6 +72,22 @@ def test_drainer_copies_every_row_in_order_and_cuts_an_event_window(tmp_path):
     t = ev.col("t")
     assert t[0] == pytest.approx((900 - 50) * TS) and t[-1] == pytest.approx((900 + 49) * TS)
     assert dr.loop_stats.cycles == 1300 and dr.loop_stats.summary()["turnaround_max_us"] == pytest.approx(20.006)
+
+
+def test_an_overrun_keeps_its_own_shorter_window(tmp_path):
+    """Fault windows: event_before_s / event_after_s; overrun windows: overrun_before_s /
+    overrun_after_s (daemon.overrun_event_*), so a flood of overruns costs little disk."""
+    cols, ring, dr = _ring_and_drainer(tmp_path, before=0.04, after=0.02, overrun_before=0.004,
+                                       overrun_after=0.002)
+    _publish(ring, cols, 0, 900, fault_at=700, overrun_at=300)
+    dr.poll()
+    dr.cut_events()
+    dr.finish()
+    dr.close()
+    ev = {e["kind"]: read_log(e["path"]) for e in dr.events}
+    assert sorted(ev) == ["fault-X", "overrun"], dr.events
+    assert ev["overrun"].data.shape[0] == 20 + 10 and ev["overrun"].col("t")[0] == pytest.approx(280 * TS)
+    assert ev["fault-X"].data.shape[0] == 200 + 100 and ev["fault-X"].col("t")[0] == pytest.approx(500 * TS)
 
 
 def test_drainer_counts_rows_it_fell_behind_on_instead_of_reading_them_torn(tmp_path):

@@ -155,8 +155,8 @@ def test_age_limit_event_share_and_live_runs(tmp_path):
                            f"motorctl-20240102T000000-{os.getpid()}.0002.mlog",
                            "motorctl-notes.txt", "other.mlog"])
     assert ret.dropped_segments == 3 and ret.kept_events == 1
-    # over the budget with event logs beyond half of it: the oldest event logs go first,
-    # before the (newer) routine segment
+    # over the budget with event logs beyond the budget less two segments (512 KiB): the
+    # oldest event logs go first, before the (newer) routine segment
     routine = tmp_path / f"motorctl-20240104T000000-{dead.pid}.0001.mlog"
     routine.write_bytes(b"x" * (200 << 10))
     for i in range(8):

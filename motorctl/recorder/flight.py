@@ -173,7 +173,9 @@ class Drainer:
         header: the run log's header (copied into event logs). axis_names: loop order.
         timebase: the loop's :class:`~motorctl.loop.timebase.Timebase`. flush_s: longest
         time between fdatasync calls [s].
-        event_before_s, event_after_s: window kept around each fault/overrun [s].
+        event_before_s, event_after_s: window kept around each fault [s].
+        overrun_before_s, overrun_after_s: window kept around an overrun [s] (shorter: an
+            overrun's trace is the timing of a few cycles; a fault's is the motion before it).
         max_events: event logs per run (later events are only counted).
     Attributes:
         drained: next cycle to account (statistics, events); written: next cycle to write
@@ -185,13 +187,14 @@ class Drainer:
 
     def __init__(self, ring: SharedRing, writer, header: dict, axis_names, timebase,
                  flush_s: float = 0.5, event_before_s: float = 2.0, event_after_s: float = 1.0,
-                 max_events: int = 20):
+                 max_events: int = 20, overrun_before_s: float = 0.1, overrun_after_s: float = 0.1):
         self.ring, self.writer, self.header = ring, writer, header
         self.axis_names = list(axis_names)
         self.period_s = timebase.period_s
         self.flush_s = float(flush_s)
-        self.before = timebase.cycles(event_before_s)
-        self.after = timebase.cycles(event_after_s)
+        # (before, after) [cycles] per event kind
+        self._window = {"fault": (timebase.cycles(event_before_s), timebase.cycles(event_after_s)),
+                        "overrun": (timebase.cycles(overrun_before_s), timebase.cycles(overrun_after_s))}
         self.max_events = int(max_events)
         cols = list(header["columns"])
         self._c_turn = cols.index("turnaround_ns")
@@ -333,7 +336,7 @@ class Drainer:
         if kind.startswith("fault-"):
             self.fault_onsets.append({"k": k, "axis": kind[6:], "bits": value})
         for p in self.pending:             # merge into an open window of the same kind
-            if p["k"] <= k < p["k"] + self.after:
+            if p["k"] <= k < p["k"] + p["after"]:
                 if p["kind"] == kind:
                     p["also"].append(kind)
                     return
@@ -350,7 +353,9 @@ class Drainer:
                 self.events_dropped += 1
                 return
             self._last_overrun_k = k
-        self.pending.append({"k": k, "kind": kind, "value": value, "also": []})
+        before, after = self._window["overrun" if kind == "overrun" else "fault"]
+        self.pending.append({"k": k, "kind": kind, "value": value, "also": [], "before": before,
+                             "after": after})
 
     def cut_events(self, force: bool = False) -> list[str]:
         """Write the event logs whose after-window has been drained (all pending if force)."""
@@ -358,11 +363,11 @@ class Drainer:
         cap = self.ring.capacity
         published = self.ring.published()
         for p in list(self.pending):
-            end = p["k"] + self.after
+            end = p["k"] + p["after"]
             if self.drained < end and not force:
                 continue
             end = min(end, self.drained)
-            start = max(p["k"] - self.before, published - cap + 1, 0)
+            start = max(p["k"] - p["before"], published - cap + 1, 0)
             rows = self._copy(start, end)
             if self.ring.published() - cap > start:      # overwritten while copying
                 cut = self.ring.published() - cap - start

@@ -21,7 +21,8 @@ Retention (:class:`Retention`, before every new segment and every event log, and
 ``max_age_s`` are deleted; then, while the closed files plus one full segment (plus the event
 log about to be written) exceed ``budget_bytes``, the oldest routine segment goes first (event
 logs are kept longer), event logs only once no routine segment is left to delete or when they
-hold more than half of the budget (overrun event logs before fault event logs, oldest first). So the directory never holds more than the budget. The
+hold more than the budget less two segments (the one being written and the newest closed one),
+overrun event logs before fault event logs, oldest first. So the directory never holds more than the budget. The
 segment being written, and the last segment of a run whose process is alive (another daemon
 on the same directory), are never deleted; files of other names are never touched.
 """
@@ -42,8 +43,8 @@ from motorctl.recorder.runlog import CHUNK_ROWS, LogError, LogFile, LogWriter, R
 _RUN = r"motorctl-\d{8}T\d{6}-(?P<pid>\d+)"
 _SEGMENT_RE = re.compile(rf"(?P<run>{_RUN})(?:\.(?P<index>\d{{4,}}))?\.mlog")
 _EVENT_RE = re.compile(rf"(?P<run>{_RUN})\.event\d+-[A-Za-z0-9_-]+\.mlog")
-#: event logs are kept before routine segments, up to this share of the budget
-EVENT_SHARE = 0.5
+#: event logs are kept before routine segments, up to the budget less this many segments
+EVENT_ROOM_SEGMENTS = 2
 #: how often the age limit is enforced (and the figures refreshed) besides every rotation
 #: and event log [s]
 PRUNE_S = 2.0
@@ -243,6 +244,12 @@ class Retention:
     last_prune: float = field(default=0.0)
     started: float = field(default_factory=time.monotonic)
 
+    @property
+    def event_cap_bytes(self) -> int:
+        """Most bytes of event logs kept before routine segments: the budget less
+        :data:`EVENT_ROOM_SEGMENTS` segments."""
+        return max(self.budget_bytes - EVENT_ROOM_SEGMENTS * self.segment_bytes, 0)
+
     def scan(self) -> list[_File]:
         """The run logs and event logs in ``log_dir`` (other files are never touched)."""
         out = []
@@ -302,7 +309,7 @@ class Retention:
         ev_bytes = sum(f.size for f in events)
         gone = set()
         while closed + self.segment_bytes + extra_bytes > self.budget_bytes and (routine or events):
-            if events and (ev_bytes > EVENT_SHARE * self.budget_bytes or not routine):
+            if events and (ev_bytes > self.event_cap_bytes or not routine):
                 f = events.pop(0)
                 ev_bytes -= f.size
             else:

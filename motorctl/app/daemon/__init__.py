@@ -86,7 +86,9 @@ def plan_daemon(config_path: str, socket_path: str | None, log_dir: str | None) 
     tb = loaded.timebase
     from motorctl.loop.records import RecordLayout
     width = RecordLayout(names).width
-    ring = SharedRing(tb.cycles(d.event_before_s + d.event_after_s + RING_SPARE_S), width,
+    window_s = max(d.event_before_s + d.event_after_s,
+                   d.overrun_event_before_s + d.overrun_event_after_s)
+    ring = SharedRing(tb.cycles(window_s + RING_SPARE_S), width,
                       len(names), ST_SIZE)
     # every configured controller of every axis is built (and compiled) before anything runs:
     # a switch is a swap

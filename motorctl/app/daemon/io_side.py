@@ -70,7 +70,8 @@ class IOSide:
         self.writer = writer
         self.retention = writer.retention
         self.drainer = Drainer(plan.ring, writer, self.header, self.names, asm.loaded.timebase,
-                               d.flush_s, d.event_before_s, d.event_after_s, d.max_event_logs)
+                               d.flush_s, d.event_before_s, d.event_after_s, d.max_event_logs,
+                               d.overrun_event_before_s, d.overrun_event_after_s)
         self.ready: dict | None = None
         self.fatal = ""
         self.pending: dict[int, tuple] = {}
