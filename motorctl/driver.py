@@ -183,6 +183,41 @@ class Driver(abc.ABC):
     def _close(self) -> None:
         """Hook: release the transport."""
 
+    # ------------------------------------------------------------------ link
+    @property
+    def link_down(self) -> bool:
+        """True when the link to the device is lost (the transport failed, or no axis has
+        answered for a while): what the daemon reconnects between cycles. Cheap; never
+        blocks. The simulated driver has no link: always False."""
+        return self._link_down()
+
+    def _link_down(self) -> bool:
+        """Hook: see :attr:`link_down`."""
+        return False
+
+    def reconnect(self, timeout_s: float | None = None) -> None:
+        """Release and re-open a lost link and check the device answers, as ``configure()``
+        does (blocking: call outside the cycle, only while no axis is enabled). Sends no
+        enable: what is enabled is decided by the next ``write()``, and the supervisor keeps
+        its faults latched until an operator resets them.
+
+        Args:
+            timeout_s: longest wait for the device's first answer [s] (None: the driver's
+                own configure timeout).
+        Raises:
+            LifecycleError: the driver is not configured (unconfigured or closed).
+            NotImplementedError: the driver has no link to reconnect.
+            OSError, ConnectionError: the device is not back (the link stays down).
+        """
+        if self.state not in ("inactive", "active"):
+            raise LifecycleError(f"{type(self).__name__}.reconnect() needs a configured driver, "
+                                 f"the driver is {self.state!r}")
+        self._reconnect(timeout_s)
+
+    def _reconnect(self, timeout_s: float | None) -> None:
+        """Hook: see :meth:`reconnect`."""
+        raise NotImplementedError(f"{type(self).__name__} has no link to reconnect")
+
     # ------------------------------------------------------------------ cyclic
     @abc.abstractmethod
     def read(self) -> None:
@@ -221,6 +256,12 @@ class Driver(abc.ABC):
     def describe(self) -> dict:
         """JSON-able facts for the run-log header (e.g. the simulated truth)."""
         return {}
+
+    def fault_reason(self, i: int) -> str:
+        """What the drive of axis ``i`` says about its fault, one line (e.g. a CiA 402 EMCY
+        code and its meaning, a Modbus exception), '' when it says nothing. Called outside the
+        cycle (the run table, the daemon's status); may build strings."""
+        return ""
 
 
 def available_drivers() -> dict[str, object]:

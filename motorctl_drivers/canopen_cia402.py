@@ -317,6 +317,7 @@ class CanopenDriver(SplitPhaseDriver):
         self.emcy_count = [0] * n
         self.emcy_register = [0] * n
         self._emcy_latched = [False] * n
+        self._emcy_named = [False] * n       # fault_reason names the EMCY until re-enabled
         self._was_fault = [False] * n
         # the statusword trace per axis: preallocated ring of (statusword) at each state change
         self._trace = [[0] * TRACE_LEN for _ in range(n)]
@@ -599,6 +600,7 @@ class CanopenDriver(SplitPhaseDriver):
             self._write(i, cia402.CONSUMER_HEARTBEAT, 1, consumer.to_bytes(4, "little"))
             self._sm[i].__init__()
             self._emcy_latched[i] = False
+            self._emcy_named[i] = False
         self._prime_commands()
         for i, node in enumerate(self.nodes):
             node.nmt.state = "OPERATIONAL"
@@ -666,6 +668,8 @@ class CanopenDriver(SplitPhaseDriver):
             cw = sm.step(self._statusword[i], en)
             if not en and not sm.fault and self._emcy_latched[i]:
                 self._emcy_latched[i] = False       # disabled and out of Fault: the latch is reset
+            elif en and sm.enabled and self._emcy_named[i]:
+                self._emcy_named[i] = False         # enabled again: the EMCY is history
             a = ax[i]
             t = cia402.volts_to_permille(float(u_V[i]), a.voltage_full_scale_V, a.full_scale_permille) \
                 if en and sm.enabled else 0
@@ -728,6 +732,7 @@ class CanopenDriver(SplitPhaseDriver):
                         self.emcy_code[i] = code
                         self.emcy_count[i] += 1
                         self._emcy_latched[i] = True
+                        self._emcy_named[i] = True
                         self.amp_fault[i] = True
                 continue
             if msg.is_error_frame:
@@ -746,9 +751,11 @@ class CanopenDriver(SplitPhaseDriver):
 
     # ------------------------------------------------------------------ reports
     def fault_reason(self, i: int) -> str:
-        """Why axis i reports an amplifier fault, one line ('' when it does not): the latched
-        EMCY error code and its CiA 301/402 meaning, or the drive's Fault state."""
-        if self._emcy_latched[i] and self.emcy_code[i]:
+        """Why axis i reports an amplifier fault, one line ('' when it does not): the EMCY
+        error code and its CiA 301/402 meaning (from the EMCY until the axis is in Operation
+        enabled again, so the report after the fault reset still names it), or the drive's
+        Fault state."""
+        if (self._emcy_latched[i] or self._emcy_named[i]) and self.emcy_code[i]:
             return (f"EMCY {cia402.describe_error(self.emcy_code[i])} from {self._where(i)} "
                     f"(error register 0x{self.emcy_register[i]:02X})")
         if self._sm[i].fault or self.amp_fault[i]:

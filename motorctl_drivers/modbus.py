@@ -958,8 +958,10 @@ class ModbusDriver(SplitPhaseDriver):
 
     # --- reports
     def fault_reason(self, i: int) -> str:
-        """The last exception that hit axis i's requests (code and meaning), '' if none."""
-        return self.last_exception[i]
+        """The last exception that hit axis i's requests (code and meaning) while its exchange
+        is still failing (``read_error``), '' otherwise: an exception minutes before a fault of
+        another kind is not its reason (the history is in ``describe()["fault_reasons"]``)."""
+        return self.last_exception[i] if self.read_error[i] else ""
 
     def budget(self, rate_hz: float) -> BusBudget:
         """TCP: one round trip per request of the cycle (``round_trip_s``, or measured: the

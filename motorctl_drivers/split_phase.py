@@ -192,7 +192,7 @@ class SplitPhaseDriver(Driver):
     and :meth:`Driver._full_scale_V` from their settings. The lifecycle hooks are here:
     ``_configure`` opens the transport and checks the device answers (:meth:`_first_reading`),
     ``_activate`` starts the cycle from rest, ``_deactivate`` waits for the answer to the
-    0 V command, ``_close`` releases the transport; :meth:`reconnect` re-opens a lost link.
+    0 V command, ``_close`` releases the transport; ``_reconnect`` re-opens a lost link (:attr:`link_down`).
 
     Counters (for ``describe()`` and the benchmark): timeouts, stale, bad_frames, exceptions,
     send_errors.
@@ -211,6 +211,8 @@ class SplitPhaseDriver(Driver):
     CONFIGURE_TIMEOUT_S = 1.0
     #: how long ``_deactivate`` waits for the answer to the final 0 V command [s]
     DEACTIVATE_TIMEOUT_S = 0.05
+    #: the link counts as down (:attr:`link_down`) when no axis has answered for this long [s]
+    LINK_DOWN_S = 0.2
 
     def __init__(self, options, axis_options, period_s):
         super().__init__(options, axis_options, period_s)
@@ -230,6 +232,7 @@ class SplitPhaseDriver(Driver):
         self._m_per_count = [1.0] * n
         self._offset_m = [0.0] * n
         self.connected = False
+        self._down_cycles = max(1, round(self.LINK_DOWN_S / period_s))
         self.round_trip = round_trip_stats(())      # measured by configure()
         self.counters = {"timeouts": 0, "stale": 0, "bad_frames": 0, "exceptions": 0, "send_errors": 0}
 
@@ -301,24 +304,24 @@ class SplitPhaseDriver(Driver):
         self._outstanding = False
         self._release_transport()
 
-    def reconnect(self) -> None:
-        """Release and re-open the transport (blocking; call outside the loop), then check the
-        device answers as ``configure()`` does. Sends no command: the axes stay faulted in the
-        supervisor until an operator resets them, and the next ``write()`` decides what is
-        enabled; nothing is re-enabled here.
+    def _link_down(self) -> bool:
+        """The transport failed, or every axis has missed ``LINK_DOWN_S`` of answers."""
+        return not self.connected or (self.state == "active" and min(self._lost) >= self._down_cycles)
 
-        Raises:
-            LifecycleError: the driver is not configured (unconfigured or closed).
-            OSError, ConnectionError: as :meth:`_configure` (``connected`` stays False).
-        """
-        if self.state not in ("inactive", "active"):
-            raise LifecycleError(f"{type(self).__name__}.reconnect() needs a configured driver, "
-                                 f"the driver is {self.state!r}")
+    def _reconnect(self, timeout_s: float | None) -> None:
+        """Release and re-open the transport, then check the device answers as
+        ``_configure`` does (within ``timeout_s``, default ``CONFIGURE_TIMEOUT_S``)."""
         try:
             self._close()
         except Exception:  # noqa: BLE001  (a dead link may refuse to close cleanly)
             pass
-        self._configure()
+        saved = self.CONFIGURE_TIMEOUT_S
+        if timeout_s is not None:
+            self.CONFIGURE_TIMEOUT_S = float(timeout_s)
+        try:
+            self._configure()
+        finally:
+            self.CONFIGURE_TIMEOUT_S = saved
         if self.state == "active":
             self._activate()
 

@@ -154,10 +154,16 @@ def test_emcy_latches_an_amplifier_fault_naming_the_code_and_a_disabled_axis_res
                 _cycle(drv, [0.0, 1.0], [False, True])
                 if not drv.amp_fault[0]:
                     break
-            assert not drv.amp_fault[0] and drv.fault_reason(0) == ""
+            # the latch is reset; the reason still names the EMCY for the report of the fault
+            assert not drv.amp_fault[0] and "0x2310" in drv.fault_reason(0)
             assert drv.describe()["emcy"] == {"X": "0x2310 continuous over-current"}   # the history stays
             trace = [t.split(" ", 1)[1] for t in drv.describe()["drives"]["X"]["statusword_trace"]]
             assert "Fault" in trace and trace[-1] == "Switch on disabled"
+            for _ in range(20):                                       # enabled again (a new start)
+                _cycle(drv, [0.0, 1.0], [True, True])
+                if drv.fault_reason(0) == "":
+                    break
+            assert drv.fault_reason(0) == "" and not drv.amp_fault[0]
         finally:
             drv.close()
 

@@ -58,6 +58,8 @@ def test_emcy_latches_a_fault_naming_its_code_and_the_enable_follows_the_state_m
     table = parse_run_table(r.stdout)
     assert set(table) == {"X", "Y"}, f"{r.stdout}\n{r.stderr}\n{err}"
     assert r.returncode == 1 and "amplifier fault" in table["X"]["fault"] and table["Y"]["fault"] == "", r.stdout
+    # the run table names what the drive said: the EMCY code and its meaning
+    assert "drive: EMCY 0x2310 continuous over-current from canopen node 1 (axis X)" in table["X"]["fault"], r.stdout
     # the drive's side: the statusword sequence, each transition asked for by its controlword
     steps = re.findall(r"^X: (.+?) -> (.+?) \(controlword (0x[0-9A-F]{4}), statusword (0x[0-9A-F]{4})\)$", err, re.M)
     assert steps[:3] == [("Switch on disabled", "Ready to switch on", "0x0006", "0x0231"),

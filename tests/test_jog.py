@@ -7,7 +7,7 @@ import yaml
 
 from motorctl.app.build import build
 from motorctl.config import config_from_dict
-from motorctl.loop.safety import FAULT_SOFT_LIMIT, RECOVERY_MARGIN_M
+from motorctl.loop.safety import FAULT_NAN, FAULT_SOFT_LIMIT, RECOVERY_MARGIN_M
 from motorctl.loop.servo import IDLE, JOG
 from motorctl.loop.trajectory import Move
 
@@ -72,3 +72,22 @@ def test_recovery_refuses_a_target_outside_and_trips_when_moving_further_out(gan
     lp.run(int(2.0 / lp.period_s))
     assert sup.fault[0] & FAULT_SOFT_LIMIT
     assert sup.value_at_fault[0] < y - RECOVERY_MARGIN_M + 1e-6
+
+
+def test_recovery_clears_what_latched_with_the_soft_limit(gantry_yaml):
+    """A NaN reading latched too (as when a NaN fault stops an axis at speed and it coasts out):
+    the plain reset waits for the axis to be inside, so the recovery must not wait for the
+    reset; it judges the other faults as the reset does (the reading is finite again)."""
+    asm, lp, sup, drv, y = _outside(gantry_yaml)
+    drv.inject("nan", "X", cycles=3)
+    lp.run(10)
+    assert sup.fault[0] & FAULT_NAN and sup.fault[0] & FAULT_SOFT_LIMIT, sup.reason(0)
+    ok, why = lp.fault_reset(0)
+    assert not ok and "outside the soft limits" in why
+    y = float(drv.position_m[0])
+    ok, why = sup.begin_recovery(0, y, 0.0, bool(drv.amp_fault[0]))
+    assert ok, why
+    tc = asm.loaded.axes["X"].trajectory
+    lp.jog_axis(0, Move(y, 0.0, 0.1 * tc.v_max, 0.1 * tc.a_max, tc.j_max))
+    lp.run(int(3.0 / lp.period_s))
+    assert sup.fault[0] == 0 and abs(float(drv.position_m[0])) < 1e-4, sup.reason(0)

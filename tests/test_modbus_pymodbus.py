@@ -426,3 +426,23 @@ if __name__ == "__main__":           # the device process of pymodbus_server()
     import sys
     if sys.argv[1] == "--serve":
         serve(sys.argv[2], sys.argv[3] == "1", sys.argv[4] == "1", int(sys.argv[5]))
+
+
+def test_an_exception_answer_is_the_drives_reason_while_it_lasts(tmp_path):
+    """``fc23: yes`` forced on a device without FC23: every cycle's answer is exception 01; the
+    driver's ``fault_reason`` (appended to the axis's fault in the run table and the daemon's
+    status) names the code and the request while the exchange keeps failing."""
+    d = map_a(200.0, round_trip_s=0.0006, timeout_s=0.003, wait="spin", fc23="yes")
+    cfg = _write_config(d, tmp_path / "forced.yaml")
+    loaded = config_from_dict(d, str(cfg), check_budget=False)
+    with pymodbus_server(cfg, shared=True, no_fc23=True):
+        drv = loaded.make_driver()
+        try:
+            drv.configure()             # the first reading (FC03 queries) works: no FC23 in it
+            drv.activate()
+            _drive(drv, [0.5, 0.5], [True, True], 5)
+            assert drv.read_error.all(), drv.counters
+            for i in range(2):
+                assert drv.fault_reason(i).startswith("exception 0x01 illegal function to FC23"), drv.fault_reason(i)
+        finally:
+            drv.close()

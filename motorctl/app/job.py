@@ -17,6 +17,7 @@ from motorctl.app.build import build, log_header, shutdown, start
 from motorctl.config import LoadedConfig
 from motorctl.inputs import InputError
 from motorctl.loop.records import RecordLayout
+from motorctl.loop.safety import with_drive_reason
 from motorctl.metrics import timing_stats, tracking_indexes
 from motorctl.recorder.runlog import LogWriter
 
@@ -125,7 +126,7 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
         entry = {"controller": ctrl.name}
         if rows.shape[0]:
             entry.update(tracking_indexes(t, e, u, period if period > 0 else 4.0))
-        entry["fault"] = asm.supervisor.reason(i)
+        entry["fault"] = with_drive_reason(asm.supervisor.reason(i), asm.driver.fault_reason(i))
         entry["io_errors"] = asm.supervisor.io_errors[i]
         entry["theta_hat"] = ctrl.theta_hat.tolist()
         result.axes[a] = entry

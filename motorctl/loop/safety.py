@@ -53,6 +53,13 @@ def describe_faults(bits: int) -> str:
     return ", ".join(name for bit, name in FAULT_NAMES.items() if bits & bit) or "none"
 
 
+def with_drive_reason(reason: str, drive: str) -> str:
+    """A fault line (:meth:`Supervisor.reason`) with what the drive said about it appended
+    (``Driver.fault_reason``, e.g. "EMCY 0x2310 continuous over-current ..."); the drive's
+    words only go with a latched fault."""
+    return f"{reason}; drive: {drive}" if reason and drive else reason
+
+
 #: how far an axis being recovered (jogged back inside its soft limits) may move outwards
 #: from the farthest-in position it reached before the soft limit trips again [m]
 RECOVERY_MARGIN_M = 0.0005
@@ -192,16 +199,16 @@ class Supervisor:
 
     def begin_recovery(self, i: int, y: float, target: float, amp_fault: bool) -> tuple[bool, str]:
         """Let axis i be moved back inside its soft limits (a jog to ``target`` [m], outside
-        the cycle). Allowed when the soft limit is the only latched fault, the position y [m]
-        is finite, the target lies inside the limits and the amplifier is healthy. The latch is
-        cleared and the position window widened to where the axis stands (plus
-        RECOVERY_MARGIN_M); it narrows as the axis comes in, so moving further out trips the
-        soft limit again. Returns (allowed, why_not)."""
+        the cycle). Allowed when the position y [m] is finite, the target lies inside the
+        limits and the amplifier is healthy: the checks of :meth:`reset` with "inside the
+        limits" replaced by "the target is inside". Every latched fault is cleared (whatever
+        else latched with the soft limit, e.g. the NaN reading of an axis that then coasted out,
+        is judged as :meth:`reset` judges it; a reset that must wait for the axis to be inside
+        could otherwise never come), and the position window is widened to where the axis
+        stands (plus RECOVERY_MARGIN_M); it narrows as the axis comes in, so moving further out
+        trips the soft limit again. Returns (allowed, why_not)."""
         if not (y - y == 0.0):
             return False, "position reading is not finite"
-        other = self.fault[i] & ~FAULT_SOFT_LIMIT
-        if other:
-            return False, f"other faults are latched ({describe_faults(other)}); reset them first"
         lo, hi = self._soft_lo[i], self._soft_hi[i]
         if not lo <= target <= hi:
             return False, f"target {target:.6f} m is outside the soft limits [{lo}, {hi}] m"

@@ -154,6 +154,7 @@ class ServoLoop:
         self.k = 0                      # executed cycles
         self.overruns = 0
         self.stop_requested = False
+        self._resync = False
         # offsets of the record, found by name once
         lay = self.layout
         self._o_cycle = tuple(lay.cycle(f) for f in ("t", "lateness_ns", "turnaround_ns", "read_ns",
@@ -166,6 +167,12 @@ class ServoLoop:
             self.idle_all()
 
     # ------------------------------------------------------------------ control plane
+    def resync(self) -> None:
+        """From ``on_slack`` after a deliberate pause (a reconnection while every axis is
+        idle): the next cycle starts one period from now instead of counting the pause as
+        missed periods (overruns)."""
+        self._resync = True
+
     def request_stop(self) -> None:
         """Ask the loop to end after the current cycle (safe to call from a signal handler)."""
         self.stop_requested = True
@@ -383,6 +390,9 @@ class ServoLoop:
                 hb.publish(k + 1)
             if slack is not None:
                 slack(self)
+                if self._resync:             # a deliberate pause between cycles (reconnect)
+                    self._resync = False
+                    deadline = mono() + period
         return done
 
     # ------------------------------------------------------------------ per-axis commands

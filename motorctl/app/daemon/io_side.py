@@ -30,6 +30,7 @@ from motorctl.app.daemon.protocol import (
     parse_request,
 )
 from motorctl.app.daemon.status import ST, axis_status, fault_text
+from motorctl.loop.safety import with_drive_reason
 from motorctl.loop.trajectory import Move
 from motorctl.recorder.flight import (
     CTL_CMD_SEQ,
@@ -88,6 +89,9 @@ class IOSide:
         self.last_hb = 0
         self.last_status = 0.0
         self.exit_reason = ""
+        self.drive_reasons = [""] * len(self.names)   # the drive's words per faulted axis
+        self.link: dict = {"connected": True, "attempts": 0, "reconnects": 0, "last_error": "",
+                           "last_pause_s": 0.0}
         self.audit: list[dict] = []      # commands applied by the loop, with their cycle
         self._reported = 0
         self._rec_reported = ""
@@ -148,6 +152,8 @@ class IOSide:
         ring = self.plan.ring
         out = axis_status(i, self.names[i], ring.status[i], ring.latest(), self.layout,
                           REC_REASONS.get(int(ring.ctl[CTL_REC_LATCHED]), ""))
+        out["fault"] = with_drive_reason(out["fault"], self.drive_reasons[i])
+        out["drive_fault"] = self.drive_reasons[i] if out["fault_bits"] else ""
         out["timing_since_start"] = self.drainer.axis_stats[i].summary()
         out["stop_bound_s"] = self.plan.stop_bound_s[i]
         return out
@@ -177,6 +183,7 @@ class IOSide:
                     "recorder_fault": REC_REASONS.get(dr.fault, ""), "error": dr.error,
                     "write_errors": dr.write_errors, "rows_unwritten": dr.drained - dr.written,
                     "retention": self.retention.figures() if self.retention else {}},
+            "link": dict(self.link),
             "socket": self.plan.socket_path,
             "clients": {"open": len(self.clients), "refused": self.clients_refused,
                         "max": MAX_CLIENTS},
@@ -214,6 +221,23 @@ class IOSide:
             return
         if op == "exit":
             self.exit_reason = m.get("reason", "")
+            return
+        if op == "drive_fault":
+            self.drive_reasons[m["axis"]] = m["text"]
+            if m["text"]:
+                sys.stderr.write(f"motorctl daemon: axis {self.names[m['axis']]}: drive says: "
+                                 f"{m['text']}\n")
+            return
+        if op == "link":
+            m.pop("op")
+            was = self.link["connected"]
+            self.link = m
+            if was and not m["connected"]:
+                sys.stderr.write("motorctl daemon: the link to the drives is lost; reconnecting "
+                                 "while every axis is idle (faults stay latched)\n")
+            elif m["connected"] and not was:
+                sys.stderr.write(f"motorctl daemon: the link to the drives is back (attempt "
+                                 f"{m['attempts']}); the axes stay faulted until fault-reset\n")
             return
         entry = self.pending.pop(m.get("id"), None)
         if entry is None:

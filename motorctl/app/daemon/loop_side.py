@@ -7,6 +7,15 @@ and only then reads the command pipe (non-blocking), applies each command at the
 boundary and answers on the reply pipe (non-blocking: a stalled I/O process never blocks the
 loop). Every command's checks are made here, against the live state (the one place).
 
+A lost link to the drives (``Driver.link_down``: the transport failed, or no axis answered for
+a while) is reconnected from here too, every :data:`RECONNECT_EVERY_S`, but only while every
+axis is idle (the lost link has faulted them: 0 V, amplifier off): the loop pauses for one
+blocking attempt of at most :data:`RECONNECT_TIMEOUT_S` (the device's first answer), then
+resynchronises its clock (the pause is not counted as overruns). Nothing is re-enabled: the
+faults stay latched until ``fault-reset``. The drive's own words about a fault
+(``Driver.fault_reason``: an EMCY code, a Modbus exception) go to the I/O process when a fault
+latches, for ``status`` and the journal.
+
 The recorder check (every :data:`RECORDER_CHECK_S`, a few integer compares and a ``waitpid``)
 latches FAULT_RECORDER on every axis when the I/O process reports that it cannot write the run
 log (``ctl[CTL_REC_FAULT]``: "log disk full"), when its wake counter (``ctl[CTL_REC_BEAT]``)
@@ -21,6 +30,7 @@ import os
 import signal
 import sys
 import threading
+import time
 
 from motorctl.app.build import Assembly, shutdown, start
 from motorctl.app.daemon.notify import sd_notify
@@ -49,6 +59,13 @@ from motorctl.recorder.segments import close_orphaned, segment_path
 #: recorder words between cycles, every few cycles: a dead recorder is noticed within a
 #: millisecond or two)
 RECORDER_CHECK_S = 0.002
+#: how often a lost link is tried again while every axis is idle [s]
+RECONNECT_EVERY_S = 1.0
+#: the longest pause of the loop for one reconnection attempt (the device's first answer) [s]:
+#: well inside systemd's WatchdogSec (2 s), which the I/O process pings while the loop moves
+RECONNECT_TIMEOUT_S = 0.25
+#: how often the link is looked at (a flag and a few compares) [s]
+LINK_CHECK_S = 0.05
 #: how often the status block is refreshed besides every fault change [s]
 STATUS_PUBLISH_S = 0.005
 #: cycles recorded after a SIGTERM before the loop ends (the 0 V rows reach the log)
@@ -92,6 +109,12 @@ class LoopSide:
         self.tail = -1
         self.io_dead = False
         self.replies_dropped = 0
+        self.link_every = tb.cycles(LINK_CHECK_S, minimum=1)
+        self.link = {"connected": True, "attempts": 0, "reconnects": 0, "last_error": "",
+                     "last_pause_s": 0.0}
+        self.next_attempt = 0.0
+        self.can_reconnect = True
+        self.drive_text = [""] * len(self.names)
         self.loop.on_slack = self.on_slack
 
     # ------------------------------------------------------------------ commands
@@ -201,10 +224,71 @@ class LoopSide:
             self.tail -= 1
             if self.tail == 0:
                 lp.request_stop()
-        if k % self.publish_every == 0 or self.status.fault_changed():
-            self.status.publish()             # a new fault is published at once
+        if self.status.fault_changed():
+            self.status.publish()             # a new fault is published at once ...
+            self.send_drive_reasons(lp)       # ... with what the drive says about it
+        elif k % self.publish_every == 0:
+            self.status.publish()
         if k % self.check_every == self.check_every // 2:
             self.check_recorder(lp)
+        if k % self.link_every == 0 and self.can_reconnect and not self.term:
+            self.check_link(lp)
+
+    def _tell_io(self, m: dict) -> None:
+        """A message to the I/O process (non-blocking; dropped and counted when the pipe is full)."""
+        try:
+            self.replies.send(m)
+        except BlockingIOError:
+            self.replies_dropped += 1
+        except OSError:
+            self.io_dead = True
+
+    def send_drive_reasons(self, lp) -> None:
+        """Between cycles, after a fault latched or cleared: the drive's own words about each
+        faulted axis (``Driver.fault_reason``), sent when they change."""
+        drv, fault = self.asm.driver, lp.supervisor.fault
+        for i in range(len(self.names)):
+            text = drv.fault_reason(i) if fault[i] else ""
+            if text != self.drive_text[i]:
+                self.drive_text[i] = text
+                self._tell_io({"op": "drive_fault", "axis": i, "text": text})
+
+    def check_link(self, lp) -> None:
+        """Between cycles: is the link to the drives down? Then, while every axis is idle, one
+        blocking reconnection attempt every :data:`RECONNECT_EVERY_S` (the loop pauses for at
+        most :data:`RECONNECT_TIMEOUT_S` and resynchronises). Nothing is re-enabled."""
+        drv, link = self.asm.driver, self.link
+        down = drv.link_down
+        if not down:
+            if not link["connected"]:           # came back by itself (the transport recovered)
+                link["connected"] = True
+                self._tell_io({"op": "link", **link})
+            return
+        now = time.monotonic()
+        if link["connected"]:
+            link["connected"] = False
+            self.next_attempt = now + RECONNECT_EVERY_S
+            self._tell_io({"op": "link", **link})
+            return
+        if now < self.next_attempt or any(lp.mode[i] != IDLE for i in range(len(self.names))):
+            return
+        link["attempts"] += 1
+        try:
+            drv.reconnect(RECONNECT_TIMEOUT_S)
+            link["last_error"] = ""
+        except NotImplementedError:
+            self.can_reconnect = False         # a driver without a link: nothing to do
+            return
+        except Exception as exc:  # noqa: BLE001 - the device is not back: try again later
+            link["last_error"] = f"{type(exc).__name__}: {exc}"
+        lp.resync()
+        end = time.monotonic()
+        link["last_pause_s"] = end - now
+        self.next_attempt = end + RECONNECT_EVERY_S
+        if not drv.link_down:
+            link["connected"] = True
+            link["reconnects"] += 1
+        self._tell_io({"op": "link", **link})
 
     def recorder_trouble(self, lp) -> int:
         """The REC_* code of what is wrong with the recorder now (0: nothing). Cheap: a few
