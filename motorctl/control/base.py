@@ -39,9 +39,13 @@ class Controller(abc.ABC):
         theta_hat (np.ndarray): shape (n_theta,), live view of θ̂.
         signals (np.ndarray): shape (N_SIGNALS,) float64, the published signals of the last
             sample (see the module docstring); NaN where the law has no such signal.
+        preview_s (float): how far ahead [s] the law wants the desired trajectory (an input
+            delay it predicts over); when > 0 the loop calls :meth:`preview` with the desired
+            trajectory at t + preview_s before each :meth:`update`. 0 (default): never.
     """
 
     name: ClassVar[str] = ""
+    preview_s: float = 0.0
 
     def __init__(self, ts: float, u_lim: float, n_theta: int = 0):
         self.ts = float(ts)
@@ -73,6 +77,10 @@ class Controller(abc.ABC):
         """One sample: measured position y [m], desired position [m], velocity [m/s] and
         acceleration [m/s²], time t [s]. Returns u [V], |u| ≤ u_lim; fills :attr:`signals`.
         Never allocates a container, blocks or logs (it runs inside the 5 kHz cycle)."""
+
+    def preview(self, x_d: float, xd_dot: float, xd_ddot: float) -> None:
+        """The desired position [m], velocity [m/s] and acceleration [m/s²] at t + preview_s,
+        for the next :meth:`update` (inside the cycle: store floats only). Default: ignored."""
 
     @property
     def e(self) -> float:

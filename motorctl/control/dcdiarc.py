@@ -20,6 +20,15 @@ the model both places use: v_a1 subtracts it (eq. 13) and the estimator sees the
 u + d̂_eff (eq. 4 with d_eff ≈ d̂_eff moved next to u), aligned with the u it was held with
 (the d̂_eff of sample k−1 goes with u[k−1]). Feeding the estimator u alone would make θ̂4, θ̂3,
 ... absorb the effect's mean while v_a1 subtracts the whole effect: counted twice.
+
+An **adapted** entry (``adapt: true``) is not in d̂_eff: its basis columns c(x, ẋ, t) extend φ
+(estimator, on the measured mean position and velocity of the interval and its mid time) and
+β̂ extends θ̂; v_a1 subtracts β̂ᵀc(x_d, ẋ_d, t). A **force ripple** entry divides v by
+1 + r̂(x_d) before the inversion (F = F_m(u)(1 + r(x))) and scales the estimator's thrust
+channels by 1 + r̂(x). An **input delay** τ entry evaluates v_a1 (and d̂_eff, c, r̂) on the
+desired trajectory at t + τ (:meth:`DCDIARC.preview`, from the loop; else extrapolated with
+the last jerk) and feeds the estimator the input applied over the interval, u[k − 1 − n],
+n = round(τ/Ts). Without any of them the arithmetic is the paper's (bit-identical).
 """
 
 from __future__ import annotations
@@ -45,33 +54,51 @@ __all__ = ["DCDIARC", "dcdiarc_step", "theory_k_s1"]
 
 
 # state vector of the law (outputs of the last sample)
-S_Y_PREV, S_U, S_V, S_E, S_P, S_X2, S_D0, S_KS, S_DC = range(9)
-N_STATE = 9
+S_Y_PREV, S_U, S_V, S_E, S_P, S_X2, S_D0, S_KS, S_DC, S_RI = range(10)
+N_STATE = 10
 # parameter vector of the law
 P_TS, P_K1, P_KS, P_GD, P_DMAX, P_ULIM, P_THEORY, P_KS1, P_ETA4, P_DELTA = range(10)
 
 
 @njit
-def dcdiarc_step(y, x_d, xd_dot, xd_ddot, v_comp, sig, st, prm, span, th, gam, tmin, tmax, zf, zd,
-                 inp, flt, phi, g, z, piv, coef, vec, pividx, active, opts, res):
+def dcdiarc_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig, st, prm, span,
+                 ring, cm, cd, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv, coef, vec,
+                 pividx, active, opts, res):
     """One sample of the DCDIARC law (spec §5.2); returns u [V]. State arrays updated in place.
 
     Args:
-        y [m], x_d [m], xd_dot [m/s], xd_ddot [m/s²]: measurement and desired trajectory.
-        v_comp [V]: identified-effect compensation d̂_eff(x_d, ẋ_d, t) (0 when none).
+        y [m], x_d [m], xd_dot [m/s], xd_ddot [m/s²]: measurement and desired trajectory (the
+            error e, p of eq. 11).
+        xf [m], vf [m/s], af [m/s²]: the desired trajectory the model compensation v_a1 (eq. 13)
+            is evaluated on: (x_d, ẋ_d, ẍ_d) itself, or its sample at t + τ (input delay τ).
+        v_comp [V]: fixed identified-effect compensation d̂_eff at that point (0 when none).
+        g_meas, g_des: thrust factor 1 + r̂(x) (force ripple; 1.0 when none) at the measured
+            position over the interval just ended (estimator) and at xf (v / g_des is inverted).
         sig (N_SIGNALS,): the published signals (motorctl.loop.records.CONTROLLER_SIGNALS),
-            written at the end of the sample; θ̂ entries beyond n stay as they are (NaN).
-        st (N_STATE,): law state (S_* indices; S_DC: the d̂_eff held with S_U).
+            written at the end of the sample; θ̂ entries beyond n_θ stay as they are (NaN).
+        st (N_STATE,): law state (S_* indices; S_DC: the d̂_eff held with S_U; S_RI: ring index).
         prm (10,): law parameters (P_* indices).
-        span (n,): θ_max − θ_min (theory-mode k_s2). The rest: the estimator's arrays.
+        span (n,): θ_max − θ_min (then β_max − β_min) (theory-mode k_s2).
+        ring (2, m): the last m = 1 + round(τ/Ts) outputs (u, d̂_eff) when m > 1 (input delay):
+            the estimator is fed the pair applied over the interval just ended.
+        cm, cd (k,): adapted basis columns at the measured point (estimator input, filled by the
+            caller) and at the desired point (v_a1: − Σ β̂_j cd_j); k = 0: nothing adapted.
+        The rest: the estimator's arrays (θ̂ (n_θ + k,), ...).
     """
     ts = prm[P_TS]
     x2 = (y - st[S_Y_PREV]) / ts
     st[S_Y_PREV] = y
     st[S_X2] = x2
-    ls_update(x2, st[S_U], st[S_DC], th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv, coef, vec,
-              pividx, active, opts, res)
-    n = th.shape[0]
+    m = ring.shape[1]
+    if m > 1:
+        ri = int(st[S_RI])
+        ls_update(x2, ring[0, ri], ring[1, ri], g_meas, cm, th, gam, tmin, tmax, zf, zd, inp, flt,
+                  phi, g, z, piv, coef, vec, pividx, active, opts, res)
+    else:
+        ls_update(x2, st[S_U], st[S_DC], g_meas, cm, th, gam, tmin, tmax, zf, zd, inp, flt, phi,
+                  g, z, piv, coef, vec, pividx, active, opts, res)
+    nb = cd.shape[0]
+    n = th.shape[0] - nb
     e = y - x_d
     p = (x2 - xd_dot) + prm[P_K1] * e
     dmax = prm[P_DMAX]
@@ -81,15 +108,19 @@ def dcdiarc_step(y, x_d, xd_dot, xd_ddot, v_comp, sig, st, prm, span, th, gam, t
     elif d0 < -dmax:
         d0 = -dmax
     st[S_D0] = d0
-    sfd = s_f_jit(xd_dot)
-    va1 = th[0] * xd_ddot + th[1] * xd_dot + th[2] * sfd - th[3] - v_comp  # eq. (13)
+    sfd = s_f_jit(vf)
+    va1 = th[0] * af + th[1] * vf + th[2] * sfd - th[3] - v_comp         # eq. (13)
+    for j in range(nb):
+        va1 -= th[n + j] * cd[j]                                         # adapted d̂_eff = β̂ᵀc
     if prm[P_THEORY] > 0.0:
         # k_s2 = (d̂_max + Σ θ_Mi |φ_di| + δ_d)² / (4η), eq. (22), componentwise bound, with the
         # previous u in φ_d to break the algebraic loop (spec §3.3).
-        hb = span[0] * abs(xd_ddot) + span[1] * abs(xd_dot) + span[2] * abs(sfd) + span[3]
+        hb = span[0] * abs(af) + span[1] * abs(vf) + span[2] * abs(sfd) + span[3]
         if n == 6:
             up = st[S_U]
             hb += span[4] * up * up + span[5] * abs(up * up * up)
+        for j in range(nb):
+            hb += span[n + j] * abs(cd[j])
         hb += dmax + prm[P_DELTA]
         ks = prm[P_KS1] + hb * hb / prm[P_ETA4]
     else:
@@ -97,10 +128,11 @@ def dcdiarc_step(y, x_d, xd_dot, xd_ddot, v_comp, sig, st, prm, span, th, gam, t
     st[S_KS] = ks
     v = va1 - d0 - ks * p
     ulim = prm[P_ULIM]
+    w = v / g_des if g_des != 1.0 else v                                 # F = F_m(u)(1 + r)
     if n == 6:
-        u = invert_cubic(v, th[4], th[5], ulim)                            # eq. (9)
+        u = invert_cubic(w, th[4], th[5], ulim)                            # eq. (9)
     else:
-        u = v
+        u = w
     if u > ulim:
         u = ulim
     elif u < -ulim:
@@ -110,6 +142,11 @@ def dcdiarc_step(y, x_d, xd_dot, xd_ddot, v_comp, sig, st, prm, span, th, gam, t
     st[S_V] = v
     st[S_U] = u
     st[S_DC] = v_comp
+    if m > 1:
+        ri = int(st[S_RI])
+        ring[0, ri] = u
+        ring[1, ri] = v_comp
+        st[S_RI] = float((ri + 1) % m)
     sig[SIG_V] = v
     sig[SIG_E] = e
     sig[SIG_P] = p
@@ -128,10 +165,12 @@ class DCDIARC(Controller):
         ts: sample period [s].
         kind: "c1" (linear force model, θ1..θ4, no inversion) or "c2" (cubic, θ1..θ6).
     Attributes (of the last sample): u, v [V], e [m], p [m/s], x2 [m/s], d_hat0 [V],
-        k_s_eff [V s/m]; theta_hat (n,) and estimator.gamma (n, n) are live arrays;
+        k_s_eff [V s/m]; theta_hat (n,), beta_hat (k,) (adapted compensation coefficients,
+        :attr:`beta_names`) and estimator.gamma (n + k, n + k) are live arrays;
+        preview_s [s]: the input delay the law predicts over (0: none);
         signals (see :class:`motorctl.control.base.Controller`).
     Raises:
-        ValueError: unknown kind or mode.
+        ValueError: unknown kind or mode; an adapted entry whose family cannot adapt.
     """
 
     def __init__(self, config: ControllerConfig, ts: float, kind: str = "c2"):
@@ -145,6 +184,13 @@ class DCDIARC(Controller):
         self.kind = kind
         self.config = config
         params = config
+        comp = None if params.compensation.is_empty() else Compensation(params.compensation)
+        self.compensation = comp
+        self.n_beta = comp.n_beta if comp is not None else 0
+        self.beta_names = list(comp.beta_names) if comp is not None else []
+        self._thrust = comp.thrust if comp is not None else None
+        self.preview_s = comp.preview_s if comp is not None else 0.0
+        n_delay = int(round(self.preview_s / ts))
         self.estimator = self._new_estimator()
         self.theory = params.mode == "theory"
         th = params.theory
@@ -157,16 +203,23 @@ class DCDIARC(Controller):
         self._prm = np.array([ts, params.k1, params.k_s, params.gamma_d, params.d_hat_max,
                               params.u_lim, 1.0 if self.theory else 0.0, k_s1, 4.0 * th.eta,
                               th.delta_d], dtype=float)
-        self._span = np.array([params.theta_max[i] - params.theta_min[i] for i in range(n)])
+        span = [params.theta_max[i] - params.theta_min[i] for i in range(n)]
+        if self.n_beta:
+            span += list(comp.beta_max - comp.beta_min)
+        self._span = np.array(span, dtype=float)
         self._st = np.zeros(N_STATE)
         self._st[S_KS] = k_s1
-        self.compensation = (None if params.compensation.is_empty()
-                             else Compensation(params.compensation))
+        self._ring = np.zeros((2, 1 + n_delay))
+        self._cd = np.zeros(self.n_beta)
+        # the desired trajectory at t + τ (set by the loop through preview(); else extrapolated)
+        self._pv = np.zeros(3)
+        self._pv_set = False
+        self._ad_prev = 0.0
         self._started = False
         self._bind()
         # compile (or load the cached machine code) now, on copies of the state, so that the
         # first servo cycle never pays for it
-        dcdiarc_step(0.0, 0.0, 0.0, 0.0, 0.0, *(a.copy() for a in self._args))
+        dcdiarc_step(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, *(a.copy() for a in self._args))
 
     @classmethod
     def from_config(cls, section: ControllerConfig, ts: float, name: str) -> "DCDIARC":
@@ -174,20 +227,31 @@ class DCDIARC(Controller):
         return cls(section, ts, name)
 
     def _new_estimator(self) -> LeastSquaresEstimator:
-        p, n = self.config, self.n_theta
-        return LeastSquaresEstimator(p.theta_hat0[:n], p.theta_min[:n], p.theta_max[:n],
-                                     np.diag(p.gamma0[:n]), p.filter.omega_f, self.ts, p.mu, p.nu,
-                                     p.rho_M)
+        p, n, comp = self.config, self.n_theta, self.compensation
+        th0, tmin, tmax = list(p.theta_hat0[:n]), list(p.theta_min[:n]), list(p.theta_max[:n])
+        g0 = list(p.gamma0[:n])
+        if self.n_beta:
+            th0 += list(comp.beta0)
+            tmin += list(comp.beta_min)
+            tmax += list(comp.beta_max)
+            g0 += list(comp.gamma0)
+        return LeastSquaresEstimator(th0, tmin, tmax, np.diag(g0), p.filter.omega_f, self.ts, p.mu,
+                                     p.nu, p.rho_M, n_beta=self.n_beta)
 
     def _bind(self) -> None:
-        self.theta_hat = self.estimator.theta_hat
-        self.signals[SIG_THETA:SIG_THETA + self.n_theta] = self.theta_hat
-        self._args = (self.signals, self._st, self._prm, self._span) + self.estimator.kernel_args()
+        est = self.estimator
+        n = self.n_theta
+        self.theta_hat = est.theta_hat[:n]          # live views
+        self.beta_hat = est.theta_hat[n:]
+        self._cm = est.cols
+        self.signals[SIG_THETA:SIG_THETA + n] = self.theta_hat
+        self._args = ((self.signals, self._st, self._prm, self._span, self._ring, self._cm, self._cd)
+                      + est.kernel_args())
 
     def reset(self, y0: float, keep_theta: bool = True) -> None:
         """Start (or restart) from the measured position y0 [m] with u = 0 and d̂0 = 0.
 
-        θ̂ and Γ are kept unless keep_theta is False (then θ̂(0), Γ(0) are restored).
+        θ̂, β̂ and Γ are kept unless keep_theta is False (then θ̂(0), β̂(0), Γ(0) are restored).
         """
         if not keep_theta:
             self.estimator = self._new_estimator()
@@ -199,7 +263,27 @@ class DCDIARC(Controller):
         st[S_DC] = 0.0
         st[S_V] = 0.0
         st[S_D0] = 0.0
+        st[S_RI] = 0.0
+        self._ring[:] = 0.0
+        self._pv_set = False
+        self._ad_prev = 0.0
         self._started = True
+
+    def inherit(self, other: Controller) -> None:
+        """θ̂ (common leading entries, :meth:`Controller.inherit`) and β̂ when ``other`` adapts
+        the same coefficients."""
+        super().inherit(other)
+        if self.n_beta and getattr(other, "beta_names", None) == self.beta_names:
+            self.beta_hat[:] = other.beta_hat
+
+    def preview(self, x_d: float, xd_dot: float, xd_ddot: float) -> None:
+        """The desired trajectory at t + :attr:`preview_s` [m, m/s, m/s²] for the next
+        :meth:`update` (called by the servo loop when preview_s > 0)."""
+        pv = self._pv
+        pv[0] = x_d
+        pv[1] = xd_dot
+        pv[2] = xd_ddot
+        self._pv_set = True
 
     def update(self, y: float, x_d: float, xd_dot: float, xd_ddot: float, t: float = 0.0) -> float:
         """One control sample (spec §5.2). Returns u [V], |u| ≤ u_lim.
@@ -212,8 +296,38 @@ class DCDIARC(Controller):
         if not self._started:
             self.reset(y)
         comp = self.compensation
-        v_comp = comp.value(x_d, xd_dot, t) if comp is not None else 0.0
-        return dcdiarc_step(y, x_d, xd_dot, xd_ddot, v_comp, *self._args)
+        if comp is None:
+            return dcdiarc_step(y, x_d, xd_dot, xd_ddot, x_d, xd_dot, xd_ddot, 0.0, 1.0, 1.0,
+                                *self._args)
+        tau = self.preview_s
+        if tau > 0.0:
+            if self._pv_set:
+                pv = self._pv
+                xf, vf, af = float(pv[0]), float(pv[1]), float(pv[2])
+                self._pv_set = False
+            else:   # no preview given: extrapolate with the jerk of the last sample
+                jk = (xd_ddot - self._ad_prev) / self.ts
+                xf = x_d + tau * (xd_dot + tau * (0.5 * xd_ddot + tau * jk / 6.0))
+                vf = xd_dot + tau * (xd_ddot + 0.5 * tau * jk)
+                af = xd_ddot + tau * jk
+            self._ad_prev = xd_ddot
+            tf = t + tau
+        else:
+            xf, vf, af, tf = x_d, xd_dot, xd_ddot, t
+        v_comp = comp.value(xf, vf, tf) if comp.additive else 0.0
+        g_meas = g_des = 1.0
+        if self.n_beta or self._thrust is not None:
+            ts = self.ts
+            y_prev = float(self._st[S_Y_PREV])
+            xm = 0.5 * (y + y_prev)              # the interval just ended: mean position,
+            if self.n_beta:                      # mean velocity, mid time
+                comp.fill(self._cm, xm, (y - y_prev) / ts, t - 0.5 * ts)
+                comp.fill(self._cd, xf, vf, tf)
+            thrust = self._thrust
+            if thrust is not None:
+                g_meas = 1.0 + thrust(xm)
+                g_des = 1.0 + thrust(xf)
+        return dcdiarc_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, *self._args)
 
     # outputs of the last sample (float reads of the state vector)
     u = property(lambda self: float(self._st[S_U]))
@@ -222,4 +336,3 @@ class DCDIARC(Controller):
     x2 = property(lambda self: float(self._st[S_X2]))
     d_hat0 = property(lambda self: float(self._st[S_D0]))
     k_s_eff = property(lambda self: float(self._st[S_KS]))
-

@@ -20,6 +20,11 @@ Per sample (Ts), with time-aligned inputs (spec §5.2):
    θ̂ ← clip(θ̂ + Ts·Proj(ζ)) with the Γ-weighted box projection (eq. 7-8) coded as the
    active-set rule of spec §2.2.
 
+Adapted compensation (motorctl.effects.compensation): k basis columns c_j(x, ẋ, t) of the
+interval are extra channels, filtered by the same H_f, and φ_f gets their filtered values
+(u_f = −φ_fᵀθ with d_eff = βᵀc next to u); θ̂ is then (θ̂, β̂), Γ (n + k)². A force ripple scales
+the thrust channels (u, u|u|, u³) by 1 + r̂(x).
+
 The linear model (C1) uses the first four channels and parameters only. The per-sample work is
 a numba-compiled kernel on preallocated arrays: no allocation except in the rare freeze check
 (λ_max only computed when tr(Γ⁺) > ρ_M). ``NUMBA_DISABLE_JIT=1`` runs the same code as Python.
@@ -144,8 +149,8 @@ def project_box(z, th, tmin, tmax, gam, piv, coef, vec, pividx, active):
 
 
 @njit
-def ls_update(x2, u_prev, d_prev, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv, coef, vec,
-              pividx, active, opts, res):
+def ls_update(x2, u_prev, d_prev, g_prev, cols, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z,
+              piv, coef, vec, pividx, active, opts, res):
     """One estimator sample (spec §5.2 step 2); see the module docstring. All arrays preallocated.
 
     Args:
@@ -153,20 +158,37 @@ def ls_update(x2, u_prev, d_prev, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g,
         d_prev: the compensated effect d̂_eff [V] (paper input units, eq. 4: acts like +u) the
             law assumed over that interval, 0 when none; the linear input channel is
             u_prev + d_prev, the thrust-shape channels u|u|, u³ stay on u_prev.
-        th (n,), gam (n, n), tmin/tmax (n,): θ̂, Γ, box — updated in place.
-        zf, zd, inp (nch,): filter states and inputs. flt (6,): a11 a12 a21 a22 b1 b2.
+        g_prev: thrust factor 1 + r̂(x) [-] over that interval (force ripple, 1.0: none): the
+            thrust channels become u·g, u|u|·g, u³·g (F = F_m(u)(1 + r(x))).
+        cols (k,): adapted compensation basis c(x, ẋ, t) over that interval [V per β-unit]
+            (k = 0: none); they are filtered like the other channels and appended to φ_f, the
+            last k entries of θ̂ being β̂ (u_f = −φ_fᵀθ holds with d_eff = βᵀc next to u).
+        th (n,), gam (n, n), tmin/tmax (n,): θ̂ (then β̂), Γ, box — updated in place;
+            n = n_θ + k, n_θ ∈ {4, 6}.
+        zf, zd, inp (nch,): filter states and inputs, nch = n_θ + k. flt (6,): a11 a12 a21 a22 b1 b2.
         phi, g, z (n,), piv, coef (n, n), vec (3, n), pividx (n,), active (n,): outputs/scratch.
         opts (4,): Ts, μ, ν, ρ_M. res (2,): out ε, frozen (0/1).
     """
     n = th.shape[0]
     nch = zf.shape[0]
+    nb = cols.shape[0]
+    nn = n - nb                      # nominal parameters (4 or 6) = nominal channels
     inp[0] = x2
     inp[1] = s_f_jit(x2)
     inp[2] = 1.0
-    inp[3] = u_prev + d_prev
-    if nch == 6:
-        inp[4] = u_prev * abs(u_prev)
-        inp[5] = u_prev * u_prev * u_prev
+    if g_prev != 1.0:
+        ug = u_prev * g_prev
+        inp[3] = ug + d_prev
+        if nn == 6:
+            inp[4] = ug * abs(u_prev)
+            inp[5] = ug * u_prev * u_prev
+    else:
+        inp[3] = u_prev + d_prev
+        if nn == 6:
+            inp[4] = u_prev * abs(u_prev)
+            inp[5] = u_prev * u_prev * u_prev
+    for j in range(nb):
+        inp[nn + j] = cols[j]
     a11, a12, a21, a22, b1, b2 = flt[0], flt[1], flt[2], flt[3], flt[4], flt[5]
     for c in range(nch):
         f = zf[c]
@@ -177,9 +199,11 @@ def ls_update(x2, u_prev, d_prev, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g,
     phi[1] = -zf[0]
     phi[2] = -zf[1]
     phi[3] = zf[2]
-    if n == 6:
+    if nn == 6:
         phi[4] = zf[4]
         phi[5] = zf[5]
+    for j in range(nb):
+        phi[nn + j] = zf[nn + j]
     u_f = zf[3]
     pred = 0.0
     for i in range(n):
@@ -232,26 +256,32 @@ def ls_update(x2, u_prev, d_prev, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g,
 
 
 class LeastSquaresEstimator:
-    """Filtered LS estimator with Γ-weighted box projection, for 4 (C1) or 6 (C2) parameters.
+    """Filtered LS estimator with Γ-weighted box projection, for 4 (C1) or 6 (C2) parameters,
+    plus k adapted compensation coefficients β (appended to θ̂, their basis columns to φ_f).
 
     Args:
-        theta_hat0: θ̂(0), length n ∈ {4, 6}; must lie in [theta_min, theta_max].
-        theta_min, theta_max: the box Ω_θ (eq. 5), length n.
+        theta_hat0: θ̂(0) then β̂(0), length n = n_θ + n_beta, n_θ ∈ {4, 6}; must lie in
+            [theta_min, theta_max].
+        theta_min, theta_max: the box Ω_θ (eq. 5) (and the β box), length n.
         gamma0: Γ(0), n×n symmetric positive definite (array-like), ‖Γ(0)‖ ≤ rho_M.
         omega_f: H_f corner [rad/s]. ts: sample period [s].
         mu: forgetting factor [1/s] ≥ 0. nu: normalisation ≥ 0. rho_M: bound on λ_max(Γ).
+        n_beta: number k ≥ 0 of adapted coefficients (the last k entries).
     Attributes (numpy arrays, updated in place every sample):
         theta_hat (n,), gamma (n, n), phi (n,) = φ_f of the last sample; ``epsilon`` and
-        ``frozen`` describe the last sample.
+        ``frozen`` describe the last sample. cols (k,): the basis columns of the interval the
+        next :meth:`update` processes (the caller writes them).
     Raises:
         ValueError: inconsistent sizes or θ̂(0) outside the box.
     """
 
     def __init__(self, theta_hat0, theta_min, theta_max, gamma0, omega_f: float, ts: float,
-                 mu: float = 0.0, nu: float = 0.0, rho_M: float = 1000.0):
+                 mu: float = 0.0, nu: float = 0.0, rho_M: float = 1000.0, n_beta: int = 0):
         n = len(theta_hat0)
-        if n not in (4, 6) or len(theta_min) != n or len(theta_max) != n:
-            raise ValueError("theta_hat0, theta_min and theta_max must all have 4 or 6 entries")
+        n_beta = int(n_beta)
+        if n_beta < 0 or n - n_beta not in (4, 6) or len(theta_min) != n or len(theta_max) != n:
+            raise ValueError("theta_hat0, theta_min and theta_max must all have 4 or 6 entries "
+                             "(plus n_beta)")
         g0 = np.array(gamma0, dtype=float)
         if g0.shape != (n, n):
             raise ValueError(f"gamma0 must be {n}x{n}, got {g0.shape}")
@@ -266,7 +296,9 @@ class LeastSquaresEstimator:
         self.gamma = g0
         ad, bd = zoh_filter_matrices(omega_f, ts)
         self.flt = np.array([ad[0, 0], ad[0, 1], ad[1, 0], ad[1, 1], bd[0], bd[1]])
-        nch = 4 if n == 4 else 6
+        self.n_beta = n_beta
+        self.cols = np.zeros(n_beta)
+        nch = n
         self.zf = np.zeros(nch)
         self.zd = np.zeros(nch)
         self._inp = np.zeros(nch)
@@ -293,12 +325,12 @@ class LeastSquaresEstimator:
 
     def kernel_args(self) -> tuple:
         """The preallocated arrays the kernel works on, in ``ls_update`` order after
-        (x2, u_prev, d_prev)."""
+        (x2, u_prev, d_prev, g_prev, cols)."""
         return (self.theta_hat, self.gamma, self.theta_min, self.theta_max, self.zf, self.zd,
                 self._inp, self.flt, self.phi, self._g, self._z, self._piv, self._coef, self._vec,
                 self._pividx, self._active, self.opts, self.res)
 
-    def update(self, x2: float, u_prev: float, d_prev: float = 0.0) -> None:
+    def update(self, x2: float, u_prev: float, d_prev: float = 0.0, g_prev: float = 1.0) -> None:
         """One estimator sample (spec §5.2 step 2).
 
         Args:
@@ -306,8 +338,10 @@ class LeastSquaresEstimator:
             u_prev: the input held over that interval [V].
             d_prev: the compensated effect d̂_eff over that interval [V] (0: none); the model's
                 input is u_prev + d_prev (see the module docstring).
+            g_prev: thrust factor 1 + r̂(x) over that interval (force ripple; 1: none).
+            The adapted basis columns are taken from :attr:`cols`.
         """
-        ls_update(x2, u_prev, d_prev, *self.kernel_args())
+        ls_update(x2, u_prev, d_prev, g_prev, self.cols, *self.kernel_args())
 
     def reset_filters(self) -> None:
         """Zero the H_f states (used when an axis is (re)started)."""

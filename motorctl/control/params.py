@@ -9,7 +9,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field
 
-from motorctl.effects.compensation import CompensationConfig
+from motorctl.effects.compensation import CompensationConfig, CompensationSection
 from motorctl.model import S_F_GAIN
 from motorctl.schema import NonNeg, Pos, StrictModel, Vec6
 
@@ -77,7 +77,9 @@ class ControllerConfig(StrictModel):
         k_s [V s/m], k1 [1/s], gamma_d [V/m], d_hat_max [V], u_lim [V] (u_M of Assumption 2
         and the output clamp). theta_min, theta_max, theta_hat0: the box Ω_θ and θ̂(0).
         gamma0: diagonal of Γ(0). filter.omega_f [rad/s]. mu [1/s], nu, rho_M: LS settings
-        (eq. 27). theory: theory-mode numbers. compensation: identified effects (eq. 13).
+        (eq. 27). theory: theory-mode numbers. compensation: identified effects
+        (:data:`~motorctl.effects.compensation.CompensationSection`: additive terms in v_a1,
+        eq. 13, fixed or adapted with θ̂; force ripple, eq. 9; input-delay preview).
     """
 
     type: str = "c2"
@@ -96,7 +98,7 @@ class ControllerConfig(StrictModel):
     nu: NonNeg = 0.0
     rho_M: Pos = 1000.0
     theory: TheoryConfig = TheoryConfig()
-    compensation: CompensationConfig = CompensationConfig()
+    compensation: CompensationSection = CompensationSection()
     pid: PidConfig | None = None
 
 

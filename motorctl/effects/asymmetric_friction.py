@@ -15,7 +15,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from motorctl.effects.base import EffectFamily, PlantTerm, Signals
+from motorctl.effects.base import Adaptable, EffectFamily, PlantTerm, Signals
 from motorctl.effects.stribeck import velocity_grid
 from motorctl.model import s_f
 from motorctl.schema import StrictModel
@@ -29,12 +29,19 @@ class AsymmetricFriction(StrictModel):
     viscous_N_s_per_m: float = 0.0
 
 
-class AsymmetricFrictionComp(StrictModel):
+class AsymmetricFrictionComp(Adaptable):
     """Asymmetric friction compensation, ``axes.NAME.controller.compensation.asymmetric_friction``:
-    −(ΔF S_f(ẋ) + ΔB ẋ) for ẋ > 0 [V]. coulomb_V [V], viscous_V_s_per_m [V·s/m] (force / A1)."""
+    −(ΔF S_f(ẋ) + ΔB ẋ) for ẋ > 0 [V]. coulomb_V [V], viscous_V_s_per_m [V·s/m] (force / A1).
+    Adaptable (:class:`~motorctl.effects.base.Adaptable`): β = [ΔF, ΔB]."""
 
     coulomb_V: float = 0.0
     viscous_V_s_per_m: float = 0.0
+
+    def beta(self):
+        return [self.coulomb_V, self.viscous_V_s_per_m]
+
+    def beta_names(self):
+        return ["coulomb_V", "viscous_V_s_per_m"]
 
 
 class AsymmetricFrictionFamily(EffectFamily):
@@ -66,8 +73,8 @@ class AsymmetricFrictionFamily(EffectFamily):
         return {f"coulomb_{unit}": float(g * beta[0]), f"viscous_{unit}_s_per_m": float(g * beta[1])}
 
     # compensation
-    def compensation(self, h, beta, signals=None):
-        return {"coulomb_V": float(beta[0]), "viscous_V_s_per_m": float(beta[1])}
+    def compensation(self, h, beta, signals=None, beta_std=None):
+        return self.adapt_entry({"coulomb_V": float(beta[0]), "viscous_V_s_per_m": float(beta[1])}, beta_std)
 
     def compensation_for(self, o: AsymmetricFriction, a1):
         return {"coulomb_V": o.coulomb_N / a1, "viscous_V_s_per_m": o.viscous_N_s_per_m / a1}
@@ -78,6 +85,16 @@ class AsymmetricFrictionFamily(EffectFamily):
         def add(d, x, v, t, sf):
             return d - (c * sf + b * v) if v > 0.0 else d
         return add
+
+    def adapt_basis(self, o: AsymmetricFrictionComp):
+        def fill(out, j, x, v, t, sf):
+            if v > 0.0:
+                out[j] = -sf
+                out[j + 1] = -v
+            else:
+                out[j] = 0.0
+                out[j + 1] = 0.0
+        return fill
 
     # report
     def shape(self, ctx, h, beta, gain):

@@ -15,7 +15,12 @@ physical cause of part of d̃ (cogging, Stribeck friction, a spring, ...). Its m
 * **compensation** (the controller, eq. 13): :attr:`EffectFamily.comp_options`, the options model
   of ``axes.NAME.controller.compensation.<name>``, and :meth:`EffectFamily.compensator`, its term
   d̂_eff [V] evaluated inside the 5 kHz cycle; :meth:`EffectFamily.compensation` turns a fit into
-  such an entry;
+  such an entry. An additive entry can be **adapted** (``adapt: true``): its linear
+  coefficients β join θ̂ in the estimator (:class:`Adaptable`, :meth:`EffectFamily.adapt_basis`;
+  default: the family cannot adapt and keeps fixed amplitudes). A family whose compensation is
+  not an additive term (force ripple: a factor on the thrust; input delay: a preview of the
+  desired trajectory) declares :attr:`EffectFamily.hook_options` and
+  :meth:`EffectFamily.comp_hook` instead (:class:`CompHook`);
 * **report**: :meth:`EffectFamily.shape`, the fitted term against its natural variable.
 
 Sign conventions, the same for every family (F_eff: the force the effect adds to the plant):
@@ -31,12 +36,23 @@ imports nothing of the simulator, the identification or the application.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
+from pydantic import model_validator
 
-from motorctl.schema import StrictModel
+from motorctl.schema import Pos, StrictModel
+
+#: default half-width of the projection box of an adapted coefficient, as a fraction of the
+#: entry's largest |β| (``beta_min``/``beta_max`` not given): β_j ± ADAPT_MARGIN·max|β|
+ADAPT_MARGIN = 0.5
+#: default Γ(0) entry of an adapted coefficient (``gamma0`` not given) [β-unit²/(V² s)]; a basis
+#: column of size ~1 V per unit β (sin/cos, S_f) then adapts like θ̂4 (Γ0 = 500) but slower
+ADAPT_GAMMA0 = 100.0
+#: number of standard deviations of a fitted β in the box :meth:`EffectFamily.adapt_entry` emits
+ADAPT_SIGMAS = 3.0
 
 
 class PlantTerm:
@@ -58,6 +74,91 @@ class PlantTerm:
     def __init__(self, thrust: Callable | None = None, force: Callable | None = None,
                  mass: Callable | None = None, input: Callable | None = None):
         self.thrust, self.force, self.mass, self.input = thrust, force, mass, input
+
+
+class CompHook:
+    """A compensation that is not an additive term d̂_eff (built once from its options, floats).
+
+    * ``thrust(x) -> r̂``: the ripple fraction r̂(x) [-] at position x [m]; the plant's thrust is
+      F_m(u)(1 + r(x)), so the law divides v by 1 + r̂(x_d) before the inversion (eq. 9) and the
+      estimator's thrust channels (u, u|u|, u³) are scaled by 1 + r̂(x) at the measured x;
+    * ``preview_s``: the input delay τ [s] the law predicts over: the desired-compensation part
+      v_a1 (eq. 13) is evaluated on the desired trajectory at t + τ, and the estimator pairs
+      x2[k] with the input applied over that interval, u[k − 1 − round(τ/Ts)].
+    """
+
+    __slots__ = ("preview_s", "thrust")
+
+    def __init__(self, thrust: Callable[[float], float] | None = None, preview_s: float = 0.0):
+        self.thrust, self.preview_s = thrust, float(preview_s)
+
+
+class Adaptable(StrictModel):
+    """Keys every adaptable compensation entry has (mixed into a family's :attr:`comp_options`).
+
+    With ``adapt: true`` the entry's linear coefficients β (:meth:`beta`, in the order of its
+    coefficient keys) are adapted with θ̂ (eq. 7-8, 25-28 with φ extended by the basis columns);
+    its searched parameter (period, frequency, v_s) and references stay fixed. False (default):
+    the amplitudes are fixed, the behaviour of an entry without these keys.
+
+    Attributes:
+        adapt: adapt β (default False).
+        beta_min, beta_max: the projection box of β (β-units, one entry per coefficient, in
+            :meth:`beta` order); default β_j ∓ ADAPT_MARGIN·max|β| (``motorctl identify``
+            writes them from the fit). Must contain β.
+        gamma0: Γ(0) of β, one value for all or one per coefficient (> 0, ≤ rho_M);
+            default ADAPT_GAMMA0.
+    """
+
+    adapt: bool = False
+    beta_min: list[float] | None = None
+    beta_max: list[float] | None = None
+    gamma0: Pos | list[Pos] | None = None
+
+    def beta(self) -> list[float]:
+        """The entry's linear coefficients β (k,), in the order of its coefficient keys."""
+        raise NotImplementedError
+
+    def beta_names(self) -> list[str]:
+        """Names of the β entries (k,), e.g. ``sin_V[0]`` (messages, reports)."""
+        raise NotImplementedError
+
+    def adapt_box(self) -> tuple[list[float], list[float]]:
+        """(β_min, β_max) (k,) each: the given keys, else β ∓ ADAPT_MARGIN·max|β|."""
+        b = self.beta()
+        w = ADAPT_MARGIN * max((abs(v) for v in b), default=0.0)
+        lo = list(self.beta_min) if self.beta_min is not None else [v - w for v in b]
+        hi = list(self.beta_max) if self.beta_max is not None else [v + w for v in b]
+        return lo, hi
+
+    def adapt_gamma0(self) -> list[float]:
+        """Γ(0) diagonal of β (k,)."""
+        k = len(self.beta())
+        g = self.gamma0
+        if g is None:
+            return [ADAPT_GAMMA0] * k
+        return [float(g)] * k if isinstance(g, (int, float)) else list(g)
+
+    @model_validator(mode="after")
+    def _check_adapt(self):
+        b = self.beta()
+        k = len(b)
+        names = ", ".join(self.beta_names())
+        for key in ("beta_min", "beta_max"):
+            v = getattr(self, key)
+            if v is not None and len(v) != k:
+                raise ValueError(f"{key}: needs {k} entries ({names}), got {len(v)}")
+        if isinstance(self.gamma0, list) and len(self.gamma0) != k:
+            raise ValueError(f"gamma0: needs one value or {k} ({names}), got {len(self.gamma0)}")
+        if self.beta_min is not None or self.beta_max is not None or self.adapt:
+            lo, hi = self.adapt_box()
+            if self.adapt and self.beta_min is None and self.beta_max is None and all(v == 0.0 for v in b):
+                raise ValueError("adapt: all coefficients are 0, so beta_min and beta_max must be given")
+            for j in range(k):
+                if not lo[j] <= b[j] <= hi[j]:
+                    raise ValueError(f"beta_min/beta_max: {self.beta_names()[j]} = {b[j]:g} outside "
+                                     f"[{lo[j]:g}, {hi[j]:g}]")
+        return self
 
 
 class Signals:
@@ -107,6 +208,10 @@ class SearchContext(Protocol):
     def sse(self, terms: list) -> float:
         """SSE of the joint LS fit of the nominal model plus ``terms``."""
 
+    def heldout_rms(self, terms: list) -> float:
+        """Held-out residual RMS [V] of the nominal model plus ``terms`` (the identifier's
+        folds: what the decision rule compares)."""
+
     def delay_sses(self, base: list, grid) -> np.ndarray:
         """Joint-LS SSE (K,) with the input shifted by ``grid`` (K,) extra samples."""
 
@@ -142,6 +247,10 @@ class EffectFamily:
             (increasing; ties in registry order). Float addition is not associative: the ranks
             of the first six compensable families keep the sum bit-identical to the code before
             the registry; a new family keeps the default and comes after them.
+        hook_options: options model of ``axes.NAME.controller.compensation.<name>`` for a
+            compensation that is not an additive term (None: none); see :meth:`comp_hook`.
+            Such a family is not :attr:`compensable` (not in ``CompensationConfig``); its key is
+            added by :data:`motorctl.effects.compensation.CompensationSection`.
     """
 
     name: ClassVar[str] = ""
@@ -154,6 +263,7 @@ class EffectFamily:
     comp_options: ClassVar[type[StrictModel] | None] = None
     comp_needs_sf: ClassVar[bool] = False
     compensation_rank: ClassVar[int] = 100
+    hook_options: ClassVar[type[StrictModel] | None] = None
 
     def __repr__(self) -> str:
         return f"<effect family {self.name}>"
@@ -162,6 +272,12 @@ class EffectFamily:
     def compensable(self) -> bool:
         """True when the family has a compensation term (:attr:`comp_options` set)."""
         return self.comp_options is not None
+
+    @property
+    def has_compensation(self) -> bool:
+        """True when the controller can compensate the effect at all: an additive term
+        (:attr:`compensable`) or a hook (:attr:`hook_options`: force ripple, input delay)."""
+        return self.comp_options is not None or self.hook_options is not None
 
     # ------------------------------------------------------------------ simulator
     def sim_config(self, axis_options):
@@ -258,6 +374,45 @@ class EffectFamily:
             NotImplementedError: the family is not compensable.
         """
         raise NotImplementedError(f"effect family {self.name!r} cannot be compensated")
+
+    def adapt_basis(self, options) -> Callable | None:
+        """The basis of an adapted entry, built once from ``options`` (a :attr:`comp_options`
+        instance, :class:`Adaptable`): ``fill(out, j, x, xdot, t, sf)`` writes the k =
+        len(options.beta()) columns c_i(x, ẋ, t) [V per β-unit] into out[j:j + k], so that
+        d̂_eff = Σ_i β_i c_i (the term :meth:`compensator` adds with β = options.beta()).
+        sf = S_f(ẋ) (0.0 unless :attr:`comp_needs_sf`). Runs inside the 5 kHz cycle: floats only,
+        writes into the preallocated ``out``.
+
+        Default: None, the family cannot adapt (its entries keep fixed amplitudes; a
+        :attr:`comp_options` without :class:`Adaptable` has no ``adapt`` key at all).
+        """
+        return None
+
+    def adapt_entry(self, entry: dict, beta_std: list | None = None) -> dict:
+        """``entry`` (a :meth:`compensation` result) with ``adapt: false`` and the projection
+        box of its β written out, so that a user only flips ``adapt``: β ∓ max(ADAPT_SIGMAS·σ_j,
+        ADAPT_MARGIN·max|β|), σ (k,) in :meth:`Adaptable.beta` order (None: margin only).
+        Returns ``entry`` unchanged when the family cannot adapt."""
+        opts = self.comp_options
+        if opts is None or not issubclass(opts, Adaptable) or type(self).adapt_basis is EffectFamily.adapt_basis:
+            return entry
+        b = opts.model_validate(entry).beta()
+        w = ADAPT_MARGIN * max((abs(v) for v in b), default=0.0)
+        half = [max(w, ADAPT_SIGMAS * float(beta_std[j])) if beta_std is not None else w
+                for j in range(len(b))]
+        if not any(h > 0 for h in half) or not all(math.isfinite(h) for h in half):
+            return entry
+        return {**entry, "adapt": False, "beta_min": [v - h for v, h in zip(b, half)],
+                "beta_max": [v + h for v, h in zip(b, half)]}
+
+    def comp_hook(self, options) -> CompHook:
+        """The non-additive compensation (:class:`CompHook`), built once from ``options`` (a
+        :attr:`hook_options` instance).
+
+        Raises:
+            NotImplementedError: the family has no such compensation.
+        """
+        raise NotImplementedError(f"effect family {self.name!r} has no non-additive compensation")
 
     # ------------------------------------------------------------------ report
     def shape(self, ctx: SearchContext, h, beta: np.ndarray, gain: float | None):

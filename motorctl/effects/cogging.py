@@ -16,37 +16,50 @@ import math
 from typing import ClassVar
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from motorctl.effects.base import PlantTerm, Signals
 from motorctl.effects.periodic import (
     N_HARMONICS,
+    FourierAdaptable,
     PositionPeriodic,
     amplitudes_phases,
     fourier,
+    fourier_basis,
     fourier_term,
     harmonics,
     sin_cos_of,
 )
-from motorctl.schema import Pos, StrictModel
+from motorctl.schema import NonNeg, Pos, StrictModel
 
 
 class Cogging(StrictModel):
     """Simulated cogging, ``axes.NAME.driver.effects.cogging``: Σ_k A_k sin(2π k x / P + φ_k) [N].
 
     amplitudes_N: A_k [N] (k = 1.., at least one). period_m: P [m]. phases_rad: φ_k [rad]
-    (missing ones are 0).
+    (missing ones are 0). step_at_s, scale_after: a drifting amplitude (tests of adapted
+    compensation): from plant time step_at_s [s] on, every A_k is multiplied by scale_after
+    (both or neither; default: no step).
     """
 
     amplitudes_N: list[float] = Field(min_length=1)
     period_m: Pos
     phases_rad: list[float] = []
+    step_at_s: NonNeg | None = None
+    scale_after: float | None = None
+
+    @model_validator(mode="after")
+    def _step_pair(self):
+        if (self.step_at_s is None) != (self.scale_after is None):
+            raise ValueError("step_at_s and scale_after go together")
+        return self
 
 
-class FourierPosition(StrictModel):
+class FourierPosition(FourierAdaptable):
     """Cogging compensation, ``axes.NAME.controller.compensation.cogging``:
     Σ_k a_k sin(2π k x / P) + b_k cos(2π k x / P) [V] (force / A1); the shorter list is padded
-    with zeros."""
+    with zeros. Adaptable (``adapt``, ``beta_min``, ``beta_max``, ``gamma0``;
+    :class:`~motorctl.effects.base.Adaptable`): β = sin_V then cos_V (padded), P fixed."""
 
     period_m: Pos
     sin_V: list[float] = []
@@ -66,12 +79,20 @@ class CoggingFamily(PositionPeriodic):
         ph = list(o.phases_rad) + [0.0] * len(o.amplitudes_N)
         harm = tuple((a, 2 * math.pi * (k + 1) / o.period_m, ph[k]) for k, a in enumerate(o.amplitudes_N))
         sin = math.sin
+        if o.step_at_s is None:
+            def force(f, x, v, t, sf):
+                for amp, w, phi in harm:
+                    f += amp * sin(w * x + phi)
+                return f
+            return PlantTerm(force=force)
+        t_step, scale = o.step_at_s, o.scale_after
 
-        def force(f, x, v, t, sf):
+        def force_step(f, x, v, t, sf):
+            g = scale if t >= t_step else 1.0
             for amp, w, phi in harm:
-                f += amp * sin(w * x + phi)
+                f += g * amp * sin(w * x + phi)
             return f
-        return PlantTerm(force=force)
+        return PlantTerm(force=force_step)
 
     # identification
     def columns(self, h, p):
@@ -89,9 +110,11 @@ class CoggingFamily(PositionPeriodic):
                 "phases_rad": [float(p) for p in ph]}
 
     # compensation
-    def compensation(self, h, beta, signals=None):
-        return {"period_m": float(h), "sin_V": [float(-b) for b in beta[0::2]],
-                "cos_V": [float(-b) for b in beta[1::2]]}
+    def compensation(self, h, beta, signals=None, beta_std=None):
+        """β_std: standard deviations of the fitted β (interleaved as ``beta``), or None."""
+        std = None if beta_std is None else list(beta_std[0::2]) + list(beta_std[1::2])
+        return self.adapt_entry({"period_m": float(h), "sin_V": [float(-b) for b in beta[0::2]],
+                                 "cos_V": [float(-b) for b in beta[1::2]]}, std)
 
     def compensation_for(self, o: Cogging, a1):
         ph = list(o.phases_rad) + [0.0] * len(o.amplitudes_N)
@@ -100,6 +123,9 @@ class CoggingFamily(PositionPeriodic):
 
     def compensator(self, o: FourierPosition):
         return fourier_term(harmonics(2.0 * math.pi / o.period_m, o.sin_V, o.cos_V), on_time=False)
+
+    def adapt_basis(self, o: FourierPosition):
+        return fourier_basis(2.0 * math.pi / o.period_m, len(o.beta()) // 2, on_time=False)
 
     # report
     def shape(self, ctx, h, beta, gain):

@@ -7,8 +7,10 @@ Physical model:
 
 with F_m(u) = A1 u + A2 u|u| + A3 u³ (paper eq. 3); the plant applies it as the factor
 (1 + Σ r_k sin(·)) on F_m. Identification: columns f_u(u)·sin, f_u(u)·cos(2π k x / P) (f_u: the
-nominal thrust shape of eq. 9 once θ5, θ6 are fitted, else u). Not compensable: the term needs
-u, and d̂_eff is a function of (x_d, ẋ_d, t) only.
+nominal thrust shape of eq. 9 once θ5, θ6 are fitted, else u). Compensation (not an additive
+d̂_eff, a :class:`~motorctl.effects.base.CompHook`): the law divides its virtual input v by
+1 + r̂(x_d) before the inversion (eq. 9), r̂(x) = Σ_k a_k sin(2π k x / P) + b_k cos(2π k x / P),
+and the estimator's thrust channels are scaled by 1 + r̂(x) at the measured position.
 """
 
 from __future__ import annotations
@@ -17,10 +19,10 @@ import math
 from typing import ClassVar
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
-from motorctl.effects.base import PlantTerm, Signals
-from motorctl.effects.periodic import N_HARMONICS, PositionPeriodic, fourier
+from motorctl.effects.base import CompHook, PlantTerm, Signals
+from motorctl.effects.periodic import N_HARMONICS, PositionPeriodic, fourier, harmonics, sin_cos_of
 from motorctl.schema import Pos, StrictModel
 
 #: Largest plausible ripple fraction r_k.
@@ -39,11 +41,30 @@ class ForceRipple(StrictModel):
     phases_rad: list[float] = []
 
 
+class RippleComp(StrictModel):
+    """Ripple compensation, ``axes.NAME.controller.compensation.force_ripple``: the thrust
+    fraction r̂(x) = Σ_k a_k sin(2π k x / P) + b_k cos(2π k x / P) [-]; v is divided by
+    1 + r̂(x_d) before the inversion (eq. 9). period_m: P [m]. sin, cos: a_k, b_k [-] (the
+    shorter list padded with zeros; |Σ| < 0.5 checked by the family's plausibility, not here)."""
+
+    period_m: Pos
+    sin: list[float] = []
+    cos: list[float] = []
+
+    @model_validator(mode="after")
+    def _bounded(self):
+        if sum(abs(v) for v in self.sin) + sum(abs(v) for v in self.cos) >= 0.5:
+            raise ValueError("sin, cos: the ripple fractions must add up to less than 0.5 "
+                             "(1 + r(x) must stay well above 0)")
+        return self
+
+
 class ForceRippleFamily(PositionPeriodic):
     name = "force_ripple"
     plant_force = "F_m(u)·Σ r_k sin(2πkx/P + φ_k)"
     sim_options = ForceRipple
     example: ClassVar[dict] = {"force_ripple": {"fractions": [0.06], "period_m": 0.045, "phases_rad": [0.5]}}
+    hook_options = RippleComp
 
     # simulator
     def plant_term(self, o: ForceRipple, period_s):
@@ -81,6 +102,28 @@ class ForceRippleFamily(PositionPeriodic):
         s, c = beta[0::2], beta[1::2]
         return {"period_m": float(h), "fractions": [float(a) for a in np.hypot(s, c)],
                 "phases_rad": [float(p) for p in np.arctan2(-c, -s)]}
+
+    # compensation (a factor on the thrust, not an additive d̂_eff)
+    def compensation(self, h, beta, signals=None):
+        """r̂ = −Σ (β_s sin + β_c cos): the fit's thrust is f_u(u)(1 − Cβ/f_u(u))."""
+        return {"period_m": float(h), "sin": [float(-b) for b in beta[0::2]],
+                "cos": [float(-b) for b in beta[1::2]]}
+
+    def compensation_for(self, o: ForceRipple, a1):
+        ph = list(o.phases_rad) + [0.0] * len(o.fractions)
+        sc = [sin_cos_of(r, ph[k]) for k, r in enumerate(o.fractions)]
+        return {"period_m": o.period_m, "sin": [s for s, _ in sc], "cos": [c for _, c in sc]}
+
+    def comp_hook(self, o: RippleComp) -> CompHook:
+        harm = harmonics(2.0 * math.pi / o.period_m, o.sin, o.cos)
+        sin, cos = math.sin, math.cos
+
+        def ripple(x):
+            r = 0.0
+            for w, a, b in harm:
+                r += a * sin(w * x) + b * cos(w * x)
+            return r
+        return CompHook(thrust=ripple)
 
     # report
     def shape(self, ctx, h, beta, gain):

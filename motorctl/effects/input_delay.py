@@ -4,16 +4,22 @@ input stage or fieldbus), in whole control periods in the simulator.
 Physical model: u_applied(t) = u(t − τ). Its simulator option is the axis-level
 ``axes.NAME.driver.input_delay_s`` (not an ``effects:`` entry). Identification: no columns; the
 regression target becomes u(t − τ), τ from 0 to 5 ms in samples (FFT fractional shift of the
-decimated input), then a parabolic refinement. Not compensable (not an additive force).
+decimated input), then a parabolic refinement. Compensation (not an additive d̂_eff, a
+:class:`~motorctl.effects.base.CompHook`): the law predicts over τ, i.e. evaluates its
+desired-compensation part v_a1 (eq. 13) on the desired trajectory at t + τ (the servo loop passes
+that sample, :meth:`motorctl.control.base.Controller.preview`), and the estimator pairs each
+velocity sample with the input applied over it, u[k − 1 − round(τ/Ts)].
 """
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
+from pydantic import Field
 
-from motorctl.effects.base import EffectFamily, PlantTerm
+from motorctl.effects.base import CompHook, EffectFamily, PlantTerm
+from motorctl.schema import StrictModel
 
 
 def delay_line(n: int):
@@ -36,12 +42,20 @@ def delay_line(n: int):
 HOLD_TOLERANCE = 0.15
 
 
+class DelayComp(StrictModel):
+    """Delay compensation, ``axes.NAME.controller.compensation.input_delay``: delay_s, the
+    input delay τ [s] beyond the loop's own zero-order hold (0 … 0.1 s) the law predicts over."""
+
+    delay_s: Annotated[float, Field(ge=0.0, le=0.1)]
+
+
 class InputDelayFamily(EffectFamily):
     name = "input_delay"
     plant_force = "u acts τ later"
     searched = "delay τ [samples]"
     example: ClassVar[dict] = {"input_delay_s": 0.0006}
     shifts_input = True
+    hook_options = DelayComp
 
     # simulator
     def sim_config(self, axis_options):
@@ -85,6 +99,24 @@ class InputDelayFamily(EffectFamily):
 
     def parameters(self, h, beta, gain, fs):
         return {"delay_samples": float(h), "delay_s": float(h) / fs}
+
+    # compensation (a preview, not an additive d̂_eff)
+    def compensation(self, h, beta, signals=None):
+        """delay_s = h · the record's sample period (from ``signals``: its ``fs`` or its time
+        column); None without signals or without a delay."""
+        if signals is None or not h:
+            return None
+        fs = getattr(signals, "fs", None)
+        if not fs:
+            t = np.asarray(signals.t, dtype=float)
+            fs = (len(t) - 1) / (t[-1] - t[0])
+        return {"delay_s": float(h) / float(fs)}
+
+    def compensation_for(self, delay_s, a1):
+        return {"delay_s": float(delay_s)}
+
+    def comp_hook(self, o: DelayComp) -> CompHook:
+        return CompHook(preview_s=o.delay_s)
 
     # report
     def shape(self, ctx, h, beta, gain):

@@ -14,7 +14,7 @@ import math
 import numpy as np
 from scipy.signal import lombscargle
 
-from motorctl.effects.base import EffectFamily
+from motorctl.effects.base import Adaptable, EffectFamily
 
 #: Harmonics fitted for position- and time-periodic families.
 N_HARMONICS = 2
@@ -95,6 +95,46 @@ def fourier_term(harm: tuple, on_time: bool):
                 d += a * sin(w * x) + b * cos(w * x)
             return d
     return add
+
+
+def fourier_beta(sin_V: list, cos_V: list) -> list[float]:
+    """β of a Fourier compensation entry: a_1..a_n, b_1..b_n (the shorter list padded with 0),
+    n = max(len)."""
+    n = max(len(sin_V), len(cos_V))
+    return [float(v) for v in list(sin_V) + [0.0] * (n - len(sin_V))] + \
+        [float(v) for v in list(cos_V) + [0.0] * (n - len(cos_V))]
+
+
+def fourier_beta_names(sin_V: list, cos_V: list) -> list[str]:
+    """Names of :func:`fourier_beta`'s entries: sin_V[0], ..., cos_V[0], ..."""
+    n = max(len(sin_V), len(cos_V))
+    return [f"sin_V[{k}]" for k in range(n)] + [f"cos_V[{k}]" for k in range(n)]
+
+
+def fourier_basis(w: float, n: int, on_time: bool):
+    """The basis of an adapted Fourier entry (β = :func:`fourier_beta`): ``fill(out, j, x, xdot,
+    t, sf)`` writes sin(k w z), k = 1..n, then cos(k w z) into out[j:j + 2n], z = x_d or x [m]
+    (position) or t [s] (``on_time``); w [rad/m or rad/s]. Floats only (5 kHz cycle)."""
+    sin, cos = math.sin, math.cos
+    ws = tuple(w * (k + 1) for k in range(n))
+
+    def fill(out, j, x, v, t, sf):
+        z = t if on_time else x
+        for k in range(n):
+            ph = ws[k] * z
+            out[j + k] = sin(ph)
+            out[j + n + k] = cos(ph)
+    return fill
+
+
+class FourierAdaptable(Adaptable):
+    """:class:`~motorctl.effects.base.Adaptable` for a Fourier entry with ``sin_V``, ``cos_V``."""
+
+    def beta(self):
+        return fourier_beta(self.sin_V, self.cos_V)
+
+    def beta_names(self):
+        return fourier_beta_names(self.sin_V, self.cos_V)
 
 
 def sin_cos_of(amplitude: float, phase: float) -> tuple[float, float]:

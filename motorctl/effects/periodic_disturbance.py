@@ -16,19 +16,23 @@ from typing import ClassVar
 
 import numpy as np
 
+from pydantic import model_validator
+
 from motorctl.effects.base import EffectFamily, PlantTerm, Signals
 from motorctl.effects.periodic import (
     N_PEAKS,
     SHAPE_POINTS,
+    FourierAdaptable,
     amplitudes_phases,
     fourier,
+    fourier_basis,
     fourier_term,
     harmonics,
     local_peaks,
     sin_cos_of,
     time_periodogram,
 )
-from motorctl.schema import Pos, StrictModel
+from motorctl.schema import NonNeg, Pos, StrictModel
 
 #: Frequency grid step [Hz] of the spectrum search.
 DF_HZ = 0.02
@@ -36,16 +40,27 @@ DF_HZ = 0.02
 
 class PeriodicDisturbance(StrictModel):
     """Simulated disturbance, ``axes.NAME.driver.effects.periodic_disturbance``:
-    A sin(2π f t + φ) [N]. amplitude_N: A [N]. frequency_Hz: f [Hz]. phase_rad: φ [rad]."""
+    A sin(2π f t + φ) [N]. amplitude_N: A [N]. frequency_Hz: f [Hz]. phase_rad: φ [rad].
+    step_at_s, scale_after: a drifting amplitude (tests of adapted compensation): from plant
+    time step_at_s [s] on, A is multiplied by scale_after (both or neither; default: no step)."""
 
     amplitude_N: float
     frequency_Hz: Pos
     phase_rad: float = 0.0
+    step_at_s: NonNeg | None = None
+    scale_after: float | None = None
+
+    @model_validator(mode="after")
+    def _step_pair(self):
+        if (self.step_at_s is None) != (self.scale_after is None):
+            raise ValueError("step_at_s and scale_after go together")
+        return self
 
 
-class FourierTime(StrictModel):
+class FourierTime(FourierAdaptable):
     """Compensation, ``axes.NAME.controller.compensation.periodic_disturbance``:
-    Σ_k a_k sin(2π k f t) + b_k cos(2π k f t) [V] (force / A1); shorter list padded with 0."""
+    Σ_k a_k sin(2π k f t) + b_k cos(2π k f t) [V] (force / A1); shorter list padded with 0.
+    Adaptable (:class:`~motorctl.effects.base.Adaptable`): β = sin_V then cos_V, f fixed."""
 
     frequency_Hz: Pos
     sin_V: list[float] = []
@@ -65,10 +80,15 @@ class PeriodicDisturbanceFamily(EffectFamily):
     def plant_term(self, o: PeriodicDisturbance, period_s):
         a, w, ph = o.amplitude_N, 2.0 * math.pi * o.frequency_Hz, o.phase_rad
         sin = math.sin
+        if o.step_at_s is None:
+            def force(f, x, v, t, sf):
+                return f + a * sin(w * t + ph)
+            return PlantTerm(force=force)
+        t_step, a2 = o.step_at_s, a * o.scale_after
 
-        def force(f, x, v, t, sf):
-            return f + a * sin(w * t + ph)
-        return PlantTerm(force=force)
+        def force_step(f, x, v, t, sf):
+            return f + (a2 if t >= t_step else a) * sin(w * t + ph)
+        return PlantTerm(force=force_step)
 
     # identification
     def columns(self, h, p):
@@ -96,8 +116,10 @@ class PeriodicDisturbanceFamily(EffectFamily):
         return {"frequency_Hz": float(h), f"amplitude_{unit}": float(amp[0]), "phase_rad": float(ph[0])}
 
     # compensation
-    def compensation(self, h, beta, signals=None):
-        return {"frequency_Hz": float(h), "sin_V": [float(-beta[0])], "cos_V": [float(-beta[1])]}
+    def compensation(self, h, beta, signals=None, beta_std=None):
+        """β_std: standard deviations of the fitted (sin, cos) coefficients, or None."""
+        return self.adapt_entry({"frequency_Hz": float(h), "sin_V": [float(-beta[0])],
+                                 "cos_V": [float(-beta[1])]}, beta_std)
 
     def compensation_for(self, o: PeriodicDisturbance, a1):
         s, c = sin_cos_of(o.amplitude_N / a1, o.phase_rad)
@@ -105,6 +127,9 @@ class PeriodicDisturbanceFamily(EffectFamily):
 
     def compensator(self, o: FourierTime):
         return fourier_term(harmonics(2.0 * math.pi * o.frequency_Hz, o.sin_V, o.cos_V), on_time=True)
+
+    def adapt_basis(self, o: FourierTime):
+        return fourier_basis(2.0 * math.pi * o.frequency_Hz, len(o.beta()) // 2, on_time=True)
 
     # report
     def shape(self, ctx, h, beta, gain):

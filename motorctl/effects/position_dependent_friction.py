@@ -18,7 +18,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from motorctl.effects.base import EffectFamily, PlantTerm, Signals
+from motorctl.effects.base import Adaptable, EffectFamily, PlantTerm, Signals
 from motorctl.effects.periodic import SHAPE_POINTS
 from motorctl.model import s_f
 from motorctl.schema import StrictModel
@@ -33,12 +33,19 @@ class PositionDependentFriction(StrictModel):
     reference_m: float = 0.0
 
 
-class PositionFrictionComp(StrictModel):
+class PositionFrictionComp(Adaptable):
     """Compensation, ``axes.NAME.controller.compensation.position_dependent_friction``:
-    −c (x − x_ref) S_f(ẋ) [V]. coulomb_slope_V_per_m: c (force / A1) [V/m]. reference_m [m]."""
+    −c (x − x_ref) S_f(ẋ) [V]. coulomb_slope_V_per_m: c (force / A1) [V/m]. reference_m [m].
+    Adaptable (:class:`~motorctl.effects.base.Adaptable`): β = [c], x_ref fixed."""
 
     coulomb_slope_V_per_m: float
     reference_m: float = 0.0
+
+    def beta(self):
+        return [self.coulomb_slope_V_per_m]
+
+    def beta_names(self):
+        return ["coulomb_slope_V_per_m"]
 
 
 class PositionDependentFrictionFamily(EffectFamily):
@@ -74,13 +81,13 @@ class PositionDependentFrictionFamily(EffectFamily):
         return {f"coulomb_slope_{unit}_per_m": float(g * beta[0])}
 
     # compensation
-    def compensation(self, h, beta, signals=None):
+    def compensation(self, h, beta, signals=None, beta_std=None):
         """x_ref: the record's mean position weighted by |S_f(ẋ)| (0 without ``signals``)."""
         xr = 0.0
         if signals is not None:
             w = np.abs(s_f(signals.v))
             xr = float(np.sum(w * signals.x) / np.sum(w)) if np.sum(w) > 0 else float(np.mean(signals.x))
-        return {"coulomb_slope_V_per_m": float(beta[0]), "reference_m": xr}
+        return self.adapt_entry({"coulomb_slope_V_per_m": float(beta[0]), "reference_m": xr}, beta_std)
 
     def theta_shift(self, entry, n_theta):
         """u = … + θ3 S_f + c_V x S_f = … + (θ3 + c_V x_ref) S_f + c_V (x − x_ref) S_f:
@@ -98,6 +105,13 @@ class PositionDependentFrictionFamily(EffectFamily):
         def add(d, x, v, t, sf):
             return d - c * (x - xr) * sf
         return add
+
+    def adapt_basis(self, o: PositionFrictionComp):
+        xr = o.reference_m
+
+        def fill(out, j, x, v, t, sf):
+            out[j] = (xr - x) * sf
+        return fill
 
     # report
     def shape(self, ctx, h, beta, gain):

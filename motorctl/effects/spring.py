@@ -16,7 +16,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from motorctl.effects.base import EffectFamily, PlantTerm, Signals
+from motorctl.effects.base import Adaptable, EffectFamily, PlantTerm, Signals
 from motorctl.effects.periodic import SHAPE_POINTS
 from motorctl.schema import StrictModel
 
@@ -29,12 +29,19 @@ class Spring(StrictModel):
     rest_position_m: float = 0.0
 
 
-class SpringComp(StrictModel):
+class SpringComp(Adaptable):
     """Spring compensation, ``axes.NAME.controller.compensation.spring``: −k (x − x_0) [V].
-    stiffness_V_per_m: k (force / A1) [V/m]. rest_position_m: x_0 [m]."""
+    stiffness_V_per_m: k (force / A1) [V/m]. rest_position_m: x_0 [m]. Adaptable
+    (:class:`~motorctl.effects.base.Adaptable`): β = [k], x_0 fixed."""
 
     stiffness_V_per_m: float
     rest_position_m: float = 0.0
+
+    def beta(self):
+        return [self.stiffness_V_per_m]
+
+    def beta_names(self):
+        return ["stiffness_V_per_m"]
 
 
 class SpringFamily(EffectFamily):
@@ -63,10 +70,10 @@ class SpringFamily(EffectFamily):
         return {f"stiffness_{unit}_per_m": float(g * beta[0])}
 
     # compensation
-    def compensation(self, h, beta, signals=None):
+    def compensation(self, h, beta, signals=None, beta_std=None):
         """x_0: the record's mean position (0 without ``signals``)."""
         x0 = float(np.mean(signals.x)) if signals is not None else 0.0
-        return {"stiffness_V_per_m": float(beta[0]), "rest_position_m": x0}
+        return self.adapt_entry({"stiffness_V_per_m": float(beta[0]), "rest_position_m": x0}, beta_std)
 
     def theta_shift(self, entry, n_theta):
         """u = … − θ4 + k_V x = … − (θ4 − k_V x_0) + k_V (x − x_0): Δθ4 = −k_V x_0."""
@@ -83,6 +90,13 @@ class SpringFamily(EffectFamily):
         def add(d, x, v, t, sf):
             return d - k * (x - x0)
         return add
+
+    def adapt_basis(self, o: SpringComp):
+        x0 = o.rest_position_m
+
+        def fill(out, j, x, v, t, sf):
+            out[j] = x0 - x
+        return fill
 
     # report
     def shape(self, ctx, h, beta, gain):

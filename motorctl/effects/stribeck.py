@@ -15,7 +15,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from motorctl.effects.base import EffectFamily, PlantTerm, Signals
+from motorctl.effects.base import Adaptable, EffectFamily, PlantTerm, Signals
 from motorctl.effects.periodic import SHAPE_POINTS
 from motorctl.model import s_f
 from motorctl.schema import NonNeg, Pos, StrictModel
@@ -29,12 +29,19 @@ class Stribeck(StrictModel):
     velocity_m_per_s: Pos
 
 
-class StribeckComp(StrictModel):
+class StribeckComp(Adaptable):
     """Stribeck compensation, ``axes.NAME.controller.compensation.stribeck``:
-    −F exp(−(ẋ/v_s)²) S_f(ẋ) [V]. force_V: F (force / A1) [V]. velocity_m_per_s: v_s [m/s]."""
+    −F exp(−(ẋ/v_s)²) S_f(ẋ) [V]. force_V: F (force / A1) [V]. velocity_m_per_s: v_s [m/s].
+    Adaptable (:class:`~motorctl.effects.base.Adaptable`): β = [F], v_s fixed."""
 
     force_V: float
     velocity_m_per_s: Pos
+
+    def beta(self):
+        return [self.force_V]
+
+    def beta_names(self):
+        return ["force_V"]
 
 
 def velocity_grid(ctx) -> np.ndarray:
@@ -90,8 +97,8 @@ class StribeckFamily(EffectFamily):
         return {"stribeck_velocity_m_per_s": float(h), f"force_{unit}": float(g * beta[0])}
 
     # compensation
-    def compensation(self, h, beta, signals=None):
-        return {"force_V": float(beta[0]), "velocity_m_per_s": float(h)}
+    def compensation(self, h, beta, signals=None, beta_std=None):
+        return self.adapt_entry({"force_V": float(beta[0]), "velocity_m_per_s": float(h)}, beta_std)
 
     def compensation_for(self, o: Stribeck, a1):
         return {"force_V": o.force_N / a1, "velocity_m_per_s": o.velocity_m_per_s}
@@ -104,6 +111,15 @@ class StribeckFamily(EffectFamily):
             z = v / vs
             return d - fv * exp(-z * z) * sf
         return add
+
+    def adapt_basis(self, o: StribeckComp):
+        vs = o.velocity_m_per_s
+        exp = math.exp
+
+        def fill(out, j, x, v, t, sf):
+            z = v / vs
+            out[j] = -exp(-z * z) * sf
+        return fill
 
     # report
     def shape(self, ctx, h, beta, gain):

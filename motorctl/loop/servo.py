@@ -5,7 +5,8 @@ Cycle k (architecture.md, LinuxCNC's read → motion → pid → write order)::
     wake at the absolute deadline (CLOCK_MONOTONIC, integer ns): sleep to deadline − spin,
         then busy-wait the tail; lateness = wake − deadline
     driver.read()                       every axis
-    per axis: supervisor input checks → trajectory sample at t = k·Ts → controller.update()
+    per axis: supervisor input checks → trajectory sample at t = k·Ts (and at t + τ for a
+              controller with preview_s = τ > 0: controller.preview()) → controller.update()
               → following-error/NaN checks; a faulted or disabled axis gets 0 V, enable off
     driver.write(u, enable)             every axis
     record                              one fixed-size row into a preallocated buffer
@@ -339,6 +340,18 @@ class ServoLoop:
                         if not running[i]:
                             c.reset(y)
                             running[i] = True
+                        pre = c.preview_s
+                        if pre > 0.0:
+                            # the law predicts over an input delay: the desired trajectory
+                            # at t + preview_s, from what the axis follows now
+                            mn = mode[i]
+                            if mn == PROGRAM:
+                                c.preview(*progs[i].sample((k - kst[i]) * ts + pre))
+                            elif mn == APPROACH or mn == JOG:
+                                mv_ = appr[i]
+                                c.preview(*mv_.sample(mv_.t0 + (k - kst[i]) * ts + pre))
+                            else:
+                                c.preview(xd, vd, ad)
                         u = c.update(y, xd, vd, ad, t)
                         nb = bl_left[i]
                         if nb > 0:
