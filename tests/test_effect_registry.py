@@ -39,7 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 TS = 2e-4
 A1 = 80.0
 ORDER = ("cogging", "force_ripple", "stribeck", "asymmetric_friction", "position_dependent_friction",
-         "spring", "payload_change", "input_delay", "periodic_disturbance")
+         "spring", "payload_change", "input_delay", "periodic_disturbance", "position_friction_shape")
 #: (x [m], ẋ [m/s], t [s]) where terms are compared: both directions, slow and fast, ẋ = 0
 POINTS = [(x, v, t) for x in (-0.05, 0.013, 0.2, 0.37) for v in (-0.8, -0.01, 0.0, 0.004, 0.05, 0.8)
           for t in (0.0, 0.41, 2.3)]
@@ -133,7 +133,8 @@ def test_registry_order_names_and_lookup():
     with pytest.raises(ValueError, match="unknown effect family 'nope'; families: cogging, force_ripple"):
         family("nope")
     assert [f.name for f in compensable()] == ["cogging", "spring", "periodic_disturbance", "stribeck",
-                                               "asymmetric_friction", "position_dependent_friction"]
+                                               "asymmetric_friction", "position_dependent_friction",
+                                               "position_friction_shape"]
     assert {f.name for f in simulated()} == set(ORDER) - {"input_delay"}
 
 
@@ -193,6 +194,8 @@ MATCHING = {
                             {"coulomb_V": 0.125, "viscous_V_s_per_m": 0.25}),
     "position_dependent_friction": ({"coulomb_slope_N_per_m": 40.0, "reference_m": 0.2},
                                     {"coulomb_slope_V_per_m": 0.5, "reference_m": 0.2}),
+    "position_friction_shape": ({"bumps": [{"center_m": 0.2, "width_m": 0.3, "amplitude_N": 8.0}]},
+                                {"bumps": [{"center_m": 0.2, "width_m": 0.3, "amplitude_V": 0.1}]}),
 }
 
 
@@ -229,7 +232,9 @@ def test_compensation_from_a_fit_is_minus_the_fitted_columns(name):
     from motorctl.effects.compensation import Compensation, CompensationConfig
     from motorctl.ident.effects import compensation
     fam = FAMILIES[name]
-    h = {"cogging": 0.032, "stribeck": 0.05, "periodic_disturbance": 7.3}.get(name)
+    from motorctl.effects.position_friction_shape import knot_grid
+    h = {"cogging": 0.032, "stribeck": 0.05, "periodic_disturbance": 7.3,
+         "position_friction_shape": knot_grid(-0.05, 0.4, 4)}.get(name)
     x, v, t = (np.array(a, dtype=float) for a in zip(*POINTS))
     cols = fam.columns(h, Signals(x, v, np.zeros_like(x), np.zeros_like(x), t))
     beta = np.random.default_rng(3).uniform(0.05, 0.3, cols.shape[1])

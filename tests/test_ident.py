@@ -85,6 +85,8 @@ CHECKS = {
     "periodic_disturbance": lambda p, t: (abs(p["frequency_Hz"] - t["frequency_Hz"]) < 0.05
                                           and abs(p["amplitude_N"] / t["amplitude_N"] - 1) < 0.1),
     "input_delay": lambda p, t: abs(p["delay_s"] - t) <= 1 / 5000.0,
+    "position_friction_shape": lambda p, t: (abs(p["extremum_position_m"] - t["bumps"][0]["center_m"]) < 0.01
+                                             and abs(p["peak_to_peak_N"] / t["bumps"][0]["amplitude_N"] - 1) < 0.15),
 }
 
 

@@ -46,6 +46,7 @@ from motorctl.effects import (
     payload_change,
     periodic_disturbance,
     position_dependent_friction,
+    position_friction_shape,
     spring,
     stribeck,
 )
@@ -55,7 +56,7 @@ from motorctl.schema import StrictModel
 #: name -> family, in the fixed order described in the module docstring.
 FAMILIES: dict[str, EffectFamily] = {m.FAMILY.name: m.FAMILY for m in (
     cogging, force_ripple, stribeck, asymmetric_friction, position_dependent_friction, spring,
-    payload_change, input_delay, periodic_disturbance)}
+    payload_change, input_delay, periodic_disturbance, position_friction_shape)}
 
 
 def family(name: str) -> EffectFamily:

@@ -20,7 +20,7 @@ re-fitted, until no candidate passes.
 The candidate families come from the registry :data:`motorctl.effects.FAMILIES`; each family's
 columns, search over its parameter and its own plausibility checks are in its module
 (``motorctl/effects/<name>.py``). The :class:`Identifier` is the context those use
-(:class:`motorctl.effects.base.SearchContext`: ``term``, ``best_over``, ``sse``,
+(:class:`motorctl.effects.base.SearchContext`: ``term``, ``best_over``, ``sse``, ``heldout_rms``,
 ``delay_sses``, ``direction_agreement``, ``target``).
 """
 
@@ -207,6 +207,12 @@ class Identifier:
         phi, y = self.design(terms)
         r = y - phi @ _coef(phi, y)
         return float(r @ r)
+
+    def heldout_rms(self, terms) -> float:
+        """2-fold cross-validated residual RMS (:meth:`heldout`, decimated, V) of the joint LS fit
+        of the nominal model plus ``terms``: the held-out rule a family may apply inside its
+        search (e.g. to choose a number of terms)."""
+        return self.heldout(*self.design(terms))
 
     def best_over(self, family, grid, base, cols_fn=None):
         """Searched parameter by joint LS over a grid (all data); ``cols_fn`` may give cheap
