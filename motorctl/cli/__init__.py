@@ -24,7 +24,8 @@ DEFAULT_CONFIG = "configs/gantry.yaml"
 #: Modules of this package that add subcommands (the job, daemon control, identification). Other
 #: installed packages add theirs through the ``motorctl.commands`` entry-point group (a
 #: ``register(parser, subparsers)`` function), e.g. ``motorctl emulate``.
-COMMAND_MODULES = ("motorctl.cli.run", "motorctl.cli.operator", "motorctl.cli.identify", "motorctl.cli.runs")
+COMMAND_MODULES = ("motorctl.cli.run", "motorctl.cli.operator", "motorctl.cli.identify", "motorctl.cli.runs",
+                   "motorctl.cli.tune")
 COMMAND_GROUP = "motorctl.commands"
 
 

@@ -219,11 +219,12 @@ def tuned_config(idf: Identifier, s: dict, base: dict, axis: str, base_name: str
                     out.append(f"{ind}# motorctl identify: no compensable effect found"
                                + (f" ({', '.join(skipped)} has no compensation term)" if skipped else ""))
                     continue
-                out.append(f"{ind}# motorctl identify: the found effects, compensated in v_a1 (eq. 13) and "
-                           f"told to the estimator (u + d_eff)")
+                out.append(f"{ind}# motorctl identify: the found effects, compensated (an additive term in "
+                           f"v_a1, eq. 13, told to the estimator; ripple: v / (1 + r(x)) before eq. 9; "
+                           f"delay: v_a1 on the trajectory ahead)")
                 for e in s["effects"]:
                     pars = ", ".join(f"{k} {_fig(v)}" for k, v in e["parameters"].items())
-                    tag = "compensated" if e["name"] in comp else "NOT compensable (no term in x_d, xd_dot, t)"
+                    tag = "compensated" if e["name"] in comp else "NOT compensable (no compensation term)"
                     out.append(f"{ind}#   {e['name']}: {pars}; held-out RMS {e['heldout_rms_before']:.4g} -> "
                                f"{e['heldout_rms_after']:.4g} {unit}; {tag}")
                 body = yaml.safe_dump({"compensation": comp}, sort_keys=False, default_flow_style=False, width=100)
@@ -377,6 +378,68 @@ def text_report(s: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+# ---------------------------------------------------------------------------- fit and write
+def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
+                    zoh_delay: float | None = None) -> tuple[Identifier, dict]:
+    """Fit the model to a loaded record, trace the residual to effects, and summarise.
+
+    Args:
+        rec: a record of :func:`motorctl.ident.data.load_record`. n_theta: 4, 6 or None (chosen
+            from the input range). friction: 'sf' or 'sign'. zoh_delay: input delay of the
+            logged input [samples] (None: 0.5 for run logs, detected for CSV/MAT).
+    Returns:
+        (the identifier after its run, the summary of :func:`summarise`; no validation or
+        closed loop yet).
+    Raises:
+        LogError: the fit fails on the record or is physically meaningless (θ1 ≤ 0, simulated
+        position fit below 0 %), with the likely cause.
+    """
+    from motorctl.cli import UsageError
+
+    # numpy's overflow/invalid warnings would add lines to stderr on a degenerate record; the
+    # results are checked for finiteness and physical meaning instead (_check_physical)
+    def quiet():
+        return np.errstate(all="ignore")
+
+    try:
+        with quiet():
+            idf = Identifier(rec, n_theta=n_theta, friction=friction, zoh_delay=zoh_delay).run()
+    except (np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
+        if isinstance(exc, (UsageError, LogError)):
+            raise
+        msg = " ".join(str(exc).split())[:120]
+        raise LogError(f"{rec.source}: the fit failed on this record ({type(exc).__name__}: {msg}); "
+                       "check the units (t s, y m, u V) and that the axis moves with a varying input") from None
+    # θ1 is judged on the model the user gets: with the found effects (a strong spring makes the
+    # nominal fit's θ1 negative while the augmented one is right)
+    _check_physical(rec, max(idf.nominal.fit.coef[0], idf.final.fit.coef[0]), None)
+    with quiet():
+        s = summarise(idf)
+    _check_physical(rec, max(s["nominal"]["theta"][0], s["augmented"]["theta"][0]),
+                    (s["nominal"].get("simulation_fit_percent"), s["augmented"].get("simulation_fit_percent")))
+    return idf, s
+
+
+def write_tuned_config(idf: Identifier, s: dict, base: dict, axis: str, base_name: str, path) -> dict:
+    """Write the tuned config of :func:`tuned_config` to ``path`` after checking it as
+    ``motorctl check-config`` does (the bus budget aside), and note it in ``s``
+    (``written_config``).
+
+    Returns:
+        The new config dict.
+    Raises:
+        ConfigError: the tuned config does not pass the checks (nothing is written).
+        OSError: ``path`` cannot be written.
+    """
+    from motorctl.config import config_from_dict
+    new_cfg, text = tuned_config(idf, s, base, axis, base_name)
+    config_from_dict(new_cfg, path, check_budget=False)   # what check-config checks
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write(text)
+    s["written_config"] = str(path)
+    return new_cfg
+
+
 # ---------------------------------------------------------------------------- command
 def cmd_identify(args) -> int:
     from motorctl.cli import UsageError
@@ -407,25 +470,7 @@ def cmd_identify(args) -> int:
             raise UsageError(f"{base_name}: no axis {w_axis!r} in the config; "
                              f"axes: {', '.join(base_cfg.get('axes', {}))}")
         writable_file(args.write_config, "--write-config output")   # leaves no empty file behind
-    # numpy's overflow/invalid warnings would add lines to stderr on a degenerate record; the
-    # results are checked for finiteness and physical meaning instead (_check_physical)
-    def quiet():
-        return np.errstate(all="ignore")
-
-    try:
-        with quiet():
-            idf = Identifier(rec, n_theta=args.n_theta, friction=args.friction, zoh_delay=args.zoh_delay).run()
-    except (np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
-        if isinstance(exc, (UsageError, LogError)):
-            raise
-        msg = " ".join(str(exc).split())[:120]
-        raise LogError(f"{rec.source}: the fit failed on this record ({type(exc).__name__}: {msg}); "
-                       "check the units (t s, y m, u V) and that the axis moves with a varying input") from None
-    _check_physical(rec, idf.nominal.fit.coef[0], None)
-    with quiet():
-        s = summarise(idf)
-    _check_physical(rec, s["nominal"]["theta"][0], (s["nominal"].get("simulation_fit_percent"),
-                                                    s["augmented"].get("simulation_fit_percent")))
+    idf, s = identify_record(rec, n_theta=args.n_theta, friction=args.friction, zoh_delay=args.zoh_delay)
     s["validation"] = validation(idf, rec2) if rec2 is not None else None
     s["closed_loop"] = None
     if not args.no_closed_loop and idf.terms:
@@ -446,12 +491,7 @@ def cmd_identify(args) -> int:
             if s["closed_loop"] is None:
                 s["closed_loop_note"] = "not run (the found effect has no additive compensation term)"
     if args.write_config:
-        from motorctl.config import config_from_dict
-        new_cfg, text = tuned_config(idf, s, base_cfg, w_axis, base_name)
-        config_from_dict(new_cfg, args.write_config, check_budget=False)   # what check-config checks
-        with open(args.write_config, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        s["written_config"] = args.write_config
+        write_tuned_config(idf, s, base_cfg, w_axis, base_name, args.write_config)
     if args.report:
         from motorctl.ident.report import write_report
         write_report(idf, s, args.report, text_report(s))
@@ -469,7 +509,7 @@ _CAUSES = ("check the sign of u (a positive u must push y positive), the units o
 
 def _check_physical(rec, theta1, sim_fits) -> None:
     """Refuse (LogError, exit 2) a fit without physical meaning: θ1 = M/A1 <= 0 (a negative or
-    zero mass), or a simulated position fit below 0 % for both the nominal and the augmented
+    zero mass; the caller passes the larger of the nominal and the augmented fit's), or a simulated position fit below 0 % for both the nominal and the augmented
     model (worse than a constant). ``sim_fits``: (nominal %, augmented %) or None (not yet)."""
     th1 = float(theta1)
     if not (math.isfinite(th1) and th1 > 0):
@@ -495,5 +535,15 @@ def _json_default(o):
     raise TypeError(type(o).__name__)
 
 
-__all__ = ["register", "cmd_identify", "summarise", "validation", "closed_loop", "text_report",
-           "compensation_from_fit", "tuned_config"]
+__all__ = [
+    "closed_loop",
+    "cmd_identify",
+    "compensation_from_fit",
+    "identify_record",
+    "register",
+    "summarise",
+    "text_report",
+    "tuned_config",
+    "validation",
+    "write_tuned_config",
+]

@@ -164,17 +164,41 @@ def figure(res: dict, axis: str, path: Path) -> None:
     plt.close(fig)
 
 
-def text_report(res: dict) -> str:
+def figures(res: dict, out_dir) -> list[str]:
+    """Write :func:`figure` of every axis of ``res`` to ``out_dir/compare_runs_<axis>.png``.
+
+    Returns:
+        The paths written.
+    Raises:
+        ImportError: matplotlib (the ``plot`` extra) is not installed.
+    """
+    paths = [Path(out_dir) / f"compare_runs_{a}.png" for a in res["axes"]]
+    for a, path in zip(res["axes"], paths):
+        figure(res, a, path)
+    return [str(p) for p in paths]
+
+
+def public(res: dict) -> dict:
+    """``res`` of :func:`compare_logs` without the records it carries (what --json prints)."""
+    for r in res["axes"].values():
+        r.pop("_data", None)
+    return res
+
+
+def text_report(res: dict, extra_rows: tuple[str, ...] = ()) -> str:
+    """The text report of ``res`` (:func:`compare_logs`); ``extra_rows``: more index rows of
+    each axis entry (e.g. ``motorctl tune``'s "floor"), printed after the ratio."""
     lines = [f"compare-runs: before {res['before']}", f"              after  {res['after']}"]
     for a, r in res["axes"].items():
         t0, t1 = r["window_s"]
         per = f", period {r['period_s']:g} s, first {r['settle_periods']} excluded" if r["period_s"] else ""
         lines.append(f"axis {a}: program time {t0:g}..{t1:g} s{per}")
         lines.append(f"  {'':8s} {'e_M um':>10s} {'e_F um':>10s} {'L2[e] um':>10s} {'u_peak V':>10s}")
-        for name in ("before", "after"):
-            lines.append(f"  {name:8s} " + " ".join(f"{r[name][k]:10.4g}" for k in INDEXES))
-        lines.append(f"  {'ratio':8s} " + " ".join(
-            f"{r['ratio'][k]:10.3f}" if r["ratio"][k] is not None else f"{'-':>10s}" for k in INDEXES))
+        rows = [n for n in ("before", "after", "ratio", *extra_rows) if r.get(n)]
+        for name in rows:
+            fmt = "10.3f" if name == "ratio" else "10.4g"
+            lines.append(f"  {name:8s} " + " ".join(
+                f"{r[name][k]:{fmt}}" if r[name][k] is not None else f"{'-':>10s}" for k in INDEXES))
     return "\n".join(lines) + "\n"
 
 
@@ -194,13 +218,10 @@ def cmd_compare_runs(args) -> int:
         raise UsageError(str(exc)) from None
     if args.out:
         try:
-            for a in res["axes"]:
-                figure(res, a, Path(args.out) / f"compare_runs_{a}.png")
+            res["figures"] = figures(res, args.out)
         except ImportError:
             raise UsageError("--out needs matplotlib (the `plot` extra)") from None
-        res["figures"] = [str(Path(args.out) / f"compare_runs_{a}.png") for a in res["axes"]]
-    for r in res["axes"].values():
-        r.pop("_data", None)
+    public(res)
     if args.json:
         sys.stdout.write(json.dumps(res) + "\n")
     else:
@@ -208,4 +229,13 @@ def cmd_compare_runs(args) -> int:
     return 0
 
 
-__all__ = ["register", "cmd_compare_runs", "compare_axis", "compare_logs", "window", "text_report"]
+__all__ = [
+    "cmd_compare_runs",
+    "compare_axis",
+    "compare_logs",
+    "figures",
+    "public",
+    "register",
+    "text_report",
+    "window",
+]

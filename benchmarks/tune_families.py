@@ -1,0 +1,218 @@
+"""``motorctl tune`` on every effect family of the registry, on the paper's rigid gantry (issue 11).
+
+Rerun:
+    python benchmarks/tune_families.py                       # all families, 16 s runs, X axis
+    python benchmarks/tune_families.py --family spring --duration 8 --out /tmp/tf
+
+For each family of :data:`motorctl.effects.FAMILIES`, in registry order:
+
+* **not compensable** (``fam.has_compensation`` false): listed as such, nothing run;
+* **compensable**: the simulated X axis of ``configs/gantry-rigid.yaml`` (C2 with the paper's
+  gains, virtual clock, 1 N force noise, seed 1; :func:`motorctl.ident.synth.gantry_dict`) with
+  the family's ``example`` on the plant, undeclared to the controller, written to
+  DIR/<family>/config.yaml; then tune's pipeline (:func:`motorctl.cli.tune.tune`): the before
+  run (C2 alone), identify, DIR/<family>/tuned.yaml, the after run (C2 + the found
+  compensation, θ̂(0) from the fit), the floor (the same plant and seed, effects off), compared
+  over the same program periods (the first excluded).
+
+The size: the smallest on the ladder example × 2^(n/3) (×1/16 … ×16) at which C2 alone (a plain
+run, no tuning) is at least 30 % above the floor in L2[e] over the compared periods
+(L2_before ≥ 1.3 L2_floor): up from the example while it is below, down from the example while
+the next smaller size is still above (the largest when none is). The smallest such size,
+because a larger effect soon drives u into its ±10 V limit during the 40 m/s² moves, where no
+compensation can remove the damage (``--at-example`` runs every family at its example
+instead). Scaling multiplies the effect's force-valued options (the option names end in their unit: a
+unit token ``N``, e.g. ``amplitudes_N``, ``stiffness_N_per_m``, ``viscous_N_s_per_m``); periods,
+velocities, positions and phases stay. A family without force-valued options keeps its example.
+
+The table: floor L2[e], before L2[e] / e_M, after L2[e] / e_M [µm], the damage removed
+(L2_before − L2_after)/(L2_before − L2_floor) and whether e_M is not worse (after ≤ before).
+The issue's bar: damage removed ≥ 0.8 with e_M not worse; the last line counts the families
+that meet it. Exit 0 when all compensable families meet it, else 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import os
+import re
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+#: C2 alone must be this much above the floor (L2_before / L2_floor) for a size to count
+MIN_DAMAGE_RATIO = 1.3
+#: the issue's bar on the damage removed
+MIN_REMOVED = 0.8
+#: the ladder of sizes: the example × STEP^n (STEP³ = 2), |n| ≤ MAX_STEPS (×1/16 … ×16)
+STEP = 2 ** (1 / 3)
+MAX_STEPS = 12
+
+_FORCE_UNIT = re.compile(r"(^|_)N(_|$)")
+
+
+def scaled(example: dict, factor: float) -> tuple[dict, bool]:
+    """The example (a fragment of ``axes.NAME.driver``) with its force-valued options [N, N/m,
+    N·s/m, ...] multiplied by ``factor``, at any depth (e.g. a list of bumps); returns
+    (fragment, whether anything was scaled)."""
+    found = []
+
+    def walk(v, force: bool):
+        if isinstance(v, dict):
+            return {k: walk(x, bool(_FORCE_UNIT.search(k))) for k, x in v.items()}
+        if isinstance(v, list):
+            return [walk(x, force) for x in v]
+        if force and isinstance(v, (int, float)) and not isinstance(v, bool):
+            found.append(v)
+            return factor * v
+        return copy.deepcopy(v)
+
+    out = {k: walk(v, False) for k, v in example.items()}
+    return out, bool(found)
+
+
+def size_text(fragment: dict) -> str:
+    """A compact text of an effect's options, e.g. ``stiffness_N_per_m 126, rest_position_m 0.1``
+    (lists as a/b, nested options in braces)."""
+    def fmt(v) -> str:
+        if isinstance(v, dict):
+            return ", ".join(f"{k} {fmt(x)}" for k, x in v.items())
+        if isinstance(v, list):
+            return "/".join(f"{{{fmt(x)}}}" if isinstance(x, dict) else fmt(x) for x in v)
+        return f"{v:.3g}" if isinstance(v, float) else str(v)
+    return ", ".join(fmt(v) if isinstance(v, dict) else f"{k} {fmt(v)}" for k, v in fragment.items())
+
+
+def size_for(name: str, fam, out: Path, duration_s: float, floor_log: Path, axis: str = "X"):
+    """The smallest size on the ladder example × STEP^n (n from −12 to 12: ×1/16 … ×16) at which C2
+    alone is ≥ MIN_DAMAGE_RATIO × the floor in L2[e] over the compared periods (C2-alone runs
+    only): up from the example while below, down from it while the next smaller size still is.
+
+    Returns:
+        (scale, fragment, L2_before / L2_floor at that size).
+    """
+    from motorctl.cli.runs import compare_logs
+    from motorctl.ident.synth import make_log
+
+    def ratio(n: int) -> tuple[float, dict, bool]:
+        fragment, can_scale = scaled(fam.example, STEP ** n)
+        log = out / name / f"c2_alone_x{STEP ** n:.3g}.mclog"
+        log.parent.mkdir(parents=True, exist_ok=True)
+        make_log(str(log), fragment, duration_s=duration_s, seed=1, axis=axis, noise_N=1.0)
+        return compare_logs(str(floor_log), str(log), [axis])["axes"][axis]["ratio"]["L2_um"], fragment, can_scale
+
+    n = 0
+    r, fragment, can_scale = ratio(n)
+    if not can_scale:
+        return 1.0, fragment, r
+    if r >= MIN_DAMAGE_RATIO:
+        while n > -MAX_STEPS:
+            r2, f2, _ = ratio(n - 1)
+            if r2 < MIN_DAMAGE_RATIO:
+                break
+            n, r, fragment = n - 1, r2, f2
+    else:
+        while r < MIN_DAMAGE_RATIO and n < MAX_STEPS:
+            n += 1
+            r, fragment, _ = ratio(n)
+    return STEP ** n, fragment, r
+
+
+def tune_family(name: str, fragment: dict, out: Path, duration_s: float, axis: str = "X") -> dict:
+    """tune's pipeline (:func:`motorctl.cli.tune.tune`) on the rigid gantry with ``fragment`` on
+    the plant (config DIR/<name>/config.yaml). Returns its result, or {"refused": message} when
+    the before log cannot be identified."""
+    import yaml
+
+    from motorctl.cli.tune import tune
+    from motorctl.ident.synth import gantry_dict
+    from motorctl.inputs import InputError
+    from motorctl.recorder.runlog import LogError
+    d = out / name
+    cfg = d / "config.yaml"
+    cfg.write_text(yaml.safe_dump(gantry_dict(axis, fragment, seed=1, noise_N=1.0), sort_keys=False))
+    try:
+        return tune(str(cfg), axis, d, duration_s=duration_s)
+    except (LogError, InputError) as exc:
+        return {"refused": str(exc)}
+
+
+def row(name: str, res: dict | None, size: str = "example") -> list[str]:
+    """One markdown row of the table (``res``: tune's result; None: not compensable)."""
+    if res is None:
+        return [name, size, "—", "—", "not compensable", "not compensable", "—"]
+    if "refused" in res:
+        return [name, size, "—", "—", f"identify refused the log: {res['refused'].split(': ', 1)[-1][:90]}", "—", "—"]
+    r = res["compare"]
+    if r is None:
+        return [name, size, "—", "—", f"stopped: {res['stopped']}", "—", "—"]
+    b, a, f = r["before"], r["after"], r["floor"]
+    d = res["damage_removed"]
+    found = ", ".join(e["name"] for e in res["effects"])
+    return [name, size, f"{f['L2_um']:.3f}",
+            f"{b['L2_um']:.3f} / {b['e_M_um']:.2f} ({b['L2_um'] / f['L2_um']:.2f}× floor)",
+            f"{a['L2_um']:.3f} / {a['e_M_um']:.2f} (found: {found})", "—" if d is None else f"{d:.2f}",
+            "yes" if res["e_M_not_worse"] else "no"]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--duration", type=float, default=16.0, help="length of each run [s] (default 16)")
+    ap.add_argument("--family", action="append", default=None, help="only this family (repeatable)")
+    ap.add_argument("--at-example", action="store_true",
+                    help="run every family at its example size (no search for the 30 %% size)")
+    ap.add_argument("--out", default=None, help="keep configs, logs and figures here (default: a temporary folder)")
+    args = ap.parse_args(argv)
+
+    from motorctl.effects import FAMILIES
+    from motorctl.ident.synth import make_log
+    names = args.family or list(FAMILIES)
+    unknown = [n for n in names if n not in FAMILIES]
+    if unknown:
+        ap.error(f"unknown family {', '.join(unknown)}; families: {', '.join(FAMILIES)}")
+    header = ["family", "effect size", "floor L2 µm", "before L2 µm / e_M µm", "after L2 µm / e_M µm",
+              "damage removed", "e_M not worse"]
+    rows, met, tried = [], [], 0
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="motorctl-tune-families-") as tmp:
+        out = Path(args.out or tmp)
+        out.mkdir(parents=True, exist_ok=True)
+        floor_log = out / "floor.mclog"          # the plant without effects: C2 alone
+        make_log(str(floor_log), None, duration_s=args.duration, seed=1, axis="X", noise_N=1.0)
+        for name in names:
+            fam = FAMILIES[name]
+            if not fam.has_compensation:
+                rows.append(row(name, None, size_text(fam.example)))
+                continue
+            tried += 1
+            if args.at_example:
+                scale, fragment, ratio = 1.0, fam.example, float("nan")
+            else:
+                scale, fragment, ratio = size_for(name, fam, out, args.duration, floor_log)
+            size = size_text(fragment) + (f" (example ×{scale:.3g})" if abs(scale - 1) > 1e-9 else "")
+            print(f"  {name}: size ×{scale:.3g}, C2 alone {ratio:.2f}× floor ({time.perf_counter() - t0:.0f} s)",
+                  file=sys.stderr)
+            res = tune_family(name, fragment, out, args.duration)
+            d = res.get("damage_removed")
+            if d is not None and d >= MIN_REMOVED and res["e_M_not_worse"]:
+                met.append(name)
+            rows.append(row(name, res, size))
+    print(f"motorctl tune on configs/gantry-rigid.yaml, axis X (C2, paper gains), {args.duration:g} s per run, "
+          f"seed 1, 1 N force noise, virtual clock; indexes over program time 4..{args.duration:g} s "
+          f"(first period excluded); load average {os.getloadavg()[0]:.2f}\n")
+    print("| " + " | ".join(header) + " |")
+    print("|" + "---|" * len(header))
+    for r in rows:
+        print("| " + " | ".join(r) + " |")
+    print(f"\n{len(met)} of {tried} compensable families meet damage removed >= {MIN_REMOVED} with e_M not worse"
+          + (f" (not: {', '.join(n for n in names if FAMILIES[n].has_compensation and n not in met)})"
+             if len(met) < tried else ""))
+    print(f"rerun: python benchmarks/tune_families.py [--duration S] [--family NAME] [--out DIR] "
+          f"({time.perf_counter() - t0:.0f} s here)")
+    return 0 if len(met) == tried else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,246 @@
+"""``motorctl tune``: run → identify → tuned config → run again → compare, on the config's driver.
+
+    motorctl tune CONFIG --axis A [--duration S] [--out DIR] [--virtual-clock] [--json]
+
+1. **before**: the axis's program on CONFIG (:func:`motorctl.app.job.run_job`, the config's
+   clock), log ``DIR/before.mclog``;
+2. **identify** that log for axis A (:func:`motorctl.cli.identify.identify_record`); when no
+   effect is found, or none the controller can compensate, it says so and stops here (exit 0,
+   nothing written but the log);
+3. **tuned config**: ``DIR/tuned.yaml``, what ``motorctl identify LOG --config CONFIG
+   --write-config`` writes (:func:`motorctl.cli.identify.write_tuned_config`);
+4. **after**: the same program on the tuned config, log ``DIR/after.mclog``;
+5. on the simulated driver, **floor**: CONFIG with the plant's effects switched off
+   (:func:`motorctl.app.tune.effect_free`, same seed), ``DIR/floor.yaml`` and ``DIR/floor.mclog``;
+6. **compare** (:func:`motorctl.cli.runs.compare_logs`, what ``motorctl compare-runs`` computes):
+   e_M, e_F, L2[e] [µm] and u_peak [V] before, after, their ratio and the floor over the same
+   program periods, the damage removed (L2_before − L2_after)/(L2_before − L2_floor) and
+   whether e_M got worse; ``DIR/compare_runs_<A>.png`` when matplotlib is installed.
+
+Exit codes: 0 done (with or without an effect found), 1 a run faulted, 2 bad input (one line on
+stderr, nothing started).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from motorctl.inputs import InputError
+from motorctl.inputs import seconds_arg as seconds
+
+#: file names written in the output directory
+FILES = {"before": "before.mclog", "tuned": "tuned.yaml", "after": "after.mclog",
+         "floor_config": "floor.yaml", "floor": "floor.mclog"}
+
+
+def register(parser, subparsers) -> None:
+    """Add the ``tune`` subcommand (called by :func:`motorctl.cli.build_parser`)."""
+    p = subparsers.add_parser("tune", help="run, identify the log, write the tuned config, run it, "
+                                           "compare before/after (and the effect-free floor on sim)")
+    p.add_argument("config", help="config to tune (any driver)")
+    p.add_argument("--axis", required=True, help="the axis to run, identify and tune")
+    p.add_argument("--duration", type=seconds, default=None,
+                   help="length of each run in s (default: loop.duration_s); at least one program period")
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help="logs, tuned.yaml and the figure (default: runs/tune-<config name>-<axis>)")
+    p.add_argument("--virtual-clock", action="store_true",
+                   help="run as fast as possible (as `run --virtual-clock`; default: the config's clock)")
+    p.add_argument("--json", action="store_true", help="one JSON object on stdout and nothing else")
+    p.set_defaults(func=cmd_tune)
+
+
+def default_out(config: str, axis: str) -> Path:
+    """The default output directory: runs/tune-<config file stem>-<axis>."""
+    return Path("runs") / f"tune-{Path(config).stem}-{axis}"
+
+
+def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None = None,
+         clock: str | None = None, progress=None) -> dict:
+    """The whole tune of one axis (module docstring, steps 1-6).
+
+    Args:
+        config: path of the config to tune. axis: its axis name. out_dir: where the logs,
+            ``tuned.yaml``, ``floor.yaml`` and the figure go (created).
+        duration_s: length of each run [s] (None: loop.duration_s); at least one program period.
+        clock: 'wall' | 'virtual' (None: the config's ``loop.clock``).
+        progress: called with one line of text before each step (None: silent).
+    Returns:
+        {"config", "axis", "driver", "clock", "duration_s", "out", "files": {step: path written},
+        "faults": {run: reason or ""}, "effects" (identify's summary), "compensation",
+        "not_compensable", "stopped" (None, or why it stopped early), "compare": None or
+        {window_s, period_s, settle_periods, before, after, ratio, floor (sim only)} with the
+        indexes of :func:`motorctl.metrics.tracking_indexes` [µm, V], "floor_effects_off"
+        (sim: the families the floor switches off; else None), "damage_removed" [-] (sim),
+        "e_M_not_worse", "figures"}.
+    Raises:
+        ConfigError: CONFIG is not a valid config. InputError: no such axis, a duration shorter
+        than one program period, an output that cannot be written, a sim plant whose effects
+        cannot be switched off (all before anything runs). LogError: the before log cannot be
+        identified. RealtimeError: ``realtime: required`` refused. OSError: a driver cannot
+        reach its device.
+    """
+    from motorctl.app.tune import effect_free, effects_on, is_simulated
+    from motorctl.cli.identify import compensation_from_fit, write_tuned_config
+    from motorctl.config import load_config, load_yaml
+    from motorctl.inputs import writable_dir, writable_file
+
+    note = progress or (lambda _line: None)
+    loaded = load_config(config)
+    if axis not in loaded.axes:
+        raise InputError(f"{config}: no axis {axis!r}; axes: {', '.join(loaded.axes)}")
+    duration = float(duration_s if duration_s is not None else loaded.cfg.loop.duration_s)
+    period = loaded.axes[axis].trajectory.period_s
+    if period > 0 and duration < period:
+        raise InputError(f"duration {duration:g} s: shorter than one program period of axis {axis} "
+                         f"({period:g} s); before and after are compared over whole periods")
+    clock = clock or loaded.cfg.loop.clock
+    base = load_yaml(config)
+    floor_cfg = None
+    if is_simulated(loaded):
+        try:
+            floor_cfg = effect_free(base, str(config))
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+    out = writable_dir(out_dir, "tune output")
+    files = {k: out / v for k, v in FILES.items() if floor_cfg is not None or not k.startswith("floor")}
+    for k, f in files.items():
+        writable_file(f, f"tune {k} output")
+    res = {"config": str(config), "axis": axis, "driver": loaded.cfg.driver.type, "clock": clock,
+           "duration_s": duration, "out": str(out), "files": {}, "faults": {}, "effects": [],
+           "compensation": {}, "not_compensable": [], "stopped": None, "compare": None,
+           "floor_effects_off": effects_on(loaded, axis) if floor_cfg is not None else None,
+           "damage_removed": None, "e_M_not_worse": None, "figures": []}
+
+    def run(step: str, cfg) -> bool:
+        note(f"{step}: axis {axis} of {cfg.path}, {duration:g} s, {clock} clock -> {files[step]}")
+        fault = _run_axis(cfg, axis, duration, clock, files[step])["fault"]
+        res["files"][step] = str(files[step])
+        res["faults"][step] = fault
+        if fault:
+            res["stopped"] = f"the {step} run faulted: {fault}"
+        return not fault
+
+    if not run("before", loaded):
+        return res
+    note(f"identify: {files['before']}, axis {axis}")
+    idf, s = _identify(files["before"], axis)
+    comp, _theta, skipped = compensation_from_fit(idf)
+    res.update(effects=s["effects"], compensation=comp, not_compensable=skipped)
+    if not s["effects"]:
+        res["stopped"] = "no effect found (no candidate passed held-out gain, BIC and plausibility)"
+        return res
+    if not comp:
+        res["stopped"] = f"no compensable effect found ({', '.join(skipped)}: no compensation term)"
+        return res
+    write_tuned_config(idf, s, base, axis, str(config), files["tuned"])
+    res["files"]["tuned"] = str(files["tuned"])
+    if not run("after", load_config(files["tuned"])):
+        return res
+    if floor_cfg is not None:
+        res["files"]["floor_config"] = str(_write_floor(floor_cfg, config, files["floor_config"]))
+        if not run("floor", load_config(files["floor_config"])):
+            return res
+    _compare(res, files)
+    return res
+
+
+def _run_axis(loaded, axis: str, duration_s: float, clock: str, log_path: Path) -> dict:
+    """One run of ``axis`` with its log; returns run_job's entry of the axis."""
+    from motorctl.app.job import run_job
+    return run_job(loaded, axes=[axis], duration_s=duration_s, clock=clock, log_path=str(log_path)).axes[axis]
+
+
+def _identify(log_path: Path, axis: str):
+    """identify's fit of a run log with its default options; returns (Identifier, summary)."""
+    from motorctl.cli.identify import identify_record
+    from motorctl.ident.data import load_record
+    return identify_record(load_record(str(log_path), None, None, axis))
+
+
+def _write_floor(floor_cfg: dict, config: str, path: Path) -> Path:
+    """Write the effect-free config (:func:`motorctl.app.tune.effect_free`) with a comment."""
+    import yaml
+    head = (f"# the effect-free floor of `motorctl tune`: {config} with every simulated effect switched "
+            f"off (motorctl.app.tune.effect_free); the same plant otherwise, the same seed\n")
+    path.write_text(head + yaml.safe_dump(floor_cfg, sort_keys=False, default_flow_style=False,
+                                          allow_unicode=True), encoding="utf-8")
+    return path
+
+
+def _compare(res: dict, files: dict) -> None:
+    """Fill ``res['compare']`` (before/after/ratio, the floor on sim), the damage removed,
+    e_M not worse and the figure, with compare-runs' code over the same program periods."""
+    from motorctl.app.tune import damage_removed
+    from motorctl.cli.runs import compare_logs, figures, public
+    axis = res["axis"]
+
+    def compare(after: str) -> dict:
+        try:
+            return compare_logs(str(files["before"]), str(files[after]), [axis])
+        except ValueError as exc:      # no common program period (a run cut short)
+            raise InputError(str(exc)) from None
+
+    cmp = compare("after")
+    r = cmp["axes"][axis]
+    if "floor" in res["files"]:
+        fl = compare("floor")["axes"][axis]
+        r["floor"] = fl["after"]          # same duration and program: the same window
+        res["damage_removed"] = damage_removed(r["before"]["L2_um"], r["after"]["L2_um"], r["floor"]["L2_um"])
+    res["e_M_not_worse"] = bool(r["after"]["e_M_um"] <= r["before"]["e_M_um"])
+    try:
+        res["figures"] = figures(cmp, res["out"])
+    except ImportError:                   # the figure needs the `plot` extra; the table does not
+        res["figures"] = []
+    res["compare"] = public(cmp)["axes"][axis]
+
+
+def text_report(res: dict) -> str:
+    """The text output of ``motorctl tune`` (its result :func:`tune`): what was found, then one
+    table (compare-runs') with the floor on sim, the damage removed and whether e_M got worse."""
+    from motorctl.cli.identify import _fig
+    from motorctl.cli.runs import text_report as table
+    lines = []
+    for e in res["effects"]:
+        pars = ", ".join(f"{k} {_fig(v)}" for k, v in e["parameters"].items())
+        tag = "compensated" if e["name"] in res["compensation"] else "not compensable"
+        lines.append(f"effect found: {e['name']}: {pars}; {tag}")
+    if "tuned" in res["files"]:
+        lines.append(f"tuned config: {res['files']['tuned']}")
+    if res["stopped"]:
+        lines.append(f"stopped: {res['stopped']}")
+    r = res["compare"]
+    if r:
+        f = res["files"]
+        lines.append(table({"before": f["before"], "after": f["after"], "axes": {res["axis"]: r}},
+                           extra_rows=("floor",)).rstrip("\n"))
+        if res["floor_effects_off"] is not None:
+            off = ", ".join(res["floor_effects_off"]) or "none was on"
+            d = res["damage_removed"]
+            lines.append(f"floor: {f['floor_config']} (the same plant and seed, effects off: {off})")
+            lines.append("damage removed (L2_before - L2_after)/(L2_before - L2_floor): "
+                         + (f"{d:.3f}" if d is not None else "- (L2 before is not above the floor)"))
+        lines.append(f"e_M not worse: {'yes' if res['e_M_not_worse'] else 'no'}")
+        lines.extend(f"figure: {p}" for p in res["figures"])
+    return "\n".join(lines) + "\n"
+
+
+def cmd_tune(args) -> int:
+    out = args.out or default_out(args.config, args.axis)
+
+    def progress(line: str) -> None:
+        sys.stdout.write(line + "\n")
+        sys.stdout.flush()
+
+    res = tune(args.config, args.axis, out, args.duration, "virtual" if args.virtual_clock else None,
+               None if args.json else progress)
+    if args.json:
+        from motorctl.cli.identify import _json_default
+        sys.stdout.write(json.dumps(res, default=_json_default) + "\n")
+    else:
+        sys.stdout.write(text_report(res))
+    return 1 if any(res["faults"].values()) else 0
+
+
+__all__ = ["FILES", "cmd_tune", "default_out", "register", "text_report", "tune"]
