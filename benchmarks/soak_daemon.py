@@ -63,7 +63,13 @@ def _rss_mb(pid) -> float:
 
 
 def _dir_bytes(d: Path) -> int:
-    return sum(e.stat().st_size for e in os.scandir(d) if e.is_file())
+    total = 0
+    for e in os.scandir(d):
+        try:                       # retention may delete a file between the scan and the stat
+            total += e.stat().st_size if e.is_file() else 0
+        except FileNotFoundError:
+            pass
+    return total
 
 
 def _wait(pred, timeout: float, what: str):
@@ -112,7 +118,7 @@ def main() -> int:
                             stderr=subprocess.PIPE, text=True)
     io_pid = None
     peak_dir = peak_loop_rss = peak_io_rss = 0.0
-    faults = 0
+    faults = recoveries = 0
     try:
         st = _wait(lambda: os.path.exists(sock) and (s := _status(sock))["loop"]["cycles"] > 0 and s,
                    120, "the daemon")
@@ -136,10 +142,19 @@ def main() -> int:
                 next_fault += a.fault_every
                 _ctl(sock, "inject", "X", "nan")
                 _wait(lambda: _status(sock)["axes"]["X"]["state"] == "fault", 20, "X fault")
-                for cmd in ("fault-reset", "start"):
-                    r = _ctl(sock, cmd, "X")
-                    if r.returncode:
-                        print(f"  ({cmd} X refused: {r.stderr.strip()})")
+                r = _ctl(sock, "fault-reset", "X")
+                if r.returncode and "outside the soft limits" in r.stderr:
+                    # stopped at speed, X coasted out (0 V, amplifier off): the documented
+                    # recovery, a slow jog back inside (docs/daemon.md), then start
+                    lim = d["axes"]["X"]["limits"]
+                    back = 0.5 * (lim["soft_min_m"] + lim["soft_max_m"])
+                    r = _ctl(sock, "jog", "X", f"{back:.4f}", "--speed", "0.2")
+                    recoveries += r.returncode == 0
+                if r.returncode:
+                    print(f"  (recovery of X refused: {r.stderr.strip()})")
+                r = _ctl(sock, "start", "X")
+                if r.returncode:
+                    print(f"  (start X refused: {r.stderr.strip()})")
                 faults += 1
             if now >= next_poll:
                 next_poll += a.poll
@@ -161,7 +176,7 @@ def main() -> int:
         events = [e for e in st["log"]["events"]]
         kept_ev = [e for e in events if os.path.exists(e["path"])]
         print(f"\nstopped (exit {proc.returncode}) after {st['loop']['cycles']} cycles; "
-              f"{faults} faults injected")
+              f"{faults} faults injected, {recoveries} of them recovered by a jog from outside the soft limits")
         print(f"bytes/s: {ret['bytes_per_s'] / 1e6:.3f} MB/s measured, {ret['row_bytes_per_s'] / 1e6:.3f} "
               f"MB/s of records; at the budget: {ret['days_at_budget'] * 86400:.0f} s of routine rows "
               f"({ret['days_at_budget']:.6f} days)")
