@@ -53,15 +53,15 @@ MAX_STEPS = 12
 _FORCE_UNIT = re.compile(r"(^|_)N(_|$)")
 
 
-def scaled(example: dict, factor: float) -> tuple[dict, bool]:
+def scaled(example: dict, factor: float, size_options=()) -> tuple[dict, bool]:
     """The example (a fragment of ``axes.NAME.driver``) with its force-valued options [N, N/m,
-    N·s/m, ...] multiplied by ``factor``, at any depth (e.g. a list of bumps); returns
-    (fragment, whether anything was scaled)."""
+    N·s/m, ...] and the family's ``size_options`` (e.g. a delay) multiplied by ``factor``, at
+    any depth (e.g. a list of bumps); returns (fragment, whether anything was scaled)."""
     found = []
 
     def walk(v, force: bool):
         if isinstance(v, dict):
-            return {k: walk(x, bool(_FORCE_UNIT.search(k))) for k, x in v.items()}
+            return {k: walk(x, bool(_FORCE_UNIT.search(k)) or k in size_options) for k, x in v.items()}
         if isinstance(v, list):
             return [walk(x, force) for x in v]
         if force and isinstance(v, (int, float)) and not isinstance(v, bool):
@@ -69,7 +69,7 @@ def scaled(example: dict, factor: float) -> tuple[dict, bool]:
             return factor * v
         return copy.deepcopy(v)
 
-    out = {k: walk(v, False) for k, v in example.items()}
+    out = {k: walk(v, k in size_options) for k, v in example.items()}
     return out, bool(found)
 
 
@@ -85,7 +85,8 @@ def size_text(fragment: dict) -> str:
     return ", ".join(fmt(v) if isinstance(v, dict) else f"{k} {fmt(v)}" for k, v in fragment.items())
 
 
-def size_for(name: str, fam, out: Path, duration_s: float, floor_log: Path, axis: str = "X"):
+def size_for(name: str, fam, out: Path, duration_s: float, floor_log: Path, axis: str = "X",
+             trajectory: dict | None = None):
     """The smallest size on the ladder example × STEP^n (n from −12 to 12: ×1/16 … ×16) at which C2
     alone is ≥ MIN_DAMAGE_RATIO × the floor in L2[e] over the compared periods (C2-alone runs
     only): up from the example while below, down from it while the next smaller size still is.
@@ -97,10 +98,11 @@ def size_for(name: str, fam, out: Path, duration_s: float, floor_log: Path, axis
     from motorctl.ident.synth import make_log
 
     def ratio(n: int) -> tuple[float, dict, bool]:
-        fragment, can_scale = scaled(fam.example, STEP ** n)
+        fragment, can_scale = scaled(fam.example, STEP ** n, fam.size_options)
         log = out / name / f"c2_alone_x{STEP ** n:.3g}.mclog"
         log.parent.mkdir(parents=True, exist_ok=True)
-        make_log(str(log), fragment, duration_s=duration_s, seed=1, axis=axis, noise_N=1.0)
+        make_log(str(log), fragment, duration_s=duration_s, seed=1, axis=axis, noise_N=1.0,
+                 trajectory=trajectory)
         return compare_logs(str(floor_log), str(log), [axis])["axes"][axis]["ratio"]["L2_um"], fragment, can_scale
 
     n = 0
@@ -120,7 +122,8 @@ def size_for(name: str, fam, out: Path, duration_s: float, floor_log: Path, axis
     return STEP ** n, fragment, r
 
 
-def tune_family(name: str, fragment: dict, out: Path, duration_s: float, axis: str = "X") -> dict:
+def tune_family(name: str, fragment: dict, out: Path, duration_s: float, axis: str = "X",
+                trajectory: dict | None = None) -> dict:
     """tune's pipeline (:func:`motorctl.cli.tune.tune`) on the rigid gantry with ``fragment`` on
     the plant (config DIR/<name>/config.yaml). Returns its result, or {"refused": message} when
     the before log cannot be identified."""
@@ -132,7 +135,8 @@ def tune_family(name: str, fragment: dict, out: Path, duration_s: float, axis: s
     from motorctl.recorder.runlog import LogError
     d = out / name
     cfg = d / "config.yaml"
-    cfg.write_text(yaml.safe_dump(gantry_dict(axis, fragment, seed=1, noise_N=1.0), sort_keys=False))
+    cfg.write_text(yaml.safe_dump(gantry_dict(axis, fragment, seed=1, noise_N=1.0, trajectory=trajectory),
+                                  sort_keys=False))
     try:
         return tune(str(cfg), axis, d, duration_s=duration_s)
     except (LogError, InputError) as exc:
@@ -164,7 +168,15 @@ def main(argv=None) -> int:
     ap.add_argument("--at-example", action="store_true",
                     help="run every family at its example size (no search for the 30 %% size)")
     ap.add_argument("--out", default=None, help="keep configs, logs and figures here (default: a temporary folder)")
+    ap.add_argument("--a-max", type=float, default=None,
+                    help="the program's acceleration [m/s²] (default: the config's, 40; the jerk limit is "
+                         "scaled with it): a gentler program leaves u room below its ±10 V limit")
     args = ap.parse_args(argv)
+    traj = None
+    if args.a_max is not None:
+        if not 0 < args.a_max <= 40.0:
+            ap.error("--a-max must be in (0, 40] m/s²")
+        traj = {"a_max": args.a_max, "j_max": 4000.0 * args.a_max / 40.0}
 
     from motorctl.effects import FAMILIES
     from motorctl.ident.synth import make_log
@@ -180,7 +192,7 @@ def main(argv=None) -> int:
         out = Path(args.out or tmp)
         out.mkdir(parents=True, exist_ok=True)
         floor_log = out / "floor.mclog"          # the plant without effects: C2 alone
-        make_log(str(floor_log), None, duration_s=args.duration, seed=1, axis="X", noise_N=1.0)
+        make_log(str(floor_log), None, duration_s=args.duration, seed=1, axis="X", noise_N=1.0, trajectory=traj)
         for name in names:
             fam = FAMILIES[name]
             if not fam.has_compensation:
@@ -190,16 +202,17 @@ def main(argv=None) -> int:
             if args.at_example:
                 scale, fragment, ratio = 1.0, fam.example, float("nan")
             else:
-                scale, fragment, ratio = size_for(name, fam, out, args.duration, floor_log)
+                scale, fragment, ratio = size_for(name, fam, out, args.duration, floor_log, trajectory=traj)
             size = size_text(fragment) + (f" (example ×{scale:.3g})" if abs(scale - 1) > 1e-9 else "")
             print(f"  {name}: size ×{scale:.3g}, C2 alone {ratio:.2f}× floor ({time.perf_counter() - t0:.0f} s)",
                   file=sys.stderr)
-            res = tune_family(name, fragment, out, args.duration)
+            res = tune_family(name, fragment, out, args.duration, trajectory=traj)
             d = res.get("damage_removed")
             if d is not None and d >= MIN_REMOVED and res["e_M_not_worse"]:
                 met.append(name)
             rows.append(row(name, res, size))
-    print(f"motorctl tune on configs/gantry-rigid.yaml, axis X (C2, paper gains), {args.duration:g} s per run, "
+    prog = "the paper's program (a_max 40 m/s²)" if traj is None else f"a_max {args.a_max:g} m/s²"
+    print(f"motorctl tune on configs/gantry-rigid.yaml, axis X (C2, paper gains, {prog}), {args.duration:g} s per run, "
           f"seed 1, 1 N force noise, virtual clock; indexes over program time 4..{args.duration:g} s "
           f"(first period excluded); load average {os.getloadavg()[0]:.2f}\n")
     print("| " + " | ".join(header) + " |")

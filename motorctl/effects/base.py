@@ -264,6 +264,9 @@ class EffectFamily:
     comp_needs_sf: ClassVar[bool] = False
     compensation_rank: ClassVar[int] = 100
     hook_options: ClassVar[type[StrictModel] | None] = None
+    #: options of :attr:`example` that set the effect's size besides those in force units
+    #: (what ``benchmarks/tune_families.py`` scales; e.g. a delay)
+    size_options: ClassVar[tuple[str, ...]] = ()
 
     def __repr__(self) -> str:
         return f"<effect family {self.name}>"

@@ -64,6 +64,7 @@ class ForceRippleFamily(PositionPeriodic):
     plant_force = "F_m(u)·Σ r_k sin(2πkx/P + φ_k)"
     sim_options = ForceRipple
     example: ClassVar[dict] = {"force_ripple": {"fractions": [0.06], "period_m": 0.045, "phases_rad": [0.5]}}
+    size_options: ClassVar[tuple[str, ...]] = ("fractions",)
     hook_options = RippleComp
 
     # simulator

@@ -54,6 +54,7 @@ class InputDelayFamily(EffectFamily):
     plant_force = "u acts τ later"
     searched = "delay τ [samples]"
     example: ClassVar[dict] = {"input_delay_s": 0.0006}
+    size_options: ClassVar[tuple[str, ...]] = ("input_delay_s",)
     shifts_input = True
     hook_options = DelayComp
 

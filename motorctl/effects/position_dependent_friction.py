@@ -52,7 +52,7 @@ class PositionDependentFrictionFamily(EffectFamily):
     name = "position_dependent_friction"
     plant_force = "−c (x − x_ref) S_f(ẋ)"
     sim_options = PositionDependentFriction
-    example: ClassVar[dict] = {"position_dependent_friction": {"coulomb_slope_N_per_m": 40.0, "reference_m": 0.2}}
+    example: ClassVar[dict] = {"position_dependent_friction": {"coulomb_slope_N_per_m": 40.0, "reference_m": 0.0}}
     comp_options = PositionFrictionComp
     comp_needs_sf = True
     compensation_rank = 6

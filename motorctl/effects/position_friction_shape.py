@@ -336,7 +336,11 @@ class PositionFrictionShapeFamily(EffectFamily):
     def plausible(self, ctx, term, beta, theta, base):
         reasons = []
         h = term.h
-        xs = np.linspace(h.start_m, h.end_m, SHAPE_POINTS)
+        # over the positions the axis moved through (1st..99th percentile): where it only rests
+        # or turns round, friction is not seen and the spline is not held by data
+        xm = ctx.p.x_d[ctx.moving]
+        lo, hi = (np.percentile(xm, [1.0, 99.0]) if xm.size else (h.start_m, h.end_m))
+        xs = np.linspace(max(lo, h.start_m), min(hi, h.end_m), SHAPE_POINTS)
         g = h.basis(xs) @ h.coefficients(beta)
         if theta[2] + g.min() < 0:
             reasons.append("Coulomb level would turn negative over the stroke")

@@ -26,7 +26,7 @@ EXAMPLES = {name: copy.deepcopy(fam.example) for name, fam in FAMILIES.items()}
 
 
 def gantry_dict(axis: str = "X", effect: dict | None = None, seed: int = 1, noise_N: float = 1.0,
-                compensation: dict | None = None) -> dict:
+                compensation: dict | None = None, trajectory: dict | None = None) -> dict:
     """Config dict of one gantry axis with ``effect`` on the plant (undeclared to the controller).
 
     Args:
@@ -34,6 +34,8 @@ def gantry_dict(axis: str = "X", effect: dict | None = None, seed: int = 1, nois
             family with simulator options) or {"input_delay_s": τ} (any other key: an axis-level
             driver option). seed: driver seed. noise_N: plant force noise std [N].
         compensation: the controller's ``compensation`` dict (None: none).
+        trajectory: keys of the axis's ``trajectory:`` section to override (e.g. a gentler
+            ``a_max``; None: the config's program).
     """
     d = copy.deepcopy(load_yaml(str(GANTRY)))
     d["axes"] = {axis: d["axes"][axis]}
@@ -54,16 +56,21 @@ def gantry_dict(axis: str = "X", effect: dict | None = None, seed: int = 1, nois
             drv[k] = copy.deepcopy(v)
     if compensation:
         d["axes"][axis]["controller"]["compensation"] = copy.deepcopy(compensation)
+    if trajectory:
+        d["axes"][axis]["trajectory"].update(copy.deepcopy(trajectory))
     return d
 
 
 def make_log(path: str, effect: dict | None = None, duration_s: float = 8.0, seed: int = 1,
-             axis: str = "X", noise_N: float = 1.0, compensation: dict | None = None):
-    """Run the simulated axis (C2, virtual clock) and write the run log to ``path``.
+             axis: str = "X", noise_N: float = 1.0, compensation: dict | None = None,
+             trajectory: dict | None = None):
+    """Run the simulated axis (C2, virtual clock) and write the run log to ``path``
+    (arguments as :func:`gantry_dict`).
 
     Returns:
         The :class:`motorctl.app.job.JobResult`.
     """
     from motorctl.app.job import run_job
-    loaded = config_from_dict(gantry_dict(axis, effect, seed, noise_N, compensation), f"<synthetic {axis}>")
+    loaded = config_from_dict(gantry_dict(axis, effect, seed, noise_N, compensation, trajectory),
+                              f"<synthetic {axis}>")
     return run_job(loaded, duration_s=duration_s, clock="virtual", log_path=str(path))
