@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,7 +21,8 @@ from motorctl.ident.effects import parameters
 from motorctl.ident.select import Identifier
 from motorctl.ident.synth import EXAMPLES, make_log
 
-EMPS = "/work/shared/data/emps/DATA_EMPS.mat"
+#: ../shared beside the clone (as CI has it)
+EMPS = str(Path(__file__).resolve().parents[2] / "shared" / "data" / "emps" / "DATA_EMPS.mat")
 #: published IDIM-LS values, EMPS description (Janot, Gautier, Brunot 2019), §3.4
 EMPS_PUBLISHED = {"mass_kg": 95.1089, "viscous_N_s_per_m": 203.5034, "coulomb_N": 20.3935, "OF_N": -3.1648}
 DURATION_S = 6.0

@@ -12,6 +12,7 @@ import os
 import struct
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,7 +20,8 @@ import pytest
 from motorctl.cli import main
 from motorctl.recorder.runlog import MAGIC, LogWriter
 
-EMPS = "/work/shared/data/emps/DATA_EMPS.mat"
+#: ../shared beside the clone (as CI has it)
+EMPS = str(Path(__file__).resolve().parents[2] / "shared" / "data" / "emps" / "DATA_EMPS.mat")
 #: each malformed case must be refused within this time [s]
 MAX_CASE_S = 5.0
 
