@@ -132,8 +132,21 @@ def validation(idf: Identifier, rec2) -> dict:
 
 
 # ---------------------------------------------------------------------------- fit -> controller
+def _split_std(idf: Identifier, ev, terms) -> list:
+    """The fit's standard deviations of each term's β (the layout of ``coef_split``)."""
+    i, out = idf.n_theta, []
+    for t in terms:
+        k = 0 if t.cols is None else t.cols.shape[1]
+        out.append(np.asarray(ev.fit.std[i:i + k], dtype=float))
+        i += k
+    return out
+
+
 def compensation_from_fit(idf: Identifier) -> tuple[dict, np.ndarray, list]:
     """The ``controller.compensation`` of the found effects and the θ̂(0) that goes with it.
+
+    An adaptable family's entry carries ``adapt: false`` and its projection box from the fit's
+    confidence interval (β ∓ 3σ, at least the default margin): a user only flips ``adapt``.
 
     Returns:
         (compensation {family: options} (V units, d̂_eff = −Cβ), θ (n_theta,) = the jointly
@@ -142,10 +155,11 @@ def compensation_from_fit(idf: Identifier) -> tuple[dict, np.ndarray, list]:
         have no compensation term).
     """
     th, betas = idf.coef_split(idf.final, idf.terms)
+    stds = _split_std(idf, idf.final, idf.terms)
     theta = np.array(th, dtype=float)
     comp, skipped = {}, []
-    for t, b in zip(idf.terms, betas):
-        c = fx.compensation(t.family, t.h, b, idf.p)
+    for t, b, sd in zip(idf.terms, betas, stds):
+        c = fx.compensation(t.family, t.h, b, idf.p, beta_std=sd)
         if c:
             comp.update(c)
             theta = theta + fx.family(t.family).theta_shift(c[t.family], idf.n_theta)

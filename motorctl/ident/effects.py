@@ -64,18 +64,23 @@ def parameters(name: str, h, beta: np.ndarray, gain: float | None, fs: float) ->
     return family(name).parameters(h, beta, gain, fs)
 
 
-def compensation(name: str, h, beta: np.ndarray, signals=None) -> dict | None:
+def compensation(name: str, h, beta: np.ndarray, signals=None, beta_std=None) -> dict | None:
     """The ``controller.compensation`` YAML entry ``{name: {...}}`` (V units, d̂_eff = −Cβ) of a
     found effect, or None when the family has no compensation term d̂_eff(x_d, ẋ_d, t).
     ``signals`` (:class:`~motorctl.effects.base.Signals` of the record) give the references a
-    family takes from the record (spring x_0, position-dependent friction x_ref).
+    family takes from the record (spring x_0, position-dependent friction x_ref); ``beta_std``
+    (k,): the fit's standard deviations of β, from which an adaptable family writes its
+    projection box (β ∓ 3σ, at least the default margin).
 
     Raises:
         ValueError: unknown family.
     """
     fam = family(name)
-    if "signals" in inspect.signature(fam.compensation).parameters:
-        entry = fam.compensation(h, beta, signals=signals)
-    else:                       # a family written before the references came from the record
-        entry = fam.compensation(h, beta)
+    params = inspect.signature(fam.compensation).parameters
+    kw = {}
+    if "signals" in params:     # (a family written before the references came from the record: none)
+        kw["signals"] = signals
+    if "beta_std" in params and beta_std is not None:
+        kw["beta_std"] = beta_std
+    entry = fam.compensation(h, beta, **kw)
     return None if entry is None else {name: entry}
