@@ -133,6 +133,11 @@ def test_tune_and_compare_runs_over_the_serial_emulator(tmp_path, capsys):
     d, cfg, _rate = loopback_e2e_config("serial", configs, tmp_path)
     for ax in d["axes"].values():      # a loaded 2-core machine can stall loopback delivery
         ax["limits"]["error_bucket_limit"] = 600
+        # this test is about the pipeline on a real driver, not the tracking near the limits:
+        # a spurious extra effect from loopback jitter once took the after run 6 um past the
+        # shipped 0.37 mm following-error floor
+        ax["limits"]["following_error_m"] = max(ax["limits"]["following_error_m"], 0.005)
+        ax["limits"]["min_following_error_m"] = max(ax["limits"]["min_following_error_m"], 0.002)
     # the drive's command watchdog must outlast the identification between the two runs, else
     # it latches an amplifier fault that the after run starts with (the emulator trips it on a
     # disabled axis too): the host leaves it at the emulator's IDENTIFY_GAP_S
