@@ -39,7 +39,7 @@ import time
 
 import numpy as np
 
-from motorctl.app.build import build, shutdown, start
+from motorctl.app.build import build, run_cycles
 from motorctl.config import config_from_dict, load_yaml
 from motorctl.metrics import tracking_indexes
 
@@ -76,12 +76,7 @@ def run_axis(raw: dict, source: str, axis: str, kind: str, seconds: float, pid=N
     loaded = config_from_dict(raw, source)
     n = loaded.timebase.cycles(seconds)
     asm = build(loaded, [axis], kind, clock="virtual", capacity=n)
-    start(asm, "off")
-    try:
-        asm.loop.run(n)
-    finally:
-        shutdown(asm)
-    rows, lay = asm.loop.rows(), asm.loop.layout
+    rows, lay = run_cycles(asm, n)
     t = rows[:, lay.cycle("t")]
     e, u = rows[:, lay.index(f"{axis}.e")], rows[:, lay.index(f"{axis}.u")]
     moving = (rows[:, lay.index(f"{axis}.xd_dot")] != 0.0) | (rows[:, lay.index(f"{axis}.xd_ddot")] != 0.0)

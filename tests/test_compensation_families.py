@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from motorctl.app.build import build, shutdown, start
+from motorctl.app.build import build, run_cycles
 from motorctl.config import config_from_dict
 from motorctl.control.dcdiarc import DCDIARC
 from motorctl.effects import family
@@ -34,12 +34,7 @@ def _run(d: dict, axis: str = "X", duration_s: float | None = None):
     loaded = config_from_dict(d, "<compensation families>")
     n = loaded.timebase.cycles(duration_s or DURATION_S)
     asm = build(loaded, clock="virtual", capacity=n)
-    start(asm, "off")
-    try:
-        asm.loop.run(n)
-    finally:
-        shutdown(asm)
-    rows, lay = asm.loop.rows(), asm.loop.layout
+    rows, lay = run_cycles(asm, n)
     idx = settled_indexes(rows[:, lay.cycle("t")], rows[:, lay.index(f"{axis}.e")],
                           rows[:, lay.index(f"{axis}.u")], d["axes"][axis]["trajectory"]["period_s"])
     assert not asm.supervisor.reason(0), asm.supervisor.reason(0)

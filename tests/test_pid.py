@@ -8,7 +8,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from motorctl.app.build import build, shutdown, start
+from motorctl.app.build import build, run_cycles
 from motorctl.config import load_config
 from motorctl.control import configured_controllers, make_controller
 from motorctl.control.base import SIG
@@ -208,12 +208,7 @@ def gantry(gantry_yaml):
 
 
 def _run(asm, n):
-    start(asm, "off")
-    try:
-        asm.loop.run(n)
-    finally:
-        shutdown(asm)
-    return asm.loop.rows(), asm.loop.layout
+    return run_cycles(asm, n)
 
 
 def test_gantry_config_configures_pid_from_the_catalogue(gantry):

@@ -146,6 +146,22 @@ def shutdown(asm: Assembly) -> None:
             restore()
 
 
+def run_cycles(asm: Assembly, n_cycles: int, policy: str = "off"):
+    """:func:`start`, ``n_cycles`` cycles, :func:`shutdown` on every exit path (tools, tests
+    and benchmarks on the virtual clock). Returns (the loop's rows (n, width), its
+    :class:`~motorctl.loop.records.RecordLayout`).
+
+    Raises:
+        as :func:`start`.
+    """
+    start(asm, policy)
+    try:
+        asm.loop.run(int(n_cycles))
+    finally:
+        shutdown(asm)
+    return asm.loop.rows(), asm.loop.layout
+
+
 def log_header(asm: Assembly, **extra) -> dict:
     """The run-log header (the one place it is built): software, config, axes, controllers,
     period, clock, record layout (columns and units), the driver's facts; ``extra`` adds or

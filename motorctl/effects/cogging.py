@@ -16,11 +16,12 @@ import math
 from typing import ClassVar
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field
 
 from motorctl.effects.base import PlantTerm, Signals
 from motorctl.effects.periodic import (
     N_HARMONICS,
+    AmplitudeStep,
     FourierAdaptable,
     PositionPeriodic,
     amplitudes_phases,
@@ -30,10 +31,10 @@ from motorctl.effects.periodic import (
     harmonics,
     sin_cos_of,
 )
-from motorctl.schema import NonNeg, Pos, StrictModel
+from motorctl.schema import Pos
 
 
-class Cogging(StrictModel):
+class Cogging(AmplitudeStep):
     """Simulated cogging, ``axes.NAME.driver.effects.cogging``: Σ_k A_k sin(2π k x / P + φ_k) [N].
 
     amplitudes_N: A_k [N] (k = 1.., at least one). period_m: P [m]. phases_rad: φ_k [rad]
@@ -45,14 +46,6 @@ class Cogging(StrictModel):
     amplitudes_N: list[float] = Field(min_length=1)
     period_m: Pos
     phases_rad: list[float] = []
-    step_at_s: NonNeg | None = None
-    scale_after: float | None = None
-
-    @model_validator(mode="after")
-    def _step_pair(self):
-        if (self.step_at_s is None) != (self.scale_after is None):
-            raise ValueError("step_at_s and scale_after go together")
-        return self
 
 
 class FourierPosition(FourierAdaptable):

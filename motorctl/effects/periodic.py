@@ -12,9 +12,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from pydantic import model_validator
 from scipy.signal import lombscargle
 
 from motorctl.effects.base import Adaptable, EffectFamily
+from motorctl.schema import NonNeg, StrictModel
 
 #: Harmonics fitted for position- and time-periodic families.
 N_HARMONICS = 2
@@ -125,6 +127,21 @@ def fourier_basis(w: float, n: int, on_time: bool):
             out[j + k] = sin(ph)
             out[j + n + k] = cos(ph)
     return fill
+
+
+class AmplitudeStep(StrictModel):
+    """Simulator options of a periodic effect whose amplitude drifts (tests of adapted
+    compensation): from plant time ``step_at_s`` [s] on, the amplitude is multiplied by
+    ``scale_after`` (both or neither; default: no step)."""
+
+    step_at_s: NonNeg | None = None
+    scale_after: float | None = None
+
+    @model_validator(mode="after")
+    def _step_pair(self):
+        if (self.step_at_s is None) != (self.scale_after is None):
+            raise ValueError("step_at_s and scale_after go together")
+        return self
 
 
 class FourierAdaptable(Adaptable):

@@ -16,12 +16,11 @@ from typing import ClassVar
 
 import numpy as np
 
-from pydantic import model_validator
-
 from motorctl.effects.base import EffectFamily, PlantTerm, Signals
 from motorctl.effects.periodic import (
     N_PEAKS,
     SHAPE_POINTS,
+    AmplitudeStep,
     FourierAdaptable,
     amplitudes_phases,
     fourier,
@@ -32,13 +31,13 @@ from motorctl.effects.periodic import (
     sin_cos_of,
     time_periodogram,
 )
-from motorctl.schema import NonNeg, Pos, StrictModel
+from motorctl.schema import Pos
 
 #: Frequency grid step [Hz] of the spectrum search.
 DF_HZ = 0.02
 
 
-class PeriodicDisturbance(StrictModel):
+class PeriodicDisturbance(AmplitudeStep):
     """Simulated disturbance, ``axes.NAME.driver.effects.periodic_disturbance``:
     A sin(2π f t + φ) [N]. amplitude_N: A [N]. frequency_Hz: f [Hz]. phase_rad: φ [rad].
     step_at_s, scale_after: a drifting amplitude (tests of adapted compensation): from plant
@@ -47,14 +46,6 @@ class PeriodicDisturbance(StrictModel):
     amplitude_N: float
     frequency_Hz: Pos
     phase_rad: float = 0.0
-    step_at_s: NonNeg | None = None
-    scale_after: float | None = None
-
-    @model_validator(mode="after")
-    def _step_pair(self):
-        if (self.step_at_s is None) != (self.scale_after is None):
-            raise ValueError("step_at_s and scale_after go together")
-        return self
 
 
 class FourierTime(FourierAdaptable):
