@@ -28,6 +28,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 from motorctl.config import load_yaml
@@ -259,6 +260,17 @@ def wait_for(pred, timeout_s: float, step_s: float = 0.05) -> bool:
             return True
         time.sleep(step_s)
     return bool(pred())
+
+
+def exchange(drv, u_V, enable, n: int = 1, sleep_s: float = 0.003) -> None:
+    """``n`` cycles of a driver against an in-process device (:func:`device_thread`): write
+    ``u_V`` [V] and ``enable`` (one value per axis), sleep ``sleep_s`` [s] (the device thread
+    needs the GIL to answer), read."""
+    u, en = np.asarray(u_V, dtype=float), np.asarray(enable, dtype=bool)
+    for _ in range(n):
+        drv.write(u, en)
+        time.sleep(sleep_s)
+        drv.read()
 
 
 @contextlib.contextmanager

@@ -8,14 +8,13 @@ import contextlib
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 from conftest import RIGID_PLANT
 
 from motorctl.config import ConfigError, config_from_dict, load_yaml
 from motorctl_drivers import cia402
 from motorctl_emulators.device import build_device
-from motorctl_emulators.harness import device_thread
+from motorctl_emulators.harness import device_thread, exchange
 from motorctl_emulators.plant_bank import FaultSpec
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -70,147 +69,126 @@ def _config(tmp_path, **driver) -> dict:
 
 @contextlib.contextmanager
 def _drives(loaded, faults=()):
+    """The emulated CiA 402 drives of ``loaded`` (canopen's device side, in a thread) and a
+    driver for them, closed on exit (before the drives stop): yields (devices, driver)."""
     with device_thread(build_device(loaded, PLANT, faults=list(faults))) as dev:
-        yield dev
-
-
-def _cycle(drv, u, en, n=1, sleep=0.003):
-    for _ in range(n):
-        drv.write(np.asarray(u, dtype=float), np.asarray(en, dtype=bool))
-        time.sleep(sleep)
-        drv.read()
+        drv = loaded.make_driver()
+        try:
+            yield dev, drv
+        finally:
+            drv.close()
 
 
 def test_configure_maps_pdos_checks_scales_and_measures_the_round_trip(tmp_path):
     loaded = config_from_dict(_config(tmp_path), "<co>", check_budget=False)
-    with _drives(loaded) as dev:
-        drv = loaded.make_driver()
-        try:
-            drv.configure()
-            d = drv.describe()
-            x = d["drives"]["X"]
-            assert x["device_type"] == "0x00020192" and x["state"] == "Switch on disabled"
-            assert x["rpdo"] == {"cob_id": "0x201", "map": ["0x6040:00/16", "0x6071:00/16"], "transmission_type": 1}
-            assert x["tpdo"] == {"cob_id": "0x181", "map": ["0x6041:00/16", "0x6064:00/32"], "transmission_type": 1}
-            assert x["scale"] == {"permille_per_V": 100.0, "m_per_count": 0.5e-6}
-            rt = d["round_trip"]
-            assert rt["n"] == 20 and 0 < rt["median_us"] <= rt["max_us"] and rt["budget_source"] == "configured"
-            node = dev.drives[0].node                    # what the drive holds, read on its side
-            assert node.sdo[0x6060].raw == 10 and node.sdo[0x1017].raw == 10
-            assert node.sdo[0x6007].raw == 1 and node.sdo[0x1006].raw == 2000
-            assert node.sdo[0x1800][1].raw == 0x40000181            # TPDO valid, no RTR
-            drv.activate()
-            assert node.nmt.state == "OPERATIONAL" and node.sdo[0x1016][1].raw == (127 << 16) | 50
-        finally:
-            drv.close()
-        assert node.nmt.state == "PRE-OPERATIONAL" and node.sdo[0x1016][1].raw == 0
+    with _drives(loaded) as (dev, drv):
+        drv.configure()
+        d = drv.describe()
+        x = d["drives"]["X"]
+        assert x["device_type"] == "0x00020192" and x["state"] == "Switch on disabled"
+        assert x["rpdo"] == {"cob_id": "0x201", "map": ["0x6040:00/16", "0x6071:00/16"], "transmission_type": 1}
+        assert x["tpdo"] == {"cob_id": "0x181", "map": ["0x6041:00/16", "0x6064:00/32"], "transmission_type": 1}
+        assert x["scale"] == {"permille_per_V": 100.0, "m_per_count": 0.5e-6}
+        rt = d["round_trip"]
+        assert rt["n"] == 20 and 0 < rt["median_us"] <= rt["max_us"] and rt["budget_source"] == "configured"
+        node = dev.drives[0].node                    # what the drive holds, read on its side
+        assert node.sdo[0x6060].raw == 10 and node.sdo[0x1017].raw == 10
+        assert node.sdo[0x6007].raw == 1 and node.sdo[0x1006].raw == 2000
+        assert node.sdo[0x1800][1].raw == 0x40000181            # TPDO valid, no RTR
+        drv.activate()
+        assert node.nmt.state == "OPERATIONAL" and node.sdo[0x1016][1].raw == (127 << 16) | 50
+    # closed: heartbeat consumer off and pre-operational on the drive's side
+    assert node.nmt.state == "PRE-OPERATIONAL" and node.sdo[0x1016][1].raw == 0
 
 
 def test_enable_walks_the_state_machine_and_torque_flows_only_in_operation_enabled(tmp_path):
     loaded = config_from_dict(_config(tmp_path), "<co>", check_budget=False)
-    with _drives(loaded) as dev:
-        drv = loaded.make_driver()
-        try:
-            drv.open()
-            y0 = drv.position_m.copy()
-            seen = []
-            for _ in range(12):
-                _cycle(drv, [3.0, -3.0], [True, True])
-                seen.append((drv.describe()["drives"]["X"]["state"], dev.bank.applied_V[0]))
-                if drv._sm[0].enabled:
-                    break
-            assert [s for s, _ in seen][-1] == "Operation enabled"
-            assert all(v == 0.0 for s, v in seen[:-1]), seen        # no torque before Operation enabled
-            _cycle(drv, [3.0, -3.0], [True, True], n=30)
-            assert dev.bank.applied_V[0] == pytest.approx(3.0, abs=0.02)     # 300 per mille <-> 3 V
-            moved = drv.position_m - y0
-            assert moved[0] > 0 and moved[1] < 0, moved
-            assert not drv.read_error.any() and not drv.amp_fault.any()
-            trace = [t.split(" ", 1)[1] for t in drv.describe()["drives"]["X"]["statusword_trace"]]
-            assert trace[:4] == ["Switch on disabled", "Ready to switch on", "Switched on", "Operation enabled"]
-            _cycle(drv, [3.0, 3.0], [False, True], n=3)             # X disabled: Disable voltage
-            assert drv.describe()["drives"]["X"]["state"] == "Switch on disabled" and dev.bank.applied_V[0] == 0.0
-        finally:
-            drv.close()
-        assert dev.bank.applied_V == [0.0, 0.0]
+    with _drives(loaded) as (dev, drv):
+        drv.open()
+        y0 = drv.position_m.copy()
+        seen = []
+        for _ in range(12):
+            exchange(drv, [3.0, -3.0], [True, True])
+            seen.append((drv.describe()["drives"]["X"]["state"], dev.bank.applied_V[0]))
+            if drv._sm[0].enabled:
+                break
+        assert [s for s, _ in seen][-1] == "Operation enabled"
+        assert all(v == 0.0 for s, v in seen[:-1]), seen        # no torque before Operation enabled
+        exchange(drv, [3.0, -3.0], [True, True], n=30)
+        assert dev.bank.applied_V[0] == pytest.approx(3.0, abs=0.02)     # 300 per mille <-> 3 V
+        moved = drv.position_m - y0
+        assert moved[0] > 0 and moved[1] < 0, moved
+        assert not drv.read_error.any() and not drv.amp_fault.any()
+        trace = [t.split(" ", 1)[1] for t in drv.describe()["drives"]["X"]["statusword_trace"]]
+        assert trace[:4] == ["Switch on disabled", "Ready to switch on", "Switched on", "Operation enabled"]
+        exchange(drv, [3.0, 3.0], [False, True], n=3)             # X disabled: Disable voltage
+        assert drv.describe()["drives"]["X"]["state"] == "Switch on disabled" and dev.bank.applied_V[0] == 0.0
+    assert dev.bank.applied_V == [0.0, 0.0]                          # closed: 0 V on both drives
 
 
 def test_emcy_latches_an_amplifier_fault_naming_the_code_and_a_disabled_axis_resets_it(tmp_path):
     loaded = config_from_dict(_config(tmp_path), "<co>", check_budget=False)
-    with _drives(loaded, [FaultSpec.parse("emcy=0x2310:X:20")]) as dev:
-        drv = loaded.make_driver()
-        try:
-            drv.open()
-            for _ in range(40):
-                _cycle(drv, [1.0, 1.0], [True, True])
-                if drv.amp_fault[0]:
-                    break
-            assert drv.amp_fault[0] and not drv.amp_fault[1]
-            reason = drv.fault_reason(0)
-            assert "0x2310 continuous over-current" in reason and "node 1 (axis X)" in reason
-            _cycle(drv, [1.0, 1.0], [True, True], n=3)               # still requested: stays latched
-            assert drv.amp_fault[0] and dev.bank.applied_V[0] == 0.0
-            for _ in range(20):                                       # the supervisor disables the axis
-                _cycle(drv, [0.0, 1.0], [False, True])
-                if not drv.amp_fault[0]:
-                    break
-            # the latch is reset; the reason still names the EMCY for the report of the fault
-            assert not drv.amp_fault[0] and "0x2310" in drv.fault_reason(0)
-            assert drv.describe()["emcy"] == {"X": "0x2310 continuous over-current"}   # the history stays
-            trace = [t.split(" ", 1)[1] for t in drv.describe()["drives"]["X"]["statusword_trace"]]
-            assert "Fault" in trace and trace[-1] == "Switch on disabled"
-            for _ in range(20):                                       # enabled again (a new start)
-                _cycle(drv, [0.0, 1.0], [True, True])
-                if drv.fault_reason(0) == "":
-                    break
-            assert drv.fault_reason(0) == "" and not drv.amp_fault[0]
-        finally:
-            drv.close()
+    with _drives(loaded, [FaultSpec.parse("emcy=0x2310:X:20")]) as (dev, drv):
+        drv.open()
+        for _ in range(40):
+            exchange(drv, [1.0, 1.0], [True, True])
+            if drv.amp_fault[0]:
+                break
+        assert drv.amp_fault[0] and not drv.amp_fault[1]
+        reason = drv.fault_reason(0)
+        assert "0x2310 continuous over-current" in reason and "node 1 (axis X)" in reason
+        exchange(drv, [1.0, 1.0], [True, True], n=3)               # still requested: stays latched
+        assert drv.amp_fault[0] and dev.bank.applied_V[0] == 0.0
+        for _ in range(20):                                       # the supervisor disables the axis
+            exchange(drv, [0.0, 1.0], [False, True])
+            if not drv.amp_fault[0]:
+                break
+        # the latch is reset; the reason still names the EMCY for the report of the fault
+        assert not drv.amp_fault[0] and "0x2310" in drv.fault_reason(0)
+        assert drv.describe()["emcy"] == {"X": "0x2310 continuous over-current"}   # the history stays
+        trace = [t.split(" ", 1)[1] for t in drv.describe()["drives"]["X"]["statusword_trace"]]
+        assert "Fault" in trace and trace[-1] == "Switch on disabled"
+        for _ in range(20):                                       # enabled again (a new start)
+            exchange(drv, [0.0, 1.0], [True, True])
+            if drv.fault_reason(0) == "":
+                break
+        assert drv.fault_reason(0) == "" and not drv.amp_fault[0]
 
 
 def test_a_missing_drive_heartbeat_is_a_read_error(tmp_path):
     loaded = config_from_dict(_config(tmp_path), "<co>", check_budget=False)
-    with _drives(loaded) as dev:
-        drv = loaded.make_driver()
-        try:
-            drv.open()
-            _cycle(drv, [0, 0], [False, False], n=10, sleep=0.002)
-            assert not drv.read_error.any()
-            dev.drives[1].node.nmt.stop_heartbeat()                   # Y's heartbeat producer stops
-            errors = []
-            for _ in range(40):                                       # 40 x ~3 ms > 50 ms timeout
-                _cycle(drv, [0, 0], [False, False], sleep=0.002)
-                errors.append(tuple(drv.read_error))
-            assert errors[-1] == (False, True) and drv.counters["heartbeat_lost"] > 0
-        finally:
-            drv.close()
+    with _drives(loaded) as (dev, drv):
+        drv.open()
+        exchange(drv, [0, 0], [False, False], n=10, sleep_s=0.002)
+        assert not drv.read_error.any()
+        dev.drives[1].node.nmt.stop_heartbeat()                   # Y's heartbeat producer stops
+        errors = []
+        for _ in range(40):                                       # 40 x ~3 ms > 50 ms timeout
+            exchange(drv, [0, 0], [False, False], sleep_s=0.002)
+            errors.append(tuple(drv.read_error))
+        assert errors[-1] == (False, True) and drv.counters["heartbeat_lost"] > 0
 
 
 def test_the_drives_heartbeat_consumer_stops_the_motor_when_the_host_goes_silent(tmp_path):
     loaded = config_from_dict(_config(tmp_path, abort_connection_option=2), "<co>", check_budget=False)
-    with _drives(loaded) as dev:
-        drv = loaded.make_driver()
-        try:
-            drv.open()
-            for _ in range(40):
-                _cycle(drv, [2.0, 2.0], [True, True], sleep=0.002)
-            assert dev.bank.applied_V[0] != 0.0
-            t0 = time.monotonic()                                    # the host stops cycling
-            while time.monotonic() - t0 < 1.0 and dev.bank.applied_V[0] != 0.0:
-                time.sleep(0.005)
-            assert dev.bank.applied_V == [0.0, 0.0]
-            assert time.monotonic() - t0 < 0.05 + 0.1                # consumer 50 ms (+ the thread's slack)
-            assert dev.drives[0].state == cia402.SWITCH_ON_DISABLED   # option 2: disable voltage
-        finally:
-            drv.close()
+    with _drives(loaded) as (dev, drv):
+        drv.open()
+        for _ in range(40):
+            exchange(drv, [2.0, 2.0], [True, True], sleep_s=0.002)
+        assert dev.bank.applied_V[0] != 0.0
+        t0 = time.monotonic()                                    # the host stops cycling
+        while time.monotonic() - t0 < 1.0 and dev.bank.applied_V[0] != 0.0:
+            time.sleep(0.005)
+        assert dev.bank.applied_V == [0.0, 0.0]
+        assert time.monotonic() - t0 < 0.05 + 0.1                # consumer 50 ms (+ the thread's slack)
+        assert dev.drives[0].state == cia402.SWITCH_ON_DISABLED   # option 2: disable voltage
 
 
 def test_configure_refuses_a_wrong_scale_and_releases_the_bus(tmp_path):
     d = _config(tmp_path)
     d["axes"]["X"]["driver"]["rated_torque"] = 1234                  # the drive says 100000
     loaded = config_from_dict(d, "<co>", check_budget=False)
-    with _drives(loaded):
-        drv = loaded.make_driver()
+    with _drives(loaded) as (_, drv):
         with pytest.raises(OSError, match=r"rated torque 0x6076 is 100000, the config says 1234"):
             drv.configure()
         assert drv.state == "unconfigured" and drv.bus is None

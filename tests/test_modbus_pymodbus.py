@@ -30,16 +30,14 @@ import contextlib
 import logging
 import socket
 import struct
-import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 import yaml
 from conftest import RIGID_PLANT
 
 from motorctl.config import config_from_dict, load_yaml
-from motorctl_emulators.harness import free_port, parse_run_table, run_cli
+from motorctl_emulators.harness import exchange, free_port, parse_run_table, run_cli
 from motorctl_emulators.plant_bank import load_plant
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -347,13 +345,6 @@ def test_motorctl_run_closes_the_loop_through_pymodbus_server(name, rate, tmp_pa
 
 
 # --------------------------------------------------------------------------- in process
-def _drive(drv, u, en, n, sleep=0.004):
-    for _ in range(n):
-        drv.write(np.asarray(u, dtype=float), np.asarray(en, dtype=bool))
-        time.sleep(sleep)
-        drv.read()
-
-
 def test_registers_written_per_axis_unit_and_the_fc23_probe_falls_back(tmp_path):
     """Map A on a device without FC23: the probe's exception 01 turns the plan into FC16 + FC03.
     Y on unit 2 with FC06/FC05/FC03. pymodbus's client reads back what the driver wrote."""
@@ -378,7 +369,7 @@ def test_registers_written_per_axis_unit_and_the_fc23_probe_falls_back(tmp_path)
                                           "FC02 unit 2 read 5+1"]
             assert read_back(port, 1, "holding", 200, 1) == [150] == read_back(port, 2, "holding", 200, 1)
             y0 = drv.position_m.copy()
-            _drive(drv, [2.5, -1.25], [True, True], 30)
+            exchange(drv, [2.5, -1.25], [True, True], 30, sleep_s=0.004)
             x = read_back(port, 1, "holding", 0, 3)
             assert x[0] == round(2.5 / 10 * 32767) and x[1] == 1 and x[2] == drv.seq & 0xFFFF   # voltage, enable, seq
             assert read_back(port, 2, "holding", 7, 1) == [(-round(1.25 / 10 * 32767)) & 0xFFFF]
@@ -388,10 +379,10 @@ def test_registers_written_per_axis_unit_and_the_fc23_probe_falls_back(tmp_path)
             assert not drv.amp_fault.any()                             # Y: discrete input 5 high = no fault
             write_register(port, 1, FAULT_REGISTER, 1)                 # X's drive faults
             write_register(port, 2, FAULT_REGISTER, 2)                 # Y's too: discrete input 5 low
-            _drive(drv, [0, 0], [True, True], 3)
+            exchange(drv, [0, 0], [True, True], 3, sleep_s=0.004)
             assert drv.amp_fault.all()
             for _ in range(20):                                        # disabled and faulted: reset pulses
-                _drive(drv, [0, 0], [False, True], 1)
+                exchange(drv, [0, 0], [False, True], 1, sleep_s=0.004)
                 if not drv.amp_fault[0]:
                     break
             assert not drv.amp_fault[0] and drv.amp_fault[1]          # bit 7 was pulsed: X's device reset
@@ -413,7 +404,7 @@ def test_a_garbage_reply_is_counted_and_the_tcp_stream_recovers(tmp_path):
             drv.open()
             errors = []
             for _ in range(40):
-                _drive(drv, [0.5, 0.5], [True, True], 1)
+                exchange(drv, [0.5, 0.5], [True, True], 1, sleep_s=0.004)
                 errors.append(bool(drv.read_error.any()))
         finally:
             drv.close()
@@ -440,7 +431,7 @@ def test_an_exception_answer_is_the_drives_reason_while_it_lasts(tmp_path):
         try:
             drv.configure()             # the first reading (FC03 queries) works: no FC23 in it
             drv.activate()
-            _drive(drv, [0.5, 0.5], [True, True], 5)
+            exchange(drv, [0.5, 0.5], [True, True], 5, sleep_s=0.004)
             assert drv.read_error.all(), drv.counters
             for i in range(2):
                 assert drv.fault_reason(i).startswith("exception 0x01 illegal function to FC23"), drv.fault_reason(i)
