@@ -33,6 +33,8 @@ from pathlib import Path
 
 import yaml
 
+from bench_export import run_child  # (benchmarks/, the script's own folder: on sys.path)
+
 from motorctl.cli.operator import DaemonUnreachable, call
 
 REPO = Path(__file__).resolve().parents[1]
@@ -83,17 +85,6 @@ def _wait(pred, timeout: float, what: str):
             return v
         time.sleep(0.05)
     raise SystemExit(f"timed out waiting for {what}")
-
-
-def _export_peak(src: str, fmt: str, out: str) -> tuple[float, float, str]:
-    t0 = time.monotonic()
-    p = subprocess.Popen([*MOTORCTL, "export", src, f"--{fmt}", out], stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
-    _, status, ru = os.wait4(p.pid, 0)
-    line = (p.stdout.read() + p.stderr.read()).strip()
-    if os.waitstatus_to_exitcode(status) != 0:
-        raise SystemExit(f"export failed: {line}")
-    return ru.ru_maxrss / 1024.0, time.monotonic() - t0, line
 
 
 def main() -> int:
@@ -190,7 +181,7 @@ def main() -> int:
               f"I/O {peak_io_rss:.0f} MB")
         for fmt in ("mat", "csv"):
             out = str(tmp / f"soak.{fmt}")
-            rss, dt, line = _export_peak(run, fmt, out)
+            rss, dt, line = run_child(["export", run, f"--{fmt}", out])
             print(f"export --{fmt} of the rotated set: peak RSS {rss:.0f} MB, {dt:.1f} s: {line}")
             os.unlink(out)
         print(json.dumps({"minutes": a.minutes, "bytes_per_s": ret["bytes_per_s"],
