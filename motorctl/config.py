@@ -382,6 +382,7 @@ def config_from_dict(data: dict, source: str | Path = "<dict>", check_budget: bo
     except ValueError as exc:              # e.g. two axes' fields on the same CAN bytes
         raise ConfigError(path, "driver", str(exc)) from None
     _check_command_limits(path, cfg, driver)
+    _check_read_timeout(path, cfg, driver_options)
     if check_budget:
         rate = cfg.loop.rate_hz
         b = driver.budget(rate)
@@ -392,6 +393,23 @@ def config_from_dict(data: dict, source: str | Path = "<dict>", check_budget: bo
                               f"(bus time {b.cycle_time_s * 1e6:.1f} us per cycle, at most "
                               f"{b.max_rate_hz:.0f} Hz){hint}")
     return loaded
+
+
+#: the most of the period a bus driver's read may wait for its answers on a wall clock
+READ_TIMEOUT_MAX_PERIODS = 0.8
+
+
+def _check_read_timeout(path: Path, cfg: GantryConfig, driver_options) -> None:
+    """A paced loop (``loop.clock: wall``) needs the rest of the period after the read: a bus
+    driver's ``timeout_s`` may be at most 0.8 of it. Unpaced runs (``virtual``) may wait longer."""
+    t = getattr(driver_options, "timeout_s", None)
+    period = 1.0 / cfg.loop.rate_hz
+    if t is not None and cfg.loop.clock == "wall" and t > READ_TIMEOUT_MAX_PERIODS * period:
+        raise ConfigError(path, "driver.timeout_s",
+                          f"{t:g} s is more than {READ_TIMEOUT_MAX_PERIODS:g} of the {period:g} s period at "
+                          f"{cfg.loop.rate_hz:g} Hz: a late answer would overrun the cycle; allowed: at most "
+                          f"{READ_TIMEOUT_MAX_PERIODS * period:g} s with loop.clock wall, any value with "
+                          f"loop.clock virtual")
 
 
 def _check_command_limits(path: Path, cfg: GantryConfig, driver: Driver) -> None:

@@ -11,7 +11,7 @@
 * :class:`SplitPhaseDriver`: the cycle shared by the bus drivers. ``write()`` sends the command
   of cycle k with sequence number k (non-blocking); the device applies it for one period and
   answers with the encoder reading at the end of that period; ``read()`` of cycle k+1 polls
-  (never blocks) for that answer until ``timeout_s`` (shorter than the period) has passed.
+  (never blocks) for that answer until ``timeout_s`` (shorter than the period on a wall clock) has passed.
   This is LinuxCNC hostmot2's split-phase read-request/read: one exchange per cycle, and the
   same data flow as the simulated driver (write steps the plant, the next read sees it).
   A missing, late, stale (wrong sequence) or corrupt answer, or an error answer, sets
@@ -94,8 +94,11 @@ class EncoderUnwrap:
 class CommonOptions(StrictModel):
     """Settings every bus driver has (merged into each driver's ``Options``).
 
-    timeout_s: how long ``read()`` polls for the answer [s]; default half the period; capped
-        at 0.8 of the period (the rest of the cycle needs the time).
+    timeout_s: how long ``read()`` polls for the answer [s]; default half the period. With
+        ``loop.clock: wall`` at most 0.8 of the period (the rest of the cycle needs the time;
+        the config check refuses more); with ``loop.clock: virtual`` (lockstep with an
+        emulated plant) any value: every cycle waits for its answers, so a device that is
+        late now and then loses no command.
     round_trip_s: host round trip of one exchange on this machine [s] (driver stack + device
         answering; ``configure()`` measures it, ``benchmarks/bench_transports.py`` too). Added
         to the wire time in the budget. None (default): the median measured by ``configure()``
@@ -217,8 +220,7 @@ class SplitPhaseDriver(Driver):
     def __init__(self, options, axis_options, period_s):
         super().__init__(options, axis_options, period_s)
         n = len(self.axis_names)
-        t = options.timeout_s if options.timeout_s is not None else 0.5 * period_s
-        self.timeout_s = min(t, 0.8 * period_s)
+        self.timeout_s = options.timeout_s if options.timeout_s is not None else 0.5 * period_s
         self.seq = 0
         self._outstanding = False
         self._got = np.zeros(n, dtype=bool)

@@ -121,3 +121,20 @@ def test_check_config_refuses_canopen_sync_and_two_axes_on_classic_can_and_names
     assert run_cli(["check-config", str(_write(tmp_path, "gantry-canopen.yaml", 1357))]).returncode == 0
     ok = run_cli(["check-config", str(CONFIGS / "gantry-canopen.yaml")])
     assert ok.returncode == 0 and "1000 Hz" in ok.stdout, ok.stderr
+
+
+def test_a_read_timeout_longer_than_the_paced_period_is_refused_and_allowed_in_lockstep(tmp_path):
+    """driver.timeout_s above 0.8 of the period leaves a wall-clocked cycle no time after a late
+    answer: check-config refuses it, naming the key and what is allowed; with loop.clock virtual
+    (lockstep with an emulated plant) the driver waits as long as configured."""
+    import yaml
+    cfg = _write(tmp_path, "gantry-modbus.yaml", 500.0, timeout_s=0.02)
+    r = run_cli(["check-config", str(cfg)])
+    assert r.returncode == 2, r.stdout
+    assert "driver.timeout_s" in r.stderr and "at most 0.0016 s with loop.clock wall" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
+    d = load_yaml(cfg)
+    d["loop"]["clock"] = "virtual"
+    cfg.write_text(yaml.safe_dump(d))
+    assert load_config(cfg).make_driver().timeout_s == 0.02         # honoured, not cut to the period
+    assert load_config(_write(tmp_path, "gantry-modbus.yaml", 500.0)).make_driver().timeout_s == 0.001  # default: half

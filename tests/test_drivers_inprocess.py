@@ -25,7 +25,7 @@ WATCHDOG_S = 0.05
 def _config(name: str, tmp_path, **driver) -> dict:
     d = load_yaml(CONFIGS / name)
     d["loop"]["rate_hz"] = 1000
-    d["driver"].update(timeout_s=0.0009, wait="spin")
+    d["driver"].update(timeout_s=0.0008, wait="spin")
     d["driver"].update(driver)
     return d
 
