@@ -801,8 +801,7 @@ class ModbusDriver(SplitPhaseDriver):
                 for r in creqs:
                     for i in r.axes:
                         self.write_error[i] = True
-                self._held[c] = True
-                self._release_held(c)          # abandoned already?
+                self._held[c] = True           # released by _receive, after it has read the link
                 continue
             self._stamp(creqs[0])
             self._send(creqs[0])

@@ -446,16 +446,17 @@ def test_a_garbage_reply_is_counted_and_the_tcp_stream_recovers(tmp_path):
 
 
 def test_a_late_device_gets_one_request_at_a_time_and_none_is_lost(tmp_path):
-    """The server blocks 8 ms (1.6 periods at 200 Hz) before serving cycle 10's request. The
-    cycles meanwhile hold their command (``busy``) instead of queueing it behind the late one,
-    and send the newest one when the late answer has come: every request the driver sent is
-    served (pymodbus's server keeps one request per connection; a request queued behind the
-    late one was dropped: a command lost without a trace), and the exchange is clean again."""
+    """The server blocks 6 ms (1.2 periods at 200 Hz; the driver gives a request up after 10 ms)
+    before serving cycle 10's request. The cycles meanwhile hold their command (``busy``)
+    instead of queueing it behind the late one, and send the newest one when the late answer has
+    come: every request the driver sent is served (pymodbus's server keeps one request per
+    connection; a request queued behind the late one was dropped: a command lost without a
+    trace), and the exchange is clean again."""
     d = map_a(200.0, round_trip_s=0.0006, timeout_s=0.003, wait="spin")
     cfg = _write_config(d, tmp_path / "late.yaml")
     loaded = config_from_dict(d, str(cfg), check_budget=False)
     # the action runs for 51 queries, then twice per FC23 (probe, cycles): its write and its read
-    with pymodbus_server(cfg, shared=True, stall=(51 + 2 + 2 * 10 + 1, 0.008)) as counts:
+    with pymodbus_server(cfg, shared=True, stall=(51 + 2 + 2 * 10 + 1, 0.006)) as counts:
         drv = loaded.make_driver()
         try:
             drv.open()
