@@ -344,7 +344,8 @@ class SplitPhaseDriver(Driver):
             return
         self._got[i] = True
         y = self._unwrap[i].update(raw_counts) * self._m_per_count[i] + self._offset_m[i]
-        self._step[i] = y - self._y_last[i] if self._y_last[i] == self._y_last[i] else 0.0
+        # one cycle's step: after lost answers the last measurement is lost + 1 cycles old
+        self._step[i] = (y - self._y_last[i]) / (self._lost[i] + 1) if self._y_last[i] == self._y_last[i] else 0.0
         self._y_last[i] = y
         self.position_m[i] = y
         self.amp_fault[i] = fault

@@ -89,6 +89,32 @@ def test_serial_over_a_pty(tmp_path):
     assert fault.all()
 
 
+def test_a_lost_answer_after_a_run_of_losses_is_stood_in_for_by_one_cycles_step(tmp_path):
+    """Answers to commands 21-23 are lost, 24 comes, 25 is lost again. The stand-in for 25 adds
+    one cycle's step: the displacement measured at 24 divided over the four cycles it spans
+    (it added all four: the stand-in ran three steps ahead of the plant)."""
+    import time
+    d = _config("gantry-serial.yaml", tmp_path, port=str(tmp_path / "ttyEMU"))
+    loaded = config_from_dict(d, "<inprocess>", check_budget=False)
+    faults = [FaultSpec.parse("drop:*:20:3"), FaultSpec.parse("drop:*:24:1")]   # 0-based command counts
+    with _serving(loaded, faults) as dev:
+        drv = loaded.make_driver()
+        try:
+            drv.open()
+            lost = []
+            for c in range(1, 26):                # bounded
+                drv.write(np.array([2.0, -2.0]), np.ones(2, dtype=bool))
+                time.sleep(0.003)                 # the device thread needs the GIL to answer
+                drv.read()
+                lost.append(bool(drv.read_error[0]))
+            step = drv._step[0]
+            gap = drv.position_m[0] - dev.bank.plants[0].measured()   # stand-in minus the plant
+        finally:
+            drv.close()
+    assert lost[20:25] == [True, True, True, False, True], lost
+    assert step > 0 and abs(gap) < 0.5 * step, (gap, step)
+
+
 def test_modbus_rtu_over_a_pty(tmp_path):
     d = _config("gantry-modbus.yaml", tmp_path, transport="rtu", serial_port=str(tmp_path / "ttyRTU"),
                 baudrate=115200)
