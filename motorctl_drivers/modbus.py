@@ -522,9 +522,6 @@ class ModbusDriver(SplitPhaseDriver):
     DEFAULT_ROUND_TRIP_S = 400e-6
     #: cycles between two fault-reset pulses of a disabled, faulted axis
     RESET_EVERY = 8
-    #: TCP: a request unanswered for this many periods is taken as lost (the device dropped
-    #: it); until then its connection is busy and gets no new request (see :meth:`_start`)
-    ABANDON_PERIODS = 2
 
     def __init__(self, options: ModbusOptions, axis_options: dict, period_s: float):
         super().__init__(options, axis_options, period_s)
@@ -556,11 +553,6 @@ class ModbusDriver(SplitPhaseDriver):
         self._conn_of: list[int] = []
         self._conn_reqs: list = []
         self._tid = 0
-        self._pend_tid: list[int] = []   # per connection: tid of the request still unanswered (0: none)
-        self._pend_t: list[float] = []   # per connection: when it was sent (perf_counter) [s]
-        self._held: list[bool] = []      # per connection: this cycle's requests wait for that answer
-        self._abandon_s = max(self.ABANDON_PERIODS * period_s, 2 * self.timeout_s)
-        self.counters.update(sent=0, busy=0, abandoned=0)
 
     # --- link
     def _open_transport(self) -> None:
@@ -592,9 +584,6 @@ class ModbusDriver(SplitPhaseDriver):
             self.links = [_open_serial(o)]
             self._conn_of = [0] * len(self.plan.devices)
         self.bufs = [bytearray() for _ in self.links]
-        self._pend_tid = [0] * len(self.links)
-        self._pend_t = [0.0] * len(self.links)
-        self._held = [False] * len(self.links)
         self._set_requests(self.plan.cycle, self.plan.needs)
         fds = [link.fileno() for link in self.links]
         self._wait_fds = fds if o.wait == "select" else []
@@ -690,11 +679,7 @@ class ModbusDriver(SplitPhaseDriver):
 
     # --- io
     def _send(self, r: Request) -> None:
-        c = self._conn_of[r.device]
-        self.links[c].send(r.frame)
-        self.counters["sent"] += 1
-        self._pend_tid[c] = r.tid
-        self._pend_t[c] = time.perf_counter()
+        self.links[self._conn_of[r.device]].send(r.frame)
 
     def _fill(self, c: int) -> None:
         data = self.links[c].recv()
@@ -779,47 +764,14 @@ class ModbusDriver(SplitPhaseDriver):
     def _start(self, reqs) -> None:
         """Send the first request of every connection; each next one goes out when the answer
         to the one before has come (:meth:`_receive`): one transaction in flight per connection
-        (Modbus TCP devices need not queue more; RTU cannot).
-
-        TCP: while a request of an earlier cycle is unanswered on a connection (the device is
-        late), this cycle's requests are held (``busy``; their axes get ``write_error``) and go
-        out as soon as that answer arrives (:meth:`_release_held`), with the newest command. A
-        request sent behind the late one would queue in the device, and a device that serves
-        one transaction at a time may drop it unanswered: pymodbus's server keeps one request
-        per connection, and a 5 ms stall of it lost a command. A request unanswered for
-        ``ABANDON_PERIODS`` periods (at least twice ``timeout_s``) is taken as lost
-        (``abandoned``)."""
+        (Modbus TCP devices need not queue more; RTU cannot)."""
         chain = self._chain
-        tcp = self.options.transport == "tcp"
         for c, creqs in enumerate(self._conn_reqs):
             chain[c] = 0
-            self._held[c] = False
-            if not creqs:
-                continue
-            if tcp and self._pend_tid[c]:
-                self.counters["busy"] += 1
-                for r in creqs:
-                    for i in r.axes:
-                        self.write_error[i] = True
-                self._held[c] = True           # released by _receive, after it has read the link
-                continue
-            self._stamp(creqs[0])
-            self._send(creqs[0])
-            chain[c] = 1
-
-    def _release_held(self, c: int) -> None:
-        """Send connection ``c``'s held requests once the late answer has come (or the late
-        request is abandoned after ``ABANDON_PERIODS`` periods)."""
-        if self._pend_tid[c]:
-            if time.perf_counter() - self._pend_t[c] < self._abandon_s:
-                return
-            self.counters["abandoned"] += 1
-            self._pend_tid[c] = 0
-        self._held[c] = False
-        first = self._conn_reqs[c][0]
-        self._stamp(first)
-        self._send(first)
-        self._chain[c] = 1
+            if creqs:
+                self._stamp(creqs[0])
+                self._send(creqs[0])
+                chain[c] = 1
 
     def _transmit_query(self, seq: int) -> None:
         done = self._done
@@ -861,17 +813,13 @@ class ModbusDriver(SplitPhaseDriver):
                 if not plausible:
                     del buf[0]
                     junk = True
-                    self._pend_tid[c] = 0            # the device answered, garbled: not late
                     continue
                 if len(buf) < 6 + length:
                     break
-                if tid == self._pend_tid[c]:     # the connection's transaction is answered
-                    self._pend_tid[c] = 0
                 pdu = bytes(buf[7:6 + length])
                 if r is not None and not self._pdu_fits(r, pdu):
                     del buf[0]
                     junk = True
-                    self._pend_tid[c] = 0
                     continue
                 del buf[:6 + length]
             else:
@@ -916,7 +864,7 @@ class ModbusDriver(SplitPhaseDriver):
 
     def _known_tid(self, tid: int) -> bool:
         """A transaction id this driver sent recently (a late answer, not junk)."""
-        return 0 <= ((self._tid - tid) & 0xFFFF) < 4 * max(len(self.plan.cycle), 1) + 64
+        return 0 < ((self._tid - tid) & 0xFFFF) < 4 * max(len(self.plan.cycle), 1) + 64
 
     @staticmethod
     def _pdu_fits(r: Request, pdu: bytes) -> bool:
@@ -938,8 +886,6 @@ class ModbusDriver(SplitPhaseDriver):
         for c in range(len(self.links)):
             self._fill(c)
             if not self.bufs[c]:
-                if self._held[c]:
-                    self._release_held(c)
                 continue
             creqs = self._conn_reqs[c]
             k = chain[c] - 1
@@ -959,8 +905,6 @@ class ModbusDriver(SplitPhaseDriver):
                     self._stamp(nxt)
                     self._send(nxt)
                     due[0] = nxt
-            if self._held[c]:
-                self._release_held(c)
         got = self._got
         needs = self._needs
         for i in range(len(got)):
