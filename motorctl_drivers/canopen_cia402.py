@@ -36,9 +36,15 @@ Every cycle:
     base), and every ``host_heartbeat_ms`` the host's heartbeat (CiA 301 §7.2.8.3.2; it comes
     from the cycle itself, so a stalled or dead loop stops it).
   * ``read()``: the TPDOs answering that SYNC are collected (non-blocking, until ``timeout_s``);
-    a TPDO that is missing is a read error (position extrapolated as for every bus driver); when
-    two arrive for one axis the later replaces the earlier, which was late (PDOs carry no
-    sequence number, so freshness is: one per SYNC, inside the read window, newest wins). An
+    a TPDO that is missing is a read error (position extrapolated as for every bus driver).
+    PDOs carry no sequence number; a synchronous TPDO (transmission type 1) is sent once per
+    SYNC, so the driver counts both: the n-th TPDO of an axis answers the n-th SYNC, and only
+    the one that answers the latest SYNC is fresh. Older ones (a drive that was late sends its
+    TPDOs in a burst) are counted ``stale`` and not used: once, under a 2-core load, the first
+    of three late TPDOs was taken as the answer to the latest SYNC, a position three periods
+    (12 mm) old, and the following-error check faulted both axes. A lag that stays the same
+    for ``RESYNC_READS`` reads means a TPDO was lost, not late: the count is realigned
+    (``tpdo_resyncs``). An
     axis counts as enabled only in Operation enabled. The drive's heartbeat is watched: none for
     ``drive_heartbeat_timeout_ms``, or a state other than Operational, is a read error every
     cycle until it is back (the supervisor's bucket then faults the axis). An EMCY from the drive
@@ -273,13 +279,16 @@ class CanopenDriver(SplitPhaseDriver):
     """The CANopen CiA 402 driver. See the module docstring for set-up, cycle and settings.
 
     Counters (``describe()``): as every bus driver, plus ``heartbeat_lost`` (cycles without a
-    fresh drive heartbeat), ``emcy`` (EMCY messages received), ``error_frames``.
+    fresh drive heartbeat), ``emcy`` (EMCY messages received), ``error_frames``,
+    ``tpdo_resyncs`` (TPDO counts realigned after a lost TPDO).
     """
 
     Options = CanopenOptions
     AxisOptions = CanopenAxisOptions
     LAST_WINS = True
     DEFAULT_ROUND_TRIP_S = 100e-6
+    #: reads in a row that end with the same TPDO lag before the count is realigned
+    RESYNC_READS = 2
     NOTIFIER_TIMEOUT_S = 0.02
 
     def __init__(self, options: CanopenOptions, axis_options: dict, period_s: float):
@@ -334,7 +343,12 @@ class CanopenDriver(SplitPhaseDriver):
         self._sync_msg = None
         self._hb_msg = None
         self.drive_info: list[dict] = [{} for _ in range(n)]
-        self.counters.update(heartbeat_lost=0, emcy=0, error_frames=0)
+        self.counters.update(heartbeat_lost=0, emcy=0, error_frames=0, tpdo_resyncs=0)
+        self._syncs = 0                    # SYNCs sent since activate()
+        self._tpdos = [0] * n              # TPDOs received per axis since activate()
+        self._lag_now = [0] * n            # this read: the lag of the newest stale TPDO (0: none)
+        self._lag_prev = [0] * n           # the same at the end of the read before
+        self._lag_reads = [0] * n          # reads in a row that ended with that lag
 
     # ------------------------------------------------------------------ transport
     def _open_transport(self) -> None:
@@ -623,6 +637,12 @@ class CanopenDriver(SplitPhaseDriver):
             self._hb_state[i] = NMT_OPERATIONAL
         while self.bus.recv(timeout=0) is not None:   # heartbeats and the like from the set-up
             pass
+        n = len(self._ax)
+        self._syncs = 0
+        self._tpdos[:] = [0] * n
+        self._lag_now[:] = [0] * n
+        self._lag_prev[:] = [0] * n
+        self._lag_reads[:] = [0] * n
         super()._activate()
         self._hb_count = 0
 
@@ -682,6 +702,7 @@ class CanopenDriver(SplitPhaseDriver):
                 self.counters["send_errors"] += 1
                 self.write_error[i] = True
         bus.send(self._sync_msg, timeout=0)
+        self._syncs += 1
         self._hb_count += 1
         if self._hb_count >= self._hb_every:
             self._hb_count = 0
@@ -707,6 +728,14 @@ class CanopenDriver(SplitPhaseDriver):
                 if len(data) < self._tpdo_len or msg.is_remote_frame:
                     self.counters["bad_frames"] += 1
                     continue
+                self._tpdos[i] += 1
+                lag = self._syncs - self._tpdos[i]
+                if lag > 0:                 # answers an earlier SYNC: late, not this cycle's
+                    self.counters["stale"] += 1
+                    self._lag_now[i] = lag
+                    continue
+                if lag < 0:                 # more TPDOs than SYNCs (the count started behind)
+                    self._tpdos[i] = self._syncs
                 sw = _U16.unpack_from(data, self._sw_off)[0]
                 pos = _I32.unpack_from(data, self._pos_off)[0]
                 if sw != self._statusword[i] and cia402.decode_state(sw) != cia402.decode_state(self._statusword[i]):
@@ -740,6 +769,20 @@ class CanopenDriver(SplitPhaseDriver):
 
     def read(self) -> None:
         super().read()
+        got = self._got
+        now_lag, prev, reads = self._lag_now, self._lag_prev, self._lag_reads
+        for i in range(len(now_lag)):       # a lag that does not shrink: a TPDO was lost
+            lag = now_lag[i]
+            if got[i] or lag == 0:
+                reads[i] = 0
+            else:
+                reads[i] = reads[i] + 1 if lag == prev[i] else 1
+                if reads[i] >= self.RESYNC_READS:
+                    self._tpdos[i] += lag
+                    self.counters["tpdo_resyncs"] += 1
+                    reads[i] = 0
+            prev[i] = lag
+            now_lag[i] = 0
         now = time.perf_counter()
         lim = self._hb_timeout
         for i in range(len(self._hb_last)):

@@ -68,10 +68,11 @@ def _config(tmp_path, **driver) -> dict:
 
 
 @contextlib.contextmanager
-def _drives(loaded, faults=()):
+def _drives(loaded, faults=(), **device):
     """The emulated CiA 402 drives of ``loaded`` (canopen's device side, in a thread) and a
-    driver for them, closed on exit (before the drives stop): yields (devices, driver)."""
-    with device_thread(build_device(loaded, PLANT, faults=list(faults))) as dev:
+    driver for them, closed on exit (before the drives stop): yields (devices, driver).
+    ``device``: more options of :func:`build_device` (e.g. ``late_s``)."""
+    with device_thread(build_device(loaded, PLANT, faults=list(faults), **device)) as dev:
         drv = loaded.make_driver()
         try:
             yield dev, drv
@@ -153,6 +154,27 @@ def test_emcy_latches_an_amplifier_fault_naming_the_code_and_a_disabled_axis_res
             if drv.fault_reason(0) == "":
                 break
         assert drv.fault_reason(0) == "" and not drv.amp_fault[0]
+
+
+def test_a_lost_tpdo_costs_two_reads_then_the_count_is_realigned(tmp_path):
+    """The driver counts SYNCs and TPDOs to tell the TPDO of the latest SYNC from a late one (the
+    late burst is tests/test_canopen_e2e.py). X's TPDO of SYNC 30 is lost: every later one is
+    one behind the count, so it is set aside; two reads with that same lag mean lost, not
+    late, and the count is realigned. Every position taken as fresh answers the latest SYNC."""
+    loaded = config_from_dict(_config(tmp_path), "<co>", check_budget=False)
+    with _drives(loaded, [FaultSpec.parse("drop:X:30:1")]) as (dev, drv):
+        drv.open()
+        errors, behind = [], []
+        for k in range(1, 61):                     # k SYNCs sent
+            exchange(drv, [2.0, 1.0], [True, True], sleep_s=0.002)
+            errors.append(bool(drv.read_error[0]))
+            if not drv.read_error[0]:              # taken as fresh: it answers SYNC k
+                behind.append(k - dev.syncs)       # SYNCs the drive had not served yet
+        c = drv.counters
+    assert max(behind) == 0, (behind, c)
+    assert c["tpdo_resyncs"] == 1 and c["stale"] >= 2, c
+    lost = [k for k, e in enumerate(errors, 1) if e]
+    assert 3 <= len(lost) <= 4 and lost[0] >= 30 and not any(errors[-20:]), (lost, c)   # the loss, 2 set aside
 
 
 def test_a_missing_drive_heartbeat_is_a_read_error(tmp_path):
