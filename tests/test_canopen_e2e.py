@@ -47,6 +47,9 @@ def test_emcy_latches_a_fault_naming_its_code_and_the_enable_follows_the_state_m
     # here the EMCY is the only fault wanted: a loaded VM's stall of the run must not reach the
     # drives' heartbeat consumers (the SIGKILL test below keeps the shipped 50 ms)
     d["driver"].update(heartbeat_consumer_ms=1000, drive_heartbeat_timeout_ms=1000)
+    for ax in d["axes"].values():    # nor a burst of late TPDOs (read errors) or the plant time a
+        ax["limits"]["error_bucket_limit"] = 600      # starved emulator loses: X must reach the
+        ax["limits"]["following_error_m"] = 0.01      # EMCY enabled and moving
     cfg.write_text(__import__("yaml").safe_dump(d, sort_keys=False))
     start = round(0.8 * rate)                       # the SYNC count 0.8 s in: X is moving
     log_path = tmp_path / "run.log"

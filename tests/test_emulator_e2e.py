@@ -49,6 +49,19 @@ PLANT = RIGID_PLANT
 DURATION_S = 3.0
 EXPECTED_RATE_HZ = {"serial": 2000.0, "can": 1000.0, "modbus": 1500.0, "canopen": 500.0}
 TOLERANCE = 0.20
+#: a run whose cycle was held up this many periods (lateness or a read) was starved by the host:
+#: the emulator, which steps its plant per command, then no longer stands in for a machine
+STARVED_PERIODS = 5
+ATTEMPTS = 3
+
+
+def _starved(log_path, rate: float) -> float:
+    """The longest hold-up of a run's cycle [s] (lateness or read) when it exceeds
+    ``STARVED_PERIODS`` periods, else 0."""
+    from motorctl.recorder.runlog import read_log
+    log = read_log(str(log_path))
+    worst = max(float(log.col("lateness_ns").max()), float(log.col("read_ns").max())) * 1e-9
+    return worst if worst > STARVED_PERIODS / rate else 0.0
 
 
 @functools.lru_cache(maxsize=None)
@@ -93,15 +106,26 @@ def test_closed_loop_through_the_protocol_matches_the_sim_driver(transport, tmp_
     cfg.write_text(yaml.safe_dump(d, sort_keys=False))
     assert rate == EXPECTED_RATE_HZ[transport], f"{transport}: budget now allows {rate} Hz"
     prefix = namespace_for(transport)
-    log = tmp_path / "run.log"
-    with Emulator(transport, cfg, plant=PLANT, watchdog_s=LOOPBACK_WATCHDOG_S, prefix=prefix) as emu:
-        r = run_cli(["run", str(cfg), "--controller", "c2", "--duration", str(DURATION_S), "--log", str(log)],
-                    prefix=prefix, timeout_s=90)
-        emu_err = emu.stderr()
-    got = parse_run_table(r.stdout)
-    assert set(got) == {"X", "Y"}, f"rc {r.returncode}\n{r.stdout}\n{r.stderr}\n{emu_err}"
-    assert f"at {rate:.0f} Hz (wall clock)" in r.stdout
     ref = _sim_reference(rate)
+    # A run the host starved (a cycle held up STARVED_PERIODS periods: measured on this shared
+    # VM, reads of 5-9.6 ms at 2 kHz) is run again, at most ATTEMPTS times: the emulated plant
+    # steps per command, so starvation is lost plant time a machine would not have. A run that
+    # was not starved is judged as it is.
+    for attempt in range(1, ATTEMPTS + 1):
+        log = tmp_path / f"run{attempt}.log"
+        with Emulator(transport, cfg, plant=PLANT, watchdog_s=LOOPBACK_WATCHDOG_S, prefix=prefix) as emu:
+            r = run_cli(["run", str(cfg), "--controller", "c2", "--duration", str(DURATION_S), "--log", str(log)],
+                        prefix=prefix, timeout_s=90)
+            emu_err = emu.stderr()
+        got = parse_run_table(r.stdout)
+        assert set(got) == {"X", "Y"}, f"rc {r.returncode}\n{r.stdout}\n{r.stderr}\n{emu_err}"
+        assert f"at {rate:.0f} Hz (wall clock)" in r.stdout
+        ok = all(got[a]["fault"] == "" and all(abs(got[a][k] - ref[a][k]) <= TOLERANCE * ref[a][k]
+                                               for k in ("e_M_um", "e_F_um", "L2_um")) for a in ("X", "Y"))
+        held = _starved(log, rate)
+        if ok or not held or attempt == ATTEMPTS:
+            break
+        print(f"{transport}: attempt {attempt} starved by the host (a cycle held up {held * 1e3:.1f} ms); again")
     for axis in ("X", "Y"):   # shown with pytest -s: the figures of the closing note
         print(f"{transport} {rate:.0f} Hz {axis}: " + ", ".join(
             f"{k} {got[axis][k]:.2f} (sim {ref[axis][k]:.2f})" for k in ("e_M_um", "e_F_um", "L2_um")))
