@@ -43,7 +43,7 @@ Every cycle:
     TPDOs in a burst) are counted ``stale`` and not used: once, under a 2-core load, the first
     of three late TPDOs was taken as the answer to the latest SYNC, a position three periods
     (12 mm) old, and the following-error check faulted both axes. A lag that stays the same
-    for ``RESYNC_READS`` reads means a TPDO was lost, not late: the count is realigned
+    for two reads in a row means a TPDO was lost, not late: the count is realigned
     (``tpdo_resyncs``). An
     axis counts as enabled only in Operation enabled. The drive's heartbeat is watched: none for
     ``drive_heartbeat_timeout_ms``, or a state other than Operational, is a read error every
@@ -287,8 +287,6 @@ class CanopenDriver(SplitPhaseDriver):
     AxisOptions = CanopenAxisOptions
     LAST_WINS = True
     DEFAULT_ROUND_TRIP_S = 100e-6
-    #: reads in a row that end with the same TPDO lag before the count is realigned
-    RESYNC_READS = 2
     NOTIFIER_TIMEOUT_S = 0.02
 
     def __init__(self, options: CanopenOptions, axis_options: dict, period_s: float):
@@ -347,8 +345,7 @@ class CanopenDriver(SplitPhaseDriver):
         self._syncs = 0                    # SYNCs sent since activate()
         self._tpdos = [0] * n              # TPDOs received per axis since activate()
         self._lag_now = [0] * n            # this read: the lag of the newest stale TPDO (0: none)
-        self._lag_prev = [0] * n           # the same at the end of the read before
-        self._lag_reads = [0] * n          # reads in a row that ended with that lag
+        self._lag_prev = [0] * n           # the same at the end of the read before (0: fresh or none)
 
     # ------------------------------------------------------------------ transport
     def _open_transport(self) -> None:
@@ -642,7 +639,6 @@ class CanopenDriver(SplitPhaseDriver):
         self._tpdos[:] = [0] * n
         self._lag_now[:] = [0] * n
         self._lag_prev[:] = [0] * n
-        self._lag_reads[:] = [0] * n
         super()._activate()
         self._hb_count = 0
 
@@ -770,19 +766,18 @@ class CanopenDriver(SplitPhaseDriver):
     def read(self) -> None:
         super().read()
         got = self._got
-        now_lag, prev, reads = self._lag_now, self._lag_prev, self._lag_reads
-        for i in range(len(now_lag)):       # a lag that does not shrink: a TPDO was lost
+        now_lag, prev = self._lag_now, self._lag_prev
+        for i in range(len(now_lag)):
             lag = now_lag[i]
-            if got[i] or lag == 0:
-                reads[i] = 0
-            else:
-                reads[i] = reads[i] + 1 if lag == prev[i] else 1
-                if reads[i] >= self.RESYNC_READS:
-                    self._tpdos[i] += lag
-                    self.counters["tpdo_resyncs"] += 1
-                    reads[i] = 0
-            prev[i] = lag
             now_lag[i] = 0
+            if got[i] or lag == 0:
+                prev[i] = 0
+            elif lag == prev[i]:            # the same lag two reads in a row: a TPDO was lost
+                self._tpdos[i] += lag
+                self.counters["tpdo_resyncs"] += 1
+                prev[i] = 0
+            else:
+                prev[i] = lag
         now = time.perf_counter()
         lim = self._hb_timeout
         for i in range(len(self._hb_last)):
