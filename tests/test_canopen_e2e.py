@@ -41,6 +41,22 @@ PLANT = RIGID_PLANT
 CONSUMER_S = 0.050          # heartbeat_consumer_ms of configs/gantry-canopen.yaml
 
 
+def _faulted_run(tmp_path, d: dict, cfg: Path, fault: str, duration_s: float, **emulator):
+    """``motorctl run`` (C2) of config ``d`` (written to ``cfg``) against the emulated drives
+    with ``fault`` injected, in a private namespace: (run result, emulator stderr, run-table
+    rows, run-log path). ``emulator``: more :class:`Emulator` options (e.g. ``late_s``)."""
+    cfg.write_text(__import__("yaml").safe_dump(d, sort_keys=False))
+    log_path = tmp_path / "run.log"
+    with NetNamespace() as ns, Emulator("canopen", cfg, plant=PLANT, prefix=ns.prefix, faults=[fault],
+                                        **emulator) as emu:
+        r = run_cli(["run", str(cfg), "--controller", "c2", "--duration", f"{duration_s:g}", "--log", str(log_path)],
+                    prefix=ns.prefix, timeout_s=90)
+        err = emu.stderr()
+    table = parse_run_table(r.stdout)
+    assert set(table) == {"X", "Y"}, f"{r.stdout}\n{r.stderr}\n{err}"
+    return r, err, table, log_path
+
+
 def test_emcy_latches_a_fault_naming_its_code_and_the_enable_follows_the_state_machine(tmp_path):
     d, cfg, rate = loopback_e2e_config("canopen", CONFIGS, tmp_path)
     assert rate == 500.0 and d["driver"]["heartbeat_consumer_ms"] == CONSUMER_S * 1e3
@@ -50,16 +66,8 @@ def test_emcy_latches_a_fault_naming_its_code_and_the_enable_follows_the_state_m
     for ax in d["axes"].values():    # nor a burst of late TPDOs (read errors) or the plant time a
         ax["limits"]["error_bucket_limit"] = 600      # starved emulator loses: X must reach the
         ax["limits"]["following_error_m"] = 0.01      # EMCY enabled and moving
-    cfg.write_text(__import__("yaml").safe_dump(d, sort_keys=False))
     start = round(0.8 * rate)                       # the SYNC count 0.8 s in: X is moving
-    log_path = tmp_path / "run.log"
-    with NetNamespace() as ns, Emulator("canopen", cfg, plant=PLANT, prefix=ns.prefix,
-                                        faults=[f"emcy=0x2310:X:{start}"]) as emu:
-        r = run_cli(["run", str(cfg), "--controller", "c2", "--duration", "1.2", "--log", str(log_path)],
-                    prefix=ns.prefix, timeout_s=90)
-        err = emu.stderr()
-    table = parse_run_table(r.stdout)
-    assert set(table) == {"X", "Y"}, f"{r.stdout}\n{r.stderr}\n{err}"
+    r, err, table, log_path = _faulted_run(tmp_path, d, cfg, f"emcy=0x2310:X:{start}", 1.2)
     assert r.returncode == 1 and "amplifier fault" in table["X"]["fault"] and table["Y"]["fault"] == "", r.stdout
     # the run table names what the drive said: the EMCY code and its meaning
     assert "drive: EMCY 0x2310 continuous over-current from canopen node 1 (axis X)" in table["X"]["fault"], r.stdout
@@ -138,16 +146,8 @@ def test_a_late_drive_costs_a_few_cycles_not_a_stale_position(tmp_path):
     d["driver"].update(heartbeat_consumer_ms=1000, drive_heartbeat_timeout_ms=1000)
     for ax in d["axes"].values():     # only the burst's own losses count here (see test_emulator_e2e)
         ax["limits"]["error_bucket_limit"] = 600
-    cfg.write_text(__import__("yaml").safe_dump(d, sort_keys=False))
     start = round(0.7 * rate)                       # the SYNC count 0.7 s in: X moves at ~2 m/s
-    log_path = tmp_path / "run.log"
-    with NetNamespace() as ns, Emulator("canopen", cfg, plant=PLANT, prefix=ns.prefix, late_s=0.006,
-                                        faults=[f"late:X:{start}:1"]) as emu:
-        r = run_cli(["run", str(cfg), "--controller", "c2", "--duration", "1.0", "--log", str(log_path)],
-                    prefix=ns.prefix, timeout_s=90)
-        err = emu.stderr()
-    table = parse_run_table(r.stdout)
-    assert set(table) == {"X", "Y"}, f"{r.stdout}\n{r.stderr}\n{err}"
+    r, _err, table, log_path = _faulted_run(tmp_path, d, cfg, f"late:X:{start}:1", 1.0, late_s=0.006)
     c = read_log(str(log_path)).header["driver"]["counters"]
     assert table["X"]["fault"] == "" and table["Y"]["fault"] == "", f"{r.stdout}\n{c}"
     assert c["timeouts"] >= 1 and c["stale"] >= 2, c          # the burst was there and set aside

@@ -14,7 +14,7 @@ import pytest
 from motorctl.config import config_from_dict, load_yaml
 from motorctl.driver import LifecycleError
 from motorctl_emulators.device import build_device
-from motorctl_emulators.harness import device_thread
+from motorctl_emulators.harness import device_thread, exchange
 from motorctl_emulators.plant_bank import FaultSpec
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -49,13 +49,9 @@ def _drive(loaded, dev, cycles: int):
     try:
         drv.open()
         y0 = drv.position_m.copy()
-        u = np.array([2.0, -2.0])
-        en = np.ones(2, dtype=bool)
         errors = 0
         for _ in range(cycles):               # bounded
-            drv.write(u, en)
-            time.sleep(0.003)                 # the device thread needs the GIL to answer
-            drv.read()
+            exchange(drv, [2.0, -2.0], [True, True], 1, sleep_s=0.003)
             errors += int(drv.read_error.any())
         moved = drv.position_m - y0
         # stop commanding: the device's watchdog trips and the next answer carries the fault
@@ -93,7 +89,6 @@ def test_a_lost_answer_after_a_run_of_losses_is_stood_in_for_by_one_cycles_step(
     """Answers to commands 21-23 are lost, 24 comes, 25 is lost again. The stand-in for 25 adds
     one cycle's step: the displacement measured at 24 divided over the four cycles it spans
     (it added all four: the stand-in ran three steps ahead of the plant)."""
-    import time
     d = _config("gantry-serial.yaml", tmp_path, port=str(tmp_path / "ttyEMU"))
     loaded = config_from_dict(d, "<inprocess>", check_budget=False)
     faults = [FaultSpec.parse("drop:*:20:3"), FaultSpec.parse("drop:*:24:1")]   # 0-based command counts
@@ -102,10 +97,8 @@ def test_a_lost_answer_after_a_run_of_losses_is_stood_in_for_by_one_cycles_step(
         try:
             drv.open()
             lost = []
-            for c in range(1, 26):                # bounded
-                drv.write(np.array([2.0, -2.0]), np.ones(2, dtype=bool))
-                time.sleep(0.003)                 # the device thread needs the GIL to answer
-                drv.read()
+            for _ in range(25):                   # bounded
+                exchange(drv, [2.0, -2.0], [True, True], 1, sleep_s=0.003)
                 lost.append(bool(drv.read_error[0]))
             step = drv._step[0]
             gap = drv.position_m[0] - dev.bank.plants[0].measured()   # stand-in minus the plant
@@ -125,7 +118,6 @@ def test_modbus_rtu_over_a_pty(tmp_path):
 
 
 def test_lost_link_is_flagged_every_cycle_and_reconnect_happens_outside_the_loop(tmp_path):
-    import time
 
     from motorctl_emulators.harness import free_port
     d = _config("gantry-serial.yaml", tmp_path, port=f"socket://127.0.0.1:{free_port()}")
@@ -137,17 +129,13 @@ def test_lost_link_is_flagged_every_cycle_and_reconnect_happens_outside_the_loop
             u, en = np.zeros(2), np.ones(2, dtype=bool)
             flags = []
             for _ in range(12):                        # command 5 drops the link
-                drv.write(u, en)
-                time.sleep(0.01)
-                drv.read()
+                exchange(drv, u, en, 1, sleep_s=0.01)
                 flags.append(bool(drv.read_error.any() or drv.write_error.any()))
             assert not any(flags[:5]) and all(flags[6:]), flags
             assert not drv.connected
             drv.reconnect()                            # blocking, outside the cycle
             assert drv.connected
-            drv.write(u, np.zeros(2, dtype=bool))      # the loop decides what to enable: here nothing
-            time.sleep(0.01)
-            drv.read()
+            exchange(drv, u, [False, False], 1, sleep_s=0.01)   # the loop decides what to enable: here nothing
             assert not drv.read_error.any() and not drv.write_error.any()
             assert dev.bank.enabled == [False, False]  # the device saw the axes disabled
         finally:
@@ -157,7 +145,6 @@ def test_lost_link_is_flagged_every_cycle_and_reconnect_happens_outside_the_loop
 def test_lifecycle_deactivate_reaches_the_device_and_activate_starts_again(tmp_path):
     """configure → activate → cycles → deactivate (the device has applied 0 V with the amplifier
     off when it returns) → activate again → close; nothing outside that order is allowed."""
-    import time
     d = _config("gantry-serial.yaml", tmp_path, port=str(tmp_path / "ttyLC"))
     loaded = config_from_dict(d, "<inprocess>", check_budget=False)
     with _serving(loaded) as dev:
@@ -168,10 +155,7 @@ def test_lifecycle_deactivate_reaches_the_device_and_activate_starts_again(tmp_p
             drv.configure()
             assert drv.state == "inactive" and drv.connected and dev.bank.commands == [0, 0]
             drv.activate()
-            for _ in range(5):
-                drv.write(np.array([1.0, 1.0]), np.ones(2, dtype=bool))
-                time.sleep(0.003)
-                drv.read()
+            exchange(drv, [1.0, 1.0], [True, True], 5)
             assert dev.bank.enabled == [True, True]
             drv.deactivate()
             assert drv.state == "inactive"

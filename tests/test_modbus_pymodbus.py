@@ -82,7 +82,6 @@ class PlantBehind:
         self.hold: dict[int, int] = {}
         self.coil: dict[int, bool] = {}
         self.requests: dict[int, int] = {}
-        self.served = 0
 
     def _bit(self, b) -> bool:
         if b.table == "coil":
@@ -101,8 +100,7 @@ class PlantBehind:
     async def __call__(self, fc, start, address, count, registers, values):
         from pymodbus.constants import ExcCodes
         self.requests[fc] = self.requests.get(fc, 0) + 1
-        self.served += 1
-        if self.served == self.stall[0]:
+        if sum(self.requests.values()) == self.stall[0]:
             time.sleep(self.stall[1])  # noqa: ASYNC251  (blocks the event loop on purpose: a late device)
         if fc == 23 and self.no_fc23:
             return ExcCodes.ILLEGAL_FUNCTION
