@@ -12,8 +12,10 @@ around a private hook, the hook is what a driver writes)::
                                               disabled (may block)                active
     read() / write(u_V, enable)               cyclic, inside the 5 kHz loop: never block past
                                               the deadline, never raise, never allocate arrays
-    deactivate() -> _deactivate()             0 V with every amplifier disabled, stop cyclic
-                                              exchange (may block)                inactive
+    deactivate() -> _stop(), _deactivate()    0 V with every amplifier disabled as a
+                                              transaction of its own, answered and read
+                                              back (a :class:`StopCheck` per axis), then
+                                              stop cyclic exchange (may block)    inactive
     close()      -> _close()                  release the transport (deactivates first if
                                               needed; idempotent)                 finalized
 
@@ -70,6 +72,23 @@ class BusBudget:
 
 
 @dataclass(frozen=True)
+class StopCheck:
+    """What one axis's device holds after :meth:`Driver.deactivate`, as read back from it.
+
+    Attributes:
+        axis: the axis name.
+        confirmed: the device answered the 0 V, amplifier-off command and what was read back
+            afterwards says it holds 0 V with the amplifier off.
+        held: what was read back, one line (e.g. "HR 100 = 0 (0.000 V), HR 101 bit 0 = 0
+            (amplifier off)"), or why nothing could be (e.g. "no answer within 1 s").
+    """
+
+    axis: str
+    confirmed: bool
+    held: str
+
+
+@dataclass(frozen=True)
 class Interface:
     """A named command or state interface of one axis, with its unit and limits."""
 
@@ -103,6 +122,8 @@ class Driver(abc.ABC):
 
     Options: ClassVar[type[BaseModel]] = NoOptions
     AxisOptions: ClassVar[type[BaseModel]] = NoOptions
+    #: longest wait of :meth:`deactivate` for the device to answer and confirm the stop [s]
+    STOP_TIMEOUT_S: ClassVar[float] = 1.0
 
     def __init__(self, options: BaseModel, axis_options: dict[str, BaseModel], period_s: float):
         self.options = options
@@ -115,15 +136,22 @@ class Driver(abc.ABC):
         self.write_error = np.zeros(n, dtype=bool)
         self.amp_fault = np.zeros(n, dtype=bool)
         self.state = "unconfigured"
+        self.stop_checks: list[StopCheck] = []
+        #: set-up notices, one line each, prefixed "notice: " or "warning: " (what configure
+        #: cleared on the device, optional objects it does not have, a missing watchdog); the
+        #: CLI prints them, the daemon journals them, the run-log header keeps them
+        self.notices: list[str] = []
 
     # ------------------------------------------------------------------ lifecycle
     def configure(self) -> None:
-        """Reach the device and set it up (may block; never inside the cycle).
+        """Reach the device and set it up (may block; never inside the cycle). What the set-up
+        found and changed on the way is in :attr:`notices`.
 
         Raises:
             LifecycleError: not unconfigured. OSError: the device cannot be reached.
         """
         self._require("configure", "unconfigured")
+        self.notices = []
         self._configure()
         self.state = "inactive"
 
@@ -137,17 +165,43 @@ class Driver(abc.ABC):
         self._activate()
         self.state = "active"
 
-    def deactivate(self) -> None:
-        """0 V with every amplifier disabled, then stop cyclic exchange. No-op unless active."""
+    def deactivate(self) -> list[StopCheck]:
+        """0 V with every amplifier disabled, confirmed by the device, then stop cyclic exchange.
+
+        The stop is a transaction of its own (:meth:`_stop`): what is still in flight is
+        settled first (a device that serves one request at a time drops one queued behind a
+        late one), the 0 V, amplifier-off command is sent until the device answers it (at most
+        ``STOP_TIMEOUT_S``), and what the device holds is read back. Never raises for a device
+        that does not confirm: that is in the returned checks (also kept in
+        :attr:`stop_checks`). No-op unless active (returns the checks of the last stop).
+
+        Returns:
+            one :class:`StopCheck` per axis, in loop order.
+        """
         if self.state != "active":
-            return
+            return list(self.stop_checks)
+        checks = None
         try:
-            self.write(np.zeros(len(self.axis_names)), np.zeros(len(self.axis_names), dtype=bool))
+            checks = self._stop(self.STOP_TIMEOUT_S)
+        except Exception as exc:  # noqa: BLE001  (stopping anyway; the reason is reported)
+            text = str(exc).strip().splitlines()
+            why = text[0] if text else type(exc).__name__
+            checks = [StopCheck(a, False, f"the stop failed: {why}") for a in self.axis_names]
         finally:
+            if checks is None:
+                checks = [StopCheck(a, False, "the stop was interrupted") for a in self.axis_names]
+            checks = [StopCheck(str(c.axis), bool(c.confirmed), str(c.held)) for c in checks]
+            self.stop_checks = checks
             try:
                 self._deactivate()
             finally:
                 self.state = "inactive"
+        return list(checks)
+
+    @property
+    def stop_confirmed(self) -> bool:
+        """True when the last :meth:`deactivate` was confirmed on every axis."""
+        return bool(self.stop_checks) and all(c.confirmed for c in self.stop_checks)
 
     def close(self) -> None:
         """Deactivate if needed and release the transport. Idempotent; may block."""
@@ -166,6 +220,10 @@ class Driver(abc.ABC):
         self.configure()
         self.activate()
 
+    def _notice(self, text: str, warning: bool = False) -> None:
+        """Add a set-up notice (outside the cycle only)."""
+        self.notices.append(("warning: " if warning else "notice: ") + text)
+
     def _require(self, what: str, state: str) -> None:
         if self.state != state:
             raise LifecycleError(f"{type(self).__name__}.{what}() needs state {state!r}, "
@@ -177,8 +235,17 @@ class Driver(abc.ABC):
     def _activate(self) -> None:
         """Hook: start cyclic exchange."""
 
+    def _stop(self, timeout_s: float) -> list[StopCheck]:
+        """Hook: command 0 V with every amplifier off, wait (at most ``timeout_s`` [s]) for the
+        device to answer, read back what it holds. The default writes the command once and
+        confirms nothing (a driver that cannot read back must say so)."""
+        n = len(self.axis_names)
+        self.write(np.zeros(n), np.zeros(n, dtype=bool))
+        return [StopCheck(a, False, f"{type(self).__name__} cannot read back what the device holds")
+                for a in self.axis_names]
+
     def _deactivate(self) -> None:
-        """Hook: stop cyclic exchange (0 V and amplifiers off were already written)."""
+        """Hook: stop cyclic exchange (0 V and amplifiers off were already sent by :meth:`_stop`)."""
 
     def _close(self) -> None:
         """Hook: release the transport."""

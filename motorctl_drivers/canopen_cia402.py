@@ -97,7 +97,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from motorctl.driver import BusBudget
+from motorctl.driver import BusBudget, StopCheck
 from motorctl.schema import StrictModel
 from motorctl_drivers import cia402
 from motorctl_drivers.can_bus import frame_bits, open_bus
@@ -157,6 +157,7 @@ class CanopenOptions(CommonOptions):
     sdo_timeout_s: Annotated[float, Field(gt=0, le=10)] = 0.3
     nmt_timeout_s: Annotated[float, Field(gt=0, le=30)] = 1.0
     round_trip_exchanges: Annotated[int, Field(ge=1, le=10000)] = 50
+    host_watchdog: Literal["heartbeat", "none"] = "heartbeat"
 
     @model_validator(mode="after")
     def _heartbeats(self):
@@ -170,6 +171,59 @@ class CanopenOptions(CommonOptions):
         return self
 
 
+#: SDO abort codes that mean "the drive has no such object" (CiA 301 Table 22)
+ABSENT_ABORT_CODES = (0x06020000, 0x06090011)
+
+
+class AbsentObject(OSError):
+    """The drive answered an SDO access with "object (or sub-index) does not exist"."""
+
+
+#: one mapped object: [index, subindex, bits] (bits 8, 16 or 32)
+PdoEntry = Annotated[list[int], Field(min_length=3, max_length=3)]
+
+
+class PdoLayout(StrictModel):
+    """One PDO of a drive whose mapping is fixed: its COB-ID and the objects it carries, in
+    order, as (index, subindex, bits)."""
+
+    cob_id: Annotated[int, Field(ge=1, le=0x7FF)]
+    map: list[PdoEntry]
+
+
+class FixedPdos(StrictModel):
+    """A drive whose PDO mapping is hard-wired (CiA 301 allows a static mapping): the RPDO
+    must carry the controlword 0x6040/16 and the target torque 0x6071/16, the TPDO the
+    statusword 0x6041/16 and the position actual value 0x6064/32 (other objects may sit
+    between them; they are sent as 0 / ignored), each at most 8 bytes."""
+
+    rpdo: PdoLayout
+    tpdo: PdoLayout
+
+    @model_validator(mode="after")
+    def _check(self):
+        for what, pdo, need in (("rpdo", self.rpdo, cia402.RX_MAP), ("tpdo", self.tpdo, cia402.TX_MAP)):
+            for k, (index, sub, bits) in enumerate(pdo.map):
+                if not (0x1000 <= index <= 0xFFFF and 0 <= sub <= 255 and bits in (8, 16, 32)):
+                    raise ValueError(f"{what}.map[{k}] = [{index}, {sub}, {bits}]: allowed [index 0x1000-0xFFFF, "
+                                     f"subindex 0-255, bits 8 | 16 | 32]")
+            for index, sub, bits in need:
+                if (index, sub, bits) not in [tuple(e) for e in pdo.map]:
+                    raise ValueError(f"{what}.map must carry 0x{index:04X}:{sub:02X} ({bits} bits)")
+            if sum(e[2] for e in pdo.map) > 64:
+                raise ValueError(f"{what}.map holds more than 8 bytes (one classic CAN frame)")
+        return self
+
+    @staticmethod
+    def offsets(pdo: PdoLayout) -> dict[int, int]:
+        """Object index → byte offset in the PDO."""
+        out, bit = {}, 0
+        for index, _sub, bits in pdo.map:
+            out.setdefault(index, bit // 8)
+            bit += bits
+        return out
+
+
 class CanopenAxisOptions(StrictModel):
     """YAML ``axes.NAME.driver`` of the CANopen CiA 402 driver."""
 
@@ -181,6 +235,15 @@ class CanopenAxisOptions(StrictModel):
     rated_torque: Annotated[int, Field(ge=0)] | None = None
     encoder_m_per_count: Annotated[float, Field(gt=0)] = 0.5e-6
     sdo: list[SdoWrite] = []
+    fixed_pdos: FixedPdos | None = None
+
+    def rpdo_cob(self) -> int:
+        """The COB-ID of this axis's RPDO (declared, or the predefined one of ``rpdo``)."""
+        return self.fixed_pdos.rpdo.cob_id if self.fixed_pdos else rpdo_cob_id(self.rpdo, self.node_id)
+
+    def tpdo_cob(self) -> int:
+        """The COB-ID of this axis's TPDO (declared, or the predefined one of ``tpdo``)."""
+        return self.fixed_pdos.tpdo.cob_id if self.fixed_pdos else tpdo_cob_id(self.tpdo, self.node_id)
 
 
 def rpdo_cob_id(n: int, node_id: int) -> int:
@@ -299,7 +362,7 @@ class CanopenDriver(SplitPhaseDriver):
             raise ValueError(f"canopen: two axes share a node_id ({nodes})")
         if options.host_node_id in nodes:
             raise ValueError(f"canopen: host_node_id {options.host_node_id} is also a drive's node_id")
-        ids = [rpdo_cob_id(o.rpdo, o.node_id) for o in self._ax] + [tpdo_cob_id(o.tpdo, o.node_id) for o in self._ax]
+        ids = [o.rpdo_cob() for o in self._ax] + [o.tpdo_cob() for o in self._ax]
         reserved = {options.sync_cob_id, 0x700 + options.host_node_id}
         clash = [i for i in ids if i in reserved or ids.count(i) > 1]
         if clash:
@@ -312,7 +375,7 @@ class CanopenDriver(SplitPhaseDriver):
         self._m_per_count = [o.encoder_m_per_count for o in self._ax]
         self._sm = [cia402.PowerStateMachine() for _ in range(n)]
         self._statusword = [0] * n
-        self._tpdo_axis = {tpdo_cob_id(o.tpdo, o.node_id): i for i, o in enumerate(self._ax)}
+        self._tpdo_axis = {o.tpdo_cob(): i for i, o in enumerate(self._ax)}
         self._hb_axis = {0x700 + o.node_id: i for i, o in enumerate(self._ax)}
         self._emcy_axis = {0x80 + o.node_id: i for i, o in enumerate(self._ax)}
         self._hb_last = [0.0] * n          # perf_counter of the drive's last heartbeat
@@ -329,10 +392,20 @@ class CanopenDriver(SplitPhaseDriver):
         # the statusword trace per axis: preallocated ring of (statusword) at each state change
         self._trace = [[0] * TRACE_LEN for _ in range(n)]
         self._trace_n = [0] * n
-        # PDO layout (byte offsets), confirmed by the read-back of the mapping in configure()
-        self._cw_off, self._tt_off = 0, 2
-        self._sw_off, self._pos_off = 0, 2
-        self._tpdo_len = 6
+        # PDO layout per axis (byte offsets and lengths): the driver's own mapping, confirmed by
+        # its read-back in configure(), or the declared fixed mapping
+        self._cw_off, self._tt_off = [0] * n, [2] * n
+        self._sw_off, self._pos_off = [0] * n, [2] * n
+        self._rpdo_len, self._tpdo_len = [4] * n, [6] * n
+        for i, o in enumerate(self._ax):
+            if o.fixed_pdos is not None:
+                rx, tx = FixedPdos.offsets(o.fixed_pdos.rpdo), FixedPdos.offsets(o.fixed_pdos.tpdo)
+                self._cw_off[i], self._tt_off[i] = rx[cia402.CONTROLWORD], rx[cia402.TARGET_TORQUE]
+                self._sw_off[i], self._pos_off[i] = tx[cia402.STATUSWORD], tx[cia402.POSITION_ACTUAL]
+                self._rpdo_len[i] = sum(e[2] for e in o.fixed_pdos.rpdo.map) // 8
+                self._tpdo_len[i] = sum(e[2] for e in o.fixed_pdos.tpdo.map) // 8
+        self._has_consumer = [True] * n     # the drive has the heartbeat consumer 0x1016
+        self._changed: list[dict] = [{} for _ in range(n)]   # (index, sub) -> bytes before configure
         self.bus = None
         self.network = None
         self.nodes = []
@@ -360,13 +433,49 @@ class CanopenDriver(SplitPhaseDriver):
             pass
         self.network = canopen.Network(self.bus)     # no connect(): the notifier is ours to start/stop
         self.nodes = []
-        for o in self._ax:
+        for i, o in enumerate(self._ax):
             node = canopen.RemoteNode(o.node_id, cia402_object_dictionary(o.node_id))
             node.sdo.RESPONSE_TIMEOUT = self.options.sdo_timeout_s
+            self._track_downloads(i, node)
             self.network.add_node(node)
             self.nodes.append(node)
         self._start_notifier()
         self._build_messages()
+
+    def _track_downloads(self, i: int, node) -> None:
+        """Keep, for every object the set-up writes on drive i, what it held before (uploaded
+        just before the first write), so a failed configure can put it back."""
+        sdo = node.sdo
+        download = sdo.download
+        changed = self._changed[i]
+
+        def tracked(index, subindex, data, force_segment=False):
+            key = (index, subindex)
+            if self.state == "unconfigured" and key not in changed:
+                try:
+                    changed[key] = bytes(sdo.upload(index, subindex))
+                except Exception:  # noqa: BLE001  (nothing to restore: write-only, absent, ...)
+                    changed[key] = None
+            return download(index, subindex, data, force_segment)
+
+        sdo.download = tracked
+        sdo.untracked_download = download
+
+    def _restore(self) -> int:
+        """Write back, in reverse order, what configure changed on the drives (best effort).
+        Returns how many objects were restored."""
+        n = 0
+        for i, node in enumerate(self.nodes):
+            for (index, sub), old in reversed(list(self._changed[i].items())):
+                if old is None:
+                    continue
+                try:
+                    node.sdo.untracked_download(index, sub, old)
+                    n += 1
+                except Exception:  # noqa: BLE001  (best effort: the drive may be gone)
+                    pass
+            self._changed[i].clear()
+        return n
 
     def _start_notifier(self) -> None:
         import can
@@ -385,9 +494,10 @@ class CanopenDriver(SplitPhaseDriver):
         import can
         o = self.options
         fd = o.fd
-        self._rx_msgs = [can.Message(arbitration_id=rpdo_cob_id(a.rpdo, a.node_id), is_extended_id=False,
-                                     data=bytearray(4), dlc=4, is_fd=fd, bitrate_switch=fd, check=True)
-                         for a in self._ax]
+        self._rx_msgs = [can.Message(arbitration_id=a.rpdo_cob(), is_extended_id=False,
+                                     data=bytearray(self._rpdo_len[i]), dlc=self._rpdo_len[i], is_fd=fd,
+                                     bitrate_switch=fd, check=True)
+                         for i, a in enumerate(self._ax)]
         self._sync_msg = can.Message(arbitration_id=o.sync_cob_id, is_extended_id=False, data=bytearray(0), dlc=0)
         self._hb_msg = can.Message(arbitration_id=0x700 + o.host_node_id, is_extended_id=False,
                                    data=bytearray((NMT_OPERATIONAL,)), dlc=1)
@@ -422,7 +532,8 @@ class CanopenDriver(SplitPhaseDriver):
             raise ConnectionError(f"{self._where(i)}: no SDO answer reading 0x{index:04X}:{sub:02X} "
                                   f"within {self.options.sdo_timeout_s:g} s ({one_line(exc)})") from None
         except SdoAbortedError as exc:
-            raise OSError(f"{self._where(i)}: reading 0x{index:04X}:{sub:02X}: {sdo_abort_text(exc)}") from None
+            cls = AbsentObject if getattr(exc, "code", None) in ABSENT_ABORT_CODES else OSError
+            raise cls(f"{self._where(i)}: reading 0x{index:04X}:{sub:02X}: {sdo_abort_text(exc)}") from None
 
     def _read_uint(self, i: int, index: int, sub: int = 0, signed: bool = False) -> int:
         return int.from_bytes(self._upload(i, index, sub), "little", signed=signed)
@@ -436,13 +547,24 @@ class CanopenDriver(SplitPhaseDriver):
             raise ConnectionError(f"{self._where(i)}: no SDO answer writing 0x{index:04X}:{sub:02X} "
                                   f"within {self.options.sdo_timeout_s:g} s ({one_line(exc)})") from None
         except SdoAbortedError as exc:
-            raise OSError(f"{self._where(i)}: writing 0x{index:04X}:{sub:02X} = 0x{data[::-1].hex()}: "
-                          f"{sdo_abort_text(exc)}") from None
+            cls = AbsentObject if getattr(exc, "code", None) in ABSENT_ABORT_CODES else OSError
+            raise cls(f"{self._where(i)}: writing 0x{index:04X}:{sub:02X} = 0x{data[::-1].hex()}: "
+                      f"{sdo_abort_text(exc)}") from None
         if check:
             back = self._upload(i, index, sub)
             if back[:len(data)] != data:
                 raise OSError(f"{self._where(i)}: 0x{index:04X}:{sub:02X} reads back 0x{back[::-1].hex()} "
                               f"after writing 0x{data[::-1].hex()}")
+
+    def _write_optional(self, i: int, index: int, sub: int, data: bytes, what: str) -> bool:
+        """Write an object a drive may lack: an "object does not exist" abort is a notice (one
+        line, in :attr:`notices`), not a failure. Returns True when written."""
+        try:
+            self._write(i, index, sub, data)
+            return True
+        except AbsentObject as exc:
+            self._notice(f"{exc} ({what}; optional, not set)")
+            return False
 
     def _try_upload(self, i: int, index: int, sub: int = 0) -> bytes | None:
         """Upload an optional object: None when the drive aborts (the object does not exist)."""
@@ -467,13 +589,30 @@ class CanopenDriver(SplitPhaseDriver):
         """
         self._open_transport()
         self.connected = True
+        for changed in self._changed:
+            changed.clear()
         try:
             for i in range(len(self._ax)):
                 self._setup_drive(i)
             self._measure_round_trip()
+        except (OSError, ConnectionError, ValueError) as exc:
+            restored = self._restore()
+            self._close()
+            if restored:
+                raise type(exc)(f"{exc}; the {restored} object(s) the set-up had changed on the drives are "
+                                f"restored") from None
+            raise
         except BaseException:
+            self._restore()
             self._close()
             raise
+        for changed in self._changed:
+            changed.clear()
+        if self.options.host_watchdog == "none":
+            drives = ", ".join(self._where(i) for i in range(len(self._ax)))
+            self._notice(f"{drives}: no device-side watchdog (driver.host_watchdog: none): a drive "
+                         f"keeps its last torque if this host stops sending; give each drive a watchdog of its "
+                         f"own", warning=True)
 
     def _setup_drive(self, i: int) -> None:
         o, a = self.options, self._ax[i]
@@ -486,17 +625,34 @@ class CanopenDriver(SplitPhaseDriver):
         info["device_type"] = f"0x{dtype:08X}"
         node.nmt.state = "PRE-OPERATIONAL"
         self._write(i, cia402.PRODUCER_HEARTBEAT, 0, o.drive_heartbeat_ms.to_bytes(2, "little"))
-        self._write(i, cia402.CONSUMER_HEARTBEAT, 1, bytes(4))
-        self._write(i, cia402.ABORT_CONNECTION, 0, o.abort_connection_option.to_bytes(2, "little", signed=True))
+        self._has_consumer[i] = False
+        if o.host_watchdog == "heartbeat":
+            try:
+                self._write(i, cia402.CONSUMER_HEARTBEAT, 1, bytes(4))
+            except AbsentObject:
+                raise OSError(f"{self._where(i)} has no heartbeat consumer 0x1016: it would keep its last torque "
+                              f"if this host stopped; give the drive a watchdog of its own and set "
+                              f"driver.host_watchdog: none to run without one") from None
+            self._has_consumer[i] = True
+            self._write_optional(i, cia402.ABORT_CONNECTION, 0,
+                                 o.abort_connection_option.to_bytes(2, "little", signed=True),
+                                 "abort connection option: the drive's own reaction to a lost heartbeat")
         modes = self._try_upload(i, cia402.SUPPORTED_MODES)
         if modes is not None and not int.from_bytes(modes, "little") & cia402.SUPPORTED_CST_BIT:
             raise OSError(f"{self._where(i)}: supported drive modes 0x6502 = 0x{int.from_bytes(modes, 'little'):08X} "
                           f"has no cyclic synchronous torque (bit 9)")
         self._write(i, cia402.MODES_OF_OPERATION, 0, bytes((cia402.MODE_CST,)))
-        self._write(i, cia402.COB_ID_SYNC, 0, o.sync_cob_id.to_bytes(4, "little"))
+        if not self._write_optional(i, cia402.COB_ID_SYNC, 0, o.sync_cob_id.to_bytes(4, "little"),
+                                    "COB-ID SYNC: the drive listens on 0x080") and o.sync_cob_id != 0x80:
+            raise OSError(f"{self._where(i)} has no COB-ID SYNC 0x1005, so it takes the SYNC on 0x080; set "
+                          f"driver.sync_cob_id: 0x80 (it is 0x{o.sync_cob_id:03X})")
         if o.write_cycle_period:
-            self._write(i, cia402.COMM_CYCLE_PERIOD, 0, round(self.period_s * 1e6).to_bytes(4, "little"))
-        self._map_pdos(i)
+            self._write_optional(i, cia402.COMM_CYCLE_PERIOD, 0, round(self.period_s * 1e6).to_bytes(4, "little"),
+                                 "communication cycle period")
+        if a.fixed_pdos is not None:
+            self._check_fixed_pdos(i)
+        else:
+            self._map_pdos(i)
         for w in a.sdo:
             try:
                 data = w.encode()
@@ -504,13 +660,21 @@ class CanopenDriver(SplitPhaseDriver):
                 raise ValueError(f"axis {self.axis_names[i]}: sdo 0x{w.index:04X}:{w.subindex:02X} value "
                                  f"{w.value} does not fit {w.size} bytes") from None
             self._write(i, w.index, w.subindex, data)
-        rated = self._read_uint(i, cia402.RATED_TORQUE)
-        max_t = self._read_uint(i, cia402.MAX_TORQUE)
+        raw = self._try_upload(i, cia402.RATED_TORQUE)
+        rated = None if raw is None else int.from_bytes(raw, "little")
+        raw = self._try_upload(i, cia402.MAX_TORQUE)
+        max_t = None if raw is None else int.from_bytes(raw, "little")
         info.update(rated_torque=rated, max_torque_permille=max_t)
-        if a.rated_torque is not None and rated != a.rated_torque:
+        if rated is None:
+            self._notice(f"{self._where(i)} has no rated torque 0x6076: the V -> per mille scale "
+                         f"(full_scale_permille) is taken as configured, unchecked")
+        elif a.rated_torque is not None and rated != a.rated_torque:
             raise OSError(f"{self._where(i)}: rated torque 0x6076 is {rated}, the config says {a.rated_torque}: "
                           f"the V -> per mille scale would be wrong")
-        if a.full_scale_permille > max_t:
+        if max_t is None:
+            self._notice(f"{self._where(i)} has no max torque 0x6072: full_scale_permille "
+                         f"{a.full_scale_permille} is not checked against the drive's clip")
+        elif a.full_scale_permille > max_t:
             raise OSError(f"{self._where(i)}: full_scale_permille {a.full_scale_permille} is above the drive's max "
                           f"torque 0x6072 = {max_t} per mille (the drive would clip); lower it or raise 0x6072 "
                           f"with an sdo: write")
@@ -576,13 +740,46 @@ class CanopenDriver(SplitPhaseDriver):
                               f"{[(hex(x), s, b) for x, s, b in got]} instead of what was written")
             offs = {v.index: v.offset // 8 for v in m.map}
             if maps is node.rpdo:
-                self._cw_off, self._tt_off = offs[cia402.CONTROLWORD], offs[cia402.TARGET_TORQUE]
+                self._cw_off[i], self._tt_off[i] = offs[cia402.CONTROLWORD], offs[cia402.TARGET_TORQUE]
+                self._rpdo_len[i] = m.length // 8
             else:
-                self._sw_off, self._pos_off = offs[cia402.STATUSWORD], offs[cia402.POSITION_ACTUAL]
-                self._tpdo_len = m.length // 8
+                self._sw_off[i], self._pos_off[i] = offs[cia402.STATUSWORD], offs[cia402.POSITION_ACTUAL]
+                self._tpdo_len[i] = m.length // 8
             self.drive_info[i][("rpdo" if maps is node.rpdo else "tpdo")] = {
                 "cob_id": f"0x{cob:03X}", "map": [f"0x{x:04X}:{s:02X}/{b}" for x, s, b in got],
                 "transmission_type": m.trans_type}
+
+    def _check_fixed_pdos(self, i: int) -> None:
+        """A drive with a fixed mapping (``fixed_pdos``): where it has the PDO parameter
+        objects, the PDO whose COB-ID is the declared one is found and its mapping read and
+        compared; where it has none, the mapping is taken as declared (a notice says so)."""
+        a = self._ax[i]
+        for what, pdo, comm, mapping in (("RPDO", a.fixed_pdos.rpdo, cia402.RPDO_COMM, cia402.RPDO_MAPPING),
+                                         ("TPDO", a.fixed_pdos.tpdo, cia402.TPDO_COMM, cia402.TPDO_MAPPING)):
+            found = None
+            for n in range(512):
+                raw = self._try_upload(i, comm + n, 1)
+                if raw is None:
+                    break
+                if int.from_bytes(raw, "little") & 0x7FF == pdo.cob_id:
+                    found = n
+                    break
+            want = [tuple(e) for e in pdo.map]
+            self.drive_info[i][what.lower()] = {"cob_id": f"0x{pdo.cob_id:03X}", "fixed": True,
+                                                "map": [f"0x{x:04X}:{s:02X}/{b}" for x, s, b in want]}
+            if found is None:
+                self._notice(f"{self._where(i)}: {what} 0x{pdo.cob_id:03X} has no readable mapping "
+                             f"(no 0x{comm:04X}.. parameter object carries it): taken as declared in fixed_pdos")
+                continue
+            count = self._read_uint(i, mapping + found, 0)
+            got = []
+            for k in range(1, count + 1):
+                v = self._read_uint(i, mapping + found, k)
+                got.append((v >> 16, (v >> 8) & 0xFF, v & 0xFF))
+            if got != want:
+                raise OSError(f"{self._where(i)}: {what} 0x{pdo.cob_id:03X} maps "
+                              f"{[(hex(x), s_, b) for x, s_, b in got]}, fixed_pdos declares "
+                              f"{[(hex(x), s_, b) for x, s_, b in want]}")
 
     def _measure_round_trip(self) -> None:
         """``round_trip_exchanges`` SDO uploads of the statusword, timed (median/max → describe)."""
@@ -608,7 +805,8 @@ class CanopenDriver(SplitPhaseDriver):
         self._start_notifier()
         consumer = (o.host_node_id << 16) | o.heartbeat_consumer_ms
         for i, node in enumerate(self.nodes):
-            self._write(i, cia402.CONSUMER_HEARTBEAT, 1, consumer.to_bytes(4, "little"))
+            if self._has_consumer[i]:
+                self._write(i, cia402.CONSUMER_HEARTBEAT, 1, consumer.to_bytes(4, "little"))
             self._sm[i].__init__()
             self._emcy_latched[i] = False
             self._emcy_named[i] = False
@@ -647,6 +845,43 @@ class CanopenDriver(SplitPhaseDriver):
         for msg in self._rx_msgs:
             msg.data[:] = bytes(len(msg.data))
 
+    def _read_back_stop(self, answered: np.ndarray, deadline: float) -> list[StopCheck]:
+        """More 0-torque, Disable-voltage cycles until every drive's statusword has left the
+        powered states (Operation enabled, Quick stop active, Fault reaction active), then the
+        torque actual value 0x6077 by SDO where the drive has it: confirmed when the drive is
+        unpowered and its torque is 0."""
+        n = len(self._ax)
+        zeros, off = np.zeros(n), np.zeros(n, dtype=bool)
+        powered = (cia402.OPERATION_ENABLED, cia402.QUICK_STOP_ACTIVE, cia402.FAULT_REACTION_ACTIVE)
+        retry = max(self.STOP_RETRY_S, 4.0 * self.timeout_s)
+        clock = time.perf_counter
+        fresh = answered.copy()
+        while self.connected and clock() < deadline and \
+                any(cia402.decode_state(self._statusword[i]) in powered for i in range(n)):
+            self.write(zeros, off)
+            self.exchange_blocking(max(0.0, min(retry, deadline - clock())))
+            fresh |= self._got
+        torque: list = [None] * n
+        why = [""] * n
+        try:
+            self._start_notifier()
+            for i in range(n):
+                raw = self._try_upload(i, cia402.TORQUE_ACTUAL)
+                torque[i] = None if raw is None else int.from_bytes(raw[:2], "little", signed=True)
+        except Exception as exc:  # noqa: BLE001  (reported per axis)
+            why = [one_line(exc)] * n
+        out = []
+        for i, a in enumerate(self.axis_names):
+            sw = self._statusword[i]
+            state = cia402.decode_state(sw)
+            t = torque[i]
+            ok = bool(fresh[i]) and state not in powered and (t is None or t == 0) and not why[i]
+            tq = (f"torque actual 0x6077 = {t} per mille" if t is not None else
+                  (f"torque actual not read ({why[i]})" if why[i] else "no torque actual 0x6077 to read back"))
+            out.append(StopCheck(a, ok, f"{'' if fresh[i] else 'no TPDO after the stop, last '}statusword "
+                                        f"0x{sw:04X} ({cia402.STATE_NAMES[state]}), {tq}"))
+        return out
+
     def _deactivate(self) -> None:
         """After the final 0-torque, Disable-voltage cycle (written by the base class): wait for
         its TPDO, then (SDO, notifier running again) heartbeat consumer off and NMT
@@ -657,7 +892,8 @@ class CanopenDriver(SplitPhaseDriver):
         try:
             self._start_notifier()
             for i, node in enumerate(self.nodes):
-                self._write(i, cia402.CONSUMER_HEARTBEAT, 1, bytes(4), check=False)
+                if self._has_consumer[i]:
+                    self._write(i, cia402.CONSUMER_HEARTBEAT, 1, bytes(4), check=False)
                 node.nmt.state = "PRE-OPERATIONAL"
         except Exception:  # noqa: BLE001  (stopping anyway: the drives' consumers stop them)
             self.connected = False
@@ -675,7 +911,7 @@ class CanopenDriver(SplitPhaseDriver):
         bus = self.bus
         ax = self._ax
         sms = self._sm
-        cw_off, tt_off = self._cw_off, self._tt_off
+        cw_offs, tt_offs = self._cw_off, self._tt_off
         pack = _U16.pack_into
         packs = _I16.pack_into
         for i, msg in enumerate(self._rx_msgs):
@@ -690,8 +926,8 @@ class CanopenDriver(SplitPhaseDriver):
             t = cia402.volts_to_permille(float(u_V[i]), a.voltage_full_scale_V, a.full_scale_permille) \
                 if en and sm.enabled else 0
             data = msg.data
-            pack(data, cw_off, cw)
-            packs(data, tt_off, t)
+            pack(data, cw_offs[i], cw)
+            packs(data, tt_offs[i], t)
             try:
                 bus.send(msg, timeout=0)
             except Exception:  # noqa: BLE001  (CanError / OSError: bus-off, queue full, link down)
@@ -721,7 +957,7 @@ class CanopenDriver(SplitPhaseDriver):
             data = msg.data
             i = tp.get(cid)
             if i is not None:
-                if len(data) < self._tpdo_len or msg.is_remote_frame:
+                if len(data) < self._tpdo_len[i] or msg.is_remote_frame:
                     self.counters["bad_frames"] += 1
                     continue
                 self._tpdos[i] += 1
@@ -732,8 +968,8 @@ class CanopenDriver(SplitPhaseDriver):
                     continue
                 if lag < 0:                 # more TPDOs than SYNCs (the count started behind)
                     self._tpdos[i] = self._syncs
-                sw = _U16.unpack_from(data, self._sw_off)[0]
-                pos = _I32.unpack_from(data, self._pos_off)[0]
+                sw = _U16.unpack_from(data, self._sw_off[i])[0]
+                pos = _I32.unpack_from(data, self._pos_off[i])[0]
                 if sw != self._statusword[i] and cia402.decode_state(sw) != cia402.decode_state(self._statusword[i]):
                     self._record_trace(i, sw)
                 self._statusword[i] = sw

@@ -77,7 +77,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from motorctl.driver import BusBudget
+from motorctl.driver import BusBudget, StopCheck
 from motorctl.schema import StrictModel
 from motorctl_drivers.split_phase import (
     CommonOptions,
@@ -621,11 +621,104 @@ class ModbusDriver(SplitPhaseDriver):
             if self.options.watchdog is not None:
                 self._set_watchdog()
             self._first_reading(self.CONFIGURE_TIMEOUT_S)
-            if self.options.fc23 == "auto":   # last: its write (0 V, disabled) arms the device's watchdog
+            if self.options.fc23 == "auto":   # its write (0 V, disabled) arms the device's watchdog
                 self._probe_fc23()
+            self._clear_latched()
         except BaseException:
             self._close()
             raise
+
+    def _clear_latched(self) -> None:
+        """A fault the device reports at set-up (the ``fault`` bit, e.g. latched by its own
+        communication watchdog after an earlier host stopped) is reset where the map has a
+        ``fault_reset`` bit: one cycle with every axis disabled and the reset bit set, one with
+        it clear, then the position and fault are read again. What was cleared goes to
+        :attr:`notices`; a fault still reported stays in :attr:`amp_fault` (the first cycle
+        faults the axis, with :meth:`fault_reason`).
+
+        Raises:
+            ConnectionError: the device does not answer the reset cycles.
+        """
+        before = [bool(f) for f in self.amp_fault]
+        resettable = [i for i, f in enumerate(before) if f and self._ax[i].fault_reset is not None]
+        if not resettable:
+            return
+        n = len(self.axis_names)
+        for _ in range(2):                     # the reset bit set, then clear (a rising edge)
+            self._reset_count[:] = [0] * n
+            self.write(np.zeros(n), np.zeros(n, dtype=bool))
+            if not self.exchange_blocking(self.CONFIGURE_TIMEOUT_S):
+                raise ConnectionError(f"modbus: no answer to the fault reset within {self.CONFIGURE_TIMEOUT_S:g} s")
+            self.amp_fault[:] = False          # the next write sends the reset bit clear
+        self._query_once(self.CONFIGURE_TIMEOUT_S)
+        cleared = [self.axis_names[i] for i in resettable if not self._fault_raw[i]]
+        if cleared:
+            self._notice(f"modbus: cleared the fault the device reported on {', '.join(cleared)} at set-up "
+                         f"(a pulse of fault_reset with the amplifier disabled)")
+
+    def _read_back_stop(self, answered: np.ndarray, deadline: float) -> list[StopCheck]:
+        """Read back every register and coil the cycle writes (FC03 / FC01, one request at a
+        time): each axis's voltage must hold the raw value of 0 V and its enable bit must be
+        inactive."""
+        tcp = self.options.transport == "tcp"
+        n = len(self._ax)
+        ok = [bool(answered[i]) for i in range(n)]
+        held: list[list[str]] = [[] if answered[i] else ["no answer to the stop command"] for i in range(n)]
+        vwords = [[0] * o.voltage.nregs for o in self._ax]
+        vread = [False] * n
+        for r in self.plan.cycle:
+            if not r.wcount:
+                continue
+            coil = r.fc in (5, 15)
+            rd = Request(1 if coil else 3, r.unit, r.device, address=r.waddress, count=r.wcount)
+            rd.build(tcp)
+            where = f"{'coil' if coil else 'HR'} {r.waddress}" + (f"-{r.waddress + r.wcount - 1}" if r.wcount > 1 else "")
+            try:
+                pdu = self._blocking(rd, max(0.01, deadline - time.perf_counter()))
+            except ConnectionError:
+                pdu = None
+            if pdu is None or pdu[0] & 0x80:
+                why = "no answer" if pdu is None else f"exception {exception_text(pdu[1])}"
+                for i in r.axes:
+                    ok[i] = False
+                    held[i].append(f"reading back unit {r.unit} {where}: {why}")
+                continue
+            for off, slot in r.slots_w:
+                if coil:
+                    _, i, bname = slot
+                    bit = pdu[2 + off // 8] >> (off % 8) & 1
+                    self._held_bit(i, bname, bit, f"coil {r.waddress + off}", ok, held)
+                    continue
+                word = pdu[2 + 2 * off] << 8 | pdu[3 + 2 * off]
+                if slot[0] == "voltage":
+                    vwords[slot[1]][slot[2]] = word
+                    vread[slot[1]] = True
+                elif slot[0] == "bits":
+                    for i, bname in slot[1]:
+                        b = getattr(self._ax[i], bname)
+                        self._held_bit(i, bname, word >> b.bit & 1, f"HR {r.waddress + off} bit {b.bit}", ok, held)
+        for i, o in enumerate(self._ax):
+            if not vread[i]:
+                continue
+            v = o.voltage
+            zero = value_to_registers(v, volts_to_raw(v, 0.0, self._vscale[i]))
+            raw = registers_to_value(v, vwords[i])
+            if v.type.startswith("int") and raw >= 1 << (16 * v.nregs - 1):
+                raw -= 1 << (16 * v.nregs)
+            volts = raw * self._vscale[i] + v.offset
+            if tuple(vwords[i]) != zero:
+                ok[i] = False
+            held[i].insert(0, f"HR {v.address} = {raw:g} ({volts:.3f} V)")
+        return [StopCheck(a, ok[i], ", ".join(held[i])) for i, a in enumerate(self.axis_names)]
+
+    def _held_bit(self, i: int, bname: str, bit: int, where: str, ok: list, held: list) -> None:
+        """A read-back bit of axis i: the enable must be inactive (the reset bit is reported only)."""
+        if bname != "enable":
+            return
+        on = bit == (self._ax[i].enable.active == "high")
+        if on:
+            ok[i] = False
+        held[i].append(f"{where} = {bit} (amplifier {'ON' if on else 'off'})")
 
     def _blocking(self, req: Request, timeout_s: float):
         """Send one request and wait for its answer (outside the loop): the PDU bytes, or raise."""
@@ -925,7 +1018,8 @@ class ModbusDriver(SplitPhaseDriver):
             self._done[k] = 2
             code = pdu[1]
             self.exception_counts[code] = self.exception_counts.get(code, 0) + 1
-            self._accept_error(self.seq if self.options.transport == "tcp" else None)
+            self._accept_error(self.seq if self.options.transport == "tcp" else None,
+                               f"exception {exception_text(code)} to {r.describe()}")
             for i in r.axes:
                 self.last_exception[i] = f"exception {exception_text(code)} to {r.describe()}"
             return
@@ -961,7 +1055,12 @@ class ModbusDriver(SplitPhaseDriver):
         """The last exception that hit axis i's requests (code and meaning) while its exchange
         is still failing (``read_error``), '' otherwise: an exception minutes before a fault of
         another kind is not its reason (the history is in ``describe()["fault_reasons"]``)."""
-        return self.last_exception[i] if self.read_error[i] else ""
+        if self.read_error[i] and self.last_exception[i]:
+            return self.last_exception[i]
+        f = self._ax[i].fault
+        if self.amp_fault[i] and f is not None:
+            return f"the device's fault bit ({f.table} {f.address} bit {f.bit}) is active"
+        return ""
 
     def budget(self, rate_hz: float) -> BusBudget:
         """TCP: one round trip per request of the cycle (``round_trip_s``, or measured: the

@@ -53,7 +53,7 @@ from typing import Annotated
 import numpy as np
 from pydantic import Field
 
-from motorctl.driver import BusBudget
+from motorctl.driver import BusBudget, StopCheck
 from motorctl.schema import StrictModel
 from motorctl_drivers.split_phase import (
     CommonOptions,
@@ -230,6 +230,7 @@ class SerialDriver(SplitPhaseDriver):
             raise ValueError(f"serial: two axes share a node number ({self._nodes})")
         self._index = {nd: i for i, nd in enumerate(self._nodes)}
         self._items = [(nd, False, 0) for nd in self._nodes]
+        self._status = [0] * n               # the status byte of each axis's last reply
 
     def _open_transport(self) -> None:
         """Open the port (8N1 at ``baudrate``; RS-485 direction control when ``rs485``).
@@ -283,10 +284,74 @@ class SerialDriver(SplitPhaseDriver):
         try:
             if self.options.watchdog_s is not None:
                 self._set_watchdog(self.options.watchdog_s)
+            self._clear_latched("set-up")
             self._first_reading(self.CONFIGURE_TIMEOUT_S)
         except BaseException:
             self._close()
             raise
+
+    def _activate(self) -> None:
+        """Clear what the device's watchdog latched since ``configure()`` (the reset command
+        also starts the watchdog right before the first cycle), then start the cycle."""
+        self._clear_latched("start")
+        super()._activate()
+
+    def _clear_latched(self, when: str) -> None:
+        """The protocol's fault reset (docs/serial-protocol.md): query the statuses and, where a
+        fault is latched, send a command with enable 0 and 0 V to every node and wait for its
+        reply; a fault cleared
+        by it is reported in :attr:`notices`, one still latched after it stays in
+        :attr:`amp_fault` (the supervisor faults the axis at the first cycle, with
+        :meth:`fault_reason`).
+
+        Raises:
+            ConnectionError: the device does not answer, or answers with an error frame.
+        """
+        self._query_once(self.CONFIGURE_TIMEOUT_S)
+        before = list(self._status)
+        if not any(st & 1 for st in before):
+            return                      # nothing latched: no command (it would start the watchdog)
+        n = len(self.axis_names)
+        self.write(np.zeros(n), np.zeros(n, dtype=bool))
+        self._query_error = ""
+        self._query = True          # an error frame answering the reset ends the wait at once
+        try:
+            ok = self.exchange_blocking(self.CONFIGURE_TIMEOUT_S)
+        finally:
+            self._query = False
+        if self._query_error or not ok:
+            why = self._query_error or f"no reply within {self.CONFIGURE_TIMEOUT_S:g} s"
+            raise ConnectionError(f"serial device {self.options.address} on {self.options.port}: the fault "
+                                  f"reset (a command with enable 0) at {when}: {why}")
+        cleared = [a for i, a in enumerate(self.axis_names) if before[i] & 1 and not self._status[i] & 1]
+        if cleared:
+            self._notice(f"serial device {self.options.address}: at {when}, cleared the amplifier fault latched "
+                         f"on {', '.join(cleared)} (a watchdog or a fault of an earlier run) with the "
+                         f"protocol's reset, a command with enable 0")
+
+    def _read_back_stop(self, answered: np.ndarray, deadline: float) -> list[StopCheck]:
+        """A query after the stop command: each node's status must say amplifier off (bit 1
+        clear: the protocol's "enable 0 → 0 V, amplifier disabled")."""
+        try:
+            self._query_once(max(0.01, deadline - time.perf_counter()))
+        except (ConnectionError, OSError) as exc:
+            return [StopCheck(a, False, f"{'answered the stop, ' if answered[i] else ''}no status read back: {exc}")
+                    for i, a in enumerate(self.axis_names)]
+        out = []
+        for i, a in enumerate(self.axis_names):
+            st = self._status[i]
+            on = bool(st & 2)
+            out.append(StopCheck(a, not on, f"node {self._nodes[i]} status 0x{st:02X}: amplifier "
+                                            f"{'ON, driving' if on else 'off, 0 V'}"
+                                            f"{', amplifier fault latched' if st & 1 else ''}"))
+        return out
+
+    def fault_reason(self, i: int) -> str:
+        """The device's status while axis i reports an amplifier fault ('' otherwise)."""
+        if not self.amp_fault[i]:
+            return ""
+        return (f"serial device {self.options.address} node {self._nodes[i]}: amplifier fault latched "
+                f"(status 0x{self._status[i]:02X})")
 
     def _set_watchdog(self, seconds: float) -> None:
         units = max(1, min(0xFFFF, round(seconds / WATCHDOG_UNIT_S)))
@@ -346,11 +411,15 @@ class SerialDriver(SplitPhaseDriver):
                     self._ack = (kind, decode_body(kind, m, frame)[0])
                 continue
             if kind == ERROR:
-                self._accept_error(seq)
+                code = decode_body(ERROR, m, frame)[0]
+                self._accept_error(seq, f"error frame code {code} ({ERROR_CODES.get(code, 'unknown')})")
                 continue
+            fresh = self._outstanding and (seq == self.seq or self._query)
             for node, status, raw in decode_body(REPLY, m, frame):
                 i = index.get(node)
                 if i is not None:
+                    if fresh:
+                        self._status[i] = status
                     self._accept(i, seq, raw, bool(status & 1))
 
     def budget(self, rate_hz: float) -> BusBudget:

@@ -57,7 +57,7 @@ from typing import Annotated
 import numpy as np
 from pydantic import Field
 
-from motorctl.driver import Driver
+from motorctl.driver import Driver, StopCheck
 from motorctl.effects import FAMILIES, effects_model
 from motorctl.effects.input_delay import delay_line
 from motorctl.jit import njit
@@ -499,6 +499,16 @@ class SimDriver(Driver):
             plant.step(u)
         if self.watchdog_ns:
             self._last_write_ns = time.monotonic_ns()
+
+    def _stop(self, timeout_s: float) -> list[StopCheck]:
+        """0 V with every amplifier off (one more period of plant time), read back from the
+        simulated amplifier's output."""
+        n = len(self.plants)
+        self.write(np.zeros(n), np.zeros(n, dtype=bool))
+        return [StopCheck(a, not self.amp_enabled[i] and self.applied_u[i] == 0.0,
+                          f"amplifier output {self.applied_u[i]:.3f} V, amplifier "
+                          f"{'on' if self.amp_enabled[i] else 'off'} (simulated)")
+                for i, a in enumerate(self.axis_names)]
 
     def _close(self) -> None:
         self.amp_enabled[:] = False

@@ -32,7 +32,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field
 
-from motorctl.driver import BusBudget, Driver, LifecycleError
+from motorctl.driver import BusBudget, Driver, LifecycleError, StopCheck
 from motorctl.schema import StrictModel
 
 
@@ -214,6 +214,9 @@ class SplitPhaseDriver(Driver):
     CONFIGURE_TIMEOUT_S = 1.0
     #: how long ``_deactivate`` waits for the answer to the final 0 V command [s]
     DEACTIVATE_TIMEOUT_S = 0.05
+    #: the stop command is sent again after this long without an answer [s] (at least
+    #: four read timeouts)
+    STOP_RETRY_S = 0.05
     #: the link counts as down (:attr:`link_down`) when no axis has answered for this long [s]
     LINK_DOWN_S = 0.2
 
@@ -230,6 +233,8 @@ class SplitPhaseDriver(Driver):
         self._query = False                  # a position query: any sequence number will do
         self._wait_fds: list = []            # descriptors read() may select() on
         self._any_lost = False
+        self._query_error = ""               # an error answer to a set-up query (one line)
+        self.stop_attempts = 0               # stop commands sent by the last _stop()
         self._unwrap: list[EncoderUnwrap] = []
         self._m_per_count = [1.0] * n
         self._offset_m = [0.0] * n
@@ -287,10 +292,53 @@ class SplitPhaseDriver(Driver):
         self.read_error[:] = False
         self.write_error[:] = False
 
+    def _stop(self, timeout_s: float) -> list[StopCheck]:
+        """The stop as a transaction of its own (blocking, outside the loop), within ``timeout_s``:
+
+        1. settle what is in flight: wait for the answer to the last cycle's command (a device
+           that serves one request at a time, as pymodbus's server does, drops a request
+           queued behind a late one);
+        2. send 0 V with every amplifier off, again every ``STOP_RETRY_S`` until every axis
+           has answered it;
+        3. read back what the device holds (:meth:`_read_back_stop`).
+        """
+        names = self.axis_names
+        n = len(names)
+        clock = time.perf_counter
+        deadline = clock() + timeout_s
+        if not self.connected:
+            return [StopCheck(a, False, "the link is down: the stop could not be sent") for a in names]
+        retry = max(self.STOP_RETRY_S, 4.0 * self.timeout_s)
+        if self._outstanding:
+            self.exchange_blocking(max(0.0, min(retry, deadline - clock())))
+        zeros, off = np.zeros(n), np.zeros(n, dtype=bool)
+        answered = np.zeros(n, dtype=bool)
+        self.stop_attempts = 0
+        while not answered.all() and self.connected and clock() < deadline:
+            self.stop_attempts += 1
+            self.write(zeros, off)
+            self.exchange_blocking(max(0.0, min(retry, deadline - clock())))
+            answered |= self._got
+        if not answered.any():
+            why = "the link failed" if not self.connected else \
+                f"no answer to {self.stop_attempts} stop command(s) within {timeout_s:g} s"
+            return [StopCheck(a, False, why) for a in names]
+        return self._read_back_stop(answered, deadline)
+
+    def _read_back_stop(self, answered: np.ndarray, deadline: float) -> list[StopCheck]:
+        """Hook: what each axis's device holds after the stop command, read back before
+        ``deadline`` (``time.perf_counter`` time). ``answered``: (n_axes,) bool, the axes
+        that answered the stop command. Default: the protocol's answer is the confirmation (a
+        device applies a command before it answers it)."""
+        return [StopCheck(a, bool(answered[i]),
+                          "answered the 0 V, amplifier-off command" if answered[i]
+                          else "no answer to the 0 V, amplifier-off command")
+                for i, a in enumerate(self.axis_names)]
+
     def _deactivate(self) -> None:
-        """Wait (at most ``DEACTIVATE_TIMEOUT_S``) for the answer to the 0 V, amplifiers-off
-        command the base class has just written, so the device has applied it and nothing is
-        in flight. A dead link is left as it is (``connected`` False)."""
+        """Wait (at most ``DEACTIVATE_TIMEOUT_S``) for an answer still outstanding after the
+        stop (:meth:`_stop`), so nothing is in flight. A dead link is left as it is
+        (``connected`` False)."""
         if not (self._outstanding and self.connected):
             self._outstanding = False
             return
@@ -350,18 +398,22 @@ class SplitPhaseDriver(Driver):
         self.position_m[i] = y
         self.amp_fault[i] = fault
 
-    def _accept_error(self, seq: int | None) -> None:
+    def _accept_error(self, seq: int | None, why: str = "") -> None:
         """An error answer (serial error frame, Modbus exception, CAN error frame) came in.
 
         The axes of the request get no position from it, so ``read()`` flags them; the answer
         is counted in ``exceptions`` when it answers the outstanding request (``seq`` is
         its sequence number; None where the transport carries none, e.g. a CAN error frame),
-        in ``stale`` when it answers an older one.
+        in ``stale`` when it answers an older one. ``why``: the device's words (e.g. "error
+        frame code 1 (bad request)"); an error answering a set-up query ends the query at once
+        with them (:meth:`_query_once` raises).
         """
         if seq is not None and (not self._outstanding or (seq != self.seq and not self._query)):
             self.counters["stale"] += 1
             return
         self.counters["exceptions"] += 1
+        if self._query:
+            self._query_error = why or "an error answer"
 
     # --- cycle
     def read(self) -> None:
@@ -439,11 +491,15 @@ class SplitPhaseDriver(Driver):
         self._got[:] = False
         self._outstanding = True
         self._query = True
+        self._query_error = ""
         try:
             self._transmit_query(self.seq)
             ok = self.exchange_blocking(timeout_s)
         finally:
             self._query = False
+        if self._query_error:
+            raise ConnectionError(f"{type(self).__name__}: the device refused the position query: "
+                                  f"{self._query_error}")
         if not ok:
             missing = [a for a, g in zip(self.axis_names, self._got) if not g]
             raise ConnectionError(f"{type(self).__name__}: no answer from axes {', '.join(missing)} "
@@ -453,9 +509,9 @@ class SplitPhaseDriver(Driver):
 
     def exchange_blocking(self, timeout_s: float) -> bool:
         """Wait (blocking, outside the loop) up to ``timeout_s`` [s] for the outstanding
-        answer; True when every axis answered."""
+        answer (a set-up query: until an error answer too); True when every axis answered."""
         deadline = time.perf_counter() + timeout_s
-        while not self._got.all() and time.perf_counter() < deadline:
+        while not self._got.all() and not self._query_error and time.perf_counter() < deadline:
             self._receive()
             time.sleep(0.0002)
         ok = bool(self._got.all())

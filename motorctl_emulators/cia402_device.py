@@ -150,6 +150,9 @@ class Cia402Device(Device):
             return self._mode(d)
         if index == cia402.ERROR_CODE:
             return d.error_code
+        if index == cia402.TORQUE_ACTUAL:          # what the amplifier applies, per mille
+            return cia402.volts_to_permille(self.bank.applied_V[i], d.opts.voltage_full_scale_V,
+                                            d.opts.full_scale_permille)
         return None
 
     def _mode(self, d: _Drive) -> int:

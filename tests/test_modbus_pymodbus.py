@@ -360,6 +360,72 @@ def test_motorctl_run_closes_the_loop_through_pymodbus_server(name, rate, stall,
         assert {16, 4} <= set(fcs) and fcs[4] >= 2 * rate * 0.9
 
 
+@pytest.mark.parametrize("how", ["end", "sigterm", "fault"])
+def test_the_device_holds_0V_and_enable_off_after_motorctl_run(how, tmp_path):
+    """After ``motorctl run`` ends (normally, by SIGTERM, or with a faulted axis), pymodbus's
+    server holds 0 V and enable off for both axes, read back with pymodbus's own client, and the
+    CLI's "at 0 V, amplifiers off" line says the device confirmed it.
+
+    ``end``: the last cycle's request meets a late device (the server blocks 30 ms on it), so
+    the 0 V command that follows queues behind it and pymodbus's server (one request per
+    connection) drops it: the stop must settle the link and send its command again (the old
+    shutdown left [10000, 1]: 10 V, enable on, 5 of 5 runs). ``fault``:
+    the test makes X's drive fault mid-run (X stops at once, Y runs to the end)."""
+    import signal
+    import subprocess
+    from motorctl_emulators.harness import motorctl_cmd
+    rate = 500.0
+    d = map_a(rate, round_trip_s=0.0006)
+    d["loop"]["clock"] = "virtual"                  # lockstep: tracking does not depend on the host
+    d["driver"]["timeout_s"] = 0.02
+    cfg = _write_config(d, tmp_path / "map-A.yaml")
+    port = d["driver"]["port"]
+    n_cycles = int(1.0 * rate)
+    stall = (51 + 1 + n_cycles, 0.03) if how == "end" else (0, 0.0)   # queries, FC23 probe, cycles
+    argv = ["run", str(cfg), "--controller", "c2", "--duration", "1" if how != "sigterm" else "20"]
+    with pymodbus_server(cfg, stall=stall):
+        if how == "sigterm":
+            proc = subprocess.Popen(motorctl_cmd(*argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                    text=True, start_new_session=True)
+            try:
+                assert proc.stdout.readline().startswith("running"), proc.stderr.read()
+                time.sleep(0.5)
+                proc.send_signal(signal.SIGTERM)
+                out, err = proc.communicate(timeout=30)
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+            r = subprocess.CompletedProcess(argv, proc.returncode, "running\n" + out, err)
+        elif how == "fault":
+            proc = subprocess.Popen(motorctl_cmd(*argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                    text=True, start_new_session=True)
+            try:
+                assert proc.stdout.readline().startswith("running"), proc.stderr.read()
+                time.sleep(0.3)
+                write_register(port, 1, FAULT_REGISTER, 1)       # X's drive faults
+                out, err = proc.communicate(timeout=30)
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+            r = subprocess.CompletedProcess(argv, proc.returncode, "running\n" + out, err)
+        else:
+            r = run_cli(argv, timeout_s=60)
+        held = read_back(port, 1, "holding", 0, 4)
+    print(r.stdout, r.stderr, held)
+    assert held[0] == 0 and held[1] & 1 == 0, f"X holds voltage {held[0]}, control word 0x{held[1]:04X}"
+    assert held[2] == 0 and held[3] & 1 == 0, f"Y holds voltage {held[2]}, control word 0x{held[3]:04X}"
+    assert "at 0 V, amplifiers off (confirmed by the device" in r.stdout, r.stdout + r.stderr
+    assert "HR 0 = 0 (0.000 V), HR 1 bit 0 = 0 (amplifier off)" in r.stdout
+    got = parse_run_table(r.stdout)
+    if how == "fault":
+        assert r.returncode == 1 and "amplifier fault" in got["X"]["fault"] and got["Y"]["fault"] == "", r.stdout
+    elif how == "sigterm":                           # SIGTERM latches the shutdown fault: exit 1
+        assert r.returncode == 1 and "stopped by SIGTERM: X, Y at 0 V" in r.stdout, r.stdout + r.stderr
+        assert all(got[a]["fault"].startswith("shutdown") for a in "XY"), r.stdout
+    else:
+        assert r.returncode == 0 and got["X"]["fault"] == got["Y"]["fault"] == "", r.stdout + r.stderr
+
+
 # --------------------------------------------------------------------------- in process
 def test_registers_written_per_axis_unit_and_the_fc23_probe_falls_back(tmp_path):
     """Map A on a device without FC23: the probe's exception 01 turns the plan into FC16 + FC03.

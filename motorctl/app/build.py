@@ -9,8 +9,10 @@ Order of a run::
     report = start(asm, policy)       real-time set-up (``required`` refuses before any I/O),
                                       then driver.configure() and driver.activate()
     asm.loop.run(n)                   cycles
-    shutdown(asm)                     0 V and amplifiers off, driver deactivated and closed,
-                                      real-time set-up undone (on every exit path)
+    checks = shutdown(asm)            0 V and amplifiers off as a transaction of its own,
+                                      answered and read back by the device (one
+                                      StopCheck per axis), driver closed, real-time
+                                      set-up undone (on every exit path)
 """
 
 from __future__ import annotations
@@ -133,17 +135,38 @@ def start(asm: Assembly, policy: str) -> RealtimeReport:
     return report
 
 
-def shutdown(asm: Assembly) -> None:
-    """0 V with every amplifier disabled, the driver deactivated and closed, the real-time
-    set-up undone. Safe on every exit path and idempotent."""
+def shutdown(asm: Assembly) -> list:
+    """0 V with every amplifier disabled, confirmed by the device
+    (:meth:`motorctl.driver.Driver.deactivate`), the driver closed, the real-time set-up
+    undone. Safe on every exit path and idempotent.
+
+    Returns:
+        the :class:`~motorctl.driver.StopCheck` of every axis (those of the last stop when the
+        driver was not active).
+    """
+    checks = []
     try:
-        if asm.driver.state == "active":
-            asm.loop.safe_output()
+        checks = asm.driver.deactivate()
     finally:
         try:
             asm.driver.close()
         finally:
             restore()
+    return checks
+
+
+def stop_lines(checks) -> tuple[bool, list[str]]:
+    """The operator's report of a stop: (every axis confirmed, lines). One line when every
+    axis is confirmed ("X, Y at 0 V, amplifiers off (confirmed by the device: ...)"), else one
+    line per axis that is not, naming what was read back."""
+    if not checks:
+        return False, ["the stop was not confirmed: the driver was not active"]
+    bad = [c for c in checks if not c.confirmed]
+    if not bad:
+        return True, [f"{', '.join(c.axis for c in checks)} at 0 V, amplifiers off (confirmed by the device: "
+                      + "; ".join(f"{c.axis} {c.held}" for c in checks) + ")"]
+    return False, [f"axis {c.axis}: the stop is NOT confirmed by the device: {c.held}; the amplifier may still "
+                   f"be energised" for c in bad]
 
 
 def run_cycles(asm: Assembly, n_cycles: int, policy: str = "off"):

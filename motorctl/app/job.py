@@ -53,12 +53,19 @@ class JobResult:
     cycles: int = 0
     stopped_by_signal: str = ""
     log_path: str | None = None
+    stop: list = field(default_factory=list)      # StopCheck per axis: what the device confirmed
+    notices: list = field(default_factory=list)   # the driver's set-up notices
+
+    @property
+    def stop_confirmed(self) -> bool:
+        """Every axis's device confirmed 0 V with the amplifier off at the end of the run."""
+        return bool(self.stop) and all(c.confirmed for c in self.stop)
 
 
 def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | None = None,
             duration_s: float | None = None, clock: str | None = None,
             log_path: str | None = None, realtime_policy: str | None = None,
-            on_start=None) -> JobResult:
+            on_start=None, on_notice=None) -> JobResult:
     """Run the loop on the configured driver and return the indexes (see :class:`JobResult`).
 
     Args:
@@ -70,6 +77,8 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
         realtime_policy: override of loop.realtime.policy ('off' with the virtual clock).
         on_start: called with (axes, n_cycles, clock) once the driver is active, just before
             the first cycle (e.g. to tell the operator the loop runs).
+        on_notice: called with each of the driver's set-up notices (one line each) before
+            ``on_start``.
     Raises:
         RealtimeError: ``realtime: required`` refused (before the driver is opened).
         ConfigError: ``controller`` is not configured for an axis.
@@ -94,14 +103,18 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
     try:
         report = start(asm, policy)
         result.realtime = report.as_dict()
+        result.notices = list(asm.driver.notices)
         try:
+            if on_notice is not None:
+                for line in result.notices:
+                    on_notice(line)
             if on_start is not None:
                 on_start(names, n_cycles, clock)
             result.cycles = loop.run(n_cycles)
         finally:
             if stopped:
                 loop.shutdown_faults()
-            shutdown(asm)
+            result.stop = shutdown(asm)
     finally:
         for s, h in old.items():
             signal.signal(s, h)
@@ -109,7 +122,10 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
         # what was recorded reaches the log on every exit path, an exception included
         if log_path and loop.k > 0:
             header = log_header(asm, realtime=result.realtime,
-                                stopped_by_signal=result.stopped_by_signal)
+                                stopped_by_signal=result.stopped_by_signal,
+                                stop=[{"axis": c.axis, "confirmed": c.confirmed, "held": c.held}
+                                      for c in result.stop],
+                                notices=result.notices)
             Path(log_path).parent.mkdir(parents=True, exist_ok=True)
             with LogWriter(log_path, header) as w:
                 w.append(np.ascontiguousarray(loop.rows()))

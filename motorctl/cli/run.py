@@ -19,7 +19,12 @@ def _load(path: str, check_budget: bool = True):
 
 
 # --------------------------------------------------------------------------- run
+#: exit code of a run whose end the device did not confirm (0 V, amplifier off not read back)
+EXIT_STOP_UNCONFIRMED = 3
+
+
 def cmd_run(args) -> int:
+    from motorctl.app.build import stop_lines
     from motorctl.app.job import run_job
     loaded = _load(args.config)
     axes = _select_axes(loaded, args.axis)
@@ -34,7 +39,8 @@ def cmd_run(args) -> int:
 
     res = run_job(loaded, axes=axes, controller=args.controller, duration_s=args.duration,
                   clock="virtual" if args.virtual_clock else None, log_path=args.log,
-                  realtime_policy=args.realtime, on_start=announce)
+                  realtime_policy=args.realtime, on_start=announce,
+                  on_notice=lambda line: (sys.stderr.write(f"motorctl: {line}\n"), sys.stderr.flush()))
     rows = [["axis", "ctrl", "e_M um", "e_F um", "L2[e] um", "u_peak V", "io errors", "fault"]]
     for a, r in res.axes.items():
         rows.append([a, r["controller"], f"{r.get('e_M_um', float('nan')):.2f}",
@@ -53,8 +59,15 @@ def cmd_run(args) -> int:
                                        for k, v in rt.items()) + "\n")
     if res.log_path:
         out.write(f"log: {res.log_path}\n")
-    if res.stopped_by_signal:
-        out.write(f"stopped by {res.stopped_by_signal}: all axes at 0 V, amplifiers off\n")
+    confirmed, lines = stop_lines(res.stop)
+    if confirmed:
+        how = f"stopped by {res.stopped_by_signal}" if res.stopped_by_signal else "stop"
+        out.write(f"{how}: {lines[0]}\n")
+    else:
+        out.flush()
+        for line in lines:
+            sys.stderr.write(f"motorctl: error: {line}\n")
+        return EXIT_STOP_UNCONFIRMED
     return 1 if any(r["fault"] for r in res.axes.values()) else 0
 
 

@@ -32,7 +32,7 @@ import sys
 import threading
 import time
 
-from motorctl.app.build import Assembly, shutdown, start
+from motorctl.app.build import Assembly, shutdown, start, stop_lines
 from motorctl.app.daemon.notify import sd_notify
 from motorctl.app.daemon.protocol import Mailbox
 from motorctl.app.daemon.status import StatusPublisher
@@ -106,6 +106,7 @@ class LoopSide:
         self.allow_inject = d.allow_fault_injection and hasattr(asm.driver, "inject")
         self.seen = 0
         self.term = ""
+        self.stop_checks: list = []      # what the drives confirmed at shutdown (StopCheck)
         self.tail = -1
         self.io_dead = False
         self.replies_dropped = 0
@@ -371,6 +372,8 @@ class LoopSide:
                                "native_threads": len(os.listdir("/proc/self/task")),
                                "cpu_affinity": sorted(os.sched_getaffinity(0)),
                                "switch_interval_s": sys.getswitchinterval()})
+            for line in asm.driver.notices:
+                self.out.write(f"motorctl daemon: {line}\n")
             self.out.write(f"motorctl daemon: {len(self.names)} axes ({', '.join(self.names)}) at "
                            f"{1 / asm.loaded.period_s:.0f} Hz, all disabled; socket "
                            f"{self.socket_path}; log {self.log_path}; realtime: {rep.summary()}\n")
@@ -379,7 +382,7 @@ class LoopSide:
             loop.run(1 << 62)
         finally:
             try:
-                shutdown(asm)
+                self.stop_checks = shutdown(asm)
             finally:
                 ctl[CTL_STATE] = STATE_ENDED
                 for s_, h in old.items():
@@ -387,20 +390,27 @@ class LoopSide:
                 sd_notify("STOPPING=1")
                 try:
                     os.set_blocking(self.replies.wfd, True)   # the loop has ended: waiting is fine
-                    self.replies.send({"op": "exit", "reason": self.term or "loop ended"})
+                    self.replies.send({"op": "exit", "reason": self.term or "loop ended",
+                                       "stop": [{"axis": c.axis, "confirmed": c.confirmed, "held": c.held}
+                                                for c in self.stop_checks]})
                 except OSError:
                     pass
                 os.close(self.replies.wfd)
                 st = reap(self.io_pid, 15.0)
                 if self.io_status is None:
                     self.io_status = st
+        confirmed, lines = stop_lines(self.stop_checks)
+        if not confirmed:
+            for line in lines:
+                self.out.write(f"motorctl: error: {line}\n")
         if not (self.io_status is not None and os.WIFEXITED(self.io_status)
                 and os.WEXITSTATUS(self.io_status) == 0):
             self.finish_for_recorder()
             what = "died" if self.io_dead else "did not finish"
-            self.out.write(f"motorctl: error: the recorder process {what}; all axes at 0 V, "
-                           f"amplifiers off; log {self.log_path}\n")
+            self.out.write(f"motorctl: error: the recorder process {what}; "
+                           f"{lines[0] if confirmed else 'the stop is not confirmed'}; log {self.log_path}\n")
             return 1
-        self.out.write(f"motorctl daemon: stopped by {self.term or 'loop end'}: all axes at 0 V, "
-                       f"amplifiers off; log {self.log_path}\n")
+        if not confirmed:
+            return 3
+        self.out.write(f"motorctl daemon: stopped by {self.term or 'loop end'}: {lines[0]}; log {self.log_path}\n")
         return 0
