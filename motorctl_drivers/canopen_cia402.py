@@ -688,6 +688,8 @@ class CanopenDriver(SplitPhaseDriver):
                 self._emcy_axis.pop(0x80 + a.node_id, None)
                 self._emcy_axis[cid & 0x7FF] = i
         sw = self._read_uint(i, cia402.STATUSWORD)
+        if cia402.decode_state(sw) in (cia402.FAULT, cia402.FAULT_REACTION_ACTIVE):
+            sw = self._fault_reset(i, sw)
         pos = self._read_uint(i, cia402.POSITION_ACTUAL, signed=True)
         self._statusword[i] = sw
         self._sm[i].step(sw, False)
@@ -748,6 +750,31 @@ class CanopenDriver(SplitPhaseDriver):
             self.drive_info[i][("rpdo" if maps is node.rpdo else "tpdo")] = {
                 "cob_id": f"0x{cob:03X}", "map": [f"0x{x:04X}:{s:02X}/{b}" for x, s, b in got],
                 "transmission_type": m.trans_type}
+
+    def _fault_reset(self, i: int, sw: int) -> int:
+        """A drive found in Fault at set-up (e.g. its heartbeat consumer acted when an earlier
+        host died): the CiA 402 fault reset, a rising edge of controlword bit 7 written by SDO
+        (0x0000, 0x0080, 0x0000), then the statusword again. Reported in :attr:`notices`; a
+        drive still in Fault stays so (the first cycle faults the axis, with
+        :meth:`fault_reason`). Returns the statusword after the reset."""
+        raw = self._try_upload(i, cia402.ERROR_CODE)
+        code = None if raw is None else int.from_bytes(raw[:2], "little")
+        for cw in (0x0000, cia402.CW_FAULT_RESET, 0x0000):
+            self._write(i, cia402.CONTROLWORD, 0, cw.to_bytes(2, "little"), check=False)
+        deadline = time.monotonic() + self.options.nmt_timeout_s
+        after = self._read_uint(i, cia402.STATUSWORD)
+        while cia402.decode_state(after) in (cia402.FAULT, cia402.FAULT_REACTION_ACTIVE) and \
+                time.monotonic() < deadline:
+            time.sleep(0.01)
+            after = self._read_uint(i, cia402.STATUSWORD)
+        what = f"error code 0x603F = {cia402.describe_error(code)}" if code else "no error code 0x603F"
+        if cia402.decode_state(after) in (cia402.FAULT, cia402.FAULT_REACTION_ACTIVE):
+            self._notice(f"{self._where(i)} is in Fault ({what}) and stays there after a fault reset "
+                         f"(statusword 0x{after:04X})", warning=True)
+        else:
+            self._notice(f"{self._where(i)}: cleared the Fault it was in at set-up ({what}; statusword "
+                         f"0x{sw:04X} -> 0x{after:04X}) with a fault reset (controlword bit 7)")
+        return after
 
     def _check_fixed_pdos(self, i: int) -> None:
         """A drive with a fixed mapping (``fixed_pdos``): where it has the PDO parameter

@@ -231,6 +231,7 @@ class SerialDriver(SplitPhaseDriver):
         self._index = {nd: i for i, nd in enumerate(self._nodes)}
         self._items = [(nd, False, 0) for nd in self._nodes]
         self._status = [0] * n               # the status byte of each axis's last reply
+        self._reset_at_setup = False         # configure() sent the fault reset (it starts the watchdog)
 
     def _open_transport(self) -> None:
         """Open the port (8N1 at ``baudrate``; RS-485 direction control when ``rs485``).
@@ -307,6 +308,8 @@ class SerialDriver(SplitPhaseDriver):
         Raises:
             ConnectionError: the device does not answer, or answers with an error frame.
         """
+        if when == "set-up":
+            self._reset_at_setup = False
         self._query_once(self.CONFIGURE_TIMEOUT_S)
         before = list(self._status)
         if not any(st & 1 for st in before):
@@ -324,6 +327,10 @@ class SerialDriver(SplitPhaseDriver):
             raise ConnectionError(f"serial device {self.options.address} on {self.options.port}: the fault "
                                   f"reset (a command with enable 0) at {when}: {why}")
         cleared = [a for i, a in enumerate(self.axis_names) if before[i] & 1 and not self._status[i] & 1]
+        if when == "set-up":
+            self._reset_at_setup = bool(cleared)
+        elif self._reset_at_setup:
+            return                      # latched again by the watchdog that set-up's reset started
         if cleared:
             self._notice(f"serial device {self.options.address}: at {when}, cleared the amplifier fault latched "
                          f"on {', '.join(cleared)} (a watchdog or a fault of an earlier run) with the "

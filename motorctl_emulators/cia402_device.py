@@ -160,7 +160,12 @@ class Cia402Device(Device):
         return int.from_bytes(raw, "little", signed=True) if raw else 0
 
     def _on_write(self, d: _Drive, index: int, subindex: int, data: bytes) -> None:
-        if index == cia402.CONSUMER_HEARTBEAT and subindex == 1:
+        if index == cia402.CONTROLWORD:          # by SDO (pre-operational): acts at once
+            cw = int.from_bytes(data[:2], "little")
+            i = self.drives.index(d)
+            self._set_state(i, drive_transition(d.state, cw, d.cw_prev), cw)
+            d.cw_prev = cw
+        elif index == cia402.CONSUMER_HEARTBEAT and subindex == 1:
             v = int.from_bytes(data, "little")
             d.consumer_node = (v >> 16) & 0x7F
             d.consumer_s = (v & 0xFFFF) * 1e-3

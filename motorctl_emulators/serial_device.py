@@ -62,9 +62,14 @@ class SerialDevice(Device):
         for kind, addr, seq, m, frame in self.parser.feed(data):
             if addr != address:
                 continue
+            named = decode_body(QUERY, m, frame) if kind == QUERY else \
+                [it[0] for it in decode_body(CMD, m, frame)] if kind == CMD else []
+            if len(set(named)) != len(named):    # a node twice in one frame: bad request, nothing applied
+                self.ep.send(encode_error(address, seq, m, 1))
+                continue
             if kind == QUERY:
-                nodes = [nd for nd in decode_body(QUERY, m, frame) if nd in self.index]
-                self.ep.send(self._reply(seq, nodes))
+                nodes = [nd for nd in named if nd in self.index]
+                self.ep.send(self._reply(seq, nodes) if nodes else encode_error(address, seq, m, 1))
                 continue
             if kind == CONFIG:                 # the host sets the command watchdog
                 units = decode_body(CONFIG, m, frame)[0]
@@ -77,6 +82,9 @@ class SerialDevice(Device):
                 continue
             items = [it for it in decode_body(CMD, m, frame) if it[0] in self.index]
             nodes = [it[0] for it in items]
+            if not items:                        # no known node: bad request, nothing applied
+                self.ep.send(encode_error(address, seq, m, 1))
+                continue
             fault = b.next_fault([self.index[nd] for nd in nodes])
             if fault == "exception":
                 self.ep.send(encode_error(address, seq, m, 4))

@@ -57,6 +57,7 @@ class SpecDevice:
         self.buf = bytearray()
         self.log: list[str] = []
         self.refuse_next = False
+        self.refuse_query = False
         self.garbage_next = False
         self.stop = threading.Event()
 
@@ -76,8 +77,18 @@ class SpecDevice:
             self.log.append(f"watchdog {wd}")
             os.write(self.fd, seal(bytes((0x5C, addr, seq, 1)) + struct.pack("<H", wd)))
             return
+        named = [frame[4 + k] for k in range(n)] if kind == 0xA6 else [frame[4 + 4 * k] for k in range(n)]
+        if len(set(named)) != len(named):                       # a node twice: bad request
+            os.write(self.fd, seal(bytes((0x5B, addr, seq, n, 1))))
+            return
         if kind == 0xA6:
-            nodes = [frame[4 + k] for k in range(n) if frame[4 + k] in self.x]
+            if self.refuse_query:
+                os.write(self.fd, seal(bytes((0x5B, addr, seq, n, 3))))
+                return
+            nodes = [nd for nd in named if nd in self.x]
+            if not nodes:                                       # no known node: bad request
+                os.write(self.fd, seal(bytes((0x5B, addr, seq, n, 1))))
+                return
             items = [(nd, self.status(nd), self.counts(nd)) for nd in nodes]
         else:
             if self.refuse_next:
@@ -114,6 +125,8 @@ class SpecDevice:
         return (1 if self.fault[nd] else 0) | (2 if self.on[nd] else 0)
 
     def check_watchdog(self) -> None:
+        """Per channel in the doc; every channel here is commanded by every frame. It runs from the
+        first command and latches while the host is idle too."""
         if self.last_cmd is not None and time.monotonic() - self.last_cmd > self.watchdog_s:
             for nd in self.x:
                 self.fault[nd], self.on[nd], self.u[nd] = True, False, 0.0
@@ -205,3 +218,65 @@ def test_a_device_written_from_the_spec_closes_the_loop_over_a_pty(tmp_path):
         th.join(timeout=2)
         os.close(master)
         os.close(slave)
+
+
+@pytest.fixture
+def spec_device():
+    """A :class:`SpecDevice` (address 1, channels 1 and 2, 500 Hz) serving one end of a pty pair
+    from a thread; yields (device, a serial config dict for the other end)."""
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    dev = SpecDevice(master, address=1, nodes=(1, 2), dt=1.0 / 500)
+    th = threading.Thread(target=dev.serve, daemon=True)
+    th.start()
+    d = load_yaml(CONFIGS / "gantry-serial.yaml")
+    d["loop"]["rate_hz"] = 500.0
+    d["driver"].update(port=os.ttyname(slave), baudrate=115200, timeout_s=0.0015, wait="select",
+                       watchdog_s=0.03, round_trip_s=0.0005)
+    try:
+        yield dev, d
+    finally:
+        dev.stop.set()
+        th.join(timeout=2)
+        os.close(master)
+        os.close(slave)
+
+
+def test_each_run_starts_from_what_the_last_one_left(spec_device):
+    """Three set-ups in a row: after each, the host goes idle and the device's watchdog latches
+    the fault of both channels; the next set-up clears it with the doc's reset (a command with
+    enable 0), says so, and drives without a fault. Each stop is read back as status 0."""
+    dev, d = spec_device
+    for k in range(3):
+        drv = config_from_dict(d, "<spec>", check_budget=False).make_driver()
+        try:
+            drv.open()
+            assert not drv.amp_fault.any(), (k, drv.notices, dev.log)
+            cleared = [n for n in drv.notices if "cleared the amplifier fault latched on X, Y" in n]
+            assert len(cleared) == (0 if k == 0 else 1), (k, drv.notices)
+            for _ in range(20):                                      # bounded: 20 cycles, enabled
+                drv.write(np.array([0.5, -0.5]), np.ones(2, dtype=bool))
+                time.sleep(0.001)
+                drv.read()
+                assert not drv.amp_fault.any()
+            assert dev.on == {1: True, 2: True}
+            checks = drv.deactivate()
+        finally:
+            drv.close()
+        assert [c.confirmed for c in checks] == [True, True], checks
+        assert checks[0].held == "node 1 status 0x00: amplifier off, 0 V", checks
+        assert dev.on == {1: False, 2: False} and dev.u == {1: 0.0, 2: 0.0}
+        time.sleep(0.08)                                             # idle: the watchdog latches
+        assert all(dev.fault.values()), dev.log
+
+
+def test_an_error_frame_at_set_up_is_the_devices_error_at_once(spec_device):
+    dev, d = spec_device
+    dev.refuse_query = True
+    drv = config_from_dict(d, "<spec>", check_budget=False).make_driver()
+    t0 = time.monotonic()
+    with pytest.raises(ConnectionError) as err:
+        drv.open()
+    assert time.monotonic() - t0 < 0.5, "waited for the set-up timeout instead of taking the error frame"
+    assert "the device refused the position query: error frame code 3 (not allowed now)" in str(err.value)
