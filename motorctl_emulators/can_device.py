@@ -41,6 +41,7 @@ class CanDevice(Device):
         self.fb_of_axis = {i: f for f in self.fb for i in f.axes}
         self.bus = open_bus(options)
         self.last = {}
+        self.clocks = {}                   # command frame id -> MasterTime (its sequence byte)
 
     def _feedback(self, f: Frame, seq: int):
         import can
@@ -73,6 +74,12 @@ class CanDevice(Device):
             return
         data = msg.data
         seq = data[f.seq_byte] if f.seq_byte is not None else 0
+        periods = 1
+        if f.seq_byte is not None:          # the master's time from the frame's sequence byte
+            clock = self.clocks.get(f.id)
+            if clock is None:
+                clock = self.clocks[f.id] = b.master_time(256)
+            periods = clock.periods(seq)
         fault = b.next_fault(f.axes)
         if fault in ("disconnect", "bus_off"):
             return
@@ -83,7 +90,7 @@ class CanDevice(Device):
             c = self.lay[i].command
             bits = 8 * c.voltage.size
             u = counts_to_volts(to_signed(unpack_uint(data, c.voltage), bits), self.lay[i].voltage_full_scale_V, bits)
-            b.command(i, u, bool(data[c.enable.byte] >> c.enable.bit & 1))
+            b.command(i, u, bool(data[c.enable.byte] >> c.enable.bit & 1), periods)
         if fault == "drop":
             return
         done = set()

@@ -59,6 +59,9 @@ class ModbusDevice(Device):
         self.ep = StreamEndpoint(f"tcp://{options.host}:{options.port}" if self.tcp else options.serial_port)
         self.buf = bytearray()
         self.last = None
+        # the master's time: the sequence register (where the map has one) numbers the cycles
+        self.clock = bank.master_time(1 << 16 if self.tcp else 1 << 8)
+        self._periods = 1
         for i in range(len(self.ax)):
             self._feedback(i)
 
@@ -95,7 +98,7 @@ class ModbusDevice(Device):
             bits = 16 * a.voltage.nregs
             raw = raw - (1 << bits) if raw >= 1 << (bits - 1) else raw
         u = raw * a.voltage_scale() + a.voltage.offset
-        self.bank.command(i, u, self._bit(a.enable))
+        self.bank.command(i, u, self._bit(a.enable), self._periods)
         self._feedback(i)
 
     def _step_if_read(self, unit: int, table: str, address: int, count: int) -> None:
@@ -167,9 +170,11 @@ class ModbusDevice(Device):
                     return bytes((0x80 | fc, 4)), None
                 if fault == "disconnect":
                     return None, "disconnect"
+                o = self.options
                 for tb, a, v in writes:
                     t[tb][a] = v
-                o = self.options
+                    if tb == "holding" and a == o.sequence_register:
+                        self._periods = self.clock.periods(v)
                 if o.sequence_register is not None and o.sequence_echo_register is not None:
                     t["holding"][o.sequence_echo_register] = t["holding"][o.sequence_register]
                 for i in axes:

@@ -4,7 +4,16 @@ The plant of each axis is the sim driver's (:class:`motorctl_drivers.sim.AxisPla
 seeded by :class:`~motorctl_drivers.sim.SimDriver` itself), taken from a simulated-gantry config
 (``driver: {type: sim, seed, substeps, watchdog_s}``, ``axes.NAME.driver`` = the plant of NAME,
 e.g. ``configs/gantry.yaml``): with the same config a run through the emulator meets the same
-plant and noise as a run on the sim driver. Each valid command steps its axis one loop period.
+plant and noise as a run on the sim driver.
+
+The master's time: a device is paced by its master (time-compressed: a run on the virtual clock
+goes as fast as the exchanges do), so its plant time is the master's period count, not the
+device's clock. The device learns it from what the master numbers (:class:`MasterTime`: the
+serial frame's seq, the CAN sequence byte, the Modbus sequence register, the CANopen SYNC
+counter): a command that comes ``g`` periods after the last one steps the plant ``g`` periods,
+the ``g - 1`` periods without a command coasting on what the amplifier held (a drive's output
+holds until its watchdog), so a command the master sent and the device never received costs
+no plant time. A repeated number steps nothing.
 
 Watchdog (a drive's command timeout: LinuxCNC hm2 ``timeout_ns``, CiA 402 0x6007): no valid
 command for ``watchdog_s`` → 0 V and an amplifier fault, latched until a command with the
@@ -23,6 +32,39 @@ from pydantic import Field
 
 from motorctl.schema import StrictModel
 from motorctl_drivers.sim import SimAxisOptions, SimDriver, SimOptions
+
+class MasterTime:
+    """The master's period count from a wrapping number it sends with every command.
+
+    Args:
+        modulo: the number wraps at this (256 for a byte, 65536 for a register, 240 for a
+            CiA 301 SYNC counter of overflow value 240).
+        max_gap: the most periods one command may stand for (the watchdog time in periods: a
+            device whose watchdog ran out has stopped; a larger jump is a new master): beyond
+            it a command counts as one period.
+    """
+
+    def __init__(self, modulo: int, max_gap: int):
+        self.modulo = int(modulo)
+        self.max_gap = max(1, int(max_gap))
+        self.last: int | None = None
+        self.coasted = 0                # periods stepped without a command (missing commands)
+
+    def seen(self, number: int) -> None:
+        """A frame that numbers the master's time but commands nothing (a query, a config)."""
+        self.last = int(number) % self.modulo
+
+    def periods(self, number: int) -> int:
+        """Periods the command numbered ``number`` stands for: 1 after a frame numbered one
+        less (or for the first), ``g`` after a gap of ``g``, 0 for a repeat."""
+        number = int(number) % self.modulo
+        g = 1 if self.last is None else (number - self.last) % self.modulo
+        self.last = number
+        if g > self.max_gap:
+            g = 1
+        self.coasted += max(0, g - 1)
+        return g
+
 
 FAULT_KINDS = ("drop", "late", "corrupt", "stale", "exception", "disconnect", "bus_off", "emcy")
 #: the error code of an ``emcy`` fault without ``=CODE`` (CiA 402: continuous over-current)
@@ -101,6 +143,7 @@ class PlantBank:
         if not watchdog_s > 0:
             raise ValueError(f"watchdog {watchdog_s!r} s: must be > 0")
         self.names = list(plants)
+        self.period_s = float(period_s)
         self.plants = SimDriver(sim_options, dict(plants), period_s).plants   # the sim driver's seeding
         self.watchdog_s = float(watchdog_s)
         self.late_s = float(late_s)
@@ -138,8 +181,20 @@ class PlantBank:
             self.received[k] += 1
         return found
 
-    def command(self, i: int, u_V: float, enable: bool) -> None:
-        """Apply one valid command to axis i: hold u_V [V] for one period (0 V when disabled or faulted)."""
+    def master_time(self, modulo: int) -> MasterTime:
+        """A :class:`MasterTime` for a number wrapping at ``modulo``, its largest gap the
+        watchdog time in loop periods."""
+        return MasterTime(modulo, round(self.watchdog_s / self.period_s))
+
+    def command(self, i: int, u_V: float, enable: bool, periods: int = 1) -> None:
+        """Apply one valid command to axis i that comes ``periods`` periods of the master's time
+        after the last (:class:`MasterTime`): the plant first coasts ``periods - 1`` periods on
+        what the amplifier held, then holds u_V [V] for one period (0 V when disabled or
+        faulted). ``periods`` 0 (a repeated command) steps nothing."""
+        if periods <= 0:
+            return
+        for _ in range(periods - 1):
+            self.plants[i].step(self.applied_V[i])
         self.last_cmd[i] = time.monotonic()
         if self.commands[i] == 0:
             self.log(f"first command {self.names[i]}")

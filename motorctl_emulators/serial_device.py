@@ -43,6 +43,7 @@ class SerialDevice(Device):
         self.ep = StreamEndpoint(options.port)
         self.parser = FrameParser((CMD, QUERY, CONFIG))
         self._last_reply = None
+        self.clock = bank.master_time(256)      # the master's time from the frames' seq
 
     def _reply(self, seq: int, nodes) -> bytes:
         b = self.bank
@@ -67,6 +68,8 @@ class SerialDevice(Device):
             if len(set(named)) != len(named):    # a node twice in one frame: bad request, nothing applied
                 self.ep.send(encode_error(address, seq, m, 1))
                 continue
+            if kind != CMD:
+                self.clock.seen(seq)
             if kind == QUERY:
                 nodes = [nd for nd in named if nd in self.index]
                 self.ep.send(self._reply(seq, nodes) if nodes else encode_error(address, seq, m, 1))
@@ -92,8 +95,9 @@ class SerialDevice(Device):
             if fault == "disconnect":
                 self.ep.disconnect()
                 return
+            periods = self.clock.periods(seq)
             for nd, en, c in items:
-                b.command(self.index[nd], counts_to_volts(c, self.options.voltage_full_scale_V, 16), en)
+                b.command(self.index[nd], counts_to_volts(c, self.options.voltage_full_scale_V, 16), en, periods)
             reply = self._reply(seq, nodes)
             if fault in ("drop", "bus_off"):
                 pass

@@ -227,3 +227,38 @@ def test_port_failures_are_one_clear_line(name, tmp_path):
         r = run_cli(["run", str(cfg), "--duration", "0.1"], timeout_s=60)
         assert r.returncode == 1 and r.stderr.startswith("motorctl: error: ") and "Traceback" not in r.stderr, r.stderr
         assert why in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+@pytest.mark.parametrize("name", ["gantry-serial.yaml", "gantry-can.yaml", "gantry-modbus.yaml"])
+def test_commands_the_device_never_received_cost_no_plant_time(name, tmp_path):
+    """The device keeps the master's time: the driver numbers its commands (serial seq, CAN
+    sequence byte, Modbus sequence register), so after two commands that never reached the
+    device the next one steps the plant three periods, the two missing ones coasting on the
+    voltage the amplifier held (checked against a copy of the plant stepped so)."""
+    import copy
+
+    from motorctl_emulators.harness import free_port
+    where = {"gantry-serial.yaml": {"port": f"socket://127.0.0.1:{free_port()}"},
+             "gantry-can.yaml": {"interface": "virtual", "channel": f"mt-{tmp_path.name}"},
+             "gantry-modbus.yaml": {"transport": "tcp", "host": "127.0.0.1", "port": free_port()}}[name]
+    d = _config(name, tmp_path, timeout_s=0.02, **where)
+    d["loop"]["clock"] = "virtual"                     # lockstep: every answer is waited for
+    loaded = config_from_dict(d, "<inprocess>", check_budget=False)
+    with _serving(loaded) as dev:
+        drv = loaded.make_driver()
+        try:
+            drv.open()
+            exchange(drv, [2.0, -2.0], [True, True], 20, sleep_s=0.003)
+            assert not drv.read_error.any() and dev.bank.applied_V[0] == pytest.approx(2.0, abs=1e-3)
+            twin = copy.deepcopy(dev.bank.plants[0])
+            held = dev.bank.applied_V[0]
+            drv.seq = (drv.seq + 2) & drv.SEQ_MASK     # two commands lost on the way
+            exchange(drv, [1.0, -1.0], [True, True], 1, sleep_s=0.003)
+            got = float(drv.position_m[0])
+        finally:
+            drv.close()
+    clocks = list(dev.clocks.values()) if hasattr(dev, "clocks") else [dev.clock]
+    assert [c.coasted for c in clocks] == [2] * len(clocks), [c.coasted for c in clocks]
+    for u in (held, held, 1.0):
+        twin.step(u)
+    assert got == pytest.approx(twin.measured(), abs=1e-9)

@@ -1,6 +1,7 @@
 """End to end through the real protocol stacks: ``motorctl emulate`` in its own process,
 ``motorctl run`` in another, C2 on the gantry program (X: 0 ↔ 0.4 m at 2 m/s; Y alongside),
-compared with the sim driver on the same plant and seed at the same loop rate.
+compared with the sim driver on the same plant and seed at the same loop rate, in lockstep
+with the device (the virtual clock: the verdict is about tracking, not the host's scheduling).
 
 Rates (the highest each budget allows on this machine, :func:`loopback_rate`): the shipped
 config's wire time plus the loopback round trip p99 measured here (``LOOPBACK_ROUND_TRIP_S``),
@@ -23,6 +24,7 @@ import functools
 import os
 import signal
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
@@ -49,21 +51,9 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 PLANT = RIGID_PLANT
 DURATION_S = 3.0
 EXPECTED_RATE_HZ = {"serial": 2000.0, "can": 1000.0, "modbus": 1500.0, "canopen": 500.0}
-TOLERANCE = 0.20
-#: a run whose cycle was held up this many periods (lateness or a read) was starved by the host:
-#: the emulator, which steps its plant per command, then no longer stands in for a machine
-STARVED_PERIODS = 5
-ATTEMPTS = 3
-
-
-def _starved(log_path, rate: float) -> float:
-    """The longest hold-up of a run's cycle [s] (lateness or read) when it exceeds
-    ``STARVED_PERIODS`` periods, else 0."""
-    log = read_log(str(log_path))
-    worst = max(float(log.col("lateness_ns").max()), float(log.col("read_ns").max())) * 1e-9
-    return worst if worst > STARVED_PERIODS / rate else 0.0
-
-
+#: lockstep with the same plant and seed: the runs agree to the printed digits but for the
+#: transports' scaling (16-bit voltage counts, 0.5 um encoder counts): 2 % is plenty
+TOLERANCE = 0.02
 def _misses(got: dict, ref: dict) -> list[str]:
     """What of a run's table ``got`` fails the comparison with the sim run ``ref``: a fault, or
     e_M / e_F / L2[e] more than ``TOLERANCE`` from the sim's (one line each; [] when none)."""
@@ -109,42 +99,49 @@ def namespace_for():
 
 @pytest.mark.parametrize("transport", ["serial", "can", "modbus", "canopen"])
 def test_closed_loop_through_the_protocol_matches_the_sim_driver(transport, tmp_path, namespace_for):
+    """C2 through the protocol, judged on tracking alone: the run is in lockstep with the
+    emulated device (``loop.clock: virtual``: each cycle waits for its answer, up to a 50 ms
+    read timeout), so the verdict does not depend on how the host schedules two processes on
+    two cores, and the error bucket is the default (100). Mid-run the host is stopped for
+    20 ms (SIGSTOP, SIGCONT): the device keeps the master's time (it steps its plant by the
+    cycles the master numbers, not by its own clock) and the run tracks as the sim driver does.
+    The wall-clock behaviour of each transport (late, lost and bad answers against the read
+    timeout, the stand-in, the bucket) is test_drivers_faults'."""
     d, cfg, rate = loopback_e2e_config(transport, CONFIGS, tmp_path)
-    # On a loaded 2-core machine loopback delivery can stall for milliseconds (softirq work
-    # deferred to ksoftirqd, which SCHED_OTHER load competes with): one such stall once lost 14
-    # exchanges in a row and filled the default bucket (+10 per lost exchange, limit 100). This
-    # test is about tracking through the protocol, so the bucket tolerates a burst of 60 lost
-    # exchanges; test_drivers_faults keeps the default and checks the bucket itself.
-    for ax in d["axes"].values():
-        ax["limits"]["error_bucket_limit"] = 600
-    cfg.write_text(yaml.safe_dump(d, sort_keys=False))
     assert rate == EXPECTED_RATE_HZ[transport], f"{transport}: budget now allows {rate} Hz"
+    d["loop"]["clock"] = "virtual"
+    d["driver"]["timeout_s"] = 0.05
+    cfg.write_text(yaml.safe_dump(d, sort_keys=False))
     prefix = namespace_for(transport)
     ref = _sim_reference(rate)
-    # A run the host starved (a cycle held up STARVED_PERIODS periods: measured on this shared
-    # VM, reads of 5-9.6 ms at 2 kHz) is run again, at most ATTEMPTS times: the emulated plant
-    # steps per command, so starvation is lost plant time a machine would not have. A run that
-    # was not starved is judged as it is.
-    for attempt in range(1, ATTEMPTS + 1):
-        log = tmp_path / f"run{attempt}.log"
-        with Emulator(transport, cfg, plant=PLANT, watchdog_s=LOOPBACK_WATCHDOG_S, prefix=prefix) as emu:
-            r = run_cli(["run", str(cfg), "--controller", "c2", "--duration", str(DURATION_S), "--log", str(log)],
-                        prefix=prefix, timeout_s=90)
-            emu_err = emu.stderr()
-        got = parse_run_table(r.stdout)
-        assert set(got) == {"X", "Y"}, f"rc {r.returncode}\n{r.stdout}\n{r.stderr}\n{emu_err}"
-        assert f"at {rate:.0f} Hz (wall clock)" in r.stdout
-        misses = _misses(got, ref)
-        if not misses:
-            break
-        held = _starved(log, rate)
-        if not held or attempt == ATTEMPTS:
-            break
-        print(f"{transport}: attempt {attempt} starved by the host (a cycle held up {held * 1e3:.1f} ms); again")
+    log = tmp_path / "run.log"
+    with Emulator(transport, cfg, plant=PLANT, watchdog_s=LOOPBACK_WATCHDOG_S, prefix=prefix) as emu:
+        run = subprocess.Popen([*prefix, *motorctl_cmd("run", str(cfg), "--controller", "c2", "--duration",
+                                                       str(DURATION_S), "--log", str(log))],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+        try:
+            first = run.stdout.readline()
+            assert first.startswith("running"), first + run.stderr.read()
+            time.sleep(0.3)
+            os.killpg(run.pid, signal.SIGSTOP)                  # a 20 ms host stall mid-run
+            time.sleep(0.020)
+            os.killpg(run.pid, signal.SIGCONT)
+            out, err = run.communicate(timeout=120)
+        finally:
+            if run.poll() is None:
+                os.killpg(run.pid, signal.SIGKILL)
+                run.wait(timeout=10)
+        emu_err = emu.stderr()
+    got = parse_run_table(out)
+    assert set(got) == {"X", "Y"}, f"rc {run.returncode}\n{out}\n{err}\n{emu_err}"
+    assert f"at {rate:.0f} Hz for {DURATION_S:g} s (virtual clock)" in first
+    misses = _misses(got, ref)
     for axis in ("X", "Y"):   # shown with pytest -s: the figures of the closing note
         print(f"{transport} {rate:.0f} Hz {axis}: " + ", ".join(
-            f"{k} {got[axis][k]:.2f} (sim {ref[axis][k]:.2f})" for k in ("e_M_um", "e_F_um", "L2_um")))
-    assert not misses, f"{transport} at {rate:.0f} Hz: {'; '.join(misses)}\n{r.stdout}"
+            f"{k} {got[axis][k]:.2f} (sim {ref[axis][k]:.2f})" for k in ("e_M_um", "e_F_um", "L2_um"))
+            + f", io errors {got[axis]['io_errors']}")
+    assert not misses, f"{transport} at {rate:.0f} Hz: {'; '.join(misses)}\n{out}"
+    assert "X, Y at 0 V, amplifiers off (confirmed by the device" in out, out + err
     hdr = read_log(str(log)).header
     assert hdr["driver"]["transport"].startswith(transport)
 

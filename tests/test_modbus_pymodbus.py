@@ -77,8 +77,8 @@ class PlantBehind:
     serving that request (a device that is late: the requests behind it wait in its socket).
     """
 
-    def __init__(self, bank, axes, no_fc23: bool = False, stall=(0, 0.0)):
-        self.bank, self.axes, self.no_fc23, self.stall = bank, axes, no_fc23, stall
+    def __init__(self, bank, axes, no_fc23: bool = False, stall=(0, 0.0), fault_at: int = 0):
+        self.bank, self.axes, self.no_fc23, self.stall, self.fault_at = bank, axes, no_fc23, stall, fault_at
         self.hold: dict[int, int] = {}
         self.coil: dict[int, bool] = {}
         self.requests: dict[int, int] = {}
@@ -102,6 +102,8 @@ class PlantBehind:
         self.requests[fc] = self.requests.get(fc, 0) + 1
         if sum(self.requests.values()) == self.stall[0]:
             time.sleep(self.stall[1])  # noqa: ASYNC251  (blocks the event loop on purpose: a late device)
+        if sum(self.requests.values()) == self.fault_at:
+            self.bank.amp_fault[0] = True            # the first axis's drive faults at this request
         if fc == 23 and self.no_fc23:
             return ExcCodes.ILLEGAL_FUNCTION
         if values is not None:                       # a write: mirror it; a voltage write is a command
@@ -142,7 +144,7 @@ class PlantBehind:
         return None
 
 
-def serve(config: str, shared: bool, no_fc23: bool, junk_at: int, stall=(0, 0.0)) -> None:
+def serve(config: str, shared: bool, no_fc23: bool, junk_at: int, stall=(0, 0.0), fault_at: int = 0) -> None:
     """The device process: pymodbus's ModbusTcpServer on the config's host:port with one SimDevice
     per unit, the plant behind; prints 'ready' once it listens, the request counts per unit and
     function code as JSON on SIGTERM. ``junk_at`` > 0: the junk_at-th answer is garbage.
@@ -159,7 +161,7 @@ def serve(config: str, shared: bool, no_fc23: bool, junk_at: int, stall=(0, 0.0)
     loaded = load_config(config, check_budget=False)
     names = list(loaded.axes)
     bank = load_plant(PLANT, names, loaded.period_s, watchdog_s=10.0, log=lambda msg: None)
-    actions = {unit: PlantBehind(bank, axes, no_fc23, stall) for unit, axes in _units(loaded).items()}
+    actions = {unit: PlantBehind(bank, axes, no_fc23, stall, fault_at) for unit, axes in _units(loaded).items()}
     devices = []
     for unit, act in actions.items():
         if shared:
@@ -206,7 +208,7 @@ def serve(config: str, shared: bool, no_fc23: bool, junk_at: int, stall=(0, 0.0)
 
 @contextlib.contextmanager
 def pymodbus_server(config: Path, *, shared: bool = True, no_fc23: bool = False, junk_at: int = 0,
-                    stall=(0, 0.0)):
+                    stall=(0, 0.0), fault_at: int = 0):
     """:func:`serve` in its own process (killed by pid on exit); yields a dict that holds the
     request counts ({unit: {fc: n}}) once the block ends."""
     import json
@@ -214,7 +216,7 @@ def pymodbus_server(config: Path, *, shared: bool = True, no_fc23: bool = False,
     import subprocess
     import sys
     proc = subprocess.Popen([sys.executable, __file__, "--serve", str(config), str(int(shared)), str(int(no_fc23)),
-                             str(junk_at), str(stall[0]), str(stall[1])],
+                             str(junk_at), str(stall[0]), str(stall[1]), str(fault_at)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     counts: dict = {}
     try:
@@ -382,8 +384,9 @@ def test_the_device_holds_0V_and_enable_off_after_motorctl_run(how, tmp_path):
     port = d["driver"]["port"]
     n_cycles = int(1.0 * rate)
     stall = (51 + 1 + n_cycles, 0.03) if how == "end" else (0, 0.0)   # queries, FC23 probe, cycles
+    fault_at = 51 + 1 + n_cycles // 2 if how == "fault" else 0        # X's drive faults mid-run
     argv = ["run", str(cfg), "--controller", "c2", "--duration", "1" if how != "sigterm" else "20"]
-    with pymodbus_server(cfg, stall=stall):
+    with pymodbus_server(cfg, stall=stall, fault_at=fault_at):
         if how == "sigterm":
             proc = subprocess.Popen(motorctl_cmd(*argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                     text=True, start_new_session=True)
@@ -391,18 +394,6 @@ def test_the_device_holds_0V_and_enable_off_after_motorctl_run(how, tmp_path):
                 assert proc.stdout.readline().startswith("running"), proc.stderr.read()
                 time.sleep(0.5)
                 proc.send_signal(signal.SIGTERM)
-                out, err = proc.communicate(timeout=30)
-            finally:
-                if proc.poll() is None:
-                    proc.kill()
-            r = subprocess.CompletedProcess(argv, proc.returncode, "running\n" + out, err)
-        elif how == "fault":
-            proc = subprocess.Popen(motorctl_cmd(*argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                    text=True, start_new_session=True)
-            try:
-                assert proc.stdout.readline().startswith("running"), proc.stderr.read()
-                time.sleep(0.3)
-                write_register(port, 1, FAULT_REGISTER, 1)       # X's drive faults
                 out, err = proc.communicate(timeout=30)
             finally:
                 if proc.poll() is None:
@@ -498,7 +489,8 @@ def test_a_garbage_reply_is_counted_and_the_tcp_stream_recovers(tmp_path):
 if __name__ == "__main__":           # the device process of pymodbus_server()
     import sys
     if sys.argv[1] == "--serve":
-        serve(sys.argv[2], sys.argv[3] == "1", sys.argv[4] == "1", int(sys.argv[5]), (int(sys.argv[6]), float(sys.argv[7])))
+        serve(sys.argv[2], sys.argv[3] == "1", sys.argv[4] == "1", int(sys.argv[5]), (int(sys.argv[6]), float(sys.argv[7])),
+              int(sys.argv[8]))
 
 
 def test_an_exception_answer_is_the_drives_reason_while_it_lasts(tmp_path):
