@@ -244,7 +244,8 @@ def test_commands_the_device_never_received_cost_no_plant_time(name, tmp_path):
     d = _config(name, tmp_path, timeout_s=0.02, **where)
     d["loop"]["clock"] = "virtual"                     # lockstep: every answer is waited for
     loaded = config_from_dict(d, "<inprocess>", check_budget=False)
-    with _serving(loaded) as dev:
+    # a 5 s device watchdog: a loaded host's stall between two commands must not trip it here
+    with device_thread(build_device(loaded, PLANT, watchdog_s=5.0)) as dev:
         drv = loaded.make_driver()
         try:
             drv.open()
