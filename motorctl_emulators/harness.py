@@ -234,6 +234,23 @@ def run_cli(argv: list[str], prefix=(), timeout_s: float = 60.0) -> subprocess.C
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
 
 
+def run_cli_interrupted(argv: list[str], act, prefix=(), timeout_s: float = 60.0):
+    """Run a motorctl command, wait for its first line of stdout (``run`` prints it just before
+    the first cycle), call ``act(proc)`` (e.g. sleep, then send a signal to ``proc.pid``'s
+    group), then wait for the end (bounded; killed on exit). Returns (first line,
+    CompletedProcess with the rest of stdout and stderr)."""
+    proc = subprocess.Popen([*prefix, *motorctl_cmd(*argv)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        first = proc.stdout.readline()
+        if first:
+            act(proc)
+        out, err = proc.communicate(timeout=timeout_s)
+    finally:
+        _kill(proc)
+    return first, subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
 def parse_run_table(stdout: str) -> dict:
     """Axis rows of ``motorctl run``'s table →
     {axis: {e_M_um, e_F_um, L2_um, u_peak_V, io_errors, fault}}."""

@@ -42,6 +42,7 @@ from motorctl_emulators.harness import (
     motorctl_cmd,
     parse_run_table,
     run_cli,
+    run_cli_interrupted,
     sim_twin,
     wait_for,
 )
@@ -115,25 +116,19 @@ def test_closed_loop_through_the_protocol_matches_the_sim_driver(transport, tmp_
     prefix = namespace_for(transport)
     ref = _sim_reference(rate)
     log = tmp_path / "run.log"
+    def stall(proc):                                        # a 20 ms host stall mid-run
+        time.sleep(0.3)
+        os.killpg(proc.pid, signal.SIGSTOP)
+        time.sleep(0.020)
+        os.killpg(proc.pid, signal.SIGCONT)
+
     with Emulator(transport, cfg, plant=PLANT, watchdog_s=LOOPBACK_WATCHDOG_S, prefix=prefix) as emu:
-        run = subprocess.Popen([*prefix, *motorctl_cmd("run", str(cfg), "--controller", "c2", "--duration",
-                                                       str(DURATION_S), "--log", str(log))],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
-        try:
-            first = run.stdout.readline()
-            assert first.startswith("running"), first + run.stderr.read()
-            time.sleep(0.3)
-            os.killpg(run.pid, signal.SIGSTOP)                  # a 20 ms host stall mid-run
-            time.sleep(0.020)
-            os.killpg(run.pid, signal.SIGCONT)
-            out, err = run.communicate(timeout=120)
-        finally:
-            if run.poll() is None:
-                os.killpg(run.pid, signal.SIGKILL)
-                run.wait(timeout=10)
+        first, r = run_cli_interrupted(["run", str(cfg), "--controller", "c2", "--duration", str(DURATION_S),
+                                        "--log", str(log)], stall, prefix=prefix, timeout_s=120)
         emu_err = emu.stderr()
+    out, err = r.stdout, r.stderr
     got = parse_run_table(out)
-    assert set(got) == {"X", "Y"}, f"rc {run.returncode}\n{out}\n{err}\n{emu_err}"
+    assert set(got) == {"X", "Y"}, f"rc {r.returncode}\n{first}{out}\n{err}\n{emu_err}"
     assert f"at {rate:.0f} Hz for {DURATION_S:g} s (virtual clock)" in first
     misses = _misses(got, ref)
     for axis in ("X", "Y"):   # shown with pytest -s: the figures of the closing note

@@ -373,9 +373,10 @@ def test_the_device_holds_0V_and_enable_off_after_motorctl_run(how, tmp_path):
     connection) drops it: the stop must settle the link and send its command again (the old
     shutdown left [10000, 1]: 10 V, enable on, 5 of 5 runs). ``fault``:
     the test makes X's drive fault mid-run (X stops at once, Y runs to the end)."""
+    import os
     import signal
-    import subprocess
-    from motorctl_emulators.harness import motorctl_cmd
+
+    from motorctl_emulators.harness import run_cli_interrupted
     rate = 500.0
     d = map_a(rate, round_trip_s=0.0006)
     d["loop"]["clock"] = "virtual"                  # lockstep: tracking does not depend on the host
@@ -388,17 +389,11 @@ def test_the_device_holds_0V_and_enable_off_after_motorctl_run(how, tmp_path):
     argv = ["run", str(cfg), "--controller", "c2", "--duration", "1" if how != "sigterm" else "20"]
     with pymodbus_server(cfg, stall=stall, fault_at=fault_at):
         if how == "sigterm":
-            proc = subprocess.Popen(motorctl_cmd(*argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                    text=True, start_new_session=True)
-            try:
-                assert proc.stdout.readline().startswith("running"), proc.stderr.read()
+            def term(proc):
                 time.sleep(0.5)
-                proc.send_signal(signal.SIGTERM)
-                out, err = proc.communicate(timeout=30)
-            finally:
-                if proc.poll() is None:
-                    proc.kill()
-            r = subprocess.CompletedProcess(argv, proc.returncode, "running\n" + out, err)
+                os.killpg(proc.pid, signal.SIGTERM)
+            first, r = run_cli_interrupted(argv, term, timeout_s=60)
+            assert first.startswith("running"), first + r.stderr
         else:
             r = run_cli(argv, timeout_s=60)
         held = read_back(port, 1, "holding", 0, 4)
