@@ -60,12 +60,12 @@ def _faulted_run(tmp_path, d: dict, cfg: Path, fault: str, duration_s: float, **
 def test_emcy_latches_a_fault_naming_its_code_and_the_enable_follows_the_state_machine(tmp_path):
     d, cfg, rate = loopback_e2e_config("canopen", CONFIGS, tmp_path)
     assert rate == 500.0 and d["driver"]["heartbeat_consumer_ms"] == CONSUMER_S * 1e3
-    # here the EMCY is the only fault wanted: a loaded VM's stall of the run must not reach the
-    # drives' heartbeat consumers (the SIGKILL test below keeps the shipped 50 ms)
-    d["driver"].update(heartbeat_consumer_ms=1000, drive_heartbeat_timeout_ms=1000)
-    for ax in d["axes"].values():    # nor a burst of late TPDOs (read errors) or the plant time a
-        ax["limits"]["error_bucket_limit"] = 600      # starved emulator loses: X must reach the
-        ax["limits"]["following_error_m"] = 0.01      # EMCY enabled and moving
+    # here the EMCY is the only fault wanted: the run is in lockstep with the drives (each
+    # cycle waits for its TPDOs, the driver's default error bucket), and a loaded VM's stall of
+    # the run must not reach the drives' heartbeat consumers (the SIGKILL test below keeps the
+    # shipped 50 ms)
+    d["loop"]["clock"] = "virtual"
+    d["driver"].update(heartbeat_consumer_ms=1000, drive_heartbeat_timeout_ms=1000, timeout_s=0.05)
     start = round(0.8 * rate)                       # the SYNC count 0.8 s in: X is moving
     r, err, table, log_path = _faulted_run(tmp_path, d, cfg, f"emcy=0x2310:X:{start}", 1.2)
     assert r.returncode == 1 and "amplifier fault" in table["X"]["fault"] and table["Y"]["fault"] == "", r.stdout
@@ -156,9 +156,10 @@ def test_a_late_drive_costs_a_few_cycles_not_a_stale_position(tmp_path):
     the first TPDO of such a burst for the latest: a position 12 mm old, and both axes faulted
     on the following error.)"""
     d, cfg, rate = loopback_e2e_config("canopen", CONFIGS, tmp_path)
-    d["driver"].update(heartbeat_consumer_ms=1000, drive_heartbeat_timeout_ms=1000)
-    for ax in d["axes"].values():     # only the burst's own losses count here (see test_emulator_e2e)
-        ax["limits"]["error_bucket_limit"] = 600
+    # lockstep with a 4 ms read timeout (2 periods): the 6 ms late SYNC is the only one missed,
+    # whatever the host's scheduling; the driver's default error bucket
+    d["loop"]["clock"] = "virtual"
+    d["driver"].update(heartbeat_consumer_ms=1000, drive_heartbeat_timeout_ms=1000, timeout_s=0.004)
     start = round(0.7 * rate)                       # the SYNC count 0.7 s in: X moves at ~2 m/s
     r, _err, table, log_path = _faulted_run(tmp_path, d, cfg, f"late:X:{start}:1", 1.0, late_s=0.006)
     c = read_log(str(log_path)).header["driver"]["counters"]
