@@ -41,7 +41,7 @@ from motorctl.loop.safety import LimitsConfig
 from motorctl.loop.timebase import Timebase
 from motorctl.loop.trajectory import TrajectoryConfig
 from motorctl.model import assumption2_margin
-from motorctl.schema import StrictModel
+from motorctl.schema import StrictModel, quantity
 
 
 class ConfigError(ValueError):
@@ -117,7 +117,7 @@ class LoopConfig(StrictModel):
 
     rate_hz: Annotated[float, Field(gt=0, le=20000)] = 5000.0
     clock: Literal["wall", "virtual"] = "wall"
-    duration_s: Annotated[float, Field(gt=0)] = 40.0
+    duration_s: quantity(1e-4, 1e7, "s") = 40.0
     realtime: RealtimeConfig = RealtimeConfig()
     overrun_policy: Literal["count", "ramp"] = "count"
     overrun_hold_cycles: Annotated[int, Field(ge=0, le=1000)] = 5
@@ -271,6 +271,8 @@ def _validate(path: Path, model, data, prefix: str = ""):
         elif err["type"] == "extra_forbidden":
             allowed = ", ".join(model_fields_at(model, loc[:-1])) or "none"
             msg = f"unknown key; allowed here: {allowed}"
+        elif err["type"] == "value_error" and ("physical range" in msg or "no physical value" in msg):
+            msg = msg.removeprefix("Value error, ")      # it names the value, the range and the unit
         elif "input" in err and err["type"] != "missing" and "is not a valid name" not in msg:
             msg = f"{msg} (got {summarize(err['input'])})"
         more = f" (and {len(exc.errors()) - 1} more problem(s))" if len(exc.errors()) > 1 else ""

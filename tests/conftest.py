@@ -1,11 +1,33 @@
 """Shared fixtures: paths of the repository and of the paper's gantry config, and the motorctl
-program as this interpreter runs it (never looked up on PATH or at a fixed system path)."""
+program as this interpreter runs it (never looked up on PATH or at a fixed system path).
 
+Property tests (hypothesis) give the same verdict on every run: the default profile ``ci`` is
+derandomized (the examples follow from each test, with no example database relied on). A
+developer looking for new failures runs them with fresh random examples, ten times as many:
+``MOTORCTL_HYPOTHESIS=explore .venv/bin/python -m pytest -q tests/test_inputs.py
+tests/test_estimator.py tests/test_inversion.py`` (a failure prints the
+``@reproduce_failure`` blob to pin it)."""
+
+import os
 import sys
 import sysconfig
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
+
+settings.register_profile("ci", derandomize=True, database=None, print_blob=True)
+settings.register_profile("explore", derandomize=False, database=None, print_blob=True)
+#: the hypothesis profile of this run: ``ci`` (fixed examples) unless MOTORCTL_HYPOTHESIS says
+HYPOTHESIS_PROFILE = os.environ.get("MOTORCTL_HYPOTHESIS", "ci")
+if HYPOTHESIS_PROFILE not in ("ci", "explore"):
+    raise pytest.UsageError(f"MOTORCTL_HYPOTHESIS={HYPOTHESIS_PROFILE!r}: allowed: ci, explore")
+settings.load_profile(HYPOTHESIS_PROFILE)
+
+
+def examples(n: int) -> int:
+    """How many examples a property test draws: ``n`` (``ci``), ten times as many (``explore``)."""
+    return n * (10 if HYPOTHESIS_PROFILE == "explore" else 1)
 
 REPO = Path(__file__).resolve().parents[1]
 

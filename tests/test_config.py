@@ -41,7 +41,10 @@ CASES = [
     # (key path, value, expected key in the message, expected words)
     ("axes.X.controller.k_sx", 95.0, "axes.X.controller.k_sx", "unknown key; allowed here: type, mode, k_s"),
     ("axes.X.controller.k_s", "ninety-five", "axes.X.controller.k_s", "valid number"),
-    ("axes.X.controller.k_s", -1.0, "axes.X.controller.k_s", "greater than 0"),
+    ("axes.X.controller.k_s", -1.0, "axes.X.controller.k_s", "-1 V s/m is outside the physical range [0.001, 1e+07] V s/m"),
+    ("axes.X.trajectory.v_max", 1.7096854882967697e-151, "axes.X.trajectory.v_max",
+     "1.70969e-151 m/s is outside the physical range [1e-06, 20] m/s"),
+    ("axes.X.driver.mass_kg", 1e300, "axes.X.driver.mass_kg", "1e+300 is no physical value of a gantry"),
     ("axes.X.controller.type", "c3", "axes.X.controller.type", "allowed here: c1, c2"),
     ("axes.X.controller.theta_min", [0.05, 0.08, 0.05, -0.5, -0.015], "axes.X.controller.theta_min", "at least 6"),
     ("axes.X.controller.theta_hat0", [0.4, 0.2, 0.1, 0.0, 0.0, 0.0], "axes.X.controller.theta_hat0[0]", "outside [theta_min, theta_max]"),

@@ -41,7 +41,6 @@ from motorctl_emulators.harness import (
     loopback_e2e_config,
     motorctl_cmd,
     parse_run_table,
-    run_cli,
     run_cli_interrupted,
     sim_twin,
     wait_for,

@@ -11,6 +11,7 @@ import time
 
 import pytest
 import yaml
+from conftest import examples
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -30,6 +31,12 @@ def _one_line_error(code, err):
     assert code == 2, err
     assert err.startswith("motorctl: error: ") and err.count("\n") == 1, err
     assert "Traceback" not in err
+
+
+def _get(d, dotted: str):
+    for k in dotted.split("."):
+        d = d[int(k)] if isinstance(d, list) else d[k]
+    return d
 
 
 def _set(d: dict, dotted: str, value):
@@ -193,7 +200,7 @@ _values = st.one_of(
     st.dictionaries(st.text(max_size=5), st.integers(), max_size=3))
 
 
-@settings(max_examples=150, deadline=5000, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(150), deadline=5000, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(path=st.sampled_from(_LEAVES), value=_values)
 def test_mutated_configs_exit_0_or_2_with_one_line(tmp_path, capsys, path, value):
     d = _set(copy.deepcopy(GANTRY), path, value)
@@ -206,3 +213,31 @@ def test_mutated_configs_exit_0_or_2_with_one_line(tmp_path, capsys, path, value
         _one_line_error(code, err)
     else:
         assert err == "" and out.endswith("\n")
+
+
+#: every number of the shipped config (its leaves that are int or float, list items included)
+_NUMERIC = [p for p in _LEAVES if isinstance(_get(GANTRY, p), (int, float)) and not isinstance(_get(GANTRY, p), bool)]
+#: values no gantry has in any key: the overflow hypothesis once found, its neighbours, huge ones
+_ABSURD = [1.7096854882967697e-151, 5e-324, 2.2e-308, 1e300, -1e300]
+
+
+@pytest.mark.parametrize("value", _ABSURD)
+def test_an_absurd_number_in_any_key_is_refused_with_its_range(tmp_path, capsys, value):
+    """Each numeric key has a physical range: the value is refused with the key, the value, the
+    range and the unit, one line, exit 2 (never a traceback: v_max 1.7e-151 once overflowed the
+    move planner in Move.__post_init__)."""
+    bad = []
+    for path in _NUMERIC:
+        d = _set(copy.deepcopy(GANTRY), path, value)
+        p = tmp_path / "m.yaml"
+        p.write_text(yaml.safe_dump(d))
+        try:
+            code, out, err, _dt = _cli(capsys, "check-config", p)
+        except Exception as exc:  # noqa: BLE001  (a traceback: listed with the others)
+            capsys.readouterr()
+            bad.append(f"{path}: {type(exc).__name__}: {exc}")
+            continue
+        if code != 2 or not err.startswith("motorctl: error: ") or err.count("\n") != 1 or \
+                path.split(".")[-1].rstrip("0123456789.") not in err:
+            bad.append(f"{path}: exit {code}: {err.strip()[:160]}")
+    assert not bad, f"{len(bad)} of {len(_NUMERIC)} keys:\n" + "\n".join(bad)

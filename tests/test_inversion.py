@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from conftest import examples
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import brentq
@@ -66,7 +67,7 @@ def test_theta6_to_zero_is_continuous():
     assert invert_cubic(1e-15, -0.013, 1e-9, U_M) == pytest.approx(1e-15, rel=1e-6)
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(t5=st.floats(-0.015, 0.0), t6=st.floats(-0.002, 0.0),
        v1=st.floats(-15, 15), v2=st.floats(-15, 15))
 def test_odd_monotonic_and_bounded(t5, t6, v1, v2):

@@ -11,13 +11,13 @@ from pydantic import Field
 
 from motorctl.effects.compensation import CompensationConfig, CompensationSection
 from motorctl.model import S_F_GAIN
-from motorctl.schema import NonNeg, Pos, StrictModel, Vec6
+from motorctl.schema import NonNeg, Pos, StrictModel, Vec6, quantity
 
 
 class FilterConfig(StrictModel):
     """H_f = ω_f²/(s + ω_f)² of the estimator's regressor (spec §5.2) [S]."""
 
-    omega_f: Pos = 200.0
+    omega_f: quantity(1e-2, 1e6, "rad/s") = 200.0
 
 
 class TheoryConfig(StrictModel):
@@ -51,17 +51,17 @@ class PidConfig(StrictModel):
             (0 = u_lim of the section).
     """
 
-    P: NonNeg = 0.0
-    I: NonNeg = 0.0
-    D: NonNeg = 0.0
-    FF0: float = 0.0
-    FF1: float = 0.0
-    FF2: float = 0.0
-    bias: float = 0.0
-    deadband: NonNeg = 0.0
-    maxerror: NonNeg = 0.0
-    maxerror_i: NonNeg = 0.0
-    maxoutput: NonNeg = 0.0
+    P: quantity(0.0, 1e10, "V/m") = 0.0
+    I: quantity(0.0, 1e12, "V/(m s)") = 0.0
+    D: quantity(0.0, 1e8, "V s/m") = 0.0
+    FF0: quantity(-1e10, 1e10, "V/m") = 0.0
+    FF1: quantity(-1e8, 1e8, "V s/m") = 0.0
+    FF2: quantity(-1e6, 1e6, "V s^2/m") = 0.0
+    bias: quantity(-1e3, 1e3, "V") = 0.0
+    deadband: quantity(0.0, 1.0, "m") = 0.0
+    maxerror: quantity(0.0, 100.0, "m") = 0.0
+    maxerror_i: quantity(0.0, 1e4, "m s") = 0.0
+    maxoutput: quantity(0.0, 1e3, "V") = 0.0
 
 
 class ControllerConfig(StrictModel):
@@ -84,17 +84,17 @@ class ControllerConfig(StrictModel):
 
     type: str = "c2"
     mode: Literal["experiment", "theory"] = "experiment"
-    k_s: Pos = 95.0
-    k1: Pos = 250.0
-    gamma_d: NonNeg = 500.0
-    d_hat_max: NonNeg = 1.0
-    u_lim: Pos = 10.0
+    k_s: quantity(1e-3, 1e7, "V s/m") = 95.0
+    k1: quantity(1e-3, 1e6, "1/s") = 250.0
+    gamma_d: quantity(0.0, 1e9, "V/m") = 500.0
+    d_hat_max: quantity(0.0, 1e3, "V") = 1.0
+    u_lim: quantity(1e-3, 1e3, "V") = 10.0
     theta_min: Vec6
     theta_max: Vec6
     theta_hat0: Vec6
     gamma0: Annotated[list[Pos], Field(min_length=6, max_length=6)]
     filter: FilterConfig = FilterConfig()
-    mu: NonNeg = 0.0
+    mu: quantity(0.0, 1e4, "1/s") = 0.0
     nu: NonNeg = 0.0
     rho_M: Pos = 1000.0
     theory: TheoryConfig = TheoryConfig()

@@ -23,7 +23,7 @@ from typing import Annotated
 
 from pydantic import Field
 
-from motorctl.schema import Pos, StrictModel
+from motorctl.schema import Position_m, StrictModel, quantity
 
 FAULT_FOLLOWING_ERROR = 1
 FAULT_SOFT_LIMIT = 2
@@ -228,12 +228,12 @@ class LimitsConfig(StrictModel):
     reading may show (over the cycles since the last good reading): no physical motion is faster.
     """
 
-    soft_min_m: float = -1.0
-    soft_max_m: float = 1.0
-    following_error_m: Pos = 0.002
-    min_following_error_m: Pos = 0.0005
-    max_velocity_m_per_s: Pos = 3.0
-    encoder_max_speed_m_per_s: Pos = 10.0
+    soft_min_m: Position_m = -1.0
+    soft_max_m: Position_m = 1.0
+    following_error_m: quantity(1e-7, 1.0, "m") = 0.002
+    min_following_error_m: quantity(1e-7, 1.0, "m") = 0.0005
+    max_velocity_m_per_s: quantity(1e-6, 50.0, "m/s") = 3.0
+    encoder_max_speed_m_per_s: quantity(1e-3, 1000.0, "m/s") = 10.0
     error_bucket_increment: Annotated[int, Field(ge=1)] = 10
     error_bucket_decrement: Annotated[int, Field(ge=1)] = 1
     error_bucket_limit: Annotated[int, Field(ge=1)] = 100

@@ -20,7 +20,7 @@ from typing import Annotated
 
 from pydantic import Field
 
-from motorctl.schema import NonNeg, Pos, StrictModel
+from motorctl.schema import Position_m, StrictModel, Time_s, quantity
 
 
 def _accel_phase(v: float, a_max: float, j_max: float) -> tuple[float, float]:
@@ -157,13 +157,13 @@ class Program:
 class TrajectoryConfig(StrictModel):
     """Repeated point-to-point program (one point = hold). Times in s, limits in SI."""
 
-    points: Annotated[list[float], Field(min_length=1)] = [0.0]
-    move_times_s: list[NonNeg] = []
-    period_s: NonNeg = 0.0
-    v_max: Pos = 1.0
-    a_max: Pos = 10.0
-    j_max: Pos = 1000.0
-    start_s: NonNeg = 0.0
+    points: Annotated[list[Position_m], Field(min_length=1)] = [0.0]
+    move_times_s: list[Time_s] = []
+    period_s: Time_s = 0.0
+    v_max: quantity(1e-6, 20.0, "m/s") = 1.0
+    a_max: quantity(1e-4, 1e4, "m/s^2") = 10.0
+    j_max: quantity(1e-2, 1e8, "m/s^3") = 1000.0
+    start_s: Time_s = 0.0
 
     def program(self, offset: float = 0.0) -> Program:
         return Program([p + offset for p in self.points], self.move_times_s, self.period_s,
