@@ -85,7 +85,7 @@ def inner(config: str, exchanges: int, cycles: int) -> dict:
 
 
 def measure(transport: str, tmp: Path, exchanges: int, cycles: int) -> dict:
-    from motorctl_emulators.harness import Emulator, NetNamespace, loopback_config
+    from motorctl_emulators.loopback import Emulator, NetNamespace, loopback_config
     _, cfg = loopback_config(ROOT / "configs" / f"gantry-{transport}.yaml", tmp, rate_hz=1000,
                              driver={"round_trip_s": 0.0})
     emulator = dict(plant=ROOT / "configs" / "gantry.yaml", watchdog_s=1.0)

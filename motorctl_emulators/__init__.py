@@ -8,8 +8,9 @@
   :mod:`~motorctl_emulators.modbus_device`, :mod:`~motorctl_emulators.cia402_device` (CiA 402
   drives on canopen's ``LocalNode``): the devices; :mod:`~motorctl_emulators.stream`:
   the device end of a byte stream (TCP listener or pty).
-* :mod:`~motorctl_emulators.cli`: ``motorctl emulate``; :mod:`~motorctl_emulators.harness`:
-  driver and emulator as processes on one machine (tests, benchmark).
+* :mod:`~motorctl_emulators.cli`: ``motorctl emulate``; :mod:`~motorctl_emulators.loopback`:
+  driver and emulator as processes on one machine (benchmarks, trials; the tests reach it
+  through their own, uninstalled ``tests/harness.py``).
 
 This package uses ``motorctl`` and ``motorctl_drivers`` (codecs, frame layouts); neither of
 them imports it.

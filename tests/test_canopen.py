@@ -14,7 +14,7 @@ from conftest import RIGID_PLANT
 from motorctl.config import ConfigError, config_from_dict, load_yaml
 from motorctl_drivers import cia402
 from motorctl_emulators.device import build_device
-from motorctl_emulators.harness import device_thread, exchange
+from harness import device_thread, exchange
 from motorctl_emulators.plant_bank import FaultSpec
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"

@@ -26,7 +26,7 @@ import numpy as np
 from conftest import RIGID_PLANT
 
 from motorctl.recorder.runlog import read_log
-from motorctl_emulators.harness import (
+from harness import (
     Emulator,
     NetNamespace,
     loopback_e2e_config,

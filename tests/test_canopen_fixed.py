@@ -22,7 +22,7 @@ from motorctl.config import config_from_dict, load_yaml
 from motorctl_drivers import cia402
 from motorctl_emulators.cia402_device import STATUSWORD, drive_transition
 from motorctl_emulators.device import Device
-from motorctl_emulators.harness import device_thread
+from harness import device_thread
 from motorctl_emulators.plant_bank import load_plant
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"

@@ -16,7 +16,7 @@ import yaml
 from conftest import RIGID_PLANT
 from test_daemon_helpers import Daemon, ctl, status, wait_for
 
-from motorctl_emulators.harness import LOOPBACK_WATCHDOG_S, Emulator, loopback_e2e_config
+from harness import LOOPBACK_WATCHDOG_S, Emulator, loopback_e2e_config
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from motorctl.config import ConfigError, config_from_dict, load_config, load_yaml
-from motorctl_emulators.harness import run_cli
+from harness import run_cli
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 

@@ -23,7 +23,7 @@ from conftest import RIGID_PLANT
 
 from motorctl.loop.safety import FAULT_IO_ERROR
 from motorctl.recorder.runlog import read_log
-from motorctl_emulators.harness import (
+from harness import (
     LOOPBACK_WATCHDOG_S,
     Emulator,
     NetNamespace,

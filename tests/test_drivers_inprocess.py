@@ -14,7 +14,7 @@ import pytest
 from motorctl.config import config_from_dict, load_yaml
 from motorctl.driver import LifecycleError
 from motorctl_emulators.device import build_device
-from motorctl_emulators.harness import device_thread, exchange
+from harness import device_thread, exchange
 from motorctl_emulators.plant_bank import FaultSpec
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -119,7 +119,7 @@ def test_modbus_rtu_over_a_pty(tmp_path):
 
 def test_lost_link_is_flagged_every_cycle_and_reconnect_happens_outside_the_loop(tmp_path):
 
-    from motorctl_emulators.harness import free_port
+    from harness import free_port
     d = _config("gantry-serial.yaml", tmp_path, port=f"socket://127.0.0.1:{free_port()}")
     loaded = config_from_dict(d, "<inprocess>", check_budget=False)
     with _serving(loaded, [FaultSpec.parse("disconnect:*:5:1")]) as dev:
@@ -205,7 +205,7 @@ def test_port_failures_are_one_clear_line(name, tmp_path):
     naming the port and why, and `motorctl run` prints it without a traceback."""
     import yaml
 
-    from motorctl_emulators.harness import run_cli
+    from harness import run_cli
     not_a_tty = tmp_path / "plainfile"
     not_a_tty.write_text("")
     for port, why in ((str(tmp_path / "ttyNONE"), "no such device"),
@@ -237,7 +237,7 @@ def test_commands_the_device_never_received_cost_no_plant_time(name, tmp_path):
     voltage the amplifier held (checked against a copy of the plant stepped so)."""
     import copy
 
-    from motorctl_emulators.harness import free_port
+    from harness import free_port
     where = {"gantry-serial.yaml": {"port": f"socket://127.0.0.1:{free_port()}"},
              "gantry-can.yaml": {"interface": "virtual", "channel": f"mt-{tmp_path.name}"},
              "gantry-modbus.yaml": {"transport": "tcp", "host": "127.0.0.1", "port": free_port()}}[name]

@@ -34,7 +34,7 @@ from conftest import RIGID_PLANT
 from motorctl.app.job import run_job
 from motorctl.config import config_from_dict
 from motorctl.recorder.runlog import read_log
-from motorctl_emulators.harness import (
+from harness import (
     LOOPBACK_WATCHDOG_S,
     Emulator,
     NetNamespace,

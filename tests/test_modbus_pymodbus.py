@@ -39,7 +39,7 @@ import yaml
 from conftest import RIGID_PLANT
 
 from motorctl.config import config_from_dict, load_yaml
-from motorctl_emulators.harness import exchange, free_port, parse_run_table, run_cli
+from harness import exchange, free_port, parse_run_table, run_cli
 from motorctl_emulators.plant_bank import load_plant
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -323,7 +323,7 @@ def test_motorctl_run_closes_the_loop_through_pymodbus_server(name, rate, stall,
     one, pymodbus's server drop it, and both axes track one period (1 mm) behind)."""
     from motorctl.app.job import run_job
     from motorctl.recorder.runlog import read_log
-    from motorctl_emulators.harness import sim_twin
+    from harness import sim_twin
     d = map_a(rate, round_trip_s=0.0006) if name == "A" else map_b(rate)
     if name == "A":
         d["driver"]["timeout_s"] = 0.6 / rate        # room for the rest of the cycle
@@ -376,7 +376,7 @@ def test_the_device_holds_0V_and_enable_off_after_motorctl_run(how, tmp_path):
     import os
     import signal
 
-    from motorctl_emulators.harness import run_cli_interrupted
+    from harness import run_cli_interrupted
     rate = 500.0
     d = map_a(rate, round_trip_s=0.0006)
     d["loop"]["clock"] = "virtual"                  # lockstep: tracking does not depend on the host

@@ -99,6 +99,20 @@ def test_wheel_drivers_hold_no_emulator_code(wheel):
         <= set(_wheel_modules(wheel, "motorctl_emulators"))
 
 
+def test_wheel_ships_no_test_helpers(wheel):
+    """The in-process exchange helpers and the CLI-as-a-child helpers only the tests use live in
+    tests/harness.py; nothing of tests/ and no module that defines them is installed (the
+    emulators a user runs, and their loopback tools, are)."""
+    names = wheel.namelist()
+    assert not [n for n in names if n.startswith("tests/") or n.endswith("/harness.py") or n == "harness.py"], names
+    helpers = {"device_thread", "exchange", "run_cli", "run_cli_interrupted", "parse_run_table", "wait_for"}
+    for pkg in PACKAGES:
+        for mod, tree in _wheel_modules(wheel, pkg).items():
+            found = sorted(defined_names(tree) & helpers)
+            assert not found, f"{mod} defines test helpers {found}"
+    assert "motorctl_emulators.loopback" in _wheel_modules(wheel, "motorctl_emulators")
+
+
 def test_wheel_declares_the_emulator_entry_points(wheel):
     (ep_file,) = [n for n in wheel.namelist() if n.endswith(".dist-info/entry_points.txt")]
     cp = configparser.ConfigParser()

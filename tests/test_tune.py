@@ -128,7 +128,7 @@ def test_tune_and_compare_runs_over_the_serial_emulator(tmp_path, capsys):
     ``compare-runs`` on the two real-driver logs gives tune's table."""
     from pathlib import Path
 
-    from motorctl_emulators.harness import Emulator, loopback_e2e_config
+    from harness import Emulator, loopback_e2e_config
     configs = Path(RIGID_PLANT).parent
     d, cfg, _rate = loopback_e2e_config("serial", configs, tmp_path)
     for ax in d["axes"].values():      # a loaded 2-core machine can stall loopback delivery

@@ -1,4 +1,5 @@
-"""Run a bus driver against the gantry I/O emulator on one machine (tests, benchmarks, trials).
+"""Run a bus driver against the gantry I/O emulator on one machine, as processes (benchmarks,
+trials, and the tests through ``tests/harness.py``).
 
 * :func:`loopback_config`: a copy of a driver config aimed at this machine: serial on
   ``socket://127.0.0.1:PORT``, Modbus TCP on ``127.0.0.1:PORT``, CAN and CANopen on python-can's
@@ -17,18 +18,14 @@ Every child is started in its own session and killed by its pid on exit.
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import os
 import signal
 import socket
 import subprocess
 import sys
-import threading
-import time
 from pathlib import Path
 
-import numpy as np
 import yaml
 
 from motorctl.config import load_yaml
@@ -129,7 +126,9 @@ def motorctl_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "motorctl", *args]
 
 
-def _kill(proc: subprocess.Popen, sig=signal.SIGKILL) -> None:
+def kill_child(proc: subprocess.Popen, sig=signal.SIGKILL) -> None:
+    """Send ``sig`` to a child started in its own session (its process group), then reap it
+    (bounded); nothing when it has ended."""
     if proc.poll() is None:
         try:
             os.killpg(proc.pid, sig)     # the child's own session: its pid is the group id
@@ -156,13 +155,13 @@ class NetNamespace:
         line = self.proc.stdout.readline().strip()
         if line != "ok":
             err = self.proc.stderr.read() if self.proc.poll() is not None else ""
-            _kill(self.proc)
+            kill_child(self.proc)
             raise RuntimeError(f"cannot make a network namespace (needs root, unshare, ip): {err.strip()}")
         self.prefix = ["nsenter", "-t", str(self.proc.pid), "-n", "--"]
         return self
 
     def __exit__(self, *exc):
-        _kill(self.proc)
+        kill_child(self.proc)
 
 
 class Emulator:
@@ -193,7 +192,7 @@ class Emulator:
                                      start_new_session=True)
         self.ready = self.proc.stdout.readline().strip()
         if not self.ready.startswith("ready:"):
-            _kill(self.proc)
+            kill_child(self.proc)
             raise RuntimeError(f"emulator did not start: {self.ready!r} {self.stderr()}")
         return self
 
@@ -210,95 +209,14 @@ class Emulator:
         try:
             out, _ = self.proc.communicate(timeout=5)
         except subprocess.TimeoutExpired:
-            _kill(self.proc)
+            kill_child(self.proc)
             out = ""
         return out or ""
 
     def __exit__(self, *exc):
-        _kill(self.proc)
+        kill_child(self.proc)
         self._err.close()
         try:
             os.unlink(self.stderr_path)
         except OSError:
             pass
-
-
-def run_cli(argv: list[str], prefix=(), timeout_s: float = 60.0) -> subprocess.CompletedProcess:
-    """Run a motorctl command (with an optional namespace prefix), bounded in time."""
-    proc = subprocess.Popen([*prefix, *motorctl_cmd(*argv)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
-    try:
-        out, err = proc.communicate(timeout=timeout_s)
-    finally:
-        _kill(proc)
-    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
-
-
-def run_cli_interrupted(argv: list[str], act, prefix=(), timeout_s: float = 60.0):
-    """Run a motorctl command, wait for its first line of stdout (``run`` prints it just before
-    the first cycle), call ``act(proc)`` (e.g. sleep, then send a signal to ``proc.pid``'s
-    group), then wait for the end (bounded; killed on exit). Returns (first line,
-    CompletedProcess with the rest of stdout and stderr)."""
-    proc = subprocess.Popen([*prefix, *motorctl_cmd(*argv)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
-    try:
-        first = proc.stdout.readline()
-        if first:
-            act(proc)
-        out, err = proc.communicate(timeout=timeout_s)
-    finally:
-        _kill(proc)
-    return first, subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
-
-
-def parse_run_table(stdout: str) -> dict:
-    """Axis rows of ``motorctl run``'s table →
-    {axis: {e_M_um, e_F_um, L2_um, u_peak_V, io_errors, fault}}."""
-    out = {}
-    for line in stdout.splitlines():
-        parts = line.split()
-        if len(parts) >= 8 and parts[1] in ("c1", "c2"):
-            try:
-                vals = [float(x) for x in parts[2:6]]
-                io_errors = int(parts[6])
-            except ValueError:
-                continue
-            fault = " ".join(parts[7:])
-            out[parts[0]] = dict(zip(("e_M_um", "e_F_um", "L2_um", "u_peak_V"), vals),
-                                 io_errors=io_errors, fault="" if fault == "-" else fault)
-    return out
-
-
-def wait_for(pred, timeout_s: float, step_s: float = 0.05) -> bool:
-    """Poll ``pred()`` until true or ``timeout_s`` has passed (bounded)."""
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(step_s)
-    return bool(pred())
-
-
-def exchange(drv, u_V, enable, n: int = 1, sleep_s: float = 0.003) -> None:
-    """``n`` cycles of a driver against an in-process device (:func:`device_thread`): write
-    ``u_V`` [V] and ``enable`` (one value per axis), sleep ``sleep_s`` [s] (the device thread
-    needs the GIL to answer), read."""
-    u, en = np.asarray(u_V, dtype=float), np.asarray(enable, dtype=bool)
-    for _ in range(n):
-        drv.write(u, en)
-        time.sleep(sleep_s)
-        drv.read()
-
-
-@contextlib.contextmanager
-def device_thread(dev):
-    """Serve the emulated device ``dev`` from a daemon thread of this process (in-process
-    tests over python-can's virtual bus); stopped and joined (bounded, 5 s) on exit."""
-    stop = threading.Event()
-    th = threading.Thread(target=dev.serve, kwargs={"stop": stop.is_set}, daemon=True)
-    th.start()
-    try:
-        yield dev
-    finally:
-        stop.set()
-        th.join(timeout=5)

@@ -1,0 +1,116 @@
+"""Test helpers (not installed): the CLI as a child process, a driver against an in-process
+device, and, re-exported, the loopback tools of :mod:`motorctl_emulators.loopback` (config aimed
+at this machine, network namespace, emulator process), so a test imports them from one place.
+
+* :func:`run_cli`, :func:`run_cli_interrupted`: ``motorctl`` as a child process, bounded;
+  :func:`parse_run_table`: the axis rows of ``motorctl run``'s table; :func:`wait_for`: bounded
+  polling.
+* :func:`device_thread`, :func:`exchange`: an emulated device served from a thread of the test
+  process and driver cycles against it (python-can's ``virtual`` bus, ptys).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import subprocess
+import threading
+import time
+
+import numpy as np
+
+from motorctl_emulators.loopback import (  # noqa: F401  (re-exported for the tests)
+    CAN_GROUP,
+    LOOPBACK_ROUND_TRIP_S,
+    LOOPBACK_TIMEOUT_PERIODS,
+    LOOPBACK_WATCHDOG_S,
+    Emulator,
+    NetNamespace,
+    kill_child,
+    free_port,
+    loopback_config,
+    loopback_e2e_config,
+    loopback_rate,
+    motorctl_cmd,
+    sim_twin,
+)
+
+
+def run_cli(argv: list[str], prefix=(), timeout_s: float = 60.0) -> subprocess.CompletedProcess:
+    """Run a motorctl command (with an optional namespace prefix), bounded in time."""
+    proc = subprocess.Popen([*prefix, *motorctl_cmd(*argv)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=timeout_s)
+    finally:
+        kill_child(proc)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
+def run_cli_interrupted(argv: list[str], act, prefix=(), timeout_s: float = 60.0):
+    """Run a motorctl command, wait for its first line of stdout (``run`` prints it just before
+    the first cycle), call ``act(proc)`` (e.g. sleep, then send a signal to ``proc.pid``'s
+    group), then wait for the end (bounded; killed on exit). Returns (first line,
+    CompletedProcess with the rest of stdout and stderr)."""
+    proc = subprocess.Popen([*prefix, *motorctl_cmd(*argv)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        first = proc.stdout.readline()
+        if first:
+            act(proc)
+        out, err = proc.communicate(timeout=timeout_s)
+    finally:
+        kill_child(proc)
+    return first, subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
+def parse_run_table(stdout: str) -> dict:
+    """Axis rows of ``motorctl run``'s table →
+    {axis: {e_M_um, e_F_um, L2_um, u_peak_V, io_errors, fault}}."""
+    out = {}
+    for line in stdout.splitlines():
+        parts = line.split()
+        if len(parts) >= 8 and parts[1] in ("c1", "c2"):
+            try:
+                vals = [float(x) for x in parts[2:6]]
+                io_errors = int(parts[6])
+            except ValueError:
+                continue
+            fault = " ".join(parts[7:])
+            out[parts[0]] = dict(zip(("e_M_um", "e_F_um", "L2_um", "u_peak_V"), vals),
+                                 io_errors=io_errors, fault="" if fault == "-" else fault)
+    return out
+
+
+def wait_for(pred, timeout_s: float, step_s: float = 0.05) -> bool:
+    """Poll ``pred()`` until true or ``timeout_s`` has passed (bounded)."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(step_s)
+    return bool(pred())
+
+
+def exchange(drv, u_V, enable, n: int = 1, sleep_s: float = 0.003) -> None:
+    """``n`` cycles of a driver against an in-process device (:func:`device_thread`): write
+    ``u_V`` [V] and ``enable`` (one value per axis), sleep ``sleep_s`` [s] (the device thread
+    needs the GIL to answer), read."""
+    u, en = np.asarray(u_V, dtype=float), np.asarray(enable, dtype=bool)
+    for _ in range(n):
+        drv.write(u, en)
+        time.sleep(sleep_s)
+        drv.read()
+
+
+@contextlib.contextmanager
+def device_thread(dev):
+    """Serve the emulated device ``dev`` from a daemon thread of this process (in-process
+    tests over python-can's virtual bus); stopped and joined (bounded, 5 s) on exit."""
+    stop = threading.Event()
+    th = threading.Thread(target=dev.serve, kwargs={"stop": stop.is_set}, daemon=True)
+    th.start()
+    try:
+        yield dev
+    finally:
+        stop.set()
+        th.join(timeout=5)
