@@ -23,10 +23,12 @@ Steps (any driver; the simulated one by default):
    lower the cost by 30 %.
 3. **choose** (:func:`choose_gains`), ONE rule for every law, on the *measured* FRF:
    among each law's family (PID: P = θ1 ω², D = 2ζωθ1, I = P ω/r; C1/C2: k_s = 2ζωθ1,
-   k1 = ω/(2ζ), γ_d of the config; ω on a log grid, ζ ∈ {0.5, 0.7, 1}, r ∈ {3, 6, 10}; θ1 the
-   fitted one), keep those with gain margin ≥ 6 dB, phase margin ≥ 35°, peak sensitivity
-   ≤ 6 dB and a predicted u noise at rest ≤ :data:`U_REST_FRACTION` · u_lim (the measured rest
-   spectrum of y through |C|), then take the highest bandwidth (highest |L| = 1 crossing).
+   k1 = ω/(2ζ), γ_d of the config; ω on a log grid, ζ ∈ {0.3, 0.4, 0.5, 0.7, 1},
+   r ∈ {3, 5, 7, 10}; θ1 the
+   fitted one), keep those with gain margin ≥ 6 dB, phase margin ≥ 35° and peak sensitivity
+   ≤ 6 dB, then take the highest bandwidth (the first |L| = 1 crossing). The u noise at rest
+   is predicted (the measured rest spectrum of y through |C|) and reported, but judged on the
+   machine in step 4 (with stiction and quantisation the prediction is only a bound).
    C1 and C2 share k_s, k1 (one ``controller:`` section): their linearisations coincide at
    rest (u0 = 0), so one choice serves both.
 4. **verify** (:func:`verify`): runs of ``verify_s`` of the axis's own program at 50 %, 75 %,
@@ -70,7 +72,7 @@ HOLD_HZ, HOLD_ZETA, HOLD_R = 20.0, 0.7, 5.0   #: the conservative holding PID
 PERIOD_S = 1.0           #: multisine period [s] (1 Hz lines)
 F_LO, F_SHAPE = 10.0, 60.0   #: lowest line, corner of the f² rise of the amplitudes [Hz]
 LINE_SPACING = 0.01      #: lines every max(1 Hz, 1 % of f): 1/6 of a mode's width at ζ = 0.03
-F_BOOST = 500.0          #: line amplitudes rise ∝ f² above this [Hz] (the response falls ∝ 1/f² and faster)
+F_BOOST = 250.0          #: line amplitudes rise ∝ f² above this [Hz] (the response falls ∝ 1/f² and faster)
 F_HI_SHARE = 0.48        #: highest line as a share of fs
 EXC_SHARE = 0.5          #: |r| ≤ this share of u_lim
 DISP_SHARE = 0.08        #: displacement RMS (catalogue model, open loop) ≤ this share of the FE limit
@@ -110,7 +112,7 @@ def multisine(ts: float, theta1: float, u_lim: float, fe_min_m: float, realisati
         kk += max(1, int(LINE_SPACING * kk))
     k = np.asarray(k)
     f = k * df
-    amp = np.minimum(1.0, (f / F_SHAPE) ** 2) * (1.0 + (f / F_BOOST) ** 2)
+    amp = np.minimum(1.0, (f / F_SHAPE) ** 2) * (1.0 + f / F_BOOST) ** 2
     rng = np.random.default_rng(seed)
     out = []
     for _ in range(realisations):
@@ -375,8 +377,8 @@ def fit_plant(f: np.ndarray, G: np.ndarray, coh: np.ndarray, ts: float, theta_ha
 
 # ================================================================ the rule
 OMEGA = tuple(float(x) for x in np.geomspace(30.0, 3000.0, 49))   #: [rad/s]
-ZETA = (0.5, 0.7, 1.0)
-R_INT = (3.0, 6.0, 10.0)
+ZETA = (0.3, 0.4, 0.5, 0.7, 1.0)
+R_INT = (3.0, 5.0, 7.0, 10.0)
 
 
 def family(law: str, theta1: float, section) -> list[dict]:
@@ -417,7 +419,6 @@ def choose_gains(law: str, G_w, w: np.ndarray, ts: float, theta1: float, section
         None when no candidate passes, else {"gains", "margins" (:class:`Margins`),
         "u_rest_pred_V", "candidates" (how many passed)}.
     """
-    u_rest = U_REST_FRACTION * section.u_lim
     f = w / (2.0 * math.pi)
     wn = 2.0 * math.pi * rest_psd[0]
     best, n_ok = None, 0
@@ -426,8 +427,6 @@ def choose_gains(law: str, G_w, w: np.ndarray, ts: float, theta1: float, section
         if not mg.meets(GM_MIN_DB, PM_MIN_DEG, MS_MAX_DB):
             continue
         un = rest_noise(c_frf(law, g, ts, np.maximum(wn, 1e-9), theta_hat), rest_psd)
-        if un > u_rest:
-            continue
         n_ok += 1
         key = (mg.wc_hz, -mg.ms_db)
         if best is None or key > best[0]:
@@ -522,7 +521,7 @@ def admissible(res: dict, u_lim: float) -> str:
     """'' when a run meets the rule's closed-loop lines, else why not (one phrase)."""
     if res["fault"]:
         return f"fault: {res['fault']}"
-    if res["saturated"] > SAT_SHARE * res["samples"]:
+    if res["saturated"] > round(SAT_SHARE * res["samples"]):
         return f"{res['saturated']} saturated samples (> {SAT_SHARE:.1e} of {res['samples']})"
     if not res["u_rest_rms_V"] <= U_REST_FRACTION * u_lim:
         return f"u at rest {res['u_rest_rms_V'] * 1e3:.0f} mV RMS (> {U_REST_FRACTION * u_lim * 1e3:.0f} mV)"

@@ -109,7 +109,8 @@ class Margins:
         gm_db: gain margin [dB] (least over the −180° crossings with |L| < 1; inf: none).
         gm_hz: where it is taken [Hz] (nan: none).
         pm_deg: phase margin [deg] (least over the |L| = 1 crossings; inf: none).
-        wc_hz: the highest |L| = 1 crossing [Hz] (the loop's bandwidth; nan: none).
+        wc_hz: the first (lowest) |L| = 1 crossing [Hz]: the loop's bandwidth (a resonance
+            that lifts |L| above 1 again further up does not count as bandwidth; nan: none).
         ms_db: peak sensitivity max |1/(1 + L)| [dB]; ms_hz where it peaks [Hz].
     """
 
@@ -144,7 +145,8 @@ def loop_margins(L: np.ndarray, f_hz: np.ndarray) -> Margins:
     for i in np.flatnonzero(np.sign(ldb[:-1]) != np.sign(ldb[1:])):
         a = ldb[i] / (ldb[i] - ldb[i + 1])
         pm = min(pm, 180.0 + ph[i] + a * (ph[i + 1] - ph[i]))
-        wc = f_hz[i] + a * (f_hz[i + 1] - f_hz[i])
+        if math.isnan(wc):
+            wc = f_hz[i] + a * (f_hz[i + 1] - f_hz[i])
     sens = 1.0 / np.abs(1.0 + L)
     j = int(np.argmax(sens))
     return Margins(gm, gm_hz, pm, wc, 20.0 * math.log10(sens[j]), float(f_hz[j]))
