@@ -591,8 +591,8 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
     fm, Gm, ch = meas["f_hz"], meas["G"], meas["coherence"]
     good = ch >= 0.5
     f_w = w / (2.0 * math.pi)
-    inside = (f_w >= fm[0]) & (f_w <= fm[-1])
     if good.sum() > 10:
+        inside = (f_w >= fm[good][0]) & (f_w <= fm[good][-1])
         re = np.interp(f_w, fm[good], Gm[good].real)
         im = np.interp(f_w, fm[good], Gm[good].imag)
         G_w[inside] = re[inside] + 1j * im[inside]
