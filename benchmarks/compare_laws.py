@@ -113,13 +113,16 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=40.0)
     ap.add_argument("--search", action="store_true")
     ap.add_argument("--search-seconds", type=float, default=8.0)
+    ap.add_argument("--no-table", action="store_true", help="with --search: only the search")
     args = ap.parse_args()
     raw = load_yaml(args.config)
     raw["loop"]["realtime"]["policy"] = "off"
     t0 = time.time()
     print(f"# rerun: python benchmarks/compare_laws.py {args.config} --seconds {args.seconds:g}"
-          + (f" --search --search-seconds {args.search_seconds:g}" if args.search else ""))
-    table(raw, args.config, args.seconds)
+          + (f" --search --search-seconds {args.search_seconds:g}" if args.search else "")
+          + (" --no-table" if args.no_table else ""))
+    if not args.no_table:
+        table(raw, args.config, args.seconds)
     if args.search:
         search(raw, args.config, args.search_seconds)
     print(f"# {time.time() - t0:.0f} s")
