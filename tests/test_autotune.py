@@ -54,3 +54,4 @@ def test_autotune_refuses_an_unknown_axis(repo, tmp_path):
     p = _autotune(repo, tmp_path, "configs/gantry.yaml", "--axis", "Z", "--out", str(tmp_path))
     assert p.returncode == 2
     assert p.stderr.count("\n") == 1 and "--axis Z" in p.stderr
+

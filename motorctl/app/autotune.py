@@ -166,11 +166,12 @@ class Excited(Controller):
 
     def update(self, y, x_d, xd_dot, xd_ddot, t=0.0):
         u = self.inner.update(y, x_d, xd_dot, xd_ddot, t)
-        if abs(self.inner.signals[SIG_E]) >= self.guard:
-            self.tripped = True
         j = int(t / self.ts + 0.5) - self.k0
         if 0 <= j < self.r.shape[0] and not self.tripped:
-            u += self.r[j]
+            if abs(self.inner.signals[SIG_E]) >= self.guard:
+                self.tripped = True
+            else:
+                u += self.r[j]
         lim = self.u_lim
         return lim if u > lim else (-lim if u < -lim else u)
 
@@ -198,9 +199,28 @@ def _pass_plan(loaded: LoadedConfig, axis: str, duration_s: float):
     return a, b, min(v, 0.25 * lim.max_velocity_m_per_s)
 
 
+def _read_idle(asm) -> float:
+    """Idle cycles (0 V, amplifier off) until the axis's position is read without a fault, then
+    that position [m]. A drive whose command watchdog bit while no loop ran between two runs
+    reports one amplifier fault; it is reset here as an operator's ``fault-reset`` would (the
+    supervisor refuses while the cause persists).
+
+    Raises:
+        AutotuneError: the fault persists (one line, the supervisor's reason).
+    """
+    for _ in range(3):
+        asm.loop.run(1)
+        if not asm.supervisor.fault[0]:
+            return float(asm.driver.position_m[0])
+        asm.loop.run(1)
+        asm.loop.fault_reset(0)
+    raise AutotuneError(f"axis {asm.names[0]} is in fault: {asm.supervisor.reason(0)}")
+
+
 def measure_frf(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
-                progress=None) -> dict:
-    """Step 1 (module docstring) on the config's driver.
+                progress=None, periods: int = PERIODS) -> dict:
+    """Step 1 (module docstring) on the config's driver; ``periods`` measured periods (even:
+    ``periods``/2 realisations of two periods, the first of each its transient).
 
     Returns:
         {"f_hz" (L,), "G" (L,) complex [m/V], "coherence" (L,), "coherence_u" (L,),
@@ -219,7 +239,7 @@ def measure_frf(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtua
     raw["axes"][axis]["controller"]["pid"] = hold_gains(sec.theta_hat0)
     raw["axes"][axis]["controller"]["type"] = "pid"
     fe_min = min(lim.min_following_error_m, lim.following_error_m)
-    r, lines = multisine(ts, float(sec.theta_hat0[0]), sec.u_lim, fe_min, PERIODS // 2 + 1, 2)
+    r, lines = multisine(ts, float(sec.theta_hat0[0]), sec.u_lim, fe_min, periods // 2 + 1, 2)
     n_per = int(round(PERIOD_S / ts))
     r[:n_per] *= np.linspace(0.0, 1.0, n_per, endpoint=False)     # amplitude ramp
     r1 = r[n_per:]
@@ -241,12 +261,11 @@ def measure_frf(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtua
                             f"{exc_s:.0f} s pass at {v:.3g} m/s")
     v_app = min(0.1, 0.25 * lim.max_velocity_m_per_s)
     stroke = lim.soft_max_m - lim.soft_min_m
-    capacity = tb.cycles(stroke / v_app + 1.0 + REST_S + pass_move.duration)
+    capacity = tb.cycles(stroke / v_app + 1.0 + REST_S + pass_move.duration) + 8
     asm = build(loaded2, [axis], "pid", clock=clock, capacity=capacity, operated=True)
     start(asm, "off" if clock == "virtual" else loaded.cfg.loop.realtime.policy)
     try:
-        asm.loop.run(1)                          # idle: read where the axis stands
-        y0 = float(asm.driver.position_m[0])
+        y0 = _read_idle(asm)                     # where the axis stands
         if not lim.soft_min_m <= y0 <= lim.soft_max_m:
             raise AutotuneError(f"axis {axis} stands at {y0:.4f} m, outside its soft limits "
                                 f"(motorctl jog it back first)")
@@ -259,7 +278,7 @@ def measure_frf(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtua
         if progress:
             progress(f"measure {axis}: rest {REST_S:g} s at {x_a:.3f} m, pass to {x_b:.3f} m at "
                      f"{v * 1e3:.1f} mm/s with a multisine of {np.sqrt(np.mean(r1 ** 2)):.2f} V RMS "
-                     f"(peak {np.max(np.abs(r1)):.2f} V), {PERIODS} periods of {PERIOD_S:g} s")
+                     f"(peak {np.max(np.abs(r1)):.2f} V), {periods} periods of {PERIOD_S:g} s")
         asm.loop.run(min(n_total, capacity - asm.loop.k))
     finally:
         shutdown(asm)
@@ -272,8 +291,8 @@ def measure_frf(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtua
     m = min(r.size, rows.shape[0] - k_exc)
     if m > 0:
         rr[k_exc:k_exc + m] = r[:m]
-    s0 = k_exc + 2 * n_per      # after the ramp and its settling: PERIODS // 2 realisations of 2 periods
-    s1 = s0 + PERIODS * n_per
+    s0 = k_exc + 2 * n_per      # after the ramp and its settling: periods/2 realisations of 2 periods
+    s1 = s0 + periods * n_per
     out = {"fault": fault, "tripped": exc.tripped, "pass": (x_a, x_b, v),
            "excitation_rms_V": float(np.sqrt(np.mean(r1 ** 2))),
            "excitation_peak_V": float(np.max(np.abs(r1))),
@@ -289,7 +308,7 @@ def measure_frf(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtua
         return out
     kw = {"fs": 1.0 / ts, "window": "boxcar", "nperseg": n_per, "noverlap": 0, "detrend": "linear"}
     keep = np.concatenate([np.arange(s0 + (2 * j + 1) * n_per, s0 + (2 * j + 2) * n_per)
-                           for j in range(PERIODS // 2)])
+                           for j in range(periods // 2)])
     rs, es, us = rr[keep], e[keep], u[keep]
     fr, s_re = signal.csd(rs, es, **kw)
     _, s_ru = signal.csd(rs, us, **kw)
@@ -507,7 +526,10 @@ def oscillation_ratio(u: np.ndarray, rest: np.ndarray, ts: float) -> tuple[float
 
 
 def evaluate(raw: dict, source: str, axis: str, law: str, seconds: float, clock: str = "virtual") -> dict:
-    """A closed-loop run of ``axis``'s program with controller ``law`` on the config dict.
+    """A closed-loop run of ``axis``'s program with controller ``law`` on the config dict, on
+    its driver: a jerk-limited approach at ≤ 0.1 m/s from where the axis stands to the
+    program's start (as the daemon's ``start``), then ``seconds`` of the program, which alone
+    is evaluated.
 
     Returns:
         :func:`motorctl.metrics.tracking_indexes` [µm, V] plus "u_rest_rms_V" (RMS of u about
@@ -515,9 +537,23 @@ def evaluate(raw: dict, source: str, axis: str, law: str, seconds: float, clock:
         "osc_ratio", "osc_hz" (:func:`oscillation_ratio`).
     """
     loaded = config_from_dict(raw, source)
-    n = loaded.timebase.cycles(seconds)
-    asm = build(loaded, [axis], law, clock=clock, capacity=n)
-    rows, lay = run_cycles(asm, n, "off" if clock == "virtual" else loaded.cfg.loop.realtime.policy)
+    tb = loaded.timebase
+    lim = loaded.axes[axis].limits
+    n = tb.cycles(seconds)
+    v_app = min(0.1, 0.25 * lim.max_velocity_m_per_s)
+    n_app_max = tb.cycles((lim.soft_max_m - lim.soft_min_m) / v_app + 1.0)
+    asm = build(loaded, [axis], law, clock=clock, capacity=n + n_app_max + 8, operated=True)
+    start(asm, "off" if clock == "virtual" else loaded.cfg.loop.realtime.policy)
+    try:
+        y0 = _read_idle(asm)                     # where the axis stands
+        approach = Move(y0, asm.loop.programs[0].sample(0.0)[0], v_app, 2.0, 200.0)
+        n_app = tb.cycles(approach.duration) + 1
+        k0 = asm.loop.k
+        asm.loop.start_axis(0, approach)
+        asm.loop.run(n_app + n)
+    finally:
+        shutdown(asm)
+    rows, lay = asm.loop.rows()[k0 + n_app:], asm.loop.layout
     ts = loaded.period_s
     t, e, u = (rows[:, lay.cycle("t")], rows[:, lay.index(f"{axis}.e")], rows[:, lay.index(f"{axis}.u")])
     rest = rest_mask(rows, lay, axis, ts)
@@ -595,7 +631,7 @@ def verify(raw: dict, source: str, axis: str, laws: dict, seconds: float, clock:
 
 # ================================================================ the whole procedure
 def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
-             verify_s: float | None = None, progress=None) -> dict:
+             verify_s: float | None = None, progress=None, periods: int = PERIODS) -> dict:
     """Steps 1-4 for one axis. Returns {"measure", "model", "theta_hat0", "w", "G_model",
     "choice": {law group: ...}, "verify", "gains": {law group: gains written}, "ff"}.
 
@@ -604,7 +640,7 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
     """
     sec = loaded.axes[axis].controller
     ts = loaded.period_s
-    meas = measure_frf(loaded, raw, axis, clock, progress)
+    meas = measure_frf(loaded, raw, axis, clock, progress, periods)
     if meas["fault"] or meas["tripped"] or "G" not in meas:
         why = meas["fault"] or ("the excitation guard fired (|e| reached "
                                 f"{meas['guard_m'] * 1e6:.0f} um)" if meas["tripped"] else "too short")

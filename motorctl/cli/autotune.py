@@ -2,7 +2,8 @@
 verified on the machine → ``DIR/autotuned.yaml`` and ``DIR/bode_<A>.png``
 (:mod:`motorctl.app.autotune` has the procedure and the rule).
 
-    motorctl autotune CONFIG --axis A [--axis B] [--out DIR] [--virtual-clock] [--verify-seconds S] [--json]
+    motorctl autotune CONFIG --axis A [--axis B] [--out DIR] [--virtual-clock] [--verify-seconds S]
+                     [--periods N] [--json]
 
 Exit codes: 0 gains written; 1 the measurement stopped (fault, guard) or no gains passed;
 2 bad input (one line on stderr, nothing started).
@@ -30,6 +31,8 @@ def register(parser, subparsers) -> None:
                    help="run as fast as possible (default: the config's clock)")
     p.add_argument("--verify-seconds", type=seconds, default=None,
                    help="length of each verification run in s (default: two program periods)")
+    p.add_argument("--periods", type=int, default=None,
+                   help="measured multisine periods of 1 s, even, 2..200 (default 16)")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout and nothing else")
     p.set_defaults(func=cmd_autotune)
 
@@ -55,10 +58,13 @@ def _summary(res: dict) -> dict:
 
 
 def cmd_autotune(args) -> int:
-    from motorctl.app.autotune import AutotuneError, autotune, plot_bode, write_config
+    from motorctl.app.autotune import PERIODS, AutotuneError, autotune, plot_bode, write_config
     from motorctl.cli import UsageError
     from motorctl.config import config_from_dict, load_yaml
     from motorctl.inputs import writable_dir
+    periods = PERIODS if args.periods is None else args.periods
+    if not (2 <= periods <= 200 and periods % 2 == 0):
+        raise UsageError(f"--periods {args.periods}: must be an even number within 2..200")
     raw = load_yaml(args.config)
     loaded = config_from_dict(raw, args.config)
     for a in args.axis:
@@ -71,7 +77,7 @@ def cmd_autotune(args) -> int:
     results, summary = [], {}
     for a in args.axis:
         try:
-            res = autotune(loaded, raw, a, clock, args.verify_seconds, progress=say)
+            res = autotune(loaded, raw, a, clock, args.verify_seconds, progress=say, periods=periods)
         except AutotuneError as exc:
             sys.stderr.write(f"motorctl: autotune: {exc}\n")
             return 1
