@@ -27,7 +27,7 @@ config (the same seeded plant for every law).
 every 3rd point, ζ ∈ {0.3, 0.5, 0.7}, r ∈ {3, 7}) is run on the nominal plant for ``--search-seconds``
 under the rule's closed-loop constraints (no fault, saturation as autotune's verification allows
 it: the configured controller of ``--reference`` on the same run + the share, u noise at rest,
-no oscillation; margins not required), and the least L2[e] is compared with autotune's gains on the same run length.
+no oscillation (u at rest, or e against that run's); margins not required), and the least L2[e] is compared with autotune's gains on the same run length.
 """
 
 from __future__ import annotations
@@ -98,8 +98,8 @@ def search(raw, source, seconds, reference):
         sec = loaded.axes[axis].controller
         th1 = float(raw["axes"][axis]["controller"]["pid"]["FF2"])   # autotune's fitted θ1
         u_lim = sec.u_lim
-        sat_ref = evaluate(ref_raw, reference, axis, ref_raw["axes"][axis]["controller"].get("type", "c2"),
-                           seconds)["saturated"]
+        ref = evaluate(ref_raw, reference, axis, ref_raw["axes"][axis]["controller"].get("type", "c2"),
+                       seconds)
         for law, label in LAWS:
             mine = evaluate(raw, source, axis, law, seconds)
             best = None
@@ -112,11 +112,11 @@ def search(raw, source, seconds, reference):
                         else:
                             g = {"k_s": 2 * z * w * th1, "k1": w / (2 * z)}
                         res = evaluate(apply_gains(raw, axis, law, g), source, axis, law, seconds)
-                        if admissible(res, u_lim, sat_ref):
+                        if admissible(res, u_lim, ref):
                             continue
                         if best is None or res["L2_um"] < best[0]:
                             best = (res["L2_um"], g)
-            why = admissible(mine, u_lim, sat_ref)
+            why = admissible(mine, u_lim, ref)
             ok = f" ({why})" if why else ""
             gs = ", ".join(f"{k} {v:.4g}" for k, v in best[1].items()) if best else "-"
             bl = f"{best[0]:.3f}" if best else "-"
