@@ -26,8 +26,8 @@ Steps (any driver; the simulated one by default):
    k1 = ω/(2ζ), γ_d of the config; ω on a log grid, ζ ∈ {0.3, 0.4, 0.5, 0.7, 1},
    r ∈ {3, 5, 7, 10}; θ1 the
    fitted one), keep those with gain margin ≥ 6 dB, phase margin ≥ 20° and peak sensitivity
-   ≤ 9 dB at 100 %, 75 % and 50 % of the loop gain (the verification ladder; a lighter
-   loop gain is also what a heavier load does), then take the one of highest loop gain |L| at :data:`F_TRACK_HZ` = 2 Hz (the least
+   ≤ 9 dB at 100, 75, 50, 35 and 25 % of the loop gain (every step the verification may
+   write; a lighter loop gain is also what a heavier load does), then take the one of highest loop gain |L| at :data:`F_TRACK_HZ` = 2 Hz (the least
    sensitivity where the tracking error of a point-to-point program lives; on the default
    plant the L2[e] of a run falls as 1/|L(2 Hz)| over the whole family, while the crossover
    frequency ranks the candidates poorly, and PM ≥ 35°, |S| ≤ 6 dB cost X's PID 3.5x in
@@ -461,7 +461,7 @@ def choose_gains(law: str, G_w, w: np.ndarray, ts: float, theta1: float, section
         # the margins must hold down the verification ladder too (a loop with integral action
         # can lose phase margin when its gain falls, and a heavier load lowers it the same way)
         if not all(loop_margins(sc * L, f).meets(GM_MIN_DB, PM_MIN_DEG, MS_MAX_DB)
-                   for sc in SCALES[:-1]):
+                   for sc in SCALES[:-1] + BACKOFF):
             continue
         un = rest_noise(c_frf(law, g, ts, np.maximum(wn, 1e-9), theta_hat), rest_psd)
         n_ok += 1
