@@ -57,8 +57,8 @@ import numpy as np
 import yaml
 from scipy import optimize, signal
 
-from motorctl.app.build import build, run_cycles, shutdown, start
-from motorctl.app.loopshape import MODEL_KEYS, Margins, c_frf, loop_margins, plant_model_frf
+from motorctl.app.build import build, shutdown, start
+from motorctl.app.loopshape import c_frf, loop_margins, plant_model_frf
 from motorctl.config import LoadedConfig, config_from_dict
 from motorctl.control.base import SIG_E, Controller
 from motorctl.loop.trajectory import Move
@@ -339,7 +339,7 @@ def _initial_mode(f: np.ndarray, G: np.ndarray, th1: float):
 
 
 def fit_plant(f: np.ndarray, G: np.ndarray, coh: np.ndarray, ts: float, theta_hat0) -> dict:
-    """Step 2 (module docstring). Returns the fitted model (:data:`MODEL_KEYS`) plus "cost",
+    """Step 2 (module docstring). Returns the fitted model (:data:`motorctl.app.loopshape.MODEL_KEYS`) plus "cost",
     "cost_rigid" (the rigid model's cost), "mode": True when the mode is kept.
 
     Args: f (L,) [Hz], G (L,) [m/V], coh (L,) coherence r → e, ts [s], theta_hat0 (6,).
@@ -693,8 +693,6 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
     choice, laws = {}, {}
     ff = {"FF0": 0.0, "FF1": float(th[1]), "FF2": float(model["theta1"]), "bias": -float(th[3])}
     for grp, law, names in (("c", "c2", ["c2", "c1"]), ("pid", "pid", ["pid"])):
-        if law == "pid" and sec.pid is None and "pid" not in raw["axes"][axis]["controller"]:
-            pass
         ch_ = choose_gains(law, G_w, w, ts, model["theta1"], sec, meas["rest_psd"], th)
         choice[grp] = ch_
         if ch_ is None:
