@@ -25,13 +25,14 @@ Steps (any driver; the simulated one by default):
    among each law's family (PID: P = θ1 ω², D = 2ζωθ1, I = P ω/r; C1/C2: k_s = 2ζωθ1,
    k1 = ω/(2ζ), γ_d of the config; ω on a log grid, ζ ∈ {0.3, 0.4, 0.5, 0.7, 1},
    r ∈ {3, 5, 7, 10}; θ1 the
-   fitted one), keep those with gain margin ≥ 6 dB, phase margin ≥ 20° and peak sensitivity
-   ≤ 9 dB at 100, 75, 50, 35 and 25 % of the loop gain (every step the verification may
-   write; a lighter loop gain is also what a heavier load does), then take the one of highest loop gain |L| at :data:`F_TRACK_HZ` = 2 Hz (the least
+   fitted one), keep those with gain margin ≥ 6 dB, phase margin ≥ 15° and peak sensitivity
+   ≤ 10 dB at 100, 75 and 50 % of the loop gain (the verification ladder; a lighter loop gain
+   is also what a heavier load does; the back-off steps 35 and 25 % are tried only where they
+   hold too), then take the one of highest loop gain |L| at :data:`F_TRACK_HZ` = 2 Hz (the least
    sensitivity where the tracking error of a point-to-point program lives; on the default
    plant the L2[e] of a run falls as 1/|L(2 Hz)| over the whole family, while the crossover
-   frequency ranks the candidates poorly, and PM ≥ 35°, |S| ≤ 6 dB cost X's PID 3.5x in
-   L2[e]: ``benchmarks/compare_laws.py --search``). The u noise at rest
+   frequency ranks the candidates poorly, and the best gains a search finds have PM 13-20°:
+   ``benchmarks/compare_laws.py --search``). The u noise at rest
    is predicted (the measured rest spectrum of y through |C|) and reported, but judged on the
    machine in step 4 (with stiction and quantisation the prediction is only a bound).
    C1 and C2 share k_s, k1 (one ``controller:`` section): their linearisations coincide at
@@ -66,8 +67,8 @@ from motorctl.metrics import tracking_indexes
 
 # ---------------------------------------------------------------- the rule (stated once)
 GM_MIN_DB = 6.0          #: gain margin ≥ [dB]
-PM_MIN_DEG = 20.0        #: phase margin ≥ [deg]
-MS_MAX_DB = 9.0          #: peak sensitivity ≤ [dB] (|S| ≤ 2.8)
+PM_MIN_DEG = 15.0        #: phase margin ≥ [deg]
+MS_MAX_DB = 10.0         #: peak sensitivity ≤ [dB] (|S| ≤ 3.2)
 F_TRACK_HZ = 2.0         #: where the tracking error lives (the programs' moves last ~0.5 s) [Hz]
 U_REST_FRACTION = 0.02   #: u RMS at rest ≤ this share of u_lim (0.2 V at 10 V, as benchmarks/tune_gains.py)
 SAT_SHARE = 7.5e-5       #: saturated samples ≤ those of the configured controller on the same run
@@ -461,7 +462,7 @@ def choose_gains(law: str, G_w, w: np.ndarray, ts: float, theta1: float, section
         # the margins must hold down the verification ladder too (a loop with integral action
         # can lose phase margin when its gain falls, and a heavier load lowers it the same way)
         if not all(loop_margins(sc * L, f).meets(GM_MIN_DB, PM_MIN_DEG, MS_MAX_DB)
-                   for sc in SCALES[:-1] + BACKOFF):
+                   for sc in SCALES[:-1]):
             continue
         un = rest_noise(c_frf(law, g, ts, np.maximum(wn, 1e-9), theta_hat), rest_psd)
         n_ok += 1
@@ -470,7 +471,10 @@ def choose_gains(law: str, G_w, w: np.ndarray, ts: float, theta1: float, section
             best = (key, g, mg, un)
     if best is None:
         return None
-    return {"gains": best[1], "margins": best[2], "u_rest_pred_V": best[3], "candidates": n_ok}
+    L = c_frf(law, best[1], ts, w, theta_hat) * G_w
+    backoff = [b for b in BACKOFF if loop_margins(b * L, f).meets(GM_MIN_DB, PM_MIN_DEG, MS_MAX_DB)]
+    return {"gains": best[1], "margins": best[2], "u_rest_pred_V": best[3], "candidates": n_ok,
+            "backoff": backoff}
 
 
 # ================================================================ closed-loop runs
@@ -611,8 +615,10 @@ def admissible(res: dict, u_lim: float, ref: dict | None = None) -> str:
 
 def verify(raw: dict, source: str, axis: str, laws: dict, seconds: float, clock: str = "virtual",
            progress=None) -> dict:
-    """Step 4: for each law group (``laws``: {"c": (gains, ["c1", "c2"]), "pid": (gains, ["pid"])}),
-    runs at :data:`SCALES` until the first failure; first a run of the configured controller
+    """Step 4: for each law group (``laws``: {"c": (gains, ["c1", "c2"], None, backoff),
+    "pid": (gains, ["pid"], feedforward, backoff)}), runs at :data:`SCALES` until the first
+    failure, after a failed 50 % the ``backoff`` scales (those of :data:`BACKOFF` whose margins
+    hold) in turn; first a run of the configured controller
     (the saturation reference). Returns {group: {"scale" (0 when even 50 % failed), "runs":
     [(scale, law, result, verdict)]}, "reference": that run}."""
     out = {}
@@ -622,7 +628,7 @@ def verify(raw: dict, source: str, axis: str, laws: dict, seconds: float, clock:
     if progress:
         progress(f"verify {axis}: as configured ({loaded.axes[axis].controller.type}): L2 "
                  f"{ref['L2_um']:.3f} um, {ref['saturated']} saturated samples")
-    for grp, (g, names, ff) in laws.items():
+    for grp, (g, names, ff, backoff) in laws.items():
         passed, runs = 0.0, []
         ladder = list(SCALES)
         while ladder:
@@ -641,8 +647,9 @@ def verify(raw: dict, source: str, axis: str, laws: dict, seconds: float, clock:
                     ok = False
                     break
             if not ok:
-                if s <= SCALES[0] and s > BACKOFF[-1]:
-                    ladder = [next(b for b in BACKOFF if b < s)]   # back off below 50 %
+                lower = [b for b in backoff if b < s]       # back off below 50 %
+                if s <= SCALES[0] and lower:
+                    ladder = lower[:1]
                     continue
                 break
             passed = s
@@ -702,7 +709,7 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
             progress(f"rule {axis} {law}: {_fmt_gains(law, ch_['gains'])}: GM {m.gm_db:.1f} dB, PM "
                      f"{m.pm_deg:.1f} deg, |S| {m.ms_db:.1f} dB, crossover {m.wc_hz:.0f} Hz, rest "
                      f"{ch_['u_rest_pred_V'] * 1e3:.0f} mV predicted ({ch_['candidates']} passed)")
-        laws[grp] = (ch_["gains"], names, ff if law == "pid" else None)
+        laws[grp] = (ch_["gains"], names, ff if law == "pid" else None, ch_["backoff"])
     if not laws:
         raise AutotuneError(f"axis {axis}: no gains of any law meet the rule on the measured response")
     period = loaded.axes[axis].trajectory.period_s
