@@ -5,7 +5,8 @@ verified on the machine → ``DIR/autotuned.yaml`` and ``DIR/bode_<A>.png``
     motorctl autotune CONFIG --axis A [--axis B] [--out DIR] [--virtual-clock] [--verify-seconds S]
                      [--periods N] [--json]
 
-Exit codes: 0 gains written; 1 the measurement stopped (fault, guard) or no gains passed;
+Exit codes: 0 gains written; 1 the measurement stopped (fault, guard: nothing written) or an
+axis had no gains pass the verification (the config is written with that axis as configured);
 2 bad input (one line on stderr, nothing started).
 """
 
@@ -74,7 +75,7 @@ def cmd_autotune(args) -> int:
     writable_dir(str(out), "out")
     clock = "virtual" if args.virtual_clock else loaded.cfg.loop.clock
     say = (lambda s: None) if args.json else (lambda s: print(s, flush=True))
-    results, summary = [], {}
+    results, summary, failed = [], {}, False
     for a in args.axis:
         try:
             res = autotune(loaded, raw, a, clock, args.verify_seconds, progress=say, periods=periods)
@@ -88,8 +89,9 @@ def cmd_autotune(args) -> int:
         except ImportError:
             summary[a]["bode"] = None
         if not res["gains"]:
-            sys.stderr.write(f"motorctl: autotune: axis {a}: no gains passed the verification\n")
-            return 1
+            sys.stderr.write(f"motorctl: autotune: axis {a}: no gains passed the verification "
+                             f"(kept as configured)\n")
+            failed = True
     path = out / "autotuned.yaml"
     write_config(raw, results, args.config, path)
     if args.json:
@@ -104,4 +106,4 @@ def cmd_autotune(args) -> int:
                 print(f"  {law}: GM {mg['gm_db'] or math.inf:.1f} dB, PM {mg['pm_deg']:.1f} deg, |S| {mg['ms_db']:.1f} dB, "
                       f"crossover {mg['wc_hz']:.0f} Hz")
         print(f"wrote {path}" + "".join(f", {s['bode']}" for s in summary.values() if s.get("bode")))
-    return 0
+    return 1 if failed else 0
