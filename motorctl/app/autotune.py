@@ -1,0 +1,823 @@
+"""``motorctl autotune``: measure an axis's frequency response through its driver, fit a physical
+model, choose every controller's gains by one rule, verify them on the machine, write them.
+
+Steps (any driver; the simulated one by default):
+
+1. **measure** (:func:`measure_frf`): the axis is held by a conservative PID+FF (catalogue θ̂1(0),
+   ω_n = 2π·20 Hz, ζ = 0.7, integral corner ω_n/5), rests at one end of its stroke (the rest
+   noise of the encoder is recorded there), then makes one slow constant-velocity pass across
+   the stroke (so Coulomb friction is a constant force and stiction never grips) while a
+   periodic multisine r is added at the plant input: amplitude ramped up over its first period,
+   every 1 Hz line from 10 Hz to 1 kHz and every 4th line up to 0.48 fs, line amplitudes
+   ∝ f² below 60 Hz (the displacement stays a small share of the following-error limit) and
+   scaled so that |r| ≤ 40 % of u_lim. The pass stays 10 % of the stroke inside the soft limits,
+   the supervisor's following-error limit is armed, and the excitation switches itself off
+   (latched) if |e| reaches half the smallest following-error limit.
+   The plant FRF is the indirect closed-loop estimate P = S_re/S_ru (scipy.signal.csd, one
+   multisine period per segment, boxcar window, linear detrend; e = y − x_d), with the
+   coherence r → e; the feedback does not bias it because r is independent of the noise.
+2. **fit** (:func:`fit_plant`): θ1 = M/A1, θ2 = B/A1, one structural mode (frequency, damping,
+   load share), the current-loop bandwidth and a transport delay, by scipy.optimize.least_squares
+   on log(P_model/P_measured) weighted by the coherence, with the ZOH and its aliases
+   (:func:`motorctl.app.loopshape.plant_model_frf`); a rigid model is kept when the mode does not
+   lower the cost by 30 %.
+3. **choose** (:func:`choose_gains`), ONE rule for every law, on the *measured* FRF:
+   among each law's family (PID: P = θ1 ω², D = 2ζωθ1, I = P ω/r; C1/C2: k_s = 2ζωθ1,
+   k1 = ω/(2ζ), γ_d of the config; ω on a log grid, ζ ∈ {0.3, 0.4, 0.5, 0.7, 1},
+   r ∈ {3, 5, 7, 10}; θ1 the
+   fitted one), keep those with gain margin ≥ 6 dB, phase margin ≥ 15° and peak sensitivity
+   ≤ 10 dB at 100, 75 and 50 % of the loop gain (the verification ladder; a lighter loop gain
+   is also what a heavier load does; the back-off steps 35 and 25 % are tried only where they
+   hold too), then take the one of highest loop gain |L| at :data:`F_TRACK_HZ` = 2 Hz (the least
+   sensitivity where the tracking error of a point-to-point program lives; on the default
+   plant the L2[e] of a run falls as 1/|L(2 Hz)| over the whole family, while the crossover
+   frequency ranks the candidates poorly, and the best gains a search finds have PM 13-20°:
+   ``benchmarks/compare_laws.py --search``). The u noise at rest
+   is predicted (the measured rest spectrum of y through |C|) and reported, but judged on the
+   machine in step 4 (with stiction and quantisation the prediction is only a bound).
+   C1 and C2 share k_s, k1 (one ``controller:`` section): their linearisations coincide at
+   rest (u0 = 0), so one choice serves both.
+4. **verify** (:func:`verify`): runs of ``verify_s`` of the axis's own program at 50 %, 75 %,
+   100 % of the chosen loop gain (PID: P, I, D; C1/C2: k_s), stopping at the first fault
+   (following error, limits), more saturated samples than the configured controller on the
+   same run plus :data:`SAT_SHARE` of the samples (when 50 % fails: 35 %, then 25 %), u noise at
+   rest above the level, or oscillation (a spectral line in u at rest ≥ :data:`OSC_RATIO` times
+   the median of its spectrum, or the error spectrum ≥ :data:`OSC_RATIO` times the configured
+   controller's at some frequency); the highest scale that passed is written.
+5. **write** (:func:`write_config`, :func:`plot_bode`): ``DIR/autotuned.yaml`` (the gains,
+   commented with the margins that chose them) and ``DIR/bode_<A>.png``.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from pathlib import Path
+
+import numpy as np
+import yaml
+from scipy import optimize, signal
+
+from motorctl.app.build import build, shutdown, start
+from motorctl.app.loopshape import c_frf, loop_margins, plant_model_frf
+from motorctl.config import LoadedConfig, config_from_dict
+from motorctl.control.base import SIG_E, Controller
+from motorctl.loop.trajectory import Move
+from motorctl.metrics import tracking_indexes
+
+# ---------------------------------------------------------------- the rule (stated once)
+GM_MIN_DB = 6.0          #: gain margin ≥ [dB]
+PM_MIN_DEG = 15.0        #: phase margin ≥ [deg]
+MS_MAX_DB = 10.0         #: peak sensitivity ≤ [dB] (|S| ≤ 3.2)
+F_TRACK_HZ = 2.0         #: where the tracking error lives (the programs' moves last ~0.5 s) [Hz]
+U_REST_FRACTION = 0.02   #: u RMS at rest ≤ this share of u_lim (0.2 V at 10 V, as benchmarks/tune_gains.py)
+SAT_SHARE = 7.5e-5       #: saturated samples ≤ those of the configured controller on the same run
+                         #: + this share of the run (15 in 40 s at 5 kHz)
+OSC_RATIO = 100.0        #: oscillation: a line in u at rest this far above its spectrum's median,
+                         #: or e's spectrum this far above the configured controller's
+SCALES = (0.5, 0.75, 1.0)  #: verification ladder (share of the chosen loop gain)
+BACKOFF = (0.35, 0.25)     #: tried in turn when 50 % fails; the first that passes is kept
+REST_AFTER_S = 0.3       #: "at rest": the command has not moved for this long [s]
+
+# ---------------------------------------------------------------- the measurement
+HOLD_HZ, HOLD_ZETA, HOLD_R = 20.0, 0.7, 5.0   #: the conservative holding PID
+PERIOD_S = 1.0           #: multisine period [s] (1 Hz lines)
+F_LO, F_SHAPE = 10.0, 60.0   #: lowest line, corner of the f² rise of the amplitudes [Hz]
+LINE_SPACING = 0.01      #: lines every max(1 Hz, 1 % of f): 1/6 of a mode's width at ζ = 0.03
+F_BOOST = 250.0          #: line amplitudes rise ∝ f² above this [Hz] (the response falls ∝ 1/f² and faster)
+F_HI_SHARE = 0.48        #: highest line as a share of fs
+EXC_SHARE = 0.5          #: |r| ≤ this share of u_lim
+DISP_SHARE = 0.08        #: displacement RMS (catalogue model, open loop) ≤ this share of the FE limit
+GUARD_SHARE = 0.5        #: |e| ≥ this share of the smallest FE limit switches the excitation off
+STROKE_MARGIN = 0.1      #: the pass keeps this share of the stroke from each soft limit
+REST_S = 0.6             #: rest at the start of the pass (encoder noise at rest) [s]
+PERIODS = 16             #: measured multisine periods (after one ramp and one settling period)
+
+LAWS = ("c1", "c2", "pid")
+
+
+class AutotuneError(ValueError):
+    """The axis cannot be autotuned as configured (one line: what and why)."""
+
+
+# ================================================================ excitation
+def multisine(ts: float, theta1: float, u_lim: float, fe_min_m: float, realisations: int,
+              repeats: int, seed: int = 0):
+    """The excitation: ``realisations`` random-phase multisines of the same amplitude spectrum
+    at the plant input, each repeated ``repeats`` periods (module docstring, step 1). New
+    realisations turn the plant's nonlinear distortion (the force curve of eq. 3, friction)
+    into noise that the averaging removes and the coherence shows, instead of a periodic error
+    that looks coherent; the first period of each is its transient (not used).
+
+    Args:
+        ts: period [s]. theta1: catalogue θ̂1 = M/A1 [V s²/m] (sizes the displacement).
+        u_lim: output limit [V]. fe_min_m: the smallest following-error limit [m].
+        realisations, repeats: counts. seed: of the phases.
+    Returns:
+        (r (realisations·repeats·N,) [V], lines (L,) int: the excited DFT bins of a period of N samples).
+    """
+    n = int(round(PERIOD_S / ts))
+    df = 1.0 / (n * ts)
+    k, kk, k_hi = [], int(math.ceil(F_LO / df)), int(F_HI_SHARE / ts / df)
+    while kk <= k_hi:                          # spacing max(1 bin, LINE_SPACING · f)
+        k.append(kk)
+        kk += max(1, int(LINE_SPACING * kk))
+    k = np.asarray(k)
+    f = k * df
+    amp = np.minimum(1.0, (f / F_SHAPE) ** 2) * (1.0 + f / F_BOOST) ** 2
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(realisations):
+        best = None
+        for _ in range(8):                    # the lowest crest factor of 8 draws
+            spec = np.zeros(n // 2 + 1, dtype=complex)
+            spec[k] = amp * np.exp(1j * rng.uniform(0.0, 2.0 * math.pi, k.size)) * n / 2.0
+            r = np.fft.irfft(spec, n)
+            if best is None or np.max(np.abs(r)) < np.max(np.abs(best)):
+                best = r
+        out += [best] * repeats
+    r = np.concatenate(out)
+    disp_rms = math.sqrt(np.sum((amp / (theta1 * (2.0 * math.pi * f) ** 2)) ** 2) / 2.0)
+    scale = min(EXC_SHARE * u_lim / np.max(np.abs(r)), DISP_SHARE * fe_min_m / disp_rms)
+    return r * scale, k
+
+
+class Excited(Controller):
+    """A controller plus an excitation r added at its output (the plant input).
+
+    ``r[j]`` is added at loop cycle k0 + j (k from the loop time t = k·Ts); the sum is clipped to
+    ±u_lim. If |e| ≥ ``guard_m`` the excitation stops for good (:attr:`tripped`). Publishes
+    the inner controller's signals. Allocation-free."""
+
+    def __init__(self, inner: Controller, r: np.ndarray, k0: int, guard_m: float):
+        super().__init__(inner.ts, inner.u_lim, inner.n_theta)
+        self.inner = inner
+        self.name = inner.name
+        self.signals = inner.signals
+        self.theta_hat = inner.theta_hat
+        self.r = np.ascontiguousarray(r, dtype=float)
+        self.k0 = int(k0)
+        self.guard = float(guard_m)
+        self.tripped = False
+
+    @classmethod
+    def from_config(cls, section, ts, name):      # pragma: no cover - built by autotune only
+        raise ValueError("Excited wraps a built controller")
+
+    def reset(self, y0: float) -> None:
+        self.inner.reset(y0)
+
+    def update(self, y, x_d, xd_dot, xd_ddot, t=0.0):
+        u = self.inner.update(y, x_d, xd_dot, xd_ddot, t)
+        j = int(t / self.ts + 0.5) - self.k0
+        if 0 <= j < self.r.shape[0] and not self.tripped:
+            if abs(self.inner.signals[SIG_E]) >= self.guard:
+                self.tripped = True
+            else:
+                u += self.r[j]
+        lim = self.u_lim
+        return lim if u > lim else (-lim if u < -lim else u)
+
+
+def hold_gains(theta_hat0) -> dict:
+    """The conservative holding PID+FF from the catalogue θ̂(0) (module docstring, step 1)."""
+    t1 = float(theta_hat0[0])
+    w = 2.0 * math.pi * HOLD_HZ
+    p = t1 * w * w
+    i = p * w / HOLD_R
+    return {"P": p, "I": i, "D": 2.0 * HOLD_ZETA * w * t1, "FF0": 0.0, "FF1": float(theta_hat0[1]),
+            "FF2": t1, "bias": -float(theta_hat0[3]), "deadband": 0.0, "maxerror": 0.0,
+            "maxerror_i": 1.0 / i, "maxoutput": 0.0}
+
+
+def _pass_plan(loaded: LoadedConfig, axis: str, duration_s: float):
+    """(x_a, x_b, v [m/s]) of the constant-velocity pass: from the lower soft limit to the
+    upper, 10 % of the stroke inside each, at the speed that lasts ``duration_s``."""
+    lim = loaded.axes[axis].limits
+    lo, hi = lim.soft_min_m, lim.soft_max_m
+    if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+        raise AutotuneError(f"axes.{axis}.limits: autotune needs finite soft limits (the stroke)")
+    a, b = lo + STROKE_MARGIN * (hi - lo), hi - STROKE_MARGIN * (hi - lo)
+    v = abs(b - a) / duration_s
+    return a, b, min(v, 0.25 * lim.max_velocity_m_per_s)
+
+
+def _read_idle(asm) -> float:
+    """Idle cycles (0 V, amplifier off) until the axis's position is read without a fault, then
+    that position [m]. A drive whose command watchdog bit while no loop ran between two runs
+    reports one amplifier fault; it is reset here as an operator's ``fault-reset`` would (the
+    supervisor refuses while the cause persists).
+
+    Raises:
+        AutotuneError: the fault persists (one line, the supervisor's reason).
+    """
+    for _ in range(3):
+        asm.loop.run(1)
+        if not asm.supervisor.fault[0]:
+            return float(asm.driver.position_m[0])
+        asm.loop.run(1)
+        asm.loop.fault_reset(0)
+    raise AutotuneError(f"axis {asm.names[0]} is in fault: {asm.supervisor.reason(0)}")
+
+
+def measure_frf(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
+                progress=None, periods: int = PERIODS) -> dict:
+    """Step 1 (module docstring) on the config's driver; ``periods`` measured periods (even:
+    ``periods``/2 realisations of two periods, the first of each its transient).
+
+    Returns:
+        {"f_hz" (L,), "G" (L,) complex [m/V], "coherence" (L,), "coherence_u" (L,),
+        "rest_psd": (f (M,), S_yy (M,) [m²/Hz]) of y at rest, "excitation_rms_V",
+        "excitation_peak_V", "e_max_m", "guard_m", "stroke_m": (min y, max y) during the run,
+        "soft_limits_m", "fault" ('' when none), "tripped" (the excitation guard fired),
+        "pass": (x_a, x_b, v)}.
+    Raises:
+        AutotuneError: no soft limits. OSError: the driver cannot reach its device.
+    """
+    sec = loaded.axes[axis].controller
+    lim = loaded.axes[axis].limits
+    ts = loaded.period_s
+    tb = loaded.timebase
+    raw = copy.deepcopy(raw)
+    raw["axes"][axis]["controller"]["pid"] = hold_gains(sec.theta_hat0)
+    raw["axes"][axis]["controller"]["type"] = "pid"
+    fe_min = min(lim.min_following_error_m, lim.following_error_m)
+    r, lines = multisine(ts, float(sec.theta_hat0[0]), sec.u_lim, fe_min, periods // 2 + 1, 2)
+    n_per = int(round(PERIOD_S / ts))
+    r[:n_per] *= np.linspace(0.0, 1.0, n_per, endpoint=False)     # amplitude ramp
+    r1 = r[n_per:]
+    exc_s = r.size * ts
+    x_a, x_b, v = _pass_plan(loaded, axis, exc_s + 1.0)
+    a_pass = 2.0
+    raw["axes"][axis]["trajectory"] = {"points": [x_a, x_b], "move_times_s": [REST_S, 1e6],
+                                       "period_s": 0.0, "v_max": v, "a_max": a_pass,
+                                       "j_max": 100.0 * a_pass}
+    loaded2 = config_from_dict(raw, str(loaded.path))
+    prog = loaded2.axes[axis].trajectory.program()
+    pass_move = prog.moves[0]
+    # the excitation starts when the pass cruises (sampled on the move's own profile)
+    tt = np.arange(0.0, pass_move.duration, ts)
+    vd = np.array([pass_move.sample(REST_S + x)[1] for x in tt])
+    cruise = np.flatnonzero(np.abs(vd) >= 0.999 * v)
+    if cruise.size == 0 or (cruise[-1] - cruise[0]) < r.size + 100:
+        raise AutotuneError(f"axes.{axis}.limits: the stroke is too short for a "
+                            f"{exc_s:.0f} s pass at {v:.3g} m/s")
+    v_app = min(0.1, 0.25 * lim.max_velocity_m_per_s)
+    stroke = lim.soft_max_m - lim.soft_min_m
+    capacity = tb.cycles(stroke / v_app + 1.0 + REST_S + pass_move.duration) + 8
+    asm = build(loaded2, [axis], "pid", clock=clock, capacity=capacity, operated=True)
+    start(asm, "off" if clock == "virtual" else loaded.cfg.loop.realtime.policy)
+    try:
+        y0 = _read_idle(asm)                     # where the axis stands
+        if not lim.soft_min_m <= y0 <= lim.soft_max_m:
+            raise AutotuneError(f"axis {axis} stands at {y0:.4f} m, outside its soft limits "
+                                f"(motorctl jog it back first)")
+        approach = Move(y0, x_a, v_app, a_pass, 100.0 * a_pass)
+        k_prog = asm.loop.k + tb.cycles(approach.duration) + 1
+        k_exc = k_prog + tb.cycles(REST_S) + int(cruise[0]) + 50
+        n_total = k_exc + r.size + 50 - asm.loop.k
+        exc = Excited(asm.controller(0, "pid"), r, k_exc, GUARD_SHARE * fe_min)
+        asm.loop.start_axis(0, approach, exc)
+        if progress:
+            progress(f"measure {axis}: rest {REST_S:g} s at {x_a:.3f} m, pass to {x_b:.3f} m at "
+                     f"{v * 1e3:.1f} mm/s with a multisine of {np.sqrt(np.mean(r1 ** 2)):.2f} V RMS "
+                     f"(peak {np.max(np.abs(r1)):.2f} V), {periods} periods of {PERIOD_S:g} s")
+        asm.loop.run(min(n_total, capacity - asm.loop.k))
+    finally:
+        shutdown(asm)
+    rows, lay = asm.loop.rows(), asm.loop.layout
+    y = rows[:, lay.index(f"{axis}.y")]
+    e = rows[:, lay.index(f"{axis}.e")]
+    u = rows[:, lay.index(f"{axis}.u")]
+    fault = asm.supervisor.reason(0)
+    rr = np.zeros(rows.shape[0])
+    m = min(r.size, rows.shape[0] - k_exc)
+    if m > 0:
+        rr[k_exc:k_exc + m] = r[:m]
+    s0 = k_exc + 2 * n_per      # after the ramp and its settling: periods/2 realisations of 2 periods
+    s1 = s0 + periods * n_per
+    out = {"fault": fault, "tripped": exc.tripped, "pass": (x_a, x_b, v),
+           "excitation_rms_V": float(np.sqrt(np.mean(r1 ** 2))),
+           "excitation_peak_V": float(np.max(np.abs(r1))),
+           "e_max_m": float(np.nanmax(np.abs(e))), "guard_m": GUARD_SHARE * fe_min,
+           "stroke_m": (float(np.min(y)), float(np.max(y))),
+           "soft_limits_m": (lim.soft_min_m, lim.soft_max_m)}
+    # rest spectrum of y: the carriage held at x_a before the pass
+    r0 = k_prog + tb.cycles(0.2)
+    r1_ = k_prog + tb.cycles(REST_S) - 10
+    out["rest_psd"] = signal.welch(y[r0:r1_], fs=1.0 / ts, nperseg=min(1024, r1_ - r0),
+                                   detrend="linear")
+    if fault or exc.tripped or s1 > rows.shape[0]:
+        return out
+    kw = {"fs": 1.0 / ts, "window": "boxcar", "nperseg": n_per, "noverlap": 0, "detrend": "linear"}
+    keep = np.concatenate([np.arange(s0 + (2 * j + 1) * n_per, s0 + (2 * j + 2) * n_per)
+                           for j in range(periods // 2)])
+    rs, es, us = rr[keep], e[keep], u[keep]
+    fr, s_re = signal.csd(rs, es, **kw)
+    _, s_ru = signal.csd(rs, us, **kw)
+    _, c_re = signal.coherence(rs, es, **kw)
+    _, c_ru = signal.coherence(rs, us, **kw)
+    G = s_re / s_ru
+    out.update(f_hz=fr[lines], G=G[lines], coherence=c_re[lines],
+               coherence_u=c_ru[lines])
+    return out
+
+
+# ================================================================ fit
+def _initial_mode(f: np.ndarray, G: np.ndarray, th1: float):
+    """(mode_hz, load_fraction) from the peak and the dip of |G| (2πf)² θ1 (nan: none)."""
+    comp = np.abs(G) * (2.0 * math.pi * f) ** 2 * th1
+    lc = np.log(comp)
+    sm = np.convolve(lc, np.ones(5) / 5.0, mode="same")
+    band = f > 2.0 * F_LO
+    i_pk = int(np.argmax(np.where(band, sm, -np.inf)))
+    below = band & (f < f[i_pk])
+    if not below.any() or sm[i_pk] - np.median(sm[band]) < math.log(2.0):
+        return math.nan, math.nan
+    i_dip = int(np.argmin(np.where(below, sm, np.inf)))
+    frac = 1.0 - (f[i_dip] / f[i_pk]) ** 2
+    return float(f[i_pk]), float(min(max(frac, 0.05), 0.9))
+
+
+def fit_plant(f: np.ndarray, G: np.ndarray, coh: np.ndarray, ts: float, theta_hat0) -> dict:
+    """Step 2 (module docstring). Returns the fitted model (:data:`motorctl.app.loopshape.MODEL_KEYS`) plus "cost",
+    "cost_rigid" (the rigid model's cost), "mode": True when the mode is kept.
+
+    Args: f (L,) [Hz], G (L,) [m/V], coh (L,) coherence r → e, ts [s], theta_hat0 (6,).
+    """
+    w = 2.0 * math.pi * f
+    # weights from the coherence smoothed over ±10 lines: a line's own coherence is high
+    # exactly where its noise happened to add to the response, which would bias |G| upwards
+    cs = np.clip(np.convolve(coh, np.ones(21) / 21.0, mode="same"), 0.0, 0.999)
+    cs[:10], cs[-10:] = cs[10], cs[-11]
+    wt = np.sqrt(cs / (1.0 - cs))
+    ok = np.isfinite(G) & (np.abs(G) > 0)
+    w, G, wt, f = w[ok], G[ok], wt[ok], f[ok]
+    lo = f < 0.3 * f[-1]
+    th1_0 = float(np.median(1.0 / (np.abs(G[lo]) * w[lo] ** 2)))
+    fs = 1.0 / ts
+
+    def model(x, with_mode):
+        p = {"theta1": x[0], "theta2": x[1], "current_loop_hz": x[2], "delay_s": x[3],
+             "mode_hz": x[4] if with_mode else 0.0, "mode_damping": x[5] if with_mode else 0.0,
+             "load_fraction": x[6] if with_mode else 0.0}
+        return p
+
+    def resid(x, with_mode, log=True):
+        # log: robust far from the solution; then G/G_model − 1, unbiased by the noise on G
+        # (the log of a noisy magnitude is biased upwards where the coherence is low)
+        gm = plant_model_frf(model(x, with_mode), ts, w)
+        z = np.log(gm / G) if log else G / gm - 1.0
+        return np.concatenate([wt * z.real, wt * (np.angle(gm / G) if log else z.imag)])
+
+    def refine(sol, with_mode, lb, ub):
+        x0 = np.clip(sol.x, lb, ub)
+        return optimize.least_squares(resid, x0, args=(with_mode, False), x_scale="jac",
+                                      bounds=(lb, ub))
+
+    best_rigid = None
+    for fc0 in (0.1 * fs, 0.2 * fs, 0.4 * fs):
+        x0 = [th1_0, 0.1 * th1_0 * 2 * math.pi * F_LO, fc0, 0.0]
+        sol = optimize.least_squares(resid, x0, args=(False,), x_scale="jac",
+                                     bounds=([1e-6, 0.0, 10.0, 0.0], [1e6, 1e6, 10.0 * fs, 5.0 * ts]))
+        if best_rigid is None or sol.cost < best_rigid.cost:
+            best_rigid = sol
+    best_rigid = refine(best_rigid, False, [1e-6, 0.0, 10.0, 0.0], [1e6, 1e6, 10.0 * fs, 5.0 * ts])
+    out = model(best_rigid.x, False)
+    out.update(cost=float(best_rigid.cost), cost_rigid=float(best_rigid.cost), mode=False)
+    fm0, fr0 = _initial_mode(f, G, best_rigid.x[0])
+    if math.isfinite(fm0):
+        best = None
+        for fc0 in (0.1 * fs, 0.2 * fs, 0.4 * fs):
+            for z0 in (0.02, 0.08):
+                x0 = list(best_rigid.x[:2]) + [fc0, 0.0, fm0, z0, fr0]
+                sol = optimize.least_squares(
+                    resid, x0, args=(True,), x_scale="jac",
+                    bounds=([1e-6, 0.0, 10.0, 0.0, 0.5 * fm0, 1e-3, 0.01],
+                            [1e6, 1e6, 10.0 * fs, 5.0 * ts, min(2.0 * fm0, 0.5 * fs), 0.5, 0.95]))
+                if best is None or sol.cost < best.cost:
+                    best = sol
+        lb_m = [1e-6, 0.0, 10.0, 0.0, 0.5 * fm0, 1e-3, 0.01]
+        ub_m = [1e6, 1e6, 10.0 * fs, 5.0 * ts, min(2.0 * fm0, 0.5 * fs), 0.5, 0.95]
+        best = refine(best, True, lb_m, ub_m)
+        if best.cost < 0.7 * best_rigid.cost:
+            out = model(best.x, True)
+            out.update(cost=float(best.cost), cost_rigid=float(best_rigid.cost), mode=True)
+    return {k: float(v) if not isinstance(v, bool) else v for k, v in out.items()}
+
+
+# ================================================================ the rule
+OMEGA = tuple(float(x) for x in np.geomspace(30.0, 3000.0, 49))   #: [rad/s]
+ZETA = (0.3, 0.4, 0.5, 0.7, 1.0)
+R_INT = (3.0, 5.0, 7.0, 10.0)
+
+
+def family(law: str, theta1: float, section) -> list[dict]:
+    """The candidate gains of ``law`` (module docstring, step 3), each with its "_w", "_zeta"
+    (and "_r" for the PID)."""
+    out = []
+    for w in OMEGA:
+        for z in ZETA:
+            if law == "pid":
+                for r in R_INT:
+                    p = theta1 * w * w
+                    out.append({"P": p, "I": p * w / r, "D": 2.0 * z * w * theta1,
+                                "_w": w, "_zeta": z, "_r": r})
+            else:
+                out.append({"k_s": 2.0 * z * w * theta1, "k1": w / (2.0 * z),
+                            "gamma_d": float(section.gamma_d), "_w": w, "_zeta": z})
+    return out
+
+
+def rest_noise(C: np.ndarray, rest_psd) -> float:
+    """Predicted u RMS at rest [V]: the measured rest spectrum of y [m²/Hz] through |C| (a
+    carriage held by stiction: the loop is open). C: C(e^{jωTs}) at the PSD's frequencies."""
+    f, s = rest_psd
+    df = f[1] - f[0]
+    return float(math.sqrt(np.sum(np.abs(C[1:]) ** 2 * s[1:]) * df))
+
+
+def grid_w(ts: float) -> np.ndarray:
+    """The frequency grid of the margins [rad/s]: 1 Hz to 0.999 Nyquist, log-spaced."""
+    return np.geomspace(2.0 * math.pi, 0.999 * math.pi / ts, 4000)
+
+
+def choose_gains(law: str, G_w, w: np.ndarray, ts: float, theta1: float, section, rest_psd,
+                 theta_hat=None) -> dict | None:
+    """Step 3 for one law on the plant FRF ``G_w`` (K,) at ``w`` (K,) [rad/s].
+
+    Returns:
+        None when no candidate passes, else {"gains", "margins" (:class:`Margins`),
+        "u_rest_pred_V", "candidates" (how many passed)}.
+    """
+    f = w / (2.0 * math.pi)
+    wn = 2.0 * math.pi * rest_psd[0]
+    best, n_ok = None, 0
+    j_tr = int(np.argmin(np.abs(f - F_TRACK_HZ)))
+    for g in family(law, theta1, section):
+        L = c_frf(law, g, ts, w, theta_hat) * G_w
+        mg = loop_margins(L, f)
+        if not mg.meets(GM_MIN_DB, PM_MIN_DEG, MS_MAX_DB):
+            continue
+        # the margins must hold down the verification ladder too (a loop with integral action
+        # can lose phase margin when its gain falls, and a heavier load lowers it the same way)
+        if not all(loop_margins(sc * L, f).meets(GM_MIN_DB, PM_MIN_DEG, MS_MAX_DB)
+                   for sc in SCALES[:-1]):
+            continue
+        un = rest_noise(c_frf(law, g, ts, np.maximum(wn, 1e-9), theta_hat), rest_psd)
+        n_ok += 1
+        key = (abs(L[j_tr]), -mg.ms_db)
+        if best is None or key > best[0]:
+            best = (key, g, mg, un)
+    if best is None:
+        return None
+    L = c_frf(law, best[1], ts, w, theta_hat) * G_w
+    backoff = [b for b in BACKOFF if loop_margins(b * L, f).meets(GM_MIN_DB, PM_MIN_DEG, MS_MAX_DB)]
+    return {"gains": best[1], "margins": best[2], "u_rest_pred_V": best[3], "candidates": n_ok,
+            "backoff": backoff}
+
+
+# ================================================================ closed-loop runs
+def scaled(law: str, g: dict, s: float) -> dict:
+    """Gains ``g`` at share ``s`` of the loop gain (PID: P, I, D; C1/C2: k_s)."""
+    g = dict(g)
+    if law == "pid":
+        for k in ("P", "I", "D"):
+            g[k] *= s
+    else:
+        g["k_s"] *= s
+    return g
+
+
+def apply_gains(raw: dict, axis: str, law: str, g: dict, ff: dict | None = None) -> dict:
+    """A copy of the config dict with ``law``'s gains ``g`` set on ``axis`` (PID: with the
+    feedforward ``ff`` or the section's, maxerror_i = 1 V / I)."""
+    raw = copy.deepcopy(raw)
+    sec = raw["axes"][axis]["controller"]
+    if law == "pid":
+        pid = dict(sec.get("pid") or {})
+        if ff:
+            pid.update(ff)
+        pid.update({k: float(g[k]) for k in ("P", "I", "D")})
+        pid["maxerror_i"] = 1.0 / g["I"] if g["I"] > 0 else 0.0
+        sec["pid"] = pid
+    else:
+        sec.update({k: float(g[k]) for k in ("k_s", "k1", "gamma_d") if k in g})
+    return raw
+
+
+def rest_mask(rows: np.ndarray, lay, axis: str, ts: float) -> np.ndarray:
+    """Samples where the command has not moved for :data:`REST_AFTER_S`."""
+    moving = ((rows[:, lay.index(f"{axis}.xd_dot")] != 0.0)
+              | (rows[:, lay.index(f"{axis}.xd_ddot")] != 0.0))
+    k = np.arange(rows.shape[0])
+    last = np.maximum.accumulate(np.where(moving, k, -(10 ** 9)))
+    return (k - last) * ts >= REST_AFTER_S
+
+
+def oscillation_ratio(u: np.ndarray, rest: np.ndarray, ts: float) -> tuple[float, float]:
+    """(peak/median of the PSD of u over its rest segments above 20 Hz, its frequency [Hz])."""
+    edges = np.diff(np.concatenate([[0], rest.astype(int), [0]]))
+    psd, f = None, None
+    for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
+        if b - a < 512:
+            continue
+        f, p = signal.welch(u[a:b], fs=1.0 / ts, nperseg=512, detrend="linear")
+        psd = p if psd is None else psd + p
+    if psd is None:
+        return math.nan, math.nan
+    band = f > 20.0
+    j = int(np.argmax(np.where(band, psd, -np.inf)))
+    return float(psd[j] / np.median(psd[band])), float(f[j])
+
+
+def evaluate(raw: dict, source: str, axis: str, law: str, seconds: float, clock: str = "virtual") -> dict:
+    """A closed-loop run of ``axis``'s program with controller ``law`` on the config dict, on
+    its driver: a jerk-limited approach at ≤ 0.1 m/s from where the axis stands to the
+    program's start (as the daemon's ``start``), then ``seconds`` of the program, which alone
+    is evaluated.
+
+    Returns:
+        :func:`motorctl.metrics.tracking_indexes` [µm, V] plus "u_rest_rms_V" (RMS of u about
+        its mean at rest), "saturated" (samples at |u| = u_lim), "samples", "fault" ('' none),
+        "osc_ratio", "osc_hz" (:func:`oscillation_ratio`).
+    """
+    loaded = config_from_dict(raw, source)
+    tb = loaded.timebase
+    lim = loaded.axes[axis].limits
+    n = tb.cycles(seconds)
+    v_app = min(0.1, 0.25 * lim.max_velocity_m_per_s)
+    n_app_max = tb.cycles((lim.soft_max_m - lim.soft_min_m) / v_app + 1.0)
+    asm = build(loaded, [axis], law, clock=clock, capacity=n + n_app_max + 8, operated=True)
+    start(asm, "off" if clock == "virtual" else loaded.cfg.loop.realtime.policy)
+    try:
+        y0 = _read_idle(asm)                     # where the axis stands
+        approach = Move(y0, asm.loop.programs[0].sample(0.0)[0], v_app, 2.0, 200.0)
+        n_app = tb.cycles(approach.duration) + 1
+        k0 = asm.loop.k
+        asm.loop.start_axis(0, approach)
+        asm.loop.run(n_app + n)
+    finally:
+        shutdown(asm)
+    rows, lay = asm.loop.rows()[k0 + n_app:], asm.loop.layout
+    ts = loaded.period_s
+    t, e, u = (rows[:, lay.cycle("t")], rows[:, lay.index(f"{axis}.e")], rows[:, lay.index(f"{axis}.u")])
+    rest = rest_mask(rows, lay, axis, ts)
+    edges = np.diff(np.concatenate([[0], rest.astype(int), [0]]))
+    segs = [u[a:b] - u[a:b].mean() for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1))]
+    u_lim = loaded.axes[axis].controller.u_lim
+    res = tracking_indexes(t, e, u, loaded.axes[axis].trajectory.period_s)
+    res["u_rest_rms_V"] = float(np.sqrt(np.mean(np.concatenate(segs) ** 2))) if segs else math.nan
+    res["saturated"] = int(np.sum(np.abs(u) >= u_lim * (1.0 - 1e-12)))
+    res["samples"] = int(rows.shape[0])
+    res["fault"] = asm.supervisor.reason(0)
+    res["osc_ratio"], res["osc_hz"] = oscillation_ratio(u, rest, ts)
+    res["e_psd"] = signal.welch(e, fs=1.0 / ts, nperseg=min(1024, e.size), detrend="linear")
+    return res
+
+
+def e_line_ratio(res: dict, ref: dict) -> tuple[float, float]:
+    """(largest ratio of a run's error spectrum to the reference run's above 20 Hz, where
+    [Hz]). A loop near its stability limit rings at its crossover or a mode while the axis
+    moves (at rest stiction can hold the carriage and hide it): e.g. X with PM −0.3° on the
+    measured response: 724x at 444 Hz against ≤ 24x for loops with PM ≥ 15°."""
+    f, p = res["e_psd"]
+    fr, pr = ref["e_psd"]
+    if f.shape != fr.shape:
+        return math.nan, math.nan
+    band = f > 20.0
+    ratio = np.where(band, p / np.maximum(pr, 1e-300), -np.inf)
+    j = int(np.argmax(ratio))
+    return float(ratio[j]), float(f[j])
+
+
+def admissible(res: dict, u_lim: float, ref: dict | None = None) -> str:
+    """'' when a run meets the rule's closed-loop lines, else why not (one phrase). ref: the
+    configured controller's run on the same program (:func:`evaluate`): its saturated samples
+    are allowed (a program that drives u into its limit saturates whatever the gains), and an
+    error spectrum :data:`OSC_RATIO` times its own at some frequency is an oscillation."""
+    if res["fault"]:
+        return f"fault: {res['fault']}"
+    sat_ref = ref["saturated"] if ref else 0
+    allowed = sat_ref + round(SAT_SHARE * res["samples"])
+    if res["saturated"] > allowed:
+        return f"{res['saturated']} saturated samples (> {allowed}: {sat_ref} as configured + {SAT_SHARE:.1e} of {res['samples']})"
+    if not res["u_rest_rms_V"] <= U_REST_FRACTION * u_lim:
+        return f"u at rest {res['u_rest_rms_V'] * 1e3:.0f} mV RMS (> {U_REST_FRACTION * u_lim * 1e3:.0f} mV)"
+    if res["osc_ratio"] >= OSC_RATIO:
+        return f"oscillation at {res['osc_hz']:.0f} Hz (line {res['osc_ratio']:.0f}x the median)"
+    if ref:
+        ratio, f = e_line_ratio(res, ref)
+        if ratio >= OSC_RATIO:
+            return f"oscillation at {f:.0f} Hz (e {ratio:.0f}x the configured controller's)"
+    return ""
+
+
+def verify(raw: dict, source: str, axis: str, laws: dict, seconds: float, clock: str = "virtual",
+           progress=None) -> dict:
+    """Step 4: for each law group (``laws``: {"c": (gains, ["c1", "c2"], None, backoff),
+    "pid": (gains, ["pid"], feedforward, backoff)}), runs at :data:`SCALES` until the first
+    failure, after a failed 50 % the ``backoff`` scales (those of :data:`BACKOFF` whose margins
+    hold) in turn; first a run of the configured controller
+    (the saturation reference). Returns {group: {"scale" (0 when even 50 % failed), "runs":
+    [(scale, law, result, verdict)]}, "reference": that run}."""
+    out = {}
+    loaded = config_from_dict(raw, source)
+    u_lim = loaded.axes[axis].controller.u_lim
+    ref = evaluate(raw, source, axis, loaded.axes[axis].controller.type, seconds, clock)
+    if progress:
+        progress(f"verify {axis}: as configured ({loaded.axes[axis].controller.type}): L2 "
+                 f"{ref['L2_um']:.3f} um, {ref['saturated']} saturated samples")
+    for grp, (g, names, ff, backoff) in laws.items():
+        passed, runs = 0.0, []
+        ladder = list(SCALES)
+        while ladder:
+            s = ladder.pop(0)
+            gs = scaled(names[0], g, s)
+            ok = True
+            for law in names:
+                res = evaluate(apply_gains(raw, axis, law, gs, ff), source, axis, law, seconds, clock)
+                why = admissible(res, u_lim, ref)
+                runs.append((s, law, res, why))
+                if progress:
+                    progress(f"verify {axis} {law} at {s:.0%}: L2 {res['L2_um']:.3f} um, e_M "
+                             f"{res['e_M_um']:.2f} um, rest {res['u_rest_rms_V'] * 1e3:.0f} mV, sat "
+                             f"{res['saturated']}: {why or 'ok'}")
+                if why:
+                    ok = False
+                    break
+            if not ok:
+                lower = [b for b in backoff if b < s]       # back off below 50 %
+                if s <= SCALES[0] and lower:
+                    ladder = lower[:1]
+                    continue
+                break
+            passed = s
+            if s < SCALES[0]:
+                break
+        out[grp] = {"scale": passed, "runs": runs}
+    out["reference"] = ref
+    return out
+
+
+# ================================================================ the whole procedure
+def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
+             verify_s: float | None = None, progress=None, periods: int = PERIODS) -> dict:
+    """Steps 1-4 for one axis. Returns {"measure", "model", "theta_hat0", "w", "G_model",
+    "choice": {law group: ...}, "verify", "gains": {law group: gains written}, "ff"}.
+
+    Raises:
+        AutotuneError: the measurement faulted or tripped its guard, or no law could be tuned.
+    """
+    sec = loaded.axes[axis].controller
+    ts = loaded.period_s
+    meas = measure_frf(loaded, raw, axis, clock, progress, periods)
+    if meas["fault"] or meas["tripped"] or "G" not in meas:
+        why = meas["fault"] or ("the excitation guard fired (|e| reached "
+                                f"{meas['guard_m'] * 1e6:.0f} um)" if meas["tripped"] else "too short")
+        raise AutotuneError(f"axis {axis}: the measurement stopped: {why}")
+    model = fit_plant(meas["f_hz"], meas["G"], meas["coherence"], ts, sec.theta_hat0)
+    if progress:
+        progress(f"fit {axis}: theta1 {model['theta1']:.4g} V s^2/m (theta_hat1(0) "
+                 f"{sec.theta_hat0[0]:.4g}), theta2 {model['theta2']:.3g} V s/m, mode "
+                 f"{model['mode_hz']:.1f} Hz zeta {model['mode_damping']:.3f} load "
+                 f"{model['load_fraction']:.2f}, current loop {model['current_loop_hz']:.0f} Hz, "
+                 f"delay {model['delay_s'] * 1e6:.1f} us")
+    w = grid_w(ts)
+    # the rule runs on the measured FRF where it was measured (coherence ≥ 0.5) and on the
+    # fitted model elsewhere (below 10 Hz and between the measured lines)
+    G_fit = plant_model_frf(model, ts, w)
+    G_w = G_fit.copy()
+    fm, Gm, ch = meas["f_hz"], meas["G"], meas["coherence"]
+    good = ch >= 0.5
+    f_w = w / (2.0 * math.pi)
+    if good.sum() > 10:
+        inside = (f_w >= fm[good][0]) & (f_w <= fm[good][-1])
+        re = np.interp(f_w, fm[good], Gm[good].real)
+        im = np.interp(f_w, fm[good], Gm[good].imag)
+        G_w[inside] = re[inside] + 1j * im[inside]
+    th = np.asarray(sec.theta_hat0, dtype=float)
+    choice, laws = {}, {}
+    ff = {"FF0": 0.0, "FF1": float(th[1]), "FF2": float(model["theta1"]), "bias": -float(th[3])}
+    for grp, law, names in (("c", "c2", ["c2", "c1"]), ("pid", "pid", ["pid"])):
+        ch_ = choose_gains(law, G_w, w, ts, model["theta1"], sec, meas["rest_psd"], th)
+        choice[grp] = ch_
+        if ch_ is None:
+            continue
+        if progress:
+            m = ch_["margins"]
+            progress(f"rule {axis} {law}: {_fmt_gains(law, ch_['gains'])}: GM {m.gm_db:.1f} dB, PM "
+                     f"{m.pm_deg:.1f} deg, |S| {m.ms_db:.1f} dB, crossover {m.wc_hz:.0f} Hz, rest "
+                     f"{ch_['u_rest_pred_V'] * 1e3:.0f} mV predicted ({ch_['candidates']} passed)")
+        laws[grp] = (ch_["gains"], names, ff if law == "pid" else None, ch_["backoff"])
+    if not laws:
+        raise AutotuneError(f"axis {axis}: no gains of any law meet the rule on the measured response")
+    period = loaded.axes[axis].trajectory.period_s
+    vs = verify_s if verify_s is not None else max(2.0 * period, 1.0)
+    ver = verify(raw, str(loaded.path), axis, laws, vs, clock, progress)
+    gains = {grp: scaled(laws[grp][1][0], laws[grp][0], ver[grp]["scale"])
+             for grp in laws if ver[grp]["scale"] > 0}
+    ref = ver.pop("reference")
+    return {"axis": axis, "measure": meas, "model": model, "theta_hat0": th.tolist(), "w": w,
+            "G_fit": G_fit, "G_w": G_w, "choice": choice, "verify": ver, "reference": ref,
+            "gains": gains, "ff": ff,
+            "ts": ts, "section": sec}
+
+
+def _fmt_gains(law: str, g: dict) -> str:
+    if law == "pid":
+        return f"P {g['P']:.4g} I {g['I']:.4g} D {g['D']:.4g}"
+    return f"k_s {g['k_s']:.4g} k1 {g['k1']:.4g} gamma_d {g['gamma_d']:.4g}"
+
+
+def final_margins(res: dict) -> dict:
+    """Margins of the written gains on the measured FRF: {law: Margins}."""
+    out = {}
+    for grp, g in res["gains"].items():
+        for law in (("c1", "c2") if grp == "c" else ("pid",)):
+            out[law] = loop_margins(c_frf(law, g, res["ts"], res["w"], res["theta_hat0"]) * res["G_w"],
+                                    res["w"] / (2.0 * math.pi))
+    return out
+
+
+def write_config(raw: dict, results: list, source: str, path) -> dict:
+    """Step 5: ``raw`` with every autotuned axis's gains, checked as check-config does, written
+    to ``path`` with a comment block per axis (model, rule, margins, verification).
+
+    Raises:
+        ConfigError: the result does not pass the checks (nothing written). OSError.
+    """
+    new = copy.deepcopy(raw)
+    lines = [f"# motorctl autotune of {source}: gains chosen by one rule on the measured frequency",
+             f"# response (GM >= {GM_MIN_DB:g} dB, PM >= {PM_MIN_DEG:g} deg, |S| <= {MS_MAX_DB:g} dB, "
+             f"then the highest |L| at {F_TRACK_HZ:g} Hz; u rest RMS <=",
+             f"# {U_REST_FRACTION:g} u_lim), verified at 50/75/100 % on the machine (no fault, saturation <= as "
+             f"configured + {SAT_SHARE:.1e} of samples, no oscillation)."]
+    for res in results:
+        a, mdl = res["axis"], res["model"]
+        lines.append(f"# axis {a}: fitted theta1 = M/A1 {mdl['theta1']:.4g} V s^2/m (config theta_hat1(0) "
+                     f"{res['theta_hat0'][0]:.4g}), theta2 {mdl['theta2']:.3g} V s/m, mode "
+                     f"{mdl['mode_hz']:.1f} Hz (zeta {mdl['mode_damping']:.3f}, load "
+                     f"{mdl['load_fraction']:.2f}), current loop {mdl['current_loop_hz']:.0f} Hz, delay "
+                     f"{mdl['delay_s'] * 1e6:.1f} us")
+        mg = final_margins(res)
+        for grp, g in res["gains"].items():
+            law = "c2" if grp == "c" else "pid"
+            new = apply_gains(new, a, law, g, res["ff"] if law == "pid" else None)
+            m = mg[law]
+            lines.append(f"#   {'C1/C2' if grp == 'c' else 'PID+FF'}: {_fmt_gains(law, g)} at "
+                         f"{res['verify'][grp]['scale']:.0%} of the rule's choice: GM {m.gm_db:.1f} dB "
+                         f"at {m.gm_hz:.0f} Hz, PM {m.pm_deg:.1f} deg, |S|max {m.ms_db:.1f} dB, "
+                         f"crossover {m.wc_hz:.0f} Hz")
+        for grp in ("c", "pid"):
+            if grp not in res["gains"]:
+                lines.append(f"#   {'C1/C2' if grp == 'c' else 'PID+FF'}: not tuned (kept as configured)")
+    config_from_dict(new, str(path), check_budget=False)
+    text = "\n".join(lines) + "\n" + yaml.safe_dump(new, sort_keys=False, default_flow_style=None)
+    Path(path).write_text(text, encoding="utf-8")
+    return new
+
+
+def plot_bode(res: dict, path) -> str:
+    """Step 5: the Bode plot (measured and fitted plant; each law's loop gain with its
+    crossover, GM and PM marked) as PNG. Needs matplotlib (the ``plot`` extra)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    w, ts = res["w"], res["ts"]
+    f = w / (2.0 * math.pi)
+    meas = res["measure"]
+    fig, ax = plt.subplots(2, 1, figsize=(10, 8), sharex=True)
+    ax[0].loglog(meas["f_hz"], np.abs(meas["G"]), ".", ms=2, color="0.5", label="plant, measured")
+    ax[0].loglog(f, np.abs(res["G_fit"]), "k-", lw=1, label="plant, fitted model")
+    ax[1].semilogx(meas["f_hz"], np.degrees(np.angle(meas["G"])), ".", ms=2, color="0.5")
+    ax[1].semilogx(f, np.degrees(np.angle(res["G_fit"])), "k-", lw=1)
+    mg = final_margins(res)
+    for law, color in (("c2", "tab:blue"), ("pid", "tab:red")):
+        grp = "c" if law == "c2" else "pid"
+        if grp not in res["gains"]:
+            continue
+        L = c_frf(law, res["gains"][grp], ts, w, res["theta_hat0"]) * res["G_w"]
+        m = mg[law]
+        lab = f"L {'C1/C2' if law == 'c2' else 'PID+FF'}: GM {m.gm_db:.1f} dB, PM {m.pm_deg:.0f}°, |S| {m.ms_db:.1f} dB"
+        ax[0].loglog(f, np.abs(L), color=color, lw=1, label=lab)
+        ph = np.degrees(np.unwrap(np.angle(L)))
+        ph -= 360.0 * math.ceil(ph[0] / 360.0)
+        ax[1].semilogx(f, ph, color=color, lw=1)
+        if math.isfinite(m.wc_hz):
+            ax[0].axvline(m.wc_hz, color=color, ls=":", lw=0.8)
+            ax[1].axvline(m.wc_hz, color=color, ls=":", lw=0.8)
+        if math.isfinite(m.gm_hz):
+            ax[0].plot([m.gm_hz], [10 ** (-m.gm_db / 20)], "v", color=color)
+    ax[0].axhline(1.0, color="0.7", lw=0.8)
+    ax[1].axhline(-180.0, color="0.7", lw=0.8)
+    ax[0].set_ylabel("|G| [m/V], |L| [-]")
+    ax[1].set_ylabel("phase [deg]")
+    ax[1].set_xlabel("frequency [Hz]")
+    ax[1].set_ylim(-720, 180)
+    ax[0].legend(fontsize=8)
+    ax[0].set_title(f"axis {res['axis']}: measured plant (indirect closed-loop estimate) and loop gains")
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return str(path)

@@ -1,0 +1,152 @@
+"""Frequency-domain commissioning tools: the physical plant model's discrete frequency response,
+each controller's linearisation C(e^{jωTs}) and the margins of a loop L = C·G.
+
+Conventions (the servo loop's row k holds y[k], read before u[k] is computed and held over the
+next period): G(z) maps u to y through the zero-order hold, G_zoh(z) = (1 − z⁻¹) Z{G(s)/s}
+(so it carries the one-period delay of the read → write order); C(z) maps −y to u, so the loop
+gain is L = C G and the sensitivity S = 1/(1 + L).
+
+The linearisations (:func:`c_frf`) are written per law so that each can move into its
+controller class later (one ``linearise(section, ts, w, u0)`` per controller):
+
+    PID     C(z) = P + I Ts/(1 − z⁻¹) + D Δ,  Δ = (1 − z⁻¹)/Ts        (motorctl/control/pid.py)
+    C1, C2  C(z) = (k_s + γ_d Ts/(1 − z⁻¹)) (k1 + Δ) / f_u'(u0)         (motorctl/control/dcdiarc.py:
+            v_s = −k_s p, p = Δy + k1 e, d̂0 += Ts γ_d p (eq. 18-19); v_a1 depends on x_d only; the
+            θ̂ adaptation is slow and left out; C2 divides by the slope of its cubic inversion
+            f_u(u) = u + θ̂5 u|u| + θ̂6 u³ (eq. 9) at the operating point u0, C1 by 1)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: the physical model's parameters, in order (SI; θ1 = M/A1 and θ2 = B/A1 as in paper eq. 4)
+MODEL_KEYS = ("theta1", "theta2", "load_fraction", "mode_hz", "mode_damping", "current_loop_hz",
+              "delay_s")
+
+
+def plant_model_frf(p: dict, ts: float, w: np.ndarray, n_alias: int = 12) -> np.ndarray:
+    """Discrete FRF G_zoh(e^{jωTs}) [m/V] of the physical model ``p`` (:data:`MODEL_KEYS`).
+
+    The continuous model is the collocated two-mass axis of ``motorctl_drivers/sim.py`` scaled
+    by the force constant: carriage (1 − f)θ1 and load f θ1 [V s²/m] coupled by a spring and
+    damper with free-free mode ``mode_hz`` (damping ``mode_damping``; ``mode_hz`` = 0: rigid),
+    viscous θ2 [V s/m] on the carriage, a first-order current loop of bandwidth
+    ``current_loop_hz`` (0: none) and a transport delay ``delay_s``; sampled under the ZOH with
+    ``n_alias`` aliases each side.
+
+    Args:
+        p: parameters (:data:`MODEL_KEYS`). ts: period [s]. w: frequencies [rad/s], shape (K,),
+            0 < w < π/ts.
+    Returns:
+        complex (K,).
+    """
+    th1, th2 = p["theta1"], p["theta2"]
+    ws = 2.0 * math.pi / ts
+    tau_i = 1.0 / (2.0 * math.pi * p["current_loop_hz"]) if p["current_loop_hz"] > 0 else 0.0
+    a = np.arange(-n_alias, n_alias + 1)[:, None]
+    s = 1j * (w[None, :] + a * ws)
+    if p["mode_hz"] > 0.0:
+        f = p["load_fraction"]
+        mc, ml = (1.0 - f) * th1, f * th1
+        mu = mc * ml / th1
+        wm = 2.0 * math.pi * p["mode_hz"]
+        k, c = wm * wm * mu, 2.0 * p["mode_damping"] * wm * mu
+        load = ml * s * s + c * s + k
+        g = load / ((mc * s * s + th2 * s) * load + (c * s + k) * ml * s * s)
+    else:
+        g = 1.0 / (th1 * s * s + th2 * s)
+    g = g * np.exp(-s * p["delay_s"]) / (1.0 + s * tau_i)
+    acc = np.sum(g / (s * ts), axis=0)
+    return acc * (1.0 - np.exp(-1j * w * ts))
+
+
+def _integrator(w: np.ndarray, ts: float) -> np.ndarray:
+    return ts / (1.0 - np.exp(-1j * w * ts))
+
+
+def _difference(w: np.ndarray, ts: float) -> np.ndarray:
+    return (1.0 - np.exp(-1j * w * ts)) / ts
+
+
+def pid_frf(g: dict, ts: float, w: np.ndarray) -> np.ndarray:
+    """Linearisation of the PID+FF law (:class:`motorctl.control.pid.PID`): P, I, D of ``g``.
+    The feedforward acts on x_d only and the limits are inactive at small signals."""
+    return g["P"] + g["I"] * _integrator(w, ts) + g["D"] * _difference(w, ts)
+
+
+def dcdiarc_frf(g: dict, ts: float, w: np.ndarray, theta5: float = 0.0, theta6: float = 0.0,
+                u0: float = 0.0) -> np.ndarray:
+    """Linearisation of C1/C2 (:class:`motorctl.control.dcdiarc.DCDIARC`, experiment mode):
+    k_s, k1, gamma_d of ``g``; C2's inversion slope at u0 [V] from θ̂5 [1/V], θ̂6 [1/V²] (C1:
+    leave them 0)."""
+    slope = 1.0 + 2.0 * theta5 * abs(u0) + 3.0 * theta6 * u0 * u0
+    return ((g["k_s"] + g["gamma_d"] * _integrator(w, ts)) * (g["k1"] + _difference(w, ts))
+            / slope)
+
+
+def c_frf(law: str, g: dict, ts: float, w: np.ndarray, theta_hat=None, u0: float = 0.0) -> np.ndarray:
+    """C(e^{jωTs}) of controller ``law`` ('c1', 'c2', 'pid') with gains ``g``; C2 linearised at
+    u0 [V] with θ̂ (6,) (default: θ̂5 = θ̂6 = 0). Raises KeyError for another law."""
+    if law == "pid":
+        return pid_frf(g, ts, w)
+    if law == "c1":
+        return dcdiarc_frf(g, ts, w)
+    if law == "c2":
+        th = theta_hat if theta_hat is not None else (0.0,) * 6
+        return dcdiarc_frf(g, ts, w, float(th[4]), float(th[5]), u0)
+    raise KeyError(f"no linearisation for controller {law!r}; known: c1, c2, pid")
+
+
+@dataclass(frozen=True)
+class Margins:
+    """Stability margins of a loop L = C G sampled on an increasing frequency grid.
+
+    Attributes:
+        gm_db: gain margin [dB] (least over the −180° crossings with |L| < 1; inf: none).
+        gm_hz: where it is taken [Hz] (nan: none).
+        pm_deg: phase margin [deg] (least over the |L| = 1 crossings; inf: none).
+        wc_hz: the first (lowest) |L| = 1 crossing [Hz]: the loop's bandwidth (a resonance
+            that lifts |L| above 1 again further up does not count as bandwidth; nan: none).
+        ms_db: peak sensitivity max |1/(1 + L)| [dB]; ms_hz where it peaks [Hz].
+    """
+
+    gm_db: float
+    gm_hz: float
+    pm_deg: float
+    wc_hz: float
+    ms_db: float
+    ms_hz: float
+
+    def meets(self, gm_min_db: float, pm_min_deg: float, ms_max_db: float) -> bool:
+        return self.gm_db >= gm_min_db and self.pm_deg >= pm_min_deg and self.ms_db <= ms_max_db
+
+
+def loop_margins(L: np.ndarray, f_hz: np.ndarray) -> Margins:
+    """:class:`Margins` of the loop FRF ``L`` (K,) at frequencies ``f_hz`` (K,), increasing.
+    Crossings are located between grid points by linear interpolation."""
+    mag = np.abs(L)
+    gm, gm_hz = math.inf, math.nan
+    # −180° crossings: the imaginary part changes sign where the real part is negative
+    for i in np.flatnonzero((np.sign(L.imag[:-1]) != np.sign(L.imag[1:])) & (L.real[:-1] < 0)):
+        a = L.imag[i] / (L.imag[i] - L.imag[i + 1])
+        m = mag[i] + a * (mag[i + 1] - mag[i])
+        if m < 1.0 and -20.0 * math.log10(m) < gm:
+            gm, gm_hz = -20.0 * math.log10(m), f_hz[i] + a * (f_hz[i + 1] - f_hz[i])
+    # phase unwrapped along the grid, starting in (−360°, 0]: a crossing beyond −180° (a delay
+    # or a lag past the mode) counts as a negative margin, not as its wrapped image
+    ph = np.degrees(np.unwrap(np.angle(L)))
+    ph -= 360.0 * math.ceil(ph[0] / 360.0)
+    pm, wc = math.inf, math.nan
+    ldb = np.log(mag)
+    for i in np.flatnonzero(np.sign(ldb[:-1]) != np.sign(ldb[1:])):
+        a = ldb[i] / (ldb[i] - ldb[i + 1])
+        pm = min(pm, 180.0 + ph[i] + a * (ph[i + 1] - ph[i]))
+        if math.isnan(wc):
+            wc = f_hz[i] + a * (f_hz[i + 1] - f_hz[i])
+    sens = 1.0 / np.abs(1.0 + L)
+    j = int(np.argmax(sens))
+    return Margins(gm, gm_hz, pm, wc, 20.0 * math.log10(sens[j]), float(f_hz[j]))

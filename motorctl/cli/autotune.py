@@ -1,0 +1,109 @@
+"""``motorctl autotune``: measured frequency response → fitted model → gains by one rule →
+verified on the machine → ``DIR/autotuned.yaml`` and ``DIR/bode_<A>.png``
+(:mod:`motorctl.app.autotune` has the procedure and the rule).
+
+    motorctl autotune CONFIG --axis A [--axis B] [--out DIR] [--virtual-clock] [--verify-seconds S]
+                     [--periods N] [--json]
+
+Exit codes: 0 gains written; 1 the measurement stopped (fault, guard: nothing written) or an
+axis had no gains pass the verification (the config is written with that axis as configured);
+2 bad input (one line on stderr, nothing started).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+from motorctl.inputs import seconds_arg as seconds
+
+
+def register(parser, subparsers) -> None:
+    """Add the ``autotune`` subcommand (called by :func:`motorctl.cli.build_parser`)."""
+    p = subparsers.add_parser("autotune", help="measure the axis's frequency response, fit a model, "
+                                               "choose and verify every controller's gains")
+    p.add_argument("config", help="config of the axis (any driver)")
+    p.add_argument("--axis", action="append", required=True, help="axis to tune (repeatable)")
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help="autotuned.yaml and the Bode plots (default: runs/autotune-<config name>)")
+    p.add_argument("--virtual-clock", action="store_true",
+                   help="run as fast as possible (default: the config's clock)")
+    p.add_argument("--verify-seconds", type=seconds, default=None,
+                   help="length of each verification run in s (default: two program periods)")
+    p.add_argument("--periods", type=int, default=None,
+                   help="measured multisine periods of 1 s, even, 2..200 (default 16)")
+    p.add_argument("--json", action="store_true", help="one JSON object on stdout and nothing else")
+    p.set_defaults(func=cmd_autotune)
+
+
+def _summary(res: dict) -> dict:
+    from motorctl.app.autotune import final_margins
+    meas, mdl = res["measure"], res["model"]
+    mg = final_margins(res)
+    return {
+        "model": mdl, "theta_hat0": res["theta_hat0"],
+        "measurement": {k: meas[k] for k in ("excitation_rms_V", "excitation_peak_V", "e_max_m",
+                                             "guard_m", "stroke_m", "soft_limits_m", "pass")},
+        "gains": {("c1/c2" if g == "c" else "pid"): {k: v for k, v in gg.items() if not k.startswith("_")}
+                  for g, gg in res["gains"].items()},
+        "scale": {("c1/c2" if g == "c" else "pid"): v["scale"] for g, v in res["verify"].items()},
+        "margins": {law: {k: (None if not math.isfinite(v) else v) for k, v in vars(m).items()}
+                    for law, m in mg.items()},
+        "verify": [{"group": g, "scale": s, "law": law, "verdict": why or "ok",
+                    **{k: res_[k] for k in ("e_M_um", "e_F_um", "L2_um", "u_peak_V", "u_rest_rms_V",
+                                            "saturated", "fault")}}
+                   for g, v in res["verify"].items() for s, law, res_, why in v["runs"]],
+    }
+
+
+def cmd_autotune(args) -> int:
+    from motorctl.app.autotune import PERIODS, AutotuneError, autotune, plot_bode, write_config
+    from motorctl.cli import UsageError
+    from motorctl.config import config_from_dict, load_yaml
+    from motorctl.inputs import writable_dir
+    periods = PERIODS if args.periods is None else args.periods
+    if not (2 <= periods <= 200 and periods % 2 == 0):
+        raise UsageError(f"--periods {args.periods}: must be an even number within 2..200")
+    raw = load_yaml(args.config)
+    loaded = config_from_dict(raw, args.config)
+    for a in args.axis:
+        if a not in loaded.axes:
+            raise UsageError(f"--axis {a}: no such axis in {args.config}; axes: {', '.join(loaded.axes)}")
+    out = Path(args.out) if args.out else Path("runs") / f"autotune-{Path(args.config).stem}"
+    writable_dir(str(out), "out")
+    clock = "virtual" if args.virtual_clock else loaded.cfg.loop.clock
+    say = (lambda s: None) if args.json else (lambda s: print(s, flush=True))
+    results, summary, failed = [], {}, False
+    for a in args.axis:
+        try:
+            res = autotune(loaded, raw, a, clock, args.verify_seconds, progress=say, periods=periods)
+        except AutotuneError as exc:
+            sys.stderr.write(f"motorctl: autotune: {exc}\n")
+            return 1
+        results.append(res)
+        summary[a] = _summary(res)
+        try:
+            summary[a]["bode"] = plot_bode(res, out / f"bode_{a}.png")
+        except ImportError:
+            summary[a]["bode"] = None
+        if not res["gains"]:
+            sys.stderr.write(f"motorctl: autotune: axis {a}: no gains passed the verification "
+                             f"(kept as configured)\n")
+            failed = True
+    path = out / "autotuned.yaml"
+    write_config(raw, results, args.config, path)
+    if args.json:
+        print(json.dumps({"config": str(path), "axes": summary}, default=float))
+    else:
+        for a, s in summary.items():
+            m = s["model"]
+            print(f"{a}: fitted theta1 = M/A1 {m['theta1']:.4g} V s^2/m (theta_hat1(0) {s['theta_hat0'][0]:.4g}), "
+                  f"mode {m['mode_hz']:.1f} Hz, current loop {m['current_loop_hz']:.0f} Hz, delay "
+                  f"{m['delay_s'] * 1e6:.1f} us")
+            for law, mg in s["margins"].items():
+                print(f"  {law}: GM {mg['gm_db'] or math.inf:.1f} dB, PM {mg['pm_deg']:.1f} deg, |S| {mg['ms_db']:.1f} dB, "
+                      f"crossover {mg['wc_hz']:.0f} Hz")
+        print(f"wrote {path}" + "".join(f", {s['bode']}" for s in summary.values() if s.get("bode")))
+    return 1 if failed else 0
