@@ -249,7 +249,7 @@ def measure_frf(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtua
     exc_s = r.size * ts
     x_a, x_b, v = _pass_plan(loaded, axis, exc_s + 1.0)
     a_pass = 2.0
-    raw["axes"][axis]["trajectory"] = {"points": [x_a, x_b], "move_times_s": [REST_S, 1e6],
+    raw["axes"][axis]["trajectory"] = {"points": [x_a, x_b], "move_times_s": [REST_S, 86400.0],
                                        "period_s": 0.0, "v_max": v, "a_max": a_pass,
                                        "j_max": 100.0 * a_pass}
     loaded2 = config_from_dict(raw, str(loaded.path))
