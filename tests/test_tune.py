@@ -43,9 +43,29 @@ def spring_tune(tmp_path_factory):
     return json.loads(r.stdout), out
 
 
+def test_tune_hands_over_no_compensation_the_loop_is_worse_with(tmp_path, default_yaml):
+    """The shipped default plant has no undeclared effect; identify names phantom ones there (a
+    spring and an input delay, from stiction, the mode and the current loop). Compensated, they
+    make L2[e] worse, so tune keeps none of them and writes the config unchanged: the after run
+    is the before run."""
+    out = tmp_path / "out"
+    r = subprocess.run([*MOTORCTL, "tune", str(default_yaml), "--axis", "X", "--duration", DURATION, "--out",
+                        str(out), "--json"], check=False, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout)
+    assert res["floor_effects_off"] == []                        # nothing to remove on this plant
+    c = res["compare"]
+    assert c is None or c["after"]["L2_um"] <= c["before"]["L2_um"], c
+    assert res["kept"] == [] and set(res["dropped"]) == set(res["compensation"]), res
+    if res["compensation"]:                                      # found, tried, dropped
+        assert res["verdict"].startswith("no effect kept") and c["after"] == c["before"]
+        assert "compensation" not in yaml.safe_load((out / FILES["tuned"]).read_text())["axes"]["X"]["controller"]
+
+
 def test_tune_removes_the_springs_damage_against_the_floor(spring_tune):
     res, out = spring_tune
     assert res["driver"] == "sim" and res["clock"] == "virtual" and res["stopped"] is None
+    assert res["kept"] == ["spring"] and res["dropped"] == {} and res["verdict"] is None
     assert [e["name"] for e in res["effects"]] == ["spring"] and "spring" in res["compensation"]
     assert res["floor_effects_off"] == ["spring"]
     for step in ("before", "tuned", "after", "floor_config", "floor"):

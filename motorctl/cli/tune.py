@@ -9,7 +9,12 @@
    nothing written but the log);
 3. **tuned config**: ``DIR/tuned.yaml``, what ``motorctl identify LOG --config CONFIG
    --write-config`` writes (:func:`motorctl.cli.identify.write_tuned_config`);
-4. **after**: the same program on the tuned config, log ``DIR/after.mclog``;
+4. **after**: the same program on the tuned config, log ``DIR/after.mclog``. tune never hands
+   over a worse config: where more than one effect is compensated, each is run once without
+   (``DIR/without_<family>.yaml`` / ``.mclog``) and dropped when the loop is better without it
+   (:func:`better`: a lower L2[e] and an e_M no worse than one encoder count); then the kept
+   set must beat the before run the same way, else no effect is kept and ``tuned.yaml`` is
+   CONFIG unchanged (the report says which were dropped and why);
 5. on the simulated driver, **floor**: CONFIG with the plant's effects switched off
    (:func:`motorctl.app.tune.effect_free`, same seed), ``DIR/floor.yaml`` and ``DIR/floor.mclog``;
 6. **compare** (:func:`motorctl.cli.runs.compare_logs`, what ``motorctl compare-runs`` computes):
@@ -29,6 +34,9 @@ from pathlib import Path
 
 from motorctl.inputs import InputError
 from motorctl.inputs import seconds_arg as seconds
+
+#: e_M may grow by this much and still count as not worse [µm]: one count of the 0.5 µm encoder
+E_M_SLACK_UM = 0.5
 
 #: file names written in the output directory
 FILES = {"before": "before.mclog", "tuned": "tuned.yaml", "after": "after.mclog",
@@ -51,6 +59,13 @@ def register(parser, subparsers) -> None:
     p.set_defaults(func=cmd_tune)
 
 
+def better(a: dict, b: dict) -> bool:
+    """Run ``a`` tracks better than run ``b`` (their indexes over the same program periods,
+    :func:`motorctl.metrics.tracking_indexes` [µm]): a lower L2[e], and an e_M no more than
+    :data:`E_M_SLACK_UM` above."""
+    return a["L2_um"] < b["L2_um"] and a["e_M_um"] <= b["e_M_um"] + E_M_SLACK_UM
+
+
 def default_out(config: str, axis: str) -> Path:
     """The default output directory: runs/tune-<config file stem>-<axis>."""
     return Path("runs") / f"tune-{Path(config).stem}-{axis}"
@@ -69,7 +84,9 @@ def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None =
     Returns:
         {"config", "axis", "driver", "clock", "duration_s", "out", "files": {step: path written},
         "faults": {run: reason or ""}, "effects" (identify's summary), "compensation",
-        "not_compensable", "stopped" (None, or why it stopped early), "compare": None or
+        "not_compensable", "kept" (the compensated families kept in tuned.yaml), "dropped"
+        ({family: why}), "verdict" (None, or that no effect was kept), "stopped" (None, or why it
+        stopped early), "compare": None or
         {window_s, period_s, settle_periods, before, after, ratio, floor (sim only)} with the
         indexes of :func:`motorctl.metrics.tracking_indexes` [µm, V], "floor_effects_off"
         (sim: the families the floor switches off; else None), "damage_removed" [-] (sim),
@@ -109,7 +126,8 @@ def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None =
         writable_file(f, f"tune {k} output")
     res = {"config": str(config), "axis": axis, "driver": loaded.cfg.driver.type, "clock": clock,
            "duration_s": duration, "out": str(out), "files": {}, "faults": {}, "effects": [],
-           "compensation": {}, "not_compensable": [], "stopped": None, "compare": None,
+           "compensation": {}, "not_compensable": [], "kept": [], "dropped": {}, "verdict": None,
+           "stopped": None, "compare": None,
            "floor_effects_off": effects_on(loaded, axis) if floor_cfg is not None else None,
            "damage_removed": None, "e_M_not_worse": None, "figures": []}
 
@@ -134,9 +152,11 @@ def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None =
     if not comp:
         res["stopped"] = f"no compensable effect found ({', '.join(skipped)}: no compensation term)"
         return res
-    write_tuned_config(idf, s, base, axis, str(config), files["tuned"])
+    tuned = write_tuned_config(idf, s, base, axis, str(config), files["tuned"])
     res["files"]["tuned"] = str(files["tuned"])
     if not run("after", load_config(files["tuned"])):
+        return res
+    if not _keep_what_helps(res, files, tuned, base, axis, duration, clock, note):
         return res
     if floor_cfg is not None:
         res["files"]["floor_config"] = str(_write_floor(floor_cfg, config, files["floor_config"]))
@@ -144,6 +164,67 @@ def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None =
             return res
     _compare(res, files)
     return res
+
+
+def _indexes(files: dict, log: Path, axis: str) -> dict:
+    """The indexes of run ``log`` over the program periods it shares with the before run."""
+    from motorctl.cli.runs import compare_logs
+    try:
+        return compare_logs(str(files["before"]), str(log), [axis])["axes"][axis]["after"]
+    except ValueError as exc:      # no common program period (a run cut short)
+        raise InputError(str(exc)) from None
+
+
+def _keep_what_helps(res: dict, files: dict, tuned: dict, base: dict, axis: str, duration: float,
+                     clock: str, note) -> bool:
+    """Keep in ``tuned.yaml`` only the compensated effects the closed loop is better with
+    (module docstring, step 4); rewrite ``tuned.yaml`` and ``after.mclog`` when some go.
+    Returns False when a run faulted (``res['stopped']`` says which)."""
+    import copy
+    import shutil
+
+    import yaml
+
+    from motorctl.config import config_from_dict
+    comp = dict(tuned["axes"][axis]["controller"].get("compensation") or {})
+    kept = list(comp)
+    best, best_cfg, best_log = _indexes(files, files["after"], axis), tuned, files["after"]
+    out = files["tuned"].parent
+    for fam in list(kept) if len(kept) > 1 else []:
+        trial = copy.deepcopy(best_cfg)
+        ctl = trial["axes"][axis]["controller"]
+        ctl["compensation"] = {k: v for k, v in ctl["compensation"].items() if k != fam}
+        path, log = out / f"without_{fam}.yaml", out / f"without_{fam}.mclog"
+        path.write_text(yaml.safe_dump(trial, sort_keys=False, default_flow_style=False, allow_unicode=True),
+                        encoding="utf-8")
+        note(f"without {fam}: axis {axis} of {path}, {duration:g} s, {clock} clock -> {log}")
+        fault = _run_axis(config_from_dict(trial, str(path)), axis, duration, clock, log)["fault"]
+        res["files"][f"without_{fam}"] = str(log)
+        if fault:
+            res["faults"][f"without_{fam}"] = fault
+            res["stopped"] = f"the run without {fam} faulted: {fault}"
+            return False
+        m = _indexes(files, log, axis)
+        if better(m, best):
+            kept.remove(fam)
+            res["dropped"][fam] = (f"the loop is better without it (L2[e] {best['L2_um']:.3f} -> {m['L2_um']:.3f} um, "
+                                   f"e_M {best['e_M_um']:.2f} -> {m['e_M_um']:.2f} um)")
+            best, best_cfg, best_log = m, trial, log
+    before = _indexes(files, files["before"], axis)
+    if not better(best, before):
+        for fam in kept:
+            res["dropped"][fam] = (f"with it the loop is not better than before (L2[e] {before['L2_um']:.3f} -> "
+                                   f"{best['L2_um']:.3f} um, e_M {before['e_M_um']:.2f} -> {best['e_M_um']:.2f} um)")
+        kept, best_cfg, best_log = [], base, files["before"]
+        res["verdict"] = "no effect kept: the closed loop was not better with the compensation; tuned.yaml is CONFIG unchanged"
+    res["kept"] = kept
+    if best_log != files["after"]:
+        head = (f"# motorctl tune: {res['config']} with the compensation of {', '.join(kept)}\n" if kept else
+                f"# motorctl tune: {res['config']} unchanged (no compensation made the closed loop better)\n")
+        files["tuned"].write_text(head + yaml.safe_dump(best_cfg, sort_keys=False, default_flow_style=False,
+                                                        allow_unicode=True), encoding="utf-8")
+        shutil.copyfile(best_log, files["after"])
+    return True
 
 
 def _run_axis(loaded, axis: str, duration_s: float, clock: str, log_path: Path) -> dict:
@@ -204,12 +285,15 @@ def text_report(res: dict) -> str:
     lines = []
     for e in res["effects"]:
         pars = ", ".join(f"{k} {_fig(v)}" for k, v in e["parameters"].items())
-        tag = "compensated" if e["name"] in res["compensation"] else "not compensable"
+        tag = ("not compensable" if e["name"] not in res["compensation"] else
+               f"dropped: {res['dropped'][e['name']]}" if e["name"] in res["dropped"] else "compensated")
         lines.append(f"effect found: {e['name']}: {pars}; {tag}")
     if "tuned" in res["files"]:
         lines.append(f"tuned config: {res['files']['tuned']}")
     if res["stopped"]:
         lines.append(f"stopped: {res['stopped']}")
+    if res["verdict"]:
+        lines.append(res["verdict"])
     r = res["compare"]
     if r:
         f = res["files"]
@@ -221,7 +305,8 @@ def text_report(res: dict) -> str:
             lines.append(f"floor: {f['floor_config']} (the same plant and seed, effects off: {off})")
             lines.append("damage removed (L2_before - L2_after)/(L2_before - L2_floor): "
                          + (f"{d:.3f}" if d is not None else "- (L2 before is not above the floor)"))
-        lines.append(f"e_M not worse: {'yes' if res['e_M_not_worse'] else 'no'}")
+        lines.append(f"e_M not worse: {'yes' if res['e_M_not_worse'] else 'no'}; L2[e] not worse: "
+                     f"{'yes' if r['after']['L2_um'] <= r['before']['L2_um'] else 'no'}")
         lines.extend(f"figure: {p}" for p in res["figures"])
     return "\n".join(lines) + "\n"
 
