@@ -50,7 +50,8 @@ def test_tune_hands_over_no_compensation_the_loop_is_worse_with(tmp_path, defaul
     is the before run."""
     out = tmp_path / "out"
     r = subprocess.run([*MOTORCTL, "tune", str(default_yaml), "--axis", "X", "--duration", DURATION, "--out",
-                        str(out), "--json"], check=False, capture_output=True, text=True, timeout=300)
+                        str(out), "--virtual-clock", "--json"], check=False, capture_output=True, text=True,
+                       timeout=300)
     assert r.returncode == 0, r.stderr
     res = json.loads(r.stdout)
     assert res["floor_effects_off"] == []                        # nothing to remove on this plant
