@@ -73,3 +73,19 @@ def test_the_loop_is_built_in_one_place():
                     and node.func.id in ("ServoLoop", "Supervisor")):
                 builders.append(module)
     assert set(builders) == {"motorctl.app.build"}, builders
+
+
+def test_the_loop_process_does_not_load_scipy_to_build_its_loop():
+    """Importing what builds and runs the loop (the CLI's run path, the daemon's loop side) loads
+    none of scipy's subpackages (530 modules of scipy.signal and scipy.stats did before):
+    identification, spectra and splines import them where they use them. Building a loop loads
+    scipy.linalg only (the estimator's filter discretisation, at build time)."""
+    import subprocess
+    import sys
+    heavy = ("signal", "stats", "interpolate", "optimize", "io", "linalg", "sparse", "fft", "ndimage")
+    code = ("import sys, motorctl.app.build, motorctl.app.job, motorctl.app.daemon.loop_side; "
+            f"print(sorted(m for m in sys.modules if m.split('.')[:1] == ['scipy'] and "
+            f"len(m.split('.')) > 1 and m.split('.')[1] in {heavy!r}))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert r.stdout.strip() == "[]", r.stdout[:300]        # (numba itself imports the bare package)
+

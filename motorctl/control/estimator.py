@@ -33,7 +33,6 @@ a numba-compiled kernel on preallocated arrays: no allocation except in the rare
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import expm
 
 from motorctl.jit import njit
 from motorctl.model import s_f_scalar
@@ -54,6 +53,7 @@ def zoh_filter_matrices(omega_f: float, ts: float) -> tuple[np.ndarray, np.ndarr
     """
     a = np.array([[0.0, 1.0], [-omega_f**2, -2.0 * omega_f]])
     b = np.array([0.0, omega_f**2])
+    from scipy.linalg import expm     # at build time (the loop process loads scipy.linalg only)
     m = np.zeros((3, 3))
     m[:2, :2] = a
     m[:2, 2] = b

@@ -49,7 +49,6 @@ from typing import ClassVar
 
 import numpy as np
 from pydantic import Field, model_validator
-from scipy.interpolate import BSpline, PPoly
 
 from motorctl.effects.base import EffectFamily, PlantTerm
 from motorctl.effects.periodic import SHAPE_POINTS
@@ -179,6 +178,7 @@ class KnotGrid(float):
 
     def basis(self, x) -> np.ndarray:
         """B_j(x) (N, K) at positions x (N,) [m], x clamped into [start_m, end_m]."""
+        from scipy.interpolate import BSpline     # identification only (not the loop process)
         xc = np.clip(np.asarray(x, dtype=float), self.start_m, self.end_m)
         return BSpline.design_matrix(xc, self.knots, DEGREE).toarray()
 
@@ -210,6 +210,7 @@ def spline_pieces(start_m: float, end_m: float, coefficients) -> tuple:
         [0, 1]) g = a0[i] + u (a1[i] + u (a2[i] + u a3[i])); tuples of n floats; g_lo, g_hi
         the values at the ends (g is constant beyond them).
     """
+    from scipy.interpolate import BSpline, PPoly  # at build time, only for a config that uses it
     c = np.asarray(coefficients, dtype=float)
     n = len(c) - DEGREE
     h = KnotGrid(start_m, end_m, n)
