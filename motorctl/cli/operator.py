@@ -235,16 +235,25 @@ def cmd_status(args) -> int:
 
 def cmd_export(args) -> int:
     """A run log, or a daemon's run (its name or any segment: every kept segment in order),
-    to CSV or .mat, streamed chunk by chunk (memory bounded whatever the log length)."""
+    to CSV, .mat or MCAP, streamed chunk by chunk (memory bounded whatever the log length)."""
     from motorctl.inputs import InputError, writable_file
-    from motorctl.recorder.export import export_csv, export_mat
+    from motorctl.recorder.export import MCAP_CYCLE_TOPIC, export_csv, export_mat, export_mcap
     from motorctl.recorder.segments import open_run
-    out = args.csv or args.mat
+    out = args.csv or args.mat or args.mcap
+    if args.mcap:
+        try:
+            import mcap.writer  # noqa: F401
+        except ImportError:
+            raise InputError("export --mcap needs the mcap package: pip install 'motorctl[mcap]'") from None
     writable_file(out, "export")                    # before the log is read
     run = open_run(args.log)
     notes = []
     if args.csv:
         n = export_csv(run, out)
+    elif args.mcap:
+        counts = export_mcap(run, out)
+        n = counts.get(MCAP_CYCLE_TOPIC, 0)
+        notes.append(", ".join(f"{t} {c}" for t, c in counts.items()))
     else:
         try:
             n, notes = export_mat(run, out)
@@ -315,11 +324,13 @@ def register(parser: argparse.ArgumentParser, sub) -> None:
     p.add_argument("--jump-m", type=float, default=0.0)
     p.add_argument("--force-n", type=float, default=0.0)
 
-    e = sub.add_parser("export", help="convert a run log (or a daemon's set of segments) to CSV or "
-                                      "MATLAB .mat, streamed")
+    e = sub.add_parser("export", help="convert a run log (or a daemon's set of segments) to CSV, "
+                                      "MATLAB .mat or MCAP (Foxglove, ROS 2 tools), streamed")
     e.add_argument("log", help="a run log, or a daemon run's name or any of its segments "
                                "(every kept segment is read, in order)")
     g = e.add_mutually_exclusive_group(required=True)
     g.add_argument("--csv", metavar="OUT")
     g.add_argument("--mat", metavar="OUT")
+    g.add_argument("--mcap", metavar="OUT", help="MCAP: JSON messages per axis and cycle, the header and "
+                                                  "the faults as their own channels")
     e.set_defaults(func=cmd_export)
