@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from motorctl.model import THETA_UNITS
 from motorctl.recorder.runlog import LogError, RunLog
 from motorctl.recorder.segments import read_run
 
@@ -68,15 +69,22 @@ def plot_log(log_path: str, out_dir: str | None = None) -> list[str]:
         tag = f"{ax} axis, {kind}"
 
         fig, axs = plt.subplots(3, 1, sharex=True, figsize=(8, 6))
-        for k, (key, label) in enumerate((("x_d", "x_d [m]"), ("xd_dot", "dx_d/dt [m/s]"), ("xd_ddot", "d2x_d/dt2 [m/s2]"))):
+        for k, (key, label) in enumerate((("x_d", r"$x_d$ [m]"), ("xd_dot", r"$\dot x_d$ [m/s]"),
+                                          ("xd_ddot", r"$\ddot x_d$ [m/s²]"))):
             axs[k].plot(t[sl], a[key][sl], lw=0.8)
             axs[k].set_ylabel(label)
         axs[0].set_title(f"Desired trajectory ({tag})")
         axs[-1].set_xlabel("t [s]")
         files.append(_save(fig, out / f"{ax}_trajectory.png"))
 
+        ctl = _get(log.header, "config", "axes", ax, "controller", default={})
         fig, axp = plt.subplots(figsize=(8, 3.5))
         axp.plot(t[sl], a["u"][sl], lw=0.6)
+        u_lim = _get(ctl, "u_lim")
+        if isinstance(u_lim, (int, float)) and np.isfinite(u_lim):
+            for sgn in (1.0, -1.0):
+                axp.axhline(sgn * u_lim, ls="--", color="r", lw=0.8, label="±u_lim" if sgn > 0 else None)
+            axp.legend(loc="upper right", fontsize=8)
         axp.set_xlabel("t [s]")
         axp.set_ylabel("u [V]")
         axp.set_title(f"Control input ({tag}), peak |u| = {np.max(np.abs(a['u'])):.2f} V")
@@ -105,14 +113,20 @@ def plot_log(log_path: str, out_dir: str | None = None) -> list[str]:
         if not (isinstance(th_true, list) and len(th_true) >= n
                 and all(isinstance(x, (int, float)) for x in th_true[:n])):
             th_true = None
+        lo, hi = _get(ctl, "theta_min"), _get(ctl, "theta_max")
+        box = (isinstance(lo, list) and isinstance(hi, list) and len(lo) >= n and len(hi) >= n
+               and all(isinstance(x, (int, float)) for x in lo[:n] + hi[:n]))
         for i in range(n):
-            axs[i].plot(t[sl], a[f"theta_hat{i + 1}"][sl], lw=0.8, label="estimate")
+            axs[i].plot(t[sl], a[f"theta_hat{i + 1}"][sl], lw=0.8, label=r"$\hat\theta$")
             if th_true is not None:
                 axs[i].axhline(th_true[i], ls="--", color="k", lw=0.8, label="simulated truth")
-            axs[i].set_ylabel(f"theta{i + 1}")
-        axs[0].set_title(f"Parameter estimates ({tag})")
-        if th_true is not None:
-            axs[0].legend(loc="best", fontsize=8)
+            if box:
+                for k, b in enumerate((lo[i], hi[i])):
+                    axs[i].axhline(b, ls=":", color="r", lw=0.8, label="projection bounds" if k == 0 else None)
+            axs[i].set_ylabel(rf"$\hat\theta_{i + 1}$ [{THETA_UNITS[i].replace('*', ' ').replace('^2', '²')}]", fontsize=8)
+        axs[0].set_title(rf"Parameter estimates $\hat\theta$ ({tag})")
+        if th_true is not None or box:
+            axs[0].legend(loc="best", fontsize=7, ncol=3)
         axs[-1].set_xlabel("t [s]")
         files.append(_save(fig, out / f"{ax}_theta.png"))
     return files
