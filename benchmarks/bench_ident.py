@@ -33,8 +33,9 @@ def main(argv=None) -> int:
     ap.add_argument("--closed-loop", action="store_true", help="also time the run with the closed-loop check")
     args = ap.parse_args(argv)
 
+    from motorctl.app.tune import make_log
     from motorctl.cli import main as cli_main
-    from motorctl.ident.synth import EXAMPLES, make_log
+    from motorctl.ident.synth import EXAMPLES
     from motorctl.recorder.runlog import read_log
 
     path = args.keep_log

@@ -73,7 +73,7 @@ SCENARIOS = ("u at its limit", "nominal", "payload +5 kg", "Kf -20 %", "Fig.2 x2
 
 
 def table(raw, source, seconds):
-    print(f"| axis | scenario | law | e_M µm | e_F µm | L2[e] µm | u_peak V | u noise at rest mV | sat | fault |")
+    print("| axis | scenario | law | e_M µm | e_F µm | L2[e] µm | u_peak V | u noise at rest mV | sat | fault |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for axis in raw["axes"]:
         for sc in SCENARIOS:

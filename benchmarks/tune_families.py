@@ -94,8 +94,8 @@ def size_for(name: str, fam, out: Path, duration_s: float, floor_log: Path, axis
     Returns:
         (scale, fragment, L2_before / L2_floor at that size).
     """
+    from motorctl.app.tune import make_log
     from motorctl.cli.runs import compare_logs
-    from motorctl.ident.synth import make_log
 
     def ratio(n: int) -> tuple[float, dict, bool]:
         fragment, can_scale = scaled(fam.example, STEP ** n, fam.size_options)
@@ -178,8 +178,8 @@ def main(argv=None) -> int:
             ap.error("--a-max must be in (0, 40] m/s²")
         traj = {"a_max": args.a_max, "j_max": 4000.0 * args.a_max / 40.0}
 
+    from motorctl.app.tune import make_log
     from motorctl.effects import FAMILIES
-    from motorctl.ident.synth import make_log
     names = args.family or list(FAMILIES)
     unknown = [n for n in names if n not in FAMILIES]
     if unknown:

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
+from motorctl.app.tune import make_log
 from motorctl.cli import main
 from motorctl.cli.runs import compare_axis, window
-from motorctl.ident.synth import make_log
 from motorctl.metrics import tracking_indexes
 
 

@@ -15,11 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from motorctl.app.tune import make_log
 from motorctl.cli import main
 from motorctl.ident.data import load_record
 from motorctl.ident.effects import parameters
 from motorctl.ident.select import Identifier
-from motorctl.ident.synth import EXAMPLES, make_log
+from motorctl.ident.synth import EXAMPLES
 
 #: ../shared beside the clone (as CI has it)
 EMPS = str(Path(__file__).resolve().parents[2] / "shared" / "data" / "emps" / "DATA_EMPS.mat")

@@ -23,7 +23,7 @@ FORBIDDEN = {
                       "motorctl.config", "motorctl.control"),
     "motorctl.recorder": ("motorctl.app", "motorctl.cli", "motorctl.control", "motorctl.ident"),
     "motorctl.app": ("motorctl.cli",),
-    "motorctl.ident": ("motorctl.cli",),
+    "motorctl.ident": ("motorctl.cli", "motorctl.app"),
 }
 
 

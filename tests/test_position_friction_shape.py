@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 from scipy.interpolate import BSpline
 
+from motorctl.app.tune import make_log
 from motorctl.cli import main
 from motorctl.config import ConfigError, config_from_dict, load_yaml
 from motorctl.effects import FAMILIES, family
@@ -29,7 +30,7 @@ from motorctl.effects.compensation import Compensation, CompensationConfig
 from motorctl.ident.data import load_record
 from motorctl.ident.report import effect_shape
 from motorctl.ident.select import MIN_HELDOUT_GAIN, Identifier
-from motorctl.ident.synth import EXAMPLES, gantry_dict, make_log
+from motorctl.ident.synth import EXAMPLES, gantry_dict
 from motorctl.model import s_f, s_f_scalar
 
 NAME = "position_friction_shape"

@@ -9,9 +9,9 @@ import pytest
 import yaml
 
 from motorctl.app.job import run_job
+from motorctl.app.tune import make_log
 from motorctl.cli import main
 from motorctl.config import load_config, load_yaml
-from motorctl.ident.synth import make_log
 
 SPRING = {"spring": {"stiffness_N_per_m": 100.0, "rest_position_m": 0.1}}
 

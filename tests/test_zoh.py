@@ -12,10 +12,10 @@ import json
 import numpy as np
 import pytest
 
+from motorctl.app.tune import make_log
 from motorctl.cli import main
 from motorctl.ident.data import load_record
 from motorctl.ident.select import Identifier, is_hold
-from motorctl.ident.synth import make_log
 
 
 def _csv(log: str, out) -> str:

@@ -88,4 +88,65 @@ def damage_removed(l2_before: float, l2_after: float, l2_floor: float) -> float 
     return (l2_before - l2_after) / damage
 
 
-__all__ = ["SIM_DRIVER", "damage_removed", "effect_free", "effects_on", "is_simulated"]
+def closed_loop(idf, cfg: dict, axis: str, duration_s: float) -> dict | None:
+    """C2 alone vs C2 with the found effects compensated, both on the plant of ``cfg`` (``motorctl
+    identify``'s closed-loop before/after; ``idf``: a :class:`motorctl.ident.select.Identifier`
+    after its run).
+
+    Args:
+        cfg: a config dict whose simulated plant carries the effect (e.g. the run log's header).
+        axis: the axis to run. duration_s: run length [s].
+    Returns:
+        {"before": {...}, "after": {...}, "compensation": {...}} with e_M_um, e_F_um, L2_um, or
+        None when no found effect maps to a compensation term.
+    """
+    import copy
+
+    from motorctl.app.job import run_job
+    from motorctl.ident.pipeline import compensation_from_fit, set_theta0
+    comp, theta_aug, _skipped = compensation_from_fit(idf)
+    if not comp:
+        return None
+    base = copy.deepcopy(cfg)
+    base["axes"] = {axis: base["axes"][axis]}
+    base["loop"]["clock"] = "virtual"
+    base["loop"].setdefault("realtime", {})["policy"] = "off"
+    ctl = base["axes"][axis]["controller"]
+    ctl.pop("compensation", None)
+    ctl["type"] = "c2"
+    after = copy.deepcopy(base)
+    after["axes"][axis]["controller"]["compensation"] = comp
+    # each run starts from its own fitted model: the nominal θ alone, the augmented θ (about
+    # the emitted references) with the compensation
+    set_theta0(base["axes"][axis]["controller"], idf.nominal.fit.coef[:idf.n_theta])
+    set_theta0(after["axes"][axis]["controller"], theta_aug)
+    res = {}
+    for name, d in (("before", base), ("after", after)):
+        loaded = config_from_dict(d, f"<identify closed loop: {name}>")
+        r = run_job(loaded, duration_s=duration_s, clock="virtual").axes[axis]
+        res[name] = {k: float(r[k]) for k in ("e_M_um", "e_F_um", "L2_um", "u_peak_V")}
+        res[name]["fault"] = r["fault"]
+    res["compensation"] = comp
+    res["controller"] = "c2"
+    res["duration_s"] = duration_s
+    return res
+
+
+def make_log(path: str, effect: dict | None = None, duration_s: float = 8.0, seed: int = 1,
+             axis: str = "X", noise_N: float = 1.0, compensation: dict | None = None,
+             trajectory: dict | None = None):
+    """Run the simulated axis of :func:`motorctl.ident.synth.gantry_dict` (C2, virtual clock)
+    and write the run log to ``path`` (arguments as ``gantry_dict``): the synthetic logs of the
+    identification's tests and benchmarks.
+
+    Returns:
+        The :class:`motorctl.app.job.JobResult`.
+    """
+    from motorctl.app.job import run_job
+    from motorctl.ident.synth import gantry_dict
+    loaded = config_from_dict(gantry_dict(axis, effect, seed, noise_N, compensation, trajectory),
+                              f"<synthetic {axis}>")
+    return run_job(loaded, duration_s=duration_s, clock="virtual", log_path=str(path))
+
+
+__all__ = ["SIM_DRIVER", "closed_loop", "damage_removed", "effect_free", "effects_on", "is_simulated", "make_log"]

@@ -4,11 +4,11 @@
 
 1. **before**: the axis's program on CONFIG (:func:`motorctl.app.job.run_job`, the config's
    clock), log ``DIR/before.mclog``;
-2. **identify** that log for axis A (:func:`motorctl.cli.identify.identify_record`); when no
+2. **identify** that log for axis A (:func:`motorctl.ident.pipeline.identify_record`); when no
    effect is found, or none the controller can compensate, it says so and stops here (exit 0,
    nothing written but the log);
 3. **tuned config**: ``DIR/tuned.yaml``, what ``motorctl identify LOG --config CONFIG
-   --write-config`` writes (:func:`motorctl.cli.identify.write_tuned_config`);
+   --write-config`` writes (:func:`motorctl.ident.pipeline.write_tuned_config`);
 4. **after**: the same program on the tuned config, log ``DIR/after.mclog``. tune never hands
    over a worse config: where more than one effect is compensated, each is run once without
    (``DIR/without_<family>.yaml`` / ``.mclog``) and dropped when the loop is better without it
@@ -99,7 +99,7 @@ def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None =
         reach its device.
     """
     from motorctl.app.tune import effect_free, effects_on, is_simulated
-    from motorctl.cli.identify import compensation_from_fit, write_tuned_config
+    from motorctl.ident.pipeline import compensation_from_fit, write_tuned_config
     from motorctl.config import load_config, load_yaml
     from motorctl.inputs import writable_dir, writable_file
 
@@ -235,7 +235,7 @@ def _run_axis(loaded, axis: str, duration_s: float, clock: str, log_path: Path) 
 
 def _identify(log_path: Path, axis: str):
     """identify's fit of a run log with its default options; returns (Identifier, summary)."""
-    from motorctl.cli.identify import identify_record
+    from motorctl.ident.pipeline import identify_record
     from motorctl.ident.data import load_record
     return identify_record(load_record(str(log_path), None, None, axis))
 
@@ -280,7 +280,7 @@ def _compare(res: dict, files: dict) -> None:
 def text_report(res: dict) -> str:
     """The text output of ``motorctl tune`` (its result :func:`tune`): what was found, then one
     table (compare-runs') with the floor on sim, the damage removed and whether e_M got worse."""
-    from motorctl.cli.identify import _fig
+    from motorctl.ident.pipeline import fig as _fig
     from motorctl.cli.runs import text_report as table
     lines = []
     for e in res["effects"]:
@@ -321,8 +321,8 @@ def cmd_tune(args) -> int:
     res = tune(args.config, args.axis, out, args.duration, "virtual" if args.virtual_clock else None,
                None if args.json else progress)
     if args.json:
-        from motorctl.cli.identify import _json_default
-        sys.stdout.write(json.dumps(res, default=_json_default) + "\n")
+        from motorctl.ident.pipeline import json_default
+        sys.stdout.write(json.dumps(res, default=json_default) + "\n")
     else:
         sys.stdout.write(text_report(res))
     return 1 if any(res["faults"].values()) else 0

@@ -13,7 +13,7 @@ from __future__ import annotations
 import copy
 from pathlib import Path
 
-from motorctl.config import config_from_dict, load_yaml
+from motorctl.config import load_yaml
 from motorctl.effects import FAMILIES
 
 _CONFIGS = Path(__file__).resolve().parents[2] / "configs"
@@ -60,17 +60,3 @@ def gantry_dict(axis: str = "X", effect: dict | None = None, seed: int = 1, nois
         d["axes"][axis]["trajectory"].update(copy.deepcopy(trajectory))
     return d
 
-
-def make_log(path: str, effect: dict | None = None, duration_s: float = 8.0, seed: int = 1,
-             axis: str = "X", noise_N: float = 1.0, compensation: dict | None = None,
-             trajectory: dict | None = None):
-    """Run the simulated axis (C2, virtual clock) and write the run log to ``path``
-    (arguments as :func:`gantry_dict`).
-
-    Returns:
-        The :class:`motorctl.app.job.JobResult`.
-    """
-    from motorctl.app.job import run_job
-    loaded = config_from_dict(gantry_dict(axis, effect, seed, noise_N, compensation, trajectory),
-                              f"<synthetic {axis}>")
-    return run_job(loaded, duration_s=duration_s, clock="virtual", log_path=str(path))

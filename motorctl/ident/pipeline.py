@@ -1,0 +1,409 @@
+"""The identification pipeline of ``motorctl identify`` and ``motorctl tune``, on a loaded
+record: fit and trace the residual (:func:`identify_record`), summarise it (:func:`summarise`,
+the JSON of ``identify``), validate on a second record, turn the found effects into a
+controller's compensation and θ̂(0) (:func:`compensation_from_fit`), write the tuned config
+(:func:`tuned_config`, :func:`write_tuned_config`) and the text report (:func:`text_report`).
+
+No run happens here (the closed-loop before/after is :func:`motorctl.app.tune.closed_loop`),
+and nothing here parses arguments (the CLI is :mod:`motorctl.cli.identify`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from motorctl.ident import effects as fx
+from motorctl.ident.select import Identifier
+from motorctl.model import THETA_NAMES
+from motorctl.recorder.runlog import LogError
+
+#: Horizon of the simulated-position fit % (motorctl.ident.simfit) [s].
+SIM_WINDOW_S = 0.2
+
+
+# ---------------------------------------------------------------------------- summary
+def _r(x):
+    return float(x) if x is not None and math.isfinite(float(x)) else None
+
+
+def summarise(idf: Identifier) -> dict:
+    """The JSON object of ``identify`` (issue 5, item 5); residuals in N when a gain is known."""
+    rec = idf.rec
+    g = rec.gain or 1.0
+    unit = "N" if rec.gain else "V"
+    nt = idf.n_theta
+    nom = idf.nominal
+    out = {
+        "source": rec.source,
+        "axis": rec.axis or None,
+        "samples": int(rec.n),
+        "period_s": rec.period_s,
+        "filters": {"position_lowpass_Hz": idf.p.fq, "decimation": idf.p.nd, "zoh_delay_samples": idf.zoh,
+                    "zoh_source": idf.zoh_source,
+                    "block_s": 0.25, "friction_shape": idf.friction},
+        "residual_unit": unit,
+        "gain_N_per_V": rec.gain,
+        "nominal": {
+            "theta": [float(v) for v in nom.fit.coef[:nt]],
+            "theta_std": [float(v) for v in nom.fit.std[:nt]],
+            "theta_names": list(THETA_NAMES[:nt]),
+            "n_theta": nt,
+            "n_theta_reason": idf.n_theta_reason,
+            "condition_number": nom.fit.cond,
+            "residual_rms": g * nom.fit.rms,
+            "heldout_rms": g * nom.heldout_rms,
+        },
+    }
+    if rec.gain:
+        th = nom.fit.coef
+        out["nominal"]["physical"] = {"mass_kg": g * th[0], "viscous_N_s_per_m": g * th[1],
+                                      "coulomb_N": g * th[2], "offset_N": g * th[3]}
+    th, betas = idf.coef_split(idf.final, idf.terms)
+    effects = []
+    for (ev, before), term, beta in zip(idf.accepted, idf.terms, betas):
+        effects.append({
+            "name": term.family,
+            "parameters": fx.parameters(term.family, term.h, beta, rec.gain, idf.p.fs),
+            "heldout_rms_before": g * before,
+            "heldout_rms_after": g * ev.heldout_rms,
+        })
+    out["effects"] = effects
+    out["augmented"] = {"theta": [float(v) for v in th], "residual_rms": g * idf.final.fit.rms,
+                        "heldout_rms": g * idf.final.heldout_rms}
+    from motorctl.ident.simfit import simulation_fit
+    out["nominal"]["simulation_fit_percent"] = simulation_fit(idf, [], idf.nominal, SIM_WINDOW_S)
+    out["augmented"]["simulation_fit_percent"] = simulation_fit(idf, idf.terms, idf.final, SIM_WINDOW_S)
+    out["simulation_window_s"] = SIM_WINDOW_S
+    chosen = [ev for ev, _ in idf.accepted]
+    out["candidates"] = [
+        [{"name": c.term.family, "searched": _r(c.term.h), "heldout_gain_percent": 100 * c.gain,
+          "accepted": c.ok, "selected": any(c is e for e in chosen), "reasons": c.reasons} for c in step]
+        for step in idf.steps]
+    return out
+
+
+def validation(idf: Identifier, rec2) -> dict:
+    """Residual RMS on a second record of the nominal and the augmented model fitted on DATA."""
+    other = Identifier(rec2, n_theta=idf.n_theta, friction=idf.friction, zoh_delay=idf.zoh)
+    g = idf.rec.gain or 1.0
+    r0 = idf.predict_on(other, [], idf.nominal)
+    r1 = idf.predict_on(other, idf.terms, idf.final)
+    return {"source": rec2.source, "residual_rms_before": g * float(np.sqrt(np.mean(r0 ** 2))),
+            "residual_rms_after": g * float(np.sqrt(np.mean(r1 ** 2)))}
+
+
+# ---------------------------------------------------------------------------- fit -> controller
+def _split_std(idf: Identifier, ev, terms) -> list:
+    """The fit's standard deviations of each term's β (the layout of ``coef_split``)."""
+    i, out = idf.n_theta, []
+    for t in terms:
+        k = 0 if t.cols is None else t.cols.shape[1]
+        out.append(np.asarray(ev.fit.std[i:i + k], dtype=float))
+        i += k
+    return out
+
+
+def compensation_from_fit(idf: Identifier) -> tuple[dict, np.ndarray, list]:
+    """The ``controller.compensation`` of the found effects and the θ̂(0) that goes with it.
+
+    An adaptable family's entry carries ``adapt: false`` and its projection box from the fit's
+    confidence interval (β ∓ 3σ, at least the default margin): a user only flips ``adapt``.
+
+    Returns:
+        (compensation {family: options} (V units, d̂_eff = −Cβ), θ (n_theta,) = the jointly
+        fitted nominal θ re-expressed about each term's reference
+        (:meth:`motorctl.effects.base.EffectFamily.theta_shift`), names of found families that
+        have no compensation term).
+    """
+    th, betas = idf.coef_split(idf.final, idf.terms)
+    stds = _split_std(idf, idf.final, idf.terms)
+    theta = np.array(th, dtype=float)
+    comp, skipped = {}, []
+    for t, b, sd in zip(idf.terms, betas, stds):
+        c = fx.compensation(t.family, t.h, b, idf.p, beta_std=sd)
+        if c:
+            comp.update(c)
+            theta = theta + fx.family(t.family).theta_shift(c[t.family], idf.n_theta)
+        else:
+            skipped.append(t.family)
+    return comp, theta, skipped
+
+
+#: margin added beyond a fitted θ that lies outside the configured box (fraction of |θ|, and
+#: at least this fraction of the box's width)
+BOX_MARGIN = 0.2
+
+
+def tuned_config(idf: Identifier, s: dict, base: dict, axis: str, base_name: str) -> tuple[dict, str]:
+    """The config ``base`` with axis ``axis`` tuned from the identification, and its YAML text.
+
+    Changes, each commented in the text with its figure: ``controller.compensation`` = the found
+    effects (:func:`compensation_from_fit`); ``theta_hat0`` = the fitted θ (θ1..θ4 only when the
+    fit has four parameters; θ5, θ6 clipped into the box, which Assumption 2 checks); where a
+    fitted θ_i (i ≤ 4) lies outside [theta_min, theta_max] the bound moves past it by
+    :data:`BOX_MARGIN`. Nothing else changes.
+
+    Args:
+        s: the summary (:func:`summarise`). base: a config dict (parsed YAML). axis: its axis.
+        base_name: where ``base`` came from (named in the header comment).
+    Returns:
+        (the new config dict, its YAML text with comments).
+    """
+    import copy
+
+    import yaml
+
+    cfg = copy.deepcopy(base)
+    ctl = cfg["axes"][axis]["controller"]
+    comp, theta, skipped = compensation_from_fit(idf)
+    nt = idf.n_theta
+    unit = s["residual_unit"]
+    notes = set_theta0(ctl, theta[:nt])
+    t0, lo, hi = ctl["theta_hat0"], ctl["theta_min"], ctl["theta_max"]
+    if comp:
+        ctl["compensation"] = copy.deepcopy(comp)
+    else:
+        ctl.pop("compensation", None)
+    # YAML text: dump with placeholders, then put the commented sections in their place
+    marks = {"theta_hat0": "@@T0@@", "theta_min": "@@TMIN@@", "theta_max": "@@TMAX@@", "compensation": "@@COMP@@"}
+    draft = copy.deepcopy(cfg)
+    dctl = draft["axes"][axis]["controller"]
+    for k, m in marks.items():
+        dctl[k] = m
+    text = yaml.safe_dump(draft, sort_keys=False, default_flow_style=False, allow_unicode=True, width=100)
+    std = s["nominal"]["theta_std"]
+    fit_line = ", ".join(f"theta{i + 1} {theta[i]:.5g} +- {std[i]:.2g}" for i in range(nt))
+    out = []
+    for line in text.splitlines():
+        stripped = line.strip()
+        key = stripped.split(":", 1)[0]
+        if key in marks and marks[key] in stripped:
+            ind = line[: len(line) - len(line.lstrip())]
+            if key == "theta_hat0":
+                out.append(f"{ind}# motorctl identify: theta_hat0 from the joint fit ({fit_line}); "
+                           f"{nt} parameters fitted")
+                for i, n in sorted(notes.items()):
+                    out.append(f"{ind}#   theta{i + 1}: {n}")
+                out.append(f"{ind}theta_hat0: {_flow(t0)}")
+            elif key == "theta_min":
+                out.append(f"{ind}theta_min: {_flow(lo)}" + _changed(base, axis, "theta_min", lo))
+            elif key == "theta_max":
+                out.append(f"{ind}theta_max: {_flow(hi)}" + _changed(base, axis, "theta_max", hi))
+            else:
+                if not comp:
+                    out.append(f"{ind}# motorctl identify: no compensable effect found"
+                               + (f" ({', '.join(skipped)} has no compensation term)" if skipped else ""))
+                    continue
+                out.append(f"{ind}# motorctl identify: the found effects, compensated (an additive term in "
+                           f"v_a1, eq. 13, told to the estimator; ripple: v / (1 + r(x)) before eq. 9; "
+                           f"delay: v_a1 on the trajectory ahead)")
+                for e in s["effects"]:
+                    pars = ", ".join(f"{k} {fig(v)}" for k, v in e["parameters"].items())
+                    tag = "compensated" if e["name"] in comp else "NOT compensable (no compensation term)"
+                    out.append(f"{ind}#   {e['name']}: {pars}; held-out RMS {e['heldout_rms_before']:.4g} -> "
+                               f"{e['heldout_rms_after']:.4g} {unit}; {tag}")
+                body = yaml.safe_dump({"compensation": comp}, sort_keys=False, default_flow_style=False, width=100)
+                out.extend(ind + b for b in body.splitlines())
+        else:
+            out.append(line)
+    head = [f"# tuned by `motorctl identify {s['source']} --write-config` from {base_name}, axis {axis}",
+            f"# nominal held-out residual RMS {s['nominal']['heldout_rms']:.4g} {unit}, augmented "
+            f"{s['augmented']['heldout_rms']:.4g} {unit}"]
+    if not s["effects"]:
+        head.append("# no effect found: only theta_hat0 (and the box where needed) changed")
+    return cfg, "\n".join(head + out) + "\n"
+
+
+def set_theta0(ctl: dict, theta) -> dict:
+    """Set ``theta_hat0`` of a controller section (dict) to the fitted ``theta`` (4 or 6), with
+    the rules of :func:`tuned_config` (θ5, θ6 clipped into the box, the box widened past a
+    θ1..θ4 outside it). Returns {index: note}."""
+    t0 = [float(v) for v in ctl["theta_hat0"]]
+    lo = [float(v) for v in ctl["theta_min"]]
+    hi = [float(v) for v in ctl["theta_max"]]
+    notes = {}
+    for i in range(min(len(theta), len(t0))):
+        v = float(theta[i])
+        if i >= 4:
+            c = min(max(v, lo[i]), hi[i])
+            notes[i] = f"fit {v:.5g}" + ("" if c == v else f", clipped into the box [{lo[i]:g}, {hi[i]:g}]")
+            v = c
+        else:
+            w = BOX_MARGIN * max(abs(v), hi[i] - lo[i])
+            if v < lo[i]:
+                notes[i] = f"fit {v:.5g} < theta_min {lo[i]:g}: theta_min widened"
+                lo[i] = max(v - w, 0.5 * v) if i == 0 else v - w
+            elif v > hi[i]:
+                notes[i] = f"fit {v:.5g} > theta_max {hi[i]:g}: theta_max widened"
+                hi[i] = v + w
+            else:
+                notes[i] = f"fit {v:.5g}"
+        t0[i] = round(v, 6)
+    ctl["theta_hat0"] = t0
+    ctl["theta_min"] = [round(v, 6) for v in lo]
+    ctl["theta_max"] = [round(v, 6) for v in hi]
+    return notes
+
+
+def fig(v) -> str:
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(fig(x) for x in v) + "]"
+    return f"{v:.5g}" if isinstance(v, (int, float)) else str(v)
+
+
+def _flow(v: list) -> str:
+    return "[" + ", ".join(f"{x:.6g}" for x in v) + "]"
+
+
+def _changed(base: dict, axis: str, key: str, new: list) -> str:
+    old = [float(v) for v in base["axes"][axis]["controller"][key]]
+    if old == [float(v) for v in new]:
+        return ""
+    return f"  # motorctl identify: was {_flow(old)} (the fit lies outside)"
+
+
+# ---------------------------------------------------------------------------- text
+def text_report(s: dict) -> str:
+    u = s["residual_unit"]
+    n = s["nominal"]
+    lines = [f"motorctl identify: {s['source']}" + (f" (axis {s['axis']})" if s.get("axis") else ""),
+             f"  {s['samples']} samples at {1 / s['period_s']:.0f} Hz; position low-pass "
+             f"{s['filters']['position_lowpass_Hz']:g} Hz, decimation {s['filters']['decimation']}, "
+             f"friction shape {s['filters']['friction_shape']}",
+             f"  zero-order hold: input shifted by {s['filters']['zoh_delay_samples']:g} sample "
+             f"({s['filters'].get('zoh_source', '')})",
+             f"nominal model: {n['n_theta_reason']}",
+             f"  condition number {n['condition_number']:.1f}"]
+    for name, v, sd in zip(n["theta_names"], n["theta"], n["theta_std"]):
+        lines.append(f"  {name} = {v:.6g} +- {sd:.2g}")
+    if "physical" in n:
+        lines.append("  physical: " + ", ".join(f"{k} {v:.4g}" for k, v in n["physical"].items()))
+    lines.append(f"  residual RMS {n['residual_rms']:.4g} {u}; held-out RMS {n['heldout_rms']:.4g} {u}")
+    if not s["effects"]:
+        lines.append("effects: no effect found (no candidate passed held-out gain, BIC and plausibility)")
+    for e in s["effects"]:
+        lines.append(f"effect found: {e['name']}: " + ", ".join(f"{k} {v}" for k, v in e["parameters"].items()))
+        lines.append(f"  held-out RMS {e['heldout_rms_before']:.4g} -> {e['heldout_rms_after']:.4g} {u}")
+    a = s["augmented"]
+    lines.append(f"augmented model: residual RMS {a['residual_rms']:.4g} {u}, held-out RMS {a['heldout_rms']:.4g} {u}")
+    if n.get("simulation_fit_percent") is not None:
+        lines.append(f"simulated position fit ({s['simulation_window_s']:g} s windows from the measured state): "
+                     f"nominal {n['simulation_fit_percent']:.3f} %, augmented {a['simulation_fit_percent']:.3f} %")
+    lines.append("candidates per forward-selection step:")
+    for i, step in enumerate(s["candidates"]):
+        for c in sorted(step, key=lambda c: -c["heldout_gain_percent"]):
+            verdict = ("SELECTED" if c.get("selected") else "passes (a better one was selected)") if c["accepted"] \
+                else "rejected: " + "; ".join(c["reasons"])
+            lines.append(f"  step {i + 1}: {c['name']:28s} held-out gain {c['heldout_gain_percent']:7.2f} % {verdict}")
+    if s.get("validation"):
+        v = s["validation"]
+        lines.append(f"validation on {v['source']}: residual RMS {v['residual_rms_before']:.4g} -> "
+                     f"{v['residual_rms_after']:.4g} {u}")
+    cl = s.get("closed_loop")
+    if cl:
+        b, f = cl["before"], cl["after"]
+        lines.append(f"closed loop ({cl['duration_s']:g} s, simulated plant with the effect):")
+        lines.append(f"  C2 alone:            e_M {b['e_M_um']:.2f} um, e_F {b['e_F_um']:.2f} um, L2 {b['L2_um']:.3f} um")
+        lines.append(f"  C2 + compensation:   e_M {f['e_M_um']:.2f} um, e_F {f['e_F_um']:.2f} um, L2 {f['L2_um']:.3f} um")
+    elif s.get("closed_loop_note"):
+        lines.append(f"closed loop: {s['closed_loop_note']}")
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------------- fit and write
+def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
+                    zoh_delay: float | None = None) -> tuple[Identifier, dict]:
+    """Fit the model to a loaded record, trace the residual to effects, and summarise.
+
+    Args:
+        rec: a record of :func:`motorctl.ident.data.load_record`. n_theta: 4, 6 or None (chosen
+            from the input range). friction: 'sf' or 'sign'. zoh_delay: input delay of the
+            logged input [samples] (None: 0.5 for run logs, detected for CSV/MAT).
+    Returns:
+        (the identifier after its run, the summary of :func:`summarise`; no validation or
+        closed loop yet).
+    Raises:
+        LogError: the fit fails on the record or is physically meaningless (θ1 ≤ 0, simulated
+        position fit below 0 %), with the likely cause.
+    """
+    # numpy's overflow/invalid warnings would add lines to stderr on a degenerate record; the
+    # results are checked for finiteness and physical meaning instead (_check_physical)
+    def quiet():
+        return np.errstate(all="ignore")
+
+    try:
+        with quiet():
+            idf = Identifier(rec, n_theta=n_theta, friction=friction, zoh_delay=zoh_delay).run()
+    except (np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
+        if isinstance(exc, LogError):
+            raise
+        msg = " ".join(str(exc).split())[:120]
+        raise LogError(f"{rec.source}: the fit failed on this record ({type(exc).__name__}: {msg}); "
+                       "check the units (t s, y m, u V) and that the axis moves with a varying input") from None
+    # θ1 is judged on the model the user gets: with the found effects (a strong spring makes the
+    # nominal fit's θ1 negative while the augmented one is right)
+    check_physical(rec, max(idf.nominal.fit.coef[0], idf.final.fit.coef[0]), None)
+    with quiet():
+        s = summarise(idf)
+    check_physical(rec, max(s["nominal"]["theta"][0], s["augmented"]["theta"][0]),
+                    (s["nominal"].get("simulation_fit_percent"), s["augmented"].get("simulation_fit_percent")))
+    return idf, s
+
+
+def write_tuned_config(idf: Identifier, s: dict, base: dict, axis: str, base_name: str, path) -> dict:
+    """Write the tuned config of :func:`tuned_config` to ``path`` after checking it as
+    ``motorctl check-config`` does (the bus budget aside), and note it in ``s``
+    (``written_config``).
+
+    Returns:
+        The new config dict.
+    Raises:
+        ConfigError: the tuned config does not pass the checks (nothing is written).
+        OSError: ``path`` cannot be written.
+    """
+    from motorctl.config import config_from_dict
+    new_cfg, text = tuned_config(idf, s, base, axis, base_name)
+    config_from_dict(new_cfg, path, check_budget=False)   # what check-config checks
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write(text)
+    s["written_config"] = str(path)
+    return new_cfg
+
+
+_CAUSES = ("check the sign of u (a positive u must push y positive), the units of y (m) and u "
+           "(V, or N without --gain) and the time base (t in s)")
+
+
+def check_physical(rec, theta1, sim_fits) -> None:
+    """Refuse (LogError, exit 2) a fit without physical meaning: θ1 = M/A1 <= 0 (a negative or
+    zero mass; the caller passes the larger of the nominal and the augmented fit's), or a simulated position fit below 0 % for both the nominal and the augmented
+    model (worse than a constant). ``sim_fits``: (nominal %, augmented %) or None (not yet)."""
+    th1 = float(theta1)
+    if not (math.isfinite(th1) and th1 > 0):
+        raise LogError(f"{rec.source}: the fit gives theta1 = {th1:.4g} <= 0 (a mass that is not positive), "
+                       f"so the record does not follow the model; {_CAUSES}")
+    if sim_fits is None:
+        return
+    fits = [float(f) for f in sim_fits if f is not None]
+    if fits and not any(math.isfinite(f) for f in fits):
+        raise LogError(f"{rec.source}: the fitted model's simulated position diverges (fit % not finite), "
+                       f"so the record does not follow the model; {_CAUSES}")
+    fits = [f for f in fits if math.isfinite(f)]
+    if fits and max(fits) < 0:
+        raise LogError(f"{rec.source}: the fitted model simulates the position worse than a constant "
+                       f"(simulated position fit {max(fits):.4g} % < 0 %); {_CAUSES}")
+
+
+def json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(type(o).__name__)
+
+
+__all__ = ["BOX_MARGIN", "SIM_WINDOW_S", "check_physical", "compensation_from_fit", "fig", "identify_record",
+           "json_default", "set_theta0", "summarise", "text_report", "tuned_config", "validation",
+           "write_tuned_config"]
