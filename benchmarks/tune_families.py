@@ -95,7 +95,7 @@ def size_for(name: str, fam, out: Path, duration_s: float, floor_log: Path, axis
         (scale, fragment, L2_before / L2_floor at that size).
     """
     from motorctl.app.tune import make_log
-    from motorctl.cli.runs import compare_logs
+    from motorctl.app.compare import compare_logs
 
     def ratio(n: int) -> tuple[float, dict, bool]:
         fragment, can_scale = scaled(fam.example, STEP ** n, fam.size_options)
@@ -129,7 +129,7 @@ def tune_family(name: str, fragment: dict, out: Path, duration_s: float, axis: s
     the before log cannot be identified."""
     import yaml
 
-    from motorctl.cli.tune import tune
+    from motorctl.app.tune import tune
     from motorctl.ident.synth import gantry_dict
     from motorctl.inputs import InputError
     from motorctl.recorder.runlog import LogError

@@ -9,7 +9,7 @@ import pytest
 
 from motorctl.app.tune import make_log
 from motorctl.cli import main
-from motorctl.cli.runs import compare_axis, window
+from motorctl.app.compare import compare_axis, window
 from motorctl.metrics import tracking_indexes
 
 

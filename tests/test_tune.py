@@ -12,9 +12,9 @@ import pytest
 import yaml
 from conftest import MOTORCTL, RIGID_PLANT
 
-from motorctl.app.tune import damage_removed, effect_free, effects_on
+from motorctl.app.tune import FILES, damage_removed, effect_free, effects_on
 from motorctl.cli import main
-from motorctl.cli.tune import FILES, text_report
+from motorctl.cli.tune import text_report
 from motorctl.config import config_from_dict, load_config, load_yaml
 from motorctl.effects import FAMILIES
 from motorctl.ident.synth import gantry_dict
@@ -145,20 +145,17 @@ def test_damage_removed():
 # --------------------------------------------------------------------------- a real driver
 def test_tune_and_compare_runs_over_the_serial_emulator(tmp_path, capsys):
     """The before/after on a real driver: configs/gantry-serial.yaml against ``motorctl emulate``
-    (its plant: the rigid gantry with a spring on X), the config's wall clock; then
-    ``compare-runs`` on the two real-driver logs gives tune's table."""
+    (its plant: the rigid gantry with a spring on X), in lockstep with the device
+    (``--virtual-clock``, a 50 ms read timeout, the driver's default error bucket: the verdict
+    does not depend on the host's scheduling); then ``compare-runs`` on the two real-driver logs
+    gives tune's table."""
     from pathlib import Path
 
     from harness import Emulator, loopback_e2e_config
     configs = Path(RIGID_PLANT).parent
     d, cfg, _rate = loopback_e2e_config("serial", configs, tmp_path)
-    for ax in d["axes"].values():      # a loaded 2-core machine can stall loopback delivery
-        ax["limits"]["error_bucket_limit"] = 600
-        # this test is about the pipeline on a real driver, not the tracking near the limits:
-        # a spurious extra effect from loopback jitter once took the after run 6 um past the
-        # shipped 0.37 mm following-error floor
-        ax["limits"]["following_error_m"] = max(ax["limits"]["following_error_m"], 0.005)
-        ax["limits"]["min_following_error_m"] = max(ax["limits"]["min_following_error_m"], 0.002)
+    d["loop"]["clock"] = "virtual"
+    d["driver"]["timeout_s"] = 0.05
     # the drive's command watchdog must outlast the identification between the two runs, else
     # it latches an amplifier fault that the after run starts with (the emulator trips it on a
     # disabled axis too): the host leaves it at the emulator's IDENTIFY_GAP_S
@@ -169,11 +166,16 @@ def test_tune_and_compare_runs_over_the_serial_emulator(tmp_path, capsys):
     plant_path = _write(tmp_path / "plant.yaml", plant)
     out = tmp_path / "out"
     with Emulator("serial", cfg, plant=plant_path, watchdog_s=IDENTIFY_GAP_S):
-        assert main(["tune", str(cfg), "--axis", "X", "--duration", DURATION, "--out", str(out), "--json"]) == 0
+        assert main(["tune", str(cfg), "--axis", "X", "--duration", DURATION, "--out", str(out), "--virtual-clock",
+                     "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
-    assert res["driver"] == "serial" and res["clock"] == "wall"
+    assert res["driver"] == "serial" and res["clock"] == "virtual"
     assert res["floor_effects_off"] is None and "floor" not in res["compare"]
+    # found and compensated; whether it is kept is the closed loop's verdict (at 2 kHz over this
+    # one compared period the spring's compensation gives e_M 43.1 -> 41.8 um but L2[e] 8.60 ->
+    # 8.74 um: dropped, and tuned.yaml is the config unchanged)
     assert "spring" in res["compensation"], res["effects"]
+    assert set(res["kept"]) | set(res["dropped"]) == {"spring"}, (res["kept"], res["dropped"])
     assert not any(res["faults"].values())
     assert load_config(out / FILES["tuned"]).cfg.driver.type == "serial"
     assert main(["compare-runs", res["files"]["before"], res["files"]["after"], "--json"]) == 0
