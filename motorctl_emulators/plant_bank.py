@@ -26,12 +26,14 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 from pydantic import Field
 
 from motorctl.schema import StrictModel
-from motorctl_drivers.sim import SimAxisOptions, SimDriver, SimOptions
+
+if TYPE_CHECKING:                          # annotations only: the sim driver loads numba kernels
+    from motorctl_drivers.sim import SimAxisOptions, SimOptions
 
 class MasterTime:
     """The master's period count from a wrapping number it sends with every command.
@@ -144,6 +146,7 @@ class PlantBank:
             raise ValueError(f"watchdog {watchdog_s!r} s: must be > 0")
         self.names = list(plants)
         self.period_s = float(period_s)
+        from motorctl_drivers.sim import SimDriver     # here, not at import: `motorctl --help` stays light
         self.plants = SimDriver(sim_options, dict(plants), period_s).plants   # the sim driver's seeding
         self.watchdog_s = float(watchdog_s)
         self.late_s = float(late_s)
@@ -253,6 +256,7 @@ def load_plant(plant_config: str | Path, names: list[str], period_s: float, *,
     from motorctl.config import ConfigError, load_config
     loaded = load_config(plant_config, check_budget=False)
     sim = loaded.driver_options
+    from motorctl_drivers.sim import SimOptions
     if not isinstance(sim, SimOptions):
         raise ConfigError(plant_config, "driver.type",
                           f"{loaded.cfg.driver.type!r}: the emulator's plant comes from a simulated-gantry "

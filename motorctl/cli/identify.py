@@ -20,8 +20,6 @@ import json
 import math
 import sys
 
-from motorctl.ident.data import load_record
-from motorctl.ident.pipeline import identify_record, json_default, text_report, validation, write_tuned_config
 
 def register(parser, subparsers) -> None:
     """Add the ``identify`` subcommand (called by :func:`motorctl.cli.build_parser`)."""
@@ -56,6 +54,8 @@ def register(parser, subparsers) -> None:
 # ---------------------------------------------------------------------------- command
 def cmd_identify(args) -> int:
     from motorctl.cli import UsageError
+    from motorctl.ident.data import load_record
+    from motorctl.ident.pipeline import identify_record, json_default, text_report, validation, write_tuned_config
     from motorctl.inputs import writable_dir, writable_file
     if args.report:
         writable_dir(args.report, "report")        # before reading DATA and the (long) fit
