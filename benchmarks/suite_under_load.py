@@ -46,8 +46,14 @@ def _closing_line(out: str) -> str:
     return ""
 
 
-def one_run(pytest_args: list[str], fresh_clone: bool, timeout_s: float) -> tuple[int, str, float]:
-    """One run of the test command: (exit code, pytest's closing line, wall time [s])."""
+def _failures(out: str) -> list[str]:
+    """pytest's short summary lines of failed and erroring tests (``-ra`` prints them)."""
+    return [ln.strip() for ln in out.splitlines() if ln.startswith(("FAILED ", "ERROR "))]
+
+
+def one_run(pytest_args: list[str], fresh_clone: bool, timeout_s: float) -> tuple[int, str, float, list[str]]:
+    """One run of the test command: (exit code, pytest's closing line, wall time [s], the
+    failed tests' summary lines)."""
     t0 = time.monotonic()
     clone = None
     try:
@@ -69,7 +75,7 @@ def one_run(pytest_args: list[str], fresh_clone: bool, timeout_s: float) -> tupl
             code, out = -1, f"timed out after {timeout_s:g} s\n{exc.stdout or ''}"
         lines = out.strip().splitlines()
         verdict = _closing_line(out) or (lines[-1] if lines else "")
-        return code, verdict, time.monotonic() - t0
+        return code, verdict, time.monotonic() - t0, _failures(out)
     finally:
         if clone is not None:
             shutil.rmtree(clone, ignore_errors=True)
@@ -95,7 +101,7 @@ def main(argv=None) -> int:
         for p in spinners:
             p.start()
         try:
-            code, verdict, wall = one_run(a.pytest_args, a.fresh_clone, a.timeout_s)
+            code, verdict, wall, failed = one_run(a.pytest_args, a.fresh_clone, a.timeout_s)
         finally:
             for p in spinners:
                 p.kill()
@@ -103,6 +109,8 @@ def main(argv=None) -> int:
         results.append((loaded, code, wall))
         print(f"run {k + 1}/{a.runs} ({'loaded' if loaded else 'idle'}): exit {code}: {verdict} | wall {wall:.1f} s",
               flush=True)
+        for line in failed:
+            print(f"    {line}", flush=True)
     green = sum(1 for _, c, _ in results if c == 0)
     for what, sel in (("idle", False), ("loaded", True)):
         walls = [w for ld, _, w in results if ld == sel]

@@ -49,6 +49,20 @@ class _SimulatedFullDisk(Daemon):
             env=dict(os.environ, MOTORCTL_TEST_ENOSPC=str(flag)))
 
 
+def _config(tmp: Path) -> Path:
+    """make_config with soft limits of ±5 m: these tests latch every axis on a recorder fault,
+    maybe mid-move at 2 m/s, and a carriage that coasts out of the ±20 mm margin of the shipped
+    limits would latch a soft limit as well (seen under a 4-process load), which is not what
+    they are about."""
+    import yaml
+    p = make_config(tmp)
+    d = yaml.safe_load(p.read_text())
+    for ax in d["axes"].values():
+        ax["limits"].update(soft_min_m=-5.0, soft_max_m=5.0)
+    p.write_text(yaml.safe_dump(d))
+    return p
+
+
 def _start_both(sock):
     for a in ("X", "Y"):
         r = ctl(sock, "start", a)
@@ -70,7 +84,7 @@ def _mount_tmpfs(path: Path, size: str) -> bool:
 @pytest.mark.parametrize("disk", ["tmpfs", "simulated"])
 def test_full_disk_latches_every_axis_keeps_answering_and_ends_the_header(tmp_path, disk):
     logs = tmp_path / "logs"
-    cfg = make_config(tmp_path)
+    cfg = _config(tmp_path)
     flag = tmp_path / "disk-full"
     if disk == "tmpfs":
         if os.geteuid() != 0 or not _mount_tmpfs(logs, "3m"):
@@ -124,7 +138,7 @@ def test_full_disk_latches_every_axis_keeps_answering_and_ends_the_header(tmp_pa
 
 
 def test_sigkill_of_the_io_process_latches_ends_the_log_and_removes_the_socket(tmp_path):
-    d = Daemon(make_config(tmp_path), tmp_path / "motorctl.sock")
+    d = Daemon(_config(tmp_path), tmp_path / "motorctl.sock")
     try:
         st = d.wait_ready()
         _start_both(d.sock)
@@ -153,7 +167,7 @@ def test_sigkill_of_the_io_process_latches_ends_the_log_and_removes_the_socket(t
 
 def test_sigstop_of_the_io_process_beyond_the_bound_latches_every_enabled_axis(tmp_path):
     bound = stall_bound_s(FLUSH_S)
-    d = Daemon(make_config(tmp_path), tmp_path / "motorctl.sock")
+    d = Daemon(_config(tmp_path), tmp_path / "motorctl.sock")
     try:
         d.wait_ready()
         _start_both(d.sock)
