@@ -1,4 +1,4 @@
-"""Benchmark of ``motorctl identify`` on a 20 s run log at 5 kHz (issue 5: must finish within 30 s).
+"""Benchmark of ``motorctl identify`` on a 20 s run log at 5 kHz (it must finish within 30 s).
 
 Rerun:
     python benchmarks/bench_ident.py              # generates the log once into /tmp, times identify

@@ -1,4 +1,4 @@
-"""``motorctl tune`` on every effect family of the registry, on the paper's rigid gantry (issue 11).
+"""``motorctl tune`` on every effect family of the registry, on the paper's rigid gantry.
 
 Rerun:
     python benchmarks/tune_families.py                       # all families, 16 s runs, X axis

@@ -1,4 +1,4 @@
-"""Performance indexes of the paper's Tables I-II (spec §5.6) and loop timing statistics.
+"""Performance indexes of the paper's Tables I-II (docs/control-law.md, Performance indexes) and loop timing statistics.
 
 * e_M = max |e| over the evaluated run [0, T_f] (transient performance);
 * e_F = max |e| over the last ``final_window_s`` (final tracking accuracy; one trajectory
@@ -21,7 +21,7 @@ PAPER_TABLES = {
 
 
 def tracking_indexes(t: np.ndarray, e: np.ndarray, u: np.ndarray, final_window_s: float) -> dict:
-    """e_M, e_F, L2[e] in µm and u_peak in V (spec §5.6).
+    """e_M, e_F, L2[e] in µm and u_peak in V (docs/control-law.md, Performance indexes).
 
     Args:
         t: sample times [s], shape (N,). e: tracking error [m], (N,). u: input [V], (N,).

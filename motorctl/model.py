@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: Slope constant of the friction shape function S_f (paper §"friction", spec §1.3) [s/m].
+#: Slope constant of the friction shape function S_f (paper §"friction", docs/control-law.md, Friction shape) [s/m].
 S_F_GAIN = 900.0
 #: Number of parameters of the cubic model (C2) and of the linear model (C1).
 N_THETA_CUBIC = 6
@@ -32,7 +32,7 @@ THETA_UNITS = ("V*s^2/m", "V*s/m", "V", "V", "1/V", "1/V^2")
 
 
 def s_f(x):
-    """Friction shape function S_f(x) = (2/π)·arctan(900·x) (spec §1.3).
+    """Friction shape function S_f(x) = (2/π)·arctan(900·x) (docs/control-law.md, Friction shape).
 
     Args:
         x: velocity [m/s], scalar or array of any shape.
@@ -48,7 +48,7 @@ def s_f_scalar(x: float) -> float:
 
 
 def s_f_slope(x):
-    """dS_f/dx = (2/π)·900/(1 + (900x)²) [s/m]; used for the bound g ≤ 1800/π (spec §3.2)."""
+    """dS_f/dx = (2/π)·900/(1 + (900x)²) [s/m]; used for the bound g ≤ 1800/π (paper eq. 12)."""
     x = np.asarray(x, dtype=float)
     return (2.0 / np.pi) * S_F_GAIN / (1.0 + (S_F_GAIN * x) ** 2)
 
@@ -67,7 +67,7 @@ def f_u(u, theta5: float, theta6: float):
 
 
 def f_u_slope(r, theta5: float, theta6: float):
-    """df_u/du at |u| = r ≥ 0: 1 + 2θ5 r + 3θ6 r² (spec §1.2, Assumption 2)."""
+    """df_u/du at |u| = r ≥ 0: 1 + 2θ5 r + 3θ6 r² (paper eq. 4 and Assumption 2; docs/control-law.md, Model, Assumption 2)."""
     r = np.asarray(r, dtype=float)
     return 1.0 + 2.0 * theta5 * r + 3.0 * theta6 * r**2
 
@@ -84,7 +84,7 @@ def assumption2_margin(theta5_range: tuple[float, float], theta6_range: tuple[fl
 
     f_u'(r) = 1 + 2θ5 r + 3θ6 r² is affine in (θ5, θ6) for a fixed r, so its minimum over the
     box is at a corner; for each corner the minimum over r ∈ [0, u_lim] is at an end point or,
-    when θ6 > 0 > θ5, at the interior vertex r = −θ5/(3θ6) (spec §1.2).
+    when θ6 > 0 > θ5, at the interior vertex r = −θ5/(3θ6) (paper eq. 4 and Assumption 2; docs/control-law.md, Model).
 
     Args:
         theta5_range: (θ5min, θ5max) [1/V]. theta6_range: (θ6min, θ6max) [1/V²].

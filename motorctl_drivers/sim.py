@@ -4,8 +4,8 @@ Each ``write()`` holds the commanded voltage over one period (zero-order hold) a
 
     M ẍ = F_m(u)·(1 + ripple(x)) − B ẋ − A_f S_f(ẋ) + F_0 + F_effects(x, ẋ, t) + F_noise
 
-with ``substeps`` RK4 steps per period (spec §5.5); ``read()`` returns the position quantised
-to the encoder resolution (0.5 µm, spec §6.1). The plant advances exactly one period per
+with ``substeps`` RK4 steps per period (docs/control-law.md, Plant simulation); ``read()`` returns the position quantised
+to the encoder resolution (0.5 µm, the paper's Section 6). The plant advances exactly one period per
 write, so a run is the same whether the loop is paced by the wall clock or a virtual clock,
 and the same seed gives the same noise.
 
@@ -400,7 +400,7 @@ class AxisPlant:
         self.x, self.xd, self.t = x, v, t
 
     def measured(self) -> float:
-        """Encoder reading [m]: x quantised to the resolution q (spec §5.1)."""
+        """Encoder reading [m]: x quantised to the resolution q (docs/control-law.md, Measurement)."""
         q = self.q
         if self.enc_amp > 0.0 or self.enc_sigma > 0.0:
             x = self.x + self.enc_amp * math.sin(self.enc_k * self.x) + self.enc_noise

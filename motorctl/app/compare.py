@@ -2,7 +2,7 @@
 (``motorctl compare-runs``, and ``motorctl tune``'s before/after), and the figure of the last
 common period. The text and the command are :mod:`motorctl.cli.runs`.
 
-Per axis present in both logs: e_M, e_F, L2[e] [µm] and u_peak [V] (spec §5.6,
+Per axis present in both logs: e_M, e_F, L2[e] [µm] and u_peak [V] (docs/control-law.md, Performance indexes,
 :func:`motorctl.metrics.tracking_indexes`) of each log and the ratio after/before. The two logs
 are aligned by program time (the record's ``t`` = k·Ts): both are evaluated over the same whole
 program periods, from the end of the settling (the first ``settle_periods`` periods excluded the

@@ -1,4 +1,4 @@
-"""``motorctl identify``: residual analysis of measured data (issue 5).
+"""``motorctl identify``: residual analysis of measured data.
 
     motorctl identify DATA [--axis A] [--map t=..,y=..,u=..,yd=..] [--gain G] [--config CFG]
                       [--validate DATA2] [--json] [--report DIR] [--n-theta 4|6]

@@ -1,6 +1,6 @@
 """The DCDIARC law of Chen, Yao & Wang (2013): C2 (cubic model) and C1 (linear model).
 
-Per sample k (spec §5.2)::
+Per sample k (docs/control-law.md, Order of operations)::
 
     x2   = (y[k] − y[k−1]) / Ts                                   backward difference
     estimator.update(x2, u[k−1] + d̂_eff[k−1])                     eq. (25)-(28), (7)-(8)
@@ -13,7 +13,7 @@ Per sample k (spec §5.2)::
     v    = v_a1 + v_a2 + v_s
     u    = f_u⁻¹(v; θ̂5, θ̂6, u_M), clipped to ±u_lim                eq. (9), C2 only; C1: u = v
 
-C1 is the same class with four parameters (θ5 = θ6 ≡ 0, no inversion), spec §3.5.
+C1 is the same class with four parameters (θ5 = θ6 ≡ 0, no inversion), docs/control-law.md, The DCDIARC law.
 
 Identified-effect compensation d̂_eff (motorctl.effects.compensation; 0 when none) is part of
 the model both places use: v_a1 subtracts it (eq. 13) and the estimator sees the input
@@ -64,7 +64,7 @@ P_TS, P_K1, P_KS, P_GD, P_DMAX, P_ULIM, P_THEORY, P_KS1, P_ETA4, P_DELTA = range
 def dcdiarc_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig, st, prm, span,
                  ring, cm, cd, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv, coef, vec,
                  pividx, active, opts, res):
-    """One sample of the DCDIARC law (spec §5.2); returns u [V]. State arrays updated in place.
+    """One sample of the DCDIARC law (docs/control-law.md, Order of operations); returns u [V]. State arrays updated in place.
 
     Args:
         y [m], x_d [m], xd_dot [m/s], xd_ddot [m/s²]: measurement and desired trajectory (the
@@ -114,7 +114,7 @@ def dcdiarc_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig
         va1 -= th[n + j] * cd[j]                                         # adapted d̂_eff = β̂ᵀc
     if prm[P_THEORY] > 0.0:
         # k_s2 = (d̂_max + Σ θ_Mi |φ_di| + δ_d)² / (4η), eq. (22), componentwise bound, with the
-        # previous u in φ_d to break the algebraic loop (spec §3.3).
+        # previous u in φ_d to break the algebraic loop (paper eq. 13-15; docs/control-law.md, The DCDIARC law).
         hb = span[0] * abs(af) + span[1] * abs(vf) + span[2] * abs(sfd) + span[3]
         if n == 6:
             up = st[S_U]
@@ -286,7 +286,7 @@ class DCDIARC(Controller):
         self._pv_set = True
 
     def update(self, y: float, x_d: float, xd_dot: float, xd_ddot: float, t: float = 0.0) -> float:
-        """One control sample (spec §5.2). Returns u [V], |u| ≤ u_lim.
+        """One control sample (docs/control-law.md, Order of operations). Returns u [V], |u| ≤ u_lim.
 
         Args:
             y: measured position [m]. x_d, xd_dot, xd_ddot: desired position [m],

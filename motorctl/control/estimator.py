@@ -1,9 +1,9 @@
 """Projection-type filtered least-squares estimator of DCDIARC (paper eq. 7, 8, 25-28).
 
-Per sample (Ts), with time-aligned inputs (spec §5.2):
+Per sample (Ts), with time-aligned inputs (docs/control-law.md, Order of operations):
 
 1. Filter the pair describing the interval just ended, (x2[k], S_f(x2[k]), 1, u[k−1] + d̂_eff[k−1],
-   u|u|[k−1], u³[k−1]), through H_f(s) = ω_f²/(s + ω_f)² discretised by exact ZOH (spec §5.3).
+   u|u|[k−1], u³[k−1]), through H_f(s) = ω_f²/(s + ω_f)² discretised by exact ZOH (docs/control-law.md, Filter discretisation).
    Each channel has the two states (•_f, d•_f/dt), so ẋ2f needs no differentiation.
    d̂_eff [V] is the identified-effect compensation term (motorctl.effects) in force of the
    interval: with it compensated, the model the law and the estimator share is eq. (4) with
@@ -12,13 +12,13 @@ Per sample (Ts), with time-aligned inputs (spec §5.2):
    effect's mean while v_a1 subtracts the whole effect again (double counting).
 2. φ_f = [−ẋ2f, −x2f, −S_ff, 1_f, (u|u|)_f, (u³)_f] (eq. 25), ε = −φ_fᵀθ̂ − u_f (eq. 26).
 3. Γ by the information-form (matrix-inversion lemma) update of eq. (27) with forgetting μ,
-   normalisation ν and the freeze branch λ_max(Γ) > ρ_M (spec §5.4): with g = Γφ,
+   normalisation ν and the freeze branch λ_max(Γ) > ρ_M (docs/control-law.md, Adaptation laws): with g = Γφ,
    Γ⁺ = sΓ − c g gᵀ, s = 1/(1 − μTs), c = (Ts/n) s² / (1 + (Ts/n) s φᵀΓφ). Only the upper
    triangle is computed and mirrored, so Γ is exactly symmetric; the update keeps it positive
    definite (a rank-1 downdate that can never cross zero, unlike explicit Euler).
 4. τ = φ_f ε / (1 + ν φ_fᵀΓφ_f) (eq. 28); ζ = Γ⁺τ = g (s − c φᵀΓφ) ε/n (no second product);
    θ̂ ← clip(θ̂ + Ts·Proj(ζ)) with the Γ-weighted box projection (eq. 7-8) coded as the
-   active-set rule of spec §2.2.
+   active-set rule of docs/control-law.md, Box projection.
 
 Adapted compensation (motorctl.effects.compensation): k basis columns c_j(x, ẋ, t) of the
 interval are extra channels, filtered by the same H_f, and φ_f gets their filtered values
@@ -46,7 +46,7 @@ s_f_jit = njit(s_f_scalar)
 
 
 def zoh_filter_matrices(omega_f: float, ts: float) -> tuple[np.ndarray, np.ndarray]:
-    """Exact ZOH discretisation of H_f(s) = ω_f²/(s + ω_f)² with states (x_f, ẋ_f) (spec §5.3).
+    """Exact ZOH discretisation of H_f(s) = ω_f²/(s + ω_f)² with states (x_f, ẋ_f) (docs/control-law.md, Filter discretisation).
 
     Returns:
         (A_d shape (2, 2), B_d shape (2,)).
@@ -69,7 +69,7 @@ def project_box(z, th, tmin, tmax, gam, piv, coef, vec, pividx, active):
     for the set A of closed faces. A face is closed when the step would leave the box through it
     and its multiplier has the outward sign (λ_i ≥ 0 on an upper face, ≤ 0 on a lower face): the
     KKT conditions of the projection onto the tangent cone in the Γ⁻¹ metric. This is what makes
-    P2, θ̃ᵀ(Γ⁻¹Proj(Γτ) − τ) ≤ 0, hold at corners too; the add-only rule of spec §2.2 can close
+    P2, θ̃ᵀ(Γ⁻¹Proj(Γτ) − τ) ≤ 0, hold at corners too; the add-only rule of docs/control-law.md, Box projection can close
     a face whose multiplier has the wrong sign when Γ couples two bounded parameters.
 
     Primal active set: start empty; eliminate the closed faces one at a time on (Γ, ζ) (block
@@ -151,7 +151,7 @@ def project_box(z, th, tmin, tmax, gam, piv, coef, vec, pividx, active):
 @njit
 def ls_update(x2, u_prev, d_prev, g_prev, cols, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z,
               piv, coef, vec, pividx, active, opts, res):
-    """One estimator sample (spec §5.2 step 2); see the module docstring. All arrays preallocated.
+    """One estimator sample (docs/control-law.md, Order of operations step 2); see the module docstring. All arrays preallocated.
 
     Args:
         x2: measured velocity over the interval just ended [m/s]; u_prev: input held over it [V].
@@ -331,7 +331,7 @@ class LeastSquaresEstimator:
                 self._pividx, self._active, self.opts, self.res)
 
     def update(self, x2: float, u_prev: float, d_prev: float = 0.0, g_prev: float = 1.0) -> None:
-        """One estimator sample (spec §5.2 step 2).
+        """One estimator sample (docs/control-law.md, Order of operations step 2).
 
         Args:
             x2: measured velocity over the interval just ended [m/s] (backward difference).

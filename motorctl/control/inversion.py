@@ -1,4 +1,4 @@
-"""Cubic input inversion of the DCDIARC law (paper eq. 9, spec §3.4).
+"""Cubic input inversion of the DCDIARC law (paper eq. 9, docs/control-law.md, The DCDIARC law).
 
 Solves f(u) = u + θ̂5 u|u| + θ̂6 u³ = v for the unique root with |u| ≤ u_M. Under Assumption 2
 f is odd and strictly increasing on |u| ≤ u_M, so sign(u) = sign(v) and r = |u| solves
@@ -8,7 +8,7 @@ Branches:
   * θ̂5 = θ̂6 = 0 (C1): u = v.
   * θ̂6 = 0, θ̂5 ≠ 0: the stable quadratic root r = 2w / (1 + √(1 + 4θ̂5 w)).
   * otherwise: safeguarded Newton on the bracket [0, u_M] (robust as θ̂6 → 0, where Cardano's
-    formula loses accuracy, spec §3.4 pitfall).
+    formula loses accuracy, docs/control-law.md, The DCDIARC law pitfall).
   * |v| ≥ f(u_M): the demand exceeds the actuator; |u| = u_M.
 """
 
@@ -24,7 +24,7 @@ _TOL = 1e-13
 
 @njit
 def invert_cubic(v: float, theta5: float, theta6: float, u_max: float) -> float:
-    """Return u with u + θ5 u|u| + θ6 u³ = v and |u| ≤ u_max (paper eq. 9, spec §3.4).
+    """Return u with u + θ5 u|u| + θ6 u³ = v and |u| ≤ u_max (paper eq. 9, docs/control-law.md, The DCDIARC law).
 
     Args:
         v: virtual input [V] (finite).

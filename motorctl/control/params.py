@@ -15,7 +15,7 @@ from motorctl.schema import NonNeg, Pos, StrictModel, Vec6, quantity
 
 
 class FilterConfig(StrictModel):
-    """H_f = ω_f²/(s + ω_f)² of the estimator's regressor (spec §5.2) [S]."""
+    """H_f = ω_f²/(s + ω_f)² of the estimator's regressor (docs/control-law.md, Order of operations) [S]."""
 
     omega_f: quantity(1e-2, 1e6, "rad/s") = 200.0
 
@@ -68,7 +68,7 @@ class ControllerConfig(StrictModel):
     """An axis's ``controller:`` section: the one schema of every controller's settings.
 
     ``type`` names the active controller (:data:`motorctl.control.CONTROLLERS`). C1 and C2 (the
-    DCDIARC law, spec §6.2, §7) read the top-level keys; C1 uses the first four entries of
+    DCDIARC law, the paper's Section 6, §7) read the top-level keys; C1 uses the first four entries of
     the 6-vectors. A PID reads ``pid`` (and ``u_lim``). Every controller of the section can
     be switched to at run time.
 
@@ -103,7 +103,7 @@ class ControllerConfig(StrictModel):
 
 
 def theory_k_s1(theta_min, theta_max, k1: float, k2: float) -> float:
-    """Smallest k_s1 meeting the PSD condition of spec §3.3 (paper eq. 14-15, as reconstructed).
+    """Smallest k_s1 meeting the PSD condition of paper eq. 13-15; docs/control-law.md, The DCDIARC law (paper eq. 14-15, as reconstructed).
 
     k_s1 ≥ k2 + θ1 k1 − θ2 − θ3 g + (θ2 + θ3 g)²/(2 θ1 k1) for all θ ∈ Ω_θ, 0 ≤ g ≤ 1800/π.
     The right side is convex in g and in (θ2, θ3), so the maximum over the box corners and the

@@ -1,1 +1,1 @@
-"""Identification from logged runs: nominal IDIM-LS fit, residual analysis, effect search (issue 5)."""
+"""Identification from logged runs: nominal IDIM-LS fit, residual analysis, effect search."""

@@ -1,4 +1,4 @@
-"""Reading identification data: motorctl run logs, CSV files and MATLAB files (issue 5, item 1).
+"""Reading identification data: motorctl run logs, CSV files and MATLAB files.
 
 All readers return a :class:`Record` (SI units: t [s], y [m], u [V], optional yd [m]) after the
 same checks (:func:`check_record`); bad data raise :class:`motorctl.recorder.runlog.LogError` (or

@@ -1,4 +1,4 @@
-"""The identification's view of the effect families (issue 5, item 3).
+"""The identification's view of the effect families.
 
 Every family adds columns C(h) to the nominal IDIM regressor, u = Φθ + Cβ (input units, V), with
 at most one searched hyper-parameter h (period, Stribeck velocity, change time, delay,

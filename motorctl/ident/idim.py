@@ -1,4 +1,4 @@
-"""IDIM-LS pre-processing and the nominal fit (issue 5, item 2).
+"""IDIM-LS pre-processing and the nominal fit.
 
 Practice of the EMPS benchmark (Janot, Gautier, Brunot, "Data Set and Reference Models of EMPS",
 2019, §3): zero-phase Butterworth low-pass of the position (order 4, cut-off ω_fq), central
@@ -22,7 +22,7 @@ from scipy.signal import butter, cheby1, filtfilt, sosfiltfilt
 from motorctl.model import N_THETA_CUBIC, N_THETA_LINEAR, idim_regressor
 
 #: |u| [V] that the 99.5th percentile of the input must reach for θ5, θ6 (u|u|, u³) to be fitted:
-#: half the actuator range u_M = 10 V (paper-spec §1.2). Below it the paper's force curve departs
+#: half the actuator range u_M = 10 V (paper eq. 4 and Assumption 2; docs/control-law.md, Model). Below it the paper's force curve departs
 #: from a straight line by less than ~7 % (θ5 = −0.013 /V: θ5|u| = 0.065 at 5 V) and u|u|, u³
 #: are nearly collinear with u, hence with θ1..θ3 under closed-loop excitation.
 CUBIC_MIN_INPUT_V = 5.0
@@ -183,7 +183,7 @@ def ls(phi: np.ndarray, target: np.ndarray) -> LSFit:
 
 
 def choose_n_theta(u: np.ndarray, forced: int | None = None) -> tuple[int, str]:
-    """θ1..θ6 or θ1..θ4, with the reason (issue 5, item 2).
+    """θ1..θ6 or θ1..θ4, with the reason.
 
     Args:
         u: input [V], shape (N,). forced: 4 or 6 to override.

@@ -29,7 +29,7 @@ def _r(x):
 
 
 def summarise(idf: Identifier) -> dict:
-    """The JSON object of ``identify`` (issue 5, item 5); residuals in N when a gain is known."""
+    """The JSON object of ``identify``; residuals in N when a gain is known."""
     rec = idf.rec
     g = rec.gain or 1.0
     unit = "N" if rec.gain else "V"

@@ -1,4 +1,4 @@
-"""Nominal fit, effect search and forward selection (issue 5, items 2-4).
+"""Nominal fit, effect search and forward selection.
 
 Decision rule (design note ``residual-analysis.md`` §0): a candidate effect, re-fitted *jointly*
 with the nominal θ, is accepted only when all three agree:

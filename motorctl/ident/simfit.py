@@ -1,4 +1,4 @@
-"""Fit % of a simulation of an identified model against the measured position (issue 5, item 4).
+"""Fit % of a simulation of an identified model against the measured position.
 
 The logged records are closed loop and the axis is a double integrator, so an open-loop
 simulation over the whole record drifts for any model. As in MATLAB's ``compare`` with a finite

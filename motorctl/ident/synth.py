@@ -1,5 +1,5 @@
 """Synthetic logs for tests, benchmark and the closed-loop check: the simulated gantry with one
-effect the controller's config does not declare (issue 5, "What it must show").
+effect the controller's config does not declare.
 
 The configs come from ``configs/gantry-rigid.yaml`` (the paper's rigid plant: no structural mode,
 ideal amplifier, quantisation-only encoder; one axis, virtual clock), so that the one effect

@@ -4,7 +4,7 @@ A move from rest to rest over a distance D uses the 7-segment jerk-limited profi
 acceleration ≤ a_max, velocity ≤ v_max): jerk-up, constant acceleration, jerk-down, cruise,
 and the mirror image. When D is too short to reach v_max (or a_max), the peak velocity is
 lowered by bisection until the profile fits exactly. The X program of the paper's Fig. 3
-(0 ↔ 0.4 m, 2 m/s, 40 m/s², 4000 m/s³) takes 0.26 s a move (spec §7).
+(0 ↔ 0.4 m, 2 m/s, 40 m/s², 4000 m/s³) takes 0.26 s a move (configs/gantry.yaml).
 
 Sampling (:meth:`Program.sample`) is pure float arithmetic on precomputed segments, cheap
 enough for the 5 kHz cycle; at and after the end of a move the position is the end point
