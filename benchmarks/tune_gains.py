@@ -125,7 +125,7 @@ def tune_axis(raw: dict, source: str, axis: str, seconds: float) -> dict:
     chosen = {}
     for kind in ("c2", "pid"):
         if kind == "c2":
-            grid = [{"k_s": ks, "k1": k1, "gamma_d": sec.gamma_d} for ks, k1 in itertools.product(KS, K1)]
+            grid = [{"k_s": ks, "k1": k1, "gamma_d": sec.settings("c2").gamma_d} for ks, k1 in itertools.product(KS, K1)]
         else:
             grid = []
             for wn, z, r in itertools.product(OMEGA_N, ZETA, R_INT):

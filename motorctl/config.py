@@ -16,8 +16,11 @@ The layout (see ``configs/gantry.yaml``)::
     axes:
       X:
         driver:     {<per-axis driver options>}
-        controller: {type: c1|c2, mode, k_s, k1, gamma_d, d_hat_max, u_lim, theta_min, theta_max,
-                     theta_hat0, gamma0, filter: {omega_f}, mu, nu, rho_M, theory: {...}}
+        controller: {type: c1|c2|pid|<a registered law>, u_lim, theta_min, theta_max, theta_hat0,
+                     compensation: {...},                     (shared by every law)
+                     mode, k_s, k1, gamma_d, d_hat_max, gamma0, filter: {omega_f}, mu, nu,
+                     rho_M, theory: {...},                     (C1 and C2's shared keys)
+                     c1: {...}, c2: {...}, pid: {...}}         (one law's own settings)
         trajectory: {points, move_times_s, period_s, v_max, a_max, j_max}
         limits:     {soft_min_m, soft_max_m, following_error_m, min_following_error_m, ...}
 """
@@ -32,7 +35,7 @@ import yaml
 from pydantic import BaseModel, Field, StringConstraints, ValidationError, ValidationInfo, field_validator
 from pydantic_core import PydanticCustomError
 
-from motorctl.control import CONTROLLER_NAMES, configured_controllers, make_controller
+from motorctl.control import CONTROLLER_NAMES, configured_controllers, controller_class, make_controller
 from motorctl.control.params import ControllerConfig
 from motorctl.driver import Driver, load_driver_class
 from motorctl.inputs import MAX_CONFIG_BYTES, InputError, read_text, summarize
@@ -40,7 +43,6 @@ from motorctl.loop.rt import RealtimeConfig
 from motorctl.loop.safety import LimitsConfig
 from motorctl.loop.timebase import Timebase
 from motorctl.loop.trajectory import TrajectoryConfig
-from motorctl.model import assumption2_margin
 from motorctl.schema import StrictModel, quantity
 
 
@@ -305,16 +307,39 @@ def model_fields_at(model, loc) -> list[str]:
     return list(cur.model_fields) if cur is not None else []
 
 
+def _check_laws(path: Path, c: ControllerConfig, pre: str) -> None:
+    """Each key of a ``controller:`` section belongs to a registered law, each configured law's
+    settings pass its own model, and the active ``type`` is configured."""
+    unknown = c.unknown_keys()
+    if unknown:
+        raise ConfigError(path, f"{pre}.{unknown[0]}",
+                          f"unknown key; allowed here: {', '.join(c.allowed_keys())}")
+    for law in CONTROLLER_NAMES:
+        if not c.configures(law):
+            continue
+        own, shared = c.law_data(law)
+        try:
+            c.settings(law)
+        except ValidationError as exc:
+            loc = exc.errors()[0]["loc"]
+            mine = not isinstance(own, dict) and own is not None or (
+                isinstance(own, dict) and bool(loc) and loc[0] in own)
+            data = own if not isinstance(own, dict) and own is not None else {**shared, **(own or {})}
+            _validate(path, controller_class(law).Settings, data, f"{pre}.{law}" if mine else pre)
+            raise
+    if c.type not in configured_controllers(c):
+        known = c.type in CONTROLLER_NAMES
+        raise ConfigError(path, f"{pre}.type",
+                          f"{c.type!r} " + ("needs its settings in this section (e.g. 'pid:')"
+                                            if known else "is not a controller")
+                          + f"; allowed here: {', '.join(configured_controllers(c))}")
+
+
 def _cross_checks(path: Path, cfg: GantryConfig) -> None:
     for name, ax in cfg.axes.items():
         c = ax.controller
         pre = f"axes.{name}.controller"
-        if c.type not in configured_controllers(c):
-            known = c.type in CONTROLLER_NAMES
-            raise ConfigError(path, f"{pre}.type",
-                              f"{c.type!r} " + ("needs its settings key in this section (e.g. 'pid:')"
-                                                if known else "is not a controller")
-                              + f"; allowed here: {', '.join(configured_controllers(c))}")
+        _check_laws(path, c, pre)
         for i in range(6):
             if not c.theta_min[i] < c.theta_max[i] and not (i >= 4 and c.theta_min[i] == c.theta_max[i] == 0):
                 raise ConfigError(path, f"{pre}.theta_min[{i}]",
@@ -326,15 +351,9 @@ def _cross_checks(path: Path, cfg: GantryConfig) -> None:
         if c.theta_min[0] <= 0:
             raise ConfigError(path, f"{pre}.theta_min[0]",
                               f"theta1 = M/A1 must be bounded away from 0 (got {c.theta_min[0]}); allowed: > 0")
-        if max(c.gamma0) > c.rho_M:
-            raise ConfigError(path, f"{pre}.gamma0",
-                              f"largest entry {max(c.gamma0)} exceeds rho_M = {c.rho_M} (eq. 27 needs ||Gamma(0)|| <= rho_M)")
-        margin = assumption2_margin((c.theta_min[4], c.theta_max[4]), (c.theta_min[5], c.theta_max[5]), c.u_lim)
-        if margin <= 0:
-            raise ConfigError(path, f"{pre}.theta_min",
-                              f"bounds break Assumption 2: f_u(u) = u + theta5 u|u| + theta6 u^3 is not "
-                              f"monotonic on |u| <= u_lim = {c.u_lim} V (min slope {margin:.3g}); "
-                              f"raise theta_min[4]/theta_min[5] or lower u_lim")
+        for law in configured_controllers(c):
+            for key, why in controller_class(law).check(c.settings(law), c):
+                raise ConfigError(path, f"{pre}.{key}", why)
         t = ax.trajectory
         tpre = f"axes.{name}.trajectory"
         if len(t.points) > 1 and len(t.move_times_s) != len(t.points):

@@ -69,7 +69,7 @@ def parse_run_table(stdout: str) -> dict:
     out = {}
     for line in stdout.splitlines():
         parts = line.split()
-        if len(parts) >= 8 and parts[1] in ("c1", "c2"):
+        if len(parts) >= 8 and parts[1] != "ctrl":
             try:
                 vals = [float(x) for x in parts[2:6]]
                 io_errors = int(parts[6])

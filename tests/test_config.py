@@ -39,7 +39,7 @@ _DELETE = object()
 
 CASES = [
     # (key path, value, expected key in the message, expected words)
-    ("axes.X.controller.k_sx", 95.0, "axes.X.controller.k_sx", "unknown key; allowed here: type, mode, k_s"),
+    ("axes.X.controller.k_sx", 95.0, "axes.X.controller.k_sx", "unknown key; allowed here: type, u_lim"),
     ("axes.X.controller.k_s", "ninety-five", "axes.X.controller.k_s", "valid number"),
     ("axes.X.controller.k_s", -1.0, "axes.X.controller.k_s", "-1 V s/m is outside the physical range [0.001, 1e+07] V s/m"),
     ("axes.X.trajectory.v_max", 1.7096854882967697e-151, "axes.X.trajectory.v_max",

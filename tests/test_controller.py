@@ -68,7 +68,7 @@ def test_theory_mode_gain():
     # k_s2 = (d_max + sum span_i |phi_d,i| + delta_d)^2 / (4 eta) > 0
     assert c.k_s_eff > 300.0
     with pytest.raises(ValueError, match="mode"):
-        _section(mode="bogus")
+        _section(mode="bogus").settings("c2")
     with pytest.raises(ValueError, match="kind"):
         DCDIARC(_section(), TS, "c3")
 

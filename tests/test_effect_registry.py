@@ -174,8 +174,6 @@ def test_compensation_schema_has_exactly_the_compensable_families():
     for f in compensable():
         assert CompensationConfig.model_fields[f.name].annotation == (f.comp_options | None)
     assert CompensationConfig().is_empty()
-    from motorctl.control.params import CompensationConfig as FromParams
-    assert FromParams is CompensationConfig
 
 
 # ---------------------------------------------------------------------------- signs

@@ -12,8 +12,8 @@ from motorctl.app.build import build, run_cycles
 from motorctl.config import load_config
 from motorctl.control import configured_controllers, make_controller
 from motorctl.control.base import SIG
-from motorctl.control.params import ControllerConfig, PidConfig
-from motorctl.control.pid import PID
+from motorctl.control.params import ControllerConfig
+from motorctl.control.pid import PID, PidConfig
 from motorctl.loop.records import CONTROLLER_SIGNALS
 
 TS = 2e-4
@@ -174,15 +174,15 @@ def test_config_and_registry():
     plain = ControllerConfig.model_validate(base)
     assert "pid" not in configured_controllers(plain)
     with pytest.raises(ValueError, match="pid"):
-        PID.from_config(plain, TS, "pid")
+        PID.from_config(plain, TS)
     sec = ControllerConfig.model_validate({**base, "pid": {"P": 100.0, "maxoutput": 9.0}})
     assert configured_controllers(sec) == ["c1", "c2", "pid"]
     c = make_controller(sec, "pid", TS)
     assert isinstance(c, PID) and c.name == "pid" and c.u_max == 8.0 and c.u_lim == 8.0
+    with pytest.raises(ValueError):        # the law's own model checks its own mapping
+        ControllerConfig.model_validate({**base, "pid": {"P": -1.0}}).settings("pid")
     with pytest.raises(ValueError):
-        ControllerConfig.model_validate({**base, "pid": {"P": -1.0}})
-    with pytest.raises(ValueError):
-        ControllerConfig.model_validate({**base, "pid": {"Kp": 1.0}})
+        ControllerConfig.model_validate({**base, "pid": {"Kp": 1.0}}).settings("pid")
     with pytest.raises(ValueError):
         PID(PidConfig(), 0.0, 10.0)
 
@@ -216,8 +216,8 @@ def test_gantry_config_configures_pid_from_the_catalogue(gantry):
     assert compared_controllers(gantry) == ["c1", "c2", "pid"]
     for a in ("X", "Y"):
         sec = gantry.axes[a].controller
-        assert sec.pid.FF2 == sec.theta_hat0[0] and sec.pid.FF1 == sec.theta_hat0[1]
-        assert sec.pid.bias == -sec.theta_hat0[3]
+        assert sec.settings("pid").FF2 == sec.theta_hat0[0] and sec.settings("pid").FF1 == sec.theta_hat0[1]
+        assert sec.settings("pid").bias == -sec.theta_hat0[3]
 
 
 @pytest.mark.parametrize("axis,bound_um", [("X", 40.0), ("Y", 120.0)])

@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import copy
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -61,12 +62,13 @@ from scipy import optimize, signal
 from motorctl.app.build import build, shutdown, start
 from motorctl.app.loopshape import c_frf, loop_margins, plant_model_frf
 from motorctl.config import LoadedConfig, config_from_dict
+from motorctl.control import configured_controllers, controller_class
 from motorctl.control.base import SIG_E, Controller
 from motorctl.loop.trajectory import Move
 from motorctl.metrics import tracking_indexes
 
 # ---------------------------------------------------------------- the rule (stated once)
-GM_MIN_DB = 6.0          #: gain margin ≥ [dB]
+GM_MIN_DB = 6.0          #: gain margin ≥ [dB] (default of :class:`Rule`)
 PM_MIN_DEG = 15.0        #: phase margin ≥ [deg]
 MS_MAX_DB = 10.0         #: peak sensitivity ≤ [dB] (|S| ≤ 3.2)
 F_TRACK_HZ = 2.0         #: where the tracking error lives (the programs' moves last ~0.5 s) [Hz]
@@ -77,6 +79,9 @@ OSC_RATIO = 100.0        #: oscillation: a line in u at rest this far above its 
                          #: or e's spectrum this far above the configured controller's
 SCALES = (0.5, 0.75, 1.0)  #: verification ladder (share of the chosen loop gain)
 BACKOFF = (0.35, 0.25)     #: tried in turn when 50 % fails; the first that passes is kept
+SEARCH_STEP = 2          #: the search steps this many ω grid points down after a failed run
+SEARCH_TRIES = 3         #: failed runs per shape before the search gives the shape up
+SEARCH_FLOOR = 0.5       #: the search tries no ω below this share of the rule's choice
 REST_AFTER_S = 0.3       #: "at rest": the command has not moved for this long [s]
 
 # ---------------------------------------------------------------- the measurement
@@ -93,7 +98,27 @@ STROKE_MARGIN = 0.1      #: the pass keeps this share of the stroke from each so
 REST_S = 0.6             #: rest at the start of the pass (encoder noise at rest) [s]
 PERIODS = 16             #: measured multisine periods (after one ramp and one settling period)
 
-LAWS = ("c1", "c2", "pid")
+
+
+@dataclass(frozen=True)
+class Rule:
+    """The margins the rule demands on the measured response, at every rung of the ladder
+    (gain margin ≥ gm_min_db [dB], phase margin ≥ pm_min_deg [deg], peak sensitivity ≤
+    ms_max_db [dB]). The defaults are the rule's; a user may state others (``motorctl autotune
+    --pm-min-deg ...``)."""
+
+    gm_min_db: float = GM_MIN_DB
+    pm_min_deg: float = PM_MIN_DEG
+    ms_max_db: float = MS_MAX_DB
+
+    def holds(self, mg) -> bool:
+        return mg.meets(self.gm_min_db, self.pm_min_deg, self.ms_max_db)
+
+    def text(self) -> str:
+        return f"GM >= {self.gm_min_db:g} dB, PM >= {self.pm_min_deg:g} deg, |S| <= {self.ms_max_db:g} dB"
+
+
+RULE = Rule()
 
 
 class AutotuneError(ValueError):
@@ -161,7 +186,7 @@ class Excited(Controller):
         self.tripped = False
 
     @classmethod
-    def from_config(cls, section, ts, name):      # pragma: no cover - built by autotune only
+    def from_config(cls, section, ts):      # pragma: no cover - built by autotune only
         raise ValueError("Excited wraps a built controller")
 
     def reset(self, y0: float) -> None:
@@ -408,25 +433,57 @@ def fit_plant(f: np.ndarray, G: np.ndarray, coh: np.ndarray, ts: float, theta_ha
 
 # ================================================================ the rule
 OMEGA = tuple(float(x) for x in np.geomspace(30.0, 3000.0, 49))   #: [rad/s]
-ZETA = (0.3, 0.4, 0.5, 0.7, 1.0)
-R_INT = (3.0, 5.0, 7.0, 10.0)
 
 
-def family(law: str, theta1: float, section) -> list[dict]:
-    """The candidate gains of ``law`` (module docstring, step 3), each with its "_w", "_zeta"
-    (and "_r" for the PID)."""
+def loop_frf(meas: dict, model: dict, ts: float):
+    """(w (K,) [rad/s] of :func:`grid_w`, the fitted model's FRF (K,), the FRF the rule runs on
+    (K,)): the measured FRF where it was measured (coherence ≥ 0.5, interpolated between the
+    lines) and the fitted model elsewhere (below 10 Hz, above the last line) [m/V]."""
+    w = grid_w(ts)
+    G_fit = plant_model_frf(model, ts, w)
+    G_w = G_fit.copy()
+    fm, Gm, ch = meas["f_hz"], meas["G"], meas["coherence"]
+    good = ch >= 0.5
+    f_w = w / (2.0 * math.pi)
+    if good.sum() > 10:
+        inside = (f_w >= fm[good][0]) & (f_w <= fm[good][-1])
+        re = np.interp(f_w, fm[good], Gm[good].real)
+        im = np.interp(f_w, fm[good], Gm[good].imag)
+        G_w[inside] = re[inside] + 1j * im[inside]
+    return w, G_fit, G_w
+
+
+def margins_hold(law: str, g: dict, ts: float, w: np.ndarray, G_w: np.ndarray, theta_hat=None,
+                 rule: Rule = RULE):
+    """(:class:`Margins` of L = C G_w at 100 % of ``g``, whether the rule's margins hold at every
+    rung of the verification ladder :data:`SCALES`). A loop with integral action can lose phase
+    margin when its gain falls, and a heavier load lowers the loop gain the same way."""
+    f = w / (2.0 * math.pi)
+    L = controller_class(law).linearise(g, ts, w, theta_hat) * G_w
+    mg = loop_margins(L, f)
+    ok = rule.holds(mg) and all(rule.holds(loop_margins(sc * L, f)) for sc in SCALES[:-1])
+    return mg, ok
+
+
+def tunable_laws(section) -> list[str]:
+    """The laws an axis's section configures that give autotune a gain family and a
+    linearisation (:class:`motorctl.control.base.Controller`), sorted."""
     out = []
-    for w in OMEGA:
-        for z in ZETA:
-            if law == "pid":
-                for r in R_INT:
-                    p = theta1 * w * w
-                    out.append({"P": p, "I": p * w / r, "D": 2.0 * z * w * theta1,
-                                "_w": w, "_zeta": z, "_r": r})
-            else:
-                out.append({"k_s": 2.0 * z * w * theta1, "k1": w / (2.0 * z),
-                            "gamma_d": float(section.gamma_d), "_w": w, "_zeta": z})
+    for name in configured_controllers(section):
+        cls = controller_class(name)
+        try:
+            fam = cls.gain_family(1.0, section.settings(name), OMEGA[:1])
+            if fam:
+                cls.linearise(fam[0], 1e-4, np.array([1.0]))
+                out.append(name)
+        except NotImplementedError:
+            continue
     return out
+
+
+def shape_of(g: dict) -> tuple:
+    """A candidate's shape: its design numbers other than ω ("_zeta", "_r", ...)."""
+    return tuple(sorted((k, v) for k, v in g.items() if k.startswith("_") and k not in ("_w", "_rest_V")))
 
 
 def rest_noise(C: np.ndarray, rest_psd) -> float:
@@ -443,66 +500,60 @@ def grid_w(ts: float) -> np.ndarray:
 
 
 def choose_gains(law: str, G_w, w: np.ndarray, ts: float, theta1: float, section, rest_psd,
-                 theta_hat=None) -> dict | None:
-    """Step 3 for one law on the plant FRF ``G_w`` (K,) at ``w`` (K,) [rad/s].
+                 theta_hat=None, rule: Rule = RULE) -> dict | None:
+    """Step 3 for one law on the plant FRF ``G_w`` (K,) at ``w`` (K,) [rad/s]: the family
+    members whose margins hold at every step of the verification ladder.
 
     Returns:
-        None when no candidate passes, else {"gains", "margins" (:class:`Margins`),
-        "u_rest_pred_V", "candidates" (how many passed)}.
+        None when no candidate passes, else {"gains" (the highest |L| at F_TRACK_HZ),
+        "margins" (:class:`Margins`), "u_rest_pred_V", "candidates" (how many passed),
+        "backoff", "admissible": {shape: [gains, ... by ω, highest first]}}.
     """
+    cls = controller_class(law)
     f = w / (2.0 * math.pi)
     wn = 2.0 * math.pi * rest_psd[0]
-    best, n_ok = None, 0
+    best, n_ok, adm = None, 0, {}
     j_tr = int(np.argmin(np.abs(f - F_TRACK_HZ)))
-    for g in family(law, theta1, section):
-        L = c_frf(law, g, ts, w, theta_hat) * G_w
-        mg = loop_margins(L, f)
-        if not mg.meets(GM_MIN_DB, PM_MIN_DEG, MS_MAX_DB):
+    for g in cls.gain_family(theta1, section.settings(law), OMEGA):
+        mg, ok = margins_hold(law, g, ts, w, G_w, theta_hat, rule)
+        if not ok:
             continue
-        # the margins must hold down the verification ladder too (a loop with integral action
-        # can lose phase margin when its gain falls, and a heavier load lowers it the same way)
-        if not all(loop_margins(sc * L, f).meets(GM_MIN_DB, PM_MIN_DEG, MS_MAX_DB)
-                   for sc in SCALES[:-1]):
-            continue
-        un = rest_noise(c_frf(law, g, ts, np.maximum(wn, 1e-9), theta_hat), rest_psd)
+        L = cls.linearise(g, ts, w, theta_hat) * G_w
+        un = rest_noise(cls.linearise(g, ts, np.maximum(wn, 1e-9), theta_hat), rest_psd)
         n_ok += 1
+        g["_rest_V"] = un
+        adm.setdefault(shape_of(g), []).append(g)
         key = (abs(L[j_tr]), -mg.ms_db)
         if best is None or key > best[0]:
             best = (key, g, mg, un)
     if best is None:
         return None
-    L = c_frf(law, best[1], ts, w, theta_hat) * G_w
-    backoff = [b for b in BACKOFF if loop_margins(b * L, f).meets(GM_MIN_DB, PM_MIN_DEG, MS_MAX_DB)]
+    L = cls.linearise(best[1], ts, w, theta_hat) * G_w
+    backoff = [b for b in BACKOFF if rule.holds(loop_margins(b * L, f))]
+    for v in adm.values():
+        v.sort(key=lambda g: -g["_w"])
     return {"gains": best[1], "margins": best[2], "u_rest_pred_V": best[3], "candidates": n_ok,
-            "backoff": backoff}
+            "backoff": backoff, "admissible": adm}
 
 
 # ================================================================ closed-loop runs
 def scaled(law: str, g: dict, s: float) -> dict:
-    """Gains ``g`` at share ``s`` of the loop gain (PID: P, I, D; C1/C2: k_s)."""
-    g = dict(g)
-    if law == "pid":
-        for k in ("P", "I", "D"):
-            g[k] *= s
-    else:
-        g["k_s"] *= s
-    return g
+    """Gains ``g`` at share ``s`` of the loop gain (the law's own knob:
+    :meth:`motorctl.control.base.Controller.scaled`)."""
+    return controller_class(law).scaled(g, s)
 
 
-def apply_gains(raw: dict, axis: str, law: str, g: dict, ff: dict | None = None) -> dict:
-    """A copy of the config dict with ``law``'s gains ``g`` set on ``axis`` (PID: with the
-    feedforward ``ff`` or the section's, maxerror_i = 1 V / I)."""
+def apply_gains(raw: dict, axis: str, law: str, g: dict, extra: dict | None = None) -> dict:
+    """A copy of the config dict with ``law``'s tuned keys of ``g`` (and the settings in
+    ``extra``, e.g. the PID's feedforward) in the law's own mapping of ``axis``'s
+    ``controller:`` section (over the shared keys, which stay as they are)."""
     raw = copy.deepcopy(raw)
     sec = raw["axes"][axis]["controller"]
-    if law == "pid":
-        pid = dict(sec.get("pid") or {})
-        if ff:
-            pid.update(ff)
-        pid.update({k: float(g[k]) for k in ("P", "I", "D")})
-        pid["maxerror_i"] = 1.0 / g["I"] if g["I"] > 0 else 0.0
-        sec["pid"] = pid
-    else:
-        sec.update({k: float(g[k]) for k in ("k_s", "k1", "gamma_d") if k in g})
+    own = dict(sec.get(law) or {})
+    if extra:
+        own.update(extra)
+    own.update({k: float(g[k]) for k in controller_class(law).tuned_keys if k in g})
+    sec[law] = own
     return raw
 
 
@@ -572,8 +623,19 @@ def evaluate(raw: dict, source: str, axis: str, law: str, seconds: float, clock:
     res["samples"] = int(rows.shape[0])
     res["fault"] = asm.supervisor.reason(0)
     res["osc_ratio"], res["osc_hz"] = oscillation_ratio(u, rest, ts)
-    res["e_psd"] = signal.welch(e, fs=1.0 / ts, nperseg=min(1024, e.size), detrend="linear")
+    res["e_psd"] = signal.welch(e, fs=1.0 / ts, nperseg=e_segment(e.size), detrend="linear")
     return res
+
+
+def e_segment(n: int) -> int:
+    """Welch segment of an n-sample error record for :func:`e_line_ratio`: at most 1024 samples,
+    and short enough for at least 16 averaged segments (50 % overlap), so that the ratio of two
+    spectra is not a ratio of two single periodograms (each χ² with 2 degrees of freedom per
+    line, whose ratio exceeds 100 by chance on a few lines of every run)."""
+    seg = 1024
+    while seg > 64 and n < 8 * seg:
+        seg //= 2
+    return seg
 
 
 def e_line_ratio(res: dict, ref: dict) -> tuple[float, float]:
@@ -613,58 +675,123 @@ def admissible(res: dict, u_lim: float, ref: dict | None = None) -> str:
     return ""
 
 
-def verify(raw: dict, source: str, axis: str, laws: dict, seconds: float, clock: str = "virtual",
+def _run(raw, source, axis, law, g, extra, seconds, clock, ref, u_lim, label, scale, runs, progress):
+    res = evaluate(apply_gains(raw, axis, law, g, extra), source, axis, law, seconds, clock)
+    why = admissible(res, u_lim, ref)
+    runs.append((label, scale, res, why))
+    if progress:
+        progress(f"verify {axis} {law} {label} at {scale:.0%}: L2 {res['L2_um']:.3f} um, e_M "
+                 f"{res['e_M_um']:.2f} um, rest {res['u_rest_rms_V'] * 1e3:.0f} mV, sat "
+                 f"{res['saturated']}: {why or 'ok'}")
+    return res, why
+
+
+def ladder(raw, source, axis, law, g, extra, backoff, seconds, clock, ref, u_lim, label, runs,
+           progress=None, done=None) -> tuple[float, dict | None]:
+    """Runs of ``g`` at :data:`SCALES` until the first failure, then once at the geometric mean
+    of the last passed and the failed scale; after a failed 50 % the ``backoff`` scales in turn. ``done``: {scale: result} already run. Returns (the highest
+    scale that passed, 0 when none; its result)."""
+    passed, best, steps = 0.0, None, list(SCALES)
+    done = done or {}
+    while steps:
+        sc = steps.pop(0)
+        if sc in done:
+            res, why = done[sc], ""
+        else:
+            res, why = _run(raw, source, axis, law, scaled(law, g, sc), extra, seconds, clock, ref,
+                            u_lim, label, sc, runs, progress)
+        if why:
+            lower = [b for b in backoff if b < sc]
+            if sc <= SCALES[0] and lower:
+                steps = lower[:1]
+                continue
+            if passed > 0 and sc / passed > 1.2:       # one rung between the last two
+                steps = [round(math.sqrt(passed * sc), 3)]
+                continue
+            break
+        passed, best = sc, res
+        if sc < SCALES[0]:
+            break
+    return passed, best
+
+
+def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: float,
+           clock: str = "virtual", ref: dict | None = None, extra: dict | None = None,
            progress=None) -> dict:
-    """Step 4: for each law group (``laws``: {"c": (gains, ["c1", "c2"], None, backoff),
-    "pid": (gains, ["pid"], feedforward, backoff)}), runs at :data:`SCALES` until the first
-    failure, after a failed 50 % the ``backoff`` scales (those of :data:`BACKOFF` whose margins
-    hold) in turn; first a run of the configured controller
-    (the saturation reference). Returns {group: {"scale" (0 when even 50 % failed), "runs":
-    [(scale, law, result, verdict)]}, "reference": that run}."""
-    out = {}
+    """Step 4 for one law (module docstring): the ladder on the rule's first candidate, the
+    search over the admissible shapes, the ladder on the winner.
+
+    Args:
+        choice: :func:`choose_gains`'s result. ref: the configured controller's run on the same
+        program (:func:`evaluate`). extra: settings written with the gains (the PID's feedforward).
+    Returns:
+        {"gains" (None when nothing passed), "scale" (of the winner's own gains), "from" ('rule'
+        or 'search'), "L2_um", "runs": [(label, scale, result, verdict)]}.
+    """
     loaded = config_from_dict(raw, source)
     u_lim = loaded.axes[axis].controller.u_lim
-    ref = evaluate(raw, source, axis, loaded.axes[axis].controller.type, seconds, clock)
-    if progress:
-        progress(f"verify {axis}: as configured ({loaded.axes[axis].controller.type}): L2 "
-                 f"{ref['L2_um']:.3f} um, {ref['saturated']} saturated samples")
-    for grp, (g, names, ff, backoff) in laws.items():
-        passed, runs = 0.0, []
-        ladder = list(SCALES)
-        while ladder:
-            s = ladder.pop(0)
-            gs = scaled(names[0], g, s)
-            ok = True
-            for law in names:
-                res = evaluate(apply_gains(raw, axis, law, gs, ff), source, axis, law, seconds, clock)
-                why = admissible(res, u_lim, ref)
-                runs.append((s, law, res, why))
-                if progress:
-                    progress(f"verify {axis} {law} at {s:.0%}: L2 {res['L2_um']:.3f} um, e_M "
-                             f"{res['e_M_um']:.2f} um, rest {res['u_rest_rms_V'] * 1e3:.0f} mV, sat "
-                             f"{res['saturated']}: {why or 'ok'}")
-                if why:
-                    ok = False
-                    break
-            if not ok:
-                lower = [b for b in backoff if b < s]       # back off below 50 %
-                if s <= SCALES[0] and lower:
-                    ladder = lower[:1]
-                    continue
+    runs: list = []
+    g0 = choice["gains"]
+    s0, r0 = ladder(raw, source, axis, law, g0, extra, choice["backoff"], seconds, clock, ref, u_lim,
+                    "rule", runs, progress)
+    best = (r0["L2_um"], scaled(law, g0, s0), s0, "rule") if s0 > 0 else None
+    # the rest noise the ladder measured against the prediction (a bound: stiction holds the
+    # carriage), so the search does not start where the noise alone would fail
+    k_noise = max([res["u_rest_rms_V"] / (sc * choice["u_rest_pred_V"]) for _, sc, res, _ in runs
+                   if math.isfinite(res["u_rest_rms_V"]) and choice["u_rest_pred_V"] > 0] or [0.0])
+    rest_max = U_REST_FRACTION * u_lim
+    # the search: per shape, from the highest loop gain whose margins hold and whose rest
+    # noise, so calibrated, stays below the level, down the ω grid until a run passes (each
+    # shape's best is its highest passing loop gain); never below half the rule's ω
+    w_floor = SEARCH_FLOOR * g0["_w"]
+    for members in choice["admissible"].values():
+        members = [g for g in members if g["_w"] >= w_floor]
+        i, tries, k = 0, 0, k_noise
+        while i < len(members) and tries < SEARCH_TRIES:
+            while i < len(members) - 1 and k * members[i]["_rest_V"] > rest_max:
+                i += 1
+            g = members[i]
+            if g is g0:
+                res, why = (r0, "") if s0 == 1.0 else (None, "failed in the ladder")
+            else:
+                res, why = _run(raw, source, axis, law, g, extra, seconds, clock, ref, u_lim,
+                                _fmt_shape(g), 1.0, runs, progress)
+            if not why:
+                if best is None or res["L2_um"] < best[0]:
+                    best = (res["L2_um"], g, 1.0, "search")
                 break
-            passed = s
-            if s < SCALES[0]:
-                break
-        out[grp] = {"scale": passed, "runs": runs}
-    out["reference"] = ref
-    return out
+            tries += 1
+            if res is not None and res["u_rest_rms_V"] > rest_max and g["_rest_V"] > 0:
+                # the noise failed: calibrate on this shape's own run, with 5 % to spare
+                k = max(k, res["u_rest_rms_V"] / g["_rest_V"] / 0.95)
+                i += 1
+            else:
+                i += SEARCH_STEP
+    if best is None:
+        return {"gains": None, "scale": 0.0, "from": "", "L2_um": math.nan, "runs": runs}
+    if best[3] == "search":
+        # the winner of the search climbs the ladder too (its 100 % run is already done)
+        at_100 = next(r for _, sc, r, why in runs if sc == 1.0 and not why and r["L2_um"] == best[0])
+        sc, _ = ladder(raw, source, axis, law, best[1], extra, (), seconds, clock, ref, u_lim,
+                       "winner", runs, progress, done={1.0: at_100})
+        if sc < 1.0:       # a lower rung failed: fall back to the rule's verified gains
+            best = (r0["L2_um"], scaled(law, g0, s0), s0, "rule") if s0 > 0 else None
+            if best is None:
+                return {"gains": None, "scale": 0.0, "from": "", "L2_um": math.nan, "runs": runs}
+    return {"gains": best[1], "scale": best[2], "from": best[3], "L2_um": best[0], "runs": runs}
+
+
+def _fmt_shape(g: dict) -> str:
+    return "w {:.0f}".format(g["_w"]) + "".join(f" {k[1:]} {v:g}" for k, v in shape_of(g))
 
 
 # ================================================================ the whole procedure
 def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
-             verify_s: float | None = None, progress=None, periods: int = PERIODS) -> dict:
-    """Steps 1-4 for one axis. Returns {"measure", "model", "theta_hat0", "w", "G_model",
-    "choice": {law group: ...}, "verify", "gains": {law group: gains written}, "ff"}.
+             verify_s: float | None = None, progress=None, periods: int = PERIODS,
+             rule: Rule = RULE) -> dict:
+    """Steps 1-4 for one axis and every law of :func:`tunable_laws`. Returns {"measure",
+    "model", "theta_hat0", "w", "G_fit", "G_w", "choice": {law: ...}, "verify": {law: ...},
+    "reference", "gains": {law: gains written}, "extra": {law: settings written with them}}.
 
     Raises:
         AutotuneError: the measurement faulted or tripped its guard, or no law could be tuned.
@@ -683,76 +810,64 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
                  f"{model['mode_hz']:.1f} Hz zeta {model['mode_damping']:.3f} load "
                  f"{model['load_fraction']:.2f}, current loop {model['current_loop_hz']:.0f} Hz, "
                  f"delay {model['delay_s'] * 1e6:.1f} us")
-    w = grid_w(ts)
-    # the rule runs on the measured FRF where it was measured (coherence ≥ 0.5) and on the
-    # fitted model elsewhere (below 10 Hz and between the measured lines)
-    G_fit = plant_model_frf(model, ts, w)
-    G_w = G_fit.copy()
-    fm, Gm, ch = meas["f_hz"], meas["G"], meas["coherence"]
-    good = ch >= 0.5
-    f_w = w / (2.0 * math.pi)
-    if good.sum() > 10:
-        inside = (f_w >= fm[good][0]) & (f_w <= fm[good][-1])
-        re = np.interp(f_w, fm[good], Gm[good].real)
-        im = np.interp(f_w, fm[good], Gm[good].imag)
-        G_w[inside] = re[inside] + 1j * im[inside]
+    w, G_fit, G_w = loop_frf(meas, model, ts)
     th = np.asarray(sec.theta_hat0, dtype=float)
-    choice, laws = {}, {}
-    ff = {"FF0": 0.0, "FF1": float(th[1]), "FF2": float(model["theta1"]), "bias": -float(th[3])}
-    for grp, law, names in (("c", "c2", ["c2", "c1"]), ("pid", "pid", ["pid"])):
-        ch_ = choose_gains(law, G_w, w, ts, model["theta1"], sec, meas["rest_psd"], th)
-        choice[grp] = ch_
+    fitted = th.copy()              # θ1 from the fit; θ2..θ6 (friction, offset) as configured:
+    fitted[0] = model["theta1"]     # the FRF above 10 Hz does not see them
+    period = loaded.axes[axis].trajectory.period_s
+    vs = verify_s if verify_s is not None else max(2.0 * period, 1.0)
+    ref = evaluate(raw, str(loaded.path), axis, sec.type, vs, clock)
+    if progress:
+        progress(f"verify {axis}: as configured ({sec.type}): L2 {ref['L2_um']:.3f} um, "
+                 f"{ref['saturated']} saturated samples")
+    choice, ver, gains, extra = {}, {}, {}, {}
+    for law in tunable_laws(sec):
+        ch_ = choose_gains(law, G_w, w, ts, model["theta1"], sec, meas["rest_psd"], th, rule)
+        choice[law] = ch_
         if ch_ is None:
             continue
         if progress:
             m = ch_["margins"]
             progress(f"rule {axis} {law}: {_fmt_gains(law, ch_['gains'])}: GM {m.gm_db:.1f} dB, PM "
                      f"{m.pm_deg:.1f} deg, |S| {m.ms_db:.1f} dB, crossover {m.wc_hz:.0f} Hz, rest "
-                     f"{ch_['u_rest_pred_V'] * 1e3:.0f} mV predicted ({ch_['candidates']} passed)")
-        laws[grp] = (ch_["gains"], names, ff if law == "pid" else None, ch_["backoff"])
-    if not laws:
+                     f"{ch_['u_rest_pred_V'] * 1e3:.0f} mV predicted ({ch_['candidates']} passed "
+                     f"in {len(ch_['admissible'])} shapes)")
+        extra[law] = controller_class(law).model_settings(fitted) or None
+        ver[law] = verify(raw, str(loaded.path), axis, law, ch_, vs, clock, ref, extra[law], progress)
+        if ver[law]["gains"] is not None:
+            gains[law] = ver[law]["gains"]
+    if not choice or all(c is None for c in choice.values()):
         raise AutotuneError(f"axis {axis}: no gains of any law meet the rule on the measured response")
-    period = loaded.axes[axis].trajectory.period_s
-    vs = verify_s if verify_s is not None else max(2.0 * period, 1.0)
-    ver = verify(raw, str(loaded.path), axis, laws, vs, clock, progress)
-    gains = {grp: scaled(laws[grp][1][0], laws[grp][0], ver[grp]["scale"])
-             for grp in laws if ver[grp]["scale"] > 0}
-    ref = ver.pop("reference")
     return {"axis": axis, "measure": meas, "model": model, "theta_hat0": th.tolist(), "w": w,
             "G_fit": G_fit, "G_w": G_w, "choice": choice, "verify": ver, "reference": ref,
-            "gains": gains, "ff": ff,
-            "ts": ts, "section": sec}
+            "gains": gains, "extra": extra, "ts": ts, "section": sec, "rule": rule}
 
 
 def _fmt_gains(law: str, g: dict) -> str:
-    if law == "pid":
-        return f"P {g['P']:.4g} I {g['I']:.4g} D {g['D']:.4g}"
-    return f"k_s {g['k_s']:.4g} k1 {g['k1']:.4g} gamma_d {g['gamma_d']:.4g}"
+    return " ".join(f"{k} {g[k]:.4g}" for k in controller_class(law).tuned_keys if k in g)
 
 
 def final_margins(res: dict) -> dict:
     """Margins of the written gains on the measured FRF: {law: Margins}."""
-    out = {}
-    for grp, g in res["gains"].items():
-        for law in (("c1", "c2") if grp == "c" else ("pid",)):
-            out[law] = loop_margins(c_frf(law, g, res["ts"], res["w"], res["theta_hat0"]) * res["G_w"],
-                                    res["w"] / (2.0 * math.pi))
-    return out
+    return {law: loop_margins(c_frf(law, g, res["ts"], res["w"], res["theta_hat0"]) * res["G_w"],
+                              res["w"] / (2.0 * math.pi))
+            for law, g in res["gains"].items()}
 
 
 def write_config(raw: dict, results: list, source: str, path) -> dict:
-    """Step 5: ``raw`` with every autotuned axis's gains, checked as check-config does, written
-    to ``path`` with a comment block per axis (model, rule, margins, verification).
+    """Step 5: ``raw`` with every autotuned axis's gains (each law in its own mapping of the
+    ``controller:`` section), checked as check-config does, written to ``path`` with a comment
+    block per axis (model, rule, margins, verification).
 
     Raises:
         ConfigError: the result does not pass the checks (nothing written). OSError.
     """
     new = copy.deepcopy(raw)
-    lines = [f"# motorctl autotune of {source}: gains chosen by one rule on the measured frequency",
-             f"# response (GM >= {GM_MIN_DB:g} dB, PM >= {PM_MIN_DEG:g} deg, |S| <= {MS_MAX_DB:g} dB, "
-             f"then the highest |L| at {F_TRACK_HZ:g} Hz; u rest RMS <=",
-             f"# {U_REST_FRACTION:g} u_lim), verified at 50/75/100 % on the machine (no fault, saturation <= as "
-             f"configured + {SAT_SHARE:.1e} of samples, no oscillation)."]
+    lines = [f"# motorctl autotune of {source}: per law, among the gains whose margins on the measured",
+             f"# frequency response hold ({(results[0]['rule'] if results else RULE).text()} at 100/75/50 %), "
+             f"the least L2[e] of a run",
+             f"# of the axis's program that passes (no fault, saturation <= as configured + {SAT_SHARE:.1e} "
+             f"of samples, u rest RMS <= {U_REST_FRACTION:g} u_lim, no oscillation); ladder 50/75/100 %."]
     for res in results:
         a, mdl = res["axis"], res["model"]
         lines.append(f"# axis {a}: fitted theta1 = M/A1 {mdl['theta1']:.4g} V s^2/m (config theta_hat1(0) "
@@ -761,17 +876,16 @@ def write_config(raw: dict, results: list, source: str, path) -> dict:
                      f"{mdl['load_fraction']:.2f}), current loop {mdl['current_loop_hz']:.0f} Hz, delay "
                      f"{mdl['delay_s'] * 1e6:.1f} us")
         mg = final_margins(res)
-        for grp, g in res["gains"].items():
-            law = "c2" if grp == "c" else "pid"
-            new = apply_gains(new, a, law, g, res["ff"] if law == "pid" else None)
-            m = mg[law]
-            lines.append(f"#   {'C1/C2' if grp == 'c' else 'PID+FF'}: {_fmt_gains(law, g)} at "
-                         f"{res['verify'][grp]['scale']:.0%} of the rule's choice: GM {m.gm_db:.1f} dB "
-                         f"at {m.gm_hz:.0f} Hz, PM {m.pm_deg:.1f} deg, |S|max {m.ms_db:.1f} dB, "
-                         f"crossover {m.wc_hz:.0f} Hz")
-        for grp in ("c", "pid"):
-            if grp not in res["gains"]:
-                lines.append(f"#   {'C1/C2' if grp == 'c' else 'PID+FF'}: not tuned (kept as configured)")
+        for law in res["choice"]:
+            if law not in res["gains"]:
+                lines.append(f"#   {law}: not tuned (kept as configured)")
+                continue
+            g, v, m = res["gains"][law], res["verify"][law], mg[law]
+            new = apply_gains(new, a, law, g, res["extra"].get(law))
+            how = ("the rule's first candidate" if v["from"] == "rule" else "the search's best")
+            lines.append(f"#   {law}: {_fmt_gains(law, g)} ({v['scale']:.0%} of {how}, L2 {v['L2_um']:.3f} um): "
+                         f"GM {m.gm_db:.1f} dB at {m.gm_hz:.0f} Hz, PM {m.pm_deg:.1f} deg, |S|max "
+                         f"{m.ms_db:.1f} dB, crossover {m.wc_hz:.0f} Hz")
     config_from_dict(new, str(path), check_budget=False)
     text = "\n".join(lines) + "\n" + yaml.safe_dump(new, sort_keys=False, default_flow_style=None)
     Path(path).write_text(text, encoding="utf-8")
@@ -793,13 +907,12 @@ def plot_bode(res: dict, path) -> str:
     ax[1].semilogx(meas["f_hz"], np.degrees(np.angle(meas["G"])), ".", ms=2, color="0.5")
     ax[1].semilogx(f, np.degrees(np.angle(res["G_fit"])), "k-", lw=1)
     mg = final_margins(res)
-    for law, color in (("c2", "tab:blue"), ("pid", "tab:red")):
-        grp = "c" if law == "c2" else "pid"
-        if grp not in res["gains"]:
-            continue
-        L = c_frf(law, res["gains"][grp], ts, w, res["theta_hat0"]) * res["G_w"]
+    colors = ("tab:green", "tab:blue", "tab:red", "tab:purple", "tab:orange")
+    for j, law in enumerate(res["gains"]):
+        color = colors[j % len(colors)]
+        L = c_frf(law, res["gains"][law], ts, w, res["theta_hat0"]) * res["G_w"]
         m = mg[law]
-        lab = f"L {'C1/C2' if law == 'c2' else 'PID+FF'}: GM {m.gm_db:.1f} dB, PM {m.pm_deg:.0f}°, |S| {m.ms_db:.1f} dB"
+        lab = f"L {law}: GM {m.gm_db:.1f} dB, PM {m.pm_deg:.0f}°, |S| {m.ms_db:.1f} dB"
         ax[0].loglog(f, np.abs(L), color=color, lw=1, label=lab)
         ph = np.degrees(np.unwrap(np.angle(L)))
         ph -= 360.0 * math.ceil(ph[0] / 360.0)

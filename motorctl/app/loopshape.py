@@ -6,14 +6,9 @@ next period): G(z) maps u to y through the zero-order hold, G_zoh(z) = (1 − z�
 (so it carries the one-period delay of the read → write order); C(z) maps −y to u, so the loop
 gain is L = C G and the sensitivity S = 1/(1 + L).
 
-The linearisations (:func:`c_frf`) are written per law so that each can move into its
-controller class later (one ``linearise(section, ts, w, u0)`` per controller):
-
-    PID     C(z) = P + I Ts/(1 − z⁻¹) + D Δ,  Δ = (1 − z⁻¹)/Ts        (motorctl/control/pid.py)
-    C1, C2  C(z) = (k_s + γ_d Ts/(1 − z⁻¹)) (k1 + Δ) / f_u'(u0)         (motorctl/control/dcdiarc.py:
-            v_s = −k_s p, p = Δy + k1 e, d̂0 += Ts γ_d p (eq. 18-19); v_a1 depends on x_d only; the
-            θ̂ adaptation is slow and left out; C2 divides by the slope of its cubic inversion
-            f_u(u) = u + θ̂5 u|u| + θ̂6 u³ (eq. 9) at the operating point u0, C1 by 1)
+Each law gives its own linearisation (:meth:`motorctl.control.base.Controller.linearise`:
+PID in motorctl/control/pid.py, C1/C2 in motorctl/control/dcdiarc.py); :func:`c_frf` looks it
+up by name.
 """
 
 from __future__ import annotations
@@ -64,41 +59,13 @@ def plant_model_frf(p: dict, ts: float, w: np.ndarray, n_alias: int = 12) -> np.
     return acc * (1.0 - np.exp(-1j * w * ts))
 
 
-def _integrator(w: np.ndarray, ts: float) -> np.ndarray:
-    return ts / (1.0 - np.exp(-1j * w * ts))
-
-
-def _difference(w: np.ndarray, ts: float) -> np.ndarray:
-    return (1.0 - np.exp(-1j * w * ts)) / ts
-
-
-def pid_frf(g: dict, ts: float, w: np.ndarray) -> np.ndarray:
-    """Linearisation of the PID+FF law (:class:`motorctl.control.pid.PID`): P, I, D of ``g``.
-    The feedforward acts on x_d only and the limits are inactive at small signals."""
-    return g["P"] + g["I"] * _integrator(w, ts) + g["D"] * _difference(w, ts)
-
-
-def dcdiarc_frf(g: dict, ts: float, w: np.ndarray, theta5: float = 0.0, theta6: float = 0.0,
-                u0: float = 0.0) -> np.ndarray:
-    """Linearisation of C1/C2 (:class:`motorctl.control.dcdiarc.DCDIARC`, experiment mode):
-    k_s, k1, gamma_d of ``g``; C2's inversion slope at u0 [V] from θ̂5 [1/V], θ̂6 [1/V²] (C1:
-    leave them 0)."""
-    slope = 1.0 + 2.0 * theta5 * abs(u0) + 3.0 * theta6 * u0 * u0
-    return ((g["k_s"] + g["gamma_d"] * _integrator(w, ts)) * (g["k1"] + _difference(w, ts))
-            / slope)
-
-
 def c_frf(law: str, g: dict, ts: float, w: np.ndarray, theta_hat=None, u0: float = 0.0) -> np.ndarray:
-    """C(e^{jωTs}) of controller ``law`` ('c1', 'c2', 'pid') with gains ``g``; C2 linearised at
-    u0 [V] with θ̂ (6,) (default: θ̂5 = θ̂6 = 0). Raises KeyError for another law."""
-    if law == "pid":
-        return pid_frf(g, ts, w)
-    if law == "c1":
-        return dcdiarc_frf(g, ts, w)
-    if law == "c2":
-        th = theta_hat if theta_hat is not None else (0.0,) * 6
-        return dcdiarc_frf(g, ts, w, float(th[4]), float(th[5]), u0)
-    raise KeyError(f"no linearisation for controller {law!r}; known: c1, c2, pid")
+    """C(e^{jωTs}) (K,) of controller ``law`` with gains ``g`` at w (K,) [rad/s], linearised at
+    u0 [V] with θ̂ (6,) where the law needs them. Raises KeyError for an unknown law,
+    NotImplementedError for a law without a linearisation."""
+    from motorctl.control import controller_class
+
+    return controller_class(law).linearise(g, ts, w, theta_hat, u0)
 
 
 @dataclass(frozen=True)

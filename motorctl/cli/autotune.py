@@ -3,7 +3,7 @@ verified on the machine → ``DIR/autotuned.yaml`` and ``DIR/bode_<A>.png``
 (:mod:`motorctl.app.autotune` has the procedure and the rule).
 
     motorctl autotune CONFIG --axis A [--axis B] [--out DIR] [--virtual-clock] [--verify-seconds S]
-                     [--periods N] [--json]
+                     [--periods N] [--gm-min-db G] [--pm-min-deg P] [--ms-max-db M] [--json]
 
 Exit codes: 0 gains written; 1 the measurement stopped (fault, guard: nothing written) or an
 axis had no gains pass the verification (the config is written with that axis as configured);
@@ -34,6 +34,10 @@ def register(parser, subparsers) -> None:
                    help="length of each verification run in s (default: two program periods)")
     p.add_argument("--periods", type=int, default=None,
                    help="measured multisine periods of 1 s, even, 2..200 (default 16)")
+    p.add_argument("--gm-min-db", type=float, default=None, help="the rule's gain margin floor [dB] (default 6)")
+    p.add_argument("--pm-min-deg", type=float, default=None, help="the rule's phase margin floor [deg] (default 15)")
+    p.add_argument("--ms-max-db", type=float, default=None,
+                   help="the rule's peak sensitivity ceiling [dB] (default 10)")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout and nothing else")
     p.set_defaults(func=cmd_autotune)
 
@@ -46,26 +50,35 @@ def _summary(res: dict) -> dict:
         "model": mdl, "theta_hat0": res["theta_hat0"],
         "measurement": {k: meas[k] for k in ("excitation_rms_V", "excitation_peak_V", "e_max_m",
                                              "guard_m", "stroke_m", "soft_limits_m", "pass")},
-        "gains": {("c1/c2" if g == "c" else "pid"): {k: v for k, v in gg.items() if not k.startswith("_")}
-                  for g, gg in res["gains"].items()},
-        "scale": {("c1/c2" if g == "c" else "pid"): v["scale"] for g, v in res["verify"].items()},
+        "gains": {law: {k: v for k, v in g.items() if not k.startswith("_")}
+                  for law, g in res["gains"].items()},
+        "design": {law: {k[1:]: v for k, v in g.items() if k.startswith("_")}
+                   for law, g in res["gains"].items()},
+        "chosen_by": {law: {"from": v["from"], "scale": v["scale"], "L2_um": v["L2_um"]}
+                      for law, v in res["verify"].items()},
         "margins": {law: {k: (None if not math.isfinite(v) else v) for k, v in vars(m).items()}
                     for law, m in mg.items()},
-        "verify": [{"group": g, "scale": s, "law": law, "verdict": why or "ok",
+        "verify": [{"law": law, "run": label, "scale": s, "verdict": why or "ok",
                     **{k: res_[k] for k in ("e_M_um", "e_F_um", "L2_um", "u_peak_V", "u_rest_rms_V",
                                             "saturated", "fault")}}
-                   for g, v in res["verify"].items() for s, law, res_, why in v["runs"]],
+                   for law, v in res["verify"].items() for label, s, res_, why in v["runs"]],
     }
 
 
 def cmd_autotune(args) -> int:
-    from motorctl.app.autotune import PERIODS, AutotuneError, autotune, plot_bode, write_config
+    from motorctl.app.autotune import PERIODS, RULE, AutotuneError, Rule, autotune, plot_bode, write_config
     from motorctl.cli import UsageError
     from motorctl.config import config_from_dict, load_yaml
     from motorctl.inputs import writable_dir
     periods = PERIODS if args.periods is None else args.periods
     if not (2 <= periods <= 200 and periods % 2 == 0):
         raise UsageError(f"--periods {args.periods}: must be an even number within 2..200")
+    given = {k: getattr(args, k) for k in ("gm_min_db", "pm_min_deg", "ms_max_db")}
+    for k, lo, hi in (("gm_min_db", 0.0, 30.0), ("pm_min_deg", 0.0, 90.0), ("ms_max_db", 0.0, 30.0)):
+        v = given[k]
+        if v is not None and not lo <= v <= hi:
+            raise UsageError(f"--{k.replace('_', '-')} {v:g}: allowed {lo:g}..{hi:g}")
+    rule = Rule(**{k: (getattr(RULE, k) if v is None else v) for k, v in given.items()})
     raw = load_yaml(args.config)
     loaded = config_from_dict(raw, args.config)
     for a in args.axis:
@@ -78,7 +91,8 @@ def cmd_autotune(args) -> int:
     results, summary, failed = [], {}, False
     for a in args.axis:
         try:
-            res = autotune(loaded, raw, a, clock, args.verify_seconds, progress=say, periods=periods)
+            res = autotune(loaded, raw, a, clock, args.verify_seconds, progress=say, periods=periods,
+                           rule=rule)
         except AutotuneError as exc:
             sys.stderr.write(f"motorctl: autotune: {exc}\n")
             return 1

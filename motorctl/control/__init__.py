@@ -1,39 +1,47 @@
-"""The controllers, chosen by name: C1 and C2 (the DCDIARC law of Chen, Yao & Wang 2013, with its
-projection-type least-squares estimator and cubic input inversion) and LinuxCNC's PID with
-feedforward. Every one implements :class:`motorctl.control.base.Controller`.
+"""The controllers, chosen by name from the ``motorctl.controllers`` entry-point group (as the
+drivers are): C1 and C2 (the DCDIARC law of Chen, Yao & Wang 2013, with its projection-type
+least-squares estimator and cubic input inversion) and LinuxCNC's PID with feedforward. Every
+one implements :class:`motorctl.control.base.Controller`: its own settings model, its own
+check, its linearisation (for autotune's margins) and the signals it records.
 
-Adding a controller: a module with a ``Controller`` subclass, an entry in :data:`CONTROLLERS`,
-and (if it has settings) a key in :class:`motorctl.control.params.ControllerConfig`.
+Adding a controller: one module with a ``Controller`` subclass and one entry point
+(docs/architecture.md, "Adding a controller").
 """
 
 from __future__ import annotations
 
-from importlib import import_module
+from functools import cache
+from importlib.metadata import EntryPoint, entry_points
 
-#: name -> ("module:Class", the key of the ``controller:`` section it needs, or None when the
-#: top-level keys suffice). Classes load on first use (the kernels compile only when needed).
-CONTROLLERS: dict[str, tuple[str, str | None]] = {
-    "c1": ("motorctl.control.dcdiarc:DCDIARC", None),
-    "c2": ("motorctl.control.dcdiarc:DCDIARC", None),
-    "pid": ("motorctl.control.pid:PID", "pid"),
-}
-CONTROLLER_NAMES: tuple[str, ...] = tuple(CONTROLLERS)
+ENTRY_POINT_GROUP = "motorctl.controllers"
 
 
+@cache
+def available_controllers() -> dict[str, EntryPoint]:
+    """The installed controllers by name, sorted (classes load on first use: their kernels
+    compile only when a controller is built)."""
+    return {ep.name: ep for ep in sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name)}
+
+
+#: the registered names, sorted (the daemon's status encodes the active law by its index)
+CONTROLLER_NAMES: tuple[str, ...] = tuple(available_controllers())
+
+
+@cache
 def controller_class(name: str):
     """The class registered as ``name``. Raises KeyError naming the known controllers."""
-    try:
-        target, _ = CONTROLLERS[name]
-    except KeyError:
-        raise KeyError(f"unknown controller {name!r}; allowed: {', '.join(CONTROLLER_NAMES)}") from None
-    module, cls = target.split(":")
-    return getattr(import_module(module), cls)
+    eps = available_controllers()
+    if name not in eps:
+        raise KeyError(f"unknown controller {name!r}; allowed: {', '.join(eps) or 'none installed'}")
+    cls = eps[name].load()
+    if getattr(cls, "name", "") != name:
+        raise KeyError(f"the entry point {name!r} loads {cls.__qualname__}, whose name is {cls.name!r}")
+    return cls
 
 
 def configured_controllers(section) -> list[str]:
-    """Names of the controllers an axis's ``controller:`` section configures (in registry
-    order): those whose settings key is present (C1 and C2 always; a PID with ``pid``)."""
-    return [n for n, (_, key) in CONTROLLERS.items() if key is None or getattr(section, key) is not None]
+    """Names of the controllers an axis's ``controller:`` section configures (sorted)."""
+    return [n for n in CONTROLLER_NAMES if section.configures(n)]
 
 
 def make_controller(section, name: str, ts: float):
@@ -42,4 +50,4 @@ def make_controller(section, name: str, ts: float):
     Raises:
         KeyError: unknown name. ValueError: the section does not configure it.
     """
-    return controller_class(name).from_config(section, ts, name)
+    return controller_class(name).from_config(section, ts)

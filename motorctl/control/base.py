@@ -8,14 +8,18 @@ loop copies that block into the cycle record and reads the tracking error ``e`` 
 following-error check; nothing else is read, so any law that fills these slots can be driven,
 recorded, switched and compared.
 
-Controllers are chosen by name (:data:`motorctl.control.CONTROLLERS`); each class reads its
-own part of an axis's ``controller:`` config section (Klipper's rule) in :meth:`from_config`.
+Controllers are chosen by name (the ``motorctl.controllers`` entry points,
+:mod:`motorctl.control`); each class reads its own part of an axis's ``controller:`` config
+section (Klipper's rule): its :attr:`Controller.Settings` model, checked by
+:meth:`Controller.check`, built by :meth:`Controller.from_config`. For commissioning it gives
+its linearisation (:meth:`Controller.linearise`) and its family of gains with one loop-gain
+knob (:meth:`Controller.gain_family`, :meth:`Controller.scaled`).
 """
 
 from __future__ import annotations
 
 import abc
-from typing import ClassVar
+from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
@@ -45,6 +49,16 @@ class Controller(abc.ABC):
     """
 
     name: ClassVar[str] = ""
+    #: the law's settings model (a :class:`motorctl.schema.StrictModel`; None: no settings),
+    #: read from the section's mapping named like the law and, when :attr:`shared_keys`, from
+    #: the section's top-level keys (:class:`motorctl.control.params.ControllerConfig`)
+    Settings: ClassVar[type | None] = None
+    shared_keys: ClassVar[bool] = False
+    #: the entries of :data:`motorctl.loop.records.CONTROLLER_SIGNALS` this law fills (the
+    #: others are recorded as NaN)
+    records: ClassVar[tuple[str, ...]] = ("v", "e", "p", "x2")
+    #: the settings keys autotune writes (those :meth:`gain_family` sets)
+    tuned_keys: ClassVar[tuple[str, ...]] = ()
     preview_s: float = 0.0
 
     def __init__(self, ts: float, u_lim: float, n_theta: int = 0):
@@ -56,17 +70,48 @@ class Controller(abc.ABC):
 
     @classmethod
     @abc.abstractmethod
-    def from_config(cls, section, ts: float, name: str) -> "Controller":
-        """Build from an axis's ``controller:`` section (a checked ``ControllerConfig``).
+    def from_config(cls, section, ts: float) -> "Controller":
+        """Build from an axis's ``controller:`` section (a checked
+        :class:`~motorctl.control.params.ControllerConfig`) at sample period ts [s].
 
         Raises:
             ValueError: the section does not configure this controller.
         """
 
     @classmethod
-    def configured(cls, section) -> bool:
-        """True when ``section`` holds what this controller needs (so it can be selected)."""
-        return True
+    def check(cls, settings, section) -> list[tuple[str, str]]:
+        """Cross-checks of the law's ``settings`` with the rest of its ``section`` that the
+        settings model cannot make alone. Returns [(key, what is wrong and what is allowed)]
+        (empty: fine); the key is relative to the section. Default: none."""
+        return []
+
+    @classmethod
+    def linearise(cls, gains: Mapping[str, Any], ts: float, w: np.ndarray, theta_hat=None,
+                  u0: float = 0.0) -> np.ndarray:
+        """The law's small-signal transfer function C(e^{jωTs}) from −y to u at the operating
+        point u0 [V], with θ̂ (6,) where it matters: ``gains`` maps the settings keys (a
+        settings model's ``model_dump()`` or a candidate of :meth:`gain_family`); w (K,)
+        [rad/s]. Returns complex (K,). Raises NotImplementedError when the law has none
+        (autotune then skips it)."""
+        raise NotImplementedError(f"controller {cls.name!r} has no linearisation")
+
+    @classmethod
+    def gain_family(cls, theta1: float, settings) -> list[dict]:
+        """Autotune's candidates: settings key -> value dicts (with the design numbers under
+        keys that start with '_'), from the fitted θ1 = M/A1 [V s²/m]. Default: none."""
+        return []
+
+    @classmethod
+    def model_settings(cls, theta) -> dict:
+        """Settings the law takes from a fitted axis model θ (6,) (paper eq. 4), written with
+        its autotuned gains (e.g. a feedforward). Default: none (an adaptive law starts from
+        the section's θ̂(0))."""
+        return {}
+
+    @classmethod
+    def scaled(cls, gains: Mapping[str, Any], s: float) -> dict:
+        """``gains`` at share ``s`` of the loop gain (the verification ladder's knob)."""
+        raise NotImplementedError(f"controller {cls.name!r} has no loop-gain knob")
 
     @abc.abstractmethod
     def reset(self, y0: float) -> None:

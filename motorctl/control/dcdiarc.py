@@ -33,7 +33,11 @@ n = round(τ/Ts). Without any of them the arithmetic is the paper's (bit-identic
 
 from __future__ import annotations
 
+import math
+from typing import Annotated, Literal
+
 import numpy as np
+from pydantic import Field
 
 from motorctl.jit import njit
 from motorctl.control.base import (
@@ -47,8 +51,10 @@ from motorctl.control.base import (
 )
 from motorctl.control.estimator import LeastSquaresEstimator, ls_update, s_f_jit
 from motorctl.control.inversion import invert_cubic
-from motorctl.control.params import ControllerConfig, theory_k_s1
+from motorctl.control.params import ControllerConfig
 from motorctl.effects.compensation import Compensation
+from motorctl.model import S_F_GAIN, assumption2_margin
+from motorctl.schema import NonNeg, Pos, StrictModel, quantity
 
 __all__ = ["DCDIARC", "dcdiarc_step", "theory_k_s1"]
 
@@ -58,6 +64,64 @@ S_Y_PREV, S_U, S_V, S_E, S_P, S_X2, S_D0, S_KS, S_DC, S_RI = range(10)
 N_STATE = 10
 # parameter vector of the law
 P_TS, P_K1, P_KS, P_GD, P_DMAX, P_ULIM, P_THEORY, P_KS1, P_ETA4, P_DELTA = range(10)
+
+
+class FilterConfig(StrictModel):
+    """H_f = ω_f²/(s + ω_f)² of the estimator's regressor (docs/control-law.md, Order of operations) [S]."""
+
+    omega_f: quantity(1e-2, 1e6, "rad/s") = 200.0
+
+
+class TheoryConfig(StrictModel):
+    """Theory-mode design numbers (eq. 14-15, 22): k2 [V s/m], eta, delta_d [V], optional k_s1."""
+
+    k2: Pos = 10.0
+    eta: Pos = 0.05
+    delta_d: NonNeg = 0.3
+    k_s1: Pos | None = None
+
+
+class DcdiarcConfig(StrictModel):
+    """C1's and C2's settings (the paper's Section 6, §7): the top-level keys of an axis's
+    ``controller:`` section, which the two laws share, with a ``c1:`` or ``c2:`` mapping over
+    them for one law alone.
+
+    Attributes:
+        mode: "experiment" (constant k_s) or "theory" (k_s1 + k_s2, eq. 22).
+        k_s [V s/m], k1 [1/s], gamma_d [V/m], d_hat_max [V]: the robust feedback (eq. 11,
+            18-19, 22). gamma0: diagonal of Γ(0). filter.omega_f [rad/s]. mu [1/s], nu, rho_M:
+            LS settings (eq. 27). theory: theory-mode numbers.
+    """
+
+    mode: Literal["experiment", "theory"] = "experiment"
+    k_s: quantity(1e-3, 1e7, "V s/m") = 95.0
+    k1: quantity(1e-3, 1e6, "1/s") = 250.0
+    gamma_d: quantity(0.0, 1e9, "V/m") = 500.0
+    d_hat_max: quantity(0.0, 1e3, "V") = 1.0
+    gamma0: Annotated[list[Pos], Field(min_length=6, max_length=6)]
+    filter: FilterConfig = FilterConfig()
+    mu: quantity(0.0, 1e4, "1/s") = 0.0
+    nu: NonNeg = 0.0
+    rho_M: Pos = 1000.0
+    theory: TheoryConfig = TheoryConfig()
+
+
+def theory_k_s1(theta_min, theta_max, k1: float, k2: float) -> float:
+    """Smallest k_s1 meeting the PSD condition of paper eq. 13-15; docs/control-law.md, The DCDIARC law (paper eq. 14-15, as reconstructed).
+
+    k_s1 ≥ k2 + θ1 k1 − θ2 − θ3 g + (θ2 + θ3 g)²/(2 θ1 k1) for all θ ∈ Ω_θ, 0 ≤ g ≤ 1800/π.
+    The right side is convex in g and in (θ2, θ3), so the maximum over the box corners and the
+    end points of g is exact; a grid in g guards the corner enumeration.
+    """
+    g_max = 2.0 * S_F_GAIN / math.pi
+    worst = -math.inf
+    for t1 in (theta_min[0], theta_max[0]):
+        for t2 in (theta_min[1], theta_max[1]):
+            for t3 in (theta_min[2], theta_max[2]):
+                for g in np.linspace(0.0, g_max, 65):
+                    val = k2 + t1 * k1 - t2 - t3 * g + (t2 + t3 * g) ** 2 / (2.0 * t1 * k1)
+                    worst = max(worst, val)
+    return float(worst)
 
 
 @njit
@@ -173,16 +237,22 @@ class DCDIARC(Controller):
         ValueError: unknown kind or mode; an adapted entry whose family cannot adapt.
     """
 
+    Settings = DcdiarcConfig
+    shared_keys = True
+    tuned_keys = ("k_s", "k1", "gamma_d")
+    #: autotune's family: damping ζ of the design k_s = 2 ζ ω θ1, k1 = ω / (2 ζ)
+    ZETA = (0.3, 0.4, 0.5, 0.7, 1.0)
+
     def __init__(self, config: ControllerConfig, ts: float, kind: str = "c2"):
         if kind not in ("c1", "c2"):
             raise ValueError(f"DCDIARC kind must be 'c1' or 'c2', got {kind!r}")
-        if config.mode not in ("experiment", "theory"):
-            raise ValueError(f"controller mode must be 'experiment' or 'theory', got {config.mode!r}")
+        law = config.settings(kind)
         n = 6 if kind == "c2" else 4
         super().__init__(ts, config.u_lim, n)
         self.name = kind
         self.kind = kind
         self.config = config
+        self.law = law
         params = config
         comp = None if params.compensation.is_empty() else Compensation(params.compensation)
         self.compensation = comp
@@ -192,15 +262,15 @@ class DCDIARC(Controller):
         self.preview_s = comp.preview_s if comp is not None else 0.0
         n_delay = int(round(self.preview_s / ts))
         self.estimator = self._new_estimator()
-        self.theory = params.mode == "theory"
-        th = params.theory
+        self.theory = law.mode == "theory"
+        th = law.theory
         if self.theory:
-            k_s1 = (theory_k_s1(params.theta_min, params.theta_max, params.k1, th.k2)
+            k_s1 = (theory_k_s1(params.theta_min, params.theta_max, law.k1, th.k2)
                     if th.k_s1 is None else float(th.k_s1))
         else:
-            k_s1 = float(params.k_s)
+            k_s1 = float(law.k_s)
         self.k_s1 = k_s1
-        self._prm = np.array([ts, params.k1, params.k_s, params.gamma_d, params.d_hat_max,
+        self._prm = np.array([ts, law.k1, law.k_s, law.gamma_d, law.d_hat_max,
                               params.u_lim, 1.0 if self.theory else 0.0, k_s1, 4.0 * th.eta,
                               th.delta_d], dtype=float)
         span = [params.theta_max[i] - params.theta_min[i] for i in range(n)]
@@ -222,13 +292,57 @@ class DCDIARC(Controller):
         dcdiarc_step(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, *(a.copy() for a in self._args))
 
     @classmethod
-    def from_config(cls, section: ControllerConfig, ts: float, name: str) -> "DCDIARC":
-        """C1 or C2 (``name``) from an axis's ``controller:`` section."""
-        return cls(section, ts, name)
+    def from_config(cls, section: ControllerConfig, ts: float) -> "DCDIARC":
+        """C1 or C2 (the class's ``name``) from an axis's ``controller:`` section."""
+        return cls(section, ts, cls.name)
+
+    @classmethod
+    def check(cls, settings: DcdiarcConfig, section: ControllerConfig) -> list[tuple[str, str]]:
+        """Γ(0) within ρ_M (eq. 27) and Assumption 2 on the θ box: the cubic f_u(u) = u + θ5 u|u|
+        + θ6 u³ must be monotonic on |u| ≤ u_lim for every θ5, θ6 of the box (eq. 3, 9)."""
+        out = []
+        if max(settings.gamma0) > settings.rho_M:
+            out.append(("gamma0", f"largest entry {max(settings.gamma0)} exceeds rho_M = {settings.rho_M} "
+                                  "(eq. 27 needs ||Gamma(0)|| <= rho_M)"))
+        c = section
+        margin = assumption2_margin((c.theta_min[4], c.theta_max[4]), (c.theta_min[5], c.theta_max[5]), c.u_lim)
+        if margin <= 0:
+            out.append(("theta_min", f"bounds break Assumption 2: f_u(u) = u + theta5 u|u| + theta6 u^3 is not "
+                                     f"monotonic on |u| <= u_lim = {c.u_lim} V (min slope {margin:.3g}); "
+                                     f"raise theta_min[4]/theta_min[5] or lower u_lim"))
+        return out
+
+    @classmethod
+    def linearise(cls, gains, ts, w, theta_hat=None, u0=0.0):
+        """Experiment mode at rest: v_s = −k_s p, p = Δy + k1 e, d̂0 += Ts γ_d p (eq. 11, 18-19);
+        v_a1 depends on x_d only and the θ̂ adaptation is slow and left out, so
+        C(z) = (k_s + γ_d Ts/(1 − z⁻¹)) (k1 + (1 − z⁻¹)/Ts) / f_u'(u0), where C2 divides by the
+        slope of its inversion f_u(u) = u + θ̂5 u|u| + θ̂6 u³ (eq. 9) at u0 [V] (θ̂ (6,); default
+        θ̂5 = θ̂6 = 0) and C1 by 1. w (K,) [rad/s] -> complex (K,)."""
+        z1 = np.exp(-1j * np.asarray(w) * ts)
+        slope = 1.0
+        if cls.name == "c2" and theta_hat is not None:
+            slope = 1.0 + 2.0 * float(theta_hat[4]) * abs(u0) + 3.0 * float(theta_hat[5]) * u0 * u0
+        return ((gains["k_s"] + gains["gamma_d"] * ts / (1.0 - z1)) * (gains["k1"] + (1.0 - z1) / ts)
+                / slope)
+
+    @classmethod
+    def gain_family(cls, theta1, settings, omegas):
+        """k_s = 2 ζ ω θ1, k1 = ω / (2 ζ) for ω in ``omegas`` [rad/s], ζ in :attr:`ZETA`, γ_d of
+        the settings (the robust part's pole pair at ω with damping ζ on the rigid model)."""
+        return [{"k_s": 2.0 * z * w * theta1, "k1": w / (2.0 * z), "gamma_d": float(settings.gamma_d),
+                 "_w": w, "_zeta": z} for w in omegas for z in cls.ZETA]
+
+    @classmethod
+    def scaled(cls, gains, s):
+        """k_s × s (k1 and γ_d kept)."""
+        g = dict(gains)
+        g["k_s"] = g["k_s"] * s
+        return g
 
     def _new_estimator(self) -> LeastSquaresEstimator:
-        p, n, comp = self.config, self.n_theta, self.compensation
-        th0, tmin, tmax = list(p.theta_hat0[:n]), list(p.theta_min[:n]), list(p.theta_max[:n])
+        c, p, n, comp = self.config, self.law, self.n_theta, self.compensation
+        th0, tmin, tmax = list(c.theta_hat0[:n]), list(c.theta_min[:n]), list(c.theta_max[:n])
         g0 = list(p.gamma0[:n])
         if self.n_beta:
             th0 += list(comp.beta0)
@@ -336,3 +450,24 @@ class DCDIARC(Controller):
     x2 = property(lambda self: float(self._st[S_X2]))
     d_hat0 = property(lambda self: float(self._st[S_D0]))
     k_s_eff = property(lambda self: float(self._st[S_KS]))
+
+
+class C1(DCDIARC):
+    """C1: the ARC law with the linear force model F = A1 u (θ1..θ4, no input inversion)."""
+
+    name = "c1"
+    records = ("v", "e", "p", "x2", "theta_hat1", "theta_hat2", "theta_hat3", "theta_hat4", "d_hat0")
+
+    def __init__(self, config: ControllerConfig, ts: float, kind: str = "c1"):
+        super().__init__(config, ts, kind)
+
+
+class C2(DCDIARC):
+    """C2: DCDIARC with the cubic force model F = A1 u + A2 u|u| + A3 u³ (θ1..θ6, eq. 3-9)."""
+
+    name = "c2"
+    records = ("v", "e", "p", "x2", "theta_hat1", "theta_hat2", "theta_hat3", "theta_hat4",
+               "theta_hat5", "theta_hat6", "d_hat0")
+
+    def __init__(self, config: ControllerConfig, ts: float, kind: str = "c2"):
+        super().__init__(config, ts, kind)

@@ -30,18 +30,54 @@ Deviations from LinuxCNC, all deliberate:
   loop reads y[k] and samples x_d(k Ts) at the same instant.
 * the output is always clamped (to u_lim when maxoutput = 0, where LinuxCNC has no limit), so
   the anti-windup acts on that clamp too. maxerrorD, maxcmdD, maxcmdDD and index-enable are
-  not offered (no field in :class:`motorctl.control.params.PidConfig`).
+  not offered (no field in :class:`PidConfig`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from motorctl.jit import njit
 from motorctl.control.base import SIG_E, SIG_P, SIG_V, SIG_X2, Controller
-from motorctl.control.params import ControllerConfig, PidConfig
+from motorctl.control.params import ControllerConfig
+from motorctl.jit import njit
+from motorctl.schema import StrictModel, quantity
 
-__all__ = ["PID", "pid_step"]
+__all__ = ["PID", "PidConfig", "pid_step"]
+
+
+class PidConfig(StrictModel):
+    """LinuxCNC ``pid`` gains and limits (hal/components/pid.c, manual page pid(9)), in SI
+    units: the ``pid:`` mapping of an axis's ``controller:`` section.
+
+    LinuxCNC's error = command − feedback = x_d − y (the opposite sign of the published
+    tracking error e = y − x_d); the output u [V] pushes +x. A gain of 0 (or a limit of 0)
+    switches that term (or that limit) off, as in LinuxCNC. Unlike LinuxCNC, FF1 and FF2 (and
+    the command part of the D term) use the trajectory's analytic ẋ_d and ẍ_d.
+
+    Attributes:
+        P [V/m], I [V/(m s)], D [V s/m]: feedback gains on the error, its integral and its
+            derivative (ẋ_d − ẏ); ≥ 0.
+        FF0 [V/m], FF1 [V s/m], FF2 [V s²/m]: feedforward of the command x_d, its velocity ẋ_d
+            and its acceleration ẍ_d (for this plant FF1 ≈ θ2, FF2 ≈ θ1 of the model, eq. 4).
+        bias [V]: constant output offset (≈ −θ4).
+        deadband [m]: |error| ≤ deadband counts as 0; above it the error is reduced by it. ≥ 0.
+        maxerror [m]: the error is clipped to ±maxerror before the deadband (0 = none).
+        maxerror_i [m s]: the integral of the error is clipped to ±maxerror_i (0 = none).
+        maxoutput [V]: output limit; the output is clipped to ±min(maxoutput, u_lim)
+            (0 = u_lim of the section).
+    """
+
+    P: quantity(0.0, 1e10, "V/m") = 0.0
+    I: quantity(0.0, 1e12, "V/(m s)") = 0.0
+    D: quantity(0.0, 1e8, "V s/m") = 0.0
+    FF0: quantity(-1e10, 1e10, "V/m") = 0.0
+    FF1: quantity(-1e8, 1e8, "V s/m") = 0.0
+    FF2: quantity(-1e6, 1e6, "V s^2/m") = 0.0
+    bias: quantity(-1e3, 1e3, "V") = 0.0
+    deadband: quantity(0.0, 1.0, "m") = 0.0
+    maxerror: quantity(0.0, 100.0, "m") = 0.0
+    maxerror_i: quantity(0.0, 1e4, "m s") = 0.0
+    maxoutput: quantity(0.0, 1e3, "V") = 0.0
 
 # state vector (what the next sample needs, and the last sample's values)
 S_Y_PREV, S_EI, S_LIMIT, S_U, S_V, S_ERR, S_ED, S_X2 = range(8)
@@ -131,6 +167,12 @@ class PID(Controller):
     """
 
     name = "pid"
+    Settings = PidConfig
+    tuned_keys = ("P", "I", "D", "maxerror_i")
+    #: autotune's family: damping ζ and integral corner ratio r (I = P ω / r) of the
+    #: pole-placement design P = θ1 ω², D = 2 ζ ω θ1
+    ZETA = (0.3, 0.4, 0.5, 0.7, 1.0)
+    R_INT = (3.0, 5.0, 7.0, 10.0)
 
     def __init__(self, gains: PidConfig, ts: float, u_lim: float):
         if not ts > 0.0 or not u_lim > 0.0:
@@ -147,20 +189,48 @@ class PID(Controller):
         pid_step(0.0, 0.0, 0.0, 0.0, self.signals.copy(), self._st.copy(), self._prm)
 
     @classmethod
-    def configured(cls, section: ControllerConfig) -> bool:
-        """True when the section has a ``pid:`` key."""
-        return section.pid is not None
-
-    @classmethod
-    def from_config(cls, section: ControllerConfig, ts: float, name: str = "pid") -> PID:
+    def from_config(cls, section: ControllerConfig, ts: float) -> PID:
         """From an axis's ``controller:`` section: its ``pid`` gains and ``u_lim``.
 
         Raises:
             ValueError: the section has no ``pid:`` key.
         """
-        if section.pid is None:
-            raise ValueError("the controller section has no 'pid:' gains")
-        return cls(section.pid, ts, section.u_lim)
+        return cls(section.settings("pid"), ts, section.u_lim)
+
+    @classmethod
+    def linearise(cls, gains, ts, w, theta_hat=None, u0=0.0):
+        """C(z) = P + I Ts/(1 − z⁻¹) + D (1 − z⁻¹)/Ts at z = e^{jωTs} (the feedforward acts on
+        x_d only and the limits are inactive at small signals). w (K,) [rad/s] -> complex (K,)."""
+        z1 = np.exp(-1j * np.asarray(w) * ts)
+        return gains["P"] + gains["I"] * ts / (1.0 - z1) + gains["D"] * (1.0 - z1) / ts
+
+    @classmethod
+    def gain_family(cls, theta1, settings, omegas):
+        """P = θ1 ω², D = 2 ζ ω θ1, I = P ω / r for ω in ``omegas`` [rad/s], ζ in :attr:`ZETA`,
+        r in :attr:`R_INT`; the integral clamp maxerror_i = 1 V / I."""
+        out = []
+        for w in omegas:
+            for z in cls.ZETA:
+                for r in cls.R_INT:
+                    p = theta1 * w * w
+                    out.append({"P": p, "I": p * w / r, "D": 2.0 * z * w * theta1,
+                                "maxerror_i": r / (p * w), "_w": w, "_zeta": z, "_r": r})
+        return out
+
+    @classmethod
+    def model_settings(cls, theta):
+        """The feedforward from θ (6,) (eq. 4): FF1 = θ2, FF2 = θ1, bias = −θ4, FF0 = 0."""
+        return {"FF0": 0.0, "FF1": float(theta[1]), "FF2": float(theta[0]), "bias": -float(theta[3])}
+
+    @classmethod
+    def scaled(cls, gains, s):
+        """P, I, D × s (the integral clamp keeps 1 V of I·ε_I)."""
+        g = dict(gains)
+        for k in ("P", "I", "D"):
+            g[k] = g[k] * s
+        if g.get("I", 0.0) > 0.0:
+            g["maxerror_i"] = 1.0 / g["I"]
+        return g
 
     def reset(self, y0: float) -> None:
         """Bumpless (re)start from the measured position y0 [m]: integrator 0, not in the
