@@ -33,7 +33,7 @@ def register(parser, subparsers) -> None:
     p.add_argument("--verify-seconds", type=seconds, default=None,
                    help="length of each verification run in s (default: two program periods)")
     p.add_argument("--periods", type=int, default=None,
-                   help="measured multisine periods of 1 s, even, 2..200 (default 16)")
+                   help="measured multisine periods of 1 s, even, 2..200 (default 32)")
     p.add_argument("--gm-min-db", type=float, default=None, help="the rule's gain margin floor [dB] (default 6)")
     p.add_argument("--pm-min-deg", type=float, default=None, help="the rule's phase margin floor [deg] (default 15)")
     p.add_argument("--ms-max-db", type=float, default=None,
