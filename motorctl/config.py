@@ -126,6 +126,27 @@ class LoopConfig(StrictModel):
     overrun_ramp_s: Annotated[float, Field(ge=0, le=1.0)] = 0.01
 
 
+def parse_listen(text: str) -> tuple[str, int]:
+    """"host:port" → (host, port). Raises ValueError naming what is allowed."""
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"{text!r} is not host:port; allowed: e.g. 127.0.0.1:8080 (port 1-65535)")
+    return host.strip("[]"), int(port)
+
+
+class ScopeConfig(StrictModel):
+    """The live scope page (docs/daemon.md): listen = "host:port" of its web server, loopback
+    unless the config names another address."""
+
+    listen: str = "127.0.0.1:8080"
+
+    @field_validator("listen")
+    @classmethod
+    def _host_port(cls, v: str) -> str:
+        parse_listen(v)
+        return v
+
+
 class DaemonConfig(StrictModel):
     """The service (``motorctl daemon``): control socket, run logs, flight recorder, stop ramp.
 
@@ -137,6 +158,7 @@ class DaemonConfig(StrictModel):
     (shorter) window kept around an overrun [s]; max_event_logs: per run; stop_settle_s: how
     long an axis holds its final position before 0 V and amplifier off [s];
     allow_fault_injection: accept ``motorctl inject`` (simulated driver only).
+    scope: the live scope page served by the I/O process (:class:`ScopeConfig`; None: off).
 
     Retention of ``log_dir`` (docs/daemon.md): log_segment_bytes: largest run-log segment
     [bytes]; log_segment_s: a segment is closed at this age at the latest [s];
@@ -157,6 +179,7 @@ class DaemonConfig(StrictModel):
     max_event_logs: Annotated[int, Field(ge=0)] = 20
     stop_settle_s: Annotated[float, Field(ge=0, le=5.0)] = 0.1
     allow_fault_injection: bool = False
+    scope: ScopeConfig | None = None
     log_segment_bytes: Annotated[int, Field(ge=1 << 20, le=1 << 40)] = 512 << 20
     log_segment_s: Annotated[float, Field(ge=1.0, le=7 * 86400.0)] = 3600.0
     log_budget_bytes: Annotated[int, Field(ge=2 << 20, le=1 << 50)] = 16 << 30

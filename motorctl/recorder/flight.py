@@ -189,6 +189,9 @@ class Drainer:
                  flush_s: float = 0.5, event_before_s: float = 2.0, event_after_s: float = 1.0,
                  max_events: int = 20, overrun_before_s: float = 0.1, overrun_after_s: float = 0.1):
         self.ring, self.writer, self.header = ring, writer, header
+        #: callables (rows (N, C), first cycle) given every batch of rows drained (a live
+        #: view); they must return quickly and never raise
+        self.taps: list = []
         self.axis_names = list(axis_names)
         self.period_s = timebase.period_s
         self.flush_s = float(flush_s)
@@ -259,6 +262,8 @@ class Drainer:
             rows, start = self._take(self.drained, k)
             if rows.shape[0]:
                 self._account(rows, start)
+                for tap in self.taps:
+                    tap(rows, start)
             self.drained = k
             fresh = (rows, start) if in_step else None
         return self._write(k, fresh)

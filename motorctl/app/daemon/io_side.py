@@ -53,6 +53,8 @@ STATUS_LINE_S = 2.0
 MAX_CLIENTS = 64
 #: a connection without a complete request after this time is closed [s]
 CLIENT_IDLE_S = 5.0
+#: the scope's copy of the axes' states is refreshed this often [s]
+SCOPE_STATUS_S = 0.2
 #: after running out of file descriptors, accept nothing for this long [s]
 EMFILE_PAUSE_S = 0.1
 
@@ -95,6 +97,13 @@ class IOSide:
         self.audit: list[dict] = []      # commands applied by the loop, with their cycle
         self._reported = 0
         self._rec_reported = ""
+        self.scope = None
+        if d.scope is not None:
+            from motorctl.app.daemon.scope import Scope
+            self.scope = Scope(d.scope.listen, self.layout, self.names, asm.loaded.period_s,
+                               {a: asm.loaded.axes[a].trajectory.period_s for a in self.names})
+            self.drainer.taps.append(self.scope.tap)
+        self.last_scope_status = 0.0
 
     # ------------------------------------------------------------------ requests
     def to_loop(self, conn, msg: dict, post=None) -> None:
@@ -341,6 +350,7 @@ class IOSide:
         self.sel.register(self.replies.rfd, selectors.EVENT_READ, "loop")
         loop_gone = False
         ctl = self.plan.ring.ctl
+        self.start_scope()
         while not loop_gone:
             ctl[CTL_REC_BEAT] = int(ctl[CTL_REC_BEAT]) + 1     # "the recorder is awake"
             for key, _ in self.sel.select(timeout=IDLE_WAKE_S):
@@ -370,6 +380,13 @@ class IOSide:
                 self.retention.maybe_prune(now)
             self.report_recorder()
             self.notify(now)
+            if self.scope is not None and now - self.last_scope_status >= SCOPE_STATUS_S:
+                self.last_scope_status = now
+                self.scope.set_status({"axes": {a: {k: v for k, v in self.axis_status(i).items()
+                                                    if k in ("state", "phase", "fault", "controller")}
+                                                for i, a in enumerate(self.names)}})
+        if self.scope is not None:
+            self.scope.stop()
         # the loop process ended (normally, or killed): keep everything it published
         try:
             dr = self.drainer
@@ -391,6 +408,20 @@ class IOSide:
             except OSError:
                 pass
         return 0
+
+    def start_scope(self) -> None:
+        """Serve the scope (when configured); an address that cannot be bound is reported on
+        stderr (the journal) and the daemon goes on without it."""
+        if self.scope is None:
+            return
+        try:
+            self.scope.start()
+            sys.stderr.write(f"motorctl: scope on http://{self.scope.host}:{self.scope.port}/\n")
+        except (OSError, ImportError) as exc:
+            sys.stderr.write(f"motorctl: warning: daemon.scope.listen {self.scope.host}:{self.scope.port}: "
+                             f"not served ({exc})\n")
+            self.drainer.taps.remove(self.scope.tap)
+            self.scope = None
 
     def write_end_record(self) -> None:
         """The header with ``ended`` into the segment being written (in place, reserved
