@@ -147,6 +147,12 @@ class ScopeConfig(StrictModel):
         return v
 
 
+class FoxgloveConfig(ScopeConfig):
+    """The scope's channels over Foxglove's WebSocket protocol: listen = "host:port"."""
+
+    listen: str = "127.0.0.1:8765"
+
+
 class DaemonConfig(StrictModel):
     """The service (``motorctl daemon``): control socket, run logs, flight recorder, stop ramp.
 
@@ -159,6 +165,7 @@ class DaemonConfig(StrictModel):
     long an axis holds its final position before 0 V and amplifier off [s];
     allow_fault_injection: accept ``motorctl inject`` (simulated driver only).
     scope: the live scope page served by the I/O process (:class:`ScopeConfig`; None: off).
+    foxglove: the same channels to Foxglove (:class:`FoxgloveConfig`; None: off).
 
     Retention of ``log_dir`` (docs/daemon.md): log_segment_bytes: largest run-log segment
     [bytes]; log_segment_s: a segment is closed at this age at the latest [s];
@@ -180,6 +187,7 @@ class DaemonConfig(StrictModel):
     stop_settle_s: Annotated[float, Field(ge=0, le=5.0)] = 0.1
     allow_fault_injection: bool = False
     scope: ScopeConfig | None = None
+    foxglove: FoxgloveConfig | None = None
     log_segment_bytes: Annotated[int, Field(ge=1 << 20, le=1 << 40)] = 512 << 20
     log_segment_s: Annotated[float, Field(ge=1.0, le=7 * 86400.0)] = 3600.0
     log_budget_bytes: Annotated[int, Field(ge=2 << 20, le=1 << 50)] = 16 << 30

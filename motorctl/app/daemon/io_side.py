@@ -97,12 +97,16 @@ class IOSide:
         self.audit: list[dict] = []      # commands applied by the loop, with their cycle
         self._reported = 0
         self._rec_reported = ""
-        self.scope = None
-        if d.scope is not None:
+        self.scope = self.foxglove = None
+        if d.scope is not None or d.foxglove is not None:
             from motorctl.app.daemon.scope import Scope
-            self.scope = Scope(d.scope.listen, self.layout, self.names, asm.loaded.period_s,
+            self.scope = Scope(d.scope.listen if d.scope else None, self.layout, self.names,
+                               asm.loaded.period_s,
                                {a: asm.loaded.axes[a].trajectory.period_s for a in self.names})
             self.drainer.taps.append(self.scope.tap)
+            if d.foxglove is not None:
+                from motorctl.app.daemon.foxglove_live import FoxglovePublisher
+                self.foxglove = FoxglovePublisher(d.foxglove.listen, self.scope)
         self.last_scope_status = 0.0
 
     # ------------------------------------------------------------------ requests
@@ -382,11 +386,16 @@ class IOSide:
             self.notify(now)
             if self.scope is not None and now - self.last_scope_status >= SCOPE_STATUS_S:
                 self.last_scope_status = now
-                self.scope.set_status({"axes": {a: {k: v for k, v in self.axis_status(i).items()
-                                                    if k in ("state", "phase", "fault", "controller")}
-                                                for i, a in enumerate(self.names)}})
+                st = {"axes": {a: {k: v for k, v in self.axis_status(i).items()
+                                   if k in ("state", "phase", "fault", "controller")}
+                               for i, a in enumerate(self.names)}}
+                self.scope.set_status(st)
+                if self.foxglove is not None:
+                    self.foxglove.publish_status(st, self.scope.last_t)
         if self.scope is not None:
             self.scope.stop()
+        if self.foxglove is not None:
+            self.foxglove.stop()
         # the loop process ended (normally, or killed): keep everything it published
         try:
             dr = self.drainer
@@ -410,18 +419,24 @@ class IOSide:
         return 0
 
     def start_scope(self) -> None:
-        """Serve the scope (when configured); an address that cannot be bound is reported on
-        stderr (the journal) and the daemon goes on without it."""
-        if self.scope is None:
-            return
-        try:
-            self.scope.start()
-            sys.stderr.write(f"motorctl: scope on http://{self.scope.host}:{self.scope.port}/\n")
-        except (OSError, ImportError) as exc:
-            sys.stderr.write(f"motorctl: warning: daemon.scope.listen {self.scope.host}:{self.scope.port}: "
-                             f"not served ({exc})\n")
-            self.drainer.taps.remove(self.scope.tap)
-            self.scope = None
+        """Serve the scope page and the Foxglove channels (where configured); an address that
+        cannot be bound is reported on stderr (the journal) and the daemon goes on without it."""
+        if self.scope is not None and self.scope.port:
+            try:
+                self.scope.start()
+                sys.stderr.write(f"motorctl: scope on http://{self.scope.host}:{self.scope.port}/\n")
+            except (OSError, ImportError) as exc:
+                sys.stderr.write(f"motorctl: warning: daemon.scope.listen {self.scope.host}:{self.scope.port}: "
+                                 f"not served ({exc})\n")
+        if self.foxglove is not None:
+            try:
+                self.foxglove.start()
+                self.scope.listeners.append(self.foxglove.on_frame)
+                sys.stderr.write(f"motorctl: foxglove on ws://{self.foxglove.host}:{self.foxglove.port}/\n")
+            except (OSError, ImportError, RuntimeError) as exc:
+                sys.stderr.write(f"motorctl: warning: daemon.foxglove.listen {self.foxglove.host}:"
+                                 f"{self.foxglove.port}: not served ({exc})\n")
+                self.foxglove = None
 
     def write_end_record(self) -> None:
         """The header with ``ended`` into the segment being written (in place, reserved

@@ -44,15 +44,16 @@ class Scope:
     """Decimated recorder rows for live viewers.
 
     Args:
-        listen: "host:port" of the web page and its WebSocket.
+        listen: "host:port" of the web page and its WebSocket (None: frames only, for
+            :attr:`listeners`; :meth:`start` is not called).
         layout: the run's :class:`~motorctl.loop.records.RecordLayout`. names: axis names.
         period_s: loop period [s]. program_periods_s: {axis: program period [s] (0: none)}.
     Attributes:
         frames_made, frames_dropped_by_clients: counters (shown by ``status``-like views).
     """
 
-    def __init__(self, listen: str, layout, names, period_s: float, program_periods_s: dict):
-        self.host, self.port = parse_listen(listen)
+    def __init__(self, listen: str | None, layout, names, period_s: float, program_periods_s: dict):
+        self.host, self.port = parse_listen(listen) if listen else ("", 0)
         self.names = list(names)
         self.period_s = float(period_s)
         self.bucket = max(1, int(round(BUCKET_S / period_s)))
@@ -79,12 +80,16 @@ class Scope:
         self.status: dict = {}
         self.frames_made = 0
         self.frames_dropped_by_clients = 0
+        self.last_t = math.nan       # loop time of the newest bucket [s]
         self._carry = None          # rows of an unfinished bucket
         self._last = None           # the last row seen (edges of events)
         self._loop = None
         self._thread = None
         self._runner = None
         self.error = ""
+        #: callables given each new frame in the I/O thread (the Foxglove publisher); they
+        #: must return quickly and never raise
+        self.listeners: list = []
 
     # ------------------------------------------------------------------ I/O thread
     def tap(self, rows: np.ndarray, start: int) -> None:
@@ -110,13 +115,16 @@ class Scope:
         with np.errstate(invalid="ignore"):
             lo, hi = np.nanmin(b, axis=1), np.nanmax(b, axis=1)
         t = rows[:n:self.bucket, self.t_col]
+        self.last_t = float(t[-1])
         self.seq += 1
-        self.frames.append({
-            "seq": self.seq, "t": _clean(t),
-            "min": {lab: _clean(lo[:, j]) for j, lab in enumerate(self.labels)},
-            "max": {lab: _clean(hi[:, j]) for j, lab in enumerate(self.labels)},
-            "events": events})
+        frame = {"seq": self.seq, "t": _clean(t),
+                 "min": {lab: _clean(lo[:, j]) for j, lab in enumerate(self.labels)},
+                 "max": {lab: _clean(hi[:, j]) for j, lab in enumerate(self.labels)},
+                 "events": events}
+        self.frames.append(frame)
         self.frames_made += 1
+        for listener in self.listeners:
+            listener(frame)
 
     def _events(self, rows: np.ndarray) -> list:
         out = []
