@@ -15,7 +15,8 @@ import math
 import numpy as np
 
 from motorctl.ident import effects as fx
-from motorctl.ident.select import Identifier
+from motorctl.ident.select import MAX_EFFECTS, Identifier
+from motorctl.ident.verdict import residual_verdict
 from motorctl.model import THETA_NAMES
 from motorctl.recorder.runlog import LogError
 
@@ -81,6 +82,10 @@ def summarise(idf: Identifier) -> dict:
         [{"name": c.term.family, "searched": _r(c.term.h), "heldout_gain_percent": 100 * c.gain,
           "accepted": c.ok, "selected": any(c is e for e in chosen), "reasons": c.reasons} for c in step]
         for step in idf.steps]
+    # passed in the last step but not taken, when the effect limit ended the selection
+    out["cut_by_limit"] = ([c.term.family for c in idf.steps[-1] if c.ok and not any(c is e for e in chosen)]
+                           if idf.steps and len(idf.terms) >= MAX_EFFECTS else [])
+    out["residual"] = residual_verdict(idf.final.fit.residual, idf.p, g, unit)
     return out
 
 
@@ -283,11 +288,15 @@ def text_report(s: dict) -> str:
     lines.append(f"  residual RMS {n['residual_rms']:.4g} {u}; held-out RMS {n['heldout_rms']:.4g} {u}")
     if not s["effects"]:
         lines.append("effects: no effect found (no candidate passed held-out gain, BIC and plausibility)")
+    if s.get("cut_by_limit"):
+        lines.append(f"  not taken, the limit of {MAX_EFFECTS} effects reached: " + ", ".join(s["cut_by_limit"]))
     for e in s["effects"]:
         lines.append(f"effect found: {e['name']}: " + ", ".join(f"{k} {v}" for k, v in e["parameters"].items()))
         lines.append(f"  held-out RMS {e['heldout_rms_before']:.4g} -> {e['heldout_rms_after']:.4g} {u}")
     a = s["augmented"]
     lines.append(f"augmented model: residual RMS {a['residual_rms']:.4g} {u}, held-out RMS {a['heldout_rms']:.4g} {u}")
+    if s.get("residual"):
+        lines.append(("WARNING: " if s["residual"]["structured"] else "residual: ") + s["residual"]["text"])
     if n.get("simulation_fit_percent") is not None:
         lines.append(f"simulated position fit ({s['simulation_window_s']:g} s windows from the measured state): "
                      f"nominal {n['simulation_fit_percent']:.3f} %, augmented {a['simulation_fit_percent']:.3f} %")
