@@ -84,6 +84,7 @@ SEARCH_STEP = 2          #: the search steps this many ω grid points down after
 SEARCH_TRIES = 3         #: failed runs per shape before the search gives the shape up
 SEARCH_FLOOR = 0.5       #: the search tries no ω below this share of the rule's choice
 REST_AFTER_S = 0.3       #: "at rest": the command has not moved for this long [s]
+SATURATED = "saturated samples"   #: the words of the saturation verdict (:func:`admissible`)
 
 # ---------------------------------------------------------------- the measurement
 HOLD_HZ, HOLD_ZETA, HOLD_R = 20.0, 0.7, 5.0   #: the conservative holding PID
@@ -664,7 +665,7 @@ def admissible(res: dict, u_lim: float, ref: dict | None = None) -> str:
     sat_ref = ref["saturated"] if ref else 0
     allowed = sat_ref + round(SAT_SHARE * res["samples"])
     if res["saturated"] > allowed:
-        return f"{res['saturated']} saturated samples (> {allowed}: {sat_ref} as configured + {SAT_SHARE:.1e} of {res['samples']})"
+        return f"{res['saturated']} {SATURATED} (> {allowed}: {sat_ref} as configured + {SAT_SHARE:.1e} of {res['samples']})"
     if not res["u_rest_rms_V"] <= U_REST_FRACTION * u_lim:
         return f"u at rest {res['u_rest_rms_V'] * 1e3:.0f} mV RMS (> {U_REST_FRACTION * u_lim * 1e3:.0f} mV)"
     if res["osc_ratio"] >= OSC_RATIO:
@@ -689,9 +690,12 @@ def _run(raw, source, axis, law, g, extra, seconds, clock, ref, u_lim, label, sc
 
 def ladder(raw, source, axis, law, g, extra, backoff, seconds, clock, ref, u_lim, label, runs,
            progress=None, done=None) -> tuple[float, dict | None]:
-    """Runs of ``g`` at :data:`SCALES` until the first failure, then once at the geometric mean
-    of the last passed and the failed scale; after a failed 50 % the ``backoff`` scales in turn. ``done``: {scale: result} already run. Returns (the highest
-    scale that passed, 0 when none; its result)."""
+    """Runs of ``g`` climbing :data:`SCALES`. A rung that saturates more than allowed is not
+    passed, but the climb goes on (a lower loop gain can saturate more: its error is larger);
+    a fault, u noise at rest or an oscillation stops it, and then one more run at the geometric
+    mean of the last passed and the stopping scale; when 50 % stops it with nothing passed, the
+    ``backoff`` scales in turn. ``done``: {scale: result} already run (and passed). Returns
+    (the highest scale that passed, 0 when none; its result)."""
     passed, best, steps = 0.0, None, list(SCALES)
     done = done or {}
     while steps:
@@ -701,16 +705,19 @@ def ladder(raw, source, axis, law, g, extra, backoff, seconds, clock, ref, u_lim
         else:
             res, why = _run(raw, source, axis, law, scaled(law, g, sc), extra, seconds, clock, ref,
                             u_lim, label, sc, runs, progress)
+        if why and SATURATED in why:
+            continue
         if why:
             lower = [b for b in backoff if b < sc]
-            if sc <= SCALES[0] and lower:
+            if sc <= SCALES[0] and lower and passed == 0:
                 steps = lower[:1]
                 continue
             if passed > 0 and sc / passed > 1.2:       # one rung between the last two
                 steps = [round(math.sqrt(passed * sc), 3)]
                 continue
             break
-        passed, best = sc, res
+        if sc > passed:
+            passed, best = sc, res
         if sc < SCALES[0]:
             break
     return passed, best
