@@ -691,7 +691,8 @@ def _run(raw, source, axis, law, g, extra, seconds, clock, ref, u_lim, label, sc
 def ladder(raw, source, axis, law, g, extra, backoff, seconds, clock, ref, u_lim, label, runs,
            progress=None, done=None) -> tuple[float, dict | None]:
     """Runs of ``g`` climbing :data:`SCALES`. A rung that saturates more than allowed is not
-    passed, but the climb goes on (a lower loop gain can saturate more: its error is larger);
+    passed, but the climb goes on (a lower loop gain can saturate more: its error is larger),
+    after one run at the geometric mean of it and the last passed scale;
     a fault, u noise at rest or an oscillation stops it, and then one more run at the geometric
     mean of the last passed and the stopping scale; when 50 % stops it with nothing passed, the
     ``backoff`` scales in turn. ``done``: {scale: result} already run (and passed). Returns
@@ -706,6 +707,8 @@ def ladder(raw, source, axis, law, g, extra, backoff, seconds, clock, ref, u_lim
             res, why = _run(raw, source, axis, law, scaled(law, g, sc), extra, seconds, clock, ref,
                             u_lim, label, sc, runs, progress)
         if why and SATURATED in why:
+            if passed > 0 and sc / passed > 1.2:       # one rung between, then climb on
+                steps.insert(0, round(math.sqrt(passed * sc), 3))
             continue
         if why:
             lower = [b for b in backoff if b < sc]
