@@ -799,10 +799,11 @@ def _fmt_shape(g: dict) -> str:
 # ================================================================ the whole procedure
 def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
              verify_s: float | None = None, progress=None, periods: int = PERIODS,
-             rule: Rule = RULE) -> dict:
-    """Steps 1-4 for one axis and every law of :func:`tunable_laws`. Returns {"measure",
-    "model", "theta_hat0", "w", "G_fit", "G_w", "choice": {law: ...}, "verify": {law: ...},
-    "reference", "gains": {law: gains written}, "extra": {law: settings written with them}}.
+             rule: Rule = RULE, laws=None, measure_only: bool = False) -> dict:
+    """Steps 1-4 for one axis and the laws ``laws`` (None: every law of :func:`tunable_laws`;
+    ``measure_only``: steps 1-2, no law). Returns {"measure", "model", "theta_hat0", "w",
+    "G_fit", "G_w", "choice": {law: ...}, "verify": {law: ...}, "reference" (None when
+    measure_only), "gains": {law: gains written}, "extra": {law: settings written with them}}.
 
     Raises:
         AutotuneError: the measurement faulted or tripped its guard, or no law could be tuned.
@@ -825,6 +826,11 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
     th = np.asarray(sec.theta_hat0, dtype=float)
     fitted = th.copy()              # θ1 from the fit; θ2..θ6 (friction, offset) as configured:
     fitted[0] = model["theta1"]     # the FRF above 10 Hz does not see them
+    done = {"axis": axis, "measure": meas, "model": model, "theta_hat0": th.tolist(), "w": w,
+            "G_fit": G_fit, "G_w": G_w, "choice": {}, "verify": {}, "reference": None,
+            "gains": {}, "extra": {}, "ts": ts, "section": sec, "rule": rule}
+    if measure_only:
+        return done
     period = loaded.axes[axis].trajectory.period_s
     vs = verify_s if verify_s is not None else max(2.0 * period, 1.0)
     ref = evaluate(raw, str(loaded.path), axis, sec.type, vs, clock)
@@ -832,7 +838,7 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
         progress(f"verify {axis}: as configured ({sec.type}): L2 {ref['L2_um']:.3f} um, "
                  f"{ref['saturated']} saturated samples")
     choice, ver, gains, extra = {}, {}, {}, {}
-    for law in tunable_laws(sec):
+    for law in (laws or tunable_laws(sec)):
         ch_ = choose_gains(law, G_w, w, ts, model["theta1"], sec, meas["rest_psd"], th, rule)
         choice[law] = ch_
         if ch_ is None:
@@ -849,9 +855,7 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
             gains[law] = ver[law]["gains"]
     if not choice or all(c is None for c in choice.values()):
         raise AutotuneError(f"axis {axis}: no gains of any law meet the rule on the measured response")
-    return {"axis": axis, "measure": meas, "model": model, "theta_hat0": th.tolist(), "w": w,
-            "G_fit": G_fit, "G_w": G_w, "choice": choice, "verify": ver, "reference": ref,
-            "gains": gains, "extra": extra, "ts": ts, "section": sec, "rule": rule}
+    return done | {"choice": choice, "verify": ver, "reference": ref, "gains": gains, "extra": extra}
 
 
 def _fmt_gains(law: str, g: dict) -> str:

@@ -3,7 +3,8 @@ verified on the machine → ``DIR/autotuned.yaml`` and ``DIR/bode_<A>.png``
 (:mod:`motorctl.app.autotune` has the procedure and the rule).
 
     motorctl autotune CONFIG --axis A [--axis B] [--out DIR] [--virtual-clock] [--verify-seconds S]
-                     [--periods N] [--gm-min-db G] [--pm-min-deg P] [--ms-max-db M] [--json]
+                     [--periods N] [--gm-min-db G] [--pm-min-deg P] [--ms-max-db M]
+                     [--law L ...] [--measure-only] [--json]
 
 Exit codes: 0 gains written; 1 the measurement stopped (fault, guard: nothing written) or an
 axis had no gains pass the verification (the config is written with that axis as configured);
@@ -38,6 +39,10 @@ def register(parser, subparsers) -> None:
     p.add_argument("--pm-min-deg", type=float, default=None, help="the rule's phase margin floor [deg] (default 15)")
     p.add_argument("--ms-max-db", type=float, default=None,
                    help="the rule's peak sensitivity ceiling [dB] (default 10)")
+    p.add_argument("--law", action="append", default=None,
+                   help="tune only this law (repeatable; default: every law the axis configures)")
+    p.add_argument("--measure-only", action="store_true",
+                   help="measure the frequency response and fit the model only: the Bode plot, no gains")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout and nothing else")
     p.set_defaults(func=cmd_autotune)
 
@@ -81,9 +86,14 @@ def cmd_autotune(args) -> int:
     rule = Rule(**{k: (getattr(RULE, k) if v is None else v) for k, v in given.items()})
     raw = load_yaml(args.config)
     loaded = config_from_dict(raw, args.config)
+    from motorctl.app.autotune import tunable_laws
     for a in args.axis:
         if a not in loaded.axes:
             raise UsageError(f"--axis {a}: no such axis in {args.config}; axes: {', '.join(loaded.axes)}")
+        for law in args.law or ():
+            if law not in tunable_laws(loaded.axes[a].controller):
+                raise UsageError(f"--law {law}: not a law axis {a} configures with a linearisation; "
+                                 f"allowed: {', '.join(tunable_laws(loaded.axes[a].controller))}")
     out = Path(args.out) if args.out else Path("runs") / f"autotune-{Path(args.config).stem}"
     writable_dir(str(out), "out")
     clock = "virtual" if args.virtual_clock else loaded.cfg.loop.clock
@@ -92,7 +102,7 @@ def cmd_autotune(args) -> int:
     for a in args.axis:
         try:
             res = autotune(loaded, raw, a, clock, args.verify_seconds, progress=say, periods=periods,
-                           rule=rule)
+                           rule=rule, laws=args.law, measure_only=args.measure_only)
         except AutotuneError as exc:
             sys.stderr.write(f"motorctl: autotune: {exc}\n")
             return 1
@@ -102,14 +112,15 @@ def cmd_autotune(args) -> int:
             summary[a]["bode"] = plot_bode(res, out / f"bode_{a}.png")
         except ImportError:
             summary[a]["bode"] = None
-        if not res["gains"]:
+        if not res["gains"] and not args.measure_only:
             sys.stderr.write(f"motorctl: autotune: axis {a}: no gains passed the verification "
                              f"(kept as configured)\n")
             failed = True
     path = out / "autotuned.yaml"
-    write_config(raw, results, args.config, path)
+    if not args.measure_only:
+        write_config(raw, results, args.config, path)
     if args.json:
-        print(json.dumps({"config": str(path), "axes": summary}, default=float))
+        print(json.dumps({"config": None if args.measure_only else str(path), "axes": summary}, default=float))
     else:
         for a, s in summary.items():
             m = s["model"]
@@ -119,5 +130,6 @@ def cmd_autotune(args) -> int:
             for law, mg in s["margins"].items():
                 print(f"  {law}: GM {mg['gm_db'] or math.inf:.1f} dB, PM {mg['pm_deg']:.1f} deg, |S| {mg['ms_db']:.1f} dB, "
                       f"crossover {mg['wc_hz']:.0f} Hz")
-        print(f"wrote {path}" + "".join(f", {s['bode']}" for s in summary.values() if s.get("bode")))
+        written = ([] if args.measure_only else [str(path)]) + [s["bode"] for s in summary.values() if s.get("bode")]
+        print("wrote " + ", ".join(written))
     return 1 if failed else 0
