@@ -26,7 +26,7 @@ def default_plant(repo, tmp_path_factory):
     summary of the axes, the output directory of X's)."""
     out = tmp_path_factory.mktemp("at") / "at"
     p = _autotune(repo, out, "configs/gantry.yaml", "--axis", "X", "--out", str(out),
-                  "--virtual-clock", "--verify-seconds", "1", "--json")
+                  "--virtual-clock", "--verify-seconds", "0.5", "--periods", "16", "--json")
     assert p.returncode == 0, p.stderr
     axes = json.loads(p.stdout)["axes"]
     y_out = tmp_path_factory.mktemp("at") / "y"
@@ -87,7 +87,7 @@ def test_autotune_adapts_to_a_softer_structure(repo, tmp_path, default_plant):
     cfg = tmp_path / "soft.yaml"
     cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
     p = _autotune(repo, tmp_path, str(cfg), "--axis", "X", "--out", str(tmp_path / "at"),
-                  "--virtual-clock", "--verify-seconds", "1", "--periods", "8", "--law", "pid", "--json")
+                  "--virtual-clock", "--verify-seconds", "0.5", "--periods", "8", "--law", "pid", "--json")
     assert p.returncode == 0, p.stderr
     res = json.loads(p.stdout)["axes"]["X"]
     assert abs(res["model"]["mode_hz"] / raw["axes"]["X"]["driver"]["mode_hz"] - 1.0) < 0.10

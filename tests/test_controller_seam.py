@@ -88,7 +88,7 @@ def test_a_fourth_law_is_one_module_and_one_entry_point(repo, tmp_path):
     cfg = _pd_config(repo, tmp_path)
     p = _cli(repo, env, "check-config", cfg)
     assert p.returncode == 0, p.stderr
-    p = _cli(repo, env, "run", cfg, "--virtual-clock", "--duration", "4")
+    p = _cli(repo, env, "run", cfg, "--virtual-clock", "--duration", "2")
     assert p.returncode == 0, p.stderr
     row = parse_run_table(p.stdout)["X"]
     assert row["fault"] == "" and row["e_M_um"] < 300.0, p.stdout
