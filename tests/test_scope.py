@@ -108,3 +108,28 @@ def test_a_bad_scope_address_is_a_config_error(tmp_path, capsys):
     assert main(["check-config", str(cfg)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "daemon.scope.listen" in err and "host:port" in err, err
+
+
+def test_a_slow_page_drops_frames_never_rows():
+    """The scope's frames are bounded: however long nobody reads them, the list holds the
+    newest BACKLOG_FRAMES and the tap returns (the drainer's rows are never held back: a page
+    reads the list, it never blocks the tap)."""
+    import numpy as np
+
+    from motorctl.app.daemon.scope import BACKLOG_FRAMES, Scope
+    from motorctl.loop.records import RecordLayout
+
+    lay = RecordLayout(["X"])
+    scope = Scope(None, lay, ["X"], 2e-4, {"X": 4.0})
+    rows = np.zeros((100, len(lay.columns)))
+    for k in range(3 * BACKLOG_FRAMES):          # 60 s of rows at 5 kHz, in 20 ms batches
+        rows[:, lay.cycle("t")] = (k * 100 + np.arange(100)) * 2e-4
+        rows[:, lay.index("X.e")] = np.sin(k + np.arange(100))
+        scope.tap(rows, k * 100)
+    assert scope.error == "" and scope.frames_made == 3 * BACKLOG_FRAMES
+    assert len(scope.frames) == BACKLOG_FRAMES                  # bounded
+    assert scope.frames[0]["seq"] == 2 * BACKLOG_FRAMES + 1     # the oldest went first
+    f = scope.frames[-1]
+    assert len(f["t"]) == 10 and all(lo <= hi for lo, hi in zip(f["min"]["X.e"], f["max"]["X.e"]))
+    # a period start every 4 s of loop time is an event of the frame it falls in
+    assert sum(ev["kind"] == "period" for fr in scope.frames for ev in fr["events"]) >= 1
