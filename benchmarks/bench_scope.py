@@ -15,6 +15,8 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
+import signal
 import socket
 import subprocess
 import sys
@@ -132,7 +134,7 @@ def main() -> None:
             for w, ov, cyc, fr, msgs in rows:
                 print(f"| {'page + Foxglove' if w else 'nobody'} | {ov} | {cyc} | {fr} | {msgs} |")
         finally:
-            subprocess.run(["kill", "-TERM", f"-{proc.pid}"], check=False)
+            os.killpg(proc.pid, signal.SIGTERM)
             proc.wait(10)
 
 
