@@ -141,16 +141,26 @@ def kill_child(proc: subprocess.Popen, sig=signal.SIGKILL) -> None:
 
 
 class NetNamespace:
-    """A private network namespace held by a ``sleep`` child; ``prefix`` runs a command in it."""
+    """A private network namespace held by a ``sleep`` child; ``prefix`` runs a command in it.
 
-    def __init__(self):
+    ``veth``: (name, peer name) of a veth pair made inside it, both ends up (EtherCAT: the
+    master on one end, the emulated segment on the other).
+    """
+
+    def __init__(self, veth: tuple[str, str] | None = None):
         self.proc = None
         self.prefix: list[str] = []
+        self.veth = veth
 
     def __enter__(self):
+        pair = ""
+        if self.veth:
+            a, b = self.veth
+            pair = (f"ip link add {a} type veth peer name {b} && ip link set {a} up && "
+                    f"ip link set {b} up && ")
         self.proc = subprocess.Popen(
             ["unshare", "-n", "--", "sh", "-c",
-             "ip link set lo up && ip route add 224.0.0.0/4 dev lo && echo ok && exec sleep 600"],
+             "ip link set lo up && ip route add 224.0.0.0/4 dev lo && " + pair + "echo ok && exec sleep 600"],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
         line = self.proc.stdout.readline().strip()
         if line != "ok":

@@ -20,7 +20,7 @@ from conftest import RIGID_PLANT
 from motorctl.app.job import run_job
 from motorctl.config import config_from_dict, load_yaml
 from motorctl_drivers import cia402
-from motorctl_emulators.cia402_device import STATUSWORD, drive_transition
+from motorctl_emulators.cia402_drive import STATUSWORD, drive_transition
 from motorctl_emulators.device import Device
 from harness import device_thread
 from motorctl_emulators.plant_bank import load_plant

@@ -23,7 +23,7 @@ REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("motorctl", "motorctl_drivers", "motorctl_emulators")
 #: device-side names that must not appear in motorctl_drivers (besides any class named *Device)
 EMULATOR_NAMES = {"PlantBank", "StreamEndpoint", "FaultSpec", "EmulatorOptions", "serve_forever"}
-TRANSPORTS = {"can", "serial", "modbus", "canopen"}
+TRANSPORTS = {"can", "serial", "modbus", "canopen", "ethercat"}
 
 
 def imports_of(tree: ast.AST, module: str) -> set[str]:
@@ -87,7 +87,7 @@ def test_wheel_drivers_hold_no_emulator_code(wheel):
     mods = _wheel_modules(wheel, "motorctl_drivers")
     assert {"motorctl_drivers.sim", "motorctl_drivers.can_bus", "motorctl_drivers.serial_link",
             "motorctl_drivers.modbus", "motorctl_drivers.split_phase", "motorctl_drivers.canopen_cia402",
-            "motorctl_drivers.cia402"} <= set(mods), sorted(mods)
+            "motorctl_drivers.cia402", "motorctl_drivers.ethercat"} <= set(mods), sorted(mods)
     for mod, tree in mods.items():
         bad = sorted(m for m in imports_of(tree, mod) if m.split(".")[0] == "motorctl_emulators")
         assert not bad, f"{mod} imports {bad}"
@@ -130,7 +130,7 @@ def test_installed_emulator_entry_points_resolve_to_devices():
     for name in names:
         cls = load_device_class(name)
         assert issubclass(cls, Device) and cls.__module__.startswith("motorctl_emulators.")
-    with pytest.raises(KeyError, match="installed: can, canopen, modbus, serial"):
+    with pytest.raises(KeyError, match="installed: can, canopen, ethercat, modbus, serial"):
         load_device_class("sim")
 
 

@@ -1,0 +1,179 @@
+"""EtherCAT end to end: ``motorctl run`` on pysoem (SOEM, a master nobody here wrote) against the
+emulated segment (``motorctl emulate --transport ethercat``: a CiA 402 drive for X, an EK1100
+coupler and EL5101 / EL4132 / EL2008-type terminals for Y) on a veth pair inside a network
+namespace the test makes (root only). Plus the parts that need no network: the ESC model's
+addressing, working counter, SII checksum and AL state machine; the budget; bad YAML.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import signal
+import struct
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from harness import Emulator, NetNamespace, parse_run_table, run_cli, run_cli_interrupted
+from motorctl_emulators import esc as E
+
+REPO = Path(__file__).resolve().parents[1]
+CONFIG = REPO / "configs" / "gantry-ethercat.yaml"
+PLANT = REPO / "configs" / "gantry.yaml"
+VETH = ("ecm0", "ecm0-slave")
+
+needs_netns = pytest.mark.skipif(os.geteuid() != 0 or shutil.which("unshare") is None or shutil.which("ip") is None,
+                                 reason="needs root, unshare and ip (a network namespace with a veth pair)")
+
+
+def _config(tmp_path: Path, **driver) -> Path:
+    d = yaml.safe_load(CONFIG.read_text())
+    d["loop"]["clock"] = "virtual"        # lockstep with the emulated segment; SM-synchronous
+    d["driver"].update({"ifname": VETH[0], "sync0": False, "watchdog_ms": 200.0, "timeout_s": 0.05, **driver})
+    path = tmp_path / "ethercat.yaml"
+    path.write_text(yaml.safe_dump(d, sort_keys=False))
+    return path
+
+
+def _run(tmp_path, duration_s: float, faults=(), **driver):
+    pytest.importorskip("pysoem")
+    cfg = _config(tmp_path, **driver)
+    with NetNamespace(veth=VETH) as ns, Emulator("ethercat", cfg, plant=PLANT, prefix=ns.prefix,
+                                                 faults=list(faults)) as emu:
+        r = run_cli(["run", str(cfg), "--duration", f"{duration_s:g}"], prefix=ns.prefix, timeout_s=120)
+        err = emu.stderr()
+    return r, err
+
+
+@needs_netns
+def test_soem_brings_the_segment_to_op_and_the_loop_runs_both_profiles(tmp_path):
+    r, err = _run(tmp_path, 1.0)
+    table = parse_run_table(r.stdout)
+    assert r.returncode == 0 and set(table) == {"X", "Y"}, f"{r.stdout}\n{r.stderr}\n{err}"
+    # the paper's program through a CiA 402 drive (per mille torque) and through ±10 V terminals:
+    # the errors of the simulated gantry's first second (X 36.4 um, Y 11.0 um), not a runaway
+    assert 20.0 < table["X"]["e_M_um"] < 60.0 and 5.0 < table["Y"]["e_M_um"] < 20.0, r.stdout
+    assert table["X"]["io_errors"] == 0 and table["Y"]["io_errors"] == 0, r.stdout
+    # the stop is read back from the devices: the drive's statusword and torque, the terminals'
+    # output buffers in the ESC's RAM
+    assert re.search(r"confirmed by the device: X statusword 0x0240 \(Switch on disabled\), torque actual "
+                     r"0x6077 = 0 per mille; Y slave 4 channel 1 holds 0 \(0\.000 V\), slave 5 channel 1 = 0 "
+                     r"\(amplifier off\)", r.stdout), r.stdout
+    assert "1: motorctl CiA402 drive, 2: EK1100" in err and "first command X" in err
+
+
+@needs_netns
+def test_a_short_working_counter_latches_a_fault_that_names_it(tmp_path):
+    # from the 500th process-data frame on, Y's slaves do not count: 9 of 10
+    r, err = _run(tmp_path, 0.6, faults=["corrupt:Y:500:100000"])
+    table = parse_run_table(r.stdout)
+    assert table["X"]["fault"] and table["Y"]["fault"], f"{r.stdout}\n{r.stderr}\n{err}"
+    assert "driver error bucket full" in table["Y"]["fault"], r.stdout
+    assert "drive: EtherCAT working counter 9 of 10" in table["Y"]["fault"], r.stdout
+    # a segment that still does not count fully cannot confirm the stop: said, exit code 3
+    assert r.returncode == 3 and "axis Y: the stop is NOT confirmed by the device: no complete working " \
+        "counter after the stop (last 9 of 10)" in r.stderr, r.stderr
+
+
+@needs_netns
+def test_an_emergency_of_the_drive_latches_its_code_and_meaning(tmp_path):
+    r, err = _run(tmp_path, 0.6, faults=["emcy=0x2310:X:1000"])
+    table = parse_run_table(r.stdout)
+    assert r.returncode == 1 and "amplifier fault" in table["X"]["fault"] and table["Y"]["fault"] == "", \
+        f"{r.stdout}\n{r.stderr}\n{err}"
+    assert "error code 0x603F = 0x2310 continuous over-current" in table["X"]["fault"], r.stdout
+    assert "X: fault 0x2310 continuous over-current (injected)" in err
+
+
+@needs_netns
+def test_the_sm_watchdog_drops_the_outputs_when_the_host_stops(tmp_path):
+    pytest.importorskip("pysoem")
+    cfg = _config(tmp_path, watchdog_ms=20.0)
+    with NetNamespace(veth=VETH) as ns, Emulator("ethercat", cfg, plant=PLANT, prefix=ns.prefix) as emu:
+        def kill(proc):
+            time.sleep(1.0)
+            os.killpg(proc.pid, signal.SIGKILL)
+        run_cli_interrupted(["run", str(cfg), "--duration", "30"], kill, prefix=ns.prefix, timeout_s=60)
+        time.sleep(0.5)
+        out = emu.stop()
+        err = emu.stderr()
+    trips = re.findall(r"slave (\d): SM watchdog, no outputs for 20 ms: outputs 0, SAFE-OP \+ error 0x001B", err)
+    assert sorted(set(trips)) == ["1", "3", "4", "5"], err          # every slave with outputs
+    assert "applied_V {'X': 0.0, 'Y': 0.0}" in out, out
+
+
+@needs_netns
+def test_a_refused_transition_names_the_al_status_code(tmp_path):
+    # SYNC0 at 83 us: the emulated slaves take no cycle under 100 us and refuse SAFE-OP
+    pytest.importorskip("pysoem")
+    cfg = _config(tmp_path, sync0=True, round_trip_s=1e-6)
+    d = yaml.safe_load(cfg.read_text())
+    d["loop"]["rate_hz"] = 12000
+    cfg.write_text(yaml.safe_dump(d, sort_keys=False))
+    with NetNamespace(veth=VETH) as ns, Emulator("ethercat", cfg, plant=PLANT, prefix=ns.prefix):
+        r = run_cli(["run", str(cfg), "--duration", "0.1"], prefix=ns.prefix, timeout_s=60)
+    assert r.returncode != 0 and "Traceback" not in r.stderr, r.stderr
+    assert "SAFE-OP refused" in r.stderr and "AL status code 0x0035" in r.stderr, r.stderr
+
+
+# --------------------------------------------------------------------------- no network
+def _frame(*datagrams) -> bytearray:
+    body = bytearray()
+    for k, (cmd, adp, ado, data) in enumerate(datagrams):
+        more = 0x8000 if k < len(datagrams) - 1 else 0
+        body += struct.pack("<BBHHHH", cmd, k, adp, ado, len(data) | more, 0) + data + b"\x00\x00"
+    return bytearray(struct.pack("<H", len(body) | 0x1000)) + body
+
+
+def _wkcs(frame: bytearray) -> list[int]:
+    out, off = [], 2
+    while off < len(frame):
+        n = struct.unpack_from("<H", frame, off + 6)[0] & 0x7FF
+        out.append(struct.unpack_from("<H", frame, off + 10 + n)[0])
+        off += 12 + n
+    return out
+
+
+def test_the_esc_model_counts_addresses_and_refuses_what_a_slave_refuses():
+    from motorctl_emulators.ethercat_device import _drive_esc, _terminal_esc
+    from motorctl_drivers.ethercat import EL4132, EL5101
+    seg = E.Segment([_drive_esc(1), _terminal_esc(EL5101, 2), _terminal_esc(EL4132, 3)])
+    # BRD counts the slaves; APWR at position 2 (ADP -1 from the master) sets one station address
+    f = _frame((E.BRD, 0, E.REG_TYPE, b"\x00\x00"), (E.APWR, (-1) & 0xFFFF, E.REG_STATION, b"\x02\x10"),
+               (E.FPRD, 0x1002, E.REG_STATION, b"\x00\x00"), (E.FPRD, 0x1009, E.REG_STATION, b"\x00\x00"))
+    assert seg.process(f)
+    assert _wkcs(f) == [3, 1, 1, 0]
+    # the SII the ESC serves through 0x0500: identity and the configuration-area checksum
+    sii = seg.slaves[1].sii
+    assert struct.unpack_from("<II", sii, 0x10) == (0x00000002, EL5101)
+    assert sii[14] == E.crc8_sii(sii[:14])
+    # INIT -> OP is not a transition: AL status keeps INIT with the error bit and code 0x0011
+    f = _frame((E.FPWR, 0x1002, E.REG_AL_CONTROL, b"\x08\x00"), (E.FPRD, 0x1002, E.REG_AL_STATUS, bytes(6)))
+    seg.process(f)
+    status, _r, code = struct.unpack_from("<HHH", f, 2 + 12 + 2 + 10)
+    assert (status, code) == (E.INIT | E.AL_ERROR, E.AL_INVALID_STATE_CHANGE)
+    # PRE-OP without the mailbox sync managers programmed: 0x0016 on the drive
+    f = _frame((E.APWR, 0, E.REG_AL_CONTROL, b"\x12\x00"), (E.APRD, 0, E.REG_AL_STATUS, bytes(6)))
+    seg.process(f)
+    status, _r, code = struct.unpack_from("<HHH", f, 2 + 12 + 2 + 10)
+    assert (status, code) == (E.INIT | E.AL_ERROR, E.AL_INVALID_MAILBOX_CONFIG)
+
+
+def test_check_config_carries_two_axes_at_5_khz_and_says_what_it_costs():
+    r = run_cli(["check-config", str(CONFIG)])
+    assert r.returncode == 0, r.stderr
+    assert "driver ethercat, 5000 Hz" in r.stdout and "EtherCAT, 1 frame of 88 bytes" in r.stdout, r.stdout
+
+
+def test_an_io_axis_without_its_enable_is_a_clear_error(tmp_path):
+    d = yaml.safe_load(CONFIG.read_text())
+    del d["axes"]["Y"]["driver"]["enable"]
+    p = tmp_path / "bad.yaml"
+    p.write_text(yaml.safe_dump(d, sort_keys=False))
+    r = run_cli(["check-config", str(p)])
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert "axes.Y.driver" in r.stderr and "profile io needs enable" in r.stderr, r.stderr
