@@ -1,6 +1,6 @@
 """``motorctl emulate``: the gantry I/O emulator, the device side of a bus driver in its own process.
 
-    motorctl emulate --transport can|canopen|serial|modbus CONFIG [--plant PLANT] [--watchdog S]
+    motorctl emulate --transport can|canopen|ethercat|serial|modbus CONFIG [--plant PLANT] [--watchdog S]
                      [--late S] [--fault KIND[:AXIS[:START[:COUNT]]]] [--duration S] [--priority N]
 
 CONFIG is the driver's own YAML (``driver.type`` must be the ``--transport``): the device
