@@ -9,9 +9,12 @@ YAML (``driver:``)::
 
     type: ethercat
     ifname: enp3s0           # the NIC the segment hangs on (a dedicated port; raw frames)
-    sync0: true              # distributed clocks: SYNC0 at the loop period on every DC slave
-                             # (false: SM-synchronous, the slaves act on each frame; with
-                             # loop.clock virtual use false)
+    sync0: false             # true: distributed clocks, SYNC0 at the loop period on every DC
+                             # slave; false (default): SM-synchronous, each slave acts on the
+                             # frame. The loop is paced by CLOCK_MONOTONIC, not by the DC
+                             # clock, and its phase to SYNC0 is not aligned: a frame that
+                             # reaches a slave near its SYNC0 edge is applied a period early
+                             # or late. Use false with loop.clock virtual.
     watchdog_ms: 10          # SM watchdog (ESC 0x0400/0x0420): no outputs for this long ->
                              # the slaves' outputs to 0 / safe state
     timeout_s, round_trip_s, max_bus_load   # as every bus driver (split_phase.CommonOptions)
@@ -108,7 +111,7 @@ class EthercatOptions(CommonOptions):
     """YAML ``driver:`` of the EtherCAT driver (see the module docstring)."""
 
     ifname: Annotated[str, Field(min_length=1, max_length=15)]
-    sync0: bool = True
+    sync0: bool = False
     watchdog_ms: Annotated[float, Field(ge=0.1, le=6000)] = 10.0
     state_timeout_s: Annotated[float, Field(gt=0, le=30)] = 2.0
 

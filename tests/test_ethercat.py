@@ -166,7 +166,7 @@ def test_the_esc_model_counts_addresses_and_refuses_what_a_slave_refuses():
 def test_check_config_carries_two_axes_at_5_khz_and_says_what_it_costs():
     r = run_cli(["check-config", str(CONFIG)])
     assert r.returncode == 0, r.stderr
-    assert "driver ethercat, 5000 Hz" in r.stdout and "EtherCAT, 1 frame of 88 bytes" in r.stdout, r.stdout
+    assert "driver ethercat, 5000 Hz" in r.stdout and "EtherCAT, 1 frame of 68 bytes" in r.stdout, r.stdout
 
 
 def test_an_io_axis_without_its_enable_is_a_clear_error(tmp_path):
