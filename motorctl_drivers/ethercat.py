@@ -295,7 +295,8 @@ class EthercatDriver(Driver):
         """Scan, check, map, watchdog, DC, SAFE-OP (see the module docstring).
 
         Raises:
-            OSError: pysoem is missing, the interface cannot be opened (needs CAP_NET_RAW), no
+            OSError: pysoem is missing, the interface cannot be opened (needs CAP_NET_RAW and
+            CAP_NET_ADMIN), no
             or too few slaves answer, a slave is not what its role needs, a drive refused its
             mapping, a slave refused SAFE-OP (with its AL status code).
         """
@@ -309,7 +310,8 @@ class EthercatDriver(Driver):
             m.open(o.ifname)
         except Exception as exc:  # noqa: BLE001  (pysoem raises ConnectionError without errno)
             raise OSError(f"EtherCAT interface {o.ifname}: cannot open it for raw frames ({one_line(exc)}); "
-                          f"it must exist and the process needs CAP_NET_RAW") from None
+                          f"it must exist, be up, and the process needs CAP_NET_RAW and CAP_NET_ADMIN "
+                          f"(SOEM sets it promiscuous; systemd/ethercat.conf grants both)") from None
         self.master = m
         self.connected = True
         try:

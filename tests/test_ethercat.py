@@ -12,13 +12,14 @@ import re
 import shutil
 import signal
 import struct
+import subprocess
 import time
 from pathlib import Path
 
 import pytest
 import yaml
 
-from harness import Emulator, NetNamespace, parse_run_table, run_cli, run_cli_interrupted
+from harness import Emulator, NetNamespace, motorctl_cmd, parse_run_table, run_cli, run_cli_interrupted
 from motorctl_emulators import esc as E
 
 REPO = Path(__file__).resolve().parents[1]
@@ -118,6 +119,51 @@ def test_a_refused_transition_names_the_al_status_code(tmp_path):
         r = run_cli(["run", str(cfg), "--duration", "0.1"], prefix=ns.prefix, timeout_s=60)
     assert r.returncode != 0 and "Traceback" not in r.stderr, r.stderr
     assert "SAFE-OP refused" in r.stderr and "AL status code 0x0035" in r.stderr, r.stderr
+
+
+SETPRIV = shutil.which("setpriv")
+
+
+@needs_netns
+@pytest.mark.skipif(SETPRIV is None, reason="needs setpriv (util-linux)")
+def test_the_loop_needs_no_root_only_net_raw_and_net_admin(tmp_path):
+    """As ``nobody`` with CAP_NET_RAW and CAP_NET_ADMIN as ambient capabilities (what
+    systemd/ethercat.conf grants) the run reaches OP and stops confirmed; with CAP_NET_RAW alone
+    it stops at once with a one-line error (SOEM's promiscuous-mode request is refused)."""
+    import sys
+    import tempfile
+    pytest.importorskip("pysoem")
+    work = Path(tempfile.mkdtemp(prefix="motorctl-nobody-"))   # pytest's own tmp is root's only
+    work.chmod(0o777)
+    try:
+        _as_nobody_run(work)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def _as_nobody_run(tmp_path: Path) -> None:
+    import sys
+    cfg = _config(tmp_path)
+    cfg.chmod(0o644)
+    env = ["env", f"NUMBA_CACHE_DIR={tmp_path}/numba", f"HOME={tmp_path}"]
+
+    def as_nobody(caps):
+        return [*env, SETPRIV, "--reuid=65534", "--regid=65534", "--clear-groups",
+                f"--inh-caps={caps}", f"--ambient-caps={caps}"]
+    probe = subprocess.run([*as_nobody("+net_raw"), sys.executable, "-c", "import motorctl, pysoem"],
+                           capture_output=True, text=True, timeout=60)
+    if probe.returncode != 0:
+        pytest.skip(f"nobody cannot run this interpreter here: {probe.stderr.strip()[-200:]}")
+    with NetNamespace(veth=VETH) as ns, Emulator("ethercat", cfg, plant=PLANT, prefix=ns.prefix):
+        argv = ["run", str(cfg), "--duration", "0.3", "--log", str(tmp_path / "run.mlog")]
+        raw_only = subprocess.run([*ns.prefix, *as_nobody("+net_raw"), *motorctl_cmd(*argv)],
+                                  capture_output=True, text=True, timeout=120, cwd=tmp_path)
+        both = subprocess.run([*ns.prefix, *as_nobody("+net_raw,+net_admin"), *motorctl_cmd(*argv)],
+                              capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert raw_only.returncode == 1 and "Traceback" not in raw_only.stderr, raw_only.stderr
+    assert "cannot open it for raw frames" in raw_only.stderr, raw_only.stderr
+    assert both.returncode == 0, both.stdout + both.stderr
+    assert "amplifiers off (confirmed by the device" in both.stdout, both.stdout
 
 
 # --------------------------------------------------------------------------- no network
