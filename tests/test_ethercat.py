@@ -130,7 +130,6 @@ def test_the_loop_needs_no_root_only_net_raw_and_net_admin(tmp_path):
     """As ``nobody`` with CAP_NET_RAW and CAP_NET_ADMIN as ambient capabilities (what
     systemd/ethercat.conf grants) the run reaches OP and stops confirmed; with CAP_NET_RAW alone
     it stops at once with a one-line error (SOEM's promiscuous-mode request is refused)."""
-    import sys
     import tempfile
     pytest.importorskip("pysoem")
     work = Path(tempfile.mkdtemp(prefix="motorctl-nobody-"))   # pytest's own tmp is root's only
