@@ -129,7 +129,7 @@ def build_sii(*, vendor_id: int, product_code: int, revision: int, serial: int, 
     general[3] = 1      # name index: string 1
     general[5] = coe_details
     cat(CAT_GENERAL, bytes(general))
-    fmmu = bytes((1, 2, 3 if mailbox else 0xFF, 0xFF))   # FMMU use: outputs, inputs, mailbox state
+    fmmu = bytes((1, 2, 3 if mailbox else 0, 0))   # FMMU use: outputs, inputs, mailbox state, 0 unused
     cat(CAT_FMMU, fmmu)
     body = b"".join(struct.pack("<HHBBBB", start, length, control, 0, 1, kind)
                     for start, length, control, kind in syncms)

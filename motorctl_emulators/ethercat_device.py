@@ -287,10 +287,10 @@ class CoeDrive(E.SlaveApp):
         if len(data) <= 4:
             cmd = 0x43 | ((4 - len(data)) << 2)
             return self._coe(3, struct.pack("<BHB", cmd, index, sub) + data + bytes(4 - len(data)))
-        room = MBX_SIZE - 6 - 10
-        first, rest = data[:room], data[room:]
-        self.upload = (rest, index, sub) if rest else None
-        return self._coe(3, struct.pack("<BHBI", 0x41, index, sub, len(data)) + first)
+        if len(data) <= MBX_SIZE - 6 - 10:                   # normal: the data in the response
+            return self._coe(3, struct.pack("<BHBI", 0x41, index, sub, len(data)) + data)
+        self.upload = (data, index, sub)                     # segmented: the size, then segments
+        return self._coe(3, struct.pack("<BHBI", 0x41, index, sub, len(data)))
 
     def _upload_segment(self, cmd) -> bytes:
         if self.upload is None:
@@ -517,8 +517,6 @@ class EthercatDevice(Device):
             except BlockingIOError:
                 return
             if len(frame) < 16 or frame[12:14] != b"\x88\xa4":
-                continue
-            if frame[6] & 0x02:                      # an answer (source MAC marked by a slave)
                 continue
             payload = bytearray(frame[14:])
             self._fault_now.clear()
