@@ -237,6 +237,19 @@ class EthercatDriver(Driver):
                           f"0x{exc.abort_code:08X} ({exc.desc})") from None
         return int.from_bytes(raw, "little", signed=signed)
 
+    def _sdo_read_optional(self, pos: int, index: int, what: str) -> int | None:
+        """An object a drive may not have: None (and a notice saying what goes unchecked) when
+        the drive answers "object does not exist" (abort 0x06020000)."""
+        import pysoem
+        try:
+            return int.from_bytes(self.slaves[pos - 1].sdo_read(index, 0), "little")
+        except pysoem.SdoError as exc:
+            if exc.abort_code != 0x06020000:
+                raise OSError(f"{self._where(pos)}: SDO upload 0x{index:04X}:00 refused: abort "
+                              f"0x{exc.abort_code:08X} ({exc.desc})") from None
+            self._notice(f"{self._where(pos)} has no 0x{index:04X}: {what}")
+            return None
+
     def _map_drive(self, pos: int) -> None:
         """PRE-OP → SAFE-OP hook of a drive (called by SOEM's config_map): write the PDO
         mapping and assignment by SDO, modes of operation 10, and read them back."""
@@ -244,8 +257,9 @@ class EthercatDriver(Driver):
         if dtype & 0xFFFF != cia402.PROFILE_402:
             raise OSError(f"{self._where(pos)}: device type 0x1000 = 0x{dtype:08X}, profile {dtype & 0xFFFF}, "
                           f"not a CiA 402 drive")
-        modes = self._sdo_read(pos, cia402.SUPPORTED_MODES)
-        if not modes & cia402.SUPPORTED_CST_BIT:
+        modes = self._sdo_read_optional(pos, cia402.SUPPORTED_MODES, "cyclic synchronous torque is taken as "
+                                        "supported (modes of operation is read back below)")
+        if modes is not None and not modes & cia402.SUPPORTED_CST_BIT:
             raise OSError(f"{self._where(pos)}: supported drive modes 0x6502 = 0x{modes:08X} has no cyclic "
                           f"synchronous torque (bit 9)")
         for assign, pdo, entries in ((RX_ASSIGN, RXPDO, COE_RX_MAP), (TX_ASSIGN, TXPDO, COE_TX_MAP)):
@@ -267,11 +281,12 @@ class EthercatDriver(Driver):
             raise OSError(f"{self._where(pos)}: modes of operation 0x6060 reads {mode}, not 10 (CST)")
         i = next(k for k, o in enumerate(self._ax) if o.profile == "cia402" and o.slave == pos)
         a = self._ax[i]
-        rated = self._sdo_read(pos, cia402.RATED_TORQUE)
-        max_t = self._sdo_read(pos, cia402.MAX_TORQUE)
-        if a.rated_torque is not None and rated != a.rated_torque:
+        rated = self._sdo_read_optional(pos, cia402.RATED_TORQUE, "the V -> per mille scale is taken as configured")
+        max_t = self._sdo_read_optional(pos, cia402.MAX_TORQUE, "full_scale_permille is not checked against the "
+                                        "drive's clip")
+        if a.rated_torque is not None and rated is not None and rated != a.rated_torque:
             raise OSError(f"{self._where(pos)}: rated torque 0x6076 is {rated}, the config says {a.rated_torque}")
-        if a.full_scale_permille > max_t:
+        if max_t is not None and a.full_scale_permille > max_t:
             raise OSError(f"{self._where(pos)}: full_scale_permille {a.full_scale_permille} is above the drive's "
                           f"max torque 0x6072 = {max_t} per mille (the drive would clip)")
         self.slave_info[pos - 1].update(device_type=f"0x{dtype:08X}", rated_torque=rated,
