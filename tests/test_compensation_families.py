@@ -68,7 +68,7 @@ def test_ripple_hook_is_the_plant_fraction():
     comp = Compensation(CompensationSection(force_ripple=fam.compensation_for(sim, A1)))
     plant = fam.plant_term(sim, 2e-4)
     for x in np.linspace(-0.05, 0.45, 37):
-        assert comp.thrust(x) == pytest.approx(plant.thrust(1.0, x) - 1.0, abs=1e-12)
+        assert comp.thrust(x) == pytest.approx(plant.thrust(1.0, x, 0.0) - 1.0, abs=1e-12)
     assert not comp.additive and comp.n_beta == 0 and comp.value(0.1, 0.2, 0.3) == 0.0
 
 

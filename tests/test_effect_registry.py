@@ -39,7 +39,8 @@ ROOT = Path(__file__).resolve().parents[1]
 TS = 2e-4
 A1 = 80.0
 ORDER = ("cogging", "force_ripple", "stribeck", "asymmetric_friction", "position_dependent_friction",
-         "spring", "payload_change", "input_delay", "periodic_disturbance", "position_friction_shape")
+         "spring", "payload_change", "input_delay", "periodic_disturbance", "position_friction_shape",
+         "stiction", "amplifier_dead_zone", "force_constant_drift", "periodic_friction")
 #: (x [m], ẋ [m/s], t [s]) where terms are compared: both directions, slow and fast, ẋ = 0
 POINTS = [(x, v, t) for x in (-0.05, 0.013, 0.2, 0.37) for v in (-0.8, -0.01, 0.0, 0.004, 0.05, 0.8)
           for t in (0.0, 0.41, 2.3)]
@@ -134,8 +135,8 @@ def test_registry_order_names_and_lookup():
         family("nope")
     assert [f.name for f in compensable()] == ["cogging", "spring", "periodic_disturbance", "stribeck",
                                                "asymmetric_friction", "position_dependent_friction",
-                                               "position_friction_shape"]
-    assert {f.name for f in simulated()} == set(ORDER) - {"input_delay"}
+                                               "position_friction_shape", "periodic_friction"]
+    assert {f.name for f in simulated()} == set(ORDER) - {"input_delay", "stiction"}
 
 
 @pytest.mark.parametrize("name", ORDER)
@@ -148,12 +149,17 @@ def test_every_family_is_in_the_sim_schema_and_changes_the_plant(name):
     opt = SimAxisOptions.model_validate({**base, **_driver_fragment(fam)})
     assert fam.sim_config(opt) is not None and fam.sim_config(SimAxisOptions.model_validate(base)) is None
     plants = [AxisPlant(o, TS, np.random.default_rng(0), 4) for o in (opt, SimAxisOptions.model_validate(base))]
+    # stiction (25 N) holds a carriage pushed with 16 N; every other effect shows at 160 N
+    u0 = 0.2 if name == "stiction" else 2.0
     for p in plants:
         p.t = 4.6                      # just before the example payload change (4.65 s)
         for k in range(1000):
-            p.step(2.0 + 0.5 * math.sin(0.01 * k))
+            p.step(u0 + 0.05 * u0 * math.sin(0.01 * k))
     assert abs(plants[0].x - plants[1].x) > 1e-7, name
-    assert plants[0]._plain is False or fam.shifts_input
+    # a thrust, force or mass hook makes the plant leave the compiled plain integrator (an input
+    # transform and the plant core's stiction need none)
+    term = fam.plant_term(fam.sim_config(opt), TS)
+    assert plants[0]._plain is False or term is None or (term.thrust, term.force, term.mass) == (None, None, None)
 
 
 def test_effects_schema_has_exactly_the_simulated_families():
@@ -194,6 +200,8 @@ MATCHING = {
                                     {"coulomb_slope_V_per_m": 0.5, "reference_m": 0.2}),
     "position_friction_shape": ({"bumps": [{"center_m": 0.2, "width_m": 0.3, "amplitude_N": 8.0}]},
                                 {"bumps": [{"center_m": 0.2, "width_m": 0.3, "amplitude_V": 0.1}]}),
+    "periodic_friction": ({"amplitudes_N": [8.0], "period_m": 0.05, "phases_rad": [0.5]},
+                          {"period_m": 0.05, "sin_V": [-8.0 * math.cos(0.5) / A1], "cos_V": [-8.0 * math.sin(0.5) / A1]}),
 }
 
 
@@ -231,7 +239,7 @@ def test_compensation_from_a_fit_is_minus_the_fitted_columns(name):
     from motorctl.ident.effects import compensation
     fam = FAMILIES[name]
     from motorctl.effects.position_friction_shape import knot_grid
-    h = {"cogging": 0.032, "stribeck": 0.05, "periodic_disturbance": 7.3,
+    h = {"cogging": 0.032, "stribeck": 0.05, "periodic_disturbance": 7.3, "periodic_friction": 0.05,
          "position_friction_shape": knot_grid(-0.05, 0.4, 4)}.get(name)
     x, v, t = (np.array(a, dtype=float) for a in zip(*POINTS))
     cols = fam.columns(h, Signals(x, v, np.zeros_like(x), np.zeros_like(x), t))

@@ -90,6 +90,12 @@ CHECKS = {
     "input_delay": lambda p, t: abs(p["delay_s"] - t) <= 1 / 5000.0,
     "position_friction_shape": lambda p, t: (abs(p["extremum_position_m"] - t["bumps"][0]["center_m"]) < 0.01
                                              and abs(p["peak_to_peak_N"] / t["bumps"][0]["amplitude_N"] - 1) < 0.15),
+    "stiction": lambda p, t: abs(p["held_share"] - 1) < 0.15,
+    "amplifier_dead_zone": lambda p, t: (abs(p["dead_zone_V"] / t["dead_zone_V"] - 1) < 0.15
+                                         and abs(p["offset_V"] - t["offset_V"]) < 0.01),
+    "force_constant_drift": lambda p, t: abs(p["drift_per_s"] / t["drift_per_s"] - 1) < 0.1,
+    "periodic_friction": lambda p, t: (abs(p["period_m"] / t["period_m"] - 1) < 0.02
+                                       and abs(p["amplitudes_N"][0] / t["amplitudes_N"][0] - 1) < 0.1),
 }
 
 

@@ -23,6 +23,9 @@ that nothing is left on.
 from __future__ import annotations
 
 import copy
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from motorctl.config import LoadedConfig, config_from_dict
@@ -54,9 +57,18 @@ def effects_on(loaded: LoadedConfig, axis: str) -> list[str]:
     return [name for name, fam in FAMILIES.items() if fam.sim_config(opts) is not None]
 
 
+def removable() -> list:
+    """The families a compensation can remove (:attr:`~motorctl.effects.base.EffectFamily.has_compensation`),
+    in registry order: those :func:`effect_free` switches off. A family that is identified and
+    reported only (a mass step, stiction, a dead-zone, a gain drift) stays on in the floor: the
+    floor is the best a compensation can do on that plant."""
+    return [f for f in FAMILIES.values() if f.has_compensation]
+
+
 def effect_free(cfg: dict, source: str = "<effect-free config>") -> dict:
-    """A copy of the sim-driver config dict ``cfg`` with every effect family switched off on
-    every axis; everything else (plant, force noise, seed, controllers, programs) unchanged.
+    """A copy of the sim-driver config dict ``cfg`` with every effect family a compensation can
+    remove (:func:`removable`) switched off on every axis; everything else (plant, force noise,
+    seed, controllers, programs, the effects no compensation removes) unchanged.
 
     Args:
         cfg: a config dict (parsed YAML) of the sim driver. source: its name in errors.
@@ -73,7 +85,7 @@ def effect_free(cfg: dict, source: str = "<effect-free config>") -> dict:
         if not isinstance(drv, dict):
             continue
         effects = drv.get("effects")
-        for fam in FAMILIES.values():
+        for fam in removable():
             if fam.sim_options is not None:
                 if isinstance(effects, dict):
                     effects.pop(fam.name, None)
@@ -87,7 +99,7 @@ def effect_free(cfg: dict, source: str = "<effect-free config>") -> dict:
         raise ValueError(f"{source}: driver {loaded.cfg.driver.type!r} has no simulated plant to switch "
                          f"effects off in (driver type {SIM_DRIVER!r} only)")
     for a in loaded.axes:
-        left = effects_on(loaded, a)
+        left = [n for n in effects_on(loaded, a) if FAMILIES[n].has_compensation]
         if left:
             raise ValueError(f"{source}: axes.{a}.driver: {', '.join(left)} still on after removing "
                              f"its effects entry and the keys of its example")
@@ -115,9 +127,6 @@ def closed_loop(idf, cfg: dict, axis: str, duration_s: float) -> dict | None:
         {"before": {...}, "after": {...}, "compensation": {...}} with e_M_um, e_F_um, L2_um, or
         None when no found effect maps to a compensation term.
     """
-    import copy
-
-    from motorctl.app.job import run_job
     from motorctl.ident.pipeline import compensation_from_fit, set_theta0
     comp, theta_aug, _skipped = compensation_from_fit(idf)
     if not comp:
@@ -135,21 +144,38 @@ def closed_loop(idf, cfg: dict, axis: str, duration_s: float) -> dict | None:
     # the emitted references) with the compensation
     set_theta0(base["axes"][axis]["controller"], idf.nominal.fit.coef[:idf.n_theta])
     set_theta0(after["axes"][axis]["controller"], theta_aug)
-    res = {}
-    for name, d in (("before", base), ("after", after)):
-        loaded = config_from_dict(d, f"<identify closed loop: {name}>")
-        r = run_job(loaded, duration_s=duration_s, clock="virtual").axes[axis]
-        res[name] = {k: float(r[k]) for k in ("e_M_um", "e_F_um", "L2_um", "u_peak_V")}
-        res[name]["fault"] = r["fault"]
+    res = dict(zip(("before", "after"), _run_pair([(base, "before"), (after, "after")], axis, duration_s)))
     res["compensation"] = comp
     res["controller"] = "c2"
     res["duration_s"] = duration_s
     return res
 
 
+def _closed_loop_run(args) -> dict:
+    """One virtual-clock run of :func:`closed_loop`: (config dict, name, axis, duration [s]) ->
+    e_M_um, e_F_um, L2_um, u_peak_V, fault."""
+    from motorctl.app.job import run_job
+    d, name, axis, duration_s = args
+    loaded = config_from_dict(d, f"<identify closed loop: {name}>")
+    r = run_job(loaded, duration_s=duration_s, clock="virtual").axes[axis]
+    out = {k: float(r[k]) for k in ("e_M_um", "e_F_um", "L2_um", "u_peak_V")}
+    out["fault"] = r["fault"]
+    return out
+
+
+def _run_pair(configs: list, axis: str, duration_s: float) -> list[dict]:
+    """The runs of ``configs`` [(dict, name)], side by side in forked processes where the
+    machine has the cores (each run is deterministic: the same figures either way)."""
+    jobs = [(d, name, axis, duration_s) for d, name in configs]
+    if (os.cpu_count() or 1) < 2 or "fork" not in multiprocessing.get_all_start_methods():
+        return [_closed_loop_run(j) for j in jobs]
+    with ProcessPoolExecutor(max_workers=len(jobs), mp_context=multiprocessing.get_context("fork")) as ex:
+        return list(ex.map(_closed_loop_run, jobs))
+
+
 def make_log(path: str, effect: dict | None = None, duration_s: float = 8.0, seed: int = 1,
-             axis: str = "X", noise_N: float = 1.0, compensation: dict | None = None,
-             trajectory: dict | None = None):
+             axis: str = "X", noise_N: float | None = 1.0, compensation: dict | None = None,
+             trajectory: dict | None = None, base=None):
     """Run the simulated axis of :func:`motorctl.ident.synth.gantry_dict` (C2, virtual clock)
     and write the run log to ``path`` (arguments as ``gantry_dict``): the synthetic logs of the
     identification's tests and benchmarks.
@@ -159,7 +185,7 @@ def make_log(path: str, effect: dict | None = None, duration_s: float = 8.0, see
     """
     from motorctl.app.job import run_job
     from motorctl.ident.synth import gantry_dict
-    loaded = config_from_dict(gantry_dict(axis, effect, seed, noise_N, compensation, trajectory),
+    loaded = config_from_dict(gantry_dict(axis, effect, seed, noise_N, compensation, trajectory, base),
                               f"<synthetic {axis}>")
     return run_job(loaded, duration_s=duration_s, clock="virtual", log_path=str(path))
 
@@ -227,7 +253,8 @@ def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None =
            "duration_s": duration, "out": str(out), "files": {}, "faults": {}, "effects": [],
            "compensation": {}, "not_compensable": [], "kept": [], "dropped": {}, "verdict": None,
            "stopped": None, "compare": None,
-           "floor_effects_off": effects_on(loaded, axis) if floor_cfg is not None else None,
+           "floor_effects_off": ([n for n in effects_on(loaded, axis) if FAMILIES[n].has_compensation]
+                                 if floor_cfg is not None else None),
            "damage_removed": None, "e_M_not_worse": None, "figures": []}
 
     def run(step: str, cfg) -> bool:

@@ -19,11 +19,19 @@ spring                          −k (x − x_0)                         x
 payload_change                  Δm ẍ from t_c on (mass step)         ẍ·[t ≥ t_c]
 input_delay                     u acts τ later                       target u(t − τ) instead of u
 periodic_disturbance            A sin(2πft + φ)                      sin, cos(2πft)
+position_friction_shape         −g(x) S_f(ẋ), g a cubic spline       B_j(x)·S_f(ẋ)
+stiction                        holds A1 u + F_0 at rest (Karnopp)   u·w(ẋ), w(ẋ) = exp(−(ẋ/h)²)
+amplifier_dead_zone             −A1 (clip(u + o, −d, d) − o)         clip(u, −d, d), [|u| < d]
+force_constant_drift            κ t A1 f_u(u)                        f_u(u)·(t − t̄)
+periodic_friction               −Σ A_k sin(2πkx/P + φ_k) S_f(ẋ)      sin, cos(2πkx/P)·S_f(ẋ)
 ==============================  ===================================  ======================
 
 F_eff = −A1·Cβ; x_ref, x_0 are absorbed by θ3, θ4 (only the slope/stiffness is identifiable).
 Compensable (additive in (x_d, ẋ_d, t)): cogging, stribeck, asymmetric_friction,
-position_dependent_friction, spring, periodic_disturbance.
+position_dependent_friction, spring, periodic_disturbance, position_friction_shape,
+periodic_friction; through a hook: force_ripple, input_delay. Identified and reported only:
+payload_change, stiction, amplifier_dead_zone, force_constant_drift (a mass, a holding force, a
+static input nonlinearity and a gain drift: no additive term in (x_d, ẋ_d, t) cancels them).
 
 The order of :data:`FAMILIES` is fixed: it is the order of the identification's candidates and
 of the plant's force terms (float sums: do not reorder existing entries).
@@ -39,15 +47,19 @@ from __future__ import annotations
 from pydantic import create_model
 
 from motorctl.effects import (
+    amplifier_dead_zone,
     asymmetric_friction,
     cogging,
+    force_constant_drift,
     force_ripple,
     input_delay,
     payload_change,
     periodic_disturbance,
+    periodic_friction,
     position_dependent_friction,
     position_friction_shape,
     spring,
+    stiction,
     stribeck,
 )
 from motorctl.effects.base import EffectFamily, PlantTerm, Signals
@@ -56,7 +68,8 @@ from motorctl.schema import StrictModel
 #: name -> family, in the fixed order described in the module docstring.
 FAMILIES: dict[str, EffectFamily] = {m.FAMILY.name: m.FAMILY for m in (
     cogging, force_ripple, stribeck, asymmetric_friction, position_dependent_friction, spring,
-    payload_change, input_delay, periodic_disturbance, position_friction_shape)}
+    payload_change, input_delay, periodic_disturbance, position_friction_shape, stiction,
+    amplifier_dead_zone, force_constant_drift, periodic_friction)}
 
 
 def family(name: str) -> EffectFamily:

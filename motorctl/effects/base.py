@@ -61,7 +61,8 @@ class PlantTerm:
     A hook is None when the effect has no such part. :class:`motorctl_drivers.sim.AxisPlant`
     calls the hooks of all active effects in registry order, inside every RK4 stage:
 
-    * ``thrust(fm, x) -> fm'``: the motor force F_m(u) [N] at position x [m], modified (ripple);
+    * ``thrust(fm, x, t) -> fm'``: the motor force F_m(u) [N] at position x [m] and plant time
+      t [s], modified (ripple, a drifting force constant);
     * ``force(f, x, v, t, sf) -> f + F_eff``: adds the effect's force [N] at position x [m],
       velocity v [m/s], plant time t [s]; ``sf`` = S_f(v) (already computed by the plant);
     * ``mass(m, t) -> m'``: the moving mass [kg] at plant time t [s];
@@ -267,6 +268,10 @@ class EffectFamily:
     #: options of :attr:`example` that set the effect's size besides those in force units
     #: (what ``benchmarks/tune_families.py`` scales; e.g. a delay)
     size_options: ClassVar[tuple[str, ...]] = ()
+    #: families whose force looks alike in tracking data (stiction and an amplifier dead-zone
+    #: both hold the carriage at small input): when one of them is selected and the other
+    #: explains nearly as much, the report says the record cannot tell them apart
+    look_alike: ClassVar[tuple[str, ...]] = ()
 
     def __repr__(self) -> str:
         return f"<effect family {self.name}>"

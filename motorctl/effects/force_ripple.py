@@ -73,7 +73,7 @@ class ForceRippleFamily(PositionPeriodic):
         harm = tuple((r, 2 * math.pi * (k + 1) / o.period_m, ph[k]) for k, r in enumerate(o.fractions))
         sin = math.sin
 
-        def thrust(fm, x):
+        def thrust(fm, x, t):
             r = 0.0
             for amp, w, phi in harm:
                 r += amp * sin(w * x + phi)

@@ -170,7 +170,7 @@ def ls(phi: np.ndarray, target: np.ndarray) -> LSFit:
     Args:
         phi: (M, p). target: (M,).
     """
-    coef, *_ = np.linalg.lstsq(phi, target, rcond=None)
+    coef, _, _, sv = np.linalg.lstsq(phi, target, rcond=None)
     r = target - phi @ coef
     m, k = phi.shape
     s2 = float(r @ r) / max(m - k, 1)
@@ -179,7 +179,9 @@ def ls(phi: np.ndarray, target: np.ndarray) -> LSFit:
         std = np.sqrt(np.abs(np.diag(cov)))
     except np.linalg.LinAlgError:
         std = np.full(k, np.inf)
-    return LSFit(coef=coef, std=std, residual=r, cond=float(np.linalg.cond(phi)))
+    # the 2-norm condition number from the singular values lstsq computed (as numpy.linalg.cond)
+    cond = float(sv[0] / sv[-1]) if sv.size and sv[-1] > 0 else float("inf")
+    return LSFit(coef=coef, std=std, residual=r, cond=cond)
 
 
 def choose_n_theta(u: np.ndarray, forced: int | None = None) -> tuple[int, str]:

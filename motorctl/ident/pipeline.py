@@ -69,6 +69,8 @@ def summarise(idf: Identifier) -> dict:
             "parameters": fx.parameters(term.family, term.h, beta, rec.gain, idf.p.fs),
             "heldout_rms_before": g * before,
             "heldout_rms_after": g * ev.heldout_rms,
+            "heldout_gain_percent": 100 * ev.gain,
+            "cannot_be_told_from": [{"name": n, "heldout_gain_percent": 100 * gn} for n, gn in ev.rivals],
         })
     out["effects"] = effects
     out["augmented"] = {"theta": [float(v) for v in th], "residual_rms": g * idf.final.fit.rms,
@@ -293,6 +295,10 @@ def text_report(s: dict) -> str:
     for e in s["effects"]:
         lines.append(f"effect found: {e['name']}: " + ", ".join(f"{k} {v}" for k, v in e["parameters"].items()))
         lines.append(f"  held-out RMS {e['heldout_rms_before']:.4g} -> {e['heldout_rms_after']:.4g} {u}")
+        for r in e.get("cannot_be_told_from", []):
+            lines.append(f"  NOTE: this record cannot tell it from {r['name']} (held-out gain "
+                         f"{e['heldout_gain_percent']:.1f} % against {r['heldout_gain_percent']:.1f} %): "
+                         f"both are named as possible; a slow constant-speed move or a breakaway test separates them")
     a = s["augmented"]
     lines.append(f"augmented model: residual RMS {a['residual_rms']:.4g} {u}, held-out RMS {a['heldout_rms']:.4g} {u}")
     if s.get("residual"):

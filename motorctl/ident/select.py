@@ -9,13 +9,18 @@ with the nominal θ, is accepted only when all three agree:
 2. information criterion: BIC = M ln(SSE/M) + k ln M drops by at least :data:`MIN_BIC_DROP`
    (k counts the columns and the searched parameter);
 3. plausibility: the effect's coefficients are significant (Wald statistic per column ≥
-   :data:`MIN_WALD`), its parameters are inside their physical range (searched parameter not at
+   :data:`MIN_WALD`), its force is of a physical size worth naming (the 99th percentile of
+   |A1·Cβ| at least :data:`MIN_SIZE_SHARE` of the RMS input force and, when the gain A1 is known,
+   :data:`MIN_SIZE_N`), its parameters are inside their physical range (searched parameter not at
    the edge of its grid, amplitudes below half the input range, a position-periodic force the
    same in both directions of motion, ...), and the nominal θ stay physical (θ1 > 0, θ2, θ3
    not significantly negative).
 
 Accepted effects are added one at a time (the best held-out gain first) and everything is
-re-fitted, until no candidate passes.
+re-fitted, until no candidate passes. When a passing candidate of a family that looks alike
+(:attr:`~motorctl.effects.base.EffectFamily.look_alike`) gains at least :data:`LOOK_ALIKE_SHARE`
+of the selected one's held-out gain, the selected effect carries it in ``rivals``: the record
+cannot tell the two apart, and the report says so instead of naming one with confidence.
 
 The candidate families come from the registry :data:`motorctl.effects.FAMILIES`; each family's
 columns, search over its parameter and its own plausibility checks are in its module
@@ -27,6 +32,8 @@ columns, search over its parameter and its own plausibility checks are in its mo
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,6 +49,18 @@ MIN_HELDOUT_GAIN = 0.03
 MIN_BIC_DROP = 10.0
 MIN_WALD = 25.0
 MAX_EFFECTS = 3
+#: least size of an effect's force (99th percentile of |Cβ|) as a share of the RMS input [-]
+MIN_SIZE_SHARE = 0.01
+#: least size of an effect's force when the gain A1 is known [N]
+MIN_SIZE_N = 0.5
+#: a look-alike candidate within this share of the selected effect's held-out gain is a rival
+LOOK_ALIKE_SHARE = 0.7
+#: threads searching the families of one selection step (each family's search is independent
+#: of the others' and its numpy/scipy work releases the GIL, so the result does not depend on it)
+SEARCH_THREADS = min(2, os.cpu_count() or 1)
+#: decimated candidate columns kept per selection (about M·k·8 bytes each: 160 kB for a 20 s,
+#: 5 kHz record with 4 columns)
+COLS_CACHE_MAX = 1024
 FRICTION_SHAPES = ("sf", "sign")
 #: delays searched for the zero-order hold of a CSV/MAT record [samples]
 HOLD_GRID = np.arange(0.0, 1.5 + 1e-9, 0.05)
@@ -71,6 +90,8 @@ class Evaluated:
     bic: float
     ok: bool = False
     reasons: list = field(default_factory=list)
+    #: (family, held-out gain) of look-alike candidates nearly as good (the record cannot tell)
+    rivals: list = field(default_factory=list)
 
 
 class Identifier:
@@ -113,6 +134,7 @@ class Identifier:
         self.fold = assign[blk]
         self.m = m
         self._phi_cache = {}
+        self._cols_cache = {}
         #: in a motorctl run log u_k is written after y_k is read and held over the period (ZOH):
         #: seen from the central-difference acceleration at t_k it acts half a sample late
         #: (u_{k-1}, u_k weigh equally). Other files: timing unknown, 0 unless told.
@@ -188,9 +210,19 @@ class Identifier:
         return Evaluated(term=terms[-1] if terms else None, heldout_rms=self.heldout(phi, y), fit=fit, bic=bic)
 
     def dec_cols(self, family: str, h) -> np.ndarray | None:
-        """Decimated columns (M, k) of ``family`` at h (None when it adds no columns)."""
-        c = effect_family(family).columns(h, self.p)
-        return None if c is None else self.p.dec(c)
+        """Decimated columns (M, k) of ``family`` at h (None when it adds no columns).
+
+        Cached per (family, h) for one selection (:meth:`_select` clears it): the later steps
+        search the same grids again with another base, and decimating full-rate columns is
+        most of identify's time. Read-only: callers never modify the array."""
+        key = (family, _h_key(h))
+        c = self._cols_cache.get(key)
+        if c is None:
+            full = effect_family(family).columns(h, self.p)
+            c = False if full is None else self.p.dec(full)
+            if len(self._cols_cache) < COLS_CACHE_MAX:
+                self._cols_cache[key] = c
+        return None if c is False else c
 
     def best_delay(self, grid) -> float:
         """The input delay [samples] in ``grid`` (K,) minimising the nominal model's SSE."""
@@ -291,6 +323,15 @@ class Identifier:
             contrib = term.cols @ beta
             u_range = float(np.percentile(np.abs(self.p.u_d), 99))
             fam = effect_family(term.family)
+            size = float(np.percentile(np.abs(contrib), 99))
+            u_rms = float(np.sqrt(np.mean(self.p.u_d ** 2)))
+            g = self.rec.gain
+            ev.size = size
+            if size < MIN_SIZE_SHARE * u_rms:
+                reasons.append(f"too small to name: its force ({_force(size, g)}) is below "
+                               f"{100 * MIN_SIZE_SHARE:g} % of the RMS input ({_force(u_rms, g)})")
+            elif g and g * size < MIN_SIZE_N:
+                reasons.append(f"too small to name: its force ({_force(size, g)}) is below {MIN_SIZE_N:g} N")
             if np.max(np.abs(contrib)) > 0.5 * u_range and fam.force_bounded_by_input:
                 reasons.append("effect larger than half the input range")
             reasons += fam.plausible(self, term, beta, th, base)
@@ -364,6 +405,7 @@ class Identifier:
         return self
 
     def _select(self, nominal: Evaluated, max_effects: int) -> "Identifier":
+        self._cols_cache.clear()          # the thrust shape p.fu (ripple, drift columns) changes
         if self.n_theta == 6:   # thrust shape f_u(u) = u + θ5 u|u| + θ6 u³ for the ripple family
             th = nominal.fit.coef
             self.p.fu = f_u(self.p.u, th[4], th[5])
@@ -371,26 +413,31 @@ class Identifier:
         current = nominal
         steps = []
         accepted = []
+        pool = ThreadPoolExecutor(max_workers=SEARCH_THREADS) if SEARCH_THREADS > 1 else None
         for _ in range(max_effects):
             residual = current.fit.residual
-            cands = []
-            for fam in self.families:
-                if any(t.family == fam for t in base):
-                    continue
-                if effect_family(fam).shifts_input and any(t.delay for t in base):
-                    continue
+            todo = [fam for fam in self.families
+                    if not any(t.family == fam for t in base)
+                    and not (effect_family(fam).shifts_input and any(t.delay for t in base))]
+
+            def one(fam, base=base, residual=residual, current=current):
                 ev = self.search(fam, base, residual)
-                if ev is None:
-                    continue
-                cands.append(self.judge(ev, current, base))
+                return None if ev is None else self.judge(ev, current, base)
+            found = list(pool.map(one, todo)) if pool else [one(f) for f in todo]
+            cands = [c for c in found if c is not None]
             steps.append(cands)
             good = [c for c in cands if c.ok]
             if not good:
                 break
             best = max(good, key=lambda c: c.gain)
+            alike = effect_family(best.term.family).look_alike
+            best.rivals = [(c.term.family, c.gain) for c in good
+                           if c.term.family in alike and c.gain >= LOOK_ALIKE_SHARE * best.gain]
             accepted.append((best, current.heldout_rms))
             base = base + [best.term]
             current = best
+        if pool:
+            pool.shutdown()
         self.nominal, self.final, self.terms, self.steps, self.accepted = nominal, current, base, steps, accepted
         return self
 
@@ -418,6 +465,20 @@ class Identifier:
         phi, y = other.design(new_terms)
         coef = np.concatenate([th] + [b for b in betas])
         return y - phi @ coef
+
+
+def _h_key(h):
+    """A hashable key of a searched value h: a float, None, or a float subclass carrying the
+    basis in its attributes (position_friction_shape's knot grid)."""
+    if h is None:
+        return None
+    extra = tuple(sorted(vars(h).items())) if hasattr(h, "__dict__") else ()
+    return (type(h).__name__, float(h), extra)
+
+
+def _force(v: float, gain: float | None) -> str:
+    """An input-unit size v [V] as text: in N when the gain [N/V] is known."""
+    return f"{v * gain:.3g} N" if gain else f"{v:.3g} V"
 
 
 def _cov(phi: np.ndarray, residual: np.ndarray) -> np.ndarray:

@@ -25,25 +25,31 @@ GANTRY = _CONFIGS / "gantry-rigid.yaml" if (_CONFIGS / "gantry-rigid.yaml").is_f
 EXAMPLES = {name: copy.deepcopy(fam.example) for name, fam in FAMILIES.items()}
 
 
-def gantry_dict(axis: str = "X", effect: dict | None = None, seed: int = 1, noise_N: float = 1.0,
-                compensation: dict | None = None, trajectory: dict | None = None) -> dict:
+def gantry_dict(axis: str = "X", effect: dict | None = None, seed: int = 1, noise_N: float | None = 1.0,
+                compensation: dict | None = None, trajectory: dict | None = None,
+                base: str | Path | None = None) -> dict:
     """Config dict of one gantry axis with ``effect`` on the plant (undeclared to the controller).
 
     Args:
         axis: 'X' or 'Y'. effect: {"cogging": {...}} (an entry of ``effects:``, a key naming a
             family with simulator options) or {"input_delay_s": τ} (any other key: an axis-level
-            driver option). seed: driver seed. noise_N: plant force noise std [N].
+            driver option). seed: driver seed. noise_N: plant force noise std [N] (None: the
+            config's own).
         compensation: the controller's ``compensation`` dict (None: none).
         trajectory: keys of the axis's ``trajectory:`` section to override (e.g. a gentler
             ``a_max``; None: the config's program).
+        base: the sim-driver config file the axis comes from (default :data:`GANTRY`, the
+            rigid plant; e.g. ``configs/gantry.yaml`` for the default plant with its mode,
+            current loop, noise and stiction).
     """
-    d = copy.deepcopy(load_yaml(str(GANTRY)))
+    d = copy.deepcopy(load_yaml(str(base or GANTRY)))
     d["axes"] = {axis: d["axes"][axis]}
     d["loop"]["clock"] = "virtual"
     d["loop"]["realtime"]["policy"] = "off"
     d["driver"]["seed"] = int(seed)
     drv = d["axes"][axis]["driver"]
-    drv["force_noise_N"] = float(noise_N)
+    if noise_N is not None:
+        drv["force_noise_N"] = float(noise_N)
     # an undeclared effect can raise the tracking error well above the production limits:
     # widen the following-error window so the supervisor does not cut the record short
     lim = d["axes"][axis]["limits"]

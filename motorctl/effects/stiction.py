@@ -1,0 +1,100 @@
+"""Stiction: a carriage at rest stays at rest until the applied force exceeds the breakaway force
+(static friction above the Coulomb level; linear guides typically 1.1-1.5 × Coulomb).
+
+Physical model (Karnopp): while |ẋ| is below a small band and |F_applied| ≤ F_s the carriage
+does not move, whatever the input; the friction then holds exactly the applied force. Seen from
+the nominal model (eq. 4: ẍ = 0 at rest, S_f(0) = 0) the input at rest is unexplained:
+
+    F_eff = −w(ẋ)·(A1 u + F_0)        with w(ẋ) ≈ 1 at rest, 0 in motion                  [N]
+
+Simulator: the plant's own Karnopp stiction, ``axes.NAME.driver.stiction_N`` (it needs the total
+force at rest, which no :class:`~motorctl.effects.base.PlantTerm` hook sees, so it lives in
+:class:`motorctl_drivers.sim.AxisPlant`; this family only switches it on). Identification:
+columns u·w(ẋ), w(ẋ) with w(ẋ) = exp(−(ẋ/h)²), the band h searched on a log grid from 0.01 mm/s
+to 20 mm/s; β1 is the share of the input held at rest (1: fully held), β2 the constant it holds
+against. Plausible when β1 is near 1 and the largest force held at rest (99th percentile of
+|Cβ|) reaches half the Coulomb level θ3 (a record need not push to the breakaway).
+Not compensable here: stiction is fought with the robust feedback (or a dither / breakaway kick
+that needs the law's own output), not with an additive term in (x_d, ẋ_d, t).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import numpy as np
+
+from motorctl.effects.base import EffectFamily
+from motorctl.effects.stribeck import velocity_grid
+
+#: searched velocity band h [m/s]
+BAND_GRID = np.exp(np.linspace(math.log(1e-5), math.log(2e-2), 23))
+#: plausible share of the input held at rest (β1)
+HELD_RANGE = (0.7, 1.3)
+#: the largest input held at rest must reach this share of the Coulomb level θ3 (static
+#: friction is at least the kinetic one; a record may not push to the breakaway)
+MIN_HELD_COULOMB = 0.5
+
+
+def weight(v: np.ndarray, h: float) -> np.ndarray:
+    """w(ẋ) = exp(−(ẋ/h)²) (N,): 1 at rest, 0 in motion; v [m/s], h [m/s]."""
+    return np.exp(-(v / h) ** 2)
+
+
+class StictionFamily(EffectFamily):
+    name = "stiction"
+    plant_force = "holds the applied force at rest up to F_s (Karnopp)"
+    searched = "velocity band h [m/s]"
+    example: ClassVar[dict] = {"stiction_N": 25.0}
+    look_alike: ClassVar[tuple[str, ...]] = ("amplifier_dead_zone",)
+
+    # simulator: the plant core's Karnopp stiction (axis-level option, no hook)
+    def sim_config(self, axis_options):
+        return axis_options if getattr(axis_options, "stiction_N", 0.0) > 0.0 else None
+
+    def plant_term(self, options, period_s):
+        return None
+
+    # identification
+    def columns(self, h, p):
+        """u·w(ẋ), w(ẋ), (N, 2); h: the velocity band [m/s] of w(ẋ) = exp(−(ẋ/h)²)."""
+        w = weight(p.v, h)
+        return np.column_stack([p.u * w, w])
+
+    def search(self, ctx, base, residual):
+        p = ctx.p
+        if np.mean(np.abs(p.v_d) < 2e-3) < 0.01:      # never at rest: nothing to see
+            return None
+        term, sses = ctx.best_over(self.name, BAND_GRID, base)
+        i = int(np.argmin(sses))
+        if i in (0, len(BAND_GRID) - 1):
+            return term, f"velocity band {term.h:.3g} m/s at the edge of the searched range"
+        fine = np.exp(np.linspace(math.log(BAND_GRID[i - 1]), math.log(BAND_GRID[i + 1]), 7))
+        term, _ = ctx.best_over(self.name, fine, base)
+        return term, None
+
+    def plausible(self, ctx, term, beta, theta, base):
+        lo, hi = HELD_RANGE
+        out = []
+        if not lo <= beta[0] <= hi:
+            out.append(f"share of the input held at rest {beta[0]:.2f} outside [{lo:g}, {hi:g}] "
+                       "(stiction holds what is applied, no more)")
+        held = float(np.percentile(np.abs(term.cols @ beta), 99))   # decimated, as the fit sees it
+        if held < MIN_HELD_COULOMB * theta[2]:
+            out.append(f"holds at most {held:.3g} V at rest, below {MIN_HELD_COULOMB:g} x the Coulomb level "
+                       f"theta3 {theta[2]:.3g} V: a static friction holds at least about that much")
+        return out
+
+    def parameters(self, h, beta, gain, fs):
+        return {"velocity_band_m_per_s": float(h), "held_share": float(beta[0])}
+
+    # report
+    def shape(self, ctx, h, beta, gain):
+        vs = velocity_grid(ctx)
+        vs = vs[np.abs(vs) <= 5 * h] if np.sum(np.abs(vs) <= 5 * h) > 10 else vs
+        y = beta[0] * weight(vs, h)
+        return vs, y, "velocity [m/s]", "share of the input held [-]"
+
+
+FAMILY = StictionFamily()
