@@ -1,14 +1,18 @@
-"""``motorctl tune`` on every effect family of the registry, on the paper's rigid gantry.
+"""``motorctl tune`` on every effect family of the registry, on the paper's rigid gantry or on
+the default plant.
 
 Rerun:
     python benchmarks/tune_families.py                       # all families, 16 s runs, X axis
+    python benchmarks/tune_families.py --config configs/gantry.yaml   # the default plant
     python benchmarks/tune_families.py --family spring --duration 8 --out /tmp/tf
 
 For each family of :data:`motorctl.effects.FAMILIES`, in registry order:
 
 * **not compensable** (``fam.has_compensation`` false): listed as such, nothing run;
 * **compensable**: the simulated X axis of ``configs/gantry-rigid.yaml`` (C2 with the paper's
-  gains, virtual clock, 1 N force noise, seed 1; :func:`motorctl.ident.synth.gantry_dict`) with
+  gains, virtual clock, 1 N force noise, seed 1; :func:`motorctl.ident.synth.gantry_dict`), or of
+  ``--config`` with its own plant and force noise (``configs/gantry.yaml``: structural mode,
+  current loop, encoder noise, stiction), with
   the family's ``example`` on the plant, undeclared to the controller, written to
   DIR/<family>/config.yaml; then tune's pipeline (:func:`motorctl.cli.tune.tune`): the before
   run (C2 alone), identify, DIR/<family>/tuned.yaml, the after run (C2 + the found
@@ -86,7 +90,7 @@ def size_text(fragment: dict) -> str:
 
 
 def size_for(name: str, fam, out: Path, duration_s: float, floor_log: Path, axis: str = "X",
-             trajectory: dict | None = None):
+             trajectory: dict | None = None, base=None):
     """The smallest size on the ladder example × STEP^n (n from −12 to 12: ×1/16 … ×16) at which C2
     alone is ≥ MIN_DAMAGE_RATIO × the floor in L2[e] over the compared periods (C2-alone runs
     only): up from the example while below, down from it while the next smaller size still is.
@@ -101,8 +105,8 @@ def size_for(name: str, fam, out: Path, duration_s: float, floor_log: Path, axis
         fragment, can_scale = scaled(fam.example, STEP ** n, fam.size_options)
         log = out / name / f"c2_alone_x{STEP ** n:.3g}.mclog"
         log.parent.mkdir(parents=True, exist_ok=True)
-        make_log(str(log), fragment, duration_s=duration_s, seed=1, axis=axis, noise_N=1.0,
-                 trajectory=trajectory)
+        make_log(str(log), fragment, duration_s=duration_s, seed=1, axis=axis, noise_N=_noise(base),
+                 trajectory=trajectory, base=base)
         return compare_logs(str(floor_log), str(log), [axis])["axes"][axis]["ratio"]["L2_um"], fragment, can_scale
 
     n = 0
@@ -122,8 +126,14 @@ def size_for(name: str, fam, out: Path, duration_s: float, floor_log: Path, axis
     return STEP ** n, fragment, r
 
 
+def _noise(base) -> float | None:
+    """The force noise [N] of the synthetic runs: 1 N on the rigid plant, the config's own on
+    a ``--config`` plant."""
+    return None if base else 1.0
+
+
 def tune_family(name: str, fragment: dict, out: Path, duration_s: float, axis: str = "X",
-                trajectory: dict | None = None) -> dict:
+                trajectory: dict | None = None, base=None) -> dict:
     """tune's pipeline (:func:`motorctl.cli.tune.tune`) on the rigid gantry with ``fragment`` on
     the plant (config DIR/<name>/config.yaml). Returns its result, or {"refused": message} when
     the before log cannot be identified."""
@@ -135,7 +145,8 @@ def tune_family(name: str, fragment: dict, out: Path, duration_s: float, axis: s
     from motorctl.recorder.runlog import LogError
     d = out / name
     cfg = d / "config.yaml"
-    cfg.write_text(yaml.safe_dump(gantry_dict(axis, fragment, seed=1, noise_N=1.0, trajectory=trajectory),
+    cfg.write_text(yaml.safe_dump(gantry_dict(axis, fragment, seed=1, noise_N=_noise(base), trajectory=trajectory,
+                                              base=base),
                                   sort_keys=False))
     try:
         return tune(str(cfg), axis, d, duration_s=duration_s)
@@ -171,7 +182,13 @@ def main(argv=None) -> int:
     ap.add_argument("--a-max", type=float, default=None,
                     help="the program's acceleration [m/s²] (default: the config's, 40; the jerk limit is "
                          "scaled with it): a gentler program leaves u room below its ±10 V limit")
+    ap.add_argument("--config", default=None,
+                    help="the plant: a sim-driver config whose X axis is used with its own force noise "
+                         "(default: configs/gantry-rigid.yaml, 1 N noise)")
     args = ap.parse_args(argv)
+    base = args.config
+    if base is not None and not Path(base).is_file():
+        ap.error(f"--config {base}: no such file")
     traj = None
     if args.a_max is not None:
         if not 0 < args.a_max <= 40.0:
@@ -192,7 +209,8 @@ def main(argv=None) -> int:
         out = Path(args.out or tmp)
         out.mkdir(parents=True, exist_ok=True)
         floor_log = out / "floor.mclog"          # the plant without effects: C2 alone
-        make_log(str(floor_log), None, duration_s=args.duration, seed=1, axis="X", noise_N=1.0, trajectory=traj)
+        make_log(str(floor_log), None, duration_s=args.duration, seed=1, axis="X", noise_N=_noise(base),
+                 trajectory=traj, base=base)
         for name in names:
             fam = FAMILIES[name]
             if not fam.has_compensation:
@@ -202,18 +220,21 @@ def main(argv=None) -> int:
             if args.at_example:
                 scale, fragment, ratio = 1.0, fam.example, float("nan")
             else:
-                scale, fragment, ratio = size_for(name, fam, out, args.duration, floor_log, trajectory=traj)
+                scale, fragment, ratio = size_for(name, fam, out, args.duration, floor_log, trajectory=traj,
+                                                  base=base)
             size = size_text(fragment) + (f" (example ×{scale:.3g})" if abs(scale - 1) > 1e-9 else "")
             print(f"  {name}: size ×{scale:.3g}, C2 alone {ratio:.2f}× floor ({time.perf_counter() - t0:.0f} s)",
                   file=sys.stderr)
-            res = tune_family(name, fragment, out, args.duration, trajectory=traj)
+            res = tune_family(name, fragment, out, args.duration, trajectory=traj, base=base)
             d = res.get("damage_removed")
             if d is not None and d >= MIN_REMOVED and res["e_M_not_worse"]:
                 met.append(name)
             rows.append(row(name, res, size))
     prog = "the paper's program (a_max 40 m/s²)" if traj is None else f"a_max {args.a_max:g} m/s²"
-    print(f"motorctl tune on configs/gantry-rigid.yaml, axis X (C2, paper gains, {prog}), {args.duration:g} s per run, "
-          f"seed 1, 1 N force noise, virtual clock; indexes over program time 4..{args.duration:g} s "
+    plant = (f"{base}, axis X (its own gains, plant and force noise, {prog})" if base else
+             f"configs/gantry-rigid.yaml, axis X (C2, paper gains, {prog}, 1 N force noise)")
+    print(f"motorctl tune on {plant}, {args.duration:g} s per run, "
+          f"seed 1, virtual clock; indexes over program time 4..{args.duration:g} s "
           f"(first period excluded); load average {os.getloadavg()[0]:.2f}\n")
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))

@@ -278,7 +278,7 @@ class AxisPlant:
         hooks (thrust factor, forces, mass) in registry order."""
         fm = self.a1 * u + self.a2 * u * abs(u) + self.a3 * u * u * u
         for thrust in self._thrust:
-            fm = thrust(fm, x)
+            fm = thrust(fm, x, t)
         sf = _TWO_OVER_PI * math.atan(S_F_GAIN * v)
         f = fm - self.b * v - self.fc * sf + self.f0 + self.f_noise + self.f_ext
         for force in self._forces:
@@ -348,7 +348,7 @@ class AxisPlant:
         def acc(xc, vc, xl, vl, t, tau):
             fm = _force_at(tau, F0, f_prev, f_cur, d, ti)
             for thrust in self._thrust:
-                fm = thrust(fm, xc)
+                fm = thrust(fm, xc, t)
             sf = _TWO_OVER_PI * math.atan(S_F_GAIN * vc)
             f = fm - self.b * vc - self.fc * sf + self.f0 + self.f_noise + self.f_ext
             for force in self._forces:
