@@ -343,6 +343,12 @@ class EffectFamily:
         """Extra delay of the input [samples] this term applies (0 for additive columns)."""
         return 0.0
 
+    def other_weight(self, term) -> np.ndarray | None:
+        """A weight (M,) in [0, 1] on the other terms' decimated columns while this term is in
+        the model (a holding force at rest: the carriage feels no other force while held), or
+        None (default: the term does not weigh the others)."""
+        return None
+
     # ------------------------------------------------------------------ compensation
     def compensation(self, h, beta: np.ndarray, signals: Signals | None = None) -> dict | None:
         """The ``controller.compensation.<name>`` options (V units) of a fitted term, i.e.

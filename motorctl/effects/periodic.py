@@ -4,7 +4,7 @@ position-periodic search of cogging, force ripple and periodic friction (not a f
 Position-periodic search (design note ``residual-analysis.md``): the period P is taken from the
 peaks of a least-squares (Lomb-Scargle) periodogram of the residual against **position**
 (moving samples, P from 1 mm to min(0.1 m, stroke/3)), then refined by the joint LS fit on
-grids at ±3 % (0.75 % steps) and ±0.5 % (0.25 % steps) of each peak.
+grids at ±3 % and ±0.5 % of each peak.
 """
 
 from __future__ import annotations
@@ -231,8 +231,8 @@ class PositionPeriodic(EffectFamily):
             return None
         best = None
         for pk in peak_periods(data[0], data[1], grid, N_PEAKS):
-            term, _ = ctx.best_over(self.name, refine(pk, 0.03, 9), base)
-            term, _ = ctx.best_over(self.name, refine(term.h, 0.005, 5), base)
+            term, _ = ctx.best_over(self.name, refine(pk, 0.03, 13), base)
+            term, _ = ctx.best_over(self.name, refine(term.h, 0.005, 7), base)
             sse = ctx.sse(base + [term])
             if best is None or sse < best[0]:
                 best = (sse, term)

@@ -14,6 +14,9 @@ columns u·w(ẋ), w(ẋ) with w(ẋ) = exp(−(ẋ/h)²), the band h searched o
 to 20 mm/s; β1 is the share of the input held at rest (1: fully held), β2 the constant it holds
 against. Plausible when β1 is near 1 and the largest force held at rest (99th percentile of
 |Cβ|) reaches half the Coulomb level θ3 (a record need not push to the breakaway).
+While stiction is in the model the other effects' columns are weighed by 1 − w(ẋ): the
+carriage held at rest feels no other force either (a periodic disturbance below the breakaway
+force leaves no trace in the input at rest), so they are fitted on the samples in motion.
 Not compensable here: stiction is fought with the robust feedback (or a dither / breakaway kick
 that needs the law's own output), not with an additive term in (x_d, ẋ_d, t).
 """
@@ -61,6 +64,11 @@ class StictionFamily(EffectFamily):
         """u·w(ẋ), w(ẋ), (N, 2); h: the velocity band [m/s] of w(ẋ) = exp(−(ẋ/h)²)."""
         w = weight(p.v, h)
         return np.column_stack([p.u * w, w])
+
+    def other_weight(self, term):
+        """1 − w(ẋ) (decimated): while the carriage is held, the other effects' forces are held
+        too and leave no trace in the input; they are fitted on the samples in motion."""
+        return 1.0 - term.cols[:, 1]
 
     def search(self, ctx, base, residual):
         p = ctx.p

@@ -19,8 +19,9 @@ with the nominal θ, is accepted only when all three agree:
 Accepted effects are added one at a time (the best held-out gain first) and everything is
 re-fitted, until no candidate passes. When a passing candidate of a family that looks alike
 (:attr:`~motorctl.effects.base.EffectFamily.look_alike`) gains at least :data:`LOOK_ALIKE_SHARE`
-of the selected one's held-out gain, the selected effect carries it in ``rivals``: the record
-cannot tell the two apart, and the report says so instead of naming one with confidence.
+of the selected one's held-out gain, the one kept is the one that leaves the lower held-out RMS
+with the step's best other candidates (one step of look-ahead), and it carries the other in
+``rivals``: the report says the record cannot tell them apart on their own.
 
 The candidate families come from the registry :data:`motorctl.effects.FAMILIES`; each family's
 columns, search over its parameter and its own plausibility checks are in its module
@@ -48,13 +49,15 @@ BLOCK_S = 0.25
 MIN_HELDOUT_GAIN = 0.03
 MIN_BIC_DROP = 10.0
 MIN_WALD = 25.0
-MAX_EFFECTS = 3
+MAX_EFFECTS = 4
 #: least size of an effect's force (99th percentile of |Cβ|) as a share of the RMS input [-]
 MIN_SIZE_SHARE = 0.01
 #: least size of an effect's force when the gain A1 is known [N]
 MIN_SIZE_N = 0.5
 #: a look-alike candidate within this share of the selected effect's held-out gain is a rival
 LOOK_ALIKE_SHARE = 0.7
+#: partners a look-alike pair is tried with (the step's best other candidates)
+LOOK_AHEAD = 3
 #: threads searching the families of one selection step (each family's search is independent
 #: of the others' and its numpy/scipy work releases the GIL, so the result does not depend on it)
 SEARCH_THREADS = min(2, os.cpu_count() or 1)
@@ -140,6 +143,9 @@ class Identifier:
         #: (u_{k-1}, u_k weigh equally). Other files: timing unknown, 0 unless told.
         self.moving = np.abs(p.v_d) > 0.02 * np.max(np.abs(p.v_d))
         self.stroke = float(np.ptp(p.x_d))
+        #: the hold is estimated from the data (CSV/MAT without --zoh-delay): run() checks it
+        #: again with the selected effects
+        self.hold_estimated = zoh_delay is None and not rec.header
         if zoh_delay is not None:
             self.zoh, self.zoh_source = float(zoh_delay), "given (--zoh-delay)"
         elif rec.header:
@@ -187,8 +193,21 @@ class Identifier:
         return self._phi_cache[key]
 
     def design(self, terms: list) -> tuple[np.ndarray, np.ndarray]:
+        """Regressor (M, p) and target (M,) of the nominal model plus ``terms``. A term whose
+        family holds the carriage at rest (stiction, :meth:`~motorctl.effects.base.EffectFamily.
+        other_weight`) weighs the other terms' columns: a force the carriage does not feel while
+        it is held is fitted on the samples in motion only."""
         delay = self.zoh + sum(t.delay for t in terms)
-        cols = [self.nominal_phi(delay)] + [t.cols for t in terms if t.cols is not None]
+        weight = None
+        for t in terms:
+            w = effect_family(t.family).other_weight(t)
+            if w is not None:
+                weight = w if weight is None else weight * w
+        cols = [self.nominal_phi(delay)]
+        for t in terms:
+            if t.cols is not None:
+                own = weight is None or effect_family(t.family).other_weight(t) is not None
+                cols.append(t.cols if own else t.cols * weight[:, None])
         return np.column_stack(cols), self.target(delay)
 
     def heldout(self, phi: np.ndarray, y: np.ndarray) -> float:
@@ -373,7 +392,39 @@ class Identifier:
         θ5, θ6 are kept only when, with the selected effects, they lower the held-out residual
         by at least :data:`MIN_HELDOUT_GAIN` and are not significantly positive (the paper's force curve has A2, A3 ≤ 0; a positive cubic term absorbs
         something else); otherwise the selection is redone with θ1..θ4, and the reason says so.
+
+        The hold of a CSV/MAT record is estimated jointly with the effects: after the selection
+        the best input delay of the final model (its effects, no found delay) is taken again on
+        :data:`HOLD_GRID`; when it says otherwise than the nominal model did (hold or none), the
+        whole selection is redone with that hold and kept if its held-out residual is lower.
         """
+        n_theta0, reason0 = self.n_theta, self.n_theta_reason
+        self._run_selection(max_effects)
+        if not self.hold_estimated:
+            return self
+        base = [t for t in self.terms if not t.delay]
+        best = float(HOLD_GRID[int(np.argmin(self.delay_sses(base, HOLD_GRID - self.zoh)))])
+        hold = 0.5 if is_hold(best) else 0.0
+        if hold == self.zoh:
+            return self
+        keep = {k: getattr(self, k) for k in ("zoh", "zoh_source", "n_theta", "n_theta_reason", "nominal",
+                                               "final", "terms", "steps", "accepted")}
+        fu = self.p.fu
+        self.zoh, self.n_theta, self.n_theta_reason, self.p.fu = hold, n_theta0, reason0, None
+        self._run_selection(max_effects)
+        if self.final.heldout_rms < keep["final"].heldout_rms:
+            self.zoh_source = (f"estimated with the effects: the best input delay of the model with "
+                               f"{', '.join(t.family for t in base) or 'no effect'} is {best:.2f} sample, "
+                               + ("the zero-order hold of a sampled-data loop" if hold else "no hold")
+                               + f" (the nominal model alone said: {keep['zoh_source']})")
+            return self
+        for k, v in keep.items():
+            setattr(self, k, v)
+        self.p.fu = fu
+        return self
+
+    def _run_selection(self, max_effects: int) -> None:
+        """The selection with the nominal structure decided on the way (see :meth:`run`)."""
         self._select(self.evaluate([]), max_effects)
         if self.n_theta == 6 and not self._n_theta_forced:
             th = self.final.fit.coef
@@ -429,10 +480,7 @@ class Identifier:
             good = [c for c in cands if c.ok]
             if not good:
                 break
-            best = max(good, key=lambda c: c.gain)
-            alike = effect_family(best.term.family).look_alike
-            best.rivals = [(c.term.family, c.gain) for c in good
-                           if c.term.family in alike and c.gain >= LOOK_ALIKE_SHARE * best.gain]
+            best = self._look_ahead(max(good, key=lambda c: c.gain), good, cands, base)
             accepted.append((best, current.heldout_rms))
             base = base + [best.term]
             current = best
@@ -440,6 +488,26 @@ class Identifier:
             pool.shutdown()
         self.nominal, self.final, self.terms, self.steps, self.accepted = nominal, current, base, steps, accepted
         return self
+
+    def _look_ahead(self, best: Evaluated, good: list, cands: list, base: list) -> Evaluated:
+        """``best``, or a look-alike rival that explains nearly as much (within
+        :data:`LOOK_ALIKE_SHARE` of its held-out gain) and leaves the lower held-out RMS together
+        with the best partner among the step's other :data:`LOOK_AHEAD` candidates (a greedy
+        step cannot tell stiction from a dead-zone while the current loop's lag is unmodelled;
+        the pair can). The chosen one carries the others in ``rivals``."""
+        alike = effect_family(best.term.family).look_alike
+        contenders = [best] + [c for c in good if c.term.family in alike and c.gain >= LOOK_ALIKE_SHARE * best.gain]
+        if len(contenders) > 1:
+            names = {c.term.family for c in contenders}
+            partners = sorted((c for c in cands if c.term.family not in names
+                               and not any(c.term.family in effect_family(n).look_alike for n in names)),
+                              key=lambda c: -c.gain)[:LOOK_AHEAD]
+
+            def pair_rms(c):
+                return min([c.heldout_rms] + [self.evaluate(base + [c.term, q.term]).heldout_rms for q in partners])
+            best = min(contenders, key=pair_rms)
+        best.rivals = [(c.term.family, c.gain) for c in contenders if c is not best]
+        return best
 
     # ------------------------------------------------------------------ read-outs
     def coef_split(self, ev: Evaluated, terms: list) -> tuple[np.ndarray, list]:
