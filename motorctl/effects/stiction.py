@@ -11,7 +11,7 @@ Simulator: the plant's own Karnopp stiction, ``axes.NAME.driver.stiction_N`` (it
 force at rest, which no :class:`~motorctl.effects.base.PlantTerm` hook sees, so it lives in
 :class:`motorctl_drivers.sim.AxisPlant`; this family only switches it on). Identification:
 columns u·w(ẋ), w(ẋ) with w(ẋ) = exp(−(ẋ/h)²), the band h searched on a log grid from 0.01 mm/s
-to 20 mm/s; β1 is the share of the input held at rest (1: fully held), β2 the constant it holds
+to 3 mm/s (a band at its upper edge is low-speed friction, Stribeck's, and refused); β1 is the share of the input held at rest (1: fully held), β2 the constant it holds
 against. Plausible when β1 is near 1 and the largest force held at rest (99th percentile of
 |Cβ|) reaches half the Coulomb level θ3 (a record need not push to the breakaway).
 While stiction is in the model the other effects' columns are weighed by 1 − w(ẋ): the
@@ -31,8 +31,9 @@ import numpy as np
 from motorctl.effects.base import EffectFamily
 from motorctl.effects.stribeck import velocity_grid
 
-#: searched velocity band h [m/s]
-BAND_GRID = np.exp(np.linspace(math.log(1e-5), math.log(2e-2), 23))
+#: searched velocity band h [m/s]: "at rest" is a fraction of a millimetre per second of the
+#: filtered velocity; a band of several mm/s is low-speed friction (Stribeck's), not a carriage held
+BAND_GRID = np.exp(np.linspace(math.log(1e-5), math.log(3e-3), 20))
 #: plausible share of the input held at rest (β1)
 HELD_RANGE = (0.7, 1.3)
 #: the largest input held at rest must reach this share of the Coulomb level θ3 (static

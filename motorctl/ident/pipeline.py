@@ -85,6 +85,7 @@ def summarise(idf: Identifier) -> dict:
           "accepted": c.ok, "selected": any(c is e for e in chosen), "reasons": c.reasons} for c in step]
         for step in idf.steps]
     # passed in the last step but not taken, when the effect limit ended the selection
+    out["eliminated"] = [{"name": n, "reason": why} for n, why in getattr(idf, "eliminated", [])]
     out["cut_by_limit"] = ([c.term.family for c in idf.steps[-1] if c.ok and not any(c is e for e in chosen)]
                            if idf.steps and len(idf.terms) >= MAX_EFFECTS else [])
     out["residual"] = residual_verdict(idf.final.fit.residual, idf.p, g, unit)
@@ -290,6 +291,8 @@ def text_report(s: dict) -> str:
     lines.append(f"  residual RMS {n['residual_rms']:.4g} {u}; held-out RMS {n['heldout_rms']:.4g} {u}")
     if not s["effects"]:
         lines.append("effects: no effect found (no candidate passed held-out gain, BIC and plausibility)")
+    for e in s.get("eliminated", []):
+        lines.append(f"  selected, then dropped with the later effects in the model: {e['name']} ({e['reason']})")
     if s.get("cut_by_limit"):
         lines.append(f"  not taken, the limit of {MAX_EFFECTS} effects reached: " + ", ".join(s["cut_by_limit"]))
     for e in s["effects"]:

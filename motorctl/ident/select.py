@@ -17,7 +17,10 @@ with the nominal θ, is accepted only when all three agree:
    not significantly negative).
 
 Accepted effects are added one at a time (the best held-out gain first) and everything is
-re-fitted, until no candidate passes. When a passing candidate of a family that looks alike
+re-fitted, until no candidate passes (at most :data:`MAX_EFFECTS`). Then each selected effect is
+judged again in the final model (backward elimination: plausible there, and a held-out gain of
+:data:`MIN_HELDOUT_GAIN` against the model without it); the weakest that fails is dropped, and
+the forward selection resumes without it (:data:`STEPWISE_ROUNDS` rounds at most). When a passing candidate of a family that looks alike
 (:attr:`~motorctl.effects.base.EffectFamily.look_alike`) gains at least :data:`LOOK_ALIKE_SHARE`
 of the selected one's held-out gain, the one kept is the one that leaves the lower held-out RMS
 with the step's best other candidates (one step of look-ahead), and it carries the other in
@@ -58,6 +61,8 @@ MIN_SIZE_N = 0.5
 LOOK_ALIKE_SHARE = 0.7
 #: partners a look-alike pair is tried with (the step's best other candidates)
 LOOK_AHEAD = 3
+#: rounds of forward selection and backward elimination (a dropped effect is not taken again)
+STEPWISE_ROUNDS = 3
 #: threads searching the families of one selection step (each family's search is independent
 #: of the others' and its numpy/scipy work releases the GIL, so the result does not depend on it)
 SEARCH_THREADS = min(2, os.cpu_count() or 1)
@@ -408,7 +413,7 @@ class Identifier:
         if hold == self.zoh:
             return self
         keep = {k: getattr(self, k) for k in ("zoh", "zoh_source", "n_theta", "n_theta_reason", "nominal",
-                                               "final", "terms", "steps", "accepted")}
+                                               "final", "terms", "steps", "accepted", "eliminated")}
         fu = self.p.fu
         self.zoh, self.n_theta, self.n_theta_reason, self.p.fu = hold, n_theta0, reason0, None
         self._run_selection(max_effects)
@@ -465,29 +470,67 @@ class Identifier:
         steps = []
         accepted = []
         pool = ThreadPoolExecutor(max_workers=SEARCH_THREADS) if SEARCH_THREADS > 1 else None
-        for _ in range(max_effects):
-            residual = current.fit.residual
-            todo = [fam for fam in self.families
-                    if not any(t.family == fam for t in base)
-                    and not (effect_family(fam).shifts_input and any(t.delay for t in base))]
+        eliminated: list = []
+        for _ in range(STEPWISE_ROUNDS):
+            out = {n for n, _ in eliminated}        # never taken again once dropped
+            while len(base) < max_effects:
+                residual = current.fit.residual
+                todo = [fam for fam in self.families
+                        if fam not in out and not any(t.family == fam for t in base)
+                        and not (effect_family(fam).shifts_input and any(t.delay for t in base))]
 
-            def one(fam, base=base, residual=residual, current=current):
-                ev = self.search(fam, base, residual)
-                return None if ev is None else self.judge(ev, current, base)
-            found = list(pool.map(one, todo)) if pool else [one(f) for f in todo]
-            cands = [c for c in found if c is not None]
-            steps.append(cands)
-            good = [c for c in cands if c.ok]
-            if not good:
+                def one(fam, base=base, residual=residual, current=current):
+                    ev = self.search(fam, base, residual)
+                    return None if ev is None else self.judge(ev, current, base)
+                found = list(pool.map(one, todo)) if pool else [one(f) for f in todo]
+                cands = [c for c in found if c is not None]
+                steps.append(cands)
+                good = [c for c in cands if c.ok]
+                if not good:
+                    break
+                best = self._look_ahead(max(good, key=lambda c: c.gain), good, cands, base)
+                accepted.append((best, current.heldout_rms))
+                base = base + [best.term]
+                current = best
+            base, accepted, current, dropped = self._eliminate(base, accepted, current)
+            if not dropped:
                 break
-            best = self._look_ahead(max(good, key=lambda c: c.gain), good, cands, base)
-            accepted.append((best, current.heldout_rms))
-            base = base + [best.term]
-            current = best
+            eliminated += dropped
         if pool:
             pool.shutdown()
+        self.eliminated = eliminated
         self.nominal, self.final, self.terms, self.steps, self.accepted = nominal, current, base, steps, accepted
         return self
+
+    def _eliminate(self, base: list, accepted: list, current: Evaluated):
+        """Backward elimination after the forward selection: each selected effect is judged
+        again in the final model (plausibility of its coefficients there, and the held-out gain
+        of keeping it against the model without it, ≥ :data:`MIN_HELDOUT_GAIN`); the weakest
+        that fails is dropped and the rest re-judged, until all pass. An effect taken early
+        can be explained by the later ones (a dead-zone picked for what stiction and a
+        friction shape then model better). Returns (terms, accepted, final, [(family, why)])."""
+        dropped = []
+        while base:
+            fails = []
+            for i, t in enumerate(base):
+                others = base[:i] + base[i + 1:]
+                ev = self.evaluate(others + [t])
+                ev.term = t
+                gain = 1.0 - ev.heldout_rms / self.evaluate(others).heldout_rms
+                reasons = self.plausible(ev, others)
+                if gain < MIN_HELDOUT_GAIN:
+                    reasons.append(f"with the later effects its held-out gain is {100 * gain:.1f} % "
+                                   f"< {100 * MIN_HELDOUT_GAIN:g} %")
+                if reasons:
+                    fails.append((gain, i, reasons))
+            if not fails:
+                break
+            _, i, reasons = min(fails)
+            dropped.append((base[i].family, "; ".join(reasons)))
+            base = base[:i] + base[i + 1:]
+            accepted = accepted[:i] + accepted[i + 1:]
+            current = self.evaluate(base) if base else self.evaluate([])
+        return base, accepted, current, dropped
 
     def _look_ahead(self, best: Evaluated, good: list, cands: list, base: list) -> Evaluated:
         """``best``, or a look-alike rival that explains nearly as much (within
