@@ -207,6 +207,12 @@ class EthercatDriver(Driver):
         self._m_per_count = [o.encoder_m_per_count for o in self._ax]
         self._out: dict[int, bytearray] = {p: bytearray(IMAGE[r][0]) for p, r in self.roles.items() if IMAGE[r][0]}
         self._down_cycles = max(1, round(self.LINK_DOWN_S / period_s))
+        # a working counter short for longer than the SM watchdog: the slaves have dropped their
+        # outputs to the safe state and left OP (SAFE-OP + error 0x001B), where a full working
+        # counter no longer means the outputs are applied; the segment stays "down" until
+        # reconnect() has set it up and brought it to OP again
+        self._wd_cycles = min(self._down_cycles, max(1, round(options.watchdog_ms * 1e-3 / period_s)))
+        self._needs_setup = False
         self._short = 0
         self.round_trip = round_trip_stats(())
         self.dc_slaves: list[int] = []
@@ -426,6 +432,7 @@ class EthercatDriver(Driver):
         self.read_error[:] = False
         self._bad_wkc_since = None
         self._short = 0
+        self._needs_setup = False
 
     # ------------------------------------------------------------------ cycle
     def write(self, u_V: np.ndarray, enable: np.ndarray) -> None:
@@ -475,6 +482,8 @@ class EthercatDriver(Driver):
             if self._bad_wkc_since is None:
                 self._bad_wkc_since = self.exchanges
             self._short += 1
+            if self._short > self._wd_cycles and self.state == "active":
+                self._needs_setup = True
             self.read_error[:] = True
             return
         self._bad_wkc_since = None
@@ -534,7 +543,7 @@ class EthercatDriver(Driver):
         for i, (a, o) in enumerate(zip(names, self._ax)):
             if not answered[i]:
                 out.append(StopCheck(a, False, f"no complete working counter after the stop "
-                                               f"(last {self.last_wkc} of {self.expected_wkc})"))
+                                               f"(last {max(self.last_wkc, 0)} of {self.expected_wkc})"))
                 continue
             if o.profile == "cia402":
                 state = cia402.decode_state(self._statusword[i])
@@ -611,8 +620,18 @@ class EthercatDriver(Driver):
         except Exception:  # noqa: BLE001
             pass
 
+    def _wkc_text(self) -> str:
+        """The last working counter against the expected one (ETG.1000.4: each slave that
+        reads or writes its part of the frame adds to it); a frame that did not come back at
+        all (SOEM returns a negative code, EC_NOFRAME / EC_TIMEOUT) counts 0."""
+        if self.last_wkc <= 0:
+            return (f"EtherCAT working counter 0 of {self.expected_wkc} (no frame came back on "
+                    f"{self.options.ifname}: cable, port or segment power)")
+        return f"EtherCAT working counter {self.last_wkc} of {self.expected_wkc}"
+
     def _link_down(self) -> bool:
-        return not self.connected or (self.state == "active" and self._short >= self._down_cycles)
+        return not self.connected or (self.state == "active" and (self._short >= self._down_cycles
+                                                                   or self._needs_setup))
 
     def _reconnect(self, timeout_s: float | None) -> None:
         """Release the interface, scan and set the segment up again (configure), back to OP if active."""
@@ -632,7 +651,7 @@ class EthercatDriver(Driver):
         last fault (kept until the drive is in Operation enabled again, so the report after the
         fault reset still names it) with the emergency it sent and its state now."""
         if self._bad_wkc_since is not None:
-            why = f"EtherCAT working counter {self.last_wkc} of {self.expected_wkc}"
+            why = self._wkc_text()
             try:
                 import pysoem
                 states = self._fail_states(pysoem.OP_STATE)

@@ -429,6 +429,7 @@ class EthercatDevice(Device):
         self.sock.setblocking(False)
         self._last_sync = [None] * len(names)
         self._silent = False
+        self._port_down = False
         self._fault_now: dict[int, str] = {}
         self.frames = 0
         bank.log(f"EtherCAT segment on {self.peer} (peer of {options.ifname}): " + ", ".join(
@@ -516,6 +517,15 @@ class EthercatDevice(Device):
                 frame = self.sock.recv(2048)
             except BlockingIOError:
                 return
+            except OSError as exc:           # the port went down (ENETDOWN): a slave waits for the cable
+                if not self._port_down:
+                    self._port_down = True
+                    self.bank.log(f"port down ({exc.strerror}): waiting for the link")
+                time.sleep(timeout_s)
+                return
+            if self._port_down:
+                self._port_down = False
+                self.bank.log("port up: answering again")
             if len(frame) < 16 or frame[12:14] != b"\x88\xa4":
                 continue
             payload = bytearray(frame[14:])
@@ -574,7 +584,8 @@ class EthercatDevice(Device):
         b = self.bank
         b.watchdog_trips += 1
         b.log(f"slave {k + 1}: SM watchdog, no outputs for {s.watchdog_time_ns() / 1e6:g} ms: outputs 0, "
-              f"SAFE-OP + error 0x{E.AL_SM_WATCHDOG:04X}")
+              f"SAFE-OP + error 0x{E.AL_SM_WATCHDOG:04X} ({s.watchdog_gap_ns / 1e6:.1f} ms after the last "
+              f"outputs)")
         for i, a in enumerate(b.names):
             o = self.axis_options[a]
             if k + 1 in [p for p, _ in o.slave_roles()]:

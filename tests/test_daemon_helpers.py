@@ -95,7 +95,7 @@ def cli_status(sock) -> dict:
     return json.loads(r.stdout)
 
 
-def wait_for(pred, timeout: float, what: str, interval: float = 0.05):
+def wait_for(pred, timeout: float, what: str, interval: float = 0.05, detail=None):
     end = time.monotonic() + timeout
     last = None
     while time.monotonic() < end:
@@ -103,16 +103,18 @@ def wait_for(pred, timeout: float, what: str, interval: float = 0.05):
         if last:
             return last
         time.sleep(interval)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what} (last: {last!r})")
+    raise AssertionError(f"timed out after {timeout} s waiting for {what} (last: {last!r})"
+                         + (f"; {detail()!r}" if detail is not None else ""))
 
 
 class Daemon:
-    """``motorctl daemon CONFIG`` as a subprocess; :meth:`kill` in teardown, always."""
+    """``motorctl daemon CONFIG`` as a subprocess (``prefix``: e.g. a network namespace's
+    nsenter); :meth:`kill` in teardown, always."""
 
-    def __init__(self, config: Path, sock: Path, extra_args=(), env=None, preexec=None):
+    def __init__(self, config: Path, sock: Path, extra_args=(), env=None, preexec=None, prefix=()):
         self.config, self.sock = config, sock
         self.proc = subprocess.Popen(
-            [*MOTORCTL, "daemon", str(config), "--socket", str(sock),
+            [*prefix, *MOTORCTL, "daemon", str(config), "--socket", str(sock),
              *extra_args],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=str(REPO),
             env=env, preexec_fn=preexec)
