@@ -314,10 +314,11 @@ def test_motorctl_run_closes_the_loop_through_pymodbus_server(name, rate, stall,
     B: FC16 then FC04, ~1 ms, the moves slowed down so that C2 at 500 Hz keeps its following-error
     limits; the sim twin runs the same moves).
 
-    A runs paced by the wall clock. B's two requests one after the other take ~1.1 ms of the
-    2 ms period: on this shared VM a late wake-up skips a period, which the emulated plant
-    (stepped per command) does not move through, so B runs in lockstep (``loop.clock:
-    virtual``): every cycle waits for its answers, up to a 20 ms read timeout. ``stall``: the
+    Both run in lockstep (``loop.clock: virtual``): every cycle waits for its answers, up to a
+    20 ms read timeout, so the verdict does not depend on the host's load (paced by the wall
+    clock, a late wake-up skips a period, which the emulated plant, stepped per command, does
+    not move through, and on a loaded machine ten read timeouts in a row at A's 1.2 ms fill the
+    error bucket; the paced figures are benchmarks/bench_transports.py's). ``stall``: the
     server blocks 5 ms mid-run; the cycle waits it out and no command is lost (CI once saw the
     read time out at the 1.6 ms the driver then imposed, the next command queue behind the late
     one, pymodbus's server drop it, and both axes track one period (1 mm) behind)."""
@@ -325,12 +326,9 @@ def test_motorctl_run_closes_the_loop_through_pymodbus_server(name, rate, stall,
     from motorctl.recorder.runlog import read_log
     from harness import sim_twin
     d = map_a(rate, round_trip_s=0.0006) if name == "A" else map_b(rate)
-    if name == "A":
-        d["driver"]["timeout_s"] = 0.6 / rate        # room for the rest of the cycle
-    else:
-        d["loop"]["clock"] = "virtual"
-        d["loop"]["realtime"]["policy"] = "best_effort"
-        d["driver"]["timeout_s"] = 0.02
+    d["loop"]["clock"] = "virtual"
+    d["loop"]["realtime"]["policy"] = "best_effort"
+    d["driver"]["timeout_s"] = 0.02
     cfg = _write_config(d, tmp_path / f"map-{name}.yaml")
     where = (51 + 2 * 500) if stall else 0          # configure's 51 queries, then 500 cycles of two requests
     with pymodbus_server(cfg, shared=(name == "A"), no_fc23=(name == "B"), stall=(where, 0.005)) as counts:
