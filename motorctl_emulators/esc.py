@@ -206,6 +206,7 @@ class Esc:
         self._set_al(INIT, 0)
         self.mbx_queue: list[bytes] = []
         self.last_outputs_ns = None            # local time of the last process-data write
+        self.watchdog_gap_ns = 0               # at the last trip: last outputs → outputs 0 [ns]
         self.watchdog_trips = 0
         self.outputs_written = False
         self.sync0_active = False
@@ -486,6 +487,7 @@ class Esc:
         struct.pack_into("<H", self.mem, REG_WD_PD_STATUS, 0)
         self.mem[REG_WD_PD_COUNT] = (self.mem[REG_WD_PD_COUNT] + 1) & 0xFF
         self.watchdog_trips += 1
+        self.watchdog_gap_ns = self.local_ns() - self.last_outputs_ns
         self.app.watchdog_expired()
         self._set_al(SAFEOP, AL_SM_WATCHDOG)
         return True
