@@ -1,13 +1,15 @@
 """Per transport on loopback: round trip of one exchange (median / p99) and the loop rate
 actually sustained with two axes, each against ``motorctl emulate`` in its own process.
 
-    python benchmarks/bench_transports.py [--transports serial,can,canopen,modbus] [--exchanges 3000]
-                                          [--cycles 4000]
+    python benchmarks/bench_transports.py [--transports serial,can,canopen,modbus,ethercat]
+                                          [--exchanges 3000] [--cycles 4000]
 
 * serial: pyserial ``socket://127.0.0.1:PORT``; modbus: Modbus TCP on 127.0.0.1 (pymodbus
   framer, FC23); can and canopen (CiA 402 drives: RPDOs + SYNC out, TPDOs back): python-can
   ``udp_multicast`` inside a private network namespace (needs root: unshare/nsenter), the
-  measuring process runs in the namespace too.
+  measuring process runs in the namespace too; ethercat: raw EtherCAT frames (pysoem/SOEM) on a
+  veth pair inside a private network namespace, a CiA 402 drive and the I/O terminals of
+  configs/gantry-ethercat.yaml (SM-synchronous, one frame per cycle for both axes).
 * round trip: ``write()`` (0 V, amplifier off, one period of plant) then ``read()`` polling for
   the answer, timed from the send to the decoded answer; the emulator runs at SCHED_FIFO 90,
   the measuring process at normal priority.
@@ -86,13 +88,19 @@ def inner(config: str, exchanges: int, cycles: int) -> dict:
 
 def measure(transport: str, tmp: Path, exchanges: int, cycles: int) -> dict:
     from motorctl_emulators.loopback import Emulator, NetNamespace, loopback_config
-    _, cfg = loopback_config(ROOT / "configs" / f"gantry-{transport}.yaml", tmp, rate_hz=1000,
-                             driver={"round_trip_s": 0.0})
-    emulator = dict(plant=ROOT / "configs" / "gantry.yaml", watchdog_s=1.0)
+    driver = {"round_trip_s": 0.0}
+    veth = None
+    if transport == "ethercat":
+        veth = ("ecb0", "ecb0-slave")
+        driver.update(ifname=veth[0], watchdog_ms=1000.0)
+    _, cfg = loopback_config(ROOT / "configs" / f"gantry-{transport}.yaml", tmp, rate_hz=1000, driver=driver)
+    plant = ROOT / "configs" / "gantry.yaml"
+    # EtherCAT's watchdog is the slaves' SM watchdog the driver sets (watchdog_ms), not --watchdog
+    emulator = dict(plant=plant) if transport == "ethercat" else dict(plant=plant, watchdog_s=1.0)
     cmd = [sys.executable, __file__, "--inner", str(cfg), "--exchanges", str(exchanges),
            "--cycles", str(cycles)]
-    if transport in ("can", "canopen"):
-        with NetNamespace() as ns, Emulator(transport, cfg, prefix=ns.prefix, **emulator):
+    if transport in ("can", "canopen", "ethercat"):
+        with NetNamespace(veth=veth) as ns, Emulator(transport, cfg, prefix=ns.prefix, **emulator):
             out = subprocess.run([*ns.prefix, *cmd], capture_output=True, text=True, timeout=300)
     else:
         with Emulator(transport, cfg, **emulator):
@@ -104,7 +112,7 @@ def measure(transport: str, tmp: Path, exchanges: int, cycles: int) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--transports", default="serial,can,canopen,modbus")
+    ap.add_argument("--transports", default="serial,can,canopen,modbus,ethercat")
     ap.add_argument("--exchanges", type=int, default=3000)
     ap.add_argument("--cycles", type=int, default=4000)
     ap.add_argument("--inner", help=argparse.SUPPRESS)
