@@ -31,8 +31,8 @@ needs_netns = pytest.mark.skipif(os.geteuid() != 0 or shutil.which("unshare") is
                                  reason="needs root, unshare and ip (a network namespace with a veth pair)")
 
 
-def _config(tmp_path: Path, **driver) -> Path:
-    d = yaml.safe_load(CONFIG.read_text())
+def _config(tmp_path: Path, config: Path = CONFIG, **driver) -> Path:
+    d = yaml.safe_load(config.read_text())
     d["loop"]["clock"] = "virtual"        # lockstep with the emulated segment; SM-synchronous
     d["driver"].update({"ifname": VETH[0], "sync0": False, "watchdog_ms": 200.0, "timeout_s": 0.05, **driver})
     path = tmp_path / "ethercat.yaml"
@@ -40,9 +40,9 @@ def _config(tmp_path: Path, **driver) -> Path:
     return path
 
 
-def _run(tmp_path, duration_s: float, faults=(), **driver):
+def _run(tmp_path, duration_s: float, faults=(), config: Path = CONFIG, **driver):
     pytest.importorskip("pysoem")
-    cfg = _config(tmp_path, **driver)
+    cfg = _config(tmp_path, config, **driver)
     with NetNamespace(veth=VETH) as ns, Emulator("ethercat", cfg, plant=PLANT, prefix=ns.prefix,
                                                  faults=list(faults)) as emu:
         r = run_cli(["run", str(cfg), "--duration", f"{duration_s:g}"], prefix=ns.prefix, timeout_s=120)
@@ -65,6 +65,31 @@ def test_soem_brings_the_segment_to_op_and_the_loop_runs_both_profiles(tmp_path)
                      r"0x6077 = 0 per mille; Y slave 4 channel 1 holds 0 \(0\.000 V\), slave 5 channel 1 = 0 "
                      r"\(amplifier off\)", r.stdout), r.stdout
     assert "1: motorctl CiA402 drive, 2: EK1100" in err and "first command X" in err
+    _within_10_percent_of_the_sim(table, 1.0)
+
+
+def _within_10_percent_of_the_sim(table: dict, duration_s: float) -> None:
+    """e_M and L2[e] of a run through the segment within 10 % of the simulated driver's on the
+    same plant, seed and program (lockstep: the same samples)."""
+    from motorctl.app.job import run_job
+    from motorctl.config import load_config
+    ref = run_job(load_config(PLANT), controller="c2", duration_s=duration_s, clock="virtual")
+    for a in ("X", "Y"):
+        for key in ("e_M_um", "L2_um"):
+            assert abs(table[a][key] - ref.axes[a][key]) <= 0.10 * ref.axes[a][key], (a, key, table[a], ref.axes[a])
+
+
+@needs_netns
+def test_the_paper_set_up_on_terminals_for_both_axes(tmp_path):
+    """configs/gantry-ethercat-io.yaml: both amplifiers behind one EL4132 (two channels) and one
+    EL2008, each encoder on its EL5101; the stop read back from the terminals' RAM."""
+    r, err = _run(tmp_path, 1.0, config=REPO / "configs" / "gantry-ethercat-io.yaml")
+    table = parse_run_table(r.stdout)
+    assert r.returncode == 0 and set(table) == {"X", "Y"}, f"{r.stdout}\n{r.stderr}\n{err}"
+    assert table["X"]["io_errors"] == 0 and table["Y"]["io_errors"] == 0, r.stdout
+    assert "X slave 4 channel 1 holds 0 (0.000 V), slave 5 channel 1 = 0 (amplifier off); Y slave 4 channel 2 " \
+           "holds 0 (0.000 V), slave 5 channel 2 = 0 (amplifier off)" in r.stdout, r.stdout
+    _within_10_percent_of_the_sim(table, 1.0)
 
 
 @needs_netns
