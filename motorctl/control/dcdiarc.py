@@ -53,10 +53,11 @@ from motorctl.control.estimator import LeastSquaresEstimator, ls_update, s_f_jit
 from motorctl.control.inversion import invert_cubic
 from motorctl.control.params import ControllerConfig
 from motorctl.effects.compensation import Compensation
+from motorctl.loop.records import N_SIGNALS
 from motorctl.model import S_F_GAIN, assumption2_margin
 from motorctl.schema import NonNeg, Pos, StrictModel, quantity
 
-__all__ = ["DCDIARC", "dcdiarc_step", "theory_k_s1"]
+__all__ = ["DCDIARC", "dcdiarc_block_step", "dcdiarc_step", "theory_k_s1"]
 
 
 # state vector of the law (outputs of the last sample)
@@ -64,6 +65,7 @@ S_Y_PREV, S_U, S_V, S_E, S_P, S_X2, S_D0, S_KS, S_DC, S_RI = range(10)
 N_STATE = 10
 # parameter vector of the law
 P_TS, P_K1, P_KS, P_GD, P_DMAX, P_ULIM, P_THEORY, P_KS1, P_ETA4, P_DELTA = range(10)
+N_PRM = 10
 
 
 class FilterConfig(StrictModel):
@@ -221,6 +223,73 @@ def dcdiarc_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig
     return u
 
 
+# the state block of one axis's law: offsets into ``L`` (the block's layout vector); L[B_N],
+# L[B_K], L[B_M] are sizes, the others offsets into F (float64) or I (int64)
+B_N, B_K, B_M = 0, 1, 2            # n = n_θ + k, k adapted coefficients, ring width m
+(B_SIG, B_ST, B_PRM, B_SPAN, B_RING, B_CM, B_CD, B_TH, B_GAM, B_TMIN, B_TMAX, B_ZF, B_ZD, B_INP,
+ B_FLT, B_PHI, B_G, B_Z, B_PIV, B_COEF, B_VEC, B_OPTS, B_RES) = range(3, 26)
+B_PIVIDX, B_ACTIVE = 26, 27        # offsets into I
+N_LAYOUT = 28
+
+
+@njit
+def dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, F, I, L):
+    """:func:`dcdiarc_step` on one axis's state block; returns u [V].
+
+    The law's and the estimator's arrays live in two preallocated buffers, F (float64) and I
+    (int64), at the offsets of the layout vector L (int64, N_LAYOUT: the sizes n, k, m, then an
+    offset per array, ``B_*``): one call passes three arrays instead of thirty, which is most
+    of what a call from Python costs. The views are taken here, without allocation.
+    """
+    n = L[B_N]
+    k = L[B_K]
+    m = L[B_M]
+    sig = F[L[B_SIG]:L[B_SIG] + N_SIGNALS]
+    st = F[L[B_ST]:L[B_ST] + N_STATE]
+    prm = F[L[B_PRM]:L[B_PRM] + N_PRM]
+    span = F[L[B_SPAN]:L[B_SPAN] + n]
+    ring = F[L[B_RING]:L[B_RING] + 2 * m].reshape((2, m))
+    cm = F[L[B_CM]:L[B_CM] + k]
+    cd = F[L[B_CD]:L[B_CD] + k]
+    th = F[L[B_TH]:L[B_TH] + n]
+    gam = F[L[B_GAM]:L[B_GAM] + n * n].reshape((n, n))
+    tmin = F[L[B_TMIN]:L[B_TMIN] + n]
+    tmax = F[L[B_TMAX]:L[B_TMAX] + n]
+    zf = F[L[B_ZF]:L[B_ZF] + n]
+    zd = F[L[B_ZD]:L[B_ZD] + n]
+    inp = F[L[B_INP]:L[B_INP] + n]
+    flt = F[L[B_FLT]:L[B_FLT] + 6]
+    phi = F[L[B_PHI]:L[B_PHI] + n]
+    g = F[L[B_G]:L[B_G] + n]
+    z = F[L[B_Z]:L[B_Z] + n]
+    piv = F[L[B_PIV]:L[B_PIV] + n * n].reshape((n, n))
+    coef = F[L[B_COEF]:L[B_COEF] + n * n].reshape((n, n))
+    vec = F[L[B_VEC]:L[B_VEC] + 3 * n].reshape((3, n))
+    opts = F[L[B_OPTS]:L[B_OPTS] + 4]
+    res = F[L[B_RES]:L[B_RES] + 2]
+    pividx = I[L[B_PIVIDX]:L[B_PIVIDX] + n]
+    active = I[L[B_ACTIVE]:L[B_ACTIVE] + n]
+    return dcdiarc_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig, st, prm, span,
+                        ring, cm, cd, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv, coef, vec,
+                        pividx, active, opts, res)
+
+
+def _pack(fields, dtype) -> tuple[np.ndarray, list[int]]:
+    """Copy each ``(owner, attribute)`` array into one contiguous buffer of ``dtype`` and rebind
+    the attribute to its view (same shape, same values); returns (buffer, offsets)."""
+    arrays = [getattr(o, a) for o, a in fields]
+    buf = np.zeros(sum(a.size for a in arrays), dtype=dtype)
+    offs = []
+    at = 0
+    for (owner, attr), a in zip(fields, arrays):
+        view = buf[at:at + a.size].reshape(a.shape)
+        view[...] = a
+        setattr(owner, attr, view)
+        offs.append(at)
+        at += a.size
+    return buf, offs
+
+
 class DCDIARC(Controller):
     """One axis of C1 or C2. Call :meth:`update` once per sample; it returns u [V].
 
@@ -289,7 +358,8 @@ class DCDIARC(Controller):
         self._bind()
         # compile (or load the cached machine code) now, on copies of the state, so that the
         # first servo cycle never pays for it
-        dcdiarc_step(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, *(a.copy() for a in self._args))
+        dcdiarc_block_step(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, self._F.copy(), self._I.copy(),
+                           self._L)
 
     @classmethod
     def from_config(cls, section: ControllerConfig, ts: float) -> "DCDIARC":
@@ -353,14 +423,21 @@ class DCDIARC(Controller):
                                      p.nu, p.rho_M, n_beta=self.n_beta)
 
     def _bind(self) -> None:
+        """Pack the law's and the estimator's arrays into this axis's state block (F, I, L;
+        :func:`dcdiarc_block_step`) and rebind them, the estimator's included, to views of it
+        (between cycles: at construction and when θ̂(0) is restored)."""
         est = self.estimator
         n = self.n_theta
-        self.theta_hat = est.theta_hat[:n]          # live views
+        self.signals[SIG_THETA:SIG_THETA + n] = est.theta_hat[:n]
+        floats = [(self, "signals"), (self, "_st"), (self, "_prm"), (self, "_span"), (self, "_ring"),
+                  (est, "cols"), (self, "_cd")] + [(est, a) for a in est.FLOAT_ARRAYS]
+        self._F, f_off = _pack(floats, np.float64)
+        self._I, i_off = _pack([(est, a) for a in est.INT_ARRAYS], np.int64)
+        self._L = np.array([est.n, self.n_beta, self._ring.shape[1], *f_off, *i_off], dtype=np.int64)
+        assert self._L.shape == (N_LAYOUT,)
+        self.theta_hat = est.theta_hat[:n]          # live views of the block
         self.beta_hat = est.theta_hat[n:]
         self._cm = est.cols
-        self.signals[SIG_THETA:SIG_THETA + n] = self.theta_hat
-        self._args = ((self.signals, self._st, self._prm, self._span, self._ring, self._cm, self._cd)
-                      + est.kernel_args())
 
     def reset(self, y0: float, keep_theta: bool = True) -> None:
         """Start (or restart) from the measured position y0 [m] with u = 0 and d̂0 = 0.
@@ -411,8 +488,8 @@ class DCDIARC(Controller):
             self.reset(y)
         comp = self.compensation
         if comp is None:
-            return dcdiarc_step(y, x_d, xd_dot, xd_ddot, x_d, xd_dot, xd_ddot, 0.0, 1.0, 1.0,
-                                *self._args)
+            return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, x_d, xd_dot, xd_ddot, 0.0, 1.0, 1.0,
+                                      self._F, self._I, self._L)
         tau = self.preview_s
         if tau > 0.0:
             if self._pv_set:
@@ -441,7 +518,8 @@ class DCDIARC(Controller):
             if thrust is not None:
                 g_meas = 1.0 + thrust(xm)
                 g_des = 1.0 + thrust(xf)
-        return dcdiarc_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, *self._args)
+        return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des,
+                                  self._F, self._I, self._L)
 
     # outputs of the last sample (float reads of the state vector)
     u = property(lambda self: float(self._st[S_U]))

@@ -80,7 +80,7 @@ def project_box(z, th, tmin, tmax, gam, piv, coef, vec, pividx, active):
     Args:
         z: ζ, shape (n,), replaced by Proj(ζ). th, tmin, tmax: θ̂ and the box, (n,).
         gam: Γ, (n, n) SPD. Scratch: piv (n, n), coef (n, n), vec (3, n), pividx (n,) int64,
-        active (n,) bool.
+        active (n,) bool or int64 (0/1).
     Returns:
         The number of closed faces.
     """
@@ -309,7 +309,7 @@ class LeastSquaresEstimator:
         self._coef = np.zeros((n, n))
         self._vec = np.zeros((3, n))
         self._pividx = np.zeros(n, dtype=np.int64)
-        self._active = np.zeros(n, dtype=np.bool_)
+        self._active = np.zeros(n, dtype=np.int64)      # 0/1: the closed faces of the box
         self.opts = np.array([ts, mu, nu, rho_M], dtype=float)
         self.res = np.zeros(2)
 
@@ -322,6 +322,13 @@ class LeastSquaresEstimator:
     def frozen(self) -> bool:
         """True when the last Γ update was frozen (λ_max(Γ⁺) > ρ_M, eq. 27)."""
         return bool(self.res[_R_FROZEN])
+
+    #: the float64 arrays of :meth:`kernel_args`, in order (:meth:`motorctl.control.dcdiarc.DCDIARC`
+    #: packs them into one state block and rebinds these attributes to views of it)
+    FLOAT_ARRAYS = ("theta_hat", "gamma", "theta_min", "theta_max", "zf", "zd", "_inp", "flt", "phi",
+                    "_g", "_z", "_piv", "_coef", "_vec", "opts", "res")
+    #: the int64 arrays of :meth:`kernel_args`, in order
+    INT_ARRAYS = ("_pividx", "_active")
 
     def kernel_args(self) -> tuple:
         """The preallocated arrays the kernel works on, in ``ls_update`` order after
