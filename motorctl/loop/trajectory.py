@@ -6,21 +6,81 @@ and the mirror image. When D is too short to reach v_max (or a_max), the peak ve
 lowered by bisection until the profile fits exactly. The X program of the paper's Fig. 3
 (0 ↔ 0.4 m, 2 m/s, 40 m/s², 4000 m/s³) takes 0.26 s a move (configs/gantry.yaml).
 
-Sampling (:meth:`Program.sample`) is pure float arithmetic on precomputed segments, cheap
-enough for the 5 kHz cycle; at and after the end of a move the position is the end point
-exactly.
+Sampling is pure float arithmetic on precomputed segments, at and after the end of a move the
+position is the end point exactly. Each Move and Program keeps its segments in a flat float64
+table (:attr:`Program.table`, layout below), and one compiled function samples it
+(:func:`sample_table`): :meth:`Move.sample` and :meth:`Program.sample` call it from Python, the
+compiled servo cycle (:mod:`motorctl.loop.cycle`) calls it inside the cycle.
+
+Table layout: [0] n_moves (−1: a single move sampled as such, 0: a hold), [1] period [s],
+[2] t_start [s], [3] the first point (the hold position) [m], then per move j at
+4 + MOVE_W·j: start, end, t0, duration, the 7 segment start times, the 7 segment start states
+(x, v, a, jerk).
 """
 
 from __future__ import annotations
 
-import bisect
 import math
 from dataclasses import dataclass
 from typing import Annotated
 
+import numpy as np
 from pydantic import Field
 
+from motorctl.jit import njit
 from motorctl.schema import Position_m, StrictModel, Time_s, quantity
+
+#: floats per move in a table: start, end, t0, duration, 7 segment starts, 7 × (x, v, a, j)
+MOVE_W = 4 + 7 + 28
+#: the header of a table: n_moves, period, t_start, first point
+TABLE_HEAD = 4
+
+
+@njit
+def _move_sample(tab, b, t):
+    """One move of a table at offset b, at time t [s] (see the module docstring)."""
+    t0 = tab[b + 2]
+    if t <= t0:
+        return tab[b], 0.0, 0.0
+    if t >= t0 + tab[b + 3]:
+        return tab[b + 1], 0.0, 0.0
+    i = 6
+    while i > 0 and tab[b + 4 + i] > t:       # bisect_right(starts, t) − 1 on 7 entries
+        i -= 1
+    q = b + 11 + 4 * i
+    p, v, a, j = tab[q], tab[q + 1], tab[q + 2], tab[q + 3]
+    d = t - tab[b + 4 + i]
+    return (p + v * d + a * d * d / 2 + j * d * d * d / 6, v + a * d + j * d * d / 2, a + j * d)
+
+
+@njit
+def sample_table(tab, t):
+    """(x_d [m], ẋ_d [m/s], ẍ_d [m/s²]) of a Move's or Program's table (module docstring) at
+    time t [s]: the arithmetic of the 7-segment profile, compiled, without allocation."""
+    nm = int(tab[0])
+    if nm < 0:
+        return _move_sample(tab, TABLE_HEAD, t)
+    if nm == 0:
+        return tab[3], 0.0, 0.0
+    tau = t - tab[2]
+    if tau < 0.0:
+        return tab[3], 0.0, 0.0
+    period = tab[1]
+    if period > 0.0:
+        tau = np.fmod(tau, period)            # exact, as C fmod
+    i = nm - 1
+    while i >= 0 and tab[TABLE_HEAD + MOVE_W * i + 2] > tau:   # bisect_right(move t0s, tau) − 1
+        i -= 1
+    if i < 0:
+        return tab[TABLE_HEAD], 0.0, 0.0
+    return _move_sample(tab, TABLE_HEAD + MOVE_W * i, tau)
+
+
+def _move_record(m: "Move") -> list[float]:
+    rec = [m.start, m.end, m.t0, m.duration, *m._starts]
+    for st in m._states:
+        rec.extend(st)
+    return rec
 
 
 def _accel_phase(v: float, a_max: float, j_max: float) -> tuple[float, float]:
@@ -84,17 +144,11 @@ class Move:
         object.__setattr__(self, "_states", states)
         object.__setattr__(self, "duration", sum(durations))
         object.__setattr__(self, "peak_velocity", v)
+        object.__setattr__(self, "table", np.array([-1.0, 0.0, 0.0, self.start, *_move_record(self)]))
 
     def sample(self, t: float) -> tuple[float, float, float]:
         """(x_d [m], ẋ_d [m/s], ẍ_d [m/s²]) at time t [s]; rest at start/end outside the move."""
-        if t <= self.t0:
-            return self.start, 0.0, 0.0
-        if t >= self.t0 + self.duration:
-            return self.end, 0.0, 0.0
-        i = bisect.bisect_right(self._starts, t) - 1
-        p, v, a, j = self._states[i]
-        d = t - self._starts[i]
-        return (p + v * d + a * d * d / 2 + j * d * d * d / 6, v + a * d + j * d * d / 2, a + j * d)
+        return sample_table(self.table, t)
 
 
 class Program:
@@ -132,7 +186,11 @@ class Program:
             last = self.moves[-1]
             if self.period > 0 and last.t0 + last.duration > self.period + 1e-12:
                 raise ValueError(f"moves do not fit in the period {self.period} s")
-        self._move_t0 = [m.t0 for m in self.moves]
+        tab = [float(len(self.moves)), self.period, self.t_start, self.points[0]]
+        for m in self.moves:
+            tab.extend(_move_record(m))
+        #: the table the compiled sampler reads (module docstring), float64 (4 + MOVE_W·n_moves,)
+        self.table = np.array(tab)
 
     @classmethod
     def hold(cls, position: float = 0.0) -> "Program":
@@ -140,18 +198,8 @@ class Program:
         return cls([position], [], 0.0, 1.0, 1.0, 1.0)
 
     def sample(self, t: float) -> tuple[float, float, float]:
-        """(x_d, ẋ_d, ẍ_d) at absolute time t [s]. Pure floats, no allocation beyond the tuple."""
-        if not self.moves:
-            return self.points[0], 0.0, 0.0
-        tau = t - self.t_start
-        if tau < 0.0:
-            return self.points[0], 0.0, 0.0
-        if self.period > 0.0:
-            tau = math.fmod(tau, self.period)
-        i = bisect.bisect_right(self._move_t0, tau) - 1
-        if i < 0:
-            return self.moves[0].start, 0.0, 0.0
-        return self.moves[i].sample(tau)
+        """(x_d [m], ẋ_d [m/s], ẍ_d [m/s²]) at absolute time t [s]."""
+        return sample_table(self.table, t)
 
 
 class TrajectoryConfig(StrictModel):
