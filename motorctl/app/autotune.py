@@ -177,15 +177,18 @@ class Excited(Controller):
     the inner controller's signals. Allocation-free."""
 
     def __init__(self, inner: Controller, r: np.ndarray, k0: int, guard_m: float):
-        super().__init__(inner.ts, inner.u_lim, inner.n_theta)
         self.inner = inner
+        super().__init__(inner.ts, inner.u_lim, inner.n_theta)
         self.name = inner.name
-        self.signals = inner.signals
-        self.theta_hat = inner.theta_hat
         self.r = np.ascontiguousarray(r, dtype=float)
         self.k0 = int(k0)
         self.guard = float(guard_m)
         self.tripped = False
+
+    # the inner controller's arrays, wherever they live (a law the loop lets go of takes its
+    # state back into arrays of its own: Controller.detach)
+    signals = property(lambda self: self.inner.signals, lambda self, _v: None)
+    theta_hat = property(lambda self: self.inner.theta_hat, lambda self, _v: None)
 
     @classmethod
     def from_config(cls, section, ts):      # pragma: no cover - built by autotune only

@@ -143,7 +143,7 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
         if rows.shape[0]:
             entry.update(tracking_indexes(t, e, u, period if period > 0 else 4.0))
         entry["fault"] = with_drive_reason(asm.supervisor.reason(i), asm.driver.fault_reason(i))
-        entry["io_errors"] = asm.supervisor.io_errors[i]
+        entry["io_errors"] = int(asm.supervisor.io_errors[i])
         entry["theta_hat"] = ctrl.theta_hat.tolist()
         result.axes[a] = entry
     result.timing = timing_stats(rows[:, lay.cycle("turnaround_ns")],

@@ -25,6 +25,10 @@ import numpy as np
 
 from motorctl.loop.records import CONTROLLER_SIGNALS, N_SIGNALS
 
+#: the compiled laws the servo cycle runs itself (:mod:`motorctl.control.kernels`); LAW_PY: a law
+#: whose :meth:`Controller.update` the cycle calls from Python (any law without a compiled step)
+LAW_PY, LAW_DCDIARC, LAW_PID = 0, 1, 2
+
 #: offsets into :attr:`Controller.signals`
 SIG = {name: j for j, name in enumerate(CONTROLLER_SIGNALS)}
 SIG_V, SIG_E, SIG_P, SIG_X2 = SIG["v"], SIG["e"], SIG["p"], SIG["x2"]
@@ -122,6 +126,26 @@ class Controller(abc.ABC):
         """One sample: measured position y [m], desired position [m], velocity [m/s] and
         acceleration [m/s²], time t [s]. Returns u [V], |u| ≤ u_lim; fills :attr:`signals`.
         Never allocates a container, blocks or logs (it runs inside the 5 kHz cycle)."""
+
+    @property
+    def law_code(self) -> int:
+        """The compiled step the servo cycle runs for this controller (``LAW_*``); LAW_PY
+        (default): none, the cycle calls :meth:`update` (and :meth:`reset`) from Python."""
+        return LAW_PY
+
+    def state_size(self) -> tuple[int, int]:
+        """(floats, ints) of the state a compiled law keeps in the cycle's rows (:meth:`attach`)."""
+        return 0, 0
+
+    def attach(self, sig: np.ndarray, f: np.ndarray, ii: np.ndarray, lay: np.ndarray) -> None:
+        """Move a compiled law's state into the servo cycle's rows for this axis (between
+        cycles): ``sig`` (N_SIGNALS,) the published signals, ``f`` float64 and ``ii`` int64 rows
+        of at least :meth:`state_size`, ``lay`` int64 (N_LAYOUT,) the law's layout; the law's
+        arrays become views of them, with their values. Default (LAW_PY): nothing."""
+
+    def detach(self) -> None:
+        """Take the state back from the cycle's rows into arrays of the controller's own (when
+        the loop lets go of it: a switch). Default: nothing."""
 
     def preview(self, x_d: float, xd_dot: float, xd_ddot: float) -> None:
         """The desired position [m], velocity [m/s] and acceleration [m/s²] at t + preview_s,

@@ -41,6 +41,8 @@ from pydantic import Field
 
 from motorctl.jit import njit
 from motorctl.control.base import (
+    LAW_DCDIARC,
+    LAW_PY,
     SIG_D0,
     SIG_E,
     SIG_P,
@@ -53,11 +55,10 @@ from motorctl.control.estimator import LeastSquaresEstimator, ls_update, s_f_jit
 from motorctl.control.inversion import invert_cubic
 from motorctl.control.params import ControllerConfig
 from motorctl.effects.compensation import Compensation
-from motorctl.loop.records import N_SIGNALS
 from motorctl.model import S_F_GAIN, assumption2_margin
 from motorctl.schema import NonNeg, Pos, StrictModel, quantity
 
-__all__ = ["DCDIARC", "dcdiarc_block_step", "dcdiarc_step", "theory_k_s1"]
+__all__ = ["DCDIARC", "dcdiarc_block_reset", "dcdiarc_block_step", "dcdiarc_step", "theory_k_s1"]
 
 
 # state vector of the law (outputs of the last sample)
@@ -226,25 +227,26 @@ def dcdiarc_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig
 # the state block of one axis's law: offsets into ``L`` (the block's layout vector); L[B_N],
 # L[B_K], L[B_M] are sizes, the others offsets into F (float64) or I (int64)
 B_N, B_K, B_M = 0, 1, 2            # n = n_θ + k, k adapted coefficients, ring width m
-(B_SIG, B_ST, B_PRM, B_SPAN, B_RING, B_CM, B_CD, B_TH, B_GAM, B_TMIN, B_TMAX, B_ZF, B_ZD, B_INP,
- B_FLT, B_PHI, B_G, B_Z, B_PIV, B_COEF, B_VEC, B_OPTS, B_RES) = range(3, 26)
-B_PIVIDX, B_ACTIVE = 26, 27        # offsets into I
-N_LAYOUT = 28
+(B_ST, B_PRM, B_SPAN, B_RING, B_CM, B_CD, B_TH, B_GAM, B_TMIN, B_TMAX, B_ZF, B_ZD, B_INP, B_FLT,
+ B_PHI, B_G, B_Z, B_PIV, B_COEF, B_VEC, B_OPTS, B_RES) = range(3, 25)
+B_PIVIDX, B_ACTIVE = 25, 26        # offsets into I
+N_LAYOUT = 27
 
 
 @njit
-def dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, F, I, L):
+def dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig, F, I, L):
     """:func:`dcdiarc_step` on one axis's state block; returns u [V].
 
     The law's and the estimator's arrays live in two preallocated buffers, F (float64) and I
     (int64), at the offsets of the layout vector L (int64, N_LAYOUT: the sizes n, k, m, then an
-    offset per array, ``B_*``): one call passes three arrays instead of thirty, which is most
-    of what a call from Python costs. The views are taken here, without allocation.
+    offset per array, ``B_*``); sig (N_SIGNALS,) the published signals. One call passes four
+    arrays instead of thirty, which is most of what a call from Python costs, and the
+    compiled servo cycle keeps every axis's block in its rows. The views are taken here,
+    without allocation.
     """
     n = L[B_N]
     k = L[B_K]
     m = L[B_M]
-    sig = F[L[B_SIG]:L[B_SIG] + N_SIGNALS]
     st = F[L[B_ST]:L[B_ST] + N_STATE]
     prm = F[L[B_PRM]:L[B_PRM] + N_PRM]
     span = F[L[B_SPAN]:L[B_SPAN] + n]
@@ -272,6 +274,25 @@ def dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_de
     return dcdiarc_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig, st, prm, span,
                         ring, cm, cd, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv, coef, vec,
                         pividx, active, opts, res)
+
+
+@njit
+def dcdiarc_block_reset(y0, F, L):
+    """Restart the law of a state block from the measured position y0 [m] with u = 0, d̂0 = 0,
+    the H_f states and the input ring zeroed; θ̂, β̂ and Γ kept (:meth:`DCDIARC.reset`)."""
+    n = L[B_N]
+    for j in range(n):
+        F[L[B_ZF] + j] = 0.0
+        F[L[B_ZD] + j] = 0.0
+    st = L[B_ST]
+    F[st + S_Y_PREV] = y0
+    F[st + S_U] = 0.0
+    F[st + S_DC] = 0.0
+    F[st + S_V] = 0.0
+    F[st + S_D0] = 0.0
+    F[st + S_RI] = 0.0
+    for j in range(2 * L[B_M]):
+        F[L[B_RING] + j] = 0.0
 
 
 def _pack(fields, dtype) -> tuple[np.ndarray, list[int]]:
@@ -355,11 +376,13 @@ class DCDIARC(Controller):
         self._pv_set = False
         self._ad_prev = 0.0
         self._started = False
+        self._rows = None                 # the cycle's rows while attached (attach)
         self._bind()
         # compile (or load the cached machine code) now, on copies of the state, so that the
         # first servo cycle never pays for it
-        dcdiarc_block_step(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, self._F.copy(), self._I.copy(),
-                           self._L)
+        dcdiarc_block_step(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, self.signals.copy(), self._F.copy(),
+                           self._I.copy(), self._L)
+        dcdiarc_block_reset(0.0, self._F.copy(), self._L)
 
     @classmethod
     def from_config(cls, section: ControllerConfig, ts: float) -> "DCDIARC":
@@ -422,22 +445,77 @@ class DCDIARC(Controller):
         return LeastSquaresEstimator(th0, tmin, tmax, np.diag(g0), p.filter.omega_f, self.ts, p.mu,
                                      p.nu, p.rho_M, n_beta=self.n_beta)
 
+    def _fields(self):
+        """The arrays of the state block, in layout order: (float fields, int fields), each a
+        list of (owner, attribute)."""
+        est = self.estimator
+        floats = [(self, "_st"), (self, "_prm"), (self, "_span"), (self, "_ring"), (est, "cols"), (self, "_cd")]
+        return floats + [(est, a) for a in est.FLOAT_ARRAYS], [(est, a) for a in est.INT_ARRAYS]
+
     def _bind(self) -> None:
         """Pack the law's and the estimator's arrays into this axis's state block (F, I, L;
         :func:`dcdiarc_block_step`) and rebind them, the estimator's included, to views of it
-        (between cycles: at construction and when θ̂(0) is restored)."""
+        (between cycles: at construction and when θ̂(0) is restored); an attached law moves
+        the new block into the cycle's rows again."""
         est = self.estimator
         n = self.n_theta
         self.signals[SIG_THETA:SIG_THETA + n] = est.theta_hat[:n]
-        floats = [(self, "signals"), (self, "_st"), (self, "_prm"), (self, "_span"), (self, "_ring"),
-                  (est, "cols"), (self, "_cd")] + [(est, a) for a in est.FLOAT_ARRAYS]
+        floats, ints = self._fields()
         self._F, f_off = _pack(floats, np.float64)
-        self._I, i_off = _pack([(est, a) for a in est.INT_ARRAYS], np.int64)
+        self._I, i_off = _pack(ints, np.int64)
         self._L = np.array([est.n, self.n_beta, self._ring.shape[1], *f_off, *i_off], dtype=np.int64)
         assert self._L.shape == (N_LAYOUT,)
-        self.theta_hat = est.theta_hat[:n]          # live views of the block
+        self._views()
+        if self._rows is not None:
+            self.attach(*self._rows)
+
+    def _views(self) -> None:
+        """Rebind every array of the block to its view of the current F and I."""
+        floats, ints = self._fields()
+        for buf, fields in ((self._F, floats), (self._I, ints)):
+            for j, (owner, attr) in enumerate(fields):
+                a = getattr(owner, attr)
+                at = self._L[3 + j if buf is self._F else 3 + len(floats) + j]
+                setattr(owner, attr, buf[at:at + a.size].reshape(a.shape))
+        n = self.n_theta
+        est = self.estimator
+        self.theta_hat = est.theta_hat[:n]
         self.beta_hat = est.theta_hat[n:]
         self._cm = est.cols
+
+    @property
+    def law_code(self) -> int:
+        """LAW_DCDIARC without compensation (the cycle runs :func:`dcdiarc_block_step`), else
+        LAW_PY (the compensation terms are evaluated in Python, :meth:`update`)."""
+        return LAW_DCDIARC if self.compensation is None else LAW_PY
+
+    def state_size(self) -> tuple[int, int]:
+        return self._L_size(0), self._L_size(1)
+
+    def attach(self, sig, f, ii, lay) -> None:
+        """The block and the signals into the cycle's rows (:meth:`Controller.attach`)."""
+        sig[:] = self.signals
+        f[:self._F.size] = self._F
+        ii[:self._I.size] = self._I
+        lay[:] = self._L
+        self.signals = sig
+        self._F, self._I = f, ii
+        self._rows = (sig, f, ii, lay)
+        self._views()
+
+    def detach(self) -> None:
+        """The block back into arrays of this controller's own (:meth:`Controller.detach`)."""
+        if self._rows is None:
+            return
+        self._rows = None
+        self.signals = self.signals.copy()
+        self._F, self._I = self._F[:self._L_size(0)].copy(), self._I[:self._L_size(1)].copy()
+        self._views()
+
+    def _L_size(self, which: int) -> int:
+        floats, ints = self._fields()
+        fields = floats if which == 0 else ints
+        return sum(getattr(o, a).size for o, a in fields)
 
     def reset(self, y0: float, keep_theta: bool = True) -> None:
         """Start (or restart) from the measured position y0 [m] with u = 0 and d̂0 = 0.
@@ -447,15 +525,7 @@ class DCDIARC(Controller):
         if not keep_theta:
             self.estimator = self._new_estimator()
             self._bind()
-        self.estimator.reset_filters()
-        st = self._st
-        st[S_Y_PREV] = y0
-        st[S_U] = 0.0
-        st[S_DC] = 0.0
-        st[S_V] = 0.0
-        st[S_D0] = 0.0
-        st[S_RI] = 0.0
-        self._ring[:] = 0.0
+        dcdiarc_block_reset(y0, self._F, self._L)
         self._pv_set = False
         self._ad_prev = 0.0
         self._started = True
@@ -489,7 +559,7 @@ class DCDIARC(Controller):
         comp = self.compensation
         if comp is None:
             return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, x_d, xd_dot, xd_ddot, 0.0, 1.0, 1.0,
-                                      self._F, self._I, self._L)
+                                      self.signals, self._F, self._I, self._L)
         tau = self.preview_s
         if tau > 0.0:
             if self._pv_set:
@@ -519,7 +589,7 @@ class DCDIARC(Controller):
                 g_meas = 1.0 + thrust(xm)
                 g_des = 1.0 + thrust(xf)
         return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des,
-                                  self._F, self._I, self._L)
+                                  self.signals, self._F, self._I, self._L)
 
     # outputs of the last sample (float reads of the state vector)
     u = property(lambda self: float(self._st[S_U]))

@@ -37,12 +37,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from motorctl.control.base import SIG_E, SIG_P, SIG_V, SIG_X2, Controller
+from motorctl.control.base import LAW_PID, SIG_E, SIG_P, SIG_V, SIG_X2, Controller
 from motorctl.control.params import ControllerConfig
 from motorctl.jit import njit
 from motorctl.schema import StrictModel, quantity
 
-__all__ = ["PID", "PidConfig", "pid_step"]
+__all__ = ["PID", "PidConfig", "pid_reset", "pid_step"]
 
 
 class PidConfig(StrictModel):
@@ -152,6 +152,15 @@ def pid_step(y, x_d, xd_dot, xd_ddot, sig, st, prm):
     return u
 
 
+@njit
+def pid_reset(y0, st):
+    """Bumpless (re)start of the state st (N_STATE,) from the measured position y0 [m]:
+    integrator 0, not in the limit, previous feedback y0, u = 0 (:meth:`PID.reset`)."""
+    for j in range(N_STATE):
+        st[j] = 0.0
+    st[S_Y_PREV] = y0
+
+
 class PID(Controller):
     """LinuxCNC's ``pid`` for one axis, with feedforward. Call :meth:`update` once per sample.
 
@@ -187,6 +196,8 @@ class PID(Controller):
         self._started = False
         # compile (or load the cached machine code) now, on copies, so the first cycle does not
         pid_step(0.0, 0.0, 0.0, 0.0, self.signals.copy(), self._st.copy(), self._prm)
+        pid_reset(0.0, self._st.copy())
+        self._attached = False
 
     @classmethod
     def from_config(cls, section: ControllerConfig, ts: float) -> PID:
@@ -235,10 +246,31 @@ class PID(Controller):
     def reset(self, y0: float) -> None:
         """Bumpless (re)start from the measured position y0 [m]: integrator 0, not in the
         limit, previous feedback y0 (so the first feedback derivative is 0), u = 0."""
-        st = self._st
-        st[:] = 0.0
-        st[S_Y_PREV] = y0
+        pid_reset(y0, self._st)
         self._started = True
+
+    @property
+    def law_code(self) -> int:
+        """LAW_PID: the cycle runs :func:`pid_step` on the rows it keeps (:meth:`attach`)."""
+        return LAW_PID
+
+    def state_size(self) -> tuple[int, int]:
+        return N_STATE + N_PRM, 0
+
+    def attach(self, sig, f, ii, lay) -> None:
+        """State and parameters into the cycle's float row (f[:N_STATE], then N_PRM), the
+        signals into its row (:meth:`Controller.attach`)."""
+        sig[:] = self.signals
+        f[:N_STATE] = self._st
+        f[N_STATE:N_STATE + N_PRM] = self._prm
+        lay[:] = 0
+        self.signals, self._st, self._prm = sig, f[:N_STATE], f[N_STATE:N_STATE + N_PRM]
+        self._attached = True
+
+    def detach(self) -> None:
+        if self._attached:
+            self._attached = False
+            self.signals, self._st, self._prm = self.signals.copy(), self._st.copy(), self._prm.copy()
 
     def update(self, y: float, x_d: float, xd_dot: float, xd_ddot: float, t: float = 0.0) -> float:
         """One sample. Returns u [V], |u| ≤ u_max; fills :attr:`signals` (v, e, p, x2).

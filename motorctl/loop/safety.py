@@ -13,7 +13,8 @@ Checks per axis (see ``LimitsConfig``):
   * amplifier fault reported by the drive;
   * loop-level faults (overrun policy, shutdown) set by the loop.
 
-Everything here is plain float/int arithmetic on preallocated lists.
+The checks are compiled (numba) float/int arithmetic on two preallocated arrays, called from
+the compiled servo cycle (:mod:`motorctl.loop.cycle`) and from the methods here.
 """
 
 from __future__ import annotations
@@ -21,8 +22,10 @@ from __future__ import annotations
 import math
 from typing import Annotated
 
+import numpy as np
 from pydantic import Field
 
+from motorctl.jit import njit
 from motorctl.schema import Position_m, StrictModel, quantity
 
 FAULT_FOLLOWING_ERROR = 1
@@ -65,106 +68,140 @@ def with_drive_reason(reason: str, drive: str) -> str:
 RECOVERY_MARGIN_M = 0.0005
 
 
+# the supervisor's state, one row per axis (:class:`Supervisor`: ``si`` int64, ``sf`` float64)
+SI_FAULT, SI_BUCKET, SI_GAP, SI_IOERR, SI_INC, SI_DEC, SI_BLIM = range(7)
+N_SI = 7
+(SF_YLAST, SF_FEPEAK, SF_VAF, SF_LAF, SF_LO, SF_HI, SF_SOFTLO, SF_SOFTHI, SF_FE, SF_FEMIN, SF_VMAX,
+ SF_JUMP) = range(12)
+N_SF = 12
+
+
+@njit
+def sup_trip(si, sf, i, bit, value, limit):
+    """Latch fault ``bit`` on axis i; the first fault keeps the value and limit that tripped it."""
+    if si[i, SI_FAULT] == 0:
+        sf[i, SF_VAF] = value
+        sf[i, SF_LAF] = limit
+    si[i, SI_FAULT] |= bit
+
+
+@njit
+def sup_check_input(si, sf, i, y, io_error, amp_fault):
+    """Check axis i's reading y [m] before control (module docstring). True when the axis may
+    be driven."""
+    if io_error:
+        si[i, SI_IOERR] += 1
+        si[i, SI_GAP] += 1
+        b = si[i, SI_BUCKET] + si[i, SI_INC]
+        si[i, SI_BUCKET] = b
+        if b >= si[i, SI_BLIM]:
+            sup_trip(si, sf, i, FAULT_IO_ERROR, float(b), float(si[i, SI_BLIM]))
+        return si[i, SI_FAULT] == 0
+    b = si[i, SI_BUCKET] - si[i, SI_DEC]
+    si[i, SI_BUCKET] = b if b > 0 else 0
+    if amp_fault:
+        sup_trip(si, sf, i, FAULT_AMP_FAULT, 1.0, 0.0)
+    if not (y - y == 0.0):  # NaN or inf
+        sup_trip(si, sf, i, FAULT_NAN, y, 0.0)
+        return False
+    last = sf[i, SF_YLAST]
+    allowed = sf[i, SF_JUMP] * (si[i, SI_GAP] + 1)
+    si[i, SI_GAP] = 0
+    if last == last and abs(y - last) > allowed:
+        sup_trip(si, sf, i, FAULT_ENCODER_JUMP, y - last, allowed)
+    sf[i, SF_YLAST] = y
+    lo = sf[i, SF_LO]
+    hi = sf[i, SF_HI]
+    if y < lo:
+        sup_trip(si, sf, i, FAULT_SOFT_LIMIT, y, lo)
+    elif y > hi:
+        sup_trip(si, sf, i, FAULT_SOFT_LIMIT, y, hi)
+    elif lo != sf[i, SF_SOFTLO] or hi != sf[i, SF_SOFTHI]:
+        # recovering: the window follows the axis in, never out (RECOVERY_MARGIN_M slack)
+        m = RECOVERY_MARGIN_M
+        sf[i, SF_LO] = max(lo, min(y - m, sf[i, SF_SOFTLO]))
+        sf[i, SF_HI] = min(hi, max(y + m, sf[i, SF_SOFTHI]))
+    return si[i, SI_FAULT] == 0
+
+
+@njit
+def sup_check_output(si, sf, i, e, xd_dot, u):
+    """Check axis i's following error e [m] (velocity-scaled limit at ẋ_d [m/s]) and output
+    u [V]. True when u may be written."""
+    if not (u - u == 0.0):
+        sup_trip(si, sf, i, FAULT_NAN, u, 0.0)
+        return False
+    ae = abs(e)
+    if ae > sf[i, SF_FEPEAK]:
+        sf[i, SF_FEPEAK] = ae
+    lim = sf[i, SF_FE] * abs(xd_dot) / sf[i, SF_VMAX]
+    if lim < sf[i, SF_FEMIN]:
+        lim = sf[i, SF_FEMIN]
+    if ae > lim:
+        sup_trip(si, sf, i, FAULT_FOLLOWING_ERROR, e, lim)
+        return False
+    return True
+
+
 class Supervisor:
     """Per-axis latched fault state.
+
+    The state lives in two arrays the compiled cycle works on, one row per axis: ``si``
+    (int64, ``SI_*`` columns) and ``sf`` (float64, ``SF_*``); the checks are the compiled
+    :func:`sup_check_input` / :func:`sup_check_output`, also called by the methods here.
 
     Args:
         limits: one ``LimitsConfig`` per axis, in loop order.
         period_s: loop period [s] (turns the encoder speed bound into a per-cycle one).
-    Attributes:
-        fault: list[int] of latched fault bits per axis (0 = healthy); :meth:`reason` words them.
-        fe_peak: list[float] high-water mark of |following error| [m] per axis.
+    Attributes (column views of the state, indexed by axis):
+        fault: latched fault bits (0 = healthy); :meth:`reason` words them.
+        fe_peak: high-water mark of |following error| [m]. bucket, io_errors (total failed
+        exchanges, counted even below the limit), value_at_fault, limit_at_fault.
     """
 
     def __init__(self, limits: list, period_s: float):
         n = len(limits)
         self.limits = limits
-        self.fault = [0] * n
-        self.bucket = [0] * n
-        self.fe_peak = [0.0] * n
-        self.y_last = [math.nan] * n
-        self.value_at_fault = [0.0] * n   # the offending value (m, or error count)
-        self.limit_at_fault = [0.0] * n
-        self.io_errors = [0] * n          # total failed exchanges (counted, even below the limit)
-        self._soft_lo = [lim.soft_min_m for lim in limits]
-        self._soft_hi = [lim.soft_max_m for lim in limits]
-        # the window the position is checked against: the soft limits, widened to where the
-        # axis stands during a recovery (begin_recovery) and narrowing as it comes back in
-        self._lo = list(self._soft_lo)
-        self._hi = list(self._soft_hi)
-        self._fe = [lim.following_error_m for lim in limits]
-        self._fe_min = [lim.min_following_error_m for lim in limits]
-        self._vmax = [lim.max_velocity_m_per_s for lim in limits]
-        self._jump = [lim.encoder_max_speed_m_per_s * period_s for lim in limits]  # per cycle
-        self._gap = [0] * n               # cycles since the last good reading
-        self._inc = [lim.error_bucket_increment for lim in limits]
-        self._dec = [lim.error_bucket_decrement for lim in limits]
-        self._blim = [lim.error_bucket_limit for lim in limits]
-
-    def _trip(self, i: int, bit: int, value: float, limit: float) -> None:
-        if self.fault[i] == 0:
-            self.value_at_fault[i] = value
-            self.limit_at_fault[i] = limit
-        self.fault[i] |= bit
+        si = np.zeros((n, N_SI), dtype=np.int64)
+        sf = np.zeros((n, N_SF))
+        for i, lim in enumerate(limits):
+            si[i, SI_INC] = lim.error_bucket_increment
+            si[i, SI_DEC] = lim.error_bucket_decrement
+            si[i, SI_BLIM] = lim.error_bucket_limit
+            sf[i, SF_YLAST] = math.nan
+            # the window the position is checked against (SF_LO, SF_HI): the soft limits,
+            # widened to where the axis stands during a recovery (begin_recovery) and
+            # narrowing as it comes back in
+            sf[i, SF_LO] = sf[i, SF_SOFTLO] = lim.soft_min_m
+            sf[i, SF_HI] = sf[i, SF_SOFTHI] = lim.soft_max_m
+            sf[i, SF_FE] = lim.following_error_m
+            sf[i, SF_FEMIN] = lim.min_following_error_m
+            sf[i, SF_VMAX] = lim.max_velocity_m_per_s
+            sf[i, SF_JUMP] = lim.encoder_max_speed_m_per_s * period_s     # per cycle
+        self.si, self.sf = si, sf
+        self.fault = si[:, SI_FAULT]
+        self.bucket = si[:, SI_BUCKET]
+        self.io_errors = si[:, SI_IOERR]
+        self.fe_peak = sf[:, SF_FEPEAK]
+        self.y_last = sf[:, SF_YLAST]
+        self.value_at_fault = sf[:, SF_VAF]
+        self.limit_at_fault = sf[:, SF_LAF]
 
     def check_input(self, i: int, y: float, io_error: bool, amp_fault: bool) -> bool:
         """Check axis i's reading before control. Returns True when the axis may be driven."""
-        if io_error:
-            self.io_errors[i] += 1
-            self._gap[i] += 1
-            b = self.bucket[i] + self._inc[i]
-            self.bucket[i] = b
-            if b >= self._blim[i]:
-                self._trip(i, FAULT_IO_ERROR, float(b), float(self._blim[i]))
-            return self.fault[i] == 0
-        b = self.bucket[i] - self._dec[i]
-        self.bucket[i] = b if b > 0 else 0
-        if amp_fault:
-            self._trip(i, FAULT_AMP_FAULT, 1.0, 0.0)
-        if not (y - y == 0.0):  # NaN or inf
-            self._trip(i, FAULT_NAN, y, 0.0)
-            return False
-        last = self.y_last[i]
-        allowed = self._jump[i] * (self._gap[i] + 1)
-        self._gap[i] = 0
-        if last == last and abs(y - last) > allowed:
-            self._trip(i, FAULT_ENCODER_JUMP, y - last, allowed)
-        self.y_last[i] = y
-        lo, hi = self._lo[i], self._hi[i]
-        if y < lo:
-            self._trip(i, FAULT_SOFT_LIMIT, y, lo)
-        elif y > hi:
-            self._trip(i, FAULT_SOFT_LIMIT, y, hi)
-        elif lo != self._soft_lo[i] or hi != self._soft_hi[i]:
-            # recovering: the window follows the axis in, never out (RECOVERY_MARGIN_M slack)
-            m = RECOVERY_MARGIN_M
-            self._lo[i] = max(lo, min(y - m, self._soft_lo[i]))
-            self._hi[i] = min(hi, max(y + m, self._soft_hi[i]))
-        return self.fault[i] == 0
+        return sup_check_input(self.si, self.sf, i, y, io_error, amp_fault)
 
     def check_output(self, i: int, e: float, xd_dot: float, u: float) -> bool:
         """Check the following error e [m] and the output u [V]. True when u may be written."""
-        if not (u - u == 0.0):
-            self._trip(i, FAULT_NAN, u, 0.0)
-            return False
-        ae = abs(e)
-        if ae > self.fe_peak[i]:
-            self.fe_peak[i] = ae
-        lim = self._fe[i] * abs(xd_dot) / self._vmax[i]
-        if lim < self._fe_min[i]:
-            lim = self._fe_min[i]
-        if ae > lim:
-            self._trip(i, FAULT_FOLLOWING_ERROR, e, lim)
-            return False
-        return True
+        return sup_check_output(self.si, self.sf, i, e, xd_dot, u)
 
     def trip(self, i: int, bit: int) -> None:
         """Latch a loop-level fault (overrun policy, shutdown) on axis i."""
-        self._trip(i, bit, 0.0, 0.0)
+        sup_trip(self.si, self.sf, i, bit, 0.0, 0.0)
 
     def reason(self, i: int) -> str:
         """One line: the latched faults of axis i and the value that tripped the first one."""
-        bits = self.fault[i]
+        bits = int(self.fault[i])
         if not bits:
             return ""
         return (f"{describe_faults(bits)} (value {self.value_at_fault[i]:.6g}, "
@@ -178,13 +215,13 @@ class Supervisor:
         """
         if not (y - y == 0.0):
             return False, "position reading is not finite"
-        if y < self._soft_lo[i] or y > self._soft_hi[i]:
-            return False, (f"position {y:.6f} m is outside the soft limits "
-                           f"[{self._soft_lo[i]}, {self._soft_hi[i]}] m")
+        lo, hi = float(self.sf[i, SF_SOFTLO]), float(self.sf[i, SF_SOFTHI])
+        if y < lo or y > hi:
+            return False, f"position {y:.6f} m is outside the soft limits [{lo}, {hi}] m"
         if amp_fault:
             return False, "the amplifier still reports a fault"
         self._clear(i, y)
-        self._lo[i], self._hi[i] = self._soft_lo[i], self._soft_hi[i]
+        self.sf[i, SF_LO], self.sf[i, SF_HI] = lo, hi
         return True, ""
 
     def _clear(self, i: int, y: float) -> None:
@@ -195,7 +232,7 @@ class Supervisor:
 
     def inside(self, i: int, x: float) -> bool:
         """True when position x [m] lies within axis i's soft limits."""
-        return self._soft_lo[i] <= x <= self._soft_hi[i]
+        return bool(self.sf[i, SF_SOFTLO] <= x <= self.sf[i, SF_SOFTHI])
 
     def begin_recovery(self, i: int, y: float, target: float, amp_fault: bool) -> tuple[bool, str]:
         """Let axis i be moved back inside its soft limits (a jog to ``target`` [m], outside
@@ -209,14 +246,14 @@ class Supervisor:
         trips the soft limit again. Returns (allowed, why_not)."""
         if not (y - y == 0.0):
             return False, "position reading is not finite"
-        lo, hi = self._soft_lo[i], self._soft_hi[i]
+        lo, hi = float(self.sf[i, SF_SOFTLO]), float(self.sf[i, SF_SOFTHI])
         if not lo <= target <= hi:
             return False, f"target {target:.6f} m is outside the soft limits [{lo}, {hi}] m"
         if amp_fault:
             return False, "the amplifier still reports a fault"
         self._clear(i, y)
         m = RECOVERY_MARGIN_M
-        self._lo[i], self._hi[i] = min(lo, y - m), max(hi, y + m)
+        self.sf[i, SF_LO], self.sf[i, SF_HI] = min(lo, y - m), max(hi, y + m)
         return True, ""
 
 

@@ -5,11 +5,13 @@ Cycle k (architecture.md, LinuxCNC's read → motion → pid → write order)::
     wake at the absolute deadline (CLOCK_MONOTONIC, integer ns): sleep to deadline − spin,
         then busy-wait the tail; lateness = wake − deadline
     driver.read()                       every axis
-    per axis: supervisor input checks → trajectory sample at t = k·Ts (and at t + τ for a
-              controller with preview_s = τ > 0: controller.preview()) → controller.update()
-              → following-error/NaN checks; a faulted or disabled axis gets 0 V, enable off
+    servo_cycle(...)                    one compiled call for every axis (motorctl.loop.cycle):
+                                        supervisor input checks → desired(k) of the axis's mode
+                                        → the law → following-error/NaN checks (a faulted or
+                                        disabled axis gets 0 V, enable off) → the record row
+        [laws without a compiled step: controller.update() from Python (with preview() at
+         t + τ for preview_s = τ > 0), then a second call finishes those axes]
     driver.write(u, enable)             every axis
-    record                              one fixed-size row into a preallocated buffer
     timing                              read / control / write phases, turnaround = read start
                                         → write end, lateness, overruns
 
@@ -22,8 +24,8 @@ With a virtual clock the loop does not sleep: it runs as fast as it can, with th
 for the same seed (the simulated plant advances one period per write either way).
 
 Nothing in the cycle allocates a container, blocks, or logs: rows go into a preallocated
-float64 buffer through a memoryview and are written to the run log after (or outside) the
-cycle.
+float64 buffer (written to the run log after, or outside, the cycle); the per-axis state lives
+in the arrays of :mod:`motorctl.loop.cycle`, and the attributes below are views of them.
 
 Per-axis sequencing (used by the daemon; :meth:`run` alone keeps the old behaviour: every axis
 follows its program at t = k·Ts from the first cycle)::
@@ -54,16 +56,20 @@ import time
 
 import numpy as np
 
+from motorctl.control.kernels import LAW_PY, N_LAYOUT
+from motorctl.loop import cycle as C
+from motorctl.loop.cycle import APPROACH, HOLD, IDLE, JOG, PROGRAM, servo_cycle
 from motorctl.loop.records import CONTROLLER_SIGNALS, N_SIGNALS, RecordLayout
-from motorctl.loop.safety import FAULT_OVERRUN, FAULT_SHUTDOWN, Supervisor
+from motorctl.loop.safety import FAULT_SHUTDOWN, Supervisor
 from motorctl.loop.timebase import Timebase
+from motorctl.loop.trajectory import MOVE_W, TABLE_HEAD
 
 #: bumpless switch: the output step between two controllers fades out over this time [s]
 SWITCH_BLEND_S = 0.01
 
-IDLE, APPROACH, PROGRAM, HOLD, JOG = 0, 1, 2, 3, 4
 MODE_NAMES = {IDLE: "disabled", APPROACH: "approach", PROGRAM: "tracking", HOLD: "stopping",
               JOG: "jog"}
+__all__ = ["APPROACH", "HOLD", "IDLE", "JOG", "MODE_NAMES", "PROGRAM", "SWITCH_BLEND_S", "ServoLoop"]
 
 
 class ServoLoop:
@@ -92,6 +98,8 @@ class ServoLoop:
         operated: True for the daemon: every axis starts IDLE and is enabled by
             :meth:`start_axis`; a fault also drops the operator's request. False (``run``):
             every axis follows its program from the first cycle.
+    Attributes (views of the cycle's state, indexed by axis): mode, enabled, k_start,
+        stop_req, u_last; controllers, programs (lists); k (executed cycles), overruns.
     Raises:
         ValueError: a wrong clock or policy, one controller or program too few or many, a
             buffer of the wrong shape.
@@ -111,7 +119,7 @@ class ServoLoop:
             raise ValueError(f"overrun_policy must be 'count' or 'ramp', got {overrun_policy!r}")
         self.driver = driver
         self.axis_names = list(driver.axis_names)
-        self.controllers = list(controllers)
+        self.controllers = [None] * n
         self.programs = list(programs)
         self.supervisor = supervisor
         self.timebase = timebase
@@ -137,35 +145,79 @@ class ServoLoop:
         self.overrun_ramp = timebase.cycles(overrun_ramp_s, minimum=1)
         self.stop_settle = timebase.cycles(stop_settle_s)
         self.disable_on_fault = bool(operated)
+        self.blend_cycles = timebase.cycles(SWITCH_BLEND_S, minimum=1)
         self.u_out = np.zeros(n)
         self.enable_out = np.zeros(n, dtype=bool)
-        self.enabled = [True] * n       # operator's request per axis
-        self._running = [False] * n     # controller was driving last cycle
-        self.mode = [PROGRAM] * n       # sequencing state per axis (see module docstring)
-        self.k_start = [0] * n          # cycle at which the current segment's time is zero
-        self.approach = [None] * n      # Move of the approach segment
-        self.hold_x = [0.0] * n         # held position in HOLD [m]
-        self.settle_left = [0] * n      # HOLD cycles left before 0 V
-        self.stop_req = [False] * n
-        self.blend_cycles = timebase.cycles(SWITCH_BLEND_S, minimum=1)
-        self.blend_left = [0] * n       # switch blend cycles left per axis
-        self.blend_off = [math.nan] * n  # output offset being faded out [V] (NaN: not yet taken)
-        self.ovr_left = [0] * n         # overrun reaction cycles left per axis
-        self.u_last = [0.0] * n         # last output written [V]
-        self.k = 0                      # executed cycles
+        # the cycle's state (motorctl.loop.cycle), and views of it by name
+        self.ax, self.axf = C.new_state(n)
+        ax, axf = self.ax, self.axf
+        self.mode = ax[:, C.A_MODE]            # sequencing state per axis (module docstring)
+        self.enabled = ax[:, C.A_ENABLED]      # operator's request per axis
+        self.k_start = ax[:, C.A_KST]          # cycle at which the current segment's time is zero
+        self.stop_req = ax[:, C.A_STOPREQ]
+        self._running = ax[:, C.A_RUNNING]     # controller was driving last cycle
+        self.u_last = axf[:, C.X_ULAST]        # last output written [V]
+        self.approach = [None] * n             # Move of the approach or jog segment
+        width = max(p.table.size for p in self.programs)
+        self._prog = np.zeros((n, width))
+        for i, p in enumerate(self.programs):
+            self._prog[i, :p.table.size] = p.table
+        self._move = np.zeros((n, TABLE_HEAD + MOVE_W))
+        self._sig = np.full((n, N_SIGNALS), np.nan)
+        self._cf = np.zeros((n, 0))
+        self._ci = np.zeros((n, 0), dtype=np.int64)
+        self._cl = np.zeros((n, N_LAYOUT), dtype=np.int64)
+        lay = self.layout
+        self._offs = np.array([lay.axis_field(f) for f in ("y", "x_d", "xd_dot", "xd_ddot", "u", "enabled",
+                                                            "fault_bits")]
+                              + [lay.axis_field(next(iter(CONTROLLER_SIGNALS)))]
+                              + [lay.axis_base(i) for i in range(n)], dtype=np.int64)
+        self._lp = np.zeros(C.N_LP)
+        self._lp[C.LP_TS] = self.period_s
+        self._lp[C.LP_SETTLE] = self.stop_settle
+        self._lp[C.LP_OVR_RAMP] = self.overrun_ramp
+        self._lp[C.LP_BLEND_N] = self.blend_cycles
+        self._lp[C.LP_DISABLE_ON_FAULT] = 1.0 if operated else 0.0
+        self._py = []                          # axes whose law runs from Python
+        for i, c in enumerate(controllers):
+            self._adopt(i, c)
+        self.k = 0                             # executed cycles
         self.overruns = 0
         self.stop_requested = False
         self._resync = False
-        # offsets of the record, found by name once
-        lay = self.layout
         self._o_cycle = tuple(lay.cycle(f) for f in ("t", "lateness_ns", "turnaround_ns", "read_ns",
                                                       "control_ns", "write_ns", "overruns"))
-        self._o_axis = tuple(lay.axis_field(f) for f in ("y", "x_d", "xd_dot", "xd_ddot", "u",
-                                                          "enabled", "fault_bits"))
-        self._o_sig = lay.axis_field(next(iter(CONTROLLER_SIGNALS)))
-        self._axis_base = tuple(lay.axis_base(i) for i in range(n))
         if operated:
             self.idle_all()
+
+    def _adopt(self, i: int, c) -> None:
+        """Make c axis i's controller (between cycles): the outgoing one takes its state back
+        (:meth:`Controller.detach`); a compiled law moves its state into the cycle's rows
+        (:meth:`Controller.attach`, the rows grown when it needs more)."""
+        old = self.controllers[i]
+        if old is c:
+            return
+        if old is not None:
+            old.detach()
+        law = c.law_code
+        if law != LAW_PY:
+            nf, ni = c.state_size()
+            if nf > self._cf.shape[1] or ni > self._ci.shape[1]:
+                self._grow(max(nf, self._cf.shape[1]), max(ni, self._ci.shape[1]))
+            c.attach(self._sig[i], self._cf[i], self._ci[i], self._cl[i])
+        self.controllers[i] = c
+        self.ax[i, C.A_LAW] = law
+        self._py = [j for j in range(len(self.axis_names)) if self.ax[j, C.A_LAW] == LAW_PY]
+
+    def _grow(self, nf: int, ni: int) -> None:
+        """Wider law rows: the attached laws move into the new ones."""
+        attached = [(j, c) for j, c in enumerate(self.controllers) if c is not None and c.law_code != LAW_PY]
+        for _, c in attached:
+            c.detach()
+        self._cf = np.zeros((len(self.axis_names), nf))
+        self._ci = np.zeros((len(self.axis_names), ni), dtype=np.int64)
+        for j, c in attached:
+            c.attach(self._sig[j], self._cf[j], self._ci[j], self._cl[j])
 
     # ------------------------------------------------------------------ control plane
     def resync(self) -> None:
@@ -200,59 +252,27 @@ class ServoLoop:
         try:
             return self._run(int(n_cycles))
         finally:
-            for i in range(len(self.axis_names)):
-                if self._running[i]:
-                    self._running[i] = False
+            self._running[:] = 0
             self.safe_output()
 
     def _run(self, n_cycles: int) -> int:
         mono = time.monotonic_ns
         sleep = time.sleep
         drv = self.driver
-        sup = self.supervisor
-        ctrls = self.controllers
-        progs = self.programs
-        pos = drv.position_m
-        rerr = drv.read_error
-        werr = drv.write_error
-        ampf = drv.amp_fault
-        uo = self.u_out
-        en = self.enable_out
-        enabled = self.enabled
-        running = self._running
+        args = (drv.position_m, drv.read_error, drv.write_error, drv.amp_fault, self.u_out, self.enable_out,
+                self.ax, self.axf, self._prog, self._move, self.supervisor.si, self.supervisor.sf, self._sig,
+                self._cf, self._ci, self._cl, self.buf, self._offs, self._lp)
         mv = self._mv
-        cap = self.capacity
         width = self.width
+        cap = self.capacity
         period = self.period_ns
-        ts = self.period_s
         spin = self.spin_ns
         wall = self.clock == "wall"
-        n = len(self.axis_names)
-        rng = range(n)
-        faults = sup.fault
-        mode = self.mode
-        kst = self.k_start
-        appr = self.approach
-        hold_x = self.hold_x
-        settle = self.settle_left
-        stop_req = self.stop_req
-        ovr_left = self.ovr_left
-        u_last = self.u_last
         ramp_policy = self.overrun_policy == "ramp"
         ovr_total = self.overrun_hold + self.overrun_ramp
-        ovr_ramp = float(self.overrun_ramp)
         hb = self.heartbeat
         slack = self.on_slack
-        dis_on_fault = self.disable_on_fault
-        bl_left = self.blend_left
-        bl_off = self.blend_off
-        bl_n = float(self.blend_cycles)
         oc_t, oc_late, oc_turn, oc_read, oc_ctrl, oc_write, oc_ovr = self._o_cycle
-        o_y, o_xd, o_vd, o_ad, o_u, o_en, o_fb = self._o_axis
-        o_sig = self._o_sig
-        nsig = N_SIGNALS
-        sig_e = list(CONTROLLER_SIGNALS).index("e")
-        abase = self._axis_base
         deadline = mono() + period
         done = 0
         for _ in range(n_cycles):
@@ -271,9 +291,7 @@ class ServoLoop:
                     self.overruns += missed
                     deadline += missed * period
                     if ramp_policy:
-                        for i in rng:
-                            if running[i] and ovr_left[i] == 0:
-                                ovr_left[i] = ovr_total
+                        self._overrun_ramp(ovr_total)
                 deadline += period
             else:
                 late = 0
@@ -281,116 +299,17 @@ class ServoLoop:
             drv.read()
             t1 = mono()
             k = self.k
-            t = k * ts
-            base = (k % cap) * width
-            for i in rng:
-                # a write error last cycle counts like a read error this cycle
-                y = pos[i]
-                ok = sup.check_input(i, y, rerr[i] or werr[i], ampf[i]) and enabled[i]
-                c = ctrls[i]
-                m = mode[i]
-                if m == PROGRAM:
-                    xd, vd, ad = progs[i].sample((k - kst[i]) * ts)
-                elif m == APPROACH:
-                    mv_ = appr[i]
-                    tl = (k - kst[i]) * ts
-                    xd, vd, ad = mv_.sample(mv_.t0 + tl)
-                    if tl >= mv_.duration:
-                        mode[i] = PROGRAM
-                        kst[i] = k + 1
-                elif m == JOG:
-                    mv_ = appr[i]
-                    tl = (k - kst[i]) * ts
-                    xd, vd, ad = mv_.sample(mv_.t0 + tl)
-                    if tl >= mv_.duration:         # arrived: hold, then 0 V, amplifier off
-                        mode[i] = HOLD
-                        hold_x[i] = xd
-                        settle[i] = self.stop_settle
-                elif m == HOLD:
-                    xd = hold_x[i]
-                    vd = ad = 0.0
-                    s_ = settle[i] - 1
-                    settle[i] = s_
-                    if s_ <= 0:
-                        mode[i] = IDLE
-                        enabled[i] = False
-                        stop_req[i] = False
-                        ok = False
-                else:
-                    xd = y
-                    vd = ad = 0.0
-                    ok = False
-                if stop_req[i] and (m == PROGRAM or m == APPROACH) and vd == 0.0 and ad == 0.0:
-                    mode[i] = HOLD
-                    hold_x[i] = xd
-                    settle[i] = self.stop_settle
-                if ok:
-                    n_o = ovr_left[i]
-                    if n_o > 0:
-                        # overrun policy 'ramp': hold the last output, ramp it to 0 V, latch
-                        n_o -= 1
-                        ovr_left[i] = n_o
-                        u = u_last[i]
-                        if n_o < ovr_ramp:
-                            u = u * n_o / (n_o + 1.0)
-                        if n_o == 0:
-                            sup.trip(i, FAULT_OVERRUN)
-                            ok = False
-                    else:
-                        if not running[i]:
-                            c.reset(y)
-                            running[i] = True
-                        pre = c.preview_s
-                        if pre > 0.0:
-                            # the law predicts over an input delay: the desired trajectory
-                            # at t + preview_s, from what the axis follows now
-                            mn = mode[i]
-                            if mn == PROGRAM:
-                                c.preview(*progs[i].sample((k - kst[i]) * ts + pre))
-                            elif mn == APPROACH or mn == JOG:
-                                mv_ = appr[i]
-                                c.preview(*mv_.sample(mv_.t0 + (k - kst[i]) * ts + pre))
-                            else:
-                                c.preview(xd, vd, ad)
-                        u = c.update(y, xd, vd, ad, t)
-                        nb = bl_left[i]
-                        if nb > 0:
-                            # bumpless switch: the step between the outgoing controller's last
-                            # output and the incoming one's first fades out linearly
-                            off = bl_off[i]
-                            if off != off:
-                                off = u_last[i] - u
-                                bl_off[i] = off
-                            u += off * nb / bl_n
-                            bl_left[i] = nb - 1
-                        ok = sup.check_output(i, c.signals[sig_e], vd, u)
-                if not ok:
-                    running[i] = False
-                    ovr_left[i] = 0
-                    u = 0.0
-                    if dis_on_fault and faults[i] and mode[i] != IDLE:
-                        mode[i] = IDLE
-                        enabled[i] = False
-                        stop_req[i] = False
-                uo[i] = u
-                u_last[i] = u
-                en[i] = ok
-                b = base + abase[i]
-                mv[b + o_y] = y
-                mv[b + o_xd] = xd
-                mv[b + o_vd] = vd
-                mv[b + o_ad] = ad
-                mv[b + o_u] = u
-                sg = c.signals
-                bs = b + o_sig
-                for j in range(nsig):
-                    mv[bs + j] = sg[j]
-                mv[b + o_en] = 1.0 if ok else 0.0
-                mv[b + o_fb] = faults[i]
+            if self._py:
+                if servo_cycle(C.CYCLE_BEFORE, k, *args):
+                    self._python_laws(k)
+                    servo_cycle(C.CYCLE_AFTER, k, *args)
+            else:
+                servo_cycle(C.CYCLE_ALL, k, *args)
             t2 = mono()
-            drv.write(uo, en)
+            drv.write(self.u_out, self.enable_out)
             t3 = mono()
-            mv[base + oc_t] = t
+            base = (k % cap) * width
+            mv[base + oc_t] = k * self.period_s
             mv[base + oc_late] = late
             mv[base + oc_turn] = t3 - t0
             mv[base + oc_read] = t1 - t0
@@ -408,15 +327,47 @@ class ServoLoop:
                     deadline = mono() + period
         return done
 
+    def _overrun_ramp(self, total: int) -> None:
+        """Overrun policy 'ramp': every driven axis not already ramping starts its hold-and-ramp."""
+        ax = self.ax
+        for i in range(len(self.axis_names)):
+            if ax[i, C.A_RUNNING] and ax[i, C.A_OVR] == 0:
+                ax[i, C.A_OVR] = total
+
+    def _python_laws(self, k: int) -> None:
+        """The laws without a compiled step, for the axes the cycle left pending: reset when the
+        axis starts, preview (the desired trajectory at t + preview_s, from what the axis
+        follows now) and update; their output and signals go back to the cycle's rows."""
+        ax, axf, ts = self.ax, self.axf, self.period_s
+        for i in self._py:
+            pend = ax[i, C.A_PEND]
+            if pend == C.PEND_NONE:
+                continue
+            c = self.controllers[i]
+            y, xd, vd, ad = axf[i, C.X_Y], axf[i, C.X_XD], axf[i, C.X_VD], axf[i, C.X_AD]
+            if pend == C.PEND_RESET:
+                c.reset(float(y))
+            pre = c.preview_s
+            if pre > 0.0:
+                mn = ax[i, C.A_MODE]
+                if mn == PROGRAM:
+                    c.preview(*self.programs[i].sample((k - ax[i, C.A_KST]) * ts + pre))
+                elif mn == APPROACH or mn == JOG:
+                    mv_ = self.approach[i]
+                    c.preview(*mv_.sample(mv_.t0 + (k - ax[i, C.A_KST]) * ts + pre))
+                else:
+                    c.preview(float(xd), float(vd), float(ad))
+            axf[i, C.X_U] = c.update(float(y), float(xd), float(vd), float(ad), k * ts)
+            self._sig[i] = c.signals
+
     # ------------------------------------------------------------------ per-axis commands
     # Called between cycles (from on_slack or before run), never from inside a cycle.
     def idle_all(self) -> None:
         """Every axis IDLE and not requested (the daemon's state at start-up)."""
-        for i in range(len(self.axis_names)):
-            self.mode[i] = IDLE
-            self.enabled[i] = False
-            self.stop_req[i] = False
-            self._running[i] = False
+        self.mode[:] = IDLE
+        self.enabled[:] = 0
+        self.stop_req[:] = 0
+        self._running[:] = 0
 
     def start_axis(self, i: int, approach, controller=None) -> None:
         """Enable axis i: reset its controller from the measured position, then follow the
@@ -431,7 +382,7 @@ class ServoLoop:
         inside its soft limits (:meth:`Supervisor.begin_recovery`) or to position it.
         Raises RuntimeError if the axis is faulted or not idle."""
         if self.mode[i] != IDLE:
-            raise RuntimeError(f"axis {self.axis_names[i]} is not disabled ({MODE_NAMES[self.mode[i]]})")
+            raise RuntimeError(f"axis {self.axis_names[i]} is not disabled ({MODE_NAMES[int(self.mode[i])]})")
         self._enable(i, JOG, move, controller)
 
     def _enable(self, i: int, mode: int, move, controller) -> None:
@@ -439,20 +390,23 @@ class ServoLoop:
         if self.supervisor.fault[i]:
             raise RuntimeError(f"axis {self.axis_names[i]} is in fault: {self.supervisor.reason(i)}")
         if controller is not None:
-            self.controllers[i] = controller
+            self._adopt(i, controller)
         self.controllers[i].reset(float(self.driver.position_m[i]))
-        self._running[i] = True
+        ax = self.ax
+        ax[i, C.A_RUNNING] = 1
         self.approach[i] = move
-        self.k_start[i] = self.k
-        self.stop_req[i] = False
-        self.ovr_left[i] = 0
-        self.mode[i] = mode
-        self.enabled[i] = True
+        self._move[i] = 0.0
+        self._move[i, :move.table.size] = move.table
+        ax[i, C.A_KST] = self.k
+        ax[i, C.A_STOPREQ] = 0
+        ax[i, C.A_OVR] = 0
+        ax[i, C.A_MODE] = mode
+        ax[i, C.A_ENABLED] = 1
 
     def stop_axis(self, i: int) -> None:
         """Ask axis i to come to rest along its jerk-limited profile, then 0 V, amplifier off."""
         if self.mode[i] != IDLE:
-            self.stop_req[i] = True
+            self.stop_req[i] = 1
 
     def switch_axis(self, i: int, controller, keep_theta: bool = True) -> None:
         """Swap axis i's controller for ``controller`` (built beforehand) at this cycle
@@ -465,11 +419,11 @@ class ServoLoop:
             return
         if keep_theta:
             controller.inherit(old)
+        self._adopt(i, controller)
         if self._running[i]:
             controller.reset(float(self.driver.position_m[i]))
-            self.blend_off[i] = math.nan
-            self.blend_left[i] = self.blend_cycles
-        self.controllers[i] = controller
+            self.axf[i, C.X_BLOFF] = math.nan
+            self.ax[i, C.A_BLEND] = self.blend_cycles
 
     def fault_reset(self, i: int) -> tuple[bool, str]:
         """Clear axis i's latched fault if the cause is gone; the axis stays disabled."""

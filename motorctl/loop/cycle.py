@@ -1,0 +1,205 @@
+"""The servo cycle of every axis in one compiled call (numba).
+
+Per cycle the loop (:class:`motorctl.loop.servo.ServoLoop`) reads the driver, makes one call
+to :func:`servo_cycle` and writes the driver. For every axis the call runs:
+
+    supervisor input checks (NaN, encoder speed, soft limits, driver-error bucket, amplifier)
+    → the sequencer: desired(k) of the axis's mode (module docstring of servo.py) and its
+      transitions (approach → program, jog → hold, hold → idle, a stop request → hold)
+    → the overrun policy's hold-and-ramp, or the law: a compiled law (LAW_DCDIARC, LAW_PID:
+      :mod:`motorctl.control.kernels`) on the axis's rows, reset when the axis starts
+    → the bumpless-switch blend, the following-error and NaN check of the output
+    → a fault or disable: 0 V, amplifier off (and IDLE when operated)
+    → the axis's part of the cycle record
+
+An axis whose law has no compiled step (LAW_PY: a compensated C1/C2, a law from another
+package) stops before its law (``phase`` CYCLE_BEFORE, the axis marked pending); the loop runs
+:meth:`Controller.update` from Python and a second call (CYCLE_AFTER) finishes the pending
+axes. Without such an axis the loop makes the one call (CYCLE_ALL).
+
+State lives in preallocated arrays laid out by name, one row per axis: ``ax`` (int64, ``A_*``),
+``axf`` (float64, ``X_*``), the trajectory tables ``prog`` and ``move``
+(:mod:`motorctl.loop.trajectory`), the supervisor's ``si``/``sf`` (:mod:`motorctl.loop.safety`),
+the law rows ``sig``/``cf``/``ci``/``cl`` (:meth:`Controller.attach`); ``buf`` is the record ring
+(:mod:`motorctl.loop.records`), ``offs`` the record's offsets and ``lp`` the loop's numbers.
+Nothing here allocates, blocks or logs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from motorctl.control.kernels import LAW_PY, law_reset, law_step
+from motorctl.jit import njit
+from motorctl.loop.records import CONTROLLER_SIGNALS, N_SIGNALS
+from motorctl.loop.safety import FAULT_OVERRUN, SI_FAULT, sup_check_input, sup_check_output, sup_trip
+from motorctl.loop.trajectory import TABLE_HEAD, sample_table
+
+#: the sequencer's modes (servo.py's module docstring)
+IDLE, APPROACH, PROGRAM, HOLD, JOG = 0, 1, 2, 3, 4
+#: what a call does: every axis through; up to the laws run from Python; those axes' rest
+CYCLE_ALL, CYCLE_BEFORE, CYCLE_AFTER = 0, 1, 2
+
+# per-axis int state (ax)
+(A_MODE, A_KST, A_SETTLE, A_STOPREQ, A_ENABLED, A_RUNNING, A_OVR, A_BLEND, A_LAW, A_PEND,
+ A_OK) = range(11)
+N_A = 11
+#: A_PEND: the law of this axis runs from Python now (PEND_RESET: reset it first)
+PEND_NONE, PEND_UPDATE, PEND_RESET = 0, 1, 2
+# per-axis float state (axf): held position, blend offset (NaN: not yet taken), last output;
+# the sample handed to a law run from Python (y, x_d, ẋ_d, ẍ_d) and its output
+X_HOLD, X_BLOFF, X_ULAST, X_Y, X_XD, X_VD, X_AD, X_U = range(8)
+N_X = 8
+# the loop's numbers (lp)
+LP_TS, LP_SETTLE, LP_OVR_RAMP, LP_BLEND_N, LP_DISABLE_ON_FAULT = range(5)
+N_LP = 5
+# record offsets (offs): per-axis fields, then the base of each axis
+(O_Y, O_XD, O_VD, O_AD, O_U, O_EN, O_FB, O_SIG) = range(8)
+O_AXIS = 8
+#: the following error the supervisor checks: the law's signal e
+SIG_E = list(CONTROLLER_SIGNALS).index("e")
+
+
+@njit
+def _finish(i, ok, u, k, y, xd, vd, ad, ax, axf, si, sig, uo, en, row, offs, lp):
+    """After the law: a fault or disable gives 0 V with the amplifier off (IDLE when operated);
+    the output, its enable and the axis's part of the record row."""
+    if not ok:
+        ax[i, A_RUNNING] = 0
+        ax[i, A_OVR] = 0
+        u = 0.0
+        if lp[LP_DISABLE_ON_FAULT] != 0.0 and si[i, SI_FAULT] != 0 and ax[i, A_MODE] != IDLE:
+            ax[i, A_MODE] = IDLE
+            ax[i, A_ENABLED] = 0
+            ax[i, A_STOPREQ] = 0
+    uo[i] = u
+    axf[i, X_ULAST] = u
+    en[i] = ok
+    b = offs[O_AXIS + i]
+    row[b + offs[O_Y]] = y
+    row[b + offs[O_XD]] = xd
+    row[b + offs[O_VD]] = vd
+    row[b + offs[O_AD]] = ad
+    row[b + offs[O_U]] = u
+    bs = b + offs[O_SIG]
+    for j in range(N_SIGNALS):
+        row[bs + j] = sig[i, j]
+    row[b + offs[O_EN]] = 1.0 if ok else 0.0
+    row[b + offs[O_FB]] = si[i, SI_FAULT]
+
+
+@njit
+def _output(i, u, vd, ax, axf, si, sf, sig, lp):
+    """The law's output u [V] through the bumpless-switch blend and the output checks."""
+    nb = ax[i, A_BLEND]
+    if nb > 0:
+        # bumpless switch: the step between the outgoing controller's last output and the
+        # incoming one's first fades out linearly
+        off = axf[i, X_BLOFF]
+        if off != off:
+            off = axf[i, X_ULAST] - u
+            axf[i, X_BLOFF] = off
+        u += off * nb / lp[LP_BLEND_N]
+        ax[i, A_BLEND] = nb - 1
+    return u, sup_check_output(si, sf, i, sig[i, SIG_E], vd, u)
+
+
+@njit
+def servo_cycle(phase, k, pos, rerr, werr, ampf, uo, en, ax, axf, prog, move, si, sf, sig, cf, ci, cl,
+                buf, offs, lp):
+    """One servo cycle k of every axis (module docstring); ``phase``: CYCLE_ALL, CYCLE_BEFORE or
+    CYCLE_AFTER. Reads pos [m] and the driver's flags (n,), writes uo [V] and en (n,) and the
+    record row k % capacity of buf. Returns the number of axes left pending (laws to run from
+    Python)."""
+    ts = lp[LP_TS]
+    n = pos.shape[0]
+    row = buf[k % buf.shape[0]]
+    pending = 0
+    for i in range(n):
+        if phase == CYCLE_AFTER:
+            if ax[i, A_PEND] == PEND_NONE:
+                continue
+            ax[i, A_PEND] = PEND_NONE
+            u, ok = _output(i, axf[i, X_U], axf[i, X_VD], ax, axf, si, sf, sig, lp)
+            _finish(i, ok, u, k, axf[i, X_Y], axf[i, X_XD], axf[i, X_VD], axf[i, X_AD], ax, axf, si, sig, uo,
+                    en, row, offs, lp)
+            continue
+        y = pos[i]
+        # a write error last cycle counts like a read error this cycle
+        ok = sup_check_input(si, sf, i, y, rerr[i] or werr[i], ampf[i]) and ax[i, A_ENABLED] != 0
+        m = ax[i, A_MODE]
+        if m == PROGRAM:
+            xd, vd, ad = sample_table(prog[i], (k - ax[i, A_KST]) * ts)
+        elif m == APPROACH or m == JOG:
+            tl = (k - ax[i, A_KST]) * ts
+            mv = move[i]
+            xd, vd, ad = sample_table(mv, mv[TABLE_HEAD + 2] + tl)
+            if tl >= mv[TABLE_HEAD + 3]:
+                if m == APPROACH:
+                    ax[i, A_MODE] = PROGRAM
+                    ax[i, A_KST] = k + 1
+                else:                                  # arrived: hold, then 0 V, amplifier off
+                    ax[i, A_MODE] = HOLD
+                    axf[i, X_HOLD] = xd
+                    ax[i, A_SETTLE] = int(lp[LP_SETTLE])
+        elif m == HOLD:
+            xd = axf[i, X_HOLD]
+            vd = 0.0
+            ad = 0.0
+            s = ax[i, A_SETTLE] - 1
+            ax[i, A_SETTLE] = s
+            if s <= 0:
+                ax[i, A_MODE] = IDLE
+                ax[i, A_ENABLED] = 0
+                ax[i, A_STOPREQ] = 0
+                ok = False
+        else:
+            xd = y
+            vd = 0.0
+            ad = 0.0
+            ok = False
+        if ax[i, A_STOPREQ] != 0 and (m == PROGRAM or m == APPROACH) and vd == 0.0 and ad == 0.0:
+            ax[i, A_MODE] = HOLD
+            axf[i, X_HOLD] = xd
+            ax[i, A_SETTLE] = int(lp[LP_SETTLE])
+        u = 0.0
+        if ok:
+            n_o = ax[i, A_OVR]
+            if n_o > 0:
+                # overrun policy 'ramp': hold the last output, ramp it to 0 V, latch
+                n_o -= 1
+                ax[i, A_OVR] = n_o
+                u = axf[i, X_ULAST]
+                if n_o < lp[LP_OVR_RAMP]:
+                    u = u * n_o / (n_o + 1.0)
+                if n_o == 0:
+                    sup_trip(si, sf, i, FAULT_OVERRUN, 0.0, 0.0)
+                    ok = False
+            else:
+                law = ax[i, A_LAW]
+                if law == LAW_PY:
+                    ax[i, A_PEND] = PEND_UPDATE if ax[i, A_RUNNING] != 0 else PEND_RESET
+                    ax[i, A_RUNNING] = 1
+                    axf[i, X_Y] = y
+                    axf[i, X_XD] = xd
+                    axf[i, X_VD] = vd
+                    axf[i, X_AD] = ad
+                    pending += 1
+                    continue
+                if ax[i, A_RUNNING] == 0:
+                    law_reset(law, y, cf[i], cl[i])
+                    ax[i, A_RUNNING] = 1
+                u = law_step(law, y, xd, vd, ad, sig[i], cf[i], ci[i], cl[i])
+                u, ok = _output(i, u, vd, ax, axf, si, sf, sig, lp)
+        _finish(i, ok, u, k, y, xd, vd, ad, ax, axf, si, sig, uo, en, row, offs, lp)
+    return pending
+
+
+def new_state(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(ax, axf) for n axes: every axis in PROGRAM and requested, no blend offset taken."""
+    ax = np.zeros((n, N_A), dtype=np.int64)
+    ax[:, A_MODE] = PROGRAM
+    ax[:, A_ENABLED] = 1
+    axf = np.zeros((n, N_X))
+    axf[:, X_BLOFF] = np.nan
+    return ax, axf
