@@ -66,6 +66,8 @@ from motorctl.loop.trajectory import MOVE_W, TABLE_HEAD
 
 #: bumpless switch: the output step between two controllers fades out over this time [s]
 SWITCH_BLEND_S = 0.01
+#: the law rows' width (floats, ints): C2's state block is 220 and 12
+LAW_ROW_FLOATS, LAW_ROW_INTS = 256, 16
 
 MODE_NAMES = {IDLE: "disabled", APPROACH: "approach", PROGRAM: "tracking", HOLD: "stopping",
               JOG: "jog"}
@@ -164,8 +166,10 @@ class ServoLoop:
             self._prog[i, :p.table.size] = p.table
         self._move = np.zeros((n, TABLE_HEAD + MOVE_W))
         self._sig = np.full((n, N_SIGNALS), np.nan)
-        self._cf = np.zeros((n, 0))
-        self._ci = np.zeros((n, 0), dtype=np.int64)
+        # the law rows: wide enough for C2 (the largest compiled law), grown when a law needs more
+        self._cf = np.zeros((n, LAW_ROW_FLOATS))
+        self._ci = np.zeros((n, LAW_ROW_INTS), dtype=np.int64)
+        self._args_changed = False
         self._cl = np.zeros((n, N_LAYOUT), dtype=np.int64)
         lay = self.layout
         self._offs = np.array([lay.axis_field(f) for f in ("y", "x_d", "xd_dot", "xd_ddot", "u", "enabled",
@@ -189,6 +193,27 @@ class ServoLoop:
                                                       "control_ns", "write_ns", "overruns"))
         if operated:
             self.idle_all()
+        self._warm_up()
+
+    def _cycle_args(self, copies: bool) -> tuple:
+        """The arrays :func:`servo_cycle` works on, after (phase, k); ``copies``: copies of
+        them (the record ring: its first row), for a call that changes nothing."""
+        drv = self.driver
+        args = (drv.position_m, drv.read_error, drv.write_error, drv.amp_fault, self.u_out, self.enable_out,
+                self.ax, self.axf, self._prog, self._move, self.supervisor.si, self.supervisor.sf, self._sig,
+                self._cf, self._ci, self._cl, self.buf, self._offs, self._lp)
+        if not copies:
+            return args
+        return tuple(a[:1] if a is self.buf else a.copy() for a in args)
+
+    def _warm_up(self) -> None:
+        """Compile (or load from the cache) the cycle now, on copies of the state, so that the
+        first cycle never pays for it (a drive's watchdog would not wait that long)."""
+        row0 = self.buf[0].copy()
+        args = self._cycle_args(copies=True)
+        for phase in (C.CYCLE_BEFORE, C.CYCLE_AFTER, C.CYCLE_ALL):
+            servo_cycle(phase, 0, *args)
+        self.buf[0] = row0
 
     def _adopt(self, i: int, c) -> None:
         """Make c axis i's controller (between cycles): the outgoing one takes its state back
@@ -218,6 +243,7 @@ class ServoLoop:
         self._ci = np.zeros((len(self.axis_names), ni), dtype=np.int64)
         for j, c in attached:
             c.attach(self._sig[j], self._cf[j], self._ci[j], self._cl[j])
+        self._args_changed = True
 
     # ------------------------------------------------------------------ control plane
     def resync(self) -> None:
@@ -259,9 +285,7 @@ class ServoLoop:
         mono = time.monotonic_ns
         sleep = time.sleep
         drv = self.driver
-        args = (drv.position_m, drv.read_error, drv.write_error, drv.amp_fault, self.u_out, self.enable_out,
-                self.ax, self.axf, self._prog, self._move, self.supervisor.si, self.supervisor.sf, self._sig,
-                self._cf, self._ci, self._cl, self.buf, self._offs, self._lp)
+        args = self._cycle_args(copies=False)
         mv = self._mv
         width = self.width
         cap = self.capacity
@@ -325,6 +349,9 @@ class ServoLoop:
                 if self._resync:             # a deliberate pause between cycles (reconnect)
                     self._resync = False
                     deadline = mono() + period
+                if self._args_changed:       # a switch grew the law rows
+                    self._args_changed = False
+                    args = self._cycle_args(copies=False)
         return done
 
     def _overrun_ramp(self, total: int) -> None:
