@@ -1,16 +1,22 @@
-"""Benchmark: DCDIARC step cost and the 5 kHz servo loop on the simulated gantry.
+"""Benchmark: the law's step cost, the compiled cycle, and the 5 kHz servo loop on the simulated gantry.
 
 Rerun:  python benchmarks/bench_loop.py [--config configs/gantry.yaml] [--seconds 60] [--steps 50000]
 
 Part 1, step cost: each axis's controllers (C1, C2, and the PID+FF where the axis configures
-``pid:``) run in closed loop with the simulated plant for --steps samples of its program; only
-``controller.update()`` is timed (perf_counter_ns around each call, so the figure includes the
-Python→kernel dispatch).
+``pid:``) run in closed loop with the simulated plant for --steps samples of its program:
+(a) ``controller.update()`` called from Python (perf_counter_ns around each call, so the
+figure includes the Python→kernel dispatch); (b) in the compiled cycle
+(motorctl/loop/cycle.py): the law's own cost, its compiled step replayed inside compiled code on
+the samples of (a) (no clock per call: total / steps); (c) the whole compiled call of a cycle
+(supervisor, desired(k), law, record row, and the call from Python), the record's control_ns
+of a one-axis loop on the virtual clock, and of both axes.
 Part 2, the loop: ``motorctl run`` with both axes on C2 against the wall clock for --seconds,
 once with SCHED_FIFO + mlockall (policy required) and once without (policy off); turnaround
 (read start → write end, including the plant's RK4 in the simulated driver's write), wake
-lateness and overruns. The machine is shared and noisy: compare medians and ratios taken in
-one run.
+lateness and overruns; beside them, in the same run, the machine's floor: benchmarks/floor.c
+(compiled here with cc), the loop's pacing alone (sleep, spin, read the clock) at SCHED_FIFO
+80 with memory locked, for the same time. The machine is shared and noisy: compare medians and
+ratios taken in one run.
 """
 
 from __future__ import annotations
@@ -47,6 +53,73 @@ def step_cost(loaded, axis: str, kind: str, steps: int) -> np.ndarray:
     return out / 1e3
 
 
+def replayed_law_cost(loaded, axis: str, kind: str, steps: int) -> float:
+    """(b): the compiled step of ``kind`` on samples of its own closed loop, inside compiled code
+    [µs per step]; NaN for a law without a compiled step."""
+    from motorctl.control.kernels import LAW_PY, N_LAYOUT, law_step
+    from motorctl.jit import njit
+    from motorctl.loop.records import N_SIGNALS
+    ts = loaded.period_s
+    drv = loaded.make_driver([axis])
+    ctrl = make_controller(loaded.axes[axis].controller, kind, ts)
+    if ctrl.law_code == LAW_PY:
+        return float("nan")
+    prog = loaded.axes[axis].trajectory.program()
+    smp = np.empty((steps, 4))
+    u = np.zeros(1)
+    en = np.ones(1, dtype=bool)
+    for k in range(steps):
+        drv.read()
+        xd, vd, ad = prog.sample(k * ts)
+        y = float(drv.position_m[0])
+        smp[k] = (y, xd, vd, ad)
+        u[0] = ctrl.update(y, xd, vd, ad)
+        drv.write(u, en)
+    fresh = make_controller(loaded.axes[axis].controller, kind, ts)
+    nf, ni = fresh.state_size()
+    sig, f, ii, lay = np.zeros(N_SIGNALS), np.zeros(nf), np.zeros(max(ni, 1), dtype=np.int64), \
+        np.zeros(N_LAYOUT, dtype=np.int64)
+    fresh.attach(sig, f, ii, lay)
+    fresh.reset(float(smp[0, 0]))
+
+    @njit
+    def replay(law, smp, sig, f, ii, lay):
+        s = 0.0
+        for k in range(smp.shape[0]):
+            s += law_step(law, smp[k, 0], smp[k, 1], smp[k, 2], smp[k, 3], sig, f, ii, lay)
+        return s
+    replay(fresh.law_code, smp[:10], sig.copy(), f.copy(), ii.copy(), lay)        # compile
+    t0 = time.perf_counter_ns()
+    replay(fresh.law_code, smp, sig, f, ii, lay)
+    return (time.perf_counter_ns() - t0) / 1e3 / steps
+
+
+def cycle_cost(loaded, axes: list, kind: str, steps: int) -> np.ndarray:
+    """(c): the compiled call of each cycle [µs] (the record's control_ns), virtual clock."""
+    from motorctl.app.build import build, shutdown, start
+    asm = build(loaded, axes, kind, clock="virtual", capacity=steps)
+    start(asm, "off")
+    try:
+        asm.loop.run(steps)
+    finally:
+        shutdown(asm)
+    return asm.loop.rows()[:, asm.loop.layout.index("control_ns")] / 1e3
+
+
+def machine_floor(seconds: float, period_ns: int, spin_us: float) -> str:
+    """The compiled floor (benchmarks/floor.c) for ``seconds``: its printed line."""
+    import os
+    import subprocess
+    import tempfile
+    src = os.path.join(os.path.dirname(os.path.abspath(__file__)), "floor.c")
+    with tempfile.TemporaryDirectory() as tmp:
+        exe = os.path.join(tmp, "floor")
+        subprocess.run(["cc", "-O2", "-o", exe, src], check=True)
+        n = int(seconds * 1e9 / period_ns)
+        return subprocess.run([exe, str(period_ns), str(n), str(int(spin_us * 1e3))], capture_output=True,
+                              text=True, check=True).stdout.strip()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", default="configs/gantry.yaml")
@@ -70,6 +143,15 @@ def main() -> None:
               f"(paper's dSPACE: 14 us / 10 us = 1.40)")
         if "pid" in kinds:
             print(f"{axis:4} PID/C2 median ratio {med[axis, 'pid'] / med[axis, 'c2']:.2f}")
+    print("\n## in the compiled cycle (us): (b) the law's own step, (c) the compiled call of a cycle, one axis")
+    print(f"{'axis':4} {'ctrl':4} {'law':>8} {'call p50':>9} {'call p99':>9}")
+    for axis in loaded.axes:
+        for kind in [k for k in ("c1", "c2", "pid") if k in configured_controllers(loaded.axes[axis].controller)]:
+            law = replayed_law_cost(loaded, axis, kind, args.steps)
+            c = cycle_cost(loaded, [axis], kind, args.steps)
+            print(f"{axis:4} {kind:4} {law:8.2f} {np.median(c):9.2f} {np.percentile(c, 99):9.2f}")
+    c = cycle_cost(loaded, list(loaded.axes), "c2", args.steps)
+    print(f"all axes ({', '.join(loaded.axes)}) on c2: call p50 {np.median(c):.2f} p99 {np.percentile(c, 99):.2f} us")
     print(f"\n## {args.seconds:g} s wall-clock loop at {loaded.cfg.loop.rate_hz:g} Hz, axes {', '.join(loaded.axes)} on C2")
     for policy in ("required", "off"):
         label = "SCHED_FIFO + mlockall" if policy == "required" else "SCHED_OTHER"
@@ -83,6 +165,14 @@ def main() -> None:
               f"p99.9 {tm['turnaround_p999_us']:.1f} max {tm['turnaround_max_us']:.1f} us | lateness p50 "
               f"{tm['lateness_p50_us']:.1f} p99 {tm['lateness_p99_us']:.1f} max {tm['lateness_max_us']:.1f} us | "
               f"overruns {tm['overruns']} in {tm['cycles']} cycles")
+    try:
+        fl = machine_floor(args.seconds, int(round(1e9 / loaded.cfg.loop.rate_hz)), loaded.cfg.loop.realtime.spin_us)
+        p50, p99, p999, mx, missed, *rt = fl.split()
+        print(f"{'floor (benchmarks/floor.c)':22}: lateness p50 {float(p50):.1f} p99 {float(p99):.1f} p99.9 "
+              f"{float(p999):.1f} max {float(mx):.1f} us | overruns {missed} in "
+              f"{int(args.seconds * loaded.cfg.loop.rate_hz)} cycles ({' '.join(rt)})")
+    except (OSError, ValueError) as exc:
+        print(f"floor: not measured ({exc})")
 
 
 if __name__ == "__main__":

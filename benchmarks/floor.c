@@ -1,0 +1,56 @@
+/* The machine's floor for benchmarks/bench_loop.py: the servo loop's pacing and nothing else,
+ * compiled. SCHED_FIFO 80, memory locked, optionally pinned to a CPU; per period: sleep to
+ * (deadline - spin) on CLOCK_MONOTONIC (absolute), busy-wait to the deadline, read the clock;
+ * whole periods missed are counted and skipped (the deadline re-anchored), as the loop does.
+ * Usage: floor PERIOD_NS CYCLES SPIN_NS [CPU]; prints "lateness_p50_us p99 p999 max overruns".
+ * Build: cc -O2 -o floor floor.c */
+#define _GNU_SOURCE
+#include <sched.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <sys/mman.h>
+#include <time.h>
+
+static long long now_ns(void) {
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (long long)ts.tv_sec * 1000000000LL + ts.tv_nsec;
+}
+
+static int cmp(const void *a, const void *b) {
+    long long x = *(const long long *)a, y = *(const long long *)b;
+    return (x > y) - (x < y);
+}
+
+int main(int argc, char **argv) {
+    if (argc < 4) return 2;
+    long long period = atoll(argv[1]), n = atoll(argv[2]), spin = atoll(argv[3]);
+    if (argc > 4) {
+        cpu_set_t set;
+        CPU_ZERO(&set);
+        CPU_SET(atoi(argv[4]), &set);
+        sched_setaffinity(0, sizeof set, &set);
+    }
+    struct sched_param sp = {.sched_priority = 80};
+    int fifo = sched_setscheduler(0, SCHED_FIFO, &sp) == 0;
+    int locked = mlockall(MCL_CURRENT | MCL_FUTURE) == 0;
+    long long *late = malloc(sizeof(long long) * n), missed = 0;
+    long long deadline = now_ns() + period;
+    for (long long k = 0; k < n; k++) {
+        long long target = deadline - spin;
+        struct timespec ts = {target / 1000000000LL, target % 1000000000LL};
+        if (target > now_ns()) clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, NULL);
+        while (now_ns() < deadline) {
+        }
+        late[k] = now_ns() - deadline;
+        if (late[k] >= period) {
+            missed += late[k] / period;
+            deadline += (late[k] / period) * period;
+        }
+        deadline += period;
+    }
+    qsort(late, n, sizeof(long long), cmp);
+    printf("%.2f %.2f %.2f %.2f %lld fifo=%d mlock=%d\n", late[n / 2] / 1e3, late[(long long)(n * 0.99)] / 1e3,
+           late[(long long)(n * 0.999)] / 1e3, late[n - 1] / 1e3, missed, fifo, locked);
+    return 0;
+}
