@@ -214,11 +214,145 @@ class SimOptions(StrictModel):
     watchdog_max_catchup: Annotated[int, Field(ge=0)] = 5000
 
 
+# the compiled plant (an axis without effect hooks): its state and parameters, by name
+(PS_X, PS_XD, PS_XL, PS_VL, PS_T, PS_F, PS_FPREV, PS_FNOISE, PS_FEXT, PS_ENC, PS_DLI, PS_NZI) = range(12)
+N_PS = 12
+#: normal draws taken from a plant's Generator at a time (even: a period takes 0, 1 or 2)
+NOISE_BLOCK = 256
+(PP_M, PP_A1, PP_A2, PP_A3, PP_B, PP_FC, PP_F0, PP_NOISE, PP_STIC, PP_STICKV, PP_H, PP_N, PP_MC,
+ PP_ML, PP_KS, PP_CS, PP_TAUI, PP_DELTA, PP_ENCSIG, PP_FLEX, PP_Q, PP_ENCAMP, PP_ENCK, PP_NDL) = range(24)
+N_PP = 24
+# the simulated driver's injected faults (SimDriver.inject): cycles left per axis
+INJ_READ, INJ_NAN, INJ_AMP, INJ_PUSH = range(4)
+
+
+@njit
+def _plant_step(u, s, p, dl, nz):
+    """One period of an axis without effect hooks under u [V] (:meth:`AxisPlant.step`): force
+    noise, Karnopp stiction, the rigid plant (:func:`_rk4_plain`) or the structural mode and
+    current loop (:func:`_rk4_flex`, with the current loop's whole-period delay line ``dl``),
+    encoder noise; the same operations in the same order. The noise: the next normal draws of
+    the plant's Generator, taken a block ``nz`` at a time (the same values, in the same order,
+    as one draw at a time); s[PS_NZI] is the next unused one."""
+    a1, a2, a3 = p[PP_A1], p[PP_A2], p[PP_A3]
+    if p[PP_NOISE] > 0.0:
+        j = int(s[PS_NZI])
+        s[PS_NZI] = j + 1
+        s[PS_FNOISE] = p[PP_NOISE] * nz[j]
+    stuck = False
+    if p[PP_STIC] > 0.0 and abs(s[PS_XD]) < p[PP_STICKV]:
+        f = a1 * u + a2 * u * abs(u) + a3 * u * u * u + p[PP_F0] + s[PS_FNOISE] + s[PS_FEXT]
+        stuck = abs(f) <= p[PP_STIC]
+    x0, xl0 = s[PS_X], s[PS_XL]
+    n = int(p[PP_N])
+    if p[PP_FLEX] == 0.0:
+        s[PS_X], s[PS_XD], s[PS_T] = _rk4_plain(s[PS_X], s[PS_XD], s[PS_T], u, p[PP_H], n, p[PP_M], a1, a2,
+                                                a3, p[PP_B], p[PP_FC], p[PP_F0], s[PS_FNOISE], s[PS_FEXT])
+    else:
+        f_cur = a1 * u + a2 * u * abs(u) + a3 * u * u * u
+        m = dl.shape[0]
+        if m > 0:
+            i = int(s[PS_DLI])
+            out = dl[i]
+            dl[i] = f_cur
+            s[PS_DLI] = (i + 1) % m
+            f_cur = out
+        f_prev = s[PS_FPREV]
+        s[PS_FPREV] = f_cur
+        (s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], s[PS_F]) = _rk4_flex(
+            s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], s[PS_F], f_prev, f_cur, p[PP_DELTA], p[PP_TAUI],
+            p[PP_H], n, p[PP_MC], p[PP_ML], p[PP_KS], p[PP_CS], p[PP_B], p[PP_FC], p[PP_F0], s[PS_FNOISE],
+            s[PS_FEXT])
+    if stuck:
+        s[PS_X] = x0
+        s[PS_XD] = 0.0
+        s[PS_XL] = xl0
+        s[PS_VL] = 0.0
+    if p[PP_ENCSIG] > 0.0:
+        j = int(s[PS_NZI])
+        s[PS_NZI] = j + 1
+        s[PS_ENC] = p[PP_ENCSIG] * nz[j]
+
+
+@njit
+def _plant_measured(s, p):
+    """Encoder reading [m] (:meth:`AxisPlant.measured`)."""
+    q = p[PP_Q]
+    if p[PP_ENCAMP] > 0.0 or p[PP_ENCSIG] > 0.0:
+        x = s[PS_X] + p[PP_ENCAMP] * math.sin(p[PP_ENCK] * s[PS_X]) + s[PS_ENC]
+        return q * np.rint(x / q)
+    return q * np.rint(s[PS_X] / q)
+
+
+@njit
+def _sim_read(pos, read_error, amp_fault, bitten, S, P, inj, jump):
+    """:meth:`SimDriver.read` of every axis (all plants compiled): injected read errors, NaN
+    readings and amplifier faults, else the encoder reading plus an injected jump [m]."""
+    for i in range(pos.shape[0]):
+        if inj[i, INJ_READ] > 0:
+            inj[i, INJ_READ] -= 1
+            read_error[i] = True
+            if bitten:
+                amp_fault[i] = True
+            continue
+        read_error[i] = False
+        if inj[i, INJ_NAN] > 0:
+            inj[i, INJ_NAN] -= 1
+            pos[i] = math.nan
+            if bitten:
+                amp_fault[i] = True
+            continue
+        pos[i] = _plant_measured(S[i], P[i]) + jump[i]
+        amp_fault[i] = inj[i, INJ_AMP] > 0 or bitten
+        if inj[i, INJ_AMP] > 0:
+            inj[i, INJ_AMP] -= 1
+
+
+@njit
+def _sim_write(u_v, enable, amp_fault, bitten, amp_enabled, applied_u, S, P, DL, NZ, inj, push):
+    """:meth:`SimDriver.write` of every axis (all plants compiled): the amplifier's enable and
+    output (NaN never reaches it), an injected push, one period of each plant. Returns how many
+    plants have used up their block of noise draws (to be refilled before the next period)."""
+    need = 0
+    for i in range(u_v.shape[0]):
+        on = enable[i] and not amp_fault[i] and not bitten
+        amp_enabled[i] = on
+        u = u_v[i] if on else 0.0
+        if u != u:
+            u = 0.0
+        applied_u[i] = u
+        if inj[i, INJ_PUSH] > 0:
+            inj[i, INJ_PUSH] -= 1
+            S[i, PS_FEXT] = push[i]
+        else:
+            S[i, PS_FEXT] = 0.0
+        _plant_step(u, S[i], P[i], DL[i, :int(P[i, PP_NDL])], NZ[i])
+        if S[i, PS_NZI] >= NOISE_BLOCK:
+            need += 1
+    return need
+
+
+def _state_property(j: int, doc: str):
+    return property(lambda self: float(self._s[j]), lambda self, v: self._s.__setitem__(j, v), doc=doc)
+
+
 class AxisPlant:
     """One simulated axis. ``step(u, dt)`` integrates one ZOH period; pure floats, no arrays."""
 
+    x = _state_property(PS_X, "carriage position [m]")
+    xd = _state_property(PS_XD, "carriage velocity [m/s]")
+    xl = _state_property(PS_XL, "load position [m]")
+    vl = _state_property(PS_VL, "load velocity [m/s]")
+    t = _state_property(PS_T, "plant time [s]")
+    F = _state_property(PS_F, "motor force at the end of the last period [N]")
+    f_prev = _state_property(PS_FPREV, "force command of the last period [N] (fractional delay)")
+    f_noise = _state_property(PS_FNOISE, "force noise of this period [N]")
+    f_ext = _state_property(PS_FEXT, "external force [N] (fault injection: a push)")
+    enc_noise = _state_property(PS_ENC, "encoder noise of this period [m]")
+
     def __init__(self, opt: SimAxisOptions, period_s: float, rng: np.random.Generator, substeps: int):
         self.opt = opt
+        self._s = np.zeros(N_PS)          # the state (PS_*), read and written by the properties above
         self.x = float(opt.initial_position_m)
         self.xd = 0.0
         self.t = 0.0
@@ -271,6 +405,19 @@ class AxisPlant:
         if self._plain:
             _rk4_plain(0.0, 0.0, 0.0, 0.0, self.h, 1, self.m, self.a1, self.a2, self.a3, self.b,
                        self.fc, self.f0, 0.0, 0.0)   # compile (or load the cache) now
+        # without effect hooks the whole period is one compiled call (_plant_step)
+        self._compiled = not (self._hooks or self._inputs)
+        n_dl = n_del if self._flex else 0
+        self._p = np.array([self.m, self.a1, self.a2, self.a3, self.b, self.fc, self.f0, self.noise,
+                            self.stiction, self.stick_v, self.h, self.substeps, self.mc, self.ml, self.ks,
+                            self.cs, self.tau_i, self.delta, self.enc_sigma, 1.0 if self._flex else 0.0,
+                            self.q, self.enc_amp, self.enc_k, n_dl])
+        self._dl = np.zeros(n_dl)                              # the current loop's delay line
+        self._nz = np.zeros(NOISE_BLOCK)
+        self._s[PS_NZI] = NOISE_BLOCK                          # drawn at the first step
+        if self._compiled:                                     # compile (or load the cache) now
+            _plant_step(0.0, self._s.copy(), self._p, self._dl.copy(), np.zeros(NOISE_BLOCK))
+            _plant_measured(self._s, self._p)
 
     def _acc(self, x: float, v: float, t: float, u: float) -> float:
         """ẍ [m/s²] at position x [m], velocity v [m/s], plant time t [s] under input u [V]:
@@ -295,8 +442,28 @@ class AxisPlant:
             m = mass(m, t)
         return m
 
+    def refill_noise(self) -> None:
+        """The next block of normal draws from the plant's Generator, when the last is used up."""
+        if self._s[PS_NZI] >= NOISE_BLOCK:
+            self.rng.standard_normal(out=self._nz)
+            self._s[PS_NZI] = 0.0
+
+    def rehome(self, s: np.ndarray, p: np.ndarray, dl: np.ndarray, nz: np.ndarray) -> None:
+        """Move the plant's state, parameters, delay line and noise block into rows the
+        simulated driver keeps for all its plants (their values copied; the attributes read
+        and write the rows from then on)."""
+        s[:] = self._s
+        p[:] = self._p
+        dl[:] = self._dl
+        nz[:] = self._nz
+        self._s, self._p, self._dl, self._nz = s, p, dl, nz
+
     def step(self, u: float) -> None:
         """Hold u [V] (after the input delay) over one period; RK4 with ``substeps`` steps."""
+        if self._compiled:
+            self.refill_noise()
+            _plant_step(u, self._s, self._p, self._dl, self._nz)
+            return
         for delay in self._inputs:
             u = delay(u)
         if self.noise > 0.0:
@@ -401,6 +568,8 @@ class AxisPlant:
 
     def measured(self) -> float:
         """Encoder reading [m]: x quantised to the resolution q (docs/control-law.md, Measurement)."""
+        if self._compiled:
+            return _plant_measured(self._s, self._p)
         q = self.q
         if self.enc_amp > 0.0 or self.enc_sigma > 0.0:
             x = self.x + self.enc_amp * math.sin(self.enc_k * self.x) + self.enc_noise
@@ -421,10 +590,26 @@ class SimDriver(Driver):
         self.plants = [AxisPlant(axis_options[name], period_s, np.random.default_rng(int(s)),
                                  options.substeps)
                        for name, s in zip(self.axis_names, seeds)]
-        self.amp_enabled = np.zeros(len(self.plants), dtype=bool)
-        self._inject = [[0, 0, 0, 0] for _ in self.plants]  # cycles left: read_error, nan, amp_fault, push
-        self._jump_m = [0.0] * len(self.plants)
-        self._push_N = [0.0] * len(self.plants)
+        n = len(self.plants)
+        self.amp_enabled = np.zeros(n, dtype=bool)
+        self._inject = np.zeros((n, 4), dtype=np.int64)   # cycles left: INJ_READ, INJ_NAN, INJ_AMP, INJ_PUSH
+        self._jump_m = np.zeros(n)
+        self._push_N = np.zeros(n)
+        # every plant without effect hooks: read and write are one compiled call for all axes,
+        # on rows kept here (the plants' attributes read and write the same rows)
+        self._compiled = all(p._compiled for p in self.plants)
+        self._S, self._P = np.zeros((n, N_PS)), np.zeros((n, N_PP))
+        self._DL = np.zeros((n, max([p._dl.size for p in self.plants] + [1])))
+        self._NZ = np.zeros((n, NOISE_BLOCK))
+        for i, p in enumerate(self.plants):
+            p.rehome(self._S[i], self._P[i], self._DL[i, :p._dl.size], self._NZ[i])
+            p.refill_noise()
+        if self._compiled:              # compile (or load the cache) now, on copies
+            _sim_read(self.position_m.copy(), self.read_error.copy(), self.amp_fault.copy(), False, self._S.copy(),
+                      self._P, self._inject.copy(), self._jump_m)
+            _sim_write(np.zeros(n), np.zeros(n, dtype=bool), self.amp_fault.copy(), False, self.amp_enabled.copy(),
+                       self.applied_u.copy() if hasattr(self, "applied_u") else np.zeros(n), self._S.copy(), self._P,
+                       self._DL.copy(), self._NZ.copy(), self._inject.copy(), self._push_N)
         self.applied_u = np.zeros(len(self.plants))   # voltage at the amplifier output [V]
         self.watchdog_ns = int(options.watchdog_s * 1e9)
         self.watchdog_bites = 0
@@ -460,6 +645,9 @@ class SimDriver(Driver):
             self._watchdog()
         bitten = self._bite_pending
         self._bite_pending = False
+        if self._compiled:
+            _sim_read(pos, self.read_error, self.amp_fault, bitten, self._S, self._P, self._inject, self._jump_m)
+            return
         for i, plant in enumerate(self.plants):
             inj = self._inject[i]
             if inj[0] > 0:
@@ -483,6 +671,14 @@ class SimDriver(Driver):
     def write(self, u_V: np.ndarray, enable: np.ndarray) -> None:
         # a command that arrives after the watchdog expired finds the amplifier already off
         bitten = bool(self.watchdog_ns and self._last_write_ns and self._watchdog())
+        if self._compiled:
+            if _sim_write(u_V, enable, self.amp_fault, bitten, self.amp_enabled, self.applied_u, self._S, self._P,
+                          self._DL, self._NZ, self._inject, self._push_N):
+                for plant in self.plants:
+                    plant.refill_noise()
+            if self.watchdog_ns:
+                self._last_write_ns = time.monotonic_ns()
+            return
         for i, plant in enumerate(self.plants):
             on = bool(enable[i]) and not self.amp_fault[i] and not bitten
             self.amp_enabled[i] = on
