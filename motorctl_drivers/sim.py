@@ -603,7 +603,8 @@ class SimDriver(Driver):
         self._NZ = np.zeros((n, NOISE_BLOCK))
         for i, p in enumerate(self.plants):
             p.rehome(self._S[i], self._P[i], self._DL[i, :p._dl.size], self._NZ[i])
-            p.refill_noise()
+            if p._compiled:             # (a plant with hooks draws one at a time, in Python)
+                p.refill_noise()
         if self._compiled:              # compile (or load the cache) now, on copies
             _sim_read(self.position_m.copy(), self.read_error.copy(), self.amp_fault.copy(), False, self._S.copy(),
                       self._P, self._inject.copy(), self._jump_m)

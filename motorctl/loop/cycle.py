@@ -105,6 +105,22 @@ def _output(i, u, vd, ax, axf, si, sf, sig, lp):
 
 
 @njit
+def desired(i, k, ahead, ax, axf, prog, move, ts):
+    """(x_d [m], ẋ_d [m/s], ẍ_d [m/s²]) of axis i at cycle k plus ``ahead`` [s] (0: the sample;
+    a law's preview_s: its preview), by the axis's mode: its program, its approach or jog
+    move, the held position; NaN in IDLE (the caller takes the measured position)."""
+    m = ax[i, A_MODE]
+    if m == PROGRAM:
+        return sample_table(prog[i], (k - ax[i, A_KST]) * ts + ahead)
+    if m == APPROACH or m == JOG:
+        mv = move[i]
+        return sample_table(mv, mv[TABLE_HEAD + 2] + (k - ax[i, A_KST]) * ts + ahead)
+    if m == HOLD:
+        return axf[i, X_HOLD], 0.0, 0.0
+    return np.nan, np.nan, np.nan
+
+
+@njit
 def servo_cycle(phase, k, pos, rerr, werr, ampf, uo, en, ax, axf, prog, move, si, sf, sig, cf, ci, cl,
                 buf, offs, lp):
     """One servo cycle k of every axis (module docstring); ``phase``: CYCLE_ALL, CYCLE_BEFORE or
@@ -128,13 +144,9 @@ def servo_cycle(phase, k, pos, rerr, werr, ampf, uo, en, ax, axf, prog, move, si
         # a write error last cycle counts like a read error this cycle
         ok = sup_check_input(si, sf, i, y, rerr[i] or werr[i], ampf[i]) and ax[i, A_ENABLED] != 0
         m = ax[i, A_MODE]
-        if m == PROGRAM:
-            xd, vd, ad = sample_table(prog[i], (k - ax[i, A_KST]) * ts)
-        elif m == APPROACH or m == JOG:
-            tl = (k - ax[i, A_KST]) * ts
-            mv = move[i]
-            xd, vd, ad = sample_table(mv, mv[TABLE_HEAD + 2] + tl)
-            if tl >= mv[TABLE_HEAD + 3]:
+        xd, vd, ad = desired(i, k, 0.0, ax, axf, prog, move, ts)
+        if m == APPROACH or m == JOG:
+            if (k - ax[i, A_KST]) * ts >= move[i, TABLE_HEAD + 3]:
                 if m == APPROACH:
                     ax[i, A_MODE] = PROGRAM
                     ax[i, A_KST] = k + 1
@@ -143,9 +155,6 @@ def servo_cycle(phase, k, pos, rerr, werr, ampf, uo, en, ax, axf, prog, move, si
                     axf[i, X_HOLD] = xd
                     ax[i, A_SETTLE] = int(lp[LP_SETTLE])
         elif m == HOLD:
-            xd = axf[i, X_HOLD]
-            vd = 0.0
-            ad = 0.0
             s = ax[i, A_SETTLE] - 1
             ax[i, A_SETTLE] = s
             if s <= 0:
@@ -153,7 +162,7 @@ def servo_cycle(phase, k, pos, rerr, werr, ampf, uo, en, ax, axf, prog, move, si
                 ax[i, A_ENABLED] = 0
                 ax[i, A_STOPREQ] = 0
                 ok = False
-        else:
+        elif m == IDLE:
             xd = y
             vd = 0.0
             ad = 0.0

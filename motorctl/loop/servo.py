@@ -159,7 +159,6 @@ class ServoLoop:
         self.stop_req = ax[:, C.A_STOPREQ]
         self._running = ax[:, C.A_RUNNING]     # controller was driving last cycle
         self.u_last = axf[:, C.X_ULAST]        # last output written [V]
-        self.approach = [None] * n             # Move of the approach or jog segment
         width = max(p.table.size for p in self.programs)
         self._prog = np.zeros((n, width))
         for i, p in enumerate(self.programs):
@@ -376,14 +375,7 @@ class ServoLoop:
                 c.reset(float(y))
             pre = c.preview_s
             if pre > 0.0:
-                mn = ax[i, C.A_MODE]
-                if mn == PROGRAM:
-                    c.preview(*self.programs[i].sample((k - ax[i, C.A_KST]) * ts + pre))
-                elif mn == APPROACH or mn == JOG:
-                    mv_ = self.approach[i]
-                    c.preview(*mv_.sample(mv_.t0 + (k - ax[i, C.A_KST]) * ts + pre))
-                else:
-                    c.preview(float(xd), float(vd), float(ad))
+                c.preview(*C.desired(i, k, pre, ax, axf, self._prog, self._move, ts))
             axf[i, C.X_U] = c.update(float(y), float(xd), float(vd), float(ad), k * ts)
             self._sig[i] = c.signals
 
@@ -421,7 +413,6 @@ class ServoLoop:
         self.controllers[i].reset(float(self.driver.position_m[i]))
         ax = self.ax
         ax[i, C.A_RUNNING] = 1
-        self.approach[i] = move
         self._move[i] = 0.0
         self._move[i, :move.table.size] = move.table
         ax[i, C.A_KST] = self.k

@@ -1,0 +1,91 @@
+"""The compiled paths compute what the Python paths compute, to the bit.
+
+* The cycle: a law run by the compiled cycle (C2, PID+FF) and the same law run from Python
+  between the cycle's two calls (its ``law_code`` forced to LAW_PY) give the same record, row for
+  row, through an approach, the program, a stop, and a fault.
+* The simulated driver: its compiled read/write of every axis (the default plant: structural
+  mode, current loop and its delay line, force and encoder noise, stiction) and each plant's
+  Python step with one draw at a time from the same Generator give the same positions.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from motorctl.app.build import build, shutdown, start
+from motorctl.config import config_from_dict, load_config, load_yaml
+from motorctl.control.base import LAW_PY
+from motorctl.loop.cycle import A_LAW
+from motorctl.loop.records import RecordLayout
+from motorctl.loop.trajectory import Move
+
+CYCLES = 6000
+
+
+def _record(repo, law: str, python_law: bool) -> np.ndarray:
+    loaded = load_config(repo / "configs" / "gantry.yaml")
+    asm = build(loaded, ["X"], law, clock="virtual", capacity=CYCLES, operated=True)
+    ctrl = asm.loop.controllers[0]
+    if python_law:                                     # the same law, as one without a compiled step
+        ctrl.detach()
+        ctrl.__class__ = type(f"Py{type(ctrl).__name__}", (type(ctrl),), {"law_code": property(lambda self: LAW_PY)})
+        asm.loop.controllers[0] = None
+        asm.loop._adopt(0, ctrl)
+    start(asm, "off")
+    try:
+        lp = asm.loop
+        y0 = float(asm.driver.position_m[0])
+        x0 = lp.programs[0].sample(0.0)[0]
+        lp.start_axis(0, Move(y0, x0, 0.1, 2.0, 200.0))
+        lp.run(CYCLES // 2)
+        lp.stop_axis(0)
+        lp.run(CYCLES // 4)
+        asm.driver.inject("nan", "X", cycles=1)        # a fault: 0 V, amplifier off, IDLE
+        lp.run(CYCLES // 4)
+    finally:
+        shutdown(asm)
+    assert (asm.loop.ax[0, A_LAW] == LAW_PY) == python_law
+    return asm.loop.rows()
+
+
+@pytest.mark.parametrize("law", ["c2", "pid"])
+def test_a_compiled_law_and_the_same_law_from_python_record_the_same(repo, law):
+    compiled = _record(repo, law, python_law=False)
+    from_python = _record(repo, law, python_law=True)
+    lay = RecordLayout(["X"])
+    timing = {lay.cycle(f) for f in ("lateness_ns", "turnaround_ns", "read_ns", "control_ns", "write_ns")}
+    keep = [j for j in range(compiled.shape[1]) if j not in timing]
+    assert compiled.shape == from_python.shape
+    assert np.array_equal(compiled[:, keep], from_python[:, keep], equal_nan=True)
+    e = compiled[:, lay.index("X.e")]
+    assert np.nanmax(np.abs(e)) > 1e-6                 # it tracked something
+    assert compiled[-1, lay.index("X.fault_bits")] != 0   # and the fault latched
+
+
+@pytest.mark.parametrize("delayed", [False, True], ids=["compiled", "x-with-a-hook"])
+def test_the_compiled_plants_draw_the_same_noise_as_one_draw_at_a_time(repo, delayed):
+    """``delayed``: X's plant has an input delay (an effect hook: its period runs in Python) and
+    the driver's read and write run per axis; its noise must still be the Generator's draws,
+    one at a time from the first."""
+    d = load_yaml(repo / "configs" / "gantry.yaml")
+    if delayed:
+        d["axes"]["X"]["driver"]["input_delay_s"] = 0.0004
+    loaded = config_from_dict(d, "gantry")
+    fast, slow = loaded.make_driver(), loaded.make_driver()
+    assert fast._compiled != delayed
+    seeds = np.random.default_rng(loaded.driver_options.seed).integers(0, 2**63 - 1, size=len(slow.plants))
+    slow._compiled = False
+    for p, s in zip(slow.plants, seeds):
+        p._compiled = False                            # the Python step, one draw at a time
+        p.rng = np.random.default_rng(int(s))
+    n = len(fast.axis_names)
+    rng = np.random.default_rng(3)                     # derandomized
+    on = np.ones(n, dtype=bool)
+    for k in range(3000):
+        u = rng.uniform(-3.0, 3.0, n) if k % 700 < 600 else np.zeros(n)   # stiction holds it at rest
+        for d in (fast, slow):
+            d.write(u, on)
+            d.read()
+        assert np.array_equal(fast.position_m, slow.position_m), k
+    assert fast.position_m[0] != slow.plants[0].opt.initial_position_m
