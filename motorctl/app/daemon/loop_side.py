@@ -39,6 +39,7 @@ from motorctl.app.daemon.status import StatusPublisher
 from motorctl.loop.rt import RealtimeError
 from motorctl.loop.safety import FAULT_RECORDER, FAULT_SHUTDOWN
 from motorctl.loop.servo import IDLE, MODE_NAMES
+from motorctl.loop.trajectory import Move
 from motorctl.recorder.flight import (
     CTL_CMD_SEQ,
     CTL_REC_BEAT,
@@ -137,6 +138,10 @@ class LoopSide:
                 if abs(mv.start - y) > START_MOVED_M:
                     return {**r, "ok": False, "error": f"axis {names[i]} moved while the start was "
                                                       f"prepared ({mv.start:.6f} -> {y:.6f} m); retry"}
+                if mv.start != y:
+                    # the plan was made on a record row some ms old (the I/O side's newest): the
+                    # approach starts where the axis stands now (a disabled carriage may creep)
+                    mv = Move(y, mv.end, mv.v_max, mv.a_max, mv.j_max, mv.t0)
                 k = m.get("controller") or self.asm.active[i]
                 self._switch(i, k)
                 loop.start_axis(i, mv)
