@@ -70,6 +70,10 @@ MAX_FORCE_SHARE = 0.5
 #: shortest position range [m] a shape is looked for over
 MIN_RANGE_M = 0.01
 DEGREE = 3
+#: share of the viscous column ẋ the shape's columns must explain (R² over the moving samples)
+#: for the record to be taken as unable to tell a friction shape from viscous friction
+#: (:func:`viscous_span`)
+VISCOUS_R2 = 0.9
 
 
 # ---------------------------------------------------------------------------- YAML
@@ -139,26 +143,40 @@ class KnotGrid(float):
     """
 
     def __new__(cls, start_m: float, end_m: float, segments: int, drop_linear: bool = False,
-                force: bool = False):
+                force: bool = False, span=None):
         start_m, end_m, segments = float(start_m), float(end_m), int(segments)
         if not end_m > start_m or segments < 1:
             raise ValueError(f"knot grid {start_m:g}..{end_m:g} m with {segments} segments")
         obj = super().__new__(cls, (end_m - start_m) / segments)
         obj.start_m, obj.end_m, obj.segments = start_m, end_m, segments
         obj.drop_linear, obj.force = bool(drop_linear), bool(force)
+        #: None, or the (k, k − 1) map Q (a tuple of rows) from the fitted β to the free
+        #: B-splines' coefficients: the shape is fitted without the direction viscous friction
+        #: takes on this record (:func:`viscous_span`)
+        obj.span = None if span is None else tuple(tuple(float(v) for v in row) for row in span)
         return obj
 
     def __reduce__(self):
-        return KnotGrid, (self.start_m, self.end_m, self.segments, self.drop_linear, self.force)
+        return KnotGrid, (self.start_m, self.end_m, self.segments, self.drop_linear, self.force, self.span)
 
     def __repr__(self) -> str:
-        flags = (", drop_linear" if self.drop_linear else "") + (", force" if self.force else "")
+        flags = ((", drop_linear" if self.drop_linear else "") + (", force" if self.force else "")
+                 + (", without the viscous direction" if self.span is not None else ""))
         return f"KnotGrid({self.start_m:.6g}, {self.end_m:.6g}, {self.segments}{flags})"
 
     def as_force(self) -> KnotGrid:
         """The same basis as a direction-independent force f(x) (columns B_j(x), no S_f(ẋ)):
         the alternative :meth:`PositionFrictionShapeFamily.plausible` compares with."""
-        return KnotGrid(self.start_m, self.end_m, self.segments, self.drop_linear, force=True)
+        return KnotGrid(self.start_m, self.end_m, self.segments, self.drop_linear, force=True, span=self.span)
+
+    def with_span(self, span) -> KnotGrid:
+        """The same grid with the coefficient map ``span`` (k, k − 1) (None: all directions)."""
+        return KnotGrid(self.start_m, self.end_m, self.segments, self.drop_linear, self.force, span)
+
+    @property
+    def n_columns(self) -> int:
+        """Number of regressor columns (fitted β)."""
+        return len(self.free()) - (0 if self.span is None else 1)
 
     @property
     def knots(self) -> np.ndarray:
@@ -186,8 +204,46 @@ class KnotGrid(float):
         """All K spline coefficients c_j from the fitted column coefficients β (k,)
         (0 for the B-splines left out)."""
         c = np.zeros(self.n_basis)
-        c[self.free()] = beta
+        b = np.asarray(beta, dtype=float)
+        c[self.free()] = b if self.span is None else np.asarray(self.span) @ b
         return c
+
+
+def viscous_span(h: KnotGrid, p, moving) -> np.ndarray | None:
+    """The coefficient map (k, k − 1) that leaves out of the shape the direction viscous
+    friction takes on this record, or None when the record separates the two.
+
+    On a program that passes each position at the same speed in each direction, the speed is
+    a function of position, |ẋ| = s(x), so B ẋ = B s(x) S_f(ẋ) is a friction shape too: the
+    viscous column is (nearly) in the span of the shape's columns [S_f(ẋ), B_j(x) S_f(ẋ)] and a
+    joint fit can trade B against g(x) = −B s(x) (a negative θ2 or a Coulomb level that turns
+    negative at the ends). When the shape's columns explain at least :data:`VISCOUS_R2` of the
+    viscous column over the moving samples (R², least squares), the direction a they do it
+    with is left out: the shape is fitted on the β with (C a)ᵀ(C β) = 0 (C the shape's columns),
+    so the part of the record viscous friction explains stays θ2's (the nominal model's).
+
+    Args:
+        h: the knot grid (its ``span`` is ignored). p: the prepared record (decimated x_d, v_d
+            (M,) [m, m/s]). moving: bool (M,), the samples in motion.
+    Returns:
+        Q (k, k − 1) with orthonormal columns, k = len(h.free()), or None.
+    """
+    from scipy.linalg import null_space
+    mv = np.asarray(moving, dtype=bool)
+    if mv.sum() < 4 * (len(h.free()) + 1):
+        return None
+    v = p.v_d[mv]
+    sf = s_f(v)
+    c = h.basis(p.x_d[mv])[:, h.free()] * sf[:, None]
+    a_full = np.column_stack([sf, c])
+    coef = np.linalg.lstsq(a_full, v, rcond=None)[0]
+    r = v - a_full @ coef
+    if 1.0 - float(r @ r) / float(v @ v) < VISCOUS_R2:
+        return None
+    w = c.T @ (c @ coef[1:])
+    if not np.any(w):
+        return None
+    return null_space(w[None, :])
 
 
 def knot_grid(start_m: float, end_m: float, segments: int) -> KnotGrid:
@@ -308,6 +364,8 @@ class PositionFrictionShapeFamily(EffectFamily):
         if not isinstance(h, KnotGrid):
             raise TypeError(f"{self.name}: the searched parameter must be a KnotGrid, not {h!r}")
         b = h.basis(p.x)[:, h.free()]
+        if h.span is not None:
+            b = b @ np.asarray(h.span)
         return b if h.force else b * s_f(p.v)[:, None]
 
     def search(self, ctx, base, residual):
@@ -323,7 +381,8 @@ class PositionFrictionShapeFamily(EffectFamily):
         kept = None
         first = None
         for n in SEGMENTS:
-            term = ctx.term(self.name, KnotGrid(lo, hi, n, drop_linear=has_linear))
+            grid = KnotGrid(lo, hi, n, drop_linear=has_linear)
+            term = ctx.term(self.name, grid.with_span(viscous_span(grid, ctx.p, ctx.moving)))
             first = first or term
             rms = ctx.heldout_rms(base + [term])
             if rms <= (1.0 - TERM_GAIN) * kept_rms:
