@@ -219,8 +219,9 @@ def viscous_span(h: KnotGrid, p, moving) -> np.ndarray | None:
     joint fit can trade B against g(x) = −B s(x) (a negative θ2 or a Coulomb level that turns
     negative at the ends). When the shape's columns explain at least :data:`VISCOUS_R2` of the
     viscous column over the moving samples (R², least squares), the direction a they do it
-    with is left out: the shape is fitted on the β with (C a)ᵀ(C β) = 0 (C the shape's columns),
-    so the part of the record viscous friction explains stays θ2's (the nominal model's).
+    with is left out: the shape is fitted on the β with (C̃ a)ᵀ(C̃ β) = 0 (C̃ the shape's
+    columns less their projection on θ3's S_f(ẋ)), so the part of the record viscous friction
+    explains stays θ2's (the nominal model's).
 
     Args:
         h: the knot grid (its ``span`` is ignored). p: the prepared record (decimated x_d, v_d
@@ -240,7 +241,9 @@ def viscous_span(h: KnotGrid, p, moving) -> np.ndarray | None:
     r = v - a_full @ coef
     if 1.0 - float(r @ r) / float(v @ v) < VISCOUS_R2:
         return None
-    w = c.T @ (c @ coef[1:])
+    # θ3's column S_f(ẋ) is in every model: the direction is taken on the columns without it
+    ct = c - np.outer(sf, (sf @ c) / float(sf @ sf))
+    w = ct.T @ (ct @ coef[1:])
     if not np.any(w):
         return None
     return null_space(w[None, :])
@@ -343,6 +346,7 @@ class PositionFrictionShapeFamily(EffectFamily):
         "bumps": [{"center_m": 0.25, "width_m": 0.16, "amplitude_N": 15.0}]}}
     comp_options = PositionFrictionShapeComp
     comp_needs_sf = True
+    simpler = LINEAR.name
 
     # simulator
     def plant_term(self, o: PositionFrictionShape, period_s):
@@ -381,8 +385,7 @@ class PositionFrictionShapeFamily(EffectFamily):
         kept = None
         first = None
         for n in SEGMENTS:
-            grid = KnotGrid(lo, hi, n, drop_linear=has_linear)
-            term = ctx.term(self.name, grid.with_span(viscous_span(grid, ctx.p, ctx.moving)))
+            term = ctx.term(self.name, KnotGrid(lo, hi, n, drop_linear=has_linear))
             first = first or term
             rms = ctx.heldout_rms(base + [term])
             if rms <= (1.0 - TERM_GAIN) * kept_rms:
@@ -391,18 +394,37 @@ class PositionFrictionShapeFamily(EffectFamily):
             gain = 1.0 - ctx.heldout_rms(base + [first]) / linear_rms
             return first, (f"no shape beyond a linear slope: {first.h.segments} segment(s) lower the held-out "
                            f"residual of {LINEAR.name} by {100 * gain:.1f} % (< {100 * TERM_GAIN:g} %)")
+        if self._traded(ctx, kept, base):
+            span = viscous_span(kept.h, ctx.p, ctx.moving)
+            if span is not None:
+                kept = ctx.term(self.name, kept.h.with_span(span))
         return kept, None
+
+    def _traded(self, ctx, term, base) -> bool:
+        """True when the joint fit with ``term`` is not physical in the way a shape traded
+        against viscous friction is (θ2 significantly negative, or the Coulomb level θ3 + g(x)
+        negative over the moving range): then :func:`viscous_span` decides the split."""
+        ev = ctx.evaluate(base + [term])
+        nt = ctx.n_theta
+        th, sd = ev.fit.coef[:nt], ev.fit.std[:nt]
+        k = term.cols.shape[1]
+        beta = ev.fit.coef[-k:]
+        return bool(th[1] < -3 * sd[1] or self._coulomb_min(ctx, term.h, beta, th) < 0)
+
+    @staticmethod
+    def _coulomb_min(ctx, h, beta, theta) -> float:
+        """The least Coulomb level θ3 + g(x) over the positions the axis moved through."""
+        xm = ctx.p.x_d[ctx.moving]
+        lo, hi = (np.percentile(xm, [1.0, 99.0]) if xm.size else (h.start_m, h.end_m))
+        xs = np.linspace(max(lo, h.start_m), min(hi, h.end_m), SHAPE_POINTS)
+        return float(theta[2] + (h.basis(xs) @ h.coefficients(beta)).min())
 
     def plausible(self, ctx, term, beta, theta, base):
         reasons = []
         h = term.h
         # over the positions the axis moved through (1st..99th percentile): where it only rests
         # or turns round, friction is not seen and the spline is not held by data
-        xm = ctx.p.x_d[ctx.moving]
-        lo, hi = (np.percentile(xm, [1.0, 99.0]) if xm.size else (h.start_m, h.end_m))
-        xs = np.linspace(max(lo, h.start_m), min(hi, h.end_m), SHAPE_POINTS)
-        g = h.basis(xs) @ h.coefficients(beta)
-        if theta[2] + g.min() < 0:
+        if self._coulomb_min(ctx, h, beta, theta) < 0:
             reasons.append("Coulomb level would turn negative over the stroke")
         # friction changes sign with the direction of motion: the same basis as a force f(x) that
         # does not (a spring, cogging, a magnet) must explain clearly less
