@@ -127,10 +127,21 @@ def closed_loop(idf, cfg: dict, axis: str, duration_s: float) -> dict | None:
         {"before": {...}, "after": {...}, "compensation": {...}} with e_M_um, e_F_um, L2_um, or
         None when no found effect maps to a compensation term.
     """
+    return start_closed_loop(idf, cfg, axis, duration_s)()
+
+
+def start_closed_loop(idf, cfg: dict, axis: str, duration_s: float):
+    """:func:`closed_loop` started: its two runs go to forked processes at once (where the
+    machine has the cores), so the caller can summarise the fit meanwhile.
+
+    Returns:
+        A function of no argument that waits for the runs and returns what
+        :func:`closed_loop` returns.
+    """
     from motorctl.ident.pipeline import compensation_from_fit, set_theta0
     comp, theta_aug, _skipped = compensation_from_fit(idf)
     if not comp:
-        return None
+        return lambda: None
     base = copy.deepcopy(cfg)
     base["axes"] = {axis: base["axes"][axis]}
     base["loop"]["clock"] = "virtual"
@@ -144,11 +155,15 @@ def closed_loop(idf, cfg: dict, axis: str, duration_s: float) -> dict | None:
     # the emitted references) with the compensation
     set_theta0(base["axes"][axis]["controller"], idf.nominal.fit.coef[:idf.n_theta])
     set_theta0(after["axes"][axis]["controller"], theta_aug)
-    res = dict(zip(("before", "after"), _run_pair([(base, "before"), (after, "after")], axis, duration_s)))
-    res["compensation"] = comp
-    res["controller"] = "c2"
-    res["duration_s"] = duration_s
-    return res
+    wait = _start_pair([(base, "before"), (after, "after")], axis, duration_s)
+
+    def finish() -> dict:
+        res = dict(zip(("before", "after"), wait()))
+        res["compensation"] = comp
+        res["controller"] = "c2"
+        res["duration_s"] = duration_s
+        return res
+    return finish
 
 
 def _closed_loop_run(args) -> dict:
@@ -163,14 +178,22 @@ def _closed_loop_run(args) -> dict:
     return out
 
 
-def _run_pair(configs: list, axis: str, duration_s: float) -> list[dict]:
-    """The runs of ``configs`` [(dict, name)], side by side in forked processes where the
-    machine has the cores (each run is deterministic: the same figures either way)."""
+def _start_pair(configs: list, axis: str, duration_s: float):
+    """The runs of ``configs`` [(dict, name)], started side by side in forked processes where
+    the machine has the cores (each run is deterministic: the same figures either way).
+    Returns a function of no argument that waits and returns their results in order."""
     jobs = [(d, name, axis, duration_s) for d, name in configs]
     if (os.cpu_count() or 1) < 2 or "fork" not in multiprocessing.get_all_start_methods():
-        return [_closed_loop_run(j) for j in jobs]
-    with ProcessPoolExecutor(max_workers=len(jobs), mp_context=multiprocessing.get_context("fork")) as ex:
-        return list(ex.map(_closed_loop_run, jobs))
+        return lambda: [_closed_loop_run(j) for j in jobs]
+    ex = ProcessPoolExecutor(max_workers=len(jobs), mp_context=multiprocessing.get_context("fork"))
+    futures = [ex.submit(_closed_loop_run, j) for j in jobs]
+
+    def wait() -> list[dict]:
+        try:
+            return [f.result() for f in futures]
+        finally:
+            ex.shutdown()
+    return wait
 
 
 def make_log(path: str, effect: dict | None = None, duration_s: float = 8.0, seed: int = 1,
@@ -442,4 +465,5 @@ def _compare(res: dict, files: dict) -> None:
 
 
 __all__ = ["E_M_SLACK_UM", "FILES", "SIM_DRIVER", "better", "closed_loop", "damage_removed", "effect_free",
+           "start_closed_loop",
            "effects_on", "is_simulated", "make_log", "tune"]
