@@ -318,3 +318,20 @@ def test_viscous_direction_is_left_out_only_when_the_record_cannot_tell():
     assert len(hs.coefficients(np.ones(k - 1))) == h.n_basis
     p2, mv2 = _strokes([2.0, 2.0, 0.6, 0.6])
     assert pfs.viscous_span(h, p2, mv2) is None
+
+
+def test_a_shape_that_the_straight_line_does_as_well_is_replaced_by_it(runs):
+    """After the selection, a friction shape whose simpler case (the linear slope) leaves a
+    held-out RMS less than 3 % above in the final model is replaced by it, and the report says
+    so; a shape that beats the line (the bump) stays."""
+    _, idf = runs["linear"]
+    grid = pfs.KnotGrid(float(idf.p.x.min()), float(idf.p.x.max()), 8)
+    shape = idf.term(NAME, grid)
+    ev = idf.evaluate([shape])
+    ev.term, ev.gain, ev.rivals = shape, 0.5, []
+    terms, accepted, final, replaced = idf._simplify([shape], [(ev, idf.nominal.heldout_rms)], ev)
+    assert [t.family for t in terms] == [LINEAR] and [n for n, _ in replaced] == [NAME], replaced
+    assert final.heldout_rms <= ev.heldout_rms / (1 - MIN_HELDOUT_GAIN)
+    _, bump = runs["bump"]
+    t, a, f, rep = bump._simplify(list(bump.terms), list(bump.accepted), bump.final)
+    assert [x.family for x in t] == [x.family for x in bump.terms] and rep == []

@@ -496,7 +496,8 @@ class Identifier:
             if not dropped:
                 break
             eliminated += dropped
-        base, accepted, current = self._simplify(base, accepted, current)
+        base, accepted, current, replaced = self._simplify(base, accepted, current)
+        eliminated += replaced
         if pool:
             pool.shutdown()
         self.eliminated = eliminated
@@ -539,7 +540,8 @@ class Identifier:
         special case is the linear slope) is replaced by it when, in the final model, the
         simpler one is plausible and leaves a held-out residual less than
         :data:`MIN_HELDOUT_GAIN` above (the shape was taken at a step where other effects were
-        not yet modelled). Returns (terms, accepted, final)."""
+        not yet modelled). Returns (terms, accepted, final, [(family, why)] replaced)."""
+        replaced = []
         for i, t in enumerate(list(base)):
             alt = effect_family(t.family).simpler
             if alt is None or alt not in self.families or any(b.family == alt for b in base):
@@ -553,10 +555,12 @@ class Identifier:
                 continue                    # the shape beats the straight line: kept
             swapped = others[:i] + [ev.term] + others[i:]
             final = self.evaluate(swapped)
-            ev.simplified_from = t.family
+            replaced.append((t.family, f"replaced by its simpler case {alt}, which does as well in the final model "
+                                       f"(held-out RMS {_force(final.heldout_rms, self.rec.gain)} against "
+                                       f"{_force(current.heldout_rms, self.rec.gain)})"))
             base, current = swapped, final
             accepted = accepted[:i] + [(ev, accepted[i][1])] + accepted[i + 1:]
-        return base, accepted, current
+        return base, accepted, current, replaced
 
     def _look_ahead(self, best: Evaluated, good: list, cands: list, base: list) -> Evaluated:
         """``best``, or a look-alike rival that explains nearly as much (within
