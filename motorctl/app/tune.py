@@ -237,8 +237,8 @@ def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None =
         "faults": {run: reason or ""}, "effects" (identify's summary), "compensation",
         "not_compensable", "kept" (the compensated families kept in tuned.yaml), "dropped"
         ({family: why}), "theta_hat0" (which θ̂(0) tuned.yaml carries and why: the fitted one or
-        the config's own; None when it stopped before), "verdict" (None, or that no effect was kept), "stopped" (None, or why it
-        stopped early), "compare": None or
+        the config's own; None when it stopped before), "verdict" (None, or that no effect was
+        kept), "stopped" (None, or why it stopped early), "compare": None or
         {window_s, period_s, settle_periods, before, after, ratio, floor (sim only)} with the
         indexes of :func:`motorctl.metrics.tracking_indexes` [µm, V], "floor_effects_off"
         (sim: the families the floor switches off; else None), "damage_removed" [-] (sim),
@@ -277,7 +277,8 @@ def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None =
         writable_file(f, f"tune {k} output")
     res = {"config": str(config), "axis": axis, "driver": loaded.cfg.driver.type, "clock": clock,
            "duration_s": duration, "out": str(out), "files": {}, "faults": {}, "effects": [],
-           "compensation": {}, "not_compensable": [], "kept": [], "dropped": {}, "theta_hat0": None, "verdict": None,
+           "compensation": {}, "not_compensable": [], "kept": [], "dropped": {}, "theta_hat0": None,
+           "verdict": None,
            "stopped": None, "compare": None,
            "floor_effects_off": ([n for n in effects_on(loaded, axis) if FAMILIES[n].has_compensation]
                                  if floor_cfg is not None else None),
@@ -330,7 +331,7 @@ def _indexes(files: dict, log: Path, axis: str) -> dict:
 #: the controller keys of the fitted model θ̂(0) that ``tuned.yaml`` changes (one change for
 #: :func:`_keep_what_helps`: the fitted start, or the config's own)
 THETA_KEYS = ("theta_hat0", "theta_min", "theta_max")
-#: the name of that change in ``res['dropped']`` / ``res['kept']``
+#: the name of that change (its ``without_<change>`` files; the outcome is ``res['theta_hat0']``)
 THETA_CHANGE = "theta_hat0"
 
 
