@@ -1,40 +1,42 @@
-"""Benchmark of ``motorctl identify`` on a 20 s run log at 5 kHz (it must finish within 30 s).
+"""Benchmark of ``motorctl identify`` on a 20 s run log at 5 kHz: wall time with start-up
+(budget 4 s).
 
 Rerun:
     python benchmarks/bench_ident.py              # generates the log once into /tmp, times identify
-    python benchmarks/bench_ident.py --repeat 3 --effect stribeck --keep-log /tmp/x.log
+    python benchmarks/bench_ident.py --repeat 5 --effect stribeck --keep-log /tmp/x.log
 
-What is timed: ``motorctl identify LOG --json --no-closed-loop`` end to end through
-``motorctl.cli.main`` (reading, IDIM-LS, the effect search over all nine families with forward
-selection, simulation fit %, JSON), and separately the same with the closed-loop before/after
-(two simulated C2 runs of --closed-loop-duration seconds, 8 s by default), whose cost is the
-simulator's, not the identification's. Wall-clock seconds on this machine; other processes on
-the machine inflate them (the load average is printed).
+What is timed: ``motorctl identify LOG --json`` as a new process, end to end (Python start-up,
+imports, reading, IDIM-LS, the effect search over every family with forward selection and
+backward elimination, simulation fit %, residual verdict, JSON), once with the closed-loop
+before/after (two simulated C2 runs of 8 s, in forked processes, while the fit is summarised)
+and once with ``--no-closed-loop``; the median of ``--repeat`` runs. Wall-clock seconds on this
+machine: other processes inflate them, so the load average and the CPU time are printed too.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
 import json
 import os
 import sys
 import time
+
+#: wall time with start-up [s] that identify must stay within on the 20 s, 5 kHz log
+BUDGET_S = 4.0
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=20.0, help="log length [s] (default 20)")
     ap.add_argument("--effect", default="cogging", help="undeclared effect on the plant (synth.EXAMPLES key)")
-    ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--repeat", type=int, default=3, help="runs of each mode (median; default 3)")
     ap.add_argument("--keep-log", default="/tmp/motorctl_bench_ident_20s.log",
                     help="log path (reused when it exists)")
-    ap.add_argument("--closed-loop", action="store_true", help="also time the run with the closed-loop check")
+    ap.add_argument("--closed-loop", action="store_true",
+                    help="accepted for old command lines: both modes are always timed")
     args = ap.parse_args(argv)
 
     from motorctl.app.tune import make_log
-    from motorctl.cli import main as cli_main
     from motorctl.ident.synth import EXAMPLES
     from motorctl.recorder.runlog import read_log
 
@@ -57,29 +59,41 @@ def main(argv=None) -> int:
     print(f"log: {path}, {n} samples ({n * log.header['period_s']:.1f} s at {1 / log.header['period_s']:.0f} Hz), "
           f"effect {args.effect}; load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
 
-    def timed(extra):
-        buf = io.StringIO()
-        t0 = time.perf_counter()
-        with contextlib.redirect_stdout(buf):
-            rc = cli_main(["identify", path, "--json"] + extra)
-        dt = time.perf_counter() - t0
-        return rc, dt, json.loads(buf.getvalue())
+    import resource
+    import statistics
+    import subprocess
 
-    times = []
-    for _ in range(args.repeat):
-        rc, dt, s = timed(["--no-closed-loop"])
-        times.append(dt)
-    eff = ", ".join(f"{e['name']} {json.dumps(e['parameters'])}" for e in s["effects"]) or "none"
-    print(f"identify (no closed loop): {min(times):.2f} s best, {max(times):.2f} s worst of {args.repeat} "
-          f"(budget 30 s) -> {'OK' if max(times) < 30 else 'OVER BUDGET'}; exit {rc}; effects: {eff}")
-    if args.closed_loop:
-        rc, dt, s = timed([])
+    cmd = [sys.executable, "-c", "import sys; from motorctl.cli import main; sys.exit(main())", "identify", path,
+           "--json"]
+
+    def timed(extra):
+        r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        t0 = time.perf_counter()
+        out = subprocess.run(cmd + extra, capture_output=True, text=True, check=False)
+        dt = time.perf_counter() - t0
+        r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+        return out.returncode, dt, cpu, (json.loads(out.stdout) if out.returncode == 0 else {"error": out.stderr})
+
+    worst = 0.0
+    for label, extra in (("with the closed loop", []), ("--no-closed-loop", ["--no-closed-loop"])):
+        runs = [timed(extra) for _ in range(args.repeat)]
+        rc, _, _, s = runs[-1]
+        wall = statistics.median(r[1] for r in runs)
+        cpu = statistics.median(r[2] for r in runs)
+        worst = max(worst, wall)
+        eff = ", ".join(f"{e['name']} {json.dumps(e['parameters'])}" for e in s.get("effects", [])) or "none"
+        print(f"identify {label}: median {wall:.2f} s wall with start-up ({min(r[1] for r in runs):.2f} .. "
+              f"{max(r[1] for r in runs):.2f} over {args.repeat}), {cpu:.2f} s CPU; budget {BUDGET_S:g} s -> "
+              f"{'OK' if wall <= BUDGET_S else 'OVER BUDGET'}; exit {rc}; effects: {eff}")
         cl = s.get("closed_loop") or {}
-        b, a = cl.get("before", {}), cl.get("after", {})
-        print(f"identify with closed-loop before/after (2 x {cl.get('duration_s', 0):g} s simulated): {dt:.2f} s; "
-              f"e_M {b.get('e_M_um', float('nan')):.2f} -> {a.get('e_M_um', float('nan')):.2f} um")
-    print("rerun: python benchmarks/bench_ident.py [--repeat N] [--closed-loop] [--effect NAME]")
-    return 0 if max(times) < 30 else 1
+        if cl:
+            b, a = cl.get("before", {}), cl.get("after", {})
+            print(f"  closed loop (2 x {cl.get('duration_s', 0):g} s simulated): e_M {b.get('e_M_um', float('nan')):.2f} "
+                  f"-> {a.get('e_M_um', float('nan')):.2f} um")
+    print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
+    print("rerun: python benchmarks/bench_ident.py [--repeat N] [--effect NAME]")
+    return 0 if worst <= BUDGET_S else 1
 
 
 if __name__ == "__main__":

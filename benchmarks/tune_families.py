@@ -31,8 +31,10 @@ velocities, positions and phases stay. A family without force-valued options kee
 
 The table: floor L2[e], before L2[e] / e_M, after L2[e] / e_M [µm], the damage removed
 (L2_before − L2_after)/(L2_before − L2_floor) and whether e_M is not worse (after ≤ before).
-The issue's bar: damage removed ≥ 0.8 with e_M not worse; the last line counts the families
-that meet it. Exit 0 when all compensable families meet it, else 1.
+The bar: damage removed ≥ 0.8 with e_M not worse; the last line counts the families that meet
+it. Then the plant with no added effect (``--family none`` alone): tune must write no effect
+(keep no compensation) and leave L2[e] not worse. Exit 0 when all compensable families meet
+the bar and the plant with no added effect passes, else 1.
 """
 
 from __future__ import annotations
@@ -144,6 +146,7 @@ def tune_family(name: str, fragment: dict, out: Path, duration_s: float, axis: s
     from motorctl.inputs import InputError
     from motorctl.recorder.runlog import LogError
     d = out / name
+    d.mkdir(parents=True, exist_ok=True)
     cfg = d / "config.yaml"
     cfg.write_text(yaml.safe_dump(gantry_dict(axis, fragment, seed=1, noise_N=_noise(base), trajectory=trajectory,
                                               base=base),
@@ -175,7 +178,8 @@ def row(name: str, res: dict | None, size: str = "example") -> list[str]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=16.0, help="length of each run [s] (default 16)")
-    ap.add_argument("--family", action="append", default=None, help="only this family (repeatable)")
+    ap.add_argument("--family", action="append", default=None,
+                    help="only this family (repeatable; 'none': the plant with no added effect)")
     ap.add_argument("--at-example", action="store_true",
                     help="run every family at its example size (no search for the 30 %% size)")
     ap.add_argument("--out", default=None, help="keep configs, logs and figures here (default: a temporary folder)")
@@ -197,7 +201,7 @@ def main(argv=None) -> int:
 
     from motorctl.app.tune import make_log
     from motorctl.effects import FAMILIES
-    names = args.family or list(FAMILIES)
+    names = [n for n in (args.family or list(FAMILIES)) if n != "none"]
     unknown = [n for n in names if n not in FAMILIES]
     if unknown:
         ap.error(f"unknown family {', '.join(unknown)}; families: {', '.join(FAMILIES)}")
@@ -230,6 +234,9 @@ def main(argv=None) -> int:
             if d is not None and d >= MIN_REMOVED and res["e_M_not_worse"]:
                 met.append(name)
             rows.append(row(name, res, size))
+        clean = None
+        if not args.family or "none" in (args.family or []):
+            clean = tune_family("none", None, out, args.duration, trajectory=traj, base=base)
     prog = "the paper's program (a_max 40 m/s²)" if traj is None else f"a_max {args.a_max:g} m/s²"
     plant = (f"{base}, axis X (its own gains, plant and force noise, {prog})" if base else
              f"configs/gantry-rigid.yaml, axis X (C2, paper gains, {prog}, 1 N force noise)")
@@ -240,12 +247,23 @@ def main(argv=None) -> int:
     print("|" + "---|" * len(header))
     for r in rows:
         print("| " + " | ".join(r) + " |")
+    clean_ok = True
+    if clean is not None:
+        kept = clean.get("kept") or []
+        c = clean.get("compare")
+        l2_ok = c is None or c["after"]["L2_um"] <= c["before"]["L2_um"]
+        clean_ok = not kept and l2_ok
+        found = ", ".join(e["name"] for e in clean.get("effects", [])) or "none"
+        what = (f"L2 {c['before']['L2_um']:.3f} -> {c['after']['L2_um']:.3f} um, e_M {c['before']['e_M_um']:.2f} -> "
+                f"{c['after']['e_M_um']:.2f} um" if c else f"stopped: {clean.get('stopped') or clean.get('refused')}")
+        print(f"\nno added effect: found {found}; kept {', '.join(kept) or 'none'}; {what}; "
+              f"{'no effect written, L2 not worse' if clean_ok else 'FAILS: an effect written or L2 worse'}")
     print(f"\n{len(met)} of {tried} compensable families meet damage removed >= {MIN_REMOVED} with e_M not worse"
           + (f" (not: {', '.join(n for n in names if FAMILIES[n].has_compensation and n not in met)})"
              if len(met) < tried else ""))
     print(f"rerun: python benchmarks/tune_families.py [--duration S] [--family NAME] [--out DIR] "
           f"({time.perf_counter() - t0:.0f} s here)")
-    return 0 if len(met) == tried else 1
+    return 0 if len(met) == tried and clean_ok else 1
 
 
 if __name__ == "__main__":

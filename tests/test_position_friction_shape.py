@@ -275,3 +275,63 @@ def test_knot_grid_pickles_and_validates():
         pfs.KnotGrid(0.4, 0.0, 4)
     with pytest.raises(TypeError):
         FAMILIES[NAME].columns(None, Signals(*(np.zeros(3),) * 5))
+
+
+def _strokes(speeds, n=4000):
+    """Decimated-record stand-in: back-and-forth strokes over 0 … 0.4 m, one trapezoidal speed
+    profile s(x) scaled by each of ``speeds`` in turn [m/s] (x_d, v_d (M,), all moving)."""
+    from types import SimpleNamespace
+    z = np.linspace(0.0, 1.0, n)
+    x_up = 0.4 * z
+    s = np.minimum(1.0, np.minimum(z, 1.0 - z) / 0.15) + 0.02
+    xs, vs = [], []
+    for k, sc in enumerate(speeds):
+        xs.append(x_up if k % 2 == 0 else x_up[::-1])
+        vs.append(sc * s if k % 2 == 0 else -sc * s[::-1])
+    x, v = np.concatenate(xs), np.concatenate(vs)
+    return SimpleNamespace(x_d=x, v_d=v), np.ones_like(x, dtype=bool)
+
+
+def test_viscous_direction_is_left_out_only_when_the_record_cannot_tell():
+    """One speed profile: |ẋ| is a function of x, so viscous friction is a friction shape and
+    the shape is fitted without that direction (k − 1 coefficients mapped back to k); strokes
+    at 1 and 0.3 of the speed separate them and the full basis is kept."""
+    h = pfs.KnotGrid(0.0, 0.4, 8)
+    k = len(h.free())
+    p, mv = _strokes([2.0, 2.0, 2.0, 2.0])
+    span = pfs.viscous_span(h, p, mv)
+    assert span is not None and span.shape == (k, k - 1)
+    hs = h.with_span(span)
+    assert hs.n_columns == k - 1 and hs.as_force().span == hs.span
+    # what is left out is the shape viscous friction takes: beyond θ3's S_f(ẋ), the fitted
+    # shape explains almost nothing of ẋ (the full basis nearly all of it)
+    sig = Signals(p.x_d, p.v_d, 0 * p.x_d, 0 * p.x_d, 0 * p.x_d)
+    sf = s_f(p.v_d)
+
+    def r2(*cols):
+        a = np.column_stack(cols)
+        r = p.v_d - a @ np.linalg.lstsq(a, p.v_d, rcond=None)[0]
+        return 1 - (r @ r) / (p.v_d @ p.v_d)
+    full = r2(sf, family(NAME).columns(h, sig)) - r2(sf)
+    reduced = r2(sf, family(NAME).columns(hs, sig)) - r2(sf)
+    assert full > 0.05 and reduced < 0.02 * full, (full, reduced)
+    assert len(hs.coefficients(np.ones(k - 1))) == h.n_basis
+    p2, mv2 = _strokes([2.0, 2.0, 0.6, 0.6])
+    assert pfs.viscous_span(h, p2, mv2) is None
+
+
+def test_a_shape_that_the_straight_line_does_as_well_is_replaced_by_it(runs):
+    """After the selection, a friction shape whose simpler case (the linear slope) leaves a
+    held-out RMS less than 3 % above in the final model is replaced by it, and the report says
+    so; a shape that beats the line (the bump) stays."""
+    _, idf = runs["linear"]
+    grid = pfs.KnotGrid(float(idf.p.x.min()), float(idf.p.x.max()), 8)
+    shape = idf.term(NAME, grid)
+    ev = idf.evaluate([shape])
+    ev.term, ev.gain, ev.rivals = shape, 0.5, []
+    terms, accepted, final, replaced = idf._simplify([shape], [(ev, idf.nominal.heldout_rms)], ev)
+    assert [t.family for t in terms] == [LINEAR] and [n for n, _ in replaced] == [NAME], replaced
+    assert final.heldout_rms <= ev.heldout_rms / (1 - MIN_HELDOUT_GAIN)
+    _, bump = runs["bump"]
+    t, a, f, rep = bump._simplify(list(bump.terms), list(bump.accepted), bump.final)
+    assert [x.family for x in t] == [x.family for x in bump.terms] and rep == []

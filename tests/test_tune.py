@@ -12,7 +12,7 @@ import pytest
 import yaml
 from conftest import MOTORCTL, RIGID_PLANT
 
-from motorctl.app.tune import FILES, damage_removed, effect_free, effects_on
+from motorctl.app.tune import FILES, better, damage_removed, effect_free, effects_on
 from motorctl.cli import main
 from motorctl.cli.tune import text_report
 from motorctl.config import config_from_dict, load_config, load_yaml
@@ -67,6 +67,9 @@ def test_tune_removes_the_springs_damage_against_the_floor(spring_tune):
     res, out = spring_tune
     assert res["driver"] == "sim" and res["clock"] == "virtual" and res["stopped"] is None
     assert res["kept"] == ["spring"] and res["dropped"] == {} and res["verdict"] is None
+    # the fitted θ̂(0) is one of the changes the closed loop judges: run once without it
+    assert (out / "without_theta_hat0.mclog").is_file() and res["files"]["without_theta_hat0"]
+    assert res["theta_hat0"].startswith(("the fitted one", "the config's own: the loop is better without it"))
     assert [e["name"] for e in res["effects"]] == ["spring"] and "spring" in res["compensation"]
     assert res["floor_effects_off"] == ["spring"]
     for step in ("before", "tuned", "after", "floor_config", "floor"):
@@ -191,3 +194,14 @@ def test_tune_and_compare_runs_over_the_serial_emulator(tmp_path, capsys):
     # identified from the real-driver log (no gain in its header: V units): the plant's spring
     k_V_per_m = FAMILIES["spring"].example["spring"]["stiffness_N_per_m"] / plant["axes"]["X"]["driver"]["a1_N_per_V"]
     assert res["compensation"]["spring"]["stiffness_V_per_m"] == pytest.approx(k_V_per_m, rel=0.05)
+
+
+def test_better_lets_l2_decide_with_e_m_held_to_the_before_run():
+    """A change stays undone when the loop without it has a lower L2[e], and an e_M no more than
+    one encoder count above the before run's (not the current best's)."""
+    before = {"L2_um": 3.3, "e_M_um": 20.6}
+    best = {"L2_um": 3.0, "e_M_um": 11.1}
+    assert better({"L2_um": 2.5, "e_M_um": 14.8}, best, before)        # lower L2, e_M below before
+    assert not better({"L2_um": 2.5, "e_M_um": 14.8}, best)            # against the best's own e_M
+    assert not better({"L2_um": 2.5, "e_M_um": 21.2}, best, before)    # e_M worse than before
+    assert not better({"L2_um": 3.0, "e_M_um": 5.0}, best, before)     # L2 not lower

@@ -127,10 +127,21 @@ def closed_loop(idf, cfg: dict, axis: str, duration_s: float) -> dict | None:
         {"before": {...}, "after": {...}, "compensation": {...}} with e_M_um, e_F_um, L2_um, or
         None when no found effect maps to a compensation term.
     """
+    return start_closed_loop(idf, cfg, axis, duration_s)()
+
+
+def start_closed_loop(idf, cfg: dict, axis: str, duration_s: float):
+    """:func:`closed_loop` started: its two runs go to forked processes at once (where the
+    machine has the cores), so the caller can summarise the fit meanwhile.
+
+    Returns:
+        A function of no argument that waits for the runs and returns what
+        :func:`closed_loop` returns.
+    """
     from motorctl.ident.pipeline import compensation_from_fit, set_theta0
     comp, theta_aug, _skipped = compensation_from_fit(idf)
     if not comp:
-        return None
+        return lambda: None
     base = copy.deepcopy(cfg)
     base["axes"] = {axis: base["axes"][axis]}
     base["loop"]["clock"] = "virtual"
@@ -144,11 +155,15 @@ def closed_loop(idf, cfg: dict, axis: str, duration_s: float) -> dict | None:
     # the emitted references) with the compensation
     set_theta0(base["axes"][axis]["controller"], idf.nominal.fit.coef[:idf.n_theta])
     set_theta0(after["axes"][axis]["controller"], theta_aug)
-    res = dict(zip(("before", "after"), _run_pair([(base, "before"), (after, "after")], axis, duration_s)))
-    res["compensation"] = comp
-    res["controller"] = "c2"
-    res["duration_s"] = duration_s
-    return res
+    wait = _start_pair([(base, "before"), (after, "after")], axis, duration_s)
+
+    def finish() -> dict:
+        res = dict(zip(("before", "after"), wait()))
+        res["compensation"] = comp
+        res["controller"] = "c2"
+        res["duration_s"] = duration_s
+        return res
+    return finish
 
 
 def _closed_loop_run(args) -> dict:
@@ -163,14 +178,22 @@ def _closed_loop_run(args) -> dict:
     return out
 
 
-def _run_pair(configs: list, axis: str, duration_s: float) -> list[dict]:
-    """The runs of ``configs`` [(dict, name)], side by side in forked processes where the
-    machine has the cores (each run is deterministic: the same figures either way)."""
+def _start_pair(configs: list, axis: str, duration_s: float):
+    """The runs of ``configs`` [(dict, name)], started side by side in forked processes where
+    the machine has the cores (each run is deterministic: the same figures either way).
+    Returns a function of no argument that waits and returns their results in order."""
     jobs = [(d, name, axis, duration_s) for d, name in configs]
     if (os.cpu_count() or 1) < 2 or "fork" not in multiprocessing.get_all_start_methods():
-        return [_closed_loop_run(j) for j in jobs]
-    with ProcessPoolExecutor(max_workers=len(jobs), mp_context=multiprocessing.get_context("fork")) as ex:
-        return list(ex.map(_closed_loop_run, jobs))
+        return lambda: [_closed_loop_run(j) for j in jobs]
+    ex = ProcessPoolExecutor(max_workers=len(jobs), mp_context=multiprocessing.get_context("fork"))
+    futures = [ex.submit(_closed_loop_run, j) for j in jobs]
+
+    def wait() -> list[dict]:
+        try:
+            return [f.result() for f in futures]
+        finally:
+            ex.shutdown()
+    return wait
 
 
 def make_log(path: str, effect: dict | None = None, duration_s: float = 8.0, seed: int = 1,
@@ -190,11 +213,13 @@ def make_log(path: str, effect: dict | None = None, duration_s: float = 8.0, see
     return run_job(loaded, duration_s=duration_s, clock="virtual", log_path=str(path))
 
 
-def better(a: dict, b: dict) -> bool:
+def better(a: dict, b: dict, ref: dict | None = None) -> bool:
     """Run ``a`` tracks better than run ``b`` (their indexes over the same program periods,
     :func:`motorctl.metrics.tracking_indexes` [µm]): a lower L2[e], and an e_M no more than
-    :data:`E_M_SLACK_UM` above."""
-    return a["L2_um"] < b["L2_um"] and a["e_M_um"] <= b["e_M_um"] + E_M_SLACK_UM
+    :data:`E_M_SLACK_UM` above that of ``ref`` (default ``b``; tune passes the before run: L2[e]
+    decides, e_M must not get worse than without tuning)."""
+    ref = b if ref is None else ref
+    return a["L2_um"] < b["L2_um"] and a["e_M_um"] <= ref["e_M_um"] + E_M_SLACK_UM
 
 
 def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None = None,
@@ -211,8 +236,9 @@ def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None =
         {"config", "axis", "driver", "clock", "duration_s", "out", "files": {step: path written},
         "faults": {run: reason or ""}, "effects" (identify's summary), "compensation",
         "not_compensable", "kept" (the compensated families kept in tuned.yaml), "dropped"
-        ({family: why}), "verdict" (None, or that no effect was kept), "stopped" (None, or why it
-        stopped early), "compare": None or
+        ({family: why}), "theta_hat0" (which θ̂(0) tuned.yaml carries and why: the fitted one or
+        the config's own; None when it stopped before), "verdict" (None, or that no effect was
+        kept), "stopped" (None, or why it stopped early), "compare": None or
         {window_s, period_s, settle_periods, before, after, ratio, floor (sim only)} with the
         indexes of :func:`motorctl.metrics.tracking_indexes` [µm, V], "floor_effects_off"
         (sim: the families the floor switches off; else None), "damage_removed" [-] (sim),
@@ -251,7 +277,8 @@ def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None =
         writable_file(f, f"tune {k} output")
     res = {"config": str(config), "axis": axis, "driver": loaded.cfg.driver.type, "clock": clock,
            "duration_s": duration, "out": str(out), "files": {}, "faults": {}, "effects": [],
-           "compensation": {}, "not_compensable": [], "kept": [], "dropped": {}, "verdict": None,
+           "compensation": {}, "not_compensable": [], "kept": [], "dropped": {}, "theta_hat0": None,
+           "verdict": None,
            "stopped": None, "compare": None,
            "floor_effects_off": ([n for n in effects_on(loaded, axis) if FAMILIES[n].has_compensation]
                                  if floor_cfg is not None else None),
@@ -301,51 +328,87 @@ def _indexes(files: dict, log: Path, axis: str) -> dict:
         raise InputError(str(exc)) from None
 
 
+#: the controller keys of the fitted model θ̂(0) that ``tuned.yaml`` changes (one change for
+#: :func:`_keep_what_helps`: the fitted start, or the config's own)
+THETA_KEYS = ("theta_hat0", "theta_min", "theta_max")
+#: the name of that change (its ``without_<change>`` files; the outcome is ``res['theta_hat0']``)
+THETA_CHANGE = "theta_hat0"
+
+
 def _keep_what_helps(res: dict, files: dict, tuned: dict, base: dict, axis: str, duration: float,
                      clock: str, note) -> bool:
-    """Keep in ``tuned.yaml`` only the compensated effects the closed loop is better with
-    (module docstring, step 4); rewrite ``tuned.yaml`` and ``after.mclog`` when some go.
-    Returns False when a run faulted (``res['stopped']`` says which)."""
+    """Keep in ``tuned.yaml`` only the changes the closed loop is better with (module
+    docstring, step 4): the fitted θ̂(0) (with its box) and each compensated effect are the
+    changes; each is undone once (``DIR/without_<change>.yaml``/``.mclog``; the fitted θ̂(0)
+    first, then the effects in the order found) and stays undone when the loop is better
+    without it (:func:`better` against the before run's e_M). Rewrites ``tuned.yaml`` and
+    ``after.mclog`` when something goes. Returns False when a run faulted (``res['stopped']``
+    says which)."""
     import copy
     import shutil
 
     import yaml
 
     from motorctl.config import config_from_dict
+    ctl0 = base["axes"][axis]["controller"]
     comp = dict(tuned["axes"][axis]["controller"].get("compensation") or {})
-    kept = list(comp)
+    changes = [THETA_CHANGE] + list(comp)
+    kept = list(changes)
     best, best_cfg, best_log = _indexes(files, files["after"], axis), tuned, files["after"]
+    before = _indexes(files, files["before"], axis)
     out = files["tuned"].parent
-    for fam in list(kept) if len(kept) > 1 else []:
+    for change in changes:
+        if len(kept) == 1 and change != THETA_CHANGE:
+            break                               # undoing the last change is the before run
         trial = copy.deepcopy(best_cfg)
         ctl = trial["axes"][axis]["controller"]
-        ctl["compensation"] = {k: v for k, v in ctl["compensation"].items() if k != fam}
-        path, log = out / f"without_{fam}.yaml", out / f"without_{fam}.mclog"
+        if change == THETA_CHANGE:
+            for k in THETA_KEYS:
+                if k in ctl0:
+                    ctl[k] = copy.deepcopy(ctl0[k])
+                else:
+                    ctl.pop(k, None)
+        else:
+            ctl["compensation"] = {k: v for k, v in ctl["compensation"].items() if k != change}
+            if not ctl["compensation"]:
+                ctl.pop("compensation")
+        path, log = out / f"without_{change}.yaml", out / f"without_{change}.mclog"
         path.write_text(yaml.safe_dump(trial, sort_keys=False, default_flow_style=False, allow_unicode=True),
                         encoding="utf-8")
-        note(f"without {fam}: axis {axis} of {path}, {duration:g} s, {clock} clock -> {log}")
+        note(f"without {change}: axis {axis} of {path}, {duration:g} s, {clock} clock -> {log}")
         fault = _run_axis(config_from_dict(trial, str(path)), axis, duration, clock, log)["fault"]
-        res["files"][f"without_{fam}"] = str(log)
+        res["files"][f"without_{change}"] = str(log)
         if fault:
-            res["faults"][f"without_{fam}"] = fault
-            res["stopped"] = f"the run without {fam} faulted: {fault}"
+            res["faults"][f"without_{change}"] = fault
+            res["stopped"] = f"the run without {change} faulted: {fault}"
             return False
         m = _indexes(files, log, axis)
-        if better(m, best):
-            kept.remove(fam)
-            res["dropped"][fam] = (f"the loop is better without it (L2[e] {best['L2_um']:.3f} -> {m['L2_um']:.3f} um, "
-                                   f"e_M {best['e_M_um']:.2f} -> {m['e_M_um']:.2f} um)")
+        if better(m, best, before):
+            kept.remove(change)
+            why = (f"the loop is better without it (L2[e] {best['L2_um']:.3f} -> {m['L2_um']:.3f} um, "
+                   f"e_M {best['e_M_um']:.2f} -> {m['e_M_um']:.2f} um)")
+            if change == THETA_CHANGE:
+                res["theta_hat0"] = "the config's own: " + why
+            else:
+                res["dropped"][change] = why
             best, best_cfg, best_log = m, trial, log
-    before = _indexes(files, files["before"], axis)
-    if not better(best, before):
-        for fam in kept:
-            res["dropped"][fam] = (f"with it the loop is not better than before (L2[e] {before['L2_um']:.3f} -> "
-                                   f"{best['L2_um']:.3f} um, e_M {before['e_M_um']:.2f} -> {best['e_M_um']:.2f} um)")
+    effects = [c for c in kept if c != THETA_CHANGE]
+    if not effects or not better(best, before):
+        for c in effects:
+            res["dropped"][c] = (f"with it the loop is not better than before (L2[e] {before['L2_um']:.3f} -> "
+                                 f"{best['L2_um']:.3f} um, e_M {before['e_M_um']:.2f} -> {best['e_M_um']:.2f} um)")
         kept, best_cfg, best_log = [], base, files["before"]
-        res["verdict"] = "no effect kept: the closed loop was not better with the compensation; tuned.yaml is CONFIG unchanged"
-    res["kept"] = kept
+        res["verdict"] = ("no effect kept: the closed loop was not better with any of the compensation; "
+                          "tuned.yaml is CONFIG unchanged")
+    res["kept"] = [c for c in kept if c != THETA_CHANGE]
+    if res["kept"] and THETA_CHANGE in kept:
+        res["theta_hat0"] = "the fitted one (the loop is not better with the config's own)"
+    elif not res["kept"]:
+        res["theta_hat0"] = "the config's own (tuned.yaml is CONFIG unchanged)"
     if best_log != files["after"]:
-        head = (f"# motorctl tune: {res['config']} with the compensation of {', '.join(kept)}\n" if kept else
+        head = (f"# motorctl tune: {res['config']} with the compensation of {', '.join(res['kept'])}"
+                + ("" if THETA_CHANGE in kept else " (theta_hat0 and its box: the config's own)") + "\n"
+                if res["kept"] else
                 f"# motorctl tune: {res['config']} unchanged (no compensation made the closed loop better)\n")
         files["tuned"].write_text(head + yaml.safe_dump(best_cfg, sort_keys=False, default_flow_style=False,
                                                         allow_unicode=True), encoding="utf-8")
@@ -403,4 +466,5 @@ def _compare(res: dict, files: dict) -> None:
 
 
 __all__ = ["E_M_SLACK_UM", "FILES", "SIM_DRIVER", "better", "closed_loop", "damage_removed", "effect_free",
+           "start_closed_loop",
            "effects_on", "is_simulated", "make_log", "tune"]

@@ -83,25 +83,32 @@ def cmd_identify(args) -> int:
             raise UsageError(f"{base_name}: no axis {w_axis!r} in the config; "
                              f"axes: {', '.join(base_cfg.get('axes', {}))}")
         writable_file(args.write_config, "--write-config output")   # leaves no empty file behind
-    idf, s = identify_record(rec, n_theta=args.n_theta, friction=args.friction, zoh_delay=args.zoh_delay)
+    cl_cfg, cl_axis, pending = None, None, []
+    if not args.no_closed_loop:
+        if args.config:
+            cl_cfg = base_cfg
+        elif base_cfg is not None and rec.header.get("driver_type") == "sim":
+            cl_cfg = rec.header["config"]
+        if cl_cfg is not None:
+            cl_axis = rec.axis or args.axis or next(iter(cl_cfg.get("axes", {})), None)
+            if cl_axis not in cl_cfg.get("axes", {}):
+                raise UsageError(f"{args.config or rec.source}: no axis {cl_axis!r} in the config; "
+                                 f"axes: {', '.join(cl_cfg.get('axes', {}))}")
+
+    def start(idf):
+        # the closed loop's two runs go on in forked processes while the fit is summarised
+        if cl_cfg is not None and idf.terms:
+            from motorctl.app.tune import start_closed_loop
+            pending.append(start_closed_loop(idf, cl_cfg, cl_axis, args.closed_loop_duration))
+    idf, s = identify_record(rec, n_theta=args.n_theta, friction=args.friction, zoh_delay=args.zoh_delay,
+                             after_fit=start)
     s["validation"] = validation(idf, rec2) if rec2 is not None else None
     s["closed_loop"] = None
     if not args.no_closed_loop and idf.terms:
-        cfg = None
-        if args.config:
-            from motorctl.config import load_yaml
-            cfg = load_yaml(args.config)
-        elif base_cfg is not None and not args.config and rec.header.get("driver_type") == "sim":
-            cfg = rec.header["config"]
-        if cfg is None:
+        if cl_cfg is None:
             s["closed_loop_note"] = "not run (no simulated plant: pass --config with the plant carrying the effect)"
         else:
-            axis = rec.axis or args.axis or next(iter(cfg.get("axes", {})), None)
-            if axis not in cfg.get("axes", {}):
-                raise UsageError(f"{args.config or rec.source}: no axis {axis!r} in the config; "
-                                 f"axes: {', '.join(cfg.get('axes', {}))}")
-            from motorctl.app.tune import closed_loop
-            s["closed_loop"] = closed_loop(idf, cfg, axis, args.closed_loop_duration)
+            s["closed_loop"] = pending[0]()
             if s["closed_loop"] is None:
                 s["closed_loop_note"] = "not run (the found effect has no additive compensation term)"
     if args.write_config:

@@ -10,11 +10,12 @@
 3. **tuned config**: ``DIR/tuned.yaml``, what ``motorctl identify LOG --config CONFIG
    --write-config`` writes (:func:`motorctl.ident.pipeline.write_tuned_config`);
 4. **after**: the same program on the tuned config, log ``DIR/after.mclog``. tune never hands
-   over a worse config: where more than one effect is compensated, each is run once without
-   (``DIR/without_<family>.yaml`` / ``.mclog``) and dropped when the loop is better without it
-   (:func:`motorctl.app.tune.better`: a lower L2[e] and an e_M no worse than one encoder count); then the kept
-   set must beat the before run the same way, else no effect is kept and ``tuned.yaml`` is
-   CONFIG unchanged (the report says which were dropped and why);
+   over a worse config: each change of ``tuned.yaml`` (the fitted θ̂(0) with its box, then each
+   compensated effect) is undone once (``DIR/without_<change>.yaml`` / ``.mclog``) and stays
+   undone when the loop is better without it (:func:`motorctl.app.tune.better`: a lower L2[e],
+   and an e_M no more than one encoder count above the before run's); then what is kept must
+   beat the before run the same way, else no effect is kept and ``tuned.yaml`` is CONFIG
+   unchanged (the report says which were dropped and why);
 5. on the simulated driver, **floor**: CONFIG with the plant's effects switched off
    (:func:`motorctl.app.tune.effect_free`, same seed), ``DIR/floor.yaml`` and ``DIR/floor.mclog``;
 6. **compare** (:func:`motorctl.app.compare.compare_logs`, what ``motorctl compare-runs`` computes):
@@ -71,6 +72,8 @@ def text_report(res: dict) -> str:
         lines.append(f"effect found: {e['name']}: {pars}; {tag}")
     if "tuned" in res["files"]:
         lines.append(f"tuned config: {res['files']['tuned']}")
+    if res.get("theta_hat0") and res["kept"]:
+        lines.append(f"theta_hat0: {res['theta_hat0']}")
     if res["stopped"]:
         lines.append(f"stopped: {res['stopped']}")
     if res["verdict"]:

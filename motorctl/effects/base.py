@@ -213,6 +213,12 @@ class SearchContext(Protocol):
         """Held-out residual RMS [V] of the nominal model plus ``terms`` (the identifier's
         folds: what the decision rule compares)."""
 
+    def evaluate(self, terms: list) -> Any:
+        """The joint LS fit of the nominal model plus ``terms``: ``.fit.coef``, ``.fit.std``
+        (nominal θ first, then each term's β), ``.heldout_rms``."""
+
+    n_theta: int
+
     def delay_sses(self, base: list, grid) -> np.ndarray:
         """Joint-LS SSE (K,) with the input shifted by ``grid`` (K,) extra samples."""
 
@@ -272,6 +278,11 @@ class EffectFamily:
     #: both hold the carriage at small input): when one of them is selected and the other
     #: explains nearly as much, the report says the record cannot tell them apart
     look_alike: ClassVar[tuple[str, ...]] = ()
+    #: a family whose model is this one's special case (a straight line is a friction shape
+    #: with one segment): after the selection, a selected effect of this family is replaced by
+    #: the simpler one when that leaves a held-out residual less than the identifier's
+    #: held-out gain above (None: no such family)
+    simpler: ClassVar[str | None] = None
 
     def __repr__(self) -> str:
         return f"<effect family {self.name}>"

@@ -70,6 +70,10 @@ MAX_FORCE_SHARE = 0.5
 #: shortest position range [m] a shape is looked for over
 MIN_RANGE_M = 0.01
 DEGREE = 3
+#: share of the viscous column ẋ the shape's columns must explain (R² over the moving samples)
+#: for the record to be taken as unable to tell a friction shape from viscous friction
+#: (:func:`viscous_span`)
+VISCOUS_R2 = 0.9
 
 
 # ---------------------------------------------------------------------------- YAML
@@ -139,26 +143,40 @@ class KnotGrid(float):
     """
 
     def __new__(cls, start_m: float, end_m: float, segments: int, drop_linear: bool = False,
-                force: bool = False):
+                force: bool = False, span=None):
         start_m, end_m, segments = float(start_m), float(end_m), int(segments)
         if not end_m > start_m or segments < 1:
             raise ValueError(f"knot grid {start_m:g}..{end_m:g} m with {segments} segments")
         obj = super().__new__(cls, (end_m - start_m) / segments)
         obj.start_m, obj.end_m, obj.segments = start_m, end_m, segments
         obj.drop_linear, obj.force = bool(drop_linear), bool(force)
+        #: None, or the (k, k − 1) map Q (a tuple of rows) from the fitted β to the free
+        #: B-splines' coefficients: the shape is fitted without the direction viscous friction
+        #: takes on this record (:func:`viscous_span`)
+        obj.span = None if span is None else tuple(tuple(float(v) for v in row) for row in span)
         return obj
 
     def __reduce__(self):
-        return KnotGrid, (self.start_m, self.end_m, self.segments, self.drop_linear, self.force)
+        return KnotGrid, (self.start_m, self.end_m, self.segments, self.drop_linear, self.force, self.span)
 
     def __repr__(self) -> str:
-        flags = (", drop_linear" if self.drop_linear else "") + (", force" if self.force else "")
+        flags = ((", drop_linear" if self.drop_linear else "") + (", force" if self.force else "")
+                 + (", without the viscous direction" if self.span is not None else ""))
         return f"KnotGrid({self.start_m:.6g}, {self.end_m:.6g}, {self.segments}{flags})"
 
     def as_force(self) -> KnotGrid:
         """The same basis as a direction-independent force f(x) (columns B_j(x), no S_f(ẋ)):
         the alternative :meth:`PositionFrictionShapeFamily.plausible` compares with."""
-        return KnotGrid(self.start_m, self.end_m, self.segments, self.drop_linear, force=True)
+        return KnotGrid(self.start_m, self.end_m, self.segments, self.drop_linear, force=True, span=self.span)
+
+    def with_span(self, span) -> KnotGrid:
+        """The same grid with the coefficient map ``span`` (k, k − 1) (None: all directions)."""
+        return KnotGrid(self.start_m, self.end_m, self.segments, self.drop_linear, self.force, span)
+
+    @property
+    def n_columns(self) -> int:
+        """Number of regressor columns (fitted β)."""
+        return len(self.free()) - (0 if self.span is None else 1)
 
     @property
     def knots(self) -> np.ndarray:
@@ -186,8 +204,49 @@ class KnotGrid(float):
         """All K spline coefficients c_j from the fitted column coefficients β (k,)
         (0 for the B-splines left out)."""
         c = np.zeros(self.n_basis)
-        c[self.free()] = beta
+        b = np.asarray(beta, dtype=float)
+        c[self.free()] = b if self.span is None else np.asarray(self.span) @ b
         return c
+
+
+def viscous_span(h: KnotGrid, p, moving) -> np.ndarray | None:
+    """The coefficient map (k, k − 1) that leaves out of the shape the direction viscous
+    friction takes on this record, or None when the record separates the two.
+
+    On a program that passes each position at the same speed in each direction, the speed is
+    a function of position, |ẋ| = s(x), so B ẋ = B s(x) S_f(ẋ) is a friction shape too: the
+    viscous column is (nearly) in the span of the shape's columns [S_f(ẋ), B_j(x) S_f(ẋ)] and a
+    joint fit can trade B against g(x) = −B s(x) (a negative θ2 or a Coulomb level that turns
+    negative at the ends). When the shape's columns explain at least :data:`VISCOUS_R2` of the
+    viscous column over the moving samples (R², least squares), the direction a they do it
+    with is left out: the shape is fitted on the β with (C̃ a)ᵀ(C̃ β) = 0 (C̃ the shape's
+    columns less their projection on θ3's S_f(ẋ)), so the part of the record viscous friction
+    explains stays θ2's (the nominal model's).
+
+    Args:
+        h: the knot grid (its ``span`` is ignored). p: the prepared record (decimated x_d, v_d
+            (M,) [m, m/s]). moving: bool (M,), the samples in motion.
+    Returns:
+        Q (k, k − 1) with orthonormal columns, k = len(h.free()), or None.
+    """
+    from scipy.linalg import null_space
+    mv = np.asarray(moving, dtype=bool)
+    if mv.sum() < 4 * (len(h.free()) + 1):
+        return None
+    v = p.v_d[mv]
+    sf = s_f(v)
+    c = h.basis(p.x_d[mv])[:, h.free()] * sf[:, None]
+    a_full = np.column_stack([sf, c])
+    coef = np.linalg.lstsq(a_full, v, rcond=None)[0]
+    r = v - a_full @ coef
+    if 1.0 - float(r @ r) / float(v @ v) < VISCOUS_R2:
+        return None
+    # θ3's column S_f(ẋ) is in every model: the direction is taken on the columns without it
+    ct = c - np.outer(sf, (sf @ c) / float(sf @ sf))
+    w = ct.T @ (ct @ coef[1:])
+    if not np.any(w):
+        return None
+    return null_space(w[None, :])
 
 
 def knot_grid(start_m: float, end_m: float, segments: int) -> KnotGrid:
@@ -287,6 +346,7 @@ class PositionFrictionShapeFamily(EffectFamily):
         "bumps": [{"center_m": 0.25, "width_m": 0.16, "amplitude_N": 15.0}]}}
     comp_options = PositionFrictionShapeComp
     comp_needs_sf = True
+    simpler = LINEAR.name
 
     # simulator
     def plant_term(self, o: PositionFrictionShape, period_s):
@@ -308,6 +368,8 @@ class PositionFrictionShapeFamily(EffectFamily):
         if not isinstance(h, KnotGrid):
             raise TypeError(f"{self.name}: the searched parameter must be a KnotGrid, not {h!r}")
         b = h.basis(p.x)[:, h.free()]
+        if h.span is not None:
+            b = b @ np.asarray(h.span)
         return b if h.force else b * s_f(p.v)[:, None]
 
     def search(self, ctx, base, residual):
@@ -332,18 +394,37 @@ class PositionFrictionShapeFamily(EffectFamily):
             gain = 1.0 - ctx.heldout_rms(base + [first]) / linear_rms
             return first, (f"no shape beyond a linear slope: {first.h.segments} segment(s) lower the held-out "
                            f"residual of {LINEAR.name} by {100 * gain:.1f} % (< {100 * TERM_GAIN:g} %)")
+        if self._traded(ctx, kept, base):
+            span = viscous_span(kept.h, ctx.p, ctx.moving)
+            if span is not None:
+                kept = ctx.term(self.name, kept.h.with_span(span))
         return kept, None
+
+    def _traded(self, ctx, term, base) -> bool:
+        """True when the joint fit with ``term`` is not physical in the way a shape traded
+        against viscous friction is (θ2 significantly negative, or the Coulomb level θ3 + g(x)
+        negative over the moving range): then :func:`viscous_span` decides the split."""
+        ev = ctx.evaluate(base + [term])
+        nt = ctx.n_theta
+        th, sd = ev.fit.coef[:nt], ev.fit.std[:nt]
+        k = term.cols.shape[1]
+        beta = ev.fit.coef[-k:]
+        return bool(th[1] < -3 * sd[1] or self._coulomb_min(ctx, term.h, beta, th) < 0)
+
+    @staticmethod
+    def _coulomb_min(ctx, h, beta, theta) -> float:
+        """The least Coulomb level θ3 + g(x) over the positions the axis moved through."""
+        xm = ctx.p.x_d[ctx.moving]
+        lo, hi = (np.percentile(xm, [1.0, 99.0]) if xm.size else (h.start_m, h.end_m))
+        xs = np.linspace(max(lo, h.start_m), min(hi, h.end_m), SHAPE_POINTS)
+        return float(theta[2] + (h.basis(xs) @ h.coefficients(beta)).min())
 
     def plausible(self, ctx, term, beta, theta, base):
         reasons = []
         h = term.h
         # over the positions the axis moved through (1st..99th percentile): where it only rests
         # or turns round, friction is not seen and the spline is not held by data
-        xm = ctx.p.x_d[ctx.moving]
-        lo, hi = (np.percentile(xm, [1.0, 99.0]) if xm.size else (h.start_m, h.end_m))
-        xs = np.linspace(max(lo, h.start_m), min(hi, h.end_m), SHAPE_POINTS)
-        g = h.basis(xs) @ h.coefficients(beta)
-        if theta[2] + g.min() < 0:
+        if self._coulomb_min(ctx, h, beta, theta) < 0:
             reasons.append("Coulomb level would turn negative over the stroke")
         # friction changes sign with the direction of motion: the same basis as a force f(x) that
         # does not (a spring, cogging, a magnet) must explain clearly less

@@ -165,22 +165,36 @@ class LSFit:
 
 
 def ls(phi: np.ndarray, target: np.ndarray) -> LSFit:
-    """θ̂ = argmin ‖target − Φθ‖ (numpy.linalg.lstsq); std from σ̂²(ΦᵀΦ)⁻¹ (EMPS eq. 10).
+    """θ̂ = argmin ‖target − Φθ‖ by the normal equations of the column-scaled Φ (Cholesky-free
+    ``numpy.linalg.solve`` of a k×k system; :func:`numpy.linalg.lstsq` when that is singular);
+    std from σ̂²(ΦᵀΦ)⁻¹ (EMPS eq. 10); the 2-norm condition number of Φ from the eigenvalues of
+    ΦᵀΦ (cond(Φ) = √(λmax/λmin), as ``numpy.linalg.cond``). The k×k route keeps LAPACK's
+    threaded SVD of the (M, k) matrix out of the selection's many fits.
 
     Args:
         phi: (M, p). target: (M,).
     """
-    coef, _, _, sv = np.linalg.lstsq(phi, target, rcond=None)
-    r = target - phi @ coef
     m, k = phi.shape
-    s2 = float(r @ r) / max(m - k, 1)
+    sc = np.sqrt(np.einsum("ij,ij->j", phi, phi))
+    sc[sc == 0] = 1.0
+    a = phi / sc
+    g = a.T @ a
     try:
-        cov = s2 * np.linalg.inv(phi.T @ phi)
-        std = np.sqrt(np.abs(np.diag(cov)))
+        gi = np.linalg.inv(g)
+        coef = (gi @ (a.T @ target)) / sc
+        if not np.all(np.isfinite(coef)):
+            raise np.linalg.LinAlgError("not finite")
     except np.linalg.LinAlgError:
+        coef = np.linalg.lstsq(phi, target, rcond=None)[0]
+        gi = None
+    r = target - phi @ coef
+    s2 = float(r @ r) / max(m - k, 1)
+    if gi is not None:
+        std = np.sqrt(np.abs(s2 * np.diag(gi))) / sc
+    else:
         std = np.full(k, np.inf)
-    # the 2-norm condition number from the singular values lstsq computed (as numpy.linalg.cond)
-    cond = float(sv[0] / sv[-1]) if sv.size and sv[-1] > 0 else float("inf")
+    lam = np.linalg.eigvalsh(phi.T @ phi)
+    cond = float(np.sqrt(lam[-1] / lam[0])) if lam.size and lam[0] > 0 else float("inf")
     return LSFit(coef=coef, std=std, residual=r, cond=cond)
 
 

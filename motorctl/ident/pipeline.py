@@ -332,13 +332,15 @@ def text_report(s: dict) -> str:
 
 # ---------------------------------------------------------------------------- fit and write
 def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
-                    zoh_delay: float | None = None) -> tuple[Identifier, dict]:
+                    zoh_delay: float | None = None, after_fit=None) -> tuple[Identifier, dict]:
     """Fit the model to a loaded record, trace the residual to effects, and summarise.
 
     Args:
         rec: a record of :func:`motorctl.ident.data.load_record`. n_theta: 4, 6 or None (chosen
             from the input range). friction: 'sf' or 'sign'. zoh_delay: input delay of the
             logged input [samples] (None: 0.5 for run logs, detected for CSV/MAT).
+        after_fit: called with the identifier once the fit is checked, before the summary
+            (e.g. to start the closed-loop runs meanwhile); None: nothing.
     Returns:
         (the identifier after its run, the summary of :func:`summarise`; no validation or
         closed loop yet).
@@ -363,6 +365,8 @@ def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
     # θ1 is judged on the model the user gets: with the found effects (a strong spring makes the
     # nominal fit's θ1 negative while the augmented one is right)
     check_physical(rec, max(idf.nominal.fit.coef[0], idf.final.fit.coef[0]), None)
+    if after_fit is not None:
+        after_fit(idf)
     with quiet():
         s = summarise(idf)
     check_physical(rec, max(s["nominal"]["theta"][0], s["augmented"]["theta"][0]),

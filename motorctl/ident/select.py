@@ -496,6 +496,8 @@ class Identifier:
             if not dropped:
                 break
             eliminated += dropped
+        base, accepted, current, replaced = self._simplify(base, accepted, current)
+        eliminated += replaced
         if pool:
             pool.shutdown()
         self.eliminated = eliminated
@@ -531,6 +533,34 @@ class Identifier:
             accepted = accepted[:i] + accepted[i + 1:]
             current = self.evaluate(base) if base else self.evaluate([])
         return base, accepted, current, dropped
+
+    def _simplify(self, base: list, accepted: list, current: Evaluated):
+        """A selected effect whose family has a simpler special case
+        (:attr:`~motorctl.effects.base.EffectFamily.simpler`, e.g. a friction shape whose
+        special case is the linear slope) is replaced by it when, in the final model, the
+        simpler one is plausible and leaves a held-out residual less than
+        :data:`MIN_HELDOUT_GAIN` above (the shape was taken at a step where other effects were
+        not yet modelled). Returns (terms, accepted, final, [(family, why)] replaced)."""
+        replaced = []
+        for i, t in enumerate(list(base)):
+            alt = effect_family(t.family).simpler
+            if alt is None or alt not in self.families or any(b.family == alt for b in base):
+                continue
+            others = base[:i] + base[i + 1:]
+            ev = self.search(alt, others, self.evaluate(others).fit.residual)
+            if ev is None:
+                continue
+            ev = self.judge(ev, self.evaluate(others), others)
+            if not ev.ok or current.heldout_rms <= (1.0 - MIN_HELDOUT_GAIN) * ev.heldout_rms:
+                continue                    # the shape beats the straight line: kept
+            swapped = others[:i] + [ev.term] + others[i:]
+            final = self.evaluate(swapped)
+            replaced.append((t.family, f"replaced by its simpler case {alt}, which does as well in the final model "
+                                       f"(held-out RMS {_force(final.heldout_rms, self.rec.gain)} against "
+                                       f"{_force(current.heldout_rms, self.rec.gain)})"))
+            base, current = swapped, final
+            accepted = accepted[:i] + [(ev, accepted[i][1])] + accepted[i + 1:]
+        return base, accepted, current, replaced
 
     def _look_ahead(self, best: Evaluated, good: list, cands: list, base: list) -> Evaluated:
         """``best``, or a look-alike rival that explains nearly as much (within
