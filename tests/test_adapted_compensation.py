@@ -1,4 +1,4 @@
-"""Adapted compensation (issue 11, item 4.1): an identified effect's linear coefficients β join θ̂.
+"""Adapted compensation (motorctl/effects/compensation.py): an identified effect's linear coefficients β join θ̂.
 
 With ``adapt: true`` on a ``controller.compensation.<family>`` entry, the effect's basis columns
 c(x, ẋ, t) are appended to the estimator's regressor (filtered by H_f, on the measured signals)

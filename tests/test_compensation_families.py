@@ -1,4 +1,4 @@
-"""Compensation of the families that are not an additive force (issue 11, items 4.2-4.4).
+"""Compensation of the families that are not an additive force (motorctl/effects/compensation.py).
 
 * force ripple, F = F_m(u)(1 + r(x)): the law divides v by 1 + r̂(x_d) before the inversion
   (eq. 9), the estimator's thrust channels are scaled by 1 + r̂(x);

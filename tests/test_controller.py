@@ -60,7 +60,7 @@ def test_step_allocates_nothing():
 
 def test_theory_mode_gain():
     ks1 = theory_k_s1(X_PARAMS["theta_min"], X_PARAMS["theta_max"], 250.0, 10.0)
-    # the bound is large because g reaches 1800/pi at zero velocity (spec §3.3)
+    # the bound is large because g reaches 1800/pi at zero velocity (S_f's slope, docs/control-law.md; theory mode, eq. 14-15)
     assert ks1 > 1000
     c = DCDIARC(_section(mode="theory", theory={"k_s1": 300.0}), TS, "c2")
     c.reset(0.0)
@@ -101,7 +101,7 @@ def test_theta_hat_converges_to_the_simulated_truth(converged_run):
     truth = np.array(truth)
     rel = np.abs(ctrl.theta_hat[:4] - truth[:4]) / np.abs(truth[:4])
     assert np.all(rel < 0.10), (ctrl.theta_hat, truth, rel)
-    # the combined cubic term at 9 V is identified (spec §7 caveat on theta5/theta6)
+    # the combined cubic term at 9 V is identified (theta5 and theta6 alone are nearly collinear)
     assert float(f_u(9.0, *ctrl.theta_hat[4:])) == pytest.approx(float(f_u(9.0, *truth[4:])), rel=0.05)
 
 

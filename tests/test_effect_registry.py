@@ -1,4 +1,4 @@
-"""The effect-family registry is the one place a family is declared (issue "One house").
+"""The effect-family registry is the one place a family is declared (docs/architecture.md).
 
 The simulator's ``effects`` schema and plant, ``motorctl identify``'s candidates, searches and
 checks, the controller's ``compensation`` schema and term, and the report all find a family

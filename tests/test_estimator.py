@@ -100,7 +100,7 @@ def test_estimator_converges_and_gamma_stays_spd():
     assert np.all(est.theta_hat >= TMIN) and np.all(est.theta_hat <= TMAX)
     rel = np.abs(est.theta_hat[:4] - theta[:4]) / np.abs(theta[:4])
     assert np.all(rel < 0.05), (est.theta_hat, rel)
-    # the cubic terms are correlated (spec §7 caveat): judge the fitted curve at 10 V
+    # the cubic terms are correlated (θ5 and θ6 are nearly collinear at these inputs): judge the fitted curve at 10 V
     assert float(f_u(10.0, *est.theta_hat[4:])) == pytest.approx(float(f_u(10.0, *theta[4:])), rel=0.02)
 
 

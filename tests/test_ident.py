@@ -1,4 +1,4 @@
-"""``motorctl identify`` (issue 5): synthetic logs with ONE undeclared effect each, clean logs,
+"""``motorctl identify`` (docs/identification.md): synthetic logs with ONE undeclared effect each, clean logs,
 the EMPS measured data, the closed-loop before/after and bad input.
 
 Logs come from the simulated gantry (configs/gantry.yaml, one axis, C2, virtual clock), generated

@@ -33,7 +33,7 @@ def test_agrees_with_brentq_and_inverts(t5, t6):
 
 
 def test_spec_check_value():
-    # spec §3.4: v = 6.49 V with the X corner values gives u = 9.9065 V; f(10) = 6.5 V
+    # eq. 9: v = 6.49 V with the X corner values gives u = 9.9065 V; f(10) = 6.5 V
     assert invert_cubic(6.49, -0.015, -0.002, U_M) == pytest.approx(9.9065, abs=1e-4)
     assert float(f_u(10.0, -0.015, -0.002)) == pytest.approx(6.5)
 
@@ -57,7 +57,7 @@ def test_quadratic_branch_and_saturation():
 
 
 def test_theta6_to_zero_is_continuous():
-    # the Cardano pitfall of spec §3.4: no accuracy loss as theta6 -> 0
+    # the Cardano pitfall (docs/control-law.md, The DCDIARC law): no accuracy loss as theta6 -> 0
     base = invert_cubic(4.0, -0.013, 0.0, U_M)
     for t6 in (1e-6, 1e-9, 1e-12, -1e-12, -1e-9):
         u = invert_cubic(4.0, -0.013, t6, U_M)

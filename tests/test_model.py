@@ -11,15 +11,15 @@ def test_s_f_shape_function():
     assert np.all(np.abs(y) < 1)
     np.testing.assert_allclose(s_f(-x), -y)
     assert s_f_slope(0.0) == pytest.approx(1800 / np.pi)
-    # |S_f| = 0.9 at about 7 mm/s (spec §1.3)
+    # |S_f| = 0.9 at about 7 mm/s (S_f = (2/π) arctan(900 x), docs/control-law.md)
     assert s_f(0.007) == pytest.approx(0.9, abs=0.01)
     assert s_f_scalar(0.003) == pytest.approx(float(s_f(0.003)))
 
 
 def test_assumption2_margin_of_the_paper_bounds():
-    # X bounds at u_M = 10 V: 1 - 0.3 - 0.6 = 0.1 (spec §1.2)
+    # X bounds at u_M = 10 V: 1 - 0.3 - 0.6 = 0.1 (Assumption 2 on the θ box, eq. 9; configs/gantry.yaml)
     assert assumption2_margin((-0.015, 0.0), (-0.002, 0.0), 10.0) == pytest.approx(0.1)
-    # Y bounds of spec §7: 1 - 0.6 - 0.3 = 0.1
+    # Y bounds of configs/gantry.yaml: 1 - 0.6 - 0.3 = 0.1
     assert assumption2_margin((-0.03, 0.0), (-0.001, 0.0), 10.0) == pytest.approx(0.1)
     # a box that is not monotonic at 10 V
     assert assumption2_margin((-0.03, 0.0), (-0.003, 0.0), 10.0) < 0

@@ -1,5 +1,5 @@
 """Behaviours that used to depend on which of two places built the loop, on hand-counted record
-offsets, or on two limits nobody compared (issue "One house"). Each test fails on the layout
+offsets, or on two limits nobody compared (docs/architecture.md). Each test fails on the layout
 before it."""
 
 from __future__ import annotations

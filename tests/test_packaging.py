@@ -1,5 +1,5 @@
 """What ships: the production drivers carry no emulator or test code, and the emulated devices are
-found through their own entry-point group (issue "One house").
+found through their own entry-point group (docs/architecture.md).
 
 The wheel is built from a copy of the sources (``pip wheel --no-deps``; pip builds in the source
 tree, so building the working tree itself would leave build/ and egg-info behind in it)."""

@@ -1,4 +1,4 @@
-"""The ``position_friction_shape`` effect family (issue 11, item 6): friction that varies with
+"""The ``position_friction_shape`` effect family (docs/identification.md): friction that varies with
 position in any smooth shape, F_eff = −g(x) S_f(ẋ), g a cubic B-spline whose segment count is
 chosen by the identifier's held-out rule.
 

@@ -31,7 +31,7 @@ def test_limits_hold_and_end_points_are_exact(d, v, a, j):
 
 
 def test_paper_programs_move_times():
-    # spec §7: X move 0.26 s at 2 m/s, 40 m/s^2, 4000 m/s^3. In general the move lasts
+    # configs/gantry.yaml: X move 0.26 s at 2 m/s, 40 m/s^2, 4000 m/s^3. In general the move lasts
     # 2 (v/a + a/j) + (D - v (v/a + a/j)) / v when it reaches v and a:
     def expected(d, v, a, j):
         ramp = v / a + a / j
