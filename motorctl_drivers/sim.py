@@ -286,7 +286,7 @@ def _plant_measured(s, p):
 
 @njit
 def _sim_read(pos, read_error, amp_fault, bitten, S, P, inj, jump):
-    """:meth:`SimDriver.read` of every axis (all plants compiled): injected read errors, NaN
+    """:meth:`SimDriver.read` of every axis: injected read errors, NaN
     readings and amplifier faults, else the encoder reading plus an injected jump [m]."""
     for i in range(pos.shape[0]):
         if inj[i, INJ_READ] > 0:
@@ -415,9 +415,9 @@ class AxisPlant:
         self._dl = np.zeros(n_dl)                              # the current loop's delay line
         self._nz = np.zeros(NOISE_BLOCK)
         self._s[PS_NZI] = NOISE_BLOCK                          # drawn at the first step
-        if self._compiled:                                     # compile (or load the cache) now
+        _plant_measured(self._s, self._p)                      # compile (or load the cache) now
+        if self._compiled:
             _plant_step(0.0, self._s.copy(), self._p, self._dl.copy(), np.zeros(NOISE_BLOCK))
-            _plant_measured(self._s, self._p)
 
     def _acc(self, x: float, v: float, t: float, u: float) -> float:
         """ẍ [m/s²] at position x [m], velocity v [m/s], plant time t [s] under input u [V]:
@@ -568,13 +568,7 @@ class AxisPlant:
 
     def measured(self) -> float:
         """Encoder reading [m]: x quantised to the resolution q (docs/control-law.md, Measurement)."""
-        if self._compiled:
-            return _plant_measured(self._s, self._p)
-        q = self.q
-        if self.enc_amp > 0.0 or self.enc_sigma > 0.0:
-            x = self.x + self.enc_amp * math.sin(self.enc_k * self.x) + self.enc_noise
-            return q * round(x / q)
-        return q * round(self.x / q)
+        return _plant_measured(self._s, self._p)
 
 
 class SimDriver(Driver):
@@ -605,11 +599,12 @@ class SimDriver(Driver):
             p.rehome(self._S[i], self._P[i], self._DL[i, :p._dl.size], self._NZ[i])
             if p._compiled:             # (a plant with hooks draws one at a time, in Python)
                 p.refill_noise()
-        if self._compiled:              # compile (or load the cache) now, on copies
-            _sim_read(self.position_m.copy(), self.read_error.copy(), self.amp_fault.copy(), False, self._S.copy(),
-                      self._P, self._inject.copy(), self._jump_m)
+        # compile (or load the cache) now, on copies
+        _sim_read(self.position_m.copy(), self.read_error.copy(), self.amp_fault.copy(), False, self._S.copy(),
+                  self._P, self._inject.copy(), self._jump_m)
+        if self._compiled:
             _sim_write(np.zeros(n), np.zeros(n, dtype=bool), self.amp_fault.copy(), False, self.amp_enabled.copy(),
-                       self.applied_u.copy() if hasattr(self, "applied_u") else np.zeros(n), self._S.copy(), self._P,
+                       np.zeros(n), self._S.copy(), self._P,
                        self._DL.copy(), self._NZ.copy(), self._inject.copy(), self._push_N)
         self.applied_u = np.zeros(len(self.plants))   # voltage at the amplifier output [V]
         self.watchdog_ns = int(options.watchdog_s * 1e9)
@@ -646,28 +641,7 @@ class SimDriver(Driver):
             self._watchdog()
         bitten = self._bite_pending
         self._bite_pending = False
-        if self._compiled:
-            _sim_read(pos, self.read_error, self.amp_fault, bitten, self._S, self._P, self._inject, self._jump_m)
-            return
-        for i, plant in enumerate(self.plants):
-            inj = self._inject[i]
-            if inj[0] > 0:
-                inj[0] -= 1
-                self.read_error[i] = True
-                if bitten:
-                    self.amp_fault[i] = True
-                continue
-            self.read_error[i] = False
-            if inj[1] > 0:
-                inj[1] -= 1
-                pos[i] = math.nan
-                if bitten:
-                    self.amp_fault[i] = True
-                continue
-            pos[i] = plant.measured() + self._jump_m[i]
-            self.amp_fault[i] = inj[2] > 0 or bitten
-            if inj[2] > 0:
-                inj[2] -= 1
+        _sim_read(pos, self.read_error, self.amp_fault, bitten, self._S, self._P, self._inject, self._jump_m)
 
     def write(self, u_V: np.ndarray, enable: np.ndarray) -> None:
         # a command that arrives after the watchdog expired finds the amplifier already off
