@@ -296,16 +296,14 @@ def dcdiarc_block_reset(y0, F, L):
 
 
 def _pack(fields, dtype) -> tuple[np.ndarray, list[int]]:
-    """Copy each ``(owner, attribute)`` array into one contiguous buffer of ``dtype`` and rebind
-    the attribute to its view (same shape, same values); returns (buffer, offsets)."""
+    """Copy each ``(owner, attribute)`` array into one contiguous buffer of ``dtype``; returns
+    (buffer, the offset of each)."""
     arrays = [getattr(o, a) for o, a in fields]
     buf = np.zeros(sum(a.size for a in arrays), dtype=dtype)
     offs = []
     at = 0
-    for (owner, attr), a in zip(fields, arrays):
-        view = buf[at:at + a.size].reshape(a.shape)
-        view[...] = a
-        setattr(owner, attr, view)
+    for a in arrays:
+        buf[at:at + a.size] = a.reshape(-1)
         offs.append(at)
         at += a.size
     return buf, offs
@@ -465,6 +463,7 @@ class DCDIARC(Controller):
         self._I, i_off = _pack(ints, np.int64)
         self._L = np.array([est.n, self.n_beta, self._ring.shape[1], *f_off, *i_off], dtype=np.int64)
         assert self._L.shape == (N_LAYOUT,)
+        self._sizes = (self._F.size, self._I.size)
         self._views()
         if self._rows is not None:
             self.attach(*self._rows)
@@ -490,13 +489,14 @@ class DCDIARC(Controller):
         return LAW_DCDIARC if self.compensation is None else LAW_PY
 
     def state_size(self) -> tuple[int, int]:
-        return self._L_size(0), self._L_size(1)
+        return self._sizes
 
     def attach(self, sig, f, ii, lay) -> None:
         """The block and the signals into the cycle's rows (:meth:`Controller.attach`)."""
+        nf, ni = self._sizes
         sig[:] = self.signals
-        f[:self._F.size] = self._F
-        ii[:self._I.size] = self._I
+        f[:nf] = self._F[:nf]
+        ii[:ni] = self._I[:ni]
         lay[:] = self._L
         self.signals = sig
         self._F, self._I = f, ii
@@ -509,13 +509,9 @@ class DCDIARC(Controller):
             return
         self._rows = None
         self.signals = self.signals.copy()
-        self._F, self._I = self._F[:self._L_size(0)].copy(), self._I[:self._L_size(1)].copy()
+        nf, ni = self._sizes
+        self._F, self._I = self._F[:nf].copy(), self._I[:ni].copy()
         self._views()
-
-    def _L_size(self, which: int) -> int:
-        floats, ints = self._fields()
-        fields = floats if which == 0 else ints
-        return sum(getattr(o, a).size for o, a in fields)
 
     def reset(self, y0: float, keep_theta: bool = True) -> None:
         """Start (or restart) from the measured position y0 [m] with u = 0 and d̂0 = 0.
