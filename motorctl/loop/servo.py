@@ -100,8 +100,8 @@ class ServoLoop:
         operated: True for the daemon: every axis starts IDLE and is enabled by
             :meth:`start_axis`; a fault also drops the operator's request. False (``run``):
             every axis follows its program from the first cycle.
-    Attributes (views of the cycle's state, indexed by axis): mode, enabled, k_start,
-        stop_req, u_last; controllers, programs (lists); k (executed cycles), overruns.
+    Attributes (views of the cycle's state, indexed by axis): mode, enabled, stop_req;
+        controllers, programs (lists); k (executed cycles), overruns.
     Raises:
         ValueError: a wrong clock or policy, one controller or program too few or many, a
             buffer of the wrong shape.
@@ -146,19 +146,16 @@ class ServoLoop:
         self.overrun_hold = int(overrun_hold)
         self.overrun_ramp = timebase.cycles(overrun_ramp_s, minimum=1)
         self.stop_settle = timebase.cycles(stop_settle_s)
-        self.disable_on_fault = bool(operated)
         self.blend_cycles = timebase.cycles(SWITCH_BLEND_S, minimum=1)
         self.u_out = np.zeros(n)
         self.enable_out = np.zeros(n, dtype=bool)
         # the cycle's state (motorctl.loop.cycle), and views of it by name
         self.ax, self.axf = C.new_state(n)
-        ax, axf = self.ax, self.axf
+        ax = self.ax
         self.mode = ax[:, C.A_MODE]            # sequencing state per axis (module docstring)
         self.enabled = ax[:, C.A_ENABLED]      # operator's request per axis
-        self.k_start = ax[:, C.A_KST]          # cycle at which the current segment's time is zero
         self.stop_req = ax[:, C.A_STOPREQ]
         self._running = ax[:, C.A_RUNNING]     # controller was driving last cycle
-        self.u_last = axf[:, C.X_ULAST]        # last output written [V]
         width = max(p.table.size for p in self.programs)
         self._prog = np.zeros((n, width))
         for i, p in enumerate(self.programs):
