@@ -153,8 +153,10 @@ def test_a_refused_transition_names_the_al_status_code(tmp_path):
 
 KICKCAT_MASTER = """
 import kickcat
-bus = kickcat.Bus(kickcat.create_link("{ifname}", ""))
-bus.init(0.5)
+link = kickcat.create_link("{ifname}", "")
+link.set_timeout(0.1)      # a frame's answer may wait out a loaded host (100 ms)
+bus = kickcat.Bus(link)
+bus.init(2.0)
 sl = bus.slaves()
 print("slaves", [s.address for s in sl])
 print("device type", bus.read_sdo(sl[0], 0x1000, 0, kickcat.Access.PARTIAL, 4, 0.1).hex())

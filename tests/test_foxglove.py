@@ -48,7 +48,8 @@ async def _one_message_per_channel(url: str, timeout_s: float) -> tuple[dict, di
 def test_foxglove_client_decodes_every_channel(tmp_path):
     port = free_port()
     with running_daemon(tmp_path, extra_daemon={"foxglove": {"listen": f"127.0.0.1:{port}"}}) as d:
-        assert ctl(d.sock, "start", "Y").returncode == 0
+        r = ctl(d.sock, "start", "Y")
+        assert r.returncode == 0, r.stdout + r.stderr
         channels, got = asyncio.run(_one_message_per_channel(f"ws://127.0.0.1:{port}/", 20.0))
     topics = {c["topic"] for c in channels.values()}
     assert topics == {"/motorctl/X", "/motorctl/Y", "/motorctl/loop", "/motorctl/status"}

@@ -459,8 +459,10 @@ def test_registers_written_per_axis_unit_and_the_fc23_probe_falls_back(tmp_path)
 
 def test_a_garbage_reply_is_counted_and_the_tcp_stream_recovers(tmp_path):
     """The server answers one request with junk (an MBAP header announcing 200 bytes, then noise),
-    then normally: it is counted as a bad frame, a few cycles fail, then the stream is clean."""
-    d = map_a(200.0, round_trip_s=0.0006, timeout_s=0.003, wait="spin")
+    then normally: it is counted as a bad frame, a few cycles fail, then the stream is clean.
+    Lockstep with a 50 ms read timeout, so that only the junk fails a read, never a loaded host."""
+    d = map_a(200.0, round_trip_s=0.0006, timeout_s=0.05, wait="spin")
+    d["loop"]["clock"] = "virtual"
     junk_at = 51 + 1 + 10                    # 51 queries + the FC23 probe in configure, then cycle 10
     cfg = _write_config(d, tmp_path / "garbage.yaml")
     loaded = config_from_dict(d, str(cfg), check_budget=False)
