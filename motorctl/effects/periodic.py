@@ -163,16 +163,37 @@ def sin_cos_of(amplitude: float, phase: float) -> tuple[float, float]:
 
 
 # ---------------------------------------------------------------------------- search grids
+#: position bin of the spatial periodogram, as a share of the shortest period searched
+BIN_SHARE = 1.0 / 16.0
+
 def spatial_periodogram(x: np.ndarray, r: np.ndarray, periods: np.ndarray) -> np.ndarray:
     """Least-squares (Lomb-Scargle) periodogram of r against position x (uneven abscissa).
 
+    r is first averaged in position bins of :data:`BIN_SHARE` of the shortest period, and the
+    periodogram is taken over the bin centres weighted by the samples in each bin: a
+    position-locked effect of period P is attenuated by at most sinc(BIN_SHARE) (0.6 %), what
+    is not locked to position averages down, and the cost is the bins' (a few thousand over a
+    stroke), not the samples' (100 000 in a 20 s log at 5 kHz).
+
     Args:
-        x [m], r: shape (M,), samples with the axis moving. periods [m]: shape (K,).
+        x [m], r: shape (M,), samples with the axis moving. periods [m]: shape (K,), > 0.
     Returns:
         Normalised power (K,) (:func:`scipy.signal.lombscargle`, angular frequencies 2π/P).
     """
     from scipy.signal import lombscargle     # identification only: the loop process never loads it
-    return lombscargle(x, r - r.mean(), 2.0 * np.pi / periods, normalize=True)
+    periods = np.asarray(periods, dtype=float)
+    if periods.size == 0 or x.size == 0:
+        return np.zeros(periods.shape)
+    dx = BIN_SHARE * float(periods.min())
+    x0 = float(x.min())
+    idx = ((x - x0) / dx).astype(np.int64)
+    n = np.bincount(idx)
+    s = np.bincount(idx, weights=r - r.mean())
+    full = np.flatnonzero(n)
+    xc = x0 + (full + 0.5) * dx
+    rb = s[full] / n[full]
+    return lombscargle(xc, rb - np.average(rb, weights=n[full]), 2.0 * np.pi / periods,
+                       normalize=True, weights=n[full].astype(float))
 
 
 def peak_periods(x, r, periods, n_peaks=3) -> list:
