@@ -134,7 +134,9 @@ class ServoLoop:
         self.width = self.layout.width
         self.capacity = int(capacity)
         if buffer is None:
-            self.buf = np.zeros((self.capacity, self.width))
+            # written once here (np.full, not calloc's untouched zero pages): the loop's first
+            # store to a row never faults a page in, and mlockall's MCL_ONFAULT keeps it locked
+            self.buf = np.full((self.capacity, self.width), 0.0)
         else:
             if buffer.shape != (self.capacity, self.width) or buffer.dtype != np.float64:
                 raise ValueError(f"buffer must be float64 of shape {(self.capacity, self.width)}")
