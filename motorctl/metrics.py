@@ -1,4 +1,4 @@
-"""Performance indexes of the paper's Tables I-II (docs/control-law.md, Performance indexes) and loop timing statistics.
+"""Performance indexes of the paper's Tables I-II (docs/control-law.md, Performance indexes).
 
 * e_M = max |e| over the evaluated run [0, T_f] (transient performance);
 * e_F = max |e| over the last ``final_window_s`` (final tracking accuracy; one trajectory
@@ -43,23 +43,45 @@ def tracking_indexes(t: np.ndarray, e: np.ndarray, u: np.ndarray, final_window_s
     }
 
 
-def timing_stats(turnaround_ns: np.ndarray, lateness_ns: np.ndarray, overruns: int) -> dict:
-    """Turnaround p50/p99/p99.9/max and lateness p50/p99/max in µs, plus the overrun count."""
-    ta = np.asarray(turnaround_ns, dtype=float) / 1e3
-    la = np.asarray(lateness_ns, dtype=float) / 1e3
-    if ta.size == 0:
-        return {"cycles": 0, "overruns": int(overruns)}
-    return {
-        "cycles": int(ta.size),
-        "turnaround_p50_us": float(np.percentile(ta, 50)),
-        "turnaround_p99_us": float(np.percentile(ta, 99)),
-        "turnaround_p999_us": float(np.percentile(ta, 99.9)),
-        "turnaround_max_us": float(ta.max()),
-        "lateness_p50_us": float(np.percentile(la, 50)),
-        "lateness_p99_us": float(np.percentile(la, 99)),
-        "lateness_max_us": float(la.max()),
-        "overruns": int(overruns),
-    }
+class TrackingAccumulator:
+    """:func:`tracking_indexes` of a run fed in batches, in memory that does not grow with it:
+    running max |e|, Σe² and max |u|, and the samples of the last ``final_window_s`` for e_F.
+
+    Args:
+        final_window_s: the e_F window [s] (≤ 0: the last sample). period_s: sample period [s].
+    :meth:`add` takes t [s], e [m], u [V], each (N,); :meth:`indexes` gives the dict of
+    :func:`tracking_indexes` (the same e_M, e_F and u_peak; L2[e] equal up to rounding).
+    Raises ValueError (``indexes``) when nothing was added.
+    """
+
+    def __init__(self, final_window_s: float, period_s: float):
+        self.window = float(final_window_s)
+        keep = int(np.ceil(self.window / period_s)) + 2 if self.window > 0 else 1
+        self._t = np.empty(0)
+        self._e = np.empty(0)
+        self._keep = keep
+        self.n = 0
+        self.e_max = 0.0
+        self.sum_e2 = 0.0
+        self.u_max = 0.0
+
+    def add(self, t: np.ndarray, e: np.ndarray, u: np.ndarray) -> None:
+        if e.size == 0:
+            return
+        self.n += int(e.size)
+        self.e_max = max(self.e_max, float(np.max(np.abs(e))))
+        self.sum_e2 += float(np.dot(e, e))
+        self.u_max = max(self.u_max, float(np.max(np.abs(u))))
+        self._t = np.concatenate([self._t, t])[-self._keep:]
+        self._e = np.concatenate([self._e, e])[-self._keep:]
+
+    def indexes(self) -> dict:
+        if self.n == 0:
+            raise ValueError("no samples")
+        t, e = self._t, self._e
+        final = e[t >= t[-1] - self.window] if self.window > 0 else e[-1:]
+        return {"e_M_um": self.e_max * 1e6, "e_F_um": float(np.max(np.abs(final)) * 1e6),
+                "L2_um": float(np.sqrt(self.sum_e2 / self.n) * 1e6), "u_peak_V": self.u_max}
 
 
 def settled_mask(t: np.ndarray, period_s: float, settle_periods: int = 1) -> np.ndarray:

@@ -118,8 +118,9 @@ class FixedPdoDrive(Device):
 
 def _config(tmp_path, **driver) -> dict:
     d = load_yaml(CONFIGS / "gantry-canopen.yaml")
-    d["loop"].update(rate_hz=500, clock="virtual")
-    d["driver"].update(interface="virtual", channel=f"fixed-{tmp_path.name}", timeout_s=0.02, sync_cob_id=0x80,
+    d["loop"].update(rate_hz=500, clock="virtual")      # lockstep: a read waits up to 0.2 s for
+    # the drive thread's answer, so a loaded host delays the run but never stales a reading
+    d["driver"].update(interface="virtual", channel=f"fixed-{tmp_path.name}", timeout_s=0.2, sync_cob_id=0x80,
                        round_trip_exchanges=5, **driver)
     for k, a in enumerate(("X", "Y")):
         node = k + 1

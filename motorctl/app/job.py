@@ -1,13 +1,28 @@
 """The main job (``motorctl run``, ``motorctl compare``): build the loop from a config
 (:func:`motorctl.app.build.build`), run it, write the run log, return the indexes.
 
+The loop records into a ring of :data:`RING_S` seconds of rows; the rows leave it while the run
+goes, for the run log (when asked) and for the indexes and timing statistics, which are
+accumulated batch by batch (:class:`motorctl.metrics.TrackingAccumulator`,
+:class:`motorctl.recorder.flight.TimingStats`): the loop process's memory does not grow with
+the run's length. On the wall clock a child process drains the ring (a shared mapping with the
+loop's heartbeat, as the daemon's flight recorder), so the loop process never writes a file; on
+the virtual clock the loop takes the rows itself between cycles, every half ring. The log's
+header is written before the first cycle, with room for what is known only at the end (the
+real-time report, the stop the device confirmed, the signal), which is added last.
+
 SIGTERM and SIGINT end the run at a cycle boundary; every exit path leaves the axes at 0 V with
-the amplifiers disabled, and the rows recorded so far are written to the log.
+the amplifiers disabled, and the rows recorded so far are in the log.
 """
 
 from __future__ import annotations
 
+import json
+import os
+import select
 import signal
+import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,29 +33,148 @@ from motorctl.config import LoadedConfig
 from motorctl.inputs import InputError
 from motorctl.loop.records import RecordLayout
 from motorctl.loop.safety import with_drive_reason
-from motorctl.metrics import timing_stats, tracking_indexes
+from motorctl.metrics import TrackingAccumulator
+from motorctl.recorder.flight import CTL_STATE, SharedRing, TimingStats
+from motorctl.recorder.ordering import load_acquire, store_release
 from motorctl.recorder.runlog import LogWriter
 
 
-#: largest in-memory record of one run [bytes] (the daemon records into a ring instead)
-MAX_RECORD_BYTES = 2 << 30
+#: the record ring of a run [s]: rows leave it for the log and the indexes while the run goes,
+#: so the loop process's memory does not grow with the run's length
+RING_S = 4.0
+#: the drain process's wake on the wall clock [s] (on the virtual clock the loop takes the rows
+#: itself between cycles, every half ring)
+DRAIN_S = 0.02
+#: rows per block of the indexes' sums (:meth:`_Sink._account`)
+BLOCK_ROWS = 1000
+#: header bytes kept free for the facts known at the end (real-time report, stop, signal)
+HEADER_RESERVE = 64 << 10
+#: the drain process gets this long to hand over its figures after the loop ended [s]
+DRAIN_END_S = 60.0
+_ENDED = 3          # ring.ctl[CTL_STATE] when the loop has ended (flight.CTL_STATE's codes)
 
 
-def _check_record_size(loaded: LoadedConfig, axes, duration: float, n_cycles: int) -> None:
-    """A run keeps every row in memory: refuse, before anything starts, a duration whose
-    record does not fit in :data:`MAX_RECORD_BYTES` (or that is shorter than one period)."""
-    names = list(axes) if axes else list(loaded.axes)
-    width = RecordLayout(names).width
-    if n_cycles < 1:
-        raise InputError(f"duration {duration:g} s is shorter than one period "
-                         f"({loaded.period_s:g} s)")
-    if n_cycles * width * 8 > MAX_RECORD_BYTES:
-        fit_s = MAX_RECORD_BYTES // (width * 8) * loaded.period_s
-        raise InputError(f"duration {duration:g} s: {n_cycles} cycles of {width} columns need "
-                         f"{n_cycles * width * 8 / 2**30:.1f} GiB of records; at most "
-                         f"{fit_s:.0f} s fit in {MAX_RECORD_BYTES / 2**30:.0f} GiB at "
-                         f"{1 / loaded.period_s:g} Hz with {len(names)} axes (the daemon "
-                         f"records without a limit)")
+class _Sink:
+    """Takes the rows the loop published out of its ring buffer: appends them to the run log
+    (when there is one) and accumulates the indexes and the timing statistics, batch by batch.
+
+    Args:
+        rows: the ring (capacity, width) float64. layout: its :class:`RecordLayout`.
+        windows: the e_F window per axis [s]. period_s: the loop period [s]. writer: an open
+        :class:`LogWriter` or None.
+    Rows overwritten before they were taken are counted in ``lost`` (never read torn: the
+    publisher's count is read again after the copy).
+    """
+
+    def __init__(self, rows, layout: RecordLayout, names, windows, period_s: float, writer=None):
+        self.rows, self.cap, self.writer = rows, rows.shape[0], writer
+        self.k = 0
+        self.lost = 0
+        self.write_error = ""
+        self._t = layout.cycle("t")
+        self._turn, self._late = layout.cycle("turnaround_ns"), layout.cycle("lateness_ns")
+        self._e = [layout.index(f"{a}.e") for a in names]
+        self._u = [layout.index(f"{a}.u") for a in names]
+        self.acc = [TrackingAccumulator(w, period_s) for w in windows]
+        self.timing = TimingStats()
+        self._pending: list = []
+        self._n_pending = 0
+
+    def take(self, published: int, recheck=None) -> None:
+        start = max(self.k, published - self.cap)
+        if published <= start:
+            return
+        a, b = start % self.cap, published % self.cap
+        rows = self.rows[a:b].copy() if a < b else np.concatenate([self.rows[a:], self.rows[:b]])
+        if recheck is not None:                 # overwritten while we copied
+            torn = recheck() - self.cap - start
+            if torn > 0:
+                rows, start = rows[torn:], start + torn
+        self.lost += start - self.k
+        self.k = published
+        if self.writer is not None and not self.write_error:
+            try:
+                self.writer.append(rows)
+            except OSError as exc:
+                self.write_error = exc.strerror or str(exc)
+        self._pending.append(rows)
+        self._n_pending += rows.shape[0]
+        if self._n_pending >= BLOCK_ROWS:
+            self._account(final=False)
+
+    def _account(self, final: bool) -> None:
+        """The indexes and statistics take the pending rows in blocks of :data:`BLOCK_ROWS`
+        (the rest waits, unless ``final``): the sums are then the same whatever the batches
+        the ring was drained in (the wall and the virtual clock give identical figures)."""
+        rows = np.concatenate(self._pending) if len(self._pending) > 1 else self._pending[0]
+        n = rows.shape[0] if final else rows.shape[0] // BLOCK_ROWS * BLOCK_ROWS
+        for j in range(0, n, BLOCK_ROWS):
+            b = rows[j:min(j + BLOCK_ROWS, n)]
+            t = b[:, self._t]
+            for acc, ce, cu in zip(self.acc, self._e, self._u):
+                acc.add(t, b[:, ce], b[:, cu])
+            self.timing.add(b[:, self._turn], b[:, self._late])
+        self._pending = [rows[n:]]
+        self._n_pending = rows.shape[0] - n
+
+    def summary(self) -> dict:
+        if self._n_pending:
+            self._account(final=True)
+        return {"indexes": [acc.indexes() if acc.n else None for acc in self.acc],
+                "timing": self.timing.summary(), "lost": self.lost,
+                "write_error": self.write_error}
+
+
+def _drain_process(ring: SharedRing, sink: _Sink, wfd: int) -> None:
+    """The child that drains the ring of a wall-clock run (never returns): takes the published
+    rows every :data:`DRAIN_S` until the loop has ended, closes the log (fsync) and writes its
+    summary (JSON) to ``wfd``."""
+    code = 1
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)     # the loop decides when the run ends
+        while True:
+            ended = load_acquire(ring.ctl, CTL_STATE) == _ENDED
+            sink.take(ring.published(), ring.published)
+            if ended:
+                break
+            time.sleep(DRAIN_S)
+        if sink.writer is not None:
+            try:
+                sink.writer.close()
+            except OSError as exc:
+                sink.write_error = sink.write_error or exc.strerror or str(exc)
+        data = json.dumps(sink.summary()).encode()
+        while data:
+            data = data[os.write(wfd, data):]
+        code = 0
+    finally:
+        os._exit(code)
+
+
+def _collect(rfd: int, pid: int) -> dict:
+    """The drain process's summary (after the loop ended); {} when it died or hung."""
+    chunks, end = [], time.monotonic() + DRAIN_END_S
+    try:
+        while time.monotonic() < end:
+            ready, _, _ = select.select([rfd], [], [], max(0.0, end - time.monotonic()))
+            if not ready:
+                break
+            chunk = os.read(rfd, 1 << 20)
+            if not chunk:
+                break
+            chunks.append(chunk)
+    finally:
+        os.close(rfd)
+        try:
+            if os.waitpid(pid, os.WNOHANG) == (0, 0):
+                os.kill(pid, signal.SIGKILL)
+                os.waitpid(pid, 0)
+        except ChildProcessError:
+            pass
+    try:
+        return json.loads(b"".join(chunks))
+    except ValueError:
+        return {}
 
 
 @dataclass
@@ -55,6 +189,7 @@ class JobResult:
     log_path: str | None = None
     stop: list = field(default_factory=list)      # StopCheck per axis: what the device confirmed
     notices: list = field(default_factory=list)   # the driver's set-up notices
+    lost_rows: int = 0                            # rows the ring overwrote before the drain took them
 
     @property
     def stop_confirmed(self) -> bool:
@@ -73,7 +208,8 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
         controller: a controller name (:data:`motorctl.control.CONTROLLER_NAMES`) overriding
             every axis's controller.
         duration_s: run length [s] (default: loop.duration_s). clock: 'wall' | 'virtual'.
-        log_path: where to write the run log (None: no file).
+        log_path: where to write the run log (None: no file; a run that never cycled leaves
+            none).
         realtime_policy: override of loop.realtime.policy ('off' with the virtual clock).
         on_start: called with (axes, n_cycles, clock) once the driver is active, just before
             the first cycle (e.g. to tell the operator the loop runs).
@@ -82,24 +218,57 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
     Raises:
         RealtimeError: ``realtime: required`` refused (before the driver is opened).
         ConfigError: ``controller`` is not configured for an axis.
-        OSError: the driver cannot reach its device.
+        InputError: the duration is shorter than one period.
+        OSError: the driver cannot reach its device; the run log cannot be created (before
+            anything starts) or written (after the run, at 0 V: the rows before the failure
+            stay in the file).
     """
     cfg = loaded.cfg
     duration = float(duration_s if duration_s is not None else cfg.loop.duration_s)
     clock = clock or cfg.loop.clock
     n_cycles = loaded.timebase.cycles(duration)
-    _check_record_size(loaded, axes, duration, n_cycles)
+    if n_cycles < 1:
+        raise InputError(f"duration {duration:g} s is shorter than one period ({loaded.period_s:g} s)")
     policy = realtime_policy or ("off" if clock == "virtual" else cfg.loop.realtime.policy)
-    asm = build(loaded, axes, controller, clock=clock, capacity=max(n_cycles, 1))
+    names = list(axes) if axes else list(loaded.axes)
+    wall = clock == "wall"
+    ring = SharedRing(min(n_cycles, loaded.timebase.cycles(RING_S)), RecordLayout(names).width,
+                      len(names)) if wall else None
+    cap = ring.capacity if wall else min(n_cycles, loaded.timebase.cycles(RING_S))
+    asm = build(loaded, axes, controller, clock=clock, capacity=cap,
+                buffer=ring.rows if wall else None, heartbeat=ring)
     loop, names = asm.loop, asm.names
+    writer = None
+    if log_path:
+        Path(log_path).parent.mkdir(parents=True, exist_ok=True)
+        writer = LogWriter(str(log_path), log_header(asm, realtime="pending"), reserve=HEADER_RESERVE)
+    windows = [p if (p := loaded.axes[a].trajectory.period_s) > 0 else 4.0 for a in names]
+    sink = _Sink(loop.buf, loop.layout, names, windows, loaded.period_s, writer)
     result = JobResult()
     stopped = []
+    drain = None
+    if wall:                   # a child drains the ring; the loop process never writes a file
+        rfd, wfd = os.pipe()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        pid = os.fork()
+        if pid == 0:
+            os.close(rfd)
+            _drain_process(ring, sink, wfd)
+        os.close(wfd)
+        if writer is not None:
+            writer.release()
+        drain = (rfd, pid)
+    else:                      # the virtual clock: between cycles, every half ring
+        every = max(1, cap // 2)
+        loop.on_slack = lambda lp: sink.take(lp.k) if lp.k % every == 0 else None
 
     def on_signal(signum, _frame):
         stopped.append(signal.Signals(signum).name)
         loop.request_stop()
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+    summary: dict = {}
     try:
         report = start(asm, policy)
         result.realtime = report.as_dict()
@@ -119,33 +288,56 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
         for s, h in old.items():
             signal.signal(s, h)
         result.stopped_by_signal = stopped[0] if stopped else ""
-        # what was recorded reaches the log on every exit path, an exception included
-        if log_path and loop.k > 0:
-            header = log_header(asm, realtime=result.realtime,
-                                stopped_by_signal=result.stopped_by_signal,
-                                stop=[{"axis": c.axis, "confirmed": c.confirmed, "held": c.held}
-                                      for c in result.stop],
-                                notices=result.notices)
-            Path(log_path).parent.mkdir(parents=True, exist_ok=True)
-            with LogWriter(log_path, header) as w:
-                w.append(np.ascontiguousarray(loop.rows()))
-            result.log_path = str(log_path)
+        if drain is not None:
+            store_release(ring.ctl, CTL_STATE, _ENDED)
+            summary = _collect(*drain)
+        else:
+            sink.take(loop.k)
+            summary = sink.summary()
+            if writer is not None:
+                try:
+                    writer.close()
+                except OSError as exc:
+                    summary["write_error"] = summary["write_error"] or exc.strerror or str(exc)
+        # the facts known only now go into the header; a run that never cycled leaves no log
+        if log_path:
+            _finish_log(str(log_path), loop.k, asm, result)
+            result.log_path = str(log_path) if loop.k > 0 else None
 
-    rows = loop.rows()
-    lay = loop.layout
-    t = rows[:, lay.cycle("t")]
+    if summary.get("write_error"):
+        raise OSError(f"the run log {log_path}: {summary['write_error']}")
+    if not summary:
+        raise OSError("the run's drain process ended without its figures")
     for i, a in enumerate(names):
-        e = rows[:, lay.index(f"{a}.e")]
-        u = rows[:, lay.index(f"{a}.u")]
-        period = loaded.axes[a].trajectory.period_s
         ctrl = loop.controllers[i]
         entry = {"controller": ctrl.name}
-        if rows.shape[0]:
-            entry.update(tracking_indexes(t, e, u, period if period > 0 else 4.0))
+        if summary["indexes"][i] is not None:
+            entry.update(summary["indexes"][i])
         entry["fault"] = with_drive_reason(asm.supervisor.reason(i), asm.driver.fault_reason(i))
         entry["io_errors"] = int(asm.supervisor.io_errors[i])
         entry["theta_hat"] = ctrl.theta_hat.tolist()
         result.axes[a] = entry
-    result.timing = timing_stats(rows[:, lay.cycle("turnaround_ns")],
-                                 rows[:, lay.cycle("lateness_ns")], loop.overruns)
+    tm = summary["timing"]
+    result.timing = ({"cycles": 0, "overruns": int(loop.overruns)} if not tm["cycles"]
+                     else {**tm, "overruns": int(loop.overruns)})
+    result.lost_rows = int(summary["lost"])
     return result
+
+
+def _finish_log(path: str, k: int, asm, result: JobResult) -> None:
+    if k == 0:
+        Path(path).unlink(missing_ok=True)
+        return
+    w, _ = LogWriter.reopen(path)
+    try:
+        fits = w.update_header(log_header(asm, realtime=result.realtime,
+                                   stopped_by_signal=result.stopped_by_signal,
+                                   stop=[{"axis": c.axis, "confirmed": c.confirmed, "held": c.held}
+                                         for c in result.stop],
+                                   notices=result.notices))
+    finally:
+        w.close()
+    if not fits:
+        raise OSError(f"the run log {path}: the final header does not fit in the "
+                      f"{HEADER_RESERVE} bytes reserved; the rows are there, the header says "
+                      f"realtime 'pending'")

@@ -59,6 +59,9 @@ def cmd_run(args) -> int:
                                        for k, v in rt.items()) + "\n")
     if res.log_path:
         out.write(f"log: {res.log_path}\n")
+    if res.lost_rows:
+        sys.stderr.write(f"motorctl: warning: {res.lost_rows} rows were overwritten in the record "
+                         f"ring before they reached the log and the indexes\n")
     confirmed, lines = stop_lines(res.stop)
     if confirmed:
         how = f"stopped by {res.stopped_by_signal}" if res.stopped_by_signal else "stop"
