@@ -36,9 +36,9 @@ def register(parser, subparsers) -> None:
     p.add_argument("--periods", type=int, default=None,
                    help="measured multisine periods of 1 s, even, 2..200 (default 32)")
     p.add_argument("--gm-min-db", type=float, default=None, help="the rule's gain margin floor [dB] (default 6)")
-    p.add_argument("--pm-min-deg", type=float, default=None, help="the rule's phase margin floor [deg] (default 15)")
+    p.add_argument("--pm-min-deg", type=float, default=None, help="the rule's phase margin floor [deg] (default 10)")
     p.add_argument("--ms-max-db", type=float, default=None,
-                   help="the rule's peak sensitivity ceiling [dB] (default 10)")
+                   help="the rule's peak sensitivity ceiling [dB] (default 16)")
     p.add_argument("--law", action="append", default=None,
                    help="tune only this law (repeatable; default: every law the axis configures)")
     p.add_argument("--measure-only", action="store_true",
