@@ -830,10 +830,10 @@ def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: f
         tried[key] = (res, why)
         if not why:
             found.append((res["L2_um"], g, 1.0, "search"))
-        elif res["u_rest_rms_V"] > rest_max and g["_rest_V"] > 0:
-            # the noise failed: calibrate on this shape's own run, with 5 % to spare
-            sh = shape_of(g)
-            k_shape[sh] = max(k_shape.get(sh, k_noise), res["u_rest_rms_V"] / g["_rest_V"] / 0.95)
+        if math.isfinite(res["u_rest_rms_V"]) and g["_rest_V"] > 0:
+            # calibrate the shape on its own latest run (5 % to spare when the noise failed):
+            # the ladder's calibration can be far too pessimistic for another shape
+            k_shape[shape_of(g)] = res["u_rest_rms_V"] / g["_rest_V"] / (0.95 if res["u_rest_rms_V"] > rest_max else 1.0)
         return res, why
 
     # the search: per shape, the highest ω that passes, bracketed on the shape's admissible ω
@@ -845,23 +845,25 @@ def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: f
         n = len(members)
         top = next((j for j, g in enumerate(members) if not noisy(g)), n - 1)
         p = top if w_hint is None else max(top, min(range(n), key=lambda j: abs(members[j]["_w"] - w_hint)))
-        fail, ok, down, up = top - 1, None, 1, 1   # fail < boundary ≤ ok (positions; ω falls)
+        fail, ok, down, up = -1, None, 1, 1     # fail < boundary ≤ ok (positions; ω falls)
         for _ in range(SEARCH_RUNS):
             res, why = trial(members[p], _fmt_shape(members[p]))
             if why:
                 fail = max(fail, p)
             else:
                 ok = p if ok is None else min(ok, p)
+            # the highest ω whose noise, calibrated anew on this run, stays below the level
+            top = next((j for j, g in enumerate(members) if j > fail and not noisy(g)), n - 1)
             if ok is None:
                 if fail >= n - 1:
                     break
-                p, down = min(n - 1, fail + down), down * 2
-            elif ok - fail <= 1:
+                p, down = min(n - 1, max(top, fail + down)), down * 2
+            elif ok - max(fail, top - 1) <= 1:
                 break
-            elif fail == top - 1:               # nothing above has failed yet: climb
+            elif fail < 0:                      # nothing above has failed yet: climb
                 p, up = max(top, ok - up), up * 2
             else:
-                p = (fail + ok) // 2
+                p = (max(fail, top - 1) + ok) // 2
         if ok is not None:
             w_hint = members[ok]["_w"]
     # the refinement: from the best family member that passed, one grid step at a time
