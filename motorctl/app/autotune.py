@@ -48,22 +48,34 @@ Steps (any driver; the simulated one by default):
 
    a. *ladder* on the first candidate: 50 %, 75 %, 100 % of its loop gain (PID: P, I, D;
       C1/C2: k_s), a rung between two on a failure (when 50 % fails: 35 %, then 25 %).
-   b. *search*: per shape (ζ, r), the highest admissible ω that passes, among those whose
-      rest noise, calibrated on the runs so far, stays below the level: from where the
-      previous shape's passed (the first shape: its highest ω), down 1, 2, 4 ... grid points
-      while runs fail, up so while they pass, then halving the bracket; at most
-      :data:`SEARCH_RUNS` runs per shape.
+   b. *search*: per shape (ζ, r), the highest admissible ω that passes. A failed run bounds ω
+      from above (noise, saturation, oscillation, a fault of a ringing loop), or from below
+      when it faults on its following error with u quiet at rest and no line in u or e
+      (:func:`too_soft`: the loop is too soft for the program). The candidates are the
+      admissible ω whose rest noise, read off the prediction of step 3 through the shape's
+      own runs (a power law through the nearest, of exponent :data:`NOISE_EXPONENT` or the
+      one its runs fit: the prediction grows faster with ω than the machine's noise; a
+      shape not yet run: in proportion to the latest run of any), is at most
+      :data:`NOISE_SLACK` times the level (the run judges; the best often sits at the
+      level). From where the previous shape's
+      passed (the first shape: its highest candidate), down 1, 2, 4 ... grid points while
+      runs fail high, up so while they pass or fail soft, then halving the bracket. Shapes
+      in the order of their reach, the |L| at 2 Hz of their highest candidate (re-ranked
+      after each shape); a shape whose reach is below :data:`PRUNE_SHARE` of that of the
+      best run so far ends the search (the rest reach less still). At most
+      :data:`SEARCH_RUNS` runs per shape and :data:`SEARCH_BUDGET` in all.
    c. *refinement* around the best run that passed at 100 %: its admissible neighbours on
       the family's grid (one step in ω, ζ or r, or in two of them at once), the highest |L|
       at 2 Hz first; the first that passes with a lower L2[e] becomes the centre; it stops
       when no neighbour improves, after :data:`REFINE_RUNS` runs.
    d. *winner*: the least L2[e] of every run that passed; a search winner climbs the ladder
       of a. (its 100 % run done); stopped on a lower rung it stands at the highest scale that
-      passed, and the next best climbs (at most :data:`WINNER_TRIES`).
+      passed, and the next best of another shape climbs (at most :data:`WINNER_TRIES`).
 
-   Runs per law: a. 3-6, b. at most :data:`SEARCH_RUNS` per shape (5 shapes for C1/C2, 20
-   for the PID), c. at most :data:`REFINE_RUNS`, d. at most 3 per winner tried; on the
-   default plant 9-40 runs per law, about 45 s per axis on the virtual clock (8 s runs).
+   The budget per law: a. 3-7 runs, b. at most :data:`SEARCH_BUDGET` = 20, c. at most
+   :data:`REFINE_RUNS` = 8, d. at most 3 per winner tried (:data:`WINNER_TRIES` = 3): at
+   most 44 runs per law, spent on the shapes that reach furthest (of the PID's 20 shapes
+   a few are searched).
 5. **write** (:func:`write_config`, :func:`plot_bode`): ``DIR/autotuned.yaml`` (the gains,
    commented with the margins that chose them) and ``DIR/bode_<A>.png``.
 """
@@ -100,8 +112,15 @@ OSC_RATIO = 100.0        #: oscillation: a line in u at rest this far above its 
 SCALES = (0.5, 0.75, 1.0)  #: verification ladder (share of the chosen loop gain)
 BACKOFF = (0.35, 0.25)     #: tried in turn when 50 % fails; the first that passes is kept
 SEARCH_RUNS = 6          #: runs per shape of the search, at most
+SEARCH_BUDGET = 20       #: runs of the search over all shapes of a law, at most
+PRUNE_SHARE = 0.5        #: the search skips the shapes whose quiet |L(F_TRACK_HZ)| is below this
+                         #: share of that of the least L2[e] passed so far
+NOISE_EXPONENT = 0.7     #: measured rest noise ~ predicted^this within a shape, until its own runs fit it
+NOISE_SLACK = 1.1        #: the search still runs gains whose calibrated rest-noise prediction is
+                         #: up to this factor above the level (the run judges; the prediction
+                         #: grows ~6 % per ω step and the best often sits at the level itself)
 REFINE_RUNS = 8          #: runs of the local refinement around the search's best, at most
-WINNER_TRIES = 2         #: search winners whose ladder is climbed before the rule's gains are kept
+WINNER_TRIES = 3         #: search winners whose ladder is climbed before the rule's gains are kept
 REST_AFTER_S = 0.3       #: "at rest": the command has not moved for this long [s]
 SATURATED = "saturated samples"   #: the words of the saturation verdict (:func:`admissible`)
 
@@ -737,6 +756,18 @@ def admissible(res: dict, u_lim: float, ref: dict | None = None) -> str:
     return ""
 
 
+def too_soft(res: dict, u_lim: float, ref: dict | None = None) -> bool:
+    """Whether a failed run (:func:`admissible`) failed because its loop is too soft for the
+    program: a following-error fault while u was quiet at rest and showed no line, in u at
+    rest nor in e against ``ref`` (a loop that rings until it faults shows one). A higher
+    loop gain of the same shape is then the way out, not a lower one."""
+    if "following error" not in res["fault"]:
+        return False
+    if not res["u_rest_rms_V"] <= U_REST_FRACTION * u_lim or res["osc_ratio"] >= OSC_RATIO:
+        return False
+    return not (ref and e_line_ratio(res, ref)[0] >= OSC_RATIO)
+
+
 def _run(raw, source, axis, law, g, extra, seconds, clock, ref, u_lim, label, scale, runs, progress):
     res = evaluate(apply_gains(raw, axis, law, g, extra), source, axis, law, seconds, clock)
     why = admissible(res, u_lim, ref)
@@ -807,19 +838,38 @@ def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: f
     s0, r0 = ladder(raw, source, axis, law, g0, extra, choice["backoff"], seconds, clock, ref, u_lim,
                     "rule", runs, progress)
     rule_best = (r0["L2_um"], scaled(law, g0, s0), s0, "rule") if s0 > 0 else None
-    # the rest noise the ladder measured against the prediction (a bound: stiction holds the
-    # carriage), so the search does not start where the noise alone would fail
-    k_noise = max([res["u_rest_rms_V"] / (sc * choice["u_rest_pred_V"]) for _, sc, res, _ in runs
-                   if math.isfinite(res["u_rest_rms_V"]) and choice["u_rest_pred_V"] > 0] or [0.0])
+    # the rest noise on the machine against the prediction: the prediction (the open loop of a
+    # carriage held by stiction) is a bound that grows faster with ω than the noise does; so
+    # a member's noise is read off its prediction as a power law through the nearest run of
+    # its shape, with the shape's own exponent once it has two runs (NOISE_EXPONENT until
+    # then); a shape not yet run: in proportion to the latest run of any (a run that
+    # faulted says nothing of the noise)
     rest_max = U_REST_FRACTION * u_lim
-    k_shape: dict = {}      # the noise calibration per shape, from its own failed runs
+    obs: dict = {}          # {shape: [(predicted, measured) rest noise [V]]}
+    pts = [(sc * choice["u_rest_pred_V"], res["u_rest_rms_V"]) for _, sc, res, _ in runs
+           if not res["fault"] and res["u_rest_rms_V"] > 0 and choice["u_rest_pred_V"] > 0]
+    last = [max(pts, key=lambda x: x[1] / x[0])] if pts else []
+
+    def noise_of(g) -> float:
+        own = obs.get(shape_of(g), [])
+        if not (own or last) or g["_rest_V"] <= 0:
+            return 0.0
+        if not own:                             # another shape's run: in proportion
+            return last[0][1] * g["_rest_V"] / last[0][0]
+        beta = NOISE_EXPONENT
+        lp = np.log([x[0] for x in own])
+        if np.ptp(lp) > 0.05:
+            beta = float(np.clip(np.polyfit(lp, np.log([x[1] for x in own]), 1)[0], 0.25, 1.0))
+        p0, a0 = min(own, key=lambda x: abs(math.log(g["_rest_V"] / x[0])))
+        return a0 * (g["_rest_V"] / p0) ** beta
+
     tried: dict = {design_of(g0): (r0, "") if s0 == 1.0 else (None, "failed in the ladder")}
     found: list = []        # (L2, gains, 1.0, "search") of the family members that passed at 100 %
     if s0 == 1.0:
         found.append((r0["L2_um"], g0, 1.0, "rule"))
 
     def noisy(g) -> bool:
-        return k_shape.get(shape_of(g), k_noise) * g["_rest_V"] > rest_max
+        return noise_of(g) > NOISE_SLACK * rest_max
 
     def trial(g, label):
         key = design_of(g)
@@ -830,40 +880,68 @@ def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: f
         tried[key] = (res, why)
         if not why:
             found.append((res["L2_um"], g, 1.0, "search"))
-        if math.isfinite(res["u_rest_rms_V"]) and g["_rest_V"] > 0:
-            # calibrate the shape on its own latest run (5 % to spare when the noise failed):
-            # the ladder's calibration can be far too pessimistic for another shape
-            k_shape[shape_of(g)] = res["u_rest_rms_V"] / g["_rest_V"] / (0.95 if res["u_rest_rms_V"] > rest_max else 1.0)
+        if not res["fault"] and res["u_rest_rms_V"] > 0 and g["_rest_V"] > 0:   # nan: False
+            obs.setdefault(shape_of(g), []).append((g["_rest_V"], res["u_rest_rms_V"]))
+            last[:] = [(g["_rest_V"], res["u_rest_rms_V"])]
         return res, why
 
     # the search: per shape, the highest ω that passes, bracketed on the shape's admissible ω
-    # (those whose rest noise, so calibrated, stays below the level): from where the
-    # previous shape's passed (the shape's highest ω for the first), down in steps of 1, 2,
-    # 4 ... points while runs fail, up in such steps while they pass, then halving the bracket
-    w_hint = None
-    for members in choice["admissible"].values():
+    # (those whose rest noise, so calibrated, stays below the level). A run that fails by
+    # noise, saturation, oscillation or a fault of a ringing loop bounds ω from above; one
+    # that faults on its following error while quiet (too soft for the program) bounds it
+    # from below. Shapes in the order of the |L| at F_TRACK_HZ of their highest quiet
+    # admissible ω (re-ranked after each shape, the calibration moving on), at most
+    # SEARCH_RUNS runs per shape and SEARCH_BUDGET in all
+    w_hint, left, spent = None, dict(choice["admissible"]), 0
+
+    def reach(members):
+        """|L| at F_TRACK_HZ of the shape's highest admissible ω whose noise is quiet."""
+        g = next((g for g in members if not noisy(g)), members[-1])
+        return choice["l_track"][design_of(g)]
+
+    while left and spent < SEARCH_BUDGET:
+        members = left.pop(max(left, key=lambda k: reach(left[k])))
+        lead = min(found, key=lambda b: b[0], default=None)
+        if lead is not None and design_of(lead[1]) in choice["l_track"] and \
+                reach(members) < PRUNE_SHARE * choice["l_track"][design_of(lead[1])]:
+            break                               # the rest reach less still: ranked
         n = len(members)
         top = next((j for j, g in enumerate(members) if not noisy(g)), n - 1)
         p = top if w_hint is None else max(top, min(range(n), key=lambda j: abs(members[j]["_w"] - w_hint)))
-        fail, ok, down, up = -1, None, 1, 1     # fail < boundary ≤ ok (positions; ω falls)
+        # positions: ω falls with j; hi < boundary ≤ ok < lo (hi: failed high, lo: failed soft)
+        hi, lo, ok, down, up = -1, n, None, 1, 1
         for _ in range(SEARCH_RUNS):
-            res, why = trial(members[p], _fmt_shape(members[p]))
-            if why:
-                fail = max(fail, p)
-            else:
-                ok = p if ok is None else min(ok, p)
-            # the highest ω whose noise, calibrated anew on this run, stays below the level
-            top = next((j for j, g in enumerate(members) if j > fail and not noisy(g)), n - 1)
-            if ok is None:
-                if fail >= n - 1:
-                    break
-                p, down = min(n - 1, max(top, fail + down)), down * 2
-            elif ok - max(fail, top - 1) <= 1:
+            if spent == SEARCH_BUDGET:
                 break
-            elif fail < 0:                      # nothing above has failed yet: climb
-                p, up = max(top, ok - up), up * 2
+            n_before = len(runs)
+            res, why = trial(members[p], _fmt_shape(members[p]))
+            spent += len(runs) - n_before
+            if not why:
+                ok = p if ok is None else min(ok, p)
+            elif res is not None and too_soft(res, u_lim, ref):
+                lo = min(lo, p)
             else:
-                p = (max(fail, top - 1) + ok) // 2
+                hi = max(hi, p)
+            # the highest ω whose noise, calibrated anew on this run, stays below the level
+            # (a shape with no noise of its own yet, all its runs faulted: no ceiling)
+            top = (next((j for j, g in enumerate(members) if j > hi and not noisy(g)), n - 1)
+                   if shape_of(members[0]) in obs else hi + 1)
+            floor_ = max(hi, top - 1)           # every position ≤ this fails or is noisy
+            if ok is not None:
+                if ok - floor_ <= 1:
+                    break
+                if hi < 0:                      # nothing above has failed yet: climb
+                    p, up = max(top, ok - up), up * 2
+                else:
+                    p = (floor_ + ok) // 2
+            elif lo - floor_ <= 1:              # no ω left between the two kinds of failure
+                break
+            elif lo < n and hi < 0:             # only too soft so far: climb
+                p, up = max(floor_ + 1, p - up), up * 2
+            elif lo < n:                        # failed on both sides: halve the window
+                p = (floor_ + lo) // 2
+            else:                               # only too high so far: descend
+                p, down = min(n - 1, max(top, p + down)), down * 2
         if ok is not None:
             w_hint = members[ok]["_w"]
     # the refinement: from the best family member that passed, one grid step at a time
@@ -887,18 +965,21 @@ def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: f
     # the winner: the least L2[e] of every run that passed. A search winner climbs the ladder
     # too (its 100 % run is already done); when a rung below stops it, it stands at the
     # highest scale that passed (as the rule's gains do) and the next best climbs, at most
-    # WINNER_TRIES of them; the least L2[e] of what stood is kept
+    # WINNER_TRIES of them, one per shape; the least L2[e] of what stood is kept
     accepted = [rule_best] if rule_best is not None else []
-    climbs = 0
+    climbs, stopped = 0, set()
     for cand in sorted((b for b in found if b[3] == "search"), key=lambda b: b[0]):
         if climbs == WINNER_TRIES or (accepted and min(a[0] for a in accepted) <= cand[0]):
             break
+        if shape_of(cand[1]) in stopped:        # its shape stopped on a lower rung already
+            continue
         climbs += 1
         sc, res_sc = ladder(raw, source, axis, law, cand[1], extra, (), seconds, clock, ref, u_lim,
                             "winner", runs, progress, done={1.0: tried[design_of(cand[1])][0]})
         if sc == 1.0:
             accepted.append(cand)
             break
+        stopped.add(shape_of(cand[1]))
         if sc > 0.0:
             accepted.append((res_sc["L2_um"], scaled(law, cand[1], sc), sc, "search"))
     best = min(accepted, key=lambda b: b[0], default=None)
