@@ -51,7 +51,8 @@ Steps (any driver; the simulated one by default):
    b. *search*: per shape (ζ, r), the highest admissible ω that passes. A failed run bounds ω
       from above (noise, saturation, oscillation, a fault of a ringing loop), or from below
       when it faults on its following error with u quiet at rest and no line in u or e
-      (:func:`too_soft`: the loop is too soft for the program). The candidates are the
+      (:func:`too_soft`: the loop is too soft for the program) or saturates more than a run
+      of the shape at a higher ω did (its larger error drives u into the limit). The candidates are the
       admissible ω whose rest noise, read off the prediction of step 3 through the shape's
       own runs (a power law through the nearest, of exponent :data:`NOISE_EXPONENT` or the
       one its runs fit: the prediction grows faster with ω than the machine's noise; a
@@ -72,10 +73,11 @@ Steps (any driver; the simulated one by default):
       of a. (its 100 % run done); stopped on a lower rung it stands at the highest scale that
       passed, and the next best of another shape climbs (at most :data:`WINNER_TRIES`).
 
-   The budget per law: a. 3-7 runs, b. at most :data:`SEARCH_BUDGET` = 20, c. at most
-   :data:`REFINE_RUNS` = 8, d. at most 3 per winner tried (:data:`WINNER_TRIES` = 3): at
-   most 44 runs per law, spent on the shapes that reach furthest (of the PID's 20 shapes
-   a few are searched).
+   The budget per law: a. 3-7 runs, b. at most :data:`SEARCH_BUDGET` = 14, c. at most
+   :data:`REFINE_RUNS` = 6, d. at most 3 per winner tried (:data:`WINNER_TRIES` = 3): at
+   most 36 runs per law, spent on the shapes that reach furthest (of the PID's 20 shapes
+   a few are searched). Measured: 9-26 runs per law, 51-71 per axis on configs/gantry.yaml
+   and configs/gantry-rigid.yaml (8 s runs; 1-2 min per axis on the virtual clock).
 5. **write** (:func:`write_config`, :func:`plot_bode`): ``DIR/autotuned.yaml`` (the gains,
    commented with the margins that chose them) and ``DIR/bode_<A>.png``.
 """
@@ -112,14 +114,14 @@ OSC_RATIO = 100.0        #: oscillation: a line in u at rest this far above its 
 SCALES = (0.5, 0.75, 1.0)  #: verification ladder (share of the chosen loop gain)
 BACKOFF = (0.35, 0.25)     #: tried in turn when 50 % fails; the first that passes is kept
 SEARCH_RUNS = 6          #: runs per shape of the search, at most
-SEARCH_BUDGET = 20       #: runs of the search over all shapes of a law, at most
+SEARCH_BUDGET = 14       #: runs of the search over all shapes of a law, at most
 PRUNE_SHARE = 0.5        #: the search skips the shapes whose quiet |L(F_TRACK_HZ)| is below this
                          #: share of that of the least L2[e] passed so far
 NOISE_EXPONENT = 0.7     #: measured rest noise ~ predicted^this within a shape, until its own runs fit it
 NOISE_SLACK = 1.1        #: the search still runs gains whose calibrated rest-noise prediction is
                          #: up to this factor above the level (the run judges; the prediction
                          #: grows ~6 % per ω step and the best often sits at the level itself)
-REFINE_RUNS = 8          #: runs of the local refinement around the search's best, at most
+REFINE_RUNS = 6          #: runs of the local refinement around the search's best, at most
 WINNER_TRIES = 3         #: search winners whose ladder is climbed before the rule's gains are kept
 REST_AFTER_S = 0.3       #: "at rest": the command has not moved for this long [s]
 SATURATED = "saturated samples"   #: the words of the saturation verdict (:func:`admissible`)
@@ -909,17 +911,20 @@ def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: f
         top = next((j for j, g in enumerate(members) if not noisy(g)), n - 1)
         p = top if w_hint is None else max(top, min(range(n), key=lambda j: abs(members[j]["_w"] - w_hint)))
         # positions: ω falls with j; hi < boundary ≤ ok < lo (hi: failed high, lo: failed soft)
-        hi, lo, ok, down, up = -1, n, None, 1, 1
+        hi, lo, ok, down, up, sat = -1, n, None, 1, 1, {}
         for _ in range(SEARCH_RUNS):
             if spent == SEARCH_BUDGET:
                 break
             n_before = len(runs)
             res, why = trial(members[p], _fmt_shape(members[p]))
             spent += len(runs) - n_before
+            if res is not None and why and SATURATED in why:
+                sat[p] = res["saturated"]
             if not why:
                 ok = p if ok is None else min(ok, p)
-            elif res is not None and too_soft(res, u_lim, ref):
-                lo = min(lo, p)
+            elif res is not None and (too_soft(res, u_lim, ref) or (
+                    p in sat and any(j < p and sat[j] < sat[p] for j in sat))):
+                lo = min(lo, p)                 # (saturating more than at a higher ω: its error)
             else:
                 hi = max(hi, p)
             # the highest ω whose noise, calibrated anew on this run, stays below the level
