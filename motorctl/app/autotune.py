@@ -821,7 +821,7 @@ def ladder(raw, source, axis, law, g, extra, backoff, seconds, clock, ref, u_lim
 
 def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: float,
            clock: str = "virtual", ref: dict | None = None, extra: dict | None = None,
-           progress=None) -> dict:
+           progress=None, search_runs: int = SEARCH_BUDGET) -> dict:
     """Step 4 for one law (module docstring): the ladder on the rule's first candidate, the
     search over the admissible shapes, the local refinement around its best, the ladder on
     the winner.
@@ -829,6 +829,8 @@ def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: f
     Args:
         choice: :func:`choose_gains`'s result. ref: the configured controller's run on the same
         program (:func:`evaluate`). extra: settings written with the gains (the PID's feedforward).
+        search_runs: the search's budget (b.); the refinement's is the lesser of it and
+        :data:`REFINE_RUNS`.
     Returns:
         {"gains" (None when nothing passed), "scale" (of the winner's own gains), "from" ('rule'
         or 'search'), "L2_um", "runs": [(label, scale, result, verdict)]}.
@@ -901,7 +903,7 @@ def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: f
         g = next((g for g in members if not noisy(g)), members[-1])
         return choice["l_track"][design_of(g)]
 
-    while left and spent < SEARCH_BUDGET:
+    while left and spent < search_runs:
         members = left.pop(max(left, key=lambda k: reach(left[k])))
         lead = min(found, key=lambda b: b[0], default=None)
         if lead is not None and design_of(lead[1]) in choice["l_track"] and \
@@ -913,7 +915,7 @@ def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: f
         # positions: ω falls with j; hi < boundary ≤ ok < lo (hi: failed high, lo: failed soft)
         hi, lo, ok, down, up, sat = -1, n, None, 1, 1, {}
         for _ in range(SEARCH_RUNS):
-            if spent == SEARCH_BUDGET:
+            if spent >= search_runs:
                 break
             n_before = len(runs)
             res, why = trial(members[p], _fmt_shape(members[p]))
@@ -953,7 +955,7 @@ def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: f
     # (ω, ζ, r, and two of them at once) to an admissible neighbour not yet run, the highest
     # |L| at F_TRACK_HZ first; move to the first that passes with a lower L2[e], stop when
     # none does or after REFINE_RUNS runs
-    budget = REFINE_RUNS
+    budget = min(REFINE_RUNS, search_runs)
     center = min(found, key=lambda b: b[0], default=None)
     while center is not None and budget > 0:
         near = [g for g in neighbours(center[1], choice["grid"], choice["members"])
@@ -1000,10 +1002,11 @@ def _fmt_shape(g: dict) -> str:
 # ================================================================ the whole procedure
 def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
              verify_s: float | None = None, progress=None, periods: int = PERIODS,
-             rule: Rule = RULE, laws=None, measure_only: bool = False) -> dict:
+             rule: Rule = RULE, laws=None, measure_only: bool = False,
+             search_runs: int = SEARCH_BUDGET) -> dict:
     """Steps 1-4 for one axis and the laws ``laws`` (None: every law of :func:`tunable_laws`;
-    ``measure_only``: steps 1-2, no law). Returns {"measure", "model", "theta_hat0", "w",
-    "G_fit", "G_w", "choice": {law: ...}, "verify": {law: ...}, "reference" (None when
+    ``measure_only``: steps 1-2, no law; ``search_runs``: :func:`verify`'s). Returns
+    {"measure", "model", "theta_hat0", "w", "G_fit", "G_w", "choice": {law: ...}, "verify": {law: ...}, "reference" (None when
     measure_only), "gains": {law: gains written}, "extra": {law: settings written with them}}.
 
     Raises:
@@ -1051,7 +1054,8 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
                      f"{ch_['u_rest_pred_V'] * 1e3:.0f} mV predicted ({ch_['candidates']} passed "
                      f"in {len(ch_['admissible'])} shapes)")
         extra[law] = controller_class(law).model_settings(fitted) or None
-        ver[law] = verify(raw, str(loaded.path), axis, law, ch_, vs, clock, ref, extra[law], progress)
+        ver[law] = verify(raw, str(loaded.path), axis, law, ch_, vs, clock, ref, extra[law], progress,
+                          search_runs)
         if ver[law]["gains"] is not None:
             gains[law] = ver[law]["gains"]
     if not choice or all(c is None for c in choice.values()):
