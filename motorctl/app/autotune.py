@@ -52,15 +52,15 @@ Steps (any driver; the simulated one by default):
       from above (noise, saturation, oscillation, a fault of a ringing loop), or from below
       when it faults on its following error with u quiet at rest and no line in u or e
       (:func:`too_soft`: the loop is too soft for the program) or saturates more than a run
-      of the shape at a higher ω did (its larger error drives u into the limit). The candidates are the
-      admissible ω whose rest noise, read off the prediction of step 3 through the shape's
-      own runs (a power law through the nearest, of exponent :data:`NOISE_EXPONENT` or the
-      one its runs fit: the prediction grows faster with ω than the machine's noise; a
-      shape not yet run: in proportion to the latest run of any), is at most
-      :data:`NOISE_SLACK` times the level (the run judges; the best often sits at the
-      level). From where the previous shape's
-      passed (the first shape: its highest candidate), down 1, 2, 4 ... grid points while
-      runs fail high, up so while they pass or fail soft, then halving the bracket. Shapes
+      of the shape at a higher ω did (its larger error drives u into the limit). The
+      candidates are the admissible ω whose rest noise, read off the prediction of step 3
+      through the shape's own runs (a power law through the nearest, of exponent
+      :data:`NOISE_EXPONENT` or the one its runs fit: the prediction grows faster with ω
+      than the machine's noise; a shape not yet run: in proportion to the latest run of
+      any), is at most :data:`NOISE_SLACK` times the level (the run judges; the best often
+      sits at the level). From where the previous shape's passed (the first shape: its
+      highest candidate), down 1, 2, 4 ... grid points while runs fail high, up so while
+      they pass or fail soft, then halving the bracket. Shapes
       in the order of their reach, the |L| at 2 Hz of their highest candidate (re-ranked
       after each shape); a shape whose reach is below :data:`PRUNE_SHARE` of that of the
       best run so far ends the search (the rest reach less still). At most
@@ -77,7 +77,7 @@ Steps (any driver; the simulated one by default):
    :data:`REFINE_RUNS` = 6, d. at most 3 per winner tried (:data:`WINNER_TRIES` = 3): at
    most 36 runs per law, spent on the shapes that reach furthest (of the PID's 20 shapes
    a few are searched). Measured: 9-26 runs per law, 51-71 per axis on configs/gantry.yaml
-   and configs/gantry-rigid.yaml (8 s runs; 1-2 min per axis on the virtual clock).
+   and configs/gantry-rigid.yaml (8 s runs; about 1 min per axis on the virtual clock).
 5. **write** (:func:`write_config`, :func:`plot_bode`): ``DIR/autotuned.yaml`` (the gains,
    commented with the margins that chose them) and ``DIR/bode_<A>.png``.
 """
@@ -892,10 +892,10 @@ def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: f
     # the search: per shape, the highest ω that passes, bracketed on the shape's admissible ω
     # (those whose rest noise, so calibrated, stays below the level). A run that fails by
     # noise, saturation, oscillation or a fault of a ringing loop bounds ω from above; one
-    # that faults on its following error while quiet (too soft for the program) bounds it
-    # from below. Shapes in the order of the |L| at F_TRACK_HZ of their highest quiet
-    # admissible ω (re-ranked after each shape, the calibration moving on), at most
-    # SEARCH_RUNS runs per shape and SEARCH_BUDGET in all
+    # that faults on its following error while quiet, or saturates more than at a higher ω
+    # (too soft for the program), bounds it from below. Shapes in the order of the |L| at
+    # F_TRACK_HZ of their highest quiet admissible ω (re-ranked after each shape, the
+    # calibration moving on), at most SEARCH_RUNS runs per shape and search_runs in all
     w_hint, left, spent = None, dict(choice["admissible"]), 0
 
     def reach(members):
@@ -911,7 +911,8 @@ def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: f
             break                               # the rest reach less still: ranked
         n = len(members)
         top = next((j for j, g in enumerate(members) if not noisy(g)), n - 1)
-        p = top if w_hint is None else max(top, min(range(n), key=lambda j: abs(members[j]["_w"] - w_hint)))
+        p = top if w_hint is None else max(top, min(range(n),
+                                                   key=lambda j: abs(members[j]["_w"] - w_hint)))
         # positions: ω falls with j; hi < boundary ≤ ok < lo (hi: failed high, lo: failed soft)
         hi, lo, ok, down, up, sat = -1, n, None, 1, 1, {}
         for _ in range(SEARCH_RUNS):
@@ -1006,8 +1007,9 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
              search_runs: int = SEARCH_BUDGET) -> dict:
     """Steps 1-4 for one axis and the laws ``laws`` (None: every law of :func:`tunable_laws`;
     ``measure_only``: steps 1-2, no law; ``search_runs``: :func:`verify`'s). Returns
-    {"measure", "model", "theta_hat0", "w", "G_fit", "G_w", "choice": {law: ...}, "verify": {law: ...}, "reference" (None when
-    measure_only), "gains": {law: gains written}, "extra": {law: settings written with them}}.
+    {"measure", "model", "theta_hat0", "w", "G_fit", "G_w", "choice": {law: ...}, "verify":
+    {law: ...}, "reference" (None when measure_only), "gains": {law: gains written}, "extra":
+    {law: settings written with them}}.
 
     Raises:
         AutotuneError: the measurement faulted or tripped its guard, or no law could be tuned.
