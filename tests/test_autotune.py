@@ -26,7 +26,8 @@ def default_plant(repo, tmp_path_factory):
     summary of the axes, the output directory of X's)."""
     out = tmp_path_factory.mktemp("at") / "at"
     p = _autotune(repo, out, "configs/gantry.yaml", "--axis", "X", "--out", str(out), "--law", "c2",
-                  "--law", "pid", "--virtual-clock", "--verify-seconds", "0.5", "--periods", "16", "--json")
+                  "--law", "pid", "--virtual-clock", "--verify-seconds", "0.5", "--periods", "16",
+                  "--search-runs", "2", "--json")
     assert p.returncode == 0, p.stderr
     axes = json.loads(p.stdout)["axes"]
     y_out = tmp_path_factory.mktemp("at") / "y"
@@ -87,7 +88,8 @@ def test_autotune_adapts_to_a_softer_structure(repo, tmp_path, default_plant):
     cfg = tmp_path / "soft.yaml"
     cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
     p = _autotune(repo, tmp_path, str(cfg), "--axis", "X", "--out", str(tmp_path / "at"),
-                  "--virtual-clock", "--verify-seconds", "0.5", "--periods", "8", "--law", "pid", "--json")
+                  "--virtual-clock", "--verify-seconds", "0.5", "--periods", "8", "--law", "pid",
+                  "--search-runs", "4", "--json")
     assert p.returncode == 0, p.stderr
     res = json.loads(p.stdout)["axes"]["X"]
     assert abs(res["model"]["mode_hz"] / raw["axes"]["X"]["driver"]["mode_hz"] - 1.0) < 0.10
@@ -112,7 +114,8 @@ def test_autotune_through_the_serial_emulator(repo, tmp_path):
     out = tmp_path / "at"
     with Emulator("serial", cfg, plant=repo / "configs" / "gantry-rigid.yaml", watchdog_s=5.0):
         p = _autotune(repo, tmp_path, str(cfg), "--axis", "X", "--out", str(out), "--virtual-clock",
-                      "--verify-seconds", "0.5", "--periods", "2", "--law", "c2", "--json")
+                      "--verify-seconds", "0.5", "--periods", "2", "--law", "c2", "--search-runs", "0",
+                      "--json")
     assert p.returncode == 0, p.stderr
     res = json.loads(p.stdout)["axes"]["X"]
     meas = res["measurement"]

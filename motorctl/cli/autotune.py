@@ -4,7 +4,7 @@ verified on the machine → ``DIR/autotuned.yaml`` and ``DIR/bode_<A>.png``
 
     motorctl autotune CONFIG --axis A [--axis B] [--out DIR] [--virtual-clock] [--verify-seconds S]
                      [--periods N] [--gm-min-db G] [--pm-min-deg P] [--ms-max-db M]
-                     [--law L ...] [--measure-only] [--json]
+                     [--law L ...] [--search-runs N] [--measure-only] [--json]
 
 Exit codes: 0 gains written; 1 the measurement stopped (fault, guard: nothing written) or an
 axis had no gains pass the verification (the config is written with that axis as configured);
@@ -36,9 +36,12 @@ def register(parser, subparsers) -> None:
     p.add_argument("--periods", type=int, default=None,
                    help="measured multisine periods of 1 s, even, 2..200 (default 32)")
     p.add_argument("--gm-min-db", type=float, default=None, help="the rule's gain margin floor [dB] (default 6)")
-    p.add_argument("--pm-min-deg", type=float, default=None, help="the rule's phase margin floor [deg] (default 15)")
+    p.add_argument("--pm-min-deg", type=float, default=None, help="the rule's phase margin floor [deg] (default 10)")
     p.add_argument("--ms-max-db", type=float, default=None,
-                   help="the rule's peak sensitivity ceiling [dB] (default 10)")
+                   help="the rule's peak sensitivity ceiling [dB] (default 16)")
+    p.add_argument("--search-runs", type=int, default=None,
+                   help="verification runs of the search per law, at most (default 14; the "
+                        "refinement's: the lesser of this and 6)")
     p.add_argument("--law", action="append", default=None,
                    help="tune only this law (repeatable; default: every law the axis configures)")
     p.add_argument("--measure-only", action="store_true",
@@ -71,7 +74,8 @@ def _summary(res: dict) -> dict:
 
 
 def cmd_autotune(args) -> int:
-    from motorctl.app.autotune import PERIODS, RULE, AutotuneError, Rule, autotune, plot_bode, write_config
+    from motorctl.app.autotune import (PERIODS, RULE, SEARCH_BUDGET, AutotuneError, Rule, autotune, plot_bode,
+                                       write_config)
     from motorctl.cli import UsageError
     from motorctl.config import config_from_dict, load_yaml
     from motorctl.inputs import writable_dir
@@ -84,6 +88,9 @@ def cmd_autotune(args) -> int:
         if v is not None and not lo <= v <= hi:
             raise UsageError(f"--{k.replace('_', '-')} {v:g}: allowed {lo:g}..{hi:g}")
     rule = Rule(**{k: (getattr(RULE, k) if v is None else v) for k, v in given.items()})
+    search_runs = SEARCH_BUDGET if args.search_runs is None else args.search_runs
+    if not 0 <= search_runs <= 200:
+        raise UsageError(f"--search-runs {args.search_runs}: allowed 0..200")
     raw = load_yaml(args.config)
     loaded = config_from_dict(raw, args.config)
     from motorctl.app.autotune import tunable_laws
@@ -102,7 +109,8 @@ def cmd_autotune(args) -> int:
     for a in args.axis:
         try:
             res = autotune(loaded, raw, a, clock, args.verify_seconds, progress=say, periods=periods,
-                           rule=rule, laws=args.law, measure_only=args.measure_only)
+                           rule=rule, laws=args.law, measure_only=args.measure_only,
+                           search_runs=search_runs)
         except AutotuneError as exc:
             sys.stderr.write(f"motorctl: autotune: {exc}\n")
             return 1
