@@ -85,9 +85,9 @@ class TheoryConfig(StrictModel):
 
 
 class DcdiarcConfig(StrictModel):
-    """C1's and C2's settings (the paper's Section 6, §7): the top-level keys of an axis's
-    ``controller:`` section, which the two laws share, with a ``c1:`` or ``c2:`` mapping over
-    them for one law alone.
+    """C1's and C2's settings (the paper's Section VI; values: docs/control-law.md): the
+    top-level keys of an axis's ``controller:`` section, which the two laws share, with a
+    ``c1:`` or ``c2:`` mapping over them for one law alone.
 
     Attributes:
         mode: "experiment" (constant k_s) or "theory" (k_s1 + k_s2, eq. 22).

@@ -1,6 +1,6 @@
 """Nominal fit, effect search and forward selection.
 
-Decision rule (design note ``residual-analysis.md`` §0): a candidate effect, re-fitted *jointly*
+Decision rule (docs/identification.md, "Decision rule"): a candidate effect, re-fitted *jointly*
 with the nominal θ, is accepted only when all three agree:
 
 1. held-out gain: the RMS of the 2-fold cross-validated residual over interleaved blocks
