@@ -34,7 +34,7 @@ from motorctl.inputs import InputError
 from motorctl.loop.records import RecordLayout
 from motorctl.loop.safety import with_drive_reason
 from motorctl.metrics import TrackingAccumulator
-from motorctl.recorder.flight import CTL_STATE, SharedRing, TimingStats
+from motorctl.recorder.flight import CTL_STATE, SharedRing, TimingStats, take_rows
 from motorctl.recorder.ordering import load_acquire, store_release
 from motorctl.recorder.runlog import LogWriter
 
@@ -81,15 +81,10 @@ class _Sink:
         self._n_pending = 0
 
     def take(self, published: int, recheck=None) -> None:
-        start = max(self.k, published - self.cap)
-        if published <= start:
+        """The rows of cycles [k, published) (``recheck``: the loop's count, when it runs on)."""
+        if published <= self.k:
             return
-        a, b = start % self.cap, published % self.cap
-        rows = self.rows[a:b].copy() if a < b else np.concatenate([self.rows[a:], self.rows[:b]])
-        if recheck is not None:                 # overwritten while we copied
-            torn = recheck() - self.cap - start
-            if torn > 0:
-                rows, start = rows[torn:], start + torn
+        rows, start = take_rows(self.rows, self.k, published, recheck)
         self.lost += start - self.k
         self.k = published
         if self.writer is not None and not self.write_error:
@@ -117,6 +112,14 @@ class _Sink:
         self._pending = [rows[n:]]
         self._n_pending = rows.shape[0] - n
 
+    def close(self) -> None:
+        """Close the log (fsync); a failure is kept in ``write_error``."""
+        if self.writer is not None:
+            try:
+                self.writer.close()
+            except OSError as exc:
+                self.write_error = self.write_error or exc.strerror or str(exc)
+
     def summary(self) -> dict:
         if self._n_pending:
             self._account(final=True)
@@ -138,11 +141,7 @@ def _drain_process(ring: SharedRing, sink: _Sink, wfd: int) -> None:
             if ended:
                 break
             time.sleep(DRAIN_S)
-        if sink.writer is not None:
-            try:
-                sink.writer.close()
-            except OSError as exc:
-                sink.write_error = sink.write_error or exc.strerror or str(exc)
+        sink.close()
         data = json.dumps(sink.summary()).encode()
         while data:
             data = data[os.write(wfd, data):]
@@ -232,9 +231,8 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
     policy = realtime_policy or ("off" if clock == "virtual" else cfg.loop.realtime.policy)
     names = list(axes) if axes else list(loaded.axes)
     wall = clock == "wall"
-    ring = SharedRing(min(n_cycles, loaded.timebase.cycles(RING_S)), RecordLayout(names).width,
-                      len(names)) if wall else None
-    cap = ring.capacity if wall else min(n_cycles, loaded.timebase.cycles(RING_S))
+    cap = min(n_cycles, loaded.timebase.cycles(RING_S))
+    ring = SharedRing(cap, RecordLayout(names).width, len(names)) if wall else None
     asm = build(loaded, axes, controller, clock=clock, capacity=cap,
                 buffer=ring.rows if wall else None, heartbeat=ring)
     loop, names = asm.loop, asm.names
@@ -293,12 +291,8 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
             summary = _collect(*drain)
         else:
             sink.take(loop.k)
+            sink.close()
             summary = sink.summary()
-            if writer is not None:
-                try:
-                    writer.close()
-                except OSError as exc:
-                    summary["write_error"] = summary["write_error"] or exc.strerror or str(exc)
         # the facts known only now go into the header; a run that never cycled leaves no log
         if log_path:
             _finish_log(str(log_path), loop.k, asm, result)

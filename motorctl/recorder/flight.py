@@ -67,6 +67,32 @@ _HIST_BIN_NS = 250.0
 _HIST_BINS = 40000    # 0 .. 10 ms
 
 
+def copy_rows(rows: np.ndarray, start: int, stop: int) -> np.ndarray:
+    """A copy of cycles [start, stop) of a ring ``rows`` (capacity, width), cycle k in row
+    k % capacity; (0, width) when stop ≤ start. The caller keeps stop − start ≤ capacity."""
+    cap = rows.shape[0]
+    if stop - start <= 0:
+        return np.empty((0, rows.shape[1]))
+    a, b = start % cap, stop % cap
+    if a < b:
+        return rows[a:b].copy()
+    return np.concatenate([rows[a:], rows[:b]])
+
+
+def take_rows(rows: np.ndarray, start: int, stop: int, published=None) -> tuple[np.ndarray, int]:
+    """Cycles [start, stop) of the ring ``rows`` that it still holds: (the rows, the cycle of
+    the first). ``published``: the writer's cycle count, read again after the copy so that rows
+    overwritten meanwhile are dropped, never returned torn (None: no writer runs meanwhile)."""
+    cap = rows.shape[0]
+    start = max(start, stop - cap)
+    out = copy_rows(rows, start, stop)
+    if published is not None:
+        torn = published() - cap - start          # overwritten while we copied
+        if torn > 0:
+            out, start = out[torn:], start + torn
+    return out, start
+
+
 class SharedRing:
     """Anonymous shared mapping for the loop and the I/O process; create it before ``fork``.
 
@@ -236,24 +262,9 @@ class Drainer:
         ring.ctl[CTL_SEGMENT] = writer.index
 
     # ------------------------------------------------------------------ draining
-    def _copy(self, start: int, stop: int) -> np.ndarray:
-        cap = self.ring.capacity
-        a, b = start % cap, stop % cap
-        if stop - start <= 0:
-            return np.empty((0, self.ring.width))
-        if a < b:
-            return self.ring.rows[a:b].copy()
-        return np.concatenate([self.ring.rows[a:], self.ring.rows[:b]])
-
     def _take(self, start: int, stop: int) -> tuple[np.ndarray, int]:
         """Rows [start, stop) still in the ring, never torn: (rows, cycle of rows[0])."""
-        cap = self.ring.capacity
-        start = max(start, stop - cap)
-        rows = self._copy(start, stop)
-        torn = self.ring.published() - cap - start      # overwritten while we copied
-        if torn > 0:
-            rows, start = rows[torn:], start + torn
-        return rows, start
+        return take_rows(self.ring.rows, start, stop, self.ring.published)
 
     def poll(self) -> int:
         """Account the rows published since the last call (statistics, events) and write
@@ -376,7 +387,7 @@ class Drainer:
                 continue
             end = min(end, self.drained)
             start = max(p["k"] - p["before"], published - cap + 1, 0)
-            rows = self._copy(start, end)
+            rows = copy_rows(self.ring.rows, start, end)
             if self.ring.published() - cap > start:      # overwritten while copying
                 cut = self.ring.published() - cap - start
                 rows, start = rows[cut:], start + cut
