@@ -32,6 +32,7 @@ from motorctl.app.build import build, log_header, shutdown, start
 from motorctl.config import LoadedConfig
 from motorctl.inputs import InputError
 from motorctl.loop.records import RecordLayout
+from motorctl.loop.rt import keep_off, loop_cpu
 from motorctl.loop.safety import with_drive_reason
 from motorctl.metrics import TrackingAccumulator
 from motorctl.recorder.flight import CTL_STATE, SharedRing, TimingStats, take_rows
@@ -128,12 +129,14 @@ class _Sink:
                 "write_error": self.write_error}
 
 
-def _drain_process(ring: SharedRing, sink: _Sink, wfd: int) -> None:
-    """The child that drains the ring of a wall-clock run (never returns): takes the published
-    rows every :data:`DRAIN_S` until the loop has ended, closes the log (fsync) and writes its
-    summary (JSON) to ``wfd``."""
+def _drain_process(ring: SharedRing, sink: _Sink, wfd: int, cpu: int | None) -> None:
+    """The child that drains the ring of a wall-clock run (never returns): off the loop's
+    ``cpu`` (:func:`motorctl.loop.rt.keep_off`), takes the published rows every
+    :data:`DRAIN_S` until the loop has ended, closes the log (fsync) and writes its summary
+    (JSON) to ``wfd``."""
     code = 1
     try:
+        keep_off(cpu)
         signal.signal(signal.SIGINT, signal.SIG_IGN)     # the loop decides when the run ends
         while True:
             ended = load_acquire(ring.ctl, CTL_STATE) == _ENDED
@@ -252,7 +255,7 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
         pid = os.fork()
         if pid == 0:
             os.close(rfd)
-            _drain_process(ring, sink, wfd)
+            _drain_process(ring, sink, wfd, loop_cpu(loaded.cfg.loop.realtime.cpu))
         os.close(wfd)
         if writer is not None:
             writer.release()

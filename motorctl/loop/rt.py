@@ -35,6 +35,8 @@ MCL_CURRENT = 1
 MCL_FUTURE = 2
 MCL_ONFAULT = 4
 PR_SET_TIMERSLACK = 29
+#: the CPUs the process had before setup_realtime pinned it (restore puts them back)
+_saved_affinity: list = []
 
 
 class RealtimeError(RuntimeError):
@@ -114,9 +116,11 @@ def setup_realtime(policy: str = "best_effort", priority: int = 80, cpu: int | N
             rep.steps["mlockall"] = _lock(lock_pages)
         else:
             rep.steps["mlockall"] = (False, "not requested")
-        target = cpu if cpu is not None else _isolated_cpu()
+        target = loop_cpu(cpu)
         if target is not None:
             try:
+                if not _saved_affinity:
+                    _saved_affinity.append(os.sched_getaffinity(0))
                 os.sched_setaffinity(0, {target})
                 rep.steps["affinity"] = (True, f"cpu {target}")
             except OSError as exc:
@@ -143,14 +147,48 @@ def setup_realtime(policy: str = "best_effort", priority: int = 80, cpu: int | N
 
 
 def restore() -> None:
-    """Undo the scheduling and gc parts (back to SCHED_OTHER, gc enabled); used after a run."""
+    """Undo the scheduling, affinity and gc parts (back to SCHED_OTHER on the CPUs the process
+    had before, gc enabled); used after a run."""
+    _sched_other()
+    if _saved_affinity:
+        try:
+            os.sched_setaffinity(0, _saved_affinity[0])
+        except OSError:
+            pass
+        _saved_affinity.clear()
+    gc.enable()
+    gc.unfreeze()
+
+
+def _sched_other() -> None:
+    """Back to SCHED_OTHER (a refusal is ignored)."""
     try:
         if os.sched_getscheduler(0) != os.SCHED_OTHER:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     except OSError:
         pass
-    gc.enable()
-    gc.unfreeze()
+
+
+def loop_cpu(cpu: int | None) -> int | None:
+    """The CPU the loop is pinned to: ``cpu`` when configured, else the highest CPU in
+    /sys/devices/system/cpu/isolated, else None (not pinned)."""
+    return cpu if cpu is not None else _isolated_cpu()
+
+
+def keep_off(cpu: int | None) -> None:
+    """For a helper process of the loop (a child that drains its records): SCHED_OTHER, and
+    every CPU it may use but the loop's ``cpu`` when another remains, so that it neither takes
+    the loop's CPU between cycles nor empties its caches. Refusals are ignored (the helper
+    then runs where it was)."""
+    _sched_other()
+    if cpu is None:
+        return
+    try:
+        allowed = (os.sched_getaffinity(0) | set(range(os.cpu_count() or 1))) - {cpu}
+        if allowed:
+            os.sched_setaffinity(0, allowed)
+    except OSError:
+        pass
 
 
 class RealtimeConfig(StrictModel):
