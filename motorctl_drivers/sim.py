@@ -35,8 +35,11 @@ Unmodelled dynamics the paper neglects (§II; all off by default, each an option
   ``encoder_interpolation_m`` · sin(2π x / ``encoder_signal_period_m``), both before the
   quantisation to ``encoder_resolution_m``.
 
-Without effect hooks, these run in a second compiled kernel (``_rk4_flex``); with hooks, in the
-general Python path (same equations).
+Without effect hooks, these run in a second compiled kernel (``_rk4_flex``). With hooks, a
+period is one compiled call too (``_hooked_step``: the effects' terms evaluated by
+:mod:`motorctl.effects.plant`) when every effect's term is compiled
+(:meth:`motorctl.effects.base.PlantTerm.compiled`); a term of Python hooks only (a family
+outside the project's registry) runs the general Python path (the same equations).
 
 Fault injection for tests (:meth:`SimDriver.inject`): read errors, NaN positions, encoder
 jumps, amplifier faults and an external push force for a number of cycles.
@@ -55,12 +58,14 @@ import time
 from typing import Annotated
 
 import numpy as np
+from numba.experimental.structref import StructRefProxy
 from pydantic import Field
 
 from motorctl.driver import Driver, StopCheck
 from motorctl.effects import FAMILIES, effects_model
+from motorctl.effects import plant as effect_terms
 from motorctl.effects.input_delay import delay_line
-from motorctl.jit import njit
+from motorctl.jit import BundleType, bundle, define_bundle, entry, njit
 from motorctl.model import S_F_GAIN, PhysicalAxis
 from motorctl.schema import NonNeg, Pos, StrictModel
 
@@ -235,34 +240,56 @@ def _plant_step(u, s, p, dl, nz):
     the plant's Generator, taken a block ``nz`` at a time (the same values, in the same order,
     as one draw at a time); s[PS_NZI] is the next unused one."""
     a1, a2, a3 = p[PP_A1], p[PP_A2], p[PP_A3]
+    stuck, x0, xl0 = _period_begin(u, s, p, nz)
+    n = int(p[PP_N])
+    if p[PP_FLEX] == 0.0:
+        s[PS_X], s[PS_XD], s[PS_T] = _rk4_plain(s[PS_X], s[PS_XD], s[PS_T], u, p[PP_H], n, p[PP_M], a1, a2,
+                                                a3, p[PP_B], p[PP_FC], p[PP_F0], s[PS_FNOISE], s[PS_FEXT])
+    else:
+        f_prev, f_cur = _current_command(u, s, p, dl)
+        (s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], s[PS_F]) = _rk4_flex(
+            s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], s[PS_F], f_prev, f_cur, p[PP_DELTA], p[PP_TAUI],
+            p[PP_H], n, p[PP_MC], p[PP_ML], p[PP_KS], p[PP_CS], p[PP_B], p[PP_FC], p[PP_F0], s[PS_FNOISE],
+            s[PS_FEXT])
+    _period_end(s, p, nz, stuck, x0, xl0)
+
+
+@njit
+def _period_begin(u, s, p, nz):
+    """The start of a period (:func:`_plant_step`, :func:`_hooked_step`): the force noise's draw
+    and the Karnopp stiction test. Returns (stuck, x, x_load) before the period."""
     if p[PP_NOISE] > 0.0:
         j = int(s[PS_NZI])
         s[PS_NZI] = j + 1
         s[PS_FNOISE] = p[PP_NOISE] * nz[j]
     stuck = False
     if p[PP_STIC] > 0.0 and abs(s[PS_XD]) < p[PP_STICKV]:
-        f = a1 * u + a2 * u * abs(u) + a3 * u * u * u + p[PP_F0] + s[PS_FNOISE] + s[PS_FEXT]
+        f = p[PP_A1] * u + p[PP_A2] * u * abs(u) + p[PP_A3] * u * u * u + p[PP_F0] + s[PS_FNOISE] + s[PS_FEXT]
         stuck = abs(f) <= p[PP_STIC]
-    x0, xl0 = s[PS_X], s[PS_XL]
-    n = int(p[PP_N])
-    if p[PP_FLEX] == 0.0:
-        s[PS_X], s[PS_XD], s[PS_T] = _rk4_plain(s[PS_X], s[PS_XD], s[PS_T], u, p[PP_H], n, p[PP_M], a1, a2,
-                                                a3, p[PP_B], p[PP_FC], p[PP_F0], s[PS_FNOISE], s[PS_FEXT])
-    else:
-        f_cur = a1 * u + a2 * u * abs(u) + a3 * u * u * u
-        m = dl.shape[0]
-        if m > 0:
-            i = int(s[PS_DLI])
-            out = dl[i]
-            dl[i] = f_cur
-            s[PS_DLI] = (i + 1) % m
-            f_cur = out
-        f_prev = s[PS_FPREV]
-        s[PS_FPREV] = f_cur
-        (s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], s[PS_F]) = _rk4_flex(
-            s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], s[PS_F], f_prev, f_cur, p[PP_DELTA], p[PP_TAUI],
-            p[PP_H], n, p[PP_MC], p[PP_ML], p[PP_KS], p[PP_CS], p[PP_B], p[PP_FC], p[PP_F0], s[PS_FNOISE],
-            s[PS_FEXT])
+    return stuck, s[PS_X], s[PS_XL]
+
+
+@njit
+def _current_command(u, s, p, dl):
+    """The current loop's force commands of the flexible plant: (the last period's, this
+    period's after the whole-period delay line ``dl``) [N]."""
+    f_cur = p[PP_A1] * u + p[PP_A2] * u * abs(u) + p[PP_A3] * u * u * u
+    m = dl.shape[0]
+    if m > 0:
+        i = int(s[PS_DLI])
+        out = dl[i]
+        dl[i] = f_cur
+        s[PS_DLI] = (i + 1) % m
+        f_cur = out
+    f_prev = s[PS_FPREV]
+    s[PS_FPREV] = f_cur
+    return f_prev, f_cur
+
+
+@njit
+def _period_end(s, p, nz, stuck, x0, xl0):
+    """The end of a period: a stuck carriage (and load) held where it was, the encoder noise's
+    draw."""
     if stuck:
         s[PS_X] = x0
         s[PS_XD] = 0.0
@@ -284,10 +311,36 @@ def _plant_measured(s, p):
     return q * np.rint(s[PS_X] / q)
 
 
+#: the fields of :class:`SimIO`, in constructor order
+SIM_FIELDS = ("pos", "read_error", "amp_fault", "amp_enabled", "applied_u", "S", "P", "DL", "NZ", "inj", "jump",
+              "push")
+
+
+class SimIOType(BundleType):
+    """numba type of :class:`SimIO`."""
+
+
+class SimIO(StructRefProxy):
+    """The arrays of the simulated driver's exchange by name (:data:`SIM_FIELDS`): the reading
+    (pos [m], read_error, amp_fault: (n,)), the amplifier (amp_enabled, applied_u [V]: (n,)), the
+    compiled plants' rows (S, P, DL, NZ: one row per axis), the injected faults (inj: (n, 4)
+    cycles left, jump [m], push [N]: (n,)); passed to the compiled read and write as one
+    argument (:func:`motorctl.jit.bundle`)."""
+
+
+define_bundle(SimIOType, SimIO, SIM_FIELDS)
+
+
 @njit
-def _sim_read(pos, read_error, amp_fault, bitten, S, P, inj, jump):
-    """:meth:`SimDriver.read` of every axis: injected read errors, NaN
-    readings and amplifier faults, else the encoder reading plus an injected jump [m]."""
+def _make_sim_io(pos, read_error, amp_fault, amp_enabled, applied_u, S, P, DL, NZ, inj, jump, push):
+    return SimIO(pos, read_error, amp_fault, amp_enabled, applied_u, S, P, DL, NZ, inj, jump, push)
+
+
+@njit
+def _sim_read(io, bitten):
+    """:meth:`SimDriver.read` of every axis on the :class:`SimIO` ``io``: injected read errors,
+    NaN readings and amplifier faults, else the encoder reading plus an injected jump [m]."""
+    pos, read_error, amp_fault, S, P, inj, jump = io.pos, io.read_error, io.amp_fault, io.S, io.P, io.inj, io.jump
     for i in range(pos.shape[0]):
         if inj[i, INJ_READ] > 0:
             inj[i, INJ_READ] -= 1
@@ -309,10 +362,13 @@ def _sim_read(pos, read_error, amp_fault, bitten, S, P, inj, jump):
 
 
 @njit
-def _sim_write(u_v, enable, amp_fault, bitten, amp_enabled, applied_u, S, P, DL, NZ, inj, push):
-    """:meth:`SimDriver.write` of every axis (all plants compiled): the amplifier's enable and
-    output (NaN never reaches it), an injected push, one period of each plant. Returns how many
-    plants have used up their block of noise draws (to be refilled before the next period)."""
+def _sim_write(io, u_v, enable, bitten):
+    """:meth:`SimDriver.write` of every axis (all plants compiled) on the :class:`SimIO` ``io``:
+    the amplifier's enable and output (NaN never reaches it), an injected push, one period of
+    each plant. u_v [V] and enable: (n,). Returns how many plants have used up their block of
+    noise draws (to be refilled before the next period)."""
+    amp_fault, amp_enabled, applied_u, inj, push = io.amp_fault, io.amp_enabled, io.applied_u, io.inj, io.push
+    S, P, DL, NZ = io.S, io.P, io.DL, io.NZ
     need = 0
     for i in range(u_v.shape[0]):
         on = enable[i] and not amp_fault[i] and not bitten
@@ -330,6 +386,113 @@ def _sim_write(u_v, enable, amp_fault, bitten, amp_enabled, applied_u, S, P, DL,
         if S[i, PS_NZI] >= NOISE_BLOCK:
             need += 1
     return need
+
+
+@njit
+def _acc_hooked(fm, x, v, t, m, b, fc, f0, f_noise, f_ext, codes, table, lengths):
+    """ẍ [m/s²] of the rigid plant with the effects' compiled terms: :meth:`AxisPlant._acc` from
+    the motor force fm = F_m(u) [N] on (the same operations in the same order)."""
+    fm = effect_terms.thrust(fm, x, t, codes, table, lengths)
+    sf = _TWO_OVER_PI * math.atan(S_F_GAIN * v)
+    f = fm - b * v - fc * sf + f0 + f_noise + f_ext
+    f = effect_terms.force(f, x, v, t, sf, codes, table, lengths)
+    return f / effect_terms.mass(m, t, codes, table, lengths)
+
+
+@njit
+def _rk4_hooked(x, v, t, u, h, n, m, a1, a2, a3, b, fc, f0, f_noise, f_ext, codes, table, lengths):
+    """``n`` RK4 steps of the rigid plant with the effects' compiled terms (:func:`_acc_hooked`);
+    the same operations in the same order as :meth:`AxisPlant._step_rigid`."""
+    fm = a1 * u + a2 * u * abs(u) + a3 * u * u * u
+    for _ in range(n):
+        k1x, k1v = v, _acc_hooked(fm, x, v, t, m, b, fc, f0, f_noise, f_ext, codes, table, lengths)
+        k2x = v + 0.5 * h * k1v
+        k2v = _acc_hooked(fm, x + 0.5 * h * k1x, v + 0.5 * h * k1v, t + 0.5 * h, m, b, fc, f0, f_noise,
+                          f_ext, codes, table, lengths)
+        k3x = v + 0.5 * h * k2v
+        k3v = _acc_hooked(fm, x + 0.5 * h * k2x, v + 0.5 * h * k2v, t + 0.5 * h, m, b, fc, f0, f_noise,
+                          f_ext, codes, table, lengths)
+        k4x = v + h * k3v
+        k4v = _acc_hooked(fm, x + h * k3x, v + h * k3v, t + h, m, b, fc, f0, f_noise, f_ext, codes, table,
+                          lengths)
+        x += h / 6.0 * (k1x + 2.0 * k2x + 2.0 * k3x + k4x)
+        v += h / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v)
+        t += h
+    return x, v, t
+
+
+@njit
+def _acc_flex_hooked(fm, xc, vc, xl, vl, t, mc, ml0, m_tot, ks, cs, b, fc, f0, f_noise, f_ext, codes,
+                     table, lengths):
+    """Accelerations [m/s²] of carriage and load under motor force fm [N] with the effects'
+    compiled terms (a mass change is the load's); the general path's ``acc`` in
+    :meth:`AxisPlant._step_flex` (the same operations in the same order)."""
+    fm = effect_terms.thrust(fm, xc, t, codes, table, lengths)
+    sf = _TWO_OVER_PI * math.atan(S_F_GAIN * vc)
+    f = fm - b * vc - fc * sf + f0 + f_noise + f_ext
+    f = effect_terms.force(f, xc, vc, t, sf, codes, table, lengths)
+    m = effect_terms.mass(m_tot, t, codes, table, lengths)
+    if ml0 > 0.0:
+        fsp = ks * (xc - xl) + cs * (vc - vl)
+        ac = (f - fsp) / mc
+        return ac, fsp / (ml0 + m - m_tot)
+    ac = f / m
+    return ac, ac
+
+
+@njit
+def _rk4_flex_hooked(xc, vc, xl, vl, t, f_start, f_prev, f_cur, delta, tau_i, h, n, mc, ml, m_tot, ks, cs,
+                     b, fc, f0, f_noise, f_ext, codes, table, lengths):
+    """:func:`_rk4_flex` with the effects' compiled terms (:func:`_acc_flex_hooked`): the same
+    operations in the same order as the general path of :meth:`AxisPlant._step_flex`. Returns
+    xc, vc, xl, vl, t and the force at the end of the period."""
+    tau = 0.0
+    for _ in range(n):
+        a1c, a1l = _acc_flex_hooked(_force_at(tau, f_start, f_prev, f_cur, delta, tau_i), xc, vc, xl, vl, t,
+                                    mc, ml, m_tot, ks, cs, b, fc, f0, f_noise, f_ext, codes, table, lengths)
+        a2c, a2l = _acc_flex_hooked(_force_at(tau + 0.5 * h, f_start, f_prev, f_cur, delta, tau_i),
+                                    xc + 0.5 * h * vc, vc + 0.5 * h * a1c, xl + 0.5 * h * vl, vl + 0.5 * h * a1l,
+                                    t + 0.5 * h, mc, ml, m_tot, ks, cs, b, fc, f0, f_noise, f_ext, codes, table,
+                                    lengths)
+        v2c, v2l = vc + 0.5 * h * a1c, vl + 0.5 * h * a1l
+        a3c, a3l = _acc_flex_hooked(_force_at(tau + 0.5 * h, f_start, f_prev, f_cur, delta, tau_i),
+                                    xc + 0.5 * h * v2c, vc + 0.5 * h * a2c, xl + 0.5 * h * v2l, vl + 0.5 * h * a2l,
+                                    t + 0.5 * h, mc, ml, m_tot, ks, cs, b, fc, f0, f_noise, f_ext, codes, table,
+                                    lengths)
+        v3c, v3l = vc + 0.5 * h * a2c, vl + 0.5 * h * a2l
+        a4c, a4l = _acc_flex_hooked(_force_at(tau + h, f_start, f_prev, f_cur, delta, tau_i),
+                                    xc + h * v3c, vc + h * a3c, xl + h * v3l, vl + h * a3l, t + h,
+                                    mc, ml, m_tot, ks, cs, b, fc, f0, f_noise, f_ext, codes, table, lengths)
+        v4c, v4l = vc + h * a3c, vl + h * a3l
+        xc += h / 6.0 * (vc + 2.0 * v2c + 2.0 * v3c + v4c)
+        xl += h / 6.0 * (vl + 2.0 * v2l + 2.0 * v3l + v4l)
+        vc += h / 6.0 * (a1c + 2.0 * a2c + 2.0 * a3c + a4c)
+        vl += h / 6.0 * (a1l + 2.0 * a2l + 2.0 * a3l + a4l)
+        t += h
+        tau += h
+    return xc, vc, xl, vl, t, _force_at(tau, f_start, f_prev, f_cur, delta, tau_i)
+
+
+@njit
+def _hooked_step(u, s, p, dl, nz, codes, table, lengths):
+    """One period of an axis whose effects all have compiled terms (:meth:`AxisPlant.step` after
+    its input hooks), ``codes``/``table``/``lengths`` from :func:`motorctl.effects.plant.rows`:
+    :func:`_plant_step` with :func:`_rk4_hooked` / :func:`_rk4_flex_hooked` for the integrators
+    (the same operations in the same order as the Python path)."""
+    a1, a2, a3 = p[PP_A1], p[PP_A2], p[PP_A3]
+    stuck, x0, xl0 = _period_begin(u, s, p, nz)
+    n = int(p[PP_N])
+    if p[PP_FLEX] == 0.0:
+        s[PS_X], s[PS_XD], s[PS_T] = _rk4_hooked(s[PS_X], s[PS_XD], s[PS_T], u, p[PP_H], n, p[PP_M], a1, a2, a3,
+                                                 p[PP_B], p[PP_FC], p[PP_F0], s[PS_FNOISE], s[PS_FEXT], codes,
+                                                 table, lengths)
+    else:
+        f_prev, f_cur = _current_command(u, s, p, dl)
+        (s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], s[PS_F]) = _rk4_flex_hooked(
+            s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], s[PS_F], f_prev, f_cur, p[PP_DELTA], p[PP_TAUI],
+            p[PP_H], n, p[PP_MC], p[PP_ML], p[PP_M], p[PP_KS], p[PP_CS], p[PP_B], p[PP_FC], p[PP_F0],
+            s[PS_FNOISE], s[PS_FEXT], codes, table, lengths)
+    _period_end(s, p, nz, stuck, x0, xl0)
 
 
 def _state_property(j: int, doc: str):
@@ -383,6 +546,8 @@ class AxisPlant:
         self._inputs = tuple(t.input for t in terms if t.input is not None)
         # no position/time-dependent effect: the compiled plain integrator applies
         self._hooks = bool(self._thrust or self._forces or self._masses)
+        # every effect term compiled: the whole period is one compiled call (_hooked_step)
+        self._terms = effect_terms.rows(terms) if self._hooks else None
         self._flex = opt.flexible()
         self._plain = not (self._hooks or self._flex)
         # unmodelled dynamics (module docstring)
@@ -416,8 +581,12 @@ class AxisPlant:
         self._nz = np.zeros(NOISE_BLOCK)
         self._s[PS_NZI] = NOISE_BLOCK                          # drawn at the first step
         _plant_measured(self._s, self._p)                      # compile (or load the cache) now
-        if self._compiled:
-            _plant_step(0.0, self._s.copy(), self._p, self._dl.copy(), np.zeros(NOISE_BLOCK))
+        s0 = self._s.copy()
+        s0[PS_NZI] = 0.0                                       # (a copy's first draw inside its block)
+        if not self._hooks:
+            _plant_step(0.0, s0, self._p, self._dl.copy(), np.zeros(NOISE_BLOCK))
+        if self._terms is not None:
+            _hooked_step(0.0, s0, self._p, self._dl.copy(), np.zeros(NOISE_BLOCK), *self._terms)
 
     def _acc(self, x: float, v: float, t: float, u: float) -> float:
         """ẍ [m/s²] at position x [m], velocity v [m/s], plant time t [s] under input u [V]:
@@ -466,6 +635,14 @@ class AxisPlant:
             return
         for delay in self._inputs:
             u = delay(u)
+        if self._terms is not None:
+            self.refill_noise()
+            _hooked_step(u, self._s, self._p, self._dl, self._nz, *self._terms)
+            return
+        if self._inputs and not self._hooks:   # an input transform only: the plant without hooks
+            self.refill_noise()
+            _plant_step(u, self._s, self._p, self._dl, self._nz)
+            return
         if self.noise > 0.0:
             self.f_noise = self.noise * float(self.rng.standard_normal())
         if self.stiction > 0.0 and self._stuck(u):
@@ -597,16 +774,18 @@ class SimDriver(Driver):
         self._NZ = np.zeros((n, NOISE_BLOCK))
         for i, p in enumerate(self.plants):
             p.rehome(self._S[i], self._P[i], self._DL[i, :p._dl.size], self._NZ[i])
-            if p._compiled:             # (a plant with hooks draws one at a time, in Python)
-                p.refill_noise()
-        # compile (or load the cache) now, on copies
-        _sim_read(self.position_m.copy(), self.read_error.copy(), self.amp_fault.copy(), False, self._S.copy(),
-                  self._P, self._inject.copy(), self._jump_m)
+            if p._compiled:             # (a plant with hooks draws its first block at its first step,
+                p.refill_noise()        # one with Python hooks one draw at a time)
+        self.applied_u = np.zeros(n)   # voltage at the amplifier output [V]
+        self._io = self._sim_io()
+        # the compiled read and write, compiled (or loaded from the cache) now and run on copies
+        self._read = entry(_sim_read, self._io, False)
+        self._read(self._sim_io(copies=True), False)
+        self._write = None
+        self._u_ok = self._en_ok = None       # the last output arrays seen to have the right types
         if self._compiled:
-            _sim_write(np.zeros(n), np.zeros(n, dtype=bool), self.amp_fault.copy(), False, self.amp_enabled.copy(),
-                       np.zeros(n), self._S.copy(), self._P,
-                       self._DL.copy(), self._NZ.copy(), self._inject.copy(), self._push_N)
-        self.applied_u = np.zeros(len(self.plants))   # voltage at the amplifier output [V]
+            self._write = entry(_sim_write, self._io, np.zeros(n), np.zeros(n, dtype=bool), False)
+            self._write(self._sim_io(copies=True), np.zeros(n), np.zeros(n, dtype=bool), False)
         self.watchdog_ns = int(options.watchdog_s * 1e9)
         self.watchdog_bites = 0
         self._last_write_ns = 0
@@ -614,6 +793,15 @@ class SimDriver(Driver):
         self._period_ns = int(round(period_s * 1e9))
         for i, p in enumerate(self.plants):
             self.position_m[i] = p.measured()
+
+    def _sim_io(self, copies: bool = False) -> SimIO:
+        """The exchange's arrays (:class:`SimIO`), or copies of them (for a call that changes
+        nothing)."""
+        arrays = (self.position_m, self.read_error, self.amp_fault, self.amp_enabled, self.applied_u, self._S,
+                  self._P, self._DL, self._NZ, self._inject, self._jump_m, self._push_N)
+        if copies:
+            arrays = tuple(a.copy() for a in arrays)
+        return bundle(_make_sim_io, SIM_FIELDS, arrays)
 
     def _watchdog(self) -> bool:
         """The drive's command watchdog, checked at every exchange (read and write): a stall
@@ -636,19 +824,19 @@ class SimDriver(Driver):
         return True
 
     def read(self) -> None:
-        pos = self.position_m
         if self.watchdog_ns and self._last_write_ns:
             self._watchdog()
         bitten = self._bite_pending
         self._bite_pending = False
-        _sim_read(pos, self.read_error, self.amp_fault, bitten, self._S, self._P, self._inject, self._jump_m)
+        self._read(self._io, bitten)
 
     def write(self, u_V: np.ndarray, enable: np.ndarray) -> None:
         # a command that arrives after the watchdog expired finds the amplifier already off
         bitten = bool(self.watchdog_ns and self._last_write_ns and self._watchdog())
         if self._compiled:
-            if _sim_write(u_V, enable, self.amp_fault, bitten, self.amp_enabled, self.applied_u, self._S, self._P,
-                          self._DL, self._NZ, self._inject, self._push_N):
+            if u_V is not self._u_ok or enable is not self._en_ok:
+                u_V, enable = self._checked(u_V, enable)
+            if self._write(self._io, u_V, enable, bitten):
                 for plant in self.plants:
                     plant.refill_noise()
             if self.watchdog_ns:
@@ -670,6 +858,20 @@ class SimDriver(Driver):
             plant.step(u)
         if self.watchdog_ns:
             self._last_write_ns = time.monotonic_ns()
+
+    def _checked(self, u_V, enable):
+        """u_V and enable as the compiled write takes them (float64 and bool, (n,), contiguous):
+        as given when they are (then remembered, so the loop's own arrays are checked once),
+        else converted."""
+        n = len(self.plants)
+        ok = (isinstance(u_V, np.ndarray) and u_V.dtype == np.float64 and u_V.shape == (n,)
+              and u_V.flags.c_contiguous and isinstance(enable, np.ndarray) and enable.dtype == np.bool_
+              and enable.shape == (n,) and enable.flags.c_contiguous)
+        if ok:
+            self._u_ok, self._en_ok = u_V, enable
+            return u_V, enable
+        return (np.ascontiguousarray(np.broadcast_to(np.asarray(u_V, dtype=np.float64), (n,))),
+                np.ascontiguousarray(np.broadcast_to(np.asarray(enable, dtype=np.bool_), (n,))))
 
     def _stop(self, timeout_s: float) -> list[StopCheck]:
         """0 V with every amplifier off (one more period of plant time), read back from the

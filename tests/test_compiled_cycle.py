@@ -65,9 +65,9 @@ def test_a_compiled_law_and_the_same_law_from_python_record_the_same(repo, law):
 
 @pytest.mark.parametrize("delayed", [False, True], ids=["compiled", "x-with-a-hook"])
 def test_the_compiled_plants_draw_the_same_noise_as_one_draw_at_a_time(repo, delayed):
-    """``delayed``: X's plant has an input delay (an effect hook: its period runs in Python) and
-    the driver's read and write run per axis; its noise must still be the Generator's draws,
-    one at a time from the first."""
+    """``delayed``: X's plant has an input delay (an effect hook: its input transform runs in
+    Python, then its period is one compiled call of its own) and the driver's read and write run
+    per axis; its noise must still be the Generator's draws, one at a time from the first."""
     d = load_yaml(repo / "configs" / "gantry.yaml")
     if delayed:
         d["axes"]["X"]["driver"]["input_delay_s"] = 0.0004

@@ -39,7 +39,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field
 
-from motorctl.jit import njit
+from motorctl.jit import entry, njit
 from motorctl.control.base import (
     LAW_DCDIARC,
     LAW_PY,
@@ -481,6 +481,9 @@ class DCDIARC(Controller):
         self.theta_hat = est.theta_hat[:n]
         self.beta_hat = est.theta_hat[n:]
         self._cm = est.cols
+        # the compiled step for these arrays, called from update() without numba's type resolution
+        self._step = entry(dcdiarc_block_step, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, self.signals,
+                           self._F, self._I, self._L)
 
     @property
     def law_code(self) -> int:
@@ -554,8 +557,8 @@ class DCDIARC(Controller):
             self.reset(y)
         comp = self.compensation
         if comp is None:
-            return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, x_d, xd_dot, xd_ddot, 0.0, 1.0, 1.0,
-                                      self.signals, self._F, self._I, self._L)
+            return self._step(y, x_d, xd_dot, xd_ddot, x_d, xd_dot, xd_ddot, 0.0, 1.0, 1.0,
+                              self.signals, self._F, self._I, self._L)
         tau = self.preview_s
         if tau > 0.0:
             if self._pv_set:
@@ -584,8 +587,8 @@ class DCDIARC(Controller):
             if thrust is not None:
                 g_meas = 1.0 + thrust(xm)
                 g_des = 1.0 + thrust(xf)
-        return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des,
-                                  self.signals, self._F, self._I, self._L)
+        return self._step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, self.signals, self._F,
+                          self._I, self._L)
 
     # outputs of the last sample (float reads of the state vector)
     u = property(lambda self: float(self._st[S_U]))

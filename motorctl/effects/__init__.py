@@ -37,7 +37,9 @@ The order of :data:`FAMILIES` is fixed: it is the order of the identification's 
 of the plant's force terms (float sums: do not reorder existing entries).
 
 Adding a family: a module with an :class:`~motorctl.effects.base.EffectFamily` subclass and a
-``FAMILY`` instance, its tests, and one entry in :data:`FAMILIES`. The YAML schemas
+``FAMILY`` instance, its tests, and one entry in :data:`FAMILIES`; a thrust, force or mass plant
+term written as a compiled kernel (:meth:`~motorctl.effects.base.PlantTerm.compiled`) is also
+listed in :mod:`motorctl.effects.plant` (else the simulated plant runs it in Python). The YAML schemas
 (``axes.NAME.driver.effects``, ``axes.NAME.controller.compensation``) are built from the
 registry when their modules are imported (:func:`effects_model`, :func:`compensation_model`).
 """

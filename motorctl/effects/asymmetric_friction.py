@@ -17,8 +17,16 @@ import numpy as np
 
 from motorctl.effects.base import Adaptable, EffectFamily, PlantTerm, Signals
 from motorctl.effects.stribeck import velocity_grid
+from motorctl.jit import njit
 from motorctl.model import s_f
 from motorctl.schema import StrictModel
+
+
+@njit
+def plant_force(f, x, v, t, sf, p):
+    """f + F_eff [N] at velocity v [m/s] with sf = S_f(v) (x, t unused): f − (ΔF_c sf + ΔB v)
+    for v > 0, else f; the row p = (ΔF_c [N], ΔB [N s/m])."""
+    return f - (p[0] * sf + p[1] * v) if v > 0.0 else f
 
 
 class AsymmetricFriction(StrictModel):
@@ -55,11 +63,7 @@ class AsymmetricFrictionFamily(EffectFamily):
 
     # simulator
     def plant_term(self, o: AsymmetricFriction, period_s):
-        c, b = o.coulomb_N, o.viscous_N_s_per_m
-
-        def force(f, x, v, t, sf):
-            return f - (c * sf + b * v) if v > 0.0 else f
-        return PlantTerm(force=force)
+        return PlantTerm.compiled("force", plant_force, [o.coulomb_N, o.viscous_N_s_per_m])
 
     # identification
     def columns(self, h, p):

@@ -68,13 +68,44 @@ class PlantTerm:
     * ``mass(m, t) -> m'``: the moving mass [kg] at plant time t [s];
     * ``input(u) -> u'``: the input [V] that reaches the amplifier this period (called once per
       period, before integrating; may keep state, e.g. a delay line).
+
+    A term built by :meth:`compiled` also carries its hook as a compiled kernel and a parameter
+    row (``kernel``, ``params``): the plant then runs the whole period compiled
+    (:mod:`motorctl.effects.plant`); a term of Python hooks only is run by the plant's Python
+    path (the same equations).
     """
 
-    __slots__ = ("force", "input", "mass", "thrust")
+    __slots__ = ("force", "input", "kernel", "mass", "params", "thrust")
 
     def __init__(self, thrust: Callable | None = None, force: Callable | None = None,
                  mass: Callable | None = None, input: Callable | None = None):
         self.thrust, self.force, self.mass, self.input = thrust, force, mass, input
+        self.kernel, self.params = None, None
+
+    @classmethod
+    def compiled(cls, hook: str, kernel: Callable, params) -> PlantTerm:
+        """A term whose ``hook`` ('thrust', 'force' or 'mass') is a compiled kernel (numba,
+        :data:`motorctl.jit.njit`) with its parameter row bound.
+
+        Args:
+            hook: which hook the kernel is. kernel: ``kernel(fm, x, t, p)`` (thrust),
+                ``kernel(f, x, v, t, sf, p)`` (force) or ``kernel(m, t, p)`` (mass), the hook's
+                arguments followed by the row p; listed in :data:`motorctl.effects.plant.KERNELS`.
+            params: the row p (k,) of floats, in the kernel's documented order.
+        Raises:
+            ValueError: unknown hook.
+        """
+        p = np.ascontiguousarray(params, dtype=np.float64)
+        if hook == "thrust":
+            term = cls(thrust=lambda fm, x, t: kernel(fm, x, t, p))
+        elif hook == "force":
+            term = cls(force=lambda f, x, v, t, sf: kernel(f, x, v, t, sf, p))
+        elif hook == "mass":
+            term = cls(mass=lambda m, t: kernel(m, t, p))
+        else:
+            raise ValueError(f"hook {hook!r}: must be 'thrust', 'force' or 'mass'")
+        term.kernel, term.params = kernel, p
+        return term
 
 
 class CompHook:

@@ -31,7 +31,19 @@ from motorctl.effects.periodic import (
     harmonics,
     sin_cos_of,
 )
+from motorctl.jit import njit
 from motorctl.schema import Pos
+
+
+@njit
+def plant_force(f, x, v, t, sf, p):
+    """f + F_eff [N] at position x [m], plant time t [s] (v, sf unused): f + Σ_k g A_k
+    sin(w_k x + φ_k), g = s after plant time t_s, else 1; the row p = (t_s [s] (inf: no step),
+    s [-], A_1 [N], w_1 [rad/m], φ_1 [rad], A_2, w_2, φ_2, ...) of :meth:`CoggingFamily.plant_term`."""
+    g = p[1] if t >= p[0] else 1.0
+    for j in range(2, p.shape[0], 3):
+        f += g * p[j] * math.sin(p[j + 1] * x + p[j + 2])
+    return f
 
 
 class Cogging(AmplitudeStep):
@@ -70,22 +82,10 @@ class CoggingFamily(PositionPeriodic):
     # simulator
     def plant_term(self, o: Cogging, period_s):
         ph = list(o.phases_rad) + [0.0] * len(o.amplitudes_N)
-        harm = tuple((a, 2 * math.pi * (k + 1) / o.period_m, ph[k]) for k, a in enumerate(o.amplitudes_N))
-        sin = math.sin
-        if o.step_at_s is None:
-            def force(f, x, v, t, sf):
-                for amp, w, phi in harm:
-                    f += amp * sin(w * x + phi)
-                return f
-            return PlantTerm(force=force)
-        t_step, scale = o.step_at_s, o.scale_after
-
-        def force_step(f, x, v, t, sf):
-            g = scale if t >= t_step else 1.0
-            for amp, w, phi in harm:
-                f += g * amp * sin(w * x + phi)
-            return f
-        return PlantTerm(force=force_step)
+        row = [math.inf, 1.0] if o.step_at_s is None else [o.step_at_s, o.scale_after]
+        for k, a in enumerate(o.amplitudes_N):
+            row += [a, 2 * math.pi * (k + 1) / o.period_m, ph[k]]
+        return PlantTerm.compiled("force", plant_force, row)
 
     # identification
     def columns(self, h, p):

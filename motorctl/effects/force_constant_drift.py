@@ -20,10 +20,18 @@ import numpy as np
 
 from motorctl.effects.base import EffectFamily, PlantTerm
 from motorctl.effects.periodic import SHAPE_POINTS
+from motorctl.jit import njit
 from motorctl.schema import NonNeg, StrictModel
 
 #: the largest plausible drift over one record, as a fraction of the force constant
 MAX_DRIFT = 0.5
+
+
+@njit
+def plant_thrust(fm, x, t, p):
+    """The thrust [N] at plant time t [s] (x unused): fm (1 + κ (t − t_0)) after t_0, else fm;
+    the row p = (κ [1/s], t_0 [s])."""
+    return fm * (1.0 + p[0] * (t - p[1])) if t > p[1] else fm
 
 
 class ForceConstantDrift(StrictModel):
@@ -44,11 +52,7 @@ class ForceConstantDriftFamily(EffectFamily):
 
     # simulator
     def plant_term(self, o: ForceConstantDrift, period_s):
-        kappa, t0 = o.drift_per_s, o.start_s
-
-        def thrust(fm, x, t):
-            return fm * (1.0 + kappa * (t - t0)) if t > t0 else fm
-        return PlantTerm(thrust=thrust)
+        return PlantTerm.compiled("thrust", plant_thrust, [o.drift_per_s, o.start_s])
 
     # identification
     def columns(self, h, p):

@@ -23,10 +23,21 @@ from pydantic import Field, model_validator
 
 from motorctl.effects.base import CompHook, PlantTerm, Signals
 from motorctl.effects.periodic import N_HARMONICS, PositionPeriodic, fourier, harmonics, sin_cos_of
+from motorctl.jit import njit
 from motorctl.schema import Pos, StrictModel
 
 #: Largest plausible ripple fraction r_k.
 MAX_FRACTION = 0.3
+
+
+@njit
+def plant_thrust(fm, x, t, p):
+    """The thrust [N] at position x [m] (t unused): fm (1 + Σ_k r_k sin(w_k x + φ_k)); the row
+    p = (r_1 [-], w_1 [rad/m], φ_1 [rad], r_2, w_2, φ_2, ...) of :meth:`ForceRippleFamily.plant_term`."""
+    r = 0.0
+    for j in range(0, p.shape[0], 3):
+        r += p[j] * math.sin(p[j + 1] * x + p[j + 2])
+    return fm * (1.0 + r)
 
 
 class ForceRipple(StrictModel):
@@ -70,15 +81,10 @@ class ForceRippleFamily(PositionPeriodic):
     # simulator
     def plant_term(self, o: ForceRipple, period_s):
         ph = list(o.phases_rad) + [0.0] * len(o.fractions)
-        harm = tuple((r, 2 * math.pi * (k + 1) / o.period_m, ph[k]) for k, r in enumerate(o.fractions))
-        sin = math.sin
-
-        def thrust(fm, x, t):
-            r = 0.0
-            for amp, w, phi in harm:
-                r += amp * sin(w * x + phi)
-            return fm * (1.0 + r)
-        return PlantTerm(thrust=thrust)
+        row = []
+        for k, r in enumerate(o.fractions):
+            row += [r, 2 * math.pi * (k + 1) / o.period_m, ph[k]]
+        return PlantTerm.compiled("thrust", plant_thrust, row)
 
     # identification
     def columns(self, h, p):

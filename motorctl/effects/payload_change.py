@@ -14,7 +14,15 @@ import numpy as np
 
 from motorctl.effects.base import EffectFamily, PlantTerm, Signals
 from motorctl.effects.periodic import SHAPE_POINTS
+from motorctl.jit import njit
 from motorctl.schema import NonNeg, StrictModel
+
+
+@njit
+def plant_mass(m, t, p):
+    """The moving mass [kg] at plant time t [s]: m + Δm from t_c on, else m; the row
+    p = (t_c [s], Δm [kg])."""
+    return m + p[1] if t >= p[0] else m
 
 
 class PayloadChange(StrictModel):
@@ -35,11 +43,7 @@ class PayloadChangeFamily(EffectFamily):
 
     # simulator
     def plant_term(self, o: PayloadChange, period_s):
-        tc, dm = o.t_change_s, o.mass_kg
-
-        def mass(m, t):
-            return m + dm if t >= tc else m
-        return PlantTerm(mass=mass)
+        return PlantTerm.compiled("mass", plant_mass, [o.t_change_s, o.mass_kg])
 
     # identification
     def columns(self, h, p):

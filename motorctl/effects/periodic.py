@@ -1,7 +1,7 @@
 """Helpers shared by the periodic families: Fourier columns, periodograms, search grids, and the
 position-periodic search of cogging, force ripple and periodic friction (not a family itself).
 
-Position-periodic search (design note ``residual-analysis.md``): the period P is taken from the
+Position-periodic search (docs/identification.md, section 2, the cogging row): the period P is taken from the
 peaks of a least-squares (Lomb-Scargle) periodogram of the residual against **position**
 (moving samples, P from 1 mm to min(0.1 m, stroke/3)), then refined by the joint LS fit on
 grids at ±3 % and ±0.5 % of each peak; a peak whose period lowers the SSE by less than
@@ -16,6 +16,7 @@ import numpy as np
 from pydantic import model_validator
 
 from motorctl.effects.base import Adaptable, EffectFamily
+from motorctl.jit import njit
 from motorctl.schema import NonNeg, StrictModel
 
 #: Harmonics fitted for position- and time-periodic families.
@@ -50,6 +51,17 @@ def fourier(z: np.ndarray, period: float, k: int, scale=None) -> np.ndarray:
     if scale is not None:
         out *= scale[:, None]
     return out
+
+
+@njit
+def friction_force(f, x, v, t, sf, p):
+    """f + F_eff [N] of a position-periodic friction (the periodic_friction family's plant term)
+    at position x [m] with sf = S_f(v) (v, t unused): f − (Σ_k A_k sin(w_k x + φ_k)) sf; the row
+    p = (A_1 [N], w_1 [rad/m], φ_1 [rad], A_2, w_2, φ_2, ...)."""
+    g = 0.0
+    for j in range(0, p.shape[0], 3):
+        g += p[j] * math.sin(p[j + 1] * x + p[j + 2])
+    return f - g * sf
 
 
 def amplitudes_phases(beta: np.ndarray, g: float) -> tuple[np.ndarray, np.ndarray]:

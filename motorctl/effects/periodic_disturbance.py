@@ -31,10 +31,18 @@ from motorctl.effects.periodic import (
     sin_cos_of,
     time_periodogram,
 )
+from motorctl.jit import njit
 from motorctl.schema import Pos
 
 #: Frequency grid step [Hz] of the spectrum search.
 DF_HZ = 0.02
+
+
+@njit
+def plant_force(f, x, v, t, sf, p):
+    """f + F_eff [N] at plant time t [s] (x, v, sf unused): f + A' sin(w t + φ), A' = A before
+    t_s, A_2 from t_s on; the row p = (A [N], w [rad/s], φ [rad], t_s [s] (inf: no step), A_2 [N])."""
+    return f + (p[4] if t >= p[3] else p[0]) * math.sin(p[1] * t + p[2])
 
 
 class PeriodicDisturbance(AmplitudeStep):
@@ -70,16 +78,8 @@ class PeriodicDisturbanceFamily(EffectFamily):
     # simulator
     def plant_term(self, o: PeriodicDisturbance, period_s):
         a, w, ph = o.amplitude_N, 2.0 * math.pi * o.frequency_Hz, o.phase_rad
-        sin = math.sin
-        if o.step_at_s is None:
-            def force(f, x, v, t, sf):
-                return f + a * sin(w * t + ph)
-            return PlantTerm(force=force)
-        t_step, a2 = o.step_at_s, a * o.scale_after
-
-        def force_step(f, x, v, t, sf):
-            return f + (a2 if t >= t_step else a) * sin(w * t + ph)
-        return PlantTerm(force=force_step)
+        step = [math.inf, a] if o.step_at_s is None else [o.step_at_s, a * o.scale_after]
+        return PlantTerm.compiled("force", plant_force, [a, w, ph] + step)
 
     # identification
     def columns(self, h, p):

@@ -68,16 +68,12 @@ class PeriodicFrictionFamily(PositionPeriodic):
 
     # simulator
     def plant_term(self, o: PeriodicFriction, period_s):
+        from motorctl.effects.periodic import friction_force
         ph = list(o.phases_rad) + [0.0] * len(o.amplitudes_N)
-        harm = tuple((a, 2 * math.pi * (k + 1) / o.period_m, ph[k]) for k, a in enumerate(o.amplitudes_N))
-        sin = math.sin
-
-        def force(f, x, v, t, sf):
-            g = 0.0
-            for amp, w, phi in harm:
-                g += amp * sin(w * x + phi)
-            return f - g * sf
-        return PlantTerm(force=force)
+        row = []
+        for k, a in enumerate(o.amplitudes_N):
+            row += [a, 2 * math.pi * (k + 1) / o.period_m, ph[k]]
+        return PlantTerm.compiled("force", friction_force, row)
 
     # identification
     def columns(self, h, p):

@@ -59,11 +59,8 @@ class PositionDependentFrictionFamily(EffectFamily):
 
     # simulator
     def plant_term(self, o: PositionDependentFriction, period_s):
-        c, xr = o.coulomb_slope_N_per_m, o.reference_m
-
-        def force(f, x, v, t, sf):
-            return f - c * (x - xr) * sf
-        return PlantTerm(force=force)
+        from motorctl.effects.position_friction_shape import line_force
+        return PlantTerm.compiled("force", line_force, [o.coulomb_slope_N_per_m, o.reference_m])
 
     # identification
     def columns(self, h, p):

@@ -53,6 +53,7 @@ from pydantic import Field, model_validator
 from motorctl.effects.base import EffectFamily, PlantTerm
 from motorctl.effects.periodic import SHAPE_POINTS
 from motorctl.effects.position_dependent_friction import FAMILY as LINEAR
+from motorctl.jit import njit
 from motorctl.model import s_f
 from motorctl.schema import Pos, StrictModel
 
@@ -282,6 +283,28 @@ def spline_pieces(start_m: float, end_m: float, coefficients) -> tuple:
     return (start_m, 1.0 / dx, n, *a, float(spl(start_m)), float(spl(end_m)))
 
 
+@njit
+def plant_force(f, x, v, t, sf, p):
+    """f + F_eff [N] at position x [m] with sf = S_f(v) (v, t unused): f − g(x) sf, g the sum of
+    raised-cosine bumps a cos²(k (x − c)) for |x − c| < h (:func:`bump_value`); the row
+    p = (c_1 [m], h_1 = w_1/2 [m], k_1 = π/w_1 [rad/m], a_1 [N], c_2, ...)."""
+    g = 0.0
+    for j in range(0, p.shape[0], 4):
+        s = x - p[j]
+        if -p[j + 1] < s < p[j + 1]:
+            q = math.cos(p[j + 2] * s)
+            g += p[j + 3] * q * q
+    return f - g * sf
+
+
+@njit
+def line_force(f, x, v, t, sf, p):
+    """f + F_eff [N] of a straight-line friction shape (the one-segment case; the
+    position_dependent_friction family's plant term) at position x [m] with sf = S_f(v)
+    (v, t unused): f − c (x − x_ref) sf; the row p = (c [N/m], x_ref [m])."""
+    return f - p[0] * (x - p[1]) * sf
+
+
 def _spline_fn(pieces):
     """g(x) [same unit as the coefficients] of :func:`spline_pieces` as a scalar float function."""
     lo, inv, n, a0, a1, a2, a3, g_lo, g_hi = pieces
@@ -350,11 +373,10 @@ class PositionFrictionShapeFamily(EffectFamily):
 
     # simulator
     def plant_term(self, o: PositionFrictionShape, period_s):
-        g = _bumps_fn(tuple((b.center_m, b.width_m, b.amplitude_N) for b in o.bumps))
-
-        def force(f, x, v, t, sf):
-            return f - g(x) * sf
-        return PlantTerm(force=force)
+        row = []
+        for b in o.bumps:
+            row += [b.center_m, 0.5 * b.width_m, math.pi / b.width_m, b.amplitude_N]
+        return PlantTerm.compiled("force", plant_force, row)
 
     # identification
     def columns(self, h, p):

@@ -18,7 +18,15 @@ import numpy as np
 
 from motorctl.effects.base import Adaptable, EffectFamily, PlantTerm, Signals
 from motorctl.effects.periodic import SHAPE_POINTS
+from motorctl.jit import njit
 from motorctl.schema import StrictModel
+
+
+@njit
+def plant_force(f, x, v, t, sf, p):
+    """f + F_eff [N] at position x [m] (v, t, sf unused): f − k (x − x_0); the row
+    p = (k [N/m], x_0 [m])."""
+    return f - p[0] * (x - p[1])
 
 
 class Spring(StrictModel):
@@ -54,11 +62,7 @@ class SpringFamily(EffectFamily):
 
     # simulator
     def plant_term(self, o: Spring, period_s):
-        k, x0 = o.stiffness_N_per_m, o.rest_position_m
-
-        def force(f, x, v, t, sf):
-            return f - k * (x - x0)
-        return PlantTerm(force=force)
+        return PlantTerm.compiled("force", plant_force, [o.stiffness_N_per_m, o.rest_position_m])
 
     # identification
     def columns(self, h, p):

@@ -17,8 +17,17 @@ import numpy as np
 
 from motorctl.effects.base import Adaptable, EffectFamily, PlantTerm, Signals
 from motorctl.effects.periodic import SHAPE_POINTS
+from motorctl.jit import njit
 from motorctl.model import s_f
 from motorctl.schema import NonNeg, Pos, StrictModel
+
+
+@njit
+def plant_force(f, x, v, t, sf, p):
+    """f + F_eff [N] at velocity v [m/s] with sf = S_f(v) (x, t unused):
+    f − F_s exp(−(v/v_s)²) sf; the row p = (F_s [N], v_s [m/s])."""
+    z = v / p[1]
+    return f - p[0] * math.exp(-z * z) * sf
 
 
 class Stribeck(StrictModel):
@@ -62,13 +71,7 @@ class StribeckFamily(EffectFamily):
 
     # simulator
     def plant_term(self, o: Stribeck, period_s):
-        fs, vs = o.force_N, o.velocity_m_per_s
-        exp = math.exp
-
-        def force(f, x, v, t, sf):
-            z = v / vs
-            return f - fs * exp(-z * z) * sf
-        return PlantTerm(force=force)
+        return PlantTerm.compiled("force", plant_force, [o.force_N, o.velocity_m_per_s])
 
     # identification
     def columns(self, h, p):

@@ -54,13 +54,16 @@ def simulation_fit(idf, terms: list, ev, window_s: float = 0.2) -> float | None:
         dy_all.append(p.y[idx] - y0)
         err2.append(p.y[idx] - x)          # Δy − Δŷ with Δ from the measured start y0
         zero = np.zeros_like(x)
+        phi = idim_regressor(zero, v, uk, nt)      # at ẍ = 0; the row at ẍ = 1 differs in column 0
+        if idf.friction == "sign":
+            phi[:, 2] = np.sign(v)
+        fu = f_u(uk, *fu_coef) if fu_coef else None
         rest_cols = []
         for a_val in (zero, np.ones_like(x)):
-            phi = idim_regressor(a_val, v, uk, nt)
-            if idf.friction == "sign":
-                phi[:, 2] = np.sign(v)
+            if a_val is not zero:
+                phi[:, 0] = a_val
             val = phi @ th
-            q = Signals(x, v, a_val, uk, p.t[idx], f_u(uk, *fu_coef) if fu_coef else None)
+            q = Signals(x, v, a_val, uk, p.t[idx], fu)
             for fam, t, b in zip(families, terms, betas):
                 if t.cols is not None:
                     val = val + fam.columns(t.h, q) @ b

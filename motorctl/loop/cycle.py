@@ -17,20 +17,22 @@ package) stops before its law (``phase`` CYCLE_BEFORE, the axis marked pending);
 :meth:`Controller.update` from Python and a second call (CYCLE_AFTER) finishes the pending
 axes. Without such an axis the loop makes the one call (CYCLE_ALL).
 
-State lives in preallocated arrays laid out by name, one row per axis: ``ax`` (int64, ``A_*``),
-``axf`` (float64, ``X_*``), the trajectory tables ``prog`` and ``move``
-(:mod:`motorctl.loop.trajectory`), the supervisor's ``si``/``sf`` (:mod:`motorctl.loop.safety`),
-the law rows ``sig``/``cf``/``ci``/``cl`` (:meth:`Controller.attach`); ``buf`` is the record ring
-(:mod:`motorctl.loop.records`), ``offs`` the record's offsets and ``lp`` the loop's numbers.
-Nothing here allocates, blocks or logs.
+State lives in preallocated arrays laid out by name, passed as one :class:`CycleState` (a
+bundle, :func:`motorctl.jit.bundle`): the driver's ``pos``/``rerr``/``werr``/``ampf`` and the
+outputs ``uo``/``en``; one row per axis of ``ax`` (int64, ``A_*``), ``axf`` (float64, ``X_*``),
+the trajectory tables ``prog`` and ``move`` (:mod:`motorctl.loop.trajectory`), the supervisor's
+``si``/``sf`` (:mod:`motorctl.loop.safety`), the law rows ``sig``/``cf``/``ci``/``cl``
+(:meth:`Controller.attach`); ``buf`` is the record ring (:mod:`motorctl.loop.records`), ``offs``
+the record's offsets and ``lp`` the loop's numbers. Nothing here allocates, blocks or logs.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from numba.experimental.structref import StructRefProxy
 
 from motorctl.control.kernels import LAW_PY, law_reset, law_step
-from motorctl.jit import njit
+from motorctl.jit import BundleType, bundle, define_bundle, njit
 from motorctl.loop.records import CONTROLLER_SIGNALS, N_SIGNALS
 from motorctl.loop.safety import FAULT_OVERRUN, SI_FAULT, sup_check_input, sup_check_output, sup_trip
 from motorctl.loop.trajectory import TABLE_HEAD, sample_table
@@ -58,6 +60,41 @@ N_LP = 5
 O_AXIS = 8
 #: the following error the supervisor checks: the law's signal e
 SIG_E = list(CONTROLLER_SIGNALS).index("e")
+
+#: the fields of :class:`CycleState`, in constructor order (module docstring)
+CYCLE_FIELDS = ("pos", "rerr", "werr", "ampf", "uo", "en", "ax", "axf", "prog", "move", "si", "sf",
+                "sig", "cf", "ci", "cl", "buf", "offs", "lp")
+
+
+class CycleStateType(BundleType):
+    """numba type of :class:`CycleState`."""
+
+
+class CycleState(StructRefProxy):
+    """The arrays of the servo cycle by name (:data:`CYCLE_FIELDS`, module docstring), passed
+    to :func:`servo_cycle` as one argument; built by :func:`cycle_state`."""
+
+
+define_bundle(CycleStateType, CycleState, CYCLE_FIELDS)
+
+
+@njit
+def _make_cycle_state(pos, rerr, werr, ampf, uo, en, ax, axf, prog, move, si, sf, sig, cf, ci, cl, buf, offs,
+                      lp):
+    return CycleState(pos, rerr, werr, ampf, uo, en, ax, axf, prog, move, si, sf, sig, cf, ci, cl, buf, offs, lp)
+
+
+def cycle_state(*arrays) -> CycleState:
+    """The :class:`CycleState` of ``arrays``, one per name of :data:`CYCLE_FIELDS` in that order
+    (the arrays themselves, not copies).
+
+    Raises:
+        ValueError: not one array per field.
+    """
+    if len(arrays) != len(CYCLE_FIELDS):
+        raise ValueError(f"cycle_state takes {len(CYCLE_FIELDS)} arrays ({', '.join(CYCLE_FIELDS)}), "
+                         f"got {len(arrays)}")
+    return bundle(_make_cycle_state, CYCLE_FIELDS, arrays)
 
 
 @njit
@@ -121,12 +158,14 @@ def desired(i, k, ahead, ax, axf, prog, move, ts):
 
 
 @njit
-def servo_cycle(phase, k, pos, rerr, werr, ampf, uo, en, ax, axf, prog, move, si, sf, sig, cf, ci, cl,
-                buf, offs, lp):
-    """One servo cycle k of every axis (module docstring); ``phase``: CYCLE_ALL, CYCLE_BEFORE or
-    CYCLE_AFTER. Reads pos [m] and the driver's flags (n,), writes uo [V] and en (n,) and the
-    record row k % capacity of buf. Returns the number of axes left pending (laws to run from
-    Python)."""
+def servo_cycle(phase, k, st):
+    """One servo cycle k of every axis (module docstring) on the :class:`CycleState` ``st``;
+    ``phase``: CYCLE_ALL, CYCLE_BEFORE or CYCLE_AFTER. Reads st.pos [m] and the driver's flags
+    (n,), writes st.uo [V] and st.en (n,) and the record row k % capacity of st.buf. Returns the
+    number of axes left pending (laws to run from Python)."""
+    pos, rerr, werr, ampf, uo, en = st.pos, st.rerr, st.werr, st.ampf, st.uo, st.en
+    ax, axf, prog, move, si, sf = st.ax, st.axf, st.prog, st.move, st.si, st.sf
+    sig, cf, ci, cl, buf, offs, lp = st.sig, st.cf, st.ci, st.cl, st.buf, st.offs, st.lp
     ts = lp[LP_TS]
     n = pos.shape[0]
     row = buf[k % buf.shape[0]]

@@ -57,6 +57,7 @@ import time
 import numpy as np
 
 from motorctl.control.kernels import LAW_PY, N_LAYOUT
+from motorctl.jit import entry
 from motorctl.loop import cycle as C
 from motorctl.loop.cycle import APPROACH, HOLD, IDLE, JOG, PROGRAM, servo_cycle
 from motorctl.loop.records import CONTROLLER_SIGNALS, N_SIGNALS, RecordLayout
@@ -193,24 +194,26 @@ class ServoLoop:
             self.idle_all()
         self._warm_up()
 
-    def _cycle_args(self, copies: bool) -> tuple:
-        """The arrays :func:`servo_cycle` works on, after (phase, k); ``copies``: copies of
-        them (the record ring: its first row), for a call that changes nothing."""
+    def _cycle_state(self, copies: bool = False) -> C.CycleState:
+        """The arrays :func:`servo_cycle` works on (:class:`motorctl.loop.cycle.CycleState`);
+        ``copies``: on copies of them (the record ring: its first row), for a call that
+        changes nothing."""
         drv = self.driver
-        args = (drv.position_m, drv.read_error, drv.write_error, drv.amp_fault, self.u_out, self.enable_out,
-                self.ax, self.axf, self._prog, self._move, self.supervisor.si, self.supervisor.sf, self._sig,
-                self._cf, self._ci, self._cl, self.buf, self._offs, self._lp)
-        if not copies:
-            return args
-        return tuple(a[:1] if a is self.buf else a.copy() for a in args)
+        arrays = (drv.position_m, drv.read_error, drv.write_error, drv.amp_fault, self.u_out, self.enable_out,
+                  self.ax, self.axf, self._prog, self._move, self.supervisor.si, self.supervisor.sf, self._sig,
+                  self._cf, self._ci, self._cl, self.buf, self._offs, self._lp)
+        if copies:
+            arrays = tuple(a[:1] if a is self.buf else a.copy() for a in arrays)
+        return C.cycle_state(*arrays)
 
     def _warm_up(self) -> None:
-        """Compile (or load from the cache) the cycle now, on copies of the state, so that the
-        first cycle never pays for it (a drive's watchdog would not wait that long)."""
+        """Compile (or load from the cache) the cycle now and run it on copies of the state, so
+        that the first cycle never pays for it (a drive's watchdog would not wait that long)."""
         row0 = self.buf[0].copy()
-        args = self._cycle_args(copies=True)
+        st = self._cycle_state(copies=True)
+        self._cycle = entry(servo_cycle, 0, 0, st)    # the compiled call, for every cycle
         for phase in (C.CYCLE_BEFORE, C.CYCLE_AFTER, C.CYCLE_ALL):
-            servo_cycle(phase, 0, *args)
+            self._cycle(phase, 0, st)
         self.buf[0] = row0
 
     def _adopt(self, i: int, c) -> None:
@@ -283,7 +286,8 @@ class ServoLoop:
         mono = time.monotonic_ns
         sleep = time.sleep
         drv = self.driver
-        args = self._cycle_args(copies=False)
+        st = self._cycle_state()
+        cycle = self._cycle
         mv = self._mv
         width = self.width
         cap = self.capacity
@@ -322,11 +326,11 @@ class ServoLoop:
             t1 = mono()
             k = self.k
             if self._py:
-                if servo_cycle(C.CYCLE_BEFORE, k, *args):
+                if cycle(C.CYCLE_BEFORE, k, st):
                     self._python_laws(k)
-                    servo_cycle(C.CYCLE_AFTER, k, *args)
+                    cycle(C.CYCLE_AFTER, k, st)
             else:
-                servo_cycle(C.CYCLE_ALL, k, *args)
+                cycle(C.CYCLE_ALL, k, st)
             t2 = mono()
             drv.write(self.u_out, self.enable_out)
             t3 = mono()
@@ -349,7 +353,7 @@ class ServoLoop:
                     deadline = mono() + period
                 if self._args_changed:       # a switch grew the law rows
                     self._args_changed = False
-                    args = self._cycle_args(copies=False)
+                    st = self._cycle_state()
         return done
 
     def _overrun_ramp(self, total: int) -> None:
