@@ -26,8 +26,10 @@ pack the TPDO. What a drive adds on top is here:
   as ``heartbeat consumer X: ...`` with CLOCK_MONOTONIC times. This is the drive's watchdog;
   ``--watchdog`` is not used (the plant bank's command watchdog stays off).
 
-Faults (``--fault``, START counting SYNCs): emcy, drop (no TPDO), late, corrupt (a short TPDO),
-stale (the previous TPDO again), bus_off / disconnect (the node neither applies nor answers).
+Faults (``--fault``, START counting SYNCs): emcy, drop (no TPDO), late (the TPDO held back: sent
+``--late`` seconds after its SYNC and never before the next SYNC, so it misses its cycle whatever
+the host's scheduling, and comes in a burst with the next one), corrupt (a short TPDO), stale (the
+previous TPDO again), bus_off / disconnect (the node neither applies nor answers).
 Every state change is printed: ``X: Switch on disabled -> Ready to switch on (controlword
 0x0006, statusword 0x0021)``.
 """
@@ -58,6 +60,7 @@ class _Drive:
         self.consumer_s = 0.0
         self.last_host_hb = math.nan        # monotonic time of the host's last heartbeat
         self.last_tpdo = None
+        self.held = None                    # a late TPDO: (COB-ID, frame, monotonic time due)
         self.silent = False
 
 
@@ -168,6 +171,14 @@ class Cia402Device(Device):
     def _on_sync(self, can_id, data, timestamp) -> None:
         self.syncs += 1
         b = self.bank
+        for d in self.drives:              # a late answer goes out before this SYNC's (a burst)
+            if d.held is not None:
+                cob_id, frame, due = d.held
+                d.held = None
+                wait = due - time.monotonic()
+                if wait > 0.0:
+                    time.sleep(wait)
+                self.network.send_message(cob_id, frame)
         for i, d in enumerate(self.drives):
             if d.silent or d.node.nmt.state != "OPERATIONAL":
                 continue
@@ -205,9 +216,9 @@ class Cia402Device(Device):
                 self.network.send_message(tp.cob_id, d.last_tpdo)
             elif kind == "corrupt":
                 self.network.send_message(tp.cob_id, frame[:2])
+            elif kind == "late":
+                d.held = (tp.cob_id, frame, time.monotonic() + b.late_s)
             else:
-                if kind == "late":
-                    time.sleep(b.late_s)
                 tp.transmit()
             d.last_tpdo = frame
 

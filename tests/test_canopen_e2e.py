@@ -149,19 +149,21 @@ def test_sigkill_of_the_host_stops_the_torque_through_the_drives_heartbeat_consu
 
 
 def test_a_late_drive_costs_a_few_cycles_not_a_stale_position(tmp_path):
-    """X's drive answers one SYNC 6 ms (3 periods) late in the middle of a 2 m/s move; the TPDOs
-    of that SYNC and the ones behind it come in a burst. The driver counts SYNCs and TPDOs, so
-    it waits for the TPDO of the latest SYNC and takes none of the older ones: the loop rides
-    through on a few extrapolated cycles, with no fault. (Under a 2-core load a run once took
-    the first TPDO of such a burst for the latest: a position 12 mm old, and both axes faulted
-    on the following error.)"""
+    """X's drive answers one SYNC late in the middle of a 2 m/s move: its TPDO goes out 6 ms (3
+    periods) after that SYNC and never before the next one (the emulator's 'late' fault), so
+    it comes in a burst with the next SYNC's. The driver counts SYNCs and TPDOs, so it waits
+    for the TPDO of the latest SYNC and takes none of the older ones: the loop rides through
+    on an extrapolated cycle, with no fault. (Under a 2-core load a run once took the first
+    TPDO of such a burst for the latest: a position 12 mm old, and both axes faulted on the
+    following error.)"""
     d, cfg, rate = loopback_e2e_config("canopen", CONFIGS, tmp_path)
-    # lockstep with a 4 ms read timeout (2 periods): the 6 ms late SYNC is the only one missed,
-    # whatever the host's scheduling; the driver's default error bucket
+    # lockstep with a 4 ms read timeout (2 periods): the late answer misses its read whatever
+    # the host's scheduling (it waits for the next SYNC, which the host sends only after that
+    # read timed out); the driver's default error bucket
     d["loop"]["clock"] = "virtual"
     d["driver"].update(heartbeat_consumer_ms=1000, drive_heartbeat_timeout_ms=1000, timeout_s=0.004)
     start = round(0.7 * rate)                       # the SYNC count 0.7 s in: X moves at ~2 m/s
     r, _err, table, log_path = _faulted_run(tmp_path, d, cfg, f"late:X:{start}:1", 1.0, late_s=0.006)
     c = read_log(str(log_path)).header["driver"]["counters"]
     assert table["X"]["fault"] == "" and table["Y"]["fault"] == "", f"{r.stdout}\n{c}"
-    assert c["timeouts"] >= 1 and c["stale"] >= 2, c          # the burst was there and set aside
+    assert c["timeouts"] >= 1 and c["stale"] >= 1, c          # the burst was there and set aside

@@ -19,13 +19,14 @@ from motorctl_emulators.plant_bank import FaultSpec
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 PLANT = CONFIGS / "gantry.yaml"        # the emulator's plant: the simulated gantry
-WATCHDOG_S = 0.05
+WATCHDOG_S = 0.25                      # far above a loaded host's stall between two exchanges
 
 
 def _config(name: str, tmp_path, **driver) -> dict:
     d = load_yaml(CONFIGS / name)
     d["loop"]["rate_hz"] = 1000
-    d["driver"].update(timeout_s=0.0008, wait="spin")
+    d["loop"]["clock"] = "virtual"     # lockstep, 50 ms to answer: a loaded host's slow answer is no loss
+    d["driver"].update(timeout_s=0.05, wait="spin")
     d["driver"].update(driver)
     return d
 
@@ -55,7 +56,7 @@ def _drive(loaded, dev, cycles: int):
             errors += int(drv.read_error.any())
         moved = drv.position_m - y0
         # stop commanding: the device's watchdog trips and the next answer carries the fault
-        time.sleep(0.15)
+        time.sleep(2 * WATCHDOG_S)
         drv._first_reading(timeout_s=1.0)
         fault_after_watchdog = drv.amp_fault.copy()
         drv.close()                           # deactivate (0 V, disabled, answer awaited), release

@@ -144,7 +144,8 @@ def test_closed_loop_through_the_protocol_matches_the_sim_driver(transport, tmp_
 def test_emulator_watchdog_zeroes_output_when_the_driver_is_killed(transport, tmp_path, namespace_for):
     d, cfg, rate = loopback_e2e_config(transport, CONFIGS, tmp_path)
     prefix = namespace_for(transport)
-    with Emulator(transport, cfg, plant=PLANT, watchdog_s=0.05, prefix=prefix) as emu:
+    # the device's watchdog as the serial host sets it: far above a loaded host's stall
+    with Emulator(transport, cfg, plant=PLANT, watchdog_s=LOOPBACK_WATCHDOG_S, prefix=prefix) as emu:
         run = subprocess.Popen([*prefix, *motorctl_cmd("run", str(cfg), "--duration", "60")],
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
         try:

@@ -413,9 +413,11 @@ def test_the_device_holds_0V_and_enable_off_after_motorctl_run(how, tmp_path):
 # --------------------------------------------------------------------------- in process
 def test_registers_written_per_axis_unit_and_the_fc23_probe_falls_back(tmp_path):
     """Map A on a device without FC23: the probe's exception 01 turns the plan into FC16 + FC03.
-    Y on unit 2 with FC06/FC05/FC03. pymodbus's client reads back what the driver wrote."""
-    d = map_a(200.0, round_trip_s=0.0006, timeout_s=0.003, wait="spin", watchdog={"address": 200, "value": 150},
+    Y on unit 2 with FC06/FC05/FC03. pymodbus's client reads back what the driver wrote.
+    Lockstep with a 50 ms read timeout: a loaded host's slow answer is not a read error."""
+    d = map_a(200.0, round_trip_s=0.0006, timeout_s=0.05, wait="spin", watchdog={"address": 200, "value": 150},
               sequence_register=2)
+    d["loop"]["clock"] = "virtual"
     d["axes"]["Y"]["driver"] = {"unit_id": 2, "voltage": {"address": 7, "type": "int16"},
                                 "enable": {"table": "coil", "address": 3},
                                 "position": {"address": 50, "type": "int32", "scale": 0.5e-6},
@@ -491,8 +493,10 @@ if __name__ == "__main__":           # the device process of pymodbus_server()
 def test_an_exception_answer_is_the_drives_reason_while_it_lasts(tmp_path):
     """``fc23: yes`` forced on a device without FC23: every cycle's answer is exception 01; the
     driver's ``fault_reason`` (appended to the axis's fault in the run table and the daemon's
-    status) names the code and the request while the exchange keeps failing."""
-    d = map_a(200.0, round_trip_s=0.0006, timeout_s=0.003, wait="spin", fc23="yes")
+    status) names the code and the request while the exchange keeps failing. Lockstep with a
+    50 ms read timeout: the answer is the exception, never a loaded host's timeout."""
+    d = map_a(200.0, round_trip_s=0.0006, timeout_s=0.05, wait="spin", fc23="yes")
+    d["loop"]["clock"] = "virtual"
     cfg = _write_config(d, tmp_path / "forced.yaml")
     loaded = config_from_dict(d, str(cfg), check_budget=False)
     with pymodbus_server(cfg, shared=True, no_fc23=True):

@@ -173,13 +173,16 @@ def test_a_device_written_from_the_spec_closes_the_loop_over_a_pty(tmp_path):
     th.start()
     d = load_yaml(CONFIGS / "gantry-serial.yaml")
     d["loop"]["rate_hz"] = rate
-    d["driver"].update(port=os.ttyname(slave), baudrate=115200, timeout_s=0.0015, wait="select",
-                       watchdog_s=0.08, round_trip_s=0.0005)
+    d["loop"]["clock"] = "virtual"                                  # lockstep: the host waits for each reply
+    # reply timeout and watchdog far above a loaded VM's stalls (the device coasts once its
+    # watchdog cuts the drive): the verdict must not depend on them
+    d["driver"].update(port=os.ttyname(slave), baudrate=115200, timeout_s=0.05, wait="select",
+                       watchdog_s=1.0, round_trip_s=0.0005)
     drv = config_from_dict(d, "<spec>", check_budget=False).make_driver()
     try:
         drv.open()
-        assert dev.log[0] == "watchdog 800" and dev.watchdog_s == pytest.approx(0.08)
-        assert drv.describe()["watchdog"] == "80 ms (config frame, acknowledged)"
+        assert dev.log[0] == "watchdog 10000" and dev.watchdog_s == pytest.approx(1.0)
+        assert drv.describe()["watchdog"] == "1000 ms (config frame, acknowledged)"
         target = np.array([0.002, -0.001])                         # 2 mm and -1 mm
         y0 = drv.position_m.copy()
         kp, kd = 2000.0, 60.0                                       # V/m, V s/m on a 2 m/s^2/V mass
@@ -201,9 +204,9 @@ def test_a_device_written_from_the_spec_closes_the_loop_over_a_pty(tmp_path):
         assert np.all(np.abs(final - target) < 50e-6), final        # settled within 50 um
         assert dev.on == {1: True, 2: True} and not any(dev.fault.values())
         assert drv.counters["exceptions"] == 1 and drv.counters["bad_frames"] >= 1, drv.counters
-        assert errs <= 30, (errs, drv.counters)                     # the two injected, and a loaded VM's slips
+        assert errs <= 2, (errs, drv.counters)                      # the two injected
         # the watchdog: stop commanding, the device faults both channels; a disabled command resets
-        time.sleep(0.15)
+        time.sleep(1.3)
         assert "watchdog tripped" in dev.log and all(dev.fault.values())
         drv.write(np.zeros(2), np.ones(2, dtype=bool))
         time.sleep(0.005)
@@ -236,8 +239,9 @@ def spec_device():
     th.start()
     d = load_yaml(CONFIGS / "gantry-serial.yaml")
     d["loop"]["rate_hz"] = 500.0
-    d["driver"].update(port=os.ttyname(slave), baudrate=115200, timeout_s=0.0015, wait="select",
-                       watchdog_s=0.03, round_trip_s=0.0005)
+    d["loop"]["clock"] = "virtual"                                  # lockstep: the host waits for each reply
+    d["driver"].update(port=os.ttyname(slave), baudrate=115200, timeout_s=0.05, wait="select",
+                       watchdog_s=1.0, round_trip_s=0.0005)
     try:
         yield dev, d
     finally:
@@ -273,7 +277,7 @@ def test_each_run_starts_from_what_the_last_one_left(spec_device):
         assert drv.stop_attempts == 2, drv.stop_attempts             # sent again until answered
         assert checks[0].held == "node 1 status 0x00: amplifier off, 0 V", checks
         assert dev.on == {1: False, 2: False} and dev.u == {1: 0.0, 2: 0.0}
-        time.sleep(0.08)                                             # idle: the watchdog latches
+        time.sleep(1.3)                                              # idle: the watchdog latches
         assert all(dev.fault.values()), dev.log
 
 
