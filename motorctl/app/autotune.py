@@ -835,31 +835,64 @@ def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: f
         {"gains" (None when nothing passed), "scale" (of the winner's own gains), "from" ('rule'
         or 'search'), "L2_um", "runs": [(label, scale, result, verdict)]}.
     """
-    loaded = config_from_dict(raw, source)
-    u_lim = loaded.axes[axis].controller.u_lim
-    runs: list = []
+    v = _Verification(raw, source, axis, law, choice, seconds, clock, ref, extra, progress)
     g0 = choice["gains"]
-    s0, r0 = ladder(raw, source, axis, law, g0, extra, choice["backoff"], seconds, clock, ref, u_lim,
-                    "rule", runs, progress)
+    s0, r0 = v.ladder(g0, choice["backoff"], "rule")
     rule_best = (r0["L2_um"], scaled(law, g0, s0), s0, "rule") if s0 > 0 else None
-    # the rest noise on the machine against the prediction: the prediction (the open loop of a
-    # carriage held by stiction) is a bound that grows faster with ω than the noise does; so
-    # a member's noise is read off its prediction as a power law through the nearest run of
-    # its shape, with the shape's own exponent once it has two runs (NOISE_EXPONENT until
-    # then); a shape not yet run: in proportion to the latest run of any (a run that
-    # faulted says nothing of the noise)
-    rest_max = U_REST_FRACTION * u_lim
-    obs: dict = {}          # {shape: [(predicted, measured) rest noise [V]]}
-    pts = [(sc * choice["u_rest_pred_V"], res["u_rest_rms_V"]) for _, sc, res, _ in runs
-           if not res["fault"] and res["u_rest_rms_V"] > 0 and choice["u_rest_pred_V"] > 0]
-    last = [max(pts, key=lambda x: x[1] / x[0])] if pts else []
+    v.calibrate_on_rule()
+    v.tried[design_of(g0)] = (r0, "") if s0 == 1.0 else (None, "failed in the ladder")
+    if s0 == 1.0:
+        v.found.append((r0["L2_um"], g0, 1.0, "rule"))
+    v.search(search_runs)
+    v.refine(min(REFINE_RUNS, search_runs))
+    best = v.winner(rule_best)
+    if best is None:
+        return {"gains": None, "scale": 0.0, "from": "", "L2_um": math.nan, "runs": v.runs}
+    return {"gains": best[1], "scale": best[2], "from": best[3], "L2_um": best[0], "runs": v.runs}
 
-    def noise_of(g) -> float:
-        own = obs.get(shape_of(g), [])
-        if not (own or last) or g["_rest_V"] <= 0:
+
+class _Verification:
+    """What the steps of :func:`verify` share for one law: the runs made, the designs tried and
+    their verdicts, the family members that passed at 100 %, and the calibration of the rest
+    noise on the machine against the prediction.
+
+    The calibration: the prediction (the open loop of a carriage held by stiction) is a bound
+    that grows faster with ω than the noise does; so a member's noise is read off its
+    prediction as a power law through the nearest run of its shape, with the shape's own
+    exponent once it has two runs (NOISE_EXPONENT until then); a shape not yet run: in
+    proportion to the latest run of any (a run that faulted says nothing of the noise).
+    """
+
+    def __init__(self, raw, source, axis, law, choice, seconds, clock, ref, extra, progress):
+        self.raw, self.source, self.axis, self.law, self.choice = raw, source, axis, law, choice
+        self.seconds, self.clock, self.ref, self.extra, self.progress = seconds, clock, ref, extra, progress
+        self.u_lim = config_from_dict(raw, source).axes[axis].controller.u_lim
+        self.rest_max = U_REST_FRACTION * self.u_lim
+        self.runs: list = []      # (label, scale, result, verdict)
+        self.tried: dict = {}     # {design: (result or None, verdict)}
+        self.found: list = []     # (L2, gains, 1.0, 'rule' | 'search') passed at 100 %
+        self.obs: dict = {}       # {shape: [(predicted, measured) rest noise [V]]}
+        self.last: list = []      # the latest (predicted, measured) of any shape
+
+    def ladder(self, g, backoff, label, done=None):
+        """:func:`ladder` of ``g`` with this law's settings."""
+        return ladder(self.raw, self.source, self.axis, self.law, g, self.extra, backoff, self.seconds,
+                      self.clock, self.ref, self.u_lim, label, self.runs, self.progress, done=done)
+
+    def calibrate_on_rule(self) -> None:
+        """The first calibration point: the ladder's run whose noise most exceeds its prediction."""
+        pred = self.choice["u_rest_pred_V"]
+        pts = [(sc * pred, res["u_rest_rms_V"]) for _, sc, res, _ in self.runs
+               if not res["fault"] and res["u_rest_rms_V"] > 0 and pred > 0]
+        self.last = [max(pts, key=lambda x: x[1] / x[0])] if pts else []
+
+    def noise_of(self, g) -> float:
+        """The rest noise [V] expected of the design ``g`` (class docstring)."""
+        own = self.obs.get(shape_of(g), [])
+        if not (own or self.last) or g["_rest_V"] <= 0:
             return 0.0
         if not own:                             # another shape's run: in proportion
-            return last[0][1] * g["_rest_V"] / last[0][0]
+            return self.last[0][1] * g["_rest_V"] / self.last[0][0]
         beta = NOISE_EXPONENT
         lp = np.log([x[0] for x in own])
         if np.ptp(lp) > 0.05:
@@ -867,133 +900,132 @@ def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: f
         p0, a0 = min(own, key=lambda x: abs(math.log(g["_rest_V"] / x[0])))
         return a0 * (g["_rest_V"] / p0) ** beta
 
-    tried: dict = {design_of(g0): (r0, "") if s0 == 1.0 else (None, "failed in the ladder")}
-    found: list = []        # (L2, gains, 1.0, "search") of the family members that passed at 100 %
-    if s0 == 1.0:
-        found.append((r0["L2_um"], g0, 1.0, "rule"))
+    def noisy(self, g) -> bool:
+        return self.noise_of(g) > NOISE_SLACK * self.rest_max
 
-    def noisy(g) -> bool:
-        return noise_of(g) > NOISE_SLACK * rest_max
-
-    def trial(g, label):
+    def trial(self, g, label):
+        """A run of ``g`` at 100 % (once per design); recorded, calibrated on. Returns
+        (result, verdict: '' when it passed)."""
         key = design_of(g)
-        if key in tried:
-            return tried[key]
-        res, why = _run(raw, source, axis, law, g, extra, seconds, clock, ref, u_lim, label, 1.0,
-                        runs, progress)
-        tried[key] = (res, why)
+        if key in self.tried:
+            return self.tried[key]
+        res, why = _run(self.raw, self.source, self.axis, self.law, g, self.extra, self.seconds, self.clock,
+                        self.ref, self.u_lim, label, 1.0, self.runs, self.progress)
+        self.tried[key] = (res, why)
         if not why:
-            found.append((res["L2_um"], g, 1.0, "search"))
+            self.found.append((res["L2_um"], g, 1.0, "search"))
         if not res["fault"] and res["u_rest_rms_V"] > 0 and g["_rest_V"] > 0:   # nan: False
-            obs.setdefault(shape_of(g), []).append((g["_rest_V"], res["u_rest_rms_V"]))
-            last[:] = [(g["_rest_V"], res["u_rest_rms_V"])]
+            self.obs.setdefault(shape_of(g), []).append((g["_rest_V"], res["u_rest_rms_V"]))
+            self.last[:] = [(g["_rest_V"], res["u_rest_rms_V"])]
         return res, why
 
-    # the search: per shape, the highest ω that passes, bracketed on the shape's admissible ω
-    # (those whose rest noise, so calibrated, stays below the level). A run that fails by
-    # noise, saturation, oscillation or a fault of a ringing loop bounds ω from above; one
-    # that faults on its following error while quiet, or saturates more than at a higher ω
-    # (too soft for the program), bounds it from below. Shapes in the order of the |L| at
-    # F_TRACK_HZ of their highest quiet admissible ω (re-ranked after each shape, the
-    # calibration moving on), at most SEARCH_RUNS runs per shape and search_runs in all
-    w_hint, left, spent = None, dict(choice["admissible"]), 0
-
-    def reach(members):
+    def reach(self, members) -> float:
         """|L| at F_TRACK_HZ of the shape's highest admissible ω whose noise is quiet."""
-        g = next((g for g in members if not noisy(g)), members[-1])
-        return choice["l_track"][design_of(g)]
+        g = next((g for g in members if not self.noisy(g)), members[-1])
+        return self.choice["l_track"][design_of(g)]
 
-    while left and spent < search_runs:
-        members = left.pop(max(left, key=lambda k: reach(left[k])))
-        lead = min(found, key=lambda b: b[0], default=None)
-        if lead is not None and design_of(lead[1]) in choice["l_track"] and \
-                reach(members) < PRUNE_SHARE * choice["l_track"][design_of(lead[1])]:
-            break                               # the rest reach less still: ranked
-        n = len(members)
-        top = next((j for j, g in enumerate(members) if not noisy(g)), n - 1)
-        p = top if w_hint is None else max(top, min(range(n),
-                                                   key=lambda j: abs(members[j]["_w"] - w_hint)))
-        # positions: ω falls with j; hi < boundary ≤ ok < lo (hi: failed high, lo: failed soft)
-        hi, lo, ok, down, up, sat = -1, n, None, 1, 1, {}
-        for _ in range(SEARCH_RUNS):
-            if spent >= search_runs:
-                break
-            n_before = len(runs)
-            res, why = trial(members[p], _fmt_shape(members[p]))
-            spent += len(runs) - n_before
-            if res is not None and why and SATURATED in why:
-                sat[p] = res["saturated"]
-            if not why:
-                ok = p if ok is None else min(ok, p)
-            elif res is not None and (too_soft(res, u_lim, ref) or (
-                    p in sat and any(j < p and sat[j] < sat[p] for j in sat))):
-                lo = min(lo, p)                 # (saturating more than at a higher ω: its error)
-            else:
-                hi = max(hi, p)
-            # the highest ω whose noise, calibrated anew on this run, stays below the level
-            # (a shape with no noise of its own yet, all its runs faulted: no ceiling)
-            top = (next((j for j, g in enumerate(members) if j > hi and not noisy(g)), n - 1)
-                   if shape_of(members[0]) in obs else hi + 1)
-            floor_ = max(hi, top - 1)           # every position ≤ this fails or is noisy
-            if ok is not None:
-                if ok - floor_ <= 1:
+    def search(self, budget: int) -> None:
+        """Per shape, the highest ω that passes, bracketed on the shape's admissible ω (those
+        whose rest noise, so calibrated, stays below the level). A run that fails by noise,
+        saturation, oscillation or a fault of a ringing loop bounds ω from above; one that
+        faults on its following error while quiet, or saturates more than at a higher ω (too
+        soft for the program), bounds it from below. Shapes in the order of the |L| at
+        F_TRACK_HZ of their highest quiet admissible ω (re-ranked after each shape, the
+        calibration moving on), at most SEARCH_RUNS runs per shape and ``budget`` in all."""
+        choice, u_lim = self.choice, self.u_lim
+        w_hint, left, spent = None, dict(choice["admissible"]), 0
+        while left and spent < budget:
+            members = left.pop(max(left, key=lambda k: self.reach(left[k])))
+            lead = min(self.found, key=lambda b: b[0], default=None)
+            if lead is not None and design_of(lead[1]) in choice["l_track"] and \
+                    self.reach(members) < PRUNE_SHARE * choice["l_track"][design_of(lead[1])]:
+                break                               # the rest reach less still: ranked
+            n = len(members)
+            top = next((j for j, g in enumerate(members) if not self.noisy(g)), n - 1)
+            p = top if w_hint is None else max(top, min(range(n),
+                                                       key=lambda j: abs(members[j]["_w"] - w_hint)))
+            # positions: ω falls with j; hi < boundary ≤ ok < lo (hi: failed high, lo: failed soft)
+            hi, lo, ok, down, up, sat = -1, n, None, 1, 1, {}
+            for _ in range(SEARCH_RUNS):
+                if spent >= budget:
                     break
-                if hi < 0:                      # nothing above has failed yet: climb
-                    p, up = max(top, ok - up), up * 2
+                n_before = len(self.runs)
+                res, why = self.trial(members[p], _fmt_shape(members[p]))
+                spent += len(self.runs) - n_before
+                if res is not None and why and SATURATED in why:
+                    sat[p] = res["saturated"]
+                if not why:
+                    ok = p if ok is None else min(ok, p)
+                elif res is not None and (too_soft(res, u_lim, self.ref) or (
+                        p in sat and any(j < p and sat[j] < sat[p] for j in sat))):
+                    lo = min(lo, p)                 # (saturating more than at a higher ω: its error)
                 else:
-                    p = (floor_ + ok) // 2
-            elif lo - floor_ <= 1:              # no ω left between the two kinds of failure
+                    hi = max(hi, p)
+                # the highest ω whose noise, calibrated anew on this run, stays below the level
+                # (a shape with no noise of its own yet, all its runs faulted: no ceiling)
+                top = (next((j for j, g in enumerate(members) if j > hi and not self.noisy(g)), n - 1)
+                       if shape_of(members[0]) in self.obs else hi + 1)
+                floor_ = max(hi, top - 1)           # every position ≤ this fails or is noisy
+                if ok is not None:
+                    if ok - floor_ <= 1:
+                        break
+                    if hi < 0:                      # nothing above has failed yet: climb
+                        p, up = max(top, ok - up), up * 2
+                    else:
+                        p = (floor_ + ok) // 2
+                elif lo - floor_ <= 1:              # no ω left between the two kinds of failure
+                    break
+                elif lo < n and hi < 0:             # only too soft so far: climb
+                    p, up = max(floor_ + 1, p - up), up * 2
+                elif lo < n:                        # failed on both sides: halve the window
+                    p = (floor_ + lo) // 2
+                else:                               # only too high so far: descend
+                    p, down = min(n - 1, max(top, p + down)), down * 2
+            if ok is not None:
+                w_hint = members[ok]["_w"]
+
+    def refine(self, budget: int) -> None:
+        """From the best family member that passed, one grid step at a time (ω, ζ, r, and two of
+        them at once) to an admissible neighbour not yet run, the highest |L| at F_TRACK_HZ
+        first; move to the first that passes with a lower L2[e], stop when none does or after
+        ``budget`` runs."""
+        choice = self.choice
+        center = min(self.found, key=lambda b: b[0], default=None)
+        while center is not None and budget > 0:
+            near = [g for g in neighbours(center[1], choice["grid"], choice["members"])
+                    if design_of(g) not in self.tried and not self.noisy(g)]
+            near.sort(key=lambda g: -choice["l_track"][design_of(g)])
+            moved = None
+            for g in near[:budget]:
+                budget -= 1
+                res, why = self.trial(g, "near " + _fmt_shape(g))
+                if not why and res["L2_um"] < center[0]:
+                    moved = (res["L2_um"], g, 1.0, "search")
+                    break
+            center = moved
+
+    def winner(self, rule_best):
+        """The least L2[e] of every run that passed: (L2, gains, scale, from) or None. A search
+        winner climbs the ladder too (its 100 % run is already done); when a rung below stops
+        it, it stands at the highest scale that passed (as the rule's gains do) and the next
+        best climbs, at most WINNER_TRIES of them, one per shape; the least L2[e] of what stood
+        is kept."""
+        accepted = [rule_best] if rule_best is not None else []
+        climbs, stopped = 0, set()
+        for cand in sorted((b for b in self.found if b[3] == "search"), key=lambda b: b[0]):
+            if climbs == WINNER_TRIES or (accepted and min(a[0] for a in accepted) <= cand[0]):
                 break
-            elif lo < n and hi < 0:             # only too soft so far: climb
-                p, up = max(floor_ + 1, p - up), up * 2
-            elif lo < n:                        # failed on both sides: halve the window
-                p = (floor_ + lo) // 2
-            else:                               # only too high so far: descend
-                p, down = min(n - 1, max(top, p + down)), down * 2
-        if ok is not None:
-            w_hint = members[ok]["_w"]
-    # the refinement: from the best family member that passed, one grid step at a time
-    # (ω, ζ, r, and two of them at once) to an admissible neighbour not yet run, the highest
-    # |L| at F_TRACK_HZ first; move to the first that passes with a lower L2[e], stop when
-    # none does or after REFINE_RUNS runs
-    budget = min(REFINE_RUNS, search_runs)
-    center = min(found, key=lambda b: b[0], default=None)
-    while center is not None and budget > 0:
-        near = [g for g in neighbours(center[1], choice["grid"], choice["members"])
-                if design_of(g) not in tried and not noisy(g)]
-        near.sort(key=lambda g: -choice["l_track"][design_of(g)])
-        moved = None
-        for g in near[:budget]:
-            budget -= 1
-            res, why = trial(g, "near " + _fmt_shape(g))
-            if not why and res["L2_um"] < center[0]:
-                moved = (res["L2_um"], g, 1.0, "search")
+            if shape_of(cand[1]) in stopped:        # its shape stopped on a lower rung already
+                continue
+            climbs += 1
+            sc, res_sc = self.ladder(cand[1], (), "winner", done={1.0: self.tried[design_of(cand[1])][0]})
+            if sc == 1.0:
+                accepted.append(cand)
                 break
-        center = moved
-    # the winner: the least L2[e] of every run that passed. A search winner climbs the ladder
-    # too (its 100 % run is already done); when a rung below stops it, it stands at the
-    # highest scale that passed (as the rule's gains do) and the next best climbs, at most
-    # WINNER_TRIES of them, one per shape; the least L2[e] of what stood is kept
-    accepted = [rule_best] if rule_best is not None else []
-    climbs, stopped = 0, set()
-    for cand in sorted((b for b in found if b[3] == "search"), key=lambda b: b[0]):
-        if climbs == WINNER_TRIES or (accepted and min(a[0] for a in accepted) <= cand[0]):
-            break
-        if shape_of(cand[1]) in stopped:        # its shape stopped on a lower rung already
-            continue
-        climbs += 1
-        sc, res_sc = ladder(raw, source, axis, law, cand[1], extra, (), seconds, clock, ref, u_lim,
-                            "winner", runs, progress, done={1.0: tried[design_of(cand[1])][0]})
-        if sc == 1.0:
-            accepted.append(cand)
-            break
-        stopped.add(shape_of(cand[1]))
-        if sc > 0.0:
-            accepted.append((res_sc["L2_um"], scaled(law, cand[1], sc), sc, "search"))
-    best = min(accepted, key=lambda b: b[0], default=None)
-    if best is None:
-        return {"gains": None, "scale": 0.0, "from": "", "L2_um": math.nan, "runs": runs}
-    return {"gains": best[1], "scale": best[2], "from": best[3], "L2_um": best[0], "runs": runs}
+            stopped.add(shape_of(cand[1]))
+            if sc > 0.0:
+                accepted.append((res_sc["L2_um"], scaled(self.law, cand[1], sc), sc, "search"))
+        return min(accepted, key=lambda b: b[0], default=None)
 
 
 def _fmt_shape(g: dict) -> str:
