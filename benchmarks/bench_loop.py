@@ -1,6 +1,7 @@
 """Benchmark: the law's step cost, the compiled cycle, and the 5 kHz servo loop on the simulated gantry.
 
 Rerun:  python benchmarks/bench_loop.py [--config configs/gantry.yaml] [--seconds 60] [--steps 50000]
+        [--cpu N]
 
 Part 1, step cost: each axis's controllers (C1, C2, and the PID+FF where the axis configures
 ``pid:``) run in closed loop with the simulated plant for --steps samples of its program:
@@ -15,20 +16,22 @@ once with SCHED_FIFO + mlockall (policy required) and once without (policy off);
 (read start → write end, including the plant's RK4 in the simulated driver's write), wake
 lateness and overruns; beside them, in the same run, the machine's floor: benchmarks/floor.c
 (compiled here with cc), the loop's pacing alone (sleep, spin, read the clock) at SCHED_FIFO
-80 with memory locked, for the same time. The machine is shared and noisy: compare medians and
-ratios taken in one run.
+80 with memory locked, for the same time. Both are pinned to ``--cpu`` (default: the last CPU,
+as a deployment pins the loop to an isolated one; ``--cpu -1``: not pinned). The machine is
+shared and noisy: compare medians and ratios taken in one run.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import time
 
 import numpy as np
 
 from motorctl.app.job import run_job
-from motorctl.config import load_config
+from motorctl.config import config_from_dict, load_config, load_yaml
 from motorctl.control import configured_controllers, make_controller
 from motorctl.loop.rt import RealtimeError
 
@@ -106,8 +109,9 @@ def cycle_cost(loaded, axes: list, kind: str, steps: int) -> np.ndarray:
     return asm.loop.rows()[:, asm.loop.layout.index("control_ns")] / 1e3
 
 
-def machine_floor(seconds: float, period_ns: int, spin_us: float) -> str:
-    """The compiled floor (benchmarks/floor.c) for ``seconds``: its printed line."""
+def machine_floor(seconds: float, period_ns: int, spin_us: float, cpu: int | None, work_ns: int = 0) -> str:
+    """The compiled floor (benchmarks/floor.c) for ``seconds`` on ``cpu`` (None: not pinned),
+    holding the CPU ``work_ns`` after each wake: its printed line."""
     import os
     import subprocess
     import tempfile
@@ -116,8 +120,8 @@ def machine_floor(seconds: float, period_ns: int, spin_us: float) -> str:
         exe = os.path.join(tmp, "floor")
         subprocess.run(["cc", "-O2", "-o", exe, src], check=True)
         n = int(seconds * 1e9 / period_ns)
-        return subprocess.run([exe, str(period_ns), str(n), str(int(spin_us * 1e3))], capture_output=True,
-                              text=True, check=True).stdout.strip()
+        argv = [exe, str(period_ns), str(n), str(int(spin_us * 1e3)), str(-1 if cpu is None else cpu), str(work_ns)]
+        return subprocess.run(argv, capture_output=True, text=True, check=True).stdout.strip()
 
 
 def main() -> None:
@@ -125,11 +129,24 @@ def main() -> None:
     ap.add_argument("--config", default="configs/gantry.yaml")
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--steps", type=int, default=50000)
+    ap.add_argument("--cpu", type=int, default=(os.cpu_count() or 1) - 1,
+                    help="CPU of the wall-clock loop and the floor (default: the last; -1: not pinned)")
+    ap.add_argument("--spin-us", type=float, default=None,
+                    help="loop.realtime.spin_us of the wall-clock loop and the floor (default: the config's; "
+                         "at least the period: the loop never sleeps, a polling loop on a dedicated CPU)")
     args = ap.parse_args()
     loaded = load_config(args.config)
+    cpu = None if args.cpu < 0 else args.cpu
+    raw = load_yaml(args.config)
+    raw["loop"].setdefault("realtime", {})["cpu"] = cpu
+    if args.spin_us is not None:
+        raw["loop"]["realtime"]["spin_us"] = args.spin_us
+    pinned = config_from_dict(raw, args.config)
+    spin_us = pinned.cfg.loop.realtime.spin_us
     print(f"# motorctl loop benchmark on {platform.node()} ({platform.processor() or platform.machine()}), "
           f"python {platform.python_version()}, {time.strftime('%Y-%m-%d %H:%M:%S')}")
-    print(f"# rerun: python benchmarks/bench_loop.py --config {args.config} --seconds {args.seconds:g} --steps {args.steps}")
+    print(f"# rerun: python benchmarks/bench_loop.py --config {args.config} --seconds {args.seconds:g} --steps {args.steps} "
+          f"--cpu {args.cpu}" + (f" --spin-us {args.spin_us:g}" if args.spin_us is not None else ""))
     print("\n## controller step cost (us per axis, closed loop on the simulated plant)")
     print(f"{'axis':4} {'ctrl':4} {'median':>8} {'p99':>8} {'max':>8}")
     med = {}
@@ -152,25 +169,36 @@ def main() -> None:
             print(f"{axis:4} {kind:4} {law:8.2f} {np.median(c):9.2f} {np.percentile(c, 99):9.2f}")
     c = cycle_cost(loaded, list(loaded.axes), "c2", args.steps)
     print(f"all axes ({', '.join(loaded.axes)}) on c2: call p50 {np.median(c):.2f} p99 {np.percentile(c, 99):.2f} us")
-    print(f"\n## {args.seconds:g} s wall-clock loop at {loaded.cfg.loop.rate_hz:g} Hz, axes {', '.join(loaded.axes)} on C2")
+    print(f"\n## {args.seconds:g} s wall-clock loop at {loaded.cfg.loop.rate_hz:g} Hz, axes {', '.join(loaded.axes)} on C2"
+          f"{'' if cpu is None else f', CPU {cpu}'}, spin {spin_us:g} us"
+          f"{' (never sleeps: polling)' if spin_us * 1e-6 >= pinned.period_s else ''}")
+    work_ns = 0
     for policy in ("required", "off"):
         label = "SCHED_FIFO + mlockall" if policy == "required" else "SCHED_OTHER"
         try:
-            res = run_job(loaded, controller="c2", duration_s=args.seconds, clock="wall", realtime_policy=policy)
+            res = run_job(pinned, controller="c2", duration_s=args.seconds, clock="wall", realtime_policy=policy)
         except RealtimeError as exc:
             print(f"{label}: not available here ({exc})")
             continue
         tm = res.timing
+        if policy == "required":
+            work_ns = int(tm["turnaround_p50_us"] * 1e3)
         print(f"{label:22}: turnaround p50 {tm['turnaround_p50_us']:.1f} p99 {tm['turnaround_p99_us']:.1f} "
               f"p99.9 {tm['turnaround_p999_us']:.1f} max {tm['turnaround_max_us']:.1f} us | lateness p50 "
               f"{tm['lateness_p50_us']:.1f} p99 {tm['lateness_p99_us']:.1f} max {tm['lateness_max_us']:.1f} us | "
               f"overruns {tm['overruns']} in {tm['cycles']} cycles")
     try:
-        fl = machine_floor(args.seconds, int(round(1e9 / loaded.cfg.loop.rate_hz)), loaded.cfg.loop.realtime.spin_us)
+        fl = machine_floor(args.seconds, int(round(1e9 / loaded.cfg.loop.rate_hz)), spin_us, cpu, work_ns)
         p50, p99, p999, mx, missed, *rt = fl.split()
+        hold = [t.split("=", 1)[1].split("/") for t in rt if t.startswith("hold=")]
         print(f"{'floor (benchmarks/floor.c)':22}: lateness p50 {float(p50):.1f} p99 {float(p99):.1f} p99.9 "
               f"{float(p999):.1f} max {float(mx):.1f} us | overruns {missed} in "
-              f"{int(args.seconds * loaded.cfg.loop.rate_hz)} cycles ({' '.join(rt)})")
+              f"{int(args.seconds * loaded.cfg.loop.rate_hz)} cycles ({' '.join(t for t in rt if '=' in t and not t.startswith('hold'))})")
+        if hold:
+            h = [float(x) for x in hold[0]]
+            print(f"{'':22}  holding the CPU for the loop's median turnaround ({work_ns / 1e3:.1f} us) after each "
+                  f"wake: p50 {h[0]:.1f} p99 {h[1]:.1f} p99.9 {h[2]:.1f} max {h[3]:.1f} us (what the machine adds "
+                  f"to any turnaround)")
     except (OSError, ValueError) as exc:
         print(f"floor: not measured ({exc})")
 

@@ -5,12 +5,18 @@ same run, the floor of the machine: a loop that only wakes at the same deadlines
 same spin tail as the servo loop) and reads the clock.
 
 Rerun:  python benchmarks/bench_scale.py [--config configs/gantry.yaml] [--seconds 10] [--cpu 1]
-        [--axes 1 2 4 8 16]
+        [--axes 1 2 4 8 16] [--spin-us 1000]
 
 Prints per axis count: turnaround p50 / p99 / p99.9 / max [µs] per cycle and p50 per axis,
 wake lateness p99, overruns; and the floor's lateness and overruns. The turnaround includes the
 simulated plant (RK4 with substeps), which a real drive does not cost the host. The machine is
 shared and noisy: compare the rows of one run.
+
+``--spin-us`` at least the period (200 µs at 5 kHz) makes a polling loop that never sleeps, as on
+a CPU given to the loop alone: its caches stay warm between cycles. A SCHED_FIFO task that never
+sleeps meets the kernel's real-time throttling (``/proc/sys/kernel/sched_rt_runtime_us``, by
+default 950000 of every 1000000 µs): it misses 50 ms every second unless that is set to -1, as
+a real-time deployment does.
 """
 
 from __future__ import annotations
@@ -73,13 +79,17 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--cpu", type=int, default=(os.cpu_count() or 1) - 1)
     ap.add_argument("--axes", type=int, nargs="+", default=[1, 2, 4, 8, 16])
+    ap.add_argument("--spin-us", type=float, default=None,
+                    help="loop.realtime.spin_us (default: the config's; at least the period: a polling loop)")
     a = ap.parse_args()
     base = load_yaml(a.config)
+    if a.spin_us is not None:
+        base["loop"].setdefault("realtime", {})["spin_us"] = a.spin_us
     rate = float(base["loop"].get("rate_hz", 5000.0))
     print(f"# motorctl scale benchmark on {platform.node()}, python {platform.python_version()}, "
           f"{time.strftime('%Y-%m-%d %H:%M:%S')}; {rate:g} Hz, {a.seconds:g} s per row, CPU {a.cpu}")
     print(f"# rerun: python benchmarks/bench_scale.py --config {a.config} --seconds {a.seconds:g} --cpu {a.cpu} "
-          f"--axes {' '.join(map(str, a.axes))}")
+          f"--axes {' '.join(map(str, a.axes))}" + (f" --spin-us {a.spin_us:g}" if a.spin_us is not None else ""))
     print("axes | turnaround p50 / p99 / p99.9 / max us | p50 per axis us | lateness p99 us | overruns | realtime")
     for n in a.axes:
         loaded = config_from_dict(axes_config(base, n, a.seconds, a.cpu), f"{a.config} x{n}")

@@ -2,7 +2,11 @@
  * compiled. SCHED_FIFO 80, memory locked, optionally pinned to a CPU; per period: sleep to
  * (deadline - spin) on CLOCK_MONOTONIC (absolute), busy-wait to the deadline, read the clock;
  * whole periods missed are counted and skipped (the deadline re-anchored), as the loop does.
- * Usage: floor PERIOD_NS CYCLES SPIN_NS [CPU]; prints "lateness_p50_us p99 p999 max overruns".
+ * With WORK_NS, each period then holds the CPU for WORK_NS by the clock (the loop's turnaround,
+ * without its work): how long that takes is what the machine adds to any turnaround (a
+ * preemption, a stolen vCPU inside the interval).
+ * Usage: floor PERIOD_NS CYCLES SPIN_NS [CPU|-1 [WORK_NS]]; prints "lateness_p50_us p99 p999
+ * max overruns fifo=F mlock=M" and, with WORK_NS, "hold=p50/p99/p999/max" [us].
  * Build: cc -O2 -o floor floor.c */
 #define _GNU_SOURCE
 #include <sched.h>
@@ -25,7 +29,8 @@ static int cmp(const void *a, const void *b) {
 int main(int argc, char **argv) {
     if (argc < 4) return 2;
     long long period = atoll(argv[1]), n = atoll(argv[2]), spin = atoll(argv[3]);
-    if (argc > 4) {
+    long long work = argc > 5 ? atoll(argv[5]) : 0;
+    if (argc > 4 && atoi(argv[4]) >= 0) {
         cpu_set_t set;
         CPU_ZERO(&set);
         CPU_SET(atoi(argv[4]), &set);
@@ -34,7 +39,7 @@ int main(int argc, char **argv) {
     struct sched_param sp = {.sched_priority = 80};
     int fifo = sched_setscheduler(0, SCHED_FIFO, &sp) == 0;
     int locked = mlockall(MCL_CURRENT | MCL_FUTURE) == 0;
-    long long *late = malloc(sizeof(long long) * n), missed = 0;
+    long long *late = malloc(sizeof(long long) * n), *hold = malloc(sizeof(long long) * n), missed = 0;
     long long deadline = now_ns() + period;
     for (long long k = 0; k < n; k++) {
         long long target = deadline - spin;
@@ -43,6 +48,10 @@ int main(int argc, char **argv) {
         while (now_ns() < deadline) {
         }
         late[k] = now_ns() - deadline;
+        long long t0 = now_ns(), t1 = t0;
+        while (t1 - t0 < work)
+            t1 = now_ns();
+        hold[k] = t1 - t0;
         if (late[k] >= period) {
             missed += late[k] / period;
             deadline += (late[k] / period) * period;
@@ -50,7 +59,13 @@ int main(int argc, char **argv) {
         deadline += period;
     }
     qsort(late, n, sizeof(long long), cmp);
-    printf("%.2f %.2f %.2f %.2f %lld fifo=%d mlock=%d\n", late[n / 2] / 1e3, late[(long long)(n * 0.99)] / 1e3,
+    printf("%.2f %.2f %.2f %.2f %lld fifo=%d mlock=%d", late[n / 2] / 1e3, late[(long long)(n * 0.99)] / 1e3,
            late[(long long)(n * 0.999)] / 1e3, late[n - 1] / 1e3, missed, fifo, locked);
+    if (work > 0) {
+        qsort(hold, n, sizeof(long long), cmp);
+        printf(" hold=%.2f/%.2f/%.2f/%.2f", hold[n / 2] / 1e3, hold[(long long)(n * 0.99)] / 1e3,
+               hold[(long long)(n * 0.999)] / 1e3, hold[n - 1] / 1e3);
+    }
+    printf("\n");
     return 0;
 }
