@@ -81,7 +81,8 @@ class FaultSpec(StrictModel):
     """One injected fault: ``kind`` on ``axis`` ('*' = every axis / the whole frame) for
     ``count`` commands, starting at the ``start``-th command the device receives (0-based).
 
-    Kinds: drop (no reply), late (reply after ``late_s``), corrupt (bad CRC / bad frame),
+    Kinds: drop (no reply), late (reply after ``late_s``; a CANopen drive's TPDO
+    also waits for the next SYNC), corrupt (bad CRC / bad frame),
     stale (the previous reply again, old sequence number), exception (an error reply:
     Modbus exception 0x04, or the frame's error flag), disconnect (close the link / stop
     answering), bus_off (CAN: the node leaves the bus, nothing sent or answered), emcy (a
