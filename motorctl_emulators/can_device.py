@@ -5,8 +5,6 @@ Frame layout, bus options and codecs are the driver's (:mod:`motorctl_drivers.ca
 
 from __future__ import annotations
 
-import time
-
 from motorctl_drivers.can_bus import (
     CanOptions,
     Frame,
@@ -16,16 +14,17 @@ from motorctl_drivers.can_bus import (
     unpack_uint,
 )
 from motorctl_drivers.split_phase import counts_to_volts, to_signed
-from motorctl_emulators.device import Device
+from motorctl_emulators.device import Device, LateAnswers
 from motorctl_emulators.plant_bank import PlantBank
 
 
 class CanDevice(Device):
     """A command frame steps the axes it carries and is answered with the feedback frames of
     those axes (sequence byte echoed); a remote frame on a feedback ID is answered without a
-    step. Faults: drop, late, corrupt (a frame shorter than the layout), stale (the previous
-    feedback again), exception (an error frame instead of the answer), disconnect and bus_off
-    (the node is silent: it neither applies nor answers).
+    step. Faults: drop, late (the feedback after ``late_s`` and never before the next command
+    frame of that ID: :class:`~motorctl_emulators.device.LateAnswers`), corrupt (a frame shorter
+    than the layout), stale (the previous feedback again), exception (an error frame instead of
+    the answer), disconnect and bus_off (the node is silent: it neither applies nor answers).
 
     Raises:
         ValueError: the layout does not build (as the driver's). can.CanError, OSError: the bus
@@ -41,6 +40,7 @@ class CanDevice(Device):
         self.fb_of_axis = {i: f for f in self.fb for i in f.axes}
         self.bus = open_bus(options)
         self.last = {}
+        self.late = LateAnswers(bank)      # keyed by the command frame's ID
         self.clocks = {}                   # command frame id -> MasterTime (its sequence byte)
 
     def _feedback(self, f: Frame, seq: int):
@@ -72,6 +72,7 @@ class CanDevice(Device):
         f = self.cmd.get(msg.arbitration_id)
         if f is None or len(msg.data) < f.length:
             return
+        self.late.release(f.id)             # a late answer goes out before this command's
         data = msg.data
         seq = data[f.seq_byte] if f.seq_byte is not None else 0
         periods = 1
@@ -106,9 +107,9 @@ class CanDevice(Device):
                 bad = can.Message(arbitration_id=fbf.id, is_extended_id=self.options.extended_id,
                                   data=reply.data[:max(0, fbf.length - 3)], is_fd=self.options.fd)
                 self.bus.send(bad)
+            elif fault == "late":
+                self.late.hold(self.bus.send, reply, key=f.id)
             else:
-                if fault == "late":
-                    time.sleep(b.late_s)
                 self.bus.send(reply)
             self.last[fbf.id] = reply
 

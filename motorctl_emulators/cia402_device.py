@@ -38,12 +38,13 @@ from __future__ import annotations
 
 import math
 import time
+from functools import partial
 
 from motorctl_drivers import cia402
 from motorctl_drivers.can_bus import open_bus
 from motorctl_drivers.canopen_cia402 import CanopenOptions, cia402_object_dictionary
 from motorctl_emulators.cia402_drive import STATUSWORD, drive_transition
-from motorctl_emulators.device import Device
+from motorctl_emulators.device import Device, LateAnswers
 from motorctl_emulators.plant_bank import PlantBank
 
 class _Drive:
@@ -60,7 +61,6 @@ class _Drive:
         self.consumer_s = 0.0
         self.last_host_hb = math.nan        # monotonic time of the host's last heartbeat
         self.last_tpdo = None
-        self.held = None                    # a late TPDO: (COB-ID, frame, monotonic time due)
         self.silent = False
 
 
@@ -88,6 +88,7 @@ class Cia402Device(Device):
         self.network.subscribe(options.sync_cob_id, self._on_sync)
         self.network.subscribe(0x700 + options.host_node_id, self._on_host_heartbeat)
         self.syncs = 0
+        self.late = LateAnswers(bank)                        # late TPDOs, released by the next SYNC
         for d in self.drives:                                # power on: boot-up, pre-operational
             d.node.nmt.send_command(0x81)
             d.node.nmt.send_command(0x80)
@@ -171,14 +172,7 @@ class Cia402Device(Device):
     def _on_sync(self, can_id, data, timestamp) -> None:
         self.syncs += 1
         b = self.bank
-        for d in self.drives:              # a late answer goes out before this SYNC's (a burst)
-            if d.held is not None:
-                cob_id, frame, due = d.held
-                d.held = None
-                wait = due - time.monotonic()
-                if wait > 0.0:
-                    time.sleep(wait)
-                self.network.send_message(cob_id, frame)
+        self.late.release()                # a late answer goes out before this SYNC's (a burst)
         for i, d in enumerate(self.drives):
             if d.silent or d.node.nmt.state != "OPERATIONAL":
                 continue
@@ -217,7 +211,7 @@ class Cia402Device(Device):
             elif kind == "corrupt":
                 self.network.send_message(tp.cob_id, frame[:2])
             elif kind == "late":
-                d.held = (tp.cob_id, frame, time.monotonic() + b.late_s)
+                self.late.hold(partial(self.network.send_message, tp.cob_id), frame)
             else:
                 tp.transmit()
             d.last_tpdo = frame
@@ -229,16 +223,17 @@ class Cia402Device(Device):
             if d.consumer_s > 0 and d.consumer_node == node:
                 d.last_host_hb = now
 
-    def _check_consumers(self) -> float:
-        """Act on every expired heartbeat consumer; return the seconds until the next check."""
+    def _check_consumers(self, act: bool = True) -> float:
+        """Act on every expired heartbeat consumer (``act``; False: only look); return the
+        seconds until the next check."""
         now = time.monotonic()
         due = 0.01
         for i, d in enumerate(self.drives):
             if not d.consumer_s > 0 or d.last_host_hb != d.last_host_hb:
                 continue
             left = d.last_host_hb + d.consumer_s - now
-            if left > 0:
-                due = min(due, left)
+            if left > 0 or not act:
+                due = min(due, max(0.0, left))
                 continue
             option = int.from_bytes(d.node.data_store.get(cia402.ABORT_CONNECTION, {}).get(0, b"\x01\x00"),
                                     "little", signed=True)
@@ -256,7 +251,10 @@ class Cia402Device(Device):
 
     # ------------------------------------------------------------------ Device
     def poll(self, timeout_s: float) -> None:
-        due = self._check_consumers()
+        # the consumers act only once what has come in is taken in: after a stall of this
+        # process, heartbeats waiting in the socket still count (a drive's consumer runs on its
+        # own, not behind its receive queue)
+        due = self._check_consumers(act=False)
         msg = self.bus.recv(timeout=max(0.0, min(timeout_s, due)))
         while msg is not None:
             for d in self.drives:          # PDOs are (re)loaded as soon as the node is operational

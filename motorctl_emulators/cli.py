@@ -16,9 +16,10 @@ when > 0, else 0.05 s) → 0 V and an amplifier fault (reported in every answer,
 command with the amplifier disabled).
 
 Fault injection: ``--fault KIND[:AXIS[:START[:COUNT]]]`` (repeatable), KIND one of drop, late
-(answer after ``--late`` seconds; a CANopen drive's TPDO also waits for the next SYNC, so it
-misses its cycle), corrupt, stale, exception, disconnect, bus_off, emcy[=CODE]
-(CANopen: the drive faults with that EMCY error code); START counts the command frames the
+(answer after ``--late`` seconds and never before the host's next command to that device,
+CANopen: the next SYNC; so it misses its cycle, and comes in a burst with the next answer),
+corrupt, stale, exception, disconnect, bus_off, emcy[=CODE] (CANopen: the drive faults with
+that EMCY error code); START counts the command frames the
 device has received (CANopen: SYNCs; 0-based). A CANopen drive's watchdog is its heartbeat
 consumer, set by the host (0x1016); ``--watchdog`` does not apply to it.
 

@@ -57,6 +57,36 @@ class Device(abc.ABC):
             self.close()
 
 
+class LateAnswers:
+    """Answers held back by the 'late' fault. Each goes out ``late_s`` [s] after it was made
+    and never before the master's next command with the same ``key`` (:meth:`release`, called
+    before that command is handled), ahead of that command's answer: so it misses the read
+    that waited for it whatever the scheduling of master and device (a master in lockstep
+    sends its next command only once that read has timed out), and comes in a burst with the
+    next answer. ``late_s`` is read from the bank when an answer is held."""
+
+    def __init__(self, bank: PlantBank):
+        self.bank = bank
+        self.held: list = []                   # (key, monotonic time due, send, payload)
+
+    def hold(self, send, payload, key=None) -> None:
+        self.held.append((key, time.monotonic() + self.bank.late_s, send, payload))
+
+    def release(self, key=None) -> None:
+        if not self.held:
+            return
+        keep = []
+        for k, due, send, payload in self.held:
+            if k != key:
+                keep.append((k, due, send, payload))
+                continue
+            wait = due - time.monotonic()
+            if wait > 0.0:
+                time.sleep(wait)
+            send(payload)
+        self.held = keep
+
+
 def available_devices() -> dict[str, object]:
     """Transport names → entry points of the installed emulated devices."""
     return {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP)}

@@ -9,7 +9,6 @@ FC05, §6.6 FC06, §6.11 FC15, §6.12 FC16, §6.17 FC23; exception codes §7); f
 from __future__ import annotations
 
 import struct
-import time
 
 from motorctl_drivers.modbus import (
     ModbusOptions,
@@ -18,7 +17,7 @@ from motorctl_drivers.modbus import (
     registers_to_value,
     value_to_registers,
 )
-from motorctl_emulators.device import Device
+from motorctl_emulators.device import Device, LateAnswers
 from motorctl_emulators.plant_bank import PlantBank
 from motorctl_emulators.stream import StreamEndpoint
 
@@ -31,7 +30,9 @@ class ModbusDevice(Device):
     register is that axis's command; it is applied (the plant steps one period, the position
     and fault fields are updated) when the axis's position is next read, so the answer carries
     the position one period after the command, as with FC23 (write, then read). Faults, counted
-    per command: drop, late, corrupt (bad CRC on RTU, a broken MBAP length on TCP), stale (the
+    per command: drop, late (the answer after ``late_s`` and never before the next request to
+    that unit: :class:`~motorctl_emulators.device.LateAnswers`), corrupt (bad CRC on RTU, a
+    broken MBAP length on TCP), stale (the
     previous answer again), exception (exception 0x04, server device failure; the command is not
     applied), disconnect (TCP: close the connection), bus_off (as drop). With ``fc23: no`` in
     the driver config the device has no FC23 (exception 01).
@@ -55,6 +56,7 @@ class ModbusDevice(Device):
             for k in range(a.voltage.nregs):
                 self.by_voltage[(self.plan.devices[self.plan.dev_of[i]][2], a.voltage.address + k)] = i
         self.pending = [None] * len(self.ax)      # the fault drawn for an axis's unapplied command
+        self.late = LateAnswers(bank)             # keyed by the unit
         self.tcp = options.transport == "tcp"
         self.ep = StreamEndpoint(f"tcp://{options.host}:{options.port}" if self.tcp else options.serial_port)
         self.buf = bytearray()
@@ -232,6 +234,7 @@ class ModbusDevice(Device):
         for tid, unit, pdu in self._requests():
             if unit not in self.units and not (self.tcp and unit == 0):
                 continue
+            self.late.release(unit)             # a late answer goes out before this request's
             rsp, fault = self._handle(unit, pdu)
             # a dropped, late or stale answer still applied its command when read; the drawn
             # fault of a write decides the answer to the position read that applies it
@@ -257,9 +260,9 @@ class ModbusDevice(Device):
                 else:
                     bad[-1] ^= 0xFF
                 self.ep.send(bytes(bad))
+            elif fault == "late":
+                self.late.hold(self.ep.send, frame, key=unit)
             else:
-                if fault == "late":
-                    time.sleep(self.bank.late_s)
                 self.ep.send(frame)
             self.last = frame
 

@@ -5,8 +5,6 @@ Frames and CRC are the driver's (:mod:`motorctl_drivers.serial_link`).
 
 from __future__ import annotations
 
-import time
-
 from motorctl_drivers.serial_link import (
     ACK,
     CMD,
@@ -21,7 +19,7 @@ from motorctl_drivers.serial_link import (
     encode_reply,
 )
 from motorctl_drivers.split_phase import counts_to_volts
-from motorctl_emulators.device import Device
+from motorctl_emulators.device import Device, LateAnswers
 from motorctl_emulators.plant_bank import PlantBank
 from motorctl_emulators.stream import StreamEndpoint
 
@@ -29,8 +27,10 @@ from motorctl_emulators.stream import StreamEndpoint
 class SerialDevice(Device):
     """Listens on ``driver.port`` (socket:// → a TCP server on that address; a path → a pty whose
     slave is linked there) and answers command and query frames for ``driver.address``.
-    Faults: drop and bus_off (no answer), late, corrupt (bad CRC), stale (the previous reply),
-    exception (an error frame, the command not applied), disconnect (close the connection).
+    Faults: drop and bus_off (no answer), late (the reply after ``late_s`` and never before the
+    next frame from the host: :class:`~motorctl_emulators.device.LateAnswers`), corrupt (bad
+    CRC), stale (the previous reply), exception (an error frame, the command not applied),
+    disconnect (close the connection).
 
     Raises:
         OSError: the endpoint cannot be opened.
@@ -43,6 +43,7 @@ class SerialDevice(Device):
         self.ep = StreamEndpoint(options.port)
         self.parser = FrameParser((CMD, QUERY, CONFIG))
         self._last_reply = None
+        self.late = LateAnswers(bank)
         self.clock = bank.master_time(256)      # the master's time from the frames' seq
 
     def _reply(self, seq: int, nodes) -> bytes:
@@ -61,6 +62,7 @@ class SerialDevice(Device):
         b = self.bank
         address = self.options.address
         for kind, addr, seq, m, frame in self.parser.feed(data):
+            self.late.release()                 # a late reply goes out before the next frame's
             if addr != address:
                 continue
             named = decode_body(QUERY, m, frame) if kind == QUERY else \
@@ -107,9 +109,9 @@ class SerialDevice(Device):
                 bad = bytearray(reply)
                 bad[-1] ^= 0xFF
                 self.ep.send(bytes(bad))
+            elif fault == "late":
+                self.late.hold(self.ep.send, reply)
             else:
-                if fault == "late":
-                    time.sleep(b.late_s)
                 self.ep.send(reply)
             self._last_reply = reply
 
