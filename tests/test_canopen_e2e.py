@@ -10,7 +10,8 @@ sim driver is in tests/test_emulator_e2e.py (500 Hz: classic CAN 1 Mbit/s, SYNC 
   sequence of the enable is Switch on disabled → Ready to switch on → Switched on → Operation
   enabled, each step asked for by the controlword and confirmed by the statusword;
 * SIGKILL of ``motorctl run`` stops the torque on the drive side: its heartbeat consumer (0x1016,
-  50 ms) expires and the abort connection option (0x6007 = 1, fault) sets the torque to 0.
+  set from ``heartbeat_consumer_ms``) expires and the abort connection option (0x6007 = 1, fault)
+  sets the torque to 0.
 """
 
 from __future__ import annotations
@@ -39,6 +40,11 @@ from harness import (
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 PLANT = RIGID_PLANT
 CONSUMER_S = 0.050          # heartbeat_consumer_ms of configs/gantry-canopen.yaml
+#: the heartbeat consumer of the SIGKILL test [s]: three times a loaded host's 100 ms stall, so
+#: only the kill trips it (the shipped 50 ms is tripped by such a stall too, as it should be)
+KILL_CONSUMER_S = 0.300
+#: how late the emulator, itself a process on the loaded host, may act on or stamp an event [s]
+EMULATOR_SLACK_S = 0.200
 
 
 def _faulted_run(tmp_path, d: dict, cfg: Path, fault: str, duration_s: float, **emulator):
@@ -99,13 +105,23 @@ def test_emcy_latches_a_fault_naming_its_code_and_the_enable_follows_the_state_m
 
 def test_sigkill_of_the_host_stops_the_torque_through_the_drives_heartbeat_consumer(tmp_path):
     d, cfg, rate = loopback_e2e_config("canopen", CONFIGS, tmp_path)
+    # the drives' heartbeat consumer far above a loaded host's stall (the shipped 50 ms tripped
+    # before the kill, or in the runs after it, whenever the host stalled for 50 ms: correct,
+    # and the verdict then depended on the host's load), so only the kill trips it; the runs
+    # in lockstep with the drives (each cycle waits up to 50 ms for its TPDOs, the host's
+    # heartbeat goes out every 5 cycles) and the host's watch of the drives' heartbeats
+    # relaxed too, so no stall of either process faults them
+    d["loop"]["clock"] = "virtual"
+    d["driver"].update(heartbeat_consumer_ms=round(KILL_CONSUMER_S * 1e3), drive_heartbeat_timeout_ms=1000,
+                       timeout_s=0.05)
+    cfg.write_text(__import__("yaml").safe_dump(d, sort_keys=False))
     with NetNamespace() as ns, Emulator("canopen", cfg, plant=PLANT, prefix=ns.prefix) as emu:
         run = subprocess.Popen([*ns.prefix, *motorctl_cmd("run", str(cfg), "--duration", "60")],
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
         try:
             assert wait_for(lambda: "X: Switched on -> Operation enabled" in emu.stderr()
                             and "Y: Switched on -> Operation enabled" in emu.stderr(), 30.0), emu.stderr()
-            time.sleep(0.8)                                       # moving (the first move starts at 0.5 s)
+            time.sleep(0.8)                                       # let it drive (no trip may come meanwhile)
             assert "heartbeat consumer" not in emu.stderr()
             t_kill = time.monotonic()
             os.killpg(run.pid, signal.SIGKILL)                     # the host dies mid-motion
@@ -130,16 +146,20 @@ def test_sigkill_of_the_host_stops_the_torque_through_the_drives_heartbeat_consu
             if k == 0:
                 assert all("0x8130" in ln for ln in cleared), cleared
         out = emu.stop()
-    trips = re.findall(r"^heartbeat consumer (\w): no heartbeat from node 127 for 50 ms "
+    trips = re.findall(rf"^heartbeat consumer (\w): no heartbeat from node 127 for {KILL_CONSUMER_S * 1e3:g} ms "
                        r"\(last at t=([\d.]+), now t=([\d.]+)\): abort connection option 1 \(fault signal\): "
                        r"torque 0$", err, re.M)
     assert {a for a, _, _ in trips} == {"X", "Y"}, err
     for axis, last, now in trips:
-        # the last heartbeat came before the kill; the drive acted within its consumer time
-        # (+ 10 ms: the drive polls every 5 ms, and the host's heartbeat period is 10 ms)
-        assert float(last) <= t_kill + 0.002 and float(now) - t_kill <= CONSUMER_S + 0.010 + 0.010, \
-            (axis, float(last) - t_kill, float(now) - t_kill)
-        assert float(now) - float(last) >= CONSUMER_S
+        # the drive's own clock: it acted no sooner than its consumer time after the host's last
+        # heartbeat, and within it (+ its 10 ms poll) but for the emulator's own scheduling
+        assert KILL_CONSUMER_S <= float(now) - float(last) <= KILL_CONSUMER_S + 0.010 + EMULATOR_SLACK_S, \
+            (axis, float(now) - float(last))
+        # against the kill (the host's heartbeats come every few ms in lockstep): the last one
+        # came before it (stamped when the emulator took it in), the torque went to 0 within
+        # the consumer time after it
+        assert float(last) <= t_kill + EMULATOR_SLACK_S, (axis, float(last) - t_kill)
+        assert float(now) - t_kill <= KILL_CONSUMER_S + 0.010 + EMULATOR_SLACK_S, (axis, float(now) - t_kill)
         print(f"heartbeat consumer {axis}: torque 0 {(float(now) - t_kill) * 1e3:.1f} ms after SIGKILL, "
               f"{(float(now) - float(last)) * 1e3:.1f} ms after the last host heartbeat")
     assert re.search(r"^X: fault 0x8130 life guard error or heartbeat error", err, re.M), err

@@ -22,11 +22,19 @@ PLANT = CONFIGS / "gantry.yaml"        # the emulator's plant: the simulated gan
 WATCHDOG_S = 0.25                      # far above a loaded host's stall between two exchanges
 
 
+#: the read timeout: lockstep, an answer that comes is waited for far beyond a loaded host's
+#: stall of the device thread (an answer the device never sends waits it out: the tests that
+#: lose answers on purpose shorten it for those reads)
+READ_TIMEOUT_S = 0.5
+#: the read timeout of a read whose answer is lost on purpose
+LOST_TIMEOUT_S = 0.05
+
+
 def _config(name: str, tmp_path, **driver) -> dict:
     d = load_yaml(CONFIGS / name)
     d["loop"]["rate_hz"] = 1000
-    d["loop"]["clock"] = "virtual"     # lockstep, 50 ms to answer: a loaded host's slow answer is no loss
-    d["driver"].update(timeout_s=0.05, wait="spin")
+    d["loop"]["clock"] = "virtual"     # lockstep: a loaded host's slow answer is no loss
+    d["driver"].update(timeout_s=READ_TIMEOUT_S, wait="spin")
     d["driver"].update(driver)
     return d
 
@@ -98,7 +106,9 @@ def test_a_lost_answer_after_a_run_of_losses_is_stood_in_for_by_one_cycles_step(
         try:
             drv.open()
             lost = []
-            for _ in range(25):                   # bounded
+            for k in range(25):                   # bounded
+                # the answers the device drops are not waited for long; every other one is
+                drv.timeout_s = LOST_TIMEOUT_S if k in (20, 21, 22, 24) else READ_TIMEOUT_S
                 exchange(drv, [2.0, -2.0], [True, True], 1, sleep_s=0.003)
                 lost.append(bool(drv.read_error[0]))
             step = drv._step[0]
@@ -242,7 +252,7 @@ def test_commands_the_device_never_received_cost_no_plant_time(name, tmp_path):
     where = {"gantry-serial.yaml": {"port": f"socket://127.0.0.1:{free_port()}"},
              "gantry-can.yaml": {"interface": "virtual", "channel": f"mt-{tmp_path.name}"},
              "gantry-modbus.yaml": {"transport": "tcp", "host": "127.0.0.1", "port": free_port()}}[name]
-    d = _config(name, tmp_path, timeout_s=0.02, **where)
+    d = _config(name, tmp_path, **where)             # no answer is lost: each one is waited for
     d["loop"]["clock"] = "virtual"                     # lockstep: every answer is waited for
     loaded = config_from_dict(d, "<inprocess>", check_budget=False)
     # a 5 s device watchdog: a loaded host's stall between two commands must not trip it here

@@ -34,7 +34,8 @@ needs_netns = pytest.mark.skipif(os.geteuid() != 0 or shutil.which("unshare") is
 def _config(tmp_path: Path, config: Path = CONFIG, **driver) -> Path:
     d = yaml.safe_load(config.read_text())
     d["loop"]["clock"] = "virtual"        # lockstep with the emulated segment; SM-synchronous
-    d["driver"].update({"ifname": VETH[0], "sync0": False, "watchdog_ms": 200.0, "timeout_s": 0.05, **driver})
+    # lockstep: a frame that comes back is waited for far beyond a loaded host's stall
+    d["driver"].update({"ifname": VETH[0], "sync0": False, "watchdog_ms": 200.0, "timeout_s": 0.5, **driver})
     path = tmp_path / "ethercat.yaml"
     path.write_text(yaml.safe_dump(d, sort_keys=False))
     return path

@@ -315,7 +315,8 @@ def test_motorctl_run_closes_the_loop_through_pymodbus_server(name, rate, stall,
     limits; the sim twin runs the same moves).
 
     Both run in lockstep (``loop.clock: virtual``): every cycle waits for its answers, up to a
-    20 ms read timeout, so the verdict does not depend on the host's load (paced by the wall
+    0.2 s read timeout (no answer is lost here: far above the 5 ms stall and a loaded host's
+    own), so the verdict does not depend on the host's load (paced by the wall
     clock, a late wake-up skips a period, which the emulated plant, stepped per command, does
     not move through, and on a loaded machine ten read timeouts in a row at A's 1.2 ms fill the
     error bucket; the paced figures are benchmarks/bench_transports.py's). ``stall``: the
@@ -328,7 +329,7 @@ def test_motorctl_run_closes_the_loop_through_pymodbus_server(name, rate, stall,
     d = map_a(rate, round_trip_s=0.0006) if name == "A" else map_b(rate)
     d["loop"]["clock"] = "virtual"
     d["loop"]["realtime"]["policy"] = "best_effort"
-    d["driver"]["timeout_s"] = 0.02
+    d["driver"]["timeout_s"] = 0.2
     cfg = _write_config(d, tmp_path / f"map-{name}.yaml")
     where = (51 + 2 * 500) if stall else 0          # configure's 51 queries, then 500 cycles of two requests
     with pymodbus_server(cfg, shared=(name == "A"), no_fc23=(name == "B"), stall=(where, 0.005)) as counts:
@@ -414,8 +415,8 @@ def test_the_device_holds_0V_and_enable_off_after_motorctl_run(how, tmp_path):
 def test_registers_written_per_axis_unit_and_the_fc23_probe_falls_back(tmp_path):
     """Map A on a device without FC23: the probe's exception 01 turns the plan into FC16 + FC03.
     Y on unit 2 with FC06/FC05/FC03. pymodbus's client reads back what the driver wrote.
-    Lockstep with a 50 ms read timeout: a loaded host's slow answer is not a read error."""
-    d = map_a(200.0, round_trip_s=0.0006, timeout_s=0.05, wait="spin", watchdog={"address": 200, "value": 150},
+    Lockstep with a 0.5 s read timeout: a loaded host's slow answer is not a read error."""
+    d = map_a(200.0, round_trip_s=0.0006, timeout_s=0.5, wait="spin", watchdog={"address": 200, "value": 150},
               sequence_register=2)
     d["loop"]["clock"] = "virtual"
     d["axes"]["Y"]["driver"] = {"unit_id": 2, "voltage": {"address": 7, "type": "int16"},
@@ -462,7 +463,8 @@ def test_registers_written_per_axis_unit_and_the_fc23_probe_falls_back(tmp_path)
 def test_a_garbage_reply_is_counted_and_the_tcp_stream_recovers(tmp_path):
     """The server answers one request with junk (an MBAP header announcing 200 bytes, then noise),
     then normally: it is counted as a bad frame, a few cycles fail, then the stream is clean.
-    Lockstep with a 50 ms read timeout, so that only the junk fails a read, never a loaded host."""
+    Lockstep: the cycles around the junk wait 50 ms for an answer, every other one 0.5 s, so
+    that only the junk fails a read, never a loaded host."""
     d = map_a(200.0, round_trip_s=0.0006, timeout_s=0.05, wait="spin")
     d["loop"]["clock"] = "virtual"
     junk_at = 51 + 1 + 10                    # 51 queries + the FC23 probe in configure, then cycle 10
@@ -473,7 +475,8 @@ def test_a_garbage_reply_is_counted_and_the_tcp_stream_recovers(tmp_path):
         try:
             drv.open()
             errors = []
-            for _ in range(40):
+            for k in range(40):
+                drv.timeout_s = 0.05 if 9 <= k < 15 else 0.5
                 exchange(drv, [0.5, 0.5], [True, True], 1, sleep_s=0.004)
                 errors.append(bool(drv.read_error.any()))
         finally:

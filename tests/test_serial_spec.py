@@ -196,6 +196,9 @@ def test_a_device_written_from_the_spec_closes_the_loop_over_a_pty(tmp_path):
                 dev.refuse_next = True                             # one error frame (code 4)
             if k == 350:
                 dev.garbage_next = True                            # junk + a reply with a bad CRC
+            # the two answers made bad on purpose wait out 50 ms; every good one is waited for
+            # far beyond a loaded host's stall of the device thread
+            drv.timeout_s = 0.05 if k in (300, 350) else 0.5
             drv.write(u, np.ones(2, dtype=bool))
             time.sleep(0.001)
             drv.read()
