@@ -3,8 +3,8 @@
 Rerun:  python benchmarks/bench_loop.py [--config configs/gantry.yaml] [--seconds 60] [--steps 50000]
         [--cpu N]
 
-Part 1, step cost: each axis's controllers (C1, C2, and the PID+FF where the axis configures
-``pid:``) run in closed loop with the simulated plant for --steps samples of its program:
+Part 1, step cost: each axis's controllers (C1, C2, the PID+FF where the axis configures
+``pid:``, and C2 with a compensation of cogging and Stribeck friction, ``c2+comp``) run in closed loop with the simulated plant for --steps samples of its program:
 (a) ``controller.update()`` called from Python (perf_counter_ns around each call, so the
 figure includes the Python→kernel dispatch); (b) in the compiled cycle
 (motorctl/loop/cycle.py): the law's own cost, its compiled step replayed inside compiled code on
@@ -36,6 +36,19 @@ from motorctl.control import configured_controllers, make_controller
 from motorctl.loop.rt import RealtimeError
 
 
+#: the compensation of the "c2+comp" rows: what identify writes for cogging and a Stribeck
+#: friction (fixed terms, evaluated in the compiled cycle)
+COMPENSATION = {"cogging": {"period_m": 0.032, "sin_V": [0.14, 0.03], "cos_V": [0.04, 0.04]},
+                "stribeck": {"force_V": 0.05, "velocity_m_per_s": 0.01}}
+
+
+def variants(loaded, loaded_comp, axis: str) -> list:
+    """The rows of one axis: (label, config, controller kind): C1, C2, PID+FF where the axis
+    configures it, and C2 with :data:`COMPENSATION`."""
+    kinds = [k for k in ("c1", "c2", "pid") if k in configured_controllers(loaded.axes[axis].controller)]
+    return [(k, loaded, k) for k in kinds] + [("c2+comp", loaded_comp, "c2")]
+
+
 def step_cost(loaded, axis: str, kind: str, steps: int) -> np.ndarray:
     ts = loaded.period_s
     drv = loaded.make_driver([axis])
@@ -50,7 +63,7 @@ def step_cost(loaded, axis: str, kind: str, steps: int) -> np.ndarray:
         xd, vd, ad = prog.sample(k * ts)
         y = float(drv.position_m[0])
         t0 = clock()
-        u[0] = ctrl.update(y, xd, vd, ad)
+        u[0] = ctrl.update(y, xd, vd, ad, k * ts)
         out[k] = clock() - t0
         drv.write(u, en)
     return out / 1e3
@@ -76,7 +89,7 @@ def replayed_law_cost(loaded, axis: str, kind: str, steps: int) -> float:
         xd, vd, ad = prog.sample(k * ts)
         y = float(drv.position_m[0])
         smp[k] = (y, xd, vd, ad)
-        u[0] = ctrl.update(y, xd, vd, ad)
+        u[0] = ctrl.update(y, xd, vd, ad, k * ts)
         drv.write(u, en)
     fresh = make_controller(loaded.axes[axis].controller, kind, ts)
     nf, ni = fresh.state_size()
@@ -86,14 +99,15 @@ def replayed_law_cost(loaded, axis: str, kind: str, steps: int) -> float:
     fresh.reset(float(smp[0, 0]))
 
     @njit
-    def replay(law, smp, sig, f, ii, lay):
+    def replay(law, smp, ts, sig, f, ii, lay):
         s = 0.0
-        for k in range(smp.shape[0]):
-            s += law_step(law, smp[k, 0], smp[k, 1], smp[k, 2], smp[k, 3], sig, f, ii, lay)
+        for k in range(smp.shape[0]):   # (no preview: the benchmark's compensation has no delay)
+            y, xd, vd, ad = smp[k, 0], smp[k, 1], smp[k, 2], smp[k, 3]
+            s += law_step(law, y, xd, vd, ad, xd, vd, ad, k * ts, sig, f, ii, lay)
         return s
-    replay(fresh.law_code, smp[:10], sig.copy(), f.copy(), ii.copy(), lay)        # compile
+    replay(fresh.law_code, smp[:10], ts, sig.copy(), f.copy(), ii.copy(), lay)        # compile
     t0 = time.perf_counter_ns()
-    replay(fresh.law_code, smp, sig, f, ii, lay)
+    replay(fresh.law_code, smp, ts, sig, f, ii, lay)
     return (time.perf_counter_ns() - t0) / 1e3 / steps
 
 
@@ -143,30 +157,33 @@ def main() -> None:
         raw["loop"]["realtime"]["spin_us"] = args.spin_us
     pinned = config_from_dict(raw, args.config)
     spin_us = pinned.cfg.loop.realtime.spin_us
+    raw = load_yaml(args.config)
+    for axis in raw["axes"]:
+        raw["axes"][axis]["controller"]["compensation"] = COMPENSATION
+    loaded_comp = config_from_dict(raw, f"{args.config} with the benchmark's compensation")
     print(f"# motorctl loop benchmark on {platform.node()} ({platform.processor() or platform.machine()}), "
           f"python {platform.python_version()}, {time.strftime('%Y-%m-%d %H:%M:%S')}")
     print(f"# rerun: python benchmarks/bench_loop.py --config {args.config} --seconds {args.seconds:g} --steps {args.steps} "
           f"--cpu {args.cpu}" + (f" --spin-us {args.spin_us:g}" if args.spin_us is not None else ""))
     print("\n## controller step cost (us per axis, closed loop on the simulated plant)")
-    print(f"{'axis':4} {'ctrl':4} {'median':>8} {'p99':>8} {'max':>8}")
+    print(f"{'axis':4} {'ctrl':7} {'median':>8} {'p99':>8} {'max':>8}")
     med = {}
     for axis in loaded.axes:
-        kinds = [k for k in ("c1", "c2", "pid") if k in configured_controllers(loaded.axes[axis].controller)]
-        for kind in kinds:
-            c = step_cost(loaded, axis, kind, args.steps)
-            med[axis, kind] = np.median(c)
-            print(f"{axis:4} {kind:4} {np.median(c):8.2f} {np.percentile(c, 99):8.2f} {c.max():8.1f}")
+        for label, cfg, kind in variants(loaded, loaded_comp, axis):
+            c = step_cost(cfg, axis, kind, args.steps)
+            med[axis, label] = np.median(c)
+            print(f"{axis:4} {label:7} {np.median(c):8.2f} {np.percentile(c, 99):8.2f} {c.max():8.1f}")
         print(f"{axis:4} C2/C1 median ratio {med[axis, 'c2'] / med[axis, 'c1']:.2f} "
               f"(paper's dSPACE: 14 us / 10 us = 1.40)")
-        if "pid" in kinds:
+        if (axis, "pid") in med:
             print(f"{axis:4} PID/C2 median ratio {med[axis, 'pid'] / med[axis, 'c2']:.2f}")
     print("\n## in the compiled cycle (us): (b) the law's own step, (c) the compiled call of a cycle, one axis")
-    print(f"{'axis':4} {'ctrl':4} {'law':>8} {'call p50':>9} {'call p99':>9}")
+    print(f"{'axis':4} {'ctrl':7} {'law':>8} {'call p50':>9} {'call p99':>9}")
     for axis in loaded.axes:
-        for kind in [k for k in ("c1", "c2", "pid") if k in configured_controllers(loaded.axes[axis].controller)]:
-            law = replayed_law_cost(loaded, axis, kind, args.steps)
-            c = cycle_cost(loaded, [axis], kind, args.steps)
-            print(f"{axis:4} {kind:4} {law:8.2f} {np.median(c):9.2f} {np.percentile(c, 99):9.2f}")
+        for label, cfg, kind in variants(loaded, loaded_comp, axis):
+            law = replayed_law_cost(cfg, axis, kind, args.steps)
+            c = cycle_cost(cfg, [axis], kind, args.steps)
+            print(f"{axis:4} {label:7} {law:8.2f} {np.median(c):9.2f} {np.percentile(c, 99):9.2f}")
     c = cycle_cost(loaded, list(loaded.axes), "c2", args.steps)
     print(f"all axes ({', '.join(loaded.axes)}) on c2: call p50 {np.median(c):.2f} p99 {np.percentile(c, 99):.2f} us")
     print(f"\n## {args.seconds:g} s wall-clock loop at {loaded.cfg.loop.rate_hz:g} Hz, axes {', '.join(loaded.axes)} on C2"

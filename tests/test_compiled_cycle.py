@@ -1,8 +1,10 @@
 """The compiled paths compute what the Python paths compute, to the bit.
 
-* The cycle: a law run by the compiled cycle (C2, PID+FF) and the same law run from Python
-  between the cycle's two calls (its ``law_code`` forced to LAW_PY) give the same record, row for
-  row, through an approach, the program, a stop, and a fault.
+* The cycle: a law run by the compiled cycle (C2, PID+FF, C2 with a compensation of many
+  families, adapted ones, a force ripple and an input delay among them) and the same law run
+  from Python between the cycle's two calls (its ``law_code`` forced to LAW_PY; the
+  compensation's terms evaluated from Python too) give the same record, row for row, through
+  an approach, the program, a stop, and a fault.
 * The simulated driver: its compiled read/write of every axis (the default plant: structural
   mode, current loop and its delay line, force and encoder noise, stiction) and each plant's
   Python step with one draw at a time from the same Generator give the same positions.
@@ -23,11 +25,34 @@ from motorctl.loop.trajectory import Move
 CYCLES = 6000
 
 
+#: C2's compensation for the "c2-compensated" case: fixed and adapted terms of several families,
+#: a thrust factor and a preview
+COMPENSATION = {
+    "cogging": {"period_m": 0.032, "sin_V": [0.05, 0.01], "cos_V": [0.02, -0.01], "adapt": True},
+    "stribeck": {"force_V": 0.05, "velocity_m_per_s": 0.01},
+    "spring": {"stiffness_V_per_m": 0.5, "rest_position_m": 0.2},
+    "asymmetric_friction": {"coulomb_V": 0.02, "viscous_V_s_per_m": 0.01, "adapt": True},
+    "periodic_disturbance": {"frequency_Hz": 7.3, "sin_V": [0.03], "cos_V": [0.01]},
+    "position_friction_shape": {"bumps": [{"center_m": 0.2, "width_m": 0.05, "amplitude_V": 0.02}],
+                                "offset_V": 0.001},
+    "force_ripple": {"period_m": 0.05, "sin": [0.01], "cos": [0.005]},
+    "input_delay": {"delay_s": 0.0004},
+}
+
+
 def _record(repo, law: str, python_law: bool) -> np.ndarray:
-    loaded = load_config(repo / "configs" / "gantry.yaml")
+    d = load_yaml(repo / "configs" / "gantry.yaml")
+    if law == "c2-compensated":
+        law = "c2"
+        d["axes"]["X"]["controller"]["compensation"] = COMPENSATION
+    loaded = config_from_dict(d, "<gantry.yaml, compensated>")
     asm = build(loaded, ["X"], law, clock="virtual", capacity=CYCLES, operated=True)
     ctrl = asm.loop.controllers[0]
     if python_law:                                     # the same law, as one without a compiled step
+        if getattr(ctrl, "compensation", None) is not None:
+            ctrl.compensation.table = None             # its terms from Python
+            ctrl._compiled_comp = False
+            ctrl._bind()
         ctrl.detach()
         ctrl.__class__ = type(f"Py{type(ctrl).__name__}", (type(ctrl),), {"law_code": property(lambda self: LAW_PY)})
         asm.loop.controllers[0] = None
@@ -49,7 +74,7 @@ def _record(repo, law: str, python_law: bool) -> np.ndarray:
     return asm.loop.rows()
 
 
-@pytest.mark.parametrize("law", ["c2", "pid"])
+@pytest.mark.parametrize("law", ["c2", "pid", "c2-compensated"])
 def test_a_compiled_law_and_the_same_law_from_python_record_the_same(repo, law):
     compiled = _record(repo, law, python_law=False)
     from_python = _record(repo, law, python_law=True)
@@ -61,6 +86,9 @@ def test_a_compiled_law_and_the_same_law_from_python_record_the_same(repo, law):
     e = compiled[:, lay.index("X.e")]
     assert np.nanmax(np.abs(e)) > 1e-6                 # it tracked something
     assert compiled[-1, lay.index("X.fault_bits")] != 0   # and the fault latched
+    if law == "c2-compensated":                        # the compensation acted
+        plain = _record(repo, "c2", python_law=False)
+        assert not np.allclose(plain[:, lay.index("X.u")], compiled[:, lay.index("X.u")])
 
 
 @pytest.mark.parametrize("delayed", [False, True], ids=["compiled", "x-with-a-hook"])

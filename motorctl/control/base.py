@@ -25,9 +25,11 @@ import numpy as np
 
 from motorctl.loop.records import CONTROLLER_SIGNALS, N_SIGNALS
 
-#: the compiled laws the servo cycle runs itself (:mod:`motorctl.control.kernels`); LAW_PY: a law
-#: whose :meth:`Controller.update` the cycle calls from Python (any law without a compiled step)
-LAW_PY, LAW_DCDIARC, LAW_PID = 0, 1, 2
+#: the compiled laws the servo cycle runs itself (:mod:`motorctl.control.kernels`): C1/C2,
+#: PID+FF, C1/C2 with a compensation (its terms compiled, :mod:`motorctl.effects.compensation`);
+#: LAW_PY: a law whose :meth:`Controller.update` the cycle calls from Python (any law without a
+#: compiled step)
+LAW_PY, LAW_DCDIARC, LAW_PID, LAW_DCDIARC_COMP = 0, 1, 2, 3
 
 #: offsets into :attr:`Controller.signals`
 SIG = {name: j for j, name in enumerate(CONTROLLER_SIGNALS)}

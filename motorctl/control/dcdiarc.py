@@ -42,6 +42,7 @@ from pydantic import Field
 from motorctl.jit import entry, njit
 from motorctl.control.base import (
     LAW_DCDIARC,
+    LAW_DCDIARC_COMP,
     LAW_PY,
     SIG_D0,
     SIG_E,
@@ -54,7 +55,15 @@ from motorctl.control.base import (
 from motorctl.control.estimator import LeastSquaresEstimator, ls_update, s_f_jit
 from motorctl.control.inversion import invert_cubic
 from motorctl.control.params import ControllerConfig
-from motorctl.effects.compensation import Compensation
+from motorctl.effects.compensation import (
+    T_HEAD,
+    T_PREVIEW,
+    T_THRUST_AT,
+    Compensation,
+    comp_fill,
+    comp_thrust,
+    comp_value,
+)
 from motorctl.model import S_F_GAIN, assumption2_margin
 from motorctl.schema import NonNeg, Pos, StrictModel, quantity
 
@@ -228,9 +237,9 @@ def dcdiarc_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig
 # L[B_K], L[B_M] are sizes, the others offsets into F (float64) or I (int64)
 B_N, B_K, B_M = 0, 1, 2            # n = n_θ + k, k adapted coefficients, ring width m
 (B_ST, B_PRM, B_SPAN, B_RING, B_CM, B_CD, B_TH, B_GAM, B_TMIN, B_TMAX, B_ZF, B_ZD, B_INP, B_FLT,
- B_PHI, B_G, B_Z, B_PIV, B_COEF, B_VEC, B_OPTS, B_RES) = range(3, 25)
-B_PIVIDX, B_ACTIVE = 25, 26        # offsets into I
-N_LAYOUT = 27
+ B_PHI, B_G, B_Z, B_PIV, B_COEF, B_VEC, B_OPTS, B_RES, B_CT) = range(3, 26)
+B_PIVIDX, B_ACTIVE = 26, 27        # offsets into I
+N_LAYOUT = 28
 
 
 @njit
@@ -274,6 +283,39 @@ def dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_de
     return dcdiarc_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig, st, prm, span,
                         ring, cm, cd, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv, coef, vec,
                         pividx, active, opts, res)
+
+
+@njit
+def dcdiarc_comp_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, F, I, L):
+    """One sample of C1/C2 with its compensation (module docstring), on its state block; returns
+    u [V].
+
+    The compensation is the block's table (B_CT, the last float field:
+    :attr:`motorctl.effects.compensation.Compensation.table`, evaluated in compiled code).
+    x_d, xd_dot, xd_ddot: the desired trajectory at this sample [m, m/s, m/s²]; xf, vf, af: at
+    t + τ (τ the table's preview; the sample itself when τ = 0); t: time [s]. d̂_eff is evaluated
+    on (xf, vf, t + τ); an adapted basis on the interval just ended (mean position, mean velocity,
+    mid time) for the estimator and on (xf, vf, t + τ) for v_a1; the ripple factor at the mean
+    and at the desired position.
+    """
+    tab = F[L[B_CT]:]
+    tf = t + tab[T_PREVIEW]
+    v_comp = comp_value(tab, xf, vf, tf)
+    g_meas = 1.0
+    g_des = 1.0
+    k = L[B_K]
+    thrust = tab[T_THRUST_AT] != 0.0
+    if k > 0 or thrust:
+        ts = F[L[B_PRM] + P_TS]
+        y_prev = F[L[B_ST] + S_Y_PREV]
+        xm = 0.5 * (y + y_prev)              # the interval just ended: mean position,
+        if k > 0:                            # mean velocity, mid time
+            comp_fill(tab, F[L[B_CM]:L[B_CM] + k], xm, (y - y_prev) / ts, t - 0.5 * ts)
+            comp_fill(tab, F[L[B_CD]:L[B_CD] + k], xf, vf, tf)
+        if thrust:
+            g_meas = 1.0 + comp_thrust(tab, xm)
+            g_des = 1.0 + comp_thrust(tab, xf)
+    return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig, F, I, L)
 
 
 @njit
@@ -344,9 +386,10 @@ class DCDIARC(Controller):
         params = config
         comp = None if params.compensation.is_empty() else Compensation(params.compensation)
         self.compensation = comp
+        # every term a compiled kernel: the cycle runs the whole law compiled (LAW_DCDIARC_COMP)
+        self._compiled_comp = comp is not None and comp.table is not None
         self.n_beta = comp.n_beta if comp is not None else 0
         self.beta_names = list(comp.beta_names) if comp is not None else []
-        self._thrust = comp.thrust if comp is not None else None
         self.preview_s = comp.preview_s if comp is not None else 0.0
         n_delay = int(round(self.preview_s / ts))
         self.estimator = self._new_estimator()
@@ -369,6 +412,8 @@ class DCDIARC(Controller):
         self._st[S_KS] = k_s1
         self._ring = np.zeros((2, 1 + n_delay))
         self._cd = np.zeros(self.n_beta)
+        # the compensation's compiled table (an empty head without one)
+        self._ctab = comp.table.copy() if self._compiled_comp else np.zeros(T_HEAD)
         # the desired trajectory at t + τ (set by the loop through preview(); else extrapolated)
         self._pv = np.zeros(3)
         self._pv_set = False
@@ -380,6 +425,9 @@ class DCDIARC(Controller):
         # first servo cycle never pays for it
         dcdiarc_block_step(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, self.signals.copy(), self._F.copy(),
                            self._I.copy(), self._L)
+        if self._compiled_comp:
+            dcdiarc_comp_step(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, self.signals.copy(), self._F.copy(),
+                              self._I.copy(), self._L)
         dcdiarc_block_reset(0.0, self._F.copy(), self._L)
 
     @classmethod
@@ -448,7 +496,8 @@ class DCDIARC(Controller):
         list of (owner, attribute)."""
         est = self.estimator
         floats = [(self, "_st"), (self, "_prm"), (self, "_span"), (self, "_ring"), (est, "cols"), (self, "_cd")]
-        return floats + [(est, a) for a in est.FLOAT_ARRAYS], [(est, a) for a in est.INT_ARRAYS]
+        floats += [(est, a) for a in est.FLOAT_ARRAYS] + [(self, "_ctab")]   # the table last (B_CT)
+        return floats, [(est, a) for a in est.INT_ARRAYS]
 
     def _bind(self) -> None:
         """Pack the law's and the estimator's arrays into this axis's state block (F, I, L;
@@ -482,14 +531,21 @@ class DCDIARC(Controller):
         self.beta_hat = est.theta_hat[n:]
         self._cm = est.cols
         # the compiled step for these arrays, called from update() without numba's type resolution
-        self._step = entry(dcdiarc_block_step, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, self.signals,
-                           self._F, self._I, self._L)
+        if not self._compiled_comp:
+            self._step = entry(dcdiarc_block_step, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0,
+                               self.signals, self._F, self._I, self._L)
+        else:
+            self._step = entry(dcdiarc_comp_step, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, self.signals,
+                               self._F, self._I, self._L)
 
     @property
     def law_code(self) -> int:
-        """LAW_DCDIARC without compensation (the cycle runs :func:`dcdiarc_block_step`), else
-        LAW_PY (the compensation terms are evaluated in Python, :meth:`update`)."""
-        return LAW_DCDIARC if self.compensation is None else LAW_PY
+        """LAW_DCDIARC without compensation (the cycle runs :func:`dcdiarc_block_step`),
+        LAW_DCDIARC_COMP with one whose terms are all compiled (:func:`dcdiarc_comp_step`), else
+        LAW_PY (a term from another package: :meth:`update` from Python)."""
+        if self.compensation is None:
+            return LAW_DCDIARC
+        return LAW_DCDIARC_COMP if self._compiled_comp else LAW_PY
 
     def state_size(self) -> tuple[int, int]:
         return self._sizes
@@ -555,8 +611,7 @@ class DCDIARC(Controller):
         """
         if not self._started:
             self.reset(y)
-        comp = self.compensation
-        if comp is None:
+        if self.compensation is None:
             return self._step(y, x_d, xd_dot, xd_ddot, x_d, xd_dot, xd_ddot, 0.0, 1.0, 1.0,
                               self.signals, self._F, self._I, self._L)
         tau = self.preview_s
@@ -571,22 +626,25 @@ class DCDIARC(Controller):
                 vf = xd_dot + tau * (xd_ddot + 0.5 * tau * jk)
                 af = xd_ddot + tau * jk
             self._ad_prev = xd_ddot
-            tf = t + tau
         else:
-            xf, vf, af, tf = x_d, xd_dot, xd_ddot, t
-        v_comp = comp.value(xf, vf, tf) if comp.additive else 0.0
+            xf, vf, af = x_d, xd_dot, xd_ddot
+        if self._compiled_comp:
+            return self._step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, self.signals, self._F, self._I, self._L)
+        # a term from another package: the same evaluation as dcdiarc_comp_step, from Python
+        comp = self.compensation
+        tf = t + tau
+        v_comp = comp.value(xf, vf, tf)
         g_meas = g_des = 1.0
-        if self.n_beta or self._thrust is not None:
+        if self.n_beta or comp.thrust is not None:
             ts = self.ts
             y_prev = float(self._st[S_Y_PREV])
-            xm = 0.5 * (y + y_prev)              # the interval just ended: mean position,
-            if self.n_beta:                      # mean velocity, mid time
+            xm = 0.5 * (y + y_prev)
+            if self.n_beta:
                 comp.fill(self._cm, xm, (y - y_prev) / ts, t - 0.5 * ts)
                 comp.fill(self._cd, xf, vf, tf)
-            thrust = self._thrust
-            if thrust is not None:
-                g_meas = 1.0 + thrust(xm)
-                g_des = 1.0 + thrust(xf)
+            if comp.thrust is not None:
+                g_meas = 1.0 + comp.thrust(xm)
+                g_des = 1.0 + comp.thrust(xf)
         return self._step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, self.signals, self._F,
                           self._I, self._L)
 

@@ -3,38 +3,52 @@
 :mod:`motorctl.loop.cycle` keeps each axis's law state in its rows (``f`` float64, ``ii``
 int64, ``lay`` int64 (N_LAYOUT,), ``sig`` (N_SIGNALS,); :meth:`Controller.attach` puts it
 there) and calls :func:`law_step` / :func:`law_reset` with the axis's law code
-(:data:`motorctl.control.base.LAW_DCDIARC`, ``LAW_PID``). A law without a compiled step
-(LAW_PY: a compensated C1/C2, a law from another package) is run by the cycle from Python
-through :meth:`Controller.update`. This is the one module of :mod:`motorctl.control` the loop
+(:data:`motorctl.control.base.LAW_DCDIARC`, ``LAW_DCDIARC_COMP``, ``LAW_PID``). A law without
+a compiled step (LAW_PY: a law from another package) is run by the cycle from Python through
+:meth:`Controller.update`. This is the one module of :mod:`motorctl.control` the loop
 imports.
 """
 
 from __future__ import annotations
 
-from motorctl.control.base import LAW_DCDIARC, LAW_PID, LAW_PY
-from motorctl.control.dcdiarc import N_LAYOUT, dcdiarc_block_reset, dcdiarc_block_step
+from motorctl.control.base import LAW_DCDIARC, LAW_DCDIARC_COMP, LAW_PID, LAW_PY
+from motorctl.control.dcdiarc import B_CT, N_LAYOUT, dcdiarc_block_reset, dcdiarc_block_step, dcdiarc_comp_step
 from motorctl.control.pid import N_PRM as PID_N_PRM
 from motorctl.control.pid import N_STATE as PID_N_STATE
 from motorctl.control.pid import pid_reset, pid_step
+from motorctl.effects.compensation import T_PREVIEW
 from motorctl.jit import njit
 
-__all__ = ["LAW_DCDIARC", "LAW_PID", "LAW_PY", "N_LAYOUT", "law_reset", "law_step"]
+__all__ = ["LAW_DCDIARC", "LAW_DCDIARC_COMP", "LAW_PID", "LAW_PY", "N_LAYOUT", "law_preview", "law_reset",
+           "law_step"]
 
 
 @njit
-def law_step(law, y, x_d, xd_dot, xd_ddot, sig, f, ii, lay):
+def law_preview(law, f, lay):
+    """How far ahead [s] law ``law`` wants the desired trajectory (its input delay τ; 0: never)."""
+    if law == LAW_DCDIARC_COMP:
+        return f[lay[B_CT] + T_PREVIEW]
+    return 0.0
+
+
+@njit
+def law_step(law, y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, f, ii, lay):
     """One sample of axis law ``law`` on its rows: measured position y [m], desired position
-    [m], velocity [m/s] and acceleration [m/s²]; returns u [V] (paper eq. 9-19 for
-    LAW_DCDIARC, LinuxCNC's pid for LAW_PID), the signals written into sig."""
+    [m], velocity [m/s] and acceleration [m/s²], the same at t + :func:`law_preview` (xf, vf,
+    af) and the time t [s]; returns u [V] (paper eq. 9-19 for LAW_DCDIARC, with the
+    compensation's terms for LAW_DCDIARC_COMP, LinuxCNC's pid for LAW_PID), the signals written
+    into sig."""
     if law == LAW_DCDIARC:
         return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, x_d, xd_dot, xd_ddot, 0.0, 1.0, 1.0, sig, f, ii, lay)
+    if law == LAW_DCDIARC_COMP:
+        return dcdiarc_comp_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, f, ii, lay)
     return pid_step(y, x_d, xd_dot, xd_ddot, sig, f[:PID_N_STATE], f[PID_N_STATE:PID_N_STATE + PID_N_PRM])
 
 
 @njit
 def law_reset(law, y0, f, lay):
     """Bumpless (re)start of axis law ``law`` from the measured position y0 [m]."""
-    if law == LAW_DCDIARC:
+    if law == LAW_DCDIARC or law == LAW_DCDIARC_COMP:
         dcdiarc_block_reset(y0, f, lay)
     else:
         pid_reset(y0, f[:PID_N_STATE])

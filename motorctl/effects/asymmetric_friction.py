@@ -15,7 +15,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from motorctl.effects.base import Adaptable, EffectFamily, PlantTerm, Signals
+from motorctl.effects.base import Adaptable, CompTerm, EffectFamily, PlantTerm, Signals
 from motorctl.effects.stribeck import velocity_grid
 from motorctl.jit import njit
 from motorctl.model import s_f
@@ -28,6 +28,24 @@ def plant_force(f, x, v, t, sf, p):
     for v > 0, else f; the row p = (ΔF_c [N], ΔB [N s/m])."""
     return f - (p[0] * sf + p[1] * v) if v > 0.0 else f
 
+
+@njit
+def comp_add(d, x, v, t, sf, p):
+    """d − (c S_f(ẋ_d) + b ẋ_d) in forward motion (ẋ_d > 0), else d [V]; the row p = (c [V],
+    b [V s/m])."""
+    return d - (p[0] * sf + p[1] * v) if v > 0.0 else d
+
+
+@njit
+def comp_fill(out, j, x, v, t, sf, p):
+    """The adapted columns −S_f(ẋ), −ẋ in forward motion (0, 0 otherwise) into out[j:j + 2]
+    (the row p is empty)."""
+    if v > 0.0:
+        out[j] = -sf
+        out[j + 1] = -v
+    else:
+        out[j] = 0.0
+        out[j + 1] = 0.0
 
 class AsymmetricFriction(StrictModel):
     """Simulated asymmetric friction, ``axes.NAME.driver.effects.asymmetric_friction``:
@@ -84,21 +102,10 @@ class AsymmetricFrictionFamily(EffectFamily):
         return {"coulomb_V": o.coulomb_N / a1, "viscous_V_s_per_m": o.viscous_N_s_per_m / a1}
 
     def compensator(self, o: AsymmetricFrictionComp):
-        c, b = o.coulomb_V, o.viscous_V_s_per_m
-
-        def add(d, x, v, t, sf):
-            return d - (c * sf + b * v) if v > 0.0 else d
-        return add
+        return CompTerm("add", comp_add, [o.coulomb_V, o.viscous_V_s_per_m])
 
     def adapt_basis(self, o: AsymmetricFrictionComp):
-        def fill(out, j, x, v, t, sf):
-            if v > 0.0:
-                out[j] = -sf
-                out[j + 1] = -v
-            else:
-                out[j] = 0.0
-                out[j + 1] = 0.0
-        return fill
+        return CompTerm("fill", comp_fill, [])
 
     # report
     def shape(self, ctx, h, beta, gain):

@@ -108,12 +108,40 @@ class PlantTerm:
         return term
 
 
+class CompTerm:
+    """One effect's compensation, compiled: a numba kernel (:data:`motorctl.jit.njit`) and its
+    parameter row, built once from the entry's options. The servo cycle evaluates every term of
+    an axis in compiled code (:mod:`motorctl.effects.compensation`); from Python a term is
+    called like its kernel without the row.
+
+    * ``add``: ``kernel(d, x_d, xd_dot, t, sf, p) -> d + d̂_eff(x_d, ẋ_d, t)`` [V], x_d [m],
+      ẋ_d [m/s], t [s], sf = S_f(ẋ_d);
+    * ``fill``: ``kernel(out, j, x, xdot, t, sf, p)`` writes the k basis columns c_i(x, ẋ, t)
+      [V per β-unit] of an adapted entry into out[j:j + k], d̂_eff = Σ_i β_i c_i.
+
+    Every kernel is listed in :data:`motorctl.effects.compensation.KERNELS`. Floats only, no
+    allocation: it runs inside the 5 kHz cycle.
+    """
+
+    __slots__ = ("kernel", "kind", "params")
+
+    def __init__(self, kind: str, kernel: Callable, params):
+        if kind not in ("add", "fill"):
+            raise ValueError(f"compensation term kind {kind!r}: must be 'add' or 'fill'")
+        self.kind, self.kernel = kind, kernel
+        self.params = np.ascontiguousarray(params, dtype=np.float64)
+
+    def __call__(self, *args):
+        return self.kernel(*args, self.params)
+
+
 class CompHook:
     """A compensation that is not an additive term d̂_eff (built once from its options, floats).
 
-    * ``thrust(x) -> r̂``: the ripple fraction r̂(x) [-] at position x [m]; the plant's thrust is
-      F_m(u)(1 + r(x)), so the law divides v by 1 + r̂(x_d) before the inversion (eq. 9) and the
-      estimator's thrust channels (u, u|u|, u³) are scaled by 1 + r̂(x) at the measured x;
+    * ``thrust``: the ripple fraction r̂(x) [-] at position x [m] as a :class:`CompTerm` of kind
+      'add' (r̂ = kernel(0.0, x, 0.0, 0.0, 0.0, p)); the plant's thrust is F_m(u)(1 + r(x)), so
+      the law divides v by 1 + r̂(x_d) before the inversion (eq. 9) and the estimator's thrust
+      channels (u, u|u|, u³) are scaled by 1 + r̂(x) at the measured x;
     * ``preview_s``: the input delay τ [s] the law predicts over: the desired-compensation part
       v_a1 (eq. 13) is evaluated on the desired trajectory at t + τ, and the estimator pairs
       x2[k] with the input applied over that interval, u[k − 1 − round(τ/Ts)].
@@ -121,7 +149,7 @@ class CompHook:
 
     __slots__ = ("preview_s", "thrust")
 
-    def __init__(self, thrust: Callable[[float], float] | None = None, preview_s: float = 0.0):
+    def __init__(self, thrust: CompTerm | None = None, preview_s: float = 0.0):
         self.thrust, self.preview_s = thrust, float(preview_s)
 
 
@@ -420,24 +448,22 @@ class EffectFamily:
         """
         raise NotImplementedError(f"effect family {self.name!r} cannot be compensated")
 
-    def compensator(self, options) -> Callable[[float, float, float, float, float], float]:
+    def compensator(self, options) -> CompTerm:
         """The compensation term, built once from ``options`` (a :attr:`comp_options` instance):
-        ``add(d, x_d, xd_dot, t, sf) -> d + d̂_eff(x_d, ẋ_d, t)`` [V], with x_d [m], ẋ_d [m/s],
-        t [s] and sf = S_f(ẋ_d) (0.0 unless :attr:`comp_needs_sf`). Runs inside the 5 kHz
-        cycle: pure floats, no container built per call.
+        a :class:`CompTerm` of kind 'add', ``term(d, x_d, xd_dot, t, sf) -> d + d̂_eff(x_d, ẋ_d,
+        t)`` [V], with x_d [m], ẋ_d [m/s], t [s] and sf = S_f(ẋ_d).
 
         Raises:
             NotImplementedError: the family is not compensable.
         """
         raise NotImplementedError(f"effect family {self.name!r} cannot be compensated")
 
-    def adapt_basis(self, options) -> Callable | None:
+    def adapt_basis(self, options) -> CompTerm | None:
         """The basis of an adapted entry, built once from ``options`` (a :attr:`comp_options`
-        instance, :class:`Adaptable`): ``fill(out, j, x, xdot, t, sf)`` writes the k =
-        len(options.beta()) columns c_i(x, ẋ, t) [V per β-unit] into out[j:j + k], so that
-        d̂_eff = Σ_i β_i c_i (the term :meth:`compensator` adds with β = options.beta()).
-        sf = S_f(ẋ) (0.0 unless :attr:`comp_needs_sf`). Runs inside the 5 kHz cycle: floats only,
-        writes into the preallocated ``out``.
+        instance, :class:`Adaptable`): a :class:`CompTerm` of kind 'fill', ``term(out, j, x,
+        xdot, t, sf)`` writes the k = len(options.beta()) columns c_i(x, ẋ, t) [V per β-unit]
+        into out[j:j + k], so that d̂_eff = Σ_i β_i c_i (the term :meth:`compensator` adds with
+        β = options.beta()); sf = S_f(ẋ).
 
         Default: None, the family cannot adapt (its entries keep fixed amplitudes; a
         :attr:`comp_options` without :class:`Adaptable` has no ``adapt`` key at all).

@@ -20,10 +20,20 @@ force ripple (v divided by 1 + r̂(x_d) before the inversion, eq. 9) and input d
 the desired trajectory at t + τ).
 
 YAML: ``axes.NAME.controller.compensation.<family>``. The keys and each family's term come from
-the registry (:func:`motorctl.effects.compensable`, the family modules): this module only
-composes them. ``CompensationConfig`` has one key per additive family (the registry's
+the registry (:func:`motorctl.effects.compensable`, the family modules): this module composes
+them. ``CompensationConfig`` has one key per additive family (the registry's
 :func:`~motorctl.effects.compensable`); :data:`CompensationSection`, the schema of the
 controller's section, adds one per family with :attr:`~motorctl.effects.base.EffectFamily.hook_options`.
+
+Compiled: each family's term is a numba kernel with a parameter row
+(:class:`~motorctl.effects.base.CompTerm`, its formula in its own module). An axis's terms are
+one table (:attr:`Compensation.table`) that :func:`comp_value`, :func:`comp_fill` and
+:func:`comp_thrust` evaluate; the table lives in the law's state block, so the compiled servo
+cycle runs a compensated C1/C2 whole (``motorctl.control.dcdiarc.dcdiarc_comp_step``). Adding
+a family with a compensation: its kernels in :data:`KERNELS` and a branch in ``_add`` /
+``_fill`` (a family left out, e.g. from another package, keeps its Python term, and the law
+then runs from Python: the same arithmetic, slower). numba caches these kernels beside their
+sources, keyed on this module's file: after editing a family's kernel, touch this module.
 """
 
 from __future__ import annotations
@@ -31,8 +41,113 @@ from __future__ import annotations
 import numpy as np
 from pydantic import create_model
 
-from motorctl.effects import FAMILIES, compensable, compensation_model
+from motorctl.effects import (
+    FAMILIES,
+    asymmetric_friction,
+    compensable,
+    compensation_model,
+    periodic,
+    periodic_friction,
+    position_dependent_friction,
+    position_friction_shape,
+    spring,
+    stribeck,
+)
+from motorctl.jit import njit
 from motorctl.model import s_f_scalar
+
+_s_f = njit(s_f_scalar)
+
+_fourier_add, _fourier_fill = periodic.fourier_add, periodic.fourier_fill
+_spring_add, _spring_fill = spring.comp_add, spring.comp_fill
+_asym_add, _asym_fill = asymmetric_friction.comp_add, asymmetric_friction.comp_fill
+_line_add, _line_fill = position_dependent_friction.comp_add, position_dependent_friction.comp_fill
+_stribeck_add, _stribeck_fill = stribeck.comp_add, stribeck.comp_fill
+_pfric_add, _pfric_fill = periodic_friction.comp_add, periodic_friction.comp_fill
+_shape_add = position_friction_shape.comp_add
+
+#: the compiled kernels of the compensation terms (:class:`~motorctl.effects.base.CompTerm`): a
+#: term's code in the table is the index of its kernel here
+KERNELS = (_fourier_add, _spring_add, _asym_add, _line_add, _stribeck_add, _pfric_add, _shape_add,
+           _fourier_fill, _spring_fill, _asym_fill, _line_fill, _stribeck_fill, _pfric_fill)
+(K_FOURIER_ADD, K_SPRING_ADD, K_ASYM_ADD, K_LINE_ADD, K_STRIBECK_ADD, K_PFRIC_ADD, K_SHAPE_ADD,
+ K_FOURIER_FILL, K_SPRING_FILL, K_ASYM_FILL, K_LINE_FILL, K_STRIBECK_FILL, K_PFRIC_FILL) = range(len(KERNELS))
+
+# the table's head (:meth:`Compensation.table`): preview τ [s], S_f wanted by the additive terms,
+# by the basis, the additive and the basis terms' counts, where the basis records start, where
+# the thrust record starts (0: none)
+T_PREVIEW, T_ADD_SF, T_FILL_SF, T_N_ADD, T_N_FILL, T_FILL_AT, T_THRUST_AT = range(7)
+#: the table's head size; a record is (code, row length m, column offset j, the row's m floats)
+T_HEAD = 7
+
+
+@njit
+def _add(c, d, x, v, t, sf, p):
+    if c == K_FOURIER_ADD:
+        return _fourier_add(d, x, v, t, sf, p)
+    if c == K_SPRING_ADD:
+        return _spring_add(d, x, v, t, sf, p)
+    if c == K_ASYM_ADD:
+        return _asym_add(d, x, v, t, sf, p)
+    if c == K_LINE_ADD:
+        return _line_add(d, x, v, t, sf, p)
+    if c == K_STRIBECK_ADD:
+        return _stribeck_add(d, x, v, t, sf, p)
+    if c == K_PFRIC_ADD:
+        return _pfric_add(d, x, v, t, sf, p)
+    return _shape_add(d, x, v, t, sf, p)
+
+
+@njit
+def _fill(c, out, j, x, v, t, sf, p):
+    if c == K_FOURIER_FILL:
+        _fourier_fill(out, j, x, v, t, sf, p)
+    elif c == K_SPRING_FILL:
+        _spring_fill(out, j, x, v, t, sf, p)
+    elif c == K_ASYM_FILL:
+        _asym_fill(out, j, x, v, t, sf, p)
+    elif c == K_LINE_FILL:
+        _line_fill(out, j, x, v, t, sf, p)
+    elif c == K_STRIBECK_FILL:
+        _stribeck_fill(out, j, x, v, t, sf, p)
+    else:
+        _pfric_fill(out, j, x, v, t, sf, p)
+
+
+@njit
+def comp_value(tab, x, v, t):
+    """d̂_eff [V] of the fixed terms of the table ``tab`` (:meth:`Compensation.table`) at the
+    desired position x [m], velocity v [m/s] and time t [s]: the terms added to 0.0 in order."""
+    sf = _s_f(v) if tab[T_ADD_SF] != 0.0 else 0.0
+    d = 0.0
+    at = T_HEAD
+    for _ in range(int(tab[T_N_ADD])):
+        m = int(tab[at + 1])
+        d = _add(int(tab[at]), d, x, v, t, sf, tab[at + 3:at + 3 + m])
+        at += 3 + m
+    return d
+
+
+@njit
+def comp_fill(tab, out, x, v, t):
+    """The adapted basis columns of ``tab`` at x [m], ẋ = v [m/s], t [s] into ``out`` (n_beta,)."""
+    sf = _s_f(v) if tab[T_FILL_SF] != 0.0 else 0.0
+    at = int(tab[T_FILL_AT])
+    for _ in range(int(tab[T_N_FILL])):
+        m = int(tab[at + 1])
+        _fill(int(tab[at]), out, int(tab[at + 2]), x, v, t, sf, tab[at + 3:at + 3 + m])
+        at += 3 + m
+
+
+@njit
+def comp_thrust(tab, x):
+    """The ripple fraction r̂(x) [-] of ``tab`` at x [m] (0.0 without a thrust term)."""
+    at = int(tab[T_THRUST_AT])
+    if at == 0:
+        return 0.0
+    m = int(tab[at + 1])
+    return _add(int(tab[at]), 0.0, x, 0.0, 0.0, 0.0, tab[at + 3:at + 3 + m])
+
 
 #: The additive terms of the ``compensation:`` section: one optional key per compensable family
 #: (built from the registry).
@@ -56,8 +171,11 @@ CompensationSection = create_model(
 class Compensation:
     """Evaluates the compensation of one axis (runs inside the 5 kHz cycle).
 
-    The terms of the configured families are built once here (in :func:`compensable` order);
-    the per-sample methods only add floats or write into preallocated arrays.
+    The terms of the configured families are built once here (in :func:`compensable` order)
+    into :attr:`table`, their compiled form, which the servo cycle evaluates in compiled code
+    (:func:`comp_value`, :func:`comp_fill`, :func:`comp_thrust`); the per-sample methods here
+    evaluate the same table from Python (or, for a family from another package whose term is
+    not a listed kernel, its Python terms).
 
     Args:
         cfg: a ``CompensationConfig`` or ``CompensationSection`` (any model with one attribute
@@ -69,13 +187,15 @@ class Compensation:
             :meth:`~motorctl.effects.base.Adaptable.beta` order.
         beta_names: (k,) "family.name" of each adapted coefficient.
         thrust: r̂(x) of the force ripple (None: none). preview_s: input delay τ [s] (0: none).
+        table: the compiled form (float64, 1-D: :data:`T_HEAD`, then per term its kernel's code
+            in :data:`KERNELS`, its row's length m, its first column, its row), or None.
     Raises:
         ValueError: ``adapt: true`` on a family that has no basis (:meth:`adapt_basis` None).
     """
 
     def __init__(self, cfg):
         self.cfg = cfg
-        terms, fills = [], []
+        adds, fills = [], []
         need_sf = False
         fill_sf = False
         b0, lo, hi, g0, names = [], [], [], [], []
@@ -97,19 +217,16 @@ class Compensation:
                 names += [f"{fam.name}.{n}" for n in opts.beta_names()]
                 fill_sf = fill_sf or fam.comp_needs_sf
             else:
-                terms.append(fam.compensator(opts))
+                adds.append(fam.compensator(opts))
                 need_sf = need_sf or fam.comp_needs_sf
-        self._terms = tuple(terms)
-        self._need_sf = need_sf
-        self._fills = tuple(fills)
-        self._fill_sf = fill_sf
+        self._n_add = len(adds)
         self.n_beta = len(b0)
         self.beta0 = np.array(b0, dtype=float)
         self.beta_min = np.array(lo, dtype=float)
         self.beta_max = np.array(hi, dtype=float)
         self.gamma0 = np.array(g0, dtype=float)
         self.beta_names = names
-        self.thrust = None
+        thrust = None
         self.preview_s = 0.0
         for fam in hooked():
             opts = getattr(cfg, fam.name, None)
@@ -117,32 +234,79 @@ class Compensation:
                 continue
             hook = fam.comp_hook(opts)
             if hook.thrust is not None:
-                if self.thrust is not None:
+                if thrust is not None:
                     raise ValueError(f"compensation.{fam.name}: a second thrust factor")
-                self.thrust = hook.thrust
+                thrust = hook.thrust
             if hook.preview_s:
                 self.preview_s += hook.preview_s
+        self._adds = tuple(adds)
+        self._fills = tuple(fills)
+        self._need_sf, self._fill_sf = need_sf, fill_sf
+        self._thrust_term = thrust
+        self.thrust = self._thrust if thrust is not None else None
+        #: the compiled form (T_HEAD, then a record per term), read by :func:`comp_value`,
+        #: :func:`comp_fill` and :func:`comp_thrust` (float64, 1-D); None when a term is not a
+        #: listed kernel (a family from another package): then its terms run from Python
+        self.table = self._table(adds, fills, thrust, need_sf, fill_sf)
+
+    def _table(self, adds, fills, thrust, need_sf, fill_sf) -> np.ndarray | None:
+        rows = [(term, 0) for term in adds] + list(fills) + ([(thrust, 0)] if thrust is not None else [])
+        codes = [_code(term) for term, _ in rows]
+        if None in codes:
+            return None
+        head = [0.0] * T_HEAD
+        head[T_PREVIEW] = self.preview_s
+        head[T_ADD_SF] = float(need_sf)
+        head[T_FILL_SF] = float(fill_sf)
+        head[T_N_ADD] = float(len(adds))
+        head[T_N_FILL] = float(len(fills))
+        sizes = [3 + term.params.size for term, _ in rows]
+        head[T_FILL_AT] = float(T_HEAD + sum(sizes[:len(adds)]))
+        if thrust is not None:
+            head[T_THRUST_AT] = float(T_HEAD + sum(sizes[:-1]))
+        tab = list(head)
+        for (term, j), code in zip(rows, codes):
+            tab += [float(code), float(term.params.size), float(j), *term.params]
+        return np.array(tab, dtype=np.float64)
 
     @property
     def additive(self) -> bool:
         """True when there is a fixed additive term (:meth:`value` can be nonzero)."""
-        return bool(self._terms)
+        return self._n_add > 0
 
     def value(self, x_d: float, xd_dot: float, t: float) -> float:
         """d̂_eff [V] of the fixed (not adapted) terms at the desired position x_d [m], velocity
         ẋ_d [m/s] and time t [s]."""
+        if self.table is not None:
+            return comp_value(self.table, x_d, xd_dot, t)
         sf = s_f_scalar(xd_dot) if self._need_sf else 0.0
         d = 0.0
-        for add in self._terms:
+        for add in self._adds:
             d = add(d, x_d, xd_dot, t, sf)
         return d
 
     def fill(self, out: np.ndarray, x: float, xdot: float, t: float) -> None:
         """The adapted basis columns c(x, ẋ, t) into ``out`` (n_beta,) [V per β-unit]: d̂_eff of
         the adapted terms is β·c. x [m], ẋ [m/s], t [s]."""
+        if self.table is not None:
+            comp_fill(self.table, out, x, xdot, t)
+            return
         sf = s_f_scalar(xdot) if self._fill_sf else 0.0
         for fill, j in self._fills:
             fill(out, j, x, xdot, t, sf)
 
+    def _thrust(self, x: float) -> float:
+        """r̂(x) [-] of the force ripple at position x [m]."""
+        if self.table is not None:
+            return comp_thrust(self.table, x)
+        return self._thrust_term(0.0, x, 0.0, 0.0, 0.0)
 
-__all__ = ["Compensation", "CompensationConfig", "CompensationSection", "hooked"]
+
+def _code(term) -> int | None:
+    """The index of ``term``'s kernel in :data:`KERNELS` (None: not a listed kernel)."""
+    kernel = getattr(term, "kernel", None)
+    return next((i for i, k in enumerate(KERNELS) if k is kernel), None)
+
+
+__all__ = ["Compensation", "CompensationConfig", "CompensationSection", "comp_fill", "comp_thrust", "comp_value",
+           "hooked"]

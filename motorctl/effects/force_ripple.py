@@ -22,7 +22,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from motorctl.effects.base import CompHook, PlantTerm, Signals
-from motorctl.effects.periodic import N_HARMONICS, PositionPeriodic, fourier, harmonics, sin_cos_of
+from motorctl.effects.periodic import N_HARMONICS, PositionPeriodic, fourier, fourier_term, harmonics, sin_cos_of
 from motorctl.jit import njit
 from motorctl.schema import Pos, StrictModel
 
@@ -122,15 +122,8 @@ class ForceRippleFamily(PositionPeriodic):
         return {"period_m": o.period_m, "sin": [s for s, _ in sc], "cos": [c for _, c in sc]}
 
     def comp_hook(self, o: RippleComp) -> CompHook:
-        harm = harmonics(2.0 * math.pi / o.period_m, o.sin, o.cos)
-        sin, cos = math.sin, math.cos
-
-        def ripple(x):
-            r = 0.0
-            for w, a, b in harm:
-                r += a * sin(w * x) + b * cos(w * x)
-            return r
-        return CompHook(thrust=ripple)
+        # r̂(x) = Σ_k a_k sin(w_k x) + b_k cos(w_k x), summed from 0
+        return CompHook(thrust=fourier_term(harmonics(2.0 * math.pi / o.period_m, o.sin, o.cos), on_time=False))
 
     # report
     def shape(self, ctx, h, beta, gain):

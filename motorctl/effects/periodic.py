@@ -15,7 +15,7 @@ import math
 import numpy as np
 from pydantic import model_validator
 
-from motorctl.effects.base import Adaptable, EffectFamily
+from motorctl.effects.base import Adaptable, CompTerm, EffectFamily
 from motorctl.jit import njit
 from motorctl.schema import NonNeg, StrictModel
 
@@ -79,39 +79,25 @@ def harmonics(w: float, sin_V: list, cos_V: list) -> tuple:
     return tuple((w * (k + 1), a[k], b[k]) for k in range(n))
 
 
-def fourier_term(harm: tuple, on_time: bool):
+@njit
+def fourier_add(d, x, v, t, sf, p):
+    """d + Σ_k a_k sin(w_k z) + b_k cos(w_k z) [V], z = t [s] when p[0] != 0 else x_d [m] (v, sf
+    unused); the row p = (on_time, w_1, a_1, b_1, w_2, a_2, b_2, ...) of :func:`fourier_term`.
+    The harmonics are added to d one at a time, in order."""
+    z = t if p[0] != 0.0 else x
+    for j in range(1, p.shape[0], 3):
+        d += p[j + 1] * math.sin(p[j] * z) + p[j + 2] * math.cos(p[j] * z)
+    return d
+
+
+def fourier_term(harm: tuple, on_time: bool) -> CompTerm:
     """The compensation term Σ_k a_k sin(w_k z) + b_k cos(w_k z) [V] of :func:`harmonics`, with
-    z = x_d [m] (position) or t [s] (``on_time``), as ``add(d, x_d, xd_dot, t, sf)``.
-
-    Harmonics are added to d one at a time, in order (the same float operations for any n);
-    one or two harmonics (the fitted case) are unrolled: this runs inside the 5 kHz cycle."""
-    sin, cos = math.sin, math.cos
-    if len(harm) == 1:
-        ((w1, a1, b1),) = harm
-
-        def add1(d, x, v, t, sf):
-            z = t if on_time else x
-            return d + (a1 * sin(w1 * z) + b1 * cos(w1 * z))
-        return add1
-    if len(harm) == 2:
-        (w1, a1, b1), (w2, a2, b2) = harm
-
-        def add2(d, x, v, t, sf):
-            z = t if on_time else x
-            d += a1 * sin(w1 * z) + b1 * cos(w1 * z)
-            return d + (a2 * sin(w2 * z) + b2 * cos(w2 * z))
-        return add2
-    if on_time:
-        def add(d, x, v, t, sf):
-            for w, a, b in harm:
-                d += a * sin(w * t) + b * cos(w * t)
-            return d
-    else:
-        def add(d, x, v, t, sf):
-            for w, a, b in harm:
-                d += a * sin(w * x) + b * cos(w * x)
-            return d
-    return add
+    z = x_d [m] (position) or t [s] (``on_time``): a :class:`~motorctl.effects.base.CompTerm`
+    of :func:`fourier_add`."""
+    row = [1.0 if on_time else 0.0]
+    for w, a, b in harm:
+        row += [w, a, b]
+    return CompTerm("add", fourier_add, row)
 
 
 def fourier_beta(sin_V: list, cos_V: list) -> list[float]:
@@ -128,20 +114,24 @@ def fourier_beta_names(sin_V: list, cos_V: list) -> list[str]:
     return [f"sin_V[{k}]" for k in range(n)] + [f"cos_V[{k}]" for k in range(n)]
 
 
-def fourier_basis(w: float, n: int, on_time: bool):
-    """The basis of an adapted Fourier entry (β = :func:`fourier_beta`): ``fill(out, j, x, xdot,
-    t, sf)`` writes sin(k w z), k = 1..n, then cos(k w z) into out[j:j + 2n], z = x_d or x [m]
-    (position) or t [s] (``on_time``); w [rad/m or rad/s]. Floats only (5 kHz cycle)."""
-    sin, cos = math.sin, math.cos
-    ws = tuple(w * (k + 1) for k in range(n))
+@njit
+def fourier_fill(out, j, x, v, t, sf, p):
+    """The basis of an adapted Fourier entry: sin(w_k z), k = 1..n, then cos(w_k z) into
+    out[j:j + 2n], z = t [s] when p[0] != 0 else x [m] (v, sf unused); the row p = (on_time, n,
+    w_1, ..., w_n) of :func:`fourier_basis`."""
+    z = t if p[0] != 0.0 else x
+    n = int(p[1])
+    for k in range(n):
+        ph = p[2 + k] * z
+        out[j + k] = math.sin(ph)
+        out[j + n + k] = math.cos(ph)
 
-    def fill(out, j, x, v, t, sf):
-        z = t if on_time else x
-        for k in range(n):
-            ph = ws[k] * z
-            out[j + k] = sin(ph)
-            out[j + n + k] = cos(ph)
-    return fill
+
+def fourier_basis(w: float, n: int, on_time: bool) -> CompTerm:
+    """The basis of an adapted Fourier entry (β = :func:`fourier_beta`): sin(k w z), k = 1..n,
+    then cos(k w z), z = x_d or x [m] (position) or t [s] (``on_time``); w [rad/m or rad/s]. A
+    :class:`~motorctl.effects.base.CompTerm` of :func:`fourier_fill`."""
+    return CompTerm("fill", fourier_fill, [1.0 if on_time else 0.0, float(n)] + [w * (k + 1) for k in range(n)])
 
 
 class AmplitudeStep(StrictModel):

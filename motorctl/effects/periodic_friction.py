@@ -22,21 +22,38 @@ from typing import ClassVar
 import numpy as np
 from pydantic import Field
 
-from motorctl.effects.base import PlantTerm
+from motorctl.effects.base import CompTerm, PlantTerm
 from motorctl.effects.periodic import (
     N_HARMONICS,
     FourierAdaptable,
     PositionPeriodic,
     amplitudes_phases,
     fourier,
+    fourier_add,
     fourier_basis,
+    fourier_fill,
     fourier_term,
     harmonics,
     sin_cos_of,
 )
+from motorctl.jit import njit
 from motorctl.model import s_f
 from motorctl.schema import Pos, StrictModel
 
+@njit
+def comp_add(d, x, v, t, sf, p):
+    """d + g(x_d) S_f(ẋ_d) [V], g the Fourier sum of :func:`~motorctl.effects.periodic.fourier_add`
+    on x_d with its row p."""
+    return d + fourier_add(0.0, x, v, t, sf, p) * sf
+
+
+@njit
+def comp_fill(out, j, x, v, t, sf, p):
+    """The adapted columns of :func:`~motorctl.effects.periodic.fourier_fill` (its row p) times
+    S_f(ẋ)."""
+    fourier_fill(out, j, x, v, t, sf, p)
+    for i in range(j, j + 2 * int(p[1])):
+        out[i] *= sf
 
 class PeriodicFriction(StrictModel):
     """Simulated periodic friction, ``axes.NAME.driver.effects.periodic_friction``:
@@ -112,20 +129,11 @@ class PeriodicFrictionFamily(PositionPeriodic):
 
     def compensator(self, o: PeriodicFrictionComp):
         g = fourier_term(harmonics(2.0 * math.pi / o.period_m, o.sin_V, o.cos_V), on_time=False)
-
-        def add(d, x, v, t, sf):
-            return d + g(0.0, x, v, t, sf) * sf
-        return add
+        return CompTerm("add", comp_add, g.params)
 
     def adapt_basis(self, o: PeriodicFrictionComp):
-        n = len(o.beta()) // 2
-        fill_f = fourier_basis(2.0 * math.pi / o.period_m, n, on_time=False)
-
-        def fill(out, j, x, v, t, sf):
-            fill_f(out, j, x, v, t, sf)
-            for i in range(j, j + 2 * n):
-                out[i] *= sf
-        return fill
+        g = fourier_basis(2.0 * math.pi / o.period_m, len(o.beta()) // 2, on_time=False)
+        return CompTerm("fill", comp_fill, g.params)
 
     # report
     def shape(self, ctx, h, beta, gain):

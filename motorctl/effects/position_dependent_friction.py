@@ -18,11 +18,23 @@ from typing import ClassVar
 
 import numpy as np
 
-from motorctl.effects.base import Adaptable, EffectFamily, PlantTerm, Signals
+from motorctl.effects.base import Adaptable, CompTerm, EffectFamily, PlantTerm, Signals
 from motorctl.effects.periodic import SHAPE_POINTS
+from motorctl.jit import njit
 from motorctl.model import s_f
 from motorctl.schema import StrictModel
 
+
+@njit
+def comp_add(d, x, v, t, sf, p):
+    """d − c (x_d − x_r) S_f(ẋ_d) [V]; the row p = (c [V/m], x_r [m])."""
+    return d - p[0] * (x - p[1]) * sf
+
+
+@njit
+def comp_fill(out, j, x, v, t, sf, p):
+    """The adapted column (x_r − x) S_f(ẋ) into out[j]; the row p = (x_r [m],)."""
+    out[j] = (p[0] - x) * sf
 
 class PositionDependentFriction(StrictModel):
     """Simulated position-dependent friction,
@@ -97,18 +109,10 @@ class PositionDependentFrictionFamily(EffectFamily):
         return {"coulomb_slope_V_per_m": o.coulomb_slope_N_per_m / a1, "reference_m": o.reference_m}
 
     def compensator(self, o: PositionFrictionComp):
-        c, xr = o.coulomb_slope_V_per_m, o.reference_m
-
-        def add(d, x, v, t, sf):
-            return d - c * (x - xr) * sf
-        return add
+        return CompTerm("add", comp_add, [o.coulomb_slope_V_per_m, o.reference_m])
 
     def adapt_basis(self, o: PositionFrictionComp):
-        xr = o.reference_m
-
-        def fill(out, j, x, v, t, sf):
-            out[j] = (xr - x) * sf
-        return fill
+        return CompTerm("fill", comp_fill, [o.reference_m])
 
     # report
     def shape(self, ctx, h, beta, gain):

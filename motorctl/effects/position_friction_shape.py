@@ -50,7 +50,7 @@ from typing import ClassVar
 import numpy as np
 from pydantic import Field, model_validator
 
-from motorctl.effects.base import EffectFamily, PlantTerm
+from motorctl.effects.base import CompTerm, EffectFamily, PlantTerm
 from motorctl.effects.periodic import SHAPE_POINTS
 from motorctl.effects.position_dependent_friction import FAMILY as LINEAR
 from motorctl.jit import njit
@@ -305,56 +305,62 @@ def line_force(f, x, v, t, sf, p):
     return f - p[0] * (x - p[1]) * sf
 
 
-def _spline_fn(pieces):
-    """g(x) [same unit as the coefficients] of :func:`spline_pieces` as a scalar float function."""
+def _spline_row(pieces) -> list[float]:
+    """The row of :func:`_spline_at` for :func:`spline_pieces`' result: (lo, 1/Δ, n, g_lo, g_hi,
+    a0[0..n), a1[0..n), a2[0..n), a3[0..n))."""
     lo, inv, n, a0, a1, a2, a3, g_lo, g_hi = pieces
+    return [lo, inv, float(n), g_lo, g_hi, *a0, *a1, *a2, *a3]
 
-    def g(x):
-        z = (x - lo) * inv
-        if z <= 0.0:
-            return g_lo
-        if z >= n:
-            return g_hi
-        i = int(z)
-        u = z - i
-        return a0[i] + u * (a1[i] + u * (a2[i] + u * a3[i]))
+
+@njit
+def _spline_at(x, p, at):
+    """g(x) of the spline whose :func:`_spline_row` starts at p[at]: constant beyond the ends,
+    else a0[i] + u (a1[i] + u (a2[i] + u a3[i])) on segment i, u = (x − lo)/Δ − i."""
+    n = int(p[at + 2])
+    z = (x - p[at]) * p[at + 1]
+    if z <= 0.0:
+        return p[at + 3]
+    if z >= n:
+        return p[at + 4]
+    i = int(z)
+    u = z - i
+    a = at + 5 + i
+    return p[a] + u * (p[a + n] + u * (p[a + 2 * n] + u * p[a + 3 * n]))
+
+
+def _spline_fn(pieces):
+    """g(x) [same unit as the coefficients] of :func:`spline_pieces` as a scalar function."""
+    row = np.array(_spline_row(pieces))
+    return lambda x: _spline_at(x, row, 0)
+
+
+@njit
+def _bumps_at(x, p, at):
+    """Σ a cos²(k (x − c)) over the bumps with |x − c| < h; p[at] = the count, then (c [m], h [m],
+    k [rad/m], a) per bump."""
+    g = 0.0
+    for j in range(at + 1, at + 1 + 4 * int(p[at]), 4):
+        s = x - p[j]
+        if -p[j + 1] < s < p[j + 1]:
+            q = math.cos(p[j + 2] * s)
+            g += p[j + 3] * q * q
     return g
 
 
-def _bumps_fn(bumps: tuple):
-    """Σ bumps(x) of ((c, w, a), ...) as a scalar float function (None when there are none)."""
-    cos, pi = math.cos, math.pi
-    if not bumps:
-        return None
-    if len(bumps) == 1:
-        ((c1, w1, b1),) = bumps
-        half1 = 0.5 * w1
-        k1 = pi / w1
-
-        def one(x):
-            s = x - c1
-            if -half1 < s < half1:
-                q = cos(k1 * s)
-                return b1 * q * q
-            return 0.0
-        return one
-    cs = tuple(b[0] for b in bumps)
-    halves = tuple(0.5 * b[1] for b in bumps)
-    ks = tuple(pi / b[1] for b in bumps)
-    amps = tuple(b[2] for b in bumps)
-    nb = len(bumps)
-
-    def many(x):
-        g = 0.0
-        i = 0
-        while i < nb:                          # no iterator built per call
-            s = x - cs[i]
-            if -halves[i] < s < halves[i]:
-                q = cos(ks[i] * s)
-                g += amps[i] * q * q
-            i += 1
-        return g
-    return many
+@njit
+def comp_add(d, x, v, t, sf, p):
+    """d − (g(x_d) − offset) S_f(ẋ_d) [V], g = the spline (when p[0] != 0) plus the bumps; the
+    row p = (has spline, :func:`_spline_row` (when it has), the bump count, (c, h = w/2,
+    k = π/w, a) per bump, offset [V])."""
+    at = 1
+    if p[0] != 0.0:
+        g = _spline_at(x, p, 1)
+        at = 6 + 4 * int(p[3])
+        if p[at] > 0.0:
+            g = g + _bumps_at(x, p, at)
+    else:
+        g = _bumps_at(x, p, at)
+    return d - (g - p[p.shape[0] - 1]) * sf
 
 
 # ---------------------------------------------------------------------------- the family
@@ -495,19 +501,13 @@ class PositionFrictionShapeFamily(EffectFamily):
                           for b in o.bumps]}
 
     def compensator(self, o: PositionFrictionShapeComp):
-        spline = _spline_fn(spline_pieces(o.start_m, o.end_m, o.coefficients_V)) if o.coefficients_V else None
-        bumps = _bumps_fn(tuple((b.center_m, b.width_m, b.amplitude_V) for b in o.bumps))
-        off = o.offset_V
-        if spline is not None and bumps is not None:
-            def add(d, x, v, t, sf):
-                return d - (spline(x) + bumps(x) - off) * sf
-        elif spline is not None:
-            def add(d, x, v, t, sf):
-                return d - (spline(x) - off) * sf
-        else:
-            def add(d, x, v, t, sf):
-                return d - (bumps(x) - off) * sf
-        return add
+        row = [0.0]
+        if o.coefficients_V:
+            row = [1.0, *_spline_row(spline_pieces(o.start_m, o.end_m, o.coefficients_V))]
+        row.append(float(len(o.bumps)))
+        for b in o.bumps:
+            row += [b.center_m, 0.5 * b.width_m, math.pi / b.width_m, b.amplitude_V]
+        return CompTerm("add", comp_add, row + [o.offset_V])
 
     # report
     def shape(self, ctx, h, beta, gain):

@@ -16,7 +16,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from motorctl.effects.base import Adaptable, EffectFamily, PlantTerm, Signals
+from motorctl.effects.base import Adaptable, CompTerm, EffectFamily, PlantTerm, Signals
 from motorctl.effects.periodic import SHAPE_POINTS
 from motorctl.jit import njit
 from motorctl.schema import StrictModel
@@ -28,6 +28,17 @@ def plant_force(f, x, v, t, sf, p):
     p = (k [N/m], x_0 [m])."""
     return f - p[0] * (x - p[1])
 
+
+@njit
+def comp_add(d, x, v, t, sf, p):
+    """d − k (x_d − x_0) [V]; the row p = (k [V/m], x_0 [m])."""
+    return d - p[0] * (x - p[1])
+
+
+@njit
+def comp_fill(out, j, x, v, t, sf, p):
+    """The adapted spring's column x_0 − x into out[j]; the row p = (x_0 [m],)."""
+    out[j] = p[0] - x
 
 class Spring(StrictModel):
     """Simulated spring, ``axes.NAME.driver.effects.spring``: −k (x − x_0) [N].
@@ -89,18 +100,10 @@ class SpringFamily(EffectFamily):
         return {"stiffness_V_per_m": o.stiffness_N_per_m / a1, "rest_position_m": o.rest_position_m}
 
     def compensator(self, o: SpringComp):
-        k, x0 = o.stiffness_V_per_m, o.rest_position_m
-
-        def add(d, x, v, t, sf):
-            return d - k * (x - x0)
-        return add
+        return CompTerm("add", comp_add, [o.stiffness_V_per_m, o.rest_position_m])
 
     def adapt_basis(self, o: SpringComp):
-        x0 = o.rest_position_m
-
-        def fill(out, j, x, v, t, sf):
-            out[j] = x0 - x
-        return fill
+        return CompTerm("fill", comp_fill, [o.rest_position_m])
 
     # report
     def shape(self, ctx, h, beta, gain):

@@ -15,7 +15,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from motorctl.effects.base import Adaptable, EffectFamily, PlantTerm, Signals
+from motorctl.effects.base import Adaptable, CompTerm, EffectFamily, PlantTerm, Signals
 from motorctl.effects.periodic import SHAPE_POINTS
 from motorctl.jit import njit
 from motorctl.model import s_f
@@ -29,6 +29,19 @@ def plant_force(f, x, v, t, sf, p):
     z = v / p[1]
     return f - p[0] * math.exp(-z * z) * sf
 
+
+@njit
+def comp_add(d, x, v, t, sf, p):
+    """d − F_s exp(−(ẋ_d/v_s)²) S_f(ẋ_d) [V]; the row p = (F_s [V], v_s [m/s])."""
+    z = v / p[1]
+    return d - p[0] * math.exp(-z * z) * sf
+
+
+@njit
+def comp_fill(out, j, x, v, t, sf, p):
+    """The adapted column −exp(−(ẋ/v_s)²) S_f(ẋ) into out[j]; the row p = (v_s [m/s],)."""
+    z = v / p[0]
+    out[j] = -math.exp(-z * z) * sf
 
 class Stribeck(StrictModel):
     """Simulated Stribeck friction, ``axes.NAME.driver.effects.stribeck``:
@@ -107,22 +120,10 @@ class StribeckFamily(EffectFamily):
         return {"force_V": o.force_N / a1, "velocity_m_per_s": o.velocity_m_per_s}
 
     def compensator(self, o: StribeckComp):
-        fv, vs = o.force_V, o.velocity_m_per_s
-        exp = math.exp
-
-        def add(d, x, v, t, sf):
-            z = v / vs
-            return d - fv * exp(-z * z) * sf
-        return add
+        return CompTerm("add", comp_add, [o.force_V, o.velocity_m_per_s])
 
     def adapt_basis(self, o: StribeckComp):
-        vs = o.velocity_m_per_s
-        exp = math.exp
-
-        def fill(out, j, x, v, t, sf):
-            z = v / vs
-            out[j] = -exp(-z * z) * sf
-        return fill
+        return CompTerm("fill", comp_fill, [o.velocity_m_per_s])
 
     # report
     def shape(self, ctx, h, beta, gain):

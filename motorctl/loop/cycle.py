@@ -6,14 +6,15 @@ to :func:`servo_cycle` and writes the driver. For every axis the call runs:
     supervisor input checks (NaN, encoder speed, soft limits, driver-error bucket, amplifier)
     → the sequencer: desired(k) of the axis's mode (module docstring of servo.py) and its
       transitions (approach → program, jog → hold, hold → idle, a stop request → hold)
-    → the overrun policy's hold-and-ramp, or the law: a compiled law (LAW_DCDIARC, LAW_PID:
+    → the overrun policy's hold-and-ramp, or the law: a compiled law (LAW_DCDIARC,
+      LAW_DCDIARC_COMP with its compensation and the desired trajectory at its preview, LAW_PID:
       :mod:`motorctl.control.kernels`) on the axis's rows, reset when the axis starts
     → the bumpless-switch blend, the following-error and NaN check of the output
     → a fault or disable: 0 V, amplifier off (and IDLE when operated)
     → the axis's part of the cycle record
 
-An axis whose law has no compiled step (LAW_PY: a compensated C1/C2, a law from another
-package) stops before its law (``phase`` CYCLE_BEFORE, the axis marked pending); the loop runs
+An axis whose law has no compiled step (LAW_PY: a law from another package) stops before its
+law (``phase`` CYCLE_BEFORE, the axis marked pending); the loop runs
 :meth:`Controller.update` from Python and a second call (CYCLE_AFTER) finishes the pending
 axes. Without such an axis the loop makes the one call (CYCLE_ALL).
 
@@ -31,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 from numba.experimental.structref import StructRefProxy
 
-from motorctl.control.kernels import LAW_PY, law_reset, law_step
+from motorctl.control.kernels import LAW_PY, law_preview, law_reset, law_step
 from motorctl.jit import BundleType, bundle, define_bundle, njit
 from motorctl.loop.records import CONTROLLER_SIGNALS, N_SIGNALS
 from motorctl.loop.safety import FAULT_OVERRUN, SI_FAULT, sup_check_input, sup_check_output, sup_trip
@@ -237,7 +238,12 @@ def servo_cycle(phase, k, st):
                 if ax[i, A_RUNNING] == 0:
                     law_reset(law, y, cf[i], cl[i])
                     ax[i, A_RUNNING] = 1
-                u = law_step(law, y, xd, vd, ad, sig[i], cf[i], ci[i], cl[i])
+                tau = law_preview(law, cf[i], cl[i])
+                if tau > 0.0:                          # the law's preview: from the mode it now has
+                    xf, vf, af = desired(i, k, tau, ax, axf, prog, move, ts)
+                else:
+                    xf, vf, af = xd, vd, ad
+                u = law_step(law, y, xd, vd, ad, xf, vf, af, k * ts, sig[i], cf[i], ci[i], cl[i])
                 u, ok = _output(i, u, vd, ax, axf, si, sf, sig, lp)
         _finish(i, ok, u, k, y, xd, vd, ad, ax, axf, si, sig, uo, en, row, offs, lp)
     return pending
