@@ -1,7 +1,7 @@
 """The README's test command N times in a row, some of them beside CPU-spinning processes, with the
 verdict and the wall time of each run: does the suite give the same verdict whatever the load?
 
-    python benchmarks/suite_under_load.py --runs 10 --loaded 5 --spinners 2 --fresh-clone
+    python benchmarks/suite_under_load.py --runs 10 --loaded 5 --spinners 2 --fresh-clone --keep-output /tmp/sul
     python benchmarks/suite_under_load.py --runs 1 -- tests/test_config.py      # a quick try
 
 Each run is the README's test command: with ``--fresh-clone`` in a new clone of this repository's
@@ -51,9 +51,9 @@ def _failures(out: str) -> list[str]:
     return [ln.strip() for ln in out.splitlines() if ln.startswith(("FAILED ", "ERROR "))]
 
 
-def one_run(pytest_args: list[str], fresh_clone: bool, timeout_s: float) -> tuple[int, str, float, list[str]]:
+def one_run(pytest_args: list[str], fresh_clone: bool, timeout_s: float) -> tuple[int, str, float, list[str], str]:
     """One run of the test command: (exit code, pytest's closing line, wall time [s], the
-    failed tests' summary lines)."""
+    failed tests' summary lines, the whole output)."""
     t0 = time.monotonic()
     clone = None
     try:
@@ -75,7 +75,7 @@ def one_run(pytest_args: list[str], fresh_clone: bool, timeout_s: float) -> tupl
             code, out = -1, f"timed out after {timeout_s:g} s\n{exc.stdout or ''}"
         lines = out.strip().splitlines()
         verdict = _closing_line(out) or (lines[-1] if lines else "")
-        return code, verdict, time.monotonic() - t0, _failures(out)
+        return code, verdict, time.monotonic() - t0, _failures(out), out
     finally:
         if clone is not None:
             shutil.rmtree(clone, ignore_errors=True)
@@ -88,6 +88,8 @@ def main(argv=None) -> int:
     ap.add_argument("--spinners", type=int, default=2, help="CPU-spinning processes beside a loaded run (default 2)")
     ap.add_argument("--fresh-clone", action="store_true", help="each run in a new clone of HEAD, venv included")
     ap.add_argument("--timeout-s", type=float, default=1800.0, help="bound of one run [s] (default 1800)")
+    ap.add_argument("--keep-output", metavar="DIR", default=None,
+                    help="write the whole output of each failed run to DIR/suite-run-N.txt")
     ap.add_argument("pytest_args", nargs="*", help="after --: arguments for pytest")
     a = ap.parse_args(argv)
     if a.runs < 1 or not 0 <= a.loaded <= a.runs or a.spinners < 0:
@@ -101,7 +103,7 @@ def main(argv=None) -> int:
         for p in spinners:
             p.start()
         try:
-            code, verdict, wall, failed = one_run(a.pytest_args, a.fresh_clone, a.timeout_s)
+            code, verdict, wall, failed, out = one_run(a.pytest_args, a.fresh_clone, a.timeout_s)
         finally:
             for p in spinners:
                 p.kill()
@@ -111,6 +113,11 @@ def main(argv=None) -> int:
               flush=True)
         for line in failed:
             print(f"    {line}", flush=True)
+        if code != 0 and a.keep_output:
+            path = Path(a.keep_output) / f"suite-run-{k + 1}.txt"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(out)
+            print(f"    pytest's whole output: {path}", flush=True)
     green = sum(1 for _, c, _ in results if c == 0)
     for what, sel in (("idle", False), ("loaded", True)):
         walls = [w for ld, _, w in results if ld == sel]
