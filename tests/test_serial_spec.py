@@ -277,7 +277,9 @@ def test_each_run_starts_from_what_the_last_one_left(spec_device):
         finally:
             drv.close()
         assert [c.confirmed for c in checks] == [True, True], checks
-        assert drv.stop_attempts == 2, drv.stop_attempts             # sent again until answered
+        # sent again until answered: the lost one and at least one more (on a loaded host the
+        # second's answer may come after its bounded wait, and a third goes out)
+        assert drv.stop_attempts >= 2, drv.stop_attempts
         assert checks[0].held == "node 1 status 0x00: amplifier off, 0 V", checks
         assert dev.on == {1: False, 2: False} and dev.u == {1: 0.0, 2: 0.0}
         time.sleep(1.3)                                              # idle: the watchdog latches
