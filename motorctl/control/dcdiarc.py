@@ -412,8 +412,8 @@ class DCDIARC(Controller):
         self._st[S_KS] = k_s1
         self._ring = np.zeros((2, 1 + n_delay))
         self._cd = np.zeros(self.n_beta)
-        # the compensation's compiled table (an empty head without one)
-        self._ctab = comp.table.copy() if self._compiled_comp else np.zeros(T_HEAD)
+        # the compensation's compiled table (an empty head without one), copied into the block
+        self._ctab = comp.table if self._compiled_comp else np.zeros(T_HEAD)
         # the desired trajectory at t + τ (set by the loop through preview(); else extrapolated)
         self._pv = np.zeros(3)
         self._pv_set = False
@@ -638,8 +638,8 @@ class DCDIARC(Controller):
         if self.n_beta or comp.thrust is not None:
             ts = self.ts
             y_prev = float(self._st[S_Y_PREV])
-            xm = 0.5 * (y + y_prev)
-            if self.n_beta:
+            xm = 0.5 * (y + y_prev)              # the interval just ended: mean position,
+            if self.n_beta:                      # mean velocity, mid time
                 comp.fill(self._cm, xm, (y - y_prev) / ts, t - 0.5 * ts)
                 comp.fill(self._cd, xf, vf, tf)
             if comp.thrust is not None:

@@ -219,7 +219,6 @@ class Compensation:
             else:
                 adds.append(fam.compensator(opts))
                 need_sf = need_sf or fam.comp_needs_sf
-        self._n_add = len(adds)
         self.n_beta = len(b0)
         self.beta0 = np.array(b0, dtype=float)
         self.beta_min = np.array(lo, dtype=float)
@@ -247,17 +246,18 @@ class Compensation:
         #: the compiled form (T_HEAD, then a record per term), read by :func:`comp_value`,
         #: :func:`comp_fill` and :func:`comp_thrust` (float64, 1-D); None when a term is not a
         #: listed kernel (a family from another package): then its terms run from Python
-        self.table = self._table(adds, fills, thrust, need_sf, fill_sf)
+        self.table = self._table()
 
-    def _table(self, adds, fills, thrust, need_sf, fill_sf) -> np.ndarray | None:
+    def _table(self) -> np.ndarray | None:
+        adds, fills, thrust = self._adds, self._fills, self._thrust_term
         rows = [(term, 0) for term in adds] + list(fills) + ([(thrust, 0)] if thrust is not None else [])
         codes = [_code(term) for term, _ in rows]
         if None in codes:
             return None
         head = [0.0] * T_HEAD
         head[T_PREVIEW] = self.preview_s
-        head[T_ADD_SF] = float(need_sf)
-        head[T_FILL_SF] = float(fill_sf)
+        head[T_ADD_SF] = float(self._need_sf)
+        head[T_FILL_SF] = float(self._fill_sf)
         head[T_N_ADD] = float(len(adds))
         head[T_N_FILL] = float(len(fills))
         sizes = [3 + term.params.size for term, _ in rows]
@@ -272,7 +272,7 @@ class Compensation:
     @property
     def additive(self) -> bool:
         """True when there is a fixed additive term (:meth:`value` can be nonzero)."""
-        return self._n_add > 0
+        return bool(self._adds)
 
     def value(self, x_d: float, xd_dot: float, t: float) -> float:
         """d̂_eff [V] of the fixed (not adapted) terms at the desired position x_d [m], velocity
