@@ -8,7 +8,8 @@ Rerun:
 What is timed: ``motorctl identify LOG --json`` as a new process, end to end (Python start-up,
 imports, reading, IDIM-LS, the effect search over every family with forward selection and
 backward elimination, simulation fit %, residual verdict, JSON), once with the closed-loop
-before/after (two simulated C2 runs of 8 s, in forked processes, while the fit is summarised)
+before/after (two simulated C2 runs of 8 s in one worker forked at start, fed the nominal fit and
+the model found so far while the effect search goes on)
 and once with ``--no-closed-loop``; the median of ``--repeat`` runs. Wall-clock seconds on this
 machine: other processes inflate them, so the load average and the CPU time are printed too.
 """

@@ -1,7 +1,7 @@
 """``motorctl tune``'s runs (:func:`tune`: run → identify → tuned config → run again → compare,
 keeping only the compensation the closed loop is better with), its effect-free floor on the
-simulated driver and the damage removed; identify's closed-loop before/after
-(:func:`closed_loop`) and the synthetic logs of the identification's tests (:func:`make_log`).
+simulated driver and the damage removed, and the synthetic logs of the identification's tests
+(:func:`make_log`).
 The CLI (arguments, text) is :mod:`motorctl.cli.tune`; the steps are described there.
 
 The floor and the damage removed:
@@ -23,9 +23,6 @@ that nothing is left on.
 from __future__ import annotations
 
 import copy
-import multiprocessing
-import os
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from motorctl.config import LoadedConfig, config_from_dict
@@ -113,87 +110,6 @@ def damage_removed(l2_before: float, l2_after: float, l2_floor: float) -> float 
     if not damage > 0:
         return None
     return (l2_before - l2_after) / damage
-
-
-def closed_loop(idf, cfg: dict, axis: str, duration_s: float) -> dict | None:
-    """C2 alone vs C2 with the found effects compensated, both on the plant of ``cfg`` (``motorctl
-    identify``'s closed-loop before/after; ``idf``: a :class:`motorctl.ident.select.Identifier`
-    after its run).
-
-    Args:
-        cfg: a config dict whose simulated plant carries the effect (e.g. the run log's header).
-        axis: the axis to run. duration_s: run length [s].
-    Returns:
-        {"before": {...}, "after": {...}, "compensation": {...}} with e_M_um, e_F_um, L2_um, or
-        None when no found effect maps to a compensation term.
-    """
-    return start_closed_loop(idf, cfg, axis, duration_s)()
-
-
-def start_closed_loop(idf, cfg: dict, axis: str, duration_s: float):
-    """:func:`closed_loop` started: its two runs go to forked processes at once (where the
-    machine has the cores), so the caller can summarise the fit meanwhile.
-
-    Returns:
-        A function of no argument that waits for the runs and returns what
-        :func:`closed_loop` returns.
-    """
-    from motorctl.ident.pipeline import compensation_from_fit, set_theta0
-    comp, theta_aug, _skipped = compensation_from_fit(idf)
-    if not comp:
-        return lambda: None
-    base = copy.deepcopy(cfg)
-    base["axes"] = {axis: base["axes"][axis]}
-    base["loop"]["clock"] = "virtual"
-    base["loop"].setdefault("realtime", {})["policy"] = "off"
-    ctl = base["axes"][axis]["controller"]
-    ctl.pop("compensation", None)
-    ctl["type"] = "c2"
-    after = copy.deepcopy(base)
-    after["axes"][axis]["controller"]["compensation"] = comp
-    # each run starts from its own fitted model: the nominal θ alone, the augmented θ (about
-    # the emitted references) with the compensation
-    set_theta0(base["axes"][axis]["controller"], idf.nominal.fit.coef[:idf.n_theta])
-    set_theta0(after["axes"][axis]["controller"], theta_aug)
-    wait = _start_pair([(base, "before"), (after, "after")], axis, duration_s)
-
-    def finish() -> dict:
-        res = dict(zip(("before", "after"), wait()))
-        res["compensation"] = comp
-        res["controller"] = "c2"
-        res["duration_s"] = duration_s
-        return res
-    return finish
-
-
-def _closed_loop_run(args) -> dict:
-    """One virtual-clock run of :func:`closed_loop`: (config dict, name, axis, duration [s]) ->
-    e_M_um, e_F_um, L2_um, u_peak_V, fault."""
-    from motorctl.app.job import run_job
-    d, name, axis, duration_s = args
-    loaded = config_from_dict(d, f"<identify closed loop: {name}>")
-    r = run_job(loaded, duration_s=duration_s, clock="virtual").axes[axis]
-    out = {k: float(r[k]) for k in ("e_M_um", "e_F_um", "L2_um", "u_peak_V")}
-    out["fault"] = r["fault"]
-    return out
-
-
-def _start_pair(configs: list, axis: str, duration_s: float):
-    """The runs of ``configs`` [(dict, name)], started side by side in forked processes where
-    the machine has the cores (each run is deterministic: the same figures either way).
-    Returns a function of no argument that waits and returns their results in order."""
-    jobs = [(d, name, axis, duration_s) for d, name in configs]
-    if (os.cpu_count() or 1) < 2 or "fork" not in multiprocessing.get_all_start_methods():
-        return lambda: [_closed_loop_run(j) for j in jobs]
-    ex = ProcessPoolExecutor(max_workers=len(jobs), mp_context=multiprocessing.get_context("fork"))
-    futures = [ex.submit(_closed_loop_run, j) for j in jobs]
-
-    def wait() -> list[dict]:
-        try:
-            return [f.result() for f in futures]
-        finally:
-            ex.shutdown()
-    return wait
 
 
 def make_log(path: str, effect: dict | None = None, duration_s: float = 8.0, seed: int = 1,
@@ -465,6 +381,5 @@ def _compare(res: dict, files: dict) -> None:
     res["compare"] = public(cmp)["axes"][axis]
 
 
-__all__ = ["E_M_SLACK_UM", "FILES", "SIM_DRIVER", "better", "closed_loop", "damage_removed", "effect_free",
-           "start_closed_loop",
+__all__ = ["E_M_SLACK_UM", "FILES", "SIM_DRIVER", "better", "damage_removed", "effect_free",
            "effects_on", "is_simulated", "make_log", "tune"]

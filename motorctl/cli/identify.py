@@ -9,7 +9,7 @@
 with the found effects as ``controller.compensation``, θ̂(0) from the fit and the box widened
 where the fit lies outside it, every change commented with its figure
 (:func:`motorctl.ident.pipeline.tuned_config`). The pipeline is :mod:`motorctl.ident.pipeline`,
-the closed-loop before/after :func:`motorctl.app.tune.closed_loop`: this module parses and prints.
+the closed-loop before/after :class:`motorctl.app.closed_loop.ClosedLoop`: this module parses and prints.
 
 Exit codes: 0 done (with or without an effect found), 2 bad input (one line on stderr).
 """
@@ -55,7 +55,6 @@ def register(parser, subparsers) -> None:
 def cmd_identify(args) -> int:
     from motorctl.cli import UsageError
     from motorctl.ident.data import load_record
-    from motorctl.ident.pipeline import identify_record, json_default, text_report, validation, write_tuned_config
     from motorctl.inputs import writable_dir, writable_file
     if args.report:
         writable_dir(args.report, "report")        # before reading DATA and the (long) fit
@@ -83,7 +82,7 @@ def cmd_identify(args) -> int:
             raise UsageError(f"{base_name}: no axis {w_axis!r} in the config; "
                              f"axes: {', '.join(base_cfg.get('axes', {}))}")
         writable_file(args.write_config, "--write-config output")   # leaves no empty file behind
-    cl_cfg, cl_axis, pending = None, None, []
+    cl_cfg, cl_axis = None, None
     if not args.no_closed_loop:
         if args.config:
             cl_cfg = base_cfg
@@ -95,22 +94,31 @@ def cmd_identify(args) -> int:
                 raise UsageError(f"{args.config or rec.source}: no axis {cl_axis!r} in the config; "
                                  f"axes: {', '.join(cl_cfg.get('axes', {}))}")
 
-    def start(idf):
-        # the closed loop's two runs go on in forked processes while the fit is summarised
-        if cl_cfg is not None and idf.terms:
-            from motorctl.app.tune import start_closed_loop
-            pending.append(start_closed_loop(idf, cl_cfg, cl_axis, args.closed_loop_duration))
-    idf, s = identify_record(rec, n_theta=args.n_theta, friction=args.friction, zoh_delay=args.zoh_delay,
-                             after_fit=start)
-    s["validation"] = validation(idf, rec2) if rec2 is not None else None
-    s["closed_loop"] = None
-    if not args.no_closed_loop and idf.terms:
-        if cl_cfg is None:
-            s["closed_loop_note"] = "not run (no simulated plant: pass --config with the plant carrying the effect)"
-        else:
-            s["closed_loop"] = pending[0]()
-            if s["closed_loop"] is None:
-                s["closed_loop_note"] = "not run (the found effect has no additive compensation term)"
+    # the closed loop's worker is forked before the identification is imported: it loads the
+    # loop meanwhile and runs "before" and (the model found so far) "after" during the search
+    cl = None
+    if cl_cfg is not None:
+        from motorctl.app.closed_loop import ClosedLoop
+        cl = ClosedLoop(cl_cfg, cl_axis, args.closed_loop_duration)
+    try:
+        from motorctl.ident.pipeline import (identify_record, json_default, text_report, validation,
+                                             write_tuned_config)
+        idf, s = identify_record(rec, n_theta=args.n_theta, friction=args.friction, zoh_delay=args.zoh_delay,
+                                 on_nominal=cl and cl.before,
+                                 on_step=cl and cl.speculate,
+                                 after_fit=cl and (lambda idf: idf.terms and cl.after(idf)))
+        s["validation"] = validation(idf, rec2) if rec2 is not None else None
+        s["closed_loop"] = None
+        if not args.no_closed_loop and idf.terms:
+            if cl is None:
+                s["closed_loop_note"] = "not run (no simulated plant: pass --config with the plant carrying the effect)"
+            else:
+                s["closed_loop"] = cl.result()
+                if s["closed_loop"] is None:
+                    s["closed_loop_note"] = "not run (the found effect has no additive compensation term)"
+    finally:
+        if cl is not None:
+            cl.close()
     if args.write_config:
         write_tuned_config(idf, s, base_cfg, w_axis, base_name, args.write_config)
     if args.report:

@@ -4,7 +4,7 @@ the JSON of ``identify``), validate on a second record, turn the found effects i
 controller's compensation and θ̂(0) (:func:`compensation_from_fit`), write the tuned config
 (:func:`tuned_config`, :func:`write_tuned_config`) and the text report (:func:`text_report`).
 
-No run happens here (the closed-loop before/after is :func:`motorctl.app.tune.closed_loop`),
+No run happens here (the closed-loop before/after is :class:`motorctl.app.closed_loop.ClosedLoop`),
 and nothing here parses arguments (the CLI is :mod:`motorctl.cli.identify`).
 """
 
@@ -113,8 +113,11 @@ def _split_std(idf: Identifier, ev, terms) -> list:
     return out
 
 
-def compensation_from_fit(idf: Identifier) -> tuple[dict, np.ndarray, list]:
+def compensation_from_fit(idf: Identifier, final=None, terms=None) -> tuple[dict, np.ndarray, list]:
     """The ``controller.compensation`` of the found effects and the θ̂(0) that goes with it.
+
+    ``final`` and ``terms``: the evaluated model and its effect terms (default: the
+    identifier's final ones, ``idf.final`` and ``idf.terms``).
 
     An adaptable family's entry carries ``adapt: false`` and its projection box from the fit's
     confidence interval (β ∓ 3σ, at least the default margin): a user only flips ``adapt``.
@@ -125,11 +128,13 @@ def compensation_from_fit(idf: Identifier) -> tuple[dict, np.ndarray, list]:
         (:meth:`motorctl.effects.base.EffectFamily.theta_shift`), names of found families that
         have no compensation term).
     """
-    th, betas = idf.coef_split(idf.final, idf.terms)
-    stds = _split_std(idf, idf.final, idf.terms)
+    final = idf.final if final is None else final
+    terms = idf.terms if terms is None else terms
+    th, betas = idf.coef_split(final, terms)
+    stds = _split_std(idf, final, terms)
     theta = np.array(th, dtype=float)
     comp, skipped = {}, []
-    for t, b, sd in zip(idf.terms, betas, stds):
+    for t, b, sd in zip(terms, betas, stds):
         c = fx.compensation(t.family, t.h, b, idf.p, beta_std=sd)
         if c:
             comp.update(c)
@@ -332,7 +337,8 @@ def text_report(s: dict) -> str:
 
 # ---------------------------------------------------------------------------- fit and write
 def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
-                    zoh_delay: float | None = None, after_fit=None) -> tuple[Identifier, dict]:
+                    zoh_delay: float | None = None, after_fit=None,
+                    on_nominal=None, on_step=None) -> tuple[Identifier, dict]:
     """Fit the model to a loaded record, trace the residual to effects, and summarise.
 
     Args:
@@ -341,6 +347,9 @@ def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
             logged input [samples] (None: 0.5 for run logs, detected for CSV/MAT).
         after_fit: called with the identifier once the fit is checked, before the summary
             (e.g. to start the closed-loop runs meanwhile); None: nothing.
+        on_nominal: called with the nominal θ̂ (n_theta,) each time the nominal model is fitted,
+            before the effect search; on_step: called each time the forward selection takes
+            an effect (both: :class:`~motorctl.ident.select.Identifier`); None: nothing.
     Returns:
         (the identifier after its run, the summary of :func:`summarise`; no validation or
         closed loop yet).
@@ -355,7 +364,8 @@ def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
 
     try:
         with quiet():
-            idf = Identifier(rec, n_theta=n_theta, friction=friction, zoh_delay=zoh_delay).run()
+            idf = Identifier(rec, n_theta=n_theta, friction=friction, zoh_delay=zoh_delay,
+                             on_nominal=on_nominal, on_step=on_step).run()
     except (np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
         if isinstance(exc, LogError):
             raise

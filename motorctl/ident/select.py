@@ -114,6 +114,12 @@ class Identifier:
         families: effect family names to search (default: all of the registry, in its order).
         zoh_delay: delay [samples] between the logged input and the acceleration it causes
             (default 0.5 for motorctl run logs, whose input is a zero-order hold, 0 otherwise).
+        on_nominal: called with the nominal θ̂ (n_theta,) each time the nominal model is
+            fitted, before the effect search starts (e.g. to start a closed-loop run with it
+            meanwhile); None: nothing.
+        on_step: called with (this identifier, the effect terms taken so far (list of Term),
+            their evaluation) each time the forward selection takes an effect: the model the
+            search ends with if it takes nothing more; None: nothing.
 
     Raises:
         ValueError: unknown friction shape or effect family.
@@ -121,7 +127,7 @@ class Identifier:
 
     def __init__(self, rec: Record, n_theta: int | None = None, friction: str = "sf",
                  fq: float | None = None, nd: int | None = None, families=None, seed: int = 0,
-                 zoh_delay: float | None = None):
+                 zoh_delay: float | None = None, on_nominal=None, on_step=None):
         if friction not in FRICTION_SHAPES:
             raise ValueError(f"friction shape {friction!r}; allowed: {', '.join(FRICTION_SHAPES)}")
         self.rec = rec
@@ -143,6 +149,7 @@ class Identifier:
         self.m = m
         self._phi_cache = {}
         self._cols_cache = {}
+        self.on_nominal, self.on_step = on_nominal, on_step
         #: in a motorctl run log u_k is written after y_k is read and held over the period (ZOH):
         #: seen from the central-difference acceleration at t_k it acts half a sample late
         #: (u_{k-1}, u_k weigh equally). Other files: timing unknown, 0 unless told.
@@ -465,6 +472,8 @@ class Identifier:
         if self.n_theta == 6:   # thrust shape f_u(u) = u + θ5 u|u| + θ6 u³ for the ripple family
             th = nominal.fit.coef
             self.p.fu = f_u(self.p.u, th[4], th[5])
+        if self.on_nominal is not None:
+            self.on_nominal(nominal.fit.coef[:self.n_theta])
         base: list = []
         current = nominal
         steps = []
@@ -492,6 +501,8 @@ class Identifier:
                 accepted.append((best, current.heldout_rms))
                 base = base + [best.term]
                 current = best
+                if self.on_step is not None:
+                    self.on_step(self, base, current)
             base, accepted, current, dropped = self._eliminate(base, accepted, current)
             if not dropped:
                 break
