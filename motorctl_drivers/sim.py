@@ -313,7 +313,7 @@ def _plant_measured(s, p):
 
 #: the fields of :class:`SimIO`, in constructor order
 SIM_FIELDS = ("pos", "read_error", "amp_fault", "amp_enabled", "applied_u", "S", "P", "DL", "NZ", "inj", "jump",
-              "push")
+              "push", "TC", "TT", "TL", "NT")
 
 
 class SimIOType(BundleType):
@@ -324,16 +324,18 @@ class SimIO(StructRefProxy):
     """The arrays of the simulated driver's exchange by name (:data:`SIM_FIELDS`): the reading
     (pos [m], read_error, amp_fault: (n,)), the amplifier (amp_enabled, applied_u [V]: (n,)), the
     compiled plants' rows (S, P, DL, NZ: one row per axis), the injected faults (inj: (n, 4)
-    cycles left, jump [m], push [N]: (n,)); passed to the compiled read and write as one
-    argument (:func:`motorctl.jit.bundle`)."""
+    cycles left, jump [m], push [N]: (n,)), the plants' compiled effect terms (NT (n,) how many,
+    0 for none; TC (n, m) codes, TT (n, m, w) rows, TL (n, m) lengths: each plant's
+    :func:`motorctl.effects.plant.rows`, zero-padded); passed to the compiled read and write as
+    one argument (:func:`motorctl.jit.bundle`)."""
 
 
 define_bundle(SimIOType, SimIO, SIM_FIELDS)
 
 
 @njit
-def _make_sim_io(pos, read_error, amp_fault, amp_enabled, applied_u, S, P, DL, NZ, inj, jump, push):
-    return SimIO(pos, read_error, amp_fault, amp_enabled, applied_u, S, P, DL, NZ, inj, jump, push)
+def _make_sim_io(pos, read_error, amp_fault, amp_enabled, applied_u, S, P, DL, NZ, inj, jump, push, TC, TT, TL, NT):
+    return SimIO(pos, read_error, amp_fault, amp_enabled, applied_u, S, P, DL, NZ, inj, jump, push, TC, TT, TL, NT)
 
 
 @njit
@@ -363,12 +365,13 @@ def _sim_read(io, bitten):
 
 @njit
 def _sim_write(io, u_v, enable, bitten):
-    """:meth:`SimDriver.write` of every axis (all plants compiled) on the :class:`SimIO` ``io``:
-    the amplifier's enable and output (NaN never reaches it), an injected push, one period of
-    each plant. u_v [V] and enable: (n,). Returns how many plants have used up their block of
-    noise draws (to be refilled before the next period)."""
+    """:meth:`SimDriver.write` of every axis (each plant's whole period compiled) on the
+    :class:`SimIO` ``io``: the amplifier's enable and output (NaN never reaches it), an injected
+    push, one period of each plant (:func:`_plant_step`, or :func:`_hooked_step` with the
+    plant's effect terms). u_v [V] and enable: (n,). Returns how many plants have used up their
+    block of noise draws (to be refilled before the next period)."""
     amp_fault, amp_enabled, applied_u, inj, push = io.amp_fault, io.amp_enabled, io.applied_u, io.inj, io.push
-    S, P, DL, NZ = io.S, io.P, io.DL, io.NZ
+    S, P, DL, NZ, TC, TT, TL, NT = io.S, io.P, io.DL, io.NZ, io.TC, io.TT, io.TL, io.NT
     need = 0
     for i in range(u_v.shape[0]):
         on = enable[i] and not amp_fault[i] and not bitten
@@ -382,7 +385,11 @@ def _sim_write(io, u_v, enable, bitten):
             S[i, PS_FEXT] = push[i]
         else:
             S[i, PS_FEXT] = 0.0
-        _plant_step(u, S[i], P[i], DL[i, :int(P[i, PP_NDL])], NZ[i])
+        k = NT[i]
+        if k > 0:
+            _hooked_step(u, S[i], P[i], DL[i, :int(P[i, PP_NDL])], NZ[i], TC[i, :k], TT[i, :k], TL[i, :k])
+        else:
+            _plant_step(u, S[i], P[i], DL[i, :int(P[i, PP_NDL])], NZ[i])
         if S[i, PS_NZI] >= NOISE_BLOCK:
             need += 1
     return need
@@ -572,6 +579,8 @@ class AxisPlant:
                        self.fc, self.f0, 0.0, 0.0)   # compile (or load the cache) now
         # without effect hooks the whole period is one compiled call (_plant_step)
         self._compiled = not (self._hooks or self._inputs)
+        # ... and with compiled effect terms and no input transform, one call of _hooked_step
+        self.period_compiled = self._compiled or (self._terms is not None and not self._inputs)
         n_dl = n_del if self._flex else 0
         self._p = np.array([self.m, self.a1, self.a2, self.a3, self.b, self.fc, self.f0, self.noise,
                             self.stiction, self.stick_v, self.h, self.substeps, self.mc, self.ml, self.ks,
@@ -766,15 +775,28 @@ class SimDriver(Driver):
         self._inject = np.zeros((n, 4), dtype=np.int64)   # cycles left: INJ_READ, INJ_NAN, INJ_AMP, INJ_PUSH
         self._jump_m = np.zeros(n)
         self._push_N = np.zeros(n)
-        # every plant without effect hooks: read and write are one compiled call for all axes,
-        # on rows kept here (the plants' attributes read and write the same rows)
-        self._compiled = all(p._compiled for p in self.plants)
+        # every plant's whole period compiled (no effect hook, or only compiled effect terms; no
+        # input transform): read and write are one compiled call for all axes, on rows kept
+        # here (the plants' attributes read and write the same rows)
+        self._compiled = all(p.period_compiled for p in self.plants)
+        terms = [p._terms if p._terms is not None and p.period_compiled else None for p in self.plants]
+        m = max([len(t[0]) for t in terms if t is not None] + [1])
+        w = max([t[1].shape[1] for t in terms if t is not None] + [1])
+        self._NT = np.zeros(n, dtype=np.int64)
+        self._TC = np.zeros((n, m), dtype=np.int64)
+        self._TT = np.zeros((n, m, w))
+        self._TL = np.zeros((n, m), dtype=np.int64)
+        for i, t in enumerate(terms):
+            if t is not None:
+                k = len(t[0])
+                self._NT[i] = k
+                self._TC[i, :k], self._TT[i, :k, :t[1].shape[1]], self._TL[i, :k] = t
         self._S, self._P = np.zeros((n, N_PS)), np.zeros((n, N_PP))
         self._DL = np.zeros((n, max([p._dl.size for p in self.plants] + [1])))
         self._NZ = np.zeros((n, NOISE_BLOCK))
         for i, p in enumerate(self.plants):
             p.rehome(self._S[i], self._P[i], self._DL[i, :p._dl.size], self._NZ[i])
-            if p._compiled:             # (a plant with hooks draws its first block at its first step,
+            if p.period_compiled:       # (any other plant draws its first block at its first step,
                 p.refill_noise()        # one with Python hooks one draw at a time)
         self.applied_u = np.zeros(n)   # voltage at the amplifier output [V]
         self._io = self._sim_io()
@@ -798,7 +820,8 @@ class SimDriver(Driver):
         """The exchange's arrays (:class:`SimIO`), or copies of them (for a call that changes
         nothing)."""
         arrays = (self.position_m, self.read_error, self.amp_fault, self.amp_enabled, self.applied_u, self._S,
-                  self._P, self._DL, self._NZ, self._inject, self._jump_m, self._push_N)
+                  self._P, self._DL, self._NZ, self._inject, self._jump_m, self._push_N, self._TC, self._TT,
+                  self._TL, self._NT)
         if copies:
             arrays = tuple(a.copy() for a in arrays)
         return bundle(_make_sim_io, SIM_FIELDS, arrays)

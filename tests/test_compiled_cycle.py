@@ -17,6 +17,7 @@ import pytest
 
 from motorctl.app.build import build, shutdown, start
 from motorctl.config import config_from_dict, load_config, load_yaml
+from motorctl.ident.synth import EXAMPLES
 from motorctl.control.base import LAW_PY
 from motorctl.loop.cycle import A_LAW
 from motorctl.loop.records import RecordLayout
@@ -91,14 +92,19 @@ def test_a_compiled_law_and_the_same_law_from_python_record_the_same(repo, law):
         assert not np.allclose(plain[:, lay.index("X.u")], compiled[:, lay.index("X.u")])
 
 
-@pytest.mark.parametrize("delayed", [False, True], ids=["compiled", "x-with-a-hook"])
-def test_the_compiled_plants_draw_the_same_noise_as_one_draw_at_a_time(repo, delayed):
-    """``delayed``: X's plant has an input delay (an effect hook: its input transform runs in
+@pytest.mark.parametrize("case", ["compiled", "x-with-a-hook", "x-with-effect-terms"])
+def test_the_compiled_plants_draw_the_same_noise_as_one_draw_at_a_time(repo, case):
+    """x-with-a-hook: X's plant has an input delay (an effect hook: its input transform runs in
     Python, then its period is one compiled call of its own) and the driver's read and write run
-    per axis; its noise must still be the Generator's draws, one at a time from the first."""
+    per axis; its noise must still be the Generator's draws, one at a time from the first.
+    x-with-effect-terms: X's plant has cogging and a Stribeck curve, whose compiled terms run
+    inside the driver's one compiled write; the same positions as their Python hooks."""
     d = load_yaml(repo / "configs" / "gantry.yaml")
+    delayed = case == "x-with-a-hook"
     if delayed:
         d["axes"]["X"]["driver"]["input_delay_s"] = 0.0004
+    if case == "x-with-effect-terms":
+        d["axes"]["X"]["driver"]["effects"] = {**EXAMPLES["cogging"], **EXAMPLES["stribeck"]}
     loaded = config_from_dict(d, "gantry")
     fast, slow = loaded.make_driver(), loaded.make_driver()
     assert fast._compiled != delayed
@@ -106,6 +112,7 @@ def test_the_compiled_plants_draw_the_same_noise_as_one_draw_at_a_time(repo, del
     slow._compiled = False
     for p, s in zip(slow.plants, seeds):
         p._compiled = False                            # the Python step, one draw at a time
+        p._terms = None                                # the effects' Python hooks
         p.rng = np.random.default_rng(int(s))
     n = len(fast.axis_names)
     rng = np.random.default_rng(3)                     # derandomized
