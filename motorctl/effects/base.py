@@ -265,6 +265,10 @@ class SearchContext(Protocol):
         """The term minimising the joint-LS SSE over ``grid`` (K,), and the SSE per value (K,).
         ``cols_fn(h)`` may give cheap approximate decimated columns (M, k) for the scan."""
 
+    def best_between(self, family: str, lo: float, hi: float, base: list, xatol: float) -> Any:
+        """The term minimising the joint-LS SSE for h in [lo, hi], found to within ``xatol``
+        (bounded Brent search): for an SSE with one minimum in the interval."""
+
     def sse(self, terms: list) -> float:
         """SSE of the joint LS fit of the nominal model plus ``terms``."""
 

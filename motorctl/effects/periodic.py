@@ -3,8 +3,9 @@ position-periodic search of cogging, force ripple and periodic friction (not a f
 
 Position-periodic search (docs/identification.md, section 2, the cogging row): the period P is taken from the
 peaks of a least-squares (Lomb-Scargle) periodogram of the residual against **position**
-(moving samples, P from 1 mm to min(0.1 m, stroke/3)), then refined by the joint LS fit on
-grids at ±3 % and ±0.5 % of each peak; a peak whose period lowers the SSE by less than
+(moving samples, P from 1 mm to min(0.1 m, stroke/3)), then refined by minimising the joint LS
+fit's SSE within the periodogram's resolution of each peak (±P/stroke, at most ±3 %; bounded
+Brent search to 0.1 % of P); a peak whose period lowers the SSE by less than
 :data:`MIN_PEAK_DROP` is a noise peak and is not refined.
 """
 
@@ -26,6 +27,11 @@ N_PEAKS = 2
 #: Least SSE drop at a periodogram peak for it to be refined (a candidate needs a held-out RMS
 #: gain of 3 %, about 6 % of the SSE; refining moves the period by at most 3 %)
 MIN_PEAK_DROP = 0.03
+#: Largest relative distance from a periodogram peak at which the period is searched (the
+#: spatial periodogram of a short stroke resolves a period to about P/stroke: 8 % for 32 mm over 0.4 m).
+REFINE_SPAN = 0.03
+#: Resolution of the refined period, relative to the peak's.
+REFINE_TOL = 1e-3
 #: Least agreement of a position-periodic force fitted on each direction of motion separately.
 MIN_DIRECTION_AGREEMENT = 0.5
 #: Points of a report figure's curve.
@@ -216,11 +222,6 @@ def period_grid(stroke: float) -> np.ndarray:
     return np.exp(np.arange(math.log(lo), math.log(hi), 0.002))
 
 
-def refine(center: float, rel: float, n: int) -> np.ndarray:
-    """n values from center·(1 − rel) to center·(1 + rel)."""
-    return center * (1.0 + np.linspace(-rel, rel, n))
-
-
 def time_periodogram(t, r, freqs):
     """|DFT|² of r (uniform time t [s], (M,)) at ``freqs`` [Hz] (K,) (zero-padded FFT of the
     Hann-windowed, mean-removed r, linearly interpolated). Returns (K,)."""
@@ -266,8 +267,10 @@ class PositionPeriodic(EffectFamily):
                 if best is None or sse < best[0]:
                     best = (sse, term)
                 continue
-            term, _ = ctx.best_over(self.name, refine(pk, 0.03, 13), base)
-            term, _ = ctx.best_over(self.name, refine(term.h, 0.005, 7), base)
+            # the true period lies within the periodogram's resolution of its peak, ΔP/P ≈ P/stroke
+            # (the SSE's main lobe, one minimum): searched there, at most ±REFINE_SPAN
+            half = min(REFINE_SPAN, pk / ctx.stroke)
+            term = ctx.best_between(self.name, pk * (1.0 - half), pk * (1.0 + half), base, REFINE_TOL * pk)
             sse = ctx.sse(base + [term])
             if best is None or sse < best[0]:
                 best = (sse, term)

@@ -20,7 +20,6 @@ from motorctl.effects.periodic import (
     N_HARMONICS,
     peak_periods,
     period_grid,
-    refine,
     spatial_periodogram,
 )
 
@@ -33,7 +32,6 @@ __all__ = [
     "parameters",
     "peak_periods",
     "period_grid",
-    "refine",
     "spatial_periodogram",
 ]
 
