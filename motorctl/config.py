@@ -53,6 +53,11 @@ class ConfigError(ValueError):
         self.file, self.key, self.message = str(file), key, message
         super().__init__(f"{file}: {key}: {message}" if key else f"{file}: {message}")
 
+    def __reduce__(self):
+        # rebuilt from its three parts (it crosses from a worker process, e.g. identify's
+        # closed loop, as itself)
+        return type(self), (self.file, self.key, self.message)
+
 
 # --------------------------------------------------------------------------- YAML
 class _StrictLoader(yaml.SafeLoader):

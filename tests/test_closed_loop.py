@@ -72,3 +72,28 @@ def test_no_compensable_effect_runs_nothing(fitted):
         idf.terms = terms
     assert cl.result() is None
     assert cl._proc is None
+
+
+def test_a_config_that_does_not_run_gives_its_error_not_a_traceback(fitted, tmp_path):
+    """identify --config with a key no config has: the worker's run fails and the CLI says
+    which key, exit code 2 (the error crosses from the worker as itself)."""
+    import copy
+
+    import yaml
+
+    from motorctl.cli import main
+    from motorctl.config import ConfigError
+    cfg, idf = fitted
+    bad = copy.deepcopy(cfg)
+    bad["loop"]["warp_factor"] = 9
+    cl = ClosedLoop(bad, "X", DURATION_S)
+    cl.before(idf.nominal.fit.coef[:idf.n_theta])
+    assert cl.after(idf)
+    with pytest.raises(ConfigError, match="warp_factor"):
+        cl.result()
+    assert cl._proc is None
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(bad))
+    log = tmp_path / "log.mclog"
+    make_log(log, EXAMPLES["cogging"], duration_s=4.0, seed=3)
+    assert main(["identify", str(log), "--config", str(path), "--closed-loop-duration", "0.5"]) == 2

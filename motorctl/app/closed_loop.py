@@ -18,6 +18,7 @@ from __future__ import annotations
 import copy
 import multiprocessing
 import os
+import pickle
 import traceback
 
 #: the worker's warm-up run [s]: enough cycles to load every compiled kernel of the loop
@@ -43,7 +44,7 @@ def run_once(cfg: dict, name: str, axis: str, duration_s: float) -> dict:
 def _serve(conn, warm: dict, axis: str) -> None:
     """The worker: a short run of ``warm`` (loads the modules and kernels), then the jobs
     received, (name, number, cfg, duration [s]), in order, each answered with (name, number,
-    figures, None) or (name, number, None, the error's text); a job with a newer one of the same
+    figures, None) or (name, number, None, the exception it raised); a job with a newer one of the same
     name waiting behind it is skipped (superseded). Ends at None or the end of the pipe."""
     try:
         run_once(warm, "warm-up", axis, WARM_UP_S)
@@ -67,7 +68,11 @@ def _serve(conn, warm: dict, axis: str) -> None:
         try:
             conn.send((name, number, run_once(cfg, name, axis, duration_s), None))
         except Exception as exc:
-            conn.send((name, number, None, "".join(traceback.format_exception_only(type(exc), exc)).strip()))
+            try:
+                pickle.loads(pickle.dumps(exc))
+            except Exception:              # an exception that does not cross: its text
+                exc = RuntimeError("".join(traceback.format_exception_only(type(exc), exc)).strip())
+            conn.send((name, number, None, exc))
 
 
 class ClosedLoop:
@@ -92,7 +97,7 @@ class ClosedLoop:
         self._before_theta = None
         self._jobs: dict = {}        # name -> (number, config) of the last one sent
         self._number = 0
-        self._results: dict = {}     # name -> (figures, error)
+        self._results: dict = {}     # name -> (figures, the exception raised or None)
         self._conn = self._proc = None
         if (os.cpu_count() or 1) >= 2 and "fork" in multiprocessing.get_all_start_methods():
             ctx = multiprocessing.get_context("fork")
@@ -179,7 +184,8 @@ class ClosedLoop:
         None when :meth:`after` found no compensation term (or was not called).
 
         Raises:
-            RuntimeError: a run failed (its error's text) or the worker died.
+            What a run raised (e.g. :class:`motorctl.inputs.InputError` for a config that is
+            not valid); RuntimeError when the worker died.
         """
         if "after" not in self._jobs:
             self.close()
@@ -191,8 +197,8 @@ class ClosedLoop:
         out = {}
         for name in ("before", "after"):
             figures, err = self._results[name]
-            if err:
-                raise RuntimeError(f"the closed loop's {name} run failed: {err}")
+            if err is not None:
+                raise err
             out[name] = figures
         out.update(compensation=self.compensation, controller="c2", duration_s=self.duration_s)
         return out

@@ -5,7 +5,7 @@ Position-periodic search (docs/identification.md, section 2, the cogging row): t
 peaks of a least-squares (Lomb-Scargle) periodogram of the residual against **position**
 (moving samples, P from 1 mm to min(0.1 m, stroke/3)), then refined by minimising the joint LS
 fit's SSE within the periodogram's resolution of each peak (±P/stroke, at most ±3 %; bounded
-Brent search to 0.1 % of P); a peak whose period lowers the SSE by less than
+Brent search to 1/30 of that); a peak whose period lowers the SSE by less than
 :data:`MIN_PEAK_DROP` is a noise peak and is not refined.
 """
 
@@ -30,8 +30,9 @@ MIN_PEAK_DROP = 0.03
 #: Largest relative distance from a periodogram peak at which the period is searched (the
 #: spatial periodogram of a short stroke resolves a period to about P/stroke: 8 % for 32 mm over 0.4 m).
 REFINE_SPAN = 0.03
-#: Resolution of the refined period, relative to the peak's.
-REFINE_TOL = 1e-3
+#: Resolution of the refined period, as a share of the searched half-width (a period off by δP
+#: shifts the phase by 2π·(stroke/P)·δP/P over the stroke: 0.2 rad at this share).
+REFINE_TOL = 1.0 / 30.0
 #: Least agreement of a position-periodic force fitted on each direction of motion separately.
 MIN_DIRECTION_AGREEMENT = 0.5
 #: Points of a report figure's curve.
@@ -270,7 +271,8 @@ class PositionPeriodic(EffectFamily):
             # the true period lies within the periodogram's resolution of its peak, ΔP/P ≈ P/stroke
             # (the SSE's main lobe, one minimum): searched there, at most ±REFINE_SPAN
             half = min(REFINE_SPAN, pk / ctx.stroke)
-            term = ctx.best_between(self.name, pk * (1.0 - half), pk * (1.0 + half), base, REFINE_TOL * pk)
+            term = ctx.best_between(self.name, pk * (1.0 - half), pk * (1.0 + half), base,
+                                    REFINE_TOL * half * pk)
             sse = ctx.sse(base + [term])
             if best is None or sse < best[0]:
                 best = (sse, term)
