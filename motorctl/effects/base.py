@@ -397,6 +397,16 @@ class EffectFamily:
         """
         return ctx.term(self.name, None), None
 
+    def polish(self, ctx: SearchContext, term, others: list):
+        """The searched parameter of a selected ``term`` taken again in the final model, with
+        the ``others`` selected effects (found after it, they may have biased its search), or
+        None to keep it. Default: None (kept as searched).
+
+        Returns:
+            A term of this family (``ctx.best_between`` / ``ctx.term``) or None.
+        """
+        return None
+
     def plausible(self, ctx: SearchContext, term, beta: np.ndarray, theta: np.ndarray,
                   base: list) -> list[str]:
         """Reasons why a fitted term is not physically plausible (empty: plausible).

@@ -268,11 +268,7 @@ class PositionPeriodic(EffectFamily):
                 if best is None or sse < best[0]:
                     best = (sse, term)
                 continue
-            # the true period lies within the periodogram's resolution of its peak, ΔP/P ≈ P/stroke
-            # (the SSE's main lobe, one minimum): searched there, at most ±REFINE_SPAN
-            half = min(REFINE_SPAN, pk / ctx.stroke)
-            term = ctx.best_between(self.name, pk * (1.0 - half), pk * (1.0 + half), base,
-                                    REFINE_TOL * half * pk)
+            term = self._refine(ctx, pk, base)
             sse = ctx.sse(base + [term])
             if best is None or sse < best[0]:
                 best = (sse, term)
@@ -283,6 +279,19 @@ class PositionPeriodic(EffectFamily):
         if term.h <= grid[1] or term.h >= grid[-2]:
             note = f"period {term.h:.4g} m at the edge of the searched range"
         return term, note
+
+    def _refine(self, ctx, period: float, base: list):
+        """The term minimising the joint-LS SSE near ``period`` [m]: the true period lies
+        within the periodogram's resolution of its peak, ΔP/P ≈ P/stroke (the SSE's main
+        lobe, one minimum), searched there, at most ±REFINE_SPAN."""
+        half = min(REFINE_SPAN, period / ctx.stroke)
+        return ctx.best_between(self.name, period * (1.0 - half), period * (1.0 + half), base,
+                                REFINE_TOL * half * period)
+
+    def polish(self, ctx, term, others):
+        """The period refined again around the selected one with the other effects modelled
+        (an effect found later, e.g. stiction, shifts the SSE's minimum of the first search)."""
+        return self._refine(ctx, term.h, others)
 
     def plausible(self, ctx, term, beta, theta, base):
         agree = ctx.direction_agreement(term, base)

@@ -492,6 +492,7 @@ class Identifier:
         accepted = []
         pool = ThreadPoolExecutor(max_workers=SEARCH_THREADS) if SEARCH_THREADS > 1 else None
         eliminated: list = []
+        searched_with: dict = {}     # id(term) -> the terms selected when it was searched
         for _ in range(STEPWISE_ROUNDS):
             out = {n for n, _ in eliminated}        # never taken again once dropped
             while len(base) < max_effects:
@@ -511,6 +512,7 @@ class Identifier:
                     break
                 best = self._look_ahead(max(good, key=lambda c: c.gain), good, cands, base)
                 accepted.append((best, current.heldout_rms))
+                searched_with[id(best.term)] = list(base)
                 base = base + [best.term]
                 current = best
                 if self.on_step is not None:
@@ -521,6 +523,7 @@ class Identifier:
             eliminated += dropped
         base, accepted, current, replaced = self._simplify(base, accepted, current)
         eliminated += replaced
+        base, current = self._polish(base, current, searched_with)
         if pool:
             pool.shutdown()
         self.eliminated = eliminated
@@ -584,6 +587,26 @@ class Identifier:
             base, current = swapped, final
             accepted = accepted[:i] + [(ev, accepted[i][1])] + accepted[i + 1:]
         return base, accepted, current, replaced
+
+    def _polish(self, base: list, current: Evaluated, searched_with: dict):
+        """Each selected effect searched in a model other than the final one (effects were
+        taken, dropped or replaced since) has its searched parameter taken again with the
+        final model's other effects (:meth:`~motorctl.effects.base.EffectFamily.polish`), kept
+        when it lowers the SSE: a period found before stiction was modelled sits where the
+        unmodelled stiction pulled it. Returns (terms, final)."""
+        changed = False
+        for i, t in enumerate(list(base)):
+            others = base[:i] + base[i + 1:]
+            if [id(o) for o in searched_with.get(id(t), [None])] == [id(o) for o in others]:
+                continue                        # searched in this very model
+            new = effect_family(t.family).polish(self, t, others)
+            if new is None:
+                continue
+            trial = base[:i] + [new] + base[i + 1:]
+            if self.sse(trial) < self.sse(base):
+                searched_with[id(new)] = others
+                base, changed = trial, True
+        return (base, self.evaluate(base)) if changed else (base, current)
 
     def _look_ahead(self, best: Evaluated, good: list, cands: list, base: list) -> Evaluated:
         """``best``, or a look-alike rival that explains nearly as much (within
