@@ -12,7 +12,8 @@ the samples of (a) (no clock per call: total / steps); (c) the whole compiled ca
 (supervisor, desired(k), law, record row, and the call from Python), the record's control_ns
 of a one-axis loop on the virtual clock, and of both axes.
 Part 2, the loop: ``motorctl run`` with both axes on C2 against the wall clock for --seconds,
-once with SCHED_FIFO + mlockall (policy required) and once without (policy off); turnaround
+with SCHED_FIFO + mlockall (policy required), the same with ``loop.realtime.warm_caches`` off
+(no rehearsal of the next cycle in the spin tail), and without (policy off); turnaround
 (read start → write end, including the plant's RK4 in the simulated driver's write), wake
 lateness and overruns; beside them, in the same run, the machine's floor: benchmarks/floor.c
 (compiled here with cc), the loop's pacing alone (sleep, spin, read the clock) at SCHED_FIFO
@@ -156,6 +157,8 @@ def main() -> None:
     if args.spin_us is not None:
         raw["loop"]["realtime"]["spin_us"] = args.spin_us
     pinned = config_from_dict(raw, args.config)
+    raw["loop"]["realtime"]["warm_caches"] = False
+    pinned_cold = config_from_dict(raw, f"{args.config} without warm_caches")
     spin_us = pinned.cfg.loop.realtime.spin_us
     raw = load_yaml(args.config)
     for axis in raw["axes"]:
@@ -190,15 +193,16 @@ def main() -> None:
           f"{'' if cpu is None else f', CPU {cpu}'}, spin {spin_us:g} us"
           f"{' (never sleeps: polling)' if spin_us * 1e-6 >= pinned.period_s else ''}")
     work_ns = 0
-    for policy in ("required", "off"):
-        label = "SCHED_FIFO + mlockall" if policy == "required" else "SCHED_OTHER"
+    for policy, cfg, label in (("required", pinned, "SCHED_FIFO + mlockall"),
+                               ("required", pinned_cold, "... warm_caches off"),
+                               ("off", pinned, "SCHED_OTHER")):
         try:
-            res = run_job(pinned, controller="c2", duration_s=args.seconds, clock="wall", realtime_policy=policy)
+            res = run_job(cfg, controller="c2", duration_s=args.seconds, clock="wall", realtime_policy=policy)
         except RealtimeError as exc:
             print(f"{label}: not available here ({exc})")
             continue
         tm = res.timing
-        if policy == "required":
+        if cfg is pinned and policy == "required":
             work_ns = int(tm["turnaround_p50_us"] * 1e3)
         print(f"{label:22}: turnaround p50 {tm['turnaround_p50_us']:.1f} p99 {tm['turnaround_p99_us']:.1f} "
               f"p99.9 {tm['turnaround_p999_us']:.1f} max {tm['turnaround_max_us']:.1f} us | lateness p50 "

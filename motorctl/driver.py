@@ -297,6 +297,17 @@ class Driver(abc.ABC):
         Where ``enable[i]`` is False the hardware must see 0 V and the amplifier off.
         """
 
+    def rehearse(self, u_V: np.ndarray, enable: np.ndarray) -> None:
+        """Run the exchange ahead on copies, changing nothing: the loop calls it while it waits
+        for its deadline, so that the code and data of the next :meth:`read` and :meth:`write`
+        are in the CPU's caches (after a sleep they are cold). ``u_V`` [V], ``enable`` (n_axes,):
+        the last command. Never blocks, sends nothing. Default: nothing (a transport's exchange
+        cannot be rehearsed)."""
+        self._rehearse(u_V, enable)
+
+    def _rehearse(self, u_V: np.ndarray, enable: np.ndarray) -> None:
+        """Hook: see :meth:`rehearse`."""
+
     # ------------------------------------------------------------------ interfaces
     def _full_scale_V(self, axis: str) -> float:
         """Hook: the largest |voltage| the drive of ``axis`` can be commanded [V]."""

@@ -396,6 +396,30 @@ def _sim_write(io, u_v, enable, bitten):
 
 
 @njit
+def _sim_rehearse(io, scratch, u_v, enable):
+    """:meth:`SimDriver.rehearse`: the read and the write of every axis run on ``scratch`` (a
+    :class:`SimIO` of copies), refreshed from ``io`` first; ``io`` is not written."""
+    scratch.pos[:] = io.pos
+    scratch.read_error[:] = io.read_error
+    scratch.amp_fault[:] = io.amp_fault
+    scratch.amp_enabled[:] = io.amp_enabled
+    scratch.applied_u[:] = io.applied_u
+    scratch.S[:] = io.S
+    scratch.P[:] = io.P
+    scratch.DL[:] = io.DL
+    scratch.NZ[:] = io.NZ
+    scratch.inj[:] = io.inj
+    scratch.jump[:] = io.jump
+    scratch.push[:] = io.push
+    scratch.TC[:] = io.TC
+    scratch.TT[:] = io.TT
+    scratch.TL[:] = io.TL
+    scratch.NT[:] = io.NT
+    _sim_read(scratch, False)
+    _sim_write(scratch, u_v, enable, False)
+
+
+@njit
 def _acc_hooked(fm, x, v, t, m, b, fc, f0, f_noise, f_ext, codes, table, lengths):
     """ẍ [m/s²] of the rigid plant with the effects' compiled terms: :meth:`AxisPlant._acc` from
     the motor force fm = F_m(u) [N] on (the same operations in the same order)."""
@@ -805,9 +829,14 @@ class SimDriver(Driver):
         self._read(self._sim_io(copies=True), False)
         self._write = None
         self._u_ok = self._en_ok = None       # the last output arrays seen to have the right types
+        self._rehearsal = None
         if self._compiled:
             self._write = entry(_sim_write, self._io, np.zeros(n), np.zeros(n, dtype=bool), False)
             self._write(self._sim_io(copies=True), np.zeros(n), np.zeros(n, dtype=bool), False)
+            self._scratch = self._sim_arrays(copies=True)     # the rehearsal's copies
+            self._scratch_io = bundle(_make_sim_io, SIM_FIELDS, self._scratch)
+            self._rehearsal = entry(_sim_rehearse, self._io, self._scratch_io, np.zeros(n),
+                                    np.zeros(n, dtype=bool))
         self.watchdog_ns = int(options.watchdog_s * 1e9)
         self.watchdog_bites = 0
         self._last_write_ns = 0
@@ -816,15 +845,17 @@ class SimDriver(Driver):
         for i, p in enumerate(self.plants):
             self.position_m[i] = p.measured()
 
-    def _sim_io(self, copies: bool = False) -> SimIO:
-        """The exchange's arrays (:class:`SimIO`), or copies of them (for a call that changes
-        nothing)."""
+    def _sim_arrays(self, copies: bool = False) -> tuple:
+        """The exchange's arrays in the order of :data:`SIM_FIELDS`, or copies of them (for a
+        call that changes nothing)."""
         arrays = (self.position_m, self.read_error, self.amp_fault, self.amp_enabled, self.applied_u, self._S,
                   self._P, self._DL, self._NZ, self._inject, self._jump_m, self._push_N, self._TC, self._TT,
                   self._TL, self._NT)
-        if copies:
-            arrays = tuple(a.copy() for a in arrays)
-        return bundle(_make_sim_io, SIM_FIELDS, arrays)
+        return tuple(a.copy() for a in arrays) if copies else arrays
+
+    def _sim_io(self, copies: bool = False) -> SimIO:
+        """:meth:`_sim_arrays` as the bundle the compiled read and write take (:class:`SimIO`)."""
+        return bundle(_make_sim_io, SIM_FIELDS, self._sim_arrays(copies))
 
     def _watchdog(self) -> bool:
         """The drive's command watchdog, checked at every exchange (read and write): a stall
@@ -845,6 +876,11 @@ class SimDriver(Driver):
         self._bite_pending = True
         self._last_write_ns = now
         return True
+
+    def _rehearse(self, u_V: np.ndarray, enable: np.ndarray) -> None:
+        # the whole exchange compiled: read and write on copies (one call); otherwise nothing
+        if self._rehearsal is not None and u_V is self._u_ok and enable is self._en_ok:
+            self._rehearsal(self._io, self._scratch_io, u_V, enable)
 
     def read(self) -> None:
         if self.watchdog_ns and self._last_write_ns:

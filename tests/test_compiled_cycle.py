@@ -124,3 +124,60 @@ def test_the_compiled_plants_draw_the_same_noise_as_one_draw_at_a_time(repo, cas
             d.read()
         assert np.array_equal(fast.position_m, slow.position_m), k
     assert fast.position_m[0] != slow.plants[0].opt.initial_position_m
+
+
+@pytest.mark.parametrize("law", ["c2", "c2-compensated", "pid"])
+def test_the_rehearsal_writes_nothing_and_computes_the_next_cycle(repo, law):
+    """warm_caches: the spin tail runs the next cycle and the driver's exchange on copies. The
+    loop's and the driver's arrays are left as they were (to the bit), and the rehearsed cycle
+    computes what the real one then does from the same reading: the same output and record."""
+    from motorctl.loop import cycle as C
+    d = load_yaml(repo / "configs" / "gantry.yaml")
+    if law == "c2-compensated":
+        d["axes"]["X"]["controller"]["compensation"] = COMPENSATION
+    loaded = config_from_dict(d, "gantry")
+    asm = build(loaded, None, "pid" if law == "pid" else "c2", clock="virtual", capacity=1000)
+    start(asm, "off")
+    try:
+        lp, drv = asm.loop, asm.driver
+        lp.run(3000)                                    # 0.6 s: X moving (its first move at 0.5 s)
+        copies = lp._cycle_arrays(copies=True)
+        st, scratch = lp._cycle_state(), C.cycle_state(*copies)
+        fields = dict(zip(C.CYCLE_FIELDS, copies))
+        real = [a.copy() for a in (lp.ax, lp.axf, lp._cf, lp._ci, lp._cl, lp._sig, lp.supervisor.si,
+                                   lp.supervisor.sf, lp.u_out, lp.enable_out, lp.buf, drv._S, drv._NZ,
+                                   drv.position_m, drv.applied_u, drv.amp_enabled)]
+        drv.rehearse(lp.u_out, lp.enable_out)
+        lp._rehearse(C.CYCLE_ALL, lp.k, st, scratch)
+        after = (lp.ax, lp.axf, lp._cf, lp._ci, lp._cl, lp._sig, lp.supervisor.si, lp.supervisor.sf,
+                 lp.u_out, lp.enable_out, lp.buf, drv._S, drv._NZ, drv.position_m, drv.applied_u,
+                 drv.amp_enabled)
+        for a, b in zip(real, after):
+            assert np.array_equal(a, b, equal_nan=True)
+        rehearsed_u = fields["uo"].copy()
+        rehearsed_row = fields["buf"][0].copy()
+        k = lp.k
+        lp._cycle(C.CYCLE_ALL, k, st)                   # the real cycle, on the same reading
+        assert np.array_equal(lp.u_out, rehearsed_u)
+        own = [j for j in range(lp.width) if j not in lp._o_cycle]   # not the loop's timing
+        assert np.array_equal(lp.buf[k % lp.capacity][own], rehearsed_row[own], equal_nan=True)
+        assert np.any(lp.u_out != 0.0)
+        reading = drv._scratch[0].copy()                # the driver's rehearsed read (pos) ...
+        drv.read()
+        assert np.array_equal(drv.position_m, reading)  # ... is the real one
+    finally:
+        shutdown(asm)
+
+
+def test_a_wall_clock_run_gives_the_same_figures_with_and_without_the_rehearsal(repo):
+    """The rehearsal changes timing only: a wall-clock run (its indexes depend on the cycle count,
+    not on the host's timing) gives the same figures to the bit with warm_caches on and off."""
+    from motorctl.app.job import run_job
+    figures = []
+    for warm in (True, False):
+        d = load_yaml(repo / "configs" / "gantry.yaml")
+        d["loop"]["realtime"].update(policy="off", warm_caches=warm)
+        r = run_job(config_from_dict(d, "gantry"), duration_s=0.3, clock="wall")
+        figures.append({a: (v["e_M_um"], v["L2_um"], v["u_peak_V"], v["fault"]) for a, v in r.axes.items()})
+    assert figures[0] == figures[1]
+    assert figures[0]["X"][0] > 0.0

@@ -105,7 +105,8 @@ def build(loaded: LoadedConfig, axes=None, controller: str | None = None, *, clo
     sup = Supervisor([loaded.axes[a].limits for a in names], tb.period_s)
     lc = cfg.loop
     loop = ServoLoop(driver, [bank[i][active[i]] for i in range(len(names))], programs, sup, tb,
-                     capacity=capacity, clock=clock, spin_us=lc.realtime.spin_us, buffer=buffer,
+                     capacity=capacity, clock=clock, spin_us=lc.realtime.spin_us,
+                     warm_caches=lc.realtime.warm_caches, buffer=buffer,
                      heartbeat=heartbeat, overrun_policy=lc.overrun_policy,
                      overrun_hold=lc.overrun_hold_cycles, overrun_ramp_s=lc.overrun_ramp_s,
                      stop_settle_s=cfg.daemon.stop_settle_s if operated else 0.0,

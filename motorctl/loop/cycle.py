@@ -249,6 +249,36 @@ def servo_cycle(phase, k, st):
     return pending
 
 
+@njit
+def rehearse(phase, k, st, scratch):
+    """Cycle k run ahead on ``scratch`` (a :class:`CycleState` of copies, its record ring one
+    row: ``ServoLoop._cycle_state(copies=True)``), refreshed from ``st`` first: every array but
+    the record ring. Run while the loop waits out its deadline, it brings what the real cycle
+    will touch, its code and the state it reads, into the CPU's caches (after a sleep they are
+    cold: other work ran on the core); with the same driver reading it computes what the real
+    cycle will. Nothing of ``st`` is written. ``phase``: CYCLE_ALL, or CYCLE_BEFORE when laws
+    run from Python."""
+    scratch.pos[:] = st.pos
+    scratch.rerr[:] = st.rerr
+    scratch.werr[:] = st.werr
+    scratch.ampf[:] = st.ampf
+    scratch.uo[:] = st.uo
+    scratch.en[:] = st.en
+    scratch.ax[:] = st.ax
+    scratch.axf[:] = st.axf
+    scratch.prog[:] = st.prog
+    scratch.move[:] = st.move
+    scratch.si[:] = st.si
+    scratch.sf[:] = st.sf
+    scratch.sig[:] = st.sig
+    scratch.cf[:] = st.cf
+    scratch.ci[:] = st.ci
+    scratch.cl[:] = st.cl
+    scratch.offs[:] = st.offs
+    scratch.lp[:] = st.lp
+    servo_cycle(phase, k, scratch)
+
+
 def new_state(n: int) -> tuple[np.ndarray, np.ndarray]:
     """(ax, axf) for n axes: every axis in PROGRAM and requested, no blend offset taken."""
     ax = np.zeros((n, N_A), dtype=np.int64)

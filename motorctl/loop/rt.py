@@ -200,3 +200,6 @@ class RealtimeConfig(StrictModel):
     lock_memory: bool = True
     lock_pages: Literal["touched", "all"] = "touched"
     spin_us: Annotated[float, Field(ge=0, le=1000)] = 60.0
+    #: rehearse the next cycle on copies in the spin tail, so that it finds its code and data
+    #: in the CPU's caches (:class:`motorctl.loop.servo.ServoLoop`, ``warm_caches``)
+    warm_caches: bool = True
