@@ -5,9 +5,10 @@ same run, the floor of the machine: a loop that only wakes at the same deadlines
 same spin tail as the servo loop) and reads the clock.
 
 Rerun:  python benchmarks/bench_scale.py [--config configs/gantry.yaml] [--seconds 10] [--cpu 1]
-        [--axes 1 2 4 8 16] [--spin-us 1000]
+        [--axes 1 2 4 8 16] [--spin-us 1000] [--warm-caches on|off|both]
 
-Prints per axis count: turnaround p50 / p99 / p99.9 / max [µs] per cycle and p50 per axis,
+Prints per axis count, with and without ``loop.realtime.warm_caches`` (the next cycle rehearsed
+on copies in the spin tail): turnaround p50 / p99 / p99.9 / max [µs] per cycle and p50 per axis,
 wake lateness p99, overruns; and the floor's lateness and overruns. The turnaround includes the
 simulated plant (RK4 with substeps), which a real drive does not cost the host. The machine is
 shared and noisy: compare the rows of one run.
@@ -81,6 +82,8 @@ def main() -> None:
     ap.add_argument("--axes", type=int, nargs="+", default=[1, 2, 4, 8, 16])
     ap.add_argument("--spin-us", type=float, default=None,
                     help="loop.realtime.spin_us (default: the config's; at least the period: a polling loop)")
+    ap.add_argument("--warm-caches", choices=("on", "off", "both"), default="both",
+                    help="loop.realtime.warm_caches of the rows (default both: each count with and without)")
     a = ap.parse_args()
     base = load_yaml(a.config)
     if a.spin_us is not None:
@@ -90,19 +93,23 @@ def main() -> None:
           f"{time.strftime('%Y-%m-%d %H:%M:%S')}; {rate:g} Hz, {a.seconds:g} s per row, CPU {a.cpu}")
     print(f"# rerun: python benchmarks/bench_scale.py --config {a.config} --seconds {a.seconds:g} --cpu {a.cpu} "
           f"--axes {' '.join(map(str, a.axes))}" + (f" --spin-us {a.spin_us:g}" if a.spin_us is not None else ""))
-    print("axes | turnaround p50 / p99 / p99.9 / max us | p50 per axis us | lateness p99 us | overruns | realtime")
+    print("axes | warm caches | turnaround p50 / p99 / p99.9 / max us | p50 per axis us | lateness p99 us | "
+          "overruns | realtime")
     for n in a.axes:
-        loaded = config_from_dict(axes_config(base, n, a.seconds, a.cpu), f"{a.config} x{n}")
-        try:
-            res = run_job(loaded, clock="wall")
-        except RealtimeError as exc:
-            print(f"{n:4d} | refused: {exc}")
-            continue
-        tm = res.timing
-        rt = ", ".join(k for k, v in res.realtime.items() if v["obtained"])
-        print(f"{n:4d} | {tm['turnaround_p50_us']:.1f} / {tm['turnaround_p99_us']:.1f} / "
-              f"{tm['turnaround_p999_us']:.1f} / {tm['turnaround_max_us']:.1f} | "
-              f"{tm['turnaround_p50_us'] / n:.1f} | {tm['lateness_p99_us']:.1f} | {tm['overruns']} | {rt}")
+        for warm in ((True, False) if a.warm_caches == "both" else (a.warm_caches == "on",)):
+            d = axes_config(base, n, a.seconds, a.cpu)
+            d["loop"]["realtime"]["warm_caches"] = warm
+            loaded = config_from_dict(d, f"{a.config} x{n}")
+            try:
+                res = run_job(loaded, clock="wall")
+            except RealtimeError as exc:
+                print(f"{n:4d} | refused: {exc}")
+                continue
+            tm = res.timing
+            rt = ", ".join(k for k, v in res.realtime.items() if v["obtained"])
+            print(f"{n:4d} | {'on' if warm else 'off':11} | {tm['turnaround_p50_us']:.1f} / {tm['turnaround_p99_us']:.1f} / "
+                  f"{tm['turnaround_p999_us']:.1f} / {tm['turnaround_max_us']:.1f} | "
+                  f"{tm['turnaround_p50_us'] / n:.1f} | {tm['lateness_p99_us']:.1f} | {tm['overruns']} | {rt}")
     spin = float(base["loop"].get("realtime", {}).get("spin_us", 60))
     f = floor(a.seconds, int(round(1e9 / rate)), spin, a.cpu)
     print(f"floor (wake, read the clock): lateness p50 {f['lateness_p50_us']:.1f} / p99 {f['lateness_p99_us']:.1f} / "

@@ -68,10 +68,11 @@ from motorctl.loop.trajectory import MOVE_W, TABLE_HEAD
 #: bumpless switch: the output step between two controllers fades out over this time [s]
 SWITCH_BLEND_S = 0.01
 #: ``warm_caches``: the loop wakes this much earlier [ns] to rehearse the next cycle in its
-#: spin tail (a rehearsal costs about one turnaround, 5-15 µs; the sleep overshoots by tens of µs)
+#: spin tail (a rehearsal costs about one turnaround: 5-15 µs for two axes, 30 µs for 16; the
+#: sleep overshoots by tens of µs), or twice the last rehearsal when that is longer
 REHEARSAL_NS = 20_000
-#: ... and rehearses only with at least this much left before the deadline [ns], so that a
-#: late wake is not made later
+#: ... and rehearses only with at least this much left before the deadline [ns], and twice the
+#: last rehearsal's time, so that a late wake is not made later
 REHEARSAL_MIN_NS = 12_000
 #: the law rows' width (floats, ints): C2's state block is 220 and 12
 LAW_ROW_FLOATS, LAW_ROW_INTS = 256, 16
@@ -96,8 +97,8 @@ class ServoLoop:
         spin_us: busy-wait tail before each deadline [µs] (wall clock only).
         warm_caches: in that tail, rehearse the next cycle (the driver's exchange and the
             cycle on copies, :func:`motorctl.loop.cycle.rehearse`, :meth:`Driver.rehearse`),
-            waking :data:`REHEARSAL_NS` earlier for it, so that the cycle finds its code and
-            data in the CPU's caches (wall clock only).
+            waking :data:`REHEARSAL_NS` (or twice the last rehearsal) earlier for it, so that
+            the cycle finds its code and data in the CPU's caches (wall clock only).
         buffer: optional preallocated record buffer, shape (capacity, layout.width) float64
             (e.g. a shared-memory ring drained by another process).
         heartbeat: optional object with ``publish(k)``, called with the number of executed
@@ -319,6 +320,7 @@ class ServoLoop:
         oc_t, oc_late, oc_turn, oc_read, oc_ctrl, oc_write, oc_ovr = self._o_cycle
         rehearse = self._rehearse if wall and self.warm_caches else None
         early = spin + (REHEARSAL_NS if rehearse is not None else 0)
+        need, cap_r = REHEARSAL_MIN_NS, period // 4
         scratch = self._cycle_state(copies=True) if rehearse else None
         u_out, en_out = self.u_out, self.enable_out
         deadline = mono() + period
@@ -330,9 +332,14 @@ class ServoLoop:
                 rem = deadline - mono() - early
                 if rem > 0:
                     sleep(rem * 1e-9)
-                if rehearse is not None and deadline - mono() >= REHEARSAL_MIN_NS:
-                    drv.rehearse(u_out, en_out)
-                    rehearse(C.CYCLE_BEFORE if self._py else C.CYCLE_ALL, self.k, st, scratch)
+                if rehearse is not None:
+                    t_r = mono()
+                    if deadline - t_r >= need:
+                        drv.rehearse(u_out, en_out)
+                        rehearse(C.CYCLE_BEFORE if self._py else C.CYCLE_ALL, self.k, st, scratch)
+                        took = min(2 * (mono() - t_r), cap_r)   # a preempted one does not count in full
+                        need = took if took > REHEARSAL_MIN_NS else REHEARSAL_MIN_NS
+                        early = spin + (took if took > REHEARSAL_NS else REHEARSAL_NS)
                 while mono() < deadline:
                     pass
                 wake = mono()
