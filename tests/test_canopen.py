@@ -216,7 +216,9 @@ def test_the_drives_heartbeat_consumer_stops_the_motor_when_the_host_goes_silent
             exchange(drv, [2.0, 2.0], [True, True], sleep_s=0.002)
         assert dev.bank.applied_V[0] != 0.0
         t0 = time.monotonic()                                    # the host stops cycling
-        while time.monotonic() - t0 < 1.0 and dev.bank.applied_V[0] != 0.0:
+        # both drives' consumers trip; the emulator handles one drive after the other, so wait
+        # for both (a wait on X alone could look at Y in the microseconds between the two)
+        while time.monotonic() - t0 < 1.0 and any(v != 0.0 for v in dev.bank.applied_V):
             time.sleep(0.005)
         assert dev.bank.applied_V == [0.0, 0.0]
         assert time.monotonic() - t0 < 0.3 + 0.3                 # consumer 300 ms (+ a loaded thread's slack)
