@@ -148,7 +148,7 @@ def test_the_rehearsal_writes_nothing_and_computes_the_next_cycle(repo, law):
                                    lp.supervisor.sf, lp.u_out, lp.enable_out, lp.buf, drv._S, drv._NZ,
                                    drv.position_m, drv.applied_u, drv.amp_enabled)]
         drv.rehearse(lp.u_out, lp.enable_out)
-        lp._rehearse(C.CYCLE_ALL, lp.k, st, scratch)
+        C.rehearse(C.CYCLE_ALL, lp.k, st, scratch)
         after = (lp.ax, lp.axf, lp._cf, lp._ci, lp._cl, lp._sig, lp.supervisor.si, lp.supervisor.sf,
                  lp.u_out, lp.enable_out, lp.buf, drv._S, drv._NZ, drv.position_m, drv.applied_u,
                  drv.amp_enabled)

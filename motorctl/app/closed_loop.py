@@ -93,7 +93,6 @@ class ClosedLoop:
         ctl.pop("compensation", None)
         ctl["type"] = "c2"
         self.base, self.axis, self.duration_s = base, axis, float(duration_s)
-        self.compensation = None
         self._before_theta = None
         self._jobs: dict = {}        # name -> (number, config) of the last one sent
         self._number = 0
@@ -154,7 +153,6 @@ class ClosedLoop:
         if cfg is None:
             self._jobs.pop("after", None)
             return False
-        self.compensation = cfg["axes"][self.axis]["controller"]["compensation"]
         nominal = [float(v) for v in idf.nominal.fit.coef[:idf.n_theta]]
         if nominal != self._before_theta:
             self.before(nominal)
@@ -200,7 +198,8 @@ class ClosedLoop:
             if err is not None:
                 raise err
             out[name] = figures
-        out.update(compensation=self.compensation, controller="c2", duration_s=self.duration_s)
+        comp = self._jobs["after"][1]["axes"][self.axis]["controller"]["compensation"]
+        out.update(compensation=comp, controller="c2", duration_s=self.duration_s)
         return out
 
     def close(self) -> None:

@@ -594,7 +594,7 @@ class Identifier:
         final model's other effects (:meth:`~motorctl.effects.base.EffectFamily.polish`), kept
         when it lowers the SSE: a period found before stiction was modelled sits where the
         unmodelled stiction pulled it. Returns (terms, final)."""
-        changed = False
+        changed, sse = False, None
         for i, t in enumerate(list(base)):
             others = base[:i] + base[i + 1:]
             if [id(o) for o in searched_with.get(id(t), [None])] == [id(o) for o in others]:
@@ -603,9 +603,11 @@ class Identifier:
             if new is None:
                 continue
             trial = base[:i] + [new] + base[i + 1:]
-            if self.sse(trial) < self.sse(base):
+            sse = self.sse(base) if sse is None else sse
+            trial_sse = self.sse(trial)
+            if trial_sse < sse:
                 searched_with[id(new)] = others
-                base, changed = trial, True
+                base, sse, changed = trial, trial_sse, True
         return (base, self.evaluate(base)) if changed else (base, current)
 
     def _look_ahead(self, best: Evaluated, good: list, cands: list, base: list) -> Evaluated:

@@ -227,13 +227,12 @@ class ServoLoop:
     def _warm_up(self) -> None:
         """Compile (or load from the cache) the cycle now and run it on copies of the state, so
         that the first cycle never pays for it (a drive's watchdog would not wait that long)."""
-        row0 = self.buf[0].copy()
         st = self._cycle_state(copies=True)
         self._cycle = entry(servo_cycle, 0, 0, st)    # the compiled call, for every cycle
         for phase in (C.CYCLE_BEFORE, C.CYCLE_AFTER, C.CYCLE_ALL):
             self._cycle(phase, 0, st)
-        self._rehearse = entry(C.rehearse, 0, 0, st, self._cycle_state(copies=True))
-        self.buf[0] = row0
+        self._rehearse = (entry(C.rehearse, 0, 0, st, self._cycle_state(copies=True))
+                          if self.clock == "wall" and self.warm_caches else None)
 
     def _adopt(self, i: int, c) -> None:
         """Make c axis i's controller (between cycles): the outgoing one takes its state back
@@ -318,7 +317,7 @@ class ServoLoop:
         hb = self.heartbeat
         slack = self.on_slack
         oc_t, oc_late, oc_turn, oc_read, oc_ctrl, oc_write, oc_ovr = self._o_cycle
-        rehearse = self._rehearse if wall and self.warm_caches else None
+        rehearse = self._rehearse
         early = spin + (REHEARSAL_NS if rehearse is not None else 0)
         need, cap_r = REHEARSAL_MIN_NS, period // 4
         scratch = self._cycle_state(copies=True) if rehearse else None
