@@ -41,7 +41,11 @@ removed of every seed beside it, and the bar is judged on that median run. ``--s
 the one-seed table of before.
 
 The table: floor L2[e], before L2[e] / e_M, after L2[e] / e_M [µm], the damage removed
-(L2_before − L2_after)/(L2_before − L2_floor) and whether e_M is not worse (after ≤ before).
+(L2_before − L2_after)/(L2_before − L2_floor), whether e_M is not worse (after ≤ before), and
+where the after run differs from the floor: L2_after² − L2_floor² split into the samples in
+motion and at standstill (the desired velocity zero; :func:`motorctl.metrics.tracking_indexes`)
+[µm²], so a row short of the bar shows whether the compensation misses in motion or the loss is
+the servo's hunting at rest.
 The bar: damage removed ≥ 0.8 with e_M not worse; the last line counts the families that meet
 it. Then the plant with no added effect (``--family none`` alone), on every seed: tune must
 write no effect (keep no compensation) and leave L2[e] not worse. Exit 0 when all compensable
@@ -197,12 +201,13 @@ def row(name: str, res: dict | None, size: str = "example", seeds: list | None =
     """One markdown row of the table (``res``: tune's result; None: not compensable; ``seeds``:
     the damage removed of every seed, shown beside ``res``'s when more than one)."""
     if res is None:
-        return [name, size, "—", "—", "not compensable", "not compensable", "—"]
+        return [name, size, "—", "—", "not compensable", "not compensable", "—", "—"]
     if "refused" in res:
-        return [name, size, "—", "—", f"identify refused the log: {res['refused'].split(': ', 1)[-1][:90]}", "—", "—"]
+        return [name, size, "—", "—", f"identify refused the log: {res['refused'].split(': ', 1)[-1][:90]}", "—", "—",
+                "—"]
     r = res["compare"]
     if r is None:
-        return [name, size, "—", "—", f"stopped: {res['stopped']}", "—", "—"]
+        return [name, size, "—", "—", f"stopped: {res['stopped']}", "—", "—", "—"]
     b, a, f = r["before"], r["after"], r["floor"]
     d = res["damage_removed"]
     found = ", ".join(e["name"] for e in res["effects"])
@@ -212,7 +217,16 @@ def row(name: str, res: dict | None, size: str = "example", seeds: list | None =
             ("—" if d is None else f"{d:.2f}") + (
                 " (seeds " + "/".join("—" if x is None else f"{x:.2f}" for x in seeds) + ")"
                 if seeds and len(seeds) > 1 else ""),
-            "yes" if res["e_M_not_worse"] else "no"]
+            "yes" if res["e_M_not_worse"] else "no", left_where(a, f)]
+
+
+def left_where(after: dict, floor: dict) -> str:
+    """Where the after run is still above (or below) the floor: the differences of L2[e]²'s
+    parts in motion and at standstill [µm²] (:func:`motorctl.metrics.tracking_indexes`; they
+    sum to L2_after² − L2_floor²), e.g. ``-0.41 / +1.52``; "—" without the split."""
+    if not all(k in d for d in (after, floor) for k in ("L2_motion_um", "L2_standstill_um")):
+        return "—"
+    return " / ".join(f"{after[k] ** 2 - floor[k] ** 2:+.2f}" for k in ("L2_motion_um", "L2_standstill_um"))
 
 
 def family_runs(name: str, out: Path, duration_s: float, floor_log: Path, seeds: int, at_example: bool,
@@ -275,7 +289,7 @@ def main(argv=None) -> int:
     if unknown:
         ap.error(f"unknown family {', '.join(unknown)}; families: {', '.join(FAMILIES)}")
     header = ["family", "effect size", "floor L2 µm", "before L2 µm / e_M µm", "after L2 µm / e_M µm",
-              "damage removed", "e_M not worse"]
+              "damage removed", "e_M not worse", "after − floor µm²: in motion / at standstill"]
     rows, met, tried = [], [], 0
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="motorctl-tune-families-") as tmp:

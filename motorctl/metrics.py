@@ -5,6 +5,12 @@
   period by default);
 * L2[e] = sqrt(mean(e²)) over the run;
 * u_peak = max |u| over the run (Tables I/II call it u_M; it is not the actuator limit u_lim).
+
+Given the desired velocity ẋ_d, L2[e] is also split into its parts in motion and at standstill
+(ẋ_d = 0, the program dwelling): L2_motion = sqrt(Σ_motion e² / N) and L2_standstill =
+sqrt(Σ_standstill e² / N) over all N samples, so that L2[e]² = L2_motion² + L2_standstill². The
+tracking in motion is what a model compensation acts on; the error at standstill is where a
+servo hunts against stiction (a limit cycle of integral action against the breakaway force).
 """
 
 from __future__ import annotations
@@ -20,14 +26,22 @@ PAPER_TABLES = {
 }
 
 
-def tracking_indexes(t: np.ndarray, e: np.ndarray, u: np.ndarray, final_window_s: float) -> dict:
+#: |ẋ_d| at or below this is standstill (the program dwelling) [m/s]
+STANDSTILL_M_PER_S = 1e-6
+
+
+def tracking_indexes(t: np.ndarray, e: np.ndarray, u: np.ndarray, final_window_s: float,
+                     xd_dot: np.ndarray | None = None) -> dict:
     """e_M, e_F, L2[e] in µm and u_peak in V (docs/control-law.md, Performance indexes).
 
     Args:
         t: sample times [s], shape (N,). e: tracking error [m], (N,). u: input [V], (N,).
         final_window_s: length of the e_F window at the end of the run [s].
+        xd_dot: desired velocity [m/s], (N,), or None: with it, L2[e]'s parts in motion and at
+            standstill (module docstring).
     Returns:
-        {"e_M_um", "e_F_um", "L2_um", "u_peak_V"}.
+        {"e_M_um", "e_F_um", "L2_um", "u_peak_V"}, with ``xd_dot`` also "L2_motion_um" and
+        "L2_standstill_um".
     Raises:
         ValueError: empty or mismatched arrays.
     """
@@ -35,12 +49,20 @@ def tracking_indexes(t: np.ndarray, e: np.ndarray, u: np.ndarray, final_window_s
     if e.size == 0 or not (t.shape == e.shape == u.shape):
         raise ValueError("t, e and u must be non-empty arrays of the same shape")
     final = e[t >= t[-1] - final_window_s] if final_window_s > 0 else e[-1:]
-    return {
+    out = {
         "e_M_um": float(np.max(np.abs(e)) * 1e6),
         "e_F_um": float(np.max(np.abs(final)) * 1e6),
         "L2_um": float(np.sqrt(np.mean(e**2)) * 1e6),
         "u_peak_V": float(np.max(np.abs(u))),
     }
+    if xd_dot is not None:
+        xd_dot = np.asarray(xd_dot, dtype=float)
+        if xd_dot.shape != e.shape:
+            raise ValueError("xd_dot must have the shape of e")
+        rest = np.abs(xd_dot) <= STANDSTILL_M_PER_S
+        out["L2_motion_um"] = float(np.sqrt(np.sum(e[~rest] ** 2) / e.size) * 1e6)
+        out["L2_standstill_um"] = float(np.sqrt(np.sum(e[rest] ** 2) / e.size) * 1e6)
+    return out
 
 
 class TrackingAccumulator:

@@ -44,6 +44,26 @@ def test_compare_axis_ratio_and_settling_excluded():
     assert r["before"]["e_F_um"] == pytest.approx(ref["e_F_um"])
 
 
+def test_l2_split_into_motion_and_standstill():
+    """L2[e]'s parts where the desired velocity is not / is zero sum in squares to L2[e]; a
+    record without ẋ_d has no split, and neither does a comparison with one."""
+    t = np.arange(0.0, 2.0, 1e-3)
+    xd_dot = np.where(t < 1.0, 0.5, 0.0)             # moving, then dwelling
+    e = np.where(t < 1.0, 3e-6, 1e-6)
+    idx = tracking_indexes(t, e, np.zeros_like(t), 0.0, xd_dot)
+    assert idx["L2_motion_um"] == pytest.approx(3.0 / np.sqrt(2))
+    assert idx["L2_standstill_um"] == pytest.approx(1.0 / np.sqrt(2))
+    assert idx["L2_motion_um"] ** 2 + idx["L2_standstill_um"] ** 2 == pytest.approx(idx["L2_um"] ** 2)
+    assert "L2_motion_um" not in tracking_indexes(t, e, np.zeros_like(t), 0.0)
+    with pytest.raises(ValueError):
+        tracking_indexes(t, e, np.zeros_like(t), 0.0, xd_dot[:-1])
+    rec = (t, e, np.zeros_like(t), xd_dot)
+    both = compare_axis(rec, (t, 2 * e, np.zeros_like(t), xd_dot), None, 0)
+    assert both["ratio"]["L2_standstill_um"] == pytest.approx(2.0)
+    assert both["after"]["L2_motion_um"] == pytest.approx(6.0 / np.sqrt(2))
+    assert "L2_motion_um" not in compare_axis(rec, (t, e, np.zeros_like(t), None), None, 0)["ratio"]
+
+
 @pytest.fixture(scope="module")
 def logs(tmp_path_factory):
     d = tmp_path_factory.mktemp("cr")
@@ -68,9 +88,12 @@ def test_compare_runs_cli(logs, tmp_path, capsys):
     assert x["window_s"] == [4.0, 8.0]             # aligned by program time: the common periods
     assert x["before"]["cycles"] == x["after"]["cycles"] == 20000
     assert x["ratio"]["L2_um"] < 0.95               # the spring compensated
+    for run in ("before", "after"):                 # the logs record x_d's velocity: the split
+        assert x[run]["L2_motion_um"] ** 2 + x[run]["L2_standstill_um"] ** 2 == pytest.approx(x[run]["L2_um"] ** 2)
     assert (out / "compare_runs_X.png").stat().st_size > 1000
     assert main(["compare-runs", before, after]) == 0
-    assert "ratio" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "ratio" in text and "standstill" in text
 
 
 def test_compare_runs_bad_input(logs, tmp_path):

@@ -3,7 +3,8 @@
 common period. The text and the command are :mod:`motorctl.cli.runs`.
 
 Per axis present in both logs: e_M, e_F, L2[e] [µm] and u_peak [V] (docs/control-law.md, Performance indexes,
-:func:`motorctl.metrics.tracking_indexes`) of each log and the ratio after/before. The two logs
+:func:`motorctl.metrics.tracking_indexes`) of each log and the ratio after/before, with L2[e]'s
+parts in motion and at standstill (:data:`SPLIT`) where both logs record the desired velocity. The two logs
 are aligned by program time (the record's ``t`` = k·Ts): both are evaluated over the same whole
 program periods, from the end of the settling (the first ``settle_periods`` periods excluded the
 same way for both, :func:`motorctl.metrics.settled_mask`) to the end of the last period both
@@ -20,6 +21,9 @@ import numpy as np
 from motorctl.metrics import tracking_indexes
 
 INDEXES = ("e_M_um", "e_F_um", "L2_um", "u_peak_V")
+#: L2[e]'s parts in motion and at standstill (L2² = motion² + standstill²,
+#: :func:`motorctl.metrics.tracking_indexes`), when both records carry ẋ_d
+SPLIT = ("L2_motion_um", "L2_standstill_um")
 
 
 def _period(header: dict, axis: str) -> float | None:
@@ -30,12 +34,13 @@ def _period(header: dict, axis: str) -> float | None:
     return float(v) if v else None
 
 
-def _axis_data(log, axis: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(t, e, u) of the enabled cycles of ``axis`` (each (N,))."""
+def _axis_data(log, axis: str) -> tuple:
+    """(t, e, u, ẋ_d) of the enabled cycles of ``axis`` (each (N,); ẋ_d None when the log
+    lacks it)."""
     a = log.axis(axis)
     t = log.col("t")
     on = a["enabled"] > 0.5
-    return t[on], a["e"][on], a["u"][on]
+    return t[on], a["e"][on], a["u"][on], (a["xd_dot"][on] if "xd_dot" in a else None)
 
 
 def window(t_b: np.ndarray, t_a: np.ndarray, period_s: float | None, settle_periods: int) -> tuple[float, float]:
@@ -69,23 +74,28 @@ def compare_axis(before: tuple, after: tuple, period_s: float | None, settle_per
     """Indexes of two (t, e, u) records of one axis over the same window, and the ratios.
 
     Args:
-        before, after: (t [s], e [m], u [V]) each (N,), program time t.
+        before, after: (t [s], e [m], u [V]) or (t, e, u, ẋ_d [m/s]) each (N,), program time t
+            (ẋ_d may be None).
         period_s: program period [s] or None. settle_periods: periods excluded at the start.
     Returns:
         {"window_s": [t0, t1], "period_s", "before": {...}, "after": {...}, "ratio": {...}}
-        with the keys of :func:`motorctl.metrics.tracking_indexes`; ratio = after / before.
+        with the keys of :func:`motorctl.metrics.tracking_indexes` (:data:`SPLIT` too when both
+        records carry ẋ_d); ratio = after / before.
     Raises:
         ValueError: see :func:`window`.
     """
     t0, t1 = window(before[0], after[0], period_s, settle_periods)
     out = {"window_s": [t0, t1], "period_s": period_s, "settle_periods": settle_periods}
-    for name, (t, e, u) in (("before", before), ("after", after)):
+    split = all(len(r) > 3 and r[3] is not None for r in (before, after))
+    for name, rec in (("before", before), ("after", after)):
+        t, e, u = rec[:3]
         m = (t >= t0 - 1e-9) & (t < t1 - 1e-9)
         if m.sum() < 2:
             raise ValueError(f"{name}: no enabled cycles in {t0:g}..{t1:g} s")
-        out[name] = tracking_indexes(t[m], e[m], u[m], period_s or 0.0)
+        out[name] = tracking_indexes(t[m], e[m], u[m], period_s or 0.0, rec[3][m] if split else None)
         out[name]["cycles"] = int(m.sum())
-    out["ratio"] = {k: (out["after"][k] / out["before"][k] if out["before"][k] else None) for k in INDEXES}
+    keys = INDEXES + (SPLIT if split else ())
+    out["ratio"] = {k: (out["after"][k] / out["before"][k] if out["before"][k] else None) for k in keys}
     return out
 
 
@@ -126,7 +136,7 @@ def figure(res: dict, axis: str, path: Path) -> None:
     p = r["period_s"] or (t1 - t0)
     s0 = t1 - p
     fig, ax = plt.subplots(figsize=(8, 3.5))
-    for name, (t, e, _u) in zip(("before", "after"), r["_data"]):
+    for name, (t, e, *_rest) in zip(("before", "after"), r["_data"]):
         m = (t >= s0 - 1e-9) & (t < t1 - 1e-9)
         ax.plot(t[m] - s0, e[m] * 1e6, lw=0.8,
                 label=f"{name}: L2 {r[name]['L2_um']:.3g} um, e_M {r[name]['e_M_um']:.3g} um")
@@ -160,4 +170,4 @@ def public(res: dict) -> dict:
     return res
 
 
-__all__ = ["INDEXES", "compare_axis", "compare_logs", "figure", "figures", "public", "window"]
+__all__ = ["INDEXES", "SPLIT", "compare_axis", "compare_logs", "figure", "figures", "public", "window"]

@@ -4,7 +4,9 @@
                           [--json] [--out DIR]
 
 Per axis present in both logs: e_M, e_F, L2[e] [µm] and u_peak [V] (docs/control-law.md, Performance indexes,
-:func:`motorctl.metrics.tracking_indexes`) of each log and the ratio after/before. The two logs
+:func:`motorctl.metrics.tracking_indexes`) of each log and the ratio after/before, and L2[e]'s
+parts in motion and at standstill (L2[e]² = motion² + standstill²; the desired velocity not
+zero / zero) where both logs record the desired velocity. The two logs
 are aligned by program time (the record's ``t`` = k·Ts): both are evaluated over the same whole
 program periods, from the end of the settling (the first ``--settle-periods`` periods, default
 1, excluded the same way for both, :func:`motorctl.metrics.settled_mask`) to the end of the
@@ -22,7 +24,7 @@ from __future__ import annotations
 import json
 import sys
 
-from motorctl.app.compare import INDEXES, compare_logs, figures, public
+from motorctl.app.compare import INDEXES, SPLIT, compare_logs, figures, public
 
 def register(parser, subparsers) -> None:
     """Add the ``compare-runs`` subcommand (called by :func:`motorctl.cli.build_parser`)."""
@@ -48,12 +50,18 @@ def text_report(res: dict, extra_rows: tuple[str, ...] = ()) -> str:
         t0, t1 = r["window_s"]
         per = f", period {r['period_s']:g} s, first {r['settle_periods']} excluded" if r["period_s"] else ""
         lines.append(f"axis {a}: program time {t0:g}..{t1:g} s{per}")
-        lines.append(f"  {'':8s} {'e_M um':>10s} {'e_F um':>10s} {'L2[e] um':>10s} {'u_peak V':>10s}")
+        keys = INDEXES + tuple(k for k in SPLIT if k in r["ratio"])
+        heads = {"e_M_um": "e_M um", "e_F_um": "e_F um", "L2_um": "L2[e] um", "u_peak_V": "u_peak V",
+                 "L2_motion_um": "in motion", "L2_standstill_um": "standstill"}
+        lines.append(f"  {'':8s} " + " ".join(f"{heads[k]:>10s}" for k in keys))
         rows = [n for n in ("before", "after", "ratio", *extra_rows) if r.get(n)]
         for name in rows:
             fmt = "10.3f" if name == "ratio" else "10.4g"
             lines.append(f"  {name:8s} " + " ".join(
-                f"{r[name][k]:{fmt}}" if r[name][k] is not None else f"{'-':>10s}" for k in INDEXES))
+                f"{r[name][k]:{fmt}}" if r[name].get(k) is not None else f"{'-':>10s}" for k in keys))
+        if len(keys) > len(INDEXES):
+            lines.append("  (in motion / standstill: L2[e]'s parts where the desired velocity is not / is zero, "
+                         "L2[e]² = motion² + standstill², um)")
     return "\n".join(lines) + "\n"
 
 
