@@ -6,7 +6,7 @@ from conftest import examples
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from motorctl.control.estimator import LeastSquaresEstimator, project_box
+from motorctl.control.estimator import LeastSquaresEstimator, lambda_max_exceeds, project_box
 from motorctl.model import f_u, s_f
 
 TMIN = np.array([0.05, 0.08, 0.05, -0.5, -0.015, -0.002])
@@ -115,6 +115,54 @@ def test_forgetting_with_freeze_keeps_gamma_bounded():
     assert lam[0] > 0
     assert lam[-1] > np.max(np.diag(GAMMA0))  # it did grow (mu acted)
     assert est.frozen
+
+
+@settings(max_examples=examples(200), deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(4, 9), side=st.sampled_from([-1.0, 1.0]))
+def test_freeze_test_agrees_with_the_largest_eigenvalue(seed, n, side):
+    """eq. (27)'s freeze test, decided by a Cholesky factorisation, gives λ_max(sΓ − c g gᵀ) > ρ
+    as the eigenvalue does, for ρ just below or just above it (n: 4 or 6 parameters plus
+    adapted coefficients)."""
+    rng = np.random.default_rng(seed)
+    gam = _spd(rng, n) * 10.0 ** rng.uniform(-2, 3)
+    g = rng.normal(size=n) * np.sqrt(np.diag(gam))
+    scale = 1.0 + rng.uniform(0.0, 1e-3)
+    c = rng.uniform(0.0, 0.9) * scale / (g @ np.linalg.solve(gam, g))     # keeps sΓ − c g gᵀ SPD
+    lam = np.linalg.eigvalsh(scale * gam - c * np.outer(g, g))[-1]
+    rho = lam * (1.0 + side * 10.0 ** rng.uniform(-9, 0))
+    w = np.full((n, n), np.nan)
+    assert lambda_max_exceeds(gam, g, scale, c, rho, w) == (lam > rho)
+
+
+def test_frozen_at_rest_allocates_nothing():
+    """With forgetting and no excitation Γ grows until eq. (27) freezes it, then the freeze test
+    runs every sample: numba's allocation counter (NUMBA_NRT_STATS, a fresh interpreter) shows
+    no allocation over 1000 such samples run from compiled code, as the servo cycle runs them."""
+    import os
+    import subprocess
+    import sys
+    code = (
+        "import numpy as np\n"
+        "from numba import njit\n"
+        "from numba.core.runtime import rtsys\n"
+        "from motorctl.control.estimator import LeastSquaresEstimator, ls_update\n"
+        "@njit\n"
+        "def samples(count, cols, *arrays):\n"
+        "    for _ in range(count):\n"
+        "        ls_update(0.0, 0.0, 0.0, 1.0, cols, *arrays)\n"
+        "est = LeastSquaresEstimator([0.2, 0.2, 0.1, 0, 0, 0], [0.05, 0.08, 0.05, -0.5, -0.015, -0.002],\n"
+        "    [0.3, 0.5, 0.5, 0.5, 0, 0], np.diag([2.0, 50, 100, 500, 0.05, 0.005]), 200.0, 2e-4, mu=5.0, rho_M=1000.0)\n"
+        "samples(20000, est.cols, *est.kernel_args())\n"
+        "a = rtsys.get_allocation_stats()\n"
+        "samples(1000, est.cols, *est.kernel_args())\n"
+        "b = rtsys.get_allocation_stats()\n"
+        "print(int(est.frozen), b.alloc - a.alloc)\n")
+    env = {**os.environ, "NUMBA_NRT_STATS": "1"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    frozen, allocs = map(int, out.stdout.split())
+    assert frozen == 1, out.stdout
+    assert allocs <= 20, out.stdout            # the call from Python boxes its arrays once, not per sample
 
 
 def test_bad_sizes_and_initial_estimate_outside_box():

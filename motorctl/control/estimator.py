@@ -26,11 +26,16 @@ interval are extra channels, filtered by the same H_f, and φ_f gets their filte
 the thrust channels (u, u|u|, u³) by 1 + r̂(x).
 
 The linear model (C1) uses the first four channels and parameters only. The per-sample work is
-a numba-compiled kernel on preallocated arrays: no allocation except in the rare freeze check
-(λ_max only computed when tr(Γ⁺) > ρ_M). ``NUMBA_DISABLE_JIT=1`` runs the same code as Python.
+a numba-compiled kernel on preallocated arrays, the freeze check of eq. (27) included: it is
+decided only when tr(Γ⁺) > ρ_M (λ_max ≤ tr for SPD), then without computing λ_max, by the
+Cholesky factorisation of ρ_M I − Γ⁺ in scratch (:func:`lambda_max_exceeds`), so a loop with
+forgetting that sits frozen at rest allocates nothing either. ``NUMBA_DISABLE_JIT=1`` runs the
+same code as Python.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -149,6 +154,30 @@ def project_box(z, th, tmin, tmax, gam, piv, coef, vec, pividx, active):
 
 
 @njit
+def lambda_max_exceeds(gam, g, scale, c, rho, w):
+    """λ_max(sΓ − c g gᵀ) > ρ for Γ (n, n) symmetric, g (n,), s = ``scale``, c, ρ = ``rho``:
+    the freeze test of eq. (27), decided as "ρI − (sΓ − c g gᵀ) is not positive definite", i.e.
+    its Cholesky factorisation (row by row into the scratch ``w`` (n, n), lower triangle) meets
+    a pivot ≤ 0. Exact up to rounding (it differs from comparing an eigenvalue only where
+    λ_max = ρ to the last bits); O(n³/6) flops, no allocation."""
+    n = gam.shape[0]
+    for i in range(n):
+        for j in range(i + 1):
+            a = c * g[i] * g[j] - scale * gam[i, j]
+            if i == j:
+                a += rho
+            for k in range(j):
+                a -= w[i, k] * w[j, k]
+            if i == j:
+                if not a > 0.0:
+                    return True
+                w[i, i] = math.sqrt(a)
+            else:
+                w[i, j] = a / w[j, j]
+    return False
+
+
+@njit
 def ls_update(x2, u_prev, d_prev, g_prev, cols, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z,
               piv, coef, vec, pividx, active, opts, res):
     """One estimator sample (docs/control-law.md, Order of operations step 2); see the module docstring. All arrays preallocated.
@@ -228,9 +257,8 @@ def ls_update(x2, u_prev, d_prev, g_prev, cols, th, gam, tmin, tmax, zf, zd, inp
     h = ts / nk
     c = h * scale * scale / (1.0 + h * scale * quad)
     frozen = False
-    if scale * trace - c * g2 > rho:  # λ_max ≤ tr for SPD: the eigenvalue only when it may bite
-        cand = scale * gam - c * np.outer(g, g)
-        frozen = np.linalg.eigvalsh(cand)[n - 1] > rho
+    if scale * trace - c * g2 > rho:  # λ_max ≤ tr for SPD: decided only when it may bite
+        frozen = lambda_max_exceeds(gam, g, scale, c, rho, piv)      # piv: scratch until the projection
     res[_R_FROZEN] = 1.0 if frozen else 0.0
     k = eps / nk
     if not frozen:
