@@ -313,7 +313,7 @@ def _plant_measured(s, p):
 
 #: the fields of :class:`SimIO`, in constructor order
 SIM_FIELDS = ("pos", "read_error", "amp_fault", "amp_enabled", "applied_u", "S", "P", "DL", "NZ", "inj", "jump",
-              "push", "TC", "TT", "TL", "NT")
+              "push", "TC", "TT", "TL", "NT", "u_cmd", "en_cmd")
 
 
 class SimIOType(BundleType):
@@ -326,16 +326,20 @@ class SimIO(StructRefProxy):
     compiled plants' rows (S, P, DL, NZ: one row per axis), the injected faults (inj: (n, 4)
     cycles left, jump [m], push [N]: (n,)), the plants' compiled effect terms (NT (n,) how many,
     0 for none; TC (n, m) codes, TT (n, m, w) rows, TL (n, m) lengths: each plant's
-    :func:`motorctl.effects.plant.rows`, zero-padded); passed to the compiled read and write as
-    one argument (:func:`motorctl.jit.bundle`)."""
+    :func:`motorctl.effects.plant.rows`, zero-padded), the command the write applies (u_cmd [V],
+    en_cmd: (n,); the loop's own output arrays once the driver has checked them, so that a
+    cycle's write passes no array from Python: numba allocates a wrapper for each array it
+    unboxes); passed to the compiled read and write as one argument (:func:`motorctl.jit.bundle`)."""
 
 
 define_bundle(SimIOType, SimIO, SIM_FIELDS)
 
 
 @njit
-def _make_sim_io(pos, read_error, amp_fault, amp_enabled, applied_u, S, P, DL, NZ, inj, jump, push, TC, TT, TL, NT):
-    return SimIO(pos, read_error, amp_fault, amp_enabled, applied_u, S, P, DL, NZ, inj, jump, push, TC, TT, TL, NT)
+def _make_sim_io(pos, read_error, amp_fault, amp_enabled, applied_u, S, P, DL, NZ, inj, jump, push, TC, TT, TL, NT,
+                 u_cmd, en_cmd):
+    return SimIO(pos, read_error, amp_fault, amp_enabled, applied_u, S, P, DL, NZ, inj, jump, push, TC, TT, TL, NT,
+                 u_cmd, en_cmd)
 
 
 @njit
@@ -364,12 +368,13 @@ def _sim_read(io, bitten):
 
 
 @njit
-def _sim_write(io, u_v, enable, bitten):
+def _sim_write(io, bitten):
     """:meth:`SimDriver.write` of every axis (each plant's whole period compiled) on the
     :class:`SimIO` ``io``: the amplifier's enable and output (NaN never reaches it), an injected
     push, one period of each plant (:func:`_plant_step`, or :func:`_hooked_step` with the
-    plant's effect terms). u_v [V] and enable: (n,). Returns how many plants have used up their
-    block of noise draws (to be refilled before the next period)."""
+    plant's effect terms), under the command io.u_cmd [V], io.en_cmd (n,). Returns how many
+    plants have used up their block of noise draws (to be refilled before the next period)."""
+    u_v, enable = io.u_cmd, io.en_cmd
     amp_fault, amp_enabled, applied_u, inj, push = io.amp_fault, io.amp_enabled, io.applied_u, io.inj, io.push
     S, P, DL, NZ, TC, TT, TL, NT = io.S, io.P, io.DL, io.NZ, io.TC, io.TT, io.TL, io.NT
     need = 0
@@ -396,7 +401,7 @@ def _sim_write(io, u_v, enable, bitten):
 
 
 @njit
-def _sim_rehearse(io, scratch, u_v, enable):
+def _sim_rehearse(io, scratch):
     """:meth:`SimDriver.rehearse`: the read and the write of every axis run on ``scratch`` (a
     :class:`SimIO` of copies), refreshed from ``io`` first; ``io`` is not written."""
     scratch.pos[:] = io.pos
@@ -415,8 +420,10 @@ def _sim_rehearse(io, scratch, u_v, enable):
     scratch.TT[:] = io.TT
     scratch.TL[:] = io.TL
     scratch.NT[:] = io.NT
+    scratch.u_cmd[:] = io.u_cmd
+    scratch.en_cmd[:] = io.en_cmd
     _sim_read(scratch, False)
-    _sim_write(scratch, u_v, enable, False)
+    _sim_write(scratch, False)
 
 
 @njit
@@ -823,20 +830,21 @@ class SimDriver(Driver):
             if p.period_compiled:       # (any other plant draws its first block at its first step,
                 p.refill_noise()        # one with Python hooks one draw at a time)
         self.applied_u = np.zeros(n)   # voltage at the amplifier output [V]
+        self._u_cmd, self._en_cmd = np.zeros(n), np.zeros(n, dtype=bool)   # commands of other arrays
         self._io = self._sim_io()
         # the compiled read and write, compiled (or loaded from the cache) now and run on copies
         self._read = entry(_sim_read, self._io, False)
         self._read(self._sim_io(copies=True), False)
         self._write = None
-        self._u_ok = self._en_ok = None       # the last output arrays seen to have the right types
+        self._u_ok = self._en_ok = None       # the last output arrays seen to have the right types,
+        self._io_ok = self._io                # and the bundle that commands from them
         self._rehearsal = None
         if self._compiled:
-            self._write = entry(_sim_write, self._io, np.zeros(n), np.zeros(n, dtype=bool), False)
-            self._write(self._sim_io(copies=True), np.zeros(n), np.zeros(n, dtype=bool), False)
+            self._write = entry(_sim_write, self._io, False)
+            self._write(self._sim_io(copies=True), False)
             self._scratch = self._sim_arrays(copies=True)     # the rehearsal's copies
             self._scratch_io = bundle(_make_sim_io, SIM_FIELDS, self._scratch)
-            self._rehearsal = entry(_sim_rehearse, self._io, self._scratch_io, np.zeros(n),
-                                    np.zeros(n, dtype=bool))
+            self._rehearsal = entry(_sim_rehearse, self._io, self._scratch_io)
         self.watchdog_ns = int(options.watchdog_s * 1e9)
         self.watchdog_bites = 0
         self._last_write_ns = 0
@@ -845,17 +853,18 @@ class SimDriver(Driver):
         for i, p in enumerate(self.plants):
             self.position_m[i] = p.measured()
 
-    def _sim_arrays(self, copies: bool = False) -> tuple:
+    def _sim_arrays(self, copies: bool = False, command: tuple | None = None) -> tuple:
         """The exchange's arrays in the order of :data:`SIM_FIELDS`, or copies of them (for a
-        call that changes nothing)."""
+        call that changes nothing); ``command``: the (u [V], enable) arrays the write is to
+        read its command from (default: the driver's own)."""
         arrays = (self.position_m, self.read_error, self.amp_fault, self.amp_enabled, self.applied_u, self._S,
                   self._P, self._DL, self._NZ, self._inject, self._jump_m, self._push_N, self._TC, self._TT,
-                  self._TL, self._NT)
+                  self._TL, self._NT) + (command or (self._u_cmd, self._en_cmd))
         return tuple(a.copy() for a in arrays) if copies else arrays
 
-    def _sim_io(self, copies: bool = False) -> SimIO:
+    def _sim_io(self, copies: bool = False, command: tuple | None = None) -> SimIO:
         """:meth:`_sim_arrays` as the bundle the compiled read and write take (:class:`SimIO`)."""
-        return bundle(_make_sim_io, SIM_FIELDS, self._sim_arrays(copies))
+        return bundle(_make_sim_io, SIM_FIELDS, self._sim_arrays(copies, command))
 
     def _watchdog(self) -> bool:
         """The drive's command watchdog, checked at every exchange (read and write): a stall
@@ -880,7 +889,7 @@ class SimDriver(Driver):
     def _rehearse(self, u_V: np.ndarray, enable: np.ndarray) -> None:
         # the whole exchange compiled: read and write on copies (one call); otherwise nothing
         if self._rehearsal is not None and u_V is self._u_ok and enable is self._en_ok:
-            self._rehearsal(self._io, self._scratch_io, u_V, enable)
+            self._rehearsal(self._io_ok, self._scratch_io)
 
     def read(self) -> None:
         if self.watchdog_ns and self._last_write_ns:
@@ -895,7 +904,13 @@ class SimDriver(Driver):
         if self._compiled:
             if u_V is not self._u_ok or enable is not self._en_ok:
                 u_V, enable = self._checked(u_V, enable)
-            if self._write(self._io, u_V, enable, bitten):
+            if u_V is self._u_ok and enable is self._en_ok:
+                io = self._io_ok              # the checked arrays themselves: nothing to pass
+            else:
+                self._u_cmd[:] = u_V
+                self._en_cmd[:] = enable
+                io = self._io
+            if self._write(io, bitten):
                 for plant in self.plants:
                     plant.refill_noise()
             if self.watchdog_ns:
@@ -920,14 +935,15 @@ class SimDriver(Driver):
 
     def _checked(self, u_V, enable):
         """u_V and enable as the compiled write takes them (float64 and bool, (n,), contiguous):
-        as given when they are (then remembered, so the loop's own arrays are checked once),
-        else converted."""
+        as given when they are (then remembered with a bundle that reads them, so the loop's own
+        arrays are checked once and never passed again), else converted."""
         n = len(self.plants)
         ok = (isinstance(u_V, np.ndarray) and u_V.dtype == np.float64 and u_V.shape == (n,)
               and u_V.flags.c_contiguous and isinstance(enable, np.ndarray) and enable.dtype == np.bool_
               and enable.shape == (n,) and enable.flags.c_contiguous)
         if ok:
             self._u_ok, self._en_ok = u_V, enable
+            self._io_ok = self._sim_io(command=(u_V, enable))
             return u_V, enable
         return (np.ascontiguousarray(np.broadcast_to(np.asarray(u_V, dtype=np.float64), (n,))),
                 np.ascontiguousarray(np.broadcast_to(np.asarray(enable, dtype=np.bool_), (n,))))

@@ -181,3 +181,48 @@ def test_a_wall_clock_run_gives_the_same_figures_with_and_without_the_rehearsal(
         figures.append({a: (v["e_M_um"], v["L2_um"], v["u_peak_V"], v["fault"]) for a, v in r.axes.items()})
     assert figures[0] == figures[1]
     assert figures[0]["X"][0] > 0.0
+
+
+#: a fresh interpreter with numba's allocation counter on: the allocations of N loop cycles and of
+#: N rehearsals (each counted once before and once after N more, so what a run() costs once cancels)
+_ALLOC_PROBE = """
+import sys
+from numba.core.runtime import rtsys
+from motorctl.app.build import build, shutdown, start
+from motorctl.config import config_from_dict, load_yaml
+from motorctl.loop import cycle as C
+d = load_yaml(sys.argv[1])
+if sys.argv[3]:
+    d["axes"]["X"]["controller"]["compensation"] = eval(sys.argv[3])
+asm = build(config_from_dict(d, "gantry"), None, sys.argv[2], clock="virtual", capacity=1000)
+start(asm, "off")
+lp, drv = asm.loop, asm.driver
+lp.run(3000)
+st, scratch = lp._cycle_state(), lp._cycle_state(copies=True)
+rehearse = C.rehearse
+def allocs(n):
+    a = rtsys.get_allocation_stats().alloc
+    lp.run(n)
+    for _ in range(n):
+        drv.rehearse(lp.u_out, lp.enable_out)
+        rehearse(C.CYCLE_ALL, lp.k, st, scratch)
+    return rtsys.get_allocation_stats().alloc - a
+print(allocs(2000) - allocs(1000))
+shutdown(asm)
+"""
+
+
+@pytest.mark.parametrize("law", ["c2", "c1", "pid", "c2-compensated"])
+def test_the_loop_cycle_and_its_rehearsal_allocate_nothing(repo, law):
+    """Nothing allocates inside the cycle: numba's runtime counts no allocation per cycle of the
+    loop on the simulated driver (read, the compiled cycle, write with each plant's period) nor
+    per rehearsal (NUMBA_NRT_STATS in a fresh interpreter; 1000 more cycles cost 0 more)."""
+    import os
+    import subprocess
+    import sys
+    comp = repr(COMPENSATION) if law == "c2-compensated" else ""
+    out = subprocess.run([sys.executable, "-c", _ALLOC_PROBE, str(repo / "configs" / "gantry.yaml"),
+                          "c2" if law == "c2-compensated" else law, comp],
+                         env={**os.environ, "NUMBA_NRT_STATS": "1"}, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert int(out.stdout.split()[-1]) == 0, out.stdout
