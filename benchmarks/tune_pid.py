@@ -41,7 +41,7 @@ import numpy as np
 
 from motorctl.app.build import build, run_cycles
 from motorctl.config import config_from_dict, load_yaml
-from motorctl.metrics import tracking_indexes
+from motorctl.metrics import REST_AFTER_S, rest_mask, tracking_indexes, u_rest_rms
 
 OMEGA_N = (100.0, 150.0, 200.0, 250.0, 300.0, 350.0, 400.0, 450.0, 500.0, 600.0)  # [rad/s]
 ZETA = (0.5, 0.7, 1.0)
@@ -49,7 +49,6 @@ R_INT = (3.0, 5.0, 10.0)
 I_AUTHORITY_V = 1.0        # integrator authority I·maxerror_i [V]
 R2_FRACTION = 0.05         # one count → at most this fraction of u_lim
 R3_FRACTION = 0.005        # u RMS at rest ≤ this fraction of u_lim
-REST_AFTER_S = 0.3         # "at rest": the command has not moved for this long
 
 
 def catalogue_ff(section) -> dict:
@@ -79,15 +78,11 @@ def run_axis(raw: dict, source: str, axis: str, kind: str, seconds: float, pid=N
     rows, lay = run_cycles(asm, n)
     t = rows[:, lay.cycle("t")]
     e, u = rows[:, lay.index(f"{axis}.e")], rows[:, lay.index(f"{axis}.u")]
-    moving = (rows[:, lay.index(f"{axis}.xd_dot")] != 0.0) | (rows[:, lay.index(f"{axis}.xd_ddot")] != 0.0)
-    k = np.arange(len(t))
-    last_move = np.maximum.accumulate(np.where(moving, k, -(10**9)))
-    rest = (k - last_move) * loaded.period_s >= REST_AFTER_S
-    edges = np.diff(np.concatenate([[0], rest.astype(int), [0]]))
-    segs = [u[a:b] - u[a:b].mean() for a, b in zip(np.where(edges == 1)[0], np.where(edges == -1)[0])]
+    rest = rest_mask(rows[:, lay.index(f"{axis}.xd_dot")], rows[:, lay.index(f"{axis}.xd_ddot")], loaded.period_s,
+                     REST_AFTER_S)
     u_lim = loaded.axes[axis].controller.u_lim
     res = tracking_indexes(t, e, u, loaded.axes[axis].trajectory.period_s)
-    res["u_rest_rms_V"] = float(np.sqrt(np.mean(np.concatenate(segs) ** 2))) if segs else float("nan")
+    res["u_rest_rms_V"] = u_rest_rms(u, rest)
     res["saturated"] = int(np.sum(np.abs(u) >= u_lim * (1.0 - 1e-12)))
     res["fault"] = asm.supervisor.reason(0)
     return res

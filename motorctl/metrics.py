@@ -11,6 +11,10 @@ Given the desired velocity ẋ_d, L2[e] is also split into its parts in motion a
 sqrt(Σ_standstill e² / N) over all N samples, so that L2[e]² = L2_motion² + L2_standstill². The
 tracking in motion is what a model compensation acts on; the error at standstill is where a
 servo hunts against stiction (a limit cycle of integral action against the breakaway force).
+
+u noise at rest (:func:`u_rest_rms`): the RMS of u about its mean over each stretch where the
+command has not moved (ẋ_d = ẍ_d = 0) for :data:`REST_AFTER_S`: what the loop does to the
+amplifier when it should be holding still (encoder noise through the gains, hunting).
 """
 
 from __future__ import annotations
@@ -28,6 +32,32 @@ PAPER_TABLES = {
 
 #: |ẋ_d| at or below this is standstill (the program dwelling) [m/s]
 STANDSTILL_M_PER_S = 1e-6
+#: "at rest" for the u noise: the command has not moved for this long [s]
+REST_AFTER_S = 0.3
+
+
+def rest_mask(xd_dot: np.ndarray, xd_ddot: np.ndarray, ts: float, after_s: float = REST_AFTER_S) -> np.ndarray:
+    """Samples where the command has not moved (ẋ_d = ẍ_d = 0) for ``after_s`` [s].
+
+    Args:
+        xd_dot [m/s], xd_ddot [m/s²]: the desired velocity and acceleration, (N,) each, one
+            sample per period ``ts`` [s].
+    Returns:
+        bool (N,).
+    """
+    moving = (np.asarray(xd_dot) != 0.0) | (np.asarray(xd_ddot) != 0.0)
+    k = np.arange(moving.size)
+    last = np.maximum.accumulate(np.where(moving, k, -(10 ** 9)))
+    return (k - last) * ts >= after_s
+
+
+def u_rest_rms(u: np.ndarray, rest: np.ndarray) -> float:
+    """RMS of u about its mean over each stretch of ``rest`` (:func:`rest_mask`) [V]; NaN when
+    there is none. u [V] and rest: (N,)."""
+    u = np.asarray(u, dtype=float)
+    edges = np.diff(np.concatenate([[0], np.asarray(rest).astype(int), [0]]))
+    segs = [u[a:b] - u[a:b].mean() for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1))]
+    return float(np.sqrt(np.mean(np.concatenate(segs) ** 2))) if segs else float("nan")
 
 
 def tracking_indexes(t: np.ndarray, e: np.ndarray, u: np.ndarray, final_window_s: float,

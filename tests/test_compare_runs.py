@@ -57,11 +57,18 @@ def test_l2_split_into_motion_and_standstill():
     assert "L2_motion_um" not in tracking_indexes(t, e, np.zeros_like(t), 0.0)
     with pytest.raises(ValueError):
         tracking_indexes(t, e, np.zeros_like(t), 0.0, xd_dot[:-1])
-    rec = (t, e, np.zeros_like(t), xd_dot)
-    both = compare_axis(rec, (t, 2 * e, np.zeros_like(t), xd_dot), None, 0)
+    zero = np.zeros_like(t)
+    u = np.where(t < 1.0, 1.0, 0.5 + 0.01 * np.sin(2 * np.pi * 50 * t))   # 10 mV peak at rest
+    rec = (t, e, u, xd_dot, zero)
+    both = compare_axis(rec, (t, 2 * e, u, xd_dot, zero), None, 0)
     assert both["ratio"]["L2_standstill_um"] == pytest.approx(2.0)
     assert both["after"]["L2_motion_um"] == pytest.approx(6.0 / np.sqrt(2))
-    assert "L2_motion_um" not in compare_axis(rec, (t, e, np.zeros_like(t), None), None, 0)["ratio"]
+    # u at rest from 0.3 s after the last move: its RMS about its mean, 10 mV / sqrt(2)
+    assert both["before"]["u_rest_rms_V"] == pytest.approx(0.01 / np.sqrt(2), rel=1e-2)
+    assert "L2_motion_um" not in compare_axis(rec, (t, e, u, None, None), None, 0)["ratio"]
+    moving = (t, e, u, np.full_like(t, 0.5), zero)                       # never at rest
+    none = compare_axis(moving, moving, None, 0)
+    assert none["before"]["u_rest_rms_V"] is None and none["ratio"]["u_rest_rms_V"] is None
 
 
 @pytest.fixture(scope="module")
@@ -90,6 +97,7 @@ def test_compare_runs_cli(logs, tmp_path, capsys):
     assert x["ratio"]["L2_um"] < 0.95               # the spring compensated
     for run in ("before", "after"):                 # the logs record x_d's velocity: the split
         assert x[run]["L2_motion_um"] ** 2 + x[run]["L2_standstill_um"] ** 2 == pytest.approx(x[run]["L2_um"] ** 2)
+        assert 0.0 < x[run]["u_rest_rms_V"] < 1.0       # the program dwells 1.5 s twice a period
     assert (out / "compare_runs_X.png").stat().st_size > 1000
     assert main(["compare-runs", before, after]) == 0
     text = capsys.readouterr().out

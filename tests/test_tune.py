@@ -12,7 +12,7 @@ import pytest
 import yaml
 from conftest import MOTORCTL, RIGID_PLANT
 
-from motorctl.app.tune import FILES, better, damage_removed, effect_free, effects_on
+from motorctl.app.tune import FILES, U_REST_SLACK, better, damage_removed, effect_free, effects_on
 from motorctl.cli import main
 from motorctl.cli.tune import text_report
 from motorctl.config import config_from_dict, load_config, load_yaml
@@ -205,3 +205,16 @@ def test_better_lets_l2_decide_with_e_m_held_to_the_before_run():
     assert not better({"L2_um": 2.5, "e_M_um": 14.8}, best)            # against the best's own e_M
     assert not better({"L2_um": 2.5, "e_M_um": 21.2}, best, before)    # e_M worse than before
     assert not better({"L2_um": 3.0, "e_M_um": 5.0}, best, before)     # L2 not lower
+
+
+def test_better_holds_u_noise_at_rest_to_the_before_run():
+    """u's RMS at rest may not grow more than U_REST_SLACK above the before run's; without the
+    figure (a log without ẋ_d, or no rest in the window) L2[e] and e_M decide alone."""
+    before = {"L2_um": 3.3, "e_M_um": 20.6, "u_rest_rms_V": 0.100}
+    best = {"L2_um": 3.0, "e_M_um": 11.1, "u_rest_rms_V": 0.100}
+    quiet = 0.100 * (1 + U_REST_SLACK) * 0.99
+    noisy = 0.100 * (1 + U_REST_SLACK) * 1.01
+    assert better({"L2_um": 2.5, "e_M_um": 14.8, "u_rest_rms_V": quiet}, best, before)
+    assert not better({"L2_um": 2.5, "e_M_um": 14.8, "u_rest_rms_V": noisy}, best, before)
+    assert better({"L2_um": 2.5, "e_M_um": 14.8}, best, before)
+    assert better({"L2_um": 2.5, "e_M_um": 14.8, "u_rest_rms_V": None}, best, before)

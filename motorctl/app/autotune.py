@@ -99,7 +99,8 @@ from motorctl.config import LoadedConfig, config_from_dict
 from motorctl.control import configured_controllers, controller_class
 from motorctl.control.base import SIG_E, Controller
 from motorctl.loop.trajectory import Move
-from motorctl.metrics import tracking_indexes
+from motorctl.metrics import REST_AFTER_S, tracking_indexes, u_rest_rms
+from motorctl.metrics import rest_mask as _rest_mask
 
 # ---------------------------------------------------------------- the rule (stated once)
 GM_MIN_DB = 6.0          #: gain margin ≥ [dB] (default of :class:`Rule`)
@@ -123,7 +124,6 @@ NOISE_SLACK = 1.1        #: the search still runs gains whose calibrated rest-no
                          #: grows ~6 % per ω step and the best often sits at the level itself)
 REFINE_RUNS = 6          #: runs of the local refinement around the search's best, at most
 WINNER_TRIES = 3         #: search winners whose ladder is climbed before the rule's gains are kept
-REST_AFTER_S = 0.3       #: "at rest": the command has not moved for this long [s]
 SATURATED = "saturated samples"   #: the words of the saturation verdict (:func:`admissible`)
 
 # ---------------------------------------------------------------- the measurement
@@ -641,12 +641,10 @@ def apply_gains(raw: dict, axis: str, law: str, g: dict, extra: dict | None = No
 
 
 def rest_mask(rows: np.ndarray, lay, axis: str, ts: float) -> np.ndarray:
-    """Samples where the command has not moved for :data:`REST_AFTER_S`."""
-    moving = ((rows[:, lay.index(f"{axis}.xd_dot")] != 0.0)
-              | (rows[:, lay.index(f"{axis}.xd_ddot")] != 0.0))
-    k = np.arange(rows.shape[0])
-    last = np.maximum.accumulate(np.where(moving, k, -(10 ** 9)))
-    return (k - last) * ts >= REST_AFTER_S
+    """Samples of ``axis`` in the recorded ``rows`` where the command has not moved for
+    :data:`~motorctl.metrics.REST_AFTER_S` (:func:`motorctl.metrics.rest_mask`)."""
+    return _rest_mask(rows[:, lay.index(f"{axis}.xd_dot")], rows[:, lay.index(f"{axis}.xd_ddot")], ts,
+                      REST_AFTER_S)
 
 
 def oscillation_ratio(u: np.ndarray, rest: np.ndarray, ts: float) -> tuple[float, float]:
@@ -697,11 +695,9 @@ def evaluate(raw: dict, source: str, axis: str, law: str, seconds: float, clock:
     ts = loaded.period_s
     t, e, u = (rows[:, lay.cycle("t")], rows[:, lay.index(f"{axis}.e")], rows[:, lay.index(f"{axis}.u")])
     rest = rest_mask(rows, lay, axis, ts)
-    edges = np.diff(np.concatenate([[0], rest.astype(int), [0]]))
-    segs = [u[a:b] - u[a:b].mean() for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1))]
     u_lim = loaded.axes[axis].controller.u_lim
     res = tracking_indexes(t, e, u, loaded.axes[axis].trajectory.period_s)
-    res["u_rest_rms_V"] = float(np.sqrt(np.mean(np.concatenate(segs) ** 2))) if segs else math.nan
+    res["u_rest_rms_V"] = u_rest_rms(u, rest)
     res["saturated"] = int(np.sum(np.abs(u) >= u_lim * (1.0 - 1e-12)))
     res["samples"] = int(rows.shape[0])
     res["fault"] = asm.supervisor.reason(0)

@@ -4,7 +4,8 @@ common period. The text and the command are :mod:`motorctl.cli.runs`.
 
 Per axis present in both logs: e_M, e_F, L2[e] [µm] and u_peak [V] (docs/control-law.md, Performance indexes,
 :func:`motorctl.metrics.tracking_indexes`) of each log and the ratio after/before, with L2[e]'s
-parts in motion and at standstill (:data:`SPLIT`) where both logs record the desired velocity. The two logs
+parts in motion and at standstill and u's noise at rest (:data:`SPLIT`) where both logs record
+the desired velocity and acceleration. The two logs
 are aligned by program time (the record's ``t`` = k·Ts): both are evaluated over the same whole
 program periods, from the end of the settling (the first ``settle_periods`` periods excluded the
 same way for both, :func:`motorctl.metrics.settled_mask`) to the end of the last period both
@@ -18,12 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
-from motorctl.metrics import tracking_indexes
+from motorctl.metrics import rest_mask, tracking_indexes, u_rest_rms
 
 INDEXES = ("e_M_um", "e_F_um", "L2_um", "u_peak_V")
 #: L2[e]'s parts in motion and at standstill (L2² = motion² + standstill²,
-#: :func:`motorctl.metrics.tracking_indexes`), when both records carry ẋ_d
-SPLIT = ("L2_motion_um", "L2_standstill_um")
+#: :func:`motorctl.metrics.tracking_indexes`) and u's RMS at rest [V]
+#: (:func:`motorctl.metrics.u_rest_rms`), when both records carry ẋ_d and ẍ_d
+SPLIT = ("L2_motion_um", "L2_standstill_um", "u_rest_rms_V")
 
 
 def _period(header: dict, axis: str) -> float | None:
@@ -35,12 +37,14 @@ def _period(header: dict, axis: str) -> float | None:
 
 
 def _axis_data(log, axis: str) -> tuple:
-    """(t, e, u, ẋ_d) of the enabled cycles of ``axis`` (each (N,); ẋ_d None when the log
-    lacks it)."""
+    """(t, e, u, ẋ_d, ẍ_d) of the enabled cycles of ``axis`` (each (N,); ẋ_d and ẍ_d None
+    when the log lacks them)."""
     a = log.axis(axis)
     t = log.col("t")
     on = a["enabled"] > 0.5
-    return t[on], a["e"][on], a["u"][on], (a["xd_dot"][on] if "xd_dot" in a else None)
+    if "xd_dot" not in a or "xd_ddot" not in a:
+        return t[on], a["e"][on], a["u"][on], None, None
+    return t[on], a["e"][on], a["u"][on], a["xd_dot"][on], a["xd_ddot"][on]
 
 
 def window(t_b: np.ndarray, t_a: np.ndarray, period_s: float | None, settle_periods: int) -> tuple[float, float]:
@@ -74,28 +78,34 @@ def compare_axis(before: tuple, after: tuple, period_s: float | None, settle_per
     """Indexes of two (t, e, u) records of one axis over the same window, and the ratios.
 
     Args:
-        before, after: (t [s], e [m], u [V]) or (t, e, u, ẋ_d [m/s]) each (N,), program time t
-            (ẋ_d may be None).
+        before, after: (t [s], e [m], u [V]) or (t, e, u, ẋ_d [m/s], ẍ_d [m/s²]) each (N,),
+            program time t (ẋ_d and ẍ_d may be None).
         period_s: program period [s] or None. settle_periods: periods excluded at the start.
     Returns:
         {"window_s": [t0, t1], "period_s", "before": {...}, "after": {...}, "ratio": {...}}
         with the keys of :func:`motorctl.metrics.tracking_indexes` (:data:`SPLIT` too when both
-        records carry ẋ_d); ratio = after / before.
+        records carry ẋ_d and ẍ_d; "u_rest_rms_V" None when the window has no rest); ratio =
+        after / before (None where before's is 0 or None).
     Raises:
         ValueError: see :func:`window`.
     """
     t0, t1 = window(before[0], after[0], period_s, settle_periods)
     out = {"window_s": [t0, t1], "period_s": period_s, "settle_periods": settle_periods}
-    split = all(len(r) > 3 and r[3] is not None for r in (before, after))
+    split = all(len(r) > 4 and r[3] is not None and r[4] is not None for r in (before, after))
     for name, rec in (("before", before), ("after", after)):
         t, e, u = rec[:3]
         m = (t >= t0 - 1e-9) & (t < t1 - 1e-9)
         if m.sum() < 2:
             raise ValueError(f"{name}: no enabled cycles in {t0:g}..{t1:g} s")
         out[name] = tracking_indexes(t[m], e[m], u[m], period_s or 0.0, rec[3][m] if split else None)
+        if split:
+            ts = float(np.median(np.diff(t[m])))
+            ur = u_rest_rms(u[m], rest_mask(rec[3][m], rec[4][m], ts))
+            out[name]["u_rest_rms_V"] = ur if ur == ur else None      # None: no rest in the window
         out[name]["cycles"] = int(m.sum())
     keys = INDEXES + (SPLIT if split else ())
-    out["ratio"] = {k: (out["after"][k] / out["before"][k] if out["before"][k] else None) for k in keys}
+    out["ratio"] = {k: (out["after"][k] / out["before"][k] if out["before"][k] and out["after"][k] is not None
+                        else None) for k in keys}
     return out
 
 

@@ -25,6 +25,7 @@ import json
 import sys
 
 from motorctl.app.compare import INDEXES, SPLIT, compare_logs, figures, public
+from motorctl.metrics import REST_AFTER_S
 
 def register(parser, subparsers) -> None:
     """Add the ``compare-runs`` subcommand (called by :func:`motorctl.cli.build_parser`)."""
@@ -52,7 +53,7 @@ def text_report(res: dict, extra_rows: tuple[str, ...] = ()) -> str:
         lines.append(f"axis {a}: program time {t0:g}..{t1:g} s{per}")
         keys = INDEXES + tuple(k for k in SPLIT if k in r["ratio"])
         heads = {"e_M_um": "e_M um", "e_F_um": "e_F um", "L2_um": "L2[e] um", "u_peak_V": "u_peak V",
-                 "L2_motion_um": "in motion", "L2_standstill_um": "standstill"}
+                 "L2_motion_um": "in motion", "L2_standstill_um": "standstill", "u_rest_rms_V": "u rest V"}
         lines.append(f"  {'':8s} " + " ".join(f"{heads[k]:>10s}" for k in keys))
         rows = [n for n in ("before", "after", "ratio", *extra_rows) if r.get(n)]
         for name in rows:
@@ -61,7 +62,8 @@ def text_report(res: dict, extra_rows: tuple[str, ...] = ()) -> str:
                 f"{r[name][k]:{fmt}}" if r[name].get(k) is not None else f"{'-':>10s}" for k in keys))
         if len(keys) > len(INDEXES):
             lines.append("  (in motion / standstill: L2[e]'s parts where the desired velocity is not / is zero, "
-                         "L2[e]² = motion² + standstill², um)")
+                         "L2[e]² = motion² + standstill², um; u rest: RMS of u about its mean where the "
+                         f"command has not moved for {REST_AFTER_S:g} s, V)")
     return "\n".join(lines) + "\n"
 
 

@@ -13,14 +13,15 @@
    over a worse config: each change of ``tuned.yaml`` (the fitted θ̂(0) with its box, then each
    compensated effect) is undone once (``DIR/without_<change>.yaml`` / ``.mclog``) and stays
    undone when the loop is better without it (:func:`motorctl.app.tune.better`: a lower L2[e],
-   and an e_M no more than one encoder count above the before run's); then what is kept must
+   an e_M no more than one encoder count above the before run's, and u's noise at rest no more
+   than :data:`~motorctl.app.tune.U_REST_SLACK` above it); then what is kept must
    beat the before run the same way, else no effect is kept and ``tuned.yaml`` is CONFIG
    unchanged (the report says which were dropped and why);
 5. on the simulated driver, **floor**: CONFIG with the plant's effects switched off
    (:func:`motorctl.app.tune.effect_free`, same seed), ``DIR/floor.yaml`` and ``DIR/floor.mclog``;
 6. **compare** (:func:`motorctl.app.compare.compare_logs`, what ``motorctl compare-runs`` computes):
    e_M, e_F, L2[e] [µm] and u_peak [V] before, after, their ratio and the floor over the same
-   program periods, the damage removed (L2_before − L2_after)/(L2_before − L2_floor) and
+   program periods (with L2[e] in motion / at standstill and u's noise at rest), the damage removed (L2_before − L2_after)/(L2_before − L2_floor) and
    whether e_M got worse; ``DIR/compare_runs_<A>.png`` when matplotlib is installed.
 
 The runs are :func:`motorctl.app.tune.tune`'s; this module parses the arguments and prints.
