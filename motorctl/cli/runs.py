@@ -6,7 +6,9 @@
 Per axis present in both logs: e_M, e_F, L2[e] [µm] and u_peak [V] (docs/control-law.md, Performance indexes,
 :func:`motorctl.metrics.tracking_indexes`) of each log and the ratio after/before, and L2[e]'s
 parts in motion and at standstill (L2[e]² = motion² + standstill²; the desired velocity not
-zero / zero) where both logs record the desired velocity. The two logs
+zero / zero) and u's noise at rest (RMS of u about its mean where the command has not moved
+for 0.3 s, :func:`motorctl.metrics.u_rest_rms`) where both logs record the desired velocity
+and acceleration. The two logs
 are aligned by program time (the record's ``t`` = k·Ts): both are evaluated over the same whole
 program periods, from the end of the settling (the first ``--settle-periods`` periods, default
 1, excluded the same way for both, :func:`motorctl.metrics.settled_mask`) to the end of the

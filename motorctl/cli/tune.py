@@ -21,8 +21,9 @@
    (:func:`motorctl.app.tune.effect_free`, same seed), ``DIR/floor.yaml`` and ``DIR/floor.mclog``;
 6. **compare** (:func:`motorctl.app.compare.compare_logs`, what ``motorctl compare-runs`` computes):
    e_M, e_F, L2[e] [µm] and u_peak [V] before, after, their ratio and the floor over the same
-   program periods (with L2[e] in motion / at standstill and u's noise at rest), the damage removed (L2_before − L2_after)/(L2_before − L2_floor) and
-   whether e_M got worse; ``DIR/compare_runs_<A>.png`` when matplotlib is installed.
+   program periods (with L2[e] in motion / at standstill and u's noise at rest), the damage
+   removed (L2_before − L2_after)/(L2_before − L2_floor) and whether e_M got worse;
+   ``DIR/compare_runs_<A>.png`` when matplotlib is installed.
 
 The runs are :func:`motorctl.app.tune.tune`'s; this module parses the arguments and prints.
 
