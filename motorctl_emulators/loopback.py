@@ -33,11 +33,47 @@ from motorctl.config import load_yaml
 CAN_GROUP = "239.77.67.1"
 
 
+#: the ports :func:`free_port` hands out lie in [PORT_FLOOR, the kernel's ephemeral range)
+PORT_FLOOR = 10000
+#: ports per process: each process takes them in turn from a block of its own (by pid)
+PORT_BLOCK = 64
+_port_calls = 0
+
+
+def _ephemeral_low() -> int:
+    """The low end of the kernel's ephemeral port range (32768 when it cannot be read)."""
+    try:
+        with open("/proc/sys/net/ipv4/ip_local_port_range", encoding="ascii") as f:
+            return int(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
 def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    """A free port on 127.0.0.1 (TCP by default; ``socket.SOCK_DGRAM`` for UDP)."""
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A free port on 127.0.0.1 (TCP by default; ``socket.SOCK_DGRAM`` for UDP) for a server
+    a test starts next.
+
+    It lies below the kernel's ephemeral range, so no socket that binds port 0 or connects in
+    the meantime (another test's client, on another worker) can be given it before the server
+    binds it; each process takes the ports of its own block of :data:`PORT_BLOCK` (by pid) in
+    turn, each checked by binding it.
+
+    Raises:
+        OSError: no port of the block is free.
+    """
+    global _port_calls
+    blocks = max(1, (_ephemeral_low() - PORT_FLOOR) // PORT_BLOCK)
+    base = PORT_FLOOR + (os.getpid() % blocks) * PORT_BLOCK
+    for _ in range(PORT_BLOCK):
+        port = base + _port_calls % PORT_BLOCK
+        _port_calls += 1
+        with socket.socket(socket.AF_INET, kind) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise OSError(f"no free port in 127.0.0.1:{base}..{base + PORT_BLOCK - 1}")
 
 
 def loopback_config(base: str | Path | dict, out_dir: str | Path, rate_hz: float | None = None,
