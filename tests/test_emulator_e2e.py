@@ -177,3 +177,17 @@ def test_emulator_watchdog_zeroes_output_when_the_driver_is_killed(transport, tm
     assert "applied_V {'X': 0.0, 'Y': 0.0}" in stopped[0]
     if transport == "can":
         assert "amp_fault {'X': True, 'Y': True}" in stopped[0]
+
+
+def test_free_ports_lie_below_the_ephemeral_range_and_are_free():
+    """The loopback servers' ports: below the kernel's ephemeral range (no socket binding 0 or
+    connecting can be given one before its server binds it), a new one at each call, free."""
+    import socket
+
+    from motorctl_emulators.loopback import _ephemeral_low, free_port
+    ports = [free_port() for _ in range(8)] + [free_port(socket.SOCK_DGRAM)]
+    assert len(set(ports)) == len(ports)
+    assert all(10000 <= p < _ephemeral_low() for p in ports)
+    with socket.socket() as held:               # a port in use is skipped
+        held.bind(("127.0.0.1", ports[0]))
+        assert ports[0] not in [free_port() for _ in range(70)]
