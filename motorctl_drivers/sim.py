@@ -401,9 +401,10 @@ def _sim_write(io, bitten):
 
 
 @njit
-def _sim_rehearse(io, scratch):
-    """:meth:`SimDriver.rehearse`: the read and the write of every axis run on ``scratch`` (a
-    :class:`SimIO` of copies), refreshed from ``io`` first; ``io`` is not written."""
+def _sim_refresh(io, scratch):
+    """:meth:`SimDriver.rehearse`'s first step: ``scratch`` (a :class:`SimIO` of copies) set to
+    ``io``; the driver's own compiled read and write then run on it (their very entries, so
+    that their machine code is the code warmed); ``io`` is not written."""
     scratch.pos[:] = io.pos
     scratch.read_error[:] = io.read_error
     scratch.amp_fault[:] = io.amp_fault
@@ -422,8 +423,6 @@ def _sim_rehearse(io, scratch):
     scratch.NT[:] = io.NT
     scratch.u_cmd[:] = io.u_cmd
     scratch.en_cmd[:] = io.en_cmd
-    _sim_read(scratch, False)
-    _sim_write(scratch, False)
 
 
 @njit
@@ -844,7 +843,7 @@ class SimDriver(Driver):
             self._write(self._sim_io(copies=True), False)
             self._scratch = self._sim_arrays(copies=True)     # the rehearsal's copies
             self._scratch_io = bundle(_make_sim_io, SIM_FIELDS, self._scratch)
-            self._rehearsal = entry(_sim_rehearse, self._io, self._scratch_io)
+            self._rehearsal = entry(_sim_refresh, self._io, self._scratch_io)
         self.watchdog_ns = int(options.watchdog_s * 1e9)
         self.watchdog_bites = 0
         self._last_write_ns = 0
@@ -890,6 +889,8 @@ class SimDriver(Driver):
         # the whole exchange compiled: read and write on copies (one call); otherwise nothing
         if self._rehearsal is not None and u_V is self._u_ok and enable is self._en_ok:
             self._rehearsal(self._io_ok, self._scratch_io)
+            self._read(self._scratch_io, False)
+            self._write(self._scratch_io, False)
 
     def read(self) -> None:
         if self.watchdog_ns and self._last_write_ns:

@@ -148,7 +148,7 @@ def test_the_rehearsal_writes_nothing_and_computes_the_next_cycle(repo, law):
                                    lp.supervisor.sf, lp.u_out, lp.enable_out, lp.buf, drv._S, drv._NZ,
                                    drv.position_m, drv.applied_u, drv.amp_enabled)]
         drv.rehearse(lp.u_out, lp.enable_out)
-        C.rehearse(C.CYCLE_ALL, lp.k, st, scratch)
+        C.rehearse(lp._cycle, C.refresh, C.CYCLE_ALL, lp.k, st, scratch)
         after = (lp.ax, lp.axf, lp._cf, lp._ci, lp._cl, lp._sig, lp.supervisor.si, lp.supervisor.sf,
                  lp.u_out, lp.enable_out, lp.buf, drv._S, drv._NZ, drv.position_m, drv.applied_u,
                  drv.amp_enabled)
@@ -199,13 +199,12 @@ start(asm, "off")
 lp, drv = asm.loop, asm.driver
 lp.run(3000)
 st, scratch = lp._cycle_state(), lp._cycle_state(copies=True)
-rehearse = C.rehearse
 def allocs(n):
     a = rtsys.get_allocation_stats().alloc
     lp.run(n)
     for _ in range(n):
         drv.rehearse(lp.u_out, lp.enable_out)
-        rehearse(C.CYCLE_ALL, lp.k, st, scratch)
+        C.rehearse(lp._cycle, C.refresh, C.CYCLE_ALL, lp.k, st, scratch)
     return rtsys.get_allocation_stats().alloc - a
 print(allocs(2000) - allocs(1000))
 shutdown(asm)

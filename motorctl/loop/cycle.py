@@ -250,14 +250,13 @@ def servo_cycle(phase, k, st):
 
 
 @njit
-def rehearse(phase, k, st, scratch):
-    """Cycle k run ahead on ``scratch`` (a :class:`CycleState` of copies, its record ring one
-    row: ``ServoLoop._cycle_state(copies=True)``), refreshed from ``st`` first: every array but
-    the record ring. Run while the loop waits out its deadline, it brings what the real cycle
-    will touch, its code and the state it reads, into the CPU's caches (after a sleep they are
-    cold: other work ran on the core); with the same driver reading it computes what the real
-    cycle will. Nothing of ``st`` is written. ``phase``: CYCLE_ALL, or CYCLE_BEFORE when laws
-    run from Python."""
+def refresh(k, st, scratch):
+    """``scratch`` (a :class:`CycleState` of copies, its record ring one row:
+    ``ServoLoop._cycle_state(copies=True)``) set to ``st``: every array but the record ring.
+    The rehearsal's first step: the loop then runs its own compiled cycle on ``scratch``
+    (:func:`rehearse`); reading ``st`` here brings the real state into the CPU's caches, and
+    the record row cycle k will write (one read per 64-byte line of it, into the rehearsal's
+    own row, which its cycle then overwrites)."""
     scratch.pos[:] = st.pos
     scratch.rerr[:] = st.rerr
     scratch.werr[:] = st.werr
@@ -276,7 +275,22 @@ def rehearse(phase, k, st, scratch):
     scratch.cl[:] = st.cl
     scratch.offs[:] = st.offs
     scratch.lp[:] = st.lp
-    servo_cycle(phase, k, scratch)
+    row = st.buf[k % st.buf.shape[0]]
+    for j in range(0, row.shape[0], 8):
+        scratch.buf[0, j] = row[j]
+
+
+def rehearse(cycle, refresh_, phase, k, st, scratch) -> None:
+    """Cycle k run ahead on ``scratch``, refreshed from ``st`` first (:func:`refresh`), by the
+    loop's own compiled entry ``cycle`` (``refresh_``: :func:`refresh`'s). Run while the loop
+    waits out its deadline, it brings what the real cycle will touch into the CPU's caches
+    (after a sleep they are cold: other work ran on the core): the state it reads, and its
+    machine code itself, since it is the very entry the real cycle calls (a compiled caller of
+    ``servo_cycle`` would run a copy of its code of its own). With the same driver reading it
+    computes what the real cycle will; nothing of ``st`` is written. ``phase``: CYCLE_ALL, or
+    CYCLE_BEFORE when laws run from Python."""
+    refresh_(k, st, scratch)
+    cycle(phase, k, scratch)
 
 
 def new_state(n: int) -> tuple[np.ndarray, np.ndarray]:

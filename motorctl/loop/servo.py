@@ -231,7 +231,7 @@ class ServoLoop:
         self._cycle = entry(servo_cycle, 0, 0, st)    # the compiled call, for every cycle
         for phase in (C.CYCLE_BEFORE, C.CYCLE_AFTER, C.CYCLE_ALL):
             self._cycle(phase, 0, st)
-        self._rehearse = (entry(C.rehearse, 0, 0, st, self._cycle_state(copies=True))
+        self._refresh = (entry(C.refresh, 0, st, self._cycle_state(copies=True))
                           if self.clock == "wall" and self.warm_caches else None)
 
     def _adopt(self, i: int, c) -> None:
@@ -317,10 +317,10 @@ class ServoLoop:
         hb = self.heartbeat
         slack = self.on_slack
         oc_t, oc_late, oc_turn, oc_read, oc_ctrl, oc_write, oc_ovr = self._o_cycle
-        rehearse = self._rehearse
-        early = spin + (REHEARSAL_NS if rehearse is not None else 0)
+        refresh = self._refresh                 # warm_caches: the rehearsal's refresh of its copies
+        early = spin + (REHEARSAL_NS if refresh is not None else 0)
         need, cap_r = REHEARSAL_MIN_NS, period // 4
-        scratch = self._cycle_state(copies=True) if rehearse else None
+        scratch = self._cycle_state(copies=True) if refresh else None
         u_out, en_out = self.u_out, self.enable_out
         deadline = mono() + period
         done = 0
@@ -331,11 +331,12 @@ class ServoLoop:
                 rem = deadline - mono() - early
                 if rem > 0:
                     sleep(rem * 1e-9)
-                if rehearse is not None:
+                if refresh is not None:
                     t_r = mono()
                     if deadline - t_r >= need:
                         drv.rehearse(u_out, en_out)
-                        rehearse(C.CYCLE_BEFORE if self._py else C.CYCLE_ALL, self.k, st, scratch)
+                        C.rehearse(cycle, refresh, C.CYCLE_BEFORE if self._py else C.CYCLE_ALL, self.k, st,
+                                   scratch)
                         took = min(2 * (mono() - t_r), cap_r)   # a preempted one does not count in full
                         need = took if took > REHEARSAL_MIN_NS else REHEARSAL_MIN_NS
                         early = spin + (took if took > REHEARSAL_NS else REHEARSAL_NS)
@@ -385,7 +386,7 @@ class ServoLoop:
                 if self._args_changed:       # a switch grew the law rows
                     self._args_changed = False
                     st = self._cycle_state()
-                    if rehearse is not None:
+                    if refresh is not None:
                         scratch = self._cycle_state(copies=True)
         return done
 
