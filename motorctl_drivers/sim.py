@@ -897,7 +897,7 @@ class SimDriver(Driver):
             self._watchdog()
         bitten = self._bite_pending
         self._bite_pending = False
-        self._read(self._io, bitten)
+        self._read(self._io_ok, bitten)      # the bundle the write and the rehearsal use (the same arrays)
 
     def write(self, u_V: np.ndarray, enable: np.ndarray) -> None:
         # a command that arrives after the watchdog expired finds the amplifier already off
