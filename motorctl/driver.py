@@ -308,6 +308,16 @@ class Driver(abc.ABC):
     def _rehearse(self, u_V: np.ndarray, enable: np.ndarray) -> None:
         """Hook: see :meth:`rehearse`."""
 
+    def service(self) -> None:
+        """Work the driver has to do between exchanges, outside the timed cycle: the loop calls
+        it once per cycle after :meth:`write` and its timing record (before it sleeps), so its
+        time is not in the turnaround. Never blocks. A driver must stay correct when it is not
+        called (a write that finds the work still pending does it first). Default: nothing."""
+        self._service()
+
+    def _service(self) -> None:
+        """Hook: see :meth:`service`."""
+
     # ------------------------------------------------------------------ interfaces
     def _full_scale_V(self, axis: str) -> float:
         """Hook: the largest |voltage| the drive of ``axis`` can be commanded [V]."""

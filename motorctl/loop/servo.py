@@ -374,6 +374,7 @@ class ServoLoop:
             mv[base + oc_ctrl] = t2 - t1
             mv[base + oc_write] = t3 - t2
             mv[base + oc_ovr] = self.overruns
+            drv.service()                    # the driver's work between exchanges, untimed
             self.k = k + 1
             done += 1
             if hb is not None:
