@@ -117,13 +117,19 @@ def test_the_compiled_plants_draw_the_same_noise_as_one_draw_at_a_time(repo, cas
     n = len(fast.axis_names)
     rng = np.random.default_rng(3)                     # derandomized
     on = np.ones(n, dtype=bool)
+    deferred = 0
     for k in range(3000):
         u = rng.uniform(-3.0, 3.0, n) if k % 700 < 600 else np.zeros(n)   # stiction holds it at rest
         for d in (fast, slow):
             d.write(u, on)
             d.read()
         assert np.array_equal(fast.position_m, slow.position_m), k
+        if k % 2 and not delayed:                      # the noise refill between cycles (service),
+            deferred += fast._refill                   # or, on even k, first thing in the next write
+            fast.service()
+            assert not fast._refill
     assert fast.position_m[0] != slow.plants[0].opt.initial_position_m
+    assert delayed or deferred > 0                     # some refills did wait for service()
 
 
 @pytest.mark.parametrize("law", ["c2", "c2-compensated", "pid"])
