@@ -364,7 +364,7 @@ class ServoLoop:
             else:
                 cycle(C.CYCLE_ALL, k, st)
             t2 = mono()
-            drv.write(self.u_out, self.enable_out)
+            drv.write(u_out, en_out)
             t3 = mono()
             base = (k % cap) * width
             mv[base + oc_t] = k * self.period_s
