@@ -67,7 +67,7 @@ from motorctl.effects.compensation import (
 from motorctl.model import S_F_GAIN, assumption2_margin
 from motorctl.schema import NonNeg, Pos, StrictModel, quantity
 
-__all__ = ["DCDIARC", "dcdiarc_block_reset", "dcdiarc_block_step", "dcdiarc_step", "theory_k_s1"]
+__all__ = ["DCDIARC", "dcdiarc_block_reset", "dcdiarc_block_step", "theory_k_s1"]
 
 
 # state vector of the law (outputs of the last sample)
@@ -136,11 +136,27 @@ def theory_k_s1(theta_min, theta_max, k1: float, k2: float) -> float:
     return float(worst)
 
 
+# the state block of one axis's law: offsets into ``L`` (the block's layout vector); L[B_N],
+# L[B_K], L[B_M] are sizes, the others offsets into F (float64) or I (int64)
+B_N, B_K, B_M = 0, 1, 2            # n = n_θ + k, k adapted coefficients, ring width m
+(B_ST, B_PRM, B_SPAN, B_RING, B_CM, B_CD, B_TH, B_GAM, B_TMIN, B_TMAX, B_ZF, B_ZD, B_INP, B_FLT,
+ B_PHI, B_G, B_Z, B_PIV, B_COEF, B_VEC, B_OPTS, B_RES, B_CT) = range(3, 26)
+B_PIVIDX, B_ACTIVE = 26, 27        # offsets into I
+N_LAYOUT = 28
+
+
 @njit
-def dcdiarc_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig, st, prm, span,
-                 ring, cm, cd, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv, coef, vec,
-                 pividx, active, opts, res):
-    """One sample of the DCDIARC law (docs/control-law.md, Order of operations); returns u [V]. State arrays updated in place.
+def dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig, F, I, L):
+    """One sample of the DCDIARC law (docs/control-law.md, Order of operations) on one axis's
+    state block; returns u [V]. State arrays updated in place.
+
+    The law's and the estimator's arrays live in two preallocated buffers, F (float64) and I
+    (int64), at the offsets of the layout vector L (int64, N_LAYOUT: the sizes n, k, m, then an
+    offset per array, ``B_*``); sig (N_SIGNALS,) the published signals. One call passes four
+    arrays instead of thirty, which is most of what a call from Python costs, and the
+    compiled servo cycle keeps every axis's block in its rows. The views are taken here,
+    without allocation, and the law runs on them in the same function (a call passing them on,
+    35 arrays, cost as much as the law's arithmetic).
 
     Args:
         y [m], x_d [m], xd_dot [m/s], xd_ddot [m/s²]: measurement and desired trajectory (the
@@ -152,15 +168,42 @@ def dcdiarc_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig
             position over the interval just ended (estimator) and at xf (v / g_des is inverted).
         sig (N_SIGNALS,): the published signals (motorctl.loop.records.CONTROLLER_SIGNALS),
             written at the end of the sample; θ̂ entries beyond n_θ stay as they are (NaN).
-        st (N_STATE,): law state (S_* indices; S_DC: the d̂_eff held with S_U; S_RI: ring index).
-        prm (10,): law parameters (P_* indices).
-        span (n,): θ_max − θ_min (then β_max − β_min) (theory-mode k_s2).
-        ring (2, m): the last m = 1 + round(τ/Ts) outputs (u, d̂_eff) when m > 1 (input delay):
-            the estimator is fed the pair applied over the interval just ended.
-        cm, cd (k,): adapted basis columns at the measured point (estimator input, filled by the
-            caller) and at the desired point (v_a1: − Σ β̂_j cd_j); k = 0: nothing adapted.
-        The rest: the estimator's arrays (θ̂ (n_θ + k,), ...).
+    The block's views: st (N_STATE,): law state (S_* indices; S_DC: the d̂_eff held with S_U;
+    S_RI: ring index); prm (10,): law parameters (P_* indices); span (n,): θ_max − θ_min (then
+    β_max − β_min) (theory-mode k_s2); ring (2, m): the last m = 1 + round(τ/Ts) outputs (u,
+    d̂_eff) when m > 1 (input delay): the estimator is fed the pair applied over the interval
+    just ended; cm, cd (k,): adapted basis columns at the measured point (estimator input,
+    filled by the caller) and at the desired point (v_a1: − Σ β̂_j cd_j), k = 0: nothing
+    adapted; the rest: the estimator's arrays (θ̂ (n_θ + k,), ...).
     """
+    n = L[B_N]
+    k = L[B_K]
+    m = L[B_M]
+    st = F[L[B_ST]:L[B_ST] + N_STATE]
+    prm = F[L[B_PRM]:L[B_PRM] + N_PRM]
+    span = F[L[B_SPAN]:L[B_SPAN] + n]
+    ring = F[L[B_RING]:L[B_RING] + 2 * m].reshape((2, m))
+    cm = F[L[B_CM]:L[B_CM] + k]
+    cd = F[L[B_CD]:L[B_CD] + k]
+    th = F[L[B_TH]:L[B_TH] + n]
+    gam = F[L[B_GAM]:L[B_GAM] + n * n].reshape((n, n))
+    tmin = F[L[B_TMIN]:L[B_TMIN] + n]
+    tmax = F[L[B_TMAX]:L[B_TMAX] + n]
+    zf = F[L[B_ZF]:L[B_ZF] + n]
+    zd = F[L[B_ZD]:L[B_ZD] + n]
+    inp = F[L[B_INP]:L[B_INP] + n]
+    flt = F[L[B_FLT]:L[B_FLT] + 6]
+    phi = F[L[B_PHI]:L[B_PHI] + n]
+    g = F[L[B_G]:L[B_G] + n]
+    z = F[L[B_Z]:L[B_Z] + n]
+    piv = F[L[B_PIV]:L[B_PIV] + n * n].reshape((n, n))
+    coef = F[L[B_COEF]:L[B_COEF] + n * n].reshape((n, n))
+    vec = F[L[B_VEC]:L[B_VEC] + 3 * n].reshape((3, n))
+    opts = F[L[B_OPTS]:L[B_OPTS] + 4]
+    res = F[L[B_RES]:L[B_RES] + 2]
+    pividx = I[L[B_PIVIDX]:L[B_PIVIDX] + n]
+    active = I[L[B_ACTIVE]:L[B_ACTIVE] + n]
+
     ts = prm[P_TS]
     x2 = (y - st[S_Y_PREV]) / ts
     st[S_Y_PREV] = y
@@ -231,58 +274,6 @@ def dcdiarc_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig
         sig[SIG_THETA + j] = th[j]
     sig[SIG_D0] = d0
     return u
-
-
-# the state block of one axis's law: offsets into ``L`` (the block's layout vector); L[B_N],
-# L[B_K], L[B_M] are sizes, the others offsets into F (float64) or I (int64)
-B_N, B_K, B_M = 0, 1, 2            # n = n_θ + k, k adapted coefficients, ring width m
-(B_ST, B_PRM, B_SPAN, B_RING, B_CM, B_CD, B_TH, B_GAM, B_TMIN, B_TMAX, B_ZF, B_ZD, B_INP, B_FLT,
- B_PHI, B_G, B_Z, B_PIV, B_COEF, B_VEC, B_OPTS, B_RES, B_CT) = range(3, 26)
-B_PIVIDX, B_ACTIVE = 26, 27        # offsets into I
-N_LAYOUT = 28
-
-
-@njit
-def dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig, F, I, L):
-    """:func:`dcdiarc_step` on one axis's state block; returns u [V].
-
-    The law's and the estimator's arrays live in two preallocated buffers, F (float64) and I
-    (int64), at the offsets of the layout vector L (int64, N_LAYOUT: the sizes n, k, m, then an
-    offset per array, ``B_*``); sig (N_SIGNALS,) the published signals. One call passes four
-    arrays instead of thirty, which is most of what a call from Python costs, and the
-    compiled servo cycle keeps every axis's block in its rows. The views are taken here,
-    without allocation.
-    """
-    n = L[B_N]
-    k = L[B_K]
-    m = L[B_M]
-    st = F[L[B_ST]:L[B_ST] + N_STATE]
-    prm = F[L[B_PRM]:L[B_PRM] + N_PRM]
-    span = F[L[B_SPAN]:L[B_SPAN] + n]
-    ring = F[L[B_RING]:L[B_RING] + 2 * m].reshape((2, m))
-    cm = F[L[B_CM]:L[B_CM] + k]
-    cd = F[L[B_CD]:L[B_CD] + k]
-    th = F[L[B_TH]:L[B_TH] + n]
-    gam = F[L[B_GAM]:L[B_GAM] + n * n].reshape((n, n))
-    tmin = F[L[B_TMIN]:L[B_TMIN] + n]
-    tmax = F[L[B_TMAX]:L[B_TMAX] + n]
-    zf = F[L[B_ZF]:L[B_ZF] + n]
-    zd = F[L[B_ZD]:L[B_ZD] + n]
-    inp = F[L[B_INP]:L[B_INP] + n]
-    flt = F[L[B_FLT]:L[B_FLT] + 6]
-    phi = F[L[B_PHI]:L[B_PHI] + n]
-    g = F[L[B_G]:L[B_G] + n]
-    z = F[L[B_Z]:L[B_Z] + n]
-    piv = F[L[B_PIV]:L[B_PIV] + n * n].reshape((n, n))
-    coef = F[L[B_COEF]:L[B_COEF] + n * n].reshape((n, n))
-    vec = F[L[B_VEC]:L[B_VEC] + 3 * n].reshape((3, n))
-    opts = F[L[B_OPTS]:L[B_OPTS] + 4]
-    res = F[L[B_RES]:L[B_RES] + 2]
-    pividx = I[L[B_PIVIDX]:L[B_PIVIDX] + n]
-    active = I[L[B_ACTIVE]:L[B_ACTIVE] + n]
-    return dcdiarc_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig, st, prm, span,
-                        ring, cm, cd, th, gam, tmin, tmax, zf, zd, inp, flt, phi, g, z, piv, coef, vec,
-                        pividx, active, opts, res)
 
 
 @njit
