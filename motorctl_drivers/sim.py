@@ -838,13 +838,13 @@ class SimDriver(Driver):
         self._u_ok = self._en_ok = None       # the last output arrays seen to have the right types,
         self._io_ok = self._io                # and the bundle that commands from them
         self._refill = False                  # a plant's block of noise draws is used up
-        self._rehearsal = None
+        self._refresh = None                  # the rehearsal's refresh of its copies (compiled write only)
         if self._compiled:
             self._write = entry(_sim_write, self._io, False)
             self._write(self._sim_io(copies=True), False)
             self._scratch = self._sim_arrays(copies=True)     # the rehearsal's copies
             self._scratch_io = bundle(_make_sim_io, SIM_FIELDS, self._scratch)
-            self._rehearsal = entry(_sim_refresh, self._io, self._scratch_io)
+            self._refresh = entry(_sim_refresh, self._io, self._scratch_io)
         self.watchdog_ns = int(options.watchdog_s * 1e9)
         self.watchdog_bites = 0
         self._last_write_ns = 0
@@ -898,9 +898,10 @@ class SimDriver(Driver):
         self._refill = False
 
     def _rehearse(self, u_V: np.ndarray, enable: np.ndarray) -> None:
-        # the whole exchange compiled: read and write on copies (one call); otherwise nothing
-        if self._rehearsal is not None and u_V is self._u_ok and enable is self._en_ok:
-            self._rehearsal(self._io_ok, self._scratch_io)
+        # the whole exchange compiled: the copies refreshed, then the driver's own compiled read
+        # and write on them (the entries the real exchange calls); otherwise nothing
+        if self._refresh is not None and u_V is self._u_ok and enable is self._en_ok:
+            self._refresh(self._io_ok, self._scratch_io)
             self._read(self._scratch_io, False)
             self._write(self._scratch_io, False)
 
