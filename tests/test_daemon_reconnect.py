@@ -52,7 +52,9 @@ def test_a_drive_that_comes_back_is_reconnected_and_nothing_is_re_enabled(tmp_pa
         # tries go on while nobody answers, each a short pause of the loop
         wait_for(lambda: status(sock)["link"]["attempts"] > down["attempts"] + 1, 20, "reconnection attempts")
         st = status(sock)
-        assert st["link"]["last_error"] and st["link"]["last_pause_s"] < 0.5, st["link"]
+        # the attempt is bounded by RECONNECT_TIMEOUT_S (0.25 s), not by the driver's set-up timeout
+        # (1 s): below 0.9 s, with room for a loaded host
+        assert st["link"]["last_error"] and st["link"]["last_pause_s"] < 0.9, st["link"]
 
         emu = Emulator("serial", cfg, plant=RIGID_PLANT, watchdog_s=LOOPBACK_WATCHDOG_S).__enter__()
         st = wait_for(lambda: (s := status(sock))["link"]["connected"] and s, 30, "the link back")
