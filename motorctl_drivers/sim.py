@@ -41,6 +41,19 @@ period is one compiled call too (``_hooked_step``: the effects' terms evaluated 
 (:meth:`motorctl.effects.base.PlantTerm.compiled`); a term of Python hooks only (a family
 outside the project's registry) runs the general Python path (the same equations).
 
+Stiction (``stiction_N`` > 0, Karnopp): while |ẋ| is below ``stiction_velocity_m_per_s`` and
+the force applied at rest, the motor's F_m(u) (as commanded, before the current loop), F_0, the
+force noise and a push, is within ``stiction_N``, the carriage (and load) is held where it was.
+By default the test sees neither the effects' forces (a spring, cogging, a disturbance: held
+whatever their size) nor the friction they add (the breakaway stays ``stiction_N`` where an
+effect raises the kinetic friction above it, and the carriage then creeps under a force between
+the two, at the speed where S_f(ẋ) times that friction balances it). ``stiction_with_effects: true`` makes the
+test see both: the effects' forces at rest (S_f = 0) join the applied force, and the breakaway
+is ``stiction_N`` plus the friction the effects add at rest in the direction of that force
+(S_f = ±1), so that static friction stays ``stiction_N`` − ``coulomb_N`` above the kinetic
+level along the stroke. It changes what an effect costs at rest (docs/identification.md, §6,
+"The plant at rest"); it is off by default, as the tables were measured.
+
 Fault injection for tests (:meth:`SimDriver.inject`): read errors, NaN positions, encoder
 jumps, amplifier faults and an external push force for a number of cycles.
 
@@ -184,6 +197,10 @@ class SimAxisOptions(StrictModel):
     # the breakaway force (the smooth Coulomb term S_f cannot hold a disabled axis still)
     stiction_N: Annotated[float, Field(ge=0.0, le=1e5)] = 0.0    # breakaway force [N]; 0 = off
     stiction_velocity_m_per_s: Annotated[float, Field(gt=0.0, le=0.1)] = 1e-4  # "at rest" below [m/s]
+    # the Karnopp test sees the effects (module docstring, "Stiction"): their forces at rest in
+    # the applied force, and the breakaway kept stiction_N - coulomb_N above the kinetic friction
+    # they set at rest; off: the motor, offset, noise and push against stiction_N only
+    stiction_with_effects: bool = False
 
     def flexible(self) -> bool:
         """True when a structural mode or an amplifier current loop / delay is switched on."""
@@ -225,8 +242,9 @@ N_PS = 12
 #: normal draws taken from a plant's Generator at a time (even: a period takes 0, 1 or 2)
 NOISE_BLOCK = 256
 (PP_M, PP_A1, PP_A2, PP_A3, PP_B, PP_FC, PP_F0, PP_NOISE, PP_STIC, PP_STICKV, PP_H, PP_N, PP_MC,
- PP_ML, PP_KS, PP_CS, PP_TAUI, PP_DELTA, PP_ENCSIG, PP_FLEX, PP_Q, PP_ENCAMP, PP_ENCK, PP_NDL) = range(24)
-N_PP = 24
+ PP_ML, PP_KS, PP_CS, PP_TAUI, PP_DELTA, PP_ENCSIG, PP_FLEX, PP_Q, PP_ENCAMP, PP_ENCK, PP_NDL,
+ PP_STICFX) = range(25)
+N_PP = 25
 # the simulated driver's injected faults (SimDriver.inject): cycles left per axis
 INJ_READ, INJ_NAN, INJ_AMP, INJ_PUSH = range(4)
 
@@ -240,7 +258,8 @@ def _plant_step(u, s, p, dl, nz):
     the plant's Generator, taken a block ``nz`` at a time (the same values, in the same order,
     as one draw at a time); s[PS_NZI] is the next unused one."""
     a1, a2, a3 = p[PP_A1], p[PP_A2], p[PP_A3]
-    stuck, x0, xl0 = _period_begin(u, s, p, nz)
+    rest, x0, xl0 = _period_begin(u, s, p, nz)
+    stuck = rest and _held(u, s, p)
     n = int(p[PP_N])
     if p[PP_FLEX] == 0.0:
         s[PS_X], s[PS_XD], s[PS_T] = _rk4_plain(s[PS_X], s[PS_XD], s[PS_T], u, p[PP_H], n, p[PP_M], a1, a2,
@@ -256,17 +275,21 @@ def _plant_step(u, s, p, dl, nz):
 
 @njit
 def _period_begin(u, s, p, nz):
-    """The start of a period (:func:`_plant_step`, :func:`_hooked_step`): the force noise's draw
-    and the Karnopp stiction test. Returns (stuck, x, x_load) before the period."""
+    """The start of a period (:func:`_plant_step`, :func:`_hooked_step`): the force noise's draw.
+    Returns (at rest: stiction on and |ẋ| within its band, x, x_load) before the period."""
     if p[PP_NOISE] > 0.0:
         j = int(s[PS_NZI])
         s[PS_NZI] = j + 1
         s[PS_FNOISE] = p[PP_NOISE] * nz[j]
-    stuck = False
-    if p[PP_STIC] > 0.0 and abs(s[PS_XD]) < p[PP_STICKV]:
-        f = p[PP_A1] * u + p[PP_A2] * u * abs(u) + p[PP_A3] * u * u * u + p[PP_F0] + s[PS_FNOISE] + s[PS_FEXT]
-        stuck = abs(f) <= p[PP_STIC]
-    return stuck, s[PS_X], s[PS_XL]
+    return p[PP_STIC] > 0.0 and abs(s[PS_XD]) < p[PP_STICKV], s[PS_X], s[PS_XL]
+
+
+@njit
+def _held(u, s, p):
+    """Karnopp stiction, for a carriage at rest: is it held under u [V] this period, the force
+    applied at rest (motor, offset, noise, push) within the breakaway F_s?"""
+    f = p[PP_A1] * u + p[PP_A2] * u * abs(u) + p[PP_A3] * u * u * u + p[PP_F0] + s[PS_FNOISE] + s[PS_FEXT]
+    return abs(f) <= p[PP_STIC]
 
 
 @njit
@@ -510,6 +533,30 @@ def _rk4_flex_hooked(xc, vc, xl, vl, t, f_start, f_prev, f_cur, delta, tau_i, h,
     return xc, vc, xl, vl, t, _force_at(tau, f_start, f_prev, f_cur, delta, tau_i)
 
 
+#: the velocity [m/s] at which the effects' friction at rest is evaluated: the sign of a
+#: breakaway's direction, too small for any viscous or Stribeck term to see
+V_AT_REST = 1e-12
+
+
+@njit
+def _held_hooked(u, s, p, codes, table, lengths):
+    """Karnopp stiction with the effects' terms (``stiction_with_effects``;
+    :meth:`AxisPlant._held`), for a carriage at rest: is it held under u [V] this period? The
+    force applied at rest is the motor's (after the thrust terms), the offset, noise and push,
+    and the effects' forces at rest (S_f = 0: a spring, cogging, a disturbance). The breakaway is F_s plus the friction the effects add at
+    rest in the direction of that force (S_f = ±1): static friction stays F_s − F_c above the
+    kinetic level wherever an effect moves the kinetic level."""
+    x, t = s[PS_X], s[PS_T]
+    fm = p[PP_A1] * u + p[PP_A2] * u * abs(u) + p[PP_A3] * u * u * u
+    fm = effect_terms.thrust(fm, x, t, codes, table, lengths)
+    f = effect_terms.force(fm + p[PP_F0] + s[PS_FNOISE] + s[PS_FEXT], x, 0.0, t, 0.0, codes, table, lengths)
+    d = 1.0 if f >= 0.0 else -1.0
+    v = d * V_AT_REST
+    extra = -d * (effect_terms.force(0.0, x, v, t, d, codes, table, lengths)
+                  - effect_terms.force(0.0, x, v, t, 0.0, codes, table, lengths))
+    return abs(f) <= p[PP_STIC] + extra
+
+
 @njit
 def _hooked_step(u, s, p, dl, nz, codes, table, lengths):
     """One period of an axis whose effects all have compiled terms (:meth:`AxisPlant.step` after
@@ -517,7 +564,11 @@ def _hooked_step(u, s, p, dl, nz, codes, table, lengths):
     :func:`_plant_step` with :func:`_rk4_hooked` / :func:`_rk4_flex_hooked` for the integrators
     (the same operations in the same order as the Python path)."""
     a1, a2, a3 = p[PP_A1], p[PP_A2], p[PP_A3]
-    stuck, x0, xl0 = _period_begin(u, s, p, nz)
+    rest, x0, xl0 = _period_begin(u, s, p, nz)
+    if p[PP_STICFX] > 0.0:
+        stuck = rest and _held_hooked(u, s, p, codes, table, lengths)
+    else:
+        stuck = rest and _held(u, s, p)
     n = int(p[PP_N])
     if p[PP_FLEX] == 0.0:
         s[PS_X], s[PS_XD], s[PS_T] = _rk4_hooked(s[PS_X], s[PS_XD], s[PS_T], u, p[PP_H], n, p[PP_M], a1, a2, a3,
@@ -570,6 +621,7 @@ class AxisPlant:
         self.f_ext = 0.0   # external force [N] (fault injection: a push)
         self.stiction = opt.stiction_N
         self.stick_v = opt.stiction_velocity_m_per_s
+        self.stiction_fx = opt.stiction_with_effects
         # the effects switched on, in registry order (motorctl.effects.FAMILIES)
         terms = []
         for fam in FAMILIES.values():
@@ -615,7 +667,7 @@ class AxisPlant:
         self._p = np.array([self.m, self.a1, self.a2, self.a3, self.b, self.fc, self.f0, self.noise,
                             self.stiction, self.stick_v, self.h, self.substeps, self.mc, self.ml, self.ks,
                             self.cs, self.tau_i, self.delta, self.enc_sigma, 1.0 if self._flex else 0.0,
-                            self.q, self.enc_amp, self.enc_k, n_dl])
+                            self.q, self.enc_amp, self.enc_k, n_dl, 1.0 if self.stiction_fx else 0.0])
         self._dl = np.zeros(n_dl)                              # the current loop's delay line
         self._nz = np.zeros(NOISE_BLOCK)
         self._s[PS_NZI] = NOISE_BLOCK                          # drawn at the first step
@@ -698,8 +750,30 @@ class AxisPlant:
         to it at rest (motor, offset, noise, external push) is within the breakaway force."""
         if abs(self.xd) >= self.stick_v:
             return False
+        if self._hooks and self.stiction_fx:
+            return self._held(u)
         f = self.a1 * u + self.a2 * u * abs(u) + self.a3 * u * u * u + self.f0 + self.f_noise + self.f_ext
         return abs(f) <= self.stiction
+
+    def _held(self, u: float) -> bool:
+        """Karnopp stiction with the effects' hooks, for a carriage at rest: the force applied
+        at rest includes the thrust terms and the effects' forces at rest (S_f = 0), and the
+        breakaway the friction the effects add at rest in the direction of that force
+        (S_f = ±1), as :func:`_held_hooked` (the same operations)."""
+        x, t = self.x, self.t
+        fm = self.a1 * u + self.a2 * u * abs(u) + self.a3 * u * u * u
+        for thrust in self._thrust:
+            fm = thrust(fm, x, t)
+        f = fm + self.f0 + self.f_noise + self.f_ext
+        for force in self._forces:
+            f = force(f, x, 0.0, t, 0.0)
+        d = 1.0 if f >= 0.0 else -1.0
+        v = d * V_AT_REST
+        g1 = g0 = 0.0
+        for force in self._forces:
+            g1 = force(g1, x, v, t, d)
+            g0 = force(g0, x, v, t, 0.0)
+        return abs(f) <= self.stiction - d * (g1 - g0)
 
     def _integrate(self, u: float) -> None:
         h = self.h

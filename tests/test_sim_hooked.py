@@ -51,6 +51,11 @@ CASES = {
                                  "payload_change": {"t_change_s": 0.6, "mass_kg": 3.0}}, {}),
     "spring-cogging-flex": ({"cogging": {"amplitudes_N": [12.0], "period_m": 0.032, "phases_rad": [0.3]},
                              "spring": {"stiffness_N_per_m": 500.0, "rest_position_m": 0.01}}, FLEX),
+    # Karnopp with the effects: their forces join the applied force, their friction the breakaway
+    "stiction-with-effects": ({"cogging": {"amplitudes_N": [6.0], "period_m": 0.032, "phases_rad": [0.3]},
+                               "stribeck": {"force_N": 8.0, "velocity_m_per_s": 0.01},
+                               "spring": {"stiffness_N_per_m": 500.0, "rest_position_m": 0.01}},
+                              {"stiction_N": 14.0, "stiction_with_effects": True, "force_noise_N": 0.0}),
 }
 
 
@@ -64,13 +69,16 @@ def test_the_compiled_hooked_plant_follows_the_python_formulas(case):
     ref._terms = None                                 # the Python path, with the formulas above
     ref._thrust, ref._forces, ref._masses = _reference_hooks(effects)
     assert len(ref._forces) + len(ref._thrust) + len(ref._masses) == len(fast._terms[0])
+    held = 0
     for k in range(6000):                             # 1.2 s: across the steps at 0.5 and 0.6 s
         u = 1.5 * math.sin(2 * math.pi * 0.7 * k * TS) + 0.3 * math.sin(0.05 * k)
         fast.step(u)
         ref.step(u)
         assert fast.x == pytest.approx(ref.x, rel=0.0, abs=1e-12), k
         assert fast.xd == pytest.approx(ref.xd, rel=0.0, abs=1e-12), k
+        held += fast.xd == 0.0
     assert fast.t == ref.t and abs(fast.x) > 1e-3     # it moved
+    assert held > 0 or "stiction_N" not in extra      # ... and stuck, where stiction is on
 
 
 def test_every_simulated_family_with_a_plant_force_is_compiled():
