@@ -44,7 +44,9 @@ def test_operator_session_start_stop_switch_sigterm(daemon, tmp_path):
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "unknown axis 'Z'" in r.stderr
     r = ctl(tmp_path / "nothing.sock", "status")
     assert r.returncode == 1 and "not running" in r.stderr and r.stderr.count("\n") == 1
-    assert all(a["state"] == "disabled" for a in status(sock)["axes"].values()), "nothing moved"
+    axes = status(sock)["axes"]
+    assert all(a["state"] == "disabled" for a in axes.values()), \
+        ("nothing moved", {n: (a["state"], a["fault"]) for n, a in axes.items()})
 
     r = cli(sock, "start", "X")
     assert r.returncode == 0, r.stderr
