@@ -52,9 +52,16 @@ def _exchange(d: dict, cycles: int = 40):
         return _drive(loaded, dev, cycles)
 
 
+#: the longest wait for the in-process device's answer [s] (it comes in milliseconds when idle)
+ANSWER_WAIT_S = 10.0
+
+
 def _drive(loaded, dev, cycles: int):
     import time
     drv = loaded.make_driver()
+    # the device runs in a thread of this process: on a loaded host its first answer can take
+    # more than the driver's 1 s set-up timeout; an answer ends the wait at once
+    drv.CONFIGURE_TIMEOUT_S = ANSWER_WAIT_S
     try:
         drv.open()
         y0 = drv.position_m.copy()
@@ -65,7 +72,7 @@ def _drive(loaded, dev, cycles: int):
         moved = drv.position_m - y0
         # stop commanding: the device's watchdog trips and the next answer carries the fault
         time.sleep(2 * WATCHDOG_S)
-        drv._first_reading(timeout_s=1.0)
+        drv._first_reading(timeout_s=ANSWER_WAIT_S)
         fault_after_watchdog = drv.amp_fault.copy()
         drv.close()                           # deactivate (0 V, disabled, answer awaited), release
         assert drv.state == "finalized" and not drv.connected
