@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_daemon_helpers import cli, cli_status, ctl, make_config, running_daemon, status, wait_for
+from test_daemon_helpers import FLUSH_S, cli, cli_status, ctl, make_config, running_daemon, status, wait_for
 
 from motorctl.recorder.runlog import read_log
 from motorctl.loop.safety import FAULT_SHUTDOWN
@@ -138,7 +138,7 @@ def test_malformed_config_refused(tmp_path):
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "duplicate key" in r.stderr
     assert not (tmp_path / "s.sock").exists()
     cfg = make_config(tmp_path)
-    text = cfg.read_text().replace("flush_s: 0.2", "flush_s: 3.0")
+    text = cfg.read_text().replace(f"flush_s: {FLUSH_S}", "flush_s: 3.0")
     cfg.write_text(text)
     r = ctl(None, "daemon", cfg)           # in-process: the check happens before anything starts
     assert r.returncode == 2 and "daemon.flush_s" in r.stderr and r.stderr.count("\n") == 1

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import yaml
 from conftest import RIGID_PLANT
-from test_daemon_helpers import Daemon, ctl, status, wait_for
+from test_daemon_helpers import FLUSH_S, Daemon, ctl, status, wait_for
 
 from harness import LOOPBACK_WATCHDOG_S, Emulator, loopback_e2e_config
 
@@ -25,7 +25,7 @@ def _config(tmp: Path) -> tuple[Path, Path]:
     d, cfg, _rate = loopback_e2e_config("serial", CONFIGS, tmp)
     d["loop"]["realtime"]["policy"] = "off"
     sock = tmp / "motorctl.sock"
-    d["daemon"].update(socket=str(sock), log_dir=str(tmp / "logs"), flush_s=0.2,
+    d["daemon"].update(socket=str(sock), log_dir=str(tmp / "logs"), flush_s=FLUSH_S,
                        event_before_s=0.2, event_after_s=0.1, stop_settle_s=0.05)
     for ax in d["axes"].values():          # the loopback on a loaded machine loses bursts, and a
         ax["limits"]["error_bucket_limit"] = 300   # starved emulator loses plant time (1 mm a cycle

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_daemon_helpers import REPO, Daemon, ctl, make_config, status, wait_for
+from test_daemon_helpers import FLUSH_S, REPO, Daemon, ctl, make_config, status, wait_for
 
 from motorctl.loop.safety import FAULT_RECORDER
 from motorctl.recorder.flight import stall_bound_s
@@ -22,7 +22,6 @@ from motorctl.recorder.runlog import read_log
 from motorctl.recorder.segments import open_run
 
 TS = 1.0 / 5000
-FLUSH_S = 0.2                         # make_config's flush_s: the stall bound is 1.4 s
 
 #: the daemon with the run log's appends failing with ENOSPC while FLAG exists
 SIMULATED_ENOSPC = """

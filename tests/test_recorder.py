@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 import pytest
-from test_daemon_helpers import Daemon, _alive, ctl, make_config, status, wait_for
+from test_daemon_helpers import FLUSH_S, Daemon, _alive, ctl, make_config, status, wait_for
 
 from motorctl.config import load_config
 from motorctl.loop.records import columns_for
@@ -257,7 +257,7 @@ def test_stalled_loop_sim_drive_watchdog_drops_to_zero_volts(tmp_path):
     twice the drive's watchdog measured on CLOCK_MONOTONIC; after it, the loop publishes a new
     fault at once, so the fault must be in the first status taken once the heartbeat has moved
     on. The only waits are for progress, bounded by the configured times."""
-    watchdog_s, flush_s = 0.5, 0.2
+    watchdog_s, flush_s = 0.5, FLUSH_S
     cfg = make_config(tmp_path, watchdog_s=watchdog_s)
     progress_bound_s = 40 * (watchdog_s + flush_s)  # a loaded 2-core VM, SCHED_OTHER loop
     d = Daemon(cfg, tmp_path / "motorctl.sock")

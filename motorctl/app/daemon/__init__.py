@@ -41,11 +41,13 @@ from motorctl.app.daemon.notify import sd_notify
 from motorctl.app.daemon.protocol import DaemonError, Mailbox, bind_control_socket
 from motorctl.app.daemon.status import ST_SIZE
 from motorctl.config import ConfigError, load_config
-from motorctl.recorder.flight import SharedRing
+from motorctl.recorder.flight import SharedRing, stall_bound_s
 from motorctl.recorder.segments import Retention, SegmentWriter
 
-#: seconds of records the shared ring holds beyond the event window
-RING_SPARE_S = 3.0
+#: seconds of records the shared ring holds beyond the event window and the recorder's stall
+#: bound (2·flush_s + 1 s): an I/O process stalled for that bound and this spare loses no row
+#: (the loop latches every axis at the bound; the default flush_s 0.5 s gives 3 s in all)
+RING_SPARE_S = 1.0
 #: extra time a stop may take beyond the longest move and the settle time [s]
 STOP_MARGIN_S = 0.05
 #: header bytes reserved for what is known only later (real-time report, commands, end)
@@ -88,7 +90,7 @@ def plan_daemon(config_path: str, socket_path: str | None, log_dir: str | None) 
     width = RecordLayout(names).width
     window_s = max(d.event_before_s + d.event_after_s,
                    d.overrun_event_before_s + d.overrun_event_after_s)
-    ring = SharedRing(tb.cycles(window_s + RING_SPARE_S), width,
+    ring = SharedRing(tb.cycles(window_s + stall_bound_s(d.flush_s) + RING_SPARE_S), width,
                       len(names), ST_SIZE)
     # every configured controller of every axis is built (and compiled) before anything runs:
     # a switch is a swap
