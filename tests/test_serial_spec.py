@@ -162,6 +162,11 @@ class SpecDevice:
 
 
 # --------------------------------------------------------------------------- the test
+#: the wait for an answer that is not made bad on purpose [s]: the device thread answers in
+#: about a millisecond, but two spinning processes have held it off for more than 0.5 s
+GOOD_ANSWER_WAIT_S = 5.0
+
+
 def test_a_device_written_from_the_spec_closes_the_loop_over_a_pty(tmp_path):
     assert crc_ccitt_false(b"123456789") == 0x29B1                 # the doc's check value
     master, slave = os.openpty()
@@ -198,7 +203,7 @@ def test_a_device_written_from_the_spec_closes_the_loop_over_a_pty(tmp_path):
                 dev.garbage_next = True                            # junk + a reply with a bad CRC
             # the two answers made bad on purpose wait out 50 ms; every good one is waited for
             # far beyond a loaded host's stall of the device thread
-            drv.timeout_s = 0.05 if k in (300, 350) else 0.5
+            drv.timeout_s = 0.05 if k in (300, 350) else GOOD_ANSWER_WAIT_S
             drv.write(u, np.ones(2, dtype=bool))
             time.sleep(0.001)
             drv.read()
@@ -211,6 +216,7 @@ def test_a_device_written_from_the_spec_closes_the_loop_over_a_pty(tmp_path):
         # the watchdog: stop commanding, the device faults both channels; a disabled command resets
         time.sleep(1.3)
         assert "watchdog tripped" in dev.log and all(dev.fault.values())
+        drv.timeout_s = GOOD_ANSWER_WAIT_S
         drv.write(np.zeros(2), np.ones(2, dtype=bool))
         time.sleep(0.005)
         drv.read()
