@@ -118,11 +118,12 @@ class FixedPdoDrive(Device):
 
 def _config(tmp_path, **driver) -> dict:
     d = load_yaml(CONFIGS / "gantry-canopen.yaml")
-    d["loop"].update(rate_hz=500, clock="virtual")      # lockstep: a read waits up to 0.2 s for
-    # the drive thread's answer, so a loaded host delays the run but never stales a reading;
+    d["loop"].update(rate_hz=500, clock="virtual")      # lockstep: a read waits up to 2 s for
+    # the drive thread's answer, so a loaded host delays the run but never stales a reading (at
+    # 0.2 s two spinning processes held the thread off long enough once: a 1 mm following error);
     # the host's watch of the drives' heartbeats (produced every 10 ms from a thread of this
     # process) at 1 s, not 50 ms: a loaded host's stall of that thread is no read error
-    d["driver"].update(interface="virtual", channel=f"fixed-{tmp_path.name}", timeout_s=0.2, sync_cob_id=0x80,
+    d["driver"].update(interface="virtual", channel=f"fixed-{tmp_path.name}", timeout_s=2.0, sync_cob_id=0x80,
                        round_trip_exchanges=5, drive_heartbeat_timeout_ms=1000, **driver)
     for k, a in enumerate(("X", "Y")):
         node = k + 1

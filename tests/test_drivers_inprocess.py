@@ -25,7 +25,7 @@ WATCHDOG_S = 0.25                      # far above a loaded host's stall between
 #: the read timeout: lockstep, an answer that comes is waited for far beyond a loaded host's
 #: stall of the device thread (an answer the device never sends waits it out: the tests that
 #: lose answers on purpose shorten it for those reads)
-READ_TIMEOUT_S = 0.5
+READ_TIMEOUT_S = 2.0
 #: the read timeout of a read whose answer is lost on purpose
 LOST_TIMEOUT_S = 0.05
 

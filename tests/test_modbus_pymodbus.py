@@ -463,7 +463,7 @@ def test_registers_written_per_axis_unit_and_the_fc23_probe_falls_back(tmp_path)
 def test_a_garbage_reply_is_counted_and_the_tcp_stream_recovers(tmp_path):
     """The server answers one request with junk (an MBAP header announcing 200 bytes, then noise),
     then normally: it is counted as a bad frame, a few cycles fail, then the stream is clean.
-    Lockstep: the cycles around the junk wait 50 ms for an answer, every other one 0.5 s, so
+    Lockstep: the cycles around the junk wait 50 ms for an answer, every other one 2 s, so
     that only the junk fails a read, never a loaded host."""
     d = map_a(200.0, round_trip_s=0.0006, timeout_s=0.05, wait="spin")
     d["loop"]["clock"] = "virtual"
@@ -476,7 +476,7 @@ def test_a_garbage_reply_is_counted_and_the_tcp_stream_recovers(tmp_path):
             drv.open()
             errors = []
             for k in range(40):
-                drv.timeout_s = 0.05 if 9 <= k < 15 else 0.5
+                drv.timeout_s = 0.05 if 9 <= k < 15 else 2.0
                 exchange(drv, [0.5, 0.5], [True, True], 1, sleep_s=0.004)
                 errors.append(bool(drv.read_error.any()))
         finally:
