@@ -47,12 +47,13 @@ force noise and a push, is within ``stiction_N``, the carriage (and load) is hel
 By default the test sees neither the effects' forces (a spring, cogging, a disturbance: held
 whatever their size) nor the friction they add (the breakaway stays ``stiction_N`` where an
 effect raises the kinetic friction above it, and the carriage then creeps under a force between
-the two, at the speed where S_f(ẋ) times that friction balances it). ``stiction_with_effects: true`` makes the
-test see both: the effects' forces at rest (S_f = 0) join the applied force, and the breakaway
-is ``stiction_N`` plus the friction the effects add at rest in the direction of that force
-(S_f = ±1), so that static friction stays ``stiction_N`` − ``coulomb_N`` above the kinetic
-level along the stroke. It changes what an effect costs at rest (docs/identification.md, §6,
-"The plant at rest"); it is off by default, as the tables were measured.
+the two, at the speed where S_f(ẋ) times that friction balances it).
+``stiction_with_effects: true`` makes the test see both: the effects' forces at rest (S_f = 0)
+join the applied force, and the breakaway is ``stiction_N`` plus the friction the effects add
+at rest in the direction of that force (S_f = ±1), so that static friction stays
+``stiction_N`` − ``coulomb_N`` above the kinetic level along the stroke. It changes what an
+effect costs at rest (docs/identification.md, §6, "The plant at rest"); it is off by default,
+as the tables were measured.
 
 Fault injection for tests (:meth:`SimDriver.inject`): read errors, NaN positions, encoder
 jumps, amplifier faults and an external push force for a number of cycles.
@@ -285,10 +286,16 @@ def _period_begin(u, s, p, nz):
 
 
 @njit
+def _motor_force(u, p):
+    """F_m(u) = A1 u + A2 u|u| + A3 u³ [N] (eq. 3) of the plant's row p under u [V]."""
+    return p[PP_A1] * u + p[PP_A2] * u * abs(u) + p[PP_A3] * u * u * u
+
+
+@njit
 def _held(u, s, p):
     """Karnopp stiction, for a carriage at rest: is it held under u [V] this period, the force
     applied at rest (motor, offset, noise, push) within the breakaway F_s?"""
-    f = p[PP_A1] * u + p[PP_A2] * u * abs(u) + p[PP_A3] * u * u * u + p[PP_F0] + s[PS_FNOISE] + s[PS_FEXT]
+    f = _motor_force(u, p) + p[PP_F0] + s[PS_FNOISE] + s[PS_FEXT]
     return abs(f) <= p[PP_STIC]
 
 
@@ -296,7 +303,7 @@ def _held(u, s, p):
 def _current_command(u, s, p, dl):
     """The current loop's force commands of the flexible plant: (the last period's, this
     period's after the whole-period delay line ``dl``) [N]."""
-    f_cur = p[PP_A1] * u + p[PP_A2] * u * abs(u) + p[PP_A3] * u * u * u
+    f_cur = _motor_force(u, p)
     m = dl.shape[0]
     if m > 0:
         i = int(s[PS_DLI])
@@ -540,15 +547,15 @@ V_AT_REST = 1e-12
 
 @njit
 def _held_hooked(u, s, p, codes, table, lengths):
-    """Karnopp stiction with the effects' terms (``stiction_with_effects``;
-    :meth:`AxisPlant._held`), for a carriage at rest: is it held under u [V] this period? The
-    force applied at rest is the motor's (after the thrust terms), the offset, noise and push,
-    and the effects' forces at rest (S_f = 0: a spring, cogging, a disturbance). The breakaway is F_s plus the friction the effects add at
-    rest in the direction of that force (S_f = ±1): static friction stays F_s − F_c above the
-    kinetic level wherever an effect moves the kinetic level."""
+    """Karnopp stiction with the effects' terms (``stiction_with_effects``; its Python twin
+    :meth:`AxisPlant._held_hooked`), for a carriage at rest: is it held under u [V] this period?
+    The force applied at rest is the motor's (after the thrust terms), the offset, noise and
+    push, and the effects' forces at rest (S_f = 0: a spring, cogging, a disturbance). The
+    breakaway is F_s plus the friction the effects add at rest in the direction of that force
+    (S_f = ±1): static friction stays F_s − F_c above the kinetic level wherever an effect
+    moves it."""
     x, t = s[PS_X], s[PS_T]
-    fm = p[PP_A1] * u + p[PP_A2] * u * abs(u) + p[PP_A3] * u * u * u
-    fm = effect_terms.thrust(fm, x, t, codes, table, lengths)
+    fm = effect_terms.thrust(_motor_force(u, p), x, t, codes, table, lengths)
     f = effect_terms.force(fm + p[PP_F0] + s[PS_FNOISE] + s[PS_FEXT], x, 0.0, t, 0.0, codes, table, lengths)
     d = 1.0 if f >= 0.0 else -1.0
     v = d * V_AT_REST
@@ -751,11 +758,11 @@ class AxisPlant:
         if abs(self.xd) >= self.stick_v:
             return False
         if self._hooks and self.stiction_fx:
-            return self._held(u)
+            return self._held_hooked(u)
         f = self.a1 * u + self.a2 * u * abs(u) + self.a3 * u * u * u + self.f0 + self.f_noise + self.f_ext
         return abs(f) <= self.stiction
 
-    def _held(self, u: float) -> bool:
+    def _held_hooked(self, u: float) -> bool:
         """Karnopp stiction with the effects' hooks, for a carriage at rest: the force applied
         at rest includes the thrust terms and the effects' forces at rest (S_f = 0), and the
         breakaway the friction the effects add at rest in the direction of that force
