@@ -7,9 +7,12 @@
   the TCP connection is dropped) fills the bucket: the axis faults and its output is 0 V with
   the amplifier disabled in the very cycle the fault latches, and nothing re-enables it.
 
-The run is in lockstep with the device (``loop.clock: virtual``) with a 10 ms read timeout and
-late answers 20 ms late: a lost or late answer is one the emulator was told to lose, not one
-the host's scheduling lost, so the axes keep the driver's default error bucket (100).
+The run is in lockstep with the device (``loop.clock: virtual``) with a 0.1 s read timeout,
+late answers 0.2 s late and a 5 s command watchdog in the device, so that what the test counts
+is what the emulator was told to do, not the host's scheduling: a loaded host holds either
+process off for tens of milliseconds at times (now and then for more: a read timed out by the
+host adds 10 to the error bucket of 100 and stays below it), and never for the 5 s the device
+waits for a command before it faults its amplifier.
 """
 
 from __future__ import annotations
@@ -24,7 +27,6 @@ from conftest import RIGID_PLANT
 from motorctl.loop.safety import FAULT_IO_ERROR
 from motorctl.recorder.runlog import read_log
 from harness import (
-    LOOPBACK_WATCHDOG_S,
     Emulator,
     NetNamespace,
     loopback_e2e_config,
@@ -44,10 +46,16 @@ PLANT = RIGID_PLANT
 #: time × rate.
 TRANSIENT = [("drop", 0.10, 3), ("corrupt", 0.16, 3), ("stale", 0.22, 2), ("exception", 0.28, 2),
              ("late", 0.34, 1)]
-LATE_S = 0.020     # later than the read timeout (READ_TIMEOUT_S) on every transport
 #: the read timeout of the lockstep run [s]: longer than any scheduling hiccup of a loaded host
-READ_TIMEOUT_S = 0.010
+READ_TIMEOUT_S = 0.1
+LATE_S = 2 * READ_TIMEOUT_S     # later than the read timeout on every transport
+#: the device's command watchdog [s]: far beyond the longest wait of the run (a read timeout),
+#: so only the lasting loss stops the axes
+WATCHDOG_S = 5.0
 LASTING_T = 0.42
+#: the run goes on this long after the lasting loss starts [s]: past the bucket's fill (10
+#: cycles at ≥ 1 kHz) and short, as every cycle after the loss waits out the read timeout
+AFTER_LASTING_S = 0.03
 #: the axes' error bucket limit: the driver's default (+10 per failed exchange, −1 per clean
 #: one); the planned transient bursts (≤ 3 exchanges, 60 ms apart) stay far below it
 BUCKET_LIMIT = 100
@@ -66,6 +74,8 @@ def test_transient_faults_keep_running_and_a_lasting_loss_faults_to_0V_in_the_sa
     d, cfg, rate = loopback_e2e_config(transport, CONFIGS, tmp_path)
     d["loop"]["clock"] = "virtual"
     d["driver"]["timeout_s"] = READ_TIMEOUT_S
+    if "watchdog_s" in d["driver"]:      # serial: the driver sets the device's watchdog
+        d["driver"]["watchdog_s"] = WATCHDOG_S
     for ax in d["axes"].values():
         assert ax["limits"].get("error_bucket_limit", BUCKET_LIMIT) == BUCKET_LIMIT
     cfg.write_text(yaml.safe_dump(d, sort_keys=False))
@@ -74,9 +84,9 @@ def test_transient_faults_keep_running_and_a_lasting_loss_faults_to_0V_in_the_sa
     prefix = ns.__enter__().prefix if ns else ()
     try:
         faults, lasting_start = _faults(transport, rate)
-        with Emulator(transport, cfg, plant=PLANT, faults=faults, watchdog_s=LOOPBACK_WATCHDOG_S,
+        with Emulator(transport, cfg, plant=PLANT, faults=faults, watchdog_s=WATCHDOG_S,
                       late_s=LATE_S, prefix=prefix) as emu:
-            duration = f"{LASTING_T + 0.06:.3f}"
+            duration = f"{LASTING_T + AFTER_LASTING_S:.3f}"
             r = run_cli(["run", str(cfg), "--controller", "c2", "--duration", duration, "--log", str(log_path)],
                         prefix=prefix, timeout_s=90)
             err = emu.stderr()
