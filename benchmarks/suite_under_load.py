@@ -5,14 +5,14 @@ verdict and the wall time of each run: does the suite give the same verdict what
     python benchmarks/suite_under_load.py --runs 1 -- tests/test_config.py      # a quick try
 
 Each run is the README's test command: with ``--fresh-clone`` in a new clone of this repository's
-HEAD (committed work only; the clone is made beside this checkout, so ``../shared`` is found as
-from the checkout), ``python3 -m venv .venv && .venv/bin/pip install -q -e ".[test]" &&
-.venv/bin/python -m pytest -q``; without it, ``.venv/bin/python -m pytest -q`` in this checkout
-(its venv must exist). Arguments after ``--`` go to pytest. The last ``--loaded`` runs have
-``--spinners`` processes beside them that spin on the CPU (two on a 2-core machine keep both
-cores busy); they are started before the run and killed after it. Every run is bounded by
-``--timeout-s``. Prints one line per run (pytest's closing line, the exit code, the wall time)
-and a summary; exits 0 when every run was green.
+HEAD (committed work only; made in a new folder beside this checkout, with a link to this
+checkout's ``../shared`` beside the clone, as CI has it), ``python3 -m venv .venv && .venv/bin/pip
+install -q -e ".[test]" && .venv/bin/python -m pytest -q``; without it, ``.venv/bin/python -m
+pytest -q`` in this checkout (its venv must exist). Arguments after ``--`` go to pytest. The last
+``--loaded`` runs have ``--spinners`` processes beside them that spin on the CPU (two on a 2-core
+machine keep both cores busy); they are started before the run and killed after it. Every run is
+bounded by ``--timeout-s``. Prints one line per run (pytest's closing line, the exit code, the wall
+time) and a summary; exits 0 when every run was green.
 """
 
 from __future__ import annotations
@@ -59,7 +59,10 @@ def one_run(pytest_args: list[str], fresh_clone: bool, timeout_s: float) -> tupl
     try:
         if fresh_clone:
             clone = Path(tempfile.mkdtemp(prefix=".suite-clone-", dir=REPO.parent))
+            clone.chmod(0o755)          # mkdtemp's 0700 would keep the tests' 'nobody' out of the venv
             subprocess.run(["git", "clone", "-q", str(REPO), str(clone / "motorctl")], check=True, timeout=300)
+            if (REPO.parent / "shared").is_dir():          # ../shared of the clone, as CI has it
+                (clone / "shared").symlink_to(REPO.parent / "shared")
             where = clone / "motorctl"
             cmd = (f'python3 -m venv .venv && .venv/bin/pip install -q -e ".[test]" && '
                    f'.venv/bin/python -m pytest -q {" ".join(pytest_args)}')
