@@ -88,10 +88,17 @@ _TWO_OVER_PI = 2.0 / math.pi
 
 
 @njit
+def _motor_force(u, a1, a2, a3):
+    """F_m(u) = A1 u + A2 u|u| + A3 u³ [N] (eq. 3) under u [V], A1 [N/V], A2 [N/V²], A3 [N/V³]
+    (:meth:`AxisPlant._motor_force` in the Python path: the same operations)."""
+    return a1 * u + a2 * u * abs(u) + a3 * u * u * u
+
+
+@njit
 def _rk4_plain(x, v, t, u, h, n, m, a1, a2, a3, b, fc, f0, f_noise, f_ext):
     """``n`` RK4 steps of eq. (1) with the force curve of eq. (3) and smooth Coulomb friction,
     the same operations in the same order as :meth:`AxisPlant._acc` without effects."""
-    fm = a1 * u + a2 * u * abs(u) + a3 * u * u * u
+    fm = _motor_force(u, a1, a2, a3)
     for _ in range(n):
         sf = _TWO_OVER_PI * math.atan(S_F_GAIN * v)
         k1x, k1v = v, (fm - b * v - fc * sf + f0 + f_noise + f_ext) / m
@@ -286,16 +293,10 @@ def _period_begin(u, s, p, nz):
 
 
 @njit
-def _motor_force(u, p):
-    """F_m(u) = A1 u + A2 u|u| + A3 u³ [N] (eq. 3) of the plant's row p under u [V]."""
-    return p[PP_A1] * u + p[PP_A2] * u * abs(u) + p[PP_A3] * u * u * u
-
-
-@njit
 def _held(u, s, p):
     """Karnopp stiction, for a carriage at rest: is it held under u [V] this period, the force
     applied at rest (motor, offset, noise, push) within the breakaway F_s?"""
-    f = _motor_force(u, p) + p[PP_F0] + s[PS_FNOISE] + s[PS_FEXT]
+    f = _motor_force(u, p[PP_A1], p[PP_A2], p[PP_A3]) + p[PP_F0] + s[PS_FNOISE] + s[PS_FEXT]
     return abs(f) <= p[PP_STIC]
 
 
@@ -303,7 +304,7 @@ def _held(u, s, p):
 def _current_command(u, s, p, dl):
     """The current loop's force commands of the flexible plant: (the last period's, this
     period's after the whole-period delay line ``dl``) [N]."""
-    f_cur = _motor_force(u, p)
+    f_cur = _motor_force(u, p[PP_A1], p[PP_A2], p[PP_A3])
     m = dl.shape[0]
     if m > 0:
         i = int(s[PS_DLI])
@@ -470,7 +471,7 @@ def _acc_hooked(fm, x, v, t, m, b, fc, f0, f_noise, f_ext, codes, table, lengths
 def _rk4_hooked(x, v, t, u, h, n, m, a1, a2, a3, b, fc, f0, f_noise, f_ext, codes, table, lengths):
     """``n`` RK4 steps of the rigid plant with the effects' compiled terms (:func:`_acc_hooked`);
     the same operations in the same order as :meth:`AxisPlant._step_rigid`."""
-    fm = a1 * u + a2 * u * abs(u) + a3 * u * u * u
+    fm = _motor_force(u, a1, a2, a3)
     for _ in range(n):
         k1x, k1v = v, _acc_hooked(fm, x, v, t, m, b, fc, f0, f_noise, f_ext, codes, table, lengths)
         k2x = v + 0.5 * h * k1v
@@ -555,7 +556,7 @@ def _held_hooked(u, s, p, codes, table, lengths):
     (S_f = ±1): static friction stays F_s − F_c above the kinetic level wherever an effect
     moves it."""
     x, t = s[PS_X], s[PS_T]
-    fm = effect_terms.thrust(_motor_force(u, p), x, t, codes, table, lengths)
+    fm = effect_terms.thrust(_motor_force(u, p[PP_A1], p[PP_A2], p[PP_A3]), x, t, codes, table, lengths)
     f = effect_terms.force(fm + p[PP_F0] + s[PS_FNOISE] + s[PS_FEXT], x, 0.0, t, 0.0, codes, table, lengths)
     d = 1.0 if f >= 0.0 else -1.0
     v = d * V_AT_REST
@@ -686,11 +687,15 @@ class AxisPlant:
         if self._terms is not None:
             _hooked_step(0.0, s0, self._p, self._dl.copy(), np.zeros(NOISE_BLOCK), *self._terms)
 
+    def _motor_force(self, u: float) -> float:
+        """F_m(u) = A1 u + A2 u|u| + A3 u³ [N] (eq. 3) under u [V], as :func:`_motor_force`."""
+        return self.a1 * u + self.a2 * u * abs(u) + self.a3 * u * u * u
+
     def _acc(self, x: float, v: float, t: float, u: float) -> float:
         """ẍ [m/s²] at position x [m], velocity v [m/s], plant time t [s] under input u [V]:
         eq. (1) with the force curve of eq. (3), smooth Coulomb friction and the effects'
         hooks (thrust factor, forces, mass) in registry order."""
-        fm = self.a1 * u + self.a2 * u * abs(u) + self.a3 * u * u * u
+        fm = self._motor_force(u)
         for thrust in self._thrust:
             fm = thrust(fm, x, t)
         sf = _TWO_OVER_PI * math.atan(S_F_GAIN * v)
@@ -759,7 +764,7 @@ class AxisPlant:
             return False
         if self._hooks and self.stiction_fx:
             return self._held_hooked(u)
-        f = self.a1 * u + self.a2 * u * abs(u) + self.a3 * u * u * u + self.f0 + self.f_noise + self.f_ext
+        f = self._motor_force(u) + self.f0 + self.f_noise + self.f_ext
         return abs(f) <= self.stiction
 
     def _held_hooked(self, u: float) -> bool:
@@ -768,7 +773,7 @@ class AxisPlant:
         breakaway the friction the effects add at rest in the direction of that force
         (S_f = ±1), as :func:`_held_hooked` (the same operations)."""
         x, t = self.x, self.t
-        fm = self.a1 * u + self.a2 * u * abs(u) + self.a3 * u * u * u
+        fm = self._motor_force(u)
         for thrust in self._thrust:
             fm = thrust(fm, x, t)
         f = fm + self.f0 + self.f_noise + self.f_ext
@@ -795,7 +800,7 @@ class AxisPlant:
 
     def _step_flex(self, u: float) -> None:
         """One period of the plant with the structural mode and/or the current loop."""
-        f_cur = self.a1 * u + self.a2 * u * abs(u) + self.a3 * u * u * u
+        f_cur = self._motor_force(u)
         if self._fdelay is not None:
             f_cur = self._fdelay(f_cur)
         f_prev, self.f_prev = self.f_prev, f_cur
