@@ -1,7 +1,7 @@
 """Benchmark: the law's step cost, the compiled cycle, and the 5 kHz servo loop on the simulated gantry.
 
 Rerun:  python benchmarks/bench_loop.py [--config configs/gantry.yaml] [--seconds 60] [--steps 50000]
-        [--cpu N]
+        [--cpu N] [--slices 6]
 
 Part 1, step cost: each axis's controllers (C1, C2, the PID+FF where the axis configures
 ``pid:``, and C2 with a compensation of cogging and Stribeck friction, ``c2+comp``) run in closed loop with the simulated plant for --steps samples of its program:
@@ -11,13 +11,16 @@ figure includes the Python→kernel dispatch); (b) in the compiled cycle
 the samples of (a) (no clock per call: total / steps); (c) the whole compiled call of a cycle
 (supervisor, desired(k), law, record row, and the call from Python), the record's control_ns
 of a one-axis loop on the virtual clock, and of both axes.
-Part 2, the loop: ``motorctl run`` with both axes on C2 against the wall clock for --seconds,
-with SCHED_FIFO + mlockall (policy required), the same with ``loop.realtime.warm_caches`` off
-(no rehearsal of the next cycle in the spin tail), and without (policy off); turnaround
-(read start → write end, including the plant's RK4 in the simulated driver's write), wake
-lateness and overruns; beside them, in the same run, the machine's floor: benchmarks/floor.c
-(compiled here with cc), the loop's pacing alone (sleep, spin, read the clock) at SCHED_FIFO
-80 with memory locked, for the same time. Both are pinned to ``--cpu`` (default: the last CPU,
+Part 2, the loop: ``motorctl run``'s job with both axes on C2 against the wall clock for
+--seconds, with SCHED_FIFO + mlockall (policy required) and its run log written, in --slices
+turns with the machine's floor: benchmarks/floor.c (compiled here with cc), the loop's pacing
+alone (sleep, spin, read the clock) at SCHED_FIFO 80 with memory locked, holding the CPU after
+each wake for the loop's median turnaround; loop, floor, floor, loop, ... so that both meet the
+same moments of a machine whose stalls come in bursts. Turnaround (read start → write end,
+including the plant's RK4 in the simulated driver's write), overruns (whole periods missed),
+per turn and pooled, the overruns' ratio. Then, one after the other, the loop with
+``loop.realtime.warm_caches`` off (no rehearsal of the next cycle in the spin tail) and
+without SCHED_FIFO (policy off). All are pinned to ``--cpu`` (default: the last CPU,
 as a deployment pins the loop to an isolated one; ``--cpu -1``: not pinned). The machine is
 shared and noisy: compare medians and ratios taken in one run.
 """
@@ -124,19 +127,71 @@ def cycle_cost(loaded, axes: list, kind: str, steps: int) -> np.ndarray:
     return asm.loop.rows()[:, asm.loop.layout.index("control_ns")] / 1e3
 
 
-def machine_floor(seconds: float, period_ns: int, spin_us: float, cpu: int | None, work_ns: int = 0) -> str:
-    """The compiled floor (benchmarks/floor.c) for ``seconds`` on ``cpu`` (None: not pinned),
-    holding the CPU ``work_ns`` after each wake: its printed line."""
-    import os
+def build_floor(tmp: str) -> str:
+    """Compile benchmarks/floor.c into ``tmp``; the executable's path."""
     import subprocess
-    import tempfile
     src = os.path.join(os.path.dirname(os.path.abspath(__file__)), "floor.c")
-    with tempfile.TemporaryDirectory() as tmp:
-        exe = os.path.join(tmp, "floor")
-        subprocess.run(["cc", "-O2", "-o", exe, src], check=True)
-        n = int(seconds * 1e9 / period_ns)
-        argv = [exe, str(period_ns), str(n), str(int(spin_us * 1e3)), str(-1 if cpu is None else cpu), str(work_ns)]
-        return subprocess.run(argv, capture_output=True, text=True, check=True).stdout.strip()
+    exe = os.path.join(tmp, "floor")
+    subprocess.run(["cc", "-O2", "-o", exe, src], check=True)
+    return exe
+
+
+def machine_floor(exe: str, seconds: float, period_ns: int, spin_us: float, cpu: int | None,
+                  work_ns: int = 0, hold_file: str | None = None) -> str:
+    """The compiled floor for ``seconds`` on ``cpu`` (None: not pinned), holding the CPU
+    ``work_ns`` after each wake: its printed line (every hold [ns] into ``hold_file``)."""
+    import subprocess
+    n = int(seconds * 1e9 / period_ns)
+    argv = [exe, str(period_ns), str(n), str(int(spin_us * 1e3)), str(-1 if cpu is None else cpu), str(work_ns)]
+    return subprocess.run(argv + ([hold_file] if hold_file else []), capture_output=True, text=True,
+                          check=True).stdout.strip()
+
+
+def in_turn(loaded, exe: str, seconds: float, slices: int, cpu: int | None, spin_us: float, tmp: str) -> None:
+    """The loop (``motorctl run``'s job, both axes on C2, SCHED_FIFO + mlockall, its log
+    written) and the floor holding the CPU for the loop's median turnaround, in ``slices``
+    turns of seconds/slices each, in the order loop-floor, floor-loop, ... so that both see
+    the same machine: the VM's stalls come in bursts of seconds, and two runs one after the
+    other compare two moments of it. Prints each turn and the pooled figures."""
+    from motorctl.recorder.runlog import read_log
+    period_ns = int(round(1e9 / loaded.cfg.loop.rate_hz))
+    part = seconds / slices
+    turn, hold, ovr, missed, work_ns = [], [], [], [], 0
+    print(f"{'turn':>4} {'loop overruns':>14} {'floor overruns':>15} {'loop turnaround p99.9':>22} "
+          f"{'floor hold p99.9':>17} us")
+
+    def loop_part(r):
+        log = os.path.join(tmp, f"turn{r}.mclog")
+        res = run_job(loaded, controller="c2", duration_s=part, clock="wall", log_path=log,
+                      realtime_policy="required")
+        turn.append(read_log(log).col("turnaround_ns") / 1e3)
+        ovr.append(res.timing["overruns"])
+        os.unlink(log)
+
+    def floor_part(r):
+        f = os.path.join(tmp, f"hold{r}.bin")
+        line = machine_floor(exe, part, period_ns, spin_us, cpu, work_ns, f)
+        missed.append(int(line.split()[4]))
+        hold.append(np.fromfile(f, dtype=np.int64) / 1e3)
+        os.unlink(f)
+
+    for r in range(slices):
+        if r % 2 == 0:
+            loop_part(r)
+            work_ns = work_ns or int(np.median(turn[0]) * 1e3)
+            floor_part(r)
+        else:
+            floor_part(r)
+            loop_part(r)
+        print(f"{r + 1:4d} {ovr[-1]:14d} {missed[-1]:15d} {np.percentile(turn[-1], 99.9):22.1f} "
+              f"{np.percentile(hold[-1], 99.9):17.1f}")
+    t, h = np.concatenate(turn), np.concatenate(hold)
+    ratio = f"{sum(ovr) / sum(missed):.2f}x the floor's" if sum(missed) else "the floor missed none"
+    print(f"{'loop, pooled':22}: turnaround p50 {np.median(t):.1f} p99 {np.percentile(t, 99):.1f} p99.9 "
+          f"{np.percentile(t, 99.9):.1f} max {t.max():.1f} us | overruns {sum(ovr)} in {len(t)} cycles ({ratio})")
+    print(f"{'floor, pooled':22}: holding the CPU {work_ns / 1e3:.1f} us after each wake: p50 {np.median(h):.1f} "
+          f"p99 {np.percentile(h, 99):.1f} p99.9 {np.percentile(h, 99.9):.1f} max {h.max():.1f} us | "
+          f"overruns {sum(missed)} in {len(h)} cycles")
 
 
 def main() -> None:
@@ -149,7 +204,11 @@ def main() -> None:
     ap.add_argument("--spin-us", type=float, default=None,
                     help="loop.realtime.spin_us of the wall-clock loop and the floor (default: the config's; "
                          "at least the period: the loop never sleeps, a polling loop on a dedicated CPU)")
+    ap.add_argument("--slices", type=int, default=6,
+                    help="turns of the loop and the floor in turn over --seconds (1: one run of each)")
     args = ap.parse_args()
+    if args.slices < 1 or args.seconds / args.slices < 1.0:
+        ap.error("--slices must be at least 1, with --seconds / --slices at least 1 s")
     loaded = load_config(args.config)
     cpu = None if args.cpu < 0 else args.cpu
     raw = load_yaml(args.config)
@@ -167,7 +226,7 @@ def main() -> None:
     print(f"# motorctl loop benchmark on {platform.node()} ({platform.processor() or platform.machine()}), "
           f"python {platform.python_version()}, {time.strftime('%Y-%m-%d %H:%M:%S')}")
     print(f"# rerun: python benchmarks/bench_loop.py --config {args.config} --seconds {args.seconds:g} --steps {args.steps} "
-          f"--cpu {args.cpu}" + (f" --spin-us {args.spin_us:g}" if args.spin_us is not None else ""))
+          f"--cpu {args.cpu} --slices {args.slices}" + (f" --spin-us {args.spin_us:g}" if args.spin_us is not None else ""))
     print("\n## controller step cost (us per axis, closed loop on the simulated plant)")
     print(f"{'axis':4} {'ctrl':7} {'median':>8} {'p99':>8} {'max':>8}")
     med = {}
@@ -192,37 +251,32 @@ def main() -> None:
     print(f"\n## {args.seconds:g} s wall-clock loop at {loaded.cfg.loop.rate_hz:g} Hz, axes {', '.join(loaded.axes)} on C2"
           f"{'' if cpu is None else f', CPU {cpu}'}, spin {spin_us:g} us"
           f"{' (never sleeps: polling)' if spin_us * 1e-6 >= pinned.period_s else ''}")
-    work_ns = 0
-    for policy, cfg, label in (("required", pinned, "SCHED_FIFO + mlockall"),
-                               ("required", pinned_cold, "... warm_caches off"),
-                               ("off", pinned, "SCHED_OTHER")):
+    import tempfile
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            exe = build_floor(tmp)
+        except (OSError, ValueError) as exc:
+            exe = None
+            print(f"floor: not built ({exc})")
+        print(f"### the loop and the floor in turn ({args.slices} turns of {args.seconds / args.slices:g} s each; "
+              "SCHED_FIFO 80 + mlockall, warm caches, the run log written)")
+        try:
+            if exe is not None:
+                in_turn(pinned, exe, args.seconds, args.slices, cpu, spin_us, tmp)
+        except RealtimeError as exc:
+            print(f"not available here ({exc})")
+    print(f"### beside them, {args.seconds:g} s each, one after the other")
+    for policy, cfg, label in (("required", pinned_cold, "warm_caches off"), ("off", pinned, "SCHED_OTHER")):
         try:
             res = run_job(cfg, controller="c2", duration_s=args.seconds, clock="wall", realtime_policy=policy)
         except RealtimeError as exc:
             print(f"{label}: not available here ({exc})")
             continue
         tm = res.timing
-        if cfg is pinned and policy == "required":
-            work_ns = int(tm["turnaround_p50_us"] * 1e3)
         print(f"{label:22}: turnaround p50 {tm['turnaround_p50_us']:.1f} p99 {tm['turnaround_p99_us']:.1f} "
               f"p99.9 {tm['turnaround_p999_us']:.1f} max {tm['turnaround_max_us']:.1f} us | lateness p50 "
               f"{tm['lateness_p50_us']:.1f} p99 {tm['lateness_p99_us']:.1f} max {tm['lateness_max_us']:.1f} us | "
               f"overruns {tm['overruns']} in {tm['cycles']} cycles")
-    try:
-        fl = machine_floor(args.seconds, int(round(1e9 / loaded.cfg.loop.rate_hz)), spin_us, cpu, work_ns)
-        p50, p99, p999, mx, missed, *rt = fl.split()
-        hold = [t.split("=", 1)[1].split("/") for t in rt if t.startswith("hold=")]
-        print(f"{'floor (benchmarks/floor.c)':22}: lateness p50 {float(p50):.1f} p99 {float(p99):.1f} p99.9 "
-              f"{float(p999):.1f} max {float(mx):.1f} us | overruns {missed} in "
-              f"{int(args.seconds * loaded.cfg.loop.rate_hz)} cycles ({' '.join(t for t in rt if '=' in t and not t.startswith('hold'))})")
-        if hold:
-            h = [float(x) for x in hold[0]]
-            print(f"{'':22}  holding the CPU for the loop's median turnaround ({work_ns / 1e3:.1f} us) after each "
-                  f"wake: p50 {h[0]:.1f} p99 {h[1]:.1f} p99.9 {h[2]:.1f} max {h[3]:.1f} us (what the machine adds "
-                  f"to any turnaround)")
-    except (OSError, ValueError) as exc:
-        print(f"floor: not measured ({exc})")
-
 
 if __name__ == "__main__":
     main()

@@ -5,8 +5,9 @@
  * With WORK_NS, each period then holds the CPU for WORK_NS by the clock (the loop's turnaround,
  * without its work): how long that takes is what the machine adds to any turnaround (a
  * preemption, a stolen vCPU inside the interval).
- * Usage: floor PERIOD_NS CYCLES SPIN_NS [CPU|-1 [WORK_NS]]; prints "lateness_p50_us p99 p999
- * max overruns fifo=F mlock=M" and, with WORK_NS, "hold=p50/p99/p999/max" [us].
+ * Usage: floor PERIOD_NS CYCLES SPIN_NS [CPU|-1 [WORK_NS [HOLD_FILE]]]; prints "lateness_p50_us
+ * p99 p999 max overruns fifo=F mlock=M" and, with WORK_NS, "hold=p50/p99/p999/max" [us]; with
+ * HOLD_FILE, every period's hold [ns] as native int64 into that file (to pool several runs).
  * Build: cc -O2 -o floor floor.c */
 #define _GNU_SOURCE
 #include <sched.h>
@@ -61,6 +62,10 @@ int main(int argc, char **argv) {
     qsort(late, n, sizeof(long long), cmp);
     printf("%.2f %.2f %.2f %.2f %lld fifo=%d mlock=%d", late[n / 2] / 1e3, late[(long long)(n * 0.99)] / 1e3,
            late[(long long)(n * 0.999)] / 1e3, late[n - 1] / 1e3, missed, fifo, locked);
+    if (argc > 6) {
+        FILE *f = fopen(argv[6], "wb");
+        if (f == NULL || fwrite(hold, sizeof(long long), n, f) != (size_t)n || fclose(f) != 0) return 3;
+    }
     if (work > 0) {
         qsort(hold, n, sizeof(long long), cmp);
         printf(" hold=%.2f/%.2f/%.2f/%.2f", hold[n / 2] / 1e3, hold[(long long)(n * 0.99)] / 1e3,
