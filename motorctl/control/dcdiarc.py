@@ -285,13 +285,15 @@ def dcdiarc_comp_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, F, I, L):
     :attr:`motorctl.effects.compensation.Compensation.table`, evaluated in compiled code).
     x_d, xd_dot, xd_ddot: the desired trajectory at this sample [m, m/s, m/s²]; xf, vf, af: at
     t + τ (τ the table's preview; the sample itself when τ = 0); t: time [s]. d̂_eff is evaluated
-    on (xf, vf, t + τ); an adapted basis on the interval just ended (mean position, mean velocity,
-    mid time) for the estimator and on (xf, vf, t + τ) for v_a1; the ripple factor at the mean
-    and at the desired position.
+    on (xf, ẋ_r, t + τ) with the reference velocity ẋ_r = vf − k1 e (e = y − x_d, so that
+    p = ẋ − ẋ_r, eq. 11; :mod:`motorctl.effects.compensation`); an adapted basis on the interval
+    just ended (mean position, mean velocity, mid time) for the estimator and on (xf, ẋ_r, t + τ)
+    for v_a1; the ripple factor at the mean and at the desired position.
     """
     tab = F[L[B_CT]:]
     tf = t + tab[T_PREVIEW]
-    v_comp = comp_value(tab, xf, vf, tf)
+    vr = vf - F[L[B_PRM] + P_K1] * (y - x_d)   # the reference velocity ẋ_r = ẋ_d − k1 e (p = ẋ − ẋ_r)
+    v_comp = comp_value(tab, xf, vr, tf)
     g_meas = 1.0
     g_des = 1.0
     k = L[B_K]
@@ -302,7 +304,7 @@ def dcdiarc_comp_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, F, I, L):
         xm = 0.5 * (y + y_prev)              # the interval just ended: mean position,
         if k > 0:                            # mean velocity, mid time
             comp_fill(tab, F[L[B_CM]:L[B_CM] + k], xm, (y - y_prev) / ts, t - 0.5 * ts)
-            comp_fill(tab, F[L[B_CD]:L[B_CD] + k], xf, vf, tf)
+            comp_fill(tab, F[L[B_CD]:L[B_CD] + k], xf, vr, tf)
         if thrust:
             g_meas = 1.0 + comp_thrust(tab, xm)
             g_des = 1.0 + comp_thrust(tab, xf)
@@ -624,7 +626,8 @@ class DCDIARC(Controller):
         # a term from another package: the same evaluation as dcdiarc_comp_step, from Python
         comp = self.compensation
         tf = t + tau
-        v_comp = comp.value(xf, vf, tf)
+        vr = vf - float(self._prm[P_K1]) * (y - x_d)    # the reference velocity, as dcdiarc_comp_step
+        v_comp = comp.value(xf, vr, tf)
         g_meas = g_des = 1.0
         if self.n_beta or comp.thrust is not None:
             ts = self.ts
@@ -632,7 +635,7 @@ class DCDIARC(Controller):
             xm = 0.5 * (y + y_prev)              # the interval just ended: mean position,
             if self.n_beta:                      # mean velocity, mid time
                 comp.fill(self._cm, xm, (y - y_prev) / ts, t - 0.5 * ts)
-                comp.fill(self._cd, xf, vf, tf)
+                comp.fill(self._cd, xf, vr, tf)
             if comp.thrust is not None:
                 g_meas = 1.0 + comp.thrust(xm)
                 g_des = 1.0 + comp.thrust(xf)

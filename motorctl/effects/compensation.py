@@ -2,18 +2,29 @@
 
 The paper's model (eq. 4) lumps every unmodelled force into d̃. When identification traces
 part of d̃ to a named physical effect, its term is compensated like the other model terms
-(desired compensation, eq. 13): evaluated on the desired trajectory (x_d, ẋ_d) and time t,
-in input units (V, i.e. force / A1), and subtracted in v_a1:
+(eq. 13): evaluated on the desired position x_d, the reference velocity ẋ_r and time t, in
+input units (V, i.e. force / A1), and subtracted in v_a1:
 
     θ1 ẍ = u − θ2 ẋ − θ3 S_f(ẋ) + θ4 + θ5 u|u| + θ6 u³ + d_eff(x, ẋ, t) + d̃
-    v_a1 = θ̂1 ẍ_d + θ̂2 ẋ_d + θ̂3 S_f(ẋ_d) − θ̂4 − d̂_eff(x_d, ẋ_d, t)
+    v_a1 = θ̂1 ẍ_d + θ̂2 ẋ_d + θ̂3 S_f(ẋ_d) − θ̂4 − d̂_eff(x_d, ẋ_r, t),   ẋ_r = ẋ_d − k1 e
+
+ẋ_r is the velocity the sliding variable asks for (p = ẋ − ẋ_r, eq. 11; the reference
+velocity of Slotine and Li's adaptive robot control, Int. J. Robotics Research 6(3), 1987). In
+motion it is ẋ_d within k1 |e| (10 mm/s at 20 µm and k1 = 500 /s, against m/s); where ẋ_d is
+0, a friction-like term (Stribeck, asymmetric, position-dependent, periodic friction, a
+friction shape) then still pushes toward the target, in proportion to the error through S_f,
+instead of vanishing while the carriage creeps in: with ẋ_d alone its value at rest is a
+constant that d̂0 absorbs, and where the friction exceeds the breakaway the carriage sticks a
+count or more short and C2 hunts (docs/identification.md §6). It uses the measured position
+only (no differentiated velocity): a count's flicker moves ẋ_r by k1 · 0.5 µm. The paper's
+own terms in θ̂ keep ẋ_d (desired compensation, eq. 13).
 
 **Fixed** (default): the amplitudes come from the fit (the fast d̂0 term still absorbs what is
 left); the estimator sees the input u + d̂_eff. **Adapted** (``adapt: true`` on an entry whose
 family can adapt, :class:`motorctl.effects.base.Adaptable`): d_eff = Σ_j β_j c_j(x, ẋ, t), the
 basis columns c_j join the regressor (φ extended, filtered by the same H_f, evaluated on the
 measured x, ẋ in the estimator) and β̂ joins θ̂ (same LS, eq. 27-28, and box projection, eq. 7-8);
-v_a1 subtracts Σ β̂_j c_j(x_d, ẋ_d, t).
+v_a1 subtracts Σ β̂_j c_j(x_d, ẋ_r, t).
 
 Two families compensate without an additive term (:class:`motorctl.effects.base.CompHook`):
 force ripple (v divided by 1 + r̂(x_d) before the inversion, eq. 9) and input delay (v_a1 on
@@ -117,7 +128,8 @@ def _fill(c, out, j, x, v, t, sf, p):
 @njit
 def comp_value(tab, x, v, t):
     """d̂_eff [V] of the fixed terms of the table ``tab`` (:meth:`Compensation.table`) at the
-    desired position x [m], velocity v [m/s] and time t [s]: the terms added to 0.0 in order."""
+    desired position x [m], velocity v [m/s] (the law passes the reference velocity ẋ_r) and
+    time t [s]: the terms added to 0.0 in order."""
     sf = _s_f(v) if tab[T_ADD_SF] != 0.0 else 0.0
     d = 0.0
     at = T_HEAD
@@ -276,7 +288,7 @@ class Compensation:
 
     def value(self, x_d: float, xd_dot: float, t: float) -> float:
         """d̂_eff [V] of the fixed (not adapted) terms at the desired position x_d [m], velocity
-        ẋ_d [m/s] and time t [s]."""
+        xd_dot [m/s] (the law passes the reference velocity ẋ_r) and time t [s]."""
         if self.table is not None:
             return comp_value(self.table, x_d, xd_dot, t)
         sf = s_f_scalar(xd_dot) if self._need_sf else 0.0
