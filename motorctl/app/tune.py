@@ -265,11 +265,14 @@ def _keep_what_helps(res: dict, files: dict, tuned: dict, base: dict, axis: str,
                      clock: str, note) -> bool:
     """Keep in ``tuned.yaml`` only the changes the closed loop is better with (module
     docstring, step 4): the fitted θ̂(0) (with its box) and each compensated effect are the
-    changes; each is undone once (``DIR/without_<change>.yaml``/``.mclog``; the fitted θ̂(0)
-    first, then the effects in the order found) and stays undone when the loop is better
-    without it (:func:`better` against the before run's e_M). Rewrites ``tuned.yaml`` and
-    ``after.mclog`` when something goes. Returns False when a run faulted (``res['stopped']``
-    says which)."""
+    changes. Backward elimination: each change still kept is undone in turn from the best
+    config so far (``DIR/without_<changes>.yaml``/``.mclog``, the changes undone joined by
+    ``+``); of the undos the loop is better with (:func:`better` against the before run's
+    e_M), the one with the lowest L2[e] is taken, and the round repeats until no undo helps.
+    One harmful change (a phantom effect) therefore goes first instead of taking the good ones
+    with it. Undoing the last effect is the before run and is not tried. Rewrites
+    ``tuned.yaml`` and ``after.mclog`` when something goes. Returns False when a run faulted
+    (``res['stopped']`` says which)."""
     import copy
     import shutil
 
@@ -278,46 +281,56 @@ def _keep_what_helps(res: dict, files: dict, tuned: dict, base: dict, axis: str,
     from motorctl.config import config_from_dict
     ctl0 = base["axes"][axis]["controller"]
     comp = dict(tuned["axes"][axis]["controller"].get("compensation") or {})
-    changes = [THETA_CHANGE] + list(comp)
-    kept = list(changes)
+    kept = [THETA_CHANGE] + list(comp)
+    undone: list = []
     best, best_cfg, best_log = _indexes(files, files["after"], axis), tuned, files["after"]
     before = _indexes(files, files["before"], axis)
     out = files["tuned"].parent
-    for change in changes:
-        if len(kept) == 1 and change != THETA_CHANGE:
-            break                               # undoing the last change is the before run
-        trial = copy.deepcopy(best_cfg)
-        ctl = trial["axes"][axis]["controller"]
-        if change == THETA_CHANGE:
-            for k in THETA_KEYS:
-                if k in ctl0:
-                    ctl[k] = copy.deepcopy(ctl0[k])
-                else:
-                    ctl.pop(k, None)
-        else:
-            ctl["compensation"] = {k: v for k, v in ctl["compensation"].items() if k != change}
-            if not ctl["compensation"]:
-                ctl.pop("compensation")
-        path, log = out / f"without_{change}.yaml", out / f"without_{change}.mclog"
-        path.write_text(yaml.safe_dump(trial, sort_keys=False, default_flow_style=False, allow_unicode=True),
-                        encoding="utf-8")
-        note(f"without {change}: axis {axis} of {path}, {duration:g} s, {clock} clock -> {log}")
-        fault = _run_axis(config_from_dict(trial, str(path)), axis, duration, clock, log)["fault"]
-        res["files"][f"without_{change}"] = str(log)
-        if fault:
-            res["faults"][f"without_{change}"] = fault
-            res["stopped"] = f"the run without {change} faulted: {fault}"
-            return False
-        m = _indexes(files, log, axis)
-        if better(m, best, before):
-            kept.remove(change)
-            why = (f"the loop is better without it (L2[e] {best['L2_um']:.3f} -> {m['L2_um']:.3f} um, "
-                   f"e_M {best['e_M_um']:.2f} -> {m['e_M_um']:.2f} um)")
+    while True:
+        effects_kept = [c for c in kept if c != THETA_CHANGE]
+        took = None                              # (L2, change, indexes, config, log) of the best undo
+        for change in kept:
+            if change != THETA_CHANGE and len(effects_kept) == 1:
+                continue                         # undoing the last effect is the before run
+            trial = copy.deepcopy(best_cfg)
+            ctl = trial["axes"][axis]["controller"]
             if change == THETA_CHANGE:
-                res["theta_hat0"] = "the config's own: " + why
+                for k in THETA_KEYS:
+                    if k in ctl0:
+                        ctl[k] = copy.deepcopy(ctl0[k])
+                    else:
+                        ctl.pop(k, None)
             else:
-                res["dropped"][change] = why
-            best, best_cfg, best_log = m, trial, log
+                ctl["compensation"] = {k: v for k, v in ctl["compensation"].items() if k != change}
+                if not ctl["compensation"]:
+                    ctl.pop("compensation")
+            name = "without_" + "+".join(undone + [change])
+            path, log = out / f"{name}.yaml", out / f"{name}.mclog"
+            path.write_text(yaml.safe_dump(trial, sort_keys=False, default_flow_style=False, allow_unicode=True),
+                            encoding="utf-8")
+            note(f"without {' and '.join(undone + [change])}: axis {axis} of {path}, {duration:g} s, "
+                 f"{clock} clock -> {log}")
+            fault = _run_axis(config_from_dict(trial, str(path)), axis, duration, clock, log)["fault"]
+            res["files"][name] = str(log)
+            if fault:
+                res["faults"][name] = fault
+                res["stopped"] = f"the run without {' and '.join(undone + [change])} faulted: {fault}"
+                return False
+            m = _indexes(files, log, axis)
+            if better(m, best, before) and (took is None or m["L2_um"] < took[0]):
+                took = (m["L2_um"], change, m, trial, log)
+        if took is None:
+            break
+        _, change, m, trial, log = took
+        kept.remove(change)
+        undone.append(change)
+        why = (f"the loop is better without it (L2[e] {best['L2_um']:.3f} -> {m['L2_um']:.3f} um, "
+               f"e_M {best['e_M_um']:.2f} -> {m['e_M_um']:.2f} um)")
+        if change == THETA_CHANGE:
+            res["theta_hat0"] = "the config's own: " + why
+        else:
+            res["dropped"][change] = why
+        best, best_cfg, best_log = m, trial, log
     effects = [c for c in kept if c != THETA_CHANGE]
     if not effects or not better(best, before):
         for c in effects:

@@ -10,11 +10,13 @@
 3. **tuned config**: ``DIR/tuned.yaml``, what ``motorctl identify LOG --config CONFIG
    --write-config`` writes (:func:`motorctl.ident.pipeline.write_tuned_config`);
 4. **after**: the same program on the tuned config, log ``DIR/after.mclog``. tune never hands
-   over a worse config: each change of ``tuned.yaml`` (the fitted θ̂(0) with its box, then each
-   compensated effect) is undone once (``DIR/without_<change>.yaml`` / ``.mclog``) and stays
-   undone when the loop is better without it (:func:`motorctl.app.tune.better`: a lower L2[e],
-   an e_M no more than one encoder count above the before run's, and u's noise at rest no more
-   than :data:`~motorctl.app.tune.U_REST_SLACK` above it); then what is kept must
+   over a worse config: the changes of ``tuned.yaml`` (the fitted θ̂(0) with its box, each
+   compensated effect) go by backward elimination: each change still kept is undone in turn
+   (``DIR/without_<changes>.yaml`` / ``.mclog``), the undo that leaves the loop best among
+   those it is better with (:func:`motorctl.app.tune.better`: a lower L2[e], an e_M no more
+   than one encoder count above the before run's, and u's noise at rest no more than
+   :data:`~motorctl.app.tune.U_REST_SLACK` above it) is taken, and again until no undo helps;
+   then what is kept must
    beat the before run the same way, else no effect is kept and ``tuned.yaml`` is CONFIG
    unchanged (the report says which were dropped and why);
 5. on the simulated driver, **floor**: CONFIG with the plant's effects switched off
