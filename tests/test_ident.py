@@ -296,3 +296,26 @@ def test_csv_with_gain_and_config_runs_closed_loop(logs, tmp_path, capsys):
     assert cl["compensation"]["spring"]["stiffness_V_per_m"] > 0
     for k in ("e_M_um", "e_F_um", "L2_um"):
         assert cl["after"][k] < cl["before"][k], (k, cl)
+
+
+def test_an_effect_implausible_in_the_final_model_is_searched_again_there(tmp_path):
+    """Backward elimination searches a failing effect again with the final model's other
+    effects before dropping it. The default plant (stiction, current loop) with a 30 N friction
+    bump at 0.25 m, seed 6: the shape is taken before the current loop's lag, and with the lag
+    in the model its knot grid makes the Coulomb level negative at an end of the stroke;
+    searched again beside the lag (another grid) it is plausible and is kept, with its size
+    and place."""
+    log = tmp_path / "bump.mclog"
+    bump = {"position_friction_shape": {"bumps": [{"center_m": 0.25, "width_m": 0.16, "amplitude_N": 30.0}]}}
+    make_log(str(log), bump, duration_s=16.0, seed=6, axis="X", noise_N=None,
+             base=Path(__file__).resolve().parents[1] / "configs" / "gantry.yaml")
+    rec = load_record(str(log), axis="X")
+    idf = Identifier(rec).run()
+    names = [t.family for t in idf.terms]
+    assert "position_friction_shape" in names, (names, idf.eliminated)
+    assert "position_friction_shape" not in [n for n, _ in idf.eliminated], idf.eliminated
+    i = names.index("position_friction_shape")
+    _, betas = idf.coef_split(idf.final, idf.terms)
+    p = parameters(idf.terms[i].family, idf.terms[i].h, betas[i], rec.gain, idf.p.fs)
+    assert abs(p["peak_to_peak_N"] / 30.0 - 1) < 0.2, p
+    assert abs(p["extremum_position_m"] - 0.25) < 0.03, p

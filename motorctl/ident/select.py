@@ -517,7 +517,7 @@ class Identifier:
                 current = best
                 if self.on_step is not None:
                     self.on_step(self, base, current)
-            base, accepted, current, dropped = self._eliminate(base, accepted, current)
+            base, accepted, current, dropped = self._eliminate(base, accepted, current, searched_with)
             if not dropped:
                 break
             eliminated += dropped
@@ -530,14 +530,20 @@ class Identifier:
         self.nominal, self.final, self.terms, self.steps, self.accepted = nominal, current, base, steps, accepted
         return self
 
-    def _eliminate(self, base: list, accepted: list, current: Evaluated):
+    def _eliminate(self, base: list, accepted: list, current: Evaluated, searched_with: dict):
         """Backward elimination after the forward selection: each selected effect is judged
         again in the final model (plausibility of its coefficients there, and the held-out gain
         of keeping it against the model without it, ≥ :data:`MIN_HELDOUT_GAIN`); the weakest
-        that fails is dropped and the rest re-judged, until all pass. An effect taken early
+        that fails is searched again with the other effects of the final model (its family's
+        search and :meth:`judge`: a friction shape whose knot grid was chosen before the input
+        delay was modelled may need another grid with it) and replaced when that candidate
+        passes, else dropped (also when its family's simpler case passes there:
+        :meth:`_simpler_passes`), and the rest re-judged, until all pass. An effect taken early
         can be explained by the later ones (a dead-zone picked for what stiction and a
-        friction shape then model better). Returns (terms, accepted, final, [(family, why)])."""
+        friction shape then model better). Each family is searched again at most once.
+        Returns (terms, accepted, final, [(family, why)])."""
         dropped = []
+        researched: set = set()
         while base:
             fails = []
             for i, t in enumerate(base):
@@ -554,11 +560,34 @@ class Identifier:
             if not fails:
                 break
             _, i, reasons = min(fails)
+            others = base[:i] + base[i + 1:]
+            if base[i].family not in researched:
+                researched.add(base[i].family)
+                without = self.evaluate(others)
+                ev = None if self._simpler_passes(base[i].family, others, without) else \
+                    self.search(base[i].family, others, without.fit.residual)
+                if ev is not None and self.judge(ev, without, others).ok:
+                    searched_with[id(ev.term)] = list(others)
+                    base = base[:i] + [ev.term] + base[i + 1:]
+                    accepted = accepted[:i] + [(ev, accepted[i][1])] + accepted[i + 1:]
+                    current = self.evaluate(base)
+                    continue
             dropped.append((base[i].family, "; ".join(reasons)))
-            base = base[:i] + base[i + 1:]
+            base = others
             accepted = accepted[:i] + accepted[i + 1:]
             current = self.evaluate(base) if base else self.evaluate([])
         return base, accepted, current, dropped
+
+    def _simpler_passes(self, family: str, others: list, without: Evaluated) -> bool:
+        """``family`` has a simpler special case (:attr:`~motorctl.effects.base.EffectFamily.simpler`)
+        that, searched in the model of ``others``, passes :meth:`judge` there: then a failing
+        ``family`` is dropped rather than searched again, and the forward selection that
+        resumes takes the simpler case (a linear slope is not named as a friction shape)."""
+        alt = effect_family(family).simpler
+        if alt is None or alt not in self.families or any(t.family == alt for t in others):
+            return False
+        ev = self.search(alt, others, without.fit.residual)
+        return ev is not None and self.judge(ev, without, others).ok
 
     def _simplify(self, base: list, accepted: list, current: Evaluated):
         """A selected effect whose family has a simpler special case
