@@ -19,6 +19,7 @@ from motorctl.app.tune import make_log
 from motorctl.cli import main
 from motorctl.ident.data import load_record
 from motorctl.ident.effects import parameters
+from motorctl.ident.pipeline import summarise, text_report
 from motorctl.ident.select import Identifier
 from motorctl.ident.synth import EXAMPLES
 
@@ -319,3 +320,9 @@ def test_an_effect_implausible_in_the_final_model_is_searched_again_there(tmp_pa
     p = parameters(idf.terms[i].family, idf.terms[i].h, betas[i], rec.gain, idf.p.fs)
     assert abs(p["peak_to_peak_N"] / 30.0 - 1) < 0.2, p
     assert abs(p["extremum_position_m"] - 0.25) < 0.03, p
+    # the report says so: which effect was searched again, why, and its parameter before and after
+    s = summarise(idf)
+    again = [e for e in s["researched"] if e["name"] == "position_friction_shape"]
+    assert again and "Coulomb level would turn negative" in again[0]["reason"], s["researched"]
+    assert again[0]["searched_before"] != again[0]["searched_after"], again
+    assert "searched again with the later effects in the model and kept: position_friction_shape" in text_report(s)

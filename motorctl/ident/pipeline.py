@@ -86,6 +86,9 @@ def summarise(idf: Identifier) -> dict:
         for step in idf.steps]
     # passed in the last step but not taken, when the effect limit ended the selection
     out["eliminated"] = [{"name": n, "reason": why} for n, why in getattr(idf, "eliminated", [])]
+    # failed in the final model, searched again there and kept with another searched parameter
+    out["researched"] = [{"name": n, "reason": why, "searched_before": _r(h0), "searched_after": _r(h1)}
+                         for n, why, h0, h1 in getattr(idf, "researched", [])]
     out["cut_by_limit"] = ([c.term.family for c in idf.steps[-1] if c.ok and not any(c is e for e in chosen)]
                            if idf.steps and len(idf.terms) >= MAX_EFFECTS else [])
     out["residual"] = residual_verdict(idf.final.fit.residual, idf.p, g, unit)
@@ -298,6 +301,11 @@ def text_report(s: dict) -> str:
         lines.append("effects: no effect found (no candidate passed held-out gain, BIC and plausibility)")
     for e in s.get("eliminated", []):
         lines.append(f"  selected, then dropped with the later effects in the model: {e['name']} ({e['reason']})")
+    for e in s.get("researched", []):
+        moved = ("" if e["searched_before"] is None or e["searched_after"] is None else
+                 f"; searched parameter {e['searched_before']:.4g} -> {e['searched_after']:.4g}")
+        lines.append(f"  selected, then searched again with the later effects in the model and kept: {e['name']} "
+                     f"({e['reason']}{moved})")
     if s.get("cut_by_limit"):
         lines.append(f"  not taken, the limit of {MAX_EFFECTS} effects reached: " + ", ".join(s["cut_by_limit"]))
     for e in s["effects"]:

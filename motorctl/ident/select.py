@@ -488,6 +488,9 @@ class Identifier:
             self.on_nominal(nominal.fit.coef[:self.n_theta])
         base: list = []
         current = nominal
+        #: (family, why it failed in the final model, searched parameter before, after) of each
+        #: effect that backward elimination searched again and kept (:meth:`_eliminate`)
+        self.researched = []
         steps = []
         accepted = []
         pool = ThreadPoolExecutor(max_workers=SEARCH_THREADS) if SEARCH_THREADS > 1 else None
@@ -567,9 +570,11 @@ class Identifier:
                 ev = None if self._simpler_passes(base[i].family, others, without) else \
                     self.search(base[i].family, others, without.fit.residual)
                 if ev is not None and self.judge(ev, without, others).ok:
+                    self.researched.append((base[i].family, "; ".join(reasons), base[i].h, ev.term.h))
                     searched_with[id(ev.term)] = list(others)
                     base = base[:i] + [ev.term] + base[i + 1:]
-                    accepted = accepted[:i] + [(ev, accepted[i][1])] + accepted[i + 1:]
+                    # its held-out RMS before/after and gain: in the final model, without and with it
+                    accepted = accepted[:i] + [(ev, without.heldout_rms)] + accepted[i + 1:]
                     current = self.evaluate(base)
                     continue
             dropped.append((base[i].family, "; ".join(reasons)))
