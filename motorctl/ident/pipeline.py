@@ -84,11 +84,11 @@ def summarise(idf: Identifier) -> dict:
         [{"name": c.term.family, "searched": _r(c.term.h), "heldout_gain_percent": 100 * c.gain,
           "accepted": c.ok, "selected": any(c is e for e in chosen), "reasons": c.reasons} for c in step]
         for step in idf.steps]
-    # passed in the last step but not taken, when the effect limit ended the selection
     out["eliminated"] = [{"name": n, "reason": why} for n, why in getattr(idf, "eliminated", [])]
     # failed in the final model, searched again there and kept with another searched parameter
     out["researched"] = [{"name": n, "reason": why, "searched_before": _r(h0), "searched_after": _r(h1)}
                          for n, why, h0, h1 in getattr(idf, "researched", [])]
+    # passed in the last step but not taken, when the effect limit ended the selection
     out["cut_by_limit"] = ([c.term.family for c in idf.steps[-1] if c.ok and not any(c is e for e in chosen)]
                            if idf.steps and len(idf.terms) >= MAX_EFFECTS else [])
     out["residual"] = residual_verdict(idf.final.fit.residual, idf.p, g, unit)

@@ -432,7 +432,8 @@ class Identifier:
         if hold == self.zoh:
             return self
         keep = {k: getattr(self, k) for k in ("zoh", "zoh_source", "n_theta", "n_theta_reason", "nominal",
-                                               "final", "terms", "steps", "accepted", "eliminated")}
+                                               "final", "terms", "steps", "accepted", "eliminated",
+                                               "researched")}
         fu = self.p.fu
         self.zoh, self.n_theta, self.n_theta_reason, self.p.fu = hold, n_theta0, reason0, None
         self._run_selection(max_effects)
@@ -541,7 +542,7 @@ class Identifier:
         search and :meth:`judge`: a friction shape whose knot grid was chosen before the input
         delay was modelled may need another grid with it) and replaced when that candidate
         passes, else dropped (also when its family's simpler case passes there:
-        :meth:`_simpler_passes`), and the rest re-judged, until all pass. An effect taken early
+        :meth:`_simpler_case`), and the rest re-judged, until all pass. An effect taken early
         can be explained by the later ones (a dead-zone picked for what stiction and a
         friction shape then model better). Each family is searched again at most once.
         Returns (terms, accepted, final, [(family, why)])."""
@@ -567,7 +568,10 @@ class Identifier:
             if base[i].family not in researched:
                 researched.add(base[i].family)
                 without = self.evaluate(others)
-                ev = None if self._simpler_passes(base[i].family, others, without) else \
+                simpler = self._simpler_case(base[i].family, others, without)
+                # its simpler case passes there: dropped, and the forward selection that resumes
+                # takes the simpler case (a linear slope is not named as a friction shape)
+                ev = None if simpler is not None and simpler.ok else \
                     self.search(base[i].family, others, without.fit.residual)
                 if ev is not None and self.judge(ev, without, others).ok:
                     self.researched.append((base[i].family, "; ".join(reasons), base[i].h, ev.term.h))
@@ -583,16 +587,18 @@ class Identifier:
             current = self.evaluate(base) if base else self.evaluate([])
         return base, accepted, current, dropped
 
-    def _simpler_passes(self, family: str, others: list, without: Evaluated) -> bool:
-        """``family`` has a simpler special case (:attr:`~motorctl.effects.base.EffectFamily.simpler`)
-        that, searched in the model of ``others``, passes :meth:`judge` there: then a failing
-        ``family`` is dropped rather than searched again, and the forward selection that
-        resumes takes the simpler case (a linear slope is not named as a friction shape)."""
+    def _simpler_case(self, family: str, others: list, without: Evaluated | None = None) -> Evaluated | None:
+        """The candidate of ``family``'s simpler special case
+        (:attr:`~motorctl.effects.base.EffectFamily.simpler`, e.g. the linear slope of a friction
+        shape) searched in the model of ``others`` (``without``: that model evaluated, when the
+        caller has it) and judged there (:meth:`judge`); None when the family has none, it is
+        not searched, ``others`` already hold it, or the record cannot show it."""
         alt = effect_family(family).simpler
         if alt is None or alt not in self.families or any(t.family == alt for t in others):
-            return False
+            return None
+        without = self.evaluate(others) if without is None else without
         ev = self.search(alt, others, without.fit.residual)
-        return ev is not None and self.judge(ev, without, others).ok
+        return None if ev is None else self.judge(ev, without, others)
 
     def _simplify(self, base: list, accepted: list, current: Evaluated):
         """A selected effect whose family has a simpler special case
@@ -603,20 +609,14 @@ class Identifier:
         not yet modelled). Returns (terms, accepted, final, [(family, why)] replaced)."""
         replaced = []
         for i, t in enumerate(list(base)):
-            alt = effect_family(t.family).simpler
-            if alt is None or alt not in self.families or any(b.family == alt for b in base):
-                continue
             others = base[:i] + base[i + 1:]
-            ev = self.search(alt, others, self.evaluate(others).fit.residual)
-            if ev is None:
-                continue
-            ev = self.judge(ev, self.evaluate(others), others)
-            if not ev.ok or current.heldout_rms <= (1.0 - MIN_HELDOUT_GAIN) * ev.heldout_rms:
+            ev = self._simpler_case(t.family, others)
+            if ev is None or not ev.ok or current.heldout_rms <= (1.0 - MIN_HELDOUT_GAIN) * ev.heldout_rms:
                 continue                    # the shape beats the straight line: kept
             swapped = others[:i] + [ev.term] + others[i:]
             final = self.evaluate(swapped)
-            replaced.append((t.family, f"replaced by its simpler case {alt}, which does as well in the final model "
-                                       f"(held-out RMS {_force(final.heldout_rms, self.rec.gain)} against "
+            replaced.append((t.family, f"replaced by its simpler case {ev.term.family}, which does as well in the "
+                                       f"final model (held-out RMS {_force(final.heldout_rms, self.rec.gain)} against "
                                        f"{_force(current.heldout_rms, self.rec.gain)})"))
             base, current = swapped, final
             accepted = accepted[:i] + [(ev, accepted[i][1])] + accepted[i + 1:]
