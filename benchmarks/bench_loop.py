@@ -137,14 +137,15 @@ def build_floor(tmp: str) -> str:
 
 
 def machine_floor(exe: str, seconds: float, period_ns: int, spin_us: float, cpu: int | None,
-                  work_ns: int = 0, hold_file: str | None = None) -> str:
+                  work_ns: int = 0, hold_file: str | None = None, latency_us: int | None = None) -> str:
     """The compiled floor for ``seconds`` on ``cpu`` (None: not pinned), holding the CPU
-    ``work_ns`` after each wake: its printed line (every hold [ns] into ``hold_file``)."""
+    ``work_ns`` after each wake, and the loop's PM QoS CPU latency request ``latency_us`` (None:
+    none): its printed line (every hold [ns] into ``hold_file``)."""
     import subprocess
     n = int(seconds * 1e9 / period_ns)
-    argv = [exe, str(period_ns), str(n), str(int(spin_us * 1e3)), str(-1 if cpu is None else cpu), str(work_ns)]
-    return subprocess.run(argv + ([hold_file] if hold_file else []), capture_output=True, text=True,
-                          check=True).stdout.strip()
+    argv = [exe, str(period_ns), str(n), str(int(spin_us * 1e3)), str(-1 if cpu is None else cpu), str(work_ns),
+            hold_file or "-", str(-1 if latency_us is None else latency_us)]
+    return subprocess.run(argv, capture_output=True, text=True, check=True).stdout.strip()
 
 
 def in_turn(loaded, exe: str, seconds: float, slices: int, cpu: int | None, spin_us: float, tmp: str) -> None:
@@ -170,7 +171,8 @@ def in_turn(loaded, exe: str, seconds: float, slices: int, cpu: int | None, spin
 
     def floor_part(r):
         f = os.path.join(tmp, f"hold{r}.bin")
-        line = machine_floor(exe, part, period_ns, spin_us, cpu, work_ns, f)
+        line = machine_floor(exe, part, period_ns, spin_us, cpu, work_ns, f,
+                             loaded.cfg.loop.realtime.cpu_latency_us)
         missed.append(int(line.split()[4]))
         hold.append(np.fromfile(f, dtype=np.int64) / 1e3)
         os.unlink(f)

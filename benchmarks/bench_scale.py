@@ -46,11 +46,12 @@ def axes_config(base: dict, n: int, seconds: float, cpu: int) -> dict:
     return d
 
 
-def floor(seconds: float, period_ns: int, spin_us: float, cpu: int) -> dict:
+def floor(seconds: float, period_ns: int, spin_us: float, cpu: int, latency_us: int | None) -> dict:
     """The machine's floor: wake at each deadline (sleep, then spin the last ``spin_us``), read
-    the clock, nothing else; lateness percentiles [µs] and whole periods missed."""
+    the clock, nothing else, with the loop's real-time set-up (its CPU latency request
+    ``latency_us`` included); lateness percentiles [µs] and whole periods missed."""
     try:
-        setup_realtime("best_effort", 80, cpu, True)
+        setup_realtime("best_effort", 80, cpu, True, cpu_latency_us=latency_us)
         n = int(seconds * 1e9 / period_ns)
         late = np.empty(n, dtype=np.int64)
         mono, sleep, spin = time.monotonic_ns, time.sleep, int(spin_us * 1e3)
@@ -111,7 +112,7 @@ def main() -> None:
                   f"{tm['turnaround_p999_us']:.1f} / {tm['turnaround_max_us']:.1f} | "
                   f"{tm['turnaround_p50_us'] / n:.1f} | {tm['lateness_p99_us']:.1f} | {tm['overruns']} | {rt}")
     spin = float(base["loop"].get("realtime", {}).get("spin_us", 60))
-    f = floor(a.seconds, int(round(1e9 / rate)), spin, a.cpu)
+    f = floor(a.seconds, int(round(1e9 / rate)), spin, a.cpu, loaded.cfg.loop.realtime.cpu_latency_us)
     print(f"floor (wake, read the clock): lateness p50 {f['lateness_p50_us']:.1f} / p99 {f['lateness_p99_us']:.1f} / "
           f"max {f['lateness_max_us']:.1f} us, overruns {f['overruns']}")
 

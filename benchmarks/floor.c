@@ -5,16 +5,22 @@
  * With WORK_NS, each period then holds the CPU for WORK_NS by the clock (the loop's turnaround,
  * without its work): how long that takes is what the machine adds to any turnaround (a
  * preemption, a stolen vCPU inside the interval).
- * Usage: floor PERIOD_NS CYCLES SPIN_NS [CPU|-1 [WORK_NS [HOLD_FILE]]]; prints "lateness_p50_us
- * p99 p999 max overruns fifo=F mlock=M" and, with WORK_NS, "hold=p50/p99/p999/max" [us]; with
- * HOLD_FILE, every period's hold [ns] as native int64 into that file (to pool several runs).
+ * With LATENCY_US >= 0, the PM QoS CPU latency request the loop holds (loop.realtime.cpu_latency_us:
+ * that value written to /dev/cpu_dma_latency, kept open for the run).
+ * Usage: floor PERIOD_NS CYCLES SPIN_NS [CPU|-1 [WORK_NS [HOLD_FILE|- [LATENCY_US|-1]]]]; prints
+ * "lateness_p50_us p99 p999 max overruns fifo=F mlock=M qos=Q" and, with WORK_NS,
+ * "hold=p50/p99/p999/max" [us]; with HOLD_FILE, every period's hold [ns] as native int64 into
+ * that file (to pool several runs).
  * Build: cc -O2 -o floor floor.c */
 #define _GNU_SOURCE
 #include <sched.h>
 #include <stdio.h>
+#include <fcntl.h>
 #include <stdlib.h>
+#include <string.h>
 #include <sys/mman.h>
 #include <time.h>
+#include <unistd.h>
 
 static long long now_ns(void) {
     struct timespec ts;
@@ -40,6 +46,11 @@ int main(int argc, char **argv) {
     struct sched_param sp = {.sched_priority = 80};
     int fifo = sched_setscheduler(0, SCHED_FIFO, &sp) == 0;
     int locked = mlockall(MCL_CURRENT | MCL_FUTURE) == 0;
+    int qos = 0;
+    if (argc > 7 && atoi(argv[7]) >= 0) {
+        int fd = open("/dev/cpu_dma_latency", O_WRONLY), lat = atoi(argv[7]);
+        qos = fd >= 0 && write(fd, &lat, sizeof lat) == (ssize_t)sizeof lat;   /* held until exit */
+    }
     long long *late = malloc(sizeof(long long) * n), *hold = malloc(sizeof(long long) * n), missed = 0;
     long long deadline = now_ns() + period;
     for (long long k = 0; k < n; k++) {
@@ -60,9 +71,9 @@ int main(int argc, char **argv) {
         deadline += period;
     }
     qsort(late, n, sizeof(long long), cmp);
-    printf("%.2f %.2f %.2f %.2f %lld fifo=%d mlock=%d", late[n / 2] / 1e3, late[(long long)(n * 0.99)] / 1e3,
-           late[(long long)(n * 0.999)] / 1e3, late[n - 1] / 1e3, missed, fifo, locked);
-    if (argc > 6) {
+    printf("%.2f %.2f %.2f %.2f %lld fifo=%d mlock=%d qos=%d", late[n / 2] / 1e3, late[(long long)(n * 0.99)] / 1e3,
+           late[(long long)(n * 0.999)] / 1e3, late[n - 1] / 1e3, missed, fifo, locked, qos);
+    if (argc > 6 && strcmp(argv[6], "-") != 0) {
         FILE *f = fopen(argv[6], "wb");
         if (f == NULL || fwrite(hold, sizeof(long long), n, f) != (size_t)n || fclose(f) != 0) return 3;
     }

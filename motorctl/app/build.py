@@ -123,7 +123,8 @@ def start(asm: Assembly, policy: str) -> RealtimeReport:
         reached (the driver is closed and the real-time set-up undone first).
     """
     rt = asm.loaded.cfg.loop.realtime
-    report = setup_realtime(policy, rt.priority, rt.cpu, rt.lock_memory, rt.lock_pages)
+    report = setup_realtime(policy, rt.priority, rt.cpu, rt.lock_memory, rt.lock_pages,
+                            rt.cpu_latency_us)
     try:
         asm.driver.configure()
         asm.driver.activate()

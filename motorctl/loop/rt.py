@@ -12,6 +12,13 @@ Steps (each reported as obtained / refused with the reason):
     that refuses MCL_ONFAULT gets ``all``, and the report says so;
   * CPU affinity (the configured CPU, else the highest CPU in /sys/devices/system/cpu/isolated);
   * timer slack 1 ns (prctl PR_SET_TIMERSLACK; the kernel ignores slack under SCHED_FIFO);
+  * a CPU wake-up latency request to the kernel's PM QoS (``cpu_latency_us``, default 0): the
+    value written to /dev/cpu_dma_latency, held open for the run (the kernel's
+    Documentation/power/pm_qos_interface.rst; rt-tests' cyclictest does the same). With 0 the
+    idle CPUs poll instead of entering a sleep state, so the loop's wake-up does not wait for a
+    CPU to leave one (on a virtual machine, for the hypervisor to schedule a halted vCPU back):
+    every CPU then runs at full power while the loop runs. The kernel drops the request when
+    the file is closed, by :func:`restore` or by the process's end, whatever ends it;
   * gc.collect(); gc.freeze(); gc.disable() so no collection runs inside the loop.
 
 With ``policy: required`` a refused SCHED_FIFO or mlockall raises :class:`RealtimeError`
@@ -24,6 +31,7 @@ import ctypes
 import ctypes.util
 import gc
 import os
+import struct
 from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
@@ -37,6 +45,9 @@ MCL_ONFAULT = 4
 PR_SET_TIMERSLACK = 29
 #: the CPUs the process had before setup_realtime pinned it (restore puts them back)
 _saved_affinity: list = []
+#: the open /dev/cpu_dma_latency holding the PM QoS request (restore closes it)
+_latency_fd: list = []
+CPU_DMA_LATENCY = "/dev/cpu_dma_latency"
 
 
 class RealtimeError(RuntimeError):
@@ -87,15 +98,34 @@ def _lock(lock_pages: str) -> tuple[bool, str]:
     return False, f"refused: {os.strerror(ctypes.get_errno())}"
 
 
+def _request_cpu_latency(latency_us: int) -> tuple[bool, str]:
+    """Hold a PM QoS CPU latency request of ``latency_us`` [µs] (module docstring)."""
+    if _latency_fd:
+        os.close(_latency_fd.pop())
+    try:
+        fd = os.open(CPU_DMA_LATENCY, os.O_WRONLY | os.O_CLOEXEC)
+    except OSError as exc:
+        return False, f"{CPU_DMA_LATENCY}: {exc.strerror}"
+    try:
+        os.write(fd, struct.pack("=i", latency_us))
+    except OSError as exc:
+        os.close(fd)
+        return False, f"{CPU_DMA_LATENCY}: {exc.strerror}"
+    _latency_fd.append(fd)
+    return True, f"{latency_us} us held through {CPU_DMA_LATENCY}"
+
+
 def setup_realtime(policy: str = "best_effort", priority: int = 80, cpu: int | None = None,
-                   lock_memory: bool = True, lock_pages: str = "touched") -> RealtimeReport:
+                   lock_memory: bool = True, lock_pages: str = "touched",
+                   cpu_latency_us: int | None = None) -> RealtimeReport:
     """Apply the real-time set-up to the calling process (see module docstring).
 
     Args:
         policy: 'off' (only gc freeze), 'best_effort' (report refusals), 'required' (raise).
         priority: SCHED_FIFO priority 1..99. cpu: CPU to pin to, or None.
         lock_memory: call mlockall. lock_pages: 'touched' (MCL_ONFAULT) or 'all' (module
-            docstring).
+            docstring). cpu_latency_us: the PM QoS CPU latency to hold [µs], ≥ 0, or None
+            (no request); a refusal is reported, never raised.
     Returns:
         The report. Raises RealtimeError when policy is 'required' and FIFO or mlock is refused.
     """
@@ -133,6 +163,8 @@ def setup_realtime(policy: str = "best_effort", priority: int = 80, cpu: int | N
             rep.steps["timer_slack"] = (ok, "1 ns" if ok else os.strerror(ctypes.get_errno()))
         except (OSError, AttributeError) as exc:
             rep.steps["timer_slack"] = (False, str(exc))
+        if cpu_latency_us is not None:
+            rep.steps["cpu_latency"] = _request_cpu_latency(int(cpu_latency_us))
     gc.collect()
     gc.freeze()
     gc.disable()
@@ -147,9 +179,14 @@ def setup_realtime(policy: str = "best_effort", priority: int = 80, cpu: int | N
 
 
 def restore() -> None:
-    """Undo the scheduling, affinity and gc parts (back to SCHED_OTHER on the CPUs the process
-    had before, gc enabled); used after a run."""
+    """Undo the set-up (back to SCHED_OTHER on the CPUs the process had before, the CPU
+    latency request dropped, gc enabled); used after a run."""
     _sched_other()
+    while _latency_fd:
+        try:
+            os.close(_latency_fd.pop())
+        except OSError:
+            pass
     if _saved_affinity:
         try:
             os.sched_setaffinity(0, _saved_affinity[0])
@@ -203,3 +240,6 @@ class RealtimeConfig(StrictModel):
     #: rehearse the next cycle on copies in the spin tail, so that it finds its code and data
     #: in the CPU's caches (:class:`motorctl.loop.servo.ServoLoop`, ``warm_caches``)
     warm_caches: bool = True
+    #: the CPU wake-up latency [µs] requested from the kernel's PM QoS while the loop runs
+    #: (/dev/cpu_dma_latency; 0: idle CPUs poll, no sleep state); null: no request
+    cpu_latency_us: Annotated[int, Field(ge=0, le=2_000_000_000)] | None = 0

@@ -1,0 +1,72 @@
+"""The loop process's real-time set-up (motorctl.loop.rt): a pinned run gives the process its
+CPUs back, the loop's helper processes keep off the loop's CPU, and the CPU latency request is
+held while the loop runs and dropped after."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+PROBE = """
+import json, os
+from motorctl.loop.rt import keep_off, restore, setup_realtime
+before = sorted(os.sched_getaffinity(0))
+rep = setup_realtime("best_effort", 10, 0, lock_memory=False)
+pinned = sorted(os.sched_getaffinity(0))
+restore()
+after = sorted(os.sched_getaffinity(0))
+os.sched_setaffinity(0, {0})              # a helper forked from a pinned loop process
+keep_off(0)
+helper = sorted(os.sched_getaffinity(0))
+print(json.dumps({"before": before, "pinned": pinned, "after": after, "helper": helper,
+                  "affinity": rep.ok("affinity"), "policy": os.sched_getscheduler(0)}))
+"""
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs")
+def test_a_pinned_run_gives_its_cpus_back_and_a_helper_keeps_off_the_loops_cpu():
+    r = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    got = json.loads(r.stdout)
+    assert got["affinity"] and got["pinned"] == [0], got
+    assert got["after"] == got["before"], got
+    assert 0 not in got["helper"] and got["helper"], got
+    assert got["policy"] == os.SCHED_OTHER
+
+
+LATENCY_PROBE = """
+import json, os, struct
+from motorctl.loop.rt import CPU_DMA_LATENCY, restore, setup_realtime
+
+def held():
+    return [fd for fd in os.listdir("/proc/self/fd")
+            if os.path.realpath(f"/proc/self/fd/{fd}") == CPU_DMA_LATENCY]
+
+def value():
+    with open(CPU_DMA_LATENCY, "rb") as f:
+        return struct.unpack("=i", f.read(4))[0]
+
+none = setup_realtime("off", cpu_latency_us=7)      # policy off: no request
+off = {"step": "cpu_latency" in none.steps, "held": len(held())}
+restore()
+rep = setup_realtime("best_effort", 10, None, lock_memory=False, cpu_latency_us=7)
+during = {"ok": rep.ok("cpu_latency"), "held": len(held()), "value": value()}
+restore()
+print(json.dumps({"off": off, "during": during, "after": len(held())}))
+"""
+
+
+@pytest.mark.skipif(not os.access("/dev/cpu_dma_latency", os.W_OK),
+                    reason="needs a writable /dev/cpu_dma_latency (root)")
+def test_the_cpu_latency_request_is_held_while_the_loop_runs_and_dropped_after():
+    r = subprocess.run([sys.executable, "-c", LATENCY_PROBE], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    got = json.loads(r.stdout)
+    assert got["off"] == {"step": False, "held": 0}, got
+    # the kernel's target is the least of all requests held: at most ours
+    assert got["during"]["ok"] and got["during"]["held"] == 1 and got["during"]["value"] <= 7, got
+    assert got["after"] == 0, got
