@@ -18,9 +18,11 @@ alone (sleep, spin, read the clock) at SCHED_FIFO 80 with memory locked, holding
 each wake for the loop's median turnaround; loop, floor, floor, loop, ... so that both meet the
 same moments of a machine whose stalls come in bursts. Turnaround (read start → write end,
 including the plant's RK4 in the simulated driver's write), overruns (whole periods missed),
-per turn and pooled, the overruns' ratio. Then, one after the other, the loop with
-``loop.realtime.warm_caches`` off (no rehearsal of the next cycle in the spin tail) and
-without SCHED_FIFO (policy off). All are pinned to ``--cpu`` (default: the last CPU,
+per turn and pooled, the overruns' ratio (the floor holds the loop's CPU latency request,
+``loop.realtime.cpu_latency_us``, too). Then, one after the other, the loop with
+``loop.realtime.warm_caches`` off (no rehearsal of the next cycle in the spin tail), without
+the CPU latency request (``cpu_latency_us: null``: idle CPUs may sleep) and without SCHED_FIFO
+(policy off). All are pinned to ``--cpu`` (default: the last CPU,
 as a deployment pins the loop to an isolated one; ``--cpu -1``: not pinned). The machine is
 shared and noisy: compare medians and ratios taken in one run.
 """
@@ -220,6 +222,8 @@ def main() -> None:
     pinned = config_from_dict(raw, args.config)
     raw["loop"]["realtime"]["warm_caches"] = False
     pinned_cold = config_from_dict(raw, f"{args.config} without warm_caches")
+    raw["loop"]["realtime"].update(warm_caches=True, cpu_latency_us=None)
+    pinned_no_qos = config_from_dict(raw, f"{args.config} without a CPU latency request")
     spin_us = pinned.cfg.loop.realtime.spin_us
     raw = load_yaml(args.config)
     for axis in raw["axes"]:
@@ -268,7 +272,8 @@ def main() -> None:
         except RealtimeError as exc:
             print(f"not available here ({exc})")
     print(f"### beside them, {args.seconds:g} s each, one after the other")
-    for policy, cfg, label in (("required", pinned_cold, "warm_caches off"), ("off", pinned, "SCHED_OTHER")):
+    for policy, cfg, label in (("required", pinned_cold, "warm_caches off"),
+                               ("required", pinned_no_qos, "cpu_latency_us null"), ("off", pinned, "SCHED_OTHER")):
         try:
             res = run_job(cfg, controller="c2", duration_s=args.seconds, clock="wall", realtime_policy=policy)
         except RealtimeError as exc:

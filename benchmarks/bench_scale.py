@@ -5,7 +5,7 @@ same run, the floor of the machine: a loop that only wakes at the same deadlines
 same spin tail as the servo loop) and reads the clock.
 
 Rerun:  python benchmarks/bench_scale.py [--config configs/gantry.yaml] [--seconds 10] [--cpu 1]
-        [--axes 1 2 4 8 16] [--spin-us 1000] [--warm-caches on|off|both]
+        [--axes 1 2 4 8 16] [--spin-us 1000] [--warm-caches on|off|both] [--cpu-latency-us N|none]
 
 Prints per axis count, with and without ``loop.realtime.warm_caches`` (the next cycle rehearsed
 on copies in the spin tail): turnaround p50 / p99 / p99.9 / max [µs] per cycle and p50 per axis,
@@ -83,17 +83,24 @@ def main() -> None:
     ap.add_argument("--axes", type=int, nargs="+", default=[1, 2, 4, 8, 16])
     ap.add_argument("--spin-us", type=float, default=None,
                     help="loop.realtime.spin_us (default: the config's; at least the period: a polling loop)")
+    ap.add_argument("--cpu-latency-us", default=None,
+                    help="loop.realtime.cpu_latency_us of the loop and the floor: N [us] or 'none' "
+                         "(default: the config's)")
     ap.add_argument("--warm-caches", choices=("on", "off", "both"), default="both",
                     help="loop.realtime.warm_caches of the rows (default both: each count with and without)")
     a = ap.parse_args()
     base = load_yaml(a.config)
     if a.spin_us is not None:
         base["loop"].setdefault("realtime", {})["spin_us"] = a.spin_us
+    if a.cpu_latency_us is not None:
+        base["loop"].setdefault("realtime", {})["cpu_latency_us"] = (
+            None if a.cpu_latency_us == "none" else int(a.cpu_latency_us))
     rate = float(base["loop"].get("rate_hz", 5000.0))
     print(f"# motorctl scale benchmark on {platform.node()}, python {platform.python_version()}, "
           f"{time.strftime('%Y-%m-%d %H:%M:%S')}; {rate:g} Hz, {a.seconds:g} s per row, CPU {a.cpu}")
     print(f"# rerun: python benchmarks/bench_scale.py --config {a.config} --seconds {a.seconds:g} --cpu {a.cpu} "
-          f"--axes {' '.join(map(str, a.axes))}" + (f" --spin-us {a.spin_us:g}" if a.spin_us is not None else ""))
+          f"--axes {' '.join(map(str, a.axes))}" + (f" --spin-us {a.spin_us:g}" if a.spin_us is not None else "")
+          + (f" --cpu-latency-us {a.cpu_latency_us}" if a.cpu_latency_us is not None else ""))
     print("axes | warm caches | turnaround p50 / p99 / p99.9 / max us | p50 per axis us | lateness p99 us | "
           "overruns | realtime")
     for n in a.axes:
