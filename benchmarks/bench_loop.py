@@ -4,13 +4,16 @@ Rerun:  python benchmarks/bench_loop.py [--config configs/gantry.yaml] [--second
         [--cpu N] [--slices 6]
 
 Part 1, step cost: each axis's controllers (C1, C2, the PID+FF where the axis configures
-``pid:``, and C2 with a compensation of cogging and Stribeck friction, ``c2+comp``) run in closed loop with the simulated plant for --steps samples of its program:
-(a) ``controller.update()`` called from Python (perf_counter_ns around each call, so the
-figure includes the Python→kernel dispatch); (b) in the compiled cycle
+``pid:``, and C2 with a compensation of cogging and Stribeck friction, ``c2+comp``) run in
+closed loop with the simulated plant for --steps samples of its program. Printed first, the
+step as the servo loop runs it: (b) in the compiled cycle
 (motorctl/loop/cycle.py): the law's own cost, its compiled step replayed inside compiled code on
 the samples of (a) (no clock per call: total / steps); (c) the whole compiled call of a cycle
 (supervisor, desired(k), law, record row, and the call from Python), the record's control_ns
-of a one-axis loop on the virtual clock, and of both axes.
+of a one-axis loop on the virtual clock, and of both axes. Then (a) ``controller.update()``
+called from Python, as a caller outside the loop (a tool, a test) does: perf_counter_ns around
+each call, so the figure includes the Python→kernel dispatch of 14 arguments, which the loop
+does not pay.
 Part 2, the loop: ``motorctl run``'s job with both axes on C2 against the wall clock for
 --seconds, with SCHED_FIFO + mlockall (policy required) and its run log written, in --slices
 turns with the machine's floor: benchmarks/floor.c (compiled here with cc), the loop's pacing
@@ -233,7 +236,18 @@ def main() -> None:
           f"python {platform.python_version()}, {time.strftime('%Y-%m-%d %H:%M:%S')}")
     print(f"# rerun: python benchmarks/bench_loop.py --config {args.config} --seconds {args.seconds:g} --steps {args.steps} "
           f"--cpu {args.cpu} --slices {args.slices}" + (f" --spin-us {args.spin_us:g}" if args.spin_us is not None else ""))
-    print("\n## controller step cost (us per axis, closed loop on the simulated plant)")
+    print("\n## the controller step as the servo loop runs it (us per axis): (b) the law's own step inside the compiled "
+          "cycle, (c) the compiled call of a cycle, one axis")
+    print(f"{'axis':4} {'ctrl':7} {'law':>8} {'call p50':>9} {'call p99':>9}")
+    for axis in loaded.axes:
+        for label, cfg, kind in variants(loaded, loaded_comp, axis):
+            law = replayed_law_cost(cfg, axis, kind, args.steps)
+            c = cycle_cost(cfg, [axis], kind, args.steps)
+            print(f"{axis:4} {label:7} {law:8.2f} {np.median(c):9.2f} {np.percentile(c, 99):9.2f}")
+    c = cycle_cost(loaded, list(loaded.axes), "c2", args.steps)
+    print(f"all axes ({', '.join(loaded.axes)}) on c2: call p50 {np.median(c):.2f} p99 {np.percentile(c, 99):.2f} us")
+    print("\n## (a) controller.update() called from Python, for a caller outside the loop (us per axis, closed loop "
+          "on the simulated plant)")
     print(f"{'axis':4} {'ctrl':7} {'median':>8} {'p99':>8} {'max':>8}")
     med = {}
     for axis in loaded.axes:
@@ -245,15 +259,6 @@ def main() -> None:
               f"(paper's dSPACE: 14 us / 10 us = 1.40)")
         if (axis, "pid") in med:
             print(f"{axis:4} PID/C2 median ratio {med[axis, 'pid'] / med[axis, 'c2']:.2f}")
-    print("\n## in the compiled cycle (us): (b) the law's own step, (c) the compiled call of a cycle, one axis")
-    print(f"{'axis':4} {'ctrl':7} {'law':>8} {'call p50':>9} {'call p99':>9}")
-    for axis in loaded.axes:
-        for label, cfg, kind in variants(loaded, loaded_comp, axis):
-            law = replayed_law_cost(cfg, axis, kind, args.steps)
-            c = cycle_cost(cfg, [axis], kind, args.steps)
-            print(f"{axis:4} {label:7} {law:8.2f} {np.median(c):9.2f} {np.percentile(c, 99):9.2f}")
-    c = cycle_cost(loaded, list(loaded.axes), "c2", args.steps)
-    print(f"all axes ({', '.join(loaded.axes)}) on c2: call p50 {np.median(c):.2f} p99 {np.percentile(c, 99):.2f} us")
     print(f"\n## {args.seconds:g} s wall-clock loop at {loaded.cfg.loop.rate_hz:g} Hz, axes {', '.join(loaded.axes)} on C2"
           f"{'' if cpu is None else f', CPU {cpu}'}, spin {spin_us:g} us"
           f"{' (never sleeps: polling)' if spin_us * 1e-6 >= pinned.period_s else ''}")
