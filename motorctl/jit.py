@@ -4,6 +4,15 @@ numba compiles the per-sample kernels (estimator, law, inversion) to machine cod
 compiled code is cached on disk beside the sources, so only the first process after an install
 pays the compile time. ``NUMBA_DISABLE_JIT=1`` runs the same functions as plain Python.
 
+Inside compiled code every array view (a slice, a row, a bundle's field) and every array
+passed on to another kernel is reference-counted: an atomic increment and decrement of its
+owner's count, which numba cannot prune across the branches and loops of a law. In the servo
+cycle those pairs cost more than the arithmetic (the C2 step on the 2-core development VM:
+1.30 µs with them, 0.73 µs without, ``benchmarks/bench_loop.py``). The cycle's kernels
+therefore take their views through :func:`borrow`, a view without a reference (its counting
+calls return at once): safe because each such view lives only inside the call that made it,
+while the caller holds its owner.
+
 A call from Python into a kernel costs numba's dispatcher a type resolution of every argument.
 The servo cycle's calls therefore pass their arrays as one :func:`bundle` (a numba StructRef:
 the arrays by name, shared with Python, not copied) and go through :func:`entry`, the compiled
@@ -19,6 +28,7 @@ from numba import njit as _numba_njit
 from numba import typeof as _typeof
 from numba.core import types as _types
 from numba.experimental import structref as _structref
+from numba.extending import intrinsic as _intrinsic
 
 #: Decorator for the per-sample kernels: nopython mode, cached, no GIL needed.
 njit = partial(_numba_njit, cache=True, nogil=True)
@@ -26,7 +36,7 @@ njit = partial(_numba_njit, cache=True, nogil=True)
 #: True when ``NUMBA_DISABLE_JIT=1``: kernels are plain Python
 DISABLED = bool(_config.DISABLE_JIT)
 
-__all__ = ["DISABLED", "BundleType", "bundle", "define_bundle", "entry", "njit"]
+__all__ = ["DISABLED", "BundleType", "borrow", "bundle", "define_bundle", "entry", "njit"]
 
 
 class BundleType(_types.StructRef):
@@ -78,3 +88,27 @@ def entry(kernel, *args):
     if DISABLED:
         return kernel
     return kernel.compile(tuple(_typeof(a) for a in args))
+
+
+def _borrow_py(a):
+    return a
+
+
+@_intrinsic
+def _borrow_jit(typingctx, arr):
+    if not isinstance(arr, _types.Array):
+        return None
+
+    def codegen(context, builder, signature, args):
+        view = context.make_array(arr)(context, builder, value=args[0])
+        view.meminfo = context.get_constant_null(_types.MemInfoPointer(arr.dtype))
+        return view._getvalue()
+    return arr(arr), codegen
+
+
+#: ``borrow(a)``, in compiled code: the same array (data, shape, strides) without a reference to
+#: its owner, so that numba counts no references for it, here or in the kernels it is passed to.
+#: For views that live only inside the kernel that takes them, while the caller holds their
+#: owner: a borrowed view must never be returned, stored in a bundle or outlive that call.
+#: With the JIT disabled, the array itself.
+borrow = _borrow_py if DISABLED else _borrow_jit

@@ -79,7 +79,7 @@ from motorctl.driver import Driver, StopCheck
 from motorctl.effects import FAMILIES, effects_model
 from motorctl.effects import plant as effect_terms
 from motorctl.effects.input_delay import delay_line
-from motorctl.jit import BundleType, bundle, define_bundle, entry, njit
+from motorctl.jit import BundleType, borrow, bundle, define_bundle, entry, njit
 from motorctl.model import S_F_GAIN, PhysicalAxis
 from motorctl.schema import NonNeg, Pos, StrictModel
 
@@ -377,7 +377,9 @@ def _make_sim_io(pos, read_error, amp_fault, amp_enabled, applied_u, S, P, DL, N
 def _sim_read(io, bitten):
     """:meth:`SimDriver.read` of every axis on the :class:`SimIO` ``io``: injected read errors,
     NaN readings and amplifier faults, else the encoder reading plus an injected jump [m]."""
-    pos, read_error, amp_fault, S, P, inj, jump = io.pos, io.read_error, io.amp_fault, io.S, io.P, io.inj, io.jump
+    # borrowed views (motorctl.jit.borrow): the bundle holds the arrays through the call
+    pos, read_error, amp_fault = borrow(io.pos), borrow(io.read_error), borrow(io.amp_fault)
+    S, P, inj, jump = borrow(io.S), borrow(io.P), borrow(io.inj), borrow(io.jump)
     for i in range(pos.shape[0]):
         if inj[i, INJ_READ] > 0:
             inj[i, INJ_READ] -= 1
@@ -392,7 +394,7 @@ def _sim_read(io, bitten):
             if bitten:
                 amp_fault[i] = True
             continue
-        pos[i] = _plant_measured(S[i], P[i]) + jump[i]
+        pos[i] = _plant_measured(borrow(S[i]), borrow(P[i])) + jump[i]
         amp_fault[i] = inj[i, INJ_AMP] > 0 or bitten
         if inj[i, INJ_AMP] > 0:
             inj[i, INJ_AMP] -= 1
@@ -405,9 +407,11 @@ def _sim_write(io, bitten):
     push, one period of each plant (:func:`_plant_step`, or :func:`_hooked_step` with the
     plant's effect terms), under the command io.u_cmd [V], io.en_cmd (n,). Returns how many
     plants have used up their block of noise draws (to be refilled before the next period)."""
-    u_v, enable = io.u_cmd, io.en_cmd
-    amp_fault, amp_enabled, applied_u, inj, push = io.amp_fault, io.amp_enabled, io.applied_u, io.inj, io.push
-    S, P, DL, NZ, TC, TT, TL, NT = io.S, io.P, io.DL, io.NZ, io.TC, io.TT, io.TL, io.NT
+    # borrowed views (motorctl.jit.borrow): the bundle holds the arrays through the call
+    u_v, enable, amp_fault = borrow(io.u_cmd), borrow(io.en_cmd), borrow(io.amp_fault)
+    amp_enabled, applied_u, inj, push = borrow(io.amp_enabled), borrow(io.applied_u), borrow(io.inj), borrow(io.push)
+    S, P, DL, NZ = borrow(io.S), borrow(io.P), borrow(io.DL), borrow(io.NZ)
+    TC, TT, TL, NT = borrow(io.TC), borrow(io.TT), borrow(io.TL), borrow(io.NT)
     need = 0
     for i in range(u_v.shape[0]):
         on = enable[i] and not amp_fault[i] and not bitten
@@ -422,10 +426,11 @@ def _sim_write(io, bitten):
         else:
             S[i, PS_FEXT] = 0.0
         k = NT[i]
+        s, p, dl, nz = borrow(S[i]), borrow(P[i]), borrow(DL[i, :int(P[i, PP_NDL])]), borrow(NZ[i])
         if k > 0:
-            _hooked_step(u, S[i], P[i], DL[i, :int(P[i, PP_NDL])], NZ[i], TC[i, :k], TT[i, :k], TL[i, :k])
+            _hooked_step(u, s, p, dl, nz, borrow(TC[i, :k]), borrow(TT[i, :k]), borrow(TL[i, :k]))
         else:
-            _plant_step(u, S[i], P[i], DL[i, :int(P[i, PP_NDL])], NZ[i])
+            _plant_step(u, s, p, dl, nz)
         if S[i, PS_NZI] >= NOISE_BLOCK:
             need += 1
     return need

@@ -231,3 +231,27 @@ def test_the_loop_cycle_and_its_rehearsal_allocate_nothing(repo, law):
                          env={**os.environ, "NUMBA_NRT_STATS": "1"}, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert int(out.stdout.split()[-1]) == 0, out.stdout
+
+
+def test_a_borrowed_view_reads_and_writes_its_owner():
+    """motorctl.jit.borrow keeps the view's data, shape and strides (only its reference to the
+    owner is dropped): the law's matrix views written through it land in the owner's buffer,
+    row-major, and a 1-D borrowed slice reads what the owner holds."""
+    from motorctl.control.dcdiarc import _matrix
+    from motorctl.jit import borrow, njit
+
+    @njit
+    def fill(buf, at, rows, cols):
+        m = borrow(_matrix(buf, at, rows, cols))
+        for i in range(rows):
+            for j in range(cols):
+                m[i, j] = 10.0 * i + j
+        v = borrow(buf[at + cols:at + 2 * cols])
+        return m.shape[0], m.shape[1], v.sum()
+
+    buf = np.zeros(20)
+    rows, cols, s = fill(buf, 4, 3, 2)
+    assert (rows, cols) == (3, 2)
+    assert buf[4:10].tolist() == [0.0, 1.0, 10.0, 11.0, 20.0, 21.0]
+    assert buf[:4].tolist() == [0.0] * 4 and buf[10:].tolist() == [0.0] * 10
+    assert s == 21.0

@@ -17,7 +17,7 @@ from motorctl.control.pid import N_PRM as PID_N_PRM
 from motorctl.control.pid import N_STATE as PID_N_STATE
 from motorctl.control.pid import pid_reset, pid_step
 from motorctl.effects.compensation import T_PREVIEW
-from motorctl.jit import njit
+from motorctl.jit import borrow, njit
 
 __all__ = ["LAW_DCDIARC", "LAW_DCDIARC_COMP", "LAW_PID", "LAW_PY", "N_LAYOUT", "law_preview", "law_reset",
            "law_step"]
@@ -42,7 +42,8 @@ def law_step(law, y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, f, ii, lay):
         return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, x_d, xd_dot, xd_ddot, 0.0, 1.0, 1.0, sig, f, ii, lay)
     if law == LAW_DCDIARC_COMP:
         return dcdiarc_comp_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, f, ii, lay)
-    return pid_step(y, x_d, xd_dot, xd_ddot, sig, f[:PID_N_STATE], f[PID_N_STATE:PID_N_STATE + PID_N_PRM])
+    return pid_step(y, x_d, xd_dot, xd_ddot, sig, borrow(f[:PID_N_STATE]),
+                    borrow(f[PID_N_STATE:PID_N_STATE + PID_N_PRM]))
 
 
 @njit
@@ -51,4 +52,4 @@ def law_reset(law, y0, f, lay):
     if law == LAW_DCDIARC or law == LAW_DCDIARC_COMP:
         dcdiarc_block_reset(y0, f, lay)
     else:
-        pid_reset(y0, f[:PID_N_STATE])
+        pid_reset(y0, borrow(f[:PID_N_STATE]))

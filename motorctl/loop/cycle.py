@@ -33,7 +33,7 @@ import numpy as np
 from numba.experimental.structref import StructRefProxy
 
 from motorctl.control.kernels import LAW_PY, law_preview, law_reset, law_step
-from motorctl.jit import BundleType, bundle, define_bundle, njit
+from motorctl.jit import BundleType, borrow, bundle, define_bundle, njit
 from motorctl.loop.records import CONTROLLER_SIGNALS, N_SIGNALS
 from motorctl.loop.safety import FAULT_OVERRUN, SI_FAULT, sup_check_input, sup_check_output, sup_trip
 from motorctl.loop.trajectory import TABLE_HEAD, sample_table
@@ -149,9 +149,9 @@ def desired(i, k, ahead, ax, axf, prog, move, ts):
     move, the held position; NaN in IDLE (the caller takes the measured position)."""
     m = ax[i, A_MODE]
     if m == PROGRAM:
-        return sample_table(prog[i], (k - ax[i, A_KST]) * ts + ahead)
+        return sample_table(borrow(prog[i]), (k - ax[i, A_KST]) * ts + ahead)
     if m == APPROACH or m == JOG:
-        mv = move[i]
+        mv = borrow(move[i])
         return sample_table(mv, mv[TABLE_HEAD + 2] + (k - ax[i, A_KST]) * ts + ahead)
     if m == HOLD:
         return axf[i, X_HOLD], 0.0, 0.0
@@ -164,12 +164,15 @@ def servo_cycle(phase, k, st):
     ``phase``: CYCLE_ALL, CYCLE_BEFORE or CYCLE_AFTER. Reads st.pos [m] and the driver's flags
     (n,), writes st.uo [V] and st.en (n,) and the record row k % capacity of st.buf. Returns the
     number of axes left pending (laws to run from Python)."""
-    pos, rerr, werr, ampf, uo, en = st.pos, st.rerr, st.werr, st.ampf, st.uo, st.en
-    ax, axf, prog, move, si, sf = st.ax, st.axf, st.prog, st.move, st.si, st.sf
-    sig, cf, ci, cl, buf, offs, lp = st.sig, st.cf, st.ci, st.cl, st.buf, st.offs, st.lp
+    # borrowed views (motorctl.jit.borrow): the bundle holds the arrays through the call
+    pos, rerr, werr, ampf = borrow(st.pos), borrow(st.rerr), borrow(st.werr), borrow(st.ampf)
+    uo, en, ax, axf = borrow(st.uo), borrow(st.en), borrow(st.ax), borrow(st.axf)
+    prog, move, si, sf = borrow(st.prog), borrow(st.move), borrow(st.si), borrow(st.sf)
+    sig, cf, ci, cl = borrow(st.sig), borrow(st.cf), borrow(st.ci), borrow(st.cl)
+    buf, offs, lp = borrow(st.buf), borrow(st.offs), borrow(st.lp)
     ts = lp[LP_TS]
     n = pos.shape[0]
-    row = buf[k % buf.shape[0]]
+    row = borrow(buf[k % buf.shape[0]])
     pending = 0
     for i in range(n):
         if phase == CYCLE_AFTER:
@@ -236,14 +239,15 @@ def servo_cycle(phase, k, st):
                     pending += 1
                     continue
                 if ax[i, A_RUNNING] == 0:
-                    law_reset(law, y, cf[i], cl[i])
+                    law_reset(law, y, borrow(cf[i]), borrow(cl[i]))
                     ax[i, A_RUNNING] = 1
-                tau = law_preview(law, cf[i], cl[i])
+                tau = law_preview(law, borrow(cf[i]), borrow(cl[i]))
                 if tau > 0.0:                          # the law's preview: from the mode it now has
                     xf, vf, af = desired(i, k, tau, ax, axf, prog, move, ts)
                 else:
                     xf, vf, af = xd, vd, ad
-                u = law_step(law, y, xd, vd, ad, xf, vf, af, k * ts, sig[i], cf[i], ci[i], cl[i])
+                u = law_step(law, y, xd, vd, ad, xf, vf, af, k * ts, borrow(sig[i]), borrow(cf[i]), borrow(ci[i]),
+                             borrow(cl[i]))
                 u, ok = _output(i, u, vd, ax, axf, si, sf, sig, lp)
         _finish(i, ok, u, k, y, xd, vd, ad, ax, axf, si, sig, uo, en, row, offs, lp)
     return pending
