@@ -1,7 +1,7 @@
 """Benchmark: the law's step cost, the compiled cycle, and the 5 kHz servo loop on the simulated gantry.
 
 Rerun:  python benchmarks/bench_loop.py [--config configs/gantry.yaml] [--seconds 60] [--steps 50000]
-        [--cpu N] [--slices 6]
+        [--cpu N] [--slices 6] [--beside-seconds S]
 
 Part 1, step cost: each axis's controllers (C1, C2, the PID+FF where the axis configures
 ``pid:``, and C2 with a compensation of cogging and Stribeck friction, ``c2+comp``) run in
@@ -22,7 +22,11 @@ each wake for the loop's median turnaround; loop, floor, floor, loop, ... so tha
 same moments of a machine whose stalls come in bursts. Turnaround (read start → write end,
 including the plant's RK4 in the simulated driver's write), overruns (whole periods missed),
 per turn and pooled, the overruns' ratio (the floor holds the loop's CPU latency request,
-``loop.realtime.cpu_latency_us``, too). Then, one after the other, the loop with
+``loop.realtime.cpu_latency_us``, too), and the ratio of overrun events (a wake one or more
+whole periods late, counted once: a 5 ms stall of the VM is one event of 25 missed periods) with
+its exact 95 % interval, and whether that interval decides the ratio against 1.2×: a 60 s run
+counts a few tens of events, too few to tell 1.0× from 1.2×; ``--seconds 600 --slices 30`` counts
+ten times as many. Then, one after the other, the loop with
 ``loop.realtime.warm_caches`` off (no rehearsal of the next cycle in the spin tail), without
 the CPU latency request (``cpu_latency_us: null``: idle CPUs may sleep) and without SCHED_FIFO
 (policy off). All are pinned to ``--cpu`` (default: the last CPU,
@@ -163,6 +167,7 @@ def in_turn(loaded, exe: str, seconds: float, slices: int, cpu: int | None, spin
     period_ns = int(round(1e9 / loaded.cfg.loop.rate_hz))
     part = seconds / slices
     turn, hold, ovr, missed, work_ns = [], [], [], [], 0
+    ev_loop, ev_floor = [], []                     # overrun events: wakes one or more periods late
     print(f"{'turn':>4} {'loop overruns':>14} {'floor overruns':>15} {'loop turnaround p99.9':>22} "
           f"{'floor hold p99.9':>17} us")
 
@@ -170,8 +175,11 @@ def in_turn(loaded, exe: str, seconds: float, slices: int, cpu: int | None, spin
         log = os.path.join(tmp, f"turn{r}.mclog")
         res = run_job(loaded, controller="c2", duration_s=part, clock="wall", log_path=log,
                       realtime_policy="required")
-        turn.append(read_log(log).col("turnaround_ns") / 1e3)
+        rl = read_log(log)
+        turn.append(rl.col("turnaround_ns") / 1e3)
         ovr.append(res.timing["overruns"])
+        cum = rl.col("overruns")                   # missed periods so far, per cycle
+        ev_loop.append(int(np.count_nonzero(np.diff(cum, prepend=0.0) > 0)))
         os.unlink(log)
 
     def floor_part(r):
@@ -179,6 +187,7 @@ def in_turn(loaded, exe: str, seconds: float, slices: int, cpu: int | None, spin
         line = machine_floor(exe, part, period_ns, spin_us, cpu, work_ns, f,
                              loaded.cfg.loop.realtime.cpu_latency_us)
         missed.append(int(line.split()[4]))
+        ev_floor.append(int(line.split("events=")[1].split()[0]))
         hold.append(np.fromfile(f, dtype=np.int64) / 1e3)
         os.unlink(f)
 
@@ -199,6 +208,29 @@ def in_turn(loaded, exe: str, seconds: float, slices: int, cpu: int | None, spin
     print(f"{'floor, pooled':22}: holding the CPU {work_ns / 1e3:.1f} us after each wake: p50 {np.median(h):.1f} "
           f"p99 {np.percentile(h, 99):.1f} p99.9 {np.percentile(h, 99.9):.1f} max {h.max():.1f} us | "
           f"overruns {sum(missed)} in {len(h)} cycles")
+    print(events_ratio(sum(ev_loop), len(t), sum(ev_floor), len(h)))
+
+
+def events_ratio(a: int, n_a: int, b: int, n_b: int, limit: float = 1.2) -> str:
+    """The loop's rate of overrun events (wakes one or more whole periods late, each counted
+    once) against the floor's: ``a`` events in ``n_a`` cycles, ``b`` in ``n_b``. The events,
+    not the missed periods, are what arrive at random (a 5 ms stall is one event of 25
+    periods), so the interval is on them: given a + b, a is binomial with p = ρ/(ρ + n_b/n_a)
+    for the rate ratio ρ; the exact (Clopper-Pearson) 95 % interval of p, mapped to ρ.
+    Returns a line with the ratio, its interval and whether it decides ``ratio ≤ limit``."""
+    from scipy.stats import binomtest
+    if a + b == 0:
+        return "overrun events: none on either side"
+    ci = binomtest(a, a + b).proportion_ci(0.95)
+    scale = n_b / n_a
+
+    def rho(p):
+        return float("inf") if p >= 1.0 else p / (1.0 - p) * scale
+    est, lo, hi = rho(a / (a + b)), rho(ci.low), rho(ci.high)
+    verdict = (f"<= {limit:g}x decided" if hi <= limit else f"> {limit:g}x decided" if lo > limit
+               else f"{limit:g}x inside the interval: this run does not decide it")
+    return (f"{'overrun events':22}: loop {a}, floor {b} (wakes >= 1 period late, each once): ratio {est:.2f}x, "
+            f"95% interval {lo:.2f}-{hi:.2f}x (exact binomial on the events): {verdict}")
 
 
 def main() -> None:
@@ -213,6 +245,8 @@ def main() -> None:
                          "at least the period: the loop never sleeps, a polling loop on a dedicated CPU)")
     ap.add_argument("--slices", type=int, default=6,
                     help="turns of the loop and the floor in turn over --seconds (1: one run of each)")
+    ap.add_argument("--beside-seconds", type=float, default=None,
+                    help="length of each of the three runs beside the turns (default: --seconds; 0: none)")
     args = ap.parse_args()
     if args.slices < 1 or args.seconds / args.slices < 1.0:
         ap.error("--slices must be at least 1, with --seconds / --slices at least 1 s")
@@ -235,7 +269,8 @@ def main() -> None:
     print(f"# motorctl loop benchmark on {platform.node()} ({platform.processor() or platform.machine()}), "
           f"python {platform.python_version()}, {time.strftime('%Y-%m-%d %H:%M:%S')}")
     print(f"# rerun: python benchmarks/bench_loop.py --config {args.config} --seconds {args.seconds:g} --steps {args.steps} "
-          f"--cpu {args.cpu} --slices {args.slices}" + (f" --spin-us {args.spin_us:g}" if args.spin_us is not None else ""))
+          f"--cpu {args.cpu} --slices {args.slices}" + (f" --spin-us {args.spin_us:g}" if args.spin_us is not None else "")
+          + (f" --beside-seconds {args.beside_seconds:g}" if args.beside_seconds is not None else ""))
     print("\n## the controller step as the servo loop runs it (us per axis): (b) the law's own step inside the compiled "
           "cycle, (c) the compiled call of a cycle, one axis")
     print(f"{'axis':4} {'ctrl':7} {'law':>8} {'call p50':>9} {'call p99':>9}")
@@ -276,11 +311,14 @@ def main() -> None:
                 in_turn(pinned, exe, args.seconds, args.slices, cpu, spin_us, tmp)
         except RealtimeError as exc:
             print(f"not available here ({exc})")
-    print(f"### beside them, {args.seconds:g} s each, one after the other")
+    beside = args.seconds if args.beside_seconds is None else args.beside_seconds
+    if beside <= 0:
+        return
+    print(f"### beside them, {beside:g} s each, one after the other")
     for policy, cfg, label in (("required", pinned_cold, "warm_caches off"),
                                ("required", pinned_no_qos, "cpu_latency_us null"), ("off", pinned, "SCHED_OTHER")):
         try:
-            res = run_job(cfg, controller="c2", duration_s=args.seconds, clock="wall", realtime_policy=policy)
+            res = run_job(cfg, controller="c2", duration_s=beside, clock="wall", realtime_policy=policy)
         except RealtimeError as exc:
             print(f"{label}: not available here ({exc})")
             continue

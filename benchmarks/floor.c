@@ -8,7 +8,8 @@
  * With LATENCY_US >= 0, the PM QoS CPU latency request the loop holds (loop.realtime.cpu_latency_us:
  * that value written to /dev/cpu_dma_latency, kept open for the run).
  * Usage: floor PERIOD_NS CYCLES SPIN_NS [CPU|-1 [WORK_NS [HOLD_FILE|- [LATENCY_US|-1]]]]; prints
- * "lateness_p50_us p99 p999 max overruns fifo=F mlock=M qos=Q" and, with WORK_NS,
+ * "lateness_p50_us p99 p999 max overruns fifo=F mlock=M qos=Q events=E" (E: the wakes that were one
+ * or more whole periods late, each counted once however many periods it missed) and, with WORK_NS,
  * "hold=p50/p99/p999/max" [us]; with HOLD_FILE, every period's hold [ns] as native int64 into
  * that file (to pool several runs).
  * Build: cc -O2 -o floor floor.c */
@@ -51,7 +52,7 @@ int main(int argc, char **argv) {
         int fd = open("/dev/cpu_dma_latency", O_WRONLY), lat = atoi(argv[7]);
         qos = fd >= 0 && write(fd, &lat, sizeof lat) == (ssize_t)sizeof lat;   /* held until exit */
     }
-    long long *late = malloc(sizeof(long long) * n), *hold = malloc(sizeof(long long) * n), missed = 0;
+    long long *late = malloc(sizeof(long long) * n), *hold = malloc(sizeof(long long) * n), missed = 0, events = 0;
     long long deadline = now_ns() + period;
     for (long long k = 0; k < n; k++) {
         long long target = deadline - spin;
@@ -66,6 +67,7 @@ int main(int argc, char **argv) {
         hold[k] = t1 - t0;
         if (late[k] >= period) {
             missed += late[k] / period;
+            events++;
             deadline += (late[k] / period) * period;
         }
         deadline += period;
@@ -73,6 +75,7 @@ int main(int argc, char **argv) {
     qsort(late, n, sizeof(long long), cmp);
     printf("%.2f %.2f %.2f %.2f %lld fifo=%d mlock=%d qos=%d", late[n / 2] / 1e3, late[(long long)(n * 0.99)] / 1e3,
            late[(long long)(n * 0.999)] / 1e3, late[n - 1] / 1e3, missed, fifo, locked, qos);
+    printf(" events=%lld", events);
     if (argc > 6 && strcmp(argv[6], "-") != 0) {
         FILE *f = fopen(argv[6], "wb");
         if (f == NULL || fwrite(hold, sizeof(long long), n, f) != (size_t)n || fclose(f) != 0) return 3;
