@@ -22,11 +22,12 @@ each wake for the loop's median turnaround; loop, floor, floor, loop, ... so tha
 same moments of a machine whose stalls come in bursts. Turnaround (read start → write end,
 including the plant's RK4 in the simulated driver's write), overruns (whole periods missed),
 per turn and pooled, the overruns' ratio (the floor holds the loop's CPU latency request,
-``loop.realtime.cpu_latency_us``, too), and the ratio of overrun events (a wake one or more
-whole periods late, counted once: a 5 ms stall of the VM is one event of 25 missed periods) with
-its exact 95 % interval, and whether that interval decides the ratio against 1.2×: a 60 s run
-counts a few tens of events, too few to tell 1.0× from 1.2×; ``--seconds 600 --slices 30`` counts
-ten times as many. Then, one after the other, the loop with
+``loop.realtime.cpu_latency_us``, too), and for the missed periods and the overrun events (a wake one
+or more whole periods late, counted once: a 5 ms stall of the VM is one event of 25 missed
+periods) the ratio with a 95 % bootstrap interval over the turns, and whether that interval
+decides it against 1.2×. The VM's stalls come in bursts of seconds, so the turns, not the
+overruns, are the samples: six turns of 60 s seldom decide anything; ``--seconds 300 --slices 30
+--beside-seconds 0`` gives thirty. Then, one after the other, the loop with
 ``loop.realtime.warm_caches`` off (no rehearsal of the next cycle in the spin tail), without
 the CPU latency request (``cpu_latency_us: null``: idle CPUs may sleep) and without SCHED_FIFO
 (policy off). All are pinned to ``--cpu`` (default: the last CPU,
@@ -208,29 +209,44 @@ def in_turn(loaded, exe: str, seconds: float, slices: int, cpu: int | None, spin
     print(f"{'floor, pooled':22}: holding the CPU {work_ns / 1e3:.1f} us after each wake: p50 {np.median(h):.1f} "
           f"p99 {np.percentile(h, 99):.1f} p99.9 {np.percentile(h, 99.9):.1f} max {h.max():.1f} us | "
           f"overruns {sum(missed)} in {len(h)} cycles")
-    print(events_ratio(sum(ev_loop), len(t), sum(ev_floor), len(h)))
+    print(turns_ratio("missed periods", ovr, missed))
+    print(turns_ratio("overrun events", ev_loop, ev_floor))
 
 
-def events_ratio(a: int, n_a: int, b: int, n_b: int, limit: float = 1.2) -> str:
-    """The loop's rate of overrun events (wakes one or more whole periods late, each counted
-    once) against the floor's: ``a`` events in ``n_a`` cycles, ``b`` in ``n_b``. The events,
-    not the missed periods, are what arrive at random (a 5 ms stall is one event of 25
-    periods), so the interval is on them: given a + b, a is binomial with p = ρ/(ρ + n_b/n_a)
-    for the rate ratio ρ; the exact (Clopper-Pearson) 95 % interval of p, mapped to ρ.
-    Returns a line with the ratio, its interval and whether it decides ``ratio ≤ limit``."""
-    from scipy.stats import binomtest
-    if a + b == 0:
-        return "overrun events: none on either side"
-    ci = binomtest(a, a + b).proportion_ci(0.95)
-    scale = n_b / n_a
+def turns_ratio(what: str, loop: list, floor: list, limit: float = 1.2) -> str:
+    """The loop's total of ``what`` against the floor's, over turns run in pairs (``loop[r]`` and
+    ``floor[r]`` back to back), with a 95 % percentile bootstrap interval that resamples the
+    pairs (``scipy.stats.bootstrap``, paired, a fixed seed: the same counts give the same line).
 
-    def rho(p):
-        return float("inf") if p >= 1.0 else p / (1.0 - p) * scale
-    est, lo, hi = rho(a / (a + b)), rho(ci.low), rho(ci.high)
+    The turns, not the single overruns, are what can be resampled: the VM's stalls come in
+    bursts of seconds, so the counts of one turn are neither independent events (a 4 ms stall is
+    one late wake worth 20 missed periods) nor drawn at a constant rate through a run, and an
+    interval that assumes either is too narrow. Returns a line with the ratio, its interval and
+    whether the interval decides ``ratio <= limit``; with fewer than three pairs, no interval."""
+    from scipy.stats import bootstrap
+    a, b = np.asarray(loop, dtype=float), np.asarray(floor, dtype=float)
+    head = f"{what + ', loop / floor':22}: {a.sum():.0f} / {b.sum():.0f}"
+    if b.sum() == 0:
+        return f"{head}: the floor had none"
+    est = a.sum() / b.sum()
+    if len(a) < 3:
+        return f"{head}: ratio {est:.2f}x (too few turns for an interval)"
+
+    def ratio(x, y, axis=-1):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return x.sum(axis=axis) / y.sum(axis=axis)
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")           # degenerate resamples: handled below
+        ci = bootstrap((a, b), ratio, paired=True, vectorized=True, method="percentile", n_resamples=20000,
+                       random_state=np.random.default_rng(0)).confidence_interval
+    lo, hi = ci.low, ci.high
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        return f"{head}: ratio {est:.2f}x (no interval: resamples with no floor overruns)"
     verdict = (f"<= {limit:g}x decided" if hi <= limit else f"> {limit:g}x decided" if lo > limit
                else f"{limit:g}x inside the interval: this run does not decide it")
-    return (f"{'overrun events':22}: loop {a}, floor {b} (wakes >= 1 period late, each once): ratio {est:.2f}x, "
-            f"95% interval {lo:.2f}-{hi:.2f}x (exact binomial on the events): {verdict}")
+    return (f"{head}: ratio {est:.2f}x, 95% interval {lo:.2f}-{hi:.2f}x (bootstrap over the {len(a)} turns): "
+            f"{verdict}")
 
 
 def main() -> None:
