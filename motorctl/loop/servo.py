@@ -2,8 +2,9 @@
 
 Cycle k (architecture.md, LinuxCNC's read → motion → pid → write order)::
 
-    wake at the absolute deadline (CLOCK_MONOTONIC, integer ns): sleep to deadline − spin,
-        then busy-wait the tail; lateness = wake − deadline
+    wake at the absolute deadline (CLOCK_MONOTONIC, integer ns; motorctl.loop.pacing): sleep
+        to deadline − spin, [rehearse the next cycle,] busy-wait the tail; lateness = wake −
+        deadline
     driver.read()                       every axis
     servo_cycle(...)                    one compiled call for every axis (motorctl.loop.cycle):
                                         supervisor input checks → desired(k) of the axis's mode
@@ -60,6 +61,7 @@ from motorctl.control.kernels import LAW_PY, N_LAYOUT
 from motorctl.jit import entry
 from motorctl.loop import cycle as C
 from motorctl.loop.cycle import APPROACH, HOLD, IDLE, JOG, PROGRAM, servo_cycle
+from motorctl.loop.pacing import Pacer
 from motorctl.loop.records import CONTROLLER_SIGNALS, N_SIGNALS, RecordLayout
 from motorctl.loop.safety import FAULT_SHUTDOWN, Supervisor
 from motorctl.loop.timebase import Timebase
@@ -67,13 +69,6 @@ from motorctl.loop.trajectory import MOVE_W, TABLE_HEAD
 
 #: bumpless switch: the output step between two controllers fades out over this time [s]
 SWITCH_BLEND_S = 0.01
-#: ``warm_caches``: the loop wakes this much earlier [ns] to rehearse the next cycle in its
-#: spin tail (a rehearsal costs about one turnaround: 5-15 µs for two axes, 30 µs for 16; the
-#: sleep overshoots by tens of µs), or twice the last rehearsal when that is longer
-REHEARSAL_NS = 20_000
-#: ... and rehearses only with at least this much left before the deadline [ns], and twice the
-#: last rehearsal's time, so that a late wake is not made later
-REHEARSAL_MIN_NS = 12_000
 #: the law rows' width (floats, ints): C2's state block is 220 and 12
 LAW_ROW_FLOATS, LAW_ROW_INTS = 256, 16
 
@@ -97,8 +92,9 @@ class ServoLoop:
         spin_us: busy-wait tail before each deadline [µs] (wall clock only).
         warm_caches: in that tail, rehearse the next cycle (the driver's exchange and the
             cycle on copies, :func:`motorctl.loop.cycle.rehearse`, :meth:`Driver.rehearse`),
-            waking :data:`REHEARSAL_NS` (or twice the last rehearsal) earlier for it, so that
-            the cycle finds its code and data in the CPU's caches (wall clock only).
+            waking :data:`motorctl.loop.pacing.REHEARSAL_NS` (or twice the last rehearsal)
+            earlier for it, so that the cycle finds its code and data in the CPU's caches
+            (wall clock only).
         buffer: optional preallocated record buffer, shape (capacity, layout.width) float64
             (e.g. a shared-memory ring drained by another process).
         heartbeat: optional object with ``publish(k)``, called with the number of executed
@@ -302,67 +298,28 @@ class ServoLoop:
 
     def _run(self, n_cycles: int) -> int:
         mono = time.monotonic_ns
-        sleep = time.sleep
-        drv = self.driver
-        st = self._cycle_state()
-        cycle = self._cycle
-        mv = self._mv
-        width = self.width
-        cap = self.capacity
-        period = self.period_ns
-        spin = self.spin_ns
-        wall = self.clock == "wall"
-        ramp_policy = self.overrun_policy == "ramp"
-        ovr_total = self.overrun_hold + self.overrun_ramp
-        hb = self.heartbeat
-        slack = self.on_slack
+        drv, cycle, mv, width, cap = self.driver, self._cycle, self._mv, self.width, self.capacity
+        hb, slack, u_out, en_out, period = self.heartbeat, self.on_slack, self.u_out, self.enable_out, self.period_ns
         oc_t, oc_late, oc_turn, oc_read, oc_ctrl, oc_write, oc_ovr = self._o_cycle
-        refresh = self._refresh                 # warm_caches: the rehearsal's refresh of its copies
-        early = spin + (REHEARSAL_NS if refresh is not None else 0)
-        need, cap_r = REHEARSAL_MIN_NS, period // 4
-        scratch = self._cycle_state(copies=True) if refresh else None
-        u_out, en_out = self.u_out, self.enable_out
-        deadline = mono() + period
+        st = self._use_state()
+        pacer = (Pacer(period, self.spin_ns, self._rehearse if self._refresh is not None else None)
+                 if self.clock == "wall" else None)
         done = 0
         for _ in range(n_cycles):
             if self.stop_requested:
                 break
-            if wall:
-                rem = deadline - mono() - early
-                if rem > 0:
-                    sleep(rem * 1e-9)
-                if refresh is not None:
-                    t_r = mono()
-                    if deadline - t_r >= need:
-                        drv.rehearse(u_out, en_out)
-                        C.rehearse(cycle, refresh, C.CYCLE_BEFORE if self._py else C.CYCLE_ALL, self.k, st,
-                                   scratch)
-                        took = min(2 * (mono() - t_r), cap_r)   # a preempted one does not count in full
-                        need = took if took > REHEARSAL_MIN_NS else REHEARSAL_MIN_NS
-                        early = spin + (took if took > REHEARSAL_NS else REHEARSAL_NS)
-                while mono() < deadline:
-                    pass
-                wake = mono()
-                late = wake - deadline
-                if late >= period:
-                    missed = late // period
-                    self.overruns += missed
-                    deadline += missed * period
-                    if ramp_policy:
-                        self._overrun_ramp(ovr_total)
-                deadline += period
-            else:
-                late = 0
+            late = pacer.wait() if pacer is not None else 0
+            if late >= period:
+                self._overran(late // period)
             t0 = mono()
             drv.read()
             t1 = mono()
             k = self.k
-            if self._py:
-                if cycle(C.CYCLE_BEFORE, k, st):
-                    self._python_laws(k)
-                    cycle(C.CYCLE_AFTER, k, st)
-            else:
+            if not self._py:
                 cycle(C.CYCLE_ALL, k, st)
+            elif cycle(C.CYCLE_BEFORE, k, st):
+                self._python_laws(k)
+                cycle(C.CYCLE_AFTER, k, st)
             t2 = mono()
             drv.write(u_out, en_out)
             t3 = mono()
@@ -383,20 +340,36 @@ class ServoLoop:
                 slack(self)
                 if self._resync:             # a deliberate pause between cycles (reconnect)
                     self._resync = False
-                    deadline = mono() + period
+                    if pacer is not None:
+                        pacer.restart()
                 if self._args_changed:       # a switch grew the law rows
-                    self._args_changed = False
-                    st = self._cycle_state()
-                    if refresh is not None:
-                        scratch = self._cycle_state(copies=True)
+                    st = self._use_state()
         return done
 
-    def _overrun_ramp(self, total: int) -> None:
-        """Overrun policy 'ramp': every driven axis not already ramping starts its hold-and-ramp."""
-        ax = self.ax
-        for i in range(len(self.axis_names)):
-            if ax[i, C.A_RUNNING] and ax[i, C.A_OVR] == 0:
-                ax[i, C.A_OVR] = total
+    def _use_state(self) -> C.CycleState:
+        """The cycle's bundle for the cycles to come (and the rehearsal's copies of it), made
+        anew when a switch grew the law rows."""
+        self._args_changed = False
+        self._st = self._cycle_state()
+        self._scratch = self._cycle_state(copies=True) if self._refresh is not None else None
+        return self._st
+
+    def _rehearse(self) -> None:
+        """The next cycle run ahead on copies, in the pacer's tail before the deadline
+        (``warm_caches``; :func:`motorctl.loop.cycle.rehearse`, :meth:`Driver.rehearse`)."""
+        self.driver.rehearse(self.u_out, self.enable_out)
+        C.rehearse(self._cycle, self._refresh, C.CYCLE_BEFORE if self._py else C.CYCLE_ALL, self.k, self._st,
+                   self._scratch)
+
+    def _overran(self, missed: int) -> None:
+        """A wake ``missed`` whole periods late: counted; with the 'ramp' policy every driven
+        axis not already ramping starts its hold-and-ramp."""
+        self.overruns += missed
+        if self.overrun_policy == "ramp":
+            ax, total = self.ax, self.overrun_hold + self.overrun_ramp
+            for i in range(len(self.axis_names)):
+                if ax[i, C.A_RUNNING] and ax[i, C.A_OVR] == 0:
+                    ax[i, C.A_OVR] = total
 
     def _python_laws(self, k: int) -> None:
         """The laws without a compiled step, for the axes the cycle left pending: reset when the
