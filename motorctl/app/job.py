@@ -315,8 +315,8 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
         entry["theta_hat"] = ctrl.theta_hat.tolist()
         result.axes[a] = entry
     tm = summary["timing"]
-    result.timing = ({"cycles": 0, "overruns": int(loop.overruns)} if not tm["cycles"]
-                     else {**tm, "overruns": int(loop.overruns)})
+    result.timing = {**({"cycles": 0} if not tm["cycles"] else tm), "overruns": int(loop.overruns),
+                     "page_faults": int(loop.page_faults)}
     result.lost_rows = int(summary["lost"])
     return result
 

@@ -53,7 +53,8 @@ def cmd_run(args) -> int:
                   f"({'virtual' if args.virtual_clock or loaded.cfg.loop.clock == 'virtual' else 'wall'} clock); "
                   f"turnaround p50 {tm['turnaround_p50_us']:.1f} / p99 {tm['turnaround_p99_us']:.1f} / "
                   f"p99.9 {tm['turnaround_p999_us']:.1f} / max {tm['turnaround_max_us']:.1f} us; "
-                  f"lateness p99 {tm['lateness_p99_us']:.1f} us; overruns {tm['overruns']}\n")
+                  f"lateness p99 {tm['lateness_p99_us']:.1f} us; overruns {tm['overruns']}; "
+                  f"page faults {tm['page_faults']}\n")
     rt = res.realtime
     out.write("realtime: " + ", ".join(f"{k} {'yes' if v['obtained'] else 'no'} ({v['detail']})"
                                        for k, v in rt.items()) + "\n")
