@@ -20,8 +20,9 @@ turns with the machine's floor: benchmarks/floor.c (compiled here with cc), the 
 alone (sleep, spin, read the clock) at SCHED_FIFO 80 with memory locked, holding the CPU after
 each wake for the loop's median turnaround; loop, floor, floor, loop, ... so that both meet the
 same moments of a machine whose stalls come in bursts. Turnaround (read start → write end,
-including the plant's RK4 in the simulated driver's write), overruns (whole periods missed),
-per turn and pooled, the overruns' ratio (the floor holds the loop's CPU latency request,
+including the plant's RK4 in the simulated driver's write), overruns (whole periods missed)
+and the loop thread's page faults (none after the real-time set-up's prefault: an overrun in a
+turn without one is not the loop waiting on its own memory), per turn and pooled, the overruns' ratio (the floor holds the loop's CPU latency request,
 ``loop.realtime.cpu_latency_us``, too), and for the missed periods and the overrun events (a wake one
 or more whole periods late, counted once: a 5 ms stall of the VM is one event of 25 missed
 periods) the ratio with a 95 % bootstrap interval over the turns, and whether that interval
@@ -168,10 +169,10 @@ def in_turn(loaded, exe: str, seconds: float, slices: int, cpu: int | None, spin
     from motorctl.recorder.runlog import read_log
     period_ns = int(round(1e9 / loaded.cfg.loop.rate_hz))
     part = seconds / slices
-    turn, hold, ovr, missed, work_ns = [], [], [], [], 0
+    turn, hold, ovr, missed, faults, work_ns = [], [], [], [], [], 0
     ev_loop, ev_floor = [], []                     # overrun events: wakes one or more periods late
     print(f"{'turn':>4} {'loop overruns':>14} {'floor overruns':>15} {'loop turnaround p99.9':>22} "
-          f"{'floor hold p99.9':>17} us")
+          f"{'floor hold p99.9':>17} us {'loop page faults':>17}")
 
     def loop_part(r):
         log = os.path.join(tmp, f"turn{r}.mclog")
@@ -180,6 +181,7 @@ def in_turn(loaded, exe: str, seconds: float, slices: int, cpu: int | None, spin
         rl = read_log(log)
         turn.append(rl.col("turnaround_ns") / 1e3)
         ovr.append(res.timing["overruns"])
+        faults.append(res.timing["page_faults"])
         cum = rl.col("overruns")                   # missed periods so far, per cycle
         ev_loop.append(int(np.count_nonzero(np.diff(cum, prepend=0.0) > 0)))
         os.unlink(log)
@@ -202,10 +204,11 @@ def in_turn(loaded, exe: str, seconds: float, slices: int, cpu: int | None, spin
             floor_part(r)
             loop_part(r)
         print(f"{r + 1:4d} {ovr[-1]:14d} {missed[-1]:15d} {np.percentile(turn[-1], 99.9):22.1f} "
-              f"{np.percentile(hold[-1], 99.9):17.1f}")
+              f"{np.percentile(hold[-1], 99.9):17.1f}    {faults[-1]:17d}")
     t, h = np.concatenate(turn), np.concatenate(hold)
     print(f"{'loop, pooled':22}: turnaround p50 {np.median(t):.1f} p99 {np.percentile(t, 99):.1f} p99.9 "
-          f"{np.percentile(t, 99.9):.1f} max {t.max():.1f} us | overruns {sum(ovr)} in {len(t)} cycles")
+          f"{np.percentile(t, 99.9):.1f} max {t.max():.1f} us | overruns {sum(ovr)} in {len(t)} cycles | "
+          f"page faults {sum(faults)}")
     print(f"{'floor, pooled':22}: holding the CPU {work_ns / 1e3:.1f} us after each wake: p50 {np.median(h):.1f} "
           f"p99 {np.percentile(h, 99):.1f} p99.9 {np.percentile(h, 99.9):.1f} max {h.max():.1f} us | "
           f"overruns {sum(missed)} in {len(h)} cycles")
