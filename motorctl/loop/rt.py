@@ -41,6 +41,7 @@ import gc
 import mmap
 import os
 import struct
+import time
 from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
@@ -122,6 +123,7 @@ def _prefault() -> tuple[bool, str]:
     libc.mincore.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_void_p]
     libc.madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
     page = mmap.PAGESIZE
+    t0 = time.monotonic()
     try:
         with open("/proc/self/maps") as f:
             spans = [tuple(int(a, 16) for a in fields[0].split("-"))
@@ -144,7 +146,8 @@ def _prefault() -> tuple[bool, str]:
                     refused = ctypes.get_errno()
     if pages == 0 and refused:                             # EINVAL before Linux 5.14
         return False, f"MADV_POPULATE_WRITE refused: {os.strerror(refused)}"
-    return True, f"{pages} pages ({pages * page / 2**20:.1f} MiB) written before the first cycle"
+    return True, (f"{pages} pages ({pages * page / 2**20:.1f} MiB) written in {(time.monotonic() - t0) * 1e3:.0f} ms "
+                  "before the first cycle")
 
 
 def _request_cpu_latency(latency_us: int) -> tuple[bool, str]:
