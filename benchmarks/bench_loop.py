@@ -22,17 +22,17 @@ each wake for the loop's median turnaround; loop, floor, floor, loop, ... so tha
 same moments of a machine whose stalls come in bursts. Turnaround (read start → write end,
 including the plant's RK4 in the simulated driver's write), overruns (whole periods missed)
 and the loop thread's page faults (none after the real-time set-up's prefault: an overrun in a
-turn without one is not the loop waiting on its own memory), per turn and pooled, the overruns' ratio (the floor holds the loop's CPU latency request,
-``loop.realtime.cpu_latency_us``, too), and for the missed periods and the overrun events (a wake one
-or more whole periods late, counted once: a 5 ms stall of the VM is one event of 25 missed
-periods) the ratio with a 95 % bootstrap interval over the turns, and whether that interval
-decides it against 1.2×. The VM's stalls come in bursts of seconds, so the turns, not the
-overruns, are the samples: six turns of 60 s seldom decide anything; ``--seconds 300 --slices 30
---beside-seconds 0`` gives thirty. Then, one after the other, the loop with
-``loop.realtime.warm_caches`` off (no rehearsal of the next cycle in the spin tail), without
-the CPU latency request (``cpu_latency_us: null``: idle CPUs may sleep) and without SCHED_FIFO
-(policy off). All are pinned to ``--cpu`` (default: the last CPU,
-as a deployment pins the loop to an isolated one; ``--cpu -1``: not pinned). The machine is
+turn without one is not the loop waiting on its own memory), per turn and pooled; the floor
+holds the loop's CPU latency request (``loop.realtime.cpu_latency_us``) too. For the missed
+periods and the overrun events (a wake one or more whole periods late, counted once: a 5 ms
+stall of the VM is one event of 25 missed periods): the loop/floor ratio with a 95 % bootstrap
+interval over the turns, and whether that interval decides it against 1.2×. The VM's stalls
+come in bursts of seconds, so the turns, not the overruns, are the samples: six turns of 60 s
+seldom decide anything; ``--seconds 300 --slices 30 --beside-seconds 0`` gives thirty. Then,
+one after the other, the loop with ``loop.realtime.warm_caches`` off (no rehearsal of the next
+cycle in the spin tail), without the CPU latency request (``cpu_latency_us: null``: idle CPUs
+may sleep) and without SCHED_FIFO (policy off). All are pinned to ``--cpu`` (default: the last
+CPU, as a deployment pins the loop to an isolated one; ``--cpu -1``: not pinned). The machine is
 shared and noisy: compare medians and ratios taken in one run.
 """
 

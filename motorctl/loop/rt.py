@@ -221,7 +221,7 @@ def setup_realtime(policy: str = "best_effort", priority: int = 80, cpu: int | N
     gc.freeze()
     gc.disable()
     rep.steps["gc"] = (True, "collected, frozen, disabled")
-    if policy != "off" and lock_memory and lock_pages == "touched" and rep.ok("mlockall"):
+    if lock_pages == "touched" and rep.ok("mlockall"):     # obtained: policy on, memory locked
         rep.steps["prefault"] = _prefault()
     if policy == "required":
         missing = [k for k in ("sched_fifo", "mlockall") if not rep.ok(k) and (k != "mlockall" or lock_memory)]
