@@ -24,14 +24,16 @@ stiction                        holds A1 u + F_0 at rest (Karnopp)   u·w(ẋ), 
 amplifier_dead_zone             −A1 (clip(u + o, −d, d) − o)         clip(u, −d, d), [|u| < d]
 force_constant_drift            κ t A1 f_u(u)                        f_u(u)·(t − t̄)
 periodic_friction               −Σ A_k sin(2πkx/P + φ_k) S_f(ẋ)      sin, cos(2πkx/P)·S_f(ẋ)
+encoder_interpolation           none (reading y = x + Σ a_k sin(..))  d²/dt² sin, cos(2πky/P)
 ==============================  ===================================  ======================
 
 F_eff = −A1·Cβ; x_ref, x_0 are absorbed by θ3, θ4 (only the slope/stiffness is identifiable).
 Compensable (additive in (x_d, ẋ_d, t)): cogging, stribeck, asymmetric_friction,
 position_dependent_friction, spring, periodic_disturbance, position_friction_shape,
 periodic_friction; through a hook: force_ripple, input_delay. Identified and reported only:
-payload_change, stiction, amplifier_dead_zone, force_constant_drift (a mass, a holding force, a
-static input nonlinearity and a gain drift: no additive term in (x_d, ẋ_d, t) cancels them).
+payload_change, stiction, amplifier_dead_zone, force_constant_drift, encoder_interpolation (a
+mass, a holding force, a static input nonlinearity, a gain drift and an error of the reading: no
+additive term in (x_d, ẋ_d, t) cancels them).
 
 The order of :data:`FAMILIES` is fixed: it is the order of the identification's candidates and
 of the plant's force terms (float sums: do not reorder existing entries).
@@ -52,6 +54,7 @@ from motorctl.effects import (
     amplifier_dead_zone,
     asymmetric_friction,
     cogging,
+    encoder_interpolation,
     force_constant_drift,
     force_ripple,
     input_delay,
@@ -71,7 +74,7 @@ from motorctl.schema import StrictModel
 FAMILIES: dict[str, EffectFamily] = {m.FAMILY.name: m.FAMILY for m in (
     cogging, force_ripple, stribeck, asymmetric_friction, position_dependent_friction, spring,
     payload_change, input_delay, periodic_disturbance, position_friction_shape, stiction,
-    amplifier_dead_zone, force_constant_drift, periodic_friction)}
+    amplifier_dead_zone, force_constant_drift, periodic_friction, encoder_interpolation)}
 
 
 def family(name: str) -> EffectFamily:

@@ -288,6 +288,10 @@ class SearchContext(Protocol):
     def direction_agreement(self, term, base: list) -> float:
         """1 − ‖β₊ − β₋‖/(‖β₊‖ + ‖β₋‖) of the term fitted on forward / backward motion."""
 
+    def speed_growth(self, term, base: list, period: float) -> float:
+        """‖β_fast‖/‖β_slow‖ of the term fitted on the faster / slower half of the moving
+        samples at which a spatial period [m] passes the position filter (NaN: too few)."""
+
     def target(self, delay: float) -> np.ndarray:
         """The decimated input u(t − delay·Ts) (M,)."""
 
