@@ -50,10 +50,39 @@ def reading_columns(y: np.ndarray, fs: float, fq: float, period: float) -> np.nd
     return np.gradient(np.gradient(e, ts, axis=0), ts, axis=0)
 
 
+#: signal periods searched [m]: magnetic scales (1-5 mm) and coarse optical ones; a 20 µm optical
+#: scale's error is far above the position filter at any speed the record moves with
+PERIOD_MIN_M = 1e-3
+PERIOD_MAX_M = 0.01
+#: relative step of the period grid, refined within one step on the exact columns (the joint
+#: fit resolves P to about P/stroke: 0.5 % for 2 mm over 0.4 m)
+GRID_STEP = 0.01
+
+
+def analytic_columns(x, v, a, period: float, fq: float | None = None) -> np.ndarray:
+    """d²/dt² sin, cos(2π k x / P), k ≤ N_HARMONICS, interleaved (N, 2·N_HARMONICS), from the
+    state: d²/dt² sin(wx) = −w²ẋ² sin(wx) + w ẍ cos(wx); with ``fq`` [Hz] each harmonic is
+    weighed by the zero-phase order-4 Butterworth's gain at its frequency at this speed,
+    1/(1 + (k|ẋ|/(P fq))⁸) (the grid search's cheap stand-in for :func:`reading_columns`).
+    x [m], v [m/s], a [m/s²]: (N,)."""
+    f = fourier(x, period, N_HARMONICS)
+    out = np.empty_like(f)
+    for k in range(N_HARMONICS):
+        w = 2.0 * math.pi * (k + 1) / period
+        s, c = f[:, 2 * k], f[:, 2 * k + 1]
+        g = 1.0 if fq is None else 1.0 / (1.0 + ((k + 1) * np.abs(v) / (period * fq)) ** 8)
+        out[:, 2 * k] = g * (-w * w * v * v * s + w * a * c)
+        out[:, 2 * k + 1] = g * (-w * w * v * v * c - w * a * s)
+    return out
+
+
 class EncoderInterpolationFamily(PositionPeriodic):
     name = "encoder_interpolation"
     plant_force = "none: reading y = x + Σ a_k sin(2πkx/P + φ_k)"
     example: ClassVar[dict] = {"encoder_interpolation_m": 3.0e-6, "encoder_signal_period_m": 2.0e-3}
+    #: on a program whose moves are fast the error shows only at the moves' ends, where a
+    #: force of position at the same period (cogging, a thrust ripple) can take nearly as much
+    look_alike: ClassVar[tuple[str, ...]] = ("cogging", "force_ripple")
     size_options: ClassVar[tuple[str, ...]] = ("encoder_interpolation_m",)
     #: the effect is in the measurement: no plant force, the carriage moves as without it
     measurement: ClassVar[bool] = True
@@ -78,18 +107,36 @@ class EncoderInterpolationFamily(PositionPeriodic):
         y = getattr(p, "y", None)
         if y is not None and getattr(p, "fq", None):
             return reading_columns(y, p.fs, p.fq, h)
-        f = fourier(p.x, h, N_HARMONICS)
-        out = np.empty_like(f)
-        for k in range(N_HARMONICS):
-            w = 2.0 * math.pi * (k + 1) / h
-            s, c = f[:, 2 * k], f[:, 2 * k + 1]
-            out[:, 2 * k] = -w * w * p.v * p.v * s + w * p.a * c
-            out[:, 2 * k + 1] = -w * w * p.v * p.v * c - w * p.a * s
-        return out
+        return analytic_columns(p.x, p.v, p.a, h)
 
-    def peak_data(self, ctx, residual):
-        mv = ctx.moving
-        return ctx.p.x_d[mv], residual[mv]
+    def search(self, ctx, base, residual):
+        return self._search(ctx, base)
+
+    def _search(self, ctx, base):
+        """P over a log grid from :data:`PERIOD_MIN_M` to :data:`PERIOD_MAX_M` (steps of
+        :data:`GRID_STEP`) with cheap columns (ë of the decimated signals, unfiltered), then
+        refined on the exact columns within one step: the reading's error shows only where
+        ẋ/P is below the position filter's cut-off (the moves' ends on a fast program), too
+        few samples for the spatial periodogram cogging uses."""
+        hi = min(PERIOD_MAX_M, ctx.stroke / 3.0)
+        if hi <= PERIOD_MIN_M * 1.5 or ctx.moving.sum() < 50:
+            return None
+        grid = np.exp(np.arange(math.log(PERIOD_MIN_M), math.log(hi), GRID_STEP))
+        p = ctx.p
+        term, _ = ctx.best_over(self.name, grid, base,
+                                cols_fn=lambda h: analytic_columns(p.x_d, p.v_d, p.a_d, h, p.fq))
+        term = ctx.best_between(self.name, term.h * (1.0 - GRID_STEP), term.h * (1.0 + GRID_STEP), base,
+                                0.1 * GRID_STEP * term.h)
+        note = None
+        if term.h <= grid[1] or term.h >= grid[-2]:
+            note = f"period {term.h:.4g} m at the edge of the searched range"
+        return term, note
+
+    def polish(self, ctx, term, others):
+        """The whole grid again with the later effects in the model: before the stiction at
+        rest is modelled the moves' ends, where the error shows, are its residual's."""
+        found = self._search(ctx, others)
+        return None if found is None else found[0]
 
     def parameters(self, h, beta, gain, fs, theta=None):
         """The reading's error e(x) = Σ a_k sin(2πkx/P + φ_k): a_k [m] = |β_k|/θ1 (θ1 = M/A1 of
