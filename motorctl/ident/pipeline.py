@@ -91,7 +91,8 @@ def summarise(idf: Identifier) -> dict:
     # passed in the last step but not taken, when the effect limit ended the selection
     out["cut_by_limit"] = ([c.term.family for c in idf.steps[-1] if c.ok and not any(c is e for e in chosen)]
                            if idf.steps and len(idf.terms) >= MAX_EFFECTS else [])
-    out["residual"] = residual_verdict(idf.final.fit.residual, idf.p, g, unit)
+    at_rest = next((t.family for t in idf.terms if fx.FAMILIES[t.family].acts_at_rest), None)
+    out["residual"] = residual_verdict(idf.final.fit.residual, idf.p, g, unit, at_rest_by=at_rest)
     return out
 
 
