@@ -15,7 +15,7 @@ import pytest
 from motorctl.effects import FAMILIES
 from motorctl.effects.encoder_interpolation import analytic_columns, reading_columns
 from motorctl.ident.data import load_record
-from motorctl.ident.pipeline import summarise
+from motorctl.ident.pipeline import compensation_from_fit, summarise
 from motorctl.ident.select import Identifier
 
 M, A1, B, FC = 10.0, 50.0, 20.0, 8.0      # kg, N/V, N s/m, N
@@ -51,8 +51,9 @@ def found(tmp_path_factory):
     d = tmp_path_factory.mktemp("enc")
     out = {}
     for name, kw in (("reading", {"enc_m": 5e-6}), ("force", {"cogging_N": 3.0})):
-        s = summarise(Identifier(load_record(_loop_csv(d / f"{name}.csv", **kw), None, str(A1))).run())
-        out[name] = s
+        idf = Identifier(load_record(_loop_csv(d / f"{name}.csv", **kw), None, str(A1))).run()
+        out[name] = summarise(idf)
+        out[name + "_idf"] = idf
     return out
 
 
@@ -69,6 +70,22 @@ def test_a_reading_error_is_named_encoder_interpolation_not_a_force(found):
 def test_a_cogging_force_of_the_same_period_is_named_cogging(found):
     names = [e["name"] for e in found["force"]["effects"]]
     assert "cogging" in names and "encoder_interpolation" not in names, names
+
+
+def test_an_effect_not_told_from_a_look_alike_is_not_compensated(found):
+    """tune and --write-config compensate only what identify names: the cogging found above is
+    compensated; the same fit marked as not told from the reading's error is not."""
+    idf = found["force_idf"]
+    comp, _, skipped = compensation_from_fit(idf)
+    assert "cogging" in comp and "cogging" not in skipped
+    ev = next(ev for ev, _ in idf.accepted if ev.term.family == "cogging")
+    saved = ev.rivals
+    try:
+        ev.rivals = [("encoder_interpolation", 0.2)]
+        comp, _, skipped = compensation_from_fit(idf)
+    finally:
+        ev.rivals = saved
+    assert "cogging" not in comp and "cogging" in skipped
 
 
 def test_columns_are_the_second_derivative_of_the_reading_error():

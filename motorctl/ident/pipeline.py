@@ -126,11 +126,15 @@ def compensation_from_fit(idf: Identifier, final=None, terms=None) -> tuple[dict
     An adaptable family's entry carries ``adapt: false`` and its projection box from the fit's
     confidence interval (β ∓ 3σ, at least the default margin): a user only flips ``adapt``.
 
+    A found effect the record cannot tell from a look-alike family (``cannot_be_told_from`` in
+    the summary: cogging or an encoder's interpolation error, stiction or a dead-zone) is not
+    compensated: a compensation is only written for an effect the identification names.
+
     Returns:
         (compensation {family: options} (V units, d̂_eff = −Cβ), θ (n_theta,) = the jointly
         fitted nominal θ re-expressed about each term's reference
         (:meth:`motorctl.effects.base.EffectFamily.theta_shift`), names of found families that
-        have no compensation term).
+        have no compensation term or are not told from a look-alike).
     """
     final = idf.final if final is None else final
     terms = idf.terms if terms is None else terms
@@ -138,8 +142,9 @@ def compensation_from_fit(idf: Identifier, final=None, terms=None) -> tuple[dict
     stds = _split_std(idf, final, terms)
     theta = np.array(th, dtype=float)
     comp, skipped = {}, []
+    unnamed = {ev.term.family for ev, _ in getattr(idf, "accepted", []) if ev.rivals}
     for t, b, sd in zip(terms, betas, stds):
-        c = fx.compensation(t.family, t.h, b, idf.p, beta_std=sd)
+        c = None if t.family in unnamed else fx.compensation(t.family, t.h, b, idf.p, beta_std=sd)
         if c:
             comp.update(c)
             theta = theta + fx.family(t.family).theta_shift(c[t.family], idf.n_theta)
@@ -218,7 +223,10 @@ def tuned_config(idf: Identifier, s: dict, base: dict, axis: str, base_name: str
                            f"delay: v_a1 on the trajectory ahead)")
                 for e in s["effects"]:
                     pars = ", ".join(f"{k} {fig(v)}" for k, v in e["parameters"].items())
-                    tag = "compensated" if e["name"] in comp else "NOT compensable (no compensation term)"
+                    tag = ("compensated" if e["name"] in comp else
+                           "NOT compensated: the record cannot tell it from "
+                           + ", ".join(r["name"] for r in e["cannot_be_told_from"])
+                           if e.get("cannot_be_told_from") else "NOT compensable (no compensation term)")
                     out.append(f"{ind}#   {e['name']}: {pars}; held-out RMS {e['heldout_rms_before']:.4g} -> "
                                f"{e['heldout_rms_after']:.4g} {unit}; {tag}")
                 body = yaml.safe_dump({"compensation": comp}, sort_keys=False, default_flow_style=False, width=100)
