@@ -93,7 +93,45 @@ def summarise(idf: Identifier) -> dict:
                            if idf.steps and len(idf.terms) >= MAX_EFFECTS else [])
     at_rest = next((t.family for t in idf.terms if fx.FAMILIES[t.family].acts_at_rest), None)
     out["residual"] = residual_verdict(idf.final.fit.residual, idf.p, g, unit, at_rest_by=at_rest)
+    add_refused(out["residual"], idf.steps[-1] if idf.steps else [], chosen)
     return out
+
+
+#: a candidate of the last selection step that explains at least this share of the held-out
+#: residual and is refused only on its physics is reported as an unexplained structure
+REFUSED_GAIN = 0.06
+#: reasons that say a candidate explains too little, not that its physics does not fit
+_WEAK = ("coefficients not significant", "too small to name", "held-out gain", "BIC drop", "effect larger than")
+
+
+def add_refused(verdict: dict, last_step: list, chosen: list) -> None:
+    """Add to the residual verdict (:func:`motorctl.ident.verdict.residual_verdict`) the
+    candidates of the last selection step that explain a share of the held-out residual
+    (≥ :data:`REFUSED_GAIN`) with significant coefficients and were refused only because
+    their physics does not fit (a line the loop itself oscillates at, a periodic force not the
+    same both ways): the residual has a structure there that no family models. Each goes to
+    ``findings`` (against "family", the family's columns, the reasons), ``structured`` becomes
+    true and the text names them."""
+    extra = []
+    for c in last_step:
+        if any(c is e for e in chosen) or c.ok or getattr(c, "gain", 0.0) < REFUSED_GAIN:
+            continue
+        why = [r for r in c.reasons if not r.startswith(_WEAK)]
+        if why and len(why) == len(c.reasons):
+            extra.append({"against": c.term.family, "share": float(c.gain), "noise_share": math.nan, "z": math.nan,
+                          "where": f"what {c.term.family} would explain ({100 * c.gain:.0f} % of the held-out "
+                                   f"residual), refused: {'; '.join(why)}",
+                          "mean": math.nan, "structured": True, "explained_by": None})
+    if not extra:
+        return
+    lead = "unexplained structured residual remains: "
+    body = "; ".join(e["where"] for e in extra)
+    if verdict["structured"]:
+        verdict["text"] = verdict["text"] + "; " + body
+    else:
+        verdict["text"] = lead + body + verdict["text"][verdict["text"].find(")") + 1:]
+    verdict["findings"] = verdict["findings"] + extra
+    verdict["structured"] = True
 
 
 def validation(idf: Identifier, rec2) -> dict:
