@@ -16,7 +16,8 @@ Cases (``configs/gantry.yaml``, axis X, C2, virtual clock; :func:`motorctl.app.t
   disturbance or periodic friction is a **wrong name**; neither the family nor the warning is a
   **miss**.
 * ``mode150``: the structural mode at 150 Hz instead of 350: the warning is right; a periodic
-  disturbance or a force ripple is a **wrong name**; no warning is a **miss**.
+  disturbance, a force ripple, cogging or periodic friction is a **wrong name**; no warning is
+  a **miss**.
 
 Prints one line per log (the effects named, the verdict) and the counts per case. Each log takes
 about a minute to simulate on an idle 2-core machine, identify about 10 s.
@@ -38,7 +39,7 @@ CASES = {
 CLEAN_NAMES = {"stiction", "input_delay"}
 #: names that are wrong for each case
 WRONG = {"encoder": {"cogging", "force_ripple", "periodic_disturbance", "periodic_friction"},
-         "mode150": {"periodic_disturbance", "force_ripple"}}
+         "mode150": {"periodic_disturbance", "force_ripple", "cogging", "periodic_friction"}}
 #: the family that names each case rightly (besides the warning)
 RIGHT = {"encoder": "encoder_interpolation"}
 
