@@ -7,8 +7,6 @@ way a user's measurement arrives."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
@@ -17,33 +15,18 @@ from motorctl.effects.encoder_interpolation import analytic_columns, reading_col
 from motorctl.ident.data import load_record
 from motorctl.ident.pipeline import compensation_from_fit, summarise
 from motorctl.ident.select import Identifier
+from harness import LOOP_A1, loop_csv
 
-M, A1, B, FC = 10.0, 50.0, 20.0, 8.0      # kg, N/V, N s/m, N
+A1 = LOOP_A1
 P = 2e-3                                  # signal period [m]
 
 
-def _loop_csv(path, enc_m: float = 0.0, cogging_N: float = 0.0, n: int = 20000, ts: float = 1e-3,
-              seed: int = 0) -> str:
-    """A PID position loop on the measured y tracking slow sweeps (≤ 60 mm/s: the 2 mm error at
-    up to 30 Hz, below the 100 Hz position filter of a 1 kHz record)."""
-    rng = np.random.default_rng(seed)
+def _loop_csv(path, enc_m: float = 0.0, cogging_N: float = 0.0, n: int = 20000, ts: float = 1e-3) -> str:
+    """Slow sweeps (≤ 60 mm/s: the 2 mm error at up to 30 Hz, below the 100 Hz position filter
+    of a 1 kHz record)."""
     t = np.arange(n) * ts
     xd = 0.02 * np.sin(2 * np.pi * 0.25 * t) + 0.01 * np.sin(2 * np.pi * 0.6 * t + 0.4)
-    x = v = e_int = 0.0
-    ys, us = np.empty(n), np.empty(n)
-    k = 2 * np.pi / P
-    for i in range(n):
-        y = x + enc_m * math.sin(k * x) + rng.normal(0.0, 2e-8)
-        e = xd[i] - y
-        e_int += e * ts
-        vd = (xd[min(i + 1, n - 1)] - xd[i]) / ts
-        u = float(np.clip(4000.0 * e + 40000.0 * e_int + 60.0 * (vd - v) + rng.normal(0.0, 0.01), -10.0, 10.0))
-        a = (A1 * u - B * v - FC * math.tanh(v / 1e-3) + cogging_N * math.sin(k * x)) / M
-        v += a * ts
-        x += v * ts
-        ys[i], us[i] = y, u
-    np.savetxt(path, np.column_stack([t, ys, us]), delimiter=",", header="t,y,u", comments="")
-    return str(path)
+    return loop_csv(path, xd, ts, y_noise_m=2e-8, u_noise_V=0.01, enc_m=enc_m, cogging_N=cogging_N, period_m=P)
 
 
 @pytest.fixture(scope="module")

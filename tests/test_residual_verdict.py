@@ -12,29 +12,15 @@ import pytest
 from motorctl.ident.data import load_record
 from motorctl.ident.pipeline import summarise
 from motorctl.ident.select import Identifier
+from harness import LOOP_A1, loop_csv
 
-M, A1, B, FC = 10.0, 50.0, 20.0, 8.0      # kg, N/V, N s/m, N
+A1 = LOOP_A1
 
 
-def _loop_csv(path, play_V: float, n: int = 20000, ts: float = 1e-3, seed: int = 0) -> str:
-    rng = np.random.default_rng(seed)
+def _loop_csv(path, play_V: float, n: int = 20000, ts: float = 1e-3) -> str:
     t = np.arange(n) * ts
     xd = 0.05 * np.sin(2 * np.pi * 0.5 * t) + 0.02 * np.sin(2 * np.pi * 1.3 * t + 0.4)
-    x = v = e_int = u_amp = 0.0
-    ys, us = np.empty(n), np.empty(n)
-    for k in range(n):
-        y = x + rng.normal(0.0, 2e-7)
-        e = xd[k] - y
-        e_int += e * ts
-        vd = (xd[min(k + 1, n - 1)] - xd[k]) / ts
-        u = float(np.clip(4000.0 * e + 40000.0 * e_int + 60.0 * (vd - v) + rng.normal(0.0, 0.02), -10.0, 10.0))
-        u_amp = max(u - play_V, min(u + play_V, u_amp))     # play operator (backlash)
-        a = (A1 * u_amp - B * v - FC * np.tanh(v / 1e-3)) / M
-        v += a * ts
-        x += v * ts
-        ys[k], us[k] = y, u
-    np.savetxt(path, np.column_stack([t, ys, us]), delimiter=",", header="t,y,u", comments="")
-    return str(path)
+    return loop_csv(path, xd, ts, play_V=play_V)
 
 
 @pytest.fixture(scope="module")
