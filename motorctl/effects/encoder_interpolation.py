@@ -35,7 +35,14 @@ from typing import ClassVar
 
 import numpy as np
 
-from motorctl.effects.periodic import MAX_SPEED_GROWTH, N_HARMONICS, PositionPeriodic, amplitudes_phases, fourier
+from motorctl.effects.periodic import (
+    MAX_SPEED_GROWTH,
+    MIN_PEAK_DROP,
+    N_HARMONICS,
+    PositionPeriodic,
+    amplitudes_phases,
+    fourier,
+)
 
 
 def reading_columns(y: np.ndarray, fs: float, fq: float, period: float) -> np.ndarray:
@@ -115,7 +122,8 @@ class EncoderInterpolationFamily(PositionPeriodic):
     def _search(self, ctx, base):
         """P over a log grid from :data:`PERIOD_MIN_M` to :data:`PERIOD_MAX_M` (steps of
         :data:`GRID_STEP`) with cheap columns (ë of the decimated signals, unfiltered), then
-        refined on the exact columns within one step: the reading's error shows only where
+        refined on the exact columns within one step (not when the best period lowers the SSE by
+        less than MIN_PEAK_DROP: a noise minimum); the reading's error shows only where
         ẋ/P is below the position filter's cut-off (the moves' ends on a fast program), too
         few samples for the spatial periodogram cogging uses."""
         hi = min(PERIOD_MAX_M, ctx.stroke / 3.0)
@@ -125,6 +133,8 @@ class EncoderInterpolationFamily(PositionPeriodic):
         p = ctx.p
         term, _ = ctx.best_over(self.name, grid, base,
                                 cols_fn=lambda h: analytic_columns(p.x_d, p.v_d, p.a_d, h, p.fq))
+        if ctx.sse(base + [term]) > (1.0 - MIN_PEAK_DROP) * ctx.sse(base):
+            return term, None      # explains almost nothing at its best period: not refined
         term = ctx.best_between(self.name, term.h * (1.0 - GRID_STEP), term.h * (1.0 + GRID_STEP), base,
                                 0.1 * GRID_STEP * term.h)
         note = None
