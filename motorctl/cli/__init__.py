@@ -49,7 +49,8 @@ def print_table(rows: list[list[str]], out) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="motorctl", description=__doc__.splitlines()[0])
+    p = Parser(prog="motorctl", description="The motorctl command line: the servo loop, its daemon, "
+                "identification and commissioning. motorctl COMMAND --help for each command.")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
 
