@@ -23,17 +23,9 @@ from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
-from motorctl.control.signals import (  # noqa: F401  (re-exported: the laws import them from here)
-    CONTROLLER_SIGNALS,
-    N_SIGNALS,
-    SIG,
-    SIG_D0,
-    SIG_E,
-    SIG_P,
-    SIG_THETA,
-    SIG_V,
-    SIG_X2,
-)
+# the signal names and offsets, re-exported: the laws import them with the interface
+from motorctl.control.signals import CONTROLLER_SIGNALS, N_SIGNALS, SIG, SIG_D0, SIG_E, SIG_P  # noqa: F401
+from motorctl.control.signals import SIG_THETA, SIG_V, SIG_X2  # noqa: F401
 
 #: the compiled laws the servo cycle runs itself (:mod:`motorctl.control.kernels`): C1/C2,
 #: PID+FF, C1/C2 with a compensation (its terms compiled, :mod:`motorctl.effects.compensation`);
