@@ -87,3 +87,21 @@ def test_top_level_help_is_plain():
                        timeout=120, cwd=REPO)
     assert r.returncode == 0, r.stderr
     assert "``" not in r.stdout and "motorctl" in r.stdout.splitlines()[0]
+
+
+def test_a_missing_extra_is_named_in_one_line(tmp_path):
+    """`motorctl plot` without matplotlib: one line naming the `plot` extra, exit 2, no traceback."""
+    code = ("import sys; sys.modules['matplotlib'] = None; from motorctl.cli import main; "
+            f"sys.exit(main(['plot', {str(tmp_path / 'none.mclog')!r}]))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr == ("motorctl: error: plot: needs the 'plot' extra (matplotlib is not installed): "
+                        "pip install 'motorctl[plot]'\n")
+
+
+def test_every_extra_module_names_a_real_extra():
+    import tomllib
+
+    from motorctl.cli import EXTRA_OF
+    extras = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    assert set(EXTRA_OF.values()) <= set(extras)
