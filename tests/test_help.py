@@ -105,3 +105,11 @@ def test_every_extra_module_names_a_real_extra():
     from motorctl.cli import EXTRA_OF
     extras = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["optional-dependencies"]
     assert set(EXTRA_OF.values()) <= set(extras)
+
+
+def test_ci_runs_the_readme_test_command():
+    """.ci/run ends with exactly the command the README gives for the tests."""
+    ci = (REPO / ".ci" / "run").read_text().strip().splitlines()[-1]
+    text = (REPO / "README.md").read_text(encoding="utf-8")
+    section = text.split("\n## The two commands\n", 1)[1].split("\n## ", 1)[0]
+    assert ci.startswith("python3 -m venv .venv") and ci in section.splitlines()
