@@ -67,6 +67,27 @@ def test_imports_flow_one_way(module, path):
     assert not bad, "\n".join(bad)
 
 
+def test_no_import_circle():
+    """No module imports, even inside a function, one that imports it back (graphlib finds a
+    circle; ``from pkg import mod`` counts as importing pkg.mod)."""
+    import graphlib
+    mods = dict(_modules())
+    graph = {}
+    for module, path in mods.items():
+        deps = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                deps |= {a.name for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                deps |= {f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in mods else node.module
+                         for a in node.names}
+        graph[module] = {d for d in deps if d in mods and d != module}
+    try:
+        tuple(graphlib.TopologicalSorter(graph).static_order())
+    except graphlib.CycleError as exc:
+        pytest.fail(f"import circle: {' -> '.join(exc.args[1])}")
+
+
 def test_the_loop_is_built_in_one_place():
     """Only motorctl/app/build.py constructs a ServoLoop or a Supervisor in production code."""
     builders = []
