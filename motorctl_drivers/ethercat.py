@@ -16,7 +16,8 @@ YAML (``driver:``)::
                              # reaches a slave near its SYNC0 edge is applied a period early
                              # or late. Use false with loop.clock virtual.
     watchdog_ms: 10          # SM watchdog (ESC 0x0400/0x0420): no outputs for this long ->
-                             # the slaves' outputs to 0 / safe state
+                             # the slaves' outputs to 0 / safe state; above the host's longest
+                             # stall (docs/drivers.md: 10 ms RT kernel, 50 stock, 200 a VM)
     timeout_s, round_trip_s, max_bus_load   # as every bus driver (split_phase.CommonOptions)
     state_timeout_s: 2.0     # how long configure()/activate() wait for an AL state
 
@@ -38,14 +39,28 @@ per axis (``axes.NAME.driver``), ``profile: cia402``::
 
 The cycle: ``write()`` packs every axis's outputs into the process image and sends it in one
 LRW (plus SOEM's DC datagram); ``read()`` of the next cycle receives it (waiting at most
-``timeout_s``) and compares the working counter with the expected one (2 per slave with
-outputs, 1 per slave with inputs). A short working counter means a slave did not take part:
-every axis gets ``read_error`` (the supervisor's error bucket counts it), the position is held,
-and while it lasts :meth:`EthercatDriver.fault_reason` says "EtherCAT working counter 3 of 6".
-A CiA 402 drive's power state machine is stepped from the enable request by
-:class:`motorctl_drivers.cia402.PowerStateMachine` (the same as the CANopen driver's); its
-statusword fault bit is ``amp_fault``, its error code 0x603F (mapped) names the fault. Slave
-AL states are read between cycles (in ``fault_reason`` and the stop), never inside one.
+``timeout_s``) and compares the working counter with the one the slaves' AL states give
+(ETG.1000.4 §5.4: 2 per slave with outputs in OP, 1 per slave with inputs in SAFE-OP or OP; an
+ESC takes no outputs below OP). A short working counter means a slave did not take part: every
+axis gets ``read_error`` (the supervisor's error bucket counts it), the position is held, and
+``service()`` (after the cycle's write, outside its timing) reads the AL status and AL status
+code (0x0130, 0x0134) of every slave the axes use, one FPRD each. From the next read on, an
+axis with a slave out of OP (the SM watchdog took it to SAFE-OP, error 0x001B; a slave reset)
+is an amplifier fault, not an I/O error: the supervisor latches it within that cycle, and
+:meth:`EthercatDriver.fault_reason` names the slave, its state and its AL status code. A short
+working counter with every slave in OP (a lost or damaged frame) stays in the error bucket
+and reads "EtherCAT working counter 3 of 6". A CiA 402 drive's power state machine is stepped
+from the enable request by :class:`motorctl_drivers.cia402.PowerStateMachine` (the same as the
+CANopen driver's); its statusword fault bit is ``amp_fault``, its error code 0x603F (mapped)
+names the fault; its emergencies arrive through pysoem's emergency callback (read from the
+mailbox at the stop).
+
+The stop receives the loop's last frame first (SOEM's receive adds up the working counters of
+every frame sent since the previous receive), reads the AL states and judges the stop's frames
+against them; an output terminal below OP holds its safe state (0 V, off) whatever its SM
+buffer kept. At close the drives go to PRE-OP and get back, by SDO, the PDO mapping and
+assignment (0x1600, 0x1A00, 0x1C12, 0x1C13) and modes of operation (0x6060) the set-up found,
+then INIT.
 
 Set-up (``configure``): the segment is scanned (``config_init``), every slave's identity is
 checked against its role, the drives' PDOs are mapped by SDO in PRE-OP (0x1C12/0x1C13 cleared,
