@@ -795,12 +795,13 @@ class EthercatDriver(Driver):
         return float(self.axis_options[axis].voltage_full_scale_V)
 
     def fault_reason(self, i: int) -> str:
-        """Why axis ``i`` faults, one line: the working counter while it is short (and the
+        """Why axis ``i`` faults, one line: its slaves that left OP with their AL status codes
+        (read after a short working counter), or the working counter while it is short (and the
         slaves not in OP with their AL status codes), or the drive's error code 0x603F of its
         last fault (kept until the drive is in Operation enabled again, so the report after the
         fault reset still names it) with the emergency it sent and its state now."""
         if self._al_fault[i]:
-            return f"{self._wkc_text()}: {self._al_text(i)}"
+            return self._al_text(i)
         if self._bad_wkc_since is not None:
             why = self._wkc_text()
             try:

@@ -153,18 +153,29 @@ def test_an_emergency_of_the_drive_latches_its_code_and_meaning(tmp_path):
     assert "FutureWarning" not in r.stderr, r.stderr
 
 
+def _signalled(cfg: Path, steps, stop_emulator: bool = False):
+    """``motorctl run`` (30 s) against the segment, sent ``steps`` [(after_s, signal), ...] from
+    its first line on. Returns (its CompletedProcess, the emulator's stop lines when
+    ``stop_emulator`` (0.5 s after the run), the emulator's stderr)."""
+    pytest.importorskip("pysoem")
+    with NetNamespace(veth=VETH) as ns, Emulator("ethercat", cfg, plant=PLANT, prefix=ns.prefix) as emu:
+        def act(proc):
+            for after_s, sig in steps:
+                time.sleep(after_s)
+                os.killpg(proc.pid, sig)
+        _first, r = run_cli_interrupted(["run", str(cfg), "--duration", "30"], act, prefix=ns.prefix,
+                                        timeout_s=60)
+        out = ""
+        if stop_emulator:
+            time.sleep(0.5)
+            out = emu.stop()
+        err = emu.stderr()
+    return r, out, err
+
+
 @needs_netns
 def test_the_sm_watchdog_drops_the_outputs_when_the_host_stops(tmp_path):
-    pytest.importorskip("pysoem")
-    cfg = _config(tmp_path, watchdog_ms=20.0)
-    with NetNamespace(veth=VETH) as ns, Emulator("ethercat", cfg, plant=PLANT, prefix=ns.prefix) as emu:
-        def kill(proc):
-            time.sleep(1.0)
-            os.killpg(proc.pid, signal.SIGKILL)
-        run_cli_interrupted(["run", str(cfg), "--duration", "30"], kill, prefix=ns.prefix, timeout_s=60)
-        time.sleep(0.5)
-        out = emu.stop()
-        err = emu.stderr()
+    _r, out, err = _signalled(_config(tmp_path, watchdog_ms=20.0), [(1.0, signal.SIGKILL)], stop_emulator=True)
     trips = re.findall(r"slave (\d): SM watchdog, no outputs for 20 ms: outputs 0, (?:SAFE-OP \+ error 0x001B|"
                        r"stays in OP) \(([\d.]+) ms after the last outputs\)", err)
     assert sorted({k for k, _ in trips}) == ["1", "3", "4", "5"], err          # every slave with outputs
@@ -182,19 +193,8 @@ def test_a_host_pause_beyond_the_sm_watchdog_faults_both_axes_from_the_al_status
     pause comes back short, the driver reads AL status before the next one, and that one faults
     both axes as amplifier faults naming the code: the terminal axis is not held "enabled"
     through the error bucket (at most the one short frame counts as an I/O error)."""
-    pytest.importorskip("pysoem")
-    cfg = _config(tmp_path, watchdog_ms=10.0)
-    with NetNamespace(veth=VETH) as ns, Emulator("ethercat", cfg, plant=PLANT, prefix=ns.prefix) as emu:
-        def pause(proc):
-            time.sleep(0.3)
-            os.killpg(proc.pid, signal.SIGSTOP)
-            time.sleep(0.03)
-            os.killpg(proc.pid, signal.SIGCONT)
-            time.sleep(0.3)
-            os.killpg(proc.pid, signal.SIGTERM)
-        _first, r = run_cli_interrupted(["run", str(cfg), "--duration", "30"], pause, prefix=ns.prefix,
-                                        timeout_s=60)
-        err = emu.stderr()
+    r, _out, err = _signalled(_config(tmp_path, watchdog_ms=10.0),
+                              [(0.3, signal.SIGSTOP), (0.03, signal.SIGCONT), (0.3, signal.SIGTERM)])
     table = parse_run_table(r.stdout)
     assert set(table) == {"X", "Y"}, f"{r.stdout}\n{r.stderr}\n{err}"
     assert "stays in OP" in err and "SAFE-OP + error 0x001B" in err, err
