@@ -17,8 +17,14 @@ ESC datasheet (section II) for the register addresses.
   The application behind it (a drive, a terminal) is a :class:`SlaveApp`.
 * :class:`Segment`: a line of slaves as the frame passes them: every datagram of a frame
   (NOP, APRD/APWR/APRW, FPRD/FPWR/FPRW, BRD/BWR/BRW, LRD/LWR/LRW, ARMW, FRMW) addressed,
-  answered and its working counter incremented as ETG.1000.4 §5.4 says; the answer is the
-  frame with the data read and the counters raised.
+  answered and its working counter incremented as ETG.1000.4 §5.4 says (a logical write
+  reaches, and counts in, a slave in OP only); the answer is the frame with the data read and
+  the counters raised. Frames of another header type (4, 5) pass unchanged.
+
+Where a naive model and an ESC differ, this one is the ESC: 0x0440 reads 1 from reset; a
+watchdog trip zeroes the output pins, not the SM buffer in process RAM; an ESC that drives its
+outputs itself (an EL2008-type terminal) stays in OP on a trip; an EEPROM write command without
+the write-enable bit sets error bit 14 of 0x0502.
 
 Time-compressed: a frame is handled at once, with the plant behind the slaves stepped inside
 the logical datagram that writes the outputs (the application runs between the write and the
