@@ -48,3 +48,40 @@ def test_the_same_loop_without_it_leaves_no_structure(verdicts):
     res = verdicts["clean"]["residual"]
     assert not res["structured"], res["findings"]
     assert {t["against"] for t in res["tested"]} == {"velocity", "input", "position", "time", "spectrum"}
+
+
+def test_a_candidate_refused_on_its_physics_is_reported_unexplained():
+    """A last-step candidate that explains a share of the held-out residual and is refused only
+    on its physics (a line the loop itself oscillates at) makes the verdict 'unexplained'; one
+    that explains too little, or is also weak, does not; a selected one never."""
+    from types import SimpleNamespace
+
+    from motorctl.ident.pipeline import add_refused
+
+    def cand(family, gain, *reasons, ok=False):
+        return SimpleNamespace(term=SimpleNamespace(family=family), ok=ok, gain=gain, reasons=list(reasons))
+    resonance = "the loop itself oscillates at 67.75 Hz (...): a resonance of the loop or the structure"
+    step = [cand("periodic_disturbance", 0.10, resonance),
+            cand("cogging", 0.20, "not the same force in both directions", "held-out gain 2.0 % < 3 %"),
+            cand("stribeck", 0.04, "Stribeck force must be positive"),
+            cand("spring", 0.30, ok=True)]
+    clean = {"structured": False, "findings": [],
+             "text": "the residual shows no structure (against velocity, input, position, time, spectrum)"}
+    add_refused(clean, step, [step[3]])
+    assert clean["structured"] and [f["against"] for f in clean["findings"]] == ["periodic_disturbance"]
+    assert clean["text"].startswith("unexplained structured residual remains: what periodic_disturbance "
+                                    "would explain (10 % of the held-out residual), refused: the loop itself")
+    quiet = {"structured": False, "findings": [], "text": "the residual shows no structure (against x)"}
+    add_refused(quiet, step[1:], [])
+    assert not quiet["structured"] and quiet["text"] == "the residual shows no structure (against x)"
+
+
+def test_the_loop_check_tells_a_resonance_from_a_disturbance():
+    """The shares measured on the default plant (150 Hz mode: inertial 0.80, input 1.01; the
+    7.3 Hz example disturbance: inertial 0.0014) and the rigid plant's short log (inertial 6.0,
+    where the program's own motion dominates: not judged)."""
+    from motorctl.effects.periodic_disturbance import FAMILY
+    assert FAMILY.loop_oscillates(0.80, 1.01)
+    assert not FAMILY.loop_oscillates(0.0014, 1.0)
+    assert not FAMILY.loop_oscillates(6.0, 7.7)
+    assert not FAMILY.loop_oscillates(0.8, 0.05)       # the input does not follow: above the bandwidth
