@@ -247,8 +247,9 @@ def cmd_export(args) -> int:
             import mcap.writer  # noqa: F401
         except ImportError:
             raise InputError("export --mcap needs the mcap package: pip install 'motorctl[mcap]'") from None
+    check_output(out, [args.log], "export")          # before the log is read
     run = open_run(args.log)
-    check_output(out, [args.log, *(s.path for s in run.segments)], "export")   # before reading
+    check_output(out, [s.path for s in run.segments], "export")
     notes = []
     with atomic_output(out, "export") as tmp:       # renamed to `out` once complete
         if args.csv:
