@@ -104,6 +104,8 @@ def _wrap(handler):
 
 # --------------------------------------------------------------------------- handlers
 def cmd_daemon(args) -> int:
+    from motorctl.app.warmup import say_if_cold
+    say_if_cold()                                 # within a second, before numba is imported
     from motorctl.app.daemon import DaemonError, run_daemon
     try:
         return run_daemon(args.config, args.daemon_socket or args.socket, args.log_dir)
