@@ -145,6 +145,7 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--spinners", type=int, default=2)
     ap.add_argument("--pages", type=int, nargs="+", default=[0, 5, 20, 50])
+    ap.add_argument("--keep-stderr", default=None, metavar="FILE", help="copy the daemon's stderr here")
     args = ap.parse_args()
     print(f"# rerun: python benchmarks/bench_scope.py --seconds {args.seconds:g} --spinners "
           f"{args.spinners} --pages {' '.join(map(str, args.pages))}")
@@ -188,6 +189,8 @@ def main() -> None:
                 os.killpg(proc.pid, signal.SIGTERM)
                 proc.wait(20)
                 err = (Path(tmp) / "daemon.err").read_text()
+                if args.keep_stderr:
+                    Path(args.keep_stderr).write_text(err)
     finally:
         for s in spinners:
             s.kill()

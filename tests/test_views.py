@@ -75,14 +75,15 @@ def test_pages_that_never_read_drop_frames_not_rows(tmp_path):
         async def pages():
             async with aiohttp.ClientSession() as s:
                 stuck = [await s.ws_connect(f"ws://127.0.0.1:{port}/ws") for _ in range(5)]
-                _axes_run_and_nothing_lost(d, 3.0)
+                st = _axes_run_and_nothing_lost(d, 3.0)
                 async with s.ws_connect(f"ws://127.0.0.1:{port}/ws") as ws:
                     meta = await ws.receive_json(timeout=10)
                     msg = await ws.receive_json(timeout=10)
                 for w in stuck:
                     await w.close()
-                return meta, msg
-        meta, msg = asyncio.run(pages())
+                return meta, msg, st
+        meta, msg, st = asyncio.run(pages())
+        assert st["views"]["frames_sent"] > 50, st["views"]     # 3 s at one frame per 20 ms
         assert "X.e" in meta["meta"]["channels"]
         assert set(msg) >= {"frames", "status", "dropped"} and msg["dropped"] >= 0
         code, _, err = d.terminate()

@@ -197,6 +197,8 @@ class IOSide:
             "socket": self.plan.socket_path,
             "clients": {"open": len(self.clients), "refused": self.clients_refused,
                         "max": MAX_CLIENTS},
+            "views": ({"pid": self.views.pid, "frames_sent": self.views.sent,
+                       "frames_dropped": self.views.dropped} if self.views is not None else None),
         }
 
     def summary_line(self) -> str:

@@ -26,6 +26,7 @@ import pickle
 import signal
 import socket
 import sys
+import time
 from importlib import resources
 
 from motorctl.app.lifetime import die_with_parent
@@ -123,7 +124,6 @@ class ViewLink:
 
 
 def _reap(pid: int, timeout_s: float) -> None:
-    import time
     end = time.monotonic() + timeout_s
     while True:
         try:
