@@ -337,7 +337,7 @@ class Views:
                        f'"dropped": {page.dropped + self.link_dropped}, "scope_error": ""}}')
                 await ws.send_str(msg)
                 await asyncio.sleep(SEND_EVERY_S)
-        except (ConnectionResetError, RuntimeError, asyncio.CancelledError):
+        except (ConnectionError, RuntimeError):     # the page went away mid-send
             pass
         finally:
             self.pages.discard(page)
