@@ -9,7 +9,6 @@ import json
 import resource
 import struct
 import subprocess
-import sys
 
 import numpy as np
 import pytest
