@@ -33,3 +33,23 @@ def test_a_warm_cache_is_silent_and_warmup_loads_it(gantry_yaml):
     r = subprocess.run([*MOTORCTL, "run", str(gantry_yaml), "--virtual-clock", "--duration", "0.01"],
                        cwd=REPO, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0 and COMPILE_LINE not in r.stderr, r.stderr
+
+
+def test_the_cold_check_follows_numbas_cache_and_its_source_stamp(tmp_path):
+    """A stand-in for the servo cycle's module, compiled with numba's on-disk cache under
+    NUMBA_CACHE_DIR: cold before, warm after, cold again once its source changes."""
+    import sys
+    (tmp_path / "standin.py").write_text("from numba import njit\n\n@njit(cache=True)\n"
+                                         "def servo_cycle(x):\n    return x + 1\n")
+    script = (
+        "import sys, motorctl.app.warmup as w\n"
+        "w._CYCLE_MODULE = 'standin'\n"
+        "before = w.cache_is_cold()\n"
+        "import standin; standin.servo_cycle(1)\n"
+        "after = w.cache_is_cold()\n"
+        "open(standin.__file__, 'a').write('# edited\\n')\n"
+        "print(before, after, w.cache_is_cold())\n")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba"), "PYTHONPATH": str(tmp_path)}
+    r = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, env=env, capture_output=True,
+                       text=True, timeout=300)
+    assert r.stdout.split() == ["True", "False", "True"], r.stdout + r.stderr

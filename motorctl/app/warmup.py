@@ -3,15 +3,17 @@
 numba compiles the servo cycle and the control kernels for this CPU the first time they run
 after an install and caches the machine code on disk (beside the sources, or under
 ``NUMBA_CACHE_DIR``); later starts load it. :func:`cache_is_cold` tells (without importing
-numba) whether the servo cycle's cache index is missing or older than its source, so the CLI
+numba) whether the servo cycle's cache index is missing or stale for its source, so the CLI
 can print :data:`COMPILE_LINE` at once instead of staying silent for 25-70 s;
 :func:`warmup` (``motorctl warmup``) compiles everything a config uses with no device opened.
 """
 
 from __future__ import annotations
 
+import hashlib
 import importlib.util
 import os
+import pickle
 import sys
 import time
 from pathlib import Path
@@ -25,31 +27,62 @@ def _index_pattern(src: Path) -> str:
     return f"{src.stem}.{_CYCLE_FUNCTION}-*.py{sys.version_info.major}{sys.version_info.minor}.nbi"
 
 
+def _cache_folders(src: Path) -> list[Path]:
+    """Where numba keeps ``src``'s cache (numba.core.caching's locators, in their order):
+    ``NUMBA_CACHE_DIR`` when set, else ``__pycache__`` beside the source, else the user-wide
+    cache; the last two are keyed by the source folder's name and the SHA-1 of its path."""
+    folder = src.parent.resolve()
+    sub = f"{folder.name}_{hashlib.sha1(str(folder).encode()).hexdigest()}"
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return [Path(os.environ["NUMBA_CACHE_DIR"]) / sub]
+    user = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "numba" / sub
+    return [src.parent / "__pycache__", user]
+
+
+def _fresh(index: Path, src: Path) -> bool:
+    """The index was written for this source (numba's stamp: the source's SHA-256, or its
+    (mtime, size) in older numba). An index it cannot read counts as fresh (no false notice)."""
+    try:
+        with open(index, "rb") as fh:
+            pickle.load(fh)                               # numba's version
+            stamp = pickle.loads(fh.read())[0]
+        if isinstance(stamp, bytes):
+            return stamp == hashlib.sha256(src.read_bytes()).digest()
+        st = src.stat()
+        return tuple(stamp) == (st.st_mtime, st.st_size)
+    except Exception:                                      # noqa: BLE001 - a notice, not a check
+        return True
+
+
 def cache_is_cold() -> bool:
-    """True when the servo cycle's numba cache index is absent (or older than its source) in
-    every place numba looks: ``NUMBA_CACHE_DIR`` (mirroring the source's path) when set, else
-    the ``__pycache__`` beside the source."""
+    """True when no numba cache index of the servo cycle fits its current source, in the
+    places numba looks (:func:`_cache_folders`)."""
+    if os.environ.get("NUMBA_DISABLE_JIT") == "1":
+        return False
     spec = importlib.util.find_spec(_CYCLE_MODULE)
     if spec is None or not spec.origin:
         return False
     src = Path(spec.origin)
-    if os.environ.get("NUMBA_DISABLE_JIT") == "1":
-        return False
-    where = os.environ.get("NUMBA_CACHE_DIR")
-    folder = (Path(where) / src.parent.resolve().relative_to("/")) if where else src.parent / "__pycache__"
-    try:
-        mtime = src.stat().st_mtime
-        return not any(p.stat().st_mtime >= mtime for p in folder.glob(_index_pattern(src)))
-    except (OSError, ValueError):
-        return True
+    for folder in _cache_folders(src):
+        try:
+            if any(_fresh(p, src) for p in folder.glob(_index_pattern(src))):
+                return False
+        except OSError:
+            continue
+    return True
+
+
+_said = []
 
 
 def say_if_cold(out=sys.stderr) -> bool:
-    """Print :data:`COMPILE_LINE` (flushed) when the cache is cold; returns whether it was."""
+    """Print :data:`COMPILE_LINE` (flushed, once per process) when the cache is cold; returns
+    whether it is."""
     cold = cache_is_cold()
-    if cold:
+    if cold and not _said:
         out.write(f"motorctl: {COMPILE_LINE}\n")
         out.flush()
+        _said.append(True)
     return cold
 
 

@@ -157,16 +157,13 @@ def cmd_check_config(args) -> int:
 
 # --------------------------------------------------------------------------- warmup
 def cmd_warmup(args) -> int:
-    from motorctl.app.warmup import COMPILE_LINE, cache_is_cold, warmup
+    from motorctl.app.warmup import say_if_cold, warmup
+    cold = say_if_cold()
     try:                 # systemd's ExecStartPre inherits the unit's SCHED_FIFO: compile as a guest
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     except OSError:
         pass
     loaded = _load(args.config)
-    cold = cache_is_cold()
-    if cold:
-        sys.stderr.write(f"motorctl: {COMPILE_LINE}\n")
-        sys.stderr.flush()
     res = warmup(loaded)
     what = "the controllers and the servo cycle" if res["cycle"] else \
         f"the controllers (driver {loaded.cfg.driver.type!r} not opened: its servo cycle compiles at the first start)"
