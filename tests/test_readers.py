@@ -109,3 +109,24 @@ def test_plot_writes_whole_pngs_and_refuses_a_run_log_in_their_place(logs, tmp_p
     _one_error_line(r, "X_error.png", "never overwrites one")
     assert not [p for p in out.iterdir() if p.name.endswith(".part")]
     assert (out / "X_error.png").read_bytes()[:len(MAGIC)] == MAGIC
+
+
+def test_a_full_disk_names_the_file_and_leaves_nothing(logs, tmp_path):
+    """A real ENOSPC: a 256 KiB tmpfs mounted in a private mount namespace of this test's
+    child (gone with it); skipped where unshare(1) may not create one."""
+    import shutil
+    good, _ = logs
+    unshare = shutil.which("unshare")
+    if unshare is None or subprocess.run([unshare, "-m", "true"], capture_output=True).returncode:
+        pytest.skip("no private mount namespace here (unshare -m)")
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    cmd = " ".join(map(str, MOTORCTL))
+    script = (f"mount -t tmpfs -o size=256k tmpfs {disk} && {cmd} export {good} --csv {disk}/x.csv; "
+              f"echo rc=$?; ls -A {disk}")
+    r = subprocess.run([unshare, "-m", "sh", "-c", script], capture_output=True, text=True,
+                       cwd=REPO, timeout=120)
+    assert "rc=2" in r.stdout, r.stdout + r.stderr
+    assert r.stdout.strip().endswith("rc=2"), r.stdout          # nothing left on the full disk
+    assert "Traceback" not in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    assert f"{disk}/x.csv: cannot write the export (No space left on device)" in r.stderr
