@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from motorctl.app.build import build, log_header, shutdown, start
+from motorctl.app.lifetime import parent_gone
 from motorctl.config import LoadedConfig
 from motorctl.inputs import InputError
 from motorctl.loop.records import RecordLayout
@@ -129,17 +130,18 @@ class _Sink:
                 "write_error": self.write_error}
 
 
-def _drain_process(ring: SharedRing, sink: _Sink, wfd: int, cpu: int | None) -> None:
+def _drain_process(ring: SharedRing, sink: _Sink, wfd: int, cpu: int | None, parent: int) -> None:
     """The child that drains the ring of a wall-clock run (never returns): off the loop's
     ``cpu`` (:func:`motorctl.loop.rt.keep_off`), takes the published rows every
-    :data:`DRAIN_S` until the loop has ended, closes the log (fsync) and writes its summary
-    (JSON) to ``wfd``."""
+    :data:`DRAIN_S` until the loop has ended, or its ``parent`` (the loop process) has died
+    (``kill -9``: it keeps the rows published so far), closes the log (fsync) and writes its
+    summary (JSON) to ``wfd``."""
     code = 1
     try:
         keep_off(cpu)
         signal.signal(signal.SIGINT, signal.SIG_IGN)     # the loop decides when the run ends
         while True:
-            ended = load_acquire(ring.ctl, CTL_STATE) == _ENDED
+            ended = load_acquire(ring.ctl, CTL_STATE) == _ENDED or parent_gone(parent)
             sink.take(ring.published(), ring.published)
             if ended:
                 break
@@ -252,10 +254,11 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
         rfd, wfd = os.pipe()
         sys.stdout.flush()
         sys.stderr.flush()
+        parent = os.getpid()
         pid = os.fork()
         if pid == 0:
             os.close(rfd)
-            _drain_process(ring, sink, wfd, loop_cpu(loaded.cfg.loop.realtime.cpu))
+            _drain_process(ring, sink, wfd, loop_cpu(loaded.cfg.loop.realtime.cpu), parent)
         os.close(wfd)
         if writer is not None:
             writer.release()

@@ -24,6 +24,8 @@ EXIT_STOP_UNCONFIRMED = 3
 
 
 def cmd_run(args) -> int:
+    from motorctl.app.warmup import say_if_cold
+    say_if_cold()                                 # within a second, before numba is imported
     from motorctl.app.build import stop_lines
     from motorctl.app.job import run_job
     loaded = _load(args.config)
@@ -153,6 +155,23 @@ def cmd_check_config(args) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------- warmup
+def cmd_warmup(args) -> int:
+    from motorctl.app.warmup import say_if_cold, warmup
+    cold = say_if_cold()
+    try:                 # systemd's ExecStartPre inherits the unit's SCHED_FIFO: compile as a guest
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except OSError:
+        pass
+    loaded = _load(args.config)
+    res = warmup(loaded)
+    what = "the controllers and the servo cycle" if res["cycle"] else \
+        f"the controllers (driver {loaded.cfg.driver.type!r} not opened: its servo cycle compiles at the first start)"
+    sys.stdout.write(f"warmup: {what} {'compiled' if cold else 'loaded from the cache'} in "
+                     f"{res['seconds']:.1f} s\n")
+    return 0
+
+
 # --------------------------------------------------------------------------- plot
 def cmd_plot(args) -> int:
     from motorctl.plots import plot_log
@@ -189,6 +208,11 @@ def register(parser, sub) -> None:
     k = sub.add_parser("check-config", help="check a config; exit 0 if it is valid")
     k.add_argument("config", nargs="?", default=DEFAULT_CONFIG, help="the config YAML (default: %(default)s)")
     k.set_defaults(func=cmd_check_config)
+
+    w = sub.add_parser("warmup", help="compile the servo cycle and the controllers for this CPU "
+                                      "ahead of the first run (no device opened)")
+    w.add_argument("config", nargs="?", default=DEFAULT_CONFIG)
+    w.set_defaults(func=cmd_warmup)
 
     pl = sub.add_parser("plot", help="PNG figures of a run log (like the paper's Figs. 4-12)")
     pl.add_argument("log", help="a run log (motorctl run --log, or a daemon's segment)")
