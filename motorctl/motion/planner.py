@@ -429,12 +429,18 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
                 marks.append((len(pieces) - 1, seg))
     if not pieces:
         add_rest(0.0, 0)
+    # ---- junction speeds: vj[k] between piece k and k+1; the end at rest. A corner the filters
+    # cannot round within its tolerance becomes an exact stop with a rest of the filters' length
+    # (their window then never holds both legs: the corner is kept exactly).
     npc = len(pieces)
-    # ---- junction speeds: vj[k] between piece k and k+1; vj[-1] = 0 (the end)
     vj = np.zeros(npc)
+    rest_after = [False] * npc
     for k in range(npc - 1):
         a, b = pieces[k], pieces[k + 1]
-        if stop_after[k] or a.length == 0.0 or b.length == 0.0:
+        if a.length == 0.0 or b.length == 0.0:
+            continue
+        if stop_after[k]:
+            rest_after[k] = True
             continue
         ua = _tangents(a, ix, iy)[1]
         ub = _tangents(b, ix, iy)[0]
@@ -442,11 +448,18 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
         dn = float(np.linalg.norm(du))
         v = min(a.vmax, b.vmax)
         if dn > 1e-12:
-            cos_t = float(np.clip(np.dot(ua, ub), -1.0, 1.0))
-            theta = math.acos(cos_t)
+            theta = math.acos(float(np.clip(np.dot(ua, ub), -1.0, 1.0)))
+            g = math.sin(theta) if theta < math.pi / 2 else 1.0
             if math.isfinite(a.tol):
-                g = math.sin(theta) if theta < math.pi / 2 else 1.0
-                v = min(v, 0.5 * 4.0 * a.tol / (tw * max(g, 1e-12)))
+                # the filtered corner stays within g·(v_j·tw/2 + a·tw²/8) of the path (the legs'
+                # points in the window, weighted): half the tolerance to each term
+                a_corner = 0.5 * a.tol * 8.0 / (g * tw * tw)
+                if a_corner < 0.5 * min(a.acc, b.acc):   # slower than stopping: stop
+                    rest_after[k] = True
+                    continue
+                a.acc = min(a.acc, a_corner)
+                b.acc = min(b.acc, a_corner)
+                v = min(v, 0.5 * a.tol * 2.0 / (g * tw))
             # each axis's velocity step, with the corners of short neighbours in the same window,
             # within the acceleration share left by the path profile: v|du|(1 + v T1/l) <= (1-s) a T1
             ell = max(min(a.length, b.length), 1e-12)
@@ -454,10 +467,24 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
                 di = abs(du[i])
                 if di > 0:
                     cap = (1 - ACCEL_SHARE) * alim[i] * t1
-                    # di * v + di * t1 / ell * v² = cap
                     qa, qb = di * t1 / ell, di
                     v = min(v, (-qb + math.sqrt(qb * qb + 4 * qa * cap)) / (2 * qa))
         vj[k] = v
+    if any(rest_after):
+        new_pieces: list[_Piece] = []
+        where = []
+        for k, p in enumerate(pieces):
+            new_pieces.append(p)
+            where.append(len(new_pieces) - 1)
+            if rest_after[k]:
+                new_pieces.append(_Piece(0, p.line, p.p1.copy(), p.p1.copy(), np.zeros(len(axes)), 0.0, 0.0,
+                                         0.0, 0.0, rest=tw))
+        vj_new = np.zeros(len(new_pieces))
+        for k in range(npc):
+            if not rest_after[k]:
+                vj_new[where[k]] = vj[k]
+        marks = [(where[k] if k >= 0 else k, seg) for k, seg in marks]
+        pieces, vj, npc = new_pieces, vj_new, len(new_pieces)
     # backward and forward passes (look-ahead over the whole program)
     for k in range(npc - 2, -1, -1):
         b = pieces[k + 1]
