@@ -280,7 +280,8 @@ class _Reader:
         self.absolute = True
         self.arc_absolute = False
         self.motion: float | None = None
-        self.feed: float | None = None   # [m/s]
+        self.f_word = 0.0                # the F number, in the active units per minute (rs274ngc keeps
+                                         # the number across G20/G21)
         self.tol = math.inf              # G64 without P at start (LinuxCNC default G64)
         self.ref = np.array([settings.reference_point_m.get(a, 0.0) for a in AXES])
         self.segments: list[Segment] = []
@@ -290,6 +291,11 @@ class _Reader:
     # errors
     def err(self, line: int, w: _Word | None, why: str, col: int = 1) -> GcodeError:
         return GcodeError(self.f, line, w.column if w else col, w.text if w else "", why)
+
+    @property
+    def feed(self) -> float | None:
+        """The active feed [m/s] (None: no F yet, or F0)."""
+        return self.f_word * self.unit / 60.0 if self.f_word > 0 else None
 
     def offset(self) -> np.ndarray:
         return self.cs[self.active] + self.g92
@@ -302,22 +308,28 @@ class _Reader:
         words: list[_Word] = []
         pos = 0
         for m in _WORD.finditer(text):
-            gap = text[pos:m.start()]
-            if gap.strip():
-                bad = pos + len(gap) - len(gap.lstrip())
-                ch = text[bad]
-                what = {"#": "parameters (#)", "[": "expressions ([ ])", "/": "block delete (/)",
-                        "=": "parameter assignment"}.get(ch, f"{ch!r} where a word (letter and number) belongs")
-                raise GcodeError(self.f, n, bad + 1, ch, f"{what} are not in the subset; {_SUBSET}")
+            self._stray(n, text, pos, m.start())
+            if m.group(1).upper() == "O":
+                raise GcodeError(self.f, n, m.start() + 1, m.group(0).strip(),
+                                 f"subroutines and flow control (O words) are not in the subset; {_SUBSET}")
             words.append(_Word(m.group(1).upper(), _number(m.group(2)),
                                m.group(1).upper() + re.sub(r"\s", "", m.group(2)), m.start() + 1))
             pos = m.end()
-        tail = text[pos:]
-        if tail.strip():
-            bad = pos + len(tail) - len(tail.lstrip())
-            raise GcodeError(self.f, n, bad + 1, text[bad], f"{text[bad]!r} where a word (letter and number) "
-                             f"belongs; {_SUBSET}")
+        self._stray(n, text, pos, len(text))
         self._block(n, words)
+
+    def _stray(self, n: int, text: str, a: int, b: int) -> None:
+        """Refuse anything but blanks in text[a:b] (between words)."""
+        gap = text[a:b]
+        if not gap.strip():
+            return
+        special = [i for i, c in enumerate(gap) if c in "#[/="]
+        bad = a + (special[0] if special else len(gap) - len(gap.lstrip()))
+        ch = text[bad]
+        what = {"#": "parameters (#) are", "[": "expressions ([ ]) are", "/": "block delete (/) is",
+                "=": "parameter assignments are"}.get(ch)
+        why = f"{what} not in the subset" if what else f"{ch!r} where a word (letter and number) belongs"
+        raise GcodeError(self.f, n, bad + 1, ch, f"{why}; {_SUBSET}")
 
     def _strip_comments(self, n: int, raw: str) -> tuple[str, int]:
         out = []
@@ -390,7 +402,7 @@ class _Reader:
             w = vals["F"]
             if w.value < 0:
                 raise self.err(n, w, "negative feed rate")
-            self.feed = w.value * self.unit / 60.0 if w.value > 0 else None
+            self.f_word = w.value
             used.add("F")
         # 4 S
         if "S" in vals:
@@ -494,7 +506,7 @@ class _Reader:
                 self.motion = code
         has_axes = any(a in vals for a in AXES) and not nonmodal_axes
         if has_axes or ("motion" in g and g["motion"][0] in (2, 3)):
-            wfirst = next((vals[a] for a in AXES if a in vals), g.get("motion", (0, None))[1])
+            wfirst = g["motion"][1] if "motion" in g else next(vals[a] for a in AXES if a in vals)
             if self.motion is None:
                 raise self.err(n, wfirst, "axis words with no motion mode active (G0, G1, G2 or G3)")
             if machine_coords and self.motion not in (0, 1):
