@@ -11,8 +11,10 @@ A pure library (no loop, no daemon): :func:`motorctl.motion.gcode.parse` turns a
 
 from motorctl.motion.gcode import (Arc, Dwell, Event, GcodeError, GcodeSettings, Line, Pause, Program,
                                    parse)
+from motorctl.motion.path import contour_error
 from motorctl.motion.planner import (AxisLimits, LimitError, Trajectory, check_limits, plan,
                                      point_to_point)
 
 __all__ = ["Arc", "AxisLimits", "Dwell", "Event", "GcodeError", "GcodeSettings", "LimitError", "Line",
-           "Pause", "Program", "Trajectory", "check_limits", "parse", "plan", "point_to_point"]
+           "Pause", "Program", "Trajectory", "check_limits", "contour_error", "parse", "plan",
+           "point_to_point"]

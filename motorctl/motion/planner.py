@@ -41,6 +41,8 @@ ACCEL_SHARE = 0.5
 #: the arc tolerance used where G61 (exact stop) asks for none: the filters always round an arc
 #: a little (its radius shrinks by v²(T1² + T2²)/(24 R))
 EXACT_ARC_TOL_M = 1e-6
+#: the rounding of program arithmetic (mm → m, centre + radius) a soft limit forgives [m]
+ROUND_M = 1e-12
 
 
 class LimitError(ValueError):
@@ -113,10 +115,8 @@ class RuckigTrajectory(Trajectory):
                 out[k, 0] = self.end
                 out[k, 1:3] = 0.0
                 continue
-            p, v, a = self._t.at_time(max(t, 0.0))
+            p, v, a = self._t.at_time(max(t, 0.0))      # before 0: the state it starts from
             out[k, 0], out[k, 1], out[k, 2] = p, v, a
-            if t <= 0.0:
-                out[k, 1:3] = 0.0
 
 
 def point_to_point(start: Sequence[float], goal: Sequence[float], limits: Sequence[AxisLimits], *,
@@ -183,6 +183,7 @@ class _Piece:
     acc: float
     tol: float
     rest: float = 0.0         # a rest's duration [s]
+    acc_alone: float = 0.0    # a line's path acceleration between two rests (no corner step near)
     cx: float = 0.0
     cy: float = 0.0
     r0: float = 0.0
@@ -367,7 +368,8 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
             amax = float(np.min(np.where(au > 0, alim / np.where(au > 0, au, 1), np.inf)))
         if feed is not None:
             vmax = min(vmax, feed * feed_scale)
-        pieces.append(_Piece(0, line, cur.copy(), p1.copy(), u, length, vmax, ACCEL_SHARE * amax, tol))
+        pieces.append(_Piece(0, line, cur.copy(), p1.copy(), u, length, vmax, ACCEL_SHARE * amax, tol,
+                             acc_alone=amax))
         stop_after.append(tol == 0.0)
         cur = p1.copy()
 
@@ -485,6 +487,12 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
                 vj_new[where[k]] = vj[k]
         marks = [(where[k] if k >= 0 else k, seg) for k, seg in marks]
         pieces, vj, npc = new_pieces, vj_new, len(new_pieces)
+    # a line between rests (or the ends) has no velocity step within a filter window of it: the
+    # whole of each axis's a_max is its own
+    for k, p in enumerate(pieces):
+        if p.acc_alone > 0 and (k == 0 or pieces[k - 1].length == 0.0) and (
+                k == npc - 1 or pieces[k + 1].length == 0.0):
+            p.acc = p.acc_alone
     # backward and forward passes (look-ahead over the whole program)
     for k in range(npc - 2, -1, -1):
         b = pieces[k + 1]
@@ -535,7 +543,7 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
     for k, seg in marks:
         te = t_end[k] if k >= 0 else 0.0
         if isinstance(seg, Pause):
-            stops.append((te + period, seg))
+            stops.append((te, seg))       # the window holds only the rest: at rest exactly
         elif seg.synchronized:
             events.append((te + 0.5 * m * period, seg))
         else:
@@ -578,7 +586,7 @@ def check_limits(program: Program, soft_limits: Mapping[str, tuple[float, float]
             return
         lo, hi = soft_limits[a]
         x = value + shift[i]
-        if x < lo or x > hi:
+        if x < lo - ROUND_M or x > hi + ROUND_M:
             excess = lo - x if x < lo else x - hi
             side = "soft_min" if x < lo else "soft_max"
             raise LimitError(f"{program.filename}:{line}: {a} reaches {x * 1e3:.4f} mm, "
