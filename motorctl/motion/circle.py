@@ -36,9 +36,9 @@ def fit_circle(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
     mx, my = x.mean(), y.mean()
     u, v = x - mx, y - my
     A = np.column_stack([2 * u, 2 * v, np.ones_like(u)])
-    sol, *_ = np.linalg.lstsq(A, u * u + v * v, rcond=None)
+    sol, _, rank, _ = np.linalg.lstsq(A, u * u + v * v, rcond=None)
     r2 = sol[2] + sol[0] ** 2 + sol[1] ** 2
-    if not np.isfinite(r2) or r2 <= 0:
+    if rank < 3 or not np.isfinite(r2) or r2 <= 0:
         raise ValueError("fit_circle: the points do not lie on a circle")
     return float(sol[0] + mx), float(sol[1] + my), float(math.sqrt(r2))
 
