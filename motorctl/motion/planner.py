@@ -450,7 +450,7 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
         dn = float(np.linalg.norm(du))
         v = min(a.vmax, b.vmax)
         if dn > 1e-12:
-            theta = math.acos(float(np.clip(np.dot(ua, ub), -1.0, 1.0)))
+            theta = 2.0 * math.asin(min(1.0, dn / 2.0))          # |du| = 2 sin(theta/2)
             g = math.sin(theta) if theta < math.pi / 2 else 1.0
             if math.isfinite(a.tol):
                 # the filtered corner stays within g·(v_j·tw/2 + a·tw²/8) of the path (the legs'
