@@ -184,12 +184,7 @@ class _Piece:
     tol: float
     rest: float = 0.0         # a rest's duration [s]
     acc_alone: float = 0.0    # a line's path acceleration between two rests (no corner step near)
-    cx: float = 0.0
-    cy: float = 0.0
-    r0: float = 0.0
-    r1: float = 0.0
-    phi0: float = 0.0
-    sweep: float = 0.0
+    arc: tuple[float, ...] = (0.0,) * 6   # an arc's cx, cy, r0, r1, phi0, sweep [m, rad]
 
 
 def _tangents(p: _Piece, ix: int, iy: int) -> tuple[np.ndarray, np.ndarray]:
@@ -197,11 +192,11 @@ def _tangents(p: _Piece, ix: int, iy: int) -> tuple[np.ndarray, np.ndarray]:
     if p.kind == 0:
         return p.u, p.u
     out = []
-    sgn = 1.0 if p.sweep > 0 else -1.0
-    for phi, r in ((p.phi0, p.r0), (p.phi0 + p.sweep, p.r1)):
+    _, _, r0, r1, phi0, sweep = p.arc
+    sgn = 1.0 if sweep > 0 else -1.0
+    for phi in (phi0, phi0 + sweep):
         t = p.u * p.length                     # non-XY axes: their displacement
-        t = t.copy()
-        planar = abs(p.sweep) * 0.5 * (p.r0 + p.r1)
+        planar = abs(sweep) * 0.5 * (r0 + r1)
         t[ix] = -math.sin(phi) * sgn * planar
         t[iy] = math.cos(phi) * sgn * planar
         out.append(t / np.linalg.norm(t))
@@ -411,8 +406,7 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
                 vmax = min(vmax, math.sqrt(12.0 * r * tol / (t1 * t1 + t2 * t2)))
             phi0 = math.atan2(seg.start[1] - seg.center[1], seg.start[0] - seg.center[0])
             pc = _Piece(1, seg.line, p0, p1, u, length, vmax, ACCEL_SHARE * a_min, seg.tolerance,
-                        cx=float(seg.center[0]), cy=float(seg.center[1]), r0=r0, r1=r1, phi0=phi0,
-                        sweep=seg.sweep)
+                        arc=(float(seg.center[0]), float(seg.center[1]), r0, r1, phi0, seg.sweep))
             pieces.append(pc)
             stop_after.append(seg.tolerance == 0.0)
             cur = p1.copy()
@@ -531,7 +525,7 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
             tab[key][k] = val
         p0s[k], p1s[k], us[k] = p.p0, p.p1, p.u
         if p.kind == 1:
-            arcs[k] = (p.cx, p.cy, p.r0, p.r1, p.phi0, p.sweep)
+            arcs[k] = p.arc
         t += ta + tc + td
         t_end[k] = t
         v0 = v1
