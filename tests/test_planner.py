@@ -111,18 +111,24 @@ def test_events_and_pauses_happen_at_their_path_points():
     assert pause.line == 8
     x, v, a = tr.sample(ts)
     np.testing.assert_allclose(x, [0.1, 0.05], atol=1e-12)
-    np.testing.assert_array_equal(np.concatenate([v, a]), 0.0)
+    np.testing.assert_allclose(np.concatenate([v, a]), 0.0, atol=1e-12)
     assert tr.line_at(ts + 0.1) == 9 and t5 <= tr.duration
 
 
-def test_sample_and_sample_into_agree_off_the_grid():
+def test_sample_and_sample_into_agree():
     prog = parse("G21 G90 G64 P0.1\nG1 X50 Y20 F6000\nG3 X70 Y40 R20\n", "p.ngc", XY)
     tr = plan(prog, ["X", "Y"], LIMITS)
-    out = np.empty((40, 3, 2))
-    tr.sample_into(0.3, 0.0123, out)
+    grid = np.empty((600, 3, 2))
+    tr.sample_into(0.1, H, grid)
+    for k in (0, 17, 255, 256, 599):                   # on the grid: the same setpoints
+        np.testing.assert_allclose(np.array(tr.sample(0.1 + k * H)), grid[k], rtol=0, atol=1e-9)
+    off = np.empty((40, 3, 2))
+    tr.sample_into(0.3, 0.0123, off)                   # off the grid: the filters anchored at t
     for k in (0, 17, 39):
-        x, v, a = tr.sample(0.3 + k * 0.0123)
-        np.testing.assert_allclose(out[k], [x, v, a], rtol=0, atol=1e-9)
+        x, v, a = tr.sample(0.3 + k * 0.0123)          # interpolated between grid points
+        np.testing.assert_allclose(x, off[k, 0], rtol=0, atol=1e-6)
+        np.testing.assert_allclose(v, off[k, 1], rtol=0, atol=1e-3)
+        np.testing.assert_allclose(a, off[k, 2], rtol=0, atol=LIMITS[0].j_max * H)
 
 
 def test_axes_not_on_the_machine_are_refused():
