@@ -109,9 +109,12 @@ def test_refusals_name_line_column_word_and_remedy(text, where, word, says):
     assert "\n" not in str(e)
 
 
-def test_settings_refuse_an_unknown_machine_word():
+def test_settings_refuse_an_unknown_machine_word_and_an_ignored_off_word():
     with pytest.raises(ValueError, match="M6"):
         GcodeSettings(words={"M6": "x"})
+    with pytest.raises(ValueError, match="gcode.words.M5: 'ignore' would leave the output of M3"):
+        GcodeSettings(words={"M03": "torch", "M05": "ignore"})
+    GcodeSettings(words={"M3": "ignore", "M5": "ignore"})
 
 
 def test_the_shipped_programs_parse():

@@ -85,10 +85,18 @@ class GcodeSettings(StrictModel):
     axes: list[Literal["X", "Y", "Z"]] = Field(default_factory=lambda: ["X", "Y", "Z"])
 
     def model_post_init(self, _ctx) -> None:
-        for k in self.words:
+        words = {}
+        for k, v in self.words.items():
             if _norm_m(k) not in MACHINE_WORDS:
                 raise ValueError(f"gcode.words: {k!r} is not a machine word that can be mapped "
                                  f"(allowed: {', '.join(MACHINE_WORDS)})")
+            words[_norm_m(k)] = v
+        # an output a word switches on must not be left on by its off word being ignored
+        for off, ons in (("M5", ("M3", "M4")), ("M9", ("M7", "M8")), ("M63", ("M62",)), ("M65", ("M64",))):
+            on = [w for w in ons if words.get(w, "ignore") != "ignore"]
+            if on and words.get(off) == "ignore":
+                raise ValueError(f"gcode.words.{off}: 'ignore' would leave the output of {on[0]} "
+                                 f"({words[on[0]]}) on; map {off} to it")
 
 
 def _norm_m(word: str) -> str:
