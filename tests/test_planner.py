@@ -8,8 +8,8 @@ from conftest import REPO, examples
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from motorctl.motion import (AxisLimits, GcodeSettings, LimitError, check_limits, contour_error, parse, plan,
-                             point_to_point)
+from motorctl.motion import (AxisLimits, GcodeSettings, LimitError, check_limits, contour_error, headroom, parse,
+                             plan, point_to_point)
 from motorctl.motion.planner import PERIOD_S
 
 #: configs/gantry.yaml's X and Y
@@ -92,6 +92,20 @@ def test_feed_scale_and_rapids_use_the_axis_limits():
     assert t_feed[1] < t_feed[0]
     cut = _run(plan(parse("G21 G1 X100 F3000\n", "p.ngc", XY), ["X", "Y"], LIMITS, feed_scale=1.5))
     assert np.abs(cut[:, 1, 0]).max() == pytest.approx(0.075)
+
+
+def test_headroom_keeps_the_limits_at_a_faster_time_scale():
+    prog = parse("G21 G90 G64 P0.01\nG1 X100 Y50 F60000\nG2 X150 Y50 R25\nG0 X0 Y0\n", "p.ngc", XY)
+    tr = plan(prog, ["X", "Y"], headroom(LIMITS, 1.5))
+    out = _run(tr)                 # run 1.5 times faster: each period lasts H/1.5 of real time
+    r = 1.5
+    for i, lim in enumerate(LIMITS):
+        assert np.abs(out[:, 1, i]).max() * r <= lim.v_max * (1 + 1e-9)
+        assert np.abs(out[:, 2, i]).max() * r**2 <= lim.a_max * (1 + 1e-9)
+        assert (np.abs(np.diff(out[:, 2, i])) * r**2 / (H / r)).max() <= lim.j_max * (1 + 1e-6)
+        assert np.abs(out[:, 1, i]).max() * r > 0.5 * lim.v_max       # and not needlessly slow
+    with pytest.raises(ValueError, match="speedup"):
+        headroom(LIMITS, 0.5)
 
 
 def test_events_and_pauses_happen_at_their_path_points():

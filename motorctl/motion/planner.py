@@ -119,6 +119,16 @@ class RuckigTrajectory(Trajectory):
             out[k, 0], out[k, 1], out[k, 2] = p, v, a
 
 
+def headroom(limits: Sequence[AxisLimits], speedup: float) -> list[AxisLimits]:
+    """The limits to plan with so that the trajectory, run up to ``speedup`` (≥ 1) times faster
+    (a time scaling by a feed override: v × r, a × r², j × r³), keeps ``limits``. Raises
+    ValueError on speedup < 1."""
+    if not speedup >= 1.0:
+        raise ValueError(f"speedup {speedup}: must be >= 1")
+    r = float(speedup)
+    return [AxisLimits(lim.v_max / r, lim.a_max / r**2, lim.j_max / r**3) for lim in limits]
+
+
 def point_to_point(start: Sequence[float], goal: Sequence[float], limits: Sequence[AxisLimits], *,
                    feed: float | None = None, axes: Sequence[str] | None = None,
                    velocity: Sequence[float] | None = None,
