@@ -36,7 +36,8 @@ from motorctl.motion.gcode import AXES, Arc, Dwell, Event, Line, Pause, Program
 #: the loop's period [s] (5 kHz): the default grid of the filters
 PERIOD_S = 2e-4
 #: share of each axis's a_max the path-speed profile uses; the rest absorbs the corners'
-#: velocity steps (and, on arcs, the centripetal acceleration)
+#: velocity steps. On an arc, half of the share is the path acceleration and half the centripetal
+#: v²/R, so a corner step next to an arc still finds the other half free
 ACCEL_SHARE = 0.5
 #: the arc tolerance used where G61 (exact stop) asks for none: the filters always round an arc
 #: a little (its radius shrinks by v²(T1² + T2²)/(24 R))
@@ -99,10 +100,14 @@ class Trajectory:
 
 # ------------------------------------------------------------------------------ point to point
 class RuckigTrajectory(Trajectory):
-    """A Ruckig trajectory (offline, computed once) behind the :class:`Trajectory` interface."""
+    """A Ruckig trajectory (offline, computed once) behind the :class:`Trajectory` interface;
+    with ``direction`` (shape (n_axes,)) a one-axis trajectory of the path length s along it:
+    x = start + s·direction."""
 
-    def __init__(self, traj, axes: tuple[str, ...], start: np.ndarray, end: np.ndarray):
+    def __init__(self, traj, axes: tuple[str, ...], start: np.ndarray, end: np.ndarray,
+                 direction: np.ndarray | None = None):
         self._t = traj
+        self._u = direction
         self.axes = axes
         self.duration = float(traj.duration)
         self.start, self.end = start, end
@@ -116,7 +121,12 @@ class RuckigTrajectory(Trajectory):
                 out[k, 1:3] = 0.0
                 continue
             p, v, a = self._t.at_time(max(t, 0.0))      # before 0: the state it starts from
-            out[k, 0], out[k, 1], out[k, 2] = p, v, a
+            if self._u is None:
+                out[k, 0], out[k, 1], out[k, 2] = p, v, a
+            else:
+                out[k, 0] = self.start + p[0] * self._u
+                out[k, 1] = v[0] * self._u
+                out[k, 2] = a[0] * self._u
 
 
 def headroom(limits: Sequence[AxisLimits], speedup: float) -> list[AxisLimits]:
@@ -134,11 +144,13 @@ def point_to_point(start: Sequence[float], goal: Sequence[float], limits: Sequen
                    velocity: Sequence[float] | None = None,
                    acceleration: Sequence[float] | None = None) -> Trajectory:
     """A coordinated move to rest at ``goal`` (shape (n_axes,) [m]) with synchronised arrival,
-    each axis within its own limits (Ruckig, phase synchronisation: from rest the path is the
-    straight line, with Ruckig's fallback to time synchronisation where a phase-synchronous profile
-    does not exist, e.g. a new target in mid-move). The path speed is ≤ ``feed`` [m/s] when given.
-    velocity, acceleration: the state at the start (a new target in mid-move; None: rest).
-    Raises ValueError on a bad input (Ruckig's message)."""
+    each axis within its own limits (Ruckig). From rest: the straight line, as Ruckig's
+    time-optimal jerk-limited profile of the path length s with the path's limits
+    min over axes of (limit / |u_i|) (u the unit direction), so every axis arrives together on the
+    line. From a moving state (``velocity``/``acceleration`` given and not 0: a new target in
+    mid-move): Ruckig over all axes with time synchronisation (the path bends from the current
+    motion into the goal). The path speed is ≤ ``feed`` [m/s] when given. Raises ValueError on a
+    bad input (Ruckig's message)."""
     from ruckig import InputParameter, Result, Ruckig, Synchronization
     from ruckig import Trajectory as RTraj
 
@@ -149,12 +161,36 @@ def point_to_point(start: Sequence[float], goal: Sequence[float], limits: Sequen
         raise ValueError(f"start, goal and limits must name the same {n} axes")
     d = x1 - x0
     dist = float(np.linalg.norm(d))
+    names = tuple(axes) if axes is not None else tuple(AXES[:n])
+    if feed is not None and not feed > 0:
+        raise ValueError(f"feed {feed} m/s: must be > 0")
+    at_rest = (velocity is None or not np.any(velocity)) and (acceleration is None or not np.any(acceleration))
+    if at_rest and dist > 0.0:
+        u = d / dist
+        au = np.abs(u)
+        nz = au > 0
+
+        def path(attr):
+            return float(np.min(np.array([getattr(lim, attr) for lim in limits])[nz] / au[nz]))
+
+        inp = InputParameter(1)
+        inp.current_position, inp.current_velocity, inp.current_acceleration = [0.0], [0.0], [0.0]
+        inp.target_position, inp.target_velocity, inp.target_acceleration = [dist], [0.0], [0.0]
+        inp.max_velocity = [min(path("v_max"), feed) if feed is not None else path("v_max")]
+        inp.max_acceleration = [path("a_max")]
+        inp.max_jerk = [path("j_max")]
+        traj = RTraj(1)
+        try:
+            res = Ruckig(1).calculate(inp, traj)
+        except RuntimeError as e:
+            raise ValueError(f"move refused by the planner: {e}") from None
+        if res not in (Result.Working, Result.Finished):
+            raise ValueError(f"move refused by the planner: {res}")
+        return RuckigTrajectory(traj, names, x0.copy(), x1.copy(), direction=u)
     vmax = np.array([lim.v_max for lim in limits])
     if feed is not None:
-        if not feed > 0:
-            raise ValueError(f"feed {feed} m/s: must be > 0")
         if dist > 0:
-            # phase-synchronous: axis i moves |d_i|/dist of the path, so this caps the path speed
+            # each axis's share of the straight line: near it, this caps the path speed
             vmax = np.minimum(vmax, np.maximum(feed * np.abs(d) / dist, 1e-9))
     inp = InputParameter(n)
     inp.current_position = x0.tolist()
@@ -166,7 +202,7 @@ def point_to_point(start: Sequence[float], goal: Sequence[float], limits: Sequen
     inp.max_velocity = vmax.tolist()
     inp.max_acceleration = [lim.a_max for lim in limits]
     inp.max_jerk = [lim.j_max for lim in limits]
-    inp.synchronization = Synchronization.Phase
+    inp.synchronization = Synchronization.Time
     traj = RTraj(n)
     try:
         res = Ruckig(n).calculate(inp, traj)
@@ -174,7 +210,6 @@ def point_to_point(start: Sequence[float], goal: Sequence[float], limits: Sequen
         raise ValueError(f"move refused by the planner: {e}") from None
     if res not in (Result.Working, Result.Finished):
         raise ValueError(f"move refused by the planner: {res}")
-    names = tuple(axes) if axes is not None else tuple(AXES[:n])
     return RuckigTrajectory(traj, names, x0.copy(), x1.copy())
 
 
@@ -447,13 +482,12 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
                     vmax = min(vmax, vlim[i] / abs(u[i]))
             r = min(r0, r1)
             tol = seg.tolerance if seg.tolerance > 0 else EXACT_ARC_TOL_M
-            # centripetal v²/R within the share left by the path acceleration; the filters'
-            # radial shrink v²(T1² + T2²)/(24 R) within half the tolerance
-            vmax = min(vmax, math.sqrt((1 - ACCEL_SHARE) * a_min * r))
+            # centripetal v²/R within half the share (ACCEL_SHARE); the filters' radial shrink v²(T1² + T2²)/(24 R) within half the tolerance
+            vmax = min(vmax, math.sqrt(0.5 * ACCEL_SHARE * a_min * r))
             if math.isfinite(tol):
                 vmax = min(vmax, math.sqrt(12.0 * r * tol / (t1 * t1 + t2 * t2)))
             phi0 = math.atan2(seg.start[1] - seg.center[1], seg.start[0] - seg.center[0])
-            pc = _Piece(1, seg.line, p0, p1, u, length, vmax, ACCEL_SHARE * a_min, seg.tolerance,
+            pc = _Piece(1, seg.line, p0, p1, u, length, vmax, 0.5 * ACCEL_SHARE * a_min, seg.tolerance,
                         arc=(float(seg.center[0]), float(seg.center[1]), r0, r1, phi0, seg.sweep))
             pieces.append(pc)
             stop_after.append(seg.tolerance == 0.0)
