@@ -310,7 +310,7 @@ class _Reader:
 
     # one source line
     def line(self, n: int, raw: str) -> None:
-        text, col0 = self._strip_comments(n, raw)
+        text = self._strip_comments(n, raw)
         if not text.strip():
             return
         words: list[_Word] = []
@@ -339,7 +339,8 @@ class _Reader:
         why = f"{what} not in the subset" if what else f"{ch!r} where a word (letter and number) belongs"
         raise GcodeError(self.f, n, bad + 1, ch, f"{why}; {_SUBSET}")
 
-    def _strip_comments(self, n: int, raw: str) -> tuple[str, int]:
+    def _strip_comments(self, n: int, raw: str) -> str:
+        """The line with its comments blanked (columns kept); refuses an unclosed '('."""
         out = []
         i = 0
         while i < len(raw):
@@ -357,7 +358,7 @@ class _Reader:
                 raise GcodeError(self.f, n, i + 1, ")", "')' with no '(' before it")
             out.append(c)
             i += 1
-        return "".join(out), 0
+        return "".join(out)
 
     def _block(self, n: int, words: list[_Word]) -> None:  # noqa: C901 (the rs274ngc order of execution)
         g: dict[str, tuple[float, _Word]] = {}
