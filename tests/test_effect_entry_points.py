@@ -1,62 +1,22 @@
 """The effect-family seam: a family is one module and one entry point in the ``motorctl.effects``
-group (motorctl.effects.registry), as a law is in ``motorctl.controllers``. A family written here
-(outside the package, registered through a ``*.dist-info/entry_points.txt`` on the path, as an
+group (motorctl.effects.registry), as a law is in ``motorctl.controllers``. A family outside the
+package (tests/toy_family.py, registered through a ``*.dist-info/entry_points.txt`` on the path, as an
 installed plugin is) is found by the registry after this package's families, which keep their
 fixed order, and enters the simulator's and the compensation's YAML schemas."""
 
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from importlib.metadata import EntryPoint
+from pathlib import Path
 
 import pytest
 import yaml
 
+from harness import plugin_env as harness_plugin_env
 from motorctl.effects import registry
-
-PLUGIN = '''
-from typing import ClassVar
-
-import numpy as np
-
-from motorctl.effects.base import EffectFamily, PlantTerm
-from motorctl.schema import StrictModel
-
-
-class DragOptions(StrictModel):
-    drag_N_s2_per_m2: float
-
-
-class DragComp(StrictModel):
-    drag_V_s2_per_m2: float
-
-
-class QuadraticDrag(EffectFamily):
-    """Aerodynamic drag F_eff = -c v|v| [N]; column v|v|; compensation -c_V v|v| [V]."""
-
-    name = "quadratic_drag"
-    plant_force = "-c v|v|"
-    sim_options = DragOptions
-    example: ClassVar[dict] = {"quadratic_drag": {"drag_N_s2_per_m2": 20.0}}
-    comp_options = DragComp
-
-    def plant_term(self, o, period_s):
-        c = o.drag_N_s2_per_m2
-        return PlantTerm(force=lambda f, x, v, t, sf: f - c * v * abs(v))
-
-    def columns(self, h, p):
-        return (p.v * np.abs(p.v))[:, None]
-
-    def compensator(self, o):
-        c = o.drag_V_s2_per_m2
-        return lambda d, x, v, t, sf: d - c * v * abs(v)
-
-
-FAMILY = QuadraticDrag()
-'''
 
 PROBE = ("import json; from motorctl.effects import FAMILIES, compensation_model, effects_model; "
          "print(json.dumps({'families': list(FAMILIES), 'sim': list(effects_model().model_fields), "
@@ -65,13 +25,10 @@ PROBE = ("import json; from motorctl.effects import FAMILIES, compensation_model
 
 @pytest.fixture(scope="module")
 def plugin_env(tmp_path_factory) -> dict:
-    root = tmp_path_factory.mktemp("plugin")
-    (root / "dragfamily.py").write_text(PLUGIN)
-    info = root / "dragfamily-0.1.dist-info"
-    info.mkdir()
-    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: dragfamily\nVersion: 0.1\n")
-    (info / "entry_points.txt").write_text("[motorctl.effects]\nquadratic_drag = dragfamily:FAMILY\n")
-    return {**os.environ, "PYTHONPATH": str(root)}
+    """The toy family (tests/toy_family.py, quadratic drag) as the entry point of a package
+    ``dragfamily`` outside motorctl."""
+    return harness_plugin_env(tmp_path_factory.mktemp("plugin"), "dragfamily", registry.ENTRY_POINT_GROUP,
+                              {"quadratic_drag": "toy_family:FAMILY"}, Path(__file__).parent)
 
 
 def _run(env, *argv, cwd=None):
