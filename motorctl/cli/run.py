@@ -211,7 +211,7 @@ def register(parser, sub) -> None:
 
     w = sub.add_parser("warmup", help="compile the servo cycle and the controllers for this CPU "
                                       "ahead of the first run (no device opened)")
-    w.add_argument("config", nargs="?", default=DEFAULT_CONFIG)
+    w.add_argument("config", nargs="?", default=DEFAULT_CONFIG, help="the config YAML (default: %(default)s)")
     w.set_defaults(func=cmd_warmup)
 
     pl = sub.add_parser("plot", help="PNG figures of a run log (like the paper's Figs. 4-12)")
