@@ -199,7 +199,8 @@ def _collect(rfd: int, pid: int) -> dict:
 class JobResult:
     """Outcome of one run: per-axis indexes and faults, loop timing, real-time report, log path."""
 
-    axes: dict = field(default_factory=dict)      # name -> {"controller", indexes..., "fault"}
+    axes: dict = field(default_factory=dict)      # name -> {"controller", indexes..., "fault",
+    #                                                 the protection's peaks and limits}
     timing: dict = field(default_factory=dict)
     realtime: dict = field(default_factory=dict)
     cycles: int = 0
@@ -356,6 +357,11 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
             entry.update(summary["indexes"][i])
         entry["fault"] = with_drive_reason(asm.supervisor.reason(i), asm.driver.fault_reason(i))
         entry["io_errors"] = int(asm.supervisor.io_errors[i])
+        # the protection's margins (docs/protection.md): its high-water marks over the run
+        entry["i2t_peak_V2s"] = float(asm.supervisor.i2t_peak[i])
+        entry["i2t_limit_V2s"] = float(asm.supervisor.i2t_limit[i])
+        entry["rest_rms_peak_V"] = float(asm.supervisor.oscillation_rms_peak[i])
+        entry["rest_rms_limit_V"] = float(asm.supervisor.oscillation_rms_limit[i])
         entry["theta_hat"] = ctrl.theta_hat.tolist()
         result.axes[a] = entry
     tm = summary["timing"]

@@ -126,7 +126,6 @@ def _finish(i, ok, u, k, y, xd, vd, ad, ax, axf, si, sf, sig, uo, en, row, offs,
         row[bs + j] = sig[i, j]
     row[b + offs[O_EN]] = 1.0 if ok else 0.0
     row[b + offs[O_FB]] = si[i, SI_FAULT]
-    row[b + offs[O_MODE]] = ax[i, A_MODE]
 
 
 @njit
@@ -191,6 +190,7 @@ def servo_cycle(phase, k, st):
         ok = sup_check_input(si, sf, i, y, rerr[i] or werr[i], ampf[i]) and ax[i, A_ENABLED] != 0
         m = ax[i, A_MODE]
         xd, vd, ad = desired(i, k, 0.0, ax, axf, prog, move, ts)
+        row[offs[O_AXIS + i] + offs[O_MODE]] = m     # the mode x_d of this row comes from
         if m == APPROACH or m == JOG:
             if (k - ax[i, A_KST]) * ts >= move[i, TABLE_HEAD + 3]:
                 if m == APPROACH:
