@@ -80,8 +80,8 @@ RECOVERY_MARGIN_M = 0.0005
 N_SI = 12
 (SF_YLAST, SF_FEPEAK, SF_VAF, SF_LAF, SF_LO, SF_HI, SF_SOFTLO, SF_SOFTHI, SF_FE, SF_FEMIN, SF_VMAX,
  SF_JUMP, SF_TS, SF_I2T, SF_I2T_CONT, SF_I2T_LIM, SF_I2T_PEAK, SF_OSC_MEAN, SF_OSC_S2, SF_OSC_ALPHA, SF_OSC_RMS,
- SF_OSC_HZ, SF_OSC_PEAK, SF_OSC_F) = range(24)
-N_SF = 24
+ SF_OSC_HZ, SF_OSC_PEAK, SF_OSC_F, SF_OSC_S1) = range(25)
+N_SF = 25
 
 
 @njit
@@ -144,11 +144,13 @@ def sup_check_thermal(si, sf, i, xd_dot, u):
     trips above (u_peak² − u_cont²)·t_peak: u_peak may be held for t_peak from cold, any u up
     to u_cont for ever. u [V] is the current command of the amplifier (u ∝ coil current).
 
-    Oscillation at rest: while ẋ_d = 0, windows of ``oscillation_window_s`` of u minus its
-    running mean (first-order, time constant one window, started at the first sample of
-    rest): the RMS and the zero crossings; a window whose RMS exceeds ``oscillation_rms_V``
-    with crossings at ≥ ``oscillation_min_hz`` (crossings / 2 per second) trips, its frequency
-    kept (``oscillation_hz``). Any ẋ_d ≠ 0 ends the window.
+    Oscillation at rest: while ẋ_d = 0, consecutive windows of ``oscillation_window_s``: the
+    RMS of u about the window's mean (what oscillates, not a holding force) and the crossings
+    of u through its running mean (first-order, time constant a fifth of a window, from the
+    first sample of rest); a window whose RMS exceeds ``oscillation_rms_V`` with crossings at
+    ≥ ``oscillation_min_hz`` (crossings / 2 per second) trips, its frequency kept
+    (``oscillation_hz``). Any ẋ_d ≠ 0 ends the window: a trip comes one window after the
+    reference came to rest at the earliest.
     """
     a = sf[i, SF_I2T] + (u * u - sf[i, SF_I2T_CONT]) * sf[i, SF_TS]
     a = a if a > 0.0 else 0.0
@@ -173,8 +175,10 @@ def sup_check_thermal(si, sf, i, xd_dot, u):
     n = si[i, SI_OSC_N]
     if n == 0:
         si[i, SI_OSC_X] = 0
+        sf[i, SF_OSC_S1] = 0.0
         sf[i, SF_OSC_S2] = 0.0
-    sf[i, SF_OSC_S2] += d * d
+    sf[i, SF_OSC_S1] += u
+    sf[i, SF_OSC_S2] += u * u
     sgn = 1 if d > 0.0 else (-1 if d < 0.0 else 0)
     if sgn != 0:
         if sgn == -si[i, SI_OSC_SGN]:
@@ -185,7 +189,9 @@ def sup_check_thermal(si, sf, i, xd_dot, u):
         si[i, SI_OSC_N] = n
         return True
     si[i, SI_OSC_N] = 0
-    rms = math.sqrt(sf[i, SF_OSC_S2] / n)
+    mean = sf[i, SF_OSC_S1] / n
+    var = sf[i, SF_OSC_S2] / n - mean * mean
+    rms = math.sqrt(var) if var > 0.0 else 0.0
     if rms > sf[i, SF_OSC_PEAK]:
         sf[i, SF_OSC_PEAK] = rms
     f = si[i, SI_OSC_X] / (2.0 * n * sf[i, SF_TS])
@@ -271,7 +277,7 @@ class Supervisor:
             sf[i, SF_I2T_LIM] = (lim.i2t_peak_V ** 2 - lim.i2t_continuous_V ** 2) * lim.i2t_peak_time_s
             n_win = max(2, round(lim.oscillation_window_s / period_s))
             si[i, SI_OSC_WIN] = n_win
-            sf[i, SF_OSC_ALPHA] = 1.0 / n_win          # the running mean's time constant: one window
+            sf[i, SF_OSC_ALPHA] = min(1.0, 5.0 / n_win)   # the running mean: a fifth of a window
             sf[i, SF_OSC_RMS] = lim.oscillation_rms_V
             sf[i, SF_OSC_HZ] = lim.oscillation_min_hz
         self.si, self.sf = si, sf
