@@ -143,6 +143,22 @@ def _cycles_to_cover(duration: float, ts: float) -> int:
     return m
 
 
+#: an axis stands still for a start when its reading moves slower than this between two idle
+#: cycles (plus one count's worth, START_STILL_SLACK_M) [m/s]: a carriage that coasts (a run
+#: that ended at speed, a device that keeps its time in lockstep with the master) is waited for
+START_STILL_M_PER_S = 0.005
+START_STILL_SLACK_M = 1e-6
+#: the longest wait for the axes to stand still before a start is refused [s]
+START_STILL_WAIT_S = 2.0
+
+
+def moving_axes(asm: Assembly, y_before) -> list:
+    """The axes that moved faster than :data:`START_STILL_M_PER_S` since the reading
+    ``y_before`` [m] (n,) one cycle ago (names; [] when every axis stands still)."""
+    bound = START_STILL_M_PER_S * asm.loop.period_s + START_STILL_SLACK_M
+    return [a for i, a in enumerate(asm.names) if not abs(float(asm.driver.position_m[i]) - y_before[i]) <= bound]
+
+
 def approach_all(asm: Assembly) -> tuple[int, list]:
     """Between cycles, after at least one idle cycle read every axis (``motorctl run``): every
     axis starts its :func:`approach_move` from the position read, the shorter approaches held

@@ -11,8 +11,9 @@ the virtual clock the loop takes the rows itself between cycles, every half ring
 header is written before the first cycle, with room for what is known only at the end (the
 real-time report, the stop the device confirmed, the signal), which is added last.
 
-A run starts as the daemon's ``start`` does: cycle 0 with every axis idle (0 V, amplifier
-off) reads where the axes stand; a position outside the soft limits refuses the run
+A run starts as the daemon's ``start`` does: idle cycles (0 V, amplifier off) read where the
+axes stand, until two readings agree (a carriage still coasting is waited for, up to
+:data:`motorctl.app.build.START_STILL_WAIT_S`); a position outside the soft limits refuses the run
 (:class:`motorctl.app.build.StartRefused`, nothing driven), else every axis approaches its
 program's first point (:func:`motorctl.app.build.approach_all`), then the programs run for the
 run's duration. The rows carry each axis's mode; the indexes take the program's rows only
@@ -36,7 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-from motorctl.app.build import StartRefused, approach_all, build, log_header, shutdown, start
+from motorctl.app.build import (START_STILL_WAIT_S, StartRefused, approach_all, build, log_header, shutdown,
+                                moving_axes, start)
 from motorctl.config import LoadedConfig
 from motorctl.inputs import InputError
 from motorctl.loop.records import MODE_PROGRAM, RecordLayout
@@ -236,8 +238,8 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
             the first cycle (e.g. to tell the operator the loop runs).
         on_notice: called with each of the driver's set-up notices (one line each) before
             ``on_start``.
-    The run is one idle cycle, the approaches, then ``duration_s`` of the programs (module
-    docstring).
+    The run is idle cycles until the axes stand still (two at least), the approaches, then
+    ``duration_s`` of the programs (module docstring).
     Raises:
         StartRefused: an axis stands outside its soft limits (or faulted on its first
             reading): refused after the idle cycle, nothing driven (its row is in the log).
@@ -288,15 +290,25 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
     plan: dict = {}
 
     def on_slack(lp):
-        # after the idle cycle: the approaches (or the refusal); the end after the program
-        if "end" not in plan:
-            try:
-                k_prog, moves = approach_all(asm)
-            except StartRefused as exc:
-                plan["end"], plan["refused"] = 0, exc
+        # idle cycles until every axis stands still (two readings agree), then the approaches
+        # (or the refusal); the end after the program
+        if plan.get("end") is None:
+            y_before = plan.get("y")
+            plan["y"] = [float(y) for y in asm.driver.position_m]
+            moving = moving_axes(asm, y_before) if y_before is not None else names
+            if moving and lp.k * loaded.period_s >= START_STILL_WAIT_S:
+                plan["end"], plan["refused"] = 0, StartRefused(
+                    f"{', '.join(moving)} still moving after {START_STILL_WAIT_S:g} s at 0 V; nothing was driven")
+            elif not moving:
+                try:
+                    k_prog, moves = approach_all(asm)
+                except StartRefused as exc:
+                    plan["end"], plan["refused"] = 0, exc
+                else:
+                    plan["end"], plan["k_prog"], plan["moves"] = k_prog + n_cycles, k_prog, moves
             else:
-                plan["end"], plan["k_prog"], plan["moves"] = k_prog + n_cycles, k_prog, moves
-        if lp.k >= plan["end"]:
+                plan["end"] = None
+        if plan["end"] is not None and lp.k >= plan["end"]:
             lp.request_stop()
         if not wall and lp.k % every == 0:   # the virtual clock: the rows, every half ring
             sink.take(lp.k)
@@ -319,7 +331,7 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
                     on_notice(line)
             if on_start is not None:
                 on_start(names, n_cycles, clock)
-            result.cycles = loop.run(n_cycles + 1 + loaded.timebase.cycles(MAX_APPROACH_S))
+            result.cycles = loop.run(n_cycles + loaded.timebase.cycles(START_STILL_WAIT_S + MAX_APPROACH_S) + 2)
         finally:
             if stopped:
                 loop.shutdown_faults()
