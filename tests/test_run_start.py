@@ -74,7 +74,8 @@ def test_serial_emulator_runs_after_a_run_that_ended_away_from_the_start(repo, t
     monkeypatch.setattr(SerialDriver, "CONFIGURE_TIMEOUT_S", 10.0)     # the device shares our GIL
     d = load_yaml(repo / "configs" / "gantry-serial.yaml")
     d["loop"].update(rate_hz=1000, clock="virtual")
-    d["driver"].update(port=str(tmp_path / "ttyEMU"), timeout_s=2.0, wait="spin")
+    # the device shares this process's GIL: its watchdog far above a loaded host's stalls
+    d["driver"].update(port=str(tmp_path / "ttyEMU"), timeout_s=2.0, wait="spin", watchdog_s=1.0)
     loaded = config_from_dict(d, "<serial>", check_budget=False)
     starts = []
     # the emulator's plant: the paper's rigid one, as the end-to-end tests (at this 1 kHz loop the C2
