@@ -26,7 +26,7 @@ EXIT_STOP_UNCONFIRMED = 3
 def cmd_run(args) -> int:
     from motorctl.app.warmup import say_if_cold
     say_if_cold()                                 # within a second, before numba is imported
-    from motorctl.app.build import stop_lines
+    from motorctl.app.build import StartRefused, stop_lines
     from motorctl.app.job import run_job
     loaded = _load(args.config)
     axes = _select_axes(loaded, args.axis)
@@ -39,10 +39,15 @@ def cmd_run(args) -> int:
                   f"{n_cycles * loaded.period_s:g} s ({clock} clock); SIGINT/SIGTERM stops at 0 V\n")
         out.flush()
 
-    res = run_job(loaded, axes=axes, controller=args.controller, duration_s=args.duration,
-                  clock="virtual" if args.virtual_clock else None, log_path=args.log,
-                  realtime_policy=args.realtime, on_start=announce,
-                  on_notice=lambda line: (sys.stderr.write(f"motorctl: {line}\n"), sys.stderr.flush()))
+    try:
+        res = run_job(loaded, axes=axes, controller=args.controller, duration_s=args.duration,
+                      clock="virtual" if args.virtual_clock else None, log_path=args.log,
+                      realtime_policy=args.realtime, on_start=announce,
+                      on_notice=lambda line: (sys.stderr.write(f"motorctl: {line}\n"), sys.stderr.flush()))
+    except StartRefused as exc:            # where the axes stand: 0 V, amplifiers off, nothing driven
+        out.flush()
+        sys.stderr.write(f"motorctl: error: the run is refused: {exc}\n")
+        return 1
     rows = [["axis", "ctrl", "e_M um", "e_F um", "L2[e] um", "u_peak V", "io errors", "fault"]]
     for a, r in res.axes.items():
         rows.append([a, r["controller"], f"{r.get('e_M_um', float('nan')):.2f}",

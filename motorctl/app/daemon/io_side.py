@@ -20,6 +20,7 @@ import signal
 import sys
 import time
 
+from motorctl.app.build import approach_move
 from motorctl.app.daemon.notify import sd_notify, watchdog_ping_interval_s
 from motorctl.app.daemon.protocol import (
     LineBuffer,
@@ -131,11 +132,9 @@ class IOSide:
             # the approach from where the axis stands to the program's start; the loop checks
             # the axis's state and that it has not moved since
             ax = self.axis_status(i)
-            tc = self.plan.asm.loaded.axes[self.names[i]].trajectory
-            x0 = self.plan.asm.programs[i].sample(0.0)[0]
-            mv = Move(float(ax["y_m"]), float(x0), tc.v_max, tc.a_max, tc.j_max, 0.0)
+            mv = approach_move(self.plan.asm, i, ax["y_m"])
             self.to_loop(conn, {"op": "start", "axis": i, "controller": req.controller, "move": mv},
-                         post={"approach_s": mv.duration, "approach_m": x0 - ax["y_m"]})
+                         post={"approach_s": mv.duration, "approach_m": mv.end - ax["y_m"]})
         elif req.cmd == "stop":
             self.to_loop(conn, {"op": "stop", "axis": i}, post={"bound_s": self.plan.stop_bound_s[i]})
         elif req.cmd == "switch":
