@@ -24,6 +24,9 @@ FORBIDDEN = {
     "motorctl.recorder": ("motorctl.app", "motorctl.cli", "motorctl.control", "motorctl.ident"),
     "motorctl.app": ("motorctl.cli",),
     "motorctl.ident": ("motorctl.cli", "motorctl.app"),
+    # a pure library: the daemon's I/O side plans with it, the loop never does
+    "motorctl.motion": ("motorctl.loop", "motorctl.app", "motorctl.cli", "motorctl.recorder",
+                        "motorctl.control", "motorctl.ident", "motorctl.config"),
 }
 #: the loop runs the laws (motorctl.control: their compiled steps through
 #: motorctl.control.kernels, their published signals from motorctl.control.signals); the laws
