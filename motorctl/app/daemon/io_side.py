@@ -20,6 +20,7 @@ import signal
 import sys
 import time
 
+from motorctl.app.daemon.motion_side import AxisLimits, MotionError, MotionSide
 from motorctl.app.daemon.notify import sd_notify, watchdog_ping_interval_s
 from motorctl.app.daemon.protocol import (
     LineBuffer,
@@ -108,6 +109,16 @@ class IOSide:
                 from motorctl.app.daemon.foxglove_live import FoxglovePublisher
                 self.foxglove = FoxglovePublisher(d.foxglove.listen, self.scope)
         self.last_scope_status = 0.0
+        ring = plan.ring
+        lims = []
+        for a in self.names:
+            ac = asm.loaded.axes[a]
+            tc, lc = ac.trajectory, ac.limits
+            lims.append(AxisLimits(tc.v_max, tc.a_max, tc.j_max, lc.soft_min_m, lc.soft_max_m))
+        self.motion = MotionSide(asm.loop.stream, ring.latest, self.layout, self.names, lims,
+                                 lambda: ring.status[:, ST["mode"]], asm.loaded.period_s,
+                                 [getattr(getattr(asm.loaded.axes[a], "homing", None), "required", False)
+                                  for a in self.names])
 
     # ------------------------------------------------------------------ requests
     def to_loop(self, conn, msg: dict, post=None) -> None:
@@ -130,7 +141,14 @@ class IOSide:
             return {"ok": True, "status": st}
         if self.ready is None:
             return {"ok": False, "error": "the loop is not running yet; retry in a moment"}
-        if req.cmd == "start":
+        if req.cmd in ("move", "gcode", "hold", "resume", "abort", "override"):
+            return self.motion_request(req)
+        if req.cmd == "start" and req.mode == "command":
+            tc = self.plan.asm.loaded.axes[self.names[i]].trajectory
+            self.to_loop(conn, {"op": "start", "axis": i, "controller": req.controller,
+                                "mode": "command", "a_max": tc.a_max, "j_max": tc.j_max},
+                         post={"mode": "command"})
+        elif req.cmd == "start":
             # the approach from where the axis stands to the program's start; the loop checks
             # the axis's state and that it has not moved since
             ax = self.axis_status(i)
@@ -159,6 +177,23 @@ class IOSide:
                          post={"from_m": y0, "move_s": mv.duration,
                                "bound_s": self.plan.stop_bound_s[i]})
         return None
+
+    def motion_request(self, req: Request) -> dict:
+        """move, gcode, hold, resume, abort, override: answered here (the loop only follows
+        the stream). A refused program queues nothing."""
+        mo, a = self.motion, req.motion
+        try:
+            if req.cmd == "move":
+                return {"ok": True, **mo.move(a["targets"], a["feed"])}
+            if req.cmd == "gcode":
+                return {"ok": True, **mo.gcode(a["text"], a["filename"])}
+            if req.cmd == "override":
+                mo.set_override(a["value"])
+            else:
+                getattr(mo, req.cmd)()
+        except MotionError as exc:
+            return {"ok": False, "error": str(exc), "usage": exc.usage}
+        return {"ok": True, "motion": mo.status()}
 
     # ------------------------------------------------------------------ status
     def axis_status(self, i: int) -> dict:
@@ -197,6 +232,7 @@ class IOSide:
                     "write_errors": dr.write_errors, "rows_unwritten": dr.drained - dr.written,
                     "retention": self.retention.figures() if self.retention else {}},
             "link": dict(self.link),
+            "motion": self.motion.status(),
             "socket": self.plan.socket_path,
             "clients": {"open": len(self.clients), "refused": self.clients_refused,
                         "max": MAX_CLIENTS},
@@ -355,6 +391,7 @@ class IOSide:
         loop_gone = False
         ctl = self.plan.ring.ctl
         self.start_scope()
+        self.motion.start()
         while not loop_gone:
             ctl[CTL_REC_BEAT] = int(ctl[CTL_REC_BEAT]) + 1     # "the recorder is awake"
             for key, _ in self.sel.select(timeout=IDLE_WAKE_S):
@@ -392,6 +429,7 @@ class IOSide:
                 self.scope.set_status(st)
                 if self.foxglove is not None:
                     self.foxglove.publish_status(st, self.scope.last_t)
+        self.motion.stop()
         if self.scope is not None:
             self.scope.stop()
         if self.foxglove is not None:

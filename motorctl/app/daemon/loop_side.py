@@ -133,6 +133,13 @@ class LoopSide:
                 if loop.mode[i] != IDLE:
                     return {**r, "ok": False, "error": f"axis {names[i]} is already enabled "
                                                       f"({MODE_NAMES[loop.mode[i]]})"}
+                if m.get("mode") == "command":   # hold where it stands, follow the stream
+                    k = m.get("controller") or self.asm.active[i]
+                    self._switch(i, k)
+                    loop.command_axis(i, m["a_max"], m["j_max"])
+                    self.status.started_k[i] = loop.k
+                    r["controller"] = k
+                    return r
                 mv = m["move"]
                 y = float(self.asm.driver.position_m[i])
                 if abs(mv.start - y) > START_MOVED_M:

@@ -1,0 +1,392 @@
+"""Commanded motion on the daemon's I/O side: plans off the loop and streams setpoints.
+
+A filler thread of the I/O process keeps about :data:`LEAD_S` of setpoints (x_d, ẋ_d, ẍ_d per
+axis per cycle) ahead in the loop's setpoint ring (:mod:`motorctl.loop.stream`, about 0.5 s
+long), from a queue of planned trajectories (a ``move``: Ruckig's time-optimal jerk-limited
+point-to-point with synchronised arrival; a G-code program: ``motorctl.motion``'s planner).
+
+The trajectories are sampled on a path time s that advances by the feed scale f per cycle
+(time scaling: x = p(s), ẋ = p'(s)·ḟ... precisely ẋ = p'(s)·f, ẍ = p''(s)·f² + p'(s)·ḟ), so
+that the path is kept whatever f does:
+
+* **feed override** 0.0..:data:`MAX_OVERRIDE`: f's target;
+* **feed hold**: f's target 0: the motion decelerates on the path and holds; ``resume``
+  brings f back to the override;
+* **abort**: a feed hold, then the queue is cleared; the axes hold where they stopped.
+
+f follows its target with a bounded rate and a bounded rate of change
+(:data:`F_RATE_PER_S`, :data:`F_ACCEL_PER_S2`, scaled down for the fastest axis), so the
+added acceleration p'(s)·ḟ stays a fraction of the axes' a_max and jerk-limited.
+
+An underrun (the loop found the ring empty while moving: it braked on its own, jerk-limited,
+:mod:`motorctl.loop.stream`) or a stop of a commanded axis (a new epoch of the ring) drops the
+program being run and the queue (``status`` says why); motion then waits for new commands.
+Every target is checked against the axes' soft limits before anything is queued.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from motorctl.loop.cycle import STREAM
+from motorctl.loop.stream import SetpointRing
+
+#: seconds of setpoints kept ahead of the loop
+LEAD_S = 0.2
+#: the filler's wake period [s]
+FILL_EVERY_S = 0.01
+#: the highest feed override
+MAX_OVERRIDE = 1.5
+#: the feed scale's largest rate [1/s] and rate of change [1/s²] for an axis at a_max/v_max = 1 /s
+F_RATE_PER_S, F_ACCEL_PER_S2 = 0.5, 2.0
+
+
+class MotionError(ValueError):
+    """A command refused before anything was queued (one line: what, where, what is allowed).
+    ``usage``: the command itself was wrong (exit code 2), not the machine's state (1)."""
+
+    def __init__(self, text: str, usage: bool = True):
+        super().__init__(text)
+        self.usage = usage
+
+
+@dataclass
+class AxisLimits:
+    """One axis's limits: v_max [m/s], a_max [m/s²], j_max [m/s³], soft limits [m]."""
+
+    v_max: float
+    a_max: float
+    j_max: float
+    soft_min: float
+    soft_max: float
+
+
+class RuckigTrajectory:
+    """A rest-to-rest coordinated point-to-point move by Ruckig (time-optimal, jerk-limited,
+    phase-synchronised: a straight line in joint space, every axis arriving together).
+
+    Args:
+        start, goal: (n,) [m]. v_max, a_max, j_max: (n,) per-axis limits.
+    Attributes: duration [s]; line: the source line (0 for a move).
+    """
+
+    def __init__(self, start, goal, v_max, a_max, j_max, line: int = 0):
+        from ruckig import InputParameter, Result, Ruckig, Synchronization, Trajectory
+        n = len(start)
+        otg, inp, traj = Ruckig(n), InputParameter(n), Trajectory(n)
+        inp.current_position = [float(x) for x in start]
+        inp.current_velocity = [0.0] * n
+        inp.current_acceleration = [0.0] * n
+        inp.target_position = [float(x) for x in goal]
+        inp.target_velocity = [0.0] * n
+        inp.target_acceleration = [0.0] * n
+        inp.max_velocity = [float(v) for v in v_max]
+        inp.max_acceleration = [float(a) for a in a_max]
+        inp.max_jerk = [float(j) for j in j_max]
+        inp.synchronization = Synchronization.Phase
+        res = otg.calculate(inp, traj)
+        if res not in (Result.Working, Result.Finished):
+            raise MotionError(f"move: the planner failed ({res})")
+        self._traj, self.duration, self.line = traj, float(traj.duration), line
+        self.end = np.array(goal, dtype=float)
+
+    def sample(self, t: float):
+        """(x, ẋ, ẍ) at t [s], each (n,) [m, m/s, m/s²]; rest at the goal after the end."""
+        if t >= self.duration:
+            z = np.zeros_like(self.end)
+            return self.end.copy(), z, z.copy()
+        p, v, a = self._traj.at_time(max(t, 0.0))
+        return np.asarray(p), np.asarray(v), np.asarray(a)
+
+    def line_at(self, t: float) -> int:
+        return self.line
+
+
+def point_to_point(start, goal, limits: list[AxisLimits], feed: float | None = None) -> RuckigTrajectory:
+    """A coordinated straight move from ``start`` to ``goal`` ((n,) [m]) within each axis's
+    v/a/j limits, the path speed at most ``feed`` [m/s] when given (each axis's velocity limit
+    is its share of the feed along the line). Raises :class:`MotionError`: a bad feed."""
+    start, goal = np.asarray(start, float), np.asarray(goal, float)
+    v = np.array([lim.v_max for lim in limits])
+    d = np.abs(goal - start)
+    if feed is not None:
+        if not (math.isfinite(feed) and feed > 0):
+            raise MotionError(f"move: --feed must be > 0 m/s (got {feed})")
+        length = float(np.linalg.norm(d))
+        if length > 0:
+            v = np.minimum(v, np.maximum(feed * d / length, 1e-9))
+    return RuckigTrajectory(start, goal, v, [lim.a_max for lim in limits],
+                            [lim.j_max for lim in limits])
+
+
+def _ramp(f: float, fd: float, target: float, rate: float, accel: float, dt: float):
+    """f one step of dt toward ``target`` with |ḟ| ≤ rate and |f̈| ≤ accel (the bang-bang rule
+    of an accel-limited approach). Returns (f, ḟ)."""
+    e = target - f
+    if abs(e) <= accel * dt * dt and abs(fd) <= accel * dt:
+        return target, 0.0
+    want = math.copysign(min(rate, math.sqrt(2.0 * accel * abs(e))), e)
+    if fd < want:
+        fd = min(fd + accel * dt, want)
+    else:
+        fd = max(fd - accel * dt, want)
+    f_new = f + fd * dt
+    if (target - f_new) * e < 0:          # no overshoot
+        return target, 0.0
+    return f_new, fd
+
+
+class MotionSide:
+    """The commanded motion of the daemon's axes (module docstring).
+
+    Args:
+        stream: the loop's setpoint ring. latest: callable giving the newest record row (or
+            None). layout: the record layout. names: axis names. limits: AxisLimits per axis.
+        modes: callable giving the axes' sequencing modes (the status block). period_s: loop
+            period. homed: list of bools (kept by the caller); homing_required: per axis.
+    """
+
+    def __init__(self, stream: SetpointRing, latest, layout, names, limits, modes, period_s: float,
+                 homing_required=None):
+        self.stream, self.latest, self.names, self.limits = stream, latest, list(names), limits
+        self.modes, self.dt = modes, period_s
+        self.n = len(self.names)
+        self._xcol = [layout.index(f"{a}.x_d") for a in self.names]
+        self._vcol = [layout.index(f"{a}.xd_dot") for a in self.names]
+        self.homing_required = list(homing_required or [False] * self.n)
+        self.homed = [False] * self.n
+        self.lead = max(1, int(round(LEAD_S / period_s)))
+        ratio = min(lim.a_max / lim.v_max for lim in limits)
+        self.f_rate, self.f_accel = F_RATE_PER_S * ratio, F_ACCEL_PER_S2 * ratio * ratio
+        self.lock = threading.Lock()
+        self.queue: collections.deque = collections.deque()
+        self.cur = None                  # the trajectory being streamed
+        self.s = 0.0                     # its path time [s]
+        self.last = np.zeros((self.n, 3))
+        self.f, self.fd = 1.0, 0.0       # the feed scale and its rate
+        self.override = 1.0
+        self.holding = self.aborting = False
+        self.epoch = stream.epoch()
+        self.reason = ""                 # why the last program ended early
+        self.done_programs = 0
+        self.queued_programs = 0
+        self.feed_m_s = 0.0
+        self.used: list[int] = []        # the axes the queued motion moves
+        self._block = np.zeros((self.lead, self.n, 3))
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # ---------------------------------------------------------------- commands (any thread)
+    def where(self) -> np.ndarray:
+        """(n,) the commanded position of every axis now: the end of what is queued, or the
+        newest setpoint the loop recorded."""
+        with self.lock:
+            if self.queue:
+                return np.array(self.queue[-1].end)
+            if self.cur is not None:
+                return np.array(self.cur.end)
+        row = self.latest()
+        if row is None:
+            raise MotionError("the loop has not run yet; retry in a moment", usage=False)
+        return np.array([row[c] for c in self._xcol])
+
+    def check_axes(self, axes: list[int], what: str) -> None:
+        """Raises MotionError unless every axis of ``axes`` is in command mode (and homed where
+        its homing is required)."""
+        modes = self.modes()
+        for i in axes:
+            if int(modes[i]) != STREAM:
+                raise MotionError(f"{what}: axis {self.names[i]} is not in command mode; run "
+                                  f"'motorctl start {self.names[i]} --mode command' first", usage=False)
+            if self.homing_required[i] and not self.homed[i]:
+                raise MotionError(f"{what}: axis {self.names[i]} is not homed (homing.required); "
+                                  f"run 'motorctl home {self.names[i]}' first", usage=False)
+
+    def check_inside(self, goal, what: str) -> None:
+        for i, x in enumerate(goal):
+            lim = self.limits[i]
+            if not (lim.soft_min <= x <= lim.soft_max):
+                raise MotionError(f"{what}: {self.names[i]} = {x:.6f} m is outside the soft limits "
+                                  f"[{lim.soft_min:g}, {lim.soft_max:g}] m")
+
+    def move(self, targets: dict, feed: float | None = None) -> dict:
+        """Queue a coordinated straight move to ``targets`` ({axis index: position [m]}) at
+        most ``feed`` [m/s] along the path. Returns its figures. Raises MotionError (nothing
+        queued)."""
+        if self.aborting:
+            raise MotionError("move: an abort is running; retry when it has stopped", usage=False)
+        self.check_axes(list(targets), "move")
+        start = self.where()
+        goal = start.copy()
+        for i, x in targets.items():
+            if not math.isfinite(x):
+                raise MotionError(f"move: {self.names[i]} must be a finite position in m (got {x})")
+            goal[i] = x
+        self.check_inside(goal, "move")
+        traj = point_to_point(start, goal, self.limits, feed)
+        self.enqueue([traj], list(targets))
+        return {"duration_s": traj.duration, "from_m": start.tolist(), "to_m": goal.tolist()}
+
+    def gcode(self, text: str, filename: str) -> dict:
+        """Read, check and plan a G-code program (``motorctl.motion``: the subset LinuxCNC
+        reads, look-ahead planning within each axis's v/a/j) from where the axes are commanded
+        now, and queue it. Raises MotionError (``file:line:column: why``; nothing queued)."""
+        try:
+            from motorctl.motion import gcode as G
+            from motorctl.motion import planner as P
+        except ImportError:
+            raise MotionError("gcode: the G-code reader (motorctl.motion) is not available") from None
+        letters = [a for a in self.names if a in G.AXES]
+        if letters != self.names:
+            raise MotionError(f"gcode: the axes must be named among {', '.join(G.AXES)} "
+                              f"(got {', '.join(self.names)})", usage=False)
+        start = self.where()
+        start3 = [float(start[self.names.index(a)]) if a in self.names else 0.0 for a in G.AXES]
+        try:
+            prog = G.parse(text, filename, start=start3)
+            P.check_limits(prog, {a: (lim.soft_min, lim.soft_max) for a, lim in zip(self.names, self.limits)})
+        except ValueError as exc:        # GcodeError, LimitError: one line with file:line:column
+            raise MotionError(str(exc)) from None
+        moved = sorted({k for seg in prog.moves() for k in range(3)
+                        if k < 2 and type(seg).__name__ == "Arc" or seg.start[k] != seg.end[k]})
+        axes = [self.names.index(G.AXES[k]) for k in moved if G.AXES[k] in self.names]
+        self.check_axes(axes, "gcode")
+        traj = P.plan(prog, self.names, [P.AxisLimits(lim.v_max, lim.a_max, lim.j_max) for lim in self.limits],
+                      start=[float(x) for x in start])
+        self.enqueue([traj], axes)
+        return {"duration_s": float(traj.duration), "segments": len(prog.moves()),
+                "end_m": [float(x) for x in traj.end]}
+
+    def enqueue(self, trajs: list, axes: list[int]) -> None:
+        """Queue planned trajectories moving ``axes`` (checked already)."""
+        with self.lock:
+            self.used = sorted(set(self.used) | set(axes)) if (self.cur or self.queue) else list(axes)
+            self.queue.extend(trajs)
+            self.queued_programs += 1
+            self.reason = ""
+
+    def hold(self) -> None:
+        self.holding = True
+
+    def resume(self) -> None:
+        if not self.aborting:
+            self.holding = False
+
+    def abort(self) -> None:
+        with self.lock:
+            self.aborting = self.holding = True
+            if self.cur is None:
+                self._clear("aborted")
+
+    def set_override(self, f: float) -> None:
+        if not (math.isfinite(f) and 0.0 <= f <= MAX_OVERRIDE):
+            raise MotionError(f"override: the feed override must be within 0.0..{MAX_OVERRIDE} (got {f})")
+        self.override = float(f)
+
+    def idle(self) -> bool:
+        """Nothing queued or streaming, and the ring drained."""
+        with self.lock:
+            busy = self.cur is not None or bool(self.queue)
+        return not busy and self.stream.depth() == 0 and not self.stream.braking()
+
+    def status(self) -> dict:
+        with self.lock:
+            line = self.cur.line_at(self.s) if self.cur is not None else 0
+            depth = len(self.queue) + (self.cur is not None)
+        return {"queue_depth": depth, "line": line, "feed_m_s": self.feed_m_s,
+                "override": self.override, "feed_scale": self.f, "hold": self.holding,
+                "aborting": self.aborting, "ring_depth": self.stream.depth(),
+                "underruns": self.stream.underruns(), "braking": self.stream.braking(),
+                "stopped_because": self.reason, "homed": list(self.homed), "idle": self.idle()}
+
+    # ---------------------------------------------------------------- the filler
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="motorctl-motion", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(1.0)
+
+    def _run(self) -> None:
+        while not self._stop.wait(FILL_EVERY_S):
+            try:
+                self.fill()
+            except Exception as exc:  # noqa: BLE001 - the filler never dies: the loop brakes
+                with self.lock:
+                    self._clear(f"planner error: {type(exc).__name__}: {exc}")
+
+    def _clear(self, why: str) -> None:
+        """(lock held) Drop what is streamed and queued."""
+        self.queue.clear()
+        self.cur = None
+        self.s = 0.0
+        self.aborting = self.holding = False
+        self.f, self.fd = self.override, 0.0
+        self.reason = why
+        self.feed_m_s = 0.0
+
+    def fill(self) -> int:
+        """Top the ring up to :data:`LEAD_S` ahead. Returns the rows written."""
+        ring = self.stream
+        with self.lock:
+            ep = ring.epoch()
+            if ep != self.epoch:             # the loop braked on its own (underrun or stop)
+                self.epoch = ep
+                if self.cur is not None or self.queue:
+                    self._clear("underrun" if ring.underruns() else "stopped")
+            if ring.braking():
+                return 0
+            need = min(self.lead - ring.depth(), ring.free())
+            if need <= 0 or (self.cur is None and not self.queue):
+                return 0
+            modes = self.modes()
+            gone = [self.names[i] for i in self.used if int(modes[i]) != STREAM]
+            if gone:                         # a fault or a stop: no more rows, the loop brakes
+                self._clear(f"axis {gone[0]} left command mode")
+                return 0
+            n = self._generate(need)
+            if n:
+                ring.push(self._block[:n], ep)
+            return n
+
+    def _generate(self, need: int) -> int:
+        """(lock held) Up to ``need`` rows into the block; fewer when the queue runs out or a
+        hold has come to rest."""
+        dt, out = self.dt, self._block
+        for j in range(need):
+            if self.cur is None:
+                if not self.queue or self.holding:
+                    if self.aborting:
+                        self._clear("aborted")
+                    return j
+                self.cur = self.queue.popleft()
+                self.s = 0.0
+            target = 0.0 if self.holding else self.override
+            self.f, self.fd = _ramp(self.f, self.fd, target, self.f_rate, self.f_accel, dt)
+            if self.f == 0.0 and self.fd == 0.0 and self.holding:
+                if self.aborting:
+                    self._clear("aborted")
+                return j                     # at rest on the path: the loop holds the last row
+            self.s += self.f * dt
+            x, v, a = self.cur.sample(self.s)
+            out[j, :, 0] = x
+            out[j, :, 1] = v * self.f
+            out[j, :, 2] = a * self.f * self.f + v * self.fd
+            self.feed_m_s = float(np.linalg.norm(out[j, :, 1]))
+            self.last[:] = out[j]
+            if self.s >= self.cur.duration:
+                self.cur = None
+                self.s = 0.0
+                if not self.queue:
+                    self.done_programs = self.queued_programs
+                    self.feed_m_s = 0.0
+                    return j + 1
+        return need
