@@ -369,12 +369,12 @@ class MotionSide:
                     return j
                 self.cur = self.queue.popleft()
                 self.s = 0.0
-            target = 0.0 if self.holding else self.override
-            self.f, self.fd = _ramp(self.f, self.fd, target, self.f_rate, self.f_accel, dt)
             if self.f == 0.0 and self.fd == 0.0 and self.holding:
                 if self.aborting:
                     self._clear("aborted")
                 return j                     # at rest on the path: the loop holds the last row
+            target = 0.0 if self.holding else self.override
+            self.f, self.fd = _ramp(self.f, self.fd, target, self.f_rate, self.f_accel, dt)
             self.s += self.f * dt
             x, v, a = self.cur.sample(self.s)
             out[j, :, 0] = x
