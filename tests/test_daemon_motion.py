@@ -11,7 +11,8 @@ import time
 
 import numpy as np
 import pytest
-from test_daemon_helpers import ctl, running_daemon, status, wait_for
+import yaml
+from test_daemon_helpers import Daemon, ctl, make_config, status, wait_for
 
 from motorctl.loop.stream import SP_UNDERRUNS, SetpointRing, brake_step
 
@@ -50,14 +51,43 @@ def test_the_ring_is_bounded_and_counts_what_it_holds():
 # --------------------------------------------------------------------------- through the daemon
 @pytest.fixture(scope="module")
 def gantry(tmp_path_factory):
-    """One daemon for the module, X and Y in command mode."""
-    with running_daemon(tmp_path_factory.mktemp("motion")) as d:
+    """One daemon for the module, X and Y in command mode; X has a home switch at -4 mm and
+    an index pulse at -2 mm, homing required (to 0.0 at the index), and is homed here."""
+    tmp = tmp_path_factory.mktemp("motion")
+    cfg = make_config(tmp)
+    d = yaml.safe_load(cfg.read_text())
+    d["axes"]["X"]["driver"].update(home_switch_m=-0.004, index_pulse_m=-0.002)
+    d["axes"]["X"]["homing"] = {"direction": -1, "search_speed_m_per_s": 0.02, "latch_speed_m_per_s": 0.002,
+                                "back_off_m": 0.01, "position_m": 0.0, "required": True}
+    cfg.write_text(yaml.safe_dump(d))
+    dmn = Daemon(cfg, tmp / "motorctl.sock")
+    try:
+        dmn.wait_ready()
         for a in ("X", "Y"):
-            r = ctl(d.sock, "start", a, "--mode", "command")
+            r = ctl(dmn.sock, "start", a, "--mode", "command")
             assert r.returncode == 0, r.stderr
-        wait_for(lambda: all(s["phase"] == "command" for s in status(d.sock)["axes"].values()), 10,
+        wait_for(lambda: all(s["phase"] == "command" for s in status(dmn.sock)["axes"].values()), 10,
                  "command mode")
-        yield d
+        dmn.refused = ctl(dmn.sock, "move", "X=0.1")          # before homing
+        dmn.homing = ctl(dmn.sock, "home", "X", "--timeout", "30")
+        dmn.homed_at = status(dmn.sock)["axes"]["X"]["y_m"]
+        yield dmn
+    finally:
+        dmn.kill()
+
+
+def test_homing_finds_the_index_and_sets_the_position(gantry):
+    """Motion is refused until X is homed; homing ends with the index pulse (raw -2 mm) at
+    0.0: the carriage stopped a fraction of a millimetre past the pulse reads that much above 0."""
+    assert gantry.refused.returncode == 1 and "not homed" in gantry.refused.stderr, gantry.refused.stderr
+    assert gantry.homing.returncode == 0 and "homed" in gantry.homing.stdout, gantry.homing.stdout
+    st = status(gantry.sock)
+    assert st["motion"]["homed"] == [True, False] and st["motion"]["homing"][0] == "homed"
+    assert 0.0 < gantry.homed_at < 0.001                  # off the index by the hold's reaction (< LEAD_S)
+    _no_fault(gantry.sock)
+    r = ctl(gantry.sock, "move", "X=0.0", "--wait")
+    assert r.returncode == 0, r.stdout + r.stderr
+    _settled(gantry.sock, np.array([0.0, status(gantry.sock)["axes"]["Y"]["y_m"]]), timeout=5.0)
 
 
 def _y(sock) -> np.ndarray:

@@ -201,6 +201,22 @@ def cmd_motion(args) -> int:
     return 0
 
 
+def cmd_home(args) -> int:
+    _checked(args, {"cmd": "home", "axis": args.axis})
+    t0 = time.monotonic()
+    names = None
+    while time.monotonic() - t0 < args.timeout:
+        st = _checked(args, {"cmd": "status"})["status"]
+        names = names or list(st["axes"])
+        state = st["motion"]["homing"][names.index(args.axis)]
+        if state == "homed" or state.startswith("failed"):
+            y = st["axes"][args.axis]["y_m"]
+            sys.stdout.write(f"{args.axis}: {state} in {time.monotonic() - t0:.3f} s; at {y:.6f} m\n")
+            return 0 if state == "homed" else 1
+        time.sleep(0.05)
+    raise DaemonUnreachable(f"homing {args.axis} did not finish within {args.timeout:g} s")
+
+
 def cmd_wait(args) -> int:
     return _motion_wait(args, args.timeout)
 
@@ -338,6 +354,10 @@ def register(parser: argparse.ArgumentParser, sub) -> None:
     client("abort", "stop on the path, hold, clear the queue", cmd_motion)
     p = client("override", "feed override (0.0 .. 1.5)", cmd_motion)
     p.add_argument("value", type=float, metavar="F")
+    p = client("home", "home an axis in command mode: search its switch, latch the index pulse, set "
+                       "its position (axes.NAME.homing)", cmd_home)
+    p.add_argument("axis")
+    p.add_argument("--timeout", type=float, default=120.0, help="seconds (default 120)")
     p = client("wait", "wait until the commanded motion has finished", cmd_wait)
     p.add_argument("--timeout", type=float, default=600.0, help="seconds (default 600)")
 

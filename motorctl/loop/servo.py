@@ -67,7 +67,7 @@ from motorctl.loop import cycle as C
 from motorctl.loop.cycle import APPROACH, HOLD, IDLE, JOG, PROGRAM, STREAM, servo_cycle
 from motorctl.loop.pacing import Pacer
 from motorctl.loop.records import CONTROLLER_SIGNALS, N_SIGNALS, RecordLayout
-from motorctl.loop.safety import FAULT_SHUTDOWN, Supervisor
+from motorctl.loop.safety import FAULT_SHUTDOWN, SF_YLAST, Supervisor
 from motorctl.loop.stream import SetpointRing
 from motorctl.loop.timebase import Timebase
 from motorctl.loop.trajectory import MOVE_W, TABLE_HEAD, Program
@@ -461,6 +461,15 @@ class ServoLoop:
         axf[i, C.X_SX], axf[i, C.X_SV], axf[i, C.X_SA] = y, 0.0, 0.0
         axf[i, C.X_AMAX], axf[i, C.X_JMAX] = a_max, j_max
         self._enable(i, STREAM, Program.hold(y), controller)
+
+    def shift_axis(self, i: int, delta_m: float) -> None:
+        """Between cycles, with the driver's reading of axis i shifted by ``delta_m`` [m] from
+        the next read (homing): its STREAM setpoint and the encoder-jump check's last reading
+        shift with it, and its law restarts from the new reading at the next cycle (bumpless,
+        as at a start)."""
+        self.axf[i, C.X_SX] += delta_m
+        self.supervisor.sf[i, SF_YLAST] += delta_m
+        self._running[i] = 0
 
     def stop_axis(self, i: int) -> None:
         """Ask axis i to come to rest along its jerk-limited profile, then 0 V, amplifier off."""

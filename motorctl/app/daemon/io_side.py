@@ -15,9 +15,11 @@ with the reason; the end record goes into the header (reserved space) at the exi
 from __future__ import annotations
 
 import os
+import queue
 import selectors
 import signal
 import sys
+import threading
 import time
 
 from motorctl.app.daemon.motion_side import AxisLimits, MotionError, MotionSide
@@ -115,10 +117,15 @@ class IOSide:
             ac = asm.loaded.axes[a]
             tc, lc = ac.trajectory, ac.limits
             lims.append(AxisLimits(tc.v_max, tc.a_max, tc.j_max, lc.soft_min_m, lc.soft_max_m))
+        has_inputs = getattr(asm.driver, "has_homing_inputs", False)
+        self.internal: queue.Queue = queue.Queue()     # the homing thread's commands to the loop
         self.motion = MotionSide(asm.loop.stream, ring.latest, self.layout, self.names, lims,
                                  lambda: ring.status[:, ST["mode"]], asm.loaded.period_s,
-                                 [getattr(getattr(asm.loaded.axes[a], "homing", None), "required", False)
-                                  for a in self.names])
+                                 [asm.loaded.axes[a].homing for a in self.names],
+                                 (lambda i: (bool(ring.status[i, ST["home_switch"]]),
+                                             float(ring.status[i, ST["index_latch"]])))
+                                 if has_inputs else None,
+                                 self.internal_request if has_inputs else None)
 
     # ------------------------------------------------------------------ requests
     def to_loop(self, conn, msg: dict, post=None) -> None:
@@ -143,6 +150,11 @@ class IOSide:
             return {"ok": False, "error": "the loop is not running yet; retry in a moment"}
         if req.cmd in ("move", "gcode", "hold", "resume", "abort", "override"):
             return self.motion_request(req)
+        if req.cmd == "home":
+            try:
+                return {"ok": True, **self.motion.home(i)}
+            except MotionError as exc:
+                return {"ok": False, "error": str(exc), "usage": exc.usage}
         if req.cmd == "start" and req.mode == "command":
             tc = self.plan.asm.loaded.axes[self.names[i]].trajectory
             self.to_loop(conn, {"op": "start", "axis": i, "controller": req.controller,
@@ -177,6 +189,15 @@ class IOSide:
                          post={"from_m": y0, "move_s": mv.duration,
                                "bound_s": self.plan.stop_bound_s[i]})
         return None
+
+    def internal_request(self, msg: dict, timeout_s: float = LOOP_ANSWER_S) -> dict:
+        """From another thread (homing): a command to the loop through the I/O process's own
+        loop (which alone writes the pipe); its answer."""
+        done, box = threading.Event(), {}
+        self.internal.put((msg, done, box))
+        if not done.wait(timeout_s + 1.0):
+            return {"ok": False, "error": "the loop did not answer"}
+        return box
 
     def motion_request(self, req: Request) -> dict:
         """move, gcode, hold, resume, abort, override: answered here (the loop only follows
@@ -293,6 +314,11 @@ class IOSide:
             return
         conn, _, post, req = entry
         m.pop("id", None)
+        if conn is None:                     # a command of the homing thread
+            done, box = post
+            box.update(m)
+            done.set()
+            return
         if m.get("ok"):
             self.audit.append({"cycle": m.get("cycle"), "op": req.get("op"),
                                "axis": self.names[req["axis"]],
@@ -406,11 +432,16 @@ class IOSide:
                         self.on_reply(m)
                 else:
                     self.on_client(key.fileobj)
+            while not self.internal.empty():
+                msg, done, box = self.internal.get_nowait()
+                self.to_loop(None, msg, post=(done, box))
             now = time.monotonic()
             self.expire_clients(now)
             for rid, (conn, deadline, _, _) in list(self.pending.items()):
                 if now > deadline:
                     self.pending.pop(rid)
+                    if conn is None:
+                        continue                 # the homing thread's own wait times out
                     self.respond(conn, {"ok": False, "error": f"the loop did not answer within "
                                                               f"{LOOP_ANSWER_S:g} s"})
             self.drainer.poll()

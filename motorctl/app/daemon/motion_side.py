@@ -22,6 +22,12 @@ An underrun (the loop found the ring empty while moving: it braked on its own, j
 :mod:`motorctl.loop.stream`) or a stop of a commanded axis (a new epoch of the ring) drops the
 program being run and the queue (``status`` says why); motion then waits for new commands.
 Every target is checked against the axes' soft limits before anything is queued.
+
+**Homing** (:meth:`MotionSide.home`, a thread of its own; LinuxCNC's sequence, the axis's
+``homing:`` config): search the home switch at the search speed (a move toward it, held when
+the switch trips), back off at the latch speed with the index latch armed until the index
+pulse latches, then the loop shifts the axis's reading so that the latched position reads
+``homing.position_m``.
 """
 
 from __future__ import annotations
@@ -38,7 +44,7 @@ from motorctl.loop.cycle import STREAM
 from motorctl.loop.stream import SetpointRing
 
 #: seconds of setpoints kept ahead of the loop
-LEAD_S = 0.2
+LEAD_S = 0.1
 #: the filler's wake period [s]
 FILL_EVERY_S = 0.01
 #: the highest feed override
@@ -149,18 +155,24 @@ class MotionSide:
         stream: the loop's setpoint ring. latest: callable giving the newest record row (or
             None). layout: the record layout. names: axis names. limits: AxisLimits per axis.
         modes: callable giving the axes' sequencing modes (the status block). period_s: loop
-            period. homed: list of bools (kept by the caller); homing_required: per axis.
+            period. homing: the axes' HomingConfig (None: none). inputs(i): (home switch,
+            index latch [m] or NaN) of axis i. to_loop(msg): a command to the loop process,
+            its answer (blocking; from another thread than the I/O process's own).
     """
 
     def __init__(self, stream: SetpointRing, latest, layout, names, limits, modes, period_s: float,
-                 homing_required=None):
+                 homing=None, inputs=None, to_loop=None):
         self.stream, self.latest, self.names, self.limits = stream, latest, list(names), limits
         self.modes, self.dt = modes, period_s
         self.n = len(self.names)
         self._xcol = [layout.index(f"{a}.x_d") for a in self.names]
         self._vcol = [layout.index(f"{a}.xd_dot") for a in self.names]
-        self.homing_required = list(homing_required or [False] * self.n)
+        self.homing = list(homing or [None] * self.n)
+        self.homing_required = [bool(h is not None and h.required) for h in self.homing]
         self.homed = [False] * self.n
+        self.homing_state = [""] * self.n
+        self.inputs, self.to_loop = inputs, to_loop
+        self._homing_thread: threading.Thread | None = None
         self.lead = max(1, int(round(LEAD_S / period_s)))
         ratio = min(lim.a_max / lim.v_max for lim in limits)
         self.f_rate, self.f_accel = F_RATE_PER_S * ratio, F_ACCEL_PER_S2 * ratio * ratio
@@ -215,13 +227,16 @@ class MotionSide:
                 raise MotionError(f"{what}: {self.names[i]} = {x:.6f} m is outside the soft limits "
                                   f"[{lim.soft_min:g}, {lim.soft_max:g}] m")
 
-    def move(self, targets: dict, feed: float | None = None) -> dict:
+    def move(self, targets: dict, feed: float | None = None, _homing: bool = False) -> dict:
         """Queue a coordinated straight move to ``targets`` ({axis index: position [m]}) at
         most ``feed`` [m/s] along the path. Returns its figures. Raises MotionError (nothing
         queued)."""
         if self.aborting:
             raise MotionError("move: an abort is running; retry when it has stopped", usage=False)
-        self.check_axes(list(targets), "move")
+        if self._homing_thread is not None and self._homing_thread.is_alive() and not _homing:
+            raise MotionError("move: homing runs; wait for it", usage=False)
+        if not _homing:
+            self.check_axes(list(targets), "move")
         start = self.where()
         goal = start.copy()
         for i, x in targets.items():
@@ -303,7 +318,80 @@ class MotionSide:
                 "override": self.override, "feed_scale": self.f, "hold": self.holding,
                 "aborting": self.aborting, "ring_depth": self.stream.depth(),
                 "underruns": self.stream.underruns(), "braking": self.stream.braking(),
-                "stopped_because": self.reason, "homed": list(self.homed), "idle": self.idle()}
+                "stopped_because": self.reason, "homed": list(self.homed),
+                "homing": list(self.homing_state), "idle": self.idle()}
+
+    # ---------------------------------------------------------------- homing
+    def home(self, i: int) -> dict:
+        """Start homing axis i (module docstring) in a thread; ``status()["homing"][i]`` says
+        how it goes ("searching", "latching", "homed", "failed: ..."). Raises MotionError: no
+        homing config, no homing inputs, not in command mode, motion running."""
+        name = self.names[i]
+        if self.homing[i] is None:
+            raise MotionError(f"home: axis {name} has no homing: section in its config")
+        if self.inputs is None or self.to_loop is None:
+            raise MotionError(f"home: the driver of axis {name} has no home switch or index input", usage=False)
+        if int(self.modes()[i]) != STREAM:
+            raise MotionError(f"home: axis {name} is not in command mode; run 'motorctl start {name} "
+                              f"--mode command' first", usage=False)
+        if not self.idle() or (self._homing_thread is not None and self._homing_thread.is_alive()):
+            raise MotionError("home: motion or homing is running; wait for it", usage=False)
+        self.homed[i] = False
+        self.homing_state[i] = "searching"
+        self._homing_thread = threading.Thread(target=self._home, args=(i,), name="motorctl-homing", daemon=True)
+        self._homing_thread.start()
+        return {"homing": "started"}
+
+    def _until(self, pred, what: str, timeout_s: float) -> None:
+        end = time.monotonic() + timeout_s
+        while not pred():
+            if time.monotonic() > end:
+                raise MotionError(f"{what} not within {timeout_s:g} s")
+            time.sleep(0.002)
+
+    def _run_until(self, i: int, target: float, speed: float, pred, what: str) -> bool:
+        """A move of axis i toward ``target`` at ``speed``, held (abort) as soon as ``pred()``;
+        True when pred came true."""
+        lim = self.limits[i]
+        target = min(max(target, lim.soft_min), lim.soft_max)
+        info = self.move({i: target}, speed, _homing=True)
+        hit = False
+        end = time.monotonic() + info["duration_s"] * 2 + 5.0
+        while time.monotonic() < end:
+            if pred():
+                hit = True
+                self.abort()
+                break
+            if self.idle():
+                break
+            time.sleep(0.001)
+        self._until(self.idle, f"{what}: the axis at rest", 10.0)
+        return hit or pred()
+
+    def _home(self, i: int) -> None:
+        cfg = self.homing[i]
+        d = cfg.direction
+        try:
+            y0 = float(self.where()[i])
+            if not self.inputs(i)[0] and not self._run_until(
+                    i, y0 + d * cfg.search_distance_m, cfg.search_speed_m_per_s,
+                    lambda: self.inputs(i)[0], "search"):
+                raise MotionError(f"no home switch within {cfg.search_distance_m:g} m")
+            self.homing_state[i] = "latching"
+            self.to_loop({"op": "arm_index", "axis": i})
+            y1 = float(self.where()[i])
+            if not self._run_until(i, y1 - d * cfg.back_off_m, cfg.latch_speed_m_per_s,
+                                   lambda: math.isfinite(self.inputs(i)[1]), "latch"):
+                raise MotionError(f"no index pulse within {cfg.back_off_m:g} m off the switch")
+            latch = self.inputs(i)[1]
+            ans = self.to_loop({"op": "set_position", "axis": i, "delta_m": cfg.position_m - latch})
+            if not ans.get("ok"):
+                raise MotionError(ans.get("error", "set position refused"))
+            time.sleep(0.02)                   # a few cycles: the newest setpoint is shifted
+            self.homed[i] = True
+            self.homing_state[i] = "homed"
+        except Exception as exc:  # noqa: BLE001 - reported in status, the axis holds
+            self.homing_state[i] = f"failed: {exc}"
 
     # ---------------------------------------------------------------- the filler
     def start(self) -> None:
@@ -369,6 +457,7 @@ class MotionSide:
                     return j
                 self.cur = self.queue.popleft()
                 self.s = 0.0
+                self.f, self.fd = self.override, 0.0     # from rest: the override at once
             if self.f == 0.0 and self.fd == 0.0 and self.holding:
                 if self.aborting:
                     self._clear("aborted")
