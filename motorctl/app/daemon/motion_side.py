@@ -42,9 +42,11 @@ import numpy as np
 
 from motorctl.loop.cycle import STREAM
 from motorctl.loop.stream import SetpointRing
+from motorctl.motion import gcode as G
+from motorctl.motion import planner as P
 
 #: seconds of setpoints kept ahead of the loop
-LEAD_S = 0.1
+LEAD_S = 0.2
 #: the filler's wake period [s]
 FILL_EVERY_S = 0.01
 #: the highest feed override
@@ -71,64 +73,6 @@ class AxisLimits:
     j_max: float
     soft_min: float
     soft_max: float
-
-
-class RuckigTrajectory:
-    """A rest-to-rest coordinated point-to-point move by Ruckig (time-optimal, jerk-limited,
-    phase-synchronised: a straight line in joint space, every axis arriving together).
-
-    Args:
-        start, goal: (n,) [m]. v_max, a_max, j_max: (n,) per-axis limits.
-    Attributes: duration [s]; line: the source line (0 for a move).
-    """
-
-    def __init__(self, start, goal, v_max, a_max, j_max, line: int = 0):
-        from ruckig import InputParameter, Result, Ruckig, Synchronization, Trajectory
-        n = len(start)
-        otg, inp, traj = Ruckig(n), InputParameter(n), Trajectory(n)
-        inp.current_position = [float(x) for x in start]
-        inp.current_velocity = [0.0] * n
-        inp.current_acceleration = [0.0] * n
-        inp.target_position = [float(x) for x in goal]
-        inp.target_velocity = [0.0] * n
-        inp.target_acceleration = [0.0] * n
-        inp.max_velocity = [float(v) for v in v_max]
-        inp.max_acceleration = [float(a) for a in a_max]
-        inp.max_jerk = [float(j) for j in j_max]
-        inp.synchronization = Synchronization.Phase
-        res = otg.calculate(inp, traj)
-        if res not in (Result.Working, Result.Finished):
-            raise MotionError(f"move: the planner failed ({res})")
-        self._traj, self.duration, self.line = traj, float(traj.duration), line
-        self.end = np.array(goal, dtype=float)
-
-    def sample(self, t: float):
-        """(x, ẋ, ẍ) at t [s], each (n,) [m, m/s, m/s²]; rest at the goal after the end."""
-        if t >= self.duration:
-            z = np.zeros_like(self.end)
-            return self.end.copy(), z, z.copy()
-        p, v, a = self._traj.at_time(max(t, 0.0))
-        return np.asarray(p), np.asarray(v), np.asarray(a)
-
-    def line_at(self, t: float) -> int:
-        return self.line
-
-
-def point_to_point(start, goal, limits: list[AxisLimits], feed: float | None = None) -> RuckigTrajectory:
-    """A coordinated straight move from ``start`` to ``goal`` ((n,) [m]) within each axis's
-    v/a/j limits, the path speed at most ``feed`` [m/s] when given (each axis's velocity limit
-    is its share of the feed along the line). Raises :class:`MotionError`: a bad feed."""
-    start, goal = np.asarray(start, float), np.asarray(goal, float)
-    v = np.array([lim.v_max for lim in limits])
-    d = np.abs(goal - start)
-    if feed is not None:
-        if not (math.isfinite(feed) and feed > 0):
-            raise MotionError(f"move: --feed must be > 0 m/s (got {feed})")
-        length = float(np.linalg.norm(d))
-        if length > 0:
-            v = np.minimum(v, np.maximum(feed * d / length, 1e-9))
-    return RuckigTrajectory(start, goal, v, [lim.a_max for lim in limits],
-                            [lim.j_max for lim in limits])
 
 
 def _ramp(f: float, fd: float, target: float, rate: float, accel: float, dt: float):
@@ -164,6 +108,7 @@ class MotionSide:
                  homing=None, inputs=None, to_loop=None):
         self.stream, self.latest, self.names, self.limits = stream, latest, list(names), limits
         self.modes, self.dt = modes, period_s
+        self._pva = [P.AxisLimits(lim.v_max, lim.a_max, lim.j_max) for lim in limits]
         self.n = len(self.names)
         self._xcol = [layout.index(f"{a}.x_d") for a in self.names]
         self._vcol = [layout.index(f"{a}.xd_dot") for a in self.names]
@@ -191,6 +136,8 @@ class MotionSide:
         self.feed_m_s = 0.0
         self.used: list[int] = []        # the axes the queued motion moves
         self._block = np.zeros((self.lead, self.n, 3))
+        self._s, self._f, self._fd = np.zeros(self.lead), np.zeros(self.lead), np.zeros(self.lead)
+        self._grid = np.zeros((self.lead + 2, 3, self.n))   # sample_into's layout (k, x/v/a, axis)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -244,7 +191,12 @@ class MotionSide:
                 raise MotionError(f"move: {self.names[i]} must be a finite position in m (got {x})")
             goal[i] = x
         self.check_inside(goal, "move")
-        traj = point_to_point(start, goal, self.limits, feed)
+        if feed is not None and not feed > 0:
+            raise MotionError(f"move: --feed must be > 0 m/s (got {feed})")
+        try:
+            traj = P.point_to_point(start, goal, self._pva, feed=feed, axes=self.names)
+        except ValueError as exc:
+            raise MotionError(f"move: {exc}") from None
         self.enqueue([traj], list(targets))
         return {"duration_s": traj.duration, "from_m": start.tolist(), "to_m": goal.tolist()}
 
@@ -252,11 +204,6 @@ class MotionSide:
         """Read, check and plan a G-code program (``motorctl.motion``: the subset LinuxCNC
         reads, look-ahead planning within each axis's v/a/j) from where the axes are commanded
         now, and queue it. Raises MotionError (``file:line:column: why``; nothing queued)."""
-        try:
-            from motorctl.motion import gcode as G
-            from motorctl.motion import planner as P
-        except ImportError:
-            raise MotionError("gcode: the G-code reader (motorctl.motion) is not available") from None
         letters = [a for a in self.names if a in G.AXES]
         if letters != self.names:
             raise MotionError(f"gcode: the axes must be named among {', '.join(G.AXES)} "
@@ -268,14 +215,13 @@ class MotionSide:
             P.check_limits(prog, {a: (lim.soft_min, lim.soft_max) for a, lim in zip(self.names, self.limits)})
         except ValueError as exc:        # GcodeError, LimitError: one line with file:line:column
             raise MotionError(str(exc)) from None
-        moved = sorted({k for seg in prog.moves() for k in range(3)
-                        if k < 2 and type(seg).__name__ == "Arc" or seg.start[k] != seg.end[k]})
+        moved = sorted({k for seg in prog.moves for k in range(3)
+                        if (k < 2 and isinstance(seg, G.Arc)) or seg.start[k] != seg.end[k]})
         axes = [self.names.index(G.AXES[k]) for k in moved if G.AXES[k] in self.names]
         self.check_axes(axes, "gcode")
-        traj = P.plan(prog, self.names, [P.AxisLimits(lim.v_max, lim.a_max, lim.j_max) for lim in self.limits],
-                      start=[float(x) for x in start])
+        traj = P.plan(prog, self.names, self._pva, start=[float(x) for x in start])
         self.enqueue([traj], axes)
-        return {"duration_s": float(traj.duration), "segments": len(prog.moves()),
+        return {"duration_s": float(traj.duration), "segments": len(prog.moves),
                 "end_m": [float(x) for x in traj.end]}
 
     def enqueue(self, trajs: list, axes: list[int]) -> None:
@@ -292,6 +238,8 @@ class MotionSide:
     def resume(self) -> None:
         if not self.aborting:
             self.holding = False
+            if self.reason.startswith("paused"):
+                self.reason = ""
 
     def abort(self) -> None:
         with self.lock:
@@ -302,7 +250,10 @@ class MotionSide:
     def set_override(self, f: float) -> None:
         if not (math.isfinite(f) and 0.0 <= f <= MAX_OVERRIDE):
             raise MotionError(f"override: the feed override must be within 0.0..{MAX_OVERRIDE} (got {f})")
-        self.override = float(f)
+        with self.lock:
+            self.override = float(f)
+            if self.cur is None:             # nothing running: the next move starts at it
+                self.f, self.fd = self.override, 0.0
 
     def idle(self) -> bool:
         """Nothing queued or streaming, and the ring drained."""
@@ -312,7 +263,7 @@ class MotionSide:
 
     def status(self) -> dict:
         with self.lock:
-            line = self.cur.line_at(self.s) if self.cur is not None else 0
+            line = int(self.cur.line_at(self.s)) if self.cur is not None else 0
             depth = len(self.queue) + (self.cur is not None)
         return {"queue_depth": depth, "line": line, "feed_m_s": self.feed_m_s,
                 "override": self.override, "feed_scale": self.f, "hold": self.holding,
@@ -447,9 +398,11 @@ class MotionSide:
 
     def _generate(self, need: int) -> int:
         """(lock held) Up to ``need`` rows into the block; fewer when the queue runs out or a
-        hold has come to rest."""
+        hold has come to rest. The path times of a run of rows within one trajectory first
+        (the feed scale's ramp, programmed pauses), then one block sample of them."""
         dt, out = self.dt, self._block
-        for j in range(need):
+        j = 0
+        while j < need:
             if self.cur is None:
                 if not self.queue or self.holding:
                     if self.aborting:
@@ -458,24 +411,68 @@ class MotionSide:
                 self.cur = self.queue.popleft()
                 self.s = 0.0
                 self.f, self.fd = self.override, 0.0     # from rest: the override at once
-            if self.f == 0.0 and self.fd == 0.0 and self.holding:
-                if self.aborting:
-                    self._clear("aborted")
-                return j                     # at rest on the path: the loop holds the last row
-            target = 0.0 if self.holding else self.override
-            self.f, self.fd = _ramp(self.f, self.fd, target, self.f_rate, self.f_accel, dt)
-            self.s += self.f * dt
-            x, v, a = self.cur.sample(self.s)
-            out[j, :, 0] = x
-            out[j, :, 1] = v * self.f
-            out[j, :, 2] = a * self.f * self.f + v * self.fd
-            self.feed_m_s = float(np.linalg.norm(out[j, :, 1]))
-            self.last[:] = out[j]
-            if self.s >= self.cur.duration:
+            cur, m, ended = self.cur, 0, False
+            ss, ff, ffd = self._s, self._f, self._fd
+            while j + m < need:
+                if self.f == 0.0 and self.fd == 0.0 and self.holding:
+                    break                    # at rest on the path: the loop holds the last row
+                target = 0.0 if self.holding else self.override
+                self.f, self.fd = _ramp(self.f, self.fd, target, self.f_rate, self.f_accel, dt)
+                s_new = self.s + self.f * dt
+                for t_stop, _ in cur.stops:  # a programmed pause (M0, M1): at rest there
+                    if self.s < t_stop <= s_new:
+                        s_new = t_stop
+                        self.f, self.fd, self.holding = 0.0, 0.0, True
+                        self.reason = "paused (M0/M1); resume goes on"
+                        break
+                self.s = s_new
+                ss[m], ff[m], ffd[m] = s_new, self.f, self.fd
+                m += 1
+                if s_new >= cur.duration:
+                    ended = True
+                    break
+            if m:
+                rows = out[j:j + m]
+                self._sample(cur, ss[:m], rows)
+                rows[:, :, 2] = rows[:, :, 2] * (ff[:m] ** 2)[:, None] + rows[:, :, 1] * ffd[:m, None]
+                rows[:, :, 1] *= ff[:m, None]
+                self.last[:] = rows[-1]
+                self.feed_m_s = float(np.linalg.norm(rows[-1, :, 1]))
+                j += m
+            if ended:
                 self.cur = None
                 self.s = 0.0
                 if not self.queue:
                     self.done_programs = self.queued_programs
                     self.feed_m_s = 0.0
-                    return j + 1
-        return need
+                    return j
+            elif not m or j < need:          # came to rest in a hold
+                if self.aborting:
+                    self._clear("aborted")
+                return j
+        return j
+
+    def _sample(self, traj, s: np.ndarray, rows: np.ndarray) -> None:
+        """rows[k] = (x, ẋ, ẍ) per axis ((m, n_axes, 3)) of ``traj`` at its times s[k] [s]
+        (increasing): one ``sample_into`` on a uniform grid over them (the rows' own times at a
+        constant feed scale), cubic Hermite in x and linear in ẋ, ẍ between grid points."""
+        m = s.size
+        diffs = np.diff(s)
+        ds = float(diffs.max()) if m > 1 else 0.0
+        g = self._grid
+        if m == 1 or ds <= 0.0 or np.all(np.abs(diffs - ds) <= 1e-12):
+            traj.sample_into(float(s[0]), ds, g[:m])
+            rows[:] = g[:m].transpose(0, 2, 1)
+            return
+        n_g = min(int(math.ceil((s[-1] - s[0]) / ds)) + 1, g.shape[0])
+        traj.sample_into(float(s[0]), ds, g[:n_g])
+        u = np.clip((s - s[0]) / ds, 0.0, n_g - 1 - 1e-12)
+        k = np.minimum(u.astype(np.int64), n_g - 2)
+        w = (u - k)[:, None]
+        x0, x1 = g[k, 0], g[k + 1, 0]
+        v0, v1 = g[k, 1] * ds, g[k + 1, 1] * ds
+        w2, w3 = w * w, w * w * w
+        rows[:, :, 0] = ((2 * w3 - 3 * w2 + 1) * x0 + (w3 - 2 * w2 + w) * v0 + (-2 * w3 + 3 * w2) * x1
+                         + (w3 - w2) * v1)
+        rows[:, :, 1] = (1 - w) * g[k, 1] + w * g[k + 1, 1]
+        rows[:, :, 2] = (1 - w) * g[k, 2] + w * g[k + 1, 2]
