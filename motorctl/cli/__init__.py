@@ -25,7 +25,7 @@ DEFAULT_CONFIG = "configs/gantry.yaml"
 #: installed packages add theirs through the ``motorctl.commands`` entry-point group (a
 #: ``register(parser, subparsers)`` function), e.g. ``motorctl emulate``.
 COMMAND_MODULES = ("motorctl.cli.run", "motorctl.cli.operator", "motorctl.cli.identify", "motorctl.cli.runs",
-                   "motorctl.cli.tune", "motorctl.cli.autotune")
+                   "motorctl.cli.tune", "motorctl.cli.autotune", "motorctl.cli.motion")
 COMMAND_GROUP = "motorctl.commands"
 
 

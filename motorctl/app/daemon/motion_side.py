@@ -138,6 +138,7 @@ class MotionSide:
         self._block = np.zeros((self.lead, self.n, 3))
         self._s, self._f, self._fd = np.zeros(self.lead), np.zeros(self.lead), np.zeros(self.lead)
         self._grid = np.zeros((self.lead + 2, 3, self.n))   # sample_into's layout (k, x/v/a, axis)
+        self.trace: list | None = None   # the source line of every row streamed (when a list)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -434,6 +435,8 @@ class MotionSide:
             if m:
                 rows = out[j:j + m]
                 self._sample(cur, ss[:m], rows)
+                if self.trace is not None:
+                    self.trace.extend(int(cur.line_at(t)) for t in ss[:m])
                 rows[:, :, 2] = rows[:, :, 2] * (ff[:m] ** 2)[:, None] + rows[:, :, 1] * ffd[:m, None]
                 rows[:, :, 1] *= ff[:m, None]
                 self.last[:] = rows[-1]
