@@ -251,3 +251,18 @@ def test_a_bad_gcode_program_is_refused_whole(gantry, tmp_path):
     time.sleep(0.2)
     assert status(sock)["motion"]["queue_depth"] == 0
     assert np.all(np.abs(_y(sock) - before) < 10e-6)
+
+
+def test_the_circular_test_reports_the_iso_figures():
+    """A small ISO 230-4 test (R 10 mm at 50 mm/s, C2) on the motion path: both circles
+    measured, no underrun, G(b) within the tens of micrometres the figures of docs/commands.md
+    show, H at most G(b), F_min <= 0 <= ... bracketing the nominal radius."""
+    from motorctl.app.circle_test import run_circle_test
+    from motorctl.config import load_config
+    r = run_circle_test(load_config(REPO / "configs" / "gantry.yaml"), 0.01, 0.05, "c2")
+    g = r.result
+    assert r.underruns == 0
+    assert min(len(r.paths["cw"][0]), len(r.paths["ccw"][0])) > 0.9 * 2 * np.pi * 0.01 / 0.05 / TS
+    assert 0.0 < g.G_cw <= g.G_b < 30e-6 and 0.0 < g.G_ccw <= g.G_b
+    assert 0.0 <= g.H <= g.G_b
+    assert g.F_min < g.F_max and abs(g.radius_lsc - 0.01) < 20e-6
