@@ -109,9 +109,12 @@ def test_refusals_name_line_column_word_and_remedy(text, where, word, says):
     assert "\n" not in str(e)
 
 
-def test_settings_refuse_an_unknown_machine_word():
+def test_settings_refuse_an_unknown_machine_word_and_an_ignored_off_word():
     with pytest.raises(ValueError, match="M6"):
         GcodeSettings(words={"M6": "x"})
+    with pytest.raises(ValueError, match="gcode.words.M5: 'ignore' would leave the output of M3"):
+        GcodeSettings(words={"M03": "torch", "M05": "ignore"})
+    GcodeSettings(words={"M3": "ignore", "M5": "ignore"})
 
 
 def test_the_shipped_programs_parse():
@@ -122,3 +125,13 @@ def test_the_shipped_programs_parse():
     cam = parse((REPO / "configs" / "cam_sample.ngc").read_text(), "cam_sample.ngc", CAM)
     assert len(cam.moves) >= 300
     assert {s.word for s in cam.segments if isinstance(s, Event)} >= {"M3", "M5", "S"}
+
+
+def test_machine_coordinates_absolute_centres_turns_and_helix():
+    p = parse("G21 G90 G10 L2 P1 X100\nG54 G0 X0\nG53 G0 X5\nG0 X10 Y0\nG90.1 G3 X10 Y0 I110 J0 P2 F600\n"
+              "G91.1 G2 X0 Y10 Z5 I0 J10\n", "p.ngc", GcodeSettings())
+    a, b, c, two_turns, helix = p.segments
+    assert a.end[0] == pytest.approx(0.1) and b.end[0] == pytest.approx(0.005)   # G53: machine X5
+    np.testing.assert_allclose(two_turns.center[:2], [0.210, 0.0])             # G90.1: I in G54, absolute
+    assert two_turns.turns == 1 and two_turns.sweep == pytest.approx(4 * np.pi)
+    assert helix.length == pytest.approx(np.hypot(0.5 * np.pi * 0.01, 0.005))

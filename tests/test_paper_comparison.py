@@ -36,7 +36,7 @@ def test_absolute_values_are_of_the_order_of_tables_I_II(compare, axis):
         assert 8.0 <= sim["u_peak_V"] <= 10.0
 
 
-#: ``motorctl compare configs/gantry-rigid.yaml`` to the digits the README prints (µm, V): the
+#: ``motorctl compare configs/gantry-rigid.yaml`` to the digits docs/simulation.md prints (µm, V): the
 #: servo cycle's arithmetic is pinned, so a change to how the cycle runs (not to what it computes)
 #: must leave these as they are
 PINNED = {

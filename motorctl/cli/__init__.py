@@ -28,6 +28,12 @@ COMMAND_MODULES = ("motorctl.cli.run", "motorctl.cli.operator", "motorctl.cli.id
                    "motorctl.cli.tune", "motorctl.cli.autotune", "motorctl.cli.motion")
 COMMAND_GROUP = "motorctl.commands"
 
+#: the optional-dependency group (pyproject.toml) that installs each optional top-level module:
+#: a command that needs one which is missing says so in one line naming the extra (exit 2)
+EXTRA_OF = {"matplotlib": "plot", "aiohttp": "scope", "foxglove": "foxglove", "mcap": "mcap",
+            "can": "can", "canopen": "can", "msgpack": "can", "serial": "serial", "pymodbus": "modbus",
+            "pysoem": "ethercat", "pooch": "data"}
+
 
 class UsageError(Exception):
     """Bad input found by a handler: printed as one line, exit code 2."""
@@ -49,7 +55,8 @@ def print_table(rows: list[list[str]], out) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="motorctl", description=__doc__.splitlines()[0])
+    p = Parser(prog="motorctl", description="The motorctl command line: the servo loop, its daemon, "
+                "identification and commissioning. motorctl COMMAND --help for each command.")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
 
@@ -77,6 +84,13 @@ def main(argv=None) -> int:
         return 2
     except FileNotFoundError as exc:
         sys.stderr.write(f"motorctl: error: {exc.filename}: no such file\n")
+        return 2
+    except ModuleNotFoundError as exc:
+        extra = EXTRA_OF.get((exc.name or "").split(".")[0])
+        if extra is None:
+            raise
+        sys.stderr.write(f"motorctl: error: {args.command}: needs the '{extra}' extra ({exc.name} is not "
+                         f"installed): pip install 'motorctl[{extra}]'\n")
         return 2
     except BrokenPipeError:   # the reader went away (e.g. `motorctl status | head`)
         _quiet_stdout()

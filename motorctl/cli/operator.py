@@ -327,14 +327,14 @@ def register(parser: argparse.ArgumentParser, sub) -> None:
         return p
 
     d = sub.add_parser("daemon", help="run the servo loop as a service (systemd Type=notify)")
-    d.add_argument("config")
+    d.add_argument("config", help="the config YAML (its daemon section: socket, log_dir, scope)")
     d.add_argument("--socket", dest="daemon_socket", default=None, metavar="PATH",
                    help="control socket (default: daemon.socket of the config)")
     d.add_argument("--log-dir", default=None, help="run log directory (default: daemon.log_dir)")
     d.set_defaults(func=cmd_daemon)
 
     p = client("start", "enable an axis: bumpless approach from where it stands, then its program", cmd_start)
-    p.add_argument("axis")
+    p.add_argument("axis", help="the axis name, as in the config's axes")
     p.add_argument("--controller", choices=CONTROLLER_NAMES, help="controller to run (default: the current one)")
     p.add_argument("--mode", choices=("program", "command"), default="program",
                    help="program: the YAML program (default); command: hold where it stands and follow "
@@ -362,41 +362,42 @@ def register(parser: argparse.ArgumentParser, sub) -> None:
     p.add_argument("--timeout", type=float, default=600.0, help="seconds (default 600)")
 
     p = client("stop", "bring an axis to rest, then 0 V and amplifier off", cmd_stop)
-    p.add_argument("axis")
+    p.add_argument("axis", help="the axis name, as in the config's axes")
     p.add_argument("--no-wait", action="store_true", help="return at once instead of waiting for rest")
 
     p = client("status", "state of the axes, the loop, the real-time set-up and the log", cmd_status)
-    p.add_argument("axis", nargs="?")
+    p.add_argument("axis", nargs="?", help="only this axis (default: every axis)")
     p.add_argument("--json", action="store_true", help="one JSON object")
 
     p = client("fault-reset", "clear an axis's latched fault (only when its cause is gone)", cmd_fault_reset)
-    p.add_argument("axis")
+    p.add_argument("axis", help="the axis name, as in the config's axes")
 
     p = client("switch", "switch an axis's controller at a cycle boundary", cmd_switch)
-    p.add_argument("axis")
-    p.add_argument("--controller", choices=CONTROLLER_NAMES, required=True)
+    p.add_argument("axis", help="the axis name, as in the config's axes")
+    p.add_argument("--controller", choices=CONTROLLER_NAMES, required=True, help="the law to switch to")
 
     p = client("jog", "move a disabled axis to a position at reduced speed, then 0 V (also back "
                       "inside its soft limits after a soft-limit fault)", cmd_jog)
-    p.add_argument("axis")
+    p.add_argument("axis", help="the axis name, as in the config's axes")
     p.add_argument("to_m", type=float, metavar="TO_M", help="target position [m], inside the soft limits")
     p.add_argument("--speed", type=float, default=0.1,
                    help="fraction of the axis's v_max and a_max (default 0.1, at most 0.5)")
 
     p = client("inject", "inject a fault into the simulated driver (daemon.allow_fault_injection)", cmd_inject)
-    p.add_argument("axis")
-    p.add_argument("kind", choices=("read_error", "nan", "amp_fault", "encoder_jump", "push"))
-    p.add_argument("--cycles", type=int, default=1)
-    p.add_argument("--jump-m", type=float, default=0.0)
-    p.add_argument("--force-n", type=float, default=0.0)
+    p.add_argument("axis", help="the axis name, as in the config's axes")
+    p.add_argument("kind", choices=("read_error", "nan", "amp_fault", "encoder_jump", "push"),
+                   help="the fault: a failed read, a NaN reading, an amplifier fault, an encoder jump, a push")
+    p.add_argument("--cycles", type=int, default=1, help="for how many cycles (default 1)")
+    p.add_argument("--jump-m", type=float, default=0.0, help="encoder_jump: the jump [m]")
+    p.add_argument("--force-n", type=float, default=0.0, help="push: the force on the carriage [N]")
 
     e = sub.add_parser("export", help="convert a run log (or a daemon's set of segments) to CSV, "
                                       "MATLAB .mat or MCAP (Foxglove, ROS 2 tools), streamed")
     e.add_argument("log", help="a run log, or a daemon run's name or any of its segments "
                                "(every kept segment is read, in order)")
     g = e.add_mutually_exclusive_group(required=True)
-    g.add_argument("--csv", metavar="OUT")
-    g.add_argument("--mat", metavar="OUT")
+    g.add_argument("--csv", metavar="OUT", help="CSV: a header line of column names, then one line per recorded cycle")
+    g.add_argument("--mat", metavar="OUT", help="MATLAB .mat (v5): one column vector per recorded signal, and data (N, W) where it fits")
     g.add_argument("--mcap", metavar="OUT", help="MCAP: JSON messages per axis and cycle, the header and "
                                                   "the faults as their own channels")
     e.set_defaults(func=cmd_export)

@@ -167,7 +167,7 @@ def cmd_plot(args) -> int:
 
 def register(parser, sub) -> None:
     r = sub.add_parser("run", help="run the servo loop on a config (the main job)")
-    r.add_argument("config", nargs="?", default=DEFAULT_CONFIG)
+    r.add_argument("config", nargs="?", default=DEFAULT_CONFIG, help="the config YAML (default: %(default)s)")
     r.add_argument("--axis", help="run only this axis")
     r.add_argument("--controller", choices=CONTROLLER_NAMES, help="override every axis's controller")
     r.add_argument("--duration", type=seconds, help="run length in s (default: loop.duration_s)")
@@ -178,7 +178,7 @@ def register(parser, sub) -> None:
     r.set_defaults(func=cmd_run)
 
     c = sub.add_parser("compare", help="C1, C2 (and a PID where configured) on the same seeded plant, beside the paper's tables")
-    c.add_argument("config", nargs="?", default=DEFAULT_CONFIG)
+    c.add_argument("config", nargs="?", default=DEFAULT_CONFIG, help="the config YAML (default: %(default)s)")
     c.add_argument("--duration", type=seconds, help="run length in s (default: loop.duration_s = 40)")
     c.add_argument("--json", action="store_true", help="print one JSON object and nothing else")
     c.add_argument("--wall-clock", action="store_true", help="pace by the wall clock (default: virtual)")
@@ -187,11 +187,11 @@ def register(parser, sub) -> None:
     c.set_defaults(func=cmd_compare)
 
     k = sub.add_parser("check-config", help="check a config; exit 0 if it is valid")
-    k.add_argument("config", nargs="?", default=DEFAULT_CONFIG)
+    k.add_argument("config", nargs="?", default=DEFAULT_CONFIG, help="the config YAML (default: %(default)s)")
     k.set_defaults(func=cmd_check_config)
 
     pl = sub.add_parser("plot", help="PNG figures of a run log (like the paper's Figs. 4-12)")
-    pl.add_argument("log")
+    pl.add_argument("log", help="a run log (motorctl run --log, or a daemon's segment)")
     pl.add_argument("--out", default=None, help="output directory (default: LOG without suffix + '_plots')")
     pl.set_defaults(func=cmd_plot)
 

@@ -34,7 +34,7 @@ from numba.experimental.structref import StructRefProxy
 
 from motorctl.control.kernels import LAW_PY, law_preview, law_reset, law_step
 from motorctl.jit import BundleType, borrow, bundle, define_bundle, njit
-from motorctl.loop.records import CONTROLLER_SIGNALS, N_SIGNALS
+from motorctl.control.signals import N_SIGNALS, SIG_E
 from motorctl.loop.safety import FAULT_OVERRUN, SI_FAULT, sup_check_input, sup_check_output, sup_trip
 from motorctl.loop.stream import stream_step
 from motorctl.loop.trajectory import TABLE_HEAD, sample_table
@@ -61,8 +61,6 @@ N_LP = 5
 # record offsets (offs): per-axis fields, then the base of each axis
 (O_Y, O_XD, O_VD, O_AD, O_U, O_EN, O_FB, O_SIG) = range(8)
 O_AXIS = 8
-#: the following error the supervisor checks: the law's signal e
-SIG_E = list(CONTROLLER_SIGNALS).index("e")
 
 #: the fields of :class:`CycleState`, in constructor order (module docstring)
 CYCLE_FIELDS = ("pos", "rerr", "werr", "ampf", "uo", "en", "ax", "axf", "prog", "move", "si", "sf",

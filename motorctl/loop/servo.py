@@ -61,7 +61,7 @@ import time
 
 import numpy as np
 
-from motorctl.control.kernels import LAW_PY, N_LAYOUT
+from motorctl.control.kernels import LAW_PY, N_LAYOUT, check_law_code
 from motorctl.jit import entry
 from motorctl.loop import cycle as C
 from motorctl.loop.cycle import APPROACH, HOLD, IDLE, JOG, PROGRAM, STREAM, servo_cycle
@@ -256,7 +256,7 @@ class ServoLoop:
             return
         if old is not None:
             old.detach()
-        law = c.law_code
+        law = check_law_code(c.law_code, c.name)
         if law != LAW_PY:
             nf, ni = c.state_size()
             if nf > self._cf.shape[1] or ni > self._ci.shape[1]:

@@ -28,7 +28,7 @@ import mmap
 import numpy as np
 
 from motorctl.jit import njit
-from motorctl.recorder.ordering import load_acquire, store_release
+from motorctl.ordering import load_acquire, store_release
 
 #: the ring's control words (int64): rows written, rows read, the epoch rows must carry, the
 #: underrun events, a brake running (1) or not (0)

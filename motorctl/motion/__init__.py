@@ -12,9 +12,9 @@ A pure library (no loop, no daemon): :func:`motorctl.motion.gcode.parse` turns a
 from motorctl.motion.gcode import (Arc, Dwell, Event, GcodeError, GcodeSettings, Line, Pause, Program,
                                    parse)
 from motorctl.motion.path import contour_error
-from motorctl.motion.planner import (AxisLimits, LimitError, Trajectory, check_limits, plan,
+from motorctl.motion.planner import (AxisLimits, LimitError, Trajectory, check_limits, headroom, plan,
                                      point_to_point)
 
 __all__ = ["Arc", "AxisLimits", "Dwell", "Event", "GcodeError", "GcodeSettings", "LimitError", "Line",
-           "Pause", "Program", "Trajectory", "check_limits", "contour_error", "parse", "plan",
+           "Pause", "Program", "Trajectory", "check_limits", "contour_error", "headroom", "parse", "plan",
            "point_to_point"]

@@ -85,10 +85,18 @@ class GcodeSettings(StrictModel):
     axes: list[Literal["X", "Y", "Z"]] = Field(default_factory=lambda: ["X", "Y", "Z"])
 
     def model_post_init(self, _ctx) -> None:
-        for k in self.words:
+        words = {}
+        for k, v in self.words.items():
             if _norm_m(k) not in MACHINE_WORDS:
                 raise ValueError(f"gcode.words: {k!r} is not a machine word that can be mapped "
                                  f"(allowed: {', '.join(MACHINE_WORDS)})")
+            words[_norm_m(k)] = v
+        # an output a word switches on must not be left on by its off word being ignored
+        for off, ons in (("M5", ("M3", "M4")), ("M9", ("M7", "M8")), ("M63", ("M62",)), ("M65", ("M64",))):
+            on = [w for w in ons if words.get(w, "ignore") != "ignore"]
+            if on and words.get(off) == "ignore":
+                raise ValueError(f"gcode.words.{off}: 'ignore' would leave the output of {on[0]} "
+                                 f"({words[on[0]]}) on; map {off} to it")
 
 
 def _norm_m(word: str) -> str:
@@ -302,7 +310,7 @@ class _Reader:
 
     # one source line
     def line(self, n: int, raw: str) -> None:
-        text, col0 = self._strip_comments(n, raw)
+        text = self._strip_comments(n, raw)
         if not text.strip():
             return
         words: list[_Word] = []
@@ -331,7 +339,8 @@ class _Reader:
         why = f"{what} not in the subset" if what else f"{ch!r} where a word (letter and number) belongs"
         raise GcodeError(self.f, n, bad + 1, ch, f"{why}; {_SUBSET}")
 
-    def _strip_comments(self, n: int, raw: str) -> tuple[str, int]:
+    def _strip_comments(self, n: int, raw: str) -> str:
+        """The line with its comments blanked (columns kept); refuses an unclosed '('."""
         out = []
         i = 0
         while i < len(raw):
@@ -349,7 +358,7 @@ class _Reader:
                 raise GcodeError(self.f, n, i + 1, ")", "')' with no '(' before it")
             out.append(c)
             i += 1
-        return "".join(out), 0
+        return "".join(out)
 
     def _block(self, n: int, words: list[_Word]) -> None:  # noqa: C901 (the rs274ngc order of execution)
         g: dict[str, tuple[float, _Word]] = {}

@@ -8,7 +8,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from motorctl.motion.gcode import AXES, Arc, Line, Program
+from motorctl.motion.gcode import AXES, Line, Program
 
 
 def contour_error(program: Program, points: np.ndarray, axes: Sequence[str] = ("X", "Y")) -> np.ndarray:

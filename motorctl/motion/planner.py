@@ -36,7 +36,8 @@ from motorctl.motion.gcode import AXES, Arc, Dwell, Event, Line, Pause, Program
 #: the loop's period [s] (5 kHz): the default grid of the filters
 PERIOD_S = 2e-4
 #: share of each axis's a_max the path-speed profile uses; the rest absorbs the corners'
-#: velocity steps (and, on arcs, the centripetal acceleration)
+#: velocity steps. On an arc, half of the share is the path acceleration and half the centripetal
+#: v²/R, so a corner step next to an arc still finds the other half free
 ACCEL_SHARE = 0.5
 #: the arc tolerance used where G61 (exact stop) asks for none: the filters always round an arc
 #: a little (its radius shrinks by v²(T1² + T2²)/(24 R))
@@ -99,10 +100,14 @@ class Trajectory:
 
 # ------------------------------------------------------------------------------ point to point
 class RuckigTrajectory(Trajectory):
-    """A Ruckig trajectory (offline, computed once) behind the :class:`Trajectory` interface."""
+    """A Ruckig trajectory (offline, computed once) behind the :class:`Trajectory` interface;
+    with ``direction`` (shape (n_axes,)) a one-axis trajectory of the path length s along it:
+    x = start + s·direction."""
 
-    def __init__(self, traj, axes: tuple[str, ...], start: np.ndarray, end: np.ndarray):
+    def __init__(self, traj, axes: tuple[str, ...], start: np.ndarray, end: np.ndarray,
+                 direction: np.ndarray | None = None):
         self._t = traj
+        self._u = direction
         self.axes = axes
         self.duration = float(traj.duration)
         self.start, self.end = start, end
@@ -116,7 +121,22 @@ class RuckigTrajectory(Trajectory):
                 out[k, 1:3] = 0.0
                 continue
             p, v, a = self._t.at_time(max(t, 0.0))      # before 0: the state it starts from
-            out[k, 0], out[k, 1], out[k, 2] = p, v, a
+            if self._u is None:
+                out[k, 0], out[k, 1], out[k, 2] = p, v, a
+            else:
+                out[k, 0] = self.start + p[0] * self._u
+                out[k, 1] = v[0] * self._u
+                out[k, 2] = a[0] * self._u
+
+
+def headroom(limits: Sequence[AxisLimits], speedup: float) -> list[AxisLimits]:
+    """The limits to plan with so that the trajectory, run up to ``speedup`` (≥ 1) times faster
+    (a time scaling by a feed override: v × r, a × r², j × r³), keeps ``limits``. Raises
+    ValueError on speedup < 1."""
+    if not speedup >= 1.0:
+        raise ValueError(f"speedup {speedup}: must be >= 1")
+    r = float(speedup)
+    return [AxisLimits(lim.v_max / r, lim.a_max / r**2, lim.j_max / r**3) for lim in limits]
 
 
 def point_to_point(start: Sequence[float], goal: Sequence[float], limits: Sequence[AxisLimits], *,
@@ -124,11 +144,13 @@ def point_to_point(start: Sequence[float], goal: Sequence[float], limits: Sequen
                    velocity: Sequence[float] | None = None,
                    acceleration: Sequence[float] | None = None) -> Trajectory:
     """A coordinated move to rest at ``goal`` (shape (n_axes,) [m]) with synchronised arrival,
-    each axis within its own limits (Ruckig, phase synchronisation: from rest the path is the
-    straight line, with Ruckig's fallback to time synchronisation where a phase-synchronous profile
-    does not exist, e.g. a new target in mid-move). The path speed is ≤ ``feed`` [m/s] when given.
-    velocity, acceleration: the state at the start (a new target in mid-move; None: rest).
-    Raises ValueError on a bad input (Ruckig's message)."""
+    each axis within its own limits (Ruckig). From rest: the straight line, as Ruckig's
+    time-optimal jerk-limited profile of the path length s with the path's limits
+    min over axes of (limit / |u_i|) (u the unit direction), so every axis arrives together on the
+    line. From a moving state (``velocity``/``acceleration`` given and not 0: a new target in
+    mid-move): Ruckig over all axes with time synchronisation (the path bends from the current
+    motion into the goal). The path speed is ≤ ``feed`` [m/s] when given. Raises ValueError on a
+    bad input (Ruckig's message)."""
     from ruckig import InputParameter, Result, Ruckig, Synchronization
     from ruckig import Trajectory as RTraj
 
@@ -139,12 +161,36 @@ def point_to_point(start: Sequence[float], goal: Sequence[float], limits: Sequen
         raise ValueError(f"start, goal and limits must name the same {n} axes")
     d = x1 - x0
     dist = float(np.linalg.norm(d))
+    names = tuple(axes) if axes is not None else tuple(AXES[:n])
+    if feed is not None and not feed > 0:
+        raise ValueError(f"feed {feed} m/s: must be > 0")
+    at_rest = (velocity is None or not np.any(velocity)) and (acceleration is None or not np.any(acceleration))
+    if at_rest and dist > 0.0:
+        u = d / dist
+        au = np.abs(u)
+        nz = au > 0
+
+        def path(attr):
+            return float(np.min(np.array([getattr(lim, attr) for lim in limits])[nz] / au[nz]))
+
+        inp = InputParameter(1)
+        inp.current_position, inp.current_velocity, inp.current_acceleration = [0.0], [0.0], [0.0]
+        inp.target_position, inp.target_velocity, inp.target_acceleration = [dist], [0.0], [0.0]
+        inp.max_velocity = [min(path("v_max"), feed) if feed is not None else path("v_max")]
+        inp.max_acceleration = [path("a_max")]
+        inp.max_jerk = [path("j_max")]
+        traj = RTraj(1)
+        try:
+            res = Ruckig(1).calculate(inp, traj)
+        except RuntimeError as e:
+            raise ValueError(f"move refused by the planner: {e}") from None
+        if res not in (Result.Working, Result.Finished):
+            raise ValueError(f"move refused by the planner: {res}")
+        return RuckigTrajectory(traj, names, x0.copy(), x1.copy(), direction=u)
     vmax = np.array([lim.v_max for lim in limits])
     if feed is not None:
-        if not feed > 0:
-            raise ValueError(f"feed {feed} m/s: must be > 0")
         if dist > 0:
-            # phase-synchronous: axis i moves |d_i|/dist of the path, so this caps the path speed
+            # each axis's share of the straight line: near it, this caps the path speed
             vmax = np.minimum(vmax, np.maximum(feed * np.abs(d) / dist, 1e-9))
     inp = InputParameter(n)
     inp.current_position = x0.tolist()
@@ -156,7 +202,7 @@ def point_to_point(start: Sequence[float], goal: Sequence[float], limits: Sequen
     inp.max_velocity = vmax.tolist()
     inp.max_acceleration = [lim.a_max for lim in limits]
     inp.max_jerk = [lim.j_max for lim in limits]
-    inp.synchronization = Synchronization.Phase
+    inp.synchronization = Synchronization.Time
     traj = RTraj(n)
     try:
         res = Ruckig(n).calculate(inp, traj)
@@ -164,7 +210,6 @@ def point_to_point(start: Sequence[float], goal: Sequence[float], limits: Sequen
         raise ValueError(f"move refused by the planner: {e}") from None
     if res not in (Result.Working, Result.Finished):
         raise ValueError(f"move refused by the planner: {res}")
-    names = tuple(axes) if axes is not None else tuple(AXES[:n])
     return RuckigTrajectory(traj, names, x0.copy(), x1.copy())
 
 
@@ -184,12 +229,7 @@ class _Piece:
     tol: float
     rest: float = 0.0         # a rest's duration [s]
     acc_alone: float = 0.0    # a line's path acceleration between two rests (no corner step near)
-    cx: float = 0.0
-    cy: float = 0.0
-    r0: float = 0.0
-    r1: float = 0.0
-    phi0: float = 0.0
-    sweep: float = 0.0
+    arc: tuple[float, ...] = (0.0,) * 6   # an arc's cx, cy, r0, r1, phi0, sweep [m, rad]
 
 
 def _tangents(p: _Piece, ix: int, iy: int) -> tuple[np.ndarray, np.ndarray]:
@@ -197,11 +237,11 @@ def _tangents(p: _Piece, ix: int, iy: int) -> tuple[np.ndarray, np.ndarray]:
     if p.kind == 0:
         return p.u, p.u
     out = []
-    sgn = 1.0 if p.sweep > 0 else -1.0
-    for phi, r in ((p.phi0, p.r0), (p.phi0 + p.sweep, p.r1)):
+    _, _, r0, r1, phi0, sweep = p.arc
+    sgn = 1.0 if sweep > 0 else -1.0
+    for phi in (phi0, phi0 + sweep):
         t = p.u * p.length                     # non-XY axes: their displacement
-        t = t.copy()
-        planar = abs(p.sweep) * 0.5 * (p.r0 + p.r1)
+        planar = abs(sweep) * 0.5 * (r0 + r1)
         t[ix] = -math.sin(phi) * sgn * planar
         t[iy] = math.cos(phi) * sgn * planar
         out.append(t / np.linalg.norm(t))
@@ -298,6 +338,44 @@ class PathTrajectory(Trajectory):
         if np.any(late):
             out[late, 0] = self.end
             out[late, 1:3] = 0.0
+
+    #: grid points computed at once by :meth:`sample` (the cache a streaming caller walks through)
+    CACHE = 256
+
+    def sample(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(x, v, a) at t [s] (each shape (n_axes,)): on the planner's grid (within 1e-6 of a
+        period) the grid's setpoints exactly; between two grid points x and v interpolated by
+        cubic Hermite polynomials (from x, v and v, a at both ends) and a linearly. Grid points
+        are computed a block of :data:`CACHE` at a time (the fast path of :meth:`sample_into`),
+        so a caller walking forward pays about 1 µs a call."""
+        if t >= self.duration:
+            z = np.zeros(len(self.axes))
+            return self.end.copy(), z, z.copy()
+        h = self.period
+        q = t / h
+        k = math.floor(q)
+        frac = q - k
+        if frac > 1.0 - 1e-6:
+            k, frac = k + 1, 0.0
+        elif frac < 1e-6:
+            frac = 0.0
+        c = getattr(self, "_cache", None)
+        need_hi = k + (1 if frac else 0)
+        if c is None or not (self._c0 <= k and need_hi < self._c0 + self.CACHE):
+            if c is None:
+                c = self._cache = np.empty((self.CACHE, 3, len(self.axes)))
+            self._c0 = k
+            self.sample_into(k * h, h, c)
+        i = k - self._c0
+        if frac == 0.0:
+            return c[i, 0].copy(), c[i, 1].copy(), c[i, 2].copy()
+        x0, v0, a0 = c[i]
+        x1, v1, a1 = c[i + 1]
+        s = frac
+        h00, h10, h01, h11 = (2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2)
+        x = h00 * x0 + h10 * h * v0 + h01 * x1 + h11 * h * v1
+        v = h00 * v0 + h10 * h * a0 + h01 * v1 + h11 * h * a1
+        return x, v, a0 + (a1 - a0) * s
 
     def line_at(self, t: float) -> int:
         tu = t - self.delay
@@ -404,15 +482,13 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
                     vmax = min(vmax, vlim[i] / abs(u[i]))
             r = min(r0, r1)
             tol = seg.tolerance if seg.tolerance > 0 else EXACT_ARC_TOL_M
-            # centripetal v²/R within the share left by the path acceleration; the filters'
-            # radial shrink v²(T1² + T2²)/(24 R) within half the tolerance
-            vmax = min(vmax, math.sqrt((1 - ACCEL_SHARE) * a_min * r))
+            # centripetal v²/R within half the share (ACCEL_SHARE); the filters' radial shrink v²(T1² + T2²)/(24 R) within half the tolerance
+            vmax = min(vmax, math.sqrt(0.5 * ACCEL_SHARE * a_min * r))
             if math.isfinite(tol):
                 vmax = min(vmax, math.sqrt(12.0 * r * tol / (t1 * t1 + t2 * t2)))
             phi0 = math.atan2(seg.start[1] - seg.center[1], seg.start[0] - seg.center[0])
-            pc = _Piece(1, seg.line, p0, p1, u, length, vmax, ACCEL_SHARE * a_min, seg.tolerance,
-                        cx=float(seg.center[0]), cy=float(seg.center[1]), r0=r0, r1=r1, phi0=phi0,
-                        sweep=seg.sweep)
+            pc = _Piece(1, seg.line, p0, p1, u, length, vmax, 0.5 * ACCEL_SHARE * a_min, seg.tolerance,
+                        arc=(float(seg.center[0]), float(seg.center[1]), r0, r1, phi0, seg.sweep))
             pieces.append(pc)
             stop_after.append(seg.tolerance == 0.0)
             cur = p1.copy()
@@ -450,7 +526,7 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
         dn = float(np.linalg.norm(du))
         v = min(a.vmax, b.vmax)
         if dn > 1e-12:
-            theta = math.acos(float(np.clip(np.dot(ua, ub), -1.0, 1.0)))
+            theta = 2.0 * math.asin(min(1.0, dn / 2.0))          # |du| = 2 sin(theta/2)
             g = math.sin(theta) if theta < math.pi / 2 else 1.0
             if math.isfinite(a.tol):
                 # the filtered corner stays within g·(v_j·tw/2 + a·tw²/8) of the path (the legs'
@@ -513,9 +589,10 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
     for k, p in enumerate(pieces):
         v1 = vj[k]
         if p.length == 0.0:
-            ta = tc = td = 0.0
+            ta = td = 0.0
             vp = la = lc = 0.0
-            tc = p.rest
+            # a rest ends on the grid: a pause's stop time is then a grid point (exact setpoints)
+            tc = max(math.ceil((t + p.rest) / period - 1e-9) * period - t, 0.0)
         else:
             a = p.acc
             vp = min(p.vmax, math.sqrt(max((2 * a * p.length + v0 * v0 + v1 * v1) / 2, 0.0)))
@@ -531,7 +608,7 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
             tab[key][k] = val
         p0s[k], p1s[k], us[k] = p.p0, p.p1, p.u
         if p.kind == 1:
-            arcs[k] = (p.cx, p.cy, p.r0, p.r1, p.phi0, p.sweep)
+            arcs[k] = p.arc
         t += ta + tc + td
         t_end[k] = t
         v0 = v1
