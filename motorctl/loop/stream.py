@@ -77,11 +77,12 @@ class SetpointRing:
         ``epoch``, as far as it fits. Returns the rows written."""
         n = min(block.shape[0], self.free())
         w = int(self.ctl[SP_WRITE])
-        cap = self.capacity
-        for j in range(n):
-            row = self.rows[(w + j) % cap]
-            row[0] = epoch
-            row[1:] = block[j].reshape(-1)
+        a = w % self.capacity
+        first = min(n, self.capacity - a)          # up to the end of the ring, then from its start
+        for dst, src in ((self.rows[a:a + first], block[:first]), (self.rows[:n - first], block[first:n])):
+            if src.shape[0]:
+                dst[:, 0] = epoch
+                dst[:, 1:] = src.reshape(src.shape[0], self.width - 1)
         store_release(self.ctl, SP_WRITE, w + n)
         return n
 

@@ -49,6 +49,10 @@ from motorctl.motion import planner as P
 LEAD_S = 0.2
 #: the filler's wake period [s]
 FILL_EVERY_S = 0.01
+#: the ring is topped up in blocks of at least LEAD_S / BLOCKS_PER_LEAD: a trajectory's block
+#: sample has a fixed cost (the planner's filter windows, about 1.5 ms a call here), so a few
+#: large blocks a second cost a few per cent of a core where 50-row blocks took 40 %
+BLOCKS_PER_LEAD = 4
 #: the highest feed override
 MAX_OVERRIDE = 1.5
 #: the feed scale's largest rate [1/s] and rate of change [1/s²] for an axis at a_max/v_max = 1 /s
@@ -137,6 +141,7 @@ class MotionSide:
         self.used: list[int] = []        # the axes the queued motion moves
         self._block = np.zeros((self.lead, self.n, 3))
         self._s, self._f, self._fd = np.zeros(self.lead), np.zeros(self.lead), np.zeros(self.lead)
+        self._steps = np.arange(1.0, self.lead + 1.0)
         self._grid = np.zeros((self.lead + 2, 3, self.n))   # sample_into's layout (k, x/v/a, axis)
         self.trace: list | None = None   # the source line of every row streamed (when a list)
         self._stop = threading.Event()
@@ -385,7 +390,7 @@ class MotionSide:
             if ring.braking():
                 return 0
             need = min(self.lead - ring.depth(), ring.free())
-            if need <= 0 or (self.cur is None and not self.queue):
+            if need < self.lead // BLOCKS_PER_LEAD or (self.cur is None and not self.queue):
                 return 0
             modes = self.modes()
             gone = [self.names[i] for i in self.used if int(modes[i]) != STREAM]
@@ -412,9 +417,29 @@ class MotionSide:
                 self.cur = self.queue.popleft()
                 self.s = 0.0
                 self.f, self.fd = self.override, 0.0     # from rest: the override at once
-            cur, m, ended = self.cur, 0, False
+            cur, m, ended, step = self.cur, 0, False, 0.0
             ss, ff, ffd = self._s, self._f, self._fd
-            while j + m < need:
+            target = 0.0 if self.holding else self.override
+            if self.f == target and self.fd == 0.0 and target > 0.0:
+                # the steady case, vectorised: s advances by f·Ts a row, up to the end or a pause
+                m = need - j
+                ss[:m] = self.s + self.f * dt * self._steps[:m]
+                limit = min([t for t, _ in cur.stops if t > self.s] + [cur.duration])
+                over = int(np.searchsorted(ss[:m], limit, side="left"))
+                if over < m:
+                    m = over + 1             # the row that reaches the limit (a pause: at it)
+                    if limit < cur.duration:
+                        ss[m - 1] = limit
+                    else:
+                        ended = True
+                ff[:m], ffd[:m] = self.f, 0.0
+                step = self.f * dt               # uniform rows (the last one may stop short)
+                self.s = float(ss[m - 1])
+                if not ended and over < need - j:
+                    self.f, self.fd, self.holding = 0.0, 0.0, True
+                    self.reason = "paused (M0/M1); resume goes on"
+                    ff[m - 1] = 0.0
+            while j + m < need and not ended:
                 if self.f == 0.0 and self.fd == 0.0 and self.holding:
                     break                    # at rest on the path: the loop holds the last row
                 target = 0.0 if self.holding else self.override
@@ -434,7 +459,11 @@ class MotionSide:
                     break
             if m:
                 rows = out[j:j + m]
-                self._sample(cur, ss[:m], rows)
+                if step > 0.0 and (m == 1 or ss[m - 1] - ss[m - 2] == ss[1] - ss[0]):
+                    cur.sample_into(float(ss[0]), step, self._grid[:m])   # the rows' own times
+                    rows[:] = self._grid[:m].transpose(0, 2, 1)
+                else:
+                    self._sample(cur, ss[:m], rows)
                 if self.trace is not None:
                     self.trace.extend(int(cur.line_at(t)) for t in ss[:m])
                 rows[:, :, 2] = rows[:, :, 2] * (ff[:m] ** 2)[:, None] + rows[:, :, 1] * ffd[:m, None]
