@@ -426,6 +426,9 @@ def _cross_checks(path: Path, cfg: GantryConfig) -> None:
                               f"[{lim.soft_min_m}, {lim.soft_max_m}] m")
         if lim.min_following_error_m > lim.following_error_m:
             raise ConfigError(path, f"{lpre}.min_following_error_m", "must not exceed following_error_m")
+        if not lim.i2t_continuous_V < lim.i2t_peak_V:
+            raise ConfigError(path, f"{lpre}.i2t_continuous_V",
+                              f"{lim.i2t_continuous_V:g} V must be below i2t_peak_V ({lim.i2t_peak_V:g} V)")
 
 
 def load_config(path: str | Path, check_budget: bool = True) -> LoadedConfig:

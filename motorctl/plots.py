@@ -75,7 +75,7 @@ def plot_log(log_path: str, out_dir: str | None = None) -> list[str]:
             axs[k].set_ylabel(label)
         axs[0].set_title(f"Desired trajectory ({tag})")
         axs[-1].set_xlabel("t [s]")
-        files.append(_save(fig, out / f"{ax}_trajectory.png"))
+        files.append(_save(fig, out / f"{ax}_trajectory.png", log_path))
 
         ctl = _get(log.header, "config", "axes", ax, "controller", default={})
         fig, axp = plt.subplots(figsize=(8, 3.5))
@@ -88,7 +88,7 @@ def plot_log(log_path: str, out_dir: str | None = None) -> list[str]:
         axp.set_xlabel("t [s]")
         axp.set_ylabel("u [V]")
         axp.set_title(f"Control input ({tag}), peak |u| = {np.max(np.abs(a['u'])):.2f} V")
-        files.append(_save(fig, out / f"{ax}_input.png"))
+        files.append(_save(fig, out / f"{ax}_input.png", log_path))
 
         e_um = a["e"] * 1e6
         fig, axs = plt.subplots(2, 1, figsize=(8, 6))
@@ -105,7 +105,7 @@ def plot_log(log_path: str, out_dir: str | None = None) -> list[str]:
         axs[1].set_ylabel("e [um]")
         axs[1].set_xlabel("t [s]")
         axs[1].set_title("One running period, magnified")
-        files.append(_save(fig, out / f"{ax}_error.png"))
+        files.append(_save(fig, out / f"{ax}_error.png", log_path))
 
         n = 6 if kind == "C2" else 4
         fig, axs = plt.subplots(n, 1, sharex=True, figsize=(8, 1.6 * n + 1))
@@ -128,15 +128,23 @@ def plot_log(log_path: str, out_dir: str | None = None) -> list[str]:
         if th_true is not None or box:
             axs[0].legend(loc="best", fontsize=7, ncol=3)
         axs[-1].set_xlabel("t [s]")
-        files.append(_save(fig, out / f"{ax}_theta.png"))
+        files.append(_save(fig, out / f"{ax}_theta.png", log_path))
     return files
 
 
-def _save(fig, path: Path) -> str:
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+def _save(fig, path: Path, source: str | None = None) -> str:
+    """Write ``fig`` as PNG at ``path``: refused over the run log ``source`` or any run log,
+    written to a temporary name and renamed (never a partial PNG). Raises InputError."""
     import matplotlib.pyplot as plt
-    plt.close(fig)
+
+    from motorctl.recorder.outfile import atomic_output, check_output
+    try:
+        check_output(path, [source] if source else [], "plot")
+        fig.tight_layout()
+        with atomic_output(path, "plot") as tmp:
+            fig.savefig(tmp, dpi=110, format="png")
+    finally:
+        plt.close(fig)
     return str(path)
 
 

@@ -7,14 +7,18 @@ at this machine, network namespace, emulator process), so a test imports them fr
   polling.
 * :func:`device_thread`, :func:`exchange`: an emulated device served from a thread of the test
   process and driver cycles against it (python-can's ``virtual`` bus, ptys).
+* :func:`emps_path`: the local EMPS record (never downloaded), or None.
+* :func:`plugin_env`: an environment where a package outside motorctl registers entry points.
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
 import subprocess
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -33,6 +37,34 @@ from motorctl_emulators.loopback import (  # noqa: F401  (re-exported for the te
     motorctl_cmd,
     sim_twin,
 )
+
+
+#: the project's shared data directory beside the clone (as CI has it), tried after MOTORCTL_DATA_DIR
+SHARED_DATA_DIR = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def emps_path() -> str | None:
+    """The EMPS record ``emps/DATA_EMPS.mat`` (motorctl.datasets' layout) under
+    ``$MOTORCTL_DATA_DIR`` first, then under the shared data directory beside the clone; None when
+    neither has it (the tests that need it skip). Nothing is downloaded."""
+    from motorctl.datasets import DATA_DIR_ENV, local_path
+    roots = [os.environ[DATA_DIR_ENV]] if os.environ.get(DATA_DIR_ENV) else []
+    for root in [*roots, SHARED_DATA_DIR]:
+        path = local_path("emps", Path(root))
+        if path.is_file():
+            return str(path)
+    return None
+
+
+def plugin_env(root: Path, dist: str, group: str, entries: dict[str, str], *path: Path) -> dict:
+    """``os.environ`` with ``root`` (and ``path``) on PYTHONPATH, where ``root/<dist>-0.1.dist-info``
+    declares ``entries`` (name -> "module:attr") in entry-point ``group``: as an installed
+    plugin package is seen by importlib.metadata."""
+    info = Path(root) / f"{dist}-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {dist}\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text(f"[{group}]\n" + "".join(f"{k} = {v}\n" for k, v in entries.items()))
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(str(p) for p in (root, *path))}
 
 
 def run_cli(argv: list[str], prefix=(), timeout_s: float = 60.0) -> subprocess.CompletedProcess:

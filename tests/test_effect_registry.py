@@ -18,7 +18,6 @@ import math
 import subprocess
 import sys
 from pathlib import Path
-from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -31,9 +30,9 @@ from motorctl.effects import (
     family,
     simulated,
 )
-from motorctl.effects.base import EffectFamily, PlantTerm, Signals
+from motorctl.effects.base import EffectFamily, Signals
 from motorctl.model import s_f_scalar
-from motorctl.schema import StrictModel
+from toy_family import QuadraticDrag
 
 ROOT = Path(__file__).resolve().parents[1]
 TS = 2e-4
@@ -44,52 +43,6 @@ ORDER = ("cogging", "force_ripple", "stribeck", "asymmetric_friction", "position
 #: (x [m], ẋ [m/s], t [s]) where terms are compared: both directions, slow and fast, ẋ = 0
 POINTS = [(x, v, t) for x in (-0.05, 0.013, 0.2, 0.37) for v in (-0.8, -0.01, 0.0, 0.004, 0.05, 0.8)
           for t in (0.0, 0.41, 2.3)]
-
-
-# ---------------------------------------------------------------------------- a toy family
-class DragOptions(StrictModel):
-    drag_N_s2_per_m2: float
-
-
-class DragComp(StrictModel):
-    drag_V_s2_per_m2: float
-
-
-class QuadraticDrag(EffectFamily):
-    """Aerodynamic drag F_eff = −c ẋ|ẋ| [N]; column ẋ|ẋ|; d̂_eff = −c_V ẋ|ẋ| [V]."""
-
-    name = "quadratic_drag"
-    plant_force = "−c ẋ|ẋ|"
-    sim_options = DragOptions
-    example: ClassVar[dict] = {"quadratic_drag": {"drag_N_s2_per_m2": 20.0}}
-    comp_options = DragComp
-
-    def plant_term(self, o, period_s):
-        c = o.drag_N_s2_per_m2
-        return PlantTerm(force=lambda f, x, v, t, sf: f - c * v * abs(v))
-
-    def columns(self, h, p):
-        return (p.v * np.abs(p.v))[:, None]
-
-    def parameters(self, h, beta, gain, fs):
-        g, unit = (gain, "N") if gain else (1.0, "V")
-        return {f"drag_{unit}_s2_per_m2": float(g * beta[0])}
-
-    def compensation(self, h, beta):
-        return {"drag_V_s2_per_m2": float(beta[0])}
-
-    def compensation_for(self, o, a1):
-        return {"drag_V_s2_per_m2": o.drag_N_s2_per_m2 / a1}
-
-    def compensator(self, o):
-        c = o.drag_V_s2_per_m2
-        return lambda d, x, v, t, sf: d - c * v * abs(v)
-
-    def shape(self, ctx, h, beta, gain):
-        vs = np.linspace(-1.0, 1.0, 101)
-        zero = np.zeros_like(vs)
-        return vs, -(gain or 1.0) * (self.columns(h, Signals(zero, vs, zero, zero, zero)) @ beta), \
-            "velocity [m/s]", "effect force [UNIT]"
 
 
 @pytest.fixture
@@ -311,7 +264,8 @@ def test_toy_family_is_compensated(toy):
 
 
 _E2E = r"""
-import importlib.util, json, sys
+import importlib.util, json, os, sys
+sys.path.insert(0, os.path.dirname(sys.argv[1]))   # tests/: the toy family's module
 spec = importlib.util.spec_from_file_location("registry_test", sys.argv[1])
 mod = importlib.util.module_from_spec(spec); spec.loader.exec_module(mod)
 from motorctl.effects import FAMILIES

@@ -24,8 +24,11 @@ DEFAULT_CONFIG = "configs/gantry.yaml"
 #: Modules of this package that add subcommands (the job, daemon control, identification). Other
 #: installed packages add theirs through the ``motorctl.commands`` entry-point group (a
 #: ``register(parser, subparsers)`` function), e.g. ``motorctl emulate``.
+#: commands that compile the servo cycle when numba's cache is cold (they say so first)
+COMPILING_COMMANDS = ("run", "daemon", "warmup")
 COMMAND_MODULES = ("motorctl.cli.run", "motorctl.cli.operator", "motorctl.cli.identify", "motorctl.cli.runs",
-                   "motorctl.cli.tune", "motorctl.cli.autotune", "motorctl.cli.motion")
+                   "motorctl.cli.tune", "motorctl.cli.autotune", "motorctl.cli.data",
+                   "motorctl.cli.motion")
 COMMAND_GROUP = "motorctl.commands"
 
 #: the optional-dependency group (pyproject.toml) that installs each optional top-level module:
@@ -72,6 +75,10 @@ def main(argv=None) -> int:
     from motorctl.inputs import InputError
     from motorctl.loop.rt import RealtimeError
     from motorctl.recorder.runlog import LogError
+    words = sys.argv[1:] if argv is None else list(argv)
+    if words and words[0] in COMPILING_COMMANDS and not {"-h", "--help"} & set(words):
+        from motorctl.app.warmup import say_if_cold
+        say_if_cold()         # before the parser's imports load numba: a cold start is not a hang
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

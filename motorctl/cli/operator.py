@@ -49,6 +49,8 @@ def _wrap(handler):
 
 # --------------------------------------------------------------------------- handlers
 def cmd_daemon(args) -> int:
+    from motorctl.app.warmup import say_if_cold
+    say_if_cold()                                 # within a second, before numba is imported
     from motorctl.app.daemon import DaemonError, run_daemon
     try:
         return run_daemon(args.config, args.daemon_socket or args.socket, args.log_dir)
@@ -278,8 +280,10 @@ def cmd_status(args) -> int:
 def cmd_export(args) -> int:
     """A run log, or a daemon's run (its name or any segment: every kept segment in order),
     to CSV, .mat or MCAP, streamed chunk by chunk (memory bounded whatever the log length)."""
-    from motorctl.inputs import InputError, writable_file
+    from motorctl.inputs import InputError
     from motorctl.recorder.export import MCAP_CYCLE_TOPIC, export_csv, export_mat, export_mcap
+    from motorctl.recorder.outfile import atomic_output, check_output
+    from motorctl.recorder.runlog import LogError
     from motorctl.recorder.segments import open_run
     out = args.csv or args.mat or args.mcap
     if args.mcap:
@@ -287,20 +291,24 @@ def cmd_export(args) -> int:
             import mcap.writer  # noqa: F401
         except ImportError:
             raise InputError("export --mcap needs the mcap package: pip install 'motorctl[mcap]'") from None
-    writable_file(out, "export")                    # before the log is read
+    check_output(out, [args.log], "export")          # before the log is read
     run = open_run(args.log)
+    check_output(out, [s.path for s in run.segments], "export")
     notes = []
-    if args.csv:
-        n = export_csv(run, out)
-    elif args.mcap:
-        counts = export_mcap(run, out)
-        n = counts.get(MCAP_CYCLE_TOPIC, 0)
-        notes.append(", ".join(f"{t} {c}" for t, c in counts.items()))
-    else:
-        try:
-            n, notes = export_mat(run, out)
-        except ValueError as exc:
-            raise InputError(f"{args.log}: {exc}") from None
+    with atomic_output(out, "export") as tmp:       # renamed to `out` once complete
+        if args.csv:
+            n = export_csv(run, tmp)
+        elif args.mcap:
+            counts = export_mcap(run, tmp)
+            n = counts.get(MCAP_CYCLE_TOPIC, 0)
+            notes.append(", ".join(f"{t} {c}" for t, c in counts.items()))
+        else:
+            try:
+                n, notes = export_mat(run, tmp)
+            except LogError:
+                raise
+            except ValueError as exc:
+                raise InputError(f"{args.log}: {exc}") from None
     if len(run.segments) > 1:
         notes.append(f"{len(run.segments)} segments")
     gaps = run.gaps

@@ -9,7 +9,8 @@ to :func:`servo_cycle` and writes the driver. For every axis the call runs:
     → the overrun policy's hold-and-ramp, or the law: a compiled law (LAW_DCDIARC,
       LAW_DCDIARC_COMP with its compensation and the desired trajectory at its preview, LAW_PID:
       :mod:`motorctl.control.kernels`) on the axis's rows, reset when the axis starts
-    → the bumpless-switch blend, the following-error and NaN check of the output
+    → the bumpless-switch blend, the following-error, NaN, I²t and oscillation checks of the
+      output
     → a fault or disable: 0 V, amplifier off (and IDLE when operated)
     → the axis's part of the cycle record
 
@@ -35,7 +36,7 @@ from numba.experimental.structref import StructRefProxy
 from motorctl.control.kernels import LAW_PY, law_preview, law_reset, law_step
 from motorctl.jit import BundleType, borrow, bundle, define_bundle, njit
 from motorctl.control.signals import N_SIGNALS, SIG_E
-from motorctl.loop.safety import FAULT_OVERRUN, SI_FAULT, sup_check_input, sup_check_output, sup_trip
+from motorctl.loop.safety import FAULT_OVERRUN, SI_FAULT, sup_check_input, sup_check_output, sup_rest, sup_trip
 from motorctl.loop.stream import stream_step
 from motorctl.loop.trajectory import TABLE_HEAD, sample_table
 
@@ -59,8 +60,8 @@ N_X = 13
 LP_TS, LP_SETTLE, LP_OVR_RAMP, LP_BLEND_N, LP_DISABLE_ON_FAULT = range(5)
 N_LP = 5
 # record offsets (offs): per-axis fields, then the base of each axis
-(O_Y, O_XD, O_VD, O_AD, O_U, O_EN, O_FB, O_SIG) = range(8)
-O_AXIS = 8
+(O_Y, O_XD, O_VD, O_AD, O_U, O_EN, O_FB, O_SIG, O_MODE) = range(9)
+O_AXIS = 9
 
 #: the fields of :class:`CycleState`, in constructor order (module docstring)
 CYCLE_FIELDS = ("pos", "rerr", "werr", "ampf", "uo", "en", "ax", "axf", "prog", "move", "si", "sf",
@@ -100,13 +101,14 @@ def cycle_state(*arrays) -> CycleState:
 
 
 @njit
-def _finish(i, ok, u, k, y, xd, vd, ad, ax, axf, si, sig, uo, en, row, offs, lp):
+def _finish(i, ok, u, k, y, xd, vd, ad, ax, axf, si, sf, sig, uo, en, row, offs, lp):
     """After the law: a fault or disable gives 0 V with the amplifier off (IDLE when operated);
     the output, its enable and the axis's part of the record row."""
     if not ok:
         ax[i, A_RUNNING] = 0
         ax[i, A_OVR] = 0
         u = 0.0
+        sup_rest(si, sf, i)                    # 0 V: the I²t model cools
         if lp[LP_DISABLE_ON_FAULT] != 0.0 and si[i, SI_FAULT] != 0 and ax[i, A_MODE] != IDLE:
             ax[i, A_MODE] = IDLE
             ax[i, A_ENABLED] = 0
@@ -185,14 +187,15 @@ def servo_cycle(phase, k, st):
                 continue
             ax[i, A_PEND] = PEND_NONE
             u, ok = _output(i, axf[i, X_U], axf[i, X_VD], ax, axf, si, sf, sig, lp)
-            _finish(i, ok, u, k, axf[i, X_Y], axf[i, X_XD], axf[i, X_VD], axf[i, X_AD], ax, axf, si, sig, uo,
-                    en, row, offs, lp)
+            _finish(i, ok, u, k, axf[i, X_Y], axf[i, X_XD], axf[i, X_VD], axf[i, X_AD], ax, axf, si, sf, sig,
+                    uo, en, row, offs, lp)
             continue
         y = pos[i]
         # a write error last cycle counts like a read error this cycle
         ok = sup_check_input(si, sf, i, y, rerr[i] or werr[i], ampf[i]) and ax[i, A_ENABLED] != 0
         m = ax[i, A_MODE]
         xd, vd, ad = desired(i, k, 0.0, ax, axf, prog, move, ts)
+        row[offs[O_AXIS + i] + offs[O_MODE]] = m     # the mode x_d of this row comes from
         if m == APPROACH or m == JOG:
             if (k - ax[i, A_KST]) * ts >= move[i, TABLE_HEAD + 3]:
                 if m == APPROACH:
@@ -254,7 +257,7 @@ def servo_cycle(phase, k, st):
                 u = law_step(law, y, xd, vd, ad, xf, vf, af, k * ts, borrow(sig[i]), borrow(cf[i]), borrow(ci[i]),
                              borrow(cl[i]))
                 u, ok = _output(i, u, vd, ax, axf, si, sf, sig, lp)
-        _finish(i, ok, u, k, y, xd, vd, ad, ax, axf, si, sig, uo, en, row, offs, lp)
+        _finish(i, ok, u, k, y, xd, vd, ad, ax, axf, si, sf, sig, uo, en, row, offs, lp)
     return pending
 
 

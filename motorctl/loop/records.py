@@ -37,7 +37,10 @@ AXIS_FIELDS: dict[str, str] = {
     **CONTROLLER_SIGNALS,
     "enabled": "1",            # amplifier enable written this cycle
     "fault_bits": "1",         # latched fault bits (motorctl.loop.safety)
+    "mode": "1",               # the sequencer's mode: 0 idle, 1 approach, 2 program, 3 hold, 4 jog
 }
+#: the ``mode`` field's codes (motorctl.loop.cycle's IDLE ... JOG)
+MODE_IDLE, MODE_APPROACH, MODE_PROGRAM, MODE_HOLD, MODE_JOG = range(5)
 
 
 class RecordLayout:

@@ -195,7 +195,7 @@ class ServoLoop:
         lay = self.layout
         self._offs = np.array([lay.axis_field(f) for f in ("y", "x_d", "xd_dot", "xd_ddot", "u", "enabled",
                                                             "fault_bits")]
-                              + [lay.axis_field(next(iter(CONTROLLER_SIGNALS)))]
+                              + [lay.axis_field(next(iter(CONTROLLER_SIGNALS))), lay.axis_field("mode")]
                               + [lay.axis_base(i) for i in range(n)], dtype=np.int64)
         self._lp = np.zeros(C.N_LP)
         self._lp[C.LP_TS] = self.period_s
@@ -418,12 +418,14 @@ class ServoLoop:
         self.stop_req[:] = 0
         self._running[:] = 0
 
-    def start_axis(self, i: int, approach, controller=None) -> None:
+    def start_axis(self, i: int, approach, controller=None, delay_cycles: int = 0) -> None:
         """Enable axis i: reset its controller from the measured position, then follow the
         jerk-limited ``approach`` (a ``trajectory.Move`` from where the axis stands to the
         program's start) and the program after it. ``controller`` replaces the axis's
-        controller when given (built beforehand). Raises RuntimeError if the axis is faulted."""
-        self._enable(i, APPROACH, approach, controller)
+        controller when given (built beforehand); ``delay_cycles``: the axis holds the
+        approach's start under control that many cycles before it moves. Raises RuntimeError
+        if the axis is faulted."""
+        self._enable(i, APPROACH, approach, controller, delay_cycles)
 
     def jog_axis(self, i: int, move, controller=None) -> None:
         """Move axis i along the jerk-limited ``move`` (from where it stands), hold at its end
@@ -434,7 +436,7 @@ class ServoLoop:
             raise RuntimeError(f"axis {self.axis_names[i]} is not disabled ({MODE_NAMES[int(self.mode[i])]})")
         self._enable(i, JOG, move, controller)
 
-    def _enable(self, i: int, mode: int, move, controller) -> None:
+    def _enable(self, i: int, mode: int, move, controller, delay_cycles: int = 0) -> None:
         """Bumpless enable of axis i into ``mode`` along ``move`` (between cycles)."""
         if self.supervisor.fault[i]:
             raise RuntimeError(f"axis {self.axis_names[i]} is in fault: {self.supervisor.reason(i)}")
@@ -445,7 +447,7 @@ class ServoLoop:
         ax[i, C.A_RUNNING] = 1
         self._move[i] = 0.0
         self._move[i, :move.table.size] = move.table
-        ax[i, C.A_KST] = self.k
+        ax[i, C.A_KST] = self.k + int(delay_cycles)    # before it: the move's start (sample_table)
         ax[i, C.A_STOPREQ] = 0
         ax[i, C.A_OVR] = 0
         ax[i, C.A_MODE] = mode

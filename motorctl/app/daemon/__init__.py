@@ -1,6 +1,6 @@
 """``motorctl daemon CONFIG``: the long-running service that runs the 5 kHz loop.
 
-Two processes, so that nothing can block the loop (docs/daemon.md):
+Two processes (three with a live view), so that nothing can block the loop (docs/daemon.md):
 
 * the **loop process** (the main PID; SCHED_FIFO, mlockall, gc frozen and disabled, pinned to a
   CPU): one thread, the servo loop on the driver, recording into a shared-memory ring
@@ -9,6 +9,9 @@ Two processes, so that nothing can block the loop (docs/daemon.md):
 * the **I/O process** (forked before the real-time set-up; SCHED_OTHER, on the other CPUs):
   the control socket, the run log and event logs, ``status``, systemd's notify protocol
   (:mod:`.io_side`). Wire formats: :mod:`.protocol`; the status block: :mod:`.status`.
+* with a scope or Foxglove configured, the **view process** (forked by the I/O process,
+  nice +10, ending with it): the scope page and Foxglove server, fed frames without waiting
+  (:mod:`.views`).
 
 Every axis starts disabled (0 V, amplifier off) and only an operator's ``start`` enables it,
 so a restart by systemd never re-enables an axis. SIGTERM/SIGINT: every driven axis latches

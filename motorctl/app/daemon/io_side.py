@@ -22,6 +22,7 @@ import sys
 import threading
 import time
 
+from motorctl.app.build import approach_move
 from motorctl.app.daemon.motion_side import AxisLimits, MotionError, MotionSide
 from motorctl.app.daemon.notify import sd_notify, watchdog_ping_interval_s
 from motorctl.app.daemon.protocol import (
@@ -100,16 +101,13 @@ class IOSide:
         self.audit: list[dict] = []      # commands applied by the loop, with their cycle
         self._reported = 0
         self._rec_reported = ""
-        self.scope = self.foxglove = None
+        self.scope = self.views = None
+        self.scope_d, self.foxglove_d = d.scope, d.foxglove
         if d.scope is not None or d.foxglove is not None:
             from motorctl.app.daemon.scope import Scope
             self.scope = Scope(d.scope.listen if d.scope else None, self.layout, self.names,
                                asm.loaded.period_s,
                                {a: asm.loaded.axes[a].trajectory.period_s for a in self.names})
-            self.drainer.taps.append(self.scope.tap)
-            if d.foxglove is not None:
-                from motorctl.app.daemon.foxglove_live import FoxglovePublisher
-                self.foxglove = FoxglovePublisher(d.foxglove.listen, self.scope)
         self.last_scope_status = 0.0
         ring = plan.ring
         lims = []
@@ -164,11 +162,9 @@ class IOSide:
             # the approach from where the axis stands to the program's start; the loop checks
             # the axis's state and that it has not moved since
             ax = self.axis_status(i)
-            tc = self.plan.asm.loaded.axes[self.names[i]].trajectory
-            x0 = self.plan.asm.programs[i].sample(0.0)[0]
-            mv = Move(float(ax["y_m"]), float(x0), tc.v_max, tc.a_max, tc.j_max, 0.0)
+            mv = approach_move(self.plan.asm, i, ax["y_m"])
             self.to_loop(conn, {"op": "start", "axis": i, "controller": req.controller, "move": mv},
-                         post={"approach_s": mv.duration, "approach_m": x0 - ax["y_m"]})
+                         post={"approach_s": mv.duration, "approach_m": mv.end - ax["y_m"]})
         elif req.cmd == "stop":
             self.to_loop(conn, {"op": "stop", "axis": i}, post={"bound_s": self.plan.stop_bound_s[i]})
         elif req.cmd == "switch":
@@ -257,6 +253,8 @@ class IOSide:
             "socket": self.plan.socket_path,
             "clients": {"open": len(self.clients), "refused": self.clients_refused,
                         "max": MAX_CLIENTS},
+            "views": ({"pid": self.views.pid, "frames_sent": self.views.sent,
+                       "frames_dropped": self.views.dropped} if self.views is not None else None),
         }
 
     def summary_line(self) -> str:
@@ -281,10 +279,12 @@ class IOSide:
             loop_cpus = set(m.get("cpu_affinity") or [])
             others = set(os.sched_getaffinity(0)) - loop_cpus
             if loop_cpus and others and len(loop_cpus) == 1:
-                try:
-                    os.sched_setaffinity(0, others)
-                except OSError:
-                    pass
+                for pid in (0, self.views.pid if self.views is not None else None):
+                    try:
+                        if pid is not None:
+                            os.sched_setaffinity(pid, others)
+                    except OSError:
+                        pass
             return
         if op == "fatal":
             self.fatal = m["error"]
@@ -423,6 +423,8 @@ class IOSide:
             for key, _ in self.sel.select(timeout=IDLE_WAKE_S):
                 if key.data == "listen":
                     self.accept(time.monotonic())
+                elif key.data == "views":
+                    self.on_views()
                 elif key.data == "loop":
                     msgs = self.replies.recv()
                     if msgs is None:
@@ -458,13 +460,11 @@ class IOSide:
                                    if k in ("state", "phase", "fault", "controller")}
                                for i, a in enumerate(self.names)}}
                 self.scope.set_status(st)
-                if self.foxglove is not None:
-                    self.foxglove.publish_status(st, self.scope.last_t)
+                if self.views is not None:
+                    self.views.set_status(st, self.scope.last_t)
         self.motion.stop()
-        if self.scope is not None:
-            self.scope.stop()
-        if self.foxglove is not None:
-            self.foxglove.stop()
+        if self.views is not None:
+            self.views.stop()
         # the loop process ended (normally, or killed): keep everything it published
         try:
             dr = self.drainer
@@ -488,24 +488,68 @@ class IOSide:
         return 0
 
     def start_scope(self) -> None:
-        """Serve the scope page and the Foxglove channels (where configured); an address that
-        cannot be bound is reported on stderr (the journal) and the daemon goes on without it."""
-        if self.scope is not None and self.scope.port:
+        """Fork the view process for the scope page and the Foxglove channels (where
+        configured and installed; a missing extra is one warning line). Nothing is awaited:
+        the view process reports what it serves through :meth:`on_views`."""
+        if self.scope is None:
+            return
+        from motorctl.app.daemon.views import exposure_warning, missing_extra, start_views
+        serve_scope = self.scope_d is not None
+        fox = self.foxglove_d.listen if self.foxglove_d is not None else None
+        for on, key, listen, module, extra, what in (
+                (serve_scope, "daemon.scope.listen", self.scope_d and self.scope_d.listen,
+                 "aiohttp", "scope", "scope"),
+                (fox, "daemon.foxglove.listen", fox, "foxglove", "foxglove", "foxglove")):
+            if not on:
+                continue
+            line = missing_extra(module, extra, what)
+            if line:
+                sys.stderr.write(line + "\n")
+                serve_scope = serve_scope and what != "scope"
+                fox = None if what == "foxglove" else fox
+                continue
+            from motorctl.config import parse_listen
+            if line := exposure_warning(key, parse_listen(listen)[0]):
+                sys.stderr.write(line + "\n")
+        if not serve_scope and not fox:
+            return
+        try:
+            self.views = start_views(self.scope, serve_scope, fox)
+        except Exception as exc:               # noqa: BLE001 - no view is worth the drain
+            sys.stderr.write(f"motorctl: warning: views not served ({type(exc).__name__}: {exc})\n")
+            return
+        self.fox_listen = fox
+        self.sel.register(self.views.sock, selectors.EVENT_READ, "views")
+        self.scope.listeners.append(self.views.on_frame)
+        self.drainer.taps.append(self.scope.tap)
+
+    def on_views(self) -> None:
+        """The view process's reports: one line per view served or not; its end."""
+        v = self.views
+        for kind, rep in v.receive():
+            if kind != "started":
+                continue
+            for what, err in rep.items():
+                if err is None:
+                    continue
+                if what == "scope":
+                    where, url = self.scope_d.listen, f"http://{self.scope.host}:{self.scope.port}/"
+                else:
+                    where, url = self.fox_listen, "ws://" + self.fox_listen + "/"
+                if err:
+                    sys.stderr.write(f"motorctl: warning: daemon.{what}.listen {where}: not served ({err})\n")
+                else:
+                    sys.stderr.write(f"motorctl: {what} on {url}\n")
+        if not v.alive:
             try:
-                self.scope.start()
-                sys.stderr.write(f"motorctl: scope on http://{self.scope.host}:{self.scope.port}/\n")
-            except (OSError, ImportError) as exc:
-                sys.stderr.write(f"motorctl: warning: daemon.scope.listen {self.scope.host}:{self.scope.port}: "
-                                 f"not served ({exc})\n")
-        if self.foxglove is not None:
-            try:
-                self.foxglove.start()
-                self.scope.listeners.append(self.foxglove.on_frame)
-                sys.stderr.write(f"motorctl: foxglove on ws://{self.foxglove.host}:{self.foxglove.port}/\n")
-            except (OSError, ImportError, RuntimeError) as exc:
-                sys.stderr.write(f"motorctl: warning: daemon.foxglove.listen {self.foxglove.host}:"
-                                 f"{self.foxglove.port}: not served ({exc})\n")
-                self.foxglove = None
+                self.sel.unregister(v.sock)
+            except (KeyError, ValueError):
+                pass
+            self.scope.listeners.remove(v.on_frame)
+            if self.scope.tap in self.drainer.taps:
+                self.drainer.taps.remove(self.scope.tap)
+            v.stop(0.5)
+            self.views = None
 
     def write_end_record(self) -> None:
         """The header with ``ended`` into the segment being written (in place, reserved
