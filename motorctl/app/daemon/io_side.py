@@ -47,6 +47,9 @@ from motorctl.recorder.flight import (
 from motorctl.recorder.runlog import LogError
 from motorctl.recorder.segments import SegmentWriter
 
+#: the motion filler thread runs SCHED_FIFO this many priority levels below the loop (with
+#: loop.realtime.policy not off), so that a busy host does not starve the setpoint stream
+FILLER_PRIORITY_BELOW = 40
 #: a command the loop has not answered within this time is answered with an error [s]
 LOOP_ANSWER_S = 2.0
 #: how often the I/O process wakes when nothing happens [s]
@@ -124,6 +127,9 @@ class IOSide:
                                              float(ring.status[i, ST["index_latch"]])))
                                  if has_inputs else None,
                                  self.internal_request if has_inputs else None)
+        rt = asm.loaded.cfg.loop.realtime
+        if rt.policy != "off":
+            self.motion.fifo_priority = max(1, rt.priority - FILLER_PRIORITY_BELOW)
 
     # ------------------------------------------------------------------ requests
     def to_loop(self, conn, msg: dict, post=None) -> None:

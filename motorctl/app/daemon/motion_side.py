@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import collections
 import math
+import os
 import threading
 import time
 from dataclasses import dataclass
@@ -143,6 +144,9 @@ class MotionSide:
         self._s, self._f, self._fd = np.zeros(self.lead), np.zeros(self.lead), np.zeros(self.lead)
         self._steps = np.arange(1.0, self.lead + 1.0)
         self._grid = np.zeros((self.lead + 2, 3, self.n))   # sample_into's layout (k, x/v/a, axis)
+        #: SCHED_FIFO priority of the filler thread (0: none), below the loop's: a busy host must
+        #: not starve the planner for longer than LEAD_S (set by the daemon where real-time is on)
+        self.fifo_priority = 0
         self.trace: list | None = None   # the source line of every row streamed (when a list)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -361,6 +365,11 @@ class MotionSide:
             self._thread.join(1.0)
 
     def _run(self) -> None:
+        if self.fifo_priority:
+            try:                             # this thread only (Linux: 0 is the calling thread)
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.fifo_priority))
+            except OSError:
+                pass                         # not permitted: SCHED_OTHER as the rest of the process
         while not self._stop.wait(FILL_EVERY_S):
             try:
                 self.fill()
