@@ -184,3 +184,42 @@ def plot_compare_errors(t: np.ndarray, errors: dict, periods: dict, out_dir: str
         axp.legend(loc="best", fontsize=8)
         files.append(_save(fig, out / f"{ax}_compare_error.png"))
     return files
+
+
+def plot_circle_tests(runs: list, out_dir: str) -> list[str]:
+    """The radial deviation of each circular test (ISO 230-4, as a ballbar report shows it):
+    the CW and CCW paths' radius about their least-squares centre minus the least-squares
+    radius [um], on a polar plot around a reference circle, G and H in the title; one PNG per
+    run: ``<out_dir>/circle_<controller>_<feed mm/s>.png``.
+
+    Args:
+        runs: :class:`motorctl.app.circle_test.CircleRun` list. out_dir: created if missing.
+    Returns: the paths written. Raises: OSError: cannot write ``out_dir``.
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from motorctl.motion.circle import radial
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = []
+    for r in runs:
+        g = r.result
+        fig = plt.figure(figsize=(5.5, 5.5))
+        axp = fig.add_subplot(projection="polar")
+        ref = max(5.0 * g.G_b * 1e6, 10.0)        # the reference circle [um of the plot's radius]
+        for d, style in (("ccw", "-"), ("cw", "--")):
+            ang, rad = radial(*r.paths[d], g.center_lsc)
+            dev = (rad - g.radius_lsc) * 1e6
+            axp.plot(ang, ref + dev, style, lw=0.8, label=d.upper())
+        axp.plot(np.linspace(0, 2 * np.pi, 361), np.full(361, ref), ":", color="grey", lw=0.6)
+        axp.set_rlim(0, ref + 2.0 * max(g.G_b * 1e6, 1.0))
+        axp.set_yticklabels([])
+        axp.set_title(f"{r.controller.upper()}, R {r.radius * 1e3:g} mm, F {r.feed * 1e3:.0f} mm/s: "
+                      f"G(b) {g.G_b * 1e6:.2f} um, H {g.H * 1e6:.2f} um\n(radial deviation, reference "
+                      f"circle = {ref:.0f} um of the scale)", fontsize=9)
+        axp.legend(loc="lower right", fontsize=8)
+        files.append(_save(fig, out / f"circle_{r.controller}_{r.feed * 1e3:.0f}.png"))
+    return files

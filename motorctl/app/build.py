@@ -77,7 +77,7 @@ class Assembly:
 
 def build(loaded: LoadedConfig, axes=None, controller: str | None = None, *, clock: str,
           capacity: int, buffer=None, heartbeat=None, operated: bool = False,
-          all_controllers: bool = False) -> Assembly:
+          all_controllers: bool = False, stream=None) -> Assembly:
     """Build driver, controllers, supervisor and loop for ``axes`` (default: all).
 
     Args:
@@ -87,6 +87,8 @@ def build(loaded: LoadedConfig, axes=None, controller: str | None = None, *, clo
         operated: axes start disabled and follow operator commands (daemon).
         all_controllers: build every configured controller of each axis (so a switch is a
             swap of objects built beforehand).
+        stream: the setpoint ring of commanded motion (:class:`motorctl.loop.stream.SetpointRing`,
+            daemon); None: a private one-row ring.
     Raises:
         ConfigError: ``controller`` is not configured for an axis.
     """
@@ -114,7 +116,7 @@ def build(loaded: LoadedConfig, axes=None, controller: str | None = None, *, clo
                      heartbeat=heartbeat, overrun_policy=lc.overrun_policy,
                      overrun_hold=lc.overrun_hold_cycles, overrun_ramp_s=lc.overrun_ramp_s,
                      stop_settle_s=cfg.daemon.stop_settle_s if operated else 0.0,
-                     operated=operated)
+                     operated=operated, stream=stream)
     return Assembly(loaded, names, driver, bank, active, sup, programs, loop, clock)
 
 

@@ -47,7 +47,7 @@ from motorctl.loop.rt import keep_off, loop_cpu
 from motorctl.loop.safety import with_drive_reason
 from motorctl.metrics import TrackingAccumulator
 from motorctl.recorder.flight import CTL_STATE, SharedRing, TimingStats, take_rows
-from motorctl.recorder.ordering import load_acquire, store_release
+from motorctl.ordering import load_acquire, store_release
 from motorctl.recorder.runlog import LogWriter
 
 

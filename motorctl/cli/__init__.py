@@ -27,7 +27,8 @@ DEFAULT_CONFIG = "configs/gantry.yaml"
 #: commands that compile the servo cycle when numba's cache is cold (they say so first)
 COMPILING_COMMANDS = ("run", "daemon", "warmup")
 COMMAND_MODULES = ("motorctl.cli.run", "motorctl.cli.operator", "motorctl.cli.identify", "motorctl.cli.runs",
-                   "motorctl.cli.tune", "motorctl.cli.autotune", "motorctl.cli.data")
+                   "motorctl.cli.tune", "motorctl.cli.autotune", "motorctl.cli.data",
+                   "motorctl.cli.motion")
 COMMAND_GROUP = "motorctl.commands"
 
 #: the optional-dependency group (pyproject.toml) that installs each optional top-level module:

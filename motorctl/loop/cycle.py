@@ -37,10 +37,11 @@ from motorctl.control.kernels import LAW_PY, law_preview, law_reset, law_step
 from motorctl.jit import BundleType, borrow, bundle, define_bundle, njit
 from motorctl.control.signals import N_SIGNALS, SIG_E
 from motorctl.loop.safety import FAULT_OVERRUN, SI_FAULT, sup_check_input, sup_check_output, sup_rest, sup_trip
+from motorctl.loop.stream import stream_step
 from motorctl.loop.trajectory import TABLE_HEAD, sample_table
 
 #: the sequencer's modes (servo.py's module docstring)
-IDLE, APPROACH, PROGRAM, HOLD, JOG = 0, 1, 2, 3, 4
+IDLE, APPROACH, PROGRAM, HOLD, JOG, STREAM = 0, 1, 2, 3, 4, 5
 #: what a call does: every axis through; up to the laws run from Python; those axes' rest
 CYCLE_ALL, CYCLE_BEFORE, CYCLE_AFTER = 0, 1, 2
 
@@ -51,9 +52,10 @@ N_A = 11
 #: A_PEND: the law of this axis runs from Python now (PEND_RESET: reset it first)
 PEND_NONE, PEND_UPDATE, PEND_RESET = 0, 1, 2
 # per-axis float state (axf): held position, blend offset (NaN: not yet taken), last output;
-# the sample handed to a law run from Python (y, x_d, ẋ_d, ẍ_d) and its output
-X_HOLD, X_BLOFF, X_ULAST, X_Y, X_XD, X_VD, X_AD, X_U = range(8)
-N_X = 8
+# the sample handed to a law run from Python (y, x_d, ẋ_d, ẍ_d) and its output; in STREAM the
+# setpoint taken from the stream (x, ẋ, ẍ) and the brake's a_max, j_max (motorctl.loop.stream)
+X_HOLD, X_BLOFF, X_ULAST, X_Y, X_XD, X_VD, X_AD, X_U, X_SX, X_SV, X_SA, X_AMAX, X_JMAX = range(13)
+N_X = 13
 # the loop's numbers (lp)
 LP_TS, LP_SETTLE, LP_OVR_RAMP, LP_BLEND_N, LP_DISABLE_ON_FAULT = range(5)
 N_LP = 5
@@ -63,7 +65,7 @@ O_AXIS = 9
 
 #: the fields of :class:`CycleState`, in constructor order (module docstring)
 CYCLE_FIELDS = ("pos", "rerr", "werr", "ampf", "uo", "en", "ax", "axf", "prog", "move", "si", "sf",
-                "sig", "cf", "ci", "cl", "buf", "offs", "lp")
+                "sig", "cf", "ci", "cl", "buf", "offs", "lp", "sp", "spc")
 
 
 class CycleStateType(BundleType):
@@ -80,8 +82,9 @@ define_bundle(CycleStateType, CycleState, CYCLE_FIELDS)
 
 @njit
 def _make_cycle_state(pos, rerr, werr, ampf, uo, en, ax, axf, prog, move, si, sf, sig, cf, ci, cl, buf, offs,
-                      lp):
-    return CycleState(pos, rerr, werr, ampf, uo, en, ax, axf, prog, move, si, sf, sig, cf, ci, cl, buf, offs, lp)
+                      lp, sp, spc):
+    return CycleState(pos, rerr, werr, ampf, uo, en, ax, axf, prog, move, si, sf, sig, cf, ci, cl, buf, offs, lp,
+                      sp, spc)
 
 
 def cycle_state(*arrays) -> CycleState:
@@ -155,6 +158,8 @@ def desired(i, k, ahead, ax, axf, prog, move, ts):
         return sample_table(mv, mv[TABLE_HEAD + 2] + (k - ax[i, A_KST]) * ts + ahead)
     if m == HOLD:
         return axf[i, X_HOLD], 0.0, 0.0
+    if m == STREAM:                            # the stream has no look-ahead: its sample
+        return axf[i, X_SX], axf[i, X_SV], axf[i, X_SA]
     return np.nan, np.nan, np.nan
 
 
@@ -174,6 +179,8 @@ def servo_cycle(phase, k, st):
     n = pos.shape[0]
     row = borrow(buf[k % buf.shape[0]])
     pending = 0
+    if phase != CYCLE_AFTER:                   # the setpoint stream: one row for every STREAM axis
+        stream_step(borrow(st.sp), borrow(st.spc), ax, axf, A_MODE, STREAM, A_STOPREQ, X_SX, X_AMAX, ts)
     for i in range(n):
         if phase == CYCLE_AFTER:
             if ax[i, A_PEND] == PEND_NONE:
@@ -211,7 +218,7 @@ def servo_cycle(phase, k, st):
             vd = 0.0
             ad = 0.0
             ok = False
-        if ax[i, A_STOPREQ] != 0 and (m == PROGRAM or m == APPROACH) and vd == 0.0 and ad == 0.0:
+        if ax[i, A_STOPREQ] != 0 and (m == PROGRAM or m == APPROACH or m == STREAM) and vd == 0.0 and ad == 0.0:
             ax[i, A_MODE] = HOLD
             axf[i, X_HOLD] = xd
             ax[i, A_SETTLE] = int(lp[LP_SETTLE])
@@ -280,6 +287,7 @@ def refresh(k, st, scratch):
     scratch.cl[:] = st.cl
     scratch.offs[:] = st.offs
     scratch.lp[:] = st.lp
+    scratch.spc[:] = st.spc
     row = st.buf[k % st.buf.shape[0]]
     for j in range(0, row.shape[0], 8):
         scratch.buf[0, j] = row[j]

@@ -15,12 +15,15 @@ with the reason; the end record goes into the header (reserved space) at the exi
 from __future__ import annotations
 
 import os
+import queue
 import selectors
 import signal
 import sys
+import threading
 import time
 
 from motorctl.app.build import approach_move
+from motorctl.app.daemon.motion_side import AxisLimits, MotionError, MotionSide
 from motorctl.app.daemon.notify import sd_notify, watchdog_ping_interval_s
 from motorctl.app.daemon.protocol import (
     LineBuffer,
@@ -44,6 +47,9 @@ from motorctl.recorder.flight import (
 from motorctl.recorder.runlog import LogError
 from motorctl.recorder.segments import SegmentWriter
 
+#: the motion filler thread runs SCHED_FIFO this many priority levels below the loop (with
+#: loop.realtime.policy not off), so that a busy host does not starve the setpoint stream
+FILLER_PRIORITY_BELOW = 40
 #: a command the loop has not answered within this time is answered with an error [s]
 LOOP_ANSWER_S = 2.0
 #: how often the I/O process wakes when nothing happens [s]
@@ -106,6 +112,24 @@ class IOSide:
                                asm.loaded.period_s,
                                {a: asm.loaded.axes[a].trajectory.period_s for a in self.names})
         self.last_scope_status = 0.0
+        ring = plan.ring
+        lims = []
+        for a in self.names:
+            ac = asm.loaded.axes[a]
+            tc, lc = ac.trajectory, ac.limits
+            lims.append(AxisLimits(tc.v_max, tc.a_max, tc.j_max, lc.soft_min_m, lc.soft_max_m))
+        has_inputs = getattr(asm.driver, "has_homing_inputs", False)
+        self.internal: queue.Queue = queue.Queue()     # the homing thread's commands to the loop
+        self.motion = MotionSide(asm.loop.stream, ring.latest, self.layout, self.names, lims,
+                                 lambda: ring.status[:, ST["mode"]], asm.loaded.period_s,
+                                 [asm.loaded.axes[a].homing for a in self.names],
+                                 (lambda i: (bool(ring.status[i, ST["home_switch"]]),
+                                             float(ring.status[i, ST["index_latch"]])))
+                                 if has_inputs else None,
+                                 self.internal_request if has_inputs else None)
+        rt = asm.loaded.cfg.loop.realtime
+        if rt.policy != "off":
+            self.motion.fifo_priority = max(1, rt.priority - FILLER_PRIORITY_BELOW)
 
     # ------------------------------------------------------------------ requests
     def to_loop(self, conn, msg: dict, post=None) -> None:
@@ -128,7 +152,19 @@ class IOSide:
             return {"ok": True, "status": st}
         if self.ready is None:
             return {"ok": False, "error": "the loop is not running yet; retry in a moment"}
-        if req.cmd == "start":
+        if req.cmd in ("move", "gcode", "hold", "resume", "abort", "override"):
+            return self.motion_request(req)
+        if req.cmd == "home":
+            try:
+                return {"ok": True, **self.motion.home(i)}
+            except MotionError as exc:
+                return {"ok": False, "error": str(exc), "usage": exc.usage}
+        if req.cmd == "start" and req.mode == "command":
+            tc = self.plan.asm.loaded.axes[self.names[i]].trajectory
+            self.to_loop(conn, {"op": "start", "axis": i, "controller": req.controller,
+                                "mode": "command", "a_max": tc.a_max, "j_max": tc.j_max},
+                         post={"mode": "command"})
+        elif req.cmd == "start":
             # the approach from where the axis stands to the program's start; the loop checks
             # the axis's state and that it has not moved since
             ax = self.axis_status(i)
@@ -155,6 +191,32 @@ class IOSide:
                          post={"from_m": y0, "move_s": mv.duration,
                                "bound_s": self.plan.stop_bound_s[i]})
         return None
+
+    def internal_request(self, msg: dict, timeout_s: float = LOOP_ANSWER_S) -> dict:
+        """From another thread (homing): a command to the loop through the I/O process's own
+        loop (which alone writes the pipe); its answer."""
+        done, box = threading.Event(), {}
+        self.internal.put((msg, done, box))
+        if not done.wait(timeout_s + 1.0):
+            return {"ok": False, "error": "the loop did not answer"}
+        return box
+
+    def motion_request(self, req: Request) -> dict:
+        """move, gcode, hold, resume, abort, override: answered here (the loop only follows
+        the stream). A refused program queues nothing."""
+        mo, a = self.motion, req.motion
+        try:
+            if req.cmd == "move":
+                return {"ok": True, **mo.move(a["targets"], a["feed"])}
+            if req.cmd == "gcode":
+                return {"ok": True, **mo.gcode(a["text"], a["filename"])}
+            if req.cmd == "override":
+                mo.set_override(a["value"])
+            else:
+                getattr(mo, req.cmd)()
+        except MotionError as exc:
+            return {"ok": False, "error": str(exc), "usage": exc.usage}
+        return {"ok": True, "motion": mo.status()}
 
     # ------------------------------------------------------------------ status
     def axis_status(self, i: int) -> dict:
@@ -193,6 +255,7 @@ class IOSide:
                     "write_errors": dr.write_errors, "rows_unwritten": dr.drained - dr.written,
                     "retention": self.retention.figures() if self.retention else {}},
             "link": dict(self.link),
+            "motion": self.motion.status(),
             "socket": self.plan.socket_path,
             "clients": {"open": len(self.clients), "refused": self.clients_refused,
                         "max": MAX_CLIENTS},
@@ -257,6 +320,11 @@ class IOSide:
             return
         conn, _, post, req = entry
         m.pop("id", None)
+        if conn is None:                     # a command of the homing thread
+            done, box = post
+            box.update(m)
+            done.set()
+            return
         if m.get("ok"):
             self.audit.append({"cycle": m.get("cycle"), "op": req.get("op"),
                                "axis": self.names[req["axis"]],
@@ -355,6 +423,7 @@ class IOSide:
         loop_gone = False
         ctl = self.plan.ring.ctl
         self.start_scope()
+        self.motion.start()
         while not loop_gone:
             ctl[CTL_REC_BEAT] = int(ctl[CTL_REC_BEAT]) + 1     # "the recorder is awake"
             for key, _ in self.sel.select(timeout=IDLE_WAKE_S):
@@ -371,11 +440,16 @@ class IOSide:
                         self.on_reply(m)
                 else:
                     self.on_client(key.fileobj)
+            while not self.internal.empty():
+                msg, done, box = self.internal.get_nowait()
+                self.to_loop(None, msg, post=(done, box))
             now = time.monotonic()
             self.expire_clients(now)
             for rid, (conn, deadline, _, _) in list(self.pending.items()):
                 if now > deadline:
                     self.pending.pop(rid)
+                    if conn is None:
+                        continue                 # the homing thread's own wait times out
                     self.respond(conn, {"ok": False, "error": f"the loop did not answer within "
                                                               f"{LOOP_ANSWER_S:g} s"})
             self.drainer.poll()
@@ -394,6 +468,7 @@ class IOSide:
                 self.scope.set_status(st)
                 if self.views is not None:
                     self.views.set_status(st, self.scope.last_t)
+        self.motion.stop()
         if self.views is not None:
             self.views.stop()
         # the loop process ended (normally, or killed): keep everything it published
