@@ -63,7 +63,7 @@ def _configured(loaded) -> list[str]:
 def register(parser, sub) -> None:
     p = sub.add_parser("circle-test", help="the ISO 230-4 circular test (G, H, F) of the simulated gantry on "
                                            "the daemon's motion path, per controller and feed")
-    p.add_argument("config", nargs="?", default=DEFAULT_CONFIG)
+    p.add_argument("config", nargs="?", default=DEFAULT_CONFIG, help="the config YAML (default: %(default)s)")
     p.add_argument("--radius", type=float, default=0.05, help="circle radius [m] (default 0.05)")
     p.add_argument("--feed", type=float, action="append", help="feed [m/s], repeatable (default 0.05 and 0.1)")
     p.add_argument("--controller", action="append", choices=("c1", "c2", "pid"),

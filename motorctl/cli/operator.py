@@ -349,22 +349,22 @@ def register(parser: argparse.ArgumentParser, sub) -> None:
                         "move/gcode")
 
     p = client("move", "a coordinated straight move of axes in command mode (AXIS=POSITION in m)", cmd_move)
-    p.add_argument("targets", nargs="+", metavar="AXIS=M")
+    p.add_argument("targets", nargs="+", metavar="AXIS=M", help="each axis's target position in metres, e.g. X=0.120")
     p.add_argument("--feed", type=float, default=None, metavar="M_PER_S", help="path speed limit [m/s]")
     p.add_argument("--wait", action="store_true", help="return when the motion has finished")
 
     p = client("gcode", "run a G-code program (FILE, or - for stdin) on the axes in command mode", cmd_gcode)
-    p.add_argument("file", metavar="FILE")
+    p.add_argument("file", metavar="FILE", help="a G-code program (LinuxCNC's subset, docs/motion.md), or - for standard input")
     p.add_argument("--wait", action="store_true", help="return when the program has finished")
 
     client("hold", "feed hold: decelerate on the path, then hold", cmd_motion)
     client("resume", "resume after a feed hold", cmd_motion)
     client("abort", "stop on the path, hold, clear the queue", cmd_motion)
     p = client("override", "feed override (0.0 .. 1.5)", cmd_motion)
-    p.add_argument("value", type=float, metavar="F")
+    p.add_argument("value", type=float, metavar="F", help="the feed override, 0.0 to 1.5 (1.0: as programmed)")
     p = client("home", "home an axis in command mode: search its switch, latch the index pulse, set "
                        "its position (axes.NAME.homing)", cmd_home)
-    p.add_argument("axis")
+    p.add_argument("axis", help="the axis to home, as in the config's axes")
     p.add_argument("--timeout", type=float, default=120.0, help="seconds (default 120)")
     p = client("wait", "wait until the commanded motion has finished", cmd_wait)
     p.add_argument("--timeout", type=float, default=600.0, help="seconds (default 600)")
