@@ -6,7 +6,8 @@ Per axis present in both logs: e_M, e_F, L2[e] [µm] and u_peak [V] (docs/contro
 :func:`motorctl.metrics.tracking_indexes`) of each log and the ratio after/before, with L2[e]'s
 parts in motion and at standstill and u's noise at rest (:data:`SPLIT`) where both logs record
 the desired velocity and acceleration. The two logs
-are aligned by program time (the record's ``t`` = k·Ts): both are evaluated over the same whole
+are aligned by program time (the program's rows, ``mode`` = program, their ``t`` = k·Ts counted
+from the program's start): both are evaluated over the same whole
 program periods, from the end of the settling (the first ``settle_periods`` periods excluded the
 same way for both, :func:`motorctl.metrics.settled_mask`) to the end of the last period both
 logs complete; e_F is the last of those periods. Only cycles with the amplifier enabled count.
