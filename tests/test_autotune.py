@@ -11,7 +11,7 @@ import sys
 import pytest
 import yaml
 
-from motorctl.app.autotune import GM_MIN_DB, MS_MAX_DB, PM_MIN_DEG
+from motorctl.commission.rule import GM_MIN_DB, MS_MAX_DB, PM_MIN_DEG
 from motorctl.config import load_yaml
 
 

@@ -12,7 +12,8 @@ REPO = Path(__file__).resolve().parents[1]
 #: package prefix -> prefixes it must never import
 FORBIDDEN = {
     "motorctl": ("motorctl_drivers", "motorctl_emulators"),
-    "motorctl_drivers": ("motorctl_emulators", "motorctl.app", "motorctl.cli", "motorctl.ident"),
+    "motorctl_drivers": ("motorctl_emulators", "motorctl.app", "motorctl.cli", "motorctl.ident",
+                         "motorctl.commission"),
     "motorctl.model": ("motorctl.",),
     "motorctl.schema": ("motorctl.",),
     "motorctl.effects": ("motorctl.control", "motorctl.loop", "motorctl.app", "motorctl.cli",
@@ -22,8 +23,9 @@ FORBIDDEN = {
     "motorctl.loop": ("motorctl.app", "motorctl.cli", "motorctl.recorder", "motorctl.ident",
                       "motorctl.config", "motorctl.control"),
     "motorctl.recorder": ("motorctl.app", "motorctl.cli", "motorctl.control", "motorctl.ident"),
-    "motorctl.app": ("motorctl.cli",),
-    "motorctl.ident": ("motorctl.cli", "motorctl.app"),
+    "motorctl.app": ("motorctl.cli", "motorctl.commission"),
+    "motorctl.commission": ("motorctl.cli",),
+    "motorctl.ident": ("motorctl.cli", "motorctl.app", "motorctl.commission"),
 }
 #: the exceptions to FORBIDDEN, each with its reason: the compiled servo cycle calls the built-in
 #: laws' compiled steps (motorctl.control.kernels; any other law still runs through the

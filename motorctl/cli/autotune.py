@@ -1,6 +1,6 @@
 """``motorctl autotune``: measured frequency response → fitted model → gains by one rule →
 verified on the machine → ``DIR/autotuned.yaml`` and ``DIR/bode_<A>.png``
-(:mod:`motorctl.app.autotune` has the procedure and the rule).
+(:mod:`motorctl.commission.autotune` has the procedure and the rule).
 
     motorctl autotune CONFIG --axis A [--axis B] [--out DIR] [--virtual-clock] [--verify-seconds S]
                      [--periods N] [--gm-min-db G] [--pm-min-deg P] [--ms-max-db M]
@@ -51,7 +51,7 @@ def register(parser, subparsers) -> None:
 
 
 def _summary(res: dict) -> dict:
-    from motorctl.app.autotune import final_margins
+    from motorctl.commission.autotune import final_margins
     meas, mdl = res["measure"], res["model"]
     mg = final_margins(res)
     return {
@@ -74,8 +74,8 @@ def _summary(res: dict) -> dict:
 
 
 def cmd_autotune(args) -> int:
-    from motorctl.app.autotune import (PERIODS, RULE, SEARCH_BUDGET, AutotuneError, Rule, autotune, plot_bode,
-                                       write_config)
+    from motorctl.commission.autotune import autotune, plot_bode, write_config
+    from motorctl.commission.rule import PERIODS, RULE, SEARCH_BUDGET, AutotuneError, Rule
     from motorctl.cli import UsageError
     from motorctl.config import config_from_dict, load_yaml
     from motorctl.inputs import writable_dir
@@ -93,7 +93,7 @@ def cmd_autotune(args) -> int:
         raise UsageError(f"--search-runs {args.search_runs}: allowed 0..200")
     raw = load_yaml(args.config)
     loaded = config_from_dict(raw, args.config)
-    from motorctl.app.autotune import tunable_laws
+    from motorctl.commission.choose import tunable_laws
     for a in args.axis:
         if a not in loaded.axes:
             raise UsageError(f"--axis {a}: no such axis in {args.config}; axes: {', '.join(loaded.axes)}")

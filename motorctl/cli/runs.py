@@ -26,7 +26,7 @@ from __future__ import annotations
 import json
 import sys
 
-from motorctl.app.compare import INDEXES, SPLIT, compare_logs, figures, public
+from motorctl.commission.compare import INDEXES, SPLIT, compare_logs, figures, public
 from motorctl.metrics import REST_AFTER_S
 
 def register(parser, subparsers) -> None:
