@@ -23,11 +23,12 @@ way), the search's best, the ratio autotune / search.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import copy
+import io
 import json
 import math
 import os
-import subprocess
 import sys
 import tempfile
 
@@ -45,20 +46,26 @@ PENALTY = 100.0
 
 
 def run(raw: dict, axis: str, law: str, seconds: float) -> dict:
-    """``motorctl run --json`` of ``axis`` with ``law`` on the config dict (a temporary file)."""
+    """``motorctl run CONFIG --axis A --controller LAW --duration S --virtual-clock --json`` on the
+    config dict (a temporary file), through the CLI's own entry point in this process (the
+    same code as the command, without a Python start-up per run)."""
+    from motorctl.cli import main as motorctl_main
     with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False) as f:
         yaml.safe_dump(raw, f)
         path = f.name
+    buf = io.StringIO()
     try:
-        p = subprocess.run([sys.executable, "-m", "motorctl", "run", path, "--axis", axis, "--controller", law,
-                            "--duration", str(seconds), "--virtual-clock", "--json"],
-                           capture_output=True, text=True, timeout=600)
+        with contextlib.redirect_stdout(buf):
+            motorctl_main(["run", path, "--axis", axis, "--controller", law, "--duration", str(seconds),
+                           "--virtual-clock", "--json"])
+    except SystemExit:
+        pass
     finally:
         os.unlink(path)
     try:
-        return json.loads(p.stdout)["axes"][axis]
-    except (ValueError, KeyError):
-        return {"fault": f"run failed: {p.stderr.strip()[-200:]}", "L2_um": math.nan}
+        return json.loads(buf.getvalue().strip().splitlines()[-1])["axes"][axis]
+    except (ValueError, KeyError, IndexError):
+        return {"fault": "run failed", "L2_um": math.nan}
 
 
 def with_gains(raw: dict, axis: str, law: str, x: np.ndarray) -> dict:

@@ -27,7 +27,7 @@ def default_plant(repo, tmp_path_factory):
     out = tmp_path_factory.mktemp("at") / "at"
     p = _autotune(repo, out, "configs/gantry.yaml", "--axis", "X", "--out", str(out), "--law", "c2",
                   "--law", "pid", "--virtual-clock", "--verify-seconds", "0.5", "--periods", "16",
-                  "--search-runs", "2", "--json")
+                  "--search-runs", "2", "--full-periods", "1", "--json")
     assert p.returncode == 0, p.stderr
     axes = json.loads(p.stdout)["axes"]
     y_out = tmp_path_factory.mktemp("at") / "y"
@@ -67,6 +67,15 @@ def test_autotune_sim_end_to_end(repo, default_plant):
         assert m["gm_db"] is None or m["gm_db"] >= GM_MIN_DB - 0.5
         assert res["chosen_by"][law]["from"] in ("rule", "search")
     assert all(v["fault"] == "" for v in res["verify"] if v["verdict"] == "ok")
+    # the written gains passed their full run (one program period here) at 100 % and ran at
+    # 75 and 50 % without a fault, ringing or noise; a run that failed is never what is written
+    for law in ("c2", "pid"):
+        full = [v for v in res["verify"] if v["law"] == law and v["run"].startswith(("confirm", "step down"))]
+        top = [v for v in full if v["verdict"] == "ok" and v["L2_um"] == res["chosen_by"][law]["L2_um"]]
+        assert top and abs(top[0]["scale"] - res["chosen_by"][law]["scale"]) < 1e-9, (law, full)
+        below = {round(v["scale"] / top[0]["scale"], 3): v for v in full[full.index(top[0]) + 1:]}
+        assert {0.75, 0.5} <= set(below), (law, full)
+        assert all(v["fault"] == "" for v in below.values()), (law, full)
     written = yaml.safe_load((out / "autotuned.yaml").read_text())
     sec = written["axes"]["X"]["controller"]
     assert sec["pid"]["P"] == res["gains"]["pid"]["P"] and sec["c2"]["k1"] == res["gains"]["c2"]["k1"]
@@ -89,7 +98,7 @@ def test_autotune_adapts_to_a_softer_structure(repo, tmp_path, default_plant):
     cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
     p = _autotune(repo, tmp_path, str(cfg), "--axis", "X", "--out", str(tmp_path / "at"),
                   "--virtual-clock", "--verify-seconds", "0.5", "--periods", "8", "--law", "pid",
-                  "--search-runs", "4", "--json")
+                  "--search-runs", "4", "--full-periods", "1", "--json")
     assert p.returncode == 0, p.stderr
     res = json.loads(p.stdout)["axes"]["X"]
     assert abs(res["model"]["mode_hz"] / raw["axes"]["X"]["driver"]["mode_hz"] - 1.0) < 0.10
@@ -115,7 +124,7 @@ def test_autotune_through_the_serial_emulator(repo, tmp_path):
     with Emulator("serial", cfg, plant=repo / "configs" / "gantry-rigid.yaml", watchdog_s=5.0):
         p = _autotune(repo, tmp_path, str(cfg), "--axis", "X", "--out", str(out), "--virtual-clock",
                       "--verify-seconds", "0.5", "--periods", "2", "--law", "c2", "--search-runs", "0",
-                      "--json")
+                      "--full-periods", "1", "--json")
     assert p.returncode == 0, p.stderr
     res = json.loads(p.stdout)["axes"]["X"]
     meas = res["measurement"]
@@ -132,3 +141,23 @@ def test_autotune_refuses_an_unknown_axis(repo, tmp_path):
     assert p.returncode == 2
     assert p.stderr.count("\n") == 1 and "--axis Z" in p.stderr
 
+
+
+def test_one_evaluation_for_run_and_autotune(repo, tmp_path):
+    """``motorctl run --json`` and autotune's evaluation give the same figures for the same gains
+    (the same job, the same run log read back): L2[e], saturated samples, u at rest."""
+    from motorctl.commission.evaluate import evaluate
+    raw = load_yaml(repo / "configs" / "gantry.yaml")
+    raw["axes"]["X"]["controller"]["k_s"] = 400.0        # a stiff C2 that saturates on the moves
+    cfg = tmp_path / "stiff.yaml"
+    cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
+    p = subprocess.run([sys.executable, "-m", "motorctl", "run", str(cfg), "--axis", "X", "--controller", "c2",
+                        "--duration", "4", "--virtual-clock", "--json"],
+                       cwd=repo, capture_output=True, text=True, timeout=300)
+    assert p.returncode in (0, 1), p.stderr
+    by_run = json.loads(p.stdout)["axes"]["X"]
+    mine = evaluate(raw, str(cfg), "X", "c2", 4.0)
+    assert by_run["saturated"] > 0 and by_run["samples"] == 20000
+    assert by_run["u_rest_rms_V"] is not None
+    for k in ("L2_um", "e_M_um", "saturated", "samples", "u_rest_rms_V", "fault"):
+        assert mine[k] == by_run[k], (k, mine[k], by_run[k])

@@ -32,7 +32,10 @@ def register(parser, subparsers) -> None:
     p.add_argument("--virtual-clock", action="store_true",
                    help="run as fast as possible (default: the config's clock)")
     p.add_argument("--verify-seconds", type=seconds, default=None,
-                   help="length of each verification run in s (default: two program periods)")
+                   help="length of each screening run in s (default: two program periods)")
+    p.add_argument("--full-periods", type=int, default=None,
+                   help="program periods of each confirmation run, 1..100 (default 10: the gains "
+                        "written passed runs of this length at 100, 75 and 50 %% of their loop gain)")
     p.add_argument("--periods", type=int, default=None,
                    help="measured multisine periods of 1 s, even, 2..200 (default 32)")
     p.add_argument("--gm-min-db", type=float, default=None, help="the rule's gain margin floor [dB] (default 6)")
@@ -75,7 +78,7 @@ def _summary(res: dict) -> dict:
 
 def cmd_autotune(args) -> int:
     from motorctl.commission.autotune import autotune, plot_bode, write_config
-    from motorctl.commission.rule import PERIODS, RULE, SEARCH_BUDGET, AutotuneError, Rule
+    from motorctl.commission.rule import FULL_PERIODS, PERIODS, RULE, SEARCH_BUDGET, AutotuneError, Rule
     from motorctl.cli import UsageError
     from motorctl.config import config_from_dict, load_yaml
     from motorctl.inputs import writable_dir
@@ -91,6 +94,9 @@ def cmd_autotune(args) -> int:
     search_runs = SEARCH_BUDGET if args.search_runs is None else args.search_runs
     if not 0 <= search_runs <= 200:
         raise UsageError(f"--search-runs {args.search_runs}: allowed 0..200")
+    full_periods = FULL_PERIODS if args.full_periods is None else args.full_periods
+    if not 1 <= full_periods <= 100:
+        raise UsageError(f"--full-periods {args.full_periods}: allowed 1..100")
     raw = load_yaml(args.config)
     loaded = config_from_dict(raw, args.config)
     from motorctl.commission.choose import tunable_laws
@@ -110,7 +116,7 @@ def cmd_autotune(args) -> int:
         try:
             res = autotune(loaded, raw, a, clock, args.verify_seconds, progress=say, periods=periods,
                            rule=rule, laws=args.law, measure_only=args.measure_only,
-                           search_runs=search_runs)
+                           search_runs=search_runs, full_periods=full_periods)
         except AutotuneError as exc:
             sys.stderr.write(f"motorctl: autotune: {exc}\n")
             return 1

@@ -110,9 +110,10 @@ from motorctl.control import controller_class
 def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
              verify_s: float | None = None, progress=None, periods: int = PERIODS,
              rule: Rule = RULE, laws=None, measure_only: bool = False,
-             search_runs: int = SEARCH_BUDGET) -> dict:
+             search_runs: int = SEARCH_BUDGET, full_periods: int = FULL_PERIODS) -> dict:
     """Steps 1-4 for one axis and the laws ``laws`` (None: every law of :func:`tunable_laws`;
-    ``measure_only``: steps 1-2, no law; ``search_runs``: :func:`verify`'s). Returns
+    ``measure_only``: steps 1-2, no law; ``search_runs``: :func:`verify`'s; ``full_periods``:
+    program periods of a confirmation run). Returns
     {"measure", "model", "theta_hat0", "w", "G_fit", "G_w", "choice": {law: ...}, "verify":
     {law: ...}, "reference" (None when measure_only), "gains": {law: gains written}, "extra":
     {law: settings written with them}}.
@@ -146,7 +147,7 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
     period = loaded.axes[axis].trajectory.period_s
     vs = verify_s if verify_s is not None else max(2.0 * period, 1.0)
     ref = evaluate(raw, str(loaded.path), axis, sec.type, vs, clock)
-    full_s = FULL_PERIODS * period if period > 0 else None
+    full_s = full_periods * period if period > 0 else None
     full_ref = evaluate(raw, str(loaded.path), axis, sec.type, full_s, clock) if full_s else None
     if progress:
         for r_, s_ in ((ref, vs), (full_ref, full_s)):
