@@ -130,11 +130,13 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
         raise AutotuneError(f"axis {axis}: the measurement stopped: {why}")
     model = fit_plant(meas["f_hz"], meas["G"], meas["coherence"], ts, sec.theta_hat0)
     if progress:
-        progress(f"fit {axis}: theta1 {model['theta1']:.4g} V s^2/m (theta_hat1(0) "
-                 f"{sec.theta_hat0[0]:.4g}), theta2 {model['theta2']:.3g} V s/m, mode "
-                 f"{model['mode_hz']:.1f} Hz zeta {model['mode_damping']:.3f} load "
-                 f"{model['load_fraction']:.2f}, current loop {model['current_loop_hz']:.0f} Hz, "
-                 f"delay {model['delay_s'] * 1e6:.1f} us")
+        sg = model["sigma"]
+        progress(f"fit {axis}: theta1 {model['theta1']:.4g} +- {sg['theta1']:.2g} V s^2/m (theta_hat1(0) "
+                 f"{sec.theta_hat0[0]:.4g}), theta2 {model['theta2']:.3g} +- {sg['theta2']:.2g} V s/m, mode "
+                 f"{model['mode_hz']:.1f} +- {sg.get('mode_hz', 0.0):.2g} Hz zeta {model['mode_damping']:.3f} load "
+                 f"{model['load_fraction']:.2f}, current loop {model['current_loop_hz']:.0f} +- "
+                 f"{sg['current_loop_hz']:.2g} Hz, delay {model['delay_s'] * 1e6:.1f} +- {sg['delay_s'] * 1e6:.2g} us "
+                 f"(+- one standard deviation of the fit)")
     w, G_fit, G_w = loop_frf(meas, model, ts)
     th = np.asarray(sec.theta_hat0, dtype=float)
     fitted = th.copy()              # θ1 from the fit; θ2..θ6 (friction, offset) as configured:
@@ -227,45 +229,73 @@ def write_config(raw: dict, results: list, source: str, path) -> dict:
     return new
 
 
+def _phase_deg(H: np.ndarray) -> np.ndarray:
+    """The phase of H (K,) unwrapped along the frequency and brought to (−360°, 0°] at its first
+    point (a plant with a double integrator starts near −180°) [deg]."""
+    ph = np.degrees(np.unwrap(np.angle(H)))
+    return ph - 360.0 * math.ceil(ph[0] / 360.0)
+
+
 def plot_bode(res: dict, path) -> str:
-    """Step 5: the Bode plot (measured and fitted plant; each law's loop gain with its
-    crossover, GM and PM marked) as PNG. Needs matplotlib (the ``plot`` extra)."""
+    """Step 5: the Bode plot as PNG, five panels sharing the frequency axis: |G| (measured, and the
+    fitted model over the measured band), G's phase, the coherence r → e of
+    the measurement, |L| of each law's written gains with its crossover and gain margin
+    marked, L's phase with −180° and the phase margin marked. Every phase is unwrapped the same
+    way (:func:`_phase_deg`); the measured plant's phase continues the model's at the first
+    measured line. Needs matplotlib (the ``plot`` extra)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     w, ts = res["w"], res["ts"]
     f = w / (2.0 * math.pi)
     meas = res["measure"]
-    fig, ax = plt.subplots(2, 1, figsize=(10, 8), sharex=True)
-    ax[0].loglog(meas["f_hz"], np.abs(meas["G"]), ".", ms=2, color="0.5", label="plant, measured")
-    ax[0].loglog(f, np.abs(res["G_fit"]), "k-", lw=1, label="plant, fitted model")
-    ax[1].semilogx(meas["f_hz"], np.degrees(np.angle(meas["G"])), ".", ms=2, color="0.5")
-    ax[1].semilogx(f, np.degrees(np.angle(res["G_fit"])), "k-", lw=1)
+    fm, Gm = meas["f_hz"], meas["G"]
+    ph_fit = _phase_deg(res["G_fit"])
+    ph_m = np.degrees(np.unwrap(np.angle(Gm)))
+    ph_m += 360.0 * np.round((np.interp(fm[0], f, ph_fit) - ph_m[0]) / 360.0)   # on the model's branch
+    fig, ax = plt.subplots(5, 1, figsize=(10, 13), sharex=True,
+                           gridspec_kw={"height_ratios": [3, 2, 1, 3, 2]})
+    ax[0].loglog(fm, np.abs(Gm), ".", ms=2, color="0.5", label="plant G, measured")
+    band = (f >= fm[0]) & (f <= fm[-1])         # the model where it was fitted: the measured band
+    ax[0].loglog(f[band], np.abs(res["G_fit"][band]), "k-", lw=1, label="plant G, fitted model")
+    ax[1].semilogx(fm, ph_m, ".", ms=2, color="0.5")
+    ax[1].semilogx(f[band], ph_fit[band], "k-", lw=1)
+    ax[2].semilogx(fm, meas["coherence"], ".", ms=2, color="0.3")
     mg = final_margins(res)
     colors = ("tab:green", "tab:blue", "tab:red", "tab:purple", "tab:orange")
     for j, law in enumerate(res["gains"]):
         color = colors[j % len(colors)]
         L = c_frf(law, res["gains"][law], ts, w, res["theta_hat0"]) * res["G_w"]
         m = mg[law]
-        lab = f"L {law}: GM {m.gm_db:.1f} dB, PM {m.pm_deg:.0f}°, |S| {m.ms_db:.1f} dB"
-        ax[0].loglog(f, np.abs(L), color=color, lw=1, label=lab)
-        ph = np.degrees(np.unwrap(np.angle(L)))
-        ph -= 360.0 * math.ceil(ph[0] / 360.0)
-        ax[1].semilogx(f, ph, color=color, lw=1)
+        ax[3].loglog(f, np.abs(L), color=color, lw=1,
+                     label=f"L {law}: GM {m.gm_db:.1f} dB, PM {m.pm_deg:.0f} deg, |S| {m.ms_db:.1f} dB")
+        ph = _phase_deg(L)
+        ax[4].semilogx(f, ph, color=color, lw=1)
         if math.isfinite(m.wc_hz):
-            ax[0].axvline(m.wc_hz, color=color, ls=":", lw=0.8)
-            ax[1].axvline(m.wc_hz, color=color, ls=":", lw=0.8)
+            for k in (3, 4):
+                ax[k].axvline(m.wc_hz, color=color, ls=":", lw=0.8)
+            ax[4].plot([m.wc_hz], [np.interp(m.wc_hz, f, ph)], "o", color=color, ms=4)
         if math.isfinite(m.gm_hz):
-            ax[0].plot([m.gm_hz], [10 ** (-m.gm_db / 20)], "v", color=color)
-    ax[0].axhline(1.0, color="0.7", lw=0.8)
-    ax[1].axhline(-180.0, color="0.7", lw=0.8)
-    ax[0].set_ylabel("|G| [m/V], |L| [-]")
-    ax[1].set_ylabel("phase [deg]")
-    ax[1].set_xlabel("frequency [Hz]")
-    ax[1].set_ylim(-720, 180)
+            ax[3].plot([m.gm_hz], [10 ** (-m.gm_db / 20)], "v", color=color)
+    ax[3].axhline(1.0, color="0.7", lw=0.8)
+    ax[4].axhline(-180.0, color="0.7", lw=0.8)
+    for k in (1, 4):
+        ys = [np.min(line.get_ydata()) for line in ax[k].get_lines() if len(line.get_ydata()) > 2]
+        if ys:
+            ax[k].set_ylim(max(min(ys), -900.0) - 20.0, 20.0)
+    ax[0].set_ylabel("|G| [m/V]")
+    ax[1].set_ylabel("phase G [deg]")
+    ax[2].set_ylabel("coherence")
+    ax[2].set_ylim(0.0, 1.05)
+    ax[3].set_ylabel("|L| [-]")
+    ax[4].set_ylabel("phase L [deg]")
+    ax[4].set_xlabel("frequency [Hz]")
     ax[0].legend(fontsize=8)
+    if res["gains"]:
+        ax[3].legend(fontsize=8)
     ax[0].set_title(f"axis {res['axis']}: measured plant (indirect closed-loop estimate) and loop gains")
     Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return str(path)

@@ -73,6 +73,7 @@ def fit_plant(f: np.ndarray, G: np.ndarray, coh: np.ndarray, ts: float, theta_ha
     best_rigid = refine(best_rigid, False, [1e-6, 0.0, 10.0, 0.0], [1e6, 1e6, 10.0 * fs, 5.0 * ts])
     out = model(best_rigid.x, False)
     out.update(cost=float(best_rigid.cost), cost_rigid=float(best_rigid.cost), mode=False)
+    sigma = _sigma(best_rigid, model(best_rigid.x, False))
     fm0, fr0 = _initial_mode(f, G, best_rigid.x[0])
     if math.isfinite(fm0):
         best = None
@@ -91,4 +92,22 @@ def fit_plant(f: np.ndarray, G: np.ndarray, coh: np.ndarray, ts: float, theta_ha
         if best.cost < 0.7 * best_rigid.cost:
             out = model(best.x, True)
             out.update(cost=float(best.cost), cost_rigid=float(best_rigid.cost), mode=True)
-    return {k: float(v) if not isinstance(v, bool) else v for k, v in out.items()}
+            sigma = _sigma(best, out)
+    out = {k: float(v) if not isinstance(v, bool) else v for k, v in out.items()}
+    out["sigma"] = sigma
+    return out
+
+
+def _sigma(sol, params: dict) -> dict:
+    """The standard deviation of each fitted parameter of the model ``params`` from the least
+    squares solution ``sol`` (scipy.optimize.least_squares): the covariance (JᵀJ)⁺ s², s² the
+    residual variance 2·cost/(m − n) (Gauss-Newton linearisation at the solution, residuals
+    weighted by the coherence as the fit's). {parameter: σ in its unit} for the parameters
+    the solution holds, in their order (:data:`motorctl.commission.loopshape.MODEL_KEYS`)."""
+    J = sol.jac
+    m, n = J.shape
+    s2 = 2.0 * sol.cost / max(m - n, 1)
+    cov = np.linalg.pinv(J.T @ J) * s2
+    keys = [k for k in ("theta1", "theta2", "current_loop_hz", "delay_s", "mode_hz", "mode_damping",
+                        "load_fraction")][:n]
+    return {k: float(math.sqrt(max(cov[j, j], 0.0))) for j, k in enumerate(keys)}
