@@ -69,12 +69,12 @@ def limits(ref: dict | None, u_lim: float, samples: int) -> tuple[int, float]:
     return sat, rest
 
 
-def admissible(res: dict, u_lim: float, ref: dict | None = None) -> str:
+def admissible(res: dict, u_lim: float, ref: dict | None = None, osc_ref: dict | None = None) -> str:
     """'' when a run meets the rule's closed-loop lines, else why not (one phrase). ref: the
     configured controller's run on the same program and of the same length
     (:func:`motorctl.commission.evaluate.evaluate`): the saturation and the u noise at rest are
     judged against it (:func:`limits`), and an error spectrum :data:`OSC_RATIO` times its own
-    at some frequency is an oscillation."""
+    at some frequency is an oscillation (``osc_ref``: another run's spectrum instead)."""
     if res["fault"]:
         return f"fault: {res['fault']}"
     sat_max, rest_max = limits(ref, u_lim, res["samples"])
@@ -84,10 +84,11 @@ def admissible(res: dict, u_lim: float, ref: dict | None = None) -> str:
         return f"u at rest {res['u_rest_rms_V'] * 1e3:.0f} mV RMS (> {rest_max * 1e3:.0f} mV)"
     if res["osc_ratio"] >= OSC_RATIO:
         return f"oscillation at {res['osc_hz']:.0f} Hz (line {res['osc_ratio']:.0f}x the median)"
-    if ref:
-        ratio, f = e_line_ratio(res, ref)
+    if osc_ref or ref:
+        ratio, f = e_line_ratio(res, osc_ref or ref)
         if ratio >= OSC_RATIO:
-            return f"oscillation at {f:.0f} Hz (e {ratio:.0f}x the configured controller's)"
+            whose = "the same gains' at 100 %" if osc_ref else "the configured controller's"
+            return f"oscillation at {f:.0f} Hz (e {ratio:.0f}x {whose})"
     return ""
 
 
@@ -174,12 +175,15 @@ class _Verification:
         res = evaluate(apply_gains(self.raw, self.axis, self.law, g, self.extra), self.source, self.axis,
                        self.law, seconds, self.clock)
         why = admissible(res, self.u_lim, ref)
-        self.runs.append((f"{label} {seconds:g} s", scale, res, why))
+        self.record(f"{label} {seconds:g} s", scale, res, why)
+        return res, why
+
+    def record(self, label, scale, res, why) -> None:
+        self.runs.append((label, scale, res, why))
         if self.progress:
-            self.progress(f"verify {self.axis} {self.law} {label} at {scale:.0%} ({seconds:g} s): L2 "
+            self.progress(f"verify {self.axis} {self.law} {label} at {scale:.0%}: L2 "
                           f"{res['L2_um']:.3f} um, e_M {res['e_M_um']:.2f} um, rest "
                           f"{res['u_rest_rms_V'] * 1e3:.0f} mV, sat {res['saturated']}: {why or 'ok'}")
-        return res, why
 
     def ladder(self, g, backoff, label, done=None) -> tuple[float, dict | None]:
         """Short runs of ``g`` climbing :data:`SCALES`. A rung that saturates more than allowed
@@ -236,29 +240,36 @@ class _Verification:
         for l2, g, sc, frm in pool[:FULL_TRIES]:
             res, why = self.run(g, "confirm", sc, seconds, ref)
             if not why:
-                full.append((res["L2_um"], g, sc, frm))
+                full.append((res["L2_um"], g, sc, frm, res))
         for cand in sorted(full, key=lambda b: b[0]):
-            if self._rungs(cand[1], cand[2], seconds, ref):
-                return cand
+            if self._rungs(cand[1], cand[2], seconds, ref, cand[4]):
+                return cand[:4]
         if not pool:
             return None
         l2, g, sc, frm = pool[0]
         for step in STEP_DOWN:
             gs = scaled(self.law, g, step)
             res, why = self.run(gs, "step down", sc * step, seconds, ref)
-            if not why and self._rungs(gs, sc * step, seconds, ref):
+            if not why and self._rungs(gs, sc * step, seconds, ref, res):
                 return (res["L2_um"], gs, sc * step, frm)
         return None
 
-    def _rungs(self, g, sc, seconds, ref) -> bool:
+    def _rungs(self, g, sc, seconds, ref, top: dict) -> bool:
         """Full runs of ``g`` at the ladder's rungs below 100 % (:data:`SCALES`, highest first);
         whether every one passed. A lower rung stands for a heavier load or a weaker amplifier:
-        it must not fault, ring or be noisy at rest, but its saturation is not the written
-        gains' (a softer loop's larger error drives u into its limit more often: X's C2 at
-        50 % saturates 3-5x what it does at 100 %), so it is reported and not judged."""
+        it must not fault, ring or be noisy at rest (the limits of ``ref``). Its error spectrum
+        is compared with the gains' own run at 100 % ``top`` (a softer loop rejects less, and
+        its error at tens of Hz is a few times the stiff configured controller's without any
+        ringing: Y's PID at 50 % 130-380x the configured C2's, never 100x its own), and its
+        saturation is reported, not judged (a softer loop's larger error drives u into its
+        limit more often: X's C2 at 50 % saturates 3-5x what it does at 100 %)."""
         for rung in sorted(SCALES[:-1], reverse=True):
-            _, why = self.run(scaled(self.law, g, rung), "confirm", sc * rung, seconds, ref)
-            if why and SATURATED not in why:
+            gr = scaled(self.law, g, rung)
+            res = evaluate(apply_gains(self.raw, self.axis, self.law, gr, self.extra), self.source, self.axis,
+                           self.law, seconds, self.clock)
+            why = admissible({**res, "saturated": 0}, self.u_lim, ref, osc_ref=top)
+            self.record(f"confirm {seconds:g} s", sc * rung, res, why)
+            if why:
                 return False
         return True
 
