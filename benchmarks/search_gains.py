@@ -6,7 +6,9 @@ are not used, and its own point is not among the searched ones. Per law and axis
 (C1/C2: k_s, k1 with γ_d as configured; PID+FF: P, D and the integral corner ω_i = I/P, the
 integral clamp 1 V / I, FF as in the compared config): a scrambled Sobol design
 (scipy.stats.qmc.Sobol, fixed seed) over a wide box, then Nelder-Mead (scipy.optimize.minimize)
-from the best point that met the constraints, L2[e] plus a penalty for a violation.
+from the best point that met the constraints, L2[e] plus a penalty for a violation; with
+``--rounds 2`` once more, a Sobol design in a box of ±0.3 decade around the best so far and
+Nelder-Mead from its best.
 
 The constraints (the shipped C2's 40 s run on the same axis as the reference): no fault, u RMS
 at rest ≤ 1.5× the reference's, saturated samples ≤ 1.5 × max(the reference's, 10). No margin
@@ -95,7 +97,7 @@ def violation(res: dict, ref: dict) -> str:
     return ""
 
 
-def search(raw, axis, law, ref, seconds, n_sobol, n_nm, say):
+def search(raw, axis, law, ref, seconds, n_sobol, n_nm, say, rounds=1):
     box = BOX[law]
     lo, hi = np.array([b[1] for b in box]), np.array([b[2] for b in box])
     seen = []
@@ -122,6 +124,19 @@ def search(raw, axis, law, ref, seconds, n_sobol, n_nm, say):
         simplex = [x0] + [x0 + np.eye(len(box))[j] * 0.15 * (hi - lo)[j] for j in range(len(box))]
         optimize.minimize(f, x0, method="Nelder-Mead",
                           options={"maxfev": n_nm, "initial_simplex": np.array(simplex), "xatol": 0.01})
+    for _ in range(rounds - 1):      # a narrower design around the best so far, then Nelder-Mead again
+        ok = [s for s in seen if not s[2] and math.isfinite(s[1])]
+        if not ok:
+            break
+        c = min(ok, key=lambda s: s[1])[0]
+        lo2, hi2 = np.maximum(lo, c - 0.3), np.minimum(hi, c + 0.3)
+        for p in qmc.Sobol(len(box), scramble=True, seed=45).random(n_sobol):
+            f(lo2 + p * (hi2 - lo2))
+        ok = [s for s in seen if not s[2] and math.isfinite(s[1])]
+        x0 = min(ok, key=lambda s: s[1])[0]
+        simplex = [x0] + [x0 + np.eye(len(box))[j] * 0.05 * (hi - lo)[j] for j in range(len(box))]
+        optimize.minimize(f, x0, method="Nelder-Mead",
+                          options={"maxfev": n_nm, "initial_simplex": np.array(simplex), "xatol": 0.005})
     ok = [s for s in seen if not s[2] and math.isfinite(s[1])]
     best = min(ok, key=lambda s: s[1]) if ok else None
     return best, len(seen)
@@ -137,6 +152,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=40.0)
     ap.add_argument("--sobol", type=int, default=16)
     ap.add_argument("--nm", type=int, default=24)
+    ap.add_argument("--rounds", type=int, default=1,
+                    help="design + Nelder-Mead rounds; each after the first in a box of +-0.3 decade "
+                         "around the best so far")
     ap.add_argument("--json", help="write the table here")
     a = ap.parse_args(argv)
     raw = yaml.safe_load(open(a.config))
@@ -164,7 +182,7 @@ def main(argv=None) -> int:
                       "saturated": r_at.get("saturated"), "u_rest_rms_V": r_at.get("u_rest_rms_V")}
                 say(f"{axis} {law} autotune: L2 {at['L2_um']:.3f} um, sat {at['saturated']}, rest "
                     f"{1e3 * (at['u_rest_rms_V'] or 0):.0f} mV: {at['verdict']}")
-            best, n = search(base, axis, law, ref, a.seconds, a.sobol, a.nm, say)
+            best, n = search(base, axis, law, ref, a.seconds, a.sobol, a.nm, say, a.rounds)
             row = {"axis": axis, "law": law, "runs": n, "autotune": at,
                    "search_L2_um": best[1] if best else None,
                    "search_gains": ({k: float(10 ** xi) for (k, _, _), xi in zip(BOX[law], best[0])} if best else None)}
