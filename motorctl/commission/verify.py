@@ -223,7 +223,9 @@ class _Verification:
     def confirm(self, rule_best, seconds: float, ref: dict | None):
         """The verification on full runs of ``seconds`` (the program's periods, judged against
         the configured controller's run ``ref`` of the same length): the candidates that passed
-        their short run (the search's and the rule's), by their short L2[e], the first
+        their short run (the search's and the rule's) whose margins hold at 100, 75 and 50 % of
+        the gains themselves (a candidate the ladder stopped below 100 %: of its scaled gains),
+        by their short L2[e], the first
         :data:`FULL_TRIES` run at 100 %; those that pass, by their full L2[e], each run at
         75 % and 50 % (:data:`SCALES`, highest first); the first that passes all three rungs
         wins. When none does, the best candidate's gains stepped down (:data:`STEP_DOWN`), each
@@ -237,6 +239,8 @@ class _Verification:
                 seen.add(key)
                 pool.append(c)
         full = []
+        holds = self.choice.get("holds", lambda g: True)
+        pool = [c for c in pool if holds(c[1])]      # the margins at 100/75/50 % of the gains written
         for l2, g, sc, frm in pool[:FULL_TRIES]:
             res, why = self.run(g, "confirm", sc, seconds, ref)
             if not why:
@@ -249,6 +253,8 @@ class _Verification:
         l2, g, sc, frm = pool[0]
         for step in STEP_DOWN:
             gs = scaled(self.law, g, step)
+            if not holds(gs):
+                continue
             res, why = self.run(gs, "step down", sc * step, seconds, ref)
             if not why and self._rungs(gs, sc * step, seconds, ref, res):
                 return (res["L2_um"], gs, sc * step, frm)
