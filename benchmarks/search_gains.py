@@ -11,9 +11,11 @@ from the best point that met the constraints, L2[e] plus a penalty for a violati
 Nelder-Mead from its best.
 
 The constraints (the shipped C2's 40 s run on the same axis as the reference): no fault, u RMS
-at rest ≤ 1.5× the reference's, saturated samples ≤ 1.5 × max(the reference's, 10). No margin
-floor: the search may find gains with smaller margins than autotune admits, so the ratio it
-reports is, if anything, harsh on autotune.
+at rest ≤ 1.5× the reference's, saturated samples ≤ 1.5 × max(the reference's, 10); with
+``--floor`` also the margin floor (GM ≥ 6 dB, PM ≥ 10°, |S| ≤ 16 dB at 100, 75 and 50 % of the
+loop gain) on the true plant, the simulated axis's own parameters (not autotune's
+measurement): a point that fails it is not run. Without it the search may find gains with
+smaller margins than autotune admits.
 
 Run (about 7 s per run on an idle core; --sobol 16 --nm 24: 40 runs per law and axis):
     python benchmarks/search_gains.py configs/gantry.yaml --axis X --axis Y \
@@ -45,6 +47,7 @@ BOX = {"c1": (("k_s", 0.5, 3.5), ("k1", 1.7, 3.8)),
        "c2": (("k_s", 0.5, 3.5), ("k1", 1.7, 3.8)),
        "pid": (("P", 3.5, 6.0), ("D", 0.7, 3.0), ("wi", 1.0, 3.0))}
 PENALTY = 100.0
+FLOOR = (6.0, 10.0, 16.0)   #: GM >= [dB], PM >= [deg], |S| <= [dB] (--floor)
 
 
 def run(raw: dict, axis: str, law: str, seconds: float) -> dict:
@@ -84,6 +87,36 @@ def with_gains(raw: dict, axis: str, law: str, x: np.ndarray) -> dict:
     return raw
 
 
+def true_plant(raw: dict, axis: str) -> dict:
+    """The simulated axis's own parameters (its ``driver:`` section) as the plant model of
+    :func:`motorctl.commission.loopshape.plant_model_frf`: the plant the search runs on, not
+    autotune's measurement or fit."""
+    d = raw["axes"][axis]["driver"]
+    a1 = float(d["a1_N_per_V"])
+    return {"theta1": float(d["mass_kg"]) / a1, "theta2": float(d.get("viscous_N_s_per_m", 0.0)) / a1,
+            "mode_hz": float(d.get("mode_hz", 0.0)), "mode_damping": float(d.get("mode_damping", 0.0)),
+            "load_fraction": float(d.get("mode_load_fraction", 0.0)),
+            "current_loop_hz": float(d.get("current_loop_hz", 0.0)) or 1e9,
+            "delay_s": float(d.get("current_loop_delay_s", 0.0))}
+
+
+def floor_holds(raw: dict, axis: str, law: str, gains: dict) -> bool:
+    """The margin floor (GM >= 6 dB, PM >= 10 deg, |S| <= 16 dB) at 100, 75 and 50 % of the
+    loop gain, on the true plant (:func:`true_plant`) with the law's own linearisation."""
+    from motorctl.commission.loopshape import c_frf, loop_margins, plant_model_frf
+    ts = 1.0 / float(raw["loop"]["rate_hz"])
+    w = np.geomspace(2.0 * math.pi, 0.999 * math.pi / ts, 4000)
+    th = raw["axes"][axis]["controller"].get("theta_hat0")
+    L = c_frf(law, gains, ts, w, th) * plant_model_frf(true_plant(raw, axis), ts, w)
+    return all(loop_margins(sc * L, w / (2.0 * math.pi)).meets(*FLOOR) for sc in (1.0, 0.75, 0.5))
+
+
+def gains_of(raw: dict, axis: str, law: str, x) -> dict:
+    sec = with_gains(raw, axis, law, np.asarray(x))["axes"][axis]["controller"]
+    return dict(sec["pid"]) if law == "pid" else {k: float(sec[law][k]) for k in ("k_s", "k1")} | {
+        "gamma_d": float(sec[law].get("gamma_d", sec.get("gamma_d", 500.0)))}
+
+
 def violation(res: dict, ref: dict) -> str:
     """'' when a run meets the constraints, else what failed."""
     if res.get("fault"):
@@ -97,13 +130,15 @@ def violation(res: dict, ref: dict) -> str:
     return ""
 
 
-def search(raw, axis, law, ref, seconds, n_sobol, n_nm, say, rounds=1):
+def search(raw, axis, law, ref, seconds, n_sobol, n_nm, say, rounds=1, floor=False):
     box = BOX[law]
     lo, hi = np.array([b[1] for b in box]), np.array([b[2] for b in box])
     seen = []
 
     def f(x):
         x = np.clip(x, lo, hi)
+        if floor and not floor_holds(raw, axis, law, gains_of(raw, axis, law, x)):
+            return 2.0 * PENALTY                  # not run: the margins fail on the true plant
         res = run(with_gains(raw, axis, law, x), axis, law, seconds)
         why = violation(res, ref)
         l2 = res.get("L2_um", math.nan)
@@ -152,6 +187,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=40.0)
     ap.add_argument("--sobol", type=int, default=16)
     ap.add_argument("--nm", type=int, default=24)
+    ap.add_argument("--floor", action="store_true",
+                    help="only gains whose margins hold at 100/75/50 %% on the true plant (the sim's "
+                         "parameters): GM >= 6 dB, PM >= 10 deg, |S| <= 16 dB")
     ap.add_argument("--rounds", type=int, default=1,
                     help="design + Nelder-Mead rounds; each after the first in a box of +-0.3 decade "
                          "around the best so far")
@@ -182,7 +220,7 @@ def main(argv=None) -> int:
                       "saturated": r_at.get("saturated"), "u_rest_rms_V": r_at.get("u_rest_rms_V")}
                 say(f"{axis} {law} autotune: L2 {at['L2_um']:.3f} um, sat {at['saturated']}, rest "
                     f"{1e3 * (at['u_rest_rms_V'] or 0):.0f} mV: {at['verdict']}")
-            best, n = search(base, axis, law, ref, a.seconds, a.sobol, a.nm, say, a.rounds)
+            best, n = search(base, axis, law, ref, a.seconds, a.sobol, a.nm, say, a.rounds, a.floor)
             row = {"axis": axis, "law": law, "runs": n, "autotune": at,
                    "search_L2_um": best[1] if best else None,
                    "search_gains": ({k: float(10 ** xi) for (k, _, _), xi in zip(BOX[law], best[0])} if best else None)}
