@@ -57,22 +57,19 @@ def e_line_ratio(res: dict, ref: dict) -> tuple[float, float]:
     return float(ratio[j]), float(f[j])
 
 
-def limits(ref: dict | None, u_lim: float, samples: int, floor_samples: int = 0) -> tuple[int, float]:
+def limits(ref: dict | None, u_lim: float, samples: int) -> tuple[int, float]:
     """(saturated samples allowed, u RMS at rest allowed [V]) of a run of ``samples`` samples:
     :data:`SAT_FACTOR` times the configured controller's saturated samples on the same run, or
-    of :data:`SAT_FLOOR_SHARE` of max(samples, ``floor_samples``) if more (a short screening
-    run is allowed the full run's floor: saturation comes in bursts that a few seconds cannot
-    average, and the full run judges it); :data:`REST_FACTOR` times its u RMS at rest (without
-    a reference run: :data:`U_REST_FRACTION` of u_lim)."""
+    of :data:`SAT_FLOOR_SHARE` of the samples if more; :data:`REST_FACTOR` times its u RMS at
+    rest (without a reference run: :data:`U_REST_FRACTION` of u_lim)."""
     sat_ref = ref["saturated"] if ref else 0
-    sat = int(SAT_FACTOR * max(sat_ref, SAT_FLOOR_SHARE * max(samples, floor_samples)))
+    sat = int(SAT_FACTOR * max(sat_ref, SAT_FLOOR_SHARE * samples))
     rest_ref = ref["u_rest_rms_V"] if ref else math.nan
     rest = REST_FACTOR * rest_ref if rest_ref == rest_ref and rest_ref > 0 else U_REST_FRACTION * u_lim
     return sat, rest
 
 
-def admissible(res: dict, u_lim: float, ref: dict | None = None, osc_ref: dict | None = None,
-               floor_samples: int = 0) -> str:
+def admissible(res: dict, u_lim: float, ref: dict | None = None, osc_ref: dict | None = None) -> str:
     """'' when a run meets the rule's closed-loop lines, else why not (one phrase). ref: the
     configured controller's run on the same program and of the same length
     (:func:`motorctl.commission.evaluate.evaluate`): the saturation and the u noise at rest are
@@ -80,7 +77,7 @@ def admissible(res: dict, u_lim: float, ref: dict | None = None, osc_ref: dict |
     at some frequency is an oscillation (``osc_ref``: another run's spectrum instead)."""
     if res["fault"]:
         return f"fault: {res['fault']}"
-    sat_max, rest_max = limits(ref, u_lim, res["samples"], floor_samples)
+    sat_max, rest_max = limits(ref, u_lim, res["samples"])
     if res["saturated"] > sat_max:
         return f"{res['saturated']} {SATURATED} (> {sat_max} of {res['samples']})"
     if not res["u_rest_rms_V"] <= rest_max:
@@ -128,8 +125,6 @@ def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: f
         [(label, scale, result, verdict)]}.
     """
     v = _Verification(raw, source, axis, law, choice, seconds, clock, ref, extra, progress)
-    if full_seconds:
-        v.floor_samples = int(round(full_seconds / config_from_dict(raw, source).period_s))
     g0 = choice["gains"]
     s0, r0 = v.ladder(g0, choice["backoff"], "rule")
     rule_best = (r0["L2_um"], scaled(law, g0, s0), s0, "rule") if s0 > 0 else None
@@ -166,7 +161,6 @@ class _Verification:
         self.u_lim = config_from_dict(raw, source).axes[axis].controller.u_lim
         self.rest_max = limits(ref, self.u_lim, 0)[1]
         self.runs: list = []      # (label, scale, result, verdict)
-        self.floor_samples = 0    # the saturation floor's samples (:func:`limits`): the full run's
         self.tried: dict = {}     # {design: (result or None, verdict)}
         self.found: list = []     # (L2, gains, 1.0, 'rule' | 'search') passed at 100 %
         self.obs: dict = {}       # {shape: [(predicted, measured) rest noise [V]]}
@@ -180,7 +174,7 @@ class _Verification:
         ref = ref if ref is not None else self.ref
         res = evaluate(apply_gains(self.raw, self.axis, self.law, g, self.extra), self.source, self.axis,
                        self.law, seconds, self.clock)
-        why = admissible(res, self.u_lim, ref, floor_samples=self.floor_samples)
+        why = admissible(res, self.u_lim, ref)
         self.record(f"{label} {seconds:g} s", scale, res, why)
         return res, why
 
