@@ -26,8 +26,8 @@ def default_plant(repo, tmp_path_factory):
     summary of the axes, the output directory of X's)."""
     out = tmp_path_factory.mktemp("at") / "at"
     p = _autotune(repo, out, "configs/gantry.yaml", "--axis", "X", "--out", str(out), "--law", "c2",
-                  "--law", "pid", "--virtual-clock", "--verify-seconds", "2.5", "--periods", "8",
-                  "--search-runs", "2", "--full-periods", "1", "--json")
+                  "--law", "pid", "--virtual-clock", "--verify-seconds", "4", "--periods", "8",
+                  "--search-runs", "4", "--full-periods", "1", "--json")
     assert p.returncode == 0, p.stderr
     axes = json.loads(p.stdout)["axes"]
     y_out = tmp_path_factory.mktemp("at") / "y"
@@ -97,7 +97,7 @@ def test_autotune_adapts_to_a_softer_structure(repo, tmp_path, default_plant):
     cfg = tmp_path / "soft.yaml"
     cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
     p = _autotune(repo, tmp_path, str(cfg), "--axis", "X", "--out", str(tmp_path / "at"),
-                  "--virtual-clock", "--verify-seconds", "2.5", "--periods", "8", "--law", "pid",
+                  "--virtual-clock", "--verify-seconds", "4", "--periods", "8", "--law", "pid",
                   "--search-runs", "4", "--full-periods", "1", "--json")
     assert p.returncode == 0, p.stderr
     res = json.loads(p.stdout)["axes"]["X"]
@@ -123,7 +123,7 @@ def test_autotune_through_the_serial_emulator(repo, tmp_path):
     out = tmp_path / "at"
     with Emulator("serial", cfg, plant=repo / "configs" / "gantry-rigid.yaml", watchdog_s=5.0):
         p = _autotune(repo, tmp_path, str(cfg), "--axis", "X", "--out", str(out), "--virtual-clock",
-                      "--verify-seconds", "2.5", "--periods", "2", "--law", "c2", "--search-runs", "0",
+                      "--verify-seconds", "4", "--periods", "2", "--law", "c2", "--search-runs", "0",
                       "--full-periods", "1", "--json")
     assert p.returncode == 0, p.stderr
     res = json.loads(p.stdout)["axes"]["X"]
