@@ -15,8 +15,10 @@ from pathlib import Path
 import numpy as np
 from scipy import signal
 
+from motorctl.app.build import build, shutdown, start
 from motorctl.app.job import run_job
 from motorctl.config import LoadedConfig, config_from_dict
+from motorctl.loop.trajectory import Move
 from motorctl.metrics import REST_AFTER_S, rest_mask, u_rest_rms
 from motorctl.recorder.runlog import read_log
 
@@ -85,6 +87,7 @@ def job_evaluation(loaded: LoadedConfig, axis: str, law: str | None, seconds: fl
     Raises:
         OSError, ConfigError, InputError: as :func:`motorctl.app.job.run_job`.
     """
+    approach(loaded, axis, law, clock)
     with tempfile.TemporaryDirectory(prefix="motorctl-eval-") as tmp:
         path = log_path or str(Path(tmp) / "run.mlog")
         res = run_job(loaded, axes=[axis], controller=law, duration_s=seconds, clock=clock,
@@ -93,6 +96,32 @@ def job_evaluation(loaded: LoadedConfig, axis: str, law: str | None, seconds: fl
         out["fault"] = out["fault"] or ""
         out.update(run_metrics(path, loaded, axis))
     return out
+
+
+def approach(loaded: LoadedConfig, axis: str, law: str | None, clock: str | None) -> None:
+    """Bring ``axis`` to its program's start with controller ``law`` before a run (as the
+    daemon's ``start`` does): a jerk-limited move at ≤ 0.1 m/s from where it stands, when it
+    stands more than one following-error limit away (a bus device keeps its carriage where
+    the previous run left it; a simulated one starts each run at the program's start).
+
+    Raises:
+        AutotuneError: the axis is in a fault that persists. OSError: the device is unreachable.
+    """
+    from motorctl.commission.measure import _read_idle
+    lim = loaded.axes[axis].limits
+    v_app = min(0.1, 0.25 * lim.max_velocity_m_per_s)
+    cap = loaded.timebase.cycles((lim.soft_max_m - lim.soft_min_m) / v_app + 1.0) + 8
+    asm = build(loaded, [axis], law, clock=clock or loaded.cfg.loop.clock, capacity=cap, operated=True)
+    start(asm, "off" if clock == "virtual" else loaded.cfg.loop.realtime.policy)
+    try:
+        y0 = _read_idle(asm)
+        x0 = asm.loop.programs[0].sample(0.0)[0]
+        if abs(y0 - x0) > min(lim.min_following_error_m, lim.following_error_m):
+            move = Move(y0, x0, v_app, 2.0, 200.0)
+            asm.loop.start_axis(0, move)
+            asm.loop.run(min(loaded.timebase.cycles(move.duration) + 1, cap - asm.loop.k))
+    finally:
+        shutdown(asm)
 
 
 def evaluate(raw: dict, source: str, axis: str, law: str, seconds: float, clock: str = "virtual") -> dict:
