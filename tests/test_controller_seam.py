@@ -98,6 +98,7 @@ def test_a_fourth_law_is_one_module_and_one_entry_point(repo, tmp_path):
     assert p.returncode == 2 and p.stderr.count("\n") == 1, p.stderr
     assert "axes.X.controller.pd.Q: unknown key; allowed here: P, D, FF2" in p.stderr
     # a law that keeps the base gain family (none) is not autotuned: a clear refusal, no traceback
+    cfg = _pd_config(repo, tmp_path)           # (the bad file above took its path)
     p = _cli(repo, env, "autotune", cfg, "--axis", "X", "--law", "pd", "--out", str(tmp_path / "at"))
     assert p.returncode == 2 and p.stderr.count("\n") == 1, p.stderr
     assert "--law pd: not a law axis X configures" in p.stderr, p.stderr
