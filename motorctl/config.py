@@ -209,11 +209,27 @@ class DaemonConfig(StrictModel):
         return v
 
 
+class HomingConfig(StrictModel):
+    """Per-axis homing (YAML ``axes.NAME.homing``), LinuxCNC's sequence: search the home switch
+    in ``direction`` at ``search_speed``, back off it at ``latch_speed`` until the encoder's
+    index pulse latches (at most ``back_off_m``), and give the latched position the coordinate
+    ``position_m``. ``required``: command-mode motion is refused until the axis is homed."""
+
+    direction: Literal[-1, 1] = -1
+    search_speed_m_per_s: quantity(1e-5, 1.0, "m/s") = 0.02
+    latch_speed_m_per_s: quantity(1e-6, 0.1, "m/s") = 0.005
+    search_distance_m: quantity(1e-4, 10.0, "m") = 0.5
+    back_off_m: quantity(1e-5, 1.0, "m") = 0.01
+    position_m: quantity(-100.0, 100.0, "m") = 0.0
+    required: bool = False
+
+
 class AxisConfig(StrictModel):
     driver: dict = {}
     controller: ControllerConfig
     trajectory: TrajectoryConfig = TrajectoryConfig()
     limits: LimitsConfig = LimitsConfig()
+    homing: HomingConfig | None = None
 
 
 class DriverSection(StrictModel):
@@ -410,6 +426,9 @@ def _cross_checks(path: Path, cfg: GantryConfig) -> None:
                               f"[{lim.soft_min_m}, {lim.soft_max_m}] m")
         if lim.min_following_error_m > lim.following_error_m:
             raise ConfigError(path, f"{lpre}.min_following_error_m", "must not exceed following_error_m")
+        if not lim.i2t_continuous_V < lim.i2t_peak_V:
+            raise ConfigError(path, f"{lpre}.i2t_continuous_V",
+                              f"{lim.i2t_continuous_V:g} V must be below i2t_peak_V ({lim.i2t_peak_V:g} V)")
 
 
 def load_config(path: str | Path, check_budget: bool = True) -> LoadedConfig:

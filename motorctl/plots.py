@@ -75,7 +75,7 @@ def plot_log(log_path: str, out_dir: str | None = None) -> list[str]:
             axs[k].set_ylabel(label)
         axs[0].set_title(f"Desired trajectory ({tag})")
         axs[-1].set_xlabel("t [s]")
-        files.append(_save(fig, out / f"{ax}_trajectory.png"))
+        files.append(_save(fig, out / f"{ax}_trajectory.png", log_path))
 
         ctl = _get(log.header, "config", "axes", ax, "controller", default={})
         fig, axp = plt.subplots(figsize=(8, 3.5))
@@ -88,7 +88,7 @@ def plot_log(log_path: str, out_dir: str | None = None) -> list[str]:
         axp.set_xlabel("t [s]")
         axp.set_ylabel("u [V]")
         axp.set_title(f"Control input ({tag}), peak |u| = {np.max(np.abs(a['u'])):.2f} V")
-        files.append(_save(fig, out / f"{ax}_input.png"))
+        files.append(_save(fig, out / f"{ax}_input.png", log_path))
 
         e_um = a["e"] * 1e6
         fig, axs = plt.subplots(2, 1, figsize=(8, 6))
@@ -105,7 +105,7 @@ def plot_log(log_path: str, out_dir: str | None = None) -> list[str]:
         axs[1].set_ylabel("e [um]")
         axs[1].set_xlabel("t [s]")
         axs[1].set_title("One running period, magnified")
-        files.append(_save(fig, out / f"{ax}_error.png"))
+        files.append(_save(fig, out / f"{ax}_error.png", log_path))
 
         n = 6 if kind == "C2" else 4
         fig, axs = plt.subplots(n, 1, sharex=True, figsize=(8, 1.6 * n + 1))
@@ -128,15 +128,23 @@ def plot_log(log_path: str, out_dir: str | None = None) -> list[str]:
         if th_true is not None or box:
             axs[0].legend(loc="best", fontsize=7, ncol=3)
         axs[-1].set_xlabel("t [s]")
-        files.append(_save(fig, out / f"{ax}_theta.png"))
+        files.append(_save(fig, out / f"{ax}_theta.png", log_path))
     return files
 
 
-def _save(fig, path: Path) -> str:
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+def _save(fig, path: Path, source: str | None = None) -> str:
+    """Write ``fig`` as PNG at ``path``: refused over the run log ``source`` or any run log,
+    written to a temporary name and renamed (never a partial PNG). Raises InputError."""
     import matplotlib.pyplot as plt
-    plt.close(fig)
+
+    from motorctl.recorder.outfile import atomic_output, check_output
+    try:
+        check_output(path, [source] if source else [], "plot")
+        fig.tight_layout()
+        with atomic_output(path, "plot") as tmp:
+            fig.savefig(tmp, dpi=110, format="png")
+    finally:
+        plt.close(fig)
     return str(path)
 
 
@@ -175,4 +183,43 @@ def plot_compare_errors(t: np.ndarray, errors: dict, periods: dict, out_dir: str
         axp.set_title(f"Tracking error over one period, {ax} axis{(', ' + title) if title else ''}")
         axp.legend(loc="best", fontsize=8)
         files.append(_save(fig, out / f"{ax}_compare_error.png"))
+    return files
+
+
+def plot_circle_tests(runs: list, out_dir: str) -> list[str]:
+    """The radial deviation of each circular test (ISO 230-4, as a ballbar report shows it):
+    the CW and CCW paths' radius about their least-squares centre minus the least-squares
+    radius [um], on a polar plot around a reference circle, G and H in the title; one PNG per
+    run: ``<out_dir>/circle_<controller>_<feed mm/s>.png``.
+
+    Args:
+        runs: :class:`motorctl.app.circle_test.CircleRun` list. out_dir: created if missing.
+    Returns: the paths written. Raises: OSError: cannot write ``out_dir``.
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from motorctl.motion.circle import radial
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = []
+    for r in runs:
+        g = r.result
+        fig = plt.figure(figsize=(5.5, 5.5))
+        axp = fig.add_subplot(projection="polar")
+        ref = max(5.0 * g.G_b * 1e6, 10.0)        # the reference circle [um of the plot's radius]
+        for d, style in (("ccw", "-"), ("cw", "--")):
+            ang, rad = radial(*r.paths[d], g.center_lsc)
+            dev = (rad - g.radius_lsc) * 1e6
+            axp.plot(ang, ref + dev, style, lw=0.8, label=d.upper())
+        axp.plot(np.linspace(0, 2 * np.pi, 361), np.full(361, ref), ":", color="grey", lw=0.6)
+        axp.set_rlim(0, ref + 2.0 * max(g.G_b * 1e6, 1.0))
+        axp.set_yticklabels([])
+        axp.set_title(f"{r.controller.upper()}, R {r.radius * 1e3:g} mm, F {r.feed * 1e3:.0f} mm/s: "
+                      f"G(b) {g.G_b * 1e6:.2f} um, H {g.H * 1e6:.2f} um\n(radial deviation, reference "
+                      f"circle = {ref:.0f} um of the scale)", fontsize=9)
+        axp.legend(loc="lower right", fontsize=8)
+        files.append(_save(fig, out / f"circle_{r.controller}_{r.feed * 1e3:.0f}.png"))
     return files

@@ -46,11 +46,19 @@ Every cycle:
     for two reads in a row means a TPDO was lost, not late: the count is realigned
     (``tpdo_resyncs``). An
     axis counts as enabled only in Operation enabled. The drive's heartbeat is watched: none for
-    ``drive_heartbeat_timeout_ms``, or a state other than Operational, is a read error every
-    cycle until it is back (the supervisor's bucket then faults the axis). An EMCY from the drive
+    ``drive_heartbeat_timeout_ms`` is a read error every cycle until it is back (the
+    supervisor's bucket then faults the axis); a heartbeat saying a state other than Operational
+    (the drive went pre-operational or stopped, or booted again: CiA 301 §7.2.8.3.2) is an
+    amplifier fault at that read, named by :meth:`fault_reason` ("left NMT Operational: its
+    heartbeat says pre-operational (0x7F)"). An EMCY from the drive
     latches ``amp_fault`` with its error code and the CiA 301/402 meaning
     (:meth:`fault_reason`, ``describe()["emcy"]``); the latch clears once the axis is disabled
     and the drive has left Fault (the reset above).
+
+``close()``: every object the set-up wrote (0x1005, 0x1006, 0x1016, 0x1017, 0x6007, 0x6060, the
+PDO communication and mapping parameters, the ``sdo:`` writes) is written back, in reverse
+order, as it was uploaded just before the first write (``describe()["counters"]["restored"]``);
+a failed set-up does the same. A reconnect keeps the values the first set-up found.
 
 The drive side of a dead host: its heartbeat consumer (0x1016) misses the host's heartbeat for
 ``heartbeat_consumer_ms`` and performs the abort connection option (0x6007: 1 fault, 2 disable
@@ -113,6 +121,8 @@ from motorctl_drivers.split_phase import (
 PDO_NOT_VALID = 1 << 31
 RTR_NOT_ALLOWED = 1 << 30
 NMT_OPERATIONAL = 5
+#: NMT states in a heartbeat (CiA 301 Table 55)
+NMT_STATE_NAMES = {0x00: "boot-up", 0x04: "stopped", 0x05: "operational", 0x7F: "pre-operational"}
 TRACE_LEN = 32
 
 
@@ -388,6 +398,7 @@ class CanopenDriver(SplitPhaseDriver):
         self.emcy_register = [0] * n
         self._emcy_latched = [False] * n
         self._emcy_named = [False] * n       # fault_reason names the EMCY until re-enabled
+        self._nmt_named = [0] * n            # the NMT state a heartbeat said, not Operational (0: none)
         self._was_fault = [False] * n
         # the statusword trace per axis: preallocated ring of (statusword) at each state change
         self._trace = [[0] * TRACE_LEN for _ in range(n)]
@@ -406,6 +417,7 @@ class CanopenDriver(SplitPhaseDriver):
                 self._tpdo_len[i] = sum(e[2] for e in o.fixed_pdos.tpdo.map) // 8
         self._has_consumer = [True] * n     # the drive has the heartbeat consumer 0x1016
         self._changed: list[dict] = [{} for _ in range(n)]   # (index, sub) -> bytes before configure
+        self._reconnecting = False
         self.bus = None
         self.network = None
         self.nodes = []
@@ -414,7 +426,7 @@ class CanopenDriver(SplitPhaseDriver):
         self._sync_msg = None
         self._hb_msg = None
         self.drive_info: list[dict] = [{} for _ in range(n)]
-        self.counters.update(heartbeat_lost=0, emcy=0, error_frames=0, tpdo_resyncs=0)
+        self.counters.update(heartbeat_lost=0, emcy=0, error_frames=0, tpdo_resyncs=0, nmt_left=0, restored=0)
         self._syncs = 0                    # SYNCs sent since activate()
         self._tpdos = [0] * n              # TPDOs received per axis since activate()
         self._lag_now = [0] * n            # this read: the lag of the newest stale TPDO (0: none)
@@ -444,7 +456,7 @@ class CanopenDriver(SplitPhaseDriver):
 
     def _track_downloads(self, i: int, node) -> None:
         """Keep, for every object the set-up writes on drive i, what it held before (uploaded
-        just before the first write), so a failed configure can put it back."""
+        just before the first write), so that close, or a failed configure, puts it back."""
         sdo = node.sdo
         download = sdo.download
         changed = self._changed[i]
@@ -589,8 +601,9 @@ class CanopenDriver(SplitPhaseDriver):
         """
         self._open_transport()
         self.connected = True
-        for changed in self._changed:
-            changed.clear()
+        if not self._reconnecting:          # a reconnect keeps what the first set-up found
+            for changed in self._changed:
+                changed.clear()
         try:
             for i in range(len(self._ax)):
                 self._setup_drive(i)
@@ -606,8 +619,6 @@ class CanopenDriver(SplitPhaseDriver):
             self._restore()
             self._close()
             raise
-        for changed in self._changed:
-            changed.clear()
         if self.options.host_watchdog == "none":
             drives = ", ".join(self._where(i) for i in range(len(self._ax)))
             self._notice(f"{drives}: no device-side watchdog (driver.host_watchdog: none): a drive "
@@ -837,6 +848,7 @@ class CanopenDriver(SplitPhaseDriver):
             self._sm[i].__init__()
             self._emcy_latched[i] = False
             self._emcy_named[i] = False
+            self._nmt_named[i] = 0
         self._prime_commands()
         for i, node in enumerate(self.nodes):
             node.nmt.state = "OPERATIONAL"
@@ -925,7 +937,24 @@ class CanopenDriver(SplitPhaseDriver):
         except Exception:  # noqa: BLE001  (stopping anyway: the drives' consumers stop them)
             self.connected = False
 
+    def _reconnect(self, timeout_s: float | None) -> None:
+        """As every split-phase driver's; the objects found by the first set-up stay the ones
+        :meth:`_close` restores (the set-up again writes the same values)."""
+        self._reconnecting = True
+        try:
+            super()._reconnect(timeout_s)
+        finally:
+            self._reconnecting = False
+
     def _close(self) -> None:
+        """Every object the set-up changed written back as found (SDO, after the drives are
+        pre-operational; counted in ``restored``), then the bus released."""
+        if self.connected and self.bus is not None and any(self._changed) and not self._reconnecting:
+            try:
+                self._start_notifier()
+                self.counters["restored"] += self._restore()
+            except Exception:  # noqa: BLE001  (closing anyway)
+                pass
         self.connected = False
         self._outstanding = False
         self._release_transport()
@@ -947,8 +976,9 @@ class CanopenDriver(SplitPhaseDriver):
             cw = sm.step(self._statusword[i], en)
             if not en and not sm.fault and self._emcy_latched[i]:
                 self._emcy_latched[i] = False       # disabled and out of Fault: the latch is reset
-            elif en and sm.enabled and self._emcy_named[i]:
+            elif en and sm.enabled and (self._emcy_named[i] or self._nmt_named[i]):
                 self._emcy_named[i] = False         # enabled again: the EMCY is history
+                self._nmt_named[i] = 0
             a = ax[i]
             t = cia402.volts_to_permille(float(u_V[i]), a.voltage_full_scale_V, a.full_scale_permille) \
                 if en and sm.enabled else 0
@@ -1044,9 +1074,17 @@ class CanopenDriver(SplitPhaseDriver):
         now = time.perf_counter()
         lim = self._hb_timeout
         for i in range(len(self._hb_last)):
-            if now - self._hb_last[i] > lim or self._hb_state[i] != NMT_OPERATIONAL:
+            if now - self._hb_last[i] > lim:
                 self.read_error[i] = True
                 self.counters["heartbeat_lost"] += 1
+            elif self._hb_state[i] != NMT_OPERATIONAL:
+                # the drive says it left Operational (CiA 301 §7.2.8.3.2: pre-operational,
+                # stopped, a boot-up after a reset): no PDOs act any more, so an amplifier fault
+                # at once, not an I/O error in the bucket (which would hide it)
+                self.read_error[i] = False
+                self.amp_fault[i] = True
+                self._nmt_named[i] = self._hb_state[i] or 0x100     # boot-up (0) named too
+                self.counters["nmt_left"] += 1
             if self._emcy_latched[i]:
                 self.amp_fault[i] = True
 
@@ -1059,6 +1097,10 @@ class CanopenDriver(SplitPhaseDriver):
         if (self._emcy_latched[i] or self._emcy_named[i]) and self.emcy_code[i]:
             return (f"EMCY {cia402.describe_error(self.emcy_code[i])} from {self._where(i)} "
                     f"(error register 0x{self.emcy_register[i]:02X})")
+        if self._nmt_named[i]:
+            state = self._nmt_named[i] & 0xFF
+            return (f"{self._where(i)} left NMT Operational: its heartbeat says "
+                    f"{NMT_STATE_NAMES.get(state, f'state 0x{state:02X}')} (0x{state:02X})")
         if self._sm[i].fault or self.amp_fault[i]:
             return f"{self._where(i)} in {cia402.STATE_NAMES[self._sm[i].state]} (statusword 0x{self._statusword[i]:04X})"
         return ""

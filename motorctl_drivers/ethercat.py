@@ -16,7 +16,8 @@ YAML (``driver:``)::
                              # reaches a slave near its SYNC0 edge is applied a period early
                              # or late. Use false with loop.clock virtual.
     watchdog_ms: 10          # SM watchdog (ESC 0x0400/0x0420): no outputs for this long ->
-                             # the slaves' outputs to 0 / safe state
+                             # the slaves' outputs to 0 / safe state; above the host's longest
+                             # stall (docs/drivers.md: 10 ms RT kernel, 50 stock, 200 a VM)
     timeout_s, round_trip_s, max_bus_load   # as every bus driver (split_phase.CommonOptions)
     state_timeout_s: 2.0     # how long configure()/activate() wait for an AL state
 
@@ -38,14 +39,28 @@ per axis (``axes.NAME.driver``), ``profile: cia402``::
 
 The cycle: ``write()`` packs every axis's outputs into the process image and sends it in one
 LRW (plus SOEM's DC datagram); ``read()`` of the next cycle receives it (waiting at most
-``timeout_s``) and compares the working counter with the expected one (2 per slave with
-outputs, 1 per slave with inputs). A short working counter means a slave did not take part:
-every axis gets ``read_error`` (the supervisor's error bucket counts it), the position is held,
-and while it lasts :meth:`EthercatDriver.fault_reason` says "EtherCAT working counter 3 of 6".
-A CiA 402 drive's power state machine is stepped from the enable request by
-:class:`motorctl_drivers.cia402.PowerStateMachine` (the same as the CANopen driver's); its
-statusword fault bit is ``amp_fault``, its error code 0x603F (mapped) names the fault. Slave
-AL states are read between cycles (in ``fault_reason`` and the stop), never inside one.
+``timeout_s``) and compares the working counter with the one the slaves' AL states give
+(ETG.1000.4 §5.4: 2 per slave with outputs in OP, 1 per slave with inputs in SAFE-OP or OP; an
+ESC takes no outputs below OP). A short working counter means a slave did not take part: every
+axis gets ``read_error`` (the supervisor's error bucket counts it), the position is held, and
+``service()`` (after the cycle's write, outside its timing) reads the AL status and AL status
+code (0x0130, 0x0134) of every slave the axes use, one FPRD each. From the next read on, an
+axis with a slave out of OP (the SM watchdog took it to SAFE-OP, error 0x001B; a slave reset)
+is an amplifier fault, not an I/O error: the supervisor latches it within that cycle, and
+:meth:`EthercatDriver.fault_reason` names the slave, its state and its AL status code. A short
+working counter with every slave in OP (a lost or damaged frame) stays in the error bucket
+and reads "EtherCAT working counter 3 of 6". A CiA 402 drive's power state machine is stepped
+from the enable request by :class:`motorctl_drivers.cia402.PowerStateMachine` (the same as the
+CANopen driver's); its statusword fault bit is ``amp_fault``, its error code 0x603F (mapped)
+names the fault; its emergencies arrive through pysoem's emergency callback (read from the
+mailbox at the stop).
+
+The stop receives the loop's last frame first (SOEM's receive adds up the working counters of
+every frame sent since the previous receive), reads the AL states and judges the stop's frames
+against them; an output terminal below OP holds its safe state (0 V, off) whatever its SM
+buffer kept. At close the drives go to PRE-OP and get back, by SDO, the PDO mapping and
+assignment (0x1600, 0x1A00, 0x1C12, 0x1C13) and modes of operation (0x6060) the set-up found,
+then INIT.
 
 Set-up (``configure``): the segment is scanned (``config_init``), every slave's identity is
 checked against its role, the drives' PDOs are mapped by SDO in PRE-OP (0x1C12/0x1C13 cleared,
@@ -193,7 +208,13 @@ class EthercatDriver(Driver):
         self._timeout_us = max(1, int(self.timeout_s * 1e6))
         self.master = None
         self.slaves: list = []
-        self.expected_wkc = 0
+        self.expected_wkc = 0               # every slave in OP (SOEM's expectedWKC)
+        self._expect = 0                    # what this exchange is judged against (its AL states)
+        self._wkc_parts: dict[int, tuple[int, int]] = {}   # position -> (outputs 2 / 0, inputs 1 / 0)
+        self._al: dict[int, tuple[int, int]] = {}          # position -> (AL status, AL status code) read last
+        self._al_due = False
+        self._al_fault = np.zeros(n, dtype=bool)           # axis i: one of its slaves left OP
+        self._found: dict[int, list[tuple[int, int, bytes]]] = {}   # drive -> objects as found
         self.last_wkc = 0
         self._bad_wkc_since = None          # exchange count when the working counter went short
         self.exchanges = 0
@@ -268,6 +289,8 @@ class EthercatDriver(Driver):
         if modes is not None and not modes & cia402.SUPPORTED_CST_BIT:
             raise OSError(f"{self._where(pos)}: supported drive modes 0x6502 = 0x{modes:08X} has no cyclic "
                           f"synchronous torque (bit 9)")
+        if pos not in self._found:          # a reconnect finds the mapping it wrote itself
+            self._found[pos] = self._as_found(pos)
         for assign, pdo, entries in ((RX_ASSIGN, RXPDO, COE_RX_MAP), (TX_ASSIGN, TXPDO, COE_TX_MAP)):
             self._sdo_write(pos, assign, 0, b"\x00")
             self._sdo_write(pos, pdo, 0, b"\x00")
@@ -297,6 +320,87 @@ class EthercatDriver(Driver):
                           f"max torque 0x6072 = {max_t} per mille (the drive would clip)")
         self.slave_info[pos - 1].update(device_type=f"0x{dtype:08X}", rated_torque=rated,
                                         max_torque_permille=max_t, mapping="written and read back")
+
+    def _as_found(self, pos: int) -> list[tuple[int, int, bytes]]:
+        """The objects :meth:`_map_drive` changes, as the drive holds them before: (index,
+        subindex, raw value) in the order that writes them back (ETG.6010 §5.3: an assignment
+        cleared, the PDO's count cleared, its entries, its count, then the assignment)."""
+        out = []
+        for assign, pdo in ((RX_ASSIGN, RXPDO), (TX_ASSIGN, TXPDO)):
+            pdos = [self._sdo_read(pos, assign, k) for k in range(1, self._sdo_read(pos, assign, 0) + 1)]
+            n = self._sdo_read(pos, pdo, 0)
+            out += [(assign, 0, b"\x00"), (pdo, 0, b"\x00")]
+            out += [(pdo, k, struct.pack("<I", self._sdo_read(pos, pdo, k))) for k in range(1, n + 1)]
+            out.append((pdo, 0, bytes((n,))))
+            out += [(assign, k, struct.pack("<H", v)) for k, v in enumerate(pdos, 1)]
+            out.append((assign, 0, bytes((len(pdos),))))
+        out.append((cia402.MODES_OF_OPERATION, 0, self.slaves[pos - 1].sdo_read(cia402.MODES_OF_OPERATION, 0)))
+        return out
+
+    def _restore(self) -> None:
+        """PRE-OP, and every object the set-up changed written back as found (outside the
+        cycle, at close); a drive that refuses is named in a notice."""
+        import pysoem
+        m = self.master
+        if not self._found or m is None:
+            return
+        m.state = pysoem.PREOP_STATE
+        m.write_state()
+        if m.state_check(pysoem.PREOP_STATE, int(self.options.state_timeout_s * 1e6)) != pysoem.PREOP_STATE:
+            self._notice(f"EtherCAT: PRE-OP refused at close, the drives' PDO mapping and mode stay as set: "
+                         f"{self._fail_states(pysoem.PREOP_STATE)}", warning=True)
+            return
+        for pos, objects in self._found.items():
+            try:
+                for index, sub, raw in objects:
+                    self._sdo_write(pos, index, sub, raw)
+            except OSError as exc:
+                self._notice(f"{one_line(exc)}: the mapping is not restored", warning=True)
+        self._found = {}
+
+    def _on_emergency(self, pos: int, emcy) -> None:
+        """pysoem's emergency callback (CoE emergency, ETG.1000.6 §5.6.4): kept for the report."""
+        self.emergencies.append((pos, emcy.error_code, emcy.error_reg))
+
+    def _expected_for(self, states: dict[int, int]) -> int:
+        """The working counter of the process-data LRW with the slaves in AL ``states``
+        (position -> state): a slave's outputs count 2 in OP only, its inputs 1 in SAFE-OP and
+        OP (ETG.1000.4 §5.4; an ESC enables its output SM in OP)."""
+        return sum((out if states.get(p, 8) & 0x0F == 8 else 0) + (inp if states.get(p, 8) & 0x0F in (4, 8) else 0)
+                   for p, (out, inp) in self._wkc_parts.items())
+
+    def _read_al(self) -> None:
+        """AL status and AL status code (0x0130, 0x0134) of every slave the axes use, one FPRD
+        each, and which axes have a slave out of OP. Outside the cycle (service, stop)."""
+        self.counters["al_reads"] += 1
+        timeout = max(self._timeout_us, 2000)
+        for pos in self.roles:
+            try:
+                raw = self.slaves[pos - 1]._fprd(0x0130, 6, timeout)
+                status, _r, code = struct.unpack("<HHH", raw[:6])
+            except Exception:  # noqa: BLE001  (no answer: judged from the working counter alone)
+                continue
+            self._al[pos] = (status, code)
+        for i, o in enumerate(self._ax):
+            self._al_fault[i] = any(self._al.get(p, (8, 0))[0] & 0x1F != 8 for p, _ in o.slave_roles())
+
+    def _service(self) -> None:
+        """After a short working counter: read the slaves' AL status (outside the timed cycle),
+        so that the next read faults the axis whose slave left OP."""
+        if self._al_due and self.connected and self.master is not None:
+            self._al_due = False
+            self._read_al()
+
+    def _al_text(self, i: int) -> str:
+        """The slaves of axis ``i`` out of OP, with their AL status codes (ETG.1000.6 Table 11)."""
+        import pysoem
+        bad = []
+        for p, _ in self._ax[i].slave_roles():
+            status, code = self._al.get(p, (8, 0))
+            if status & 0x1F != 8:
+                bad.append(f"{self._where(p)} left OP: {_state_name(status)}, AL status code 0x{code:04X} "
+                           f"({pysoem.al_status_code_to_string(code)})")
+        return "; ".join(bad)
 
     def _fail_states(self, want: int) -> str:
         """One line per slave not in AL state ``want``: its state and AL status code."""
@@ -357,6 +461,7 @@ class EthercatDriver(Driver):
             s = self.slaves[pos - 1]
             if role == 0:
                 s.setup_func = lambda _slave, pos=pos: self._map_drive(pos)
+                s.add_emergency_callback(lambda emcy, pos=pos: self._on_emergency(pos, emcy))
             elif s.man != VENDOR_BECKHOFF or s.id != role:
                 raise OSError(f"{self._where(pos)}: the segment has {s.name!r} (vendor 0x{s.man:08X}, product "
                               f"0x{s.id:08X}) there, not an {PRODUCT_NAMES[role]} (0x{role:08X})")
@@ -396,6 +501,11 @@ class EthercatDriver(Driver):
         if m.state_check(pysoem.SAFEOP_STATE, int(o.state_timeout_s * 1e6)) != pysoem.SAFEOP_STATE:
             raise OSError(f"EtherCAT: SAFE-OP refused: {self._fail_states(pysoem.SAFEOP_STATE)}")
         self.expected_wkc = m.expected_wkc
+        self._wkc_parts = {k: (2 if len(s.output) else 0, 1 if len(s.input) else 0)
+                           for k, s in enumerate(self.slaves, 1)}
+        self._al = {}
+        self._al_fault[:] = False
+        self._expect = self._expected_for({k: 4 for k in self._wkc_parts})     # SAFE-OP: inputs only
         times = []
         zeros, off = np.zeros(len(self.axis_names)), np.zeros(len(self.axis_names), dtype=bool)
         for _ in range(self.WARMUP_EXCHANGES):
@@ -420,6 +530,7 @@ class EthercatDriver(Driver):
         m.state = pysoem.OP_STATE
         m.write_state()
         deadline = time.perf_counter() + self.options.state_timeout_s
+        self._expect = None                 # slaves change state between these frames: not judged
         while True:
             self.write(zeros, off)
             self._receive(100_000)
@@ -427,6 +538,9 @@ class EthercatDriver(Driver):
                 break
             if time.perf_counter() > deadline:
                 raise OSError(f"EtherCAT: OP refused: {self._fail_states(pysoem.OP_STATE)}")
+        self._expect = self.expected_wkc
+        self._al = {}
+        self._al_fault[:] = False
         self.write(zeros, off)
         self._receive(100_000)
         self.read_error[:] = False
@@ -439,6 +553,12 @@ class EthercatDriver(Driver):
         if not self.connected:
             self.write_error[:] = True
             return
+        if self._outstanding:
+            # a write with the last frame not yet received is one outside the cycle (the loop's
+            # safe output after its last cycle, the stop; inside, read() always comes first):
+            # receive that frame now, since SOEM's receive adds up the working counters of every
+            # frame sent since the last receive (two frames would read 20 of 10)
+            self._receive(self._timeout_us)
         out = self._out
         for i, o in enumerate(self._ax):
             if o.profile == "cia402":
@@ -474,7 +594,8 @@ class EthercatDriver(Driver):
         self.last_wkc = wkc
         self.exchanges += 1
         self.counters["exchanges"] += 1
-        if wkc != self.expected_wkc or wkc <= 0:
+        expect = self._expect
+        if wkc <= 0 or (expect is not None and wkc != expect):
             if wkc <= 0:
                 self.counters["no_frame"] += 1
             else:
@@ -482,9 +603,17 @@ class EthercatDriver(Driver):
             if self._bad_wkc_since is None:
                 self._bad_wkc_since = self.exchanges
             self._short += 1
+            if self._short == 1 or self._short % self._down_cycles == 0:
+                self._al_due = True         # service() reads the AL status before the next read
             if self._short > self._wd_cycles and self.state == "active":
                 self._needs_setup = True
-            self.read_error[:] = True
+            # an axis whose slave has left OP (AL status read after the first short frame) is an
+            # amplifier fault now; the others wait in the error bucket (a frame may be lost)
+            al = self._al_fault
+            for i in range(len(al)):
+                self.read_error[i] = not al[i]
+                if al[i]:
+                    self.amp_fault[i] = True
             return
         self._bad_wkc_since = None
         self._short = 0
@@ -496,7 +625,7 @@ class EthercatDriver(Driver):
                 self._statusword[i] = sw
                 self._torque[i] = torque - 0x10000 if torque & 0x8000 else torque
                 self._error_code[i] = err
-                self.amp_fault[i] = bool(sw & cia402.SW_FAULT)
+                self.amp_fault[i] = bool(sw & cia402.SW_FAULT) or self._al_fault[i]
                 if err and sw & cia402.SW_FAULT:
                     self._named_code[i] = err
                 elif sw & 0x6F == 0x27:                   # Operation enabled: a new start
@@ -504,6 +633,7 @@ class EthercatDriver(Driver):
                 raw = pos & 0xFFFFFFFF
             else:
                 _status, raw, _latch = struct.unpack_from("<HII", slaves[o.encoder.slave - 1].input, 0)
+                self.amp_fault[i] = self._al_fault[i]
             self.position_m[i] = self._unwrap[i].update(raw) * self._m_per_count[i]
 
     def read(self) -> None:
@@ -530,10 +660,15 @@ class EthercatDriver(Driver):
         zeros, off = np.zeros(n), np.zeros(n, dtype=bool)
         powered = (cia402.OPERATION_ENABLED, cia402.QUICK_STOP_ACTIVE, cia402.FAULT_REACTION_ACTIVE)
         answered = np.zeros(n, dtype=bool)
+        self._receive(self._timeout_us)     # the loop's last frame, still on the wire
+        # judged against the slaves' AL states as they are now (a slave the SM watchdog took to
+        # SAFE-OP no longer counts its outputs)
+        self._read_al()
+        self._expect = self._expected_for({p: st for p, (st, _c) in self._al.items()})
         while time.perf_counter() < deadline:
             self.write(zeros, off)
             self._receive(max(1, int(min(0.05, deadline - time.perf_counter()) * 1e6)))
-            if self.last_wkc == self.expected_wkc:
+            if self.last_wkc == self._expect:
                 answered[:] = True
             if answered.all() and not any(self._sm[i] is not None and cia402.decode_state(self._statusword[i])
                                           in powered for i in range(n)):
@@ -543,7 +678,7 @@ class EthercatDriver(Driver):
         for i, (a, o) in enumerate(zip(names, self._ax)):
             if not answered[i]:
                 out.append(StopCheck(a, False, f"no complete working counter after the stop "
-                                               f"(last {max(self.last_wkc, 0)} of {self.expected_wkc})"))
+                                               f"(last {max(self.last_wkc, 0)} of {self._expect})"))
                 continue
             if o.profile == "cia402":
                 state = cia402.decode_state(self._statusword[i])
@@ -560,10 +695,18 @@ class EthercatDriver(Driver):
             k = 2 * (o.analog_out.channel - 1)
             c = int.from_bytes(ao[k:k + 2], "little", signed=True)
             bit = do[0] >> (o.enable.channel - 1) & 1
-            out.append(StopCheck(a, c == 0 and bit == 0,
+            # below OP an output terminal holds its safe state (0 V, off), whatever its SM buffer
+            # kept (ESC: the buffer keeps the last data); in OP the buffer is what it drives
+            safe = [(p, self._al.get(p, (8, 0))) for p in (o.analog_out.slave, o.enable.slave)]
+            safe = {p: f" ({_state_name(st)}, AL status code 0x{code:04X}: its safe state, 0 V and off)"
+                    for p, (st, code) in safe if st & 0x0F != 8}
+            held0 = c == 0 or o.analog_out.slave in safe
+            held1 = bit == 0 or o.enable.slave in safe
+            out.append(StopCheck(a, held0 and held1,
                                  f"slave {o.analog_out.slave} channel {o.analog_out.channel} holds {c} "
-                                 f"({c * o.voltage_full_scale_V / 32767:.3f} V), slave {o.enable.slave} channel "
-                                 f"{o.enable.channel} = {bit} ({'amplifier on' if bit else 'amplifier off'})"))
+                                 f"({c * o.voltage_full_scale_V / 32767:.3f} V){safe.get(o.analog_out.slave, '')}, "
+                                 f"slave {o.enable.slave} channel {o.enable.channel} = {bit} "
+                                 f"({'amplifier on' if bit else 'amplifier off'}){safe.get(o.enable.slave, '')}"))
         return out
 
     def _sm2(self, pos: int) -> bytes:
@@ -603,8 +746,14 @@ class EthercatDriver(Driver):
         except Exception:  # noqa: BLE001  (stopping anyway)
             self.connected = False
 
-    def _close(self) -> None:
-        """INIT and release the interface."""
+    def _close(self, restore: bool = True) -> None:
+        """The drives' objects restored as found (:meth:`_restore`), INIT, and the interface
+        released."""
+        if restore and self.connected and self.master is not None:
+            try:
+                self._restore()
+            except Exception as exc:  # noqa: BLE001  (closing anyway; said)
+                self._notice(f"EtherCAT: restoring the drives' objects failed ({one_line(exc)})", warning=True)
         m, self.master = self.master, None
         self.connected = False
         if m is None:
@@ -627,7 +776,7 @@ class EthercatDriver(Driver):
         if self.last_wkc <= 0:
             return (f"EtherCAT working counter 0 of {self.expected_wkc} (no frame came back on "
                     f"{self.options.ifname}: cable, port or segment power)")
-        return f"EtherCAT working counter {self.last_wkc} of {self.expected_wkc}"
+        return f"EtherCAT working counter {self.last_wkc} of {self.expected_wkc if self._expect is None else self._expect}"
 
     def _link_down(self) -> bool:
         return not self.connected or (self.state == "active" and (self._short >= self._down_cycles
@@ -636,7 +785,7 @@ class EthercatDriver(Driver):
     def _reconnect(self, timeout_s: float | None) -> None:
         """Release the interface, scan and set the segment up again (configure), back to OP if active."""
         was_active = self.state == "active"
-        self._close()
+        self._close(restore=False)
         self._configure()
         if was_active:
             self._activate()
@@ -646,10 +795,13 @@ class EthercatDriver(Driver):
         return float(self.axis_options[axis].voltage_full_scale_V)
 
     def fault_reason(self, i: int) -> str:
-        """Why axis ``i`` faults, one line: the working counter while it is short (and the
+        """Why axis ``i`` faults, one line: its slaves that left OP with their AL status codes
+        (read after a short working counter), or the working counter while it is short (and the
         slaves not in OP with their AL status codes), or the drive's error code 0x603F of its
         last fault (kept until the drive is in Operation enabled again, so the report after the
         fault reset still names it) with the emergency it sent and its state now."""
+        if self._al_fault[i]:
+            return self._al_text(i)
         if self._bad_wkc_since is not None:
             why = self._wkc_text()
             try:

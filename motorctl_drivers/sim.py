@@ -41,6 +41,12 @@ period is one compiled call too (``_hooked_step``: the effects' terms evaluated 
 (:meth:`motorctl.effects.base.PlantTerm.compiled`); a term of Python hooks only (a family
 outside the project's registry) runs the general Python path (the same equations).
 
+Homing (``home_switch_m``, ``index_pulse_m``): a home switch active at and below
+``home_switch_m`` (``home_switch``), and the encoder's index pulse at ``index_pulse_m``: once
+armed (:meth:`SimDriver.arm_index`), the reading at the mark is latched (``index_latch_m``)
+between cycles; :meth:`SimDriver.set_position_offset` then shifts the reading (homing sets the
+machine coordinates).
+
 Stiction (``stiction_N`` > 0, Karnopp): while |ẋ| is below ``stiction_velocity_m_per_s`` and
 the force applied at rest, the motor's F_m(u) (as commanded, before the current loop), F_0, the
 force noise and a push, is within ``stiction_N``, the carriage (and load) is held where it was.
@@ -188,6 +194,10 @@ class SimAxisOptions(StrictModel):
     coulomb_N: NonNeg = 0.0
     offset_N: float = 0.0
     initial_position_m: float = 0.0
+    # homing inputs (module docstring, "Homing"): a home switch active at and below this
+    # position, and the encoder's index pulse at that one [m]; None: none
+    home_switch_m: float | None = None
+    index_pulse_m: float | None = None
     encoder_resolution_m: Pos = 0.5e-6
     input_delay_s: Annotated[float, Field(ge=0.0, le=0.1)] = 0.0     # transport delay [s]
     force_noise_N: Annotated[float, Field(ge=0.0, le=1e4)] = 0.0    # force noise, std [N]
@@ -943,6 +953,47 @@ class SimDriver(Driver):
         self._period_ns = int(round(period_s * 1e9))
         for i, p in enumerate(self.plants):
             self.position_m[i] = p.measured()
+        # homing inputs: the switch, the index latch (NaN until it latched once armed), the
+        # offset homing set (added to the encoder's reading)
+        self._switch_m = [axis_options[a].home_switch_m for a in self.axis_names]
+        self._index_m = [axis_options[a].index_pulse_m for a in self.axis_names]
+        self._homing_io = [j for j in range(n) if self._switch_m[j] is not None or self._index_m[j] is not None]
+        self.home_switch = np.zeros(n, dtype=bool)
+        self.index_latch_m = np.full(n, np.nan)
+        self._armed = np.zeros(n, dtype=bool)
+        self._raw_last = np.full(n, np.nan)
+        self.position_offset_m = np.zeros(n)
+        self._offset_on = False
+
+    # ------------------------------------------------------------------ homing inputs
+    @property
+    def has_homing_inputs(self) -> bool:
+        return bool(self._homing_io)
+
+    def arm_index(self, i: int) -> None:
+        """Latch the position at axis i's next index pulse (``index_latch_m[i]``, NaN until)."""
+        self.index_latch_m[i] = np.nan
+        self._armed[i] = True
+
+    def set_position_offset(self, i: int, delta_m: float) -> None:
+        """Shift axis i's reported position by ``delta_m`` [m] from the next read (homing)."""
+        self.position_offset_m[i] += delta_m
+        self._offset_on = bool(np.any(self.position_offset_m != 0.0))
+
+    def _homing_inputs(self) -> None:
+        """Between cycles: the switch and the index pulse from the encoder's raw reading; the
+        index latches the reading (offset included) of the cycle the mark was crossed in."""
+        for i in self._homing_io:
+            raw = self.position_m[i] - self.position_offset_m[i]
+            sw = self._switch_m[i]
+            self.home_switch[i] = sw is not None and raw <= sw
+            mark = self._index_m[i]
+            last = self._raw_last[i]
+            if self._armed[i] and mark is not None and last == last and (last - mark) * (raw - mark) <= 0.0 \
+                    and last != raw:
+                self.index_latch_m[i] = mark + self.position_offset_m[i]
+                self._armed[i] = False
+            self._raw_last[i] = raw
 
     def _sim_arrays(self, copies: bool = False, command: tuple | None = None) -> tuple:
         """The exchange's arrays in the order of :data:`SIM_FIELDS`, or copies of them (for a
@@ -978,6 +1029,8 @@ class SimDriver(Driver):
         return True
 
     def _service(self) -> None:
+        if self._homing_io:
+            self._homing_inputs()
         # the next blocks of noise draws, between cycles (a refill from numpy's Generator
         # took 60-70 us, once every 128 cycles, inside the write)
         if self._refill:
@@ -1002,6 +1055,8 @@ class SimDriver(Driver):
         bitten = self._bite_pending
         self._bite_pending = False
         self._read(self._io_ok, bitten)      # the bundle the write and the rehearsal use (the same arrays)
+        if self._offset_on:                  # homed: the reading in machine coordinates
+            self.position_m += self.position_offset_m
 
     def write(self, u_V: np.ndarray, enable: np.ndarray) -> None:
         # a command that arrives after the watchdog expired finds the amplifier already off

@@ -93,8 +93,9 @@ def cmd_emulate(args) -> int:
 def register(parser, subparsers) -> None:
     """Add the ``emulate`` subcommand to the motorctl CLI (entry point ``motorctl.commands``)."""
     e = subparsers.add_parser("emulate", help="run the gantry I/O emulator (device side of a bus driver)",
-                              description=__doc__.split("\n\n")[2])
-    e.add_argument("--transport", required=True, choices=sorted(available_devices()))
+                              description=__doc__.split("\n\n")[2].replace("``", ""))
+    e.add_argument("--transport", required=True, choices=sorted(available_devices()),
+                   help="the protocol of the device side (the driver.type of CONFIG)")
     e.add_argument("config", help="the bus driver's YAML (driver.type = --transport)")
     e.add_argument("--plant", default=DEFAULT_PLANT,
                    help=f"simulated-gantry config giving the plant of each axis, seed, substeps and "

@@ -17,8 +17,14 @@ ESC datasheet (section II) for the register addresses.
   The application behind it (a drive, a terminal) is a :class:`SlaveApp`.
 * :class:`Segment`: a line of slaves as the frame passes them: every datagram of a frame
   (NOP, APRD/APWR/APRW, FPRD/FPWR/FPRW, BRD/BWR/BRW, LRD/LWR/LRW, ARMW, FRMW) addressed,
-  answered and its working counter incremented as ETG.1000.4 §5.4 says; the answer is the
-  frame with the data read and the counters raised.
+  answered and its working counter incremented as ETG.1000.4 §5.4 says (a logical write
+  reaches, and counts in, a slave in OP only); the answer is the frame with the data read and
+  the counters raised. Frames of another header type (4, 5) pass unchanged.
+
+Where a naive model and an ESC differ, this one is the ESC: 0x0440 reads 1 from reset; a
+watchdog trip zeroes the output pins, not the SM buffer in process RAM; an ESC that drives its
+outputs itself (an EL2008-type terminal) stays in OP on a trip; an EEPROM write command without
+the write-enable bit sets error bit 14 of 0x0502.
 
 Time-compressed: a frame is handled at once, with the plant behind the slaves stepped inside
 the logical datagram that writes the outputs (the application runs between the write and the
@@ -168,6 +174,13 @@ class SlaveApp:
         that refuses it."""
         return 0
 
+    #: the SM watchdog takes the slave to SAFE-OP (AL status code 0x001B): a device with a
+    #: microcontroller behind the ESC. False: an ESC driving its outputs itself (digital I/O
+    #: PDI, an EL2008-type terminal): the output pins go to 0 and the slave stays in OP, driving
+    #: again with the next frame's outputs (ET1100 datasheet, "Watchdog": the digital outputs
+    #: are reset; the AL state is the application's business)
+    leaves_op_on_watchdog = True
+
     def watchdog_expired(self) -> None:
         """The SM watchdog ran out: outputs to their safe state."""
 
@@ -185,7 +198,7 @@ class Esc:
 
     def __init__(self, sii: bytes, app: SlaveApp, syncms, *, dc: bool = False, clock_ns=time.monotonic_ns):
         self.mem = bytearray(0x10000)
-        self.sii = bytes(sii)
+        self.sii = bytearray(sii)
         self.app = app
         self.syncms = list(syncms)
         self.dc = dc
@@ -201,6 +214,7 @@ class Esc:
         struct.pack_into("<HH", m, REG_WD_DIVIDER, 2498, 0)                 # 100 us per unit
         struct.pack_into("<H", m, REG_WD_PDI, 1000)
         struct.pack_into("<H", m, REG_WD_PD, 1000)                          # 100 ms
+        struct.pack_into("<H", m, REG_WD_PD_STATUS, 1)                      # 1: not expired (reset value)
         struct.pack_into("<H", m, REG_EEP_CONTROL, 0x0040)                  # 8-byte reads
         self.state = INIT
         self._set_al(INIT, 0)
@@ -208,6 +222,7 @@ class Esc:
         self.last_outputs_ns = None            # local time of the last process-data write
         self.watchdog_gap_ns = 0               # at the last trip: last outputs → outputs 0 [ns]
         self.watchdog_trips = 0
+        self.outputs_expired = False          # tripped, and no outputs written since
         self.outputs_written = False
         self.sync0_active = False
         self._fmmus: list[tuple[int, int, int, int]] = []    # active (logical start, length, physical, type)
@@ -368,13 +383,21 @@ class Esc:
     def _eeprom(self, status_before: int) -> None:
         m = self.mem
         command = (m[REG_EEP_CONTROL + 1] & 0x07)
+        write_enable = m[REG_EEP_CONTROL] & 0x01        # ECAT write enable, cleared by the command
         status = 0x0040
+        word = struct.unpack_from("<I", m, REG_EEP_ADDRESS)[0]
         if command == 0x01:                     # read 8 bytes from the word address
-            word = struct.unpack_from("<I", m, REG_EEP_ADDRESS)[0]
-            chunk = self.sii[2 * word:2 * word + 8]
+            chunk = bytes(self.sii[2 * word:2 * word + 8])
             m[REG_EEP_DATA:REG_EEP_DATA + 8] = chunk + b"\xff" * (8 - len(chunk))
-        elif command == 0x02:                   # write: this EEPROM is read-only
-            status |= 0x2000                    # acknowledge/command error
+        elif command == 0x02:                   # write one word (0x0508) at the word address
+            if not write_enable:
+                status |= 0x4000                # error write enable: a write command without it
+            elif 2 * word + 2 > len(self.sii):
+                status |= 0x2000                # acknowledge/command error: beyond the EEPROM
+            else:
+                self.sii[2 * word:2 * word + 2] = m[REG_EEP_DATA:REG_EEP_DATA + 2]
+        elif command not in (0x00, 0x04):      # 0x04 reload: the configuration is the image's
+            status |= 0x2000
         struct.pack_into("<H", m, REG_EEP_CONTROL, status)
 
     # ----------------------------------------------------------------- AL state machine
@@ -474,28 +497,37 @@ class Esc:
         return self.u16(REG_WD_PD) * (self.u16(REG_WD_DIVIDER) + 2) * 40
 
     def check_watchdog(self) -> bool:
-        """Trip the SM watchdog when OP has seen no outputs for the watchdog time: outputs to 0,
-        SAFE-OP with AL status code 0x001B. True when it tripped now."""
-        if self.state != OP or self.last_outputs_ns is None:
+        """Trip the SM watchdog when OP has seen no outputs for the watchdog time: the output
+        pins to 0 (the SM buffer in process RAM keeps the last data written, as an ESC's does),
+        0x0440 = 0, the counter 0x0442 raised; a slave that :attr:`SlaveApp.leaves_op_on_watchdog`
+        goes to SAFE-OP with AL status code 0x001B, another stays in OP and drives again with the
+        next outputs. True when it tripped now."""
+        if self.state != OP or self.last_outputs_ns is None or self.outputs_expired:
             return False
         wd = self.watchdog_time_ns()
         if not wd or self.local_ns() - self.last_outputs_ns <= wd:
             return False
-        sm = self.pd_sm(SM_PD_OUT)
-        if sm:
-            self.mem[sm[0]:sm[0] + sm[1]] = bytes(sm[1])
         struct.pack_into("<H", self.mem, REG_WD_PD_STATUS, 0)
         self.mem[REG_WD_PD_COUNT] = (self.mem[REG_WD_PD_COUNT] + 1) & 0xFF
         self.watchdog_trips += 1
+        self.outputs_expired = True
         self.watchdog_gap_ns = self.local_ns() - self.last_outputs_ns
         self.app.watchdog_expired()
-        self._set_al(SAFEOP, AL_SM_WATCHDOG)
+        if self.app.leaves_op_on_watchdog:
+            self._set_al(SAFEOP, AL_SM_WATCHDOG)
         return True
+
+    def output_pins(self) -> bytes:
+        """What the outputs drive: the SM buffer in OP, zeros below OP or after a watchdog
+        trip until the next outputs."""
+        data = self.outputs()
+        return data if self.state == OP and not self.outputs_expired else bytes(len(data))
 
     def outputs_done(self) -> None:
         """The master wrote the outputs (a logical write reached SM2)."""
         self.last_outputs_ns = self.local_ns()
         self.outputs_written = True
+        self.outputs_expired = False
         struct.pack_into("<H", self.mem, REG_WD_PD_STATUS, 1)
 
 
@@ -514,16 +546,24 @@ class Segment:
         for k, s in enumerate(self.slaves):
             s.dl_status(k == 0, k == len(self.slaves) - 1)
         self.frames = 0
+        self.passed = 0
         self.counts = {name: 0 for name in COMMAND_NAMES}
 
     def process(self, payload: bytearray) -> bool:
         """Handle the EtherCAT frame ``payload`` (the Ethernet payload: the 2-byte EtherCAT
-        header, then datagrams), updated in place. False: not a frame of type 1 (commands)."""
+        header, then datagrams), updated in place. True: the frame goes on (back to the master);
+        False: it is dropped (shorter than its header, or a type 1 frame whose length field
+        runs past its end). Only type 1 (DLPDUs) is processed; every other type (4: network
+        variables, 5: mailbox gateway) passes the slaves unchanged, as ETG.1000.4 §5.2 has an
+        ESC forward the frames it does not process (counted in ``passed``)."""
         if len(payload) < 2:
             return False
         hdr = struct.unpack_from("<H", payload, 0)[0]
         length, kind = hdr & 0x07FF, hdr >> 12
-        if kind != 1 or length + 2 > len(payload):
+        if kind != 1:
+            self.passed += 1
+            return True
+        if length + 2 > len(payload):
             return False
         self.frames += 1
         off = 2
@@ -589,6 +629,11 @@ class Segment:
         return wkc, a1
 
     def _logical(self, cmd, la, buf, doff, n, wkc):
+        """A logical datagram: outputs are taken (and counted) in OP only, since an ESC's
+        output SM is enabled by the application in OP (ETG.1000.6 §6.4.1: SAFE-OP keeps the
+        outputs in their safe state), so in SAFE-OP the working counter counts the inputs
+        alone; inputs are read (and counted) in SAFE-OP and OP. ``on_outputs`` gets every slave
+        the datagram mapped outputs of (their applications read their inputs' sources there)."""
         wrote = []
         reads = []
         for s in self.slaves:
@@ -601,15 +646,17 @@ class Segment:
                     continue
                 phys = pstart + (lo - lstart)
                 if ftype & 0x02 and cmd in (LWR, LRW):      # outputs (master writes)
-                    s.write(phys, bytes(buf[doff + lo - la:doff + hi - la]))
+                    if s.state == OP:
+                        s.write(phys, bytes(buf[doff + lo - la:doff + hi - la]))
                     did_w = True
                 if ftype & 0x01 and cmd in (LRD, LRW):      # inputs (master reads)
                     reads.append((s, phys, lo - la, hi - lo))
                     did_r = True
             if did_w:
-                s.outputs_done()
                 wrote.append(s)
-                wkc += 2 if cmd == LRW else 1
+                if s.state == OP:
+                    s.outputs_done()
+                    wkc += 2 if cmd == LRW else 1
             if did_r:
                 wkc += 1
         self.on_outputs(wrote)

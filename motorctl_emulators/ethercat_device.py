@@ -29,8 +29,12 @@ frames within one period the later one's outputs are applied at the next SYNC0 (
 latches its outputs at SYNC0). Plant time is then the slave's clock, as on a machine.
 
 SM watchdog (0x0420 × (0x0400 + 2) × 40 ns, SM2's watchdog bit): no outputs for that long in
-OP → outputs 0 (drive: Fault 0x8100 with an emergency; terminals: 0 V, enable off), AL state
-SAFE-OP with status code 0x001B. The plant bank's command watchdog is not used.
+OP → the outputs to 0 (drive: Fault 0x8100 with an emergency; terminals: 0 V, enable off) while
+the SM buffer keeps the last data, as an ESC's does; the drive, the EL5101 and the EL4132 go to
+SAFE-OP with AL status code 0x001B, the EL2008 (outputs driven by its ESC) stays in OP and
+drives again with the next frame's outputs. In SAFE-OP a logical write is not taken and not
+counted in the working counter (only the inputs are). The plant bank's command watchdog is not
+used.
 
 Faults (``--fault KIND:AXIS:START:COUNT``, START counting process-data frames): drop (no
 answer), late (answer after ``--late``), corrupt (the axis's slaves do not count: a short
@@ -341,13 +345,18 @@ class CoeDrive(E.SlaveApp):
 
 
 class Terminal(E.SlaveApp):
-    """An I/O terminal's application: fixed PDOs (from the SII), outputs as the master wrote them."""
+    """An I/O terminal's application: fixed PDOs (from the SII), outputs as the master wrote them.
 
-    def __init__(self, outputs_size: int, inputs_size: int):
+    ``leaves_op_on_watchdog``: False for a terminal whose ESC drives the outputs itself (EL2008
+    type: no microcontroller; on a watchdog trip its pins go to 0 and it stays in OP).
+    """
+
+    def __init__(self, outputs_size: int, inputs_size: int, leaves_op_on_watchdog: bool = True):
         self.outputs_size, self.inputs_size = outputs_size, inputs_size
+        self.leaves_op_on_watchdog = leaves_op_on_watchdog
 
     def watchdog_expired(self):
-        pass                                         # the ESC zeroed the outputs: 0 V, enable off
+        pass                                         # the ESC's output pins are 0: 0 V, enable off
 
 
 def _drive_esc(serial: int) -> E.Esc:
@@ -379,7 +388,8 @@ def _terminal_esc(product: int, serial: int) -> E.Esc:
         tx = [(0x1A00, len(syncms) - 1, in_entries)]
     sii = E.build_sii(vendor_id=VENDOR_BECKHOFF, product_code=product, revision=0x00100000, serial=serial,
                       name=name, mailbox=None, syncms=syncms, txpdos=tx, rxpdos=rx)
-    return E.Esc(sii, Terminal(out_size, in_size), syncms, dc=product != EK1100)
+    return E.Esc(sii, Terminal(out_size, in_size, leaves_op_on_watchdog=product != EL2008), syncms,
+                 dc=product != EK1100)
 
 
 def veth_peer(ifname: str) -> str:
@@ -492,13 +502,12 @@ class EthercatDevice(Device):
             else:
                 ao, do, enc = (self.slaves[o.analog_out.slave - 1], self.slaves[o.enable.slave - 1],
                                self.slaves[o.encoder.slave - 1])
-                op = ao.state == E.OP and do.state == E.OP
-                raw = ao.outputs()
+                raw = ao.output_pins()
                 k = 2 * (o.analog_out.channel - 1)
                 counts = int.from_bytes(raw[k:k + 2], "little", signed=True) if len(raw) >= k + 2 else 0
                 u = counts_to_volts(counts, o.voltage_full_scale_V, 16)
-                dbyte = do.outputs()
-                on = op and bool(dbyte and dbyte[0] >> (o.enable.channel - 1) & 1)
+                dbyte = do.output_pins()
+                on = bool(dbyte and dbyte[0] >> (o.enable.channel - 1) & 1)
                 if step:
                     self._apply(i, u, on, self._periods(i, ao))
                 c = b.counts(i, o.encoder_m_per_count) & 0xFFFFFFFF
@@ -583,9 +592,9 @@ class EthercatDevice(Device):
     def _watchdog(self, k: int, s: E.Esc) -> None:
         b = self.bank
         b.watchdog_trips += 1
+        state = f"SAFE-OP + error 0x{E.AL_SM_WATCHDOG:04X}" if s.app.leaves_op_on_watchdog else "stays in OP"
         b.log(f"slave {k + 1}: SM watchdog, no outputs for {s.watchdog_time_ns() / 1e6:g} ms: outputs 0, "
-              f"SAFE-OP + error 0x{E.AL_SM_WATCHDOG:04X} ({s.watchdog_gap_ns / 1e6:.1f} ms after the last "
-              f"outputs)")
+              f"{state} ({s.watchdog_gap_ns / 1e6:.1f} ms after the last outputs)")
         for i, a in enumerate(b.names):
             o = self.axis_options[a]
             if k + 1 in [p for p, _ in o.slave_roles()]:

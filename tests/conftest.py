@@ -70,3 +70,27 @@ def gantry_yaml(repo) -> Path:
 def default_yaml(repo) -> Path:
     """configs/gantry.yaml: the default of every command (the realistic plant)."""
     return repo / "configs" / "gantry.yaml"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def warm_numba_cache():
+    """Compile the servo cycle once for the whole session (``motorctl warmup``), under a file
+    lock so that the workers of one run wait for one compile instead of each compiling (and
+    each daemon test waiting for a loop that is still compiling). Free when the cache is warm."""
+    import fcntl
+    import subprocess
+
+    from motorctl.app.warmup import cache_is_cold
+    if not cache_is_cold():
+        return
+    lock = REPO / ".pytest_cache" / "numba-warmup.lock"
+    lock.parent.mkdir(exist_ok=True)
+    with open(lock, "w") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            if cache_is_cold():
+                for cfg in ("gantry-rigid.yaml", "gantry.yaml"):
+                    subprocess.run([*MOTORCTL, "warmup", str(REPO / "configs" / cfg)], cwd=REPO,
+                                   capture_output=True, timeout=900, check=True)
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)

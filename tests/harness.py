@@ -7,14 +7,18 @@ at this machine, network namespace, emulator process), so a test imports them fr
   polling.
 * :func:`device_thread`, :func:`exchange`: an emulated device served from a thread of the test
   process and driver cycles against it (python-can's ``virtual`` bus, ptys).
+* :func:`emps_path`: the local EMPS record (never downloaded), or None.
+* :func:`plugin_env`: an environment where a package outside motorctl registers entry points.
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
 import subprocess
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -33,6 +37,34 @@ from motorctl_emulators.loopback import (  # noqa: F401  (re-exported for the te
     motorctl_cmd,
     sim_twin,
 )
+
+
+#: the project's shared data directory beside the clone (as CI has it), tried after MOTORCTL_DATA_DIR
+SHARED_DATA_DIR = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def emps_path() -> str | None:
+    """The EMPS record ``emps/DATA_EMPS.mat`` (motorctl.datasets' layout) under
+    ``$MOTORCTL_DATA_DIR`` first, then under the shared data directory beside the clone; None when
+    neither has it (the tests that need it skip). Nothing is downloaded."""
+    from motorctl.datasets import DATA_DIR_ENV, local_path
+    roots = [os.environ[DATA_DIR_ENV]] if os.environ.get(DATA_DIR_ENV) else []
+    for root in [*roots, SHARED_DATA_DIR]:
+        path = local_path("emps", Path(root))
+        if path.is_file():
+            return str(path)
+    return None
+
+
+def plugin_env(root: Path, dist: str, group: str, entries: dict[str, str], *path: Path) -> dict:
+    """``os.environ`` with ``root`` (and ``path``) on PYTHONPATH, where ``root/<dist>-0.1.dist-info``
+    declares ``entries`` (name -> "module:attr") in entry-point ``group``: as an installed
+    plugin package is seen by importlib.metadata."""
+    info = Path(root) / f"{dist}-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {dist}\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text(f"[{group}]\n" + "".join(f"{k} = {v}\n" for k, v in entries.items()))
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(str(p) for p in (root, *path))}
 
 
 def run_cli(argv: list[str], prefix=(), timeout_s: float = 60.0) -> subprocess.CompletedProcess:
@@ -114,3 +146,38 @@ def device_thread(dev):
     finally:
         stop.set()
         th.join(timeout=5)
+
+
+#: the plant of :func:`loop_csv`: mass [kg], force gain A1 [N/V], viscous [N s/m], Coulomb [N]
+LOOP_M, LOOP_A1, LOOP_B, LOOP_FC = 10.0, 50.0, 20.0, 8.0
+
+
+def loop_csv(path, xd: np.ndarray, ts: float = 1e-3, seed: int = 0, y_noise_m: float = 2e-7,
+             u_noise_V: float = 0.02, play_V: float = 0.0, enc_m: float = 0.0, cogging_N: float = 0.0,
+             period_m: float = 2e-3) -> str:
+    """A PID position loop on the measured y tracking ``xd`` (N,) [m], written as a CSV
+    ``t,y,u`` (a user's measurement; gain :data:`LOOP_A1`): a mass with viscous and Coulomb
+    friction, explicit Euler at ``ts`` [s], seeded noise on y and u. Optional, each off at 0: a
+    play of ±play_V [V] in the amplifier's input (backlash, no family models it), an
+    interpolation error enc_m·sin(2πx/P) [m] of the reading and a cogging force
+    cogging_N·sin(2πx/P) [N], P = period_m. Returns the path as text."""
+    import math
+    rng = np.random.default_rng(seed)
+    n = len(xd)
+    t = np.arange(n) * ts
+    x = v = e_int = u_amp = 0.0
+    ys, us = np.empty(n), np.empty(n)
+    k = 2 * np.pi / period_m
+    for i in range(n):
+        y = x + enc_m * math.sin(k * x) + rng.normal(0.0, y_noise_m)
+        e = xd[i] - y
+        e_int += e * ts
+        vd = (xd[min(i + 1, n - 1)] - xd[i]) / ts
+        u = float(np.clip(4000.0 * e + 40000.0 * e_int + 60.0 * (vd - v) + rng.normal(0.0, u_noise_V), -10.0, 10.0))
+        u_amp = max(u - play_V, min(u + play_V, u_amp))     # play operator (backlash)
+        a = (LOOP_A1 * u_amp - LOOP_B * v - LOOP_FC * math.tanh(v / 1e-3) + cogging_N * math.sin(k * x)) / LOOP_M
+        v += a * ts
+        x += v * ts
+        ys[i], us[i] = y, u
+    np.savetxt(path, np.column_stack([t, ys, us]), delimiter=",", header="t,y,u", comments="")
+    return str(path)

@@ -161,3 +161,21 @@ def test_one_evaluation_for_run_and_autotune(repo, tmp_path):
     assert by_run["u_rest_rms_V"] is not None
     for k in ("L2_um", "e_M_um", "saturated", "samples", "u_rest_rms_V", "fault"):
         assert mine[k] == by_run[k], (k, mine[k], by_run[k])
+
+
+@pytest.mark.parametrize("option,value,words", [
+    ("--verify-seconds", "1.7e-151", "allowed 0.5..1e+06 s"),
+    ("--verify-seconds", "nan", "outside"),
+    ("--verify-seconds", "-1", "outside"),
+    ("--gm-min-db", "nan", "allowed 0..30"),
+    ("--search-runs", "-3", "allowed 0..200"),
+])
+def test_autotune_refuses_an_out_of_range_option_before_measuring(option, value, words, capsys, tmp_path):
+    """One line, exit 2, nothing measured and no output directory made."""
+    from motorctl.cli import main
+    out = tmp_path / "out"
+    code = main(["autotune", "configs/gantry-rigid.yaml", "--axis", "X", "--virtual-clock",
+                 "--out", str(out), option, value])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and option in err and words in err, err
+    assert not out.exists()

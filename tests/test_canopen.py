@@ -207,6 +207,48 @@ def test_a_missing_drive_heartbeat_is_a_read_error(tmp_path):
         assert time.monotonic() - t_stop >= 0.3 - 0.2
 
 
+def test_a_drive_leaving_operational_is_an_amplifier_fault_naming_its_nmt_state(tmp_path):
+    """Y's drive goes pre-operational (its heartbeat says 0x7F): an amplifier fault at the next
+    read, not an I/O error the bucket would count for ten cycles; X is untouched."""
+    loaded = config_from_dict(_config(tmp_path), "<co>", check_budget=False)
+    with _drives(loaded) as (dev, drv):
+        drv.open()
+        exchange(drv, [0, 0], [False, False], n=10, sleep_s=0.002)
+        assert not drv.amp_fault.any() and drv.fault_reason(1) == ""
+        dev.drives[1].node.nmt.state = "PRE-OPERATIONAL"     # its next heartbeat (10 ms) says so
+        t0 = time.monotonic()
+        while not drv.amp_fault[1] and time.monotonic() - t0 < 5.0:       # bounded
+            exchange(drv, [0, 0], [False, False], sleep_s=0.002)
+            assert not drv.read_error[1] or not drv.amp_fault[1]
+        assert drv.amp_fault[1] and not drv.read_error[1] and not drv.amp_fault[0]
+        assert drv.fault_reason(1) == ("canopen node 2 (axis Y) left NMT Operational: its heartbeat says "
+                                       "pre-operational (0x7F)")
+        assert drv.counters["nmt_left"] >= 1
+
+
+def test_close_restores_every_object_the_set_up_changed(tmp_path):
+    """The drives' objects as found before the set-up (X's producer heartbeat 0x1017 at its own
+    100 ms), changed for the run, and the same again after close."""
+    loaded = config_from_dict(_config(tmp_path), "<co>", check_budget=False)
+    objects = [(0x1005, 0), (0x1006, 0), (0x1016, 1), (0x1017, 0), (0x6007, 0), (0x6060, 0)]
+    objects += [(c + k, sub) for c in (0x1400, 0x1600, 0x1800, 0x1A00) for k in range(4) for sub in (0, 1, 2)]
+    with device_thread(build_device(loaded, PLANT)) as dev:
+        node = dev.drives[0].node
+        node.sdo.download(0x1017, 0, (100).to_bytes(2, "little"))
+        before = {key: bytes(node.sdo.upload(*key)) for key in objects}
+        drv = loaded.make_driver()
+        try:
+            drv.open()
+            exchange(drv, [0, 0], [False, False], n=5)
+            during = {key: bytes(node.sdo.upload(*key)) for key in objects}
+        finally:
+            drv.close()
+        after = {key: bytes(node.sdo.upload(*key)) for key in objects}
+    assert during[(0x1017, 0)] == (10).to_bytes(2, "little") and during[(0x6060, 0)] == b"\x0a"
+    assert after == before, {k: (before[k].hex(), after[k].hex()) for k in objects if after[k] != before[k]}
+    assert drv.counters["restored"] >= 10, drv.counters
+
+
 def test_the_drives_heartbeat_consumer_stops_the_motor_when_the_host_goes_silent(tmp_path):
     # a consumer of 300 ms: a loaded host's stall between two exchanges does not reach it
     loaded = config_from_dict(_config(tmp_path, abort_connection_option=2, heartbeat_consumer_ms=300), "<co>",

@@ -158,7 +158,7 @@ def test_a_drive_with_fixed_pdos_and_no_optional_objects_runs_the_closed_loop(tm
     assert res.stop_confirmed, res.stop
     assert all("Switch on disabled" in c.held and "no torque actual 0x6077" in c.held for c in res.stop), res.stop
     assert dev.bank.applied_V == [0.0, 0.0] and dev.bank.enabled == [False, False]
-    assert held == [10, 10]                               # the producer heartbeat the driver set
+    assert held == [DRIVE_HEARTBEAT_MS, DRIVE_HEARTBEAT_MS]   # the driver set 10 for the run; close restores
 
 
 def test_without_a_heartbeat_consumer_the_set_up_is_refused_and_restored(tmp_path):

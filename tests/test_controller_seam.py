@@ -11,7 +11,7 @@ import sys
 
 import yaml
 
-from harness import parse_run_table
+from harness import parse_run_table, plugin_env
 
 PLUGIN = '''
 import numpy as np
@@ -59,11 +59,7 @@ class PD(Controller):
 
 def _plugin_env(tmp_path) -> dict:
     (tmp_path / "pdlaw.py").write_text(PLUGIN)
-    info = tmp_path / "pdlaw-0.1.dist-info"
-    info.mkdir()
-    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: pdlaw\nVersion: 0.1\n")
-    (info / "entry_points.txt").write_text("[motorctl.controllers]\npd = pdlaw:PD\n")
-    return {**os.environ, "PYTHONPATH": str(tmp_path)}
+    return plugin_env(tmp_path, "pdlaw", "motorctl.controllers", {"pd": "pdlaw:PD"})
 
 
 def _pd_config(repo, tmp_path, **pd) -> str:

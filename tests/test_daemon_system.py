@@ -32,8 +32,8 @@ def test_unit_files_verify_clean(tmp_path, unit, instance):
         assert key in text, key
     assert "Restart=always" not in text
     # ExecStart rewritten to the console script under test (verify checks that it exists)
-    text, n = re.subn(r"^ExecStart=\S+", f"ExecStart={exe}", text, flags=re.M)
-    assert n == 1, "one ExecStart line"
+    text, n = re.subn(r"^(ExecStart(?:Pre)?)=\S+", rf"\1={exe}", text, flags=re.M)
+    assert n == 2, "one ExecStart line, one ExecStartPre (motorctl warmup)"
     (tmp_path / unit).write_text(text)
     if instance != unit:
         (tmp_path / instance).write_text(text)
@@ -49,7 +49,7 @@ def test_unit_files_verify_clean(tmp_path, unit, instance):
 def test_units_are_sandboxed(tmp_path, unit, instance):
     """systemd's own exposure scale: 3.0 or lower, with what the loop needs kept open."""
     exe = str(console_script())
-    text = re.sub(r"^ExecStart=\S+", f"ExecStart={exe}", (REPO / "systemd" / unit).read_text(),
+    text = re.sub(r"^(ExecStart(?:Pre)?)=\S+", rf"\1={exe}", (REPO / "systemd" / unit).read_text(),
                   flags=re.M)
     for key in ("RestrictRealtime=no", "LimitMEMLOCK=infinity", "AF_UNIX", "AF_CAN", "AF_INET",
                 "LimitNOFILE=", "NoNewPrivileges=yes", "ProtectSystem=strict",
@@ -170,7 +170,7 @@ def test_the_ethercat_drop_in_grants_raw_frames_and_nothing_else(tmp_path):
     keys = [ln for ln in drop.splitlines() if ln and not ln.startswith("#")]
     assert keys == ["[Service]", "CapabilityBoundingSet=CAP_NET_RAW CAP_NET_ADMIN",
                     "AmbientCapabilities=CAP_NET_RAW CAP_NET_ADMIN", "RestrictAddressFamilies=AF_PACKET"]
-    text = re.sub(r"^ExecStart=\S+", f"ExecStart={console_script()}", (REPO / "systemd" / "motorctl.service").read_text(),
+    text = re.sub(r"^(ExecStart(?:Pre)?)=\S+", rf"\1={console_script()}", (REPO / "systemd" / "motorctl.service").read_text(),
                   flags=re.M)
     merged = text.replace("[Install]", "\n".join(keys[1:]) + "\n\n[Install]")
     (tmp_path / "motorctl.service").write_text(merged)

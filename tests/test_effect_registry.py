@@ -18,7 +18,6 @@ import math
 import subprocess
 import sys
 from pathlib import Path
-from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -31,65 +30,20 @@ from motorctl.effects import (
     family,
     simulated,
 )
-from motorctl.effects.base import EffectFamily, PlantTerm, Signals
+from motorctl.effects.base import EffectFamily, Signals
 from motorctl.model import s_f_scalar
-from motorctl.schema import StrictModel
+from toy_family import QuadraticDrag
 
 ROOT = Path(__file__).resolve().parents[1]
 TS = 2e-4
 A1 = 80.0
 ORDER = ("cogging", "force_ripple", "stribeck", "asymmetric_friction", "position_dependent_friction",
          "spring", "payload_change", "input_delay", "periodic_disturbance", "position_friction_shape",
-         "stiction", "amplifier_dead_zone", "force_constant_drift", "periodic_friction")
+         "stiction", "amplifier_dead_zone", "force_constant_drift", "periodic_friction",
+         "encoder_interpolation")
 #: (x [m], ẋ [m/s], t [s]) where terms are compared: both directions, slow and fast, ẋ = 0
 POINTS = [(x, v, t) for x in (-0.05, 0.013, 0.2, 0.37) for v in (-0.8, -0.01, 0.0, 0.004, 0.05, 0.8)
           for t in (0.0, 0.41, 2.3)]
-
-
-# ---------------------------------------------------------------------------- a toy family
-class DragOptions(StrictModel):
-    drag_N_s2_per_m2: float
-
-
-class DragComp(StrictModel):
-    drag_V_s2_per_m2: float
-
-
-class QuadraticDrag(EffectFamily):
-    """Aerodynamic drag F_eff = −c ẋ|ẋ| [N]; column ẋ|ẋ|; d̂_eff = −c_V ẋ|ẋ| [V]."""
-
-    name = "quadratic_drag"
-    plant_force = "−c ẋ|ẋ|"
-    sim_options = DragOptions
-    example: ClassVar[dict] = {"quadratic_drag": {"drag_N_s2_per_m2": 20.0}}
-    comp_options = DragComp
-
-    def plant_term(self, o, period_s):
-        c = o.drag_N_s2_per_m2
-        return PlantTerm(force=lambda f, x, v, t, sf: f - c * v * abs(v))
-
-    def columns(self, h, p):
-        return (p.v * np.abs(p.v))[:, None]
-
-    def parameters(self, h, beta, gain, fs):
-        g, unit = (gain, "N") if gain else (1.0, "V")
-        return {f"drag_{unit}_s2_per_m2": float(g * beta[0])}
-
-    def compensation(self, h, beta):
-        return {"drag_V_s2_per_m2": float(beta[0])}
-
-    def compensation_for(self, o, a1):
-        return {"drag_V_s2_per_m2": o.drag_N_s2_per_m2 / a1}
-
-    def compensator(self, o):
-        c = o.drag_V_s2_per_m2
-        return lambda d, x, v, t, sf: d - c * v * abs(v)
-
-    def shape(self, ctx, h, beta, gain):
-        vs = np.linspace(-1.0, 1.0, 101)
-        zero = np.zeros_like(vs)
-        return vs, -(gain or 1.0) * (self.columns(h, Signals(zero, vs, zero, zero, zero)) @ beta), \
-            "velocity [m/s]", "effect force [UNIT]"
 
 
 @pytest.fixture
@@ -136,7 +90,7 @@ def test_registry_order_names_and_lookup():
     assert [f.name for f in compensable()] == ["cogging", "spring", "periodic_disturbance", "stribeck",
                                                "asymmetric_friction", "position_dependent_friction",
                                                "position_friction_shape", "periodic_friction"]
-    assert {f.name for f in simulated()} == set(ORDER) - {"input_delay", "stiction"}
+    assert {f.name for f in simulated()} == set(ORDER) - {"input_delay", "stiction", "encoder_interpolation"}
 
 
 @pytest.mark.parametrize("name", ORDER)
@@ -149,6 +103,15 @@ def test_every_family_is_in_the_sim_schema_and_changes_the_plant(name):
     opt = SimAxisOptions.model_validate({**base, **_driver_fragment(fam)})
     assert fam.sim_config(opt) is not None and fam.sim_config(SimAxisOptions.model_validate(base)) is None
     plants = [AxisPlant(o, TS, np.random.default_rng(0), 4) for o in (opt, SimAxisOptions.model_validate(base))]
+    if getattr(fam, "measurement", False):
+        # an error of the reading: the carriage moves as without it, the measured position differs
+        assert fam.plant_term(fam.sim_config(opt), TS) is None
+        for p in plants:
+            for _ in range(300):
+                p.step(2.0)
+        assert plants[0].x == plants[1].x
+        assert abs(plants[0].measured() - plants[1].measured()) > 4e-7      # a count of 0.5 um or more
+        return
     # stiction (25 N) holds a carriage pushed with 16 N; every other effect shows at 160 N
     u0 = 0.2 if name == "stiction" else 2.0
     for p in plants:
@@ -311,7 +274,8 @@ def test_toy_family_is_compensated(toy):
 
 
 _E2E = r"""
-import importlib.util, json, sys
+import importlib.util, json, os, sys
+sys.path.insert(0, os.path.dirname(sys.argv[1]))   # tests/: the toy family's module
 spec = importlib.util.spec_from_file_location("registry_test", sys.argv[1])
 mod = importlib.util.module_from_spec(spec); spec.loader.exec_module(mod)
 from motorctl.effects import FAMILIES

@@ -12,7 +12,16 @@ import struct
 import time
 
 from harness import free_port
-from test_daemon_helpers import ctl, running_daemon
+from test_daemon_helpers import ctl, running_daemon, wait_for
+
+
+def _listening(port: int) -> bool:
+    import socket
+    try:
+        socket.create_connection(("127.0.0.1", port), timeout=1).close()
+        return True
+    except OSError:
+        return False
 
 
 async def _one_message_per_channel(url: str, timeout_s: float) -> tuple[dict, dict]:
@@ -55,6 +64,7 @@ def test_foxglove_client_decodes_every_channel(tmp_path):
                 break
             time.sleep(0.2)
         assert r.returncode == 0, r.stdout + r.stderr
+        wait_for(lambda: _listening(port), 30, "the view process to serve Foxglove")
         channels, got = asyncio.run(_one_message_per_channel(f"ws://127.0.0.1:{port}/", 20.0))
     topics = {c["topic"] for c in channels.values()}
     assert topics == {"/motorctl/X", "/motorctl/Y", "/motorctl/loop", "/motorctl/status"}

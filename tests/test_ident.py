@@ -22,15 +22,18 @@ from motorctl.ident.effects import parameters
 from motorctl.ident.pipeline import summarise, text_report
 from motorctl.ident.select import Identifier
 from motorctl.ident.synth import EXAMPLES
+from harness import emps_path
 
-#: ../shared beside the clone (as CI has it)
-EMPS = str(Path(__file__).resolve().parents[2] / "shared" / "data" / "emps" / "DATA_EMPS.mat")
+#: the EMPS record: $MOTORCTL_DATA_DIR, else the shared data directory beside the clone (or None)
+EMPS = emps_path()
 #: published IDIM-LS values, EMPS description (Janot, Gautier, Brunot 2019), §3.4
 EMPS_PUBLISHED = {"mass_kg": 95.1089, "viscous_N_s_per_m": 203.5034, "coulomb_N": 20.3935, "OF_N": -3.1648}
 DURATION_S = 6.0
 CLEAN_SEEDS = (11, 12, 13)
 #: (log name, axis, effect, duration)
-CASES = [(name, "X", eff, DURATION_S) for name, eff in EXAMPLES.items() if name != "payload_change"]
+#: (encoder_interpolation, an error of the reading, has its own tests: tests/test_encoder_interpolation.py)
+CASES = [(name, "X", eff, DURATION_S) for name, eff in EXAMPLES.items()
+         if name not in ("payload_change", "encoder_interpolation")]
 CASES.append(("payload_change", "Y", {"payload_change": {"t_change_s": 4.6, "mass_kg": 8.0}}, 8.0))
 
 
@@ -166,7 +169,7 @@ def test_text_report_says_no_effect_on_clean_log(logs, capsys):
 # ---------------------------------------------------------------------------- EMPS measured data
 @pytest.fixture(scope="module")
 def emps():
-    if not os.path.exists(EMPS):
+    if EMPS is None:
         pytest.skip("EMPS data not available")
     rec = load_record(EMPS, "t=t,y=qm,u=vir,yd=qg", "gtau")
     # the full search with the reference structure; the nominal fit as published (the reference
@@ -255,7 +258,7 @@ def test_bad_csv_exit_2(tmp_path, capsys, case, needle):
 
 
 def test_bad_mat_mapping_and_gain_exit_2(capsys):
-    if not os.path.exists(EMPS):
+    if EMPS is None:
         pytest.skip("EMPS data not available")
     assert main(["identify", EMPS, "--map", "t=t,y=qx,u=vir"]) == 2
     assert "no variable 'qx'" in capsys.readouterr().err

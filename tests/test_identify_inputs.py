@@ -12,16 +12,16 @@ import os
 import struct
 import time
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from motorctl.cli import main
 from motorctl.recorder.runlog import MAGIC, LogWriter
+from harness import emps_path
 
-#: ../shared beside the clone (as CI has it)
-EMPS = str(Path(__file__).resolve().parents[2] / "shared" / "data" / "emps" / "DATA_EMPS.mat")
+#: the EMPS record: $MOTORCTL_DATA_DIR, else the shared data directory beside the clone (or None)
+EMPS = emps_path()
 #: each malformed case must be refused within this time [s]
 MAX_CASE_S = 5.0
 
@@ -278,7 +278,7 @@ def test_clean_runlog_and_mat_exit_0(tmp_path, capsys):
 
 
 def test_emps_still_exits_0(capsys):
-    if not os.path.exists(EMPS):
+    if EMPS is None:
         pytest.skip("EMPS data not available")
     assert main(["identify", EMPS, "--map", "t=t,y=qm,u=vir,yd=qg", "--gain", "gtau", "--json",
                  "--no-closed-loop"]) == 0

@@ -20,17 +20,20 @@ def test_a_run_longer_than_its_ring_logs_every_row_and_the_same_indexes(repo, tm
     loaded = load_config(repo / "configs" / "gantry.yaml")
     log = tmp_path / "run.mclog"
     res = job.run_job(loaded, duration_s=1.5, clock=clock, log_path=str(log), realtime_policy="off")
-    assert res.cycles == 7500 and res.lost_rows == 0
+    n = 7500 + 3                                      # two idle cycles and a 0 s approach first
+    assert res.cycles == n and res.lost_rows == 0
     rl = read_log(str(log))
     t = rl.col("t")
-    assert len(t) == 7500 and np.array_equal(t, np.arange(7500) * loaded.period_s)
+    assert len(t) == n and np.array_equal(t, np.arange(n) * loaded.period_s)
     assert rl.header["realtime"] != "pending" and rl.header["stop"]     # the end's facts are in
     for a in ("X", "Y"):
         ax = rl.axis(a)
-        ref = tracking_indexes(t, ax["e"], ax["u"], loaded.axes[a].trajectory.period_s)
+        prog = ax["mode"] == 2                        # the indexes: the program's rows only
+        ref = tracking_indexes(t[prog] - t[prog][0], ax["e"][prog], ax["u"][prog],
+                               loaded.axes[a].trajectory.period_s)
         for k, v in ref.items():
             assert res.axes[a][k] == pytest.approx(v, rel=1e-12), (a, k)
-    assert res.timing["cycles"] == 7500
+    assert res.timing["cycles"] == n
 
 
 def test_a_run_that_never_cycles_leaves_no_log(repo, tmp_path):

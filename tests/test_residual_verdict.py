@@ -12,29 +12,15 @@ import pytest
 from motorctl.ident.data import load_record
 from motorctl.ident.pipeline import summarise
 from motorctl.ident.select import Identifier
+from harness import LOOP_A1, loop_csv
 
-M, A1, B, FC = 10.0, 50.0, 20.0, 8.0      # kg, N/V, N s/m, N
+A1 = LOOP_A1
 
 
-def _loop_csv(path, play_V: float, n: int = 20000, ts: float = 1e-3, seed: int = 0) -> str:
-    rng = np.random.default_rng(seed)
+def _loop_csv(path, play_V: float, n: int = 20000, ts: float = 1e-3) -> str:
     t = np.arange(n) * ts
     xd = 0.05 * np.sin(2 * np.pi * 0.5 * t) + 0.02 * np.sin(2 * np.pi * 1.3 * t + 0.4)
-    x = v = e_int = u_amp = 0.0
-    ys, us = np.empty(n), np.empty(n)
-    for k in range(n):
-        y = x + rng.normal(0.0, 2e-7)
-        e = xd[k] - y
-        e_int += e * ts
-        vd = (xd[min(k + 1, n - 1)] - xd[k]) / ts
-        u = float(np.clip(4000.0 * e + 40000.0 * e_int + 60.0 * (vd - v) + rng.normal(0.0, 0.02), -10.0, 10.0))
-        u_amp = max(u - play_V, min(u + play_V, u_amp))     # play operator (backlash)
-        a = (A1 * u_amp - B * v - FC * np.tanh(v / 1e-3)) / M
-        v += a * ts
-        x += v * ts
-        ys[k], us[k] = y, u
-    np.savetxt(path, np.column_stack([t, ys, us]), delimiter=",", header="t,y,u", comments="")
-    return str(path)
+    return loop_csv(path, xd, ts, play_V=play_V)
 
 
 @pytest.fixture(scope="module")
@@ -62,3 +48,40 @@ def test_the_same_loop_without_it_leaves_no_structure(verdicts):
     res = verdicts["clean"]["residual"]
     assert not res["structured"], res["findings"]
     assert {t["against"] for t in res["tested"]} == {"velocity", "input", "position", "time", "spectrum"}
+
+
+def test_a_candidate_refused_on_its_physics_is_reported_unexplained():
+    """A last-step candidate that explains a share of the held-out residual and is refused only
+    on its physics (a line the loop itself oscillates at) makes the verdict 'unexplained'; one
+    that explains too little, or is also weak, does not; a selected one never."""
+    from types import SimpleNamespace
+
+    from motorctl.ident.pipeline import add_refused
+
+    def cand(family, gain, *reasons, ok=False):
+        return SimpleNamespace(term=SimpleNamespace(family=family), ok=ok, gain=gain, reasons=list(reasons))
+    resonance = "the loop itself oscillates at 67.75 Hz (...): a resonance of the loop or the structure"
+    step = [cand("periodic_disturbance", 0.10, resonance),
+            cand("cogging", 0.20, "not the same force in both directions", "held-out gain 2.0 % < 3 %"),
+            cand("stribeck", 0.04, "Stribeck force must be positive"),
+            cand("spring", 0.30, ok=True)]
+    clean = {"structured": False, "findings": [],
+             "text": "the residual shows no structure (against velocity, input, position, time, spectrum)"}
+    add_refused(clean, step, [step[3]])
+    assert clean["structured"] and [f["against"] for f in clean["findings"]] == ["periodic_disturbance"]
+    assert clean["text"].startswith("unexplained structured residual remains: what periodic_disturbance "
+                                    "would explain (10 % of the held-out residual), refused: the loop itself")
+    quiet = {"structured": False, "findings": [], "text": "the residual shows no structure (against x)"}
+    add_refused(quiet, step[1:], [])
+    assert not quiet["structured"] and quiet["text"] == "the residual shows no structure (against x)"
+
+
+def test_the_loop_check_tells_a_resonance_from_a_disturbance():
+    """The shares measured on the default plant (150 Hz mode: inertial 0.80, input 1.01; the
+    7.3 Hz example disturbance: inertial 0.0014) and the rigid plant's short log (inertial 6.0,
+    where the program's own motion dominates: not judged)."""
+    from motorctl.effects.periodic_disturbance import FAMILY
+    assert FAMILY.loop_oscillates(0.80, 1.01)
+    assert not FAMILY.loop_oscillates(0.0014, 1.0)
+    assert not FAMILY.loop_oscillates(6.0, 7.7)
+    assert not FAMILY.loop_oscillates(0.8, 0.05)       # the input does not follow: above the bandwidth

@@ -36,6 +36,13 @@ def _wait(pred, timeout_s: float, what: str):
     raise AssertionError(f"timed out waiting for {what}")
 
 
+def _get(url: str):
+    try:
+        return urllib.request.urlopen(url, timeout=5).read()
+    except OSError:              # the view process binds its port a moment after the start
+        return None
+
+
 def test_scope_page_shows_the_error_moving_and_a_fault_with_its_reason(tmp_path):
     from playwright.sync_api import sync_playwright
 
@@ -43,7 +50,7 @@ def test_scope_page_shows_the_error_moving_and_a_fault_with_its_reason(tmp_path)
     with running_daemon(tmp_path, fault_axis=True, busy_y=True,
                         extra_daemon={"scope": {"listen": f"127.0.0.1:{port}"}}) as d:
         url = f"http://127.0.0.1:{port}/"
-        meta = json.loads(urllib.request.urlopen(url + "meta", timeout=5).read())
+        meta = json.loads(_wait(lambda: _get(url + "meta"), 30, "the view process to serve"))
         assert "X.e" in meta["channels"] and meta["units"][meta["channels"].index("X.e")] == "m"
         assert ctl(d.sock, "start", "Y").returncode == 0
         with sync_playwright() as pw:

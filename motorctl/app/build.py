@@ -8,7 +8,9 @@ Order of a run::
     asm = build(loaded, ...)          parse-only driver, controllers compiled, loop built
     report = start(asm, policy)       real-time set-up (``required`` refuses before any I/O),
                                       then driver.configure() and driver.activate()
-    asm.loop.run(n)                   cycles
+    asm.loop.run(n)                   cycles; ``motorctl run``: cycle 0 idle (the position
+                                      read), then :func:`approach_all` (every axis from where
+                                      it stands to its program's start), then the programs
     checks = shutdown(asm)            0 V and amplifiers off as a transaction of its own,
                                       answered and read back by the device (one
                                       StopCheck per axis), driver closed, real-time
@@ -18,6 +20,7 @@ Order of a run::
 from __future__ import annotations
 
 import datetime as _dt
+import math
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 
@@ -26,6 +29,7 @@ from motorctl.control import configured_controllers
 from motorctl.loop.rt import RealtimeReport, restore, setup_realtime
 from motorctl.loop.safety import Supervisor
 from motorctl.loop.servo import ServoLoop
+from motorctl.loop.trajectory import Move
 
 #: run-log header format (``format`` key); readers accept this and older
 LOG_FORMAT = 2
@@ -73,7 +77,7 @@ class Assembly:
 
 def build(loaded: LoadedConfig, axes=None, controller: str | None = None, *, clock: str,
           capacity: int, buffer=None, heartbeat=None, operated: bool = False,
-          all_controllers: bool = False) -> Assembly:
+          all_controllers: bool = False, stream=None) -> Assembly:
     """Build driver, controllers, supervisor and loop for ``axes`` (default: all).
 
     Args:
@@ -83,6 +87,8 @@ def build(loaded: LoadedConfig, axes=None, controller: str | None = None, *, clo
         operated: axes start disabled and follow operator commands (daemon).
         all_controllers: build every configured controller of each axis (so a switch is a
             swap of objects built beforehand).
+        stream: the setpoint ring of commanded motion (:class:`motorctl.loop.stream.SetpointRing`,
+            daemon); None: a private one-row ring.
     Raises:
         ConfigError: ``controller`` is not configured for an axis.
     """
@@ -110,8 +116,82 @@ def build(loaded: LoadedConfig, axes=None, controller: str | None = None, *, clo
                      heartbeat=heartbeat, overrun_policy=lc.overrun_policy,
                      overrun_hold=lc.overrun_hold_cycles, overrun_ramp_s=lc.overrun_ramp_s,
                      stop_settle_s=cfg.daemon.stop_settle_s if operated else 0.0,
-                     operated=operated)
+                     operated=operated, stream=stream)
     return Assembly(loaded, names, driver, bank, active, sup, programs, loop, clock)
+
+
+class StartRefused(RuntimeError):
+    """A run that may not start from where its axes stand (outside the soft limits, or a
+    fault latched on the first reading); nothing was driven."""
+
+
+def approach_move(asm: Assembly, i: int, y: float) -> Move:
+    """The approach of axis i: a jerk-limited rest-to-rest Move from where it stands, y [m],
+    to its program's first point, at the axis's trajectory limits (v_max, a_max, j_max);
+    the daemon's ``start`` and ``motorctl run`` both start through it."""
+    tc = asm.loaded.axes[asm.names[i]].trajectory
+    return Move(float(y), float(asm.programs[i].sample(0.0)[0]), tc.v_max, tc.a_max, tc.j_max, 0.0)
+
+
+def _cycles_to_cover(duration: float, ts: float) -> int:
+    """The fewest cycles m with m·ts ≥ duration, in the cycle's own float arithmetic
+    (:func:`motorctl.loop.cycle.servo_cycle` ends an approach at (k − k_start)·Ts ≥ its
+    duration)."""
+    m = max(0, math.ceil(duration / ts))
+    while m > 0 and (m - 1) * ts >= duration:
+        m -= 1
+    while m * ts < duration:
+        m += 1
+    return m
+
+
+#: an axis stands still for a start when its reading moves slower than this between two idle
+#: cycles (plus one count's worth, START_STILL_SLACK_M) [m/s]: a carriage that coasts (a run
+#: that ended at speed, a device that keeps its time in lockstep with the master) is waited for
+START_STILL_M_PER_S = 0.005
+START_STILL_SLACK_M = 1e-6
+#: the longest wait for the axes to stand still before a start is refused [s]
+START_STILL_WAIT_S = 2.0
+
+
+def moving_axes(asm: Assembly, y_before) -> list:
+    """The axes that moved faster than :data:`START_STILL_M_PER_S` since the reading
+    ``y_before`` [m] (n,) one cycle ago (names; [] when every axis stands still)."""
+    bound = START_STILL_M_PER_S * asm.loop.period_s + START_STILL_SLACK_M
+    return [a for i, a in enumerate(asm.names) if not abs(float(asm.driver.position_m[i]) - y_before[i]) <= bound]
+
+
+def approach_all(asm: Assembly) -> tuple[int, list]:
+    """Between cycles, after at least one idle cycle read every axis (``motorctl run``): every
+    axis starts its :func:`approach_move` from the position read, the shorter approaches held
+    at their start so that every approach ends in the same cycle and every program starts in
+    the next one (the axes of a gantry keep their programs' timing).
+
+    Returns:
+        (the cycle the programs start at, the approaches (Move) in axis order).
+    Raises:
+        StartRefused: an axis stands outside its soft limits or has a latched fault; no
+        axis was started.
+    """
+    loop, sup, drv = asm.loop, asm.supervisor, asm.driver
+    ys = [float(drv.position_m[i]) for i in range(len(asm.names))]
+    bad = []
+    for i, a in enumerate(asm.names):
+        lo, hi = asm.loaded.axes[a].limits.soft_min_m, asm.loaded.axes[a].limits.soft_max_m
+        if not sup.inside(i, ys[i]):
+            bad.append(f"axis {a} stands at {ys[i]:.6f} m, outside its soft limits [{lo:g}, {hi:g}] m "
+                       f"(jog it back inside with the daemon's 'motorctl jog')")
+        elif sup.fault[i]:
+            bad.append(f"axis {a} faulted on its first reading: {sup.reason(i)}")
+    if bad:
+        raise StartRefused("; ".join(bad) + "; nothing was driven")
+    moves = [approach_move(asm, i, y) for i, y in enumerate(ys)]
+    cover = [_cycles_to_cover(mv.duration, loop.period_s) for mv in moves]
+    n = max(cover)
+    k0 = loop.k
+    for i, mv in enumerate(moves):
+        loop.start_axis(i, mv, delay_cycles=n - cover[i])
+    return k0 + n + 1, moves
 
 
 def start(asm: Assembly, policy: str) -> RealtimeReport:

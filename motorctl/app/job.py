@@ -11,6 +11,15 @@ the virtual clock the loop takes the rows itself between cycles, every half ring
 header is written before the first cycle, with room for what is known only at the end (the
 real-time report, the stop the device confirmed, the signal), which is added last.
 
+A run starts as the daemon's ``start`` does: idle cycles (0 V, amplifier off) read where the
+axes stand, until two readings agree (a carriage still coasting is waited for, up to
+:data:`motorctl.app.build.START_STILL_WAIT_S`); a position outside the soft limits refuses the run
+(:class:`motorctl.app.build.StartRefused`, nothing driven), else every axis approaches its
+program's first point (:func:`motorctl.app.build.approach_all`), then the programs run for the
+run's duration. The rows carry each axis's mode; the indexes take the program's rows only
+(``mode`` = program), in program time, and the log's header gives ``program_start_s`` and the
+approaches.
+
 SIGTERM and SIGINT end the run at a cycle boundary; every exit path leaves the axes at 0 V with
 the amplifiers disabled, and the rows recorded so far are in the log.
 """
@@ -28,15 +37,17 @@ from pathlib import Path
 
 import numpy as np
 
-from motorctl.app.build import build, log_header, shutdown, start
+from motorctl.app.build import (START_STILL_WAIT_S, StartRefused, approach_all, build, log_header, shutdown,
+                                moving_axes, start)
+from motorctl.app.lifetime import parent_gone
 from motorctl.config import LoadedConfig
 from motorctl.inputs import InputError
-from motorctl.loop.records import RecordLayout
+from motorctl.loop.records import MODE_PROGRAM, RecordLayout
 from motorctl.loop.rt import keep_off, loop_cpu
 from motorctl.loop.safety import with_drive_reason
 from motorctl.metrics import TrackingAccumulator
 from motorctl.recorder.flight import CTL_STATE, SharedRing, TimingStats, take_rows
-from motorctl.recorder.ordering import load_acquire, store_release
+from motorctl.ordering import load_acquire, store_release
 from motorctl.recorder.runlog import LogWriter
 
 
@@ -53,6 +64,8 @@ HEADER_RESERVE = 64 << 10
 #: the drain process gets this long to hand over its figures after the loop ended [s]
 DRAIN_END_S = 60.0
 _ENDED = 3          # ring.ctl[CTL_STATE] when the loop has ended (flight.CTL_STATE's codes)
+#: the longest approach a run makes room for [s] (a 1 m stroke at 0.5 m/s takes 2 s or so)
+MAX_APPROACH_S = 60.0
 
 
 class _Sink:
@@ -76,6 +89,8 @@ class _Sink:
         self._turn, self._late = layout.cycle("turnaround_ns"), layout.cycle("lateness_ns")
         self._e = [layout.index(f"{a}.e") for a in names]
         self._u = [layout.index(f"{a}.u") for a in names]
+        self._mode = [layout.index(f"{a}.mode") for a in names]
+        self._t0 = [None] * len(names)        # each axis's program start [s], from its first row
         self.acc = [TrackingAccumulator(w, period_s) for w in windows]
         self.timing = TimingStats()
         self._pending: list = []
@@ -107,8 +122,12 @@ class _Sink:
         for j in range(0, n, BLOCK_ROWS):
             b = rows[j:min(j + BLOCK_ROWS, n)]
             t = b[:, self._t]
-            for acc, ce, cu in zip(self.acc, self._e, self._u):
-                acc.add(t, b[:, ce], b[:, cu])
+            for a, (acc, ce, cu, cm) in enumerate(zip(self.acc, self._e, self._u, self._mode)):
+                m = b[:, cm] == MODE_PROGRAM          # the program's rows, in program time
+                if m.any():
+                    if self._t0[a] is None:
+                        self._t0[a] = float(t[m][0])
+                    acc.add(t[m] - self._t0[a], b[m, ce], b[m, cu])
             self.timing.add(b[:, self._turn], b[:, self._late])
         self._pending = [rows[n:]]
         self._n_pending = rows.shape[0] - n
@@ -129,17 +148,18 @@ class _Sink:
                 "write_error": self.write_error}
 
 
-def _drain_process(ring: SharedRing, sink: _Sink, wfd: int, cpu: int | None) -> None:
+def _drain_process(ring: SharedRing, sink: _Sink, wfd: int, cpu: int | None, parent: int) -> None:
     """The child that drains the ring of a wall-clock run (never returns): off the loop's
     ``cpu`` (:func:`motorctl.loop.rt.keep_off`), takes the published rows every
-    :data:`DRAIN_S` until the loop has ended, closes the log (fsync) and writes its summary
-    (JSON) to ``wfd``."""
+    :data:`DRAIN_S` until the loop has ended, or its ``parent`` (the loop process) has died
+    (``kill -9``: it keeps the rows published so far), closes the log (fsync) and writes its
+    summary (JSON) to ``wfd``."""
     code = 1
     try:
         keep_off(cpu)
         signal.signal(signal.SIGINT, signal.SIG_IGN)     # the loop decides when the run ends
         while True:
-            ended = load_acquire(ring.ctl, CTL_STATE) == _ENDED
+            ended = load_acquire(ring.ctl, CTL_STATE) == _ENDED or parent_gone(parent)
             sink.take(ring.published(), ring.published)
             if ended:
                 break
@@ -183,7 +203,8 @@ def _collect(rfd: int, pid: int) -> dict:
 class JobResult:
     """Outcome of one run: per-axis indexes and faults, loop timing, real-time report, log path."""
 
-    axes: dict = field(default_factory=dict)      # name -> {"controller", indexes..., "fault"}
+    axes: dict = field(default_factory=dict)      # name -> {"controller", indexes..., "fault",
+    #                                                 the protection's peaks and limits}
     timing: dict = field(default_factory=dict)
     realtime: dict = field(default_factory=dict)
     cycles: int = 0
@@ -192,6 +213,8 @@ class JobResult:
     stop: list = field(default_factory=list)      # StopCheck per axis: what the device confirmed
     notices: list = field(default_factory=list)   # the driver's set-up notices
     lost_rows: int = 0                            # rows the ring overwrote before the drain took them
+    program_start_s: float | None = None          # when the programs started (after the approaches)
+    approach: dict = field(default_factory=dict)  # name -> {"from_m", "to_m", "duration_s"}
 
     @property
     def stop_confirmed(self) -> bool:
@@ -217,7 +240,11 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
             the first cycle (e.g. to tell the operator the loop runs).
         on_notice: called with each of the driver's set-up notices (one line each) before
             ``on_start``.
+    The run is idle cycles until the axes stand still (two at least), the approaches, then
+    ``duration_s`` of the programs (module docstring).
     Raises:
+        StartRefused: an axis stands outside its soft limits (or faulted on its first
+            reading): refused after the idle cycle, nothing driven (its row is in the log).
         RealtimeError: ``realtime: required`` refused (before the driver is opened).
         ConfigError: ``controller`` is not configured for an axis.
         InputError: the duration is shorter than one period.
@@ -234,11 +261,12 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
     policy = realtime_policy or ("off" if clock == "virtual" else cfg.loop.realtime.policy)
     names = list(axes) if axes else list(loaded.axes)
     wall = clock == "wall"
-    cap = min(n_cycles, loaded.timebase.cycles(RING_S))
+    cap = loaded.timebase.cycles(RING_S)     # the approaches come on top of the program's cycles
     ring = SharedRing(cap, RecordLayout(names).width, len(names)) if wall else None
     asm = build(loaded, axes, controller, clock=clock, capacity=cap,
                 buffer=ring.rows if wall else None, heartbeat=ring)
     loop, names = asm.loop, asm.names
+    loop.idle_all()                          # cycle 0 reads where the axes stand
     writer = None
     if log_path:
         Path(log_path).parent.mkdir(parents=True, exist_ok=True)
@@ -252,17 +280,43 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
         rfd, wfd = os.pipe()
         sys.stdout.flush()
         sys.stderr.flush()
+        parent = os.getpid()
         pid = os.fork()
         if pid == 0:
             os.close(rfd)
-            _drain_process(ring, sink, wfd, loop_cpu(loaded.cfg.loop.realtime.cpu))
+            _drain_process(ring, sink, wfd, loop_cpu(loaded.cfg.loop.realtime.cpu), parent)
         os.close(wfd)
         if writer is not None:
             writer.release()
         drain = (rfd, pid)
-    else:                      # the virtual clock: between cycles, every half ring
-        every = max(1, cap // 2)
-        loop.on_slack = lambda lp: sink.take(lp.k) if lp.k % every == 0 else None
+    every = max(1, cap // 2)
+    plan: dict = {}
+
+    def on_slack(lp):
+        # idle cycles until every axis stands still (two readings agree), then the approaches
+        # (or the refusal); the end after the program
+        if plan.get("end") is None:
+            y_before = plan.get("y")
+            plan["y"] = [float(y) for y in asm.driver.position_m]
+            moving = moving_axes(asm, y_before) if y_before is not None else names
+            if moving and lp.k * loaded.period_s >= START_STILL_WAIT_S:
+                plan["end"], plan["refused"] = 0, StartRefused(
+                    f"{', '.join(moving)} still moving after {START_STILL_WAIT_S:g} s at 0 V; nothing was driven")
+            elif not moving:
+                try:
+                    k_prog, moves = approach_all(asm)
+                except StartRefused as exc:
+                    plan["end"], plan["refused"] = 0, exc
+                else:
+                    plan["end"], plan["k_prog"], plan["moves"] = k_prog + n_cycles, k_prog, moves
+            else:
+                plan["end"] = None
+        if plan["end"] is not None and lp.k >= plan["end"]:
+            lp.request_stop()
+        if not wall and lp.k % every == 0:   # the virtual clock: the rows, every half ring
+            sink.take(lp.k)
+
+    loop.on_slack = on_slack
 
     def on_signal(signum, _frame):
         stopped.append(signal.Signals(signum).name)
@@ -280,7 +334,7 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
                     on_notice(line)
             if on_start is not None:
                 on_start(names, n_cycles, clock)
-            result.cycles = loop.run(n_cycles)
+            result.cycles = loop.run(n_cycles + loaded.timebase.cycles(START_STILL_WAIT_S + MAX_APPROACH_S) + 2)
         finally:
             if stopped:
                 loop.shutdown_faults()
@@ -289,6 +343,10 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
         for s, h in old.items():
             signal.signal(s, h)
         result.stopped_by_signal = stopped[0] if stopped else ""
+        if "k_prog" in plan:
+            result.program_start_s = plan["k_prog"] * loaded.period_s
+            result.approach = {a: {"from_m": mv.start, "to_m": mv.end, "duration_s": mv.duration}
+                               for a, mv in zip(names, plan["moves"])}
         if drain is not None:
             store_release(ring.ctl, CTL_STATE, _ENDED)
             summary = _collect(*drain)
@@ -301,6 +359,8 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
             _finish_log(str(log_path), loop.k, asm, result)
             result.log_path = str(log_path) if loop.k > 0 else None
 
+    if "refused" in plan:
+        raise plan["refused"]
     if summary.get("write_error"):
         raise OSError(f"the run log {log_path}: {summary['write_error']}")
     if not summary:
@@ -312,6 +372,11 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
             entry.update(summary["indexes"][i])
         entry["fault"] = with_drive_reason(asm.supervisor.reason(i), asm.driver.fault_reason(i))
         entry["io_errors"] = int(asm.supervisor.io_errors[i])
+        # the protection's margins (docs/protection.md): its high-water marks over the run
+        entry["i2t_peak_V2s"] = float(asm.supervisor.i2t_peak[i])
+        entry["i2t_limit_V2s"] = float(asm.supervisor.i2t_limit[i])
+        entry["rest_rms_peak_V"] = float(asm.supervisor.oscillation_rms_peak[i])
+        entry["rest_rms_limit_V"] = float(asm.supervisor.oscillation_rms_limit[i])
         entry["theta_hat"] = ctrl.theta_hat.tolist()
         result.axes[a] = entry
     tm = summary["timing"]
@@ -331,7 +396,8 @@ def _finish_log(path: str, k: int, asm, result: JobResult) -> None:
                                    stopped_by_signal=result.stopped_by_signal,
                                    stop=[{"axis": c.axis, "confirmed": c.confirmed, "held": c.held}
                                          for c in result.stop],
-                                   notices=result.notices))
+                                   notices=result.notices, program_start_s=result.program_start_s,
+                                   approach=result.approach))
     finally:
         w.close()
     if not fits:

@@ -24,9 +24,18 @@ DEFAULT_CONFIG = "configs/gantry.yaml"
 #: Modules of this package that add subcommands (the job, daemon control, identification). Other
 #: installed packages add theirs through the ``motorctl.commands`` entry-point group (a
 #: ``register(parser, subparsers)`` function), e.g. ``motorctl emulate``.
+#: commands that compile the servo cycle when numba's cache is cold (they say so first)
+COMPILING_COMMANDS = ("run", "daemon", "warmup")
 COMMAND_MODULES = ("motorctl.cli.run", "motorctl.cli.operator", "motorctl.cli.identify", "motorctl.cli.runs",
-                   "motorctl.cli.tune", "motorctl.cli.autotune")
+                   "motorctl.cli.tune", "motorctl.cli.autotune", "motorctl.cli.data",
+                   "motorctl.cli.motion")
 COMMAND_GROUP = "motorctl.commands"
+
+#: the optional-dependency group (pyproject.toml) that installs each optional top-level module:
+#: a command that needs one which is missing says so in one line naming the extra (exit 2)
+EXTRA_OF = {"matplotlib": "plot", "aiohttp": "scope", "foxglove": "foxglove", "mcap": "mcap",
+            "can": "can", "canopen": "can", "msgpack": "can", "serial": "serial", "pymodbus": "modbus",
+            "pysoem": "ethercat", "pooch": "data"}
 
 
 class UsageError(Exception):
@@ -49,7 +58,8 @@ def print_table(rows: list[list[str]], out) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="motorctl", description=__doc__.splitlines()[0])
+    p = Parser(prog="motorctl", description="The motorctl command line: the servo loop, its daemon, "
+                "identification and commissioning. motorctl COMMAND --help for each command.")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
 
@@ -65,6 +75,10 @@ def main(argv=None) -> int:
     from motorctl.inputs import InputError
     from motorctl.loop.rt import RealtimeError
     from motorctl.recorder.runlog import LogError
+    words = sys.argv[1:] if argv is None else list(argv)
+    if words and words[0] in COMPILING_COMMANDS and not {"-h", "--help"} & set(words):
+        from motorctl.app.warmup import say_if_cold
+        say_if_cold()         # before the parser's imports load numba: a cold start is not a hang
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -77,6 +91,13 @@ def main(argv=None) -> int:
         return 2
     except FileNotFoundError as exc:
         sys.stderr.write(f"motorctl: error: {exc.filename}: no such file\n")
+        return 2
+    except ModuleNotFoundError as exc:
+        extra = EXTRA_OF.get((exc.name or "").split(".")[0])
+        if extra is None:
+            raise
+        sys.stderr.write(f"motorctl: error: {args.command}: needs the '{extra}' extra ({exc.name} is not "
+                         f"installed): pip install 'motorctl[{extra}]'\n")
         return 2
     except BrokenPipeError:   # the reader went away (e.g. `motorctl status | head`)
         _quiet_stdout()

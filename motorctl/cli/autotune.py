@@ -20,6 +20,9 @@ from pathlib import Path
 
 from motorctl.inputs import seconds_arg as seconds
 
+#: the shortest verification run [s] (2500 cycles at 5 kHz: the indexes need a stretch of tracking)
+VERIFY_MIN_S = 0.5
+
 
 def register(parser, subparsers) -> None:
     """Add the ``autotune`` subcommand (called by :func:`motorctl.cli.build_parser`)."""
@@ -32,7 +35,8 @@ def register(parser, subparsers) -> None:
     p.add_argument("--virtual-clock", action="store_true",
                    help="run as fast as possible (default: the config's clock)")
     p.add_argument("--verify-seconds", type=seconds, default=None,
-                   help="length of each screening run in s (default: two program periods)")
+                   help=f"length of each screening run in s, at least {VERIFY_MIN_S:g} "
+                        f"(default: two program periods)")
     p.add_argument("--full-periods", type=int, default=None,
                    help="program periods of each confirmation run, 1..100 (default 10: the gains "
                         "written passed runs of this length at 100, 75 and 50 %% of their loop gain)")
@@ -82,6 +86,9 @@ def cmd_autotune(args) -> int:
     from motorctl.cli import UsageError
     from motorctl.config import config_from_dict, load_yaml
     from motorctl.inputs import writable_dir
+    if args.verify_seconds is not None and args.verify_seconds < VERIFY_MIN_S:
+        raise UsageError(f"--verify-seconds {args.verify_seconds:g}: allowed {VERIFY_MIN_S:g}..1e+06 s "
+                         f"(a verification run tracks the program at least this long)")
     periods = PERIODS if args.periods is None else args.periods
     if not (2 <= periods <= 200 and periods % 2 == 0):
         raise UsageError(f"--periods {args.periods}: must be an even number within 2..200")

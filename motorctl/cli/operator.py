@@ -19,67 +19,12 @@ import socket
 import sys
 import time
 
+from motorctl.client import DEFAULT_SOCKET, DaemonUnreachable, call
 from motorctl.control import CONTROLLER_NAMES
-
-DEFAULT_SOCKET = "/run/motorctl/motorctl.sock"
-
-
-class DaemonUnreachable(Exception):
-    """Printed as one line; exit code 1."""
 
 
 def socket_path(args) -> str:
     return getattr(args, "socket", None) or os.environ.get("MOTORCTL_SOCKET") or DEFAULT_SOCKET
-
-
-def call(path: str, request: dict, timeout_s: float = 5.0) -> dict:
-    """Send one request to the daemon and return its answer (a dict with 'ok'). A full
-    connection queue (many operators at once) is waited out with backoff within the timeout.
-
-    Raises:
-        DaemonUnreachable: no daemon at ``path``, permission denied, or no answer in time.
-    """
-    deadline = time.monotonic() + timeout_s
-    pause = 0.005
-    while True:
-        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        s.settimeout(timeout_s)
-        try:
-            s.connect(path)
-            break
-        except BlockingIOError:
-            s.close()
-            # the daemon's listen backlog is full (many operators at once): queue up
-            if time.monotonic() + pause > deadline:
-                raise DaemonUnreachable(f"the daemon at {path} is busy (connection queue "
-                                        f"full for {timeout_s:g} s)") from None
-            time.sleep(pause)
-            pause = min(pause * 2, 0.1)
-        except OSError as exc:
-            s.close()
-            if isinstance(exc, (FileNotFoundError, ConnectionRefusedError)):
-                raise DaemonUnreachable(f"the daemon is not running (nothing answers at {path})") from None
-            if isinstance(exc, PermissionError):
-                raise DaemonUnreachable(f"permission denied on {path}: commanding the machine needs "
-                                        f"membership of the socket's group") from None
-            raise DaemonUnreachable(f"cannot reach the daemon at {path}: {exc.strerror or exc}") from None
-    try:
-        s.sendall((json.dumps(request) + "\n").encode())
-        buf = b""
-        while b"\n" not in buf:
-            chunk = s.recv(65536)
-            if not chunk:
-                break
-            buf += chunk
-    except socket.timeout:
-        raise DaemonUnreachable(f"the daemon at {path} did not answer within {timeout_s:g} s") from None
-    except OSError as exc:
-        raise DaemonUnreachable(f"lost the connection to the daemon at {path}: {exc.strerror or exc}") from None
-    finally:
-        s.close()
-    if not buf:
-        raise DaemonUnreachable(f"the daemon at {path} closed the connection without answering")
-    return json.loads(buf.split(b"\n", 1)[0].decode())
 
 
 def _checked(args, request: dict, timeout_s: float = 5.0) -> dict:
@@ -104,6 +49,8 @@ def _wrap(handler):
 
 # --------------------------------------------------------------------------- handlers
 def cmd_daemon(args) -> int:
+    from motorctl.app.warmup import say_if_cold
+    say_if_cold()                                 # within a second, before numba is imported
     from motorctl.app.daemon import DaemonError, run_daemon
     try:
         return run_daemon(args.config, args.daemon_socket or args.socket, args.log_dir)
@@ -113,10 +60,14 @@ def cmd_daemon(args) -> int:
 
 
 def cmd_start(args) -> int:
-    req = {"cmd": "start", "axis": args.axis}
+    req = {"cmd": "start", "axis": args.axis, "mode": args.mode}
     if args.controller:
         req["controller"] = args.controller
     ans = _checked(args, req)
+    if args.mode == "command":
+        sys.stdout.write(f"{args.axis}: enabled on {ans.get('controller')} in command mode, holding "
+                         f"where it stands\n")
+        return 0
     sys.stdout.write(f"{args.axis}: enabled on {ans.get('controller')}, approach "
                      f"{ans.get('approach_m', 0.0) * 1000:+.3f} mm in {ans.get('approach_s', 0.0):.3f} s, "
                      f"then the program\n")
@@ -186,6 +137,92 @@ def cmd_inject(args) -> int:
     return 0
 
 
+def _motion_wait(args, timeout_s: float) -> int:
+    """Until the daemon's motion is idle; the end position and why a program stopped early."""
+    t0 = time.monotonic()
+    while True:
+        st = _checked(args, {"cmd": "status"})["status"]
+        mo = st["motion"]
+        if mo["idle"]:
+            break
+        if time.monotonic() - t0 > timeout_s:
+            raise DaemonUnreachable(f"motion did not finish within {timeout_s:g} s")
+        time.sleep(0.02)
+    where = ", ".join(f"{a}={s['y_m']:.6f}" for a, s in st["axes"].items() if s["phase"] == "command")
+    faults = [f"{a}: {s['fault']}" for a, s in st["axes"].items() if s["fault"]]
+    why = mo["stopped_because"]
+    sys.stdout.write(f"done in {time.monotonic() - t0:.3f} s at {where or '-'} m"
+                     + (f"; stopped early: {why}" if why else "") + "\n")
+    for f in faults:
+        sys.stdout.write(f"fault {f}\n")
+    return 1 if (faults or why) else 0
+
+
+def cmd_move(args) -> int:
+    from motorctl.cli import UsageError
+    targets = {}
+    for word in args.targets:
+        a, eq, v = word.partition("=")
+        try:
+            targets[a] = float(v)
+        except ValueError:
+            raise UsageError(f"move: {word!r}: each target is AXIS=POSITION in m, e.g. X=0.120") from None
+        if not eq:
+            raise UsageError(f"move: {word!r}: each target is AXIS=POSITION in m, e.g. X=0.120")
+    req = {"cmd": "move", "targets": targets}
+    if args.feed is not None:
+        req["feed"] = args.feed
+    ans = _checked(args, req)
+    sys.stdout.write(f"move queued: {ans['duration_s']:.3f} s\n")
+    return _motion_wait(args, ans["duration_s"] * 10 + 30) if args.wait else 0
+
+
+def cmd_gcode(args) -> int:
+    from motorctl.cli import UsageError
+    if args.file == "-":
+        text, name = sys.stdin.read(), "-"
+    else:
+        try:
+            with open(args.file, encoding="utf-8") as fh:
+                text = fh.read()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise UsageError(f"{args.file}: cannot read: {getattr(exc, 'strerror', None) or exc}") from None
+        name = args.file
+    ans = _checked(args, {"cmd": "gcode", "text": text, "filename": name}, timeout_s=30.0)
+    sys.stdout.write(f"{name}: {ans['segments']} segments queued, {ans['duration_s']:.3f} s at 100 %\n")
+    return _motion_wait(args, ans["duration_s"] * 10 + 30) if args.wait else 0
+
+
+def cmd_motion(args) -> int:
+    req = {"cmd": args.command}
+    if args.command == "override":
+        req["value"] = args.value
+    mo = _checked(args, req)["motion"]
+    sys.stdout.write(f"{args.command}: queue {mo['queue_depth']}, override {mo['override']:g}, "
+                     f"feed scale {mo['feed_scale']:.3f}{', holding' if mo['hold'] else ''}\n")
+    return 0
+
+
+def cmd_home(args) -> int:
+    _checked(args, {"cmd": "home", "axis": args.axis})
+    t0 = time.monotonic()
+    names = None
+    while time.monotonic() - t0 < args.timeout:
+        st = _checked(args, {"cmd": "status"})["status"]
+        names = names or list(st["axes"])
+        state = st["motion"]["homing"][names.index(args.axis)]
+        if state == "homed" or state.startswith("failed"):
+            y = st["axes"][args.axis]["y_m"]
+            sys.stdout.write(f"{args.axis}: {state} in {time.monotonic() - t0:.3f} s; at {y:.6f} m\n")
+            return 0 if state == "homed" else 1
+        time.sleep(0.05)
+    raise DaemonUnreachable(f"homing {args.axis} did not finish within {args.timeout:g} s")
+
+
+def cmd_wait(args) -> int:
+    return _motion_wait(args, args.timeout)
+
+
 def _us(x) -> str:
     return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.1f}"
 
@@ -217,6 +254,13 @@ def cmd_status(args) -> int:
               f"{_us(lp['turnaround_p50_us'])} / p99 {_us(lp['turnaround_p99_us'])} / p99.9 "
               f"{_us(lp['turnaround_p999_us'])} / max {_us(lp['turnaround_max_us'])} us; lateness p99 "
               f"{_us(lp['lateness_p99_us'])} / max {_us(lp['lateness_max_us'])} us; overruns {lp['overruns']}\n")
+    mo = st.get("motion")
+    if mo:
+        out.write(f"motion: queue {mo['queue_depth']}, line {mo['line']}, feed {mo['feed_m_s'] * 1e3:.1f} mm/s, "
+                  f"override {mo['override']:g}{' (hold)' if mo['hold'] else ''}; setpoints ahead "
+                  f"{mo['ring_depth']}, underruns {mo['underruns']}; homed "
+                  f"{', '.join(a for a, h in zip(st['axes'], mo['homed']) if h) or 'none'}"
+                  + (f"; stopped early: {mo['stopped_because']}" if mo['stopped_because'] else "") + "\n")
     out.write(f"realtime: {st['realtime_summary']}\n")
     pr = st["process"]
     out.write(f"processes: loop pid {pr.get('loop_pid')} ({pr.get('python_threads')} python thread(s), "
@@ -236,8 +280,10 @@ def cmd_status(args) -> int:
 def cmd_export(args) -> int:
     """A run log, or a daemon's run (its name or any segment: every kept segment in order),
     to CSV, .mat or MCAP, streamed chunk by chunk (memory bounded whatever the log length)."""
-    from motorctl.inputs import InputError, writable_file
+    from motorctl.inputs import InputError
     from motorctl.recorder.export import MCAP_CYCLE_TOPIC, export_csv, export_mat, export_mcap
+    from motorctl.recorder.outfile import atomic_output, check_output
+    from motorctl.recorder.runlog import LogError
     from motorctl.recorder.segments import open_run
     out = args.csv or args.mat or args.mcap
     if args.mcap:
@@ -245,20 +291,24 @@ def cmd_export(args) -> int:
             import mcap.writer  # noqa: F401
         except ImportError:
             raise InputError("export --mcap needs the mcap package: pip install 'motorctl[mcap]'") from None
-    writable_file(out, "export")                    # before the log is read
+    check_output(out, [args.log], "export")          # before the log is read
     run = open_run(args.log)
+    check_output(out, [s.path for s in run.segments], "export")
     notes = []
-    if args.csv:
-        n = export_csv(run, out)
-    elif args.mcap:
-        counts = export_mcap(run, out)
-        n = counts.get(MCAP_CYCLE_TOPIC, 0)
-        notes.append(", ".join(f"{t} {c}" for t, c in counts.items()))
-    else:
-        try:
-            n, notes = export_mat(run, out)
-        except ValueError as exc:
-            raise InputError(f"{args.log}: {exc}") from None
+    with atomic_output(out, "export") as tmp:       # renamed to `out` once complete
+        if args.csv:
+            n = export_csv(run, tmp)
+        elif args.mcap:
+            counts = export_mcap(run, tmp)
+            n = counts.get(MCAP_CYCLE_TOPIC, 0)
+            notes.append(", ".join(f"{t} {c}" for t, c in counts.items()))
+        else:
+            try:
+                n, notes = export_mat(run, tmp)
+            except LogError:
+                raise
+            except ValueError as exc:
+                raise InputError(f"{args.log}: {exc}") from None
     if len(run.segments) > 1:
         notes.append(f"{len(run.segments)} segments")
     gaps = run.gaps
@@ -285,52 +335,77 @@ def register(parser: argparse.ArgumentParser, sub) -> None:
         return p
 
     d = sub.add_parser("daemon", help="run the servo loop as a service (systemd Type=notify)")
-    d.add_argument("config")
+    d.add_argument("config", help="the config YAML (its daemon section: socket, log_dir, scope)")
     d.add_argument("--socket", dest="daemon_socket", default=None, metavar="PATH",
                    help="control socket (default: daemon.socket of the config)")
     d.add_argument("--log-dir", default=None, help="run log directory (default: daemon.log_dir)")
     d.set_defaults(func=cmd_daemon)
 
     p = client("start", "enable an axis: bumpless approach from where it stands, then its program", cmd_start)
-    p.add_argument("axis")
+    p.add_argument("axis", help="the axis name, as in the config's axes")
     p.add_argument("--controller", choices=CONTROLLER_NAMES, help="controller to run (default: the current one)")
+    p.add_argument("--mode", choices=("program", "command"), default="program",
+                   help="program: the YAML program (default); command: hold where it stands and follow "
+                        "move/gcode")
+
+    p = client("move", "a coordinated straight move of axes in command mode (AXIS=POSITION in m)", cmd_move)
+    p.add_argument("targets", nargs="+", metavar="AXIS=M", help="each axis's target position in metres, e.g. X=0.120")
+    p.add_argument("--feed", type=float, default=None, metavar="M_PER_S", help="path speed limit [m/s]")
+    p.add_argument("--wait", action="store_true", help="return when the motion has finished")
+
+    p = client("gcode", "run a G-code program (FILE, or - for stdin) on the axes in command mode", cmd_gcode)
+    p.add_argument("file", metavar="FILE", help="a G-code program (LinuxCNC's subset, docs/motion.md), or - for standard input")
+    p.add_argument("--wait", action="store_true", help="return when the program has finished")
+
+    client("hold", "feed hold: decelerate on the path, then hold", cmd_motion)
+    client("resume", "resume after a feed hold", cmd_motion)
+    client("abort", "stop on the path, hold, clear the queue", cmd_motion)
+    p = client("override", "feed override (0.0 .. 1.5)", cmd_motion)
+    p.add_argument("value", type=float, metavar="F", help="the feed override, 0.0 to 1.5 (1.0: as programmed)")
+    p = client("home", "home an axis in command mode: search its switch, latch the index pulse, set "
+                       "its position (axes.NAME.homing)", cmd_home)
+    p.add_argument("axis", help="the axis to home, as in the config's axes")
+    p.add_argument("--timeout", type=float, default=120.0, help="seconds (default 120)")
+    p = client("wait", "wait until the commanded motion has finished", cmd_wait)
+    p.add_argument("--timeout", type=float, default=600.0, help="seconds (default 600)")
 
     p = client("stop", "bring an axis to rest, then 0 V and amplifier off", cmd_stop)
-    p.add_argument("axis")
+    p.add_argument("axis", help="the axis name, as in the config's axes")
     p.add_argument("--no-wait", action="store_true", help="return at once instead of waiting for rest")
 
     p = client("status", "state of the axes, the loop, the real-time set-up and the log", cmd_status)
-    p.add_argument("axis", nargs="?")
+    p.add_argument("axis", nargs="?", help="only this axis (default: every axis)")
     p.add_argument("--json", action="store_true", help="one JSON object")
 
     p = client("fault-reset", "clear an axis's latched fault (only when its cause is gone)", cmd_fault_reset)
-    p.add_argument("axis")
+    p.add_argument("axis", help="the axis name, as in the config's axes")
 
     p = client("switch", "switch an axis's controller at a cycle boundary", cmd_switch)
-    p.add_argument("axis")
-    p.add_argument("--controller", choices=CONTROLLER_NAMES, required=True)
+    p.add_argument("axis", help="the axis name, as in the config's axes")
+    p.add_argument("--controller", choices=CONTROLLER_NAMES, required=True, help="the law to switch to")
 
     p = client("jog", "move a disabled axis to a position at reduced speed, then 0 V (also back "
                       "inside its soft limits after a soft-limit fault)", cmd_jog)
-    p.add_argument("axis")
+    p.add_argument("axis", help="the axis name, as in the config's axes")
     p.add_argument("to_m", type=float, metavar="TO_M", help="target position [m], inside the soft limits")
     p.add_argument("--speed", type=float, default=0.1,
                    help="fraction of the axis's v_max and a_max (default 0.1, at most 0.5)")
 
     p = client("inject", "inject a fault into the simulated driver (daemon.allow_fault_injection)", cmd_inject)
-    p.add_argument("axis")
-    p.add_argument("kind", choices=("read_error", "nan", "amp_fault", "encoder_jump", "push"))
-    p.add_argument("--cycles", type=int, default=1)
-    p.add_argument("--jump-m", type=float, default=0.0)
-    p.add_argument("--force-n", type=float, default=0.0)
+    p.add_argument("axis", help="the axis name, as in the config's axes")
+    p.add_argument("kind", choices=("read_error", "nan", "amp_fault", "encoder_jump", "push"),
+                   help="the fault: a failed read, a NaN reading, an amplifier fault, an encoder jump, a push")
+    p.add_argument("--cycles", type=int, default=1, help="for how many cycles (default 1)")
+    p.add_argument("--jump-m", type=float, default=0.0, help="encoder_jump: the jump [m]")
+    p.add_argument("--force-n", type=float, default=0.0, help="push: the force on the carriage [N]")
 
     e = sub.add_parser("export", help="convert a run log (or a daemon's set of segments) to CSV, "
                                       "MATLAB .mat or MCAP (Foxglove, ROS 2 tools), streamed")
     e.add_argument("log", help="a run log, or a daemon run's name or any of its segments "
                                "(every kept segment is read, in order)")
     g = e.add_mutually_exclusive_group(required=True)
-    g.add_argument("--csv", metavar="OUT")
-    g.add_argument("--mat", metavar="OUT")
+    g.add_argument("--csv", metavar="OUT", help="CSV: a header line of column names, then one line per recorded cycle")
+    g.add_argument("--mat", metavar="OUT", help="MATLAB .mat (v5): one column vector per recorded signal, and data (N, W) where it fits")
     g.add_argument("--mcap", metavar="OUT", help="MCAP: JSON messages per axis and cycle, the header and "
                                                   "the faults as their own channels")
     e.set_defaults(func=cmd_export)

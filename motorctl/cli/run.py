@@ -24,7 +24,9 @@ EXIT_STOP_UNCONFIRMED = 3
 
 
 def cmd_run(args) -> int:
-    from motorctl.app.build import stop_lines
+    from motorctl.app.warmup import say_if_cold
+    say_if_cold()                                 # within a second, before numba is imported
+    from motorctl.app.build import StartRefused, stop_lines
     from motorctl.app.job import run_job
     loaded = _load(args.config)
     axes = _select_axes(loaded, args.axis)
@@ -39,10 +41,15 @@ def cmd_run(args) -> int:
 
     if args.json:
         return _run_json(args, loaded, axes)
-    res = run_job(loaded, axes=axes, controller=args.controller, duration_s=args.duration,
-                  clock="virtual" if args.virtual_clock else None, log_path=args.log,
-                  realtime_policy=args.realtime, on_start=announce,
-                  on_notice=lambda line: (sys.stderr.write(f"motorctl: {line}\n"), sys.stderr.flush()))
+    try:
+        res = run_job(loaded, axes=axes, controller=args.controller, duration_s=args.duration,
+                      clock="virtual" if args.virtual_clock else None, log_path=args.log,
+                      realtime_policy=args.realtime, on_start=announce,
+                      on_notice=lambda line: (sys.stderr.write(f"motorctl: {line}\n"), sys.stderr.flush()))
+    except StartRefused as exc:            # where the axes stand: 0 V, amplifiers off, nothing driven
+        out.flush()
+        sys.stderr.write(f"motorctl: error: the run is refused: {exc}\n")
+        return 1
     rows = [["axis", "ctrl", "e_M um", "e_F um", "L2[e] um", "u_peak V", "io errors", "fault"]]
     for a, r in res.axes.items():
         rows.append([a, r["controller"], f"{r.get('e_M_um', float('nan')):.2f}",
@@ -176,6 +183,23 @@ def cmd_check_config(args) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------- warmup
+def cmd_warmup(args) -> int:
+    from motorctl.app.warmup import say_if_cold, warmup
+    cold = say_if_cold()
+    try:                 # systemd's ExecStartPre inherits the unit's SCHED_FIFO: compile as a guest
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except OSError:
+        pass
+    loaded = _load(args.config)
+    res = warmup(loaded)
+    what = "the controllers and the servo cycle" if res["cycle"] else \
+        f"the controllers (driver {loaded.cfg.driver.type!r} not opened: its servo cycle compiles at the first start)"
+    sys.stdout.write(f"warmup: {what} {'compiled' if cold else 'loaded from the cache'} in "
+                     f"{res['seconds']:.1f} s\n")
+    return 0
+
+
 # --------------------------------------------------------------------------- plot
 def cmd_plot(args) -> int:
     from motorctl.plots import plot_log
@@ -190,7 +214,7 @@ def cmd_plot(args) -> int:
 
 def register(parser, sub) -> None:
     r = sub.add_parser("run", help="run the servo loop on a config (the main job)")
-    r.add_argument("config", nargs="?", default=DEFAULT_CONFIG)
+    r.add_argument("config", nargs="?", default=DEFAULT_CONFIG, help="the config YAML (default: %(default)s)")
     r.add_argument("--axis", help="run only this axis")
     r.add_argument("--controller", choices=CONTROLLER_NAMES, help="override every axis's controller")
     r.add_argument("--duration", type=seconds, help="run length in s (default: loop.duration_s)")
@@ -204,7 +228,7 @@ def register(parser, sub) -> None:
     r.set_defaults(func=cmd_run)
 
     c = sub.add_parser("compare", help="C1, C2 (and a PID where configured) on the same seeded plant, beside the paper's tables")
-    c.add_argument("config", nargs="?", default=DEFAULT_CONFIG)
+    c.add_argument("config", nargs="?", default=DEFAULT_CONFIG, help="the config YAML (default: %(default)s)")
     c.add_argument("--duration", type=seconds, help="run length in s (default: loop.duration_s = 40)")
     c.add_argument("--json", action="store_true", help="print one JSON object and nothing else")
     c.add_argument("--wall-clock", action="store_true", help="pace by the wall clock (default: virtual)")
@@ -213,11 +237,16 @@ def register(parser, sub) -> None:
     c.set_defaults(func=cmd_compare)
 
     k = sub.add_parser("check-config", help="check a config; exit 0 if it is valid")
-    k.add_argument("config", nargs="?", default=DEFAULT_CONFIG)
+    k.add_argument("config", nargs="?", default=DEFAULT_CONFIG, help="the config YAML (default: %(default)s)")
     k.set_defaults(func=cmd_check_config)
 
+    w = sub.add_parser("warmup", help="compile the servo cycle and the controllers for this CPU "
+                                      "ahead of the first run (no device opened)")
+    w.add_argument("config", nargs="?", default=DEFAULT_CONFIG, help="the config YAML (default: %(default)s)")
+    w.set_defaults(func=cmd_warmup)
+
     pl = sub.add_parser("plot", help="PNG figures of a run log (like the paper's Figs. 4-12)")
-    pl.add_argument("log")
+    pl.add_argument("log", help="a run log (motorctl run --log, or a daemon's segment)")
     pl.add_argument("--out", default=None, help="output directory (default: LOG without suffix + '_plots')")
     pl.set_defaults(func=cmd_plot)
 

@@ -24,6 +24,7 @@ Exit codes: 0 done, 2 bad input (one line on stderr).
 from __future__ import annotations
 
 import json
+import math
 import sys
 
 from motorctl.commission.compare import INDEXES, SPLIT, compare_logs, figures, public
@@ -72,8 +73,8 @@ def text_report(res: dict, extra_rows: tuple[str, ...] = ()) -> str:
 def cmd_compare_runs(args) -> int:
     from motorctl.cli import UsageError
     from motorctl.recorder.runlog import LogError
-    if args.period is not None and not args.period > 0:
-        raise UsageError(f"--period {args.period}: must be > 0 s")
+    if args.period is not None and not (math.isfinite(args.period) and args.period > 0):
+        raise UsageError(f"--period {args.period}: must be a finite number > 0 s")
     if args.settle_periods < 0:
         raise UsageError(f"--settle-periods {args.settle_periods}: must be >= 0")
     if args.out:

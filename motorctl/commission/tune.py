@@ -229,7 +229,8 @@ def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None =
         res["stopped"] = "no effect found (no candidate passed held-out gain, BIC and plausibility)"
         return res
     if not comp:
-        res["stopped"] = f"no compensable effect found ({', '.join(skipped)}: no compensation term)"
+        res["stopped"] = (f"no compensable effect found ({', '.join(skipped)}: no compensation term, or the "
+                          f"record cannot tell it from a look-alike)")
         return res
     tuned = write_tuned_config(idf, s, base, axis, str(config), files["tuned"])
     res["files"]["tuned"] = str(files["tuned"])

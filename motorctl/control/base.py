@@ -3,7 +3,7 @@
 A controller is one axis's control law. The loop calls :meth:`Controller.reset` when the axis
 is enabled (bumpless start from the measured position) and :meth:`Controller.update` once per
 sample; after each sample the controller's :attr:`Controller.signals` hold the values of
-:data:`motorctl.loop.records.CONTROLLER_SIGNALS` (NaN for a signal the law does not have). The
+:data:`motorctl.control.signals.CONTROLLER_SIGNALS` (NaN for a signal the law does not have). The
 loop copies that block into the cycle record and reads the tracking error ``e`` for the
 following-error check; nothing else is read, so any law that fills these slots can be driven,
 recorded, switched and compared.
@@ -23,7 +23,9 @@ from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
-from motorctl.loop.records import CONTROLLER_SIGNALS, N_SIGNALS
+# the signal names and offsets, re-exported: the laws import them with the interface
+from motorctl.control.signals import CONTROLLER_SIGNALS, N_SIGNALS, SIG, SIG_D0, SIG_E, SIG_P  # noqa: F401
+from motorctl.control.signals import SIG_THETA, SIG_V, SIG_X2  # noqa: F401
 
 #: the compiled laws the servo cycle runs itself (:mod:`motorctl.control.kernels`): C1/C2,
 #: PID+FF, C1/C2 with a compensation (its terms compiled, :mod:`motorctl.effects.compensation`);
@@ -31,11 +33,6 @@ from motorctl.loop.records import CONTROLLER_SIGNALS, N_SIGNALS
 #: compiled step)
 LAW_PY, LAW_DCDIARC, LAW_PID, LAW_DCDIARC_COMP = 0, 1, 2, 3
 
-#: offsets into :attr:`Controller.signals`
-SIG = {name: j for j, name in enumerate(CONTROLLER_SIGNALS)}
-SIG_V, SIG_E, SIG_P, SIG_X2 = SIG["v"], SIG["e"], SIG["p"], SIG["x2"]
-SIG_THETA = SIG["theta_hat1"]
-SIG_D0 = SIG["d_hat0"]
 
 
 class Controller(abc.ABC):
@@ -60,7 +57,7 @@ class Controller(abc.ABC):
     #: the section's top-level keys (:class:`motorctl.control.params.ControllerConfig`)
     Settings: ClassVar[type | None] = None
     shared_keys: ClassVar[bool] = False
-    #: the entries of :data:`motorctl.loop.records.CONTROLLER_SIGNALS` this law fills (the
+    #: the entries of :data:`motorctl.control.signals.CONTROLLER_SIGNALS` this law fills (the
     #: others are recorded as NaN)
     records: ClassVar[tuple[str, ...]] = ("v", "e", "p", "x2")
     #: the settings keys autotune writes (those :meth:`gain_family` sets)

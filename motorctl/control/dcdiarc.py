@@ -176,7 +176,7 @@ def dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_de
         v_comp [V]: fixed identified-effect compensation d̂_eff at that point (0 when none).
         g_meas, g_des: thrust factor 1 + r̂(x) (force ripple; 1.0 when none) at the measured
             position over the interval just ended (estimator) and at xf (v / g_des is inverted).
-        sig (N_SIGNALS,): the published signals (motorctl.loop.records.CONTROLLER_SIGNALS),
+        sig (N_SIGNALS,): the published signals (motorctl.control.signals.CONTROLLER_SIGNALS),
             written at the end of the sample; θ̂ entries beyond n_θ stay as they are (NaN).
     The block's views: st (N_STATE,): law state (S_* indices; S_DC: the d̂_eff held with S_U;
     S_RI: ring index); prm (10,): law parameters (P_* indices); span (n,): θ_max − θ_min (then

@@ -5,11 +5,15 @@ int64, ``lay`` int64 (N_LAYOUT,), ``sig`` (N_SIGNALS,); :meth:`Controller.attach
 there) and calls :func:`law_step` / :func:`law_reset` with the axis's law code
 (:data:`motorctl.control.base.LAW_DCDIARC`, ``LAW_DCDIARC_COMP``, ``LAW_PID``). A law without
 a compiled step (LAW_PY: a law from another package) is run by the cycle from Python through
-:meth:`Controller.update`. This is the one module of :mod:`motorctl.control` the loop
-imports.
+:meth:`Controller.update`. :data:`LAW_KERNELS` is the one table from a code to its compiled
+step; :func:`check_law_code` refuses any other code when the loop takes the law (at build and
+at a switch), so the compiled dispatch never meets an unknown code (if it did, the output
+would be NaN, which the supervisor faults, never another law's step).
 """
 
 from __future__ import annotations
+
+import numpy as np
 
 from motorctl.control.base import LAW_DCDIARC, LAW_DCDIARC_COMP, LAW_PID, LAW_PY
 from motorctl.control.dcdiarc import B_CT, N_LAYOUT, dcdiarc_block_reset, dcdiarc_block_step, dcdiarc_comp_step
@@ -19,8 +23,29 @@ from motorctl.control.pid import pid_reset, pid_step
 from motorctl.effects.compensation import T_PREVIEW
 from motorctl.jit import borrow, njit
 
-__all__ = ["LAW_DCDIARC", "LAW_DCDIARC_COMP", "LAW_PID", "LAW_PY", "N_LAYOUT", "law_preview", "law_reset",
-           "law_step"]
+__all__ = ["LAW_DCDIARC", "LAW_DCDIARC_COMP", "LAW_KERNELS", "LAW_PID", "LAW_PY", "N_LAYOUT", "check_law_code",
+           "law_preview", "law_reset", "law_step"]
+
+#: law code -> what the servo cycle runs for it: the compiled step of :func:`law_step` (and
+#: :func:`law_reset`), or, for LAW_PY, the law's :meth:`Controller.update` from Python
+LAW_KERNELS: dict[int, str] = {
+    LAW_PY: "Controller.update from Python",
+    LAW_DCDIARC: "dcdiarc_block_step",
+    LAW_DCDIARC_COMP: "dcdiarc_comp_step (with the compensation's compiled terms)",
+    LAW_PID: "pid_step",
+}
+
+
+def check_law_code(code: int, law: str) -> int:
+    """``code`` when the servo cycle has a step for it (a key of :data:`LAW_KERNELS`).
+
+    Raises:
+        ValueError: an unknown code, naming the law ``law`` and the known codes.
+    """
+    if isinstance(code, bool) or not isinstance(code, int) or code not in LAW_KERNELS:
+        known = ", ".join(f"{k} ({v})" for k, v in LAW_KERNELS.items())
+        raise ValueError(f"controller {law!r}: law_code {code!r} has no step in the servo cycle; known: {known}")
+    return code
 
 
 @njit
@@ -42,8 +67,10 @@ def law_step(law, y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, f, ii, lay):
         return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, x_d, xd_dot, xd_ddot, 0.0, 1.0, 1.0, sig, f, ii, lay)
     if law == LAW_DCDIARC_COMP:
         return dcdiarc_comp_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, f, ii, lay)
-    return pid_step(y, x_d, xd_dot, xd_ddot, sig, borrow(f[:PID_N_STATE]),
-                    borrow(f[PID_N_STATE:PID_N_STATE + PID_N_PRM]))
+    if law == LAW_PID:
+        return pid_step(y, x_d, xd_dot, xd_ddot, sig, borrow(f[:PID_N_STATE]),
+                        borrow(f[PID_N_STATE:PID_N_STATE + PID_N_PRM]))
+    return np.nan       # not reached (check_law_code); a NaN output faults the axis
 
 
 @njit
@@ -51,5 +78,5 @@ def law_reset(law, y0, f, lay):
     """Bumpless (re)start of axis law ``law`` from the measured position y0 [m]."""
     if law == LAW_DCDIARC or law == LAW_DCDIARC_COMP:
         dcdiarc_block_reset(y0, f, lay)
-    else:
+    elif law == LAW_PID:
         pid_reset(y0, borrow(f[:PID_N_STATE]))

@@ -16,7 +16,7 @@ and names). Per sample k, with Ts the sample period::
     v    = bias + P ε + I εI + D εD + FF0 x_d + FF1 ẋ_d + FF2 ẍ_d
     u    = clip(v, ±u_max),  u_max = min(maxoutput, u_lim) (maxoutput = 0: u_lim)
 
-Published signals (:data:`motorctl.loop.records.CONTROLLER_SIGNALS`): ``v`` [V] (before the
+Published signals (:data:`motorctl.control.signals.CONTROLLER_SIGNALS`): ``v`` [V] (before the
 clamp), ``e = y − x_d = −error`` [m] (raw, before maxerror and deadband), ``p = ė = x2 − ẋ_d``
 [m/s] (the error derivative in this project's sign, = −εD), ``x2`` [m/s]; θ̂1..θ̂6 and d̂0 are
 NaN (a fixed-gain law, n_theta = 0).

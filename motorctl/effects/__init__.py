@@ -1,4 +1,5 @@
-"""Effect families: one module per identified physical effect, found through :data:`FAMILIES`.
+"""Effect families: one module per identified physical effect, found through :data:`FAMILIES`
+(the ``motorctl.effects`` entry points, :mod:`motorctl.effects.registry`).
 
 Each module ``motorctl/effects/<name>.py`` holds everything about one family (the interface is
 :class:`motorctl.effects.base.EffectFamily`): the simulator's options and plant term, the
@@ -24,20 +25,24 @@ stiction                        holds A1 u + F_0 at rest (Karnopp)   u·w(ẋ), 
 amplifier_dead_zone             −A1 (clip(u + o, −d, d) − o)         clip(u, −d, d), [|u| < d]
 force_constant_drift            κ t A1 f_u(u)                        f_u(u)·(t − t̄)
 periodic_friction               −Σ A_k sin(2πkx/P + φ_k) S_f(ẋ)      sin, cos(2πkx/P)·S_f(ẋ)
+encoder_interpolation           none (reading y = x + Σ a_k sin(..))  d²/dt² sin, cos(2πky/P)
 ==============================  ===================================  ======================
 
 F_eff = −A1·Cβ; x_ref, x_0 are absorbed by θ3, θ4 (only the slope/stiffness is identifiable).
 Compensable (additive in (x_d, ẋ_d, t)): cogging, stribeck, asymmetric_friction,
 position_dependent_friction, spring, periodic_disturbance, position_friction_shape,
 periodic_friction; through a hook: force_ripple, input_delay. Identified and reported only:
-payload_change, stiction, amplifier_dead_zone, force_constant_drift (a mass, a holding force, a
-static input nonlinearity and a gain drift: no additive term in (x_d, ẋ_d, t) cancels them).
+payload_change, stiction, amplifier_dead_zone, force_constant_drift, encoder_interpolation (a
+mass, a holding force, a static input nonlinearity, a gain drift and an error of the reading: no
+additive term in (x_d, ẋ_d, t) cancels them).
 
 The order of :data:`FAMILIES` is fixed: it is the order of the identification's candidates and
-of the plant's force terms (float sums: do not reorder existing entries).
+of the plant's force terms (float sums: do not reorder existing entries). This package's families
+come first in :data:`motorctl.effects.registry.BUILTIN_ORDER`, then any other, by name.
 
 Adding a family: a module with an :class:`~motorctl.effects.base.EffectFamily` subclass and a
-``FAMILY`` instance, its tests, and one entry in :data:`FAMILIES`; a thrust, force or mass plant
+``FAMILY`` instance, its tests, and one entry point in the ``motorctl.effects`` group (in this
+package or any installed one: ``name = "module:FAMILY"``); a thrust, force or mass plant
 term written as a compiled kernel (:meth:`~motorctl.effects.base.PlantTerm.compiled`) is also
 listed in :mod:`motorctl.effects.plant` (else the simulated plant runs it in Python). The YAML schemas
 (``axes.NAME.driver.effects``, ``axes.NAME.controller.compensation``) are built from the
@@ -48,30 +53,14 @@ from __future__ import annotations
 
 from pydantic import create_model
 
-from motorctl.effects import (
-    amplifier_dead_zone,
-    asymmetric_friction,
-    cogging,
-    force_constant_drift,
-    force_ripple,
-    input_delay,
-    payload_change,
-    periodic_disturbance,
-    periodic_friction,
-    position_dependent_friction,
-    position_friction_shape,
-    spring,
-    stiction,
-    stribeck,
-)
 from motorctl.effects.base import EffectFamily, PlantTerm, Signals
+from motorctl.effects.registry import load_families
 from motorctl.schema import StrictModel
 
-#: name -> family, in the fixed order described in the module docstring.
-FAMILIES: dict[str, EffectFamily] = {m.FAMILY.name: m.FAMILY for m in (
-    cogging, force_ripple, stribeck, asymmetric_friction, position_dependent_friction, spring,
-    payload_change, input_delay, periodic_disturbance, position_friction_shape, stiction,
-    amplifier_dead_zone, force_constant_drift, periodic_friction)}
+#: name -> family, from the ``motorctl.effects`` entry points (:mod:`motorctl.effects.registry`):
+#: this package's families in the fixed order described in the module docstring, then any other
+#: installed package's, by name.
+FAMILIES: dict[str, EffectFamily] = load_families()
 
 
 def family(name: str) -> EffectFamily:

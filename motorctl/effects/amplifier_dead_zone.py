@@ -48,6 +48,7 @@ class AmplifierDeadZoneFamily(EffectFamily):
     example: ClassVar[dict] = {"amplifier_dead_zone": {"dead_zone_V": 0.15, "offset_V": 0.02}}
     size_options: ClassVar[tuple[str, ...]] = ("dead_zone_V",)
     look_alike: ClassVar[tuple[str, ...]] = ("stiction",)
+    acts_at_rest = True
 
     # simulator
     def plant_term(self, o: AmplifierDeadZone, period_s):

@@ -288,6 +288,10 @@ class SearchContext(Protocol):
     def direction_agreement(self, term, base: list) -> float:
         """1 − ‖β₊ − β₋‖/(‖β₊‖ + ‖β₋‖) of the term fitted on forward / backward motion."""
 
+    def speed_growth(self, term, base: list, period: float) -> float:
+        """‖β_fast‖/‖β_slow‖ of the term fitted on the faster / slower half of the moving
+        samples at which a spatial period [m] passes the position filter (NaN: too few)."""
+
     def target(self, delay: float) -> np.ndarray:
         """The decimated input u(t − delay·Ts) (M,)."""
 
@@ -341,6 +345,10 @@ class EffectFamily:
     #: both hold the carriage at small input): when one of them is selected and the other
     #: explains nearly as much, the report says the record cannot tell them apart
     look_alike: ClassVar[tuple[str, ...]] = ()
+    #: the effect acts where the axis is at rest or its input small (a holding force, a
+    #: dead-zone): the residual verdict counts what is left near zero velocity and at small
+    #: inputs as this effect's, not as an unexplained structure, once it is selected
+    acts_at_rest: ClassVar[bool] = False
     #: a family whose model is this one's special case (a straight line is a friction shape
     #: with one segment): after the selection, a selected effect of this family is replaced by
     #: the simpler one when that leaves a held-out residual less than the identifier's

@@ -78,6 +78,8 @@ class CoggingFamily(PositionPeriodic):
     example: ClassVar[dict] = {"cogging": {"amplitudes_N": [12.0, 4.0], "period_m": 0.032, "phases_rad": [0.3, 1.0]}}
     comp_options = FourierPosition
     compensation_rank = 1
+    #: an encoder's interpolation error at the same period, seen only where the moves end
+    look_alike: ClassVar[tuple[str, ...]] = ("encoder_interpolation",)
 
     # simulator
     def plant_term(self, o: Cogging, period_s):

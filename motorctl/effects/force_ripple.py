@@ -75,6 +75,8 @@ class ForceRippleFamily(PositionPeriodic):
     plant_force = "F_m(u)·Σ r_k sin(2πkx/P + φ_k)"
     sim_options = ForceRipple
     example: ClassVar[dict] = {"force_ripple": {"fractions": [0.06], "period_m": 0.045, "phases_rad": [0.5]}}
+    #: an encoder's interpolation error at the same period, seen only where the moves end
+    look_alike: ClassVar[tuple[str, ...]] = ("encoder_interpolation",)
     size_options: ClassVar[tuple[str, ...]] = ("fractions",)
     hook_options = RippleComp
 

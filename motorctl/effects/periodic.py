@@ -35,6 +35,10 @@ REFINE_SPAN = 0.03
 REFINE_TOL = 1.0 / 30.0
 #: Least agreement of a position-periodic force fitted on each direction of motion separately.
 MIN_DIRECTION_AGREEMENT = 0.5
+#: Largest ratio of a position-periodic force's amplitude fitted on the faster half of the
+#: moving samples to that on the slower half (a force of position keeps its amplitude; an
+#: encoder's interpolation error fitted as a force grows with the squared speed)
+MAX_SPEED_GROWTH = 2.0
 #: Points of a report figure's curve.
 SHAPE_POINTS = 2000
 
@@ -294,11 +298,25 @@ class PositionPeriodic(EffectFamily):
         return self._refine(ctx, term.h, others)
 
     def plausible(self, ctx, term, beta, theta, base):
+        out = []
         agree = ctx.direction_agreement(term, base)
         if agree < MIN_DIRECTION_AGREEMENT:
-            return [(f"not the same force in both directions (agreement {agree:.2f} < "
-                     f"{MIN_DIRECTION_AGREEMENT:g}): a position-periodic force does not "
-                     "depend on the direction of motion")]
+            out.append(f"not the same force in both directions (agreement {agree:.2f} < "
+                       f"{MIN_DIRECTION_AGREEMENT:g}): a position-periodic force does not "
+                       "depend on the direction of motion")
+        out += self.speed_check(ctx, term, base)
+        return out
+
+    def speed_check(self, ctx, term, base) -> list[str]:
+        """A force of position keeps its amplitude at every speed: the reason against a term
+        whose amplitude on the faster half of the moving samples is more than
+        :data:`MAX_SPEED_GROWTH` times that on the slower half (an encoder's interpolation
+        error looks so: the encoder_interpolation family), else []."""
+        growth = ctx.speed_growth(term, base, term.h)
+        if math.isfinite(growth) and growth > MAX_SPEED_GROWTH:
+            return [f"its amplitude grows with the speed (x{growth:.2f} from the slower to the faster half of "
+                    f"the moves, > {MAX_SPEED_GROWTH:g}): not a force of position; a reading's error "
+                    "(encoder interpolation) does so"]
         return []
 
     @staticmethod

@@ -29,6 +29,7 @@ from motorctl.effects import (
     payload_change,
     periodic,
     periodic_disturbance,
+    position_dependent_friction,
     position_friction_shape,
     spring,
     stribeck,
@@ -39,7 +40,7 @@ _cogging = cogging.plant_force
 _ripple = force_ripple.plant_thrust
 _stribeck = stribeck.plant_force
 _asymmetric = asymmetric_friction.plant_force
-_line = position_friction_shape.line_force
+_line = position_dependent_friction.line_force
 _spring = spring.plant_force
 _payload = payload_change.plant_mass
 _disturbance = periodic_disturbance.plant_force

@@ -60,6 +60,14 @@ class PositionFrictionComp(Adaptable):
         return ["coulomb_slope_V_per_m"]
 
 
+@njit
+def line_force(f, x, v, t, sf, p):
+    """f + F_eff [N] of the straight-line friction (this family's plant term, and the
+    one-segment case of position_friction_shape) at position x [m] with sf = S_f(v) (v, t
+    unused): f − c (x − x_ref) sf; the row p = (c [N/m], x_ref [m])."""
+    return f - p[0] * (x - p[1]) * sf
+
+
 class PositionDependentFrictionFamily(EffectFamily):
     name = "position_dependent_friction"
     plant_force = "−c (x − x_ref) S_f(ẋ)"
@@ -71,7 +79,6 @@ class PositionDependentFrictionFamily(EffectFamily):
 
     # simulator
     def plant_term(self, o: PositionDependentFriction, period_s):
-        from motorctl.effects.position_friction_shape import line_force
         return PlantTerm.compiled("force", line_force, [o.coulomb_slope_N_per_m, o.reference_m])
 
     # identification

@@ -297,14 +297,6 @@ def plant_force(f, x, v, t, sf, p):
     return f - g * sf
 
 
-@njit
-def line_force(f, x, v, t, sf, p):
-    """f + F_eff [N] of a straight-line friction shape (the one-segment case; the
-    position_dependent_friction family's plant term) at position x [m] with sf = S_f(v)
-    (v, t unused): f − c (x − x_ref) sf; the row p = (c [N/m], x_ref [m])."""
-    return f - p[0] * (x - p[1]) * sf
-
-
 def _spline_row(pieces) -> list[float]:
     """The row of :func:`_spline_at` for :func:`spline_pieces`' result: (lo, 1/Δ, n, g_lo, g_hi,
     a0[0..n), a1[0..n), a2[0..n), a3[0..n))."""

@@ -52,6 +52,7 @@ class StictionFamily(EffectFamily):
     searched = "velocity band h [m/s]"
     example: ClassVar[dict] = {"stiction_N": 25.0}
     look_alike: ClassVar[tuple[str, ...]] = ("amplifier_dead_zone",)
+    acts_at_rest = True
 
     # simulator: the plant core's Karnopp stiction (axis-level option, no hook)
     def sim_config(self, axis_options):

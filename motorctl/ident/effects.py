@@ -52,14 +52,19 @@ def columns_fast(name: str, h, p) -> np.ndarray | None:
     return family(name).columns(h, Signals.decimated(p))
 
 
-def parameters(name: str, h, beta: np.ndarray, gain: float | None, fs: float) -> dict:
+def parameters(name: str, h, beta: np.ndarray, gain: float | None, fs: float, theta=None) -> dict:
     """Physical parameters of a fitted term, names ending in their unit: forces in N when the
-    gain A1 [N/V] is known, otherwise in V (force / A1). fs: sample rate [Hz].
+    gain A1 [N/V] is known, otherwise in V (force / A1). fs: sample rate [Hz]. theta: the
+    nominal θ̂ of the same fit (n_theta,), for a family whose parameters need it (a reading's
+    error: β = −θ1·e); None: not given.
 
     Raises:
         ValueError: unknown family.
     """
-    return family(name).parameters(h, beta, gain, fs)
+    fam = family(name)
+    if theta is not None and "theta" in inspect.signature(fam.parameters).parameters:
+        return fam.parameters(h, beta, gain, fs, theta=theta)
+    return fam.parameters(h, beta, gain, fs)
 
 
 def compensation(name: str, h, beta: np.ndarray, signals=None, beta_std=None) -> dict | None:

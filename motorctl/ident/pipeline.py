@@ -66,7 +66,7 @@ def summarise(idf: Identifier) -> dict:
     for (ev, before), term, beta in zip(idf.accepted, idf.terms, betas):
         effects.append({
             "name": term.family,
-            "parameters": fx.parameters(term.family, term.h, beta, rec.gain, idf.p.fs),
+            "parameters": fx.parameters(term.family, term.h, beta, rec.gain, idf.p.fs, theta=th),
             "heldout_rms_before": g * before,
             "heldout_rms_after": g * ev.heldout_rms,
             "heldout_gain_percent": 100 * ev.gain,
@@ -91,8 +91,47 @@ def summarise(idf: Identifier) -> dict:
     # passed in the last step but not taken, when the effect limit ended the selection
     out["cut_by_limit"] = ([c.term.family for c in idf.steps[-1] if c.ok and not any(c is e for e in chosen)]
                            if idf.steps and len(idf.terms) >= MAX_EFFECTS else [])
-    out["residual"] = residual_verdict(idf.final.fit.residual, idf.p, g, unit)
+    at_rest = next((t.family for t in idf.terms if fx.FAMILIES[t.family].acts_at_rest), None)
+    out["residual"] = residual_verdict(idf.final.fit.residual, idf.p, g, unit, at_rest_by=at_rest)
+    add_refused(out["residual"], idf.steps[-1] if idf.steps else [], chosen)
     return out
+
+
+#: a candidate of the last selection step that explains at least this share of the held-out
+#: residual and is refused only on its physics is reported as an unexplained structure
+REFUSED_GAIN = 0.06
+#: reasons that say a candidate explains too little, not that its physics does not fit
+_WEAK = ("coefficients not significant", "too small to name", "held-out gain", "BIC drop", "effect larger than")
+
+
+def add_refused(verdict: dict, last_step: list, chosen: list) -> None:
+    """Add to the residual verdict (:func:`motorctl.ident.verdict.residual_verdict`) the
+    candidates of the last selection step that explain a share of the held-out residual
+    (≥ :data:`REFUSED_GAIN`) with significant coefficients and were refused only because
+    their physics does not fit (a line the loop itself oscillates at, a periodic force not the
+    same both ways): the residual has a structure there that no family models. Each goes to
+    ``findings`` (against "family", the family's columns, the reasons), ``structured`` becomes
+    true and the text names them."""
+    extra = []
+    for c in last_step:
+        if any(c is e for e in chosen) or c.ok or getattr(c, "gain", 0.0) < REFUSED_GAIN:
+            continue
+        why = [r for r in c.reasons if not r.startswith(_WEAK)]
+        if why and len(why) == len(c.reasons):
+            extra.append({"against": c.term.family, "share": float(c.gain), "noise_share": math.nan, "z": math.nan,
+                          "where": f"what {c.term.family} would explain ({100 * c.gain:.0f} % of the held-out "
+                                   f"residual), refused: {'; '.join(why)}",
+                          "mean": math.nan, "structured": True, "explained_by": None})
+    if not extra:
+        return
+    lead = "unexplained structured residual remains: "
+    body = "; ".join(e["where"] for e in extra)
+    if verdict["structured"]:
+        verdict["text"] = verdict["text"] + "; " + body
+    else:
+        verdict["text"] = lead + body + verdict["text"][verdict["text"].find(")") + 1:]
+    verdict["findings"] = verdict["findings"] + extra
+    verdict["structured"] = True
 
 
 def validation(idf: Identifier, rec2) -> dict:
@@ -125,11 +164,15 @@ def compensation_from_fit(idf: Identifier, final=None, terms=None) -> tuple[dict
     An adaptable family's entry carries ``adapt: false`` and its projection box from the fit's
     confidence interval (β ∓ 3σ, at least the default margin): a user only flips ``adapt``.
 
+    A found effect the record cannot tell from a look-alike family (``cannot_be_told_from`` in
+    the summary: cogging or an encoder's interpolation error, stiction or a dead-zone) is not
+    compensated: a compensation is only written for an effect the identification names.
+
     Returns:
         (compensation {family: options} (V units, d̂_eff = −Cβ), θ (n_theta,) = the jointly
         fitted nominal θ re-expressed about each term's reference
         (:meth:`motorctl.effects.base.EffectFamily.theta_shift`), names of found families that
-        have no compensation term).
+        have no compensation term or are not told from a look-alike).
     """
     final = idf.final if final is None else final
     terms = idf.terms if terms is None else terms
@@ -137,8 +180,9 @@ def compensation_from_fit(idf: Identifier, final=None, terms=None) -> tuple[dict
     stds = _split_std(idf, final, terms)
     theta = np.array(th, dtype=float)
     comp, skipped = {}, []
+    unnamed = {ev.term.family for ev, _ in getattr(idf, "accepted", []) if ev.rivals}
     for t, b, sd in zip(terms, betas, stds):
-        c = fx.compensation(t.family, t.h, b, idf.p, beta_std=sd)
+        c = None if t.family in unnamed else fx.compensation(t.family, t.h, b, idf.p, beta_std=sd)
         if c:
             comp.update(c)
             theta = theta + fx.family(t.family).theta_shift(c[t.family], idf.n_theta)
@@ -217,7 +261,10 @@ def tuned_config(idf: Identifier, s: dict, base: dict, axis: str, base_name: str
                            f"delay: v_a1 on the trajectory ahead)")
                 for e in s["effects"]:
                     pars = ", ".join(f"{k} {fig(v)}" for k, v in e["parameters"].items())
-                    tag = "compensated" if e["name"] in comp else "NOT compensable (no compensation term)"
+                    tag = ("compensated" if e["name"] in comp else
+                           "NOT compensated: the record cannot tell it from "
+                           + ", ".join(r["name"] for r in e["cannot_be_told_from"])
+                           if e.get("cannot_be_told_from") else "NOT compensable (no compensation term)")
                     out.append(f"{ind}#   {e['name']}: {pars}; held-out RMS {e['heldout_rms_before']:.4g} -> "
                                f"{e['heldout_rms_after']:.4g} {unit}; {tag}")
                 body = yaml.safe_dump({"compensation": comp}, sort_keys=False, default_flow_style=False, width=100)

@@ -396,6 +396,26 @@ class Identifier:
         den = np.linalg.norm(bp) + np.linalg.norm(bm)
         return float(1.0 - np.linalg.norm(bp - bm) / den) if den > 0 else 0.0
 
+    def speed_growth(self, term: Term, base: list, period: float) -> float:
+        """‖β_fast‖/‖β_slow‖ for the effect's coefficients fitted jointly with the nominal θ on
+        the slower and the faster half of the moving samples at which a spatial period
+        ``period`` [m] passes the position filter (|ẋ| < fq·period): about 1 for a force of
+        position (cogging, ripple) and for a reading's error in its own columns; a reading's
+        error fitted as a force grows with ẋ² (ë = −w²ẋ² e). NaN when too few samples."""
+        phi, y = self.design(base + [term])
+        k = term.cols.shape[1]
+        sp = np.abs(self.p.v_d)
+        seen = self.moving & (sp < self.p.fq * period)
+        if seen.sum() < 8 * phi.shape[1]:
+            return math.nan
+        med = float(np.median(sp[seen]))
+        norms = []
+        for sel in (seen & (sp <= med), seen & (sp > med)):
+            if sel.sum() < 4 * phi.shape[1]:
+                return math.nan
+            norms.append(float(np.linalg.norm(_coef(phi[sel], y[sel])[-k:])))
+        return norms[1] / norms[0] if norms[0] > 0 else math.inf
+
     def judge(self, ev: Evaluated, current: Evaluated, base: list) -> Evaluated:
         gain = 1.0 - ev.heldout_rms / current.heldout_rms
         reasons = self.plausible(ev, base)

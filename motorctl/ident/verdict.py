@@ -14,8 +14,8 @@ count). It is structured when
 The most deviating bin (its mean in standard errors, z) is where the structure is said to live.
 
 The spectrum (Welch, scipy.signal) is structured when a line stands :data:`MIN_PEAK_RATIO`
-times above the median of the spectrum above 0.5 Hz and holds at least :data:`MIN_SHARE` of the
-power. Each finding says where the structure lives ("near zero velocity (|v| < 3.2 mm/s)",
+times above the median of the spectrum above 0.5 Hz and holds at least :data:`MIN_LINE_SHARE` of
+the power. Each finding says where the structure lives ("near zero velocity (|v| < 3.2 mm/s)",
 "at |u| < 0.21 V", "periodic at 4.10 Hz"), in the residual's unit.
 """
 
@@ -27,9 +27,10 @@ import numpy as np
 from scipy import signal
 
 N_BINS = 16
-MIN_SHARE = 0.08       #: share of the residual's power a 1-D function of one variable explains
+MIN_SHARE = 0.12       #: share of the residual's power a 1-D function of one variable explains
 NOISE_FACTOR = 4.0     #: the share must be this many times what noise alone would give
 MIN_PEAK_RATIO = 30.0  #: a spectral line this far above the spectrum's median
+MIN_LINE_SHARE = 0.08  #: and holding this share of the residual's power (clean logs: 2.5-3.4 %)
 
 
 def _binned(r: np.ndarray, x: np.ndarray, n_eff_ratio: float):
@@ -70,16 +71,29 @@ def _where(name: str, b: dict, span: float) -> str:
     return f"from t = {lo:.3g} s to {hi:.3g} s (it drifts over the record)"
 
 
-def residual_verdict(r: np.ndarray, p, gain: float = 1.0, unit: str = "V") -> dict:
+def _at_rest(name: str, b: dict, span: float) -> bool:
+    """The bin lies near zero velocity or at small inputs (where a holding force or a dead-zone acts)."""
+    lo, hi = b["lo"], b["hi"]
+    if name == "velocity":
+        return lo <= 0.0 <= hi or max(abs(lo), abs(hi)) < 0.05 * span
+    if name == "input":
+        return lo <= 0.0 <= hi or max(abs(lo), abs(hi)) < 0.1 * span
+    return False
+
+
+def residual_verdict(r: np.ndarray, p, gain: float = 1.0, unit: str = "V", at_rest_by: str | None = None) -> dict:
     """The structure left in a residual.
 
     Args:
         r: the final model's residual on the decimated samples (M,) [V of input].
         p: the :class:`~motorctl.ident.idim.Prepared` signals of the record (t_d, x_d, v_d, u_d (M,)).
         gain: N per V (1 when unknown); unit: the unit the report uses ('N' or 'V').
+        at_rest_by: the name of a selected effect that acts at rest or at small inputs (a
+            structure there is counted as its, ``explained_by``), or None.
     Returns:
         {"structured": bool, "findings": [{"against", "share", "z", "where", "mean"}] (the
-        structured ones first), "tested": [every variable with its share and z], "text"}.
+        structured ones first), "tested": [every variable with its share, z and, when a
+        selected effect accounts for it, ``explained_by``], "text"}.
     """
     r = np.asarray(r, dtype=float)
     r = r - r.mean()
@@ -91,9 +105,11 @@ def residual_verdict(r: np.ndarray, p, gain: float = 1.0, unit: str = "V") -> di
         if b is None:
             continue
         span = float(np.max(np.abs(x))) if name in ("velocity", "input") else 0.0
+        big = b["share"] >= max(MIN_SHARE, NOISE_FACTOR * b["noise"])
+        explained = at_rest_by if big and at_rest_by and _at_rest(name, b, span) else None
         tested.append({"against": name, "share": b["share"], "noise_share": b["noise"], "z": b["z"],
                        "where": _where(name, b, span), "mean": gain * b["mean"],
-                       "structured": b["share"] >= max(MIN_SHARE, NOISE_FACTOR * b["noise"])})
+                       "structured": big and explained is None, "explained_by": explained})
     fs = 1.0 / float(np.median(np.diff(p.t_d)))
     f, psd = signal.welch(r, fs=fs, nperseg=min(1024, r.size), detrend="constant")
     band = f > 0.5
@@ -104,10 +120,12 @@ def residual_verdict(r: np.ndarray, p, gain: float = 1.0, unit: str = "V") -> di
         share = float(psd[near].sum() / psd[band].sum())
         tested.append({"against": "spectrum", "share": share, "noise_share": math.nan, "z": ratio_pk,
                        "where": f"periodic at {f[j]:.3g} Hz", "mean": math.nan,
-                       "structured": ratio_pk >= MIN_PEAK_RATIO and share >= MIN_SHARE})
+                       "structured": ratio_pk >= MIN_PEAK_RATIO and share >= MIN_LINE_SHARE, "explained_by": None})
     found = sorted((t for t in tested if t["structured"]), key=lambda t: -t["share"])
     text = ("unexplained structured residual remains: " + "; ".join(
         f"{t['where']} ({100 * t['share']:.0f} % of the residual's power"
         + (f", mean {t['mean']:+.3g} {unit} there" if math.isfinite(t["mean"]) else "") + ")" for t in found)
         if found else "the residual shows no structure (against velocity, input, position, time, spectrum)")
+    text += "".join(f"; {t['where']} ({100 * t['share']:.0f} % of the residual's power) counted as "
+                    f"{t['explained_by']}'s" for t in tested if t.get("explained_by"))
     return {"structured": bool(found), "findings": found, "tested": tested, "text": text}

@@ -9,7 +9,8 @@ to :func:`servo_cycle` and writes the driver. For every axis the call runs:
     → the overrun policy's hold-and-ramp, or the law: a compiled law (LAW_DCDIARC,
       LAW_DCDIARC_COMP with its compensation and the desired trajectory at its preview, LAW_PID:
       :mod:`motorctl.control.kernels`) on the axis's rows, reset when the axis starts
-    → the bumpless-switch blend, the following-error and NaN check of the output
+    → the bumpless-switch blend, the following-error, NaN, I²t and oscillation checks of the
+      output
     → a fault or disable: 0 V, amplifier off (and IDLE when operated)
     → the axis's part of the cycle record
 
@@ -34,12 +35,13 @@ from numba.experimental.structref import StructRefProxy
 
 from motorctl.control.kernels import LAW_PY, law_preview, law_reset, law_step
 from motorctl.jit import BundleType, borrow, bundle, define_bundle, njit
-from motorctl.loop.records import CONTROLLER_SIGNALS, N_SIGNALS
-from motorctl.loop.safety import FAULT_OVERRUN, SI_FAULT, sup_check_input, sup_check_output, sup_trip
+from motorctl.control.signals import N_SIGNALS, SIG_E
+from motorctl.loop.safety import FAULT_OVERRUN, SI_FAULT, sup_check_input, sup_check_output, sup_rest, sup_trip
+from motorctl.loop.stream import stream_step
 from motorctl.loop.trajectory import TABLE_HEAD, sample_table
 
 #: the sequencer's modes (servo.py's module docstring)
-IDLE, APPROACH, PROGRAM, HOLD, JOG = 0, 1, 2, 3, 4
+IDLE, APPROACH, PROGRAM, HOLD, JOG, STREAM = 0, 1, 2, 3, 4, 5
 #: what a call does: every axis through; up to the laws run from Python; those axes' rest
 CYCLE_ALL, CYCLE_BEFORE, CYCLE_AFTER = 0, 1, 2
 
@@ -50,21 +52,20 @@ N_A = 11
 #: A_PEND: the law of this axis runs from Python now (PEND_RESET: reset it first)
 PEND_NONE, PEND_UPDATE, PEND_RESET = 0, 1, 2
 # per-axis float state (axf): held position, blend offset (NaN: not yet taken), last output;
-# the sample handed to a law run from Python (y, x_d, ẋ_d, ẍ_d) and its output
-X_HOLD, X_BLOFF, X_ULAST, X_Y, X_XD, X_VD, X_AD, X_U = range(8)
-N_X = 8
+# the sample handed to a law run from Python (y, x_d, ẋ_d, ẍ_d) and its output; in STREAM the
+# setpoint taken from the stream (x, ẋ, ẍ) and the brake's a_max, j_max (motorctl.loop.stream)
+X_HOLD, X_BLOFF, X_ULAST, X_Y, X_XD, X_VD, X_AD, X_U, X_SX, X_SV, X_SA, X_AMAX, X_JMAX = range(13)
+N_X = 13
 # the loop's numbers (lp)
 LP_TS, LP_SETTLE, LP_OVR_RAMP, LP_BLEND_N, LP_DISABLE_ON_FAULT = range(5)
 N_LP = 5
 # record offsets (offs): per-axis fields, then the base of each axis
-(O_Y, O_XD, O_VD, O_AD, O_U, O_EN, O_FB, O_SIG) = range(8)
-O_AXIS = 8
-#: the following error the supervisor checks: the law's signal e
-SIG_E = list(CONTROLLER_SIGNALS).index("e")
+(O_Y, O_XD, O_VD, O_AD, O_U, O_EN, O_FB, O_SIG, O_MODE) = range(9)
+O_AXIS = 9
 
 #: the fields of :class:`CycleState`, in constructor order (module docstring)
 CYCLE_FIELDS = ("pos", "rerr", "werr", "ampf", "uo", "en", "ax", "axf", "prog", "move", "si", "sf",
-                "sig", "cf", "ci", "cl", "buf", "offs", "lp")
+                "sig", "cf", "ci", "cl", "buf", "offs", "lp", "sp", "spc")
 
 
 class CycleStateType(BundleType):
@@ -81,8 +82,9 @@ define_bundle(CycleStateType, CycleState, CYCLE_FIELDS)
 
 @njit
 def _make_cycle_state(pos, rerr, werr, ampf, uo, en, ax, axf, prog, move, si, sf, sig, cf, ci, cl, buf, offs,
-                      lp):
-    return CycleState(pos, rerr, werr, ampf, uo, en, ax, axf, prog, move, si, sf, sig, cf, ci, cl, buf, offs, lp)
+                      lp, sp, spc):
+    return CycleState(pos, rerr, werr, ampf, uo, en, ax, axf, prog, move, si, sf, sig, cf, ci, cl, buf, offs, lp,
+                      sp, spc)
 
 
 def cycle_state(*arrays) -> CycleState:
@@ -99,13 +101,14 @@ def cycle_state(*arrays) -> CycleState:
 
 
 @njit
-def _finish(i, ok, u, k, y, xd, vd, ad, ax, axf, si, sig, uo, en, row, offs, lp):
+def _finish(i, ok, u, k, y, xd, vd, ad, ax, axf, si, sf, sig, uo, en, row, offs, lp):
     """After the law: a fault or disable gives 0 V with the amplifier off (IDLE when operated);
     the output, its enable and the axis's part of the record row."""
     if not ok:
         ax[i, A_RUNNING] = 0
         ax[i, A_OVR] = 0
         u = 0.0
+        sup_rest(si, sf, i)                    # 0 V: the I²t model cools
         if lp[LP_DISABLE_ON_FAULT] != 0.0 and si[i, SI_FAULT] != 0 and ax[i, A_MODE] != IDLE:
             ax[i, A_MODE] = IDLE
             ax[i, A_ENABLED] = 0
@@ -155,6 +158,8 @@ def desired(i, k, ahead, ax, axf, prog, move, ts):
         return sample_table(mv, mv[TABLE_HEAD + 2] + (k - ax[i, A_KST]) * ts + ahead)
     if m == HOLD:
         return axf[i, X_HOLD], 0.0, 0.0
+    if m == STREAM:                            # the stream has no look-ahead: its sample
+        return axf[i, X_SX], axf[i, X_SV], axf[i, X_SA]
     return np.nan, np.nan, np.nan
 
 
@@ -174,20 +179,23 @@ def servo_cycle(phase, k, st):
     n = pos.shape[0]
     row = borrow(buf[k % buf.shape[0]])
     pending = 0
+    if phase != CYCLE_AFTER:                   # the setpoint stream: one row for every STREAM axis
+        stream_step(borrow(st.sp), borrow(st.spc), ax, axf, A_MODE, STREAM, A_STOPREQ, X_SX, X_AMAX, ts)
     for i in range(n):
         if phase == CYCLE_AFTER:
             if ax[i, A_PEND] == PEND_NONE:
                 continue
             ax[i, A_PEND] = PEND_NONE
             u, ok = _output(i, axf[i, X_U], axf[i, X_VD], ax, axf, si, sf, sig, lp)
-            _finish(i, ok, u, k, axf[i, X_Y], axf[i, X_XD], axf[i, X_VD], axf[i, X_AD], ax, axf, si, sig, uo,
-                    en, row, offs, lp)
+            _finish(i, ok, u, k, axf[i, X_Y], axf[i, X_XD], axf[i, X_VD], axf[i, X_AD], ax, axf, si, sf, sig,
+                    uo, en, row, offs, lp)
             continue
         y = pos[i]
         # a write error last cycle counts like a read error this cycle
         ok = sup_check_input(si, sf, i, y, rerr[i] or werr[i], ampf[i]) and ax[i, A_ENABLED] != 0
         m = ax[i, A_MODE]
         xd, vd, ad = desired(i, k, 0.0, ax, axf, prog, move, ts)
+        row[offs[O_AXIS + i] + offs[O_MODE]] = m     # the mode x_d of this row comes from
         if m == APPROACH or m == JOG:
             if (k - ax[i, A_KST]) * ts >= move[i, TABLE_HEAD + 3]:
                 if m == APPROACH:
@@ -210,7 +218,7 @@ def servo_cycle(phase, k, st):
             vd = 0.0
             ad = 0.0
             ok = False
-        if ax[i, A_STOPREQ] != 0 and (m == PROGRAM or m == APPROACH) and vd == 0.0 and ad == 0.0:
+        if ax[i, A_STOPREQ] != 0 and (m == PROGRAM or m == APPROACH or m == STREAM) and vd == 0.0 and ad == 0.0:
             ax[i, A_MODE] = HOLD
             axf[i, X_HOLD] = xd
             ax[i, A_SETTLE] = int(lp[LP_SETTLE])
@@ -249,7 +257,7 @@ def servo_cycle(phase, k, st):
                 u = law_step(law, y, xd, vd, ad, xf, vf, af, k * ts, borrow(sig[i]), borrow(cf[i]), borrow(ci[i]),
                              borrow(cl[i]))
                 u, ok = _output(i, u, vd, ax, axf, si, sf, sig, lp)
-        _finish(i, ok, u, k, y, xd, vd, ad, ax, axf, si, sig, uo, en, row, offs, lp)
+        _finish(i, ok, u, k, y, xd, vd, ad, ax, axf, si, sf, sig, uo, en, row, offs, lp)
     return pending
 
 
@@ -279,6 +287,7 @@ def refresh(k, st, scratch):
     scratch.cl[:] = st.cl
     scratch.offs[:] = st.offs
     scratch.lp[:] = st.lp
+    scratch.spc[:] = st.spc
     row = st.buf[k % st.buf.shape[0]]
     for j in range(0, row.shape[0], 8):
         scratch.buf[0, j] = row[j]

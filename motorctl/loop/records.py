@@ -5,12 +5,14 @@ One float64 row per cycle: the cycle-wide fields, then for every axis the axis f
 exporters and the plots all index a row by these names through :class:`RecordLayout`, never by
 a hand-counted offset.
 
-The controller block (:data:`CONTROLLER_SIGNALS`) is what every controller publishes after
-each sample (:class:`motorctl.control.base.Controller`); a signal a controller does not have
+The controller block (:data:`motorctl.control.signals.CONTROLLER_SIGNALS`) is what every
+controller publishes after each sample (:class:`motorctl.control.base.Controller`); a signal a controller does not have
 (θ̂5/θ̂6 for C1, θ̂ and d̂0 for a PID) is NaN, never a stale value of another controller.
 """
 
 from __future__ import annotations
+
+from motorctl.control.signals import CONTROLLER_SIGNALS, N_SIGNALS, N_THETA_MAX  # noqa: F401  (the record's layout)
 
 #: cycle-wide fields: name -> unit
 CYCLE_FIELDS: dict[str, str] = {
@@ -23,22 +25,7 @@ CYCLE_FIELDS: dict[str, str] = {
     "overruns": "1",           # missed periods so far
 }
 
-#: what a controller publishes after each sample: name -> unit (paper's symbols, eq. 11-19)
-CONTROLLER_SIGNALS: dict[str, str] = {
-    "v": "V",                  # the law's output before the input inversion
-    "e": "m",                  # tracking error y − x_d
-    "p": "m/s",                # p = ė + k1 e (eq. 11); PID: the derivative of the error
-    "x2": "m/s",               # velocity estimate (backward difference)
-    "theta_hat1": "V s^2/m",
-    "theta_hat2": "V s/m",
-    "theta_hat3": "V",
-    "theta_hat4": "V",
-    "theta_hat5": "1/V",
-    "theta_hat6": "1/V^2",
-    "d_hat0": "V",             # fast disturbance compensation (eq. 19)
-}
-N_SIGNALS = len(CONTROLLER_SIGNALS)
-N_THETA_MAX = 6
+#: the controller block: declared with the laws (:mod:`motorctl.control.signals`)
 
 #: per-axis fields: name -> unit. The controller block is contiguous (the loop copies it).
 AXIS_FIELDS: dict[str, str] = {
@@ -50,7 +37,10 @@ AXIS_FIELDS: dict[str, str] = {
     **CONTROLLER_SIGNALS,
     "enabled": "1",            # amplifier enable written this cycle
     "fault_bits": "1",         # latched fault bits (motorctl.loop.safety)
+    "mode": "1",               # the sequencer's mode: 0 idle, 1 approach, 2 program, 3 hold, 4 jog
 }
+#: the ``mode`` field's codes (motorctl.loop.cycle's IDLE ... JOG)
+MODE_IDLE, MODE_APPROACH, MODE_PROGRAM, MODE_HOLD, MODE_JOG = range(5)
 
 
 class RecordLayout:

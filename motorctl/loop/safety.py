@@ -11,6 +11,8 @@ Checks per axis (see ``LimitsConfig``):
   * soft position limits;
   * velocity-scaled following error: limit = max(min_fe, fe·|ẋ_d|/v_max) (motion/control.c);
   * amplifier fault reported by the drive;
+  * I²t of the output (:func:`sup_check_thermal`): the drive's thermal protection of the coil;
+  * sustained oscillation at rest (:func:`sup_check_thermal`): a limit cycle while ẋ_d = 0;
   * loop-level faults (overrun policy, shutdown) set by the loop.
 
 The checks are compiled (numba) float/int arithmetic on two preallocated arrays, called from
@@ -37,6 +39,8 @@ FAULT_ENCODER_JUMP = 32
 FAULT_OVERRUN = 64
 FAULT_SHUTDOWN = 128
 FAULT_RECORDER = 256
+FAULT_I2T = 512
+FAULT_OSCILLATION = 1024
 
 FAULT_NAMES = {
     FAULT_FOLLOWING_ERROR: "following error",
@@ -48,6 +52,8 @@ FAULT_NAMES = {
     FAULT_OVERRUN: "overrun",
     FAULT_SHUTDOWN: "shutdown",
     FAULT_RECORDER: "recorder",
+    FAULT_I2T: "i2t",
+    FAULT_OSCILLATION: "oscillation",
 }
 
 
@@ -69,11 +75,13 @@ RECOVERY_MARGIN_M = 0.0005
 
 
 # the supervisor's state, one row per axis (:class:`Supervisor`: ``si`` int64, ``sf`` float64)
-SI_FAULT, SI_BUCKET, SI_GAP, SI_IOERR, SI_INC, SI_DEC, SI_BLIM = range(7)
-N_SI = 7
+(SI_FAULT, SI_BUCKET, SI_GAP, SI_IOERR, SI_INC, SI_DEC, SI_BLIM, SI_OSC_N, SI_OSC_WIN, SI_OSC_X, SI_OSC_SGN,
+ SI_OSC_REST) = range(12)
+N_SI = 12
 (SF_YLAST, SF_FEPEAK, SF_VAF, SF_LAF, SF_LO, SF_HI, SF_SOFTLO, SF_SOFTHI, SF_FE, SF_FEMIN, SF_VMAX,
- SF_JUMP) = range(12)
-N_SF = 12
+ SF_JUMP, SF_TS, SF_I2T, SF_I2T_CONT, SF_I2T_LIM, SF_I2T_PEAK, SF_OSC_MEAN, SF_OSC_S2, SF_OSC_ALPHA, SF_OSC_RMS,
+ SF_OSC_HZ, SF_OSC_PEAK, SF_OSC_F, SF_OSC_S1) = range(25)
+N_SF = 25
 
 
 @njit
@@ -125,11 +133,93 @@ def sup_check_input(si, sf, i, y, io_error, amp_fault):
 
 
 @njit
+def sup_check_thermal(si, sf, i, xd_dot, u):
+    """Axis i's output u [V] (ẋ_d [m/s] its reference's speed) through the I²t model and the
+    oscillation detector; True when u may be written, else FAULT_I2T or FAULT_OSCILLATION is
+    latched.
+
+    I²t (the drives' "I²t time limit": Copley Controls Accelnet/Xenus user guides, "I2T
+    current limiting"; Kollmorgen AKD "foldback"): the accumulator A [V² s] integrates
+    u² − u_cont² every period (never below 0, so it cools at u_cont² per second at 0 V) and
+    trips above (u_peak² − u_cont²)·t_peak: u_peak may be held for t_peak from cold, any u up
+    to u_cont for ever. u [V] is the current command of the amplifier (u ∝ coil current).
+
+    Oscillation at rest: while ẋ_d = 0, consecutive windows of ``oscillation_window_s``: the
+    RMS of u about the window's mean (what oscillates, not a holding force) and the crossings
+    of u through its running mean (first-order, time constant a fifth of a window, from the
+    first sample of rest); a window whose RMS exceeds ``oscillation_rms_V`` with crossings at
+    ≥ ``oscillation_min_hz`` (crossings / 2 per second) trips, its frequency kept
+    (``oscillation_hz``). Any ẋ_d ≠ 0 ends the window: a trip comes one window after the
+    reference came to rest at the earliest.
+    """
+    a = sf[i, SF_I2T] + (u * u - sf[i, SF_I2T_CONT]) * sf[i, SF_TS]
+    a = a if a > 0.0 else 0.0
+    sf[i, SF_I2T] = a
+    if a > sf[i, SF_I2T_PEAK]:
+        sf[i, SF_I2T_PEAK] = a
+    if a > sf[i, SF_I2T_LIM]:
+        sup_trip(si, sf, i, FAULT_I2T, a, sf[i, SF_I2T_LIM])
+        return False
+    if xd_dot != 0.0:
+        si[i, SI_OSC_REST] = 0
+        si[i, SI_OSC_N] = 0
+        return True
+    if si[i, SI_OSC_REST] == 0:                # rest begins: a new window, the mean from here
+        si[i, SI_OSC_REST] = 1
+        si[i, SI_OSC_N] = 0
+        si[i, SI_OSC_SGN] = 0
+        sf[i, SF_OSC_MEAN] = u
+    m = sf[i, SF_OSC_MEAN] + sf[i, SF_OSC_ALPHA] * (u - sf[i, SF_OSC_MEAN])
+    sf[i, SF_OSC_MEAN] = m
+    d = u - m
+    n = si[i, SI_OSC_N]
+    if n == 0:
+        si[i, SI_OSC_X] = 0
+        sf[i, SF_OSC_S1] = 0.0
+        sf[i, SF_OSC_S2] = 0.0
+    sf[i, SF_OSC_S1] += u
+    sf[i, SF_OSC_S2] += u * u
+    sgn = 1 if d > 0.0 else (-1 if d < 0.0 else 0)
+    if sgn != 0:
+        if sgn == -si[i, SI_OSC_SGN]:
+            si[i, SI_OSC_X] += 1
+        si[i, SI_OSC_SGN] = sgn
+    n += 1
+    if n < si[i, SI_OSC_WIN]:
+        si[i, SI_OSC_N] = n
+        return True
+    si[i, SI_OSC_N] = 0
+    mean = sf[i, SF_OSC_S1] / n
+    var = sf[i, SF_OSC_S2] / n - mean * mean
+    rms = math.sqrt(var) if var > 0.0 else 0.0
+    if rms > sf[i, SF_OSC_PEAK]:
+        sf[i, SF_OSC_PEAK] = rms
+    f = si[i, SI_OSC_X] / (2.0 * n * sf[i, SF_TS])
+    if rms > sf[i, SF_OSC_RMS] and f >= sf[i, SF_OSC_HZ]:
+        sf[i, SF_OSC_F] = f
+        sup_trip(si, sf, i, FAULT_OSCILLATION, rms, sf[i, SF_OSC_RMS])
+        return False
+    return True
+
+
+@njit
+def sup_rest(si, sf, i):
+    """A period of axis i at 0 V (disabled or faulted): the I²t accumulator cools by
+    u_cont²·Ts (:func:`sup_check_thermal`), and the oscillation window ends."""
+    a = sf[i, SF_I2T] - sf[i, SF_I2T_CONT] * sf[i, SF_TS]
+    sf[i, SF_I2T] = a if a > 0.0 else 0.0
+    si[i, SI_OSC_REST] = 0
+    si[i, SI_OSC_N] = 0
+
+
+@njit
 def sup_check_output(si, sf, i, e, xd_dot, u):
     """Check axis i's following error e [m] (velocity-scaled limit at ẋ_d [m/s]) and output
-    u [V]. True when u may be written."""
+    u [V] (NaN, then :func:`sup_check_thermal`). True when u may be written."""
     if not (u - u == 0.0):
         sup_trip(si, sf, i, FAULT_NAN, u, 0.0)
+        return False
+    if not sup_check_thermal(si, sf, i, xd_dot, u):
         return False
     ae = abs(e)
     if ae > sf[i, SF_FEPEAK]:
@@ -157,6 +247,10 @@ class Supervisor:
         fault: latched fault bits (0 = healthy); :meth:`reason` words them.
         fe_peak: high-water mark of |following error| [m]. bucket, io_errors (total failed
         exchanges, counted even below the limit), value_at_fault, limit_at_fault.
+        i2t, i2t_limit, i2t_peak: the I²t accumulator, its trip level and high-water mark
+        [V² s]; oscillation_rms_peak, oscillation_rms_limit: the largest RMS of a window at
+        rest and the trip level [V]; oscillation_hz: the frequency of the window that tripped
+        [Hz] (:func:`sup_check_thermal`).
     """
 
     def __init__(self, limits: list, period_s: float):
@@ -178,6 +272,14 @@ class Supervisor:
             sf[i, SF_FEMIN] = lim.min_following_error_m
             sf[i, SF_VMAX] = lim.max_velocity_m_per_s
             sf[i, SF_JUMP] = lim.encoder_max_speed_m_per_s * period_s     # per cycle
+            sf[i, SF_TS] = period_s
+            sf[i, SF_I2T_CONT] = lim.i2t_continuous_V ** 2
+            sf[i, SF_I2T_LIM] = (lim.i2t_peak_V ** 2 - lim.i2t_continuous_V ** 2) * lim.i2t_peak_time_s
+            n_win = max(2, round(lim.oscillation_window_s / period_s))
+            si[i, SI_OSC_WIN] = n_win
+            sf[i, SF_OSC_ALPHA] = min(1.0, 5.0 / n_win)   # the running mean: a fifth of a window
+            sf[i, SF_OSC_RMS] = lim.oscillation_rms_V
+            sf[i, SF_OSC_HZ] = lim.oscillation_min_hz
         self.si, self.sf = si, sf
         self.fault = si[:, SI_FAULT]
         self.bucket = si[:, SI_BUCKET]
@@ -186,6 +288,12 @@ class Supervisor:
         self.y_last = sf[:, SF_YLAST]
         self.value_at_fault = sf[:, SF_VAF]
         self.limit_at_fault = sf[:, SF_LAF]
+        self.i2t = sf[:, SF_I2T]
+        self.i2t_limit = sf[:, SF_I2T_LIM]
+        self.i2t_peak = sf[:, SF_I2T_PEAK]
+        self.oscillation_rms_peak = sf[:, SF_OSC_PEAK]
+        self.oscillation_rms_limit = sf[:, SF_OSC_RMS]
+        self.oscillation_hz = sf[:, SF_OSC_F]
 
     def check_input(self, i: int, y: float, io_error: bool, amp_fault: bool) -> bool:
         """Check axis i's reading before control. Returns True when the axis may be driven."""
@@ -204,7 +312,8 @@ class Supervisor:
         bits = int(self.fault[i])
         if not bits:
             return ""
-        return (f"{describe_faults(bits)} (value {self.value_at_fault[i]:.6g}, "
+        at = f" at {self.oscillation_hz[i]:.3g} Hz" if bits & FAULT_OSCILLATION else ""
+        return (f"{describe_faults(bits)}{at} (value {self.value_at_fault[i]:.6g}, "
                 f"limit {self.limit_at_fault[i]:.6g})")
 
     def reset(self, i: int, y: float, amp_fault: bool) -> tuple[bool, str]:
@@ -229,6 +338,7 @@ class Supervisor:
         self.bucket[i] = 0
         self.y_last[i] = y
         self.fe_peak[i] = 0.0
+        self.i2t[i] = 0.0            # a reset is the operator's word that the coil has cooled
 
     def inside(self, i: int, x: float) -> bool:
         """True when position x [m] lies within axis i's soft limits."""
@@ -263,6 +373,8 @@ class LimitsConfig(StrictModel):
     following_error_m applies at max_velocity_m_per_s and scales with |ẋ_d| down to
     min_following_error_m; encoder_max_speed_m_per_s bounds the speed a change of the encoder
     reading may show (over the cycles since the last good reading): no physical motion is faster.
+    i2t_* and oscillation_* (docs/protection.md): the I²t model of the amplifier's output and the
+    oscillation-at-rest detector (:func:`sup_check_thermal`); i2t_continuous_V < i2t_peak_V.
     """
 
     soft_min_m: Position_m = -1.0
@@ -274,3 +386,13 @@ class LimitsConfig(StrictModel):
     error_bucket_increment: Annotated[int, Field(ge=1)] = 10
     error_bucket_decrement: Annotated[int, Field(ge=1)] = 1
     error_bucket_limit: Annotated[int, Field(ge=1)] = 100
+    #: I²t protection (:func:`sup_check_thermal`): the amplifier's continuous and peak output
+    #: and how long the peak may be held from cold. Defaults: the ±10 V amplifier's full scale
+    #: as peak for 1 s, continuous 4.4 V (peak/continuous 2.3: servo drives rate 2-3x)
+    i2t_continuous_V: quantity(0.1, 100.0, "V") = 4.4
+    i2t_peak_V: quantity(0.1, 100.0, "V") = 10.0
+    i2t_peak_time_s: quantity(0.01, 60.0, "s") = 1.0
+    #: oscillation at rest (:func:`sup_check_thermal`): window, RMS and frequency that trip
+    oscillation_window_s: quantity(0.05, 10.0, "s") = 0.5
+    oscillation_rms_V: quantity(0.01, 100.0, "V") = 2.0
+    oscillation_min_hz: quantity(0.1, 10000.0, "Hz") = 5.0

@@ -32,6 +32,9 @@ Per-axis sequencing (used by the daemon; :meth:`run` alone keeps the old behavio
 follows its program at t = k·Ts from the first cycle)::
 
     IDLE      0 V, amplifier off; x_d recorded as the measured position
+    STREAM    command mode: holds where it was enabled, then follows the setpoints streamed
+              into the ring (:mod:`motorctl.loop.stream`); an empty ring while moving, or a
+              stop, brakes it jerk-limited to rest (a stop then HOLDs and goes IDLE)
     APPROACH  a jerk-limited Move from where the axis stands to the program's start
               (the controller was reset from the measured position: bumpless start)
     PROGRAM   the configured program, local time t − t_start
@@ -58,15 +61,16 @@ import time
 
 import numpy as np
 
-from motorctl.control.kernels import LAW_PY, N_LAYOUT
+from motorctl.control.kernels import LAW_PY, N_LAYOUT, check_law_code
 from motorctl.jit import entry
 from motorctl.loop import cycle as C
-from motorctl.loop.cycle import APPROACH, HOLD, IDLE, JOG, PROGRAM, servo_cycle
+from motorctl.loop.cycle import APPROACH, HOLD, IDLE, JOG, PROGRAM, STREAM, servo_cycle
 from motorctl.loop.pacing import Pacer
 from motorctl.loop.records import CONTROLLER_SIGNALS, N_SIGNALS, RecordLayout
-from motorctl.loop.safety import FAULT_SHUTDOWN, Supervisor
+from motorctl.loop.safety import FAULT_SHUTDOWN, SF_YLAST, Supervisor
+from motorctl.loop.stream import SetpointRing
 from motorctl.loop.timebase import Timebase
-from motorctl.loop.trajectory import MOVE_W, TABLE_HEAD
+from motorctl.loop.trajectory import MOVE_W, TABLE_HEAD, Program
 
 #: bumpless switch: the output step between two controllers fades out over this time [s]
 SWITCH_BLEND_S = 0.01
@@ -74,8 +78,8 @@ SWITCH_BLEND_S = 0.01
 LAW_ROW_FLOATS, LAW_ROW_INTS = 256, 16
 
 MODE_NAMES = {IDLE: "disabled", APPROACH: "approach", PROGRAM: "tracking", HOLD: "stopping",
-              JOG: "jog"}
-__all__ = ["APPROACH", "HOLD", "IDLE", "JOG", "MODE_NAMES", "PROGRAM", "SWITCH_BLEND_S", "ServoLoop"]
+              JOG: "jog", STREAM: "command"}
+__all__ = ["APPROACH", "HOLD", "IDLE", "JOG", "MODE_NAMES", "PROGRAM", "STREAM", "SWITCH_BLEND_S", "ServoLoop"]
 
 
 def _page_faults() -> int:
@@ -129,7 +133,7 @@ class ServoLoop:
                  buffer=None,
                  heartbeat=None, on_slack=None, overrun_policy: str = "count",
                  overrun_hold: int = 5, overrun_ramp_s: float = 0.01, stop_settle_s: float = 0.0,
-                 operated: bool = False):
+                 operated: bool = False, stream=None):
         if clock not in ("wall", "virtual"):
             raise ValueError(f"clock must be 'wall' or 'virtual', got {clock!r}")
         n = len(driver.axis_names)
@@ -191,7 +195,7 @@ class ServoLoop:
         lay = self.layout
         self._offs = np.array([lay.axis_field(f) for f in ("y", "x_d", "xd_dot", "xd_ddot", "u", "enabled",
                                                             "fault_bits")]
-                              + [lay.axis_field(next(iter(CONTROLLER_SIGNALS)))]
+                              + [lay.axis_field(next(iter(CONTROLLER_SIGNALS))), lay.axis_field("mode")]
                               + [lay.axis_base(i) for i in range(n)], dtype=np.int64)
         self._lp = np.zeros(C.N_LP)
         self._lp[C.LP_TS] = self.period_s
@@ -199,6 +203,8 @@ class ServoLoop:
         self._lp[C.LP_OVR_RAMP] = self.overrun_ramp
         self._lp[C.LP_BLEND_N] = self.blend_cycles
         self._lp[C.LP_DISABLE_ON_FAULT] = 1.0 if operated else 0.0
+        # the setpoint stream of commanded motion (motorctl.loop.stream; the daemon's is shared)
+        self.stream = stream if stream is not None else SetpointRing(1, n, shared=False)
         self._py = []                          # axes whose law runs from Python
         for i, c in enumerate(controllers):
             self._adopt(i, c)
@@ -220,7 +226,8 @@ class ServoLoop:
         drv = self.driver
         arrays = (drv.position_m, drv.read_error, drv.write_error, drv.amp_fault, self.u_out, self.enable_out,
                   self.ax, self.axf, self._prog, self._move, self.supervisor.si, self.supervisor.sf, self._sig,
-                  self._cf, self._ci, self._cl, self.buf, self._offs, self._lp)
+                  self._cf, self._ci, self._cl, self.buf, self._offs, self._lp, self.stream.rows,
+                  self.stream.ctl)
         if copies:
             arrays = tuple(a[:1].copy() if a is self.buf else a.copy() for a in arrays)
         return arrays
@@ -249,7 +256,7 @@ class ServoLoop:
             return
         if old is not None:
             old.detach()
-        law = c.law_code
+        law = check_law_code(c.law_code, c.name)
         if law != LAW_PY:
             nf, ni = c.state_size()
             if nf > self._cf.shape[1] or ni > self._ci.shape[1]:
@@ -411,12 +418,14 @@ class ServoLoop:
         self.stop_req[:] = 0
         self._running[:] = 0
 
-    def start_axis(self, i: int, approach, controller=None) -> None:
+    def start_axis(self, i: int, approach, controller=None, delay_cycles: int = 0) -> None:
         """Enable axis i: reset its controller from the measured position, then follow the
         jerk-limited ``approach`` (a ``trajectory.Move`` from where the axis stands to the
         program's start) and the program after it. ``controller`` replaces the axis's
-        controller when given (built beforehand). Raises RuntimeError if the axis is faulted."""
-        self._enable(i, APPROACH, approach, controller)
+        controller when given (built beforehand); ``delay_cycles``: the axis holds the
+        approach's start under control that many cycles before it moves. Raises RuntimeError
+        if the axis is faulted."""
+        self._enable(i, APPROACH, approach, controller, delay_cycles)
 
     def jog_axis(self, i: int, move, controller=None) -> None:
         """Move axis i along the jerk-limited ``move`` (from where it stands), hold at its end
@@ -427,7 +436,7 @@ class ServoLoop:
             raise RuntimeError(f"axis {self.axis_names[i]} is not disabled ({MODE_NAMES[int(self.mode[i])]})")
         self._enable(i, JOG, move, controller)
 
-    def _enable(self, i: int, mode: int, move, controller) -> None:
+    def _enable(self, i: int, mode: int, move, controller, delay_cycles: int = 0) -> None:
         """Bumpless enable of axis i into ``mode`` along ``move`` (between cycles)."""
         if self.supervisor.fault[i]:
             raise RuntimeError(f"axis {self.axis_names[i]} is in fault: {self.supervisor.reason(i)}")
@@ -438,11 +447,31 @@ class ServoLoop:
         ax[i, C.A_RUNNING] = 1
         self._move[i] = 0.0
         self._move[i, :move.table.size] = move.table
-        ax[i, C.A_KST] = self.k
+        ax[i, C.A_KST] = self.k + int(delay_cycles)    # before it: the move's start (sample_table)
         ax[i, C.A_STOPREQ] = 0
         ax[i, C.A_OVR] = 0
         ax[i, C.A_MODE] = mode
         ax[i, C.A_ENABLED] = 1
+
+    def command_axis(self, i: int, a_max: float, j_max: float, controller=None) -> None:
+        """Enable axis i in command mode (STREAM): reset its controller from the measured
+        position and hold there, then follow the setpoints streamed into :attr:`stream`; an
+        underrun or a stop brakes it with ``a_max`` [m/s²] and ``j_max`` [m/s³]
+        (:mod:`motorctl.loop.stream`). Raises RuntimeError if the axis is faulted."""
+        y = float(self.driver.position_m[i])
+        axf = self.axf
+        axf[i, C.X_SX], axf[i, C.X_SV], axf[i, C.X_SA] = y, 0.0, 0.0
+        axf[i, C.X_AMAX], axf[i, C.X_JMAX] = a_max, j_max
+        self._enable(i, STREAM, Program.hold(y), controller)
+
+    def shift_axis(self, i: int, delta_m: float) -> None:
+        """Between cycles, with the driver's reading of axis i shifted by ``delta_m`` [m] from
+        the next read (homing): its STREAM setpoint and the encoder-jump check's last reading
+        shift with it, and its law restarts from the new reading at the next cycle (bumpless,
+        as at a start)."""
+        self.axf[i, C.X_SX] += delta_m
+        self.supervisor.sf[i, SF_YLAST] += delta_m
+        self._running[i] = 0
 
     def stop_axis(self, i: int) -> None:
         """Ask axis i to come to rest along its jerk-limited profile, then 0 V, amplifier off."""

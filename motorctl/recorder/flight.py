@@ -29,7 +29,7 @@ Who does what:
     ``event_after_s`` after it (the hm2 TRACER idea, LinuxCNC#4236), in the run-log format.
 
 Ordering: the loop's row stores come before its heartbeat store, and the drainer's heartbeat
-load before its row loads, through explicit fences (:mod:`motorctl.recorder.ordering`), so the
+load before its row loads, through explicit fences (:mod:`motorctl.ordering`), so the
 argument holds on weakly ordered CPUs too, not only on x86-64's total store order.
 """
 
@@ -42,7 +42,7 @@ import time
 
 import numpy as np
 
-from motorctl.recorder.ordering import load_acquire, store_release, warm_up
+from motorctl.ordering import load_acquire, store_release, warm_up
 from motorctl.recorder.runlog import LogWriter
 
 CTL_HEARTBEAT = 0     # cycles executed and published (rows below are complete)

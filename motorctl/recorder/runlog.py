@@ -242,7 +242,9 @@ class LogFile:
                 buf = fh.read(k * rec)
                 if len(buf) < k * rec:
                     raise LogError(f"{self.path}: the file shrank while it was read")
-                yield np.frombuffer(buf, dtype="<f8").reshape(k, w)
+                block = np.frombuffer(buf, dtype="<f8").reshape(k, w)
+                self.check_records(block, self.n_rows - left)
+                yield block
                 left -= k
 
     def read(self) -> np.ndarray:
@@ -252,7 +254,31 @@ class LogFile:
             fh.seek(self.data_offset)
             buf = fh.read(self.n_rows * 8 * w)
         n = len(buf) // (8 * w)
-        return np.frombuffer(buf[: n * 8 * w], dtype="<f8").reshape(n, w).copy()
+        data = np.frombuffer(buf[: n * 8 * w], dtype="<f8").reshape(n, w).copy()
+        self.check_records(data, 0)
+        return data
+
+    def check_records(self, block: np.ndarray, first: int) -> None:
+        """Records that do not fit the header (its ``columns`` count differs from what was
+        written, or the file was overwritten) raise :class:`LogError`: the cycle time ``t``
+        (the first column, k·Ts) must be finite, increasing and a whole number of periods.
+        ``block``: records (k, W) from record index ``first``."""
+        if block.shape[0] == 0 or not self.columns or self.columns[0] != "t":
+            return
+        t = block[:, 0]
+        ts = self.header.get("period_s")
+        bad = ~np.isfinite(t) | (t < 0)
+        if block.shape[0] > 1:
+            bad[1:] |= np.diff(t) <= 0
+        if ts:
+            k = t / ts
+            with np.errstate(invalid="ignore"):
+                bad |= np.abs(k - np.round(k)) > 1e-6 * np.maximum(1.0, np.abs(k))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise LogError(f"{self.path}: damaged records (record {first + i}: t = {t[i]!r} is not "
+                           f"the next cycle's time; does the header's {len(self.columns)} columns "
+                           f"match what was written?)")
 
 
 def open_log(path: str) -> LogFile:

@@ -1,6 +1,6 @@
 """``motorctl daemon CONFIG``: the long-running service that runs the 5 kHz loop.
 
-Two processes, so that nothing can block the loop (docs/daemon.md):
+Two processes (three with a live view), so that nothing can block the loop (docs/daemon.md):
 
 * the **loop process** (the main PID; SCHED_FIFO, mlockall, gc frozen and disabled, pinned to a
   CPU): one thread, the servo loop on the driver, recording into a shared-memory ring
@@ -9,6 +9,9 @@ Two processes, so that nothing can block the loop (docs/daemon.md):
 * the **I/O process** (forked before the real-time set-up; SCHED_OTHER, on the other CPUs):
   the control socket, the run log and event logs, ``status``, systemd's notify protocol
   (:mod:`.io_side`). Wire formats: :mod:`.protocol`; the status block: :mod:`.status`.
+* with a scope or Foxglove configured, the **view process** (forked by the I/O process,
+  nice +10, ending with it): the scope page and Foxglove server, fed frames without waiting
+  (:mod:`.views`).
 
 Every axis starts disabled (0 V, amplifier off) and only an operator's ``start`` enables it,
 so a restart by systemd never re-enables an axis. SIGTERM/SIGINT: every driven axis latches
@@ -41,6 +44,7 @@ from motorctl.app.daemon.notify import sd_notify
 from motorctl.app.daemon.protocol import DaemonError, Mailbox, bind_control_socket
 from motorctl.app.daemon.status import ST_SIZE
 from motorctl.config import ConfigError, load_config
+from motorctl.loop.stream import SetpointRing
 from motorctl.recorder.flight import SharedRing, stall_bound_s
 from motorctl.recorder.segments import Retention, SegmentWriter
 
@@ -50,6 +54,9 @@ from motorctl.recorder.segments import Retention, SegmentWriter
 RING_SPARE_S = 1.0
 #: extra time a stop may take beyond the longest move and the settle time [s]
 STOP_MARGIN_S = 0.05
+#: seconds of setpoints the stream of commanded motion holds (motorctl.loop.stream); the I/O
+#: side keeps about motion_side.LEAD_S of it filled
+STREAM_RING_S = 0.5
 #: header bytes reserved for what is known only later (real-time report, commands, end)
 HEADER_RESERVE = 16384
 
@@ -94,8 +101,9 @@ def plan_daemon(config_path: str, socket_path: str | None, log_dir: str | None) 
                       len(names), ST_SIZE)
     # every configured controller of every axis is built (and compiled) before anything runs:
     # a switch is a swap
+    stream = SetpointRing(tb.cycles(STREAM_RING_S), len(names))
     asm = build(loaded, names, clock="wall", capacity=ring.capacity, buffer=ring.rows,
-                heartbeat=ring, operated=True, all_controllers=True)
+                heartbeat=ring, operated=True, all_controllers=True, stream=stream)
     stop_bound = []
     for prog in asm.programs:
         longest = max((m.duration for m in prog.moves), default=0.0)

@@ -1,12 +1,14 @@
 """The scope's channels over Foxglove's WebSocket protocol (``foxglove.websocket.v1``; the
-subprotocol foxglove-sdk 0.30 negotiates is ``foxglove.sdk.v1``), with the ``foxglove-sdk`` library, from the daemon's I/O process: Foxglove and PlotJuggler connect live.
+subprotocol foxglove-sdk 0.30 negotiates is ``foxglove.sdk.v1``), with the ``foxglove-sdk`` library, from the daemon's view process
+(:mod:`motorctl.app.daemon.views`): the Foxglove app connects live (a client that asks only for
+``foxglove.websocket.v1`` is refused by the SDK with HTTP 400).
 
 Topics (JSON encoding, each with a JSON schema): ``/motorctl/<AXIS>`` per axis (t [s] and, per
 channel of :data:`motorctl.app.daemon.scope.AXIS_CHANNELS`, the mid-range of its envelope over
 :data:`STEP_S`, with e's and u's min and max), ``/motorctl/loop`` (turnaround and lateness [µs])
 and ``/motorctl/status`` (each axis's state, phase, controller and latched fault, at every
 status refresh). The SDK keeps at most :data:`BACKLOG` messages per client: a slow client
-drops its oldest messages, the drainer never waits.
+drops its oldest messages; the drainer never waits (it runs in another process).
 """
 
 from __future__ import annotations

@@ -15,11 +15,15 @@ with the reason; the end record goes into the header (reserved space) at the exi
 from __future__ import annotations
 
 import os
+import queue
 import selectors
 import signal
 import sys
+import threading
 import time
 
+from motorctl.app.build import approach_move
+from motorctl.app.daemon.motion_side import AxisLimits, MotionError, MotionSide
 from motorctl.app.daemon.notify import sd_notify, watchdog_ping_interval_s
 from motorctl.app.daemon.protocol import (
     LineBuffer,
@@ -43,6 +47,9 @@ from motorctl.recorder.flight import (
 from motorctl.recorder.runlog import LogError
 from motorctl.recorder.segments import SegmentWriter
 
+#: the motion filler thread runs SCHED_FIFO this many priority levels below the loop (with
+#: loop.realtime.policy not off), so that a busy host does not starve the setpoint stream
+FILLER_PRIORITY_BELOW = 40
 #: a command the loop has not answered within this time is answered with an error [s]
 LOOP_ANSWER_S = 2.0
 #: how often the I/O process wakes when nothing happens [s]
@@ -97,17 +104,32 @@ class IOSide:
         self.audit: list[dict] = []      # commands applied by the loop, with their cycle
         self._reported = 0
         self._rec_reported = ""
-        self.scope = self.foxglove = None
+        self.scope = self.views = None
+        self.scope_d, self.foxglove_d = d.scope, d.foxglove
         if d.scope is not None or d.foxglove is not None:
             from motorctl.app.daemon.scope import Scope
             self.scope = Scope(d.scope.listen if d.scope else None, self.layout, self.names,
                                asm.loaded.period_s,
                                {a: asm.loaded.axes[a].trajectory.period_s for a in self.names})
-            self.drainer.taps.append(self.scope.tap)
-            if d.foxglove is not None:
-                from motorctl.app.daemon.foxglove_live import FoxglovePublisher
-                self.foxglove = FoxglovePublisher(d.foxglove.listen, self.scope)
         self.last_scope_status = 0.0
+        ring = plan.ring
+        lims = []
+        for a in self.names:
+            ac = asm.loaded.axes[a]
+            tc, lc = ac.trajectory, ac.limits
+            lims.append(AxisLimits(tc.v_max, tc.a_max, tc.j_max, lc.soft_min_m, lc.soft_max_m))
+        has_inputs = getattr(asm.driver, "has_homing_inputs", False)
+        self.internal: queue.Queue = queue.Queue()     # the homing thread's commands to the loop
+        self.motion = MotionSide(asm.loop.stream, ring.latest, self.layout, self.names, lims,
+                                 lambda: ring.status[:, ST["mode"]], asm.loaded.period_s,
+                                 [asm.loaded.axes[a].homing for a in self.names],
+                                 (lambda i: (bool(ring.status[i, ST["home_switch"]]),
+                                             float(ring.status[i, ST["index_latch"]])))
+                                 if has_inputs else None,
+                                 self.internal_request if has_inputs else None)
+        rt = asm.loaded.cfg.loop.realtime
+        if rt.policy != "off":
+            self.motion.fifo_priority = max(1, rt.priority - FILLER_PRIORITY_BELOW)
 
     # ------------------------------------------------------------------ requests
     def to_loop(self, conn, msg: dict, post=None) -> None:
@@ -130,15 +152,25 @@ class IOSide:
             return {"ok": True, "status": st}
         if self.ready is None:
             return {"ok": False, "error": "the loop is not running yet; retry in a moment"}
-        if req.cmd == "start":
+        if req.cmd in ("move", "gcode", "hold", "resume", "abort", "override"):
+            return self.motion_request(req)
+        if req.cmd == "home":
+            try:
+                return {"ok": True, **self.motion.home(i)}
+            except MotionError as exc:
+                return {"ok": False, "error": str(exc), "usage": exc.usage}
+        if req.cmd == "start" and req.mode == "command":
+            tc = self.plan.asm.loaded.axes[self.names[i]].trajectory
+            self.to_loop(conn, {"op": "start", "axis": i, "controller": req.controller,
+                                "mode": "command", "a_max": tc.a_max, "j_max": tc.j_max},
+                         post={"mode": "command"})
+        elif req.cmd == "start":
             # the approach from where the axis stands to the program's start; the loop checks
             # the axis's state and that it has not moved since
             ax = self.axis_status(i)
-            tc = self.plan.asm.loaded.axes[self.names[i]].trajectory
-            x0 = self.plan.asm.programs[i].sample(0.0)[0]
-            mv = Move(float(ax["y_m"]), float(x0), tc.v_max, tc.a_max, tc.j_max, 0.0)
+            mv = approach_move(self.plan.asm, i, ax["y_m"])
             self.to_loop(conn, {"op": "start", "axis": i, "controller": req.controller, "move": mv},
-                         post={"approach_s": mv.duration, "approach_m": x0 - ax["y_m"]})
+                         post={"approach_s": mv.duration, "approach_m": mv.end - ax["y_m"]})
         elif req.cmd == "stop":
             self.to_loop(conn, {"op": "stop", "axis": i}, post={"bound_s": self.plan.stop_bound_s[i]})
         elif req.cmd == "switch":
@@ -159,6 +191,32 @@ class IOSide:
                          post={"from_m": y0, "move_s": mv.duration,
                                "bound_s": self.plan.stop_bound_s[i]})
         return None
+
+    def internal_request(self, msg: dict, timeout_s: float = LOOP_ANSWER_S) -> dict:
+        """From another thread (homing): a command to the loop through the I/O process's own
+        loop (which alone writes the pipe); its answer."""
+        done, box = threading.Event(), {}
+        self.internal.put((msg, done, box))
+        if not done.wait(timeout_s + 1.0):
+            return {"ok": False, "error": "the loop did not answer"}
+        return box
+
+    def motion_request(self, req: Request) -> dict:
+        """move, gcode, hold, resume, abort, override: answered here (the loop only follows
+        the stream). A refused program queues nothing."""
+        mo, a = self.motion, req.motion
+        try:
+            if req.cmd == "move":
+                return {"ok": True, **mo.move(a["targets"], a["feed"])}
+            if req.cmd == "gcode":
+                return {"ok": True, **mo.gcode(a["text"], a["filename"])}
+            if req.cmd == "override":
+                mo.set_override(a["value"])
+            else:
+                getattr(mo, req.cmd)()
+        except MotionError as exc:
+            return {"ok": False, "error": str(exc), "usage": exc.usage}
+        return {"ok": True, "motion": mo.status()}
 
     # ------------------------------------------------------------------ status
     def axis_status(self, i: int) -> dict:
@@ -197,9 +255,12 @@ class IOSide:
                     "write_errors": dr.write_errors, "rows_unwritten": dr.drained - dr.written,
                     "retention": self.retention.figures() if self.retention else {}},
             "link": dict(self.link),
+            "motion": self.motion.status(),
             "socket": self.plan.socket_path,
             "clients": {"open": len(self.clients), "refused": self.clients_refused,
                         "max": MAX_CLIENTS},
+            "views": ({"pid": self.views.pid, "frames_sent": self.views.sent,
+                       "frames_dropped": self.views.dropped} if self.views is not None else None),
         }
 
     def summary_line(self) -> str:
@@ -224,10 +285,12 @@ class IOSide:
             loop_cpus = set(m.get("cpu_affinity") or [])
             others = set(os.sched_getaffinity(0)) - loop_cpus
             if loop_cpus and others and len(loop_cpus) == 1:
-                try:
-                    os.sched_setaffinity(0, others)
-                except OSError:
-                    pass
+                for pid in (0, self.views.pid if self.views is not None else None):
+                    try:
+                        if pid is not None:
+                            os.sched_setaffinity(pid, others)
+                    except OSError:
+                        pass
             return
         if op == "fatal":
             self.fatal = m["error"]
@@ -257,6 +320,11 @@ class IOSide:
             return
         conn, _, post, req = entry
         m.pop("id", None)
+        if conn is None:                     # a command of the homing thread
+            done, box = post
+            box.update(m)
+            done.set()
+            return
         if m.get("ok"):
             self.audit.append({"cycle": m.get("cycle"), "op": req.get("op"),
                                "axis": self.names[req["axis"]],
@@ -355,11 +423,14 @@ class IOSide:
         loop_gone = False
         ctl = self.plan.ring.ctl
         self.start_scope()
+        self.motion.start()
         while not loop_gone:
             ctl[CTL_REC_BEAT] = int(ctl[CTL_REC_BEAT]) + 1     # "the recorder is awake"
             for key, _ in self.sel.select(timeout=IDLE_WAKE_S):
                 if key.data == "listen":
                     self.accept(time.monotonic())
+                elif key.data == "views":
+                    self.on_views()
                 elif key.data == "loop":
                     msgs = self.replies.recv()
                     if msgs is None:
@@ -369,11 +440,16 @@ class IOSide:
                         self.on_reply(m)
                 else:
                     self.on_client(key.fileobj)
+            while not self.internal.empty():
+                msg, done, box = self.internal.get_nowait()
+                self.to_loop(None, msg, post=(done, box))
             now = time.monotonic()
             self.expire_clients(now)
             for rid, (conn, deadline, _, _) in list(self.pending.items()):
                 if now > deadline:
                     self.pending.pop(rid)
+                    if conn is None:
+                        continue                 # the homing thread's own wait times out
                     self.respond(conn, {"ok": False, "error": f"the loop did not answer within "
                                                               f"{LOOP_ANSWER_S:g} s"})
             self.drainer.poll()
@@ -390,12 +466,11 @@ class IOSide:
                                    if k in ("state", "phase", "fault", "controller")}
                                for i, a in enumerate(self.names)}}
                 self.scope.set_status(st)
-                if self.foxglove is not None:
-                    self.foxglove.publish_status(st, self.scope.last_t)
-        if self.scope is not None:
-            self.scope.stop()
-        if self.foxglove is not None:
-            self.foxglove.stop()
+                if self.views is not None:
+                    self.views.set_status(st, self.scope.last_t)
+        self.motion.stop()
+        if self.views is not None:
+            self.views.stop()
         # the loop process ended (normally, or killed): keep everything it published
         try:
             dr = self.drainer
@@ -419,24 +494,68 @@ class IOSide:
         return 0
 
     def start_scope(self) -> None:
-        """Serve the scope page and the Foxglove channels (where configured); an address that
-        cannot be bound is reported on stderr (the journal) and the daemon goes on without it."""
-        if self.scope is not None and self.scope.port:
+        """Fork the view process for the scope page and the Foxglove channels (where
+        configured and installed; a missing extra is one warning line). Nothing is awaited:
+        the view process reports what it serves through :meth:`on_views`."""
+        if self.scope is None:
+            return
+        from motorctl.app.daemon.views import exposure_warning, missing_extra, start_views
+        serve_scope = self.scope_d is not None
+        fox = self.foxglove_d.listen if self.foxglove_d is not None else None
+        for on, key, listen, module, extra, what in (
+                (serve_scope, "daemon.scope.listen", self.scope_d and self.scope_d.listen,
+                 "aiohttp", "scope", "scope"),
+                (fox, "daemon.foxglove.listen", fox, "foxglove", "foxglove", "foxglove")):
+            if not on:
+                continue
+            line = missing_extra(module, extra, what)
+            if line:
+                sys.stderr.write(line + "\n")
+                serve_scope = serve_scope and what != "scope"
+                fox = None if what == "foxglove" else fox
+                continue
+            from motorctl.config import parse_listen
+            if line := exposure_warning(key, parse_listen(listen)[0]):
+                sys.stderr.write(line + "\n")
+        if not serve_scope and not fox:
+            return
+        try:
+            self.views = start_views(self.scope, serve_scope, fox)
+        except Exception as exc:               # noqa: BLE001 - no view is worth the drain
+            sys.stderr.write(f"motorctl: warning: views not served ({type(exc).__name__}: {exc})\n")
+            return
+        self.fox_listen = fox
+        self.sel.register(self.views.sock, selectors.EVENT_READ, "views")
+        self.scope.listeners.append(self.views.on_frame)
+        self.drainer.taps.append(self.scope.tap)
+
+    def on_views(self) -> None:
+        """The view process's reports: one line per view served or not; its end."""
+        v = self.views
+        for kind, rep in v.receive():
+            if kind != "started":
+                continue
+            for what, err in rep.items():
+                if err is None:
+                    continue
+                if what == "scope":
+                    where, url = self.scope_d.listen, f"http://{self.scope.host}:{self.scope.port}/"
+                else:
+                    where, url = self.fox_listen, "ws://" + self.fox_listen + "/"
+                if err:
+                    sys.stderr.write(f"motorctl: warning: daemon.{what}.listen {where}: not served ({err})\n")
+                else:
+                    sys.stderr.write(f"motorctl: {what} on {url}\n")
+        if not v.alive:
             try:
-                self.scope.start()
-                sys.stderr.write(f"motorctl: scope on http://{self.scope.host}:{self.scope.port}/\n")
-            except (OSError, ImportError) as exc:
-                sys.stderr.write(f"motorctl: warning: daemon.scope.listen {self.scope.host}:{self.scope.port}: "
-                                 f"not served ({exc})\n")
-        if self.foxglove is not None:
-            try:
-                self.foxglove.start()
-                self.scope.listeners.append(self.foxglove.on_frame)
-                sys.stderr.write(f"motorctl: foxglove on ws://{self.foxglove.host}:{self.foxglove.port}/\n")
-            except (OSError, ImportError, RuntimeError) as exc:
-                sys.stderr.write(f"motorctl: warning: daemon.foxglove.listen {self.foxglove.host}:"
-                                 f"{self.foxglove.port}: not served ({exc})\n")
-                self.foxglove = None
+                self.sel.unregister(v.sock)
+            except (KeyError, ValueError):
+                pass
+            self.scope.listeners.remove(v.on_frame)
+            if self.scope.tap in self.drainer.taps:
+                self.drainer.taps.remove(self.scope.tap)
+            v.stop(0.5)
+            self.views = None
 
     def write_end_record(self) -> None:
         """The header with ``ended`` into the segment being written (in place, reserved

@@ -38,7 +38,7 @@ from motorctl.app.daemon.protocol import Mailbox
 from motorctl.app.daemon.status import StatusPublisher
 from motorctl.loop.rt import RealtimeError
 from motorctl.loop.safety import FAULT_RECORDER, FAULT_SHUTDOWN
-from motorctl.loop.servo import IDLE, MODE_NAMES
+from motorctl.loop.servo import IDLE, MODE_NAMES, STREAM
 from motorctl.loop.trajectory import Move
 from motorctl.recorder.flight import (
     CTL_CMD_SEQ,
@@ -133,6 +133,13 @@ class LoopSide:
                 if loop.mode[i] != IDLE:
                     return {**r, "ok": False, "error": f"axis {names[i]} is already enabled "
                                                       f"({MODE_NAMES[loop.mode[i]]})"}
+                if m.get("mode") == "command":   # hold where it stands, follow the stream
+                    k = m.get("controller") or self.asm.active[i]
+                    self._switch(i, k)
+                    loop.command_axis(i, m["a_max"], m["j_max"])
+                    self.status.started_k[i] = loop.k
+                    r["controller"] = k
+                    return r
                 mv = m["move"]
                 y = float(self.asm.driver.position_m[i])
                 if abs(mv.start - y) > START_MOVED_M:
@@ -184,6 +191,17 @@ class LoopSide:
                     return {**r, "ok": False, "error": f"jog {names[i]} refused: target "
                                                       f"{mv.end:.6f} m is outside the soft limits"}
                 loop.jog_axis(i, mv)
+            elif op == "arm_index":
+                self.asm.driver.arm_index(i)
+            elif op == "set_position":
+                # homing: the reading shifted by delta from the next cycle; the setpoint, the
+                # encoder-jump check's last reading and the law (reset from the new reading)
+                # shifted with it, so nothing sees a jump
+                if loop.mode[i] != STREAM:
+                    return {**r, "ok": False, "error": f"axis {names[i]} is not in command mode"}
+                d_m = float(m["delta_m"])
+                self.asm.driver.set_position_offset(i, d_m)
+                loop.shift_axis(i, d_m)
             elif op == "inject":
                 if not self.allow_inject:
                     return {**r, "ok": False, "error": "fault injection is off (daemon.allow_fault_"

@@ -9,6 +9,12 @@ Socket requests (``motorctl.cli.operator`` is the client)::
     {"cmd": "switch", "axis": "X", "controller": "pid"}
     {"cmd": "inject", "axis": "X", "kind": "...", "cycles": 1, "jump_m": 0.0, "force_N": 0.0}
     {"cmd": "jog", "axis": "X", "to_m": 0.0, "speed": 0.1}    (speed: fraction of v_max, a_max)
+    {"cmd": "start", "axis": "X", "mode": "command"}          (command mode: follows commanded motion)
+    {"cmd": "move", "targets": {"X": 0.12, "Y": 0.05}, "feed": 0.1?}   ([m], [m/s])
+    {"cmd": "gcode", "text": "G1 X10 F600\n...", "filename": "part.ngc"}
+    {"cmd": "hold" | "resume" | "abort"}
+    {"cmd": "override", "value": 0.8}                          (0.0 .. 1.5)
+    {"cmd": "home", "axis": "X"}
 
 Answers: ``{"ok": true, ...}`` or ``{"ok": false, "error": "...", "usage": bool}`` (``usage``:
 the request itself was wrong, exit code 2 in the client).
@@ -29,9 +35,12 @@ from pathlib import Path
 #: the longest request line accepted [bytes]; a longer one is refused and the connection closed
 MAX_REQUEST_BYTES = 65536
 #: commands of the socket protocol
-COMMANDS = ("status", "start", "stop", "switch", "fault-reset", "inject", "jog")
+COMMANDS = ("status", "start", "stop", "switch", "fault-reset", "inject", "jog", "move", "gcode", "hold",
+            "resume", "abort", "override", "home")
 #: commands that need an axis
-AXIS_COMMANDS = ("start", "stop", "switch", "fault-reset", "inject", "jog")
+AXIS_COMMANDS = ("start", "stop", "switch", "fault-reset", "inject", "jog", "home")
+#: the axis modes of ``start``
+MODES = ("program", "command")
 #: a jog's speed and acceleration as a fraction of the axis's v_max and a_max: (0, MAX_JOG_SPEED]
 MAX_JOG_SPEED = 0.5
 
@@ -53,6 +62,8 @@ class Request:
     controller: str | None = None
     inject: dict | None = None
     jog: dict | None = None
+    mode: str = "program"
+    motion: dict | None = None
 
 
 def parse_request(line: bytes, axis_names: list, controllers: list) -> Request:
@@ -68,6 +79,8 @@ def parse_request(line: bytes, axis_names: list, controllers: list) -> Request:
     if cmd not in COMMANDS:
         raise RequestError(f"unknown command {cmd!r}; allowed: {', '.join(COMMANDS)}")
     a = req.get("axis")
+    if cmd in ("move", "gcode", "override"):
+        return Request(cmd, None, motion=_motion_request(cmd, req, axis_names))
     if a is None and cmd not in AXIS_COMMANDS:
         return Request(cmd, None)
     if a not in axis_names:
@@ -96,7 +109,39 @@ def parse_request(line: bytes, axis_names: list, controllers: list) -> Request:
             raise RequestError(f"jog: to_m must be finite and speed within (0, {MAX_JOG_SPEED}] "
                                f"(got {to_m}, {speed})")
         jog = {"to_m": to_m, "speed": speed}
-    return Request(cmd, i, ctrl, inject, jog)
+    mode = req.get("mode", "program")
+    if mode not in MODES or (mode != "program" and cmd != "start"):
+        raise RequestError(f"mode {mode!r} is allowed with start only; modes: {', '.join(MODES)}")
+    return Request(cmd, i, ctrl, inject, jog, mode)
+
+
+def _motion_request(cmd: str, req: dict, axis_names: list) -> dict:
+    """The checked arguments of move, gcode and override (module docstring)."""
+    def number(v, what):
+        try:
+            x = float(v)
+        except (TypeError, ValueError):
+            raise RequestError(f"{cmd}: {what} must be a number (got {v!r})") from None
+        if not math.isfinite(x):
+            raise RequestError(f"{cmd}: {what} must be finite (got {v!r})")
+        return x
+    if cmd == "override":
+        return {"value": number(req.get("value"), "value")}
+    if cmd == "gcode":
+        text, name = req.get("text"), req.get("filename", "-")
+        if not isinstance(text, str) or not isinstance(name, str):
+            raise RequestError("gcode needs 'text' (the program) and 'filename' (strings)")
+        return {"text": text, "filename": name}
+    targets = req.get("targets")
+    if not isinstance(targets, dict) or not targets:
+        raise RequestError("move needs 'targets': {axis: position in m, ...}")
+    out = {}
+    for a, v in targets.items():
+        if a not in axis_names:
+            raise RequestError(f"move: unknown axis {a!r}; axes: {', '.join(axis_names)}")
+        out[axis_names.index(a)] = number(v, a)
+    feed = req.get("feed")
+    return {"targets": out, "feed": None if feed is None else number(feed, "feed")}
 
 
 def encode_answer(obj: dict) -> bytes:

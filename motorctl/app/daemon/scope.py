@@ -5,11 +5,9 @@ The I/O process hands every batch of rows it drains to :meth:`Scope.tap` (a few 
 every 20 ms). The tap reduces them to frames of min/max envelopes per channel over buckets of
 :data:`BUCKET_S` and appends the frames to a bounded deque (:data:`BACKLOG_FRAMES`): a page
 that reads slowly misses frames (its cursor falls behind the deque's oldest one), the drainer
-and the run log never wait for it. The web server (aiohttp, on its own thread and event loop)
-serves the page (uPlot, vendored under ``scope_static/``, no network at run time) and a
-WebSocket ``/ws`` that sends each client the frames it has not seen, plus the axes' states
-and latched faults with their reasons. Read-only: the server has no route that reaches the
-loop.
+and the run log never wait for it. The frames go to the view process
+(:mod:`motorctl.app.daemon.views`), which serves the page and Foxglove: nothing a viewer does
+runs in the I/O process.
 
 Channels per axis: y, x_d, e [m], u [V], p [m/s], θ̂1..θ̂6, d̂0 (:data:`motorctl.loop.records
 .AXIS_FIELDS` units); per cycle: turnaround and lateness [µs]. Events in a frame (for the
@@ -18,12 +16,8 @@ page's single-shot trigger): a fault's onset, an overrun, the start of a program
 
 from __future__ import annotations
 
-import asyncio
 import collections
-import json
 import math
-import threading
-from importlib import resources
 
 import numpy as np
 
@@ -37,7 +31,6 @@ AXIS_CHANNELS = ("y", "x_d", "e", "u", "p", "theta_hat1", "theta_hat2", "theta_h
 CYCLE_CHANNELS = {"turnaround_ns": ("turnaround_us", 1e-3), "lateness_ns": ("lateness_us", 1e-3)}
 BUCKET_S = 0.002         #: one envelope point per this much loop time [s] (500 per second)
 BACKLOG_FRAMES = 256     #: frames kept for slow pages (about 5 s at the I/O process's 20 ms)
-SEND_EVERY_S = 0.05      #: a client is sent its new frames this often [s]
 
 
 class Scope:
@@ -49,7 +42,7 @@ class Scope:
         layout: the run's :class:`~motorctl.loop.records.RecordLayout`. names: axis names.
         period_s: loop period [s]. program_periods_s: {axis: program period [s] (0: none)}.
     Attributes:
-        frames_made, frames_dropped_by_clients: counters (shown by ``status``-like views).
+        frames_made: frames made so far.
     """
 
     def __init__(self, listen: str | None, layout, names, period_s: float, program_periods_s: dict):
@@ -79,13 +72,9 @@ class Scope:
         self.seq = 0
         self.status: dict = {}
         self.frames_made = 0
-        self.frames_dropped_by_clients = 0
         self.last_t = math.nan       # loop time of the newest bucket [s]
         self._carry = None          # rows of an unfinished bucket
         self._last = None           # the last row seen (edges of events)
-        self._loop = None
-        self._thread = None
-        self._runner = None
         self.error = ""
         #: callables given each new frame in the I/O thread (the Foxglove publisher); they
         #: must return quickly and never raise
@@ -149,107 +138,9 @@ class Scope:
         """The axes' states and faults (a new dict each time: the server only reads it)."""
         self.status = status
 
-    # ------------------------------------------------------------------ the server's thread
-    def start(self) -> None:
-        """Bind and serve on a daemon thread. Raises OSError when the address cannot be bound
-        (the caller reports it; the daemon goes on without the scope)."""
-        ready = threading.Event()
-        failure: list = []
-
-        def main():
-            loop = asyncio.new_event_loop()
-            asyncio.set_event_loop(loop)
-            self._loop = loop
-            try:
-                loop.run_until_complete(self._serve())
-            except OSError as exc:
-                failure.append(exc)
-                ready.set()
-                return
-            ready.set()
-            loop.run_forever()
-
-        self._thread = threading.Thread(target=main, name="motorctl-scope", daemon=True)
-        self._thread.start()
-        ready.wait(10.0)
-        if failure:
-            raise failure[0]
-
-    async def _serve(self) -> None:
-        from aiohttp import web
-
-        app = web.Application()
-        app.router.add_get("/", self._index)
-        app.router.add_get("/ws", self._ws)
-        app.router.add_get("/meta", self._meta)
-        app.router.add_get("/static/{name}", self._static)
-        self._runner = web.AppRunner(app, access_log=None)
-        await self._runner.setup()
-        await web.TCPSite(self._runner, self.host, self.port).start()
-
-    def stop(self) -> None:
-        """Stop serving (bounded)."""
-        loop = self._loop
-        if loop is None or not loop.is_running():
-            return
-
-        async def down():
-            if self._runner is not None:
-                await self._runner.cleanup()
-        try:
-            asyncio.run_coroutine_threadsafe(down(), loop).result(2.0)
-        except Exception:              # noqa: BLE001 - shutting down anyway
-            pass
-        loop.call_soon_threadsafe(loop.stop)
-        self._thread.join(2.0)
-
     def meta(self) -> dict:
         return {"axes": self.names, "channels": self.labels, "units": self.units,
                 "bucket_s": self.bucket * self.period_s, "program_periods_s": dict(zip(self.names, self.prog))}
-
-    async def _index(self, request):
-        return await self._static_file("index.html", "text/html")
-
-    async def _static(self, request):
-        name = request.match_info["name"]
-        kinds = {".js": "application/javascript", ".css": "text/css", ".txt": "text/plain"}
-        kind = next((v for k, v in kinds.items() if name.endswith(k)), None)
-        if kind is None or "/" in name or name.startswith("."):
-            from aiohttp import web
-            raise web.HTTPNotFound()
-        return await self._static_file(name, kind)
-
-    async def _static_file(self, name: str, kind: str):
-        from aiohttp import web
-        try:
-            body = resources.files("motorctl.app.daemon").joinpath("scope_static", name).read_bytes()
-        except (FileNotFoundError, IsADirectoryError):
-            raise web.HTTPNotFound() from None
-        return web.Response(body=body, content_type=kind, charset="utf-8" if kind != "application/javascript" else None)
-
-    async def _meta(self, request):
-        from aiohttp import web
-        return web.json_response(self.meta())
-
-    async def _ws(self, request):
-        from aiohttp import web
-        ws = web.WebSocketResponse(heartbeat=10.0)
-        await ws.prepare(request)
-        await ws.send_str(json.dumps({"meta": self.meta()}))
-        cursor = self.seq
-        while not ws.closed:
-            frames = [f for f in list(self.frames) if f["seq"] > cursor]
-            if frames:
-                if frames[0]["seq"] > cursor + 1 and cursor:
-                    self.frames_dropped_by_clients += frames[0]["seq"] - cursor - 1
-                cursor = frames[-1]["seq"]
-            msg = {"frames": frames, "status": self.status, "scope_error": self.error}
-            try:
-                await ws.send_str(json.dumps(msg))
-            except (ConnectionResetError, RuntimeError):
-                break
-            await asyncio.sleep(SEND_EVERY_S)
-        return ws
 
 
 def _clean(a) -> list:

@@ -4,7 +4,8 @@ status the I/O process builds from it for ``motorctl status``.
 Status block (float64 per axis, :data:`ST_FIELDS` in order): the sequencing mode, the active
 controller (its index in :data:`motorctl.control.CONTROLLER_NAMES`), the latched fault bits,
 the value and the limit at the fault, the I/O error count, the following-error peak and the
-cycle of the last start.
+cycle of the last start, the home switch (1: active) and the index latch [m] (NaN: none) of
+a driver with homing inputs (the simulated one).
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ from motorctl.loop.records import RecordLayout
 from motorctl.loop.safety import FAULT_RECORDER, describe_faults
 from motorctl.loop.servo import IDLE, MODE_NAMES
 
-ST_FIELDS = ("mode", "controller", "fault", "value", "limit", "io_errors", "fe_peak", "started_k")
+ST_FIELDS = ("mode", "controller", "fault", "value", "limit", "io_errors", "fe_peak", "started_k",
+             "home_switch", "index_latch")
 ST = {name: j for j, name in enumerate(ST_FIELDS)}
 ST_SIZE = len(ST_FIELDS)
 
@@ -37,6 +39,8 @@ class StatusPublisher:
 
     def publish(self) -> None:
         mv, lp, sup = self._mv, self.loop, self.loop.supervisor
+        sw = getattr(lp.driver, "home_switch", None)
+        latch = getattr(lp.driver, "index_latch_m", None)
         for i in range(len(self.active)):
             self._published_fault[i] = sup.fault[i]
             b = i * ST_SIZE
@@ -48,6 +52,8 @@ class StatusPublisher:
             mv[b + ST["io_errors"]] = float(sup.io_errors[i])
             mv[b + ST["fe_peak"]] = sup.fe_peak[i]
             mv[b + ST["started_k"]] = float(self.started_k[i])
+            mv[b + ST["home_switch"]] = float(sw[i]) if sw is not None else 0.0
+            mv[b + ST["index_latch"]] = float(latch[i]) if latch is not None else math.nan
 
     def fault_changed(self) -> bool:
         """True when a fault latched or cleared since the last :meth:`publish`."""

@@ -120,6 +120,8 @@ function connect() {
     if (!S.paused) for (const f of msg.frames) onFrame(f);
     S.status = msg.status;
     showStatus(msg.status);
+    S.dropped = msg.dropped || 0;    // frames this page missed (it or the daemon was behind)
+    $("dropped").textContent = S.dropped ? S.dropped + " frames dropped" : "";
     trim();
   };
   ws.onclose = () => { $("state").textContent = "disconnected: retrying"; setTimeout(connect, 1000); };

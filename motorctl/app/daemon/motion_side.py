@@ -1,0 +1,519 @@
+"""Commanded motion on the daemon's I/O side: plans off the loop and streams setpoints.
+
+A filler thread of the I/O process keeps about :data:`LEAD_S` of setpoints (x_d, ẋ_d, ẍ_d per
+axis per cycle) ahead in the loop's setpoint ring (:mod:`motorctl.loop.stream`, about 0.5 s
+long), from a queue of planned trajectories (a ``move``: Ruckig's time-optimal jerk-limited
+point-to-point with synchronised arrival; a G-code program: ``motorctl.motion``'s planner).
+
+The trajectories are sampled on a path time s that advances by the feed scale f per cycle
+(time scaling: x = p(s), ẋ = p'(s)·ḟ... precisely ẋ = p'(s)·f, ẍ = p''(s)·f² + p'(s)·ḟ), so
+that the path is kept whatever f does:
+
+* **feed override** 0.0..:data:`MAX_OVERRIDE`: f's target;
+* **feed hold**: f's target 0: the motion decelerates on the path and holds; ``resume``
+  brings f back to the override;
+* **abort**: a feed hold, then the queue is cleared; the axes hold where they stopped.
+
+f follows its target with a bounded rate and a bounded rate of change
+(:data:`F_RATE_PER_S`, :data:`F_ACCEL_PER_S2`, scaled down for the fastest axis), so the
+added acceleration p'(s)·ḟ stays a fraction of the axes' a_max and jerk-limited.
+
+An underrun (the loop found the ring empty while moving: it braked on its own, jerk-limited,
+:mod:`motorctl.loop.stream`) or a stop of a commanded axis (a new epoch of the ring) drops the
+program being run and the queue (``status`` says why); motion then waits for new commands.
+Every target is checked against the axes' soft limits before anything is queued.
+
+**Homing** (:meth:`MotionSide.home`, a thread of its own; LinuxCNC's sequence, the axis's
+``homing:`` config): search the home switch at the search speed (a move toward it, held when
+the switch trips), back off at the latch speed with the index latch armed until the index
+pulse latches, then the loop shifts the axis's reading so that the latched position reads
+``homing.position_m``.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import os
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from motorctl.loop.cycle import STREAM
+from motorctl.loop.stream import SetpointRing
+from motorctl.motion import gcode as G
+from motorctl.motion import planner as P
+
+#: seconds of setpoints kept ahead of the loop
+LEAD_S = 0.2
+#: the filler's wake period [s]
+FILL_EVERY_S = 0.01
+#: the ring is topped up in blocks of at least LEAD_S / BLOCKS_PER_LEAD: a trajectory's block
+#: sample has a fixed cost (the planner's filter windows, about 1.5 ms a call here), so a few
+#: large blocks a second cost a few per cent of a core where 50-row blocks took 40 %
+BLOCKS_PER_LEAD = 4
+#: the highest feed override
+MAX_OVERRIDE = 1.5
+#: the feed scale's largest rate [1/s] and rate of change [1/s²] for an axis at a_max/v_max = 1 /s
+F_RATE_PER_S, F_ACCEL_PER_S2 = 0.5, 2.0
+
+
+class MotionError(ValueError):
+    """A command refused before anything was queued (one line: what, where, what is allowed).
+    ``usage``: the command itself was wrong (exit code 2), not the machine's state (1)."""
+
+    def __init__(self, text: str, usage: bool = True):
+        super().__init__(text)
+        self.usage = usage
+
+
+@dataclass
+class AxisLimits:
+    """One axis's limits: v_max [m/s], a_max [m/s²], j_max [m/s³], soft limits [m]."""
+
+    v_max: float
+    a_max: float
+    j_max: float
+    soft_min: float
+    soft_max: float
+
+
+def _ramp(f: float, fd: float, target: float, rate: float, accel: float, dt: float):
+    """f one step of dt toward ``target`` with |ḟ| ≤ rate and |f̈| ≤ accel (the bang-bang rule
+    of an accel-limited approach). Returns (f, ḟ)."""
+    e = target - f
+    if abs(e) <= accel * dt * dt and abs(fd) <= accel * dt:
+        return target, 0.0
+    want = math.copysign(min(rate, math.sqrt(2.0 * accel * abs(e))), e)
+    if fd < want:
+        fd = min(fd + accel * dt, want)
+    else:
+        fd = max(fd - accel * dt, want)
+    f_new = f + fd * dt
+    if (target - f_new) * e < 0:          # no overshoot
+        return target, 0.0
+    return f_new, fd
+
+
+class MotionSide:
+    """The commanded motion of the daemon's axes (module docstring).
+
+    Args:
+        stream: the loop's setpoint ring. latest: callable giving the newest record row (or
+            None). layout: the record layout. names: axis names. limits: AxisLimits per axis.
+        modes: callable giving the axes' sequencing modes (the status block). period_s: loop
+            period. homing: the axes' HomingConfig (None: none). inputs(i): (home switch,
+            index latch [m] or NaN) of axis i. to_loop(msg): a command to the loop process,
+            its answer (blocking; from another thread than the I/O process's own).
+    """
+
+    def __init__(self, stream: SetpointRing, latest, layout, names, limits, modes, period_s: float,
+                 homing=None, inputs=None, to_loop=None):
+        self.stream, self.latest, self.names, self.limits = stream, latest, list(names), limits
+        self.modes, self.dt = modes, period_s
+        self._pva = [P.AxisLimits(lim.v_max, lim.a_max, lim.j_max) for lim in limits]
+        self.n = len(self.names)
+        self._xcol = [layout.index(f"{a}.x_d") for a in self.names]
+        self._vcol = [layout.index(f"{a}.xd_dot") for a in self.names]
+        self.homing = list(homing or [None] * self.n)
+        self.homing_required = [bool(h is not None and h.required) for h in self.homing]
+        self.homed = [False] * self.n
+        self.homing_state = [""] * self.n
+        self.inputs, self.to_loop = inputs, to_loop
+        self._homing_thread: threading.Thread | None = None
+        self.lead = max(1, int(round(LEAD_S / period_s)))
+        ratio = min(lim.a_max / lim.v_max for lim in limits)
+        self.f_rate, self.f_accel = F_RATE_PER_S * ratio, F_ACCEL_PER_S2 * ratio * ratio
+        self.lock = threading.Lock()
+        self.queue: collections.deque = collections.deque()
+        self.cur = None                  # the trajectory being streamed
+        self.s = 0.0                     # its path time [s]
+        self.last = np.zeros((self.n, 3))
+        self.f, self.fd = 1.0, 0.0       # the feed scale and its rate
+        self.override = 1.0
+        self.holding = self.aborting = False
+        self.epoch = stream.epoch()
+        self.reason = ""                 # why the last program ended early
+        self.done_programs = 0
+        self.queued_programs = 0
+        self.feed_m_s = 0.0
+        self.used: list[int] = []        # the axes the queued motion moves
+        self._block = np.zeros((self.lead, self.n, 3))
+        self._s, self._f, self._fd = np.zeros(self.lead), np.zeros(self.lead), np.zeros(self.lead)
+        self._steps = np.arange(1.0, self.lead + 1.0)
+        self._grid = np.zeros((self.lead + 2, 3, self.n))   # sample_into's layout (k, x/v/a, axis)
+        #: SCHED_FIFO priority of the filler thread (0: none), below the loop's: a busy host must
+        #: not starve the planner for longer than LEAD_S (set by the daemon where real-time is on)
+        self.fifo_priority = 0
+        self.trace: list | None = None   # the source line of every row streamed (when a list)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # ---------------------------------------------------------------- commands (any thread)
+    def where(self) -> np.ndarray:
+        """(n,) the commanded position of every axis now: the end of what is queued, or the
+        newest setpoint the loop recorded."""
+        with self.lock:
+            if self.queue:
+                return np.array(self.queue[-1].end)
+            if self.cur is not None:
+                return np.array(self.cur.end)
+        row = self.latest()
+        if row is None:
+            raise MotionError("the loop has not run yet; retry in a moment", usage=False)
+        return np.array([row[c] for c in self._xcol])
+
+    def check_axes(self, axes: list[int], what: str) -> None:
+        """Raises MotionError unless every axis of ``axes`` is in command mode (and homed where
+        its homing is required)."""
+        modes = self.modes()
+        for i in axes:
+            if int(modes[i]) != STREAM:
+                raise MotionError(f"{what}: axis {self.names[i]} is not in command mode; run "
+                                  f"'motorctl start {self.names[i]} --mode command' first", usage=False)
+            if self.homing_required[i] and not self.homed[i]:
+                raise MotionError(f"{what}: axis {self.names[i]} is not homed (homing.required); "
+                                  f"run 'motorctl home {self.names[i]}' first", usage=False)
+
+    def check_inside(self, goal, what: str) -> None:
+        for i, x in enumerate(goal):
+            lim = self.limits[i]
+            if not (lim.soft_min <= x <= lim.soft_max):
+                raise MotionError(f"{what}: {self.names[i]} = {x:.6f} m is outside the soft limits "
+                                  f"[{lim.soft_min:g}, {lim.soft_max:g}] m")
+
+    def move(self, targets: dict, feed: float | None = None, _homing: bool = False) -> dict:
+        """Queue a coordinated straight move to ``targets`` ({axis index: position [m]}) at
+        most ``feed`` [m/s] along the path. Returns its figures. Raises MotionError (nothing
+        queued)."""
+        if self.aborting:
+            raise MotionError("move: an abort is running; retry when it has stopped", usage=False)
+        if self._homing_thread is not None and self._homing_thread.is_alive() and not _homing:
+            raise MotionError("move: homing runs; wait for it", usage=False)
+        if not _homing:
+            self.check_axes(list(targets), "move")
+        start = self.where()
+        goal = start.copy()
+        for i, x in targets.items():
+            if not math.isfinite(x):
+                raise MotionError(f"move: {self.names[i]} must be a finite position in m (got {x})")
+            goal[i] = x
+        self.check_inside(goal, "move")
+        if feed is not None and not feed > 0:
+            raise MotionError(f"move: --feed must be > 0 m/s (got {feed})")
+        try:
+            traj = P.point_to_point(start, goal, self._pva, feed=feed, axes=self.names)
+        except ValueError as exc:
+            raise MotionError(f"move: {exc}") from None
+        self.enqueue([traj], list(targets))
+        return {"duration_s": traj.duration, "from_m": start.tolist(), "to_m": goal.tolist()}
+
+    def gcode(self, text: str, filename: str) -> dict:
+        """Read, check and plan a G-code program (``motorctl.motion``: the subset LinuxCNC
+        reads, look-ahead planning within each axis's v/a/j) from where the axes are commanded
+        now, and queue it. Raises MotionError (``file:line:column: why``; nothing queued)."""
+        letters = [a for a in self.names if a in G.AXES]
+        if letters != self.names:
+            raise MotionError(f"gcode: the axes must be named among {', '.join(G.AXES)} "
+                              f"(got {', '.join(self.names)})", usage=False)
+        start = self.where()
+        start3 = [float(start[self.names.index(a)]) if a in self.names else 0.0 for a in G.AXES]
+        try:
+            prog = G.parse(text, filename, start=start3)
+            P.check_limits(prog, {a: (lim.soft_min, lim.soft_max) for a, lim in zip(self.names, self.limits)})
+        except ValueError as exc:        # GcodeError, LimitError: one line with file:line:column
+            raise MotionError(str(exc)) from None
+        moved = sorted({k for seg in prog.moves for k in range(3)
+                        if (k < 2 and isinstance(seg, G.Arc)) or seg.start[k] != seg.end[k]})
+        axes = [self.names.index(G.AXES[k]) for k in moved if G.AXES[k] in self.names]
+        self.check_axes(axes, "gcode")
+        traj = P.plan(prog, self.names, self._pva, start=[float(x) for x in start])
+        self.enqueue([traj], axes)
+        return {"duration_s": float(traj.duration), "segments": len(prog.moves),
+                "end_m": [float(x) for x in traj.end]}
+
+    def enqueue(self, trajs: list, axes: list[int]) -> None:
+        """Queue planned trajectories moving ``axes`` (checked already)."""
+        with self.lock:
+            self.used = sorted(set(self.used) | set(axes)) if (self.cur or self.queue) else list(axes)
+            self.queue.extend(trajs)
+            self.queued_programs += 1
+            self.reason = ""
+
+    def hold(self) -> None:
+        self.holding = True
+
+    def resume(self) -> None:
+        if not self.aborting:
+            self.holding = False
+            if self.reason.startswith("paused"):
+                self.reason = ""
+
+    def abort(self) -> None:
+        with self.lock:
+            self.aborting = self.holding = True
+            if self.cur is None:
+                self._clear("aborted")
+
+    def set_override(self, f: float) -> None:
+        if not (math.isfinite(f) and 0.0 <= f <= MAX_OVERRIDE):
+            raise MotionError(f"override: the feed override must be within 0.0..{MAX_OVERRIDE} (got {f})")
+        with self.lock:
+            self.override = float(f)
+            if self.cur is None:             # nothing running: the next move starts at it
+                self.f, self.fd = self.override, 0.0
+
+    def idle(self) -> bool:
+        """Nothing queued or streaming, and the ring drained."""
+        with self.lock:
+            busy = self.cur is not None or bool(self.queue)
+        return not busy and self.stream.depth() == 0 and not self.stream.braking()
+
+    def status(self) -> dict:
+        with self.lock:
+            line = int(self.cur.line_at(self.s)) if self.cur is not None else 0
+            depth = len(self.queue) + (self.cur is not None)
+        return {"queue_depth": depth, "line": line, "feed_m_s": self.feed_m_s,
+                "override": self.override, "feed_scale": self.f, "hold": self.holding,
+                "aborting": self.aborting, "ring_depth": self.stream.depth(),
+                "underruns": self.stream.underruns(), "braking": self.stream.braking(),
+                "stopped_because": self.reason, "homed": list(self.homed),
+                "homing": list(self.homing_state), "idle": self.idle()}
+
+    # ---------------------------------------------------------------- homing
+    def home(self, i: int) -> dict:
+        """Start homing axis i (module docstring) in a thread; ``status()["homing"][i]`` says
+        how it goes ("searching", "latching", "homed", "failed: ..."). Raises MotionError: no
+        homing config, no homing inputs, not in command mode, motion running."""
+        name = self.names[i]
+        if self.homing[i] is None:
+            raise MotionError(f"home: axis {name} has no homing: section in its config")
+        if self.inputs is None or self.to_loop is None:
+            raise MotionError(f"home: the driver of axis {name} has no home switch or index input", usage=False)
+        if int(self.modes()[i]) != STREAM:
+            raise MotionError(f"home: axis {name} is not in command mode; run 'motorctl start {name} "
+                              f"--mode command' first", usage=False)
+        if not self.idle() or (self._homing_thread is not None and self._homing_thread.is_alive()):
+            raise MotionError("home: motion or homing is running; wait for it", usage=False)
+        self.homed[i] = False
+        self.homing_state[i] = "searching"
+        self._homing_thread = threading.Thread(target=self._home, args=(i,), name="motorctl-homing", daemon=True)
+        self._homing_thread.start()
+        return {"homing": "started"}
+
+    def _until(self, pred, what: str, timeout_s: float) -> None:
+        end = time.monotonic() + timeout_s
+        while not pred():
+            if time.monotonic() > end:
+                raise MotionError(f"{what} not within {timeout_s:g} s")
+            time.sleep(0.002)
+
+    def _run_until(self, i: int, target: float, speed: float, pred, what: str) -> bool:
+        """A move of axis i toward ``target`` at ``speed``, held (abort) as soon as ``pred()``;
+        True when pred came true."""
+        lim = self.limits[i]
+        target = min(max(target, lim.soft_min), lim.soft_max)
+        info = self.move({i: target}, speed, _homing=True)
+        hit = False
+        end = time.monotonic() + info["duration_s"] * 2 + 5.0
+        while time.monotonic() < end:
+            if pred():
+                hit = True
+                self.abort()
+                break
+            if self.idle():
+                break
+            time.sleep(0.001)
+        self._until(self.idle, f"{what}: the axis at rest", 10.0)
+        return hit or pred()
+
+    def _home(self, i: int) -> None:
+        cfg = self.homing[i]
+        d = cfg.direction
+        try:
+            y0 = float(self.where()[i])
+            if not self.inputs(i)[0] and not self._run_until(
+                    i, y0 + d * cfg.search_distance_m, cfg.search_speed_m_per_s,
+                    lambda: self.inputs(i)[0], "search"):
+                raise MotionError(f"no home switch within {cfg.search_distance_m:g} m")
+            self.homing_state[i] = "latching"
+            self.to_loop({"op": "arm_index", "axis": i})
+            y1 = float(self.where()[i])
+            if not self._run_until(i, y1 - d * cfg.back_off_m, cfg.latch_speed_m_per_s,
+                                   lambda: math.isfinite(self.inputs(i)[1]), "latch"):
+                raise MotionError(f"no index pulse within {cfg.back_off_m:g} m off the switch")
+            latch = self.inputs(i)[1]
+            ans = self.to_loop({"op": "set_position", "axis": i, "delta_m": cfg.position_m - latch})
+            if not ans.get("ok"):
+                raise MotionError(ans.get("error", "set position refused"))
+            time.sleep(0.02)                   # a few cycles: the newest setpoint is shifted
+            self.homed[i] = True
+            self.homing_state[i] = "homed"
+        except Exception as exc:  # noqa: BLE001 - reported in status, the axis holds
+            self.homing_state[i] = f"failed: {exc}"
+
+    # ---------------------------------------------------------------- the filler
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="motorctl-motion", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(1.0)
+
+    def _run(self) -> None:
+        if self.fifo_priority:
+            try:                             # this thread only (Linux: 0 is the calling thread)
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.fifo_priority))
+            except OSError:
+                pass                         # not permitted: SCHED_OTHER as the rest of the process
+        while not self._stop.wait(FILL_EVERY_S):
+            try:
+                self.fill()
+            except Exception as exc:  # noqa: BLE001 - the filler never dies: the loop brakes
+                with self.lock:
+                    self._clear(f"planner error: {type(exc).__name__}: {exc}")
+
+    def _clear(self, why: str) -> None:
+        """(lock held) Drop what is streamed and queued."""
+        self.queue.clear()
+        self.cur = None
+        self.s = 0.0
+        self.aborting = self.holding = False
+        self.f, self.fd = self.override, 0.0
+        self.reason = why
+        self.feed_m_s = 0.0
+
+    def fill(self) -> int:
+        """Top the ring up to :data:`LEAD_S` ahead. Returns the rows written."""
+        ring = self.stream
+        with self.lock:
+            ep = ring.epoch()
+            if ep != self.epoch:             # the loop braked on its own (underrun or stop)
+                self.epoch = ep
+                if self.cur is not None or self.queue:
+                    self._clear("underrun" if ring.underruns() else "stopped")
+            if ring.braking():
+                return 0
+            need = min(self.lead - ring.depth(), ring.free())
+            if need < self.lead // BLOCKS_PER_LEAD or (self.cur is None and not self.queue):
+                return 0
+            modes = self.modes()
+            gone = [self.names[i] for i in self.used if int(modes[i]) != STREAM]
+            if gone:                         # a fault or a stop: no more rows, the loop brakes
+                self._clear(f"axis {gone[0]} left command mode")
+                return 0
+            n = self._generate(need)
+            if n:
+                ring.push(self._block[:n], ep)
+            return n
+
+    def _generate(self, need: int) -> int:
+        """(lock held) Up to ``need`` rows into the block; fewer when the queue runs out or a
+        hold has come to rest. The path times of a run of rows within one trajectory first
+        (the feed scale's ramp, programmed pauses), then one block sample of them."""
+        dt, out = self.dt, self._block
+        j = 0
+        while j < need:
+            if self.cur is None:
+                if not self.queue or self.holding:
+                    if self.aborting:
+                        self._clear("aborted")
+                    return j
+                self.cur = self.queue.popleft()
+                self.s = 0.0
+                self.f, self.fd = self.override, 0.0     # from rest: the override at once
+            cur, m, ended, step = self.cur, 0, False, 0.0
+            ss, ff, ffd = self._s, self._f, self._fd
+            target = 0.0 if self.holding else self.override
+            if self.f == target and self.fd == 0.0 and target > 0.0:
+                # the steady case, vectorised: s advances by f·Ts a row, up to the end or a pause
+                m = need - j
+                ss[:m] = self.s + self.f * dt * self._steps[:m]
+                limit = min([t for t, _ in cur.stops if t > self.s] + [cur.duration])
+                over = int(np.searchsorted(ss[:m], limit, side="left"))
+                if over < m:
+                    m = over + 1             # the row that reaches the limit (a pause: at it)
+                    if limit < cur.duration:
+                        ss[m - 1] = limit
+                    else:
+                        ended = True
+                ff[:m], ffd[:m] = self.f, 0.0
+                step = self.f * dt               # uniform rows (the last one may stop short)
+                self.s = float(ss[m - 1])
+                if not ended and over < need - j:
+                    self.f, self.fd, self.holding = 0.0, 0.0, True
+                    self.reason = "paused (M0/M1); resume goes on"
+                    ff[m - 1] = 0.0
+            while j + m < need and not ended:
+                if self.f == 0.0 and self.fd == 0.0 and self.holding:
+                    break                    # at rest on the path: the loop holds the last row
+                target = 0.0 if self.holding else self.override
+                self.f, self.fd = _ramp(self.f, self.fd, target, self.f_rate, self.f_accel, dt)
+                s_new = self.s + self.f * dt
+                for t_stop, _ in cur.stops:  # a programmed pause (M0, M1): at rest there
+                    if self.s < t_stop <= s_new:
+                        s_new = t_stop
+                        self.f, self.fd, self.holding = 0.0, 0.0, True
+                        self.reason = "paused (M0/M1); resume goes on"
+                        break
+                self.s = s_new
+                ss[m], ff[m], ffd[m] = s_new, self.f, self.fd
+                m += 1
+                if s_new >= cur.duration:
+                    ended = True
+                    break
+            if m:
+                rows = out[j:j + m]
+                if step > 0.0 and (m == 1 or ss[m - 1] - ss[m - 2] == ss[1] - ss[0]):
+                    cur.sample_into(float(ss[0]), step, self._grid[:m])   # the rows' own times
+                    rows[:] = self._grid[:m].transpose(0, 2, 1)
+                else:
+                    self._sample(cur, ss[:m], rows)
+                if self.trace is not None:
+                    self.trace.extend(int(cur.line_at(t)) for t in ss[:m])
+                rows[:, :, 2] = rows[:, :, 2] * (ff[:m] ** 2)[:, None] + rows[:, :, 1] * ffd[:m, None]
+                rows[:, :, 1] *= ff[:m, None]
+                self.last[:] = rows[-1]
+                self.feed_m_s = float(np.linalg.norm(rows[-1, :, 1]))
+                j += m
+            if ended:
+                self.cur = None
+                self.s = 0.0
+                if not self.queue:
+                    self.done_programs = self.queued_programs
+                    self.feed_m_s = 0.0
+                    return j
+            elif not m or j < need:          # came to rest in a hold
+                if self.aborting:
+                    self._clear("aborted")
+                return j
+        return j
+
+    def _sample(self, traj, s: np.ndarray, rows: np.ndarray) -> None:
+        """rows[k] = (x, ẋ, ẍ) per axis ((m, n_axes, 3)) of ``traj`` at its times s[k] [s]
+        (increasing): one ``sample_into`` on a uniform grid over them (the rows' own times at a
+        constant feed scale), cubic Hermite in x and linear in ẋ, ẍ between grid points."""
+        m = s.size
+        diffs = np.diff(s)
+        ds = float(diffs.max()) if m > 1 else 0.0
+        g = self._grid
+        if m == 1 or ds <= 0.0 or np.all(np.abs(diffs - ds) <= 1e-12):
+            traj.sample_into(float(s[0]), ds, g[:m])
+            rows[:] = g[:m].transpose(0, 2, 1)
+            return
+        n_g = min(int(math.ceil((s[-1] - s[0]) / ds)) + 1, g.shape[0])
+        traj.sample_into(float(s[0]), ds, g[:n_g])
+        u = np.clip((s - s[0]) / ds, 0.0, n_g - 1 - 1e-12)
+        k = np.minimum(u.astype(np.int64), n_g - 2)
+        w = (u - k)[:, None]
+        x0, x1 = g[k, 0], g[k + 1, 0]
+        v0, v1 = g[k, 1] * ds, g[k + 1, 1] * ds
+        w2, w3 = w * w, w * w * w
+        rows[:, :, 0] = ((2 * w3 - 3 * w2 + 1) * x0 + (w3 - 2 * w2 + w) * v0 + (-2 * w3 + 3 * w2) * x1
+                         + (w3 - w2) * v1)
+        rows[:, :, 1] = (1 - w) * g[k, 1] + w * g[k + 1, 1]
+        rows[:, :, 2] = (1 - w) * g[k, 2] + w * g[k + 1, 2]

@@ -1,0 +1,344 @@
+"""The view process: the scope's web page and the Foxglove server, away from the drain.
+
+The daemon's I/O process drains the ring to the run log; a viewer must never slow that down.
+So the live views run in a process of their own, forked from the I/O process at its start,
+niced (+10: the I/O process wins the CPU), ending with its parent (``PR_SET_PDEATHSIG``).
+The I/O process makes the scope's frames (:class:`motorctl.app.daemon.scope.Scope`, cheap
+numpy envelopes) and sends each one over a non-blocking ``SOCK_SEQPACKET`` socket pair
+(:class:`ViewLink`): when the view process does not keep up, the frame is dropped and counted,
+the send never waits. In the view process every page has its own bounded queue of
+:data:`PAGE_QUEUE_FRAMES` frames (a slow page loses its oldest frames, counted and shown on the
+page); each frame is encoded to JSON once, whatever the number of pages.
+
+Start-up is reported back over the same socket (``started``: what is served, what failed and
+why); the I/O process prints one line per view and never waits for it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import importlib.util
+import ipaddress
+import json
+import os
+import pickle
+import signal
+import socket
+import sys
+import time
+from importlib import resources
+
+from motorctl.app.lifetime import die_with_parent
+
+#: frames queued per page before its oldest are dropped (about 2.5 s at the I/O process's 20 ms)
+PAGE_QUEUE_FRAMES = 128
+#: a page is sent its queued frames this often [s]
+SEND_EVERY_S = 0.05
+#: the view process's niceness (above the I/O process's 0)
+VIEW_NICE = 10
+#: the socket pair's send buffer [bytes] (the kernel caps it at net.core.wmem_max)
+LINK_BUFFER = 1 << 20
+
+
+def missing_extra(module: str, extra: str, what: str) -> str:
+    """The warning line for a view whose library is not installed ("" when it is)."""
+    if importlib.util.find_spec(module) is not None:
+        return ""
+    return f"motorctl: warning: {what} disabled: install motorctl[{extra}] ({module} is missing)"
+
+
+def exposure_warning(key: str, host: str) -> str:
+    """The warning line for a view that listens beyond loopback ("" on loopback)."""
+    if host == "localhost":
+        return ""
+    try:
+        if ipaddress.ip_address(host).is_loopback:
+            return ""
+    except ValueError:
+        pass
+    return (f"motorctl: warning: {key} {host}: reachable from the network, and the page has no "
+            f"authentication (anyone who reaches it sees the machine live)")
+
+
+class ViewLink:
+    """The I/O process's end of the view process: a listener of the scope (:meth:`on_frame`).
+
+    Attributes:
+        sent, dropped: frames handed over / dropped because the view process was behind.
+        pid: the view process. alive: False once it has ended (nothing is sent any more).
+    """
+
+    def __init__(self, sock: socket.socket, pid: int):
+        self.sock, self.pid = sock, pid
+        self.sent = self.dropped = 0
+        self.alive = True
+
+    def _send(self, obj) -> bool:
+        if not self.alive:
+            return False
+        try:
+            self.sock.send(pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL))
+            return True
+        except (BlockingIOError, InterruptedError):
+            return False
+        except OSError:
+            self.alive = False
+            return False
+
+    def on_frame(self, frame: dict) -> None:
+        """The scope's listener (I/O thread): never blocks, never raises."""
+        if self._send(("frame", frame)):
+            self.sent += 1
+        else:
+            self.dropped += 1
+
+    def set_status(self, status: dict, t_s: float) -> None:
+        """The axes' states (``t_s``: the loop time of the newest frame [s]) and the drops."""
+        self._send(("status", {"status": status, "t": t_s, "link_dropped": self.dropped}))
+
+    def receive(self) -> list:
+        """The view process's reports waiting on the socket (non-blocking); EOF marks it gone."""
+        out = []
+        while self.alive:
+            try:
+                data = self.sock.recv(1 << 16)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                data = b""
+            if not data:
+                self.alive = False
+                break
+            out.append(pickle.loads(data))
+        return out
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        """Close the link (the view process ends on EOF), then reap it (SIGKILL after the bound)."""
+        self.alive = False
+        try:
+            self.sock.close()
+        except OSError:
+            pass
+        _reap(self.pid, timeout_s)
+
+
+def _reap(pid: int, timeout_s: float) -> None:
+    end = time.monotonic() + timeout_s
+    while True:
+        try:
+            got, _ = os.waitpid(pid, os.WNOHANG)
+        except ChildProcessError:
+            return
+        if got:
+            return
+        if time.monotonic() > end:
+            try:
+                os.kill(pid, signal.SIGKILL)
+                os.waitpid(pid, 0)
+            except (ProcessLookupError, ChildProcessError):
+                pass
+            return
+        time.sleep(0.01)
+
+
+def start_views(scope, serve_scope: bool, foxglove_listen: str | None) -> ViewLink:
+    """Fork the view process (call with no thread running). Returns the I/O process's link."""
+    mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    for s in (mine, theirs):
+        try:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, LINK_BUFFER)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, LINK_BUFFER)
+        except OSError:
+            pass
+    parent = os.getpid()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    pid = os.fork()
+    if pid == 0:
+        code = 1
+        try:
+            mine.close()
+            keep = theirs.fileno()            # nothing of the I/O process's: socket, pipes, log
+            os.closerange(3, keep)
+            os.closerange(keep + 1, os.sysconf("SC_OPEN_MAX"))
+            code = view_main(theirs, scope, serve_scope, foxglove_listen, parent)
+        except BaseException as exc:            # noqa: BLE001 - last resort, one line
+            try:
+                sys.stderr.write(f"motorctl: warning: the view process ended: {type(exc).__name__}: {exc}\n")
+            except Exception:                  # noqa: BLE001
+                pass
+        finally:
+            os._exit(code)
+    theirs.close()
+    mine.setblocking(False)
+    return ViewLink(mine, pid)
+
+
+def view_main(sock: socket.socket, scope, serve_scope: bool, foxglove_listen: str | None,
+              parent_pid: int) -> int:
+    """The view process: serve what is configured until the link closes or the parent dies."""
+    die_with_parent(parent_pid, signal.SIGKILL)
+    for s in (signal.SIGINT, signal.SIGHUP):
+        signal.signal(s, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        os.nice(VIEW_NICE)
+    except OSError:
+        pass
+    loop = asyncio.new_event_loop()
+    asyncio.set_event_loop(loop)
+    views = Views(scope)
+    report = {"scope": None, "foxglove": None}
+    if serve_scope:
+        try:
+            loop.run_until_complete(views.serve_page())
+            report["scope"] = ""
+        except BaseException as exc:            # noqa: BLE001 - any failure: one line, no view
+            report["scope"] = _why(exc)
+    if foxglove_listen:
+        try:
+            from motorctl.app.daemon.foxglove_live import FoxglovePublisher
+            views.foxglove = FoxglovePublisher(foxglove_listen, scope)
+            views.foxglove.start()
+            report["foxglove"] = ""
+        except BaseException as exc:            # noqa: BLE001
+            views.foxglove = None
+            report["foxglove"] = _why(exc)
+    sock.setblocking(True)
+    sock.send(pickle.dumps(("started", report)))
+    if report["scope"] != "" and report["foxglove"] != "":
+        return 0
+    sock.setblocking(False)
+    loop.add_reader(sock.fileno(), views.on_readable, sock, loop)
+    try:
+        loop.run_forever()
+    finally:
+        views.close(loop)
+    return 0
+
+
+def _why(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+
+
+class _Page:
+    __slots__ = ("queue", "dropped")
+
+    def __init__(self):
+        self.queue: collections.deque = collections.deque(maxlen=PAGE_QUEUE_FRAMES)
+        self.dropped = 0
+
+
+class Views:
+    """The view process's state: the pages' queues, the last status, the Foxglove publisher."""
+
+    def __init__(self, scope):
+        self.scope = scope
+        self.meta = json.dumps({"meta": scope.meta()})
+        self.pages: set[_Page] = set()
+        self.status_json = "{}"
+        self.link_dropped = 0
+        self.foxglove = None
+        self.runner = None
+
+    # ------------------------------------------------------------------ from the I/O process
+    def on_readable(self, sock: socket.socket, loop) -> None:
+        while True:
+            try:
+                data = sock.recv(1 << 20)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                data = b""
+            if not data:                       # the I/O process closed the link or ended
+                loop.stop()
+                return
+            kind, obj = pickle.loads(data)
+            if kind == "frame":
+                self.on_frame(obj)
+            elif kind == "status":
+                self.link_dropped = int(obj["link_dropped"])
+                self.status_json = json.dumps(obj["status"])
+                if self.foxglove is not None:
+                    self.foxglove.publish_status(obj["status"], obj["t"])
+
+    def on_frame(self, frame: dict) -> None:
+        if self.pages:
+            text = json.dumps(frame)
+            for page in self.pages:
+                if len(page.queue) == PAGE_QUEUE_FRAMES:
+                    page.dropped += 1
+                page.queue.append(text)
+        if self.foxglove is not None:
+            self.foxglove.on_frame(frame)
+
+    # ------------------------------------------------------------------ the web page
+    async def serve_page(self) -> None:
+        from aiohttp import web
+
+        app = web.Application()
+        app.router.add_get("/", self._index)
+        app.router.add_get("/ws", self._ws)
+        app.router.add_get("/meta", self._meta)
+        app.router.add_get("/static/{name}", self._static)
+        self.runner = web.AppRunner(app, access_log=None)
+        await self.runner.setup()
+        await web.TCPSite(self.runner, self.scope.host, self.scope.port).start()
+
+    def close(self, loop) -> None:
+        try:
+            if self.runner is not None:
+                loop.run_until_complete(asyncio.wait_for(self.runner.cleanup(), 2.0))
+        except BaseException:                   # noqa: BLE001 - ending anyway
+            pass
+        if self.foxglove is not None:
+            self.foxglove.stop()
+
+    async def _index(self, request):
+        return await self._static_file("index.html", "text/html")
+
+    async def _static(self, request):
+        name = request.match_info["name"]
+        kinds = {".js": "application/javascript", ".css": "text/css", ".txt": "text/plain"}
+        kind = next((v for k, v in kinds.items() if name.endswith(k)), None)
+        if kind is None or "/" in name or name.startswith("."):
+            from aiohttp import web
+            raise web.HTTPNotFound()
+        return await self._static_file(name, kind)
+
+    async def _static_file(self, name: str, kind: str):
+        from aiohttp import web
+        try:
+            body = resources.files("motorctl.app.daemon").joinpath("scope_static", name).read_bytes()
+        except (FileNotFoundError, IsADirectoryError):
+            raise web.HTTPNotFound() from None
+        return web.Response(body=body, content_type=kind,
+                            charset="utf-8" if kind != "application/javascript" else None)
+
+    async def _meta(self, request):
+        from aiohttp import web
+        return web.Response(text=self.meta[len('{"meta": '):-1], content_type="application/json")
+
+    async def _ws(self, request):
+        """Each page: its frames since it connected (bounded, oldest dropped first), the axes'
+        states and the frames it missed, every :data:`SEND_EVERY_S`."""
+        from aiohttp import web
+        ws = web.WebSocketResponse(heartbeat=10.0)
+        await ws.prepare(request)
+        page = _Page()
+        self.pages.add(page)
+        try:
+            await ws.send_str(self.meta)
+            while not ws.closed:
+                frames = list(page.queue)
+                page.queue.clear()
+                msg = (f'{{"frames": [{", ".join(frames)}], "status": {self.status_json}, '
+                       f'"dropped": {page.dropped + self.link_dropped}, "scope_error": ""}}')
+                await ws.send_str(msg)
+                await asyncio.sleep(SEND_EVERY_S)
+        except (ConnectionError, RuntimeError):     # the page went away mid-send
+            pass
+        finally:
+            self.pages.discard(page)
+        return ws

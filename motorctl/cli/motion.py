@@ -1,0 +1,74 @@
+"""``motorctl circle-test``: the ISO 230-4 circular test of the simulated gantry on the
+daemon's motion path (:mod:`motorctl.app.circle_test`), C1, C2 and PID+FF at the given feeds.
+Exit codes: 0 done; 1 a fault or an underrun during a run; 2 bad input."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from motorctl.cli import DEFAULT_CONFIG, UsageError, print_table
+
+
+def cmd_circle_test(args) -> int:
+    from motorctl.app.circle_test import run_circle_test
+    from motorctl.config import load_config
+    args.feed = args.feed or [0.05, 0.1]
+    if not args.radius > 0 or any(not f > 0 for f in args.feed):
+        raise UsageError("circle-test: --radius and --feed must be > 0 (m, m/s)")
+    loaded = load_config(args.config)
+    runs, bad = [], 0
+    for c in args.controller or ("c1", "c2", "pid"):
+        if c not in _configured(loaded):
+            raise UsageError(f"circle-test: controller {c!r} is not configured for X and Y in {args.config}")
+        for f in args.feed:
+            try:
+                r = run_circle_test(loaded, args.radius, f, c)
+            except ValueError as exc:
+                sys.stderr.write(f"motorctl: error: {exc}\n")
+                bad += 1
+                continue
+            bad += r.underruns > 0
+            runs.append(r)
+    if args.json:
+        sys.stdout.write(json.dumps([{"controller": r.controller, "feed_m_s": r.feed, "radius_m": r.radius,
+                                      "G_cw_um": r.result.G_cw * 1e6, "G_ccw_um": r.result.G_ccw * 1e6,
+                                      "G_b_um": r.result.G_b * 1e6, "H_um": r.result.H * 1e6,
+                                      "F_max_um": r.result.F_max * 1e6, "F_min_um": r.result.F_min * 1e6,
+                                      "underruns": r.underruns} for r in runs]) + "\n")
+    else:
+        rows = [["controller", "feed mm/s", "G cw um", "G ccw um", "G(b) um", "H um", "F max um", "F min um",
+                 "underruns"]]
+        for r in runs:
+            g = r.result
+            rows.append([r.controller, f"{r.feed * 1e3:.0f}"] + [f"{x * 1e6:.2f}" for x in
+                        (g.G_cw, g.G_ccw, g.G_b, g.H, g.F_max, g.F_min)] + [str(r.underruns)])
+        sys.stdout.write(f"ISO 230-4 circular test, R {args.radius * 1e3:g} mm about the middle of the soft "
+                         f"limits, CCW then CW ({args.config}, simulated, virtual clock)\n")
+        print_table(rows, sys.stdout)
+    if args.plot and runs:
+        from motorctl.plots import plot_circle_tests
+        for f in plot_circle_tests(runs, args.plot):
+            sys.stdout.write(f"{f}\n")
+    return 1 if bad else 0
+
+
+def _configured(loaded) -> list[str]:
+    """The controllers configured for both X and Y."""
+    from motorctl.control import configured_controllers
+    return [k for k in configured_controllers(loaded.axes["X"].controller)
+            if k in configured_controllers(loaded.axes["Y"].controller)]
+
+
+def register(parser, sub) -> None:
+    p = sub.add_parser("circle-test", help="the ISO 230-4 circular test (G, H, F) of the simulated gantry on "
+                                           "the daemon's motion path, per controller and feed")
+    p.add_argument("config", nargs="?", default=DEFAULT_CONFIG, help="the config YAML (default: %(default)s)")
+    p.add_argument("--radius", type=float, default=0.05, help="circle radius [m] (default 0.05)")
+    p.add_argument("--feed", type=float, action="append", help="feed [m/s], repeatable (default 0.05 and 0.1)")
+    p.add_argument("--controller", action="append", choices=("c1", "c2", "pid"),
+                   help="repeatable (default: c1, c2 and pid)")
+    p.add_argument("--json", action="store_true", help="one JSON list and nothing else")
+    p.add_argument("--plot", metavar="DIR", default=None,
+                   help="also write DIR/circle_<controller>_<feed>.png: the radial deviation, polar")
+    p.set_defaults(func=cmd_circle_test)

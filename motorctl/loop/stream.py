@@ -1,0 +1,192 @@
+"""The setpoint stream of commanded motion: a lock-free single-producer single-consumer ring
+of (x_d, ẋ_d, ẍ_d) per axis per cycle in shared memory, and the loop's jerk-limited brake.
+
+Who does what:
+  * the producer (the daemon's I/O process, :mod:`motorctl.app.daemon.motion_side`) plans off
+    the loop and writes rows ``w .. w+n-1`` at ``w % capacity``, then publishes ``w + n`` in
+    ``ctl[SP_WRITE]`` (a release store after the rows' stores);
+  * the consumer (the compiled cycle, :func:`stream_step`, once per cycle for every axis in
+    the STREAM mode) reads ``ctl[SP_WRITE]`` (an acquire load), takes row ``r`` if
+    ``r < w`` and publishes ``r + 1`` in ``ctl[SP_READ]``. No lock, no allocation, no wait.
+
+A row is ``[epoch, x_0, v_0, a_0, x_1, v_1, a_1, ...]`` ([m, m/s, m/s²] per axis). The loop
+takes a row only when its epoch is ``ctl[SP_EPOCH]``: the consumer bumps the epoch at an
+underrun, so rows the producer planned before it noticed are dropped, never followed from the
+wrong place.
+
+An **underrun** (the ring empty while the last setpoint of a streaming axis still moves or
+accelerates) is never a jump nor a fault: every streaming axis brakes along a jerk-limited
+profile from its last (x, ẋ, ẍ) to rest (:func:`brake_step`, its own ``a_max`` and ``j_max``),
+then holds there; ``ctl[SP_UNDERRUNS]`` counts the events and ``ctl[SP_BRAKING]`` says a
+brake runs. The following-error check goes on as ever.
+"""
+
+from __future__ import annotations
+
+import mmap
+
+import numpy as np
+
+from motorctl.jit import njit
+from motorctl.ordering import load_acquire, store_release
+
+#: the ring's control words (int64): rows written, rows read, the epoch rows must carry, the
+#: underrun events, a brake running (1) or not (0)
+SP_WRITE, SP_READ, SP_EPOCH, SP_UNDERRUNS, SP_BRAKING = range(5)
+SP_CTL = 8
+
+
+class SetpointRing:
+    """Shared-memory SPSC ring of per-cycle setpoints (module docstring); create it before
+    ``fork``.
+
+    Args:
+        capacity: rows (cycles of setpoints), ≥ 1. n_axes: axes of the loop.
+        shared: an anonymous shared mapping (True; the daemon) or plain process memory.
+    Attributes:
+        rows: (capacity, 1 + 3·n_axes) float64; ctl: (SP_CTL,) int64.
+    """
+
+    def __init__(self, capacity: int, n_axes: int, shared: bool = True):
+        self.capacity, self.n_axes = int(capacity), int(n_axes)
+        self.width = 1 + 3 * self.n_axes
+        nbytes = 8 * (SP_CTL + self.capacity * self.width)
+        if shared:
+            self._mm = mmap.mmap(-1, nbytes, flags=mmap.MAP_SHARED)
+            buf = np.frombuffer(self._mm, dtype=np.uint8)
+        else:
+            buf = np.zeros(nbytes, dtype=np.uint8)
+        buf.fill(0)                       # every page made now: the loop never faults one in
+        self.ctl = buf[:8 * SP_CTL].view(np.int64)
+        self.rows = buf[8 * SP_CTL:].view(np.float64).reshape(self.capacity, self.width)
+
+    # ---------------------------------------------------------------- producer side
+    def depth(self) -> int:
+        """Rows written and not yet read."""
+        return int(self.ctl[SP_WRITE]) - int(load_acquire(self.ctl, SP_READ))
+
+    def free(self) -> int:
+        """Rows that can be written now."""
+        return self.capacity - self.depth()
+
+    def epoch(self) -> int:
+        return int(self.ctl[SP_EPOCH])
+
+    def push(self, block: np.ndarray, epoch: int) -> int:
+        """Producer: write ``block`` ((n, n_axes, 3) float64: x, ẋ, ẍ per axis) tagged with
+        ``epoch``, as far as it fits. Returns the rows written."""
+        n = min(block.shape[0], self.free())
+        w = int(self.ctl[SP_WRITE])
+        a = w % self.capacity
+        first = min(n, self.capacity - a)          # up to the end of the ring, then from its start
+        for dst, src in ((self.rows[a:a + first], block[:first]), (self.rows[:n - first], block[first:n])):
+            if src.shape[0]:
+                dst[:, 0] = epoch
+                dst[:, 1:] = src.reshape(src.shape[0], self.width - 1)
+        store_release(self.ctl, SP_WRITE, w + n)
+        return n
+
+    def underruns(self) -> int:
+        return int(self.ctl[SP_UNDERRUNS])
+
+    def braking(self) -> bool:
+        return bool(self.ctl[SP_BRAKING])
+
+
+@njit
+def _released(v, a, dj, ts):
+    """The velocity left after ẍ is released to 0 at one jerk step dj per cycle from (ẋ, ẍ)."""
+    while abs(a) > dj:
+        a -= dj if a > 0.0 else -dj
+        v += a * ts
+    return v
+
+
+@njit
+def brake_step(x, v, a, a_max, j_max, ts):
+    """One cycle of a jerk-limited stop from (x [m], ẋ [m/s], ẍ [m/s²]) with ``a_max``
+    [m/s²] and ``j_max`` [m/s³] over ``ts`` [s]: the time-optimal bang-bang rule on the
+    sampled profile: the jerk is ±j_max toward −sign(ẋ)·a_max as long as a release of ẍ to 0
+    one cycle later would still not reverse ẋ, else toward ẍ = 0. Returns (x, ẋ, ẍ, at_rest);
+    at rest ẋ = ẍ = 0 exactly (the last step changes ẍ by at most j_max·ts)."""
+    dj = j_max * ts
+    if abs(v) <= dj * ts and abs(a) <= dj:
+        return x + 0.5 * v * ts, 0.0, 0.0, True
+    sv = 1.0 if v > 0.0 else (-1.0 if v < 0.0 else (-1.0 if a > 0.0 else 1.0))
+    target = -sv * a_max
+    a1 = max(a - dj, target) if a > target else min(a + dj, target)
+    if _released(v + a1 * ts, a1, dj, ts) * sv < 0.0:
+        target = 0.0                      # release now: ẋ reaches 0 with ẍ
+    if a < target:
+        a = min(a + dj, target)
+    elif a > target:
+        a = max(a - dj, target)
+    v_new = v + a * ts
+    if v_new * sv < 0.0 and abs(a) <= dj:   # the last step: never reverse
+        v_new, a = 0.0, 0.0
+    x += 0.5 * (v + v_new) * ts
+    return x, v_new, a, False
+
+
+@njit
+def stream_step(sp, spc, ax, axf, c_mode, stream_mode, c_stop, c_x, c_amax, ts):
+    """The stream's part of one cycle (module docstring) for the axes whose mode
+    ``ax[i, c_mode]`` is ``stream_mode``: take one row of the ring ``sp``/``spc`` into their
+    setpoint ``axf[i, c_x:c_x+3]`` (x [m], ẋ [m/s], ẍ [m/s²]); or, when the ring is empty while
+    an axis still moves, or a stop is asked (``ax[i, c_stop]``) while it moves, brake
+    (:func:`brake_step`) with ``axf[i, c_amax]`` and ``axf[i, c_amax + 1]`` (a_max, j_max).
+    Returns True while a brake runs. Nothing allocates."""
+    n = ax.shape[0]
+    any_s = False
+    for i in range(n):
+        if ax[i, c_mode] == stream_mode:
+            any_s = True
+    if not any_s:
+        return False
+    cap = sp.shape[0]
+    braking = spc[SP_BRAKING] != 0
+    w = load_acquire(spc, SP_WRITE)
+    r = spc[SP_READ]
+    epoch = spc[SP_EPOCH]
+    while r < w and sp[r % cap, 0] != epoch:     # rows of an older epoch: dropped
+        r += 1
+    got = False
+    if braking:
+        r = w                                    # a brake runs: nothing is followed
+    elif r < w:
+        row = sp[r % cap]
+        for i in range(n):
+            if ax[i, c_mode] == stream_mode:
+                axf[i, c_x] = row[1 + 3 * i]
+                axf[i, c_x + 1] = row[2 + 3 * i]
+                axf[i, c_x + 2] = row[3 + 3 * i]
+        r += 1
+        got = True
+    store_release(spc, SP_READ, r)
+    if not braking:
+        moving = False
+        stop = False
+        for i in range(n):
+            if ax[i, c_mode] == stream_mode and (axf[i, c_x + 1] != 0.0 or axf[i, c_x + 2] != 0.0):
+                moving = True
+                if ax[i, c_stop] != 0:
+                    stop = True
+        if moving and (stop or not got):
+            braking = True
+            spc[SP_EPOCH] = epoch + 1
+            if not got:                          # an underrun: counted
+                spc[SP_UNDERRUNS] += 1
+    if braking:
+        rest = True
+        for i in range(n):
+            if ax[i, c_mode] == stream_mode:
+                x, v, a, done = brake_step(axf[i, c_x], axf[i, c_x + 1], axf[i, c_x + 2],
+                                           axf[i, c_amax], axf[i, c_amax + 1], ts)
+                axf[i, c_x] = x
+                axf[i, c_x + 1] = v
+                axf[i, c_x + 2] = a
+                rest = rest and done
+        if rest:
+            braking = False
+    spc[SP_BRAKING] = 1 if braking else 0
+    return braking

@@ -1,0 +1,72 @@
+"""No process outlives its run: ``kill -9`` of ``motorctl run`` ends its forked drain (which
+keeps every row it took), ``kill -9`` of the daemon's loop process ends the I/O process and
+the view process; nothing of the session is left 2 s later."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+from conftest import MOTORCTL, REPO
+from harness import free_port
+from test_daemon_helpers import Daemon, make_config, wait_for
+
+from motorctl.recorder.runlog import read_log
+
+
+def _session(sid: int) -> list[int]:
+    """Live (not zombie) processes of session ``sid``."""
+    out = []
+    for p in Path("/proc").iterdir():
+        if not p.name.isdigit():
+            continue
+        try:
+            fields = (p / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if fields[0] != "Z" and int(fields[3]) == sid:
+            out.append(int(p.name))
+    return out
+
+
+def test_kill_9_of_run_leaves_no_drain_and_a_readable_log(tmp_path):
+    log = tmp_path / "run.mclog"
+    proc = subprocess.Popen([*MOTORCTL, "run", str(REPO / "configs" / "gantry-rigid.yaml"),
+                             "--duration", "120", "--realtime", "off", "--log", str(log)],
+                            cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            start_new_session=True)
+    try:
+        wait_for(lambda: log.exists() and log.stat().st_size > 1 << 20, 300,
+                 "the run's drain to write 1 MB", interval=0.1)
+        assert len(_session(proc.pid)) == 2           # the loop process and its drain
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+        wait_for(lambda: not _session(proc.pid), 2.0, "the drain to end")
+    finally:
+        for pid in _session(proc.pid):
+            os.kill(pid, signal.SIGKILL)
+        proc.stderr.close()
+    rows = read_log(str(log)).data.shape[0]
+    assert rows * 8 * 40 > 1 << 20 - 1, rows          # what the drain took stays readable
+
+
+def test_kill_9_of_the_daemon_ends_its_io_and_view_processes(tmp_path):
+    port = free_port()
+    cfg = make_config(tmp_path, extra_daemon={"scope": {"listen": f"127.0.0.1:{port}"}})
+    d = Daemon(cfg, tmp_path / "motorctl.sock", preexec=os.setsid)
+    try:
+        d.wait_ready()
+        wait_for(lambda: len(_session(d.proc.pid)) == 3, 30, "the loop, I/O and view processes")
+        os.kill(d.proc.pid, signal.SIGKILL)
+        d.proc.wait(10)
+        t0 = time.monotonic()
+        wait_for(lambda: not _session(d.proc.pid), 2.0, "the I/O and view processes to end",
+                 detail=lambda: _session(d.proc.pid))
+        assert time.monotonic() - t0 < 2.0
+    finally:
+        for pid in _session(d.proc.pid):
+            os.kill(pid, signal.SIGKILL)
+        d.kill()

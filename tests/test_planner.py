@@ -1,0 +1,217 @@
+"""The path planner and point-to-point moves (motorctl.motion.planner): every axis within its
+v/a/j limits, the end at the program's end point, corners within the G64 tolerance, soft limits
+checked before anything is planned."""
+
+import numpy as np
+import pytest
+from conftest import REPO, examples
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from motorctl.motion import (AxisLimits, GcodeSettings, LimitError, check_limits, contour_error, headroom, parse,
+                             plan, point_to_point)
+from motorctl.motion.planner import PERIOD_S
+
+#: configs/gantry.yaml's X and Y
+LIMITS = [AxisLimits(2.0, 40.0, 4000.0), AxisLimits(1.0, 10.0, 1000.0)]
+XY = GcodeSettings(axes=["X", "Y"], words={"M3": "torch", "M5": "torch", "M62": "dout", "S": "ignore"})
+H = PERIOD_S
+
+
+def _run(tr):
+    """All setpoints of a trajectory on the loop's grid, one period past its end: (n, 3, n_axes)."""
+    n = int(np.ceil(tr.duration / H)) + 2
+    out = np.empty((n, 3, len(tr.axes)))
+    tr.sample_into(0.0, H, out)
+    return out
+
+
+def _assert_within_limits(out, limits=LIMITS):
+    v = np.array([lim.v_max for lim in limits])
+    a = np.array([lim.a_max for lim in limits])
+    j = np.array([lim.j_max for lim in limits])
+    assert np.all(np.abs(out[:, 1]) <= v * (1 + 1e-9))
+    assert np.all(np.abs(out[:, 2]) <= a * (1 + 1e-9))
+    assert np.all(np.abs(np.diff(out[:, 2], axis=0)) / H <= j * (1 + 1e-6))
+    # the setpoints are one motion: position changes as the velocity says (to the grid's order)
+    dx = np.diff(out[:, 0], axis=0) / H
+    assert np.all(np.abs(dx - 0.5 * (out[1:, 1] + out[:-1, 1])) <= 0.5 * a * H + 1e-9)
+
+
+def _program(points, feed_mm_min, tol_mm, arcs):
+    mode = "G61" if tol_mm == 0 else "G64" if tol_mm is None else f"G64 P{tol_mm}"
+    lines = ["G21 G90 G17", mode, f"G1 F{feed_mm_min}"]
+    for k, (x, y) in enumerate(points):
+        if arcs[k % len(arcs)] and k and np.hypot(x - points[k - 1][0], y - points[k - 1][1]) > 1.0:
+            px, py = points[k - 1]
+            lines.append(f"G{2 + k % 2} X{x:.3f} Y{y:.3f} R{np.hypot(x - px, y - py):.4f}")
+        else:
+            lines.append(f"G1 X{x:.3f} Y{y:.3f}")
+    return "\n".join(lines) + "\nM2\n"
+
+
+coords = st.tuples(st.floats(0, 60), st.floats(0, 60)).filter(lambda p: p[0] > 1e-3)
+
+
+@settings(max_examples=examples(30), deadline=None)
+@given(points=st.lists(coords, min_size=2, max_size=6), feed=st.sampled_from([600, 3000, 6000, 12000, 60000]),
+       tol=st.sampled_from([0, 0.005, 0.01, 0.1, 1.0, None]), arcs=st.lists(st.booleans(), min_size=1, max_size=3))
+def test_planned_programs_keep_limits_end_point_and_tolerance(points, feed, tol, arcs):
+    pts = [(round(x, 3), round(y, 3)) for x, y in points]
+    prog = parse(_program(pts, feed, tol, arcs), "p.ngc", XY)
+    tr = plan(prog, ["X", "Y"], LIMITS)
+    out = _run(tr)
+    _assert_within_limits(out)
+    np.testing.assert_array_equal(out[-1, 0], prog.end[:2])
+    np.testing.assert_array_equal(out[-1, 1:], 0.0)
+    x, _, _ = tr.sample(tr.duration)
+    np.testing.assert_array_equal(x, prog.end[:2])
+    if tol is not None:                   # G64 without P: as fast as the limits allow
+        dev = contour_error(prog, out[:, 0])
+        assert dev.max() <= max(tol * 1e-3, 1e-6) + 1e-9
+
+
+def test_square_and_circle_ends_at_its_last_point_within_the_tolerance():
+    text = (REPO / "configs" / "square_and_circle.ngc").read_text()
+    prog = parse(text, "square_and_circle.ngc", XY)
+    tr = plan(prog, ["X", "Y"], LIMITS, start=[0.0, 0.0])
+    out = _run(tr)
+    _assert_within_limits(out)
+    np.testing.assert_array_equal(out[-1, 0], [0.010, 0.020])
+    moving = tr.line_at(0.0) == 0 and [tr.line_at(t) for t in np.arange(0, tr.duration, 0.05)]
+    assert sorted(set(moving) - {0}) == [5, 6, 7, 8, 9, 10, 11, 12]   # every move, in order
+    assert moving == sorted(moving)
+    first = int(1.0 / H)   # the square and the circle (after the first rapid from 0, 0)
+    assert contour_error(prog, out[first:, 0]).max() <= 1e-5
+    assert tr.duration < 12.0
+
+
+def test_feed_scale_and_rapids_use_the_axis_limits():
+    prog = parse("G21 G90 G61 G1 X400 F3000\nG0 X0\n", "p.ngc", XY)
+    slow, fast = plan(prog, ["X", "Y"], LIMITS), plan(prog, ["X", "Y"], LIMITS, feed_scale=1.5)
+    assert np.abs(_run(slow)[:, 1, 0]).max() == pytest.approx(2.0)       # G0 at X's v_max
+    t_feed = [tr.duration for tr in (slow, fast)]
+    assert t_feed[1] < t_feed[0]
+    cut = _run(plan(parse("G21 G1 X100 F3000\n", "p.ngc", XY), ["X", "Y"], LIMITS, feed_scale=1.5))
+    assert np.abs(cut[:, 1, 0]).max() == pytest.approx(0.075)
+
+
+def test_headroom_keeps_the_limits_at_a_faster_time_scale():
+    prog = parse("G21 G90 G64 P0.01\nG1 X100 Y50 F60000\nG2 X150 Y50 R25\nG0 X0 Y0\n", "p.ngc", XY)
+    tr = plan(prog, ["X", "Y"], headroom(LIMITS, 1.5))
+    out = _run(tr)                 # run 1.5 times faster: each period lasts H/1.5 of real time
+    r = 1.5
+    for i, lim in enumerate(LIMITS):
+        assert np.abs(out[:, 1, i]).max() * r <= lim.v_max * (1 + 1e-9)
+        assert np.abs(out[:, 2, i]).max() * r**2 <= lim.a_max * (1 + 1e-9)
+        assert (np.abs(np.diff(out[:, 2, i])) * r**2 / (H / r)).max() <= lim.j_max * (1 + 1e-6)
+        assert np.abs(out[:, 1, i]).max() * r > 0.5 * lim.v_max       # and not needlessly slow
+    with pytest.raises(ValueError, match="speedup"):
+        headroom(LIMITS, 0.5)
+
+
+def test_events_and_pauses_happen_at_their_path_points():
+    prog = parse("G21 G90 G64 P0.01\nG1 X50 F6000\nM62 P1\nG1 X100\nM3\nG4 P0.5\nG1 Y50\nM0\nG1 X0\nM5\nM2\n",
+                 "p.ngc", XY)
+    tr = plan(prog, ["X", "Y"], LIMITS)
+    (t62, e62), (t3, e3), (t5, e5) = tr.events
+    assert (e62.word, e3.word, e5.word) == ("M62", "M3", "M5")
+    x, v, _ = tr.sample(t62)
+    assert abs(x[0] - 0.050) < 0.1e-3 and v[0] > 0.09                 # on the fly, at X50
+    x, v, _ = tr.sample(t3)
+    np.testing.assert_allclose(x, [0.1, 0.0], atol=1e-12)
+    np.testing.assert_array_equal(v, 0.0)                             # M3 once the axes stand
+    x, _, _ = tr.sample(t3 + 0.5)
+    np.testing.assert_allclose(x, [0.1, 0.0], atol=1e-12)             # the dwell
+    ((ts, pause),) = tr.stops
+    assert pause.line == 8
+    x, v, a = tr.sample(ts)
+    np.testing.assert_allclose(x, [0.1, 0.05], atol=1e-12)
+    np.testing.assert_allclose(np.concatenate([v, a]), 0.0, atol=1e-12)
+    assert tr.line_at(ts + 0.1) == 9 and t5 <= tr.duration
+
+
+def test_sample_and_sample_into_agree():
+    prog = parse("G21 G90 G64 P0.1\nG1 X50 Y20 F6000\nG3 X70 Y40 R20\n", "p.ngc", XY)
+    tr = plan(prog, ["X", "Y"], LIMITS)
+    grid = np.empty((600, 3, 2))
+    tr.sample_into(0.1, H, grid)
+    for k in (0, 17, 255, 256, 599):                   # on the grid: the same setpoints
+        np.testing.assert_allclose(np.array(tr.sample(0.1 + k * H)), grid[k], rtol=0, atol=1e-9)
+    off = np.empty((40, 3, 2))
+    tr.sample_into(0.3, 0.0123, off)                   # off the grid: the filters anchored at t
+    for k in (0, 17, 39):
+        x, v, a = tr.sample(0.3 + k * 0.0123)          # interpolated between grid points
+        np.testing.assert_allclose(x, off[k, 0], rtol=0, atol=1e-6)
+        np.testing.assert_allclose(v, off[k, 1], rtol=0, atol=1e-3)
+        np.testing.assert_allclose(a, off[k, 2], rtol=0, atol=LIMITS[0].j_max * H)
+
+
+def test_axes_not_on_the_machine_are_refused():
+    prog = parse("G21 G1 Z5 F100\n", "p.ngc", GcodeSettings())
+    with pytest.raises(ValueError, match="p.ngc:1: the program moves Z"):
+        plan(prog, ["X", "Y"], LIMITS)
+
+
+@settings(max_examples=examples(25), deadline=None)
+@given(start=st.tuples(st.floats(-0.02, 0.42), st.floats(-0.02, 0.42)),
+       goal=st.tuples(st.floats(-0.02, 0.42), st.floats(-0.02, 0.42)),
+       feed=st.one_of(st.none(), st.floats(0.01, 3.0)))
+def test_point_to_point_is_a_straight_synchronised_move_within_limits(start, goal, feed):
+    tr = point_to_point(start, goal, LIMITS, feed=feed, axes=["X", "Y"])
+    out = _run(tr)
+    _assert_within_limits(out)
+    np.testing.assert_array_equal(out[-1, 0], goal)
+    d = np.subtract(goal, start)
+    if np.linalg.norm(d) > 1e-6:
+        u = d / np.linalg.norm(d)
+        rel = out[:, 0] - start
+        off = rel - np.outer(rel @ u, u)
+        assert np.abs(off).max() < 1e-9 + 1e-6 * np.linalg.norm(d)     # on the line
+        moving = np.linalg.norm(out[:, 1], axis=1) > 1e-9
+        if feed is not None:
+            assert np.linalg.norm(out[:, 1], axis=1).max() <= feed * (1 + 1e-6)
+        # both axes arrive together: each stops moving in the last period
+        for i in range(2):
+            if abs(d[i]) > 1e-6:
+                last = np.nonzero(np.abs(out[:, 1, i]) > 1e-12)[0][-1]
+                assert last >= np.nonzero(moving)[0][-1] - 1
+
+
+def test_a_new_target_in_mid_move_stays_within_limits():
+    first = point_to_point([0.0, 0.0], [0.3, 0.2], LIMITS)
+    x, v, a = first.sample(0.2)
+    second = point_to_point(x, [0.05, 0.3], LIMITS, velocity=v, acceleration=a)
+    out = _run(second)
+    _assert_within_limits(out)
+    np.testing.assert_allclose(out[0, 1], v, atol=1e-9)               # no step in velocity
+    np.testing.assert_array_equal(out[-1, 0], [0.05, 0.3])
+
+
+def test_check_limits_names_the_first_offending_line_and_how_far():
+    soft = {"X": (-0.02, 0.42), "Y": (-0.02, 0.42)}
+    ok = parse((REPO / "configs" / "cam_sample.ngc").read_text(), "cam_sample.ngc",
+               GcodeSettings(axes=["X", "Y"], words={"M3": "torch", "M5": "torch", "S": "ignore"}))
+    check_limits(ok, soft)
+    with pytest.raises(LimitError) as e:
+        check_limits(ok, soft, offsets={"X": 0.1})        # the same program moved 100 mm in X
+    assert e.value.axis == "X" and e.value.line > 0
+    assert e.value.excess_m == pytest.approx(max(s.end[0] for s in ok.moves) + 0.1 - 0.42, abs=0.05)
+    assert str(e.value).startswith(f"cam_sample.ngc:{e.value.line}: X reaches")
+    check_limits(parse("G21 G90 G0 X400 Y100\nG3 X400 Y140 I0 J20 F600\n", "b.ngc", XY), soft)  # X420: on it
+    with pytest.raises(LimitError) as e:                  # the arc's side at X425, not its ends
+        check_limits(parse("G21 G90 G0 X405 Y100\nG3 X405 Y140 I0 J20 F600\n", "b.ngc", XY), soft)
+    assert (e.value.line, e.value.axis) == (2, "X") and e.value.excess_m == pytest.approx(0.005)
+    check_limits(parse("G21 G90 G0 X405 Y100\nG2 X405 Y140 I0 J20 F600\n", "b.ngc", XY), soft)  # CW: X385
+
+
+def test_the_cam_program_plans_within_limits_and_tolerance():
+    prog = parse((REPO / "configs" / "cam_sample.ngc").read_text(), "cam_sample.ngc",
+                 GcodeSettings(axes=["X", "Y"], words={"M3": "torch", "M5": "torch", "S": "ignore"}))
+    tr = plan(prog, ["X", "Y"], LIMITS)
+    out = _run(tr)
+    _assert_within_limits(out)
+    np.testing.assert_array_equal(out[-1, 0], prog.end[:2])
+    assert contour_error(prog, out[::40, 0]).max() <= 1e-5 + 1e-9     # every 8 ms of a 99 s program
+    torch = [(t, e.value) for t, e in tr.events if e.output == "torch"]
+    assert [v for _, v in torch] == [1.0, 0.0] * (len(torch) // 2)

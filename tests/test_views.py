@@ -1,0 +1,104 @@
+"""Views are guests: the scope page and Foxglove run in the view process, so a view that cannot
+start (its library missing, or failing at import) is one warning line and the daemon records
+every row; pages that never read lose frames (counted), never rows."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import time
+
+from harness import free_port
+from test_daemon_helpers import Daemon, ctl, make_config, status, wait_for
+
+
+def _start(d: Daemon, axis: str) -> None:
+    for _ in range(5):                  # bounded: a refusal that asks for a retry gets one
+        r = ctl(d.sock, "start", axis)
+        if r.returncode == 0 or "retry" not in r.stdout + r.stderr:
+            break
+        time.sleep(0.2)
+    assert r.returncode == 0, r.stdout + r.stderr
+
+
+def _axes_run_and_nothing_lost(d: Daemon, seconds: float) -> dict:
+    _start(d, "X")
+    _start(d, "Y")
+    c0 = status(d.sock)["loop"]["cycles"]
+    st = wait_for(lambda: (s := status(d.sock))["loop"]["cycles"] > c0 + seconds * 5000 and s,
+                  120, f"{seconds} s of loop cycles")
+    assert {a: s["fault"] for a, s in st["axes"].items()} == {"X": "", "Y": ""}
+    assert st["log"]["lost_rows"] == 0 and st["log"]["recorder_fault"] == ""
+    return st
+
+
+def test_a_missing_or_broken_view_library_is_one_line_and_no_row_lost(tmp_path):
+    # aiohttp "not installed" (None in sys.modules is how Python spells it), foxglove-sdk
+    # installed but failing when imported (in the view process)
+    stubs = tmp_path / "stubs"
+    (stubs / "foxglove").mkdir(parents=True)
+    (stubs / "sitecustomize.py").write_text("import sys\nsys.modules['aiohttp'] = None\n")
+    (stubs / "foxglove" / "__init__.py").write_text("raise RuntimeError('broken build')\n")
+    env = {**os.environ, "PYTHONPATH": str(stubs)}
+    sp, fp = free_port(), free_port()
+    cfg = make_config(tmp_path, extra_daemon={"scope": {"listen": f"127.0.0.1:{sp}"},
+                                              "foxglove": {"listen": f"127.0.0.1:{fp}"}})
+    d = Daemon(cfg, tmp_path / "motorctl.sock", env=env)
+    try:
+        d.wait_ready()
+        _axes_run_and_nothing_lost(d, 3.0)
+        code, _, err = d.terminate()
+    finally:
+        d.kill()
+    assert code == 0, err
+    lines = [ln for ln in err.splitlines() if "scope" in ln or "foxglove" in ln]
+    assert len(lines) == 2, err
+    assert "Traceback" not in err and "scope on" not in err and "foxglove on" not in err, err
+    assert sum("scope disabled: install motorctl[scope]" in ln for ln in lines) == 1, err
+    assert sum("daemon.foxglove.listen" in ln and "RuntimeError: broken build" in ln
+               for ln in lines) == 1, err
+
+
+def test_pages_that_never_read_drop_frames_not_rows(tmp_path):
+    """Five WebSocket pages that connect and never read, and the view process is the one
+    that falls behind: the run log loses nothing, no axis faults, and a page that reads is
+    told how many frames it missed."""
+    import aiohttp
+
+    port = free_port()
+    cfg = make_config(tmp_path, extra_daemon={"scope": {"listen": f"0.0.0.0:{port}"}})
+    d = Daemon(cfg, tmp_path / "motorctl.sock")
+    try:
+        d.wait_ready()
+        wait_for(lambda: _get(port), 30, "the scope page")
+
+        async def pages():
+            async with aiohttp.ClientSession() as s:
+                stuck = [await s.ws_connect(f"ws://127.0.0.1:{port}/ws") for _ in range(5)]
+                st = _axes_run_and_nothing_lost(d, 3.0)
+                async with s.ws_connect(f"ws://127.0.0.1:{port}/ws") as ws:
+                    meta = await ws.receive_json(timeout=10)
+                    msg = await ws.receive_json(timeout=10)
+                for w in stuck:
+                    await w.close()
+                return meta, msg, st
+        meta, msg, st = asyncio.run(pages())
+        assert st["views"]["frames_sent"] > 50, st["views"]     # 3 s at one frame per 20 ms
+        assert "X.e" in meta["meta"]["channels"]
+        assert set(msg) >= {"frames", "status", "dropped"} and msg["dropped"] >= 0
+        code, _, err = d.terminate()
+    finally:
+        d.kill()
+    assert code == 0, err
+    # listening beyond loopback is allowed, with one line that says the page is open
+    assert sum("no authentication" in ln and "daemon.scope.listen 0.0.0.0" in ln
+               for ln in err.splitlines()) == 1, err
+    assert f"motorctl: scope on http://0.0.0.0:{port}/" in err
+
+
+def _get(port: int) -> bool:
+    import urllib.request
+    try:
+        return urllib.request.urlopen(f"http://127.0.0.1:{port}/meta", timeout=2).status == 200
+    except OSError:
+        return False
