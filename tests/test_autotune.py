@@ -157,7 +157,7 @@ def test_one_evaluation_for_run_and_autotune(repo, tmp_path):
     assert p.returncode in (0, 1), p.stderr
     by_run = json.loads(p.stdout)["axes"]["X"]
     mine = evaluate(raw, str(cfg), "X", "c2", 4.0)
-    assert by_run["saturated"] > 0 and by_run["samples"] == 20000
+    assert by_run["saturated"] > 0 and by_run["samples"] > 10000     # enabled cycles of the 20000
     assert by_run["u_rest_rms_V"] is not None
     for k in ("L2_um", "e_M_um", "saturated", "samples", "u_rest_rms_V", "fault"):
         assert mine[k] == by_run[k], (k, mine[k], by_run[k])
