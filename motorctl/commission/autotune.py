@@ -240,7 +240,8 @@ def plot_bode(res: dict, path) -> str:
     """Step 5: the Bode plot as PNG, five panels sharing the frequency axis: |G| (measured, and the
     fitted model over the measured band), G's phase, the coherence r → e of
     the measurement, |L| of each law's written gains with its crossover and gain margin
-    marked, L's phase with −180° and the phase margin marked. Every phase is unwrapped the same
+    marked, L's phase with −180° and the phase margin marked (the last two only when gains were
+    chosen: three panels after ``--measure-only``). Every phase is unwrapped the same
     way (:func:`_phase_deg`); the measured plant's phase continues the model's at the first
     measured line. Needs matplotlib (the ``plot`` extra)."""
     import matplotlib
@@ -253,8 +254,10 @@ def plot_bode(res: dict, path) -> str:
     ph_fit = _phase_deg(res["G_fit"])
     ph_m = np.degrees(np.unwrap(np.angle(Gm)))
     ph_m += 360.0 * np.round((np.interp(fm[0], f, ph_fit) - ph_m[0]) / 360.0)   # on the model's branch
-    fig, ax = plt.subplots(5, 1, figsize=(10, 13), sharex=True,
-                           gridspec_kw={"height_ratios": [3, 2, 1, 3, 2]})
+    n_panels = 5 if res["gains"] else 3        # --measure-only: no loop to draw
+    fig, ax = plt.subplots(n_panels, 1, figsize=(10, 13 if res["gains"] else 8), sharex=True,
+                           gridspec_kw={"height_ratios": [3, 2, 1, 3, 2][:n_panels]})
+    ax = list(ax) + [None] * (5 - n_panels)
     ax[0].loglog(fm, np.abs(Gm), ".", ms=2, color="0.5", label="plant G, measured")
     band = (f >= fm[0]) & (f <= fm[-1])         # the model where it was fitted: the measured band
     ax[0].loglog(f[band], np.abs(res["G_fit"][band]), "k-", lw=1, label="plant G, fitted model")
@@ -277,9 +280,13 @@ def plot_bode(res: dict, path) -> str:
             ax[4].plot([m.wc_hz], [np.interp(m.wc_hz, f, ph)], "o", color=color, ms=4)
         if math.isfinite(m.gm_hz):
             ax[3].plot([m.gm_hz], [10 ** (-m.gm_db / 20)], "v", color=color)
-    ax[3].axhline(1.0, color="0.7", lw=0.8)
-    ax[4].axhline(-180.0, color="0.7", lw=0.8)
-    for k in (1, 4):
+    if res["gains"]:
+        ax[3].axhline(1.0, color="0.7", lw=0.8)
+        ax[4].axhline(-180.0, color="0.7", lw=0.8)
+        ax[3].set_ylabel("|L| [-]")
+        ax[4].set_ylabel("phase L [deg]")
+        ax[3].legend(fontsize=8)
+    for k in (1, 4)[:1 + bool(res["gains"])]:
         ys = [np.min(line.get_ydata()) for line in ax[k].get_lines() if len(line.get_ydata()) > 2]
         if ys:
             ax[k].set_ylim(max(min(ys), -900.0) - 20.0, 20.0)
@@ -287,13 +294,10 @@ def plot_bode(res: dict, path) -> str:
     ax[1].set_ylabel("phase G [deg]")
     ax[2].set_ylabel("coherence")
     ax[2].set_ylim(0.0, 1.05)
-    ax[3].set_ylabel("|L| [-]")
-    ax[4].set_ylabel("phase L [deg]")
-    ax[4].set_xlabel("frequency [Hz]")
+    ax[n_panels - 1].set_xlabel("frequency [Hz]")
     ax[0].legend(fontsize=8)
-    if res["gains"]:
-        ax[3].legend(fontsize=8)
-    ax[0].set_title(f"axis {res['axis']}: measured plant (indirect closed-loop estimate) and loop gains")
+    ax[0].set_title(f"axis {res['axis']}: measured plant (indirect closed-loop estimate)"
+                    + (" and loop gains" if res["gains"] else ""))
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
