@@ -58,6 +58,15 @@ BLOCKS_PER_LEAD = 4
 MAX_OVERRIDE = 1.5
 #: the feed scale's largest rate [1/s] and rate of change [1/s²] for an axis at a_max/v_max = 1 /s
 F_RATE_PER_S, F_ACCEL_PER_S2 = 0.5, 2.0
+#: above an override of 1: the part of each axis's a_max and j_max kept for the override's own
+#: ramp (the terms p'·ḟ, 3p''·f·ḟ + p'·f̈ of the time scaling); the feed scale's rate is then
+#: RAMP_SHARE/2 · min a_max/v_max and its rate of change RAMP_SHARE/2 · min j_max/v_max
+RAMP_SHARE = 0.25
+#: the override cap's bins of path time [s] (planner.override_cap)
+CAP_BIN_S = 0.01
+#: rows the loop may still take after a hold, resume, abort or override change: the rows beyond
+#: them are written again at once (the ring keeps LEAD_S ahead; this is the reaction time) [s]
+GUARD_S = 0.004
 
 
 class MotionError(ValueError):
@@ -126,6 +135,24 @@ class MotionSide:
         self.lead = max(1, int(round(LEAD_S / period_s)))
         ratio = min(lim.a_max / lim.v_max for lim in limits)
         self.f_rate, self.f_accel = F_RATE_PER_S * ratio, F_ACCEL_PER_S2 * ratio * ratio
+        self.f_rate_hi = 0.5 * RAMP_SHARE * ratio
+        self.f_accel_hi = min(0.5 * RAMP_SHARE * min(lim.j_max / lim.v_max for lim in limits), self.f_accel)
+        # path time an override ramp from MAX_OVERRIDE down to 1 covers (its look-ahead), with margin
+        self.cap_ahead_s = 1.2 * MAX_OVERRIDE * ((MAX_OVERRIDE - 1.0) / self.f_rate_hi
+                                                 + 2.0 * self.f_rate_hi / self.f_accel_hi)
+        self.guard = max(4, int(round(GUARD_S / period_s)))
+        cap = stream.capacity
+        #: the filler's state after each ring row (by row index % capacity): path time, feed
+        #: scale and its rate, trajectory, programs done; rows below _hist_from are not ours
+        self._hs, self._hf, self._hfd = np.zeros(cap), np.zeros(cap), np.zeros(cap)
+        self._htraj: list = [None] * cap
+        self._hdone = np.zeros(cap, dtype=np.int64)
+        self._hist_from = stream.written()
+        self._rewrite = False            # a hold/resume/abort/override asks to rewrite the ring
+        self.rewrites = 0
+        self._wake = threading.Event()
+        self._bs, self._bf, self._bfd = np.zeros(self.lead), np.zeros(self.lead), np.zeros(self.lead)
+        self._btraj: list = [None] * self.lead
         self.lock = threading.Lock()
         self.queue: collections.deque = collections.deque()
         self.cur = None                  # the trajectory being streamed
@@ -236,26 +263,41 @@ class MotionSide:
 
     def enqueue(self, trajs: list, axes: list[int]) -> None:
         """Queue planned trajectories moving ``axes`` (checked already)."""
+        for traj in trajs:                   # the override's cap along it (planner.override_cap)
+            traj.cap = P.override_cap(traj, self._pva, share=RAMP_SHARE, period=self.dt, bin_s=CAP_BIN_S,
+                                      ahead_s=self.cap_ahead_s)
+            traj.cap_dt = max(1, int(round(CAP_BIN_S / self.dt))) * self.dt
         with self.lock:
             self.used = sorted(set(self.used) | set(axes)) if (self.cur or self.queue) else list(axes)
             self.queue.extend(trajs)
             self.queued_programs += 1
             self.reason = ""
 
+    def _asap(self) -> None:
+        """(lock held) The rows beyond the next GUARD_S are written again at the filler's next
+        wake, which is now."""
+        self._rewrite = True
+        self._wake.set()
+
     def hold(self) -> None:
-        self.holding = True
+        with self.lock:
+            self.holding = True
+            self._asap()
 
     def resume(self) -> None:
-        if not self.aborting:
-            self.holding = False
-            if self.reason.startswith("paused"):
-                self.reason = ""
+        with self.lock:
+            if not self.aborting:
+                self.holding = False
+                if self.reason.startswith("paused"):
+                    self.reason = ""
+                self._asap()
 
     def abort(self) -> None:
         with self.lock:
             self.aborting = self.holding = True
-            if self.cur is None:
+            if self.cur is None and not self.queue:
                 self._clear("aborted")
+            self._asap()
 
     def set_override(self, f: float) -> None:
         if not (math.isfinite(f) and 0.0 <= f <= MAX_OVERRIDE):
@@ -264,6 +306,7 @@ class MotionSide:
             self.override = float(f)
             if self.cur is None:             # nothing running: the next move starts at it
                 self.f, self.fd = self.override, 0.0
+            self._asap()
 
     def idle(self) -> bool:
         """Nothing queued or streaming, and the ring drained."""
@@ -361,6 +404,7 @@ class MotionSide:
 
     def stop(self) -> None:
         self._stop.set()
+        self._wake.set()
         if self._thread is not None:
             self._thread.join(1.0)
 
@@ -370,7 +414,11 @@ class MotionSide:
                 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.fifo_priority))
             except OSError:
                 pass                         # not permitted: SCHED_OTHER as the rest of the process
-        while not self._stop.wait(FILL_EVERY_S):
+        while not self._stop.is_set():
+            self._wake.wait(FILL_EVERY_S)
+            self._wake.clear()
+            if self._stop.is_set():
+                break
             try:
                 self.fill()
             except Exception as exc:  # noqa: BLE001 - the filler never dies: the loop brakes
@@ -386,6 +434,7 @@ class MotionSide:
         self.f, self.fd = self.override, 0.0
         self.reason = why
         self.feed_m_s = 0.0
+        self._hist_from = self.stream.written()
 
     def fill(self) -> int:
         """Top the ring up to :data:`LEAD_S` ahead. Returns the rows written."""
@@ -398,8 +447,10 @@ class MotionSide:
                     self._clear("underrun" if ring.underruns() else "stopped")
             if ring.braking():
                 return 0
+            rewound = self._rewrite and self._rewind()
             need = min(self.lead - ring.depth(), ring.free())
-            if need < self.lead // BLOCKS_PER_LEAD or (self.cur is None and not self.queue):
+            if (need < self.lead // BLOCKS_PER_LEAD and not rewound) or need <= 0 or (
+                    self.cur is None and not self.queue):
                 return 0
             modes = self.modes()
             gone = [self.names[i] for i in self.used if int(modes[i]) != STREAM]
@@ -408,8 +459,64 @@ class MotionSide:
                 return 0
             n = self._generate(need)
             if n:
+                w = ring.written()
                 ring.push(self._block[:n], ep)
+                k = (w + np.arange(n)) % ring.capacity
+                self._hs[k], self._hf[k], self._hfd[k] = self._bs[:n], self._bf[:n], self._bfd[:n]
+                self._hdone[k] = self.done_programs
+                for q in range(n):
+                    self._htraj[k[q]] = self._btraj[q]
             return n
+
+    def _rewind(self) -> bool:
+        """(lock held) Take back the ring's rows beyond the next :data:`GUARD_S` and put the
+        filler's state back to the last row kept (its trajectory, path time, feed scale; the
+        trajectories begun after it back in front of the queue), so that the next rows follow
+        the new hold, resume or override. False (nothing changed; tried again at the next wake)
+        when the ring holds no row beyond the guard or the loop came too close."""
+        ring = self.stream
+        w = ring.written()
+        if ring.consumed() + self.guard - 1 < self._hist_from:   # rows of before a clear: not ours
+            self._rewrite = False
+            return False
+        cut = ring.retract(self.guard)
+        if cut is None:
+            self._rewrite = ring.depth() > self.guard + 2     # retry only where rows could be rewritten
+            return False
+        self._rewrite = False
+        cap = ring.capacity
+        k0 = (cut - 1) % cap
+        t0 = self._htraj[k0]
+        later: list = []
+        for q in range(cut, w):
+            t = self._htraj[q % cap]
+            if t is not t0 and (not later or later[-1] is not t):
+                later.append(t)
+        self.queue.extendleft(reversed(later))
+        ended = t0 is None or self._hs[k0] >= t0.duration
+        self.cur = None if ended else t0
+        self.s = 0.0 if ended else float(self._hs[k0])
+        self.f, self.fd = float(self._hf[k0]), float(self._hfd[k0])
+        if ended:
+            self.f, self.fd = self.override, 0.0
+        self.done_programs = int(self._hdone[k0])
+        self.last[:] = ring.rows[k0, 1:].reshape(self.n, 3)
+        if self.trace is not None:
+            del self.trace[len(self.trace) - (w - cut):]
+        self.rewrites += 1
+        return True
+
+    def _target(self, cur, s: float) -> float:
+        """The feed scale's target at path time s of ``cur``: 0 in a hold; else the override,
+        above 1 capped where the trajectory, planned at the full limits, would pass them
+        (planner.override_cap; never below 1)."""
+        if self.holding:
+            return 0.0
+        t = self.override
+        if t > 1.0:
+            cap = cur.cap[min(int(s / cur.cap_dt), len(cur.cap) - 1)]
+            t = min(t, max(1.0, float(cap)))
+        return t
 
     def _generate(self, need: int) -> int:
         """(lock held) Up to ``need`` rows into the block; fewer when the queue runs out or a
@@ -425,17 +532,26 @@ class MotionSide:
                     return j
                 self.cur = self.queue.popleft()
                 self.s = 0.0
-                self.f, self.fd = self.override, 0.0     # from rest: the override at once
-            cur, m, ended, step = self.cur, 0, False, 0.0
+                self.f, self.fd = self._target(self.cur, 0.0), 0.0   # from rest: the override at once
+            cur, m, ended, step, steady = self.cur, 0, False, 0.0, False
             ss, ff, ffd = self._s, self._f, self._fd
-            target = 0.0 if self.holding else self.override
+            target = self._target(cur, self.s)
             if self.f == target and self.fd == 0.0 and target > 0.0:
-                # the steady case, vectorised: s advances by f·Ts a row, up to the end or a pause
+                # the steady case, vectorised: s advances by f·Ts a row, up to the end, a pause,
+                # or a change of the override's cap
                 m = need - j
                 ss[:m] = self.s + self.f * dt * self._steps[:m]
+                if self.override > 1.0:
+                    b0 = int(self.s / cur.cap_dt)
+                    tb = np.minimum(self.override, np.maximum(1.0, cur.cap[b0:]))
+                    moved = np.flatnonzero(tb != self.f)
+                    if moved.size:
+                        s_cap = (b0 + int(moved[0])) * cur.cap_dt
+                        m = max(1, min(m, int(np.searchsorted(ss[:m], s_cap, side="left"))))
                 limit = min([t for t, _ in cur.stops if t > self.s] + [cur.duration])
                 over = int(np.searchsorted(ss[:m], limit, side="left"))
-                if over < m:
+                hit = over < m
+                if hit:
                     m = over + 1             # the row that reaches the limit (a pause: at it)
                     if limit < cur.duration:
                         ss[m - 1] = limit
@@ -444,15 +560,21 @@ class MotionSide:
                 ff[:m], ffd[:m] = self.f, 0.0
                 step = self.f * dt               # uniform rows (the last one may stop short)
                 self.s = float(ss[m - 1])
-                if not ended and over < need - j:
+                if not ended and hit:
                     self.f, self.fd, self.holding = 0.0, 0.0, True
                     self.reason = "paused (M0/M1); resume goes on"
                     ff[m - 1] = 0.0
             while j + m < need and not ended:
                 if self.f == 0.0 and self.fd == 0.0 and self.holding:
                     break                    # at rest on the path: the loop holds the last row
-                target = 0.0 if self.holding else self.override
-                self.f, self.fd = _ramp(self.f, self.fd, target, self.f_rate, self.f_accel, dt)
+                target = self._target(cur, self.s)
+                if m and step == 0.0 and self.f == target and self.fd == 0.0 and target > 0.0:
+                    steady = True            # the ramp is over: the vectorised case again
+                    break
+                if target > 1.0 or self.f > 1.0:
+                    self.f, self.fd = _ramp(self.f, self.fd, target, self.f_rate_hi, self.f_accel_hi, dt)
+                else:
+                    self.f, self.fd = _ramp(self.f, self.fd, target, self.f_rate, self.f_accel, dt)
                 s_new = self.s + self.f * dt
                 for t_stop, _ in cur.stops:  # a programmed pause (M0, M1): at rest there
                     if self.s < t_stop <= s_new:
@@ -473,11 +595,16 @@ class MotionSide:
                     rows[:] = self._grid[:m].transpose(0, 2, 1)
                 else:
                     self._sample(cur, ss[:m], rows)
+                if ended:                    # past its end: at rest there exactly
+                    rows[-1, :, 0] = cur.end
+                    rows[-1, :, 1:] = 0.0
                 if self.trace is not None:
                     self.trace.extend(int(cur.line_at(t)) for t in ss[:m])
                 rows[:, :, 2] = rows[:, :, 2] * (ff[:m] ** 2)[:, None] + rows[:, :, 1] * ffd[:m, None]
                 rows[:, :, 1] *= ff[:m, None]
                 self.last[:] = rows[-1]
+                self._bs[j:j + m], self._bf[j:j + m], self._bfd[j:j + m] = ss[:m], ff[:m], ffd[:m]
+                self._btraj[j:j + m] = [cur] * m
                 self.feed_m_s = float(np.linalg.norm(rows[-1, :, 1]))
                 j += m
             if ended:
@@ -487,7 +614,7 @@ class MotionSide:
                     self.done_programs = self.queued_programs
                     self.feed_m_s = 0.0
                     return j
-            elif not m or j < need:          # came to rest in a hold
+            elif not steady and (not m or j < need):          # came to rest in a hold
                 if self.aborting:
                     self._clear("aborted")
                 return j
