@@ -10,6 +10,7 @@ import pytest
 from motorctl.app.daemon import motion_side as M
 from motorctl.loop.cycle import STREAM
 from motorctl.loop.stream import SP_READ, SP_WRITE, SetpointRing
+from motorctl.motion import GcodeSettings
 
 REPO = Path(__file__).resolve().parents[1]
 DT = 2e-4
@@ -24,10 +25,12 @@ EVERY = int(round(M.FILL_EVERY_S / DT))
 class Rig:
     """A MotionSide on a process-local ring and a consumer taking a row a cycle."""
 
-    def __init__(self):
+    def __init__(self, settings=None):
         self.ring = SetpointRing(int(0.5 / DT), 2, shared=False)
+        self.sent: list[tuple[str, float]] = []
         self.ms = M.MotionSide(self.ring, lambda: np.zeros(4), ["X.x_d", "X.xd_dot", "Y.x_d", "Y.xd_dot"],
-                               ["X", "Y"], LIMITS, lambda: np.array([STREAM, STREAM]), DT)
+                               ["X", "Y"], LIMITS, lambda: np.array([STREAM, STREAM]), DT,
+                               gcode_settings=settings, output=lambda n, v: self.sent.append((n, v)))
         self.cycle = 0
         self.rows: list[np.ndarray] = []
 
@@ -36,6 +39,7 @@ class Rig:
         for _ in range(cycles):
             if self.cycle % EVERY == 0:
                 self.ms.fill()
+            self.ms.issue_events()
             w, r = int(ring.ctl[SP_WRITE]), int(ring.ctl[SP_READ])
             if r < w:
                 self.rows.append(ring.rows[r % ring.capacity, 1:].reshape(2, 3).copy())
@@ -109,3 +113,29 @@ def test_hold_and_abort_decelerate_within_the_guard(command):
         rig.run(EVERY * 2)
         assert rig.ms.idle() and rig.ms.status()["stopped_because"] == "aborted"
         assert rig.rows[-1][0, 0] < 0.3
+
+
+CAM = REPO / "configs/cam_sample.ngc"
+
+
+def test_machine_words_switch_outputs_at_their_planned_rows():
+    rig = Rig(GcodeSettings(axes=["X", "Y"], words={"M3": "torch", "M5": "torch", "S": "ignore"}))
+    info = rig.ms.gcode(CAM.read_text(), "cam_sample.ngc")
+    assert any("S4500 ignored" in w for w in info["warnings"])
+    rig.run(2_000_000, until_idle=True)
+    log = rig.ms.output_log
+    n_on = CAM.read_text().count("M03")
+    assert [v for _, _, v, _ in log] == [1.0, 0.0] * n_on
+    assert rig.sent == [(name, v) for _, name, v, _ in log]
+    rows = rig.setpoints()
+    for row, _, value, x in log:          # each at its row: at rest on the pierce / end point
+        assert np.all(np.abs(rows[row, :, 1]) < 1e-12)
+        np.testing.assert_array_equal(rows[row, :, 0], x)
+    assert np.allclose(log[0][3], [0.035, 0.050], atol=1e-9)   # N70 G00 X35 Y50, then N80 M03
+
+
+def test_unmapped_machine_word_refused_before_anything_moves():
+    rig = Rig(GcodeSettings(axes=["X", "Y"], words={"M3": "torch"}))
+    with pytest.raises(M.MotionError, match=r"cam_sample.ngc:13:\d+: .*gcode.words.S"):
+        rig.ms.gcode(CAM.read_text(), "cam_sample.ngc")
+    assert rig.ms.idle() and rig.ring.written() == 0

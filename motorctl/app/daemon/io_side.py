@@ -126,7 +126,10 @@ class IOSide:
                                  (lambda i: (bool(ring.status[i, ST["home_switch"]]),
                                              float(ring.status[i, ST["index_latch"]])))
                                  if has_inputs else None,
-                                 self.internal_request if has_inputs else None)
+                                 self.internal_request if has_inputs else None,
+                                 gcode_settings=asm.loaded.cfg.gcode,
+                                 output=lambda name, value: self.internal.put(
+                                     ({"op": "set_output", "name": name, "value": value}, threading.Event(), {})))
         rt = asm.loaded.cfg.loop.realtime
         if rt.policy != "off":
             self.motion.fifo_priority = max(1, rt.priority - FILLER_PRIORITY_BELOW)

@@ -116,10 +116,13 @@ class MotionSide:
             period. homing: the axes' HomingConfig (None: none). inputs(i): (home switch,
             index latch [m] or NaN) of axis i. to_loop(msg): a command to the loop process,
             its answer (blocking; from another thread than the I/O process's own).
+        gcode_settings: the config's ``gcode:`` section (machine words, G28 point, optional stop).
+        output(name, value): sets a driver output (a machine word's event), without waiting.
     """
 
     def __init__(self, stream: SetpointRing, latest, layout, names, limits, modes, period_s: float,
-                 homing=None, inputs=None, to_loop=None):
+                 homing=None, inputs=None, to_loop=None, gcode_settings: G.GcodeSettings | None = None,
+                 output=None):
         self.stream, self.latest, self.names, self.limits = stream, latest, list(names), limits
         self.modes, self.dt = modes, period_s
         self._pva = [P.AxisLimits(lim.v_max, lim.a_max, lim.j_max) for lim in limits]
@@ -151,6 +154,14 @@ class MotionSide:
         self._rewrite = False            # a hold/resume/abort/override asks to rewrite the ring
         self.rewrites = 0
         self._wake = threading.Event()
+        self.gcode_settings = gcode_settings or G.GcodeSettings()
+        self.output = output
+        self.pending: collections.deque = collections.deque()   # (ring row, Event) not yet issued
+        self.outputs: dict[str, float] = {}
+        #: (ring row, output, value, setpoint positions (n,) [m]) of every output issued
+        self.output_log: list[tuple[int, str, float, np.ndarray]] = []
+        self._bev: list = []             # (row of the block, Event) of the block being generated
+        self._ev_i = 0                   # the next event of the trajectory being streamed
         self._bs, self._bf, self._bfd = np.zeros(self.lead), np.zeros(self.lead), np.zeros(self.lead)
         self._btraj: list = [None] * self.lead
         self.lock = threading.Lock()
@@ -248,7 +259,7 @@ class MotionSide:
         start = self.where()
         start3 = [float(start[self.names.index(a)]) if a in self.names else 0.0 for a in G.AXES]
         try:
-            prog = G.parse(text, filename, start=start3)
+            prog = G.parse(text, filename, settings=self.gcode_settings, start=start3)
             P.check_limits(prog, {a: (lim.soft_min, lim.soft_max) for a, lim in zip(self.names, self.limits)})
         except ValueError as exc:        # GcodeError, LimitError: one line with file:line:column
             raise MotionError(str(exc)) from None
@@ -259,7 +270,7 @@ class MotionSide:
         traj = P.plan(prog, self.names, self._pva, start=[float(x) for x in start])
         self.enqueue([traj], axes)
         return {"duration_s": float(traj.duration), "segments": len(prog.moves),
-                "end_m": [float(x) for x in traj.end]}
+                "end_m": [float(x) for x in traj.end], "warnings": list(prog.warnings)}
 
     def enqueue(self, trajs: list, axes: list[int]) -> None:
         """Queue planned trajectories moving ``axes`` (checked already)."""
@@ -322,7 +333,7 @@ class MotionSide:
                 "override": self.override, "feed_scale": self.f, "hold": self.holding,
                 "aborting": self.aborting, "ring_depth": self.stream.depth(),
                 "underruns": self.stream.underruns(), "braking": self.stream.braking(),
-                "stopped_because": self.reason, "homed": list(self.homed),
+                "stopped_because": self.reason, "homed": list(self.homed), "outputs": dict(self.outputs),
                 "homing": list(self.homing_state), "idle": self.idle()}
 
     # ---------------------------------------------------------------- homing
@@ -415,11 +426,15 @@ class MotionSide:
             except OSError:
                 pass                         # not permitted: SCHED_OTHER as the rest of the process
         while not self._stop.is_set():
-            self._wake.wait(FILL_EVERY_S)
+            wait = FILL_EVERY_S
+            if self.pending:                 # wake at the cycle of the next event's row
+                wait = min(wait, max(2e-4, (self.pending[0][0] - self.stream.consumed() + 1) * self.dt))
+            self._wake.wait(wait)
             self._wake.clear()
             if self._stop.is_set():
                 break
             try:
+                self.issue_events()
                 self.fill()
             except Exception as exc:  # noqa: BLE001 - the filler never dies: the loop brakes
                 with self.lock:
@@ -435,6 +450,7 @@ class MotionSide:
         self.reason = why
         self.feed_m_s = 0.0
         self._hist_from = self.stream.written()
+        self.pending.clear()
 
     def fill(self) -> int:
         """Top the ring up to :data:`LEAD_S` ahead. Returns the rows written."""
@@ -457,9 +473,11 @@ class MotionSide:
             if gone:                         # a fault or a stop: no more rows, the loop brakes
                 self._clear(f"axis {gone[0]} left command mode")
                 return 0
+            self._bev.clear()
             n = self._generate(need)
             if n:
                 w = ring.written()
+                self.pending.extend((w + q, ev) for q, ev in self._bev)
                 ring.push(self._block[:n], ep)
                 k = (w + np.arange(n)) % ring.capacity
                 self._hs[k], self._hf[k], self._hfd[k] = self._bs[:n], self._bf[:n], self._bfd[:n]
@@ -503,8 +521,33 @@ class MotionSide:
         self.last[:] = ring.rows[k0, 1:].reshape(self.n, 3)
         if self.trace is not None:
             del self.trace[len(self.trace) - (w - cut):]
+        while self.pending and self.pending[-1][0] >= cut:
+            self.pending.pop()
+        if self.cur is not None:
+            self._ev_i = sum(1 for t, _ in self.cur.events if t <= self.s)
         self.rewrites += 1
         return True
+
+    def issue_events(self) -> int:
+        """Set the outputs of the machine words whose ring row the loop has taken (the I/O side
+        at the row's cycle, late by this thread's wake-up and the command to the loop). Returns
+        how many were issued."""
+        done = 0
+        if not self.pending:
+            return 0
+        taken = self.stream.consumed()
+        with self.lock:
+            while self.pending and self.pending[0][0] < taken:
+                row, ev = self.pending.popleft()
+                if ev.output is None:        # mapped to 'ignore': warned about when queued
+                    continue
+                x = self.stream.rows[row % self.stream.capacity, 1::3].copy()
+                self.outputs[ev.output] = float(ev.value)
+                self.output_log.append((row, ev.output, float(ev.value), x))
+                if self.output is not None:
+                    self.output(ev.output, float(ev.value))
+                done += 1
+        return done
 
     def _target(self, cur, s: float) -> float:
         """The feed scale's target at path time s of ``cur``: 0 in a hold; else the override,
@@ -532,6 +575,7 @@ class MotionSide:
                     return j
                 self.cur = self.queue.popleft()
                 self.s = 0.0
+                self._ev_i = 0
                 self.f, self.fd = self._target(self.cur, 0.0), 0.0   # from rest: the override at once
             cur, m, ended, step, steady = self.cur, 0, False, 0.0, False
             ss, ff, ffd = self._s, self._f, self._fd
@@ -605,6 +649,12 @@ class MotionSide:
                 self.last[:] = rows[-1]
                 self._bs[j:j + m], self._bf[j:j + m], self._bfd[j:j + m] = ss[:m], ff[:m], ffd[:m]
                 self._btraj[j:j + m] = [cur] * m
+                evs = cur.events
+                while self._ev_i < len(evs) and (ended or evs[self._ev_i][0] - 1e-9 <= ss[m - 1]):
+                    # the row at its planned time (within 1 ns: the rows' times are sums of f·Ts)
+                    q = min(int(np.searchsorted(ss[:m], evs[self._ev_i][0] - 1e-9, side="left")), m - 1)
+                    self._bev.append((j + q, evs[self._ev_i][1]))
+                    self._ev_i += 1
                 self.feed_m_s = float(np.linalg.norm(rows[-1, :, 1]))
                 j += m
             if ended:
