@@ -139,3 +139,18 @@ def test_unmapped_machine_word_refused_before_anything_moves():
     with pytest.raises(M.MotionError, match=r"cam_sample.ngc:13:\d+: .*gcode.words.S"):
         rig.ms.gcode(CAM.read_text(), "cam_sample.ngc")
     assert rig.ms.idle() and rig.ring.written() == 0
+
+
+def test_progress_is_the_loops_row_not_the_fillers():
+    rig = Rig()
+    info = rig.ms.gcode((REPO / "configs/square_and_circle.ngc").read_text(), "square_and_circle.ngc")
+    rig.run(10_000)                                  # 2.0 s of rows taken; the filler is ~0.2 s ahead
+    st = rig.ms.status()
+    assert st["time_left_s"] == pytest.approx(info["duration_s"] - 10_000 * DT, abs=1e-6)
+    assert st["done"] == pytest.approx(10_000 * DT / info["duration_s"], abs=1e-9)
+    assert st["line"] == 7                           # G1 X110 Y120 (after the rapid and 100 mm at 0.1 m/s)
+    rig.ms.set_override(0.5)
+    rig.run(1000)
+    assert rig.ms.status()["time_left_s"] > 2 * (info["duration_s"] - 2.2)
+    rig.run(300_000, until_idle=True)
+    assert rig.ms.progress() == (0, 1.0, 0.0)

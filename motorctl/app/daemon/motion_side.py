@@ -325,11 +325,32 @@ class MotionSide:
             busy = self.cur is not None or bool(self.queue)
         return not busy and self.stream.depth() == 0 and not self.stream.braking()
 
-    def status(self) -> dict:
+    def progress(self) -> tuple[int, float, float]:
+        """(source line, share done 0..1, time left [s]) of the motion the loop runs now: the
+        row it took last (not the filler's, LEAD_S ahead), the planned durations of it and of the
+        queue, the time left at the current override (the planner's prediction; a hold stops it).
+        (0, 1.0, 0.0) when nothing runs."""
         with self.lock:
-            line = int(self.cur.line_at(self.s)) if self.cur is not None else 0
+            taken = self.stream.consumed() - 1
+            k = taken % self.stream.capacity
+            traj = self._htraj[k] if self._hist_from <= taken < self.stream.written() else None
+            busy = self.cur is not None or bool(self.queue)
+            if traj is None or not busy and self.stream.depth() == 0:
+                return 0, 1.0, 0.0
+            s = min(float(self._hs[k]), traj.duration)
+            later = [t for t in ([self.cur] if self.cur is not None and self.cur is not traj else [])
+                     + list(self.queue)]
+            total = traj.duration + sum(t.duration for t in later)
+            left = total - s
+        rate = self.override if self.override > 0 else 1.0
+        return int(traj.line_at(s)), (s / total if total > 0 else 1.0), left / rate
+
+    def status(self) -> dict:
+        line, done, left = self.progress()
+        with self.lock:
             depth = len(self.queue) + (self.cur is not None)
-        return {"queue_depth": depth, "line": line, "feed_m_s": self.feed_m_s,
+        return {"queue_depth": depth, "line": line, "done": done, "time_left_s": left,
+                "feed_m_s": self.feed_m_s,
                 "override": self.override, "feed_scale": self.f, "hold": self.holding,
                 "aborting": self.aborting, "ring_depth": self.stream.depth(),
                 "underruns": self.stream.underruns(), "braking": self.stream.braking(),
