@@ -154,3 +154,16 @@ def test_progress_is_the_loops_row_not_the_fillers():
     assert rig.ms.status()["time_left_s"] > 2 * (info["duration_s"] - 2.2)
     rig.run(300_000, until_idle=True)
     assert rig.ms.progress() == (0, 1.0, 0.0)
+
+
+def test_program_outside_the_stroke_with_the_active_work_offset_refused_before_motion():
+    rig = Rig()
+    rig.ms.gcode("G21 G90\nG10 L2 P1 X100 (G54 origin at X 100 mm)\nG0 X10 Y10\nM2\n", "set.ngc")
+    rig.run(100_000, until_idle=True)
+    np.testing.assert_allclose(rig.rows[-1][:, 0], [0.110, 0.010], atol=1e-12)
+    written = rig.ring.written()
+    # the G54 offset stays active: X350 is machine 450 mm, 30 mm beyond soft_max 420 mm
+    with pytest.raises(M.MotionError, match=r"cut.ngc:3: X reaches 450.0000 mm, 30.0000 mm beyond soft_max"):
+        rig.ms.gcode("G21 G90\nG0 X10 Y10\nG1 X350 F3000\nG1 X500\nM2\n", "cut.ngc")
+    rig.run(1000)
+    assert rig.ring.written() == written and rig.ms.idle()

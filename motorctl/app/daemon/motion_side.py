@@ -156,6 +156,9 @@ class MotionSide:
         self._wake = threading.Event()
         self.gcode_settings = gcode_settings or G.GcodeSettings()
         self.output = output
+        #: the work offsets (G54 ... G59.3 → X Y Z origin [m]) the last accepted program left, the
+        #: ones the next program starts with (LinuxCNC keeps them, set by G10 L2)
+        self.work_offsets: dict[str, np.ndarray] = {}
         self.pending: collections.deque = collections.deque()   # (ring row, Event) not yet issued
         self.outputs: dict[str, float] = {}
         #: (ring row, output, value, setpoint positions (n,) [m]) of every output issued
@@ -259,7 +262,8 @@ class MotionSide:
         start = self.where()
         start3 = [float(start[self.names.index(a)]) if a in self.names else 0.0 for a in G.AXES]
         try:
-            prog = G.parse(text, filename, settings=self.gcode_settings, start=start3)
+            prog = G.parse(text, filename, settings=self.gcode_settings, start=start3,
+                           offsets=self.work_offsets)
             P.check_limits(prog, {a: (lim.soft_min, lim.soft_max) for a, lim in zip(self.names, self.limits)})
         except ValueError as exc:        # GcodeError, LimitError: one line with file:line:column
             raise MotionError(str(exc)) from None
@@ -269,6 +273,7 @@ class MotionSide:
         self.check_axes(axes, "gcode")
         traj = P.plan(prog, self.names, self._pva, start=[float(x) for x in start])
         self.enqueue([traj], axes)
+        self.work_offsets = {k: v for k, v in prog.offsets.items() if k in G.SYSTEMS}
         return {"duration_s": float(traj.duration), "segments": len(prog.moves),
                 "end_m": [float(x) for x in traj.end], "warnings": list(prog.warnings)}
 
