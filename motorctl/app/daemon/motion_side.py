@@ -152,6 +152,8 @@ class MotionSide:
         self._hdone = np.zeros(cap, dtype=np.int64)
         self._hist_from = stream.written()
         self._rewrite = False            # a hold/resume/abort/override asks to rewrite the ring
+        self._guard_now = self.guard     # the guard of the next rewrite (doubled after a miss)
+        self._defer_clear: str | None = None
         self.rewrites = 0
         self._wake = threading.Event()
         self.gcode_settings = gcode_settings or G.GcodeSettings()
@@ -489,45 +491,74 @@ class MotionSide:
                     self._clear("underrun" if ring.underruns() else "stopped")
             if ring.braking():
                 return 0
-            rewound = self._rewrite and self._rewind()
+            if self._rewrite:
+                n = self._rewind(ep)
+                if n is not None:
+                    return n
             need = min(self.lead - ring.depth(), ring.free())
-            if (need < self.lead // BLOCKS_PER_LEAD and not rewound) or need <= 0 or (
-                    self.cur is None and not self.queue):
+            if need < self.lead // BLOCKS_PER_LEAD or (self.cur is None and not self.queue):
                 return 0
-            modes = self.modes()
-            gone = [self.names[i] for i in self.used if int(modes[i]) != STREAM]
-            if gone:                         # a fault or a stop: no more rows, the loop brakes
-                self._clear(f"axis {gone[0]} left command mode")
+            if self._gone():
                 return 0
             self._bev.clear()
             n = self._generate(need)
-            if n:
-                w = ring.written()
-                self.pending.extend((w + q, ev) for q, ev in self._bev)
-                ring.push(self._block[:n], ep)
-                k = (w + np.arange(n)) % ring.capacity
-                self._hs[k], self._hf[k], self._hfd[k] = self._bs[:n], self._bf[:n], self._bfd[:n]
-                self._hdone[k] = self.done_programs
-                for q in range(n):
-                    self._htraj[k[q]] = self._btraj[q]
+            self._push(n, ep)
             return n
 
-    def _rewind(self) -> bool:
-        """(lock held) Take back the ring's rows beyond the next :data:`GUARD_S` and put the
-        filler's state back to the last row kept (its trajectory, path time, feed scale; the
-        trajectories begun after it back in front of the queue), so that the next rows follow
-        the new hold, resume or override. False (nothing changed; tried again at the next wake)
-        when the ring holds no row beyond the guard or the loop came too close."""
+    def _gone(self) -> bool:
+        """(lock held) A moved axis left command mode (a fault or a stop): the program is dropped,
+        no more rows (the loop brakes). True then."""
+        modes = self.modes()
+        gone = [self.names[i] for i in self.used if int(modes[i]) != STREAM]
+        if gone:
+            self._clear(f"axis {gone[0]} left command mode")
+        return bool(gone)
+
+    def _push(self, n: int, ep: int) -> None:
+        """(lock held) The block's first n rows into the ring at its write index, with the
+        filler's state after each (for a rewrite) and the block's events tied to their rows."""
+        if not n:
+            return
         ring = self.stream
         w = ring.written()
-        if ring.consumed() + self.guard - 1 < self._hist_from:   # rows of before a clear: not ours
+        self.pending.extend((w + q, ev) for q, ev in self._bev)
+        ring.push(self._block[:n], ep)
+        k = (w + np.arange(n)) % ring.capacity
+        self._hs[k], self._hf[k], self._hfd[k] = self._bs[:n], self._bf[:n], self._bfd[:n]
+        self._hdone[k] = self.done_programs
+        for q in range(n):
+            self._htraj[k[q]] = self._btraj[q]
+
+    def _state(self) -> tuple:
+        return (self.cur, self.s, self.f, self.fd, list(self.queue), self.done_programs, self._ev_i,
+                self.last.copy(), self.reason, self.holding, self.feed_m_s,
+                None if self.trace is None else list(self.trace))
+
+    def _restore(self, st: tuple) -> None:
+        (self.cur, self.s, self.f, self.fd, q, self.done_programs, self._ev_i, last, self.reason,
+         self.holding, self.feed_m_s, trace) = st
+        self.queue.clear()
+        self.queue.extend(q)
+        self.last[:] = last
+        if trace is not None:
+            self.trace[:] = trace
+
+    def _rewind(self, ep: int) -> int | None:
+        """(lock held) Rewrite the ring's rows beyond the next ``guard`` cycles for a new hold,
+        resume, abort or override: the filler's state is put back to the last row kept (its
+        trajectory, path time, feed scale and rate; the trajectories begun after it back in
+        front of the queue), the rows from there generated, then the ring's write index lowered
+        to the cut (SetpointRing.retract) and the new rows pushed at once: the loop never waits
+        for the generation. When the loop came within two rows of the cut meanwhile, nothing is
+        changed and the next wake tries again with twice the guard. Returns the rows written,
+        or None (nothing to rewrite: the caller tops up as usual)."""
+        ring = self.stream
+        w, r0 = ring.written(), ring.consumed()
+        cut = r0 + self._guard_now
+        if cut >= w or cut - 1 < self._hist_from or self._gone():   # no rows of ours beyond the guard
             self._rewrite = False
-            return False
-        cut = ring.retract(self.guard)
-        if cut is None:
-            self._rewrite = ring.depth() > self.guard + 2     # retry only where rows could be rewritten
-            return False
-        self._rewrite = False
+            return None
+        before = self._state()
         cap = ring.capacity
         k0 = (cut - 1) % cap
         t0 = self._htraj[k0]
@@ -540,19 +571,31 @@ class MotionSide:
         ended = t0 is None or self._hs[k0] >= t0.duration
         self.cur = None if ended else t0
         self.s = 0.0 if ended else float(self._hs[k0])
-        self.f, self.fd = float(self._hf[k0]), float(self._hfd[k0])
-        if ended:
-            self.f, self.fd = self.override, 0.0
+        self.f, self.fd = (self.override, 0.0) if ended else (float(self._hf[k0]), float(self._hfd[k0]))
         self.done_programs = int(self._hdone[k0])
         self.last[:] = ring.rows[k0, 1:].reshape(self.n, 3)
         if self.trace is not None:
             del self.trace[len(self.trace) - (w - cut):]
-        while self.pending and self.pending[-1][0] >= cut:
-            self.pending.pop()
         if self.cur is not None:
             self._ev_i = sum(1 for t, _ in self.cur.events if t <= self.s)
+        self._bev.clear()
+        self._defer_clear = ""
+        n = self._generate(min(self.lead, cap) - (cut - r0))
+        why, self._defer_clear = self._defer_clear, None
+        if ring.retract(cut) is None:        # the loop came too close: as before, retry wider
+            self._restore(before)
+            self._guard_now = min(2 * self._guard_now, self.lead // 2)
+            self._wake.set()                 # at once, not at the next period
+            return 0
+        self._rewrite = False
+        self._guard_now = self.guard
+        while self.pending and self.pending[-1][0] >= cut:
+            self.pending.pop()
+        self._push(n, ep)
+        if why:
+            self._clear(why)
         self.rewrites += 1
-        return True
+        return n
 
     def issue_events(self) -> int:
         """Set the outputs of the machine words whose ring row the loop has taken (the I/O side
@@ -587,6 +630,13 @@ class MotionSide:
             t = min(t, max(1.0, float(cap)))
         return t
 
+    def _clear_or_defer(self, why: str) -> None:
+        """(lock held) _clear, or, while a rewrite generates, after its rows are pushed."""
+        if self._defer_clear is None:
+            self._clear(why)
+        else:
+            self._defer_clear = why
+
     def _generate(self, need: int) -> int:
         """(lock held) Up to ``need`` rows into the block; fewer when the queue runs out or a
         hold has come to rest. The path times of a run of rows within one trajectory first
@@ -597,7 +647,7 @@ class MotionSide:
             if self.cur is None:
                 if not self.queue or self.holding:
                     if self.aborting:
-                        self._clear("aborted")
+                        self._clear_or_defer("aborted")
                     return j
                 self.cur = self.queue.popleft()
                 self.s = 0.0
@@ -692,7 +742,7 @@ class MotionSide:
                     return j
             elif not steady and (not m or j < need):          # came to rest in a hold
                 if self.aborting:
-                    self._clear("aborted")
+                    self._clear_or_defer("aborted")
                 return j
         return j
 
