@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 from conftest import RIGID_PLANT
 
+from motorctl.loop.records import MODE_IDLE
 from motorctl.recorder.runlog import read_log
 from harness import (
     Emulator,
@@ -98,7 +99,10 @@ def test_emcy_latches_a_fault_naming_its_code_and_the_enable_follows_the_state_m
     bits, u, en = log.col("X.fault_bits").astype(int), log.col("X.u"), log.col("X.enabled")
     k = int(np.argmax(bits != 0))
     assert 0.8 * rate <= k <= 0.8 * rate + 10, k
-    assert (u[k:] == 0.0).all() and (en[k:] == 0.0).all() and en[:k].min() == 1.0
+    # the run starts with idle cycles (0 V, amplifier off) that read where the axes stand
+    k0 = int(np.argmax(log.col("X.mode") != MODE_IDLE))
+    assert k0 >= 1 and (u[:k0] == 0.0).all() and (en[:k0] == 0.0).all(), k0
+    assert (u[k:] == 0.0).all() and (en[k:] == 0.0).all() and en[k0:k].min() == 1.0
     assert not log.col("Y.fault_bits").any()
     print(f"canopen statusword sequence (X): {' -> '.join(trace)}")
 

@@ -24,6 +24,7 @@ import pytest
 import yaml
 from conftest import RIGID_PLANT
 
+from motorctl.loop.records import MODE_IDLE
 from motorctl.loop.safety import FAULT_IO_ERROR
 from motorctl.recorder.runlog import read_log
 from harness import (
@@ -113,9 +114,13 @@ def test_transient_faults_keep_running_and_a_lasting_loss_faults_to_0V_in_the_sa
         enabled = log.col(f"{a}.enabled")
         u = log.col(f"{a}.u")
         k = int(np.argmax(bits != 0))
+        # the run starts with idle cycles (0 V, amplifier off) that read where the axis stands
+        mode = log.col(f"{a}.mode")
+        k0 = int(np.argmax(mode != MODE_IDLE))
+        assert k0 >= 1 and (enabled[:k0] == 0.0).all() and (u[:k0] == 0.0).all(), (a, mode[:k0 + 1])
         # ... without stopping the axis: no fault, never disabled, until the lasting loss
         why = f"{a}: first fault {bits[k]} at cycle {k}, lasting loss from command {lasting_start}; {c}"
-        assert bits[k] == FAULT_IO_ERROR and not bits[:k].any() and enabled[:k].min() == 1.0, why
+        assert bits[k] == FAULT_IO_ERROR and not bits[:k].any() and enabled[k0:k].min() == 1.0, why
         # the loss starts with command `lasting_start` (answered in the next cycle); the bucket
         # (+10 per failed exchange, limit BUCKET_LIMIT) is full after BUCKET_LIMIT / 10 cycles
         assert lasting_start + 1 <= k <= lasting_start + 1 + BUCKET_LIMIT // 10 + 5, why

@@ -130,8 +130,11 @@ def test_the_paper_set_up_on_terminals_for_both_axes(tmp_path):
 
 @needs_netns
 def test_a_short_working_counter_latches_a_fault_that_names_it(tmp_path):
-    # from the 500th process-data frame on, Y's slaves do not count: 9 of 10
-    r, err = _run(tmp_path, 0.6, faults=["corrupt:Y:500:100000"])
+    # from the 500th process-data frame on, Y's slaves do not count: 9 of 10. The slaves still
+    # take every frame's outputs, so only a host stall (either process held off for longer than
+    # the SM watchdog, on the wall clock) could take them out of OP (SAFE-OP + 0x001B, which the
+    # driver would then report, truthfully, instead): a 5 s SM watchdog, far beyond any stall
+    r, err = _run(tmp_path, 0.6, faults=["corrupt:Y:500:100000"], watchdog_ms=5000.0)
     table = parse_run_table(r.stdout)
     assert table["X"]["fault"] and table["Y"]["fault"], f"{r.stdout}\n{r.stderr}\n{err}"
     assert "driver error bucket full" in table["Y"]["fault"], r.stdout

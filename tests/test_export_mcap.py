@@ -12,6 +12,7 @@ import yaml
 from motorctl.app.job import run_job
 from motorctl.cli import main
 from motorctl.config import config_from_dict
+from motorctl.loop.records import MODE_PROGRAM
 from motorctl.recorder.runlog import read_log
 
 pytest.importorskip("mcap", reason="the mcap extra is not installed")
@@ -33,15 +34,17 @@ def test_export_mcap_reads_back_every_row_and_the_faults(faulted_log, tmp_path, 
     from mcap.reader import make_reader
     out = tmp_path / "run.mcap"
     assert main(["export", str(faulted_log), "--mcap", str(out)]) == 0
-    assert capsys.readouterr().out.startswith(f"{out}: 2500 rows x ")
     rl = read_log(str(faulted_log))
+    n = rl.data.shape[0]
+    # every row of the log: two idle cycles, a 0 s approach, then the 0.5 s program
+    assert (rl.col("X.mode") == MODE_PROGRAM).sum() == 2500 and n == 2503
+    assert capsys.readouterr().out.startswith(f"{out}: {n} rows x ")
     by_topic: dict[str, list] = {}
     schemas = {}
     with open(out, "rb") as fh:
         for schema, channel, message in make_reader(fh).iter_messages():
             by_topic.setdefault(channel.topic, []).append((message.log_time, json.loads(message.data)))
             schemas[channel.topic] = (schema.encoding, json.loads(schema.data), channel.message_encoding)
-    n = rl.data.shape[0]
     assert len(by_topic["/motorctl/run"]) == 1 and by_topic["/motorctl/run"][0][1]["axes"] == ["X", "Y"]
     assert len(by_topic["/motorctl/cycle"]) == n
     for a in ("X", "Y"):

@@ -166,33 +166,43 @@ def test_export_csv_and_mat(tmp_path):
     assert r.returncode == 2 and r.stderr.count("\n") == 1
 
 
-def test_sim_watchdog_drops_to_zero_volts_when_commands_stop(gantry_yaml):
-    from motorctl.config import config_from_dict
+def test_sim_watchdog_drops_to_zero_volts_when_commands_stop(gantry_yaml, monkeypatch):
+    """The simulated drive's command watchdog, on a monotonic clock the test moves (the drive
+    reads ``time.monotonic_ns``): the verdict is the same whatever the host's stalls."""
+    from types import SimpleNamespace
+
     import yaml
+
+    import motorctl_drivers.sim as sim
+    from motorctl.config import config_from_dict
+    now = [10**12]
+    monkeypatch.setattr(sim, "time", SimpleNamespace(monotonic_ns=lambda: now[0]))
     d = yaml.safe_load(open(gantry_yaml))
-    # far above a loaded host's stall between two calls below (20 ms bit there now and then)
     watchdog_s = 0.25
+    period_ns = round(1e9 / d["loop"]["rate_hz"])
     d["driver"]["watchdog_s"] = watchdog_s
     drv = config_from_dict(d).make_driver()
     drv.read()
     drv.write(np.array([5.0, 5.0]), np.array([True, True]))
     assert drv.amp_enabled.all() and drv.applied_u[0] == 5.0
     v_before = drv.plants[0].xd
-    drv.read()                                   # in time: nothing happens
+    now[0] += round(watchdog_s * 1e9) // 2       # well inside the watchdog time
+    drv.read()
     assert not drv.amp_fault.any() and drv.watchdog_bites == 0
     for _ in range(50):
+        now[0] += period_ns
         drv.write(np.array([5.0, 5.0]), np.array([True, True]))
     v_at_last_write = drv.plants[0].xd
     assert v_at_last_write > v_before
     t_at_last_write = drv.plants[0].t
     gap_s = watchdog_s + 0.05
-    time.sleep(gap_s)                            # the host stops commanding (sleep never ends early)
+    now[0] += round(gap_s * 1e9)                 # the host stops commanding
     drv.read()
     assert drv.watchdog_bites == 1
     assert not drv.amp_enabled.any() and np.all(drv.applied_u == 0.0)
     assert drv.amp_fault.all(), "the drive reports the bite (the supervisor latches it)"
     # the plant coasted through the gap at 0 V: time went on, friction slowed it down
-    assert drv.plants[0].t - t_at_last_write > 0.9 * gap_s
+    assert drv.plants[0].t - t_at_last_write == pytest.approx(gap_s, abs=2 * period_ns * 1e-9)
     assert drv.plants[0].xd < 0.5 * v_at_last_write
 
 

@@ -6,7 +6,8 @@ Per axis present in both logs: e_M, e_F, L2[e] [µm] and u_peak [V] (docs/contro
 :func:`motorctl.metrics.tracking_indexes`) of each log and the ratio after/before, with L2[e]'s
 parts in motion and at standstill and u's noise at rest (:data:`SPLIT`) where both logs record
 the desired velocity and acceleration. The two logs
-are aligned by program time (the record's ``t`` = k·Ts): both are evaluated over the same whole
+are aligned by program time (the program's rows, ``mode`` = program, their ``t`` = k·Ts counted
+from the program's start): both are evaluated over the same whole
 program periods, from the end of the settling (the first ``settle_periods`` periods excluded the
 same way for both, :func:`motorctl.metrics.settled_mask`) to the end of the last period both
 logs complete; e_F is the last of those periods. Only cycles with the amplifier enabled count.
@@ -19,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from motorctl.loop.records import MODE_PROGRAM
 from motorctl.metrics import rest_mask, tracking_indexes, u_rest_rms
 
 INDEXES = ("e_M_um", "e_F_um", "L2_um", "u_peak_V")
@@ -37,11 +39,21 @@ def _period(header: dict, axis: str) -> float | None:
 
 
 def _axis_data(log, axis: str) -> tuple:
-    """(t, e, u, ẋ_d, ẍ_d) of the enabled cycles of ``axis`` (each (N,); ẋ_d and ẍ_d None
-    when the log lacks them)."""
+    """(t, e, u, ẋ_d, ẍ_d) of the enabled program cycles of ``axis`` in program time (each
+    (N,); ẋ_d and ẍ_d None when the log lacks them). A log whose rows carry the sequencer's
+    ``mode`` (a run starts with idle cycles and an approach) keeps the rows of mode program,
+    t counted from the program's start (the header's ``program_start_s``, else the axis's
+    first program row); an older log without it: every enabled row, t as recorded."""
     a = log.axis(axis)
     t = log.col("t")
     on = a["enabled"] > 0.5
+    if "mode" in a:
+        prog = a["mode"] == MODE_PROGRAM
+        on &= prog
+        t0 = log.header.get("program_start_s") if isinstance(log.header, dict) else None
+        if t0 is None and prog.any():
+            t0 = float(t[np.argmax(prog)])
+        t = t - float(t0 or 0.0)
     if "xd_dot" not in a or "xd_ddot" not in a:
         return t[on], a["e"][on], a["u"][on], None, None
     return t[on], a["e"][on], a["u"][on], a["xd_dot"][on], a["xd_ddot"][on]
