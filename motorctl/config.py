@@ -43,6 +43,7 @@ from motorctl.loop.rt import RealtimeConfig
 from motorctl.loop.safety import LimitsConfig
 from motorctl.loop.timebase import Timebase
 from motorctl.loop.trajectory import TrajectoryConfig
+from motorctl.motion.gcode import GcodeSettings
 from motorctl.schema import StrictModel, quantity
 
 
@@ -246,6 +247,8 @@ class GantryConfig(StrictModel):
     daemon: DaemonConfig = DaemonConfig()
     driver: DriverSection = DriverSection()
     axes: Annotated[dict[AxisName, AxisConfig], Field(min_length=1)]
+    #: the G-code reader's machine words, G28 reference point, optional stop (GcodeSettings)
+    gcode: GcodeSettings = Field(default_factory=GcodeSettings)
 
 
 class LoadedConfig:

@@ -57,6 +57,7 @@ def gantry(tmp_path_factory):
     cfg = make_config(tmp)
     d = yaml.safe_load(cfg.read_text())
     d["axes"]["X"]["driver"].update(home_switch_m=-0.004, index_pulse_m=-0.002)
+    d["gcode"] = {"words": {"M3": "torch", "M5": "torch", "S": "ignore"}, "axes": ["X", "Y"]}
     d["axes"]["X"]["homing"] = {"direction": -1, "search_speed_m_per_s": 0.02, "latch_speed_m_per_s": 0.002,
                                 "back_off_m": 0.01, "position_m": 0.0, "required": True}
     cfg.write_text(yaml.safe_dump(d))
@@ -251,6 +252,21 @@ def test_a_bad_gcode_program_is_refused_whole(gantry, tmp_path):
     time.sleep(0.2)
     assert status(sock)["motion"]["queue_depth"] == 0
     assert np.all(np.abs(_y(sock) - before) < 10e-6)
+
+
+def test_mapped_machine_words_run_and_progress_is_shown(gantry, tmp_path):
+    """The config's gcode: section reaches the daemon's reader: M3/M5 switch output torch, S is
+    ignored with a warning; --progress ends at 100 % with no time left."""
+    sock = gantry.sock
+    prog = tmp_path / "cut.ngc"
+    prog.write_text("G21 G90 G64 P0.01\nG0 X20 Y20\nM3 S1000\nG1 X30 F3000\nM5\nM2\n")
+    r = ctl(sock, "gcode", str(prog), "--progress")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "S1000 ignored" in r.stderr and "100.0 %" in r.stderr and "0.00 s left" in r.stderr, r.stderr
+    mo = status(sock)["motion"]
+    assert mo["outputs"] == {"torch": 0.0} and mo["done"] == 1.0
+    _settled(sock, np.array([0.030, 0.020]))
+    _no_fault(sock)
 
 
 def test_the_circular_test_reports_the_iso_figures():

@@ -137,17 +137,29 @@ def cmd_inject(args) -> int:
     return 0
 
 
-def _motion_wait(args, timeout_s: float) -> int:
-    """Until the daemon's motion is idle; the end position and why a program stopped early."""
+def progress_line(mo: dict) -> str:
+    """The line being run, the share done and the time left (the planner's figures)."""
+    return (f"line {mo['line']}  {mo['done'] * 100:5.1f} %  {mo['time_left_s']:7.2f} s left"
+            + ("  (hold)" if mo["hold"] else ""))
+
+
+def _motion_wait(args, timeout_s: float, progress: bool = False) -> int:
+    """Until the daemon's motion is idle; the end position and why a program stopped early.
+    progress: a progress line on stderr, rewritten in place (``--progress``)."""
     t0 = time.monotonic()
     while True:
         st = _checked(args, {"cmd": "status"})["status"]
         mo = st["motion"]
         if mo["idle"]:
             break
+        if progress:
+            sys.stderr.write("\r" + progress_line(mo))
+            sys.stderr.flush()
         if time.monotonic() - t0 > timeout_s:
             raise DaemonUnreachable(f"motion did not finish within {timeout_s:g} s")
-        time.sleep(0.02)
+        time.sleep(0.1 if progress else 0.02)
+    if progress:
+        sys.stderr.write("\r" + progress_line(mo) + "\n")
     where = ", ".join(f"{a}={s['y_m']:.6f}" for a, s in st["axes"].items() if s["phase"] == "command")
     faults = [f"{a}: {s['fault']}" for a, s in st["axes"].items() if s["fault"]]
     why = mo["stopped_because"]
@@ -190,7 +202,11 @@ def cmd_gcode(args) -> int:
         name = args.file
     ans = _checked(args, {"cmd": "gcode", "text": text, "filename": name}, timeout_s=30.0)
     sys.stdout.write(f"{name}: {ans['segments']} segments queued, {ans['duration_s']:.3f} s at 100 %\n")
-    return _motion_wait(args, ans["duration_s"] * 10 + 30) if args.wait else 0
+    for w in ans.get("warnings", []):
+        sys.stderr.write(f"warning: {w}\n")
+    if args.wait or args.progress:
+        return _motion_wait(args, ans["duration_s"] * 10 + 30, progress=args.progress)
+    return 0
 
 
 def cmd_motion(args) -> int:
@@ -256,7 +272,8 @@ def cmd_status(args) -> int:
               f"{_us(lp['lateness_p99_us'])} / max {_us(lp['lateness_max_us'])} us; overruns {lp['overruns']}\n")
     mo = st.get("motion")
     if mo:
-        out.write(f"motion: queue {mo['queue_depth']}, line {mo['line']}, feed {mo['feed_m_s'] * 1e3:.1f} mm/s, "
+        out.write(f"motion: queue {mo['queue_depth']}, line {mo['line']} ({mo['done'] * 100:.1f} % done, "
+                  f"{mo['time_left_s']:.2f} s left), feed {mo['feed_m_s'] * 1e3:.1f} mm/s, "
                   f"override {mo['override']:g}{' (hold)' if mo['hold'] else ''}; setpoints ahead "
                   f"{mo['ring_depth']}, underruns {mo['underruns']}; homed "
                   f"{', '.join(a for a, h in zip(st['axes'], mo['homed']) if h) or 'none'}"
@@ -356,6 +373,8 @@ def register(parser: argparse.ArgumentParser, sub) -> None:
     p = client("gcode", "run a G-code program (FILE, or - for stdin) on the axes in command mode", cmd_gcode)
     p.add_argument("file", metavar="FILE", help="a G-code program (LinuxCNC's subset, docs/motion.md), or - for standard input")
     p.add_argument("--wait", action="store_true", help="return when the program has finished")
+    p.add_argument("--progress", action="store_true",
+                   help="show the line being run, the share done and the time left until it has finished")
 
     client("hold", "feed hold: decelerate on the path, then hold", cmd_motion)
     client("resume", "resume after a feed hold", cmd_motion)

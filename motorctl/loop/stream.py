@@ -86,6 +86,31 @@ class SetpointRing:
         store_release(self.ctl, SP_WRITE, w + n)
         return n
 
+    def written(self) -> int:
+        """Rows written since the ring was made (the index of the next row)."""
+        return int(self.ctl[SP_WRITE])
+
+    def consumed(self) -> int:
+        """Rows the loop has taken (or dropped) since the ring was made."""
+        return int(load_acquire(self.ctl, SP_READ))
+
+    def retract(self, cut: int) -> int | None:
+        """Producer: take back the rows from index ``cut`` on, so that they can be written again
+        (a feed hold acts on the setpoints the loop has not taken yet). The write index is
+        lowered first (a release store), then the read index checked: the loop takes one row a
+        cycle and only below the write index it loaded, so a row at least two past the read
+        index seen after the store is never being read. Returns ``cut``, or None (nothing taken
+        back, the write index as it was) when ``cut`` is not below the write index or the loop
+        is within two rows of it."""
+        w = int(self.ctl[SP_WRITE])
+        if cut >= w or self.consumed() + 2 > cut:
+            return None
+        store_release(self.ctl, SP_WRITE, cut)
+        if self.consumed() + 2 > cut:                # the loop raced us: leave the rows as they were
+            store_release(self.ctl, SP_WRITE, w)
+            return None
+        return cut
+
     def underruns(self) -> int:
         return int(self.ctl[SP_UNDERRUNS])
 

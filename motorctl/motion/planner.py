@@ -139,6 +139,45 @@ def headroom(limits: Sequence[AxisLimits], speedup: float) -> list[AxisLimits]:
     return [AxisLimits(lim.v_max / r, lim.a_max / r**2, lim.j_max / r**3) for lim in limits]
 
 
+def override_cap(traj: Trajectory, limits: Sequence[AxisLimits], *, share: float = 0.0,
+                 period: float = PERIOD_S, bin_s: float = 0.01, ahead_s: float = 0.0) -> np.ndarray:
+    """The highest feed override (time scaling by r: v × r, a × r², j × r³) each stretch of a
+    trajectory planned at the full ``limits`` can take and keep them: LinuxCNC's rule (the planner
+    plans at the machine's limits, the override is capped where they would be passed).
+
+    The trajectory is sampled on ``period``; per sample r = min over axes of v_max/|v|,
+    √((1 − share)·a_max/|a|), ∛((1 − share)·j_max/|j|) (``share``: the part of a_max and j_max
+    left to the override's own ramp, the terms p'·ḟ and 3p''·f·ḟ + p'·f̈ of the time scaling);
+    the minimum over each bin of ``bin_s`` of path time, then over the bins from one before to
+    ``ahead_s`` after (so that a ramp of the override started ``ahead_s`` early has come down
+    in time). Returns shape (ceil(duration / bin_s) + 1,), values ≥ 0 (inf where nothing moves).
+    Raises ValueError on share outside [0, 1)."""
+    if not 0.0 <= share < 1.0:
+        raise ValueError(f"share {share}: must be within [0, 1)")
+    n = max(int(math.ceil(traj.duration / period)) + 2, 2)
+    out = np.empty((n, 3, len(traj.axes)))
+    traj.sample_into(0.0, period, out)
+    v = np.abs(out[:, 1])
+    a = np.abs(out[:, 2])
+    j = np.zeros_like(a)
+    j[1:] = np.abs(np.diff(out[:, 2], axis=0)) / period
+    j[:-1] = np.maximum(j[:-1], j[1:])              # a jerk step belongs to both of its samples
+    vm = np.array([lim.v_max for lim in limits])
+    am = np.array([lim.a_max for lim in limits]) * (1.0 - share)
+    jm = np.array([lim.j_max for lim in limits]) * (1.0 - share)
+    with np.errstate(divide="ignore"):
+        r = np.minimum(np.minimum(vm / v, np.sqrt(am / a)), np.cbrt(jm / j)).min(axis=1)
+    per_bin = max(1, int(round(bin_s / period)))
+    nb = int(math.ceil(n / per_bin))
+    pad = np.full(nb * per_bin, np.inf)
+    pad[:n] = r
+    bins = pad.reshape(nb, per_bin).min(axis=1)
+    k_ahead = int(math.ceil(ahead_s / (per_bin * period)))
+    ext = np.concatenate([bins[:1], bins, np.full(k_ahead, bins[-1])])
+    win = np.lib.stride_tricks.sliding_window_view(ext, k_ahead + 2)
+    return win.min(axis=1)[:nb]
+
+
 def point_to_point(start: Sequence[float], goal: Sequence[float], limits: Sequence[AxisLimits], *,
                    feed: float | None = None, axes: Sequence[str] | None = None,
                    velocity: Sequence[float] | None = None,

@@ -120,16 +120,30 @@ class IOSide:
             lims.append(AxisLimits(tc.v_max, tc.a_max, tc.j_max, lc.soft_min_m, lc.soft_max_m))
         has_inputs = getattr(asm.driver, "has_homing_inputs", False)
         self.internal: queue.Queue = queue.Queue()     # the homing thread's commands to the loop
+        # a machine word's output wakes this process's select at once (not at IDLE_WAKE_S)
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
         self.motion = MotionSide(asm.loop.stream, ring.latest, self.layout, self.names, lims,
                                  lambda: ring.status[:, ST["mode"]], asm.loaded.period_s,
                                  [asm.loaded.axes[a].homing for a in self.names],
                                  (lambda i: (bool(ring.status[i, ST["home_switch"]]),
                                              float(ring.status[i, ST["index_latch"]])))
                                  if has_inputs else None,
-                                 self.internal_request if has_inputs else None)
+                                 self.internal_request if has_inputs else None,
+                                 gcode_settings=asm.loaded.cfg.gcode,
+                                 output=self._output)
         rt = asm.loaded.cfg.loop.realtime
         if rt.policy != "off":
             self.motion.fifo_priority = max(1, rt.priority - FILLER_PRIORITY_BELOW)
+
+    def _output(self, name: str, value: float) -> None:
+        """(the filler thread) A machine word's output to the loop's driver, without waiting."""
+        self.internal.put(({"op": "set_output", "name": name, "value": value}, threading.Event(), {}))
+        try:
+            os.write(self._wake_w, b"!")
+        except BlockingIOError:
+            pass                             # a wake-up is pending already
 
     # ------------------------------------------------------------------ requests
     def to_loop(self, conn, msg: dict, post=None) -> None:
@@ -420,6 +434,7 @@ class IOSide:
         self.lsock.setblocking(False)
         self.sel.register(self.lsock, selectors.EVENT_READ, "listen")
         self.sel.register(self.replies.rfd, selectors.EVENT_READ, "loop")
+        self.sel.register(self._wake_r, selectors.EVENT_READ, "wake")
         loop_gone = False
         ctl = self.plan.ring.ctl
         self.start_scope()
@@ -438,6 +453,11 @@ class IOSide:
                         break
                     for m in msgs:
                         self.on_reply(m)
+                elif key.data == "wake":
+                    try:
+                        os.read(self._wake_r, 4096)
+                    except BlockingIOError:
+                        pass
                 else:
                     self.on_client(key.fileobj)
             while not self.internal.empty():

@@ -58,6 +58,15 @@ BLOCKS_PER_LEAD = 4
 MAX_OVERRIDE = 1.5
 #: the feed scale's largest rate [1/s] and rate of change [1/s²] for an axis at a_max/v_max = 1 /s
 F_RATE_PER_S, F_ACCEL_PER_S2 = 0.5, 2.0
+#: above an override of 1: the part of each axis's a_max and j_max kept for the override's own
+#: ramp (the terms p'·ḟ, 3p''·f·ḟ + p'·f̈ of the time scaling); the feed scale's rate is then
+#: RAMP_SHARE/2 · min a_max/v_max and its rate of change RAMP_SHARE/2 · min j_max/v_max
+RAMP_SHARE = 0.25
+#: the override cap's bins of path time [s] (planner.override_cap)
+CAP_BIN_S = 0.01
+#: rows the loop may still take after a hold, resume, abort or override change: the rows beyond
+#: them are written again at once (the ring keeps LEAD_S ahead; this is the reaction time) [s]
+GUARD_S = 0.004
 
 
 class MotionError(ValueError):
@@ -107,10 +116,13 @@ class MotionSide:
             period. homing: the axes' HomingConfig (None: none). inputs(i): (home switch,
             index latch [m] or NaN) of axis i. to_loop(msg): a command to the loop process,
             its answer (blocking; from another thread than the I/O process's own).
+        gcode_settings: the config's ``gcode:`` section (machine words, G28 point, optional stop).
+        output(name, value): sets a driver output (a machine word's event), without waiting.
     """
 
     def __init__(self, stream: SetpointRing, latest, layout, names, limits, modes, period_s: float,
-                 homing=None, inputs=None, to_loop=None):
+                 homing=None, inputs=None, to_loop=None, gcode_settings: G.GcodeSettings | None = None,
+                 output=None):
         self.stream, self.latest, self.names, self.limits = stream, latest, list(names), limits
         self.modes, self.dt = modes, period_s
         self._pva = [P.AxisLimits(lim.v_max, lim.a_max, lim.j_max) for lim in limits]
@@ -126,6 +138,37 @@ class MotionSide:
         self.lead = max(1, int(round(LEAD_S / period_s)))
         ratio = min(lim.a_max / lim.v_max for lim in limits)
         self.f_rate, self.f_accel = F_RATE_PER_S * ratio, F_ACCEL_PER_S2 * ratio * ratio
+        self.f_rate_hi = 0.5 * RAMP_SHARE * ratio
+        self.f_accel_hi = min(0.5 * RAMP_SHARE * min(lim.j_max / lim.v_max for lim in limits), self.f_accel)
+        # path time an override ramp from MAX_OVERRIDE down to 1 covers (its look-ahead), with margin
+        self.cap_ahead_s = 1.2 * MAX_OVERRIDE * ((MAX_OVERRIDE - 1.0) / self.f_rate_hi
+                                                 + 2.0 * self.f_rate_hi / self.f_accel_hi)
+        self.guard = max(4, int(round(GUARD_S / period_s)))
+        cap = stream.capacity
+        #: the filler's state after each ring row (by row index % capacity): path time, feed
+        #: scale and its rate, trajectory, programs done; rows below _hist_from are not ours
+        self._hs, self._hf, self._hfd = np.zeros(cap), np.zeros(cap), np.zeros(cap)
+        self._htraj: list = [None] * cap
+        self._hdone = np.zeros(cap, dtype=np.int64)
+        self._hist_from = stream.written()
+        self._rewrite = False            # a hold/resume/abort/override asks to rewrite the ring
+        self._guard_now = self.guard     # the guard of the next rewrite (doubled after a miss)
+        self._defer_clear: str | None = None
+        self.rewrites = 0
+        self._wake = threading.Event()
+        self.gcode_settings = gcode_settings or G.GcodeSettings()
+        self.output = output
+        #: the work offsets (G54 ... G59.3 → X Y Z origin [m]) the last accepted program left, the
+        #: ones the next program starts with (LinuxCNC keeps them, set by G10 L2)
+        self.work_offsets: dict[str, np.ndarray] = {}
+        self.pending: collections.deque = collections.deque()   # (ring row, Event) not yet issued
+        self.outputs: dict[str, float] = {}
+        #: (ring row, output, value, setpoint positions (n,) [m]) of every output issued
+        self.output_log: list[tuple[int, str, float, np.ndarray]] = []
+        self._bev: list = []             # (row of the block, Event) of the block being generated
+        self._ev_i = 0                   # the next event of the trajectory being streamed
+        self._bs, self._bf, self._bfd = np.zeros(self.lead), np.zeros(self.lead), np.zeros(self.lead)
+        self._btraj: list = [None] * self.lead
         self.lock = threading.Lock()
         self.queue: collections.deque = collections.deque()
         self.cur = None                  # the trajectory being streamed
@@ -221,7 +264,8 @@ class MotionSide:
         start = self.where()
         start3 = [float(start[self.names.index(a)]) if a in self.names else 0.0 for a in G.AXES]
         try:
-            prog = G.parse(text, filename, start=start3)
+            prog = G.parse(text, filename, settings=self.gcode_settings, start=start3,
+                           offsets=self.work_offsets)
             P.check_limits(prog, {a: (lim.soft_min, lim.soft_max) for a, lim in zip(self.names, self.limits)})
         except ValueError as exc:        # GcodeError, LimitError: one line with file:line:column
             raise MotionError(str(exc)) from None
@@ -231,31 +275,47 @@ class MotionSide:
         self.check_axes(axes, "gcode")
         traj = P.plan(prog, self.names, self._pva, start=[float(x) for x in start])
         self.enqueue([traj], axes)
+        self.work_offsets = {k: v for k, v in prog.offsets.items() if k in G.SYSTEMS}
         return {"duration_s": float(traj.duration), "segments": len(prog.moves),
-                "end_m": [float(x) for x in traj.end]}
+                "end_m": [float(x) for x in traj.end], "warnings": list(prog.warnings)}
 
     def enqueue(self, trajs: list, axes: list[int]) -> None:
         """Queue planned trajectories moving ``axes`` (checked already)."""
+        for traj in trajs:                   # the override's cap along it (planner.override_cap)
+            traj.cap = P.override_cap(traj, self._pva, share=RAMP_SHARE, period=self.dt, bin_s=CAP_BIN_S,
+                                      ahead_s=self.cap_ahead_s)
+            traj.cap_dt = max(1, int(round(CAP_BIN_S / self.dt))) * self.dt
         with self.lock:
             self.used = sorted(set(self.used) | set(axes)) if (self.cur or self.queue) else list(axes)
             self.queue.extend(trajs)
             self.queued_programs += 1
             self.reason = ""
 
+    def _asap(self) -> None:
+        """(lock held) The rows beyond the next GUARD_S are written again at the filler's next
+        wake, which is now."""
+        self._rewrite = True
+        self._wake.set()
+
     def hold(self) -> None:
-        self.holding = True
+        with self.lock:
+            self.holding = True
+            self._asap()
 
     def resume(self) -> None:
-        if not self.aborting:
-            self.holding = False
-            if self.reason.startswith("paused"):
-                self.reason = ""
+        with self.lock:
+            if not self.aborting:
+                self.holding = False
+                if self.reason.startswith("paused"):
+                    self.reason = ""
+                self._asap()
 
     def abort(self) -> None:
         with self.lock:
             self.aborting = self.holding = True
-            if self.cur is None:
+            if self.cur is None and not self.queue:
                 self._clear("aborted")
+            self._asap()
 
     def set_override(self, f: float) -> None:
         if not (math.isfinite(f) and 0.0 <= f <= MAX_OVERRIDE):
@@ -264,6 +324,7 @@ class MotionSide:
             self.override = float(f)
             if self.cur is None:             # nothing running: the next move starts at it
                 self.f, self.fd = self.override, 0.0
+            self._asap()
 
     def idle(self) -> bool:
         """Nothing queued or streaming, and the ring drained."""
@@ -271,15 +332,36 @@ class MotionSide:
             busy = self.cur is not None or bool(self.queue)
         return not busy and self.stream.depth() == 0 and not self.stream.braking()
 
-    def status(self) -> dict:
+    def progress(self) -> tuple[int, float, float]:
+        """(source line, share done 0..1, time left [s]) of the motion the loop runs now: the
+        row it took last (not the filler's, LEAD_S ahead), the planned durations of it and of the
+        queue, the time left at the current override (the planner's prediction; a hold stops it).
+        (0, 1.0, 0.0) when nothing runs."""
         with self.lock:
-            line = int(self.cur.line_at(self.s)) if self.cur is not None else 0
+            taken = self.stream.consumed() - 1
+            k = taken % self.stream.capacity
+            traj = self._htraj[k] if self._hist_from <= taken < self.stream.written() else None
+            busy = self.cur is not None or bool(self.queue)
+            if traj is None or not busy and self.stream.depth() == 0:
+                return 0, 1.0, 0.0
+            s = min(float(self._hs[k]), traj.duration)
+            later = [t for t in ([self.cur] if self.cur is not None and self.cur is not traj else [])
+                     + list(self.queue)]
+            total = traj.duration + sum(t.duration for t in later)
+            left = total - s
+        rate = self.override if self.override > 0 else 1.0
+        return int(traj.line_at(s)), (s / total if total > 0 else 1.0), left / rate
+
+    def status(self) -> dict:
+        line, done, left = self.progress()
+        with self.lock:
             depth = len(self.queue) + (self.cur is not None)
-        return {"queue_depth": depth, "line": line, "feed_m_s": self.feed_m_s,
+        return {"queue_depth": depth, "line": line, "done": done, "time_left_s": left,
+                "feed_m_s": self.feed_m_s,
                 "override": self.override, "feed_scale": self.f, "hold": self.holding,
                 "aborting": self.aborting, "ring_depth": self.stream.depth(),
                 "underruns": self.stream.underruns(), "braking": self.stream.braking(),
-                "stopped_because": self.reason, "homed": list(self.homed),
+                "stopped_because": self.reason, "homed": list(self.homed), "outputs": dict(self.outputs),
                 "homing": list(self.homing_state), "idle": self.idle()}
 
     # ---------------------------------------------------------------- homing
@@ -361,6 +443,7 @@ class MotionSide:
 
     def stop(self) -> None:
         self._stop.set()
+        self._wake.set()
         if self._thread is not None:
             self._thread.join(1.0)
 
@@ -370,8 +453,16 @@ class MotionSide:
                 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.fifo_priority))
             except OSError:
                 pass                         # not permitted: SCHED_OTHER as the rest of the process
-        while not self._stop.wait(FILL_EVERY_S):
+        while not self._stop.is_set():
+            wait = FILL_EVERY_S
+            if self.pending:                 # wake at the cycle of the next event's row
+                wait = min(wait, max(2e-4, (self.pending[0][0] - self.stream.consumed() + 1) * self.dt))
+            self._wake.wait(wait)
+            self._wake.clear()
+            if self._stop.is_set():
+                break
             try:
+                self.issue_events()
                 self.fill()
             except Exception as exc:  # noqa: BLE001 - the filler never dies: the loop brakes
                 with self.lock:
@@ -386,6 +477,8 @@ class MotionSide:
         self.f, self.fd = self.override, 0.0
         self.reason = why
         self.feed_m_s = 0.0
+        self._hist_from = self.stream.written()
+        self.pending.clear()
 
     def fill(self) -> int:
         """Top the ring up to :data:`LEAD_S` ahead. Returns the rows written."""
@@ -398,18 +491,151 @@ class MotionSide:
                     self._clear("underrun" if ring.underruns() else "stopped")
             if ring.braking():
                 return 0
+            if self._rewrite:
+                n = self._rewind(ep)
+                if n is not None:
+                    return n
             need = min(self.lead - ring.depth(), ring.free())
             if need < self.lead // BLOCKS_PER_LEAD or (self.cur is None and not self.queue):
                 return 0
-            modes = self.modes()
-            gone = [self.names[i] for i in self.used if int(modes[i]) != STREAM]
-            if gone:                         # a fault or a stop: no more rows, the loop brakes
-                self._clear(f"axis {gone[0]} left command mode")
+            if self._gone():
                 return 0
+            self._bev.clear()
             n = self._generate(need)
-            if n:
-                ring.push(self._block[:n], ep)
+            self._push(n, ep)
             return n
+
+    def _gone(self) -> bool:
+        """(lock held) A moved axis left command mode (a fault or a stop): the program is dropped,
+        no more rows (the loop brakes). True then."""
+        modes = self.modes()
+        gone = [self.names[i] for i in self.used if int(modes[i]) != STREAM]
+        if gone:
+            self._clear(f"axis {gone[0]} left command mode")
+        return bool(gone)
+
+    def _push(self, n: int, ep: int) -> None:
+        """(lock held) The block's first n rows into the ring at its write index, with the
+        filler's state after each (for a rewrite) and the block's events tied to their rows."""
+        if not n:
+            return
+        ring = self.stream
+        w = ring.written()
+        self.pending.extend((w + q, ev) for q, ev in self._bev)
+        ring.push(self._block[:n], ep)
+        k = (w + np.arange(n)) % ring.capacity
+        self._hs[k], self._hf[k], self._hfd[k] = self._bs[:n], self._bf[:n], self._bfd[:n]
+        self._hdone[k] = self.done_programs
+        for q in range(n):
+            self._htraj[k[q]] = self._btraj[q]
+
+    def _state(self) -> tuple:
+        return (self.cur, self.s, self.f, self.fd, list(self.queue), self.done_programs, self._ev_i,
+                self.last.copy(), self.reason, self.holding, self.feed_m_s,
+                None if self.trace is None else list(self.trace))
+
+    def _restore(self, st: tuple) -> None:
+        (self.cur, self.s, self.f, self.fd, q, self.done_programs, self._ev_i, last, self.reason,
+         self.holding, self.feed_m_s, trace) = st
+        self.queue.clear()
+        self.queue.extend(q)
+        self.last[:] = last
+        if trace is not None:
+            self.trace[:] = trace
+
+    def _rewind(self, ep: int) -> int | None:
+        """(lock held) Rewrite the ring's rows beyond the next ``guard`` cycles for a new hold,
+        resume, abort or override: the filler's state is put back to the last row kept (its
+        trajectory, path time, feed scale and rate; the trajectories begun after it back in
+        front of the queue), the rows from there generated, then the ring's write index lowered
+        to the cut (SetpointRing.retract) and the new rows pushed at once: the loop never waits
+        for the generation. When the loop came within two rows of the cut meanwhile, nothing is
+        changed and the next wake tries again with twice the guard. Returns the rows written,
+        or None (nothing to rewrite: the caller tops up as usual)."""
+        ring = self.stream
+        w, r0 = ring.written(), ring.consumed()
+        cut = r0 + self._guard_now
+        if cut >= w or cut - 1 < self._hist_from or self._gone():   # no rows of ours beyond the guard
+            self._rewrite = False
+            return None
+        before = self._state()
+        cap = ring.capacity
+        k0 = (cut - 1) % cap
+        t0 = self._htraj[k0]
+        later: list = []
+        for q in range(cut, w):
+            t = self._htraj[q % cap]
+            if t is not t0 and (not later or later[-1] is not t):
+                later.append(t)
+        self.queue.extendleft(reversed(later))
+        ended = t0 is None or self._hs[k0] >= t0.duration
+        self.cur = None if ended else t0
+        self.s = 0.0 if ended else float(self._hs[k0])
+        self.f, self.fd = (self.override, 0.0) if ended else (float(self._hf[k0]), float(self._hfd[k0]))
+        self.done_programs = int(self._hdone[k0])
+        self.last[:] = ring.rows[k0, 1:].reshape(self.n, 3)
+        if self.trace is not None:
+            del self.trace[len(self.trace) - (w - cut):]
+        if self.cur is not None:
+            self._ev_i = sum(1 for t, _ in self.cur.events if t <= self.s)
+        self._bev.clear()
+        self._defer_clear = ""
+        n = self._generate(min(self.lead, cap) - (cut - r0))
+        why, self._defer_clear = self._defer_clear, None
+        if ring.retract(cut) is None:        # the loop came too close: as before, retry wider
+            self._restore(before)
+            self._guard_now = min(2 * self._guard_now, self.lead // 2)
+            self._wake.set()                 # at once, not at the next period
+            return 0
+        self._rewrite = False
+        self._guard_now = self.guard
+        while self.pending and self.pending[-1][0] >= cut:
+            self.pending.pop()
+        self._push(n, ep)
+        if why:
+            self._clear(why)
+        self.rewrites += 1
+        return n
+
+    def issue_events(self) -> int:
+        """Set the outputs of the machine words whose ring row the loop has taken (the I/O side
+        at the row's cycle, late by this thread's wake-up and the command to the loop). Returns
+        how many were issued."""
+        done = 0
+        if not self.pending:
+            return 0
+        taken = self.stream.consumed()
+        with self.lock:
+            while self.pending and self.pending[0][0] < taken:
+                row, ev = self.pending.popleft()
+                if ev.output is None:        # mapped to 'ignore': warned about when queued
+                    continue
+                x = self.stream.rows[row % self.stream.capacity, 1::3].copy()
+                self.outputs[ev.output] = float(ev.value)
+                self.output_log.append((row, ev.output, float(ev.value), x))
+                if self.output is not None:
+                    self.output(ev.output, float(ev.value))
+                done += 1
+        return done
+
+    def _target(self, cur, s: float) -> float:
+        """The feed scale's target at path time s of ``cur``: 0 in a hold; else the override,
+        above 1 capped where the trajectory, planned at the full limits, would pass them
+        (planner.override_cap; never below 1)."""
+        if self.holding:
+            return 0.0
+        t = self.override
+        if t > 1.0:
+            cap = cur.cap[min(int(s / cur.cap_dt), len(cur.cap) - 1)]
+            t = min(t, max(1.0, float(cap)))
+        return t
+
+    def _clear_or_defer(self, why: str) -> None:
+        """(lock held) _clear, or, while a rewrite generates, after its rows are pushed."""
+        if self._defer_clear is None:
+            self._clear(why)
+        else:
+            self._defer_clear = why
 
     def _generate(self, need: int) -> int:
         """(lock held) Up to ``need`` rows into the block; fewer when the queue runs out or a
@@ -421,21 +647,31 @@ class MotionSide:
             if self.cur is None:
                 if not self.queue or self.holding:
                     if self.aborting:
-                        self._clear("aborted")
+                        self._clear_or_defer("aborted")
                     return j
                 self.cur = self.queue.popleft()
                 self.s = 0.0
-                self.f, self.fd = self.override, 0.0     # from rest: the override at once
-            cur, m, ended, step = self.cur, 0, False, 0.0
+                self._ev_i = 0
+                self.f, self.fd = self._target(self.cur, 0.0), 0.0   # from rest: the override at once
+            cur, m, ended, step, steady = self.cur, 0, False, 0.0, False
             ss, ff, ffd = self._s, self._f, self._fd
-            target = 0.0 if self.holding else self.override
+            target = self._target(cur, self.s)
             if self.f == target and self.fd == 0.0 and target > 0.0:
-                # the steady case, vectorised: s advances by f·Ts a row, up to the end or a pause
+                # the steady case, vectorised: s advances by f·Ts a row, up to the end, a pause,
+                # or a change of the override's cap
                 m = need - j
                 ss[:m] = self.s + self.f * dt * self._steps[:m]
+                if self.override > 1.0:
+                    b0 = int(self.s / cur.cap_dt)
+                    tb = np.minimum(self.override, np.maximum(1.0, cur.cap[b0:]))
+                    moved = np.flatnonzero(tb != self.f)
+                    if moved.size:
+                        s_cap = (b0 + int(moved[0])) * cur.cap_dt
+                        m = max(1, min(m, int(np.searchsorted(ss[:m], s_cap, side="left"))))
                 limit = min([t for t, _ in cur.stops if t > self.s] + [cur.duration])
                 over = int(np.searchsorted(ss[:m], limit, side="left"))
-                if over < m:
+                hit = over < m
+                if hit:
                     m = over + 1             # the row that reaches the limit (a pause: at it)
                     if limit < cur.duration:
                         ss[m - 1] = limit
@@ -444,15 +680,21 @@ class MotionSide:
                 ff[:m], ffd[:m] = self.f, 0.0
                 step = self.f * dt               # uniform rows (the last one may stop short)
                 self.s = float(ss[m - 1])
-                if not ended and over < need - j:
+                if not ended and hit:
                     self.f, self.fd, self.holding = 0.0, 0.0, True
                     self.reason = "paused (M0/M1); resume goes on"
                     ff[m - 1] = 0.0
             while j + m < need and not ended:
                 if self.f == 0.0 and self.fd == 0.0 and self.holding:
                     break                    # at rest on the path: the loop holds the last row
-                target = 0.0 if self.holding else self.override
-                self.f, self.fd = _ramp(self.f, self.fd, target, self.f_rate, self.f_accel, dt)
+                target = self._target(cur, self.s)
+                if m and step == 0.0 and self.f == target and self.fd == 0.0 and target > 0.0:
+                    steady = True            # the ramp is over: the vectorised case again
+                    break
+                if target > 1.0 or self.f > 1.0:
+                    self.f, self.fd = _ramp(self.f, self.fd, target, self.f_rate_hi, self.f_accel_hi, dt)
+                else:
+                    self.f, self.fd = _ramp(self.f, self.fd, target, self.f_rate, self.f_accel, dt)
                 s_new = self.s + self.f * dt
                 for t_stop, _ in cur.stops:  # a programmed pause (M0, M1): at rest there
                     if self.s < t_stop <= s_new:
@@ -473,11 +715,22 @@ class MotionSide:
                     rows[:] = self._grid[:m].transpose(0, 2, 1)
                 else:
                     self._sample(cur, ss[:m], rows)
+                if ended:                    # past its end: at rest there exactly
+                    rows[-1, :, 0] = cur.end
+                    rows[-1, :, 1:] = 0.0
                 if self.trace is not None:
                     self.trace.extend(int(cur.line_at(t)) for t in ss[:m])
                 rows[:, :, 2] = rows[:, :, 2] * (ff[:m] ** 2)[:, None] + rows[:, :, 1] * ffd[:m, None]
                 rows[:, :, 1] *= ff[:m, None]
                 self.last[:] = rows[-1]
+                self._bs[j:j + m], self._bf[j:j + m], self._bfd[j:j + m] = ss[:m], ff[:m], ffd[:m]
+                self._btraj[j:j + m] = [cur] * m
+                evs = cur.events
+                while self._ev_i < len(evs) and (ended or evs[self._ev_i][0] - 1e-9 <= ss[m - 1]):
+                    # the row at its planned time (within 1 ns: the rows' times are sums of f·Ts)
+                    q = min(int(np.searchsorted(ss[:m], evs[self._ev_i][0] - 1e-9, side="left")), m - 1)
+                    self._bev.append((j + q, evs[self._ev_i][1]))
+                    self._ev_i += 1
                 self.feed_m_s = float(np.linalg.norm(rows[-1, :, 1]))
                 j += m
             if ended:
@@ -487,9 +740,9 @@ class MotionSide:
                     self.done_programs = self.queued_programs
                     self.feed_m_s = 0.0
                     return j
-            elif not m or j < need:          # came to rest in a hold
+            elif not steady and (not m or j < need):          # came to rest in a hold
                 if self.aborting:
-                    self._clear("aborted")
+                    self._clear_or_defer("aborted")
                 return j
         return j
 

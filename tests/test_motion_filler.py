@@ -1,0 +1,169 @@
+"""The motion filler (motorctl.app.daemon.motion_side) against its setpoint ring, without the
+daemon, on the loop's cycle counter: a Python consumer takes one row a cycle, the filler tops the
+ring up every FILL_EVERY_S of cycles, commands land between two cycles. Fast and deterministic."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from motorctl.app.daemon import motion_side as M
+from motorctl.loop.cycle import STREAM
+from motorctl.loop.stream import SP_READ, SP_WRITE, SetpointRing
+from motorctl.motion import GcodeSettings
+
+REPO = Path(__file__).resolve().parents[1]
+DT = 2e-4
+#: configs/gantry.yaml's X and Y
+LIMITS = [M.AxisLimits(2.0, 40.0, 4000.0, -0.02, 0.42), M.AxisLimits(1.0, 10.0, 1000.0, -0.02, 0.42)]
+VMAX = np.array([lim.v_max for lim in LIMITS])
+AMAX = np.array([lim.a_max for lim in LIMITS])
+JMAX = np.array([lim.j_max for lim in LIMITS])
+EVERY = int(round(M.FILL_EVERY_S / DT))
+
+
+class Rig:
+    """A MotionSide on a process-local ring and a consumer taking a row a cycle."""
+
+    def __init__(self, settings=None):
+        self.ring = SetpointRing(int(0.5 / DT), 2, shared=False)
+        self.sent: list[tuple[str, float]] = []
+        self.ms = M.MotionSide(self.ring, lambda: np.zeros(4), ["X.x_d", "X.xd_dot", "Y.x_d", "Y.xd_dot"],
+                               ["X", "Y"], LIMITS, lambda: np.array([STREAM, STREAM]), DT,
+                               gcode_settings=settings, output=lambda n, v: self.sent.append((n, v)))
+        self.cycle = 0
+        self.rows: list[np.ndarray] = []
+
+    def run(self, cycles: int, until_idle: bool = False) -> None:
+        ring = self.ring
+        for _ in range(cycles):
+            if self.cycle % EVERY == 0:
+                self.ms.fill()
+            self.ms.issue_events()
+            w, r = int(ring.ctl[SP_WRITE]), int(ring.ctl[SP_READ])
+            if r < w:
+                self.rows.append(ring.rows[r % ring.capacity, 1:].reshape(2, 3).copy())
+                ring.ctl[SP_READ] = r + 1
+            else:
+                assert not self.rows or not np.any(self.rows[-1][:, 1:]), "underrun while moving"
+                if until_idle and self.ms.idle():
+                    return
+            self.cycle += 1
+
+    def setpoints(self) -> np.ndarray:
+        """(n, 2 axes, x/v/a)"""
+        return np.array(self.rows)
+
+
+def _within_limits(sp: np.ndarray) -> None:
+    assert np.all(np.abs(sp[:, :, 1]) <= VMAX * (1 + 1e-9))
+    assert np.all(np.abs(sp[:, :, 2]) <= AMAX * (1 + 1e-6))
+    assert np.all(np.abs(np.diff(sp[:, :, 2], axis=0)) / DT <= JMAX * (1 + 1e-6))
+
+
+def test_override_above_one_keeps_every_axis_limit():
+    rig = Rig()
+    rig.ms.set_override(M.MAX_OVERRIDE)
+    rig.ms.gcode((REPO / "configs/square_and_circle.ngc").read_text(), "square_and_circle.ngc")
+    rig.run(200_000, until_idle=True)
+    sp = rig.setpoints()
+    _within_limits(sp)
+    # the override acts where the limits leave room: the F6000 (0.1 m/s) square runs faster
+    speed = np.linalg.norm(sp[:, :, 1], axis=1)
+    assert speed.max() > 0.14
+    np.testing.assert_allclose(sp[-1, :, 0], [0.010, 0.020], atol=1e-9)
+
+
+def test_override_change_mid_program_keeps_limits():
+    rig = Rig()
+    rig.ms.gcode((REPO / "configs/square_and_circle.ngc").read_text(), "square_and_circle.ngc")
+    for k, r in enumerate([1.5, 0.5, 1.5, 1.0, 1.5, 0.2, 1.5]):
+        rig.run(2500)
+        rig.ms.set_override(r)
+    rig.run(300_000, until_idle=True)
+    _within_limits(rig.setpoints())
+    np.testing.assert_allclose(rig.rows[-1][:, 0], [0.010, 0.020], atol=1e-9)
+
+
+@pytest.mark.parametrize("command", ["hold", "abort"])
+def test_hold_and_abort_decelerate_within_the_guard(command):
+    rig = Rig()
+    rig.ms.gcode("G21 G90 G1 X300 F6000\nM2\n", "line.ngc")
+    rig.run(5000)                                   # 1 s: cruising at 0.1 m/s, the ring 0.2 s ahead
+    assert rig.ring.depth() > 0.15 / DT
+    v0 = rig.rows[-1][0, 1]
+    assert v0 == pytest.approx(0.1)
+    n0 = len(rig.rows)
+    getattr(rig.ms, command)()
+    rig.run(3000)                                    # the filler wakes at its period (at worst)
+    v = np.array([r[0, 1] for r in rig.rows[n0:]])
+    first = int(np.argmax(v < v0 * (1 - 1e-9)))
+    assert v[first] < v0
+    assert first <= EVERY + rig.ms.guard + 1        # the wake, then GUARD_S of rows already taken
+    assert v[-1] == 0.0
+    _within_limits(rig.setpoints())
+    if command == "hold":
+        x_hold = rig.rows[-1][0, 0]
+        rig.ms.resume()
+        rig.run(200_000, until_idle=True)
+        assert rig.rows[-1][0, 0] == pytest.approx(0.3, abs=1e-12)
+        assert x_hold < 0.3
+        _within_limits(rig.setpoints())
+    else:
+        rig.run(EVERY * 2)
+        assert rig.ms.idle() and rig.ms.status()["stopped_because"] == "aborted"
+        assert rig.rows[-1][0, 0] < 0.3
+
+
+CAM = REPO / "configs/cam_sample.ngc"
+
+
+def test_machine_words_switch_outputs_at_their_planned_rows():
+    rig = Rig(GcodeSettings(axes=["X", "Y"], words={"M3": "torch", "M5": "torch", "S": "ignore"}))
+    info = rig.ms.gcode(CAM.read_text(), "cam_sample.ngc")
+    assert any("S4500 ignored" in w for w in info["warnings"])
+    rig.run(2_000_000, until_idle=True)
+    log = rig.ms.output_log
+    n_on = CAM.read_text().count("M03")
+    assert [v for _, _, v, _ in log] == [1.0, 0.0] * n_on
+    assert rig.sent == [(name, v) for _, name, v, _ in log]
+    rows = rig.setpoints()
+    for row, _, value, x in log:          # each at its row: at rest on the pierce / end point
+        assert np.all(np.abs(rows[row, :, 1]) < 1e-12)
+        np.testing.assert_array_equal(rows[row, :, 0], x)
+    assert np.allclose(log[0][3], [0.035, 0.050], atol=1e-9)   # N70 G00 X35 Y50, then N80 M03
+
+
+def test_unmapped_machine_word_refused_before_anything_moves():
+    rig = Rig(GcodeSettings(axes=["X", "Y"], words={"M3": "torch"}))
+    with pytest.raises(M.MotionError, match=r"cam_sample.ngc:13:\d+: .*gcode.words.S"):
+        rig.ms.gcode(CAM.read_text(), "cam_sample.ngc")
+    assert rig.ms.idle() and rig.ring.written() == 0
+
+
+def test_progress_is_the_loops_row_not_the_fillers():
+    rig = Rig()
+    info = rig.ms.gcode((REPO / "configs/square_and_circle.ngc").read_text(), "square_and_circle.ngc")
+    rig.run(10_000)                                  # 2.0 s of rows taken; the filler is ~0.2 s ahead
+    st = rig.ms.status()
+    assert st["time_left_s"] == pytest.approx(info["duration_s"] - 10_000 * DT, abs=1e-6)
+    assert st["done"] == pytest.approx(10_000 * DT / info["duration_s"], abs=1e-9)
+    assert st["line"] == 7                           # G1 X110 Y120 (after the rapid and 100 mm at 0.1 m/s)
+    rig.ms.set_override(0.5)
+    rig.run(1000)
+    assert rig.ms.status()["time_left_s"] > 2 * (info["duration_s"] - 2.2)
+    rig.run(300_000, until_idle=True)
+    assert rig.ms.progress() == (0, 1.0, 0.0)
+
+
+def test_program_outside_the_stroke_with_the_active_work_offset_refused_before_motion():
+    rig = Rig()
+    rig.ms.gcode("G21 G90\nG10 L2 P1 X100 (G54 origin at X 100 mm)\nG0 X10 Y10\nM2\n", "set.ngc")
+    rig.run(100_000, until_idle=True)
+    np.testing.assert_allclose(rig.rows[-1][:, 0], [0.110, 0.010], atol=1e-12)
+    written = rig.ring.written()
+    # the G54 offset stays active: X350 is machine 450 mm, 30 mm beyond soft_max 420 mm
+    with pytest.raises(M.MotionError, match=r"cut.ngc:3: X reaches 450.0000 mm, 30.0000 mm beyond soft_max"):
+        rig.ms.gcode("G21 G90\nG0 X10 Y10\nG1 X350 F3000\nG1 X500\nM2\n", "cut.ngc")
+    rig.run(1000)
+    assert rig.ring.written() == written and rig.ms.idle()
