@@ -36,7 +36,7 @@ njit = partial(_numba_njit, cache=True, nogil=True)
 #: True when ``NUMBA_DISABLE_JIT=1``: kernels are plain Python
 DISABLED = bool(_config.DISABLE_JIT)
 
-__all__ = ["DISABLED", "BundleType", "borrow", "bundle", "define_bundle", "dispatch", "entry", "njit"]
+__all__ = ["DISABLED", "BundleType", "borrow", "bundle", "check_code", "define_bundle", "dispatch", "entry", "njit"]
 
 
 class BundleType(_types.StructRef):
@@ -135,6 +135,21 @@ def dispatch(kernels, otherwise):
     for code, kernel in reversed(list(kernels)):
         call = _link(int(code), kernel, call)
     return call
+
+
+def check_code(table, code, kind: str, what: str) -> int:
+    """``code`` when ``table[code]`` (a table of (kind, kernel) rows, as :func:`dispatch`'s
+    callers keep) is a ``kind`` kernel.
+
+    Raises:
+        ValueError: an unknown code or one of another kind: "``what`` code C is not a compiled
+            ``kind`` kernel; known: ..." naming every row.
+    """
+    if (isinstance(code, bool) or not isinstance(code, int) or not 0 <= code < len(table)
+            or table[code][0] != kind):
+        known = ", ".join(f"{i} ({k} {fn.__name__})" for i, (k, fn) in enumerate(table))
+        raise ValueError(f"{what} code {code!r} is not a compiled {kind!r} kernel; known: {known}")
+    return code
 
 
 def _link(code, kernel, rest):

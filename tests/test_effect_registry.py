@@ -372,10 +372,10 @@ def test_plant_and_compensation_codes_are_checked_against_their_tables():
     for code, (kind, kernel) in enumerate(compensation.COMP_KERNELS):
         assert compensation.check_comp_code(code, kind) == code
     n = len(plant.PLANT_KERNELS)
-    with pytest.raises(ValueError, match=f"plant term code {n} is not a compiled force kernel; known: 0 "):
+    with pytest.raises(ValueError, match=f"plant term code {n} is not a compiled 'force' kernel; known: 0 "):
         plant.check_plant_code(n, "force")
     thrust_code = [h for h, _ in plant.PLANT_KERNELS].index("thrust")
-    with pytest.raises(ValueError, match="not a compiled force kernel"):
+    with pytest.raises(ValueError, match="not a compiled 'force' kernel"):
         plant.check_plant_code(thrust_code, "force")
     with pytest.raises(ValueError, match="compensation term code -1 is not a compiled 'add' kernel"):
         compensation.check_comp_code(-1, "add")

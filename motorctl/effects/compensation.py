@@ -67,7 +67,7 @@ from motorctl.effects import (
     spring,
     stribeck,
 )
-from motorctl.jit import dispatch, njit
+from motorctl.jit import check_code, dispatch, njit
 from motorctl.model import s_f_scalar
 
 _s_f = njit(s_f_scalar)
@@ -99,11 +99,7 @@ def check_comp_code(code: int, kind: str) -> int:
     Raises:
         ValueError: an unknown code or one of the other kind, naming the known codes.
     """
-    if (isinstance(code, bool) or not isinstance(code, int) or not 0 <= code < len(COMP_KERNELS)
-            or COMP_KERNELS[code][0] != kind):
-        known = ", ".join(f"{i} ({k} {fn.__name__})" for i, (k, fn) in enumerate(COMP_KERNELS))
-        raise ValueError(f"compensation term code {code!r} is not a compiled {kind!r} kernel; known: {known}")
-    return code
+    return check_code(COMP_KERNELS, code, kind, "compensation term")
 
 
 @njit

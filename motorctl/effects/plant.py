@@ -37,7 +37,7 @@ from motorctl.effects import (
     spring,
     stribeck,
 )
-from motorctl.jit import dispatch, njit
+from motorctl.jit import check_code, dispatch, njit
 
 #: code -> (hook, compiled kernel) of every compiled plant term: a term's code is its row's index
 PLANT_KERNELS: tuple[tuple[str, object], ...] = (
@@ -65,11 +65,7 @@ def check_plant_code(code: int, hook: str) -> int:
     Raises:
         ValueError: an unknown code or another hook's, naming the known codes.
     """
-    if (isinstance(code, bool) or not isinstance(code, int) or not 0 <= code < _N_KERNELS
-            or PLANT_KERNELS[code][0] != hook):
-        known = ", ".join(f"{i} ({h} {k.__name__})" for i, (h, k) in enumerate(PLANT_KERNELS))
-        raise ValueError(f"plant term code {code!r} is not a compiled {hook} kernel; known: {known}")
-    return code
+    return check_code(PLANT_KERNELS, code, hook, "plant term")
 
 
 def _of(hook: str):
