@@ -712,7 +712,13 @@ class AxisPlant:
         """ẍ [m/s²] at position x [m], velocity v [m/s], plant time t [s] under input u [V]:
         eq. (1) with the force curve of eq. (3), smooth Coulomb friction and the effects'
         hooks (thrust factor, forces, mass) in registry order."""
-        fm = self._motor_force(u)
+        f, m = self._hooked_force(self._motor_force(u), x, v, t)
+        return f / m
+
+    def _hooked_force(self, fm: float, x: float, v: float, t: float) -> tuple[float, float]:
+        """(the force F [N], the moving mass m [kg]) of eq. (1) under the motor force fm [N] at
+        x [m], ẋ = v [m/s], plant time t [s]: the thrust hooks on fm, smooth Coulomb friction,
+        the force hooks and the mass hooks, in registry order."""
         for thrust in self._thrust:
             fm = thrust(fm, x, t)
         sf = _TWO_OVER_PI * math.atan(S_F_GAIN * v)
@@ -722,7 +728,7 @@ class AxisPlant:
         m = self.m
         for mass in self._masses:
             m = mass(m, t)
-        return f / m
+        return f, m
 
     def mass_at(self, t: float) -> float:
         """Moving mass [kg] at plant time t (payload change included)."""
@@ -832,16 +838,7 @@ class AxisPlant:
         ml0, m_tot = self.ml, self.m
 
         def acc(xc, vc, xl, vl, t, tau, _args):
-            fm = _force_at(tau, F0, f_prev, f_cur, d, ti)
-            for thrust in self._thrust:
-                fm = thrust(fm, xc, t)
-            sf = _TWO_OVER_PI * math.atan(S_F_GAIN * vc)
-            f = fm - self.b * vc - self.fc * sf + self.f0 + self.f_noise + self.f_ext
-            for force in self._forces:
-                f = force(f, xc, vc, t, sf)
-            m = m_tot
-            for mass in self._masses:
-                m = mass(m, t)
+            f, m = self._hooked_force(_force_at(tau, F0, f_prev, f_cur, d, ti), xc, vc, t)
             if ml0 > 0.0:   # a mass change is the load's
                 fsp = self.ks * (xc - xl) + self.cs * (vc - vl)
                 ac = (f - fsp) / self.mc
