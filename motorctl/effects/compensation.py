@@ -52,6 +52,8 @@ sources, keyed on this module's file: after editing a family's kernel, touch thi
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 from pydantic import create_model
 
@@ -93,13 +95,9 @@ COMP_KERNELS: tuple[tuple[str, object], ...] = (
 KERNELS = tuple(kernel for _, kernel in COMP_KERNELS)
 
 
-def check_comp_code(code: int, kind: str) -> int:
-    """``code`` when it is the code of a ``kind`` ('add' or 'fill') kernel in :data:`COMP_KERNELS`.
-
-    Raises:
-        ValueError: an unknown code or one of the other kind, naming the known codes.
-    """
-    return check_code(COMP_KERNELS, code, kind, "compensation term")
+#: ``check_comp_code(code, kind)``: ``code`` when it is a ``kind`` kernel's in :data:`COMP_KERNELS`; else
+#: ValueError naming the known codes (:func:`motorctl.jit.check_code`)
+check_comp_code = partial(check_code, COMP_KERNELS, what="compensation term")
 
 
 @njit

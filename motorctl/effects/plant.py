@@ -22,6 +22,8 @@ is keyed on the calling module's file, so after editing a family's kernel, delet
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 
 from motorctl.effects import (
@@ -59,13 +61,9 @@ HOOKS = ("thrust", "force", "mass")
 _N_KERNELS = len(PLANT_KERNELS)
 
 
-def check_plant_code(code: int, hook: str) -> int:
-    """``code`` when it is the code of a ``hook`` kernel in :data:`PLANT_KERNELS`.
-
-    Raises:
-        ValueError: an unknown code or another hook's, naming the known codes.
-    """
-    return check_code(PLANT_KERNELS, code, hook, "plant term")
+#: ``check_plant_code(code, hook)``: ``code`` when it is a ``hook`` kernel's in :data:`PLANT_KERNELS`; else
+#: ValueError naming the known codes (:func:`motorctl.jit.check_code`)
+check_plant_code = partial(check_code, PLANT_KERNELS, what="plant term")
 
 
 def _of(hook: str):
