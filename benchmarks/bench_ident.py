@@ -37,7 +37,7 @@ def main(argv=None) -> int:
                     help="accepted for old command lines: both modes are always timed")
     args = ap.parse_args(argv)
 
-    from motorctl.app.tune import make_log
+    from motorctl.commission.tune import make_log
     from motorctl.ident.synth import EXAMPLES
     from motorctl.recorder.runlog import read_log
 

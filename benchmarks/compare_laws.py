@@ -39,16 +39,10 @@ import argparse
 import copy
 import time
 
-from motorctl.app.autotune import (
-    OMEGA,
-    admissible,
-    apply_gains,
-    evaluate,
-    fit_plant,
-    loop_frf,
-    margins_hold,
-    measure_frf,
-)
+from motorctl.commission.choose import OMEGA, loop_frf, margins_hold
+from motorctl.commission.fit import fit_plant
+from motorctl.commission.measure import measure_frf
+from motorctl.commission.verify import admissible, apply_gains, evaluate
 from motorctl.config import config_from_dict, load_yaml
 from motorctl.control import configured_controllers, controller_class
 

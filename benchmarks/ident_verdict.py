@@ -5,7 +5,7 @@ Rerun:
     python benchmarks/ident_verdict.py                          # 3 seeds, 20 s logs, X axis
     python benchmarks/ident_verdict.py --seeds 5 --dir /tmp/iv  # logs kept (and reused) in DIR
 
-Cases (``configs/gantry.yaml``, axis X, C2, virtual clock; :func:`motorctl.app.tune.make_log`):
+Cases (``configs/gantry.yaml``, axis X, C2, virtual clock; :func:`motorctl.commission.tune.make_log`):
 
 * ``clean``: the plant as it is (structural mode 350 Hz, current loop, encoder noise and its
   ±0.15 µm interpolation error at 20 µm, stiction). A warning "unexplained structured
@@ -52,7 +52,7 @@ def main(argv=None) -> int:
     ap.add_argument("--case", action="append", choices=list(CASES), help="only these cases (repeatable)")
     args = ap.parse_args(argv)
 
-    from motorctl.app.tune import make_log
+    from motorctl.commission.tune import make_log
     from motorctl.ident.data import load_record
     from motorctl.ident.pipeline import identify_record
 

@@ -120,8 +120,8 @@ def size_for(name: str, fam, out: Path, duration_s: float, floor_log: Path, axis
     Returns:
         (scale, fragment, L2_before / L2_floor at that size).
     """
-    from motorctl.app.tune import make_log
-    from motorctl.app.compare import compare_logs
+    from motorctl.commission.tune import make_log
+    from motorctl.commission.compare import compare_logs
 
     def ratio(n: int) -> tuple[float, dict, bool]:
         fragment, can_scale = scaled(fam.example, STEP ** n, fam.size_options)
@@ -162,7 +162,7 @@ def tune_family(name: str, fragment: dict, out: Path, duration_s: float, axis: s
     before log cannot be identified."""
     import yaml
 
-    from motorctl.app.tune import tune
+    from motorctl.commission.tune import tune
     from motorctl.ident.synth import gantry_dict
     from motorctl.inputs import InputError
     from motorctl.recorder.runlog import LogError
@@ -282,7 +282,7 @@ def main(argv=None) -> int:
             ap.error("--a-max must be in (0, 40] m/s²")
         traj = {"a_max": args.a_max, "j_max": 4000.0 * args.a_max / 40.0}
 
-    from motorctl.app.tune import make_log
+    from motorctl.commission.tune import make_log
     from motorctl.effects import FAMILIES
     names = [n for n in (args.family or list(FAMILIES)) if n != "none"]
     unknown = [n for n in names if n not in FAMILIES]

@@ -11,13 +11,13 @@ import sys
 import pytest
 import yaml
 
-from motorctl.app.autotune import GM_MIN_DB, MS_MAX_DB, PM_MIN_DEG
+from motorctl.commission.rule import GM_MIN_DB, MS_MAX_DB, PM_MIN_DEG
 from motorctl.config import load_yaml
 
 
 def _autotune(repo, tmp_path, *args):
     return subprocess.run([sys.executable, "-m", "motorctl", "autotune", *args],
-                          cwd=repo, capture_output=True, text=True, timeout=300)
+                          cwd=repo, capture_output=True, text=True, timeout=1200)
 
 
 @pytest.fixture(scope="module")
@@ -26,8 +26,8 @@ def default_plant(repo, tmp_path_factory):
     summary of the axes, the output directory of X's)."""
     out = tmp_path_factory.mktemp("at") / "at"
     p = _autotune(repo, out, "configs/gantry.yaml", "--axis", "X", "--out", str(out), "--law", "c2",
-                  "--law", "pid", "--virtual-clock", "--verify-seconds", "0.5", "--periods", "16",
-                  "--search-runs", "2", "--json")
+                  "--law", "pid", "--virtual-clock", "--verify-seconds", "4", "--periods", "8",
+                  "--search-runs", "4", "--full-periods", "1", "--json")
     assert p.returncode == 0, p.stderr
     axes = json.loads(p.stdout)["axes"]
     y_out = tmp_path_factory.mktemp("at") / "y"
@@ -67,6 +67,15 @@ def test_autotune_sim_end_to_end(repo, default_plant):
         assert m["gm_db"] is None or m["gm_db"] >= GM_MIN_DB - 0.5
         assert res["chosen_by"][law]["from"] in ("rule", "search")
     assert all(v["fault"] == "" for v in res["verify"] if v["verdict"] == "ok")
+    # the written gains passed their full run (one program period here) at 100 % and ran at
+    # 75 and 50 % without a fault, ringing or noise; a run that failed is never what is written
+    for law in ("c2", "pid"):
+        full = [v for v in res["verify"] if v["law"] == law and v["run"].startswith(("confirm", "step down"))]
+        top = [v for v in full if v["verdict"] == "ok" and v["L2_um"] == res["chosen_by"][law]["L2_um"]]
+        assert top and abs(top[0]["scale"] - res["chosen_by"][law]["scale"]) < 1e-9, (law, full)
+        below = {round(v["scale"] / top[0]["scale"], 3): v for v in full[full.index(top[0]) + 1:]}
+        assert {0.75, 0.5} <= set(below), (law, full)
+        assert all(v["fault"] == "" for v in below.values()), (law, full)
     written = yaml.safe_load((out / "autotuned.yaml").read_text())
     sec = written["axes"]["X"]["controller"]
     assert sec["pid"]["P"] == res["gains"]["pid"]["P"] and sec["c2"]["k1"] == res["gains"]["c2"]["k1"]
@@ -80,25 +89,24 @@ def test_autotune_sim_end_to_end(repo, default_plant):
     assert check.returncode == 0, check.stderr
 
 
-def test_autotune_adapts_to_a_softer_structure(repo, tmp_path, default_plant):
+def test_autotune_adapts_to_a_softer_structure(repo, tmp_path):
     """X's structural mode at half the default frequency: the fit finds it, and the gains
-    change with it, with the rule's margins holding."""
+    written hold the rule's margins on that response."""
     raw = load_yaml(repo / "configs" / "gantry.yaml")
     raw["axes"]["X"]["driver"]["mode_hz"] = 0.5 * raw["axes"]["X"]["driver"]["mode_hz"]
     cfg = tmp_path / "soft.yaml"
     cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
     p = _autotune(repo, tmp_path, str(cfg), "--axis", "X", "--out", str(tmp_path / "at"),
-                  "--virtual-clock", "--verify-seconds", "0.5", "--periods", "8", "--law", "pid",
-                  "--search-runs", "4", "--json")
+                  "--virtual-clock", "--verify-seconds", "4", "--periods", "8", "--law", "pid",
+                  "--search-runs", "4", "--full-periods", "1", "--json")
     assert p.returncode == 0, p.stderr
     res = json.loads(p.stdout)["axes"]["X"]
     assert abs(res["model"]["mode_hz"] / raw["axes"]["X"]["driver"]["mode_hz"] - 1.0) < 0.10
     for law, m in res["margins"].items():
         assert m["pm_deg"] >= PM_MIN_DEG - 1.0 and m["ms_db"] <= MS_MAX_DB + 0.5, (law, m)
-    before = default_plant[0]["X"]["gains"]
-    changed = [law for law, g in res["gains"].items()
-               if any(abs(g[k] / before[law][k] - 1.0) > 0.05 for k in g if k in ("k_s", "k1", "P", "D"))]
-    assert set(res["gains"]) == {"pid"} and changed, (res["gains"], before)
+    # (the gains written need not differ from the default plant's: the full-run confirmation
+    # keeps a PID of crossover ~100 Hz on both, below either mode)
+    assert set(res["gains"]) == {"pid"}, res["gains"]
 
 
 def test_autotune_through_the_serial_emulator(repo, tmp_path):
@@ -114,9 +122,10 @@ def test_autotune_through_the_serial_emulator(repo, tmp_path):
     out = tmp_path / "at"
     with Emulator("serial", cfg, plant=repo / "configs" / "gantry-rigid.yaml", watchdog_s=5.0):
         p = _autotune(repo, tmp_path, str(cfg), "--axis", "X", "--out", str(out), "--virtual-clock",
-                      "--verify-seconds", "0.5", "--periods", "2", "--law", "c2", "--search-runs", "0",
-                      "--json")
-    assert p.returncode == 0, p.stderr
+                      "--verify-seconds", "4", "--periods", "2", "--law", "c2", "--search-runs", "4",
+                      "--full-periods", "1", "--json")
+    assert p.returncode == 0, (p.stderr, [(v["run"], v["scale"], v["verdict"]) for v in
+                                          json.loads(p.stdout)["axes"]["X"]["verify"]])
     res = json.loads(p.stdout)["axes"]["X"]
     meas = res["measurement"]
     lo, hi = meas["soft_limits_m"]
@@ -132,6 +141,26 @@ def test_autotune_refuses_an_unknown_axis(repo, tmp_path):
     assert p.returncode == 2
     assert p.stderr.count("\n") == 1 and "--axis Z" in p.stderr
 
+
+
+def test_one_evaluation_for_run_and_autotune(repo, tmp_path):
+    """``motorctl run --json`` and autotune's evaluation give the same figures for the same gains
+    (the same job, the same run log read back): L2[e], saturated samples, u at rest."""
+    from motorctl.commission.evaluate import evaluate
+    raw = load_yaml(repo / "configs" / "gantry.yaml")
+    raw["axes"]["X"]["controller"]["k_s"] = 400.0        # a stiff C2 that saturates on the moves
+    cfg = tmp_path / "stiff.yaml"
+    cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
+    p = subprocess.run([sys.executable, "-m", "motorctl", "run", str(cfg), "--axis", "X", "--controller", "c2",
+                        "--duration", "4", "--virtual-clock", "--json"],
+                       cwd=repo, capture_output=True, text=True, timeout=1200)
+    assert p.returncode in (0, 1), p.stderr
+    by_run = json.loads(p.stdout)["axes"]["X"]
+    mine = evaluate(raw, str(cfg), "X", "c2", 4.0)
+    assert by_run["saturated"] > 0 and by_run["samples"] > 10000     # enabled cycles of the 20000
+    assert by_run["u_rest_rms_V"] is not None
+    for k in ("L2_um", "e_M_um", "saturated", "samples", "u_rest_rms_V", "fault"):
+        assert mine[k] == by_run[k], (k, mine[k], by_run[k])
 
 
 @pytest.mark.parametrize("option,value,words", [

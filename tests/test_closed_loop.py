@@ -1,4 +1,4 @@
-"""identify's closed-loop before/after (motorctl.app.closed_loop): the worker forked ahead of
+"""identify's closed-loop before/after (motorctl.commission.closed_loop): the worker forked ahead of
 the fit gives the figures of the same runs made in this process, the last nominal fit counts,
 and a fit without a compensable effect runs nothing."""
 
@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import pytest
 
-import motorctl.app.closed_loop as closed_loop
-from motorctl.app.closed_loop import ClosedLoop
-from motorctl.app.tune import make_log
+import motorctl.commission.closed_loop as closed_loop
+from motorctl.commission.closed_loop import ClosedLoop
+from motorctl.commission.tune import make_log
 from motorctl.ident.data import load_record
 from motorctl.ident.select import Identifier
 from motorctl.ident.synth import EXAMPLES

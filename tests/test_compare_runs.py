@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from motorctl.app.tune import make_log
+from motorctl.commission.tune import make_log
 from motorctl.cli import main
-from motorctl.app.compare import compare_axis, window
+from motorctl.commission.compare import compare_axis, window
 from motorctl.metrics import tracking_indexes
 
 

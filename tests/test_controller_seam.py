@@ -93,6 +93,11 @@ def test_a_fourth_law_is_one_module_and_one_entry_point(repo, tmp_path):
     p = _cli(repo, env, "check-config", bad)
     assert p.returncode == 2 and p.stderr.count("\n") == 1, p.stderr
     assert "axes.X.controller.pd.Q: unknown key; allowed here: P, D, FF2" in p.stderr
+    # a law that keeps the base gain family (none) is not autotuned: a clear refusal, no traceback
+    cfg = _pd_config(repo, tmp_path)           # (the bad file above took its path)
+    p = _cli(repo, env, "autotune", cfg, "--axis", "X", "--law", "pd", "--out", str(tmp_path / "at"))
+    assert p.returncode == 2 and p.stderr.count("\n") == 1, p.stderr
+    assert "--law pd: not a law axis X configures" in p.stderr, p.stderr
     # without the plugin the same file names the laws that are installed
     p = _cli(repo, {k: v for k, v in env.items() if k != "PYTHONPATH"}, "check-config", cfg)
     assert p.returncode == 2 and "axes.X.controller" in p.stderr and "pd" in p.stderr, p.stderr

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from motorctl.app.tune import make_log
+from motorctl.commission.tune import make_log
 from motorctl.cli import main
 from motorctl.ident.data import load_record
 from motorctl.ident.effects import parameters

@@ -12,7 +12,8 @@ REPO = Path(__file__).resolve().parents[1]
 #: package prefix -> prefixes it must never import
 FORBIDDEN = {
     "motorctl": ("motorctl_drivers", "motorctl_emulators"),
-    "motorctl_drivers": ("motorctl_emulators", "motorctl.app", "motorctl.cli", "motorctl.ident"),
+    "motorctl_drivers": ("motorctl_emulators", "motorctl.app", "motorctl.cli", "motorctl.ident",
+                         "motorctl.commission"),
     "motorctl.model": ("motorctl.",),
     "motorctl.schema": ("motorctl.",),
     "motorctl.effects": ("motorctl.control", "motorctl.loop", "motorctl.app", "motorctl.cli",
@@ -22,11 +23,12 @@ FORBIDDEN = {
     "motorctl.loop": ("motorctl.app", "motorctl.cli", "motorctl.recorder", "motorctl.ident",
                       "motorctl.config"),
     "motorctl.recorder": ("motorctl.app", "motorctl.cli", "motorctl.control", "motorctl.ident"),
-    "motorctl.app": ("motorctl.cli",),
-    "motorctl.ident": ("motorctl.cli", "motorctl.app"),
+    "motorctl.app": ("motorctl.cli", "motorctl.commission"),
+    "motorctl.commission": ("motorctl.cli",),
+    "motorctl.ident": ("motorctl.cli", "motorctl.app", "motorctl.commission"),
     # a pure library: the daemon's I/O side plans with it, the loop never does
     "motorctl.motion": ("motorctl.loop", "motorctl.app", "motorctl.cli", "motorctl.recorder",
-                        "motorctl.control", "motorctl.ident", "motorctl.config"),
+                        "motorctl.control", "motorctl.ident", "motorctl.config", "motorctl.commission"),
 }
 #: the loop runs the laws (motorctl.control: their compiled steps through
 #: motorctl.control.kernels, their published signals from motorctl.control.signals); the laws

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from scipy.interpolate import BSpline
 
-from motorctl.app.tune import make_log
+from motorctl.commission.tune import make_log
 from motorctl.cli import main
 from motorctl.config import ConfigError, config_from_dict, load_yaml
 from motorctl.effects import FAMILIES, family
@@ -160,7 +160,7 @@ def test_true_bump_compensated_removes_the_damage(runs):
     """(L2_before − L2_after)/(L2_before − L2_floor) ≥ 0.8: C2 on the rigid X axis, seed 1, the
     true bump compensated (compensation_for); floor: the same plant without it. Measured (12 s,
     L2 over 4-12 s): 3.597 → 3.488 µm, floor 3.491 µm: 1.03 (16 s: 3.594 → 3.486, 3.488: 1.02)."""
-    from motorctl.app.compare import compare_logs
+    from motorctl.commission.compare import compare_logs
     before, after, floor = (runs[k][0] for k in ("cl_before", "cl_after", "cl_floor"))
     ba = compare_logs(before, after)["axes"]["X"]
     bf = compare_logs(before, floor)["axes"]["X"]

@@ -12,7 +12,7 @@ import pytest
 import yaml
 from conftest import MOTORCTL, RIGID_PLANT
 
-from motorctl.app.tune import FILES, U_REST_SLACK, better, damage_removed, effect_free, effects_on
+from motorctl.commission.tune import FILES, U_REST_SLACK, better, damage_removed, effect_free, effects_on
 from motorctl.cli import main
 from motorctl.cli.tune import text_report
 from motorctl.config import config_from_dict, load_config, load_yaml

@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from motorctl.app.job import run_job
-from motorctl.app.tune import make_log
+from motorctl.commission.tune import make_log
 from motorctl.cli import main
 from motorctl.config import load_config, load_yaml
 

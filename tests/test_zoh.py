@@ -12,7 +12,7 @@ import json
 import numpy as np
 import pytest
 
-from motorctl.app.tune import make_log
+from motorctl.commission.tune import make_log
 from motorctl.cli import main
 from motorctl.ident.data import load_record
 from motorctl.ident.select import Identifier, is_hold

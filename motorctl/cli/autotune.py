@@ -1,6 +1,6 @@
 """``motorctl autotune``: measured frequency response → fitted model → gains by one rule →
 verified on the machine → ``DIR/autotuned.yaml`` and ``DIR/bode_<A>.png``
-(:mod:`motorctl.app.autotune` has the procedure and the rule).
+(:mod:`motorctl.commission.autotune` has the procedure and the rule).
 
     motorctl autotune CONFIG --axis A [--axis B] [--out DIR] [--virtual-clock] [--verify-seconds S]
                      [--periods N] [--gm-min-db G] [--pm-min-deg P] [--ms-max-db M]
@@ -35,8 +35,11 @@ def register(parser, subparsers) -> None:
     p.add_argument("--virtual-clock", action="store_true",
                    help="run as fast as possible (default: the config's clock)")
     p.add_argument("--verify-seconds", type=seconds, default=None,
-                   help=f"length of each verification run in s, at least {VERIFY_MIN_S:g} "
+                   help=f"length of each screening run in s, at least {VERIFY_MIN_S:g} "
                         f"(default: two program periods)")
+    p.add_argument("--full-periods", type=int, default=None,
+                   help="program periods of each confirmation run, 1..100 (default 10: the gains "
+                        "written passed runs of this length at 100, 75 and 50 %% of their loop gain)")
     p.add_argument("--periods", type=int, default=None,
                    help="measured multisine periods of 1 s, even, 2..200 (default 32)")
     p.add_argument("--gm-min-db", type=float, default=None, help="the rule's gain margin floor [dB] (default 6)")
@@ -55,7 +58,7 @@ def register(parser, subparsers) -> None:
 
 
 def _summary(res: dict) -> dict:
-    from motorctl.app.autotune import final_margins
+    from motorctl.commission.autotune import final_margins
     meas, mdl = res["measure"], res["model"]
     mg = final_margins(res)
     return {
@@ -78,8 +81,8 @@ def _summary(res: dict) -> dict:
 
 
 def cmd_autotune(args) -> int:
-    from motorctl.app.autotune import (PERIODS, RULE, SEARCH_BUDGET, AutotuneError, Rule, autotune, plot_bode,
-                                       write_config)
+    from motorctl.commission.autotune import autotune, plot_bode, write_config
+    from motorctl.commission.rule import FULL_PERIODS, PERIODS, RULE, SEARCH_BUDGET, AutotuneError, Rule
     from motorctl.cli import UsageError
     from motorctl.config import config_from_dict, load_yaml
     from motorctl.inputs import writable_dir
@@ -98,9 +101,12 @@ def cmd_autotune(args) -> int:
     search_runs = SEARCH_BUDGET if args.search_runs is None else args.search_runs
     if not 0 <= search_runs <= 200:
         raise UsageError(f"--search-runs {args.search_runs}: allowed 0..200")
+    full_periods = FULL_PERIODS if args.full_periods is None else args.full_periods
+    if not 1 <= full_periods <= 100:
+        raise UsageError(f"--full-periods {args.full_periods}: allowed 1..100")
     raw = load_yaml(args.config)
     loaded = config_from_dict(raw, args.config)
-    from motorctl.app.autotune import tunable_laws
+    from motorctl.commission.choose import tunable_laws
     for a in args.axis:
         if a not in loaded.axes:
             raise UsageError(f"--axis {a}: no such axis in {args.config}; axes: {', '.join(loaded.axes)}")
@@ -117,7 +123,7 @@ def cmd_autotune(args) -> int:
         try:
             res = autotune(loaded, raw, a, clock, args.verify_seconds, progress=say, periods=periods,
                            rule=rule, laws=args.law, measure_only=args.measure_only,
-                           search_runs=search_runs)
+                           search_runs=search_runs, full_periods=full_periods)
         except AutotuneError as exc:
             sys.stderr.write(f"motorctl: autotune: {exc}\n")
             return 1

@@ -9,7 +9,7 @@
 with the found effects as ``controller.compensation``, θ̂(0) from the fit and the box widened
 where the fit lies outside it, every change commented with its figure
 (:func:`motorctl.ident.pipeline.tuned_config`). The pipeline is :mod:`motorctl.ident.pipeline`,
-the closed-loop before/after :class:`motorctl.app.closed_loop.ClosedLoop`: this module parses and prints.
+the closed-loop before/after :class:`motorctl.commission.closed_loop.ClosedLoop`: this module parses and prints.
 
 Exit codes: 0 done (with or without an effect found), 2 bad input (one line on stderr).
 """
@@ -98,7 +98,7 @@ def cmd_identify(args) -> int:
     # loop meanwhile and runs "before" and (the model found so far) "after" during the search
     cl = None
     if cl_cfg is not None:
-        from motorctl.app.closed_loop import ClosedLoop
+        from motorctl.commission.closed_loop import ClosedLoop
         cl = ClosedLoop(cl_cfg, cl_axis, args.closed_loop_duration)
     try:
         from motorctl.ident.pipeline import (identify_record, json_default, text_report, validation,

@@ -39,6 +39,8 @@ def cmd_run(args) -> int:
                   f"{n_cycles * loaded.period_s:g} s ({clock} clock); SIGINT/SIGTERM stops at 0 V\n")
         out.flush()
 
+    if args.json:
+        return _run_json(args, loaded, axes)
     try:
         res = run_job(loaded, axes=axes, controller=args.controller, duration_s=args.duration,
                       clock="virtual" if args.virtual_clock else None, log_path=args.log,
@@ -79,6 +81,27 @@ def cmd_run(args) -> int:
         for line in lines:
             sys.stderr.write(f"motorctl: error: {line}\n")
         return EXIT_STOP_UNCONFIRMED
+    return 1 if any(r["fault"] for r in res.axes.values()) else 0
+
+
+def _run_json(args, loaded, axes) -> int:
+    """``motorctl run --json``: the run's indexes and the commissioning's figures per axis
+    (:func:`motorctl.commission.evaluate.job_evaluation`, the path autotune verifies by)."""
+    from motorctl.app.job import run_job
+    from motorctl.commission.evaluate import run_metrics
+    with tempfile.TemporaryDirectory(prefix="motorctl-run-") as tmp:
+        log = args.log or os.path.join(tmp, "run.log")
+        res = run_job(loaded, axes=axes, controller=args.controller, duration_s=args.duration,
+                      clock="virtual" if args.virtual_clock else None, log_path=log,
+                      realtime_policy=args.realtime)
+        out = {}
+        for a, r in res.axes.items():
+            m = run_metrics(log, loaded, a)
+            m.pop("e_psd")
+            out[a] = {**{k: (None if isinstance(v, float) and v != v else v) for k, v in r.items()},
+                      **{k: (None if isinstance(v, float) and v != v else v) for k, v in m.items()}}
+    json.dump({"axes": out, "stop_confirmed": res.stop_confirmed}, sys.stdout)
+    sys.stdout.write("\n")
     return 1 if any(r["fault"] for r in res.axes.values()) else 0
 
 
@@ -196,6 +219,9 @@ def register(parser, sub) -> None:
     r.add_argument("--controller", choices=CONTROLLER_NAMES, help="override every axis's controller")
     r.add_argument("--duration", type=seconds, help="run length in s (default: loop.duration_s)")
     r.add_argument("--log", help="write the run log here")
+    r.add_argument("--json", action="store_true",
+                   help="print one JSON object (per axis: the indexes, saturated samples, u RMS at rest) "
+                        "and nothing else")
     r.add_argument("--virtual-clock", action="store_true", help="run as fast as possible (same results)")
     r.add_argument("--realtime", choices=("off", "best_effort", "required"),
                    help="override loop.realtime.policy")

@@ -27,7 +27,7 @@ import json
 import math
 import sys
 
-from motorctl.app.compare import INDEXES, SPLIT, compare_logs, figures, public
+from motorctl.commission.compare import INDEXES, SPLIT, compare_logs, figures, public
 from motorctl.metrics import REST_AFTER_S
 
 def register(parser, subparsers) -> None:

@@ -13,21 +13,21 @@
    over a worse config: the changes of ``tuned.yaml`` (the fitted θ̂(0) with its box, each
    compensated effect) go by backward elimination: each change still kept is undone in turn
    (``DIR/without_<changes>.yaml`` / ``.mclog``), the undo that leaves the loop best among
-   those it is better with (:func:`motorctl.app.tune.better`: a lower L2[e], an e_M no more
+   those it is better with (:func:`motorctl.commission.tune.better`: a lower L2[e], an e_M no more
    than one encoder count above the before run's, and u's noise at rest no more than
-   :data:`~motorctl.app.tune.U_REST_SLACK` above it) is taken, and again until no undo helps;
+   :data:`~motorctl.commission.tune.U_REST_SLACK` above it) is taken, and again until no undo helps;
    then what is kept must
    beat the before run the same way, else no effect is kept and ``tuned.yaml`` is CONFIG
    unchanged (the report says which were dropped and why);
 5. on the simulated driver, **floor**: CONFIG with the plant's effects switched off
-   (:func:`motorctl.app.tune.effect_free`, same seed), ``DIR/floor.yaml`` and ``DIR/floor.mclog``;
-6. **compare** (:func:`motorctl.app.compare.compare_logs`, what ``motorctl compare-runs`` computes):
+   (:func:`motorctl.commission.tune.effect_free`, same seed), ``DIR/floor.yaml`` and ``DIR/floor.mclog``;
+6. **compare** (:func:`motorctl.commission.compare.compare_logs`, what ``motorctl compare-runs`` computes):
    e_M, e_F, L2[e] [µm] and u_peak [V] before, after, their ratio and the floor over the same
    program periods (with L2[e] in motion / at standstill and u's noise at rest), the damage
    removed (L2_before − L2_after)/(L2_before − L2_floor) and whether e_M got worse;
    ``DIR/compare_runs_<A>.png`` when matplotlib is installed.
 
-The runs are :func:`motorctl.app.tune.tune`'s; this module parses the arguments and prints.
+The runs are :func:`motorctl.commission.tune.tune`'s; this module parses the arguments and prints.
 
 Exit codes: 0 done (with or without an effect found), 1 a run faulted, 2 bad input (one line on
 stderr, nothing started).
@@ -106,7 +106,7 @@ def cmd_tune(args) -> int:
         sys.stdout.write(line + "\n")
         sys.stdout.flush()
 
-    from motorctl.app.tune import tune
+    from motorctl.commission.tune import tune
     res = tune(args.config, args.axis, out, args.duration, "virtual" if args.virtual_clock else None,
                None if args.json else progress)
     if args.json:

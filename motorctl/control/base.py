@@ -99,9 +99,10 @@ class Controller(abc.ABC):
         raise NotImplementedError(f"controller {cls.name!r} has no linearisation")
 
     @classmethod
-    def gain_family(cls, theta1: float, settings) -> list[dict]:
+    def gain_family(cls, theta1: float, settings, omegas) -> list[dict]:
         """Autotune's candidates: settings key -> value dicts (with the design numbers under
-        keys that start with '_'), from the fitted θ1 = M/A1 [V s²/m]. Default: none."""
+        keys that start with '_'), from the fitted θ1 = M/A1 [V s²/m], one or more per design
+        pole ω in ``omegas`` [rad/s]. Default: none (autotune leaves the law as configured)."""
         return []
 
     @classmethod

@@ -4,7 +4,7 @@ the JSON of ``identify``), validate on a second record, turn the found effects i
 controller's compensation and θ̂(0) (:func:`compensation_from_fit`), write the tuned config
 (:func:`tuned_config`, :func:`write_tuned_config`) and the text report (:func:`text_report`).
 
-No run happens here (the closed-loop before/after is :class:`motorctl.app.closed_loop.ClosedLoop`),
+No run happens here (the closed-loop before/after is :class:`motorctl.commission.closed_loop.ClosedLoop`),
 and nothing here parses arguments (the CLI is :mod:`motorctl.cli.identify`).
 """
 

@@ -137,7 +137,7 @@ def make_log(path: str, effect: dict | None = None, duration_s: float = 8.0, see
 
 def better(a: dict, b: dict, ref: dict | None = None) -> bool:
     """Run ``a`` tracks better than run ``b`` (their indexes over the same program periods,
-    :func:`motorctl.app.compare.compare_axis` [µm, V]): a lower L2[e], an e_M no more than
+    :func:`motorctl.commission.compare.compare_axis` [µm, V]): a lower L2[e], an e_M no more than
     :data:`E_M_SLACK_UM` above that of ``ref`` (default ``b``; tune passes the before run: L2[e]
     decides, e_M must not get worse than without tuning), and, where both have it, u's RMS at
     rest ("u_rest_rms_V") no more than :data:`U_REST_SLACK` above ``ref``'s: a compensation
@@ -248,7 +248,7 @@ def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None =
 
 def _indexes(files: dict, log: Path, axis: str) -> dict:
     """The indexes of run ``log`` over the program periods it shares with the before run."""
-    from motorctl.app.compare import compare_logs
+    from motorctl.commission.compare import compare_logs
     try:
         return compare_logs(str(files["before"]), str(log), [axis])["axes"][axis]["after"]
     except ValueError as exc:      # no common program period (a run cut short)
@@ -370,10 +370,10 @@ def _identify(log_path: Path, axis: str):
 
 
 def _write_floor(floor_cfg: dict, config: str, path: Path) -> Path:
-    """Write the effect-free config (:func:`motorctl.app.tune.effect_free`) with a comment."""
+    """Write the effect-free config (:func:`motorctl.commission.tune.effect_free`) with a comment."""
     import yaml
     head = (f"# the effect-free floor of `motorctl tune`: {config} with every simulated effect switched "
-            f"off (motorctl.app.tune.effect_free); the same plant otherwise, the same seed\n")
+            f"off (motorctl.commission.tune.effect_free); the same plant otherwise, the same seed\n")
     path.write_text(head + yaml.safe_dump(floor_cfg, sort_keys=False, default_flow_style=False,
                                           allow_unicode=True), encoding="utf-8")
     return path
@@ -382,7 +382,7 @@ def _write_floor(floor_cfg: dict, config: str, path: Path) -> Path:
 def _compare(res: dict, files: dict) -> None:
     """Fill ``res['compare']`` (before/after/ratio, the floor on sim), the damage removed,
     e_M not worse and the figure, with compare-runs' code over the same program periods."""
-    from motorctl.app.compare import compare_logs, figures, public
+    from motorctl.commission.compare import compare_logs, figures, public
     axis = res["axis"]
 
     def compare(after: str) -> dict:

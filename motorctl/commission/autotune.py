@@ -1,0 +1,305 @@
+"""``motorctl autotune``: measure an axis's frequency response through its driver, fit a physical
+model, choose every controller's gains by one rule, verify them on the machine, write them.
+
+Steps (any driver; the simulated one by default):
+
+1. **measure** (:func:`measure_frf`): the axis is held by a conservative PID+FF (catalogue θ̂1(0),
+   ω_n = 2π·20 Hz, ζ = 0.7, integral corner ω_n/5), rests at one end of its stroke (the rest
+   noise of the encoder is recorded there), then makes one slow constant-velocity pass across
+   the stroke (so Coulomb friction is a constant force and stiction never grips) while a
+   periodic multisine r is added at the plant input: amplitude ramped up over its first period,
+   every 1 Hz line from 10 Hz to 1 kHz and every 4th line up to 0.48 fs, line amplitudes
+   ∝ f² below 60 Hz (the displacement stays a small share of the following-error limit) and
+   scaled so that |r| ≤ 80 % of u_lim (32 periods: the heavy Y axis's response above 700 Hz, where
+   the current loop shows, is a few nm per line). The pass stays 10 % of the stroke inside the soft limits,
+   the supervisor's following-error limit is armed, and the excitation switches itself off
+   (latched) if |e| reaches half the smallest following-error limit.
+   The plant FRF is the indirect closed-loop estimate P = S_re/S_ru (scipy.signal.csd, one
+   multisine period per segment, boxcar window, linear detrend; e = y − x_d), with the
+   coherence r → e; the feedback does not bias it because r is independent of the noise.
+2. **fit** (:func:`fit_plant`): θ1 = M/A1, θ2 = B/A1, one structural mode (frequency, damping,
+   load share), the current-loop bandwidth and a transport delay, by scipy.optimize.least_squares
+   on log(P_model/P_measured) weighted by the coherence, with the ZOH and its aliases
+   (:func:`motorctl.commission.loopshape.plant_model_frf`); a rigid model is kept when the mode does not
+   lower the cost by 30 %.
+3. **choose** (:func:`~motorctl.commission.choose.choose_gains`), ONE rule for every law, on the *measured* FRF:
+   among each law's family (PID: P = θ1 ω², D = 2ζωθ1, I = P ω/r; C1/C2: k_s = 2ζωθ1,
+   k1 = ω/(2ζ), γ_d of the config; ω on a log grid of 49 points from 30 to 3000 rad/s,
+   ζ ∈ {0.3, 0.4, 0.5, 0.7, 1}, r ∈ {3, 5, 7, 10}; θ1 the fitted one), the *admissible* gains
+   are those with gain margin ≥ 6 dB, phase margin ≥ 10° and peak sensitivity ≤ 16 dB at 100,
+   75 and 50 % of their loop gain (the verification ladder; a lighter loop gain is also what
+   a heavier load does; the back-off steps 35 and 25 % are tried only where they hold too).
+   The floor is wide on purpose: the least L2[e] the machine accepts (no fault, saturation,
+   rest noise; ``benchmarks/compare_laws.py --search``) lies at 10-20° of phase margin and
+   11-16 dB of peak sensitivity on the default plant, and step 4 runs every candidate on the
+   machine, which stops on oscillation. The first candidate is the admissible one of highest
+   loop gain |L| at :data:`F_TRACK_HZ` = 2 Hz (the least sensitivity where the tracking error
+   of a point-to-point program lives). The u noise at rest is predicted (the measured rest
+   spectrum of y through |C|) and reported, but judged on the machine in step 4 (with
+   stiction and quantisation the prediction is only a bound). C1 and C2 have the same
+   linearisation at rest (u0 = 0), so they share the admissible set and the first candidate;
+   each is verified with its own runs and written in its own mapping.
+4. **verify** (:mod:`motorctl.commission.verify`). Every run is ``motorctl run``'s own job
+   (:func:`motorctl.commission.evaluate.evaluate`: the same counts as ``motorctl run --json``)
+   of the axis's program, judged by :func:`~motorctl.commission.verify.admissible` against
+   the configured controller's run of the same length: a fault (following error, limits),
+   more saturated samples than :data:`SAT_FACTOR` times the configured controller's (or than
+   that factor times :data:`SAT_FLOOR_SHARE` of the samples), u RMS at rest above
+   :data:`REST_FACTOR` times the configured controller's, or oscillation (a spectral line in
+   u at rest ≥ :data:`OSC_RATIO` times the median of its spectrum, or the error spectrum ≥
+   :data:`OSC_RATIO` times the configured controller's at some frequency) fails a run.
+   Steps a.-c. screen on short runs (``verify_s``, two program periods); e. decides on full
+   ones.
+
+   a. *ladder* on the first candidate: 50 %, 75 %, 100 % of its loop gain (PID: P, I, D;
+      C1/C2: k_s), a rung between two on a failure (when 50 % fails: 35 %, then 25 %).
+   b. *search*: per shape (ζ, r), the highest admissible ω that passes. A failed run bounds ω
+      from above (noise, saturation, oscillation, a fault of a ringing loop), or from below
+      when it faults on its following error with u quiet at rest and no line in u or e
+      (:func:`too_soft`: the loop is too soft for the program) or saturates more than a run
+      of the shape at a higher ω did (its larger error drives u into the limit). The
+      candidates are the admissible ω whose rest noise, read off the prediction of step 3
+      through the shape's own runs (a power law through the nearest, of exponent
+      :data:`NOISE_EXPONENT` or the one its runs fit: the prediction grows faster with ω
+      than the machine's noise; a shape not yet run: in proportion to the latest run of
+      any), is at most :data:`NOISE_SLACK` times the level (the run judges; the best often
+      sits at the level). From where the previous shape's passed (the first shape: its
+      highest candidate), down 1, 2, 4 ... grid points while runs fail high, up so while
+      they pass or fail soft, then halving the bracket. Shapes
+      in the order of their reach, the |L| at 2 Hz of their highest candidate (re-ranked
+      after each shape); a shape whose reach is below :data:`PRUNE_SHARE` of that of the
+      best run so far ends the search (the rest reach less still). At most
+      :data:`SEARCH_RUNS` runs per shape and :data:`SEARCH_BUDGET` in all.
+   c. *refinement* around the best run that passed at 100 %: its admissible neighbours on
+      the family's grid (one step in ω, ζ or r, or in two of them at once), the highest |L|
+      at 2 Hz first; the first that passes with a lower L2[e] becomes the centre; it stops
+      when no neighbour improves, after :data:`REFINE_RUNS` runs.
+   e. *confirmation* on full runs of :data:`FULL_PERIODS` program periods (saturation is
+      rare and bursty: X's C2 saturated 7, 13, 15, 13, 15 times in successive 8 s windows
+      of one 40 s run): the :data:`FULL_TRIES` best candidates of the short runs at 100 %,
+      then those that passed, by their full L2[e], at 75 % and 50 %; the first that passes
+      all three is written. When none does, the best candidate stepped down
+      (:data:`STEP_DOWN`), each with its three rungs; nothing that failed is ever written.
+
+5. **write** (:func:`write_config`, :func:`plot_bode`): ``DIR/autotuned.yaml`` (the gains,
+   commented with the margins that chose them) and ``DIR/bode_<A>.png``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+import copy
+import math
+
+import numpy as np
+import yaml
+
+from motorctl.commission.choose import choose_gains, loop_frf, tunable_laws
+from motorctl.commission.evaluate import evaluate
+from motorctl.commission.fit import fit_plant
+from motorctl.commission.loopshape import c_frf, loop_margins
+from motorctl.commission.measure import measure_frf
+from motorctl.commission.rule import (FULL_PERIODS, PERIODS, REST_FACTOR, RULE, SAT_FACTOR, SAT_FLOOR_SHARE,
+                                      SEARCH_BUDGET, AutotuneError, Rule)
+from motorctl.commission.verify import apply_gains, verify
+from motorctl.config import LoadedConfig, config_from_dict
+from motorctl.control import controller_class
+
+
+# ================================================================ the whole procedure
+def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
+             verify_s: float | None = None, progress=None, periods: int = PERIODS,
+             rule: Rule = RULE, laws=None, measure_only: bool = False,
+             search_runs: int = SEARCH_BUDGET, full_periods: int = FULL_PERIODS) -> dict:
+    """Steps 1-4 for one axis and the laws ``laws`` (None: every law of :func:`tunable_laws`;
+    ``measure_only``: steps 1-2, no law; ``search_runs``: :func:`verify`'s; ``full_periods``:
+    program periods of a confirmation run). Returns
+    {"measure", "model", "theta_hat0", "w", "G_fit", "G_w", "choice": {law: ...}, "verify":
+    {law: ...}, "reference" (None when measure_only), "gains": {law: gains written}, "extra":
+    {law: settings written with them}}.
+
+    Raises:
+        AutotuneError: the measurement faulted or tripped its guard, or no law could be tuned.
+    """
+    sec = loaded.axes[axis].controller
+    ts = loaded.period_s
+    meas = measure_frf(loaded, raw, axis, clock, progress, periods)
+    if meas["fault"] or meas["tripped"] or "G" not in meas:
+        why = meas["fault"] or ("the excitation guard fired (|e| reached "
+                                f"{meas['guard_m'] * 1e6:.0f} um)" if meas["tripped"] else "too short")
+        raise AutotuneError(f"axis {axis}: the measurement stopped: {why}")
+    model = fit_plant(meas["f_hz"], meas["G"], meas["coherence"], ts, sec.theta_hat0)
+    if progress:
+        sg = model["sigma"]
+        progress(f"fit {axis}: theta1 {model['theta1']:.4g} +- {sg['theta1']:.2g} V s^2/m (theta_hat1(0) "
+                 f"{sec.theta_hat0[0]:.4g}), theta2 {model['theta2']:.3g} +- {sg['theta2']:.2g} V s/m, mode "
+                 f"{model['mode_hz']:.1f} +- {sg.get('mode_hz', 0.0):.2g} Hz zeta {model['mode_damping']:.3f} load "
+                 f"{model['load_fraction']:.2f}, current loop {model['current_loop_hz']:.0f} +- "
+                 f"{sg['current_loop_hz']:.2g} Hz, delay {model['delay_s'] * 1e6:.1f} +- {sg['delay_s'] * 1e6:.2g} us "
+                 f"(+- one standard deviation of the fit)")
+    w, G_fit, G_w = loop_frf(meas, model, ts)
+    th = np.asarray(sec.theta_hat0, dtype=float)
+    fitted = th.copy()              # θ1 from the fit; θ2..θ6 (friction, offset) as configured:
+    fitted[0] = model["theta1"]     # the FRF above 10 Hz does not see them
+    done = {"axis": axis, "measure": meas, "model": model, "theta_hat0": th.tolist(), "w": w,
+            "G_fit": G_fit, "G_w": G_w, "choice": {}, "verify": {}, "reference": None,
+            "gains": {}, "extra": {}, "ts": ts, "section": sec, "rule": rule}
+    if measure_only:
+        return done
+    period = loaded.axes[axis].trajectory.period_s
+    vs = verify_s if verify_s is not None else max(2.0 * period, 1.0)
+    ref = evaluate(raw, str(loaded.path), axis, sec.type, vs, clock)
+    full_s = full_periods * period if period > 0 else None
+    full_ref = evaluate(raw, str(loaded.path), axis, sec.type, full_s, clock) if full_s else None
+    if progress:
+        for r_, s_ in ((ref, vs), (full_ref, full_s)):
+            if r_ is not None:
+                progress(f"verify {axis}: as configured ({sec.type}), {s_:g} s: L2 {r_['L2_um']:.3f} um, "
+                         f"{r_['saturated']} saturated samples, u at rest {r_['u_rest_rms_V'] * 1e3:.0f} mV")
+    choice, ver, gains, extra = {}, {}, {}, {}
+    for law in (laws or tunable_laws(sec)):
+        ch_ = choose_gains(law, G_w, w, ts, model["theta1"], sec, meas["rest_psd"], th, rule)
+        choice[law] = ch_
+        if ch_ is None:
+            continue
+        if progress:
+            m = ch_["margins"]
+            progress(f"rule {axis} {law}: {_fmt_gains(law, ch_['gains'])}: GM {m.gm_db:.1f} dB, PM "
+                     f"{m.pm_deg:.1f} deg, |S| {m.ms_db:.1f} dB, crossover {m.wc_hz:.0f} Hz, rest "
+                     f"{ch_['u_rest_pred_V'] * 1e3:.0f} mV predicted ({ch_['candidates']} passed "
+                     f"in {len(ch_['admissible'])} shapes)")
+        extra[law] = controller_class(law).model_settings(fitted) or None
+        ver[law] = verify(raw, str(loaded.path), axis, law, ch_, vs, clock, ref, extra[law], progress,
+                          search_runs, full_s, full_ref)
+        if ver[law]["gains"] is not None:
+            gains[law] = ver[law]["gains"]
+    if not choice or all(c is None for c in choice.values()):
+        raise AutotuneError(f"axis {axis}: no gains of any law meet the rule on the measured response")
+    return done | {"choice": choice, "verify": ver, "reference": ref, "gains": gains, "extra": extra}
+
+
+def _fmt_gains(law: str, g: dict) -> str:
+    return " ".join(f"{k} {g[k]:.4g}" for k in controller_class(law).tuned_keys if k in g)
+
+
+def final_margins(res: dict) -> dict:
+    """Margins of the written gains on the measured FRF: {law: Margins}."""
+    return {law: loop_margins(c_frf(law, g, res["ts"], res["w"], res["theta_hat0"]) * res["G_w"],
+                              res["w"] / (2.0 * math.pi))
+            for law, g in res["gains"].items()}
+
+
+def write_config(raw: dict, results: list, source: str, path) -> dict:
+    """Step 5: ``raw`` with every autotuned axis's gains (each law in its own mapping of the
+    ``controller:`` section), checked as check-config does, written to ``path`` with a comment
+    block per axis (model, rule, margins, verification).
+
+    Raises:
+        ConfigError: the result does not pass the checks (nothing written). OSError.
+    """
+    new = copy.deepcopy(raw)
+    lines = [f"# motorctl autotune of {source}: per law, among the gains whose margins on the measured",
+             f"# frequency response hold ({(results[0]['rule'] if results else RULE).text()} at 100/75/50 %), "
+             f"the least L2[e] of a run",
+             f"# of the axis's program ({FULL_PERIODS} periods, as motorctl run) that passes at 100/75/50 % of its "
+             f"loop gain: no fault,",
+             f"# saturated samples <= {SAT_FACTOR:g} x max(as configured, {SAT_FLOOR_SHARE:.0e} of the samples), "
+             f"u RMS at rest <= {REST_FACTOR:g} x as configured, no oscillation."]
+    for res in results:
+        a, mdl = res["axis"], res["model"]
+        lines.append(f"# axis {a}: fitted theta1 = M/A1 {mdl['theta1']:.4g} V s^2/m (config theta_hat1(0) "
+                     f"{res['theta_hat0'][0]:.4g}), theta2 {mdl['theta2']:.3g} V s/m, mode "
+                     f"{mdl['mode_hz']:.1f} Hz (zeta {mdl['mode_damping']:.3f}, load "
+                     f"{mdl['load_fraction']:.2f}), current loop {mdl['current_loop_hz']:.0f} Hz, delay "
+                     f"{mdl['delay_s'] * 1e6:.1f} us")
+        mg = final_margins(res)
+        for law in res["choice"]:
+            if law not in res["gains"]:
+                lines.append(f"#   {law}: not tuned (kept as configured)")
+                continue
+            g, v, m = res["gains"][law], res["verify"][law], mg[law]
+            new = apply_gains(new, a, law, g, res["extra"].get(law))
+            how = ("the rule's first candidate" if v["from"] == "rule" else "the search's best")
+            lines.append(f"#   {law}: {_fmt_gains(law, g)} ({v['scale']:.0%} of {how}, L2 {v['L2_um']:.3f} um): "
+                         f"GM {m.gm_db:.1f} dB at {m.gm_hz:.0f} Hz, PM {m.pm_deg:.1f} deg, |S|max "
+                         f"{m.ms_db:.1f} dB, crossover {m.wc_hz:.0f} Hz")
+    config_from_dict(new, str(path), check_budget=False)
+    text = "\n".join(lines) + "\n" + yaml.safe_dump(new, sort_keys=False, default_flow_style=None)
+    Path(path).write_text(text, encoding="utf-8")
+    return new
+
+
+def _phase_deg(H: np.ndarray) -> np.ndarray:
+    """The phase of H (K,) unwrapped along the frequency and brought to (−360°, 0°] at its first
+    point (a plant with a double integrator starts near −180°) [deg]."""
+    ph = np.degrees(np.unwrap(np.angle(H)))
+    return ph - 360.0 * math.ceil(ph[0] / 360.0)
+
+
+def plot_bode(res: dict, path) -> str:
+    """Step 5: the Bode plot as PNG, five panels sharing the frequency axis: |G| (measured, and the
+    fitted model over the measured band), G's phase, the coherence r → e of
+    the measurement, |L| of each law's written gains with its crossover and gain margin
+    marked, L's phase with −180° and the phase margin marked (the last two only when gains were
+    chosen: three panels after ``--measure-only``). Every phase is unwrapped the same
+    way (:func:`_phase_deg`); the measured plant's phase continues the model's at the first
+    measured line. Needs matplotlib (the ``plot`` extra)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    w, ts = res["w"], res["ts"]
+    f = w / (2.0 * math.pi)
+    meas = res["measure"]
+    fm, Gm = meas["f_hz"], meas["G"]
+    ph_fit = _phase_deg(res["G_fit"])
+    ph_m = np.degrees(np.unwrap(np.angle(Gm)))
+    ph_m += 360.0 * np.round((np.interp(fm[0], f, ph_fit) - ph_m[0]) / 360.0)   # on the model's branch
+    n_panels = 5 if res["gains"] else 3        # --measure-only: no loop to draw
+    fig, ax = plt.subplots(n_panels, 1, figsize=(10, 13 if res["gains"] else 8), sharex=True,
+                           gridspec_kw={"height_ratios": [3, 2, 1, 3, 2][:n_panels]})
+    ax = list(ax) + [None] * (5 - n_panels)
+    ax[0].loglog(fm, np.abs(Gm), ".", ms=2, color="0.5", label="plant G, measured")
+    band = (f >= fm[0]) & (f <= fm[-1])         # the model where it was fitted: the measured band
+    ax[0].loglog(f[band], np.abs(res["G_fit"][band]), "k-", lw=1, label="plant G, fitted model")
+    ax[1].semilogx(fm, ph_m, ".", ms=2, color="0.5")
+    ax[1].semilogx(f[band], ph_fit[band], "k-", lw=1)
+    ax[2].semilogx(fm, meas["coherence"], ".", ms=2, color="0.3")
+    mg = final_margins(res)
+    colors = ("tab:green", "tab:blue", "tab:red", "tab:purple", "tab:orange")
+    for j, law in enumerate(res["gains"]):
+        color = colors[j % len(colors)]
+        L = c_frf(law, res["gains"][law], ts, w, res["theta_hat0"]) * res["G_w"]
+        m = mg[law]
+        ax[3].loglog(f, np.abs(L), color=color, lw=1,
+                     label=f"L {law}: GM {m.gm_db:.1f} dB, PM {m.pm_deg:.0f} deg, |S| {m.ms_db:.1f} dB")
+        ph = _phase_deg(L)
+        ax[4].semilogx(f, ph, color=color, lw=1)
+        if math.isfinite(m.wc_hz):
+            for k in (3, 4):
+                ax[k].axvline(m.wc_hz, color=color, ls=":", lw=0.8)
+            ax[4].plot([m.wc_hz], [np.interp(m.wc_hz, f, ph)], "o", color=color, ms=4)
+        if math.isfinite(m.gm_hz):
+            ax[3].plot([m.gm_hz], [10 ** (-m.gm_db / 20)], "v", color=color)
+    if res["gains"]:
+        ax[3].axhline(1.0, color="0.7", lw=0.8)
+        ax[4].axhline(-180.0, color="0.7", lw=0.8)
+        ax[3].set_ylabel("|L| [-]")
+        ax[4].set_ylabel("phase L [deg]")
+        ax[3].legend(fontsize=8)
+    for k in (1, 4)[:1 + bool(res["gains"])]:
+        ys = [np.min(line.get_ydata()) for line in ax[k].get_lines() if len(line.get_ydata()) > 2]
+        if ys:
+            ax[k].set_ylim(max(min(ys), -900.0) - 20.0, 20.0)
+    ax[0].set_ylabel("|G| [m/V]")
+    ax[1].set_ylabel("phase G [deg]")
+    ax[2].set_ylabel("coherence")
+    ax[2].set_ylim(0.0, 1.05)
+    ax[n_panels - 1].set_xlabel("frequency [Hz]")
+    ax[0].legend(fontsize=8)
+    ax[0].set_title(f"axis {res['axis']}: measured plant (indirect closed-loop estimate)"
+                    + (" and loop gains" if res["gains"] else ""))
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return str(path)

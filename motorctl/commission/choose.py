@@ -1,0 +1,157 @@
+"""Step 3 of ``motorctl autotune``: every law's gain family on the measured response, the
+members whose margins hold at every rung of the verification ladder."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from motorctl.commission.loopshape import loop_margins, plant_model_frf
+from motorctl.commission.rule import BACKOFF, F_TRACK_HZ, RULE, Rule, SCALES
+from motorctl.control import configured_controllers, controller_class
+
+
+# ================================================================ the rule
+OMEGA = tuple(float(x) for x in np.geomspace(30.0, 3000.0, 49))   #: [rad/s]
+
+
+def loop_frf(meas: dict, model: dict, ts: float):
+    """(w (K,) [rad/s] of :func:`grid_w`, the fitted model's FRF (K,), the FRF the rule runs on
+    (K,)): the measured FRF where it was measured (coherence ≥ 0.5, interpolated between the
+    lines) and the fitted model elsewhere (below 10 Hz, above the last line) [m/V]."""
+    w = grid_w(ts)
+    G_fit = plant_model_frf(model, ts, w)
+    G_w = G_fit.copy()
+    fm, Gm, ch = meas["f_hz"], meas["G"], meas["coherence"]
+    good = ch >= 0.5
+    f_w = w / (2.0 * math.pi)
+    if good.sum() > 10:
+        inside = (f_w >= fm[good][0]) & (f_w <= fm[good][-1])
+        re = np.interp(f_w, fm[good], Gm[good].real)
+        im = np.interp(f_w, fm[good], Gm[good].imag)
+        G_w[inside] = re[inside] + 1j * im[inside]
+    return w, G_fit, G_w
+
+
+def margins_hold(law: str, g: dict, ts: float, w: np.ndarray, G_w: np.ndarray, theta_hat=None,
+                 rule: Rule = RULE):
+    """(:class:`Margins` of L = C G_w at 100 % of ``g``, whether the rule's margins hold at every
+    rung of the verification ladder :data:`SCALES`). A loop with integral action can lose phase
+    margin when its gain falls, and a heavier load lowers the loop gain the same way."""
+    f = w / (2.0 * math.pi)
+    L = controller_class(law).linearise(g, ts, w, theta_hat) * G_w
+    mg = loop_margins(L, f)
+    ok = rule.holds(mg) and all(rule.holds(loop_margins(sc * L, f)) for sc in SCALES[:-1])
+    return mg, ok
+
+
+def tunable_laws(section) -> list[str]:
+    """The laws an axis's section configures that give autotune a gain family and a
+    linearisation (:class:`motorctl.control.base.Controller`), sorted."""
+    out = []
+    for name in configured_controllers(section):
+        cls = controller_class(name)
+        try:
+            fam = cls.gain_family(1.0, section.settings(name), OMEGA[:1])
+            if fam:
+                cls.linearise(fam[0], 1e-4, np.array([1.0]))
+                out.append(name)
+        except NotImplementedError:
+            continue
+    return out
+
+
+def shape_of(g: dict) -> tuple:
+    """A candidate's shape: its design numbers other than ω ("_zeta", "_r", ...)."""
+    return tuple(sorted((k, v) for k, v in g.items() if k.startswith("_") and k not in ("_w", "_rest_V")))
+
+
+def design_of(g: dict) -> tuple:
+    """A candidate's place in its law's family: all its design numbers, ω included
+    ((("_r", r), ("_w", ω), ("_zeta", ζ)) for the PID)."""
+    return tuple(sorted((k, v) for k, v in g.items() if k.startswith("_") and k != "_rest_V"))
+
+
+def neighbours(g: dict, grid: dict, members: dict) -> list[dict]:
+    """The members of ``members`` ({:func:`design_of`: gains}) one grid step from ``g`` in one
+    design number, or in two at once (the diagonals: e.g. a higher ω with a lower ζ), on the
+    family's grid ``grid`` ({design key: sorted values}, :func:`choose_gains`)."""
+    here = dict(design_of(g))
+    keys = [k for k in grid if k in here]
+    steps = [((k, s),) for k in keys for s in (1, -1)]
+    steps += [((a, sa), (b, sb)) for i, a in enumerate(keys) for b in keys[i + 1:]
+              for sa in (1, -1) for sb in (1, -1)]
+    out = []
+    for step in steps:
+        d = dict(here)
+        for k, s in step:
+            j = grid[k].index(here[k]) + s
+            if not 0 <= j < len(grid[k]):
+                break
+            d[k] = grid[k][j]
+        else:
+            m = members.get(tuple(sorted(d.items())))
+            if m is not None:
+                out.append(m)
+    return out
+
+
+def rest_noise(C: np.ndarray, rest_psd) -> float:
+    """Predicted u RMS at rest [V]: the measured rest spectrum of y [m²/Hz] through |C| (a
+    carriage held by stiction: the loop is open). C: C(e^{jωTs}) at the PSD's frequencies."""
+    f, s = rest_psd
+    df = f[1] - f[0]
+    return float(math.sqrt(np.sum(np.abs(C[1:]) ** 2 * s[1:]) * df))
+
+
+def grid_w(ts: float) -> np.ndarray:
+    """The frequency grid of the margins [rad/s]: 1 Hz to 0.999 Nyquist, log-spaced."""
+    return np.geomspace(2.0 * math.pi, 0.999 * math.pi / ts, 4000)
+
+
+def choose_gains(law: str, G_w, w: np.ndarray, ts: float, theta1: float, section, rest_psd,
+                 theta_hat=None, rule: Rule = RULE) -> dict | None:
+    """Step 3 for one law on the plant FRF ``G_w`` (K,) at ``w`` (K,) [rad/s]: the family
+    members whose margins hold at every step of the verification ladder.
+
+    Returns:
+        None when no candidate passes, else {"gains" (the highest |L| at F_TRACK_HZ),
+        "margins" (:class:`Margins`), "u_rest_pred_V", "candidates" (how many passed),
+        "backoff", "admissible": {shape: [gains, ... by ω, highest first]},
+        "members": {:func:`design_of`: gains} (the same candidates, by their place in the
+        family), "grid": {design key: sorted values over the whole family},
+        "l_track": {:func:`design_of`: |L| at F_TRACK_HZ}, "holds": gains -> whether the margins
+        hold at 100, 75 and 50 % of those gains (a stepped-down candidate's own ladder)}.
+    """
+    cls = controller_class(law)
+    f = w / (2.0 * math.pi)
+    wn = 2.0 * math.pi * rest_psd[0]
+    best, n_ok, adm, members, l_track, grid = None, 0, {}, {}, {}, {}
+    j_tr = int(np.argmin(np.abs(f - F_TRACK_HZ)))
+    for g in cls.gain_family(theta1, section.settings(law), OMEGA):
+        for k, v in design_of(g):
+            grid.setdefault(k, set()).add(v)
+        mg, ok = margins_hold(law, g, ts, w, G_w, theta_hat, rule)
+        if not ok:
+            continue
+        L = cls.linearise(g, ts, w, theta_hat) * G_w
+        un = rest_noise(cls.linearise(g, ts, np.maximum(wn, 1e-9), theta_hat), rest_psd)
+        n_ok += 1
+        g["_rest_V"] = un
+        adm.setdefault(shape_of(g), []).append(g)
+        members[design_of(g)] = g
+        l_track[design_of(g)] = float(abs(L[j_tr]))
+        key = (abs(L[j_tr]), -mg.ms_db)
+        if best is None or key > best[0]:
+            best = (key, g, mg, un)
+    if best is None:
+        return None
+    L = cls.linearise(best[1], ts, w, theta_hat) * G_w
+    backoff = [b for b in BACKOFF if rule.holds(loop_margins(b * L, f))]
+    for v in adm.values():
+        v.sort(key=lambda g: -g["_w"])
+    return {"gains": best[1], "margins": best[2], "u_rest_pred_V": best[3], "candidates": n_ok,
+            "backoff": backoff, "admissible": adm, "members": members, "l_track": l_track,
+            "grid": {k: sorted(v) for k, v in grid.items()},
+            "holds": lambda g: margins_hold(law, g, ts, w, G_w, theta_hat, rule)[1]}

@@ -1,0 +1,129 @@
+"""One evaluation of a controller on an axis's program, for ``motorctl run --json``, autotune's
+verification and the benchmarks alike: the run is the main job itself
+(:func:`motorctl.app.job.run_job`, what ``motorctl run`` does), its run log is read back and the
+commissioning's figures are taken from it (:func:`run_metrics`). The same gains give the same
+counts whichever of them asks.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from scipy import signal
+
+from motorctl.app.build import build, shutdown, start
+from motorctl.app.job import run_job
+from motorctl.config import LoadedConfig, config_from_dict
+from motorctl.loop.trajectory import Move
+from motorctl.metrics import REST_AFTER_S, rest_mask, u_rest_rms
+from motorctl.recorder.runlog import read_log
+
+#: the job's indexes copied into every evaluation (:class:`motorctl.app.job.JobResult`)
+JOB_KEYS = ("controller", "e_M_um", "e_F_um", "L2_um", "u_peak_V", "io_errors", "fault")
+
+
+def oscillation_ratio(u: np.ndarray, rest: np.ndarray, ts: float) -> tuple[float, float]:
+    """(peak/median of the Welch PSD of u over its rest segments above 20 Hz, its frequency
+    [Hz]); (nan, nan) with no rest segment of 512 samples. u [V], rest: (N,)."""
+    edges = np.diff(np.concatenate([[0], rest.astype(int), [0]]))
+    psd, f = None, None
+    for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
+        if b - a < 512:
+            continue
+        f, p = signal.welch(u[a:b], fs=1.0 / ts, nperseg=512, detrend="linear")
+        psd = p if psd is None else psd + p
+    if psd is None:
+        return math.nan, math.nan
+    band = f > 20.0
+    j = int(np.argmax(np.where(band, psd, -np.inf)))
+    return float(psd[j] / np.median(psd[band])), float(f[j])
+
+
+def e_segment(n: int) -> int:
+    """Welch segment of an n-sample error record: at most 1024 samples, and short enough for at
+    least 16 averaged segments (50 % overlap), so that the ratio of two spectra is not a ratio
+    of two single periodograms (each χ² with 2 degrees of freedom per line, whose ratio exceeds
+    100 by chance on a few lines of every run)."""
+    seg = 1024
+    while seg > 64 and n < 8 * seg:
+        seg //= 2
+    return seg
+
+
+def run_metrics(log_path: str, loaded: LoadedConfig, axis: str) -> dict:
+    """The commissioning's figures of one axis from a run log, over its enabled cycles.
+
+    Returns:
+        {"saturated": samples at |u| = u_lim, "samples", "u_rest_rms_V" (RMS of u about its
+        mean at rest, :func:`motorctl.metrics.u_rest_rms`; nan with no rest), "osc_ratio",
+        "osc_hz" (:func:`oscillation_ratio`), "e_psd": (f (M,) [Hz], S_ee (M,) [m²/Hz])}.
+    Raises:
+        LogError: the log cannot be read. KeyError: the axis is not in it.
+    """
+    log = read_log(log_path)
+    a = log.axis(axis)
+    on = a["enabled"] > 0.5 if "enabled" in a else np.ones(a["e"].size, bool)
+    e, u = a["e"][on], a["u"][on]
+    ts = loaded.period_s
+    rest = rest_mask(a["xd_dot"][on], a["xd_ddot"][on], ts, REST_AFTER_S)
+    u_lim = loaded.axes[axis].controller.u_lim
+    out = {"saturated": int(np.sum(np.abs(u) >= u_lim * (1.0 - 1e-12))), "samples": int(e.size),
+           "u_rest_rms_V": u_rest_rms(u, rest)}
+    out["osc_ratio"], out["osc_hz"] = oscillation_ratio(u, rest, ts)
+    out["e_psd"] = signal.welch(e, fs=1.0 / ts, nperseg=e_segment(e.size), detrend="linear")
+    return out
+
+
+def job_evaluation(loaded: LoadedConfig, axis: str, law: str | None, seconds: float,
+                   clock: str | None = "virtual", log_path: str | None = None) -> dict:
+    """``motorctl run`` of ``axis`` alone with controller ``law`` (None: as configured) for
+    ``seconds``, and its figures: the job's indexes (:data:`JOB_KEYS`, [µm, V]) and
+    :func:`run_metrics`. ``log_path``: keep the run log there (None: a temporary one).
+
+    Raises:
+        OSError, ConfigError, InputError: as :func:`motorctl.app.job.run_job`.
+    """
+    approach(loaded, axis, law, clock)
+    with tempfile.TemporaryDirectory(prefix="motorctl-eval-") as tmp:
+        path = log_path or str(Path(tmp) / "run.mlog")
+        res = run_job(loaded, axes=[axis], controller=law, duration_s=seconds, clock=clock,
+                      log_path=path)
+        out = {k: res.axes[axis].get(k, math.nan) for k in JOB_KEYS}
+        out["fault"] = out["fault"] or ""
+        out.update(run_metrics(path, loaded, axis))
+    return out
+
+
+def approach(loaded: LoadedConfig, axis: str, law: str | None, clock: str | None) -> None:
+    """Bring ``axis`` to its program's start with controller ``law`` before a run (as the
+    daemon's ``start`` does): a jerk-limited move at ≤ 0.1 m/s from where it stands, when it
+    stands more than one following-error limit away (a bus device keeps its carriage where
+    the previous run left it; a simulated one starts each run at the program's start).
+
+    Raises:
+        AutotuneError: the axis is in a fault that persists. OSError: the device is unreachable.
+    """
+    from motorctl.commission.measure import _read_idle
+    lim = loaded.axes[axis].limits
+    v_app = min(0.1, 0.25 * lim.max_velocity_m_per_s)
+    cap = loaded.timebase.cycles((lim.soft_max_m - lim.soft_min_m) / v_app + 1.0) + 8
+    asm = build(loaded, [axis], law, clock=clock or loaded.cfg.loop.clock, capacity=cap, operated=True)
+    start(asm, "off" if clock == "virtual" else loaded.cfg.loop.realtime.policy)
+    try:
+        y0 = _read_idle(asm)
+        x0 = asm.loop.programs[0].sample(0.0)[0]
+        if abs(y0 - x0) > min(lim.min_following_error_m, lim.following_error_m):
+            move = Move(y0, x0, v_app, 2.0, 200.0)
+            asm.loop.start_axis(0, move)
+            asm.loop.run(min(loaded.timebase.cycles(move.duration) + 1, cap - asm.loop.k))
+    finally:
+        shutdown(asm)
+
+
+def evaluate(raw: dict, source: str, axis: str, law: str, seconds: float, clock: str = "virtual") -> dict:
+    """:func:`job_evaluation` of the config dict ``raw`` (``source``: its file, for messages)."""
+    return job_evaluation(config_from_dict(copy.deepcopy(raw), source), axis, law, seconds, clock)

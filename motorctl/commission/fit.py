@@ -1,0 +1,113 @@
+"""Step 2 of ``motorctl autotune``: the physical model fitted to the measured response."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import optimize
+
+from motorctl.commission.loopshape import plant_model_frf
+from motorctl.commission.rule import F_LO
+
+
+# ================================================================ fit
+def _initial_mode(f: np.ndarray, G: np.ndarray, th1: float):
+    """(mode_hz, load_fraction) from the peak and the dip of |G| (2πf)² θ1 (nan: none)."""
+    comp = np.abs(G) * (2.0 * math.pi * f) ** 2 * th1
+    lc = np.log(comp)
+    sm = np.convolve(lc, np.ones(5) / 5.0, mode="same")
+    band = f > 2.0 * F_LO
+    i_pk = int(np.argmax(np.where(band, sm, -np.inf)))
+    below = band & (f < f[i_pk])
+    if not below.any() or sm[i_pk] - np.median(sm[band]) < math.log(2.0):
+        return math.nan, math.nan
+    i_dip = int(np.argmin(np.where(below, sm, np.inf)))
+    frac = 1.0 - (f[i_dip] / f[i_pk]) ** 2
+    return float(f[i_pk]), float(min(max(frac, 0.05), 0.9))
+
+
+def fit_plant(f: np.ndarray, G: np.ndarray, coh: np.ndarray, ts: float, theta_hat0) -> dict:
+    """Step 2 (module docstring). Returns the fitted model (:data:`motorctl.commission.loopshape.MODEL_KEYS`) plus "cost",
+    "cost_rigid" (the rigid model's cost), "mode": True when the mode is kept.
+
+    Args: f (L,) [Hz], G (L,) [m/V], coh (L,) coherence r → e, ts [s], theta_hat0 (6,).
+    """
+    w = 2.0 * math.pi * f
+    # weights from the coherence smoothed over ±10 lines: a line's own coherence is high
+    # exactly where its noise happened to add to the response, which would bias |G| upwards
+    cs = np.clip(np.convolve(coh, np.ones(21) / 21.0, mode="same"), 0.0, 0.999)
+    cs[:10], cs[-10:] = cs[10], cs[-11]
+    wt = np.sqrt(cs / (1.0 - cs))
+    ok = np.isfinite(G) & (np.abs(G) > 0)
+    w, G, wt, f = w[ok], G[ok], wt[ok], f[ok]
+    lo = f < 0.3 * f[-1]
+    th1_0 = float(np.median(1.0 / (np.abs(G[lo]) * w[lo] ** 2)))
+    fs = 1.0 / ts
+
+    def model(x, with_mode):
+        p = {"theta1": x[0], "theta2": x[1], "current_loop_hz": x[2], "delay_s": x[3],
+             "mode_hz": x[4] if with_mode else 0.0, "mode_damping": x[5] if with_mode else 0.0,
+             "load_fraction": x[6] if with_mode else 0.0}
+        return p
+
+    def resid(x, with_mode, log=True):
+        # log: robust far from the solution; then G/G_model − 1, unbiased by the noise on G
+        # (the log of a noisy magnitude is biased upwards where the coherence is low)
+        gm = plant_model_frf(model(x, with_mode), ts, w)
+        z = np.log(gm / G) if log else G / gm - 1.0
+        return np.concatenate([wt * z.real, wt * (np.angle(gm / G) if log else z.imag)])
+
+    def refine(sol, with_mode, lb, ub):
+        x0 = np.clip(sol.x, lb, ub)
+        return optimize.least_squares(resid, x0, args=(with_mode, False), x_scale="jac",
+                                      bounds=(lb, ub))
+
+    best_rigid = None
+    for fc0 in (0.1 * fs, 0.2 * fs, 0.4 * fs):
+        x0 = [th1_0, 0.1 * th1_0 * 2 * math.pi * F_LO, fc0, 0.0]
+        sol = optimize.least_squares(resid, x0, args=(False,), x_scale="jac",
+                                     bounds=([1e-6, 0.0, 10.0, 0.0], [1e6, 1e6, 10.0 * fs, 5.0 * ts]))
+        if best_rigid is None or sol.cost < best_rigid.cost:
+            best_rigid = sol
+    best_rigid = refine(best_rigid, False, [1e-6, 0.0, 10.0, 0.0], [1e6, 1e6, 10.0 * fs, 5.0 * ts])
+    out = model(best_rigid.x, False)
+    out.update(cost=float(best_rigid.cost), cost_rigid=float(best_rigid.cost), mode=False)
+    sigma = _sigma(best_rigid, model(best_rigid.x, False))
+    fm0, fr0 = _initial_mode(f, G, best_rigid.x[0])
+    if math.isfinite(fm0):
+        best = None
+        for fc0 in (0.1 * fs, 0.2 * fs, 0.4 * fs):
+            for z0 in (0.02, 0.08):
+                x0 = list(best_rigid.x[:2]) + [fc0, 0.0, fm0, z0, fr0]
+                sol = optimize.least_squares(
+                    resid, x0, args=(True,), x_scale="jac",
+                    bounds=([1e-6, 0.0, 10.0, 0.0, 0.5 * fm0, 1e-3, 0.01],
+                            [1e6, 1e6, 10.0 * fs, 5.0 * ts, min(2.0 * fm0, 0.5 * fs), 0.5, 0.95]))
+                if best is None or sol.cost < best.cost:
+                    best = sol
+        lb_m = [1e-6, 0.0, 10.0, 0.0, 0.5 * fm0, 1e-3, 0.01]
+        ub_m = [1e6, 1e6, 10.0 * fs, 5.0 * ts, min(2.0 * fm0, 0.5 * fs), 0.5, 0.95]
+        best = refine(best, True, lb_m, ub_m)
+        if best.cost < 0.7 * best_rigid.cost:
+            out = model(best.x, True)
+            out.update(cost=float(best.cost), cost_rigid=float(best_rigid.cost), mode=True)
+            sigma = _sigma(best, out)
+    out = {k: float(v) if not isinstance(v, bool) else v for k, v in out.items()}
+    out["sigma"] = sigma
+    return out
+
+
+def _sigma(sol, params: dict) -> dict:
+    """The standard deviation of each fitted parameter of the model ``params`` from the least
+    squares solution ``sol`` (scipy.optimize.least_squares): the covariance (JᵀJ)⁺ s², s² the
+    residual variance 2·cost/(m − n) (Gauss-Newton linearisation at the solution, residuals
+    weighted by the coherence as the fit's). {parameter: σ in its unit} for the parameters
+    the solution holds, in their order (:data:`motorctl.commission.loopshape.MODEL_KEYS`)."""
+    J = sol.jac
+    m, n = J.shape
+    s2 = 2.0 * sol.cost / max(m - n, 1)
+    cov = np.linalg.pinv(J.T @ J) * s2
+    keys = [k for k in ("theta1", "theta2", "current_loop_hz", "delay_s", "mode_hz", "mode_damping",
+                        "load_fraction")][:n]
+    return {k: float(math.sqrt(max(cov[j, j], 0.0))) for j, k in enumerate(keys)}

@@ -1,0 +1,243 @@
+"""Step 1 of ``motorctl autotune``: the measured frequency response (multisine at the plant
+input during a slow constant-velocity pass, indirect closed-loop estimate) and the
+constant-velocity passes that the friction is fitted from."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+from scipy import signal
+
+from motorctl.app.build import build, shutdown, start
+from motorctl.commission.rule import AutotuneError, F_LO, F_SHAPE, HOLD_HZ, HOLD_R, HOLD_ZETA, DISP_SHARE, EXC_SHARE, F_BOOST, F_HI_SHARE, GUARD_SHARE, LINE_SPACING, PERIODS, PERIOD_S, REST_S, STROKE_MARGIN
+from motorctl.config import LoadedConfig, config_from_dict
+from motorctl.control.base import Controller, SIG_E
+from motorctl.loop.trajectory import Move
+
+
+# ================================================================ excitation
+def multisine(ts: float, theta1: float, u_lim: float, fe_min_m: float, realisations: int,
+              repeats: int, seed: int = 0):
+    """The excitation: ``realisations`` random-phase multisines of the same amplitude spectrum
+    at the plant input, each repeated ``repeats`` periods (module docstring, step 1). New
+    realisations turn the plant's nonlinear distortion (the force curve of eq. 3, friction)
+    into noise that the averaging removes and the coherence shows, instead of a periodic error
+    that looks coherent; the first period of each is its transient (not used).
+
+    Args:
+        ts: period [s]. theta1: catalogue θ̂1 = M/A1 [V s²/m] (sizes the displacement).
+        u_lim: output limit [V]. fe_min_m: the smallest following-error limit [m].
+        realisations, repeats: counts. seed: of the phases.
+    Returns:
+        (r (realisations·repeats·N,) [V], lines (L,) int: the excited DFT bins of a period of N samples).
+    """
+    n = int(round(PERIOD_S / ts))
+    df = 1.0 / (n * ts)
+    k, kk, k_hi = [], int(math.ceil(F_LO / df)), int(F_HI_SHARE / ts / df)
+    while kk <= k_hi:                          # spacing max(1 bin, LINE_SPACING · f)
+        k.append(kk)
+        kk += max(1, int(LINE_SPACING * kk))
+    k = np.asarray(k)
+    f = k * df
+    amp = np.minimum(1.0, (f / F_SHAPE) ** 2) * (1.0 + f / F_BOOST) ** 2
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(realisations):
+        best = None
+        for _ in range(8):                    # the lowest crest factor of 8 draws
+            spec = np.zeros(n // 2 + 1, dtype=complex)
+            spec[k] = amp * np.exp(1j * rng.uniform(0.0, 2.0 * math.pi, k.size)) * n / 2.0
+            r = np.fft.irfft(spec, n)
+            if best is None or np.max(np.abs(r)) < np.max(np.abs(best)):
+                best = r
+        out += [best] * repeats
+    r = np.concatenate(out)
+    disp_rms = math.sqrt(np.sum((amp / (theta1 * (2.0 * math.pi * f) ** 2)) ** 2) / 2.0)
+    scale = min(EXC_SHARE * u_lim / np.max(np.abs(r)), DISP_SHARE * fe_min_m / disp_rms)
+    return r * scale, k
+
+
+class Excited(Controller):
+    """A controller plus an excitation r added at its output (the plant input).
+
+    ``r[j]`` is added at loop cycle k0 + j (k from the loop time t = k·Ts); the sum is clipped to
+    ±u_lim. If |e| ≥ ``guard_m`` the excitation stops for good (:attr:`tripped`). Publishes
+    the inner controller's signals. Allocation-free."""
+
+    def __init__(self, inner: Controller, r: np.ndarray, k0: int, guard_m: float):
+        self.inner = inner
+        super().__init__(inner.ts, inner.u_lim, inner.n_theta)
+        self.name = inner.name
+        self.r = np.ascontiguousarray(r, dtype=float)
+        self.k0 = int(k0)
+        self.guard = float(guard_m)
+        self.tripped = False
+
+    # the inner controller's arrays, wherever they live (a law the loop lets go of takes its
+    # state back into arrays of its own: Controller.detach)
+    signals = property(lambda self: self.inner.signals, lambda self, _v: None)
+    theta_hat = property(lambda self: self.inner.theta_hat, lambda self, _v: None)
+
+    @classmethod
+    def from_config(cls, section, ts):      # pragma: no cover - built by autotune only
+        raise ValueError("Excited wraps a built controller")
+
+    def reset(self, y0: float) -> None:
+        self.inner.reset(y0)
+
+    def update(self, y, x_d, xd_dot, xd_ddot, t=0.0):
+        u = self.inner.update(y, x_d, xd_dot, xd_ddot, t)
+        j = int(t / self.ts + 0.5) - self.k0
+        if 0 <= j < self.r.shape[0] and not self.tripped:
+            if abs(self.inner.signals[SIG_E]) >= self.guard:
+                self.tripped = True
+            else:
+                u += self.r[j]
+        lim = self.u_lim
+        return lim if u > lim else (-lim if u < -lim else u)
+
+
+def hold_gains(theta_hat0) -> dict:
+    """The conservative holding PID+FF from the catalogue θ̂(0) (module docstring, step 1)."""
+    t1 = float(theta_hat0[0])
+    w = 2.0 * math.pi * HOLD_HZ
+    p = t1 * w * w
+    i = p * w / HOLD_R
+    return {"P": p, "I": i, "D": 2.0 * HOLD_ZETA * w * t1, "FF0": 0.0, "FF1": float(theta_hat0[1]),
+            "FF2": t1, "bias": -float(theta_hat0[3]), "deadband": 0.0, "maxerror": 0.0,
+            "maxerror_i": 1.0 / i, "maxoutput": 0.0}
+
+
+def _pass_plan(loaded: LoadedConfig, axis: str, duration_s: float):
+    """(x_a, x_b, v [m/s]) of the constant-velocity pass: from the lower soft limit to the
+    upper, 10 % of the stroke inside each, at the speed that lasts ``duration_s``."""
+    lim = loaded.axes[axis].limits
+    lo, hi = lim.soft_min_m, lim.soft_max_m
+    if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+        raise AutotuneError(f"axes.{axis}.limits: autotune needs finite soft limits (the stroke)")
+    a, b = lo + STROKE_MARGIN * (hi - lo), hi - STROKE_MARGIN * (hi - lo)
+    v = abs(b - a) / duration_s
+    return a, b, min(v, 0.25 * lim.max_velocity_m_per_s)
+
+
+def _read_idle(asm) -> float:
+    """Idle cycles (0 V, amplifier off) until the axis's position is read without a fault, then
+    that position [m]. A drive whose command watchdog bit while no loop ran between two runs
+    reports one amplifier fault; it is reset here as an operator's ``fault-reset`` would (the
+    supervisor refuses while the cause persists).
+
+    Raises:
+        AutotuneError: the fault persists (one line, the supervisor's reason).
+    """
+    for _ in range(3):
+        asm.loop.run(1)
+        if not asm.supervisor.fault[0]:
+            return float(asm.driver.position_m[0])
+        asm.loop.run(1)
+        asm.loop.fault_reset(0)
+    raise AutotuneError(f"axis {asm.names[0]} is in fault: {asm.supervisor.reason(0)}")
+
+
+def measure_frf(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
+                progress=None, periods: int = PERIODS) -> dict:
+    """Step 1 (module docstring) on the config's driver; ``periods`` measured periods (even:
+    ``periods``/2 realisations of two periods, the first of each its transient).
+
+    Returns:
+        {"f_hz" (L,), "G" (L,) complex [m/V], "coherence" (L,), "coherence_u" (L,),
+        "rest_psd": (f (M,), S_yy (M,) [m²/Hz]) of y at rest, "excitation_rms_V",
+        "excitation_peak_V", "e_max_m", "guard_m", "stroke_m": (min y, max y) during the run,
+        "soft_limits_m", "fault" ('' when none), "tripped" (the excitation guard fired),
+        "pass": (x_a, x_b, v)}.
+    Raises:
+        AutotuneError: no soft limits. OSError: the driver cannot reach its device.
+    """
+    sec = loaded.axes[axis].controller
+    lim = loaded.axes[axis].limits
+    ts = loaded.period_s
+    tb = loaded.timebase
+    raw = copy.deepcopy(raw)
+    raw["axes"][axis]["controller"]["pid"] = hold_gains(sec.theta_hat0)
+    raw["axes"][axis]["controller"]["type"] = "pid"
+    fe_min = min(lim.min_following_error_m, lim.following_error_m)
+    r, lines = multisine(ts, float(sec.theta_hat0[0]), sec.u_lim, fe_min, periods // 2 + 1, 2)
+    n_per = int(round(PERIOD_S / ts))
+    r[:n_per] *= np.linspace(0.0, 1.0, n_per, endpoint=False)     # amplitude ramp
+    r1 = r[n_per:]
+    exc_s = r.size * ts
+    x_a, x_b, v = _pass_plan(loaded, axis, exc_s + 1.0)
+    a_pass = 2.0
+    raw["axes"][axis]["trajectory"] = {"points": [x_a, x_b], "move_times_s": [REST_S, 86400.0],
+                                       "period_s": 0.0, "v_max": v, "a_max": a_pass,
+                                       "j_max": 100.0 * a_pass}
+    loaded2 = config_from_dict(raw, str(loaded.path))
+    prog = loaded2.axes[axis].trajectory.program()
+    pass_move = prog.moves[0]
+    # the excitation starts when the pass cruises (sampled on the move's own profile)
+    tt = np.arange(0.0, pass_move.duration, ts)
+    vd = np.array([pass_move.sample(REST_S + x)[1] for x in tt])
+    cruise = np.flatnonzero(np.abs(vd) >= 0.999 * v)
+    if cruise.size == 0 or (cruise[-1] - cruise[0]) < r.size + 100:
+        raise AutotuneError(f"axes.{axis}.limits: the stroke is too short for a "
+                            f"{exc_s:.0f} s pass at {v:.3g} m/s")
+    v_app = min(0.1, 0.25 * lim.max_velocity_m_per_s)
+    stroke = lim.soft_max_m - lim.soft_min_m
+    capacity = tb.cycles(stroke / v_app + 1.0 + REST_S + pass_move.duration) + 8
+    asm = build(loaded2, [axis], "pid", clock=clock, capacity=capacity, operated=True)
+    start(asm, "off" if clock == "virtual" else loaded.cfg.loop.realtime.policy)
+    try:
+        y0 = _read_idle(asm)                     # where the axis stands
+        if not lim.soft_min_m <= y0 <= lim.soft_max_m:
+            raise AutotuneError(f"axis {axis} stands at {y0:.4f} m, outside its soft limits "
+                                f"(motorctl jog it back first)")
+        approach = Move(y0, x_a, v_app, a_pass, 100.0 * a_pass)
+        k_prog = asm.loop.k + tb.cycles(approach.duration) + 1
+        k_exc = k_prog + tb.cycles(REST_S) + int(cruise[0]) + 50
+        n_total = k_exc + r.size + 50 - asm.loop.k
+        exc = Excited(asm.controller(0, "pid"), r, k_exc, GUARD_SHARE * fe_min)
+        asm.loop.start_axis(0, approach, exc)
+        if progress:
+            progress(f"measure {axis}: rest {REST_S:g} s at {x_a:.3f} m, pass to {x_b:.3f} m at "
+                     f"{v * 1e3:.1f} mm/s with a multisine of {np.sqrt(np.mean(r1 ** 2)):.2f} V RMS "
+                     f"(peak {np.max(np.abs(r1)):.2f} V), {periods} periods of {PERIOD_S:g} s")
+        asm.loop.run(min(n_total, capacity - asm.loop.k))
+    finally:
+        shutdown(asm)
+    rows, lay = asm.loop.rows(), asm.loop.layout
+    y = rows[:, lay.index(f"{axis}.y")]
+    e = rows[:, lay.index(f"{axis}.e")]
+    u = rows[:, lay.index(f"{axis}.u")]
+    fault = asm.supervisor.reason(0)
+    rr = np.zeros(rows.shape[0])
+    m = min(r.size, rows.shape[0] - k_exc)
+    if m > 0:
+        rr[k_exc:k_exc + m] = r[:m]
+    s0 = k_exc + 2 * n_per      # after the ramp and its settling: periods/2 realisations of 2 periods
+    s1 = s0 + periods * n_per
+    out = {"fault": fault, "tripped": exc.tripped, "pass": (x_a, x_b, v),
+           "excitation_rms_V": float(np.sqrt(np.mean(r1 ** 2))),
+           "excitation_peak_V": float(np.max(np.abs(r1))),
+           "e_max_m": float(np.nanmax(np.abs(e))), "guard_m": GUARD_SHARE * fe_min,
+           "stroke_m": (float(np.min(y)), float(np.max(y))),
+           "soft_limits_m": (lim.soft_min_m, lim.soft_max_m)}
+    # rest spectrum of y: the carriage held at x_a before the pass
+    r0 = k_prog + tb.cycles(0.2)
+    r1_ = k_prog + tb.cycles(REST_S) - 10
+    out["rest_psd"] = signal.welch(y[r0:r1_], fs=1.0 / ts, nperseg=min(1024, r1_ - r0),
+                                   detrend="linear")
+    if fault or exc.tripped or s1 > rows.shape[0]:
+        return out
+    kw = {"fs": 1.0 / ts, "window": "boxcar", "nperseg": n_per, "noverlap": 0, "detrend": "linear"}
+    keep = np.concatenate([np.arange(s0 + (2 * j + 1) * n_per, s0 + (2 * j + 2) * n_per)
+                           for j in range(periods // 2)])
+    rs, es, us = rr[keep], e[keep], u[keep]
+    fr, s_re = signal.csd(rs, es, **kw)
+    _, s_ru = signal.csd(rs, us, **kw)
+    _, c_re = signal.coherence(rs, es, **kw)
+    _, c_ru = signal.coherence(rs, us, **kw)
+    G = s_re / s_ru
+    out.update(f_hz=fr[lines], G=G[lines], coherence=c_re[lines],
+               coherence_u=c_ru[lines])
+    return out

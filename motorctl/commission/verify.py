@@ -1,0 +1,431 @@
+"""Step 4 of ``motorctl autotune``: closed-loop runs of the axis's program judged by the
+rule's verdicts (:func:`admissible`), the search over the admissible gains, and the final
+verification on full runs."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+
+from motorctl.commission.choose import design_of, neighbours, shape_of
+from motorctl.commission.evaluate import evaluate
+from motorctl.commission.rule import (FULL_TRIES, NOISE_EXPONENT, NOISE_SLACK, OSC_RATIO, PRUNE_SHARE, REFINE_RUNS,
+                                      REST_FACTOR, SAT_FACTOR, SAT_FLOOR_SHARE, SATURATED, SCALES, SEARCH_BUDGET,
+                                      SEARCH_RUNS, STEP_DOWN, U_REST_FRACTION, WINNER_TRIES)
+from motorctl.config import config_from_dict
+from motorctl.control import controller_class
+
+
+def scaled(law: str, g: dict, s: float) -> dict:
+    """Gains ``g`` at share ``s`` of the loop gain (the law's own knob:
+    :meth:`motorctl.control.base.Controller.scaled`)."""
+    return controller_class(law).scaled(g, s)
+
+
+def apply_gains(raw: dict, axis: str, law: str, g: dict, extra: dict | None = None) -> dict:
+    """A copy of the config dict with ``law``'s tuned keys of ``g`` (and the settings in
+    ``extra``, e.g. the PID's feedforward) in the law's own mapping of ``axis``'s
+    ``controller:`` section (over the shared keys, which stay as they are)."""
+    raw = copy.deepcopy(raw)
+    sec = raw["axes"][axis]["controller"]
+    own = dict(sec.get(law) or {})
+    if extra:
+        own.update(extra)
+    own.update({k: float(g[k]) for k in controller_class(law).tuned_keys if k in g})
+    sec[law] = own
+    return raw
+
+
+
+
+
+
+def e_line_ratio(res: dict, ref: dict) -> tuple[float, float]:
+    """(largest ratio of a run's error spectrum to the reference run's above 20 Hz, where
+    [Hz]). A loop near its stability limit rings at its crossover or a mode while the axis
+    moves (at rest stiction can hold the carriage and hide it): e.g. X with PM −0.3° on the
+    measured response: 724x at 444 Hz against ≤ 24x for loops with PM ≥ 15°."""
+    f, p = res["e_psd"]
+    fr, pr = ref["e_psd"]
+    if f.shape != fr.shape:
+        return math.nan, math.nan
+    band = f > 20.0
+    ratio = np.where(band, p / np.maximum(pr, 1e-300), -np.inf)
+    j = int(np.argmax(ratio))
+    return float(ratio[j]), float(f[j])
+
+
+def limits(ref: dict | None, u_lim: float, samples: int) -> tuple[int, float]:
+    """(saturated samples allowed, u RMS at rest allowed [V]) of a run of ``samples`` samples:
+    :data:`SAT_FACTOR` times the configured controller's saturated samples on the same run, or
+    of :data:`SAT_FLOOR_SHARE` of the samples if more; :data:`REST_FACTOR` times its u RMS at
+    rest (without a reference run: :data:`U_REST_FRACTION` of u_lim)."""
+    sat_ref = ref["saturated"] if ref else 0
+    sat = int(SAT_FACTOR * max(sat_ref, SAT_FLOOR_SHARE * samples))
+    rest_ref = ref["u_rest_rms_V"] if ref else math.nan
+    rest = REST_FACTOR * rest_ref if rest_ref == rest_ref and rest_ref > 0 else U_REST_FRACTION * u_lim
+    return sat, rest
+
+
+def admissible(res: dict, u_lim: float, ref: dict | None = None, osc_ref: dict | None = None) -> str:
+    """'' when a run meets the rule's closed-loop lines, else why not (one phrase). ref: the
+    configured controller's run on the same program and of the same length
+    (:func:`motorctl.commission.evaluate.evaluate`): the saturation and the u noise at rest are
+    judged against it (:func:`limits`), and an error spectrum :data:`OSC_RATIO` times its own
+    at some frequency is an oscillation (``osc_ref``: another run's spectrum instead)."""
+    if res["fault"]:
+        return f"fault: {res['fault']}"
+    sat_max, rest_max = limits(ref, u_lim, res["samples"])
+    if res["saturated"] > sat_max:
+        return f"{res['saturated']} {SATURATED} (> {sat_max} of {res['samples']})"
+    if not res["u_rest_rms_V"] <= rest_max:
+        return f"u at rest {res['u_rest_rms_V'] * 1e3:.0f} mV RMS (> {rest_max * 1e3:.0f} mV)"
+    if res["osc_ratio"] >= OSC_RATIO:
+        return f"oscillation at {res['osc_hz']:.0f} Hz (line {res['osc_ratio']:.0f}x the median)"
+    if osc_ref or ref:
+        ratio, f = e_line_ratio(res, osc_ref or ref)
+        if ratio >= OSC_RATIO:
+            whose = "the same gains' at 100 %" if osc_ref else "the configured controller's"
+            return f"oscillation at {f:.0f} Hz (e {ratio:.0f}x {whose})"
+    return ""
+
+
+def too_soft(res: dict, u_lim: float, ref: dict | None = None) -> bool:
+    """Whether a failed run (:func:`admissible`) failed because its loop is too soft for the
+    program: a following-error fault while u was quiet at rest and showed no line, in u at
+    rest nor in e against ``ref`` (a loop that rings until it faults shows one). A higher
+    loop gain of the same shape is then the way out, not a lower one."""
+    if "following error" not in res["fault"]:
+        return False
+    if not res["u_rest_rms_V"] <= limits(ref, u_lim, res["samples"])[1] or res["osc_ratio"] >= OSC_RATIO:
+        return False
+    return not (ref and e_line_ratio(res, ref)[0] >= OSC_RATIO)
+
+
+def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: float,
+           clock: str = "virtual", ref: dict | None = None, extra: dict | None = None,
+           progress=None, search_runs: int = SEARCH_BUDGET, full_seconds: float | None = None,
+           full_ref: dict | None = None) -> dict:
+    """Step 4 for one law (module docstring): on runs of ``seconds``, the ladder on the rule's
+    first candidate, the search over the admissible shapes and the local refinement around its
+    best; then the confirmation on full runs of ``full_seconds`` (:meth:`_Verification.confirm`).
+
+    Args:
+        choice: :func:`motorctl.commission.choose.choose_gains`'s result. ref, full_ref: the
+        configured controller's runs of ``seconds`` and ``full_seconds``
+        (:func:`motorctl.commission.evaluate.evaluate`). extra: settings written with the gains
+        (the PID's feedforward). search_runs: the search's budget (b.); the refinement's is the
+        lesser of it and :data:`REFINE_RUNS`. full_seconds: None: no confirmation (the short
+        runs' ladder decides).
+    Returns:
+        {"gains" (None when nothing passed), "scale" (of the winner's own gains), "from" ('rule'
+        or 'search'), "L2_um" (of its full run at 100 %, else of its short run), "runs":
+        [(label, scale, result, verdict)]}.
+    """
+    v = _Verification(raw, source, axis, law, choice, seconds, clock, ref, extra, progress)
+    g0 = choice["gains"]
+    s0, r0 = v.ladder(g0, choice["backoff"], "rule")
+    rule_best = (r0["L2_um"], scaled(law, g0, s0), s0, "rule") if s0 > 0 else None
+    v.calibrate_on_rule()
+    v.tried[design_of(g0)] = (r0, "") if s0 == 1.0 else (None, "failed in the ladder")
+    if s0 == 1.0:
+        v.found.append((r0["L2_um"], g0, 1.0, "rule"))
+    v.search(search_runs)
+    v.refine(min(REFINE_RUNS, search_runs))
+    if full_seconds:
+        best = v.confirm(rule_best, full_seconds, full_ref)
+    else:
+        best = v.winner(rule_best)
+    if best is None:
+        return {"gains": None, "scale": 0.0, "from": "", "L2_um": math.nan, "runs": v.runs}
+    return {"gains": best[1], "scale": best[2], "from": best[3], "L2_um": best[0], "runs": v.runs}
+
+
+class _Verification:
+    """What the steps of :func:`verify` share for one law: the runs made, the designs tried and
+    their verdicts, the family members that passed at 100 %, and the calibration of the rest
+    noise on the machine against the prediction.
+
+    The calibration: the prediction (the open loop of a carriage held by stiction) is a bound
+    that grows faster with ω than the noise does; so a member's noise is read off its
+    prediction as a power law through the nearest run of its shape, with the shape's own
+    exponent once it has two runs (NOISE_EXPONENT until then); a shape not yet run: in
+    proportion to the latest run of any (a run that faulted says nothing of the noise).
+    """
+
+    def __init__(self, raw, source, axis, law, choice, seconds, clock, ref, extra, progress):
+        self.raw, self.source, self.axis, self.law, self.choice = raw, source, axis, law, choice
+        self.seconds, self.clock, self.ref, self.extra, self.progress = seconds, clock, ref, extra, progress
+        self.u_lim = config_from_dict(raw, source).axes[axis].controller.u_lim
+        self.rest_max = limits(ref, self.u_lim, 0)[1]
+        self.runs: list = []      # (label, scale, result, verdict)
+        self.tried: dict = {}     # {design: (result or None, verdict)}
+        self.found: list = []     # (L2, gains, 1.0, 'rule' | 'search') passed at 100 %
+        self.obs: dict = {}       # {shape: [(predicted, measured) rest noise [V]]}
+        self.last: list = []      # the latest (predicted, measured) of any shape
+
+    def run(self, g, label, scale, seconds=None, ref=None):
+        """One run of gains ``g`` (already scaled by ``scale``, which only labels it) of
+        ``seconds`` (default: the short runs') judged against ``ref`` (default: the short
+        reference); recorded. Returns (result, verdict: '' when it passed)."""
+        seconds = seconds or self.seconds
+        ref = ref if ref is not None else self.ref
+        res = evaluate(apply_gains(self.raw, self.axis, self.law, g, self.extra), self.source, self.axis,
+                       self.law, seconds, self.clock)
+        why = admissible(res, self.u_lim, ref)
+        self.record(f"{label} {seconds:g} s", scale, res, why)
+        return res, why
+
+    def record(self, label, scale, res, why) -> None:
+        self.runs.append((label, scale, res, why))
+        if self.progress:
+            self.progress(f"verify {self.axis} {self.law} {label} at {scale:.0%}: L2 "
+                          f"{res['L2_um']:.3f} um, e_M {res['e_M_um']:.2f} um, rest "
+                          f"{res['u_rest_rms_V'] * 1e3:.0f} mV, sat {res['saturated']}: {why or 'ok'}")
+
+    def ladder(self, g, backoff, label, done=None) -> tuple[float, dict | None]:
+        """Short runs of ``g`` climbing :data:`SCALES`. A rung that saturates more than allowed
+        is not passed, but the climb goes on (a lower loop gain can saturate more: its error
+        is larger), after one run at the geometric mean of it and the last passed scale; a
+        fault, u noise at rest or an oscillation stops it, and then one more run at the
+        geometric mean of the last passed and the stopping scale; when 50 % stops it with
+        nothing passed, the ``backoff`` scales in turn. ``done``: {scale: result} already run
+        (and passed). Returns (the highest scale that passed, 0 when none; its result)."""
+        passed, best, steps = 0.0, None, list(SCALES)
+        done = done or {}
+        while steps:
+            sc = steps.pop(0)
+            if sc in done:
+                res, why = done[sc], ""
+            else:
+                res, why = self.run(scaled(self.law, g, sc), label, sc)
+            if why and SATURATED in why:
+                if passed > 0 and sc / passed > 1.2:       # one rung between, then climb on
+                    steps.insert(0, round(math.sqrt(passed * sc), 3))
+                continue
+            if why:
+                lower = [b for b in backoff if b < sc]
+                if sc <= SCALES[0] and lower and passed == 0:
+                    steps = lower[:1]
+                    continue
+                if passed > 0 and sc / passed > 1.2:       # one rung between the last two
+                    steps = [round(math.sqrt(passed * sc), 3)]
+                    continue
+                break
+            if sc > passed:
+                passed, best = sc, res
+            if sc < SCALES[0]:
+                break
+        return passed, best
+
+    def confirm(self, rule_best, seconds: float, ref: dict | None):
+        """The verification on full runs of ``seconds`` (the program's periods, judged against
+        the configured controller's run ``ref`` of the same length): the candidates that passed
+        their short run (the search's and the rule's) whose margins hold at 100, 75 and 50 % of
+        the gains themselves (a candidate the ladder stopped below 100 %: of its scaled gains),
+        by their short L2[e], the first
+        :data:`FULL_TRIES` run at 100 %; those that pass, by their full L2[e], each run at
+        75 % and 50 % (:data:`SCALES`, highest first); the first that passes all three rungs
+        wins. When none does, the best candidate's gains stepped down (:data:`STEP_DOWN`), each
+        with its own three rungs. Returns (L2 of the full run at 100 %, gains, scale, from) or
+        None (nothing is written)."""
+        pool, seen = [], set()
+        cands = sorted(self.found + ([rule_best] if rule_best else []), key=lambda b: b[0])
+        for c in cands:
+            key = (design_of(c[1]), c[2])
+            if key not in seen:
+                seen.add(key)
+                pool.append(c)
+        full = []
+        holds = self.choice.get("holds", lambda g: True)
+        pool = [c for c in pool if holds(c[1])]      # the margins at 100/75/50 % of the gains written
+        for l2, g, sc, frm in pool[:FULL_TRIES]:
+            res, why = self.run(g, "confirm", sc, seconds, ref)
+            if not why:
+                full.append((res["L2_um"], g, sc, frm, res))
+        for cand in sorted(full, key=lambda b: b[0]):
+            if self._rungs(cand[1], cand[2], seconds, ref, cand[4]):
+                return cand[:4]
+        if not pool:
+            return None
+        l2, g, sc, frm = pool[0]
+        for step in STEP_DOWN:
+            gs = scaled(self.law, g, step)
+            if not holds(gs):
+                continue
+            res, why = self.run(gs, "step down", sc * step, seconds, ref)
+            if not why and self._rungs(gs, sc * step, seconds, ref, res):
+                return (res["L2_um"], gs, sc * step, frm)
+        return None
+
+    def _rungs(self, g, sc, seconds, ref, top: dict) -> bool:
+        """Full runs of ``g`` at the ladder's rungs below 100 % (:data:`SCALES`, highest first);
+        whether every one passed. A lower rung stands for a heavier load or a weaker amplifier:
+        it must not fault, ring or be noisy at rest (the limits of ``ref``). Its error spectrum
+        is compared with the gains' own run at 100 % ``top`` (a softer loop rejects less, and
+        its error at tens of Hz is a few times the stiff configured controller's without any
+        ringing: Y's PID at 50 % 130-380x the configured C2's, never 100x its own), and its
+        saturation is reported, not judged (a softer loop's larger error drives u into its
+        limit more often: X's C2 at 50 % saturates 3-5x what it does at 100 %)."""
+        for rung in sorted(SCALES[:-1], reverse=True):
+            gr = scaled(self.law, g, rung)
+            res = evaluate(apply_gains(self.raw, self.axis, self.law, gr, self.extra), self.source, self.axis,
+                           self.law, seconds, self.clock)
+            why = admissible({**res, "saturated": 0}, self.u_lim, ref, osc_ref=top)
+            self.record(f"confirm {seconds:g} s", sc * rung, res, why)
+            if why:
+                return False
+        return True
+
+    def calibrate_on_rule(self) -> None:
+        """The first calibration point: the ladder's run whose noise most exceeds its prediction."""
+        pred = self.choice["u_rest_pred_V"]
+        pts = [(sc * pred, res["u_rest_rms_V"]) for _, sc, res, _ in self.runs
+               if not res["fault"] and res["u_rest_rms_V"] > 0 and pred > 0]
+        self.last = [max(pts, key=lambda x: x[1] / x[0])] if pts else []
+
+    def noise_of(self, g) -> float:
+        """The rest noise [V] expected of the design ``g`` (class docstring)."""
+        own = self.obs.get(shape_of(g), [])
+        if not (own or self.last) or g["_rest_V"] <= 0:
+            return 0.0
+        if not own:                             # another shape's run: in proportion
+            return self.last[0][1] * g["_rest_V"] / self.last[0][0]
+        beta = NOISE_EXPONENT
+        lp = np.log([x[0] for x in own])
+        if np.ptp(lp) > 0.05:
+            beta = float(np.clip(np.polyfit(lp, np.log([x[1] for x in own]), 1)[0], 0.25, 1.0))
+        p0, a0 = min(own, key=lambda x: abs(math.log(g["_rest_V"] / x[0])))
+        return a0 * (g["_rest_V"] / p0) ** beta
+
+    def noisy(self, g) -> bool:
+        return self.noise_of(g) > NOISE_SLACK * self.rest_max
+
+    def trial(self, g, label):
+        """A run of ``g`` at 100 % (once per design); recorded, calibrated on. Returns
+        (result, verdict: '' when it passed)."""
+        key = design_of(g)
+        if key in self.tried:
+            return self.tried[key]
+        res, why = self.run(g, label, 1.0)
+        self.tried[key] = (res, why)
+        if not why:
+            self.found.append((res["L2_um"], g, 1.0, "search"))
+        if not res["fault"] and res["u_rest_rms_V"] > 0 and g["_rest_V"] > 0:   # nan: False
+            self.obs.setdefault(shape_of(g), []).append((g["_rest_V"], res["u_rest_rms_V"]))
+            self.last[:] = [(g["_rest_V"], res["u_rest_rms_V"])]
+        return res, why
+
+    def reach(self, members) -> float:
+        """|L| at F_TRACK_HZ of the shape's highest admissible ω whose noise is quiet."""
+        g = next((g for g in members if not self.noisy(g)), members[-1])
+        return self.choice["l_track"][design_of(g)]
+
+    def search(self, budget: int) -> None:
+        """Per shape, the highest ω that passes, bracketed on the shape's admissible ω (those
+        whose rest noise, so calibrated, stays below the level). A run that fails by noise,
+        saturation, oscillation or a fault of a ringing loop bounds ω from above; one that
+        faults on its following error while quiet, or saturates more than at a higher ω (too
+        soft for the program), bounds it from below. Shapes in the order of the |L| at
+        F_TRACK_HZ of their highest quiet admissible ω (re-ranked after each shape, the
+        calibration moving on), at most SEARCH_RUNS runs per shape and ``budget`` in all."""
+        choice, u_lim = self.choice, self.u_lim
+        w_hint, left, spent = None, dict(choice["admissible"]), 0
+        while left and spent < budget:
+            members = left.pop(max(left, key=lambda k: self.reach(left[k])))
+            lead = min(self.found, key=lambda b: b[0], default=None)
+            if lead is not None and design_of(lead[1]) in choice["l_track"] and \
+                    self.reach(members) < PRUNE_SHARE * choice["l_track"][design_of(lead[1])]:
+                break                               # the rest reach less still: ranked
+            n = len(members)
+            top = next((j for j, g in enumerate(members) if not self.noisy(g)), n - 1)
+            p = top if w_hint is None else max(top, min(range(n),
+                                                       key=lambda j: abs(members[j]["_w"] - w_hint)))
+            # positions: ω falls with j; hi < boundary ≤ ok < lo (hi: failed high, lo: failed soft)
+            hi, lo, ok, down, up, sat = -1, n, None, 1, 1, {}
+            for _ in range(SEARCH_RUNS):
+                if spent >= budget:
+                    break
+                n_before = len(self.runs)
+                res, why = self.trial(members[p], _fmt_shape(members[p]))
+                spent += len(self.runs) - n_before
+                if res is not None and why and SATURATED in why:
+                    sat[p] = res["saturated"]
+                if not why:
+                    ok = p if ok is None else min(ok, p)
+                elif res is not None and (too_soft(res, u_lim, self.ref) or (
+                        p in sat and any(j < p and sat[j] < sat[p] for j in sat))):
+                    lo = min(lo, p)                 # (saturating more than at a higher ω: its error)
+                else:
+                    hi = max(hi, p)
+                # the highest ω whose noise, calibrated anew on this run, stays below the level
+                # (a shape with no noise of its own yet, all its runs faulted: no ceiling)
+                top = (next((j for j, g in enumerate(members) if j > hi and not self.noisy(g)), n - 1)
+                       if shape_of(members[0]) in self.obs else hi + 1)
+                floor_ = max(hi, top - 1)           # every position ≤ this fails or is noisy
+                if ok is not None:
+                    if ok - floor_ <= 1:
+                        break
+                    if hi < 0:                      # nothing above has failed yet: climb
+                        p, up = max(top, ok - up), up * 2
+                    else:
+                        p = (floor_ + ok) // 2
+                elif lo - floor_ <= 1:              # no ω left between the two kinds of failure
+                    break
+                elif lo < n and hi < 0:             # only too soft so far: climb
+                    p, up = max(floor_ + 1, p - up), up * 2
+                elif lo < n:                        # failed on both sides: halve the window
+                    p = (floor_ + lo) // 2
+                else:                               # only too high so far: descend
+                    p, down = min(n - 1, max(top, p + down)), down * 2
+            if ok is not None:
+                w_hint = members[ok]["_w"]
+
+    def refine(self, budget: int) -> None:
+        """From the best family member that passed, one grid step at a time (ω, ζ, r, and two of
+        them at once) to an admissible neighbour not yet run, the highest |L| at F_TRACK_HZ
+        first; move to the first that passes with a lower L2[e], stop when none does or after
+        ``budget`` runs."""
+        choice = self.choice
+        center = min(self.found, key=lambda b: b[0], default=None)
+        while center is not None and budget > 0:
+            near = [g for g in neighbours(center[1], choice["grid"], choice["members"])
+                    if design_of(g) not in self.tried and not self.noisy(g)]
+            near.sort(key=lambda g: -choice["l_track"][design_of(g)])
+            moved = None
+            for g in near[:budget]:
+                budget -= 1
+                res, why = self.trial(g, "near " + _fmt_shape(g))
+                if not why and res["L2_um"] < center[0]:
+                    moved = (res["L2_um"], g, 1.0, "search")
+                    break
+            center = moved
+
+    def winner(self, rule_best):
+        """The least L2[e] of every run that passed: (L2, gains, scale, from) or None. A search
+        winner climbs the ladder too (its 100 % run is already done); when a rung below stops
+        it, it stands at the highest scale that passed (as the rule's gains do) and the next
+        best climbs, at most WINNER_TRIES of them, one per shape; the least L2[e] of what stood
+        is kept."""
+        accepted = [rule_best] if rule_best is not None else []
+        climbs, stopped = 0, set()
+        for cand in sorted((b for b in self.found if b[3] == "search"), key=lambda b: b[0]):
+            if climbs == WINNER_TRIES or (accepted and min(a[0] for a in accepted) <= cand[0]):
+                break
+            if shape_of(cand[1]) in stopped:        # its shape stopped on a lower rung already
+                continue
+            climbs += 1
+            sc, res_sc = self.ladder(cand[1], (), "winner", done={1.0: self.tried[design_of(cand[1])][0]})
+            if sc == 1.0:
+                accepted.append(cand)
+                break
+            stopped.add(shape_of(cand[1]))
+            if sc > 0.0:
+                accepted.append((res_sc["L2_um"], scaled(self.law, cand[1], sc), sc, "search"))
+        return min(accepted, key=lambda b: b[0], default=None)
+
+
+def _fmt_shape(g: dict) -> str:
+    return "w {:.0f}".format(g["_w"]) + "".join(f" {k[1:]} {v:g}" for k, v in shape_of(g))
