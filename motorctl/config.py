@@ -35,7 +35,7 @@ import yaml
 from pydantic import BaseModel, Field, StringConstraints, ValidationError, ValidationInfo, field_validator
 from pydantic_core import PydanticCustomError
 
-from motorctl.control import CONTROLLER_NAMES, configured_controllers, controller_class, make_controller
+from motorctl.control import CONTROLLER_NAMES, configured_controllers, controller_class
 from motorctl.control.params import ControllerConfig
 from motorctl.driver import Driver, load_driver_class
 from motorctl.inputs import MAX_CONFIG_BYTES, InputError, read_text, summarize
@@ -279,26 +279,6 @@ class LoadedConfig:
         names = list(axis_names) if axis_names else list(self.axes)
         return self.driver_cls(self.driver_options, {a: self.axis_driver_options[a] for a in names},
                                self.period_s)
-
-    def make_controllers(self, axis_names=None, kind: str | None = None) -> list:
-        """One controller per axis, in order; ``kind`` (a name of :data:`CONTROLLER_NAMES`)
-        overrides the config's ``type``.
-
-        Building compiles (or loads the cached) control kernels, so it is done before any cycle.
-        Raises:
-            ConfigError: ``kind`` is not configured for one of the axes.
-        """
-        names = list(axis_names) if axis_names else list(self.axes)
-        out = []
-        for a in names:
-            section = self.axes[a].controller
-            k = kind or section.type
-            if k not in configured_controllers(section):
-                raise ConfigError(self.path, f"axes.{a}.controller",
-                                  f"controller {k!r} is not configured for this axis; configured: "
-                                  f"{', '.join(configured_controllers(section))}")
-            out.append(make_controller(section, k, self.period_s))
-        return out
 
 
 def _fmt_loc(prefix: str, loc) -> str:

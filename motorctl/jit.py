@@ -36,7 +36,7 @@ njit = partial(_numba_njit, cache=True, nogil=True)
 #: True when ``NUMBA_DISABLE_JIT=1``: kernels are plain Python
 DISABLED = bool(_config.DISABLE_JIT)
 
-__all__ = ["DISABLED", "BundleType", "borrow", "bundle", "define_bundle", "entry", "njit"]
+__all__ = ["DISABLED", "BundleType", "borrow", "bundle", "check_code", "define_bundle", "dispatch", "entry", "njit"]
 
 
 class BundleType(_types.StructRef):
@@ -112,3 +112,49 @@ def _borrow_jit(typingctx, arr):
 #: owner: a borrowed view must never be returned, stored in a bundle or outlive that call.
 #: With the JIT disabled, the array itself.
 borrow = _borrow_py if DISABLED else _borrow_jit
+
+
+def dispatch(kernels, otherwise):
+    """A compiled ``call(c, *args)``: ``kernel(*args)`` for the code c of a pair (c, kernel) of
+    ``kernels``, else ``otherwise(c, *args)`` (a kernel too). The one way a table of compiled kernels is called by
+    code (:mod:`motorctl.effects.plant`, :mod:`motorctl.effects.compensation`): the if-chain
+    over the codes is built here from the table, so that a kernel is added in the table only.
+
+    Each link is a small compiled function with its kernel and the next link bound in its
+    closure (called, never passed as a value: numba caches a function that calls a kernel, not
+    one that holds a kernel as a value); LLVM inlines the chain into the caller. With the JIT
+    disabled, the same functions in Python.
+
+    Args:
+        kernels: (code (int), kernel) pairs: the compiled kernels (:data:`njit`), all taking the
+            same arguments, by code.
+        otherwise: compiled ``otherwise(c, *args)``, called for a code outside the table (its
+            result is the call's, e.g. NaN so that the caller's output faults).
+    """
+    call = otherwise
+    for code, kernel in reversed(list(kernels)):
+        call = _link(int(code), kernel, call)
+    return call
+
+
+def check_code(table, code, kind: str, what: str) -> int:
+    """``code`` when ``table[code]`` (a table of (kind, kernel) rows, as :func:`dispatch`'s
+    callers keep) is a ``kind`` kernel.
+
+    Raises:
+        ValueError: an unknown code or one of another kind: "``what`` code C is not a compiled
+            ``kind`` kernel; known: ..." naming every row.
+    """
+    if (isinstance(code, bool) or not isinstance(code, int) or not 0 <= code < len(table)
+            or table[code][0] != kind):
+        known = ", ".join(f"{i} ({k} {fn.__name__})" for i, (k, fn) in enumerate(table))
+        raise ValueError(f"{what} code {code!r} is not a compiled {kind!r} kernel; known: {known}")
+    return code
+
+
+def _link(code, kernel, rest):
+    def call(c, *args):
+        if c == code:
+            return kernel(*args)
+        return rest(c, *args)
+    return njit(call)

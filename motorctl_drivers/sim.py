@@ -100,26 +100,61 @@ def _motor_force(u, a1, a2, a3):
     return a1 * u + a2 * u * abs(u) + a3 * u * u * u
 
 
+def _rk4_with(acc):
+    """The RK4 integrator of the plant whose accelerations are ``acc(xc, vc, xl, vl, t, tau, args)``
+    -> (ẍ_c, ẍ_l) [m/s²] (carriage and load at plant time t [s], tau [s] into the period; ``args``
+    the variant's parameters, a tuple): ``rk4(args, xc, vc, xl, vl, t, h, n)`` takes ``n``
+    classical RK4 steps of h [s] and returns xc, vc, xl, vl, t, tau.
+
+    The one RK4 step of every plant variant: compiled (:func:`njit`, one cached kernel per
+    ``acc``) for the rigid plant (:func:`_acc_rigid`, the load a copy of the carriage), the
+    two-mass plant (:func:`_acc_two_mass`) and both with the effects' compiled terms
+    (:func:`_acc_rigid_hooked`, :func:`_acc_two_mass_hooked`); as plain Python for a family with
+    Python hooks only (:meth:`AxisPlant._step_rigid`, :meth:`AxisPlant._step_flex`). ``acc`` is
+    bound in the closure, not passed as an argument: a compiled function passed as a value is
+    a pointer numba cannot cache."""
+
+    def rk4(args, xc, vc, xl, vl, t, h, n):
+        tau = 0.0
+        for _ in range(n):
+            a1c, a1l = acc(xc, vc, xl, vl, t, tau, args)
+            v2c, v2l = vc + 0.5 * h * a1c, vl + 0.5 * h * a1l
+            a2c, a2l = acc(xc + 0.5 * h * vc, v2c, xl + 0.5 * h * vl, v2l, t + 0.5 * h, tau + 0.5 * h, args)
+            v3c, v3l = vc + 0.5 * h * a2c, vl + 0.5 * h * a2l
+            a3c, a3l = acc(xc + 0.5 * h * v2c, v3c, xl + 0.5 * h * v2l, v3l, t + 0.5 * h, tau + 0.5 * h, args)
+            v4c, v4l = vc + h * a3c, vl + h * a3l
+            a4c, a4l = acc(xc + h * v3c, v4c, xl + h * v3l, v4l, t + h, tau + h, args)
+            xc += h / 6.0 * (vc + 2.0 * v2c + 2.0 * v3c + v4c)
+            xl += h / 6.0 * (vl + 2.0 * v2l + 2.0 * v3l + v4l)
+            vc += h / 6.0 * (a1c + 2.0 * a2c + 2.0 * a3c + a4c)
+            vl += h / 6.0 * (a1l + 2.0 * a2l + 2.0 * a3l + a4l)
+            t += h
+            tau += h
+        return xc, vc, xl, vl, t, tau
+
+    return rk4
+
+
+@njit
+def _acc_rigid(x, v, xl, vl, t, tau, args):
+    """:func:`_rk4_with`'s accelerations of the rigid plant, eq. (1) with smooth Coulomb friction;
+    ``args`` = (F_m(u) [N], M [kg], B, A_f, F_0, F_noise, F_ext); the same operations in the
+    same order as :meth:`AxisPlant._acc` without effects."""
+    fm, m, b, fc, f0, f_noise, f_ext = args
+    sf = _TWO_OVER_PI * math.atan(S_F_GAIN * v)
+    a = (fm - b * v - fc * sf + f0 + f_noise + f_ext) / m
+    return a, a
+
+
+_rk4_rigid = njit(_rk4_with(_acc_rigid))
+
+
 @njit
 def _rk4_plain(x, v, t, u, h, n, m, a1, a2, a3, b, fc, f0, f_noise, f_ext):
-    """``n`` RK4 steps of eq. (1) with the force curve of eq. (3) and smooth Coulomb friction,
-    the same operations in the same order as :meth:`AxisPlant._acc` without effects."""
-    fm = _motor_force(u, a1, a2, a3)
-    for _ in range(n):
-        sf = _TWO_OVER_PI * math.atan(S_F_GAIN * v)
-        k1x, k1v = v, (fm - b * v - fc * sf + f0 + f_noise + f_ext) / m
-        v2 = v + 0.5 * h * k1v
-        sf = _TWO_OVER_PI * math.atan(S_F_GAIN * v2)
-        k2x, k2v = v2, (fm - b * v2 - fc * sf + f0 + f_noise + f_ext) / m
-        v3 = v + 0.5 * h * k2v
-        sf = _TWO_OVER_PI * math.atan(S_F_GAIN * v3)
-        k3x, k3v = v3, (fm - b * v3 - fc * sf + f0 + f_noise + f_ext) / m
-        v4 = v + h * k3v
-        sf = _TWO_OVER_PI * math.atan(S_F_GAIN * v4)
-        k4x, k4v = v4, (fm - b * v4 - fc * sf + f0 + f_noise + f_ext) / m
-        x += h / 6.0 * (k1x + 2.0 * k2x + 2.0 * k3x + k4x)
-        v += h / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v)
-        t += h
+    """``n`` RK4 steps of eq. (1) with the force curve of eq. (3) and smooth Coulomb friction
+    (:func:`_rk4_with` of :func:`_acc_rigid`). Returns x, v, t."""
+    x, v, _, _, t, _ = _rk4_rigid((_motor_force(u, a1, a2, a3), m, b, fc, f0, f_noise, f_ext),
+                                  x, v, 0.0, 0.0, t, h, n)
     return x, v, t
 
 
@@ -149,32 +184,26 @@ def _acc_flex(fm, x1, v1, x2, v2, mc, ml, ks, cs, b, fc, f0, f_noise, f_ext):
 
 
 @njit
+def _acc_two_mass(xc, vc, xl, vl, t, tau, args):
+    """:func:`_rk4_with`'s accelerations of the two-mass plant under the motor force of
+    :func:`_force_at`; ``args`` = (f_start, f_prev, f_cur, delta, tau_i, m_c, m_l, k, c, B, A_f,
+    F_0, F_noise, F_ext)."""
+    f_start, f_prev, f_cur, delta, tau_i, mc, ml, ks, cs, b, fc, f0, f_noise, f_ext = args
+    fm = _force_at(tau, f_start, f_prev, f_cur, delta, tau_i)
+    return _acc_flex(fm, xc, vc, xl, vl, mc, ml, ks, cs, b, fc, f0, f_noise, f_ext)
+
+
+_rk4_two_mass = njit(_rk4_with(_acc_two_mass))
+
+
+@njit
 def _rk4_flex(xc, vc, xl, vl, t, f_start, f_prev, f_cur, delta, tau_i, h, n, mc, ml, ks, cs,
               b, fc, f0, f_noise, f_ext):
     """``n`` RK4 steps of the two-mass plant (carriage xc, vc; load xl, vl) with the motor force
     of :func:`_force_at`; ``ml`` = 0 means no structural mode (one rigid mass ``mc``). Returns
     xc, vc, xl, vl, t and the force at the end of the period."""
-    tau = 0.0
-    for _ in range(n):
-        fm = _force_at(tau, f_start, f_prev, f_cur, delta, tau_i)
-        a1c, a1l = _acc_flex(fm, xc, vc, xl, vl, mc, ml, ks, cs, b, fc, f0, f_noise, f_ext)
-        fm = _force_at(tau + 0.5 * h, f_start, f_prev, f_cur, delta, tau_i)
-        v2c, v2l = vc + 0.5 * h * a1c, vl + 0.5 * h * a1l
-        a2c, a2l = _acc_flex(fm, xc + 0.5 * h * vc, v2c, xl + 0.5 * h * vl, v2l,
-                             mc, ml, ks, cs, b, fc, f0, f_noise, f_ext)
-        v3c, v3l = vc + 0.5 * h * a2c, vl + 0.5 * h * a2l
-        a3c, a3l = _acc_flex(fm, xc + 0.5 * h * v2c, v3c, xl + 0.5 * h * v2l, v3l,
-                             mc, ml, ks, cs, b, fc, f0, f_noise, f_ext)
-        fm = _force_at(tau + h, f_start, f_prev, f_cur, delta, tau_i)
-        v4c, v4l = vc + h * a3c, vl + h * a3l
-        a4c, a4l = _acc_flex(fm, xc + h * v3c, v4c, xl + h * v3l, v4l,
-                             mc, ml, ks, cs, b, fc, f0, f_noise, f_ext)
-        xc += h / 6.0 * (vc + 2.0 * v2c + 2.0 * v3c + v4c)
-        xl += h / 6.0 * (vl + 2.0 * v2l + 2.0 * v3l + v4l)
-        vc += h / 6.0 * (a1c + 2.0 * a2c + 2.0 * a3c + a4c)
-        vl += h / 6.0 * (a1l + 2.0 * a2l + 2.0 * a3l + a4l)
-        t += h
-        tau += h
+    xc, vc, xl, vl, t, tau = _rk4_two_mass((f_start, f_prev, f_cur, delta, tau_i, mc, ml, ks, cs, b, fc, f0,
+                                             f_noise, f_ext), xc, vc, xl, vl, t, h, n)
     return xc, vc, xl, vl, t, _force_at(tau, f_start, f_prev, f_cur, delta, tau_i)
 
 
@@ -483,25 +512,15 @@ def _acc_hooked(fm, x, v, t, m, b, fc, f0, f_noise, f_ext, codes, table, lengths
 
 
 @njit
-def _rk4_hooked(x, v, t, u, h, n, m, a1, a2, a3, b, fc, f0, f_noise, f_ext, codes, table, lengths):
-    """``n`` RK4 steps of the rigid plant with the effects' compiled terms (:func:`_acc_hooked`);
-    the same operations in the same order as :meth:`AxisPlant._step_rigid`."""
-    fm = _motor_force(u, a1, a2, a3)
-    for _ in range(n):
-        k1x, k1v = v, _acc_hooked(fm, x, v, t, m, b, fc, f0, f_noise, f_ext, codes, table, lengths)
-        k2x = v + 0.5 * h * k1v
-        k2v = _acc_hooked(fm, x + 0.5 * h * k1x, v + 0.5 * h * k1v, t + 0.5 * h, m, b, fc, f0, f_noise,
-                          f_ext, codes, table, lengths)
-        k3x = v + 0.5 * h * k2v
-        k3v = _acc_hooked(fm, x + 0.5 * h * k2x, v + 0.5 * h * k2v, t + 0.5 * h, m, b, fc, f0, f_noise,
-                          f_ext, codes, table, lengths)
-        k4x = v + h * k3v
-        k4v = _acc_hooked(fm, x + h * k3x, v + h * k3v, t + h, m, b, fc, f0, f_noise, f_ext, codes, table,
-                          lengths)
-        x += h / 6.0 * (k1x + 2.0 * k2x + 2.0 * k3x + k4x)
-        v += h / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v)
-        t += h
-    return x, v, t
+def _acc_rigid_hooked(x, v, xl, vl, t, tau, args):
+    """:func:`_rk4_with`'s accelerations of the rigid plant with the effects' compiled terms;
+    ``args`` = (F_m(u) [N], M, B, A_f, F_0, F_noise, F_ext, codes, table, lengths)."""
+    fm, m, b, fc, f0, f_noise, f_ext, codes, table, lengths = args
+    a = _acc_hooked(fm, x, v, t, m, b, fc, f0, f_noise, f_ext, codes, table, lengths)
+    return a, a
+
+
+_rk4_rigid_hooked = njit(_rk4_with(_acc_rigid_hooked))
 
 
 @njit
@@ -524,36 +543,17 @@ def _acc_flex_hooked(fm, xc, vc, xl, vl, t, mc, ml0, m_tot, ks, cs, b, fc, f0, f
 
 
 @njit
-def _rk4_flex_hooked(xc, vc, xl, vl, t, f_start, f_prev, f_cur, delta, tau_i, h, n, mc, ml, m_tot, ks, cs,
-                     b, fc, f0, f_noise, f_ext, codes, table, lengths):
-    """:func:`_rk4_flex` with the effects' compiled terms (:func:`_acc_flex_hooked`): the same
-    operations in the same order as the general path of :meth:`AxisPlant._step_flex`. Returns
-    xc, vc, xl, vl, t and the force at the end of the period."""
-    tau = 0.0
-    for _ in range(n):
-        a1c, a1l = _acc_flex_hooked(_force_at(tau, f_start, f_prev, f_cur, delta, tau_i), xc, vc, xl, vl, t,
-                                    mc, ml, m_tot, ks, cs, b, fc, f0, f_noise, f_ext, codes, table, lengths)
-        a2c, a2l = _acc_flex_hooked(_force_at(tau + 0.5 * h, f_start, f_prev, f_cur, delta, tau_i),
-                                    xc + 0.5 * h * vc, vc + 0.5 * h * a1c, xl + 0.5 * h * vl, vl + 0.5 * h * a1l,
-                                    t + 0.5 * h, mc, ml, m_tot, ks, cs, b, fc, f0, f_noise, f_ext, codes, table,
-                                    lengths)
-        v2c, v2l = vc + 0.5 * h * a1c, vl + 0.5 * h * a1l
-        a3c, a3l = _acc_flex_hooked(_force_at(tau + 0.5 * h, f_start, f_prev, f_cur, delta, tau_i),
-                                    xc + 0.5 * h * v2c, vc + 0.5 * h * a2c, xl + 0.5 * h * v2l, vl + 0.5 * h * a2l,
-                                    t + 0.5 * h, mc, ml, m_tot, ks, cs, b, fc, f0, f_noise, f_ext, codes, table,
-                                    lengths)
-        v3c, v3l = vc + 0.5 * h * a2c, vl + 0.5 * h * a2l
-        a4c, a4l = _acc_flex_hooked(_force_at(tau + h, f_start, f_prev, f_cur, delta, tau_i),
-                                    xc + h * v3c, vc + h * a3c, xl + h * v3l, vl + h * a3l, t + h,
-                                    mc, ml, m_tot, ks, cs, b, fc, f0, f_noise, f_ext, codes, table, lengths)
-        v4c, v4l = vc + h * a3c, vl + h * a3l
-        xc += h / 6.0 * (vc + 2.0 * v2c + 2.0 * v3c + v4c)
-        xl += h / 6.0 * (vl + 2.0 * v2l + 2.0 * v3l + v4l)
-        vc += h / 6.0 * (a1c + 2.0 * a2c + 2.0 * a3c + a4c)
-        vl += h / 6.0 * (a1l + 2.0 * a2l + 2.0 * a3l + a4l)
-        t += h
-        tau += h
-    return xc, vc, xl, vl, t, _force_at(tau, f_start, f_prev, f_cur, delta, tau_i)
+def _acc_two_mass_hooked(xc, vc, xl, vl, t, tau, args):
+    """:func:`_rk4_with`'s accelerations of the two-mass plant with the effects' compiled terms
+    (:func:`_acc_flex_hooked`); ``args`` = (f_start, f_prev, f_cur, delta, tau_i, m_c, m_l, M, k,
+    c, B, A_f, F_0, F_noise, F_ext, codes, table, lengths)."""
+    (f_start, f_prev, f_cur, delta, tau_i, mc, ml, m_tot, ks, cs, b, fc, f0, f_noise, f_ext, codes, table,
+     lengths) = args
+    return _acc_flex_hooked(_force_at(tau, f_start, f_prev, f_cur, delta, tau_i), xc, vc, xl, vl, t, mc, ml,
+                            m_tot, ks, cs, b, fc, f0, f_noise, f_ext, codes, table, lengths)
+
+
+_rk4_two_mass_hooked = njit(_rk4_with(_acc_two_mass_hooked))
 
 
 #: the velocity [m/s] at which the effects' friction at rest is evaluated: the sign of a
@@ -584,7 +584,7 @@ def _held_hooked(u, s, p, codes, table, lengths):
 def _hooked_step(u, s, p, dl, nz, codes, table, lengths):
     """One period of an axis whose effects all have compiled terms (:meth:`AxisPlant.step` after
     its input hooks), ``codes``/``table``/``lengths`` from :func:`motorctl.effects.plant.rows`:
-    :func:`_plant_step` with :func:`_rk4_hooked` / :func:`_rk4_flex_hooked` for the integrators
+    :func:`_plant_step` with :func:`_acc_rigid_hooked` / :func:`_acc_two_mass_hooked` in :func:`_rk4_with`
     (the same operations in the same order as the Python path)."""
     a1, a2, a3 = p[PP_A1], p[PP_A2], p[PP_A3]
     rest, x0, xl0 = _period_begin(u, s, p, nz)
@@ -594,15 +594,17 @@ def _hooked_step(u, s, p, dl, nz, codes, table, lengths):
         stuck = rest and _held(u, s, p)
     n = int(p[PP_N])
     if p[PP_FLEX] == 0.0:
-        s[PS_X], s[PS_XD], s[PS_T] = _rk4_hooked(s[PS_X], s[PS_XD], s[PS_T], u, p[PP_H], n, p[PP_M], a1, a2, a3,
-                                                 p[PP_B], p[PP_FC], p[PP_F0], s[PS_FNOISE], s[PS_FEXT], codes,
-                                                 table, lengths)
+        s[PS_X], s[PS_XD], _, _, s[PS_T], _ = _rk4_rigid_hooked(
+            (_motor_force(u, a1, a2, a3), p[PP_M], p[PP_B], p[PP_FC], p[PP_F0], s[PS_FNOISE],
+                                s[PS_FEXT], codes, table, lengths), s[PS_X], s[PS_XD], 0.0, 0.0, s[PS_T], p[PP_H], n)
     else:
         f_prev, f_cur = _current_command(u, s, p, dl)
-        (s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], s[PS_F]) = _rk4_flex_hooked(
-            s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], s[PS_F], f_prev, f_cur, p[PP_DELTA], p[PP_TAUI],
-            p[PP_H], n, p[PP_MC], p[PP_ML], p[PP_M], p[PP_KS], p[PP_CS], p[PP_B], p[PP_FC], p[PP_F0],
-            s[PS_FNOISE], s[PS_FEXT], codes, table, lengths)
+        f_start = s[PS_F]
+        (s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], tau) = _rk4_two_mass_hooked(
+            (f_start, f_prev, f_cur, p[PP_DELTA], p[PP_TAUI], p[PP_MC], p[PP_ML], p[PP_M],
+                                   p[PP_KS], p[PP_CS], p[PP_B], p[PP_FC], p[PP_F0], s[PS_FNOISE], s[PS_FEXT], codes,
+                                   table, lengths), s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], p[PP_H], n)
+        s[PS_F] = _force_at(tau, f_start, f_prev, f_cur, p[PP_DELTA], p[PP_TAUI])
     _period_end(s, p, nz, stuck, x0, xl0)
 
 
@@ -710,7 +712,13 @@ class AxisPlant:
         """ẍ [m/s²] at position x [m], velocity v [m/s], plant time t [s] under input u [V]:
         eq. (1) with the force curve of eq. (3), smooth Coulomb friction and the effects'
         hooks (thrust factor, forces, mass) in registry order."""
-        fm = self._motor_force(u)
+        f, m = self._hooked_force(self._motor_force(u), x, v, t)
+        return f / m
+
+    def _hooked_force(self, fm: float, x: float, v: float, t: float) -> tuple[float, float]:
+        """(the force F [N], the moving mass m [kg]) of eq. (1) under the motor force fm [N] at
+        x [m], ẋ = v [m/s], plant time t [s]: the thrust hooks on fm, smooth Coulomb friction,
+        the force hooks and the mass hooks, in registry order."""
         for thrust in self._thrust:
             fm = thrust(fm, x, t)
         sf = _TWO_OVER_PI * math.atan(S_F_GAIN * v)
@@ -720,7 +728,7 @@ class AxisPlant:
         m = self.m
         for mass in self._masses:
             m = mass(m, t)
-        return f / m
+        return f, m
 
     def mass_at(self, t: float) -> float:
         """Moving mass [kg] at plant time t (payload change included)."""
@@ -829,17 +837,8 @@ class AxisPlant:
         h, F0, d, ti = self.h, self.F, self.delta, self.tau_i
         ml0, m_tot = self.ml, self.m
 
-        def acc(xc, vc, xl, vl, t, tau):
-            fm = _force_at(tau, F0, f_prev, f_cur, d, ti)
-            for thrust in self._thrust:
-                fm = thrust(fm, xc, t)
-            sf = _TWO_OVER_PI * math.atan(S_F_GAIN * vc)
-            f = fm - self.b * vc - self.fc * sf + self.f0 + self.f_noise + self.f_ext
-            for force in self._forces:
-                f = force(f, xc, vc, t, sf)
-            m = m_tot
-            for mass in self._masses:
-                m = mass(m, t)
+        def acc(xc, vc, xl, vl, t, tau, _args):
+            f, m = self._hooked_force(_force_at(tau, F0, f_prev, f_cur, d, ti), xc, vc, t)
             if ml0 > 0.0:   # a mass change is the load's
                 fsp = self.ks * (xc - xl) + self.cs * (vc - vl)
                 ac = (f - fsp) / self.mc
@@ -847,41 +846,20 @@ class AxisPlant:
             ac = f / m
             return ac, ac
 
-        xc, vc, xl, vl, t = self.x, self.xd, self.xl, self.vl, self.t
-        tau = 0.0
-        for _ in range(self.substeps):
-            a1c, a1l = acc(xc, vc, xl, vl, t, tau)
-            a2c, a2l = acc(xc + 0.5 * h * vc, vc + 0.5 * h * a1c, xl + 0.5 * h * vl,
-                           vl + 0.5 * h * a1l, t + 0.5 * h, tau + 0.5 * h)
-            v2c, v2l = vc + 0.5 * h * a1c, vl + 0.5 * h * a1l
-            a3c, a3l = acc(xc + 0.5 * h * v2c, vc + 0.5 * h * a2c, xl + 0.5 * h * v2l,
-                           vl + 0.5 * h * a2l, t + 0.5 * h, tau + 0.5 * h)
-            v3c, v3l = vc + 0.5 * h * a2c, vl + 0.5 * h * a2l
-            a4c, a4l = acc(xc + h * v3c, vc + h * a3c, xl + h * v3l, vl + h * a3l, t + h, tau + h)
-            v4c, v4l = vc + h * a3c, vl + h * a3l
-            xc += h / 6.0 * (vc + 2.0 * v2c + 2.0 * v3c + v4c)
-            xl += h / 6.0 * (vl + 2.0 * v2l + 2.0 * v3l + v4l)
-            vc += h / 6.0 * (a1c + 2.0 * a2c + 2.0 * a3c + a4c)
-            vl += h / 6.0 * (a1l + 2.0 * a2l + 2.0 * a3l + a4l)
-            t += h
-            tau += h
-        self.x, self.xd, self.xl, self.vl, self.t = xc, vc, xl, vl, t
+        self.x, self.xd, self.xl, self.vl, self.t, tau = _rk4_with(acc)((), self.x, self.xd, self.xl, self.vl,
+                                                                  self.t, h, self.substeps)
         self.F = _force_at(tau, F0, f_prev, f_cur, d, ti)
 
     def _step_rigid(self, u: float) -> None:
         """One period of the rigid plant with the effects' hooks (python)."""
-        h = self.h
-        x, v, t = self.x, self.xd, self.t
         acc = self._acc
-        for _ in range(self.substeps):
-            k1x, k1v = v, acc(x, v, t, u)
-            k2x, k2v = v + 0.5 * h * k1v, acc(x + 0.5 * h * k1x, v + 0.5 * h * k1v, t + 0.5 * h, u)
-            k3x, k3v = v + 0.5 * h * k2v, acc(x + 0.5 * h * k2x, v + 0.5 * h * k2v, t + 0.5 * h, u)
-            k4x, k4v = v + h * k3v, acc(x + h * k3x, v + h * k3v, t + h, u)
-            x += h / 6.0 * (k1x + 2.0 * k2x + 2.0 * k3x + k4x)
-            v += h / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v)
-            t += h
-        self.x, self.xd, self.t = x, v, t
+
+        def acc2(x, v, xl, vl, t, tau, _args):
+            a = acc(x, v, t, u)
+            return a, a
+
+        self.x, self.xd, _, _, self.t, _ = _rk4_with(acc2)((), self.x, self.xd, 0.0, 0.0, self.t, self.h,
+                                                   self.substeps)
 
     def measured(self) -> float:
         """Encoder reading [m]: x quantised to the resolution q (docs/control-law.md, Measurement)."""

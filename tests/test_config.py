@@ -99,3 +99,29 @@ def test_the_shipped_config_is_valid(gantry_yaml, capsys):
     assert loaded.period_s == pytest.approx(2e-4)
     with pytest.raises(ConfigError):
         load_config(gantry_yaml.parent / "missing.yaml")
+
+
+def test_a_laws_settings_are_parsed_once_from_yaml_to_the_controller(monkeypatch):
+    """The loader's checks and the controller built from the section share one parse of each
+    law's settings (the section keeps it); a copy of the section parses its own keys."""
+    from motorctl.control import make_controller
+    from motorctl.control.dcdiarc import DcdiarcConfig
+
+    parsed = []
+    real = DcdiarcConfig.model_validate.__func__
+
+    def counting(cls, data, *a, **k):
+        parsed.append(dict(data))
+        return real(cls, data, *a, **k)
+
+    monkeypatch.setattr(DcdiarcConfig, "model_validate", classmethod(counting))
+    loaded = load_config("configs/gantry.yaml")
+    section = loaded.axes["X"].controller
+    assert len(parsed) == 2 * len(loaded.axes)          # c1 and c2 of each axis, once each
+    ctl = make_controller(section, "c2", loaded.period_s)
+    assert len(parsed) == 2 * len(loaded.axes)
+    assert ctl.law is section.settings("c2")
+    faster = section.model_copy(update={"u_lim": 5.0})
+    assert faster.settings("c2") is not section.settings("c2") and len(parsed) == 2 * len(loaded.axes) + 1
+    with pytest.raises(KeyError, match="unknown controller 'nope'; allowed: c1, c2, pid"):
+        make_controller(section, "nope", loaded.period_s)

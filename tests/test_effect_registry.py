@@ -357,3 +357,39 @@ def test_effect_modules_import_no_consumer():
                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
             for m in mods:
                 assert not m.startswith(banned), f"{path.name} imports {m}"
+
+
+# ---------------------------------------------------------------------------- code -> kernel tables
+def test_plant_and_compensation_codes_are_checked_against_their_tables():
+    """One table each from a code to its compiled kernel: a code outside it, or one of another
+    hook / kind, is refused with the known codes named; the compiled dispatch gives NaN for it
+    (the axis faults), never another family's term."""
+    from motorctl.effects import compensation, plant
+
+    for code, (hook, kernel) in enumerate(plant.PLANT_KERNELS):
+        assert plant.check_plant_code(code, hook) == code
+        assert plant.KERNELS[code] is kernel
+    for code, (kind, kernel) in enumerate(compensation.COMP_KERNELS):
+        assert compensation.check_comp_code(code, kind) == code
+    n = len(plant.PLANT_KERNELS)
+    with pytest.raises(ValueError, match=f"plant term code {n} is not a compiled 'force' kernel; known: 0 "):
+        plant.check_plant_code(n, "force")
+    thrust_code = [h for h, _ in plant.PLANT_KERNELS].index("thrust")
+    with pytest.raises(ValueError, match="not a compiled 'force' kernel"):
+        plant.check_plant_code(thrust_code, "force")
+    with pytest.raises(ValueError, match="compensation term code -1 is not a compiled 'add' kernel"):
+        compensation.check_comp_code(-1, "add")
+    fill_code = [k for k, _ in compensation.COMP_KERNELS].index("fill")
+    with pytest.raises(ValueError, match="not a compiled 'add' kernel"):
+        compensation.check_comp_code(fill_code, "add")
+
+    codes, lengths, table = np.array([n], dtype=np.int64), np.array([1], dtype=np.int64), np.zeros((1, 1))
+    assert math.isnan(plant.force(1.0, 0.0, 0.0, 0.0, 0.0, codes, table, lengths))
+    assert math.isnan(plant.thrust(1.0, 0.0, 0.0, codes, table, lengths))
+    # a known code of another hook leaves the value as it is
+    codes[0] = thrust_code
+    assert plant.force(1.0, 0.0, 0.0, 0.0, 0.0, codes, table, lengths) == 1.0
+    tab = np.zeros(compensation.T_HEAD + 4)
+    tab[compensation.T_N_ADD] = 1.0
+    tab[compensation.T_HEAD:compensation.T_HEAD + 2] = (len(compensation.COMP_KERNELS), 1.0)
+    assert math.isnan(compensation.comp_value(tab, 0.0, 0.0, 0.0))

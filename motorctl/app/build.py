@@ -24,8 +24,8 @@ import math
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 
-from motorctl.config import LoadedConfig
-from motorctl.control import configured_controllers
+from motorctl.config import ConfigError, LoadedConfig
+from motorctl.control import configured_controllers, make_controller
 from motorctl.loop.rt import RealtimeReport, restore, setup_realtime
 from motorctl.loop.safety import Supervisor
 from motorctl.loop.servo import ServoLoop
@@ -103,10 +103,10 @@ def build(loaded: LoadedConfig, axes=None, controller: str | None = None, *, clo
         kinds = configured_controllers(section) if all_controllers else []
         if active[i] not in kinds:
             kinds = kinds + [active[i]]
-        built = {}
-        for k in kinds:
-            built[k] = loaded.make_controllers([a], k)[0]
-        bank.append(built)
+        try:
+            bank.append({k: make_controller(section, k, loaded.period_s) for k in kinds})
+        except ValueError as exc:
+            raise ConfigError(loaded.path, f"axes.{a}.controller", str(exc)) from None
     programs = [loaded.axes[a].trajectory.program() for a in names]
     sup = Supervisor([loaded.axes[a].limits for a in names], tb.period_s)
     lc = cfg.loop

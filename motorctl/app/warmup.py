@@ -18,6 +18,8 @@ import sys
 import time
 from pathlib import Path
 
+from motorctl.control import configured_controllers, make_controller
+
 COMPILE_LINE = "compiling the servo cycle for this CPU (first run only, ~30 s)..."
 #: the compiled function whose cache index stands for the whole set
 _CYCLE_MODULE, _CYCLE_FUNCTION = "motorctl.loop.cycle", "servo_cycle"
@@ -94,12 +96,10 @@ def warmup(loaded, cycles: int = 20) -> dict:
 
     Returns: {"seconds": wall time [s], "cycle": whether the servo cycle was compiled}.
     """
-    from motorctl.control import configured_controllers
-
     t0 = time.monotonic()
-    for a, ax in loaded.axes.items():
+    for ax in loaded.axes.values():
         for kind in configured_controllers(ax.controller):
-            loaded.make_controllers([a], kind)
+            make_controller(ax.controller, kind, loaded.period_s)
     sim = loaded.cfg.driver.type == "sim"
     if sim:
         from motorctl.app.job import run_job

@@ -45,9 +45,15 @@ def configured_controllers(section) -> list[str]:
 
 
 def make_controller(section, name: str, ts: float):
-    """Build controller ``name`` from an axis's ``controller:`` section at sample period ts [s].
+    """Build controller ``name`` from an axis's ``controller:`` section (a checked
+    :class:`~motorctl.control.params.ControllerConfig`) at sample period ts [s]: the class reads
+    its own settings from the section (:meth:`~motorctl.control.base.Controller.from_config`).
 
     Raises:
-        KeyError: unknown name. ValueError: the section does not configure it.
+        KeyError: unknown name. ValueError: the section does not configure it (the message
+            names the configured ones).
     """
+    if not section.configures(name):
+        raise ValueError(f"controller {name!r} is not configured for this axis; configured: "
+                         f"{', '.join(configured_controllers(section))}")
     return controller_class(name).from_config(section, ts)

@@ -19,6 +19,9 @@ from __future__ import annotations
 
 from typing import Any
 
+from pydantic import PrivateAttr
+
+from motorctl.control import CONTROLLER_NAMES, controller_class
 from motorctl.effects.compensation import CompensationSection
 from motorctl.schema import StrictModel, Vec6, quantity
 
@@ -48,12 +51,12 @@ class ControllerConfig(StrictModel):
     theta_max: Vec6
     theta_hat0: Vec6
     compensation: CompensationSection = CompensationSection()
+    # the laws' settings parsed so far, by name (:meth:`settings`: each parsed once per section)
+    _settings: dict = PrivateAttr(default_factory=dict)
 
     def law_data(self, name: str) -> tuple[dict | None, dict]:
         """(the law's own mapping or None, the shared top-level keys it reads) for law ``name``.
         Raises KeyError for a name not in the registry."""
-        from motorctl.control import controller_class
-
         cls = controller_class(name)
         extra = self.model_extra or {}
         own = extra.get(name)
@@ -64,8 +67,6 @@ class ControllerConfig(StrictModel):
     def configures(self, name: str) -> bool:
         """True when the section holds settings of law ``name`` (its mapping, or for a law with
         shared keys any of them; a law without settings is always configured)."""
-        from motorctl.control import controller_class
-
         if controller_class(name).Settings is None:
             return True
         own, shared = self.law_data(name)
@@ -73,27 +74,34 @@ class ControllerConfig(StrictModel):
 
     def settings(self, name: str) -> Any:
         """Law ``name``'s settings, parsed by its own model (the shared keys, then its own
-        mapping over them).
+        mapping over them) once per section: the loader's checks and the controller built from
+        the section get the same object.
 
         Raises:
             KeyError: no such law. ValueError: the section does not configure it.
             pydantic.ValidationError: a value is wrong (the config loader reports it with its key).
         """
-        from motorctl.control import controller_class
-
+        if name in self._settings:
+            return self._settings[name]
         cls = controller_class(name)
         if cls.Settings is None:
             return None
         if not self.configures(name):
             raise ValueError(f"the controller section does not configure {name!r}")
         own, shared = self.law_data(name)
-        return cls.Settings.model_validate(
+        parsed = cls.Settings.model_validate(
             {**shared, **own} if isinstance(own, dict) else (own if own is not None else shared))
+        self._settings[name] = parsed
+        return parsed
+
+    def model_copy(self, *, update=None, deep: bool = False):
+        """A copy (pydantic's), whose laws' settings are parsed from its own keys when asked."""
+        out = super().model_copy(update=update, deep=deep)
+        object.__setattr__(out, "__pydantic_private__", {"_settings": {}})
+        return out
 
     def unknown_keys(self) -> list[str]:
         """Keys of the section that no registered law reads."""
-        from motorctl.control import CONTROLLER_NAMES, controller_class
-
         known = set(type(self).model_fields) | set(CONTROLLER_NAMES)
         for n in CONTROLLER_NAMES:
             cls = controller_class(n)
@@ -103,8 +111,6 @@ class ControllerConfig(StrictModel):
 
     def allowed_keys(self) -> list[str]:
         """Every key a section may hold (the shared fields, the laws' names, their shared keys)."""
-        from motorctl.control import CONTROLLER_NAMES, controller_class
-
         out = list(type(self).model_fields) + list(CONTROLLER_NAMES)
         for n in CONTROLLER_NAMES:
             cls = controller_class(n)

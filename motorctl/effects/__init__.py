@@ -44,7 +44,10 @@ Adding a family: a module with an :class:`~motorctl.effects.base.EffectFamily` s
 ``FAMILY`` instance, its tests, and one entry point in the ``motorctl.effects`` group (in this
 package or any installed one: ``name = "module:FAMILY"``); a thrust, force or mass plant
 term written as a compiled kernel (:meth:`~motorctl.effects.base.PlantTerm.compiled`) is also
-listed in :mod:`motorctl.effects.plant` (else the simulated plant runs it in Python). The YAML schemas
+one row of :data:`motorctl.effects.plant.PLANT_KERNELS`, a compensation kernel
+(:class:`~motorctl.effects.base.CompTerm`) one row of
+:data:`motorctl.effects.compensation.COMP_KERNELS` (else the plant, or the law, runs it in
+Python: the same equations, slower). The YAML schemas
 (``axes.NAME.driver.effects``, ``axes.NAME.controller.compensation``) are built from the
 registry when their modules are imported (:func:`effects_model`, :func:`compensation_model`).
 """

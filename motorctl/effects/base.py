@@ -90,7 +90,7 @@ class PlantTerm:
         Args:
             hook: which hook the kernel is. kernel: ``kernel(fm, x, t, p)`` (thrust),
                 ``kernel(f, x, v, t, sf, p)`` (force) or ``kernel(m, t, p)`` (mass), the hook's
-                arguments followed by the row p; listed in :data:`motorctl.effects.plant.KERNELS`.
+                arguments followed by the row p; listed in :data:`motorctl.effects.plant.PLANT_KERNELS`.
             params: the row p (k,) of floats, in the kernel's documented order.
         Raises:
             ValueError: unknown hook.
@@ -119,7 +119,7 @@ class CompTerm:
     * ``fill``: ``kernel(out, j, x, xdot, t, sf, p)`` writes the k basis columns c_i(x, ẋ, t)
       [V per β-unit] of an adapted entry into out[j:j + k], d̂_eff = Σ_i β_i c_i.
 
-    Every kernel is listed in :data:`motorctl.effects.compensation.KERNELS`. Floats only, no
+    Every kernel is listed in :data:`motorctl.effects.compensation.COMP_KERNELS`. Floats only, no
     allocation: it runs inside the 5 kHz cycle.
     """
 

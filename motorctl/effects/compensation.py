@@ -41,13 +41,18 @@ Compiled: each family's term is a numba kernel with a parameter row
 one table (:attr:`Compensation.table`) that :func:`comp_value`, :func:`comp_fill` and
 :func:`comp_thrust` evaluate; the table lives in the law's state block, so the compiled servo
 cycle runs a compensated C1/C2 whole (``motorctl.control.dcdiarc.dcdiarc_comp_step``). Adding
-a family with a compensation: its kernels in :data:`KERNELS` and a branch in ``_add`` /
-``_fill`` (a family left out, e.g. from another package, keeps its Python term, and the law
-then runs from Python: the same arithmetic, slower). numba caches these kernels beside their
+a family with a compensation: one row ``(kind, kernel)`` per kernel at the end of
+:data:`COMP_KERNELS` (the compiled dispatch is built from it, :func:`motorctl.jit.dispatch`); a
+family left out, e.g. from another package, keeps its Python term, and the law then runs from
+Python (the same arithmetic, slower). A code outside the table is refused by
+:func:`check_comp_code` when :attr:`Compensation.table` is built; inside the compiled kernels it
+would give NaN (the supervisor faults the axis), never another family's term. numba caches these kernels beside their
 sources, keyed on this module's file: after editing a family's kernel, touch this module.
 """
 
 from __future__ import annotations
+
+from functools import partial
 
 import numpy as np
 from pydantic import create_model
@@ -64,25 +69,50 @@ from motorctl.effects import (
     spring,
     stribeck,
 )
-from motorctl.jit import njit
+from motorctl.jit import check_code, dispatch, njit
 from motorctl.model import s_f_scalar
 
 _s_f = njit(s_f_scalar)
 
-_fourier_add, _fourier_fill = periodic.fourier_add, periodic.fourier_fill
-_spring_add, _spring_fill = spring.comp_add, spring.comp_fill
-_asym_add, _asym_fill = asymmetric_friction.comp_add, asymmetric_friction.comp_fill
-_line_add, _line_fill = position_dependent_friction.comp_add, position_dependent_friction.comp_fill
-_stribeck_add, _stribeck_fill = stribeck.comp_add, stribeck.comp_fill
-_pfric_add, _pfric_fill = periodic_friction.comp_add, periodic_friction.comp_fill
-_shape_add = position_friction_shape.comp_add
+#: code -> (kind, compiled kernel) of every compensation term (:class:`~motorctl.effects.base.CompTerm`):
+#: a term's code in the table is its row's index here
+COMP_KERNELS: tuple[tuple[str, object], ...] = (
+    ("add", periodic.fourier_add),
+    ("add", spring.comp_add),
+    ("add", asymmetric_friction.comp_add),
+    ("add", position_dependent_friction.comp_add),
+    ("add", stribeck.comp_add),
+    ("add", periodic_friction.comp_add),
+    ("add", position_friction_shape.comp_add),
+    ("fill", periodic.fourier_fill),
+    ("fill", spring.comp_fill),
+    ("fill", asymmetric_friction.comp_fill),
+    ("fill", position_dependent_friction.comp_fill),
+    ("fill", stribeck.comp_fill),
+    ("fill", periodic_friction.comp_fill),
+)
+#: the compiled kernels by code (:data:`COMP_KERNELS` without the kinds)
+KERNELS = tuple(kernel for _, kernel in COMP_KERNELS)
 
-#: the compiled kernels of the compensation terms (:class:`~motorctl.effects.base.CompTerm`): a
-#: term's code in the table is the index of its kernel here
-KERNELS = (_fourier_add, _spring_add, _asym_add, _line_add, _stribeck_add, _pfric_add, _shape_add,
-           _fourier_fill, _spring_fill, _asym_fill, _line_fill, _stribeck_fill, _pfric_fill)
-(K_FOURIER_ADD, K_SPRING_ADD, K_ASYM_ADD, K_LINE_ADD, K_STRIBECK_ADD, K_PFRIC_ADD, K_SHAPE_ADD,
- K_FOURIER_FILL, K_SPRING_FILL, K_ASYM_FILL, K_LINE_FILL, K_STRIBECK_FILL, K_PFRIC_FILL) = range(len(KERNELS))
+
+#: ``check_comp_code(code, kind)``: ``code`` when it is a ``kind`` kernel's in :data:`COMP_KERNELS`; else
+#: ValueError naming the known codes (:func:`motorctl.jit.check_code`)
+check_comp_code = partial(check_code, COMP_KERNELS, what="compensation term")
+
+
+@njit
+def _unknown_add(c, d, x, v, t, sf, p):
+    return np.nan
+
+
+@njit
+def _unknown_fill(c, out, j, x, v, t, sf, p):
+    out[j] = np.nan
+
+
+# the compiled dispatch by code, built from the table (a code outside it: NaN)
+_add = dispatch([(i, k) for i, (kind, k) in enumerate(COMP_KERNELS) if kind == "add"], _unknown_add)
+_fill = dispatch([(i, k) for i, (kind, k) in enumerate(COMP_KERNELS) if kind == "fill"], _unknown_fill)
 
 # the table's head (:meth:`Compensation.table`): preview τ [s], S_f wanted by the additive terms,
 # by the basis, the additive and the basis terms' counts, where the basis records start, where
@@ -90,39 +120,6 @@ KERNELS = (_fourier_add, _spring_add, _asym_add, _line_add, _stribeck_add, _pfri
 T_PREVIEW, T_ADD_SF, T_FILL_SF, T_N_ADD, T_N_FILL, T_FILL_AT, T_THRUST_AT = range(7)
 #: the table's head size; a record is (code, row length m, column offset j, the row's m floats)
 T_HEAD = 7
-
-
-@njit
-def _add(c, d, x, v, t, sf, p):
-    if c == K_FOURIER_ADD:
-        return _fourier_add(d, x, v, t, sf, p)
-    if c == K_SPRING_ADD:
-        return _spring_add(d, x, v, t, sf, p)
-    if c == K_ASYM_ADD:
-        return _asym_add(d, x, v, t, sf, p)
-    if c == K_LINE_ADD:
-        return _line_add(d, x, v, t, sf, p)
-    if c == K_STRIBECK_ADD:
-        return _stribeck_add(d, x, v, t, sf, p)
-    if c == K_PFRIC_ADD:
-        return _pfric_add(d, x, v, t, sf, p)
-    return _shape_add(d, x, v, t, sf, p)
-
-
-@njit
-def _fill(c, out, j, x, v, t, sf, p):
-    if c == K_FOURIER_FILL:
-        _fourier_fill(out, j, x, v, t, sf, p)
-    elif c == K_SPRING_FILL:
-        _spring_fill(out, j, x, v, t, sf, p)
-    elif c == K_ASYM_FILL:
-        _asym_fill(out, j, x, v, t, sf, p)
-    elif c == K_LINE_FILL:
-        _line_fill(out, j, x, v, t, sf, p)
-    elif c == K_STRIBECK_FILL:
-        _stribeck_fill(out, j, x, v, t, sf, p)
-    else:
-        _pfric_fill(out, j, x, v, t, sf, p)
 
 
 @njit
@@ -200,7 +197,7 @@ class Compensation:
         beta_names: (k,) "family.name" of each adapted coefficient.
         thrust: r̂(x) of the force ripple (None: none). preview_s: input delay τ [s] (0: none).
         table: the compiled form (float64, 1-D: :data:`T_HEAD`, then per term its kernel's code
-            in :data:`KERNELS`, its row's length m, its first column, its row), or None.
+            in :data:`COMP_KERNELS`, its row's length m, its first column, its row), or None.
     Raises:
         ValueError: ``adapt: true`` on a family that has no basis (:meth:`adapt_basis` None).
     """
@@ -266,6 +263,7 @@ class Compensation:
         codes = [_code(term) for term, _ in rows]
         if None in codes:
             return None
+        codes = [check_comp_code(code, term.kind) for (term, _), code in zip(rows, codes)]
         head = [0.0] * T_HEAD
         head[T_PREVIEW] = self.preview_s
         head[T_ADD_SF] = float(self._need_sf)
@@ -315,7 +313,7 @@ class Compensation:
 
 
 def _code(term) -> int | None:
-    """The index of ``term``'s kernel in :data:`KERNELS` (None: not a listed kernel)."""
+    """The code of ``term``'s kernel in :data:`COMP_KERNELS` (None: not a listed kernel)."""
     kernel = getattr(term, "kernel", None)
     return next((i for i, k in enumerate(KERNELS) if k is kernel), None)
 

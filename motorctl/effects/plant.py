@@ -3,14 +3,17 @@
 A family whose :meth:`~motorctl.effects.base.EffectFamily.plant_term` is built by
 :meth:`PlantTerm.compiled <motorctl.effects.base.PlantTerm.compiled>` gives a compiled kernel
 (its formula, in its own module) and a parameter row. :func:`rows` turns the terms of one axis
-into a code per term (the kernel's index in :data:`KERNELS`) and a padded table of rows;
+into a code per term (the kernel's index in :data:`PLANT_KERNELS`) and a padded table of rows;
 :func:`thrust`, :func:`force` and :func:`mass` apply every term of their kind, in the terms'
 (registry) order, with the same operations as the Python hooks, so that
 ``motorctl_drivers.sim.AxisPlant`` runs a whole period compiled.
 
-Adding a family with a thrust, force or mass term: its kernel in :data:`KERNELS` and one branch
-in the function of its kind below (a family left out keeps Python hooks: the plant then takes
-its Python path, the same equations, slower).
+Adding a family with a compiled thrust, force or mass term: one row ``(hook, kernel)`` at the
+end of :data:`PLANT_KERNELS` (the compiled dispatch is built from it, :func:`motorctl.jit.dispatch`).
+A family left out keeps Python hooks: the plant then takes its Python path (the same equations,
+slower). A code outside the table is refused by :func:`check_plant_code` when :func:`rows` builds
+an axis's table; inside the compiled kernels it would give NaN (the supervisor faults the axis),
+never another term.
 
 numba caches the kernels here and in ``motorctl_drivers.sim`` beside their sources; its cache
 is keyed on the calling module's file, so after editing a family's kernel, delete the
@@ -18,6 +21,8 @@ is keyed on the calling module's file, so after editing a family's kernel, delet
 """
 
 from __future__ import annotations
+
+from functools import partial
 
 import numpy as np
 
@@ -34,25 +39,57 @@ from motorctl.effects import (
     spring,
     stribeck,
 )
-from motorctl.jit import njit
+from motorctl.jit import check_code, dispatch, njit
 
-_cogging = cogging.plant_force
-_ripple = force_ripple.plant_thrust
-_stribeck = stribeck.plant_force
-_asymmetric = asymmetric_friction.plant_force
-_line = position_dependent_friction.line_force
-_spring = spring.plant_force
-_payload = payload_change.plant_mass
-_disturbance = periodic_disturbance.plant_force
-_bumps = position_friction_shape.plant_force
-_drift = force_constant_drift.plant_thrust
-_harmonic_friction = periodic.friction_force
+#: code -> (hook, compiled kernel) of every compiled plant term: a term's code is its row's index
+PLANT_KERNELS: tuple[tuple[str, object], ...] = (
+    ("force", cogging.plant_force),
+    ("thrust", force_ripple.plant_thrust),
+    ("force", stribeck.plant_force),
+    ("force", asymmetric_friction.plant_force),
+    ("force", position_dependent_friction.line_force),
+    ("force", spring.plant_force),
+    ("mass", payload_change.plant_mass),
+    ("force", periodic_disturbance.plant_force),
+    ("force", position_friction_shape.plant_force),
+    ("thrust", force_constant_drift.plant_thrust),
+    ("force", periodic.friction_force),
+)
+#: the compiled kernels by code (:data:`PLANT_KERNELS` without the hooks)
+KERNELS = tuple(kernel for _, kernel in PLANT_KERNELS)
+HOOKS = ("thrust", "force", "mass")
+_N_KERNELS = len(PLANT_KERNELS)
 
-#: the compiled kernels, a term's code is the index of its kernel here
-KERNELS = (_cogging, _ripple, _stribeck, _asymmetric, _line, _spring, _payload, _disturbance, _bumps,
-           _drift, _harmonic_friction)
-(K_COGGING, K_RIPPLE, K_STRIBECK, K_ASYMMETRIC, K_LINE, K_SPRING, K_PAYLOAD, K_DISTURBANCE, K_BUMPS,
- K_DRIFT, K_HARMONIC_FRICTION) = range(len(KERNELS))
+
+#: ``check_plant_code(code, hook)``: ``code`` when it is a ``hook`` kernel's in :data:`PLANT_KERNELS`; else
+#: ValueError naming the known codes (:func:`motorctl.jit.check_code`)
+check_plant_code = partial(check_code, PLANT_KERNELS, what="plant term")
+
+
+def _of(hook: str):
+    return [(i, kernel) for i, (h, kernel) in enumerate(PLANT_KERNELS) if h == hook]
+
+
+@njit
+def _other_thrust(c, fm, x, t, p):
+    return fm if 0 <= c < _N_KERNELS else np.nan
+
+
+@njit
+def _other_force(c, f, x, v, t, sf, p):
+    return f if 0 <= c < _N_KERNELS else np.nan
+
+
+@njit
+def _other_mass(c, m, t, p):
+    return m if 0 <= c < _N_KERNELS else np.nan
+
+
+# the compiled dispatch by code, built from the table: a code of another hook leaves the value
+# as it is (each of thrust, force, mass applies its own terms), a code outside the table is NaN
+_thrust_of = dispatch(_of("thrust"), _other_thrust)
+_force_of = dispatch(_of("force"), _other_force)
+_mass_of = dispatch(_of("mass"), _other_mass)
 
 
 def rows(terms: list) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -61,8 +98,11 @@ def rows(terms: list) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
 
     Returns:
         (codes (n,) int64, rows (n, w) float64 zero-padded, lengths (n,) int64), or None when a
-        term with such a hook has no kernel listed in :data:`KERNELS` (the plant then runs its
-        Python hooks).
+        term with such a hook has no kernel listed in :data:`PLANT_KERNELS` (the plant then runs
+        its Python hooks).
+    Raises:
+        ValueError: a term's kernel is listed for another hook than the term's
+            (:func:`check_plant_code`).
     """
     hooked = [t for t in terms if (t.thrust, t.force, t.mass) != (None, None, None)]
     codes = []
@@ -70,7 +110,8 @@ def rows(terms: list) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         k = next((i for i, fn in enumerate(KERNELS) if fn is t.kernel), None)
         if k is None:
             return None
-        codes.append(k)
+        hook = next(h for h in HOOKS if getattr(t, h) is not None)
+        codes.append(check_plant_code(k, hook))
     width = max([t.params.shape[0] for t in hooked] + [1])
     table = np.zeros((len(hooked), width))
     for i, t in enumerate(hooked):
@@ -84,11 +125,7 @@ def thrust(fm, x, t, codes, table, lengths):
     """The motor force [N] after every thrust term of ``codes`` (:func:`rows`) at position x [m]
     and plant time t [s]."""
     for i in range(codes.shape[0]):
-        c = codes[i]
-        if c == K_RIPPLE:
-            fm = _ripple(fm, x, t, table[i, :lengths[i]])
-        elif c == K_DRIFT:
-            fm = _drift(fm, x, t, table[i, :lengths[i]])
+        fm = _thrust_of(codes[i], fm, x, t, table[i, :lengths[i]])
     return fm
 
 
@@ -97,24 +134,7 @@ def force(f, x, v, t, sf, codes, table, lengths):
     """f [N] plus every force term of ``codes`` (:func:`rows`) at position x [m], velocity
     v [m/s], plant time t [s]; sf = S_f(v)."""
     for i in range(codes.shape[0]):
-        c = codes[i]
-        p = table[i, :lengths[i]]
-        if c == K_COGGING:
-            f = _cogging(f, x, v, t, sf, p)
-        elif c == K_STRIBECK:
-            f = _stribeck(f, x, v, t, sf, p)
-        elif c == K_ASYMMETRIC:
-            f = _asymmetric(f, x, v, t, sf, p)
-        elif c == K_LINE:
-            f = _line(f, x, v, t, sf, p)
-        elif c == K_SPRING:
-            f = _spring(f, x, v, t, sf, p)
-        elif c == K_DISTURBANCE:
-            f = _disturbance(f, x, v, t, sf, p)
-        elif c == K_BUMPS:
-            f = _bumps(f, x, v, t, sf, p)
-        elif c == K_HARMONIC_FRICTION:
-            f = _harmonic_friction(f, x, v, t, sf, p)
+        f = _force_of(codes[i], f, x, v, t, sf, table[i, :lengths[i]])
     return f
 
 
@@ -122,6 +142,5 @@ def force(f, x, v, t, sf, codes, table, lengths):
 def mass(m, t, codes, table, lengths):
     """The moving mass [kg] after every mass term of ``codes`` (:func:`rows`) at plant time t [s]."""
     for i in range(codes.shape[0]):
-        if codes[i] == K_PAYLOAD:
-            m = _payload(m, t, table[i, :lengths[i]])
+        m = _mass_of(codes[i], m, t, table[i, :lengths[i]])
     return m
