@@ -70,7 +70,7 @@ def gantry(tmp_path_factory):
         wait_for(lambda: all(s["phase"] == "command" for s in status(dmn.sock)["axes"].values()), 10,
                  "command mode")
         dmn.refused = ctl(dmn.sock, "move", "X=0.1")          # before homing
-        dmn.homing = ctl(dmn.sock, "home", "X", "--timeout", "30")
+        dmn.homing = ctl(dmn.sock, "home", "--all", "--timeout", "30")   # X alone has a homing: section
         dmn.homed_at = status(dmn.sock)["axes"]["X"]["y_m"]
         yield dmn
     finally:
@@ -84,6 +84,9 @@ def test_homing_finds_the_index_and_sets_the_position(gantry):
     assert gantry.homing.returncode == 0 and "homed" in gantry.homing.stdout, gantry.homing.stdout
     st = status(gantry.sock)
     assert st["motion"]["homed"] == [True, False] and st["motion"]["homing"][0] == "homed"
+    assert st["motion"]["homing_configured"] == [True, False] and gantry.homing.stdout.startswith("X: homed")
+    r = ctl(gantry.sock, "home")                          # neither an axis nor --all
+    assert r.returncode == 2 and "--all" in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert 0.0 < gantry.homed_at < 0.001                  # off the index by the hold's reaction (< LEAD_S)
     _no_fault(gantry.sock)
     r = ctl(gantry.sock, "move", "X=0.0", "--wait")

@@ -220,19 +220,38 @@ def cmd_motion(args) -> int:
 
 
 def cmd_home(args) -> int:
-    _checked(args, {"cmd": "home", "axis": args.axis})
+    """``home AXIS`` or ``home --all``: every axis with a ``homing:`` section, one after the
+    other in the config's order (LinuxCNC homes its joints in sequence)."""
+    from motorctl.cli import UsageError
+    if (args.axis is None) == (not args.all):
+        raise UsageError("home: name one AXIS or give --all")
+    if not args.all:
+        return _home_one(args, args.axis)
+    st = _checked(args, {"cmd": "status"})["status"]
+    axes = [a for a, c in zip(st["axes"], st["motion"].get("homing_configured", [])) if c]
+    if not axes:
+        raise UsageError("home --all: no axis has a homing: section in the daemon's config")
+    for a in axes:
+        rc = _home_one(args, a)
+        if rc:
+            return rc
+    return 0
+
+
+def _home_one(args, axis: str) -> int:
+    _checked(args, {"cmd": "home", "axis": axis})
     t0 = time.monotonic()
     names = None
     while time.monotonic() - t0 < args.timeout:
         st = _checked(args, {"cmd": "status"})["status"]
         names = names or list(st["axes"])
-        state = st["motion"]["homing"][names.index(args.axis)]
+        state = st["motion"]["homing"][names.index(axis)]
         if state == "homed" or state.startswith("failed"):
-            y = st["axes"][args.axis]["y_m"]
-            sys.stdout.write(f"{args.axis}: {state} in {time.monotonic() - t0:.3f} s; at {y:.6f} m\n")
+            y = st["axes"][axis]["y_m"]
+            sys.stdout.write(f"{axis}: {state} in {time.monotonic() - t0:.3f} s; at {y:.6f} m\n")
             return 0 if state == "homed" else 1
         time.sleep(0.05)
-    raise DaemonUnreachable(f"homing {args.axis} did not finish within {args.timeout:g} s")
+    raise DaemonUnreachable(f"homing {axis} did not finish within {args.timeout:g} s")
 
 
 def cmd_wait(args) -> int:
@@ -383,8 +402,9 @@ def register(parser: argparse.ArgumentParser, sub) -> None:
     p.add_argument("value", type=float, metavar="F", help="the feed override, 0.0 to 1.5 (1.0: as programmed)")
     p = client("home", "home an axis in command mode: search its switch, latch the index pulse, set "
                        "its position (axes.NAME.homing)", cmd_home)
-    p.add_argument("axis", help="the axis to home, as in the config's axes")
-    p.add_argument("--timeout", type=float, default=120.0, help="seconds (default 120)")
+    p.add_argument("axis", nargs="?", help="the axis to home, as in the config's axes")
+    p.add_argument("--all", action="store_true", help="home every axis that has a homing: section, in turn")
+    p.add_argument("--timeout", type=float, default=120.0, help="seconds per axis (default 120)")
     p = client("wait", "wait until the commanded motion has finished", cmd_wait)
     p.add_argument("--timeout", type=float, default=600.0, help="seconds (default 600)")
 

@@ -362,7 +362,8 @@ class MotionSide:
                 "aborting": self.aborting, "ring_depth": self.stream.depth(),
                 "underruns": self.stream.underruns(), "braking": self.stream.braking(),
                 "stopped_because": self.reason, "homed": list(self.homed), "outputs": dict(self.outputs),
-                "homing": list(self.homing_state), "idle": self.idle()}
+                "homing": list(self.homing_state), "homing_configured": [h is not None for h in self.homing],
+                "idle": self.idle()}
 
     # ---------------------------------------------------------------- homing
     def home(self, i: int) -> dict:
