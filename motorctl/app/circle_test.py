@@ -24,7 +24,7 @@ from motorctl.loop.stream import SetpointRing
 from motorctl.motion.circle import CircleResult, circle_program, evaluate
 
 #: seconds of setpoints in the ring (as the daemon's)
-RING_S = 0.5
+RING_S = 1.0
 
 
 @dataclass

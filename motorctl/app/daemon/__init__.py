@@ -56,7 +56,7 @@ RING_SPARE_S = 1.0
 STOP_MARGIN_S = 0.05
 #: seconds of setpoints the stream of commanded motion holds (motorctl.loop.stream); the I/O
 #: side keeps about motion_side.LEAD_S of it filled
-STREAM_RING_S = 0.5
+STREAM_RING_S = 1.0
 #: header bytes reserved for what is known only later (real-time report, commands, end)
 HEADER_RESERVE = 16384
 

@@ -47,7 +47,7 @@ from motorctl.motion import gcode as G
 from motorctl.motion import planner as P
 
 #: seconds of setpoints kept ahead of the loop
-LEAD_S = 0.2
+LEAD_S = 0.5
 #: the filler's wake period [s]
 FILL_EVERY_S = 0.01
 #: the ring is topped up in blocks of at least LEAD_S / BLOCKS_PER_LEAD: a trajectory's block
@@ -581,7 +581,9 @@ class MotionSide:
             self._ev_i = sum(1 for t, _ in self.cur.events if t <= self.s)
         self._bev.clear()
         self._defer_clear = ""
-        n = self._generate(min(self.lead, cap) - (cut - r0))
+        # a short block first (the loop must not reach the cut while it is generated); fill()
+        # tops the ring up to LEAD_S afterwards as usual
+        n = self._generate(min(self.lead // BLOCKS_PER_LEAD, cap - (cut - r0)))
         why, self._defer_clear = self._defer_clear, None
         if ring.retract(cut) is None:        # the loop came too close: as before, retry wider
             self._restore(before)
