@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from motorctl.loop.records import MODE_PROGRAM
 from motorctl.model import THETA_UNITS
 from motorctl.recorder.runlog import LogError, RunLog
 from motorctl.recorder.segments import read_run
@@ -60,11 +61,19 @@ def plot_log(log_path: str, out_dir: str | None = None) -> list[str]:
     log = _read(log_path)
     out = Path(out_dir) if out_dir else Path(str(log_path).rsplit(".", 1)[0] + "_plots")
     out.mkdir(parents=True, exist_ok=True)
-    t = log.col("t")
-    sl = _thin(t.size)
+    t_all = log.col("t")
     files = []
     for ax in log.axes:
         a = log.axis(ax)
+        if "mode" in a and np.any(a["mode"] == MODE_PROGRAM):
+            # the program's rows: not the idle read at 0 V and the approach before it (the
+            # indexes of ``motorctl run`` cover the same rows)
+            keep = a["mode"] == MODE_PROGRAM
+            a = {k: v[keep] for k, v in a.items()}
+            t = t_all[keep]
+        else:
+            t = t_all
+        sl = _thin(t.size)
         kind = str(_get(log.header, "controllers", ax, default="?")).upper()
         tag = f"{ax} axis, {kind}"
 
