@@ -150,8 +150,10 @@ def _cycles_to_cover(duration: float, ts: float) -> int:
 #: that ended at speed, a device that keeps its time in lockstep with the master) is waited for
 START_STILL_M_PER_S = 0.005
 START_STILL_SLACK_M = 1e-6
-#: the longest wait for the axes to stand still before a start is refused [s]
-START_STILL_WAIT_S = 2.0
+#: the longest wait for the axes to stand still before a start is refused [s]: a carriage left
+#: at speed coasts on friction alone (Y of the gantry from 2 m/s: about 5 s), and a device in
+#: lockstep with the master moves it only while the master's cycles run
+START_STILL_WAIT_S = 10.0
 
 
 def moving_axes(asm: Assembly, y_before) -> list:
