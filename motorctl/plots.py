@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 
-from motorctl.loop.records import MODE_PROGRAM
 from motorctl.model import THETA_UNITS
 from motorctl.recorder.runlog import LogError, RunLog
 from motorctl.recorder.segments import read_run
@@ -65,10 +64,8 @@ def plot_log(log_path: str, out_dir: str | None = None) -> list[str]:
     files = []
     for ax in log.axes:
         a = log.axis(ax)
-        if "mode" in a and np.any(a["mode"] == MODE_PROGRAM):
-            # the program's rows: not the idle read at 0 V and the approach before it (the
-            # indexes of ``motorctl run`` cover the same rows)
-            keep = a["mode"] == MODE_PROGRAM
+        keep = log.program_rows(ax)              # the rows ``motorctl run``'s indexes cover
+        if keep is not None and keep.any():
             a = {k: v[keep] for k, v in a.items()}
             t = t_all[keep]
         else:

@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 
-from motorctl.loop.records import MODE_PROGRAM
 from motorctl.metrics import rest_mask, tracking_indexes, u_rest_rms
 
 INDEXES = ("e_M_um", "e_F_um", "L2_um", "u_peak_V")
@@ -47,8 +46,8 @@ def _axis_data(log, axis: str) -> tuple:
     a = log.axis(axis)
     t = log.col("t")
     on = a["enabled"] > 0.5
-    if "mode" in a:
-        prog = a["mode"] == MODE_PROGRAM
+    prog = log.program_rows(axis)
+    if prog is not None:
         on &= prog
         t0 = log.header.get("program_start_s") if isinstance(log.header, dict) else None
         if t0 is None and prog.any():

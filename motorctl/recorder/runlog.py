@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from motorctl.inputs import InputError, regular_file
-from motorctl.loop.records import AXIS_FIELDS
+from motorctl.loop.records import AXIS_FIELDS, MODE_PROGRAM
 
 MAGIC = b"MOTORCTL-RUNLOG\n"
 #: a header longer than this is refused as damaged [bytes]
@@ -344,6 +344,14 @@ class RunLog:
         if name not in self.axes:
             raise KeyError(f"no axis {name!r} in the log; axes: {', '.join(self.axes)}")
         return {f: self.col(f"{name}.{f}") for f in AXIS_FIELDS if f"{name}.{f}" in self.columns}
+
+    def program_rows(self, name: str) -> np.ndarray | None:
+        """Axis ``name``'s rows of the program (its ``mode`` column equal to MODE_PROGRAM: not
+        the idle read at 0 V nor the approach a run starts with) as a bool mask (N,); None for a
+        log without the column (written before runs had a start sequence: every row is the
+        program's)."""
+        col = f"{name}.mode"
+        return self.col(col) == MODE_PROGRAM if col in self.columns else None
 
 
 def read_log(path: str) -> RunLog:
