@@ -48,6 +48,15 @@ GUARD_SHARE = 0.5        #: |e| ≥ this share of the smallest FE limit switches
 STROKE_MARGIN = 0.1      #: the pass keeps this share of the stroke from each soft limit
 REST_S = 0.6             #: rest at the start of the pass (encoder noise at rest) [s]
 PERIODS = 32             #: measured multisine periods (after one ramp and one settling period)
+#: the constant-velocity passes of the friction fit: speeds as shares of the top speed, each
+#: one pass up and one down the stroke (steady-state force against speed, both directions)
+FRICTION_SPEEDS = (1.0 / 3.0, 2.0 / 3.0, 1.0)
+FRICTION_V_SHARE = 0.25  #: top pass speed ≤ this share of the axis's max velocity
+FRICTION_A_SHARE = 0.25  #: pass acceleration: this share of the program's a_max, at most FRICTION_A_MAX
+FRICTION_A_MAX = 5.0     #: [m/s²]
+FRICTION_CRUISE = 0.6    #: the top speed keeps this share of the pass at constant velocity, at least
+FRICTION_SKIP_S = 0.15   #: the window of a pass starts this long after its cruise does (the hold
+                         #: PID's integrator settles on the friction step: corner ω_n/5 = 25 rad/s)
 
 
 
