@@ -21,7 +21,13 @@ Steps (any driver; the simulated one by default):
    load share), the current-loop bandwidth and a transport delay, by scipy.optimize.least_squares
    on log(P_model/P_measured) weighted by the coherence, with the ZOH and its aliases
    (:func:`motorctl.commission.loopshape.plant_model_frf`); a rigid model is kept when the mode does not
-   lower the cost by 30 %.
+   lower the cost by 30 %. The friction is not taken from the multisine (above 10 Hz θ2 ẋ is a
+   few per cent of θ1 ẍ): :func:`~motorctl.commission.measure.measure_friction` runs constant-velocity
+   passes at three speeds both ways inside the stroke (holding PID on the fitted θ1; X of
+   configs/gantry.yaml 9.5 s, Y 17.3 s on the machine) and fits θ2 (viscous), θ3 (Coulomb) and θ4
+   (offset) to the steady-state u against speed by linear least squares, each with its σ. θ2..θ4
+   replace the configured θ̂(0) in the model a law takes settings from (PID+FF: FF1 = θ2,
+   FF2 = θ1, bias = −θ4), stated in the written config's comments.
 3. **choose** (:func:`~motorctl.commission.choose.choose_gains`), ONE rule for every law, on the *measured* FRF:
    among each law's family (PID: P = θ1 ω², D = 2ζωθ1, I = P ω/r; C1/C2: k_s = 2ζωθ1,
    k1 = ω/(2ζ), γ_d of the config; ω on a log grid of 49 points from 30 to 3000 rad/s,
@@ -98,7 +104,7 @@ from motorctl.commission.choose import choose_gains, loop_frf, tunable_laws
 from motorctl.commission.evaluate import evaluate
 from motorctl.commission.fit import fit_plant
 from motorctl.commission.loopshape import c_frf, loop_margins
-from motorctl.commission.measure import measure_frf
+from motorctl.commission.measure import measure_friction, measure_frf
 from motorctl.commission.rule import (FULL_PERIODS, PERIODS, REST_FACTOR, RULE, SAT_FACTOR, SAT_FLOOR_SHARE,
                                       SEARCH_BUDGET, AutotuneError, Rule)
 from motorctl.commission.verify import apply_gains, verify
@@ -129,18 +135,33 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
                                 f"{meas['guard_m'] * 1e6:.0f} um)" if meas["tripped"] else "too short")
         raise AutotuneError(f"axis {axis}: the measurement stopped: {why}")
     model = fit_plant(meas["f_hz"], meas["G"], meas["coherence"], ts, sec.theta_hat0)
+    fric = measure_friction(loaded, raw, axis, model["theta1"], clock, progress)
+    if fric["fault"] or "theta2" not in fric:
+        raise AutotuneError(f"axis {axis}: the friction passes stopped: {fric['fault'] or 'too short'}")
+    meas["friction"] = fric
+    # friction from the passes (steady state); the multisine's θ2 (above 10 Hz, where θ2 ẋ is
+    # a few per cent of θ1 ẍ) is kept for comparison only
+    model["theta2_frf"] = model["theta2"]
+    model.update(theta2=fric["theta2"], theta3=fric["theta3"], theta4=fric["theta4"])
+    model["sigma"] = dict(model["sigma"], theta2_frf=model["sigma"]["theta2"], **fric["sigma"])
     if progress:
         sg = model["sigma"]
+        progress(f"fit {axis}: friction theta2 {fric['theta2']:.4g} +- {sg['theta2']:.2g} V s/m, theta3 "
+                 f"{fric['theta3']:.4g} +- {sg['theta3']:.2g} V, theta4 {fric['theta4']:.4g} +- "
+                 f"{sg['theta4']:.2g} V from {len(fric['passes'])} constant-velocity passes "
+                 f"({fric['duration_s']:.1f} s)")
         progress(f"fit {axis}: theta1 {model['theta1']:.4g} +- {sg['theta1']:.2g} V s^2/m (theta_hat1(0) "
-                 f"{sec.theta_hat0[0]:.4g}), theta2 {model['theta2']:.3g} +- {sg['theta2']:.2g} V s/m, mode "
+                 f"{sec.theta_hat0[0]:.4g}), theta2 (multisine) {model['theta2_frf']:.3g} +- "
+                 f"{sg['theta2_frf']:.2g} V s/m, mode "
                  f"{model['mode_hz']:.1f} +- {sg.get('mode_hz', 0.0):.2g} Hz zeta {model['mode_damping']:.3f} load "
                  f"{model['load_fraction']:.2f}, current loop {model['current_loop_hz']:.0f} +- "
                  f"{sg['current_loop_hz']:.2g} Hz, delay {model['delay_s'] * 1e6:.1f} +- {sg['delay_s'] * 1e6:.2g} us "
                  f"(+- one standard deviation of the fit)")
     w, G_fit, G_w = loop_frf(meas, model, ts)
     th = np.asarray(sec.theta_hat0, dtype=float)
-    fitted = th.copy()              # θ1 from the fit; θ2..θ6 (friction, offset) as configured:
-    fitted[0] = model["theta1"]     # the FRF above 10 Hz does not see them
+    fitted = th.copy()              # θ1 from the FRF, θ2..θ4 (viscous, Coulomb, offset) from the
+    fitted[0] = model["theta1"]     # passes, θ5, θ6 (force curve) as configured
+    fitted[1:4] = model["theta2"], model["theta3"], model["theta4"]
     done = {"axis": axis, "measure": meas, "model": model, "theta_hat0": th.tolist(), "w": w,
             "G_fit": G_fit, "G_w": G_w, "choice": {}, "verify": {}, "reference": None,
             "gains": {}, "extra": {}, "ts": ts, "section": sec, "rule": rule}
@@ -207,11 +228,15 @@ def write_config(raw: dict, results: list, source: str, path) -> dict:
              f"u RMS at rest <= {REST_FACTOR:g} x as configured, no oscillation."]
     for res in results:
         a, mdl = res["axis"], res["model"]
-        lines.append(f"# axis {a}: fitted theta1 = M/A1 {mdl['theta1']:.4g} V s^2/m (config theta_hat1(0) "
-                     f"{res['theta_hat0'][0]:.4g}), theta2 {mdl['theta2']:.3g} V s/m, mode "
+        sg = mdl["sigma"]
+        lines.append(f"# axis {a}: fitted theta1 = M/A1 {mdl['theta1']:.4g} +- {sg['theta1']:.2g} V s^2/m "
+                     f"(config theta_hat1(0) {res['theta_hat0'][0]:.4g}; multisine), mode "
                      f"{mdl['mode_hz']:.1f} Hz (zeta {mdl['mode_damping']:.3f}, load "
                      f"{mdl['load_fraction']:.2f}), current loop {mdl['current_loop_hz']:.0f} Hz, delay "
                      f"{mdl['delay_s'] * 1e6:.1f} us")
+        lines.append(f"#   friction (constant-velocity passes): theta2 = B/A1 {mdl['theta2']:.4g} +- "
+                     f"{sg['theta2']:.2g} V s/m, theta3 = A_f/A1 {mdl['theta3']:.4g} +- {sg['theta3']:.2g} V, "
+                     f"theta4 = F_dis0/A1 {mdl['theta4']:.4g} +- {sg['theta4']:.2g} V")
         mg = final_margins(res)
         for law in res["choice"]:
             if law not in res["gains"]:
@@ -223,6 +248,10 @@ def write_config(raw: dict, results: list, source: str, path) -> dict:
             lines.append(f"#   {law}: {_fmt_gains(law, g)} ({v['scale']:.0%} of {how}, L2 {v['L2_um']:.3f} um): "
                          f"GM {m.gm_db:.1f} dB at {m.gm_hz:.0f} Hz, PM {m.pm_deg:.1f} deg, |S|max "
                          f"{m.ms_db:.1f} dB, crossover {m.wc_hz:.0f} Hz")
+            ex = res["extra"].get(law) or {}
+            if ex:                      # a law's settings from the fitted model (PID: its feedforward)
+                lines.append(f"#     from the fitted theta1 {mdl['theta1']:.4g}, theta2 {mdl['theta2']:.4g}, theta4 "
+                             f"{mdl['theta4']:.4g}: " + ", ".join(f"{k} {float(x):.4g}" for k, x in ex.items()))
     config_from_dict(new, str(path), check_budget=False)
     text = "\n".join(lines) + "\n" + yaml.safe_dump(new, sort_keys=False, default_flow_style=None)
     Path(path).write_text(text, encoding="utf-8")
