@@ -105,7 +105,7 @@ from motorctl.commission.evaluate import evaluate
 from motorctl.commission.fit import fit_plant
 from motorctl.commission.loopshape import c_frf, loop_margins
 from motorctl.commission.measure import measure_friction, measure_frf
-from motorctl.commission.rule import (FULL_PERIODS, PERIODS, REST_FACTOR, RULE, SAT_FACTOR, SAT_FLOOR_SHARE,
+from motorctl.commission.rule import (COH_USED, FULL_PERIODS, PERIODS, REST_FACTOR, RULE, SAT_FACTOR, SAT_FLOOR_SHARE,
                                       SEARCH_BUDGET, AutotuneError, Rule)
 from motorctl.commission.verify import apply_gains, verify
 from motorctl.config import LoadedConfig, config_from_dict
@@ -266,67 +266,85 @@ def _phase_deg(H: np.ndarray) -> np.ndarray:
 
 
 def plot_bode(res: dict, path) -> str:
-    """Step 5: the Bode plot as PNG, five panels sharing the frequency axis: |G| (measured, and the
-    fitted model over the measured band), G's phase, the coherence r → e of
-    the measurement, |L| of each law's written gains with its crossover and gain margin
-    marked, L's phase with −180° and the phase margin marked (the last two only when gains were
-    chosen: three panels after ``--measure-only``). Every phase is unwrapped the same
-    way (:func:`_phase_deg`); the measured plant's phase continues the model's at the first
-    measured line. Needs matplotlib (the ``plot`` extra)."""
+    """Step 5: the Bode plot as PNG, over the measured band only (the first to the last line of
+    the multisine), five panels sharing the frequency axis: |G| (the measured lines, those of
+    coherence < :data:`COH_USED` drawn light: the rule takes the model there, and the fitted
+    model), G's phase, the coherence r → e with that threshold, |L| of each law's written
+    gains with the crossover and the gain margin marked (a bar from |L| at the −180° crossing
+    up to 1), L's phase with −180° and the phase margin marked (a bar from −180° up to the
+    phase at the crossover); the last two only when gains were chosen (three panels after
+    ``--measure-only``). Every phase is unwrapped the same way (:func:`_phase_deg`, along the
+    whole grid from 1 Hz) and each measured line is put on the model's branch (within ±180°
+    of the model at its frequency). Needs matplotlib (the ``plot`` extra)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     w, ts = res["w"], res["ts"]
     f = w / (2.0 * math.pi)
     meas = res["measure"]
-    fm, Gm = meas["f_hz"], meas["G"]
+    fm, Gm, coh = meas["f_hz"], meas["G"], meas["coherence"]
     ph_fit = _phase_deg(res["G_fit"])
-    ph_m = np.degrees(np.unwrap(np.angle(Gm)))
-    ph_m += 360.0 * np.round((np.interp(fm[0], f, ph_fit) - ph_m[0]) / 360.0)   # on the model's branch
+    ph_m = np.degrees(np.angle(Gm))
+    ph_m += 360.0 * np.round((np.interp(fm, f, ph_fit) - ph_m) / 360.0)     # on the model's branch
+    used = coh >= COH_USED
+    band = (f >= fm[0]) & (f <= fm[-1])
+    # where the FRF the rule runs on (loop_frf) is the measured one: between the first and the
+    # last line of coherence >= COH_USED; the fitted model elsewhere
+    on_meas = (f >= fm[used][0]) & (f <= fm[used][-1]) if used.sum() > 10 else np.zeros(f.shape, bool)
     n_panels = 5 if res["gains"] else 3        # --measure-only: no loop to draw
     fig, ax = plt.subplots(n_panels, 1, figsize=(10, 13 if res["gains"] else 8), sharex=True,
                            gridspec_kw={"height_ratios": [3, 2, 1, 3, 2][:n_panels]})
     ax = list(ax) + [None] * (5 - n_panels)
-    ax[0].loglog(fm, np.abs(Gm), ".", ms=2, color="0.5", label="plant G, measured")
-    band = (f >= fm[0]) & (f <= fm[-1])         # the model where it was fitted: the measured band
+    for sel, c, lab in ((used, "0.35", "measured"), (~used, "0.8", f"measured, coherence < {COH_USED:g} (not used)")):
+        if sel.any():
+            ax[0].loglog(fm[sel], np.abs(Gm[sel]), ".", ms=2, color=c, label=f"plant G, {lab}")
+            ax[1].semilogx(fm[sel], ph_m[sel], ".", ms=2, color=c)
+            ax[2].semilogx(fm[sel], coh[sel], ".", ms=2, color=c)
     ax[0].loglog(f[band], np.abs(res["G_fit"][band]), "k-", lw=1, label="plant G, fitted model")
-    ax[1].semilogx(fm, ph_m, ".", ms=2, color="0.5")
     ax[1].semilogx(f[band], ph_fit[band], "k-", lw=1)
-    ax[2].semilogx(fm, meas["coherence"], ".", ms=2, color="0.3")
+    ax[2].axhline(COH_USED, color="0.6", lw=0.8, ls="--")
     mg = final_margins(res)
     colors = ("tab:green", "tab:blue", "tab:red", "tab:purple", "tab:orange")
     for j, law in enumerate(res["gains"]):
         color = colors[j % len(colors)]
         L = c_frf(law, res["gains"][law], ts, w, res["theta_hat0"]) * res["G_w"]
         m = mg[law]
-        ax[3].loglog(f, np.abs(L), color=color, lw=1,
-                     label=f"L {law}: GM {m.gm_db:.1f} dB, PM {m.pm_deg:.0f} deg, |S| {m.ms_db:.1f} dB")
         ph = _phase_deg(L)
-        ax[4].semilogx(f, ph, color=color, lw=1)
-        if math.isfinite(m.wc_hz):
-            for k in (3, 4):
-                ax[k].axvline(m.wc_hz, color=color, ls=":", lw=0.8)
-            ax[4].plot([m.wc_hz], [np.interp(m.wc_hz, f, ph)], "o", color=color, ms=4)
-        if math.isfinite(m.gm_hz):
+        for k, y in ((3, np.abs(L)), (4, ph)):         # dashed: where the rule's FRF is the model
+            ax[k].plot(f[band], np.where(on_meas, np.nan, y)[band], color=color, lw=1, ls="--")
+            ax[k].plot(f[on_meas], y[on_meas], color=color, lw=1, label=(
+                f"L {law}: GM {m.gm_db:.1f} dB, PM {m.pm_deg:.0f} deg, |S| {m.ms_db:.1f} dB" if k == 3 else None))
+        if math.isfinite(m.wc_hz):                      # phase margin: −180° up to the phase at crossover
+            p_c = float(np.interp(m.wc_hz, f, ph))
+            ax[3].axvline(m.wc_hz, color=color, ls=":", lw=0.8)
+            ax[4].plot([m.wc_hz, m.wc_hz], [-180.0, p_c], color=color, lw=2.5, alpha=0.6)
+            ax[4].plot([m.wc_hz], [p_c], "o", color=color, ms=4)
+        if math.isfinite(m.gm_hz):                      # gain margin: |L| at −180° up to 1
+            ax[3].plot([m.gm_hz, m.gm_hz], [10 ** (-m.gm_db / 20), 1.0], color=color, lw=2.5, alpha=0.6)
             ax[3].plot([m.gm_hz], [10 ** (-m.gm_db / 20)], "v", color=color)
+            ax[4].axvline(m.gm_hz, color=color, ls=":", lw=0.8)
     if res["gains"]:
-        ax[3].axhline(1.0, color="0.7", lw=0.8)
-        ax[4].axhline(-180.0, color="0.7", lw=0.8)
+        ax[3].set_yscale("log")
+        ax[3].axhline(1.0, color="0.6", lw=0.8)
+        ax[4].axhline(-180.0, color="0.6", lw=0.8)
         ax[3].set_ylabel("|L| [-]")
         ax[4].set_ylabel("phase L [deg]")
         ax[3].legend(fontsize=8)
+        ax[3].set_title(f"loop gain L = C G of the written gains (dashed: G is the model, coherence < {COH_USED:g}); "
+                        "bars: the margins", fontsize=9)
     for k in (1, 4)[:1 + bool(res["gains"])]:
-        ys = [np.min(line.get_ydata()) for line in ax[k].get_lines() if len(line.get_ydata()) > 2]
-        if ys:
-            ax[k].set_ylim(max(min(ys), -900.0) - 20.0, 20.0)
+        ys = np.concatenate([line.get_ydata() for line in ax[k].get_lines() if len(line.get_ydata()) > 2])
+        lo_, hi_ = float(np.nanmin(ys)), float(np.nanmax(ys))
+        ax[k].set_ylim(45.0 * math.floor(min(lo_, -180.0) / 45.0) - 5.0, 45.0 * math.ceil(hi_ / 45.0) + 5.0)
+        ax[k].set_yticks(np.arange(90.0 * math.floor(min(lo_, -180.0) / 90.0), 90.0 * math.ceil(hi_ / 90.0) + 1, 90.0))
     ax[0].set_ylabel("|G| [m/V]")
     ax[1].set_ylabel("phase G [deg]")
     ax[2].set_ylabel("coherence")
     ax[2].set_ylim(0.0, 1.05)
-    ax[n_panels - 1].set_xlabel("frequency [Hz]")
+    ax[0].set_xlim(fm[0], fm[-1])
+    ax[n_panels - 1].set_xlabel("frequency [Hz] (the measured band)")
     ax[0].legend(fontsize=8)
-    ax[0].set_title(f"axis {res['axis']}: measured plant (indirect closed-loop estimate)"
-                    + (" and loop gains" if res["gains"] else ""))
+    ax[0].set_title(f"axis {res['axis']}: measured plant G (indirect closed-loop estimate) and fitted model")
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

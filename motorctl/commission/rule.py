@@ -11,6 +11,7 @@ from dataclasses import dataclass
 GM_MIN_DB = 6.0          #: gain margin ≥ [dB] (default of :class:`Rule`)
 PM_MIN_DEG = 10.0        #: phase margin ≥ [deg]
 MS_MAX_DB = 16.0         #: peak sensitivity ≤ [dB] (|S| ≤ 6.3)
+COH_USED = 0.5           #: the rule takes the measured FRF at lines of at least this coherence, the model elsewhere
 F_TRACK_HZ = 2.0         #: where the tracking error lives (the programs' moves last ~0.5 s) [Hz]
 U_REST_FRACTION = 0.02   #: u RMS at rest ≤ this share of u_lim without a reference run (0.2 V at 10 V)
 SAT_FACTOR = 1.5         #: saturated samples ≤ this factor times those of the configured controller
