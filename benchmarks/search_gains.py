@@ -14,8 +14,10 @@ The constraints (the shipped C2's 40 s run on the same axis as the reference): n
 at rest ≤ 1.5× the reference's, saturated samples ≤ 1.5 × max(the reference's, 10); with
 ``--floor`` also the margin floor (GM ≥ 6 dB, PM ≥ 10°, |S| ≤ 16 dB at 100, 75 and 50 % of the
 loop gain) on the true plant, the simulated axis's own parameters (not autotune's
-measurement): a point that fails it is not run. Without it the search may find gains with
-smaller margins than autotune admits.
+measurement), as a constraint of the search itself: the Sobol design is drawn from the points
+that hold it (a cheap check before any run) and a Nelder-Mead step onto a point that fails it
+is not run (it scores as a violation). Without it the search may find gains with smaller
+margins than autotune admits.
 
 Run (about 7 s per run on an idle core; --sobol 16 --nm 24: 40 runs per law and axis):
     python benchmarks/search_gains.py configs/gantry.yaml --axis X --axis Y \
