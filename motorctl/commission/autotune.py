@@ -39,7 +39,7 @@ Steps (any driver; the simulated one by default):
    rest noise; ``benchmarks/compare_laws.py --search``) lies at 10-20° of phase margin and
    11-16 dB of peak sensitivity on the default plant, and step 4 runs every candidate on the
    machine, which stops on oscillation. The first candidate is the admissible one of highest
-   loop gain |L| at :data:`F_TRACK_HZ` = 2 Hz (the least sensitivity where the tracking error
+   loop gain |L| at :data:`F_TRACK_HZ` = 5 Hz (the least sensitivity where the tracking error
    of a point-to-point program lives). The u noise at rest is predicted (the measured rest
    spectrum of y through |C|) and reported, but judged on the machine in step 4 (with
    stiction and quantisation the prediction is only a bound). C1 and C2 have the same
@@ -72,13 +72,13 @@ Steps (any driver; the simulated one by default):
       sits at the level). From where the previous shape's passed (the first shape: its
       highest candidate), down 1, 2, 4 ... grid points while runs fail high, up so while
       they pass or fail soft, then halving the bracket. Shapes
-      in the order of their reach, the |L| at 2 Hz of their highest candidate (re-ranked
+      in the order of their reach, the |L| at 5 Hz of their highest candidate (re-ranked
       after each shape); a shape whose reach is below :data:`PRUNE_SHARE` of that of the
       best run so far ends the search (the rest reach less still). At most
       :data:`SEARCH_RUNS` runs per shape and :data:`SEARCH_BUDGET` in all.
    c. *refinement* around the best run that passed at 100 %: its admissible neighbours on
       the family's grid (one step in ω, ζ or r, or in two of them at once), the highest |L|
-      at 2 Hz first; the first that passes with a lower L2[e] becomes the centre; it stops
+      at 5 Hz first; the first that passes with a lower L2[e] becomes the centre; it stops
       when no neighbour improves, after :data:`REFINE_RUNS` runs.
    e. *confirmation* on full runs of :data:`FULL_PERIODS` program periods (saturation is
       rare and bursty: X's C2 saturated 7, 13, 15, 13, 15 times in successive 8 s windows

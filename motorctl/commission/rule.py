@@ -12,7 +12,9 @@ GM_MIN_DB = 6.0          #: gain margin ≥ [dB] (default of :class:`Rule`)
 PM_MIN_DEG = 10.0        #: phase margin ≥ [deg]
 MS_MAX_DB = 16.0         #: peak sensitivity ≤ [dB] (|S| ≤ 6.3)
 COH_USED = 0.5           #: the rule takes the measured FRF at lines of at least this coherence, the model elsewhere
-F_TRACK_HZ = 2.0         #: where the tracking error lives (the programs' moves last ~0.5 s) [Hz]
+F_TRACK_HZ = 5.0         #: where the tracking error lives (the programs' moves last ~0.5 s) [Hz]; at 2 Hz
+                         #: |L| was the integral action's, and the rule ranked last the PID shapes of weak
+                         #: integral that the fitted friction feed-forward allows (Y: 1.045 um against 0.785)
 U_REST_FRACTION = 0.02   #: u RMS at rest ≤ this share of u_lim without a reference run (0.2 V at 10 V)
 SAT_FACTOR = 1.5         #: saturated samples ≤ this factor times those of the configured controller
 SAT_FLOOR_SHARE = 5e-5   #: on the same run, or of this share of the run if more (10 in 40 s at 5 kHz)
