@@ -11,6 +11,7 @@ from motorctl.app.daemon import motion_side as M
 from motorctl.loop.cycle import STREAM
 from motorctl.loop.stream import SP_READ, SP_WRITE, SetpointRing
 from motorctl.motion import GcodeSettings
+from motorctl.motion.gcode import output_names
 
 REPO = Path(__file__).resolve().parents[1]
 DT = 2e-4
@@ -26,13 +27,14 @@ class Rig:
     """A MotionSide on a process-local ring and a consumer taking a row a cycle."""
 
     def __init__(self, settings=None):
-        self.ring = SetpointRing(int(0.5 / DT), 2, shared=False)
-        self.sent: list[tuple[str, float]] = []
+        outs, stop = output_names(settings) if settings is not None else ([], [])
+        self.ring = SetpointRing(int(0.5 / DT), 2, shared=False, outputs=outs, stop_outputs=stop)
         self.ms = M.MotionSide(self.ring, lambda: np.zeros(4), ["X.x_d", "X.xd_dot", "Y.x_d", "Y.xd_dot"],
                                ["X", "Y"], LIMITS, lambda: np.array([STREAM, STREAM]), DT,
-                               gcode_settings=settings, output=lambda n, v: self.sent.append((n, v)))
+                               gcode_settings=settings)
         self.cycle = 0
         self.rows: list[np.ndarray] = []
+        self.outs: list[np.ndarray] = []     # the outputs each row taken carries
 
     def run(self, cycles: int, until_idle: bool = False) -> None:
         ring = self.ring
@@ -42,7 +44,8 @@ class Rig:
             self.ms.issue_events()
             w, r = int(ring.ctl[SP_WRITE]), int(ring.ctl[SP_READ])
             if r < w:
-                self.rows.append(ring.rows[r % ring.capacity, 1:].reshape(2, 3).copy())
+                self.rows.append(ring.setpoint(r).copy())
+                self.outs.append(ring.row_outputs(r).copy())
                 ring.ctl[SP_READ] = r + 1
             else:
                 assert not self.rows or not np.any(self.rows[-1][:, 1:]), "underrun while moving"
@@ -126,10 +129,11 @@ def test_machine_words_switch_outputs_at_their_planned_rows():
     log = rig.ms.output_log
     n_on = CAM.read_text().count("M03")
     assert [v for _, _, v, _ in log] == [1.0, 0.0] * n_on
-    assert rig.sent == [(name, v) for _, name, v, _ in log]
-    rows = rig.setpoints()
+    rows, torch = rig.setpoints(), np.array(rig.outs)[:, 0]
+    # the rows carry the output: it switches exactly at the rows of the log, nowhere else
+    assert np.flatnonzero(np.diff(torch)).tolist() == [row - 1 for row, _, _, _ in log]
     for row, _, value, x in log:          # each at its row: at rest on the pierce / end point
-        assert np.all(np.abs(rows[row, :, 1]) < 1e-12)
+        assert np.all(np.abs(rows[row, :, 1]) < 1e-12) and torch[row] == value
         np.testing.assert_array_equal(rows[row, :, 0], x)
     assert np.allclose(log[0][3], [0.035, 0.050], atol=1e-9)   # N70 G00 X35 Y50, then N80 M03
 

@@ -1,7 +1,8 @@
 """The cycle record, declared once by name (and unit): what the loop writes every cycle.
 
 One float64 row per cycle: the cycle-wide fields, then for every axis the axis fields under
-``AXIS.<field>``. The loop, the flight recorder, the daemon's status, the run-log reader, the
+``AXIS.<field>``, then the machine outputs the loop applied in that cycle under ``out.<name>``
+(the outputs of a setpoint ring, :mod:`motorctl.loop.stream`; none without one). The loop, the flight recorder, the daemon's status, the run-log reader, the
 exporters and the plots all index a row by these names through :class:`RecordLayout`, never by
 a hand-counted offset.
 
@@ -39,6 +40,8 @@ AXIS_FIELDS: dict[str, str] = {
     "fault_bits": "1",         # latched fault bits (motorctl.loop.safety)
     "mode": "1",               # the sequencer's mode: 0 idle, 1 approach, 2 program, 3 hold, 4 jog
 }
+#: the prefix of an output's column
+OUTPUT_PREFIX = "out."
 #: the ``mode`` field's codes (motorctl.loop.cycle's IDLE ... JOG)
 MODE_IDLE, MODE_APPROACH, MODE_PROGRAM, MODE_HOLD, MODE_JOG = range(5)
 
@@ -47,19 +50,24 @@ class RecordLayout:
     """Column names, units and offsets of the record for a list of axes.
 
     Args:
-        axis_names: axes in loop order.
+        axis_names: axes in loop order. outputs: machine output names (the columns ``out.NAME``,
+            unit "1": 0/1 for a digital output, the S value for a power output).
     Attributes:
-        columns (list[str]): ``t, lateness_ns, ..., X.y, X.x_d, ...``; width = len(columns).
-        units (list[str]): the unit of every column.
+        columns (list[str]): ``t, lateness_ns, ..., X.y, X.x_d, ..., out.torch``; width =
+        len(columns). units (list[str]): the unit of every column. outputs_base: the offset of
+        the first output column (= width without outputs).
     """
 
-    def __init__(self, axis_names):
+    def __init__(self, axis_names, outputs=()):
         self.axis_names = list(axis_names)
         self.columns = list(CYCLE_FIELDS)
         self.units = list(CYCLE_FIELDS.values())
         for a in self.axis_names:
             self.columns += [f"{a}.{f}" for f in AXIS_FIELDS]
             self.units += list(AXIS_FIELDS.values())
+        self.outputs_base = len(self.columns)
+        self.columns += [f"{OUTPUT_PREFIX}{o}" for o in outputs]
+        self.units += ["1"] * len(outputs)
         self.width = len(self.columns)
         self._index = {c: j for j, c in enumerate(self.columns)}
 
