@@ -159,6 +159,9 @@ class MotionSide:
         self.cap_ahead_s = 1.2 * MAX_OVERRIDE * ((MAX_OVERRIDE - 1.0) / self.f_rate_hi
                                                  + 2.0 * self.f_rate_hi / self.f_accel_hi)
         self.guard = max(4, int(round(GUARD_S / period_s)))
+        #: a rewrite's first block: what the loop takes while it is generated must stay short
+        #: whatever the lead (LEAD_S / BLOCKS_PER_LEAD at most)
+        self._first_rows = max(1, min(self.lead, int(round(LEAD_S / period_s))) // BLOCKS_PER_LEAD)
         cap = stream.capacity
         #: the filler's state after each ring row (by row index % capacity): path time, feed
         #: scale and its rate, trajectory, programs done; rows below _hist_from are not ours
@@ -633,7 +636,7 @@ class MotionSide:
         self._defer_clear = ""
         # a short block first (the loop must not reach the cut while it is generated); fill()
         # tops the ring up to LEAD_S afterwards as usual
-        n = self._generate(min(self.lead // BLOCKS_PER_LEAD, cap - (cut - r0)))
+        n = self._generate(min(self._first_rows, cap - (cut - r0)))
         why, self._defer_clear = self._defer_clear, None
         if ring.retract(cut) is None:        # the loop came too close: as before, retry wider
             self._restore(before)
