@@ -171,3 +171,41 @@ def test_program_outside_the_stroke_with_the_active_work_offset_refused_before_m
         rig.ms.gcode("G21 G90\nG0 X10 Y10\nG1 X350 F3000\nG1 X500\nM2\n", "cut.ngc")
     rig.run(1000)
     assert rig.ring.written() == written and rig.ms.idle()
+
+
+def test_abort_stops_a_move_that_is_wholly_in_the_ring_already():
+    """A move shorter than the lead is in the ring before the abort comes: the abort rewrites the
+    ring (it does not take the empty queue for 'nothing runs') and the axis stops short."""
+    rig = Rig()
+    rig.ms.move({0: 0.010}, feed=0.05)              # 0.2 s + ramps, within the 0.5 s lead
+    rig.run(2 * EVERY)
+    assert rig.ms.cur is None and not rig.ms.queue and rig.ring.depth() > 0
+    rig.ms.abort()
+    rig.run(20_000, until_idle=True)
+    sp = rig.setpoints()
+    assert rig.ms.status()["stopped_because"] == "aborted" and not rig.ms.status()["aborting"]
+    assert 0.0 < sp[-1, 0, 0] < 0.008 and np.all(sp[-1, :, 1:] == 0.0)
+    _within_limits(sp)
+
+
+def test_abort_switches_the_torch_off_at_once_and_a_hold_keeps_it_on():
+    """LinuxCNC's behaviour: a feed hold keeps the torch (M3) on; an abort switches it off at the
+    first row it rewrites, while the axes still decelerate."""
+    rig = Rig(GcodeSettings(axes=["X", "Y"], words={"M3": "torch", "M5": "torch"}))
+    rig.ms.gcode("G21 G90\nM3\nG1 X100 F3000\nM5\nM2\n", "cut.ngc")
+    rig.run(3000)                                   # 0.6 s: cutting at 50 mm/s
+    rig.ms.hold()
+    rig.run(5000)
+    torch = np.array(rig.outs)[:, 0]
+    assert rig.setpoints()[-1, 0, 1] == 0.0 and torch[-1] == 1.0      # held at rest, torch on
+    rig.ms.resume()
+    rig.run(1000)
+    n0 = len(rig.rows)
+    rig.ms.abort()
+    rig.run(20_000, until_idle=True)
+    sp, torch = rig.setpoints(), np.array(rig.outs)[:, 0]
+    off = n0 + int(np.flatnonzero(torch[n0:] == 0.0)[0])     # the row the torch goes off
+    assert np.all(torch[off:] == 0.0) and np.all(torch[n0:off] == 1.0)
+    assert off - n0 <= rig.ms.guard + 1                      # within the guard of the abort
+    assert abs(sp[off, 0, 1]) > 0.01                          # the axis still moving then
+    assert rig.ms.status()["stopped_because"] == "aborted" and sp[-1, 0, 0] < 0.1

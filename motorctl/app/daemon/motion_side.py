@@ -172,6 +172,7 @@ class MotionSide:
         self._rewrite = False            # a hold/resume/abort/override asks to rewrite the ring
         self._guard_now = self.guard     # the guard of the next rewrite (doubled after a miss)
         self._defer_clear: str | None = None
+        self._off_pending = False        # an abort's stop outputs still to switch off
         self.rewrites = 0
         self._wake = threading.Event()
         self.gcode_settings = gcode_settings or G.GcodeSettings()
@@ -340,9 +341,10 @@ class MotionSide:
     def abort(self) -> None:
         with self.lock:
             self.aborting = self.holding = True
-            if self.cur is None and not self.queue:
+            # nothing left to plan may still be in the ring (a move shorter than the lead):
+            # then the rewrite stops it; only an empty ring means nothing runs
+            if self.cur is None and not self.queue and self.stream.depth() == 0:
                 self._clear("aborted")
-                self._stop_outputs_at_rest()
             self._asap()
 
     def set_override(self, f: float) -> None:
@@ -505,6 +507,7 @@ class MotionSide:
         self.feed_m_s = 0.0
         self._hist_from = self.stream.written()
         self.pending.clear()
+        self._off_pending = why == "aborted"   # the stop outputs off once the ring is drained
 
     def fill(self) -> int:
         """Top the ring up to :data:`LEAD_S` ahead. Returns the rows written."""
@@ -519,6 +522,9 @@ class MotionSide:
                 return 0
             if ring.depth() == 0 and self.cur is None:   # the loop's outputs (it may have switched some off)
                 self._out[:] = ring.applied()
+                if self._off_pending:
+                    self._off_pending = False
+                    self._stop_outputs_at_rest()
             if self._rewrite:
                 n = self._rewind(ep)
                 if n is not None:
@@ -535,7 +541,7 @@ class MotionSide:
 
     def _stop_outputs_at_rest(self) -> None:
         """(lock held) Nothing streams: the stop outputs still on go off in one row at rest where
-        the loop holds (an abort with nothing running)."""
+        the loop holds (an abort that found nothing to rewrite)."""
         ring = self.stream
         row = self.latest()
         if (row is None or not np.any(ring.applied()[self._stop_mask]) or ring.depth() or ring.braking()
@@ -608,6 +614,8 @@ class MotionSide:
         cut = r0 + self._guard_now
         if cut >= w or cut - 1 < self._hist_from or self._gone():   # no rows of ours beyond the guard
             self._rewrite = False
+            if self.aborting:                # what is left ends within the guard: the abort is done
+                self._clear("aborted")
             return None
         before = self._state()
         cap = ring.capacity
