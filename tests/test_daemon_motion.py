@@ -223,7 +223,8 @@ def test_an_underrun_brakes_to_rest_without_a_fault(gantry, tmp_path):
     cut = tmp_path / "long_cut.ngc"         # 0.41 m at 3 m/min: 8 s, far beyond the lead
     cut.write_text("G21 G90\nG0 X20 Y20\nM3\nG1 X300 Y320 F3000\nM5\nM2\n")
     assert ctl(sock, "gcode", str(cut)).returncode == 0
-    wait_for(lambda: status(sock)["motion"]["outputs"]["torch"] == 1.0, 10, "the torch on")
+    wait_for(lambda: status(sock)["motion"]["outputs"]["torch"] == 1.0, 10, "the torch on",
+             detail=lambda: status(sock)["motion"])
     time.sleep(0.3)
     os.kill(io, signal.SIGSTOP)
     try:

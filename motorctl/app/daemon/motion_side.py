@@ -126,8 +126,7 @@ class MotionSide:
             its answer (blocking; from another thread than the I/O process's own).
         gcode_settings: the config's ``gcode:`` section (machine words, G28 point, optional stop);
             the outputs its words switch must be the ring's (``stream.outputs``).
-        lead_s: setpoints kept ahead of the loop [s] (at most the ring's length less
-            1/BLOCKS_PER_LEAD of it).
+        lead_s: setpoints kept ahead of the loop [s] (at most the ring's length).
     Raises:
         ValueError: a lead the ring cannot hold.
     """
@@ -159,9 +158,11 @@ class MotionSide:
         self.cap_ahead_s = 1.2 * MAX_OVERRIDE * ((MAX_OVERRIDE - 1.0) / self.f_rate_hi
                                                  + 2.0 * self.f_rate_hi / self.f_accel_hi)
         self.guard = max(4, int(round(GUARD_S / period_s)))
-        #: a rewrite's first block: what the loop takes while it is generated must stay short
-        #: whatever the lead (LEAD_S / BLOCKS_PER_LEAD at most)
-        self._first_rows = max(1, min(self.lead, int(round(LEAD_S / period_s))) // BLOCKS_PER_LEAD)
+        #: the most rows one fill (or a rewrite's first block) generates, whatever the lead
+        #: (LEAD_S / BLOCKS_PER_LEAD): the lock and the interpreter are held that long at most
+        #: (tens of ms), so that the I/O process's drain and socket never wait for a whole lead
+        #: (a 2 s block took 0.8-3 s and latched "recorder stalled" on a loaded host)
+        self._chunk = max(1, min(self.lead, int(round(LEAD_S / period_s))) // BLOCKS_PER_LEAD)
         cap = stream.capacity
         #: the filler's state after each ring row (by row index % capacity): path time, feed
         #: scale and its rate, trajectory, programs done; rows below _hist_from are not ours
@@ -491,7 +492,8 @@ class MotionSide:
                 break
             try:
                 self.issue_events()
-                self.fill()
+                while self.fill() and not self._stop.is_set():
+                    time.sleep(0)            # the drain and the socket between two blocks
             except Exception as exc:  # noqa: BLE001 - the filler never dies: the loop brakes
                 with self.lock:
                     self._clear(f"planner error: {type(exc).__name__}: {exc}")
@@ -510,7 +512,8 @@ class MotionSide:
         self._off_pending = why == "aborted"   # the stop outputs off once the ring is drained
 
     def fill(self) -> int:
-        """Top the ring up to :data:`LEAD_S` ahead. Returns the rows written."""
+        """Top the ring up toward the lead by one block of at most ``_chunk`` rows (the filler
+        calls it again at once while it writes rows). Returns the rows written."""
         ring = self.stream
         with self.lock:
             ep = ring.epoch()
@@ -529,8 +532,8 @@ class MotionSide:
                 n = self._rewind(ep)
                 if n is not None:
                     return n
-            need = min(self.lead - ring.depth(), ring.free())
-            if need < self.lead // BLOCKS_PER_LEAD or (self.cur is None and not self.queue):
+            need = min(self.lead - ring.depth(), ring.free(), self._chunk)
+            if need < self._chunk or (self.cur is None and not self.queue):
                 return 0
             if self._gone():
                 return 0
@@ -644,7 +647,7 @@ class MotionSide:
         self._defer_clear = ""
         # a short block first (the loop must not reach the cut while it is generated); fill()
         # tops the ring up to LEAD_S afterwards as usual
-        n = self._generate(min(self._first_rows, cap - (cut - r0)))
+        n = self._generate(min(self._chunk, cap - (cut - r0)))
         why, self._defer_clear = self._defer_clear, None
         if ring.retract(cut) is None:        # the loop came too close: as before, retry wider
             self._restore(before)
