@@ -127,7 +127,8 @@ def wall_lead(args) -> None:
                       LIMITS, lambda: np.array([STREAM, STREAM]), DT, gcode_settings=SETTINGS, lead_s=args.lead)
     text = Path(args.program).read_text()
     info = ms.gcode(text, Path(args.program).name)
-    ms.fill()                                         # the first block, before the clock starts
+    while ms.fill():                                  # the whole lead, before the clock starts
+        pass
     r_fd, w_fd = os.pipe()
     pid = os.fork()
     if pid == 0:                                      # the consumer: the loop's rate by the wall clock

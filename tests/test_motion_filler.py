@@ -209,3 +209,11 @@ def test_abort_switches_the_torch_off_at_once_and_a_hold_keeps_it_on():
     assert off - n0 <= rig.ms.guard + 1                      # within the guard of the abort
     assert abs(sp[off, 0, 1]) > 0.01                          # the axis still moving then
     assert rig.ms.status()["stopped_because"] == "aborted" and sp[-1, 0, 0] < 0.1
+
+
+def test_a_digital_output_the_ring_does_not_carry_is_refused_before_motion():
+    rig = Rig(GcodeSettings(axes=["X", "Y"], words={"M62": "dout", "M63": "dout"}))
+    assert rig.ring.outputs == ("dout0", "dout1", "dout2", "dout3")
+    with pytest.raises(M.MotionError, match=r"cut.ngc:2:\d+: M62: output dout7 is not one the loop carries"):
+        rig.ms.gcode("G21 G90 G64 P0.01\nG1 X10 F600 M62 P7\nM2\n", "cut.ngc")
+    assert rig.ms.idle() and rig.ring.written() == 0
