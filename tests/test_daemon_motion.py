@@ -215,12 +215,35 @@ def test_feed_override_scales_the_feed(gantry):
         assert ctl(sock, "override", "1.0").returncode == 0
 
 
-def test_an_underrun_brakes_to_rest_without_a_fault(gantry, tmp_path):
-    """The I/O process (the planner) stopped for LEAD_S + 1 s while a program cuts (torch on):
-    the ring runs dry, the loop brakes on its own and holds, and switches the torch off itself;
-    the program is dropped with the reason; no fault."""
-    sock = gantry.sock
-    io = gantry.io_pid
+@pytest.fixture
+def short_lead(tmp_path):
+    """A daemon of its own with the default lead (0.5 s), X and Y in command mode, M3/M5 to
+    torch: the module's 1.5 s lead cannot be run dry by a stopped I/O process on a loaded host
+    before the recorder's stall bound (3 s of loop cycles) latches every axis."""
+    cfg = make_config(tmp_path)
+    d = yaml.safe_load(cfg.read_text())
+    d["gcode"] = {"words": {"M3": "torch", "M5": "torch"}, "axes": ["X", "Y"]}
+    cfg.write_text(yaml.safe_dump(d))
+    dmn = Daemon(cfg, tmp_path / "motorctl.sock")
+    try:
+        dmn.wait_ready()
+        for a in ("X", "Y"):
+            r = ctl(dmn.sock, "start", a, "--mode", "command")
+            assert r.returncode == 0, r.stderr
+        wait_for(lambda: all(s["phase"] == "command" for s in status(dmn.sock)["axes"].values()), 10,
+                 "command mode")
+        yield dmn
+    finally:
+        dmn.kill()
+
+
+def test_an_underrun_brakes_to_rest_without_a_fault(short_lead, tmp_path):
+    """The I/O process (the planner) stopped for 2 s while a program cuts (torch on): the ring
+    (0.5 s ahead) runs dry even if a loaded host gives the loop a quarter of the time, the loop
+    brakes on its own and holds, and switches the torch off itself; the program is dropped with
+    the reason; no fault (2 s of cycles stay below the recorder's stall bound, 3 s)."""
+    sock = short_lead.sock
+    io = short_lead.io_pid
     u0 = status(sock)["motion"]["underruns"]
     cut = tmp_path / "long_cut.ngc"         # 0.41 m at 3 m/min: 8 s, far beyond the lead
     cut.write_text("G21 G90\nG0 X20 Y20\nM3\nG1 X300 Y320 F3000\nM5\nM2\n")
@@ -230,13 +253,11 @@ def test_an_underrun_brakes_to_rest_without_a_fault(gantry, tmp_path):
     time.sleep(0.3)
     os.kill(io, signal.SIGSTOP)
     try:
-        # > LEAD_S of loop cycles even on a loaded host (no real-time), < the recorder's stall
-        # bound (3 s of cycles, which would latch every axis)
-        time.sleep(LEAD_S + 1.0)
+        time.sleep(2.0)
     finally:
         os.kill(io, signal.SIGCONT)
     r = ctl(sock, "wait", "--timeout", "10")
-    assert r.returncode == 1 and "underrun" in r.stdout, r.stdout
+    assert r.returncode == 1 and "underrun" in r.stdout, (r.stdout, r.stderr)
     mo = status(sock)["motion"]
     assert mo["underruns"] == u0 + 1 and mo["queue_depth"] == 0 and not mo["braking"]
     assert mo["outputs"] == {"torch": 0.0}               # off with the brake, by the loop
@@ -310,6 +331,8 @@ PLATE = REPO / "tests" / "data" / "plate_0932.ngc"
 #: the setpoint at an output's row is the programmed point within this [m] (the planner ends a
 #: move on its end point exactly; 1 nm covers the mm → m conversion)
 AT_POINT_M = 1e-9
+#: the setpoint's speed at an output's row [m/s]: at rest (a rest segment's samples carry 1e-15)
+AT_REST_M_S = 1e-9
 #: the carriage itself (y) within this of the point at the output's row [m] (at rest: M03/M05
 #: stop the motion first; the gantry's following error at rest is a few um)
 CARRIAGE_M = 20e-6
@@ -348,7 +371,7 @@ def _log_columns(path: str, first: int, names: list[str]) -> dict:
 
 def test_a_cam_program_switches_its_torch_at_the_programmed_points(gantry):
     """tests/data/plate_0932.ngc (a plasma post's program: %, N numbers, G21 G90 G17 G40 G49 G80,
-    G64 P0.01, G54, G28, M01, M03 S / M05, G04 P, G00/G01/G03 with I J, 231 moves, 22 s) through
+    G64 P0.01, G54, G28, M01, M03 S / M05, G04 P, G00/G01/G03 with I J, 231 moves, 22 s planned) through
     the CLI and the daemon: the run log's out.torch switches at exactly the rows whose setpoint is
     the programmed pierce / end point (AT_POINT_M; the carriage within CARRIAGE_M, at rest), in
     the program's order, nowhere else; the program ends on its last point (G28: 0, 0); no fault,
@@ -356,7 +379,7 @@ def test_a_cam_program_switches_its_torch_at_the_programmed_points(gantry):
     sock = gantry.sock
     text = PLATE.read_text()
     events, _ = _torch_points(text)
-    assert len(events) == 24 and text.count("\nN") > 200
+    assert len(events) == 16 and text.count("\nN") > 200
     path = status(sock)["log"]["path"]
     first = open_log(path).n_rows
     u0 = status(sock)["motion"]["underruns"]
@@ -381,7 +404,7 @@ def test_a_cam_program_switches_its_torch_at_the_programmed_points(gantry):
         assert torch[row] == value, (k, line)
         assert np.all(np.abs(sp - point) <= AT_POINT_M), (k, line, sp, point)
         assert np.all(np.abs(y - point) <= CARRIAGE_M), (k, line, y, point)
-        assert c["X.xd_dot"][row] == 0.0 and c["Y.xd_dot"][row] == 0.0, (k, line)
+        assert abs(c["X.xd_dot"][row]) < AT_REST_M_S and abs(c["Y.xd_dot"][row]) < AT_REST_M_S, (k, line)
     assert np.all(c["X.mode"] == STREAM) and np.all(c["Y.mode"] == STREAM)
     assert not np.any(c["X.fault_bits"]) and not np.any(c["Y.fault_bits"])
     assert c["X.x_d"][-1] == 0.0 and c["Y.x_d"][-1] == 0.0     # G28: the reference point
