@@ -5,6 +5,7 @@ loop's brake and setpoint ring on their own."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -70,8 +71,18 @@ def gantry(tmp_path_factory):
     d["daemon"]["motion_lead_s"] = LEAD_S
     d["axes"]["X"]["homing"] = {"direction": -1, "search_speed_m_per_s": 0.02, "latch_speed_m_per_s": 0.002,
                                 "back_off_m": 0.01, "position_m": 0.0, "required": True}
+    with _command_mode(cfg, d) as dmn:
+        dmn.refused = ctl(dmn.sock, "move", "X=0.1")          # before homing
+        dmn.homing = ctl(dmn.sock, "home", "--all", "--timeout", "30")   # X alone has a homing: section
+        dmn.homed_at = status(dmn.sock)["axes"]["X"]["y_m"]
+        yield dmn
+
+
+@contextlib.contextmanager
+def _command_mode(cfg, d: dict):
+    """The daemon of config ``d`` (written to ``cfg``) with X and Y in command mode; killed after."""
     cfg.write_text(yaml.safe_dump(d))
-    dmn = Daemon(cfg, tmp / "motorctl.sock")
+    dmn = Daemon(cfg, cfg.parent / "motorctl.sock")
     try:
         dmn.wait_ready()
         for a in ("X", "Y"):
@@ -79,9 +90,6 @@ def gantry(tmp_path_factory):
             assert r.returncode == 0, r.stderr
         wait_for(lambda: all(s["phase"] == "command" for s in status(dmn.sock)["axes"].values()), 10,
                  "command mode")
-        dmn.refused = ctl(dmn.sock, "move", "X=0.1")          # before homing
-        dmn.homing = ctl(dmn.sock, "home", "--all", "--timeout", "30")   # X alone has a homing: section
-        dmn.homed_at = status(dmn.sock)["axes"]["X"]["y_m"]
         yield dmn
     finally:
         dmn.kill()
@@ -223,18 +231,8 @@ def short_lead(tmp_path):
     cfg = make_config(tmp_path)
     d = yaml.safe_load(cfg.read_text())
     d["gcode"] = {"words": {"M3": "torch", "M5": "torch"}, "axes": ["X", "Y"]}
-    cfg.write_text(yaml.safe_dump(d))
-    dmn = Daemon(cfg, tmp_path / "motorctl.sock")
-    try:
-        dmn.wait_ready()
-        for a in ("X", "Y"):
-            r = ctl(dmn.sock, "start", a, "--mode", "command")
-            assert r.returncode == 0, r.stderr
-        wait_for(lambda: all(s["phase"] == "command" for s in status(dmn.sock)["axes"].values()), 10,
-                 "command mode")
+    with _command_mode(cfg, d) as dmn:
         yield dmn
-    finally:
-        dmn.kill()
 
 
 def test_an_underrun_brakes_to_rest_without_a_fault(short_lead, tmp_path):

@@ -2,7 +2,8 @@
 
 One float64 row per cycle: the cycle-wide fields, then for every axis the axis fields under
 ``AXIS.<field>``, then the machine outputs the loop applied in that cycle under ``out.<name>``
-(the outputs of a setpoint ring, :mod:`motorctl.loop.stream`; none without one). The loop, the flight recorder, the daemon's status, the run-log reader, the
+(the outputs of a setpoint ring, :mod:`motorctl.loop.stream`; none without one). The loop,
+the flight recorder, the daemon's status, the run-log reader, the
 exporters and the plots all index a row by these names through :class:`RecordLayout`, never by
 a hand-counted offset.
 

@@ -2,8 +2,9 @@
 
 A filler thread of the I/O process keeps ``lead_s`` (the config's ``daemon.motion_lead_s``,
 default :data:`LEAD_S`) of setpoints (x_d, ẋ_d, ẍ_d per axis per cycle) ahead in the loop's
-setpoint ring (:mod:`motorctl.loop.stream`), from a queue of planned trajectories (a ``move``: Ruckig's time-optimal jerk-limited
-point-to-point with synchronised arrival; a G-code program: ``motorctl.motion``'s planner).
+setpoint ring (:mod:`motorctl.loop.stream`), from a queue of planned trajectories (a ``move``:
+Ruckig's time-optimal jerk-limited point-to-point with synchronised arrival; a G-code program:
+``motorctl.motion``'s planner), in blocks of at most LEAD_S / BLOCKS_PER_LEAD.
 
 The trajectories are sampled on a path time s that advances by the feed scale f per cycle
 (time scaling: x = p(s), ẋ = p'(s)·ḟ... precisely ẋ = p'(s)·f, ẍ = p''(s)·f² + p'(s)·ḟ), so
