@@ -17,7 +17,7 @@ import yaml
 from test_daemon_helpers import REPO, Daemon, cli, ctl, make_config, status, wait_for
 
 from motorctl.loop.cycle import STREAM
-from motorctl.loop.stream import SP_UNDERRUNS, SetpointRing, brake_step
+from motorctl.loop.stream import SP_OUT_SEQ, SP_UNDERRUNS, SetpointRing, brake_step, stream_step
 from motorctl.recorder.runlog import open_log
 
 TS = 2e-4
@@ -54,6 +54,29 @@ def test_the_ring_is_bounded_and_counts_what_it_holds():
     assert ring.push(block, ring.epoch()) == 4          # full: the rest waits
     assert ring.depth() == 4 and ring.free() == 0
     assert ring.underruns() == 0 and int(ring.ctl[SP_UNDERRUNS]) == 0
+
+
+def test_the_loop_applies_a_rows_outputs_and_switches_the_stop_outputs_off_when_it_brakes():
+    """The loop's stream step on its own: a row's outputs become the applied ones in the cycle it
+    is taken (the change counted); an underrun while moving switches the stop output (torch) off
+    in the cycle the brake starts, not the others (dout0); so does a cycle with no axis streaming."""
+    ring = SetpointRing(8, 1, shared=False, outputs=("torch", "dout0"), stop_outputs=("torch",))
+    ax = np.zeros((1, 2), dtype=np.int64)
+    ax[0, 0] = STREAM
+    axf = np.array([[0.0, 0.0, 0.0, 40.0, 4000.0]])
+    block = np.array([[[0.0, 0.0, 0.0]], [[1e-6, 0.01, 50.0]], [[4e-6, 0.02, 50.0]]])
+    ring.push(block, ring.epoch(), np.array([[0.0, 0.0], [1.0, 1.0], [1.0, 1.0]]))
+
+    def step():
+        stream_step(ring.rows, ring.ctl, ax, axf, 0, STREAM, 1, 0, 3, TS)
+        return ring.applied().tolist(), int(ring.ctl[SP_OUT_SEQ])
+    assert step() == ([0.0, 0.0], 0)
+    assert step() == ([1.0, 1.0], 1)                   # the row's cycle
+    assert step() == ([1.0, 1.0], 1)
+    assert step() == ([0.0, 1.0], 2) and ring.braking() and ring.underruns() == 1   # dry while moving
+    ax[0, 0] = 0                                       # no axis streams: the stop outputs stay off
+    ring.applied()[0] = 1.0
+    assert step() == ([0.0, 1.0], 3)
 
 
 # --------------------------------------------------------------------------- through the daemon
