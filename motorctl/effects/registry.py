@@ -20,8 +20,11 @@ from collections.abc import Iterable
 from importlib.metadata import entry_points
 
 from motorctl.effects.base import EffectFamily
+from motorctl.jit import KERNEL_ENTRY_POINTS
 
-ENTRY_POINT_GROUP = "motorctl.effects"
+#: the families' entry-point group (numba caches the kernels of a process where another package
+#: registers one apart: :func:`motorctl.jit.plugin_cache_dir`)
+ENTRY_POINT_GROUP = KERNEL_ENTRY_POINTS
 
 #: the families of this package in their fixed order (do not reorder; a new one goes after them)
 BUILTIN_ORDER = ("cogging", "force_ripple", "stribeck", "asymmetric_friction", "position_dependent_friction",
