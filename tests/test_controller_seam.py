@@ -143,3 +143,19 @@ def test_each_law_declares_its_settings_linearisation_and_records():
         assert set(cls.records) <= set(CONTROLLER_SIGNALS) and "e" in cls.records
         assert cls.tuned_keys and all(k in cls.Settings.model_fields for k in cls.tuned_keys)
     assert "theta_hat5" in controller_class("c2").records and "theta_hat5" not in controller_class("c1").records
+
+
+def test_own_signals_follow_every_axis_fixed_fields():
+    """A law's own signals are the row's last columns (a reader of the fixed fields reads any
+    log); one named like a fixed field is refused; a law names only the signals it declares."""
+    import pytest
+
+    from motorctl.control import controller_class
+    from motorctl.loop.records import RecordLayout
+    lay = RecordLayout(["X", "Y"], {"Y": {"u_P": "V"}})
+    assert lay.columns[:lay.own_start] == columns_for(["X", "Y"])
+    assert lay.columns[lay.own_start:] == ["Y.u_P"] and lay.units[-1] == "V" and lay.width == lay.own_start + 1
+    with pytest.raises(ValueError, match="axis X: own signal 'u' is a fixed axis field"):
+        RecordLayout(["X"], {"X": {"u": "V"}})
+    with pytest.raises(KeyError, match="controller 'c2' declares no signal 'u_P'; own signals: none"):
+        controller_class("c2").own_index("u_P")
