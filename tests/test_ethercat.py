@@ -16,6 +16,7 @@ import subprocess
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -102,6 +103,35 @@ def test_soem_brings_the_segment_to_op_and_the_loop_runs_both_profiles(tmp_path)
                      r"\(amplifier off\)", r.stdout), r.stdout
     assert "1: motorctl CiA402 drive, 2: EK1100" in err and "first command X" in err
     _within_10_percent_of_the_sim(table, 1.0)
+
+
+@needs_netns
+def test_a_run_after_a_run_that_ended_mid_move_approaches_and_runs(tmp_path):
+    """Two ``motorctl run``s against one emulated segment: the first ends mid-move (0.53 s: X at
+    1 m/s, Y at 0.25 m/s, both leaving 0 for 0.4 m), the drive and the terminals drop to 0 at the
+    stop and the carriages coast; the second waits for them to stand, approaches from there to
+    the program's first point and runs its program without a fault (without the approach: a
+    following error at its first cycle, millimetres off)."""
+    pytest.importorskip("pysoem")
+    from motorctl.loop.records import MODE_APPROACH, MODE_IDLE, MODE_PROGRAM
+    from motorctl.recorder.runlog import read_log
+    cfg = _config(tmp_path)
+    logs = [tmp_path / "first.mlog", tmp_path / "second.mlog"]
+    with NetNamespace(veth=VETH) as ns, Emulator("ethercat", cfg, plant=PLANT, prefix=ns.prefix) as emu:
+        for log, seconds in zip(logs, ("0.53", "0.3")):
+            r = run_cli(["run", str(cfg), "--duration", seconds, "--log", str(log)], prefix=ns.prefix, timeout_s=120)
+            table = parse_run_table(r.stdout)
+            assert r.returncode == 0 and set(table) == {"X", "Y"}, f"{r.stdout}\n{r.stderr}\n{emu.stderr()}"
+            assert not table["X"]["fault"] and not table["Y"]["fault"], r.stdout
+    first, second = (read_log(str(p)) for p in logs)
+    for a in ("X", "Y"):
+        assert first.col(f"{a}.xd_dot")[-1] > 0.2, a                     # the first ended mid-move
+        frm = second.header["approach"][a]["from_m"]
+        assert first.col(f"{a}.y")[-1] + 0.005 < frm < 0.42, (a, frm)    # coasted on, stood inside the limits
+        mode = second.col(f"{a}.mode")
+        i, j = int(np.argmax(mode != MODE_IDLE)), int(np.argmax(mode == MODE_PROGRAM))
+        assert i >= 2 and (mode[i:j] == MODE_APPROACH).all() and j - i > 100 and (mode[j:] == MODE_PROGRAM).all()
+        assert not second.col(f"{a}.fault_bits").any()
 
 
 def _within_10_percent_of_the_sim(table: dict, duration_s: float) -> None:
@@ -386,6 +416,18 @@ def test_an_io_axis_without_its_enable_is_a_clear_error(tmp_path):
     r = run_cli(["check-config", str(p)])
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
     assert "axes.Y.driver" in r.stderr and "profile io needs enable" in r.stderr, r.stderr
+
+
+def test_an_interface_this_machine_does_not_have_is_refused_before_anything_starts(tmp_path):
+    cfg = _config(tmp_path, ifname="nosuchnic0")
+    log = tmp_path / "run.mclog"
+    r = run_cli(["run", str(cfg), "--duration", "1", "--log", str(log)])
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("motorctl: error:")]
+    assert len(errors) == 1, r.stderr
+    assert str(cfg) in r.stderr and "driver.ifname" in r.stderr and "'nosuchnic0'" in r.stderr, r.stderr
+    assert "lo" in r.stderr.split("it has:")[1], r.stderr      # the interfaces it has are named
+    assert not log.exists() and list(tmp_path.iterdir()) == [cfg]
 
 
 @needs_netns
