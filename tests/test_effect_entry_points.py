@@ -152,3 +152,22 @@ def test_an_entry_point_must_load_a_family_of_its_name(monkeypatch):
     monkeypatch.setattr(registry, "entry_points", _eps(*_builtin_eps(), ("spring", "other.pkg:FAMILY")))
     with pytest.raises(registry.RegistryError, match="'spring' registered twice"):
         registry.load_families()
+
+
+def test_a_kernel_no_family_declares_is_refused_when_the_axis_is_built():
+    """No fall-through: a compiled term whose kernel is not in the tables (its family did not
+    declare it in ``kernels``, or is not registered) is refused by name, never run as another
+    term nor silently from Python."""
+    from motorctl.effects.base import CompTerm, PlantTerm
+    from motorctl.effects.compensation import _code
+    from motorctl.effects.plant import rows
+    from toy_family import FAMILY, drag_add, drag_force
+    with pytest.raises(ValueError, match="plant term kernel 'drag_force' is not declared in its effect family's "
+                                         "kernels .*; known: force plant_force"):
+        rows([PlantTerm.compiled("force", drag_force, [1.0])])
+    with pytest.raises(ValueError, match="compensation term kernel 'drag_add' is not declared"):
+        _code(CompTerm("add", drag_add, [1.0]))      # (what Compensation builds its table with)
+    # a kernel declared under two kinds is refused when the tables are built
+    with pytest.raises(registry.RegistryError, match="quadratic_drag.*drag_force declared as 'force' and 'add'"):
+        registry.kernel_table([FAMILY, type("Twice", (type(FAMILY),), {"kernels": (("add", drag_force),)})()],
+                              ("force", "add"))
