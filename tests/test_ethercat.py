@@ -438,6 +438,18 @@ def test_an_io_axis_without_its_enable_is_a_clear_error(tmp_path):
     assert "axes.Y.driver" in r.stderr and "profile io needs enable" in r.stderr, r.stderr
 
 
+def test_an_interface_this_machine_does_not_have_is_refused_before_anything_starts(tmp_path):
+    cfg = _config(tmp_path, ifname="nosuchnic0")
+    log = tmp_path / "run.mclog"
+    r = run_cli(["run", str(cfg), "--duration", "1", "--log", str(log)])
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("motorctl: error:")]
+    assert len(errors) == 1, r.stderr
+    assert str(cfg) in r.stderr and "driver.ifname" in r.stderr and "'nosuchnic0'" in r.stderr, r.stderr
+    assert "lo" in r.stderr.split("it has:")[1], r.stderr      # the interfaces it has are named
+    assert not log.exists() and list(tmp_path.iterdir()) == [cfg]
+
+
 @needs_netns
 def test_an_unplugged_segment_faults_with_the_working_counter_and_the_daemon_reconnects(tmp_path):
     """The daemon on EtherCAT, both axes tracking; the segment's cable is pulled (the veth's

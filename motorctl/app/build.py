@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 
 from motorctl.config import ConfigError, LoadedConfig
+from motorctl.inputs import InputError
 from motorctl.control import configured_controllers, make_controller
 from motorctl.loop.rt import RealtimeReport, restore, setup_realtime
 from motorctl.loop.safety import Supervisor
@@ -201,15 +202,19 @@ def start(asm: Assembly, policy: str) -> RealtimeReport:
     activate the driver. With ``required`` a refusal raises before the driver is touched.
 
     Raises:
-        RealtimeError: ``required`` and a step was refused. OSError: the device cannot be
+        RealtimeError: ``required`` and a step was refused. InputError: a driver setting this
+        machine contradicts (e.g. no such network interface), prefixed with the file. OSError: the device cannot be
         reached (the driver is closed and the real-time set-up undone first).
     """
     rt = asm.loaded.cfg.loop.realtime
     report = setup_realtime(policy, rt.priority, rt.cpu, rt.lock_memory, rt.lock_pages,
                             rt.cpu_latency_us)
     try:
-        asm.driver.configure()
-        asm.driver.activate()
+        try:
+            asm.driver.configure()
+            asm.driver.activate()
+        except InputError as exc:       # a driver setting the machine contradicts: name the file
+            raise InputError(f"{asm.loaded.path}: {exc}") from None
     except BaseException:
         try:
             asm.driver.close()          # whatever part of the transport was opened
