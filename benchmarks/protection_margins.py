@@ -4,7 +4,7 @@ accumulator's peak and the largest RMS of u in a window at rest, each as the rat
 trip level to it (14x: the run stays 14 times below the trip); then an unstable gain (X on C2,
 k_s 250, k1 1800: a limit cycle at rest) and when its fault latched after the reference came
 to rest; and Y on the PID at ω_n 1400 rad/s (integral corner ω_n/3) for every ζ of the PID's
-family: the fault, u's RMS at rest and the samples at ±u_lim (autotune's figures of a 4 s run).
+family, 20 s each: the largest RMS of u in a window at rest, the fault and when it latched.
 
     python benchmarks/protection_margins.py [configs/gantry.yaml] [duration_s (40)]
 
@@ -59,8 +59,7 @@ def unstable(path: str, duration_s: float) -> None:
           f"{np.abs(u[k:]).max():g} V, enable {en[k:].max():g}")
 
 
-def pid_at(path: str, axis: str = "Y", w_n: float = 1400.0, r: float = 3.0, duration_s: float = 4.0) -> None:
-    from motorctl.commission.evaluate import evaluate
+def pid_at(path: str, axis: str = "Y", w_n: float = 1400.0, r: float = 3.0, duration_s: float = 20.0) -> None:
     from motorctl.commission.verify import apply_gains
     from motorctl.control.pid import PID
     data = load_yaml(path)
@@ -68,9 +67,17 @@ def pid_at(path: str, axis: str = "Y", w_n: float = 1400.0, r: float = 3.0, dura
     for g in PID.gain_family(theta1, None, [w_n]):
         if g["_r"] != r:
             continue
-        m = evaluate(apply_gains(data, axis, "pid", g), path, axis, "pid", duration_s)
-        print(f"{axis} on PID w_n {w_n:g}, zeta {g['_zeta']:g}, r {r:g} ({duration_s:g} s): u rest RMS "
-              f"{m['u_rest_rms_V']:.2f} V, {m['saturated']} samples at u_lim; {m['fault'] or 'no fault'}")
+        loaded = config_from_dict(apply_gains(data, axis, "pid", g), path)
+        with tempfile.TemporaryDirectory() as tmp:
+            log = str(Path(tmp) / "pid.log")
+            res = run_job(loaded, axes=[axis], controller="pid", duration_s=duration_s, clock="virtual",
+                          log_path=log)
+            fb, t = read_log(log).col(f"{axis}.fault_bits"), read_log(log).col("t")
+        a = res.axes[axis]
+        k = int(np.argmax(fb != 0))
+        when = f" at t = {t[k]:.2f} s" if fb[k] else ""
+        print(f"{axis} on PID w_n {w_n:g}, zeta {g['_zeta']:g}, r {r:g} ({duration_s:g} s): largest u RMS in a "
+              f"window at rest {a['rest_rms_peak_V']:.2f} V; {a['fault'] or 'no fault'}{when}")
 
 
 if __name__ == "__main__":

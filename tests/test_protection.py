@@ -127,8 +127,8 @@ def test_an_unstable_gain_is_latched_at_0V_within_a_window_of_rest(gantry, tmp_p
 
 #: gains a search can reach that settle into a limit cycle at rest (the issue's): X on C2 (474 Hz,
 #: 8.2 V RMS), Y on PID at ω_n 1400 rad/s, integral corner ω_n/3, ζ 0.3 (314 Hz, 7.5 V RMS) and
-#: ζ 1.0 (583 Hz, 6.0 V RMS); at ζ 0.7 it chatters at 1.95 V RMS, under the 2 V trip, and the
-#: verification's own limits (saturation, u noise at rest) refuse it
+#: ζ 1.0 (583 Hz, 6.0 V RMS), both tripping in their first window at rest; at ζ 0.7 the chatter
+#: grows to the 2 V trip only after 5.5 s (docs/protection.md), beyond these 2 s runs
 UNSTABLE = [("X", "c2", {"k_s": 250.0, "k1": 1800.0, "gamma_d": 500.0})] + [
     ("Y", "pid", g) for g in PID.gain_family(0.55, None, [1400.0])
     if g["_r"] == 3.0 and g["_zeta"] in (0.3, 1.0)]
