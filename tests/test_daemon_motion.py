@@ -348,7 +348,7 @@ def test_the_circular_test_reports_the_iso_figures():
 
 
 # --------------------------------------------------------------------------- a CAM program, end to end
-PLATE = REPO / "tests" / "data" / "plate_0932.ngc"
+PLATE = REPO / "configs" / "plate_0932.ngc"
 #: the setpoint at an output's row is the programmed point within this [m] (the planner ends a
 #: move on its end point exactly; 1 nm covers the mm → m conversion)
 AT_POINT_M = 1e-9
@@ -391,8 +391,9 @@ def _log_columns(path: str, first: int, names: list[str]) -> dict:
 
 
 def test_a_cam_program_switches_its_torch_at_the_programmed_points(gantry):
-    """tests/data/plate_0932.ngc (a plasma post's program: %, N numbers, G21 G90 G17 G40 G49 G80,
-    G64 P0.01, G54, G28, M01, M03 S / M05, G04 P, G00/G01/G03 with I J, 231 moves, 22 s planned) through
+    """configs/plate_0932.ngc (a plasma post's program: %, N numbers, G21 G90 G17 G40 G49 G80,
+    G64 P0.01, G54, G28, M01, M03 S / M05, G04 P, G00/G01/G02/G03 with I J, 231 moves, 22 s planned)
+    through
     the CLI and the daemon: the run log's out.torch switches at exactly the rows whose setpoint is
     the programmed pierce / end point (AT_POINT_M; the carriage within CARRIAGE_M, at rest), in
     the program's order, nowhere else; the program ends on its last point (G28: 0, 0); no fault,
