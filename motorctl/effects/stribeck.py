@@ -88,8 +88,11 @@ class StribeckFamily(EffectFamily):
 
     # identification
     def columns(self, h, p):
-        """exp(−(ẋ/h)²) S_f(ẋ), (N, 1); h: Stribeck velocity v_s [m/s]."""
-        v = p.v
+        """exp(−(ẋ/h)²) S_f(ẋ), (N, 1); h: Stribeck velocity v_s [m/s]. On a prepared record
+        ẋ is its wide-band velocity (``v_wide``, :class:`motorctl.ident.idim.Prepared`): the
+        hump is a sharp function of the true velocity, blurred on the position filter's."""
+        v = getattr(p, "v_wide", None)
+        v = p.v if v is None else v
         return (np.exp(-(v / h) ** 2) * s_f(v))[:, None]
 
     def search(self, ctx, base, residual):
@@ -100,7 +103,10 @@ class StribeckFamily(EffectFamily):
         if i in (0, len(grid) - 1):
             return term, f"Stribeck velocity {term.h:.3g} m/s at the edge of the searched range"
         fine = np.exp(np.linspace(math.log(grid[i - 1]), math.log(grid[i + 1]), 9))
-        term, _ = ctx.best_over(self.name, fine, base)
+        term, sses = ctx.best_over(self.name, fine, base)
+        j = int(np.argmin(sses))
+        if 0 < j < len(fine) - 1:     # the grid's 7 % steps: to 0.5 % of v_s by bounded Brent
+            term = ctx.best_between(self.name, fine[j - 1], fine[j + 1], base, 0.005 * fine[j])
         return term, None
 
     def plausible(self, ctx, term, beta, theta, base):
