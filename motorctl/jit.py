@@ -1,8 +1,10 @@
 """The one place that sets how the control kernels are compiled and called.
 
 numba compiles the per-sample kernels (estimator, law, inversion) to machine code; the
-compiled code is cached on disk beside the sources, so only the first process after an install
-pays the compile time. ``NUMBA_DISABLE_JIT=1`` runs the same functions as plain Python.
+compiled code is cached on disk in a folder keyed by the package's sources
+(:mod:`motorctl.jitcache`, set before numba reads its configuration), so only the first process
+after an install or an edit pays the compile time. ``NUMBA_DISABLE_JIT=1`` runs the same
+functions as plain Python.
 
 Inside compiled code every array view (a slice, a row, a bundle's field) and every array
 passed on to another kernel is reference-counted: an atomic increment and decrement of its
@@ -23,12 +25,21 @@ cycle").
 from functools import partial
 from types import SimpleNamespace
 
-from numba import config as _config
-from numba import njit as _numba_njit
-from numba import typeof as _typeof
-from numba.core import types as _types
-from numba.experimental import structref as _structref
-from numba.extending import intrinsic as _intrinsic
+from motorctl.jitcache import configure as _configure_cache
+
+_CACHE_DIR = _configure_cache()          # before numba reads NUMBA_CACHE_DIR
+
+from numba import config as _config  # noqa: E402
+from numba import njit as _numba_njit  # noqa: E402
+from numba import typeof as _typeof  # noqa: E402
+from numba.core import types as _types  # noqa: E402
+from numba.experimental import structref as _structref  # noqa: E402
+from numba.extending import intrinsic as _intrinsic  # noqa: E402
+
+if _CACHE_DIR is not None:
+    # numba was imported before motorctl: its configuration was read already (a kernel's cache
+    # locator reads it when the kernel is defined, after this)
+    _config.CACHE_DIR = _CACHE_DIR
 
 #: Decorator for the per-sample kernels: nopython mode, cached, no GIL needed.
 njit = partial(_numba_njit, cache=True, nogil=True)
