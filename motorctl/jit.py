@@ -22,8 +22,9 @@ overload itself (the cost of the call: ``benchmarks/bench_loop.py``, "the compil
 cycle").
 """
 
-from functools import partial
 from types import SimpleNamespace
+
+import numpy as np
 
 from motorctl.jitcache import configure as _configure_cache
 
@@ -33,6 +34,7 @@ from numba import config as _config  # noqa: E402
 from numba import njit as _numba_njit  # noqa: E402
 from numba import typeof as _typeof  # noqa: E402
 from numba.core import types as _types  # noqa: E402
+from numba.core.registry import CPUDispatcher as _CPUDispatcher  # noqa: E402
 from numba.experimental import structref as _structref  # noqa: E402
 from numba.extending import intrinsic as _intrinsic  # noqa: E402
 
@@ -41,13 +43,34 @@ if _CACHE_DIR is not None:
     # locator reads it when the kernel is defined, after this)
     _config.CACHE_DIR = _CACHE_DIR
 
-#: Decorator for the per-sample kernels: nopython mode, cached, no GIL needed.
-njit = partial(_numba_njit, cache=True, nogil=True)
+class _Kernel(_CPUDispatcher):
+    """numba's CPU dispatcher, except that a call from compiled code compiles the callee for
+    its arguments' types without their constant values: numba types a constant argument as a
+    literal (``sup_trip(si, sf, i, FAULT_OVERRUN, ...)``: ``Literal[int](4)``) and compiles a
+    callee once per constant of every call site (9 overloads of ``sup_trip`` in the servo
+    cycle); here once, for int64. The callee's code is the same (LLVM inlines it into its
+    caller and folds the constant there)."""
+
+    def get_call_template(self, args, kws):
+        return super().get_call_template(tuple(_types.unliteral(a) for a in args),
+                                         {k: _types.unliteral(v) for k, v in kws.items()})
+
+
+def _kernel(fn):
+    disp = _Kernel(py_func=fn, locals={}, targetoptions={"nopython": True, "nogil": True, "boundscheck": None})
+    disp.enable_caching()
+    return disp
+
+
+#: Decorator for the per-sample kernels: nopython mode, cached on disk, no GIL needed, one
+#: overload per argument types (constants passed by compiled callers included, :class:`_Kernel`).
+njit = _numba_njit if _config.DISABLE_JIT else _kernel
 
 #: True when ``NUMBA_DISABLE_JIT=1``: kernels are plain Python
 DISABLED = bool(_config.DISABLE_JIT)
 
-__all__ = ["DISABLED", "BundleType", "borrow", "bundle", "check_code", "define_bundle", "dispatch", "entry", "njit"]
+__all__ = ["DISABLED", "BundleType", "borrow", "bundle", "check_code", "copy_into", "define_bundle", "dispatch", "entry",
+           "njit"]
 
 
 class BundleType(_types.StructRef):
@@ -161,6 +184,17 @@ def check_code(table, code, kind: str, what: str) -> int:
         known = ", ".join(f"{i} ({k} {fn.__name__})" for i, (k, fn) in enumerate(table))
         raise ValueError(f"{what} code {code!r} is not a compiled {kind!r} kernel; known: {known}")
     return code
+
+
+@njit
+def copy_into(dst, src):
+    """``dst[...] = src`` for two arrays of the same shape and dtype (any number of dimensions);
+    a different shape copies nothing. In compiled code, without the slice assignment's shape
+    check, whose error message alone (numba's string formatting) took a third of the compile
+    time of the state copies of the loop's rehearsal."""
+    if dst.shape == src.shape:
+        for idx in np.ndindex(src.shape):
+            dst[idx] = src[idx]
 
 
 def _link(code, kernel, rest):
