@@ -24,6 +24,7 @@ cycle").
 
 import hashlib
 import os
+from functools import partial
 from types import SimpleNamespace
 
 import numpy as np
@@ -36,7 +37,6 @@ from numba import config as _config  # noqa: E402
 from numba import njit as _numba_njit  # noqa: E402
 from numba import typeof as _typeof  # noqa: E402
 from numba.core import types as _types  # noqa: E402
-from numba.core.registry import CPUDispatcher as _CPUDispatcher  # noqa: E402
 from numba.experimental import structref as _structref  # noqa: E402
 from numba.extending import intrinsic as _intrinsic  # noqa: E402
 
@@ -86,28 +86,12 @@ if not DISABLED and (_plugins := plugin_cache_dir()) is not None:
     _config.CACHE_DIR = _plugins
 
 
-class _Kernel(_CPUDispatcher):
-    """numba's CPU dispatcher, except that a call from compiled code compiles the callee for
-    its arguments' types without their constant values: numba types a constant argument as a
-    literal (``sup_trip(si, sf, i, FAULT_OVERRUN, ...)``: ``Literal[int](4)``) and compiles a
-    callee once per constant of every call site (9 overloads of ``sup_trip`` in the servo
-    cycle); here once, for int64. The callee's code is the same (LLVM inlines it into its
-    caller and folds the constant there)."""
-
-    def get_call_template(self, args, kws):
-        return super().get_call_template(tuple(_types.unliteral(a) for a in args),
-                                         {k: _types.unliteral(v) for k, v in kws.items()})
-
-
-def _kernel(fn):
-    disp = _Kernel(py_func=fn, locals={}, targetoptions={"nopython": True, "nogil": True, "boundscheck": None})
-    disp.enable_caching()
-    return disp
-
-
-#: Decorator for the per-sample kernels: nopython mode, cached on disk, no GIL needed, one
-#: overload per argument types (constants passed by compiled callers included, :class:`_Kernel`).
-njit = _numba_njit if _config.DISABLE_JIT else _kernel
+#: Decorator for the per-sample kernels: nopython mode, cached, no GIL needed. (A constant
+#: argument from a compiled caller gives the callee an overload of its own, numba's literal
+#: typing: 9 of ``sup_trip`` in the servo cycle, 3 of ``_matrix``. Compiling once per argument
+#: types instead saved those overloads at a cold start but made the compiled call of a cycle
+#: about 4 % slower (C2, both axes: 1.75 against 1.68 us): the callees lost their constants.)
+njit = partial(_numba_njit, cache=True, nogil=True)
 
 __all__ = ["DISABLED", "KERNEL_ENTRY_POINTS", "BundleType", "borrow", "bundle", "check_code", "copy_into",
            "define_bundle", "dispatch", "entry", "njit", "plugin_cache_dir"]
