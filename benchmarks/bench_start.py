@@ -2,10 +2,11 @@
 with an empty numba cache (``NUMBA_CACHE_DIR`` in a temporary directory: a fresh install),
 then again on the cache that run left, and ``motorctl warmup`` on a cold and on the warm
 cache. Prints the time to the first line on stderr (the compile notice on a cold cache) and to
-the end, per run.
+the end, per run. ``--breakdown``: then where a cold compile's time goes, kernel by kernel
+(``compile_breakdown.py`` on another empty cache: overloads compiled, own and inclusive time).
 
 Rerun:
-    python benchmarks/bench_start.py [--config configs/gantry-rigid.yaml]
+    python benchmarks/bench_start.py [--config configs/gantry-rigid.yaml] [--breakdown]
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ def _timed(argv, env) -> tuple[float, float, str]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", default="configs/gantry-rigid.yaml")
+    ap.add_argument("--breakdown", action="store_true", help="also the cold compile kernel by kernel")
     args = ap.parse_args()
     print(f"# rerun: python benchmarks/bench_start.py --config {args.config}; load average "
           f"{os.getloadavg()[0]:.1f} at the start")
@@ -52,6 +54,11 @@ def main() -> None:
     print("|---|---|---|---|")
     for name, t1, t2, line in rows:
         print(f"| {name} | {t1:.2f} | {t2:.1f} | {line or '-'} |")
+    if args.breakdown:
+        with tempfile.TemporaryDirectory() as c:
+            sys.stdout.flush()
+            subprocess.run([sys.executable, str(REPO / "benchmarks" / "compile_breakdown.py"), args.config],
+                           cwd=REPO, env={**os.environ, "NUMBA_CACHE_DIR": c}, timeout=1800, check=True)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,10 @@
 """The one place that sets how the control kernels are compiled and called.
 
 numba compiles the per-sample kernels (estimator, law, inversion) to machine code; the
-compiled code is cached on disk beside the sources, so only the first process after an install
-pays the compile time. ``NUMBA_DISABLE_JIT=1`` runs the same functions as plain Python.
+compiled code is cached on disk in a folder keyed by the package's sources
+(:mod:`motorctl.jitcache`, set before numba reads its configuration), so only the first process
+after an install or an edit pays the compile time. ``NUMBA_DISABLE_JIT=1`` runs the same
+functions as plain Python.
 
 Inside compiled code every array view (a slice, a row, a bundle's field) and every array
 passed on to another kernel is reference-counted: an atomic increment and decrement of its
@@ -25,12 +27,23 @@ import os
 from functools import partial
 from types import SimpleNamespace
 
-from numba import config as _config
-from numba import njit as _numba_njit
-from numba import typeof as _typeof
-from numba.core import types as _types
-from numba.experimental import structref as _structref
-from numba.extending import intrinsic as _intrinsic
+import numpy as np
+
+from motorctl.jitcache import configure as _configure_cache
+
+_CACHE_DIR = _configure_cache()          # before numba reads NUMBA_CACHE_DIR
+
+from numba import config as _config  # noqa: E402
+from numba import njit as _numba_njit  # noqa: E402
+from numba import typeof as _typeof  # noqa: E402
+from numba.core import types as _types  # noqa: E402
+from numba.experimental import structref as _structref  # noqa: E402
+from numba.extending import intrinsic as _intrinsic  # noqa: E402
+
+if _CACHE_DIR is not None:
+    # numba was imported before motorctl: its configuration was read already (a kernel's cache
+    # locator reads it when the kernel is defined, after this)
+    _config.CACHE_DIR = _CACHE_DIR
 
 #: True when ``NUMBA_DISABLE_JIT=1``: kernels are plain Python
 DISABLED = bool(_config.DISABLE_JIT)
@@ -42,13 +55,14 @@ KERNEL_ENTRY_POINTS = "motorctl.effects"
 
 def plugin_cache_dir() -> str | None:
     """numba's cache directory for a process in which packages other than motorctl register
-    :data:`KERNEL_ENTRY_POINTS` (None: none, numba's default: beside the sources).
+    :data:`KERNEL_ENTRY_POINTS` (None: none; motorctl's own folder then, keyed by its sources,
+    :mod:`motorctl.jitcache`).
 
     numba's on-disk cache is keyed on a kernel's own source file: it sees neither a change of
     a kernel it calls from another module nor of a table it reads as a global. The dispatch over
     the code -> kernel tables (:func:`dispatch`) is inlined into its callers, up to the servo
     cycle, so a process whose tables hold another package's kernels compiles and caches all
-    of them apart, in ``$NUMBA_CACHE_DIR`` (else ``$XDG_CACHE_HOME``, else ``~/.cache``)
+    of them apart, in ``$NUMBA_CACHE_DIR`` (motorctl's keyed folder unless the user set it)
     ``/motorctl-plugins-<key>``, the key a hash of those packages' names, versions and entry
     points. After editing such a package's kernel, bump its version (or delete that directory).
     """
@@ -71,12 +85,16 @@ def plugin_cache_dir() -> str | None:
 if not DISABLED and (_plugins := plugin_cache_dir()) is not None:
     _config.CACHE_DIR = _plugins
 
-#: Decorator for the per-sample kernels: nopython mode, cached, no GIL needed.
+
+#: Decorator for the per-sample kernels: nopython mode, cached, no GIL needed. (A constant
+#: argument from a compiled caller gives the callee an overload of its own, numba's literal
+#: typing: 9 of ``sup_trip`` in the servo cycle, 3 of ``_matrix``. Compiling once per argument
+#: types instead saved those overloads at a cold start but made the compiled call of a cycle
+#: about 4 % slower (C2, both axes: 1.75 against 1.68 us): the callees lost their constants.)
 njit = partial(_numba_njit, cache=True, nogil=True)
 
-
-__all__ = ["DISABLED", "KERNEL_ENTRY_POINTS", "BundleType", "borrow", "bundle", "check_code", "define_bundle",
-           "dispatch", "entry", "njit", "plugin_cache_dir"]
+__all__ = ["DISABLED", "KERNEL_ENTRY_POINTS", "BundleType", "borrow", "bundle", "check_code", "copy_into",
+           "define_bundle", "dispatch", "entry", "njit", "plugin_cache_dir"]
 
 
 class BundleType(_types.StructRef):
@@ -190,6 +208,17 @@ def check_code(table, code, kind: str, what: str) -> int:
         known = ", ".join(f"{i} ({k} {fn.__name__})" for i, (k, fn) in enumerate(table))
         raise ValueError(f"{what} code {code!r} is not a compiled {kind!r} kernel; known: {known}")
     return code
+
+
+@njit
+def copy_into(dst, src):
+    """``dst[...] = src`` for two arrays of the same shape and dtype (any number of dimensions);
+    a different shape copies nothing. In compiled code, without the slice assignment's shape
+    check, whose error message alone (numba's string formatting) took a third of the compile
+    time of the state copies of the loop's rehearsal."""
+    if dst.shape == src.shape:
+        for idx in np.ndindex(src.shape):
+            dst[idx] = src[idx]
 
 
 def _link(code, kernel, rest):

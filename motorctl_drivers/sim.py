@@ -85,7 +85,7 @@ from motorctl.driver import Driver, StopCheck
 from motorctl.effects import FAMILIES, effects_model
 from motorctl.effects import plant as effect_terms
 from motorctl.effects.input_delay import delay_line
-from motorctl.jit import BundleType, borrow, bundle, define_bundle, entry, njit
+from motorctl.jit import BundleType, borrow, bundle, copy_into, define_bundle, entry, njit
 from motorctl.model import S_F_GAIN, PhysicalAxis
 from motorctl.schema import NonNeg, Pos, StrictModel
 
@@ -480,24 +480,24 @@ def _sim_refresh(io, scratch):
     """:meth:`SimDriver.rehearse`'s first step: ``scratch`` (a :class:`SimIO` of copies) set to
     ``io``; the driver's own compiled read and write then run on it (their very entries, so
     that their machine code is the code warmed); ``io`` is not written."""
-    scratch.pos[:] = io.pos
-    scratch.read_error[:] = io.read_error
-    scratch.amp_fault[:] = io.amp_fault
-    scratch.amp_enabled[:] = io.amp_enabled
-    scratch.applied_u[:] = io.applied_u
-    scratch.S[:] = io.S
-    scratch.P[:] = io.P
-    scratch.DL[:] = io.DL
-    scratch.NZ[:] = io.NZ
-    scratch.inj[:] = io.inj
-    scratch.jump[:] = io.jump
-    scratch.push[:] = io.push
-    scratch.TC[:] = io.TC
-    scratch.TT[:] = io.TT
-    scratch.TL[:] = io.TL
-    scratch.NT[:] = io.NT
-    scratch.u_cmd[:] = io.u_cmd
-    scratch.en_cmd[:] = io.en_cmd
+    copy_into(scratch.pos, io.pos)
+    copy_into(scratch.read_error, io.read_error)
+    copy_into(scratch.amp_fault, io.amp_fault)
+    copy_into(scratch.amp_enabled, io.amp_enabled)
+    copy_into(scratch.applied_u, io.applied_u)
+    copy_into(scratch.S, io.S)
+    copy_into(scratch.P, io.P)
+    copy_into(scratch.DL, io.DL)
+    copy_into(scratch.NZ, io.NZ)
+    copy_into(scratch.inj, io.inj)
+    copy_into(scratch.jump, io.jump)
+    copy_into(scratch.push, io.push)
+    copy_into(scratch.TC, io.TC)
+    copy_into(scratch.TT, io.TT)
+    copy_into(scratch.TL, io.TL)
+    copy_into(scratch.NT, io.NT)
+    copy_into(scratch.u_cmd, io.u_cmd)
+    copy_into(scratch.en_cmd, io.en_cmd)
 
 
 @njit

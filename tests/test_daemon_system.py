@@ -53,7 +53,7 @@ def test_units_are_sandboxed(tmp_path, unit, instance):
                   flags=re.M)
     for key in ("RestrictRealtime=no", "LimitMEMLOCK=infinity", "AF_UNIX", "AF_CAN", "AF_INET",
                 "LimitNOFILE=", "NoNewPrivileges=yes", "ProtectSystem=strict",
-                "NUMBA_CACHE_DIR=", "CacheDirectory="):
+                "MOTORCTL_CACHE_DIR=", "CacheDirectory="):
         assert key in text, key
     (tmp_path / instance).write_text(text)
     r = subprocess.run([SYSTEMD_ANALYZE, "security", "--offline=true", str(tmp_path / instance)],

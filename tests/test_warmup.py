@@ -53,3 +53,53 @@ def test_the_cold_check_follows_numbas_cache_and_its_source_stamp(tmp_path):
     r = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, env=env, capture_output=True,
                        text=True, timeout=300)
     assert r.stdout.split() == ["True", "False", "True"], r.stdout + r.stderr
+
+
+def _copy_packages(dst):
+    """A copy of the packages whose sources key numba's cache folder (motorctl.jitcache)."""
+    import shutil
+
+    from motorctl.jitcache import PACKAGES
+    for name in PACKAGES:
+        shutil.copytree(REPO / name, dst / name, ignore=shutil.ignore_patterns("__pycache__"))
+    return [dst / name for name in PACKAGES]
+
+
+def test_an_edit_to_a_callee_module_changes_the_cache_folder(tmp_path):
+    """numba keys a cached kernel on its own file only: an edit to a module the servo cycle
+    calls into (safety.py, stream.py, an effect's kernel) must give another cache folder, and
+    undoing it the same one again."""
+    from motorctl.jitcache import cache_dir
+    roots = _copy_packages(tmp_path / "src")
+    env = {"XDG_CACHE_HOME": str(tmp_path / "cache")}
+    before, chosen = cache_dir(env, roots)
+    assert not chosen and (tmp_path / "cache" / "motorctl" / "numba") in before.parents
+    for rel in ("motorctl/loop/safety.py", "motorctl/loop/stream.py", "motorctl_drivers/sim.py"):
+        src = tmp_path / "src" / rel
+        text = src.read_text()
+        src.write_text(text.replace("0.0", "0.00", 1))
+        edited, _ = cache_dir(env, roots)
+        assert edited.parent == before.parent and edited != before, rel
+        src.write_text(text)
+        assert cache_dir(env, roots)[0] == before, rel
+    assert cache_dir({**env, "NUMBA_CACHE_DIR": str(tmp_path / "mine")}, roots) == (tmp_path / "mine", True)
+
+
+def test_motorctl_points_numba_at_the_keyed_folder_and_prunes_old_ones(tmp_path):
+    """Without NUMBA_CACHE_DIR, importing the kernels' module sets numba's cache folder (and the
+    variable, for child processes) to the keyed one, and keeps the checkout's KEEP used last."""
+    import sys
+
+    from motorctl.jitcache import KEEP, cache_dir
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "MOTORCTL_CACHE_DIR")}
+    env["XDG_CACHE_HOME"] = str(tmp_path)
+    folder, _ = cache_dir(env)
+    old = [folder.parent / f"old{i}" for i in range(KEEP + 2)]
+    for i, p in enumerate(old):
+        p.mkdir(parents=True)
+        os.utime(p, (1e9 + i, 1e9 + i))                   # old4 used last
+    r = subprocess.run([sys.executable, "-c", "import os, numba, motorctl.jit\n"
+                        "print(numba.config.CACHE_DIR, os.environ['NUMBA_CACHE_DIR'])"],
+                       cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert r.stdout.split() == [str(folder)] * 2, r.stdout + r.stderr
+    assert sorted(p.name for p in folder.parent.iterdir()) == sorted([folder.name] + [p.name for p in old[-(KEEP - 1):]])

@@ -1,8 +1,9 @@
 """The first start's compile: say it, and let it happen ahead of time.
 
 numba compiles the servo cycle and the control kernels for this CPU the first time they run
-after an install and caches the machine code on disk (beside the sources, or under
-``NUMBA_CACHE_DIR``); later starts load it. :func:`cache_is_cold` tells (without importing
+after an install (or an edit of the sources) and caches the machine code on disk, under
+``NUMBA_CACHE_DIR`` (by default a folder keyed by the sources, :mod:`motorctl.jitcache`); later
+starts load it. :func:`cache_is_cold` tells (without importing
 numba) whether the servo cycle's cache index is missing or stale for its source, so the CLI
 can print :data:`COMPILE_LINE` at once instead of staying silent for 25-70 s;
 :func:`warmup` (``motorctl warmup``) compiles everything a config uses with no device opened.
@@ -19,6 +20,7 @@ import time
 from pathlib import Path
 
 from motorctl.control import configured_controllers, make_controller
+from motorctl.jitcache import configure as configure_cache
 
 COMPILE_LINE = "compiling the servo cycle for this CPU (first run only, ~30 s)..."
 #: the compiled function whose cache index stands for the whole set
@@ -58,9 +60,12 @@ def _fresh(index: Path, src: Path) -> bool:
 
 def cache_is_cold() -> bool:
     """True when no numba cache index of the servo cycle fits its current source, in the
-    places numba looks (:func:`_cache_folders`)."""
+    places numba looks (:func:`_cache_folders`), numba's cache folder being set first
+    (:func:`motorctl.jitcache.configure`: keyed by the package's sources, so that an edit to
+    any of them makes it cold)."""
     if os.environ.get("NUMBA_DISABLE_JIT") == "1":
         return False
+    configure_cache()
     spec = importlib.util.find_spec(_CYCLE_MODULE)
     if spec is None or not spec.origin:
         return False

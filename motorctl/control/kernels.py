@@ -11,9 +11,9 @@ at a switch), so the compiled dispatch never meets an unknown code (if it did, t
 would be NaN, which the supervisor faults, never another law's step).
 
 numba caches these steps with what they call compiled in (the compensation's dispatch over its
-code -> kernel table, :mod:`motorctl.effects.compensation`), keyed on this module's source only:
-a change of that table's codes needs this module's cache (and ``motorctl.loop.cycle``'s, which
-compiles these steps in) renewed: delete their ``__pycache__/*.nbi``, or change their source.
+code -> kernel table, :mod:`motorctl.effects.compensation`), keyed on this module's source only;
+motorctl's cache folder is keyed by all of its sources (:mod:`motorctl.jitcache`), so a change
+of that table or of a kernel it holds gives a cold cache, which compiles them afresh.
 """
 
 from __future__ import annotations

@@ -16,9 +16,9 @@ slower). A term whose kernel is not in the table, or a code outside it, is refus
 :func:`rows` builds an axis's table (no fall-through to another term); inside the compiled
 kernels an unknown code would give NaN (the supervisor faults the axis), never another term.
 
-numba caches the kernels here and in ``motorctl_drivers.sim`` beside their sources; its cache
-is keyed on the calling module's file, so after editing a family's kernel, delete the
-``__pycache__/*.nbi`` of this module and of ``motorctl_drivers/sim.py`` (or touch them).
+numba keys a cached kernel on its own module's file only; motorctl's cache folder is keyed by
+all of its sources (:mod:`motorctl.jitcache`), so after an edit of a family's kernel this
+module and ``motorctl_drivers.sim`` compile afresh.
 """
 
 from __future__ import annotations

@@ -34,7 +34,7 @@ import numpy as np
 from numba.experimental.structref import StructRefProxy
 
 from motorctl.control.kernels import LAW_PY, law_preview, law_reset, law_step
-from motorctl.jit import BundleType, borrow, bundle, define_bundle, njit
+from motorctl.jit import BundleType, borrow, bundle, copy_into, define_bundle, njit
 from motorctl.control.signals import N_SIGNALS, SIG_E
 from motorctl.loop.safety import FAULT_OVERRUN, SI_FAULT, sup_check_input, sup_check_output, sup_rest, sup_trip
 from motorctl.loop.stream import stream_outputs, stream_step
@@ -272,25 +272,25 @@ def refresh(k, st, scratch):
     (:func:`rehearse`); reading ``st`` here brings the real state into the CPU's caches, and
     the record row cycle k will write (one read per 64-byte line of it, into the rehearsal's
     own row, which its cycle then overwrites)."""
-    scratch.pos[:] = st.pos
-    scratch.rerr[:] = st.rerr
-    scratch.werr[:] = st.werr
-    scratch.ampf[:] = st.ampf
-    scratch.uo[:] = st.uo
-    scratch.en[:] = st.en
-    scratch.ax[:] = st.ax
-    scratch.axf[:] = st.axf
-    scratch.prog[:] = st.prog
-    scratch.move[:] = st.move
-    scratch.si[:] = st.si
-    scratch.sf[:] = st.sf
-    scratch.sig[:] = st.sig
-    scratch.cf[:] = st.cf
-    scratch.ci[:] = st.ci
-    scratch.cl[:] = st.cl
-    scratch.offs[:] = st.offs
-    scratch.lp[:] = st.lp
-    scratch.spc[:] = st.spc
+    copy_into(scratch.pos, st.pos)
+    copy_into(scratch.rerr, st.rerr)
+    copy_into(scratch.werr, st.werr)
+    copy_into(scratch.ampf, st.ampf)
+    copy_into(scratch.uo, st.uo)
+    copy_into(scratch.en, st.en)
+    copy_into(scratch.ax, st.ax)
+    copy_into(scratch.axf, st.axf)
+    copy_into(scratch.prog, st.prog)
+    copy_into(scratch.move, st.move)
+    copy_into(scratch.si, st.si)
+    copy_into(scratch.sf, st.sf)
+    copy_into(scratch.sig, st.sig)
+    copy_into(scratch.cf, st.cf)
+    copy_into(scratch.ci, st.ci)
+    copy_into(scratch.cl, st.cl)
+    copy_into(scratch.offs, st.offs)
+    copy_into(scratch.lp, st.lp)
+    copy_into(scratch.spc, st.spc)
     row = st.buf[k % st.buf.shape[0]]
     for j in range(0, row.shape[0], 8):
         scratch.buf[0, j] = row[j]

@@ -257,8 +257,10 @@ class ServoLoop:
         self._cycle = entry(servo_cycle, 0, 0, st)    # the compiled call, for every cycle
         for phase in (C.CYCLE_BEFORE, C.CYCLE_AFTER, C.CYCLE_ALL):
             self._cycle(phase, 0, st)
-        self._refresh = (entry(C.refresh, 0, st, self._cycle_state(copies=True))
-                          if self.clock == "wall" and self.warm_caches else None)
+        # the rehearsal's refresh (wall clock): compiled, or loaded, on the virtual clock too, so
+        # that ``motorctl warmup`` (a virtual-clock run) leaves nothing to compile for the daemon
+        refresh = entry(C.refresh, 0, st, self._cycle_state(copies=True))
+        self._refresh = refresh if self.clock == "wall" and self.warm_caches else None
 
     def _adopt(self, i: int, c) -> None:
         """Make c axis i's controller (between cycles): the outgoing one takes its state back
