@@ -392,7 +392,7 @@ def _log_columns(path: str, first: int, names: list[str]) -> dict:
 
 def test_a_cam_program_switches_its_torch_at_the_programmed_points(gantry):
     """configs/plate_0932.ngc (a plasma post's program: %, N numbers, G21 G90 G17 G40 G49 G80,
-    G64 P0.01, G54, G28, M01, M03 S / M05, G04 P, G00/G01/G02/G03 with I J, 231 moves, 22 s planned)
+    G64 P0.01, G54, G28, M01, M03 S / M05, G04 P, G00/G01/G02/G03 with I J; 346 moves, 32 s planned)
     through the CLI and the daemon: the run log's out.torch switches at exactly the rows whose
     setpoint is the programmed pierce / end point (AT_POINT_M; the carriage within CARRIAGE_M, at
     rest), in the program's order, nowhere else; the program ends on its last point (G28: 0, 0);
@@ -400,7 +400,7 @@ def test_a_cam_program_switches_its_torch_at_the_programmed_points(gantry):
     sock = gantry.sock
     text = PLATE.read_text()
     events, _ = _torch_points(text)
-    assert len(events) == 16 and text.count("\nN") > 200
+    assert len(events) == 24 and text.count("\nN") > 300
     path = status(sock)["log"]["path"]
     first = open_log(path).n_rows
     u0 = status(sock)["motion"]["underruns"]
