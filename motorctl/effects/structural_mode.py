@@ -1,0 +1,156 @@
+"""Structural mode: the payload is held to the carriage by a spring and a damper, not rigidly.
+
+Physical model (the two-mass plant of ``motorctl_drivers.sim``, its ``mode_hz``,
+``mode_damping``, ``mode_load_fraction``; Schmidt, Schitter, Rankers, *The Design of High
+Performance Mechatronics*, 2014, ch. 3): the moving mass M splits into the carriage m_c (motor,
+encoder, friction) and a load m_l coupled by k and c. With δ = x_l − x_c the deflection,
+
+    m_l (ẍ_c + δ̈) = −k δ − c δ̇,   so   δ̈ = −G(s) ẍ_c,   G(s) = s² / (s² + 2 ζ_a ω_a s + ω_a²)
+
+ω_a = √(k/m_l) is the **antiresonance** of the collocated force → x_c transfer (the load
+resonating on a clamped carriage), ω_a = ω √(1 − m_l/M) below the free-free resonance ω. The
+force the paper's rigid model (eq. 1) misses is m_l δ̈:
+
+    A1 u = M ẍ_c + B ẋ + … + m_l δ̈     ⇒     u = Φθ + Cβ,  C = −G(s) ẍ,  β = m_l / A1       [V]
+
+Its signature is a **resonance in the frequency content of the residual against the input**:
+the closed loop rings at the frequency where the mode and the controller meet (67.75 Hz for a
+150 Hz mode under C2 on the default plant), the input and the carriage both carry the line, and
+the line is neither periodic in position nor a force from outside (its phase follows ẍ, not
+the clock): a periodic disturbance, cogging or a force ripple fitted there is wrong.
+
+Identification: columns −G(s)ẍ and its quadrature −ω_a s/(s² + 2ζ_a ω_a s + ω_a²)·ẍ (the fixed
+damping :data:`COLUMN_DAMPING` of the columns is the model's; the second column absorbs what the
+plant's own damping and the current loop's lag change in the phase), filtered causally at the
+record's rate (bilinear transform, :func:`scipy.signal.bilinear`) from the record's own
+acceleration, then decimated like every column. f_a = ω_a/2π is searched on a log grid from
+:data:`F_MIN_HZ` to the position filter's cut-off, then refined. A mode whose antiresonance
+lies above the record's band is seen only as β/ω_a² ·d²ẍ/dt² (no frequency information): its
+best f_a sits at the grid's edge, and it is not named (the record says only that the band is
+clean).
+
+Parameters: the antiresonance f_a [Hz], the load mass m_l = A1·β_G [kg] (β_G/θ1 of the moving
+mass), the free-free resonance f = f_a/√(1 − m_l/M) [Hz] (the notch frequency).
+
+Compensation: none in the law (identified and reported only). A mode is a dynamic of the
+feedback path, excited by the loop's own input: no additive term d̂_eff(x_d, ẋ_d, t) cancels
+it. What treats it is a notch on u at the resonance f or keeping the loop's crossover below
+the antiresonance f_a (the bandwidth limit); the report states both figures
+(docs/identification.md, "Structural mode").
+"""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import numpy as np
+
+from motorctl.effects.base import EffectFamily
+
+#: damping ratio of the columns' second-order filter [-] (bolted structures: 0.01-0.05; the
+#: quadrature column takes the difference)
+COLUMN_DAMPING = 0.05
+#: lowest antiresonance searched [Hz] (below it a "mode" is the closed loop's own motion)
+F_MIN_HZ = 15.0
+#: relative step of the antiresonance's log grid
+GRID_STEP = 0.04
+#: least and largest load fraction m_l/M of a plausible mode [-]
+MIN_LOAD_FRACTION = 0.01
+MAX_LOAD_FRACTION = 0.9
+
+
+def mode_columns(acc: np.ndarray, fs: float, f_a: float) -> np.ndarray:
+    """(N, 2): −G(s)ẍ and −ω_a s/(s² + 2ζω_a s + ω_a²)·ẍ (ζ = :data:`COLUMN_DAMPING`) filtered
+    causally (bilinear transform at fs, :func:`scipy.signal.bilinear`, zero initial state);
+    acc (N,) [m/s²], fs [Hz], f_a [Hz]. Columns in m/s² (β in V s²/m, like θ1)."""
+    from scipy.signal import bilinear, lfilter   # identification only
+    w = 2.0 * math.pi * f_a
+    den = [1.0, 2.0 * COLUMN_DAMPING * w, w * w]
+    out = np.empty((acc.shape[0], 2))
+    for j, num in enumerate(([1.0, 0.0, 0.0], [0.0, w, 0.0])):
+        b, a = bilinear(num, den, fs)
+        out[:, j] = -lfilter(b, a, acc)
+    return out
+
+
+class StructuralModeFamily(EffectFamily):
+    name = "structural_mode"
+    plant_force = "−m_l δ̈, δ̈ = −G(s)ẍ (load on a spring)"
+    searched = "antiresonance f_a [Hz]"
+    example: ClassVar[dict] = {"mode_hz": 150.0, "mode_damping": 0.03, "mode_load_fraction": 0.4}
+    size_options: ClassVar[tuple[str, ...]] = ("mode_load_fraction",)
+    #: m_l δ̈ is part of the inertial force, not bounded by the input range
+    force_bounded_by_input = False
+
+    # simulator: the two-mass plant of the simulated driver (axis-level keys)
+    def sim_config(self, axis_options):
+        """(mode_hz, mode_damping, mode_load_fraction) of the axis, or None without a mode."""
+        f = getattr(axis_options, "mode_hz", 0.0)
+        return (f, axis_options.mode_damping, axis_options.mode_load_fraction) if f > 0 else None
+
+    def plant_term(self, options, period_s):
+        """None: the simulator's two-mass plant is the mode (not a force hook)."""
+        return None
+
+    # identification
+    def columns(self, h, p):
+        """(N, 2): :func:`mode_columns` of the signals' acceleration at f_a = h [Hz]."""
+        fs = getattr(p, "fs", None)
+        if not fs:
+            t = np.asarray(p.t, dtype=float)
+            fs = (len(t) - 1) / (t[-1] - t[0])
+        return mode_columns(np.asarray(p.a, dtype=float), float(fs), float(h))
+
+    def search(self, ctx, base, residual):
+        """f_a over a log grid (steps of :data:`GRID_STEP`) from :data:`F_MIN_HZ` to the position
+        filter's cut-off, then refined within one step; at the grid's edge the note says so (a
+        mode above the band: not identifiable from this record)."""
+        p = ctx.p
+        hi = float(p.fq)
+        if hi <= F_MIN_HZ * 2.0 or ctx.moving.sum() < 50:
+            return None
+        grid = np.exp(np.arange(math.log(F_MIN_HZ), math.log(hi), GRID_STEP))
+        term, _ = ctx.best_over(self.name, grid, base)
+        i = int(np.argmin(np.abs(grid - term.h)))
+        if 0 < i < len(grid) - 1:
+            term = ctx.best_between(self.name, grid[i - 1], grid[i + 1], base, 0.1 * GRID_STEP * term.h)
+            return term, None
+        return term, (f"antiresonance {term.h:.4g} Hz at the edge of the searched range "
+                      f"({grid[0]:.3g}-{grid[-1]:.3g} Hz): a mode above the record's band is a bandwidth "
+                      "limit, not identifiable here")
+
+    def plausible(self, ctx, term, beta, theta, base):
+        """The load m_l = A1·β_G must be a positive share of the moving mass θ1·A1, between
+        :data:`MIN_LOAD_FRACTION` and :data:`MAX_LOAD_FRACTION`."""
+        frac = float(beta[0]) / float(theta[0]) if theta[0] > 0 else math.nan
+        if not MIN_LOAD_FRACTION <= frac <= MAX_LOAD_FRACTION:
+            return [f"load fraction m_l/M = {frac:.3g} outside [{MIN_LOAD_FRACTION:g}, {MAX_LOAD_FRACTION:g}]: "
+                    "not a payload on a spring"]
+        return []
+
+    def parameters(self, h, beta, gain, fs, theta=None):
+        """f_a [Hz]; the load as a share of the moving mass (β_G/θ1) and, with the gain, in kg;
+        the free-free resonance f = f_a/√(1 − m_l/M) [Hz], the frequency of a notch on u."""
+        out = {"antiresonance_Hz": float(h)}
+        th1 = float(theta[0]) if theta is not None and len(theta) and theta[0] > 0 else None
+        if gain:
+            out["load_mass_kg"] = float(gain * beta[0])
+        if th1:
+            frac = float(beta[0]) / th1
+            out["load_fraction"] = frac
+            if 0.0 < frac < 1.0:
+                out["resonance_Hz"] = float(h) / math.sqrt(1.0 - frac)
+        return out
+
+    # report
+    def shape(self, ctx, h, beta, gain):
+        """|G| of the fitted columns' transfer ẍ → u (per m/s², in UNIT) against frequency."""
+        f = np.linspace(1.0, 0.5 * ctx.p.fs / ctx.p.nd, 400)
+        s = 2j * math.pi * f
+        w = 2.0 * math.pi * h
+        g = -(beta[0] * s * s + beta[1] * w * s) / (s * s + 2.0 * COLUMN_DAMPING * w * s + w * w)
+        return f, (gain or 1.0) * np.abs(g), "frequency [Hz]", "|force per m/s^2| [UNIT s^2/m]"
+
+
+FAMILY = StructuralModeFamily()
