@@ -64,3 +64,55 @@ def test_columns_are_the_load_inertial_force_of_the_two_mass_model():
     g = w * w / abs(wa * wa - w * w + 2j * COLUMN_DAMPING * wa * w)
     assert np.ptp(cols[:, 0]) / 2 == pytest.approx(g, rel=0.01)
     assert abs(np.corrcoef(cols[:, 1], acc[int(fs):])[0, 1]) < 0.2
+
+
+# ---------------------------------------------------------------------------- on the default plant
+#: (effect on the default plant's X axis, log length [s]): the mode and the play show in 8 s; the
+#: clean plant's verdict is calibrated on 20 s logs (docs/identification.md, the verdict's rates)
+LOGS = {"mode150": ({"mode_hz": 150.0}, 8.0), "backlash": ({"backlash_m": 2e-4}, 8.0), "clean": ({}, 20.0)}
+#: families a resonance of the loop was once named as
+PERIODIC = {"periodic_disturbance", "cogging", "force_ripple", "periodic_friction"}
+
+
+@pytest.fixture(scope="module")
+def found(tmp_path_factory):
+    """identify's summary of each log of :data:`LOGS` (seed 1, C2, virtual clock)."""
+    from motorctl.commission.tune import make_log
+    from motorctl.ident.data import load_record
+    from motorctl.ident.pipeline import summarise
+    from motorctl.ident.select import Identifier
+    d = tmp_path_factory.mktemp("mode")
+    out = {}
+    for name, (effect, duration) in LOGS.items():
+        path = d / f"{name}.mclog"
+        make_log(str(path), effect, duration_s=duration, seed=1, base=str(ROOT / "configs" / "gantry.yaml"))
+        s = summarise(Identifier(load_record(str(path), None, None, axis="X")).run())
+        out[name] = (s, {e["name"]: e for e in s["effects"]})
+    return out
+
+
+def test_a_150_hz_mode_is_named_the_mode_never_a_periodic_force(found):
+    s, named = found["mode150"]
+    assert not PERIODIC & set(named), list(named)
+    assert "structural_mode" in named, (list(named), s["residual"]["text"])
+    par = named["structural_mode"]["parameters"]
+    assert par["resonance_Hz"] == pytest.approx(150.0, rel=0.05)        # the notch frequency
+    assert par["load_mass_kg"] == pytest.approx(0.4 * 12.8, rel=0.1)    # mode_load_fraction of M
+    assert par["antiresonance_Hz"] < par["resonance_Hz"]
+
+
+def test_backlash_is_reported_unexplained_never_an_input_delay(found):
+    s, named = found["backlash"]
+    assert "input_delay" not in named, list(named)
+    res = s["residual"]
+    assert res["structured"], res["text"]
+    assert "not a transport delay" in res["text"], res["text"]
+
+
+def test_the_clean_plant_names_no_mode_and_leaves_nothing_unexplained(found):
+    """... and keeps the current loop's lag as an input delay (0.05 ms + 1/(2π·1 kHz) = 1.04
+    samples): the same phase slope in both bands, a transport delay."""
+    s, named = found["clean"]
+    assert "structural_mode" not in named, list(named)
+    assert named["input_delay"]["parameters"]["delay_samples"] == pytest.approx(1.04, abs=0.15)
+    assert not s["residual"]["structured"], s["residual"]["text"]
