@@ -110,7 +110,6 @@ class StructuralModeFamily(EffectFamily):
     plant_force = "−m_l δ̈, δ̈ = −G(s)ẍ (load on a spring)"
     searched = "antiresonance f_a [Hz]"
     example: ClassVar[dict] = {"mode_hz": 150.0, "mode_damping": 0.03, "mode_load_fraction": 0.4}
-    size_options: ClassVar[tuple[str, ...]] = ("mode_load_fraction",)
     #: m_l δ̈ is part of the inertial force, not bounded by the input range
     force_bounded_by_input = False
 
