@@ -24,7 +24,7 @@ damping :data:`COLUMN_DAMPING` of the columns is the model's; the second column 
 plant's own damping and the current loop's lag change in the phase), filtered causally at the
 record's rate (bilinear transform, :func:`scipy.signal.bilinear`) from the record's own
 acceleration, then decimated like every column. f_a = ω_a/2π is searched on a log grid from
-:data:`F_MIN_HZ` to the position filter's cut-off, then refined. A mode whose antiresonance
+:data:`F_MIN_HZ` to :data:`BAND_FACTOR` times the decimated band's edge, then refined. A mode whose antiresonance
 lies above the record's band is seen only as β/ω_a² ·d²ẍ/dt² (no frequency information): its
 best f_a sits at the grid's edge, and it is not named (the record says only that the band is
 clean).
@@ -53,6 +53,11 @@ from motorctl.effects.base import EffectFamily
 COLUMN_DAMPING = 0.05
 #: lowest antiresonance searched [Hz] (below it a "mode" is the closed loop's own motion)
 F_MIN_HZ = 15.0
+#: highest antiresonance searched, as a multiple of the decimated band's edge 0.4·fs/nd (100 Hz
+#: at 5 kHz): beyond it the band sees G(s)ẍ only as −s²ẍ/ω_a², whose frequency it cannot tell
+#: (default plant, the clean 350 Hz mode's antiresonance 271 Hz: fitted at 219 Hz on an encoder
+#: log where the current loop's lag was left to it)
+BAND_FACTOR = 1.5
 #: relative step of the antiresonance's log grid
 GRID_STEP = 0.04
 #: least and largest load fraction m_l/M of a plausible mode [-]
@@ -72,6 +77,12 @@ MIN_LINE_REMOVED = 0.9
 #: the spectrum's lines are sought above this frequency [Hz] (below: the program's own moves,
 #: 7.3 Hz and its harmonics on the default program)
 LINE_MIN_HZ = F_MIN_HZ
+
+
+def f_max(p) -> float:
+    """The highest antiresonance searched [Hz] in a prepared record ``p`` (fs [Hz], nd):
+    :data:`BAND_FACTOR` × 0.4·fs/nd."""
+    return BAND_FACTOR * 0.4 * p.fs / p.nd
 
 
 def mode_columns(acc: np.ndarray, fs: float, f_a: float) -> np.ndarray:
@@ -137,10 +148,10 @@ class StructuralModeFamily(EffectFamily):
         :data:`MIN_LINE_RATIO` times above its spectrum's median above :data:`LINE_MIN_HZ`: the
         record shows no mode in its band; what a mode term would then fit is the loop's
         broadband lag above the band, the plant's bandwidth, not a structure). Else f_a over a
-        log grid (steps of :data:`GRID_STEP`) from :data:`F_MIN_HZ` to the position filter's
-        cut-off, refined within one step; at the grid's edge the note says so."""
+        log grid (steps of :data:`GRID_STEP`) from :data:`F_MIN_HZ` to :func:`f_max`, refined
+        within one step; at the grid's edge the note says so."""
         p = ctx.p
-        hi = float(p.fq)
+        hi = f_max(p)
         if hi <= F_MIN_HZ * 2.0 or ctx.moving.sum() < 50:
             return None
         _, ratio, _ = resonance_line(residual, residual, p.fs / p.nd)
@@ -150,7 +161,7 @@ class StructuralModeFamily(EffectFamily):
 
     def _grid(self, ctx, base):
         """The grid search and its refinement (:meth:`search`), with the note at the edge."""
-        grid = np.exp(np.arange(math.log(F_MIN_HZ), math.log(float(ctx.p.fq)), GRID_STEP))
+        grid = np.exp(np.arange(math.log(F_MIN_HZ), math.log(f_max(ctx.p)), GRID_STEP))
         term, _ = ctx.best_over(self.name, grid, base)
         i = int(np.argmin(np.abs(grid - term.h)))
         if 0 < i < len(grid) - 1:
