@@ -3,7 +3,8 @@ runs (C1, C2 and the PID when configured), on the virtual clock, and per axis th
 accumulator's peak and the largest RMS of u in a window at rest, each as the ratio of the
 trip level to it (14x: the run stays 14 times below the trip); then an unstable gain (X on C2,
 k_s 250, k1 1800: a limit cycle at rest) and when its fault latched after the reference came
-to rest.
+to rest; and Y on the PID at ω_n 1400 rad/s (integral corner ω_n/3) for every ζ of the PID's
+family, 20 s each: the largest RMS of u in a window at rest, the fault and when it latched.
 
     python benchmarks/protection_margins.py [configs/gantry.yaml] [duration_s (40)]
 
@@ -58,8 +59,30 @@ def unstable(path: str, duration_s: float) -> None:
           f"{np.abs(u[k:]).max():g} V, enable {en[k:].max():g}")
 
 
+def pid_at(path: str, axis: str = "Y", w_n: float = 1400.0, r: float = 3.0, duration_s: float = 20.0) -> None:
+    from motorctl.commission.verify import apply_gains
+    from motorctl.control.pid import PID
+    data = load_yaml(path)
+    theta1 = float(data["axes"][axis]["controller"]["theta_hat0"][0])
+    for g in PID.gain_family(theta1, None, [w_n]):
+        if g["_r"] != r:
+            continue
+        loaded = config_from_dict(apply_gains(data, axis, "pid", g), path)
+        with tempfile.TemporaryDirectory() as tmp:
+            log = str(Path(tmp) / "pid.log")
+            res = run_job(loaded, axes=[axis], controller="pid", duration_s=duration_s, clock="virtual",
+                          log_path=log)
+            fb, t = read_log(log).col(f"{axis}.fault_bits"), read_log(log).col("t")
+        a = res.axes[axis]
+        k = int(np.argmax(fb != 0))
+        when = f" at t = {t[k]:.2f} s" if fb[k] else ""
+        print(f"{axis} on PID w_n {w_n:g}, zeta {g['_zeta']:g}, r {r:g} ({duration_s:g} s): largest u RMS in a "
+              f"window at rest {a['rest_rms_peak_V']:.2f} V; {a['fault'] or 'no fault'}{when}")
+
+
 if __name__ == "__main__":
     cfg = sys.argv[1] if len(sys.argv) > 1 else "configs/gantry.yaml"
     dur = float(sys.argv[2]) if len(sys.argv) > 2 else 40.0
     unstable(cfg, 20.0)
+    pid_at(cfg)
     margins(cfg, dur)

@@ -235,6 +235,9 @@ class CanDriver(SplitPhaseDriver):
 
     Options = CanOptions
     AxisOptions = CanAxisOptions
+    #: a drive's usual reset of a fault it latched (its own command timeout included): the
+    #: enable low; the emulated device does the same
+    FAULT_RESET = "a command with enable 0"
 
     def __init__(self, options: CanOptions, axis_options: dict, period_s: float):
         super().__init__(options, axis_options, period_s)
@@ -270,6 +273,9 @@ class CanDriver(SplitPhaseDriver):
         if self.bus is not None:
             bus, self.bus = self.bus, None
             bus.shutdown()
+
+    def _device_name(self) -> str:
+        return f"CAN {self.options.interface} {self.options.channel}"
 
     def _full_scale_V(self, axis: str) -> float:
         """``axes.NAME.driver.voltage_full_scale_V`` [V]: the ±full-scale count of the voltage field."""

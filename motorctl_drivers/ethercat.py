@@ -83,6 +83,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from motorctl.driver import BusBudget, Driver, StopCheck
+from motorctl.inputs import InputError
 from motorctl.schema import StrictModel
 from motorctl_drivers import cia402
 from motorctl_drivers.split_phase import (
@@ -420,11 +421,13 @@ class EthercatDriver(Driver):
         """Scan, check, map, watchdog, DC, SAFE-OP (see the module docstring).
 
         Raises:
+            InputError: this machine has no interface ``ifname``.
             OSError: pysoem is missing, the interface cannot be opened (needs CAP_NET_RAW and
             CAP_NET_ADMIN), no
             or too few slaves answer, a slave is not what its role needs, a drive refused its
             mapping, a slave refused SAFE-OP (with its AL status code).
         """
+        _check_interface(self.options.ifname)
         try:
             import pysoem
         except ImportError:
@@ -861,6 +864,23 @@ class EthercatDriver(Driver):
         except Exception as exc:  # noqa: BLE001
             d["budget"] = {"error": one_line(exc)}
         return d
+
+
+def _check_interface(ifname: str) -> None:
+    """Refuse an interface this machine does not have, naming the ones it has.
+
+    Raises:
+        InputError: no network interface ``ifname`` (a setting to correct: exit code 2 in the
+            CLI, nothing started); an interface that exists but cannot be opened is the
+            caller's OSError.
+    """
+    import socket
+    try:
+        socket.if_nametoindex(ifname)
+    except OSError:
+        have = ", ".join(sorted(name for _, name in socket.if_nameindex())) or "none"
+        raise InputError(f"driver.ifname: this machine has no network interface {ifname!r} "
+                         f"(it has: {have}); set the NIC port the EtherCAT segment is plugged into") from None
 
 
 def _state_name(state: int) -> str:

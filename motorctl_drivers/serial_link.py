@@ -231,7 +231,6 @@ class SerialDriver(SplitPhaseDriver):
         self._index = {nd: i for i, nd in enumerate(self._nodes)}
         self._items = [(nd, False, 0) for nd in self._nodes]
         self._status = [0] * n               # the status byte of each axis's last reply
-        self._reset_at_setup = False         # configure() sent the fault reset (it starts the watchdog)
 
     def _open_transport(self) -> None:
         """Open the port (8N1 at ``baudrate``; RS-485 direction control when ``rs485``).
@@ -271,70 +270,21 @@ class SerialDriver(SplitPhaseDriver):
         self._set_wait_fd(self.port.fileno())
         self.parser = FrameParser((REPLY, ERROR, ACK))
 
-    def _configure(self) -> None:
-        """As every bus driver (open, first reading, timed exchanges), after setting the
-        device's command watchdog with a config frame (``watchdog_s``; the ack must carry a
-        watchdog no longer than asked).
+    #: docs/serial-protocol.md: a command with enable 0 clears a latched fault
+    FAULT_RESET = "a command with enable 0"
+
+    def _set_up_device(self) -> None:
+        """Set the device's command watchdog with a config frame (``watchdog_s``; the ack must
+        carry a watchdog no longer than asked).
 
         Raises:
-            OSError: the port cannot be opened; the device refuses or lengthens the watchdog.
-            ConnectionError: the device does not answer.
+            OSError: the device refuses or lengthens the watchdog. ConnectionError: no answer.
         """
-        self._open_transport()
-        self.connected = True
-        try:
-            if self.options.watchdog_s is not None:
-                self._set_watchdog(self.options.watchdog_s)
-            self._clear_latched("set-up")
-            self._first_reading(self.CONFIGURE_TIMEOUT_S)
-        except BaseException:
-            self._close()
-            raise
+        if self.options.watchdog_s is not None:
+            self._set_watchdog(self.options.watchdog_s)
 
-    def _activate(self) -> None:
-        """Clear what the device's watchdog latched since ``configure()`` (the reset command
-        also starts the watchdog right before the first cycle), then start the cycle."""
-        self._clear_latched("start")
-        super()._activate()
-
-    def _clear_latched(self, when: str) -> None:
-        """The protocol's fault reset (docs/serial-protocol.md): query the statuses and, where a
-        fault is latched, send a command with enable 0 and 0 V to every node and wait for its
-        reply; a fault cleared
-        by it is reported in :attr:`notices`, one still latched after it stays in
-        :attr:`amp_fault` (the supervisor faults the axis at the first cycle, with
-        :meth:`fault_reason`).
-
-        Raises:
-            ConnectionError: the device does not answer, or answers with an error frame.
-        """
-        if when == "set-up":
-            self._reset_at_setup = False
-        self._query_once(self.CONFIGURE_TIMEOUT_S)
-        before = list(self._status)
-        if not any(st & 1 for st in before):
-            return                      # nothing latched: no command (it would start the watchdog)
-        n = len(self.axis_names)
-        self.write(np.zeros(n), np.zeros(n, dtype=bool))
-        self._query_error = ""
-        self._query = True          # an error frame answering the reset ends the wait at once
-        try:
-            ok = self.exchange_blocking(self.CONFIGURE_TIMEOUT_S)
-        finally:
-            self._query = False
-        if self._query_error or not ok:
-            why = self._query_error or f"no reply within {self.CONFIGURE_TIMEOUT_S:g} s"
-            raise ConnectionError(f"serial device {self.options.address} on {self.options.port}: the fault "
-                                  f"reset (a command with enable 0) at {when}: {why}")
-        cleared = [a for i, a in enumerate(self.axis_names) if before[i] & 1 and not self._status[i] & 1]
-        if when == "set-up":
-            self._reset_at_setup = bool(cleared)
-        elif self._reset_at_setup:
-            return                      # latched again by the watchdog that set-up's reset started
-        if cleared:
-            self._notice(f"serial device {self.options.address}: at {when}, cleared the amplifier fault latched "
-                         f"on {', '.join(cleared)} (a watchdog or a fault of an earlier run) with the "
-                         f"protocol's reset, a command with enable 0")
+    def _device_name(self) -> str:
+        return f"serial device {self.options.address}"
 
     def _read_back_stop(self, answered: np.ndarray, deadline: float) -> list[StopCheck]:
         """A query after the stop command: each node's status must say amplifier off (bit 1

@@ -219,6 +219,9 @@ class SplitPhaseDriver(Driver):
     STOP_RETRY_S = 0.05
     #: the link counts as down (:attr:`link_down`) when no axis has answered for this long [s]
     LINK_DOWN_S = 0.2
+    #: the protocol's fault reset in words, for the notices (None: it has none; a fault the
+    #: device latched stays and faults the first cycle); :meth:`_reset_latched` sends it
+    FAULT_RESET: str | None = None
 
     def __init__(self, options, axis_options, period_s):
         super().__init__(options, axis_options, period_s)
@@ -242,6 +245,7 @@ class SplitPhaseDriver(Driver):
         self._down_cycles = max(1, round(self.LINK_DOWN_S / period_s))
         self.round_trip = round_trip_stats(())      # measured by configure()
         self.counters = {"timeouts": 0, "stale": 0, "bad_frames": 0, "exceptions": 0, "send_errors": 0}
+        self._reset_at_setup = False         # configure() sent the fault reset (it starts the watchdog)
 
     def _set_wait_fd(self, fd) -> None:
         """Called by ``_open_transport()`` with the transport's file descriptor (None: none, spin)."""
@@ -265,24 +269,78 @@ class SplitPhaseDriver(Driver):
 
     # --- lifecycle hooks
     def _configure(self) -> None:
-        """Open the transport and check that every axis answers (:meth:`_first_reading`).
+        """Open the transport, set the device up (:meth:`_set_up_device`), clear what an
+        earlier host left latched (:meth:`_reset_latched`, where the protocol has a fault reset)
+        and check that every axis answers (:meth:`_first_reading`).
 
         Raises:
-            OSError: the link cannot be opened. ConnectionError: the device did not answer
-            within ``CONFIGURE_TIMEOUT_S`` (the transport is released again).
+            OSError: the link cannot be opened; the device refuses its set-up.
+            ConnectionError: the device did not answer within ``CONFIGURE_TIMEOUT_S`` (the
+            transport is released again).
         """
         self._open_transport()
         self.connected = True
         try:
+            self._set_up_device()
+            self._reset_latched("set-up")
             self._first_reading(self.CONFIGURE_TIMEOUT_S)
         except BaseException:
             self._close()
             raise
 
+    def _set_up_device(self) -> None:
+        """The protocol's set-up messages after the transport is open (default: none)."""
+
+    def _device_name(self) -> str:
+        """The device in messages (e.g. 'serial device 1')."""
+        return type(self).__name__
+
+    def _reset_latched(self, when: str) -> None:
+        """The protocol's fault reset (:data:`FAULT_RESET`: a command with enable 0 and 0 V to
+        every axis) where a position query shows a latched fault, at set-up (``when``
+        'set-up') and again at ``activate()`` ('start': the reset starts the device's command
+        watchdog, which may latch again before the first cycle). A fault it cleared is a
+        notice; one still latched stays in :attr:`amp_fault` (the supervisor faults the axis
+        at the first cycle, with :meth:`fault_reason`). Nothing without a fault reset.
+
+        Raises:
+            ConnectionError: the device does not answer the reset, or answers with an error.
+        """
+        if self.FAULT_RESET is None:
+            return
+        if when == "set-up":
+            self._reset_at_setup = False
+        self._query_once(self.CONFIGURE_TIMEOUT_S)
+        before = self.amp_fault.copy()
+        if not before.any():
+            return                      # nothing latched: no command (it would start the watchdog)
+        n = len(self.axis_names)
+        self.write(np.zeros(n), np.zeros(n, dtype=bool))
+        self._query_error = ""
+        self._query = True          # an error answering the reset ends the wait at once
+        try:
+            ok = self.exchange_blocking(self.CONFIGURE_TIMEOUT_S)
+        finally:
+            self._query = False
+        if self._query_error or not ok:
+            why = self._query_error or f"no reply within {self.CONFIGURE_TIMEOUT_S:g} s"
+            raise ConnectionError(f"{self._device_name()}: the fault reset ({self.FAULT_RESET}) at {when}: {why}")
+        cleared = [a for i, a in enumerate(self.axis_names) if before[i] and not self.amp_fault[i]]
+        if when == "set-up":
+            self._reset_at_setup = bool(cleared)
+        elif self._reset_at_setup:
+            return                      # latched again by the watchdog that set-up's reset started
+        if cleared:
+            self._notice(f"{self._device_name()}: at {when}, cleared the amplifier fault latched on "
+                         f"{', '.join(cleared)} (a watchdog or a fault of an earlier run) with the "
+                         f"protocol's reset, {self.FAULT_RESET}")
+
     def _activate(self) -> None:
-        """Start the cycle from rest: nothing outstanding, no extrapolation carried over from
-        an earlier activation. The protocols have nothing to start on the device: the
+        """Start the cycle from rest: clear what the device latched since ``configure()``
+        (:meth:`_reset_latched`), then nothing outstanding, no extrapolation carried over from
+        an earlier activation. The protocols have nothing else to start on the device: the
         amplifier enable travels in every command."""
+        self._reset_latched("start")
         n = len(self.axis_names)
         self._outstanding = False
         self._got[:] = False

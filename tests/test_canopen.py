@@ -9,10 +9,15 @@ import re
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
+import yaml
 from conftest import RIGID_PLANT
 
+from motorctl.app.job import run_job
 from motorctl.config import ConfigError, config_from_dict, load_yaml
+from motorctl.loop.records import MODE_APPROACH, MODE_IDLE, MODE_PROGRAM
+from motorctl.recorder.runlog import read_log
 from motorctl_drivers import cia402
 from motorctl_emulators.device import build_device
 from harness import device_thread, exchange
@@ -315,3 +320,30 @@ def test_config_checks(tmp_path):
     d = _config(tmp_path, heartbeat_consumer_ms=15)
     with pytest.raises(ConfigError, match="at least twice"):
         config_from_dict(d, "<co>", check_budget=False)
+
+
+def test_runs_after_a_drive_left_standing_at_half_a_millimetre_and_a_run_cut_mid_program(tmp_path):
+    """The issue's CiA 402 case: the drives' carriages stand at 0.5 mm (X) and -0.3 mm (Y), not at
+    the program's first point 0 (a 0.3 mm following-error limit at rest: without the approach the
+    first cycle faults). Run 1 approaches from there and runs 1.2 s of the program (both axes end at
+    0.4 m, mid-program); run 2 (0.2 s), on the same drives, approaches from 0.4 m. Both without a fault,
+    the rows: idle reads, the approach, the program."""
+    plant = load_yaml(PLANT)
+    for a, x in (("X", 0.0005), ("Y", -0.0003)):
+        plant["axes"][a]["driver"]["initial_position_m"] = x
+    plant_path = tmp_path / "plant.yaml"
+    plant_path.write_text(yaml.safe_dump(plant))
+    loaded = config_from_dict(_config(tmp_path), "<co>", check_budget=False)
+    results = []
+    with device_thread(build_device(loaded, plant_path)):
+        for k, seconds in enumerate((1.2, 0.2)):
+            res = run_job(loaded, duration_s=seconds, clock="virtual", log_path=str(tmp_path / f"run{k}.mlog"))
+            assert all(not r["fault"] for r in res.axes.values()), {a: r["fault"] for a, r in res.axes.items()}
+            results.append(res)
+    for a, first in (("X", 0.0005), ("Y", -0.0003)):
+        assert results[0].approach[a]["from_m"] == pytest.approx(first, abs=1e-6)
+        assert results[1].approach[a]["from_m"] == pytest.approx(0.4, abs=2e-4)
+        for k in range(2):
+            mode = read_log(str(tmp_path / f"run{k}.mlog")).col(f"{a}.mode")
+            i, j = int(np.argmax(mode != MODE_IDLE)), int(np.argmax(mode == MODE_PROGRAM))
+            assert i >= 2 and (mode[i:j] == MODE_APPROACH).all() and j - i >= 2 and (mode[j:] == MODE_PROGRAM).all()

@@ -1,7 +1,9 @@
 """The controller seam: a fourth law is one module and one entry point. A PD law written here
 (outside the package, registered through a ``*.dist-info/entry_points.txt`` on the path, as an
 installed plugin is) is checked by its own settings model, built, run and switched to by the
-CLI, on an axis whose section configures no other law (no C1/C2 keys, no ``pid:``)."""
+CLI, on an axis whose section configures no other law (no C1/C2 keys, no ``pid:``); a signal it
+declares of its own (its proportional part) is a column of the run log, with no edit to the
+loop."""
 
 from __future__ import annotations
 
@@ -9,9 +11,12 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import yaml
 
 from harness import parse_run_table, plugin_env
+from motorctl.loop.records import columns_for
+from motorctl.recorder.runlog import read_log
 
 PLUGIN = '''
 import numpy as np
@@ -29,6 +34,7 @@ class PD(Controller):
     name = "pd"
     Settings = PdSettings
     tuned_keys = ("P", "D")
+    own_signals = {"u_P": "V"}
 
     def __init__(self, s, ts, u_lim):
         super().__init__(ts, u_lim, 0)
@@ -53,6 +59,7 @@ class PD(Controller):
         v = self.s.FF2 * xd_ddot - self.s.P * e - self.s.D * (x2 - xd_dot)
         sig = self.signals
         sig[SIG_V], sig[SIG_E], sig[SIG_P], sig[SIG_X2] = v, e, x2 - xd_dot, x2
+        sig[self.own_index("u_P")] = -self.s.P * e
         return min(max(v, -self.u_lim), self.u_lim)
 '''
 
@@ -84,10 +91,18 @@ def test_a_fourth_law_is_one_module_and_one_entry_point(repo, tmp_path):
     cfg = _pd_config(repo, tmp_path)
     p = _cli(repo, env, "check-config", cfg)
     assert p.returncode == 0, p.stderr
-    p = _cli(repo, env, "run", cfg, "--virtual-clock", "--duration", "2")
+    log = tmp_path / "pd.mclog"
+    p = _cli(repo, env, "run", cfg, "--virtual-clock", "--duration", "2", "--log", str(log))
     assert p.returncode == 0, p.stderr
     row = parse_run_table(p.stdout)["X"]
     assert row["fault"] == "" and row["e_M_um"] < 300.0, p.stdout
+    # the law's own signal is a column after the fixed ones, its unit in the header
+    rl = read_log(str(log))
+    assert rl.columns[-1] == "X.u_P" and rl.header["units"][-1] == "V"
+    assert rl.columns[:-1] == columns_for(["X"])
+    prog = rl.program_rows("X")
+    assert prog.sum() > 1000
+    np.testing.assert_allclose(rl.col("X.u_P")[prog], -2.0e4 * rl.col("X.e")[prog], rtol=1e-12, atol=1e-12)
     # the law's own model checks its own mapping: file, key, what is allowed
     bad = _pd_config(repo, tmp_path, Q=1.0)
     p = _cli(repo, env, "check-config", bad)
@@ -128,3 +143,19 @@ def test_each_law_declares_its_settings_linearisation_and_records():
         assert set(cls.records) <= set(CONTROLLER_SIGNALS) and "e" in cls.records
         assert cls.tuned_keys and all(k in cls.Settings.model_fields for k in cls.tuned_keys)
     assert "theta_hat5" in controller_class("c2").records and "theta_hat5" not in controller_class("c1").records
+
+
+def test_own_signals_follow_every_axis_fixed_fields():
+    """A law's own signals are the row's last columns (a reader of the fixed fields reads any
+    log); one named like a fixed field is refused; a law names only the signals it declares."""
+    import pytest
+
+    from motorctl.control import controller_class
+    from motorctl.loop.records import RecordLayout
+    lay = RecordLayout(["X", "Y"], {"Y": {"u_P": "V"}})
+    assert lay.columns[:lay.own_start] == columns_for(["X", "Y"])
+    assert lay.columns[lay.own_start:] == ["Y.u_P"] and lay.units[-1] == "V" and lay.width == lay.own_start + 1
+    with pytest.raises(ValueError, match="axis X: own signal 'u' is a fixed axis field"):
+        RecordLayout(["X"], {"X": {"u": "V"}})
+    with pytest.raises(KeyError, match="controller 'c2' declares no signal 'u_P'; own signals: none"):
+        controller_class("c2").own_index("u_P")

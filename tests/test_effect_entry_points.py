@@ -2,7 +2,9 @@
 group (motorctl.effects.registry), as a law is in ``motorctl.controllers``. A family outside the
 package (tests/toy_family.py, registered through a ``*.dist-info/entry_points.txt`` on the path, as an
 installed plugin is) is found by the registry after this package's families, which keep their
-fixed order, and enters the simulator's and the compensation's YAML schemas."""
+fixed order, and enters the simulator's and the compensation's YAML schemas; through the CLI it
+is simulated (its plant term compiled), identified by ``motorctl identify`` and compensated (its
+term compiled) by ``motorctl tune``, with no edit to motorctl."""
 
 from __future__ import annotations
 
@@ -31,8 +33,8 @@ def plugin_env(tmp_path_factory) -> dict:
                               {"quadratic_drag": "toy_family:FAMILY"}, Path(__file__).parent)
 
 
-def _run(env, *argv, cwd=None):
-    return subprocess.run([sys.executable, *argv], env=env, cwd=cwd, capture_output=True, text=True, timeout=120)
+def _run(env, *argv, cwd=None, timeout=120):
+    return subprocess.run([sys.executable, *argv], env=env, cwd=cwd, capture_output=True, text=True, timeout=timeout)
 
 
 def test_a_family_from_another_package_is_found_after_the_builtin_ones(plugin_env):
@@ -61,6 +63,72 @@ def test_the_plugin_family_is_a_config_key(plugin_env, repo, tmp_path):
     assert "axes.X.driver.effects.quadratic_drag" in r.stderr, r.stderr
 
 
+#: the drag injected into the plant of the CLI tests [N s²/m²]: 20 × 1.3² = 34 N (0.4 V) at the
+#: top speed of their moves, which sweep 0 ↔ 1.3 m/s (a_max 4 m/s², so that v|v| is told from
+#: the viscous θ2 v and a Stribeck term)
+DRAG = 20.0
+#: what the plugin process compiled: the plant's and the compensation's tables and numba's cache
+COMPILED = """
+import json, sys
+from numba import config
+from motorctl.config import load_config
+from motorctl.effects import plant
+from motorctl.effects.compensation import COMP_KERNELS, Compensation
+loaded = load_config(sys.argv[1])
+p = loaded.make_driver().plants[0]
+c = Compensation(loaded.axes["X"].controller.compensation)
+print(json.dumps({"plant": [plant.KERNELS[int(k)].__name__ for k in p._terms[0]], "period_compiled": p.period_compiled,
+                  "comp": [COMP_KERNELS[int(c.table[7])][1].__name__], "cache": config.CACHE_DIR or ""}))
+"""
+
+
+@pytest.fixture(scope="module")
+def drag_tune(plugin_env, repo, tmp_path_factory) -> tuple[Path, dict]:
+    """``motorctl tune`` (4 s runs, virtual clock) of axis X of configs/gantry.yaml with the
+    plugin's drag in the plant: (its output directory, its JSON)."""
+    out = tmp_path_factory.mktemp("drag")
+    raw = yaml.safe_load((repo / "configs" / "gantry.yaml").read_text())
+    del raw["axes"]["Y"]
+    raw["axes"]["X"]["driver"]["effects"] = {"quadratic_drag": {"drag_N_s2_per_m2": DRAG}}
+    raw["axes"]["X"]["trajectory"]["a_max"] = 4.0
+    cfg = out / "drag.yaml"
+    cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
+    r = _run(plugin_env, "-m", "motorctl", "tune", str(cfg), "--axis", "X", "--duration", "4", "--virtual-clock",
+             "--out", str(out / "tune"), "--json", cwd=repo, timeout=900)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return out / "tune", json.loads(r.stdout)
+
+
+def test_a_family_from_another_package_is_identified_and_compensated_by_the_cli(plugin_env, repo, drag_tune):
+    out, tuned = drag_tune
+    # motorctl identify on tune's first run log: the drag found, near the injected one
+    r = _run(plugin_env, "-m", "motorctl", "identify", str(out / "before.mclog"), "--no-closed-loop", "--json",
+             cwd=repo, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    found = {e["name"]: e["parameters"] for e in json.loads(r.stdout)["effects"]}
+    assert found["quadratic_drag"]["drag_N_s2_per_m2"] == pytest.approx(DRAG, rel=0.05), found
+    # tune compensates it (d̂_eff = F_eff / A1, A1 = 80 N/V) and keeps it: the loop is better with it
+    assert tuned["faults"] == {"before": "", "after": "", "floor": ""}, tuned["faults"]
+    assert "quadratic_drag" in tuned["kept"] and tuned["dropped"] == {}, tuned
+    comp = tuned["compensation"]["quadratic_drag"]["drag_V_s2_per_m2"]
+    assert comp == pytest.approx(DRAG / 80.0, rel=0.05)
+    assert tuned["e_M_not_worse"] is True
+    assert tuned["compare"]["ratio"]["L2_um"] < 0.6, tuned["compare"]
+
+
+def test_a_family_from_another_package_runs_compiled(plugin_env, repo, drag_tune):
+    """The plugin's kernels are rows of the tables built from the registry: the plant runs the
+    drag's period compiled, the law its compensation; numba caches that process's kernels
+    apart from the plain install's (their compiled dispatch differs)."""
+    out, _ = drag_tune
+    r = _run(plugin_env, "-c", COMPILED, str(out / "tuned.yaml"), cwd=repo)
+    assert r.returncode == 0, r.stderr[-3000:]
+    got = json.loads(r.stdout)
+    assert got["plant"] == ["drag_force"] and got["period_compiled"] is True, got
+    assert got["comp"] == ["drag_add"], got
+    assert "motorctl-plugins-" in got["cache"], got
+
+
 def _eps(*pairs):
     return lambda group: [EntryPoint(n, v, group) for n, v in pairs]
 
@@ -84,3 +152,22 @@ def test_an_entry_point_must_load_a_family_of_its_name(monkeypatch):
     monkeypatch.setattr(registry, "entry_points", _eps(*_builtin_eps(), ("spring", "other.pkg:FAMILY")))
     with pytest.raises(registry.RegistryError, match="'spring' registered twice"):
         registry.load_families()
+
+
+def test_a_kernel_no_family_declares_is_refused_when_the_axis_is_built():
+    """No fall-through: a compiled term whose kernel is not in the tables (its family did not
+    declare it in ``kernels``, or is not registered) is refused by name, never run as another
+    term nor silently from Python."""
+    from motorctl.effects.base import CompTerm, PlantTerm
+    from motorctl.effects.compensation import _code
+    from motorctl.effects.plant import rows
+    from toy_family import FAMILY, drag_add, drag_force
+    with pytest.raises(ValueError, match="plant term kernel 'drag_force' is not declared in its effect family's "
+                                         "kernels .*; known: force plant_force"):
+        rows([PlantTerm.compiled("force", drag_force, [1.0])])
+    with pytest.raises(ValueError, match="compensation term kernel 'drag_add' is not declared"):
+        _code(CompTerm("add", drag_add, [1.0]))      # (what Compensation builds its table with)
+    # a kernel declared under two kinds is refused when the tables are built
+    with pytest.raises(registry.RegistryError, match="quadratic_drag.*drag_force declared as 'force' and 'add'"):
+        registry.kernel_table([FAMILY, type("Twice", (type(FAMILY),), {"kernels": (("add", drag_force),)})()],
+                              ("force", "add"))

@@ -16,10 +16,13 @@ import subprocess
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
 from harness import Emulator, NetNamespace, motorctl_cmd, parse_run_table, run_cli, run_cli_interrupted
+from motorctl.loop.safety import FAULT_AMP_FAULT
+from motorctl.recorder.runlog import read_log
 from motorctl_emulators import esc as E
 
 REPO = Path(__file__).resolve().parents[1]
@@ -104,6 +107,34 @@ def test_soem_brings_the_segment_to_op_and_the_loop_runs_both_profiles(tmp_path)
     _within_10_percent_of_the_sim(table, 1.0)
 
 
+@needs_netns
+def test_a_run_after_a_run_that_ended_mid_move_approaches_and_runs(tmp_path):
+    """Two ``motorctl run``s against one emulated segment: the first ends mid-move (0.53 s: X at
+    1 m/s, Y at 0.25 m/s, both leaving 0 for 0.4 m), the drive and the terminals drop to 0 at the
+    stop and the carriages coast; the second waits for them to stand, approaches from there to
+    the program's first point and runs its program without a fault (without the approach: a
+    following error at its first cycle, millimetres off)."""
+    pytest.importorskip("pysoem")
+    from motorctl.loop.records import MODE_APPROACH, MODE_IDLE, MODE_PROGRAM
+    cfg = _config(tmp_path)
+    logs = [tmp_path / "first.mlog", tmp_path / "second.mlog"]
+    with NetNamespace(veth=VETH) as ns, Emulator("ethercat", cfg, plant=PLANT, prefix=ns.prefix) as emu:
+        for log, seconds in zip(logs, ("0.53", "0.3")):
+            r = run_cli(["run", str(cfg), "--duration", seconds, "--log", str(log)], prefix=ns.prefix, timeout_s=120)
+            table = parse_run_table(r.stdout)
+            assert r.returncode == 0 and set(table) == {"X", "Y"}, f"{r.stdout}\n{r.stderr}\n{emu.stderr()}"
+            assert not table["X"]["fault"] and not table["Y"]["fault"], r.stdout
+    first, second = (read_log(str(p)) for p in logs)
+    for a in ("X", "Y"):
+        assert first.col(f"{a}.xd_dot")[-1] > 0.2, a                     # the first ended mid-move
+        frm = second.header["approach"][a]["from_m"]
+        assert first.col(f"{a}.y")[-1] + 0.005 < frm < 0.42, (a, frm)    # coasted on, stood inside the limits
+        mode = second.col(f"{a}.mode")
+        i, j = int(np.argmax(mode != MODE_IDLE)), int(np.argmax(mode == MODE_PROGRAM))
+        assert i >= 2 and (mode[i:j] == MODE_APPROACH).all() and j - i > 100 and (mode[j:] == MODE_PROGRAM).all()
+        assert not second.col(f"{a}.fault_bits").any()
+
+
 def _within_10_percent_of_the_sim(table: dict, duration_s: float) -> None:
     """e_M and L2[e] of a run through the segment within 10 % of the simulated driver's on the
     same plant, seed and program (lockstep: the same samples)."""
@@ -156,17 +187,18 @@ def test_an_emergency_of_the_drive_latches_its_code_and_meaning(tmp_path):
     assert "FutureWarning" not in r.stderr, r.stderr
 
 
-def _signalled(cfg: Path, steps, stop_emulator: bool = False):
+def _signalled(cfg: Path, steps, stop_emulator: bool = False, log: Path | None = None):
     """``motorctl run`` (30 s) against the segment, sent ``steps`` [(after_s, signal), ...] from
     its first line on. Returns (its CompletedProcess, the emulator's stop lines when
-    ``stop_emulator`` (0.5 s after the run), the emulator's stderr)."""
+    ``stop_emulator`` (0.5 s after the run), the emulator's stderr). ``log``: the run's log."""
     pytest.importorskip("pysoem")
     with NetNamespace(veth=VETH) as ns, Emulator("ethercat", cfg, plant=PLANT, prefix=ns.prefix) as emu:
         def act(proc):
             for after_s, sig in steps:
                 time.sleep(after_s)
                 os.killpg(proc.pid, sig)
-        _first, r = run_cli_interrupted(["run", str(cfg), "--duration", "30"], act, prefix=ns.prefix,
+        _first, r = run_cli_interrupted(["run", str(cfg), "--duration", "30", *(["--log", str(log)] if log else [])],
+                                        act, prefix=ns.prefix,
                                         timeout_s=60)
         out = ""
         if stop_emulator:
@@ -195,9 +227,11 @@ def test_a_host_pause_beyond_the_sm_watchdog_faults_both_axes_from_the_al_status
     EL4132 go to SAFE-OP with AL status code 0x001B, the EL2008 stays in OP. The frame after the
     pause comes back short, the driver reads AL status before the next one, and that one faults
     both axes as amplifier faults naming the code: the terminal axis is not held "enabled"
-    through the error bucket (at most the one short frame counts as an I/O error)."""
+    through the error bucket (at most the one short frame counts as an I/O error): in the log,
+    within three cycles of the one the pause fell in, both in the same cycle."""
     r, _out, err = _signalled(_config(tmp_path, watchdog_ms=10.0),
-                              [(0.3, signal.SIGSTOP), (0.03, signal.SIGCONT), (0.3, signal.SIGTERM)])
+                              [(0.3, signal.SIGSTOP), (0.03, signal.SIGCONT), (0.3, signal.SIGTERM)],
+                              log=tmp_path / "run.mlog")
     table = parse_run_table(r.stdout)
     assert set(table) == {"X", "Y"}, f"{r.stdout}\n{r.stderr}\n{err}"
     assert "stays in OP" in err and "SAFE-OP + error 0x001B" in err, err
@@ -206,6 +240,22 @@ def test_a_host_pause_beyond_the_sm_watchdog_faults_both_axes_from_the_al_status
         assert "amplifier fault" in fault and f"{slave} left OP: SAFE-OP + error, AL status code 0x001B" in fault, \
             r.stdout
     assert table["Y"]["io_errors"] <= 1, r.stdout
+    # the log: both axes fault in one cycle as amplifier faults, 0 V and off from there on. The
+    # stall that tripped the watchdog (the SIGSTOP, or on a loaded host an earlier one of its
+    # own) is seen in the log when it fell inside a cycle's timed part (turnaround > 10 ms in
+    # cycle k_p; a stall between cycles is not timed): the first frame after it goes out in k_p
+    # or k_p + 1, comes back short at the next read, the AL status is read in service() and the
+    # next read faults: k_p + 3 at the latest. (The short frames are I/O errors: at most one
+    # counted, above, is the same bound whichever stall it was.)
+    rl = read_log(str(tmp_path / "run.mlog"))
+    fy, fx = rl.col("Y.fault_bits"), rl.col("X.fault_bits")
+    k = int(np.argmax(fy != 0))
+    assert fy[k] == FAULT_AMP_FAULT and fx[k] == FAULT_AMP_FAULT and not fx[:k].any(), (k, fx[k], fy[k])
+    stalls = np.flatnonzero(rl.col("turnaround_ns")[:k] > 10e6)
+    if stalls.size and k - stalls[-1] <= 10:
+        assert k - stalls[-1] <= 3, (stalls[-1], k)
+    for a in ("X", "Y"):
+        assert not rl.col(f"{a}.u")[k:].any() and not rl.col(f"{a}.enabled")[k:].any()
     # the stop judged against the slaves' states now: the drive in Fault, the EL4132 in its safe
     # state, the EL2008 (in OP) written off and read back
     assert "amplifiers off (confirmed by the device" in r.stdout and "its safe state" in r.stdout, \
@@ -386,6 +436,18 @@ def test_an_io_axis_without_its_enable_is_a_clear_error(tmp_path):
     r = run_cli(["check-config", str(p)])
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
     assert "axes.Y.driver" in r.stderr and "profile io needs enable" in r.stderr, r.stderr
+
+
+def test_an_interface_this_machine_does_not_have_is_refused_before_anything_starts(tmp_path):
+    cfg = _config(tmp_path, ifname="nosuchnic0")
+    log = tmp_path / "run.mclog"
+    r = run_cli(["run", str(cfg), "--duration", "1", "--log", str(log)])
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("motorctl: error:")]
+    assert len(errors) == 1, r.stderr
+    assert str(cfg) in r.stderr and "driver.ifname" in r.stderr and "'nosuchnic0'" in r.stderr, r.stderr
+    assert "lo" in r.stderr.split("it has:")[1], r.stderr      # the interfaces it has are named
+    assert not log.exists() and list(tmp_path.iterdir()) == [cfg]
 
 
 @needs_netns

@@ -1,8 +1,10 @@
 """A toy effect family for the registry's tests (not installed): quadratic aerodynamic drag.
 
-It imports only the family interface, so an interpreter can load it while ``motorctl.effects``
-is being built: ``tests/test_effect_entry_points.py`` registers it as an entry point of a package
-outside motorctl, ``tests/test_effect_registry.py`` puts it into the registry directly.
+It imports only the family interface and the kernel decorator, so an interpreter can load it
+while ``motorctl.effects`` is being built: ``tests/test_effect_entry_points.py`` registers
+:data:`FAMILY` (its plant term and compensation compiled kernels, declared in ``kernels``) as an
+entry point of a package outside motorctl, ``tests/test_effect_registry.py`` puts the Python
+one (:class:`QuadraticDrag`) into the registry directly, after the tables are built.
 """
 
 from __future__ import annotations
@@ -11,7 +13,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from motorctl.effects.base import EffectFamily, PlantTerm, Signals
+from motorctl.effects.base import CompTerm, EffectFamily, PlantTerm, Signals
+from motorctl.jit import njit
 from motorctl.schema import StrictModel
 
 
@@ -60,4 +63,29 @@ class QuadraticDrag(EffectFamily):
             "velocity [m/s]", "effect force [UNIT]"
 
 
-FAMILY = QuadraticDrag()
+@njit
+def drag_force(f, x, v, t, sf, p):
+    """f − c v|v| [N], p = (c [N s²/m²],)."""
+    return f - p[0] * v * abs(v)
+
+
+@njit
+def drag_add(d, x, v, t, sf, p):
+    """d − c_V v|v| [V], p = (c_V [V s²/m²],)."""
+    return d - p[0] * v * abs(v)
+
+
+class CompiledDrag(QuadraticDrag):
+    """:class:`QuadraticDrag` with its plant term and compensation compiled (as an installed
+    family's would be): the kernels are declared, the tables built from the registry take them."""
+
+    kernels = (("force", drag_force), ("add", drag_add))
+
+    def plant_term(self, o, period_s):
+        return PlantTerm.compiled("force", drag_force, [o.drag_N_s2_per_m2])
+
+    def compensator(self, o):
+        return CompTerm("add", drag_add, [o.drag_V_s2_per_m2])
+
+
+FAMILY = CompiledDrag()

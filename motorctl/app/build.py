@@ -25,7 +25,9 @@ from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 
 from motorctl.config import ConfigError, LoadedConfig
-from motorctl.control import configured_controllers, make_controller
+from motorctl.control import configured_controllers, controller_class, make_controller
+from motorctl.inputs import InputError
+from motorctl.loop.records import RecordLayout
 from motorctl.loop.rt import RealtimeReport, restore, setup_realtime
 from motorctl.loop.safety import Supervisor
 from motorctl.loop.servo import ServoLoop
@@ -75,6 +77,19 @@ class Assembly:
                            f"configured: {', '.join(self.bank[i])}") from None
 
 
+def record_layout(loaded: LoadedConfig, names) -> RecordLayout:
+    """The record's layout for axes ``names`` of ``loaded``: the fixed fields and, per axis, the
+    own signals (:attr:`~motorctl.control.base.Controller.own_signals`) of every law its
+    ``controller:`` section configures (any of them may run: ``--controller``, a switch)."""
+    own = {}
+    for a in names:
+        sigs = {}
+        for law in configured_controllers(loaded.axes[a].controller):
+            sigs.update(controller_class(law).own_signals)
+        own[a] = sigs
+    return RecordLayout(names, own)
+
+
 def build(loaded: LoadedConfig, axes=None, controller: str | None = None, *, clock: str,
           capacity: int, buffer=None, heartbeat=None, operated: bool = False,
           all_controllers: bool = False, stream=None) -> Assembly:
@@ -116,7 +131,7 @@ def build(loaded: LoadedConfig, axes=None, controller: str | None = None, *, clo
                      heartbeat=heartbeat, overrun_policy=lc.overrun_policy,
                      overrun_hold=lc.overrun_hold_cycles, overrun_ramp_s=lc.overrun_ramp_s,
                      stop_settle_s=cfg.daemon.stop_settle_s if operated else 0.0,
-                     operated=operated, stream=stream)
+                     operated=operated, stream=stream, layout=record_layout(loaded, names))
     return Assembly(loaded, names, driver, bank, active, sup, programs, loop, clock)
 
 
@@ -201,15 +216,19 @@ def start(asm: Assembly, policy: str) -> RealtimeReport:
     activate the driver. With ``required`` a refusal raises before the driver is touched.
 
     Raises:
-        RealtimeError: ``required`` and a step was refused. OSError: the device cannot be
+        RealtimeError: ``required`` and a step was refused. InputError: a driver setting this
+        machine contradicts (e.g. no such network interface), prefixed with the file. OSError: the device cannot be
         reached (the driver is closed and the real-time set-up undone first).
     """
     rt = asm.loaded.cfg.loop.realtime
     report = setup_realtime(policy, rt.priority, rt.cpu, rt.lock_memory, rt.lock_pages,
                             rt.cpu_latency_us)
     try:
-        asm.driver.configure()
-        asm.driver.activate()
+        try:
+            asm.driver.configure()
+            asm.driver.activate()
+        except InputError as exc:       # a driver setting the machine contradicts: name the file
+            raise InputError(f"{asm.loaded.path}: {exc}") from None
     except BaseException:
         try:
             asm.driver.close()          # whatever part of the transport was opened

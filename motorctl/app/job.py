@@ -37,8 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-from motorctl.app.build import (START_STILL_WAIT_S, StartRefused, approach_all, build, log_header, shutdown,
-                                moving_axes, start)
+from motorctl.app.build import (START_STILL_WAIT_S, StartRefused, approach_all, build, log_header, moving_axes,
+                                record_layout, shutdown, start)
 from motorctl.app.lifetime import parent_gone
 from motorctl.config import LoadedConfig
 from motorctl.inputs import InputError
@@ -262,7 +262,7 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
     names = list(axes) if axes else list(loaded.axes)
     wall = clock == "wall"
     cap = loaded.timebase.cycles(RING_S)     # the approaches come on top of the program's cycles
-    ring = SharedRing(cap, RecordLayout(names).width, len(names)) if wall else None
+    ring = SharedRing(cap, record_layout(loaded, names).width, len(names)) if wall else None
     asm = build(loaded, axes, controller, clock=clock, capacity=cap,
                 buffer=ring.rows if wall else None, heartbeat=ring)
     loop, names = asm.loop, asm.names

@@ -9,7 +9,9 @@
    nothing written but the log);
 3. **tuned config**: ``DIR/tuned.yaml``, what ``motorctl identify LOG --config CONFIG
    --write-config`` writes (:func:`motorctl.ident.pipeline.write_tuned_config`);
-4. **after**: the same program on the tuned config, log ``DIR/after.mclog``. tune never hands
+4. **after**: the same program on the tuned config, log ``DIR/after.mclog``. When it faults
+   (following error, or the cycle's I²t or oscillation-at-rest protection) tune stops and the
+   config is not handed over: ``tuned.yaml`` is moved to ``DIR/tuned-rejected.yaml``. tune never hands
    over a worse config: the changes of ``tuned.yaml`` (the fitted θ̂(0) with its box, each
    compensated effect) go by backward elimination: each change still kept is undone in turn
    (``DIR/without_<changes>.yaml`` / ``.mclog``), the undo that leaves the loop best among

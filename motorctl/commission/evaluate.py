@@ -15,10 +15,8 @@ from pathlib import Path
 import numpy as np
 from scipy import signal
 
-from motorctl.app.build import build, shutdown, start
 from motorctl.app.job import run_job
 from motorctl.config import LoadedConfig, config_from_dict
-from motorctl.loop.trajectory import Move
 from motorctl.metrics import REST_AFTER_S, rest_mask, u_rest_rms
 from motorctl.recorder.runlog import read_log
 
@@ -55,7 +53,8 @@ def e_segment(n: int) -> int:
 
 
 def run_metrics(log_path: str, loaded: LoadedConfig, axis: str) -> dict:
-    """The commissioning's figures of one axis from a run log, over its enabled cycles.
+    """The commissioning's figures of one axis from a run log, over its enabled cycles of the
+    program (:meth:`motorctl.recorder.runlog.RunLog.program_rows`: not the approach).
 
     Returns:
         {"saturated": samples at |u| = u_lim, "samples", "u_rest_rms_V" (RMS of u about its
@@ -67,6 +66,9 @@ def run_metrics(log_path: str, loaded: LoadedConfig, axis: str) -> dict:
     log = read_log(log_path)
     a = log.axis(axis)
     on = a["enabled"] > 0.5 if "enabled" in a else np.ones(a["e"].size, bool)
+    prog = log.program_rows(axis)
+    if prog is not None:
+        on &= prog
     e, u = a["e"][on], a["u"][on]
     ts = loaded.period_s
     rest = rest_mask(a["xd_dot"][on], a["xd_ddot"][on], ts, REST_AFTER_S)
@@ -82,12 +84,15 @@ def job_evaluation(loaded: LoadedConfig, axis: str, law: str | None, seconds: fl
                    clock: str | None = "virtual", log_path: str | None = None) -> dict:
     """``motorctl run`` of ``axis`` alone with controller ``law`` (None: as configured) for
     ``seconds``, and its figures: the job's indexes (:data:`JOB_KEYS`, [µm, V]) and
-    :func:`run_metrics`. ``log_path``: keep the run log there (None: a temporary one).
+    :func:`run_metrics`. ``log_path``: keep the run log there (None: a temporary one). The run
+    starts as every ``motorctl run`` does: idle reads, the approach from where the axis stands
+    (:func:`motorctl.app.build.approach_move`; a bus device keeps its carriage where the previous
+    run left it), then the program, under the cycle's protections (:mod:`motorctl.loop.safety`:
+    soft limits, following error, I²t, oscillation at rest), whose latched fault is ``fault``.
 
     Raises:
         OSError, ConfigError, InputError: as :func:`motorctl.app.job.run_job`.
     """
-    approach(loaded, axis, law, clock)
     with tempfile.TemporaryDirectory(prefix="motorctl-eval-") as tmp:
         path = log_path or str(Path(tmp) / "run.mlog")
         res = run_job(loaded, axes=[axis], controller=law, duration_s=seconds, clock=clock,
@@ -96,32 +101,6 @@ def job_evaluation(loaded: LoadedConfig, axis: str, law: str | None, seconds: fl
         out["fault"] = out["fault"] or ""
         out.update(run_metrics(path, loaded, axis))
     return out
-
-
-def approach(loaded: LoadedConfig, axis: str, law: str | None, clock: str | None) -> None:
-    """Bring ``axis`` to its program's start with controller ``law`` before a run (as the
-    daemon's ``start`` does): a jerk-limited move at ≤ 0.1 m/s from where it stands, when it
-    stands more than one following-error limit away (a bus device keeps its carriage where
-    the previous run left it; a simulated one starts each run at the program's start).
-
-    Raises:
-        AutotuneError: the axis is in a fault that persists. OSError: the device is unreachable.
-    """
-    from motorctl.commission.measure import _read_idle
-    lim = loaded.axes[axis].limits
-    v_app = min(0.1, 0.25 * lim.max_velocity_m_per_s)
-    cap = loaded.timebase.cycles((lim.soft_max_m - lim.soft_min_m) / v_app + 1.0) + 8
-    asm = build(loaded, [axis], law, clock=clock or loaded.cfg.loop.clock, capacity=cap, operated=True)
-    start(asm, "off" if clock == "virtual" else loaded.cfg.loop.realtime.policy)
-    try:
-        y0 = _read_idle(asm)
-        x0 = asm.loop.programs[0].sample(0.0)[0]
-        if abs(y0 - x0) > min(lim.min_following_error_m, lim.following_error_m):
-            move = Move(y0, x0, v_app, 2.0, 200.0)
-            asm.loop.start_axis(0, move)
-            asm.loop.run(min(loaded.timebase.cycles(move.duration) + 1, cap - asm.loop.k))
-    finally:
-        shutdown(asm)
 
 
 def evaluate(raw: dict, source: str, axis: str, law: str, seconds: float, clock: str = "virtual") -> dict:

@@ -40,7 +40,7 @@ U_REST_SLACK = 0.5
 
 #: file names written in the output directory
 FILES = {"before": "before.mclog", "tuned": "tuned.yaml", "after": "after.mclog",
-         "floor_config": "floor.yaml", "floor": "floor.mclog"}
+         "floor_config": "floor.yaml", "floor": "floor.mclog", "rejected": "tuned-rejected.yaml"}
 
 #: ``driver.type`` of the simulated driver (its plant and effects are in the config)
 SIM_DRIVER = "sim"
@@ -235,6 +235,12 @@ def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None =
     tuned = write_tuned_config(idf, s, base, axis, str(config), files["tuned"])
     res["files"]["tuned"] = str(files["tuned"])
     if not run("after", load_config(files["tuned"])):
+        # a config whose own run faulted (a trip of the cycle's protections: following error,
+        # I²t, oscillation at rest) is not handed over as tuned.yaml; kept aside for the reader
+        files["tuned"].replace(files["rejected"])
+        res["files"]["rejected"] = str(files["rejected"])
+        del res["files"]["tuned"]
+        res["stopped"] += f"; its config is not handed over (moved to {files['rejected'].name})"
         return res
     if not _keep_what_helps(res, files, tuned, base, axis, duration, clock, note):
         return res

@@ -6,7 +6,9 @@ sample; after each sample the controller's :attr:`Controller.signals` hold the v
 :data:`motorctl.control.signals.CONTROLLER_SIGNALS` (NaN for a signal the law does not have). The
 loop copies that block into the cycle record and reads the tracking error ``e`` for the
 following-error check; nothing else is read, so any law that fills these slots can be driven,
-recorded, switched and compared.
+recorded, switched and compared. A law may declare signals of its own
+(:attr:`Controller.own_signals`): they follow the common block in :attr:`Controller.signals`
+and the run log has them as columns ``AXIS.<name>`` (:class:`motorctl.loop.records.RecordLayout`).
 
 Controllers are chosen by name (the ``motorctl.controllers`` entry points,
 :mod:`motorctl.control`); each class reads its own part of an axis's ``controller:`` config
@@ -44,8 +46,9 @@ class Controller(abc.ABC):
         u_lim (float): output limit [V]; :meth:`update` returns |u| ≤ u_lim.
         n_theta (int): number of adapted parameters θ̂ (0 for a fixed-gain law).
         theta_hat (np.ndarray): shape (n_theta,), live view of θ̂.
-        signals (np.ndarray): shape (N_SIGNALS,) float64, the published signals of the last
-            sample (see the module docstring); NaN where the law has no such signal.
+        signals (np.ndarray): shape (N_SIGNALS + len(own_signals),) float64, the published
+            signals of the last sample (see the module docstring), then the law's own
+            (:meth:`own_index`); NaN where the law has no such signal.
         preview_s (float): how far ahead [s] the law wants the desired trajectory (an input
             delay it predicts over); when > 0 the loop calls :meth:`preview` with the desired
             trajectory at t + preview_s before each :meth:`update`. 0 (default): never.
@@ -60,6 +63,11 @@ class Controller(abc.ABC):
     #: the entries of :data:`motorctl.control.signals.CONTROLLER_SIGNALS` this law fills (the
     #: others are recorded as NaN)
     records: ClassVar[tuple[str, ...]] = ("v", "e", "p", "x2")
+    #: signals of the law's own beyond :data:`~motorctl.control.signals.CONTROLLER_SIGNALS`:
+    #: name -> unit, recorded as run-log columns ``AXIS.<name>`` after the fixed ones (names
+    #: other than the record's fixed axis fields). A law that runs from Python
+    #: (:attr:`law_code` LAW_PY) writes them at :meth:`own_index`; empty (default): none
+    own_signals: ClassVar[dict[str, str]] = {}
     #: the settings keys autotune writes (those :meth:`gain_family` sets)
     tuned_keys: ClassVar[tuple[str, ...]] = ()
     preview_s: float = 0.0
@@ -68,8 +76,21 @@ class Controller(abc.ABC):
         self.ts = float(ts)
         self.u_lim = float(u_lim)
         self.n_theta = int(n_theta)
-        self.signals = np.full(N_SIGNALS, np.nan)
+        self.signals = np.full(N_SIGNALS + len(self.own_signals), np.nan)
         self.theta_hat = np.zeros(self.n_theta)
+
+    @classmethod
+    def own_index(cls, name: str) -> int:
+        """Offset of the own signal ``name`` (:attr:`own_signals`) in :attr:`signals`.
+
+        Raises:
+            KeyError: the law declares no such signal (the message lists those it declares).
+        """
+        try:
+            return N_SIGNALS + list(cls.own_signals).index(name)
+        except ValueError:
+            raise KeyError(f"controller {cls.name!r} declares no signal {name!r}; own signals: "
+                           f"{', '.join(cls.own_signals) or 'none'}") from None
 
     @classmethod
     @abc.abstractmethod

@@ -545,7 +545,7 @@ class DCDIARC(Controller):
     def law_code(self) -> int:
         """LAW_DCDIARC without compensation (the cycle runs :func:`dcdiarc_block_step`),
         LAW_DCDIARC_COMP with one whose terms are all compiled (:func:`dcdiarc_comp_step`), else
-        LAW_PY (a term from another package: :meth:`update` from Python)."""
+        LAW_PY (a term that is a Python callable: :meth:`update` from Python)."""
         if self.compensation is None:
             return LAW_DCDIARC
         return LAW_DCDIARC_COMP if self._compiled_comp else LAW_PY
@@ -633,7 +633,7 @@ class DCDIARC(Controller):
             xf, vf, af = x_d, xd_dot, xd_ddot
         if self._compiled_comp:
             return self._step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, self.signals, self._F, self._I, self._L)
-        # a term from another package: the same evaluation as dcdiarc_comp_step, from Python
+        # a Python term (no kernel): the same evaluation as dcdiarc_comp_step, from Python
         comp = self.compensation
         tf = t + tau
         vr = vf - float(self._prm[P_K1]) * (y - x_d)    # the reference velocity, as dcdiarc_comp_step

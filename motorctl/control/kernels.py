@@ -9,6 +9,11 @@ a compiled step (LAW_PY: a law from another package) is run by the cycle from Py
 step; :func:`check_law_code` refuses any other code when the loop takes the law (at build and
 at a switch), so the compiled dispatch never meets an unknown code (if it did, the output
 would be NaN, which the supervisor faults, never another law's step).
+
+numba caches these steps with what they call compiled in (the compensation's dispatch over its
+code -> kernel table, :mod:`motorctl.effects.compensation`), keyed on this module's source only:
+a change of that table's codes needs this module's cache (and ``motorctl.loop.cycle``'s, which
+compiles these steps in) renewed: delete their ``__pycache__/*.nbi``, or change their source.
 """
 
 from __future__ import annotations

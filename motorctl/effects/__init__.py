@@ -44,12 +44,13 @@ come first in :data:`motorctl.effects.registry.BUILTIN_ORDER`, then any other, b
 
 Adding a family: a module with an :class:`~motorctl.effects.base.EffectFamily` subclass and a
 ``FAMILY`` instance, its tests, and one entry point in the ``motorctl.effects`` group (in this
-package or any installed one: ``name = "module:FAMILY"``); a thrust, force or mass plant
-term written as a compiled kernel (:meth:`~motorctl.effects.base.PlantTerm.compiled`) is also
-one row of :data:`motorctl.effects.plant.PLANT_KERNELS`, a compensation kernel
-(:class:`~motorctl.effects.base.CompTerm`) one row of
-:data:`motorctl.effects.compensation.COMP_KERNELS` (else the plant, or the law, runs it in
-Python: the same equations, slower). The YAML schemas
+package or any installed one: ``name = "module:FAMILY"``); a
+thrust, force or mass plant term or a compensation written as a compiled kernel
+(:meth:`~motorctl.effects.base.PlantTerm.compiled`, :class:`~motorctl.effects.base.CompTerm`) is
+also declared in the family's :attr:`~motorctl.effects.base.EffectFamily.kernels`: the tables
+:data:`motorctl.effects.plant.PLANT_KERNELS` and :data:`motorctl.effects.compensation.COMP_KERNELS`
+are built from the registry (a family of Python hooks instead runs from Python: the same
+equations, slower). The YAML schemas
 (``axes.NAME.driver.effects``, ``axes.NAME.controller.compensation``) are built from the
 registry when their modules are imported (:func:`effects_model`, :func:`compensation_model`).
 """

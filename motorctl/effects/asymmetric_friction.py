@@ -72,6 +72,7 @@ class AsymmetricFrictionComp(Adaptable):
 
 class AsymmetricFrictionFamily(EffectFamily):
     name = "asymmetric_friction"
+    kernels = (("force", plant_force), ("add", comp_add), ("fill", comp_fill))
     plant_force = "−(ΔF_c S_f(ẋ) + ΔB ẋ), ẋ > 0 only"
     sim_options = AsymmetricFriction
     example: ClassVar[dict] = {"asymmetric_friction": {"coulomb_N": 10.0, "viscous_N_s_per_m": 20.0}}

@@ -90,7 +90,8 @@ class PlantTerm:
         Args:
             hook: which hook the kernel is. kernel: ``kernel(fm, x, t, p)`` (thrust),
                 ``kernel(f, x, v, t, sf, p)`` (force) or ``kernel(m, t, p)`` (mass), the hook's
-                arguments followed by the row p; listed in :data:`motorctl.effects.plant.PLANT_KERNELS`.
+                arguments followed by the row p; declared in its family's
+                :attr:`EffectFamily.kernels` (the plant refuses a kernel that is not).
             params: the row p (k,) of floats, in the kernel's documented order.
         Raises:
             ValueError: unknown hook.
@@ -119,8 +120,8 @@ class CompTerm:
     * ``fill``: ``kernel(out, j, x, xdot, t, sf, p)`` writes the k basis columns c_i(x, ẋ, t)
       [V per β-unit] of an adapted entry into out[j:j + k], d̂_eff = Σ_i β_i c_i.
 
-    Every kernel is listed in :data:`motorctl.effects.compensation.COMP_KERNELS`. Floats only, no
-    allocation: it runs inside the 5 kHz cycle.
+    Every kernel is declared in its family's :attr:`EffectFamily.kernels` (the compensation
+    refuses one that is not). Floats only, no allocation: it runs inside the 5 kHz cycle.
     """
 
     __slots__ = ("kernel", "kind", "params")
@@ -326,6 +327,15 @@ class EffectFamily:
             compensation that is not an additive term (None: none); see :meth:`comp_hook`.
             Such a family is not :attr:`compensable` (not in ``CompensationConfig``); its key is
             added by :data:`motorctl.effects.compensation.CompensationSection`.
+        kernels: the family's compiled kernels, ``(kind, kernel)`` rows: kind a plant hook
+            ('thrust', 'force', 'mass', :meth:`PlantTerm.compiled`) or a compensation kind
+            ('add', 'fill', :class:`CompTerm`). The code -> kernel tables of the plant
+            (:data:`motorctl.effects.plant.PLANT_KERNELS`) and of the compensation
+            (:data:`motorctl.effects.compensation.COMP_KERNELS`) are built from these, in registry
+            order, so a family from another package runs compiled with no edit to motorctl; a
+            term whose kernel is not declared here is refused when an axis is built. Empty
+            (default): the family's terms, if any, are Python hooks (the plant's and the law's
+            Python paths: the same equations, slower).
     """
 
     name: ClassVar[str] = ""
@@ -339,6 +349,7 @@ class EffectFamily:
     comp_needs_sf: ClassVar[bool] = False
     compensation_rank: ClassVar[int] = 100
     hook_options: ClassVar[type[StrictModel] | None] = None
+    kernels: ClassVar[tuple[tuple[str, Callable], ...]] = ()
     #: options of :attr:`example` that set the effect's size besides those in force units
     #: (what ``benchmarks/tune_families.py`` scales; e.g. a delay)
     size_options: ClassVar[tuple[str, ...]] = ()

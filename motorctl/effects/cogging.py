@@ -26,6 +26,8 @@ from motorctl.effects.periodic import (
     PositionPeriodic,
     amplitudes_phases,
     fourier,
+    fourier_add,
+    fourier_fill,
     fourier_basis,
     fourier_term,
     harmonics,
@@ -73,6 +75,7 @@ class FourierPosition(FourierAdaptable):
 
 class CoggingFamily(PositionPeriodic):
     name = "cogging"
+    kernels = (("force", plant_force), ("add", fourier_add), ("fill", fourier_fill))
     plant_force = "Σ A_k sin(2πkx/P + φ_k)"
     sim_options = Cogging
     example: ClassVar[dict] = {"cogging": {"amplitudes_N": [12.0, 4.0], "period_m": 0.032, "phases_rad": [0.3, 1.0]}}

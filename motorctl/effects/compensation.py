@@ -41,13 +41,15 @@ Compiled: each family's term is a numba kernel with a parameter row
 one table (:attr:`Compensation.table`) that :func:`comp_value`, :func:`comp_fill` and
 :func:`comp_thrust` evaluate; the table lives in the law's state block, so the compiled servo
 cycle runs a compensated C1/C2 whole (``motorctl.control.dcdiarc.dcdiarc_comp_step``). Adding
-a family with a compensation: one row ``(kind, kernel)`` per kernel at the end of
-:data:`COMP_KERNELS` (the compiled dispatch is built from it, :func:`motorctl.jit.dispatch`); a
-family left out, e.g. from another package, keeps its Python term, and the law then runs from
-Python (the same arithmetic, slower). A code outside the table is refused by
-:func:`check_comp_code` when :attr:`Compensation.table` is built; inside the compiled kernels it
-would give NaN (the supervisor faults the axis), never another family's term. numba caches these kernels beside their
-sources, keyed on this module's file: after editing a family's kernel, touch this module.
+a family with a compensation: declare its kernels in the family's
+:attr:`~motorctl.effects.base.EffectFamily.kernels` (:data:`COMP_KERNELS` is built from the
+registry, the compiled dispatch from it, :func:`motorctl.jit.dispatch`); a family whose term is
+a Python callable (no :class:`~motorctl.effects.base.CompTerm`) keeps it, and the law then runs
+from Python (the same arithmetic, slower). A term whose kernel is not in the table, or a code
+outside it, is refused when :attr:`Compensation.table` is built; inside the compiled kernels an
+unknown code would give NaN (the supervisor faults the axis), never another family's term.
+numba caches these kernels beside their sources, keyed on this module's file: after editing a
+family's kernel, touch this module.
 """
 
 from __future__ import annotations
@@ -57,40 +59,18 @@ from functools import partial
 import numpy as np
 from pydantic import create_model
 
-from motorctl.effects import (
-    FAMILIES,
-    asymmetric_friction,
-    compensable,
-    compensation_model,
-    periodic,
-    periodic_friction,
-    position_dependent_friction,
-    position_friction_shape,
-    spring,
-    stribeck,
-)
+from motorctl.effects import FAMILIES, compensable, compensation_model
+from motorctl.effects.registry import kernel_table
 from motorctl.jit import check_code, dispatch, njit
 from motorctl.model import s_f_scalar
 
 _s_f = njit(s_f_scalar)
 
 #: code -> (kind, compiled kernel) of every compensation term (:class:`~motorctl.effects.base.CompTerm`):
-#: a term's code in the table is its row's index here
-COMP_KERNELS: tuple[tuple[str, object], ...] = (
-    ("add", periodic.fourier_add),
-    ("add", spring.comp_add),
-    ("add", asymmetric_friction.comp_add),
-    ("add", position_dependent_friction.comp_add),
-    ("add", stribeck.comp_add),
-    ("add", periodic_friction.comp_add),
-    ("add", position_friction_shape.comp_add),
-    ("fill", periodic.fourier_fill),
-    ("fill", spring.comp_fill),
-    ("fill", asymmetric_friction.comp_fill),
-    ("fill", position_dependent_friction.comp_fill),
-    ("fill", stribeck.comp_fill),
-    ("fill", periodic_friction.comp_fill),
-)
+#: a term's code in the table is its row's index here. Built from the registry (each family's
+#: :attr:`~motorctl.effects.base.EffectFamily.kernels` of kind 'add' or 'fill', in registry
+#: order), so a family from another package is compensated in compiled code too.
+COMP_KERNELS: tuple[tuple[str, object], ...] = kernel_table(FAMILIES.values(), ("add", "fill"))
 #: the compiled kernels by code (:data:`COMP_KERNELS` without the kinds)
 KERNELS = tuple(kernel for _, kernel in COMP_KERNELS)
 
@@ -183,8 +163,8 @@ class Compensation:
     The terms of the configured families are built once here (in :func:`compensable` order)
     into :attr:`table`, their compiled form, which the servo cycle evaluates in compiled code
     (:func:`comp_value`, :func:`comp_fill`, :func:`comp_thrust`); the per-sample methods here
-    evaluate the same table from Python (or, for a family from another package whose term is
-    not a listed kernel, its Python terms).
+    evaluate the same table from Python (or, for a family whose term is a Python callable, not
+    a :class:`~motorctl.effects.base.CompTerm`, its Python terms).
 
     Args:
         cfg: a ``CompensationConfig`` or ``CompensationSection`` (any model with one attribute
@@ -199,7 +179,8 @@ class Compensation:
         table: the compiled form (float64, 1-D: :data:`T_HEAD`, then per term its kernel's code
             in :data:`COMP_KERNELS`, its row's length m, its first column, its row), or None.
     Raises:
-        ValueError: ``adapt: true`` on a family that has no basis (:meth:`adapt_basis` None).
+        ValueError: ``adapt: true`` on a family that has no basis (:meth:`adapt_basis` None);
+            a term whose kernel is not declared in its family's ``kernels`` (:data:`COMP_KERNELS`).
     """
 
     def __init__(self, cfg):
@@ -253,8 +234,8 @@ class Compensation:
         self._thrust_term = thrust
         self.thrust = self._thrust if thrust is not None else None
         #: the compiled form (T_HEAD, then a record per term), read by :func:`comp_value`,
-        #: :func:`comp_fill` and :func:`comp_thrust` (float64, 1-D); None when a term is not a
-        #: listed kernel (a family from another package): then its terms run from Python
+        #: :func:`comp_fill` and :func:`comp_thrust` (float64, 1-D); None when a term is a
+        #: Python callable (no kernel): then the terms run from Python
         self.table = self._table()
 
     def _table(self) -> np.ndarray | None:
@@ -313,9 +294,19 @@ class Compensation:
 
 
 def _code(term) -> int | None:
-    """The code of ``term``'s kernel in :data:`COMP_KERNELS` (None: not a listed kernel)."""
+    """The code of ``term``'s kernel in :data:`COMP_KERNELS` (None: a Python callable, no kernel).
+
+    Raises:
+        ValueError: a kernel not declared in its family's ``kernels`` (not in the table)."""
     kernel = getattr(term, "kernel", None)
-    return next((i for i, k in enumerate(KERNELS) if k is kernel), None)
+    if kernel is None:
+        return None
+    code = next((i for i, k in enumerate(KERNELS) if k is kernel), None)
+    if code is None:
+        raise ValueError(f"compensation term kernel {getattr(kernel, '__name__', kernel)!r} is not declared in "
+                         "its effect family's kernels (EffectFamily.kernels); known: "
+                         + ", ".join(f"{k} {fn.__name__}" for k, fn in COMP_KERNELS))
+    return code
 
 
 __all__ = ["Compensation", "CompensationConfig", "CompensationSection", "comp_fill", "comp_thrust", "comp_value",

@@ -45,6 +45,7 @@ class ForceConstantDrift(StrictModel):
 
 class ForceConstantDriftFamily(EffectFamily):
     name = "force_constant_drift"
+    kernels = (("thrust", plant_thrust),)
     plant_force = "κ t A1 f_u(u)"
     sim_options = ForceConstantDrift
     example: ClassVar[dict] = {"force_constant_drift": {"drift_per_s": -0.01}}

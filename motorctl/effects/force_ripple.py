@@ -22,7 +22,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from motorctl.effects.base import CompHook, PlantTerm, Signals
-from motorctl.effects.periodic import N_HARMONICS, PositionPeriodic, fourier, fourier_term, harmonics, sin_cos_of
+from motorctl.effects.periodic import N_HARMONICS, PositionPeriodic, fourier, fourier_add, fourier_term, harmonics, sin_cos_of
 from motorctl.jit import njit
 from motorctl.schema import Pos, StrictModel
 
@@ -72,6 +72,7 @@ class RippleComp(StrictModel):
 
 class ForceRippleFamily(PositionPeriodic):
     name = "force_ripple"
+    kernels = (("thrust", plant_thrust), ("add", fourier_add))
     plant_force = "F_m(u)·Σ r_k sin(2πkx/P + φ_k)"
     sim_options = ForceRipple
     example: ClassVar[dict] = {"force_ripple": {"fractions": [0.06], "period_m": 0.045, "phases_rad": [0.5]}}

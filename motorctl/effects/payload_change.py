@@ -35,6 +35,7 @@ class PayloadChange(StrictModel):
 
 class PayloadChangeFamily(EffectFamily):
     name = "payload_change"
+    kernels = (("mass", plant_mass),)
     plant_force = "mass step Δm from t_c on"
     searched = "change time t_c [s]"
     sim_options = PayloadChange

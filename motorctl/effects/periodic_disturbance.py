@@ -24,6 +24,8 @@ from motorctl.effects.periodic import (
     FourierAdaptable,
     amplitudes_phases,
     fourier,
+    fourier_add,
+    fourier_fill,
     fourier_basis,
     fourier_term,
     harmonics,
@@ -77,6 +79,7 @@ class FourierTime(FourierAdaptable):
 
 class PeriodicDisturbanceFamily(EffectFamily):
     name = "periodic_disturbance"
+    kernels = (("force", plant_force), ("add", fourier_add), ("fill", fourier_fill))
     plant_force = "A sin(2πft + φ)"
     searched = "frequency f [Hz]"
     sim_options = PeriodicDisturbance

@@ -32,6 +32,7 @@ from motorctl.effects.periodic import (
     fourier_add,
     fourier_basis,
     fourier_fill,
+    friction_force,
     fourier_term,
     harmonics,
     sin_cos_of,
@@ -77,6 +78,7 @@ class PeriodicFrictionComp(FourierAdaptable):
 
 class PeriodicFrictionFamily(PositionPeriodic):
     name = "periodic_friction"
+    kernels = (("force", friction_force), ("add", comp_add), ("fill", comp_fill))
     plant_force = "−Σ A_k sin(2πkx/P + φ_k) S_f(ẋ)"
     sim_options = PeriodicFriction
     example: ClassVar[dict] = {"periodic_friction": {"amplitudes_N": [8.0], "period_m": 0.05, "phases_rad": [0.5]}}
@@ -85,7 +87,6 @@ class PeriodicFrictionFamily(PositionPeriodic):
 
     # simulator
     def plant_term(self, o: PeriodicFriction, period_s):
-        from motorctl.effects.periodic import friction_force
         ph = list(o.phases_rad) + [0.0] * len(o.amplitudes_N)
         row = []
         for k, a in enumerate(o.amplitudes_N):

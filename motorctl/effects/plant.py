@@ -8,12 +8,13 @@ into a code per term (the kernel's index in :data:`PLANT_KERNELS`) and a padded 
 (registry) order, with the same operations as the Python hooks, so that
 ``motorctl_drivers.sim.AxisPlant`` runs a whole period compiled.
 
-Adding a family with a compiled thrust, force or mass term: one row ``(hook, kernel)`` at the
-end of :data:`PLANT_KERNELS` (the compiled dispatch is built from it, :func:`motorctl.jit.dispatch`).
-A family left out keeps Python hooks: the plant then takes its Python path (the same equations,
-slower). A code outside the table is refused by :func:`check_plant_code` when :func:`rows` builds
-an axis's table; inside the compiled kernels it would give NaN (the supervisor faults the axis),
-never another term.
+Adding a family with a compiled thrust, force or mass term: declare the kernel in the family's
+:attr:`~motorctl.effects.base.EffectFamily.kernels`; :data:`PLANT_KERNELS` is built from the
+registry, the compiled dispatch from it (:func:`motorctl.jit.dispatch`). A family whose terms
+are Python hooks only keeps them: the plant then takes its Python path (the same equations,
+slower). A term whose kernel is not in the table, or a code outside it, is refused when
+:func:`rows` builds an axis's table (no fall-through to another term); inside the compiled
+kernels an unknown code would give NaN (the supervisor faults the axis), never another term.
 
 numba caches the kernels here and in ``motorctl_drivers.sim`` beside their sources; its cache
 is keyed on the calling module's file, so after editing a family's kernel, delete the
@@ -26,38 +27,18 @@ from functools import partial
 
 import numpy as np
 
-from motorctl.effects import (
-    asymmetric_friction,
-    cogging,
-    force_constant_drift,
-    force_ripple,
-    payload_change,
-    periodic,
-    periodic_disturbance,
-    position_dependent_friction,
-    position_friction_shape,
-    spring,
-    stribeck,
-)
+from motorctl.effects import FAMILIES
+from motorctl.effects.registry import kernel_table
 from motorctl.jit import check_code, dispatch, njit
 
-#: code -> (hook, compiled kernel) of every compiled plant term: a term's code is its row's index
-PLANT_KERNELS: tuple[tuple[str, object], ...] = (
-    ("force", cogging.plant_force),
-    ("thrust", force_ripple.plant_thrust),
-    ("force", stribeck.plant_force),
-    ("force", asymmetric_friction.plant_force),
-    ("force", position_dependent_friction.line_force),
-    ("force", spring.plant_force),
-    ("mass", payload_change.plant_mass),
-    ("force", periodic_disturbance.plant_force),
-    ("force", position_friction_shape.plant_force),
-    ("thrust", force_constant_drift.plant_thrust),
-    ("force", periodic.friction_force),
-)
+HOOKS = ("thrust", "force", "mass")
+#: code -> (hook, compiled kernel) of every compiled plant term: a term's code is its row's index.
+#: Built from the registry (each family's :attr:`~motorctl.effects.base.EffectFamily.kernels`
+#: of a plant hook, in registry order), so this package's codes do not depend on what else is
+#: installed and a family from another package is compiled into the plant too.
+PLANT_KERNELS: tuple[tuple[str, object], ...] = kernel_table(FAMILIES.values(), HOOKS)
 #: the compiled kernels by code (:data:`PLANT_KERNELS` without the hooks)
 KERNELS = tuple(kernel for _, kernel in PLANT_KERNELS)
-HOOKS = ("thrust", "force", "mass")
 _N_KERNELS = len(PLANT_KERNELS)
 
 
@@ -98,18 +79,23 @@ def rows(terms: list) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
 
     Returns:
         (codes (n,) int64, rows (n, w) float64 zero-padded, lengths (n,) int64), or None when a
-        term with such a hook has no kernel listed in :data:`PLANT_KERNELS` (the plant then runs
-        its Python hooks).
+        term with such a hook is Python hooks only (no kernel: the plant then runs its Python
+        hooks).
     Raises:
-        ValueError: a term's kernel is listed for another hook than the term's
-            (:func:`check_plant_code`).
+        ValueError: a term's kernel is not in :data:`PLANT_KERNELS` (not declared in its
+            family's :attr:`~motorctl.effects.base.EffectFamily.kernels`) or is listed for
+            another hook than the term's (:func:`check_plant_code`).
     """
     hooked = [t for t in terms if (t.thrust, t.force, t.mass) != (None, None, None)]
+    if any(t.kernel is None for t in hooked):
+        return None
     codes = []
     for t in hooked:
         k = next((i for i, fn in enumerate(KERNELS) if fn is t.kernel), None)
         if k is None:
-            return None
+            raise ValueError(f"plant term kernel {getattr(t.kernel, '__name__', t.kernel)!r} is not declared in "
+                             "its effect family's kernels (EffectFamily.kernels); known: "
+                             + ", ".join(f"{h} {fn.__name__}" for h, fn in PLANT_KERNELS))
         hook = next(h for h in HOOKS if getattr(t, h) is not None)
         codes.append(check_plant_code(k, hook))
     width = max([t.params.shape[0] for t in hooked] + [1])

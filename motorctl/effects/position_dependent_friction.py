@@ -70,6 +70,7 @@ def line_force(f, x, v, t, sf, p):
 
 class PositionDependentFrictionFamily(EffectFamily):
     name = "position_dependent_friction"
+    kernels = (("force", line_force), ("add", comp_add), ("fill", comp_fill))
     plant_force = "−c (x − x_ref) S_f(ẋ)"
     sim_options = PositionDependentFriction
     example: ClassVar[dict] = {"position_dependent_friction": {"coulomb_slope_N_per_m": 40.0, "reference_m": 0.0}}

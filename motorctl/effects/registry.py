@@ -16,11 +16,15 @@ order cannot come from there.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from importlib.metadata import entry_points
 
 from motorctl.effects.base import EffectFamily
+from motorctl.jit import KERNEL_ENTRY_POINTS
 
-ENTRY_POINT_GROUP = "motorctl.effects"
+#: the families' entry-point group (numba caches the kernels of a process where another package
+#: registers one apart: :func:`motorctl.jit.plugin_cache_dir`)
+ENTRY_POINT_GROUP = KERNEL_ENTRY_POINTS
 
 #: the families of this package in their fixed order (do not reorder; a new one goes after them)
 BUILTIN_ORDER = ("cogging", "force_ripple", "stribeck", "asymmetric_friction", "position_dependent_friction",
@@ -61,3 +65,23 @@ def load_families() -> dict[str, EffectFamily]:
                                 f"EffectFamily named {name!r} ({fam!r})")
         families[name] = fam
     return families
+
+
+def kernel_table(families: Iterable[EffectFamily], kinds: tuple[str, ...]) -> tuple[tuple[str, object], ...]:
+    """The code -> compiled kernel table of ``kinds``: every ``(kind, kernel)`` row of the
+    families' :attr:`~motorctl.effects.base.EffectFamily.kernels` whose kind is one of ``kinds``,
+    in the families' (registry) order, each kernel once (a kernel two families share keeps its
+    first row). A row's index is its code (:func:`motorctl.jit.dispatch`, :func:`motorctl.jit.check_code`).
+
+    Raises:
+        RegistryError: a family declares a kernel under two kinds.
+    """
+    rows: dict[object, str] = {}
+    for fam in families:
+        for kind, kernel in fam.kernels:
+            if kind not in kinds:
+                continue
+            if rows.setdefault(kernel, kind) != kind:
+                raise RegistryError(f"effect family {fam.name!r}: kernel {getattr(kernel, '__name__', kernel)} "
+                                    f"declared as {rows[kernel]!r} and {kind!r}")
+    return tuple((kind, kernel) for kernel, kind in rows.items())

@@ -65,6 +65,7 @@ class SpringComp(Adaptable):
 
 class SpringFamily(EffectFamily):
     name = "spring"
+    kernels = (("force", plant_force), ("add", comp_add), ("fill", comp_fill))
     plant_force = "−k (x − x_0)"
     sim_options = Spring
     example: ClassVar[dict] = {"spring": {"stiffness_N_per_m": 100.0, "rest_position_m": 0.1}}

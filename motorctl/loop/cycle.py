@@ -163,6 +163,7 @@ def desired(i, k, ahead, ax, axf, prog, move, ts):
     return np.nan, np.nan, np.nan
 
 
+# (cached with the laws' steps compiled in: motorctl.control.kernels says when to renew the cache)
 @njit
 def servo_cycle(phase, k, st):
     """One servo cycle k of every axis (module docstring) on the :class:`CycleState` ``st``;

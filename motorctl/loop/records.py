@@ -1,7 +1,10 @@
 """The cycle record, declared once by name (and unit): what the loop writes every cycle.
 
 One float64 row per cycle: the cycle-wide fields, then for every axis the axis fields under
-``AXIS.<field>``. The loop, the flight recorder, the daemon's status, the run-log reader, the
+``AXIS.<field>``, then the signals the axes' laws declare of their own
+(:attr:`motorctl.control.base.Controller.own_signals`), under ``AXIS.<signal>``, axis by axis:
+a row without them is the same row up to its last axis field, so a reader that knows only the
+fixed fields reads any log. The loop, the flight recorder, the daemon's status, the run-log reader, the
 exporters and the plots all index a row by these names through :class:`RecordLayout`, never by
 a hand-counted offset.
 
@@ -48,18 +51,35 @@ class RecordLayout:
 
     Args:
         axis_names: axes in loop order.
+        own: axis -> {signal name: unit} of the signals its laws declare of their own
+            (:attr:`motorctl.control.base.Controller.own_signals`), recorded after every axis's
+            fixed fields; None or missing axes: none.
     Attributes:
-        columns (list[str]): ``t, lateness_ns, ..., X.y, X.x_d, ...``; width = len(columns).
+        columns (list[str]): ``t, lateness_ns, ..., X.y, X.x_d, ..., X.<own signal>, ...``;
+            width = len(columns).
         units (list[str]): the unit of every column.
+        own (dict[str, dict[str, str]]): the own signals by axis (every axis a key).
+        own_start (int): offset of the first own-signal column (= width without any).
+    Raises:
+        ValueError: an own signal named like a fixed axis field.
     """
 
-    def __init__(self, axis_names):
+    def __init__(self, axis_names, own=None):
         self.axis_names = list(axis_names)
+        self.own = {a: dict((own or {}).get(a, {})) for a in self.axis_names}
         self.columns = list(CYCLE_FIELDS)
         self.units = list(CYCLE_FIELDS.values())
         for a in self.axis_names:
             self.columns += [f"{a}.{f}" for f in AXIS_FIELDS]
             self.units += list(AXIS_FIELDS.values())
+        self.own_start = len(self.columns)
+        for a, sigs in self.own.items():
+            clash = [f for f in sigs if f in AXIS_FIELDS]
+            if clash:
+                raise ValueError(f"axis {a}: own signal {clash[0]!r} is a fixed axis field; fields: "
+                                 f"{', '.join(AXIS_FIELDS)}")
+            self.columns += [f"{a}.{f}" for f in sigs]
+            self.units += list(sigs.values())
         self.width = len(self.columns)
         self._index = {c: j for j, c in enumerate(self.columns)}
 

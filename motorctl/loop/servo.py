@@ -119,13 +119,16 @@ class ServoLoop:
         operated: True for the daemon: every axis starts IDLE and is enabled by
             :meth:`start_axis`; a fault also drops the operator's request. False (``run``):
             every axis follows its program from the first cycle.
+        layout: the record's :class:`RecordLayout` for the driver's axes, with the signals the
+            laws declare of their own (``own``: those of every law the loop may run on an
+            axis); None: the fixed fields only.
     Attributes (views of the cycle's state, indexed by axis): mode, enabled, stop_req;
         controllers, programs (lists); k (executed cycles), overruns; page_faults (the page
         faults the loop's thread took inside :meth:`run`, minor and major, getrusage(2)
         RUSAGE_THREAD: 0 once the real-time set-up has prefaulted its memory).
     Raises:
         ValueError: a wrong clock or policy, one controller or program too few or many, a
-            buffer of the wrong shape.
+            buffer of the wrong shape, a layout of other axes.
     """
 
     def __init__(self, driver, controllers, programs, supervisor: Supervisor, timebase: Timebase,
@@ -133,7 +136,7 @@ class ServoLoop:
                  buffer=None,
                  heartbeat=None, on_slack=None, overrun_policy: str = "count",
                  overrun_hold: int = 5, overrun_ramp_s: float = 0.01, stop_settle_s: float = 0.0,
-                 operated: bool = False, stream=None):
+                 operated: bool = False, stream=None, layout: RecordLayout | None = None):
         if clock not in ("wall", "virtual"):
             raise ValueError(f"clock must be 'wall' or 'virtual', got {clock!r}")
         n = len(driver.axis_names)
@@ -152,7 +155,9 @@ class ServoLoop:
         self.clock = clock
         self.spin_ns = int(spin_us * 1000)
         self.warm_caches = bool(warm_caches)
-        self.layout = RecordLayout(self.axis_names)
+        self.layout = layout if layout is not None else RecordLayout(self.axis_names)
+        if self.layout.axis_names != self.axis_names:
+            raise ValueError(f"layout of axes {self.layout.axis_names}, driver axes {self.axis_names}")
         self.columns = self.layout.columns
         self.width = self.layout.width
         self.capacity = int(capacity)
@@ -187,6 +192,12 @@ class ServoLoop:
             self._prog[i, :p.table.size] = p.table
         self._move = np.zeros((n, TABLE_HEAD + MOVE_W))
         self._sig = np.full((n, N_SIGNALS), np.nan)
+        # the laws' own signals (record columns own_start...): the last values, written into
+        # every row after the cycle; per axis the (offset in the law's signals, offset here)
+        # of the running law's
+        self._own = np.full(self.layout.width - self.layout.own_start, np.nan)
+        self._own_at = {key: j for j, key in enumerate((a, f) for a in self.axis_names for f in self.layout.own[a])}
+        self._own_map = [()] * n
         # the law rows: wide enough for C2 (the largest compiled law), grown when a law needs more
         self._cf = np.zeros((n, LAW_ROW_FLOATS))
         self._ci = np.zeros((n, LAW_ROW_INTS), dtype=np.int64)
@@ -257,6 +268,14 @@ class ServoLoop:
         if old is not None:
             old.detach()
         law = check_law_code(c.law_code, c.name)
+        if law != LAW_PY and c.own_signals:
+            raise ValueError(f"controller {c.name!r}: own signals are recorded from a law that runs from Python only")
+        a = self.axis_names[i]
+        self._own_map[i] = tuple((c.own_index(f), self._own_at[(a, f)]) for f in c.own_signals
+                                 if (a, f) in self._own_at)
+        for (_a, _f), j in self._own_at.items():
+            if _a == a:
+                self._own[j] = np.nan          # a signal the new law does not have: NaN, never stale
         if law != LAW_PY:
             nf, ni = c.state_size()
             if nf > self._cf.shape[1] or ni > self._ci.shape[1]:
@@ -318,6 +337,7 @@ class ServoLoop:
     def _run(self, n_cycles: int) -> int:
         mono = time.monotonic_ns
         drv, cycle, mv, width, cap = self.driver, self._cycle, self._mv, self.width, self.capacity
+        buf, own, own_at = self.buf, self._own, self.layout.own_start
         hb, slack, u_out, en_out, period = self.heartbeat, self.on_slack, self.u_out, self.enable_out, self.period_ns
         oc_t, oc_late, oc_turn, oc_read, oc_ctrl, oc_write, oc_ovr = self._o_cycle
         st = self._use_state()
@@ -339,6 +359,8 @@ class ServoLoop:
             elif cycle(C.CYCLE_BEFORE, k, st):
                 self._python_laws(k)
                 cycle(C.CYCLE_AFTER, k, st)
+            if own.size:
+                buf[k % cap, own_at:] = own
             t2 = mono()
             drv.write(u_out, en_out)
             t3 = mono()
@@ -407,7 +429,12 @@ class ServoLoop:
             if pre > 0.0:
                 c.preview(*C.desired(i, k, pre, ax, axf, self._prog, self._move, ts))
             axf[i, C.X_U] = c.update(float(y), float(xd), float(vd), float(ad), k * ts)
-            self._sig[i] = c.signals
+            if self._own_map[i]:
+                self._sig[i] = c.signals[:N_SIGNALS]
+                for src, dst in self._own_map[i]:
+                    self._own[dst] = c.signals[src]
+            else:
+                self._sig[i] = c.signals
 
     # ------------------------------------------------------------------ per-axis commands
     # Called between cycles (from on_slack or before run), never from inside a cycle.

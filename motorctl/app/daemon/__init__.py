@@ -37,7 +37,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from motorctl.app.build import Assembly, build, log_header
+from motorctl.app.build import Assembly, build, log_header, record_layout
 from motorctl.app.daemon.io_side import io_main
 from motorctl.app.daemon.loop_side import LoopSide
 from motorctl.app.daemon.notify import sd_notify
@@ -93,8 +93,7 @@ def plan_daemon(config_path: str, socket_path: str | None, log_dir: str | None) 
     log_path = str(ldir / f"motorctl-{stamp}-{os.getpid()}.mlog")
     names = list(loaded.axes)
     tb = loaded.timebase
-    from motorctl.loop.records import RecordLayout
-    width = RecordLayout(names).width
+    width = record_layout(loaded, names).width
     window_s = max(d.event_before_s + d.event_after_s,
                    d.overrun_event_before_s + d.overrun_event_after_s)
     ring = SharedRing(tb.cycles(window_s + stall_bound_s(d.flush_s) + RING_SPARE_S), width,
