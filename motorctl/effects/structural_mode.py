@@ -136,12 +136,15 @@ class StructuralModeFamily(EffectFamily):
 
     # identification
     def columns(self, h, p):
-        """(N, 2): :func:`mode_columns` of the signals' acceleration at f_a = h [Hz]."""
+        """(N, 2): :func:`mode_columns` of a prepared record's acceleration at f_a = h [Hz]. On
+        signals without a sample rate (:class:`~motorctl.effects.base.Signals` of states, e.g.
+        the simulated-position fit's samples across its windows) the term, a filter with memory,
+        has no value: zeros (the rigid model's)."""
+        a = np.asarray(p.a, dtype=float)
         fs = getattr(p, "fs", None)
         if not fs:
-            t = np.asarray(p.t, dtype=float)
-            fs = (len(t) - 1) / (t[-1] - t[0])
-        return mode_columns(np.asarray(p.a, dtype=float), float(fs), float(h))
+            return np.zeros((a.shape[0], 2))
+        return mode_columns(a, float(fs), float(h))
 
     def search(self, ctx, base, residual):
         """None when the current ``residual`` has no resonance line (:func:`resonance_line`: none
