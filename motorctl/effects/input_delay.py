@@ -48,8 +48,21 @@ BAND_LOW_HZ = 15.0
 #: largest difference of the delays the two bands say [samples] (default plant, 20 s: clean
 #: 0.1, input delays of 0.2 and 0.6 ms 0.0-0.3; a load with 50 µm of play 1.6, 200 µm 6.3)
 MAX_BAND_SPREAD = 0.6
-#: step of the bands' delay grids [samples]
-BAND_STEP = 0.1
+#: step of the bands' delay grids [samples] (the minimum refined by a parabola)
+BAND_STEP = 0.5
+
+
+def parabolic_min(grid: np.ndarray, sses: np.ndarray) -> float:
+    """The grid value (K,) of the least SSE (K,), refined by the parabola through the SSEs of
+    it and its two neighbours (not at the grid's ends, nor where they do not curve up)."""
+    i = int(np.argmin(sses))
+    d = float(grid[i])
+    if 0 < i < len(grid) - 1:
+        s0, s1, s2 = sses[i - 1], sses[i], sses[i + 1]
+        den = s0 - 2 * s1 + s2
+        if den > 0:
+            d += 0.5 * (s0 - s2) / den * float(grid[1] - grid[0])
+    return d
 
 
 class DelayComp(StrictModel):
@@ -93,12 +106,7 @@ class InputDelayFamily(EffectFamily):
         grid = np.arange(0, dmax + 1)
         sses = ctx.delay_sses(base, grid)
         i = int(np.argmin(sses))
-        d = float(grid[i])
-        if 0 < i < len(grid) - 1:   # parabola through the three SSEs around the minimum
-            s0, s1, s2 = sses[i - 1], sses[i], sses[i + 1]
-            den = s0 - 2 * s1 + s2
-            if den > 0:
-                d += 0.5 * (s0 - s2) / den
+        d = parabolic_min(grid, sses)
         if i == 0:
             return ctx.term(self.name, 0.0), "best delay is 0 samples beyond the zero-order hold"
         total = ctx.zoh + d
@@ -131,7 +139,7 @@ class InputDelayFamily(EffectFamily):
         if bands is None:
             return None
         grid = np.arange(0.0, dmax + 1e-9, BAND_STEP)
-        taus = [float(grid[int(np.argmin(ctx.delay_sses(base, grid, band=b)))]) for b in bands]
+        taus = [parabolic_min(grid, ctx.delay_sses(base, grid, band=b)) for b in bands]
         if abs(taus[1] - taus[0]) <= MAX_BAND_SPREAD:
             return None
         (l0, h0), (l1, h1) = bands
