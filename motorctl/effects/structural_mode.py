@@ -59,7 +59,7 @@ F_MIN_HZ = 15.0
 #: log where the current loop's lag was left to it)
 BAND_FACTOR = 1.5
 #: relative step of the antiresonance's log grid
-GRID_STEP = 0.04
+GRID_STEP = 0.08
 #: least and largest load fraction m_l/M of a plausible mode [-]
 MIN_LOAD_FRACTION = 0.01
 MAX_LOAD_FRACTION = 0.9
