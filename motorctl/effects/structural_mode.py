@@ -14,7 +14,7 @@ force the paper's rigid model (eq. 1) misses is m_l δ̈:
     A1 u = M ẍ_c + B ẋ + … + m_l δ̈     ⇒     u = Φθ + Cβ,  C = −G(s) ẍ,  β = m_l / A1       [V]
 
 Its signature is a **resonance in the frequency content of the residual against the input**:
-the closed loop rings at the frequency where the mode and the controller meet (67.75 Hz for a
+the closed loop rings at the frequency where the mode and the controller meet (52.7 Hz for a
 150 Hz mode under C2 on the default plant), the input and the carriage both carry the line, and
 the line is neither periodic in position nor a force from outside (its phase follows ẍ, not
 the clock): a periodic disturbance, cogging or a force ripple fitted there is wrong.
@@ -24,10 +24,10 @@ damping :data:`COLUMN_DAMPING` of the columns is the model's; the second column 
 plant's own damping and the current loop's lag change in the phase), filtered causally at the
 record's rate (bilinear transform, :func:`scipy.signal.bilinear`) from the record's own
 acceleration, then decimated like every column. f_a = ω_a/2π is searched on a log grid from
-:data:`F_MIN_HZ` to :data:`BAND_FACTOR` times the decimated band's edge, then refined. A mode whose antiresonance
-lies above the record's band is seen only as β/ω_a² ·d²ẍ/dt² (no frequency information): its
-best f_a sits at the grid's edge, and it is not named (the record says only that the band is
-clean).
+:data:`F_MIN_HZ` to :data:`BAND_FACTOR` times the decimated band's edge (:func:`f_max`), then
+refined, only when the residual has a resonance line (:func:`resonance_line`). A mode whose
+antiresonance lies above the record's band is seen only as β/ω_a² ·d²ẍ/dt² (no frequency
+information): its best f_a sits at the grid's edge, and it is not named (a bandwidth limit).
 
 Parameters: the antiresonance f_a [Hz], the load mass m_l = A1·β_G [kg] (β_G/θ1 of the moving
 mass), the free-free resonance f = f_a/√(1 − m_l/M) [Hz] (the notch frequency).
