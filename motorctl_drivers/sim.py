@@ -632,7 +632,8 @@ def _hooked_step(u, s, p, dl, nz, codes, table, lengths):
         (s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], tau) = _rk4_two_mass_hooked(
             (f_start, f_prev, f_cur, p[PP_DELTA], p[PP_TAUI], p[PP_MC], p[PP_ML], p[PP_M],
                                    p[PP_KS], p[PP_CS], p[PP_B], p[PP_FC], p[PP_F0], s[PS_FNOISE], s[PS_FEXT], codes,
-                                   table, lengths, p[PP_GAP]), s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], p[PP_H], n)
+                                   table, lengths, p[PP_GAP]),
+            s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], p[PP_H], n)
         s[PS_F] = _force_at(tau, f_start, f_prev, f_cur, p[PP_DELTA], p[PP_TAUI])
     _period_end(s, p, nz, stuck, x0, xl0)
 
