@@ -20,11 +20,21 @@ loop's own compiled stream step (motorctl.loop.stream.stream_step) taking one ro
   their row (0: set at rest, as M3/M5 stop the motion first).
 
 The figures are this process's; they depend on the machine (not its load, except the wall time).
+
+``--wall SECONDS`` measures instead the lead the filler needs on this host as it is loaded now:
+the filler thread runs as in the daemon (``MotionSide.start``, waking every FILL_EVERY_S of wall
+time, ``--lead`` seconds ahead, default 2), and a forked consumer process takes the rows at the
+loop's rate by the wall clock (as a real-time loop would, whatever the load), recording how far
+ahead the ring was at worst. The lead used up at worst (lead − least depth) is the longest the
+filler fell behind; a lead must exceed it. Load the host as you want to judge it, e.g. two
+spinners: ``for i in 1 2; do timeout 60 sh -c 'while :; do :; done' & done``.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import struct
 import time
 from pathlib import Path
 
@@ -33,7 +43,9 @@ import numpy as np
 from motorctl.app.daemon import motion_side as M
 from motorctl.loop.cycle import STREAM
 from motorctl.loop.stream import SP_UNDERRUNS, SetpointRing, stream_step
+from motorctl.loop.stream import SP_READ, SP_WRITE
 from motorctl.motion import GcodeSettings, contour_error, parse
+from motorctl.motion.gcode import output_names
 
 REPO = Path(__file__).resolve().parents[1]
 DT = 2e-4
@@ -46,9 +58,14 @@ def main() -> None:
     ap.add_argument("--program", default=str(REPO / "configs/cam_sample.ngc"))
     ap.add_argument("--override", type=float, default=1.0)
     ap.add_argument("--hold-at-s", type=float, default=None)
+    ap.add_argument("--wall", type=float, default=None, metavar="SECONDS")
+    ap.add_argument("--lead", type=float, default=2.0)
     args = ap.parse_args()
+    if args.wall is not None:
+        return wall_lead(args)
     text = Path(args.program).read_text()
-    ring = SetpointRing(int(0.5 / DT), 2, shared=False)
+    outs, stop = output_names(SETTINGS)
+    ring = SetpointRing(int(0.5 / DT), 2, shared=False, outputs=outs, stop_outputs=stop)
     ms = M.MotionSide(ring, lambda: np.zeros(4), ["X.x_d", "X.xd_dot", "Y.x_d", "Y.xd_dot"], ["X", "Y"],
                       LIMITS, lambda: np.array([STREAM, STREAM]), DT, gcode_settings=SETTINGS)
     # the loop's per-axis arrays as the compiled cycle has them: mode, stop; x, v, a, a_max, j_max
@@ -100,6 +117,47 @@ def main() -> None:
     print(f"contour error of the setpoints: max {err.max() * 1e6:.2f} um, p99 {np.percentile(err, 99) * 1e6:.2f} um")
     print(f"outputs set: {len(ms.output_log)}; end at ({xs[n - 1, 0] * 1e3:.4f}, {xs[n - 1, 1] * 1e3:.4f}) mm, "
           f"program end ({prog.end[0] * 1e3:.4f}, {prog.end[1] * 1e3:.4f}) mm")
+
+
+def wall_lead(args) -> None:
+    """``--wall``: the least depth of the ring over ``args.wall`` s of wall time (docstring)."""
+    outs, stop = output_names(SETTINGS)
+    ring = SetpointRing(int(2 * args.lead / DT) + 10, 2, shared=True, outputs=outs, stop_outputs=stop)
+    ms = M.MotionSide(ring, lambda: np.zeros(4), ["X.x_d", "X.xd_dot", "Y.x_d", "Y.xd_dot"], ["X", "Y"],
+                      LIMITS, lambda: np.array([STREAM, STREAM]), DT, gcode_settings=SETTINGS, lead_s=args.lead)
+    text = Path(args.program).read_text()
+    info = ms.gcode(text, Path(args.program).name)
+    while ms.fill():                                  # the whole lead, before the clock starts
+        pass
+    r_fd, w_fd = os.pipe()
+    pid = os.fork()
+    if pid == 0:                                      # the consumer: the loop's rate by the wall clock
+        os.close(r_fd)
+        t0 = time.monotonic()
+        least, dry = float("inf"), 0
+        end = min(args.wall, info["duration_s"] - 0.5)
+        while (el := time.monotonic() - t0) < end:
+            target = int(el / DT)
+            w = int(ring.ctl[SP_WRITE])
+            least = min(least, (w - target) * DT)
+            if target > w:
+                dry += 1
+            ring.ctl[SP_READ] = min(target, w)
+            time.sleep(0.001)
+        os.write(w_fd, struct.pack("<dq", least, dry))
+        os._exit(0)
+    os.close(w_fd)
+    c0 = time.process_time()
+    ms.start()
+    least, dry = struct.unpack("<dq", os.read(r_fd, 16))
+    os.waitpid(pid, 0)
+    ms.stop()
+    cpu = time.process_time() - c0
+    load = os.getloadavg()[0]
+    print(f"program {args.program}: {info['duration_s']:.1f} s planned; lead {args.lead:g} s; "
+          f"{min(args.wall, info['duration_s'] - 0.5):.1f} s of wall time, load average {load:.1f}")
+    print(f"least lead left {least:.3f} s: the filler fell {args.lead - least:.3f} s behind at worst; "
+          f"samples with the ring dry: {dry}; filler CPU {cpu:.2f} s")
 
 
 if __name__ == "__main__":

@@ -14,8 +14,10 @@ The constraints (the shipped C2's 40 s run on the same axis as the reference): n
 at rest ≤ 1.5× the reference's, saturated samples ≤ 1.5 × max(the reference's, 10); with
 ``--floor`` also the margin floor (GM ≥ 6 dB, PM ≥ 10°, |S| ≤ 16 dB at 100, 75 and 50 % of the
 loop gain) on the true plant, the simulated axis's own parameters (not autotune's
-measurement): a point that fails it is not run. Without it the search may find gains with
-smaller margins than autotune admits.
+measurement), as a constraint of the search itself: the Sobol design is drawn from the points
+that hold it (a cheap check before any run) and a Nelder-Mead step onto a point that fails it
+is not run (it scores as a violation). Without it the search may find gains with smaller
+margins than autotune admits.
 
 Run (about 7 s per run on an idle core; --sobol 16 --nm 24: 40 runs per law and axis):
     python benchmarks/search_gains.py configs/gantry.yaml --axis X --axis Y \
@@ -130,6 +132,17 @@ def violation(res: dict, ref: dict) -> str:
     return ""
 
 
+def design(raw, axis, law, lo, hi, n, seed, floor):
+    """``n`` points of a scrambled Sobol sequence (fixed ``seed``) in the log box [lo, hi]; with
+    ``floor``, the first ``n`` of the sequence whose margins hold the floor (:func:`floor_holds`,
+    a cheap check on the true plant): the design's runs are all spent where the constraint
+    holds (up to 64·n points are drawn; fewer than ``n`` when the floor admits so little)."""
+    pts = lo + qmc.Sobol(len(lo), scramble=True, seed=seed).random(n if not floor else 64 * n) * (hi - lo)
+    if not floor:
+        return list(pts)
+    return [x for x in pts if floor_holds(raw, axis, law, gains_of(raw, axis, law, x))][:n]
+
+
 def search(raw, axis, law, ref, seconds, n_sobol, n_nm, say, rounds=1, floor=False):
     box = BOX[law]
     lo, hi = np.array([b[1] for b in box]), np.array([b[2] for b in box])
@@ -150,9 +163,8 @@ def search(raw, axis, law, ref, seconds, n_sobol, n_nm, say, rounds=1, floor=Fal
             return PENALTY + (l2 if math.isfinite(l2) else PENALTY)
         return l2
 
-    pts = qmc.Sobol(len(box), scramble=True, seed=44).random(n_sobol)
-    for p in pts:
-        f(lo + p * (hi - lo))
+    for x in design(raw, axis, law, lo, hi, n_sobol, 44, floor):
+        f(x)
     ok = [s for s in seen if not s[2] and math.isfinite(s[1])]
     if ok and n_nm > 0:
         x0 = min(ok, key=lambda s: s[1])[0]
@@ -165,8 +177,8 @@ def search(raw, axis, law, ref, seconds, n_sobol, n_nm, say, rounds=1, floor=Fal
             break
         c = min(ok, key=lambda s: s[1])[0]
         lo2, hi2 = np.maximum(lo, c - 0.3), np.minimum(hi, c + 0.3)
-        for p in qmc.Sobol(len(box), scramble=True, seed=45).random(n_sobol):
-            f(lo2 + p * (hi2 - lo2))
+        for x in design(raw, axis, law, lo2, hi2, n_sobol, 45, floor):
+            f(x)
         ok = [s for s in seen if not s[2] and math.isfinite(s[1])]
         x0 = min(ok, key=lambda s: s[1])[0]
         simplex = [x0] + [x0 + np.eye(len(box))[j] * 0.05 * (hi - lo)[j] for j in range(len(box))]

@@ -172,6 +172,11 @@ class DaemonConfig(StrictModel):
     allow_fault_injection: accept ``motorctl inject`` (simulated driver only).
     scope: the live scope page served by the I/O process (:class:`ScopeConfig`; None: off).
     foxglove: the same channels to Foxglove (:class:`FoxgloveConfig`; None: off).
+    motion_lead_s: commanded motion's setpoints kept ahead of the loop [s] (the setpoint ring
+    holds twice as much, at least 1 s): the longest the I/O process may be starved of the CPU
+    before the loop runs dry and brakes to rest (an underrun, docs/motion.md); below the
+    recorder's stall bound 2·flush_s + 1 s; a hold, an abort or an override acts within a few
+    cycles whatever the lead.
 
     Retention of ``log_dir`` (docs/daemon.md): log_segment_bytes: largest run-log segment
     [bytes]; log_segment_s: a segment is closed at this age at the latest [s];
@@ -194,10 +199,22 @@ class DaemonConfig(StrictModel):
     allow_fault_injection: bool = False
     scope: ScopeConfig | None = None
     foxglove: FoxgloveConfig | None = None
+    motion_lead_s: Annotated[float, Field(ge=0.05, le=3.0)] = 0.5
     log_segment_bytes: Annotated[int, Field(ge=1 << 20, le=1 << 40)] = 512 << 20
     log_segment_s: Annotated[float, Field(ge=1.0, le=7 * 86400.0)] = 3600.0
     log_budget_bytes: Annotated[int, Field(ge=2 << 20, le=1 << 50)] = 16 << 30
     log_max_age_s: Annotated[float, Field(ge=60.0, le=3650 * 86400.0)] = 30 * 86400.0
+
+    @field_validator("motion_lead_s")
+    @classmethod
+    def _lead_below_the_stall_bound(cls, v: float, info: ValidationInfo) -> float:
+        flush = info.data.get("flush_s")
+        if flush is not None and v >= 2.0 * flush + 1.0:
+            raise PydanticCustomError(
+                "lead_too_long", "not below the recorder's stall bound 2 x flush_s + 1 s = {bound} s (an I/O "
+                "process starved that long latches 'recorder stalled' before the lead runs out); allowed: "
+                "below it", {"bound": 2.0 * flush + 1.0})
+        return v
 
     @field_validator("log_budget_bytes")
     @classmethod

@@ -154,6 +154,16 @@ class Driver(abc.ABC):
             raise ValueError("set_output: an output needs a name")
         self.outputs[name] = float(value)
 
+    def apply_outputs(self, names: tuple[str, ...], values: np.ndarray) -> None:
+        """The machine outputs ``names`` of the setpoint stream take ``values`` ((len(names),): 0/1
+        for a digital output, the S value for a power output) in this cycle's exchange. Called by
+        the loop inside the cycle, before :meth:`write`, only in a cycle where the stream changed
+        them (:mod:`motorctl.loop.stream`: LinuxCNC's motion-synchronised outputs); it must not
+        block nor allocate a buffer. The base class records them in :attr:`outputs` (a driver with
+        outputs on its bus overrides this and puts them into the process image its write sends)."""
+        for name, v in zip(names, values):
+            self.outputs[name] = float(v)
+
     def configure(self) -> None:
         """Reach the device and set it up (may block; never inside the cycle). What the set-up
         found and changed on the way is in :attr:`notices`.

@@ -52,6 +52,23 @@ def test_autotune_fits_the_default_plant(repo, default_plant, axis):
     assert abs(model["current_loop_hz"] / plant["current_loop_hz"] - 1.0) < 0.10
 
 
+@pytest.mark.parametrize("axis", ["X", "Y"])
+def test_autotune_fits_the_friction_from_constant_velocity_passes(repo, default_plant, axis):
+    """Viscous friction θ2 = B/A1 within 20 % of the simulated axis's (the multisine above 10 Hz
+    cannot see it), Coulomb θ3 = A_f/A1 too, each with a standard deviation; the passes stayed
+    inside the soft limits."""
+    res = default_plant[0][axis]
+    model, fric = res["model"], res["measurement"]["friction"]
+    plant = load_yaml(repo / "configs" / "gantry.yaml")["axes"][axis]["driver"]
+    a1 = plant["a1_N_per_V"]
+    assert abs(model["theta2"] / (plant["viscous_N_s_per_m"] / a1) - 1.0) < 0.20, model
+    assert abs(model["theta3"] / (plant["coulomb_N"] / a1) - 1.0) < 0.20, model
+    assert 0.0 < model["sigma"]["theta2"] < 0.2 * model["theta2"]
+    lo, hi = res["measurement"]["soft_limits_m"]
+    assert lo < fric["stroke_m"][0] and fric["stroke_m"][1] < hi
+    assert len(fric["passes"]) == 6 and sum(v > 0 for v, _ in fric["passes"]) == 3     # both ways
+
+
 def test_autotune_sim_end_to_end(repo, default_plant):
     res, out = default_plant[0]["X"], default_plant[1]
     meas = res["measurement"]
@@ -80,7 +97,12 @@ def test_autotune_sim_end_to_end(repo, default_plant):
     sec = written["axes"]["X"]["controller"]
     assert sec["pid"]["P"] == res["gains"]["pid"]["P"] and sec["c2"]["k1"] == res["gains"]["c2"]["k1"]
     assert "c1" not in sec                  # a law not asked for keeps the shared keys
-    assert "PM" in (out / "autotuned.yaml").read_text().splitlines()[5]
+    text = (out / "autotuned.yaml").read_text()
+    assert "PM" in text.splitlines()[6]
+    # PID+FF's feedforward is the fitted model's, and the comments say so
+    ff = res["model"]
+    assert sec["pid"]["FF2"] == pytest.approx(ff["theta1"]) and sec["pid"]["FF1"] == pytest.approx(ff["theta2"])
+    assert f"FF1 {ff['theta2']:.4g}, FF2 {ff['theta1']:.4g}" in text and "constant-velocity passes" in text
     # --law keeps to the laws asked for; an unknown one is refused with what is allowed
     p = _autotune(repo, out, "configs/gantry.yaml", "--axis", "X", "--law", "c3", "--out", str(out))
     assert p.returncode == 2 and "--law c3" in p.stderr and "c1, c2, pid" in p.stderr, p.stderr

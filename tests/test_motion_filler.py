@@ -11,6 +11,7 @@ from motorctl.app.daemon import motion_side as M
 from motorctl.loop.cycle import STREAM
 from motorctl.loop.stream import SP_READ, SP_WRITE, SetpointRing
 from motorctl.motion import GcodeSettings
+from motorctl.motion.gcode import output_names
 
 REPO = Path(__file__).resolve().parents[1]
 DT = 2e-4
@@ -26,13 +27,14 @@ class Rig:
     """A MotionSide on a process-local ring and a consumer taking a row a cycle."""
 
     def __init__(self, settings=None):
-        self.ring = SetpointRing(int(0.5 / DT), 2, shared=False)
-        self.sent: list[tuple[str, float]] = []
+        outs, stop = output_names(settings) if settings is not None else ([], [])
+        self.ring = SetpointRing(int(0.5 / DT), 2, shared=False, outputs=outs, stop_outputs=stop)
         self.ms = M.MotionSide(self.ring, lambda: np.zeros(4), ["X.x_d", "X.xd_dot", "Y.x_d", "Y.xd_dot"],
                                ["X", "Y"], LIMITS, lambda: np.array([STREAM, STREAM]), DT,
-                               gcode_settings=settings, output=lambda n, v: self.sent.append((n, v)))
+                               gcode_settings=settings)
         self.cycle = 0
         self.rows: list[np.ndarray] = []
+        self.outs: list[np.ndarray] = []     # the outputs each row taken carries
 
     def run(self, cycles: int, until_idle: bool = False) -> None:
         ring = self.ring
@@ -42,7 +44,8 @@ class Rig:
             self.ms.issue_events()
             w, r = int(ring.ctl[SP_WRITE]), int(ring.ctl[SP_READ])
             if r < w:
-                self.rows.append(ring.rows[r % ring.capacity, 1:].reshape(2, 3).copy())
+                self.rows.append(ring.setpoint(r).copy())
+                self.outs.append(ring.row_outputs(r).copy())
                 ring.ctl[SP_READ] = r + 1
             else:
                 assert not self.rows or not np.any(self.rows[-1][:, 1:]), "underrun while moving"
@@ -126,10 +129,11 @@ def test_machine_words_switch_outputs_at_their_planned_rows():
     log = rig.ms.output_log
     n_on = CAM.read_text().count("M03")
     assert [v for _, _, v, _ in log] == [1.0, 0.0] * n_on
-    assert rig.sent == [(name, v) for _, name, v, _ in log]
-    rows = rig.setpoints()
+    rows, torch = rig.setpoints(), np.array(rig.outs)[:, 0]
+    # the rows carry the output: it switches exactly at the rows of the log, nowhere else
+    assert np.flatnonzero(np.diff(torch)).tolist() == [row - 1 for row, _, _, _ in log]
     for row, _, value, x in log:          # each at its row: at rest on the pierce / end point
-        assert np.all(np.abs(rows[row, :, 1]) < 1e-12)
+        assert np.all(np.abs(rows[row, :, 1]) < 1e-12) and torch[row] == value
         np.testing.assert_array_equal(rows[row, :, 0], x)
     assert np.allclose(log[0][3], [0.035, 0.050], atol=1e-9)   # N70 G00 X35 Y50, then N80 M03
 
@@ -167,3 +171,49 @@ def test_program_outside_the_stroke_with_the_active_work_offset_refused_before_m
         rig.ms.gcode("G21 G90\nG0 X10 Y10\nG1 X350 F3000\nG1 X500\nM2\n", "cut.ngc")
     rig.run(1000)
     assert rig.ring.written() == written and rig.ms.idle()
+
+
+def test_abort_stops_a_move_that_is_wholly_in_the_ring_already():
+    """A move shorter than the lead is in the ring before the abort comes: the abort rewrites the
+    ring (it does not take the empty queue for 'nothing runs') and the axis stops short."""
+    rig = Rig()
+    rig.ms.move({0: 0.010}, feed=0.05)              # 0.2 s + ramps, within the 0.5 s lead
+    rig.run(2 * EVERY)
+    assert rig.ms.cur is None and not rig.ms.queue and rig.ring.depth() > 0
+    rig.ms.abort()
+    rig.run(20_000, until_idle=True)
+    sp = rig.setpoints()
+    assert rig.ms.status()["stopped_because"] == "aborted" and not rig.ms.status()["aborting"]
+    assert 0.0 < sp[-1, 0, 0] < 0.008 and np.all(sp[-1, :, 1:] == 0.0)
+    _within_limits(sp)
+
+
+def test_abort_switches_the_torch_off_at_once_and_a_hold_keeps_it_on():
+    """LinuxCNC's behaviour: a feed hold keeps the torch (M3) on; an abort switches it off at the
+    first row it rewrites, while the axes still decelerate."""
+    rig = Rig(GcodeSettings(axes=["X", "Y"], words={"M3": "torch", "M5": "torch"}))
+    rig.ms.gcode("G21 G90\nM3\nG1 X100 F3000\nM5\nM2\n", "cut.ngc")
+    rig.run(3000)                                   # 0.6 s: cutting at 50 mm/s
+    rig.ms.hold()
+    rig.run(5000)
+    torch = np.array(rig.outs)[:, 0]
+    assert rig.setpoints()[-1, 0, 1] == 0.0 and torch[-1] == 1.0      # held at rest, torch on
+    rig.ms.resume()
+    rig.run(1000)
+    n0 = len(rig.rows)
+    rig.ms.abort()
+    rig.run(20_000, until_idle=True)
+    sp, torch = rig.setpoints(), np.array(rig.outs)[:, 0]
+    off = n0 + int(np.flatnonzero(torch[n0:] == 0.0)[0])     # the row the torch goes off
+    assert np.all(torch[off:] == 0.0) and np.all(torch[n0:off] == 1.0)
+    assert off - n0 <= rig.ms.guard + 1                      # within the guard of the abort
+    assert abs(sp[off, 0, 1]) > 0.01                          # the axis still moving then
+    assert rig.ms.status()["stopped_because"] == "aborted" and sp[-1, 0, 0] < 0.1
+
+
+def test_a_digital_output_the_ring_does_not_carry_is_refused_before_motion():
+    rig = Rig(GcodeSettings(axes=["X", "Y"], words={"M62": "dout", "M63": "dout"}))
+    assert rig.ring.outputs == ("dout0", "dout1", "dout2", "dout3")
+    with pytest.raises(M.MotionError, match=r"cut.ngc:2:\d+: M62: output dout7 is not one the loop carries"):
+        rig.ms.gcode("G21 G90 G64 P0.01\nG1 X10 F600 M62 P7\nM2\n", "cut.ngc")
+    assert rig.ms.idle() and rig.ring.written() == 0

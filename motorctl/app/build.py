@@ -77,17 +77,18 @@ class Assembly:
                            f"configured: {', '.join(self.bank[i])}") from None
 
 
-def record_layout(loaded: LoadedConfig, names) -> RecordLayout:
+def record_layout(loaded: LoadedConfig, names, outputs=()) -> RecordLayout:
     """The record's layout for axes ``names`` of ``loaded``: the fixed fields and, per axis, the
     own signals (:attr:`~motorctl.control.base.Controller.own_signals`) of every law its
-    ``controller:`` section configures (any of them may run: ``--controller``, a switch)."""
+    ``controller:`` section configures (any of them may run: ``--controller``, a switch), then
+    the machine ``outputs`` of the loop's setpoint stream (none without one)."""
     own = {}
     for a in names:
         sigs = {}
         for law in configured_controllers(loaded.axes[a].controller):
             sigs.update(controller_class(law).own_signals)
         own[a] = sigs
-    return RecordLayout(names, own)
+    return RecordLayout(names, own, outputs)
 
 
 def build(loaded: LoadedConfig, axes=None, controller: str | None = None, *, clock: str,
@@ -131,7 +132,8 @@ def build(loaded: LoadedConfig, axes=None, controller: str | None = None, *, clo
                      heartbeat=heartbeat, overrun_policy=lc.overrun_policy,
                      overrun_hold=lc.overrun_hold_cycles, overrun_ramp_s=lc.overrun_ramp_s,
                      stop_settle_s=cfg.daemon.stop_settle_s if operated else 0.0,
-                     operated=operated, stream=stream, layout=record_layout(loaded, names))
+                     operated=operated, stream=stream,
+                     layout=record_layout(loaded, names, stream.outputs if stream is not None else ()))
     return Assembly(loaded, names, driver, bank, active, sup, programs, loop, clock)
 
 

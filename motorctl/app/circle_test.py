@@ -93,7 +93,8 @@ def run_circle_test(loaded: LoadedConfig, radius: float, feed: float, controller
                 if motion.idle() or any(loop.supervisor.fault):
                     loop.request_stop()
                     return
-            motion.fill()
+            while motion.fill():                         # up to the lead, a block at a time
+                pass
 
         lp.on_slack = between_cycles
         lp.run(1 << 40)

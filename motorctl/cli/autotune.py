@@ -64,7 +64,8 @@ def _summary(res: dict) -> dict:
     return {
         "model": mdl, "theta_hat0": res["theta_hat0"],
         "measurement": {k: meas[k] for k in ("excitation_rms_V", "excitation_peak_V", "e_max_m",
-                                             "guard_m", "stroke_m", "soft_limits_m", "pass")},
+                                             "guard_m", "stroke_m", "soft_limits_m", "pass")}
+        | {"friction": meas.get("friction")},
         "gains": {law: {k: v for k, v in g.items() if not k.startswith("_")}
                   for law, g in res["gains"].items()},
         "design": {law: {k[1:]: v for k, v in g.items() if k.startswith("_")}

@@ -21,7 +21,13 @@ Steps (any driver; the simulated one by default):
    load share), the current-loop bandwidth and a transport delay, by scipy.optimize.least_squares
    on log(P_model/P_measured) weighted by the coherence, with the ZOH and its aliases
    (:func:`motorctl.commission.loopshape.plant_model_frf`); a rigid model is kept when the mode does not
-   lower the cost by 30 %.
+   lower the cost by 30 %. The friction is not taken from the multisine (above 10 Hz θ2 ẋ is a
+   few per cent of θ1 ẍ): :func:`~motorctl.commission.measure.measure_friction` runs constant-velocity
+   passes at three speeds both ways inside the stroke (holding PID on the fitted θ1; X of
+   configs/gantry.yaml 9.5 s, Y 17.3 s on the machine) and fits θ2 (viscous), θ3 (Coulomb) and θ4
+   (offset) to the steady-state u against speed by linear least squares, each with its σ. θ2..θ4
+   replace the configured θ̂(0) in the model a law takes settings from (PID+FF: FF1 = θ2,
+   FF2 = θ1, bias = −θ4), stated in the written config's comments.
 3. **choose** (:func:`~motorctl.commission.choose.choose_gains`), ONE rule for every law, on the *measured* FRF:
    among each law's family (PID: P = θ1 ω², D = 2ζωθ1, I = P ω/r; C1/C2: k_s = 2ζωθ1,
    k1 = ω/(2ζ), γ_d of the config; ω on a log grid of 49 points from 30 to 3000 rad/s,
@@ -33,7 +39,7 @@ Steps (any driver; the simulated one by default):
    rest noise; ``benchmarks/compare_laws.py --search``) lies at 10-20° of phase margin and
    11-16 dB of peak sensitivity on the default plant, and step 4 runs every candidate on the
    machine, which stops on oscillation. The first candidate is the admissible one of highest
-   loop gain |L| at :data:`F_TRACK_HZ` = 2 Hz (the least sensitivity where the tracking error
+   loop gain |L| at :data:`F_TRACK_HZ` = 5 Hz (the least sensitivity where the tracking error
    of a point-to-point program lives). The u noise at rest is predicted (the measured rest
    spectrum of y through |C|) and reported, but judged on the machine in step 4 (with
    stiction and quantisation the prediction is only a bound). C1 and C2 have the same
@@ -66,13 +72,13 @@ Steps (any driver; the simulated one by default):
       sits at the level). From where the previous shape's passed (the first shape: its
       highest candidate), down 1, 2, 4 ... grid points while runs fail high, up so while
       they pass or fail soft, then halving the bracket. Shapes
-      in the order of their reach, the |L| at 2 Hz of their highest candidate (re-ranked
+      in the order of their reach, the |L| at 5 Hz of their highest candidate (re-ranked
       after each shape); a shape whose reach is below :data:`PRUNE_SHARE` of that of the
       best run so far ends the search (the rest reach less still). At most
       :data:`SEARCH_RUNS` runs per shape and :data:`SEARCH_BUDGET` in all.
    c. *refinement* around the best run that passed at 100 %: its admissible neighbours on
       the family's grid (one step in ω, ζ or r, or in two of them at once), the highest |L|
-      at 2 Hz first; the first that passes with a lower L2[e] becomes the centre; it stops
+      at 5 Hz first; the first that passes with a lower L2[e] becomes the centre; it stops
       when no neighbour improves, after :data:`REFINE_RUNS` runs.
    e. *confirmation* on full runs of :data:`FULL_PERIODS` program periods (saturation is
       rare and bursty: X's C2 saturated 7, 13, 15, 13, 15 times in successive 8 s windows
@@ -98,8 +104,8 @@ from motorctl.commission.choose import choose_gains, loop_frf, tunable_laws
 from motorctl.commission.evaluate import evaluate
 from motorctl.commission.fit import fit_plant
 from motorctl.commission.loopshape import c_frf, loop_margins
-from motorctl.commission.measure import measure_frf
-from motorctl.commission.rule import (FULL_PERIODS, PERIODS, REST_FACTOR, RULE, SAT_FACTOR, SAT_FLOOR_SHARE,
+from motorctl.commission.measure import measure_friction, measure_frf
+from motorctl.commission.rule import (COH_USED, FULL_PERIODS, PERIODS, REST_FACTOR, RULE, SAT_FACTOR, SAT_FLOOR_SHARE,
                                       SEARCH_BUDGET, AutotuneError, Rule)
 from motorctl.commission.verify import apply_gains, verify
 from motorctl.config import LoadedConfig, config_from_dict
@@ -129,18 +135,33 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
                                 f"{meas['guard_m'] * 1e6:.0f} um)" if meas["tripped"] else "too short")
         raise AutotuneError(f"axis {axis}: the measurement stopped: {why}")
     model = fit_plant(meas["f_hz"], meas["G"], meas["coherence"], ts, sec.theta_hat0)
+    fric = measure_friction(loaded, raw, axis, model["theta1"], clock, progress)
+    if fric["fault"] or "theta2" not in fric:
+        raise AutotuneError(f"axis {axis}: the friction passes stopped: {fric['fault'] or 'too short'}")
+    meas["friction"] = fric
+    # friction from the passes (steady state); the multisine's θ2 (above 10 Hz, where θ2 ẋ is
+    # a few per cent of θ1 ẍ) is kept for comparison only
+    model["theta2_frf"] = model["theta2"]
+    model.update(theta2=fric["theta2"], theta3=fric["theta3"], theta4=fric["theta4"])
+    model["sigma"] = dict(model["sigma"], theta2_frf=model["sigma"]["theta2"], **fric["sigma"])
     if progress:
         sg = model["sigma"]
+        progress(f"fit {axis}: friction theta2 {fric['theta2']:.4g} +- {sg['theta2']:.2g} V s/m, theta3 "
+                 f"{fric['theta3']:.4g} +- {sg['theta3']:.2g} V, theta4 {fric['theta4']:.4g} +- "
+                 f"{sg['theta4']:.2g} V from {len(fric['passes'])} constant-velocity passes "
+                 f"({fric['duration_s']:.1f} s)")
         progress(f"fit {axis}: theta1 {model['theta1']:.4g} +- {sg['theta1']:.2g} V s^2/m (theta_hat1(0) "
-                 f"{sec.theta_hat0[0]:.4g}), theta2 {model['theta2']:.3g} +- {sg['theta2']:.2g} V s/m, mode "
+                 f"{sec.theta_hat0[0]:.4g}), theta2 (multisine) {model['theta2_frf']:.3g} +- "
+                 f"{sg['theta2_frf']:.2g} V s/m, mode "
                  f"{model['mode_hz']:.1f} +- {sg.get('mode_hz', 0.0):.2g} Hz zeta {model['mode_damping']:.3f} load "
                  f"{model['load_fraction']:.2f}, current loop {model['current_loop_hz']:.0f} +- "
                  f"{sg['current_loop_hz']:.2g} Hz, delay {model['delay_s'] * 1e6:.1f} +- {sg['delay_s'] * 1e6:.2g} us "
                  f"(+- one standard deviation of the fit)")
     w, G_fit, G_w = loop_frf(meas, model, ts)
     th = np.asarray(sec.theta_hat0, dtype=float)
-    fitted = th.copy()              # θ1 from the fit; θ2..θ6 (friction, offset) as configured:
-    fitted[0] = model["theta1"]     # the FRF above 10 Hz does not see them
+    fitted = th.copy()              # θ1 from the FRF, θ2..θ4 (viscous, Coulomb, offset) from the
+    fitted[0] = model["theta1"]     # passes, θ5, θ6 (force curve) as configured
+    fitted[1:4] = model["theta2"], model["theta3"], model["theta4"]
     done = {"axis": axis, "measure": meas, "model": model, "theta_hat0": th.tolist(), "w": w,
             "G_fit": G_fit, "G_w": G_w, "choice": {}, "verify": {}, "reference": None,
             "gains": {}, "extra": {}, "ts": ts, "section": sec, "rule": rule}
@@ -207,11 +228,15 @@ def write_config(raw: dict, results: list, source: str, path) -> dict:
              f"u RMS at rest <= {REST_FACTOR:g} x as configured, no oscillation."]
     for res in results:
         a, mdl = res["axis"], res["model"]
-        lines.append(f"# axis {a}: fitted theta1 = M/A1 {mdl['theta1']:.4g} V s^2/m (config theta_hat1(0) "
-                     f"{res['theta_hat0'][0]:.4g}), theta2 {mdl['theta2']:.3g} V s/m, mode "
+        sg = mdl["sigma"]
+        lines.append(f"# axis {a}: fitted theta1 = M/A1 {mdl['theta1']:.4g} +- {sg['theta1']:.2g} V s^2/m "
+                     f"(config theta_hat1(0) {res['theta_hat0'][0]:.4g}; multisine), mode "
                      f"{mdl['mode_hz']:.1f} Hz (zeta {mdl['mode_damping']:.3f}, load "
                      f"{mdl['load_fraction']:.2f}), current loop {mdl['current_loop_hz']:.0f} Hz, delay "
                      f"{mdl['delay_s'] * 1e6:.1f} us")
+        lines.append(f"#   friction (constant-velocity passes): theta2 = B/A1 {mdl['theta2']:.4g} +- "
+                     f"{sg['theta2']:.2g} V s/m, theta3 = A_f/A1 {mdl['theta3']:.4g} +- {sg['theta3']:.2g} V, "
+                     f"theta4 = F_dis0/A1 {mdl['theta4']:.4g} +- {sg['theta4']:.2g} V")
         mg = final_margins(res)
         for law in res["choice"]:
             if law not in res["gains"]:
@@ -223,6 +248,10 @@ def write_config(raw: dict, results: list, source: str, path) -> dict:
             lines.append(f"#   {law}: {_fmt_gains(law, g)} ({v['scale']:.0%} of {how}, L2 {v['L2_um']:.3f} um): "
                          f"GM {m.gm_db:.1f} dB at {m.gm_hz:.0f} Hz, PM {m.pm_deg:.1f} deg, |S|max "
                          f"{m.ms_db:.1f} dB, crossover {m.wc_hz:.0f} Hz")
+            ex = res["extra"].get(law) or {}
+            if ex:                      # a law's settings from the fitted model (PID: its feedforward)
+                lines.append(f"#     from the fitted theta1 {mdl['theta1']:.4g}, theta2 {mdl['theta2']:.4g}, theta4 "
+                             f"{mdl['theta4']:.4g}: " + ", ".join(f"{k} {float(x):.4g}" for k, x in ex.items()))
     config_from_dict(new, str(path), check_budget=False)
     text = "\n".join(lines) + "\n" + yaml.safe_dump(new, sort_keys=False, default_flow_style=None)
     Path(path).write_text(text, encoding="utf-8")
@@ -237,67 +266,85 @@ def _phase_deg(H: np.ndarray) -> np.ndarray:
 
 
 def plot_bode(res: dict, path) -> str:
-    """Step 5: the Bode plot as PNG, five panels sharing the frequency axis: |G| (measured, and the
-    fitted model over the measured band), G's phase, the coherence r → e of
-    the measurement, |L| of each law's written gains with its crossover and gain margin
-    marked, L's phase with −180° and the phase margin marked (the last two only when gains were
-    chosen: three panels after ``--measure-only``). Every phase is unwrapped the same
-    way (:func:`_phase_deg`); the measured plant's phase continues the model's at the first
-    measured line. Needs matplotlib (the ``plot`` extra)."""
+    """Step 5: the Bode plot as PNG, over the measured band only (the first to the last line of
+    the multisine), five panels sharing the frequency axis: |G| (the measured lines, those of
+    coherence < :data:`COH_USED` drawn light: the rule takes the model there, and the fitted
+    model), G's phase, the coherence r → e with that threshold, |L| of each law's written
+    gains with the crossover and the gain margin marked (a bar from |L| at the −180° crossing
+    up to 1), L's phase with −180° and the phase margin marked (a bar from −180° up to the
+    phase at the crossover); the last two only when gains were chosen (three panels after
+    ``--measure-only``). Every phase is unwrapped the same way (:func:`_phase_deg`, along the
+    whole grid from 1 Hz) and each measured line is put on the model's branch (within ±180°
+    of the model at its frequency). Needs matplotlib (the ``plot`` extra)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     w, ts = res["w"], res["ts"]
     f = w / (2.0 * math.pi)
     meas = res["measure"]
-    fm, Gm = meas["f_hz"], meas["G"]
+    fm, Gm, coh = meas["f_hz"], meas["G"], meas["coherence"]
     ph_fit = _phase_deg(res["G_fit"])
-    ph_m = np.degrees(np.unwrap(np.angle(Gm)))
-    ph_m += 360.0 * np.round((np.interp(fm[0], f, ph_fit) - ph_m[0]) / 360.0)   # on the model's branch
+    ph_m = np.degrees(np.angle(Gm))
+    ph_m += 360.0 * np.round((np.interp(fm, f, ph_fit) - ph_m) / 360.0)     # on the model's branch
+    used = coh >= COH_USED
+    band = (f >= fm[0]) & (f <= fm[-1])
+    # where the FRF the rule runs on (loop_frf) is the measured one: between the first and the
+    # last line of coherence >= COH_USED; the fitted model elsewhere
+    on_meas = (f >= fm[used][0]) & (f <= fm[used][-1]) if used.sum() > 10 else np.zeros(f.shape, bool)
     n_panels = 5 if res["gains"] else 3        # --measure-only: no loop to draw
     fig, ax = plt.subplots(n_panels, 1, figsize=(10, 13 if res["gains"] else 8), sharex=True,
                            gridspec_kw={"height_ratios": [3, 2, 1, 3, 2][:n_panels]})
     ax = list(ax) + [None] * (5 - n_panels)
-    ax[0].loglog(fm, np.abs(Gm), ".", ms=2, color="0.5", label="plant G, measured")
-    band = (f >= fm[0]) & (f <= fm[-1])         # the model where it was fitted: the measured band
+    for sel, c, lab in ((used, "0.35", "measured"), (~used, "0.8", f"measured, coherence < {COH_USED:g} (not used)")):
+        if sel.any():
+            ax[0].loglog(fm[sel], np.abs(Gm[sel]), ".", ms=2, color=c, label=f"plant G, {lab}")
+            ax[1].semilogx(fm[sel], ph_m[sel], ".", ms=2, color=c)
+            ax[2].semilogx(fm[sel], coh[sel], ".", ms=2, color=c)
     ax[0].loglog(f[band], np.abs(res["G_fit"][band]), "k-", lw=1, label="plant G, fitted model")
-    ax[1].semilogx(fm, ph_m, ".", ms=2, color="0.5")
     ax[1].semilogx(f[band], ph_fit[band], "k-", lw=1)
-    ax[2].semilogx(fm, meas["coherence"], ".", ms=2, color="0.3")
+    ax[2].axhline(COH_USED, color="0.6", lw=0.8, ls="--")
     mg = final_margins(res)
     colors = ("tab:green", "tab:blue", "tab:red", "tab:purple", "tab:orange")
     for j, law in enumerate(res["gains"]):
         color = colors[j % len(colors)]
         L = c_frf(law, res["gains"][law], ts, w, res["theta_hat0"]) * res["G_w"]
         m = mg[law]
-        ax[3].loglog(f, np.abs(L), color=color, lw=1,
-                     label=f"L {law}: GM {m.gm_db:.1f} dB, PM {m.pm_deg:.0f} deg, |S| {m.ms_db:.1f} dB")
         ph = _phase_deg(L)
-        ax[4].semilogx(f, ph, color=color, lw=1)
-        if math.isfinite(m.wc_hz):
-            for k in (3, 4):
-                ax[k].axvline(m.wc_hz, color=color, ls=":", lw=0.8)
-            ax[4].plot([m.wc_hz], [np.interp(m.wc_hz, f, ph)], "o", color=color, ms=4)
-        if math.isfinite(m.gm_hz):
+        for k, y in ((3, np.abs(L)), (4, ph)):         # dashed: where the rule's FRF is the model
+            ax[k].plot(f[band], np.where(on_meas, np.nan, y)[band], color=color, lw=1, ls="--")
+            ax[k].plot(f[on_meas], y[on_meas], color=color, lw=1, label=(
+                f"L {law}: GM {m.gm_db:.1f} dB, PM {m.pm_deg:.0f} deg, |S| {m.ms_db:.1f} dB" if k == 3 else None))
+        if math.isfinite(m.wc_hz):                      # phase margin: −180° up to the phase at crossover
+            p_c = float(np.interp(m.wc_hz, f, ph))
+            ax[3].axvline(m.wc_hz, color=color, ls=":", lw=0.8)
+            ax[4].plot([m.wc_hz, m.wc_hz], [-180.0, p_c], color=color, lw=2.5, alpha=0.6)
+            ax[4].plot([m.wc_hz], [p_c], "o", color=color, ms=4)
+        if math.isfinite(m.gm_hz):                      # gain margin: |L| at −180° up to 1
+            ax[3].plot([m.gm_hz, m.gm_hz], [10 ** (-m.gm_db / 20), 1.0], color=color, lw=2.5, alpha=0.6)
             ax[3].plot([m.gm_hz], [10 ** (-m.gm_db / 20)], "v", color=color)
+            ax[4].axvline(m.gm_hz, color=color, ls=":", lw=0.8)
     if res["gains"]:
-        ax[3].axhline(1.0, color="0.7", lw=0.8)
-        ax[4].axhline(-180.0, color="0.7", lw=0.8)
+        ax[3].set_yscale("log")
+        ax[3].axhline(1.0, color="0.6", lw=0.8)
+        ax[4].axhline(-180.0, color="0.6", lw=0.8)
         ax[3].set_ylabel("|L| [-]")
         ax[4].set_ylabel("phase L [deg]")
         ax[3].legend(fontsize=8)
+        ax[3].set_title(f"loop gain L = C G of the written gains (dashed: G is the model, coherence < {COH_USED:g}); "
+                        "bars: the margins", fontsize=9)
     for k in (1, 4)[:1 + bool(res["gains"])]:
-        ys = [np.min(line.get_ydata()) for line in ax[k].get_lines() if len(line.get_ydata()) > 2]
-        if ys:
-            ax[k].set_ylim(max(min(ys), -900.0) - 20.0, 20.0)
+        ys = np.concatenate([line.get_ydata() for line in ax[k].get_lines() if len(line.get_ydata()) > 2])
+        lo_, hi_ = float(np.nanmin(ys)), float(np.nanmax(ys))
+        ax[k].set_ylim(45.0 * math.floor(min(lo_, -180.0) / 45.0) - 5.0, 45.0 * math.ceil(hi_ / 45.0) + 5.0)
+        ax[k].set_yticks(np.arange(90.0 * math.floor(min(lo_, -180.0) / 90.0), 90.0 * math.ceil(hi_ / 90.0) + 1, 90.0))
     ax[0].set_ylabel("|G| [m/V]")
     ax[1].set_ylabel("phase G [deg]")
     ax[2].set_ylabel("coherence")
     ax[2].set_ylim(0.0, 1.05)
-    ax[n_panels - 1].set_xlabel("frequency [Hz]")
+    ax[0].set_xlim(fm[0], fm[-1])
+    ax[n_panels - 1].set_xlabel("frequency [Hz] (the measured band)")
     ax[0].legend(fontsize=8)
-    ax[0].set_title(f"axis {res['axis']}: measured plant (indirect closed-loop estimate)"
-                    + (" and loop gains" if res["gains"] else ""))
+    ax[0].set_title(f"axis {res['axis']}: measured plant G (indirect closed-loop estimate) and fitted model")
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from motorctl.commission.loopshape import loop_margins, plant_model_frf
-from motorctl.commission.rule import BACKOFF, F_TRACK_HZ, RULE, Rule, SCALES
+from motorctl.commission.rule import BACKOFF, COH_USED, F_TRACK_HZ, RULE, Rule, SCALES
 from motorctl.control import configured_controllers, controller_class
 
 
@@ -18,13 +18,13 @@ OMEGA = tuple(float(x) for x in np.geomspace(30.0, 3000.0, 49))   #: [rad/s]
 
 def loop_frf(meas: dict, model: dict, ts: float):
     """(w (K,) [rad/s] of :func:`grid_w`, the fitted model's FRF (K,), the FRF the rule runs on
-    (K,)): the measured FRF where it was measured (coherence ≥ 0.5, interpolated between the
-    lines) and the fitted model elsewhere (below 10 Hz, above the last line) [m/V]."""
+    (K,)): the measured FRF where it was measured (coherence ≥ :data:`COH_USED`, interpolated
+    between the lines) and the fitted model elsewhere (below 10 Hz, above the last line) [m/V]."""
     w = grid_w(ts)
     G_fit = plant_model_frf(model, ts, w)
     G_w = G_fit.copy()
     fm, Gm, ch = meas["f_hz"], meas["G"], meas["coherence"]
-    good = ch >= 0.5
+    good = ch >= COH_USED
     f_w = w / (2.0 * math.pi)
     if good.sum() > 10:
         inside = (f_w >= fm[good][0]) & (f_w <= fm[good][-1])

@@ -4,6 +4,7 @@ constant-velocity passes that the friction is fitted from."""
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 
@@ -12,8 +13,11 @@ from scipy import signal
 
 from motorctl.app.build import build, shutdown, start
 from motorctl.commission.rule import AutotuneError, F_LO, F_SHAPE, HOLD_HZ, HOLD_R, HOLD_ZETA, DISP_SHARE, EXC_SHARE, F_BOOST, F_HI_SHARE, GUARD_SHARE, LINE_SPACING, PERIODS, PERIOD_S, REST_S, STROKE_MARGIN
+from motorctl.commission.rule import (FRICTION_A_MAX, FRICTION_A_SHARE, FRICTION_CRUISE, FRICTION_SKIP_S,
+                                      FRICTION_SPEEDS, FRICTION_V_SHARE)
 from motorctl.config import LoadedConfig, config_from_dict
 from motorctl.control.base import Controller, SIG_E
+from motorctl.loop.servo import IDLE
 from motorctl.loop.trajectory import Move
 
 
@@ -110,16 +114,25 @@ def hold_gains(theta_hat0) -> dict:
             "maxerror_i": 1.0 / i, "maxoutput": 0.0}
 
 
-def _pass_plan(loaded: LoadedConfig, axis: str, duration_s: float):
-    """(x_a, x_b, v [m/s]) of the constant-velocity pass: from the lower soft limit to the
-    upper, 10 % of the stroke inside each, at the speed that lasts ``duration_s``."""
+def _stroke(loaded: LoadedConfig, axis: str):
+    """(x_a, x_b) [m] of a measurement's passes: from the lower soft limit to the upper,
+    :data:`STROKE_MARGIN` of the stroke inside each.
+
+    Raises:
+        AutotuneError: the axis has no finite soft limits."""
     lim = loaded.axes[axis].limits
     lo, hi = lim.soft_min_m, lim.soft_max_m
     if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
         raise AutotuneError(f"axes.{axis}.limits: autotune needs finite soft limits (the stroke)")
-    a, b = lo + STROKE_MARGIN * (hi - lo), hi - STROKE_MARGIN * (hi - lo)
+    return lo + STROKE_MARGIN * (hi - lo), hi - STROKE_MARGIN * (hi - lo)
+
+
+def _pass_plan(loaded: LoadedConfig, axis: str, duration_s: float):
+    """(x_a, x_b, v [m/s]) of the constant-velocity pass (:func:`_stroke`) at the speed that
+    lasts ``duration_s``."""
+    a, b = _stroke(loaded, axis)
     v = abs(b - a) / duration_s
-    return a, b, min(v, 0.25 * lim.max_velocity_m_per_s)
+    return a, b, min(v, 0.25 * loaded.axes[axis].limits.max_velocity_m_per_s)
 
 
 def _read_idle(asm) -> float:
@@ -138,6 +151,34 @@ def _read_idle(asm) -> float:
         asm.loop.run(1)
         asm.loop.fault_reset(0)
     raise AutotuneError(f"axis {asm.names[0]} is in fault: {asm.supervisor.reason(0)}")
+
+
+def _approach_speed(lim) -> float:
+    """The speed of a move to a measurement's start [m/s]: 0.1 m/s, at most a quarter of the
+    axis's max velocity."""
+    return min(0.1, 0.25 * lim.max_velocity_m_per_s)
+
+
+@contextlib.contextmanager
+def _held(loaded2: LoadedConfig, axis: str, clock: str, capacity: int):
+    """The axis built alone under the holding PID of ``loaded2`` (operated: it moves only on a
+    command), started, read at idle: yields (assembly, y0 [m] where the axis stands); shut
+    down (0 V, amplifier off, driver closed) on every exit path.
+
+    Raises:
+        AutotuneError: the axis is in fault or stands outside its soft limits.
+    """
+    lim = loaded2.axes[axis].limits
+    asm = build(loaded2, [axis], "pid", clock=clock, capacity=capacity, operated=True)
+    start(asm, "off" if clock == "virtual" else loaded2.cfg.loop.realtime.policy)
+    try:
+        y0 = _read_idle(asm)                     # where the axis stands
+        if not lim.soft_min_m <= y0 <= lim.soft_max_m:
+            raise AutotuneError(f"axis {axis} stands at {y0:.4f} m, outside its soft limits "
+                                f"(motorctl jog it back first)")
+        yield asm, y0
+    finally:
+        shutdown(asm)
 
 
 def measure_frf(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
@@ -182,16 +223,10 @@ def measure_frf(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtua
     if cruise.size == 0 or (cruise[-1] - cruise[0]) < r.size + 100:
         raise AutotuneError(f"axes.{axis}.limits: the stroke is too short for a "
                             f"{exc_s:.0f} s pass at {v:.3g} m/s")
-    v_app = min(0.1, 0.25 * lim.max_velocity_m_per_s)
+    v_app = _approach_speed(lim)
     stroke = lim.soft_max_m - lim.soft_min_m
     capacity = tb.cycles(stroke / v_app + 1.0 + REST_S + pass_move.duration) + 8
-    asm = build(loaded2, [axis], "pid", clock=clock, capacity=capacity, operated=True)
-    start(asm, "off" if clock == "virtual" else loaded.cfg.loop.realtime.policy)
-    try:
-        y0 = _read_idle(asm)                     # where the axis stands
-        if not lim.soft_min_m <= y0 <= lim.soft_max_m:
-            raise AutotuneError(f"axis {axis} stands at {y0:.4f} m, outside its soft limits "
-                                f"(motorctl jog it back first)")
+    with _held(loaded2, axis, clock, capacity) as (asm, y0):
         approach = Move(y0, x_a, v_app, a_pass, 100.0 * a_pass)
         k_prog = asm.loop.k + tb.cycles(approach.duration) + 1
         k_exc = k_prog + tb.cycles(REST_S) + int(cruise[0]) + 50
@@ -203,8 +238,6 @@ def measure_frf(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtua
                      f"{v * 1e3:.1f} mm/s with a multisine of {np.sqrt(np.mean(r1 ** 2)):.2f} V RMS "
                      f"(peak {np.max(np.abs(r1)):.2f} V), {periods} periods of {PERIOD_S:g} s")
         asm.loop.run(min(n_total, capacity - asm.loop.k))
-    finally:
-        shutdown(asm)
     rows, lay = asm.loop.rows(), asm.loop.layout
     y = rows[:, lay.index(f"{axis}.y")]
     e = rows[:, lay.index(f"{axis}.e")]
@@ -240,4 +273,119 @@ def measure_frf(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtua
     G = s_re / s_ru
     out.update(f_hz=fr[lines], G=G[lines], coherence=c_re[lines],
                coherence_u=c_ru[lines])
+    return out
+
+
+# ================================================================ friction
+def friction_plan(loaded: LoadedConfig, axis: str):
+    """The constant-velocity passes of :func:`measure_friction`: (x_a, x_b [m], speeds [m/s]
+    (:data:`FRICTION_SPEEDS` of the top speed), a [m/s²]). The top speed is the least of
+    :data:`FRICTION_V_SHARE` of the axis's max velocity, the program's v_max and the speed that
+    keeps :data:`FRICTION_CRUISE` of the pass at constant velocity; the passes run between
+    x_a and x_b, inside the soft limits (:func:`_stroke`).
+
+    Raises:
+        AutotuneError: no finite soft limits."""
+    x_a, x_b = _stroke(loaded, axis)
+    lim, tc = loaded.axes[axis].limits, loaded.axes[axis].trajectory
+    a = min(FRICTION_A_SHARE * tc.a_max, FRICTION_A_MAX)
+    v_top = min(FRICTION_V_SHARE * lim.max_velocity_m_per_s, tc.v_max,
+                math.sqrt((1.0 - FRICTION_CRUISE) * (x_b - x_a) * a))
+    return x_a, x_b, [s * v_top for s in FRICTION_SPEEDS], a
+
+
+def measure_friction(loaded: LoadedConfig, raw: dict, axis: str, theta1: float, clock: str = "virtual",
+                     progress=None) -> dict:
+    """The friction of the axis from constant-velocity passes: steady-state force against speed
+    (paper eq. 4 at ẍ ≈ 0: u + θ5 u|u| + θ6 u³ = θ1 ẍ + θ2 ẋ + θ3 S_f(ẋ) − θ4), the standard
+    test of a servo axis's friction (Armstrong-Hélouvry, Dupont, Canudas de Wit, "A survey of
+    models, analysis tools and compensation methods for the control of machines with
+    friction", Automatica 30(7), 1994, §3.1).
+
+    The axis, held by the conservative PID+FF of :func:`hold_gains` on the fitted ``theta1``,
+    jogs to x_a, then makes one pass up to x_b and one back at each speed of
+    :func:`friction_plan` (jerk-limited moves, all between x_a and x_b: inside the soft limits,
+    the supervisor's following-error and limit checks armed). On each pass's cruise, from
+    :data:`FRICTION_SKIP_S` after it starts to 50 ms before it ends, the mean of u (θ5, θ6 of the
+    section's θ̂(0): the force curve of eq. 3) and the velocity and acceleration of a parabola
+    fitted to y give one row of :func:`motorctl.model.idim_regressor`; θ1 ẍ is taken off with
+    the fitted θ1 and (θ2, θ3, θ4) fitted to the rows by linear least squares, with the
+    standard deviation of each from the residual variance (σ² (AᵀA)⁻¹).
+
+    Args:
+        theta1: fitted M/A1 [V s²/m]. clock: 'virtual' | 'wall'.
+    Returns:
+        {"theta2" [V s/m], "theta3" [V], "theta4" [V], "sigma": {same keys}, "passes": [(v [m/s],
+        u [V]) per pass], "duration_s" (the passes' time on the machine), "fault" ('' when
+        none), "stroke_m": (min y, max y)}; no "theta2" when the passes faulted.
+    Raises:
+        AutotuneError: no soft limits, a pass too short for a window, the axis in fault or
+        outside its soft limits. OSError: the driver cannot reach its device.
+    """
+    from motorctl.model import idim_regressor
+    sec = loaded.axes[axis].controller
+    lim = loaded.axes[axis].limits
+    tb, ts = loaded.timebase, loaded.period_s
+    th = np.asarray(sec.theta_hat0, dtype=float).copy()
+    th[0] = theta1
+    raw = copy.deepcopy(raw)
+    raw["axes"][axis]["controller"]["pid"] = hold_gains(th)
+    raw["axes"][axis]["controller"]["type"] = "pid"
+    loaded2 = config_from_dict(raw, str(loaded.path))
+    x_a, x_b, speeds, a = friction_plan(loaded, axis)
+    moves = [Move(p, q, v, a, 100.0 * a) for v in speeds for p, q in ((x_a, x_b), (x_b, x_a))]
+    settle = tb.cycles(loaded.cfg.daemon.stop_settle_s) + tb.cycles(0.05)
+    v_app = _approach_speed(lim)
+    n_app = tb.cycles((lim.soft_max_m - lim.soft_min_m) / v_app + 1.0) + settle
+    capacity = n_app + sum(tb.cycles(m.duration) + settle for m in moves) + 16
+    windows = []                   # (first row, last row) of each pass's cruise
+    for m in moves:
+        tt = np.arange(0.0, m.duration, ts)
+        vd = np.abs([m.sample(x)[1] for x in tt])
+        cruise = np.flatnonzero(vd >= 0.999 * vd.max())
+        j0, j1 = cruise[0] + tb.cycles(FRICTION_SKIP_S), cruise[-1] - tb.cycles(0.05)
+        if j1 - j0 < tb.cycles(0.1):
+            raise AutotuneError(f"axes.{axis}.limits: the stroke is too short for a friction pass "
+                                f"at {m.v_max:.3g} m/s")
+        windows.append((int(j0), int(j1)))
+    if progress:
+        progress(f"friction {axis}: passes between {x_a:.3f} and {x_b:.3f} m at "
+                 + ", ".join(f"{v * 1e3:.0f}" for v in speeds) + f" mm/s, both ways ({a:g} m/s^2)")
+    starts, fault = [], ""
+    with _held(loaded2, axis, clock, capacity) as (asm, y0):
+        for m in [Move(y0, x_a, v_app, a, 100.0 * a)] + moves:
+            if asm.supervisor.fault[0]:
+                break
+            starts.append(asm.loop.k)
+            asm.loop.jog_axis(0, m)
+            asm.loop.run(tb.cycles(m.duration) + settle)
+            while asm.loop.mode[0] != IDLE and not asm.supervisor.fault[0]:
+                asm.loop.run(1)                  # the hold after the move ends in 0 V, amplifier off
+        fault = asm.supervisor.reason(0) if asm.supervisor.fault[0] else ""
+        k_end = asm.loop.k
+    rows, lay = asm.loop.rows(), asm.loop.layout
+    y = rows[:, lay.index(f"{axis}.y")]
+    u = rows[:, lay.index(f"{axis}.u")]
+    out = {"fault": fault, "duration_s": (k_end - starts[0]) * ts if starts else 0.0,
+           "stroke_m": (float(np.min(y)), float(np.max(y))), "passes": []}
+    if fault or len(starts) < len(moves) + 1:
+        return out
+    phi, b = [], []
+    for k0, (j0, j1) in zip(starts[1:], windows):
+        sl = slice(k0 + j0, k0 + j1)
+        t = (np.arange(j1 - j0) - 0.5 * (j1 - j0)) * ts
+        c2, c1, _ = np.polyfit(t, y[sl], 2)            # y ≈ c0 + c1 t + c2 t², t from the centre
+        um = float(np.mean(u[sl]))
+        row = idim_regressor(np.array([2.0 * c2]), np.array([c1]), np.array([um]), 6)[0]
+        phi.append(row[1:4])
+        b.append(um - theta1 * row[0] - row[4:6] @ th[4:6])
+        out["passes"].append((float(c1), um))
+    A, b = np.asarray(phi), np.asarray(b)
+    x, res, _, _ = np.linalg.lstsq(A, b, rcond=None)
+    dof = max(A.shape[0] - A.shape[1], 1)
+    s2 = float(np.sum((A @ x - b) ** 2)) / dof
+    sd = np.sqrt(np.maximum(np.diag(np.linalg.pinv(A.T @ A)) * s2, 0.0))
+    keys = ("theta2", "theta3", "theta4")
+    out.update({k: float(v) for k, v in zip(keys, x)})
+    out["sigma"] = {k: float(v) for k, v in zip(keys, sd)}
     return out

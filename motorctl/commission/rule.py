@@ -11,7 +11,10 @@ from dataclasses import dataclass
 GM_MIN_DB = 6.0          #: gain margin ≥ [dB] (default of :class:`Rule`)
 PM_MIN_DEG = 10.0        #: phase margin ≥ [deg]
 MS_MAX_DB = 16.0         #: peak sensitivity ≤ [dB] (|S| ≤ 6.3)
-F_TRACK_HZ = 2.0         #: where the tracking error lives (the programs' moves last ~0.5 s) [Hz]
+COH_USED = 0.5           #: the rule takes the measured FRF at lines of at least this coherence, the model elsewhere
+F_TRACK_HZ = 5.0         #: where the tracking error lives (the programs' moves last ~0.5 s) [Hz]; at 2 Hz
+                         #: |L| was the integral action's, and the rule ranked last the PID shapes of weak
+                         #: integral that the fitted friction feed-forward allows (Y: 1.045 um against 0.785)
 U_REST_FRACTION = 0.02   #: u RMS at rest ≤ this share of u_lim without a reference run (0.2 V at 10 V)
 SAT_FACTOR = 1.5         #: saturated samples ≤ this factor times those of the configured controller
 SAT_FLOOR_SHARE = 5e-5   #: on the same run, or of this share of the run if more (10 in 40 s at 5 kHz)
@@ -48,6 +51,15 @@ GUARD_SHARE = 0.5        #: |e| ≥ this share of the smallest FE limit switches
 STROKE_MARGIN = 0.1      #: the pass keeps this share of the stroke from each soft limit
 REST_S = 0.6             #: rest at the start of the pass (encoder noise at rest) [s]
 PERIODS = 32             #: measured multisine periods (after one ramp and one settling period)
+#: the constant-velocity passes of the friction fit: speeds as shares of the top speed, each
+#: one pass up and one down the stroke (steady-state force against speed, both directions)
+FRICTION_SPEEDS = (1.0 / 3.0, 2.0 / 3.0, 1.0)
+FRICTION_V_SHARE = 0.25  #: top pass speed ≤ this share of the axis's max velocity
+FRICTION_A_SHARE = 0.25  #: pass acceleration: this share of the program's a_max, at most FRICTION_A_MAX
+FRICTION_A_MAX = 5.0     #: [m/s²]
+FRICTION_CRUISE = 0.6    #: the top speed keeps this share of the pass at constant velocity, at least
+FRICTION_SKIP_S = 0.15   #: the window of a pass starts this long after its cruise does (the hold
+                         #: PID's integrator settles on the friction step: corner ω_n/5 = 25 rad/s)
 
 
 

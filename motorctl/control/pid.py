@@ -181,7 +181,8 @@ class PID(Controller):
     #: autotune's family: damping ζ and integral corner ratio r (I = P ω / r) of the
     #: pole-placement design P = θ1 ω², D = 2 ζ ω θ1
     ZETA = (0.3, 0.4, 0.5, 0.7, 1.0)
-    R_INT = (3.0, 5.0, 7.0, 10.0, 15.0, 20.0)
+    R_INT = (3.0, 5.0, 7.0, 10.0, 15.0, 20.0, 30.0, 50.0)   # 30, 50: with the friction in the
+    # feedforward the integrator has little left to do (the floor-constrained search's best Y PID: r ≈ 46)
 
     def __init__(self, gains: PidConfig, ts: float, u_lim: float):
         if not ts > 0.0 or not u_lim > 0.0:

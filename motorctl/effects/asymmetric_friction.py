@@ -47,6 +47,37 @@ def comp_fill(out, j, x, v, t, sf, p):
         out[j] = 0.0
         out[j + 1] = 0.0
 
+#: "at rest" for :func:`held_offset`: |ẋ| below this [m/s] (the simulator's stiction band)
+REST_V = 1e-4
+#: least time at rest [s] for :func:`held_offset`
+MIN_REST_S = 1.0
+
+
+def held_offset(p, theta3: float) -> float | None:
+    """The offset θ4 [V] (θ4·A1 = F_0, the constant force on the carriage) from the input held
+    at rest, or None when the record cannot tell it.
+
+    A carriage held by static friction (Karnopp) stays while |A1 u + F_0| ≤ F_s, so the input
+    held at rest spans [(−F_s − F_0)/A1, (F_s − F_0)/A1], symmetric about −θ4, when the loop
+    pushes it to the breakaway both ways (C2 hunting at rest does). Taken when the record is
+    at rest (|ẋ| < :data:`REST_V`) for at least :data:`MIN_REST_S`, the held input takes both
+    signs and its span reaches 2θ3 (static friction is at least the kinetic level): θ4 =
+    −(max + min)/2 of u at rest.
+
+    Args:
+        p: the prepared record (full-rate v [m/s], u [V], fs [Hz]). theta3: the Coulomb level
+            θ3 [V] of the fit.
+    """
+    rest = np.abs(p.v) < REST_V
+    if rest.sum() < MIN_REST_S * p.fs:
+        return None
+    held = p.u[rest]
+    lo, hi = float(held.min()), float(held.max())
+    if not (lo < 0.0 < hi and hi - lo >= 2.0 * theta3 > 0.0):
+        return None
+    return -0.5 * (lo + hi)
+
+
 class AsymmetricFriction(StrictModel):
     """Simulated asymmetric friction, ``axes.NAME.driver.effects.asymmetric_friction``:
     −(ΔF_c S_f(ẋ) + ΔB ẋ) for ẋ > 0 [N]. coulomb_N: ΔF_c [N]. viscous_N_s_per_m: ΔB [N·s/m]."""
@@ -91,9 +122,21 @@ class AsymmetricFrictionFamily(EffectFamily):
         pos = (v > 0).astype(float)
         return np.column_stack([s_f(v) * pos, v * pos])
 
-    def parameters(self, h, beta, gain, fs):
+    def parameters(self, h, beta, gain, fs, theta=None, p=None):
+        """ΔF_c and ΔB [N, N·s/m; V, V·s/m without the gain]. In motion a constant offset force
+        (θ4's column −1) and the forward-only Coulomb column S_f(ẋ)·[ẋ > 0] = (S_f + |S_f|)/2
+        are collinear: the fit fixes the two levels θ3 + β − θ4 (forward) and θ3 + θ4
+        (backward), not β and θ4 apart, and a carriage held at rest shows neither (its input
+        there is unconstrained). When the record's input held at rest spans the breakaway both
+        ways (:func:`held_offset`), θ4 is taken from there and ΔF_c = β − 2θ4 + 2θ4_held: on
+        the default plant (offset −4 N, stiction 25 N) 7.64 N became 6.5 N for 6 N."""
         g, unit = (gain, "N") if gain else (1.0, "V")
-        return {f"coulomb_{unit}": float(g * beta[0]), f"viscous_{unit}_s_per_m": float(g * beta[1])}
+        dfc = float(beta[0])
+        if theta is not None and p is not None and len(theta) > 3:
+            th4 = held_offset(p, float(theta[2]))
+            if th4 is not None:
+                dfc += 2.0 * (th4 - float(theta[3]))
+        return {f"coulomb_{unit}": float(g * dfc), f"viscous_{unit}_s_per_m": float(g * beta[1])}
 
     # compensation
     def compensation(self, h, beta, signals=None, beta_std=None):

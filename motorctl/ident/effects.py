@@ -52,19 +52,25 @@ def columns_fast(name: str, h, p) -> np.ndarray | None:
     return family(name).columns(h, Signals.decimated(p))
 
 
-def parameters(name: str, h, beta: np.ndarray, gain: float | None, fs: float, theta=None) -> dict:
+def parameters(name: str, h, beta: np.ndarray, gain: float | None, fs: float, theta=None, p=None) -> dict:
     """Physical parameters of a fitted term, names ending in their unit: forces in N when the
     gain A1 [N/V] is known, otherwise in V (force / A1). fs: sample rate [Hz]. theta: the
     nominal θ̂ of the same fit (n_theta,), for a family whose parameters need it (a reading's
-    error: β = −θ1·e); None: not given.
+    error: β = −θ1·e); None: not given. p: the prepared record
+    (:class:`motorctl.ident.idim.Prepared`), for a family whose parameters need more of the
+    record than its fit (asymmetric friction: the input held at rest); None: not given.
 
     Raises:
         ValueError: unknown family.
     """
     fam = family(name)
-    if theta is not None and "theta" in inspect.signature(fam.parameters).parameters:
-        return fam.parameters(h, beta, gain, fs, theta=theta)
-    return fam.parameters(h, beta, gain, fs)
+    takes = inspect.signature(fam.parameters).parameters
+    kw = {}
+    if theta is not None and "theta" in takes:
+        kw["theta"] = theta
+    if p is not None and "p" in takes:
+        kw["p"] = p
+    return fam.parameters(h, beta, gain, fs, **kw)
 
 
 def compensation(name: str, h, beta: np.ndarray, signals=None, beta_std=None) -> dict | None:

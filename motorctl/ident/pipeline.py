@@ -66,7 +66,8 @@ def summarise(idf: Identifier) -> dict:
     for (ev, before), term, beta in zip(idf.accepted, idf.terms, betas):
         effects.append({
             "name": term.family,
-            "parameters": fx.parameters(term.family, term.h, beta, rec.gain, idf.p.fs, theta=th),
+            "parameters": fx.parameters(term.family, term.h, beta, rec.gain, idf.p.fs, theta=th,
+                                        p=idf.p),
             "heldout_rms_before": g * before,
             "heldout_rms_after": g * ev.heldout_rms,
             "heldout_gain_percent": 100 * ev.gain,

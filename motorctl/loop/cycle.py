@@ -37,7 +37,7 @@ from motorctl.control.kernels import LAW_PY, law_preview, law_reset, law_step
 from motorctl.jit import BundleType, borrow, bundle, define_bundle, njit
 from motorctl.control.signals import N_SIGNALS, SIG_E
 from motorctl.loop.safety import FAULT_OVERRUN, SI_FAULT, sup_check_input, sup_check_output, sup_rest, sup_trip
-from motorctl.loop.stream import stream_step
+from motorctl.loop.stream import stream_outputs, stream_step
 from motorctl.loop.trajectory import TABLE_HEAD, sample_table
 
 #: the sequencer's modes (servo.py's module docstring)
@@ -59,7 +59,7 @@ N_X = 13
 # the loop's numbers (lp)
 LP_TS, LP_SETTLE, LP_OVR_RAMP, LP_BLEND_N, LP_DISABLE_ON_FAULT = range(5)
 N_LP = 5
-# record offsets (offs): per-axis fields, then the base of each axis
+# record offsets (offs): per-axis fields, then the base of each axis, then that of the outputs
 (O_Y, O_XD, O_VD, O_AD, O_U, O_EN, O_FB, O_SIG, O_MODE) = range(9)
 O_AXIS = 9
 
@@ -181,7 +181,9 @@ def servo_cycle(phase, k, st):
     row = borrow(buf[k % buf.shape[0]])
     pending = 0
     if phase != CYCLE_AFTER:                   # the setpoint stream: one row for every STREAM axis
-        stream_step(borrow(st.sp), borrow(st.spc), ax, axf, A_MODE, STREAM, A_STOPREQ, X_SX, X_AMAX, ts)
+        sp = borrow(st.sp)
+        stream_step(sp, borrow(st.spc), ax, axf, A_MODE, STREAM, A_STOPREQ, X_SX, X_AMAX, ts)
+        stream_outputs(sp, n, row, offs[O_AXIS + n])   # the outputs applied this cycle, recorded
     for i in range(n):
         if phase == CYCLE_AFTER:
             if ax[i, A_PEND] == PEND_NONE:

@@ -2,9 +2,11 @@
 
 One float64 row per cycle: the cycle-wide fields, then for every axis the axis fields under
 ``AXIS.<field>``, then the signals the axes' laws declare of their own
-(:attr:`motorctl.control.base.Controller.own_signals`), under ``AXIS.<signal>``, axis by axis:
-a row without them is the same row up to its last axis field, so a reader that knows only the
-fixed fields reads any log. The loop, the flight recorder, the daemon's status, the run-log reader, the
+(:attr:`motorctl.control.base.Controller.own_signals`), under ``AXIS.<signal>``, axis by axis,
+then the machine outputs the loop applied in that cycle under ``out.<name>`` (the outputs of a
+setpoint ring, :mod:`motorctl.loop.stream`; none without one): a row without them is the same
+row up to its last axis field, so a reader that knows only the fixed fields reads any log. The
+loop, the flight recorder, the daemon's status, the run-log reader, the
 exporters and the plots all index a row by these names through :class:`RecordLayout`, never by
 a hand-counted offset.
 
@@ -42,6 +44,8 @@ AXIS_FIELDS: dict[str, str] = {
     "fault_bits": "1",         # latched fault bits (motorctl.loop.safety)
     "mode": "1",               # the sequencer's mode: 0 idle, 1 approach, 2 program, 3 hold, 4 jog
 }
+#: the prefix of an output's column
+OUTPUT_PREFIX = "out."
 #: the ``mode`` field's codes (motorctl.loop.cycle's IDLE ... JOG)
 MODE_IDLE, MODE_APPROACH, MODE_PROGRAM, MODE_HOLD, MODE_JOG = range(5)
 
@@ -54,17 +58,21 @@ class RecordLayout:
         own: axis -> {signal name: unit} of the signals its laws declare of their own
             (:attr:`motorctl.control.base.Controller.own_signals`), recorded after every axis's
             fixed fields; None or missing axes: none.
+        outputs: machine output names (the columns ``out.NAME`` after the own signals, unit
+            "1": 0/1 for a digital output, the S value for a power output).
     Attributes:
-        columns (list[str]): ``t, lateness_ns, ..., X.y, X.x_d, ..., X.<own signal>, ...``;
-            width = len(columns).
+        columns (list[str]): ``t, lateness_ns, ..., X.y, X.x_d, ..., X.<own signal>, ...,
+            out.torch``; width = len(columns).
         units (list[str]): the unit of every column.
         own (dict[str, dict[str, str]]): the own signals by axis (every axis a key).
-        own_start (int): offset of the first own-signal column (= width without any).
+        own_start (int): offset of the first own-signal column.
+        outputs (tuple[str, ...]); outputs_base (int): offset of the first output column (=
+            width without outputs).
     Raises:
         ValueError: an own signal named like a fixed axis field.
     """
 
-    def __init__(self, axis_names, own=None):
+    def __init__(self, axis_names, own=None, outputs=()):
         self.axis_names = list(axis_names)
         self.own = {a: dict((own or {}).get(a, {})) for a in self.axis_names}
         self.columns = list(CYCLE_FIELDS)
@@ -80,6 +88,10 @@ class RecordLayout:
                                  f"{', '.join(AXIS_FIELDS)}")
             self.columns += [f"{a}.{f}" for f in sigs]
             self.units += list(sigs.values())
+        self.outputs_base = len(self.columns)
+        self.outputs = tuple(outputs)
+        self.columns += [f"{OUTPUT_PREFIX}{o}" for o in self.outputs]
+        self.units += ["1"] * len(self.outputs)
         self.width = len(self.columns)
         self._index = {c: j for j, c in enumerate(self.columns)}
 

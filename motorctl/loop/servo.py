@@ -68,7 +68,7 @@ from motorctl.loop.cycle import APPROACH, HOLD, IDLE, JOG, PROGRAM, STREAM, serv
 from motorctl.loop.pacing import Pacer
 from motorctl.loop.records import CONTROLLER_SIGNALS, N_SIGNALS, RecordLayout
 from motorctl.loop.safety import FAULT_SHUTDOWN, SF_YLAST, Supervisor
-from motorctl.loop.stream import SetpointRing
+from motorctl.loop.stream import SP_OUT_SEQ, SetpointRing
 from motorctl.loop.timebase import Timebase
 from motorctl.loop.trajectory import MOVE_W, TABLE_HEAD, Program
 
@@ -155,9 +155,13 @@ class ServoLoop:
         self.clock = clock
         self.spin_ns = int(spin_us * 1000)
         self.warm_caches = bool(warm_caches)
-        self.layout = layout if layout is not None else RecordLayout(self.axis_names)
+        # the setpoint stream of commanded motion (motorctl.loop.stream; the daemon's is shared)
+        self.stream = stream if stream is not None else SetpointRing(1, n, shared=False)
+        self.layout = layout if layout is not None else RecordLayout(self.axis_names, outputs=self.stream.outputs)
         if self.layout.axis_names != self.axis_names:
             raise ValueError(f"layout of axes {self.layout.axis_names}, driver axes {self.axis_names}")
+        if self.layout.outputs != self.stream.outputs:
+            raise ValueError(f"layout of outputs {self.layout.outputs}, stream outputs {self.stream.outputs}")
         self.columns = self.layout.columns
         self.width = self.layout.width
         self.capacity = int(capacity)
@@ -195,7 +199,7 @@ class ServoLoop:
         # the laws' own signals (record columns own_start...): the last values, written into
         # every row after the cycle; per axis the (offset in the law's signals, offset here)
         # of the running law's
-        self._own = np.full(self.layout.width - self.layout.own_start, np.nan)
+        self._own = np.full(self.layout.outputs_base - self.layout.own_start, np.nan)
         self._own_at = {key: j for j, key in enumerate((a, f) for a in self.axis_names for f in self.layout.own[a])}
         self._own_map = [()] * n
         # the law rows: wide enough for C2 (the largest compiled law), grown when a law needs more
@@ -207,15 +211,13 @@ class ServoLoop:
         self._offs = np.array([lay.axis_field(f) for f in ("y", "x_d", "xd_dot", "xd_ddot", "u", "enabled",
                                                             "fault_bits")]
                               + [lay.axis_field(next(iter(CONTROLLER_SIGNALS))), lay.axis_field("mode")]
-                              + [lay.axis_base(i) for i in range(n)], dtype=np.int64)
+                              + [lay.axis_base(i) for i in range(n)] + [lay.outputs_base], dtype=np.int64)
         self._lp = np.zeros(C.N_LP)
         self._lp[C.LP_TS] = self.period_s
         self._lp[C.LP_SETTLE] = self.stop_settle
         self._lp[C.LP_OVR_RAMP] = self.overrun_ramp
         self._lp[C.LP_BLEND_N] = self.blend_cycles
         self._lp[C.LP_DISABLE_ON_FAULT] = 1.0 if operated else 0.0
-        # the setpoint stream of commanded motion (motorctl.loop.stream; the daemon's is shared)
-        self.stream = stream if stream is not None else SetpointRing(1, n, shared=False)
         self._py = []                          # axes whose law runs from Python
         for i, c in enumerate(controllers):
             self._adopt(i, c)
@@ -337,10 +339,12 @@ class ServoLoop:
     def _run(self, n_cycles: int) -> int:
         mono = time.monotonic_ns
         drv, cycle, mv, width, cap = self.driver, self._cycle, self._mv, self.width, self.capacity
-        buf, own, own_at = self.buf, self._own, self.layout.own_start
+        buf, own, own_at, own_end = self.buf, self._own, self.layout.own_start, self.layout.outputs_base
         hb, slack, u_out, en_out, period = self.heartbeat, self.on_slack, self.u_out, self.enable_out, self.period_ns
         oc_t, oc_late, oc_turn, oc_read, oc_ctrl, oc_write, oc_ovr = self._o_cycle
         st = self._use_state()
+        out_ctl, out_names, out_vals = self.stream.ctl, self.stream.outputs, self.stream.applied()
+        out_seq = -1 if out_names else out_ctl[SP_OUT_SEQ]   # with outputs: applied at the first cycle
         pacer = (Pacer(period, self.spin_ns, self._rehearse if self._refresh is not None else None)
                  if self.clock == "wall" else None)
         done = 0
@@ -360,8 +364,11 @@ class ServoLoop:
                 self._python_laws(k)
                 cycle(C.CYCLE_AFTER, k, st)
             if own.size:
-                buf[k % cap, own_at:] = own
+                buf[k % cap, own_at:own_end] = own
             t2 = mono()
+            if out_ctl[SP_OUT_SEQ] != out_seq:   # the stream switched an output at this row
+                out_seq = out_ctl[SP_OUT_SEQ]
+                drv.apply_outputs(out_names, out_vals)
             drv.write(u_out, en_out)
             t3 = mono()
             base = (k % cap) * width

@@ -9,10 +9,21 @@ Who does what:
     the STREAM mode) reads ``ctl[SP_WRITE]`` (an acquire load), takes row ``r`` if
     ``r < w`` and publishes ``r + 1`` in ``ctl[SP_READ]``. No lock, no allocation, no wait.
 
-A row is ``[epoch, x_0, v_0, a_0, x_1, v_1, a_1, ...]`` ([m, m/s, m/s²] per axis). The loop
-takes a row only when its epoch is ``ctl[SP_EPOCH]``: the consumer bumps the epoch at an
-underrun, so rows the producer planned before it noticed are dropped, never followed from the
-wrong place.
+A row is ``[epoch, x_0, v_0, a_0, x_1, v_1, a_1, ..., o_0, o_1, ...]`` ([m, m/s, m/s²] per
+axis, then the value of every machine output of the ring, :attr:`SetpointRing.outputs`, as it
+must be from that row's cycle on). The loop takes a row only when its epoch is
+``ctl[SP_EPOCH]``: the consumer bumps the epoch at an underrun, so rows the producer planned
+before it noticed are dropped, never followed from the wrong place.
+
+**Outputs synchronised with motion** (LinuxCNC's motion-synchronised outputs, M62-M65, and here
+every mapped machine word): the ring has one more row after its ``capacity``, the *applied* row,
+whose output columns are the outputs the loop applies now. When the loop takes a row whose
+outputs differ from the applied ones it copies them there and bumps ``ctl[SP_OUT_SEQ]``; the
+loop then hands them to the driver before that very cycle's bus write and records them in that
+cycle's run-log row (:func:`stream_outputs`): an output switches exactly at the row planned
+for it. The outputs whose bit is set in ``ctl[SP_OUT_STOP]`` (a spindle, a torch, coolant) go
+to 0 at once, in the same way, when the loop brakes on its own (an underrun or a stop) and
+while no axis streams (a fault or a stop took them out of command mode).
 
 An **underrun** (the ring empty while the last setpoint of a streaming axis still moves or
 accelerates) is never a jump nor a fault: every streaming axis brakes along a jerk-limited
@@ -31,9 +42,12 @@ from motorctl.jit import njit
 from motorctl.ordering import load_acquire, store_release
 
 #: the ring's control words (int64): rows written, rows read, the epoch rows must carry, the
-#: underrun events, a brake running (1) or not (0)
-SP_WRITE, SP_READ, SP_EPOCH, SP_UNDERRUNS, SP_BRAKING = range(5)
+#: underrun events, a brake running (1) or not (0), changes of the applied outputs, the outputs
+#: switched off when the loop stops streaming (bit j: output j)
+SP_WRITE, SP_READ, SP_EPOCH, SP_UNDERRUNS, SP_BRAKING, SP_OUT_SEQ, SP_OUT_STOP = range(7)
 SP_CTL = 8
+#: the most outputs a ring carries (the bits of SP_OUT_STOP)
+MAX_OUTPUTS = 32
 
 
 class SetpointRing:
@@ -43,14 +57,27 @@ class SetpointRing:
     Args:
         capacity: rows (cycles of setpoints), ≥ 1. n_axes: axes of the loop.
         shared: an anonymous shared mapping (True; the daemon) or plain process memory.
+        outputs: the names of the machine outputs the rows carry (at most :data:`MAX_OUTPUTS`).
+        stop_outputs: those of them switched off when the loop stops streaming (module docstring).
     Attributes:
-        rows: (capacity, 1 + 3·n_axes) float64; ctl: (SP_CTL,) int64.
+        rows: (capacity + 1, 1 + 3·n_axes + n_outputs) float64 (the last row: the applied
+        outputs); ctl: (SP_CTL,) int64; outputs: tuple of names.
+    Raises:
+        ValueError: too many outputs, a name twice, a stop output that is not an output.
     """
 
-    def __init__(self, capacity: int, n_axes: int, shared: bool = True):
+    def __init__(self, capacity: int, n_axes: int, shared: bool = True, outputs=(), stop_outputs=()):
         self.capacity, self.n_axes = int(capacity), int(n_axes)
-        self.width = 1 + 3 * self.n_axes
-        nbytes = 8 * (SP_CTL + self.capacity * self.width)
+        self.outputs = tuple(outputs)
+        if len(self.outputs) > MAX_OUTPUTS or len(set(self.outputs)) != len(self.outputs):
+            raise ValueError(f"a setpoint ring carries at most {MAX_OUTPUTS} distinct outputs "
+                             f"(got {', '.join(self.outputs)})")
+        if not set(stop_outputs) <= set(self.outputs):
+            raise ValueError(f"stop outputs {sorted(set(stop_outputs) - set(self.outputs))} are not outputs "
+                             f"of the ring ({', '.join(self.outputs)})")
+        self.out0 = 1 + 3 * self.n_axes          # the first output column of a row
+        self.width = self.out0 + len(self.outputs)
+        nbytes = 8 * (SP_CTL + (self.capacity + 1) * self.width)
         if shared:
             self._mm = mmap.mmap(-1, nbytes, flags=mmap.MAP_SHARED)
             buf = np.frombuffer(self._mm, dtype=np.uint8)
@@ -58,7 +85,8 @@ class SetpointRing:
             buf = np.zeros(nbytes, dtype=np.uint8)
         buf.fill(0)                       # every page made now: the loop never faults one in
         self.ctl = buf[:8 * SP_CTL].view(np.int64)
-        self.rows = buf[8 * SP_CTL:].view(np.float64).reshape(self.capacity, self.width)
+        self.rows = buf[8 * SP_CTL:].view(np.float64).reshape(self.capacity + 1, self.width)
+        self.ctl[SP_OUT_STOP] = sum(1 << self.outputs.index(o) for o in set(stop_outputs))
 
     # ---------------------------------------------------------------- producer side
     def depth(self) -> int:
@@ -72,19 +100,34 @@ class SetpointRing:
     def epoch(self) -> int:
         return int(self.ctl[SP_EPOCH])
 
-    def push(self, block: np.ndarray, epoch: int) -> int:
+    def push(self, block: np.ndarray, epoch: int, outs: np.ndarray | None = None) -> int:
         """Producer: write ``block`` ((n, n_axes, 3) float64: x, ẋ, ẍ per axis) tagged with
-        ``epoch``, as far as it fits. Returns the rows written."""
+        ``epoch``, and ``outs`` ((n, n_outputs): every output's value from each row on; None:
+        the applied outputs), as far as it fits. Returns the rows written."""
         n = min(block.shape[0], self.free())
         w = int(self.ctl[SP_WRITE])
         a = w % self.capacity
         first = min(n, self.capacity - a)          # up to the end of the ring, then from its start
-        for dst, src in ((self.rows[a:a + first], block[:first]), (self.rows[:n - first], block[first:n])):
-            if src.shape[0]:
+        o0 = self.out0
+        for dst, lo, hi in ((self.rows[a:a + first], 0, first), (self.rows[:n - first], first, n)):
+            if hi > lo:
                 dst[:, 0] = epoch
-                dst[:, 1:] = src.reshape(src.shape[0], self.width - 1)
+                dst[:, 1:o0] = block[lo:hi].reshape(hi - lo, o0 - 1)
+                dst[:, o0:] = self.applied() if outs is None else outs[lo:hi]
         store_release(self.ctl, SP_WRITE, w + n)
         return n
+
+    def applied(self) -> np.ndarray:
+        """(n_outputs,) the outputs the loop applies now (a view of the applied row)."""
+        return self.rows[self.capacity, self.out0:]
+
+    def setpoint(self, row: int) -> np.ndarray:
+        """(n_axes, 3) x, ẋ, ẍ per axis of ring row index ``row`` (a view)."""
+        return self.rows[row % self.capacity, 1:self.out0].reshape(self.n_axes, 3)
+
+    def row_outputs(self, row: int) -> np.ndarray:
+        """(n_outputs,) the outputs of ring row index ``row`` (a view)."""
+        return self.rows[row % self.capacity, self.out0:]
 
     def written(self) -> int:
         """Rows written since the ring was made (the index of the next row)."""
@@ -154,21 +197,48 @@ def brake_step(x, v, a, a_max, j_max, ts):
 
 
 @njit
+def _outputs_off(sp, spc, cap, o0):
+    """The stop outputs (bits of ``spc[SP_OUT_STOP]``) of the applied row ``sp[cap]`` to 0."""
+    mask = spc[SP_OUT_STOP]
+    changed = False
+    for j in range(sp.shape[1] - o0):
+        if (mask >> j) & 1 and sp[cap, o0 + j] != 0.0:
+            sp[cap, o0 + j] = 0.0
+            changed = True
+    if changed:
+        spc[SP_OUT_SEQ] += 1
+
+
+@njit
+def stream_outputs(sp, n_axes, row, base):
+    """The applied outputs (the ring ``sp``'s last row, after its 1 + 3·n_axes setpoint columns)
+    into the record row ``row`` from column ``base``: every cycle, whatever the axes do."""
+    o0 = 1 + 3 * n_axes
+    cap = sp.shape[0] - 1
+    for j in range(sp.shape[1] - o0):
+        row[base + j] = sp[cap, o0 + j]
+
+
+@njit
 def stream_step(sp, spc, ax, axf, c_mode, stream_mode, c_stop, c_x, c_amax, ts):
     """The stream's part of one cycle (module docstring) for the axes whose mode
     ``ax[i, c_mode]`` is ``stream_mode``: take one row of the ring ``sp``/``spc`` into their
     setpoint ``axf[i, c_x:c_x+3]`` (x [m], ẋ [m/s], ẍ [m/s²]); or, when the ring is empty while
     an axis still moves, or a stop is asked (``ax[i, c_stop]``) while it moves, brake
     (:func:`brake_step`) with ``axf[i, c_amax]`` and ``axf[i, c_amax + 1]`` (a_max, j_max).
-    Returns True while a brake runs. Nothing allocates."""
+    The outputs of a row taken become the applied ones; the stop outputs go off when a brake
+    starts or no axis streams (module docstring). Returns True while a brake runs. Nothing
+    allocates."""
     n = ax.shape[0]
+    cap = sp.shape[0] - 1                        # the last row: the applied outputs
+    o0 = 1 + 3 * n
     any_s = False
     for i in range(n):
         if ax[i, c_mode] == stream_mode:
             any_s = True
     if not any_s:
+        _outputs_off(sp, spc, cap, o0)
         return False
-    cap = sp.shape[0]
     braking = spc[SP_BRAKING] != 0
     w = load_acquire(spc, SP_WRITE)
     r = spc[SP_READ]
@@ -185,6 +255,13 @@ def stream_step(sp, spc, ax, axf, c_mode, stream_mode, c_stop, c_x, c_amax, ts):
                 axf[i, c_x] = row[1 + 3 * i]
                 axf[i, c_x + 1] = row[2 + 3 * i]
                 axf[i, c_x + 2] = row[3 + 3 * i]
+        changed = False
+        for j in range(o0, sp.shape[1]):
+            if sp[cap, j] != row[j]:
+                sp[cap, j] = row[j]
+                changed = True
+        if changed:
+            spc[SP_OUT_SEQ] += 1
         r += 1
         got = True
     store_release(spc, SP_READ, r)
@@ -201,6 +278,7 @@ def stream_step(sp, spc, ax, axf, c_mode, stream_mode, c_stop, c_x, c_amax, ts):
             spc[SP_EPOCH] = epoch + 1
             if not got:                          # an underrun: counted
                 spc[SP_UNDERRUNS] += 1
+            _outputs_off(sp, spc, cap, o0)
     if braking:
         rest = True
         for i in range(n):

@@ -99,6 +99,33 @@ class GcodeSettings(StrictModel):
                                  f"({words[on[0]]}) on; map {off} to it")
 
 
+#: the digital outputs M62-M65 address, P 0 .. N_DIO − 1 (LinuxCNC's default num_dio)
+N_DIO = 4
+#: the machine words whose outputs are off whenever the motion stops on its own (an underrun, a
+#: fault, a stop) or is aborted: spindle/torch, its power, coolant (LinuxCNC's abort turns them off)
+STOP_WORDS = ("M3", "M4", "M5", "S", "M7", "M8", "M9")
+
+
+def output_names(settings: GcodeSettings) -> tuple[list[str], list[str]]:
+    """The machine outputs a config's ``gcode:`` section can switch, and those of them that go
+    off when the motion stops on its own or is aborted (:data:`STOP_WORDS`): (outputs, stop
+    outputs), names in the order of ``words``; M62-M65 to ``name`` give ``name0`` ..
+    ``name{N_DIO-1}``."""
+    outs: list[str] = []
+    stop: list[str] = []
+    for word, out in settings.words.items():
+        w = _norm_m(word)
+        if out == "ignore":
+            continue
+        names = [f"{out}{p}" for p in range(N_DIO)] if w in ("M62", "M63", "M64", "M65") else [out]
+        for o in names:
+            if o not in outs:
+                outs.append(o)
+            if w in STOP_WORDS and o not in stop:
+                stop.append(o)
+    return outs, stop
+
+
 def _norm_m(word: str) -> str:
     """``M03`` → ``M3``, ``m62`` → ``M62``, ``s`` → ``S``."""
     w = word.strip().upper()
@@ -205,6 +232,14 @@ class Event:
     line: int
     column: int
     p: int | None = None
+
+    @property
+    def target(self) -> str | None:
+        """The output switched: ``output``, and for M62-M65 ``output`` followed by the P number
+        (``dout`` P2 → ``dout2``); None when ignored."""
+        if self.output is None or self.p is None:
+            return self.output
+        return f"{self.output}{self.p}"
 
 
 Segment = Line | Arc | Dwell | Pause | Event

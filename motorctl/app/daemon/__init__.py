@@ -45,6 +45,7 @@ from motorctl.app.daemon.protocol import DaemonError, Mailbox, bind_control_sock
 from motorctl.app.daemon.status import ST_SIZE
 from motorctl.config import ConfigError, load_config
 from motorctl.loop.stream import SetpointRing
+from motorctl.motion.gcode import output_names
 from motorctl.recorder.flight import SharedRing, stall_bound_s
 from motorctl.recorder.segments import Retention, SegmentWriter
 
@@ -93,14 +94,16 @@ def plan_daemon(config_path: str, socket_path: str | None, log_dir: str | None) 
     log_path = str(ldir / f"motorctl-{stamp}-{os.getpid()}.mlog")
     names = list(loaded.axes)
     tb = loaded.timebase
-    width = record_layout(loaded, names).width
+    outputs, stop_outputs = output_names(cfg.gcode)
+    width = record_layout(loaded, names, outputs).width
     window_s = max(d.event_before_s + d.event_after_s,
                    d.overrun_event_before_s + d.overrun_event_after_s)
     ring = SharedRing(tb.cycles(window_s + stall_bound_s(d.flush_s) + RING_SPARE_S), width,
                       len(names), ST_SIZE)
     # every configured controller of every axis is built (and compiled) before anything runs:
     # a switch is a swap
-    stream = SetpointRing(tb.cycles(STREAM_RING_S), len(names))
+    stream = SetpointRing(tb.cycles(max(STREAM_RING_S, 2.0 * d.motion_lead_s)), len(names),
+                          outputs=outputs, stop_outputs=stop_outputs)
     asm = build(loaded, names, clock="wall", capacity=ring.capacity, buffer=ring.rows,
                 heartbeat=ring, operated=True, all_controllers=True, stream=stream)
     stop_bound = []

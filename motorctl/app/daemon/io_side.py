@@ -120,7 +120,7 @@ class IOSide:
             lims.append(AxisLimits(tc.v_max, tc.a_max, tc.j_max, lc.soft_min_m, lc.soft_max_m))
         has_inputs = getattr(asm.driver, "has_homing_inputs", False)
         self.internal: queue.Queue = queue.Queue()     # the homing thread's commands to the loop
-        # a machine word's output wakes this process's select at once (not at IDLE_WAKE_S)
+        # a command of the homing thread wakes this process's select at once (not at IDLE_WAKE_S)
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
@@ -131,19 +131,10 @@ class IOSide:
                                              float(ring.status[i, ST["index_latch"]])))
                                  if has_inputs else None,
                                  self.internal_request if has_inputs else None,
-                                 gcode_settings=asm.loaded.cfg.gcode,
-                                 output=self._output)
+                                 gcode_settings=asm.loaded.cfg.gcode, lead_s=d.motion_lead_s)
         rt = asm.loaded.cfg.loop.realtime
         if rt.policy != "off":
             self.motion.fifo_priority = max(1, rt.priority - FILLER_PRIORITY_BELOW)
-
-    def _output(self, name: str, value: float) -> None:
-        """(the filler thread) A machine word's output to the loop's driver, without waiting."""
-        self.internal.put(({"op": "set_output", "name": name, "value": value}, threading.Event(), {}))
-        try:
-            os.write(self._wake_w, b"!")
-        except BlockingIOError:
-            pass                             # a wake-up is pending already
 
     # ------------------------------------------------------------------ requests
     def to_loop(self, conn, msg: dict, post=None) -> None:
@@ -211,6 +202,10 @@ class IOSide:
         loop (which alone writes the pipe); its answer."""
         done, box = threading.Event(), {}
         self.internal.put((msg, done, box))
+        try:
+            os.write(self._wake_w, b"!")     # this process's select wakes at once
+        except BlockingIOError:
+            pass                             # a wake-up is pending already
         if not done.wait(timeout_s + 1.0):
             return {"ok": False, "error": "the loop did not answer"}
         return box

@@ -193,8 +193,6 @@ class LoopSide:
                 loop.jog_axis(i, mv)
             elif op == "arm_index":
                 self.asm.driver.arm_index(i)
-            elif op == "set_output":         # a machine word of a G-code program, at its row
-                self.asm.driver.set_output(str(m["name"]), float(m["value"]))
             elif op == "set_position":
                 # homing: the reading shifted by delta from the next cycle; the setpoint, the
                 # encoder-jump check's last reading and the law (reset from the new reading)

@@ -1,9 +1,10 @@
 """Commanded motion on the daemon's I/O side: plans off the loop and streams setpoints.
 
-A filler thread of the I/O process keeps about :data:`LEAD_S` of setpoints (x_d, ẋ_d, ẍ_d per
-axis per cycle) ahead in the loop's setpoint ring (:mod:`motorctl.loop.stream`, about 0.5 s
-long), from a queue of planned trajectories (a ``move``: Ruckig's time-optimal jerk-limited
-point-to-point with synchronised arrival; a G-code program: ``motorctl.motion``'s planner).
+A filler thread of the I/O process keeps ``lead_s`` (the config's ``daemon.motion_lead_s``,
+default :data:`LEAD_S`) of setpoints (x_d, ẋ_d, ẍ_d per axis per cycle) ahead in the loop's
+setpoint ring (:mod:`motorctl.loop.stream`), from a queue of planned trajectories (a ``move``:
+Ruckig's time-optimal jerk-limited point-to-point with synchronised arrival; a G-code program:
+``motorctl.motion``'s planner), in blocks of at most LEAD_S / BLOCKS_PER_LEAD.
 
 The trajectories are sampled on a path time s that advances by the feed scale f per cycle
 (time scaling: x = p(s), ẋ = p'(s)·ḟ... precisely ẋ = p'(s)·f, ẍ = p''(s)·f² + p'(s)·ḟ), so
@@ -17,6 +18,14 @@ that the path is kept whatever f does:
 f follows its target with a bounded rate and a bounded rate of change
 (:data:`F_RATE_PER_S`, :data:`F_ACCEL_PER_S2`, scaled down for the fastest axis), so the
 added acceleration p'(s)·ḟ stays a fraction of the axes' a_max and jerk-limited.
+
+**Machine outputs** (a G-code program's mapped machine words, ``gcode.words``) travel in the ring:
+every row carries the value of every output from its cycle on, switched at the row planned for
+the word (the planner's event time), so the loop applies and records them in that very cycle
+(LinuxCNC's motion-synchronised outputs). A feed hold keeps them as they are (LinuxCNC: the
+spindle keeps turning in a feed hold); an abort switches the stop outputs (those of M3/M4/S/
+M7/M8, :data:`motorctl.motion.gcode.STOP_WORDS`) off at the first row it rewrites; an underrun,
+a stop or a fault switches them off in the loop itself.
 
 An underrun (the loop found the ring empty while moving: it braked on its own, jerk-limited,
 :mod:`motorctl.loop.stream`) or a stop of a commanded axis (a new epoch of the ring) drops the
@@ -42,7 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from motorctl.loop.cycle import STREAM
-from motorctl.loop.stream import SetpointRing
+from motorctl.loop.stream import SP_OUT_STOP, SetpointRing
 from motorctl.motion import gcode as G
 from motorctl.motion import planner as P
 
@@ -116,13 +125,16 @@ class MotionSide:
             period. homing: the axes' HomingConfig (None: none). inputs(i): (home switch,
             index latch [m] or NaN) of axis i. to_loop(msg): a command to the loop process,
             its answer (blocking; from another thread than the I/O process's own).
-        gcode_settings: the config's ``gcode:`` section (machine words, G28 point, optional stop).
-        output(name, value): sets a driver output (a machine word's event), without waiting.
+        gcode_settings: the config's ``gcode:`` section (machine words, G28 point, optional stop);
+            the outputs its words switch must be the ring's (``stream.outputs``).
+        lead_s: setpoints kept ahead of the loop [s] (at most the ring's length).
+    Raises:
+        ValueError: a lead the ring cannot hold.
     """
 
     def __init__(self, stream: SetpointRing, latest, layout, names, limits, modes, period_s: float,
                  homing=None, inputs=None, to_loop=None, gcode_settings: G.GcodeSettings | None = None,
-                 output=None):
+                 lead_s: float = LEAD_S):
         self.stream, self.latest, self.names, self.limits = stream, latest, list(names), limits
         self.modes, self.dt = modes, period_s
         self._pva = [P.AxisLimits(lim.v_max, lim.a_max, lim.j_max) for lim in limits]
@@ -135,7 +147,10 @@ class MotionSide:
         self.homing_state = [""] * self.n
         self.inputs, self.to_loop = inputs, to_loop
         self._homing_thread: threading.Thread | None = None
-        self.lead = max(1, int(round(LEAD_S / period_s)))
+        self.lead = max(BLOCKS_PER_LEAD, int(round(lead_s / period_s)))
+        if self.lead > stream.capacity:
+            raise ValueError(f"a lead of {lead_s:g} s is {self.lead} rows; the setpoint ring holds "
+                             f"{stream.capacity}")
         ratio = min(lim.a_max / lim.v_max for lim in limits)
         self.f_rate, self.f_accel = F_RATE_PER_S * ratio, F_ACCEL_PER_S2 * ratio * ratio
         self.f_rate_hi = 0.5 * RAMP_SHARE * ratio
@@ -144,6 +159,11 @@ class MotionSide:
         self.cap_ahead_s = 1.2 * MAX_OVERRIDE * ((MAX_OVERRIDE - 1.0) / self.f_rate_hi
                                                  + 2.0 * self.f_rate_hi / self.f_accel_hi)
         self.guard = max(4, int(round(GUARD_S / period_s)))
+        #: the most rows one fill (or a rewrite's first block) generates, whatever the lead
+        #: (LEAD_S / BLOCKS_PER_LEAD): the lock and the interpreter are held that long at most
+        #: (tens of ms), so that the I/O process's drain and socket never wait for a whole lead
+        #: (a 2 s block took 0.8-3 s and latched "recorder stalled" on a loaded host)
+        self._chunk = max(1, min(self.lead, int(round(LEAD_S / period_s))) // BLOCKS_PER_LEAD)
         cap = stream.capacity
         #: the filler's state after each ring row (by row index % capacity): path time, feed
         #: scale and its rate, trajectory, programs done; rows below _hist_from are not ours
@@ -154,16 +174,21 @@ class MotionSide:
         self._rewrite = False            # a hold/resume/abort/override asks to rewrite the ring
         self._guard_now = self.guard     # the guard of the next rewrite (doubled after a miss)
         self._defer_clear: str | None = None
+        self._off_pending = False        # an abort's stop outputs still to switch off
         self.rewrites = 0
         self._wake = threading.Event()
         self.gcode_settings = gcode_settings or G.GcodeSettings()
-        self.output = output
+        n_out = len(stream.outputs)
+        self._stop_mask = np.array([bool(int(stream.ctl[SP_OUT_STOP]) >> j & 1) for j in range(n_out)],
+                                   dtype=bool)
+        self._out = np.zeros(n_out)      # the outputs after the last row generated
+        self._bout = np.zeros((self.lead, n_out))
         #: the work offsets (G54 ... G59.3 → X Y Z origin [m]) the last accepted program left, the
         #: ones the next program starts with (LinuxCNC keeps them, set by G10 L2)
         self.work_offsets: dict[str, np.ndarray] = {}
-        self.pending: collections.deque = collections.deque()   # (ring row, Event) not yet issued
-        self.outputs: dict[str, float] = {}
-        #: (ring row, output, value, setpoint positions (n,) [m]) of every output issued
+        self.pending: collections.deque = collections.deque()   # (ring row, Event) not yet taken
+        self.outputs: dict[str, float] = {o: 0.0 for o in stream.outputs}
+        #: (ring row, output, value, setpoint positions (n,) [m]) of every machine word the loop took
         self.output_log: list[tuple[int, str, float, np.ndarray]] = []
         self._bev: list = []             # (row of the block, Event) of the block being generated
         self._ev_i = 0                   # the next event of the trajectory being streamed
@@ -269,6 +294,11 @@ class MotionSide:
             P.check_limits(prog, {a: (lim.soft_min, lim.soft_max) for a, lim in zip(self.names, self.limits)})
         except ValueError as exc:        # GcodeError, LimitError: one line with file:line:column
             raise MotionError(str(exc)) from None
+        for ev in prog.segments:
+            if isinstance(ev, G.Event) and ev.target is not None and ev.target not in self.stream.outputs:
+                raise MotionError(f"{filename}:{ev.line}:{ev.column}: {ev.word}: output {ev.target} is not one "
+                                  f"the loop carries ({', '.join(self.stream.outputs) or 'none'}); "
+                                  f"M62-M65 take P 0-{G.N_DIO - 1}")
         moved = sorted({k for seg in prog.moves for k in range(3)
                         if (k < 2 and isinstance(seg, G.Arc)) or seg.start[k] != seg.end[k]})
         axes = [self.names.index(G.AXES[k]) for k in moved if G.AXES[k] in self.names]
@@ -313,7 +343,9 @@ class MotionSide:
     def abort(self) -> None:
         with self.lock:
             self.aborting = self.holding = True
-            if self.cur is None and not self.queue:
+            # nothing left to plan may still be in the ring (a move shorter than the lead):
+            # then the rewrite stops it; only an empty ring means nothing runs
+            if self.cur is None and not self.queue and self.stream.depth() == 0:
                 self._clear("aborted")
             self._asap()
 
@@ -455,16 +487,14 @@ class MotionSide:
             except OSError:
                 pass                         # not permitted: SCHED_OTHER as the rest of the process
         while not self._stop.is_set():
-            wait = FILL_EVERY_S
-            if self.pending:                 # wake at the cycle of the next event's row
-                wait = min(wait, max(2e-4, (self.pending[0][0] - self.stream.consumed() + 1) * self.dt))
-            self._wake.wait(wait)
+            self._wake.wait(FILL_EVERY_S)
             self._wake.clear()
             if self._stop.is_set():
                 break
             try:
                 self.issue_events()
-                self.fill()
+                while self.fill() and not self._stop.is_set():
+                    time.sleep(0)            # the drain and the socket between two blocks
             except Exception as exc:  # noqa: BLE001 - the filler never dies: the loop brakes
                 with self.lock:
                     self._clear(f"planner error: {type(exc).__name__}: {exc}")
@@ -480,9 +510,11 @@ class MotionSide:
         self.feed_m_s = 0.0
         self._hist_from = self.stream.written()
         self.pending.clear()
+        self._off_pending = why == "aborted"   # the stop outputs off once the ring is drained
 
     def fill(self) -> int:
-        """Top the ring up to :data:`LEAD_S` ahead. Returns the rows written."""
+        """Top the ring up toward the lead by one block of at most ``_chunk`` rows (the filler
+        calls it again at once while it writes rows). Returns the rows written."""
         ring = self.stream
         with self.lock:
             ep = ring.epoch()
@@ -492,12 +524,17 @@ class MotionSide:
                     self._clear("underrun" if ring.underruns() else "stopped")
             if ring.braking():
                 return 0
+            if ring.depth() == 0 and self.cur is None:   # the loop's outputs (it may have switched some off)
+                self._out[:] = ring.applied()
+                if self._off_pending:
+                    self._off_pending = False
+                    self._stop_outputs_at_rest()
             if self._rewrite:
                 n = self._rewind(ep)
                 if n is not None:
                     return n
-            need = min(self.lead - ring.depth(), ring.free())
-            if need < self.lead // BLOCKS_PER_LEAD or (self.cur is None and not self.queue):
+            need = min(self.lead - ring.depth(), ring.free(), self._chunk)
+            if need < self._chunk or (self.cur is None and not self.queue):
                 return 0
             if self._gone():
                 return 0
@@ -505,6 +542,23 @@ class MotionSide:
             n = self._generate(need)
             self._push(n, ep)
             return n
+
+    def _stop_outputs_at_rest(self) -> None:
+        """(lock held) Nothing streams: the stop outputs still on go off in one row at rest where
+        the loop holds (an abort that found nothing to rewrite)."""
+        ring = self.stream
+        row = self.latest()
+        if (row is None or not np.any(ring.applied()[self._stop_mask]) or ring.depth() or ring.braking()
+                or self._gone()):
+            return
+        self._out[:] = ring.applied()
+        self._out[self._stop_mask] = 0.0
+        self._block[0, :, 0] = [row[c] for c in self._xcol]   # the setpoint the loop holds
+        self._block[0, :, 1:] = 0.0
+        self._bs[0], self._bf[0], self._bfd[0] = 0.0, self.f, 0.0
+        self._btraj[0] = None
+        self._bev.clear()
+        self._push(1, ring.epoch())
 
     def _gone(self) -> bool:
         """(lock held) A moved axis left command mode (a fault or a stop): the program is dropped,
@@ -523,7 +577,13 @@ class MotionSide:
         ring = self.stream
         w = ring.written()
         self.pending.extend((w + q, ev) for q, ev in self._bev)
-        ring.push(self._block[:n], ep)
+        outs = self._bout[:n]
+        outs[:] = self._out
+        for q, ev in self._bev:              # in row order: each switches its output from its row on
+            if ev.target is not None:
+                outs[q:, ring.outputs.index(ev.target)] = ev.value
+        self._out[:] = outs[n - 1]
+        ring.push(self._block[:n], ep, outs)
         k = (w + np.arange(n)) % ring.capacity
         self._hs[k], self._hf[k], self._hfd[k] = self._bs[:n], self._bf[:n], self._bfd[:n]
         self._hdone[k] = self.done_programs
@@ -558,6 +618,8 @@ class MotionSide:
         cut = r0 + self._guard_now
         if cut >= w or cut - 1 < self._hist_from or self._gone():   # no rows of ours beyond the guard
             self._rewrite = False
+            if self.aborting:                # what is left ends within the guard: the abort is done
+                self._clear("aborted")
             return None
         before = self._state()
         cap = ring.capacity
@@ -574,7 +636,10 @@ class MotionSide:
         self.s = 0.0 if ended else float(self._hs[k0])
         self.f, self.fd = (self.override, 0.0) if ended else (float(self._hf[k0]), float(self._hfd[k0]))
         self.done_programs = int(self._hdone[k0])
-        self.last[:] = ring.rows[k0, 1:].reshape(self.n, 3)
+        self.last[:] = ring.setpoint(k0)
+        self._out[:] = ring.row_outputs(k0)
+        if self.aborting:                    # LinuxCNC's abort: spindle, torch and coolant off now
+            self._out[self._stop_mask] = 0.0
         if self.trace is not None:
             del self.trace[len(self.trace) - (w - cut):]
         if self.cur is not None:
@@ -583,7 +648,7 @@ class MotionSide:
         self._defer_clear = ""
         # a short block first (the loop must not reach the cut while it is generated); fill()
         # tops the ring up to LEAD_S afterwards as usual
-        n = self._generate(min(self.lead // BLOCKS_PER_LEAD, cap - (cut - r0)))
+        n = self._generate(min(self._chunk, cap - (cut - r0)))
         why, self._defer_clear = self._defer_clear, None
         if ring.retract(cut) is None:        # the loop came too close: as before, retry wider
             self._restore(before)
@@ -601,23 +666,22 @@ class MotionSide:
         return n
 
     def issue_events(self) -> int:
-        """Set the outputs of the machine words whose ring row the loop has taken (the I/O side
-        at the row's cycle, late by this thread's wake-up and the command to the loop). Returns
-        how many were issued."""
+        """Note the machine words whose ring row the loop has taken (the loop itself applied
+        their outputs at that row, :mod:`motorctl.loop.stream`): ``output_log``, and ``outputs``
+        as the loop applies them now. Returns how many were taken."""
+        ring = self.stream
+        for j, o in enumerate(ring.outputs):
+            self.outputs[o] = float(ring.applied()[j])
         done = 0
         if not self.pending:
             return 0
-        taken = self.stream.consumed()
+        taken = ring.consumed()
         with self.lock:
             while self.pending and self.pending[0][0] < taken:
                 row, ev = self.pending.popleft()
-                if ev.output is None:        # mapped to 'ignore': warned about when queued
+                if ev.target is None:        # mapped to 'ignore': warned about when queued
                     continue
-                x = self.stream.rows[row % self.stream.capacity, 1::3].copy()
-                self.outputs[ev.output] = float(ev.value)
-                self.output_log.append((row, ev.output, float(ev.value), x))
-                if self.output is not None:
-                    self.output(ev.output, float(ev.value))
+                self.output_log.append((row, ev.target, float(ev.value), ring.setpoint(row)[:, 0].copy()))
                 done += 1
         return done
 
