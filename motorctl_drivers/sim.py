@@ -26,6 +26,11 @@ Unmodelled dynamics the paper neglects (§II; all off by default, each an option
   damper c with the free-free mode at ``mode_hz`` [Hz] and damping ratio ``mode_damping``:
   k = ω² μ, c = 2 ζ ω μ, μ = m_c m_l / M (reduced mass). The encoder reads the carriage
   (collocated), so force → y shows an antiresonance at ω √(1 − f) below the resonance at ω.
+  Backlash (``backlash_m`` > 0, needs the mode): the load is held with a play of that total
+  width, the coupling acts only beyond it, F_k = k·dz(x_c − x_l) + c·(ẋ_c − ẋ_l) in contact,
+  0 inside the gap (dz: the dead zone of half-width ``backlash_m``/2; Nordin & Gutman,
+  "Controlling mechanical systems with backlash — a survey", Automatica 38, 2002, the dead-zone
+  model). No identification family models it.
 * current loop (``current_loop_hz`` > 0): the motor force follows F_m(u) through a first-order
   low-pass of bandwidth ``current_loop_hz`` [Hz] (−3 dB), integrated exactly under the ZOH; and
   ``current_loop_delay_s`` [s] of transport delay before it (any value: whole periods by a delay
@@ -79,7 +84,7 @@ from typing import Annotated
 
 import numpy as np
 from numba.experimental.structref import StructRefProxy
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from motorctl.driver import Driver, StopCheck
 from motorctl.effects import FAMILIES, effects_model
@@ -172,12 +177,27 @@ def _force_at(tau, f_start, f_prev, f_cur, delta, tau_i):
 
 
 @njit
-def _acc_flex(fm, x1, v1, x2, v2, mc, ml, ks, cs, b, fc, f0, f_noise, f_ext):
-    """Accelerations [m/s²] of carriage and load under motor force fm [N] (``ml`` = 0: rigid)."""
+def _coupling(dx, dv, ks, cs, half_gap):
+    """The force [N] the carriage applies to the load through the mode's spring k [N/m] and
+    damper c [N s/m] at deflection dx = x_c − x_l [m], dv = ẋ_c − ẋ_l [m/s], with a play of
+    half-width ``half_gap`` [m] (0: none): k·dz(dx) + c·dv in contact, 0 inside the play."""
+    if half_gap <= 0.0:
+        return ks * dx + cs * dv
+    if dx > half_gap:
+        return ks * (dx - half_gap) + cs * dv
+    if dx < -half_gap:
+        return ks * (dx + half_gap) + cs * dv
+    return 0.0
+
+
+@njit
+def _acc_flex(fm, x1, v1, x2, v2, mc, ml, ks, cs, b, fc, f0, f_noise, f_ext, half_gap):
+    """Accelerations [m/s²] of carriage and load under motor force fm [N] (``ml`` = 0: rigid;
+    ``half_gap`` [m]: the coupling's play, :func:`_coupling`)."""
     sf = _TWO_OVER_PI * math.atan(S_F_GAIN * v1)
     f = fm - b * v1 - fc * sf + f0 + f_noise + f_ext
     if ml > 0.0:
-        fsp = ks * (x1 - x2) + cs * (v1 - v2)
+        fsp = _coupling(x1 - x2, v1 - v2, ks, cs, half_gap)
         return (f - fsp) / mc, fsp / ml
     a = f / mc
     return a, a
@@ -187,10 +207,10 @@ def _acc_flex(fm, x1, v1, x2, v2, mc, ml, ks, cs, b, fc, f0, f_noise, f_ext):
 def _acc_two_mass(xc, vc, xl, vl, t, tau, args):
     """:func:`_rk4_with`'s accelerations of the two-mass plant under the motor force of
     :func:`_force_at`; ``args`` = (f_start, f_prev, f_cur, delta, tau_i, m_c, m_l, k, c, B, A_f,
-    F_0, F_noise, F_ext)."""
-    f_start, f_prev, f_cur, delta, tau_i, mc, ml, ks, cs, b, fc, f0, f_noise, f_ext = args
+    F_0, F_noise, F_ext, half the play [m])."""
+    f_start, f_prev, f_cur, delta, tau_i, mc, ml, ks, cs, b, fc, f0, f_noise, f_ext, half_gap = args
     fm = _force_at(tau, f_start, f_prev, f_cur, delta, tau_i)
-    return _acc_flex(fm, xc, vc, xl, vl, mc, ml, ks, cs, b, fc, f0, f_noise, f_ext)
+    return _acc_flex(fm, xc, vc, xl, vl, mc, ml, ks, cs, b, fc, f0, f_noise, f_ext, half_gap)
 
 
 _rk4_two_mass = njit(_rk4_with(_acc_two_mass))
@@ -198,12 +218,13 @@ _rk4_two_mass = njit(_rk4_with(_acc_two_mass))
 
 @njit
 def _rk4_flex(xc, vc, xl, vl, t, f_start, f_prev, f_cur, delta, tau_i, h, n, mc, ml, ks, cs,
-              b, fc, f0, f_noise, f_ext):
+              b, fc, f0, f_noise, f_ext, half_gap):
     """``n`` RK4 steps of the two-mass plant (carriage xc, vc; load xl, vl) with the motor force
-    of :func:`_force_at`; ``ml`` = 0 means no structural mode (one rigid mass ``mc``). Returns
-    xc, vc, xl, vl, t and the force at the end of the period."""
+    of :func:`_force_at`; ``ml`` = 0 means no structural mode (one rigid mass ``mc``); the
+    coupling's play of half-width ``half_gap`` [m] (:func:`_coupling`). Returns xc, vc, xl, vl, t
+    and the force at the end of the period."""
     xc, vc, xl, vl, t, tau = _rk4_two_mass((f_start, f_prev, f_cur, delta, tau_i, mc, ml, ks, cs, b, fc, f0,
-                                             f_noise, f_ext), xc, vc, xl, vl, t, h, n)
+                                             f_noise, f_ext, half_gap), xc, vc, xl, vl, t, h, n)
     return xc, vc, xl, vl, t, _force_at(tau, f_start, f_prev, f_cur, delta, tau_i)
 
 
@@ -235,6 +256,7 @@ class SimAxisOptions(StrictModel):
     mode_hz: Annotated[float, Field(ge=0.0, le=1e5)] = 0.0   # structural mode, free-free [Hz]
     mode_damping: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.02   # its damping ratio [-]
     mode_load_fraction: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.3  # m_l / M [-]
+    backlash_m: Annotated[float, Field(ge=0.0, le=0.01)] = 0.0   # play of the load's coupling [m]
     current_loop_hz: Annotated[float, Field(ge=0.0, le=1e6)] = 0.0   # current-loop bandwidth [Hz]
     current_loop_delay_s: Annotated[float, Field(ge=0.0, le=0.1)] = 0.0  # delay before it [s]
     encoder_noise_m: Annotated[float, Field(ge=0.0, le=0.01)] = 0.0  # position noise, std [m]
@@ -248,6 +270,13 @@ class SimAxisOptions(StrictModel):
     # the applied force, and the breakaway kept stiction_N - coulomb_N above the kinetic friction
     # they set at rest; off: the motor, offset, noise and push against stiction_N only
     stiction_with_effects: bool = False
+
+    @model_validator(mode="after")
+    def _backlash_needs_mode(self):
+        if self.backlash_m > 0.0 and self.mode_hz <= 0.0:
+            raise ValueError(f"backlash_m = {self.backlash_m:g}: the play is in the coupling of the load, "
+                             "which needs mode_hz > 0 (the structural mode's spring)")
+        return self
 
     def flexible(self) -> bool:
         """True when a structural mode or an amplifier current loop / delay is switched on."""
@@ -269,7 +298,7 @@ class SimAxisOptions(StrictModel):
                             self.viscous_N_s_per_m, self.coulomb_N, self.offset_N)
 
 
-_UNMODELLED = ("mode_hz", "mode_damping", "mode_load_fraction", "current_loop_hz",
+_UNMODELLED = ("mode_hz", "mode_damping", "mode_load_fraction", "backlash_m", "current_loop_hz",
                "current_loop_delay_s", "encoder_noise_m", "encoder_interpolation_m",
                "encoder_signal_period_m")
 
@@ -290,8 +319,8 @@ N_PS = 12
 NOISE_BLOCK = 256
 (PP_M, PP_A1, PP_A2, PP_A3, PP_B, PP_FC, PP_F0, PP_NOISE, PP_STIC, PP_STICKV, PP_H, PP_N, PP_MC,
  PP_ML, PP_KS, PP_CS, PP_TAUI, PP_DELTA, PP_ENCSIG, PP_FLEX, PP_Q, PP_ENCAMP, PP_ENCK, PP_NDL,
- PP_STICFX) = range(25)
-N_PP = 25
+ PP_STICFX, PP_GAP) = range(26)
+N_PP = 26
 # the simulated driver's injected faults (SimDriver.inject): cycles left per axis
 INJ_READ, INJ_NAN, INJ_AMP, INJ_PUSH = range(4)
 
@@ -316,7 +345,7 @@ def _plant_step(u, s, p, dl, nz):
         (s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], s[PS_F]) = _rk4_flex(
             s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], s[PS_F], f_prev, f_cur, p[PP_DELTA], p[PP_TAUI],
             p[PP_H], n, p[PP_MC], p[PP_ML], p[PP_KS], p[PP_CS], p[PP_B], p[PP_FC], p[PP_F0], s[PS_FNOISE],
-            s[PS_FEXT])
+            s[PS_FEXT], p[PP_GAP])
     _period_end(s, p, nz, stuck, x0, xl0)
 
 
@@ -525,7 +554,7 @@ _rk4_rigid_hooked = njit(_rk4_with(_acc_rigid_hooked))
 
 @njit
 def _acc_flex_hooked(fm, xc, vc, xl, vl, t, mc, ml0, m_tot, ks, cs, b, fc, f0, f_noise, f_ext, codes,
-                     table, lengths):
+                     table, lengths, half_gap):
     """Accelerations [m/s²] of carriage and load under motor force fm [N] with the effects'
     compiled terms (a mass change is the load's); the general path's ``acc`` in
     :meth:`AxisPlant._step_flex` (the same operations in the same order)."""
@@ -535,7 +564,7 @@ def _acc_flex_hooked(fm, xc, vc, xl, vl, t, mc, ml0, m_tot, ks, cs, b, fc, f0, f
     f = effect_terms.force(f, xc, vc, t, sf, codes, table, lengths)
     m = effect_terms.mass(m_tot, t, codes, table, lengths)
     if ml0 > 0.0:
-        fsp = ks * (xc - xl) + cs * (vc - vl)
+        fsp = _coupling(xc - xl, vc - vl, ks, cs, half_gap)
         ac = (f - fsp) / mc
         return ac, fsp / (ml0 + m - m_tot)
     ac = f / m
@@ -546,11 +575,11 @@ def _acc_flex_hooked(fm, xc, vc, xl, vl, t, mc, ml0, m_tot, ks, cs, b, fc, f0, f
 def _acc_two_mass_hooked(xc, vc, xl, vl, t, tau, args):
     """:func:`_rk4_with`'s accelerations of the two-mass plant with the effects' compiled terms
     (:func:`_acc_flex_hooked`); ``args`` = (f_start, f_prev, f_cur, delta, tau_i, m_c, m_l, M, k,
-    c, B, A_f, F_0, F_noise, F_ext, codes, table, lengths)."""
+    c, B, A_f, F_0, F_noise, F_ext, codes, table, lengths, half the play [m])."""
     (f_start, f_prev, f_cur, delta, tau_i, mc, ml, m_tot, ks, cs, b, fc, f0, f_noise, f_ext, codes, table,
-     lengths) = args
+     lengths, half_gap) = args
     return _acc_flex_hooked(_force_at(tau, f_start, f_prev, f_cur, delta, tau_i), xc, vc, xl, vl, t, mc, ml,
-                            m_tot, ks, cs, b, fc, f0, f_noise, f_ext, codes, table, lengths)
+                            m_tot, ks, cs, b, fc, f0, f_noise, f_ext, codes, table, lengths, half_gap)
 
 
 _rk4_two_mass_hooked = njit(_rk4_with(_acc_two_mass_hooked))
@@ -603,7 +632,8 @@ def _hooked_step(u, s, p, dl, nz, codes, table, lengths):
         (s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], tau) = _rk4_two_mass_hooked(
             (f_start, f_prev, f_cur, p[PP_DELTA], p[PP_TAUI], p[PP_MC], p[PP_ML], p[PP_M],
                                    p[PP_KS], p[PP_CS], p[PP_B], p[PP_FC], p[PP_F0], s[PS_FNOISE], s[PS_FEXT], codes,
-                                   table, lengths), s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], p[PP_H], n)
+                                   table, lengths, p[PP_GAP]),
+            s[PS_X], s[PS_XD], s[PS_XL], s[PS_VL], s[PS_T], p[PP_H], n)
         s[PS_F] = _force_at(tau, f_start, f_prev, f_cur, p[PP_DELTA], p[PP_TAUI])
     _period_end(s, p, nz, stuck, x0, xl0)
 
@@ -666,6 +696,7 @@ class AxisPlant:
         self._plain = not (self._hooks or self._flex)
         # unmodelled dynamics (module docstring)
         self.mc, self.ml, self.ks, self.cs = opt.mode_coefficients()
+        self.half_gap = 0.5 * opt.backlash_m   # the load's play, half-width [m]
         self.xl, self.vl = self.x, 0.0     # load position [m] and velocity [m/s]
         self.tau_i = 1.0 / (2.0 * math.pi * opt.current_loop_hz) if opt.current_loop_hz > 0 else 0.0
         n_del = int(math.floor(opt.current_loop_delay_s / period_s + 1e-9))
@@ -680,7 +711,7 @@ class AxisPlant:
         self.enc_noise = 0.0
         if self._flex and not self._hooks:
             _rk4_flex(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, self.tau_i, self.h, 1,
-                      self.mc, self.ml, self.ks, self.cs, self.b, self.fc, self.f0, 0.0, 0.0)
+                      self.mc, self.ml, self.ks, self.cs, self.b, self.fc, self.f0, 0.0, 0.0, self.half_gap)
         if self._plain:
             _rk4_plain(0.0, 0.0, 0.0, 0.0, self.h, 1, self.m, self.a1, self.a2, self.a3, self.b,
                        self.fc, self.f0, 0.0, 0.0)   # compile (or load the cache) now
@@ -692,7 +723,8 @@ class AxisPlant:
         self._p = np.array([self.m, self.a1, self.a2, self.a3, self.b, self.fc, self.f0, self.noise,
                             self.stiction, self.stick_v, self.h, self.substeps, self.mc, self.ml, self.ks,
                             self.cs, self.tau_i, self.delta, self.enc_sigma, 1.0 if self._flex else 0.0,
-                            self.q, self.enc_amp, self.enc_k, n_dl, 1.0 if self.stiction_fx else 0.0])
+                            self.q, self.enc_amp, self.enc_k, n_dl, 1.0 if self.stiction_fx else 0.0,
+                            self.half_gap])
         self._dl = np.zeros(n_dl)                              # the current loop's delay line
         self._nz = np.zeros(NOISE_BLOCK)
         self._s[PS_NZI] = NOISE_BLOCK                          # drawn at the first step
@@ -831,7 +863,7 @@ class AxisPlant:
             (self.x, self.xd, self.xl, self.vl, self.t, self.F) = _rk4_flex(
                 self.x, self.xd, self.xl, self.vl, self.t, self.F, f_prev, f_cur, self.delta,
                 self.tau_i, self.h, self.substeps, self.mc, self.ml, self.ks, self.cs, self.b,
-                self.fc, self.f0, self.f_noise, self.f_ext)
+                self.fc, self.f0, self.f_noise, self.f_ext, self.half_gap)
             return
         # general path: the same equations with the effects' hooks (python)
         h, F0, d, ti = self.h, self.F, self.delta, self.tau_i
@@ -840,7 +872,7 @@ class AxisPlant:
         def acc(xc, vc, xl, vl, t, tau, _args):
             f, m = self._hooked_force(_force_at(tau, F0, f_prev, f_cur, d, ti), xc, vc, t)
             if ml0 > 0.0:   # a mass change is the load's
-                fsp = self.ks * (xc - xl) + self.cs * (vc - vl)
+                fsp = _coupling(xc - xl, vc - vl, self.ks, self.cs, self.half_gap)
                 ac = (f - fsp) / self.mc
                 return ac, fsp / (ml0 + m - m_tot)
             ac = f / m

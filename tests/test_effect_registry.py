@@ -40,7 +40,7 @@ A1 = 80.0
 ORDER = ("cogging", "force_ripple", "stribeck", "asymmetric_friction", "position_dependent_friction",
          "spring", "payload_change", "input_delay", "periodic_disturbance", "position_friction_shape",
          "stiction", "amplifier_dead_zone", "force_constant_drift", "periodic_friction",
-         "encoder_interpolation")
+         "encoder_interpolation", "structural_mode")
 #: (x [m], ẋ [m/s], t [s]) where terms are compared: both directions, slow and fast, ẋ = 0
 POINTS = [(x, v, t) for x in (-0.05, 0.013, 0.2, 0.37) for v in (-0.8, -0.01, 0.0, 0.004, 0.05, 0.8)
           for t in (0.0, 0.41, 2.3)]
@@ -90,7 +90,8 @@ def test_registry_order_names_and_lookup():
     assert [f.name for f in compensable()] == ["cogging", "spring", "periodic_disturbance", "stribeck",
                                                "asymmetric_friction", "position_dependent_friction",
                                                "position_friction_shape", "periodic_friction"]
-    assert {f.name for f in simulated()} == set(ORDER) - {"input_delay", "stiction", "encoder_interpolation"}
+    assert {f.name for f in simulated()} == set(ORDER) - {"input_delay", "stiction", "encoder_interpolation",
+                                                                    "structural_mode"}
 
 
 @pytest.mark.parametrize("name", ORDER)

@@ -31,9 +31,10 @@ EMPS_PUBLISHED = {"mass_kg": 95.1089, "viscous_N_s_per_m": 203.5034, "coulomb_N"
 DURATION_S = 6.0
 CLEAN_SEEDS = (11, 12, 13)
 #: (log name, axis, effect, duration)
-#: (encoder_interpolation, an error of the reading, has its own tests: tests/test_encoder_interpolation.py)
+#: (encoder_interpolation, an error of the reading, has its own tests: tests/test_encoder_interpolation.py;
+#: structural_mode, a dynamic of the default plant, too: tests/test_structural_mode.py)
 CASES = [(name, "X", eff, DURATION_S) for name, eff in EXAMPLES.items()
-         if name not in ("payload_change", "encoder_interpolation")]
+         if name not in ("payload_change", "encoder_interpolation", "structural_mode")]
 CASES.append(("payload_change", "Y", {"payload_change": {"t_change_s": 4.6, "mass_kg": 8.0}}, 8.0))
 
 

@@ -26,15 +26,17 @@ amplifier_dead_zone             −A1 (clip(u + o, −d, d) − o)         clip(
 force_constant_drift            κ t A1 f_u(u)                        f_u(u)·(t − t̄)
 periodic_friction               −Σ A_k sin(2πkx/P + φ_k) S_f(ẋ)      sin, cos(2πkx/P)·S_f(ẋ)
 encoder_interpolation           none (reading y = x + Σ a_k sin(..))  d²/dt² sin, cos(2πky/P)
+structural_mode                 −m_l δ̈, load on a spring (two-mass)  −G(s)ẍ, G = s²/(s²+..ω_a²)
 ==============================  ===================================  ======================
 
 F_eff = −A1·Cβ; x_ref, x_0 are absorbed by θ3, θ4 (only the slope/stiffness is identifiable).
 Compensable (additive in (x_d, ẋ_d, t)): cogging, stribeck, asymmetric_friction,
 position_dependent_friction, spring, periodic_disturbance, position_friction_shape,
 periodic_friction; through a hook: force_ripple, input_delay. Identified and reported only:
-payload_change, stiction, amplifier_dead_zone, force_constant_drift, encoder_interpolation (a
-mass, a holding force, a static input nonlinearity, a gain drift and an error of the reading: no
-additive term in (x_d, ẋ_d, t) cancels them).
+payload_change, stiction, amplifier_dead_zone, force_constant_drift, encoder_interpolation,
+structural_mode (a mass, a holding force, a static input nonlinearity, a gain drift, an error of
+the reading and a resonance of the feedback path: no additive term in (x_d, ẋ_d, t) cancels
+them).
 
 The order of :data:`FAMILIES` is fixed: it is the order of the identification's candidates and
 of the plant's force terms (float sums: do not reorder existing entries). This package's families

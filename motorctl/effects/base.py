@@ -283,8 +283,9 @@ class SearchContext(Protocol):
 
     n_theta: int
 
-    def delay_sses(self, base: list, grid) -> np.ndarray:
-        """Joint-LS SSE (K,) with the input shifted by ``grid`` (K,) extra samples."""
+    def delay_sses(self, base: list, grid, band=None) -> np.ndarray:
+        """Joint-LS SSE (K,) with the input shifted by ``grid`` (K,) extra samples; ``band``
+        (lo, hi) [Hz]: fitted on that frequency band of the columns and target only."""
 
     def direction_agreement(self, term, base: list) -> float:
         """1 − ‖β₊ − β₋‖/(‖β₊‖ + ‖β₋‖) of the term fitted on forward / backward motion."""

@@ -4,7 +4,9 @@ input stage or fieldbus), in whole control periods in the simulator.
 Physical model: u_applied(t) = u(t − τ). Its simulator option is the axis-level
 ``axes.NAME.driver.input_delay_s`` (not an ``effects:`` entry). Identification: no columns; the
 regression target becomes u(t − τ), τ from 0 to 5 ms in samples (FFT fractional shift of the
-decimated input), then a parabolic refinement. Compensation (not an additive d̂_eff, a
+decimated input), then a parabolic refinement; refused when the delays the phase of two
+frequency bands say differ (:meth:`InputDelayFamily.not_transport`: a transport delay is a phase
+−ωτ at every frequency, a load held with play lags only part of the force). Compensation (not an additive d̂_eff, a
 :class:`~motorctl.effects.base.CompHook`): the law predicts over τ, i.e. evaluates its
 desired-compensation part v_a1 (eq. 13) on the desired trajectory at t + τ (the servo loop passes
 that sample, :meth:`motorctl.control.base.Controller.preview`), and the estimator pairs each
@@ -40,6 +42,27 @@ def delay_line(n: int):
 #: a total input delay (hold + found) within this distance of half a sample is the zero-order
 #: hold of a sampled-data loop, not an effect [samples] (motorctl.ident.select.HOLD_TOLERANCE)
 HOLD_TOLERANCE = 0.15
+#: lowest frequency of the bands a delay's phase is compared on [Hz] (below: the program's own
+#: moves, whose phase hardly depends on τ)
+BAND_LOW_HZ = 15.0
+#: largest difference of the delays the two bands say [samples] (default plant, 20 s: clean
+#: 0.1, input delays of 0.2 and 0.6 ms 0.0-0.3; a load with 50 µm of play 1.6, 200 µm 6.3)
+MAX_BAND_SPREAD = 0.6
+#: step of the bands' delay grids [samples] (the minimum refined by a parabola)
+BAND_STEP = 0.5
+
+
+def parabolic_min(grid: np.ndarray, sses: np.ndarray) -> float:
+    """The grid value (K,) of the least SSE (K,), refined by the parabola through the SSEs of
+    it and its two neighbours (not at the grid's ends, nor where they do not curve up)."""
+    i = int(np.argmin(sses))
+    d = float(grid[i])
+    if 0 < i < len(grid) - 1:
+        s0, s1, s2 = sses[i - 1], sses[i], sses[i + 1]
+        den = s0 - 2 * s1 + s2
+        if den > 0:
+            d += 0.5 * (s0 - s2) / den * float(grid[1] - grid[0])
+    return d
 
 
 class DelayComp(StrictModel):
@@ -83,12 +106,7 @@ class InputDelayFamily(EffectFamily):
         grid = np.arange(0, dmax + 1)
         sses = ctx.delay_sses(base, grid)
         i = int(np.argmin(sses))
-        d = float(grid[i])
-        if 0 < i < len(grid) - 1:   # parabola through the three SSEs around the minimum
-            s0, s1, s2 = sses[i - 1], sses[i], sses[i + 1]
-            den = s0 - 2 * s1 + s2
-            if den > 0:
-                d += 0.5 * (s0 - s2) / den
+        d = parabolic_min(grid, sses)
         if i == 0:
             return ctx.term(self.name, 0.0), "best delay is 0 samples beyond the zero-order hold"
         total = ctx.zoh + d
@@ -96,7 +114,38 @@ class InputDelayFamily(EffectFamily):
             return ctx.term(self.name, d), (f"total input delay {total:.2f} sample is the zero-order hold of a "
                                             "sampled-data loop (half a sample), not an effect")
         note = f"delay {d:g} samples at the edge of the searched range" if i == len(grid) - 1 else None
-        return ctx.term(self.name, d), note
+        return ctx.term(self.name, d), note or self.not_transport(ctx, base, dmax)
+
+    @staticmethod
+    def bands(fs_d: float) -> tuple[tuple[float, float], tuple[float, float]] | None:
+        """The two frequency bands [Hz] a delay's phase slope is compared on: from
+        :data:`BAND_LOW_HZ` to the geometric mean with the decimation filter's cut-off
+        0.4·fs_d, and from there to the cut-off (15-39 and 39-100 Hz at fs_d = 250 Hz); None
+        when the record's band is too narrow."""
+        hi = 0.4 * fs_d
+        if hi < 4.0 * BAND_LOW_HZ:
+            return None
+        mid = (BAND_LOW_HZ * hi) ** 0.5
+        return (BAND_LOW_HZ, mid), (mid, hi)
+
+    def not_transport(self, ctx, base, dmax: int) -> str | None:
+        """A transport delay is a phase −ωτ at every frequency: the delay that fits the lower
+        and the upper band of :meth:`bands` alone (grid of :data:`BAND_STEP` samples) must agree
+        within :data:`MAX_BAND_SPREAD`. A lag of part of the force only (a load in play:
+        backlash, whose impacts lag the carriage by a time that depends on the motion) fits a
+        longer delay in the upper band. Returns the reason, or None."""
+        p = ctx.p
+        bands = self.bands(p.fs / p.nd)
+        if bands is None:
+            return None
+        grid = np.arange(0.0, dmax + 1e-9, BAND_STEP)
+        taus = [parabolic_min(grid, ctx.delay_sses(base, grid, band=b)) for b in bands]
+        if abs(taus[1] - taus[0]) <= MAX_BAND_SPREAD:
+            return None
+        (l0, h0), (l1, h1) = bands
+        return (f"not a transport delay: its phase says {taus[0]:.1f} samples at {l0:.3g}-{h0:.3g} Hz and "
+                f"{taus[1]:.1f} at {l1:.3g}-{h1:.3g} Hz (a delay is the same at every frequency, spread <= "
+                f"{MAX_BAND_SPREAD:g}): a lag of part of the force (a load held with play, backlash)")
 
     def parameters(self, h, beta, gain, fs):
         return {"delay_samples": float(h), "delay_s": float(h) / fs}

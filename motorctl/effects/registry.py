@@ -30,7 +30,7 @@ ENTRY_POINT_GROUP = KERNEL_ENTRY_POINTS
 BUILTIN_ORDER = ("cogging", "force_ripple", "stribeck", "asymmetric_friction", "position_dependent_friction",
                  "spring", "payload_change", "input_delay", "periodic_disturbance", "position_friction_shape",
                  "stiction", "amplifier_dead_zone", "force_constant_drift", "periodic_friction",
-                 "encoder_interpolation")
+                 "encoder_interpolation", "structural_mode")
 
 
 class RegistryError(ImportError):

@@ -305,10 +305,12 @@ class Identifier:
         res = minimize_scalar(sse, bounds=(lo, hi), method="bounded", options={"xatol": xatol})
         return self.term(family, float(res.x))
 
-    def delay_sses(self, base: list, grid: np.ndarray) -> np.ndarray:
+    def delay_sses(self, base: list, grid: np.ndarray, band: tuple[float, float] | None = None) -> np.ndarray:
         """Joint-LS SSE for extra input delays ``grid`` [samples]: the decimated u, u|u|, u³ are
         shifted by a fractional number of decimated samples (FFT phase shift of band-limited
-        signals) instead of being re-filtered for every candidate."""
+        signals) instead of being re-filtered for every candidate. ``band`` (lo, hi) [Hz]: the
+        fit on that band of every column and of the target only (their FFT outside it zeroed),
+        the delay one band's phase says; None: all of the record's band."""
         p = self.p
         key = ("u3", self.zoh)
         if key not in self._phi_cache:
@@ -318,6 +320,11 @@ class Identifier:
         spec = np.fft.rfft(ud, axis=0)
         w = 2 * np.pi * np.fft.rfftfreq(ud.shape[0])
         phi0, _ = self.design(base)
+        if band is not None:
+            f = np.fft.rfftfreq(ud.shape[0], p.nd / p.fs)
+            keep = ((f >= band[0]) & (f < band[1])).astype(float)[:, None]
+            spec = spec * keep
+            phi0 = np.fft.irfft(np.fft.rfft(phi0, axis=0) * keep, n=ud.shape[0], axis=0)
         out = []
         for d in grid:
             sh = np.fft.irfft(spec * np.exp(-1j * w * (d / p.nd))[:, None], n=ud.shape[0], axis=0)
