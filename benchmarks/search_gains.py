@@ -32,6 +32,7 @@ import argparse
 import contextlib
 import copy
 import io
+import itertools
 import json
 import math
 import os
@@ -140,7 +141,7 @@ def design(raw, axis, law, lo, hi, n, seed, floor):
     pts = lo + qmc.Sobol(len(lo), scramble=True, seed=seed).random(n if not floor else 64 * n) * (hi - lo)
     if not floor:
         return list(pts)
-    return [x for x in pts if floor_holds(raw, axis, law, gains_of(raw, axis, law, x))][:n]
+    return list(itertools.islice((x for x in pts if floor_holds(raw, axis, law, gains_of(raw, axis, law, x))), n))
 
 
 def search(raw, axis, law, ref, seconds, n_sobol, n_nm, say, rounds=1, floor=False):

@@ -141,19 +141,10 @@ class Driver(abc.ABC):
         #: cleared on the device, optional objects it does not have, a missing watchdog); the
         #: CLI prints them, the daemon journals them, the run-log header keeps them
         self.notices: list[str] = []
-        #: digital/analog outputs set by :meth:`set_output` (name → value)
+        #: the machine outputs as :meth:`apply_outputs` last set them (name → value)
         self.outputs: dict[str, float] = {}
 
     # ------------------------------------------------------------------ lifecycle
-    def set_output(self, name: str, value: float) -> None:
-        """Set the machine output ``name`` (a G-code machine word's mapping, ``gcode.words``) to
-        ``value`` (0/1 for a digital output, the S value for a power output). Called between
-        cycles, never inside one. The base class records it in :attr:`outputs` only (a driver with
-        outputs on its bus overrides this and calls super()). Raises ValueError on an empty name."""
-        if not name:
-            raise ValueError("set_output: an output needs a name")
-        self.outputs[name] = float(value)
-
     def apply_outputs(self, names: tuple[str, ...], values: np.ndarray) -> None:
         """The machine outputs ``names`` of the setpoint stream take ``values`` ((len(names),): 0/1
         for a digital output, the S value for a power output) in this cycle's exchange. Called by

@@ -974,7 +974,6 @@ class SimDriver(Driver):
         self._raw_last = np.full(n, np.nan)
         self.position_offset_m = np.zeros(n)
         self._offset_on = False
-        self.output_log: list[tuple[str, float, np.ndarray]] = []
 
     # ------------------------------------------------------------------ homing inputs
     @property
@@ -985,12 +984,6 @@ class SimDriver(Driver):
         """Latch the position at axis i's next index pulse (``index_latch_m[i]``, NaN until)."""
         self.index_latch_m[i] = np.nan
         self._armed[i] = True
-
-    def set_output(self, name: str, value: float) -> None:
-        """Record a machine output (Driver.set_output): ``outputs`` and ``output_log`` (name, value,
-        the axes' positions [m] when it was set), as a bus driver would switch its digital output."""
-        super().set_output(name, value)
-        self.output_log.append((name, float(value), self.position_m.copy()))
 
     def set_position_offset(self, i: int, delta_m: float) -> None:
         """Shift axis i's reported position by ``delta_m`` [m] from the next read (homing)."""

@@ -729,8 +729,9 @@ class MotionSide:
                 m = need - j
                 ss[:m] = self.s + self.f * dt * self._steps[:m]
                 if self.override > 1.0:
+                    # the bins this block reaches (a change beyond its last row does not shorten it)
                     b0 = int(self.s / cur.cap_dt)
-                    tb = np.minimum(self.override, np.maximum(1.0, cur.cap[b0:]))
+                    tb = np.minimum(self.override, np.maximum(1.0, cur.cap[b0:int(ss[m - 1] / cur.cap_dt) + 2]))
                     moved = np.flatnonzero(tb != self.f)
                     if moved.size:
                         s_cap = (b0 + int(moved[0])) * cur.cap_dt
