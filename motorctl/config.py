@@ -44,6 +44,7 @@ from motorctl.loop.safety import LimitsConfig
 from motorctl.loop.timebase import Timebase
 from motorctl.loop.trajectory import TrajectoryConfig
 from motorctl.motion.gcode import GcodeSettings
+from motorctl.recorder.flight import stall_bound_s
 from motorctl.schema import StrictModel, quantity
 
 
@@ -209,11 +210,12 @@ class DaemonConfig(StrictModel):
     @classmethod
     def _lead_below_the_stall_bound(cls, v: float, info: ValidationInfo) -> float:
         flush = info.data.get("flush_s")
-        if flush is not None and v >= 2.0 * flush + 1.0:
+        bound = None if flush is None else stall_bound_s(flush)
+        if bound is not None and v >= bound:
             raise PydanticCustomError(
                 "lead_too_long", "not below the recorder's stall bound 2 x flush_s + 1 s = {bound} s (an I/O "
                 "process starved that long latches 'recorder stalled' before the lead runs out); allowed: "
-                "below it", {"bound": 2.0 * flush + 1.0})
+                "below it", {"bound": bound})
         return v
 
     @field_validator("log_budget_bytes")
