@@ -22,16 +22,14 @@ overload itself (the cost of the call: ``benchmarks/bench_loop.py``, "the compil
 cycle").
 """
 
-import hashlib
-import os
 from functools import partial
 from types import SimpleNamespace
 
 import numpy as np
 
-from motorctl.jitcache import configure as _configure_cache
+from motorctl.jitcache import numba_folder
 
-_CACHE_DIR = _configure_cache()          # before numba reads NUMBA_CACHE_DIR
+_CACHE_DIR = numba_folder()              # before numba reads NUMBA_CACHE_DIR
 
 from numba import config as _config  # noqa: E402
 from numba import njit as _numba_njit  # noqa: E402
@@ -41,50 +39,12 @@ from numba.experimental import structref as _structref  # noqa: E402
 from numba.extending import intrinsic as _intrinsic  # noqa: E402
 
 if _CACHE_DIR is not None:
-    # numba was imported before motorctl: its configuration was read already (a kernel's cache
-    # locator reads it when the kernel is defined, after this)
+    # numba read NUMBA_CACHE_DIR at its import (before motorctl's, or without a plugin folder):
+    # a kernel's cache locator reads the setting when the kernel is defined, after this
     _config.CACHE_DIR = _CACHE_DIR
 
 #: True when ``NUMBA_DISABLE_JIT=1``: kernels are plain Python
 DISABLED = bool(_config.DISABLE_JIT)
-
-#: the entry-point group whose packages add kernels to the compiled code -> kernel tables (the
-#: effect families, :mod:`motorctl.effects.registry`)
-KERNEL_ENTRY_POINTS = "motorctl.effects"
-
-
-def plugin_cache_dir() -> str | None:
-    """numba's cache directory for a process in which packages other than motorctl register
-    :data:`KERNEL_ENTRY_POINTS` (None: none; motorctl's own folder then, keyed by its sources,
-    :mod:`motorctl.jitcache`).
-
-    numba's on-disk cache is keyed on a kernel's own source file: it sees neither a change of
-    a kernel it calls from another module nor of a table it reads as a global. The dispatch over
-    the code -> kernel tables (:func:`dispatch`) is inlined into its callers, up to the servo
-    cycle, so a process whose tables hold another package's kernels compiles and caches all
-    of them apart, in ``$NUMBA_CACHE_DIR`` (motorctl's keyed folder unless the user set it)
-    ``/motorctl-plugins-<key>``, the key a hash of those packages' names, versions and entry
-    points. After editing such a package's kernel, bump its version (or delete that directory).
-    """
-    from importlib.metadata import entry_points
-    own = []
-    for ep in entry_points(group=KERNEL_ENTRY_POINTS):
-        dist = getattr(ep, "dist", None)
-        name = dist.metadata["Name"] if dist is not None else "?"
-        if name != "motorctl":
-            own.append(f"{name} {dist.version if dist is not None else '?'} {ep.name}={ep.value}")
-    if not own:
-        return None
-    key = hashlib.sha256("\n".join(sorted(own)).encode()).hexdigest()[:16]
-    base = (os.environ.get("NUMBA_CACHE_DIR") or os.environ.get("XDG_CACHE_HOME")
-            or os.path.join(os.path.expanduser("~"), ".cache"))
-    return os.path.join(base, f"motorctl-plugins-{key}")
-
-
-# before the first kernel of this process is decorated (numba picks a kernel's cache directory then)
-if not DISABLED and (_plugins := plugin_cache_dir()) is not None:
-    _config.CACHE_DIR = _plugins
-
 
 #: Decorator for the per-sample kernels: nopython mode, cached, no GIL needed. (A constant
 #: argument from a compiled caller gives the callee an overload of its own, numba's literal
@@ -93,8 +53,8 @@ if not DISABLED and (_plugins := plugin_cache_dir()) is not None:
 #: about 4 % slower (C2, both axes: 1.75 against 1.68 us): the callees lost their constants.)
 njit = partial(_numba_njit, cache=True, nogil=True)
 
-__all__ = ["DISABLED", "KERNEL_ENTRY_POINTS", "BundleType", "borrow", "bundle", "check_code", "copy_into",
-           "define_bundle", "dispatch", "entry", "njit", "plugin_cache_dir"]
+__all__ = ["DISABLED", "BundleType", "borrow", "bundle", "check_code", "copy_into",
+           "define_bundle", "dispatch", "entry", "njit"]
 
 
 class BundleType(_types.StructRef):

@@ -34,7 +34,12 @@ KEEP = 3
 #: the environment variable of the cache's base folder (the systemd units set it)
 BASE_ENV = "MOTORCTL_CACHE_DIR"
 
-__all__ = ["BASE_ENV", "KEEP", "PACKAGES", "cache_dir", "configure", "source_key"]
+#: the entry-point group whose packages add kernels to the compiled code -> kernel tables (the
+#: effect families, :mod:`motorctl.effects.registry`)
+KERNEL_ENTRY_POINTS = "motorctl.effects"
+
+__all__ = ["BASE_ENV", "KEEP", "KERNEL_ENTRY_POINTS", "PACKAGES", "cache_dir", "configure", "numba_folder",
+           "plugin_key", "source_key"]
 
 
 def _package_roots() -> list[Path]:
@@ -106,3 +111,36 @@ def configure() -> str | None:
     _prune(folder)
     os.environ["NUMBA_CACHE_DIR"] = str(folder)
     return str(folder)
+
+
+@lru_cache(maxsize=1)
+def plugin_key() -> str | None:
+    """A hash (16 hex digits) of the names, versions and entry points of the packages other
+    than motorctl that register :data:`KERNEL_ENTRY_POINTS`; None when none does.
+
+    The dispatch over the code -> kernel tables is inlined into its callers, up to the servo
+    cycle, and numba's cache sees neither a change of a kernel called from another module nor
+    of a table read as a global: a process whose tables hold another package's kernels
+    compiles and caches all of them apart (:func:`numba_folder`). After editing such a
+    package's kernel, bump its version (or delete that folder)."""
+    from importlib.metadata import entry_points
+    own = []
+    for ep in entry_points(group=KERNEL_ENTRY_POINTS):
+        dist = getattr(ep, "dist", None)
+        name = dist.metadata["Name"] if dist is not None else "?"
+        if name != "motorctl":
+            own.append(f"{name} {dist.version if dist is not None else '?'} {ep.name}={ep.value}")
+    return hashlib.sha256("\n".join(sorted(own)).encode()).hexdigest()[:16] if own else None
+
+
+def numba_folder() -> str | None:
+    """The folder numba caches this process's kernels in: :func:`configure`'s (or the user's
+    ``NUMBA_CACHE_DIR``), and with another package's kernels (:func:`plugin_key`) its
+    ``motorctl-plugins-<key>`` subfolder (under ``$XDG_CACHE_HOME`` or ``~/.cache`` when no
+    folder could be configured). None: numba's own default."""
+    base = configure() or os.environ.get("NUMBA_CACHE_DIR")
+    key = plugin_key()
+    if key is None:
+        return base
+    base = base or os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, f"motorctl-plugins-{key}")

@@ -77,8 +77,12 @@ from motorctl.effects.compensation import COMP_KERNELS, Compensation
 loaded = load_config(sys.argv[1])
 p = loaded.make_driver().plants[0]
 c = Compensation(loaded.axes["X"].controller.compensation)
+from pathlib import Path
+import motorctl.loop.cycle as cycle
+from motorctl.app.warmup import _cache_folders, cache_is_cold
 print(json.dumps({"plant": [plant.KERNELS[int(k)].__name__ for k in p._terms[0]], "period_compiled": p.period_compiled,
-                  "comp": [COMP_KERNELS[int(c.table[7])][1].__name__], "cache": config.CACHE_DIR or ""}))
+                  "comp": [COMP_KERNELS[int(c.table[7])][1].__name__], "cache": config.CACHE_DIR or "",
+                  "notice_looks_in": [str(f) for f in _cache_folders(Path(cycle.__file__))], "cold": cache_is_cold()}))
 """
 
 
@@ -127,6 +131,9 @@ def test_a_family_from_another_package_runs_compiled(plugin_env, repo, drag_tune
     assert got["plant"] == ["drag_force"] and got["period_compiled"] is True, got
     assert got["comp"] == ["drag_add"], got
     assert "motorctl-plugins-" in got["cache"], got
+    # the compile notice looks where this process's cycle is cached: warm after tune compiled it
+    assert all(f.startswith(got["cache"]) for f in got["notice_looks_in"]), got
+    assert got["cold"] is False, got
 
 
 def _eps(*pairs):

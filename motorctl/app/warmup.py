@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from motorctl.control import configured_controllers, make_controller
-from motorctl.jitcache import configure as configure_cache
+from motorctl.jitcache import numba_folder
 
 COMPILE_LINE = "compiling the servo cycle for this CPU (first run only, ~30 s)..."
 #: the compiled function whose cache index stands for the whole set
@@ -32,13 +32,15 @@ def _index_pattern(src: Path) -> str:
 
 
 def _cache_folders(src: Path) -> list[Path]:
-    """Where numba keeps ``src``'s cache (numba.core.caching's locators, in their order):
-    ``NUMBA_CACHE_DIR`` when set, else ``__pycache__`` beside the source, else the user-wide
-    cache; the last two are keyed by the source folder's name and the SHA-1 of its path."""
+    """Where numba keeps ``src``'s cache (numba.core.caching's locators, in their order): the
+    folder :func:`motorctl.jitcache.numba_folder` points it at when there is one, else
+    ``__pycache__`` beside the source, else the user-wide cache; the last two are keyed by the
+    source folder's name and the SHA-1 of its path."""
     folder = src.parent.resolve()
     sub = f"{folder.name}_{hashlib.sha1(str(folder).encode()).hexdigest()}"
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        return [Path(os.environ["NUMBA_CACHE_DIR"]) / sub]
+    chosen = numba_folder()             # the folder motorctl.jit points numba at
+    if chosen:
+        return [Path(chosen) / sub]
     user = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "numba" / sub
     return [src.parent / "__pycache__", user]
 
@@ -61,11 +63,10 @@ def _fresh(index: Path, src: Path) -> bool:
 def cache_is_cold() -> bool:
     """True when no numba cache index of the servo cycle fits its current source, in the
     places numba looks (:func:`_cache_folders`), numba's cache folder being set first
-    (:func:`motorctl.jitcache.configure`: keyed by the package's sources, so that an edit to
+    (:func:`motorctl.jitcache.numba_folder`: keyed by the package's sources, so that an edit to
     any of them makes it cold)."""
     if os.environ.get("NUMBA_DISABLE_JIT") == "1":
         return False
-    configure_cache()
     spec = importlib.util.find_spec(_CYCLE_MODULE)
     if spec is None or not spec.origin:
         return False

@@ -20,10 +20,10 @@ from collections.abc import Iterable
 from importlib.metadata import entry_points
 
 from motorctl.effects.base import EffectFamily
-from motorctl.jit import KERNEL_ENTRY_POINTS
+from motorctl.jitcache import KERNEL_ENTRY_POINTS
 
 #: the families' entry-point group (numba caches the kernels of a process where another package
-#: registers one apart: :func:`motorctl.jit.plugin_cache_dir`)
+#: registers one apart: :func:`motorctl.jitcache.numba_folder`)
 ENTRY_POINT_GROUP = KERNEL_ENTRY_POINTS
 
 #: the families of this package in their fixed order (do not reorder; a new one goes after them)
