@@ -60,7 +60,7 @@ import numpy as np
 from pydantic import create_model
 
 from motorctl.effects import FAMILIES, compensable, compensation_model
-from motorctl.effects.registry import kernel_table
+from motorctl.effects.registry import kernel_code, kernel_table
 from motorctl.jit import check_code, dispatch, njit
 from motorctl.model import s_f_scalar
 
@@ -299,14 +299,7 @@ def _code(term) -> int | None:
     Raises:
         ValueError: a kernel not declared in its family's ``kernels`` (not in the table)."""
     kernel = getattr(term, "kernel", None)
-    if kernel is None:
-        return None
-    code = next((i for i, k in enumerate(KERNELS) if k is kernel), None)
-    if code is None:
-        raise ValueError(f"compensation term kernel {getattr(kernel, '__name__', kernel)!r} is not declared in "
-                         "its effect family's kernels (EffectFamily.kernels); known: "
-                         + ", ".join(f"{k} {fn.__name__}" for k, fn in COMP_KERNELS))
-    return code
+    return None if kernel is None else kernel_code(COMP_KERNELS, kernel, "compensation term")
 
 
 __all__ = ["Compensation", "CompensationConfig", "CompensationSection", "comp_fill", "comp_thrust", "comp_value",

@@ -28,7 +28,7 @@ from functools import partial
 import numpy as np
 
 from motorctl.effects import FAMILIES
-from motorctl.effects.registry import kernel_table
+from motorctl.effects.registry import kernel_code, kernel_table
 from motorctl.jit import check_code, dispatch, njit
 
 HOOKS = ("thrust", "force", "mass")
@@ -91,13 +91,8 @@ def rows(terms: list) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         return None
     codes = []
     for t in hooked:
-        k = next((i for i, fn in enumerate(KERNELS) if fn is t.kernel), None)
-        if k is None:
-            raise ValueError(f"plant term kernel {getattr(t.kernel, '__name__', t.kernel)!r} is not declared in "
-                             "its effect family's kernels (EffectFamily.kernels); known: "
-                             + ", ".join(f"{h} {fn.__name__}" for h, fn in PLANT_KERNELS))
         hook = next(h for h in HOOKS if getattr(t, h) is not None)
-        codes.append(check_plant_code(k, hook))
+        codes.append(check_plant_code(kernel_code(PLANT_KERNELS, t.kernel, "plant term"), hook))
     width = max([t.params.shape[0] for t in hooked] + [1])
     table = np.zeros((len(hooked), width))
     for i, t in enumerate(hooked):

@@ -85,3 +85,18 @@ def kernel_table(families: Iterable[EffectFamily], kinds: tuple[str, ...]) -> tu
                 raise RegistryError(f"effect family {fam.name!r}: kernel {getattr(kernel, '__name__', kernel)} "
                                     f"declared as {rows[kernel]!r} and {kind!r}")
     return tuple((kind, kernel) for kernel, kind in rows.items())
+
+
+def kernel_code(table: tuple[tuple[str, object], ...], kernel, what: str) -> int:
+    """The code of ``kernel`` in ``table`` (a :func:`kernel_table`: its row's index).
+
+    Raises:
+        ValueError: ``kernel`` is in no row: "``what`` kernel NAME is not declared in its effect
+            family's kernels (EffectFamily.kernels); known: KIND NAME, ..."
+    """
+    for code, (_, fn) in enumerate(table):
+        if fn is kernel:
+            return code
+    raise ValueError(f"{what} kernel {getattr(kernel, '__name__', kernel)!r} is not declared in its effect "
+                     "family's kernels (EffectFamily.kernels); known: "
+                     + ", ".join(f"{kind} {fn.__name__}" for kind, fn in table))
