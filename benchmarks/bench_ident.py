@@ -1,17 +1,23 @@
-"""Benchmark of ``motorctl identify`` on a 20 s run log at 5 kHz: wall time with start-up
-(budget 4 s).
+"""Benchmark of ``motorctl identify`` on a 20 s run log at 5 kHz: wall and CPU time with
+start-up, without the closed-loop check (budget 2 s wall) and with it (budget 4 s wall), on an
+idle 2-core machine.
 
 Rerun:
     python benchmarks/bench_ident.py              # generates the log once into /tmp, times identify
     python benchmarks/bench_ident.py --repeat 5 --effect stribeck --keep-log /tmp/x.log
+    git archive main | tar -x -C /tmp/motorctl-main
+    python benchmarks/bench_ident.py --ref-src /tmp/motorctl-main    # and main's, in the same run
 
 What is timed: ``motorctl identify LOG --json`` as a new process, end to end (Python start-up,
 imports, reading, IDIM-LS, the effect search over every family with forward selection and
 backward elimination, simulation fit %, residual verdict, JSON), once with the closed-loop
 before/after (two simulated C2 runs of 8 s in one worker forked at start, fed the nominal fit and
-the model found so far while the effect search goes on)
-and once with ``--no-closed-loop``; the median of ``--repeat`` runs. Wall-clock seconds on this
-machine: other processes inflate them, so the load average and the CPU time are printed too.
+the model found so far while the effect search goes on) and once with ``--no-closed-loop``; the
+median of ``--repeat`` runs. CPU is user + system of the process and its children (both search
+threads, and the closed loop's worker when it runs). Wall-clock seconds on this machine: other
+processes inflate them, so the load average is printed, and with ``--ref-src`` the same runs of
+another source tree (e.g. main) alternate with this tree's, and the ratios of the medians are
+printed: on a loaded machine those and the CPU seconds are what compare.
 """
 
 from __future__ import annotations
@@ -21,9 +27,13 @@ import json
 import os
 import sys
 import time
+from pathlib import Path
 
-#: wall time with start-up [s] that identify must stay within on the 20 s, 5 kHz log
-BUDGET_S = 4.0
+#: wall time with start-up [s] that identify must stay within on the 20 s, 5 kHz log, without
+#: and with the closed-loop check
+BUDGET_S = {"--no-closed-loop": 2.0, "with the closed loop": 4.0}
+#: the source tree this script belongs to
+HERE = Path(__file__).resolve().parents[1]
 
 
 def main(argv=None) -> int:
@@ -35,7 +45,11 @@ def main(argv=None) -> int:
                     help="log path (reused when it exists)")
     ap.add_argument("--closed-loop", action="store_true",
                     help="accepted for old command lines: both modes are always timed")
+    ap.add_argument("--ref-src", default=None,
+                    help="also time this source tree (e.g. an export of main), alternating with this one")
     args = ap.parse_args(argv)
+    if args.ref_src and not (Path(args.ref_src) / "motorctl").is_dir():
+        ap.error(f"--ref-src {args.ref_src}: no motorctl package there")
 
     from motorctl.commission.tune import make_log
     from motorctl.ident.synth import EXAMPLES
@@ -64,37 +78,52 @@ def main(argv=None) -> int:
     import statistics
     import subprocess
 
-    cmd = [sys.executable, "-c", "import sys; from motorctl.cli import main; sys.exit(main())", "identify", path,
-           "--json"]
-
-    def timed(extra):
+    def timed(src, extra):
+        """(exit code, wall [s], CPU [s], summary) of one identify run on the source tree src."""
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(src)] + [v for v in [os.environ.get("PYTHONPATH")] if v]))
+        cmd = [sys.executable, "-c", "import sys; from motorctl.cli import main; sys.exit(main())", "identify",
+               str(Path(path).resolve()), "--json"] + extra
         r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
-        out = subprocess.run(cmd + extra, capture_output=True, text=True, check=False)
+        out = subprocess.run(cmd, capture_output=True, text=True, check=False, cwd=str(src), env=env)
         dt = time.perf_counter() - t0
         r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
         cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
         return out.returncode, dt, cpu, (json.loads(out.stdout) if out.returncode == 0 else {"error": out.stderr})
 
-    worst = 0.0
-    for label, extra in (("with the closed loop", []), ("--no-closed-loop", ["--no-closed-loop"])):
-        runs = [timed(extra) for _ in range(args.repeat)]
-        rc, _, _, s = runs[-1]
-        wall = statistics.median(r[1] for r in runs)
-        cpu = statistics.median(r[2] for r in runs)
-        worst = max(worst, wall)
-        eff = ", ".join(f"{e['name']} {json.dumps(e['parameters'])}" for e in s.get("effects", [])) or "none"
-        print(f"identify {label}: median {wall:.2f} s wall with start-up ({min(r[1] for r in runs):.2f} .. "
-              f"{max(r[1] for r in runs):.2f} over {args.repeat}), {cpu:.2f} s CPU; budget {BUDGET_S:g} s -> "
-              f"{'OK' if wall <= BUDGET_S else 'OVER BUDGET'}; exit {rc}; effects: {eff}")
-        cl = s.get("closed_loop") or {}
-        if cl:
-            b, a = cl.get("before", {}), cl.get("after", {})
-            print(f"  closed loop (2 x {cl.get('duration_s', 0):g} s simulated): e_M {b.get('e_M_um', float('nan')):.2f} "
-                  f"-> {a.get('e_M_um', float('nan')):.2f} um")
+    trees = [("this tree", HERE)] + ([("reference", Path(args.ref_src).resolve())] if args.ref_src else [])
+    over = False
+    for label, extra in (("--no-closed-loop", ["--no-closed-loop"]), ("with the closed loop", [])):
+        runs = {name: [] for name, _ in trees}
+        for _ in range(args.repeat):               # alternate the trees: the same load on both
+            for name, src in trees:
+                runs[name].append(timed(src, extra))
+        med = {}
+        for name, _ in trees:
+            rr = runs[name]
+            rc, _, _, s = rr[-1]
+            wall = statistics.median(r[1] for r in rr)
+            cpu = statistics.median(r[2] for r in rr)
+            med[name] = (wall, cpu)
+            budget = BUDGET_S[label]
+            if name == "this tree":
+                over |= wall > budget
+            eff = ", ".join(f"{e['name']} {json.dumps(e['parameters'])}" for e in s.get("effects", [])) or "none"
+            print(f"identify {label} ({name}): median {wall:.2f} s wall with start-up "
+                  f"({min(r[1] for r in rr):.2f} .. {max(r[1] for r in rr):.2f} over {args.repeat}), "
+                  f"{cpu:.2f} s CPU (user + sys, all threads and children); budget {budget:g} s wall -> "
+                  f"{'OK' if wall <= budget else 'OVER BUDGET'}; exit {rc}; effects: {eff}")
+            cl = s.get("closed_loop") or {}
+            if cl:
+                b, a = cl.get("before", {}), cl.get("after", {})
+                print(f"  closed loop (2 x {cl.get('duration_s', 0):g} s simulated): e_M "
+                      f"{b.get('e_M_um', float('nan')):.2f} -> {a.get('e_M_um', float('nan')):.2f} um")
+        if args.ref_src:
+            (w1, c1), (w0, c0) = med["this tree"], med["reference"]
+            print(f"  ratio this tree / reference: wall {w1 / w0:.2f}, CPU {c1 / c0:.2f}")
     print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
-    print("rerun: python benchmarks/bench_ident.py [--repeat N] [--effect NAME]")
-    return 0 if worst <= BUDGET_S else 1
+    print("rerun: python benchmarks/bench_ident.py [--repeat N] [--effect NAME] [--ref-src DIR]")
+    return 1 if over else 0
 
 
 if __name__ == "__main__":

@@ -4,7 +4,7 @@ logs of the default plant, identified by two source trees, compared.
 Rerun:
     git archive main | tar -x -C /tmp/motorctl-main                  # the reference tree, once
     python benchmarks/ident_equivalence.py --ref-src /tmp/motorctl-main
-    python benchmarks/ident_equivalence.py --save /tmp/ref.json       # or: results saved once ...
+    python benchmarks/ident_equivalence.py --src /tmp/motorctl-main --save /tmp/ref.json  # or: saved once ...
     python benchmarks/ident_equivalence.py --against /tmp/ref.json    # ... and compared later
 
 The logs (built once into ``--logs``, default /tmp/motorctl-ident-equivalence): the simulated X
@@ -59,15 +59,20 @@ def build_logs(folder: Path, duration_s: float, config: str) -> dict[str, Path]:
     return out
 
 
-def identify(log: Path, src: str | None = None) -> dict:
+#: the source tree this script belongs to
+HERE = Path(__file__).resolve().parents[1]
+
+
+def identify(log: Path, src: str | Path = HERE) -> dict:
     """The JSON summary of ``motorctl identify LOG --axis X --json --no-closed-loop`` run as a
-    new process, with ``src`` first on PYTHONPATH (None: this tree)."""
+    new process on the source tree ``src`` (its working directory and first on PYTHONPATH:
+    ``python -c`` puts the working directory first on sys.path)."""
+    src = Path(src).resolve()
     env = dict(os.environ)
-    if src:
-        env["PYTHONPATH"] = os.pathsep.join([str(Path(src).resolve())] + [p for p in [env.get("PYTHONPATH")] if p])
+    env["PYTHONPATH"] = os.pathsep.join([str(src)] + [p for p in [env.get("PYTHONPATH")] if p])
     cmd = [sys.executable, "-c", "import sys; from motorctl.cli import main; sys.exit(main())", "identify",
            str(log), "--axis", "X", "--json", "--no-closed-loop"]
-    out = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=src or None, check=False)
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=str(src), check=False)
     if out.returncode != 0:
         raise RuntimeError(f"identify {log} failed (exit {out.returncode}): {out.stderr.strip()[-300:]}")
     return json.loads(out.stdout)
@@ -135,11 +140,13 @@ def main(argv=None) -> int:
     ap.add_argument("--config", default="configs/gantry.yaml", help="the plant (default configs/gantry.yaml)")
     ap.add_argument("--ref-src", default=None, help="source tree of the reference (e.g. an export of main)")
     ap.add_argument("--against", default=None, help="compare with the results of an earlier --save")
-    ap.add_argument("--save", default=None, help="write this tree's results here (JSON)")
+    ap.add_argument("--src", default=str(HERE), help="source tree compared (default: this script's)")
+    ap.add_argument("--save", default=None, help="write --src's results here (JSON)")
     ap.add_argument("--only", action="append", default=None, help="only this log (clean or a family; repeatable)")
     args = ap.parse_args(argv)
-    if args.ref_src and not (Path(args.ref_src) / "motorctl").is_dir():
-        ap.error(f"--ref-src {args.ref_src}: no motorctl package there")
+    for opt, d in (("--ref-src", args.ref_src), ("--src", args.src)):
+        if d and not (Path(d) / "motorctl").is_dir():
+            ap.error(f"{opt} {d}: no motorctl package there")
     if args.against and not Path(args.against).is_file():
         ap.error(f"--against {args.against}: no such file")
     logs = build_logs(Path(args.logs), args.duration, args.config)
@@ -149,7 +156,7 @@ def main(argv=None) -> int:
     mine, cpu = {}, {}
     for name, path in logs.items():
         r0 = os.times()
-        mine[name] = essentials(identify(path))
+        mine[name] = essentials(identify(path, args.src))
         r1 = os.times()
         cpu[name] = (r1.children_user - r0.children_user) + (r1.children_system - r0.children_system)
         if args.ref_src:

@@ -443,6 +443,13 @@ class EffectFamily:
         the gain A1 [N/V] is known, else in V (force / A1). fs: sample rate [Hz]."""
         raise NotImplementedError
 
+    def decimated_columns(self, h, p) -> np.ndarray | None:
+        """The decimated columns (M, k) at h computed without filtering the full-rate ones, when
+        the family knows them in closed form (a sine in time: the decimation's gain times the
+        sine at the decimated instants); None (default): the identification decimates
+        :meth:`columns` of the prepared record ``p``."""
+        return None
+
     def input_shift(self, h) -> float:
         """Extra delay of the input [samples] this term applies (0 for additive columns)."""
         return 0.0

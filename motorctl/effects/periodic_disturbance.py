@@ -98,6 +98,14 @@ class PeriodicDisturbanceFamily(EffectFamily):
         """sin, cos(2π h t), (N, 2); h: frequency f [Hz]."""
         return fourier(p.t, 1.0 / h, 1)
 
+    def decimated_columns(self, h, p):
+        """The decimated columns (M, 2) in closed form: the decimation is a linear filter, so a
+        sine in time comes out as the same sine at the decimated instants t_d times the
+        filter's gain at h (``p.dec_gain``; its ends' transients are dropped with the record's
+        edges: within 5e-5 of the filtered columns up to 68 Hz on a 20 s, 5 kHz log, 3e-4 at
+        95 Hz). ``p``: the prepared record (t_d [s], dec_gain)."""
+        return float(p.dec_gain(h, exact=True)) * fourier(p.t_d, 1.0 / h, 1)
+
     def search(self, ctx, base, residual):
         """The residual spectrum's highest peaks (:data:`SEARCH_PEAKS`), each refined on the
         joint fit; of those a force from outside can be (:meth:`loop_shares`), the lowest SSE

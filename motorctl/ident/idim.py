@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from functools import lru_cache
 
-from scipy.signal import butter, cheby1, filtfilt, sosfiltfilt
+from scipy.signal import butter, cheby1, filtfilt, sosfiltfilt, sosfreqz
 
 from motorctl.model import N_THETA_CUBIC, N_THETA_LINEAR, idim_regressor
 
@@ -82,6 +82,34 @@ def parallel_decimate(m: np.ndarray, nd: int) -> np.ndarray:
     return out
 
 
+#: frequency points of the decimation chain's gain table (:func:`decimation_gain_table`)
+GAIN_TABLE_POINTS = 4097
+
+
+def decimation_gain(fs: float, nd: int, f_Hz) -> np.ndarray:
+    """Gain [-] of :func:`parallel_decimate` (factor ``nd`` at the sample rate ``fs`` [Hz]) for a
+    sine at frequency ``f_Hz`` [Hz] (scalar or array, within 0..fs/2): the product over its
+    stages of |H_q(f)|² (each stage's Chebyshev filter run forwards and backwards, at that
+    stage's rate; :func:`scipy.signal.sosfreqz`). Away from the record's ends, where the
+    decimated samples of a sine are this gain times the sine's."""
+    f = np.atleast_1d(np.asarray(f_Hz, dtype=float))
+    g = np.ones_like(f)
+    rate = fs
+    for q in (_stages(nd) if nd > 1 else []):
+        _, h = sosfreqz(_decimation_sos(q), worN=f, fs=rate)
+        g = g * np.abs(h) ** 2
+        rate /= q
+    return g if np.ndim(f_Hz) else g[0]
+
+
+@lru_cache(maxsize=8)
+def decimation_gain_table(fs: float, nd: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`decimation_gain` tabulated on :data:`GAIN_TABLE_POINTS` frequencies from 0 to
+    fs/2: (f [Hz], gain [-]), both (GAIN_TABLE_POINTS,)."""
+    f = np.linspace(0.0, fs / 2.0, GAIN_TABLE_POINTS)
+    return f, decimation_gain(fs, nd, f)
+
+
 @dataclass
 class Prepared:
     """Filtered signals at full rate and the decimation set-up.
@@ -120,6 +148,17 @@ class Prepared:
     def dec(self, cols: np.ndarray) -> np.ndarray:
         """Parallel-decimate full-rate columns (N,) or (N, k) and drop the edges."""
         return parallel_decimate(cols, self.nd)[self.keep]
+
+    def dec_gain(self, f_Hz, exact: bool = False):
+        """Gain [-] of :meth:`dec` for a sine at frequency ``f_Hz`` [Hz] (scalar or any shape;
+        |f| used, beyond fs/2 the gain there): :func:`decimation_gain_table` linearly
+        interpolated, or ``exact``: :func:`decimation_gain` at f itself. A sine in time
+        decimates to this gain times its samples at t_d; a column that is a slowly modulated
+        sine at the local frequency f(t) (sin 2πx(t)/P at f = |ẋ|/P) to about that."""
+        if exact:
+            return decimation_gain(self.fs, self.nd, np.minimum(np.abs(f_Hz), self.fs / 2.0))
+        f, g = decimation_gain_table(self.fs, self.nd)
+        return np.interp(np.abs(f_Hz), f, g)
 
 
 def prepare(t, y, u, fq: float | None = None, nd: int | None = None) -> Prepared:

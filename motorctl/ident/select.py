@@ -37,12 +37,14 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from motorctl.effects import FAMILIES, family as effect_family
+from motorctl.effects.base import Signals
 from motorctl.effects.input_delay import HOLD_TOLERANCE
 from motorctl.ident.data import Record
 from motorctl.ident.idim import Prepared, choose_n_theta, ls, prepare
@@ -69,6 +71,8 @@ SEARCH_THREADS = min(2, os.cpu_count() or 1)
 #: decimated candidate columns kept per selection (about M·k·8 bytes each: 160 kB for a 20 s,
 #: 5 kHz record with 4 columns)
 COLS_CACHE_MAX = 1024
+#: base term lists whose normal equations :meth:`Identifier.sse` keeps per thread
+PARTIAL_CACHE = 4
 FRICTION_SHAPES = ("sf", "sign")
 #: delays searched for the zero-order hold of a CSV/MAT record [samples]
 HOLD_GRID = np.arange(0.0, 1.5 + 1e-9, 0.05)
@@ -149,6 +153,7 @@ class Identifier:
         self.m = m
         self._phi_cache = {}
         self._cols_cache = {}
+        self._local = threading.local()
         self.on_nominal, self.on_step = on_nominal, on_step
         #: in a motorctl run log u_k is written after y_k is read and held over the period (ZOH):
         #: seen from the central-difference acceleration at t_k it acts half a sample late
@@ -249,8 +254,11 @@ class Identifier:
         key = (family, _h_key(h))
         c = self._cols_cache.get(key)
         if c is None:
-            full = effect_family(family).columns(h, self.p)
-            c = False if full is None else self.p.dec(full)
+            fam = effect_family(family)
+            c = fam.decimated_columns(h, self.p)
+            if c is None:
+                full = fam.columns(h, self.p)
+                c = False if full is None else self.p.dec(full)
             if len(self._cols_cache) < COLS_CACHE_MAX:
                 self._cols_cache[key] = c
         return None if c is False else c
@@ -266,10 +274,64 @@ class Identifier:
         return Term(family, h, self.dec_cols(family, h), effect_family(family).input_shift(h))
 
     def sse(self, terms):
-        """SSE of the joint LS fit of the nominal model plus ``terms`` (decimated, V²)."""
-        phi, y = self.design(terms)
-        r = y - phi @ _coef(phi, y)
+        """SSE of the joint LS fit of the nominal model plus ``terms`` (decimated, V²).
+
+        The same fit as :func:`_coef` on :meth:`design`: when the last term adds columns and
+        neither shifts the input nor weighs the others, the normal equations of the model
+        without it (:meth:`_partial`, kept per thread for the last few term lists: a grid or
+        Brent search fits many candidates on one base) are bordered with its columns, so only
+        the new columns' products are computed (M·k·(p + k) instead of M·(p + k)²)."""
+        last = terms[-1] if terms else None
+        if last is None or last.cols is None or last.delay or effect_family(last.family).other_weight(last) is not None:
+            phi, y = self.design(terms)
+            r = y - phi @ _coef(phi, y)
+            return float(r @ r)
+        a0, y, weight, g, b = self._partial(terms[:-1])
+        c = last.cols if weight is None else last.cols * weight[:, None]
+        cs = np.sqrt(np.einsum("ij,ij->j", c, c))
+        cs[cs == 0] = 1.0
+        a1 = c / cs
+        cross = a0.T @ a1
+        n0 = g.shape[0]
+        gram = np.empty((n0 + c.shape[1],) * 2)
+        gram[:n0, :n0], gram[:n0, n0:], gram[n0:, :n0], gram[n0:, n0:] = g, cross, cross.T, a1.T @ a1
+        rhs = np.concatenate([b, a1.T @ y])
+        try:
+            coef = np.linalg.solve(gram, rhs)
+        except np.linalg.LinAlgError:
+            full, y = self.design(terms)
+            coef = np.linalg.lstsq(full, y, rcond=None)[0]
+            r = y - full @ coef
+            return float(r @ r)
+        r = y - a0 @ coef[:n0] - a1 @ coef[n0:]
         return float(r @ r)
+
+    def _partial(self, base: list):
+        """(Φ with its columns scaled to unit norm, y, the weight base puts on an added term's
+        columns or None, the scaled Gram matrix, the scaled Φᵀy) of the nominal model plus ``base``, for
+        :meth:`sse`; the last :data:`PARTIAL_CACHE` per thread, keyed by the terms and their
+        columns (held, so that their ids stay theirs), n_theta and the hold."""
+        key = (self.n_theta, self.zoh) + tuple((id(t), id(t.cols)) for t in base)
+        cache = getattr(self._local, "partial", None)
+        if cache is None:
+            cache = self._local.partial = {}
+        hit = cache.get(key)
+        if hit is not None:
+            return hit[1]
+        phi, y = self.design(base)
+        weight = None
+        for t in base:
+            w = effect_family(t.family).other_weight(t)
+            if w is not None:
+                weight = w if weight is None else weight * w
+        sc = np.sqrt(np.einsum("ij,ij->j", phi, phi))
+        sc[sc == 0] = 1.0
+        a = phi / sc
+        out = (a, y, weight, a.T @ a, a.T @ y)
+        if len(cache) >= PARTIAL_CACHE:
+            cache.pop(next(iter(cache)))
+        cache[key] = ([(t, t.cols) for t in base], out)
+        return out
 
     def heldout_rms(self, terms) -> float:
         """2-fold cross-validated residual RMS (:meth:`heldout`, decimated, V) of the joint LS fit
@@ -293,17 +355,39 @@ class Identifier:
         term.cols = self.dec_cols(family, term.h)
         return term, np.array(sses)
 
-    def best_between(self, family, lo: float, hi: float, base, xatol: float):
-        """The term of ``family`` minimising the joint-LS SSE (exact columns) for h in
-        [lo, hi], to within ``xatol`` (:func:`scipy.optimize.minimize_scalar`, bounded Brent:
-        golden sections and parabolic steps, about 10 fits where a grid of the same resolution
-        takes 20 or more). For an SSE with one minimum in the interval. Returns the Term."""
+    def best_between(self, family, lo: float, hi: float, base, xatol: float, cols_fn=None):
+        """The term of ``family`` minimising the joint-LS SSE for h in [lo, hi], to within
+        ``xatol`` (:func:`scipy.optimize.minimize_scalar`, bounded Brent: golden sections and
+        parabolic steps, about 10 fits where a grid of the same resolution takes 20 or more).
+        For an SSE with one minimum in the interval. ``cols_fn(h)`` may give cheap approximate
+        decimated columns (M, k) for the search (as :meth:`best_over`'s); None: the exact
+        columns at every step. The term returned has its exact columns."""
         from scipy.optimize import minimize_scalar
+        fam = effect_family(family)
 
         def sse(h):
-            return self.sse(base + [self.term(family, float(h))])
+            h = float(h)
+            term = self.term(family, h) if cols_fn is None else Term(family, h, cols_fn(h), fam.input_shift(h))
+            return self.sse(base + [term])
         res = minimize_scalar(sse, bounds=(lo, hi), method="bounded", options={"xatol": xatol})
         return self.term(family, float(res.x))
+
+    def decimated_signals(self) -> Signals:
+        """The full-rate signals at the decimated instants, as
+        :class:`~motorctl.effects.base.Signals` (M,) each: x_d, v_d, a_d, u_d (and the decimated
+        thrust shape f_u when θ5, θ6 are fitted) divided by the decimation's gain at 0 Hz (the
+        Chebyshev filters' ripple there: 0.977 for nd = 20, which the linear fit absorbs but a
+        function of the signal, sin 2πx/P, does not), and t_d. The input of cheap approximate
+        columns (``cols_fn`` of :meth:`best_over`, :meth:`best_between`). Cached per
+        selection (f_u changes with the nominal fit)."""
+        key = ("signals", None)
+        sig = self._cols_cache.get(key)
+        if sig is None:
+            p = self.p
+            g0 = float(p.dec_gain(0.0))
+            fu = None if p.fu is None else p.dec(p.fu) / g0
+            sig = self._cols_cache[key] = Signals(p.x_d / g0, p.v_d / g0, p.a_d / g0, p.u_d / g0, p.t_d, fu)
+        return sig
 
     def delay_sses(self, base: list, grid: np.ndarray, band: tuple[float, float] | None = None) -> np.ndarray:
         """Joint-LS SSE for extra input delays ``grid`` [samples]: the decimated u, u|u|, u³ are
