@@ -40,9 +40,13 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=20.0, help="log length [s] (default 20)")
     ap.add_argument("--effect", default="cogging", help="undeclared effect on the plant (synth.EXAMPLES key)")
+    ap.add_argument("--config", default="configs/gantry.yaml",
+                    help="the plant (default configs/gantry.yaml: the default plant, with its structural mode, "
+                         "current loop, encoder noise and stiction)")
     ap.add_argument("--repeat", type=int, default=3, help="runs of each mode (median; default 3)")
-    ap.add_argument("--keep-log", default="/tmp/motorctl_bench_ident_20s.log",
-                    help="log path (reused when it exists)")
+    ap.add_argument("--keep-log", default=None,
+                    help="log path (reused when it exists with the same effect and length; default "
+                         "/tmp/motorctl_bench_ident_<duration>s_<config>_<effect>.log)")
     ap.add_argument("--closed-loop", action="store_true",
                     help="accepted for old command lines: both modes are always timed")
     ap.add_argument("--ref-src", default=None,
@@ -55,19 +59,19 @@ def main(argv=None) -> int:
     from motorctl.ident.synth import EXAMPLES
     from motorctl.recorder.runlog import read_log
 
-    path = args.keep_log
+    path = args.keep_log or f"/tmp/motorctl_bench_ident_{args.duration:g}s_{Path(args.config).stem}_{args.effect}.log"
     regenerate = True
     if os.path.exists(path):
         log = read_log(path)
         truth = log.header.get("driver", {}).get("simulated", {}).get("X", {})
         want = EXAMPLES[args.effect]
         same = (truth.get("input_delay_s") == want["input_delay_s"]) if "input_delay_s" in want \
-            else truth.get("effects") == want
+            else all(truth.get("effects", {}).get(k) == v for k, v in want.items())
         regenerate = abs(log.data.shape[0] * log.header["period_s"] - args.duration) > 1e-6 or not same
     if regenerate:
         t0 = time.perf_counter()
-        make_log(path, EXAMPLES[args.effect], duration_s=args.duration, seed=1)
-        print(f"generated {path}: {args.duration:g} s at 5 kHz with {args.effect} in "
+        make_log(path, EXAMPLES[args.effect], duration_s=args.duration, seed=1, noise_N=None, base=args.config)
+        print(f"generated {path}: {args.duration:g} s at 5 kHz of {args.config} with {args.effect} in "
               f"{time.perf_counter() - t0:.1f} s")
     log = read_log(path)
     n = log.data.shape[0]

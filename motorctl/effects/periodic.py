@@ -6,11 +6,7 @@ peaks of a least-squares (Lomb-Scargle) periodogram of the residual against **po
 (moving samples, P from 1 mm to min(0.1 m, stroke/3)), then refined by minimising the joint LS
 fit's SSE within the periodogram's resolution of each peak (±P/stroke, at most ±3 %; bounded
 Brent search to 1/30 of that); a peak whose period lowers the SSE by less than
-:data:`MIN_PEAK_DROP` is a noise peak and is not refined. Where the cheap columns
-(:meth:`PositionPeriodic.cheap_columns`: the decimated signals' Fourier terms weighed by the
-decimation's gain at each harmonic's local frequency) explain the same share of the SSE as the
-exact ones at the peak (:data:`CHEAP_AGREEMENT`), the refinement runs on them and only the
-refined period gets its exact (filtered and decimated) columns.
+:data:`MIN_PEAK_DROP` is a noise peak and is not refined.
 """
 
 from __future__ import annotations
@@ -37,10 +33,6 @@ REFINE_SPAN = 0.03
 #: Resolution of the refined period, as a share of the searched half-width (a period off by δP
 #: shifts the phase by 2π·(stroke/P)·δP/P over the stroke: 0.2 rad at this share).
 REFINE_TOL = 1.0 / 30.0
-#: Largest difference of the SSE drop with the cheap columns from that with the exact ones, as a
-#: share of the exact drop, for the refinement of a period to run on the cheap columns
-#: (:meth:`PositionPeriodic.cheap_agrees`)
-CHEAP_AGREEMENT = 0.02
 #: Least agreement of a position-periodic force fitted on each direction of motion separately.
 MIN_DIRECTION_AGREEMENT = 0.5
 #: Largest ratio of a position-periodic force's amplitude fitted on the faster half of the
@@ -297,36 +289,8 @@ class PositionPeriodic(EffectFamily):
         within the periodogram's resolution of its peak, ΔP/P ≈ P/stroke (the SSE's main
         lobe, one minimum), searched there, at most ±REFINE_SPAN."""
         half = min(REFINE_SPAN, period / ctx.stroke)
-        cheap = (lambda h: self.cheap_columns(ctx, h)) if self.cheap_agrees(ctx, period, base) else None
         return ctx.best_between(self.name, period * (1.0 - half), period * (1.0 + half), base,
-                                REFINE_TOL * half * period, cols_fn=cheap)
-
-    def cheap_agrees(self, ctx, period: float, base: list) -> bool:
-        """True when, at ``period`` [m], the SSE drop of the joint fit with
-        :meth:`cheap_columns` is within :data:`CHEAP_AGREEMENT` of the drop with the exact
-        columns: the cheap columns then stand in for the exact ones in the refinement around
-        it. They do at long periods (the harmonics' local frequencies inside the decimation's
-        passband: 0.4 % on a 32 mm cogging), not at short ones, where the moves' ends sweep
-        the local frequency through the filter's edge faster than it settles (47 % at 2.4 mm)."""
-        s0 = ctx.sse(base)
-        exact = ctx.sse(base + [ctx.term(self.name, period)])
-        _, cheap = ctx.best_over(self.name, [period], base, cols_fn=lambda h: self.cheap_columns(ctx, h))
-        return abs(float(cheap[0]) - exact) <= CHEAP_AGREEMENT * max(s0 - exact, 0.0)
-
-    def cheap_columns(self, ctx, period: float) -> np.ndarray:
-        """Approximate decimated columns (M, 2·N_HARMONICS) at ``period`` [m] for the refinement
-        (when :meth:`cheap_agrees`):
-        the family's columns of the decimated signals (``ctx.decimated_signals()``), harmonic k
-        weighed by the decimation's gain at its local frequency k|ẋ|/P
-        (:meth:`motorctl.ident.idim.Prepared.dec_gain`): sin(2πkx/P) is a sine of that
-        frequency while the axis moves. A few hundred times cheaper than decimating the
-        full-rate columns; the refined period then gets its exact columns."""
-        sig = ctx.decimated_signals()
-        cols = self.columns(period, sig)
-        speed = np.abs(sig.v) / period
-        for k in range(cols.shape[1] // 2):
-            cols[:, 2 * k:2 * k + 2] *= ctx.p.dec_gain((k + 1) * speed)[:, None]
-        return cols
+                                REFINE_TOL * half * period)
 
     def polish(self, ctx, term, others):
         """The period refined again around the selected one with the other effects modelled

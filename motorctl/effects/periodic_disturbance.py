@@ -104,7 +104,7 @@ class PeriodicDisturbanceFamily(EffectFamily):
         filter's gain at h (``p.dec_gain``; its ends' transients are dropped with the record's
         edges: within 5e-5 of the filtered columns up to 68 Hz on a 20 s, 5 kHz log, 3e-4 at
         95 Hz). ``p``: the prepared record (t_d [s], dec_gain)."""
-        return float(p.dec_gain(h, exact=True)) * fourier(p.t_d, 1.0 / h, 1)
+        return float(p.dec_gain(h)) * fourier(p.t_d, 1.0 / h, 1)
 
     def search(self, ctx, base, residual):
         """The residual spectrum's highest peaks (:data:`SEARCH_PEAKS`), each refined on the

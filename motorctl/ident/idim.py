@@ -82,10 +82,6 @@ def parallel_decimate(m: np.ndarray, nd: int) -> np.ndarray:
     return out
 
 
-#: frequency points of the decimation chain's gain table (:func:`decimation_gain_table`)
-GAIN_TABLE_POINTS = 4097
-
-
 def decimation_gain(fs: float, nd: int, f_Hz) -> np.ndarray:
     """Gain [-] of :func:`parallel_decimate` (factor ``nd`` at the sample rate ``fs`` [Hz]) for a
     sine at frequency ``f_Hz`` [Hz] (scalar or array, within 0..fs/2): the product over its
@@ -100,14 +96,6 @@ def decimation_gain(fs: float, nd: int, f_Hz) -> np.ndarray:
         g = g * np.abs(h) ** 2
         rate /= q
     return g if np.ndim(f_Hz) else g[0]
-
-
-@lru_cache(maxsize=8)
-def decimation_gain_table(fs: float, nd: int) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`decimation_gain` tabulated on :data:`GAIN_TABLE_POINTS` frequencies from 0 to
-    fs/2: (f [Hz], gain [-]), both (GAIN_TABLE_POINTS,)."""
-    f = np.linspace(0.0, fs / 2.0, GAIN_TABLE_POINTS)
-    return f, decimation_gain(fs, nd, f)
 
 
 @dataclass
@@ -149,16 +137,11 @@ class Prepared:
         """Parallel-decimate full-rate columns (N,) or (N, k) and drop the edges."""
         return parallel_decimate(cols, self.nd)[self.keep]
 
-    def dec_gain(self, f_Hz, exact: bool = False):
-        """Gain [-] of :meth:`dec` for a sine at frequency ``f_Hz`` [Hz] (scalar or any shape;
-        |f| used, beyond fs/2 the gain there): :func:`decimation_gain_table` linearly
-        interpolated, or ``exact``: :func:`decimation_gain` at f itself. A sine in time
-        decimates to this gain times its samples at t_d; a column that is a slowly modulated
-        sine at the local frequency f(t) (sin 2πx(t)/P at f = |ẋ|/P) to about that."""
-        if exact:
-            return decimation_gain(self.fs, self.nd, np.minimum(np.abs(f_Hz), self.fs / 2.0))
-        f, g = decimation_gain_table(self.fs, self.nd)
-        return np.interp(np.abs(f_Hz), f, g)
+    def dec_gain(self, f_Hz):
+        """Gain [-] of :meth:`dec` for a sine at frequency ``f_Hz`` [Hz] (scalar or array, |f|,
+        at most fs/2; :func:`decimation_gain`): a sine in time decimates to this gain times its
+        samples at t_d (the record's edges, where the filters' transients are, dropped)."""
+        return decimation_gain(self.fs, self.nd, np.minimum(np.abs(f_Hz), self.fs / 2.0))
 
 
 def prepare(t, y, u, fq: float | None = None, nd: int | None = None) -> Prepared:

@@ -38,13 +38,13 @@ from __future__ import annotations
 import math
 import os
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from motorctl.effects import FAMILIES, family as effect_family
-from motorctl.effects.base import Signals
 from motorctl.effects.input_delay import HOLD_TOLERANCE
 from motorctl.ident.data import Record
 from motorctl.ident.idim import Prepared, choose_n_theta, ls, prepare
@@ -66,7 +66,8 @@ LOOK_AHEAD = 3
 #: rounds of forward selection and backward elimination (a dropped effect is not taken again)
 STEPWISE_ROUNDS = 3
 #: threads searching the families of one selection step (each family's search is independent
-#: of the others' and its numpy/scipy work releases the GIL, so the result does not depend on it)
+#: of the others' and its numpy/scipy work releases the GIL, so the result does not depend on it;
+#: the searches are handed out longest first, by the CPU time of each family's last search)
 SEARCH_THREADS = min(2, os.cpu_count() or 1)
 #: decimated candidate columns kept per selection (about M·k·8 bytes each: 160 kB for a 20 s,
 #: 5 kHz record with 4 columns)
@@ -355,39 +356,17 @@ class Identifier:
         term.cols = self.dec_cols(family, term.h)
         return term, np.array(sses)
 
-    def best_between(self, family, lo: float, hi: float, base, xatol: float, cols_fn=None):
-        """The term of ``family`` minimising the joint-LS SSE for h in [lo, hi], to within
-        ``xatol`` (:func:`scipy.optimize.minimize_scalar`, bounded Brent: golden sections and
-        parabolic steps, about 10 fits where a grid of the same resolution takes 20 or more).
-        For an SSE with one minimum in the interval. ``cols_fn(h)`` may give cheap approximate
-        decimated columns (M, k) for the search (as :meth:`best_over`'s); None: the exact
-        columns at every step. The term returned has its exact columns."""
+    def best_between(self, family, lo: float, hi: float, base, xatol: float):
+        """The term of ``family`` minimising the joint-LS SSE (exact columns) for h in
+        [lo, hi], to within ``xatol`` (:func:`scipy.optimize.minimize_scalar`, bounded Brent:
+        golden sections and parabolic steps, about 10 fits where a grid of the same resolution
+        takes 20 or more). For an SSE with one minimum in the interval. Returns the Term."""
         from scipy.optimize import minimize_scalar
-        fam = effect_family(family)
 
         def sse(h):
-            h = float(h)
-            term = self.term(family, h) if cols_fn is None else Term(family, h, cols_fn(h), fam.input_shift(h))
-            return self.sse(base + [term])
+            return self.sse(base + [self.term(family, float(h))])
         res = minimize_scalar(sse, bounds=(lo, hi), method="bounded", options={"xatol": xatol})
         return self.term(family, float(res.x))
-
-    def decimated_signals(self) -> Signals:
-        """The full-rate signals at the decimated instants, as
-        :class:`~motorctl.effects.base.Signals` (M,) each: x_d, v_d, a_d, u_d (and the decimated
-        thrust shape f_u when θ5, θ6 are fitted) divided by the decimation's gain at 0 Hz (the
-        Chebyshev filters' ripple there: 0.977 for nd = 20, which the linear fit absorbs but a
-        function of the signal, sin 2πx/P, does not), and t_d. The input of cheap approximate
-        columns (``cols_fn`` of :meth:`best_over`, :meth:`best_between`). Cached per
-        selection (f_u changes with the nominal fit)."""
-        key = ("signals", None)
-        sig = self._cols_cache.get(key)
-        if sig is None:
-            p = self.p
-            g0 = float(p.dec_gain(0.0))
-            fu = None if p.fu is None else p.dec(p.fu) / g0
-            sig = self._cols_cache[key] = Signals(p.x_d / g0, p.v_d / g0, p.a_d / g0, p.u_d / g0, p.t_d, fu)
-        return sig
 
     def delay_sses(self, base: list, grid: np.ndarray, band: tuple[float, float] | None = None) -> np.ndarray:
         """Joint-LS SSE for extra input delays ``grid`` [samples]: the decimated u, u|u|, u³ are
@@ -608,6 +587,7 @@ class Identifier:
         pool = ThreadPoolExecutor(max_workers=SEARCH_THREADS) if SEARCH_THREADS > 1 else None
         eliminated: list = []
         searched_with: dict = {}     # id(term) -> the terms selected when it was searched
+        cost: dict = {}              # family -> CPU seconds of its last search and judgement
         for _ in range(STEPWISE_ROUNDS):
             out = {n for n, _ in eliminated}        # never taken again once dropped
             while len(base) < max_effects:
@@ -617,9 +597,19 @@ class Identifier:
                         and not (effect_family(fam).shifts_input and any(t.delay for t in base))]
 
                 def one(fam, base=base, residual=residual, current=current):
+                    t0 = time.thread_time()
                     ev = self.search(fam, base, residual)
-                    return None if ev is None else self.judge(ev, current, base)
-                found = list(pool.map(one, todo)) if pool else [one(f) for f in todo]
+                    ev = None if ev is None else self.judge(ev, current, base)
+                    cost[fam] = time.thread_time() - t0
+                    return ev
+                if pool:
+                    # longest first (the CPU time of the family's last search; registry order at the
+                    # first step), so that the threads end together; the results keep todo's order
+                    order = sorted(range(len(todo)), key=lambda i: -cost.get(todo[i], math.inf))
+                    futures = {i: pool.submit(one, todo[i]) for i in order}
+                    found = [futures[i].result() for i in range(len(todo))]
+                else:
+                    found = [one(f) for f in todo]
                 cands = [c for c in found if c is not None]
                 steps.append(cands)
                 good = [c for c in cands if c.ok]
