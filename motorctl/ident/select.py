@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from motorctl.effects import FAMILIES, family as effect_family
+from motorctl.effects.base import EffectFamily
 from motorctl.effects.input_delay import HOLD_TOLERANCE
 from motorctl.ident.data import Record
 from motorctl.ident.idim import Prepared, choose_n_theta, ls, prepare
@@ -72,6 +73,9 @@ SEARCH_THREADS = min(2, os.cpu_count() or 1)
 #: decimated candidate columns kept per selection (about M·k·8 bytes each: 160 kB for a 20 s,
 #: 5 kHz record with 4 columns)
 COLS_CACHE_MAX = 1024
+#: least number of full-rate columns decimated in one call when a grid's columns are decimated
+#: ahead (:meth:`Identifier._decimate_ahead`)
+DECIMATE_BATCH = 16
 #: base term lists whose normal equations :meth:`Identifier.sse` keeps per thread
 PARTIAL_CACHE = 4
 FRICTION_SHAPES = ("sf", "sign")
@@ -264,6 +268,44 @@ class Identifier:
                 self._cols_cache[key] = c
         return None if c is False else c
 
+    def _decimate_ahead(self, family: str, grid) -> None:
+        """Put the decimated columns of ``family`` at every h of ``grid`` (K,) into the cache of
+        :meth:`dec_cols`, filtering the full-rate columns of several h in one call of at least
+        :data:`DECIMATE_BATCH` columns (each column is filtered on its own, so the numbers are
+        those of one call per h; per column the batch costs about 2.4 ms instead of 3.4 on a
+        100 000-sample record). Families with closed-form decimated columns, values already
+        cached, or a full cache: left to :meth:`dec_cols`."""
+        fam = effect_family(family)
+        if type(fam).decimated_columns is not EffectFamily.decimated_columns:
+            return
+        todo = []
+        for h in grid:
+            key = (family, _h_key(h))
+            if key not in self._cols_cache and all(key != k for k, _ in todo):
+                todo.append((key, h))
+        room = COLS_CACHE_MAX - len(self._cols_cache)
+        todo = todo[:max(room, 0)]
+        i = 0
+        while i < len(todo):
+            chunk, width = [], 0
+            while i < len(todo) and width < DECIMATE_BATCH:
+                key, h = todo[i]
+                full = fam.columns(h, self.p)
+                if full is None:
+                    self._cols_cache[key] = False
+                else:
+                    chunk.append((key, full.ndim, full.reshape(len(full), -1)))
+                    width += chunk[-1][2].shape[1]
+                i += 1
+            if not chunk:
+                continue
+            dec = self.p.dec(np.hstack([f for _, _, f in chunk]))
+            j = 0
+            for key, ndim, f in chunk:
+                k = f.shape[1]
+                self._cols_cache[key] = np.ascontiguousarray(dec[:, j] if ndim == 1 else dec[:, j:j + k])
+                j += k
+
     def best_delay(self, grid) -> float:
         """The input delay [samples] in ``grid`` (K,) minimising the nominal model's SSE."""
         sses = self.delay_sses([], np.asarray(grid, dtype=float))
@@ -346,6 +388,8 @@ class Identifier:
         columns. Returns (Term, SSE per grid value (K,))."""
         best = None
         sses = []
+        if cols_fn is None:
+            self._decimate_ahead(family, grid)
         for h in grid:
             term = Term(family, float(h), cols_fn(h) if cols_fn else self.dec_cols(family, h))
             sse = self.sse(base + [term])
