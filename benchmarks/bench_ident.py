@@ -40,7 +40,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=20.0, help="log length [s] (default 20)")
     ap.add_argument("--effect", default="cogging", help="undeclared effect on the plant (synth.EXAMPLES key)")
-    ap.add_argument("--config", default="configs/gantry.yaml",
+    ap.add_argument("--config", default=str(HERE / "configs" / "gantry.yaml"),
                     help="the plant (default configs/gantry.yaml: the default plant, with its structural mode, "
                          "current loop, encoder noise and stiction)")
     ap.add_argument("--repeat", type=int, default=3, help="runs of each mode (median; default 3)")

@@ -137,7 +137,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--logs", default="/tmp/motorctl-ident-equivalence", help="folder of the logs (built once)")
     ap.add_argument("--duration", type=float, default=20.0, help="log length [s] (default 20)")
-    ap.add_argument("--config", default="configs/gantry.yaml", help="the plant (default configs/gantry.yaml)")
+    ap.add_argument("--config", default=str(HERE / "configs" / "gantry.yaml"),
+                    help="the plant (default configs/gantry.yaml)")
     ap.add_argument("--ref-src", default=None, help="source tree of the reference (e.g. an export of main)")
     ap.add_argument("--against", default=None, help="compare with the results of an earlier --save")
     ap.add_argument("--src", default=str(HERE), help="source tree compared (default: this script's)")
