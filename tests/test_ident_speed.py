@@ -9,6 +9,8 @@ tree: ``benchmarks/ident_equivalence.py``; the times: ``benchmarks/bench_ident.p
 
 from __future__ import annotations
 
+import pickle
+
 import numpy as np
 import pytest
 
@@ -58,6 +60,11 @@ def test_sse_from_the_cached_base_is_the_joint_fit(record):
             phi, y = idf.design(terms)
             r = y - phi @ _coef(phi, y)
             assert idf.sse(terms) == pytest.approx(float(r @ r), rel=1e-9), (fam, len(base))
+    # the cached normal equations stay in their process: a pickled identifier fits the same
+    again = pickle.loads(pickle.dumps(idf))
+    terms = [stiction, idf.term("cogging", 0.032)]
+    assert again.sse([again.term("stiction", 5e-4), again.term("cogging", 0.032)]) == pytest.approx(
+        idf.sse(terms), rel=1e-12)
     # a candidate whose columns change after a first fit on the same base: its own SSE
     t = Term("cogging", 0.032, idf.dec_cols("cogging", 0.032))
     first = idf.sse([stiction, t])

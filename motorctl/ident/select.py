@@ -183,6 +183,17 @@ class Identifier:
             else:
                 self.zoh_source = f"none detected (best input delay of the nominal model in 0..1.5 sample: {best:.2f})"
 
+    def __getstate__(self) -> dict:
+        """Pickled without the per-thread normal equations of :meth:`sse` (rebuilt on demand):
+        an identifier goes back from a worker process whole."""
+        state = self.__dict__.copy()
+        state.pop("_local", None)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._local = threading.local()
+
     # ------------------------------------------------------------------ building blocks
     def nominal_phi(self, delay: float = 0.0) -> np.ndarray:
         key = (round(delay, 6), self.n_theta)
