@@ -377,7 +377,9 @@ class Identifier:
             u_rms = float(np.sqrt(np.mean(self.p.u_d ** 2)))
             g = self.rec.gain
             ev.size = size
-            if size < MIN_SIZE_SHARE * u_rms:
+            if getattr(fam, "measurement", False):
+                pass    # an error of the reading: its size is judged in the reading (the family's search)
+            elif size < MIN_SIZE_SHARE * u_rms:
                 reasons.append(f"too small to name: its force ({_force(size, g)}) is below "
                                f"{100 * MIN_SIZE_SHARE:g} % of the RMS input ({_force(u_rms, g)})")
             elif g and g * size < MIN_SIZE_N:
