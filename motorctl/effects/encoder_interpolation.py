@@ -63,6 +63,9 @@ def reading_columns(y: np.ndarray, fs: float, fq: float, period: float) -> np.nd
 #: scale's error is far above the position filter at any speed the record moves with
 PERIOD_MIN_M = 1e-3
 PERIOD_MAX_M = 0.01
+#: a force-side period whose first harmonic is below this share of its second is taken as
+#: half as long (P's second harmonic is P/2's fundamental: the grid's SSE cannot tell them)
+HALF_PERIOD_SHARE = 0.25
 #: relative step of the period grid, refined within one step on the exact columns (the joint
 #: fit resolves P to about P/stroke: 0.5 % for 2 mm over 0.4 m)
 GRID_STEP = 0.01
@@ -311,6 +314,12 @@ class EncoderInterpolationFamily(PositionPeriodic):
             return term, None      # explains almost nothing at its best period: not refined
         term = ctx.best_between(self.name, term.h * (1.0 - GRID_STEP), term.h * (1.0 + GRID_STEP), base,
                                 0.1 * GRID_STEP * term.h)
+        beta = ctx.evaluate(base + [term]).fit.coef[-2 * N_HARMONICS:]
+        if term.h / 2.0 >= grid[0] and np.hypot(*beta[:2]) < HALF_PERIOD_SHARE * np.hypot(*beta[2:4]):
+            # no first harmonic: the error of period P/2 (its fundamental), which P's second
+            # harmonic fits as well
+            term = ctx.best_between(self.name, term.h / 2.0 * (1.0 - GRID_STEP), term.h / 2.0 * (1.0 + GRID_STEP),
+                                    base, 0.05 * GRID_STEP * term.h)
         note = None
         if term.h <= grid[1] or term.h >= grid[-2]:
             note = f"period {term.h:.4g} m at the edge of the searched range"
