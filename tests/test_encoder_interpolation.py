@@ -129,20 +129,27 @@ def test_a_fast_program_shows_the_error_in_the_reading(fast):
 
 
 def test_cogging_and_a_clean_loop_show_nothing_in_the_reading(fast):
-    """A force of the same period moves the carriage, not the reading: y − x has no error of
-    position there, and the reading search refuses it as it does a clean loop's reading."""
+    """A force of the same period moves the carriage, not the reading: at 750 Hz the 3 N
+    cogging moves the 10 kg carriage by F/(m ω²) = 14 nm, which y − x shows beside its 50 nm
+    noise (a share far below MIN_READING_SHARE); a clean loop's reading shows nothing."""
     from motorctl.effects.encoder_interpolation import MIN_READING_SHARE
     fam = FAMILIES["encoder_interpolation"]
     for name in ("force", "clean"):
         fit, _ = fam.reading(Identifier(fast[name]))
-        assert fit is None or fit.share < 0.1 * MIN_READING_SHARE, (name, fit)
+        assert fit is None or fit.share < 0.5 * MIN_READING_SHARE, (name, fit)
+        assert fit is None or np.hypot(*fit.coef[:2]) < 3e-8, (name, fit.coef)
 
 
-def test_the_fast_reading_error_is_named_with_its_truth(fast):
+@pytest.fixture(scope="module")
+def fast_run(fast):
+    return Identifier(fast["reading"]).run()
+
+
+def test_the_fast_reading_error_is_named_with_its_truth(fast_run):
     """identify on the fast record: encoder_interpolation named from the reading (P within
     0.2 %, amplitude within 10 %), the input carrying the inertial force of that error
     (force_share near 1), no force family at that period."""
-    s = summarise(Identifier(fast["reading"]).run())
+    s = summarise(fast_run)
     names = [e["name"] for e in s["effects"]]
     assert "encoder_interpolation" in names, names
     assert not {"cogging", "force_ripple", "periodic_disturbance", "periodic_friction"} & set(names), names
@@ -150,3 +157,20 @@ def test_the_fast_reading_error_is_named_with_its_truth(fast):
     assert par["signal_period_m"] == pytest.approx(P, rel=2e-3)
     assert par["amplitudes_m"][0] == pytest.approx(3e-6, rel=0.1)
     assert 0.5 <= par["force_share"] <= 2.0
+
+
+def test_a_weak_effect_beside_an_unexplained_structure_is_dropped(fast_run, monkeypatch):
+    """When the final residual keeps a structure no family explains, a selected effect must
+    keep a held-out gain of STRICT_HELDOUT_GAIN in the final model: a spring added to the
+    fast record's model (nothing there) is dropped, the reading's error kept; with no such
+    structure nothing is dropped."""
+    idf = fast_run
+    terms = list(idf.terms) + [idf.term("spring", None)]
+    current = idf.evaluate(terms)
+    accepted = [(current, current.heldout_rms)] * len(terms)
+    monkeypatch.setattr(Identifier, "unexplained", lambda self, cur, t, last: True)
+    kept, acc, _, dropped = idf._doubt(terms, accepted, current, [])
+    assert [d[0] for d in dropped] == ["spring"], dropped
+    assert "encoder_interpolation" in [t.family for t in kept] and len(acc) == len(kept)
+    monkeypatch.setattr(Identifier, "unexplained", lambda self, cur, t, last: False)
+    assert idf._doubt(terms, accepted, current, [])[3] == []
