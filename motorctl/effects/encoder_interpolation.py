@@ -308,8 +308,14 @@ class EncoderInterpolationFamily(PositionPeriodic):
         if grid.size < 3:
             return None
         p = ctx.p
-        term, _ = ctx.best_over(self.name, grid, base,
-                                cols_fn=lambda h: analytic_columns(p.x_d, p.v_d, p.a_d, h, p.fq))
+        cheap = ctx.__dict__.setdefault("_encoder_cheap", {})     # the same grid at every step
+
+        def cols(h):
+            c = cheap.get(h)
+            if c is None:
+                c = cheap[h] = analytic_columns(p.x_d, p.v_d, p.a_d, h, p.fq)
+            return c
+        term, _ = ctx.best_over(self.name, grid, base, cols_fn=cols)
         if ctx.sse(base + [term]) > (1.0 - MIN_PEAK_DROP) * ctx.sse(base):
             return term, None      # explains almost nothing at its best period: not refined
         term = ctx.best_between(self.name, term.h * (1.0 - GRID_STEP), term.h * (1.0 + GRID_STEP), base,
