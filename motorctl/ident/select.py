@@ -383,8 +383,9 @@ class Identifier:
             u_rms = float(np.sqrt(np.mean(self.p.u_d ** 2)))
             g = self.rec.gain
             ev.size = size
-            if getattr(fam, "measurement", False):
-                pass    # an error of the reading: its size is judged in the reading (the family's search)
+            sized_elsewhere = getattr(fam, "sized_in_reading", None)
+            if sized_elsewhere is not None and sized_elsewhere(term):
+                pass    # an error of the reading found there: its size was judged in the reading
             elif size < MIN_SIZE_SHARE * u_rms:
                 reasons.append(f"too small to name: its force ({_force(size, g)}) is below "
                                f"{100 * MIN_SIZE_SHARE:g} % of the RMS input ({_force(u_rms, g)})")
