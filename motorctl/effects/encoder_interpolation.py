@@ -17,10 +17,19 @@ Its simulator option is the axis-level ``axes.NAME.driver.encoder_interpolation_
 of the first harmonic) with ``encoder_signal_period_m`` (not an ``effects:`` entry; the encoder
 model of ``motorctl_drivers.sim``).
 
-Identification: columns d²/dt² of sin, cos(2π k y / P), k ≤ 2, each through the record's own
-position filter and central differences (the same path ÿ takes), so β = −θ1 (s_k, c_k) and the
-reading's error is e = −(Σ β_sk sin + β_ck cos)/θ1 [m]. P: the peaks of the spatial periodogram
-of the residual (as cogging), refined on the joint LS fit.
+Identification, in the reading first: where the carriage is fast enough that the error's
+frequency |ẋ|/P is at least twice the position filter's cut-off fq, the zero-phase filter
+removes it from the filtered position x and the loop (far slower) does not follow it, so the
+raw minus the filtered reading, y − x, is e(y) itself [m]. P is found there (spatial
+periodogram of y − x against y in bands of periods, each on the samples fast enough for the
+band; bounded Brent on the LS fit), and e's coefficients with it; the error is named when it
+explains at least MIN_READING_SHARE of y − x held out. Its force in the identification is then
+one column, ë of that e(y) through the record's own position filter and central differences
+(the same path ÿ takes): β = −θ1 when the input carries what the error puts into ÿ
+(``force_share`` = −β/θ1, judged within FORCE_SHARE_RANGE). Periods the reading cannot show
+(too few fast samples: a slow program) are searched on the force: columns d²/dt² of sin,
+cos(2π k y / P), k ≤ 2, β = −θ1 (s_k, c_k), e = −(Σ β_sk sin + β_ck cos)/θ1 [m], P over a log
+grid with cheap columns refined on the exact ones.
 
 Compensation: none in the law. The error is in the reading: it is corrected where the
 position is read (the drive's or interpolator's correction table of the sin/cos signals'
