@@ -99,7 +99,7 @@ def held_offset(p, theta3: float) -> float | None:
 def levels_in_motion(ctx, name: str) -> tuple[float, np.ndarray] | None:
     """The constant force θ4 in motion [V] and the term ``name``'s β of the identifier's final
     model (``ctx.terms``) fitted again on the samples in motion only (``ctx.moving``), or None
-    when ``ctx`` has no such term.
+    when ``ctx`` has no such term or the record does not move both ways.
 
     The friction levels and slopes of each direction are properties of motion; the samples near
     rest follow the Karnopp stick and slip of each start and stop, which the model's columns
@@ -133,8 +133,10 @@ def levels_in_motion(ctx, name: str) -> tuple[float, np.ndarray] | None:
     others[:nt] = False
     others[start:start + widths[idx]] = False
     force = phi[:, others] @ coef[others]
-    v = ctx.p.v_d
-    even = 0.5 * (force[sel & (v > 0)].mean() + force[sel & (v < 0)].mean())
+    fwd, bwd = sel & (ctx.p.v_d > 0), sel & (ctx.p.v_d < 0)
+    if not (fwd.any() and bwd.any()):
+        return None
+    even = 0.5 * (force[fwd].mean() + force[bwd].mean())
     return float(coef[3]) - float(even), coef[start:start + 2]
 
 
