@@ -71,27 +71,6 @@ def test_asymmetric_friction_coulomb_part_takes_the_held_offset():
     assert refused["coulomb_N"] == pytest.approx(7.64)
 
 
-def test_asymmetric_friction_compensation_holds_against_the_held_offset():
-    """The compensation and θ̂(0) keep the fit's two levels in motion and put θ4 at the offset
-    held at rest (−4 N) instead of the collinear fit's +10.7 N (the example's size, seed 1)."""
-    from motorctl.ident import effects as fx
-    theta = np.array([0.16, 0.22, 4.7 / A1, 10.7 / A1])
-    beta = np.array([38.3 / A1, 19.1 / A1])
-    p = _held_record(f0_n=-4.0)
-    entry = fx.compensation("asymmetric_friction", None, beta, p, theta=theta)["asymmetric_friction"]
-    th = theta + fx.theta_shift("asymmetric_friction", entry, 4, theta=theta, signals=p)
-    assert A1 * th[3] == pytest.approx(-4.0, abs=0.02)
-    assert th[2] + entry["coulomb_V"] - th[3] == pytest.approx(theta[2] + beta[0] - theta[3], abs=1e-12)
-    assert th[2] + th[3] == pytest.approx(theta[2] + theta[3], abs=1e-12)
-    assert entry["viscous_V_s_per_m"] == pytest.approx(beta[1])
-    # without the fit's θ (an old caller) or a record that cannot tell: the fit's own
-    plain = fx.compensation("asymmetric_friction", None, beta, p)["asymmetric_friction"]
-    assert plain["coulomb_V"] == pytest.approx(beta[0])
-    assert not fx.theta_shift("asymmetric_friction", plain, 4).any()
-    one_side = fx.theta_shift("asymmetric_friction", plain, 4, theta=theta, signals=_held_record(both=False))
-    assert not one_side.any()
-
-
 def _moves_ctx(slow_pull_v=0.0):
     """An identifier-like context (decimated, 250 Hz): forward and backward trapezoid moves
     (0.4 m, 2 m/s, 40 m/s²) with rests between, u from the nominal model (M 12.8 kg, B 17.6

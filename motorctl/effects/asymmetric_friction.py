@@ -209,32 +209,8 @@ class AsymmetricFrictionFamily(EffectFamily):
         return {f"coulomb_{unit}": float(g * dfc), f"viscous_{unit}_s_per_m": float(g * db)}
 
     # compensation
-    def compensation(self, h, beta, signals=None, beta_std=None, theta=None):
-        """coulomb_V = β + 2δ with δ = θ4_held − θ4 (:meth:`held_shift`), viscous_V_s_per_m = ΔB
-        of the fit: the same force in motion as the fit's term with its θ4 (the forward level
-        θ3 + β − θ4 and the backward θ3 + θ4 kept by :meth:`theta_shift`), and at rest the
-        offset the carriage is held against instead of the one the collinear fit left (+10.7 N
-        for −4 N at the example's size, seed 1)."""
-        dfc = float(beta[0]) + 2.0 * self.held_shift(theta, signals)
-        return self.adapt_entry({"coulomb_V": dfc, "viscous_V_s_per_m": float(beta[1])}, beta_std)
-
-    @staticmethod
-    def held_shift(theta, signals) -> float:
-        """δ = θ4_held − θ4 [V] (:func:`held_offset`), 0 without θ (n_theta ≥ 4,) and a prepared
-        record ``signals`` (v, u, fs) or when the record cannot tell the held offset."""
-        if theta is None or signals is None or len(theta) < 4 or getattr(signals, "fs", None) is None:
-            return 0.0
-        held = held_offset(signals, float(theta[2]))
-        return 0.0 if held is None else float(held - theta[3])
-
-    def theta_shift(self, entry, n_theta, theta=None, signals=None):
-        """Δθ3 = −δ, Δθ4 = +δ (δ of :meth:`held_shift`): θ4 becomes the held offset and θ3 keeps
-        the backward level θ3 + θ4; with the entry's coulomb_V = β + 2δ the forward level
-        θ3 + ΔF − θ4 is the fit's too."""
-        d = np.zeros(n_theta)
-        delta = self.held_shift(theta, signals)
-        d[2], d[3] = -delta, delta
-        return d
+    def compensation(self, h, beta, signals=None, beta_std=None):
+        return self.adapt_entry({"coulomb_V": float(beta[0]), "viscous_V_s_per_m": float(beta[1])}, beta_std)
 
     def compensation_for(self, o: AsymmetricFriction, a1):
         return {"coulomb_V": o.coulomb_N / a1, "viscous_V_s_per_m": o.viscous_N_s_per_m / a1}

@@ -79,15 +79,13 @@ def parameters(name: str, h, beta: np.ndarray, gain: float | None, fs: float, th
     return fam.parameters(h, beta, gain, fs, **kw)
 
 
-def compensation(name: str, h, beta: np.ndarray, signals=None, beta_std=None, theta=None) -> dict | None:
+def compensation(name: str, h, beta: np.ndarray, signals=None, beta_std=None) -> dict | None:
     """The ``controller.compensation`` YAML entry ``{name: {...}}`` (V units, d̂_eff = −Cβ) of a
     found effect, or None when the family has no compensation term d̂_eff(x_d, ẋ_d, t).
     ``signals`` (:class:`~motorctl.effects.base.Signals` of the record) give the references a
     family takes from the record (spring x_0, position-dependent friction x_ref); ``beta_std``
     (k,): the fit's standard deviations of β, from which an adaptable family writes its
-    projection box (β ∓ 3σ, at least the default margin); ``theta`` (n_theta,): the nominal θ̂
-    of the same fit, for a family whose entry moves a constant between its term and θ
-    (asymmetric friction: the offset held at rest; with :func:`theta_shift`).
+    projection box (β ∓ 3σ, at least the default margin).
 
     Raises:
         ValueError: unknown family.
@@ -99,21 +97,5 @@ def compensation(name: str, h, beta: np.ndarray, signals=None, beta_std=None, th
         kw["signals"] = signals
     if "beta_std" in params and beta_std is not None:
         kw["beta_std"] = beta_std
-    if "theta" in params and theta is not None:
-        kw["theta"] = theta
     entry = fam.compensation(h, beta, **kw)
     return None if entry is None else {name: entry}
-
-
-def theta_shift(name: str, entry: dict, n_theta: int, theta=None, signals=None) -> np.ndarray:
-    """Δθ (n_theta,) that goes with a compensation ``entry`` of :func:`compensation`
-    (:meth:`~motorctl.effects.base.EffectFamily.theta_shift`); ``theta`` and ``signals`` as
-    given to :func:`compensation`, for a family whose shift needs them.
-
-    Raises:
-        ValueError: unknown family.
-    """
-    fam = family(name)
-    params = inspect.signature(fam.theta_shift).parameters
-    kw = {k: v for k, v in (("theta", theta), ("signals", signals)) if k in params and v is not None}
-    return fam.theta_shift(entry, n_theta, **kw)

@@ -183,10 +183,10 @@ def compensation_from_fit(idf: Identifier, final=None, terms=None) -> tuple[dict
     comp, skipped = {}, []
     unnamed = {ev.term.family for ev, _ in getattr(idf, "accepted", []) if ev.rivals}
     for t, b, sd in zip(terms, betas, stds):
-        c = None if t.family in unnamed else fx.compensation(t.family, t.h, b, idf.p, beta_std=sd, theta=th)
+        c = None if t.family in unnamed else fx.compensation(t.family, t.h, b, idf.p, beta_std=sd)
         if c:
             comp.update(c)
-            theta = theta + fx.theta_shift(t.family, c[t.family], idf.n_theta, theta=th, signals=idf.p)
+            theta = theta + fx.family(t.family).theta_shift(c[t.family], idf.n_theta)
         else:
             skipped.append(t.family)
     return comp, theta, skipped
