@@ -120,6 +120,14 @@ def test_asymmetric_friction_levels_are_fitted_in_motion():
     joint = np.linalg.lstsq(phi, y, rcond=None)[0]
     assert abs(A1 * joint[-1] - 10.0) > 0.5
     assert levels_in_motion(SimpleNamespace(terms=ctx.terms[:2]), "asymmetric_friction") is None
+    # through the family: ΔB in motion; ΔF_c the joint β when the record cannot tell the held
+    # offset (nothing in motion tells it from the offset), the levels' sum + 2 θ4_held when it can
+    fam = FAMILIES["asymmetric_friction"]
+    beta_joint, theta = np.array([7.0, 9.0]) / A1, np.array([0.16, 0.22, 20.0 / A1, 1.0 / A1])
+    blind = fam.parameters(None, beta_joint, A1, FS, theta=theta, p=_held_record(both=False), ctx=ctx)
+    assert blind["coulomb_N"] == pytest.approx(7.0) and blind["viscous_N_s_per_m"] == pytest.approx(10.0, abs=0.05)
+    held = fam.parameters(None, beta_joint, A1, FS, theta=theta, p=_held_record(f0_n=-4.0), ctx=ctx)
+    assert held["coulomb_N"] == pytest.approx(5.0 + 2.0 * 10.0 * x_bar, abs=0.1)
 
 
 def test_stribeck_column_is_built_on_the_wide_band_velocity():

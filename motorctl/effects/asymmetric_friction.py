@@ -194,16 +194,21 @@ class AsymmetricFrictionFamily(EffectFamily):
         θ3 + θ4 (backward), not β and θ4 apart, and a carriage held at rest shows neither (its
         input there is unconstrained). When the record's input held at rest spans the breakaway
         both ways (:func:`held_offset`), θ4 is taken from there and ΔF_c = β − 2θ4 + 2θ4_held
-        (β, θ4 of the fit in motion; of the joint fit ``beta``, ``theta`` without ``ctx``)."""
+        (β, θ4 of the fit in motion; of the joint fit ``beta``, ``theta`` without ``ctx``).
+        Without the held offset ΔF_c is the joint fit's β: in motion alone nothing tells it from
+        the offset, near rest the joint fit has S_f's transitions (EMPS, sign friction: 9.2 N
+        against 16.4 N from the fit in motion; the description's −0.48 N)."""
         g, unit = (gain, "N") if gain else (1.0, "V")
         dfc, db = float(beta[0]), float(beta[1])
         if theta is not None and p is not None and len(theta) > 3:
             th4 = float(theta[3])
             moving = levels_in_motion(ctx, self.name) if ctx is not None else None
-            if moving is not None:
-                th4, beta_m = moving
-                dfc, db = float(beta_m[0]), float(beta_m[1])
             held = held_offset(p, float(theta[2]))
+            if moving is not None:
+                th4_m, beta_m = moving
+                db = float(beta_m[1])
+                if held is not None:
+                    dfc, th4 = float(beta_m[0]), th4_m
             if held is not None:
                 dfc += 2.0 * (held - th4)
         return {f"coulomb_{unit}": float(g * dfc), f"viscous_{unit}_s_per_m": float(g * db)}
