@@ -159,7 +159,7 @@ class InputDelayFamily(EffectFamily):
         p = ctx.p
         dmax = max(3, min(round(0.005 * p.fs), 40))
         grid = np.arange(0, dmax + 1)
-        sses = ctx.delay_sses(base, grid)
+        sses = ctx.delay_sses(base, grid, rows=ctx.moving)
         i = int(np.argmin(sses))
         d = parabolic_min(grid, sses)
         if 0 < i < len(grid) - 1:
@@ -180,7 +180,7 @@ class InputDelayFamily(EffectFamily):
         sample (a 3-sample delay's parabola through the integer grid said 3.36, the fine grid
         3.0x)."""
         fine = np.arange(d0 - 1.0, d0 + 1.0 + 1e-9, FINE_STEP)
-        return parabolic_min(fine, ctx.delay_sses(base, fine))
+        return parabolic_min(fine, ctx.delay_sses(base, fine, rows=ctx.moving))
 
     @staticmethod
     def bands(fs_d: float) -> tuple[tuple[float, float], tuple[float, float]] | None:
