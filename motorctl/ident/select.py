@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from motorctl.effects import FAMILIES, family as effect_family
-from motorctl.effects.input_delay import HOLD_TOLERANCE, amplifier_lag
+from motorctl.effects.input_delay import HOLD_TOLERANCE
 from motorctl.ident.data import Record
 from motorctl.ident.idim import Prepared, choose_n_theta, ls, prepare
 from motorctl.model import f_u, s_f
@@ -161,11 +161,7 @@ class Identifier:
         if zoh_delay is not None:
             self.zoh, self.zoh_source = float(zoh_delay), "given (--zoh-delay)"
         elif rec.header:
-            # and the amplifier's current loop it declares (input_delay.amplifier_lag): a found
-            # input delay is the transport delay beyond them
-            lag, said = amplifier_lag(rec.header, rec.axis)
-            self.zoh = 0.5 + lag / rec.period_s
-            self.zoh_source = "run log: the input is a zero-order hold" + (f", plus {said}" if lag else "")
+            self.zoh, self.zoh_source = 0.5, "run log: the input is a zero-order hold"
         else:
             # a CSV/MAT record of a sampled-data loop carries the same hold; find it in the data
             self.zoh = 0.0
