@@ -6,10 +6,16 @@ Physical model: u_applied(t) = u(t − τ). Its simulator option is the axis-lev
 period, the mean of the delayed held input, (1 − f)·u[k − n] + f·u[k − n − 1]
 (:func:`delay_line`: the same impulse per period as the switch f·Ts into it, and the same phase
 −ωτ in the band the loop controls). Identification: no columns; the
-regression target becomes u(t − τ), τ from 0 to 5 ms in samples (FFT fractional shift of the
-decimated input), then a parabolic refinement; refused when the delays the phase of two
+regression target becomes u(t − τ), τ from 0 to 5 ms in whole samples, then a 0.05-sample grid
+within a sample of the best (FFT fractional shift of the decimated input), fitted on the samples
+in motion (:meth:`InputDelayFamily.in_motion`); refused when the delays the phase of two
 frequency bands say differ (:meth:`InputDelayFamily.not_transport`: a transport delay is a phase
-−ωτ at every frequency, a load held with play lags only part of the force). Compensation (not an additive d̂_eff, a
+−ωτ at every frequency, a load held with play lags only part of the force). What is found is
+all of the lag beyond the hold, the amplifier's current loop included: a first-order loop of
+bandwidth f_c lags like a delay of 1/(2π f_c) in the band the fit sees, and nothing there tells
+the two apart (:func:`amplifier_lag`). The report's ``delay_s`` is the transport delay beyond
+the current loop the run log's config declares (``current_loop_hz``, ``current_loop_delay_s``
+of the axis's driver), ``total_delay_s`` all of it. Compensation (not an additive d̂_eff, a
 :class:`~motorctl.effects.base.CompHook`): the law predicts over τ, i.e. evaluates its
 desired-compensation part v_a1 (eq. 13) on the desired trajectory at t + τ (the servo loop passes
 that sample, :meth:`motorctl.control.base.Controller.preview`), and the estimator pairs each
@@ -134,7 +140,8 @@ class FoundDelay(float):
 
 class DelayComp(StrictModel):
     """Delay compensation, ``axes.NAME.controller.compensation.input_delay``: delay_s, the
-    input delay τ [s] beyond the loop's own zero-order hold (0 … 0.1 s) the law predicts over."""
+    input delay τ [s] beyond the loop's own zero-order hold (0 … 0.1 s) the law predicts over
+    (identify writes the total lag it found, the amplifier's current loop included)."""
 
     delay_s: Annotated[float, Field(ge=0.0, le=0.1)]
 
