@@ -8,17 +8,18 @@ d ≥ 0 the half-width [V], o the input offset [V]. Seen from the nominal model 
 
 Simulator: ``axes.NAME.driver.effects.amplifier_dead_zone`` (an input transform, once per
 period). Identification: columns clip(u, −d, d), [|u| < d] (the first-order expansion in o; the
-constant −o is θ4's), **weighed by the motion** m(ẋ) = 1 − exp(−(ẋ/:data:`V_REST`)²): a carriage
-held at rest shows a dead-zone and a static friction alike (both leave it where it is, whatever
-the small input), and a plant with stiction holds it through its whole input band, so the rest
-samples would fit the static friction's band as the dead-zone's. In motion the dead-zone takes
-A1·d from every input beyond the band, −A1·d·sign(u): a force on the sign of the *input*,
-which friction (on the sign of ẋ) is not while the carriage decelerates. That force fixes β1·d;
-the band's inside is crossed in about a sample at each zero crossing of u, too briefly to fix
-d by its shape. So d is the width whose share β1 is 1 (a dead-zone passes nothing within it):
-a grid search on a log grid from 5 mV to 1 V, then the fixed point d ← β1·d
-(:meth:`AmplifierDeadZoneFamily.search`); β2 ≈ o (β1 within :data:`SHARE_RANGE`). The offset
-o is weakly determined: outside the band it is the same constant force as the plant's F_0 (θ4),
+constant −o is θ4's); β1 the share of the band's input lost (1 for a dead-zone), β2 ≈ o.
+At rest a dead-zone and a static friction look alike (both leave the carriage where it is,
+whatever the small input): without a holding force in the model, d is the band that fits the
+rest samples best (a log grid from 5 mV to 1 V). With stiction in the model the columns are
+fitted on the samples in motion (stiction's ``other_weight``), and there the dead-zone takes
+A1·d from every input beyond the band, −A1·d·sign(u): a force on the sign of the *input*, which
+friction (on the sign of ẋ) is not while the carriage decelerates. That force fixes β1·d; the
+band's inside is crossed in about a sample at each zero crossing of u, too briefly to fix d by
+its shape. So d is then the width whose share β1 is 1 (a dead-zone passes nothing within it):
+the crossing β1 = 1 on the grid, then the fixed point d ← β1·d
+(:meth:`AmplifierDeadZoneFamily.search`, again in the final model: :meth:`polish`). The offset o
+is weakly determined: beyond the band it is the same constant force as the plant's F_0 (θ4),
 only the band's crossings tell them apart. Not compensable by an additive term in
 (x_d, ẋ_d, t): its inverse (u + d·sign(u)) needs the law's own output; the report names it so
 the amplifier's zero can be adjusted.
@@ -39,9 +40,6 @@ from motorctl.schema import NonNeg, StrictModel
 WIDTH_GRID = np.exp(np.linspace(math.log(5e-3), math.log(1.0), 20))
 #: plausible β1 (the share of the band's input that does not reach the motor)
 SHARE_RANGE = (0.7, 1.3)
-#: velocity scale of the motion weight m(ẋ) = 1 − exp(−(ẋ/V_REST)²) [m/s]: above the band a
-#: static friction holds in (stiction's, 0.01-3 mm/s), below the program's speeds
-V_REST = 1e-3
 #: fixed-point steps d ← β1·d of :meth:`AmplifierDeadZoneFamily.search` (at most), and the
 #: relative change of d that ends them
 WIDTH_STEPS, WIDTH_RTOL = 8, 1e-3
@@ -80,17 +78,26 @@ class AmplifierDeadZoneFamily(EffectFamily):
 
     # identification
     def columns(self, h, p):
-        """m(ẋ)·clip(u, −h, h), m(ẋ)·[|u| < h], (N, 2); h: half-width d [V]; m the motion
-        weight (module docstring, :data:`V_REST`)."""
+        """clip(u, −h, h), [|u| < h], (N, 2); h: half-width d [V]."""
         u = p.u
-        m = 1.0 - np.exp(-(p.v / V_REST) ** 2)
-        return np.column_stack([np.clip(u, -h, h) * m, (np.abs(u) < h) * m])
+        return np.column_stack([np.clip(u, -h, h), (np.abs(u) < h).astype(float)])
 
     def search(self, ctx, base, residual):
-        """The half-width whose share β1 is 1 (module docstring): β1 on :data:`WIDTH_GRID`
-        (β1 > 1 below the true width, where the column's ±h is smaller than the force beyond the
-        band, < 1 above it), the crossing of least SSE interpolated on the log grid, then the
-        fixed point d ← β1·d. None when the record never moves."""
+        """Without a holding force at rest in ``base``: the least SSE on :data:`WIDTH_GRID`
+        (refined on a finer grid), the rest samples' band. With one (stiction, whose
+        :meth:`~motorctl.effects.base.EffectFamily.other_weight` leaves these columns the
+        samples in motion): the half-width whose share β1 is 1 (module docstring), β1 on the
+        grid (> 1 below the true width, where the column's ±h is smaller than the force beyond
+        the band, < 1 above it), the crossing of least SSE interpolated on the log grid, then
+        the fixed point d ← β1·d."""
+        from motorctl.effects import FAMILIES
+        if not any(FAMILIES[t.family].other_weight(t) is not None for t in base):
+            term, sses = ctx.best_over(self.name, WIDTH_GRID, base)
+            i = int(np.argmin(sses))
+            if i in (0, len(WIDTH_GRID) - 1):
+                return term, f"dead-zone half-width {term.h:.3g} V at the edge of the searched range"
+            fine = np.exp(np.linspace(math.log(WIDTH_GRID[i - 1]), math.log(WIDTH_GRID[i + 1]), 7))
+            return ctx.best_over(self.name, fine, base)[0], None
         fits = [ctx.evaluate(base + [ctx.term(self.name, float(h))]) for h in WIDTH_GRID]
         share = np.array([float(f.fit.coef[-2]) for f in fits])
         sse = np.array([float(f.fit.residual @ f.fit.residual) for f in fits])
