@@ -83,21 +83,25 @@ class AmplifierDeadZoneFamily(EffectFamily):
         return np.column_stack([np.clip(u, -h, h), (np.abs(u) < h).astype(float)])
 
     def search(self, ctx, base, residual):
-        """Without a holding force at rest in ``base``: the least SSE on :data:`WIDTH_GRID`
-        (refined on a finer grid), the rest samples' band. With one (stiction, whose
-        :meth:`~motorctl.effects.base.EffectFamily.other_weight` leaves these columns the
-        samples in motion): the half-width whose share β1 is 1 (module docstring), β1 on the
-        grid (> 1 below the true width, where the column's ±h is smaller than the force beyond
-        the band, < 1 above it), the crossing of least SSE interpolated on the log grid, then
-        the fixed point d ← β1·d."""
+        """The least SSE on :data:`WIDTH_GRID`, refined on a finer grid. With a holding force
+        at rest in ``base`` (stiction, whose :meth:`~motorctl.effects.base.EffectFamily.
+        other_weight` leaves these columns the samples in motion) and a plausible share there
+        (β1 within :data:`SHARE_RANGE`; else that candidate is returned, to be refused): the
+        width is then the half-width whose share β1 is 1 (module docstring), β1 on the grid
+        (> 1 below the true width, where the column's ±h is smaller than the force beyond the
+        band, < 1 above it), the crossing of least SSE interpolated on the log grid, then the
+        fixed point d ← β1·d."""
         from motorctl.effects import FAMILIES
-        if not any(FAMILIES[t.family].other_weight(t) is not None for t in base):
-            term, sses = ctx.best_over(self.name, WIDTH_GRID, base)
-            i = int(np.argmin(sses))
-            if i in (0, len(WIDTH_GRID) - 1):
-                return term, f"dead-zone half-width {term.h:.3g} V at the edge of the searched range"
-            fine = np.exp(np.linspace(math.log(WIDTH_GRID[i - 1]), math.log(WIDTH_GRID[i + 1]), 7))
-            return ctx.best_over(self.name, fine, base)[0], None
+        term, sses = ctx.best_over(self.name, WIDTH_GRID, base)
+        i = int(np.argmin(sses))
+        if i in (0, len(WIDTH_GRID) - 1):
+            return term, f"dead-zone half-width {term.h:.3g} V at the edge of the searched range"
+        fine = np.exp(np.linspace(math.log(WIDTH_GRID[i - 1]), math.log(WIDTH_GRID[i + 1]), 7))
+        term = ctx.best_over(self.name, fine, base)[0]
+        lo, hi = SHARE_RANGE
+        if (not any(FAMILIES[t.family].other_weight(t) is not None for t in base)
+                or not lo <= float(ctx.evaluate(base + [term]).fit.coef[-2]) <= hi):
+            return term, None
         fits = [ctx.evaluate(base + [ctx.term(self.name, float(h))]) for h in WIDTH_GRID]
         share = np.array([float(f.fit.coef[-2]) for f in fits])
         sse = np.array([float(f.fit.residual @ f.fit.residual) for f in fits])
