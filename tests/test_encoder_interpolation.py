@@ -83,3 +83,94 @@ def test_columns_are_the_second_derivative_of_the_reading_error():
     assert np.allclose(exact[mid], ana[mid], rtol=0, atol=0.02 * np.abs(ana[mid]).max())
     fam = FAMILIES["encoder_interpolation"]
     assert not fam.has_compensation and fam.plant_term((3e-6, P), 1e-3) is None
+
+
+# ---------------------------------------------------------------------------- found in the reading
+def _fast_xd(fs: float = 5000.0, duration: float = 6.0) -> np.ndarray:
+    """Moves 0 ↔ 0.3 m with a raised-cosine speed (peak 1.5 m/s, 0.4 s each) and 0.1 s rests:
+    at cruise the 2 mm error is at 750 Hz, far above the 250 Hz position filter of 5 kHz."""
+    n_move, n_rest = int(0.4 * fs), int(0.1 * fs)
+    tau = np.arange(n_move) / n_move
+    up = 0.3 * (tau - np.sin(2 * np.pi * tau) / (2 * np.pi))
+    one = np.concatenate([up, np.full(n_rest, 0.3), up[::-1], np.zeros(n_rest)])
+    n = int(duration * fs)
+    return np.tile(one, n // len(one) + 1)[:n]
+
+
+@pytest.fixture(scope="module")
+def fast(tmp_path_factory):
+    d = tmp_path_factory.mktemp("enc_fast")
+    xd = _fast_xd()
+    return {name: load_record(loop_csv(d / f"{name}.csv", xd, 2e-4, y_noise_m=5e-8, u_noise_V=0.01, period_m=P,
+                                       **kw), None, str(A1))
+            for name, kw in (("reading", {"enc_m": 3e-6}), ("force", {"cogging_N": 3.0}), ("clean", {}))}
+
+
+def test_a_fast_program_shows_the_error_in_the_reading(fast):
+    """Where the moves are fast the error is above the position filter: y − x is the error
+    itself, and the family's reading search gives P and the amplitude (no θ1 involved); the
+    force column of the term is one column (the filtered ë of that e(y))."""
+    from motorctl.effects.encoder_interpolation import MIN_READING_SHARE, ReadingFit
+    fam = FAMILIES["encoder_interpolation"]
+    idf = Identifier(fast["reading"])
+    fit, blind = fam.reading(idf)
+    assert isinstance(fit, ReadingFit) and fit.share > 0.9, fit
+    assert float(fit) == pytest.approx(P, rel=2e-3)
+    par = fam.parameters(fit, np.zeros(1), None, idf.p.fs)
+    assert par["amplitudes_m"][0] == pytest.approx(3e-6, rel=0.05)
+    assert par["reading_share"] > MIN_READING_SHARE
+    term = idf.term(fam.name, fit)
+    assert term.cols.shape[1] == 1
+    # the program reaches 1.5 m/s: the bands from 2.25 mm on need more (2 x 250 Hz x 3.4 mm)
+    assert blind and blind[0][0] > 2e-3
+    import pickle
+    again = pickle.loads(pickle.dumps(fit))
+    assert float(again) == float(fit) and again.coef == fit.coef
+
+
+def test_cogging_and_a_clean_loop_show_nothing_in_the_reading(fast):
+    """A force of the same period moves the carriage, not the reading: at 750 Hz the 3 N
+    cogging moves the 10 kg carriage by F/(m ω²) = 14 nm, which y − x shows beside its 50 nm
+    noise (a share far below MIN_READING_SHARE); a clean loop's reading shows nothing."""
+    from motorctl.effects.encoder_interpolation import MIN_READING_SHARE
+    fam = FAMILIES["encoder_interpolation"]
+    for name in ("force", "clean"):
+        fit, _ = fam.reading(Identifier(fast[name]))
+        assert fit is None or fit.share < 0.5 * MIN_READING_SHARE, (name, fit)
+        assert fit is None or np.hypot(*fit.coef[:2]) < 3e-8, (name, fit.coef)
+
+
+@pytest.fixture(scope="module")
+def fast_run(fast):
+    return Identifier(fast["reading"]).run()
+
+
+def test_the_fast_reading_error_is_named_with_its_truth(fast_run):
+    """identify on the fast record: encoder_interpolation named from the reading (P within
+    0.2 %, amplitude within 10 %), the input carrying the inertial force of that error
+    (force_share near 1), no force family at that period."""
+    s = summarise(fast_run)
+    names = [e["name"] for e in s["effects"]]
+    assert "encoder_interpolation" in names, names
+    assert not {"cogging", "force_ripple", "periodic_disturbance", "periodic_friction"} & set(names), names
+    par = s["effects"][names.index("encoder_interpolation")]["parameters"]
+    assert par["signal_period_m"] == pytest.approx(P, rel=2e-3)
+    assert par["amplitudes_m"][0] == pytest.approx(3e-6, rel=0.1)
+    assert 0.5 <= par["force_share"] <= 2.0
+
+
+def test_a_weak_effect_beside_an_unexplained_structure_is_dropped(fast_run, monkeypatch):
+    """When the final residual keeps a structure no family explains, a selected effect must
+    keep a held-out gain of STRICT_HELDOUT_GAIN in the final model: a spring added to the
+    fast record's model (nothing there) is dropped, the reading's error kept; with no such
+    structure nothing is dropped."""
+    idf = fast_run
+    terms = list(idf.terms) + [idf.term("spring", None)]
+    current = idf.evaluate(terms)
+    accepted = [(current, current.heldout_rms)] * len(terms)
+    monkeypatch.setattr(Identifier, "unexplained", lambda self, cur, t, last: True)
+    kept, acc, _, dropped = idf._doubt(terms, accepted, current, [])
+    assert [d[0] for d in dropped] == ["spring"], dropped
+    assert "encoder_interpolation" in [t.family for t in kept] and len(acc) == len(kept)
+    monkeypatch.setattr(Identifier, "unexplained", lambda self, cur, t, last: False)
+    assert idf._doubt(terms, accepted, current, [])[3] == []

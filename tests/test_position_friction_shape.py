@@ -333,3 +333,43 @@ def test_a_shape_that_the_straight_line_does_as_well_is_replaced_by_it(runs):
     _, bump = runs["bump"]
     t, a, f, rep = bump._simplify(list(bump.terms), list(bump.accepted), bump.final)
     assert [x.family for x in t] == [x.family for x in bump.terms] and rep == []
+
+
+def _one_speed_record(extra) -> "Record":
+    """A hand-made 8 s, 5 kHz record of strokes 0 ↔ 0.4 m that pass each position at one speed
+    (raised-cosine acceleration to 2 m/s over 0.1 m, cruise over 0.1 … 0.3 m): u = (M ẍ + B ẋ +
+    F_c S_f(ẋ) + extra(x, ẋ) S_f(ẋ))/A1 plus seeded noise [V]."""
+    from motorctl.ident.data import Record
+    fs, vmax, ta = 5000.0, 2.0, 0.1
+    ts = 1.0 / fs
+    acc = vmax * (1 - np.cos(np.pi * np.arange(int(ta * fs)) / (ta * fs))) / 2
+    v_up = np.concatenate([acc, np.full(int(0.1 * fs), vmax), acc[::-1], np.zeros(int(0.1 * fs))])
+    v = np.tile(np.concatenate([v_up, -v_up]), 6)[: int(8 * fs)]
+    x = np.cumsum(v) * ts
+    a = np.gradient(v, ts)
+    rng = np.random.default_rng(3)
+    f = 10.0 * a + 20.0 * v + (20.0 + extra(x, v)) * s_f(v)
+    t = np.arange(len(x)) * ts
+    return Record(t=t, y=x + rng.normal(0, 1e-8, len(x)), u=f / A1 + rng.normal(0, 0.01, len(x)), gain=A1)
+
+
+@pytest.mark.parametrize("case", ["speed", "bump"])
+def test_a_shape_is_told_from_a_friction_of_the_speed(case):
+    """On a program that passes each position at one speed, a friction that varies with the
+    speed (a hump at 0.8 m/s, where the carriage accelerates) is a shape of position too: the
+    same basis over |ẋ| explains as much, and the shape is refused for it. A bump in the cruise
+    (constant speed) cannot be a friction of the speed and is not refused for it."""
+    if case == "speed":
+        rec = _one_speed_record(lambda x, v: 6.0 * np.exp(-((np.abs(v) - 0.8) / 0.2) ** 2))
+    else:
+        rec = _one_speed_record(lambda x, v: pfs.bump_value(x, 0.2, 0.08, 15.0))
+    idf = Identifier(rec, zoh_delay=0.0)
+    term = idf.term(NAME, pfs.KnotGrid(float(idf.p.x.min()), float(idf.p.x.max()), 8))
+    ev = idf.evaluate([term])
+    ev.term = term
+    k = term.cols.shape[1]
+    reasons = FAMILIES[NAME].plausible(idf, term, ev.fit.coef[-k:], ev.fit.coef[:idf.n_theta], [])
+    told = [r for r in reasons if r.startswith("not told from a friction that varies with the speed")]
+    assert (len(told) == 1) if case == "speed" else not told, reasons
+    # the shape does explain the effect either way (what is judged is what it is)
+    assert ev.heldout_rms < 0.8 * idf.evaluate([]).heldout_rms

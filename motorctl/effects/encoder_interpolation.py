@@ -17,10 +17,19 @@ Its simulator option is the axis-level ``axes.NAME.driver.encoder_interpolation_
 of the first harmonic) with ``encoder_signal_period_m`` (not an ``effects:`` entry; the encoder
 model of ``motorctl_drivers.sim``).
 
-Identification: columns d²/dt² of sin, cos(2π k y / P), k ≤ 2, each through the record's own
-position filter and central differences (the same path ÿ takes), so β = −θ1 (s_k, c_k) and the
-reading's error is e = −(Σ β_sk sin + β_ck cos)/θ1 [m]. P: the peaks of the spatial periodogram
-of the residual (as cogging), refined on the joint LS fit.
+Identification, in the reading first: where the carriage is fast enough that the error's
+frequency |ẋ|/P is at least twice the position filter's cut-off fq, the zero-phase filter
+removes it from the filtered position x and the loop (far slower) does not follow it, so the
+raw minus the filtered reading, y − x, is e(y) itself [m]. P is found there (spatial
+periodogram of y − x against y in bands of periods, each on the samples fast enough for the
+band; bounded Brent on the LS fit), and e's coefficients with it; the error is named when it
+explains at least MIN_READING_SHARE of y − x held out. Its force in the identification is then
+one column, ë of that e(y) through the record's own position filter and central differences
+(the same path ÿ takes): β = −θ1 when the input carries what the error puts into ÿ
+(``force_share`` = −β/θ1, judged within FORCE_SHARE_RANGE). Periods the reading cannot show
+(too few fast samples: a slow program) are searched on the force: columns d²/dt² of sin,
+cos(2π k y / P), k ≤ 2, β = −θ1 (s_k, c_k), e = −(Σ β_sk sin + β_ck cos)/θ1 [m], P over a log
+grid with cheap columns refined on the exact ones.
 
 Compensation: none in the law. The error is in the reading: it is corrected where the
 position is read (the drive's or interpolator's correction table of the sin/cos signals'
@@ -39,8 +48,10 @@ from motorctl.effects.periodic import (
     MAX_SPEED_GROWTH,
     MIN_PEAK_DROP,
     N_HARMONICS,
+    N_PEAKS,
     PositionPeriodic,
     amplitudes_phases,
+    peak_periods,
     fourier,
 )
 
@@ -61,9 +72,141 @@ def reading_columns(y: np.ndarray, fs: float, fq: float, period: float) -> np.nd
 #: scale's error is far above the position filter at any speed the record moves with
 PERIOD_MIN_M = 1e-3
 PERIOD_MAX_M = 0.01
+#: a force-side period whose first harmonic is below this share of its second is taken as
+#: half as long (P's second harmonic is P/2's fundamental: the grid's SSE cannot tell them)
+HALF_PERIOD_SHARE = 0.25
 #: relative step of the period grid, refined within one step on the exact columns (the joint
 #: fit resolves P to about P/stroke: 0.5 % for 2 mm over 0.4 m)
 GRID_STEP = 0.01
+
+
+#: the reading's error is fitted on the samples at which its first harmonic's frequency |ẋ|/P
+#: is at least this many times the position filter's cut-off fq: there the filter removes it
+#: from x (its zero-phase gain |H|² = 1/(1 + (f/fq)⁸) is 0.4 % at 2 fq), so the raw reading
+#: minus the filtered one, y − x, is the error itself, and the loop (its bandwidth far below
+#: fq) does not follow it
+PASS_FACTOR = 2.0
+#: ... and the speed must have stayed there for this many filter time constants 1/fq either
+#: side (the zero-phase filter's transient where a move starts or ends)
+SETTLE_FQ = 2.5
+#: period bands searched on the reading: each band [P, BAND_RATIO·P] uses the samples fast
+#: enough for its longest period
+BAND_RATIO = 1.5
+#: least samples (and signal periods travelled) of a band for its fit to be made
+MIN_READING_SAMPLES = 400
+MIN_PERIODS_TRAVELLED = 50.0
+#: spatial periodogram step of the reading search (relative): the SSE's main lobe is about
+#: P/travel wide (0.5 % for 2 mm over 0.4 m), so the peaks are refined on the exact fit
+READING_STEP = 0.002
+#: least share of y − x's power (on the fast samples) the reading's error must explain, held
+#: out (2-fold over the identifier's blocks), for the reading to name it: a scale's error
+#: explains nearly all of it (0.99 at ±3 µm, 0.96 at ±1.5 µm on the default plant), noise and
+#: vibration that are not locked to the position explain nothing
+MIN_READING_SHARE = 0.3
+#: bounds of the force's share: the fitted coefficient of the reading's inertial column over
+#: −θ1 (1: the force carries exactly the θ1·ë the reading's error puts into ÿ)
+FORCE_SHARE_RANGE = (0.5, 2.0)
+
+
+class ReadingFit(float):
+    """The searched parameter h of a reading's error found in the reading: its float value is
+    the signal period P [m]; ``coef`` (2·N_HARMONICS,) [m] are e(y)'s sin, cos coefficients,
+    interleaved (e = Σ s_k sin(2πky/P) + c_k cos(2πky/P)); ``share`` the held-out share of the
+    fast samples' y − x it explains, ``samples`` how many samples the fit used."""
+
+    def __new__(cls, period: float, coef, share: float = math.nan, samples: int = 0):
+        obj = super().__new__(cls, float(period))
+        obj.coef = tuple(float(c) for c in coef)
+        obj.share, obj.samples = float(share), int(samples)
+        return obj
+
+    def __reduce__(self):
+        return ReadingFit, (float(self), self.coef, self.share, self.samples)
+
+    def __repr__(self) -> str:
+        return f"ReadingFit({float(self):.6g}, share {self.share:.3f})"
+
+
+def fast_samples(p, period: float) -> np.ndarray:
+    """Boolean mask (N,) of the full-rate samples at which a reading's error of period
+    ``period`` [m] is above the position filter (|ẋ| ≥ PASS_FACTOR·fq·P, held for SETTLE_FQ/fq
+    either side): there y − x is the error (see :data:`PASS_FACTOR`). p: a prepared record."""
+    from scipy.ndimage import minimum_filter1d
+    key = "_enc_slowest"
+    sp = getattr(p, key, None)
+    if sp is None:
+        half = max(1, int(round(SETTLE_FQ * p.fs / p.fq)))
+        sp = minimum_filter1d(np.abs(p.v), 2 * half + 1)
+        setattr(p, key, sp)
+    return sp >= PASS_FACTOR * p.fq * period
+
+
+def reading_fit(y: np.ndarray, r: np.ndarray, period: float, fold=None) -> tuple[np.ndarray, float, float]:
+    """LS fit of r (M,) [m] (y − x on fast samples) by a constant and sin, cos(2πky/P), k ≤
+    N_HARMONICS, at the readings y (M,) [m]. Returns (coef (2·N_HARMONICS,) [m], SSE [m²], held-out
+    share explained): the last over the two folds of ``fold`` (M,) (0/1), NaN without it."""
+    f = np.column_stack([fourier(y, period, N_HARMONICS), np.ones_like(y)])
+    coef = np.linalg.lstsq(f, r, rcond=None)[0]
+    res = r - f @ coef
+    share = math.nan
+    if fold is not None:
+        sse, tot = 0.0, 0.0
+        for k in (0, 1):
+            tr, te = fold == k, fold != k
+            if tr.sum() < 4 * f.shape[1] or te.sum() < 4 * f.shape[1]:
+                return coef[:-1], float(res @ res), math.nan
+            c = np.linalg.lstsq(f[tr], r[tr], rcond=None)[0]
+            e = r[te] - f[te] @ c
+            d = r[te] - r[tr].mean()
+            sse += float(e @ e)
+            tot += float(d @ d)
+        share = 1.0 - sse / tot if tot > 0 else math.nan
+    return coef[:-1], float(res @ res), share
+
+
+def search_reading(p, lo: float, hi: float, fold_of=None) -> tuple[ReadingFit | None, list]:
+    """The reading's error of period P in [lo, hi] [m] found in the reading itself: over bands
+    [P, BAND_RATIO·P], the fast samples of the band's longest period (:func:`fast_samples`),
+    the spatial periodogram of y − x against y at :data:`READING_STEP` steps, its
+    :data:`~motorctl.effects.periodic.N_PEAKS` highest peaks refined by bounded Brent on the
+    fit's SSE (:func:`reading_fit`). p: a prepared record (raw reading y, filtered x, v, fs,
+    fq). fold_of: a function of a full-rate mask giving the held-out fold (0/1) of its samples,
+    or None (no held-out share).
+
+    Returns:
+        (the best fit by held-out share (or SSE share) or None, the (lo, hi) period ranges
+        [m] that no band could search: too few fast samples).
+    """
+    from scipy.optimize import minimize_scalar
+
+    r_all = p.y - p.x
+    best, blind = None, []
+    a = lo
+    while a < hi * (1.0 - 1e-9):
+        b = min(hi, a * BAND_RATIO)
+        sel = fast_samples(p, b)
+        n = int(sel.sum())
+        travel = float(np.sum(np.abs(np.diff(p.x)[sel[1:]]))) if n else 0.0
+        if n < MIN_READING_SAMPLES or travel < MIN_PERIODS_TRAVELLED * b:
+            blind.append((a, b))
+            a = b
+            continue
+        y, r = p.y[sel], r_all[sel]
+        grid = np.exp(np.arange(math.log(a), math.log(b), READING_STEP))
+        fold = None if fold_of is None else fold_of(sel)
+        span = np.ptp(y)
+        for pk in peak_periods(y, r, grid, N_PEAKS):
+            half = max(READING_STEP, pk / max(span, pk)) * pk
+            res = minimize_scalar(lambda h: reading_fit(y, r, float(h))[1], method="bounded",
+                                  bounds=(max(a, pk - half), min(b, pk + half)),
+                                  options={"xatol": 0.02 * READING_STEP * pk})
+            coef, sse, share = reading_fit(y, r, float(res.x), fold)
+            d = r - r.mean()
+            score = share if fold is not None else 1.0 - sse / float(d @ d)
+            if best is None or score > best.share:
+                best = ReadingFit(float(res.x), coef, score, n)
+        a = b
+    return best, blind
 
 
 def analytic_columns(x, v, a, period: float, fq: float | None = None) -> np.ndarray:
@@ -108,50 +251,127 @@ class EncoderInterpolationFamily(PositionPeriodic):
 
     # identification
     def columns(self, h, p):
-        """(N, 2·N_HARMONICS): ë of the reading's Fourier terms (:func:`reading_columns`); on
-        signals without the raw position (:class:`~motorctl.effects.base.Signals`: a simulated
-        fit's state) ë unfiltered, d²/dt² sin(wx) = −w²ẋ² sin(wx) + w ẍ cos(wx)."""
+        """The force the reading's error puts into the fit: ÿ of the reading carries ë, so
+        u − θ1·a leaves −θ1·ë. With h a :class:`ReadingFit` (the error found in the reading)
+        one column (N, 1), ë of its e(y) through the record's position filter
+        (:func:`reading_columns` @ coef, β ≈ −θ1); with a plain period P [m] (the force-side
+        search of a record too slow for the reading) (N, 2·N_HARMONICS), β = −θ1 (s_k, c_k).
+        On signals without the raw position (:class:`~motorctl.effects.base.Signals`: a
+        simulated fit's state) ë unfiltered, d²/dt² sin(wx) = −w²ẋ² sin(wx) + w ẍ cos(wx)."""
         y = getattr(p, "y", None)
         if y is not None and getattr(p, "fq", None):
-            return reading_columns(y, p.fs, p.fq, h)
-        return analytic_columns(p.x, p.v, p.a, h)
+            cols = reading_columns(y, p.fs, p.fq, h)
+        else:
+            cols = analytic_columns(p.x, p.v, p.a, h)
+        if isinstance(h, ReadingFit):
+            return cols @ np.asarray(h.coef)[:, None]
+        return cols
 
     def search(self, ctx, base, residual):
-        return self._search(ctx, base)
-
-    def _search(self, ctx, base):
-        """P over a log grid from :data:`PERIOD_MIN_M` to :data:`PERIOD_MAX_M` (steps of
-        :data:`GRID_STEP`) with cheap columns (ë of the decimated signals, unfiltered), then
-        refined on the exact columns within one step (not when the best period lowers the SSE by
-        less than MIN_PEAK_DROP: a noise minimum); the reading's error shows only where
-        ẋ/P is below the position filter's cut-off (the moves' ends on a fast program), too
-        few samples for the spatial periodogram cogging uses."""
-        hi = min(PERIOD_MAX_M, ctx.stroke / 3.0)
-        if hi <= PERIOD_MIN_M * 1.5 or ctx.moving.sum() < 50:
+        """The error in the reading itself first (:meth:`reading`): y − x on the samples fast
+        enough for the error to be above the position filter. Named there (a
+        :class:`ReadingFit` term, its force column judged by the selection) when it explains
+        at least :data:`MIN_READING_SHARE` of y − x held out; nothing when it explains less
+        and every period could be searched there. Periods whose band had too few fast samples
+        (a slow program) are searched on the force (:meth:`_search`)."""
+        fit, blind = self.reading(ctx)
+        if fit is not None and fit.share >= MIN_READING_SHARE:
+            return ctx.term(self.name, fit), None
+        if not blind:
             return None
-        grid = np.exp(np.arange(math.log(PERIOD_MIN_M), math.log(hi), GRID_STEP))
+        return self._search(ctx, base, blind)
+
+    @staticmethod
+    def sized_in_reading(term) -> bool:
+        """True for a term found in the reading (a :class:`ReadingFit`): its size was judged
+        there (:data:`MIN_READING_SHARE` of y − x), so the identifier does not judge its force
+        against the RMS input (at ±1.5 µm on the default plant the force is 1.3 N, below 1 %
+        of it, and its held-out gain 16 %)."""
+        return isinstance(term.h, ReadingFit)
+
+    def reading(self, ctx) -> tuple[ReadingFit | None, list]:
+        """:func:`search_reading` over :data:`PERIOD_MIN_M` … min(:data:`PERIOD_MAX_M`,
+        stroke/3) on the identifier's record, the held-out share over its blocks' folds; once
+        per identifier (the reading does not depend on the force model)."""
+        cached = getattr(ctx, "_encoder_reading", None)
+        if cached is not None:
+            return cached
+        hi = min(PERIOD_MAX_M, ctx.stroke / 3.0)
+        if hi <= PERIOD_MIN_M * 1.5:
+            out = (None, [])
+        else:
+            p = ctx.p
+            fold = getattr(ctx, "fold", None)
+
+            def fold_of(sel):
+                if fold is None:
+                    return None
+                j = np.flatnonzero(sel) // p.nd - p.keep.start
+                return fold[np.clip(j, 0, len(fold) - 1)]
+            out = search_reading(p, PERIOD_MIN_M, hi, fold_of)
+        ctx._encoder_reading = out
+        return out
+
+    def _search(self, ctx, base, ranges):
+        """P over a log grid in ``ranges`` ((lo, hi) [m], the periods the reading could not
+        search; steps of :data:`GRID_STEP`) with cheap columns (ë of the decimated signals,
+        weighed by the filter's gain), then refined on the exact columns within one step (not
+        when the best period lowers the SSE by less than MIN_PEAK_DROP: a noise minimum); the
+        reading's error then shows in the force only where ẋ/P is below the position filter's
+        cut-off."""
+        if ctx.moving.sum() < 50:
+            return None
+        grid = np.concatenate([np.exp(np.arange(math.log(a), math.log(b), GRID_STEP)) for a, b in ranges])
+        if grid.size < 3:
+            return None
         p = ctx.p
-        term, _ = ctx.best_over(self.name, grid, base,
-                                cols_fn=lambda h: analytic_columns(p.x_d, p.v_d, p.a_d, h, p.fq))
+        cheap = ctx.__dict__.setdefault("_encoder_cheap", {})     # the same grid at every step
+
+        def cols(h):
+            c = cheap.get(h)
+            if c is None:
+                c = cheap[h] = analytic_columns(p.x_d, p.v_d, p.a_d, h, p.fq)
+            return c
+        term, _ = ctx.best_over(self.name, grid, base, cols_fn=cols)
         if ctx.sse(base + [term]) > (1.0 - MIN_PEAK_DROP) * ctx.sse(base):
             return term, None      # explains almost nothing at its best period: not refined
         term = ctx.best_between(self.name, term.h * (1.0 - GRID_STEP), term.h * (1.0 + GRID_STEP), base,
                                 0.1 * GRID_STEP * term.h)
+        beta = ctx.evaluate(base + [term]).fit.coef[-2 * N_HARMONICS:]
+        if term.h / 2.0 >= grid[0] and np.hypot(*beta[:2]) < HALF_PERIOD_SHARE * np.hypot(*beta[2:4]):
+            # no first harmonic: the error of period P/2 (its fundamental), which P's second
+            # harmonic fits as well
+            term = ctx.best_between(self.name, term.h / 2.0 * (1.0 - GRID_STEP), term.h / 2.0 * (1.0 + GRID_STEP),
+                                    base, 0.05 * GRID_STEP * term.h)
         note = None
         if term.h <= grid[1] or term.h >= grid[-2]:
             note = f"period {term.h:.4g} m at the edge of the searched range"
         return term, note
 
     def polish(self, ctx, term, others):
-        """The whole grid again with the later effects in the model: before the stiction at
-        rest is modelled the moves' ends, where the error shows, are its residual's."""
-        found = self._search(ctx, others)
+        """A force-side term: the whole grid again with the later effects in the model (before
+        the stiction at rest is modelled the moves' ends, where the error shows, are its
+        residual's). A term found in the reading does not depend on the force model: kept."""
+        if isinstance(term.h, ReadingFit):
+            return None
+        found = self.search(ctx, others, None)
         return None if found is None else found[0]
 
     def parameters(self, h, beta, gain, fs, theta=None):
-        """The reading's error e(x) = Σ a_k sin(2πkx/P + φ_k): a_k [m] = |β_k|/θ1 (θ1 = M/A1 of
-        the same fit; without it the amplitudes of θ1·e in V·s²)."""
+        """The reading's error e(x) = Σ a_k sin(2πkx/P + φ_k), amplitudes_m a_k [m], phases_rad
+        φ_k, signal_period_m P. Found in the reading (a :class:`ReadingFit`): a_k, φ_k from its
+        fit of y − x, ``reading_share`` the held-out share of y − x it explains and
+        ``force_share`` = −β/θ1, how much of the inertial force θ1·ë the input carries (1: all).
+        Found on the force: a_k = |β_k|/θ1 (θ1 = M/A1 of the same fit; without it the
+        amplitudes of θ1·e in V·s²)."""
         th1 = float(theta[0]) if theta is not None and len(theta) and theta[0] > 0 else None
+        if isinstance(h, ReadingFit):
+            amp, ph = amplitudes_phases(-np.asarray(h.coef), 1.0)
+            out = {"signal_period_m": float(h), "amplitudes_m": [float(a) for a in amp],
+                   "phases_rad": [float(p) for p in ph], "reading_share": h.share}
+            if th1 is not None:
+                out["force_share"] = float(-beta[0] / th1)
+            return out
         amp, ph = amplitudes_phases(beta, 1.0)
         if th1 is None:
             return {"signal_period_m": float(h), "amplitudes_V_s2": [float(a) for a in amp],
@@ -160,11 +380,21 @@ class EncoderInterpolationFamily(PositionPeriodic):
                 "phases_rad": [float(p) for p in ph]}
 
     def plausible(self, ctx, term, beta, theta, base):
-        """In its own columns (ë already carries ẋ²) the reading's error keeps its amplitude
-        at every speed: the faster half of the moves must give it within a factor
-        MAX_SPEED_GROWTH of the slower half. Not judged by direction: the error is the same
-        both ways, but what the loop's unmodelled dynamics (a structural mode, the current
-        loop) add to ë at 100-250 Hz differs with the speed profile of each direction."""
+        """Found in the reading: the input must carry the inertial force of the reading's
+        error, −β/θ1 within :data:`FORCE_SHARE_RANGE` (ÿ of the reading carries ë whatever the
+        loop does, so u − θ1·a leaves −θ1·ë): a force of its own at that period (cogging)
+        would need another β. Found on the force: in its own columns (ë already carries ẋ²)
+        the error keeps its amplitude at every speed: the faster half of the moves must give
+        it within a factor MAX_SPEED_GROWTH of the slower half (not judged by direction: what
+        the loop's unmodelled dynamics add to ë at 100-250 Hz differs with each direction's
+        speed profile)."""
+        if isinstance(term.h, ReadingFit):
+            share = -float(beta[0]) / float(theta[0]) if theta[0] > 0 else math.nan
+            lo, hi = FORCE_SHARE_RANGE
+            if not lo <= share <= hi:
+                return [f"the input carries {share:.2f} of the inertial force theta1*e'' of the error found in "
+                        f"the reading (outside [{lo:g}, {hi:g}]): not the reading's error alone"]
+            return []
         growth = ctx.speed_growth(term, base, term.h)
         if math.isfinite(growth) and not 1.0 / MAX_SPEED_GROWTH <= growth <= MAX_SPEED_GROWTH:
             return [f"its amplitude changes with the speed (x{growth:.2f} from the slower to the faster half "
@@ -173,8 +403,12 @@ class EncoderInterpolationFamily(PositionPeriodic):
         return []
 
     def shape(self, ctx, h, beta, gain):
+        """The reading's error e(x) [m] over at most four periods (found in the reading: its own
+        fit; on the force: −Cβ/θ1, or θ1·e in V·s² without θ1)."""
         th1 = None
         xs = self.position_grid(ctx, h)
+        if isinstance(h, ReadingFit):
+            return xs, fourier(xs, h, N_HARMONICS) @ np.asarray(h.coef), "position [m]", "reading error [m]"
         y = fourier(xs, h, N_HARMONICS) @ beta
         if getattr(ctx, "final", None) is not None:
             th1 = float(ctx.final.fit.coef[0])

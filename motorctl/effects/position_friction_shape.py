@@ -68,6 +68,13 @@ TERM_GAIN = 0.03
 #: largest SSE reduction of the same basis as a direction-independent force, relative to the
 #: friction shape's, for the friction shape to be plausible
 MAX_FORCE_SHARE = 0.5
+#: largest SSE reduction of the same basis over the speed |ẋ| (a friction that varies with the
+#: speed: :meth:`KnotGrid.as_speed`), relative to the friction shape's, for the shape to be
+#: told from it: a program that passes each position at the same speed makes a speed's
+#: friction a shape of position (an encoder's interpolation error on the default plant left
+#: ±0.5 N at cruise and ∓1 N at 0.2-1 m/s, taken as an 8-segment shape of 27 N; its speed basis
+#: explains 1.0× as much, a 15 N bump in the cruise 0.0x)
+MAX_SPEED_SHARE = 0.7
 #: shortest position range [m] a shape is looked for over
 MIN_RANGE_M = 0.01
 DEGREE = 3
@@ -144,7 +151,7 @@ class KnotGrid(float):
     """
 
     def __new__(cls, start_m: float, end_m: float, segments: int, drop_linear: bool = False,
-                force: bool = False, span=None):
+                force: bool = False, span=None, speed_max: float | None = None):
         start_m, end_m, segments = float(start_m), float(end_m), int(segments)
         if not end_m > start_m or segments < 1:
             raise ValueError(f"knot grid {start_m:g}..{end_m:g} m with {segments} segments")
@@ -155,14 +162,19 @@ class KnotGrid(float):
         #: B-splines' coefficients: the shape is fitted without the direction viscous friction
         #: takes on this record (:func:`viscous_span`)
         obj.span = None if span is None else tuple(tuple(float(v) for v in row) for row in span)
+        #: None, or the speed [m/s] mapped to end_m: the basis is then one of the speed
+        #: (:meth:`as_speed`)
+        obj.speed_max = None if speed_max is None else float(speed_max)
         return obj
 
     def __reduce__(self):
-        return KnotGrid, (self.start_m, self.end_m, self.segments, self.drop_linear, self.force, self.span)
+        return KnotGrid, (self.start_m, self.end_m, self.segments, self.drop_linear, self.force, self.span,
+                          self.speed_max)
 
     def __repr__(self) -> str:
         flags = ((", drop_linear" if self.drop_linear else "") + (", force" if self.force else "")
-                 + (", without the viscous direction" if self.span is not None else ""))
+                 + (", without the viscous direction" if self.span is not None else "")
+                 + (f", over the speed up to {self.speed_max:.4g} m/s" if self.speed_max is not None else ""))
         return f"KnotGrid({self.start_m:.6g}, {self.end_m:.6g}, {self.segments}{flags})"
 
     def as_force(self) -> KnotGrid:
@@ -170,9 +182,17 @@ class KnotGrid(float):
         the alternative :meth:`PositionFrictionShapeFamily.plausible` compares with."""
         return KnotGrid(self.start_m, self.end_m, self.segments, self.drop_linear, force=True, span=self.span)
 
+    def as_speed(self, speed_max: float) -> KnotGrid:
+        """The same basis over the speed: columns B_j(z)·S_f(ẋ) with z = start_m + (end_m −
+        start_m)·min(|ẋ|/speed_max, 1) (a Coulomb level that varies with the speed, e.g. a
+        Stribeck hump or a speed-dependent error of the model), the alternative
+        :meth:`PositionFrictionShapeFamily.plausible` compares with; speed_max [m/s] > 0."""
+        return KnotGrid(self.start_m, self.end_m, self.segments, self.drop_linear, span=self.span,
+                        speed_max=speed_max)
+
     def with_span(self, span) -> KnotGrid:
         """The same grid with the coefficient map ``span`` (k, k − 1) (None: all directions)."""
-        return KnotGrid(self.start_m, self.end_m, self.segments, self.drop_linear, self.force, span)
+        return KnotGrid(self.start_m, self.end_m, self.segments, self.drop_linear, self.force, span, self.speed_max)
 
     @property
     def n_columns(self) -> int:
@@ -388,7 +408,9 @@ class PositionFrictionShapeFamily(EffectFamily):
         """
         if not isinstance(h, KnotGrid):
             raise TypeError(f"{self.name}: the searched parameter must be a KnotGrid, not {h!r}")
-        b = h.basis(p.x)[:, h.free()]
+        z = p.x if h.speed_max is None else \
+            h.start_m + (h.end_m - h.start_m) * np.minimum(np.abs(p.v) / h.speed_max, 1.0)
+        b = h.basis(z)[:, h.free()]
         if h.span is not None:
             b = b @ np.asarray(h.span)
         return b if h.force else b * s_f(p.v)[:, None]
@@ -455,6 +477,15 @@ class PositionFrictionShapeFamily(EffectFamily):
         if d_force > MAX_FORCE_SHARE * d_fric:
             reasons.append(f"not friction: the same shape as a direction-independent force f(x) explains "
                            f"{100 * d_force / max(d_fric, 1e-300):.0f} % as much (> {100 * MAX_FORCE_SHARE:g} %)")
+        # a friction of position is the same at a position whatever the speed: the same basis over
+        # |ẋ| must explain clearly less (else the record passes each position at one speed)
+        v_max = float(np.max(np.abs(ctx.p.v_d)))
+        if v_max > 0:
+            d_speed = s0 - ctx.sse(base + [ctx.term(self.name, h.as_speed(v_max))])
+            if d_speed > MAX_SPEED_SHARE * d_fric:
+                reasons.append(f"not told from a friction that varies with the speed: the same basis over |v| "
+                               f"explains {100 * d_speed / max(d_fric, 1e-300):.0f} % as much "
+                               f"(> {100 * MAX_SPEED_SHARE:g} %)")
         return reasons
 
     def parameters(self, h, beta, gain, fs):

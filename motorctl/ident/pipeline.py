@@ -105,6 +105,15 @@ REFUSED_GAIN = 0.06
 _WEAK = ("coefficients not significant", "too small to name", "held-out gain", "BIC drop", "effect larger than")
 
 
+def refused_on_physics(c) -> bool:
+    """A candidate (:class:`~motorctl.ident.select.Evaluated`) that explains at least
+    :data:`REFUSED_GAIN` of the held-out residual and was refused only because its physics does
+    not fit (no reason of :data:`_WEAK`)."""
+    if c.ok or getattr(c, "gain", 0.0) < REFUSED_GAIN or not c.reasons:
+        return False
+    return not any(r.startswith(_WEAK) for r in c.reasons)
+
+
 def add_refused(verdict: dict, last_step: list, chosen: list) -> None:
     """Add to the residual verdict (:func:`motorctl.ident.verdict.residual_verdict`) the
     candidates of the last selection step that explain a share of the held-out residual
@@ -115,14 +124,13 @@ def add_refused(verdict: dict, last_step: list, chosen: list) -> None:
     true and the text names them."""
     extra = []
     for c in last_step:
-        if any(c is e for e in chosen) or c.ok or getattr(c, "gain", 0.0) < REFUSED_GAIN:
+        if any(c is e for e in chosen) or not refused_on_physics(c):
             continue
-        why = [r for r in c.reasons if not r.startswith(_WEAK)]
-        if why and len(why) == len(c.reasons):
-            extra.append({"against": c.term.family, "share": float(c.gain), "noise_share": math.nan, "z": math.nan,
-                          "where": f"what {c.term.family} would explain ({100 * c.gain:.0f} % of the held-out "
-                                   f"residual), refused: {'; '.join(why)}",
-                          "mean": math.nan, "structured": True, "explained_by": None})
+        why = c.reasons
+        extra.append({"against": c.term.family, "share": float(c.gain), "noise_share": math.nan, "z": math.nan,
+                      "where": f"what {c.term.family} would explain ({100 * c.gain:.0f} % of the held-out "
+                               f"residual), refused: {'; '.join(why)}",
+                      "mean": math.nan, "structured": True, "explained_by": None})
     if not extra:
         return
     lead = "unexplained structured residual remains: "
