@@ -51,6 +51,15 @@ def comp_fill(out, j, x, v, t, sf, p):
 REST_V = 1e-4
 #: least time at rest [s] for :func:`held_offset`
 MIN_REST_S = 1.0
+#: time [s] taken off each end of a stretch at rest for :func:`held_offset`: the position
+#: filter's zero-phase impulse response (4th-order Butterworth at ω_fq = 250 Hz) spreads a
+#: start over about ±2 ms, so a sample that close to motion is not surely held
+REST_MARGIN_S = 2e-3
+#: time [s] of held samples averaged at each extreme of the held input for :func:`held_offset`
+#: (5 ms: the samples of about one approach to the breakaway): one sample's extreme carries
+#: the loop's noise and a stop's transient, a mean of the extremes the same share of noise on
+#: both sides, which the middle cancels
+EXTREME_S = 5e-3
 
 
 def held_offset(p, theta3: float) -> float | None:
@@ -59,23 +68,76 @@ def held_offset(p, theta3: float) -> float | None:
 
     A carriage held by static friction (Karnopp) stays while |A1 u + F_0| ≤ F_s, so the input
     held at rest spans [(−F_s − F_0)/A1, (F_s − F_0)/A1], symmetric about −θ4, when the loop
-    pushes it to the breakaway both ways (C2 hunting at rest does). Taken when the record is
-    at rest (|ẋ| < :data:`REST_V`) for at least :data:`MIN_REST_S`, the held input takes both
-    signs and its span reaches 2θ3 (static friction is at least the kinetic level): θ4 =
-    −(max + min)/2 of u at rest.
+    pushes it to the breakaway both ways (C2 hunting at rest does). Taken on the samples at
+    rest (|ẋ| < :data:`REST_V`, :data:`REST_MARGIN_S` away from motion) when there are at least
+    :data:`MIN_REST_S` of them, the held input takes both signs and its span reaches 2θ3 (static
+    friction is at least the kinetic level): θ4 = −(hi + lo)/2 with hi, lo the means of the
+    :data:`EXTREME_S` highest and lowest held inputs.
 
     Args:
-        p: the prepared record (full-rate v [m/s], u [V], fs [Hz]). theta3: the Coulomb level
-            θ3 [V] of the fit.
+        p: the prepared record (full-rate v [m/s], u [V] (N,), fs [Hz]). theta3: the Coulomb
+            level θ3 [V] of the fit.
     """
-    rest = np.abs(p.v) < REST_V
+    rest = np.abs(np.asarray(p.v)) < REST_V
+    margin = int(round(REST_MARGIN_S * p.fs))
+    if margin > 0:
+        # at rest with every sample within ±margin at rest too (moving samples counted by a cumsum)
+        c = np.concatenate([[0], np.cumsum(~rest)])
+        n = len(rest)
+        i = np.arange(n)
+        rest = (c[np.minimum(i + margin + 1, n)] - c[np.maximum(i - margin, 0)]) == 0
     if rest.sum() < MIN_REST_S * p.fs:
         return None
-    held = p.u[rest]
-    lo, hi = float(held.min()), float(held.max())
+    held = np.sort(np.asarray(p.u)[rest])
+    k = max(1, int(round(EXTREME_S * p.fs)))
+    lo, hi = float(np.mean(held[:k])), float(np.mean(held[-k:]))
     if not (lo < 0.0 < hi and hi - lo >= 2.0 * theta3 > 0.0):
         return None
     return -0.5 * (lo + hi)
+
+
+def levels_in_motion(ctx, name: str) -> tuple[float, np.ndarray] | None:
+    """The constant force θ4 in motion [V] and the term ``name``'s β of the identifier's final
+    model (``ctx.terms``) fitted again on the samples in motion only (``ctx.moving``), or None
+    when ``ctx`` has no such term or the record does not move both ways.
+
+    The friction levels and slopes of each direction are properties of motion; the samples near
+    rest follow the Karnopp stick and slip of each start and stop, which the model's columns
+    there (S_f on the 250 Hz velocity, stiction's weight) do not describe, and in the joint fit
+    they pull each direction's Coulomb/viscous split (default plant, 5 N + 10 N·s/m: ΔB 8.9
+    N·s/m and ΔF_c − 2F_0 14.8 N on all samples, 9.9 and 13.05 N on the moving ones; truth 10
+    and 13). Columns that vanish in motion (stiction's) are left out; the offset and the
+    forward Coulomb column are nearly collinear there, which leaves ΔF_c − 2θ4 and ΔB well
+    determined (least squares, minimum norm). The constant force includes the part of the
+    other effects that is the same both ways (½ (mean forward + mean backward) of their force:
+    a spring's k·x̄), as the input held at rest does (:func:`held_offset`).
+
+    Returns:
+        (θ4 − that part [V], β (2,) [V, V·s/m]).
+    """
+    terms = list(getattr(ctx, "terms", None) or [])
+    idx = next((i for i, t in enumerate(terms) if t.family == name), None)
+    if idx is None:
+        return None
+    phi, y = ctx.design(terms)
+    nt = ctx.n_theta
+    widths = [0 if t.cols is None else t.cols.shape[1] for t in terms]
+    start = nt + sum(widths[:idx])
+    sel = ctx.moving
+    a, b = phi[sel], y[sel]
+    norms = np.sqrt(np.einsum("ij,ij->j", a, a))
+    live = norms > 1e-9 * norms.max()
+    coef = np.zeros(phi.shape[1])
+    coef[live] = np.linalg.lstsq(a[:, live] / norms[live], b, rcond=None)[0] / norms[live]
+    others = np.ones(phi.shape[1], dtype=bool)
+    others[:nt] = False
+    others[start:start + widths[idx]] = False
+    force = phi[:, others] @ coef[others]
+    fwd, bwd = sel & (ctx.p.v_d > 0), sel & (ctx.p.v_d < 0)
+    if not (fwd.any() and bwd.any()):
+        return None
+    even = 0.5 * (force[fwd].mean() + force[bwd].mean())
+    return float(coef[3]) - float(even), coef[start:start + 2]
 
 
 class AsymmetricFriction(StrictModel):
@@ -122,21 +184,34 @@ class AsymmetricFrictionFamily(EffectFamily):
         pos = (v > 0).astype(float)
         return np.column_stack([s_f(v) * pos, v * pos])
 
-    def parameters(self, h, beta, gain, fs, theta=None, p=None):
-        """ΔF_c and ΔB [N, N·s/m; V, V·s/m without the gain]. In motion a constant offset force
-        (θ4's column −1) and the forward-only Coulomb column S_f(ẋ)·[ẋ > 0] = (S_f + |S_f|)/2
-        are collinear: the fit fixes the two levels θ3 + β − θ4 (forward) and θ3 + θ4
-        (backward), not β and θ4 apart, and a carriage held at rest shows neither (its input
-        there is unconstrained). When the record's input held at rest spans the breakaway both
-        ways (:func:`held_offset`), θ4 is taken from there and ΔF_c = β − 2θ4 + 2θ4_held: on
-        the default plant (offset −4 N, stiction 25 N) 7.64 N became 6.5 N for 6 N."""
+    def parameters(self, h, beta, gain, fs, theta=None, p=None, ctx=None):
+        """ΔF_c and ΔB [N, N·s/m; V, V·s/m without the gain].
+
+        With the identifier ``ctx`` (its final model), ΔB and ΔF_c − 2θ4 come from that model
+        fitted again on the samples in motion (:func:`levels_in_motion`). In motion a constant
+        offset force (θ4's column −1) and the forward-only Coulomb column S_f(ẋ)·[ẋ > 0] =
+        (S_f + |S_f|)/2 are collinear: the fit fixes the two levels θ3 + β − θ4 (forward) and
+        θ3 + θ4 (backward), not β and θ4 apart, and a carriage held at rest shows neither (its
+        input there is unconstrained). When the record's input held at rest spans the breakaway
+        both ways (:func:`held_offset`), θ4 is taken from there and ΔF_c = β − 2θ4 + 2θ4_held
+        (β, θ4 of the fit in motion; of the joint fit ``beta``, ``theta`` without ``ctx``).
+        Without the held offset ΔF_c is the joint fit's β: in motion alone nothing tells it from
+        the offset, near rest the joint fit has S_f's transitions (EMPS, sign friction: 9.2 N
+        against 16.4 N from the fit in motion; the description's −0.48 N)."""
         g, unit = (gain, "N") if gain else (1.0, "V")
-        dfc = float(beta[0])
+        dfc, db = float(beta[0]), float(beta[1])
         if theta is not None and p is not None and len(theta) > 3:
-            th4 = held_offset(p, float(theta[2]))
-            if th4 is not None:
-                dfc += 2.0 * (th4 - float(theta[3]))
-        return {f"coulomb_{unit}": float(g * dfc), f"viscous_{unit}_s_per_m": float(g * beta[1])}
+            th4 = float(theta[3])
+            moving = levels_in_motion(ctx, self.name) if ctx is not None else None
+            held = held_offset(p, float(theta[2]))
+            if moving is not None:
+                th4_m, beta_m = moving
+                db = float(beta_m[1])
+                if held is not None:
+                    dfc, th4 = float(beta_m[0]), th4_m
+            if held is not None:
+                dfc += 2.0 * (held - th4)
+        return {f"coulomb_{unit}": float(g * dfc), f"viscous_{unit}_s_per_m": float(g * db)}
 
     # compensation
     def compensation(self, h, beta, signals=None, beta_std=None):

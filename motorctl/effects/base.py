@@ -298,6 +298,10 @@ class SearchContext(Protocol):
     def target(self, delay: float) -> np.ndarray:
         """The decimated input u(t − delay·Ts) (M,)."""
 
+    def design(self, terms: list) -> tuple[np.ndarray, np.ndarray]:
+        """Regressor (M, p) of the nominal model plus ``terms`` (nominal θ first, then each
+        term's columns) and its target (M,); after the run, ``terms`` holds the final model's."""
+
 
 class EffectFamily:
     """Base of every effect family (see the module docstring). Subclasses set the class

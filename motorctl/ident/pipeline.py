@@ -67,7 +67,7 @@ def summarise(idf: Identifier) -> dict:
         effects.append({
             "name": term.family,
             "parameters": fx.parameters(term.family, term.h, beta, rec.gain, idf.p.fs, theta=th,
-                                        p=idf.p),
+                                        p=idf.p, ctx=idf),
             "heldout_rms_before": g * before,
             "heldout_rms_after": g * ev.heldout_rms,
             "heldout_gain_percent": 100 * ev.gain,
