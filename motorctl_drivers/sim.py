@@ -12,7 +12,8 @@ and the same seed gives the same noise.
 Effects the controllers' model does not have (all off by default): one key per effect family
 under ``axes.NAME.driver.effects`` (cogging, force ripple, Stribeck, asymmetric and
 position-dependent friction, spring, payload change, periodic disturbance), plus
-``input_delay_s`` (whole samples of transport delay, the input_delay family) and
+``input_delay_s`` (transport delay, a fraction of a period as the mean of the delayed held input:
+the input_delay family) and
 ``force_noise_N`` (Gaussian, held per period, seeded). Each family's options model and what it
 does to the plant (:class:`motorctl.effects.base.PlantTerm`: a force F_eff [N], a factor on the
 thrust, a mass change, a delayed input) live in its module ``motorctl/effects/<name>.py``; the

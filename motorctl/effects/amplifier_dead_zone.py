@@ -8,11 +8,21 @@ d ≥ 0 the half-width [V], o the input offset [V]. Seen from the nominal model 
 
 Simulator: ``axes.NAME.driver.effects.amplifier_dead_zone`` (an input transform, once per
 period). Identification: columns clip(u, −d, d), [|u| < d] (the first-order expansion in o; the
-constant −o is θ4's), d searched on a log grid from 5 mV to 1 V: β1 ≈ 1 for a dead-zone (0 < β1 < 1:
-a reduced gain near zero), β2 ≈ o (β1 within :data:`SHARE_RANGE`: a share well below 1 is a
-holding force at rest, stiction's, not a band the amplifier drops). Not compensable by an additive term in (x_d, ẋ_d, t): its
-inverse (u + d·sign(u)) needs the law's own output; the report names it so the amplifier's
-zero can be adjusted.
+constant −o is θ4's); β1 the share of the band's input lost (1 for a dead-zone), β2 ≈ o.
+At rest a dead-zone and a static friction look alike (both leave the carriage where it is,
+whatever the small input): without a holding force in the model, d is the band that fits the
+rest samples best (a log grid from 5 mV to 1 V). With stiction in the model the columns are
+fitted on the samples in motion (stiction's ``other_weight``), and there the dead-zone takes
+A1·d from every input beyond the band, −A1·d·sign(u): a force on the sign of the *input*, which
+friction (on the sign of ẋ) is not while the carriage decelerates. That force fixes β1·d; the
+band's inside is crossed in about a sample at each zero crossing of u, too briefly to fix d by
+its shape. So d is then the width whose share β1 is 1 (a dead-zone passes nothing within it):
+the crossing β1 = 1 on the grid, then the fixed point d ← β1·d
+(:meth:`AmplifierDeadZoneFamily.search`, again in the final model: :meth:`polish`). The offset o
+is weakly determined: beyond the band it is the same constant force as the plant's F_0 (θ4),
+only the band's crossings tell them apart. Not compensable by an additive term in
+(x_d, ẋ_d, t): its inverse (u + d·sign(u)) needs the law's own output; the report names it so
+the amplifier's zero can be adjusted.
 """
 
 from __future__ import annotations
@@ -30,6 +40,9 @@ from motorctl.schema import NonNeg, StrictModel
 WIDTH_GRID = np.exp(np.linspace(math.log(5e-3), math.log(1.0), 20))
 #: plausible β1 (the share of the band's input that does not reach the motor)
 SHARE_RANGE = (0.7, 1.3)
+#: fixed-point steps d ← β1·d of :meth:`AmplifierDeadZoneFamily.search` (at most), and the
+#: relative change of d that ends them
+WIDTH_STEPS, WIDTH_RTOL = 8, 1e-3
 
 
 class AmplifierDeadZone(StrictModel):
@@ -70,13 +83,55 @@ class AmplifierDeadZoneFamily(EffectFamily):
         return np.column_stack([np.clip(u, -h, h), (np.abs(u) < h).astype(float)])
 
     def search(self, ctx, base, residual):
+        """The least SSE on :data:`WIDTH_GRID`, refined on a finer grid. With a holding force
+        at rest in ``base`` (stiction, whose :meth:`~motorctl.effects.base.EffectFamily.
+        other_weight` leaves these columns the samples in motion) and a plausible share there
+        (β1 within :data:`SHARE_RANGE`; else that candidate is returned, to be refused): the
+        width is then the half-width whose share β1 is 1 (module docstring), β1 on the grid
+        (> 1 below the true width, where the column's ±h is smaller than the force beyond the
+        band, < 1 above it), the crossing of least SSE interpolated on the log grid, then the
+        fixed point d ← β1·d."""
+        from motorctl.effects import FAMILIES
         term, sses = ctx.best_over(self.name, WIDTH_GRID, base)
         i = int(np.argmin(sses))
         if i in (0, len(WIDTH_GRID) - 1):
             return term, f"dead-zone half-width {term.h:.3g} V at the edge of the searched range"
         fine = np.exp(np.linspace(math.log(WIDTH_GRID[i - 1]), math.log(WIDTH_GRID[i + 1]), 7))
-        term, _ = ctx.best_over(self.name, fine, base)
+        term = ctx.best_over(self.name, fine, base)[0]
+        lo, hi = SHARE_RANGE
+        if (not any(FAMILIES[t.family].other_weight(t) is not None for t in base)
+                or not lo <= float(ctx.evaluate(base + [term]).fit.coef[-2]) <= hi):
+            return term, None
+        fits = [ctx.evaluate(base + [ctx.term(self.name, float(h))]) for h in WIDTH_GRID]
+        share = np.array([float(f.fit.coef[-2]) for f in fits])
+        sse = np.array([float(f.fit.residual @ f.fit.residual) for f in fits])
+        cross = [i for i in range(len(WIDTH_GRID) - 1) if share[i] >= 1.0 > share[i + 1]]
+        if not cross:
+            i = int(np.argmin(np.abs(np.log(np.maximum(share, 1e-9)))))
+            return ctx.term(self.name, float(WIDTH_GRID[i])), (
+                f"no half-width in {WIDTH_GRID[0]:.3g}-{WIDTH_GRID[-1]:.3g} V at which the band's input is lost "
+                f"whole (share {share.min():.2f}-{share.max():.2f})")
+        i = min(cross, key=lambda k: min(sse[k], sse[k + 1]))
+        lg = np.log(WIDTH_GRID)
+        w = math.log(share[i]) / (math.log(share[i]) - math.log(max(share[i + 1], 1e-9)))
+        d = float(np.exp(lg[i] + w * (lg[i + 1] - lg[i])))
+        term = ctx.term(self.name, d)
+        for _ in range(WIDTH_STEPS):
+            new = d * float(ctx.evaluate(base + [term]).fit.coef[-2])
+            if not WIDTH_GRID[0] <= new <= WIDTH_GRID[-1]:
+                break
+            term = ctx.term(self.name, new)
+            done = abs(new - d) <= WIDTH_RTOL * d
+            d = new
+            if done:
+                break
         return term, None
+
+    def polish(self, ctx, term, others):
+        """The width's fixed point again with the final model's ``others`` (the force beyond
+        the band is shared with a friction or a delay found after it)."""
+        new, note = self.search(ctx, others, None)
+        return None if note else new
 
     def plausible(self, ctx, term, beta, theta, base):
         lo, hi = SHARE_RANGE

@@ -283,9 +283,10 @@ class SearchContext(Protocol):
 
     n_theta: int
 
-    def delay_sses(self, base: list, grid, band=None) -> np.ndarray:
+    def delay_sses(self, base: list, grid, band=None, rows=None) -> np.ndarray:
         """Joint-LS SSE (K,) with the input shifted by ``grid`` (K,) extra samples; ``band``
-        (lo, hi) [Hz]: fitted on that frequency band of the columns and target only."""
+        (lo, hi) [Hz]: fitted on that frequency band of the columns and target only; ``rows``
+        (M,) bool: fitted on those decimated samples only."""
 
     def direction_agreement(self, term, base: list) -> float:
         """1 − ‖β₊ − β₋‖/(‖β₊‖ + ‖β₋‖) of the term fitted on forward / backward motion."""

@@ -429,12 +429,14 @@ class Identifier:
         res = minimize_scalar(sse, bounds=(lo, hi), method="bounded", options={"xatol": xatol})
         return self.term(family, float(res.x))
 
-    def delay_sses(self, base: list, grid: np.ndarray, band: tuple[float, float] | None = None) -> np.ndarray:
+    def delay_sses(self, base: list, grid: np.ndarray, band: tuple[float, float] | None = None,
+                   rows: np.ndarray | None = None) -> np.ndarray:
         """Joint-LS SSE for extra input delays ``grid`` [samples]: the decimated u, u|u|, u³ are
         shifted by a fractional number of decimated samples (FFT phase shift of band-limited
         signals) instead of being re-filtered for every candidate. ``band`` (lo, hi) [Hz]: the
         fit on that band of every column and of the target only (their FFT outside it zeroed),
-        the delay one band's phase says; None: all of the record's band."""
+        the delay one band's phase says; None: all of the record's band. ``rows`` (M,) bool: the
+        fit and its SSE on those decimated samples only (e.g. :attr:`moving`); None: all."""
         p = self.p
         key = ("u3", self.zoh)
         if key not in self._phi_cache:
@@ -456,7 +458,12 @@ class Identifier:
             if self.n_theta == 6:
                 phi[:, 4], phi[:, 5] = -sh[:, 1], -sh[:, 2]
             y = sh[:, 0]
-            r = (y - phi @ _coef(phi, y))[4:-4]
+            if rows is None:
+                r = (y - phi @ _coef(phi, y))[4:-4]
+            else:
+                keep = rows.copy()
+                keep[:4] = keep[-4:] = False
+                r = y[keep] - phi[keep] @ _coef(phi[keep], y[keep])
             out.append(float(r @ r))
         return np.array(out)
 

@@ -1,0 +1,173 @@
+"""Fitted values of the input-side families against the truth (docs/identification.md, "Fitted
+values against the truth"): the input delay beyond the zero-order hold and the amplifier's
+declared current loop, a fractional delay in the plant, the force-constant drift's exact column,
+and the dead-zone's width from the force beyond its band.
+
+Records are simulated here in numpy (a rigid axis under a PD loop with feedforward, 5 kHz, 8 s:
+moves with dwells), not by the servo loop: each test runs in about a second and knows its truth.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from motorctl.effects import FAMILIES
+from motorctl.effects.input_delay import amplifier_lag, delay_line
+from motorctl.ident.data import Record
+from motorctl.ident.select import Identifier
+
+FS = 5000.0
+M, A1, A2, A3, B, FC, F0 = 12.8, 80.0, -1.04, -0.12, 17.6, 20.0, -4.0
+SUB = 4
+#: the input's broadband part [V] (a closed loop's noise: the delay shows in its phase)
+NOISE_V = 0.3
+
+
+def _reference(duration_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """x_r, ẋ_r, ẍ_r (N,): 0 ↔ 0.2 m raised-cosine moves of 0.25 s, 0.55 s dwells."""
+    t = np.arange(int(duration_s * FS)) / FS
+    cycle, move, stroke = 1.6, 0.25, 0.2
+    tc = np.mod(t, cycle)
+    x, v, a = np.zeros_like(t), np.zeros_like(t), np.zeros_like(t)
+    for start, sign, base in ((0.0, 1.0, 0.0), (0.8, -1.0, stroke)):
+        m = (tc >= start) & (tc < start + move)
+        s = (tc[m] - start) / move
+        x[m] = base + sign * stroke * 0.5 * (1 - np.cos(np.pi * s))
+        v[m] = sign * stroke * 0.5 * np.pi / move * np.sin(np.pi * s)
+        a[m] = sign * stroke * 0.5 * (np.pi / move) ** 2 * np.cos(np.pi * s)
+    x[(tc >= move) & (tc < 0.8)] = stroke
+    return x, v, a
+
+
+def _simulate(duration_s=8.0, kappa=0.0, dz=(0.0, 0.0), delay_samples=0.0, tau_i=0.0, stiction_n=0.0,
+              seed=0, noise_v=NOISE_V) -> Record:
+    """A record of the rigid axis (module constants) under u = PD + feedforward + ``noise_v`` [V] of white noise,
+    the input through a dead-zone dz = (d, o) [V], ``delay_samples`` of transport delay
+    (:func:`delay_line`), a first-order current loop of time constant ``tau_i`` [s], a thrust
+    (1 + κ t) F_m(u), and Karnopp stiction ``stiction_n`` [N]. u is held over each period
+    (read y_k, then write u_k: the run log's zero-order hold)."""
+    xr, vr, ar = _reference(duration_s)
+    rng = np.random.default_rng(seed)
+    noise = noise_v * rng.standard_normal(len(xr))
+    n_whole = math.floor(delay_samples + 1e-9)
+    line = delay_line(n_whole, delay_samples - n_whole) if delay_samples > 0 else (lambda u: u)
+    h = 1.0 / (FS * SUB)
+    x = v = f = 0.0
+    d, o = dz
+    ys, us = np.empty(len(xr)), np.empty(len(xr))
+    for k in range(len(xr)):
+        t = k / FS
+        ys[k] = x
+        u = 4000.0 * (xr[k] - x) + 40.0 * (vr[k] - v) + (M * ar[k] + B * vr[k]) / A1 + noise[k]
+        u = min(max(u, -10.0), 10.0)
+        us[k] = u
+        z = line(u) + o
+        ua = z - d if z > d else (z + d if z < -d else 0.0)
+        fm = (A1 * ua + A2 * ua * abs(ua) + A3 * ua ** 3) * (1.0 + kappa * t)
+        for _ in range(SUB):
+            if tau_i > 0:       # the current loop: the mean of its exact response over the step
+                f_mean = fm + (f - fm) * tau_i / h * (1.0 - math.exp(-h / tau_i))
+                f = fm + (f - fm) * math.exp(-h / tau_i)
+            else:
+                f = f_mean = fm
+            if stiction_n > 0 and abs(v) < 1e-4 and abs(f_mean + F0) <= stiction_n:
+                v = 0.0
+                continue
+            acc = (f_mean - B * v - FC * (2 / math.pi) * math.atan(900.0 * v) + F0) / M
+            x += h * v + 0.5 * h * h * acc        # exact for the acceleration held over h
+            v += h * acc
+    return Record(t=np.arange(len(xr)) / FS, y=ys, u=us, gain=A1, source="<numpy axis>", axis="X")
+
+
+# ------------------------------------------------------------------------------- input delay
+def test_fractional_delay_line_is_the_mean_of_the_delayed_held_input():
+    step = [1.0] * 4
+    d = delay_line(1, 0.5)
+    assert [d(u) for u in step] == [0.0, 0.5, 1.0, 1.0]
+    d = delay_line(0, 0.25)
+    assert [d(u) for u in (1.0, 2.0, 3.0)] == pytest.approx([0.75, 1.75, 2.75])
+    d = delay_line(2)
+    assert [d(u) for u in (1.0, 2.0, 3.0, 4.0)] == [0.0, 0.0, 1.0, 2.0]
+    with pytest.raises(ValueError):
+        delay_line(0, 0.0)
+
+
+def test_plant_applies_a_delay_between_whole_periods():
+    fam = FAMILIES["input_delay"]
+    half = fam.plant_term(0.0003, 0.0002)        # 1.5 periods (0.0003 / 0.0002 = 1.4999...)
+    assert [half.input(1.0) for _ in range(4)] == pytest.approx([0.0, 0.5, 1.0, 1.0])
+    whole = fam.plant_term(0.0006, 0.0002)       # 2.9999999999999996: three whole periods
+    assert [whole.input(1.0) for _ in range(4)] == [0.0, 0.0, 0.0, 1.0]
+    assert fam.plant_term(0.00001, 0.0002) is not None and fam.plant_term(0.0, 0.0002) is None
+
+
+def test_amplifier_lag_is_what_the_config_declares():
+    header = {"config": {"axes": {"X": {"driver": {"current_loop_hz": 1000.0, "current_loop_delay_s": 5e-5}}}}}
+    lag, said = amplifier_lag(header, "X")
+    assert lag == pytest.approx(1 / (2 * math.pi * 1000.0) + 5e-5)
+    assert "1000 Hz current loop" in said
+    assert amplifier_lag(header, "Y") == (0.0, "")
+    assert amplifier_lag({}, "X") == (0.0, "")
+    bad = {"config": {"axes": {"X": {"driver": {"current_loop_hz": "fast"}}}}}
+    assert amplifier_lag(bad, "X") == (0.0, "")
+
+
+@pytest.fixture(scope="module")
+def delayed():
+    """1.5 samples of transport delay behind a 1 kHz current loop the header declares."""
+    rec = _simulate(delay_samples=1.5, tau_i=1 / (2 * math.pi * 1000.0))
+    rec.header = {"config": {"axes": {"X": {"driver": {"current_loop_hz": 1000.0}}}}}
+    return rec
+
+
+def test_input_delay_found_is_the_transport_delay_beyond_the_current_loop(delayed):
+    fam = FAMILIES["input_delay"]
+    loop = FS / (2 * math.pi * 1000.0)           # the 1 kHz loop's lag: 0.80 sample
+    term, note = fam.search(Identifier(delayed), [], None)
+    assert note is None
+    par = fam.parameters(term.h, None, A1, FS)
+    assert par["delay_s"] * FS == pytest.approx(1.5, abs=0.12)
+    assert par["amplifier_lag_s"] * FS == pytest.approx(loop)
+    assert par["total_delay_s"] * FS == pytest.approx(1.5 + loop, abs=0.12)
+    # undeclared, the loop's lag is part of the delay found
+    bare = Record(delayed.t, delayed.y, delayed.u, gain=A1, axis="X", header={"run": 1})
+    term, _ = fam.search(Identifier(bare), [], None)
+    assert fam.parameters(term.h, None, A1, FS)["delay_s"] * FS == pytest.approx(1.5 + loop, abs=0.12)
+
+
+# ------------------------------------------------------------------------------- drift
+def test_force_constant_drift_is_exact_on_the_fits_own_thrust_shape():
+    """κ = −0.02/s over 8 s (−16 %), inputs up to several volts: the column on the joint fit's
+    θ5, θ6 gives κ relative to the record's start; the nominal fit's θ5, θ6 (biased by the drift)
+    do not."""
+    rec = _simulate(kappa=-0.02)
+    idf = Identifier(rec, n_theta=6, zoh_delay=0.5)
+    fam = FAMILIES["force_constant_drift"]
+    term, _ = fam.search(idf, [], None)
+    kappa = fam.parameters(term.h, idf.evaluate([term]).fit.coef[-1:], A1, FS)["drift_per_s"]
+    assert kappa == pytest.approx(-0.02, rel=0.03)
+    assert float(term.h) == pytest.approx(rec.t[0])
+    # the column on the nominal fit's shape, about the same start
+    from motorctl.effects.force_constant_drift import DriftReference
+    th = idf.evaluate([]).fit.coef
+    naive = idf.term(fam.name, DriftReference(rec.t[0], th[4], th[5]))
+    k_naive = -float(idf.evaluate([naive]).fit.coef[-1])
+    assert abs(k_naive / -0.02 - 1) > abs(kappa / -0.02 - 1)
+
+
+# ------------------------------------------------------------------------------- dead-zone
+def test_dead_zone_width_is_the_force_beyond_its_band_not_the_static_friction():
+    """d = 0.15 V behind a 25 N stiction that holds the carriage through the dwells (its input
+    band there is about ±0.3 V): the width comes from the motion, where the dead-zone takes
+    A1·d against the sign of the input."""
+    rec = _simulate(dz=(0.15, 0.0), stiction_n=25.0, noise_v=0.02)
+    idf = Identifier(rec, n_theta=6, zoh_delay=0.5)
+    st, _ = FAMILIES["stiction"].search(idf, [], None)
+    term, note = FAMILIES["amplifier_dead_zone"].search(idf, [st], None)
+    assert note is None
+    assert float(term.h) == pytest.approx(0.15, rel=0.05)
+    share = float(idf.evaluate([st, term]).fit.coef[-2])
+    assert share == pytest.approx(1.0, abs=0.02)
