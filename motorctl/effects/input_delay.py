@@ -102,7 +102,11 @@ def amplifier_lag(header: dict, axis: str) -> tuple[float, str]:
     The part of an input delay the drive's own loop explains is therefore taken from what the
     drive declares, not fitted. Raises nothing: a missing or malformed entry counts as none.
     """
-    drv = header.get("config", {}).get("axes", {}).get(axis, {}).get("driver", {}) if isinstance(header, dict) else {}
+    drv = header
+    for key in ("config", "axes", axis, "driver"):
+        drv = drv.get(key) if isinstance(drv, dict) else None
+    if not isinstance(drv, dict):
+        return 0.0, ""
     fc, dc = drv.get("current_loop_hz") or 0.0, drv.get("current_loop_delay_s") or 0.0
     if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
                for v in (fc, dc)):
