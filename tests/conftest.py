@@ -126,18 +126,14 @@ WARMUP_CONFIGS = ("gantry-rigid.yaml", "gantry.yaml")
 
 
 def _warmup_all(started=None, stop=None) -> None:
-    """``motorctl warmup`` of :data:`WARMUP_CONFIGS`, when numba's cache is cold (the caller holds
-    :data:`WARMUP_LOCK`). ``started``: a list each warmup process is appended to (to kill it);
-    ``stop``: a threading.Event, set: no further warmup is started.
+    """``motorctl warmup`` of :data:`WARMUP_CONFIGS` (the caller holds :data:`WARMUP_LOCK`; with
+    a warm cache each loads it in about a second). ``started``: a list each warmup process is
+    appended to (to kill it); ``stop``: a threading.Event, set: no further warmup is started.
 
     Raises:
         subprocess.CalledProcessError: a warmup failed (its stderr attached).
     """
     import subprocess
-
-    from motorctl.app.warmup import cache_is_cold
-    if not cache_is_cold():
-        return
     for cfg in WARMUP_CONFIGS:
         if stop is not None and stop.is_set():
             return
@@ -153,8 +149,11 @@ def _warmup_all(started=None, stop=None) -> None:
 class _EarlyWarmup:
     """The session's compile started by the controlling pytest process in ``pytest_configure``,
     before the xdist workers start and collect: a thread holding :data:`WARMUP_LOCK` runs
-    :func:`_warmup_all`; :func:`warm_numba_cache` in each worker waits for the lock. A failure is
-    not reported here: the worker finding the cache still cold compiles again and raises."""
+    :func:`_warmup_all`; :func:`warm_numba_cache` in each worker waits for the lock. The
+    controller imports no motorctl module (whose import points ``NUMBA_CACHE_DIR`` at the keyed
+    folder in its environment, which the workers would inherit or not, by the thread's timing).
+    A failure is not reported here: the worker finding the cache still cold compiles again and
+    raises."""
 
     def __init__(self):
         import fcntl
@@ -232,7 +231,8 @@ def warm_numba_cache(request):
                 with open(WARMUP_LOCK, "w") as fh:
                     fcntl.flock(fh, fcntl.LOCK_EX)
                     try:
-                        _warmup_all()
+                        if cache_is_cold():            # (not compiled while this waited)
+                            _warmup_all()
                     finally:
                         fcntl.flock(fh, fcntl.LOCK_UN)
             _warm.append(None)

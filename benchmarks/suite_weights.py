@@ -1,0 +1,89 @@
+"""The test files' own time in a full run, from pytest's ``--durations=0`` report: the table
+``FILE_SECONDS`` of tests/conftest.py (xdist hands the files out longest first), and with ``-v``
+output the time each xdist worker spent (how evenly the two ended).
+
+    .venv/bin/python -m pytest -q -v --durations=0 2>&1 | tee /tmp/durations.txt
+    python benchmarks/suite_weights.py /tmp/durations.txt [--top 30] [--min-s 5]
+
+Prints the files' sums (set-up + call + tear-down of their tests) [s], longest first, as the
+Python dict to paste, the slowest single entries, and per worker (``[gwN] ... PASSED`` lines of
+``-v``) its files and busy time. The set-up of a worker's first module also holds the wait for the
+session's compile (tests/conftest.py ``warm_numba_cache``): printed apart, not counted to the file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from collections import defaultdict
+
+DURATION = re.compile(r"^([0-9.]+)s (setup|call|teardown)\s+(\S+)")
+WORKER = re.compile(r"^\[(gw\d+)\].*?(?:PASSED|FAILED|ERROR|SKIPPED|XFAIL|XPASS)\s+(\S+)")
+
+
+def parse(text: str):
+    """(entries [(seconds, phase, nodeid)], nodeid -> worker)."""
+    entries, worker = [], {}
+    for line in text.splitlines():
+        m = DURATION.match(line)
+        if m:
+            entries.append((float(m[1]), m[2], m[3]))
+            continue
+        m = WORKER.match(line)
+        if m:
+            worker[m[2]] = m[1]
+    return entries, worker
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("report", help="pytest's output with --durations=0 (and -v for the workers)")
+    ap.add_argument("--top", type=int, default=30, help="the slowest entries to list")
+    ap.add_argument("--min-s", type=float, default=5.0, help="the smallest file sum put in the table [s]")
+    args = ap.parse_args(argv)
+    entries, worker = parse(open(args.report).read())
+    if not entries:
+        print(f"{args.report}: no --durations lines", file=sys.stderr)
+        return 2
+    per_file = defaultdict(float)
+    wait = {}
+    firsts = {}
+    for nodeid in worker:                      # the worker's first module: its set-up waited
+        firsts.setdefault(worker[nodeid], nodeid)
+    first_nodes = set(firsts.values())
+    for s, phase, nodeid in entries:
+        f = nodeid.split("::", 1)[0]
+        if phase == "setup" and nodeid in first_nodes:
+            wait[nodeid] = s
+            continue
+        per_file[f] += s
+    total = sum(s for s, _, _ in entries)
+    print(f"sum of the durations: {total:.1f} s over {len(per_file)} files")
+    for nodeid, s in wait.items():
+        print(f"first set-up of {worker[nodeid]} ({nodeid}): {s:.1f} s (the session's compile, not counted)")
+    print(f"\nslowest {args.top}:")
+    for s, phase, nodeid in sorted(entries, reverse=True)[:args.top]:
+        print(f"  {s:7.2f} s {phase:8s} {nodeid}")
+    if worker:
+        busy, files = defaultdict(float), defaultdict(list)
+        for s, _, nodeid in entries:
+            if nodeid in worker:
+                busy[worker[nodeid]] += s
+        for f in per_file:
+            ws = {worker[n] for n in worker if n.startswith(f + "::")}
+            for w in ws:
+                files[w].append(f)
+        print("\nper worker (busy time, incl. the waits):")
+        for w in sorted(busy):
+            print(f"  {w}: {busy[w]:.1f} s, {len(files[w])} files")
+    print("\nFILE_SECONDS = {")
+    for f, s in sorted(per_file.items(), key=lambda kv: -kv[1]):
+        if s >= args.min_s:
+            print(f'    "{f}": {s:.1f},')
+    print("}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
