@@ -3,10 +3,11 @@
 output the time each xdist worker spent (how evenly the two ended).
 
     .venv/bin/python -m pytest -q -v --durations=0 2>&1 | tee /tmp/durations.txt
-    python benchmarks/suite_weights.py /tmp/durations.txt [--top 30] [--min-s 5]
+    python benchmarks/suite_weights.py /tmp/durations.txt [--top 30] [--write tests/file_seconds.json]
 
-Prints the files' sums (set-up + call + tear-down of their tests) [s], longest first, as the
-Python dict to paste, the slowest single entries, and per worker (``[gwN] ... PASSED`` lines of
+Prints the files' sums (set-up + call + tear-down of their tests) [s], longest first (with
+``--write``: into that JSON file, the table tests/conftest.py orders the files by), the slowest
+single entries, and per worker (``[gwN] ... PASSED`` lines of
 ``-v``) its files and busy time. The set-up of a worker's first module also holds the wait for the
 session's compile (tests/conftest.py ``warm_numba_cache``): printed apart, not counted to the file.
 """
@@ -14,9 +15,13 @@ session's compile (tests/conftest.py ``warm_numba_cache``): printed apart, not c
 from __future__ import annotations
 
 import argparse
+import json
 import re
 import sys
 from collections import defaultdict
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
 
 DURATION = re.compile(r"^([0-9.]+)s (setup|call|teardown)\s+(\S+)")
 WORKER = re.compile(r"^\[(gw\d+)\].*?(?:PASSED|FAILED|ERROR|SKIPPED|XFAIL|XPASS)\s+(\S+)")
@@ -40,7 +45,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("report", help="pytest's output with --durations=0 (and -v for the workers)")
     ap.add_argument("--top", type=int, default=30, help="the slowest entries to list")
-    ap.add_argument("--min-s", type=float, default=5.0, help="the smallest file sum put in the table [s]")
+    ap.add_argument("--write", metavar="JSON", help="write the files' sums into this file (tests/file_seconds.json)")
     args = ap.parse_args(argv)
     entries, worker = parse(open(args.report).read())
     if not entries:
@@ -77,11 +82,16 @@ def main(argv=None) -> int:
         print("\nper worker (busy time, incl. the waits):")
         for w in sorted(busy):
             print(f"  {w}: {busy[w]:.1f} s, {len(files[w])} files")
-    print("\nFILE_SECONDS = {")
-    for f, s in sorted(per_file.items(), key=lambda kv: -kv[1]):
-        if s >= args.min_s:
-            print(f'    "{f}": {s:.1f},')
-    print("}")
+    for path in sorted((REPO / "tests").glob("test_*.py")):     # all its durations hidden (< 5 ms)
+        per_file.setdefault(f"tests/{path.name}", 0.0)
+    table = {f: round(s, 1) for f, s in sorted(per_file.items(), key=lambda kv: -kv[1])}
+    print("\nfiles, longest first [s]:")
+    for f, s in table.items():
+        print(f"  {s:7.1f} {f}")
+    if args.write:
+        with open(args.write, "w") as fh:
+            json.dump(table, fh, indent=0)
+            fh.write("\n")
     return 0
 
 

@@ -8,6 +8,7 @@ developer looking for new failures runs them with fresh random examples, ten tim
 tests/test_estimator.py tests/test_inversion.py`` (a failure prints the
 ``@reproduce_failure`` blob to pin it)."""
 
+import json
 import os
 import sys
 import sysconfig
@@ -72,51 +73,31 @@ def default_yaml(repo) -> Path:
     return repo / "configs" / "gantry.yaml"
 
 
-#: the test files' own time [s] in a full run (the sum of their tests' set-up, call and tear-down,
-#: --durations=0, on a loaded 2-core host: only their order counts); a file not listed counts
-#: :data:`SECONDS_PER_TEST` per test. xdist hands out whole files (``--dist loadfile``) in the
-#: collection's order (``--no-loadscope-reorder``): the longest first, so that the two workers end
-#: together instead of one running the heaviest file last. Refresh: ``python
-#: benchmarks/suite_weights.py /tmp/durations.txt`` on a ``pytest -q --durations=0`` run's output.
-FILE_SECONDS = {
-    "tests/test_effect_entry_points.py": 220.0,
-    "tests/test_autotune.py": 190.0,
-    "tests/test_ident.py": 126.0,
-    "tests/test_tune.py": 91.0,
-    "tests/test_ethercat.py": 82.0,
-    "tests/test_daemon_motion.py": 72.0,
-    "tests/test_controller_seam.py": 57.0,
-    "tests/test_daemon_recorder_faults.py": 52.0,
-    "tests/test_inputs.py": 48.0,
-    "tests/test_readers.py": 44.0,
-    "tests/test_structural_mode.py": 42.0,
-    "tests/test_views.py": 38.0,
-    "tests/test_emulator_e2e.py": 36.0,
-    "tests/test_run_start.py": 34.0,
-    "tests/test_motion_filler.py": 34.0,
-    "tests/test_paper_comparison.py": 25.0,
-    "tests/test_estimator.py": 22.0,
-    "tests/test_canopen_e2e.py": 21.0,
-    "tests/test_retention.py": 19.0,
-    "tests/test_identify_inputs.py": 18.0,
-    "tests/test_layout.py": 4.0,
-}
-#: the time [s] a test of a file not in :data:`FILE_SECONDS` counts
-SECONDS_PER_TEST = 0.5
+#: the test files' own time [s] in a full run (tests/file_seconds.json): the sum of their tests'
+#: set-up, call and tear-down (``--durations=0``; a cold cache, 2 cores at load 20 on 2026-11-25:
+#: only their order counts; test_autotune's without the wait for the session's compile its first
+#: set-up held). xdist hands out whole files (``--dist loadfile``) in the collection's order
+#: (``--no-loadscope-reorder``): the longest first, so that the two workers end together instead
+#: of one running a long file last (xdist's own order, most tests first, ran the plugin family's
+#: file near the end). Refresh: ``python benchmarks/suite_weights.py report.txt --write
+#: tests/file_seconds.json`` on the output of ``pytest -v --durations=0``.
+FILE_SECONDS: dict = json.loads((REPO / "tests" / "file_seconds.json").read_text())
+#: where a file not in :data:`FILE_SECONDS` (a new one) goes: among the long ones, where a long
+#: file costs the least and a short one nothing (at the end a long one keeps one worker busy alone)
+UNMEASURED_SECONDS = 100.0
 
 
 @pytest.hookimpl(trylast=True)
 def pytest_collection_modifyitems(config, items):
     """The test files longest first (:data:`FILE_SECONDS`); each file's tests in their order."""
-    count, first = {}, {}
+    first = {}
     for i, item in enumerate(items):
-        f = item.nodeid.split("::", 1)[0]
-        count[f] = count.get(f, 0) + 1
-        first.setdefault(f, i)
+        first.setdefault(item.nodeid.split("::", 1)[0], i)
 
-    def seconds(f):
-        return FILE_SECONDS.get(f, SECONDS_PER_TEST * count[f])
-    items.sort(key=lambda it: (-seconds(f := it.nodeid.split("::", 1)[0]), first[f]))
+    def key(item):
+        f = item.nodeid.split("::", 1)[0]
+        return -FILE_SECONDS.get(f, UNMEASURED_SECONDS), first[f]
+    items.sort(key=key)
 
 
 #: the lock the session's compile is held under (the controller's, then each worker's check)
