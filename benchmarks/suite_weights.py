@@ -8,7 +8,10 @@ output the time each xdist worker spent (how evenly the two ended).
 Prints the files' sums (set-up + call + tear-down of their tests) [s], longest first (with
 ``--write``: into that JSON file, the table tests/conftest.py orders the files by), the slowest
 single entries, and per worker (``[gwN] ... PASSED`` lines of
-``-v``) its files and busy time. The set-up of a worker's first module also holds the wait for the
+``-v``) its files and busy time. ``--simulate COMPILE_S``: two workers taking whole files in
+xdist's default order (most tests first) with both waiting COMPILE_S for the session's compile,
+against the order of tests/file_seconds.json with the plugin file not waiting (a model: no
+prefetch, no contention; the files' times as reported, the first set-ups' waits left out). The set-up of a worker's first module also holds the wait for the
 session's compile (tests/conftest.py ``warm_numba_cache``): printed apart, not counted to the file.
 """
 
@@ -41,10 +44,39 @@ def parse(text: str):
     return entries, worker
 
 
+def _model(order, seconds, compile_s, own=()) -> list[float]:
+    """Two workers, each taking the next whole file when free; a file not in ``own`` starts no
+    earlier than ``compile_s``. Returns the workers' end times [s]."""
+    free = [0.0, 0.0]
+    for f in order:
+        w = free.index(min(free))
+        start = free[w] if f in own else max(free[w], compile_s)
+        free[w] = start + seconds.get(f, 0.0)
+    return free
+
+
+def simulate(per_file, worker, compile_s) -> None:
+    """Print the model's end times for xdist's default order and the longest-first one."""
+    count = defaultdict(int)
+    for nodeid in worker:
+        count[nodeid.split("::", 1)[0]] += 1
+    files = sorted(count)
+    table = json.loads((REPO / "tests" / "file_seconds.json").read_text())
+    default = sorted(files, key=lambda f: -count[f])
+    longest = sorted(files, key=lambda f: -table.get(f, 100.0))
+    before = _model(default, per_file, compile_s)
+    after = _model(longest, per_file, compile_s, own={"tests/test_effect_entry_points.py"})
+    print(f"\nmodel, session compile {compile_s:.0f} s: most tests first, all wait: workers end at "
+          f"{before[0]:.0f} / {before[1]:.0f} s; longest first, the plugin file not waiting: "
+          f"{after[0]:.0f} / {after[1]:.0f} s (sum of the files {sum(per_file.values()):.0f} s)")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("report", help="pytest's output with --durations=0 (and -v for the workers)")
     ap.add_argument("--top", type=int, default=30, help="the slowest entries to list")
+    ap.add_argument("--simulate", type=float, metavar="COMPILE_S",
+                    help="model the two orders with a session compile of this many seconds")
     ap.add_argument("--write", metavar="JSON", help="write the files' sums into this file (tests/file_seconds.json)")
     args = ap.parse_args(argv)
     entries, worker = parse(open(args.report).read())
@@ -84,6 +116,11 @@ def main(argv=None) -> int:
             print(f"  {w}: {busy[w]:.1f} s, {len(files[w])} files")
     for path in sorted((REPO / "tests").glob("test_*.py")):     # all its durations hidden (< 5 ms)
         per_file.setdefault(f"tests/{path.name}", 0.0)
+    if args.simulate is not None:
+        if not worker:
+            print(f"{args.report}: --simulate needs the -v lines (the tests of each file)", file=sys.stderr)
+            return 2
+        simulate(per_file, worker, args.simulate)
     table = {f: round(s, 1) for f, s in sorted(per_file.items(), key=lambda kv: -kv[1])}
     print("\nfiles, longest first [s]:")
     for f, s in table.items():
