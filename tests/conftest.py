@@ -8,6 +8,7 @@ developer looking for new failures runs them with fresh random examples, ten tim
 tests/test_estimator.py tests/test_inversion.py`` (a failure prints the
 ``@reproduce_failure`` blob to pin it)."""
 
+import json
 import os
 import sys
 import sysconfig
@@ -72,25 +73,155 @@ def default_yaml(repo) -> Path:
     return repo / "configs" / "gantry.yaml"
 
 
-@pytest.fixture(scope="session", autouse=True)
-def warm_numba_cache():
-    """Compile the servo cycle once for the whole session (``motorctl warmup``), under a file
-    lock so that the workers of one run wait for one compile instead of each compiling (and
-    each daemon test waiting for a loop that is still compiling). Free when the cache is warm."""
-    import fcntl
-    import subprocess
+#: the test files' own time [s] in a full run (tests/file_seconds.json): the sum of their tests'
+#: set-up, call and tear-down (``--durations=0``; a cold cache, 2 cores at load 20 on 2026-11-25:
+#: only their order counts; test_autotune's without the wait for the session's compile its first
+#: set-up held). xdist hands out whole files (``--dist loadfile``) in the collection's order
+#: (``--no-loadscope-reorder``): the longest first, so that the two workers end together instead
+#: of one running a long file last (xdist's own order, most tests first, ran the plugin family's
+#: file near the end). Refresh: ``python benchmarks/suite_weights.py report.txt --write
+#: tests/file_seconds.json`` on the output of ``pytest -v --durations=0``.
+FILE_SECONDS: dict = json.loads((REPO / "tests" / "file_seconds.json").read_text())
+#: where a file not in :data:`FILE_SECONDS` (a new one) goes: among the long ones, where a long
+#: file costs the least and a short one nothing (at the end a long one keeps one worker busy alone)
+UNMEASURED_SECONDS = 100.0
 
-    from motorctl.app.warmup import cache_is_cold
-    if not cache_is_cold():
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config, items):
+    """The test files longest first (:data:`FILE_SECONDS`); each file's tests in their order."""
+    first = {}
+    for i, item in enumerate(items):
+        first.setdefault(item.nodeid.split("::", 1)[0], i)
+
+    def key(item):
+        f = item.nodeid.split("::", 1)[0]
+        return -FILE_SECONDS.get(f, UNMEASURED_SECONDS), first[f]
+    items.sort(key=key)
+
+
+#: the lock the session's compile is held under (the controller's, then each worker's check)
+WARMUP_LOCK = REPO / ".pytest_cache" / "numba-warmup.lock"
+#: the configs whose servo cycle the session compiles before the tests run
+WARMUP_CONFIGS = ("gantry-rigid.yaml", "gantry.yaml")
+
+
+def _warmup_all(started=None, stop=None) -> None:
+    """``motorctl warmup`` of :data:`WARMUP_CONFIGS` (the caller holds :data:`WARMUP_LOCK`; with
+    a warm cache each loads it in about a second). ``started``: a list each warmup process is
+    appended to (to kill it); ``stop``: a threading.Event, set: no further warmup is started.
+
+    Raises:
+        subprocess.CalledProcessError: a warmup failed (its stderr attached).
+    """
+    import subprocess
+    for cfg in WARMUP_CONFIGS:
+        if stop is not None and stop.is_set():
+            return
+        argv = [*MOTORCTL, "warmup", str(REPO / "configs" / cfg)]
+        with subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as proc:
+            if started is not None:
+                started.append(proc)
+            out, err = proc.communicate(timeout=900)
+        if proc.returncode:
+            raise subprocess.CalledProcessError(proc.returncode, argv, out, err)
+
+
+class _EarlyWarmup:
+    """The session's compile started by the controlling pytest process in ``pytest_configure``,
+    before the xdist workers start and collect: a thread holding :data:`WARMUP_LOCK` runs
+    :func:`_warmup_all`; :func:`warm_numba_cache` in each worker waits for the lock. The
+    controller imports no motorctl module (whose import points ``NUMBA_CACHE_DIR`` at the keyed
+    folder in its environment, which the workers would inherit or not, by the thread's timing).
+    A failure is not reported here: the worker finding the cache still cold compiles again and
+    raises."""
+
+    def __init__(self):
+        import fcntl
+        import threading
+        WARMUP_LOCK.parent.mkdir(exist_ok=True)
+        self._fh = open(WARMUP_LOCK, "w")
+        fcntl.flock(self._fh, fcntl.LOCK_EX)          # held before any worker exists
+        self._procs = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="numba-warmup", daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        import fcntl
+        try:
+            _warmup_all(self._procs, self._stop)
+        except Exception:                              # noqa: BLE001 - the worker's own compile raises it
+            pass
+        finally:
+            fcntl.flock(self._fh, fcntl.LOCK_UN)
+            self._fh.close()
+
+    def stop(self) -> None:
+        """End a compile still running (a run shorter than the compile, an interrupted one)."""
+        self._stop.set()
+        for proc in self._procs:
+            if proc.poll() is None:
+                proc.kill()
+        self._thread.join(60)
+
+
+def pytest_configure(config):
+    """In the controlling process (not in an xdist worker, not for ``--collect-only``): start the
+    session's compile at once (:class:`_EarlyWarmup`), so that it overlaps the workers' start-up
+    and collection and the tests that need no compiled code of the main cache
+    (``own_jit_cache``)."""
+    config.addinivalue_line("markers", "own_jit_cache: the file's processes compile into a numba cache "
+                                       "of their own (a plugin's): its tests do not wait for the session's "
+                                       "compile of the main cache (warm_numba_cache)")
+    if hasattr(config, "workerinput") or config.option.collectonly:
         return
-    lock = REPO / ".pytest_cache" / "numba-warmup.lock"
-    lock.parent.mkdir(exist_ok=True)
-    with open(lock, "w") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
+    config.stash[_WARMUP_KEY] = _EarlyWarmup()
+
+
+_WARMUP_KEY = pytest.StashKey[_EarlyWarmup]()
+
+
+def pytest_unconfigure(config):
+    early = config.stash.get(_WARMUP_KEY, None)
+    if early is not None:
+        early.stop()
+
+
+@pytest.fixture(scope="module", autouse=True)
+def warm_numba_cache(request):
+    """Wait for the session's compile of the servo cycle (``motorctl warmup`` of
+    :data:`WARMUP_CONFIGS`, started by the controller, :class:`_EarlyWarmup`) under a file lock,
+    so that the workers of one run wait for one compile instead of each compiling (and each
+    daemon test waiting for a loop that is still compiling). Module-scoped, so that it runs before
+    the module's own fixtures (a daemon for the module); a module marked ``own_jit_cache`` does not
+    wait. Free when the cache is warm (one check per worker).
+
+    Raises:
+        subprocess.CalledProcessError: the compile failed (run again here, its stderr attached).
+    """
+    if request.node.get_closest_marker("own_jit_cache"):
+        return
+    if not _warm:
+        import fcntl
+
+        from motorctl.app.warmup import cache_is_cold
         try:
             if cache_is_cold():
-                for cfg in ("gantry-rigid.yaml", "gantry.yaml"):
-                    subprocess.run([*MOTORCTL, "warmup", str(REPO / "configs" / cfg)], cwd=REPO,
-                                   capture_output=True, timeout=900, check=True)
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
+                WARMUP_LOCK.parent.mkdir(exist_ok=True)
+                with open(WARMUP_LOCK, "w") as fh:
+                    fcntl.flock(fh, fcntl.LOCK_EX)
+                    try:
+                        if cache_is_cold():            # (not compiled while this waited)
+                            _warmup_all()
+                    finally:
+                        fcntl.flock(fh, fcntl.LOCK_UN)
+            _warm.append(None)
+        except Exception as exc:                       # noqa: BLE001 - raised again for every module
+            _warm.append(exc)
+    if _warm[0] is not None:
+        raise _warm[0]
+
+
+#: this process's one check of the session's compile: [None] done, [exception] it failed
+_warm: list = []

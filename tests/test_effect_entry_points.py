@@ -20,6 +20,9 @@ import yaml
 from harness import plugin_env as harness_plugin_env
 from motorctl.effects import registry
 
+#: the plugin's processes compile into a numba cache of their own (motorctl.jitcache.numba_folder):
+#: they need not wait for the session's compile of the plain install's
+pytestmark = pytest.mark.own_jit_cache
 PROBE = ("import json; from motorctl.effects import FAMILIES, compensation_model, effects_model; "
          "print(json.dumps({'families': list(FAMILIES), 'sim': list(effects_model().model_fields), "
          "'comp': list(compensation_model().model_fields)}))")
