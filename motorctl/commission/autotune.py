@@ -100,7 +100,7 @@ import math
 import numpy as np
 import yaml
 
-from motorctl.commission.choose import choose_gains, loop_frf, tunable_laws
+from motorctl.commission.choose import choose_gains, family_zetas, loop_frf, tunable_laws
 from motorctl.commission.evaluate import evaluate
 from motorctl.commission.fit import fit_plant
 from motorctl.commission.loopshape import c_frf, loop_margins
@@ -179,7 +179,8 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
                          f"{r_['saturated']} saturated samples, u at rest {r_['u_rest_rms_V'] * 1e3:.0f} mV")
     choice, ver, gains, extra = {}, {}, {}, {}
     for law in (laws or tunable_laws(sec)):
-        ch_ = choose_gains(law, G_w, w, ts, model["theta1"], sec, meas["rest_psd"], th, rule)
+        ch_ = choose_gains(law, G_w, w, ts, model["theta1"], sec, meas["rest_psd"], th, rule,
+                           family_zetas(law, model))
         choice[law] = ch_
         if ch_ is None:
             continue

@@ -8,12 +8,13 @@ import copy
 import math
 
 import numpy as np
+from scipy import stats
 
 from motorctl.commission.choose import design_of, neighbours, shape_of
 from motorctl.commission.evaluate import evaluate
 from motorctl.commission.rule import (FULL_TRIES, NOISE_EXPONENT, NOISE_SLACK, OSC_RATIO, PRUNE_SHARE, REFINE_RUNS,
-                                      REST_FACTOR, SAT_FACTOR, SAT_FLOOR_SHARE, SATURATED, SCALES, SEARCH_BUDGET,
-                                      SEARCH_RUNS, STEP_DOWN, U_REST_FRACTION, WINNER_TRIES)
+                                      REST_FACTOR, SAT_ALPHA, SAT_FACTOR, SAT_FLOOR_SHARE, SATURATED, SCALES, SEARCH_BUDGET,
+                                      SEARCH_RUNS, STEP_DOWN, STEP_UP, U_REST_FRACTION, WINNER_TRIES)
 from motorctl.config import config_from_dict
 from motorctl.control import controller_class
 
@@ -57,27 +58,48 @@ def e_line_ratio(res: dict, ref: dict) -> tuple[float, float]:
     return float(ratio[j]), float(f[j])
 
 
-def limits(ref: dict | None, u_lim: float, samples: int) -> tuple[int, float]:
-    """(saturated samples allowed, u RMS at rest allowed [V]) of a run of ``samples`` samples:
-    :data:`SAT_FACTOR` times the configured controller's saturated samples on the same run, or
-    of :data:`SAT_FLOOR_SHARE` of the samples if more; :data:`REST_FACTOR` times its u RMS at
-    rest (without a reference run: :data:`U_REST_FRACTION` of u_lim)."""
-    sat_ref = ref["saturated"] if ref else 0
-    sat = int(SAT_FACTOR * max(sat_ref, SAT_FLOOR_SHARE * samples))
+def limits(ref: dict | None, u_lim: float, samples: int, full_ref: dict | None = None,
+           dispersion: float = 1.0) -> tuple[int, float]:
+    """(saturated samples allowed, u RMS at rest allowed [V]) of a run of ``samples`` samples.
+
+    Saturation is judged as the constraint on a full run is: A = :data:`SAT_FACTOR` × max(the
+    configured controller's saturated samples on its run ``full_ref`` of N samples (without
+    it: on ``ref``), :data:`SAT_FLOOR_SHARE` × N) in N samples, i.e. a rate A/N. A run of N
+    samples or more may have its share of A. A shorter run (the search's screen) holds a
+    small, bursty count, so it is judged by a one-sided test: it fails only when its count
+    exceeds the (1 − :data:`SAT_ALPHA`) quantile of a count at the allowed rate over its
+    samples, the count / ``dispersion`` (:func:`motorctl.commission.evaluate.sat_dispersion`,
+    the run's own) taken as Poisson of mean A·samples/N / dispersion (a run exactly at the
+    limit rate fails the screen in :data:`SAT_ALPHA` of its windows; the full run decides),
+    and never below :data:`SAT_FACTOR` × the configured controller's count on ``ref`` (the same
+    program periods, the same start). u RMS at rest: :data:`REST_FACTOR` × ``ref``'s (without
+    a reference run: :data:`U_REST_FRACTION` of u_lim)."""
+    base = full_ref or ref
+    n_ref = base["samples"] if base else samples
+    allowed = SAT_FACTOR * max(base["saturated"] if base else 0, SAT_FLOOR_SHARE * n_ref)
+    if samples >= n_ref:
+        sat = int(allowed * samples / n_ref) if n_ref > 0 else 0
+    else:
+        d = max(1.0, dispersion)
+        sat = int(d * stats.poisson.ppf(1.0 - SAT_ALPHA, allowed * samples / n_ref / d))
+        if ref:
+            sat = max(sat, int(SAT_FACTOR * max(ref["saturated"], SAT_FLOOR_SHARE * samples)))
     rest_ref = ref["u_rest_rms_V"] if ref else math.nan
     rest = REST_FACTOR * rest_ref if rest_ref == rest_ref and rest_ref > 0 else U_REST_FRACTION * u_lim
     return sat, rest
 
 
-def admissible(res: dict, u_lim: float, ref: dict | None = None, osc_ref: dict | None = None) -> str:
+def admissible(res: dict, u_lim: float, ref: dict | None = None, osc_ref: dict | None = None,
+               full_ref: dict | None = None) -> str:
     """'' when a run meets the rule's closed-loop lines, else why not (one phrase). ref: the
     configured controller's run on the same program and of the same length
     (:func:`motorctl.commission.evaluate.evaluate`): the saturation and the u noise at rest are
-    judged against it (:func:`limits`), and an error spectrum :data:`OSC_RATIO` times its own
-    at some frequency is an oscillation (``osc_ref``: another run's spectrum instead)."""
+    judged against it and against its full run ``full_ref`` (:func:`limits`), and an error
+    spectrum :data:`OSC_RATIO` times its own at some frequency is an oscillation (``osc_ref``:
+    another run's spectrum instead)."""
     if res["fault"]:
         return f"fault: {res['fault']}"
-    sat_max, rest_max = limits(ref, u_lim, res["samples"])
+    sat_max, rest_max = limits(ref, u_lim, res["samples"], full_ref, res.get("sat_dispersion", 1.0))
     if res["saturated"] > sat_max:
         return f"{res['saturated']} {SATURATED} (> {sat_max} of {res['samples']})"
     if not res["u_rest_rms_V"] <= rest_max:
@@ -124,7 +146,7 @@ def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: f
         or 'search'), "L2_um" (of its full run at 100 %, else of its short run), "runs":
         [(label, scale, result, verdict)]}.
     """
-    v = _Verification(raw, source, axis, law, choice, seconds, clock, ref, extra, progress)
+    v = _Verification(raw, source, axis, law, choice, seconds, clock, ref, extra, progress, full_ref)
     g0 = choice["gains"]
     s0, r0 = v.ladder(g0, choice["backoff"], "rule")
     rule_best = (r0["L2_um"], scaled(law, g0, s0), s0, "rule") if s0 > 0 else None
@@ -155,8 +177,9 @@ class _Verification:
     proportion to the latest run of any (a run that faulted says nothing of the noise).
     """
 
-    def __init__(self, raw, source, axis, law, choice, seconds, clock, ref, extra, progress):
+    def __init__(self, raw, source, axis, law, choice, seconds, clock, ref, extra, progress, full_ref=None):
         self.raw, self.source, self.axis, self.law, self.choice = raw, source, axis, law, choice
+        self.full_ref = full_ref
         self.seconds, self.clock, self.ref, self.extra, self.progress = seconds, clock, ref, extra, progress
         self.u_lim = config_from_dict(raw, source).axes[axis].controller.u_lim
         self.rest_max = limits(ref, self.u_lim, 0)[1]
@@ -174,7 +197,7 @@ class _Verification:
         ref = ref if ref is not None else self.ref
         res = evaluate(apply_gains(self.raw, self.axis, self.law, g, self.extra), self.source, self.axis,
                        self.law, seconds, self.clock)
-        why = admissible(res, self.u_lim, ref)
+        why = admissible(res, self.u_lim, ref, full_ref=self.full_ref)
         self.record(f"{label} {seconds:g} s", scale, res, why)
         return res, why
 
@@ -247,7 +270,7 @@ class _Verification:
                 full.append((res["L2_um"], g, sc, frm, res))
         for cand in sorted(full, key=lambda b: b[0]):
             if self._rungs(cand[1], cand[2], seconds, ref, cand[4]):
-                return cand[:4]
+                return self.climb(cand[:4], seconds, ref)
         if not pool:
             return None
         l2, g, sc, frm = pool[0]
@@ -259,6 +282,29 @@ class _Verification:
             if not why and self._rungs(gs, sc * step, seconds, ref, res):
                 return (res["L2_um"], gs, sc * step, frm)
         return None
+
+    def climb(self, best, seconds: float, ref: dict | None):
+        """Up from the confirmed ``best`` (L2, gains, scale, from): its gains at
+        :data:`STEP_UP` times their loop gain in turn, where the margins hold at 100, 75 and
+        50 % of the raised gains; each screened on a short run, then confirmed as
+        :meth:`confirm` does (a full run and its rungs); a step that passes with a lower L2[e]
+        becomes the best and the climb goes on from it, the first that does not ends it. The
+        search's grid stops where the short runs stop it; this goes where the full runs allow
+        (a rigid plant's margins leave room above the grid's point). Returns the best."""
+        holds = self.choice.get("holds", lambda g: True)
+        for step in STEP_UP:
+            l2, g, sc, frm = best
+            gu = scaled(self.law, g, step)
+            if not holds(gu):
+                break
+            _, why = self.run(gu, "step up", sc * step)
+            if why:
+                break
+            res, why = self.run(gu, "step up", sc * step, seconds, ref)
+            if why or not res["L2_um"] < l2 or not self._rungs(gu, sc * step, seconds, ref, res):
+                break
+            best = (res["L2_um"], gu, sc * step, frm)
+        return best
 
     def _rungs(self, g, sc, seconds, ref, top: dict) -> bool:
         """Full runs of ``g`` at the ladder's rungs below 100 % (:data:`SCALES`, highest first);
