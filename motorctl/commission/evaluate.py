@@ -69,7 +69,10 @@ def run_metrics(log_path: str, loaded: LoadedConfig, axis: str) -> dict:
 
     Returns:
         {"saturated": samples at |u| = u_lim, "sat_dispersion" (:func:`sat_dispersion`), "samples", "u_rest_rms_V" (RMS of u about its
-        mean at rest, :func:`motorctl.metrics.u_rest_rms`; nan with no rest), "osc_ratio",
+        mean at rest, :func:`motorctl.metrics.u_rest_rms`; nan with no rest), "period_samples"
+        (of one program period), "u_rest_first_V" and "u_rest_later_V" (the same over the
+        first program period and over the others: an adaptive law's first period, θ̂ still
+        moving, is noisier; nan with none), "osc_ratio",
         "osc_hz" (:func:`oscillation_ratio`), "e_psd": (f (M,) [Hz], S_ee (M,) [m²/Hz])}.
     Raises:
         LogError: the log cannot be read. KeyError: the axis is not in it.
@@ -87,6 +90,10 @@ def run_metrics(log_path: str, loaded: LoadedConfig, axis: str) -> dict:
     sat = np.abs(u) >= u_lim * (1.0 - 1e-12)
     out = {"saturated": int(np.sum(sat)), "sat_dispersion": sat_dispersion(sat), "samples": int(e.size),
            "u_rest_rms_V": u_rest_rms(u, rest)}
+    n1 = int(round(loaded.axes[axis].trajectory.period_s / ts)) or e.size
+    out["period_samples"] = n1
+    out["u_rest_first_V"] = u_rest_rms(u[:n1], rest[:n1])
+    out["u_rest_later_V"] = u_rest_rms(u[n1:], rest[n1:]) if e.size > n1 else math.nan
     out["osc_ratio"], out["osc_hz"] = oscillation_ratio(u, rest, ts)
     out["e_psd"] = signal.welch(e, fs=1.0 / ts, nperseg=e_segment(e.size), detrend="linear")
     return out
