@@ -137,3 +137,22 @@ def test_the_confirmed_gains_step_up_where_the_runs_allow(repo, monkeypatch, k_s
     v.choice = {"holds": lambda g: g["k_s"] <= 100.0}
     assert v.climb((1.0, g, 1.0, "search"), 40.0, ref)[1] is g and machine.calls == []
     assert math.isfinite(l2)
+
+
+def test_a_short_runs_rest_noise_is_judged_as_the_full_run_it_predicts():
+    """Rigid Y's C1 (k_s 134, k1 1213): 8 s, first period 101 mV, second 61 mV: 84 mV over the
+    run, which the configured C2's 8 s (61 mV, noisier in its own first period) let pass; the
+    40 s run it predicts, 68 mV, is held to the 40 s limit (1.5 x 37 mV) and fails, as the 40 s
+    run itself (60 mV) did."""
+    short = {"fault": "", "samples": 40000, "saturated": 0, "sat_dispersion": 1.0, "u_rest_rms_V": 0.0835,
+             "u_rest_first_V": 0.1011, "u_rest_later_V": 0.0611, "period_samples": 20000, "osc_ratio": 2.0,
+             "e_psd": PSD}
+    ref8 = dict(REF_SHORT, u_rest_rms_V=0.061)
+    ref40 = dict(REF_FULL, u_rest_rms_V=0.0373)
+    rest, predicted = V.rest_judged(short, ref40)
+    assert predicted and rest == pytest.approx(math.sqrt((0.1011 ** 2 + 9 * 0.0611 ** 2) / 10))
+    assert V.admissible(short, 10.0, ref8) == ""
+    assert "predicted over 200000 samples (> 56 mV)" in V.admissible(short, 10.0, ref8, full_ref=ref40)
+    # a full run, or one of a single period, is judged by its own figure
+    assert V.rest_judged(dict(short, samples=200000), ref40) == (0.0835, False)
+    assert V.rest_judged(dict(short, u_rest_later_V=math.nan), ref40) == (0.0835, False)
