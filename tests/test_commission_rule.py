@@ -14,7 +14,7 @@ from motorctl.commission import verify as V
 from motorctl.commission.choose import choose_gains, family_zetas, grid_w
 from motorctl.commission.evaluate import sat_dispersion
 from motorctl.commission.loopshape import plant_model_frf
-from motorctl.commission.rule import SAT_ALPHA, STEP_UP, ZETA_RIGID
+from motorctl.commission.rule import SAT_ALPHA, ZETA_RIGID
 from motorctl.config import load_yaml
 from motorctl.control import controller_class
 from motorctl.control.base import Controller
@@ -115,11 +115,12 @@ class _Machine:
                 "e_psd": PSD}
 
 
-@pytest.mark.parametrize("k_sat, steps", [(1e9, len(STEP_UP)), (130.0, 1), (110.0, 0)])
-def test_the_confirmed_gains_step_up_where_the_runs_allow(repo, monkeypatch, k_sat, steps):
+@pytest.mark.parametrize("k_sat, k_up", [(1e9, 100.0 * 1.25 ** 3), (130.0, 125.0), (110.0, 100.0 * 1.25 ** 0.25),
+                                          (100.0, 100.0)])
+def test_the_confirmed_gains_step_up_where_the_runs_allow(repo, monkeypatch, k_sat, k_up):
     """From confirmed gains k_s 100, each step up (x 1.25) is screened, run in full and on its
-    rungs; the climb stops at the first step that saturates (or after STEP_UP), never keeping
-    what failed."""
+    rungs; a step that saturates halves the factor (in log), down to STEP_UP_MIN, for at most
+    STEP_UP_TRIES steps; what failed is never kept."""
     machine = _Machine(k_sat)
     monkeypatch.setattr(V, "evaluate", machine)
     raw = load_yaml(repo / "configs" / "gantry-rigid.yaml")
@@ -129,8 +130,8 @@ def test_the_confirmed_gains_step_up_where_the_runs_allow(repo, monkeypatch, k_s
                         None, None, ref)
     g = {"k_s": 100.0, "k1": 500.0, "gamma_d": 500.0}
     l2, got, sc, _ = v.climb((1.0, g, 1.0, "search"), 40.0, ref)
-    assert got["k_s"] == pytest.approx(100.0 * 1.25 ** steps) and sc == pytest.approx(1.25 ** steps)
-    assert l2 == pytest.approx(100.0 / got["k_s"]) if steps else l2 == 1.0
+    assert got["k_s"] == pytest.approx(k_up) and sc == pytest.approx(k_up / 100.0)
+    assert l2 == pytest.approx(100.0 / k_up) if k_up > 100.0 else l2 == 1.0
     assert got["k_s"] <= k_sat
     # margins that fail at the raised gains: no run at all
     machine.calls.clear()

@@ -26,8 +26,9 @@ REST_FACTOR = 1.5        #: u RMS at rest ≤ this factor times the configured c
 FULL_PERIODS = 10        #: the confirmation runs this many program periods (the whole program, as run)
 FULL_TRIES = 4           #: candidates (by their short run's L2[e]) confirmed on a full run at 100 %
 STEP_DOWN = (0.75, 0.5, 0.35)   #: the best candidate's steps down when no candidate is confirmed
-STEP_UP = (1.25, 1.25, 1.25)    #: the confirmed gains' steps up (each from the last that passed), where
-                                #: the margins allow (:meth:`motorctl.commission.verify._Verification.climb`)
+STEP_UP = 1.25          #: the confirmed gains' step up where the margins allow; halved (in log) after a
+STEP_UP_MIN = 1.05      #: failed step, down to this factor (:meth:`motorctl.commission.verify._Verification.climb`)
+STEP_UP_TRIES = 3       #: steps up tried, at most
 OSC_RATIO = 100.0        #: oscillation: a line in u at rest this far above its spectrum's median,
                          #: or e's spectrum this far above the configured controller's
 SCALES = (0.5, 0.75, 1.0)  #: verification ladder (share of the chosen loop gain)

@@ -14,7 +14,7 @@ from motorctl.commission.choose import design_of, neighbours, shape_of
 from motorctl.commission.evaluate import evaluate
 from motorctl.commission.rule import (FULL_TRIES, NOISE_EXPONENT, NOISE_SLACK, OSC_RATIO, PRUNE_SHARE, REFINE_RUNS,
                                       REST_FACTOR, SAT_ALPHA, SAT_FACTOR, SAT_FLOOR_SHARE, SATURATED, SCALES, SEARCH_BUDGET,
-                                      SEARCH_RUNS, STEP_DOWN, STEP_UP, U_REST_FRACTION, WINNER_TRIES)
+                                      SEARCH_RUNS, STEP_DOWN, STEP_UP, STEP_UP_MIN, STEP_UP_TRIES, U_REST_FRACTION, WINNER_TRIES)
 from motorctl.config import config_from_dict
 from motorctl.control import controller_class
 
@@ -303,26 +303,29 @@ class _Verification:
         return None
 
     def climb(self, best, seconds: float, ref: dict | None):
-        """Up from the confirmed ``best`` (L2, gains, scale, from): its gains at
-        :data:`STEP_UP` times their loop gain in turn, where the margins hold at 100, 75 and
-        50 % of the raised gains; each screened on a short run, then confirmed as
-        :meth:`confirm` does (a full run and its rungs); a step that passes with a lower L2[e]
-        becomes the best and the climb goes on from it, the first that does not ends it. The
-        search's grid stops where the short runs stop it; this goes where the full runs allow
-        (a rigid plant's margins leave room above the grid's point). Returns the best."""
+        """Up from the confirmed ``best`` (L2, gains, scale, from): its gains at :data:`STEP_UP`
+        times their loop gain, where the margins hold at 100, 75 and 50 % of the raised gains;
+        each screened on a short run, then confirmed as :meth:`confirm` does (a full run and
+        its rungs). A step that passes with a lower L2[e] becomes the best and the next goes
+        on from it with the same factor; one that fails halves the factor (in log) down to
+        :data:`STEP_UP_MIN`; at most :data:`STEP_UP_TRIES` steps. The search's grid stops
+        where its short runs stop it; this goes where the full runs allow (a rigid plant's
+        margins leave room above the grid's point). Returns the best."""
         holds = self.choice.get("holds", lambda g: True)
-        for step in STEP_UP:
+        step = STEP_UP
+        for _ in range(STEP_UP_TRIES):
+            if step < STEP_UP_MIN:
+                break
             l2, g, sc, frm = best
             gu = scaled(self.law, g, step)
-            if not holds(gu):
-                break
-            _, why = self.run(gu, "step up", sc * step)
-            if why:
-                break
-            res, why = self.run(gu, "step up", sc * step, seconds, ref)
-            if why or not res["L2_um"] < l2 or not self._rungs(gu, sc * step, seconds, ref, res):
-                break
-            best = (res["L2_um"], gu, sc * step, frm)
+            if holds(gu):
+                _, why = self.run(gu, "step up", sc * step)
+                if not why:
+                    res, why = self.run(gu, "step up", sc * step, seconds, ref)
+                    if not why and res["L2_um"] < l2 and self._rungs(gu, sc * step, seconds, ref, res):
+                        best = (res["L2_um"], gu, sc * step, frm)
+                        continue
+            step = math.sqrt(step)
         return best
 
     def _rungs(self, g, sc, seconds, ref, top: dict) -> bool:
