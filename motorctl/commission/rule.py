@@ -24,7 +24,7 @@ SAT_ALPHA = 0.05         #: a short run fails on saturation when its count is ab
                          #: a count at the full run's allowed rate (:func:`motorctl.commission.verify.limits`)
 REST_FACTOR = 1.5        #: u RMS at rest ≤ this factor times the configured controller's on the same run
 FULL_PERIODS = 10        #: the confirmation runs this many program periods (the whole program, as run)
-FULL_TRIES = 4           #: candidates (by their short run's L2[e]) confirmed on a full run at 100 %
+FULL_TRIES = 5           #: candidates (by their short run's L2[e]) confirmed on a full run at 100 %
 STEP_DOWN = (0.75, 0.5, 0.35)   #: the best candidate's steps down when no candidate is confirmed
 STEP_UP = 1.25          #: the confirmed gains' step up where the margins allow; halved (in log) after a
 STEP_UP_MIN = 1.05      #: failed step, down to this factor (:meth:`motorctl.commission.verify._Verification.climb`)

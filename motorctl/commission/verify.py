@@ -169,11 +169,15 @@ def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: f
     g0 = choice["gains"]
     s0, r0 = v.ladder(g0, choice["backoff"], "rule")
     rule_best = (r0["L2_um"], scaled(law, g0, s0), s0, "rule") if s0 > 0 else None
+    if rule_best:
+        v.short[(design_of(g0), s0)] = r0
     v.calibrate_on_rule()
     v.tried[design_of(g0)] = (r0, "") if s0 == 1.0 else (None, "failed in the ladder")
     if s0 == 1.0:
         v.found.append((r0["L2_um"], g0, 1.0, "rule"))
     v.search(search_runs)
+    if not v.found and rule_best is None:    # nothing passed yet: a second budget (runs made are not repeated)
+        v.search(search_runs)
     v.refine(min(REFINE_RUNS, search_runs))
     if full_seconds:
         best = v.confirm(rule_best, full_seconds, full_ref)
@@ -207,6 +211,7 @@ class _Verification:
         self.found: list = []     # (L2, gains, 1.0, 'rule' | 'search') passed at 100 %
         self.obs: dict = {}       # {shape: [(predicted, measured) rest noise [V]]}
         self.last: list = []      # the latest (predicted, measured) of any shape
+        self.short: dict = {}     # {(design, scale): the short run's result} of what passed it
 
     def run(self, g, label, scale, seconds=None, ref=None):
         """One run of gains ``g`` (already scaled by ``scale``, which only labels it) of
@@ -270,8 +275,10 @@ class _Verification:
         by their short L2[e], the first
         :data:`FULL_TRIES` run at 100 %; those that pass, by their full L2[e], each run at
         75 % and 50 % (:data:`SCALES`, highest first); the first that passes all three rungs
-        wins. When none does, the best candidate's gains stepped down (:data:`STEP_DOWN`), each
-        with its own three rungs. Returns (L2 of the full run at 100 %, gains, scale, from) or
+        wins. A candidate whose full run fails on saturation (rest noise) bars those whose short
+        run saturated (was noisy at rest, :func:`rest_judged`) as much or more: the short runs
+        rank the full runs' counts better than they predict them. When none passes, the best
+        candidate's gains stepped down (:data:`STEP_DOWN`), each with its own three rungs. Returns (L2 of the full run at 100 %, gains, scale, from) or
         None (nothing is written)."""
         pool, seen = [], set()
         cands = sorted(self.found + ([rule_best] if rule_best else []), key=lambda b: b[0])
@@ -280,13 +287,21 @@ class _Verification:
             if key not in seen:
                 seen.add(key)
                 pool.append(c)
-        full = []
+        full, bars, tries = [], [], 0
         holds = self.choice.get("holds", lambda g: True)
         pool = [c for c in pool if holds(c[1])]      # the margins at 100/75/50 % of the gains written
-        for l2, g, sc, frm in pool[:FULL_TRIES]:
+        for l2, g, sc, frm in pool:
+            if tries == FULL_TRIES:
+                break
+            short = self.short.get((design_of(g), sc))
+            if short is not None and any(_as_bad(short, bar, self.full_ref) for bar in bars):
+                continue
+            tries += 1
             res, why = self.run(g, "confirm", sc, seconds, ref)
             if not why:
                 full.append((res["L2_um"], g, sc, frm, res))
+            elif short is not None and (SATURATED in why or "u at rest" in why):
+                bars.append((SATURATED in why, short))
         for cand in sorted(full, key=lambda b: b[0]):
             if self._rungs(cand[1], cand[2], seconds, ref, cand[4]):
                 return self.climb(cand[:4], seconds, ref)
@@ -381,6 +396,7 @@ class _Verification:
         self.tried[key] = (res, why)
         if not why:
             self.found.append((res["L2_um"], g, 1.0, "search"))
+            self.short[(key, 1.0)] = res
         rest = rest_judged(res, self.full_ref)[0]
         if not res["fault"] and rest > 0 and g["_rest_V"] > 0:   # nan: False
             self.obs.setdefault(shape_of(g), []).append((g["_rest_V"], rest))
@@ -494,6 +510,15 @@ class _Verification:
             if sc > 0.0:
                 accepted.append((res_sc["L2_um"], scaled(self.law, cand[1], sc), sc, "search"))
         return min(accepted, key=lambda b: b[0], default=None)
+
+
+def _as_bad(short: dict, bar: tuple, full_ref: dict | None) -> bool:
+    """Whether a short run ``short`` saturated (``bar[0]``; else: was noisy at rest) as much as
+    or more than the short run ``bar[1]`` of a candidate whose full run failed on it."""
+    if bar[0]:
+        worst = bar[1]["saturated"] / bar[1]["samples"]
+        return worst > 0 and short["saturated"] / short["samples"] >= worst
+    return rest_judged(short, full_ref)[0] >= rest_judged(bar[1], full_ref)[0]
 
 
 def _fmt_shape(g: dict) -> str:
