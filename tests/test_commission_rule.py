@@ -153,7 +153,7 @@ def test_a_short_runs_rest_noise_is_judged_as_the_full_run_it_predicts():
     rest, predicted = V.rest_judged(short, ref40)
     assert predicted and rest == pytest.approx(math.sqrt((0.1011 ** 2 + 9 * 0.0611 ** 2) / 10))
     assert V.admissible(short, 10.0, ref8) == ""
-    assert "predicted over 200000 samples (> 56 mV)" in V.admissible(short, 10.0, ref8, full_ref=ref40)
+    assert "predicted over 200000 samples (> 62 mV)" in V.admissible(short, 10.0, ref8, full_ref=ref40)
     # a full run, or one of a single period, is judged by its own figure
     assert V.rest_judged(dict(short, samples=200000), ref40) == (0.0835, False)
     assert V.rest_judged(dict(short, u_rest_later_V=math.nan), ref40) == (0.0835, False)
@@ -168,3 +168,18 @@ def test_a_full_run_failed_on_saturation_bars_the_candidates_that_saturated_as_m
     assert V._as_bad(dict(short, saturated=7), (True, failed), None)
     assert not V._as_bad(short, (True, dict(failed, saturated=0)), None)      # a bar at 0 bars nothing
     assert V._as_bad(short, (False, failed), None) and not V._as_bad(failed, (False, short), None)
+
+
+def test_a_short_runs_saturation_after_its_first_period_stands_for_the_rest_of_the_full_run():
+    """Gantry X's C2 saturated 6 times in its first period and 16 in its second (then 15-22 a
+    period over 40 s, against a limit of 15): rejected on 8 s; 6 then 2 passes."""
+    full = {"saturated": 7, "samples": 200000, "u_rest_rms_V": 0.1}
+    ref8 = {"saturated": 2, "samples": 40000, "u_rest_rms_V": 0.1, "e_psd": PSD}
+    run = {"fault": "", "samples": 40000, "period_samples": 20000, "saturated": 22, "sat_first": 6,
+           "sat_dispersion": 1.0, "u_rest_rms_V": 0.05, "osc_ratio": 2.0, "e_psd": PSD}
+    assert V.sat_later(run, ref8, full) == (16, stats.poisson.ppf(1.0 - SAT_ALPHA, (15 - 6) / 9.0))
+    assert "16 after the first program period > 3" in V.admissible(run, 10.0, ref8, full_ref=full)
+    assert V.sat_later(dict(run, saturated=8, sat_first=6), ref8, full) == (2, 3)
+    assert V.admissible(dict(run, saturated=8, sat_first=6), 10.0, ref8, full_ref=full) == ""
+    assert V.sat_later(dict(run, samples=20000), ref8, full) is None        # one period: the rate test
+    assert V.sat_later(run, ref8, None) is None

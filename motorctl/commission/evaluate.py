@@ -70,7 +70,8 @@ def run_metrics(log_path: str, loaded: LoadedConfig, axis: str) -> dict:
     Returns:
         {"saturated": samples at |u| = u_lim, "sat_dispersion" (:func:`sat_dispersion`), "samples", "u_rest_rms_V" (RMS of u about its
         mean at rest, :func:`motorctl.metrics.u_rest_rms`; nan with no rest), "period_samples"
-        (of one program period), "u_rest_first_V" and "u_rest_later_V" (the same over the
+        (of one program period), "sat_first" (saturated samples in the first program period),
+        "u_rest_first_V" and "u_rest_later_V" (u RMS at rest over the
         first program period and over the others: an adaptive law's first period, θ̂ still
         moving, is noisier; nan with none), "osc_ratio",
         "osc_hz" (:func:`oscillation_ratio`), "e_psd": (f (M,) [Hz], S_ee (M,) [m²/Hz])}.
@@ -92,6 +93,7 @@ def run_metrics(log_path: str, loaded: LoadedConfig, axis: str) -> dict:
            "u_rest_rms_V": u_rest_rms(u, rest)}
     n1 = int(round(loaded.axes[axis].trajectory.period_s / ts)) or e.size
     out["period_samples"] = n1
+    out["sat_first"] = int(np.sum(sat[:n1]))
     out["u_rest_first_V"] = u_rest_rms(u[:n1], rest[:n1])
     out["u_rest_later_V"] = u_rest_rms(u[n1:], rest[n1:]) if e.size > n1 else math.nan
     out["osc_ratio"], out["osc_hz"] = oscillation_ratio(u, rest, ts)

@@ -22,6 +22,8 @@ SAT_FACTOR = 1.5         #: saturated samples ≤ this factor times those of the
 SAT_FLOOR_SHARE = 5e-5   #: on the same run, or of this share of the run if more (10 in 40 s at 5 kHz)
 SAT_ALPHA = 0.05         #: a short run fails on saturation when its count is above this upper quantile of
                          #: a count at the full run's allowed rate (:func:`motorctl.commission.verify.limits`)
+REST_SCREEN_SLACK = 1.1  #: a short run passes the screen with a predicted full-run rest noise up to this factor
+                         #: above the full run's limit (the prediction scatters ~10 %; the best sits at the limit)
 REST_FACTOR = 1.5        #: u RMS at rest ≤ this factor times the configured controller's on the same run
 FULL_PERIODS = 10        #: the confirmation runs this many program periods (the whole program, as run)
 FULL_TRIES = 5           #: candidates (by their short run's L2[e]) confirmed on a full run at 100 %
