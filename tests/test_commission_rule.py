@@ -86,7 +86,8 @@ def test_on_a_rigid_plant_lightly_damped_members_are_admissible(repo):
     admits C2 members below the law's own least ζ (0.3), over a range of ω; with a mode
     (the same axis at 120 Hz) the family stays the law's own."""
     from motorctl.config import config_from_dict
-    section = config_from_dict(load_yaml(repo / "configs" / "gantry-rigid.yaml"), "gantry-rigid.yaml").axes["Y"].controller
+    raw = load_yaml(repo / "configs" / "gantry-rigid.yaml")
+    section = config_from_dict(raw, "gantry-rigid.yaml").axes["Y"].controller
     w = grid_w(TS)
     f = np.linspace(0.0, 2500.0, 257)
     rest_psd = (f, np.full(f.size, 1e-16))

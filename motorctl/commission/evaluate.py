@@ -68,8 +68,8 @@ def run_metrics(log_path: str, loaded: LoadedConfig, axis: str) -> dict:
     program (:meth:`motorctl.recorder.runlog.RunLog.program_rows`: not the approach).
 
     Returns:
-        {"saturated": samples at |u| = u_lim, "sat_dispersion" (:func:`sat_dispersion`), "samples", "u_rest_rms_V" (RMS of u about its
-        mean at rest, :func:`motorctl.metrics.u_rest_rms`; nan with no rest), "period_samples"
+        {"saturated": samples at |u| = u_lim, "sat_dispersion" (:func:`sat_dispersion`),
+        "samples", "u_rest_rms_V" (RMS of u about its mean at rest, :func:`motorctl.metrics.u_rest_rms`; nan with no rest), "period_samples"
         (of one program period), "sat_first" (saturated samples in the first program period),
         "u_rest_first_V" and "u_rest_later_V" (u RMS at rest over the
         first program period and over the others: an adaptive law's first period, θ̂ still

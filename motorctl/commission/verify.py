@@ -13,8 +13,9 @@ from scipy import stats
 from motorctl.commission.choose import design_of, neighbours, shape_of
 from motorctl.commission.evaluate import evaluate
 from motorctl.commission.rule import (FULL_TRIES, NOISE_EXPONENT, NOISE_SLACK, OSC_RATIO, PRUNE_SHARE, REFINE_RUNS,
-                                      REST_FACTOR, REST_SCREEN_SLACK, SAT_ALPHA, SAT_FACTOR, SAT_FLOOR_SHARE, SATURATED, SCALES, SEARCH_BUDGET,
-                                      SEARCH_RUNS, STEP_DOWN, STEP_UP, STEP_UP_MIN, STEP_UP_TRIES, U_REST_FRACTION, WINNER_TRIES)
+                                      REST_FACTOR, REST_SCREEN_SLACK, SAT_ALPHA, SAT_FACTOR, SAT_FLOOR_SHARE,
+                                      SATURATED, SCALES, SEARCH_BUDGET, SEARCH_RUNS, STEP_DOWN, STEP_UP,
+                                      STEP_UP_MIN, STEP_UP_TRIES, U_REST_FRACTION, WINNER_TRIES)
 from motorctl.config import config_from_dict
 from motorctl.control import controller_class
 
@@ -116,8 +117,8 @@ def sat_later(res: dict, ref: dict | None, full_ref: dict | None) -> tuple[int, 
 
 
 def rest_judged(res: dict, full_ref: dict | None = None) -> tuple[float, bool]:
-    """(the u RMS at rest [V] a run is judged by, whether it is a prediction): its own; for a run shorter than the configured
-    controller's full run ``full_ref``, the full run's it predicts: the first program period as
+    """(the u RMS at rest [V] a run is judged by, whether it is a prediction): its own; for a
+    run shorter than the configured controller's full run ``full_ref``, the full run's it predicts: the first program period as
     the full run's first (an adaptive law's θ̂ still moves there, and its rest is noisier:
     rigid Y's C2 61 mV RMS over 8 s, 37 mV over 40 s), the others for the rest of the full
     run's periods, in mean square (then judged against :data:`REST_SCREEN_SLACK` × the full
@@ -311,7 +312,8 @@ class _Verification:
         wins. A candidate whose full run fails on saturation (rest noise) bars those whose short
         run saturated (was noisy at rest, :func:`rest_judged`) as much or more: the short runs
         rank the full runs' counts better than they predict them. When none passes, the best
-        candidate's gains stepped down (:data:`STEP_DOWN`), each with its own three rungs. Returns (L2 of the full run at 100 %, gains, scale, from) or
+        candidate's gains stepped down (:data:`STEP_DOWN`), each with its own three rungs.
+        Returns (L2 of the full run at 100 %, gains, scale, from) or
         None (nothing is written)."""
         pool, seen = [], set()
         cands = sorted(self.found + ([rule_best] if rule_best else []), key=lambda b: b[0])
