@@ -369,7 +369,7 @@ class _Verification:
             l2, g, sc, frm = best
             gu = scaled(self.law, g, step)
             if holds(gu):
-                _, why = self.run(gu, "step up", sc * step)
+                why = self.run(gu, "step up", sc * step)[1] if seconds > self.seconds else ""
                 if not why:
                     res, why = self.run(gu, "step up", sc * step, seconds, ref)
                     if not why and res["L2_um"] < l2 and self._rungs(gu, sc * step, seconds, ref, res):
