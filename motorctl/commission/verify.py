@@ -337,7 +337,7 @@ class _Verification:
             if not why:
                 full.append((res["L2_um"], g, sc, frm, res))
             elif short is not None and "u at rest" in why:
-                bars.append((False, short))
+                bars.append(short)
         for cand in sorted(full, key=lambda b: b[0]):
             if self._rungs(cand[1], cand[2], seconds, ref, cand[4]):
                 return self.climb(cand[:4], seconds, ref)
@@ -548,13 +548,10 @@ class _Verification:
         return min(accepted, key=lambda b: b[0], default=None)
 
 
-def _as_bad(short: dict, bar: tuple, full_ref: dict | None) -> bool:
-    """Whether a short run ``short`` saturated (``bar[0]``; else: was noisy at rest) as much as
-    or more than the short run ``bar[1]`` of a candidate whose full run failed on it."""
-    if bar[0]:
-        worst = bar[1]["saturated"] / bar[1]["samples"]
-        return worst > 0 and short["saturated"] / short["samples"] >= worst
-    return rest_judged(short, full_ref)[0] >= rest_judged(bar[1], full_ref)[0]
+def _as_bad(short: dict, bar: dict, full_ref: dict | None) -> bool:
+    """Whether a short run ``short`` was as noisy at rest (:func:`rest_judged`) as the short run
+    ``bar`` of a candidate whose full run failed on its rest noise, or more."""
+    return rest_judged(short, full_ref)[0] >= rest_judged(bar, full_ref)[0]
 
 
 def _fmt_shape(g: dict) -> str:
