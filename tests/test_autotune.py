@@ -87,7 +87,7 @@ def test_autotune_sim_end_to_end(repo, default_plant):
     # the written gains passed their full run (one program period here) at 100 % and ran at
     # 75 and 50 % without a fault, ringing or noise; a run that failed is never what is written
     for law in ("c2", "pid"):
-        full = [v for v in res["verify"] if v["law"] == law and v["run"].startswith(("confirm", "step down"))]
+        full = [v for v in res["verify"] if v["law"] == law and v["run"].startswith(("confirm", "step down", "step up"))]
         top = [v for v in full if v["verdict"] == "ok" and v["L2_um"] == res["chosen_by"][law]["L2_um"]]
         assert top and abs(top[0]["scale"] - res["chosen_by"][law]["scale"]) < 1e-9, (law, full)
         below = {round(v["scale"] / top[0]["scale"], 3): v for v in full[full.index(top[0]) + 1:]}

@@ -31,7 +31,9 @@ Steps (any driver; the simulated one by default):
 3. **choose** (:func:`~motorctl.commission.choose.choose_gains`), ONE rule for every law, on the *measured* FRF:
    among each law's family (PID: P = θ1 ω², D = 2ζωθ1, I = P ω/r; C1/C2: k_s = 2ζωθ1,
    k1 = ω/(2ζ), γ_d of the config; ω on a log grid of 49 points from 30 to 3000 rad/s,
-   ζ ∈ {0.3, 0.4, 0.5, 0.7, 1}, r ∈ {3, 5, 7, 10}; θ1 the fitted one), the *admissible* gains
+   ζ ∈ {0.3, 0.4, 0.5, 0.7, 1}, r ∈ {3, 5, 7, 10, 15, 20, 30, 50}; θ1 the fitted one; the rule
+   reads the plant: when the fit keeps no structural mode, ζ ∈ :data:`ZETA_RIGID` too,
+   :func:`~motorctl.commission.choose.family_zetas`), the *admissible* gains
    are those with gain margin ≥ 6 dB, phase margin ≥ 10° and peak sensitivity ≤ 16 dB at 100,
    75 and 50 % of their loop gain (the verification ladder; a lighter loop gain is also what
    a heavier load does; the back-off steps 35 and 25 % are tried only where they hold too).
@@ -54,8 +56,14 @@ Steps (any driver; the simulated one by default):
    :data:`REST_FACTOR` times the configured controller's, or oscillation (a spectral line in
    u at rest ≥ :data:`OSC_RATIO` times the median of its spectrum, or the error spectrum ≥
    :data:`OSC_RATIO` times the configured controller's at some frequency) fails a run.
-   Steps a.-c. screen on short runs (``verify_s``, two program periods); e. decides on full
-   ones.
+   Steps a.-c. screen on short runs (``verify_s``, two program periods); e. and f. decide on
+   full ones. A short run is judged as the full run it stands for
+   (:func:`~motorctl.commission.verify.limits`, :func:`~motorctl.commission.verify.rest_judged`):
+   its saturated samples against the full run's allowed rate (it fails only above the 95 %
+   quantile of a quasi-Poisson count at that rate, with the run's own dispersion of
+   saturation episodes), its rest noise as the full run's it predicts (its first program
+   period for the full run's first, the other for the remaining ones) against the full
+   run's limit.
 
    a. *ladder* on the first candidate: 50 %, 75 %, 100 % of its loop gain (PID: P, I, D;
       C1/C2: k_s), a rung between two on a failure (when 50 % fails: 35 %, then 25 %).
@@ -86,6 +94,9 @@ Steps (any driver; the simulated one by default):
       then those that passed, by their full L2[e], at 75 % and 50 %; the first that passes
       all three is written. When none does, the best candidate stepped down
       (:data:`STEP_DOWN`), each with its three rungs; nothing that failed is ever written.
+   f. *step up* from the confirmed gains: × :data:`STEP_UP` in turn where the margins hold at
+      100, 75 and 50 % of the raised gains, each screened on a short run and confirmed as in
+      e.; the first step that fails or does not lower L2[e] ends it.
 
 5. **write** (:func:`write_config`, :func:`plot_bode`): ``DIR/autotuned.yaml`` (the gains,
    commented with the margins that chose them) and ``DIR/bode_<A>.png``.
@@ -100,7 +111,7 @@ import math
 import numpy as np
 import yaml
 
-from motorctl.commission.choose import choose_gains, loop_frf, tunable_laws
+from motorctl.commission.choose import choose_gains, family_zetas, loop_frf, tunable_laws
 from motorctl.commission.evaluate import evaluate
 from motorctl.commission.fit import fit_plant
 from motorctl.commission.loopshape import c_frf, loop_margins
@@ -179,7 +190,8 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
                          f"{r_['saturated']} saturated samples, u at rest {r_['u_rest_rms_V'] * 1e3:.0f} mV")
     choice, ver, gains, extra = {}, {}, {}, {}
     for law in (laws or tunable_laws(sec)):
-        ch_ = choose_gains(law, G_w, w, ts, model["theta1"], sec, meas["rest_psd"], th, rule)
+        ch_ = choose_gains(law, G_w, w, ts, model["theta1"], sec, meas["rest_psd"], th, rule,
+                           family_zetas(law, model))
         choice[law] = ch_
         if ch_ is None:
             continue

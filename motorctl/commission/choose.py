@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from motorctl.commission.loopshape import loop_margins, plant_model_frf
-from motorctl.commission.rule import BACKOFF, COH_USED, F_TRACK_HZ, RULE, Rule, SCALES
+from motorctl.commission.rule import BACKOFF, COH_USED, F_TRACK_HZ, RULE, Rule, SCALES, ZETA_RIGID
 from motorctl.control import configured_controllers, controller_class
 
 
@@ -44,6 +44,21 @@ def margins_hold(law: str, g: dict, ts: float, w: np.ndarray, G_w: np.ndarray, t
     mg = loop_margins(L, f)
     ok = rule.holds(mg) and all(rule.holds(loop_margins(sc * L, f)) for sc in SCALES[:-1])
     return mg, ok
+
+
+def family_zetas(law: str, model: dict) -> tuple[float, ...] | None:
+    """The damping ratios ζ of ``law``'s family on the fitted plant ``model``
+    (:func:`motorctl.commission.fit.fit_plant`): the law's own (None) when the fit kept a
+    structural mode; when it kept none (a rigid plant), the law's own and :data:`ZETA_RIGID`
+    too. With a lightly damped mode the law's own ζ stay (on configs/gantry.yaml autotune comes
+    within 15 % of an independent search with them); without one only the delay and the
+    current loop limit the loop, and a lightly damped design pole pair at a higher ω (less D for the same P: less
+    rest noise, less saturation) can be the best the program allows (on
+    configs/gantry-rigid.yaml an independent search's best C1/C2 gains sit at ζ 0.17-0.26).
+    The margins on the measured response still decide which members are admissible."""
+    if model.get("mode", True):
+        return None
+    return tuple(sorted(set(ZETA_RIGID) | set(controller_class(law).ZETA)))
 
 
 def tunable_laws(section) -> list[str]:
@@ -111,9 +126,10 @@ def grid_w(ts: float) -> np.ndarray:
 
 
 def choose_gains(law: str, G_w, w: np.ndarray, ts: float, theta1: float, section, rest_psd,
-                 theta_hat=None, rule: Rule = RULE) -> dict | None:
+                 theta_hat=None, rule: Rule = RULE, zetas=None) -> dict | None:
     """Step 3 for one law on the plant FRF ``G_w`` (K,) at ``w`` (K,) [rad/s]: the family
-    members whose margins hold at every step of the verification ladder.
+    members whose margins hold at every step of the verification ladder (``zetas``: the
+    family's damping ratios, :func:`family_zetas`; None: the law's own).
 
     Returns:
         None when no candidate passes, else {"gains" (the highest |L| at F_TRACK_HZ),
@@ -129,7 +145,9 @@ def choose_gains(law: str, G_w, w: np.ndarray, ts: float, theta1: float, section
     wn = 2.0 * math.pi * rest_psd[0]
     best, n_ok, adm, members, l_track, grid = None, 0, {}, {}, {}, {}
     j_tr = int(np.argmin(np.abs(f - F_TRACK_HZ)))
-    for g in cls.gain_family(theta1, section.settings(law), OMEGA):
+    fam = (cls.gain_family(theta1, section.settings(law), OMEGA) if zetas is None else
+           cls.gain_family(theta1, section.settings(law), OMEGA, zetas=zetas))
+    for g in fam:
         for k, v in design_of(g):
             grid.setdefault(k, set()).add(v)
         mg, ok = margins_hold(law, g, ts, w, G_w, theta_hat, rule)

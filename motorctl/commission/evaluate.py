@@ -52,13 +52,28 @@ def e_segment(n: int) -> int:
     return seg
 
 
+def sat_dispersion(sat: np.ndarray) -> float:
+    """The dispersion of a saturated-sample count: Σc²/Σc over the run's saturation episodes
+    (c: the lengths of the runs of consecutive saturated samples; 1.0 when there is none).
+    Saturation comes in episodes, not single samples, so a count varies between windows about
+    this many times more than a Poisson count of the same mean: the count / this is nearly
+    Poisson (the quasi-Poisson approximation of a compound Poisson count). sat: (N,) bool."""
+    edges = np.diff(np.concatenate([[0], sat.astype(np.int8), [0]]))
+    c = (np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)).astype(float)
+    return float(np.sum(c * c) / np.sum(c)) if c.size else 1.0
+
+
 def run_metrics(log_path: str, loaded: LoadedConfig, axis: str) -> dict:
     """The commissioning's figures of one axis from a run log, over its enabled cycles of the
     program (:meth:`motorctl.recorder.runlog.RunLog.program_rows`: not the approach).
 
     Returns:
-        {"saturated": samples at |u| = u_lim, "samples", "u_rest_rms_V" (RMS of u about its
-        mean at rest, :func:`motorctl.metrics.u_rest_rms`; nan with no rest), "osc_ratio",
+        {"saturated": samples at |u| = u_lim, "sat_dispersion" (:func:`sat_dispersion`),
+        "samples", "u_rest_rms_V" (RMS of u about its mean at rest, :func:`motorctl.metrics.u_rest_rms`; nan with no rest), "period_samples"
+        (of one program period), "sat_first" (saturated samples in the first program period),
+        "u_rest_first_V" and "u_rest_later_V" (u RMS at rest over the
+        first program period and over the others: an adaptive law's first period, θ̂ still
+        moving, is noisier; nan with none), "osc_ratio",
         "osc_hz" (:func:`oscillation_ratio`), "e_psd": (f (M,) [Hz], S_ee (M,) [m²/Hz])}.
     Raises:
         LogError: the log cannot be read. KeyError: the axis is not in it.
@@ -73,8 +88,14 @@ def run_metrics(log_path: str, loaded: LoadedConfig, axis: str) -> dict:
     ts = loaded.period_s
     rest = rest_mask(a["xd_dot"][on], a["xd_ddot"][on], ts, REST_AFTER_S)
     u_lim = loaded.axes[axis].controller.u_lim
-    out = {"saturated": int(np.sum(np.abs(u) >= u_lim * (1.0 - 1e-12))), "samples": int(e.size),
+    sat = np.abs(u) >= u_lim * (1.0 - 1e-12)
+    out = {"saturated": int(np.sum(sat)), "sat_dispersion": sat_dispersion(sat), "samples": int(e.size),
            "u_rest_rms_V": u_rest_rms(u, rest)}
+    n1 = int(round(loaded.axes[axis].trajectory.period_s / ts)) or e.size
+    out["period_samples"] = n1
+    out["sat_first"] = int(np.sum(sat[:n1]))
+    out["u_rest_first_V"] = u_rest_rms(u[:n1], rest[:n1])
+    out["u_rest_later_V"] = u_rest_rms(u[n1:], rest[n1:]) if e.size > n1 else math.nan
     out["osc_ratio"], out["osc_hz"] = oscillation_ratio(u, rest, ts)
     out["e_psd"] = signal.welch(e, fs=1.0 / ts, nperseg=e_segment(e.size), detrend="linear")
     return out

@@ -15,13 +15,22 @@ COH_USED = 0.5           #: the rule takes the measured FRF at lines of at least
 F_TRACK_HZ = 5.0         #: where the tracking error lives (the programs' moves last ~0.5 s) [Hz]; at 2 Hz
                          #: |L| was the integral action's, and the rule ranked last the PID shapes of weak
                          #: integral that the fitted friction feed-forward allows (Y: 1.045 um against 0.785)
+ZETA_RIGID = (0.15, 0.2, 0.25)   #: damping ratios the family adds on a plant the fit finds no mode in
+                                 #: (:func:`motorctl.commission.choose.family_zetas`)
 U_REST_FRACTION = 0.02   #: u RMS at rest ≤ this share of u_lim without a reference run (0.2 V at 10 V)
 SAT_FACTOR = 1.5         #: saturated samples ≤ this factor times those of the configured controller
 SAT_FLOOR_SHARE = 5e-5   #: on the same run, or of this share of the run if more (10 in 40 s at 5 kHz)
+SAT_ALPHA = 0.05         #: a short run fails on saturation when its count is above this upper quantile of
+                         #: a count at the full run's allowed rate (:func:`motorctl.commission.verify.limits`)
+REST_SCREEN_SLACK = 1.1  #: a short run passes the screen with a predicted full-run rest noise up to this factor
+                         #: above the full run's limit (the prediction scatters ~10 %; the best sits at the limit)
 REST_FACTOR = 1.5        #: u RMS at rest ≤ this factor times the configured controller's on the same run
 FULL_PERIODS = 10        #: the confirmation runs this many program periods (the whole program, as run)
-FULL_TRIES = 4           #: candidates (by their short run's L2[e]) confirmed on a full run at 100 %
-STEP_DOWN = (0.75, 0.5, 0.35)   #: the best candidate's steps down when no candidate is confirmed
+FULL_TRIES = 5           #: candidates (by their short run's L2[e]) confirmed on a full run at 100 %
+STEP_DOWN = (0.75, 0.65, 0.55, 0.5, 0.35)   #: the best candidate's steps down (below or instead of the confirmed)
+STEP_UP = 1.25          #: the confirmed gains' step up where the margins allow; halved (in log) after a
+STEP_UP_MIN = 1.05      #: failed step, down to this factor (:meth:`motorctl.commission.verify._Verification.climb`)
+STEP_UP_TRIES = 3       #: steps up tried, at most
 OSC_RATIO = 100.0        #: oscillation: a line in u at rest this far above its spectrum's median,
                          #: or e's spectrum this far above the configured controller's
 SCALES = (0.5, 0.75, 1.0)  #: verification ladder (share of the chosen loop gain)

@@ -70,6 +70,8 @@ class Controller(abc.ABC):
     own_signals: ClassVar[dict[str, str]] = {}
     #: the settings keys autotune writes (those :meth:`gain_family` sets)
     tuned_keys: ClassVar[tuple[str, ...]] = ()
+    #: the damping ratios ζ of :meth:`gain_family`'s design pole pair when autotune states none
+    ZETA: ClassVar[tuple[float, ...]] = ()
     preview_s: float = 0.0
 
     def __init__(self, ts: float, u_lim: float, n_theta: int = 0):
@@ -120,10 +122,12 @@ class Controller(abc.ABC):
         raise NotImplementedError(f"controller {cls.name!r} has no linearisation")
 
     @classmethod
-    def gain_family(cls, theta1: float, settings, omegas) -> list[dict]:
+    def gain_family(cls, theta1: float, settings, omegas, zetas=None) -> list[dict]:
         """Autotune's candidates: settings key -> value dicts (with the design numbers under
         keys that start with '_'), from the fitted θ1 = M/A1 [V s²/m], one or more per design
-        pole ω in ``omegas`` [rad/s]. Default: none (autotune leaves the law as configured)."""
+        pole ω in ``omegas`` [rad/s] and damping ratio in ``zetas`` (None: :attr:`ZETA`; the
+        rule widens it on a plant without a structural mode). Default: none (autotune leaves
+        the law as configured)."""
         return []
 
     @classmethod

@@ -217,12 +217,13 @@ class PID(Controller):
         return gains["P"] + gains["I"] * ts / (1.0 - z1) + gains["D"] * (1.0 - z1) / ts
 
     @classmethod
-    def gain_family(cls, theta1, settings, omegas):
-        """P = θ1 ω², D = 2 ζ ω θ1, I = P ω / r for ω in ``omegas`` [rad/s], ζ in :attr:`ZETA`,
+    def gain_family(cls, theta1, settings, omegas, zetas=None):
+        """P = θ1 ω², D = 2 ζ ω θ1, I = P ω / r for ω in ``omegas`` [rad/s], ζ in ``zetas``
+        (None: :attr:`ZETA`),
         r in :attr:`R_INT`; the integral clamp maxerror_i = 1 V / I."""
         out = []
         for w in omegas:
-            for z in cls.ZETA:
+            for z in (zetas or cls.ZETA):
                 for r in cls.R_INT:
                     p = theta1 * w * w
                     out.append({"P": p, "I": p * w / r, "D": 2.0 * z * w * theta1,
