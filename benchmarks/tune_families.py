@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import math
 import multiprocessing
 import os
 import re
@@ -115,7 +116,9 @@ def size_for(name: str, fam, out: Path, duration_s: float, floor_log: Path, axis
              trajectory: dict | None = None, base=None):
     """The smallest size on the ladder example × STEP^n (n from −12 to 12: ×1/16 … ×16) at which C2
     alone is ≥ MIN_DAMAGE_RATIO × the floor in L2[e] over the compared periods (C2-alone runs
-    only): up from the example while below, down from it while the next smaller size still is.
+    only): up from the example while below, down from it while the next smaller size still is;
+    a size at which C2 alone faults (the oscillation protection trips before one program period)
+    counts as too large, and the next smaller one is taken even below the ratio.
 
     Returns:
         (scale, fragment, L2_before / L2_floor at that size).
@@ -129,7 +132,10 @@ def size_for(name: str, fam, out: Path, duration_s: float, floor_log: Path, axis
         log.parent.mkdir(parents=True, exist_ok=True)
         make_log(str(log), fragment, duration_s=duration_s, seed=1, axis=axis, noise_N=_noise(base),
                  trajectory=trajectory, base=base)
-        return compare_logs(str(floor_log), str(log), [axis])["axes"][axis]["ratio"]["L2_um"], fragment, can_scale
+        try:
+            return compare_logs(str(floor_log), str(log), [axis])["axes"][axis]["ratio"]["L2_um"], fragment, can_scale
+        except ValueError:      # C2 alone faulted (oscillation at rest) before one program period
+            return math.inf, fragment, can_scale
 
     n = 0
     r, fragment, can_scale = ratio(n)
@@ -138,7 +144,7 @@ def size_for(name: str, fam, out: Path, duration_s: float, floor_log: Path, axis
     if r >= MIN_DAMAGE_RATIO:
         while n > -MAX_STEPS:
             r2, f2, _ = ratio(n - 1)
-            if r2 < MIN_DAMAGE_RATIO:
+            if r2 < MIN_DAMAGE_RATIO and math.isfinite(r):
                 break
             n, r, fragment = n - 1, r2, f2
     else:

@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 from motorctl.ident import effects as fx
-from motorctl.ident.select import MAX_EFFECTS, Identifier
+from motorctl.ident.select import MAX_EFFECTS, Identifier, refused_on_physics
 from motorctl.ident.verdict import residual_verdict
 from motorctl.model import THETA_NAMES
 from motorctl.recorder.runlog import LogError
@@ -98,27 +98,11 @@ def summarise(idf: Identifier) -> dict:
     return out
 
 
-#: a candidate of the last selection step that explains at least this share of the held-out
-#: residual and is refused only on its physics is reported as an unexplained structure
-REFUSED_GAIN = 0.06
-#: reasons that say a candidate explains too little, not that its physics does not fit
-_WEAK = ("coefficients not significant", "too small to name", "held-out gain", "BIC drop", "effect larger than")
-
-
-def refused_on_physics(c) -> bool:
-    """A candidate (:class:`~motorctl.ident.select.Evaluated`) that explains at least
-    :data:`REFUSED_GAIN` of the held-out residual and was refused only because its physics does
-    not fit (no reason of :data:`_WEAK`)."""
-    if c.ok or getattr(c, "gain", 0.0) < REFUSED_GAIN or not c.reasons:
-        return False
-    return not any(r.startswith(_WEAK) for r in c.reasons)
-
-
 def add_refused(verdict: dict, last_step: list, chosen: list) -> None:
     """Add to the residual verdict (:func:`motorctl.ident.verdict.residual_verdict`) the
     candidates of the last selection step that explain a share of the held-out residual
-    (≥ :data:`REFUSED_GAIN`) with significant coefficients and were refused only because
-    their physics does not fit (a line the loop itself oscillates at, a periodic force not the
+    (≥ :data:`~motorctl.ident.select.REFUSED_GAIN`) with significant coefficients and were
+    refused only because their physics does not fit (a line the loop itself oscillates at, a periodic force not the
     same both ways): the residual has a structure there that no family models. Each goes to
     ``findings`` (against "family", the family's columns, the reasons), ``structured`` becomes
     true and the text names them."""

@@ -765,8 +765,7 @@ class Identifier:
         """The residual of ``current`` (the model of ``terms``) keeps a structure no family
         explains: the residual verdict (:func:`motorctl.ident.verdict.residual_verdict`) or a
         candidate of ``last_step`` refused on its physics only
-        (:func:`motorctl.ident.pipeline.refused_on_physics`)."""
-        from motorctl.ident.pipeline import refused_on_physics
+        (:func:`refused_on_physics`)."""
         from motorctl.ident.verdict import residual_verdict
         at_rest = next((t.family for t in terms if effect_family(t.family).acts_at_rest), None)
         if residual_verdict(current.fit.residual, self.p, at_rest_by=at_rest)["structured"]:
@@ -929,3 +928,19 @@ def _coef(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
         return np.linalg.solve(a.T @ a, a.T @ y) / sc
     except np.linalg.LinAlgError:
         return np.linalg.lstsq(phi, y, rcond=None)[0]
+
+
+#: a candidate of the last selection step that explains at least this share of the held-out
+#: residual and is refused only on its physics is reported as an unexplained structure
+REFUSED_GAIN = 0.06
+#: reasons that say a candidate explains too little, not that its physics does not fit
+_WEAK = ("coefficients not significant", "too small to name", "held-out gain", "BIC drop", "effect larger than")
+
+
+def refused_on_physics(c) -> bool:
+    """A candidate (:class:`~motorctl.ident.select.Evaluated`) that explains at least
+    :data:`REFUSED_GAIN` of the held-out residual and was refused only because its physics does
+    not fit (no reason of :data:`_WEAK`)."""
+    if c.ok or getattr(c, "gain", 0.0) < REFUSED_GAIN or not c.reasons:
+        return False
+    return not any(r.startswith(_WEAK) for r in c.reasons)
