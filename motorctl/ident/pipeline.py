@@ -102,8 +102,9 @@ def add_refused(verdict: dict, last_step: list, chosen: list) -> None:
     """Add to the residual verdict (:func:`motorctl.ident.verdict.residual_verdict`) the
     candidates of the last selection step that explain a share of the held-out residual
     (≥ :data:`~motorctl.ident.select.REFUSED_GAIN`) with significant coefficients and were
-    refused only because their physics does not fit (a line the loop itself oscillates at, a periodic force not the
-    same both ways): the residual has a structure there that no family models. Each goes to
+    refused only because their physics does not fit (a line the loop itself oscillates at, a
+    periodic force not the same both ways): the residual has a structure there that no family
+    models. Each goes to
     ``findings`` (against "family", the family's columns, the reasons), ``structured`` becomes
     true and the text names them."""
     extra = []
