@@ -49,14 +49,6 @@ def test_a_sine_in_time_decimates_to_the_gain_times_the_sine(record):
     assert p.dec_gain(np.array([20.0, 400.0])).shape == (2,) and p.dec_gain(400.0) < 1e-6
 
 
-def test_the_decimated_position_is_the_carriages(record):
-    """x_d is a position (a period's phase, a knot): the decimation's 0 Hz gain (0.977 at a
-    factor of 20) taken out; the 32 mm cogging's periodogram peak was at 31.3 mm with it."""
-    p = Identifier(record).p
-    x_at = np.interp(p.t_d, p.t, p.x)
-    assert np.max(np.abs(p.x_d - x_at)) < 1e-3 * np.ptp(p.x)
-
-
 def test_sse_from_the_cached_base_is_the_joint_fit(record):
     idf = Identifier(record)
     stiction = idf.term("stiction", 5e-4)            # weighs the other terms' columns

@@ -112,8 +112,7 @@ class Prepared:
             ms), evaluated before the parallel decimation filters it. On ``v`` (ω_fq) the hump
             is blurred in time and the fit widens it: v_s 0.0279 for 0.02 m/s on the default
             plant, 0.0228 on ``v_wide``.
-        t_d, x_d, v_d, a_d, u_d: the decimated versions (M,) over ``keep``; x_d divided by the
-            decimation's gain at 0 Hz (a position [m], not a regression column).
+        t_d, x_d, v_d, a_d, u_d: the decimated versions (M,) over ``keep``.
     """
 
     t: np.ndarray
@@ -178,11 +177,6 @@ def prepare(t, y, u, fq: float | None = None, nd: int | None = None) -> Prepared
     p.t_d = t[::nd][keep]
     dec = p.dec(np.column_stack([x, v, acc, u]))
     p.x_d, p.v_d, p.a_d, p.u_d = dec.T
-    # The decimation's gain at 0 Hz is the Chebyshev I passband's (0.05 dB ripple, even order:
-    # 10^(-0.05/20) per pass, two passes per stage): 0.977 at a factor of 20. The regression
-    # columns and the input share it, so the fit does not see it; the position as an argument
-    # (a period's phase 2πx/P, a spline's knots, the stroke) must be the carriage's own.
-    p.x_d = p.x_d / p.dec_gain(0.0)
     return p
 
 
