@@ -16,7 +16,6 @@ import numpy as np
 
 from motorctl.ident import effects as fx
 from motorctl.ident.select import MAX_EFFECTS, Identifier, refused_on_physics
-from motorctl.ident.verdict import residual_verdict
 from motorctl.model import THETA_NAMES
 from motorctl.recorder.runlog import LogError
 
@@ -92,8 +91,7 @@ def summarise(idf: Identifier) -> dict:
     # passed in the last step but not taken, when the effect limit ended the selection
     out["cut_by_limit"] = ([c.term.family for c in idf.steps[-1] if c.ok and not any(c is e for e in chosen)]
                            if idf.steps and len(idf.terms) >= MAX_EFFECTS else [])
-    at_rest = next((t.family for t in idf.terms if fx.FAMILIES[t.family].acts_at_rest), None)
-    out["residual"] = residual_verdict(idf.final.fit.residual, idf.p, g, unit, at_rest_by=at_rest)
+    out["residual"] = idf.verdict(idf.final, idf.terms, g, unit)
     add_refused(out["residual"], idf.steps[-1] if idf.steps else [], chosen)
     return out
 

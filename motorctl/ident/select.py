@@ -49,6 +49,7 @@ from motorctl.effects.base import EffectFamily
 from motorctl.effects.input_delay import HOLD_TOLERANCE
 from motorctl.ident.data import Record
 from motorctl.ident.idim import Prepared, choose_n_theta, ls, prepare
+from motorctl.ident.verdict import residual_verdict
 from motorctl.model import f_u, s_f
 
 BLOCK_S = 0.25
@@ -761,14 +762,18 @@ class Identifier:
             current = self.evaluate(base) if base else self.evaluate([])
         return base, accepted, current, dropped
 
+    def verdict(self, current: Evaluated, terms: list, gain: float = 1.0, unit: str = "V") -> dict:
+        """The residual verdict (:func:`motorctl.ident.verdict.residual_verdict`) of ``current``,
+        the model of ``terms``: the first of them whose family holds the carriage at rest
+        (``acts_at_rest``) explains what is left there."""
+        at_rest = next((t.family for t in terms if effect_family(t.family).acts_at_rest), None)
+        return residual_verdict(current.fit.residual, self.p, gain, unit, at_rest_by=at_rest)
+
     def unexplained(self, current: Evaluated, terms: list, last_step: list) -> bool:
         """The residual of ``current`` (the model of ``terms``) keeps a structure no family
-        explains: the residual verdict (:func:`motorctl.ident.verdict.residual_verdict`) or a
-        candidate of ``last_step`` refused on its physics only
-        (:func:`refused_on_physics`)."""
-        from motorctl.ident.verdict import residual_verdict
-        at_rest = next((t.family for t in terms if effect_family(t.family).acts_at_rest), None)
-        if residual_verdict(current.fit.residual, self.p, at_rest_by=at_rest)["structured"]:
+        explains: the residual verdict (:meth:`verdict`) or a candidate of ``last_step`` refused
+        on its physics only (:func:`refused_on_physics`)."""
+        if self.verdict(current, terms)["structured"]:
             return True
         return any(refused_on_physics(c) for c in last_step if not any(c.term is t for t in terms))
 
