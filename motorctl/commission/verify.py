@@ -328,7 +328,7 @@ class _Verification:
             if key not in seen:
                 seen.add(key)
                 pool.append(c)
-        full, bars, tries, full_l2 = [], [], 0, {}
+        full, bars, tries, first_l2 = [], [], 0, math.inf
         holds = self.choice.get("holds", lambda g: True)
         pool = [c for c in pool if holds(c[1])]      # the margins at 100/75/50 % of the gains written
         for l2, g, sc, frm in pool:
@@ -339,7 +339,8 @@ class _Verification:
                 continue
             tries += 1
             res, why = self.run(g, "confirm", sc, seconds, ref)
-            full_l2[id(g)] = res["L2_um"]
+            if g is pool[0][1]:
+                first_l2 = res["L2_um"]          # the full run of the candidate stepped down below
             if not why:
                 full.append((res["L2_um"], g, sc, frm, res))
             elif short is not None and "u at rest" in why:
@@ -356,7 +357,7 @@ class _Verification:
             # the tracking error grows about as 1/loop gain: a step whose full-run L2 at 100 %
             # divided by the step reaches the winner's cannot beat it (gantry X C2: 0.966 µm
             # at 100 %, 1.286 µm at 75 %, 1.195 µm at 65 %)
-            if won is not None and full_l2.get(id(g), math.inf) / step >= won[0]:
+            if won is not None and first_l2 / step >= won[0]:
                 break
             gs = scaled(self.law, g, step)
             if not holds(gs):
@@ -416,8 +417,9 @@ class _Verification:
     def calibrate_on_rule(self) -> None:
         """The first calibration point: the ladder's run whose noise most exceeds its prediction."""
         pred = self.choice["u_rest_pred_V"]
-        pts = [(sc * pred, rest_judged(res, self.full_ref)[0]) for _, sc, res, _ in self.runs
-               if not res["fault"] and rest_judged(res, self.full_ref)[0] > 0 and pred > 0]
+        pts = [(sc * pred, rest) for sc, rest in ((sc, rest_judged(res, self.full_ref)[0])
+                                                  for _, sc, res, _ in self.runs if not res["fault"])
+               if rest > 0 and pred > 0]
         self.last = [max(pts, key=lambda x: x[1] / x[0])] if pts else []
 
     def noise_of(self, g) -> float:

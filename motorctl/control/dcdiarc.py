@@ -471,8 +471,8 @@ class DCDIARC(Controller):
     @classmethod
     def gain_family(cls, theta1, settings, omegas, zetas=None):
         """k_s = 2 ζ ω θ1, k1 = ω / (2 ζ) for ω in ``omegas`` [rad/s], ζ in ``zetas`` (None:
-        :attr:`ZETA`), γ_d of
-        the settings (the robust part's pole pair at ω with damping ζ on the rigid model)."""
+        :attr:`ZETA`), γ_d of the settings (the robust part's pole pair at ω with damping ζ on
+        the rigid model)."""
         return [{"k_s": 2.0 * z * w * theta1, "k1": w / (2.0 * z), "gamma_d": float(settings.gamma_d),
                  "_w": w, "_zeta": z} for w in omegas for z in (zetas or cls.ZETA)]
 

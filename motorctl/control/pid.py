@@ -219,8 +219,7 @@ class PID(Controller):
     @classmethod
     def gain_family(cls, theta1, settings, omegas, zetas=None):
         """P = θ1 ω², D = 2 ζ ω θ1, I = P ω / r for ω in ``omegas`` [rad/s], ζ in ``zetas``
-        (None: :attr:`ZETA`),
-        r in :attr:`R_INT`; the integral clamp maxerror_i = 1 V / I."""
+        (None: :attr:`ZETA`), r in :attr:`R_INT`; the integral clamp maxerror_i = 1 V / I."""
         out = []
         for w in omegas:
             for z in (zetas or cls.ZETA):
