@@ -8,7 +8,8 @@ import math
 import numpy as np
 
 from motorctl.commission.loopshape import loop_margins, plant_model_frf
-from motorctl.commission.rule import BACKOFF, COH_USED, F_TRACK_HZ, RULE, Rule, SCALES, ZETA_RIGID
+from motorctl.commission.rule import (BACKOFF, COH_USED, EDGE_SPAN, EDGE_TOL, F_TRACK_HZ, RULE, Rule, SCALES,
+                                      ZETA_RIGID)
 from motorctl.control import configured_controllers, controller_class
 
 
@@ -112,6 +113,35 @@ def neighbours(g: dict, grid: dict, members: dict) -> list[dict]:
     return out
 
 
+def edge_member(make, holds, g: dict, u: float = 1.0) -> dict | None:
+    """The family member with ``u`` times the damping gain of ``g`` (C1/C2: k_s = 2ζωθ1; PID:
+    D, the same number) and the highest stiffness the margins allow (C1/C2: k1 = ω/2ζ; PID:
+    P = θ1ω², the same r): the design (ω√u·s, ζ√u/s) with the largest s in [1/EDGE_SPAN,
+    EDGE_SPAN] whose margins hold (``holds``), bracketed in log s to :data:`EDGE_TOL`;
+    ``make(g, ω, ζ)``: the member of ``g``'s other design numbers at (ω, ζ) (off the family's
+    grid). None when no s holds (on a scan of 13 points) or the edge is ``g`` itself.
+
+    At a fixed damping gain a stiffer loop tracks better, and on a carriage held by stiction
+    it is quieter at rest too (configs/gantry-rigid.yaml Y, C1 at k_s 132.5, 40 s runs: k1
+    1200 0.758 µm and 59 mV, 1630 0.563 µm and 53 mV, 2200 0.417 µm and 47 mV): the margins
+    bound it (the least ζ they allow at that ω lies between the family's damping ratios)."""
+    w0, z0 = g["_w"] * math.sqrt(u), g["_zeta"] * math.sqrt(u)
+    scan = np.geomspace(1.0 / EDGE_SPAN, EDGE_SPAN, 13)
+    ok = [s for s in scan if holds(make(g, w0 * s, z0 / s))]
+    if not ok:
+        return None
+    lo = max(ok)
+    hi = next((s for s in scan if s > lo), None)
+    while hi is not None and math.log(hi / lo) > EDGE_TOL:
+        s = math.sqrt(lo * hi)
+        if holds(make(g, w0 * s, z0 / s)):
+            lo = s
+        else:
+            hi = s
+    m = make(g, w0 * lo, z0 / lo)
+    return None if u == 1.0 and lo < 1.0 + EDGE_TOL else m
+
+
 def rest_noise(C: np.ndarray, rest_psd) -> float:
     """Predicted u RMS at rest [V]: the measured rest spectrum of y [m²/Hz] through |C| (a
     carriage held by stiction: the loop is open). C: C(e^{jωTs}) at the PSD's frequencies."""
@@ -138,7 +168,8 @@ def choose_gains(law: str, G_w, w: np.ndarray, ts: float, theta1: float, section
         "members": {:func:`design_of`: gains} (the same candidates, by their place in the
         family), "grid": {design key: sorted values over the whole family},
         "l_track": {:func:`design_of`: |L| at F_TRACK_HZ}, "holds": gains -> whether the margins
-        hold at 100, 75 and 50 % of those gains (a stepped-down candidate's own ladder)}.
+        hold at 100, 75 and 50 % of those gains (a stepped-down candidate's own ladder),
+        "edge": (gains, u=1) -> :func:`edge_member` (off the grid) or None}.
     """
     cls = controller_class(law)
     f = w / (2.0 * math.pi)
@@ -169,7 +200,20 @@ def choose_gains(law: str, G_w, w: np.ndarray, ts: float, theta1: float, section
     backoff = [b for b in BACKOFF if rule.holds(loop_margins(b * L, f))]
     for v in adm.values():
         v.sort(key=lambda g: -g["_w"])
+    settings = section.settings(law)
+
+    def make(like: dict, w_: float, z_: float) -> dict:
+        """The member of ``like``'s other design numbers at (ω, ζ), its predicted rest noise
+        and |L| at F_TRACK_HZ (in "l_track") noted."""
+        g = next(m for m in cls.gain_family(theta1, settings, (w_,), zetas=(z_,))
+                 if all(m.get(k) == v for k, v in shape_of(like) if k != "_zeta"))
+        g["_rest_V"] = rest_noise(cls.linearise(g, ts, np.maximum(wn, 1e-9), theta_hat), rest_psd)
+        l_track[design_of(g)] = float(abs(cls.linearise(g, ts, w[j_tr:j_tr + 1], theta_hat)[0] * G_w[j_tr]))
+        return g
+
+    def holds(g: dict) -> bool:
+        return margins_hold(law, g, ts, w, G_w, theta_hat, rule)[1]
     return {"gains": best[1], "margins": best[2], "u_rest_pred_V": best[3], "candidates": n_ok,
             "backoff": backoff, "admissible": adm, "members": members, "l_track": l_track,
             "grid": {k: sorted(v) for k, v in grid.items()},
-            "holds": lambda g: margins_hold(law, g, ts, w, G_w, theta_hat, rule)[1]}
+            "holds": holds, "edge": lambda g, u=1.0: edge_member(make, holds, g, u)}

@@ -44,6 +44,11 @@ NOISE_SLACK = 1.1        #: the search still runs gains whose calibrated rest-no
                          #: up to this factor above the level (the run judges; the prediction
                          #: grows ~6 % per ω step and the best often sits at the level itself)
 REFINE_RUNS = 6          #: runs of the local refinement around the search's best, at most
+RIDGE_RUNS = 5           #: runs of the walk along the margin edge from the search's best, at most
+RIDGE_SPAN = 1.6         #: the walk's next point: up to this factor on the damping gain (C1/C2: k_s; PID: D)
+RIDGE_POINTS = 9         #: ... among this many (:meth:`motorctl.commission.verify._Verification.ridge`)
+EDGE_TOL = 0.01          #: the margin edge is bracketed to this share of the stiffness gain (log)
+EDGE_SPAN = 4.0          #: ... within this factor of it either way (:func:`motorctl.commission.choose.edge_member`)
 WINNER_TRIES = 3         #: search winners whose ladder is climbed before the rule's gains are kept
 SATURATED = "saturated samples"   #: the words of the saturation verdict (:func:`admissible`)
 
