@@ -8,8 +8,8 @@ import math
 import numpy as np
 
 from motorctl.commission.loopshape import loop_margins, plant_model_frf
-from motorctl.commission.rule import (BACKOFF, COH_USED, EDGE_SPAN, EDGE_TOL, F_TRACK_HZ, RULE, Rule, SCALES,
-                                      ZETA_RIGID)
+from motorctl.commission.rule import (BACKOFF, COH_USED, EDGE_SPAN, EDGE_TOL, F_TRACK_HZ, FRF_SIGMAS, PERIODS, RULE,
+                                      Rule, SCALES, ZETA_RIGID)
 from motorctl.control import configured_controllers, controller_class
 
 
@@ -17,10 +17,22 @@ from motorctl.control import configured_controllers, controller_class
 OMEGA = tuple(float(x) for x in np.geomspace(30.0, 3000.0, 49))   #: [rad/s]
 
 
-def loop_frf(meas: dict, model: dict, ts: float):
+RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))   #: median of a Rayleigh variable of scale 1
+
+
+def loop_frf(meas: dict, model: dict, ts: float, periods: int = PERIODS):
     """(w (K,) [rad/s] of :func:`grid_w`, the fitted model's FRF (K,), the FRF the rule runs on
-    (K,)): the measured FRF where it was measured (coherence ≥ :data:`COH_USED`, interpolated
-    between the lines) and the fitted model elsewhere (below 10 Hz, above the last line) [m/V]."""
+    (K,)) [m/V]: the fitted model, times the measured FRF's departure from it where the
+    measurement shows one: at the lines of coherence ≥ :data:`COH_USED` whose departure
+    |G_meas/G_model − 1| exceeds :data:`FRF_SIGMAS` times the line's own random error
+    ε = √(1 − γ²)/(γ √(2 n)) (γ²: the coherence, n: the measured periods; Bendat & Piersol,
+    Random Data, 4th ed., eq. 9.90) scaled by the lines' own scatter about the model (the indirect
+    closed-loop estimate scatters about twice that: on configs/gantry-rigid.yaml Y 15 % of the
+    lines were beyond 3 ε), the ratio interpolated between the lines (1 at the others);
+    the model alone below the first and above the last such line. On a rigid axis the lines of
+    coherence 0.5-0.9 (30-60 Hz on configs/gantry-rigid.yaml Y) scatter ±10 % and ±7° about
+    the model: taken as measured, one of them set the peak sensitivity of the 50 % rung
+    (18.0 dB against 12.5 dB on the model) and the margins' edge went up and down with ω."""
     w = grid_w(ts)
     G_fit = plant_model_frf(model, ts, w)
     G_w = G_fit.copy()
@@ -28,10 +40,17 @@ def loop_frf(meas: dict, model: dict, ts: float):
     good = ch >= COH_USED
     f_w = w / (2.0 * math.pi)
     if good.sum() > 10:
+        ratio = Gm / plant_model_frf(model, ts, 2.0 * math.pi * fm)
+        gam2 = np.clip(ch, 1e-6, 1.0)
+        eps = np.sqrt((1.0 - gam2) / (2.0 * max(periods, 1) * gam2))
+        # the scale of that error from the lines' own scatter about the model: the median of a
+        # Rayleigh variable (the complex departure) is 1.177 σ; not below the formula's
+        scale = max(1.0, float(np.median(np.abs(ratio[good] - 1.0) / eps[good])) / RAYLEIGH_MEDIAN)
+        ratio = np.where(good & (np.abs(ratio - 1.0) > FRF_SIGMAS * scale * eps), ratio, 1.0)
         inside = (f_w >= fm[good][0]) & (f_w <= fm[good][-1])
-        re = np.interp(f_w, fm[good], Gm[good].real)
-        im = np.interp(f_w, fm[good], Gm[good].imag)
-        G_w[inside] = re[inside] + 1j * im[inside]
+        re = np.interp(f_w, fm, ratio.real)
+        im = np.interp(f_w, fm, ratio.imag)
+        G_w[inside] = G_fit[inside] * (re[inside] + 1j * im[inside])
     return w, G_fit, G_w
 
 
@@ -169,7 +188,8 @@ def choose_gains(law: str, G_w, w: np.ndarray, ts: float, theta1: float, section
         family), "grid": {design key: sorted values over the whole family},
         "l_track": {:func:`design_of`: |L| at F_TRACK_HZ}, "holds": gains -> whether the margins
         hold at 100, 75 and 50 % of those gains (a stepped-down candidate's own ladder),
-        "edge": (gains, u=1) -> :func:`edge_member` (off the grid) or None}.
+        "edge": (gains, u=1) -> :func:`edge_member` (off the grid) or None, "sensitivity": (law,
+        gains, f (M,) [Hz]) -> |S|² (M,) on the measured response}.
     """
     cls = controller_class(law)
     f = w / (2.0 * math.pi)
@@ -216,4 +236,15 @@ def choose_gains(law: str, G_w, w: np.ndarray, ts: float, theta1: float, section
     return {"gains": best[1], "margins": best[2], "u_rest_pred_V": best[3], "candidates": n_ok,
             "backoff": backoff, "admissible": adm, "members": members, "l_track": l_track,
             "grid": {k: sorted(v) for k, v in grid.items()},
-            "holds": holds, "edge": lambda g, u=1.0: edge_member(make, holds, g, u)}
+            "holds": holds, "edge": lambda g, u=1.0: edge_member(make, holds, g, u),
+            "sensitivity": lambda law_, g, f_hz: _sensitivity2(law_, g, ts, w, G_w, theta_hat, f_hz)}
+
+
+def _sensitivity2(law: str, g: dict, ts: float, w: np.ndarray, G_w: np.ndarray, theta_hat, f_hz) -> np.ndarray:
+    """|S|² = |1 + C G|⁻² at f_hz (M,) [Hz] of ``law`` with gains ``g`` on the FRF ``G_w`` (K,)
+    at w (K,) [rad/s] (interpolated in log f; G at the grid's ends outside it)."""
+    f = np.maximum(np.asarray(f_hz, dtype=float), 1e-3)       # C has a pole at 0 Hz
+    lf, lw = np.log(f), np.log(w / (2.0 * math.pi))
+    G = np.interp(lf, lw, G_w.real) + 1j * np.interp(lf, lw, G_w.imag)
+    C = controller_class(law).linearise(g, ts, 2.0 * math.pi * f, theta_hat)
+    return 1.0 / np.maximum(np.abs(1.0 + C * G) ** 2, 1e-300)

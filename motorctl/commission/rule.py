@@ -11,6 +11,8 @@ from dataclasses import dataclass
 GM_MIN_DB = 6.0          #: gain margin ≥ [dB] (default of :class:`Rule`)
 PM_MIN_DEG = 10.0        #: phase margin ≥ [deg]
 MS_MAX_DB = 16.0         #: peak sensitivity ≤ [dB] (|S| ≤ 6.3)
+FRF_SIGMAS = 4.0         #: the rule takes a measured line where it departs from the fitted model by more than this
+                         #: many times its random error (:func:`motorctl.commission.choose.loop_frf`)
 COH_USED = 0.5           #: the rule takes the measured FRF at lines of at least this coherence, the model elsewhere
 F_TRACK_HZ = 5.0         #: where the tracking error lives (the programs' moves last ~0.5 s) [Hz]; at 2 Hz
                          #: |L| was the integral action's, and the rule ranked last the PID shapes of weak
