@@ -39,8 +39,9 @@ SCALES = (0.5, 0.75, 1.0)  #: verification ladder (share of the chosen loop gain
 BACKOFF = (0.35, 0.25)     #: tried in turn when 50 % fails; the first that passes is kept
 SEARCH_RUNS = 6          #: runs per shape of the search, at most
 SEARCH_BUDGET = 14       #: runs of the search over all shapes of a law, at most
-PRUNE_SHARE = 0.5        #: the search skips the shapes whose quiet |L(F_TRACK_HZ)| is below this
+PRUNE_SHARE = 0.5        #: the search probes only the shapes whose quiet |L(F_TRACK_HZ)| is below this
                          #: share of that of the least L2[e] passed so far
+PROBE_RUNS = 2           #: ... with this many runs, unless one passes below that L2[e]
 NOISE_EXPONENT = 0.7     #: measured rest noise ~ predicted^this within a shape, until its own runs fit it
 NOISE_SLACK = 1.1        #: the search still runs gains whose calibrated rest-noise prediction is
                          #: up to this factor above the level (the run judges; the prediction
