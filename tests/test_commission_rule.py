@@ -179,3 +179,60 @@ def test_a_short_runs_saturation_after_its_first_period_stands_for_the_rest_of_t
     assert V.admissible(dict(run, saturated=8, sat_first=6), 10.0, ref8, full_ref=full) == ""
     assert V.sat_later(dict(run, samples=20000), ref8, full) is None        # one period: the rate test
     assert V.sat_later(run, ref8, None) is None
+
+
+def test_the_margin_edge_keeps_the_damping_gain_and_stiffens_to_where_the_margins_bind():
+    """From a C1 member on the rigid Y axis's model (ω 330, ζ 0.25), the edge at the same k_s
+    has the largest k1 whose margins hold (3 % above it they fail); at 1.2 x k_s the edge's
+    k_s is 1.2 x; the edge of a member already on it is none."""
+    from motorctl.commission.choose import edge_member, margins_hold
+    w = grid_w(TS)
+    G = plant_model_frf(RIGID, TS, w)
+    cls = controller_class("c1")
+
+    def make(like, w_, z_):
+        return cls.gain_family(0.69, type("S", (), {"gamma_d": 500.0}), (w_,), zetas=(z_,))[0]
+
+    def holds(g):
+        return margins_hold("c1", g, TS, w, G)[1]
+
+    g = make(None, 330.0, 0.25)
+    assert holds(g)
+    e = edge_member(make, holds, g)
+    assert e["k_s"] == pytest.approx(g["k_s"]) and e["k1"] > 1.2 * g["k1"] and e["_zeta"] < g["_zeta"]
+    assert holds(e) and not holds(dict(e, k1=e["k1"] * 1.03))
+    up = edge_member(make, holds, g, 1.2)
+    assert up["k_s"] == pytest.approx(1.2 * g["k_s"]) and holds(up)
+    assert edge_member(make, holds, e) is None
+
+
+def test_the_rule_takes_a_measured_line_only_where_it_departs_from_the_model():
+    """Lines scattering about the model as their coherence says: the model; a line at twice
+    the model's gain (far beyond its error): taken, the ratio interpolated to its neighbours."""
+    from motorctl.commission.choose import loop_frf
+    rng = np.random.default_rng(0)
+    fm = np.arange(10.0, 1000.0)
+    coh = np.full(fm.size, 0.8)
+    G = plant_model_frf(RIGID, TS, 2 * math.pi * fm)
+    eps = math.sqrt(0.2 / (2 * 32 * 0.8))
+    Gm = G * (1.0 + eps * (rng.standard_normal(fm.size) + 1j * rng.standard_normal(fm.size)) / math.sqrt(2))
+    Gm[490] = 2.0 * G[490]                             # 500 Hz
+    w, G_fit, G_w = loop_frf({"f_hz": fm, "G": Gm, "coherence": coh}, RIGID, TS, 32)
+    ratio = np.abs(G_w / G_fit)
+    f = w / (2 * math.pi)
+    assert np.allclose(ratio[(f < 498.0) | (f > 502.0)], 1.0)
+    assert 1.7 < ratio.max() <= 2.0 + 1e-9                  # the grid's points beside the line
+
+
+def test_the_error_spectrum_is_judged_beyond_what_the_sensitivities_predict():
+    """Rigid Y's search best (k_s 132.5, k1 1630): its error 136x the configured C2's at 93 Hz,
+    where its |S| peaks; not an oscillation when the sensitivities predict 50x there, one
+    when they predict nothing."""
+    f = np.arange(0.0, 200.0)
+    ref = {"e_psd": (f, np.ones(f.size))}
+    run = {"e_psd": (f, np.where(f == 93.0, 136.0, 1.0))}
+    assert V.e_line_ratio(run, ref) == (136.0, 93.0)
+    assert V.e_line_ratio(run, ref, lambda x: np.where(np.abs(x - 93.0) < 5, 50.0, 0.5))[0] == pytest.approx(2.72)
+    res = {"fault": "", "samples": 200000, "saturated": 0, "u_rest_rms_V": 0.05, "osc_ratio": 2.0, **run}
+    assert "oscillation at 93 Hz" in V.admissible(res, 10.0, dict(REF_FULL, **ref))
+    assert V.admissible(res, 10.0, dict(REF_FULL, **ref), expect=lambda x: np.full(x.size, 50.0)) == ""
