@@ -44,7 +44,9 @@ Steps (any driver; the simulated one by default):
    loop gain |L| at :data:`F_TRACK_HZ` = 5 Hz (the least sensitivity where the tracking error
    of a point-to-point program lives). The u noise at rest is predicted (the measured rest
    spectrum of y through |C|) and reported, but judged on the machine in step 4 (with
-   stiction and quantisation the prediction is only a bound). C1 and C2 have the same
+   stiction and quantisation the prediction is only a bound). The measured FRF the rule runs
+   on is the fitted model times the measurement's departure from it where that departure is
+   beyond the line's random error (:func:`~motorctl.commission.choose.loop_frf`). C1 and C2 have the same
    linearisation at rest (u0 = 0), so they share the admissible set and the first candidate;
    each is verified with its own runs and written in its own mapping.
 4. **verify** (:mod:`motorctl.commission.verify`). Every run is ``motorctl run``'s own job
@@ -55,7 +57,8 @@ Steps (any driver; the simulated one by default):
    that factor times :data:`SAT_FLOOR_SHARE` of the samples), u RMS at rest above
    :data:`REST_FACTOR` times the configured controller's, or oscillation (a spectral line in
    u at rest ≥ :data:`OSC_RATIO` times the median of its spectrum, or the error spectrum ≥
-   :data:`OSC_RATIO` times the configured controller's at some frequency) fails a run.
+   :data:`OSC_RATIO` times the configured controller's at some frequency, beyond the ratio
+   of the two loops' |S|² on the measured response) fails a run.
    Steps a.-c. screen on short runs (``verify_s``, two program periods); e. and f. decide on
    full ones. A short run is judged as the full run it stands for
    (:func:`~motorctl.commission.verify.limits`, :func:`~motorctl.commission.verify.rest_judged`):
@@ -82,12 +85,18 @@ Steps (any driver; the simulated one by default):
       they pass or fail soft, then halving the bracket. Shapes
       in the order of their reach, the |L| at 5 Hz of their highest candidate (re-ranked
       after each shape); a shape whose reach is below :data:`PRUNE_SHARE` of that of the
-      best run so far ends the search (the rest reach less still). At most
+      best run so far is probed with :data:`PROBE_RUNS` runs (searched in full once one
+      passes below the best's L2[e]: on a resonant axis the reach misranks). At most
       :data:`SEARCH_RUNS` runs per shape and :data:`SEARCH_BUDGET` in all.
    c. *refinement* around the best run that passed at 100 %: its admissible neighbours on
       the family's grid (one step in ω, ζ or r, or in two of them at once), the highest |L|
       at 5 Hz first; the first that passes with a lower L2[e] becomes the centre; it stops
       when no neighbour improves, after :data:`REFINE_RUNS` runs.
+   d. *the margin edge* (:meth:`~motorctl.commission.verify._Verification.ridge`): from the
+      best run, per damping gain (C1/C2: k_s, PID: D) the stiffest gains the margins allow
+      (off the family's grid, :func:`~motorctl.commission.choose.edge_member`), walked up to
+      :data:`RIDGE_SPAN` times the damping gain while the runs pass and track better, at most
+      :data:`RIDGE_RUNS` runs.
    e. *confirmation* on full runs of :data:`FULL_PERIODS` program periods (saturation is
       rare and bursty: X's C2 saturated 7, 13, 15, 13, 15 times in successive 8 s windows
       of one 40 s run): the :data:`FULL_TRIES` best candidates of the short runs at 100 %,
