@@ -342,11 +342,10 @@ class _Verification:
         by their short L2[e], the first
         :data:`FULL_TRIES` run at 100 %; those that pass, by their full L2[e], each run at
         75 % and 50 % (:data:`SCALES`, highest first); the first that passes all three rungs
-        wins, unless the best candidate's gains stepped down (:data:`STEP_DOWN`, below) pass
-        with a lower full-run L2[e]: a candidate that saturates a little too often at 100 % often
-        tracks better at 75 % than the next candidate does at 100 % (gantry X's C2: 0.966 µm
-        with 49 saturated samples in 40 s; the next that passed, 3.013 µm). The winner
-        from the confirmation then climbs (:meth:`climb`). A candidate whose full run fails on
+        wins. Candidates that tracked better on their full run but failed it (a law whose
+        saturation grows through the run: gantry X's C2 at ω 711, ζ 0.3 saturated 6 times in
+        8 s and 49 in 40 s, limit 15) are then bracketed on full runs (:meth:`bracket`), and
+        the best climbs (:meth:`climb`). A candidate whose full run fails on
         its rest noise bars those whose short run was as noisy at rest or more
         (:func:`rest_judged`). (Not so on saturation: a short run's few
         saturated samples do not rank the full runs': rigid X's C2 at ω 1149, ζ 0.2 saturated
