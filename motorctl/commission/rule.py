@@ -31,6 +31,7 @@ STEP_DOWN = (0.75, 0.65, 0.55, 0.5, 0.35)   #: the best candidate's steps down (
 BRACKET_RUNS = 3         #: full runs of the bracket between the confirmed gains and better-tracking failed ones
 BRACKET_EXPONENT = 4.0   #: saturated samples ~ (damping gain ζω)^this until the full runs fit their own
 BRACKET_EXPONENT_RANGE = (2.0, 8.0)   #: (gantry X C2, 40 s: 3.4 over ζ 0.3-0.4, 13 .. 49 samples)
+BRACKET_T_SLACK = 1.1   #: the bracket's error corner ω/ζ up to this factor above the best failed candidate's
 ZETA_BELOW = 5.0 / 6.0   #: the bracket also tries the family one notch of ζ below its lowest (0.3 -> 0.25)
 STEP_UP = 1.25          #: the confirmed gains' step up where the margins allow; halved (in log) after a
 STEP_UP_MIN = 1.05      #: failed step, down to this factor (:meth:`motorctl.commission.verify._Verification.climb`)

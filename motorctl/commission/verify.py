@@ -12,7 +12,7 @@ from scipy import stats
 
 from motorctl.commission.choose import OMEGA, design_of, neighbours, shape_of
 from motorctl.commission.evaluate import evaluate
-from motorctl.commission.rule import (BRACKET_EXPONENT, BRACKET_EXPONENT_RANGE, BRACKET_RUNS, FULL_TRIES, NOISE_EXPONENT, NOISE_SLACK, OSC_RATIO, PRUNE_SHARE, REFINE_RUNS,
+from motorctl.commission.rule import (BRACKET_EXPONENT, BRACKET_EXPONENT_RANGE, BRACKET_RUNS, BRACKET_T_SLACK, FULL_TRIES, NOISE_EXPONENT, NOISE_SLACK, OSC_RATIO, PRUNE_SHARE, REFINE_RUNS,
                                       REST_FACTOR, REST_SCREEN_SLACK, SAT_ALPHA, SAT_FACTOR, SAT_FLOOR_SHARE,
                                       SATURATED, SCALES, SEARCH_BUDGET, SEARCH_RUNS, STEP_DOWN, STEP_UP,
                                       STEP_UP_MIN, STEP_UP_TRIES, U_REST_FRACTION, WINNER_TRIES, ZETA_BELOW)
@@ -130,10 +130,10 @@ def gain_axes(g: dict, scale: float = 1.0) -> tuple[float, float] | None:
 def sat_bound(full: list, allowed: float) -> float:
     """The damping gain d [rad/s] (:func:`gain_axes`) at which a full run's saturated samples
     reach ``allowed``, on ln(sat) = a + b ln d least-squares fitted to the full runs ``full``
-    [(d, t, result, verdict)] that saturated at all and did not fault (b: the fit's slope
+    [(d, t, result, verdict, ...)] that saturated at all and did not fault (b: the fit's slope
     clipped to :data:`BRACKET_EXPONENT_RANGE`, or :data:`BRACKET_EXPONENT` with fewer than two
     runs or a spread of d under 5 %); inf with no such run."""
-    pts = [(math.log(d), math.log(res["saturated"])) for d, _, res, _ in full
+    pts = [(math.log(d), math.log(res["saturated"])) for d, _, res, *_ in full
            if not res["fault"] and res["saturated"] > 0 and d > 0]
     if not pts:
         return math.inf
@@ -275,7 +275,8 @@ class _Verification:
         self.obs: dict = {}       # {shape: [(predicted, measured) rest noise [V]]}
         self.last: list = []      # the latest (predicted, measured) of any shape
         self.short: dict = {}     # {(design, scale): the short run's result} of what passed it
-        self.full: list = []      # (damping gain, error corner, result, verdict) of the full runs (:func:`gain_axes`)
+        self.full: list = []      # (damping gain, error corner, result, verdict, other design numbers) of the
+                                  # full runs (:func:`gain_axes`, :func:`_others`)
 
     def run(self, g, label, scale, seconds=None, ref=None):
         """One run of gains ``g`` (already scaled by ``scale``, which only labels it) of
@@ -289,7 +290,7 @@ class _Verification:
         self.record(f"{label} {seconds:g} s", scale, res, why)
         axes = gain_axes(g, scale)
         if seconds > self.seconds and axes is not None:
-            self.full.append((*axes, res, why))
+            self.full.append((*axes, res, why, _others(g)))
         return res, why
 
     def record(self, label, scale, res, why) -> None:
@@ -407,7 +408,9 @@ class _Verification:
         candidate's, whose d stays under the d where the saturated samples reach the full
         run's allowance, on a power law ln(sat) = a + b ln d fitted to every full run so far
         (b from :data:`BRACKET_EXPONENT` and its range), and that no failed full run dominates
-        (at least its d and its t). A run that passes with a lower L2[e] and whose rungs
+        (at least its d and its t); t up to :data:`BRACKET_T_SLACK` above the best failed one's
+        (one ω step of the grid: the ζ of the family fall on the same t), and the failed
+        candidates' other design numbers (the PID's r: its tracking is its integral's too). A run that passes with a lower L2[e] and whose rungs
         pass becomes the best; each run refits the law. At most :data:`BRACKET_RUNS` runs at
         100 %. Returns the best."""
         holds = self.choice.get("holds", lambda g: True)
@@ -417,16 +420,21 @@ class _Verification:
         pool = list(self.choice.get("members", {}).values()) + self.below()
         for _ in range(BRACKET_RUNS):
             d0, t0 = gain_axes(best[1], best[2])
-            failed = [(d, t, res) for d, t, res, why in self.full if why and not res["fault"]]
-            better = [t for d, t, res in failed if res["L2_um"] < best[0]]
+            failed = [(d, t, res) for d, t, res, why, _ in self.full if why and not res["fault"]]
+            better = [(t, rest) for d, t, res, why, rest in self.full
+                      if why and not res["fault"] and res["L2_um"] < best[0]]
             if not better:
                 break
+            t_cap = BRACKET_T_SLACK * max(t for t, _ in better)
+            kinds = {rest for _, rest in better}      # their other design numbers (the PID's r)
             d_max = sat_bound(self.full, allowed)
-            done = {(round(d, 6), round(t, 6)) for d, t, _, _ in self.full}
+            done = {(round(d, 6), round(t, 6)) for d, t, _, _, _ in self.full}
             cands = []
             for g in pool:
                 d, t = gain_axes(g, 1.0)
-                if (round(d, 6), round(t, 6)) in done or not (t0 < t <= max(better)) or d > d_max:
+                if (round(d, 6), round(t, 6)) in done or not (t0 < t <= t_cap) or d > d_max:
+                    continue
+                if _others(g) not in kinds:
                     continue
                 if any(d >= fd and t >= ft for fd, ft, _ in failed) or not holds(g):
                     continue
@@ -648,6 +656,11 @@ class _Verification:
             if sc > 0.0:
                 accepted.append((res_sc["L2_um"], scaled(self.law, cand[1], sc), sc, "search"))
         return min(accepted, key=lambda b: b[0], default=None)
+
+
+def _others(g: dict) -> tuple:
+    """A candidate's design numbers other than ω and ζ (the PID's integral ratio r)."""
+    return tuple((k, v) for k, v in shape_of(g) if k != "_zeta")
 
 
 def _as_bad(short: dict, bar: dict, full_ref: dict | None) -> bool:
