@@ -186,10 +186,10 @@ def choose_gains(law: str, G_w, w: np.ndarray, ts: float, theta1: float, section
         "backoff", "admissible": {shape: [gains, ... by ω, highest first]},
         "members": {:func:`design_of`: gains} (the same candidates, by their place in the
         family), "grid": {design key: sorted values over the whole family},
-        "l_track": {:func:`design_of`: |L| at F_TRACK_HZ}, "holds": gains -> whether the margins
-        hold at 100, 75 and 50 % of those gains (a stepped-down candidate's own ladder),
-        "edge": (gains, u=1) -> :func:`edge_member` (off the grid) or None, "sensitivity": (law,
-        gains, f (M,) [Hz]) -> |S|² (M,) on the measured response}.
+        "l_track": {:func:`design_of`: |L| at F_TRACK_HZ}, "theta1" (the family's), "holds": gains
+        -> whether the margins hold at 100, 75 and 50 % of those gains (a stepped-down candidate's
+        own ladder), "edge": (gains, u=1) -> :func:`edge_member` (off the grid) or None,
+        "sensitivity": (law, gains, f (M,) [Hz]) -> |S|² (M,) on the measured response}.
     """
     cls = controller_class(law)
     f = w / (2.0 * math.pi)
@@ -235,7 +235,7 @@ def choose_gains(law: str, G_w, w: np.ndarray, ts: float, theta1: float, section
         return margins_hold(law, g, ts, w, G_w, theta_hat, rule)[1]
     return {"gains": best[1], "margins": best[2], "u_rest_pred_V": best[3], "candidates": n_ok,
             "backoff": backoff, "admissible": adm, "members": members, "l_track": l_track,
-            "grid": {k: sorted(v) for k, v in grid.items()},
+            "grid": {k: sorted(v) for k, v in grid.items()}, "theta1": theta1,
             "holds": holds, "edge": lambda g, u=1.0: edge_member(make, holds, g, u),
             "sensitivity": lambda law_, g, f_hz: _sensitivity2(law_, g, ts, w, G_w, theta_hat, f_hz)}
 

@@ -28,9 +28,13 @@ REST_SCREEN_SLACK = 1.1  #: a short run passes the screen with a predicted full-
                          #: above the full run's limit (the prediction scatters ~10 %; the best sits at the limit)
 REST_FACTOR = 1.5        #: u RMS at rest ≤ this factor times the configured controller's on the same run
 FULL_PERIODS = 10        #: the confirmation runs this many program periods (the whole program, as run)
-CONFIRM_ROUNDS = 2       #: rounds of FULL_TRIES confirmations while none has passed all its rungs
 FULL_TRIES = 5           #: candidates (by their short run's L2[e]) confirmed on a full run at 100 %
 STEP_DOWN = (0.75, 0.65, 0.55, 0.5, 0.35)   #: the best candidate's steps down (below or instead of the confirmed)
+BRACKET_RUNS = 3         #: full runs of the bracket between the confirmed gains and better-tracking failed ones
+BRACKET_EXPONENT = 4.0   #: saturated samples ~ (damping gain ζω)^this until the full runs fit their own
+BRACKET_EXPONENT_RANGE = (2.0, 8.0)   #: (gantry X C2, 40 s: 3.4 over ζ 0.3-0.4, 13 .. 49 samples)
+BRACKET_T_SLACK = 1.1   #: the bracket's error corner ω/ζ up to this factor above the best failed candidate's
+ZETA_BELOW = 5.0 / 6.0   #: the bracket also tries the family one notch of ζ below its lowest (0.3 -> 0.25)
 STEP_UP = 1.25          #: the confirmed gains' step up where the margins allow; halved (in log) after a
 STEP_UP_MIN = 1.05      #: failed step, down to this factor (:meth:`motorctl.commission.verify._Verification.climb`)
 STEP_UP_TRIES = 3       #: steps up tried, at most
