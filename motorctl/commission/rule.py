@@ -28,6 +28,7 @@ REST_SCREEN_SLACK = 1.1  #: a short run passes the screen with a predicted full-
                          #: above the full run's limit (the prediction scatters ~10 %; the best sits at the limit)
 REST_FACTOR = 1.5        #: u RMS at rest ≤ this factor times the configured controller's on the same run
 FULL_PERIODS = 10        #: the confirmation runs this many program periods (the whole program, as run)
+CONFIRM_ROUNDS = 2       #: rounds of FULL_TRIES confirmations while nothing is written
 FULL_TRIES = 5           #: candidates (by their short run's L2[e]) confirmed on a full run at 100 %
 STEP_DOWN = (0.75, 0.65, 0.55, 0.5, 0.35)   #: the best candidate's steps down (below or instead of the confirmed)
 BRACKET_RUNS = 3         #: full runs of the bracket between the confirmed gains and better-tracking failed ones

@@ -13,9 +13,9 @@ from scipy import stats
 from motorctl.commission.choose import OMEGA, design_of, neighbours, shape_of
 from motorctl.commission.evaluate import evaluate
 from motorctl.commission.rule import (BRACKET_EXPONENT, BRACKET_EXPONENT_RANGE, BRACKET_RUNS, BRACKET_T_SLACK,
-                                      FULL_TRIES, NOISE_EXPONENT, NOISE_SLACK, OSC_RATIO, PROBE_RUNS, PRUNE_SHARE,
-                                      REFINE_RUNS, REST_FACTOR, REST_SCREEN_SLACK, RIDGE_POINTS, RIDGE_RUNS,
-                                      RIDGE_SPAN, SAT_ALPHA, SAT_FACTOR, SAT_FLOOR_SHARE,
+                                      CONFIRM_ROUNDS, FULL_TRIES, NOISE_EXPONENT, NOISE_SLACK, OSC_RATIO, PROBE_RUNS,
+                                      PRUNE_SHARE, REFINE_RUNS, REST_FACTOR, REST_SCREEN_SLACK, RIDGE_POINTS,
+                                      RIDGE_RUNS, RIDGE_SPAN, SAT_ALPHA, SAT_FACTOR, SAT_FLOOR_SHARE,
                                       SATURATED, SCALES, SEARCH_BUDGET, SEARCH_RUNS, STEP_DOWN, STEP_UP,
                                       STEP_UP_MIN, STEP_UP_TRIES, U_REST_FRACTION, WINNER_TRIES, ZETA_BELOW)
 from motorctl.config import config_from_dict
@@ -365,7 +365,10 @@ class _Verification:
         their short run (the search's and the rule's) whose margins hold at 100, 75 and 50 % of
         the gains themselves (a candidate the ladder stopped below 100 %: of its scaled gains),
         by their short L2[e], the first
-        :data:`FULL_TRIES` run at 100 %; those that pass, by their full L2[e], each run at
+        :data:`FULL_TRIES` run at 100 % (when nothing of them is written, the next :data:`FULL_TRIES`, up to
+        :data:`CONFIRM_ROUNDS` rounds: on half-mode X the PID+FF's only candidate that passed at
+        100 % rang at rest at 50 %, its steps down failed the margins, and nothing was written
+        while candidates were left); those that pass, by their full L2[e], each run at
         75 % and 50 % (:data:`SCALES`, highest first); the first that passes all three rungs
         wins. Candidates that tracked better on their full run but failed it (a law whose
         saturation grows through the run: gantry X's C2 at ω 711, ζ 0.3 saturated 6 times in
@@ -378,6 +381,10 @@ class _Verification:
         candidate's gains stepped down (:data:`STEP_DOWN`), each with its own three rungs.
         Returns (L2 of the full run at 100 %, gains, scale, from) or
         None (nothing is written)."""
+        return self._confirm(self._pool(rule_best), seconds, ref, 1)
+
+    def _pool(self, rule_best) -> list:
+        """The candidates of :meth:`confirm`, by their short L2[e], each design and scale once."""
         pool, seen = [], set()
         cands = sorted(self.found + ([rule_best] if rule_best else []), key=lambda b: b[0])
         for c in cands:
@@ -385,11 +392,17 @@ class _Verification:
             if key not in seen:
                 seen.add(key)
                 pool.append(c)
-        full, bars, tries = [], [], 0
         holds = self.choice.get("holds", lambda g: True)
-        pool = [c for c in pool if holds(c[1])]      # the margins at 100/75/50 % of the gains written
-        for l2, g, sc, frm in pool:
+        return [c for c in pool if holds(c[1])]      # the margins at 100/75/50 % of the gains written
+
+    def _confirm(self, pool: list, seconds: float, ref: dict | None, round_: int):
+        """:meth:`confirm` on ``pool`` (:meth:`_pool`); when nothing of its first FULL_TRIES is
+        written, the rest of the pool in another round, up to :data:`CONFIRM_ROUNDS`."""
+        full, bars, tries, done = [], [], 0, len(pool)
+        holds = self.choice.get("holds", lambda g: True)
+        for i, (l2, g, sc, frm) in enumerate(pool):
             if tries == FULL_TRIES:
+                done = i
                 break
             short = self.short.get((design_of(g), sc))
             if short is not None and any(_as_bad(short, bar, self.full_ref) for bar in bars):
@@ -417,6 +430,8 @@ class _Verification:
             res, why = self.run(gs, "step down", sc * step, seconds, ref)
             if not why and self._rungs(gs, sc * step, seconds, ref, res):
                 return (res["L2_um"], gs, sc * step, frm)
+        if round_ < CONFIRM_ROUNDS and done < len(pool):
+            return self._confirm(pool[done:], seconds, ref, round_ + 1)
         return None
 
     def bracket(self, best, seconds: float, ref: dict | None):
