@@ -252,7 +252,7 @@ def verify(raw: dict, source: str, axis: str, law: str, choice: dict, seconds: f
     if not v.found and rule_best is None:    # nothing passed yet: a second budget (runs made are not repeated)
         v.search(search_runs)
     v.refine(min(REFINE_RUNS, search_runs))
-    v.ridge(min(RIDGE_RUNS, search_runs // 2))
+    v.ridge(min(RIDGE_RUNS, search_runs // 3))
     if full_seconds:
         best = v.confirm(rule_best, full_seconds, full_ref)
     else:
