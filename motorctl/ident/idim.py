@@ -64,7 +64,7 @@ def _decimation_sos(q: int) -> np.ndarray:
     return cheby1(8, 0.05, 0.8 / q, output="sos")
 
 
-#: fewest columns for which :func:`_filtfilt_down` runs the columns in its innermost loop (SIMD
+#: fewest columns for which :func:`_filtfilt` runs the columns in its innermost loop (SIMD
 #: over the columns); fewer run one column at a time (:func:`_sos_pipelined`)
 _WIDE_COLUMNS = 8
 
@@ -142,11 +142,12 @@ def _sos_columns_inner(y, sos, z0, z1, j0, j1, step):
 
 
 @njit
-def _filtfilt_down(x, sos, zi, pad, q):
-    """``scipy.signal.sosfiltfilt(sos, x, axis=0, padtype='odd', padlen=pad)[::q]`` of x (n, k)
-    C-contiguous, n > pad, bit for bit: scipy's odd extension, its initial conditions zi (n_s, 2)
-    times the first (then the last) sample, and its ``sosfilt`` recursion (direct form II
-    transposed, a0 = 1) in the same operation order, forwards then backwards."""
+def _filtfilt(x, sos, zi, pad):
+    """``scipy.signal.sosfiltfilt(sos, x, axis=0, padtype='odd', padlen=pad)`` of x (n, k)
+    C-contiguous, n > pad, bit for bit, with its pads: (n + 2 pad, k), the rows pad..pad+n-1
+    are the result. Scipy's odd extension, its initial conditions zi (n_s, 2) times the first
+    (then the last) sample, and its ``sosfilt`` recursion (direct form II transposed, a0 = 1) in
+    the same operation order, forwards then backwards."""
     n, k = x.shape
     ns = sos.shape[0]
     m = n + 2 * pad
@@ -169,7 +170,7 @@ def _filtfilt_down(x, sos, zi, pad, q):
             _sos_columns_inner(y, sos, z0, z1, j0, j1, step)
         else:
             _sos_pipelined(y, sos, z0, z1, j0, j1, step)
-    return y[pad:pad + n:q].copy()
+    return y
 
 
 def parallel_decimate(m: np.ndarray, nd: int) -> np.ndarray:
@@ -177,7 +178,7 @@ def parallel_decimate(m: np.ndarray, nd: int) -> np.ndarray:
 
     Equivalent to ``scipy.signal.decimate(m, q, ftype='iir', axis=0, zero_phase=True)`` per
     stage (stages ≤ 13), with the filter designed once per factor. The compiled
-    :func:`_filtfilt_down` gives the same numbers as ``scipy.signal.sosfiltfilt`` bit for bit
+    :func:`_filtfilt` gives the same numbers as ``scipy.signal.sosfiltfilt`` bit for bit
     (each column on its own) in a half to a seventh of its time (eight columns or more filtered
     side by side, fewer with the four sections' recursions overlapped, the initial conditions
     once per factor); scipy's own function when numba is off or a
@@ -191,16 +192,24 @@ def parallel_decimate(m: np.ndarray, nd: int) -> np.ndarray:
     out = np.asarray(m, dtype=float)
     if nd <= 1:
         return out
-    flat = out.ndim == 1
-    if not _JIT_DISABLED and out.ndim <= 2:
-        out = np.ascontiguousarray(out.reshape(len(out), -1))
-    for q in _stages(nd):
+    stages = _stages(nd)
+    for i, q in enumerate(stages):
         sos, zi, pad = _stage_filter(q)
-        if _JIT_DISABLED or out.ndim != 2 or len(out) <= pad:
+        if _JIT_DISABLED or out.ndim > 2 or len(out) <= pad:
             out = sosfiltfilt(sos, out, axis=0)[::q]
-        else:
-            out = _filtfilt_down(out, sos, zi, pad, q)
-    return out[:, 0] if flat and out.ndim == 2 else out
+            continue
+        y = _filtfilt(np.ascontiguousarray(out.reshape(len(out), -1)), sos, zi, pad)
+        if i < len(stages) - 1:
+            out = y[pad:len(y) - pad:q]
+            continue
+        # the last stage in scipy's memory layout (each column contiguous, in reverse time), in
+        # which the arrays' products downstream take the same summation order as before
+        back = np.empty(y.shape[::-1])
+        back[:, ::-1] = y.T
+        out = back.T[::-1][pad:len(y) - pad:q]
+        if np.ndim(m) == 1:
+            out = out[:, 0]
+    return out
 
 
 def decimation_gain(fs: float, nd: int, f_Hz) -> np.ndarray:
