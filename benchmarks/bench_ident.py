@@ -7,7 +7,6 @@ Rerun:
     python benchmarks/bench_ident.py --repeat 5 --effect stribeck --keep-log /tmp/x.log
     git archive main | tar -x -C /tmp/motorctl-main
     python benchmarks/bench_ident.py --ref-src /tmp/motorctl-main    # and main's, in the same run
-    python benchmarks/bench_ident.py --decimation    # the parallel decimation alone, per column
 
 What is timed: ``motorctl identify LOG --json`` as a new process, end to end (Python start-up,
 imports, reading, IDIM-LS, the effect search over every family with forward selection and
@@ -25,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 import time
@@ -53,11 +51,7 @@ def main(argv=None) -> int:
                     help="accepted for old command lines: both modes are always timed")
     ap.add_argument("--ref-src", default=None,
                     help="also time this source tree (e.g. an export of main), alternating with this one")
-    ap.add_argument("--decimation", action="store_true",
-                    help="only time the parallel decimation per column (compiled against scipy's sosfiltfilt)")
     args = ap.parse_args(argv)
-    if args.decimation:
-        return bench_decimation()
     if args.ref_src and not (Path(args.ref_src) / "motorctl").is_dir():
         ap.error(f"--ref-src {args.ref_src}: no motorctl package there")
 
@@ -134,41 +128,6 @@ def main(argv=None) -> int:
     print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
     print("rerun: python benchmarks/bench_ident.py [--repeat N] [--effect NAME] [--ref-src DIR]")
     return 1 if over else 0
-
-
-def bench_decimation(n: int = 100_003, nd: int = 20, runs: int = 7) -> int:
-    """CPU per column [ms] of :func:`motorctl.ident.idim.parallel_decimate` (factor ``nd``) on
-    ``n`` samples, against scipy.signal.sosfiltfilt per stage, for 1, 4 and 16 columns side by
-    side (best of ``runs``); checks the results are equal bit for bit."""
-    import numpy as np
-    from scipy.signal import sosfiltfilt
-
-    from motorctl.ident.idim import _decimation_sos, _stages, parallel_decimate
-
-    def scipy_way(x):
-        for q in _stages(nd):
-            x = sosfiltfilt(_decimation_sos(q), x, axis=0)[::q]
-        return x
-
-    def best(f, x):
-        out = math.inf
-        for _ in range(runs):
-            t0 = time.process_time()
-            f(x)
-            out = min(out, time.process_time() - t0)
-        return out
-
-    rng = np.random.default_rng(1)
-    print(f"parallel decimation by {nd} of {n} samples, CPU per column (best of {runs}); load average "
-          f"{os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
-    for k in (1, 4, 16):
-        x = np.cumsum(rng.standard_normal((n, k)), axis=0)
-        same = np.array_equal(parallel_decimate(x, nd), scipy_way(x))
-        ours, theirs = best(lambda a: parallel_decimate(a, nd), x), best(scipy_way, x)
-        print(f"  {k:2d} column(s): compiled {1e3 * ours / k:.3f} ms, scipy {1e3 * theirs / k:.3f} ms "
-              f"(ratio {ours / theirs:.2f}); equal bit for bit: {same}")
-    print("rerun: python benchmarks/bench_ident.py --decimation")
-    return 0
 
 
 if __name__ == "__main__":

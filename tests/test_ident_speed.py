@@ -49,26 +49,6 @@ def test_a_sine_in_time_decimates_to_the_gain_times_the_sine(record):
     assert p.dec_gain(np.array([20.0, 400.0])).shape == (2,) and p.dec_gain(400.0) < 1e-6
 
 
-def test_the_compiled_decimation_is_scipys_bit_for_bit(record):
-    """parallel_decimate's compiled filter against scipy.signal.sosfiltfilt per stage: the same
-    numbers in the same memory layout for one column and for several side by side (both loops
-    of the kernel), a 1-D input, a strided view; too short a record raises scipy's ValueError."""
-    from scipy.signal import sosfiltfilt
-
-    from motorctl.ident.idim import _decimation_sos, _stages, parallel_decimate
-    p = Identifier(record).p
-    full = np.column_stack([p.x, p.v, p.a, p.u, p.v_wide] + [fourier(p.x, 0.032, 2)[:, j] for j in range(4)])
-    for cols in (full[:, 3], full[:, :1], full[:, :3], full, full[:, ::2]):
-        ref = np.asarray(cols, dtype=float)
-        for q in _stages(20):
-            ref = sosfiltfilt(_decimation_sos(q), ref, axis=0)[::q]
-        got = parallel_decimate(cols, 20)
-        assert got.shape == ref.shape and np.array_equal(got, ref)
-        assert got.strides == ref.strides        # the layout too: products downstream sum alike
-    with pytest.raises(ValueError):
-        parallel_decimate(full[:20], 20)
-
-
 def test_sse_from_the_cached_base_is_the_joint_fit(record):
     idf = Identifier(record)
     stiction = idf.term("stiction", 5e-4)            # weighs the other terms' columns

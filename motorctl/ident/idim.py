@@ -17,9 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from functools import lru_cache
 
-from scipy.signal import butter, cheby1, filtfilt, sosfilt_zi, sosfiltfilt, sosfreqz
+from scipy.signal import butter, cheby1, filtfilt, sosfiltfilt, sosfreqz
 
-from motorctl.jit import DISABLED as _JIT_DISABLED, njit
 from motorctl.model import N_THETA_CUBIC, N_THETA_LINEAR, idim_regressor
 
 #: |u| [V] that the 99.5th percentile of the input must reach for θ5, θ6 (u|u|, u³) to be fitted:
@@ -64,125 +63,11 @@ def _decimation_sos(q: int) -> np.ndarray:
     return cheby1(8, 0.05, 0.8 / q, output="sos")
 
 
-#: fewest columns for which :func:`_filtfilt` runs the columns in its innermost loop (SIMD
-#: over the columns); fewer run one column at a time (:func:`_sos_pipelined`)
-_WIDE_COLUMNS = 8
-
-
-@lru_cache(maxsize=32)
-def _stage_filter(q: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """(sos (n_s, 6), its steady-state initial conditions (n_s, 2), pad length) of one
-    decimation stage: the values :func:`scipy.signal.sosfiltfilt` computes on every call
-    (:func:`scipy.signal.sosfilt_zi`; ``padtype='odd'``, ``padlen`` = 3 × the taps)."""
-    sos = _decimation_sos(q)
-    ntaps = 2 * len(sos) + 1 - min(int((sos[:, 2] == 0).sum()), int((sos[:, 5] == 0).sum()))
-    return sos, sosfilt_zi(sos), 3 * ntaps
-
-
-@njit
-def _sos_pipelined(y, sos, z0, z1, j0, j1, step):
-    """Run the four-section cascade ``sos`` (4, 6) over rows j0, j0+step, ... (not j1) of y
-    (L, k) in place, state z0, z1 (4, k): one column at a time, its state in registers, section
-    s on the row s steps behind section 0 (the four sections' recursions overlap; each section
-    still takes the samples in order with the same operations)."""
-    k = y.shape[1]
-    n = (j1 - j0) * step
-    b00, b10, b20, a10, a20 = sos[0, 0], sos[0, 1], sos[0, 2], sos[0, 4], sos[0, 5]
-    b01, b11, b21, a11, a21 = sos[1, 0], sos[1, 1], sos[1, 2], sos[1, 4], sos[1, 5]
-    b02, b12, b22, a12, a22 = sos[2, 0], sos[2, 1], sos[2, 2], sos[2, 4], sos[2, 5]
-    b03, b13, b23, a13, a23 = sos[3, 0], sos[3, 1], sos[3, 2], sos[3, 4], sos[3, 5]
-    for c in range(k):
-        p0, q0, p1, q1 = z0[0, c], z1[0, c], z0[1, c], z1[1, c]
-        p2, q2, p3, q3 = z0[2, c], z1[2, c], z0[3, c], z1[3, c]
-        o0 = o1 = o2 = 0.0          # sections 0, 1, 2's last outputs, the next section's input
-        for i in range(n + 3):
-            if i >= 3:
-                xn = b03 * o2 + p3
-                p3 = b13 * o2 - a13 * xn + q3
-                q3 = b23 * o2 - a23 * xn
-                y[j0 + (i - 3) * step, c] = xn
-            if 2 <= i < n + 2:
-                xn = b02 * o1 + p2
-                p2 = b12 * o1 - a12 * xn + q2
-                q2 = b22 * o1 - a22 * xn
-                o2 = xn
-            if 1 <= i < n + 1:
-                xn = b01 * o0 + p1
-                p1 = b11 * o0 - a11 * xn + q1
-                q1 = b21 * o0 - a21 * xn
-                o1 = xn
-            if i < n:
-                xc = y[j0 + i * step, c]
-                xn = b00 * xc + p0
-                p0 = b10 * xc - a10 * xn + q0
-                q0 = b20 * xc - a20 * xn
-                o0 = xn
-        z0[0, c], z1[0, c], z0[1, c], z1[1, c] = p0, q0, p1, q1
-        z0[2, c], z1[2, c], z0[3, c], z1[3, c] = p2, q2, p3, q3
-
-
-@njit
-def _sos_columns_inner(y, sos, z0, z1, j0, j1, step):
-    """Run the cascade ``sos`` (n_s, 6) over rows j0, j0+step, ... (not j1) of y (L, k) in
-    place, state z0, z1 (n_s, k): row by row, each section over all the columns of the row (the
-    columns' loop vectorises)."""
-    k = y.shape[1]
-    ns = sos.shape[0]
-    j = j0
-    while j != j1:
-        for s in range(ns):
-            b0, b1, b2, a1, a2 = sos[s, 0], sos[s, 1], sos[s, 2], sos[s, 4], sos[s, 5]
-            for c in range(k):
-                xc = y[j, c]
-                xn = b0 * xc + z0[s, c]
-                z0[s, c] = b1 * xc - a1 * xn + z1[s, c]
-                z1[s, c] = b2 * xc - a2 * xn
-                y[j, c] = xn
-        j += step
-
-
-@njit
-def _filtfilt(x, sos, zi, pad):
-    """``scipy.signal.sosfiltfilt(sos, x, axis=0, padtype='odd', padlen=pad)`` of x (n, k)
-    C-contiguous, n > pad, bit for bit, with its pads: (n + 2 pad, k), the rows pad..pad+n-1
-    are the result. Scipy's odd extension, its initial conditions zi (n_s, 2) times the first
-    (then the last) sample, and its ``sosfilt`` recursion (direct form II transposed, a0 = 1) in
-    the same operation order, forwards then backwards."""
-    n, k = x.shape
-    ns = sos.shape[0]
-    m = n + 2 * pad
-    y = np.empty((m, k))
-    for j in range(pad):
-        for c in range(k):
-            y[j, c] = 2 * x[0, c] - x[pad - j, c]
-            y[pad + n + j, c] = 2 * x[n - 1, c] - x[n - 2 - j, c]
-    y[pad:pad + n] = x
-    z0 = np.empty((ns, k))
-    z1 = np.empty((ns, k))
-    for backwards in (False, True):
-        row = m - 1 if backwards else 0
-        for s in range(ns):
-            for c in range(k):
-                z0[s, c] = zi[s, 0] * y[row, c]
-                z1[s, c] = zi[s, 1] * y[row, c]
-        j0, j1, step = (m - 1, -1, -1) if backwards else (0, m, 1)
-        if k >= _WIDE_COLUMNS or ns != 4:
-            _sos_columns_inner(y, sos, z0, z1, j0, j1, step)
-        else:
-            _sos_pipelined(y, sos, z0, z1, j0, j1, step)
-    return y
-
-
 def parallel_decimate(m: np.ndarray, nd: int) -> np.ndarray:
     """Same zero-phase low-pass + down-sampling on every column (EMPS §3.2, "decimate" process).
 
     Equivalent to ``scipy.signal.decimate(m, q, ftype='iir', axis=0, zero_phase=True)`` per
-    stage (stages ≤ 13), with the filter designed once per factor. The compiled
-    :func:`_filtfilt` gives the same numbers as ``scipy.signal.sosfiltfilt`` bit for bit
-    (each column on its own) in a half to a seventh of its time (eight columns or more filtered
-    side by side, fewer with the four sections' recursions overlapped, the initial conditions
-    once per factor); scipy's own function when numba is off or a
-    stage's input is not longer than its pad.
+    stage (stages ≤ 13), with the filter designed once per factor.
 
     Args:
         m: shape (N,) or (N, k). nd: decimation factor ≥ 1.
@@ -192,23 +77,8 @@ def parallel_decimate(m: np.ndarray, nd: int) -> np.ndarray:
     out = np.asarray(m, dtype=float)
     if nd <= 1:
         return out
-    stages = _stages(nd)
-    for i, q in enumerate(stages):
-        sos, zi, pad = _stage_filter(q)
-        if _JIT_DISABLED or out.ndim > 2 or len(out) <= pad:
-            out = sosfiltfilt(sos, out, axis=0)[::q]
-            continue
-        y = _filtfilt(np.ascontiguousarray(out.reshape(len(out), -1)), sos, zi, pad)
-        if i < len(stages) - 1:
-            out = y[pad:len(y) - pad:q]
-            continue
-        # the last stage in scipy's memory layout (each column contiguous, in reverse time), in
-        # which the arrays' products downstream take the same summation order as before
-        back = np.empty(y.shape[::-1])
-        back[:, ::-1] = y.T
-        out = back.T[::-1][pad:len(y) - pad:q]
-        if np.ndim(m) == 1:
-            out = out[:, 0]
+    for q in _stages(nd):
+        out = sosfiltfilt(_decimation_sos(q), out, axis=0)[::q]
     return out
 
 
