@@ -34,6 +34,7 @@ import numpy as np
 
 from motorctl.effects.base import EffectFamily, PlantTerm
 from motorctl.effects.periodic import SHAPE_POINTS
+from motorctl.model import f_u
 from motorctl.schema import NonNeg, StrictModel
 
 #: searched half-widths d [V]
@@ -43,6 +44,39 @@ SHARE_RANGE = (0.7, 1.3)
 #: fixed-point steps d ← β1·d of :meth:`AmplifierDeadZoneFamily.search` (at most), and the
 #: relative change of d that ends them
 WIDTH_STEPS, WIDTH_RTOL = 8, 1e-3
+#: rounds of :meth:`AmplifierDeadZoneFamily.refine` (the offset at the width, then the width
+#: and the force curve at the offset; settled within 2 or 3 on 20 s logs)
+REFINE_STEPS = 4
+#: the offset's search tolerance [V]
+OFFSET_XTOL = 1e-4
+
+
+def dead_zone(z, d: float):
+    """dz(z) = sign(z)·max(|z| − d, 0) (N,) [V]: what passes a dead-zone of half-width d [V]."""
+    return np.sign(z) * np.maximum(np.abs(z) - d, 0.0)
+
+
+class Band(float):
+    """The dead-zone term's parameter h: its float value is the half-width d [V]. ``offset``: o
+    [V], or None for the linear columns of the search (o first order, in β2); ``theta5`` [1/V],
+    ``theta6`` [1/V²]: the force curve f_u(u) = u + θ5 u|u| + θ6 u³ (paper eq. 9) of the columns
+    (0, 0: f_u = u); ``shift``: the input delay of the exact column [samples]."""
+
+    def __new__(cls, d: float, offset: float | None = None, theta5: float = 0.0, theta6: float = 0.0,
+                shift: float = 0.0):
+        obj = super().__new__(cls, float(d))
+        obj.offset = None if offset is None else float(offset)
+        obj.theta5, obj.theta6, obj.shift = float(theta5), float(theta6), float(shift)
+        return obj
+
+
+def _shape(ctx, terms, ev=None) -> tuple[float, float]:
+    """θ5, θ6 of the joint fit of ``terms`` (``ev``: that fit, when the caller has it); 0, 0
+    without the cubic terms."""
+    if ctx.n_theta != 6:
+        return 0.0, 0.0
+    coef = (ev or ctx.evaluate(terms)).fit.coef
+    return float(coef[4]), float(coef[5])
 
 
 class AmplifierDeadZone(StrictModel):
@@ -78,9 +112,27 @@ class AmplifierDeadZoneFamily(EffectFamily):
 
     # identification
     def columns(self, h, p):
-        """clip(u, −h, h), [|u| < h], (N, 2); h: half-width d [V]."""
+        """The lost input, (N, k); h: the half-width d [V], a :class:`Band` (or a float: o = 0
+        in its linear form, f_u = u).
+
+        Linear form (``h.offset`` None; the search): f_u(u) − f_u(dz(u)), [|u| < d], (N, 2):
+        β1 the share of the band's input lost, β2 ≈ o (first order in o; the constant −o is
+        θ4's). Exact form (``h.offset`` = o): f_u(u) − f_u(dz(u + o)), (N, 1), delayed by
+        ``h.shift`` samples (the model's input delay: the dead-zone acts before the current
+        loop). f_u(u) = u + θ5 u|u| + θ6 u³ (paper eq. 9) on ``h.theta5``, ``h.theta6``: the
+        motor's force curve acts on what passes the dead-zone."""
         u = p.u
-        return np.column_stack([np.clip(u, -h, h), (np.abs(u) < h).astype(float)])
+        th5, th6 = getattr(h, "theta5", 0.0), getattr(h, "theta6", 0.0)
+        offset = getattr(h, "offset", None)
+        d = float(h)
+        if offset is None:
+            return np.column_stack([f_u(u, th5, th6) - f_u(dead_zone(u, d), th5, th6),
+                                    (np.abs(u) < d).astype(float)])
+        lost = f_u(u, th5, th6) - f_u(dead_zone(u + offset, d), th5, th6)
+        s = getattr(h, "shift", 0.0)
+        if s > 0:
+            lost = np.interp(np.arange(len(u), dtype=float) - s, np.arange(len(u), dtype=float), lost)
+        return lost[:, None]
 
     def search(self, ctx, base, residual):
         """The least SSE on :data:`WIDTH_GRID`, refined on a finer grid. With a holding force
@@ -90,7 +142,8 @@ class AmplifierDeadZoneFamily(EffectFamily):
         width is then the half-width whose share β1 is 1 (module docstring), β1 on the grid
         (> 1 below the true width, where the column's ±h is smaller than the force beyond the
         band, < 1 above it), the crossing of least SSE interpolated on the log grid, then the
-        fixed point d ← β1·d."""
+        fixed point d ← β1·d, on the linear columns with the fit's own force curve; then the
+        offset (:meth:`refine`): the exact term."""
         from motorctl.effects import FAMILIES
         term, sses = ctx.best_over(self.name, WIDTH_GRID, base)
         i = int(np.argmin(sses))
@@ -102,7 +155,8 @@ class AmplifierDeadZoneFamily(EffectFamily):
         if (not any(FAMILIES[t.family].other_weight(t) is not None for t in base)
                 or not lo <= float(ctx.evaluate(base + [term]).fit.coef[-2]) <= hi):
             return term, None
-        fits = [ctx.evaluate(base + [ctx.term(self.name, float(h))]) for h in WIDTH_GRID]
+        th5, th6 = _shape(ctx, base)
+        fits = [ctx.evaluate(base + [ctx.term(self.name, Band(h, None, th5, th6))]) for h in WIDTH_GRID]
         share = np.array([float(f.fit.coef[-2]) for f in fits])
         sse = np.array([float(f.fit.residual @ f.fit.residual) for f in fits])
         cross = [i for i in range(len(WIDTH_GRID) - 1) if share[i] >= 1.0 > share[i + 1]]
@@ -115,21 +169,58 @@ class AmplifierDeadZoneFamily(EffectFamily):
         lg = np.log(WIDTH_GRID)
         w = math.log(share[i]) / (math.log(share[i]) - math.log(max(share[i + 1], 1e-9)))
         d = float(np.exp(lg[i] + w * (lg[i + 1] - lg[i])))
-        term = ctx.term(self.name, d)
+        term = ctx.term(self.name, Band(d, None, th5, th6))
         for _ in range(WIDTH_STEPS):
             new = d * float(ctx.evaluate(base + [term]).fit.coef[-2])
             if not WIDTH_GRID[0] <= new <= WIDTH_GRID[-1]:
                 break
-            term = ctx.term(self.name, new)
+            term = ctx.term(self.name, Band(new, None, th5, th6))
             done = abs(new - d) <= WIDTH_RTOL * d
             d = new
             if done:
                 break
-        return term, None
+        return self.refine(ctx, base, term), None
+
+    def refine(self, ctx, base, term):
+        """The exact term (:meth:`columns`, exact form) from a linear one found with a holding
+        force in ``base``: the offset o minimising the joint-LS SSE at the width d (bounded
+        Brent within ±d around the linear fit's β2, to :data:`OFFSET_XTOL`), then d ← β1·d and
+        the force curve θ5, θ6 of that fit, until d and o settle (:data:`REFINE_STEPS` at most).
+
+        Beyond the band an input offset is the same constant force as the plant's F_0 (θ4) but
+        for two things the exact column sees: where the band lies on the input axis (the
+        samples crossing it in motion, mostly the stick-slip at rest), and the motor's force
+        curve, which bends about the input that passes the dead-zone (u + o), not about u:
+        the lost force at u beyond the band is f_u(u) − f_u(u + o ∓ d), whose dependence on
+        o changes with |u| where F_0 does not."""
+        from scipy.optimize import minimize_scalar
+        d = float(term.h)
+        ev = ctx.evaluate(base + [term])
+        o = float(np.clip(ev.fit.coef[-1], -0.5 * d, 0.5 * d))
+        th5, th6 = _shape(ctx, base + [term], ev)
+        shift = ctx.zoh + sum(t.delay for t in base)
+        exact = term
+        for _ in range(REFINE_STEPS):
+            def sse(x, d=d, th5=th5, th6=th6):
+                return ctx.sse(base + [ctx.term(self.name, Band(d, float(x), th5, th6, shift))])
+            lo_o, hi_o = o - 0.5 * d, o + 0.5 * d
+            res = minimize_scalar(sse, bounds=(lo_o, hi_o), method="bounded", options={"xatol": OFFSET_XTOL})
+            new_o = float(res.x)
+            exact = ctx.term(self.name, Band(d, new_o, th5, th6, shift))
+            ev = ctx.evaluate(base + [exact])
+            new_d = d * float(ev.fit.coef[-1])
+            th5, th6 = _shape(ctx, base + [exact], ev)
+            settled = abs(new_d - d) <= WIDTH_RTOL * d and abs(new_o - o) <= OFFSET_XTOL
+            if not WIDTH_GRID[0] <= new_d <= WIDTH_GRID[-1]:
+                break
+            d, o = new_d, new_o
+            if settled:
+                break
+        return ctx.term(self.name, Band(d, o, th5, th6, shift))
 
     def polish(self, ctx, term, others):
-        """The width's fixed point again with the final model's ``others`` (the force beyond
-        the band is shared with a friction or a delay found after it)."""
+        """The width's fixed point and the offset again with the final model's ``others`` (the
+        force beyond the band is shared with a friction or a delay found after it)."""
         new, note = self.search(ctx, others, None)
         return None if note else new
 
@@ -139,18 +230,26 @@ class AmplifierDeadZoneFamily(EffectFamily):
         if not lo <= beta[0] <= hi:
             out.append(f"share of the band's input lost {beta[0]:.2f} outside [{lo:g}, {hi:g}] "
                        "(a dead-zone passes nothing within it)")
-        if abs(beta[1]) > term.h:
-            out.append(f"input offset {beta[1]:.3g} V larger than the dead-zone's half-width {term.h:.3g} V")
+        offset = _offset(term.h, beta)
+        if abs(offset) > term.h:
+            out.append(f"input offset {offset:.3g} V larger than the dead-zone's half-width {term.h:.3g} V")
         return out
 
     def parameters(self, h, beta, gain, fs):
-        return {"dead_zone_V": float(h), "lost_share": float(beta[0]), "offset_V": float(beta[1])}
+        return {"dead_zone_V": float(h), "lost_share": float(beta[0]), "offset_V": _offset(h, beta)}
 
     # report
     def shape(self, ctx, h, beta, gain):
-        u = np.linspace(-3 * h, 3 * h, SHAPE_POINTS)
-        y = -(gain or 1.0) * (np.clip(u, -h, h) * beta[0] + (np.abs(u) < h) * beta[1])
+        d, o = float(h), _offset(h, beta)
+        u = np.linspace(-3 * d, 3 * d, SHAPE_POINTS)
+        y = -(gain or 1.0) * beta[0] * (np.clip(u + o, -d, d) - o)
         return u, y, "input u [V]", "effect force [UNIT]"
+
+
+def _offset(h, beta) -> float:
+    """The input offset o [V] of a fitted term: the exact term's own, else β2 (first order)."""
+    offset = getattr(h, "offset", None)
+    return float(beta[1]) if offset is None else offset
 
 
 FAMILY = AmplifierDeadZoneFamily()
