@@ -34,7 +34,7 @@ import numpy as np
 
 from motorctl.effects.base import EffectFamily, PlantTerm
 from motorctl.effects.periodic import SHAPE_POINTS
-from motorctl.model import f_u
+from motorctl.model import f_u, f_u_slope
 from motorctl.schema import NonNeg, StrictModel
 
 #: searched half-widths d [V]
@@ -44,10 +44,9 @@ SHARE_RANGE = (0.7, 1.3)
 #: fixed-point steps d ← β1·d of :meth:`AmplifierDeadZoneFamily.search` (at most), and the
 #: relative change of d that ends them
 WIDTH_STEPS, WIDTH_RTOL = 8, 1e-3
-#: rounds of :meth:`AmplifierDeadZoneFamily.refine` (the offset at the width, then the width
-#: and the force curve at the offset; settled within 2 or 3 on 20 s logs)
-REFINE_STEPS = 4
-#: the offset's search tolerance [V]
+#: Gauss-Newton steps of :meth:`AmplifierDeadZoneFamily.refine` (at most)
+REFINE_STEPS = 5
+#: the offset's step that ends :meth:`AmplifierDeadZoneFamily.refine` [V]
 OFFSET_XTOL = 1e-4
 
 
@@ -60,13 +59,15 @@ class Band(float):
     """The dead-zone term's parameter h: its float value is the half-width d [V]. ``offset``: o
     [V], or None for the linear columns of the search (o first order, in β2); ``theta5`` [1/V],
     ``theta6`` [1/V²]: the force curve f_u(u) = u + θ5 u|u| + θ6 u³ (paper eq. 9) of the columns
-    (0, 0: f_u = u); ``shift``: the input delay of the exact column [samples]."""
+    (0, 0: f_u = u); ``shift``: the input delay of the exact column [samples]; ``slope``: the
+    exact column with its derivative in o (a Gauss-Newton step of :meth:`AmplifierDeadZoneFamily.
+    refine`)."""
 
     def __new__(cls, d: float, offset: float | None = None, theta5: float = 0.0, theta6: float = 0.0,
-                shift: float = 0.0):
+                shift: float = 0.0, slope: bool = False):
         obj = super().__new__(cls, float(d))
         obj.offset = None if offset is None else float(offset)
-        obj.theta5, obj.theta6, obj.shift = float(theta5), float(theta6), float(shift)
+        obj.theta5, obj.theta6, obj.shift, obj.slope = float(theta5), float(theta6), float(shift), bool(slope)
         return obj
 
 
@@ -119,7 +120,7 @@ class AmplifierDeadZoneFamily(EffectFamily):
         β1 the share of the band's input lost, β2 ≈ o (first order in o; the constant −o is
         θ4's). Exact form (``h.offset`` = o): f_u(u) − f_u(dz(u + o)), (N, 1), delayed by
         ``h.shift`` samples (the model's input delay: the dead-zone acts before the current
-        loop). f_u(u) = u + θ5 u|u| + θ6 u³ (paper eq. 9) on ``h.theta5``, ``h.theta6``: the
+        loop); with ``h.slope`` also its derivative in o, −f_u'(dz(u + o))·[|u + o| > d] (N, 2). f_u(u) = u + θ5 u|u| + θ6 u³ (paper eq. 9) on ``h.theta5``, ``h.theta6``: the
         motor's force curve acts on what passes the dead-zone."""
         u = p.u
         th5, th6 = getattr(h, "theta5", 0.0), getattr(h, "theta6", 0.0)
@@ -128,11 +129,16 @@ class AmplifierDeadZoneFamily(EffectFamily):
         if offset is None:
             return np.column_stack([f_u(u, th5, th6) - f_u(dead_zone(u, d), th5, th6),
                                     (np.abs(u) < d).astype(float)])
-        lost = f_u(u, th5, th6) - f_u(dead_zone(u + offset, d), th5, th6)
+        passed = dead_zone(u + offset, d)
+        cols = [f_u(u, th5, th6) - f_u(passed, th5, th6)]
+        if getattr(h, "slope", False):       # ∂/∂o: −f_u'(dz(u + o)) beyond the band, 0 within
+            cols.append(-f_u_slope(np.abs(passed), th5, th6) * (np.abs(u + offset) > d))
+        lost = np.column_stack(cols)
         s = getattr(h, "shift", 0.0)
         if s > 0:
-            lost = np.interp(np.arange(len(u), dtype=float) - s, np.arange(len(u), dtype=float), lost)
-        return lost[:, None]
+            n = np.arange(len(u), dtype=float)
+            lost = np.column_stack([np.interp(n - s, n, c) for c in lost.T])
+        return lost
 
     def search(self, ctx, base, residual):
         """The least SSE on :data:`WIDTH_GRID`, refined on a finer grid. With a holding force
@@ -142,7 +148,7 @@ class AmplifierDeadZoneFamily(EffectFamily):
         width is then the half-width whose share β1 is 1 (module docstring), β1 on the grid
         (> 1 below the true width, where the column's ±h is smaller than the force beyond the
         band, < 1 above it), the crossing of least SSE interpolated on the log grid, then the
-        fixed point d ← β1·d, on the linear columns with the fit's own force curve; then the
+        fixed point d ← β1·d on the linear columns with the fit's own force curve; then the
         offset (:meth:`refine`): the exact term."""
         from motorctl.effects import FAMILIES
         term, sses = ctx.best_over(self.name, WIDTH_GRID, base)
@@ -155,8 +161,7 @@ class AmplifierDeadZoneFamily(EffectFamily):
         if (not any(FAMILIES[t.family].other_weight(t) is not None for t in base)
                 or not lo <= float(ctx.evaluate(base + [term]).fit.coef[-2]) <= hi):
             return term, None
-        th5, th6 = _shape(ctx, base)
-        fits = [ctx.evaluate(base + [ctx.term(self.name, Band(h, None, th5, th6))]) for h in WIDTH_GRID]
+        fits = [ctx.evaluate(base + [ctx.term(self.name, float(h))]) for h in WIDTH_GRID]
         share = np.array([float(f.fit.coef[-2]) for f in fits])
         sse = np.array([float(f.fit.residual @ f.fit.residual) for f in fits])
         cross = [i for i in range(len(WIDTH_GRID) - 1) if share[i] >= 1.0 > share[i + 1]]
@@ -169,6 +174,7 @@ class AmplifierDeadZoneFamily(EffectFamily):
         lg = np.log(WIDTH_GRID)
         w = math.log(share[i]) / (math.log(share[i]) - math.log(max(share[i + 1], 1e-9)))
         d = float(np.exp(lg[i] + w * (lg[i + 1] - lg[i])))
+        th5, th6 = _shape(ctx, base)
         term = ctx.term(self.name, Band(d, None, th5, th6))
         for _ in range(WIDTH_STEPS):
             new = d * float(ctx.evaluate(base + [term]).fit.coef[-2])
@@ -183,9 +189,11 @@ class AmplifierDeadZoneFamily(EffectFamily):
 
     def refine(self, ctx, base, term):
         """The exact term (:meth:`columns`, exact form) from a linear one found with a holding
-        force in ``base``: the offset o minimising the joint-LS SSE at the width d (bounded
-        Brent within ±d around the linear fit's β2, to :data:`OFFSET_XTOL`), then d ← β1·d and
-        the force curve θ5, θ6 of that fit, until d and o settle (:data:`REFINE_STEPS` at most).
+        force in ``base``: Gauss-Newton steps on the offset, each a joint fit of the exact column
+        at (d, o) and its derivative in o (β1, β2: o ← o + β2/β1, at most ±d/2 a step), with
+        d ← β1·d and the force curve θ5, θ6 of that fit, until o moves less than
+        :data:`OFFSET_XTOL` and β1 is within :data:`WIDTH_RTOL` of 1 (:data:`REFINE_STEPS` at
+        most). Starts from the linear fit's β2.
 
         Beyond the band an input offset is the same constant force as the plant's F_0 (θ4) but
         for two things the exact column sees: where the band lies on the input axis (the
@@ -193,28 +201,21 @@ class AmplifierDeadZoneFamily(EffectFamily):
         curve, which bends about the input that passes the dead-zone (u + o), not about u:
         the lost force at u beyond the band is f_u(u) − f_u(u + o ∓ d), whose dependence on
         o changes with |u| where F_0 does not."""
-        from scipy.optimize import minimize_scalar
         d = float(term.h)
         ev = ctx.evaluate(base + [term])
         o = float(np.clip(ev.fit.coef[-1], -0.5 * d, 0.5 * d))
         th5, th6 = _shape(ctx, base + [term], ev)
         shift = ctx.zoh + sum(t.delay for t in base)
-        exact = term
         for _ in range(REFINE_STEPS):
-            def sse(x, d=d, th5=th5, th6=th6):
-                return ctx.sse(base + [ctx.term(self.name, Band(d, float(x), th5, th6, shift))])
-            lo_o, hi_o = o - 0.5 * d, o + 0.5 * d
-            res = minimize_scalar(sse, bounds=(lo_o, hi_o), method="bounded", options={"xatol": OFFSET_XTOL})
-            new_o = float(res.x)
-            exact = ctx.term(self.name, Band(d, new_o, th5, th6, shift))
-            ev = ctx.evaluate(base + [exact])
-            new_d = d * float(ev.fit.coef[-1])
-            th5, th6 = _shape(ctx, base + [exact], ev)
-            settled = abs(new_d - d) <= WIDTH_RTOL * d and abs(new_o - o) <= OFFSET_XTOL
-            if not WIDTH_GRID[0] <= new_d <= WIDTH_GRID[-1]:
+            ev = ctx.evaluate(base + [ctx.term(self.name, Band(d, o, th5, th6, shift, slope=True))])
+            b1, b2 = (float(c) for c in ev.fit.coef[-2:])
+            if not SHARE_RANGE[0] <= b1 <= SHARE_RANGE[1]:
                 break
-            d, o = new_d, new_o
-            if settled:
+            step = float(np.clip(b2 / b1, -0.5 * d, 0.5 * d))
+            o += step
+            d *= b1
+            th5, th6 = _shape(ctx, base, ev)
+            if abs(step) <= OFFSET_XTOL and abs(b1 - 1.0) <= WIDTH_RTOL:
                 break
         return ctx.term(self.name, Band(d, o, th5, th6, shift))
 
