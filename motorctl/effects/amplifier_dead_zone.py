@@ -2,12 +2,13 @@
 its (offset) zero, a classic static nonlinearity of analogue ±10 V inputs.
 
 Physical model: the input reaching the motor is u' = dz(u + o), dz(z) = sign(z)·max(|z| − d, 0),
-d ≥ 0 the half-width [V], o the input offset [V]. Seen from the nominal model (F_m = A1 u):
+d ≥ 0 the half-width [V], o the input offset [V]; the motor's force curve F_m (paper eq. 3)
+acts on u'. Seen from the nominal model (f_u(u) = u + θ5 u|u| + θ6 u³, paper eq. 9):
 
-    F_eff = A1 (u' − u) = −A1 (clip(u + o, −d, d) − o)                                    [N]
+    F_eff = −A1 (f_u(u) − f_u(dz(u + o)))       (θ5 = θ6 = 0: −A1 (clip(u + o, −d, d) − o))  [N]
 
 Simulator: ``axes.NAME.driver.effects.amplifier_dead_zone`` (an input transform, once per
-period). Identification: columns clip(u, −d, d), [|u| < d] (the first-order expansion in o; the
+period). Identification, search: columns f_u(u) − f_u(dz(u)), [|u| < d] (first order in o; the
 constant −o is θ4's); β1 the share of the band's input lost (1 for a dead-zone), β2 ≈ o.
 At rest a dead-zone and a static friction look alike (both leave the carriage where it is,
 whatever the small input): without a holding force in the model, d is the band that fits the
@@ -18,11 +19,19 @@ friction (on the sign of ẋ) is not while the carriage decelerates. That force 
 band's inside is crossed in about a sample at each zero crossing of u, too briefly to fix d by
 its shape. So d is then the width whose share β1 is 1 (a dead-zone passes nothing within it):
 the crossing β1 = 1 on the grid, then the fixed point d ← β1·d
-(:meth:`AmplifierDeadZoneFamily.search`, again in the final model: :meth:`polish`). The offset o
-is weakly determined: beyond the band it is the same constant force as the plant's F_0 (θ4),
-only the band's crossings tell them apart. Not compensable by an additive term in
-(x_d, ẋ_d, t): its inverse (u + d·sign(u)) needs the law's own output; the report names it so
-the amplifier's zero can be adjusted.
+(:meth:`AmplifierDeadZoneFamily.search`, again in the final model: :meth:`polish`).
+
+The offset: beyond the band it is the same constant force as the plant's F_0 (θ4) in a model
+with f_u = u; two things tell them apart, and the exact term f_u(u) − f_u(dz(u + o)) (one
+column, :meth:`AmplifierDeadZoneFamily.refine`) sees both: where the band lies on the input
+axis (the samples crossing it in motion, mostly the stick-slip at rest) and the force curve,
+which bends about the input that passes the dead-zone, not about u (the lost force beyond the
+band, f_u(u) − f_u(u + o ∓ d), depends on o differently at each |u|; F_0 does not). The linear
+columns with f_u = u left o 45 % low to 29 % high on 20 s logs of the default plant; a thrust
+mis-modelled as f_u = u there also made a phantom asymmetric friction of the force the band
+takes at large |u| (d·f_u'(u), half of d at 8 V).
+Not compensable by an additive term in (x_d, ẋ_d, t): its inverse (u + d·sign(u)) needs the
+law's own output; the report names it so the amplifier's zero can be adjusted.
 """
 
 from __future__ import annotations
@@ -34,7 +43,7 @@ import numpy as np
 
 from motorctl.effects.base import EffectFamily, PlantTerm
 from motorctl.effects.periodic import SHAPE_POINTS
-from motorctl.model import f_u, f_u_slope
+from motorctl.model import f_u_slope
 from motorctl.schema import NonNeg, StrictModel
 
 #: searched half-widths d [V]
@@ -69,6 +78,14 @@ class Band(float):
         obj.offset = None if offset is None else float(offset)
         obj.theta5, obj.theta6, obj.shift, obj.slope = float(theta5), float(theta6), float(shift), bool(slope)
         return obj
+
+
+def _thrust(u: np.ndarray, theta5: float, theta6: float) -> np.ndarray:
+    """f_u(u) = u + θ5 u|u| + θ6 u³ (N,) [V] (paper eq. 9, :func:`motorctl.model.f_u`), u itself
+    when θ5 = θ6 = 0 (the search's grid: no copy)."""
+    if theta5 == 0.0 and theta6 == 0.0:
+        return u
+    return u * (1.0 + theta5 * np.abs(u) + theta6 * (u * u))
 
 
 def _shape(ctx, terms, ev=None) -> tuple[float, float]:
@@ -113,24 +130,25 @@ class AmplifierDeadZoneFamily(EffectFamily):
 
     # identification
     def columns(self, h, p):
-        """The lost input, (N, k); h: the half-width d [V], a :class:`Band` (or a float: o = 0
-        in its linear form, f_u = u).
+        """The lost input [V], (N, k); h: the half-width d [V], a :class:`Band` (a float: the
+        linear form with f_u = u). f_u(u) = u + θ5 u|u| + θ6 u³ (paper eq. 9) on ``h.theta5``,
+        ``h.theta6``: the motor's force curve acts on what passes the dead-zone.
 
         Linear form (``h.offset`` None; the search): f_u(u) − f_u(dz(u)), [|u| < d], (N, 2):
         β1 the share of the band's input lost, β2 ≈ o (first order in o; the constant −o is
         θ4's). Exact form (``h.offset`` = o): f_u(u) − f_u(dz(u + o)), (N, 1), delayed by
         ``h.shift`` samples (the model's input delay: the dead-zone acts before the current
-        loop); with ``h.slope`` also its derivative in o, −f_u'(dz(u + o))·[|u + o| > d] (N, 2). f_u(u) = u + θ5 u|u| + θ6 u³ (paper eq. 9) on ``h.theta5``, ``h.theta6``: the
-        motor's force curve acts on what passes the dead-zone."""
+        loop); with ``h.slope`` also its derivative in o, −f_u'(dz(u + o))·[|u + o| > d],
+        (N, 2)."""
         u = p.u
         th5, th6 = getattr(h, "theta5", 0.0), getattr(h, "theta6", 0.0)
         offset = getattr(h, "offset", None)
         d = float(h)
         if offset is None:
-            return np.column_stack([f_u(u, th5, th6) - f_u(dead_zone(u, d), th5, th6),
+            return np.column_stack([_thrust(u, th5, th6) - _thrust(dead_zone(u, d), th5, th6),
                                     (np.abs(u) < d).astype(float)])
         passed = dead_zone(u + offset, d)
-        cols = [f_u(u, th5, th6) - f_u(passed, th5, th6)]
+        cols = [_thrust(u, th5, th6) - _thrust(passed, th5, th6)]
         if getattr(h, "slope", False):       # ∂/∂o: −f_u'(dz(u + o)) beyond the band, 0 within
             cols.append(-f_u_slope(np.abs(passed), th5, th6) * (np.abs(u + offset) > d))
         lost = np.column_stack(cols)
