@@ -107,7 +107,7 @@ class AmplifierDeadZone(StrictModel):
 
 class AmplifierDeadZoneFamily(EffectFamily):
     name = "amplifier_dead_zone"
-    plant_force = "−A1 (clip(u + o, −d, d) − o)"
+    plant_force = "−A1 (f_u(u) − f_u(dz(u + o)))"
     searched = "dead-zone half-width d [V]"
     sim_options = AmplifierDeadZone
     example: ClassVar[dict] = {"amplifier_dead_zone": {"dead_zone_V": 0.15, "offset_V": 0.02}}
