@@ -160,14 +160,20 @@ def test_force_constant_drift_is_exact_on_the_fits_own_thrust_shape():
 
 # ------------------------------------------------------------------------------- dead-zone
 def test_dead_zone_width_is_the_force_beyond_its_band_not_the_static_friction():
-    """d = 0.15 V behind a 25 N stiction that holds the carriage through the dwells (its input
-    band there is about ±0.3 V): the width comes from the motion, where the dead-zone takes
-    A1·d against the sign of the input."""
-    rec = _simulate(dz=(0.15, 0.0), stiction_n=25.0, noise_v=0.02)
+    """d = 0.15 V, o = 20 mV behind a 25 N stiction that holds the carriage through the dwells
+    (its input band there is about ±0.3 V): the width comes from the motion, where the
+    dead-zone takes A1·d against the sign of the input; the offset from the exact lost input
+    f_u(u) − f_u(dz(u + o)) (where the band lies, and the force curve bending about u + o),
+    which θ4 alone (F_0) cannot take."""
+    rec = _simulate(dz=(0.15, 0.02), stiction_n=25.0, noise_v=0.02)
     idf = Identifier(rec, n_theta=6, zoh_delay=0.5)
     st, _ = FAMILIES["stiction"].search(idf, [], None)
-    term, note = FAMILIES["amplifier_dead_zone"].search(idf, [st], None)
+    fam = FAMILIES["amplifier_dead_zone"]
+    term, note = fam.search(idf, [st], None)
     assert note is None
-    assert float(term.h) == pytest.approx(0.15, rel=0.05)
-    share = float(idf.evaluate([st, term]).fit.coef[-2])
-    assert share == pytest.approx(1.0, abs=0.02)
+    ev = idf.evaluate([st, term])
+    par = fam.parameters(term.h, ev.fit.coef[-1:], A1, FS)
+    assert par["dead_zone_V"] == pytest.approx(0.15, rel=0.05)
+    assert par["lost_share"] == pytest.approx(1.0, abs=0.02)
+    assert par["offset_V"] == pytest.approx(0.02, rel=0.1)
+    assert not fam.plausible(idf, term, ev.fit.coef[-1:], ev.fit.coef[:6], [st])
