@@ -84,6 +84,14 @@ class StictionFamily(EffectFamily):
         term, _ = ctx.best_over(self.name, fine, base)
         return term, None
 
+    def polish(self, ctx, term, others):
+        """The band searched again (:meth:`search`) with the final model's other effects: taken
+        first, before a low-speed friction was modelled, the band widens to take up part of it
+        (default plant, Stribeck 20 N / 0.05 m/s: 1.65 mm/s, 0.33-0.41 mm/s beside the hump).
+        None when the search's value sits at its grid's edge."""
+        found = self.search(ctx, others, None)
+        return None if found is None or found[1] else found[0]
+
     def plausible(self, ctx, term, beta, theta, base):
         lo, hi = HELD_RANGE
         out = []
