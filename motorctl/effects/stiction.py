@@ -53,6 +53,7 @@ class StictionFamily(EffectFamily):
     example: ClassVar[dict] = {"stiction_N": 25.0}
     look_alike: ClassVar[tuple[str, ...]] = ("amplifier_dead_zone",)
     acts_at_rest = True
+    before_current_loop = True
 
     # simulator: the plant core's Karnopp stiction (axis-level option, no hook)
     def sim_config(self, axis_options):

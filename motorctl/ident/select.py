@@ -304,11 +304,19 @@ class Identifier:
             fam = effect_family(family)
             c = fam.decimated_columns(h, self.p)
             if c is None:
-                full = fam.columns(h, self.p)
+                full = self._through_loop(fam, fam.columns(h, self.p))
                 c = False if full is None else self.p.dec(full)
             if len(self._cols_cache) < COLS_CACHE_MAX:
                 self._cols_cache[key] = c
         return None if c is False else c
+
+    def _through_loop(self, fam, full):
+        """A family's full-rate columns (N,) or (N, k), through the declared current loop's
+        filter (:meth:`input_columns`) when the family acts on the input before it
+        (:attr:`~motorctl.effects.base.EffectFamily.before_current_loop`); else as they are."""
+        if full is None or self.loop_filter is None or not fam.before_current_loop:
+            return full
+        return lfilter(*self.loop_filter, full, axis=0)
 
     def _decimate_ahead(self, family: str, grid) -> None:
         """Put the decimated columns of ``family`` at every h of ``grid`` (K,) into the cache of
@@ -332,7 +340,7 @@ class Identifier:
             chunk, width = [], 0
             while i < len(todo) and width < DECIMATE_BATCH:
                 key, h = todo[i]
-                full = fam.columns(h, self.p)
+                full = self._through_loop(fam, fam.columns(h, self.p))
                 if full is None:
                     self._cols_cache[key] = False
                 else:
