@@ -131,11 +131,11 @@ def test_asymmetric_friction_levels_are_fitted_in_motion():
     assert held["coulomb_N"] == pytest.approx(5.0 + 2.0 * 10.0 * x_bar, abs=0.1)
 
 
-def test_stribeck_hump_is_built_on_the_wide_band_velocity_and_s_f_on_the_nominal_one():
+def test_stribeck_hump_is_built_on_the_wide_band_velocity_and_s_f_on_the_one_given():
     """A jerk-limited start (4000 m/s³, the gantry's program) passes a 20 mm/s Stribeck hump in a
     few ms: the position filter's velocity (250 Hz) blurs the hump, the wide-band one follows
-    it. S_f is the nominal Coulomb column's (on the position filter's velocity): in creep the
-    plant's force is (F_c + F_s) S_f(ẋ), one shape for both columns."""
+    it. S_f on ``v_sf`` when given (the nominal Coulomb column's velocity with the current loop
+    modelled: in creep the plant's force is (F_c + F_s) S_f(ẋ)), else on the wide-band one."""
     t = np.arange(int(0.2 * FS)) / FS
     j, t0 = 4000.0, 0.1
     tau = np.clip(t - t0, 0.0, None)
@@ -143,9 +143,11 @@ def test_stribeck_hump_is_built_on_the_wide_band_velocity_and_s_f_on_the_nominal
     v_true = j * tau ** 2 / 2.0
     p = prepare(t, x, np.sin(2 * np.pi * 3 * t))
     assert p.v_wide is not None and p.v_wide.shape == t.shape
-    col = FAMILIES["stribeck"].columns(0.02, p)[:, 0]
+    fam = FAMILIES["stribeck"]
     hump = np.exp(-(p.v_wide / 0.02) ** 2)
-    assert col == pytest.approx(hump * s_f(p.v), abs=1e-12)
+    assert fam.columns(0.02, p)[:, 0] == pytest.approx(hump * s_f(p.v_wide), abs=1e-12)
+    p.v_sf = p.v                        # as the identifier with its current loop modelled sets it
+    assert fam.columns(0.02, p)[:, 0] == pytest.approx(hump * s_f(p.v), abs=1e-12)
     mid = slice(int(0.05 * FS), int(0.15 * FS))
     true = np.exp(-(v_true / 0.02) ** 2)
     blurred = np.exp(-(p.v / 0.02) ** 2)

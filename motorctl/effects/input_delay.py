@@ -187,12 +187,19 @@ class FoundDelay(float):
     """A found input delay: its float value is the lag beyond the hold and the modelled current
     loop [samples] (the target's shift); ``amplifier_lag`` [samples] the lag of the amplifier's
     declared current loop the nominal model holds besides it (:func:`amplifier_lag`; 0: none
-    declared)."""
+    declared); ``modelled``: the nominal model holds that lag (the identifier's
+    ``current_loop``), else the float value includes it (the lag found as a delay)."""
 
-    def __new__(cls, samples: float, amplifier_lag: float = 0.0):
+    def __new__(cls, samples: float, amplifier_lag: float = 0.0, modelled: bool = False):
         obj = super().__new__(cls, float(samples))
         obj.amplifier_lag = float(amplifier_lag)
+        obj.modelled = bool(modelled)
         return obj
+
+    def beyond_hold(self) -> float:
+        """All of the lag beyond the hold [samples]: the found delay, plus the declared loop's
+        lag when the model holds it."""
+        return float(self) + (self.amplifier_lag if self.modelled else 0.0)
 
 
 class DelayComp(StrictModel):
@@ -242,10 +249,15 @@ class InputDelayFamily(EffectFamily):
         (:meth:`in_motion`): whole samples to 5 ms, then :meth:`refine`; the term's h is a
         :class:`FoundDelay` carrying the modelled loop's lag."""
         p = ctx.p
-        lag = float(getattr(ctx, "modelled_lag", 0.0) or 0.0)
+        modelled = float(getattr(ctx, "modelled_lag", 0.0) or 0.0)
+        if modelled > 0:
+            lag = modelled
+        else:
+            rec = getattr(ctx, "rec", None)
+            lag = amplifier_lag(getattr(rec, "header", None) or {}, getattr(rec, "axis", ""))[0] * p.fs
 
         def term(d):
-            return ctx.term(self.name, FoundDelay(d, lag))
+            return ctx.term(self.name, FoundDelay(d, lag, modelled > 0))
         dmax = max(3, min(round(0.005 * p.fs), 40))
         grid = np.arange(0, dmax + 1)
         sses = ctx.delay_sses(base, grid, rows=self.in_motion(ctx))
@@ -310,12 +322,14 @@ class InputDelayFamily(EffectFamily):
                 f"{MAX_BAND_SPREAD:g}): a lag of part of the force (a load held with play, backlash)")
 
     def parameters(self, h, beta, gain, fs):
-        """delay_samples: the lag found beyond the hold and the declared current loop
-        [samples]; delay_s: the same in seconds; amplifier_lag_s: the declared loop's lag
-        (:class:`FoundDelay`, 0 when none is declared); total_delay_s: their sum (what the
-        compensation previews)."""
+        """delay_samples: the lag found beyond the hold (and beyond the declared current loop
+        when the model holds it, :class:`FoundDelay`) [samples]; amplifier_lag_s: the declared
+        loop's lag (0 when none is declared); total_delay_s: all of the lag beyond the hold
+        (what the compensation previews); delay_s: the transport delay beyond the loop,
+        total_delay_s − amplifier_lag_s."""
         lag = float(getattr(h, "amplifier_lag", 0.0))
-        return {"delay_samples": float(h), "delay_s": float(h) / fs, "total_delay_s": (float(h) + lag) / fs,
+        total = h.beyond_hold() if isinstance(h, FoundDelay) else float(h)
+        return {"delay_samples": float(h), "delay_s": (total - lag) / fs, "total_delay_s": total / fs,
                 "amplifier_lag_s": lag / fs}
 
     # compensation (a preview, not an additive d̂_eff)
@@ -329,7 +343,7 @@ class InputDelayFamily(EffectFamily):
         if not fs:
             t = np.asarray(signals.t, dtype=float)
             fs = (len(t) - 1) / (t[-1] - t[0])
-        return {"delay_s": (float(h) + float(getattr(h, "amplifier_lag", 0.0))) / float(fs)}
+        return {"delay_s": (h.beyond_hold() if isinstance(h, FoundDelay) else float(h)) / float(fs)}
 
     def compensation_for(self, delay_s, a1):
         return {"delay_s": float(delay_s)}

@@ -89,7 +89,10 @@ class StictionFamily(EffectFamily):
         """The band searched again (:meth:`search`) with the final model's other effects: taken
         first, before a low-speed friction was modelled, the band widens to take up part of it
         (default plant, Stribeck 20 N / 0.05 m/s: 1.65 mm/s, 0.33-0.41 mm/s beside the hump).
-        None when the search's value sits at its grid's edge."""
+        None when the search's value sits at its grid's edge, or when the identifier does not
+        model the current loop (its ``current_loop``: the selection as before)."""
+        if not getattr(ctx, "current_loop", False):
+            return None
         found = self.search(ctx, others, None)
         return None if found is None or found[1] else found[0]
 

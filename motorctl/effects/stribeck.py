@@ -92,14 +92,16 @@ class StribeckFamily(EffectFamily):
         """exp(−(ẋ_w/h)²) S_f(ẋ), (N, 1); h: Stribeck velocity v_s [m/s]. On a prepared record
         the hump's ẋ_w is its wide-band velocity (``v_wide``, :class:`motorctl.ident.idim.
         Prepared`: the hump is a sharp function of the true velocity, passed in a few ms and
-        blurred on the position filter's), and S_f's ẋ the position filter's, as in the nominal
-        Coulomb column: where the carriage creeps at a few mm/s (after a stop, friction and
+        blurred on the position filter's), and S_f's ẋ its ``v_sf`` when set (the identifier
+        with its ``current_loop`` sets the position filter's, as in the nominal Coulomb
+        column), else the wide-band one too. Where the carriage creeps at a few mm/s (after a stop, friction and
         input balanced) the plant's force is (F_c + F_s) S_f(ẋ), and S_f (900 s/m) on the noisy
         wide-band velocity is not the nominal column's there (the column on ``v_wide`` alone:
         v_s 17-21 % low at 0.05 m/s on the default plant)."""
         vw = getattr(p, "v_wide", None)
         vw = p.v if vw is None else vw
-        return (np.exp(-(vw / h) ** 2) * s_f(p.v))[:, None]
+        vs = getattr(p, "v_sf", None)
+        return (np.exp(-(vw / h) ** 2) * s_f(vw if vs is None else vs))[:, None]
 
     def search(self, ctx, base, residual):
         p = ctx.p
@@ -118,7 +120,10 @@ class StribeckFamily(EffectFamily):
         velocity found beside a stiction band that took up part of the low-speed friction (the
         band searched before the hump was modelled) is too wide (default plant, F_s 20 N,
         v_s 0.05 m/s: 0.093 beside a 1.65 mm/s band, 0.044 beside the band searched again).
-        None when the search's value sits at its grid's edge."""
+        None when the search's value sits at its grid's edge, or when the identifier does not
+        model the current loop (its ``current_loop``: the selection as before)."""
+        if not getattr(ctx, "current_loop", False):
+            return None
         found, note = self.search(ctx, others, None)
         return None if note else found
 
