@@ -201,3 +201,23 @@ def test_autotune_refuses_an_out_of_range_option_before_measuring(option, value,
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and option in err and words in err, err
     assert not out.exists()
+
+
+def test_bracket_reads_saturation_off_the_damping_gain():
+    """The bracket's two directions (gain_axes: d = zeta*omega, t = omega/zeta, the loop-gain
+    scale on d only) and its saturation bound: a power law through full runs, clipped, the
+    allowance reached at the d the law predicts; a faulted run does not count."""
+    from motorctl.commission.rule import BRACKET_EXPONENT
+    from motorctl.commission.verify import gain_axes, sat_bound
+    d, t = gain_axes({"_w": 600.0, "_zeta": 0.25, "k_s": 51.0}, 0.5)
+    assert d == pytest.approx(75.0) and t == pytest.approx(2400.0)
+    assert gain_axes({"k_s": 50.0, "k1": 500.0}) is None
+    run = lambda sat, fault="": {"saturated": sat, "fault": fault}
+    # sat = 15 (d / 100)^3: the fit's slope 3, 15 reached at d = 100, 30 at 2^(1/3) x 100
+    full = [(d, 0.0, run(15.0 * (d / 100.0) ** 3), "") for d in (80.0, 120.0, 150.0)]
+    assert sat_bound(full, 15) == pytest.approx(100.0, rel=1e-9)
+    assert sat_bound(full + [(90.0, 0.0, run(500, "following error"), "fault")], 30) == \
+        pytest.approx(100.0 * 2 ** (1 / 3), rel=1e-9)
+    one = [(100.0, 0.0, run(60), "sat")]                   # one run: the stated exponent
+    assert sat_bound(one, 15) == pytest.approx(100.0 * 0.25 ** (1 / BRACKET_EXPONENT))
+    assert sat_bound([(100.0, 0.0, run(0), "")], 15) == float("inf")

@@ -92,7 +92,10 @@ Steps (any driver; the simulated one by default):
       rare and bursty: X's C2 saturated 7, 13, 15, 13, 15 times in successive 8 s windows
       of one 40 s run): the :data:`FULL_TRIES` best candidates of the short runs at 100 %,
       then those that passed, by their full L2[e], at 75 % and 50 %; the first that passes
-      all three is written. When none does, the best candidate stepped down
+      all three is written. Candidates whose full run tracked better but failed are
+      bracketed on full runs (:meth:`~motorctl.commission.verify._Verification.bracket`: the
+      saturated samples follow the damping gain ζω, L2[e] the error corner ω/ζ; the family
+      one notch of ζ below its lowest too). When none passes, the best candidate stepped down
       (:data:`STEP_DOWN`), each with its three rungs; nothing that failed is ever written.
    f. *step up* from the confirmed gains: × :data:`STEP_UP` in turn where the margins hold at
       100, 75 and 50 % of the raised gains, each screened on a short run and confirmed as in

@@ -137,7 +137,7 @@ def choose_gains(law: str, G_w, w: np.ndarray, ts: float, theta1: float, section
         "backoff", "admissible": {shape: [gains, ... by ω, highest first]},
         "members": {:func:`design_of`: gains} (the same candidates, by their place in the
         family), "grid": {design key: sorted values over the whole family},
-        "l_track": {:func:`design_of`: |L| at F_TRACK_HZ}, "holds": gains -> whether the margins
+        "l_track": {:func:`design_of`: |L| at F_TRACK_HZ}, "theta1" (the family's), "holds": gains -> whether the margins
         hold at 100, 75 and 50 % of those gains (a stepped-down candidate's own ladder)}.
     """
     cls = controller_class(law)
@@ -171,5 +171,5 @@ def choose_gains(law: str, G_w, w: np.ndarray, ts: float, theta1: float, section
         v.sort(key=lambda g: -g["_w"])
     return {"gains": best[1], "margins": best[2], "u_rest_pred_V": best[3], "candidates": n_ok,
             "backoff": backoff, "admissible": adm, "members": members, "l_track": l_track,
-            "grid": {k: sorted(v) for k, v in grid.items()},
+            "grid": {k: sorted(v) for k, v in grid.items()}, "theta1": theta1,
             "holds": lambda g: margins_hold(law, g, ts, w, G_w, theta_hat, rule)[1]}

@@ -10,12 +10,12 @@ import math
 import numpy as np
 from scipy import stats
 
-from motorctl.commission.choose import design_of, neighbours, shape_of
+from motorctl.commission.choose import OMEGA, design_of, neighbours, shape_of
 from motorctl.commission.evaluate import evaluate
-from motorctl.commission.rule import (FULL_TRIES, NOISE_EXPONENT, NOISE_SLACK, OSC_RATIO, PRUNE_SHARE, REFINE_RUNS,
+from motorctl.commission.rule import (BRACKET_EXPONENT, BRACKET_EXPONENT_RANGE, BRACKET_RUNS, BRACKET_T_SLACK, FULL_TRIES, NOISE_EXPONENT, NOISE_SLACK, OSC_RATIO, PRUNE_SHARE, REFINE_RUNS,
                                       REST_FACTOR, REST_SCREEN_SLACK, SAT_ALPHA, SAT_FACTOR, SAT_FLOOR_SHARE,
                                       SATURATED, SCALES, SEARCH_BUDGET, SEARCH_RUNS, STEP_DOWN, STEP_UP,
-                                      STEP_UP_MIN, STEP_UP_TRIES, U_REST_FRACTION, WINNER_TRIES)
+                                      STEP_UP_MIN, STEP_UP_TRIES, U_REST_FRACTION, WINNER_TRIES, ZETA_BELOW)
 from motorctl.config import config_from_dict
 from motorctl.control import controller_class
 
@@ -114,6 +114,35 @@ def sat_later(res: dict, ref: dict | None, full_ref: dict | None) -> tuple[int, 
     if ref and res["saturated"] <= SAT_FACTOR * max(ref["saturated"], SAT_FLOOR_SHARE * res["samples"]):
         room = max(room, later)
     return later, room
+
+
+def gain_axes(g: dict, scale: float = 1.0) -> tuple[float, float] | None:
+    """(damping gain d = ζ·ω·scale [rad/s], error corner t = ω/ζ [rad/s]) of a family member
+    ``g`` run at ``scale`` of its loop gain; None when ``g`` has no design pole pair (no "_w",
+    "_zeta"). In the family's own terms: C1/C2 k_s = 2 θ1 d·scale and k1 = t/2 (the loop-gain
+    knob scales k_s only); PID D = 2 θ1 d and P/D = t/2 (its knob scales P, I and D alike, so
+    d only, t kept)."""
+    if "_w" not in g or "_zeta" not in g:
+        return None
+    return g["_zeta"] * g["_w"] * scale, g["_w"] / g["_zeta"]
+
+
+def sat_bound(full: list, allowed: float) -> float:
+    """The damping gain d [rad/s] (:func:`gain_axes`) at which a full run's saturated samples
+    reach ``allowed``, on ln(sat) = a + b ln d least-squares fitted to the full runs ``full``
+    [(d, t, result, verdict, ...)] that saturated at all and did not fault (b: the fit's slope
+    clipped to :data:`BRACKET_EXPONENT_RANGE`, or :data:`BRACKET_EXPONENT` with fewer than two
+    runs or a spread of d under 5 %); inf with no such run."""
+    pts = [(math.log(d), math.log(res["saturated"])) for d, _, res, *_ in full
+           if not res["fault"] and res["saturated"] > 0 and d > 0]
+    if not pts:
+        return math.inf
+    x, y = np.array(pts).T
+    b = BRACKET_EXPONENT
+    if np.ptp(x) > 0.05:
+        b = float(np.clip(np.polyfit(x, y, 1)[0], *BRACKET_EXPONENT_RANGE))
+    a = float(np.mean(y - b * x))
+    return math.exp((math.log(max(allowed, 1.0)) - a) / b)
 
 
 def rest_judged(res: dict, full_ref: dict | None = None) -> tuple[float, bool]:
@@ -246,6 +275,8 @@ class _Verification:
         self.obs: dict = {}       # {shape: [(predicted, measured) rest noise [V]]}
         self.last: list = []      # the latest (predicted, measured) of any shape
         self.short: dict = {}     # {(design, scale): the short run's result} of what passed it
+        self.full: list = []      # (damping gain, error corner, result, verdict, other design numbers) of the
+                                  # full runs (:func:`gain_axes`, :func:`_others`)
 
     def run(self, g, label, scale, seconds=None, ref=None):
         """One run of gains ``g`` (already scaled by ``scale``, which only labels it) of
@@ -257,6 +288,9 @@ class _Verification:
                        self.law, seconds, self.clock)
         why = admissible(res, self.u_lim, ref, full_ref=self.full_ref)
         self.record(f"{label} {seconds:g} s", scale, res, why)
+        axes = gain_axes(g, scale)
+        if seconds > self.seconds and axes is not None:
+            self.full.append((*axes, res, why, _others(g)))
         return res, why
 
     def record(self, label, scale, res, why) -> None:
@@ -309,11 +343,10 @@ class _Verification:
         by their short L2[e], the first
         :data:`FULL_TRIES` run at 100 %; those that pass, by their full L2[e], each run at
         75 % and 50 % (:data:`SCALES`, highest first); the first that passes all three rungs
-        wins, unless the best candidate's gains stepped down (:data:`STEP_DOWN`, below) pass
-        with a lower full-run L2[e]: a candidate that saturates a little too often at 100 % often
-        tracks better at 75 % than the next candidate does at 100 % (gantry X's C2: 0.966 µm
-        with 49 saturated samples in 40 s; the next that passed, 3.013 µm). The winner
-        from the confirmation then climbs (:meth:`climb`). A candidate whose full run fails on
+        wins. Candidates that tracked better on their full run but failed it (a law whose
+        saturation grows through the run: gantry X's C2 at ω 711, ζ 0.3 saturated 6 times in
+        8 s and 49 in 40 s, limit 15) are then bracketed on full runs (:meth:`bracket`), and
+        the best climbs (:meth:`climb`). A candidate whose full run fails on
         its rest noise bars those whose short run was as noisy at rest or more
         (:func:`rest_judged`). (Not so on saturation: a short run's few
         saturated samples do not rank the full runs': rigid X's C2 at ω 1149, ζ 0.2 saturated
@@ -328,7 +361,7 @@ class _Verification:
             if key not in seen:
                 seen.add(key)
                 pool.append(c)
-        full, bars, tries, first_l2 = [], [], 0, math.inf
+        full, bars, tries = [], [], 0
         holds = self.choice.get("holds", lambda g: True)
         pool = [c for c in pool if holds(c[1])]      # the margins at 100/75/50 % of the gains written
         for l2, g, sc, frm in pool:
@@ -339,8 +372,6 @@ class _Verification:
                 continue
             tries += 1
             res, why = self.run(g, "confirm", sc, seconds, ref)
-            if g is pool[0][1]:
-                first_l2 = res["L2_um"]          # the full run of the candidate stepped down below
             if not why:
                 full.append((res["L2_um"], g, sc, frm, res))
             elif short is not None and "u at rest" in why:
@@ -350,24 +381,86 @@ class _Verification:
             if self._rungs(cand[1], cand[2], seconds, ref, cand[4]):
                 won = cand[:4]
                 break
-        if not pool or (won is not None and pool[0][1] is won[1]):
-            return self.climb(won, seconds, ref) if won is not None else None
+        if won is not None:
+            return self.climb(self.bracket(won, seconds, ref), seconds, ref)
+        if not pool:
+            return None
         l2, g, sc, frm = pool[0]
         for step in STEP_DOWN:
-            # the tracking error grows about as 1/loop gain: a step whose full-run L2 at 100 %
-            # divided by the step reaches the winner's cannot beat it (gantry X C2: 0.966 µm
-            # at 100 %, 1.286 µm at 75 %, 1.195 µm at 65 %)
-            if won is not None and first_l2 / step >= won[0]:
-                break
             gs = scaled(self.law, g, step)
             if not holds(gs):
                 continue
             res, why = self.run(gs, "step down", sc * step, seconds, ref)
-            if not why and won is not None and res["L2_um"] >= won[0]:
-                break                                # a lower step tracks worse still
             if not why and self._rungs(gs, sc * step, seconds, ref, res):
                 return (res["L2_um"], gs, sc * step, frm)
-        return self.climb(won, seconds, ref) if won is not None else None
+        return None
+
+    def bracket(self, best, seconds: float, ref: dict | None):
+        """Full runs between the confirmed ``best`` (L2, gains, scale, from) and the candidates
+        whose full runs tracked better but failed, in the two directions that matter
+        (:func:`gain_axes`): the saturated samples follow the damping gain d = ζω (k_s, D), the
+        tracking error the error corner t = ω/ζ (k1, P/D). Measured on configs/gantry.yaml X
+        with C2 over 40 s: at ζ 0.3, ω 500 .. 700 (d 150 .. 210) 11, 18, 30, 27, 49 saturated
+        samples while L2[e] fell 1.54 .. 0.97 µm; at the same k1 1167, k_s 46.7 and 53.9
+        saturated 21 and 26 times; ζ 0.4 saturated 25 times at d 176 with L2 2.2 µm, ζ 0.25
+        13 times at d 138 with 1.27 µm. So the next run is the member (the family's, and one
+        notch of ζ below it: :meth:`below`) of the highest t, up to the best failed
+        candidate's, whose d stays under the d where the saturated samples reach the full
+        run's allowance, on a power law ln(sat) = a + b ln d fitted to every full run so far
+        (b from :data:`BRACKET_EXPONENT` and its range), and that no failed full run dominates
+        (at least its d and its t); t up to :data:`BRACKET_T_SLACK` above the best failed one's
+        (one ω step of the grid: the ζ of the family fall on the same t), and the failed
+        candidates' other design numbers (the PID's r: its tracking is its integral's too). A run that passes with a lower L2[e] and whose rungs
+        pass becomes the best; each run refits the law. At most :data:`BRACKET_RUNS` runs at
+        100 %. Returns the best."""
+        holds = self.choice.get("holds", lambda g: True)
+        if self.full_ref is None or gain_axes(best[1], best[2]) is None:
+            return best
+        allowed = limits(self.full_ref, self.u_lim, self.full_ref["samples"])[0]
+        pool = list(self.choice.get("members", {}).values()) + self.below()
+        for _ in range(BRACKET_RUNS):
+            d0, t0 = gain_axes(best[1], best[2])
+            failed = [(d, t, res) for d, t, res, why, _ in self.full if why and not res["fault"]]
+            better = [(t, rest) for d, t, res, why, rest in self.full
+                      if why and not res["fault"] and res["L2_um"] < best[0]]
+            if not better:
+                break
+            t_cap = BRACKET_T_SLACK * max(t for t, _ in better)
+            kinds = {rest for _, rest in better}      # their other design numbers (the PID's r)
+            d_max = sat_bound(self.full, allowed)
+            done = {(round(d, 6), round(t, 6)) for d, t, _, _, _ in self.full}
+            cands = []
+            for g in pool:
+                d, t = gain_axes(g, 1.0)
+                if (round(d, 6), round(t, 6)) in done or not (t0 < t <= t_cap) or d > d_max:
+                    continue
+                if _others(g) not in kinds:
+                    continue
+                if any(d >= fd and t >= ft for fd, ft, _ in failed) or not holds(g):
+                    continue
+                cands.append((t, d, g))
+            if not cands:
+                break
+            _, _, g = max(cands, key=lambda c: (c[0], c[1]))
+            res, why = self.run(g, "bracket " + _fmt_shape(g), 1.0, seconds, ref)
+            if not why and res["L2_um"] < best[0] and self._rungs(g, 1.0, seconds, ref, res):
+                best = (res["L2_um"], g, 1.0, "search")
+        return best
+
+    def below(self) -> list[dict]:
+        """The family one notch of ζ below its lowest (× :data:`ZETA_BELOW`), with the
+        margins holding at 100, 75 and 50 % (``choice["holds"]``): the independent search's
+        best C2 gains on configs/gantry.yaml X sit at ζ ≈ 0.25, below the law's own 0.3
+        (1.27 µm with 13 saturated samples in 40 s where ζ 0.3 reached 1.54 µm with 11).
+        Empty when the choice does not state its θ1 and settings."""
+        grid, holds = self.choice.get("grid", {}), self.choice.get("holds")
+        if "_zeta" not in grid or "theta1" not in self.choice or holds is None:
+            return []
+        z = round(min(grid["_zeta"]) * ZETA_BELOW, 4)
+        sec = config_from_dict(copy.deepcopy(self.raw), self.source).axes[self.axis].controller
+        fam = controller_class(self.law).gain_family(self.choice["theta1"], sec.settings(self.law), OMEGA,
+                                                    zetas=(z,))
+        return [g for g in fam if holds(g)]
 
     def climb(self, best, seconds: float, ref: dict | None):
         """Up from the confirmed ``best`` (L2, gains, scale, from): its gains at :data:`STEP_UP`
@@ -563,6 +656,11 @@ class _Verification:
             if sc > 0.0:
                 accepted.append((res_sc["L2_um"], scaled(self.law, cand[1], sc), sc, "search"))
         return min(accepted, key=lambda b: b[0], default=None)
+
+
+def _others(g: dict) -> tuple:
+    """A candidate's design numbers other than ω and ζ (the PID's integral ratio r)."""
+    return tuple((k, v) for k, v in shape_of(g) if k != "_zeta")
 
 
 def _as_bad(short: dict, bar: dict, full_ref: dict | None) -> bool:
