@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from motorctl.effects import FAMILIES
-from motorctl.effects.input_delay import amplifier_lag, delay_line
+from motorctl.effects.input_delay import amplifier_lag, delay_line, held_lag_response
 from motorctl.ident.data import Record
 from motorctl.ident.select import Identifier
 
@@ -113,6 +113,30 @@ def test_amplifier_lag_is_what_the_config_declares():
     assert amplifier_lag({}, "X") == (0.0, "")
     bad = {"config": {"axes": {"X": {"driver": {"current_loop_hz": "fast"}}}}}
     assert amplifier_lag(bad, "X") == (0.0, "")
+
+
+def test_current_loop_filter_is_the_hold_then_the_lag():
+    """Without a loop the held input is seen half a sample late, (0.5, 0.5); a loop passes the
+    whole input (DC gain 1) d_c + 1/(2π f_c) later on average, its tail geometric."""
+    h, r = held_lag_response(0.0, 0.0, FS)
+    assert h[:2] == pytest.approx([0.5, 0.5]) and np.allclose(h[2:], 0.0) and r == 0.0
+    h, r = held_lag_response(1000.0, 5e-5, FS)
+    tail = r ** np.arange(1, 200)
+    full = np.concatenate([h, h[-1] * tail])
+    assert full.sum() == pytest.approx(1.0, abs=1e-9)
+    mean = (np.arange(full.size) * full).sum()
+    assert mean == pytest.approx(0.5 + 5e-5 * FS + FS / (2 * math.pi * 1000.0), abs=1e-6)
+
+
+def test_with_the_declared_loop_modelled_the_delay_found_is_the_transport_delay_alone(delayed):
+    """The 1 kHz loop in the nominal model (``current_loop``): the delay search starts beyond it
+    and finds the 1.5 samples of transport delay; the report adds the loop back."""
+    fam = FAMILIES["input_delay"]
+    term, note = fam.search(Identifier(delayed, current_loop=True), [], None)
+    assert note is None and float(term.h) == pytest.approx(1.5, abs=0.12)
+    par = fam.parameters(term.h, None, A1, FS)
+    assert par["delay_s"] * FS == pytest.approx(1.5, abs=0.12)
+    assert par["total_delay_s"] * FS == pytest.approx(1.5 + FS / (2 * math.pi * 1000.0), abs=0.12)
 
 
 @pytest.fixture(scope="module")

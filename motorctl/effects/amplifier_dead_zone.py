@@ -114,6 +114,7 @@ class AmplifierDeadZoneFamily(EffectFamily):
     size_options: ClassVar[tuple[str, ...]] = ("dead_zone_V",)
     look_alike: ClassVar[tuple[str, ...]] = ("stiction",)
     acts_at_rest = True
+    before_current_loop = True
 
     # simulator
     def plant_term(self, o: AmplifierDeadZone, period_s):
