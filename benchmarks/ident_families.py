@@ -5,6 +5,7 @@ Rerun:
     python benchmarks/ident_families.py                               # every family, 2 sizes, 20 s logs
     python benchmarks/ident_families.py --family stribeck --family asymmetric_friction --jobs 2
     python benchmarks/ident_families.py --family stribeck --tune      # and tune's damage removed
+    python benchmarks/ident_families.py --family stribeck --current-loop   # the loop modelled
 
 For each family of :data:`motorctl.effects.FAMILIES` (registry order) and each size (the
 family's ``example`` with its force-valued options × ``--sizes``, default 0.5 and 1;
@@ -64,7 +65,8 @@ def compared(truth: dict, fitted: dict) -> list[tuple[str, float, float]]:
     return out
 
 
-def one(name: str, factor: float, out: str, duration_s: float, config: str, tune: bool) -> dict:
+def one(name: str, factor: float, out: str, duration_s: float, config: str, tune: bool,
+        current_loop: bool = False) -> dict:
     """Log, identify and (``tune``) tune one family at one size; returns the row's figures."""
     from motorctl.commission.tune import make_log
     from motorctl.effects import FAMILIES
@@ -78,7 +80,7 @@ def one(name: str, factor: float, out: str, duration_s: float, config: str, tune
     log = d / "before.mclog"
     make_log(str(log), fragment, duration_s=duration_s, seed=1, axis="X", noise_N=None, base=config)
     t0 = time.process_time()
-    _, s = identify_record(load_record(str(log), axis="X"))
+    _, s = identify_record(load_record(str(log), axis="X"), current_loop=current_loop)
     cpu = time.process_time() - t0
     truth = next(iter(fragment.values())) if name in fragment else fragment
     found = next((e for e in s["effects"] if e["name"] == name), None)
@@ -112,6 +114,8 @@ def main(argv=None) -> int:
     ap.add_argument("--tune", action="store_true", help="also tune's damage removed (compensable families)")
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="processes (default 2)")
     ap.add_argument("--out", default=None, help="keep logs here (default: a temporary folder)")
+    ap.add_argument("--current-loop", action="store_true",
+                    help="identify with the declared current loop modelled (Identifier current_loop)")
     args = ap.parse_args(argv)
     from motorctl.effects import FAMILIES
     names = args.family or list(FAMILIES)
@@ -125,7 +129,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="motorctl-ident-families-") as tmp:
         out = args.out or tmp
         work = [(n, f) for n in names for f in sizes]
-        job = (out, args.duration, args.config, args.tune)
+        job = (out, args.duration, args.config, args.tune, args.current_loop)
         if args.jobs > 1 and len(work) > 1:
             with ProcessPoolExecutor(max_workers=args.jobs) as ex:
                 done = list(ex.map(one, *zip(*work), *([j] * len(work) for j in job)))
@@ -133,7 +137,8 @@ def main(argv=None) -> int:
             done = [one(n, f, *job) for n, f in work]
     header = ["family", "size (example ×)", "true → fitted (error)", "within 10 %", "identify",
               "damage removed by tune"]
-    print(f"identify on {args.config}, axis X, {args.duration:g} s logs (virtual clock, seed 1); "
+    print(f"identify{' (current loop modelled)' if args.current_loop else ''} on {args.config}, axis X, "
+          f"{args.duration:g} s logs (virtual clock, seed 1); "
           f"load average {os.getloadavg()[0]:.2f}\n")
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))

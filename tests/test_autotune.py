@@ -221,3 +221,49 @@ def test_bracket_reads_saturation_off_the_damping_gain():
     one = [(100.0, 0.0, run(60), "sat")]                   # one run: the stated exponent
     assert sat_bound(one, 15) == pytest.approx(100.0 * 0.25 ** (1 / BRACKET_EXPONENT))
     assert sat_bound([(100.0, 0.0, run(0), "")], 15) == float("inf")
+
+
+def test_the_bracket_finds_the_lower_damping_that_tracks_within_the_saturation_limit(repo, monkeypatch):
+    """The confirmation on a stand-in machine whose full runs saturate as (k_s / 50)^4 x 15
+    (a full run's limit: 15) and track as 1000 / k1 µm: ω 700, ζ 0.3 (k_s 72) fails, ω 363,
+    ζ 0.4 (k1 454) is confirmed; the bracket's runs go to the member of the highest k1 under
+    the saturation the fitted law allows (one notch of ζ below the family's too), none of them
+    as stiff as a failed run in both k_s and k1, and what it keeps passed every rung."""
+    import numpy as np
+    from motorctl.commission import verify as V
+    from motorctl.commission.choose import OMEGA
+    from motorctl.control import controller_class
+    psd = (np.arange(1.0, 100.0), np.ones(99))
+    calls = []
+
+    def machine(raw, source, axis, law, seconds, clock):
+        c = raw["axes"][axis]["controller"][law]
+        calls.append((c["k_s"], c["k1"], seconds))
+        n = int(seconds * 5000)
+        sat = int(15.0 * (c["k_s"] / 50.0) ** 4 * seconds / 40.0)
+        return {"fault": "", "samples": n, "saturated": sat, "sat_dispersion": 1.0, "u_rest_rms_V": 0.01,
+                "osc_ratio": 2.0, "L2_um": 1000.0 / c["k1"], "e_M_um": 1.0, "e_psd": psd}
+
+    monkeypatch.setattr(V, "evaluate", machine)
+    raw = load_yaml(repo / "configs" / "gantry.yaml")
+    sec = __import__("motorctl.config", fromlist=["config_from_dict"]).config_from_dict(
+        raw, "gantry.yaml").axes["X"].controller
+    fam = controller_class("c2").gain_family(0.1714, sec.settings("c2"), OMEGA)
+    members = {V.design_of(g): g for g in fam}
+    choice = {"holds": lambda g: g["_zeta"] >= 0.25, "members": members, "theta1": 0.1714,
+              "grid": {"_w": sorted(OMEGA), "_zeta": [0.3, 0.4, 0.5, 0.7, 1.0]}}
+    full_ref = {"saturated": 10, "samples": 200000, "u_rest_rms_V": 0.1, "e_psd": psd}
+    v = V._Verification(raw, "gantry.yaml", "X", "c2", choice, 8.0, "virtual",
+                        dict(full_ref, samples=40000), None, None, full_ref)
+    near = lambda w, z: min(fam, key=lambda g: (abs(g["_w"] - w), abs(g["_zeta"] - z)))
+    stiff, soft = near(700.0, 0.3), near(363.0, 0.4)
+    v.found += [(0.9, stiff, 1.0, "search"), (2.0, soft, 1.0, "search")]
+    l2, g, sc, _ = v.confirm(None, 40.0, full_ref)
+    bracket = [r for r in v.runs if r[0].startswith("bracket")]
+    assert 1 <= len(bracket) <= 3
+    assert any(r[0].startswith("bracket") and "zeta 0.25" in r[0] for r in v.runs)   # below the family
+    assert g["k_s"] <= 50.0 * 1.05 and l2 < 1000.0 / soft["k1"] * 0.75              # within the limit, better
+    assert len(calls) == len(v.runs)
+    failed = [(c[0], c[1]) for c, r in zip(calls, v.runs) if r[3] and c[2] == 40.0]
+    tried = [c[:2] for c, r in zip(calls, v.runs) if r[0].startswith("bracket")]
+    assert all(not (k >= fk and k1 >= fk1) for k, k1 in tried for fk, fk1 in failed if (k, k1) != (fk, fk1))

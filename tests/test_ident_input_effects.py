@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from motorctl.effects import FAMILIES
-from motorctl.effects.input_delay import amplifier_lag, delay_line
+from motorctl.effects.input_delay import amplifier_lag, delay_line, held_lag_response
 from motorctl.ident.data import Record
 from motorctl.ident.select import Identifier
 
@@ -115,6 +115,30 @@ def test_amplifier_lag_is_what_the_config_declares():
     assert amplifier_lag(bad, "X") == (0.0, "")
 
 
+def test_current_loop_filter_is_the_hold_then_the_lag():
+    """Without a loop the held input is seen half a sample late, (0.5, 0.5); a loop passes the
+    whole input (DC gain 1) d_c + 1/(2π f_c) later on average, its tail geometric."""
+    h, r = held_lag_response(0.0, 0.0, FS)
+    assert h[:2] == pytest.approx([0.5, 0.5]) and np.allclose(h[2:], 0.0) and r == 0.0
+    h, r = held_lag_response(1000.0, 5e-5, FS)
+    tail = r ** np.arange(1, 200)
+    full = np.concatenate([h, h[-1] * tail])
+    assert full.sum() == pytest.approx(1.0, abs=1e-9)
+    mean = (np.arange(full.size) * full).sum()
+    assert mean == pytest.approx(0.5 + 5e-5 * FS + FS / (2 * math.pi * 1000.0), abs=1e-6)
+
+
+def test_with_the_declared_loop_modelled_the_delay_found_is_the_transport_delay_alone(delayed):
+    """The 1 kHz loop in the nominal model (``current_loop``): the delay search starts beyond it
+    and finds the 1.5 samples of transport delay; the report adds the loop back."""
+    fam = FAMILIES["input_delay"]
+    term, note = fam.search(Identifier(delayed, current_loop=True), [], None)
+    assert note is None and float(term.h) == pytest.approx(1.5, abs=0.12)
+    par = fam.parameters(term.h, None, A1, FS)
+    assert par["delay_s"] * FS == pytest.approx(1.5, abs=0.12)
+    assert par["total_delay_s"] * FS == pytest.approx(1.5 + FS / (2 * math.pi * 1000.0), abs=0.12)
+
+
 @pytest.fixture(scope="module")
 def delayed():
     """1.5 samples of transport delay behind a 1 kHz current loop the header declares."""
@@ -160,14 +184,20 @@ def test_force_constant_drift_is_exact_on_the_fits_own_thrust_shape():
 
 # ------------------------------------------------------------------------------- dead-zone
 def test_dead_zone_width_is_the_force_beyond_its_band_not_the_static_friction():
-    """d = 0.15 V behind a 25 N stiction that holds the carriage through the dwells (its input
-    band there is about ±0.3 V): the width comes from the motion, where the dead-zone takes
-    A1·d against the sign of the input."""
-    rec = _simulate(dz=(0.15, 0.0), stiction_n=25.0, noise_v=0.02)
+    """d = 0.15 V, o = 20 mV behind a 25 N stiction that holds the carriage through the dwells
+    (its input band there is about ±0.3 V): the width comes from the motion, where the
+    dead-zone takes A1·d against the sign of the input; the offset from the exact lost input
+    f_u(u) − f_u(dz(u + o)) (where the band lies, and the force curve bending about u + o),
+    which θ4 alone (F_0) cannot take."""
+    rec = _simulate(dz=(0.15, 0.02), stiction_n=25.0, noise_v=0.02)
     idf = Identifier(rec, n_theta=6, zoh_delay=0.5)
     st, _ = FAMILIES["stiction"].search(idf, [], None)
-    term, note = FAMILIES["amplifier_dead_zone"].search(idf, [st], None)
+    fam = FAMILIES["amplifier_dead_zone"]
+    term, note = fam.search(idf, [st], None)
     assert note is None
-    assert float(term.h) == pytest.approx(0.15, rel=0.05)
-    share = float(idf.evaluate([st, term]).fit.coef[-2])
-    assert share == pytest.approx(1.0, abs=0.02)
+    ev = idf.evaluate([st, term])
+    par = fam.parameters(term.h, ev.fit.coef[-1:], A1, FS)
+    assert par["dead_zone_V"] == pytest.approx(0.15, rel=0.05)
+    assert par["lost_share"] == pytest.approx(1.0, abs=0.02)
+    assert par["offset_V"] == pytest.approx(0.02, rel=0.1)
+    assert not fam.plausible(idf, term, ev.fit.coef[-1:], ev.fit.coef[:6], [st])

@@ -37,21 +37,35 @@ class Rig:
         self.outs: list[np.ndarray] = []     # the outputs each row taken carries
 
     def run(self, cycles: int, until_idle: bool = False) -> None:
+        """``cycles`` cycles of the loop: the filler tops the ring up at every EVERY-th cycle; each
+        cycle the machine words whose row was taken are noted (``issue_events``), then one row is
+        taken if the ring holds one (an empty ring while the last row moved: an underrun; empty
+        and the side idle with ``until_idle``: the run ends in that cycle). Between two fills
+        nothing writes the ring, so the cycles up to the next fill are taken as one block: the same
+        rows, outputs and events, cycle for cycle, as one cycle at a time (the events noted once
+        at the block's last cycle see the rows taken before it, as that cycle's call does)."""
         ring = self.ring
-        for _ in range(cycles):
+        end = self.cycle + cycles
+        while self.cycle < end:
             if self.cycle % EVERY == 0:
                 self.ms.fill()
-            self.ms.issue_events()
+            m = min(end, (self.cycle // EVERY + 1) * EVERY) - self.cycle     # cycles up to the next fill
             w, r = int(ring.ctl[SP_WRITE]), int(ring.ctl[SP_READ])
-            if r < w:
-                self.rows.append(ring.setpoint(r).copy())
-                self.outs.append(ring.row_outputs(r).copy())
-                ring.ctl[SP_READ] = r + 1
-            else:
+            n = min(w - r, m)                       # the cycles that take a row
+            if n:
+                idx = np.arange(r, r + n) % ring.capacity
+                self.rows.extend(ring.rows[idx, 1:ring.out0].reshape(n, ring.n_axes, 3))
+                self.outs.extend(ring.rows[idx, ring.out0:].copy())
+                ring.ctl[SP_READ] = r + n - 1
+                self.ms.issue_events()              # (the last cycle's call: the rows before it taken)
+                ring.ctl[SP_READ] = r + n
+            if n < m:                               # the ring ran dry at cycle self.cycle + n
+                self.ms.issue_events()
                 assert not self.rows or not np.any(self.rows[-1][:, 1:]), "underrun while moving"
-                if until_idle and self.ms.idle():
+                if until_idle and self.ms.idle():   # (nothing the side decides on changes before the next fill)
+                    self.cycle += n
                     return
-            self.cycle += 1
+            self.cycle += m
 
     def setpoints(self) -> np.ndarray:
         """(n, 2 axes, x/v/a)"""

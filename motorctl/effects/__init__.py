@@ -22,7 +22,7 @@ input_delay                     u acts τ later                       target u(t
 periodic_disturbance            A sin(2πft + φ)                      sin, cos(2πft)
 position_friction_shape         −g(x) S_f(ẋ), g a cubic spline       B_j(x)·S_f(ẋ)
 stiction                        holds A1 u + F_0 at rest (Karnopp)   u·w(ẋ), w(ẋ) = exp(−(ẋ/h)²)
-amplifier_dead_zone             −A1 (clip(u + o, −d, d) − o)         clip(u, −d, d), [|u| < d]
+amplifier_dead_zone             −A1 (f_u(u) − f_u(dz(u + o)))        f_u(u) − f_u(dz(u + o))
 force_constant_drift            κ t A1 f_u(u)                        f_u(u)·(t − t̄)
 periodic_friction               −Σ A_k sin(2πkx/P + φ_k) S_f(ẋ)      sin, cos(2πkx/P)·S_f(ẋ)
 encoder_interpolation           none (reading y = x + Σ a_k sin(..))  d²/dt² sin, cos(2πky/P)

@@ -366,6 +366,11 @@ class EffectFamily:
     #: dead-zone): the residual verdict counts what is left near zero velocity and at small
     #: inputs as this effect's, not as an unexplained structure, once it is selected
     acts_at_rest: ClassVar[bool] = False
+    #: the family's columns carry the drive's input before the amplifier's current loop (a
+    #: dead-zone's lost band, the input stiction holds at rest): where identify models a
+    #: declared current loop (:meth:`motorctl.ident.select.Identifier.input_columns`) they go
+    #: through the loop as the input does
+    before_current_loop: ClassVar[bool] = False
     #: a family whose model is this one's special case (a straight line is a friction shape
     #: with one segment): after the selection, a selected effect of this family is replaced by
     #: the simpler one when that leaves a held-out residual less than the identifier's

@@ -10,12 +10,16 @@ regression target becomes u(t − τ), τ from 0 to 5 ms in whole samples, then 
 within a sample of the best (FFT fractional shift of the decimated input), fitted on the samples
 in motion (:meth:`InputDelayFamily.in_motion`); refused when the delays the phase of two
 frequency bands say differ (:meth:`InputDelayFamily.not_transport`: a transport delay is a phase
-−ωτ at every frequency, a load held with play lags only part of the force). What is found is
-all of the lag beyond the hold, the amplifier's current loop included: a first-order loop of
-bandwidth f_c lags like a delay of 1/(2π f_c) in the band the fit sees, and nothing there tells
-the two apart (:func:`amplifier_lag`). The report's ``delay_s`` is the transport delay beyond
-the current loop the run log's config declares (``current_loop_hz``, ``current_loop_delay_s``
-of the axis's driver), ``total_delay_s`` all of it. Compensation (not an additive d̂_eff, a
+−ωτ at every frequency, a load held with play lags only part of the force). The amplifier's
+current loop the run log's config declares (``current_loop_hz``, ``current_loop_delay_s`` of the
+axis's driver) is part of the nominal model, every input column filtered through it
+(:func:`current_loop_filter`; :meth:`motorctl.ident.select.Identifier.input_columns`): a
+first-order lag is a delay of 1/(2π f_c) in the band the fit sees, but not in the few ms after
+each start, where a pure delay fitted for it left a difference the friction at low speed took up.
+What is found is the lag beyond the hold and the declared loop: the report's ``delay_s``;
+``total_delay_s`` adds the declared loop's lag (:func:`amplifier_lag`). Without a declared
+loop (a CSV/MAT record) the found delay is all of the lag beyond the hold, a current loop
+included. Compensation (not an additive d̂_eff, a
 :class:`~motorctl.effects.base.CompHook`): the law predicts over τ, i.e. evaluates its
 desired-compensation part v_a1 (eq. 13) on the desired trajectory at t + τ (the servo loop passes
 that sample, :meth:`motorctl.control.base.Controller.preview`), and the estimator pairs each
@@ -91,31 +95,79 @@ V_HELD = 1e-3
 FINE_STEP = 0.05
 
 
-def amplifier_lag(header: dict, axis: str) -> tuple[float, str]:
-    """The input-to-force lag [s] of the amplifier's current loop that a run log's config declares
-    for ``axis`` (``axes.NAME.driver``: ``current_loop_hz`` f_c, ``current_loop_delay_s`` d_c),
-    d_c + 1/(2π f_c), with a phrase saying so ("" when none is declared).
-
-    A first-order current loop lags by atan(ω/(2π f_c)), which is ω/(2π f_c) within 0.3 % up to
-    f_c/10 (100 Hz for 1 kHz: the band identify fits), so below that it is a delay of 1/(2π f_c);
-    a delay on top of it cannot be told from it there (their gains differ by 0.5 % at f_c/10).
-    The part of an input delay the drive's own loop explains is therefore taken from what the
-    drive declares, not fitted. Raises nothing: a missing or malformed entry counts as none.
-    """
+def amplifier_loop(header: dict, axis: str) -> tuple[float, float]:
+    """(f_c [Hz], d_c [s]): the current loop a run log's config declares for ``axis``
+    (``axes.NAME.driver``: ``current_loop_hz``, ``current_loop_delay_s``); (0, 0) when none is
+    declared. Raises nothing: a missing or malformed entry counts as none."""
     drv = header
     for key in ("config", "axes", axis, "driver"):
         drv = drv.get(key) if isinstance(drv, dict) else None
     if not isinstance(drv, dict):
-        return 0.0, ""
+        return 0.0, 0.0
     fc, dc = drv.get("current_loop_hz") or 0.0, drv.get("current_loop_delay_s") or 0.0
     if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
                for v in (fc, dc)):
-        return 0.0, ""
+        return 0.0, 0.0
+    return float(fc), float(dc)
+
+
+def amplifier_lag(header: dict, axis: str) -> tuple[float, str]:
+    """The input-to-force lag [s] of the amplifier's current loop that a run log's config declares
+    for ``axis`` (:func:`amplifier_loop`: f_c, d_c), d_c + 1/(2π f_c), with a phrase saying so
+    ("" when none is declared).
+
+    A first-order current loop lags by atan(ω/(2π f_c)), which is ω/(2π f_c) within 0.3 % up to
+    f_c/10 (100 Hz for 1 kHz: the band identify fits), so below that it is a delay of 1/(2π f_c).
+    Raises nothing: a missing or malformed entry counts as none.
+    """
+    fc, dc = amplifier_loop(header, axis)
     lag = (1.0 / (2.0 * math.pi * fc) if fc > 0 else 0.0) + dc
     if lag <= 0.0:
         return 0.0, ""
     parts = ([f"{fc:g} Hz current loop"] if fc > 0 else []) + ([f"{dc * 1e6:g} us delay"] if dc > 0 else [])
     return lag, f"the amplifier's {' + '.join(parts)} the config declares: {lag * 1e6:.0f} us"
+
+
+def held_lag_response(fc_hz: float, dc_s: float, fs: float) -> tuple[np.ndarray, float]:
+    """The acceleration a sampled-data loop's central differences see of one held input sample
+    through a current loop: impulse response h (J + 1,) [-] and the ratio r [-] of its
+    geometric tail (h[j + 1] = r h[j] for j ≥ J; r = 0: none).
+
+    The input u_k is held over [t_k, t_k + Ts) (zero-order hold), delayed by d_c [s]
+    (``current_loop_delay_s``: a switching instant, any value) and lagged by a first-order loop
+    of bandwidth f_c [Hz] (time constant τ = 1/(2π f_c); 0: no lag), as the simulator applies
+    it (exact under the hold). The central difference (x_{k+1} − 2 x_k + x_{k−1})/Ts² of the
+    position the force F moves is the force weighted by a triangle of ±Ts about t_k, so with
+    Q(t) the position response to a unit step of u (Q(w) = w²/2 − τ w + τ²(1 − e^{−w/τ}),
+    w = t − d_c ≥ 0) and X(t) = Q(t) − Q(t − Ts) that to one held sample,
+    h_j = (X((j+1)Ts) − 2 X(j Ts) + X((j−1)Ts)) / Ts². With f_c = d_c = 0 it is
+    (0.5, 0.5): the hold's half sample (:data:`HOLD_TOLERANCE`).
+    """
+    ts = 1.0 / fs
+    tau = 1.0 / (2.0 * math.pi * fc_hz) if fc_hz > 0 else 0.0
+
+    def q(t):
+        w = np.maximum(np.asarray(t, dtype=float) - dc_s, 0.0)
+        if tau == 0.0:
+            return 0.5 * w * w
+        return 0.5 * w * w - tau * w + tau * tau * -np.expm1(-w / tau)
+
+    n = int(math.ceil(dc_s / ts - 1e-9)) + 2
+    j = np.arange(n + 1, dtype=float)
+
+    def x(t):
+        return q(t) - q(t - ts)
+    h = (x((j + 1) * ts) - 2.0 * x(j * ts) + x((j - 1) * ts)) / (ts * ts)
+    return h, (math.exp(-ts / tau) if tau > 0 else 0.0)
+
+
+def current_loop_filter(fc_hz: float, dc_s: float, fs: float) -> tuple[np.ndarray, np.ndarray]:
+    """(b, a) of the recursive filter (:func:`scipy.signal.lfilter`) whose impulse response is
+    :func:`held_lag_response`: the input the acceleration sees, hold and current loop included,
+    from the logged input. Exact: b_0 = h_0, b_j = h_j − r h_{j−1}, a = (1, −r)."""
+    h, r = held_lag_response(fc_hz, dc_s, fs)
+    b = np.concatenate([h[:1], h[1:] - r * h[:-1]])
+    return b, np.array([1.0, -r])
 
 
 def parabolic_min(grid: np.ndarray, sses: np.ndarray) -> float:
@@ -132,14 +184,22 @@ def parabolic_min(grid: np.ndarray, sses: np.ndarray) -> float:
 
 
 class FoundDelay(float):
-    """A found input delay: its float value is the lag beyond the hold [samples] (the target's
-    shift); ``amplifier_lag`` [samples] the part of it the amplifier's declared current loop
-    explains (:func:`amplifier_lag`; 0: none declared)."""
+    """A found input delay: its float value is the lag beyond the hold and the modelled current
+    loop [samples] (the target's shift); ``amplifier_lag`` [samples] the lag of the amplifier's
+    declared current loop the nominal model holds besides it (:func:`amplifier_lag`; 0: none
+    declared); ``modelled``: the nominal model holds that lag (the identifier's
+    ``current_loop``), else the float value includes it (the lag found as a delay)."""
 
-    def __new__(cls, samples: float, amplifier_lag: float = 0.0):
+    def __new__(cls, samples: float, amplifier_lag: float = 0.0, modelled: bool = False):
         obj = super().__new__(cls, float(samples))
         obj.amplifier_lag = float(amplifier_lag)
+        obj.modelled = bool(modelled)
         return obj
+
+    def beyond_hold(self) -> float:
+        """All of the lag beyond the hold [samples]: the found delay, plus the declared loop's
+        lag when the model holds it."""
+        return float(self) + (self.amplifier_lag if self.modelled else 0.0)
 
 
 class DelayComp(StrictModel):
@@ -184,16 +244,20 @@ class InputDelayFamily(EffectFamily):
         return float(h) if h else 0.0
 
     def search(self, ctx, base, residual):
-        """The delay d [samples] beyond the hold of least SSE on the samples in motion
+        """The delay d [samples] beyond the hold (and the declared current loop the context
+        models: its ``modelled_lag`` [samples]) of least SSE on the samples in motion
         (:meth:`in_motion`): whole samples to 5 ms, then :meth:`refine`; the term's h is a
-        :class:`FoundDelay` carrying the amplifier's declared lag (:func:`amplifier_lag`, from
-        the record's header when the context has one)."""
+        :class:`FoundDelay` carrying the modelled loop's lag."""
         p = ctx.p
-        rec = getattr(ctx, "rec", None)
-        lag_s, _ = amplifier_lag(getattr(rec, "header", None) or {}, getattr(rec, "axis", ""))
+        modelled = float(getattr(ctx, "modelled_lag", 0.0) or 0.0)
+        if modelled > 0:
+            lag = modelled
+        else:
+            rec = getattr(ctx, "rec", None)
+            lag = amplifier_lag(getattr(rec, "header", None) or {}, getattr(rec, "axis", ""))[0] * p.fs
 
         def term(d):
-            return ctx.term(self.name, FoundDelay(d, lag_s * p.fs))
+            return ctx.term(self.name, FoundDelay(d, lag, modelled > 0))
         dmax = max(3, min(round(0.005 * p.fs), 40))
         grid = np.arange(0, dmax + 1)
         sses = ctx.delay_sses(base, grid, rows=self.in_motion(ctx))
@@ -258,25 +322,28 @@ class InputDelayFamily(EffectFamily):
                 f"{MAX_BAND_SPREAD:g}): a lag of part of the force (a load held with play, backlash)")
 
     def parameters(self, h, beta, gain, fs):
-        """delay_samples: the lag found beyond the hold [samples]; total_delay_s: the same in
-        seconds (what the compensation previews); amplifier_lag_s: the part the drive's declared
-        current loop explains (:class:`FoundDelay`, 0 when none is declared); delay_s: the
-        transport delay beyond it, total_delay_s − amplifier_lag_s."""
+        """delay_samples: the lag found beyond the hold (and beyond the declared current loop
+        when the model holds it, :class:`FoundDelay`) [samples]; amplifier_lag_s: the declared
+        loop's lag (0 when none is declared); total_delay_s: all of the lag beyond the hold
+        (what the compensation previews); delay_s: the transport delay beyond the loop,
+        total_delay_s − amplifier_lag_s."""
         lag = float(getattr(h, "amplifier_lag", 0.0))
-        return {"delay_samples": float(h), "delay_s": (float(h) - lag) / fs, "total_delay_s": float(h) / fs,
+        total = h.beyond_hold() if isinstance(h, FoundDelay) else float(h)
+        return {"delay_samples": float(h), "delay_s": (total - lag) / fs, "total_delay_s": total / fs,
                 "amplifier_lag_s": lag / fs}
 
     # compensation (a preview, not an additive d̂_eff)
     def compensation(self, h, beta, signals=None):
-        """delay_s = h · the record's sample period (from ``signals``: its ``fs`` or its time
-        column); None without signals or without a delay."""
+        """delay_s = (h + the declared current loop's lag) · the record's sample period (from
+        ``signals``: its ``fs`` or its time column): all of the lag beyond the hold; None without
+        signals or without a delay."""
         if signals is None or not h:
             return None
         fs = getattr(signals, "fs", None)
         if not fs:
             t = np.asarray(signals.t, dtype=float)
             fs = (len(t) - 1) / (t[-1] - t[0])
-        return {"delay_s": float(h) / float(fs)}
+        return {"delay_s": (h.beyond_hold() if isinstance(h, FoundDelay) else float(h)) / float(fs)}
 
     def compensation_for(self, delay_s, a1):
         return {"delay_s": float(delay_s)}
@@ -286,10 +353,12 @@ class InputDelayFamily(EffectFamily):
 
     # report
     def shape(self, ctx, h, beta, gain):
-        """A1 (u(t − τ) − u(t)) against time: what the delay changes in the input."""
+        """A1 (u(t − τ) − u(t)) against time: what the delay changes in the input the nominal
+        model applies (hold and declared current loop included)."""
         g = gain or 1.0
         pr = ctx.p
-        return pr.t_d, g * ctx.target(ctx.zoh + h) - g * pr.u_d, "time [s]", "A1 (u(t - tau) - u(t)) [UNIT]"
+        return (pr.t_d, g * ctx.target(ctx.zoh + h) - g * ctx.target(ctx.zoh), "time [s]",
+                "A1 (u(t - tau) - u(t)) [UNIT]")
 
 
 FAMILY = InputDelayFamily()

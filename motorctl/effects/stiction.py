@@ -53,6 +53,7 @@ class StictionFamily(EffectFamily):
     example: ClassVar[dict] = {"stiction_N": 25.0}
     look_alike: ClassVar[tuple[str, ...]] = ("amplifier_dead_zone",)
     acts_at_rest = True
+    before_current_loop = True
 
     # simulator: the plant core's Karnopp stiction (axis-level option, no hook)
     def sim_config(self, axis_options):
@@ -83,6 +84,17 @@ class StictionFamily(EffectFamily):
         fine = np.exp(np.linspace(math.log(BAND_GRID[i - 1]), math.log(BAND_GRID[i + 1]), 7))
         term, _ = ctx.best_over(self.name, fine, base)
         return term, None
+
+    def polish(self, ctx, term, others):
+        """The band searched again (:meth:`search`) with the final model's other effects: taken
+        first, before a low-speed friction was modelled, the band widens to take up part of it
+        (default plant, Stribeck 20 N / 0.05 m/s: 1.65 mm/s, 0.33-0.41 mm/s beside the hump).
+        None when the search's value sits at its grid's edge, or when the identifier does not
+        model the current loop (its ``current_loop``: the selection as before)."""
+        if not getattr(ctx, "current_loop", False):
+            return None
+        found = self.search(ctx, others, None)
+        return None if found is None or found[1] else found[0]
 
     def plausible(self, ctx, term, beta, theta, base):
         lo, hi = HELD_RANGE

@@ -132,6 +132,8 @@ class Prepared:
     u_d: np.ndarray = None
     fu: np.ndarray = None      # thrust shape f_u(u) [V] once the nominal θ5, θ6 are known (N,)
     v_wide: np.ndarray = None
+    #: velocity [m/s] (N,) of Stribeck's S_f factor (None: ``v_wide``, as its hump)
+    v_sf: np.ndarray = None
 
     def dec(self, cols: np.ndarray) -> np.ndarray:
         """Parallel-decimate full-rate columns (N,) or (N, k) and drop the edges."""

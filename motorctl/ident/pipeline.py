@@ -128,7 +128,8 @@ def add_refused(verdict: dict, last_step: list, chosen: list) -> None:
 
 def validation(idf: Identifier, rec2) -> dict:
     """Residual RMS on a second record of the nominal and the augmented model fitted on DATA."""
-    other = Identifier(rec2, n_theta=idf.n_theta, friction=idf.friction, zoh_delay=idf.zoh)
+    other = Identifier(rec2, n_theta=idf.n_theta, friction=idf.friction, zoh_delay=idf.zoh,
+                       current_loop=idf.current_loop)
     g = idf.rec.gain or 1.0
     r0 = idf.predict_on(other, [], idf.nominal)
     r1 = idf.predict_on(other, idf.terms, idf.final)
@@ -385,7 +386,7 @@ def text_report(s: dict) -> str:
 # ---------------------------------------------------------------------------- fit and write
 def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
                     zoh_delay: float | None = None, after_fit=None,
-                    on_nominal=None, on_step=None) -> tuple[Identifier, dict]:
+                    on_nominal=None, on_step=None, current_loop: bool = False) -> tuple[Identifier, dict]:
     """Fit the model to a loaded record, trace the residual to effects, and summarise.
 
     Args:
@@ -397,6 +398,8 @@ def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
         on_nominal: called with the nominal θ̂ (n_theta,) each time the nominal model is fitted,
             before the effect search; on_step: called each time the forward selection takes
             an effect (both: :class:`~motorctl.ident.select.Identifier`); None: nothing.
+        current_loop: model the current loop the run log's config declares in the nominal
+            fit (:class:`~motorctl.ident.select.Identifier`; off: fitted as an input delay).
     Returns:
         (the identifier after its run, the summary of :func:`summarise`; no validation or
         closed loop yet).
@@ -412,7 +415,7 @@ def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
     try:
         with quiet():
             idf = Identifier(rec, n_theta=n_theta, friction=friction, zoh_delay=zoh_delay,
-                             on_nominal=on_nominal, on_step=on_step).run()
+                             on_nominal=on_nominal, on_step=on_step, current_loop=current_loop).run()
     except (np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
         if isinstance(exc, LogError):
             raise

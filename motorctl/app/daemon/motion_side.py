@@ -720,7 +720,7 @@ class MotionSide:
                 self.s = 0.0
                 self._ev_i = 0
                 self.f, self.fd = self._target(self.cur, 0.0), 0.0   # from rest: the override at once
-            cur, m, ended, step, steady = self.cur, 0, False, 0.0, False
+            cur, m, ended, step, steady, uniform = self.cur, 0, False, 0.0, False, 0
             ss, ff, ffd = self._s, self._f, self._fd
             target = self._target(cur, self.s)
             if self.f == target and self.fd == 0.0 and target > 0.0:
@@ -747,6 +747,7 @@ class MotionSide:
                         ended = True
                 ff[:m], ffd[:m] = self.f, 0.0
                 step = self.f * dt               # uniform rows (the last one may stop short)
+                uniform = m - 1 if hit and limit < cur.duration else m
                 self.s = float(ss[m - 1])
                 if not ended and hit:
                     self.f, self.fd, self.holding = 0.0, 0.0, True
@@ -778,11 +779,11 @@ class MotionSide:
                     break
             if m:
                 rows = out[j:j + m]
-                if step > 0.0 and (m == 1 or ss[m - 1] - ss[m - 2] == ss[1] - ss[0]):
-                    cur.sample_into(float(ss[0]), step, self._grid[:m])   # the rows' own times
-                    rows[:] = self._grid[:m].transpose(0, 2, 1)
-                else:
-                    self._sample(cur, ss[:m], rows)
+                if uniform:                  # s0 + k·f·Ts by construction: at their own times
+                    cur.sample_into(float(ss[0]), step, self._grid[:uniform])
+                    rows[:uniform] = self._grid[:uniform].transpose(0, 2, 1)
+                if uniform < m:              # a pause's row, the ramp's rows
+                    self._sample(cur, ss[uniform:m], rows[uniform:])
                 if ended:                    # past its end: at rest there exactly
                     rows[-1, :, 0] = cur.end
                     rows[-1, :, 1:] = 0.0
