@@ -278,7 +278,8 @@ class _Verification:
         self.raw, self.source, self.axis, self.law, self.choice = raw, source, axis, law, choice
         self.full_ref = full_ref
         self.seconds, self.clock, self.ref, self.extra, self.progress = seconds, clock, ref, extra, progress
-        self.u_lim = config_from_dict(raw, source).axes[axis].controller.u_lim
+        sec = self.section = config_from_dict(raw, source).axes[axis].controller   # the configured law's
+        self.u_lim = sec.u_lim
         self.rest_max = limits(full_ref or ref, self.u_lim, 0)[1]    # the level rest_judged is held to
         self.runs: list = []      # (label, scale, result, verdict)
         self.tried: dict = {}     # {design: (result or None, verdict)}
@@ -289,7 +290,6 @@ class _Verification:
         self.full: list = []      # (damping gain, error corner, result, verdict, other design numbers) of the
                                   # full runs (:func:`gain_axes`, :func:`_others`)
         sens = choice.get("sensitivity")
-        sec = config_from_dict(raw, source).axes[axis].controller
         try:
             own = {k: float(getattr(sec.settings(sec.type), k)) for k in controller_class(sec.type).tuned_keys}
             sens and sens(sec.type, own, np.array([100.0]))
@@ -497,8 +497,7 @@ class _Verification:
         if "_zeta" not in grid or "theta1" not in self.choice or holds is None:
             return []
         z = round(min(grid["_zeta"]) * ZETA_BELOW, 4)
-        sec = config_from_dict(copy.deepcopy(self.raw), self.source).axes[self.axis].controller
-        fam = controller_class(self.law).gain_family(self.choice["theta1"], sec.settings(self.law), OMEGA,
+        fam = controller_class(self.law).gain_family(self.choice["theta1"], self.section.settings(self.law), OMEGA,
                                                     zetas=(z,))
         return [g for g in fam if holds(g)]
 
