@@ -43,7 +43,8 @@ import numpy as np
 
 from motorctl.effects.base import EffectFamily, PlantTerm
 from motorctl.effects.periodic import SHAPE_POINTS
-from motorctl.model import f_u_slope
+from motorctl.effects.input_delay import delayed
+from motorctl.model import f_u, f_u_slope
 from motorctl.schema import NonNeg, StrictModel
 
 #: searched half-widths d [V]
@@ -81,11 +82,9 @@ class Band(float):
 
 
 def _thrust(u: np.ndarray, theta5: float, theta6: float) -> np.ndarray:
-    """f_u(u) = u + θ5 u|u| + θ6 u³ (N,) [V] (paper eq. 9, :func:`motorctl.model.f_u`), u itself
-    when θ5 = θ6 = 0 (the search's grid: no copy)."""
-    if theta5 == 0.0 and theta6 == 0.0:
-        return u
-    return u * (1.0 + theta5 * np.abs(u) + theta6 * (u * u))
+    """f_u(u) (N,) [V] (paper eq. 9, :func:`motorctl.model.f_u`), u itself when θ5 = θ6 = 0
+    (the search's grid: no copy)."""
+    return u if theta5 == 0.0 and theta6 == 0.0 else f_u(u, theta5, theta6)
 
 
 def _shape(ctx, terms, ev=None) -> tuple[float, float]:
@@ -154,10 +153,7 @@ class AmplifierDeadZoneFamily(EffectFamily):
             cols.append(-f_u_slope(np.abs(passed), th5, th6) * (np.abs(u + offset) > d))
         lost = np.column_stack(cols)
         s = getattr(h, "shift", 0.0)
-        if s > 0:
-            n = np.arange(len(u), dtype=float)
-            lost = np.column_stack([np.interp(n - s, n, c) for c in lost.T])
-        return lost
+        return delayed(lost, s) if s > 0 else lost
 
     def search(self, ctx, base, residual):
         """The least SSE on :data:`WIDTH_GRID`, refined on a finer grid. With a holding force

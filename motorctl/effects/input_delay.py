@@ -128,6 +128,17 @@ def amplifier_lag(header: dict, axis: str) -> tuple[float, str]:
     return lag, f"the amplifier's {' + '.join(parts)} the config declares: {lag * 1e6:.0f} us"
 
 
+def delayed(cols: np.ndarray, delay: float) -> np.ndarray:
+    """Full-rate columns (N,) or (N, k) ``delay`` samples later [samples] (a fraction by linear
+    interpolation, the first/last value held beyond the ends); ``cols`` itself for 0."""
+    if delay == 0:
+        return cols
+    n = np.arange(len(cols), dtype=float) - delay
+    if cols.ndim == 1:
+        return np.interp(n, np.arange(len(cols)), cols)
+    return np.column_stack([np.interp(n, np.arange(len(cols)), c) for c in cols.T])
+
+
 def held_lag_response(fc_hz: float, dc_s: float, fs: float) -> tuple[np.ndarray, float]:
     """The acceleration a sampled-data loop's central differences see of one held input sample
     through a current loop: impulse response h (J + 1,) [-] and the ratio r [-] of its

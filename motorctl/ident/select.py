@@ -47,7 +47,7 @@ from scipy.signal import lfilter
 
 from motorctl.effects import FAMILIES, family as effect_family
 from motorctl.effects.base import EffectFamily
-from motorctl.effects.input_delay import HOLD_TOLERANCE, amplifier_loop, current_loop_filter
+from motorctl.effects.input_delay import HOLD_TOLERANCE, amplifier_loop, current_loop_filter, delayed
 from motorctl.ident.data import Record
 from motorctl.ident.idim import Prepared, choose_n_theta, ls, prepare
 from motorctl.ident.verdict import residual_verdict
@@ -250,7 +250,7 @@ class Identifier:
             u = self.p.u
             cols = self._phi_cache["loop"] = lfilter(*self.loop_filter, np.column_stack([u, u * np.abs(u), u ** 3]),
                                                      axis=0)
-        return _shift(cols, delay - 0.5)
+        return delayed(cols, delay - 0.5)
 
     def delayed_u(self, delay: float) -> np.ndarray:
         """The input the acceleration sees ``delay`` samples after the logged one, at full rate
@@ -258,7 +258,7 @@ class Identifier:
         loop, u through the loop's filter (:meth:`input_columns`)."""
         if self.loop_filter is not None:
             return self.input_columns(delay)[:, 0]
-        return _shift(self.p.u, delay) if delay > 0 else self.p.u
+        return delayed(self.p.u, delay) if delay > 0 else self.p.u
 
     def target(self, delay: float = 0.0) -> np.ndarray:
         key = ("y", round(delay, 6))
@@ -984,17 +984,6 @@ def _cov(phi: np.ndarray, residual: np.ndarray) -> np.ndarray:
     """σ̂² (ΦᵀΦ)⁻¹ of an LS fit (p, p)."""
     m, k = phi.shape
     return float(residual @ residual) / max(m - k, 1) * np.linalg.pinv(phi.T @ phi)
-
-
-def _shift(cols: np.ndarray, delay: float) -> np.ndarray:
-    """Full-rate columns (N,) or (N, k) ``delay`` samples later (a fraction by linear
-    interpolation, the first/last value held beyond the ends)."""
-    if delay == 0:
-        return cols
-    n = np.arange(len(cols), dtype=float) - delay
-    if cols.ndim == 1:
-        return np.interp(n, np.arange(len(cols)), cols)
-    return np.column_stack([np.interp(n, np.arange(len(cols)), c) for c in cols.T])
 
 
 def _coef(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
