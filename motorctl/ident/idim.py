@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from functools import lru_cache
 
-from scipy.signal import butter, cheby1, filtfilt, sosfiltfilt, sosfreqz
+from scipy.signal import butter, cheby1, filtfilt, sosfreqz
 
 from motorctl.model import N_THETA_CUBIC, N_THETA_LINEAR, idim_regressor
 
@@ -63,23 +63,57 @@ def _decimation_sos(q: int) -> np.ndarray:
     return cheby1(8, 0.05, 0.8 / q, output="sos")
 
 
+#: samples (decimated) of odd extension before and after a column decimated by
+#: :func:`parallel_decimate` (its ends join there in the circular FFT): beyond the transients of
+#: the zero-phase filter (the decimated samples dropped at the record's ends, :data:`EDGE_S`)
+EXTENSION = 32
+
+
+@lru_cache(maxsize=8)
+def _zero_phase_window(nd: int, n: int) -> np.ndarray:
+    """|H(f)|² of :func:`decimation_gain` at the n FFT bins (:func:`scipy.fft.fftfreq` order) of a
+    column n samples long, read only (designed once per factor and length)."""
+    from scipy.fft import fftfreq
+    w = decimation_gain(1.0, nd, np.abs(fftfreq(n)))
+    w.flags.writeable = False
+    return w
+
+
 def parallel_decimate(m: np.ndarray, nd: int) -> np.ndarray:
     """Same zero-phase low-pass + down-sampling on every column (EMPS §3.2, "decimate" process).
 
-    Equivalent to ``scipy.signal.decimate(m, q, ftype='iir', axis=0, zero_phase=True)`` per
-    stage (stages ≤ 13), with the filter designed once per factor.
+    The low-pass is that of ``scipy.signal.decimate(m, q, ftype='iir', axis=0,
+    zero_phase=True)`` per stage (stages ≤ 13: Chebyshev I, order 8, 0.05 dB ripple, cut-off
+    0.8 of each stage's new Nyquist frequency, run forwards and backwards), applied as its
+    zero-phase gain |H(f)|² (:func:`decimation_gain`) in the frequency domain by
+    :func:`scipy.signal.resample` (Fourier method), which keeps the bins below the new Nyquist
+    frequency fs/(2 nd): what lies above is removed, not folded (the cascade of filters lets it
+    through at −66 dB at fs/(2 nd) and below −120 dB from 1.2 fs/(2 nd), where it aliases into
+    the band kept). Each column is extended by :data:`EXTENSION` decimated samples at both ends
+    (odd extension about its end values, as :func:`scipy.signal.sosfiltfilt` does) and to a
+    length with small prime factors (:func:`scipy.fft.next_fast_len`); sample k of the result
+    is the filtered column at full-rate sample nd·k. Away from the ends (:data:`EDGE_S`) this is
+    the cascade's ``sosfiltfilt`` to 1e-5 of a column's size (up to 1e-4 for a sharp one, e.g.
+    sign(v)), at a third of its time.
 
     Args:
         m: shape (N,) or (N, k). nd: decimation factor ≥ 1.
     Returns:
-        Shape (ceil(N/nd),) or (ceil(N/nd), k).
+        Shape (ceil(N/nd),) or (ceil(N/nd), k), each column contiguous.
     """
+    from scipy.fft import next_fast_len
+    from scipy.signal import resample
     out = np.asarray(m, dtype=float)
     if nd <= 1:
         return out
-    for q in _stages(nd):
-        out = sosfiltfilt(_decimation_sos(q), out, axis=0)[::q]
-    return out
+    n = out.shape[0]
+    lo = EXTENSION * nd
+    length = nd * next_fast_len(-(-(n + 2 * lo) // nd), real=True)
+    rows = np.pad(out.T if out.ndim > 1 else out[None, :], ((0, 0), (lo, length - n - lo)),
+                  mode="reflect", reflect_type="odd")
+    dec = resample(rows, length // nd, window=_zero_phase_window(nd, length), axis=-1)
+    dec = dec[:, EXTENSION:EXTENSION + -(-n // nd)]
+    return dec.T if out.ndim > 1 else dec[0]
 
 
 def decimation_gain(fs: float, nd: int, f_Hz) -> np.ndarray:
