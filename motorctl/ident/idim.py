@@ -3,8 +3,9 @@
 Practice of the EMPS benchmark (Janot, Gautier, Brunot, "Data Set and Reference Models of EMPS",
 2019, §3): zero-phase Butterworth low-pass of the position (order 4, cut-off ω_fq), central
 differences for velocity and acceleration, then *parallel decimation*: the same low-pass +
-down-sampling (:func:`scipy.signal.decimate`, zero phase) applied to every regressor column and
-to the input, and ordinary least squares on the decimated system, eq. (10):
+down-sampling (the low-pass of :func:`scipy.signal.decimate`, zero phase, applied in the
+frequency domain: :func:`parallel_decimate`) applied to every regressor column and to the input,
+and ordinary least squares on the decimated system, eq. (10):
 θ̂ = (Φ_Fpᵀ Φ_Fp)⁻¹ Φ_Fpᵀ y_Fp, with σ̂² = ‖y − Φθ̂‖²/(N − p) and cov θ̂ = σ̂² (ΦᵀΦ)⁻¹.
 
 The nominal model is the paper's eq. (4) written as u = Φ θ (:func:`motorctl.model.idim_regressor`).
