@@ -246,12 +246,8 @@ def test_stribeck_velocity_is_taken_again_on_the_declared_current_loop(stribeck_
         del idf.refitted
 
 
-def test_refit_only_when_stribeck_is_selected_and_a_current_loop_declared(stribeck_run):
+def test_refit_only_when_stribeck_is_selected_and_the_loop_not_yet_modelled(stribeck_run):
     idf = stribeck_run
-    bare = Record(idf.rec.t, idf.rec.y, idf.rec.u, gain=A1, axis="X", header={"run": 1})
-    undeclared = Identifier(bare)
-    undeclared.terms = idf.terms
-    assert undeclared.refit() is None                       # no loop declared
     declared = Identifier(idf.rec)
     declared.terms = [t for t in idf.terms if t.family != "stribeck"]
     assert declared.refit() is None                         # nothing that takes it selected

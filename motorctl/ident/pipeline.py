@@ -80,6 +80,7 @@ def summarise(idf: Identifier) -> dict:
     # the effects' values (and the compensation's) taken again on the declared current loop's model
     out["refit"] = None if src is idf else {
         "families": sorted({t.family for t in src.terms if t.family in REFIT_FAMILIES + REFIT_WITH}),
+        "current_loop_modelled": src.loop_filter is not None,
         "theta": [float(v) for v in th_v], "residual_rms": g * src.final.fit.rms,
         "heldout_rms": g * src.final.heldout_rms}
     from motorctl.ident.simfit import simulation_fit
@@ -378,9 +379,10 @@ def text_report(s: dict) -> str:
     lines.append(f"augmented model: residual RMS {a['residual_rms']:.4g} {u}, held-out RMS {a['heldout_rms']:.4g} {u}")
     if s.get("refit"):
         r = s["refit"]
-        lines.append(f"  the effects' values and compensation fitted again with the declared current loop modelled "
-                     f"(its lag within the few ms after each start, where {', '.join(r['families'])} act): "
-                     f"held-out RMS {r['heldout_rms']:.4g} {u}")
+        how = ("the declared current loop modelled (its lag, not a delay, within the few ms after each start)"
+               if r["current_loop_modelled"] else "no current loop declared")
+        lines.append(f"  the effects' values and compensation fitted again on the low-speed model ({how}; "
+                     f"searched again: {', '.join(r['families'])}): held-out RMS {r['heldout_rms']:.4g} {u}")
     if s.get("residual"):
         lines.append(("WARNING: " if s["residual"]["structured"] else "residual: ") + s["residual"]["text"])
     if n.get("simulation_fit_percent") is not None:

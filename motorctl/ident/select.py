@@ -955,8 +955,12 @@ class Identifier:
         """The selected effects' values taken again on the model of the current loop the run
         log's config declares (a new identifier with ``current_loop``; this one unchanged).
 
-        Run only when a family of :data:`REFIT_FAMILIES` (Stribeck) was selected, the
-        identifier does not model the loop already and the record declares one; else None.
+        Run only when a family of :data:`REFIT_FAMILIES` (Stribeck) was selected and the
+        identifier does not model the loop already; else None. Without a declared loop (a
+        CSV/MAT record, the rigid plant) the refit's model differs by Stribeck's S_f on the
+        nominal Coulomb column's velocity and stiction's band searched beside the hump
+        (``current_loop``'s other two changes): rigid plant, 20 N / 0.05 m/s, 21.5 N /
+        0.0447 m/s → 20.0 N / 0.0493 m/s.
         The selection and the residual verdict stay this identifier's: they were calibrated
         on the model that fits the loop as an input delay (with the loop modelled the verdict
         warns on clean logs and misses a 50 µm backlash, a dead-zone is named stiction). The
@@ -978,9 +982,6 @@ class Identifier:
             (:class:`Evaluated`) set, or None.
         """
         if self.current_loop or not any(t.family in REFIT_FAMILIES for t in self.terms):
-            return None
-        fc, dc = amplifier_loop(self.rec.header or {}, self.rec.axis)
-        if fc <= 0 and dc <= 0:
             return None
         ctx = Identifier(self.rec, n_theta=self.n_theta, friction=self.friction, zoh_delay=self.zoh,
                          families=self.families, current_loop=True)
