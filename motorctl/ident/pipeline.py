@@ -379,7 +379,7 @@ def text_report(s: dict) -> str:
     lines.append(f"augmented model: residual RMS {a['residual_rms']:.4g} {u}, held-out RMS {a['heldout_rms']:.4g} {u}")
     if s.get("refit"):
         r = s["refit"]
-        how = ("the declared current loop modelled (its lag, not a delay, within the few ms after each start)"
+        how = ("the declared current loop modelled as its lag, not a delay"
                if r["current_loop_modelled"] else "no current loop declared")
         lines.append(f"  the effects' values and compensation fitted again on the low-speed model ({how}; "
                      f"searched again: {', '.join(r['families'])}): held-out RMS {r['heldout_rms']:.4g} {u}")
