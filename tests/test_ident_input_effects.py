@@ -240,6 +240,9 @@ def test_stribeck_velocity_is_taken_again_on_the_declared_current_loop(stribeck_
         assert values_from(idf) is ref
         comp, _, _ = compensation_from_fit(idf)
         assert comp["stribeck"]["velocity_m_per_s"] == pytest.approx(_v_s(ref))
+        if delay is not None:       # 0 beyond the modelled loop: the preview is the loop's lag
+            lag = 1 / (2 * math.pi * 1000.0)
+            assert comp["input_delay"]["delay_s"] == pytest.approx(lag + float(delay.h) / FS)
         comp0, _, _ = compensation_from_fit(idf, idf.final, idf.terms)
         assert comp0["stribeck"]["velocity_m_per_s"] == pytest.approx(_v_s(idf))
     finally:
