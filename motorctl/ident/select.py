@@ -155,7 +155,9 @@ class Identifier:
             On, Stribeck's F_s and v_s come within 10 % on the default plant, but the residual
             verdict, calibrated on the model without it, warns on clean logs (a 0.25 N
             structure at the slowest speeds) and no longer flags a 50 µm backlash
-            (docs/identification.md, "Stribeck: the velocity of its column").
+            (docs/identification.md, "Stribeck: the velocity of its column"); so the
+            selection runs without it and, when Stribeck is selected, :meth:`refit` takes
+            the values on it.
 
     Raises:
         ValueError: unknown friction shape or effect family.
