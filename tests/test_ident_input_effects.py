@@ -43,11 +43,12 @@ def _reference(duration_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _simulate(duration_s=8.0, kappa=0.0, dz=(0.0, 0.0), delay_samples=0.0, tau_i=0.0, stiction_n=0.0,
-              seed=0, noise_v=NOISE_V) -> Record:
+              seed=0, noise_v=NOISE_V, stribeck=(0.0, 0.05)) -> Record:
     """A record of the rigid axis (module constants) under u = PD + feedforward + ``noise_v`` [V] of white noise,
     the input through a dead-zone dz = (d, o) [V], ``delay_samples`` of transport delay
     (:func:`delay_line`), a first-order current loop of time constant ``tau_i`` [s], a thrust
-    (1 + κ t) F_m(u), and Karnopp stiction ``stiction_n`` [N]. u is held over each period
+    (1 + κ t) F_m(u), Karnopp stiction ``stiction_n`` [N] and a Stribeck friction ``stribeck`` =
+    (F_s [N], v_s [m/s]), F_s exp(−(ẋ/v_s)²) S_f(ẋ). u is held over each period
     (read y_k, then write u_k: the run log's zero-order hold)."""
     xr, vr, ar = _reference(duration_s)
     rng = np.random.default_rng(seed)
@@ -76,7 +77,8 @@ def _simulate(duration_s=8.0, kappa=0.0, dz=(0.0, 0.0), delay_samples=0.0, tau_i
             if stiction_n > 0 and abs(v) < 1e-4 and abs(f_mean + F0) <= stiction_n:
                 v = 0.0
                 continue
-            acc = (f_mean - B * v - FC * (2 / math.pi) * math.atan(900.0 * v) + F0) / M
+            fc = FC + stribeck[0] * math.exp(-(v / stribeck[1]) ** 2)
+            acc = (f_mean - B * v - fc * (2 / math.pi) * math.atan(900.0 * v) + F0) / M
             x += h * v + 0.5 * h * h * acc        # exact for the acceleration held over h
             v += h * acc
     return Record(t=np.arange(len(xr)) / FS, y=ys, u=us, gain=A1, source="<numpy axis>", axis="X")
@@ -201,3 +203,57 @@ def test_dead_zone_width_is_the_force_beyond_its_band_not_the_static_friction():
     assert par["lost_share"] == pytest.approx(1.0, abs=0.02)
     assert par["offset_V"] == pytest.approx(0.02, rel=0.1)
     assert not fam.plausible(idf, term, ev.fit.coef[-1:], ev.fit.coef[:6], [st])
+
+
+# ------------------------------------------------------------------------------- the refit
+@pytest.fixture(scope="module")
+def stribeck_run():
+    """10 N / 0.05 m/s Stribeck friction behind a 1 kHz current loop the header declares,
+    identified as ``motorctl identify`` selects (the loop fitted as an input delay)."""
+    rec = _simulate(tau_i=1 / (2 * math.pi * 1000.0), stribeck=(10.0, 0.05))
+    rec.header = {"config": {"axes": {"X": {"driver": {"current_loop_hz": 1000.0}}}}}
+    return Identifier(rec).run()
+
+
+def _v_s(idf):
+    i = next(k for k, t in enumerate(idf.terms) if t.family == "stribeck")
+    return float(idf.terms[i].h)
+
+
+def test_stribeck_velocity_is_taken_again_on_the_declared_current_loop(stribeck_run):
+    """Fitted as a pure delay, the loop's lag trades against the hump within the few ms after
+    each start (here 0.021 m/s beside a delay of 1.08 samples); the refit on the loop's model
+    keeps the selection and takes v_s again there (0.053 m/s), the loop explaining the delay."""
+    idf = stribeck_run
+    ref = idf.refit()
+    assert ref is not None and ref.current_loop
+    assert [t.family for t in ref.terms] == [t.family for t in idf.terms]
+    assert "stribeck" in [t.family for t in idf.terms]
+    assert _v_s(ref) == pytest.approx(0.05, rel=0.10)
+    assert abs(_v_s(ref) - 0.05) < abs(_v_s(idf) - 0.05)
+    delay = next((t for t in ref.terms if t.family == "input_delay"), None)
+    assert delay is None or float(delay.h) < 0.3          # beyond the modelled loop: ~0
+    # the values and the compensation written are the refit's; selection and verdict are not
+    from motorctl.ident.pipeline import compensation_from_fit, values_from
+    idf.refitted = ref
+    try:
+        assert values_from(idf) is ref
+        comp, _, _ = compensation_from_fit(idf)
+        assert comp["stribeck"]["velocity_m_per_s"] == pytest.approx(_v_s(ref))
+        if delay is not None:       # 0 beyond the modelled loop: the preview is the loop's lag
+            lag = 1 / (2 * math.pi * 1000.0)
+            assert comp["input_delay"]["delay_s"] == pytest.approx(lag + float(delay.h) / FS)
+        comp0, _, _ = compensation_from_fit(idf, idf.final, idf.terms)
+        assert comp0["stribeck"]["velocity_m_per_s"] == pytest.approx(_v_s(idf))
+    finally:
+        del idf.refitted
+
+
+def test_refit_only_when_stribeck_is_selected_and_the_loop_not_yet_modelled(stribeck_run):
+    idf = stribeck_run
+    declared = Identifier(idf.rec)
+    declared.terms = [t for t in idf.terms if t.family != "stribeck"]
+    assert declared.refit() is None                         # nothing that takes it selected
+    modelled = Identifier(idf.rec, current_loop=True)
+    modelled.terms = idf.terms
+    assert modelled.refit() is None                         # the loop modelled already

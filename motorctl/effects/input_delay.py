@@ -347,14 +347,16 @@ class InputDelayFamily(EffectFamily):
     def compensation(self, h, beta, signals=None):
         """delay_s = (h + the declared current loop's lag) · the record's sample period (from
         ``signals``: its ``fs`` or its time column): all of the lag beyond the hold; None without
-        signals or without a delay."""
-        if signals is None or not h:
+        signals or without a lag beyond the hold (a found delay of 0 beyond a modelled loop still
+        previews the loop's lag)."""
+        total = h.beyond_hold() if isinstance(h, FoundDelay) else float(h or 0.0)
+        if signals is None or not total:
             return None
         fs = getattr(signals, "fs", None)
         if not fs:
             t = np.asarray(signals.t, dtype=float)
             fs = (len(t) - 1) / (t[-1] - t[0])
-        return {"delay_s": (h.beyond_hold() if isinstance(h, FoundDelay) else float(h)) / float(fs)}
+        return {"delay_s": total / float(fs)}
 
     def compensation_for(self, delay_s, a1):
         return {"delay_s": float(delay_s)}

@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 from motorctl.ident import effects as fx
-from motorctl.ident.select import MAX_EFFECTS, Identifier, refused_on_physics
+from motorctl.ident.select import MAX_EFFECTS, REFIT_FAMILIES, REFIT_WITH, Identifier, refused_on_physics
 from motorctl.model import THETA_NAMES
 from motorctl.recorder.runlog import LogError
 
@@ -60,13 +60,15 @@ def summarise(idf: Identifier) -> dict:
         th = nom.fit.coef
         out["nominal"]["physical"] = {"mass_kg": g * th[0], "viscous_N_s_per_m": g * th[1],
                                       "coulomb_N": g * th[2], "offset_N": g * th[3]}
-    th, betas = idf.coef_split(idf.final, idf.terms)
+    th, _ = idf.coef_split(idf.final, idf.terms)
+    src = values_from(idf)
+    th_v, betas = src.coef_split(src.final, src.terms)
     effects = []
-    for (ev, before), term, beta in zip(idf.accepted, idf.terms, betas):
+    for (ev, before), term, beta in zip(idf.accepted, src.terms, betas):
         effects.append({
             "name": term.family,
-            "parameters": fx.parameters(term.family, term.h, beta, rec.gain, idf.p.fs, theta=th,
-                                        p=idf.p, ctx=idf),
+            "parameters": fx.parameters(term.family, term.h, beta, rec.gain, src.p.fs, theta=th_v,
+                                        p=src.p, ctx=src),
             "heldout_rms_before": g * before,
             "heldout_rms_after": g * ev.heldout_rms,
             "heldout_gain_percent": 100 * ev.gain,
@@ -75,6 +77,12 @@ def summarise(idf: Identifier) -> dict:
     out["effects"] = effects
     out["augmented"] = {"theta": [float(v) for v in th], "residual_rms": g * idf.final.fit.rms,
                         "heldout_rms": g * idf.final.heldout_rms}
+    # the effects' values (and the compensation's) taken again on the declared current loop's model
+    out["refit"] = None if src is idf else {
+        "families": sorted({t.family for t in src.terms if t.family in REFIT_FAMILIES + REFIT_WITH}),
+        "current_loop_modelled": src.loop_filter is not None,
+        "theta": [float(v) for v in th_v], "residual_rms": g * src.final.fit.rms,
+        "heldout_rms": g * src.final.heldout_rms}
     from motorctl.ident.simfit import simulation_fit
     out["nominal"]["simulation_fit_percent"] = simulation_fit(idf, [], idf.nominal, SIM_WINDOW_S)
     out["augmented"]["simulation_fit_percent"] = simulation_fit(idf, idf.terms, idf.final, SIM_WINDOW_S)
@@ -94,6 +102,15 @@ def summarise(idf: Identifier) -> dict:
     out["residual"] = idf.verdict(idf.final, idf.terms, g, unit)
     add_refused(out["residual"], idf.steps[-1] if idf.steps else [], chosen)
     return out
+
+
+def values_from(idf: Identifier) -> Identifier:
+    """The identifier whose joint fit gives the found effects' values and compensation: the
+    refit on the declared current loop's model when :meth:`~motorctl.ident.select.Identifier.
+    refit` ran (``idf.refitted``), else ``idf`` itself. Selection, held-out gains and the
+    residual verdict are always ``idf``'s."""
+    ref = getattr(idf, "refitted", None)
+    return idf if ref is None else ref
 
 
 def add_refused(verdict: dict, last_step: list, chosen: list) -> None:
@@ -152,7 +169,8 @@ def compensation_from_fit(idf: Identifier, final=None, terms=None) -> tuple[dict
     """The ``controller.compensation`` of the found effects and the θ̂(0) that goes with it.
 
     ``final`` and ``terms``: the evaluated model and its effect terms (default: the
-    identifier's final ones, ``idf.final`` and ``idf.terms``).
+    identifier's final ones, ``idf.final`` and ``idf.terms``, or its refit's on the declared
+    current loop's model when one ran: :func:`values_from`).
 
     An adaptable family's entry carries ``adapt: false`` and its projection box from the fit's
     confidence interval (β ∓ 3σ, at least the default margin): a user only flips ``adapt``.
@@ -167,13 +185,15 @@ def compensation_from_fit(idf: Identifier, final=None, terms=None) -> tuple[dict
         (:meth:`motorctl.effects.base.EffectFamily.theta_shift`), names of found families that
         have no compensation term or are not told from a look-alike).
     """
+    unnamed = {ev.term.family for ev, _ in getattr(idf, "accepted", []) if ev.rivals}
+    if final is None and terms is None:
+        idf = values_from(idf)
     final = idf.final if final is None else final
     terms = idf.terms if terms is None else terms
     th, betas = idf.coef_split(final, terms)
     stds = _split_std(idf, final, terms)
     theta = np.array(th, dtype=float)
     comp, skipped = {}, []
-    unnamed = {ev.term.family for ev, _ in getattr(idf, "accepted", []) if ev.rivals}
     for t, b, sd in zip(terms, betas, stds):
         c = None if t.family in unnamed else fx.compensation(t.family, t.h, b, idf.p, beta_std=sd)
         if c:
@@ -357,6 +377,12 @@ def text_report(s: dict) -> str:
                          f"both are named as possible; a slow constant-speed move or a breakaway test separates them")
     a = s["augmented"]
     lines.append(f"augmented model: residual RMS {a['residual_rms']:.4g} {u}, held-out RMS {a['heldout_rms']:.4g} {u}")
+    if s.get("refit"):
+        r = s["refit"]
+        how = ("the declared current loop modelled as its lag, not a delay"
+               if r["current_loop_modelled"] else "no current loop declared")
+        lines.append(f"  the effects' values and compensation fitted again on the low-speed model ({how}; "
+                     f"searched again: {', '.join(r['families'])}): held-out RMS {r['heldout_rms']:.4g} {u}")
     if s.get("residual"):
         lines.append(("WARNING: " if s["residual"]["structured"] else "residual: ") + s["residual"]["text"])
     if n.get("simulation_fit_percent") is not None:
@@ -416,6 +442,8 @@ def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
         with quiet():
             idf = Identifier(rec, n_theta=n_theta, friction=friction, zoh_delay=zoh_delay,
                              on_nominal=on_nominal, on_step=on_step, current_loop=current_loop).run()
+            # the selected effects' values on the declared current loop's model (None: not needed)
+            idf.refitted = idf.refit()
     except (np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
         if isinstance(exc, LogError):
             raise
@@ -488,4 +516,4 @@ def json_default(o):
 
 __all__ = ["BOX_MARGIN", "SIM_WINDOW_S", "check_physical", "compensation_from_fit", "fig", "identify_record",
            "json_default", "set_theta0", "summarise", "text_report", "tuned_config", "validation",
-           "write_tuned_config"]
+           "values_from", "write_tuned_config"]

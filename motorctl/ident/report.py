@@ -83,12 +83,14 @@ def write_report(idf, summary: dict, out_dir: str, text: str) -> list:
         plt.close(fig)
         paths.append(p)
     if idf.terms:
-        _, betas = idf.coef_split(idf.final, idf.terms)
-        n = len(idf.terms)
+        from motorctl.ident.pipeline import values_from
+        src = values_from(idf)          # the values the report prints (a refit's, when one ran)
+        _, betas = src.coef_split(src.final, src.terms)
+        n = len(src.terms)
         fig, axes = plt.subplots(n, 1, figsize=(8, 3.2 * n), squeeze=False)
-        for ax, t, b in zip(axes[:, 0], idf.terms, betas):
+        for ax, t, b in zip(axes[:, 0], src.terms, betas):
             fam = effect_family(t.family)
-            shape = effect_shape(idf, t, b)
+            shape = effect_shape(src, t, b)
             if shape is not None:
                 xv, yv, xl, yl = shape
                 ax.plot(xv, yv, "-", lw=1)
