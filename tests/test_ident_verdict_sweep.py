@@ -15,17 +15,7 @@ from motorctl.effects import FAMILIES
 from motorctl.ident.data import load_record
 from motorctl.ident.select import Identifier
 from motorctl.ident.verdict import residual_verdict
-from harness import LOOP_A1, loop_csv
-
-
-def _fast_xd(fs: float = 5000.0, duration: float = 4.0) -> np.ndarray:
-    """Moves 0 ↔ 0.3 m with a raised-cosine speed (peak 1.5 m/s, 0.4 s each) and 0.1 s rests."""
-    n_move, n_rest = int(0.4 * fs), int(0.1 * fs)
-    tau = np.arange(n_move) / n_move
-    up = 0.3 * (tau - np.sin(2 * np.pi * tau) / (2 * np.pi))
-    one = np.concatenate([up, np.full(n_rest, 0.3), up[::-1], np.zeros(n_rest)])
-    n = int(duration * fs)
-    return np.tile(one, n // len(one) + 1)[:n]
+from harness import LOOP_A1, fast_moves_xd, loop_csv
 
 
 @pytest.mark.parametrize("period, amp", [(1e-3, 1.5e-6), (3e-3, 3e-6)])
@@ -34,7 +24,7 @@ def test_the_reading_shows_the_error_at_a_band_edge_and_beyond_the_strict_speed(
     reaches past it (missed before; a 2 mm fit of its second harmonic could win instead). 3 mm
     at a 1.5 m/s peak needs 1.7 m/s for the strict pass (2 fq·P of its band's longest period)
     and is found where its frequency is 1.5 fq, the columns weighed by what the filter leaves."""
-    rec = load_record(loop_csv(tmp_path / "enc.csv", _fast_xd(), 2e-4, y_noise_m=5e-8, u_noise_V=0.01,
+    rec = load_record(loop_csv(tmp_path / "enc.csv", fast_moves_xd(duration=4.0), 2e-4, y_noise_m=5e-8, u_noise_V=0.01,
                                enc_m=amp, period_m=period), None, str(LOOP_A1))
     fit, _ = FAMILIES["encoder_interpolation"].reading(Identifier(rec))
     assert fit is not None and fit.share > 0.9, fit
