@@ -9,7 +9,9 @@ Rerun:
     python benchmarks/ident_verdict.py --config configs/gantry-rigid.yaml --case all
 
 ``--case`` takes a case's name or a group: ``default`` (the five below, the default run),
-``sizes`` (the same effects at other sizes, below), ``all``; repeatable. ``--config`` takes the
+``sizes`` (the same effects at other sizes, below), ``holdout`` (sizes not looked at while the
+checks were changed: ±2 µm at 1.5 mm, ±3 µm at 3 mm, ±4 µm at 2.5 mm, the mode at 100 and 175
+Hz, the play at 30 and 150 µm), ``all``; repeatable. ``--config`` takes the
 plant (default ``configs/gantry.yaml``); on a plant without a structural mode the backlash cases
 are skipped (the play is in the mode's coupling). Each log's identify summary is written next
 to it as JSON (``<log>.json``: the verdict's shares, the candidates and their reasons).
@@ -79,8 +81,18 @@ SIZES = {
     "backlash20": {"backlash_m": 2.0e-5},
     "backlash100": {"backlash_m": 1.0e-4},
 }
-ALL = {**CASES, **SIZES}
-GROUPS = {"default": list(CASES), "sizes": list(SIZES), "all": list(ALL)}
+#: sizes not used while the checks were changed (``--case holdout``; run on seeds 9-10)
+HOLDOUT = {
+    "encoder2um1.5mm": {"encoder_interpolation_m": 2.0e-6, "encoder_signal_period_m": 1.5e-3},
+    "encoder3um3mm": {"encoder_interpolation_m": 3.0e-6, "encoder_signal_period_m": 3.0e-3},
+    "encoder4um2.5mm": {"encoder_interpolation_m": 4.0e-6, "encoder_signal_period_m": 2.5e-3},
+    "mode100": {"mode_hz": 100.0},
+    "mode175": {"mode_hz": 175.0},
+    "backlash30": {"backlash_m": 3.0e-5},
+    "backlash150": {"backlash_m": 1.5e-4},
+}
+ALL = {**CASES, **SIZES, **HOLDOUT}
+GROUPS = {"default": list(CASES), "sizes": list(SIZES), "holdout": list(HOLDOUT), "all": list(ALL)}
 #: names that are wrong for each kind of case
 PERIODIC = {"cogging", "force_ripple", "periodic_disturbance", "periodic_friction"}
 WRONG = {"encoder": PERIODIC, "mode": PERIODIC, "backlash": {"input_delay"}}
@@ -116,7 +128,7 @@ def main(argv=None) -> int:
     ap.add_argument("--dir", default="/tmp/motorctl_ident_verdict", help="where the logs go (reused)")
     ap.add_argument("--config", default=None, help="the plant (default configs/gantry.yaml)")
     ap.add_argument("--case", action="append", choices=list(ALL) + list(GROUPS),
-                    help="only these cases or groups (default, sizes, all; repeatable; default: default)")
+                    help="only these cases or groups (default, sizes, holdout, all; repeatable; default: default)")
     args = ap.parse_args(argv)
 
     from motorctl.commission.tune import make_log
