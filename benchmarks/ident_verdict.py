@@ -4,6 +4,17 @@ plant has something no force family models: false alarms, misses and wrong names
 Rerun:
     python benchmarks/ident_verdict.py                          # 3 seeds, 20 s logs, X axis
     python benchmarks/ident_verdict.py --seeds 5 --dir /tmp/iv  # logs kept (and reused) in DIR
+    python benchmarks/ident_verdict.py --seed-from 4 --seeds 5  # seeds 4-8
+    python benchmarks/ident_verdict.py --case sizes             # the other sizes of the same effects
+    python benchmarks/ident_verdict.py --config configs/gantry-rigid.yaml --case all
+
+``--case`` takes a case's name or a group: ``default`` (the five below, the default run),
+``sizes`` (the same effects at other sizes, below), ``holdout`` (sizes not looked at while the
+checks were changed: ±2 µm at 1.5 mm, ±3 µm at 3 mm, ±4 µm at 2.5 mm, the mode at 100 and 175
+Hz, the play at 30 and 150 µm), ``all``; repeatable. ``--config`` takes the
+plant (default ``configs/gantry.yaml``); on a plant without a structural mode the backlash cases
+are skipped (the play is in the mode's coupling). Each log's identify summary is written next
+to it as JSON (``<log>.json``: the verdict's shares, the candidates and their reasons).
 
 Cases (``configs/gantry.yaml``, axis X, C2, virtual clock; :func:`motorctl.commission.tune.make_log`):
 
@@ -23,6 +34,16 @@ Cases (``configs/gantry.yaml``, axis X, C2, virtual clock; :func:`motorctl.commi
   is a **wrong name** (the clean plant's current-loop delay included: with the play the band
   check refuses it); no warning is a **miss**.
 
+Other sizes (``--case sizes``): the encoder's error of ±1.5 µm and ±5 µm at 1 mm and 4 mm
+signal periods (``encoder1.5um1mm`` ...), the mode at 120 and 200 Hz (``mode120``, ``mode200``),
+the play of 20 and 100 µm (``backlash20``, ``backlash100``); each judged as its kind above.
+
+The clean plant's own names come from the config's X axis: stiction (``stiction_N`` > 0), the
+current loop's input delay (``current_loop_hz`` or ``current_loop_delay_s`` > 0) and, when its
+antiresonance lies below the position filter's 250 Hz (``configs/gantry-half-mode.yaml``: 175
+Hz, f_a 136 Hz), the structural mode; on such a plant the clean case is judged as a mode case
+(the structural_mode family or the warning is right) and is not counted in the false alarms.
+
 The verdict's rates: **false alarm** = a warning on a clean log; **miss** = no warning (and no
 right family) on a log with an effect (backlash: no family models it, so only the warning is
 right).
@@ -38,6 +59,8 @@ cache is warm (minutes the first time), identify 10-30 s on a 2-core machine.
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import os
 import sys
 from pathlib import Path
@@ -49,47 +72,109 @@ CASES = {
     "backlash50": {"backlash_m": 5.0e-5},
     "backlash200": {"backlash_m": 2.0e-4},
 }
-#: effects the clean plant has and identify may name
-CLEAN_NAMES = {"stiction", "input_delay"}
-#: names that are wrong for each case
-WRONG = {"encoder": {"cogging", "force_ripple", "periodic_disturbance", "periodic_friction"},
-         "mode150": {"periodic_disturbance", "force_ripple", "cogging", "periodic_friction"},
-         "backlash50": {"input_delay"}, "backlash200": {"input_delay"}}
-#: the family that names each case rightly (besides the warning)
-RIGHT = {"encoder": "encoder_interpolation", "mode150": "structural_mode"}
+#: the same effects at other sizes (``--case sizes``)
+SIZES = {
+    **{f"encoder{a:g}um{p:g}mm": {"encoder_interpolation_m": a * 1e-6, "encoder_signal_period_m": p * 1e-3}
+       for a in (1.5, 5.0) for p in (1.0, 4.0)},
+    "mode120": {"mode_hz": 120.0},
+    "mode200": {"mode_hz": 200.0},
+    "backlash20": {"backlash_m": 2.0e-5},
+    "backlash100": {"backlash_m": 1.0e-4},
+}
+#: sizes not used while the checks were changed (``--case holdout``; run on seeds 9-10)
+HOLDOUT = {
+    "encoder2um1.5mm": {"encoder_interpolation_m": 2.0e-6, "encoder_signal_period_m": 1.5e-3},
+    "encoder3um3mm": {"encoder_interpolation_m": 3.0e-6, "encoder_signal_period_m": 3.0e-3},
+    "encoder4um2.5mm": {"encoder_interpolation_m": 4.0e-6, "encoder_signal_period_m": 2.5e-3},
+    "mode100": {"mode_hz": 100.0},
+    "mode175": {"mode_hz": 175.0},
+    "backlash30": {"backlash_m": 3.0e-5},
+    "backlash150": {"backlash_m": 1.5e-4},
+}
+ALL = {**CASES, **SIZES, **HOLDOUT}
+GROUPS = {"default": list(CASES), "sizes": list(SIZES), "holdout": list(HOLDOUT), "all": list(ALL)}
+#: names that are wrong for each kind of case
+PERIODIC = {"cogging", "force_ripple", "periodic_disturbance", "periodic_friction"}
+WRONG = {"encoder": PERIODIC, "mode": PERIODIC, "backlash": {"input_delay"}}
+#: the family that names each kind rightly (besides the warning)
+RIGHT = {"encoder": "encoder_interpolation", "mode": "structural_mode"}
+#: the position filter's cut-off at 5 kHz [Hz]: a mode whose antiresonance lies above it is not seen
+MODE_SEEN_HZ = 250.0
+
+
+def kind(case: str) -> str:
+    """'clean', 'encoder', 'mode' or 'backlash'."""
+    return next(k for k in ("clean", "encoder", "mode", "backlash") if case.startswith(k))
+
+
+def plant_names(drv: dict) -> set:
+    """The effects the clean plant of an axis's driver section has and identify may name."""
+    names = set()
+    if drv.get("stiction_N", 0.0) > 0:
+        names.add("stiction")
+    if drv.get("current_loop_hz", 0.0) > 0 or drv.get("current_loop_delay_s", 0.0) > 0:
+        names.add("input_delay")
+    f, lf = drv.get("mode_hz", 0.0), drv.get("mode_load_fraction", 0.3)
+    if 0 < f * math.sqrt(1.0 - lf) < MODE_SEEN_HZ:
+        names.add("structural_mode")
+    return names
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=3, help="seeds per case (default 3)")
+    ap.add_argument("--seed-from", type=int, default=1, help="first seed (default 1): seeds N..N+seeds-1")
     ap.add_argument("--duration", type=float, default=20.0, help="log length [s] (default 20)")
     ap.add_argument("--dir", default="/tmp/motorctl_ident_verdict", help="where the logs go (reused)")
-    ap.add_argument("--case", action="append", choices=list(CASES), help="only these cases (repeatable)")
+    ap.add_argument("--config", default=None, help="the plant (default configs/gantry.yaml)")
+    ap.add_argument("--case", action="append", choices=list(ALL) + list(GROUPS),
+                    help="only these cases or groups (default, sizes, holdout, all; repeatable; default: default)")
     args = ap.parse_args(argv)
 
     from motorctl.commission.tune import make_log
+    from motorctl.config import load_yaml
     from motorctl.ident.data import load_record
     from motorctl.ident.pipeline import identify_record
 
-    base = Path(__file__).resolve().parents[1] / "configs" / "gantry.yaml"
+    default = Path(__file__).resolve().parents[1] / "configs" / "gantry.yaml"
+    base = Path(args.config).resolve() if args.config else default
+    if not base.is_file():
+        print(f"ident_verdict.py: --config {args.config}: no such file", file=sys.stderr)
+        return 2
+    drv = load_yaml(str(base))["axes"]["X"]["driver"]
+    own = plant_names(drv)
+    prefix = "" if base == default else base.stem + "_"
+    cases = []
+    for c in args.case or ["default"]:
+        cases += [k for k in GROUPS.get(c, [c]) if k not in cases]
+    if drv.get("mode_hz", 0.0) <= 0:
+        skipped = [c for c in cases if kind(c) == "backlash"]
+        if skipped:
+            print(f"{base.name}: no structural mode, so no play in its coupling: {', '.join(skipped)} skipped")
+        cases = [c for c in cases if kind(c) != "backlash"]
     out = Path(args.dir)
     out.mkdir(parents=True, exist_ok=True)
+    seeds = range(args.seed_from, args.seed_from + args.seeds)
     counts = {}
-    for case in args.case or list(CASES):
-        c = counts.setdefault(case, {"logs": 0, "warned": 0, "wrong": 0, "right": 0, "named": 0, "other": 0})
-        for seed in range(1, args.seeds + 1):
-            path = out / f"{case}_seed{seed}_{args.duration:g}s.mclog"
+    for case in cases:
+        # a clean plant whose own mode the family can see is judged as a mode case
+        kd = "mode" if case == "clean" and "structural_mode" in own else kind(case)
+        c = counts.setdefault(case, {"logs": 0, "warned": 0, "wrong": 0, "right": 0, "named": 0, "other": 0,
+                                     "kind": kd})
+        for seed in seeds:
+            path = out / f"{prefix}{case}_seed{seed}_{args.duration:g}s.mclog"
             if not path.exists():
-                make_log(str(path), CASES[case], duration_s=args.duration, seed=seed, base=str(base))
+                make_log(str(path), ALL[case], duration_s=args.duration, seed=seed, base=str(base))
             _, s = identify_record(load_record(str(path), None, None, axis="X"))
+            Path(str(path) + ".json").write_text(json.dumps(s, default=float, indent=1))
             names = {e["name"] for e in s["effects"]}
             warned = bool(s["residual"]["structured"])
-            wrong = (names - CLEAN_NAMES) if case == "clean" else (names & WRONG[case])
-            right = warned or RIGHT.get(case) in names
-            other = names - CLEAN_NAMES - WRONG.get(case, set()) - {RIGHT.get(case)}
+            wrong = (names - own) if kd == "clean" else (names & WRONG[kd])
+            right = warned or RIGHT.get(kd) in names
+            other = names - own - WRONG.get(kd, set()) - {RIGHT.get(kd)}
             c["logs"] += 1
-            c["named"] += RIGHT.get(case) in names
-            c["other"] += bool(other) and case != "clean"
+            c["named"] += RIGHT.get(kd) in names
+            c["other"] += bool(other) and kd != "clean"
             c["warned"] += warned
             c["wrong"] += bool(wrong)
             c["right"] += right
@@ -97,25 +182,33 @@ def main(argv=None) -> int:
                   f"{'WARNING ' if warned else ''}{s['residual']['text'][:160]}", flush=True)
     print()
     ok = True
+    own_text = " and ".join(sorted(own - {"structural_mode"})) or "nothing"
     for case, c in counts.items():
-        if case == "clean":
-            print(f"clean: false alarms {c['warned']}/{c['logs']}, wrong names {c['wrong']}/{c['logs']}")
+        if c["kind"] == "clean":
+            print(f"{case}: false alarms {c['warned']}/{c['logs']}, wrong names {c['wrong']}/{c['logs']}")
             ok &= c["warned"] == 0 and c["wrong"] == 0
         else:
-            fam = f", named by {RIGHT[case]} {c['named']}/{c['logs']}" if case in RIGHT else ""
+            fam = f", named by {RIGHT[c['kind']]} {c['named']}/{c['logs']}" if c["kind"] in RIGHT else ""
+            plant = ("the plant's stiction and delay" if own == {"stiction", "input_delay"}
+                     else f"the plant's {own_text}")
             print(f"{case}: told (the family or the warning) {c['right']}/{c['logs']}{fam}, misses "
                   f"{c['logs'] - c['right']}/{c['logs']}, wrong names {c['wrong']}/{c['logs']}, "
-                  f"other names beside the plant's stiction and delay {c['other']}/{c['logs']}")
+                  f"other names beside {plant} {c['other']}/{c['logs']}")
             ok &= c["right"] == c["logs"] and c["wrong"] == 0
-    clean = counts.get("clean")
-    effect = [c for k, c in counts.items() if k != "clean"]
+    clean = [c for c in counts.values() if c["kind"] == "clean"]
+    effect = [c for c in counts.values() if c["kind"] != "clean"]
     if clean:
-        print(f"verdict false-alarm rate: {clean['warned']}/{clean['logs']} clean logs warned")
+        print(f"verdict false-alarm rate: {sum(c['warned'] for c in clean)}/{sum(c['logs'] for c in clean)} "
+              "clean logs warned")
     if effect:
         n = sum(c["logs"] for c in effect)
         print(f"verdict miss rate: {sum(c['logs'] - c['right'] for c in effect)}/{n} logs with an effect neither "
               f"named by its family nor warned; warned alone: {sum(c['warned'] for c in effect)}/{n}")
-    print(f"load average {os.getloadavg()[0]:.2f}; rerun: python benchmarks/ident_verdict.py --seeds {args.seeds}")
+    rerun = f"--seeds {args.seeds}"
+    rerun += f" --seed-from {args.seed_from}" if args.seed_from != 1 else ""
+    rerun += f" --config {args.config}" if args.config else ""
+    rerun += "".join(f" --case {c}" for c in args.case or [])
+    print(f"load average {os.getloadavg()[0]:.2f}; rerun: python benchmarks/ident_verdict.py {rerun}")
     return 0 if ok else 1
 
 

@@ -15,7 +15,7 @@ from motorctl.effects.encoder_interpolation import analytic_columns, reading_col
 from motorctl.ident.data import load_record
 from motorctl.ident.pipeline import compensation_from_fit, summarise
 from motorctl.ident.select import Identifier
-from harness import LOOP_A1, loop_csv
+from harness import LOOP_A1, fast_moves_xd, loop_csv
 
 A1 = LOOP_A1
 P = 2e-3                                  # signal period [m]
@@ -86,21 +86,10 @@ def test_columns_are_the_second_derivative_of_the_reading_error():
 
 
 # ---------------------------------------------------------------------------- found in the reading
-def _fast_xd(fs: float = 5000.0, duration: float = 6.0) -> np.ndarray:
-    """Moves 0 ↔ 0.3 m with a raised-cosine speed (peak 1.5 m/s, 0.4 s each) and 0.1 s rests:
-    at cruise the 2 mm error is at 750 Hz, far above the 250 Hz position filter of 5 kHz."""
-    n_move, n_rest = int(0.4 * fs), int(0.1 * fs)
-    tau = np.arange(n_move) / n_move
-    up = 0.3 * (tau - np.sin(2 * np.pi * tau) / (2 * np.pi))
-    one = np.concatenate([up, np.full(n_rest, 0.3), up[::-1], np.zeros(n_rest)])
-    n = int(duration * fs)
-    return np.tile(one, n // len(one) + 1)[:n]
-
-
 @pytest.fixture(scope="module")
 def fast(tmp_path_factory):
     d = tmp_path_factory.mktemp("enc_fast")
-    xd = _fast_xd()
+    xd = fast_moves_xd()
     return {name: load_record(loop_csv(d / f"{name}.csv", xd, 2e-4, y_noise_m=5e-8, u_noise_V=0.01, period_m=P,
                                        **kw), None, str(A1))
             for name, kw in (("reading", {"enc_m": 3e-6}), ("force", {"cogging_N": 3.0}), ("clean", {}))}

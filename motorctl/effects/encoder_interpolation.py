@@ -98,6 +98,16 @@ MIN_PERIODS_TRAVELLED = 50.0
 #: spatial periodogram step of the reading search (relative): the SSE's main lobe is about
 #: P/travel wide (0.5 % for 2 mm over 0.4 m), so the peaks are refined on the exact fit
 READING_STEP = 0.002
+#: each band's periodogram reaches this many steps beyond its edges: a peak is a local maximum,
+#: so a period on a band's edge (1 mm, the search's lower end, or 1.5 mm between two bands) is
+#: found only on a grid that extends past it (a ±1.5 µm error at exactly 1 mm was missed)
+EDGE_STEPS = 5
+#: periods no band can show at :data:`PASS_FACTOR` are searched on the reading again where the
+#: error's frequency is at least this many times fq, its columns weighed by the share of the
+#: error the zero-phase filter leaves in y − x, 1 − 1/(1 + (f/fq)⁸) (0.96 at 1.5 fq): a 4 mm
+#: error at a 2 m/s cruise (500 Hz = 2 fq exactly, the band's longest period 5.06 mm is out of
+#: reach) was left to the force side, where cogging took it
+SLOW_PASS_FACTOR = 1.5
 #: least share of y − x's power (on the fast samples) the reading's error must explain, held
 #: out (2-fold over the identifier's blocks), for the reading to name it: a scale's error
 #: explains nearly all of it (0.99 at ±3 µm, 0.96 at ±1.5 µm on the default plant), noise and
@@ -127,9 +137,9 @@ class ReadingFit(float):
         return f"ReadingFit({float(self):.6g}, share {self.share:.3f})"
 
 
-def fast_samples(p, period: float) -> np.ndarray:
+def fast_samples(p, period: float, factor: float = PASS_FACTOR) -> np.ndarray:
     """Boolean mask (N,) of the full-rate samples at which a reading's error of period
-    ``period`` [m] is above the position filter (|ẋ| ≥ PASS_FACTOR·fq·P, held for SETTLE_FQ/fq
+    ``period`` [m] is above the position filter (|ẋ| ≥ factor·fq·P, held for SETTLE_FQ/fq
     either side): there y − x is the error (see :data:`PASS_FACTOR`). p: a prepared record."""
     from scipy.ndimage import minimum_filter1d
     key = "_enc_slowest"
@@ -138,14 +148,31 @@ def fast_samples(p, period: float) -> np.ndarray:
         half = max(1, int(round(SETTLE_FQ * p.fs / p.fq)))
         sp = minimum_filter1d(np.abs(p.v), 2 * half + 1)
         setattr(p, key, sp)
-    return sp >= PASS_FACTOR * p.fq * period
+    return sp >= factor * p.fq * period
 
 
-def reading_fit(y: np.ndarray, r: np.ndarray, period: float, fold=None) -> tuple[np.ndarray, float, float]:
+def passed(speed: np.ndarray, period: float, fq: float) -> np.ndarray:
+    """(M, 2·N_HARMONICS): the share of each harmonic k of a reading's error of period
+    ``period`` [m] that the zero-phase order-4 Butterworth at fq [Hz] (|H|² = 1/(1 + (f/fq)⁸),
+    :func:`motorctl.ident.idim.prepare`) removes from the filtered x, so leaves in y − x, at the
+    speeds ``speed`` (M,) [m/s]: 1 − 1/(1 + (k|ẋ|/(P fq))⁸), for its sin and cos columns."""
+    out = np.empty((speed.shape[0], 2 * N_HARMONICS))
+    for k in range(N_HARMONICS):
+        out[:, 2 * k] = out[:, 2 * k + 1] = 1.0 - 1.0 / (1.0 + ((k + 1) * np.abs(speed) / (period * fq)) ** 8)
+    return out
+
+
+def reading_fit(y: np.ndarray, r: np.ndarray, period: float, fold=None, speed=None,
+                fq: float | None = None) -> tuple[np.ndarray, float, float]:
     """LS fit of r (M,) [m] (y − x on fast samples) by a constant and sin, cos(2πky/P), k ≤
-    N_HARMONICS, at the readings y (M,) [m]. Returns (coef (2·N_HARMONICS,) [m], SSE [m²], held-out
-    share explained): the last over the two folds of ``fold`` (M,) (0/1), NaN without it."""
-    f = np.column_stack([fourier(y, period, N_HARMONICS), np.ones_like(y)])
+    N_HARMONICS, at the readings y (M,) [m]; with ``speed`` (M,) [m/s] and ``fq`` [Hz] each
+    column weighed by the share of the error y − x keeps there (:func:`passed`). Returns (coef
+    (2·N_HARMONICS,) [m], SSE [m²], held-out share explained): the last over the two folds of
+    ``fold`` (M,) (0/1), NaN without it."""
+    cols = fourier(y, period, N_HARMONICS)
+    if speed is not None:
+        cols = cols * passed(speed, period, fq)
+    f = np.column_stack([cols, np.ones_like(y)])
     coef = np.linalg.lstsq(f, r, rcond=None)[0]
     res = r - f @ coef
     share = math.nan
@@ -166,45 +193,70 @@ def reading_fit(y: np.ndarray, r: np.ndarray, period: float, fold=None) -> tuple
 
 def search_reading(p, lo: float, hi: float, fold_of=None) -> tuple[ReadingFit | None, list]:
     """The reading's error of period P in [lo, hi] [m] found in the reading itself: over bands
-    [P, BAND_RATIO·P], the fast samples of the band's longest period (:func:`fast_samples`),
-    the spatial periodogram of y − x against y at :data:`READING_STEP` steps, its
-    :data:`~motorctl.effects.periodic.N_PEAKS` highest peaks refined by bounded Brent on the
-    fit's SSE (:func:`reading_fit`). p: a prepared record (raw reading y, filtered x, v, fs,
-    fq). fold_of: a function of a full-rate mask giving the held-out fold (0/1) of its samples,
-    or None (no held-out share).
+    [P, BAND_RATIO·P] (each grid :data:`EDGE_STEPS` steps wider), the fast samples of the band's
+    longest period (:func:`fast_samples`), the spatial periodogram of y − x against y at
+    :data:`READING_STEP` steps, its :data:`~motorctl.effects.periodic.N_PEAKS` highest peaks
+    refined by bounded Brent on the fit's SSE (:func:`reading_fit`). A fit whose first harmonic
+    is below :data:`HALF_PERIOD_SHARE` of its second is the error of period P/2 (P's second
+    harmonic is its fundamental) and is fitted there. The bands too slow at
+    :data:`PASS_FACTOR` are searched again at :data:`SLOW_PASS_FACTOR`, the columns weighed by
+    what the filter leaves (:func:`passed`). p: a prepared record (raw reading y, filtered x,
+    v, fs, fq). fold_of: a function of a full-rate mask giving the held-out fold (0/1) of its
+    samples, or None (no held-out share).
 
     Returns:
         (the best fit by held-out share (or SSE share) or None, the (lo, hi) period ranges
         [m] that no band could search: too few fast samples).
     """
+    best, blind = _search_bands(p, lo, hi, fold_of, PASS_FACTOR)
+    slow_blind = []
+    for a, b in blind:
+        found, still = _search_bands(p, a, b, fold_of, SLOW_PASS_FACTOR)
+        slow_blind += still
+        if found is not None and (best is None or found.share > best.share):
+            best = found
+    return best, slow_blind
+
+
+def _search_bands(p, lo: float, hi: float, fold_of, factor: float) -> tuple[ReadingFit | None, list]:
+    """:func:`search_reading`'s bands of [lo, hi] [m] with the samples at ``factor``·fq·P;
+    below :data:`PASS_FACTOR` the columns are weighed by :func:`passed`."""
     from scipy.optimize import minimize_scalar
 
     r_all = p.y - p.x
     best, blind = None, []
+    edge = math.exp(EDGE_STEPS * READING_STEP)
     a = lo
     while a < hi * (1.0 - 1e-9):
         b = min(hi, a * BAND_RATIO)
-        sel = fast_samples(p, b)
+        a_x, b_x = a / edge, b * edge
+        sel = fast_samples(p, b_x, factor)
         n = int(sel.sum())
         travel = float(np.sum(np.abs(np.diff(p.x)[sel[1:]]))) if n else 0.0
-        if n < MIN_READING_SAMPLES or travel < MIN_PERIODS_TRAVELLED * b:
+        if n < MIN_READING_SAMPLES or travel < MIN_PERIODS_TRAVELLED * b_x:
             blind.append((a, b))
             a = b
             continue
         y, r = p.y[sel], r_all[sel]
-        grid = np.exp(np.arange(math.log(a), math.log(b), READING_STEP))
+        sp = (p.v[sel], p.fq) if factor < PASS_FACTOR else (None, None)
+        grid = np.exp(np.arange(math.log(a_x), math.log(b_x), READING_STEP))
         fold = None if fold_of is None else fold_of(sel)
         span = np.ptp(y)
-        for pk in peak_periods(y, r, grid, N_PEAKS):
+        d = r - r.mean()
+
+        def refined(pk, lo_b, hi_b):
             half = max(READING_STEP, pk / max(span, pk)) * pk
-            res = minimize_scalar(lambda h: reading_fit(y, r, float(h))[1], method="bounded",
-                                  bounds=(max(a, pk - half), min(b, pk + half)),
+            res = minimize_scalar(lambda h: reading_fit(y, r, float(h), None, *sp)[1], method="bounded",
+                                  bounds=(max(lo_b, pk - half), min(hi_b, pk + half)),
                                   options={"xatol": 0.02 * READING_STEP * pk})
-            coef, sse, share = reading_fit(y, r, float(res.x), fold)
-            d = r - r.mean()
-            score = share if fold is not None else 1.0 - sse / float(d @ d)
+            coef, sse, share = reading_fit(y, r, float(res.x), fold, *sp)
+            return float(res.x), coef, (share if fold is not None else 1.0 - sse / float(d @ d))
+        for pk in peak_periods(y, r, grid, N_PEAKS):
+            per, coef, score = refined(pk, a_x, b_x)
+            if np.hypot(*coef[:2]) < HALF_PERIOD_SHARE * np.hypot(*coef[2:4]) and per / 2.0 >= lo / edge:
+                per, coef, score = refined(per / 2.0, per / 2.0 / edge, per / 2.0 * edge)
             if best is None or score > best.share:
-                best = ReadingFit(float(res.x), coef, score, n)
+                best = ReadingFit(per, coef, score, n)
         a = b
     return best, blind
 

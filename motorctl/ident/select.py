@@ -821,9 +821,19 @@ class Identifier:
     def verdict(self, current: Evaluated, terms: list, gain: float = 1.0, unit: str = "V") -> dict:
         """The residual verdict (:func:`motorctl.ident.verdict.residual_verdict`) of ``current``,
         the model of ``terms``: the first of them whose family holds the carriage at rest
-        (``acts_at_rest``) explains what is left there."""
+        (``acts_at_rest``) explains what is left there; a structure smaller than an effect
+        would be named at (:meth:`least_size`) is not one."""
         at_rest = next((t.family for t in terms if effect_family(t.family).acts_at_rest), None)
-        return residual_verdict(current.fit.residual, self.p, gain, unit, at_rest_by=at_rest)
+        return residual_verdict(current.fit.residual, self.p, gain, unit, at_rest_by=at_rest,
+                                min_size=self.least_size())
+
+    def least_size(self) -> float:
+        """The least size of a force worth naming [V]: :data:`MIN_SIZE_SHARE` of the RMS input
+        and, when the gain A1 is known, :data:`MIN_SIZE_N` (the effects' rule of
+        :meth:`plausible`, applied to what the residual verdict reports)."""
+        u_rms = float(np.sqrt(np.mean(self.p.u_d ** 2)))
+        g = self.rec.gain
+        return max(MIN_SIZE_SHARE * u_rms, MIN_SIZE_N / g if g else 0.0)
 
     def unexplained(self, current: Evaluated, terms: list, last_step: list) -> bool:
         """The residual of ``current`` (the model of ``terms``) keeps a structure no family
@@ -838,13 +848,19 @@ class Identifier:
         each selected effect must keep a held-out gain of :data:`STRICT_HELDOUT_GAIN` against
         the final model without it; the weakest that does not is dropped (and the rest judged
         again): beside an unmodelled effect, a family the record shows only weakly may be
-        fitting a part of it. Returns (terms, accepted, final, [(family, why)])."""
+        fitting a part of it. An error found in the measurement itself (the encoder's, in y − x)
+        is exempt: the reading shows it, whatever its share of the force. Returns (terms,
+        accepted, final, [(family, why)])."""
         dropped = []
         while base and self.unexplained(current, base, last_step):
             gains = []
             for i in range(len(base)):
+                if _found_in_measurement(base[i]):
+                    continue            # shown in the reading, not weakly in the force
                 others = base[:i] + base[i + 1:]
                 gains.append((1.0 - current.heldout_rms / self.evaluate(others).heldout_rms, i))
+            if not gains:
+                break
             gain, i = min(gains)
             if gain >= STRICT_HELDOUT_GAIN:
                 break
@@ -938,10 +954,18 @@ class Identifier:
         :data:`LOOK_ALIKE_SHARE` of its held-out gain) and leaves the lower held-out RMS together
         with the best partner among the step's other :data:`LOOK_AHEAD` candidates (a greedy
         step cannot tell stiction from a dead-zone while the current loop's lag is unmodelled;
-        the pair can). The chosen one carries the others in ``rivals``."""
+        the pair can). A contender found in the measurement itself (:func:`_found_in_measurement`)
+        is chosen over force look-alikes. The chosen one carries the others in ``rivals``."""
         alike = effect_family(best.term.family).look_alike
         contenders = [best] + [c for c in good if c.term.family in alike and c.gain >= LOOK_ALIKE_SHARE * best.gain]
-        if len(contenders) > 1:
+        measured = [c for c in contenders if _found_in_measurement(c.term)]
+        if len(contenders) > 1 and measured:
+            # an error found in the reading itself (y − x) is measured, not inferred from the
+            # force: a force of position cannot put it there, while the reading's error puts its
+            # ë into ÿ, which cogging or a ripple then fit (a ±1.5 µm error at 4 mm: cogging,
+            # a ripple at 7.3 mm). The force families are judged again with it modelled.
+            best = max(measured, key=lambda c: c.gain)
+        elif len(contenders) > 1:
             names = {c.term.family for c in contenders}
             partners = sorted((c for c in cands if c.term.family not in names
                                and not any(c.term.family in effect_family(n).look_alike for n in names)),
@@ -1029,6 +1053,13 @@ class Identifier:
         phi, y = other.design(new_terms)
         coef = np.concatenate([th] + [b for b in betas])
         return y - phi @ coef
+
+
+def _found_in_measurement(term: Term) -> bool:
+    """The term is an error of the measurement found in the measurement itself (its family's
+    ``sized_in_reading``: the encoder's error fitted on y − x), not inferred from the force."""
+    found = getattr(effect_family(term.family), "sized_in_reading", None)
+    return found is not None and bool(found(term))
 
 
 def _h_key(h):

@@ -9,13 +9,19 @@ count). It is structured when
 
 * that share is at least :data:`MIN_SHARE`, and
 * at least :data:`NOISE_FACTOR` times what noise alone gives it: (bins − 1)/n_eff, n_eff =
-  n (1 − ρ)/(1 + ρ) counting the residual's lag-1 autocorrelation ρ.
+  n (1 − ρ)/(1 + ρ) counting the residual's lag-1 autocorrelation ρ, and
+* its size, the 99th percentile of the bin means over the samples, is one an effect would be
+  named at (``min_size``: the selection's least force of an effect, 1 % of the RMS input and
+  0.5 N; :mod:`motorctl.ident.select`). A share is relative: once a plant's residual is only
+  its noise (the rigid plant: no stiction, no mode, an ideal amplifier) a 0.3 N difference
+  between the friction the model computes from the filtered velocity and the one the carriage
+  felt at the slowest speeds held 53-56 % of it, a structure no family would be named for.
 
 The most deviating bin (its mean in standard errors, z) is where the structure is said to live.
 
 The spectrum (Welch, scipy.signal) is structured when a line stands :data:`MIN_PEAK_RATIO`
-times above the median of the spectrum above 0.5 Hz and holds at least :data:`MIN_LINE_SHARE` of
-the power. Each finding says where the structure lives ("near zero velocity (|v| < 3.2 mm/s)",
+times above the median of the spectrum above 0.5 Hz, holds at least :data:`MIN_LINE_SHARE` of
+the power and its amplitude √(2·power) is at least ``min_size``. Each finding says where the structure lives ("near zero velocity (|v| < 3.2 mm/s)",
 "at |u| < 0.21 V", "periodic at 4.10 Hz"), in the residual's unit.
 """
 
@@ -44,13 +50,14 @@ def _binned(r: np.ndarray, x: np.ndarray, n_eff_ratio: float):
     s = np.bincount(idx, weights=r, minlength=edges.size - 1)
     ok = n > 0
     m = np.where(ok, s / np.maximum(n, 1.0), 0.0)
+    size = float(np.percentile(np.abs(m[idx]), 99))
     share = float(np.sum(n * m * m) / max(float(r @ r), 1e-300))
     sd = float(np.std(r))
     se = sd / np.sqrt(np.maximum(n * n_eff_ratio, 1.0))
     z = np.where(ok, np.abs(m) / np.maximum(se, 1e-300), 0.0)
     j = int(np.argmax(z))
     noise = (float(ok.sum()) - 1.0) / max(r.size * n_eff_ratio, 1.0)
-    return {"share": share, "noise": noise, "z": float(z[j]), "lo": float(edges[j]),
+    return {"share": share, "noise": noise, "size": size, "z": float(z[j]), "lo": float(edges[j]),
             "hi": float(edges[j + 1]), "mean": float(m[j])}
 
 
@@ -81,7 +88,8 @@ def _at_rest(name: str, b: dict, span: float) -> bool:
     return False
 
 
-def residual_verdict(r: np.ndarray, p, gain: float = 1.0, unit: str = "V", at_rest_by: str | None = None) -> dict:
+def residual_verdict(r: np.ndarray, p, gain: float = 1.0, unit: str = "V", at_rest_by: str | None = None,
+                     min_size: float = 0.0) -> dict:
     """The structure left in a residual.
 
     Args:
@@ -90,10 +98,13 @@ def residual_verdict(r: np.ndarray, p, gain: float = 1.0, unit: str = "V", at_re
         gain: N per V (1 when unknown); unit: the unit the report uses ('N' or 'V').
         at_rest_by: the name of a selected effect that acts at rest or at small inputs (a
             structure there is counted as its, ``explained_by``), or None.
+        min_size: least size of a structure [V]: its bin means' 99th percentile over the
+            samples, or a line's amplitude (0: any size).
     Returns:
-        {"structured": bool, "findings": [{"against", "share", "z", "where", "mean"}] (the
-        structured ones first), "tested": [every variable with its share, z and, when a
-        selected effect accounts for it, ``explained_by``], "text"}.
+        {"structured": bool, "findings": [{"against", "share", "z", "where", "mean", "size"}]
+        (the structured ones first), "tested": [every variable with its share, z, size (in
+        the report's unit) and, when a selected effect accounts for it, ``explained_by``],
+        "text"}.
     """
     r = np.asarray(r, dtype=float)
     r = r - r.mean()
@@ -105,10 +116,10 @@ def residual_verdict(r: np.ndarray, p, gain: float = 1.0, unit: str = "V", at_re
         if b is None:
             continue
         span = float(np.max(np.abs(x))) if name in ("velocity", "input") else 0.0
-        big = b["share"] >= max(MIN_SHARE, NOISE_FACTOR * b["noise"])
+        big = b["share"] >= max(MIN_SHARE, NOISE_FACTOR * b["noise"]) and b["size"] >= min_size
         explained = at_rest_by if big and at_rest_by and _at_rest(name, b, span) else None
         tested.append({"against": name, "share": b["share"], "noise_share": b["noise"], "z": b["z"],
-                       "where": _where(name, b, span), "mean": gain * b["mean"],
+                       "where": _where(name, b, span), "mean": gain * b["mean"], "size": gain * b["size"],
                        "structured": big and explained is None, "explained_by": explained})
     fs = 1.0 / float(np.median(np.diff(p.t_d)))
     f, psd = signal.welch(r, fs=fs, nperseg=min(1024, r.size), detrend="constant")
@@ -118,9 +129,11 @@ def residual_verdict(r: np.ndarray, p, gain: float = 1.0, unit: str = "V", at_re
         ratio_pk = float(psd[j] / np.median(psd[band]))
         near = band & (np.abs(f - f[j]) <= 2.0 * (f[1] - f[0]))
         share = float(psd[near].sum() / psd[band].sum())
+        amp = math.sqrt(2.0 * share * float(np.mean(r * r)))
         tested.append({"against": "spectrum", "share": share, "noise_share": math.nan, "z": ratio_pk,
-                       "where": f"periodic at {f[j]:.3g} Hz", "mean": math.nan,
-                       "structured": ratio_pk >= MIN_PEAK_RATIO and share >= MIN_LINE_SHARE, "explained_by": None})
+                       "where": f"periodic at {f[j]:.3g} Hz", "mean": math.nan, "size": gain * amp,
+                       "structured": ratio_pk >= MIN_PEAK_RATIO and share >= MIN_LINE_SHARE and amp >= min_size,
+                       "explained_by": None})
     found = sorted((t for t in tested if t["structured"]), key=lambda t: -t["share"])
     text = ("unexplained structured residual remains: " + "; ".join(
         f"{t['where']} ({100 * t['share']:.0f} % of the residual's power"
