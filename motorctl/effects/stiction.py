@@ -27,6 +27,7 @@ import math
 from typing import ClassVar
 
 import numpy as np
+from scipy.ndimage import maximum_filter1d, minimum_filter1d
 
 from motorctl.effects.base import EffectFamily
 from motorctl.effects.stribeck import velocity_grid
@@ -44,6 +45,46 @@ MIN_HELD_COULOMB = 0.5
 def weight(v: np.ndarray, h: float) -> np.ndarray:
     """w(ẋ) = exp(−(ẋ/h)²) (N,): 1 at rest, 0 in motion; v [m/s], h [m/s]."""
     return np.exp(-(v / h) ** 2)
+
+
+#: half-window [samples] of the measured stick state (:func:`held_by_reading`)
+STICK_WINDOW = 5
+OPEN = True
+import os
+PRODUCT = bool(os.environ.get('DZ_PRODUCT'))
+
+
+class StickState(float):
+    """Stiction's parameter h when the stick state is taken from the measurement: its float
+    value is the velocity band h [m/s] the selection found (reported); ``window``: the
+    half-window [samples] of :func:`held_by_reading`."""
+
+    def __new__(cls, h: float, window: int = STICK_WINDOW):
+        obj = super().__new__(cls, float(h))
+        obj.window = int(window)
+        return obj
+
+
+def encoder_count(y: np.ndarray) -> float:
+    """The encoder's count [m]: the smallest step of the raw reading y (N,) [m] (0 when y does
+    not change)."""
+    dy = np.abs(np.diff(y))
+    dy = dy[dy > 1e-12]
+    return float(dy.min()) if dy.size else 0.0
+
+
+def held_by_reading(y: np.ndarray, window: int) -> np.ndarray:
+    """The measured stick state (N,) in {0, 1}: 1 where the raw encoder reading y [m] stays
+    within one count over the 2·window + 1 samples about t (a carriage held by Karnopp
+    stiction does not move; the reading flickers by at most one count with the encoder's
+    noise), 0 elsewhere. All 0 when the reading is not quantized (no count seen)."""
+    q = encoder_count(y)
+    if q <= 0.0:
+        return np.zeros_like(y)
+    size = 2 * int(window) + 1
+    spread = maximum_filter1d(y, size, mode="nearest") - minimum_filter1d(y, size, mode="nearest")
+    flat = (spread <= 1.5 * q).astype(float)
+    return maximum_filter1d(flat, size, mode="nearest") if OPEN else flat
 
 
 class StictionFamily(EffectFamily):
@@ -64,8 +105,11 @@ class StictionFamily(EffectFamily):
 
     # identification
     def columns(self, h, p):
-        """u·w(ẋ), w(ẋ), (N, 2); h: the velocity band [m/s] of w(ẋ) = exp(−(ẋ/h)²)."""
-        w = weight(p.v, h)
+        """u·w(ẋ), w(ẋ), (N, 2); h: the velocity band [m/s] of w(ẋ) = exp(−(ẋ/h)²), or a
+        :class:`StickState`: w the measured stick state (:func:`held_by_reading`)."""
+        w = held_by_reading(p.y, h.window) if isinstance(h, StickState) else weight(p.v, h)
+        if isinstance(h, StickState) and PRODUCT:
+            w = w * weight(p.v, h)
         return np.column_stack([p.u * w, w])
 
     def other_weight(self, term):
