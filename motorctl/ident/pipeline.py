@@ -15,8 +15,7 @@ import math
 import numpy as np
 
 from motorctl.ident import effects as fx
-from motorctl.ident.select import (MAX_EFFECTS, REFIT_FAMILIES, REFIT_WITH, STICK_REFIT, Identifier,
-                                  refused_on_physics)
+from motorctl.ident.select import MAX_EFFECTS, Identifier, refused_on_physics
 from motorctl.model import THETA_NAMES
 from motorctl.recorder.runlog import LogError
 
@@ -80,7 +79,7 @@ def summarise(idf: Identifier) -> dict:
                         "heldout_rms": g * idf.final.heldout_rms}
     # the effects' values (and the compensation's) taken again on the declared current loop's model
     out["refit"] = None if src is idf else {
-        "families": sorted({t.family for t in src.terms if t.family in REFIT_FAMILIES + REFIT_WITH + STICK_REFIT}),
+        "families": src.refit_families,
         "current_loop_modelled": src.loop_filter is not None,
         "stick_state_measured": bool(getattr(src, "stick_measured", False)),
         "theta": [float(v) for v in th_v], "residual_rms": g * src.final.fit.rms,

@@ -1033,6 +1033,7 @@ class Identifier:
                     terms[i] = built(fam.name, found[0].h) if stick and fam.name == "stiction" else found[0]
         ctx.terms, ctx.final = terms, ctx.evaluate(terms)
         ctx.stick_measured = stick
+        ctx.refit_families = sorted({terms[i].family for i in again} | ({"stiction"} if stick else set()))
         return ctx
 
     # ------------------------------------------------------------------ read-outs
