@@ -238,7 +238,7 @@ def test_dead_zone_values_taken_again_with_the_stick_state_from_the_reading(dead
     """With a dead-zone selected beside stiction on a quantized reading (0.5 µm counts) the
     refit re-weighs stiction by the measured stick state and searches the dead-zone again
     there: width and offset of d = 0.15 V, o = 20 mV within 10 %; the selection unchanged.
-    (An unquantized reading has no stick state to measure: the test above.)"""
+    An unquantized reading has no stick state to measure: no refit."""
     idf, st, dz, _ = dead_zone_run
     idf.terms = [st, dz]
     ref = idf.refit()
@@ -249,6 +249,12 @@ def test_dead_zone_values_taken_again_with_the_stick_state_from_the_reading(dead
     assert float(got) == pytest.approx(0.15, rel=0.1)
     assert got.offset == pytest.approx(0.02, rel=0.1)
     assert ref.refit_families == ["amplifier_dead_zone", "stiction"]
+    # a reading that is not quantized shows no stick state: the selection's values stay
+    import copy
+    import dataclasses
+    unquantized = copy.copy(idf)
+    unquantized.p = dataclasses.replace(idf.p, y=idf.p.y + 1e-8 * np.sin(np.arange(len(idf.p.y))))
+    assert unquantized.refit() is None
 
 
 # ------------------------------------------------------------------------------- the refit

@@ -91,10 +91,9 @@ def held_by_reading(y: np.ndarray, window: int) -> np.ndarray:
     """The measured stick state (N,) in {0, 1}: 1 where the raw encoder reading y [m] stays
     within one count (a carriage held by Karnopp stiction does not move; the reading flickers
     by at most one count with the encoder's noise) over a stretch of 2·window + 1 samples that
-    contains t (flat stretches, then
-    widened back by the window: a morphological opening, so the motion's edges are not moved
-    by the window), 0 elsewhere. All 0 when the reading is not quantized
-    (:func:`encoder_count` 0)."""
+    contains t (flat stretches, then widened back by the window: a morphological opening, so
+    the motion's edges are not moved by the window), 0 elsewhere. All 0 when the reading is not
+    quantized (:func:`encoder_count` 0)."""
     q = encoder_count(y)
     if q <= 0.0:
         return np.zeros_like(y)
@@ -102,6 +101,22 @@ def held_by_reading(y: np.ndarray, window: int) -> np.ndarray:
     spread = maximum_filter1d(y, size, mode="nearest") - minimum_filter1d(y, size, mode="nearest")
     flat = (spread <= 1.5 * q).astype(float)
     return maximum_filter1d(flat, size, mode="nearest")
+
+
+#: the measured stick state must hold at least this share of the samples the velocity weight
+#: holds (w(ẋ) > 0.5) to be used (:func:`reading_shows_stick`)
+MIN_STICK_AGREEMENT = 0.5
+
+
+def reading_shows_stick(p, h: float) -> bool:
+    """The encoder's reading shows the stick state (:func:`held_by_reading`, half-window
+    :data:`STICK_WINDOW`) on at least :data:`MIN_STICK_AGREEMENT` of the samples the velocity
+    weight of band h [m/s] holds: a quantized reading whose noise stays within a count at rest.
+    p: a prepared record (raw reading ``p.y`` [m], filtered velocity ``p.v`` [m/s], (N,))."""
+    at_rest = weight(p.v, h) > 0.5
+    if not at_rest.any():
+        return False
+    return float(np.mean(held_by_reading(p.y, STICK_WINDOW)[at_rest])) >= MIN_STICK_AGREEMENT
 
 
 class StictionFamily(EffectFamily):

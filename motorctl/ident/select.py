@@ -48,7 +48,7 @@ from scipy.signal import lfilter
 
 from motorctl.effects import FAMILIES, family as effect_family
 from motorctl.effects.base import EffectFamily
-from motorctl.effects.stiction import StickState, encoder_count
+from motorctl.effects.stiction import StickState, reading_shows_stick
 from motorctl.effects.input_delay import (HOLD_TOLERANCE, FoundDelay, amplifier_loop, current_loop_filter,
                                           delayed)
 from motorctl.ident.data import Record
@@ -966,7 +966,9 @@ class Identifier:
         (``current_loop``) when a family of :data:`REFIT_FAMILIES` (Stribeck) was selected and
         the loop is not modelled already, and the stick state measured (stiction's
         :class:`~motorctl.effects.stiction.StickState`) when a family of :data:`STICK_REFIT`
-        (the dead-zone) was selected beside stiction on a quantized reading; else None.
+        (the dead-zone) was selected beside stiction on a reading that shows it
+        (:func:`~motorctl.effects.stiction.reading_shows_stick`: quantized, within a count at
+        rest); else None.
 
         Without a declared loop (a CSV/MAT record, the rigid plant) the loop's model differs by
         Stribeck's S_f on the nominal Coulomb column's velocity and stiction's band searched
@@ -1003,7 +1005,8 @@ class Identifier:
         """
         fams = {t.family for t in self.terms}
         loop = not self.current_loop and bool(fams & set(REFIT_FAMILIES))
-        stick = bool(fams & set(STICK_REFIT)) and "stiction" in fams and encoder_count(self.rec.y) > 0.0
+        held = next((t for t in self.terms if t.family == "stiction"), None)
+        stick = bool(fams & set(STICK_REFIT)) and held is not None and reading_shows_stick(self.p, float(held.h))
         if not (loop or stick):
             return None
         if loop:
