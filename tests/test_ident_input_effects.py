@@ -185,17 +185,26 @@ def test_force_constant_drift_is_exact_on_the_fits_own_thrust_shape():
 
 
 # ------------------------------------------------------------------------------- dead-zone
-def test_dead_zone_width_is_the_force_beyond_its_band_not_the_static_friction():
+@pytest.fixture(scope="module")
+def dead_zone_run():
+    """d = 0.15 V, o = 20 mV behind a 25 N stiction, the reading in 0.5 µm counts: the
+    identifier, stiction's term, the dead-zone's term found beside it and its note."""
+    rec = _simulate(dz=(0.15, 0.02), stiction_n=25.0, noise_v=0.02)
+    rec.y = np.round(rec.y / 0.5e-6) * 0.5e-6
+    idf = Identifier(rec, n_theta=6, zoh_delay=0.5)
+    st, _ = FAMILIES["stiction"].search(idf, [], None)
+    term, note = FAMILIES["amplifier_dead_zone"].search(idf, [st], None)
+    return idf, st, term, note
+
+
+def test_dead_zone_width_is_the_force_beyond_its_band_not_the_static_friction(dead_zone_run):
     """d = 0.15 V, o = 20 mV behind a 25 N stiction that holds the carriage through the dwells
     (its input band there is about ±0.3 V): the width comes from the motion, where the
     dead-zone takes A1·d against the sign of the input; the offset from the exact lost input
     f_u(u) − f_u(dz(u + o)) (where the band lies, and the force curve bending about u + o),
     which θ4 alone (F_0) cannot take."""
-    rec = _simulate(dz=(0.15, 0.02), stiction_n=25.0, noise_v=0.02)
-    idf = Identifier(rec, n_theta=6, zoh_delay=0.5)
-    st, _ = FAMILIES["stiction"].search(idf, [], None)
+    idf, st, term, note = dead_zone_run
     fam = FAMILIES["amplifier_dead_zone"]
-    term, note = fam.search(idf, [st], None)
     assert note is None
     ev = idf.evaluate([st, term])
     par = fam.parameters(term.h, ev.fit.coef[-1:], A1, FS)
@@ -203,6 +212,49 @@ def test_dead_zone_width_is_the_force_beyond_its_band_not_the_static_friction():
     assert par["lost_share"] == pytest.approx(1.0, abs=0.02)
     assert par["offset_V"] == pytest.approx(0.02, rel=0.1)
     assert not fam.plausible(idf, term, ev.fit.coef[-1:], ev.fit.coef[:6], [st])
+
+
+def test_stick_state_is_the_reading_standing_still_not_moved_by_the_window():
+    """held_by_reading: 1 where the quantized reading stays within one count (the encoder's
+    noise flickers it by one), 0 in motion, the motion's edges the same for any window; no
+    stick state from a reading that is not quantized."""
+    from motorctl.effects.stiction import encoder_count, held_by_reading
+    q = 0.5e-6
+    t = np.arange(4000) / FS
+    x = np.where(t < 0.2, 0.0, np.where(t < 0.4, 0.05 * (t - 0.2), 0.01))    # 50 mm/s move
+    noisy = x + 0.1e-6 * np.random.default_rng(1).standard_normal(len(t)) + 0.2e-6
+    y = np.round(noisy / q) * q
+    assert encoder_count(y) == pytest.approx(q)
+    assert encoder_count(noisy) == 0.0 and not held_by_reading(noisy, 10).any()
+    moving = (t >= 0.2) & (t < 0.4)
+    for window in (5, 10, 20):
+        s = held_by_reading(y, window)
+        assert s[~moving][5:-5].all() and s[~moving].mean() > 0.99
+        # the reading lags a start by less than a count (10 µs at 50 mm/s): a sample or so
+        assert np.count_nonzero(s[moving]) <= 2
+
+
+def test_dead_zone_values_taken_again_with_the_stick_state_from_the_reading(dead_zone_run):
+    """With a dead-zone selected beside stiction on a quantized reading (0.5 µm counts) the
+    refit re-weighs stiction by the measured stick state and searches the dead-zone again
+    there: width and offset of d = 0.15 V, o = 20 mV within 10 %; the selection unchanged.
+    An unquantized reading has no stick state to measure: no refit."""
+    idf, st, dz, _ = dead_zone_run
+    idf.terms = [st, dz]
+    ref = idf.refit()
+    assert ref is not None and ref.stick_measured and not ref.current_loop
+    assert [t.family for t in ref.terms] == ["stiction", "amplifier_dead_zone"]
+    assert idf.terms[1].h is dz.h                            # this identifier unchanged
+    got = ref.terms[1].h
+    assert float(got) == pytest.approx(0.15, rel=0.1)
+    assert got.offset == pytest.approx(0.02, rel=0.1)
+    assert ref.refit_families == ["amplifier_dead_zone", "stiction"]
+    # a reading that is not quantized shows no stick state: the selection's values stay
+    import copy
+    import dataclasses
+    unquantized = copy.copy(idf)
+    unquantized.p = dataclasses.replace(idf.p, y=idf.p.y + 1e-8 * np.sin(np.arange(len(idf.p.y))))
+    assert unquantized.refit() is None
 
 
 # ------------------------------------------------------------------------------- the refit

@@ -17,6 +17,9 @@ against. Plausible when β1 is near 1 and the largest force held at rest (99th p
 While stiction is in the model the other effects' columns are weighed by 1 − w(ẋ): the
 carriage held at rest feels no other force either (a periodic disturbance below the breakaway
 force leaves no trace in the input at rest), so they are fitted on the samples in motion.
+For the values only (a dead-zone selected beside it: :meth:`motorctl.ident.select.Identifier.
+refit`), w(ẋ) is multiplied by the stick state measured from the encoder's reading
+(:class:`StickState`, :func:`held_by_reading`).
 Not compensable here: stiction is fought with the robust feedback (or a dither / breakaway kick
 that needs the law's own output), not with an additive term in (x_d, ẋ_d, t).
 """
@@ -27,6 +30,7 @@ import math
 from typing import ClassVar
 
 import numpy as np
+from scipy.ndimage import maximum_filter1d, minimum_filter1d
 
 from motorctl.effects.base import EffectFamily
 from motorctl.effects.stribeck import velocity_grid
@@ -44,6 +48,75 @@ MIN_HELD_COULOMB = 0.5
 def weight(v: np.ndarray, h: float) -> np.ndarray:
     """w(ẋ) = exp(−(ẋ/h)²) (N,): 1 at rest, 0 in motion; v [m/s], h [m/s]."""
     return np.exp(-(v / h) ** 2)
+
+
+#: half-window [samples] of the measured stick state (:func:`held_by_reading`)
+STICK_WINDOW = 10
+
+
+class StickState(float):
+    """Stiction's parameter h with the stick state taken from the measurement: its float value
+    is the velocity band h [m/s] the selection found (reported); ``window``: the half-window
+    [samples] of :func:`held_by_reading`. The columns' weight is then w(ẋ)·s(t), s the
+    measured stick state: the Karnopp model holds the carriage exactly still (x constant), so
+    a sample is held only where the encoder's reading stands still too; w(ẋ) on the filtered
+    velocity alone is a smooth stand-in for that switch which also weighs the samples just
+    before a stop and after a breakaway (moving, less than a count yet), and a dead-zone's
+    offset, seen mostly on the samples crossing its band at those instants, follows the band
+    h of w (default plant, ×1: 0.10 / 0.25 mm/s give −0.5 / 24 mV for 20 mV). The product
+    keeps w's exclusion of those instants (the reading lags the motion by up to a count) and
+    takes the stick itself from the reading; the offset then no longer depends on the window
+    (19.8, 19.7 mV for 20 at 10, 20 samples)."""
+
+    def __new__(cls, h: float, window: int = STICK_WINDOW):
+        obj = super().__new__(cls, float(h))
+        obj.window = int(window)
+        return obj
+
+
+def encoder_count(y: np.ndarray) -> float:
+    """The encoder's count [m] of the raw reading y (N,) [m]: its smallest step, when every
+    reading lies on that grid (within 1 % of a count); 0 when y is not quantized (a filtered
+    or interpolated record) or does not change."""
+    dy = np.abs(np.diff(y))
+    dy = dy[dy > 1e-12]
+    if not dy.size:
+        return 0.0
+    q = float(dy.min())
+    k = (y - y[0]) / q
+    return q if float(np.max(np.abs(k - np.round(k)))) < 0.01 else 0.0
+
+
+def held_by_reading(y: np.ndarray, window: int) -> np.ndarray:
+    """The measured stick state (N,) in {0, 1}: 1 where the raw encoder reading y [m] stays
+    within one count (a carriage held by Karnopp stiction does not move; the reading flickers
+    by at most one count with the encoder's noise) over a stretch of 2·window + 1 samples that
+    contains t (flat stretches, then widened back by the window: a morphological opening, so
+    the motion's edges are not moved by the window), 0 elsewhere. All 0 when the reading is not
+    quantized (:func:`encoder_count` 0)."""
+    q = encoder_count(y)
+    if q <= 0.0:
+        return np.zeros_like(y)
+    size = 2 * int(window) + 1
+    spread = maximum_filter1d(y, size, mode="nearest") - minimum_filter1d(y, size, mode="nearest")
+    flat = (spread <= 1.5 * q).astype(float)
+    return maximum_filter1d(flat, size, mode="nearest")
+
+
+#: the measured stick state must hold at least this share of the samples the velocity weight
+#: holds (w(ẋ) > 0.5) to be used (:func:`reading_shows_stick`)
+MIN_STICK_AGREEMENT = 0.5
+
+
+def reading_shows_stick(p, h: float) -> bool:
+    """The encoder's reading shows the stick state (:func:`held_by_reading`, half-window
+    :data:`STICK_WINDOW`) on at least :data:`MIN_STICK_AGREEMENT` of the samples the velocity
+    weight of band h [m/s] holds: a quantized reading whose noise stays within a count at rest.
+    p: a prepared record (raw reading ``p.y`` [m], filtered velocity ``p.v`` [m/s], (N,))."""
+    at_rest = weight(p.v, h) > 0.5
+    if not at_rest.any():
+        return False
+    return float(np.mean(held_by_reading(p.y, STICK_WINDOW)[at_rest])) >= MIN_STICK_AGREEMENT
 
 
 class StictionFamily(EffectFamily):
@@ -64,8 +137,11 @@ class StictionFamily(EffectFamily):
 
     # identification
     def columns(self, h, p):
-        """u·w(ẋ), w(ẋ), (N, 2); h: the velocity band [m/s] of w(ẋ) = exp(−(ẋ/h)²)."""
+        """u·w(ẋ), w(ẋ), (N, 2); h: the velocity band [m/s] of w(ẋ) = exp(−(ẋ/h)²), or a
+        :class:`StickState`: w the measured stick state (:func:`held_by_reading`)."""
         w = weight(p.v, h)
+        if isinstance(h, StickState):
+            w = w * held_by_reading(p.y, h.window)
         return np.column_stack([p.u * w, w])
 
     def other_weight(self, term):

@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 from motorctl.ident import effects as fx
-from motorctl.ident.select import MAX_EFFECTS, REFIT_FAMILIES, REFIT_WITH, Identifier, refused_on_physics
+from motorctl.ident.select import MAX_EFFECTS, REFIT_FAMILIES, Identifier, refused_on_physics
 from motorctl.model import THETA_NAMES
 from motorctl.recorder.runlog import LogError
 
@@ -79,8 +79,9 @@ def summarise(idf: Identifier) -> dict:
                         "heldout_rms": g * idf.final.heldout_rms}
     # the effects' values (and the compensation's) taken again on the declared current loop's model
     out["refit"] = None if src is idf else {
-        "families": sorted({t.family for t in src.terms if t.family in REFIT_FAMILIES + REFIT_WITH}),
+        "families": src.refit_families,
         "current_loop_modelled": src.loop_filter is not None,
+        "stick_state_measured": bool(getattr(src, "stick_measured", False)),
         "theta": [float(v) for v in th_v], "residual_rms": g * src.final.fit.rms,
         "heldout_rms": g * src.final.heldout_rms}
     from motorctl.ident.simfit import simulation_fit
@@ -379,9 +380,13 @@ def text_report(s: dict) -> str:
     lines.append(f"augmented model: residual RMS {a['residual_rms']:.4g} {u}, held-out RMS {a['heldout_rms']:.4g} {u}")
     if s.get("refit"):
         r = s["refit"]
-        how = ("the declared current loop modelled as its lag, not a delay"
-               if r["current_loop_modelled"] else "no current loop declared")
-        lines.append(f"  the effects' values and compensation fitted again on the low-speed model ({how}; "
+        how = []
+        if any(f in REFIT_FAMILIES for f in r["families"]):
+            how.append("the declared current loop modelled as its lag, not a delay"
+                       if r["current_loop_modelled"] else "no current loop declared")
+        if r.get("stick_state_measured"):
+            how.append("stiction's stick state measured from the encoder's reading")
+        lines.append(f"  the effects' values and compensation fitted again on the low-speed model ({'; '.join(how)}; "
                      f"searched again: {', '.join(r['families'])}): held-out RMS {r['heldout_rms']:.4g} {u}")
     if s.get("residual"):
         lines.append(("WARNING: " if s["residual"]["structured"] else "residual: ") + s["residual"]["text"])

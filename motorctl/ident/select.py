@@ -35,6 +35,7 @@ columns, search over its parameter and its own plausibility checks are in its mo
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 import threading
@@ -47,6 +48,7 @@ from scipy.signal import lfilter
 
 from motorctl.effects import FAMILIES, family as effect_family
 from motorctl.effects.base import EffectFamily
+from motorctl.effects.stiction import StickState, reading_shows_stick
 from motorctl.effects.input_delay import (HOLD_TOLERANCE, FoundDelay, amplifier_loop, current_loop_filter,
                                           delayed)
 from motorctl.ident.data import Record
@@ -100,6 +102,11 @@ REFIT_WITH = ("stiction", "input_delay")
 #: Gauss-Seidel sweeps of the refit's searches (the second moves v_s by under 2 %, the third
 #: by nothing on the default plant's Stribeck logs)
 REFIT_SWEEPS = 2
+#: families whose selection starts the refit with the stick state measured (stiction's
+#: :class:`~motorctl.effects.stiction.StickState`: the carriage held where the encoder's
+#: reading stands still): a dead-zone's offset is seen on the samples crossing its band at
+#: each stop and breakaway, where the selection's smooth weight w(ẋ) decides it
+STICK_REFIT = ("amplifier_dead_zone",)
 
 
 def is_hold(delay_samples: float) -> bool:
@@ -978,15 +985,19 @@ class Identifier:
         return best
 
     def refit(self) -> "Identifier | None":
-        """The selected effects' values taken again on the model of the current loop the run
-        log's config declares (a new identifier with ``current_loop``; this one unchanged).
+        """The selected effects' values taken again on a more exact model (a new identifier, or
+        a copy of this one; this one unchanged): the current loop the run log's config declares
+        (``current_loop``) when a family of :data:`REFIT_FAMILIES` (Stribeck) was selected and
+        the loop is not modelled already, and the stick state measured (stiction's
+        :class:`~motorctl.effects.stiction.StickState`) when a family of :data:`STICK_REFIT`
+        (the dead-zone) was selected beside stiction on a reading that shows it
+        (:func:`~motorctl.effects.stiction.reading_shows_stick`: quantized, within a count at
+        rest); else None.
 
-        Run only when a family of :data:`REFIT_FAMILIES` (Stribeck) was selected and the
-        identifier does not model the loop already; else None. Without a declared loop (a
-        CSV/MAT record, the rigid plant) the refit's model differs by Stribeck's S_f on the
-        nominal Coulomb column's velocity and stiction's band searched beside the hump
-        (``current_loop``'s other two changes): rigid plant, 20 N / 0.05 m/s, 21.5 N /
-        0.0447 m/s → 20.0 N / 0.0493 m/s.
+        Without a declared loop (a CSV/MAT record, the rigid plant) the loop's model differs by
+        Stribeck's S_f on the nominal Coulomb column's velocity and stiction's band searched
+        beside the hump (``current_loop``'s other two changes): rigid plant, 20 N / 0.05 m/s,
+        21.5 N / 0.0447 m/s → 20.0 N / 0.0493 m/s.
         The selection and the residual verdict stay this identifier's: they were calibrated
         on the model that fits the loop as an input delay (with the loop modelled the verdict
         warns on clean logs and misses a 50 µm backlash, a dead-zone is named stiction). The
@@ -995,38 +1006,61 @@ class Identifier:
         plant, F_s 20 N, v_s 0.05 m/s: 10.9 N, 0.070 m/s; on the loop's model 19.6 N,
         0.047 m/s; docs/identification.md, "Stribeck: the velocity of its column").
 
+        The stick state: Karnopp stiction holds the carriage exactly still, so a sample is held
+        only where the encoder's reading stands still too; the selection's weight w(ẋ) on the
+        filtered velocity is a smooth stand-in for that switch, and a dead-zone's offset, seen
+        on the samples crossing its band at each stop and breakaway, follows w's band (default
+        plant, 20 mV: 23.9 mV at ×1; with the reading's stick state 18.3-19.8 mV, seeds 1-2,
+        ×0.5 and ×1, and a lower SSE). Stiction's band is kept (its weight multiplies the
+        measured state), the dead-zone searched again with it.
+
         The same effects (families and their other searched parameters) are built on the
-        loop's model; the searched parameters of :data:`REFIT_FAMILIES` and :data:`REFIT_WITH`
+        refit's model; the searched parameters of :data:`REFIT_FAMILIES` and :data:`REFIT_WITH`
         (stiction's band, which beside an unmodelled hump widens to take part of it; the input
-        delay beyond the loop) are searched again there, each with the others in the model
-        (:data:`REFIT_SWEEPS` sweeps), and everything is fitted jointly (IDIM-LS, as
-        :meth:`evaluate`). A dead-zone's values are not taken again: on the loop's model its
-        offset came out 33-45 % high (20 mV; 4-19 % on this model).
+        delay beyond the loop) on the loop's model, and :data:`STICK_REFIT`'s with the stick
+        state measured, are searched again there, each with the others in the model
+        (:data:`REFIT_SWEEPS` sweeps when more than one), and everything is fitted jointly
+        (IDIM-LS, as :meth:`evaluate`). A dead-zone's values are not taken on the loop's model
+        alone: there its offset came out 33-45 % high (20 mV), stiction's band wider.
 
         Returns:
             The refit identifier, its ``terms`` (list of :class:`Term`) and ``final``
             (:class:`Evaluated`) set, or None.
         """
-        if self.current_loop or not any(t.family in REFIT_FAMILIES for t in self.terms):
+        fams = {t.family for t in self.terms}
+        loop = not self.current_loop and bool(fams & set(REFIT_FAMILIES))
+        held = next((t for t in self.terms if t.family == "stiction"), None)
+        stick = bool(fams & set(STICK_REFIT)) and held is not None and reading_shows_stick(self.p, float(held.h))
+        if not (loop or stick):
             return None
-        ctx = Identifier(self.rec, n_theta=self.n_theta, friction=self.friction, zoh_delay=self.zoh,
-                         families=self.families, current_loop=True)
-        ctx.p.fu = self.p.fu
-        terms = []
-        for t in self.terms:
-            h = t.h
-            if effect_family(t.family).shifts_input:     # the lag beyond the modelled loop
+        if loop:
+            ctx = Identifier(self.rec, n_theta=self.n_theta, friction=self.friction, zoh_delay=self.zoh,
+                             families=self.families, current_loop=True)
+            ctx.p.fu = self.p.fu
+        else:
+            ctx = copy.copy(self)         # the same record and model: caches shared
+            ctx._local = threading.local()
+
+        def built(family, h):
+            if loop and effect_family(family).shifts_input:     # the lag beyond the modelled loop
                 h = FoundDelay(max(float(h) - ctx.modelled_lag, 0.0), ctx.modelled_lag, True)
-            terms.append(ctx.term(t.family, h))
-        again = [i for i, t in enumerate(terms) if t.family in REFIT_FAMILIES + REFIT_WITH]
-        for _ in range(REFIT_SWEEPS):
+            if stick and family == "stiction":
+                h = StickState(float(h))
+            return ctx.term(family, h)
+
+        terms = [built(t.family, t.h) for t in self.terms]
+        searched = (REFIT_FAMILIES + REFIT_WITH if loop else ()) + (STICK_REFIT if stick else ())
+        again = [i for i, t in enumerate(terms) if t.family in searched]
+        for _ in range(REFIT_SWEEPS if len(again) > 1 else 1):
             for i in again:
                 fam = effect_family(terms[i].family)
                 found = fam.search(ctx, terms[:i] + terms[i + 1:], None)
                 # a value at its grid's edge is not taken; a delay of 0 beyond the loop is
                 if found is not None and (not found[1] or fam.shifts_input):
-                    terms[i] = found[0]
+                    terms[i] = built(fam.name, found[0].h) if stick and fam.name == "stiction" else found[0]
         ctx.terms, ctx.final = terms, ctx.evaluate(terms)
+        ctx.stick_measured = stick
+        ctx.refit_families = sorted({terms[i].family for i in again} | ({"stiction"} if stick else set()))
         return ctx
 
     # ------------------------------------------------------------------ read-outs
