@@ -30,7 +30,6 @@ import math
 from typing import ClassVar
 
 import numpy as np
-from scipy.ndimage import maximum_filter1d, minimum_filter1d
 
 from motorctl.effects.base import EffectFamily
 from motorctl.effects.stribeck import velocity_grid
@@ -94,6 +93,10 @@ def held_by_reading(y: np.ndarray, window: int) -> np.ndarray:
     contains t (flat stretches, then widened back by the window: a morphological opening, so
     the motion's edges are not moved by the window), 0 elsewhere. All 0 when the reading is not
     quantized (:func:`encoder_count` 0)."""
+    # imported here: the effect families are imported with every config (the daemon's too),
+    # scipy.ndimage costs 0.16 s of start-up and only identification needs it
+    from scipy.ndimage import maximum_filter1d, minimum_filter1d
+
     q = encoder_count(y)
     if q <= 0.0:
         return np.zeros_like(y)
