@@ -376,6 +376,18 @@ class EffectFamily:
     #: the simpler one when that leaves a held-out residual less than the identifier's
     #: held-out gain above (None: no such family)
     simpler: ClassVar[str | None] = None
+    #: selected, the effects' values are fitted again on the declared current loop's model
+    #: (:meth:`motorctl.ident.select.Identifier.refit`): this family's values depend on the
+    #: few ms after each start, where the loop's first-order lag fitted as a pure delay leaves
+    #: a difference it takes up (Stribeck's hump); the selection and the verdict stay as found
+    values_on_current_loop: ClassVar[bool] = False
+    #: searched again in that refit beside such a family: its value moves with what the loop's
+    #: lag leaves at each start (stiction's band, the input delay beyond the loop)
+    searched_on_current_loop: ClassVar[bool] = False
+    #: selected beside a family that holds the carriage and whose hold the encoder's reading
+    #: shows (:meth:`stick_state`), this family's values are taken again with the stick state
+    #: measured: they are seen on the samples at each stop and breakaway (a dead-zone's offset)
+    values_on_stick_state: ClassVar[bool] = False
 
     def __repr__(self) -> str:
         return f"<effect family {self.name}>"
@@ -463,6 +475,15 @@ class EffectFamily:
     def input_shift(self, h) -> float:
         """Extra delay of the input [samples] this term applies (0 for additive columns)."""
         return 0.0
+
+    def stick_state(self, p, h, check: bool = True):
+        """For a family that holds the carriage at rest: its searched parameter h with the stick
+        state measured from the record's raw reading (stiction's
+        :class:`~motorctl.effects.stiction.StickState`), for
+        :attr:`values_on_stick_state`'s refit; ``check``: only when the reading of the prepared
+        record ``p`` shows the hold (a quantized reading, still within a count at rest). None
+        (default): the family holds nothing, or the reading does not show it."""
+        return None
 
     def other_weight(self, term) -> np.ndarray | None:
         """A weight (M,) in [0, 1] on the other terms' decimated columns while this term is in

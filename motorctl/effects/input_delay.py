@@ -228,6 +228,7 @@ class InputDelayFamily(EffectFamily):
     example: ClassVar[dict] = {"input_delay_s": 0.0006}
     size_options: ClassVar[tuple[str, ...]] = ("input_delay_s",)
     shifts_input = True
+    searched_on_current_loop = True
     hook_options = DelayComp
 
     # simulator

@@ -130,6 +130,7 @@ class StictionFamily(EffectFamily):
     look_alike: ClassVar[tuple[str, ...]] = ("amplifier_dead_zone",)
     acts_at_rest = True
     before_current_loop = True
+    searched_on_current_loop = True
 
     # simulator: the plant core's Karnopp stiction (axis-level option, no hook)
     def sim_config(self, axis_options):
@@ -146,6 +147,13 @@ class StictionFamily(EffectFamily):
         if isinstance(h, StickState):
             w = w * held_by_reading(p.y, h.window)
         return np.column_stack([p.u * w, w])
+
+    def stick_state(self, p, h, check: bool = True):
+        """h as a :class:`StickState` (the stick state measured from the reading), when
+        ``check`` is false or the reading of ``p`` shows it (:func:`reading_shows_stick`)."""
+        if check and not reading_shows_stick(p, float(h)):
+            return None
+        return StickState(float(h))
 
     def other_weight(self, term):
         """1 − w(ẋ) (decimated): while the carriage is held, the other effects' forces are held

@@ -82,6 +82,7 @@ class StribeckFamily(EffectFamily):
     comp_options = StribeckComp
     comp_needs_sf = True
     compensation_rank = 4
+    values_on_current_loop = True
 
     # simulator
     def plant_term(self, o: Stribeck, period_s):

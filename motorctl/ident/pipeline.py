@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 from motorctl.ident import effects as fx
-from motorctl.ident.select import MAX_EFFECTS, REFIT_FAMILIES, Identifier, refused_on_physics
+from motorctl.ident.select import MAX_EFFECTS, Identifier, refused_on_physics
 from motorctl.model import THETA_NAMES
 from motorctl.recorder.runlog import LogError
 
@@ -80,6 +80,7 @@ def summarise(idf: Identifier) -> dict:
     # the effects' values (and the compensation's) taken again on the declared current loop's model
     out["refit"] = None if src is idf else {
         "families": src.refit_families,
+        "on_current_loop": bool(getattr(src, "loop_refit", False)),
         "current_loop_modelled": src.loop_filter is not None,
         "stick_state_measured": bool(getattr(src, "stick_measured", False)),
         "theta": [float(v) for v in th_v], "residual_rms": g * src.final.fit.rms,
@@ -381,7 +382,7 @@ def text_report(s: dict) -> str:
     if s.get("refit"):
         r = s["refit"]
         how = []
-        if any(f in REFIT_FAMILIES for f in r["families"]):
+        if r.get("on_current_loop"):
             how.append("the declared current loop modelled as its lag, not a delay"
                        if r["current_loop_modelled"] else "no current loop declared")
         if r.get("stick_state_measured"):

@@ -48,7 +48,6 @@ from scipy.signal import lfilter
 
 from motorctl.effects import FAMILIES, family as effect_family
 from motorctl.effects.base import EffectFamily
-from motorctl.effects.stiction import StickState, reading_shows_stick
 from motorctl.effects.input_delay import (HOLD_TOLERANCE, FoundDelay, amplifier_loop, current_loop_filter,
                                           delayed)
 from motorctl.ident.data import Record
@@ -92,21 +91,9 @@ PARTIAL_CACHE = 4
 FRICTION_SHAPES = ("sf", "sign")
 #: delays searched for the zero-order hold of a CSV/MAT record [samples]
 HOLD_GRID = np.arange(0.0, 1.5 + 1e-9, 0.05)
-#: families whose selection starts the refit on the declared current loop's model
-#: (:meth:`Identifier.refit`): their values depend on the few ms after each start, where a
-#: first-order lag fitted as a pure delay leaves a difference they take up
-REFIT_FAMILIES = ("stribeck",)
-#: families searched again in the refit beside them: stiction's band (searched before the hump
-#: was modelled it takes up part of it) and the input delay (the lag beyond the modelled loop)
-REFIT_WITH = ("stiction", "input_delay")
-#: Gauss-Seidel sweeps of the refit's searches (the second moves v_s by under 2 %, the third
-#: by nothing on the default plant's Stribeck logs)
+#: Gauss-Seidel sweeps of the refit's searches (:meth:`Identifier.refit`; the second moves v_s
+#: by under 2 %, the third by nothing on the default plant's Stribeck logs)
 REFIT_SWEEPS = 2
-#: families whose selection starts the refit with the stick state measured (stiction's
-#: :class:`~motorctl.effects.stiction.StickState`: the carriage held where the encoder's
-#: reading stands still): a dead-zone's offset is seen on the samples crossing its band at
-#: each stop and breakaway, where the selection's smooth weight w(ẋ) decides it
-STICK_REFIT = ("amplifier_dead_zone",)
 
 
 def is_hold(delay_samples: float) -> bool:
@@ -987,11 +974,13 @@ class Identifier:
     def refit(self) -> "Identifier | None":
         """The selected effects' values taken again on a more exact model (a new identifier, or
         a copy of this one; this one unchanged): the current loop the run log's config declares
-        (``current_loop``) when a family of :data:`REFIT_FAMILIES` (Stribeck) was selected and
-        the loop is not modelled already, and the stick state measured (stiction's
-        :class:`~motorctl.effects.stiction.StickState`) when a family of :data:`STICK_REFIT`
-        (the dead-zone) was selected beside stiction on a reading that shows it
-        (:func:`~motorctl.effects.stiction.reading_shows_stick`: quantized, within a count at
+        (``current_loop``) when a family with
+        :attr:`~motorctl.effects.base.EffectFamily.values_on_current_loop` (Stribeck) was
+        selected and the loop is not modelled already, and the stick state measured (the
+        holding family's :meth:`~motorctl.effects.base.EffectFamily.stick_state`: stiction's
+        :class:`~motorctl.effects.stiction.StickState`) when a family with
+        :attr:`~motorctl.effects.base.EffectFamily.values_on_stick_state` (the dead-zone) was
+        selected beside stiction on a reading that shows it (quantized, within a count at
         rest); else None.
 
         Without a declared loop (a CSV/MAT record, the rigid plant) the loop's model differs by
@@ -1015,10 +1004,11 @@ class Identifier:
         measured state), the dead-zone searched again with it.
 
         The same effects (families and their other searched parameters) are built on the
-        refit's model; the searched parameters of :data:`REFIT_FAMILIES` and :data:`REFIT_WITH`
-        (stiction's band, which beside an unmodelled hump widens to take part of it; the input
-        delay beyond the loop) on the loop's model, and :data:`STICK_REFIT`'s with the stick
-        state measured, are searched again there, each with the others in the model
+        refit's model; the searched parameters of the families with ``values_on_current_loop``
+        and ``searched_on_current_loop`` (stiction's band, which beside an unmodelled hump
+        widens to take part of it; the input delay beyond the loop) on the loop's model, and
+        those with ``values_on_stick_state`` with the stick state measured, are searched again
+        there, each with the others in the model
         (:data:`REFIT_SWEEPS` sweeps when more than one), and everything is fitted jointly
         (IDIM-LS, as :meth:`evaluate`). A dead-zone's values are not taken on the loop's model
         alone: there its offset came out 33-45 % high (20 mV), stiction's band wider.
@@ -1027,10 +1017,13 @@ class Identifier:
             The refit identifier, its ``terms`` (list of :class:`Term`) and ``final``
             (:class:`Evaluated`) set, or None.
         """
-        fams = {t.family for t in self.terms}
-        loop = not self.current_loop and bool(fams & set(REFIT_FAMILIES))
-        held = next((t for t in self.terms if t.family == "stiction"), None)
-        stick = bool(fams & set(STICK_REFIT)) and held is not None and reading_shows_stick(self.p, float(held.h))
+        fams = [effect_family(t.family) for t in self.terms]
+        loop = not self.current_loop and any(f.values_on_current_loop for f in fams)
+        held = None             # (index, h with the measured stick state) of the term that holds
+        if any(f.values_on_stick_state for f in fams):
+            held = next(((i, m) for i, (f, t) in enumerate(zip(fams, self.terms))
+                         if (m := f.stick_state(self.p, t.h)) is not None), None)
+        stick = held is not None
         if not (loop or stick):
             return None
         if loop:
@@ -1041,26 +1034,29 @@ class Identifier:
             ctx = copy.copy(self)         # the same record and model: caches shared
             ctx._local = threading.local()
 
-        def built(family, h):
-            if loop and effect_family(family).shifts_input:     # the lag beyond the modelled loop
+        def built(i, h):
+            fam = fams[i]
+            if loop and fam.shifts_input:     # the lag beyond the modelled loop
                 h = FoundDelay(max(float(h) - ctx.modelled_lag, 0.0), ctx.modelled_lag, True)
-            if stick and family == "stiction":
-                h = StickState(float(h))
-            return ctx.term(family, h)
+            if stick and i == held[0]:
+                h = fam.stick_state(ctx.p, h, check=False)
+            return ctx.term(fam.name, h)
 
-        terms = [built(t.family, t.h) for t in self.terms]
-        searched = (REFIT_FAMILIES + REFIT_WITH if loop else ()) + (STICK_REFIT if stick else ())
-        again = [i for i, t in enumerate(terms) if t.family in searched]
+        terms = [built(i, t.h) for i, t in enumerate(self.terms)]
+        again = [i for i, f in enumerate(fams)
+                 if (loop and (f.values_on_current_loop or f.searched_on_current_loop))
+                 or (stick and f.values_on_stick_state)]
         for _ in range(REFIT_SWEEPS if len(again) > 1 else 1):
             for i in again:
-                fam = effect_family(terms[i].family)
+                fam = fams[i]
                 found = fam.search(ctx, terms[:i] + terms[i + 1:], None)
                 # a value at its grid's edge is not taken; a delay of 0 beyond the loop is
                 if found is not None and (not found[1] or fam.shifts_input):
-                    terms[i] = built(fam.name, found[0].h) if stick and fam.name == "stiction" else found[0]
+                    terms[i] = built(i, found[0].h) if stick and i == held[0] else found[0]
         ctx.terms, ctx.final = terms, ctx.evaluate(terms)
         ctx.stick_measured = stick
-        ctx.refit_families = sorted({terms[i].family for i in again} | ({"stiction"} if stick else set()))
+        ctx.loop_refit = loop
+        ctx.refit_families = sorted({terms[i].family for i in again} | ({terms[held[0]].family} if stick else set()))
         return ctx
 
     # ------------------------------------------------------------------ read-outs
