@@ -309,3 +309,21 @@ def test_refit_only_when_stribeck_is_selected_and_the_loop_not_yet_modelled(stri
     modelled = Identifier(idf.rec, current_loop=True)
     modelled.terms = idf.terms
     assert modelled.refit() is None                         # the loop modelled already
+
+
+def test_thrust_curve_columns_are_of_the_held_input():
+    """u|u|, u³ are made of the held input, then delayed: a fractional delay's linear
+    interpolation taken first would shrink a 2 kHz line at 5 kHz to cos(0.4π) = 0.31 and with it
+    the curve's rectified part (the mean of u³ over U + a sin: U³ + 1.5 U a²), which a phantom
+    force ripple then took (an encoder's 1 mm error at 2 m/s)."""
+    n = int(2.0 * FS)
+    t = np.arange(n) / FS
+    u = 6.0 + 2.0 * np.sin(2 * np.pi * 2000.0 * t + 0.3)
+    y = 0.1 * t + 1e-4 * np.sin(2 * np.pi * 3.0 * t)
+    idf = Identifier(Record(t=t, y=y, u=u, gain=A1), zoh_delay=0.5)
+    cols = idf.input_columns(0.5)
+    mid = slice(100, n - 100)
+    held = np.column_stack([u, u * np.abs(u), u ** 3])
+    assert np.mean(cols[mid, 2]) == pytest.approx(np.mean(held[mid, 2]), rel=1e-3)   # 252, not 219.5
+    assert np.mean(cols[mid, 1]) == pytest.approx(np.mean(held[mid, 1]), rel=1e-3)
+    assert np.mean(cols[mid, 0]) == pytest.approx(6.0, rel=1e-3)
