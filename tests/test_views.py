@@ -47,6 +47,10 @@ def test_a_missing_or_broken_view_library_is_one_line_and_no_row_lost(tmp_path):
     try:
         d.wait_ready()
         _axes_run_and_nothing_lost(d, 3.0)
+        # both views refused: the view process reports, then ends (status "views" None); on a
+        # loaded host its niced start-up can take longer than the run, and a SIGTERM before its
+        # report would leave the broken library's line unwritten
+        wait_for(lambda: status(d.sock)["views"] is None, 60, "the view process's report")
         code, _, err = d.terminate()
     finally:
         d.kill()
