@@ -449,6 +449,12 @@ class EffectFamily:
         """
         return None
 
+    def searched_again(self, ctx: SearchContext, others: list):
+        """:meth:`search` run again with ``others`` as the base (for a :meth:`polish`): its term,
+        or None when the search finds none or notes its value (e.g. at its grid's edge)."""
+        found = self.search(ctx, others, None)
+        return None if found is None or found[1] else found[0]
+
     def plausible(self, ctx: SearchContext, term, beta: np.ndarray, theta: np.ndarray,
                   base: list) -> list[str]:
         """Reasons why a fitted term is not physically plausible (empty: plausible).

@@ -111,6 +111,12 @@ def amplifier_loop(header: dict, axis: str) -> tuple[float, float]:
     return float(fc), float(dc)
 
 
+def loop_lag(fc_hz: float, dc_s: float) -> float:
+    """The lag [s] of a first-order current loop of bandwidth f_c [Hz] (0: none) behind a
+    switching delay d_c [s], d_c + 1/(2π f_c), in the band identify fits (:func:`amplifier_lag`)."""
+    return (1.0 / (2.0 * math.pi * fc_hz) if fc_hz > 0 else 0.0) + dc_s
+
+
 def amplifier_lag(header: dict, axis: str) -> tuple[float, str]:
     """The input-to-force lag [s] of the amplifier's current loop that a run log's config declares
     for ``axis`` (:func:`amplifier_loop`: f_c, d_c), d_c + 1/(2π f_c), with a phrase saying so
@@ -121,7 +127,7 @@ def amplifier_lag(header: dict, axis: str) -> tuple[float, str]:
     Raises nothing: a missing or malformed entry counts as none.
     """
     fc, dc = amplifier_loop(header, axis)
-    lag = (1.0 / (2.0 * math.pi * fc) if fc > 0 else 0.0) + dc
+    lag = loop_lag(fc, dc)
     if lag <= 0.0:
         return 0.0, ""
     parts = ([f"{fc:g} Hz current loop"] if fc > 0 else []) + ([f"{dc * 1e6:g} us delay"] if dc > 0 else [])

@@ -178,10 +178,7 @@ class StictionFamily(EffectFamily):
         (default plant, Stribeck 20 N / 0.05 m/s: 1.65 mm/s, 0.33-0.41 mm/s beside the hump).
         None when the search's value sits at its grid's edge, or when the identifier does not
         model the current loop (its ``current_loop``: the selection as before)."""
-        if not getattr(ctx, "current_loop", False):
-            return None
-        found = self.search(ctx, others, None)
-        return None if found is None or found[1] else found[0]
+        return self.searched_again(ctx, others) if getattr(ctx, "current_loop", False) else None
 
     def plausible(self, ctx, term, beta, theta, base):
         lo, hi = HELD_RANGE

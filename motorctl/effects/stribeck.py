@@ -123,10 +123,7 @@ class StribeckFamily(EffectFamily):
         v_s 0.05 m/s: 0.093 beside a 1.65 mm/s band, 0.044 beside the band searched again).
         None when the search's value sits at its grid's edge, or when the identifier does not
         model the current loop (its ``current_loop``: the selection as before)."""
-        if not getattr(ctx, "current_loop", False):
-            return None
-        found, note = self.search(ctx, others, None)
-        return None if note else found
+        return self.searched_again(ctx, others) if getattr(ctx, "current_loop", False) else None
 
     def plausible(self, ctx, term, beta, theta, base):
         if beta[0] <= 0:

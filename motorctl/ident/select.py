@@ -49,7 +49,7 @@ from scipy.signal import lfilter
 from motorctl.effects import FAMILIES, family as effect_family
 from motorctl.effects.base import EffectFamily
 from motorctl.effects.input_delay import (HOLD_TOLERANCE, FoundDelay, amplifier_loop, current_loop_filter,
-                                          delayed)
+                                          delayed, loop_lag)
 from motorctl.ident.data import Record
 from motorctl.ident.idim import Prepared, choose_n_theta, ls, prepare
 from motorctl.ident.verdict import residual_verdict
@@ -194,7 +194,7 @@ class Identifier:
         self.current_loop = bool(current_loop)
         fc, dc = amplifier_loop(rec.header or {}, rec.axis) if current_loop else (0.0, 0.0)
         self.loop_filter = current_loop_filter(fc, dc, p.fs) if fc > 0 or dc > 0 else None
-        self.modelled_lag = ((1.0 / (2.0 * math.pi * fc) if fc > 0 else 0.0) + dc) * p.fs
+        self.modelled_lag = loop_lag(fc, dc) * p.fs
         if self.current_loop:
             p.v_sf = p.v            # Stribeck's S_f on the nominal column's velocity
         self.stroke = float(np.ptp(p.x_d))
@@ -562,8 +562,7 @@ class Identifier:
             u_rms = float(np.sqrt(np.mean(self.p.u_d ** 2)))
             g = self.rec.gain
             ev.size = size
-            sized_elsewhere = getattr(fam, "sized_in_reading", None)
-            if sized_elsewhere is not None and sized_elsewhere(term):
+            if _found_in_measurement(term):
                 pass    # an error of the reading found there: its size was judged in the reading
             elif size < MIN_SIZE_SHARE * u_rms:
                 reasons.append(f"too small to name: its force ({_force(size, g)}) is below "
@@ -1023,10 +1022,10 @@ class Identifier:
         """
         fams = [effect_family(t.family) for t in self.terms]
         loop = not self.current_loop and any(f.values_on_current_loop for f in fams)
-        held = None             # (index, h with the measured stick state) of the term that holds
+        held = None             # the index of the term whose hold the reading shows
         if any(f.values_on_stick_state for f in fams):
-            held = next(((i, m) for i, (f, t) in enumerate(zip(fams, self.terms))
-                         if (m := f.stick_state(self.p, t.h)) is not None), None)
+            held = next((i for i, (f, t) in enumerate(zip(fams, self.terms))
+                         if f.stick_state(self.p, t.h) is not None), None)
         stick = held is not None
         if not (loop or stick):
             return None
@@ -1042,7 +1041,7 @@ class Identifier:
             fam = fams[i]
             if loop and fam.shifts_input:     # the lag beyond the modelled loop
                 h = FoundDelay(max(float(h) - ctx.modelled_lag, 0.0), ctx.modelled_lag, True)
-            if stick and i == held[0]:
+            if stick and i == held:
                 h = fam.stick_state(ctx.p, h, check=False)
             return ctx.term(fam.name, h)
 
@@ -1056,11 +1055,11 @@ class Identifier:
                 found = fam.search(ctx, terms[:i] + terms[i + 1:], None)
                 # a value at its grid's edge is not taken; a delay of 0 beyond the loop is
                 if found is not None and (not found[1] or fam.shifts_input):
-                    terms[i] = built(i, found[0].h) if stick and i == held[0] else found[0]
+                    terms[i] = built(i, found[0].h) if stick and i == held else found[0]
         ctx.terms, ctx.final = terms, ctx.evaluate(terms)
         ctx.stick_measured = stick
         ctx.loop_refit = loop
-        ctx.refit_families = sorted({terms[i].family for i in again} | ({terms[held[0]].family} if stick else set()))
+        ctx.refit_families = sorted({terms[i].family for i in again} | ({terms[held].family} if stick else set()))
         return ctx
 
     # ------------------------------------------------------------------ read-outs
