@@ -216,10 +216,14 @@ class KnotGrid(float):
         return np.arange(1, self.n_basis - (1 if self.drop_linear else 0))
 
     def basis(self, x) -> np.ndarray:
-        """B_j(x) (N, K) at positions x (N,) [m], x clamped into [start_m, end_m]."""
+        """B_j(x) (N, K) at positions x (N,) [m], x clamped into [start_m, end_m].
+
+        The clamped x lies within the knots' base interval, where ``extrapolate=True`` gives the
+        same matrix and skips scipy's bounds check (Python's min and max over the N samples,
+        half of the call's time on a 100 000-sample record)."""
         from scipy.interpolate import BSpline     # identification only (not the loop process)
         xc = np.clip(np.asarray(x, dtype=float), self.start_m, self.end_m)
-        return BSpline.design_matrix(xc, self.knots, DEGREE).toarray()
+        return BSpline.design_matrix(xc, self.knots, DEGREE, extrapolate=True).toarray()
 
     def coefficients(self, beta) -> np.ndarray:
         """All K spline coefficients c_j from the fitted column coefficients β (k,)
