@@ -90,6 +90,22 @@ class ForceConstantDriftFamily(EffectFamily):
             fu, t_ref = f_u(p.u, h.theta5, h.theta6), float(h)
         return (fu * (p.t - t_ref))[:, None]
 
+    def decimated_columns(self, h, p):
+        """The decimated column (M, 1) at h from three the record decimates once: the
+        decimation is linear, so dec(f_u(u)·τ) = dec(u τ) + θ5 dec(u|u| τ) + θ6 dec(u³ τ), τ = t −
+        t_r (the same to rounding, 1e-16 of the column). Each of :meth:`search`'s fixed-point
+        iterations then costs no full-rate f_u (8 ms on a 100 000-sample record) nor a
+        decimation. None for h None (the column on ``p.fu``: :meth:`columns`)."""
+        if h is None:
+            return None
+        t_ref = float(h)
+
+        def full():
+            u, tau = p.u, p.t - t_ref
+            return np.column_stack([u * tau, u * np.abs(u) * tau, u ** 3 * tau])
+        d = p.dec_once((self.name, t_ref), full)
+        return d[:, :1] + h.theta5 * d[:, 1:2] + h.theta6 * d[:, 2:3]
+
     def search(self, ctx, base, residual):
         """The column on the joint fit's own thrust shape: start from the nominal θ5, θ6 and take
         those of the fit with the drift's column until they settle (:data:`SHAPE_ITERATIONS`);

@@ -13,7 +13,7 @@ The nominal model is the paper's eq. (4) written as u = Φ θ (:func:`motorctl.m
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from functools import lru_cache
@@ -167,10 +167,23 @@ class Prepared:
     v_wide: np.ndarray = None
     #: velocity [m/s] (N,) of Stribeck's S_f factor (None: ``v_wide``, as its hump)
     v_sf: np.ndarray = None
+    #: decimated columns of these signals kept by :meth:`dec_once`, by key
+    derived: dict = field(default_factory=dict, repr=False)
 
     def dec(self, cols: np.ndarray) -> np.ndarray:
         """Parallel-decimate full-rate columns (N,) or (N, k) and drop the edges."""
         return parallel_decimate(cols, self.nd)[self.keep]
+
+    def dec_once(self, key, full) -> np.ndarray:
+        """:meth:`dec` of ``full()`` (a callable giving full-rate columns (N,) or (N, k) of
+        these signals), computed on the first call with ``key`` (hashable) and kept: read only.
+        For a family whose decimated columns are fixed combinations of a few (the decimation is
+        linear)."""
+        out = self.derived.get(key)
+        if out is None:
+            out = self.derived[key] = self.dec(full())
+            out.flags.writeable = False
+        return out
 
     def dec_gain(self, f_Hz):
         """Gain [-] of :meth:`dec` for a sine at frequency ``f_Hz`` [Hz] (scalar or array, |f|,
