@@ -182,6 +182,18 @@ def test_force_constant_drift_is_exact_on_the_fits_own_thrust_shape():
     naive = idf.term(fam.name, DriftReference(rec.t[0], th[4], th[5]))
     k_naive = -float(idf.evaluate([naive]).fit.coef[-1])
     assert abs(k_naive / -0.02 - 1) > abs(kappa / -0.02 - 1)
+    # the decimated column in closed form (three columns decimated once per record, combined)
+    # is the decimated full-rate column to rounding, and the three are not decimated again
+    for h in (term.h, naive.h):
+        closed = fam.decimated_columns(h, idf.p)
+        filtered = idf.p.dec(fam.columns(h, idf.p))
+        assert closed.shape == filtered.shape == (len(idf.p.t_d), 1)
+        assert np.max(np.abs(closed - filtered)) <= 1e-12 * np.max(np.abs(filtered))
+    assert fam.decimated_columns(None, idf.p) is None      # the column on p.fu: decimated as it is
+    kept = idf.p.derived[(fam.name, float(rec.t[0]))]
+    assert not kept.flags.writeable
+    fam.decimated_columns(term.h, idf.p)
+    assert idf.p.derived[(fam.name, float(rec.t[0]))] is kept
 
 
 # ------------------------------------------------------------------------------- dead-zone
