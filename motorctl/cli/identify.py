@@ -105,7 +105,6 @@ def cmd_identify(args) -> int:
                                              write_tuned_config)
         idf, s = identify_record(rec, n_theta=args.n_theta, friction=args.friction, zoh_delay=args.zoh_delay,
                                  on_nominal=cl and cl.before,
-                                 on_step=cl and cl.speculate,
                                  after_fit=cl and (lambda idf: idf.terms and cl.after(idf)))
         s["validation"] = validation(idf, rec2) if rec2 is not None else None
         s["closed_loop"] = None

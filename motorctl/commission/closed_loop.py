@@ -6,7 +6,11 @@ The runs go to one worker process forked when :class:`ClosedLoop` is made, befor
 imports the identification and fits: the worker loads the loop (its modules and compiled
 kernels) meanwhile on the other core, runs *before* as soon as the nominal fit is known
 (:meth:`ClosedLoop.before`, during the effect search) and *after* once the effects are chosen
-(:meth:`ClosedLoop.after`). On a single core, or where ``fork`` is not available, the runs are
+(:meth:`ClosedLoop.after`). *After* is not run ahead on the model the search has so far: the
+selection's last stages (elimination, the values polished, the refit) change the values of
+nearly every log, so such a run was almost always made again, and on two cores its CPU slowed
+the search it waited for (``benchmarks/bench_ident.py``: 4.26 → 3.78 s wall, 6.6 → 5.8 s CPU on
+the cogging log). On a single core, or where ``fork`` is not available, the runs are
 made in this process when their results are asked for. Each run is deterministic: the figures
 are the same either way.
 
@@ -16,6 +20,7 @@ This module imports the standard library only, so that the worker is forked earl
 from __future__ import annotations
 
 import copy
+import gc
 import multiprocessing
 import os
 import pickle
@@ -54,6 +59,12 @@ def _serve(conn, warm: dict, axis: str) -> None:
     while True:
         try:
             if not queue:
+                # idle: collect and freeze the heap now. A run's set-up collects before its
+                # first cycle (motorctl.loop.rt.setup_realtime) and would otherwise traverse the
+                # whole loaded loop again (0.12 s of an 8 s run's 0.45 s), and the run ends by
+                # unfreezing (rt.restore)
+                gc.collect()
+                gc.freeze()
                 queue.append(conn.recv())
             while conn.poll():
                 queue.append(conn.recv())
@@ -122,11 +133,11 @@ class ClosedLoop:
         set_theta0(cfg["axes"][self.axis]["controller"], self._before_theta)
         self._submit("before", cfg)
 
-    def _after_config(self, idf, final=None, terms=None) -> dict | None:
-        """The *after* run's config for the model ``final`` with ``terms`` (default: the
-        identifier's final ones), or None when no effect has a compensation term."""
+    def _after_config(self, idf) -> dict | None:
+        """The *after* run's config for the identifier's final model and effects, or None when
+        no effect has a compensation term."""
         from motorctl.ident.pipeline import compensation_from_fit, set_theta0
-        comp, theta_aug, _skipped = compensation_from_fit(idf, final, terms)
+        comp, theta_aug, _skipped = compensation_from_fit(idf)
         if not comp:
             return None
         cfg = copy.deepcopy(self.base)
@@ -135,20 +146,11 @@ class ClosedLoop:
         set_theta0(ctl, theta_aug)
         return cfg
 
-    def speculate(self, idf, terms: list, final) -> None:
-        """Start an *after* run of the model the effect search has so far (its ``terms`` and
-        their evaluation ``final``): when the search takes nothing more, :meth:`after` finds
-        its config unchanged and the run is already under way."""
-        cfg = self._after_config(idf, final, terms)
-        if cfg is not None:
-            self._submit("after", cfg)
-
     def after(self, idf) -> bool:
         """Start the *after* run of an identifier after its run (a
         :class:`motorctl.ident.select.Identifier`): C2 from the augmented θ with the found
-        effects compensated (unless :meth:`speculate` started that very run), and *before*
-        again if its θ is not the identifier's final nominal fit. Returns False (and runs
-        nothing) when no found effect has a compensation term."""
+        effects compensated, and *before* again if its θ is not the identifier's final nominal
+        fit. Returns False (and runs nothing) when no found effect has a compensation term."""
         cfg = self._after_config(idf)
         if cfg is None:
             self._jobs.pop("after", None)

@@ -10,9 +10,11 @@ and nothing here parses arguments (the CLI is :mod:`motorctl.cli.identify`).
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from motorctl.ident import effects as fx
 from motorctl.ident.select import MAX_EFFECTS, Identifier, refused_on_physics
@@ -418,7 +420,7 @@ def text_report(s: dict) -> str:
 # ---------------------------------------------------------------------------- fit and write
 def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
                     zoh_delay: float | None = None, after_fit=None,
-                    on_nominal=None, on_step=None, current_loop: bool = False) -> tuple[Identifier, dict]:
+                    on_nominal=None, current_loop: bool = False) -> tuple[Identifier, dict]:
     """Fit the model to a loaded record, trace the residual to effects, and summarise.
 
     Args:
@@ -428,8 +430,7 @@ def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
         after_fit: called with the identifier once the fit is checked, before the summary
             (e.g. to start the closed-loop runs meanwhile); None: nothing.
         on_nominal: called with the nominal θ̂ (n_theta,) each time the nominal model is fitted,
-            before the effect search; on_step: called each time the forward selection takes
-            an effect (both: :class:`~motorctl.ident.select.Identifier`); None: nothing.
+            before the effect search (:class:`~motorctl.ident.select.Identifier`); None: nothing.
         current_loop: model the current loop the run log's config declares in the nominal
             fit (:class:`~motorctl.ident.select.Identifier`; off: fitted as an input delay).
     Returns:
@@ -440,14 +441,19 @@ def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
         position fit below 0 %), with the likely cause.
     """
     # numpy's overflow/invalid warnings would add lines to stderr on a degenerate record; the
-    # results are checked for finiteness and physical meaning instead (_check_physical)
+    # results are checked for finiteness and physical meaning instead (_check_physical). BLAS on
+    # one thread: the effect search runs its own threads (select.SEARCH_THREADS), and OpenBLAS's
+    # threads inside their many small (M, k) products only contend with them for the cores
+    # (benchmarks/bench_ident.py: run() 1.81 -> 1.69 s wall, 3.04 -> 2.74 s CPU)
+    @contextlib.contextmanager
     def quiet():
-        return np.errstate(all="ignore")
+        with np.errstate(all="ignore"), threadpool_limits(limits=1, user_api="blas"):
+            yield
 
     try:
         with quiet():
             idf = Identifier(rec, n_theta=n_theta, friction=friction, zoh_delay=zoh_delay,
-                             on_nominal=on_nominal, on_step=on_step, current_loop=current_loop).run()
+                             on_nominal=on_nominal, current_loop=current_loop).run()
             # the selected effects' values on the declared current loop's model (None: not needed)
             idf.refitted = idf.refit()
     except (np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:

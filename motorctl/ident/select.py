@@ -139,9 +139,6 @@ class Identifier:
         on_nominal: called with the nominal θ̂ (n_theta,) each time the nominal model is
             fitted, before the effect search starts (e.g. to start a closed-loop run with it
             meanwhile); None: nothing.
-        on_step: called with (this identifier, the effect terms taken so far (list of Term),
-            their evaluation) each time the forward selection takes an effect: the model the
-            search ends with if it takes nothing more; None: nothing.
         current_loop: model the amplifier's current loop the run log's config declares in every
             input column (:meth:`input_columns`), search stiction's band again after each
             effect taken (:meth:`_polish_at_rest`) and take Stribeck's S_f on the nominal
@@ -159,7 +156,7 @@ class Identifier:
 
     def __init__(self, rec: Record, n_theta: int | None = None, friction: str = "sf",
                  fq: float | None = None, nd: int | None = None, families=None, seed: int = 0,
-                 zoh_delay: float | None = None, on_nominal=None, on_step=None, current_loop: bool = False):
+                 zoh_delay: float | None = None, on_nominal=None, current_loop: bool = False):
         if friction not in FRICTION_SHAPES:
             raise ValueError(f"friction shape {friction!r}; allowed: {', '.join(FRICTION_SHAPES)}")
         self.rec = rec
@@ -182,7 +179,7 @@ class Identifier:
         self._phi_cache = {}
         self._cols_cache = {}
         self._local = threading.local()
-        self.on_nominal, self.on_step = on_nominal, on_step
+        self.on_nominal = on_nominal
         #: in a motorctl run log u_k is written after y_k is read and held over the period (ZOH):
         #: seen from the central-difference acceleration at t_k it acts half a sample late
         #: (u_{k-1}, u_k weigh equally). Other files: timing unknown, 0 unless told.
@@ -752,8 +749,6 @@ class Identifier:
                 base = base + [best.term]
                 current = best
                 base, current = self._polish_at_rest(base, current, searched_with)
-                if self.on_step is not None:
-                    self.on_step(self, base, current)
             base, accepted, current, dropped = self._eliminate(base, accepted, current, searched_with)
             if not dropped:
                 break
