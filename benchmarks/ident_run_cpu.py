@@ -10,8 +10,9 @@ Rerun:
 
 Each tree runs in a new process (PYTHONPATH: that tree first) that reads the log (axis X),
 identifies it once to warm up (imports, compiled kernels, FFT plans) and then ``--runs`` times
-more, with ``motorctl.ident.select.SEARCH_THREADS = 1`` so that the process time is the work
-itself, not the second search thread's share or its waiting; the figure is the median over
+more, with ``motorctl.ident.select.SEARCH_THREADS = 1`` and BLAS on one thread (as
+``identify`` runs it: :func:`motorctl.ident.pipeline.identify_record`) so that the process time
+is the work itself, not a second thread's share or its waiting; the figure is the median over
 ``--repeat`` processes per tree, the trees alternating. Process CPU time (``time.process_time``)
 moves less with the machine's load than wall time, but not nothing: compare the trees in one
 run (the ratio), on an idle machine if you can (the load average is printed).
@@ -33,13 +34,14 @@ HERE = Path(__file__).resolve().parents[1]
 CHILD = r"""
 import json, sys, time
 import numpy as np
+from threadpoolctl import threadpool_limits
 import motorctl.ident.select as select
 from motorctl.ident.data import load_record
 from motorctl.ident.pipeline import summarise
 select.SEARCH_THREADS = 1
 rec = load_record(sys.argv[1], None, None, "X")
 out = []
-with np.errstate(all="ignore"):
+with np.errstate(all="ignore"), threadpool_limits(limits=1, user_api="blas"):
     for i in range(1 + int(sys.argv[2])):
         t0 = time.process_time()
         idf = select.Identifier(rec).run()
