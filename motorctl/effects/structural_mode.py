@@ -77,12 +77,21 @@ MIN_LINE_REMOVED = 0.9
 #: the spectrum's lines are sought above this frequency [Hz] (below: the program's own moves,
 #: 7.3 Hz and its harmonics on the default program)
 LINE_MIN_HZ = F_MIN_HZ
+#: without a resonance line, the family is searched when a mode term at :func:`f_max` takes
+#: this share of the held-out residual (a mode above the band, seen as its broadband part)
+MIN_EDGE_GAIN = 0.3
 
 
 def f_max(p) -> float:
     """The highest antiresonance searched [Hz] in a prepared record ``p`` (fs [Hz], nd):
     :data:`BAND_FACTOR` × 0.4·fs/nd."""
     return BAND_FACTOR * 0.4 * p.fs / p.nd
+
+
+def edge_gain(ctx, base: list) -> float:
+    """The held-out gain [-] of a mode term at the grid's top :func:`f_max` against the model
+    of ``base``: 1 − held-out RMS with it / without it (``ctx.heldout_rms``)."""
+    return 1.0 - ctx.heldout_rms(list(base) + [ctx.term(FAMILY.name, f_max(ctx.p))]) / ctx.heldout_rms(list(base))
 
 
 def mode_columns(acc: np.ndarray, fs: float, f_a: float) -> np.ndarray:
@@ -114,6 +123,20 @@ def resonance_line(without: np.ndarray, with_it: np.ndarray, fs: float) -> tuple
     j = int(np.argmax(np.where(band, p0, -np.inf)))
     near = band & (np.abs(f - f[j]) <= 2.0 * (f[1] - f[0]))
     return float(f[j]), float(p0[j] / np.median(p0[band])), float(1.0 - p1[near].sum() / p0[near].sum())
+
+
+def _above_band(ctx, base: list, term) -> str:
+    """What the record tells of a mode above its band, for the edge's note: the fitted
+    m_l/M at the grid's top f_e gives m_l/(M ω_a²), so m_l/M = (f_a/f_M)² with f_M = f_e/√(m_l/M
+    at f_e), the antiresonance at which the load would be the whole moving mass (an upper bound of
+    f_a); "" when the fit's load is not positive."""
+    coef = ctx.evaluate(list(base) + [term]).fit.coef
+    frac = float(coef[-2]) / float(coef[0]) if coef[0] > 0 else math.nan
+    if not frac > 0:
+        return ""
+    f_m = term.h / math.sqrt(frac)
+    return (f" (the band sees its force m_l s^2 a/w_a^2 only: a load m_l/M = (f_a / {f_m:.3g} Hz)^2, "
+            f"f_a between {term.h:.3g} and {f_m:.3g} Hz)")
 
 
 class StructuralModeFamily(EffectFamily):
@@ -158,7 +181,7 @@ class StructuralModeFamily(EffectFamily):
         if hi <= F_MIN_HZ * 2.0 or ctx.moving.sum() < 50:
             return None
         _, ratio, _ = resonance_line(residual, residual, p.fs / p.nd)
-        if not ratio >= MIN_LINE_RATIO:
+        if not ratio >= MIN_LINE_RATIO and edge_gain(ctx, base) < MIN_EDGE_GAIN:
             return None
         return self._grid(ctx, base)
 
@@ -178,7 +201,7 @@ class StructuralModeFamily(EffectFamily):
             return term, None
         return term, (f"antiresonance {term.h:.4g} Hz at the edge of the searched range "
                       f"({grid[0]:.3g}-{grid[-1]:.3g} Hz): a mode above the record's band is a bandwidth "
-                      "limit, not identifiable here")
+                      f"limit, not identifiable here{_above_band(ctx, base, term)}")
 
     def polish(self, ctx, term, others):
         """f_a searched again with the final model's other effects (a mode taken before the
