@@ -38,7 +38,7 @@ from pydantic_core import PydanticCustomError
 from motorctl.control import CONTROLLER_NAMES, configured_controllers, controller_class
 from motorctl.control.params import ControllerConfig
 from motorctl.driver import Driver, load_driver_class
-from motorctl.inputs import MAX_CONFIG_BYTES, InputError, read_text, summarize
+from motorctl.inputs import MAX_CONFIG_BYTES, ConfigError, InputError, read_text, summarize
 from motorctl.loop.rt import RealtimeConfig
 from motorctl.loop.safety import LimitsConfig
 from motorctl.loop.timebase import Timebase
@@ -46,19 +46,6 @@ from motorctl.loop.trajectory import TrajectoryConfig
 from motorctl.motion.gcode import GcodeSettings
 from motorctl.recorder.flight import stall_bound_s
 from motorctl.schema import StrictModel, quantity
-
-
-class ConfigError(ValueError):
-    """A config file is wrong. ``str()`` is the one-line message: ``FILE: KEY: what, allowed``."""
-
-    def __init__(self, file: str, key: str, message: str):
-        self.file, self.key, self.message = str(file), key, message
-        super().__init__(f"{file}: {key}: {message}" if key else f"{file}: {message}")
-
-    def __reduce__(self):
-        # rebuilt from its three parts (it crosses from a worker process, e.g. identify's
-        # closed loop, as itself)
-        return type(self), (self.file, self.key, self.message)
 
 
 # --------------------------------------------------------------------------- YAML

@@ -21,6 +21,21 @@ class InputError(ValueError):
     """Bad input (a file, an argument): one line; exit code 2 in the CLI."""
 
 
+class ConfigError(ValueError):
+    """A config file is wrong. ``str()`` is the one-line message: ``FILE: KEY: what, allowed``.
+    Raised by :mod:`motorctl.config` (defined here, with the other input errors, so that the CLI
+    catches it without loading the config's models)."""
+
+    def __init__(self, file: str, key: str, message: str):
+        self.file, self.key, self.message = str(file), key, message
+        super().__init__(f"{file}: {key}: {message}" if key else f"{file}: {message}")
+
+    def __reduce__(self):
+        # rebuilt from its three parts (it crosses from a worker process, e.g. identify's
+        # closed loop, as itself)
+        return type(self), (self.file, self.key, self.message)
+
+
 def summarize(value, limit: int = 60) -> str:
     """A short description of a value for an error message: scalars as repr (cut to ``limit``
     characters), containers by type and size (a YAML alias bomb is never expanded)."""

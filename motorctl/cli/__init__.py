@@ -71,8 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    from motorctl.config import ConfigError
-    from motorctl.inputs import InputError
+    from motorctl.inputs import ConfigError, InputError   # not motorctl.config: its models load numba
     from motorctl.loop.rt import RealtimeError
     from motorctl.recorder.runlog import LogError
     words = sys.argv[1:] if argv is None else list(argv)
