@@ -184,9 +184,9 @@ def main(argv=None) -> int:
             text = s["residual"]["text"]
             # a mode above the band: what the record says of it comes after the first 160 characters
             tail = text.find("a bandwidth limit", 160)
+            more = f" [... {text[tail:tail + 160]}]" if tail > 0 else ""
             print(f"{case} seed {seed}: effects {', '.join(sorted(names)) or 'none'}; "
-                  f"{'WARNING ' if warned else ''}{text[:160]}" + (f" [... {text[tail:tail + 160]}]" if tail > 0 else ""),
-                  flush=True)
+                  f"{'WARNING ' if warned else ''}{text[:160]}{more}", flush=True)
     print()
     ok = True
     own_text = " and ".join(sorted(own - {"structural_mode"})) or "nothing"
