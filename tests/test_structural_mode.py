@@ -7,12 +7,15 @@
   by the tests): the mode moved to 150 Hz is named structural_mode near its true frequency and
   load, or left "unexplained", never a periodic disturbance, cogging or a force ripple;
   backlash is never an input delay; the clean plant names no mode and leaves no "unexplained"
-  line.
+  line;
+* on the rigid plant (``configs/gantry-rigid.yaml``) a 200 Hz mode, whose antiresonance lies
+  above the record's band, is told as an unexplained structure with the load the band sees.
 """
 
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -116,3 +119,26 @@ def test_the_clean_plant_names_no_mode_and_leaves_nothing_unexplained(found):
     assert "structural_mode" not in named, list(named)
     assert named["input_delay"]["parameters"]["delay_samples"] == pytest.approx(1.04, abs=0.15)
     assert not s["residual"]["structured"], s["residual"]["text"]
+
+
+def test_a_mode_above_the_band_is_told_as_a_bandwidth_limit(tmp_path):
+    """Rigid plant, mode at 200 Hz (f_a = 200·√0.7 = 167 Hz, above the searched 150 Hz), 8 s:
+    the residual has no line a mode makes in the band, yet the load a mode term at the grid's
+    top fits is 11 % of the inertia at the band's edge (the clean default plant's 350 Hz mode:
+    5-7 %), so the family is searched, lands on the edge and is refused; the verdict names it
+    a bandwidth limit and gives the load the band sees, m_l/M = (f_a/f_M)², f_M =
+    f_a/√(m_l/M) = 305 Hz (within 5 %). Nothing periodic is named."""
+    from motorctl.commission.tune import make_log
+    from motorctl.ident.data import load_record
+    from motorctl.ident.pipeline import identify_record
+    path = tmp_path / "rigid_mode200.mclog"
+    make_log(str(path), {"mode_hz": 200.0}, duration_s=8.0, seed=1, base=str(ROOT / "configs" / "gantry-rigid.yaml"))
+    _, s = identify_record(load_record(str(path), None, None, axis="X"))
+    named = {e["name"] for e in s["effects"]}
+    assert not PERIODIC & named, named
+    res = s["residual"]
+    assert res["structured"], res["text"]
+    found = [f for f in res["findings"] if f["against"] == "structural_mode"]
+    assert found and "bandwidth limit" in found[0]["where"], res["text"]
+    f_m = float(re.search(r"m_l/M = \(f_a / ([0-9.]+) Hz\)", found[0]["where"]).group(1))
+    assert f_m == pytest.approx(200.0 * math.sqrt(0.7 / 0.3), rel=0.05)
