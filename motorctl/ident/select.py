@@ -342,8 +342,9 @@ class Identifier:
         :meth:`dec_cols`, filtering the full-rate columns of several h in one call of at least
         :data:`DECIMATE_BATCH` columns, written as the rows of one block (each column is
         filtered on its own, so the numbers are those of one call per h; 20 columns of a
-        100 000-sample record: 19 ms, 25 ms through a C-ordered (N, k) block). Families with closed-form decimated columns, values already
-        cached, or a full cache: left to :meth:`dec_cols`."""
+        100 000-sample record: 19 ms, 25 ms through a C-ordered (N, k) block). Families with
+        closed-form decimated columns, values already cached, or a full cache: left to
+        :meth:`dec_cols`."""
         fam = effect_family(family)
         if type(fam).decimated_columns is not EffectFamily.decimated_columns:
             return
