@@ -310,7 +310,7 @@ def test_stribeck_velocity_is_taken_again_on_the_declared_current_loop(stribeck_
         comp0, _, _ = compensation_from_fit(idf, idf.final, idf.terms)
         assert comp0["stribeck"]["velocity_m_per_s"] == pytest.approx(_v_s(idf))
     finally:
-        del idf.refitted
+        idf.refitted = None
 
 
 def test_refit_only_when_stribeck_is_selected_and_the_loop_not_yet_modelled(stribeck_run):

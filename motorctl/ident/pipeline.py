@@ -82,9 +82,9 @@ def summarise(idf: Identifier) -> dict:
     # the effects' values (and the compensation's) taken again on the declared current loop's model
     out["refit"] = None if src is idf else {
         "families": src.refit_families,
-        "on_current_loop": bool(getattr(src, "loop_refit", False)),
+        "on_current_loop": src.loop_refit,
         "current_loop_modelled": src.loop_filter is not None,
-        "stick_state_measured": bool(getattr(src, "stick_measured", False)),
+        "stick_state_measured": src.stick_measured,
         "theta": [float(v) for v in th_v], "residual_rms": g * src.final.fit.rms,
         "heldout_rms": g * src.final.heldout_rms}
     from motorctl.ident.simfit import simulation_fit
@@ -113,8 +113,7 @@ def values_from(idf: Identifier) -> Identifier:
     refit on the declared current loop's model when :meth:`~motorctl.ident.select.Identifier.
     refit` ran (``idf.refitted``), else ``idf`` itself. Selection, held-out gains and the
     residual verdict are always ``idf``'s."""
-    ref = getattr(idf, "refitted", None)
-    return idf if ref is None else ref
+    return idf if idf.refitted is None else idf.refitted
 
 
 def add_refused(verdict: dict, last_step: list, chosen: list) -> None:

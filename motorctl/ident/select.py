@@ -180,6 +180,14 @@ class Identifier:
         self._cols_cache = {}
         self._local = threading.local()
         self.on_nominal = on_nominal
+        #: on an identifier :meth:`refit` returns: the families searched again there (sorted),
+        #: whether on the declared current loop's model, whether with the stick state measured
+        self.refit_families: list = []
+        self.loop_refit = False
+        self.stick_measured = False
+        #: the identifier whose fit gives the values of this one's effects, when :meth:`refit`
+        #: made one (the caller keeps it here: motorctl.ident.pipeline.values_from); else None
+        self.refitted = None
         #: in a motorctl run log u_k is written after y_k is read and held over the period (ZOH):
         #: seen from the central-difference acceleration at t_k it acts half a sample late
         #: (u_{k-1}, u_k weigh equally). Other files: timing unknown, 0 unless told.
