@@ -17,7 +17,7 @@ import numpy as np
 
 from motorctl.effects import family as effect_family
 from motorctl.effects.base import Signals
-from motorctl.model import f_u, idim_regressor
+from motorctl.model import idim_regressor
 
 
 def simulation_fit(idf, terms: list, ev, window_s: float = 0.2) -> float | None:
@@ -33,7 +33,9 @@ def simulation_fit(idf, terms: list, ev, window_s: float = 0.2) -> float | None:
     nt = idf.n_theta
     th, betas = idf.coef_split(ev, terms)
     delay = idf.zoh + sum(t.delay for t in terms)
-    u = idf.delayed_u(delay)
+    # u, u|u|, u³ as the fit saw them: the force curve of the held input, then the delay
+    # (Identifier.input_columns), not the curve of an interpolated input
+    uc = idf.input_columns(delay)
     n = len(p.t)
     length = int(round(window_s * p.fs))
     edge = int(round(0.1 * p.fs))
@@ -50,14 +52,17 @@ def simulation_fit(idf, terms: list, ev, window_s: float = 0.2) -> float | None:
     families = [effect_family(t.family) for t in terms]
     for k in range(length):
         idx = starts + k
-        uk = u[idx]
+        uk, uk_curve = uc[idx, 0], uc[idx, 1:]
         dy_all.append(p.y[idx] - y0)
         err2.append(p.y[idx] - x)          # Δy − Δŷ with Δ from the measured start y0
         zero = np.zeros_like(x)
         phi = idim_regressor(zero, v, uk, nt)      # at ẍ = 0; the row at ẍ = 1 differs in column 0
         if idf.friction == "sign":
             phi[:, 2] = np.sign(v)
-        fu = f_u(uk, *fu_coef) if fu_coef else None
+        fu = None
+        if fu_coef:
+            phi[:, 4:6] = -uk_curve
+            fu = uk + uk_curve @ np.asarray(fu_coef)       # f_u (paper eq. 9) of the held input
         rest_cols = []
         for a_val in (zero, np.ones_like(x)):
             if a_val is not zero:
