@@ -151,14 +151,21 @@ def fast_samples(p, period: float, factor: float = PASS_FACTOR) -> np.ndarray:
     return sp >= factor * p.fq * period
 
 
+def filter_gain(speed: np.ndarray, period: float, fq: float, k: int) -> np.ndarray:
+    """Gain (M,) of the position filter, the zero-phase order-4 Butterworth at fq [Hz]
+    (|H|² = 1/(1 + (f/fq)⁸), :func:`motorctl.ident.idim.prepare`), for harmonic k ≥ 1 of a
+    reading's error of period ``period`` [m] at the speeds ``speed`` (M,) [m/s] (f = k|ẋ|/P):
+    1/(1 + (k|ẋ|/(P fq))⁸)."""
+    return 1.0 / (1.0 + (k * np.abs(speed) / (period * fq)) ** 8)
+
+
 def passed(speed: np.ndarray, period: float, fq: float) -> np.ndarray:
     """(M, 2·N_HARMONICS): the share of each harmonic k of a reading's error of period
-    ``period`` [m] that the zero-phase order-4 Butterworth at fq [Hz] (|H|² = 1/(1 + (f/fq)⁸),
-    :func:`motorctl.ident.idim.prepare`) removes from the filtered x, so leaves in y − x, at the
-    speeds ``speed`` (M,) [m/s]: 1 − 1/(1 + (k|ẋ|/(P fq))⁸), for its sin and cos columns."""
+    ``period`` [m] that the position filter removes from the filtered x, so leaves in y − x, at
+    the speeds ``speed`` (M,) [m/s]: 1 − :func:`filter_gain`, for its sin and cos columns."""
     out = np.empty((speed.shape[0], 2 * N_HARMONICS))
     for k in range(N_HARMONICS):
-        out[:, 2 * k] = out[:, 2 * k + 1] = 1.0 - 1.0 / (1.0 + ((k + 1) * np.abs(speed) / (period * fq)) ** 8)
+        out[:, 2 * k] = out[:, 2 * k + 1] = 1.0 - filter_gain(speed, period, fq, k + 1)
     return out
 
 
@@ -264,15 +271,15 @@ def _search_bands(p, lo: float, hi: float, fold_of, factor: float) -> tuple[Read
 def analytic_columns(x, v, a, period: float, fq: float | None = None) -> np.ndarray:
     """d²/dt² sin, cos(2π k x / P), k ≤ N_HARMONICS, interleaved (N, 2·N_HARMONICS), from the
     state: d²/dt² sin(wx) = −w²ẋ² sin(wx) + w ẍ cos(wx); with ``fq`` [Hz] each harmonic is
-    weighed by the zero-phase order-4 Butterworth's gain at its frequency at this speed,
-    1/(1 + (k|ẋ|/(P fq))⁸) (the grid search's cheap stand-in for :func:`reading_columns`).
+    weighed by the position filter's gain at its frequency at this speed (:func:`filter_gain`;
+    the grid search's cheap stand-in for :func:`reading_columns`).
     x [m], v [m/s], a [m/s²]: (N,)."""
     f = fourier(x, period, N_HARMONICS)
     out = np.empty_like(f)
     for k in range(N_HARMONICS):
         w = 2.0 * math.pi * (k + 1) / period
         s, c = f[:, 2 * k], f[:, 2 * k + 1]
-        g = 1.0 if fq is None else 1.0 / (1.0 + ((k + 1) * np.abs(v) / (period * fq)) ** 8)
+        g = 1.0 if fq is None else filter_gain(v, period, fq, k + 1)
         out[:, 2 * k] = g * (-w * w * v * v * s + w * a * c)
         out[:, 2 * k + 1] = g * (-w * w * v * v * c - w * a * s)
     return out
