@@ -1019,12 +1019,11 @@ class SimDriver(Driver):
         """:meth:`_sim_arrays` as the bundle the compiled read and write take (:class:`SimIO`)."""
         return bundle(_make_sim_io, SIM_FIELDS, self._sim_arrays(copies, command))
 
-    def _watchdog(self) -> bool:
-        """The drive's command watchdog, checked at every exchange (read and write): a stall
-        anywhere in the host's cycle (between read and write included) counts from the last
-        command received. Returns True when it bites; the fault is then reported by the next
-        read (it stays pending until one has seen it)."""
-        now = time.monotonic_ns()
+    def _watchdog(self, now: int) -> bool:
+        """The drive's command watchdog, checked at every exchange (read and write) at ``now``
+        (CLOCK_MONOTONIC [ns]): a stall anywhere in the host's cycle (between read and write
+        included) counts from the last command received. Returns True when it bites; the fault
+        is then reported by the next read (it stays pending until one has seen it)."""
         gap = now - self._last_write_ns
         if gap <= self.watchdog_ns:
             return False
@@ -1062,7 +1061,7 @@ class SimDriver(Driver):
 
     def read(self) -> None:
         if self.watchdog_ns and self._last_write_ns:
-            self._watchdog()
+            self._watchdog(time.monotonic_ns())
         bitten = self._bite_pending
         self._bite_pending = False
         self._read(self._io_ok, bitten)      # the bundle the write and the rehearsal use (the same arrays)
@@ -1070,8 +1069,12 @@ class SimDriver(Driver):
             self.position_m += self.position_offset_m
 
     def write(self, u_V: np.ndarray, enable: np.ndarray) -> None:
-        # a command that arrives after the watchdog expired finds the amplifier already off
-        bitten = bool(self.watchdog_ns and self._last_write_ns and self._watchdog())
+        # a command that arrives after the watchdog expired finds the amplifier already off.
+        # The command's arrival is timed here, as it enters: timed after the write, a stall of
+        # the host between the two (a preempted or stopped loop process) would be taken for
+        # the command's own lateness and never counted
+        now = time.monotonic_ns() if self.watchdog_ns else 0
+        bitten = bool(self.watchdog_ns and self._last_write_ns and self._watchdog(now))
         if self._compiled:
             if u_V is not self._u_ok or enable is not self._en_ok:
                 u_V, enable = self._checked(u_V, enable)
@@ -1086,7 +1089,7 @@ class SimDriver(Driver):
             if self._write(io, bitten):       # refilled by service(), between cycles
                 self._refill = True
             if self.watchdog_ns:
-                self._last_write_ns = time.monotonic_ns()
+                self._last_write_ns = now
             return
         for i, plant in enumerate(self.plants):
             on = bool(enable[i]) and not self.amp_fault[i] and not bitten
@@ -1103,7 +1106,7 @@ class SimDriver(Driver):
                 plant.f_ext = 0.0
             plant.step(u)
         if self.watchdog_ns:
-            self._last_write_ns = time.monotonic_ns()
+            self._last_write_ns = now
 
     def _checked(self, u_V, enable):
         """u_V and enable as the compiled write takes them (float64 and bool, (n,), contiguous):
