@@ -11,12 +11,14 @@ For each family of :data:`motorctl.effects.FAMILIES` (registry order) and each s
 family's ``example`` with its force-valued options × ``--sizes``, default 0.5 and 1;
 :func:`tune_families.scaled`): a 20 s log of the simulated X axis of ``--config`` (default
 ``configs/gantry.yaml``: structural mode, current loop, encoder noise, stiction; C2, virtual
-clock, seed 1) with the effect on the plant, undeclared to the controller; then identify on it
+clock, ``--seed``, default 1: the moves and the noise) with the effect on the plant, undeclared to
+the controller; then identify on it
 (:func:`motorctl.ident.pipeline.identify_record`). Every simulator option of the effect that
 identify reports under the same name (or a name ending in it, e.g. ``velocity_m_per_s`` in
 ``stribeck_velocity_m_per_s``) is compared: true → fitted and the relative error; phases,
 references and shapes are not compared. A row meets the bar when the family is named and every
-compared value is within 10 %. ``--tune`` adds tune's damage removed
+compared value is within 10 %; "warns unexplained" is identify's verdict on the residual left
+(with the effect named right, a warning is a false alarm). ``--tune`` adds tune's damage removed
 (:func:`tune_families.tune_family`: before run, identify, after run, floor; compensable families
 only), which takes about a minute of CPU per row more.
 
@@ -66,7 +68,7 @@ def compared(truth: dict, fitted: dict) -> list[tuple[str, float, float]]:
 
 
 def one(name: str, factor: float, out: str, duration_s: float, config: str, tune: bool,
-        current_loop: bool = False) -> dict:
+        current_loop: bool = False, seed: int = 1) -> dict:
     """Log, identify and (``tune``) tune one family at one size; returns the row's figures."""
     from motorctl.commission.tune import make_log
     from motorctl.effects import FAMILIES
@@ -75,10 +77,10 @@ def one(name: str, factor: float, out: str, duration_s: float, config: str, tune
 
     fam = FAMILIES[name]
     fragment, did_scale = scaled(fam.example, factor, fam.size_options)
-    d = Path(out) / f"{name}_x{factor:g}"
+    d = Path(out) / f"{name}_x{factor:g}_s{seed}"
     d.mkdir(parents=True, exist_ok=True)
     log = d / "before.mclog"
-    make_log(str(log), fragment, duration_s=duration_s, seed=1, axis="X", noise_N=None, base=config)
+    make_log(str(log), fragment, duration_s=duration_s, seed=seed, axis="X", noise_N=None, base=config)
     t0 = time.process_time()
     _, s = identify_record(load_record(str(log), axis="X"), current_loop=current_loop)
     cpu = time.process_time() - t0
@@ -102,7 +104,8 @@ def text(res: dict) -> list[str]:
     named = "named" if res["named"] else f"NOT named (found {', '.join(res['effects']) or 'nothing'})"
     d = res["damage_removed"]
     return [res["name"], f"×{res['factor']:g}" + ("" if res["scaled"] else " (no force option)"),
-            vals or "—", "yes" if ok else "no", named, "—" if d is None else f"{d:.2f}"]
+            vals or "—", "yes" if ok else "no", named, "yes" if res["unexplained"] else "no",
+            "—" if d is None else f"{d:.2f}"]
 
 
 def main(argv=None) -> int:
@@ -114,6 +117,7 @@ def main(argv=None) -> int:
     ap.add_argument("--tune", action="store_true", help="also tune's damage removed (compensable families)")
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="processes (default 2)")
     ap.add_argument("--out", default=None, help="keep logs here (default: a temporary folder)")
+    ap.add_argument("--seed", type=int, default=1, help="the log's seed (its moves and noise; default 1)")
     ap.add_argument("--current-loop", action="store_true",
                     help="identify with the declared current loop modelled (Identifier current_loop)")
     args = ap.parse_args(argv)
@@ -129,16 +133,16 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="motorctl-ident-families-") as tmp:
         out = args.out or tmp
         work = [(n, f) for n in names for f in sizes]
-        job = (out, args.duration, args.config, args.tune, args.current_loop)
+        job = (out, args.duration, args.config, args.tune, args.current_loop, args.seed)
         if args.jobs > 1 and len(work) > 1:
             with ProcessPoolExecutor(max_workers=args.jobs) as ex:
                 done = list(ex.map(one, *zip(*work), *([j] * len(work) for j in job)))
         else:
             done = [one(n, f, *job) for n, f in work]
     header = ["family", "size (example ×)", "true → fitted (error)", "within 10 %", "identify",
-              "damage removed by tune"]
+              "warns unexplained", "damage removed by tune"]
     print(f"identify{' (current loop modelled)' if args.current_loop else ''} on {args.config}, axis X, "
-          f"{args.duration:g} s logs (virtual clock, seed 1); "
+          f"{args.duration:g} s logs (virtual clock, seed {args.seed}); "
           f"load average {os.getloadavg()[0]:.2f}\n")
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))
