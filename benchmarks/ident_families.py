@@ -68,7 +68,7 @@ def compared(truth: dict, fitted: dict) -> list[tuple[str, float, float]]:
 
 
 def one(name: str, factor: float, out: str, duration_s: float, config: str, tune: bool,
-        current_loop: bool = False, seed: int = 1) -> dict:
+        current_loop: bool = False, seed: int = 1, also: str | None = None) -> dict:
     """Log, identify and (``tune``) tune one family at one size; returns the row's figures."""
     from motorctl.commission.tune import make_log
     from motorctl.effects import FAMILIES
@@ -77,10 +77,11 @@ def one(name: str, factor: float, out: str, duration_s: float, config: str, tune
 
     fam = FAMILIES[name]
     fragment, did_scale = scaled(fam.example, factor, fam.size_options)
-    d = Path(out) / f"{name}_x{factor:g}_s{seed}"
+    plant = {**FAMILIES[also].example, **fragment} if also and also != name else fragment
+    d = Path(out) / f"{name}_x{factor:g}_s{seed}" if plant is fragment else Path(out) / f"{name}_x{factor:g}+{also}_s{seed}"
     d.mkdir(parents=True, exist_ok=True)
     log = d / "before.mclog"
-    make_log(str(log), fragment, duration_s=duration_s, seed=seed, axis="X", noise_N=None, base=config)
+    make_log(str(log), plant, duration_s=duration_s, seed=seed, axis="X", noise_N=None, base=config)
     t0 = time.process_time()
     _, s = identify_record(load_record(str(log), axis="X"), current_loop=current_loop)
     cpu = time.process_time() - t0
@@ -89,7 +90,8 @@ def one(name: str, factor: float, out: str, duration_s: float, config: str, tune
     rows = compared(truth if isinstance(truth, dict) else fragment, found["parameters"]) if found else []
     res = {"name": name, "factor": factor, "scaled": did_scale, "named": found is not None,
            "effects": [e["name"] for e in s["effects"]], "values": rows, "cpu_s": cpu,
-           "unexplained": bool(s["residual"]["structured"]), "damage_removed": None}
+           "unexplained": bool(s["residual"]["structured"]), "damage_removed": None,
+           "also": also if plant is not fragment else None}
     if tune and fam.has_compensation:
         from tune_families import tune_family
         r = tune_family(name, fragment, d / "tune", duration_s, base=config)
@@ -102,6 +104,10 @@ def text(res: dict) -> list[str]:
     vals = "; ".join(f"{k} {a:.4g} → {b:.4g} ({100 * (b - a) / abs(a):+.1f} %)" for k, a, b in res["values"])
     ok = res["named"] and all(abs(b - a) <= TOLERANCE * abs(a) for _, a, b in res["values"])
     named = "named" if res["named"] else f"NOT named (found {', '.join(res['effects']) or 'nothing'})"
+    if res.get("also"):
+        named += f"; {res['also']} " + ("named" if res["also"] in res["effects"] else "NOT named")
+        others = [e for e in res["effects"] if e not in (res["name"], res["also"])]
+        named += f"; also {', '.join(others)}" if others else ""
     d = res["damage_removed"]
     return [res["name"], f"×{res['factor']:g}" + ("" if res["scaled"] else " (no force option)"),
             vals or "—", "yes" if ok else "no", named, "yes" if res["unexplained"] else "no",
@@ -118,22 +124,27 @@ def main(argv=None) -> int:
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="processes (default 2)")
     ap.add_argument("--out", default=None, help="keep logs here (default: a temporary folder)")
     ap.add_argument("--seed", type=int, default=1, help="the simulated driver's seed: its force and encoder noise (default 1)")
+    ap.add_argument("--with", dest="also", default=None, metavar="FAMILY",
+                    help="also this family's example (x1) on every row's plant: two effects at once "
+                         "(the row's family is judged; the table says what else was named)")
     ap.add_argument("--current-loop", action="store_true",
                     help="identify with the declared current loop modelled (Identifier current_loop)")
     args = ap.parse_args(argv)
     from motorctl.effects import FAMILIES
     names = args.family or list(FAMILIES)
-    unknown = [n for n in names if n not in FAMILIES]
+    unknown = [n for n in names + [args.also or names[0]] if n not in FAMILIES]
     if unknown:
         ap.error(f"unknown family {', '.join(unknown)}; families: {', '.join(FAMILIES)}")
     if not Path(args.config).is_file():
         ap.error(f"--config {args.config}: no such file")
+    if args.also and args.tune:
+        ap.error("--with and --tune: tune's damage removed is measured for one effect at a time")
     sizes = [float(x) for x in args.sizes.split(",")]
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="motorctl-ident-families-") as tmp:
         out = args.out or tmp
         work = [(n, f) for n in names for f in sizes]
-        job = (out, args.duration, args.config, args.tune, args.current_loop, args.seed)
+        job = (out, args.duration, args.config, args.tune, args.current_loop, args.seed, args.also)
         if args.jobs > 1 and len(work) > 1:
             with ProcessPoolExecutor(max_workers=args.jobs) as ex:
                 done = list(ex.map(one, *zip(*work), *([j] * len(work) for j in job)))
@@ -141,7 +152,8 @@ def main(argv=None) -> int:
             done = [one(n, f, *job) for n, f in work]
     header = ["family", "size (example ×)", "true → fitted (error)", "within 10 %", "identify",
               "warns unexplained", "damage removed by tune"]
-    print(f"identify{' (current loop modelled)' if args.current_loop else ''} on {args.config}, axis X, "
+    print(f"identify{' (current loop modelled)' if args.current_loop else ''} on {args.config}"
+          + (f" with {args.also} (its example) on every plant" if args.also else "") + ", axis X, "
           f"{args.duration:g} s logs (virtual clock, seed {args.seed}); "
           f"load average {os.getloadavg()[0]:.2f}\n")
     print("| " + " | ".join(header) + " |")
