@@ -83,7 +83,8 @@ def one(name: str, factor: float, out: str, duration_s: float, config: str, tune
     log = d / "before.mclog"
     make_log(str(log), plant, duration_s=duration_s, seed=seed, axis="X", noise_N=None, base=config)
     t0 = time.process_time()
-    _, s = identify_record(load_record(str(log), axis="X"), current_loop=current_loop)
+    rec = load_record(str(log), axis="X")
+    _, s = identify_record(rec, current_loop=current_loop)
     cpu = time.process_time() - t0
     truth = next(iter(fragment.values())) if name in fragment else fragment
     found = next((e for e in s["effects"] if e["name"] == name), None)
@@ -91,7 +92,8 @@ def one(name: str, factor: float, out: str, duration_s: float, config: str, tune
     res = {"name": name, "factor": factor, "scaled": did_scale, "named": found is not None,
            "effects": [e["name"] for e in s["effects"]], "values": rows, "cpu_s": cpu,
            "unexplained": bool(s["residual"]["structured"]), "damage_removed": None,
-           "also": also if plant is not fragment else None}
+           "also": also if plant is not fragment else None, "logged_s": float(rec.t[-1] - rec.t[0]),
+           "duration_s": duration_s}
     if tune and fam.has_compensation:
         from tune_families import tune_family
         r = tune_family(name, fragment, d / "tune", duration_s, base=config)
@@ -104,6 +106,8 @@ def text(res: dict) -> list[str]:
     vals = "; ".join(f"{k} {a:.4g} → {b:.4g} ({100 * (b - a) / abs(a):+.1f} %)" for k, a, b in res["values"])
     ok = res["named"] and all(abs(b - a) <= TOLERANCE * abs(a) for _, a, b in res["values"])
     named = "named" if res["named"] else f"NOT named (found {', '.join(res['effects']) or 'nothing'})"
+    if res["logged_s"] < 0.95 * res.get("duration_s", res["logged_s"]):
+        named += f" (the log ends at {res['logged_s']:.2f} s: the run faulted)"
     if res.get("also"):
         named += f"; {res['also']} " + ("named" if res["also"] in res["effects"] else "NOT named")
         others = [e for e in res["effects"] if e not in (res["name"], res["also"])]
