@@ -117,6 +117,21 @@ def test_undeclared_effect_is_named_with_its_parameter(results, name):
     assert list(found) == [name], f"{name}: extra effects {list(found)}"
 
 
+def test_a_disturbance_taken_at_a_sideband_is_searched_again_at_its_line(results):
+    """The periodic disturbance's polish searches the spectrum again in the final model: a term
+    taken at a sideband half a hertz off (what a step before the input delay was modelled took)
+    comes back at the line itself, with a lower SSE."""
+    from motorctl.effects import family
+    idf, _ = results["periodic_disturbance"]
+    i = next(k for k, t in enumerate(idf.terms) if t.family == "periodic_disturbance")
+    others = idf.terms[:i] + idf.terms[i + 1:]
+    truth = _truth("periodic_disturbance")["frequency_Hz"]
+    off = idf.term("periodic_disturbance", truth + 0.5)
+    new = family("periodic_disturbance").polish(idf, off, others)
+    assert new is not None and abs(new.h - truth) < 0.05, (None if new is None else new.h)
+    assert idf.sse(others + [new]) < idf.sse(others + [off])
+
+
 @pytest.mark.parametrize("seed", CLEAN_SEEDS)
 def test_clean_logs_yield_no_effect(results, seed):
     idf, found = results[f"clean_{seed}"]
