@@ -348,3 +348,17 @@ def test_an_effect_implausible_in_the_final_model_is_searched_again_there(tmp_pa
     assert again and "Coulomb level would turn negative" in again[0]["reason"], s["researched"]
     assert again[0]["searched_before"] != again[0]["searched_after"], again
     assert "searched again with the later effects in the model and kept: position_friction_shape" in text_report(s)
+
+
+def test_a_wide_stiction_band_is_tried_narrower_beside_stribeck_in_the_refit():
+    """Stiction's band of a millimetre per second or more may hold part of a Stribeck hump
+    taken up before the hump was modelled: the refit tries every other narrower band of the
+    grid with Stribeck searched beside each; a band of a carriage held (0.3 mm/s) is kept."""
+    from motorctl.effects import family
+    from motorctl.effects.stiction import BAND_GRID, WIDE_BAND
+    stiction = family("stiction")
+    assert stiction.joint_values(3e-4) is None
+    tried = stiction.joint_values(2e-3)
+    assert tried is not None and len(tried) >= 5
+    assert np.all(tried < 2e-3) and np.all(np.isin(tried, BAND_GRID)) and WIDE_BAND <= 2e-3
+    assert family("stribeck").joint_values(0.05) is None

@@ -439,6 +439,14 @@ class EffectFamily:
         """
         return ctx.term(self.name, None), None
 
+    def joint_values(self, h) -> np.ndarray | None:
+        """Values of this family's searched parameter to try in the current loop's refit
+        (:meth:`motorctl.ident.select.Identifier.refit`) instead of the selected ``h``, the
+        ``values_on_current_loop`` families searched beside each, before the refit's sweeps:
+        where two effects act at low speed their SSE can have two valleys, and the sweeps stay
+        in the one the selection started in. Default: None (none tried)."""
+        return None
+
     def polish(self, ctx: SearchContext, term, others: list):
         """The searched parameter of a selected ``term`` taken again in the final model, with
         the ``others`` selected effects (found after it, they may have biased its search), or

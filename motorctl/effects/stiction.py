@@ -37,6 +37,9 @@ from motorctl.effects.stribeck import velocity_grid
 #: searched velocity band h [m/s]: "at rest" is a fraction of a millimetre per second of the
 #: filtered velocity; a band of several mm/s is low-speed friction (Stribeck's), not a carriage held
 BAND_GRID = np.exp(np.linspace(math.log(1e-5), math.log(3e-3), 20))
+#: a band at least this wide [m/s] may hold part of a low-speed friction (:meth:`StictionFamily.joint_values`;
+#: the clean default plant's band 0.3-0.45 mm/s)
+WIDE_BAND = 1e-3
 #: plausible share of the input held at rest (β1)
 HELD_RANGE = (0.7, 1.3)
 #: the largest input held at rest must reach this share of the Coulomb level θ3 (static
@@ -135,6 +138,7 @@ class StictionFamily(EffectFamily):
     before_current_loop = True
     searched_on_current_loop = True
 
+
     # simulator: the plant core's Karnopp stiction (axis-level option, no hook)
     def sim_config(self, axis_options):
         return axis_options if getattr(axis_options, "stiction_N", 0.0) > 0.0 else None
@@ -174,6 +178,14 @@ class StictionFamily(EffectFamily):
         fine = np.exp(np.linspace(math.log(BAND_GRID[i - 1]), math.log(BAND_GRID[i + 1]), 7))
         term, _ = ctx.best_over(self.name, fine, base)
         return term, None
+
+    def joint_values(self, h):
+        """A band of :data:`WIDE_BAND` or more may hold part of a low-speed friction taken up
+        before that friction was modelled: the narrower bands of the grid (every other one) are
+        tried with Stribeck searched beside each (default plant, Stribeck 30 N / 0.05 m/s: the
+        selection's 2.0 mm/s band left F_s 24.6 N, v_s 0.058 m/s; beside 0.37 mm/s, 29.6 N and
+        0.048 m/s with the lower SSE). Narrower bands: None."""
+        return BAND_GRID[BAND_GRID < float(h)][::2] if float(h) >= WIDE_BAND else None
 
     def polish(self, ctx, term, others):
         """The band searched again (:meth:`search`) with the final model's other effects: taken

@@ -1060,6 +1060,8 @@ class Identifier:
         again = [i for i, f in enumerate(fams)
                  if (loop and (f.values_on_current_loop or f.searched_on_current_loop))
                  or (stick and f.values_on_stick_state)]
+        if loop:
+            terms = self._refit_jointly(ctx, fams, terms, again, built)
         for _ in range(REFIT_SWEEPS if len(again) > 1 else 1):
             for i in again:
                 fam = fams[i]
@@ -1072,6 +1074,32 @@ class Identifier:
         ctx.loop_refit = loop
         ctx.refit_families = sorted({terms[i].family for i in again} | ({terms[held].family} if stick else set()))
         return ctx
+
+    @staticmethod
+    def _refit_jointly(ctx, fams: list, terms: list, again: list, built) -> list:
+        """The refit's start: for a family among ``again`` with
+        :meth:`~motorctl.effects.base.EffectFamily.joint_values` for its selected value, each of
+        those with the ``values_on_current_loop`` families searched beside it; the least-SSE
+        combination replaces ``terms`` when its SSE is lower (the sweeps then start there).
+        Returns the terms."""
+        for i in again:
+            partners = [j for j in again if j != i and fams[j].values_on_current_loop]
+            values = fams[i].joint_values(terms[i].h) if partners else None
+            if values is None:
+                continue
+            best, best_sse = terms, ctx.sse(terms)
+            for h in values:
+                trial = list(terms)
+                trial[i] = built(i, h)
+                for j in partners:
+                    found = fams[j].search(ctx, trial[:j] + trial[j + 1:], None)
+                    if found is not None and not found[1]:
+                        trial[j] = found[0]
+                sse = ctx.sse(trial)
+                if sse < best_sse:
+                    best, best_sse = trial, sse
+            terms = best
+        return terms
 
     # ------------------------------------------------------------------ read-outs
     def coef_split(self, ev: Evaluated, terms: list) -> tuple[np.ndarray, list]:
