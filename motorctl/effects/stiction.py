@@ -138,7 +138,6 @@ class StictionFamily(EffectFamily):
     before_current_loop = True
     searched_on_current_loop = True
 
-
     # simulator: the plant core's Karnopp stiction (axis-level option, no hook)
     def sim_config(self, axis_options):
         return axis_options if getattr(axis_options, "stiction_N", 0.0) > 0.0 else None

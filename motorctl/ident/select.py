@@ -1023,7 +1023,8 @@ class Identifier:
         widens to take part of it; the input delay beyond the loop) on the loop's model, and
         those with ``values_on_stick_state`` with the stick state measured, are searched again
         there, each with the others in the model
-        (:data:`REFIT_SWEEPS` sweeps when more than one), and everything is fitted jointly
+        (:data:`REFIT_SWEEPS` sweeps when more than one; on the loop's model started from the
+        least SSE of :meth:`_refit_jointly`), and everything is fitted jointly
         (IDIM-LS, as :meth:`evaluate`). A dead-zone's values are not taken on the loop's model
         alone: there its offset came out 33-45 % high (20 mV), stiction's band wider.
 
