@@ -384,6 +384,10 @@ class EffectFamily:
     #: searched again in that refit beside such a family: its value moves with what the loop's
     #: lag leaves at each start (stiction's band, the input delay beyond the loop)
     searched_on_current_loop: ClassVar[bool] = False
+    #: this family's columns carry the identifier's thrust shape f_u(u) = u + θ5 u|u| + θ6 u³
+    #: (``Prepared.fu``): the nominal fit's θ5, θ6 during the selection, the final model's after
+    #: it (:meth:`motorctl.ident.select.Identifier.refit_thrust_shape`)
+    columns_on_thrust_shape: ClassVar[bool] = False
     #: selected beside a family that holds the carriage and whose hold the encoder's reading
     #: shows (:meth:`stick_state`), this family's values are taken again with the stick state
     #: measured: they are seen on the samples at each stop and breakaway (a dead-zone's offset)

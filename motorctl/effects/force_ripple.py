@@ -74,6 +74,7 @@ class ForceRippleFamily(PositionPeriodic):
     name = "force_ripple"
     kernels = (("thrust", plant_thrust), ("add", fourier_add))
     plant_force = "F_m(u)·Σ r_k sin(2πkx/P + φ_k)"
+    columns_on_thrust_shape = True
     sim_options = ForceRipple
     example: ClassVar[dict] = {"force_ripple": {"fractions": [0.06], "period_m": 0.045, "phases_rad": [0.5]}}
     #: an encoder's interpolation error at the same period, seen only where the moves end
