@@ -295,6 +295,9 @@ class SearchContext(Protocol):
         """‖β_fast‖/‖β_slow‖ of the term fitted on the faster / slower half of the moving
         samples at which a spatial period [m] passes the position filter (NaN: too few)."""
 
+    def speed_growth_interval(self, term, base: list, period: float) -> tuple[float, float, float]:
+        """(r, lo, hi): :meth:`speed_growth` and its ±2 standard errors (NaN: too few)."""
+
     def target(self, delay: float) -> np.ndarray:
         """The decimated input u(t − delay·Ts) (M,)."""
 

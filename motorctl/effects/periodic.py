@@ -321,18 +321,18 @@ class PositionPeriodic(EffectFamily):
         the check cannot be made, and the term is refused too: a reading's error at such a
         period is seen only there, as a force of any shape (a ripple's fraction, cogging), and
         its growth with the speed, the one feature that tells them, cannot be measured."""
-        growth = ctx.speed_growth(term, base, term.h)
+        growth, lo, hi = ctx.speed_growth_interval(term, base, term.h)
         if math.isnan(growth):
             return [f"too few moving samples slow enough for its period to pass the position filter "
                     f"(|v| < {ctx.p.fq * term.h:.3g} m/s) to check that its amplitude keeps at every "
                     "speed: a reading's error (encoder interpolation) is seen there as well"]
-        if growth > MAX_SPEED_GROWTH:
-            return [f"its amplitude grows with the speed (x{growth:.2f} from the slower to the faster half of "
-                    f"the moves, > {MAX_SPEED_GROWTH:g}): not a force of position; a reading's error "
-                    "(encoder interpolation) does so"]
-        if growth < 1.0 / MAX_SPEED_GROWTH:
-            return [f"its amplitude falls with the speed (x{growth:.2f} from the slower to the faster half of "
-                    f"the moves, < {1.0 / MAX_SPEED_GROWTH:g}): not a force of position"]
+        if lo > MAX_SPEED_GROWTH:
+            return [f"its amplitude grows with the speed (x{growth:.2f}, at least x{lo:.2f}, from the slower to "
+                    f"the faster half of the moves, > {MAX_SPEED_GROWTH:g}): not a force of position; a "
+                    "reading's error (encoder interpolation) does so"]
+        if hi < 1.0 / MAX_SPEED_GROWTH:
+            return [f"its amplitude falls with the speed (x{growth:.2f}, at most x{hi:.2f}, from the slower to "
+                    f"the faster half of the moves, < {1.0 / MAX_SPEED_GROWTH:g}): not a force of position"]
         return []
 
     @staticmethod

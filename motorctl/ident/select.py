@@ -612,19 +612,37 @@ class Identifier:
         ``period`` [m] passes the position filter (|ẋ| < fq·period): about 1 for a force of
         position (cogging, ripple) and for a reading's error in its own columns; a reading's
         error fitted as a force grows with ẋ² (ë = −w²ẋ² e). NaN when too few samples."""
+        return self.speed_growth_interval(term, base, period)[0]
+
+    def speed_growth_interval(self, term: Term, base: list, period: float) -> tuple[float, float, float]:
+        """(r, lo, hi): :meth:`speed_growth` r and r ∓ 2 standard errors (each half's amplitude
+        ‖β‖ with its standard error from the fit's covariance σ̂²(ΦᵀΦ)⁻¹ projected on β/‖β‖; the
+        ratio's by the first-order propagation of the two). NaN (all three) when too few samples."""
         phi, y = self.design(base + [term])
         k = term.cols.shape[1]
         sp = np.abs(self.p.v_d)
         seen = self.moving & (sp < self.p.fq * period)
+        nan = (math.nan, math.nan, math.nan)
         if seen.sum() < 8 * phi.shape[1]:
-            return math.nan
+            return nan
         med = float(np.median(sp[seen]))
-        norms = []
+        norms, rel = [], []
         for sel in (seen & (sp <= med), seen & (sp > med)):
             if sel.sum() < 4 * phi.shape[1]:
-                return math.nan
-            norms.append(float(np.linalg.norm(_coef(phi[sel], y[sel])[-k:])))
-        return norms[1] / norms[0] if norms[0] > 0 else math.inf
+                return nan
+            coef = _coef(phi[sel], y[sel])
+            b = coef[-k:]
+            n = float(np.linalg.norm(b))
+            norms.append(n)
+            if n > 0:
+                g = b / n
+                cov = _cov(phi[sel], y[sel] - phi[sel] @ coef)[-k:, -k:]
+                rel.append(math.sqrt(max(float(g @ cov @ g), 0.0)) / n)
+        if norms[0] <= 0 or len(rel) < 2:
+            return math.inf, math.inf, math.inf
+        r = norms[1] / norms[0]
+        se = r * math.hypot(rel[0], rel[1])
+        return r, r - 2.0 * se, r + 2.0 * se
 
     def judge(self, ev: Evaluated, current: Evaluated, base: list) -> Evaluated:
         gain = 1.0 - ev.heldout_rms / current.heldout_rms
