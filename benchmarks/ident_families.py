@@ -77,8 +77,10 @@ def one(name: str, factor: float, out: str, duration_s: float, config: str, tune
 
     fam = FAMILIES[name]
     fragment, did_scale = scaled(fam.example, factor, fam.size_options)
-    plant = {**FAMILIES[also].example, **fragment} if also and also != name else fragment
-    d = Path(out) / f"{name}_x{factor:g}_s{seed}" if plant is fragment else Path(out) / f"{name}_x{factor:g}+{also}_s{seed}"
+    if also == name:
+        also = None
+    plant = {**FAMILIES[also].example, **fragment} if also else fragment
+    d = Path(out) / f"{name}_x{factor:g}{'+' + also if also else ''}_s{seed}"
     d.mkdir(parents=True, exist_ok=True)
     log = d / "before.mclog"
     make_log(str(log), plant, duration_s=duration_s, seed=seed, axis="X", noise_N=None, base=config)
@@ -92,7 +94,7 @@ def one(name: str, factor: float, out: str, duration_s: float, config: str, tune
     res = {"name": name, "factor": factor, "scaled": did_scale, "named": found is not None,
            "effects": [e["name"] for e in s["effects"]], "values": rows, "cpu_s": cpu,
            "unexplained": bool(s["residual"]["structured"]), "damage_removed": None,
-           "also": also if plant is not fragment else None, "logged_s": float(rec.t[-1] - rec.t[0]),
+           "also": also, "logged_s": float(rec.t[-1] - rec.t[0]),
            "duration_s": duration_s}
     if tune and fam.has_compensation:
         from tune_families import tune_family
@@ -106,9 +108,9 @@ def text(res: dict) -> list[str]:
     vals = "; ".join(f"{k} {a:.4g} → {b:.4g} ({100 * (b - a) / abs(a):+.1f} %)" for k, a, b in res["values"])
     ok = res["named"] and all(abs(b - a) <= TOLERANCE * abs(a) for _, a, b in res["values"])
     named = "named" if res["named"] else f"NOT named (found {', '.join(res['effects']) or 'nothing'})"
-    if res["logged_s"] < 0.95 * res.get("duration_s", res["logged_s"]):
+    if res["logged_s"] < 0.95 * res["duration_s"]:
         named += f" (the log ends at {res['logged_s']:.2f} s: the run faulted)"
-    if res.get("also"):
+    if res["also"]:
         named += f"; {res['also']} " + ("named" if res["also"] in res["effects"] else "NOT named")
         others = [e for e in res["effects"] if e not in (res["name"], res["also"])]
         named += f"; also {', '.join(others)}" if others else ""
@@ -136,7 +138,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     from motorctl.effects import FAMILIES
     names = args.family or list(FAMILIES)
-    unknown = [n for n in names + [args.also or names[0]] if n not in FAMILIES]
+    unknown = [n for n in names + ([args.also] if args.also else []) if n not in FAMILIES]
     if unknown:
         ap.error(f"unknown family {', '.join(unknown)}; families: {', '.join(FAMILIES)}")
     if not Path(args.config).is_file():

@@ -638,9 +638,9 @@ class Identifier:
                 g = b / n
                 cov = _cov(phi[sel], y[sel] - phi[sel] @ coef)[-k:, -k:]
                 rel.append(math.sqrt(max(float(g @ cov @ g), 0.0)) / n)
-        if norms[0] <= 0 or len(rel) < 2:
-            return math.inf, math.inf, math.inf
-        r = norms[1] / norms[0]
+        r = norms[1] / norms[0] if norms[0] > 0 else math.inf
+        if len(rel) < 2:            # a zero amplitude on a half: the ratio 0 or inf, no interval
+            return r, r, r
         se = r * math.hypot(rel[0], rel[1])
         return r, r - 2.0 * se, r + 2.0 * se
 
@@ -807,7 +807,8 @@ class Identifier:
         for _ in range(THRUST_SHAPE_SWEEPS):
             th = current.fit.coef
             self.p.fu = f_u(self.p.u, th[4], th[5])
-            self._cols_cache.clear()
+            for key in [k for k in self._cols_cache if effect_family(k[0]).columns_on_thrust_shape]:
+                del self._cols_cache[key]           # the other families' columns stand
             base = [self.term(t.family, t.h) if effect_family(t.family).columns_on_thrust_shape else t
                     for t in base]
             current = self.evaluate(base)
