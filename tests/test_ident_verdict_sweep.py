@@ -68,3 +68,37 @@ def test_an_error_found_in_the_reading_is_chosen_over_its_force_look_alikes(tmp_
     chosen = idf._look_ahead(cands[0], cands, cands, [])
     assert chosen.term.family == "encoder_interpolation"
     assert [n for n, _ in chosen.rivals] == ["cogging"]
+
+
+def test_a_look_alike_pair_is_decided_by_what_two_more_effects_leave_beside_each():
+    """Default plant with a 1.8 % force ripple (held-out RMS in mV as measured there): a
+    dead-zone leaves the lower held-out RMS alone and beside any one partner, stiction beside the
+    current loop's lag and the ripple together (its true company). The look-ahead takes, beside each contender, the partner that lowers
+    the held-out RMS most, twice, and keeps the contender whose way ends lower; partners come
+    from the step's best candidates and its passing ones beyond them."""
+    from motorctl.ident.select import LOOK_AHEAD, Evaluated, Term
+
+    def ev(family, rms, ok=True, gain=0.0):
+        e = Evaluated(Term(family, None, None), rms, None, 0.0, ok=ok)
+        e.gain = gain
+        return e
+
+    # held-out RMS of each set of families (the step's base is empty)
+    rms = {frozenset(k.split()): v for k, v in {
+        "amplifier_dead_zone": 22.3, "stiction": 25.3,
+        "amplifier_dead_zone force_ripple": 16.5, "stiction force_ripple": 16.9,
+        "amplifier_dead_zone input_delay": 22.3, "stiction input_delay": 18.1,
+        "amplifier_dead_zone force_ripple input_delay": 17.3, "stiction force_ripple input_delay": 4.5,
+    }.items()}
+    fake = SimpleNamespace(evaluate=lambda terms: SimpleNamespace(
+        heldout_rms=rms.get(frozenset(t.family for t in terms), 90.0)))
+    dz, st = ev("amplifier_dead_zone", 22.3, gain=0.717), ev("stiction", 25.3, gain=0.679)
+    # the lag is the fifth candidate by gain, beyond LOOK_AHEAD: a partner as a passing one
+    fillers = [ev(f"phantom_{i}", 90.0, ok=False, gain=0.05 - 0.01 * i) for i in range(LOOK_AHEAD)]
+    ripple, lag = ev("force_ripple", 30.0, gain=0.048), ev("input_delay", 30.6, ok=True, gain=0.025)
+    cands = [dz, st] + fillers + [ripple, lag]
+    chosen = Identifier._look_ahead(fake, dz, [c for c in cands if c.ok], cands, [])
+    assert chosen is st and [n for n, _ in chosen.rivals] == ["amplifier_dead_zone"]
+    # one partner only (the old rule): the dead-zone
+    rms[frozenset(("stiction", "force_ripple", "input_delay"))] = 90.0
+    assert Identifier._look_ahead(fake, dz, [c for c in cands if c.ok], cands, []) is dz
