@@ -226,6 +226,18 @@ def test_dead_zone_width_is_the_force_beyond_its_band_not_the_static_friction(de
     assert not fam.plausible(idf, term, ev.fit.coef[-1:], ev.fit.coef[:6], [st])
 
 
+def test_dead_zone_alone_at_rest_is_taken_with_its_exact_term():
+    """d = 0.15 V, o = 20 mV on an axis without stiction (the dead-zone is what holds it at
+    rest): the grid's width, then the exact lost input f_u(u) − f_u(dz(u + o)) refined from it
+    (the linear columns, first order in o, leave the offset a third low on the rigid plant)."""
+    rec = _simulate(dz=(0.15, 0.02), noise_v=0.02)
+    idf = Identifier(rec, n_theta=6, zoh_delay=0.5)
+    term, note = FAMILIES["amplifier_dead_zone"].search(idf, [], None)
+    assert note is None and getattr(term.h, "offset", None) is not None, term.h
+    assert float(term.h) == pytest.approx(0.15, rel=0.05)
+    assert term.h.offset == pytest.approx(0.02, rel=0.1)
+
+
 def test_stick_state_is_the_reading_standing_still_not_moved_by_the_window():
     """held_by_reading: 1 where the quantized reading stays within one count (the encoder's
     noise flickers it by one), 0 in motion, the motion's edges the same for any window; no
