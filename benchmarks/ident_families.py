@@ -18,7 +18,9 @@ identify reports under the same name (or a name ending in it, e.g. ``velocity_m_
 ``stribeck_velocity_m_per_s``) is compared: true → fitted and the relative error; phases,
 references and shapes are not compared. A row meets the bar when the family is named and every
 compared value is within 10 %; "warns unexplained" is identify's verdict on the residual left
-(with the effect named right, a warning is a false alarm). ``--tune`` adds tune's damage removed
+(with the effect named right, a warning is a false alarm); "also" lists the other effects named
+beyond the plant's own (those identify names on a log of the same plant and seed without the
+effect: the default plant's stiction and current-loop delay), phantoms beside the right name. ``--tune`` adds tune's damage removed
 (:func:`tune_families.tune_family`: before run, identify, after run, floor; compensable families
 only), which takes about a minute of CPU per row more.
 
@@ -75,12 +77,15 @@ def one(name: str, factor: float, out: str, duration_s: float, config: str, tune
     from motorctl.ident.data import load_record
     from motorctl.ident.pipeline import identify_record
 
-    fam = FAMILIES[name]
-    fragment, did_scale = scaled(fam.example, factor, fam.size_options)
+    if name is None:                    # the plant's own: no effect on it
+        fragment, did_scale, also = {}, False, None
+    else:
+        fam = FAMILIES[name]
+        fragment, did_scale = scaled(fam.example, factor, fam.size_options)
     if also == name:
         also = None
     plant = {**FAMILIES[also].example, **fragment} if also else fragment
-    d = Path(out) / f"{name}_x{factor:g}{'+' + also if also else ''}_s{seed}"
+    d = Path(out) / f"{name or 'plant'}_x{factor:g}{'+' + also if also else ''}_s{seed}"
     d.mkdir(parents=True, exist_ok=True)
     log = d / "before.mclog"
     make_log(str(log), plant, duration_s=duration_s, seed=seed, axis="X", noise_N=None, base=config)
@@ -96,15 +101,16 @@ def one(name: str, factor: float, out: str, duration_s: float, config: str, tune
            "unexplained": bool(s["residual"]["structured"]), "damage_removed": None,
            "also": also, "logged_s": float(rec.t[-1] - rec.t[0]),
            "duration_s": duration_s}
-    if tune and fam.has_compensation:
+    if tune and name is not None and fam.has_compensation:
         from tune_families import tune_family
         r = tune_family(name, fragment, d / "tune", duration_s, base=config)
         res["damage_removed"] = r.get("damage_removed")
     return res
 
 
-def text(res: dict) -> list[str]:
-    """The row of the table: family, size, true → fitted (error), verdict, damage removed."""
+def text(res: dict, own=()) -> list[str]:
+    """The row of the table: family, size, true → fitted (error), verdict, damage removed;
+    ``own``: the plant's own effects (named on its log without the effect), not listed as others."""
     vals = "; ".join(f"{k} {a:.4g} → {b:.4g} ({100 * (b - a) / abs(a):+.1f} %)" for k, a, b in res["values"])
     ok = res["named"] and all(abs(b - a) <= TOLERANCE * abs(a) for _, a, b in res["values"])
     named = "named" if res["named"] else f"NOT named (found {', '.join(res['effects']) or 'nothing'})"
@@ -112,7 +118,8 @@ def text(res: dict) -> list[str]:
         named += f" (the log ends at {res['logged_s']:.2f} s: the run faulted)"
     if res["also"]:
         named += f"; {res['also']} " + ("named" if res["also"] in res["effects"] else "NOT named")
-        others = [e for e in res["effects"] if e not in (res["name"], res["also"])]
+    if res["named"] or res["also"]:
+        others = [e for e in res["effects"] if e not in (res["name"], res["also"], *own)]
         named += f"; also {', '.join(others)}" if others else ""
     d = res["damage_removed"]
     return [res["name"], f"×{res['factor']:g}" + ("" if res["scaled"] else " (no force option)"),
@@ -149,24 +156,26 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="motorctl-ident-families-") as tmp:
         out = args.out or tmp
-        work = [(n, f) for n in names for f in sizes]
+        work = [(None, 1.0)] + [(n, f) for n in names for f in sizes]
         job = (out, args.duration, args.config, args.tune, args.current_loop, args.seed, args.also)
         if args.jobs > 1 and len(work) > 1:
             with ProcessPoolExecutor(max_workers=args.jobs) as ex:
                 done = list(ex.map(one, *zip(*work), *([j] * len(work) for j in job)))
         else:
             done = [one(n, f, *job) for n, f in work]
+    own, done = done[0]["effects"], done[1:]
     header = ["family", "size (example ×)", "true → fitted (error)", "within 10 %", "identify",
               "warns unexplained", "damage removed by tune"]
     print(f"identify{' (current loop modelled)' if args.current_loop else ''} on {args.config}"
           + (f" with {args.also} (its example) on every plant" if args.also else "") + ", axis X, "
           f"{args.duration:g} s logs (virtual clock, seed {args.seed}); "
-          f"load average {os.getloadavg()[0]:.2f}\n")
+          f"load average {os.getloadavg()[0]:.2f}; the plant's own effects (named without one): "
+          f"{', '.join(own) or 'none'}\n")
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))
     met = 0
     for r in done:
-        row = text(r)
+        row = text(r, own)
         met += row[3] == "yes"
         print("| " + " | ".join(row) + " |")
     cpu = [r["cpu_s"] for r in done]
