@@ -154,18 +154,20 @@ LOOP_M, LOOP_A1, LOOP_B, LOOP_FC = 10.0, 50.0, 20.0, 8.0
 
 def loop_csv(path, xd: np.ndarray, ts: float = 1e-3, seed: int = 0, y_noise_m: float = 2e-7,
              u_noise_V: float = 0.02, play_V: float = 0.0, enc_m: float = 0.0, cogging_N: float = 0.0,
-             period_m: float = 2e-3) -> str:
+             period_m: float = 2e-3, d_on_reading: bool = False) -> str:
     """A PID position loop on the measured y tracking ``xd`` (N,) [m], written as a CSV
     ``t,y,u`` (a user's measurement; gain :data:`LOOP_A1`): a mass with viscous and Coulomb
     friction, explicit Euler at ``ts`` [s], seeded noise on y and u. Optional, each off at 0: a
     play of ±play_V [V] in the amplifier's input (backlash, no family models it), an
     interpolation error enc_m·sin(2πx/P) [m] of the reading and a cogging force
-    cogging_N·sin(2πx/P) [N], P = period_m. Returns the path as text."""
+    cogging_N·sin(2πx/P) [N], P = period_m. d_on_reading: the loop's derivative term on the
+    reading's backward difference (a servo that chases the reading's error), else on the true
+    velocity. Returns the path as text."""
     import math
     rng = np.random.default_rng(seed)
     n = len(xd)
     t = np.arange(n) * ts
-    x = v = e_int = u_amp = 0.0
+    x = v = e_int = u_amp = y_prev = 0.0
     ys, us = np.empty(n), np.empty(n)
     k = 2 * np.pi / period_m
     for i in range(n):
@@ -173,7 +175,9 @@ def loop_csv(path, xd: np.ndarray, ts: float = 1e-3, seed: int = 0, y_noise_m: f
         e = xd[i] - y
         e_int += e * ts
         vd = (xd[min(i + 1, n - 1)] - xd[i]) / ts
-        u = float(np.clip(4000.0 * e + 40000.0 * e_int + 60.0 * (vd - v) + rng.normal(0.0, u_noise_V), -10.0, 10.0))
+        v_read = (y - y_prev) / ts if d_on_reading and i else v
+        y_prev = y
+        u = float(np.clip(4000.0 * e + 40000.0 * e_int + 60.0 * (vd - v_read) + rng.normal(0.0, u_noise_V), -10.0, 10.0))
         u_amp = max(u - play_V, min(u + play_V, u_amp))     # play operator (backlash)
         a = (LOOP_A1 * u_amp - LOOP_B * v - LOOP_FC * math.tanh(v / 1e-3) + cogging_N * math.sin(k * x)) / LOOP_M
         v += a * ts

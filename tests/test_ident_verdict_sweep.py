@@ -102,3 +102,19 @@ def test_a_look_alike_pair_is_decided_by_what_two_more_effects_leave_beside_each
     # one partner only (the old rule): the dead-zone
     rms[frozenset(("stiction", "force_ripple", "input_delay"))] = 90.0
     assert Identifier._look_ahead(fake, dz, [c for c in cands if c.ok], cands, []) is dz
+
+
+def test_the_carriage_motion_that_chases_the_reading_is_not_taken_for_its_error(tmp_path):
+    """A loop whose derivative acts on the reading chases its ±3 µm error at 2 mm: y − x holds the
+    error and the carriage's own motion above the filter. Taken out (the rigid-body motion the
+    logged input drives, :func:`carriage_motion`), the first harmonic is 3 µm within 1 %;
+    without, 2.7 % high."""
+    from motorctl.effects.encoder_interpolation import search_reading
+    rec = load_record(loop_csv(tmp_path / "enc.csv", fast_moves_xd(duration=4.0), 2e-4, y_noise_m=5e-8,
+                               u_noise_V=0.01, enc_m=3e-6, period_m=2e-3, d_on_reading=True), None, str(LOOP_A1))
+    idf = Identifier(rec)
+    fit, _ = FAMILIES["encoder_interpolation"].reading(idf)
+    assert float(fit) == pytest.approx(2e-3, rel=1e-3)
+    assert np.hypot(*fit.coef[:2]) == pytest.approx(3e-6, rel=0.01)
+    raw, _ = search_reading(idf.p, 1e-3, 0.01)
+    assert np.hypot(*raw.coef[:2]) > 1.02 * 3e-6
