@@ -67,7 +67,8 @@ MIN_SIZE_SHARE = 0.01
 MIN_SIZE_N = 0.5
 #: a look-alike candidate within this share of the selected effect's held-out gain is a rival
 LOOK_ALIKE_SHARE = 0.7
-#: partners a look-alike pair is tried with (the step's best other candidates)
+#: partners a look-alike pair is tried with (the step's best other candidates, and as many of
+#: its passing ones beyond them)
 LOOK_AHEAD = 3
 #: effects taken beside a look-alike contender in its look-ahead (stiction shows itself beside
 #: both the current loop's lag and a ripple, a dead-zone beside either alone)
@@ -1011,9 +1012,9 @@ class Identifier:
         step cannot tell stiction from a dead-zone while the current loop's lag is unmodelled;
         the pair can, and beside a small ripple only the three together (default plant, a 1.8 %
         ripple, held-out RMS in mV of input: a dead-zone 22.3 alone, 16.5 with the ripple, 17.3
-        with the ripple and the lag; stiction 25.3, 16.9 and 4.5). A contender found in the measurement itself
-        (:func:`_found_in_measurement`) is chosen over force look-alikes. The chosen one carries
-        the others in ``rivals``."""
+        with the ripple and the lag; stiction 25.3, 16.9 and 4.5). A contender found in the
+        measurement itself (:func:`_found_in_measurement`) is chosen over force look-alikes.
+        The chosen one carries the others in ``rivals``."""
         alike = effect_family(best.term.family).look_alike
         contenders = [best] + [c for c in good if c.term.family in alike and c.gain >= LOOK_ALIKE_SHARE * best.gain]
         measured = [c for c in contenders if _found_in_measurement(c.term)]
