@@ -56,14 +56,21 @@ from motorctl.effects.periodic import (
 )
 
 
+def _position_filter(fs: float, fq: float):
+    """(b, a) of the position filter of :func:`motorctl.ident.idim.prepare`, applied zero-phase
+    there: Butterworth of order 4 at fq [Hz], for a sample rate fs [Hz]."""
+    from scipy.signal import butter             # identification only
+    return butter(4, fq / (fs / 2))
+
+
 def reading_columns(y: np.ndarray, fs: float, fq: float, period: float) -> np.ndarray:
     """d²/dt² of sin, cos(2π k y / P), k ≤ N_HARMONICS, interleaved (N, 2·N_HARMONICS), through
     the position filter of :func:`motorctl.ident.idim.prepare` (zero-phase Butterworth of order 4
     at fq [Hz]) and two central differences [1/s²]; y: raw measured position (N,) [m], fs [Hz],
     period P [m]."""
-    from scipy.signal import butter, filtfilt   # identification only
+    from scipy.signal import filtfilt           # identification only
     ts = 1.0 / fs
-    b, a = butter(4, fq / (fs / 2))
+    b, a = _position_filter(fs, fq)
     e = filtfilt(b, a, fourier(y, period, N_HARMONICS), axis=0)
     return np.gradient(np.gradient(e, ts, axis=0), ts, axis=0)
 
@@ -207,11 +214,10 @@ def carriage_motion(u: np.ndarray, fs: float, fq: float, theta1: float) -> np.nd
     the error e above its bandwidth in part: y − x then holds e and that motion (20 s logs, 2 mm:
     the first harmonic on the rigid plant +11.0 % at ±1.5 µm, +8.6 % at ±3 µm without it, +2.8 %
     and +0.5 % with it; on the default plant at ±3 µm +3.9 % and −0.5 %)."""
-    from scipy.signal import butter, freqz        # identification only
+    from scipy.signal import freqz              # identification only
     n = len(u)
     w = 2.0 * math.pi * np.fft.rfftfreq(n, 1.0 / fs)
-    b, a = butter(4, fq / (fs / 2))
-    _, h = freqz(b, a, worN=w / fs)              # rad/sample
+    _, h = freqz(*_position_filter(fs, fq), worN=w / fs)     # rad/sample
     high = 1.0 - np.abs(h) ** 2
     spec = np.fft.rfft(u)
     out = np.zeros_like(spec)
