@@ -389,7 +389,7 @@ class EffectFamily:
     searched_on_current_loop: ClassVar[bool] = False
     #: this family's columns carry the identifier's thrust shape f_u(u) = u + θ5 u|u| + θ6 u³
     #: (``Prepared.fu``): the nominal fit's θ5, θ6 during the selection, the final model's after
-    #: it (:meth:`motorctl.ident.select.Identifier.refit_thrust_shape`)
+    #: it (:meth:`motorctl.ident.select.Identifier._refit_thrust_shape`)
     columns_on_thrust_shape: ClassVar[bool] = False
     #: selected beside a family that holds the carriage and whose hold the encoder's reading
     #: shows (:meth:`stick_state`), this family's values are taken again with the stick state

@@ -99,7 +99,7 @@ HOLD_GRID = np.arange(0.0, 1.5 + 1e-9, 0.05)
 #: Gauss-Seidel sweeps of the refit's searches (:meth:`Identifier.refit`; the second moves v_s
 #: by under 2 %, the third by nothing on the default plant's Stribeck logs)
 REFIT_SWEEPS = 2
-#: fixed-point steps of the thrust shape on the final model (:meth:`Identifier.refit_thrust_shape`;
+#: fixed-point steps of the thrust shape on the final model (:meth:`Identifier._refit_thrust_shape`;
 #: the second moves a 9 % ripple's fraction by 0.2 % of itself, the third by nothing)
 THRUST_SHAPE_SWEEPS = 2
 
@@ -793,14 +793,14 @@ class Identifier:
         base, current = self._polish(base, current, searched_with)
         base, accepted, current, doubted = self._doubt(base, accepted, current, steps[-1] if steps else [])
         eliminated += doubted
-        base, current = self.refit_thrust_shape(base, current)
+        base, current = self._refit_thrust_shape(base, current)
         if pool:
             pool.shutdown()
         self.eliminated = eliminated
         self.nominal, self.final, self.terms, self.steps, self.accepted = nominal, current, base, steps, accepted
         return self
 
-    def refit_thrust_shape(self, base: list, current: Evaluated):
+    def _refit_thrust_shape(self, base: list, current: Evaluated):
         """The thrust shape f_u(u) of the selected effects whose columns carry it
         (:attr:`~motorctl.effects.base.EffectFamily.columns_on_thrust_shape`) taken from the
         final model's θ5, θ6 instead of the nominal fit's, :data:`THRUST_SHAPE_SWEEPS` times: an
