@@ -313,9 +313,11 @@ class PositionPeriodic(EffectFamily):
         :data:`MAX_SPEED_GROWTH` times that on the slower half (an encoder's interpolation
         error looks so: the encoder_interpolation family) or less than 1/MAX_SPEED_GROWTH
         times (what the load's play leaves at the ends of the moves fitted at a long period),
-        beyond the ratio's ±2σ interval (:meth:`~motorctl.ident.select.Identifier.speed_growth_interval`:
-        a small effect's halves are noisy; a 3.6 N cogging measured ×2.15), else []. Measured ratios of the true effects (default and rigid plants, examples ×0.5,
-        ×1): cogging 0.95-1.68, force ripple 0.77-0.96, periodic friction 0.78-1.20.
+        beyond the ratio's ±2σ interval
+        (:meth:`~motorctl.ident.select.Identifier.speed_growth_interval`: a small effect's
+        halves are noisy; a 3.6 N cogging measured ×2.15), else []. Measured ratios of the true
+        effects (default and rigid plants, examples ×0.5, ×1): cogging 0.95-1.68, force ripple
+        0.77-0.96, periodic friction 0.78-1.20.
 
         The halves are taken among the samples slow enough for the period P to pass the position
         filter (|ẋ| < f_q·P). When too few are (a period of a few mm: only the ends of the moves),
