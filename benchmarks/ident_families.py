@@ -11,18 +11,17 @@ For each family of :data:`motorctl.effects.FAMILIES` (registry order) and each s
 family's ``example`` with its force-valued options × ``--sizes``, default 0.5 and 1;
 :func:`tune_families.scaled`): a 20 s log of the simulated X axis of ``--config`` (default
 ``configs/gantry.yaml``: structural mode, current loop, encoder noise, stiction; C2, virtual
-clock, ``--seed``, default 1: the simulated driver's noise) with the effect on the plant, undeclared to
-the controller; then identify on it
-(:func:`motorctl.ident.pipeline.identify_record`). Every simulator option of the effect that
+clock, ``--seed``, default 1: the simulated driver's noise) with the effect on the plant,
+undeclared to the controller; then identify on it (:func:`motorctl.ident.pipeline.identify_record`). Every simulator option of the effect that
 identify reports under the same name (or a name ending in it, e.g. ``velocity_m_per_s`` in
 ``stribeck_velocity_m_per_s``) is compared: true → fitted and the relative error; phases,
 references and shapes are not compared. A row meets the bar when the family is named and every
 compared value is within 10 %; "warns unexplained" is identify's verdict on the residual left
 (with the effect named right, a warning is a false alarm); "also" lists the other effects named
 beyond the plant's own (those identify names on a log of the same plant and seed without the
-effect: the default plant's stiction and current-loop delay), phantoms beside the right name. ``--tune`` adds tune's damage removed
-(:func:`tune_families.tune_family`: before run, identify, after run, floor; compensable families
-only), which takes about a minute of CPU per row more.
+effect: the default plant's stiction and current-loop delay), phantoms beside the right name.
+``--tune`` adds tune's damage removed (:func:`tune_families.tune_family`: before run, identify,
+after run, floor; compensable families only), which takes about a minute of CPU per row more.
 
 Exit 0 when every row meets the bar.
 """
