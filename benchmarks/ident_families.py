@@ -12,7 +12,8 @@ family's ``example`` with its force-valued options × ``--sizes``, default 0.5 a
 :func:`tune_families.scaled`): a 20 s log of the simulated X axis of ``--config`` (default
 ``configs/gantry.yaml``: structural mode, current loop, encoder noise, stiction; C2, virtual
 clock, ``--seed``, default 1: the simulated driver's noise) with the effect on the plant,
-undeclared to the controller; then identify on it (:func:`motorctl.ident.pipeline.identify_record`). Every simulator option of the effect that
+undeclared to the controller; then identify on it
+(:func:`motorctl.ident.pipeline.identify_record`). Every simulator option of the effect that
 identify reports under the same name (or a name ending in it, e.g. ``velocity_m_per_s`` in
 ``stribeck_velocity_m_per_s``) is compared: true → fitted and the relative error; phases,
 references and shapes are not compared. A row meets the bar when the family is named and every
@@ -135,7 +136,8 @@ def main(argv=None) -> int:
     ap.add_argument("--tune", action="store_true", help="also tune's damage removed (compensable families)")
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="processes (default 2)")
     ap.add_argument("--out", default=None, help="keep logs here (default: a temporary folder)")
-    ap.add_argument("--seed", type=int, default=1, help="the simulated driver's seed: its force and encoder noise (default 1)")
+    ap.add_argument("--seed", type=int, default=1,
+                    help="the simulated driver's seed: its force and encoder noise (default 1)")
     ap.add_argument("--with", dest="also", default=None, metavar="FAMILY",
                     help="also this family's example (x1) on every row's plant: two effects at once "
                          "(the row's family is judged; the table says what else was named)")
