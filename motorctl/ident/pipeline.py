@@ -104,7 +104,7 @@ def summarise(idf: Identifier) -> dict:
     out["cut_by_limit"] = ([c.term.family for c in idf.steps[-1] if c.ok and not any(c is e for e in chosen)]
                            if idf.steps and len(idf.terms) >= MAX_EFFECTS else [])
     out["residual"] = idf.verdict(idf.final, idf.terms, g, unit)
-    add_refused(out["residual"], idf.steps[-1] if idf.steps else [], chosen)
+    add_refused(out["residual"], idf.verdict_step, chosen)
     return out
 
 
