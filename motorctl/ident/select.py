@@ -907,9 +907,9 @@ class Identifier:
         for :meth:`unexplained` and the residual verdict (``verdict_step``): ``last`` itself when
         it was searched on the final model's terms (``last_base``: the terms then), else (the
         effect limit ended the selection with that step's choice, backward elimination,
-        :meth:`_simplify` or :meth:`_polish` changed the model after it) each of its candidates that explained at
-        least :data:`REFUSED_GAIN` of the held-out residual then, searched again and judged on
-        the final model. A share measured on another model is not what the final residual
+        :meth:`_simplify` or :meth:`_polish` changed the model after it) each of its candidates
+        that explained at least :data:`REFUSED_GAIN` of the held-out residual then, searched
+        again and judged on the final model. A share measured on another model is not what the final residual
         keeps (default plant, seed 1): with the 0.15 V dead-zone, whose width polish moved
         after the last step, a force ripple not the same both ways explained 6.3 % of the
         held-out residual before and 0.2 % after (the verdict warned on it); a 100 N/m spring's
