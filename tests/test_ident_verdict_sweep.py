@@ -158,3 +158,23 @@ def test_the_verdict_reads_the_last_step_as_the_final_model_sees_it():
     add_refused(verdict, fresh, [])
     assert not verdict["structured"]
     assert Identifier._on_final(fake, last, [band, stiction, delay], [delay, band, stiction], fake.final) is last
+
+
+def test_a_line_at_a_harmonic_of_the_program_is_not_told_from_the_moves():
+    """The default program repeats every 4 s: on a 20 s record a line at 2.245 Hz (what a
+    payload change's log named a periodic disturbance at, 8 % of the held-out residual) is its
+    9th harmonic, a 7.3 Hz disturbance (0.05 Hz from the 29th) is not. Motion that does not
+    repeat, or repeats fewer than three times in the record, has no harmonics to judge."""
+    from motorctl.effects.periodic_disturbance import program_harmonic, program_period
+    fs, period = 250.0, 4.0
+    t = np.arange(0.0, 20.0, 1.0 / fs)
+    phase = (t % period) / period
+    x = np.clip(np.minimum(phase, 1.0 - phase) * 4.0 - 0.5, 0.0, 0.4)       # 0 <-> 0.4 m moves
+    p = SimpleNamespace(t_d=t, x_d=x + np.random.default_rng(5).normal(0.0, 1e-6, t.size))
+    assert program_period(p) == pytest.approx(period, abs=1.0 / fs)
+    assert program_harmonic(p, 2.245) == (9, pytest.approx(period, abs=1.0 / fs))
+    assert program_harmonic(p, 7.3) is None
+    drifting = SimpleNamespace(t_d=t, x_d=x * (1.0 + 0.05 * t))              # each cycle longer
+    assert program_period(drifting) is None and program_harmonic(drifting, 2.25) is None
+    short = SimpleNamespace(t_d=t[t < 10.0], x_d=x[t < 10.0])               # 2.5 periods
+    assert program_period(short) is None

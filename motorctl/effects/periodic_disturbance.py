@@ -43,6 +43,15 @@ MIN_LOOP_SHARE = 0.3
 #: largest inertial share judged: beyond it the program's own motion at f (leaking into a short
 #: record's fit: the 6 s rigid-plant log of the 7.3 Hz example, share 6.0) dominates the fit
 MAX_LOOP_SHARE = 3.0
+#: least correlation of the decimated position with itself one program period later for the
+#: record's motion to repeat (:func:`program_period`)
+MIN_REPEAT_CORR = 0.99
+#: least number of program periods in the record for a line to be judged against the program's
+#: harmonics (fewer: the harmonics are not resolved apart)
+MIN_PERIODS = 3
+#: a line within this share of the record's frequency resolution 1/L of a harmonic of the
+#: program's period is at that harmonic
+HARMONIC_SHARE = 0.25
 #: spectrum peaks the search refines
 SEARCH_PEAKS = 4
 #: Frequency grid step [Hz] of the spectrum search.
@@ -54,6 +63,42 @@ def plant_force(f, x, v, t, sf, p):
     """f + F_eff [N] at plant time t [s] (x, v, sf unused): f + A' sin(w t + φ), A' = A before
     t_s, A_2 from t_s on; the row p = (A [N], w [rad/s], φ [rad], t_s [s] (inf: no step), A_2 [N])."""
     return f + (p[4] if t >= p[3] else p[0]) * math.sin(p[1] * t + p[2])
+
+
+def program_period(p) -> float | None:
+    """The period T [s] with which the record's motion repeats (a cyclic program), or None.
+
+    T is the lag in [0.5 s, L/:data:`MIN_PERIODS`] (L the record's length) at which the
+    decimated position, less its mean, correlates most with itself (the correlation
+    coefficient of x(t) and x(t + T) over their overlap), taken when that correlation is at
+    least :data:`MIN_REPEAT_CORR`. ``p``: the prepared record (x_d [m], t_d [s], (M,))."""
+    x = p.x_d - np.mean(p.x_d)
+    m = len(x)
+    dt = (p.t_d[-1] - p.t_d[0]) / max(m - 1, 1)
+    lo, hi = int(math.ceil(0.5 / dt)), int((m - 1) / MIN_PERIODS)
+    if hi <= lo or not float(x @ x) > 0:
+        return None
+    n = 1 << (2 * m - 1).bit_length()
+    spec = np.fft.rfft(x, n)
+    lags = np.arange(lo, hi + 1)
+    cross = np.fft.irfft(spec * np.conj(spec), n)[lags]          # Σ x(t) x(t + lag)
+    sq = np.cumsum(x * x)
+    head, tail = sq[m - 1 - lags], sq[-1] - sq[lags - 1]           # Σ x² of x(t), of x(t + lag)
+    corr = cross / np.sqrt(np.maximum(head * tail, 1e-300))
+    k = int(np.argmax(corr))
+    return float((lo + k) * dt) if corr[k] >= MIN_REPEAT_CORR else None
+
+
+def program_harmonic(p, f_Hz: float) -> tuple[int, float] | None:
+    """(k, T): the line at ``f_Hz`` [Hz] is the k-th harmonic of the program's period T [s]
+    (:func:`program_period`): within :data:`HARMONIC_SHARE` of the record's resolution 1/L of
+    k/T; None when it is not, or the motion does not repeat."""
+    period = program_period(p)
+    if period is None:
+        return None
+    k = int(round(f_Hz * period))
+    length = float(p.t_d[-1] - p.t_d[0])
+    return (k, period) if k >= 1 and abs(f_Hz - k / period) < HARMONIC_SHARE / length else None
 
 
 class PeriodicDisturbance(AmplitudeStep):
@@ -173,6 +218,12 @@ class PeriodicDisturbanceFamily(EffectFamily):
             return [f"the loop itself oscillates at {term.h:.4g} Hz (the input carries {drive:.2f} and the "
                     f"carriage's inertial force {inertial:.2f} of the fitted force, both >= {MIN_LOOP_SHARE:g}): "
                     "a resonance of the loop or the structure, not a force from outside"]
+        at = program_harmonic(ctx.p, float(term.h))
+        if at is not None:
+            k, period = at
+            return [f"at {term.h:.4g} Hz, harmonic {k} of the program's period {period:.4g} s (the motion repeats "
+                    "with it): a force in step with the moves, an error of the model that repeats with the "
+                    "program, is not told from one from outside"]
         return []
 
     def parameters(self, h, beta, gain, fs):
