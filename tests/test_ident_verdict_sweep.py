@@ -174,7 +174,7 @@ def test_a_line_at_a_harmonic_of_the_program_is_not_told_from_the_moves():
     assert program_period(p) == pytest.approx(period, abs=1.0 / fs)
     assert program_harmonic(p, 2.245) == (9, pytest.approx(period, abs=1.0 / fs))
     assert program_harmonic(p, 7.3) is None
-    drifting = SimpleNamespace(t_d=t, x_d=x * (1.0 + 0.05 * t))              # each cycle longer
+    drifting = SimpleNamespace(t_d=t, x_d=x * (1.0 + 0.05 * t))              # a stroke growing 5 %/s
     assert program_period(drifting) is None and program_harmonic(drifting, 2.25) is None
     short = SimpleNamespace(t_d=t[t < 10.0], x_d=x[t < 10.0])               # 2.5 periods
     assert program_period(short) is None
