@@ -760,9 +760,7 @@ class Identifier:
             while len(base) < max_effects:
                 residual = current.fit.residual
                 step_base = list(base)
-                todo = [fam for fam in self.families
-                        if fam not in out and not any(t.family == fam for t in base)
-                        and not (effect_family(fam).shifts_input and any(t.delay for t in base))]
+                todo = [fam for fam in self.families if fam not in out and _searchable(fam, base)]
 
                 def one(fam, base=base, residual=residual, current=current):
                     t0 = time.thread_time()
@@ -908,21 +906,20 @@ class Identifier:
         it was searched on the final model's terms (``last_base``: the terms then), else (the
         effect limit ended the selection with that step's choice, backward elimination,
         :meth:`_simplify` or :meth:`_polish` changed the model after it) each of its candidates
-        that explained at least :data:`REFUSED_GAIN` of the held-out residual then, searched
-        again and judged on the final model. A share measured on another model is not what the final residual
-        keeps (default plant, seed 1): with the 0.15 V dead-zone, whose width polish moved
-        after the last step, a force ripple not the same both ways explained 6.3 % of the
-        held-out residual before and 0.2 % after (the verdict warned on it); a 100 N/m spring's
-        log ended at the limit with a friction that falls with the speed (Stribeck at the
-        searched range's edge) explaining 24 % before the fourth effect and 8 % after it."""
+        that explained at least :data:`REFUSED_GAIN` of the held-out residual then and can be
+        searched beside ``base`` (:func:`_searchable`), searched again and judged on the final
+        model. A share measured on another model is not what the final residual keeps (default
+        plant, seed 1): with the 0.15 V dead-zone, whose width polish moved after the last step,
+        a force ripple not the same both ways explained 6.3 % of the held-out residual before
+        and 0.2 % after (the verdict warned on it); a 100 N/m spring's log ended at the limit
+        with a friction that falls with the speed (Stribeck at the searched range's edge)
+        explaining 24 % before the fourth effect and 8 % after it."""
         if {id(t) for t in last_base} == {id(t) for t in base}:
             return last
-        fams = {t.family for t in base}
         out = []
         for c in last:
             fam = c.term.family
-            if (getattr(c, "gain", 0.0) < REFUSED_GAIN or fam in fams
-                    or (effect_family(fam).shifts_input and any(t.delay for t in base))):
+            if getattr(c, "gain", 0.0) < REFUSED_GAIN or not _searchable(fam, base):
                 continue
             ev = self.search(fam, base, current.fit.residual)
             if ev is not None:
@@ -1275,6 +1272,13 @@ def _coef(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
 REFUSED_GAIN = 0.06
 #: reasons that say a candidate explains too little, not that its physics does not fit
 _WEAK = ("coefficients not significant", "too small to name", "held-out gain", "BIC drop", "effect larger than")
+
+
+def _searchable(family: str, base: list) -> bool:
+    """``family`` can be a candidate beside the terms ``base``: not among them, and not a
+    second shift of the input where one is modelled (a found delay)."""
+    return (not any(t.family == family for t in base)
+            and not (effect_family(family).shifts_input and any(t.delay for t in base)))
 
 
 def refused_on_physics(c) -> bool:
