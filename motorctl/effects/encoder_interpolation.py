@@ -6,7 +6,7 @@ Physical model (an incremental sin/cos scale read through an interpolator; Heide
 
     y = x + e(x),   e(x) = Σ_k a_k sin(2π k x / P + φ_k)                          [m]
 
-with P the scale's signal period (20 µm optical, 1-5 mm magnetic) and k = 1, 2 (offset and
+with P the scale's signal period (20 µm optical, 0.5-5 mm magnetic) and k = 1, 2 (offset and
 amplitude mismatch of the two signals give the first harmonic, their phase error the second).
 No force acts: the motor drives the true x, so u = θ1 ẍ + … = θ1 (ÿ − ë) + …, and the residual
 of the paper's model on the measured y is −θ1 ë(y). Its signature differs from cogging's
@@ -75,10 +75,6 @@ def reading_columns(y: np.ndarray, fs: float, fq: float, period: float) -> np.nd
     return np.gradient(np.gradient(e, ts, axis=0), ts, axis=0)
 
 
-#: signal periods searched [m]: magnetic scales (1-5 mm) and coarse optical ones; a 20 µm optical
-#: scale's error is far above the position filter at any speed the record moves with
-PERIOD_MIN_M = 1e-3
-PERIOD_MAX_M = 0.01
 #: a force-side period whose first harmonic is below this share of its second is taken as
 #: half as long (P's second harmonic is P/2's fundamental: the grid's SSE cannot tell them)
 HALF_PERIOD_SHARE = 0.25
@@ -99,6 +95,13 @@ SETTLE_FQ = 2.5
 #: period bands searched on the reading: each band [P, BAND_RATIO·P] uses the samples fast
 #: enough for its longest period
 BAND_RATIO = 1.5
+#: signal periods searched [m]: magnetic and inductive scales (0.5-5 mm) and coarse optical
+#: ones; a 20 µm optical scale's error is far above the position filter at any speed the record
+#: moves with. The lower end is two bands below 1 mm (0.444 mm), so the bands from 1 mm up keep
+#: their edges: a ±2.5 µm error at 0.8 mm, not searched from 1 mm, was named a force ripple at
+#: 3.07 mm (default plant, seed 13), and is found in the reading from here (2.45 µm)
+PERIOD_MIN_M = 1e-3 / BAND_RATIO ** 2
+PERIOD_MAX_M = 0.01
 #: least samples (and signal periods travelled) of a band for its fit to be made
 MIN_READING_SAMPLES = 400
 MIN_PERIODS_TRAVELLED = 50.0
@@ -106,7 +109,7 @@ MIN_PERIODS_TRAVELLED = 50.0
 #: P/travel wide (0.5 % for 2 mm over 0.4 m), so the peaks are refined on the exact fit
 READING_STEP = 0.002
 #: each band's periodogram reaches this many steps beyond its edges: a peak is a local maximum,
-#: so a period on a band's edge (1 mm, the search's lower end, or 1.5 mm between two bands) is
+#: so a period on a band's edge (the search's lower end, or 1 mm, 1.5 mm between two bands) is
 #: found only on a grid that extends past it (a ±1.5 µm error at exactly 1 mm was missed)
 EDGE_STEPS = 5
 #: periods no band can show at :data:`PASS_FACTOR` are searched on the reading again where the
