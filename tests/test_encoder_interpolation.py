@@ -164,15 +164,3 @@ def test_a_weak_effect_beside_an_unexplained_structure_is_dropped(fast_run, monk
     monkeypatch.setattr(Identifier, "unexplained", lambda self, cur, t, last: False)
     assert idf._doubt(terms, accepted, current, [])[3] == []
 
-
-def test_a_sub_millimetre_signal_period_is_found_in_the_reading(tmp_path):
-    """A scale of 0.8 mm signal period (below the 1 mm of most magnetic scales): its error is
-    found in the reading, period and amplitude near the truth, not left to the force side (a
-    ±2.5 µm error at 0.8 mm on the default plant was named a force ripple while the search
-    started at 1 mm)."""
-    rec = load_record(loop_csv(tmp_path / "r.csv", fast_moves_xd(), 2e-4, y_noise_m=5e-8, u_noise_V=0.01,
-                               period_m=8e-4, enc_m=2.5e-6), None, str(A1))
-    fit, _ = FAMILIES["encoder_interpolation"].reading(Identifier(rec))
-    assert fit is not None and fit.share > 0.9, fit
-    assert float(fit) == pytest.approx(8e-4, rel=2e-3)
-    assert np.hypot(*fit.coef[:2]) == pytest.approx(2.5e-6, rel=0.05)

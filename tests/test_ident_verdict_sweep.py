@@ -18,10 +18,11 @@ from motorctl.ident.verdict import residual_verdict
 from harness import LOOP_A1, fast_moves_xd, loop_csv
 
 
-@pytest.mark.parametrize("period, amp", [(1e-3, 1.5e-6), (3e-3, 3e-6)])
+@pytest.mark.parametrize("period, amp", [(1e-3, 1.5e-6), (3e-3, 3e-6), (8e-4, 2.5e-6)])
 def test_the_reading_shows_the_error_at_a_band_edge_and_beyond_the_strict_speed(tmp_path, period, amp):
-    """1 mm is the search's lower end: a peak there is a local maximum only on a grid that
-    reaches past it (missed before; a 2 mm fit of its second harmonic could win instead). 3 mm
+    """1 mm is a band's edge: a peak there is a local maximum only on a grid that reaches past
+    it (missed before; a 2 mm fit of its second harmonic could win instead). 0.8 mm is below
+    the 1 mm of most magnetic scales (named a force ripple while the search began at 1 mm). 3 mm
     at a 1.5 m/s peak needs 1.7 m/s for the strict pass (2 fq·P of its band's longest period)
     and is found where its frequency is 1.5 fq, the columns weighed by what the filter leaves."""
     rec = load_record(loop_csv(tmp_path / "enc.csv", fast_moves_xd(duration=4.0), 2e-4, y_noise_m=5e-8, u_noise_V=0.01,
