@@ -163,4 +163,3 @@ def test_a_weak_effect_beside_an_unexplained_structure_is_dropped(fast_run, monk
     assert "encoder_interpolation" in [t.family for t in kept] and len(acc) == len(kept)
     monkeypatch.setattr(Identifier, "unexplained", lambda self, cur, t, last: False)
     assert idf._doubt(terms, accepted, current, [])[3] == []
-
