@@ -395,6 +395,11 @@ class EffectFamily:
     #: shows (:meth:`stick_state`), this family's values are taken again with the stick state
     #: measured: they are seen on the samples at each stop and breakaway (a dead-zone's offset)
     values_on_stick_state: ClassVar[bool] = False
+    #: the effect is an error of the measurement, not a force (an encoder's interpolation
+    #: error): the carriage moves as without it, and its columns stand for what it puts into
+    #: the measured acceleration; a model simulated from the input leaves them out and reads
+    #: its position through :meth:`reading_error`
+    measurement: ClassVar[bool] = False
 
     def __repr__(self) -> str:
         return f"<effect family {self.name}>"
@@ -463,6 +468,16 @@ class EffectFamily:
             A term of this family (``ctx.best_between`` / ``ctx.term``) or None.
         """
         return None
+
+    def reading_error(self, h, beta: np.ndarray, theta1: float, x: np.ndarray) -> np.ndarray:
+        """The error [m] (N,) a :attr:`measurement` effect adds to the reading at the carriage's
+        positions ``x`` [m] (N,), from its fitted term (searched value h, coefficients beta (k,),
+        θ1 [V·s²/m] of the same fit): the reading is x + this.
+
+        Raises:
+            NotImplementedError: the family is not a :attr:`measurement`.
+        """
+        raise NotImplementedError(f"{self.name} is a force, not an error of the reading")
 
     def searched_again(self, ctx: SearchContext, others: list):
         """:meth:`search` run again with ``others`` as the base (for a :meth:`polish`): its term,

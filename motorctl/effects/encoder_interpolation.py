@@ -496,19 +496,24 @@ class EncoderInterpolationFamily(PositionPeriodic):
                     "error does not"]
         return []
 
+    def reading_error(self, h, beta, theta1, x):
+        """e(x) [m] (N,) at the carriage's positions x [m] (N,): found in the reading (a
+        :class:`ReadingFit`), its own fit of y − x; found on the force, −Cβ/θ1 (C the sin, cos
+        columns of the period h [m], β (2·N_HARMONICS,), θ1 > 0 [V·s²/m])."""
+        if isinstance(h, ReadingFit):
+            return fourier(x, h, N_HARMONICS) @ np.asarray(h.coef)
+        return -(fourier(x, h, N_HARMONICS) @ np.asarray(beta)) / theta1
+
     def shape(self, ctx, h, beta, gain):
-        """The reading's error e(x) [m] over at most four periods (found in the reading: its own
-        fit; on the force: −Cβ/θ1, or θ1·e in V·s² without θ1)."""
+        """The reading's error e(x) [m] over at most four periods (:meth:`reading_error`; on the
+        force without θ1: θ1·e in V·s²)."""
         th1 = None
         xs = self.position_grid(ctx, h)
-        if isinstance(h, ReadingFit):
-            return xs, fourier(xs, h, N_HARMONICS) @ np.asarray(h.coef), "position [m]", "reading error [m]"
-        y = fourier(xs, h, N_HARMONICS) @ beta
-        if getattr(ctx, "final", None) is not None:
+        if not isinstance(h, ReadingFit) and getattr(ctx, "final", None) is not None:
             th1 = float(ctx.final.fit.coef[0])
-        if th1 and th1 > 0 and math.isfinite(th1):
-            return xs, -y / th1, "position [m]", "reading error [m]"
-        return xs, -y, "position [m]", "theta1 x reading error [V s^2]"
+        if isinstance(h, ReadingFit) or (th1 and th1 > 0 and math.isfinite(th1)):
+            return xs, self.reading_error(h, beta, th1, xs), "position [m]", "reading error [m]"
+        return xs, -(fourier(xs, h, N_HARMONICS) @ beta), "position [m]", "theta1 x reading error [V s^2]"
 
 
 FAMILY = EncoderInterpolationFamily()

@@ -9,6 +9,9 @@ windows of ``window_s`` seconds, driven by the measured input, and
 
 over all windows. The model is u = Φθ + Cβ (idim.py, effects.py) solved for the acceleration
 (it is affine in ẍ: θ1 plus a payload step), integrated by semi-implicit Euler at the sample rate.
+An error of the reading (an encoder's interpolation error: a family's ``measurement``) is no
+force: its columns, which stand for what it puts into the measured acceleration, are left out,
+and the simulated position is read through it, ŷ = x + e(x).
 """
 
 from __future__ import annotations
@@ -50,11 +53,16 @@ def simulation_fit(idf, terms: list, ev, window_s: float = 0.2) -> float | None:
     dy_all = []
     fu_coef = (th[4], th[5]) if nt == 6 else None
     families = [effect_family(t.family) for t in terms]
+    # an error of the reading (an encoder's) is no force: the carriage is simulated without its
+    # columns, and read through it, ŷ = x + e(x)
+    read = [(fam, t, b) for fam, t, b in zip(families, terms, betas) if fam.measurement]
+    forces = [(fam, t, b) for fam, t, b in zip(families, terms, betas) if not fam.measurement and t.cols is not None]
     for k in range(length):
         idx = starts + k
         uk, uk_curve = uc[idx, 0], uc[idx, 1:]
         dy_all.append(p.y[idx] - y0)
-        err2.append(p.y[idx] - x)          # Δy − Δŷ with Δ from the measured start y0
+        y_hat = x + sum(fam.reading_error(t.h, b, th[0], x) for fam, t, b in read) if read else x
+        err2.append(p.y[idx] - y_hat)      # Δy − Δŷ with Δ from the measured start y0
         zero = np.zeros_like(x)
         phi = idim_regressor(zero, v, uk, nt)      # at ẍ = 0; the row at ẍ = 1 differs in column 0
         if idf.friction == "sign":
@@ -69,9 +77,8 @@ def simulation_fit(idf, terms: list, ev, window_s: float = 0.2) -> float | None:
                 phi[:, 0] = a_val
             val = phi @ th
             q = Signals(x, v, a_val, uk, p.t[idx], fu)
-            for fam, t, b in zip(families, terms, betas):
-                if t.cols is not None:
-                    val = val + fam.columns(t.h, q) @ b
+            for fam, t, b in forces:
+                val = val + fam.columns(t.h, q) @ b
             rest_cols.append(val)
         m_eff = rest_cols[1] - rest_cols[0]
         acc = (uk - rest_cols[0]) / np.where(np.abs(m_eff) > 1e-12, m_eff, 1e-12)
