@@ -53,10 +53,10 @@ def simulation_fit(idf, terms: list, ev, window_s: float = 0.2) -> float | None:
     dy_all = []
     fu_coef = (th[4], th[5]) if nt == 6 else None
     families = [effect_family(t.family) for t in terms]
-    # an error of the reading (an encoder's) is no force: the carriage is simulated without its
-    # columns, and read through it, ŷ = x + e(x)
-    read = [(fam, t, b) for fam, t, b in zip(families, terms, betas) if fam.measurement]
-    forces = [(fam, t, b) for fam, t, b in zip(families, terms, betas) if not fam.measurement and t.cols is not None]
+    # an error of the reading is no force (the module docstring): read through, not simulated
+    fitted = list(zip(families, terms, betas))
+    read = [(fam, t, b) for fam, t, b in fitted if fam.measurement]
+    forces = [(fam, t, b) for fam, t, b in fitted if not fam.measurement and t.cols is not None]
     for k in range(length):
         idx = starts + k
         uk, uk_curve = uc[idx, 0], uc[idx, 1:]
