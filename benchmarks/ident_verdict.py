@@ -35,8 +35,9 @@ Cases (``configs/gantry.yaml``, axis X, C2, virtual clock; :func:`motorctl.commi
   check refuses it); no warning is a **miss**.
 
 Other sizes (``--case sizes``): the encoder's error of ±1.5 µm and ±5 µm at 1 mm and 4 mm
-signal periods (``encoder1.5um1mm`` ...) and of ±2.5 µm at 0.8 mm, the mode at 120 and 200 Hz (``mode120``, ``mode200``),
-the play of 20 and 100 µm (``backlash20``, ``backlash100``); each judged as its kind above. A
+signal periods (``encoder1.5um1mm`` ...) and of ±2.5 µm at 0.8 mm (``encoder2.5um0.8mm``), the
+mode at 120 and 200 Hz (``mode120``, ``mode200``), the play of 20 and 100 µm (``backlash20``,
+``backlash100``); each judged as its kind above. A
 200 Hz mode's antiresonance lies above the searched range (f_a 155 Hz on the default plant, 167
 Hz on the rigid plant's load of 0.3): it is told by the warning, the family refused at the
 grid's edge as a bandwidth limit, with the load the band sees (m_l/M = (f_a/f_M)²).
