@@ -3,18 +3,22 @@ of position keeps its amplitude at every speed, so a term whose amplitude on the
 the moves differs from the slower half's by more than MAX_SPEED_GROWTH either way is refused, and
 so is a term the check cannot judge (too few moving samples slow enough for its period to pass
 the position filter: a reading's error at a period of a few mm shows only there). A ratio whose
-±2σ interval reaches back within the bounds (a small effect's noisy halves) is not refused. No
-identify run: the identifier's ratio and interval are given."""
+±2σ interval reaches back within the bounds (a small effect's noisy halves) is not refused.
+A force of position acts at every thrust as well: a term that explains less than MIN_TAIL_KEPT of
+its share without the samples at the largest |u| is refused, and the residual verdict does not
+count that reason alone as a structure. No identify run: the identifier's ratio, interval and
+shares are given."""
 
 from __future__ import annotations
 
 import math
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from motorctl.effects import FAMILIES
-from motorctl.effects.periodic import MAX_SPEED_GROWTH
+from motorctl.effects.periodic import FEW_SAMPLES, MAX_SPEED_GROWTH, MIN_TAIL_KEPT, THRUST_TAIL
 
 
 def _reasons(family: str, growth: float, se: float = 0.0) -> list[str]:
@@ -53,3 +57,79 @@ def test_a_term_the_speed_check_cannot_judge_is_refused(family):
     assert len(out) == 1 and "too few moving samples" in out[0]
     assert "0.721 m/s" in out[0]          # f_q·P = 250 Hz · 2.883 mm, the speed the period passes
     assert len(_reasons(family, math.inf)) == 1
+
+
+# ---------------------------------------------------------------- the largest thrusts (thrust_check)
+def _thrust_reasons(family: str, full: float, kept: float, u_d):
+    """The thrust check's reasons with the identifier's shares given: ``full`` on the moving
+    samples, ``kept`` on those without the largest |u|; also the rows it asked about."""
+    asked = []
+
+    def share(term, base, rows):
+        asked.append(rows.copy())
+        return full if len(asked) == 1 else kept
+    u_d = np.asarray(u_d, dtype=float)
+    ctx = SimpleNamespace(p=SimpleNamespace(u_d=u_d), moving=np.ones(u_d.size, dtype=bool), explained_share=share)
+    term = SimpleNamespace(family=family, h=0.0716, cols=None)
+    return FAMILIES[family].thrust_check(ctx, term, []), asked
+
+
+@pytest.mark.parametrize("family", ["cogging", "force_ripple", "periodic_friction"])
+def test_a_force_of_position_is_seen_away_from_the_largest_thrusts(family):
+    u = np.linspace(-10.0, 10.0, 1001)
+    # the true effects keep 0.73-1.00 of their share without the largest thrusts
+    for kept in (0.4, 0.73 * 0.4, MIN_TAIL_KEPT * 0.4):
+        out, asked = _thrust_reasons(family, 0.4, kept, u)
+        assert out == [], kept
+    # the rows left out are the THRUST_TAIL of the samples with the largest |u|, both signs
+    full_rows, kept_rows = asked
+    assert full_rows.all()
+    left = np.abs(u[~kept_rows])
+    assert (~kept_rows).sum() == pytest.approx(THRUST_TAIL * u.size, abs=2)
+    assert left.min() >= np.abs(u[kept_rows]).max()
+    # a clean plant driven to its limit: a 72 mm "ripple" keeps 0.14-0.29 of its share
+    out, _ = _thrust_reasons(family, 0.234, 0.033, u)
+    assert len(out) == 1 and out[0].startswith(FEW_SAMPLES), out
+    assert "23.4 %" in out[0] and "3.3 %" in out[0]
+
+
+def test_a_candidate_refused_only_for_its_few_samples_is_not_a_structure():
+    """The residual verdict reports a candidate refused on its physics; one refused because its
+    evidence is a few samples at the largest thrusts is not reported for that alone, and that
+    reason does not hide what its other reasons say (a ripple not the same both ways)."""
+    from motorctl.ident.select import REFUSED_GAIN, refused_on_physics
+
+    def cand(*reasons):
+        return SimpleNamespace(ok=False, gain=2 * REFUSED_GAIN, reasons=list(reasons))
+    few = f"{FEW_SAMPLES}: it explains 23.4 % of the moving samples' residual, 3.3 % without ..."
+    physics = "not the same force in both directions (agreement 0.04 < 0.5)"
+    assert not refused_on_physics(cand(few))
+    assert refused_on_physics(cand(physics, few))
+    assert refused_on_physics(cand(physics))
+    assert not refused_on_physics(cand(physics, few, "held-out gain 1.8 % < 3 %"))
+
+
+def test_the_explained_share_is_fitted_on_the_rows_given():
+    """Identifier.explained_share: the share of the base model's residual SSE that the term's
+    columns explain, both fitted on the rows given only."""
+    from motorctl.ident.select import Identifier
+    rng = np.random.default_rng(7)
+    m = 2000
+    phi0 = rng.standard_normal((m, 3))
+    noise = 0.1 * rng.standard_normal(m)
+    tail = np.zeros(m, dtype=bool)
+    tail[-40:] = True
+    # a column ten times larger on the last 2 % of the rows (a thrust fraction at the largest
+    # |u|), and a residual that follows it there only
+    col = (rng.standard_normal(m) * np.where(tail, 10.0, 1.0))[:, None]
+    y = phi0 @ np.array([1.0, -2.0, 0.5]) + np.where(tail, col[:, 0], 0.0) + noise
+    fake = SimpleNamespace(design=lambda terms: (np.hstack([phi0] + [col] * len(terms)), y))
+    term = SimpleNamespace(cols=col)
+    full = Identifier.explained_share(fake, term, [], np.ones(m, dtype=bool))
+    kept = Identifier.explained_share(fake, term, [], ~tail)
+    assert full > 0.5 and abs(kept) < 0.01, (full, kept)
+    # a term that explains the residual on every row keeps its share without the tail
+    y_all = phi0 @ np.array([1.0, -2.0, 0.5]) + 0.3 * col[:, 0] + noise
+    fake_all = SimpleNamespace(design=lambda terms: (np.hstack([phi0] + [col] * len(terms)), y_all))
+    assert Identifier.explained_share(fake_all, term, [], ~tail) > 0.8
+    assert Identifier.explained_share(fake, term, [], tail & (np.arange(m) % 7 == 0)) == 0.0   # too few rows

@@ -51,6 +51,7 @@ from motorctl.effects import FAMILIES, family as effect_family
 from motorctl.effects.base import EffectFamily
 from motorctl.effects.input_delay import (HOLD_TOLERANCE, FoundDelay, amplifier_loop, current_loop_filter,
                                           delayed, loop_lag)
+from motorctl.effects.periodic import FEW_SAMPLES
 from motorctl.ident.data import Record
 from motorctl.ident.idim import Prepared, choose_n_theta, ls, prepare
 from motorctl.ident.verdict import residual_verdict
@@ -597,6 +598,19 @@ class Identifier:
                 reasons.append("effect larger than half the input range")
             reasons += fam.plausible(self, term, beta, th, base)
         return reasons
+
+    def explained_share(self, term: Term, base: list, rows: np.ndarray) -> float:
+        """The share [-] of the residual SSE of the model of ``base`` that adding ``term``
+        explains, both fitted jointly with the nominal θ on the decimated samples ``rows``
+        ((M,) bool) only; 0 when they are too few for the fit or leave no residual."""
+        phi1, y1 = self.design(base + [term])
+        if rows.sum() < 4 * phi1.shape[1]:
+            return 0.0
+        phi0, y0 = self.design(base)
+        r0 = y0[rows] - phi0[rows] @ _coef(phi0[rows], y0[rows])
+        r1 = y1[rows] - phi1[rows] @ _coef(phi1[rows], y1[rows])
+        s0 = float(r0 @ r0)
+        return (s0 - float(r1 @ r1)) / s0 if s0 > 0 else 0.0
 
     def direction_agreement(self, term: Term, base: list) -> float:
         """1 − ‖β₊ − β₋‖/(‖β₊‖ + ‖β₋‖) for the effect's coefficients fitted jointly with the
@@ -1284,7 +1298,10 @@ def _searchable(family: str, base: list) -> bool:
 def refused_on_physics(c) -> bool:
     """A candidate (:class:`~motorctl.ident.select.Evaluated`) that explains at least
     :data:`REFUSED_GAIN` of the held-out residual and was refused only because its physics does
-    not fit (no reason of :data:`_WEAK`)."""
-    if c.ok or getattr(c, "gain", 0.0) < REFUSED_GAIN or not c.reasons:
+    not fit (no reason of :data:`_WEAK`). A reason that its evidence is a few samples at the
+    largest thrusts (:data:`~motorctl.effects.periodic.FEW_SAMPLES`) is neither: it does not make
+    a structure of the candidate, and it does not hide the structure its other reasons show."""
+    reasons = [r for r in c.reasons if not r.startswith(FEW_SAMPLES)]
+    if c.ok or getattr(c, "gain", 0.0) < REFUSED_GAIN or not reasons:
         return False
-    return not any(r.startswith(_WEAK) for r in c.reasons)
+    return not any(r.startswith(_WEAK) for r in reasons)
