@@ -62,16 +62,6 @@ F_MIN_HZ = 15.0
 BAND_FACTOR = 1.5
 #: relative step of the antiresonance's log grid
 GRID_STEP = 0.08
-#: the most that the term at the grid's top may explain beyond a mode term's own share of the
-#: residual (SSE without it minus with it) for the band to locate its antiresonance [-].
-#: Measured in the final model, X, 20 s, on 54 logs whose mode lies in the searched range (the
-#: default plant's mode at 100, 120, 150 and 175 Hz, f_a up to 136 Hz; the half-mode plant's
-#: own, f_a 136 Hz, clean and beside encoder errors; the rigid plant's at 120 and 150 Hz):
-#: -0.28 to +0.0006, the most for the modes nearest the top; a clean default plant with a Coulomb
-#: friction of 10 N (seed 19), a 112 Hz "mode" of load 0.05 taken beside a dead-zone at the
-#: second step, where the final model's stiction and delay move the search to the grid's top
-#: (the plant's own 350 Hz mode, f_a 271 Hz, above the band): +0.058
-EDGE_TOLERANCE = 0.005
 #: least and largest load fraction m_l/M of a plausible mode [-]
 MIN_LOAD_FRACTION = 0.01
 MAX_LOAD_FRACTION = 0.9
@@ -249,11 +239,7 @@ class StructuralModeFamily(EffectFamily):
         of the residual's strongest line (:func:`resonance_line`, the model of ``base`` without
         and with it; a term that only bends the broadband residual is not a mode); the load
         m_l = A1·β_G is a share of the moving mass θ1·A1 between :data:`MIN_LOAD_FRACTION` and
-        :data:`MAX_LOAD_FRACTION`; and the band locates the antiresonance: the term at the grid's
-        top :func:`f_max` (a mode above the band, seen only as m_l/(M ω_a²)·s²ẍ) explains at most
-        :data:`EDGE_TOLERANCE` more of the residual than the term does. The last holds where the
-        term was searched; in the final model (backward elimination) a term taken before other
-        effects were modelled may not (:data:`EDGE_TOLERANCE`)."""
+        :data:`MAX_LOAD_FRACTION`."""
         out = []
         frac = float(beta[0]) / float(theta[0]) if theta[0] > 0 else math.nan
         if not MIN_LOAD_FRACTION <= frac <= MAX_LOAD_FRACTION:
@@ -265,16 +251,6 @@ class StructuralModeFamily(EffectFamily):
         if removed < MIN_LINE_REMOVED:
             out.append(f"not the resonance: the term takes {removed:.2f} of the residual's line at {f:.4g} Hz "
                        f"(a mode's: >= {MIN_LINE_REMOVED:g})")
-        top = f_max(ctx.p)
-        if term.h < top:
-            edge = ctx.term(self.name, top)
-            s_base, s_term = ctx.sse(list(base)), ctx.sse(list(base) + [term])
-            better = (s_term - ctx.sse(list(base) + [edge])) / max(s_base - s_term, 1e-300)
-            if better > EDGE_TOLERANCE:
-                out.append(f"antiresonance not located: a mode above the record's band (the term at the searched "
-                           f"range's top, {top:.4g} Hz) explains {100 * better:.1f} % more (> "
-                           f"{100 * EDGE_TOLERANCE:g} %); a bandwidth limit, not identifiable here"
-                           f"{_above_band(ctx, base, edge)}")
         return out
 
     def parameters(self, h, beta, gain, fs, theta=None):
