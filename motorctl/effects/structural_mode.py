@@ -67,8 +67,8 @@ GRID_STEP = 0.08
 #: the record can tell: default plant, Coulomb friction 10 N and stiction 12.5 N, seed 1, X,
 #: 20 s (the 350 Hz mode, f_a 271 Hz, above the band; the lag 0.21 ms): "modes" of load 0.05
 #: at 112 Hz (clean, seed 19), 0.076 at 135 Hz (beside a position-dependent friction, taken
-#: before the input delay) and 0.08; named modes of the sweeps, load 0.3-0.4: 0.32-0.45 (54
-#: logs); a 150 Hz mode of load 0.2: 0.23
+#: before the input delay) and 0.034 (beside Stribeck ×0.5); the named modes of the sweeps,
+#: load 0.3-0.4: 0.32-0.45 (54 logs); a 150 Hz mode of load 0.2: 0.23
 MIN_LOAD_FRACTION = 0.15
 MAX_LOAD_FRACTION = 0.9
 #: segment length of the Welch spectra [decimated samples] (0.5 Hz bins at 250 Hz: a lightly
