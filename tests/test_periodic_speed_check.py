@@ -65,11 +65,11 @@ def _thrust_reasons(family: str, full: float, kept: float, u_d):
     samples, ``kept`` on those without the largest |u|; also the rows it asked about."""
     asked = []
 
-    def share(term, base, rows):
-        asked.append(rows.copy())
-        return full if len(asked) == 1 else kept
+    def shares(term, base, *rows):
+        asked.extend(r.copy() for r in rows)
+        return full, kept
     u_d = np.asarray(u_d, dtype=float)
-    ctx = SimpleNamespace(p=SimpleNamespace(u_d=u_d), moving=np.ones(u_d.size, dtype=bool), explained_share=share)
+    ctx = SimpleNamespace(p=SimpleNamespace(u_d=u_d), moving=np.ones(u_d.size, dtype=bool), explained_shares=shares)
     term = SimpleNamespace(family=family, h=0.0716, cols=None)
     return FAMILIES[family].thrust_check(ctx, term, []), asked
 
@@ -110,7 +110,7 @@ def test_a_candidate_refused_only_for_its_few_samples_is_not_a_structure():
 
 
 def test_the_explained_share_is_fitted_on_the_rows_given():
-    """Identifier.explained_share: the share of the base model's residual SSE that the term's
+    """Identifier.explained_shares: the share of the base model's residual SSE that the term's
     columns explain, both fitted on the rows given only."""
     from motorctl.ident.select import Identifier
     rng = np.random.default_rng(7)
@@ -125,11 +125,10 @@ def test_the_explained_share_is_fitted_on_the_rows_given():
     y = phi0 @ np.array([1.0, -2.0, 0.5]) + np.where(tail, col[:, 0], 0.0) + noise
     fake = SimpleNamespace(design=lambda terms: (np.hstack([phi0] + [col] * len(terms)), y))
     term = SimpleNamespace(cols=col)
-    full = Identifier.explained_share(fake, term, [], np.ones(m, dtype=bool))
-    kept = Identifier.explained_share(fake, term, [], ~tail)
+    full, kept = Identifier.explained_shares(fake, term, [], np.ones(m, dtype=bool), ~tail)
     assert full > 0.5 and abs(kept) < 0.01, (full, kept)
     # a term that explains the residual on every row keeps its share without the tail
     y_all = phi0 @ np.array([1.0, -2.0, 0.5]) + 0.3 * col[:, 0] + noise
     fake_all = SimpleNamespace(design=lambda terms: (np.hstack([phi0] + [col] * len(terms)), y_all))
-    assert Identifier.explained_share(fake_all, term, [], ~tail) > 0.8
-    assert Identifier.explained_share(fake, term, [], tail & (np.arange(m) % 7 == 0)) == 0.0   # too few rows
+    assert Identifier.explained_shares(fake_all, term, [], ~tail)[0] > 0.8
+    assert Identifier.explained_shares(fake, term, [], tail & (np.arange(m) % 7 == 0)) == (0.0,)   # too few rows

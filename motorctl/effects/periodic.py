@@ -328,7 +328,7 @@ class PositionPeriodic(EffectFamily):
         less than :data:`MIN_TAIL_KEPT` of its share of the moving samples' residual once the
         :data:`THRUST_TAIL` of the record's samples with the largest |u| are left out (both
         fitted jointly with the nominal θ, :meth:`~motorctl.ident.select.Identifier.
-        explained_share`), else []. What it explained sits where the amplifier saturates and
+        explained_shares`), else []. What it explained sits where the amplifier saturates and
         the thrust shape is least sure: a few samples at the program's hardest accelerations,
         at fixed positions, which a period fits (a clean plant whose viscous friction drives u
         to its limit: a 72 mm ripple, 6 % of the held-out residual, named on two seeds). Its
@@ -336,8 +336,7 @@ class PositionPeriodic(EffectFamily):
         candidate refused for this alone (:data:`FEW_SAMPLES`)."""
         a = np.abs(ctx.p.u_d)
         kept = a < np.quantile(a, 1.0 - THRUST_TAIL)
-        full = ctx.explained_share(term, base, ctx.moving)
-        part = ctx.explained_share(term, base, ctx.moving & kept)
+        full, part = ctx.explained_shares(term, base, ctx.moving, ctx.moving & kept)
         if full > 0 and part < MIN_TAIL_KEPT * full:
             return [f"{FEW_SAMPLES}: it explains {100 * full:.1f} % of the moving samples' residual, "
                     f"{100 * part:.1f} % without the {100 * THRUST_TAIL:g} % of samples at the largest |u| "

@@ -599,18 +599,23 @@ class Identifier:
             reasons += fam.plausible(self, term, beta, th, base)
         return reasons
 
-    def explained_share(self, term: Term, base: list, rows: np.ndarray) -> float:
-        """The share [-] of the residual SSE of the model of ``base`` that adding ``term``
-        explains, both fitted jointly with the nominal θ on the decimated samples ``rows``
-        ((M,) bool) only; 0 when they are too few for the fit or leave no residual."""
-        phi1, y1 = self.design(base + [term])
-        if rows.sum() < 4 * phi1.shape[1]:
-            return 0.0
+    def explained_shares(self, term: Term, base: list, *rows: np.ndarray) -> tuple[float, ...]:
+        """For each set of decimated samples in ``rows`` ((M,) bool each), the share [-] of the
+        residual SSE of the model of ``base`` that adding ``term`` explains, both fitted jointly
+        with the nominal θ on those samples only; 0 where they are too few for the fit or leave
+        no residual. The two models' regressors are built once for all the sets."""
         phi0, y0 = self.design(base)
-        r0 = y0[rows] - phi0[rows] @ _coef(phi0[rows], y0[rows])
-        r1 = y1[rows] - phi1[rows] @ _coef(phi1[rows], y1[rows])
-        s0 = float(r0 @ r0)
-        return (s0 - float(r1 @ r1)) / s0 if s0 > 0 else 0.0
+        phi1, y1 = self.design(base + [term])
+        out = []
+        for sel in rows:
+            if sel.sum() < 4 * phi1.shape[1]:
+                out.append(0.0)
+                continue
+            r0 = y0[sel] - phi0[sel] @ _coef(phi0[sel], y0[sel])
+            r1 = y1[sel] - phi1[sel] @ _coef(phi1[sel], y1[sel])
+            s0 = float(r0 @ r0)
+            out.append((s0 - float(r1 @ r1)) / s0 if s0 > 0 else 0.0)
+        return tuple(out)
 
     def direction_agreement(self, term: Term, base: list) -> float:
         """1 − ‖β₊ − β₋‖/(‖β₊‖ + ‖β₋‖) for the effect's coefficients fitted jointly with the
