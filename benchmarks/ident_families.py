@@ -76,6 +76,7 @@ def one(name: str, factor: float, out: str, duration_s: float, config: str, tune
     from motorctl.effects import FAMILIES
     from motorctl.ident.data import load_record
     from motorctl.ident.pipeline import identify_record
+    from motorctl.recorder.runlog import LogError
 
     if name is None:                    # the plant's own: no effect on it
         fragment, did_scale, also = {}, False, None
@@ -90,8 +91,14 @@ def one(name: str, factor: float, out: str, duration_s: float, config: str, tune
     log = d / "before.mclog"
     make_log(str(log), plant, duration_s=duration_s, seed=seed, axis="X", noise_N=None, base=config)
     t0 = time.process_time()
-    rec = load_record(str(log), axis="X")
-    _, s = identify_record(rec, current_loop=current_loop)
+    try:
+        rec = load_record(str(log), axis="X")
+        _, s = identify_record(rec, current_loop=current_loop)
+    except LogError as exc:          # e.g. a delay so long that the run faulted at once
+        return {"name": name, "factor": factor, "scaled": did_scale, "named": False, "effects": [],
+                "values": [], "cpu_s": time.process_time() - t0, "unexplained": False,
+                "damage_removed": None, "also": also, "logged_s": duration_s,
+                "duration_s": duration_s, "error": str(exc)}
     cpu = time.process_time() - t0
     truth = next(iter(fragment.values())) if name in fragment else fragment
     found = next((e for e in s["effects"] if e["name"] == name), None)
@@ -114,6 +121,8 @@ def text(res: dict, own=()) -> list[str]:
     vals = "; ".join(f"{k} {a:.4g} → {b:.4g} ({100 * (b - a) / abs(a):+.1f} %)" for k, a, b in res["values"])
     ok = res["named"] and all(abs(b - a) <= TOLERANCE * abs(a) for _, a, b in res["values"])
     named = "named" if res["named"] else f"NOT named (found {', '.join(res['effects']) or 'nothing'})"
+    if res.get("error"):
+        named = f"not identified: {res['error']}"
     if res["logged_s"] < 0.95 * res["duration_s"]:
         named += f" (the log ends at {res['logged_s']:.2f} s: the run faulted)"
     if res["also"]:

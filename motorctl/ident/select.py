@@ -103,6 +103,14 @@ REFIT_SWEEPS = 2
 #: fixed-point steps of the thrust shape on the final model (:meth:`Identifier._refit_thrust_shape`;
 #: the second moves a 9 % ripple's fraction by 0.2 % of itself, the third by nothing)
 THRUST_SHAPE_SWEEPS = 2
+#: least thrust of a fitted force curve at the record's largest input |u|max (99.5th
+#: percentile), as a share of the linear thrust: f_u(|u|max)/|u|max (paper eq. 9). An iron-core
+#: linear motor loses 10-30 % of its force constant at peak current (the default plant 28 % at
+#: 10 V); a fit that leaves less than half has θ5, θ6 taking up a force the model lacks that grows
+#: with |u| (default plant, an 18 % force ripple: 0.26 on the nominal fit, the ripple's fraction
+#: on that shape 0.33 and refused; 0.180 on u), and the columns on the thrust shape use u
+#: (:meth:`Identifier.thrust_shape`)
+MIN_THRUST_SHARE = 0.5
 
 
 def is_hold(delay_samples: float) -> bool:
@@ -757,9 +765,8 @@ class Identifier:
 
     def _select(self, nominal: Evaluated, max_effects: int) -> "Identifier":
         self._cols_cache.clear()          # the thrust shape p.fu (ripple, drift columns) changes
-        if self.n_theta == 6:   # thrust shape f_u(u) = u + θ5 u|u| + θ6 u³ for the ripple family
-            th = nominal.fit.coef
-            self.p.fu = f_u(self.p.u, th[4], th[5])
+        # thrust shape f_u(u) = u + θ5 u|u| + θ6 u³ for the ripple family
+        self.p.fu = self.thrust_shape(self.p.u, nominal.fit.coef)
         if self.on_nominal is not None:
             self.on_nominal(nominal.fit.coef[:self.n_theta])
         base: list = []
@@ -840,8 +847,7 @@ class Identifier:
         if self.n_theta != 6 or not any(effect_family(t.family).columns_on_thrust_shape for t in base):
             return base, current
         for _ in range(THRUST_SHAPE_SWEEPS):
-            th = current.fit.coef
-            self.p.fu = f_u(self.p.u, th[4], th[5])
+            self.p.fu = self.thrust_shape(self.p.u, current.fit.coef)
             for key in [k for k in self._cols_cache if effect_family(k[0]).columns_on_thrust_shape]:
                 del self._cols_cache[key]           # the other families' columns stand
             base = [self.term(t.family, t.h) if effect_family(t.family).columns_on_thrust_shape else t
@@ -1233,11 +1239,24 @@ class Identifier:
             i += k
         return th, out
 
+    def thrust_shape(self, u: np.ndarray, theta: np.ndarray) -> np.ndarray | None:
+        """The thrust shape f_u(u) = u + θ5 u|u| + θ6 u³ (paper eq. 9) of ``theta`` (θ̂ first,
+        (n_theta + ...,)) at the inputs u [V] (N,), for the columns of the effects that scale
+        the thrust (the ripple's, the drift's); None (the columns use u) with θ1..θ4 only, or
+        when the curve keeps less than :data:`MIN_THRUST_SHARE` of the linear thrust at this
+        record's largest input (99.5th percentile of |u|): not a motor's saturation."""
+        if self.n_theta != 6:
+            return None
+        r = float(np.percentile(np.abs(self.p.u), 99.5))
+        if not r > 0.0 or float(f_u(r, theta[4], theta[5])) < MIN_THRUST_SHARE * r:
+            return None
+        return f_u(u, theta[4], theta[5])
+
     def predict_on(self, other: "Identifier", terms: list, ev: Evaluated) -> np.ndarray:
         """Residual on another record of the model fitted here (nominal + ``terms``), decimated (M2,)."""
         th, betas = self.coef_split(ev, terms)
         other.n_theta = self.n_theta
-        other.p.fu = f_u(other.p.u, th[4], th[5]) if self.n_theta == 6 else None
+        other.p.fu = self.thrust_shape(other.p.u, th)
         new_terms = []
         for t, b in zip(terms, betas):
             cols = other.dec_cols(t.family, t.h) if t.cols is not None else None
