@@ -10,6 +10,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from motorctl.ident.idim import input_reach
 from motorctl.ident.select import MIN_THRUST_SHARE, Identifier
 from motorctl.model import f_u
 
@@ -18,7 +19,7 @@ U = np.linspace(-10.0, 10.0, 2001)
 
 
 def _shape(theta, n_theta=6, u=U):
-    ident = SimpleNamespace(n_theta=n_theta, p=SimpleNamespace(u=u))
+    ident = SimpleNamespace(n_theta=n_theta, p=SimpleNamespace(u=u), u_reach=input_reach(u))
     return Identifier.thrust_shape(ident, u, np.asarray(theta, dtype=float))
 
 
@@ -41,7 +42,7 @@ def test_a_curve_that_keeps_less_than_the_least_share_gives_u():
 
 def test_the_share_is_the_bound():
     # θ6 = 0: f_u(r)/r = 1 + θ5 r, so θ5 = (share − 1)/r puts the curve on the bound
-    r = float(np.percentile(np.abs(U), 99.5))
+    r = input_reach(U)
     on = (MIN_THRUST_SHARE - 1.0) / r
     assert _shape([0, 0, 0, 0, on * (1 - 1e-6), 0.0]) is not None
     assert _shape([0, 0, 0, 0, on * (1 + 1e-3), 0.0]) is None

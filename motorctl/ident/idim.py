@@ -282,13 +282,19 @@ def ls(phi: np.ndarray, target: np.ndarray) -> LSFit:
     return LSFit(coef=coef, std=std, residual=r, cond=cond)
 
 
+def input_reach(u: np.ndarray) -> float:
+    """The record's largest input |u|max [V]: the 99.5th percentile of |u| (u [V], shape (N,)),
+    so that a few spikes do not set it."""
+    return float(np.percentile(np.abs(u), 99.5))
+
+
 def choose_n_theta(u: np.ndarray, forced: int | None = None) -> tuple[int, str]:
     """θ1..θ6 or θ1..θ4, with the reason.
 
     Args:
         u: input [V], shape (N,). forced: 4 or 6 to override.
     """
-    reach = float(np.percentile(np.abs(u), 99.5))
+    reach = input_reach(u)
     if forced in (N_THETA_LINEAR, N_THETA_CUBIC):
         return forced, f"n_theta={forced} requested (|u| reaches {reach:.2f} V at the 99.5th percentile)"
     if reach >= CUBIC_MIN_INPUT_V:

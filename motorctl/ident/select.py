@@ -53,7 +53,7 @@ from motorctl.effects.input_delay import (HOLD_TOLERANCE, FoundDelay, amplifier_
                                           delayed, loop_lag)
 from motorctl.effects.periodic import FEW_SAMPLES
 from motorctl.ident.data import Record
-from motorctl.ident.idim import Prepared, choose_n_theta, ls, prepare
+from motorctl.ident.idim import Prepared, choose_n_theta, input_reach, ls, prepare
 from motorctl.ident.verdict import residual_verdict
 from motorctl.model import f_u, s_f
 
@@ -182,6 +182,8 @@ class Identifier:
         self.friction = friction
         self.p: Prepared = prepare(rec.t, rec.y, rec.u, fq, nd)
         self.n_theta, self.n_theta_reason = choose_n_theta(rec.u, n_theta)
+        #: the record's largest input |u|max [V] (:func:`~motorctl.ident.idim.input_reach`)
+        self.u_reach = input_reach(self.p.u)
         self._n_theta_forced = n_theta is not None
         self.families = list(families or FAMILIES)
         for name in self.families:
@@ -742,7 +744,7 @@ class Identifier:
             # f_u(u)/u − 1 = θ5 r + θ6 r² at r = |u|max/2 and |u|max, with its standard deviation
             phi, y = self.design(list(self.terms))
             cov = _cov(phi, self.final.fit.residual)[4:6, 4:6]
-            r_max = float(np.percentile(np.abs(self.p.u), 99.5))
+            r_max = self.u_reach
             rising = []
             for r in (0.5 * r_max, r_max):
                 g = np.array([r, r * r])
@@ -1246,10 +1248,10 @@ class Identifier:
         (n_theta + ...,)) at the inputs u [V] (N,), for the columns of the effects that scale
         the thrust (the ripple's, the drift's); None (the columns use u) with θ1..θ4 only, or
         when the curve keeps less than :data:`MIN_THRUST_SHARE` of the linear thrust at this
-        record's largest input (99.5th percentile of |u|): not a motor's saturation."""
+        record's largest input (:attr:`u_reach`): not a motor's saturation."""
         if self.n_theta != 6:
             return None
-        r = float(np.percentile(np.abs(self.p.u), 99.5))
+        r = self.u_reach
         if not r > 0.0 or float(f_u(r, theta[4], theta[5])) < MIN_THRUST_SHARE * r:
             return None
         return f_u(u, theta[4], theta[5])
