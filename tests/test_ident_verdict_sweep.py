@@ -71,6 +71,10 @@ def test_an_error_found_in_the_reading_is_chosen_over_its_force_look_alikes(tmp_
     assert [n for n, _ in chosen.rivals] == ["cogging"]
 
 
+#: families whose candidates a step refused on their physics (fillers ahead of the true partners)
+REFUSED = ["cogging", "periodic_friction", "spring", "encoder_interpolation", "payload_change"]
+
+
 def test_a_look_alike_pair_is_decided_by_what_two_more_effects_leave_beside_each():
     """Default plant with a 1.8 % force ripple (held-out RMS in mV as measured there): a
     dead-zone leaves the lower held-out RMS alone and beside any one partner, stiction beside the
@@ -95,7 +99,7 @@ def test_a_look_alike_pair_is_decided_by_what_two_more_effects_leave_beside_each
         heldout_rms=rms.get(frozenset(t.family for t in terms), 90.0)))
     dz, st = ev("amplifier_dead_zone", 22.3, gain=0.717), ev("stiction", 25.3, gain=0.679)
     # the lag is the fifth candidate by gain, beyond LOOK_AHEAD: a partner as a passing one
-    fillers = [ev(f"phantom_{i}", 90.0, ok=False, gain=0.05 - 0.01 * i) for i in range(LOOK_AHEAD)]
+    fillers = [ev(f, 90.0, ok=False, gain=0.05 - 0.01 * i) for i, f in enumerate(REFUSED[:LOOK_AHEAD])]
     ripple, lag = ev("force_ripple", 30.0, gain=0.048), ev("input_delay", 30.6, ok=True, gain=0.025)
     cands = [dz, st] + fillers + [ripple, lag]
     chosen = Identifier._look_ahead(fake, dz, [c for c in cands if c.ok], cands, [])
@@ -103,6 +107,52 @@ def test_a_look_alike_pair_is_decided_by_what_two_more_effects_leave_beside_each
     # one partner only (the old rule): the dead-zone
     rms[frozenset(("stiction", "force_ripple", "input_delay"))] = 90.0
     assert Identifier._look_ahead(fake, dz, [c for c in cands if c.ok], cands, []) is dz
+
+
+def test_a_line_the_step_s_residual_hides_is_searched_again_beside_each_contender():
+    """Default plant with a 6 N, 7.3 Hz force from outside (seed 6; held-out RMS in mV,
+    illustrative): a dead-zone explains a little more than stiction, and on the step's
+    residual the line is hidden (the disturbance's search lands on a harmonic of the program,
+    refused, one of the step's best: a partner). The look-ahead searches a partner that reads its line off
+    the residual again on each contender's residual: beside stiction the 7.3 Hz line is found,
+    and stiction with it and the current loop's lag ends lowest."""
+    from motorctl.ident.select import LOOK_AHEAD, Evaluated, Term
+
+    def ev(family, rms, h=None, ok=True, gain=0.0, residual=None):
+        e = Evaluated(Term(family, h, None), rms, SimpleNamespace(residual=residual), 0.0, ok=ok)
+        e.gain = gain
+        return e
+
+    rms = {frozenset(k.split()): v for k, v in {
+        "amplifier_dead_zone": 22.3, "stiction": 25.3,
+        "amplifier_dead_zone input_delay": 22.0, "stiction input_delay": 23.0,
+        "stiction periodic_disturbance@7.3": 12.0, "stiction input_delay periodic_disturbance@7.3": 5.1,
+    }.items()}
+
+    def key(t):
+        return f"{t.family}@{t.h}" if t.family == "periodic_disturbance" else t.family
+
+    searched = []
+
+    def search(family, base, residual):
+        searched.append((family, residual))
+        line = 7.3 if residual == "stiction's" else 0.505     # hidden beside the dead-zone
+        return ev(family, 90.0, h=line)
+
+    fake = SimpleNamespace(search=search, evaluate=lambda terms: SimpleNamespace(
+        heldout_rms=rms.get(frozenset(key(t) for t in terms), 90.0)))
+    dz = ev("amplifier_dead_zone", 22.3, gain=0.716, residual="the dead-zone's")
+    st = ev("stiction", 25.3, gain=0.646, residual="stiction's")
+    fillers = [ev(f, 90.0, ok=False, gain=0.09 - 0.01 * i) for i, f in enumerate(REFUSED[:LOOK_AHEAD - 1])]
+    line = ev("periodic_disturbance", 90.0, h=0.505, ok=False, gain=0.03)
+    lag = ev("input_delay", 30.6, ok=True, gain=0.023)
+    cands = [dz, st] + fillers + [line, lag]
+    chosen = Identifier._look_ahead(fake, dz, [dz, st], cands, [])
+    assert chosen is st and [n for n, _ in chosen.rivals] == ["amplifier_dead_zone"]
+    assert sorted(r for f, r in searched if f == "periodic_disturbance") == ["stiction's", "the dead-zone's"]
+    # the step's own candidate taken as it is (searched on the step's residual): the dead-zone
+    fake.search = lambda family, base, residual: line
+    assert Identifier._look_ahead(fake, dz, [dz, st], cands, []) is dz
 
 
 def test_the_carriage_motion_that_chases_the_reading_is_not_taken_for_its_error(tmp_path):

@@ -400,6 +400,11 @@ class EffectFamily:
     #: the measured acceleration; a model simulated from the input leaves them out and reads
     #: its position through :meth:`reading_error`
     measurement: ClassVar[bool] = False
+    #: the searched parameter is a line read off the current residual's spectrum (a frequency):
+    #: where a strong effect is not modelled yet, its residual can hide the line, so beside each
+    #: look-alike contender (:attr:`look_alike`) the selection's look-ahead searches the family
+    #: again on that contender's residual instead of taking the step's candidate
+    line_from_residual: ClassVar[bool] = False
 
     def __repr__(self) -> str:
         return f"<effect family {self.name}>"

@@ -131,6 +131,7 @@ class PeriodicDisturbanceFamily(EffectFamily):
     example: ClassVar[dict] = {"periodic_disturbance": {"amplitude_N": 6.0, "frequency_Hz": 7.3, "phase_rad": 0.4}}
     comp_options = FourierTime
     compensation_rank = 3
+    line_from_residual = True
 
     # simulator
     def plant_term(self, o: PeriodicDisturbance, period_s):

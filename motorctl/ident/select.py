@@ -1073,8 +1073,10 @@ class Identifier:
         """``best``, or a look-alike rival that explains nearly as much (within
         :data:`LOOK_ALIKE_SHARE` of its held-out gain) and leaves the lower held-out RMS on its
         way through the step's other candidates (the :data:`LOOK_AHEAD` best, and as many passing
-        ones beyond them): beside each contender the partner that lowers the held-out RMS most is
-        taken, :data:`LOOK_AHEAD_DEPTH` times, and the lowest RMS on the way counts. A greedy
+        ones beyond them; one whose family reads its line off the residual,
+        :attr:`~motorctl.effects.base.EffectFamily.line_from_residual`, searched again on each
+        contender's residual): beside each contender the partner that lowers the held-out RMS
+        most is taken, :data:`LOOK_AHEAD_DEPTH` times, and the lowest RMS on the way counts. A greedy
         step cannot tell stiction from a dead-zone while the current loop's lag is unmodelled;
         the pair can, and beside a small ripple only the three together (default plant, a 1.8 %
         ripple, held-out RMS in mV of input: a dead-zone 22.3 alone, 16.5 with the ripple, 17.3
@@ -1099,8 +1101,12 @@ class Identifier:
 
             def chain_rms(c):
                 # the contender and, LOOK_AHEAD_DEPTH times, the partner that lowers the held-out
-                # RMS most beside what is taken: the lowest held-out RMS on the way
-                terms, left, rms = base + [c.term], list(partners), c.heldout_rms
+                # RMS most beside what is taken: the lowest held-out RMS on the way. A partner
+                # whose line is read off the residual is searched again on the contender's
+                left = [self.search(q.term.family, base + [c.term], c.fit.residual)
+                        if effect_family(q.term.family).line_from_residual else q for q in partners]
+                left = [q for q in left if q is not None]
+                terms, rms = base + [c.term], c.heldout_rms
                 for _ in range(LOOK_AHEAD_DEPTH):
                     if not left:
                         break
