@@ -75,26 +75,35 @@ def test_an_error_found_in_the_reading_is_chosen_over_its_force_look_alikes(tmp_
 REFUSED = ["cogging", "periodic_friction", "spring", "encoder_interpolation", "payload_change"]
 
 
+def _candidate(family, rms, h=None, ok=True, gain=0.0, residual=None):
+    """A step's candidate as the look-ahead reads it: held-out RMS, pass, held-out gain and the
+    residual of its fit (the partners' search runs on it)."""
+    from motorctl.ident.select import Evaluated, Term
+    e = Evaluated(Term(family, h, None), rms, SimpleNamespace(residual=residual), 0.0, ok=ok)
+    e.gain = gain
+    return e
+
+
+def _look_alike_rms(table):
+    """{families joined by spaces: held-out RMS} -> {frozenset of families: RMS}."""
+    return {frozenset(k.split()): v for k, v in table.items()}
+
+
 def test_a_look_alike_pair_is_decided_by_what_two_more_effects_leave_beside_each():
     """Default plant with a 1.8 % force ripple (held-out RMS in mV as measured there): a
     dead-zone leaves the lower held-out RMS alone and beside any one partner, stiction beside the
     current loop's lag and the ripple together (its true company). The look-ahead takes, beside each contender, the partner that lowers
     the held-out RMS most, twice, and keeps the contender whose way ends lower; partners come
     from the step's best candidates and its passing ones beyond them."""
-    from motorctl.ident.select import LOOK_AHEAD, Evaluated, Term
-
-    def ev(family, rms, ok=True, gain=0.0):
-        e = Evaluated(Term(family, None, None), rms, None, 0.0, ok=ok)
-        e.gain = gain
-        return e
-
+    from motorctl.ident.select import LOOK_AHEAD
+    ev = _candidate
     # held-out RMS of each set of families (the step's base is empty)
-    rms = {frozenset(k.split()): v for k, v in {
+    rms = _look_alike_rms({
         "amplifier_dead_zone": 22.3, "stiction": 25.3,
         "amplifier_dead_zone force_ripple": 16.5, "stiction force_ripple": 16.9,
         "amplifier_dead_zone input_delay": 22.3, "stiction input_delay": 18.1,
         "amplifier_dead_zone force_ripple input_delay": 17.3, "stiction force_ripple input_delay": 4.5,
-    }.items()}
+    })
     fake = SimpleNamespace(evaluate=lambda terms: SimpleNamespace(
         heldout_rms=rms.get(frozenset(t.family for t in terms), 90.0)))
     dz, st = ev("amplifier_dead_zone", 22.3, gain=0.717), ev("stiction", 25.3, gain=0.679)
@@ -116,18 +125,13 @@ def test_a_line_the_step_s_residual_hides_is_searched_again_beside_each_contende
     refused, one of the step's best: a partner). The look-ahead searches a partner that reads its line off
     the residual again on each contender's residual: beside stiction the 7.3 Hz line is found,
     and stiction with it and the current loop's lag ends lowest."""
-    from motorctl.ident.select import LOOK_AHEAD, Evaluated, Term
-
-    def ev(family, rms, h=None, ok=True, gain=0.0, residual=None):
-        e = Evaluated(Term(family, h, None), rms, SimpleNamespace(residual=residual), 0.0, ok=ok)
-        e.gain = gain
-        return e
-
-    rms = {frozenset(k.split()): v for k, v in {
+    from motorctl.ident.select import LOOK_AHEAD
+    ev = _candidate
+    rms = _look_alike_rms({
         "amplifier_dead_zone": 22.3, "stiction": 25.3,
         "amplifier_dead_zone input_delay": 22.0, "stiction input_delay": 23.0,
         "stiction periodic_disturbance@7.3": 12.0, "stiction input_delay periodic_disturbance@7.3": 5.1,
-    }.items()}
+    })
 
     def key(t):
         return f"{t.family}@{t.h}" if t.family == "periodic_disturbance" else t.family
