@@ -401,9 +401,9 @@ class EffectFamily:
     #: its position through :meth:`reading_error`
     measurement: ClassVar[bool] = False
     #: the searched parameter is a line read off the current residual's spectrum (a frequency):
-    #: where a strong effect is not modelled yet, its residual can hide the line, so beside each
-    #: look-alike contender (:attr:`look_alike`) the selection's look-ahead searches the family
-    #: again on that contender's residual instead of taking the step's candidate
+    #: where a strong effect is not modelled yet, its residual can hide the line, so when the
+    #: step's candidate is a partner of the selection's look-ahead, the family is searched again
+    #: beside each look-alike contender (:attr:`look_alike`), on that contender's residual
     line_from_residual: ClassVar[bool] = False
 
     def __repr__(self) -> str:
