@@ -122,9 +122,9 @@ def test_a_line_the_step_s_residual_hides_is_searched_again_beside_each_contende
     """Default plant with a 6 N, 7.3 Hz force from outside (seed 6; held-out RMS in mV,
     illustrative): a dead-zone explains a little more than stiction, and on the step's
     residual the line is hidden (the disturbance's search lands on a harmonic of the program,
-    refused, one of the step's best: a partner). The look-ahead searches a partner that reads its line off
-    the residual again on each contender's residual: beside stiction the 7.3 Hz line is found,
-    and stiction with it and the current loop's lag ends lowest."""
+    refused, one of the step's best: a partner). The look-ahead searches a partner that reads
+    its line off the residual again on each contender's residual: beside stiction the 7.3 Hz
+    line is found, and stiction with it and the current loop's lag ends lowest."""
     from motorctl.ident.select import LOOK_AHEAD
     ev = _candidate
     rms = _look_alike_rms({

@@ -1102,7 +1102,7 @@ class Identifier:
             def chain_rms(c):
                 # the contender and, LOOK_AHEAD_DEPTH times, the partner that lowers the held-out
                 # RMS most beside what is taken: the lowest held-out RMS on the way. A partner
-                # whose line is read off the residual is searched again on the contender's
+                # whose line is read off the residual is searched again on the contender's residual
                 left = [self.search(q.term.family, base + [c.term], c.fit.residual)
                         if effect_family(q.term.family).line_from_residual else q for q in partners]
                 left = [q for q in left if q is not None]
