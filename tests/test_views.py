@@ -68,6 +68,7 @@ def test_pages_that_never_read_drop_frames_not_rows(tmp_path):
     that falls behind: the run log loses nothing, no axis faults, and a page that reads is
     told how many frames it missed."""
     import aiohttp
+    from aiohttp import WSCloseCode
 
     port = free_port()
     cfg = make_config(tmp_path, extra_daemon={"scope": {"listen": f"0.0.0.0:{port}"}})
@@ -85,8 +86,11 @@ def test_pages_that_never_read_drop_frames_not_rows(tmp_path):
                     msg = await ws.receive_json(timeout=10)
                 for w in stuck:
                     await w.close()
-                return meta, msg, st
-        meta, msg, st = asyncio.run(pages())
+                # every close answered by the view process (1000), none left to the client's
+                # own timeout (1006): a page's close is read while frames are queued for it
+                return meta, msg, st, [w.close_code for w in (ws, *stuck)]
+        meta, msg, st, closed = asyncio.run(pages())
+        assert closed == [WSCloseCode.OK] * 6, closed
         assert st["views"]["frames_sent"] > 50, st["views"]     # 3 s at one frame per 20 ms
         assert "X.e" in meta["meta"]["channels"]
         assert set(msg) >= {"frames", "status", "dropped"} and msg["dropped"] >= 0

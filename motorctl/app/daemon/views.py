@@ -322,12 +322,32 @@ class Views:
 
     async def _ws(self, request):
         """Each page: its frames since it connected (bounded, oldest dropped first), the axes'
-        states and the frames it missed, every :data:`SEND_EVERY_S`."""
+        states and the frames it missed, every :data:`SEND_EVERY_S`.
+
+        The handler reads what the page sends while a task of its own sends to it: aiohttp
+        answers a page's close frame (RFC 6455 §5.5.1) and its pings only inside a read, so a
+        handler that only sends leaves a closing page waiting for its own timeout (10 s in
+        aiohttp's client) while frames are still queued for it."""
         from aiohttp import web
         ws = web.WebSocketResponse(heartbeat=10.0)
         await ws.prepare(request)
         page = _Page()
         self.pages.add(page)
+        sender = asyncio.get_running_loop().create_task(self._send_to(ws, page))
+        try:
+            async for _ in ws:                      # a page sends nothing of use: read to answer
+                pass
+        finally:
+            self.pages.discard(page)
+            sender.cancel()
+            try:
+                await sender
+            except asyncio.CancelledError:
+                pass
+        return ws
+
+    async def _send_to(self, ws, page: _Page) -> None:
+        """The sending side of :meth:`_ws`: the metadata once, then the page's queued frames."""
         try:
             await ws.send_str(self.meta)
             while not ws.closed:
@@ -339,6 +359,3 @@ class Views:
                 await asyncio.sleep(SEND_EVERY_S)
         except (ConnectionError, RuntimeError):     # the page went away mid-send
             pass
-        finally:
-            self.pages.discard(page)
-        return ws
