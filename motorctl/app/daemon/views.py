@@ -340,10 +340,6 @@ class Views:
         finally:
             self.pages.discard(page)
             sender.cancel()
-            try:
-                await sender
-            except asyncio.CancelledError:
-                pass
         return ws
 
     async def _send_to(self, ws, page: _Page) -> None:
