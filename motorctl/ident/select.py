@@ -1203,9 +1203,15 @@ class Identifier:
             for i in again:
                 fam = fams[i]
                 found = fam.search(ctx, terms[:i] + terms[i + 1:], None)
-                # a value at its grid's edge is not taken; a delay of 0 beyond the loop is
+                # a value at its grid's edge is not taken; a delay of 0 beyond the loop is; nor
+                # one its family finds implausible in the refit's model (a search may return its
+                # candidate for the selection's judge to refuse: a dead-zone whose band's input
+                # is not lost whole, half-mode plant ×0.5: 0.226 V and a share of 0.46 for 75 mV)
                 if found is not None and (not found[1] or fam.shifts_input):
-                    terms[i] = built(i, found[0].h) if stick and i == held else found[0]
+                    trial = list(terms)
+                    trial[i] = built(i, found[0].h) if stick and i == held else found[0]
+                    if not ctx.implausible_in(trial, i):
+                        terms = trial
         ctx.terms, ctx.final = terms, ctx.evaluate(terms)
         ctx.stick_measured = stick
         ctx.loop_refit = loop
@@ -1237,6 +1243,15 @@ class Identifier:
                     best, best_sse = trial, sse
             terms = best
         return terms
+
+    def implausible_in(self, terms: list, i: int) -> list:
+        """The reasons of term ``terms[i]``'s family (its own
+        :meth:`~motorctl.effects.base.EffectFamily.plausible`) against it in the joint fit of
+        ``terms``; empty: plausible."""
+        if terms[i].cols is None:
+            return []
+        theta, betas = self.coef_split(self.evaluate(terms), terms)
+        return effect_family(terms[i].family).plausible(self, terms[i], betas[i], theta, terms[:i] + terms[i + 1:])
 
     # ------------------------------------------------------------------ read-outs
     def coef_split(self, ev: Evaluated, terms: list) -> tuple[np.ndarray, list]:
