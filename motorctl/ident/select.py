@@ -80,6 +80,15 @@ LOOK_AHEAD_DEPTH = 2
 #: was named a spring, periodic friction, a periodic disturbance below 2 Hz; an encoder's
 #: error with the current loop's lag mis-fitted, a Stribeck friction at 0.25 m/s)
 STRICT_HELDOUT_GAIN = 0.15
+#: the largest share of what a candidate explains (of the fall of the residual's squares, each
+#: sample weighed by how firmly the model's holding effect holds the carriage there: 1 − the
+#: other_weight of stiction) that may lie where the carriage is held; beyond it, more than half,
+#: the candidate fits the stick and slip at rest that the holding effect's model leaves, not a
+#: force of its own (:meth:`Identifier.held_share`). Measured on 514 logs of five plants
+#: (docs/identification.md): the effects injected 0.00-0.24; an asymmetric friction of Coulomb
+#: only 0.34-0.38 (what tells it from an offset is the change of direction, near rest); the
+#: phantoms named beside them 0.49-0.79 (an asymmetric friction of 1.6-2.5 N beside a spring)
+MAX_HELD_SHARE = 0.5
 #: rounds of forward selection and backward elimination (a dropped effect is not taken again)
 STEPWISE_ROUNDS = 3
 #: threads searching the families of one selection step (each family's search is independent
@@ -574,8 +583,10 @@ class Identifier:
         return ev
 
     # ------------------------------------------------------------------ judging
-    def plausible(self, ev: Evaluated, base: list) -> list:
-        """Reasons why the candidate is not physically plausible (empty list: plausible)."""
+    def plausible(self, ev: Evaluated, base: list, without: Evaluated | None = None) -> list:
+        """Reasons why the candidate is not physically plausible (empty list: plausible).
+        ``without``: the model of ``base`` alone, evaluated, for :meth:`held_share` (None: that
+        rule not applied)."""
         reasons = list(ev.reasons)
         term, fit = ev.term, ev.fit
         nt = self.n_theta
@@ -608,8 +619,45 @@ class Identifier:
                 reasons.append(f"too small to name: its force ({_force(size, g)}) is below {MIN_SIZE_N:g} N")
             if np.max(np.abs(contrib)) > 0.5 * u_range and fam.force_bounded_by_input:
                 reasons.append("effect larger than half the input range")
+            held = None if without is None else self.held_share(ev, without, base)
+            if held is not None and held[0] > MAX_HELD_SHARE:
+                reasons.append(f"explained where held: {100 * held[0]:.0f} % of what it explains lies where the "
+                               f"{held[1]} in the model holds the carriage (> {100 * MAX_HELD_SHARE:g} %), "
+                               "the stick and slip at rest that the holding effect's model leaves")
             reasons += fam.plausible(self, term, beta, th, base)
         return reasons
+
+    def held_share(self, ev: Evaluated, without: Evaluated, base: list) -> tuple[float, str] | None:
+        """(share, family): the share [-] of what the candidate ``ev`` explains, the fall of the
+        squared residual from ``without`` (the model of ``base``) to ``ev`` summed over the
+        decimated samples, that lies where a family of ``base`` holds the carriage, each sample
+        weighed by that hold (1 − the product of the families' ``other_weight``: stiction's
+        w(ẋ) = exp(−(ẋ/h)²)). None when ``base`` holds nothing, the candidate holds the carriage
+        itself (its family's ``other_weight``), is found in the measurement, or explains nothing.
+        A dead-zone is judged too: beside stiction its columns are fitted in motion, where the
+        input beyond its band loses A1·d (:mod:`motorctl.effects.amplifier_dead_zone`).
+
+        Held samples are the holding effect's: its columns fit the input held at rest, and the
+        other terms' columns are weighed out there (:meth:`design`). A candidate that still
+        explains mostly there does so through the nominal θ it moves, fitting the short slips
+        of the carriage's hunting at rest (a C2 loop under stiction) that the holding effect
+        does not describe: the residual verdict counts a structure near zero velocity as the
+        holding effect's too."""
+        if effect_family(ev.term.family).other_weight(ev.term) is not None or _found_in_measurement(ev.term):
+            return None
+        weight, holder = None, None
+        for t in base:
+            w = effect_family(t.family).other_weight(t)
+            if w is not None:
+                weight = w if weight is None else weight * w
+                holder = holder or t.family
+        if weight is None:
+            return None
+        fall = without.fit.residual ** 2 - ev.fit.residual ** 2
+        total = float(fall.sum())
+        if not total > 0.0:
+            return None
+        return float(((1.0 - weight) * fall).sum()) / total, holder
 
     def explained_shares(self, term: Term, base: list, *rows: np.ndarray) -> tuple[float, ...]:
         """For each set of decimated samples in ``rows`` ((M,) bool each), the share [-] of the
@@ -685,7 +733,7 @@ class Identifier:
 
     def judge(self, ev: Evaluated, current: Evaluated, base: list) -> Evaluated:
         gain = 1.0 - ev.heldout_rms / current.heldout_rms
-        reasons = self.plausible(ev, base)
+        reasons = self.plausible(ev, base, current)
         if gain < MIN_HELDOUT_GAIN:
             reasons.append(f"held-out gain {100 * gain:.1f} % < {100 * MIN_HELDOUT_GAIN:g} %")
         if current.bic - ev.bic < MIN_BIC_DROP:
@@ -879,8 +927,9 @@ class Identifier:
                 others = base[:i] + base[i + 1:]
                 ev = self.evaluate(others + [t])
                 ev.term = t
-                gain = 1.0 - ev.heldout_rms / self.evaluate(others).heldout_rms
-                reasons = self.plausible(ev, others)
+                without = self.evaluate(others)
+                gain = 1.0 - ev.heldout_rms / without.heldout_rms
+                reasons = self.plausible(ev, others, without)
                 if gain < MIN_HELDOUT_GAIN:
                     reasons.append(f"with the later effects its held-out gain is {100 * gain:.1f} % "
                                    f"< {100 * MIN_HELDOUT_GAIN:g} %")
@@ -1334,7 +1383,8 @@ def _coef(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
 #: residual and is refused only on its physics is reported as an unexplained structure
 REFUSED_GAIN = 0.06
 #: reasons that say a candidate explains too little, not that its physics does not fit
-_WEAK = ("coefficients not significant", "too small to name", "held-out gain", "BIC drop", "effect larger than")
+_WEAK = ("coefficients not significant", "too small to name", "held-out gain", "BIC drop", "effect larger than",
+         "explained where held")
 
 
 def _searchable(family: str, base: list) -> bool:
