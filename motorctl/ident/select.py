@@ -322,11 +322,7 @@ class Identifier:
         other_weight`) weighs the other terms' columns: a force the carriage does not feel while
         it is held is fitted on the samples in motion only."""
         delay = self.zoh + sum(t.delay for t in terms)
-        weight = None
-        for t in terms:
-            w = effect_family(t.family).other_weight(t)
-            if w is not None:
-                weight = w if weight is None else weight * w
+        weight = _hold(terms)[0]
         cols = [self.nominal_phi(delay)]
         for t in terms:
             if t.cols is not None:
@@ -480,11 +476,7 @@ class Identifier:
         if hit is not None:
             return hit[1]
         phi, y = self.design(base)
-        weight = None
-        for t in base:
-            w = effect_family(t.family).other_weight(t)
-            if w is not None:
-                weight = w if weight is None else weight * w
+        weight = _hold(base)[0]
         sc = np.sqrt(np.einsum("ij,ij->j", phi, phi))
         sc[sc == 0] = 1.0
         a = phi / sc
@@ -645,12 +637,7 @@ class Identifier:
         holding effect's too."""
         if effect_family(ev.term.family).other_weight(ev.term) is not None or _found_in_measurement(ev.term):
             return None
-        weight, holder = None, None
-        for t in base:
-            w = effect_family(t.family).other_weight(t)
-            if w is not None:
-                weight = w if weight is None else weight * w
-                holder = holder or t.family
+        weight, holder = _hold(base)
         if weight is None:
             return None
         fall = without.fit.residual ** 2 - ev.fit.residual ** 2
@@ -1385,6 +1372,18 @@ REFUSED_GAIN = 0.06
 #: reasons that say a candidate explains too little, not that its physics does not fit
 _WEAK = ("coefficients not significant", "too small to name", "held-out gain", "BIC drop", "effect larger than",
          "explained where held")
+
+
+def _hold(terms: list) -> tuple[np.ndarray | None, str | None]:
+    """(the product (M,) of the ``other_weight`` of the terms whose family holds the carriage at
+    rest, the first such family); (None, None) when none does."""
+    weight, holder = None, None
+    for t in terms:
+        w = effect_family(t.family).other_weight(t)
+        if w is not None:
+            weight = w if weight is None else weight * w
+            holder = holder or t.family
+    return weight, holder
 
 
 def _searchable(family: str, base: list) -> bool:
