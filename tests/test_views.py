@@ -63,6 +63,28 @@ def test_a_missing_or_broken_view_library_is_one_line_and_no_row_lost(tmp_path):
                for ln in lines) == 1, err
 
 
+def test_a_view_s_report_is_read_after_a_frame_found_the_view_process_gone():
+    """The view process reports what it could not serve, then ends. A frame sent after its end
+    fails and marks the link gone (``alive`` False, the frame counted dropped); the report
+    waiting on the socket is still read, then the EOF. (Before, a link marked gone read nothing,
+    and the daemon's line for the broken view was lost: a race the test above lost once.)"""
+    import pickle
+    import socket
+
+    from motorctl.app.daemon.views import ViewLink
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    ours.setblocking(False)
+    link = ViewLink(ours, 0)
+    report = ("started", {"foxglove": "RuntimeError: broken build"})
+    theirs.send(pickle.dumps(report))
+    theirs.close()
+    link.on_frame({"t": 0.0})                # EPIPE (Python ignores SIGPIPE)
+    assert not link.alive and link.dropped == 1 and link.sent == 0
+    assert link.receive() == [report]
+    assert link.receive() == []
+    ours.close()
+
+
 def test_pages_that_never_read_drop_frames_not_rows(tmp_path):
     """Five WebSocket pages that connect and never read, and the view process is the one
     that falls behind: the run log loses nothing, no axis faults, and a page that reads is

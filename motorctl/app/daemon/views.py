@@ -98,9 +98,11 @@ class ViewLink:
         self._send(("status", {"status": status, "t": t_s, "link_dropped": self.dropped}))
 
     def receive(self) -> list:
-        """The view process's reports waiting on the socket (non-blocking); EOF marks it gone."""
+        """The view process's reports waiting on the socket (non-blocking); EOF marks it gone.
+        Read even once a frame's send has found the view process gone (``alive`` False): what it
+        reported before it ended (a view it could not serve) is still waiting here."""
         out = []
-        while self.alive:
+        while True:
             try:
                 data = self.sock.recv(1 << 16)
             except (BlockingIOError, InterruptedError):
