@@ -229,9 +229,12 @@ class Signals:
         x: position [m]. v: velocity [m/s]. a: acceleration [m/s²]. u: input [V]. t: time [s].
         fu: thrust shape f_u(u) = u + θ5 u|u| + θ6 u³ [V] (paper eq. 9) when the nominal θ5, θ6
             are fitted, else None (then the thrust is taken proportional to u).
+        columns_single: False: columns on these signals are used as they are, in double
+            precision (a prepared record's full-rate columns may be float32: it says True).
     """
 
     __slots__ = ("a", "fu", "t", "u", "v", "x")
+    columns_single = False
 
     def __init__(self, x, v, a, u, t, fu=None):
         self.x, self.v, self.a, self.u, self.t, self.fu = x, v, a, u, t, fu

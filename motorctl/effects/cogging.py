@@ -95,7 +95,7 @@ class CoggingFamily(PositionPeriodic):
     # identification
     def columns(self, h, p):
         """sin, cos(2π k x / h) interleaved, (N, 2·N_HARMONICS); h: period P [m]."""
-        return fourier(p.x, h, N_HARMONICS)
+        return fourier(p.x, h, N_HARMONICS, single=p.columns_single)
 
     def peak_data(self, ctx, residual):
         mv = ctx.moving

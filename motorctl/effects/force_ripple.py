@@ -94,7 +94,7 @@ class ForceRippleFamily(PositionPeriodic):
     def columns(self, h, p):
         """f_u(u)·sin, f_u(u)·cos(2π k x / h) interleaved, (N, 2·N_HARMONICS); h: period P [m]."""
         fu = getattr(p, "fu", None)
-        return fourier(p.x, h, N_HARMONICS, scale=fu if fu is not None else p.u)
+        return fourier(p.x, h, N_HARMONICS, scale=fu if fu is not None else p.u, single=p.columns_single)
 
     def peak_data(self, ctx, residual):
         p, mv = ctx.p, ctx.moving

@@ -59,24 +59,33 @@ SHAPE_POINTS = 2000
 
 
 # ---------------------------------------------------------------------------- columns
-def fourier(z: np.ndarray, period: float, k: int, scale=None) -> np.ndarray:
-    """sin, cos(2π j z / period) for j = 1..k, interleaved, shape (N, 2k).
+def fourier(z: np.ndarray, period: float, k: int, scale=None, single: bool = False) -> np.ndarray:
+    """sin, cos(2π j z / period) for j = 1..k, interleaved, shape (N, 2k) (each column
+    contiguous: the transpose of a (2k, N) block).
 
     Args:
         z: abscissa (N,), position [m] or time [s]. period: same unit as z (> 0).
         k: harmonics. scale: optional (N,) multiplying every column (force ripple: f_u(u)).
+        single: float32 columns, from the phase reduced to half a turn in double precision
+            (its error 4e-7 rad, of the order of the sines' own round-off); 4× faster. For
+            full-rate columns that are only decimated in single precision
+            (:func:`motorctl.ident.idim.parallel_decimate`) or weighed by their coefficients.
     """
-    ph = (2.0 * np.pi / period) * z
-    s1, c1 = np.sin(ph), np.cos(ph)
-    out = np.empty((len(z), 2 * k))
-    s, c = s1, c1
-    for j in range(k):
-        if j:  # angle addition: sin((j+1)φ), cos((j+1)φ) from sin(jφ), cos(jφ)
-            s, c = s * c1 + c * s1, c * c1 - s * s1
-        out[:, 2 * j], out[:, 2 * j + 1] = s, c
+    if single:
+        ph = z * (1.0 / period)
+        ph -= np.rint(ph)
+        ph *= 2.0 * np.pi
+        ph = ph.astype(np.float32)
+    else:
+        ph = (2.0 * np.pi / period) * z
+    out = np.empty((2 * k, len(z)), dtype=ph.dtype)
+    s1, c1 = np.sin(ph, out=out[0]), np.cos(ph, out=out[1])
+    for j in range(1, k):      # angle addition: sin((j+1)φ), cos((j+1)φ) from sin(jφ), cos(jφ)
+        s, c = out[2 * j - 2], out[2 * j - 1]
+        out[2 * j], out[2 * j + 1] = s * c1 + c * s1, c * c1 - s * s1
     if scale is not None:
-        out *= scale[:, None]
-    return out
+        out *= np.asarray(scale, dtype=ph.dtype)
+    return out.T
 
 
 @njit

@@ -96,7 +96,7 @@ class PeriodicFrictionFamily(PositionPeriodic):
     # identification
     def columns(self, h, p):
         """sin, cos(2π k x / h)·S_f(ẋ) interleaved, (N, 2·N_HARMONICS); h: period P [m]."""
-        return fourier(p.x, h, N_HARMONICS, scale=s_f(p.v))
+        return fourier(p.x, h, N_HARMONICS, scale=s_f(p.v), single=p.columns_single)
 
     def peak_data(self, ctx, residual):
         mv = ctx.moving

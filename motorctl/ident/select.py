@@ -353,7 +353,9 @@ class Identifier:
 
         Cached per (family, h) for one selection (:meth:`_select` clears it): the later steps
         search the same grids again with another base, and decimating full-rate columns is
-        most of identify's time. Read-only: callers never modify the array."""
+        most of identify's time; in single precision (:func:`~motorctl.ident.idim.
+        parallel_decimate`: its round-off, 2e-6 of a column's RMS, is far below the residual
+        a candidate is fitted to). Read-only: callers never modify the array."""
         key = (family, _h_key(h))
         c = self._cols_cache.get(key)
         if c is None:
@@ -361,7 +363,7 @@ class Identifier:
             c = fam.decimated_columns(h, self.p)
             if c is None:
                 full = self._through_loop(fam, fam.columns(h, self.p))
-                c = False if full is None else self.p.dec(full)
+                c = False if full is None else self.p.dec(full, single=True)
             if len(self._cols_cache) < COLS_CACHE_MAX:
                 self._cols_cache[key] = c
         return None if c is False else c
@@ -372,7 +374,7 @@ class Identifier:
         (:attr:`~motorctl.effects.base.EffectFamily.before_current_loop`); else as they are."""
         if full is None or self.loop_filter is None or not fam.before_current_loop:
             return full
-        return lfilter(*self.loop_filter, full, axis=0)
+        return lfilter(*self.loop_filter, np.asarray(full, dtype=float), axis=0)
 
     def _decimate_ahead(self, family: str, grid) -> None:
         """Put the decimated columns of ``family`` at every h of ``grid`` (K,) into the cache of
@@ -408,12 +410,12 @@ class Identifier:
                 continue
             # the columns written as the rows of one block: parallel_decimate filters rows
             # (its padding copies a C-ordered (N, k) block column by column), and no hstack copy
-            rows = np.empty((width, len(chunk[0][2])))
+            rows = np.empty((width, len(chunk[0][2])), dtype=np.float32)     # decimated in single precision
             j = 0
             for _, _, f in chunk:
                 rows[j:j + f.shape[1]] = f.T
                 j += f.shape[1]
-            dec = self.p.dec(rows.T)
+            dec = self.p.dec(rows.T, single=True)
             j = 0
             for key, ndim, f in chunk:
                 k = f.shape[1]
