@@ -151,3 +151,33 @@ def test_parallel_decimation_is_scipy_s_fourier_resampling_and_single_precision_
         assert np.all(np.max(np.abs(double - ref), axis=0) < 1e-12 * scale), n
         err = np.max(np.abs(single - ref), axis=0) / scale
         assert np.all(err < 2e-6) and np.all(err > 1e-9), (n, err)     # float32's, not float64's
+
+
+def test_the_spatial_periodogram_is_scipy_s_lomb_scargle_and_its_basis_is_kept_per_abscissa():
+    """The binned periodogram equals scipy.signal.lombscargle on the same bins (normalised, the
+    bins' counts as weights) to round-off, for two residuals on the same positions (the second
+    from the kept basis) and for another abscissa (a new basis)."""
+    from scipy.signal import lombscargle
+
+    from motorctl.effects import periodic
+    from motorctl.effects.periodic import BIN_SHARE, period_grid, spatial_periodogram
+
+    def by_scipy(x, r, periods):
+        dx = BIN_SHARE * float(periods.min())
+        idx = ((x - x.min()) / dx).astype(np.int64)
+        n = np.bincount(idx)
+        full = np.flatnonzero(n)
+        rb = np.bincount(idx, weights=r - r.mean())[full] / n[full]
+        return lombscargle(x.min() + (full + 0.5) * dx, rb - np.average(rb, weights=n[full]),
+                           2.0 * np.pi / periods, normalize=True, weights=n[full].astype(float))
+
+    rng = np.random.default_rng(11)
+    grid = period_grid(0.4)
+    periodic._bases.clear()
+    for lo, hi in ((0.1, 0.3), (0.1, 0.3), (0.05, 0.35)):
+        x = np.sort(rng.uniform(lo, hi, 700))
+        for r in (0.3 * np.sin(2 * np.pi * x / 0.032) + rng.standard_normal(700), rng.standard_normal(700)):
+            ref = by_scipy(x, r, grid)
+            got = spatial_periodogram(x, r, grid)
+            assert np.max(np.abs(got - ref)) < 1e-12 * np.max(ref)
+    assert len(periodic._bases) == 3         # one basis per abscissa (positions drawn three times)

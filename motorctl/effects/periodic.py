@@ -12,6 +12,8 @@ Brent search to 1/30 of that); a peak whose period lowers the SSE by less than
 from __future__ import annotations
 
 import math
+import threading
+from collections import OrderedDict
 
 import numpy as np
 from pydantic import model_validator
@@ -203,6 +205,51 @@ def sin_cos_of(amplitude: float, phase: float) -> tuple[float, float]:
 #: position bin of the spatial periodogram, as a share of the shortest period searched
 BIN_SHARE = 1.0 / 16.0
 
+#: elements (bins × periods) up to which the basis of a spatial periodogram is kept for the
+#: next call on the same positions (a selection's steps search the same moving samples again
+#: with another residual): two float64 arrays, at most 32 MB each
+BASIS_MAX_ELEMENTS = 4_000_000
+#: bases kept (the least recently used one goes first)
+BASES_KEPT = 4
+_bases: OrderedDict = OrderedDict()
+_bases_lock = threading.Lock()
+
+
+def _periodogram_basis(xc: np.ndarray, w: np.ndarray, omega: np.ndarray):
+    """What the Lomb-Scargle periodogram of :func:`scipy.signal.lombscargle` (no floating mean)
+    computes from the abscissa alone: cos and sin of ω x − τ (B, K) and their weighted squares
+    (K,), for bin centres ``xc`` (B,), weights ``w`` (B,) summing to 1, angular frequencies
+    ``omega`` (K,). Kept for the next call on the same bins while small
+    (:data:`BASIS_MAX_ELEMENTS`, :data:`BASES_KEPT`); read only."""
+    key = (xc.tobytes(), w.tobytes(), omega.tobytes())
+    with _bases_lock:
+        hit = _bases.get(key)
+        if hit is not None:
+            _bases.move_to_end(key)
+            return hit
+    wt = np.outer(xc, omega)
+    c, s = np.cos(wt), np.sin(wt)
+    cc = w @ (c * c)
+    cs = w @ (c * s)
+    tau = 0.5 * np.arctan2(2.0 * cs, cc - (1.0 - cc))
+    wt -= tau
+    c, s = np.cos(wt, out=c), np.sin(wt, out=s)
+    cc = w @ (c * c)
+    ss = 1.0 - cc
+    eps = np.finfo(float).epsneg
+    cc[cc < eps] = eps
+    ss[ss < eps] = eps
+    out = (c, s, cc, ss)
+    for a in out:
+        a.flags.writeable = False
+    if c.size <= BASIS_MAX_ELEMENTS:
+        with _bases_lock:
+            _bases[key] = out
+            while len(_bases) > BASES_KEPT:
+                _bases.popitem(last=False)
+    return out
+
+
 def spatial_periodogram(x: np.ndarray, r: np.ndarray, periods: np.ndarray) -> np.ndarray:
     """Least-squares (Lomb-Scargle) periodogram of r against position x (uneven abscissa).
 
@@ -210,14 +257,16 @@ def spatial_periodogram(x: np.ndarray, r: np.ndarray, periods: np.ndarray) -> np
     periodogram is taken over the bin centres weighted by the samples in each bin: a
     position-locked effect of period P is attenuated by at most sinc(BIN_SHARE) (0.6 %), what
     is not locked to position averages down, and the cost is the bins' (a few thousand over a
-    stroke), not the samples' (100 000 in a 20 s log at 5 kHz).
+    stroke), not the samples' (100 000 in a 20 s log at 5 kHz). The normalised power of
+    :func:`scipy.signal.lombscargle` (``normalize=True``, weights, no floating mean; Lomb 1976,
+    Scargle 1982, with τ eliminating the cross term), equal to it to round-off; what depends on
+    the positions alone is computed once for a selection's steps (:func:`_periodogram_basis`).
 
     Args:
         x [m], r: shape (M,), samples with the axis moving. periods [m]: shape (K,), > 0.
     Returns:
-        Normalised power (K,) (:func:`scipy.signal.lombscargle`, angular frequencies 2π/P).
+        Normalised power (K,), angular frequencies 2π/P.
     """
-    from scipy.signal import lombscargle     # identification only: the loop process never loads it
     periods = np.asarray(periods, dtype=float)
     if periods.size == 0 or x.size == 0:
         return np.zeros(periods.shape)
@@ -229,8 +278,12 @@ def spatial_periodogram(x: np.ndarray, r: np.ndarray, periods: np.ndarray) -> np
     full = np.flatnonzero(n)
     xc = x0 + (full + 0.5) * dx
     rb = s[full] / n[full]
-    return lombscargle(xc, rb - np.average(rb, weights=n[full]), 2.0 * np.pi / periods,
-                       normalize=True, weights=n[full].astype(float))
+    w = n[full] / float(n.sum())
+    y = rb - w @ rb
+    c, sn, cc, ss = _periodogram_basis(xc, w, 2.0 * np.pi / periods)
+    wy = w * y
+    yc, ys, yy = wy @ c, wy @ sn, float(wy @ y)
+    return (yc * yc / cc + ys * ys / ss) / yy
 
 
 def peak_periods(x, r, periods, n_peaks=3) -> list:
