@@ -10,12 +10,12 @@ Rerun:
 
 What is timed: ``motorctl identify LOG --json`` as a new process, end to end (Python start-up,
 imports from compiled bytecode, as an installed package has it, reading, IDIM-LS, the effect
-search over every family with forward selection and backward elimination, simulation fit %, residual verdict, JSON), once with the closed-loop
-before/after (two simulated C2 runs of 8 s in one worker forked at start: *before* with the
-nominal fit while the effect search goes on, *after* once it is done) and once with
-``--no-closed-loop``; the
-median of ``--repeat`` runs. CPU is user + system of the process and its children (both search
-threads, and the closed loop's worker when it runs). Wall-clock seconds on this machine: other
+search over every family with forward selection and backward elimination, simulation fit %,
+residual verdict, JSON), once with the closed-loop before/after (two simulated C2 runs of 8 s
+in one worker forked at start: *before* with the nominal fit while the effect search goes on,
+*after* once it is done) and once with ``--no-closed-loop``; the median of ``--repeat`` runs.
+CPU is user + system of the process and its children (both search threads, and the closed
+loop's worker when it runs). Wall-clock seconds on this machine: other
 processes inflate them, so the load average is printed, and with ``--ref-src`` the same runs of
 another source tree (e.g. main) alternate with this tree's, and the ratios of the medians are
 printed: on a loaded machine those and the CPU seconds are what compare.
