@@ -71,6 +71,23 @@ def test_columns_are_the_load_inertial_force_of_the_two_mass_model():
     assert abs(np.corrcoef(cols[:, 1], acc[int(fs):])[0, 1]) < 0.2
 
 
+def test_columns_are_the_bilinear_transform_of_the_analog_filters():
+    """The columns' discrete filters are those of :func:`scipy.signal.bilinear` of s²/den(s) and
+    ω_a s/den(s), den(s) = s² + 2ζω_a s + ω_a², to round-off (they are built from the zeros and
+    poles), at antiresonances across the searched band."""
+    from scipy.signal import bilinear, lfilter
+
+    from motorctl.effects.structural_mode import COLUMN_DAMPING, mode_columns
+    fs = 5000.0
+    acc = np.random.default_rng(3).standard_normal(2000)
+    for fa in (20.0, 116.0, 350.0, 1200.0):
+        wa = 2 * np.pi * fa
+        den = [1.0, 2 * COLUMN_DAMPING * wa, wa * wa]
+        ref = np.column_stack([-lfilter(*bilinear(num, den, fs), acc) for num in ([1.0, 0.0, 0.0], [wa, 0.0])])
+        cols = mode_columns(acc, fs, fa)
+        assert np.max(np.abs(cols - ref)) <= 1e-12 * np.max(np.abs(ref)), fa
+
+
 # ---------------------------------------------------------------------------- on the default plant
 #: (effect on the default plant's X axis, log length [s]): the mode and the play show in 8 s; the
 #: clean plant's verdict is calibrated on 20 s logs (docs/identification.md, the verdict's rates)
