@@ -72,6 +72,56 @@ def test_sse_from_the_cached_base_is_the_joint_fit(record):
     assert idf.sse([stiction, t]) != first
 
 
+def _delay_sses_one_by_one(idf, base, grid, band=None, rows=None):
+    """The input-delay SSEs the long way: for each delay its own shifted columns and joint fit
+    (:func:`~motorctl.ident.select._coef`, as every fit of the identifier)."""
+    p = idf.p
+    ud = p.dec(idf.input_columns(idf.zoh))
+    m = ud.shape[0]
+    spec = np.fft.rfft(ud, axis=0)
+    w = 2 * np.pi * np.fft.rfftfreq(m)
+    phi0, _ = idf.design(base)
+    if band is not None:
+        f = np.fft.rfftfreq(m, p.nd / p.fs)
+        keep = ((f >= band[0]) & (f < band[1])).astype(float)[:, None]
+        spec = spec * keep
+        phi0 = np.fft.irfft(np.fft.rfft(phi0, axis=0) * keep, n=m, axis=0)
+    out = []
+    for d in grid:
+        sh = np.fft.irfft(spec * np.exp(-1j * w * (d / p.nd))[:, None], n=m, axis=0)
+        phi = phi0.copy()
+        if idf.n_theta == 6:
+            phi[:, 4], phi[:, 5] = -sh[:, 1], -sh[:, 2]
+        y = sh[:, 0]
+        if rows is None:
+            r = (y - phi @ _coef(phi, y))[4:-4]
+        else:
+            k = rows.copy()
+            k[:4] = k[-4:] = False
+            r = y[k] - phi[k] @ _coef(phi[k], y[k])
+        out.append(float(r @ r))
+    return np.array(out)
+
+
+def test_input_delay_sses_of_a_whole_grid_at_once_are_each_delay_s_own_fit(record, monkeypatch):
+    """:meth:`Identifier.delay_sses` shifts and fits every delay of the grid at once, the columns
+    that do not move with the delay factored once: each SSE is that delay's own joint fit, with
+    θ1..θ4 and θ1..θ6, a base that weighs the others (stiction), on the moving rows, on a band,
+    and with the grid split into chunks."""
+    import motorctl.ident.select as select
+    idf = Identifier(record)
+    base = [idf.term("stiction", 5e-4), idf.term("cogging", 0.032)]
+    grid = np.arange(0.0, 12.0, 0.7)
+    moving = np.abs(idf.p.v_d) > 1e-3
+    for n_theta in (6, 4):
+        idf.n_theta = n_theta
+        for kw in ({}, {"rows": moving}, {"band": (15.0, 39.0)}):
+            ref = _delay_sses_one_by_one(idf, base, grid, **kw)
+            assert idf.delay_sses(base, grid, **kw) == pytest.approx(ref, rel=1e-10), (n_theta, kw)
+    monkeypatch.setattr(select, "DELAY_CHUNK_ELEMENTS", 3 * len(idf.p.t_d) * 4)     # 4 delays a chunk
+    assert idf.delay_sses([], grid) == pytest.approx(_delay_sses_one_by_one(idf, [], grid), rel=1e-10)
+
+
 def test_closed_form_disturbance_columns_give_the_filtered_result(record, monkeypatch):
     fast = Identifier(record).run()
     monkeypatch.setattr(type(family("periodic_disturbance")), "decimated_columns", lambda self, h, p: None)

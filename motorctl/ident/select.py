@@ -45,6 +45,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.fft import irfft
 from scipy.signal import lfilter
 
 from motorctl.effects import FAMILIES, family as effect_family
@@ -111,6 +112,9 @@ COLS_CACHE_MAX = 1024
 #: least number of full-rate columns decimated in one call when a grid's columns are decimated
 #: ahead (:meth:`Identifier._decimate_ahead`)
 DECIMATE_BATCH = 16
+#: elements of the shifted input columns :meth:`Identifier.delay_sses` holds at once (delays x
+#: samples x 3; 2 M: 16 MB, a 20 s record's whole grid)
+DELAY_CHUNK_ELEMENTS = 2_000_000
 #: base term lists whose normal equations :meth:`Identifier.sse` keeps per thread
 PARTIAL_CACHE = 4
 FRICTION_SHAPES = ("sf", "sign")
@@ -556,21 +560,60 @@ class Identifier:
             keep = ((f >= band[0]) & (f < band[1])).astype(float)[:, None]
             spec = spec * keep
             phi0 = np.fft.irfft(np.fft.rfft(phi0, axis=0) * keep, n=ud.shape[0], axis=0)
-        out = []
-        for d in grid:
-            sh = np.fft.irfft(spec * np.exp(-1j * w * (d / p.nd))[:, None], n=ud.shape[0], axis=0)
-            phi = phi0.copy()
-            if self.n_theta == 6:
-                phi[:, 4], phi[:, 5] = -sh[:, 1], -sh[:, 2]
-            y = sh[:, 0]
-            if rows is None:
-                r = (y - phi @ _coef(phi, y))[4:-4]
-            else:
-                keep = rows.copy()
-                keep[:4] = keep[-4:] = False
-                r = y[keep] - phi[keep] @ _coef(phi[keep], y[keep])
-            out.append(float(r @ r))
-        return np.array(out)
+        if rows is None:
+            fit, scored = slice(None), slice(4, -4)
+        else:
+            fit = rows.copy()
+            fit[:4] = fit[-4:] = False
+            scored = slice(None)
+        # the columns that do not move with the delay (all but θ5, θ6's) scaled and their Gram
+        # matrix formed once; every delay of a chunk of the grid shifted and fitted at once,
+        # its Gram matrix bordered with the moving columns (as in :meth:`sse`)
+        moving = [4, 5] if self.n_theta == 6 else []
+        a_f = phi0[fit][:, [j for j in range(phi0.shape[1]) if j not in moving]]
+        sc = np.sqrt(np.einsum("ij,ij->j", a_f, a_f))
+        sc[sc == 0] = 1.0
+        a_f = a_f / sc
+        g_ff = a_f.T @ a_f
+        grid = np.asarray(grid, dtype=float)
+        chunk = max(1, DELAY_CHUNK_ELEMENTS // (3 * ud.shape[0]))
+        return np.concatenate([self._delay_chunk(spec, w, ud.shape[0], grid[i:i + chunk], a_f, g_ff, len(moving),
+                                                 fit, scored) for i in range(0, len(grid), chunk)])
+
+    def _delay_chunk(self, spec, w, m, delays, a_f, g_ff, k, fit, scored) -> np.ndarray:
+        """SSEs (G,) of :meth:`delay_sses` for ``delays`` (G,) [samples]: spec (F, 3) the
+        spectrum of the decimated u, u|u|, u³ (m samples); w (F,) its bins [rad/sample]; a_f
+        (m', q) the scaled columns that do not move with the delay on the fitted rows ``fit``,
+        g_ff their Gram matrix; k the moving columns (0, or 2: θ5, θ6's −u|u|, −u³); the SSE on
+        the rows ``scored`` of the fitted ones."""
+        shift = np.exp(np.multiply.outer(delays / self.p.nd, -1j * w))               # (G, F)
+        used = spec.T[:1 + k]                                          # u, and u|u|, u³ when they move
+        sh = irfft(used[None, :, :] * shift[:, None, :], n=m, axis=-1)[:, :, fit]     # (G, 1 + k, m')
+        y = sh[:, 0, :]
+        n_g, q = len(delays), a_f.shape[1]
+        gram = np.empty((n_g, q + k, q + k))
+        gram[:, :q, :q] = g_ff
+        rhs = np.empty((n_g, q + k))
+        rhs[:, :q] = y @ a_f
+        if k:
+            a_s = -sh[:, 1:3, :]                                                      # (G, 2, m')
+            sc_s = np.sqrt(np.einsum("gji,gji->gj", a_s, a_s))
+            sc_s[sc_s == 0] = 1.0
+            a_s /= sc_s[:, :, None]
+            cross = a_s @ a_f                                                         # (G, 2, q)
+            gram[:, q:, :q] = cross
+            gram[:, :q, q:] = cross.transpose(0, 2, 1)
+            gram[:, q:, q:] = a_s @ a_s.transpose(0, 2, 1)
+            rhs[:, q:] = (a_s @ y[:, :, None])[:, :, 0]
+        try:
+            coef = np.linalg.solve(gram, rhs[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:        # a singular fit: its least-norm coefficients
+            coef = (np.linalg.pinv(gram) @ rhs[:, :, None])[:, :, 0]
+        r = y - coef[:, :q] @ a_f.T
+        if k:
+            r -= (coef[:, None, q:] @ a_s)[:, 0, :]
+        r = r[:, scored]
+        return np.einsum("gi,gi->g", r, r)
 
     def search(self, family: str, base: list, residual: np.ndarray) -> Evaluated | None:
         """Best candidate of ``family`` given the already selected ``base`` terms, evaluated
