@@ -9,9 +9,10 @@ Rerun:
     python benchmarks/bench_ident.py --ref-src /tmp/motorctl-main    # and main's, in the same run
 
 What is timed: ``motorctl identify LOG --json`` as a new process, end to end (Python start-up,
-imports from compiled bytecode, as an installed package has it, numba's kernels from its cache (an untimed run fills it first), reading, IDIM-LS, the effect
-search over every family with forward selection and backward elimination, simulation fit %,
-residual verdict, JSON), once with the closed-loop before/after (two simulated C2 runs of 8 s
+imports from compiled bytecode and numba's kernels from its cache, as an installed package has
+them: an untimed run fills each tree's cache first; reading, IDIM-LS, the effect search over
+every family with forward selection and backward elimination, simulation fit %, residual
+verdict, JSON), once with the closed-loop before/after (two simulated C2 runs of 8 s
 in one worker forked at start: *before* with the nominal fit while the effect search goes on,
 *after* once it is done) and once with ``--no-closed-loop``; the median of ``--repeat`` runs.
 CPU is user + system of the process and its children (both search threads, and the closed

@@ -94,7 +94,8 @@ MAX_HELD_SHARE = 0.5
 STEPWISE_ROUNDS = 3
 #: threads searching the families of one selection step (each family's search is independent
 #: of the others' and its numpy/scipy work releases the GIL, so the result does not depend on it;
-#: the searches are handed out longest first, by the CPU time of each family's last search)
+#: the searches are handed out longest first, by the CPU time of each family's last search or,
+#: at the first step, by :data:`FIRST_STEP_COST`)
 SEARCH_THREADS = min(2, os.cpu_count() or 1)
 #: CPU seconds of each family's search at a selection's first step, where no search has been
 #: timed yet (median over 14 logs of the default plant, one per family, 20 s at 5 kHz, one
