@@ -116,6 +116,7 @@ class AmplifierDeadZone(StrictModel):
 
 class AmplifierDeadZoneFamily(EffectFamily):
     name = "amplifier_dead_zone"
+    search_cost = 0.056
     plant_force = "−A1 (f_u(u) − f_u(dz(u + o)))"
     searched = "dead-zone half-width d [V]"
     sim_options = AmplifierDeadZone

@@ -361,6 +361,12 @@ class EffectFamily:
     compensation_rank: ClassVar[int] = 100
     hook_options: ClassVar[type[StrictModel] | None] = None
     kernels: ClassVar[tuple[tuple[str, Callable], ...]] = ()
+    #: CPU seconds of the family's search at a selection's first step, before any of its
+    #: searches has been timed (the median over 14 logs of the default plant, one per family,
+    #: 20 s at 5 kHz, one thread): only the order in which the identifier hands that step's
+    #: searches to its threads, longest first (:data:`motorctl.ident.select.SEARCH_THREADS`).
+    #: Unknown (default): first
+    search_cost: ClassVar[float] = math.inf
     #: options of :attr:`example` that set the effect's size besides those in force units
     #: (what ``benchmarks/tune_families.py`` scales; e.g. a delay)
     size_options: ClassVar[tuple[str, ...]] = ()

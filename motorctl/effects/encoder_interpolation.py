@@ -319,6 +319,7 @@ def analytic_columns(x, v, a, period: float, fq: float | None = None) -> np.ndar
 
 class EncoderInterpolationFamily(PositionPeriodic):
     name = "encoder_interpolation"
+    search_cost = 0.3
     plant_force = "none: reading y = x + Σ a_k sin(2πkx/P + φ_k)"
     example: ClassVar[dict] = {"encoder_interpolation_m": 3.0e-6, "encoder_signal_period_m": 2.0e-3}
     #: on a program whose moves are fast the error shows only at the moves' ends, where a

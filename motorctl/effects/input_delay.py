@@ -229,6 +229,7 @@ class DelayComp(StrictModel):
 
 class InputDelayFamily(EffectFamily):
     name = "input_delay"
+    search_cost = 0.1
     plant_force = "u acts τ later"
     searched = "delay τ [samples]"
     example: ClassVar[dict] = {"input_delay_s": 0.0006}

@@ -35,6 +35,7 @@ class PayloadChange(StrictModel):
 
 class PayloadChangeFamily(EffectFamily):
     name = "payload_change"
+    search_cost = 0.031
     kernels = (("mass", plant_mass),)
     plant_force = "mass step Δm from t_c on"
     searched = "change time t_c [s]"

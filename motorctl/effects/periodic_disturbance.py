@@ -124,6 +124,7 @@ class FourierTime(FourierAdaptable):
 
 class PeriodicDisturbanceFamily(EffectFamily):
     name = "periodic_disturbance"
+    search_cost = 0.015
     kernels = (("force", plant_force), ("add", fourier_add), ("fill", fourier_fill))
     plant_force = "A sin(2πft + φ)"
     searched = "frequency f [Hz]"

@@ -77,6 +77,7 @@ def line_force(f, x, v, t, sf, p):
 
 class PositionDependentFrictionFamily(EffectFamily):
     name = "position_dependent_friction"
+    search_cost = 0.002
     kernels = (("force", line_force), ("add", comp_add), ("fill", comp_fill))
     plant_force = "−c (x − x_ref) S_f(ẋ)"
     sim_options = PositionDependentFriction

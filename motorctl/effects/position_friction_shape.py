@@ -382,6 +382,7 @@ def comp_add(d, x, v, t, sf, p):
 # ---------------------------------------------------------------------------- the family
 class PositionFrictionShapeFamily(EffectFamily):
     name = "position_friction_shape"
+    search_cost = 0.12
     kernels = (("force", plant_force), ("add", comp_add))
     plant_force = "−g(x) S_f(ẋ), g a smooth shape (cubic B-spline)"
     searched = "knot spacing [m] (segment count chosen by the held-out rule)"

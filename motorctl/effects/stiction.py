@@ -130,6 +130,7 @@ def reading_shows_stick(p, h: float) -> bool:
 
 class StictionFamily(EffectFamily):
     name = "stiction"
+    search_cost = 0.059
     plant_force = "holds the applied force at rest up to F_s (Karnopp)"
     searched = "velocity band h [m/s]"
     example: ClassVar[dict] = {"stiction_N": 25.0}

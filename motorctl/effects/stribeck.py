@@ -74,6 +74,7 @@ def velocity_grid(ctx) -> np.ndarray:
 
 class StribeckFamily(EffectFamily):
     name = "stribeck"
+    search_cost = 0.044
     kernels = (("force", plant_force), ("add", comp_add), ("fill", comp_fill))
     plant_force = "−F_s exp(−(ẋ/v_s)²) S_f(ẋ)"
     searched = "Stribeck velocity v_s [m/s]"

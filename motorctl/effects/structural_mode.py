@@ -179,6 +179,7 @@ def _above_band(ctx, base: list, term) -> tuple[str, float]:
 
 class StructuralModeFamily(EffectFamily):
     name = "structural_mode"
+    search_cost = 0.14
     plant_force = "−m_l δ̈, δ̈ = −G(s)ẍ (load on a spring)"
     searched = "antiresonance f_a [Hz]"
     example: ClassVar[dict] = {"mode_hz": 150.0, "mode_damping": 0.03, "mode_load_fraction": 0.4}

@@ -95,18 +95,8 @@ STEPWISE_ROUNDS = 3
 #: threads searching the families of one selection step (each family's search is independent
 #: of the others' and its numpy/scipy work releases the GIL, so the result does not depend on it;
 #: the searches are handed out longest first, by the CPU time of each family's last search or,
-#: at the first step, by :data:`FIRST_STEP_COST`)
+#: at the first step, by its :attr:`~motorctl.effects.base.EffectFamily.search_cost`)
 SEARCH_THREADS = min(2, os.cpu_count() or 1)
-#: CPU seconds of each family's search at a selection's first step, where no search has been
-#: timed yet (median over 14 logs of the default plant, one per family, 20 s at 5 kHz, one
-#: thread, 2026-11-27): only the order in which that step hands the families to the threads,
-#: longest first (in registry order the two longest came last and one thread ended 0.1-0.2 s
-#: after the other); a family not listed goes first
-FIRST_STEP_COST = {"encoder_interpolation": 0.30, "structural_mode": 0.14, "position_friction_shape": 0.12,
-                   "input_delay": 0.10, "cogging": 0.076, "force_ripple": 0.072, "stiction": 0.059,
-                   "amplifier_dead_zone": 0.056, "stribeck": 0.044, "payload_change": 0.031,
-                   "periodic_disturbance": 0.015, "force_constant_drift": 0.015, "periodic_friction": 0.009,
-                   "asymmetric_friction": 0.003, "position_dependent_friction": 0.002, "spring": 0.002}
 #: decimated candidate columns kept per selection (about M·k·8 bytes each: 160 kB for a 20 s,
 #: 5 kHz record with 4 columns)
 COLS_CACHE_MAX = 1024
@@ -875,7 +865,8 @@ class Identifier:
         pool = ThreadPoolExecutor(max_workers=SEARCH_THREADS) if SEARCH_THREADS > 1 else None
         eliminated: list = []
         searched_with: dict = {}     # id(term) -> the terms selected when it was searched
-        cost = dict(FIRST_STEP_COST)  # family -> CPU seconds of its last search and judgement
+        # family -> CPU seconds of its last search and judgement (at first: its search_cost)
+        cost = {name: effect_family(name).search_cost for name in self.families}
         step_base: list = []         # the terms in the model when the last step was searched
         for _ in range(STEPWISE_ROUNDS):
             out = {n for n, _ in eliminated}        # never taken again once dropped
@@ -891,7 +882,7 @@ class Identifier:
                     cost[fam] = time.thread_time() - t0
                     return ev
                 if pool:
-                    # longest first (the CPU time of the family's last search; FIRST_STEP_COST at
+                    # longest first (the CPU time of the family's last search; its search_cost at
                     # the first step), so that the threads end together; the results keep todo's order
                     order = sorted(range(len(todo)), key=lambda i: -cost.get(todo[i], math.inf))
                     futures = {i: pool.submit(one, todo[i]) for i in order}
