@@ -1,7 +1,7 @@
 """identify's shortcuts give the results of the long way (docs/identification.md, "Speed"): the
-decimation of a sine in closed form and the SSE of a candidate from the base's cached normal
-equations, each against the exact computation on a short log of the simulated gantry with
-cogging.
+decimation of a sine in closed form, the SSE of a candidate from the base's cached normal
+equations and the input delay's grid fitted at once, each against the exact computation on a
+short log of the simulated gantry with cogging.
 
 (The same check on 20 s logs of the default plant and seven families, against another source
 tree: ``benchmarks/ident_equivalence.py``; the times: ``benchmarks/bench_ident.py``.)
