@@ -387,9 +387,8 @@ class Identifier:
         :data:`DECIMATE_BATCH` columns, written as the rows of one block (each column is
         filtered on its own, so the numbers are those of one call per h; 20 columns of a
         100 000-sample record in single precision: 12 ms, 17 ms through a C-ordered (N, k)
-        block). Families with
-        closed-form decimated columns, values already cached, or a full cache: left to
-        :meth:`dec_cols`."""
+        block). Families with closed-form decimated columns, values already cached, or a full
+        cache: left to :meth:`dec_cols`."""
         fam = effect_family(family)
         if type(fam).decimated_columns is not EffectFamily.decimated_columns:
             return
@@ -884,7 +883,7 @@ class Identifier:
                 if pool:
                     # longest first (the CPU time of the family's last search; its search_cost at
                     # the first step), so that the threads end together; the results keep todo's order
-                    order = sorted(range(len(todo)), key=lambda i: -cost.get(todo[i], math.inf))
+                    order = sorted(range(len(todo)), key=lambda i: -cost[todo[i]])
                     futures = {i: pool.submit(one, todo[i]) for i in order}
                     found = [futures[i].result() for i in range(len(todo))]
                 else:
