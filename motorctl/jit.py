@@ -20,48 +20,141 @@ The servo cycle's calls therefore pass their arrays as one :func:`bundle` (a num
 the arrays by name, shared with Python, not copied) and go through :func:`entry`, the compiled
 overload itself (the cost of the call: ``benchmarks/bench_loop.py``, "the compiled call of a
 cycle").
+
+numba itself is imported when the first kernel is compiled or loaded (:func:`load`), not when
+a module defines one: :func:`njit` wraps the function in a :class:`Kernel` that becomes numba's
+dispatcher at its first use. A process that only reads the kernels' modules (``motorctl
+identify``, which fits in numpy and scipy, and calls no kernel) does not pay numba's import
+(0.3-0.5 s of its start-up, ``benchmarks/bench_ident.py``).
 """
 
-from functools import partial
+import functools
+import os
 from types import SimpleNamespace
 
 import numpy as np
 
-from motorctl.jitcache import numba_folder
 
-_CACHE_DIR = numba_folder()              # before numba reads NUMBA_CACHE_DIR
-
-from numba import config as _config  # noqa: E402
-from numba import njit as _numba_njit  # noqa: E402
-from numba import typeof as _typeof  # noqa: E402
-from numba.core import types as _types  # noqa: E402
-from numba.experimental import structref as _structref  # noqa: E402
-from numba.extending import intrinsic as _intrinsic  # noqa: E402
-
-if _CACHE_DIR is not None:
-    # numba read NUMBA_CACHE_DIR at its import (before motorctl's, or without a plugin folder):
-    # a kernel's cache locator reads the setting when the kernel is defined, after this
-    _config.CACHE_DIR = _CACHE_DIR
-
-#: True when ``NUMBA_DISABLE_JIT=1``: kernels are plain Python
-DISABLED = bool(_config.DISABLE_JIT)
-
-#: Decorator for the per-sample kernels: nopython mode, cached, no GIL needed. (A constant
-#: argument from a compiled caller gives the callee an overload of its own, numba's literal
-#: typing: 9 of ``sup_trip`` in the servo cycle, 3 of ``_matrix``. Compiling once per argument
-#: types instead saved those overloads at a cold start but made the compiled call of a cycle
-#: about 4 % slower (C2, both axes: 1.75 against 1.68 us): the callees lost their constants.)
-njit = partial(_numba_njit, cache=True, nogil=True)
-
-__all__ = ["DISABLED", "BundleType", "borrow", "bundle", "check_code", "copy_into",
-           "define_bundle", "dispatch", "entry", "njit"]
+def _disabled_by_environment() -> bool:
+    try:
+        return bool(int(os.environ.get("NUMBA_DISABLE_JIT", "0") or "0"))
+    except ValueError:
+        return False
 
 
-class BundleType(_types.StructRef):
-    """Base of the bundles' numba types: the field types as given (no literal types)."""
+#: True when ``NUMBA_DISABLE_JIT=1``: kernels are plain Python. Read from the environment as
+#: numba reads it (an integer; unset: 0), before numba is imported (:func:`load` checks that
+#: numba's own configuration agrees)
+DISABLED = _disabled_by_environment()
 
-    def preprocess_fields(self, fields):
-        return tuple((name, _types.unliteral(t)) for name, t in fields)
+__all__ = ["DISABLED", "BundleType", "Kernel", "borrow", "bundle", "check_code", "copy_into",
+           "define_bundle", "dispatch", "entry", "load", "njit"]
+
+#: numba's parts, once :func:`load` imported it
+_numba = None
+
+
+def load() -> SimpleNamespace:
+    """numba, imported once per process: its cache folder set first (:mod:`motorctl.jitcache`;
+    numba reads ``NUMBA_CACHE_DIR`` at its import, a kernel's cache locator when the kernel is
+    created, after this). Returns numba's ``njit``, ``typeof``, ``config``, ``types``,
+    ``structref`` and ``intrinsic``.
+
+    Raises:
+        RuntimeError: numba's configuration disables the JIT and the environment does not (a
+            ``.numba_config.yaml``), or the reverse: kernels were already defined for the other.
+    """
+    global _numba
+    if _numba is None:
+        from motorctl.jitcache import numba_folder
+        folder = numba_folder()              # before numba reads NUMBA_CACHE_DIR
+        from numba import config, njit, typeof
+        from numba.core import types
+        from numba.experimental import structref
+        from numba.extending import intrinsic
+        if folder is not None:
+            # numba read NUMBA_CACHE_DIR at its import (before motorctl's, or without a plugin
+            # folder): a kernel's cache locator reads the setting when the kernel is created
+            config.CACHE_DIR = folder
+        if bool(config.DISABLE_JIT) != DISABLED:
+            raise RuntimeError(f"numba's DISABLE_JIT is {config.DISABLE_JIT} but NUMBA_DISABLE_JIT in the "
+                               f"environment is {os.environ.get('NUMBA_DISABLE_JIT', 'unset')}: set it in the "
+                               "environment, not in a .numba_config.yaml")
+        _numba = SimpleNamespace(njit=njit, typeof=typeof, config=config, types=types, structref=structref,
+                                 intrinsic=intrinsic)
+    return _numba
+
+
+class Kernel:
+    """A function compiled by numba (nopython mode, cached on disk, no GIL needed) at its first
+    use: a call from Python, the typing of a compiled caller that calls it, or any attribute of
+    numba's dispatcher (``compile``, ``overloads``, ...), which it then forwards to.
+
+    ``py_func`` is the Python function; ``__name__``, ``__qualname__``, ``__module__`` and
+    ``__doc__`` are its. Compiled callers see numba's dispatcher itself (its type, ``types.Dispatcher``),
+    so they compile and cache as if the module had defined the dispatcher. Pickles as numba's
+    dispatcher (numba's cache pickles a closure's variables into its index key).
+    """
+
+    def __init__(self, py_func):
+        self._dispatcher = None
+        self.py_func = py_func
+        functools.update_wrapper(self, py_func)
+
+    @property
+    def dispatcher(self):
+        """numba's dispatcher of ``py_func`` (created now at the first use, numba imported)."""
+        d = self._dispatcher
+        if d is None:
+            d = self._dispatcher = load().njit(cache=True, nogil=True)(self.py_func)
+        return d
+
+    @property
+    def _numba_type_(self):
+        # numba's typeof of a global or closure variable: the dispatcher's own type
+        return self.dispatcher._numba_type_
+
+    def __call__(self, *args):
+        d = self._dispatcher
+        return (d if d is not None else self.dispatcher)(*args)
+
+    def __getattr__(self, name):
+        if name.startswith("__") or name in ("_dispatcher", "py_func"):
+            raise AttributeError(name)
+        return getattr(self.dispatcher, name)
+
+    def __reduce__(self):
+        return self.dispatcher.__reduce__()
+
+    def __repr__(self) -> str:
+        return f"<motorctl.jit.Kernel {self.__module__}.{self.__qualname__}>"
+
+
+def njit(py_func):
+    """Decorator for the per-sample kernels: ``py_func`` compiled by numba in nopython mode,
+    cached, no GIL needed, at its first use (a :class:`Kernel`); with ``NUMBA_DISABLE_JIT=1``,
+    ``py_func`` itself.
+
+    (A constant argument from a compiled caller gives the callee an overload of its own, numba's
+    literal typing: 9 of ``sup_trip`` in the servo cycle, 3 of ``_matrix``. Compiling once per
+    argument types instead saved those overloads at a cold start but made the compiled call of a
+    cycle about 4 % slower (C2, both axes: 1.75 against 1.68 us): the callees lost their
+    constants.)
+    """
+    return py_func if DISABLED else Kernel(py_func)
+
+
+def _define_bundle_type():
+    nb = load()
+
+    class BundleType(nb.types.StructRef):
+        """Base of the bundles' numba types: the field types as given (no literal types)."""
+
+        def preprocess_fields(self, fields):
+            return tuple((name, nb.types.unliteral(t)) for name, t in fields)
+
+    BundleType.__module__, BundleType.__qualname__ = __name__, "BundleType"
+    return BundleType
 
 
 def define_bundle(type_cls, proxy_cls, fields) -> None:
@@ -75,9 +168,10 @@ def define_bundle(type_cls, proxy_cls, fields) -> None:
         proxy_cls: the Python-side class.
         fields: the field names, in constructor order.
     """
-    _structref.register(type_cls)
-    _structref.define_constructor(proxy_cls, type_cls, list(fields))
-    _structref.define_boxing(type_cls, proxy_cls)
+    structref = load().structref
+    structref.register(type_cls)
+    structref.define_constructor(proxy_cls, type_cls, list(fields))
+    structref.define_boxing(type_cls, proxy_cls)
 
 
 def bundle(make, fields, arrays):
@@ -105,31 +199,51 @@ def entry(kernel, *args):
     """
     if DISABLED:
         return kernel
-    return kernel.compile(tuple(_typeof(a) for a in args))
+    typeof = load().typeof
+    return kernel.compile(tuple(typeof(a) for a in args))
 
 
 def _borrow_py(a):
     return a
 
 
-@_intrinsic
-def _borrow_jit(typingctx, arr):
-    if not isinstance(arr, _types.Array):
-        return None
+def _define_borrow():
+    nb = load()
 
-    def codegen(context, builder, signature, args):
-        view = context.make_array(arr)(context, builder, value=args[0])
-        view.meminfo = context.get_constant_null(_types.MemInfoPointer(arr.dtype))
-        return view._getvalue()
-    return arr(arr), codegen
+    @nb.intrinsic
+    def _borrow_jit(typingctx, arr):
+        if not isinstance(arr, nb.types.Array):
+            return None
+
+        def codegen(context, builder, signature, args):
+            view = context.make_array(arr)(context, builder, value=args[0])
+            view.meminfo = context.get_constant_null(nb.types.MemInfoPointer(arr.dtype))
+            return view._getvalue()
+        return arr(arr), codegen
+    return _borrow_jit
 
 
 #: ``borrow(a)``, in compiled code: the same array (data, shape, strides) without a reference to
 #: its owner, so that numba counts no references for it, here or in the kernels it is passed to.
 #: For views that live only inside the kernel that takes them, while the caller holds their
 #: owner: a borrowed view must never be returned, stored in a bundle or outlive that call.
-#: With the JIT disabled, the array itself.
-borrow = _borrow_py if DISABLED else _borrow_jit
+#: With the JIT disabled, the array itself. (With the JIT, numba's intrinsic is created at the
+#: name's first import, :func:`__getattr__`: numba types an intrinsic by the object itself, so no
+#: :class:`Kernel` can stand in for it.)
+if DISABLED:
+    borrow = _borrow_py
+
+#: the names whose definition imports numba, defined at their first import (:func:`__getattr__`)
+_ON_FIRST_USE = {"BundleType": _define_bundle_type, "borrow": _define_borrow}
+
+
+def __getattr__(name):
+    """``BundleType`` and (with the JIT) ``borrow``: numba's types, defined at their first import."""
+    make = _ON_FIRST_USE.get(name)
+    if make is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = globals()[name] = make()
+    return value
 
 
 def dispatch(kernels, otherwise):

@@ -86,8 +86,9 @@ def test_an_edit_to_a_callee_module_changes_the_cache_folder(tmp_path):
 
 
 def test_motorctl_points_numba_at_the_keyed_folder_and_prunes_old_ones(tmp_path):
-    """Without NUMBA_CACHE_DIR, importing the kernels' module sets numba's cache folder (and the
-    variable, for child processes) to the keyed one, and keeps the checkout's KEEP used last."""
+    """Without NUMBA_CACHE_DIR, numba's first use (motorctl.jit.load: a kernel compiled or loaded)
+    sets numba's cache folder (and the variable, for child processes) to the keyed one, and keeps
+    the checkout's KEEP used last; importing a module of kernels imports no numba."""
     import sys
 
     from motorctl.jitcache import KEEP, cache_dir
@@ -98,8 +99,37 @@ def test_motorctl_points_numba_at_the_keyed_folder_and_prunes_old_ones(tmp_path)
     for i, p in enumerate(old):
         p.mkdir(parents=True)
         os.utime(p, (1e9 + i, 1e9 + i))                   # old4 used last
-    r = subprocess.run([sys.executable, "-c", "import os, numba, motorctl.jit\n"
+    r = subprocess.run([sys.executable, "-c", "import os, sys, numba, motorctl.effects.cogging, motorctl.jit\n"
+                        "assert 'NUMBA_CACHE_DIR' not in os.environ\n"
+                        "motorctl.jit.load()\n"
                         "print(numba.config.CACHE_DIR, os.environ['NUMBA_CACHE_DIR'])"],
                        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert r.stdout.split() == [str(folder)] * 2, r.stdout + r.stderr
     assert sorted(p.name for p in folder.parent.iterdir()) == sorted([folder.name] + [p.name for p in old[-(KEEP - 1):]])
+
+
+def test_numba_is_imported_at_a_kernels_first_use_not_by_its_module(tmp_path):
+    """The identification's and the families' modules define their kernels without importing
+    numba (motorctl identify calls none of them); a kernel's first call imports numba, compiles
+    it into the cache folder and returns what the Python function returns; a kernel compiled
+    after that calls a lazily defined one."""
+    import sys
+    (tmp_path / "caller.py").write_text(
+        "from motorctl.effects.cogging import plant_force\nfrom motorctl.jit import njit\n\n"
+        "@njit\ndef twice(x, p):\n    return plant_force(0.0, x, 0.0, 0.0, None, p) * 2.0\n")
+    script = ("import sys\nimport numpy as np\n"
+              "import motorctl.ident.pipeline, motorctl.ident.simfit, motorctl.effects.plant, "
+              "motorctl.effects.compensation\n"
+              "from motorctl.effects.cogging import plant_force\n"
+              "print('numba' in sys.modules)\n"
+              "p = np.array([np.inf, 1.0, 2.0, 100.0, 0.3])\n"
+              "print(plant_force(1.0, 0.01, 0.0, 0.0, None, p) == plant_force.py_func(1.0, 0.01, 0.0, 0.0, None, p))\n"
+              "import caller\n"
+              "print(caller.twice(0.01, p) == 2.0 * plant_force.py_func(0.0, 0.01, 0.0, 0.0, None, p))\n"
+              "print('numba' in sys.modules, type(plant_force.dispatcher).__name__, len(plant_force.overloads))\n")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba"), "PYTHONPATH": str(tmp_path)}
+    r = subprocess.run([sys.executable, "-c", script], cwd=REPO, env=env, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["False", "True", "True", "True", "CPUDispatcher", "1"], r.stdout + r.stderr
+    assert any((tmp_path / "numba").rglob("*.nbi")), "nothing cached"
