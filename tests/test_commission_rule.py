@@ -236,3 +236,25 @@ def test_the_error_spectrum_is_judged_beyond_what_the_sensitivities_predict():
     res = {"fault": "", "samples": 200000, "saturated": 0, "u_rest_rms_V": 0.05, "osc_ratio": 2.0, **run}
     assert "oscillation at 93 Hz" in V.admissible(res, 10.0, dict(REF_FULL, **ref))
     assert V.admissible(res, 10.0, dict(REF_FULL, **ref), expect=lambda x: np.full(x.size, 50.0)) == ""
+
+
+def test_lines_of_coherence_one_are_taken_where_they_depart_without_a_warning():
+    """A noise-free measurement (coherence 1 at every line, or at some: ε = 0 there): no
+    division by zero (numpy's RuntimeWarning is an error here); a line at the model stays the
+    model, a departing one is taken."""
+    import warnings
+
+    from motorctl.commission.choose import loop_frf
+    fm = np.arange(10.0, 1000.0)
+    G = plant_model_frf(RIGID, TS, 2 * math.pi * fm)
+    Gm = G.copy()
+    Gm[490] = 1.5 * G[490]                             # 500 Hz
+    for coh in (np.ones(fm.size), np.where(fm < 300.0, 1.0, 0.8)):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            w, G_fit, G_w = loop_frf({"f_hz": fm, "G": Gm, "coherence": coh}, RIGID, TS, 32)
+        ratio = np.abs(G_w / G_fit)
+        f = w / (2 * math.pi)
+        assert np.all(np.isfinite(G_w))
+        assert np.allclose(ratio[(f < 498.0) | (f > 502.0)], 1.0)
+        assert ratio.max() == pytest.approx(1.5, rel=0.2)

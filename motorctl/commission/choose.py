@@ -44,8 +44,12 @@ def loop_frf(meas: dict, model: dict, ts: float, periods: int = PERIODS):
         gam2 = np.clip(ch, 1e-6, 1.0)
         eps = np.sqrt((1.0 - gam2) / (2.0 * max(periods, 1) * gam2))
         # the scale of that error from the lines' own scatter about the model: the median of a
-        # Rayleigh variable (the complex departure) is 1.177 σ; not below the formula's
-        scale = max(1.0, float(np.median(np.abs(ratio[good] - 1.0) / eps[good])) / RAYLEIGH_MEDIAN)
+        # Rayleigh variable (the complex departure) is 1.177 σ; not below the formula's. A line
+        # of coherence 1 (a noise-free measurement: ε = 0) has no scatter to scale and counts as
+        # measured wherever it departs at all
+        scaled = good & (eps > 0.0)
+        scale = max(1.0, float(np.median(np.abs(ratio[scaled] - 1.0) / eps[scaled])) / RAYLEIGH_MEDIAN) \
+            if scaled.any() else 1.0
         ratio = np.where(good & (np.abs(ratio - 1.0) > FRF_SIGMAS * scale * eps), ratio, 1.0)
         inside = (f_w >= fm[good][0]) & (f_w <= fm[good][-1])
         re = np.interp(f_w, fm, ratio.real)
