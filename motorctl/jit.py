@@ -25,7 +25,7 @@ numba itself is imported when the first kernel is compiled or loaded (:func:`loa
 a module defines one: :func:`njit` wraps the function in a :class:`Kernel` that becomes numba's
 dispatcher at its first use. A process that only reads the kernels' modules (``motorctl
 identify``, which fits in numpy and scipy, and calls no kernel) does not pay numba's import
-(0.3-0.5 s of its start-up, ``benchmarks/bench_ident.py``).
+(0.25-0.45 s of its start-up, ``benchmarks/bench_ident.py``).
 """
 
 import functools
@@ -61,8 +61,9 @@ def load() -> SimpleNamespace:
     ``structref`` and ``intrinsic``.
 
     Raises:
-        RuntimeError: numba's configuration disables the JIT and the environment does not (a
-            ``.numba_config.yaml``), or the reverse: kernels were already defined for the other.
+        RuntimeError: numba's own configuration (a ``.numba_config.yaml``) disables the JIT where
+            ``NUMBA_DISABLE_JIT`` in the environment, which decided how the kernels were
+            defined (:data:`DISABLED`), does not, or the reverse.
     """
     global _numba
     if _numba is None:
