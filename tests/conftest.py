@@ -176,7 +176,24 @@ def pytest_configure(config):
                                        "compile of the main cache (warm_numba_cache)")
     if hasattr(config, "workerinput") or config.option.collectonly:
         return
+    if sys.flags.dont_write_bytecode or os.environ.get("PYTHONDONTWRITEBYTECODE"):
+        _compile_bytecode()
     config.stash[_WARMUP_KEY] = _EarlyWarmup()
+
+
+#: the folders of the modules the suite's processes import from this checkout
+BYTECODE_DIRS = ("motorctl", "motorctl_drivers", "motorctl_emulators", "tests")
+
+
+def _compile_bytecode() -> None:
+    """This checkout's bytecode written ahead (``__pycache__``, which git ignores), as pip writes
+    an installed package's, when Python is told not to write it (``PYTHONDONTWRITEBYTECODE``):
+    otherwise each of the suite's processes (hundreds of ``motorctl`` commands, emulators and
+    daemons) compiles every module of this checkout it imports, 0.05-0.1 s of its start. Only
+    modules whose source changed are compiled again."""
+    import compileall
+    for d in BYTECODE_DIRS:
+        compileall.compile_dir(str(REPO / d), quiet=2)
 
 
 _WARMUP_KEY = pytest.StashKey[_EarlyWarmup]()
