@@ -42,6 +42,7 @@ import time
 
 import numpy as np
 
+from motorctl.jit import dispatcher_of
 from motorctl.ordering import load_acquire, store_release, warm_up
 from motorctl.recorder.runlog import LogWriter
 
@@ -120,10 +121,11 @@ class SharedRing:
         off += 8 * self.n_axes * sw
         self.rows = buf[off:].view(np.float64).reshape(self.capacity, self.width)
         warm_up()
+        self._store_release = dispatcher_of(store_release)    # called once a cycle by the loop
 
     def publish(self, k: int) -> None:
         """Loop side: ``k`` cycles are complete (a release store after the rows' stores)."""
-        store_release(self.ctl, CTL_HEARTBEAT, k)
+        self._store_release(self.ctl, CTL_HEARTBEAT, k)
 
     def published(self) -> int:
         """Rows written so far (the heartbeat; an acquire load before any row is read)."""
