@@ -167,7 +167,8 @@ class _EarlyWarmup:
 
 
 def pytest_configure(config):
-    """In the controlling process (not in an xdist worker, not for ``--collect-only``): start the
+    """In the controlling process (not in an xdist worker, not for ``--collect-only``): write the
+    checkout's bytecode where Python is told not to (:func:`_compile_bytecode`), then start the
     session's compile at once (:class:`_EarlyWarmup`), so that it overlaps the workers' start-up
     and collection and the tests that need no compiled code of the main cache
     (``own_jit_cache``)."""
