@@ -279,6 +279,14 @@ class LSFit:
         return float(np.sqrt(np.mean(self.residual ** 2)))
 
 
+def unit_columns(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(phi's columns scaled to unit 2-norm, their norms (p,)) of phi (M, p): the scaling of the
+    normal equations every least-squares fit here solves; a zero column keeps its scale 1."""
+    sc = np.sqrt(np.einsum("ij,ij->j", phi, phi))
+    sc[sc == 0] = 1.0
+    return phi / sc, sc
+
+
 def ls(phi: np.ndarray, target: np.ndarray) -> LSFit:
     """θ̂ = argmin ‖target − Φθ‖ by the normal equations of the column-scaled Φ (Cholesky-free
     ``numpy.linalg.solve`` of a k×k system; :func:`numpy.linalg.lstsq` when that is singular);
@@ -290,9 +298,7 @@ def ls(phi: np.ndarray, target: np.ndarray) -> LSFit:
         phi: (M, p). target: (M,).
     """
     m, k = phi.shape
-    sc = np.sqrt(np.einsum("ij,ij->j", phi, phi))
-    sc[sc == 0] = 1.0
-    a = phi / sc
+    a, sc = unit_columns(phi)
     g = a.T @ a
     try:
         gi = np.linalg.inv(g)

@@ -54,7 +54,7 @@ from motorctl.effects.input_delay import (HOLD_TOLERANCE, FoundDelay, amplifier_
                                           delayed, loop_lag)
 from motorctl.effects.periodic import FEW_SAMPLES
 from motorctl.ident.data import Record
-from motorctl.ident.idim import Prepared, choose_n_theta, input_reach, ls, prepare
+from motorctl.ident.idim import Prepared, choose_n_theta, input_reach, ls, prepare, unit_columns
 from motorctl.ident.verdict import residual_verdict
 from motorctl.model import f_u, s_f
 
@@ -452,9 +452,7 @@ class Identifier:
             return float(r @ r)
         a0, y, weight, g, b = self._partial(terms[:-1])
         c = last.cols if weight is None else last.cols * weight[:, None]
-        cs = np.sqrt(np.einsum("ij,ij->j", c, c))
-        cs[cs == 0] = 1.0
-        a1 = c / cs
+        a1 = unit_columns(c)[0]
         cross = a0.T @ a1
         n0 = g.shape[0]
         gram = np.empty((n0 + c.shape[1],) * 2)
@@ -484,9 +482,7 @@ class Identifier:
             return hit[1]
         phi, y = self.design(base)
         weight = _hold(base)[0]
-        sc = np.sqrt(np.einsum("ij,ij->j", phi, phi))
-        sc[sc == 0] = 1.0
-        a = phi / sc
+        a = unit_columns(phi)[0]
         out = (a, y, weight, a.T @ a, a.T @ y)
         if len(cache) >= PARTIAL_CACHE:
             cache.pop(next(iter(cache)))
@@ -561,9 +557,7 @@ class Identifier:
         # its Gram matrix bordered with the moving columns (as in :meth:`sse`)
         moving = [4, 5] if self.n_theta == 6 else []
         a_f = phi0[fit][:, [j for j in range(phi0.shape[1]) if j not in moving]]
-        sc = np.sqrt(np.einsum("ij,ij->j", a_f, a_f))
-        sc[sc == 0] = 1.0
-        a_f = a_f / sc
+        a_f = unit_columns(a_f)[0]
         g_ff = a_f.T @ a_f
         grid = np.asarray(grid, dtype=float)
         chunk = max(1, DELAY_CHUNK_ELEMENTS // (3 * ud.shape[0]))
@@ -1404,9 +1398,7 @@ def _cov(phi: np.ndarray, residual: np.ndarray) -> np.ndarray:
 
 def _coef(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
     """LS coefficients by column-scaled normal equations (fast path; lstsq if singular)."""
-    sc = np.sqrt(np.einsum("ij,ij->j", phi, phi))
-    sc[sc == 0] = 1.0
-    a = phi / sc
+    a, sc = unit_columns(phi)
     try:
         return np.linalg.solve(a.T @ a, a.T @ y) / sc
     except np.linalg.LinAlgError:
