@@ -58,8 +58,8 @@ _numba = None
 def load() -> SimpleNamespace:
     """numba, imported once per process: its cache folder set first (:mod:`motorctl.jitcache`;
     numba reads ``NUMBA_CACHE_DIR`` at its import, a kernel's cache locator when the kernel is
-    created, after this). Returns numba's ``njit``, ``typeof``, ``config``, ``types``,
-    ``structref`` and ``intrinsic``.
+    created, after this). Returns numba's ``njit``, ``typeof``, ``types``, ``structref`` and
+    ``intrinsic``.
 
     Raises:
         RuntimeError: numba's own configuration (a ``.numba_config.yaml``) disables the JIT where
@@ -82,8 +82,7 @@ def load() -> SimpleNamespace:
             raise RuntimeError(f"numba's DISABLE_JIT is {config.DISABLE_JIT} but NUMBA_DISABLE_JIT in the "
                                f"environment is {os.environ.get('NUMBA_DISABLE_JIT', 'unset')}: set it in the "
                                "environment, not in a .numba_config.yaml")
-        _numba = SimpleNamespace(njit=njit, typeof=typeof, config=config, types=types, structref=structref,
-                                 intrinsic=intrinsic)
+        _numba = SimpleNamespace(njit=njit, typeof=typeof, types=types, structref=structref, intrinsic=intrinsic)
     return _numba
 
 

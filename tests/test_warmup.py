@@ -88,7 +88,7 @@ def test_an_edit_to_a_callee_module_changes_the_cache_folder(tmp_path):
 def test_motorctl_points_numba_at_the_keyed_folder_and_prunes_old_ones(tmp_path):
     """Without NUMBA_CACHE_DIR, numba's first use (motorctl.jit.load: a kernel compiled or loaded)
     sets numba's cache folder (and the variable, for child processes) to the keyed one, and keeps
-    the checkout's KEEP used last; importing a module of kernels imports no numba."""
+    the checkout's KEEP used last; importing a module of kernels does not set it yet."""
     import sys
 
     from motorctl.jitcache import KEEP, cache_dir
@@ -99,7 +99,7 @@ def test_motorctl_points_numba_at_the_keyed_folder_and_prunes_old_ones(tmp_path)
     for i, p in enumerate(old):
         p.mkdir(parents=True)
         os.utime(p, (1e9 + i, 1e9 + i))                   # old4 used last
-    r = subprocess.run([sys.executable, "-c", "import os, sys, numba, motorctl.effects.cogging, motorctl.jit\n"
+    r = subprocess.run([sys.executable, "-c", "import os, numba, motorctl.effects.cogging, motorctl.jit\n"
                         "assert 'NUMBA_CACHE_DIR' not in os.environ\n"
                         "motorctl.jit.load()\n"
                         "print(numba.config.CACHE_DIR, os.environ['NUMBA_CACHE_DIR'])"],
