@@ -19,7 +19,8 @@ from motorctl.commission.tune import make_log
 from motorctl.cli import main
 from motorctl.ident.data import load_record
 from motorctl.ident.effects import parameters
-from motorctl.ident.pipeline import summarise, text_report
+from motorctl.ident.idim import input_saturation
+from motorctl.ident.pipeline import SATURATION_NOTE_SHARE, saturation_note, summarise, text_report
 from motorctl.ident.select import Identifier
 from motorctl.ident.synth import EXAMPLES
 from harness import emps_path
@@ -174,6 +175,45 @@ def test_json_keys_validation_and_closed_loop(logs, tmp_path, capsys):
     for f in ("report.txt", "residual_position.png", "residual_velocity.png", "residual_time.png",
               "spatial_periodogram.png", "effect_shape.png"):
         assert (rep / f).stat().st_size > 0, f
+
+
+def test_an_input_that_sits_at_its_limit_is_found_in_the_record():
+    """input_saturation: stretches of 1 ms or more at the record's extremes, as a clipped
+    output is logged; an extreme touched once, or for less than 1 ms, is no limit."""
+    fs = 5000.0
+    t = np.arange(0.0, 2.0, 1.0 / fs)
+    sat = input_saturation(np.clip(12.0 * np.sin(2 * np.pi * t), -10.0, 10.0), fs)
+    # |12 sin(2πt)| >= 10 for 1 - 2 asin(10/12)/π of each period, in two stretches a period
+    assert sat["limits_V"] == [-10.0, 10.0] and sat["stretches"] == 4, sat
+    assert sat["share"] == pytest.approx(1 - 2 * np.arcsin(10 / 12) / np.pi, abs=2e-3), sat
+    assert sat["longest_s"] == pytest.approx(0.5 - np.arcsin(10 / 12) / np.pi, abs=1e-3), sat
+    assert input_saturation(9.0 * np.sin(2 * np.pi * t), fs) is None
+    blip = np.sin(2 * np.pi * t)
+    blip[100:104] = 3.0                     # 0.8 ms at the top: not a limit
+    assert input_saturation(blip, fs) is None
+    blip[100:106] = 3.0                     # 1.2 ms: the upper limit only
+    sat = input_saturation(blip, fs)
+    assert sat["limits_V"] == [3.0] and sat["stretches"] == 1, sat
+    # the report says the values may be off from 1 % of the samples at the limit
+    assert saturation_note(sat) is None
+    assert saturation_note(dict(sat, share=SATURATION_NOTE_SHARE)).startswith("NOTE: the input sits at its limit (+3 V)")
+
+
+def test_a_record_whose_input_sits_at_its_limit_says_so(logs, tmp_path, capsys):
+    """The default plant driven harder than its amplifier can follow (a_max 50 m/s²: ±10 V for
+    about 7 % of the samples) is reported with a NOTE that the values may be off
+    (docs/identification.md, "Input saturation"); a record within the limit says nothing."""
+    log = tmp_path / "rail.mclog"
+    make_log(str(log), None, duration_s=4.0, seed=1, axis="X", trajectory={"a_max": 50.0},
+             base=Path(__file__).resolve().parents[1] / "configs" / "gantry.yaml")
+    assert main(["identify", str(log), "--json", "--no-closed-loop"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    sat = s["input_saturation"]
+    assert sat["limits_V"] == [-10.0, 10.0] and 0.03 < sat["share"] < 0.15 and sat["stretches"] >= 4, sat
+    assert "NOTE: the input sits at its limit (-10 V / +10 V)" in text_report(s)
+    assert main(["identify", logs["clean_12"], "--json", "--no-closed-loop"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["input_saturation"] is None and "sits at its limit" not in text_report(s)
 
 
 def test_text_report_says_no_effect_on_clean_log(logs, capsys):

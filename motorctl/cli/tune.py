@@ -68,9 +68,10 @@ def default_out(config: str, axis: str) -> Path:
 def text_report(res: dict) -> str:
     """The text output of ``motorctl tune`` (its result :func:`tune`): what was found, then one
     table (compare-runs') with the floor on sim, the damage removed and whether e_M got worse."""
-    from motorctl.ident.pipeline import fig as _fig
+    from motorctl.ident.pipeline import fig as _fig, saturation_note
     from motorctl.cli.runs import text_report as table
-    lines = []
+    note = saturation_note(res.get("input_saturation"))
+    lines = [note] if note else []
     for e in res["effects"]:
         pars = ", ".join(f"{k} {_fig(v)}" for k, v in e["parameters"].items())
         tag = ("not compensable" if e["name"] not in res["compensation"] else

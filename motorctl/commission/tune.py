@@ -203,7 +203,8 @@ def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None =
         writable_file(f, f"tune {k} output")
     res = {"config": str(config), "axis": axis, "driver": loaded.cfg.driver.type, "clock": clock,
            "duration_s": duration, "out": str(out), "files": {}, "faults": {}, "effects": [],
-           "compensation": {}, "not_compensable": [], "kept": [], "dropped": {}, "theta_hat0": None,
+           "compensation": {}, "not_compensable": [], "input_saturation": None, "kept": [], "dropped": {},
+           "theta_hat0": None,
            "verdict": None,
            "stopped": None, "compare": None,
            "floor_effects_off": ([n for n in effects_on(loaded, axis) if FAMILIES[n].has_compensation]
@@ -224,7 +225,8 @@ def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None =
     note(f"identify: {files['before']}, axis {axis}")
     idf, s = _identify(files["before"], axis)
     comp, _theta, skipped = compensation_from_fit(idf)
-    res.update(effects=s["effects"], compensation=comp, not_compensable=skipped)
+    res.update(effects=s["effects"], compensation=comp, not_compensable=skipped,
+               input_saturation=s["input_saturation"])
     if not s["effects"]:
         res["stopped"] = "no effect found (no candidate passed held-out gain, BIC and plausibility)"
         return res

@@ -32,6 +32,11 @@ CUBIC_MIN_INPUT_V = 5.0
 EDGE_S = 0.1
 #: cut-off of the wide-band velocity (:attr:`Prepared.v_wide`) as a share of the sample rate
 WIDE_CUTOFF_SHARE = 0.4
+#: the shortest stretch of samples at the input's extreme that :func:`input_saturation` counts
+#: as the amplifier's limit [s], and at least this many samples
+RAIL_MIN_S, RAIL_MIN_SAMPLES = 1e-3, 3
+#: the relative tolerance of "at the extreme" (a clipped input is logged at the limit itself)
+RAIL_RTOL = 1e-9
 
 
 def default_filters(fs: float) -> tuple[float, int]:
@@ -323,6 +328,45 @@ def input_reach(u: np.ndarray) -> float:
     """The record's largest input |u|max [V]: the 99.5th percentile of |u| (u [V], shape (N,)),
     so that a few spikes do not set it."""
     return float(np.percentile(np.abs(u), 99.5))
+
+
+def input_saturation(u: np.ndarray, fs: float) -> dict | None:
+    """Where the input sits at its limit: the samples at the record's largest or smallest input
+    (within :data:`RAIL_RTOL`) in stretches of :data:`RAIL_MIN_S` or more (and
+    :data:`RAIL_MIN_SAMPLES`), the way a controller's output clipped at ±u_lim is logged. A
+    motion that touches its extreme once is not a limit.
+
+    In such a stretch the loop is open: it catches up with the reference afterwards, often
+    driving the amplifier from rail to rail, and the model (rigid, the current loop as a
+    delay, fitted below the decimation's band) does not describe that motion
+    (docs/identification.md, "Input saturation").
+
+    Args:
+        u: input [V] (N,). fs: sample rate [Hz].
+    Returns:
+        None when the input never sits at a limit; else {"limits_V": the extremes [V] that
+        held (the lower first), "share": the share of the samples at them, "stretches": their
+        number, "longest_s": the longest [s]}.
+    """
+    u = np.asarray(u, dtype=float)
+    if u.size == 0:
+        return None
+    tol = RAIL_RTOL * float(np.max(np.abs(u)))
+    need = max(RAIL_MIN_SAMPLES, int(np.ceil(RAIL_MIN_S * fs)))
+    at, limits, lengths = np.zeros(u.size, dtype=bool), [], []
+    for extreme, side in ((float(u.min()), -1.0), (float(u.max()), 1.0)):
+        on = (u <= extreme + tol) if side < 0 else (u >= extreme - tol)
+        edges = np.flatnonzero(np.diff(np.concatenate(([0], on.astype(np.int8), [0]))))
+        starts, ends = edges[::2], edges[1::2]
+        long = (ends - starts) >= need
+        if long.any():
+            limits.append(extreme)
+            lengths.extend((ends - starts)[long])
+            for a, b in zip(starts[long], ends[long]):
+                at[a:b] = True
+    if not lengths:
+        return None
+    return {"limits_V": limits, "share": float(at.mean()), "stretches": len(lengths), "longest_s": float(max(lengths)) / fs}
 
 
 def choose_n_theta(u: np.ndarray, forced: int | None = None) -> tuple[int, str]:

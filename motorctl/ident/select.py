@@ -54,7 +54,7 @@ from motorctl.effects.input_delay import (HOLD_TOLERANCE, FoundDelay, amplifier_
                                           delayed, loop_lag)
 from motorctl.effects.periodic import FEW_SAMPLES
 from motorctl.ident.data import Record
-from motorctl.ident.idim import Prepared, choose_n_theta, input_reach, ls, prepare, unit_columns
+from motorctl.ident.idim import Prepared, choose_n_theta, input_reach, input_saturation, ls, prepare, unit_columns
 from motorctl.ident.verdict import residual_verdict
 from motorctl.model import f_u, s_f
 
@@ -198,6 +198,9 @@ class Identifier:
         self.n_theta, self.n_theta_reason = choose_n_theta(rec.u, n_theta)
         #: the record's largest input |u|max [V] (:func:`~motorctl.ident.idim.input_reach`)
         self.u_reach = input_reach(self.p.u)
+        #: where the input sits at its limit (:func:`~motorctl.ident.idim.input_saturation`;
+        #: None: nowhere): reported, the fit unchanged
+        self.saturation = input_saturation(self.p.u, self.p.fs)
         self._n_theta_forced = n_theta is not None
         self.families = list(families or FAMILIES)
         for name in self.families:
