@@ -193,10 +193,16 @@ def test_an_input_that_sits_at_its_limit_is_found_in_the_record():
     assert input_saturation(blip, fs) is None
     blip[100:106] = 3.0                     # 1.2 ms: the upper limit only
     sat = input_saturation(blip, fs)
-    assert sat["limits_V"] == [3.0] and sat["stretches"] == 1, sat
+    assert sat["limits_V"] == [3.0] and sat["stretches"] == 1 and not sat["known_limit"], sat
+    # with the controller's u_lim known, only stretches at ±u_lim count
+    assert input_saturation(blip, fs, limit=10.0) is None
+    clipped = np.clip(12.0 * np.sin(2 * np.pi * t), -10.0, 10.0)
+    assert input_saturation(clipped, fs, limit=10.0)["known_limit"] is True
+    assert input_saturation(0.9 * clipped, fs, limit=10.0) is None
     # the report says the values may be off from 1 % of the samples at the limit
     assert saturation_note(sat) is None
-    assert saturation_note(dict(sat, share=SATURATION_NOTE_SHARE)).startswith("NOTE: the input sits at its limit (+3 V)")
+    assert saturation_note(dict(sat, share=SATURATION_NOTE_SHARE)).startswith("NOTE: the input sits at its extremes")
+    assert "the controller's u_lim (-10 V / +10 V)" in saturation_note(input_saturation(clipped, fs, limit=10.0))
 
 
 def test_a_record_whose_input_sits_at_its_limit_says_so(logs, tmp_path, capsys):
@@ -210,7 +216,8 @@ def test_a_record_whose_input_sits_at_its_limit_says_so(logs, tmp_path, capsys):
     s = json.loads(capsys.readouterr().out)
     sat = s["input_saturation"]
     assert sat["limits_V"] == [-10.0, 10.0] and 0.03 < sat["share"] < 0.15 and sat["stretches"] >= 4, sat
-    assert "NOTE: the input sits at its limit (-10 V / +10 V)" in text_report(s)
+    assert sat["known_limit"] is True, sat
+    assert "NOTE: the input sits at its limit, the controller's u_lim (-10 V / +10 V)" in text_report(s)
     assert main(["identify", logs["clean_12"], "--json", "--no-closed-loop"]) == 0
     s = json.loads(capsys.readouterr().out)
     assert s["input_saturation"] is None and "sits at its limit" not in text_report(s)

@@ -79,6 +79,17 @@ class Record:
     def n(self) -> int:
         return len(self.t)
 
+    @property
+    def u_limit(self) -> float | None:
+        """The input's limit [V] the run log's config declares for the axis (its controller's
+        ``u_lim``); None for a CSV/MAT record or a missing or malformed entry."""
+        ctl = self.header
+        for key in ("config", "axes", self.axis, "controller"):
+            ctl = ctl.get(key) if isinstance(ctl, dict) else None
+        lim = ctl.get("u_lim") if isinstance(ctl, dict) else None
+        ok = isinstance(lim, (int, float)) and not isinstance(lim, bool) and math.isfinite(lim) and lim > 0
+        return float(lim) if ok else None
+
 
 def parse_map(text: str | None) -> dict:
     """``"t=t,y=qm,u=vir,yd=qg"`` → {"t": "t", "y": "qm", "u": "vir", "yd": "qg"}.

@@ -13,6 +13,7 @@ The nominal model is the paper's eq. (4) written as u = Φ θ (:func:`motorctl.m
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -330,9 +331,10 @@ def input_reach(u: np.ndarray) -> float:
     return float(np.percentile(np.abs(u), 99.5))
 
 
-def input_saturation(u: np.ndarray, fs: float) -> dict | None:
-    """Where the input sits at its limit: the samples at the record's largest or smallest input
-    (within :data:`RAIL_RTOL`) in stretches of :data:`RAIL_MIN_S` or more (and
+def input_saturation(u: np.ndarray, fs: float, limit: float | None = None) -> dict | None:
+    """Where the input sits at its limit: the samples at ±``limit`` (a run log's controller
+    u_lim) or, when it is not known, at the record's largest or smallest input, within
+    :data:`RAIL_RTOL`, in stretches of :data:`RAIL_MIN_S` or more (and
     :data:`RAIL_MIN_SAMPLES`), the way a controller's output clipped at ±u_lim is logged. A
     motion that touches its extreme once is not a limit.
 
@@ -342,19 +344,21 @@ def input_saturation(u: np.ndarray, fs: float) -> dict | None:
     (docs/identification.md, "Input saturation").
 
     Args:
-        u: input [V] (N,). fs: sample rate [Hz].
+        u: input [V] (N,). fs: sample rate [Hz]. limit: the input's limit [V] (> 0), or None.
     Returns:
-        None when the input never sits at a limit; else {"limits_V": the extremes [V] that
-        held (the lower first), "share": the share of the samples at them, "stretches": their
-        number, "longest_s": the longest [s]}.
+        None when the input never sits at a limit; else {"limits_V": the limits [V] that held
+        (the lower first), "share": the share of the samples at them, "stretches": their number,
+        "longest_s": the longest [s], "known_limit": whether ``limit`` was given}.
     """
     u = np.asarray(u, dtype=float)
     if u.size == 0:
         return None
-    tol = RAIL_RTOL * float(np.max(np.abs(u)))
+    known = limit is not None and math.isfinite(limit) and limit > 0
+    tol = RAIL_RTOL * (float(limit) if known else float(np.max(np.abs(u))))
     need = max(RAIL_MIN_SAMPLES, int(np.ceil(RAIL_MIN_S * fs)))
     at, limits, lengths = np.zeros(u.size, dtype=bool), [], []
-    for extreme, side in ((float(u.min()), -1.0), (float(u.max()), 1.0)):
+    sides = ((-float(limit), -1.0), (float(limit), 1.0)) if known else ((float(u.min()), -1.0), (float(u.max()), 1.0))
+    for extreme, side in sides:
         on = (u <= extreme + tol) if side < 0 else (u >= extreme - tol)
         edges = np.flatnonzero(np.diff(np.concatenate(([0], on.astype(np.int8), [0]))))
         starts, ends = edges[::2], edges[1::2]
@@ -366,7 +370,8 @@ def input_saturation(u: np.ndarray, fs: float) -> dict | None:
                 at[a:b] = True
     if not lengths:
         return None
-    return {"limits_V": limits, "share": float(at.mean()), "stretches": len(lengths), "longest_s": float(max(lengths)) / fs}
+    return {"limits_V": limits, "share": float(at.mean()), "stretches": len(lengths),
+            "longest_s": float(max(lengths)) / fs, "known_limit": bool(known)}
 
 
 def choose_n_theta(u: np.ndarray, forced: int | None = None) -> tuple[int, str]:

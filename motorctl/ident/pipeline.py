@@ -360,7 +360,10 @@ def saturation_note(sat: dict | None) -> str | None:
     if not sat or sat["share"] < SATURATION_NOTE_SHARE:
         return None
     limits = " / ".join(f"{v:+.4g} V" for v in sat["limits_V"])
-    return (f"NOTE: the input sits at its limit ({limits}) on {100 * sat['share']:.1f} % of the samples, "
+    what = ("its limit, the controller's u_lim" if sat.get("known_limit") else
+            "its extremes, held the way a clipped input is logged (not a limit if the input was flat "
+            "there on purpose, e.g. a step)")
+    return (f"NOTE: the input sits at {what} ({limits}) on {100 * sat['share']:.1f} % of the samples, "
             f"{sat['stretches']} stretches of {1e3 * RAIL_MIN_S:g} ms or more (the longest "
             f"{1e3 * sat['longest_s']:.1f} ms). There the loop is open and catches up afterwards, often from "
             "rail to rail, which the model does not describe: the values and the verdict may be off. Record "

@@ -200,7 +200,7 @@ class Identifier:
         self.u_reach = input_reach(self.p.u)
         #: where the input sits at its limit (:func:`~motorctl.ident.idim.input_saturation`;
         #: None: nowhere): reported, the fit unchanged
-        self.saturation = input_saturation(self.p.u, self.p.fs)
+        self.saturation = input_saturation(self.p.u, self.p.fs, rec.u_limit)
         self._n_theta_forced = n_theta is not None
         self.families = list(families or FAMILIES)
         for name in self.families:
