@@ -212,8 +212,10 @@ def test_a_record_whose_input_sits_at_its_limit_says_so(logs, tmp_path, capsys):
     log = tmp_path / "rail.mclog"
     make_log(str(log), None, duration_s=4.0, seed=1, axis="X", trajectory={"a_max": 50.0},
              base=Path(__file__).resolve().parents[1] / "configs" / "gantry.yaml")
-    assert main(["identify", str(log), "--json", "--no-closed-loop"]) == 0
+    tuned = tmp_path / "tuned.yaml"
+    assert main(["identify", str(log), "--json", "--no-closed-loop", "--write-config", str(tuned)]) == 0
     s = json.loads(capsys.readouterr().out)
+    assert "# NOTE: the input sits at its limit" in tuned.read_text()     # the config says so too
     sat = s["input_saturation"]
     assert sat["limits_V"] == [-10.0, 10.0] and 0.03 < sat["share"] < 0.15 and sat["stretches"] >= 4, sat
     assert sat["known_limit"] is True, sat

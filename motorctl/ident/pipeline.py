@@ -301,6 +301,9 @@ def tuned_config(idf: Identifier, s: dict, base: dict, axis: str, base_name: str
             f"{s['augmented']['heldout_rms']:.4g} {unit}"]
     if not s["effects"]:
         head.append("# no effect found: only theta_hat0 (and the box where needed) changed")
+    note = saturation_note(s.get("input_saturation"))
+    if note:
+        head.append(f"# {note}")
     return cfg, "\n".join(head + out) + "\n"
 
 
