@@ -113,7 +113,7 @@ def summarise(idf: Identifier) -> dict:
     out["cut_by_limit"] = ([c.term.family for c in idf.steps[-1] if c.ok and not any(c is e for e in chosen)]
                            if idf.steps and len(idf.terms) >= MAX_EFFECTS else [])
     out["residual"] = idf.verdict(idf.final, idf.terms, g, unit)
-    add_refused(out["residual"], idf.verdict_step, chosen)
+    add_refused(out["residual"], idf.verdict_step, chosen, idf)
     return out
 
 
@@ -125,7 +125,7 @@ def values_from(idf: Identifier) -> Identifier:
     return idf if idf.refitted is None else idf.refitted
 
 
-def add_refused(verdict: dict, last_step: list, chosen: list) -> None:
+def add_refused(verdict: dict, last_step: list, chosen: list, idf: Identifier | None = None) -> None:
     """Add to the residual verdict (:func:`motorctl.ident.verdict.residual_verdict`) the
     candidates of the last selection step that explain a share of the held-out residual
     (≥ :data:`~motorctl.ident.select.REFUSED_GAIN`) with significant coefficients and were
@@ -133,16 +133,32 @@ def add_refused(verdict: dict, last_step: list, chosen: list) -> None:
     periodic force not the same both ways): the residual has a structure there that no family
     models. Each goes to
     ``findings`` (against "family", the family's columns, the reasons), ``structured`` becomes
-    true and the text names them."""
-    extra = []
+    true and the text names them.
+
+    With ``idf`` (the identifier, after its run) and stiction selected: a candidate that
+    explains mostly samples near zero velocity (:meth:`~motorctl.ident.select.Identifier.
+    rest_share` above one half) is counted as stiction's, the stick and slip beyond its band
+    that its model leaves (a Stribeck hump at the search's 2 mm/s edge with a negative force,
+    11-27 % on clean logs of the default config's Y axis). Not for a dead-zone holding the
+    carriage: beside a play named a dead-zone, such a candidate was the play's only warning
+    (docs/benchmarks.md, 2026-11-27)."""
+    held = idf is not None and any(t.family == "stiction" for t in idf.terms)
+    extra, counted = [], []
     for c in last_step:
         if any(c is e for e in chosen) or not refused_on_physics(c):
             continue
-        why = c.reasons
+        where = (f"what {c.term.family} would explain ({100 * c.gain:.0f} % of the held-out residual), "
+                 f"refused: {'; '.join(c.reasons)}")
+        if held and idf.rest_share(c) > 0.5:
+            counted.append({"against": c.term.family, "share": float(c.gain), "noise_share": math.nan,
+                            "z": math.nan, "where": where + ", near zero velocity", "mean": math.nan,
+                            "structured": False, "explained_by": "stiction"})
+            continue
         extra.append({"against": c.term.family, "share": float(c.gain), "noise_share": math.nan, "z": math.nan,
-                      "where": f"what {c.term.family} would explain ({100 * c.gain:.0f} % of the held-out "
-                               f"residual), refused: {'; '.join(why)}",
-                      "mean": math.nan, "structured": True, "explained_by": None})
+                      "where": where, "mean": math.nan, "structured": True, "explained_by": None})
+    if counted:
+        verdict["tested"] = verdict["tested"] + counted
+        verdict["text"] += "".join(f"; {e['where']}, counted as {e['explained_by']}'s" for e in counted)
     if not extra:
         return
     lead = "unexplained structured residual remains: "

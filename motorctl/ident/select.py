@@ -55,7 +55,7 @@ from motorctl.effects.input_delay import (HOLD_TOLERANCE, FoundDelay, amplifier_
 from motorctl.effects.periodic import FEW_SAMPLES
 from motorctl.ident.data import Record
 from motorctl.ident.idim import Prepared, choose_n_theta, input_reach, input_saturation, ls, prepare, unit_columns
-from motorctl.ident.verdict import residual_verdict
+from motorctl.ident.verdict import REST_SPEED_SHARE, residual_verdict
 from motorctl.model import f_u, s_f
 
 BLOCK_S = 0.25
@@ -661,6 +661,19 @@ class Identifier:
                                "the stick and slip at rest that the holding effect's model leaves")
             reasons += fam.plausible(self, term, beta, th, base)
         return reasons
+
+    def rest_share(self, ev: Evaluated) -> float:
+        """The share [-] of what the candidate ``ev`` (fitted beside the final model's effects)
+        explains, the fall of the squared residual from the final model to ``ev`` summed over the
+        decimated samples, that lies near zero velocity (|ẋ| below
+        :data:`~motorctl.ident.verdict.REST_SPEED_SHARE` of the record's peak speed); 0 when it
+        explains nothing."""
+        fall = self.final.fit.residual ** 2 - ev.fit.residual ** 2
+        total = float(fall.sum())
+        if not total > 0.0:
+            return 0.0
+        v = np.abs(self.p.v_d)
+        return float(fall[v < REST_SPEED_SHARE * float(v.max())].sum()) / total
 
     def held_share(self, ev: Evaluated, without: Evaluated, base: list) -> tuple[float, str] | None:
         """(share, family): the share [-] of what the candidate ``ev`` explains, the fall of the

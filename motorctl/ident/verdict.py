@@ -34,6 +34,9 @@ from scipy import signal
 
 N_BINS = 16
 MIN_SHARE = 0.12       #: share of the residual's power a 1-D function of one variable explains
+#: "near zero velocity": below this share of the record's peak speed (a structure there is a
+#: selected holding effect's, the stick and slip at rest its model leaves)
+REST_SPEED_SHARE = 0.05
 NOISE_FACTOR = 4.0     #: the share must be this many times what noise alone would give
 MIN_PEAK_RATIO = 30.0  #: a spectral line this far above the spectrum's median
 MIN_LINE_SHARE = 0.08  #: and holding this share of the residual's power (clean logs: 2.5-3.4 %)
@@ -64,7 +67,7 @@ def _binned(r: np.ndarray, x: np.ndarray, n_eff_ratio: float):
 def _where(name: str, b: dict, span: float) -> str:
     lo, hi = b["lo"], b["hi"]
     if name == "velocity":
-        if lo <= 0.0 <= hi or max(abs(lo), abs(hi)) < 0.05 * span:
+        if lo <= 0.0 <= hi or max(abs(lo), abs(hi)) < REST_SPEED_SHARE * span:
             return f"near zero velocity (|v| < {1e3 * max(abs(lo), abs(hi)):.3g} mm/s)"
         return f"at v in [{1e3 * lo:.3g}, {1e3 * hi:.3g}] mm/s"
     if name == "input":
@@ -82,7 +85,7 @@ def _at_rest(name: str, b: dict, span: float) -> bool:
     """The bin lies near zero velocity or at small inputs (where a holding force or a dead-zone acts)."""
     lo, hi = b["lo"], b["hi"]
     if name == "velocity":
-        return lo <= 0.0 <= hi or max(abs(lo), abs(hi)) < 0.05 * span
+        return lo <= 0.0 <= hi or max(abs(lo), abs(hi)) < REST_SPEED_SHARE * span
     if name == "input":
         return lo <= 0.0 <= hi or max(abs(lo), abs(hi)) < 0.1 * span
     return False
