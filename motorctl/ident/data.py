@@ -83,10 +83,7 @@ class Record:
     def u_limit(self) -> float | None:
         """The input's limit [V] the run log's config declares for the axis (its controller's
         ``u_lim``); None for a CSV/MAT record or a missing or malformed entry."""
-        ctl = self.header
-        for key in ("config", "axes", self.axis, "controller"):
-            ctl = ctl.get(key) if isinstance(ctl, dict) else None
-        lim = ctl.get("u_lim") if isinstance(ctl, dict) else None
+        lim = _dig(self.header, "config", "axes", self.axis, "controller", "u_lim")
         ok = isinstance(lim, (int, float)) and not isinstance(lim, bool) and math.isfinite(lim) and lim > 0
         return float(lim) if ok else None
 

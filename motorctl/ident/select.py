@@ -668,12 +668,8 @@ class Identifier:
         decimated samples, that lies near zero velocity (|ẋ| below
         :data:`~motorctl.ident.verdict.REST_SPEED_SHARE` of the record's peak speed); 0 when it
         explains nothing."""
-        fall = self.final.fit.residual ** 2 - ev.fit.residual ** 2
-        total = float(fall.sum())
-        if not total > 0.0:
-            return 0.0
         v = np.abs(self.p.v_d)
-        return float(fall[v < REST_SPEED_SHARE * float(v.max())].sum()) / total
+        return _fall_share(self.final, ev, v < REST_SPEED_SHARE * float(v.max())) or 0.0
 
     def held_share(self, ev: Evaluated, without: Evaluated, base: list) -> tuple[float, str] | None:
         """(share, family): the share [-] of what the candidate ``ev`` explains, the fall of the
@@ -696,11 +692,8 @@ class Identifier:
         weight, holder = _hold(base)
         if weight is None:
             return None
-        fall = without.fit.residual ** 2 - ev.fit.residual ** 2
-        total = float(fall.sum())
-        if not total > 0.0:
-            return None
-        return float(((1.0 - weight) * fall).sum()) / total, holder
+        share = _fall_share(without, ev, 1.0 - weight)
+        return None if share is None else (share, holder)
 
     def explained_shares(self, term: Term, base: list, *rows: np.ndarray) -> tuple[float, ...]:
         """For each set of decimated samples in ``rows`` ((M,) bool each), the share [-] of the
@@ -1427,6 +1420,17 @@ REFUSED_GAIN = 0.06
 #: reasons that say a candidate explains too little, not that its physics does not fit
 _WEAK = ("coefficients not significant", "too small to name", "held-out gain", "BIC drop", "effect larger than",
          "explained where held")
+
+
+def _fall_share(without: Evaluated, ev: Evaluated, where: np.ndarray) -> float | None:
+    """The share [-] of what ``ev`` explains beyond ``without`` (the fall of the squared
+    residual, summed over the decimated samples) that lies ``where`` ((M,) bool, or weights in
+    [0, 1]); None when it explains nothing."""
+    fall = without.fit.residual ** 2 - ev.fit.residual ** 2
+    total = float(fall.sum())
+    if not total > 0.0:
+        return None
+    return float((where * fall).sum()) / total
 
 
 def _hold(terms: list) -> tuple[np.ndarray | None, str | None]:
