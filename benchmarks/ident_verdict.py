@@ -7,14 +7,18 @@ Rerun:
     python benchmarks/ident_verdict.py --seed-from 4 --seeds 5  # seeds 4-8
     python benchmarks/ident_verdict.py --case sizes             # the other sizes of the same effects
     python benchmarks/ident_verdict.py --config configs/gantry-rigid.yaml --case all
+    python benchmarks/ident_verdict.py --axis Y --trajectory a_max=5 --case clean --seeds 3
 
 ``--case`` takes a case's name or a group: ``default`` (the five below, the default run),
 ``sizes`` (the same effects at other sizes, below), ``holdout`` (sizes not looked at while the
 checks were changed: ±2 µm at 1.5 mm, ±3 µm at 3 mm, ±4 µm at 2.5 mm, the mode at 100 and 175
 Hz, the play at 30 and 150 µm), ``all``; repeatable. ``--config`` takes the
 plant (default ``configs/gantry.yaml``); on a plant without a structural mode the backlash cases
-are skipped (the play is in the mode's coupling). Each log's identify summary is written next
-to it as JSON (``<log>.json``: the verdict's shares, the candidates and their reasons).
+are skipped (the play is in the mode's coupling). ``--axis Y`` takes the config's Y axis (the
+configs/gantry.yaml one: 52 kg, its 120 Hz mode, a_max 10 m/s²) and ``--trajectory KEY=VALUE``
+(repeatable) overrides a key of the axis's ``trajectory:`` section (e.g. a gentler ``a_max``):
+plants and programs beyond the ones the checks were set on. Each log's identify summary is
+written next to it as JSON (``<log>.json``: the verdict's shares, the candidates and their reasons).
 
 Cases (``configs/gantry.yaml``, axis X, C2, virtual clock; :func:`motorctl.commission.tune.make_log`):
 
@@ -42,7 +46,7 @@ mode at 120 and 200 Hz (``mode120``, ``mode200``), the play of 20 and 100 µm (`
 Hz on the rigid plant's load of 0.3): it is told by the warning, the family refused at the
 grid's edge as a bandwidth limit, with the load the band sees (m_l/M = (f_a/f_M)²).
 
-The clean plant's own names come from the config's X axis: stiction (``stiction_N`` > 0), the
+The clean plant's own names come from the axis's driver section: stiction (``stiction_N`` > 0), the
 current loop's input delay (``current_loop_hz`` or ``current_loop_delay_s`` > 0) and, when its
 antiresonance lies below the position filter's 250 Hz (``configs/gantry-half-mode.yaml``: 175
 Hz, f_a 136 Hz), the structural mode; on such a plant the clean case is judged as a mode case
@@ -132,6 +136,9 @@ def main(argv=None) -> int:
     ap.add_argument("--duration", type=float, default=20.0, help="log length [s] (default 20)")
     ap.add_argument("--dir", default="/tmp/motorctl_ident_verdict", help="where the logs go (reused)")
     ap.add_argument("--config", default=None, help="the plant (default configs/gantry.yaml)")
+    ap.add_argument("--axis", default="X", help="the config's axis (default X)")
+    ap.add_argument("--trajectory", action="append", default=[], metavar="KEY=VALUE",
+                    help="a key of the axis's trajectory: section to override, e.g. a_max=5 (repeatable)")
     ap.add_argument("--case", action="append", choices=list(ALL) + list(GROUPS),
                     help="only these cases or groups (default, sizes, holdout, all; repeatable; default: default)")
     args = ap.parse_args(argv)
@@ -146,9 +153,23 @@ def main(argv=None) -> int:
     if not base.is_file():
         print(f"ident_verdict.py: --config {args.config}: no such file", file=sys.stderr)
         return 2
-    drv = load_yaml(str(base))["axes"]["X"]["driver"]
+    axes = load_yaml(str(base))["axes"]
+    if args.axis not in axes:
+        print(f"ident_verdict.py: --axis {args.axis}: {base.name} has {', '.join(axes)}", file=sys.stderr)
+        return 2
+    trajectory = {}
+    for kv in args.trajectory:
+        key, _, value = kv.partition("=")
+        try:
+            trajectory[key] = float(value)
+        except ValueError:
+            print(f"ident_verdict.py: --trajectory {kv}: expected KEY=NUMBER", file=sys.stderr)
+            return 2
+    drv = axes[args.axis]["driver"]
     own = plant_names(drv)
     prefix = "" if base == default else base.stem + "_"
+    prefix += "" if args.axis == "X" else f"{args.axis}_"
+    prefix += "".join(f"{k}{v:g}_" for k, v in trajectory.items())
     cases = []
     for c in args.case or ["default"]:
         cases += [k for k in GROUPS.get(c, [c]) if k not in cases]
@@ -169,8 +190,9 @@ def main(argv=None) -> int:
         for seed in seeds:
             path = out / f"{prefix}{case}_seed{seed}_{args.duration:g}s.mclog"
             if not path.exists():
-                make_log(str(path), ALL[case], duration_s=args.duration, seed=seed, base=str(base))
-            _, s = identify_record(load_record(str(path), None, None, axis="X"))
+                make_log(str(path), ALL[case], duration_s=args.duration, seed=seed, base=str(base),
+                         axis=args.axis, trajectory=trajectory or None)
+            _, s = identify_record(load_record(str(path), None, None, axis=args.axis))
             Path(str(path) + ".json").write_text(json.dumps(s, default=float, indent=1))
             names = {e["name"] for e in s["effects"]}
             warned = bool(s["residual"]["structured"])
@@ -216,6 +238,8 @@ def main(argv=None) -> int:
     rerun = f"--seeds {args.seeds}"
     rerun += f" --seed-from {args.seed_from}" if args.seed_from != 1 else ""
     rerun += f" --config {args.config}" if args.config else ""
+    rerun += f" --axis {args.axis}" if args.axis != "X" else ""
+    rerun += "".join(f" --trajectory {kv}" for kv in args.trajectory)
     rerun += "".join(f" --case {c}" for c in args.case or [])
     print(f"load average {os.getloadavg()[0]:.2f}; rerun: python benchmarks/ident_verdict.py {rerun}")
     return 0 if ok else 1
