@@ -483,6 +483,14 @@ class EffectFamily:
         """
         return None
 
+    def recheck(self, ctx: SearchContext, term, base: list) -> str | None:
+        """A check of :meth:`search` that depends on the other effects, made again on the final
+        model by backward elimination (``base``: the final model's other terms): the reason the
+        selected ``term`` fails it there, or None (default: nothing to check again). A term
+        searched beside an effect that elimination later drops must still pass it without that
+        effect."""
+        return None
+
     def reading_error(self, h, beta: np.ndarray, theta1: float, x: np.ndarray) -> np.ndarray:
         """The error [m] (N,) a :attr:`measurement` effect adds to the reading at the carriage's
         positions ``x`` [m] (N,), from its fitted term (searched value h, coefficients beta (k,),

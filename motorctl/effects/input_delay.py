@@ -277,7 +277,7 @@ class InputDelayFamily(EffectFamily):
 
         def term(d):
             return ctx.term(self.name, FoundDelay(d, lag, modelled > 0))
-        dmax = max(3, min(round(0.005 * p.fs), 40))
+        dmax = self.search_limit(p.fs)
         grid = np.arange(0, dmax + 1)
         sses = ctx.delay_sses(base, grid, rows=self.in_motion(ctx))
         i = int(np.argmin(sses))
@@ -292,6 +292,19 @@ class InputDelayFamily(EffectFamily):
                              "sampled-data loop (half a sample), not an effect")
         note = f"delay {d:g} samples at the edge of the searched range" if i == len(grid) - 1 else None
         return term(d), note or self.not_transport(ctx, base, dmax)
+
+    @staticmethod
+    def search_limit(fs: float) -> int:
+        """The longest delay searched [samples] at the sample rate ``fs`` [Hz]: 5 ms, 3 to 40."""
+        return max(3, min(round(0.005 * fs), 40))
+
+    def recheck(self, ctx, term, base):
+        """:meth:`not_transport` on the final model's other terms ``base``: a delay that was
+        one transport delay beside an effect elimination dropped may not be without it (a
+        play's lag, passed beside a Stribeck term: X, a_max 25, the 200 µm play)."""
+        if not self.input_shift(term.h):
+            return None
+        return self.not_transport(ctx, base, self.search_limit(ctx.p.fs))
 
     @staticmethod
     def refine(ctx, base, d0: float) -> float:

@@ -946,8 +946,10 @@ class Identifier:
 
     def _eliminate(self, base: list, accepted: list, current: Evaluated, searched_with: dict):
         """Backward elimination after the forward selection: each selected effect is judged
-        again in the final model (plausibility of its coefficients there, and the held-out gain
-        of keeping it against the model without it, ≥ :data:`MIN_HELDOUT_GAIN`); the weakest
+        again in the final model (plausibility of its coefficients there, its family's
+        :meth:`~motorctl.effects.base.EffectFamily.recheck` on the final model's other effects,
+        and the held-out gain of keeping it against the model without it, ≥
+        :data:`MIN_HELDOUT_GAIN`); the weakest
         that fails is searched again with the other effects of the final model (its family's
         search and :meth:`judge`: a friction shape whose knot grid was chosen before the input
         delay was modelled may need another grid with it) and replaced when that candidate
@@ -967,6 +969,9 @@ class Identifier:
                 without = self.evaluate(others)
                 gain = 1.0 - ev.heldout_rms / without.heldout_rms
                 reasons = self.plausible(ev, others, without)
+                again = effect_family(t.family).recheck(self, t, others)
+                if again:
+                    reasons.append(again)
                 if gain < MIN_HELDOUT_GAIN:
                     reasons.append(f"with the later effects its held-out gain is {100 * gain:.1f} % "
                                    f"< {100 * MIN_HELDOUT_GAIN:g} %")
