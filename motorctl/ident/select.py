@@ -949,14 +949,14 @@ class Identifier:
         again in the final model (plausibility of its coefficients there, its family's
         :meth:`~motorctl.effects.base.EffectFamily.recheck` on the final model's other effects,
         and the held-out gain of keeping it against the model without it, ≥
-        :data:`MIN_HELDOUT_GAIN`); the weakest
-        that fails is searched again with the other effects of the final model (its family's
-        search and :meth:`judge`: a friction shape whose knot grid was chosen before the input
-        delay was modelled may need another grid with it) and replaced when that candidate
-        passes, else dropped (also when its family's simpler case passes there:
-        :meth:`_simpler_case`), and the rest re-judged, until all pass. An effect taken early
-        can be explained by the later ones (a dead-zone picked for what stiction and a
-        friction shape then model better). Each family is searched again at most once.
+        :data:`MIN_HELDOUT_GAIN`); the weakest that fails is searched again with the other
+        effects of the final model (its family's search and :meth:`judge`: a friction shape
+        whose knot grid was chosen before the input delay was modelled may need another grid
+        with it) and replaced when that candidate passes, else dropped (also when its family's
+        simpler case passes there: :meth:`_simpler_case`), and the rest re-judged, until all
+        pass. An effect taken early can be explained by the later ones (a dead-zone picked for
+        what stiction and a friction shape then model better). Each family is searched again
+        at most once.
         Returns (terms, accepted, final, [(family, why)])."""
         dropped = []
         researched: set = set()
