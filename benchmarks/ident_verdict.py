@@ -129,6 +129,15 @@ def plant_names(drv: dict) -> set:
     return names
 
 
+def _key_number(text: str) -> tuple[str, float]:
+    """``--trajectory``'s KEY=NUMBER as (key, number)."""
+    key, _, value = text.partition("=")
+    try:
+        return key, float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected KEY=NUMBER, e.g. a_max=25") from None
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=3, help="seeds per case (default 3)")
@@ -137,7 +146,7 @@ def main(argv=None) -> int:
     ap.add_argument("--dir", default="/tmp/motorctl_ident_verdict", help="where the logs go (reused)")
     ap.add_argument("--config", default=None, help="the plant (default configs/gantry.yaml)")
     ap.add_argument("--axis", default="X", help="the config's axis (default X)")
-    ap.add_argument("--trajectory", action="append", default=[], metavar="KEY=VALUE",
+    ap.add_argument("--trajectory", action="append", default=[], metavar="KEY=VALUE", type=_key_number,
                     help="a key of the axis's trajectory: section to override, e.g. a_max=5 (repeatable)")
     ap.add_argument("--case", action="append", choices=list(ALL) + list(GROUPS),
                     help="only these cases or groups (default, sizes, holdout, all; repeatable; default: default)")
@@ -157,14 +166,7 @@ def main(argv=None) -> int:
     if args.axis not in axes:
         print(f"ident_verdict.py: --axis {args.axis}: {base.name} has {', '.join(axes)}", file=sys.stderr)
         return 2
-    trajectory = {}
-    for kv in args.trajectory:
-        key, _, value = kv.partition("=")
-        try:
-            trajectory[key] = float(value)
-        except ValueError:
-            print(f"ident_verdict.py: --trajectory {kv}: expected KEY=NUMBER", file=sys.stderr)
-            return 2
+    trajectory = dict(args.trajectory)
     drv = axes[args.axis]["driver"]
     own = plant_names(drv)
     prefix = "" if base == default else base.stem + "_"
@@ -239,7 +241,7 @@ def main(argv=None) -> int:
     rerun += f" --seed-from {args.seed_from}" if args.seed_from != 1 else ""
     rerun += f" --config {args.config}" if args.config else ""
     rerun += f" --axis {args.axis}" if args.axis != "X" else ""
-    rerun += "".join(f" --trajectory {kv}" for kv in args.trajectory)
+    rerun += "".join(f" --trajectory {k}={v:g}" for k, v in args.trajectory)
     rerun += "".join(f" --case {c}" for c in args.case or [])
     print(f"load average {os.getloadavg()[0]:.2f}; rerun: python benchmarks/ident_verdict.py {rerun}")
     return 0 if ok else 1
