@@ -491,6 +491,12 @@ class EffectFamily:
         effect."""
         return None
 
+    def unnamed_evidence(self, ctx: SearchContext) -> str | None:
+        """What the record shows of this effect on its own, outside the force model (a
+        reading's error in y − x), when the selection did not name the family: the text the
+        residual verdict reports as an unexplained structure, or None (default: nothing)."""
+        return None
+
     def reading_error(self, h, beta: np.ndarray, theta1: float, x: np.ndarray) -> np.ndarray:
         """The error [m] (N,) a :attr:`measurement` effect adds to the reading at the carriage's
         positions ``x`` [m] (N,), from its fitted term (searched value h, coefficients beta (k,),

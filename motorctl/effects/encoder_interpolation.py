@@ -407,6 +407,22 @@ class EncoderInterpolationFamily(PositionPeriodic):
         ctx._encoder_reading = out
         return out
 
+    def unnamed_evidence(self, ctx):
+        """The reading's error found in y − x (:meth:`reading`, at least
+        :data:`MIN_READING_SHARE` of it held out) that the selection did not name, because its
+        force did not confirm it (too fast for the position filter and the loop to pass: the
+        input carries next to nothing of θ1·ë) or the input carries another force: its period
+        and amplitudes, for the verdict. None when the reading shows none."""
+        fit, _ = self.reading(ctx)
+        if fit is None or not fit.share >= MIN_READING_SHARE:
+            return None
+        amp, _ = amplitudes_phases(-np.asarray(fit.coef), 1.0)
+        harm = ", ".join(f"{1e6 * a:.2f}" for a in amp)
+        return (f"the reading carries a periodic error of {harm} um (harmonics 1..{len(amp)}) at a signal period "
+                f"of {1e3 * float(fit):.4g} mm ({100 * fit.share:.0f} % of the raw minus the filtered position "
+                "held out) that the force model does not name: an encoder interpolation error that the input does "
+                "not confirm, to be corrected where the position is read")
+
     def _search(self, ctx, base, ranges):
         """P over a log grid in ``ranges`` ((lo, hi) [m], the periods the reading could not
         search; steps of :data:`GRID_STEP`) with cheap columns (ë of the decimated signals,

@@ -16,6 +16,7 @@ import math
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from motorctl.effects import FAMILIES
 from motorctl.ident import effects as fx
 from motorctl.ident.idim import RAIL_MIN_S
 from motorctl.ident.select import MAX_EFFECTS, Identifier, refused_on_physics
@@ -141,11 +142,26 @@ def add_refused(verdict: dict, last_step: list, chosen: list, idf: Identifier | 
     that its model leaves (a Stribeck hump at the search's 2 mm/s edge with a negative force,
     11-27 % on clean logs of the default config's Y axis). Not for a dead-zone holding the
     carriage: beside a play named a dead-zone, such a candidate was the play's only warning
-    (docs/benchmarks.md, 2026-11-27)."""
+    (docs/benchmarks.md, 2026-11-27).
+
+    With ``idf``: a family the selection did not name that the record shows on its own, outside
+    the force model (:meth:`~motorctl.effects.base.EffectFamily.unnamed_evidence`: the
+    encoder's error in the raw minus the filtered position, too fast for its force to show),
+    is reported the same way, with its last-step reasons; its candidate is not reported
+    twice."""
     held = idf is not None and any(t.family == "stiction" for t in idf.terms)
     extra, counted = [], []
+    named = set() if idf is None else {t.family for t in idf.terms}
+    for name, fam in ({} if idf is None else FAMILIES).items():
+        seen = None if name in named else fam.unnamed_evidence(idf)
+        if seen:
+            why = next((c.reasons for c in last_step if c.term.family == name and c.reasons), [])
+            extra.append({"against": name, "share": math.nan, "noise_share": math.nan, "z": math.nan,
+                          "where": seen + (f" ({'; '.join(why)})" if why else ""), "mean": math.nan,
+                          "structured": True, "explained_by": None})
     for c in last_step:
-        if any(c is e for e in chosen) or not refused_on_physics(c):
+        if any(c is e for e in chosen) or not refused_on_physics(c) or any(e["against"] == c.term.family
+                                                                            for e in extra):
             continue
         where = (f"what {c.term.family} would explain ({100 * c.gain:.0f} % of the held-out residual), "
                  f"refused: {'; '.join(c.reasons)}")
