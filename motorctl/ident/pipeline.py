@@ -16,7 +16,6 @@ import math
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from motorctl.effects import FAMILIES
 from motorctl.ident import effects as fx
 from motorctl.ident.idim import RAIL_MIN_S
 from motorctl.ident.select import MAX_EFFECTS, Identifier, refused_on_physics
@@ -152,8 +151,8 @@ def add_refused(verdict: dict, last_step: list, chosen: list, idf: Identifier | 
     held = idf is not None and any(t.family == "stiction" for t in idf.terms)
     extra, counted = [], []
     named = set() if idf is None else {t.family for t in idf.terms}
-    for name, fam in ({} if idf is None else FAMILIES).items():
-        seen = None if name in named else fam.unnamed_evidence(idf)
+    for name in ([] if idf is None else idf.families):
+        seen = None if name in named else fx.family(name).unnamed_evidence(idf)
         if seen:
             why = next((c.reasons for c in last_step if c.term.family == name and c.reasons), [])
             extra.append({"against": name, "share": math.nan, "noise_share": math.nan, "z": math.nan,
