@@ -51,12 +51,18 @@ def rest_mask(xd_dot: np.ndarray, xd_ddot: np.ndarray, ts: float, after_s: float
     return (k - last) * ts >= after_s
 
 
+def runs(mask) -> tuple[np.ndarray, np.ndarray]:
+    """(starts, ends): the runs of True in a boolean array (N,), each the half-open sample range
+    [start, end); two empty arrays when there is none."""
+    d = np.diff(np.concatenate(([0], np.asarray(mask, dtype=bool).astype(np.int8), [0])))
+    return np.flatnonzero(d == 1), np.flatnonzero(d == -1)
+
+
 def u_rest_rms(u: np.ndarray, rest: np.ndarray) -> float:
     """RMS of u about its mean over each stretch of ``rest`` (:func:`rest_mask`) [V]; NaN when
     there is none. u [V] and rest: (N,)."""
     u = np.asarray(u, dtype=float)
-    edges = np.diff(np.concatenate([[0], np.asarray(rest).astype(int), [0]]))
-    segs = [u[a:b] - u[a:b].mean() for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1))]
+    segs = [u[a:b] - u[a:b].mean() for a, b in zip(*runs(rest))]
     return float(np.sqrt(np.mean(np.concatenate(segs) ** 2))) if segs else float("nan")
 
 

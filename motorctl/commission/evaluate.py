@@ -17,7 +17,7 @@ from scipy import signal
 
 from motorctl.app.job import run_job
 from motorctl.config import LoadedConfig, config_from_dict
-from motorctl.metrics import REST_AFTER_S, rest_mask, u_rest_rms
+from motorctl.metrics import REST_AFTER_S, rest_mask, runs, u_rest_rms
 from motorctl.recorder.runlog import read_log
 
 #: the job's indexes copied into every evaluation (:class:`motorctl.app.job.JobResult`)
@@ -27,9 +27,8 @@ JOB_KEYS = ("controller", "e_M_um", "e_F_um", "L2_um", "u_peak_V", "io_errors", 
 def oscillation_ratio(u: np.ndarray, rest: np.ndarray, ts: float) -> tuple[float, float]:
     """(peak/median of the Welch PSD of u over its rest segments above 20 Hz, its frequency
     [Hz]); (nan, nan) with no rest segment of 512 samples. u [V], rest: (N,)."""
-    edges = np.diff(np.concatenate([[0], rest.astype(int), [0]]))
     psd, f = None, None
-    for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
+    for a, b in zip(*runs(rest)):
         if b - a < 512:
             continue
         f, p = signal.welch(u[a:b], fs=1.0 / ts, nperseg=512, detrend="linear")
@@ -58,8 +57,8 @@ def sat_dispersion(sat: np.ndarray) -> float:
     Saturation comes in episodes, not single samples, so a count varies between windows about
     this many times more than a Poisson count of the same mean: the count / this is nearly
     Poisson (the quasi-Poisson approximation of a compound Poisson count). sat: (N,) bool."""
-    edges = np.diff(np.concatenate([[0], sat.astype(np.int8), [0]]))
-    c = (np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)).astype(float)
+    starts, ends = runs(sat)
+    c = (ends - starts).astype(float)
     return float(np.sum(c * c) / np.sum(c)) if c.size else 1.0
 
 

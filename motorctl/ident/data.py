@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from motorctl.inputs import InputError, read_text, regular_file, summarize
+from motorctl.metrics import runs
 from motorctl.recorder.runlog import LogError, MAGIC, read_log
 
 #: Largest DATA file read (run log, CSV or MATLAB) [bytes]: 2 GiB, hours of a 1 kHz axis.
@@ -231,9 +232,7 @@ def _dig(d, *keys):
 
 def _longest_run(mask: np.ndarray) -> np.ndarray:
     """Indices of the longest run of True in a boolean array (N,)."""
-    m = np.concatenate(([False], mask, [False])).astype(np.int8)
-    d = np.diff(m)
-    starts, ends = np.flatnonzero(d == 1), np.flatnonzero(d == -1)
+    starts, ends = runs(mask)
     k = int(np.argmax(ends - starts))
     return np.arange(starts[k], ends[k])
 

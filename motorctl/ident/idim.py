@@ -22,6 +22,7 @@ from functools import lru_cache
 from scipy.fft import irfft, next_fast_len, rfft
 from scipy.signal import butter, cheby1, filtfilt, sosfreqz
 
+from motorctl.metrics import runs
 from motorctl.model import N_THETA_CUBIC, N_THETA_LINEAR, idim_regressor
 
 #: |u| [V] that the 99.5th percentile of the input must reach for θ5, θ6 (u|u|, u³) to be fitted:
@@ -360,8 +361,7 @@ def input_saturation(u: np.ndarray, fs: float, limit: float | None = None) -> di
     sides = ((-float(limit), -1.0), (float(limit), 1.0)) if known else ((float(u.min()), -1.0), (float(u.max()), 1.0))
     for extreme, side in sides:
         on = (u <= extreme + tol) if side < 0 else (u >= extreme - tol)
-        edges = np.flatnonzero(np.diff(np.concatenate(([0], on.astype(np.int8), [0]))))
-        starts, ends = edges[::2], edges[1::2]
+        starts, ends = runs(on)
         long = (ends - starts) >= need
         if long.any():
             limits.append(extreme)
