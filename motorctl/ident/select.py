@@ -37,6 +37,7 @@ columns, search over its parameter and its own plausibility checks are in its mo
 from __future__ import annotations
 
 import copy
+import functools
 import math
 import os
 import threading
@@ -198,9 +199,6 @@ class Identifier:
         self.n_theta, self.n_theta_reason = choose_n_theta(rec.u, n_theta)
         #: the record's largest input |u|max [V] (:func:`~motorctl.ident.idim.input_reach`)
         self.u_reach = input_reach(self.p.u)
-        #: where the input sits at its limit (:func:`~motorctl.ident.idim.input_saturation`;
-        #: None: nowhere): reported, the fit unchanged
-        self.saturation = input_saturation(self.p.u, self.p.fs, rec.u_limit)
         self._n_theta_forced = n_theta is not None
         self.families = list(families or FAMILIES)
         for name in self.families:
@@ -661,6 +659,13 @@ class Identifier:
                                "the stick and slip at rest that the holding effect's model leaves")
             reasons += fam.plausible(self, term, beta, th, base)
         return reasons
+
+    @functools.cached_property
+    def saturation(self) -> dict | None:
+        """Where the input sits at its limit (:func:`~motorctl.ident.idim.input_saturation`;
+        None: nowhere): reported, the fit unchanged. Computed when asked (the summary): the
+        refit's and the validation's identifiers of the same record do not need it."""
+        return input_saturation(self.p.u, self.p.fs, self.rec.u_limit)
 
     def rest_share(self, ev: Evaluated) -> float:
         """The share [-] of what the candidate ``ev`` (fitted beside the final model's effects)
