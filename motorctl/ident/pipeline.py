@@ -155,9 +155,7 @@ def add_refused(verdict: dict, last_step: list, chosen: list, idf: Identifier | 
         seen = None if name in named else fx.family(name).unnamed_evidence(idf)
         if seen:
             why = next((c.reasons for c in last_step if c.term.family == name and c.reasons), [])
-            extra.append({"against": name, "share": math.nan, "noise_share": math.nan, "z": math.nan,
-                          "where": seen + (f" ({'; '.join(why)})" if why else ""), "mean": math.nan,
-                          "structured": True, "explained_by": None})
+            extra.append(_finding(name, math.nan, seen + (f" ({'; '.join(why)})" if why else "")))
     for c in last_step:
         if any(c is e for e in chosen) or not refused_on_physics(c) or any(e["against"] == c.term.family
                                                                             for e in extra):
@@ -165,12 +163,9 @@ def add_refused(verdict: dict, last_step: list, chosen: list, idf: Identifier | 
         where = (f"what {c.term.family} would explain ({100 * c.gain:.0f} % of the held-out residual), "
                  f"refused: {'; '.join(c.reasons)}")
         if held and idf.rest_share(c) > 0.5:
-            counted.append({"against": c.term.family, "share": float(c.gain), "noise_share": math.nan,
-                            "z": math.nan, "where": where + ", near zero velocity", "mean": math.nan,
-                            "structured": False, "explained_by": "stiction"})
+            counted.append(_finding(c.term.family, float(c.gain), where + ", near zero velocity", "stiction"))
             continue
-        extra.append({"against": c.term.family, "share": float(c.gain), "noise_share": math.nan, "z": math.nan,
-                      "where": where, "mean": math.nan, "structured": True, "explained_by": None})
+        extra.append(_finding(c.term.family, float(c.gain), where))
     if counted:
         verdict["tested"] = verdict["tested"] + counted
         verdict["text"] += "".join(f"; {e['where']}, counted as {e['explained_by']}'s" for e in counted)
@@ -184,6 +179,15 @@ def add_refused(verdict: dict, last_step: list, chosen: list, idf: Identifier | 
         verdict["text"] = lead + body + verdict["text"][verdict["text"].find(")") + 1:]
     verdict["findings"] = verdict["findings"] + extra
     verdict["structured"] = True
+
+
+def _finding(against: str, share: float, where: str, explained_by: str | None = None) -> dict:
+    """One entry of the residual verdict's ``findings`` or ``tested`` (the keys of
+    :func:`motorctl.ident.verdict.residual_verdict`'s) for a candidate or an effect seen outside
+    the force model: structured unless a selected family (``explained_by``) explains it; no noise
+    share, z or mean (not a binned function of one variable)."""
+    return {"against": against, "share": share, "noise_share": math.nan, "z": math.nan, "where": where,
+            "mean": math.nan, "structured": explained_by is None, "explained_by": explained_by}
 
 
 def validation(idf: Identifier, rec2) -> dict:
