@@ -6,12 +6,14 @@ the position filter: a reading's error at a period of a few mm shows only there)
 ±2σ interval reaches back within the bounds (a small effect's noisy halves) is not refused.
 A force of position acts at every thrust as well: a term that explains less than MIN_TAIL_KEPT of
 its share without the samples at the largest |u| is refused, and the residual verdict does not
-count that reason alone as a structure. No identify run: the identifier's ratio, interval and
-shares are given."""
+count that reason alone as a structure. The identifier's ratio, interval and shares are given,
+but for one identify run on a plant whose mode the cruise excites (the mass taken from the
+whole record)."""
 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -57,6 +59,33 @@ def test_a_term_the_speed_check_cannot_judge_is_refused(family):
     assert len(out) == 1 and "too few moving samples" in out[0]
     assert "0.721 m/s" in out[0]          # f_q·P = 250 Hz · 2.883 mm, the speed the period passes
     assert len(_reasons(family, math.inf)) == 1
+
+
+def test_the_speed_check_takes_the_mass_from_the_whole_record(tmp_path):
+    """configs/gantry-half-mode.yaml (X's mode at 175 Hz), cogging 6 / 2 N at 32 mm, 20 s, seed 2.
+    In the cruise at 2 m/s, the faster half of the moves, the carriage accelerates only at the
+    cogging's own 62.5 Hz, as the loop leaves it: θ1 fitted there alone traded with the cogging's
+    columns (0.09 for the record's 0.155) and its amplitude came out x2.8 the slower half's (at
+    least x2.04), so cogging was refused and nothing named. With θ1 the record's, the ratio is
+    within the bounds and identify names cogging within 10 %, without a warning."""
+    from motorctl.commission.tune import make_log
+    from motorctl.ident.data import load_record
+    from motorctl.ident.pipeline import identify_record
+    from motorctl.ident.select import Identifier
+    root = Path(__file__).resolve().parents[1]
+    path = tmp_path / "cogging_half_mode.mclog"
+    make_log(str(path), {"cogging": {"amplitudes_N": [6.0, 2.0], "period_m": 0.032, "phases_rad": [0.3, 1.0]}},
+             duration_s=20.0, seed=2, noise_N=None, base=str(root / "configs" / "gantry-half-mode.yaml"))
+    rec = load_record(str(path), None, None, axis="X")
+    idf = Identifier(rec)
+    growth, lo, hi = idf.speed_growth_interval(idf.term("cogging", 0.032), [], 0.032)
+    assert 1.0 / MAX_SPEED_GROWTH <= growth <= MAX_SPEED_GROWTH, (growth, lo, hi)
+    _, s = identify_record(rec)
+    found = {e["name"]: e["parameters"] for e in s["effects"]}
+    assert "cogging" in found, (list(found), s["residual"]["text"])
+    assert found["cogging"]["amplitudes_N"] == pytest.approx([6.0, 2.0], rel=0.1)
+    assert found["cogging"]["period_m"] == pytest.approx(0.032, rel=0.01)
+    assert not s["residual"]["structured"], s["residual"]["text"]
 
 
 # ---------------------------------------------------------------- the largest thrusts (thrust_check)

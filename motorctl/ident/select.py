@@ -735,7 +735,8 @@ class Identifier:
         return float(1.0 - np.linalg.norm(bp - bm) / den) if den > 0 else 0.0
 
     def speed_growth(self, term: Term, base: list, period: float) -> float:
-        """‖β_fast‖/‖β_slow‖ for the effect's coefficients fitted jointly with the nominal θ on
+        """‖β_fast‖/‖β_slow‖ for the effect's coefficients fitted jointly with the nominal θ
+        (θ1 taken from the whole record, the other columns fitted on each half) on
         the slower and the faster half of the moving samples at which a spatial period
         ``period`` [m] passes the position filter (|ẋ| < fq·period): about 1 for a force of
         position (cogging, ripple) and for a reading's error in its own columns; a reading's
@@ -747,6 +748,12 @@ class Identifier:
         ‖β‖ with its standard error from the fit's covariance σ̂²(ΦᵀΦ)⁻¹ projected on β/‖β‖; the
         ratio's by the first-order propagation of the two). NaN (all three) when too few samples."""
         phi, y = self.design(base + [term])
+        # θ1 from the whole record, not from each half: in the faster half (the cruise) the
+        # carriage accelerates only as the effect itself makes it, at the effect's frequency, so
+        # the mass is not measured there and trades with the effect's columns (half-mode plant,
+        # 6 N cogging: θ1 0.09 for the record's 0.155, the amplitude x3 the slower half's)
+        y = y - _coef(phi, y)[0] * phi[:, 0]
+        phi = phi[:, 1:]
         k = term.cols.shape[1]
         sp = np.abs(self.p.v_d)
         seen = self.moving & (sp < self.p.fq * period)
