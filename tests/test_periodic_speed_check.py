@@ -65,9 +65,9 @@ def test_the_speed_check_takes_the_mass_from_the_whole_record(tmp_path):
     """configs/gantry-half-mode.yaml (X's mode at 175 Hz), cogging 6 / 2 N at 32 mm, 20 s, seed 2.
     In the cruise at 2 m/s, the faster half of the moves, the carriage accelerates only at the
     cogging's own 62.5 Hz, as the loop leaves it: θ1 fitted there alone traded with the cogging's
-    columns (0.09 for the record's 0.155) and its amplitude came out x2.8 the slower half's (at
-    least x2.04), so cogging was refused and nothing named. With θ1 the record's, the ratio is
-    within the bounds and identify names cogging within 10 %, without a warning."""
+    columns (0.124 for the record's 0.156) and its amplitude came out x2.87 the slower half's, so
+    cogging was refused and nothing named. With θ1 the record's the ratio is x0.74, and identify
+    names cogging within 10 %, without a warning."""
     from motorctl.commission.tune import make_log
     from motorctl.ident.data import load_record
     from motorctl.ident.pipeline import identify_record

@@ -751,7 +751,7 @@ class Identifier:
         # θ1 from the whole record, not from each half: in the faster half (the cruise) the
         # carriage accelerates only as the effect itself makes it, at the effect's frequency, so
         # the mass is not measured there and trades with the effect's columns (half-mode plant,
-        # 6 N cogging: θ1 0.09 for the record's 0.155, the amplitude x3 the slower half's)
+        # 6 N cogging: θ1 0.124 there for the record's 0.156, the amplitude x2.9 the slower half's)
         y = y - _coef(phi, y)[0] * phi[:, 0]
         phi = phi[:, 1:]
         k = term.cols.shape[1]
