@@ -1,7 +1,8 @@
 """Fitted values of the friction families against the truth (docs/identification.md, "Fitted
 values against the truth"): the offset taken from the input held at rest (asymmetric friction),
-the velocities of Stribeck's column, the position-dependent friction's reference, and one
-short log of the default plant with an asymmetric friction pinned within 10 %."""
+the velocities of Stribeck's column, the position-dependent friction's reference, one
+short log of the default plant with an asymmetric friction pinned within 10 %, and values the
+refit's more exact model does not confirm."""
 
 from __future__ import annotations
 
@@ -188,3 +189,27 @@ def test_asymmetric_friction_on_the_default_plant_within_10_percent(asymmetric_l
     assert "asymmetric_friction" in found, list(found)
     # 7.6 N (+27 %) with the offset the fit leaves collinear; 6.4 N with the held offset
     assert found["asymmetric_friction"]["coulomb_N"] == pytest.approx(6.0, rel=0.10)
+
+
+def test_an_effect_the_refits_model_does_not_confirm_is_dropped(tmp_path):
+    """A run under C1 (the default plant, X, 20 s, seed 1) with the payload held with a 50 µm
+    play: the selection took a 3 % Stribeck hump at 0.28 m/s on the model that fits the current
+    loop as a delay; its values, taken on the loop's model (Identifier.refit), give the hump a
+    force of −0.24 N, which Stribeck's own check refuses (it must be positive), and identify
+    named it so. It is dropped now, with the refit's reason, and no Stribeck is named."""
+    from motorctl.app.job import run_job
+    from motorctl.config import config_from_dict
+    from motorctl.ident.data import load_record
+    from motorctl.ident.pipeline import identify_record
+    from motorctl.ident.synth import gantry_dict
+    root = Path(__file__).resolve().parents[1]
+    d = gantry_dict("X", {"backlash_m": 5e-5}, 1, 1.0, None, None, root / "configs" / "gantry.yaml")
+    d["axes"]["X"]["controller"]["type"] = "c1"
+    path = tmp_path / "c1_play50.mclog"
+    run_job(config_from_dict(d, "<c1 play>"), duration_s=20.0, clock="virtual", log_path=str(path))
+    _, s = identify_record(load_record(str(path), None, None, axis="X"))
+    named = {e["name"]: e["parameters"] for e in s["effects"]}
+    assert "stribeck" not in named, named
+    dropped = {e["name"]: e["reason"] for e in s["eliminated"]}
+    assert "not confirmed by the refit's model" in dropped.get("stribeck", ""), s["eliminated"]
+    assert "must be positive" in dropped["stribeck"]

@@ -520,8 +520,10 @@ def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
         with quiet():
             idf = Identifier(rec, n_theta=n_theta, friction=friction, zoh_delay=zoh_delay,
                              on_nominal=on_nominal, current_loop=current_loop).run()
-            # the selected effects' values on the declared current loop's model (None: not needed)
+            # the selected effects' values on the declared current loop's model (None: not needed),
+            # and those the more exact model does not confirm dropped
             idf.refitted = idf.refit()
+            idf.confirm_values()
     except (np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
         if isinstance(exc, LogError):
             raise
