@@ -1250,9 +1250,12 @@ class Identifier:
         if not bad:
             return self
         keep = [i for i, t in enumerate(self.terms) if t.family not in bad]
+        before = self.terms
         self.terms = [self.terms[i] for i in keep]
         self.accepted = [self.accepted[i] for i in keep]
         self.final = self.evaluate(self.terms)
+        # the verdict's candidates as the new final model sees them
+        self.verdict_step = self._on_final(self.verdict_step, before, self.terms, self.final)
         self.eliminated = self.eliminated + [
             (name, "not confirmed by the refit's model (" + ("the current loop's lag modelled" if
              effect_family(name).values_on_current_loop else "the stick state measured") + "): " + "; ".join(why))
