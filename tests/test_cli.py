@@ -1,9 +1,11 @@
 """The CLI end to end: run (virtual and wall clock), the run log, plot, compare --json, SIGTERM."""
 
+import gc
 import json
 import os
 import signal
 import subprocess
+import sys
 import time
 
 import numpy as np
@@ -111,3 +113,17 @@ def test_the_default_config_runs_without_a_fault(capsys, default_yaml):
         assert code == 0, out
         rows = [ln.split() for ln in out.splitlines() if ln.split()[:1] in (["X"], ["Y"])]
         assert [r[1] for r in rows] == [kind, kind] and all(r[-1] == "-" for r in rows), out
+
+
+def test_only_the_process_command_line_freezes_the_collector(capsys):
+    """main() on the process's own command line freezes the garbage collector before the
+    process exits (its last collections would walk every imported object); a call with words,
+    in a caller's process (these tests), leaves the caller's collector alone."""
+    before = gc.get_freeze_count()
+    assert main(["--help"]) == 0 and "COMMAND" in capsys.readouterr().out
+    assert gc.get_freeze_count() == before
+    code = ("import gc, sys; from motorctl.cli import main; sys.argv = ['motorctl', '--help']; "
+            "rc = main(); sys.stderr.write(f'{rc} {gc.get_freeze_count()}')")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    rc, frozen = done.stderr.split()
+    assert rc == "0" and int(frozen) > 0 and "COMMAND" in done.stdout

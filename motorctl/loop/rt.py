@@ -91,7 +91,8 @@ def _libc():
 
 def _isolated_cpu() -> int | None:
     try:
-        text = open("/sys/devices/system/cpu/isolated").read().strip()
+        with open("/sys/devices/system/cpu/isolated") as fh:
+            text = fh.read().strip()
     except OSError:
         return None
     cpus = []
