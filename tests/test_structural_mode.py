@@ -185,6 +185,28 @@ def test_a_mode_above_the_band_is_told_as_a_bandwidth_limit(tmp_path):
     assert f_m == pytest.approx(200.0 * math.sqrt(0.7 / 0.3), rel=0.05)
 
 
+def test_the_bandwidth_limit_states_an_interval_that_holds_the_antiresonance(tmp_path):
+    """configs/gantry-half-mode.yaml (X's mode at 175 Hz, load 0.4: f_a = 175·√0.6 = 136 Hz,
+    above the band's edge 100 Hz and below the grid's top 150 Hz) with the Stribeck example, 20 s:
+    the mode term's SSE falls all the way to the grid's top, the candidate is refused there and
+    the verdict reports the bandwidth limit. The interval it states for f_a holds the plant's
+    136 Hz: its lower bound is the band's edge, not the grid's top (which said "between 150 and
+    220 Hz")."""
+    from motorctl.commission.tune import make_log
+    from motorctl.ident.data import load_record
+    from motorctl.ident.pipeline import identify_record
+    from motorctl.ident.synth import EXAMPLES
+    path = tmp_path / "half_mode_stribeck.mclog"
+    make_log(str(path), EXAMPLES["stribeck"], duration_s=20.0, seed=1, noise_N=None,
+             base=str(ROOT / "configs" / "gantry-half-mode.yaml"))
+    _, s = identify_record(load_record(str(path), None, None, axis="X"))
+    found = [f for f in s["residual"]["findings"] if f["against"] == "structural_mode"]
+    assert found and "bandwidth limit" in found[0]["where"], s["residual"]["text"]
+    lo, hi = map(float, re.search(r"f_a between the band's edge ([0-9.]+) Hz and ([0-9.]+) Hz",
+                                  found[0]["where"]).groups())
+    assert lo <= 175.0 * math.sqrt(0.6) <= hi, found[0]["where"]
+
+
 def test_a_mode_term_lighter_than_the_least_load_is_not_a_mode():
     """A mode term whose load is below MIN_LOAD_FRACTION of the moving mass is refused as what
     the band makes of the current loop's lag or of a mode above it (a clean default plant with

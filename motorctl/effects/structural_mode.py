@@ -165,7 +165,11 @@ def resonance_line(without: np.ndarray, with_it: np.ndarray, fs: float) -> tuple
 def _above_band(ctx, base: list, term) -> tuple[str, float]:
     """What the record tells of a mode above its band, for the edge's note: the load fitted at
     the grid's top f_e gives m_l/(M ω_a²), so m_l/M = (f_a/f_M)² with f_M = f_e/√(m_l/M at f_e),
-    the antiresonance at which the load would be the whole moving mass (an upper bound of f_a).
+    the antiresonance at which the load would be the whole moving mass (an upper bound of f_a);
+    the lower bound is the band's edge f_b = 0.4·fs/nd, not the grid's top: between them the
+    term's SSE barely moves, and it falls to the top whatever f_a is (the half-mode plant's
+    Stribeck logs: f_a 136 Hz, the SSE 2.8 % above the top's there, 0.5 % at 147 Hz). When
+    f_M ≤ f_b the load would exceed the moving mass for any f_a above the band: the note says so.
     Returns (the note's tail, "" when the fitted load is not positive; the broadband force's
     share of the rigid inertia at the band's edge f_b, m_l/M·(f_b/f_a)² = (f_b/f_M)², as
     :func:`edge_share` measures it, 0 when the load is not positive)."""
@@ -173,8 +177,11 @@ def _above_band(ctx, base: list, term) -> tuple[str, float]:
     if not frac > 0:
         return "", 0.0
     f_m = term.h / math.sqrt(frac)
-    return ((f" (the band sees its force m_l s^2 a/w_a^2 only: a load m_l/M = (f_a / {f_m:.3g} Hz)^2, "
-             f"f_a between {term.h:.3g} and {f_m:.3g} Hz)"), (f_max(ctx.p) / BAND_FACTOR / f_m) ** 2)
+    f_b = f_max(ctx.p) / BAND_FACTOR
+    where = (f"f_a between the band's edge {f_b:.3g} Hz and {f_m:.3g} Hz" if f_m > f_b else
+             f"more than the moving mass for any f_a above the band's edge {f_b:.3g} Hz")
+    return (f" (the band sees its force m_l s^2 a/w_a^2 only: a load m_l/M = (f_a / {f_m:.3g} Hz)^2, {where})",
+            (f_b / f_m) ** 2)
 
 
 class StructuralModeFamily(EffectFamily):
