@@ -168,7 +168,7 @@ def _above_band(ctx, base: list, term) -> tuple[str, float]:
     the antiresonance at which the load would be the whole moving mass (an upper bound of f_a);
     the lower bound is the band's edge f_b = 0.4·fs/nd, not the grid's top: between them the
     term's SSE barely moves, and it falls to the top whatever f_a is (the half-mode plant's
-    Stribeck logs: f_a 136 Hz, the SSE 2.8 % above the top's there, 0.5 % at 147 Hz). When
+    Stribeck logs: f_a 136 Hz, the SSE 2.8 % above the top's there, 0.4 % at 147 Hz). When
     f_M ≤ f_b the load would exceed the moving mass for any f_a above the band: the note says so.
     Returns (the note's tail, "" when the fitted load is not positive; the broadband force's
     share of the rigid inertia at the band's edge f_b, m_l/M·(f_b/f_a)² = (f_b/f_M)², as
