@@ -85,6 +85,31 @@ def test_a_view_s_report_is_read_after_a_frame_found_the_view_process_gone():
     ours.close()
 
 
+def test_a_view_s_report_is_read_when_it_ended_with_frames_unread():
+    """The view process reports what it could not serve and ends without reading the frames
+    already sent to it (its start-up, niced, outlasted the first frames: a loaded host). The
+    kernel then reports the reset on the link's first recv, before the report still queued
+    (AF_UNIX SOCK_SEQPACKET); the report is read, then the EOF. (Before, the reset was taken for
+    the EOF and the daemon's line for the broken view was lost: the race the daemon test above
+    lost on a loaded host.)"""
+    import pickle
+    import socket
+
+    from motorctl.app.daemon.views import ViewLink
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    ours.setblocking(False)
+    link = ViewLink(ours, 0)
+    link.on_frame({"t": 0.0})                 # queued at the view process, never read
+    assert link.alive and link.sent == 1
+    report = ("started", {"foxglove": "RuntimeError: broken build"})
+    theirs.send(pickle.dumps(report))
+    theirs.close()
+    assert link.receive() == [report]
+    assert not link.alive
+    assert link.receive() == []
+    ours.close()
+
+
 def test_pages_that_never_read_drop_frames_not_rows(tmp_path):
     """Five WebSocket pages that connect and never read, and the view process is the one
     that falls behind: the run log loses nothing, no axis faults, and a page that reads is

@@ -102,11 +102,21 @@ class ViewLink:
         Read even once a frame's send has found the view process gone (``alive`` False): what it
         reported before it ended (a view it could not serve) is still waiting here."""
         out = []
+        reset = False
         while True:
             try:
                 data = self.sock.recv(1 << 16)
             except (BlockingIOError, InterruptedError):
                 break
+            except ConnectionResetError:
+                # a view process that ended with frames of ours unread: the kernel reports the
+                # reset once, on the first recv, before the reports still queued (AF_UNIX
+                # SOCK_SEQPACKET: the socket's error is taken before its queue)
+                self.alive = False
+                if reset:
+                    break
+                reset = True
+                continue
             except OSError:
                 data = b""
             if not data:
