@@ -1238,17 +1238,17 @@ class Identifier:
         ref = self.refitted
         if ref is None:
             return self
-        th, betas = ref.coef_split(ref.final, ref.terms)
         bad = {}
-        for t, b in zip(ref.terms, betas):
+        for i, t in enumerate(ref.terms):
             fam = effect_family(t.family)
-            if not (fam.values_on_current_loop or fam.values_on_stick_state):
-                continue
-            why = fam.plausible(ref, t, b, th, [o for o in ref.terms if o is not t])
-            if why:
-                bad[t.family] = why
+            if fam.values_on_current_loop or fam.values_on_stick_state:
+                why = ref.implausible_in(ref.terms, i)
+                if why:
+                    bad[t.family] = why
         if not bad:
             return self
+        model = " and ".join(m for m, on in (("the current loop's lag modelled", ref.loop_refit),
+                                              ("the stick state measured", ref.stick_measured)) if on)
         keep = [i for i, t in enumerate(self.terms) if t.family not in bad]
         before = self.terms
         self.terms = [self.terms[i] for i in keep]
@@ -1257,9 +1257,7 @@ class Identifier:
         # the verdict's candidates as the new final model sees them
         self.verdict_step = self._on_final(self.verdict_step, before, self.terms, self.final)
         self.eliminated = self.eliminated + [
-            (name, "not confirmed by the refit's model (" + ("the current loop's lag modelled" if
-             effect_family(name).values_on_current_loop else "the stick state measured") + "): " + "; ".join(why))
-            for name, why in bad.items()]
+            (name, f"not confirmed by the refit's model ({model}): " + "; ".join(why)) for name, why in bad.items()]
         self.refitted = self.refit()
         return self
 
