@@ -49,7 +49,8 @@ mode at 120 and 200 Hz (``mode120``, ``mode200``), the play of 20 and 100 µm (`
 Hz on the rigid plant's load of 0.3): it is told by the warning, the family refused at the
 grid's edge as a bandwidth limit, with the load the band sees (m_l/M = (f_a/f_M)²).
 
-The clean plant's own names come from the axis's driver section: stiction (``stiction_N`` > 0), the
+The clean plant's own names come from the axis's driver section with the case's changes (a
+current loop a clean case adds is the plant's own): stiction (``stiction_N`` > 0), the
 current loop's input delay (``current_loop_hz`` or ``current_loop_delay_s`` > 0) and, when its
 antiresonance lies below the position filter's 250 Hz (``configs/gantry-half-mode.yaml``: 175
 Hz, f_a 136 Hz), the structural mode; on such a plant the clean case is judged as a mode case
@@ -207,8 +208,10 @@ def main(argv=None) -> int:
     seeds = range(args.seed_from, args.seed_from + args.seeds)
     counts = {}
     for case in cases:
+        # the plant's own names with the case's changes (a current loop a clean case adds is its own);
         # a clean plant whose own mode the family can see is judged as a mode case
-        kd = "mode" if kind(case) == "clean" and "structural_mode" in own else kind(case)
+        mine = plant_names({**drv, **ALL[case]})
+        kd = "mode" if kind(case) == "clean" and "structural_mode" in mine else kind(case)
         c = counts.setdefault(case, {"logs": 0, "warned": 0, "wrong": 0, "right": 0, "named": 0, "other": 0,
                                      "kind": kd})
         for seed in seeds:
@@ -220,9 +223,9 @@ def main(argv=None) -> int:
             Path(str(path) + ".json").write_text(json.dumps(s, default=float, indent=1))
             names = {e["name"] for e in s["effects"]}
             warned = bool(s["residual"]["structured"])
-            wrong = (names - own) if kd == "clean" else (names & WRONG[kd])
+            wrong = (names - mine) if kd == "clean" else (names & WRONG[kd])
             right = warned or RIGHT.get(kd) in names
-            other = names - own - WRONG.get(kd, set()) - {RIGHT.get(kd)}
+            other = names - mine - WRONG.get(kd, set()) - {RIGHT.get(kd)}
             c["logs"] += 1
             c["named"] += RIGHT.get(kd) in names
             c["other"] += bool(other) and kd != "clean"
