@@ -79,6 +79,44 @@ def call(path: str, request: dict, timeout_s: float = 5.0) -> dict:
     return json.loads(buf.split(b"\n", 1)[0].decode())
 
 
+#: a program's chunk: at most this many characters, fewer where its JSON encoding would pass
+#: CHUNK_BYTES (the daemon takes requests of up to 65536 bytes, protocol.MAX_REQUEST_BYTES)
+CHUNK_CHARS, CHUNK_BYTES = 32768, 60000
+#: a program up to this many characters goes in one request
+ONE_REQUEST_CHARS = 16384
+
+
+def send_program(path: str, text: str, filename: str, timeout_s: float = 5.0) -> dict:
+    """Send a G-code program of any length and queue it: in one request when short, else in
+    chunks (``upload``, :mod:`motorctl.app.daemon.protocol`) then ``gcode`` naming them. The
+    daemon checks the whole program before anything moves and answers when its first window is
+    planned; the wait for that grows with the program (``timeout_s`` plus 60 s per 10 MB).
+    Returns the daemon's answer (``ok`` False: refused, with ``error``).
+
+    Raises:
+        DaemonUnreachable: as :func:`call`.
+    """
+    if len(text) <= ONE_REQUEST_CHARS:
+        return call(path, {"cmd": "gcode", "text": text, "filename": filename},
+                    max(timeout_s, 30.0))
+    token, offset, i = None, 0, 0
+    while i < len(text):
+        n = CHUNK_CHARS
+        while True:
+            piece = text[i:i + n]
+            req = {"cmd": "upload", "upload": token, "offset": offset, "data": piece}
+            if len(json.dumps(req)) <= CHUNK_BYTES or n == 1:
+                break
+            n //= 2
+        ans = call(path, req, timeout_s)
+        if not ans.get("ok"):
+            return ans
+        token, offset = ans["upload"], ans["bytes"]
+        i += len(piece)
+    wait = max(timeout_s, 30.0) + 60.0 * offset / 10e6
+    return call(path, {"cmd": "gcode", "upload": token, "filename": filename}, wait)
+
+
 
 
 class Refused(Exception):
@@ -125,8 +163,12 @@ class Client:
                              **({"feed": feed} if feed is not None else {})})
 
     def gcode(self, text: str, filename: str = "-") -> dict:
-        """Queue a G-code program (refused whole with ``file:line:column`` when wrong)."""
-        return self.request({"cmd": "gcode", "text": text, "filename": filename})
+        """Queue a G-code program of any length (:func:`send_program`; refused whole with
+        ``file:line:column`` when wrong)."""
+        ans = send_program(self.path, text, filename, self.timeout_s)
+        if not ans.get("ok"):
+            raise Refused(ans.get("error", "refused"), bool(ans.get("usage")))
+        return ans
 
     def hold(self) -> dict:
         """Feed hold: decelerate on the path, then hold."""

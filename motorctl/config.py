@@ -167,7 +167,8 @@ class DaemonConfig(StrictModel):
     holds twice as much, at least 1 s): the longest the I/O process may be starved of the CPU
     before the loop runs dry and brakes to rest (an underrun, docs/motion.md); below the
     recorder's stall bound 2·flush_s + 1 s; a hold, an abort or an override acts within a few
-    cycles whatever the lead.
+    cycles whatever the lead. max_program_bytes: the largest G-code program the daemon takes
+    (sent in chunks; a larger one is refused by name before anything is planned) [bytes].
 
     Retention of ``log_dir`` (docs/daemon.md): log_segment_bytes: largest run-log segment
     [bytes]; log_segment_s: a segment is closed at this age at the latest [s];
@@ -191,6 +192,7 @@ class DaemonConfig(StrictModel):
     scope: ScopeConfig | None = None
     foxglove: FoxgloveConfig | None = None
     motion_lead_s: Annotated[float, Field(ge=0.05, le=3.0)] = 0.5
+    max_program_bytes: Annotated[int, Field(ge=1 << 16, le=1 << 40)] = 1 << 30
     log_segment_bytes: Annotated[int, Field(ge=1 << 20, le=1 << 40)] = 512 << 20
     log_segment_s: Annotated[float, Field(ge=1.0, le=7 * 86400.0)] = 3600.0
     log_budget_bytes: Annotated[int, Field(ge=2 << 20, le=1 << 50)] = 16 << 30

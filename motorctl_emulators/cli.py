@@ -32,16 +32,20 @@ from __future__ import annotations
 import argparse
 import signal
 import sys
+from importlib.metadata import entry_points
 
 from motorctl.inputs import seconds_arg
-from motorctl_emulators.device import available_devices, build_device
-from motorctl_emulators.plant_bank import DEFAULT_LATE_S, FaultSpec
+
+#: the entry-point group of the emulated devices (motorctl_emulators.device.ENTRY_POINT_GROUP;
+#: read here without importing the devices, so that the parser of every command stays light)
+_DEVICES = "motorctl.emulators"
 
 #: PLANT when ``--plant`` is not given (relative to the working directory, as ``motorctl run``'s CONFIG)
 DEFAULT_PLANT = "configs/gantry.yaml"
 
 
-def _fault(text: str) -> FaultSpec:
+def _fault(text: str):
+    from motorctl_emulators.plant_bank import FaultSpec
     try:
         return FaultSpec.parse(text)
     except ValueError as exc:
@@ -55,7 +59,10 @@ def cmd_emulate(args) -> int:
         raise ConfigError(args.config, "driver.type", f"{loaded.cfg.driver.type!r} is not the "
                           f"--transport {args.transport!r}")
     try:
-        dev = build_device(loaded, args.plant, watchdog_s=args.watchdog, late_s=args.late,
+        from motorctl_emulators.device import build_device
+        from motorctl_emulators.plant_bank import DEFAULT_LATE_S
+        dev = build_device(loaded, args.plant, watchdog_s=args.watchdog,
+                           late_s=DEFAULT_LATE_S if args.late is None else args.late,
                            faults=args.fault or ())
     except ConfigError:
         raise
@@ -94,7 +101,7 @@ def register(parser, subparsers) -> None:
     """Add the ``emulate`` subcommand to the motorctl CLI (entry point ``motorctl.commands``)."""
     e = subparsers.add_parser("emulate", help="run the gantry I/O emulator (device side of a bus driver)",
                               description=__doc__.split("\n\n")[2].replace("``", ""))
-    e.add_argument("--transport", required=True, choices=sorted(available_devices()),
+    e.add_argument("--transport", required=True, choices=sorted(ep.name for ep in entry_points(group=_DEVICES)),
                    help="the protocol of the device side (the driver.type of CONFIG)")
     e.add_argument("config", help="the bus driver's YAML (driver.type = --transport)")
     e.add_argument("--plant", default=DEFAULT_PLANT,
@@ -102,8 +109,8 @@ def register(parser, subparsers) -> None:
                         f"watchdog (driver.type: sim); default {DEFAULT_PLANT}")
     e.add_argument("--watchdog", type=seconds_arg, metavar="S",
                    help="command watchdog [s]; default: the plant config's driver.watchdog_s, else 0.05")
-    e.add_argument("--late", type=seconds_arg, default=DEFAULT_LATE_S, metavar="S",
-                   help=f"delay of a 'late' answer [s]; default {DEFAULT_LATE_S}")
+    e.add_argument("--late", type=seconds_arg, default=None, metavar="S",
+                   help="delay of a 'late' answer [s]; default: the plant bank's DEFAULT_LATE_S (2 ms)")
     e.add_argument("--fault", type=_fault, action="append", metavar="KIND[:AXIS[:START[:COUNT]]]",
                    help="inject a fault (repeatable): drop, late, corrupt, stale, exception, "
                         "disconnect, bus_off, emcy[=CODE] (CANopen)")

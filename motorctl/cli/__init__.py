@@ -85,9 +85,9 @@ def main(argv=None) -> int:
 
 
 def _command(argv) -> int:
-    from motorctl.inputs import ConfigError, InputError   # not motorctl.config: its models load numba
-    from motorctl.loop.rt import RealtimeError
-    from motorctl.recorder.runlog import LogError
+    # not motorctl.config (its models load numba) nor motorctl.loop.rt or the run log (numpy,
+    # pydantic): an operator command (status, hold, ...) imports only the client side
+    from motorctl.inputs import ConfigError, InputError
     words = sys.argv[1:] if argv is None else list(argv)
     if words and words[0] in COMPILING_COMMANDS and not {"-h", "--help"} & set(words):
         from motorctl.app.warmup import say_if_cold
@@ -98,10 +98,13 @@ def _command(argv) -> int:
     except SystemExit as exc:               # --help (0) or a one-line usage error (2)
         return int(exc.code or 0)
     try:
-        return int(args.func(args) or 0)
-    except (ConfigError, UsageError, InputError, LogError, RealtimeError) as exc:
-        sys.stderr.write(f"motorctl: error: {exc}\n")
-        return 2
+        try:
+            return int(args.func(args) or 0)
+        except Exception as exc:
+            if isinstance(exc, (ConfigError, UsageError, InputError) + _loaded_input_errors()):
+                sys.stderr.write(f"motorctl: error: {exc}\n")
+                return 2
+            raise
     except FileNotFoundError as exc:
         sys.stderr.write(f"motorctl: error: {exc.filename}: no such file\n")
         return 2
@@ -118,6 +121,15 @@ def _command(argv) -> int:
     except OSError as exc:  # a driver that cannot reach its device, a log that cannot be written
         sys.stderr.write(f"motorctl: error: {exc}\n")
         return 1
+
+
+#: input errors of modules a command may load (module → class): caught as bad input (exit 2),
+#: looked up only where the command loaded the module (a command that never did cannot raise it)
+_INPUT_ERRORS = {"motorctl.recorder.runlog": "LogError", "motorctl.loop.rt": "RealtimeError"}
+
+
+def _loaded_input_errors() -> tuple:
+    return tuple(getattr(sys.modules[m], c) for m, c in _INPUT_ERRORS.items() if m in sys.modules)
 
 
 def _quiet_stdout() -> None:

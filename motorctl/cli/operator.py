@@ -19,7 +19,7 @@ import socket
 import sys
 import time
 
-from motorctl.client import DEFAULT_SOCKET, DaemonUnreachable, call
+from motorctl.client import DEFAULT_SOCKET, DaemonUnreachable, call, send_program
 from motorctl.control import CONTROLLER_NAMES
 
 
@@ -200,12 +200,21 @@ def cmd_gcode(args) -> int:
         except (OSError, UnicodeDecodeError) as exc:
             raise UsageError(f"{args.file}: cannot read: {getattr(exc, 'strerror', None) or exc}") from None
         name = args.file
-    ans = _checked(args, {"cmd": "gcode", "text": text, "filename": name}, timeout_s=30.0)
-    sys.stdout.write(f"{name}: {ans['segments']} segments queued, {ans['duration_s']:.3f} s at 100 %\n")
+    ans = send_program(socket_path(args), text, name)
+    if not ans.get("ok"):
+        if ans.get("usage"):
+            raise UsageError(ans.get("error", "refused"))
+        raise DaemonUnreachable(ans.get("error", "refused"))
+    if ans.get("planning"):
+        sys.stdout.write(f"{name}: {ans['segments']} segments checked, running; planned a window at a "
+                         f"time ({ans['duration_s']:.3f} s in the first)\n")
+    else:
+        sys.stdout.write(f"{name}: {ans['segments']} segments queued, {ans['duration_s']:.3f} s at 100 %\n")
     for w in ans.get("warnings", []):
         sys.stderr.write(f"warning: {w}\n")
     if args.wait or args.progress:
-        return _motion_wait(args, ans["duration_s"] * 10 + 30, progress=args.progress)
+        limit = 1e9 if ans.get("planning") else ans["duration_s"] * 10 + 30
+        return _motion_wait(args, limit, progress=args.progress)
     return 0
 
 

@@ -27,8 +27,6 @@ import json
 import math
 import sys
 
-from motorctl.commission.compare import INDEXES, SPLIT, compare_logs, figures, public
-from motorctl.metrics import REST_AFTER_S
 
 def register(parser, subparsers) -> None:
     """Add the ``compare-runs`` subcommand (called by :func:`motorctl.cli.build_parser`)."""
@@ -49,6 +47,8 @@ def register(parser, subparsers) -> None:
 def text_report(res: dict, extra_rows: tuple[str, ...] = ()) -> str:
     """The text report of ``res`` (:func:`compare_logs`); ``extra_rows``: more index rows of
     each axis entry (e.g. ``motorctl tune``'s "floor"), printed after the ratio."""
+    from motorctl.commission.compare import INDEXES, SPLIT   # numpy: not at the parser's import
+    from motorctl.metrics import REST_AFTER_S
     lines = [f"compare-runs: before {res['before']}", f"              after  {res['after']}"]
     for a, r in res["axes"].items():
         t0, t1 = r["window_s"]
@@ -72,6 +72,7 @@ def text_report(res: dict, extra_rows: tuple[str, ...] = ()) -> str:
 
 def cmd_compare_runs(args) -> int:
     from motorctl.cli import UsageError
+    from motorctl.commission.compare import compare_logs, figures, public
     from motorctl.recorder.runlog import LogError
     if args.period is not None and not (math.isfinite(args.period) and args.period > 0):
         raise UsageError(f"--period {args.period}: must be a finite number > 0 s")

@@ -43,8 +43,10 @@ from motorctl.ordering import load_acquire, store_release
 
 #: the ring's control words (int64): rows written, rows read, the epoch rows must carry, the
 #: underrun events, a brake running (1) or not (0), changes of the applied outputs, the outputs
-#: switched off when the loop stops streaming (bit j: output j)
-SP_WRITE, SP_READ, SP_EPOCH, SP_UNDERRUNS, SP_BRAKING, SP_OUT_SEQ, SP_OUT_STOP = range(7)
+#: switched off when the loop stops streaming (bit j: output j), the index of the first row not
+#: taken at the last underrun (the one before it is the last setpoint followed: the producer
+#: resumes the path there)
+SP_WRITE, SP_READ, SP_EPOCH, SP_UNDERRUNS, SP_BRAKING, SP_OUT_SEQ, SP_OUT_STOP, SP_DRY = range(8)
 SP_CTL = 8
 #: the most outputs a ring carries (the bits of SP_OUT_STOP)
 MAX_OUTPUTS = 32
@@ -159,6 +161,10 @@ class SetpointRing:
 
     def braking(self) -> bool:
         return bool(self.ctl[SP_BRAKING])
+
+    def dry_row(self) -> int:
+        """The index of the last row the loop followed before its last underrun (-1: none)."""
+        return int(self.ctl[SP_DRY]) - 1
 
 
 @njit
@@ -276,7 +282,8 @@ def stream_step(sp, spc, ax, axf, c_mode, stream_mode, c_stop, c_x, c_amax, ts):
         if moving and (stop or not got):
             braking = True
             spc[SP_EPOCH] = epoch + 1
-            if not got:                          # an underrun: counted
+            if not got:                          # an underrun: counted, where it ran dry
+                spc[SP_DRY] = r
                 spc[SP_UNDERRUNS] += 1
             _outputs_off(sp, spc, cap, o0)
     if braking:

@@ -694,10 +694,70 @@ class _Reader:
         self.pos = target
 
 
+class ProgramReader:
+    """A program read line by line with bounded memory: the segments come out in batches as
+    they are read (:meth:`batches`), the reader keeps only the modal state (LinuxCNC's: position,
+    units, distance mode, feed, tolerance, work offsets) between them, so that a program of any
+    length can be checked and planned a window at a time (the daemon's planner process).
+
+    Args: as :func:`parse` (``filename``, ``settings``, ``start``, ``offsets``).
+    Raises:
+        ValueError: an unknown work offset name in ``offsets``.
+    """
+
+    def __init__(self, filename: str, settings: GcodeSettings | None = None,
+                 start: Sequence[float] | None = None,
+                 offsets: Mapping[str, Sequence[float]] | None = None):
+        self._r = _Reader(filename, settings or GcodeSettings(), start, offsets)
+        self.lines_read = 0
+        self._percent = 0
+        self.ended = False
+
+    def batches(self, lines, size: int = 1000):
+        """The segments of ``lines`` (an iterable of source lines without or with their newline,
+        e.g. an open text file), in lists of about ``size`` segments (the last one shorter).
+        Raises :class:`GcodeError` (``file:line:column: word: why``) at the first word outside
+        the subset; the batches yielded before it were valid."""
+        r = self._r
+        for raw in lines:
+            if self.ended:
+                break
+            self.lines_read += 1
+            k = self.lines_read
+            raw = raw.rstrip("\r\n")
+            s = raw.strip()
+            if s.startswith("%"):
+                if s[1:].strip() and not s[1:].lstrip().startswith(("(", ";")):
+                    raise GcodeError(r.f, k, raw.index("%") + 2, s[1:].strip()[:1],
+                                     "text after '%' on its line (a '%' line holds only '%' and a comment)")
+                self._percent += 1
+                if self._percent == 2:
+                    self.ended = True
+                continue
+            r.line(k, raw)
+            if r.done:
+                self.ended = True
+            if len(r.segments) >= size:
+                out, r.segments = r.segments, []
+                yield out
+        if r.segments:
+            out, r.segments = r.segments, []
+            yield out
+
+    def program(self, segments: list[Segment]) -> Program:
+        """A :class:`Program` of ``segments`` with what the reader knows now: its start, the
+        position after the lines read, the warnings and the work offsets."""
+        r = self._r
+        offsets_out = {k: v.copy() for k, v in r.cs.items()}
+        offsets_out["G92"] = r.g92.copy()
+        return Program(r.f, segments, r.start, r.pos.copy(), list(r.warnings), offsets_out)
+
+
 def parse(text: str, filename: str, settings: GcodeSettings | None = None,
           start: Sequence[float] | None = None,
           offsets: Mapping[str, Sequence[float]] | None = None) -> Program:
-    """Read a whole G-code program (the module docstring lists the subset).
+    """Read a whole G-code program (the module docstring lists the subset; a program of any
+    length: :class:`ProgramReader`).
 
     text: the program. filename: named in errors. settings: the ``gcode:`` config
     (:class:`GcodeSettings`; None: no machine words mapped, G28 to 0, axes X Y Z). start: the machine
@@ -708,22 +768,8 @@ def parse(text: str, filename: str, settings: GcodeSettings | None = None,
     :class:`GcodeError` (``file:line:column: word: why``) at the first word outside the subset,
     and nothing of the program is returned.
     """
-    r = _Reader(filename, settings or GcodeSettings(), start, offsets)
-    lines = text.splitlines()
-    percent = 0
-    for k, raw in enumerate(lines, start=1):
-        s = raw.strip()
-        if s.startswith("%"):
-            if s[1:].strip() and not s[1:].lstrip().startswith(("(", ";")):
-                raise GcodeError(filename, k, raw.index("%") + 2, s[1:].strip()[:1],
-                                 "text after '%' on its line (a '%' line holds only '%' and a comment)")
-            percent += 1
-            if percent == 2:
-                break
-            continue
-        r.line(k, raw)
-        if r.done:
-            break
-    offsets_out = {k: v.copy() for k, v in r.cs.items()}
-    offsets_out["G92"] = r.g92.copy()
-    return Program(filename, r.segments, r.start, r.pos.copy(), r.warnings, offsets_out)
+    reader = ProgramReader(filename, settings, start, offsets)
+    segments: list[Segment] = []
+    for batch in reader.batches(text.splitlines(), size=1 << 62):
+        segments.extend(batch)
+    return reader.program(segments)

@@ -694,26 +694,77 @@ def check_limits(program: Program, soft_limits: Mapping[str, tuple[float, float]
     soft_limits: axis letter → (soft_min, soft_max) [m] (axes not named: not checked); offsets:
     axis letter → shift [m] added to the program's machine coordinates (None: 0). Raises
     :class:`LimitError` naming the first offending line, the axis and how far outside [m]."""
+    check_segments(program.segments, program.filename, soft_limits, offsets)
+
+
+def check_segments(segments, filename: str, soft_limits: Mapping[str, tuple[float, float]],
+                   offsets: Mapping[str, float] | None = None) -> None:
+    """:func:`check_limits` of a program's segments (any iterable: a batch at a time, so that a
+    program of any length is checked whole before anything moves, LinuxCNC's preview).
+    ``filename`` is named in the error. Raises :class:`LimitError`."""
     shift = np.array([(offsets or {}).get(a, 0.0) for a in AXES])
+    lo = np.array([soft_limits[a][0] if a in soft_limits else -np.inf for a in AXES]) - shift - ROUND_M
+    hi = np.array([soft_limits[a][1] if a in soft_limits else np.inf for a in AXES]) - shift + ROUND_M
 
-    def check(line: int, i: int, value: float) -> None:
+    def refuse(line: int, i: int, value: float) -> None:
         a = AXES[i]
-        if a not in soft_limits:
-            return
-        lo, hi = soft_limits[a]
+        lo_a, hi_a = soft_limits[a]
         x = value + shift[i]
-        if x < lo - ROUND_M or x > hi + ROUND_M:
-            excess = lo - x if x < lo else x - hi
-            side = "soft_min" if x < lo else "soft_max"
-            raise LimitError(f"{program.filename}:{line}: {a} reaches {x * 1e3:.4f} mm, "
-                             f"{excess * 1e3:.4f} mm beyond {side} {(lo if x < lo else hi) * 1e3:.4f} mm "
-                             f"(soft limits [{lo * 1e3:.4f}, {hi * 1e3:.4f}] mm)", line, a, float(excess))
+        excess = lo_a - x if x < lo_a else x - hi_a
+        side = "soft_min" if x < lo_a else "soft_max"
+        raise LimitError(f"{filename}:{line}: {a} reaches {x * 1e3:.4f} mm, "
+                         f"{excess * 1e3:.4f} mm beyond {side} {(lo_a if x < lo_a else hi_a) * 1e3:.4f} mm "
+                         f"(soft limits [{lo_a * 1e3:.4f}, {hi_a * 1e3:.4f}] mm)", line, a, float(excess))
 
-    for seg in program.segments:
+    for seg in segments:
         if isinstance(seg, (Line, Arc)):
-            for i in range(3):
-                check(seg.line, i, float(seg.start[i]))
-                check(seg.line, i, float(seg.end[i]))
+            for p in (seg.start, seg.end):
+                bad = (p < lo) | (p > hi)
+                if bad.any():
+                    i = int(np.flatnonzero(bad)[0])
+                    refuse(seg.line, i, float(p[i]))
             if isinstance(seg, Arc):
                 for i, v in _arc_extremes(seg):
-                    check(seg.line, i, v)
+                    if not lo[i] <= v <= hi[i]:
+                        refuse(seg.line, i, v)
+
+
+def _at_rest_after(seg) -> bool:
+    """True when the planned profile is at rest after ``seg`` whatever follows: a dwell, a
+    pause, a machine word that is not synchronised with the motion (:func:`plan` puts a rest
+    before it), a move in exact stop (G61: tolerance 0)."""
+    if isinstance(seg, (Dwell, Pause)):
+        return True
+    if isinstance(seg, Event):
+        return not seg.synchronized
+    return seg.tolerance == 0.0
+
+
+def windows(batches, *, soft: int = 1000, hard: int = 5000):
+    """The segments of ``batches`` (iterables of segments in program order) regrouped into
+    windows that each end where the path is at rest: the first point at rest after ``soft``
+    moves (:func:`_at_rest_after`), or after ``hard`` moves when the program has none (the
+    path then comes to rest there: an exact stop every ``hard`` moves). Each window planned
+    alone with :func:`plan` from the previous one's end is the same motion as the whole program
+    planned at once, up to those forced stops; memory is bounded by ``hard`` moves. Yields
+    (segments, last): ``last`` True for the program's final window (known from the segment
+    after it, read before the window is given). Raises ValueError on soft < 1 or hard < soft."""
+    if not 1 <= soft <= hard:
+        raise ValueError(f"windows: need 1 <= soft ({soft}) <= hard ({hard})")
+    cur: list = []
+    done = None                          # a full window, given once a segment follows it
+    moves = 0
+    for batch in batches:
+        for seg in batch:
+            if done is not None:
+                yield done, False
+                done = None
+            cur.append(seg)
+            if isinstance(seg, (Line, Arc)):
+                moves += 1
+            if moves >= hard or (moves >= soft and _at_rest_after(seg)):
+                done, cur, moves = cur, [], 0
+    if done is not None:
+        yield done, not cur
+    if cur:
+        yield cur, True

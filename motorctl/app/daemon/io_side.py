@@ -16,15 +16,19 @@ from __future__ import annotations
 
 import os
 import queue
+import secrets
 import selectors
+import shutil
 import signal
 import sys
+import tempfile
 import threading
 import time
 
 from motorctl.app.build import approach_move
 from motorctl.app.daemon.motion_side import AxisLimits, MotionError, MotionSide
 from motorctl.app.daemon.notify import sd_notify, watchdog_ping_interval_s
+from motorctl.app.daemon.plan_side import AHEAD_WINDOWS, PlannerLink
 from motorctl.app.daemon.protocol import (
     LineBuffer,
     Mailbox,
@@ -64,6 +68,8 @@ CLIENT_IDLE_S = 5.0
 SCOPE_STATUS_S = 0.2
 #: after running out of file descriptors, accept nothing for this long [s]
 EMFILE_PAUSE_S = 0.1
+#: programs being sent in chunks at once; one without a chunk for UPLOAD_IDLE_S is dropped [s]
+MAX_UPLOADS, UPLOAD_IDLE_S = 4, 120.0
 
 
 class IOSide:
@@ -135,6 +141,12 @@ class IOSide:
         rt = asm.loaded.cfg.loop.realtime
         if rt.policy != "off":
             self.motion.fifo_priority = max(1, rt.priority - FILLER_PRIORITY_BELOW)
+        #: programs: the planner process, the spool of programs sent in chunks, the job planned
+        self.planner = PlannerLink()
+        self.max_program_bytes = d.max_program_bytes
+        self.spool = tempfile.mkdtemp(prefix="motorctl-programs-")
+        self.uploads: dict[str, dict] = {}
+        self.job: dict | None = None
 
     # ------------------------------------------------------------------ requests
     def to_loop(self, conn, msg: dict, post=None) -> None:
@@ -157,7 +169,11 @@ class IOSide:
             return {"ok": True, "status": st}
         if self.ready is None:
             return {"ok": False, "error": "the loop is not running yet; retry in a moment"}
-        if req.cmd in ("move", "gcode", "hold", "resume", "abort", "override"):
+        if req.cmd == "upload":
+            return self.upload(req.motion)
+        if req.cmd == "gcode":
+            return self.start_program(conn, req.motion)
+        if req.cmd in ("move", "hold", "resume", "abort", "override"):
             return self.motion_request(req)
         if req.cmd == "home":
             try:
@@ -211,14 +227,12 @@ class IOSide:
         return box
 
     def motion_request(self, req: Request) -> dict:
-        """move, gcode, hold, resume, abort, override: answered here (the loop only follows
-        the stream). A refused program queues nothing."""
+        """move, hold, resume, abort, override: answered here (the loop only follows the
+        stream)."""
         mo, a = self.motion, req.motion
         try:
             if req.cmd == "move":
                 return {"ok": True, **mo.move(a["targets"], a["feed"])}
-            if req.cmd == "gcode":
-                return {"ok": True, **mo.gcode(a["text"], a["filename"])}
             if req.cmd == "override":
                 mo.set_override(a["value"])
             else:
@@ -226,6 +240,172 @@ class IOSide:
         except MotionError as exc:
             return {"ok": False, "error": str(exc), "usage": exc.usage}
         return {"ok": True, "motion": mo.status()}
+
+    # ------------------------------------------------------------------ programs
+    def upload(self, a: dict) -> dict:
+        """One chunk of a program sent in chunks (:mod:`motorctl.app.daemon.protocol`),
+        appended to its spool file. A program beyond ``daemon.max_program_bytes`` is refused
+        by name and its chunks dropped."""
+        now = time.monotonic()
+        for tok in [t for t, u in self.uploads.items() if now - u["t"] > UPLOAD_IDLE_S]:
+            self._drop_upload(tok)
+        data = a["data"].encode("utf-8", "surrogatepass")
+        tok = a["upload"]
+        if tok is None:
+            if a["offset"] != 0:
+                return {"ok": False, "error": "upload: the first chunk starts at offset 0", "usage": True}
+            if len(self.uploads) >= MAX_UPLOADS:
+                return {"ok": False, "error": f"upload: {MAX_UPLOADS} programs are being sent already; "
+                                              f"retry when one is done", "usage": False}
+            tok = secrets.token_hex(8)
+            self.uploads[tok] = {"path": os.path.join(self.spool, tok + ".ngc"), "bytes": 0, "t": now}
+        u = self.uploads.get(tok)
+        if u is None:
+            return {"ok": False, "error": f"upload: no program being sent as {tok!r} (dropped after "
+                                          f"{UPLOAD_IDLE_S:g} s without a chunk, or already run)", "usage": True}
+        if a["offset"] != u["bytes"]:
+            return {"ok": False, "error": f"upload: chunk at offset {a['offset']}, the program has "
+                                          f"{u['bytes']} bytes", "usage": True}
+        if u["bytes"] + len(data) > self.max_program_bytes:
+            self._drop_upload(tok)
+            return {"ok": False, "error": f"upload: the program is larger than daemon.max_program_bytes = "
+                                          f"{self.max_program_bytes} bytes; refused", "usage": True}
+        try:
+            with open(u["path"], "ab") as fh:
+                fh.write(data)
+        except OSError as exc:
+            self._drop_upload(tok)
+            return {"ok": False, "error": f"upload: cannot spool the program ({exc.strerror})", "usage": False}
+        u["bytes"] += len(data)
+        u["t"] = now
+        return {"ok": True, "upload": tok, "bytes": u["bytes"]}
+
+    def _drop_upload(self, tok: str) -> None:
+        u = self.uploads.pop(tok, None)
+        if u is not None:
+            try:
+                os.unlink(u["path"])
+            except OSError:
+                pass
+
+    def start_program(self, conn, a: dict) -> dict | None:
+        """``gcode``: hand the program to the planner process; answered when its first window
+        is planned (or it is refused). None: the answer comes later."""
+        mo = self.motion
+        if a["upload"] is not None:
+            u = self.uploads.pop(a["upload"], None)
+            if u is None:
+                return {"ok": False, "error": f"gcode: no program sent as {a['upload']!r}", "usage": True}
+            path = u["path"]
+        else:
+            if len(a["text"].encode("utf-8", "surrogatepass")) > self.max_program_bytes:
+                return {"ok": False, "error": f"gcode: the program is larger than daemon.max_program_bytes "
+                                              f"= {self.max_program_bytes} bytes; refused", "usage": True}
+            path = os.path.join(self.spool, secrets.token_hex(8) + ".ngc")
+            try:
+                with open(path, "w", encoding="utf-8", errors="surrogatepass") as fh:
+                    fh.write(a["text"])
+            except OSError as exc:
+                return {"ok": False, "error": f"gcode: cannot spool the program ({exc.strerror})", "usage": False}
+        if self.job is not None:
+            os.unlink(path)
+            return {"ok": False, "error": "gcode: a program is still being checked; wait for it", "usage": False}
+        try:
+            job = mo.program_job(a["filename"], path=path)
+        except MotionError as exc:
+            os.unlink(path)
+            return {"ok": False, "error": str(exc), "usage": exc.usage}
+        if not self.planner.pid:
+            os.unlink(path)
+            return {"ok": False, "error": "gcode: the planner process is not running", "usage": False}
+        self.job = {"job": job, "conn": conn, "info": None, "axes": [], "clears": mo.clears,
+                    "asked": 0, "got": 0, "path": path}
+        self.planner.send({"op": "plan", "job": job})
+        return None
+
+    def on_planner(self) -> None:
+        """The planner process's answers (:mod:`motorctl.app.daemon.plan_side`)."""
+        msgs = self.planner.from_plan.recv()
+        if msgs is None:                     # the planner process ended
+            try:
+                self.sel.unregister(self.planner.rfd)
+            except (KeyError, ValueError):
+                pass
+            self.planner.pid = 0
+            self._end_job("the planner process ended")
+            return
+        for m in msgs:
+            jb = self.job
+            if jb is None or m.get("id") != jb["job"].id:
+                continue                     # a cancelled job's late answers
+            op = m["op"]
+            if op == "refused":
+                self._end_job(m["error"], usage=True)
+            elif op == "failed":
+                self._end_job(f"planner error: {m['error']}")
+            elif op == "checked":
+                try:
+                    jb["axes"] = self.motion.accept_checked(jb["job"], m)
+                except MotionError as exc:
+                    self._end_job(str(exc), usage=exc.usage)
+                    continue
+                jb["info"] = m
+                jb["asked"] = 1
+            elif op == "window":
+                jb["got"] += 1
+                traj, last = m["traj"], m["last"]
+                if m["k"] == 0:
+                    info = jb["info"]
+                    self.motion.begin_program(jb["job"], jb["axes"], traj, last, info["offsets"])
+                    jb["clears"] = self.motion.clears
+                    if jb["conn"] is not None:
+                        self.respond(jb["conn"], {"ok": True, "segments": info["segments"],
+                                                  "lines": info["lines"], "end_m": info["end"],
+                                                  "warnings": info["warnings"],
+                                                  "duration_s": float(traj.duration) if traj is not None else 0.0,
+                                                  "planning": not last})
+                        jb["conn"] = None
+                elif not self.motion.add_window(jb["job"].id, traj, last):
+                    self._end_job("")
+                    continue
+                if last:
+                    self._end_job("")
+
+    def _end_job(self, error: str, usage: bool = False) -> None:
+        """The program's job is over (planned whole, refused, failed or dropped): the client
+        still waiting gets ``error``; the planner process is told to stop planning it."""
+        jb, self.job = self.job, None
+        if jb is None:
+            return
+        if error and self.planner.pid:
+            try:
+                self.planner.send({"op": "cancel", "id": jb["job"].id})
+            except OSError:
+                pass
+        try:
+            os.unlink(jb["path"])
+        except OSError:
+            pass
+        if jb["conn"] is not None:
+            self.respond(jb["conn"], {"ok": False, "error": error or "gcode: dropped", "usage": usage})
+        elif error:
+            with self.motion.lock:
+                if self.motion.planning == jb["job"].id:
+                    self.motion._clear(error)
+
+    def plan_poll(self) -> None:
+        """Each wake: a program dropped meanwhile (abort, stop, fault) is cancelled in the
+        planner; else one more window is asked for while fewer than AHEAD_WINDOWS wait."""
+        jb = self.job
+        if jb is None or jb["info"] is None:
+            return
+        mo = self.motion
+        if jb["got"] and (mo.clears != jb["clears"] or mo.planning != jb["job"].id):
+            self._end_job("dropped")
+            return
+        if mo.windows_ahead(jb["job"].id) + jb["asked"] - jb["got"] < AHEAD_WINDOWS:
+            jb["asked"] += 1
+            self.planner.send({"op": "more", "id": jb["job"].id})
 
     # ------------------------------------------------------------------ status
     def axis_status(self, i: int) -> dict:
@@ -419,6 +599,10 @@ class IOSide:
             ans = self.request(conn, parse_request(line, self.names, self.controllers))
         except RequestError as exc:
             ans = {"ok": False, "error": str(exc), "usage": True}
+        except Exception as exc:           # noqa: BLE001 - no request may end the daemon
+            sys.stderr.write(f"motorctl daemon: internal error on a request: {type(exc).__name__}: {exc}\n")
+            ans = {"ok": False, "error": f"internal error ({type(exc).__name__}: {exc}); nothing was "
+                                         f"carried out", "usage": False}
         if ans is not None:
             self.respond(conn, ans)
         else:                              # the answer comes from the loop
@@ -433,6 +617,11 @@ class IOSide:
         loop_gone = False
         ctl = self.plan.ring.ctl
         self.start_scope()
+        try:
+            self.planner.start()             # before any thread of this process runs
+            self.sel.register(self.planner.rfd, selectors.EVENT_READ, "planner")
+        except OSError as exc:
+            sys.stderr.write(f"motorctl daemon: warning: no planner process ({exc}); G-code refused\n")
         self.motion.start()
         while not loop_gone:
             ctl[CTL_REC_BEAT] = int(ctl[CTL_REC_BEAT]) + 1     # "the recorder is awake"
@@ -441,6 +630,8 @@ class IOSide:
                     self.accept(time.monotonic())
                 elif key.data == "views":
                     self.on_views()
+                elif key.data == "planner":
+                    self.on_planner()
                 elif key.data == "loop":
                     msgs = self.replies.recv()
                     if msgs is None:
@@ -458,6 +649,7 @@ class IOSide:
             while not self.internal.empty():
                 msg, done, box = self.internal.get_nowait()
                 self.to_loop(None, msg, post=(done, box))
+            self.plan_poll()
             now = time.monotonic()
             self.expire_clients(now)
             for rid, (conn, deadline, _, _) in list(self.pending.items()):
@@ -484,6 +676,8 @@ class IOSide:
                 if self.views is not None:
                     self.views.set_status(st, self.scope.last_t)
         self.motion.stop()
+        self.planner.stop()
+        shutil.rmtree(self.spool, ignore_errors=True)
         if self.views is not None:
             self.views.stop()
         # the loop process ended (normally, or killed): keep everything it published

@@ -27,10 +27,21 @@ spindle keeps turning in a feed hold); an abort switches the stop outputs (those
 M7/M8, :data:`motorctl.motion.gcode.STOP_WORDS`) off at the first row it rewrites; an underrun,
 a stop or a fault switches them off in the loop itself.
 
-An underrun (the loop found the ring empty while moving: it braked on its own, jerk-limited,
-:mod:`motorctl.loop.stream`) or a stop of a commanded axis (a new epoch of the ring) drops the
-program being run and the queue (``status`` says why); motion then waits for new commands.
-Every target is checked against the axes' soft limits before anything is queued.
+An **underrun** (the loop found the ring empty while moving: it braked on its own, jerk-limited,
+:mod:`motorctl.loop.stream`) is a pause, not the end: the program and the queue are kept, the
+path time of the last setpoint the loop followed is noted (``SetpointRing.dry_row``), ``status``
+says ``paused: underrun at line N ...``, and ``resume`` first moves (Ruckig) from where the brake
+came to rest back onto the path at that point, then runs on from there with the feed scale
+ramping up from 0, as after a feed hold. A stop of a commanded axis or a fault (the axis leaves
+command mode) drops the program being run and the queue (``status`` says why); motion then
+waits for new commands. Every target is checked against the axes' soft limits before anything
+is queued.
+
+**Programs** are read, checked and planned by :mod:`motorctl.app.daemon.plan_side` (in the
+daemon, in a process of its own, a window at a time; :meth:`MotionSide.gcode` does the same
+passes in the calling thread for in-process callers). While a program still has windows to
+plan, :meth:`MotionSide.idle` is False; a window that is late only makes the path wait at rest
+at the end of the previous one (every window ends at rest).
 
 **Homing** (:meth:`MotionSide.home`, a thread of its own; LinuxCNC's sequence, the axis's
 ``homing:`` config): search the home switch at the search speed (a move toward it, held when
@@ -50,6 +61,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from motorctl.app.daemon.plan_side import PlanJob, plan_windows, preview
 from motorctl.loop.cycle import STREAM
 from motorctl.loop.stream import SP_OUT_STOP, SetpointRing
 from motorctl.motion import gcode as G
@@ -177,7 +189,20 @@ class MotionSide:
         self._off_pending = False        # an abort's stop outputs still to switch off
         self.rewrites = 0
         self._wake = threading.Event()
-        self.gcode_settings = gcode_settings or G.GcodeSettings()
+        settings = gcode_settings or G.GcodeSettings()
+        if "axes" not in settings.model_fields_set:          # the machine's axes, not X Y Z
+            settings = settings.model_copy(update={"axes": [a for a in self.names if a in G.AXES]})
+        self.gcode_settings = settings
+        #: the program being planned in windows (its job id, 0: none) and the axes it moves
+        self.planning, self.planning_axes = 0, []
+        self._jobs = 0
+        #: bumped at every _clear: a program still being planned is then cancelled
+        self.clears = 0
+        #: after an underrun: (trajectory, path time [s]) of the last setpoint the loop followed,
+        #: where ``resume`` goes back onto the path
+        self._dry: tuple | None = None
+        self._resume_s = None            # (trajectory, path time) to start at when it is popped
+        self._underruns_seen = stream.underruns()
         n_out = len(stream.outputs)
         self._stop_mask = np.array([bool(int(stream.ctl[SP_OUT_STOP]) >> j & 1) for j in range(n_out)],
                                    dtype=bool)
@@ -278,43 +303,85 @@ class MotionSide:
         self.enqueue([traj], list(targets))
         return {"duration_s": traj.duration, "from_m": start.tolist(), "to_m": goal.tolist()}
 
+    def program_job(self, filename: str, text: str | None = None, path: str | None = None) -> PlanJob:
+        """A G-code program (``text``, or the file at ``path``) to read, check and plan from
+        where the axes are commanded now (:mod:`motorctl.app.daemon.plan_side`). Raises
+        MotionError: an axis not named X, Y or Z, motion that cannot take a program now."""
+        bad = [a for a in self.names if a not in G.AXES]
+        if bad:
+            raise MotionError(f"gcode: the axes must be named among {', '.join(G.AXES)} "
+                              f"(got {', '.join(self.names)})", usage=False)
+        if self.planning:
+            raise MotionError("gcode: a program is still being planned; wait for it or abort",
+                              usage=False)
+        start = self.where()
+        start3 = [float(start[self.names.index(a)]) if a in self.names else 0.0 for a in G.AXES]
+        self._jobs += 1
+        return PlanJob(self._jobs, path, text, filename, self.gcode_settings, start3,
+                       [float(x) for x in start], dict(self.work_offsets),
+                       {a: (lim.soft_min, lim.soft_max) for a, lim in zip(self.names, self.limits)},
+                       list(self.names), list(self._pva), self.dt, list(self.stream.outputs),
+                       {"share": RAMP_SHARE, "bin_s": CAP_BIN_S, "ahead_s": self.cap_ahead_s})
+
+    def accept_checked(self, job: PlanJob, info: dict) -> list[int]:
+        """The preview of ``job`` passed: check that the axes it moves may move now (command
+        mode, homed). Returns those axes. Raises MotionError (nothing queued)."""
+        self.check_axes(info["moved"], "gcode")
+        return list(info["moved"])
+
+    def begin_program(self, job: PlanJob, axes: list[int], first, last: bool, offsets: dict) -> None:
+        """Queue the first window of a checked program; while ``last`` is False more follow
+        (:meth:`add_window`)."""
+        with self.lock:
+            self.planning = 0 if last else job.id
+            self.planning_axes = list(axes)
+        if first is not None:
+            self.enqueue([first], axes)
+        self.work_offsets = offsets
+
+    def add_window(self, job_id: int, traj, last: bool) -> bool:
+        """Queue one more window of the program being planned. False (nothing queued) when that
+        program was dropped meanwhile (an abort, a stop, a fault)."""
+        with self.lock:
+            if self.planning != job_id:
+                return False
+            if last:
+                self.planning = 0
+            if traj is not None:
+                self.used = sorted(set(self.used) | set(self.planning_axes))
+                self.queue.append(traj)
+            self._wake.set()
+        return True
+
+    def windows_ahead(self, job_id: int) -> int:
+        """Windows of program ``job_id`` queued and not yet begun."""
+        with self.lock:
+            return sum(1 for t in self.queue if getattr(t, "job", None) == job_id)
+
     def gcode(self, text: str, filename: str) -> dict:
         """Read, check and plan a G-code program (``motorctl.motion``: the subset LinuxCNC
         reads, look-ahead planning within each axis's v/a/j) from where the axes are commanded
-        now, and queue it. Raises MotionError (``file:line:column: why``; nothing queued)."""
-        letters = [a for a in self.names if a in G.AXES]
-        if letters != self.names:
-            raise MotionError(f"gcode: the axes must be named among {', '.join(G.AXES)} "
-                              f"(got {', '.join(self.names)})", usage=False)
-        start = self.where()
-        start3 = [float(start[self.names.index(a)]) if a in self.names else 0.0 for a in G.AXES]
+        now, and queue it, in the calling thread (the daemon does the same passes in its planner
+        process). Raises MotionError (``file:line:column: why``; nothing queued)."""
+        job = self.program_job(filename, text=text)
         try:
-            prog = G.parse(text, filename, settings=self.gcode_settings, start=start3,
-                           offsets=self.work_offsets)
-            P.check_limits(prog, {a: (lim.soft_min, lim.soft_max) for a, lim in zip(self.names, self.limits)})
+            info = preview(job)
+            axes = self.accept_checked(job, info)
+            trajs = list(plan_windows(job))
         except ValueError as exc:        # GcodeError, LimitError: one line with file:line:column
             raise MotionError(str(exc)) from None
-        for ev in prog.segments:
-            if isinstance(ev, G.Event) and ev.target is not None and ev.target not in self.stream.outputs:
-                raise MotionError(f"{filename}:{ev.line}:{ev.column}: {ev.word}: output {ev.target} is not one "
-                                  f"the loop carries ({', '.join(self.stream.outputs) or 'none'}); "
-                                  f"M62-M65 take P 0-{G.N_DIO - 1}")
-        moved = sorted({k for seg in prog.moves for k in range(3)
-                        if (k < 2 and isinstance(seg, G.Arc)) or seg.start[k] != seg.end[k]})
-        axes = [self.names.index(G.AXES[k]) for k in moved if G.AXES[k] in self.names]
-        self.check_axes(axes, "gcode")
-        traj = P.plan(prog, self.names, self._pva, start=[float(x) for x in start])
-        self.enqueue([traj], axes)
-        self.work_offsets = {k: v for k, v in prog.offsets.items() if k in G.SYSTEMS}
-        return {"duration_s": float(traj.duration), "segments": len(prog.moves),
-                "end_m": [float(x) for x in traj.end], "warnings": list(prog.warnings)}
+        self.enqueue(trajs, axes)
+        self.work_offsets = info["offsets"]
+        return {"duration_s": float(sum(t.duration for t in trajs)), "segments": info["segments"],
+                "end_m": [float(x) for x in trajs[-1].end], "warnings": list(info["warnings"])}
 
     def enqueue(self, trajs: list, axes: list[int]) -> None:
         """Queue planned trajectories moving ``axes`` (checked already)."""
         for traj in trajs:                   # the override's cap along it (planner.override_cap)
-            traj.cap = P.override_cap(traj, self._pva, share=RAMP_SHARE, period=self.dt, bin_s=CAP_BIN_S,
-                                      ahead_s=self.cap_ahead_s)
-            traj.cap_dt = max(1, int(round(CAP_BIN_S / self.dt))) * self.dt
+            if getattr(traj, "cap", None) is None:
+                traj.cap = P.override_cap(traj, self._pva, share=RAMP_SHARE, period=self.dt, bin_s=CAP_BIN_S,
+                                          ahead_s=self.cap_ahead_s)
+                traj.cap_dt = max(1, int(round(CAP_BIN_S / self.dt))) * self.dt
         with self.lock:
             self.used = sorted(set(self.used) | set(axes)) if (self.cur or self.queue) else list(axes)
             self.queue.extend(trajs)
@@ -333,12 +400,38 @@ class MotionSide:
             self._asap()
 
     def resume(self) -> None:
+        """Go on after a feed hold, a programmed pause (M0/M1) or an underrun (module
+        docstring: first back onto the path where the loop last followed it)."""
         with self.lock:
-            if not self.aborting:
-                self.holding = False
-                if self.reason.startswith("paused"):
-                    self.reason = ""
-                self._asap()
+            if self.aborting:
+                return
+            if self._dry is not None:
+                self._back_onto_path()
+            self.holding = False
+            if self.reason.startswith("paused"):
+                self.reason = ""
+            self._asap()
+
+    def _back_onto_path(self) -> None:
+        """(lock held) After an underrun: a move from where the loop holds to the path point
+        where it ran dry, then that trajectory from there (its feed scale ramping up from 0)."""
+        traj, s0, outs = self._dry
+        self._dry = None
+        row = self.latest()
+        if row is None:
+            return
+        here = np.array([row[c] for c in self._xcol])
+        out = np.empty((1, 3, self.n))
+        traj.sample_into(s0, self.dt, out)
+        there = out[0, 0].copy()
+        self.queue.appendleft(traj)
+        self._resume_s = (traj, s0, outs)
+        if float(np.max(np.abs(there - here))) > 1e-9:
+            back = P.point_to_point(here, there, self._pva, axes=self.names)
+            back.cap = np.full(2, 1.0)
+            back.cap_dt = max(back.duration, self.dt)
+            self.queue.appendleft(back)
+        self.cur, self.s, self.f, self.fd = None, 0.0, self.override, 0.0
 
     def abort(self) -> None:
         with self.lock:
@@ -361,7 +454,8 @@ class MotionSide:
     def idle(self) -> bool:
         """Nothing queued or streaming, and the ring drained."""
         with self.lock:
-            busy = self.cur is not None or bool(self.queue)
+            busy = (self.cur is not None or bool(self.queue) or bool(self.planning)
+                    or self._dry is not None)
         return not busy and self.stream.depth() == 0 and not self.stream.braking()
 
     def progress(self) -> tuple[int, float, float]:
@@ -387,11 +481,11 @@ class MotionSide:
     def status(self) -> dict:
         line, done, left = self.progress()
         with self.lock:
-            depth = len(self.queue) + (self.cur is not None)
+            depth = len(self.queue) + (self.cur is not None) + (self._dry is not None)
         return {"queue_depth": depth, "line": line, "done": done, "time_left_s": left,
                 "feed_m_s": self.feed_m_s,
                 "override": self.override, "feed_scale": self.f, "hold": self.holding,
-                "aborting": self.aborting, "ring_depth": self.stream.depth(),
+                "aborting": self.aborting, "ring_depth": self.stream.depth(), "planning": bool(self.planning),
                 "underruns": self.stream.underruns(), "braking": self.stream.braking(),
                 "stopped_because": self.reason, "homed": list(self.homed), "outputs": dict(self.outputs),
                 "homing": list(self.homing_state), "homing_configured": [h is not None for h in self.homing],
@@ -500,7 +594,10 @@ class MotionSide:
                     self._clear(f"planner error: {type(exc).__name__}: {exc}")
 
     def _clear(self, why: str) -> None:
-        """(lock held) Drop what is streamed and queued."""
+        """(lock held) Drop what is streamed and queued (and the program still being planned)."""
+        self.clears += 1
+        self.planning = 0
+        self._dry = self._resume_s = None
         self.queue.clear()
         self.cur = None
         self.s = 0.0
@@ -520,8 +617,11 @@ class MotionSide:
             ep = ring.epoch()
             if ep != self.epoch:             # the loop braked on its own (underrun or stop)
                 self.epoch = ep
-                if self.cur is not None or self.queue:
-                    self._clear("underrun" if ring.underruns() else "stopped")
+                dry = ring.underruns() != self._underruns_seen
+                self._underruns_seen = ring.underruns()
+                if self.cur is not None or self.queue or self.planning:
+                    if not (dry and self._pause_at_dry()):
+                        self._clear("underrun" if dry else "stopped")
             if ring.braking():
                 return 0
             if ring.depth() == 0 and self.cur is None:   # the loop's outputs (it may have switched some off)
@@ -542,6 +642,40 @@ class MotionSide:
             n = self._generate(need)
             self._push(n, ep)
             return n
+
+    def _pause_at_dry(self) -> bool:
+        """(lock held) An underrun (module docstring): keep the program, note the trajectory and
+        path time of the last row the loop followed, hold. False when that row is not one of
+        ours (then the caller drops the program as before)."""
+        ring = self.stream
+        q = ring.dry_row()
+        if q < self._hist_from or q >= ring.written():
+            return False
+        cap = ring.capacity
+        k = q % cap
+        t0 = self._htraj[k]
+        if t0 is None or t0.duration <= 0.0:
+            return False
+        later: list = []
+        for r in range(q + 1, ring.written()):
+            t = self._htraj[r % cap]
+            if t is not None and t is not t0 and (not later or later[-1] is not t):
+                later.append(t)
+        if self.cur is not None and self.cur is not t0 and (not later or later[-1] is not self.cur):
+            later.append(self.cur)
+        rest = [t for t in self.queue if t is not t0 and t not in later]
+        self.queue.clear()
+        self.queue.extend(later + rest)
+        s0 = min(float(self._hs[k]), t0.duration)
+        self.cur, self.s, self.f, self.fd = None, 0.0, self.override, 0.0
+        self._dry = (t0, s0, ring.row_outputs(k).copy())
+        self.holding = True
+        self._hist_from = ring.written()
+        self.pending.clear()
+        self._bev.clear()
+        self.reason = (f"paused: underrun at line {int(t0.line_at(s0))} (the setpoints ran dry; the "
+                       f"axes braked to rest); resume goes back onto the path and on")
+        return True
 
     def _stop_outputs_at_rest(self) -> None:
         """(lock held) Nothing streams: the stop outputs still on go off in one row at rest where
@@ -720,6 +854,16 @@ class MotionSide:
                 self.s = 0.0
                 self._ev_i = 0
                 self.f, self.fd = self._target(self.cur, 0.0), 0.0   # from rest: the override at once
+                if self._resume_s is not None and self._resume_s[0] is self.cur:
+                    # back on the path where an underrun stopped it: from rest, f ramps up, and
+                    # the outputs the loop switched off at the underrun as they were there
+                    _, self.s, outs = self._resume_s
+                    self._resume_s = None
+                    self.f, self.fd = 0.0, 0.0
+                    self._ev_i = sum(1 for t, _ in self.cur.events if t <= self.s)
+                    line = int(self.cur.line_at(self.s))
+                    for o, v in zip(self.stream.outputs, outs):
+                        self._bev.append((j, G.Event("resume", o, float(v), False, line, 0)))
             cur, m, ended, step, steady, uniform = self.cur, 0, False, 0.0, False, 0
             ss, ff, ffd = self._s, self._f, self._fd
             target = self._target(cur, self.s)

@@ -12,9 +12,16 @@ Socket requests (``motorctl.cli.operator`` is the client)::
     {"cmd": "start", "axis": "X", "mode": "command"}          (command mode: follows commanded motion)
     {"cmd": "move", "targets": {"X": 0.12, "Y": 0.05}, "feed": 0.1?}   ([m], [m/s])
     {"cmd": "gcode", "text": "G1 X10 F600\n...", "filename": "part.ngc"}
+    {"cmd": "upload", "upload": null | "token", "offset": 0, "data": "G1 X10 ..."}
+    {"cmd": "gcode", "upload": "token", "filename": "part.ngc"}   (a program sent in chunks)
     {"cmd": "hold" | "resume" | "abort"}
     {"cmd": "override", "value": 0.8}                          (0.0 .. 1.5)
     {"cmd": "home", "axis": "X"}
+
+A program longer than one request (:data:`MAX_REQUEST_BYTES`) is sent in chunks: the first
+``upload`` (``"upload": null``, offset 0) opens a spooled program and answers its token, every
+next one gives the token and the offset it continues at (the bytes received so far, UTF-8),
+then ``gcode`` names the token instead of giving the text (``motorctl.client.send_program``).
 
 Answers: ``{"ok": true, ...}`` or ``{"ok": false, "error": "...", "usage": bool}`` (``usage``:
 the request itself was wrong, exit code 2 in the client).
@@ -35,8 +42,8 @@ from pathlib import Path
 #: the longest request line accepted [bytes]; a longer one is refused and the connection closed
 MAX_REQUEST_BYTES = 65536
 #: commands of the socket protocol
-COMMANDS = ("status", "start", "stop", "switch", "fault-reset", "inject", "jog", "move", "gcode", "hold",
-            "resume", "abort", "override", "home")
+COMMANDS = ("status", "start", "stop", "switch", "fault-reset", "inject", "jog", "move", "gcode", "upload",
+            "hold", "resume", "abort", "override", "home")
 #: commands that need an axis
 AXIS_COMMANDS = ("start", "stop", "switch", "fault-reset", "inject", "jog", "home")
 #: the axis modes of ``start``
@@ -79,7 +86,7 @@ def parse_request(line: bytes, axis_names: list, controllers: list) -> Request:
     if cmd not in COMMANDS:
         raise RequestError(f"unknown command {cmd!r}; allowed: {', '.join(COMMANDS)}")
     a = req.get("axis")
-    if cmd in ("move", "gcode", "override"):
+    if cmd in ("move", "gcode", "override", "upload"):
         return Request(cmd, None, motion=_motion_request(cmd, req, axis_names))
     if a is None and cmd not in AXIS_COMMANDS:
         return Request(cmd, None)
@@ -128,10 +135,20 @@ def _motion_request(cmd: str, req: dict, axis_names: list) -> dict:
     if cmd == "override":
         return {"value": number(req.get("value"), "value")}
     if cmd == "gcode":
-        text, name = req.get("text"), req.get("filename", "-")
-        if not isinstance(text, str) or not isinstance(name, str):
-            raise RequestError("gcode needs 'text' (the program) and 'filename' (strings)")
-        return {"text": text, "filename": name}
+        text, name, token = req.get("text"), req.get("filename", "-"), req.get("upload")
+        if (text is None) == (token is None) or not isinstance(name, str) or not isinstance(
+                text if token is None else token, str):
+            raise RequestError("gcode needs 'filename' and either 'text' (the program) or 'upload' "
+                               "(the token of a program sent in chunks), strings")
+        return {"text": text, "upload": token, "filename": name}
+    if cmd == "upload":
+        token, data, offset = req.get("upload"), req.get("data"), req.get("offset", 0)
+        if (token is not None and not isinstance(token, str)) or not isinstance(data, str) or not (
+                isinstance(offset, int) and not isinstance(offset, bool) and offset >= 0):
+            raise RequestError("upload needs 'data' (a chunk of the program, a string), 'offset' (the "
+                               "bytes sent before it, >= 0) and 'upload' (null for the first chunk, "
+                               "else the token it answered)")
+        return {"upload": token, "data": data, "offset": offset}
     targets = req.get("targets")
     if not isinstance(targets, dict) or not targets:
         raise RequestError("move needs 'targets': {axis: position in m, ...}")
