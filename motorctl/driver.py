@@ -357,6 +357,15 @@ class Driver(abc.ABC):
         """JSON-able facts for the run-log header (e.g. the simulated truth)."""
         return {}
 
+    def reset_fault(self, i: int) -> bool:
+        """The operator's fault reset of axis ``i``'s drive (``motorctl fault-reset``, between
+        cycles, the axis disabled): ask the device to clear the fault it latched (CiA 402: the
+        rising edge of controlword bit 7, transition 15, sent with the next writes until the
+        drive leaves Fault). A driver never resets a drive's fault on its own. Returns True
+        when a reset was asked of the device, False when the device has no fault reset of its
+        own (the default)."""
+        return False
+
     def fault_reason(self, i: int) -> str:
         """What the drive of axis ``i`` says about its fault, one line (e.g. a CiA 402 EMCY
         code and its meaning, a Modbus exception), '' when it says nothing. Called outside the

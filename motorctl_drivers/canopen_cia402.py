@@ -29,8 +29,9 @@ Every cycle:
   * ``write(u, enable)``: per axis, the CiA 402 power state machine is stepped from the last
     statusword and the enable request (:class:`~motorctl_drivers.cia402.PowerStateMachine`:
     Shutdown → Switch on → Enable operation, confirmed by the statusword; Disable voltage when
-    not enabled; a drive in Fault is reset by a rising edge of controlword bit 7 while the axis
-    is disabled); the target torque is u scaled to per mille of the rated torque
+    not enabled; a drive in Fault stays there until the operator's ``fault-reset``
+    (:meth:`reset_fault`), then a rising edge of controlword bit 7 while the axis is disabled);
+    the target torque is u scaled to per mille of the rated torque
     (±``voltage_full_scale_V`` ↔ ±``full_scale_permille``), 0 unless the axis is enabled *and*
     the drive is in Operation enabled. The RPDOs go out, then the SYNC (the master is the time
     base), and every ``host_heartbeat_ms`` the host's heartbeat (CiA 301 §7.2.8.3.2; it comes
@@ -46,14 +47,15 @@ Every cycle:
     for two reads in a row means a TPDO was lost, not late: the count is realigned
     (``tpdo_resyncs``). An
     axis counts as enabled only in Operation enabled. The drive's heartbeat is watched: none for
-    ``drive_heartbeat_timeout_ms`` is a read error every cycle until it is back (the
-    supervisor's bucket then faults the axis); a heartbeat saying a state other than Operational
+    ``drive_heartbeat_timeout_ms`` is an amplifier fault at that read, named by
+    :meth:`fault_reason` ("heartbeat lost, none for 52 ms"), not an I/O error the bucket would
+    count for ten cycles; a heartbeat saying a state other than Operational
     (the drive went pre-operational or stopped, or booted again: CiA 301 §7.2.8.3.2) is an
     amplifier fault at that read, named by :meth:`fault_reason` ("left NMT Operational: its
     heartbeat says pre-operational (0x7F)"). An EMCY from the drive
     latches ``amp_fault`` with its error code and the CiA 301/402 meaning
     (:meth:`fault_reason`, ``describe()["emcy"]``); the latch clears once the axis is disabled
-    and the drive has left Fault (the reset above).
+    and the drive has left Fault, which it does only on the operator's reset (above).
 
 ``close()``: every object the set-up wrote (0x1005, 0x1006, 0x1016, 0x1017, 0x6007, 0x6060, the
 PDO communication and mapping parameters, the ``sdo:`` writes) is written back, in reverse
@@ -399,6 +401,7 @@ class CanopenDriver(SplitPhaseDriver):
         self._emcy_latched = [False] * n
         self._emcy_named = [False] * n       # fault_reason names the EMCY until re-enabled
         self._nmt_named = [0] * n            # the NMT state a heartbeat said, not Operational (0: none)
+        self._hb_named = [0.0] * n           # the heartbeat's silence when it was found lost [s] (0: none)
         self._was_fault = [False] * n
         # the statusword trace per axis: preallocated ring of (statusword) at each state change
         self._trace = [[0] * TRACE_LEN for _ in range(n)]
@@ -849,6 +852,7 @@ class CanopenDriver(SplitPhaseDriver):
             self._emcy_latched[i] = False
             self._emcy_named[i] = False
             self._nmt_named[i] = 0
+            self._hb_named[i] = 0.0
         self._prime_commands()
         for i, node in enumerate(self.nodes):
             node.nmt.state = "OPERATIONAL"
@@ -976,9 +980,10 @@ class CanopenDriver(SplitPhaseDriver):
             cw = sm.step(self._statusword[i], en)
             if not en and not sm.fault and self._emcy_latched[i]:
                 self._emcy_latched[i] = False       # disabled and out of Fault: the latch is reset
-            elif en and sm.enabled and (self._emcy_named[i] or self._nmt_named[i]):
+            elif en and sm.enabled and (self._emcy_named[i] or self._nmt_named[i] or self._hb_named[i]):
                 self._emcy_named[i] = False         # enabled again: the EMCY is history
                 self._nmt_named[i] = 0
+                self._hb_named[i] = 0.0
             a = ax[i]
             t = cia402.volts_to_permille(float(u_V[i]), a.voltage_full_scale_V, a.full_scale_permille) \
                 if en and sm.enabled else 0
@@ -1075,7 +1080,13 @@ class CanopenDriver(SplitPhaseDriver):
         lim = self._hb_timeout
         for i in range(len(self._hb_last)):
             if now - self._hb_last[i] > lim:
-                self.read_error[i] = True
+                # the drive's heartbeat is lost (CiA 301 §7.2.8.3.2, the heartbeat consumer's
+                # event): an amplifier fault at this read, named, not an I/O error left to the
+                # bucket (its ten cycles named the loss "driver error bucket full")
+                self.read_error[i] = False
+                self.amp_fault[i] = True
+                if not self._hb_named[i]:
+                    self._hb_named[i] = now - self._hb_last[i]
                 self.counters["heartbeat_lost"] += 1
             elif self._hb_state[i] != NMT_OPERATIONAL:
                 # the drive says it left Operational (CiA 301 §7.2.8.3.2: pre-operational,
@@ -1088,6 +1099,13 @@ class CanopenDriver(SplitPhaseDriver):
             if self._emcy_latched[i]:
                 self.amp_fault[i] = True
 
+    def reset_fault(self, i: int) -> bool:
+        """The operator's fault reset of axis i's drive: CiA 402 transition 15 (the rising edge
+        of controlword bit 7) in the next RPDOs while the axis is disabled, until the drive
+        leaves Fault (:meth:`PowerStateMachine.request_reset`). Never sent otherwise."""
+        self._sm[i].request_reset()
+        return True
+
     # ------------------------------------------------------------------ reports
     def fault_reason(self, i: int) -> str:
         """Why axis i reports an amplifier fault, one line ('' when it does not): the EMCY
@@ -1097,6 +1115,9 @@ class CanopenDriver(SplitPhaseDriver):
         if (self._emcy_latched[i] or self._emcy_named[i]) and self.emcy_code[i]:
             return (f"EMCY {cia402.describe_error(self.emcy_code[i])} from {self._where(i)} "
                     f"(error register 0x{self.emcy_register[i]:02X})")
+        if self._hb_named[i]:
+            return (f"{self._where(i)}: heartbeat lost, none for {self._hb_named[i] * 1e3:.0f} ms "
+                    f"(drive_heartbeat_timeout_ms {self.options.drive_heartbeat_timeout_ms})")
         if self._nmt_named[i]:
             state = self._nmt_named[i] & 0xFF
             return (f"{self._where(i)} left NMT Operational: its heartbeat says "

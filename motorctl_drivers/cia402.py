@@ -109,10 +109,13 @@ class PowerStateMachine:
     ``step(statusword, enable)`` returns the controlword for this cycle: it moves the drive one
     transition towards Operation enabled while ``enable`` is requested (Shutdown → Switch on →
     Enable operation, each sent until the statusword confirms the state), towards Switch on
-    disabled (Disable voltage, the power stage off at once) while it is not. A drive in Fault is
-    reset while the axis is not enabled, by a rising edge of controlword bit 7 (0x0000, then
-    0x0080, repeated every :attr:`RESET_RETRY_CYCLES` until the drive leaves Fault); a drive in
-    Fault reaction active is left to finish its reaction. Nothing blocks: a transition the drive
+    disabled (Disable voltage, the power stage off at once) while it is not. A drive in Fault
+    stays there (Disable voltage, bit 7 low) until the operator's :meth:`request_reset`: then,
+    while the axis is not enabled, a rising edge of controlword bit 7 (0x0000, then 0x0080,
+    transition 15 of CiA 402 §6.3.2, repeated every :attr:`RESET_RETRY_CYCLES` for at most
+    :attr:`RESET_TRIES` edges) until the drive leaves Fault. The host never resets a drive's
+    fault on its own: the fault stays latched in the drive, named by its error code, until the
+    operator says so. A drive in Fault reaction active is left to finish its reaction. Nothing blocks: a transition the drive
     has not confirmed is simply asked for again in the next cycle.
 
     Attributes (all ints/bools, updated by :meth:`step`):
@@ -122,6 +125,8 @@ class PowerStateMachine:
     """
 
     RESET_RETRY_CYCLES = 8
+    #: rising edges of bit 7 one operator's reset sends at most
+    RESET_TRIES = 3
 
     def __init__(self):
         self.state = UNKNOWN
@@ -131,6 +136,13 @@ class PowerStateMachine:
         self.fault = False
         self.transitions = 0
         self._reset_phase = 0
+        self._reset_left = 0                 # cycles of the operator's reset still to send
+
+    def request_reset(self) -> None:
+        """The operator's fault reset (between cycles): the next :meth:`step` calls of a drive
+        in Fault with the axis not enabled send the rising edge of bit 7 (class docstring)."""
+        self._reset_phase = 0
+        self._reset_left = self.RESET_TRIES * self.RESET_RETRY_CYCLES
 
     def step(self, statusword: int, enable: bool) -> int:
         """Controlword (0x6040) for this cycle from the drive's ``statusword`` (0x6041) and the
@@ -143,14 +155,17 @@ class PowerStateMachine:
         self.enabled = state == OPERATION_ENABLED
         self.fault = state == FAULT or state == FAULT_REACTION_ACTIVE
         if state == FAULT:
-            if enable:
-                cw = CW_DISABLE_VOLTAGE      # the supervisor resets faults, never the enable request
+            if enable or self._reset_left <= 0:
+                cw = CW_DISABLE_VOLTAGE      # latched in the drive until the operator's reset
                 self._reset_phase = 0
             else:                            # 0x00, 0x80 (rising edge), hold, ..., retry
                 cw = CW_FAULT_RESET if self._reset_phase == 1 else CW_DISABLE_VOLTAGE
                 self._reset_phase = (self._reset_phase + 1) % self.RESET_RETRY_CYCLES
+                self._reset_left -= 1
         else:
             self._reset_phase = 0
+            if state != FAULT_REACTION_ACTIVE:
+                self._reset_left = 0         # out of Fault: the reset is done
             if not enable or state in (FAULT_REACTION_ACTIVE, NOT_READY, QUICK_STOP_ACTIVE, UNKNOWN):
                 cw = CW_DISABLE_VOLTAGE
             elif state == SWITCH_ON_DISABLED:

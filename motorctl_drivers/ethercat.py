@@ -240,7 +240,7 @@ class EthercatDriver(Driver):
         self.dc_slaves: list[int] = []
         self.slave_info: list[dict] = []
         self.emergencies: list[tuple[int, int, int]] = []     # (position, error code, error register)
-        self.counters = {"exchanges": 0, "wkc_errors": 0, "no_frame": 0, "al_reads": 0}
+        self.counters = {"exchanges": 0, "wkc_errors": 0, "no_frame": 0, "al_reads": 0, "al_read_misses": 0}
         self.connected = False
 
     # ------------------------------------------------------------------ set-up helpers
@@ -372,7 +372,9 @@ class EthercatDriver(Driver):
 
     def _read_al(self) -> None:
         """AL status and AL status code (0x0130, 0x0134) of every slave the axes use, one FPRD
-        each, and which axes have a slave out of OP. Outside the cycle (service, stop)."""
+        each, and which axes have a slave out of OP. Outside the cycle (service, stop). A slave
+        that did not answer is read again at the next service, not at the next read-out of
+        the bucket's period: its axis is named from its AL status in the cycle after."""
         self.counters["al_reads"] += 1
         timeout = max(self._timeout_us, 2000)
         for pos in self.roles:
@@ -380,6 +382,8 @@ class EthercatDriver(Driver):
                 raw = self.slaves[pos - 1]._fprd(0x0130, 6, timeout)
                 status, _r, code = struct.unpack("<HHH", raw[:6])
             except Exception:  # noqa: BLE001  (no answer: judged from the working counter alone)
+                self._al_due = True          # asked again after the next cycle's write
+                self.counters["al_read_misses"] += 1
                 continue
             self._al[pos] = (status, code)
         for i, o in enumerate(self._ax):
@@ -796,6 +800,16 @@ class EthercatDriver(Driver):
     # ------------------------------------------------------------------ reports
     def _full_scale_V(self, axis: str) -> float:
         return float(self.axis_options[axis].voltage_full_scale_V)
+
+    def reset_fault(self, i: int) -> bool:
+        """The operator's fault reset of axis i: a CiA 402 drive gets transition 15 (the rising
+        edge of controlword bit 7) in the next frames while the axis is disabled, until it leaves
+        Fault (:meth:`PowerStateMachine.request_reset`); never sent otherwise. The I/O profile's
+        terminals have no fault of their own to reset (False)."""
+        if self._sm[i] is None:
+            return False
+        self._sm[i].request_reset()
+        return True
 
     def fault_reason(self, i: int) -> str:
         """Why axis ``i`` faults, one line: its slaves that left OP with their AL status codes

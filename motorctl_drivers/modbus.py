@@ -57,7 +57,7 @@ per axis (``axes.NAME.driver``)::
     unit_id: 2                  # optional; host/port too (TCP: another device)
     voltage:  {address: 0, type: int16}                 # holding; scale default: full scale / 32767
     enable:   {table: holding, address: 1, bit: 0}      # or {table: coil, address: 0}
-    fault_reset: {table: holding, address: 1, bit: 7}   # optional: pulsed while disabled and faulted
+    fault_reset: {table: holding, address: 1, bit: 7}   # optional: pulsed on the operator's fault-reset
     position: {table: input, address: 100, type: int32, word_order: big, scale: 0.5e-6}
     fault:    {table: discrete, address: 0, active: high}   # optional
     voltage_full_scale_V: 10.0  # the limit of voltage_out
@@ -522,6 +522,8 @@ class ModbusDriver(SplitPhaseDriver):
     DEFAULT_ROUND_TRIP_S = 400e-6
     #: cycles between two fault-reset pulses of a disabled, faulted axis
     RESET_EVERY = 8
+    #: pulses one operator's fault reset sends at most
+    RESET_TRIES = 3
 
     def __init__(self, options: ModbusOptions, axis_options: dict, period_s: float):
         super().__init__(options, axis_options, period_s)
@@ -539,6 +541,7 @@ class ModbusDriver(SplitPhaseDriver):
         self._pos_words = [[0] * o.position.nregs for o in self._ax]
         self._fault_raw = [False] * n
         self._reset_count = [0] * n
+        self._reset_left = [0] * n          # cycles of the operator's fault reset still to send
         self._enable_now = [False] * n
         self._reset_now = [False] * n
         self.exception_counts: dict[int, int] = {}
@@ -835,10 +838,13 @@ class ModbusDriver(SplitPhaseDriver):
         for i in range(len(en)):
             e = bool(enable[i])
             en[i] = e
-            if not e and amp[i] and self._ax[i].fault_reset is not None:
+            if not e and amp[i] and self._reset_left[i] > 0:     # only on the operator's reset
+                self._reset_left[i] -= 1
                 self._reset_count[i] = (self._reset_count[i] + 1) % self.RESET_EVERY
                 rs[i] = self._reset_count[i] == 1
             else:
+                if not amp[i]:
+                    self._reset_left[i] = 0
                 self._reset_count[i] = 0
                 rs[i] = False
         done = self._done
@@ -1051,6 +1057,17 @@ class ModbusDriver(SplitPhaseDriver):
                         self._fault_raw[i] = bit == (self._ax[i].fault.active == "high")
 
     # --- reports
+    def reset_fault(self, i: int) -> bool:
+        """The operator's fault reset of axis i: a pulse of its ``fault_reset`` bit (one cycle
+        in :attr:`RESET_EVERY`, at most :attr:`RESET_TRIES`) while the axis is disabled and the
+        device's fault bit is active; never pulsed otherwise. False when the map has no
+        ``fault_reset``."""
+        if self._ax[i].fault_reset is None:
+            return False
+        self._reset_count[i] = 0
+        self._reset_left[i] = self.RESET_TRIES * self.RESET_EVERY
+        return True
+
     def fault_reason(self, i: int) -> str:
         """The last exception that hit axis i's requests (code and meaning) while its exchange
         is still failing (``read_error``), '' otherwise: an exception minutes before a fault of

@@ -16,7 +16,7 @@ from conftest import RIGID_PLANT
 
 from motorctl.app.job import run_job
 from motorctl.config import ConfigError, config_from_dict, load_yaml
-from motorctl.loop.records import MODE_APPROACH, MODE_IDLE, MODE_PROGRAM
+from motorctl.loop.records import MODE_APPROACH, MODE_HOLD, MODE_IDLE, MODE_PROGRAM
 from motorctl.recorder.runlog import read_log
 from motorctl_drivers import cia402
 from motorctl_emulators.device import build_device
@@ -37,7 +37,7 @@ def test_statusword_decoding(sw, state):
     assert cia402.decode_state(sw) == state
 
 
-def test_power_state_machine_enables_step_by_step_and_resets_faults_on_a_rising_edge():
+def test_power_state_machine_enables_step_by_step_and_resets_faults_only_when_asked():
     sm = cia402.PowerStateMachine()
     assert sm.step(0x0250, True) == cia402.CW_SHUTDOWN and not sm.enabled
     assert sm.step(0x0250, True) == cia402.CW_SHUTDOWN          # not confirmed yet: asked again
@@ -46,10 +46,17 @@ def test_power_state_machine_enables_step_by_step_and_resets_faults_on_a_rising_
     assert sm.step(0x0237, True) == cia402.CW_ENABLE_OPERATION and sm.enabled
     assert sm.step(0x0237, False) == cia402.CW_DISABLE_VOLTAGE and sm.enabled   # the drive has not left yet
     assert sm.step(0x0208, True) == cia402.CW_DISABLE_VOLTAGE and sm.fault      # enabled: never reset
-    cws = [sm.step(0x0208, False) for _ in range(2 * sm.RESET_RETRY_CYCLES)]
+    # disabled: the fault stays latched in the drive, bit 7 low, for as long as nobody asks
+    assert all(sm.step(0x0208, False) == cia402.CW_DISABLE_VOLTAGE for _ in range(10 * sm.RESET_RETRY_CYCLES))
+    sm.request_reset()                                                          # the operator's fault-reset
+    cws = [sm.step(0x0208, False) for _ in range(2 * sm.RESET_TRIES * sm.RESET_RETRY_CYCLES)]
     edges = [k for k in range(1, len(cws)) if cws[k] & 0x80 and not cws[k - 1] & 0x80]
-    assert len(edges) == 2 and all(c in (0, 0x80) for c in cws)                 # rising edges of bit 7
-    assert sm.step(0x0250, False) == cia402.CW_DISABLE_VOLTAGE and not sm.fault
+    assert len(edges) == sm.RESET_TRIES and all(c in (0, 0x80) for c in cws)   # rising edges of bit 7, bounded
+    sm.request_reset()
+    assert [sm.step(0x0208, False) for _ in range(2)] == [0, cia402.CW_FAULT_RESET]
+    assert sm.step(0x0250, False) == cia402.CW_DISABLE_VOLTAGE and not sm.fault  # left Fault: done
+    assert sm.step(0x0208, False) == cia402.CW_DISABLE_VOLTAGE                   # a new fault: latched again
+    assert sm.step(0x0208, False) == cia402.CW_DISABLE_VOLTAGE
 
 
 def test_error_codes_and_scaling():
@@ -139,7 +146,11 @@ def test_enable_walks_the_state_machine_and_torque_flows_only_in_operation_enabl
     assert dev.bank.applied_V == [0.0, 0.0]                          # closed: 0 V on both drives
 
 
-def test_emcy_latches_an_amplifier_fault_naming_the_code_and_a_disabled_axis_resets_it(tmp_path):
+def test_emcy_latches_an_amplifier_fault_naming_the_code_until_the_operators_reset(tmp_path):
+    """An EMCY (over-current) latches X's amplifier fault, named by its code. The drive stays in
+    Fault, the axis disabled, for as long as nobody resets it (the host sends no controlword
+    bit 7 of its own: before, 4.8 ms after the EMCY the drive had left Fault); the operator's
+    reset (``Driver.reset_fault``, what ``motorctl fault-reset`` calls) takes it out."""
     loaded = config_from_dict(_config(tmp_path), "<co>", check_budget=False)
     with _drives(loaded, [FaultSpec.parse("emcy=0x2310:X:20")]) as (dev, drv):
         drv.open()
@@ -152,7 +163,11 @@ def test_emcy_latches_an_amplifier_fault_naming_the_code_and_a_disabled_axis_res
         assert "0x2310 continuous over-current" in reason and "node 1 (axis X)" in reason
         exchange(drv, [1.0, 1.0], [True, True], n=3)               # still requested: stays latched
         assert drv.amp_fault[0] and dev.bank.applied_V[0] == 0.0
-        for _ in range(20):                                       # the supervisor disables the axis
+        exchange(drv, [0.0, 1.0], [False, True], n=50)            # the supervisor disables the axis
+        assert drv.amp_fault[0] and dev.drives[0].state == cia402.FAULT, cia402.STATE_NAMES[dev.drives[0].state]
+        assert "0x2310 continuous over-current" in drv.fault_reason(0)
+        assert drv.reset_fault(0)                                 # the operator's fault-reset
+        for _ in range(20):
             exchange(drv, [0.0, 1.0], [False, True])
             if not drv.amp_fault[0]:
                 break
@@ -192,24 +207,33 @@ def test_a_lost_tpdo_costs_two_reads_then_the_count_is_realigned(tmp_path):
     assert sum(errors[-20:]) <= 5, (lost, c)                            # the count is right again
 
 
-def test_a_missing_drive_heartbeat_is_a_read_error(tmp_path):
+def test_a_missing_drive_heartbeat_is_an_amplifier_fault_naming_it_at_the_read_that_sees_it(tmp_path):
+    """Y's heartbeat producer stops: the read that first finds it overdue (CiA 301 §7.2.8.3.2,
+    the host's heartbeat consumer) makes it an amplifier fault named "heartbeat lost", not an
+    I/O error the bucket would count for ten cycles and name "driver error bucket full"
+    (judged on the driver's own count of reads that found it lost: 1 at the fault)."""
     # the host's watch: 300 ms (the drives produce every 10 ms from a thread of this process:
     # far above a loaded host's stall of it, so X's heartbeat is never missed)
     loaded = config_from_dict(_config(tmp_path, drive_heartbeat_timeout_ms=300), "<co>", check_budget=False)
     with _drives(loaded) as (dev, drv):
         drv.open()
         exchange(drv, [0, 0], [False, False], n=10, sleep_s=0.002)
-        assert not drv.read_error.any()
+        assert not drv.read_error.any() and not drv.amp_fault.any()
         dev.drives[1].node.nmt.stop_heartbeat()                   # Y's heartbeat producer stops
         t_stop = time.monotonic()
-        errors = []
-        while not (errors and errors[-1][1]) and time.monotonic() - t_stop < 5.0:   # bounded
+        seen = []
+        while not drv.amp_fault[1] and time.monotonic() - t_stop < 5.0:   # bounded
             exchange(drv, [0, 0], [False, False], sleep_s=0.002)
-            errors.append(tuple(drv.read_error))
-        assert errors[-1] == (False, True) and drv.counters["heartbeat_lost"] > 0, errors[-5:]
+            seen.append((bool(drv.read_error[1]), drv.counters["heartbeat_lost"]))
+        assert drv.amp_fault[1] and not drv.amp_fault[0], seen[-5:]
+        assert not any(e for e, _ in seen) and seen[-1][1] == 1, seen[-5:]     # named at the first read
+        assert re.fullmatch(r"canopen node 2 \(axis Y\): heartbeat lost, none for \d+ ms "
+                            r"\(drive_heartbeat_timeout_ms 300\)", drv.fault_reason(1)), drv.fault_reason(1)
         # not before the timeout: 300 ms after Y's last heartbeat, which came before t_stop (by
         # its 10 ms period, or a loaded thread's stall of up to 200 ms)
         assert time.monotonic() - t_stop >= 0.3 - 0.2
+        exchange(drv, [0, 0], [False, False], n=3, sleep_s=0.002)
+        assert drv.amp_fault[1] and not drv.read_error[1] and "heartbeat lost" in drv.fault_reason(1)
 
 
 def test_a_drive_leaving_operational_is_an_amplifier_fault_naming_its_nmt_state(tmp_path):
@@ -346,4 +370,5 @@ def test_runs_after_a_drive_left_standing_at_half_a_millimetre_and_a_run_cut_mid
         for k in range(2):
             mode = read_log(str(tmp_path / f"run{k}.mlog")).col(f"{a}.mode")
             i, j = int(np.argmax(mode != MODE_IDLE)), int(np.argmax(mode == MODE_PROGRAM))
-            assert i >= 2 and (mode[i:j] == MODE_APPROACH).all() and j - i >= 2 and (mode[j:] == MODE_PROGRAM).all()
+            assert i >= 2 and (mode[i:j] == MODE_APPROACH).all() and j - i >= 2
+            assert np.isin(mode[j:], (MODE_PROGRAM, MODE_HOLD)).all() and mode[-1] == MODE_HOLD   # then the stop

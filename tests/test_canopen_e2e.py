@@ -85,7 +85,9 @@ def test_emcy_latches_a_fault_naming_its_code_and_the_enable_follows_the_state_m
                          ("Switched on", "Operation enabled", "0x000F", "0x0237")], err
     assert steps[3][:2] == ("Operation enabled", "Fault reaction active") and steps[4][:2] == \
         ("Fault reaction active", "Fault"), err
-    assert steps[5] == ("Fault", "Switch on disabled", "0x0080", "0x0240"), err    # reset: rising edge of bit 7
+    # the fault stays latched in the drive: the host sends no reset of its own (only the
+    # operator's fault-reset does), so X never leaves Fault in this run
+    assert not any(frm == "Fault" for frm, *_ in steps[5:]) and "0x0080" not in [s[2] for s in steps], err
     assert "X: fault 0x2310 continuous over-current (injected)" in err
     # the host's side: the run report names the code; the trace is the statusword's
     log = read_log(str(log_path))

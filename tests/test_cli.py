@@ -26,14 +26,18 @@ def test_run_prints_indexes_and_writes_a_log(tmp_path, capsys, gantry_yaml):
     rl = read_log(str(log))
     assert rl.axes == ["X", "Y"]
     prog = rl.col("X.mode") == 2                    # two idle cycles, a 0 s approach, the program
-    assert rl.data.shape[0] == 10003 and prog.sum() == 10000 and prog[3:].all()
+    assert prog[3:10003].all() and prog[:3].sum() == 0
+    # then the stop (category 1): X stands at 0 already, the row that sees it, the settle held, 0 V
+    settle = round(0.1 * 5000)
+    assert rl.data.shape[0] == 10003 + 1 + settle and (rl.col("X.mode")[10004:] == 3).all()
+    assert not rl.col("X.enabled")[-1] and rl.col("X.enabled")[-2]
     t = rl.col("t")
     assert np.allclose(np.diff(t), 2e-4)
     assert rl.header["driver"]["simulated"]["X"]["theta_true"][0] == pytest.approx(0.16)
     # the indexes printed are those of the log's program rows
-    e = rl.col("X.e")[prog]
+    e = rl.col("X.e")[3:10003]
     assert f"{np.max(np.abs(e)) * 1e6:.2f}" in out
-    assert np.all(rl.col("X.enabled")[2:] == 1.0)
+    assert np.all(rl.col("X.enabled")[2:-1] == 1.0)
 
 
 def test_run_one_axis_with_c1(capsys, gantry_yaml):

@@ -20,7 +20,9 @@ def test_a_run_longer_than_its_ring_logs_every_row_and_the_same_indexes(repo, tm
     loaded = load_config(repo / "configs" / "gantry.yaml")
     log = tmp_path / "run.mclog"
     res = job.run_job(loaded, duration_s=1.5, clock=clock, log_path=str(log), realtime_policy="off")
-    n = 7500 + 3                                      # two idle cycles and a 0 s approach first
+    # two idle cycles and a 0 s approach first; after the program the stop (category 1): both
+    # axes stand at 0.4 m, so the row that sees it, then daemon.stop_settle_s held, then 0 V
+    n = 7500 + 3 + 1 + round(loaded.cfg.daemon.stop_settle_s / loaded.period_s)
     assert res.cycles == n and res.lost_rows == 0
     rl = read_log(str(log))
     t = rl.col("t")
@@ -28,7 +30,7 @@ def test_a_run_longer_than_its_ring_logs_every_row_and_the_same_indexes(repo, tm
     assert rl.header["realtime"] != "pending" and rl.header["stop"]     # the end's facts are in
     for a in ("X", "Y"):
         ax = rl.axis(a)
-        prog = ax["mode"] == 2                        # the indexes: the program's rows only
+        prog = np.flatnonzero(ax["mode"] == 2)[:7500]  # the indexes: the run's duration of the program's rows
         ref = tracking_indexes(t[prog] - t[prog][0], ax["e"][prog], ax["u"][prog],
                                loaded.axes[a].trajectory.period_s)
         for k, v in ref.items():

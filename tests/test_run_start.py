@@ -14,7 +14,7 @@ from harness import (LOOPBACK_ROUND_TRIP_S, LOOPBACK_WATCHDOG_S, Emulator, loopb
                      parse_run_table, run_cli)
 
 from motorctl.config import load_yaml
-from motorctl.loop.records import MODE_APPROACH, MODE_IDLE, MODE_PROGRAM
+from motorctl.loop.records import MODE_APPROACH, MODE_HOLD, MODE_IDLE, MODE_PROGRAM
 from motorctl.recorder.runlog import read_log
 
 
@@ -47,10 +47,12 @@ def test_a_run_from_mid_stroke_approaches_then_runs_the_program(default_yaml, tm
         assert (mode[:2] == MODE_IDLE).all() and not u[:2].any() and not en[:2].any()   # read, not driven
         prog = mode == MODE_PROGRAM
         k = int(np.argmax(prog))
-        assert t[k] == pytest.approx(t0) and prog[k:].all()               # every axis starts together
+        n = round(0.7 / ts)                                               # the program's duration
+        assert t[k] == pytest.approx(t0) and prog[k:k + n].all()          # every axis starts together
         assert (mode[2:k] == MODE_APPROACH).all()
         assert xd[k] == 0.0 and not rl.col(f"{a}.fault_bits").any()
-        assert int(prog.sum()) == round(0.7 / ts)                         # the program's duration
+        # then the stop (category 1): on to the move's end, hold, 0 V
+        assert (mode[k + n:] != MODE_APPROACH).all() and not en[-1] and (mode[-1] in (MODE_HOLD, MODE_IDLE))
 
 
 def test_a_start_outside_the_soft_limits_is_refused_and_nothing_is_driven(default_yaml, tmp_path):
@@ -66,63 +68,155 @@ def test_a_start_outside_the_soft_limits_is_refused_and_nothing_is_driven(defaul
         assert not rl.col(f"{a}.u").any() and not rl.col(f"{a}.enabled").any()
 
 
-#: the serial emulator's runs: the first ends mid-move (X at 1 m/s, Y at 0.25 m/s: both
-#: accelerating out of 0 towards 0.4 m), the others once both stand at 0.4 m
-FIRST_S, LATER_S = 0.53, 1.2
+#: the emulators' runs end mid-move: 0.6 s of the program is 0.1 s into both axes' first move
+#: (0 -> 0.4 m: X at 2 m/s, Y at 0.8 m/s)
+MID_MOVE_S = 0.6
+#: runs in a row against one emulator process
+RUNS = 3
 
 
-def _serial_on_the_default_plant(repo, tmp_path) -> tuple[Path, float]:
-    """configs/gantry-serial.yaml aimed at a loopback port, with configs/gantry.yaml's
-    controllers (those tuned for the default plant the emulator simulates; the serial config's
-    are the paper's, for the rigid one), lockstep (virtual clock) at the rate the serial link's
-    budget allows on loopback. Returns (path, rate [Hz])."""
-    d = load_yaml(repo / "configs" / "gantry-serial.yaml")
-    plant = load_yaml(repo / "configs" / "gantry.yaml")
+def _viscous_plant(repo, tmp_path) -> Path:
+    """configs/gantry.yaml with carriages that have viscous friction only (no Coulomb friction,
+    no stiction, no offset force): a carriage left at speed at 0 V coasts v·m/b (X from 2 m/s:
+    1.45 m), a carriage at rest stays."""
+    d = load_yaml(repo / "configs" / "gantry.yaml")
+    for ax in d["axes"].values():
+        ax["driver"].update(coulomb_N=0.0, stiction_N=0.0, offset_N=0.0)
+    p = tmp_path / "viscous.yaml"
+    p.write_text(yaml.safe_dump(d, sort_keys=False))
+    return p
+
+
+def _on_the_plant(repo, tmp_path, transport: str, plant: Path) -> tuple[Path, float]:
+    """configs/gantry-<transport>.yaml aimed at a loopback port, with ``plant``'s controllers
+    (tuned for the default plant the emulator simulates; the bus configs' are the paper's, for
+    the rigid one), lockstep (virtual clock) at the rate the link's budget allows on loopback.
+    Returns (path, rate [Hz])."""
+    d = load_yaml(repo / "configs" / f"gantry-{transport}.yaml")
+    src = load_yaml(plant)
     for a, ax in d["axes"].items():
-        ax["controller"] = plant["axes"][a]["controller"]
-    d, path = loopback_config(d, tmp_path, driver={"round_trip_s": LOOPBACK_ROUND_TRIP_S["serial"]})
+        ax["controller"] = src["axes"][a]["controller"]
+    d, path = loopback_config(d, tmp_path, driver={"round_trip_s": LOOPBACK_ROUND_TRIP_S[transport]})
     rate = loopback_rate(d)
     d["loop"].update(rate_hz=rate, clock="virtual")
     # lockstep: each cycle waits for its answer, far beyond a loaded host's stall
-    d["driver"].update(timeout_s=0.05, watchdog_s=LOOPBACK_WATCHDOG_S)
+    d["driver"]["timeout_s"] = 0.05
+    if transport == "serial":
+        d["driver"]["watchdog_s"] = LOOPBACK_WATCHDOG_S
     path.write_text(yaml.safe_dump(d, sort_keys=False))
     return path, rate
 
 
-def test_five_serial_emulator_runs_in_a_row_the_first_ending_mid_move(repo, tmp_path):
-    """Five ``motorctl run``s against one serial emulator process (``motorctl emulate``, the
-    default plant: stiction, the 350 Hz mode, noise), the first ending mid-move. The plant stands
-    still between runs (it steps with the master's cycles), so run 2's idle cycles see the
-    carriages coast at 0 V to where friction stops them and wait for it; every later run
-    approaches from where the axes stand and runs its program without a fault (without the
-    approach the program's first point is up to 0.4 m away: a following error at cycle 0, the
-    issue's "4 of 4 faulted"). Between runs the device's watchdog latches (no host for longer
-    than 0.2 s): each run clears it at set-up."""
-    cfg, rate = _serial_on_the_default_plant(repo, tmp_path)
-    logs = [tmp_path / f"run{k}.mlog" for k in range(5)]
-    with Emulator("serial", cfg, plant=repo / "configs" / "gantry.yaml", watchdog_s=LOOPBACK_WATCHDOG_S) as emu:
+def _assert_category_1_stop(rl, names, a_max, j_max, limits):
+    """The rows of a run that ended mid-move: from the stop on, every axis runs on to its rest
+    point within a_max [m/s²] and j_max [m/s³] (the jerk over the sampled ẍ_d), holds, then
+    goes to 0 V with the amplifier off; it stands at rest inside the soft limits (lo, hi)."""
+    ts = rl.header["period_s"]
+    for a in names:
+        mode, vd, ad = rl.col(f"{a}.mode"), rl.col(f"{a}.xd_dot"), rl.col(f"{a}.xd_ddot")
+        en, y, xd = rl.col(f"{a}.enabled"), rl.col(f"{a}.y"), rl.col(f"{a}.x_d")
+        prog = np.flatnonzero(mode == MODE_PROGRAM)
+        end = int(np.argmax(en[prog[0]:] == 0)) + prog[0]       # the first row at 0 V after the program
+        assert vd[end - 1] == 0.0 and ad[end - 1] == 0.0 and mode[end] == MODE_HOLD, (a, end)
+        assert not en[end:].any() and not rl.col(f"{a}.fault_bits").any(), a
+        stop = prog[0] + round(MID_MOVE_S / ts)                   # the run's duration ended here
+        assert abs(vd[stop]) > 0.5, (a, vd[stop])                 # mid-move at the end of the duration
+        assert np.abs(ad[stop:end]).max() <= a_max[a] * (1 + 1e-9), a
+        assert np.abs(np.diff(ad[stop - 1:end])).max() <= j_max[a] * ts * (1 + 1e-6), a
+        assert abs(y[-1] - xd[end - 1]) < 3e-4, (a, y[-1], xd[end - 1])     # at rest where it stopped
+        assert limits[a][0] <= y[-1] <= limits[a][1], (a, y[-1])
+
+
+@pytest.mark.parametrize("transport", ["serial", "modbus"])
+def test_runs_that_end_mid_move_stop_in_category_1_and_the_next_starts_clean(repo, tmp_path, transport):
+    """IEC 60204-1 §9.2.2 stop category 1 at the end of a run: ``motorctl run``s in a row
+    against one emulator process (``motorctl emulate``) whose carriages have viscous friction
+    only, each run's duration ending mid-move (X at 2 m/s, Y at 0.8 m/s). Each run brings every
+    axis to rest under power along the move's jerk-limited profile (within the axis's a_max and
+    j_max), then 0 V with the amplifier off confirmed by the device; the stop line says where
+    they came to rest, inside the soft limits, and the next run starts from there without
+    waiting (the axes stand still) and without a fault. Cut at 0 V instead (stop category 0),
+    X coasts 1.45 m and every later run is refused outside the soft limits."""
+    plant = _viscous_plant(repo, tmp_path)
+    cfg, rate = _on_the_plant(repo, tmp_path, transport, plant)
+    d = load_yaml(cfg)
+    a_max = {a: ax["trajectory"]["a_max"] for a, ax in d["axes"].items()}
+    j_max = {a: ax["trajectory"]["j_max"] for a, ax in d["axes"].items()}
+    limits = {a: (ax["limits"]["soft_min_m"], ax["limits"]["soft_max_m"]) for a, ax in d["axes"].items()}
+    logs = [tmp_path / f"run{k}.mlog" for k in range(RUNS)]
+    with Emulator(transport, cfg, plant=plant, watchdog_s=LOOPBACK_WATCHDOG_S) as emu:
         for k, log in enumerate(logs):
-            r = run_cli(["run", str(cfg), "--duration", f"{FIRST_S if k == 0 else LATER_S:g}", "--log", str(log)],
-                        timeout_s=120)
+            r = run_cli(["run", str(cfg), "--duration", f"{MID_MOVE_S:g}", "--log", str(log)], timeout_s=120)
             table = parse_run_table(r.stdout)
             assert r.returncode == 0 and set(table) == {"X", "Y"}, f"run {k + 1}: {r.stdout}{r.stderr}{emu.stderr()}"
             assert not any(t["fault"] for t in table.values()), f"run {k + 1}: {r.stdout}"
-    runs = [read_log(str(p)) for p in logs]
-    ts = 1.0 / rate
-    for a in ("X", "Y"):
-        assert runs[0].col(f"{a}.xd_dot")[-1] > 0.2, a                     # the first ended mid-move
-        for k in range(1, 5):
-            rl, prev = runs[k], runs[k - 1]
-            frm = rl.header["approach"][a]["from_m"]
-            if k == 1:   # coasted on from where the first run ended, stopped inside the soft limits
-                assert prev.col(f"{a}.y")[-1] + 0.01 < frm < 0.42, (a, frm)
-            else:        # the previous run's program ended standing at 0.4 m
-                assert frm == pytest.approx(prev.col(f"{a}.y")[-1], abs=2e-6) == pytest.approx(0.4, abs=1e-4)
-            # idle reads (run 2: until the coasting carriages stood), the approach, the program
-            mode = rl.col(f"{a}.mode")
-            i, j = int(np.argmax(mode != MODE_IDLE)), int(np.argmax(mode == MODE_PROGRAM))
-            assert i >= (2 if k > 1 else 10) and (mode[:i] == MODE_IDLE).all(), (a, k, i)
-            assert (mode[i:j] == MODE_APPROACH).all() and (mode[j:] == MODE_PROGRAM).all()
-            assert (j - i) * ts >= rl.header["approach"][a]["duration_s"] - ts, (a, k, i, j)
-            assert j - i > 100 and mode.size - j == round(LATER_S * rate)
-            assert not rl.col(f"{a}.fault_bits").any()
+            stop = [ln for ln in r.stdout.splitlines() if ln.startswith("stop: ")]
+            assert len(stop) == 1 and "at 0 V, amplifiers off (confirmed by the device" in stop[0], r.stdout
+            rl = read_log(str(log))
+            rest = rl.header["rest"]
+            assert f"came to rest at X {rest['X']['at_m']:.6f} m, Y {rest['Y']['at_m']:.6f} m (stop category 1)" \
+                in stop[0], stop[0]
+            _assert_category_1_stop(rl, ("X", "Y"), a_max, j_max, limits)
+            for a in ("X", "Y"):
+                assert rest[a] == {"at_m": pytest.approx(0.4, abs=3e-4), "category": 1}, (k, a, rest)
+                if k:            # stood still where the previous run left it (within 0.1 mm): two idle reads
+                    assert rl.header["approach"][a]["from_m"] == pytest.approx(rest[a]["at_m"], abs=1e-4)
+                    assert int(np.argmax(rl.col(f"{a}.mode") != MODE_IDLE)) == 2, (k, a)
+
+
+def test_a_simulated_run_that_ends_mid_move_stops_in_category_1(default_yaml, tmp_path):
+    """The simulated driver, the default plant: a run whose duration ends mid-move (X at
+    2 m/s, Y at 0.8 m/s) decelerates on the path within a_max/j_max to rest, then 0 V; the
+    stop line names where the axes came to rest (stop category 1); the indexes cover the run's
+    duration only (its program rows), the stop's rows are in the log."""
+    log = tmp_path / "run.mlog"
+    r = run_cli(["run", str(default_yaml), "--duration", f"{MID_MOVE_S:g}", "--virtual-clock", "--log", str(log)],
+                timeout_s=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    d = load_yaml(default_yaml)
+    rl = read_log(str(log))
+    _assert_category_1_stop(rl, ("X", "Y"), {a: ax["trajectory"]["a_max"] for a, ax in d["axes"].items()},
+                            {a: ax["trajectory"]["j_max"] for a, ax in d["axes"].items()},
+                            {a: (ax["limits"]["soft_min_m"], ax["limits"]["soft_max_m"]) for a, ax in d["axes"].items()})
+    assert "(stop category 1)" in r.stdout and rl.header["rest"]["X"]["category"] == 1, r.stdout
+    # the indexes: the run's duration of program rows, as before the stop existed
+    from motorctl.metrics import TrackingAccumulator
+    ts = rl.header["period_s"]
+    for a, row in parse_run_table(r.stdout).items():
+        mode, t = rl.col(f"{a}.mode"), rl.col("t")
+        k = np.flatnonzero(mode == MODE_PROGRAM)[:round(MID_MOVE_S / ts)]
+        acc = TrackingAccumulator(4.0, ts)
+        acc.add(t[k] - t[k[0]], rl.col(f"{a}.e")[k], rl.col(f"{a}.u")[k])
+        assert row["e_M_um"] == pytest.approx(acc.indexes()["e_M_um"], abs=0.01), a
+
+
+@pytest.mark.parametrize("during", ["build", "start"])
+def test_sigterm_during_start_up_is_one_line_and_nothing_left_driven(default_yaml, monkeypatch, capsys, during):
+    """SIGTERM while ``motorctl run`` starts up (in process, the signal sent to itself from
+    inside the step): during the loop's build (the compile, before the device is opened) one
+    line and exit 1, nothing driven; during the driver's set-up the run's own stop: no cycle,
+    0 V confirmed by the device, one stop line (before, the build's signal ended the process
+    with 143 and printed nothing)."""
+    import os
+    import signal
+
+    import motorctl.app.job as job
+    from motorctl.cli import main
+    real = getattr(job, during)
+
+    def signalled(*a, **k):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return real(*a, **k)
+
+    monkeypatch.setattr(job, during, signalled)
+    code = main(["run", str(default_yaml), "--duration", "0.5", "--virtual-clock"])
+    out, err = capsys.readouterr()
+    assert code == 1 and "Traceback" not in err, (out, err)
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL     # the caller's handlers given back
+    if during == "build":
+        assert out == "" and err.splitlines()[-1] == ("motorctl: stopped by SIGTERM during start-up, before the "
+                                                      "device was opened: nothing was driven"), (out, err)
+    else:
+        stop = [ln for ln in out.splitlines() if ln.startswith("stopped by SIGTERM: ")]
+        assert len(stop) == 1 and "X, Y at 0 V, amplifiers off (confirmed by the device" in stop[0], out
+        assert "loop:" not in out, out                                  # not one cycle ran

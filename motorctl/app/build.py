@@ -131,10 +131,17 @@ def build(loaded: LoadedConfig, axes=None, controller: str | None = None, *, clo
                      warm_caches=lc.realtime.warm_caches, buffer=buffer,
                      heartbeat=heartbeat, overrun_policy=lc.overrun_policy,
                      overrun_hold=lc.overrun_hold_cycles, overrun_ramp_s=lc.overrun_ramp_s,
-                     stop_settle_s=cfg.daemon.stop_settle_s if operated else 0.0,
+                     stop_settle_s=cfg.daemon.stop_settle_s,
                      operated=operated, stream=stream,
                      layout=record_layout(loaded, names, stream.outputs if stream is not None else ()))
     return Assembly(loaded, names, driver, bank, active, sup, programs, loop, clock)
+
+
+def stop_bound_s(program, settle_s: float = 0.0) -> float:
+    """The longest a category-1 stop (:meth:`motorctl.loop.servo.ServoLoop.stop_axis`) of an
+    axis following ``program`` takes [s]: its longest move (a move in progress runs on to its
+    end, the next rest point) plus ``settle_s`` held at rest before 0 V."""
+    return max((m.duration for m in program.moves), default=0.0) + settle_s
 
 
 class StartRefused(RuntimeError):
@@ -272,6 +279,20 @@ def stop_lines(checks) -> tuple[bool, list[str]]:
                       + "; ".join(f"{c.axis} {c.held}" for c in checks) + ")"]
     return False, [f"axis {c.axis}: the stop is NOT confirmed by the device: {c.held}; the amplifier may still "
                    f"be energised" for c in bad]
+
+
+def rest_words(rest: dict) -> str:
+    """Where each axis ended, for the stop line: ``rest`` maps an axis name to
+    ``{"at_m": its last reading [m], "category": 1 | 0}`` (IEC 60204-1 §9.2.2: 1, brought to
+    rest under control, then 0 V; 0, the power removed at once: it may have coasted on, the
+    reading is the last one before 0 V). E.g. "came to rest at X 0.400000 m, Y 0.000000 m
+    (stop category 1)"."""
+    parts = []
+    for cat, what in ((1, "came to rest at"), (0, "power removed at once (stop category 0) at")):
+        axes = [f"{a} {r['at_m']:.6f} m" for a, r in rest.items() if r["category"] == cat]
+        if axes:
+            parts.append(f"{what} {', '.join(axes)}" + (" (stop category 1)" if cat == 1 else ""))
+    return "; ".join(parts)
 
 
 def run_cycles(asm: Assembly, n_cycles: int, policy: str = "off"):

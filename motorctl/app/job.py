@@ -20,8 +20,15 @@ run's duration. The rows carry each axis's mode; the indexes take the program's 
 (``mode`` = program), in program time, and the log's header gives ``program_start_s`` and the
 approaches.
 
-SIGTERM and SIGINT end the run at a cycle boundary; every exit path leaves the axes at 0 V with
-the amplifiers disabled, and the rows recorded so far are in the log.
+The end of the run's duration, SIGTERM and SIGINT are a stop of category 1 (IEC 60204-1
+§9.2.2): every driven axis comes to rest under power along its jerk-limited profile (the
+daemon's ``stop``: a move in progress runs on to its end, within the axis's a_max and j_max,
+and holds there ``daemon.stop_settle_s``), then 0 V and the amplifier off; the rows of that stop are in the log (mode program, then hold),
+not in the indexes (the program's first ``duration`` of rows). A second signal during that stop
+ends it at once (category 0: 0 V where the axes are). A fault is category 0 on its axis (0 V
+with the amplifier off in the cycle it is seen), the other axes stop in category 1. Every exit
+path leaves the axes at 0 V with the amplifiers disabled, confirmed by the device, and the rows
+recorded so far are in the log; :attr:`JobResult.rest` says where each axis came to rest.
 """
 
 from __future__ import annotations
@@ -38,13 +45,14 @@ from pathlib import Path
 import numpy as np
 
 from motorctl.app.build import (START_STILL_WAIT_S, StartRefused, approach_all, build, log_header, moving_axes,
-                                record_layout, shutdown, start)
+                                record_layout, shutdown, start, stop_bound_s)
 from motorctl.app.lifetime import parent_gone
 from motorctl.config import LoadedConfig
 from motorctl.inputs import InputError
 from motorctl.loop.records import MODE_PROGRAM, RecordLayout
 from motorctl.loop.rt import keep_off, loop_cpu
 from motorctl.loop.safety import with_drive_reason
+from motorctl.loop.servo import IDLE
 from motorctl.metrics import TrackingAccumulator
 from motorctl.recorder.flight import CTL_STATE, SharedRing, TimingStats, take_rows
 from motorctl.ordering import load_acquire, store_release
@@ -80,8 +88,10 @@ class _Sink:
     publisher's count is read again after the copy).
     """
 
-    def __init__(self, rows, layout: RecordLayout, names, windows, period_s: float, writer=None):
+    def __init__(self, rows, layout: RecordLayout, names, windows, period_s: float, writer=None,
+                 program_rows: int | None = None):
         self.rows, self.cap, self.writer = rows, rows.shape[0], writer
+        self._left = [program_rows if program_rows is not None else -1] * len(names)  # rows still indexed
         self.k = 0
         self.lost = 0
         self.write_error = ""
@@ -124,6 +134,9 @@ class _Sink:
             t = b[:, self._t]
             for a, (acc, ce, cu, cm) in enumerate(zip(self.acc, self._e, self._u, self._mode)):
                 m = b[:, cm] == MODE_PROGRAM          # the program's rows, in program time
+                if self._left[a] >= 0:                # the run's duration, not its stop's rows
+                    m &= np.cumsum(m) <= self._left[a]
+                    self._left[a] -= int(m.sum())
                 if m.any():
                     if self._t0[a] is None:
                         self._t0[a] = float(t[m][0])
@@ -215,6 +228,7 @@ class JobResult:
     lost_rows: int = 0                            # rows the ring overwrote before the drain took them
     program_start_s: float | None = None          # when the programs started (after the approaches)
     approach: dict = field(default_factory=dict)  # name -> {"from_m", "to_m", "duration_s"}
+    rest: dict = field(default_factory=dict)      # name -> {"at_m": last reading [m], "category": 0 | 1}
 
     @property
     def stop_confirmed(self) -> bool:
@@ -272,7 +286,7 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
         Path(log_path).parent.mkdir(parents=True, exist_ok=True)
         writer = LogWriter(str(log_path), log_header(asm, realtime="pending"), reserve=HEADER_RESERVE)
     windows = [p if (p := loaded.axes[a].trajectory.period_s) > 0 else 4.0 for a in names]
-    sink = _Sink(loop.buf, loop.layout, names, windows, loaded.period_s, writer)
+    sink = _Sink(loop.buf, loop.layout, names, windows, loaded.period_s, writer, program_rows=n_cycles)
     result = JobResult()
     stopped = []
     drain = None
@@ -294,7 +308,9 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
 
     def on_slack(lp):
         # idle cycles until every axis stands still (two readings agree), then the approaches
-        # (or the refusal); the end after the program
+        # (or the refusal); after the program (or a signal) the category-1 stop, then the end
+        if stopped and "stop_k" not in plan:
+            plan["end"] = lp.k                   # a signal: the stop now (before the approaches: none start)
         if plan.get("end") is None:
             y_before = plan.get("y")
             plan["y"] = [float(y) for y in asm.driver.position_m]
@@ -312,7 +328,11 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
             else:
                 plan["end"] = None
         if plan["end"] is not None and lp.k >= plan["end"]:
-            lp.request_stop()
+            if "stop_k" not in plan:
+                plan["stop_k"] = lp.k
+                lp.stop_all()
+            if lp.at_rest():
+                lp.request_stop()
         if not wall and lp.k % every == 0:   # the virtual clock: the rows, every half ring
             sink.take(lp.k)
 
@@ -320,7 +340,8 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
 
     def on_signal(signum, _frame):
         stopped.append(signal.Signals(signum).name)
-        loop.request_stop()
+        if len(stopped) > 1 or loop.k == 0:   # a second signal, or no cycle yet: at once
+            loop.request_stop()
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
     summary: dict = {}
@@ -334,8 +355,13 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
                     on_notice(line)
             if on_start is not None:
                 on_start(names, n_cycles, clock)
-            result.cycles = loop.run(n_cycles + loaded.timebase.cycles(START_STILL_WAIT_S + MAX_APPROACH_S) + 2)
+            stop_s = max(stop_bound_s(p, cfg.daemon.stop_settle_s) for p in asm.programs)
+            result.cycles = loop.run(n_cycles + loaded.timebase.cycles(START_STILL_WAIT_S + MAX_APPROACH_S + stop_s)
+                                     + 4)
         finally:
+            result.rest = {a: {"at_m": float(asm.driver.position_m[i]),
+                               "category": 1 if loop.mode[i] == IDLE and not asm.supervisor.fault[i] else 0}
+                           for i, a in enumerate(names)}
             if stopped:
                 loop.shutdown_faults()
             result.stop = shutdown(asm)
@@ -397,7 +423,7 @@ def _finish_log(path: str, k: int, asm, result: JobResult) -> None:
                                    stop=[{"axis": c.axis, "confirmed": c.confirmed, "held": c.held}
                                          for c in result.stop],
                                    notices=result.notices, program_start_s=result.program_start_s,
-                                   approach=result.approach))
+                                   approach=result.approach, rest=result.rest))
     finally:
         w.close()
     if not fits:

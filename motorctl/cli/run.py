@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import sys
 import tempfile
 
@@ -23,10 +24,36 @@ def _load(path: str, check_budget: bool = True):
 EXIT_STOP_UNCONFIRMED = 3
 
 
+class _StartUpSignal(Exception):
+    """SIGTERM or SIGINT before the run's own handlers are in place (the config read, the
+    loop's compile): nothing has been opened, nothing driven."""
+
+
+def _stop_start_up(signum, _frame):
+    raise _StartUpSignal(signal.Signals(signum).name)
+
+
 def cmd_run(args) -> int:
+    """``motorctl run``: a SIGTERM/SIGINT during start-up, before the device is opened, ends it
+    with one line (nothing was driven); from the device's opening on, the run's own stop
+    (:func:`motorctl.app.job.run_job`: 0 V confirmed by the device, the stop line)."""
+    old = {s: signal.signal(s, _stop_start_up) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        return _cmd_run(args)
+    except _StartUpSignal as exc:
+        sys.stdout.flush()
+        sys.stderr.write(f"motorctl: stopped by {exc} during start-up, before the device was opened: "
+                         f"nothing was driven\n")
+        return 1
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def _cmd_run(args) -> int:
     from motorctl.app.warmup import say_if_cold
     say_if_cold()                                 # within a second, before numba is imported
-    from motorctl.app.build import StartRefused, stop_lines
+    from motorctl.app.build import StartRefused, rest_words, stop_lines
     from motorctl.app.job import run_job
     loaded = _load(args.config)
     axes = _select_axes(loaded, args.axis)
@@ -75,7 +102,8 @@ def cmd_run(args) -> int:
     confirmed, lines = stop_lines(res.stop)
     if confirmed:
         how = f"stopped by {res.stopped_by_signal}" if res.stopped_by_signal else "stop"
-        out.write(f"{how}: {lines[0]}\n")
+        rest = rest_words(res.rest)
+        out.write(f"{how}: {lines[0]}{'; ' + rest if rest else ''}\n")
     else:
         out.flush()
         for line in lines:

@@ -514,6 +514,18 @@ class ServoLoop:
         if self.mode[i] != IDLE:
             self.stop_req[i] = 1
 
+    def stop_all(self) -> None:
+        """Stop category 1 of every axis (IEC 60204-1 §9.2.2): each driven axis comes to rest
+        under power along its jerk-limited profile (:meth:`stop_axis`: a program or an approach
+        runs on to its next rest point within the axis's a_max/j_max, a stream brakes), then
+        0 V and amplifier off. A faulted axis is already at 0 V (category 0)."""
+        for i in range(len(self.axis_names)):
+            self.stop_axis(i)
+
+    def at_rest(self) -> bool:
+        """Every axis at 0 V with its amplifier off: idle (a stop has ended) or faulted."""
+        return all(self.mode[i] == IDLE or self.supervisor.fault[i] for i in range(len(self.axis_names)))
+
     def switch_axis(self, i: int, controller, keep_theta: bool = True) -> None:
         """Swap axis i's controller for ``controller`` (built beforehand) at this cycle
         boundary. The incoming controller inherits θ̂ (the common entries) and starts from the
@@ -532,9 +544,16 @@ class ServoLoop:
             self.ax[i, C.A_BLEND] = self.blend_cycles
 
     def fault_reset(self, i: int) -> tuple[bool, str]:
-        """Clear axis i's latched fault if the cause is gone; the axis stays disabled."""
-        ok, why = self.supervisor.reset(i, float(self.driver.position_m[i]),
-                                        bool(self.driver.amp_fault[i]))
+        """The operator's fault reset of axis i (between cycles; the axis stays disabled): the
+        drive is asked to clear the fault it latched (:meth:`Driver.reset_fault`, the only place
+        a drive's fault is reset), and the supervisor's latch is cleared if the cause is gone.
+        While the drive still reports its fault the reset is refused (its reset is under way:
+        the same command again once the drive has left its fault). Returns (cleared, why_not)."""
+        amp = bool(self.driver.amp_fault[i])
+        sent = amp and self.driver.reset_fault(i)
+        ok, why = self.supervisor.reset(i, float(self.driver.position_m[i]), amp)
+        if sent and not ok and amp:
+            why += "; the drive's fault reset was sent: run fault-reset again once the drive has left its fault"
         return ok, why
 
     def shutdown_faults(self) -> None:

@@ -37,7 +37,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from motorctl.app.build import Assembly, build, log_header, record_layout
+from motorctl.app.build import Assembly, build, log_header, record_layout, stop_bound_s
 from motorctl.app.daemon.io_side import io_main
 from motorctl.app.daemon.loop_side import LoopSide
 from motorctl.app.daemon.notify import sd_notify
@@ -106,10 +106,7 @@ def plan_daemon(config_path: str, socket_path: str | None, log_dir: str | None) 
                           outputs=outputs, stop_outputs=stop_outputs)
     asm = build(loaded, names, clock="wall", capacity=ring.capacity, buffer=ring.rows,
                 heartbeat=ring, operated=True, all_controllers=True, stream=stream)
-    stop_bound = []
-    for prog in asm.programs:
-        longest = max((m.duration for m in prog.moves), default=0.0)
-        stop_bound.append(longest + d.stop_settle_s + STOP_MARGIN_S)
+    stop_bound = [stop_bound_s(prog, d.stop_settle_s) + STOP_MARGIN_S for prog in asm.programs]
     header = log_header(asm, kind="daemon run log", realtime="pending")
     return DaemonPlan(asm, ring, socket_path or d.socket, log_path, header, stop_bound)
 
