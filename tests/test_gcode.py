@@ -5,9 +5,13 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from motorctl.motion import Arc, Dwell, Event, GcodeError, GcodeSettings, Line, Pause, parse
-from conftest import REPO
+from conftest import REPO, examples
+
+from motorctl.motion import gcode
 
 XY = GcodeSettings(axes=["X", "Y"])
 CAM = GcodeSettings(axes=["X", "Y"], words={"M03": "torch", "M5": "torch", "S": "ignore", "M62": "dout"},
@@ -135,3 +139,29 @@ def test_machine_coordinates_absolute_centres_turns_and_helix():
     np.testing.assert_allclose(two_turns.center[:2], [0.210, 0.0])             # G90.1: I in G54, absolute
     assert two_turns.turns == 1 and two_turns.sweep == pytest.approx(4 * np.pi)
     assert helix.length == pytest.approx(np.hypot(0.5 * np.pi * 0.01, 0.005))
+
+
+_FAST_TOKENS = ["G0", "G1", "G01", "G00", "g1", "G1.0", "G2", "N10", "X", "Y", "Z", "F", "x", "f", "M3"]
+_FAST_NUMBERS = ["10", "-5.5", ".5", "5.", "+3", "0", "-0", "1e3", "12.345", "", "1 0"]
+_FAST_LINE = st.lists(st.tuples(st.sampled_from(_FAST_TOKENS), st.sampled_from(_FAST_NUMBERS)).map(
+    lambda tn: tn[0] + (tn[1] if tn[0][0] in "XYZFxyzf" else "")), max_size=5).flatmap(
+    lambda words: st.sampled_from([" ", "", "\t"]).map(lambda sep: sep.join(words)))
+
+
+@settings(max_examples=examples(300), deadline=None)
+@given(lines=st.lists(_FAST_LINE, min_size=1, max_size=6))
+def test_the_fast_path_reads_as_the_general_path(lines):
+    """Lines of straight moves take the reader's fast path (gcode._SIMPLE); any line, taken
+    there or not, gives the same segments, modal state and errors as the general path alone."""
+    def read(fast: bool):
+        r = gcode._Reader("t.ngc", GcodeSettings(axes=["X", "Y"]), None, None)
+        if not fast:
+            r._simple = lambda n, raw: False
+        try:
+            for k, ln in enumerate(["G21 G90", "F600", *lines], 1):
+                r.line(k, ln)
+        except GcodeError as exc:
+            return ("refused", str(exc))
+        return ([(s.start.tolist(), s.end.tolist(), s.feed, s.tolerance, s.line) for s in r.segments],
+                r.f_word, r.motion)
+    assert read(True) == read(False)

@@ -297,8 +297,17 @@ class _Word:
     column: int
 
 
+_BLANK = re.compile(r"\s")
+#: a line of straight moves alone (N, G0/G1, then X Y Z F in this order, each at most once; no
+#: comment): the reader's fast path, the same semantics as the general one (a line it cannot
+#: take whole goes the general way)
+_N = r"([-+]?(?:\d+(?:\.\d*)?|\.\d+))[ \t]*"
+_SIMPLE = re.compile(r"[ \t]*(?:[Nn]\d+[ \t]*)?(?:[Gg]0*([01])(?![\d.])[ \t]*)?(?:[Xx][ \t]*" + _N + r")?"
+                     r"(?:[Yy][ \t]*" + _N + r")?(?:[Zz][ \t]*" + _N + r")?(?:[Ff][ \t]*" + _N + r")?")
+
+
 def _number(s: str) -> float:
-    return float(re.sub(r"\s", "", s))
+    return float(_BLANK.sub("", s))
 
 
 def _fmt(v: float) -> str:
@@ -345,21 +354,58 @@ class _Reader:
 
     # one source line
     def line(self, n: int, raw: str) -> None:
+        if self._simple(n, raw):
+            return
         text = self._strip_comments(n, raw)
         if not text.strip():
             return
         words: list[_Word] = []
         pos = 0
         for m in _WORD.finditer(text):
-            self._stray(n, text, pos, m.start())
-            if m.group(1).upper() == "O":
+            if m.start() > pos:
+                self._stray(n, text, pos, m.start())
+            letter, num = m.group(1).upper(), m.group(2)
+            if letter == "O":
                 raise GcodeError(self.f, n, m.start() + 1, m.group(0).strip(),
                                  f"subroutines and flow control (O words) are not in the subset; {_SUBSET}")
-            words.append(_Word(m.group(1).upper(), _number(m.group(2)),
-                               m.group(1).upper() + re.sub(r"\s", "", m.group(2)), m.start() + 1))
+            if _BLANK.search(num):
+                num = _BLANK.sub("", num)
+            words.append(_Word(letter, float(num), letter + num, m.start() + 1))
             pos = m.end()
         self._stray(n, text, pos, len(text))
         self._block(n, words)
+
+    def _simple(self, n: int, raw: str) -> bool:
+        """The fast path of a line of straight moves (:data:`_SIMPLE`): True when it took the
+        line, False when the line must go the general way (anything else, or anything the
+        general way would refuse or treat otherwise)."""
+        m = _SIMPLE.fullmatch(raw)
+        if m is None:
+            return False
+        g, x, y, z, f = m.groups()
+        axes = self.s.axes
+        if ((x is not None and "X" not in axes) or (y is not None and "Y" not in axes)
+                or (z is not None and "Z" not in axes)):
+            return False
+        motion = self.motion if g is None else int(g)
+        f_word = self.f_word if f is None else float(f)
+        moves = x is not None or y is not None or z is not None
+        if f_word < 0 or (moves and (motion not in (0, 1) or (motion == 1 and not f_word > 0))):
+            return False                     # the general way says why
+        self.f_word = f_word
+        self.motion = motion
+        if moves:
+            t = self.pos.copy()
+            base = self.offset() if self.absolute else self.pos
+            u = self.unit
+            if x is not None:
+                t[0] = base[0] + float(x) * u
+            if y is not None:
+                t[1] = base[1] + float(y) * u
+            if z is not None:
+                t[2] = base[2] + float(z) * u
+            self._move(n, t, None if motion == 0 else self.feed)
+        return True
 
     def _stray(self, n: int, text: str, a: int, b: int) -> None:
         """Refuse anything but blanks in text[a:b] (between words)."""
@@ -376,6 +422,8 @@ class _Reader:
 
     def _strip_comments(self, n: int, raw: str) -> str:
         """The line with its comments blanked (columns kept); refuses an unclosed '('."""
+        if "(" not in raw and ")" not in raw and ";" not in raw:
+            return raw
         out = []
         i = 0
         while i < len(raw):
@@ -631,7 +679,7 @@ class _Reader:
                 self.cs[name][i] = vals[a].value * self.unit
 
     def _move(self, n: int, target: np.ndarray, feed: float | None) -> None:
-        if np.array_equal(target, self.pos):
+        if target.tolist() == self.pos.tolist():
             return
         self.segments.append(Line(self.pos.copy(), target.copy(), feed, self.tol, n))
         self.pos = target

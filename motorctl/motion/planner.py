@@ -716,17 +716,26 @@ def check_segments(segments, filename: str, soft_limits: Mapping[str, tuple[floa
                          f"{excess * 1e3:.4f} mm beyond {side} {(lo_a if x < lo_a else hi_a) * 1e3:.4f} mm "
                          f"(soft limits [{lo_a * 1e3:.4f}, {hi_a * 1e3:.4f}] mm)", line, a, float(excess))
 
-    for seg in segments:
-        if isinstance(seg, (Line, Arc)):
-            for p in (seg.start, seg.end):
-                bad = (p < lo) | (p > hi)
-                if bad.any():
-                    i = int(np.flatnonzero(bad)[0])
-                    refuse(seg.line, i, float(p[i]))
-            if isinstance(seg, Arc):
-                for i, v in _arc_extremes(seg):
-                    if not lo[i] <= v <= hi[i]:
-                        refuse(seg.line, i, v)
+    def check_one(seg) -> None:
+        for p in (seg.start, seg.end):
+            bad = (p < lo) | (p > hi)
+            if bad.any():
+                i = int(np.flatnonzero(bad)[0])
+                refuse(seg.line, i, float(p[i]))
+        if isinstance(seg, Arc):
+            for i, v in _arc_extremes(seg):
+                if not lo[i] <= v <= hi[i]:
+                    refuse(seg.line, i, v)
+
+    moves = [seg for seg in segments if isinstance(seg, (Line, Arc))]
+    if not moves:
+        return
+    pts = np.array([seg.start for seg in moves] + [seg.end for seg in moves]).reshape(2, len(moves), 3)
+    bad = ((pts < lo) | (pts > hi)).any(axis=2).any(axis=0)
+    first = int(np.argmax(bad)) if bad.any() else len(moves)
+    for seg in moves[:first + 1]:        # in program order: an arc's extreme may come first
+        if isinstance(seg, Arc) or seg is moves[min(first, len(moves) - 1)]:
+            check_one(seg)
 
 
 def _at_rest_after(seg) -> bool:

@@ -28,7 +28,7 @@ import time
 from motorctl.app.build import approach_move
 from motorctl.app.daemon.motion_side import AxisLimits, MotionError, MotionSide
 from motorctl.app.daemon.notify import sd_notify, watchdog_ping_interval_s
-from motorctl.app.daemon.plan_side import AHEAD_WINDOWS, PlannerLink
+from motorctl.app.daemon.plan_side import AHEAD_WINDOWS, PLAN_NICE, PlannerLink
 from motorctl.app.daemon.protocol import (
     LineBuffer,
     Mailbox,
@@ -433,7 +433,8 @@ class IOSide:
             "realtime_summary": ready.get("realtime_summary", "pending"),
             "process": {k: ready.get(k) for k in ("loop_pid", "python_threads", "native_threads",
                                                   "cpu_affinity", "switch_interval_s")}
-                       | {"io_pid": os.getpid(), "uptime_s": time.monotonic() - self.started},
+                       | {"io_pid": os.getpid(), "planner_pid": self.planner.pid or None,
+                          "uptime_s": time.monotonic() - self.started},
             "log": {"path": self.writer.path, "run": self.plan.log_path,
                     "segment": self.writer.index, "rows": self.writer.rows_written,
                     "rows_flushed": dr.flushed_rows, "lost_rows": dr.lost_rows,
@@ -618,7 +619,8 @@ class IOSide:
         ctl = self.plan.ring.ctl
         self.start_scope()
         try:
-            self.planner.start()             # before any thread of this process runs
+            rt_on = self.plan.asm.loaded.cfg.loop.realtime.policy != "off"
+            self.planner.start(PLAN_NICE if rt_on else 0)   # before any thread of this process runs
             self.sel.register(self.planner.rfd, selectors.EVENT_READ, "planner")
         except OSError as exc:
             sys.stderr.write(f"motorctl daemon: warning: no planner process ({exc}); G-code refused\n")

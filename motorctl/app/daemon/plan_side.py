@@ -8,6 +8,13 @@ latch "recorder stalled"). Here it runs in a process of its own, forked by the I
 before its threads start, at the same (normal) priority as other work: on a busy host the
 planning slows down, the feed and the drain do not.
 
+**Priority**: with the loop's real-time set-up on (``loop.realtime.policy`` not ``off``) the
+planner runs at nice :data:`PLAN_NICE`: above CPU-bound work at normal priority (so that a
+program's check and its windows keep ahead beside it), below the loop (SCHED_FIFO) and the
+I/O process's filler thread (SCHED_FIFO); the recorder's drain needs a few per cent of a core
+and wakes with a sleeper's priority. Without that set-up (or the right to lower nice) it runs at
+normal priority like the rest of the daemon.
+
 A program goes through two passes over its text (a spooled file or the request's text), each
 line by line with bounded memory (:class:`motorctl.motion.gcode.ProgramReader`):
 
@@ -51,6 +58,8 @@ WINDOW_HARD = 5000
 AHEAD_WINDOWS = 3
 #: segments read per batch of a pass
 BATCH = 2000
+#: the planner process's nice value where the real-time set-up is on
+PLAN_NICE = -5
 
 
 @dataclass
@@ -209,8 +218,9 @@ class PlannerLink:
         self.to_plan: Mailbox | None = None
         self.from_plan: Mailbox | None = None
 
-    def start(self) -> None:
-        """Fork the planner process. Raises OSError (no process or pipe to be had)."""
+    def start(self, nice: int = 0) -> None:
+        """Fork the planner process, at ``nice`` where permitted (else at normal priority).
+        Raises OSError (no process or pipe to be had)."""
         r1, w1 = os.pipe()
         r2, w2 = os.pipe()
         parent = os.getpid()
@@ -231,6 +241,7 @@ class PlannerLink:
                             pass
                 try:
                     os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+                    os.setpriority(os.PRIO_PROCESS, 0, nice)
                 except OSError:
                     pass
                 code = plan_main(Mailbox(rfd=r1), Mailbox(wfd=w2), parent)

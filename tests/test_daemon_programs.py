@@ -1,0 +1,228 @@
+"""Programs as a CAM system sends them, through the daemon on the shipped gantry config: longer
+than one request (sent in chunks), refused whole before anything moves (a Z word on an X-Y
+machine, a soft limit on the last line, a program over daemon.max_program_bytes), any request
+or program answered without ending the daemon (hypothesis), the planner process's death an
+answer, and the operator's CLI path light (no numpy)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+from conftest import examples
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from test_daemon_helpers import Daemon, ctl, make_config, status, wait_for
+
+from motorctl.client import call
+
+#: the module's daemon.max_program_bytes [bytes]: above one request (64 KiB), below the big one
+MAX_PROGRAM = 200_000
+
+
+@pytest.fixture(scope="module")
+def machine(tmp_path_factory):
+    """One daemon on configs/gantry.yaml (paths, realtime off and the program bound changed;
+    no gcode: section, so the G-code axes are the machine's, X Y), both axes in command mode."""
+    tmp = tmp_path_factory.mktemp("programs")
+    cfg = make_config(tmp, extra_daemon={"max_program_bytes": MAX_PROGRAM})
+    assert "gcode" not in yaml.safe_load(cfg.read_text())
+    dmn = Daemon(cfg, tmp / "motorctl.sock")
+    try:
+        dmn.wait_ready()
+        for a in ("X", "Y"):
+            r = ctl(dmn.sock, "start", a, "--mode", "command")
+            assert r.returncode == 0, r.stderr
+        wait_for(lambda: all(s["phase"] == "command" for s in status(dmn.sock)["axes"].values()), 10,
+                 "command mode")
+        dmn.tmp = tmp
+        yield dmn
+    finally:
+        dmn.kill()
+
+
+def _y(sock) -> np.ndarray:
+    ax = status(sock)["axes"]
+    return np.array([ax["X"]["y_m"], ax["Y"]["y_m"]])
+
+
+def _no_fault(sock) -> None:
+    for a, s in status(sock)["axes"].items():
+        assert s["state"] == "enabled" and s["phase"] == "command" and not s["fault"], (a, s)
+
+
+def _steps(n: int, x0: float = 50.0, y0: float = 50.0, bad_last: bool = False) -> tuple[str, np.ndarray]:
+    """n 0.1 mm steps at F6000 in rows of 500 (zig-zag), from (x0, y0) mm; the end [m]."""
+    lines = ["G21 G90 G64 P0.01", f"G0 X{x0} Y{y0}", "F6000"]
+    x, y, d = x0, y0, 1.0
+    for k in range(n):
+        if k and k % 500 == 0:
+            y += 1.0
+            d = -d
+        else:
+            x += 0.1 * d
+        lines.append(f"G1 X{x:.3f} Y{y:.3f}")
+    lines.append("G1 X500" if bad_last else "M2")
+    return "\n".join(lines) + "\n", np.array([x, y]) * 1e-3
+
+
+def test_a_program_longer_than_a_request_runs_to_its_end(machine, tmp_path):
+    """3600 steps of 0.1 mm (68 kB: over one request's 64 KiB) through `motorctl gcode --wait`:
+    sent in chunks, checked whole, run to within 5 um of its last point; no underrun, no fault."""
+    sock = machine.sock
+    text, end = _steps(3600)
+    assert len(text) > 65536
+    prog = tmp_path / "steps.ngc"
+    prog.write_text(text)
+    u0 = status(sock)["motion"]["underruns"]
+    r = ctl(sock, "gcode", str(prog), "--wait")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "3601 segments" in r.stdout, r.stdout          # the G0 to the start and 3600 steps
+    wait_for(lambda: np.all(np.abs(_y(sock) - end) < 5e-6), 5, "the end point", detail=lambda: _y(sock) - end)
+    assert status(sock)["motion"]["underruns"] == u0
+    _no_fault(sock)
+
+
+def test_a_program_refused_whole_moves_nothing(machine, tmp_path):
+    """A Z word on this X-Y machine (the G-code axes default to the machine's), a soft limit on
+    the last of 3000 lines, a program over daemon.max_program_bytes: each refused with one line
+    (file:line:column, or the key), exit 2, nothing moved, the daemon still answering."""
+    sock = machine.sock
+    before = _y(sock)
+    z = tmp_path / "z.ngc"
+    z.write_text("G21 G90\nG0 Z1\n")
+    r = ctl(sock, "gcode", str(z))
+    assert r.returncode == 2 and f"{z}:2:4: Z1: axis Z is not on this machine" in r.stderr, r.stderr
+    text, _ = _steps(3000, bad_last=True)
+    last = tmp_path / "last.ngc"
+    last.write_text(text)
+    r = ctl(sock, "gcode", str(last))
+    assert r.returncode == 2 and f"{last}:3004: X reaches 500.0000 mm" in r.stderr, r.stderr
+    big = tmp_path / "big.ngc"
+    big.write_text(_steps(11000)[0])
+    assert big.stat().st_size > MAX_PROGRAM
+    r = ctl(sock, "gcode", str(big))
+    assert r.returncode == 2 and "daemon.max_program_bytes" in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+    mo = status(sock)["motion"]
+    assert mo["idle"] and mo["queue_depth"] == 0
+    assert np.all(np.abs(_y(sock) - before) < 2e-6)
+    _no_fault(sock)
+
+
+_WORD = st.sampled_from(list("GMXYZFIJKRNPSQTOA#[(;%/ ") + ["G1", "G0", "G2", "G3", "M3", "M2", "G92",
+                                                             "G10 L2 P1", "G53", "G4", "M0", "\t", "\x00"])
+_NUM = st.one_of(st.integers(-10**6, 10**6).map(str), st.floats(allow_nan=True, allow_infinity=True).map(repr),
+                 st.sampled_from(["", ".", "-.5", "1e3", "nan", "inf", "0x10", "1 0"]))
+_LINE = st.lists(st.tuples(_WORD, _NUM).map("".join), max_size=6).map(" ".join)
+_PROGRAM = st.lists(_LINE, min_size=1, max_size=8).map("\n".join)
+_VALUE = st.recursive(st.one_of(st.none(), st.booleans(), st.integers(), st.floats(), st.text(max_size=8)),
+                      lambda c: st.one_of(st.lists(c, max_size=3), st.dictionaries(st.text(max_size=5), c, max_size=3)),
+                      max_leaves=6)
+_REQUEST = st.one_of(
+    st.fixed_dictionaries({"cmd": st.sampled_from(["move", "jog", "override", "upload", "gcode", "inject",
+                                                   "switch", "home", "nonsense", ""])},
+                          optional={"axis": st.sampled_from(["X", "Y", "Z", "", None, 1]), "targets": _VALUE,
+                                    "to_m": _VALUE, "speed": _VALUE, "value": _VALUE, "data": _VALUE,
+                                    "offset": _VALUE, "upload": _VALUE, "text": _VALUE, "filename": _VALUE,
+                                    "kind": _VALUE, "controller": _VALUE, "feed": _VALUE}),
+    _VALUE)
+
+
+def _state(sock) -> tuple:
+    s = status(sock)
+    return tuple((a["phase"], a["state"], a["fault"]) for a in s["axes"].values()), s["motion"]
+
+
+def _refused_changes_nothing(sock, request) -> None:
+    before, mo = _state(sock)
+    y0 = _y(sock)
+    ans = call(str(sock), request, 10.0) if isinstance(request, dict) else _raw(sock, request)
+    assert isinstance(ans, dict) and "ok" in ans, ans
+    after, mo1 = _state(sock)
+    if ans["ok"]:                            # a valid command chosen by chance: it may act
+        if mo1["queue_depth"] or not mo1["idle"]:
+            call(str(sock), {"cmd": "abort"})
+            wait_for(lambda: status(sock)["motion"]["idle"], 20, "the abort")
+        return
+    assert after == before, (request, ans, before, after)
+    if mo["idle"] and mo1["idle"]:
+        assert np.all(np.abs(_y(sock) - y0) < 2e-6), (request, ans)
+
+
+def _raw(sock, value) -> dict:
+    """Any JSON value as a request line (not only objects)."""
+    import socket
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(10.0)
+    try:
+        s.connect(str(sock))
+        s.sendall((json.dumps(value) + "\n").encode())
+        buf = b""
+        while b"\n" not in buf:
+            chunk = s.recv(65536)
+            if not chunk:
+                break
+            buf += chunk
+    finally:
+        s.close()
+    return json.loads(buf.split(b"\n", 1)[0])
+
+
+@settings(max_examples=examples(150), deadline=None, suppress_health_check=list(HealthCheck))
+@given(request=_REQUEST)
+def test_any_request_is_an_answer_and_a_refused_one_changes_nothing(machine, request):
+    """Random requests (any JSON value; objects with the protocol's keys and wrong values):
+    every one answered; a refused one leaves every axis's phase, state, fault and position."""
+    _refused_changes_nothing(machine.sock, request)
+
+
+@settings(max_examples=examples(200), deadline=None, suppress_health_check=list(HealthCheck))
+@given(text=_PROGRAM)
+def test_any_program_is_an_answer_and_a_refused_one_moves_nothing(machine, text):
+    """Random programs (words, numbers, comments, stray characters) through ``gcode``: every one
+    answered (most refused with file:line:column); a refused one moves nothing."""
+    _refused_changes_nothing(machine.sock, {"cmd": "gcode", "text": text, "filename": "random.ngc"})
+
+
+def test_the_daemon_is_alive_after_the_random_requests(machine):
+    """After the property tests (any order): the daemon answers and the axes are in command mode
+    without a fault."""
+    st_ = status(machine.sock)
+    assert st_["process"]["planner_pid"]
+    for a in ("X", "Y"):
+        if st_["axes"][a]["phase"] != "command":     # a random valid 'stop' may have ended it
+            assert ctl(machine.sock, "start", a, "--mode", "command").returncode == 0
+    wait_for(lambda: all(s["phase"] == "command" for s in status(machine.sock)["axes"].values()), 10,
+             "command mode")
+    _no_fault(machine.sock)
+
+
+def test_a_dead_planner_is_an_answer_not_an_end(machine, tmp_path):
+    """The planner process killed: the next program is refused with one line naming it; the
+    daemon, its axes and moves go on."""
+    sock = machine.sock
+    pid = status(sock)["process"]["planner_pid"]
+    os.kill(pid, signal.SIGKILL)
+    wait_for(lambda: not status(sock)["process"]["planner_pid"], 5, "the planner's end seen")
+    prog = tmp_path / "p.ngc"
+    prog.write_text("G21 G90\nG1 X60 Y60 F3000\nM2\n")
+    r = ctl(sock, "gcode", str(prog))
+    assert r.returncode == 1 and "the planner process is not running" in r.stderr, r.stderr
+    assert ctl(sock, "move", "X=0.070", "Y=0.060", "--wait").returncode == 0
+    _no_fault(sock)
+
+
+def test_the_operator_cli_imports_no_numpy():
+    """``motorctl status`` (the client path) loads neither numpy nor pydantic nor numba: it
+    answers in a fraction of a second on a busy PC."""
+    code = ("import sys; from motorctl.cli import main; rc = main(['--socket', '/nonexistent/s', 'status']); "
+            "print(rc, sorted(m for m in ('numpy', 'pydantic', 'numba', 'scipy') if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.stdout.strip() == "1 []", (r.stdout, r.stderr)
