@@ -366,6 +366,14 @@ class Driver(abc.ABC):
         own (the default)."""
         return False
 
+    def fault_state(self, i: int) -> str:
+        """The state of axis ``i``'s drive while it reports a fault, one line for the operator
+        (e.g. a CiA 402 drive's power state and statusword, a Modbus fault input), '' when the
+        driver has nothing to say beyond :meth:`fault_reason`'s words (the default gives them).
+        Called outside the cycle (the answer to a fault reset the drive did not take); may build
+        strings."""
+        return self.fault_reason(i)
+
     def fault_reason(self, i: int) -> str:
         """What the drive of axis ``i`` says about its fault, one line (e.g. a CiA 402 EMCY
         code and its meaning, a Modbus exception), '' when it says nothing. Called outside the

@@ -1107,6 +1107,15 @@ class CanopenDriver(SplitPhaseDriver):
         return True
 
     # ------------------------------------------------------------------ reports
+    def fault_state(self, i: int) -> str:
+        """Axis i's drive's CiA 402 power state and statusword (0x6041) as last read, with what
+        it said about its fault (:meth:`fault_reason`), e.g. "canopen node 1 (axis X) is in
+        Fault (statusword 0x0218); EMCY 0x2310 ...". Outside the cycle."""
+        sw = self._statusword[i]
+        said = self.fault_reason(i)
+        return (f"{self._where(i)} is in {cia402.STATE_NAMES[cia402.decode_state(sw)]} (statusword 0x{sw:04X})"
+                + (f"; {said}" if said else ""))
+
     def fault_reason(self, i: int) -> str:
         """Why axis i reports an amplifier fault, one line ('' when it does not): the EMCY
         error code and its CiA 301/402 meaning (from the EMCY until the axis is in Operation

@@ -811,6 +811,17 @@ class EthercatDriver(Driver):
         self._sm[i].request_reset()
         return True
 
+    def fault_state(self, i: int) -> str:
+        """Axis i's drive's CiA 402 power state and statusword (0x6041) as last read, with what
+        its slaves said (:meth:`fault_reason`); the I/O profile's terminals: :meth:`fault_reason`
+        alone. Outside the cycle."""
+        said = self.fault_reason(i)
+        if self._sm[i] is None:
+            return said
+        sw = self._statusword[i]
+        return (f"axis {self.axis_names[i]}'s drive is in {cia402.STATE_NAMES[cia402.decode_state(sw)]} "
+                f"(statusword 0x{sw:04X})" + (f"; {said}" if said else ""))
+
     def fault_reason(self, i: int) -> str:
         """Why axis ``i`` faults, one line: its slaves that left OP with their AL status codes
         (read after a short working counter), or the working counter while it is short (and the

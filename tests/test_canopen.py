@@ -372,3 +372,84 @@ def test_runs_after_a_drive_left_standing_at_half_a_millimetre_and_a_run_cut_mid
             i, j = int(np.argmax(mode != MODE_IDLE)), int(np.argmax(mode == MODE_PROGRAM))
             assert i >= 2 and (mode[i:j] == MODE_APPROACH).all() and j - i >= 2
             assert np.isin(mode[j:], (MODE_PROGRAM, MODE_HOLD)).all() and mode[-1] == MODE_HOLD   # then the stop
+
+
+def _loop_on_drives(loaded):
+    """The loop of ``loaded`` built and started on the drives (virtual clock): (assembly, loop)."""
+    from motorctl.app.build import build, start
+    asm = build(loaded, clock="virtual", capacity=1000)
+    start(asm, "off")
+    return asm, asm.loop
+
+
+def _reset_between_cycles(lp, n: int) -> dict:
+    """The operator's fault-reset of X as the daemon's loop process makes it: the drive's reset
+    sent between two cycles (``begin_fault_reset``), then looked at between every later cycle
+    (``poll_fault_reset``) until done, at most ``n`` cycles. Returns what it saw (cycles counted
+    by the loop, never wall time)."""
+    seen: dict = {}
+
+    def slack(loop):
+        if "k0" not in seen:
+            seen["k0"] = loop.k
+            seen["pending"], ok, why = loop.begin_fault_reset(0)
+            if not seen["pending"]:
+                seen.update(done_k=loop.k, ok=ok, why=why)
+                loop.request_stop()
+            return
+        done, ok, why = loop.poll_fault_reset(0)
+        if done:
+            seen.update(done_k=loop.k, ok=ok, why=why)
+            loop.request_stop()
+
+    lp.on_slack = slack
+    lp.run(n)
+    lp.on_slack = None
+    return seen
+
+
+def test_one_fault_reset_takes_the_drive_out_of_fault_and_clears_the_latch(tmp_path):
+    """An EMCY latches X's amplifier fault; ONE operator's fault-reset (the daemon's: the drive's
+    reset, CiA 402 transition 15, then the supervisor's latch once the drive reports it left
+    Fault) clears it, answered within the bound (``FAULT_RESET_WAIT_S`` of cycles) and without
+    blocking a cycle: the loop ran every cycle in between. Before, the first fault-reset was
+    refused with 'run fault-reset again once the drive has left its fault'."""
+    from motorctl.app.build import shutdown
+    from motorctl.loop.servo import FAULT_RESET_WAIT_S
+    loaded = config_from_dict(_config(tmp_path), "<co>", check_budget=False)
+    with device_thread(build_device(loaded, PLANT, faults=[FaultSpec.parse("emcy=0x2310:X:20")])) as dev:
+        asm, lp = _loop_on_drives(loaded)
+        try:
+            lp.run(60)
+            assert asm.supervisor.fault[0] and asm.driver.amp_fault[0], asm.supervisor.reason(0)
+            assert dev.drives[0].state == cia402.FAULT                  # latched in the drive
+            bound = round(FAULT_RESET_WAIT_S * loaded.cfg.loop.rate_hz)
+            assert lp.fault_reset_cycles == bound == 50
+            seen = _reset_between_cycles(lp, 3 * bound)
+            assert seen["pending"] and seen["ok"] and seen["why"] == "", seen
+            assert 1 <= seen["done_k"] - seen["k0"] <= bound, seen     # within 100 ms of cycles
+            assert not asm.supervisor.fault[0] and not asm.driver.amp_fault[0]
+            assert dev.drives[0].state == cia402.SWITCH_ON_DISABLED
+        finally:
+            shutdown(asm)
+
+
+def test_a_drive_that_stays_in_fault_refuses_the_reset_naming_its_state_after_the_bound(tmp_path):
+    """The drive keeps faulting (the EMCY injected at every SYNC): the fault-reset sends the
+    drive's reset, waits ``FAULT_RESET_WAIT_S`` of cycles (50 at 500 Hz), and is refused then,
+    naming the drive's CiA 402 state and statusword; the latch stays."""
+    from motorctl.app.build import shutdown
+    loaded = config_from_dict(_config(tmp_path), "<co>", check_budget=False)
+    with device_thread(build_device(loaded, PLANT, faults=[FaultSpec.parse("emcy=0x2310:X:20:100000")])):
+        asm, lp = _loop_on_drives(loaded)
+        try:
+            lp.run(60)
+            assert asm.supervisor.fault[0] and asm.driver.amp_fault[0]
+            seen = _reset_between_cycles(lp, 200)
+            assert seen["pending"] and not seen["ok"], seen
+            assert seen["done_k"] - seen["k0"] == lp.fault_reset_cycles == 50, seen
+            assert "did not leave its fault within 100 ms" in seen["why"], seen
+            assert "canopen node 1 (axis X) is in Fault reaction active (statusword 0x" in seen["why"], seen
+            assert asm.supervisor.fault[0]
+        finally:
+            shutdown(asm)

@@ -10,7 +10,6 @@ import pytest
 from test_daemon_helpers import FLUSH_S, cli, cli_status, ctl, make_config, running_daemon, status, wait_for
 
 from motorctl.recorder.runlog import read_log
-from motorctl.loop.safety import FAULT_SHUTDOWN
 
 TS = 1.0 / 5000
 
@@ -85,27 +84,44 @@ def test_operator_session_start_stop_switch_sigterm(daemon, tmp_path):
     r = ctl(sock, "stop", "Y")
     assert r.returncode == 0, r.stderr
 
-    # start both again, then SIGTERM: every axis at 0 V and disabled, log complete
+    # start both again, then SIGTERM while Y is mid-move: a stop of category 1 (IEC 60204-1
+    # §9.2.2): every axis comes to rest on its jerk-limited profile, then 0 V, amplifier off
     assert ctl(sock, "start", "X").returncode == 0
     assert ctl(sock, "start", "Y").returncode == 0
     wait_for(lambda: all(a["phase"] == "tracking" for a in status(sock)["axes"].values()), 20, "tracking")
     log_path = status(sock)["log"]["path"]
+    sig_k = wait_for(lambda: (s := status(sock)) and 0.08 < s["axes"]["Y"]["x_d_m"] < 0.32
+                     and s["loop"]["cycles"], 20, "Y mid-stroke")
     code, out, err = daemon.terminate()
     assert code == 0, err
-    assert "stopped by SIGTERM" in err
+    assert "stopped by SIGTERM" in err and "(stop category 1)" in err, err
 
     log = read_log(log_path)
     t = log.col("t")
     assert log.truncated_bytes == 0
     assert np.allclose(np.diff(t), TS), "every cycle's record is in the log, none lost"
     assert log.header["realtime"]["gc"]["obtained"]
+    settle = round(0.05 / TS)                           # daemon.stop_settle_s of make_config
+    a_max = {"X": 40.0, "Y": 10.0}                     # configs/gantry-rigid.yaml
     for a in ("X", "Y"):
         u, en, fb = log.col(f"{a}.u"), log.col(f"{a}.enabled"), log.col(f"{a}.fault_bits")
-        # the end: 0 V, amplifier off, shutdown latched on the axes that were driven
+        xd, vd, ad, y = log.col(f"{a}.x_d"), log.col(f"{a}.xd_dot"), log.col(f"{a}.xd_ddot"), log.col(f"{a}.y")
+        # the end: 0 V, amplifier off, and no fault: the power went once the axis was at rest
         assert np.all(u[-5:] == 0.0) and np.all(en[-5:] == 0.0)
-        assert int(fb[-1]) & FAULT_SHUTDOWN
-        first = np.flatnonzero(fb != 0)[0]
-        assert en[first] == 0.0 and u[first] == 0.0, "0 V and amplifier off in the cycle of the signal"
+        assert not fb.any(), f"{a}: fault bits {int(fb.max())} (a category-0 stop latches shutdown)"
+        off = int(np.flatnonzero(en > 0)[-1]) + 1       # the first row at 0 V after the signal
+        assert off > sig_k, (a, off, sig_k)
+        # at rest (x_d constant, zero velocity) for the settle time before the amplifier went off
+        assert np.all(vd[off - settle:off] == 0.0) and np.ptp(xd[off - settle:off]) == 0.0, a
+        # decelerated within a_max: the reference's and the carriage's (its velocity over 5 ms)
+        assert np.max(np.abs(ad[sig_k:off])) <= a_max[a] * (1 + 1e-9), a
+        w = 25
+        v = (y[sig_k + w:off] - y[sig_k:off - w]) / (w * TS)
+        acc = (v[w:] - v[:-w]) / (w * TS)
+        assert np.max(np.abs(acc)) < 1.3 * a_max[a], (a, float(np.max(np.abs(acc))))
+        assert abs(y[off - 1] - y[off - 1 - w]) / (w * TS) < 2e-3, f"{a} still moving at 0 V"
+        # the stop took no longer than the longest move and the settle (rows, not wall time)
+        assert off - sig_k < round((0.6 + 0.05 + 0.05) / TS), (a, off - sig_k)
         # bumpless starts: the first output after each start is the model's holding force at
         # rest (−θ̂4: the axis's offset, which the second start of an axis has adapted), no jump
         starts = np.flatnonzero((en[1:] > 0) & (en[:-1] == 0)) + 1
@@ -118,8 +134,10 @@ def test_operator_session_start_stop_switch_sigterm(daemon, tmp_path):
         # stops: at rest (x_d constant, zero velocity) before the amplifier goes off
         stops = np.flatnonzero((en[1:] == 0) & (en[:-1] > 0)) + 1
         k = stops[0]
-        xd, vd = log.col(f"{a}.x_d"), log.col(f"{a}.xd_dot")
         assert np.all(vd[k - 200:k] == 0.0) and np.ptp(xd[k - 200:k]) == 0.0
+    # Y was mid-move at the signal: it ran its move on to the end of the stroke
+    vy = log.col("Y.xd_dot")
+    assert vy[sig_k] != 0.0, "Y was moving when the signal came"
     # switches happened at the cycles reported, without a jump in the output
     u = log.col("Y.u")
     du = np.abs(np.diff(u))
@@ -142,3 +160,56 @@ def test_malformed_config_refused(tmp_path):
     cfg.write_text(text)
     r = ctl(None, "daemon", cfg)           # in-process: the check happens before anything starts
     assert r.returncode == 2 and "daemon.flush_s" in r.stderr and r.stderr.count("\n") == 1
+
+
+#: a daemon whose own SIGTERM comes at a chosen point of its start-up: ``plan`` (while the
+#: config is read and the loop built: no device opened) or ``start`` (right after the device is
+#: set up, before the loop's first cycle); deterministic, the signal is sent by the daemon itself
+_START_UP_SIGTERM = """
+import os, signal, sys
+import motorctl.app.daemon as D
+import motorctl.app.daemon.loop_side as L
+where, cfg, sock = sys.argv[1:4]
+def signalled(fn):
+    def wrapped(*a, **kw):
+        if where == "plan":
+            os.kill(os.getpid(), signal.SIGTERM)
+        out = fn(*a, **kw)
+        if where == "start":
+            os.kill(os.getpid(), signal.SIGTERM)
+        return out
+    return wrapped
+if where == "plan":
+    D.plan_daemon = signalled(D.plan_daemon)
+else:
+    L.start = signalled(L.start)
+sys.exit(D.run_daemon(cfg, sock))
+"""
+
+
+@pytest.mark.parametrize("where", ["plan", "start"])
+def test_sigterm_during_start_up_is_one_line_and_the_device_at_0V(tmp_path, where):
+    """SIGTERM while the daemon starts: during the build, one line (nothing was opened); once the
+    device is set up, no cycle runs, the device is brought to 0 V with its amplifiers off and
+    confirms it, in one line. Exit 0 (a signal is the daemon's normal end); no socket left.
+    Before, the first ended silently by the signal (exit -15), the second ran the loop and
+    printed its start line and a stop line."""
+    import subprocess
+    import sys
+
+    cfg = make_config(tmp_path)
+    sock = tmp_path / "motorctl.sock"
+    r = subprocess.run([sys.executable, "-c", _START_UP_SIGTERM, where, str(cfg), str(sock)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, (r.returncode, r.stderr)
+    lines = r.stderr.splitlines()
+    assert len(lines) == 1, r.stderr
+    if where == "plan":
+        assert lines[0] == ("motorctl daemon: stopped by SIGTERM during start-up, before the device was "
+                            "opened: nothing was driven"), r.stderr
+    else:
+        assert lines[0].startswith("motorctl daemon: stopped by SIGTERM during start-up, before the loop ran: "
+                                   "X, Y at 0 V, amplifiers off (confirmed by the device: "), r.stderr
+        logs = list((tmp_path / "logs").glob("*.mlog"))
+        assert logs and all(len(read_log(str(p)).col("t")) == 0 for p in logs), logs
+    assert not sock.exists()

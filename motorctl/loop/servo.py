@@ -74,6 +74,9 @@ from motorctl.loop.trajectory import MOVE_W, TABLE_HEAD, Program
 
 #: bumpless switch: the output step between two controllers fades out over this time [s]
 SWITCH_BLEND_S = 0.01
+#: how long the operator's fault reset waits for a drive to leave its fault once its reset was
+#: sent (CiA 402 transition 15, a Modbus reset bit) before it is refused [s]
+FAULT_RESET_WAIT_S = 0.1
 #: the law rows' width (floats, ints): C2's state block is 220 and 12
 LAW_ROW_FLOATS, LAW_ROW_INTS = 256, 16
 
@@ -181,6 +184,8 @@ class ServoLoop:
         self.overrun_ramp = timebase.cycles(overrun_ramp_s, minimum=1)
         self.stop_settle = timebase.cycles(stop_settle_s)
         self.blend_cycles = timebase.cycles(SWITCH_BLEND_S, minimum=1)
+        self.fault_reset_cycles = timebase.cycles(FAULT_RESET_WAIT_S, minimum=1)
+        self._reset_until = [-1] * len(self.axis_names)   # the cycle a drive's reset is waited for until
         self.u_out = np.zeros(n)
         self.enable_out = np.zeros(n, dtype=bool)
         # the cycle's state (motorctl.loop.cycle), and views of it by name
@@ -544,17 +549,60 @@ class ServoLoop:
             self.ax[i, C.A_BLEND] = self.blend_cycles
 
     def fault_reset(self, i: int) -> tuple[bool, str]:
-        """The operator's fault reset of axis i (between cycles; the axis stays disabled): the
-        drive is asked to clear the fault it latched (:meth:`Driver.reset_fault`, the only place
-        a drive's fault is reset), and the supervisor's latch is cleared if the cause is gone.
-        While the drive still reports its fault the reset is refused (its reset is under way:
-        the same command again once the drive has left its fault). Returns (cleared, why_not)."""
-        amp = bool(self.driver.amp_fault[i])
-        sent = amp and self.driver.reset_fault(i)
-        ok, why = self.supervisor.reset(i, float(self.driver.position_m[i]), amp)
-        if sent and not ok and amp:
-            why += "; the drive's fault reset was sent: run fault-reset again once the drive has left its fault"
-        return ok, why
+        """Fault reset of axis i in one call (between cycles; the axis stays disabled), for
+        callers that run the cycles themselves (commissioning): the drive's own reset is sent
+        while it reports a fault (:meth:`Driver.reset_fault`), and the supervisor's latch is
+        cleared if the cause is gone now; a drive that has not left its fault yet refuses it
+        ("the amplifier still reports a fault"). The daemon's ``fault-reset`` is
+        :meth:`begin_fault_reset` and :meth:`poll_fault_reset` (one command that waits for the
+        drive). Returns (cleared, why_not)."""
+        if self.driver.amp_fault[i]:
+            self.driver.reset_fault(i)
+        return self._clear_latch(i)
+
+    def _clear_latch(self, i: int) -> tuple[bool, str]:
+        return self.supervisor.reset(i, float(self.driver.position_m[i]), bool(self.driver.amp_fault[i]))
+
+    def begin_fault_reset(self, i: int) -> tuple[bool, bool, str]:
+        """The operator's fault reset of axis i (between cycles; the axis stays disabled), the
+        first step of one command. While the drive reports a fault it latched and has a reset
+        of its own (:meth:`Driver.reset_fault`: CiA 402 transition 15, a Modbus reset bit; the
+        only place a drive's fault is reset), that reset is sent and the answer waits for the
+        drive to leave its fault: :meth:`poll_fault_reset` between the next cycles, at most
+        :data:`FAULT_RESET_WAIT_S` of them. Otherwise the supervisor's latch is cleared at once
+        if the cause is gone (:meth:`fault_reset`).
+
+        Returns (pending, cleared, why_not): pending True when the drive's reset was sent (then
+        cleared is False and why_not '')."""
+        if self.driver.amp_fault[i] and self.driver.reset_fault(i):
+            self._reset_until[i] = self.k + self.fault_reset_cycles
+            return True, False, ""
+        self._reset_until[i] = -1
+        ok, why = self._clear_latch(i)
+        return False, ok, why
+
+    def poll_fault_reset(self, i: int) -> tuple[bool, bool, str]:
+        """Between cycles, after :meth:`begin_fault_reset` sent the drive's reset: once the drive
+        no longer reports its fault, the supervisor's latch is cleared if its other causes are
+        gone; after :data:`FAULT_RESET_WAIT_S` of cycles with the drive
+        still in its fault, the reset is refused naming the drive's state
+        (:meth:`Driver.fault_state`). Nothing blocks: a few compares per call.
+
+        Returns (done, cleared, why_not); done False while the drive is still being waited for."""
+        until = self._reset_until[i]
+        if until < 0:
+            return True, False, "no fault reset of the drive is under way"
+        if not self.driver.amp_fault[i]:
+            self._reset_until[i] = -1
+            ok, why = self._clear_latch(i)
+            return True, ok, why
+        if self.k < until:
+            return False, False, ""
+        self._reset_until[i] = -1
+        wait_ms = self.fault_reset_cycles * self.period_s * 1e3
+        state = self.driver.fault_state(i) or "it still reports a fault"
+        return True, False, (f"the drive did not leave its fault within {wait_ms:.0f} ms of its reset "
+                             f"({self.fault_reset_cycles} cycles): {state}")
 
     def shutdown_faults(self) -> None:
         """Latch FAULT_SHUTDOWN on every axis (SIGTERM / exit)."""

@@ -14,9 +14,13 @@ Two processes (three with a live view), so that nothing can block the loop (docs
   (:mod:`.views`).
 
 Every axis starts disabled (0 V, amplifier off) and only an operator's ``start`` enables it,
-so a restart by systemd never re-enables an axis. SIGTERM/SIGINT: every driven axis latches
-FAULT_SHUTDOWN and goes to 0 V with the amplifier off at the next cycle, a few more cycles are
-recorded, the I/O process drains, flushes and closes the log, then the daemon exits 0.
+so a restart by systemd never re-enables an axis. SIGTERM/SIGINT: a stop of category 1
+(IEC 60204-1 §9.2.2): every driven axis comes to rest on its jerk-limited profile (the
+``stop`` command's; a command-mode axis brakes), bounded, then 0 V with the amplifier off; a
+second signal, or the bound passed, cuts the power at once (FAULT_SHUTDOWN latched). A few
+more cycles are recorded, the I/O process drains, flushes and closes the log, then the daemon
+exits 0. A signal during start-up: one line, no cycle run, 0 V confirmed when the device was
+opened.
 ``kill -9`` of the loop process: the I/O process sees the reply pipe close, drains what the
 loop published and closes the log. If the I/O process dies, the loop latches every axis with
 FAULT_RECORDER, ends, writes the end record into the run log itself, removes the socket and
@@ -115,11 +119,53 @@ def run_daemon(config_path: str, socket_path: str | None = None, log_dir: str | 
                out=sys.stderr) -> int:
     """Run the service until SIGTERM/SIGINT. Returns the exit code (0 after a signal).
 
+    A signal while the daemon is built (the config read, the loop's compile) ends it with one
+    line and nothing opened; from then on the loop process's own stop (:mod:`.loop_side`: a
+    signal before its first cycle runs none, 0 V confirmed by the device when it was opened).
+
     Raises:
         ConfigError: the config is wrong (exit 2 in the CLI).
         DaemonError: the socket or the log cannot be created (exit 1).
     """
-    plan = plan_daemon(config_path, socket_path, log_dir)
+    term: list = []
+
+    def start_up_signal(signum, _frame):
+        raise _StartUpSignal(signal.Signals(signum).name)
+
+    def note_signal(signum, _frame):
+        term.append(signal.Signals(signum).name)
+
+    old = {s: signal.signal(s, start_up_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        plan = plan_daemon(config_path, socket_path, log_dir)
+    except _StartUpSignal as exc:
+        for s, h in old.items():
+            signal.signal(s, h)
+        sys.stdout.flush()
+        out.write(f"motorctl daemon: stopped by {exc} during start-up, before the device was opened: "
+                  f"nothing was driven\n")
+        return 0
+    except BaseException:
+        for s, h in old.items():
+            signal.signal(s, h)
+        raise
+    # from here to the loop process's own handlers a signal is noted (the loop process then
+    # opens no device); the I/O process ignores the signals
+    for s in old:
+        signal.signal(s, note_signal)
+    try:
+        return _serve(plan, term, out)
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+class _StartUpSignal(Exception):
+    """SIGTERM or SIGINT while the daemon is planned and built (config, compile): nothing is
+    opened yet."""
+
+
+def _serve(plan: DaemonPlan, term: list, out) -> int:
     d = plan.asm.loaded.cfg.daemon
     lsock = bind_control_socket(plan.socket_path, d.group)
     retention = Retention(str(Path(plan.log_path).parent), d.log_budget_bytes,
@@ -158,7 +204,7 @@ def run_daemon(config_path: str, socket_path: str | None = None, log_dir: str | 
     lsock.close()
     writer.release()
     side = LoopSide(plan.asm, plan.ring, pid, Mailbox(rfd=cmd_r), Mailbox(wfd=rep_w),
-                    plan.socket_path, plan.log_path, out)
+                    plan.socket_path, plan.log_path, out, early=term)
     return side.run(_reap)
 
 

@@ -32,7 +32,7 @@ import sys
 import threading
 import time
 
-from motorctl.app.build import Assembly, shutdown, start, stop_lines
+from motorctl.app.build import Assembly, rest_words, shutdown, start, stop_bound_s, stop_lines
 from motorctl.app.daemon.notify import sd_notify
 from motorctl.app.daemon.protocol import Mailbox
 from motorctl.app.daemon.status import StatusPublisher
@@ -71,6 +71,9 @@ LINK_CHECK_S = 0.05
 STATUS_PUBLISH_S = 0.005
 #: cycles recorded after a SIGTERM before the loop ends (the 0 V rows reach the log)
 SHUTDOWN_TAIL_CYCLES = 10
+#: a signal's category-1 stop may take this much beyond its bound (the longest move of a
+#: program or a stream's brake from v_max, plus daemon.stop_settle_s) before the power is cut [s]
+SIGNAL_STOP_MARGIN_S = 0.05
 #: a start is refused when the axis moved more than this since the approach was planned [m]
 START_MOVED_M = 1e-3
 
@@ -84,11 +87,13 @@ class LoopSide:
         asm: the built loop (every configured controller per axis in ``asm.bank``).
         ring: the shared ring the loop records into. io_pid: the I/O process.
         cmds: mailbox of commands (read side). replies: mailbox of answers (write side,
-        non-blocking). out: where the one-line start and stop messages go.
+        non-blocking). out: where the one-line start and stop messages go. early: the list the
+        start-up's handler appends the names of signals to until :meth:`run` installs its own
+        (a signal there: no device is opened).
     """
 
     def __init__(self, asm: Assembly, ring: SharedRing, io_pid: int, cmds: Mailbox,
-                 replies: Mailbox, socket_path: str, log_path: str, out=sys.stderr):
+                 replies: Mailbox, socket_path: str, log_path: str, out=sys.stderr, early=None):
         self.asm, self.ring, self.io_pid = asm, ring, io_pid
         self.cmds, self.replies, self.out = cmds, replies, out
         self.socket_path, self.log_path = socket_path, log_path
@@ -106,7 +111,8 @@ class LoopSide:
         self.io_status = None           # the I/O process's wait status once it is gone
         self.allow_inject = d.allow_fault_injection and hasattr(asm.driver, "inject")
         self.seen = 0
-        self.term = ""
+        self.term = ""                   # the signal that ends the daemon ('' until one came)
+        self.early = early if early is not None else []
         self.stop_checks: list = []      # what the drives confirmed at shutdown (StopCheck)
         self.tail = -1
         self.io_dead = False
@@ -117,14 +123,38 @@ class LoopSide:
         self.next_attempt = 0.0
         self.can_reconnect = True
         self.drive_text = [""] * len(self.names)
+        self.resets: list = []           # fault resets waiting for a drive: (axis, answer, was)
+        # SIGTERM/SIGINT: a category-1 stop of the driven axes, bounded; a second signal cuts
+        self.signals = 0
+        self.stop_end = -1               # the cycle by which the signal's stop must be done
+        self.signal_driven: list = []    # the axes driven when the signal came
+        self.cut: list = []              # of those, the axes whose power was removed at once
+        self.rest: dict = {}             # where each driven axis ended (build.rest_words)
+        self.signal_stop_cycles = tb.cycles_ceil(self.signal_stop_bound_s())
         self.loop.on_slack = self.on_slack
 
+    def signal_stop_bound_s(self) -> float:
+        """The longest a signal's category-1 stop may take [s]: per axis the longest move of its
+        program (a move in progress runs on to its end) and a stream's brake from v_max
+        (v_max/a_max + a_max/j_max), whichever is longer, plus ``daemon.stop_settle_s`` and
+        :data:`SIGNAL_STOP_MARGIN_S`. Beyond it the power is cut (category 0)."""
+        loaded, settle = self.asm.loaded, self.asm.loaded.cfg.daemon.stop_settle_s
+        bound = 0.0
+        for name, prog in zip(self.names, self.asm.programs):
+            tc = loaded.axes[name].trajectory
+            brake = tc.v_max / tc.a_max + tc.a_max / tc.j_max
+            bound = max(bound, stop_bound_s(prog, settle), brake + settle)
+        return bound + SIGNAL_STOP_MARGIN_S
+
     # ------------------------------------------------------------------ commands
-    def apply(self, m: dict) -> dict:
-        """Apply one command at the cycle boundary; the answer to send back."""
+    def apply(self, m: dict) -> dict | None:
+        """Apply one command at the cycle boundary; the answer to send back, or None when it
+        comes later (a fault reset waiting for the drive to leave its fault: :meth:`poll_resets`)."""
         loop, sup, names = self.loop, self.loop.supervisor, self.names
         op, i = m.get("op"), m.get("axis", -1)
         r = {"id": m.get("id"), "ok": True, "cycle": loop.k}
+        if self.term and op in ("start", "jog", "switch", "fault_reset", "set_position", "inject"):
+            return {**r, "ok": False, "error": f"the daemon is stopping ({self.term})"}
         try:
             if op == "start":
                 if sup.fault[i]:
@@ -167,7 +197,10 @@ class LoopSide:
                     return {**r, "ok": False, "error": f"the recorder is still faulted "
                                                       f"({REC_REASONS[trouble]})"}
                 was = sup.reason(i)
-                ok, why = loop.fault_reset(i)
+                pending, ok, why = loop.begin_fault_reset(i)
+                if pending:              # the drive's reset is sent: answered once it left its fault
+                    self.resets.append((i, {**r, "was": was}))
+                    return None
                 r.update(ok=ok, error=why, was=was)
             elif op == "jog":
                 mv = m["move"]
@@ -231,19 +264,11 @@ class LoopSide:
             self.seen = seq
             msgs = self.cmds.recv()
             for m in msgs or ():
-                try:
-                    self.replies.send(self.apply(m))
-                except BlockingIOError:
-                    self.replies_dropped += 1     # pipe full: the client times out
-                except OSError:
-                    self.io_dead = True
+                self._answer(self.apply(m))
+        if self.resets:
+            self.poll_resets(lp)
         if self.term and self.tail < 0:
-            for i in range(len(self.names)):
-                if lp.mode[i] != IDLE:
-                    lp.supervisor.trip(i, FAULT_SHUTDOWN)
-            lp.idle_all()
-            self.tail = SHUTDOWN_TAIL_CYCLES
-            ctl[CTL_STATE] = STATE_STOPPING
+            self.stop_on_signal(lp, k)
         elif self.tail > 0:
             self.tail -= 1
             if self.tail == 0:
@@ -257,6 +282,60 @@ class LoopSide:
             self.check_recorder(lp)
         if k % self.link_every == 0 and self.can_reconnect and not self.term:
             self.check_link(lp)
+
+    def _answer(self, ans: dict | None) -> None:
+        """Send one command's answer (non-blocking; None: it comes later)."""
+        if ans is None:
+            return
+        try:
+            self.replies.send(ans)
+        except BlockingIOError:
+            self.replies_dropped += 1     # pipe full: the client times out
+        except OSError:
+            self.io_dead = True
+
+    def poll_resets(self, lp) -> None:
+        """Between cycles: the fault resets that wait for a drive to leave its fault
+        (:meth:`ServoLoop.poll_fault_reset`), each answered once it is done (cleared, refused by
+        another cause, or the drive still in its fault after the bound, named by its state)."""
+        left = []
+        for i, r in self.resets:
+            done, ok, why = lp.poll_fault_reset(i)
+            if not done:
+                left.append((i, r))
+                continue
+            self._answer({**r, "ok": ok, "error": why, "cycle": lp.k})
+            self.status.publish()
+        self.resets = left
+
+    def stop_on_signal(self, lp, k: int) -> None:
+        """Between cycles after SIGTERM/SIGINT: a stop of category 1 (IEC 60204-1 §9.2.2) of every
+        driven axis (:meth:`ServoLoop.stop_all`: a program or an approach runs on to its next
+        rest point within the axis's a_max/j_max, a stream brakes jerk-limited), then 0 V and
+        amplifier off; then :data:`SHUTDOWN_TAIL_CYCLES` more cycles are recorded and the loop
+        ends. Category 0 (FAULT_SHUTDOWN latched, 0 V at the next cycle) for the axes still
+        driven at a second signal or after :meth:`signal_stop_bound_s`."""
+        n = len(self.names)
+        if self.stop_end < 0:
+            self.signal_driven = [i for i in range(n) if lp.mode[i] != IDLE]
+            lp.stop_all()
+            self.stop_end = k + self.signal_stop_cycles
+            self.ctl[CTL_STATE] = STATE_STOPPING
+            for i, r in self.resets:       # resets under way are not finished: the daemon ends
+                self._answer({**r, "ok": False, "error": f"the daemon is stopping ({self.term})"})
+            self.resets = []
+        if not (lp.at_rest() or self.signals > 1 or k >= self.stop_end):
+            return
+        sup = lp.supervisor
+        for i in range(n):
+            if lp.mode[i] != IDLE:
+                self.cut.append(i)
+                sup.trip(i, FAULT_SHUTDOWN)
+        self.rest = {self.names[i]: {"at_m": float(self.asm.driver.position_m[i]),
+                                     "category": 0 if (i in self.cut or sup.fault[i]) else 1}
+                     for i in self.signal_driven}
+        lp.idle_all()
+        self.tail = SHUTDOWN_TAIL_CYCLES
 
     def _tell_io(self, m: dict) -> None:
         """A message to the I/O process (non-blocking; dropped and counted when the pipe is full)."""
@@ -371,41 +450,63 @@ class LoopSide:
             pass
 
     def on_signal(self, signum, _frame) -> None:
+        """SIGTERM/SIGINT: the first asks for the category-1 stop (:meth:`stop_on_signal`, at the
+        next cycle boundary), a second cuts the power at once (category 0)."""
+        self.signals += 1
         if not self.term:
             self.term = signal.Signals(signum).name
 
     # ------------------------------------------------------------------ the run
+    def _serve(self, rep) -> None:
+        """The device is set up: say the loop is ready and run it until it is asked to end."""
+        asm, loop, ctl = self.asm, self.loop, self.ctl
+        self.replies.send({"op": "ready", "realtime": rep.as_dict(),
+                           "realtime_summary": rep.summary(), "loop_pid": os.getpid(),
+                           "python_threads": threading.active_count(),
+                           "native_threads": len(os.listdir("/proc/self/task")),
+                           "cpu_affinity": sorted(os.sched_getaffinity(0)),
+                           "switch_interval_s": sys.getswitchinterval()})
+        for line in asm.driver.notices:
+            self.out.write(f"motorctl daemon: {line}\n")
+        self.out.write(f"motorctl daemon: {len(self.names)} axes ({', '.join(self.names)}) at "
+                       f"{1 / asm.loaded.period_s:.0f} Hz, all disabled; socket "
+                       f"{self.socket_path}; log {self.log_path}; realtime: {rep.summary()}\n")
+        self.out.flush()
+        ctl[CTL_STATE] = STATE_RUNNING
+        loop.run(1 << 62)
+
     def run(self, reap) -> int:
         """Start the driver and the real-time set-up, run until a signal, shut down.
-        ``reap(pid, timeout_s)`` waits for the I/O process. Returns the exit code."""
+        ``reap(pid, timeout_s)`` waits for the I/O process. Returns the exit code.
+
+        A signal before the loop's first cycle (``early``: one after the build, or while the
+        device is set up) runs no cycle: the device, when it was
+        opened, is brought to 0 V with its amplifiers off and that is confirmed by it
+        (:func:`motorctl.app.build.shutdown`); one line says so, exit 0."""
         asm, loop, ctl = self.asm, self.loop, self.ctl
         rtc = asm.loaded.cfg.loop.realtime
+        rep = None
         old = {s: signal.signal(s, self.on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+        if self.early and not self.term:
+            self.term = self.early[0]
         self.status.publish()
+        opened = tried = False
         try:
-            try:
-                rep = start(asm, rtc.policy)
-            except RealtimeError as exc:
-                self.replies.send({"op": "fatal", "error": str(exc)})
-                self.out.write(f"motorctl: error: {exc}\n")
-                return 1
-            self.replies.send({"op": "ready", "realtime": rep.as_dict(),
-                               "realtime_summary": rep.summary(), "loop_pid": os.getpid(),
-                               "python_threads": threading.active_count(),
-                               "native_threads": len(os.listdir("/proc/self/task")),
-                               "cpu_affinity": sorted(os.sched_getaffinity(0)),
-                               "switch_interval_s": sys.getswitchinterval()})
-            for line in asm.driver.notices:
-                self.out.write(f"motorctl daemon: {line}\n")
-            self.out.write(f"motorctl daemon: {len(self.names)} axes ({', '.join(self.names)}) at "
-                           f"{1 / asm.loaded.period_s:.0f} Hz, all disabled; socket "
-                           f"{self.socket_path}; log {self.log_path}; realtime: {rep.summary()}\n")
-            self.out.flush()
-            ctl[CTL_STATE] = STATE_RUNNING
-            loop.run(1 << 62)
+            if not self.term:             # else a signal during the build: no device opened
+                try:
+                    tried = True
+                    rep = start(asm, rtc.policy)
+                    opened = True
+                except RealtimeError as exc:
+                    self.replies.send({"op": "fatal", "error": str(exc)})
+                    self.out.write(f"motorctl: error: {exc}\n")
+                    return 1
+            if not self.term:             # else a signal while the device was set up: no cycle
+                self._serve(rep)
         finally:
             try:
-                self.stop_checks = shutdown(asm)
+                if tried:
+                    self.stop_checks = shutdown(asm)
             finally:
                 ctl[CTL_STATE] = STATE_ENDED
                 for s_, h in old.items():
@@ -422,6 +523,10 @@ class LoopSide:
                 st = reap(self.io_pid, 15.0)
                 if self.io_status is None:
                     self.io_status = st
+        if not opened and self.term:
+            self.out.write(f"motorctl daemon: stopped by {self.term} during start-up, before the device "
+                           f"was opened: nothing was driven; log {self.log_path}\n")
+            return 0
         confirmed, lines = stop_lines(self.stop_checks)
         if not confirmed:
             for line in lines:
@@ -435,5 +540,8 @@ class LoopSide:
             return 1
         if not confirmed:
             return 3
-        self.out.write(f"motorctl daemon: stopped by {self.term or 'loop end'}: {lines[0]}; log {self.log_path}\n")
+        when = " during start-up, before the loop ran" if loop.k == 0 and self.term else ""
+        rest = rest_words(self.rest)
+        self.out.write(f"motorctl daemon: stopped by {self.term or 'loop end'}{when}: {lines[0]}"
+                       f"{'; ' + rest if rest else ''}; log {self.log_path}\n")
         return 0
