@@ -30,8 +30,10 @@ counted and named in ``describe()`` and :meth:`ModbusDriver.fault_reason`.
 Values (per field): ``type`` int16 | uint16 | int32 | uint32 | float32 (IEEE 754), ``byte_order``
 of the two bytes in a register (Modbus: big), ``word_order`` of a 32-bit value (big: high word
 first), ``scale`` and ``offset``: SI value = raw × scale + offset (voltage [V], position [m]).
-Integer positions are counters that wrap and are unwrapped; float32 positions are taken as they
-are. Bits: a coil, a discrete input, or ``bit`` of a holding/input register, with polarity
+Integer positions are signed counters (int16, int32: a drive's position is signed, CiA 402
+0x6064 INTEGER32) that wrap and are unwrapped; an unsigned position type is refused at the
+config check, by name (a carriage one count below 0 would read as the type's largest count);
+float32 positions are taken as they are. Bits: a coil, a discrete input, or ``bit`` of a holding/input register, with polarity
 ``active: high | low``. The driver owns every bit of the registers it writes (bits it does not
 set are written 0).
 
@@ -212,6 +214,14 @@ class ModbusAxisOptions(StrictModel):
                 raise ValueError(f"{name} must be a holding register bit or a coil (it is written)")
         if self.position.scale is None:
             raise ValueError("position.scale (metres per count) is required")
+        if self.position.type in ("uint16", "uint32"):
+            # a drive's position counter is signed (CiA 402 0x6064 is INTEGER32): taken unsigned,
+            # a carriage one count below 0 reads as 2**32 - 1 counts (2147.48 m at 0.5 um)
+            signed = "int16" if self.position.type == "uint16" else "int32"
+            raise ValueError(f"position.type {self.position.type}: a position counter is signed; declare "
+                             f"the same register {signed} (a carriage one count below 0 would read as "
+                             f"{(TYPE_MAX[self.position.type]) * self.position.scale:.6g} m; a counter that "
+                             f"wraps is unwrapped either way)")
         if self.voltage.scale is None and self.voltage.type in ("uint16", "uint32"):
             raise ValueError("voltage of an unsigned type needs scale and offset (volts per count, volts at 0)")
         return self

@@ -205,8 +205,19 @@ def test_modbus_rtu_crc_and_frames_match_pymodbus():
 
 def _mb_axis(v, c, pos, status, **kw):
     return modbus.ModbusAxisOptions(voltage={"address": v}, enable={"address": c, "bit": 0},
-                                    position={"address": pos, "type": "uint32", "scale": 0.5e-6},
+                                    position={"address": pos, "type": "int32", "scale": 0.5e-6},
                                     fault={"address": status}, **kw)
+
+
+@pytest.mark.parametrize("dtype, signed", [("uint32", "int32"), ("uint16", "int16")])
+def test_modbus_an_unsigned_position_is_refused_by_name(dtype, signed):
+    """A drive's position counter is signed: an unsigned position map would read a carriage one
+    count below 0 as the type's largest count (uint32 at 0.5 um: 2147.48 m), so it is refused
+    at the config check, naming the type and the signed one to declare."""
+    with pytest.raises(ValueError, match=f"position.type {dtype}: a position counter is signed; "
+                                         f"declare the same register {signed}"):
+        modbus.ModbusAxisOptions(voltage={"address": 0}, enable={"address": 1, "bit": 0},
+                                 position={"address": 100, "type": dtype, "scale": 0.5e-6})
 
 
 def test_modbus_register_plan_one_fc23_where_the_device_has_it():

@@ -127,6 +127,31 @@ def _assert_category_1_stop(rl, names, a_max, j_max, limits):
         assert limits[a][0] <= y[-1] <= limits[a][1], (a, y[-1])
 
 
+def test_a_modbus_carriage_below_zero_starts_clean_on_the_shipped_map(repo, tmp_path):
+    """A run's category-1 stop leaves a carriage where its move ended, often at the program's
+    0 m, a count or two either side. configs/gantry-modbus.yaml's positions are signed (int32):
+    carriages standing 3 counts below 0 (X) and 1 count below (Y) are read there, and the run
+    approaches from there and exits 0. With the map's former uint32 the first reading was taken
+    unsigned, 2147.48 m, and the run was refused outside the soft limits (the 10-runs
+    measurement, docs/protection.md)."""
+    plant = _viscous_plant(repo, tmp_path)
+    d = load_yaml(plant)
+    below = {"X": -1.5e-6, "Y": -0.5e-6}                 # -3 and -1 counts of 0.5 um
+    for a, x in below.items():
+        d["axes"][a]["driver"]["initial_position_m"] = x
+    plant.write_text(yaml.safe_dump(d, sort_keys=False))
+    cfg, _rate = _on_the_plant(repo, tmp_path, "modbus", plant)
+    log = tmp_path / "run.mlog"
+    with Emulator("modbus", cfg, plant=plant, watchdog_s=LOOPBACK_WATCHDOG_S) as emu:
+        r = run_cli(["run", str(cfg), "--duration", "0.2", "--log", str(log)], timeout_s=120)
+        assert r.returncode == 0, f"{r.stdout}{r.stderr}{emu.stderr()}"
+    table = parse_run_table(r.stdout)
+    assert set(table) == {"X", "Y"} and not any(t["fault"] for t in table.values()), r.stdout
+    approach = read_log(str(log)).header["approach"]
+    for a, x in below.items():
+        assert approach[a]["from_m"] == pytest.approx(x, abs=1e-9), (a, approach[a])
+
+
 @pytest.mark.parametrize("transport", ["serial", "modbus"])
 def test_runs_that_end_mid_move_stop_in_category_1_and_the_next_starts_clean(repo, tmp_path, transport):
     """IEC 60204-1 §9.2.2 stop category 1 at the end of a run: ``motorctl run``s in a row
