@@ -241,6 +241,10 @@ class EthercatDriver(Driver):
         self.slave_info: list[dict] = []
         self.emergencies: list[tuple[int, int, int]] = []     # (position, error code, error register)
         self.counters = {"exchanges": 0, "wkc_errors": 0, "no_frame": 0, "al_reads": 0, "al_read_misses": 0}
+        # the first slave-state trip of the run on the master's clock (exchanges): the frame that
+        # first came back short, and per axis the frame whose read faulted it from the AL status
+        self._trip_first = -1
+        self._trip_named = [-1] * n
         self.connected = False
 
     # ------------------------------------------------------------------ set-up helpers
@@ -610,6 +614,8 @@ class EthercatDriver(Driver):
             if self._bad_wkc_since is None:
                 self._bad_wkc_since = self.exchanges
             self._short += 1
+            if self._trip_first < 0:
+                self._trip_first = self.exchanges
             if self._short == 1 or self._short % self._down_cycles == 0:
                 self._al_due = True         # service() reads the AL status before the next read
             if self._short > self._wd_cycles and self.state == "active":
@@ -617,10 +623,13 @@ class EthercatDriver(Driver):
             # an axis whose slave has left OP (AL status read after the first short frame) is an
             # amplifier fault now; the others wait in the error bucket (a frame may be lost)
             al = self._al_fault
+            named = self._trip_named
             for i in range(len(al)):
                 self.read_error[i] = not al[i]
                 if al[i]:
                     self.amp_fault[i] = True
+                    if named[i] < 0:
+                        named[i] = self.exchanges
             return
         self._bad_wkc_since = None
         self._short = 0
@@ -879,6 +888,10 @@ class EthercatDriver(Driver):
              "sync0_slaves": self.dc_slaves, "counters": dict(self.counters),
              "emergencies": [{"slave": p, "code": f"0x{c:04X}", "meaning": cia402.error_meaning(c),
                               "register": f"0x{r:02X}"} for p, c, r in self.emergencies],
+             "al_trip": ({"first_short_frame": self._trip_first,
+                          "named_after_frames": {a: (x - self._trip_first if x >= 0 else None)
+                                                 for a, x in zip(self.axis_names, self._trip_named)}}
+                         if self._trip_first >= 0 else None),
              "round_trip": {"n": rt["n"],
                             "median_us": None if rt["median_s"] is None else round(rt["median_s"] * 1e6, 1),
                             "max_us": None if rt["max_s"] is None else round(rt["max_s"] * 1e6, 1)}}

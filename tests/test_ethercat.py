@@ -256,6 +256,15 @@ def test_a_host_pause_beyond_the_sm_watchdog_faults_both_axes_from_the_al_status
         assert k - stalls[-1] <= 3, (stalls[-1], k)
     for a in ("X", "Y"):
         assert not rl.col(f"{a}.u")[k:].any() and not rl.col(f"{a}.enabled")[k:].any()
+    # on the master's clock (its exchanges, one per cycle): each axis is named from its slave's AL
+    # status within 2 frames of the first frame that came back short (that frame's read flags
+    # it, service() reads the AL status, the next read faults the axis)
+    drv = rl.header["driver"]
+    trip = drv["al_trip"]
+    print(f"EtherCAT watchdog trip: {trip}, counters {drv['counters']}")
+    assert trip is not None and set(trip["named_after_frames"]) == {"X", "Y"}, drv
+    for a, n in trip["named_after_frames"].items():
+        assert n is not None and 1 <= n <= 2, (a, trip, drv["counters"])
     # the stop judged against the slaves' states now: the drive in Fault, the EL4132 in its safe
     # state, the EL2008 (in OP) written off and read back
     assert "amplifiers off (confirmed by the device" in r.stdout and "its safe state" in r.stdout, \
