@@ -29,13 +29,9 @@ class DaemonUnreachable(Exception):
     """Printed as one line; exit code 1."""
 
 
-def call(path: str, request: dict, timeout_s: float = 5.0) -> dict:
-    """Send one request to the daemon and return its answer (a dict with 'ok'). A full
-    connection queue (many operators at once) is waited out with backoff within the timeout.
-
-    Raises:
-        DaemonUnreachable: no daemon at ``path``, permission denied, or no answer in time.
-    """
+def _connect(path: str, timeout_s: float):
+    """A connection to the daemon's socket; a full connection queue (many operators at once) is
+    waited out with backoff within the timeout. Raises DaemonUnreachable."""
     deadline = time.monotonic() + timeout_s
     pause = 0.005
     while True:
@@ -43,7 +39,7 @@ def call(path: str, request: dict, timeout_s: float = 5.0) -> dict:
         s.settimeout(timeout_s)
         try:
             s.connect(path)
-            break
+            return s
         except BlockingIOError:
             s.close()
             # the daemon's listen backlog is full (many operators at once): queue up
@@ -60,9 +56,11 @@ def call(path: str, request: dict, timeout_s: float = 5.0) -> dict:
                 raise DaemonUnreachable(f"permission denied on {path}: commanding the machine needs "
                                         f"membership of the socket's group") from None
             raise DaemonUnreachable(f"cannot reach the daemon at {path}: {exc.strerror or exc}") from None
+
+
+def _answer(s, path: str, timeout_s: float, buf: bytes = b"") -> tuple[dict, bytes]:
+    """The next answer line on ``s`` (and the bytes after it). Raises DaemonUnreachable."""
     try:
-        s.sendall((json.dumps(request) + "\n").encode())
-        buf = b""
         while b"\n" not in buf:
             chunk = s.recv(65536)
             if not chunk:
@@ -72,51 +70,66 @@ def call(path: str, request: dict, timeout_s: float = 5.0) -> dict:
         raise DaemonUnreachable(f"the daemon at {path} did not answer within {timeout_s:g} s") from None
     except OSError as exc:
         raise DaemonUnreachable(f"lost the connection to the daemon at {path}: {exc.strerror or exc}") from None
+    if b"\n" not in buf:
+        raise DaemonUnreachable(f"the daemon at {path} closed the connection without answering")
+    line, _, rest = buf.partition(b"\n")
+    return json.loads(line.decode()), rest
+
+
+def call(path: str, request: dict, timeout_s: float = 5.0) -> dict:
+    """Send one request to the daemon and return its answer (a dict with 'ok'). A full
+    connection queue (many operators at once) is waited out with backoff within the timeout.
+
+    Raises:
+        DaemonUnreachable: no daemon at ``path``, permission denied, or no answer in time.
+    """
+    s = _connect(path, timeout_s)
+    try:
+        s.sendall((json.dumps(request) + "\n").encode())
+        return _answer(s, path, timeout_s)[0]
+    except OSError as exc:
+        raise DaemonUnreachable(f"lost the connection to the daemon at {path}: {exc.strerror or exc}") from None
     finally:
         s.close()
-    if not buf:
-        raise DaemonUnreachable(f"the daemon at {path} closed the connection without answering")
-    return json.loads(buf.split(b"\n", 1)[0].decode())
 
 
-#: a program's chunk: at most this many characters, fewer where its JSON encoding would pass
-#: CHUNK_BYTES (the daemon takes requests of up to 65536 bytes, protocol.MAX_REQUEST_BYTES)
-CHUNK_CHARS, CHUNK_BYTES = 32768, 60000
-#: a program up to this many characters goes in one request
+#: a program up to this many characters goes in the ``gcode`` request itself
 ONE_REQUEST_CHARS = 16384
 
 
-def send_program(path: str, text: str, filename: str, timeout_s: float = 5.0) -> dict:
-    """Send a G-code program of any length and queue it: in one request when short, else in
-    chunks (``upload``, :mod:`motorctl.app.daemon.protocol`) then ``gcode`` naming them. The
-    daemon checks the whole program before anything moves and answers when its first window is
-    planned; the wait for that grows with the program (``timeout_s`` plus 60 s per 10 MB).
-    Returns the daemon's answer (``ok`` False: refused, with ``error``).
+def send_program(path: str, text: str, filename: str, timeout_s: float = 5.0, *, from_line: int = 1,
+                 single_block: bool = False) -> dict:
+    """Send a G-code program of any length and queue it: in the request when short, else by
+    ``upload`` (its bytes streamed on one connection, :mod:`motorctl.app.daemon.protocol`) then
+    ``gcode`` naming it. The daemon checks the whole program before anything moves and answers
+    when its first window is planned; the wait for that grows with the program (``timeout_s``
+    plus 60 s per 10 MB). ``from_line``: run from that line; ``single_block``: a pause after
+    every block. Returns the daemon's answer (``ok`` False: refused, with ``error``).
 
     Raises:
         DaemonUnreachable: as :func:`call`.
     """
+    opts = {"from_line": int(from_line), "single_block": bool(single_block)}
     if len(text) <= ONE_REQUEST_CHARS:
-        return call(path, {"cmd": "gcode", "text": text, "filename": filename},
+        return call(path, {"cmd": "gcode", "text": text, "filename": filename, **opts},
                     max(timeout_s, 30.0))
-    token, offset, i = None, 0, 0
-    while i < len(text):
-        n = CHUNK_CHARS
-        while True:
-            piece = text[i:i + n]
-            req = {"cmd": "upload", "upload": token, "offset": offset, "data": piece}
-            if len(json.dumps(req)) <= CHUNK_BYTES or n == 1:
-                break
-            n //= 2
-        ans = call(path, req, timeout_s)
+    data = text.encode("utf-8", "surrogatepass")
+    send_s = max(timeout_s, 30.0) + 60.0 * len(data) / 10e6
+    s = _connect(path, send_s)
+    try:
+        s.sendall((json.dumps({"cmd": "upload", "bytes": len(data)}) + "\n").encode())
+        ans, rest = _answer(s, path, send_s)
         if not ans.get("ok"):
             return ans
-        token, offset = ans["upload"], ans["bytes"]
-        i += len(piece)
-    wait = max(timeout_s, 30.0) + 60.0 * offset / 10e6
-    return call(path, {"cmd": "gcode", "upload": token, "filename": filename}, wait)
-
-
+        s.sendall(data)
+        ans, _ = _answer(s, path, send_s, rest)
+    except OSError as exc:
+        raise DaemonUnreachable(f"lost the connection to the daemon at {path}: {exc.strerror or exc}") from None
+    finally:
+        s.close()
+    if not ans.get("ok"):
+        return ans
+    return call(path, {"cmd": "gcode", "upload": ans["upload"], "filename": filename, **opts}, send_s)
 
 
 class Refused(Exception):
@@ -162,10 +175,11 @@ class Client:
         return self.request({"cmd": "move", "targets": dict(targets),
                              **({"feed": feed} if feed is not None else {})})
 
-    def gcode(self, text: str, filename: str = "-") -> dict:
+    def gcode(self, text: str, filename: str = "-", *, from_line: int = 1, single_block: bool = False) -> dict:
         """Queue a G-code program of any length (:func:`send_program`; refused whole with
         ``file:line:column`` when wrong)."""
-        ans = send_program(self.path, text, filename, self.timeout_s)
+        ans = send_program(self.path, text, filename, self.timeout_s, from_line=from_line,
+                           single_block=single_block)
         if not ans.get("ok"):
             raise Refused(ans.get("error", "refused"), bool(ans.get("usage")))
         return ans
@@ -189,13 +203,15 @@ class Client:
         return self.request({"cmd": "home", "axis": axis})
 
     def wait(self, timeout_s: float = 60.0, poll_s: float = 0.02) -> dict:
-        """Until nothing is queued or streamed (or ``timeout_s``: DaemonUnreachable). Returns
-        the last status. A program cut short (underrun, abort, fault) ends the wait too: see
+        """Until nothing is queued or streamed and every axis in command mode is within its
+        in-position window (or ``timeout_s``: DaemonUnreachable). Returns the last status. A program cut short (underrun, abort, fault) ends the wait too: see
         ``status()["motion"]["stopped_because"]``."""
         end = time.monotonic() + timeout_s
         while True:
             st = self.status()
-            if st["motion"]["idle"]:
+            mo = st["motion"]
+            if mo["idle"] and (mo["stopped_because"] or all(
+                    a.get("in_position", True) for a in st["axes"].values() if a["phase"] == "command")):
                 return st
             if time.monotonic() > end:
                 raise DaemonUnreachable(f"motion did not finish within {timeout_s:g} s")

@@ -213,3 +213,28 @@ def test_sigterm_during_start_up_is_one_line_and_the_device_at_0V(tmp_path, wher
         logs = list((tmp_path / "logs").glob("*.mlog"))
         assert logs and all(len(read_log(str(p)).col("t")) == 0 for p in logs), logs
     assert not sock.exists()
+
+
+_EARLY_SIGTERM = """
+import os, signal, sys
+import motorctl.app.warmup as W
+W.say_if_cold = lambda *a, **k: os.kill(os.getpid(), signal.SIGTERM)   # while the CLI loads the daemon
+from motorctl.cli import main
+sys.exit(main(["daemon", sys.argv[1], "--socket", sys.argv[2]]))
+"""
+
+
+def test_sigterm_while_the_cli_loads_the_daemon_is_one_line(tmp_path):
+    """SIGTERM before the daemon's modules are loaded (``motorctl daemon``'s first second: the
+    cold-cache notice, the imports): one line, exit 0, nothing opened. Before, the default
+    handler ended it silently (exit -15)."""
+    import subprocess
+    import sys
+
+    cfg = make_config(tmp_path)
+    sock = tmp_path / "motorctl.sock"
+    r = subprocess.run([sys.executable, "-c", _EARLY_SIGTERM, str(cfg), str(sock)],
+                       capture_output=True, text=True, timeout=120)
+    assert (r.returncode, r.stderr) == (0, "motorctl daemon: stopped by SIGTERM during start-up, before the "
+                                           "device was opened: nothing was driven\n")
+    assert not sock.exists()

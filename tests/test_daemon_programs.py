@@ -47,6 +47,29 @@ def machine(tmp_path_factory):
         dmn.kill()
 
 
+@pytest.fixture(autouse=True)
+def ready(request):
+    """Each test starts from the same state whatever ran before (any order): both axes in command
+    mode without a fault, no motion, the optional stop as configured (off)."""
+    if "machine" not in request.fixturenames:
+        yield
+        return
+    sock = request.getfixturevalue("machine").sock
+    if not status(sock)["motion"]["idle"]:
+        call(str(sock), {"cmd": "abort"})
+        wait_for(lambda: status(sock)["motion"]["idle"], 20, "the abort")
+    call(str(sock), {"cmd": "optional-stop", "value": False})
+    for a, s in status(sock)["axes"].items():
+        if s["fault"]:
+            assert ctl(sock, "fault-reset", a).returncode == 0
+        if s["phase"] != "command":
+            if s["state"] == "enabled":
+                assert ctl(sock, "stop", a).returncode == 0
+            assert ctl(sock, "start", a, "--mode", "command").returncode == 0
+    wait_for(lambda: all(s["phase"] == "command" for s in status(sock)["axes"].values()), 10, "command mode")
+    yield
+
+
 def _y(sock) -> np.ndarray:
     ax = status(sock)["axes"]
     return np.array([ax["X"]["y_m"], ax["Y"]["y_m"]])
@@ -192,30 +215,100 @@ def test_any_program_is_an_answer_and_a_refused_one_moves_nothing(machine, text)
 
 
 def test_the_daemon_is_alive_after_the_random_requests(machine):
-    """After the property tests (any order): the daemon answers and the axes are in command mode
-    without a fault."""
-    st_ = status(machine.sock)
-    assert st_["process"]["planner_pid"]
-    for a in ("X", "Y"):
-        if st_["axes"][a]["phase"] != "command":     # a random valid 'stop' may have ended it
-            assert ctl(machine.sock, "start", a, "--mode", "command").returncode == 0
-    wait_for(lambda: all(s["phase"] == "command" for s in status(machine.sock)["axes"].values()), 10,
-             "command mode")
+    """The daemon answers, its planner runs, and the axes are in command mode without a fault."""
+    assert status(machine.sock)["process"]["planner_pid"]
     _no_fault(machine.sock)
 
 
-def test_a_dead_planner_is_an_answer_not_an_end(machine, tmp_path):
-    """The planner process killed: the next program is refused with one line naming it; the
-    daemon, its axes and moves go on."""
+def test_a_dead_planner_is_started_again(machine, tmp_path):
+    """The planner process killed: the daemon starts a new one (one line on its stderr); the next
+    program runs; the daemon, its axes and moves go on."""
     sock = machine.sock
     pid = status(sock)["process"]["planner_pid"]
     os.kill(pid, signal.SIGKILL)
-    wait_for(lambda: not status(sock)["process"]["planner_pid"], 5, "the planner's end seen")
+    wait_for(lambda: status(sock)["process"]["planner_pid"] not in (None, pid), 10, "a new planner")
     prog = tmp_path / "p.ngc"
     prog.write_text("G21 G90\nG1 X60 Y60 F3000\nM2\n")
-    r = ctl(sock, "gcode", str(prog))
-    assert r.returncode == 1 and "the planner process is not running" in r.stderr, r.stderr
-    assert ctl(sock, "move", "X=0.070", "Y=0.060", "--wait").returncode == 0
+    r = ctl(sock, "gcode", str(prog), "--wait")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert np.all(np.abs(_y(sock) - np.array([0.060, 0.060])) < 5e-6)
+    _no_fault(sock)
+
+
+def _run(sock, tmp_path, name: str, text: str, *args) -> object:
+    prog = tmp_path / name
+    prog.write_text(text)
+    return ctl(sock, "gcode", str(prog), *args)
+
+
+def _paused_at(sock, where_mm) -> None:
+    wait_for(lambda: status(sock)["motion"]["stopped_because"].startswith("paused"), 20, "a pause",
+             detail=lambda: status(sock)["motion"])
+    wait_for(lambda: np.all(np.abs(_y(sock) - np.array(where_mm) * 1e-3) < 5e-6), 5, f"rest at {where_mm}",
+             detail=lambda: _y(sock))
+
+
+def test_run_from_line_single_block_and_the_optional_stop(machine, tmp_path):
+    """LinuxCNC's run from line (a rapid to where the program stands at that line, then on: the
+    lines before it never run), single block (a pause after every block; resume runs the next),
+    the optional stop switched at run time (M1 passes with it off, pauses with it on), and
+    ``wait`` returning in position (every axis within limits.in_position_m)."""
+    sock = machine.sock
+    square = "G21 G90 G64 P0.01\nG0 X20 Y20\nG1 X40 Y20 F6000\nG1 X40 Y40\nG1 X60 Y40\nM2\n"
+    r = _run(sock, tmp_path, "from.ngc", square, "--from-line", "5")
+    assert r.returncode == 0, r.stderr
+    xs = []
+    wait_for(lambda: xs.append(_y(sock)[0]) or status(sock)["motion"]["idle"], 20, "the run from line 5")
+    r = ctl(sock, "wait", "--timeout", "10")
+    assert r.returncode == 0, r.stdout + r.stderr
+    st = status(sock)
+    assert all(a["in_position"] for a in st["axes"].values()), st["axes"]
+    assert np.all(np.abs(_y(sock) - np.array([0.060, 0.040])) < 5e-6)
+    assert min(xs) > 0.0399, min(xs)                      # never back to X 20 or 40 of line 2-3
+    r = _run(sock, tmp_path, "far.ngc", square, "--from-line", "99")
+    assert r.returncode == 2 and "beyond the program's last line (6)" in r.stderr, r.stderr
+
+    r = _run(sock, tmp_path, "single.ngc", square, "--single-block")
+    assert r.returncode == 0, r.stderr
+    for pt in ((20, 20), (40, 20), (40, 40), (60, 40)):        # after every block, the last too
+        _paused_at(sock, pt)
+        assert ctl(sock, "resume").returncode == 0
+    assert ctl(sock, "wait", "--timeout", "20").returncode == 0
+    assert np.all(np.abs(_y(sock) - np.array([0.060, 0.040])) < 5e-6)
+
+    m1 = "G21 G90\nG1 X30 Y30 F6000\nM1\nG1 X50 Y30\nM2\n"
+    assert status(sock)["motion"]["optional_stop"] is False           # the config's gcode.optional_stop
+    assert _run(sock, tmp_path, "m1.ngc", m1, "--wait").returncode == 0
+    assert np.all(np.abs(_y(sock) - np.array([0.050, 0.030])) < 5e-6)
+    assert ctl(sock, "optional-stop", "on").returncode == 0
+    assert _run(sock, tmp_path, "m1b.ngc", m1).returncode == 0
+    _paused_at(sock, (30, 30))
+    assert ctl(sock, "resume").returncode == 0
+    assert ctl(sock, "wait", "--timeout", "20").returncode == 0
+    assert ctl(sock, "optional-stop", "off").returncode == 0
+    _no_fault(sock)
+
+
+def test_jog_of_an_axis_in_command_mode(machine):
+    """Incremental (--by), to a position, and continuous (--velocity until --stop) jogs of an
+    enabled axis in command mode; a jog past the soft limit is refused, nothing moves."""
+    sock = machine.sock
+    y0 = _y(sock)
+    r = ctl(sock, "jog", "X", "--by", "0.002", "--wait")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert abs(_y(sock)[0] - (y0[0] + 0.002)) < 5e-6 and abs(_y(sock)[1] - y0[1]) < 5e-6
+    assert ctl(sock, "jog", "Y", "0.050", "--wait").returncode == 0
+    assert abs(_y(sock)[1] - 0.050) < 5e-6
+    r = ctl(sock, "jog", "X", "--by", "1.0")
+    assert r.returncode == 2 and "outside the soft limits" in r.stderr, r.stderr
+    x1 = _y(sock)[0]
+    assert ctl(sock, "jog", "X", "--velocity", "0.02").returncode == 0
+    wait_for(lambda: _y(sock)[0] > x1 + 0.003, 10, "the continuous jog")
+    assert ctl(sock, "jog", "X", "--stop").returncode == 0
+    wait_for(lambda: status(sock)["motion"]["idle"], 10, "the jog's stop")
+    x2 = _y(sock)[0]
+    assert x1 + 0.003 < x2 < 0.42
+    wait_for(lambda: abs(_y(sock)[0] - x2) < 5e-6, 5, "at rest")
     _no_fault(sock)
 
 

@@ -17,6 +17,7 @@ import argparse
 import gc
 import importlib
 import os
+import signal
 import sys
 from importlib.metadata import entry_points
 
@@ -85,13 +86,43 @@ def main(argv=None) -> int:
 
 
 def _command(argv) -> int:
+    words = sys.argv[1:] if argv is None else list(argv)
+    if words and words[0] in COMPILING_COMMANDS and not {"-h", "--help"} & set(words):
+        # a signal while a long start-up loads and builds (before the device is opened, where
+        # the command's own stop takes over) is one line, not a silent end
+        old = {s: signal.signal(s, _start_up_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+        try:
+            return _start_up(argv)
+        except _StartUpSignal as exc:
+            sys.stdout.flush()
+            who = "motorctl daemon" if words[0] == "daemon" else "motorctl"
+            sys.stderr.write(f"{who}: stopped by {exc} during start-up, before the device was opened: "
+                             f"nothing was driven\n")
+            return 0 if words[0] == "daemon" else 1    # a signal is the daemon's normal end
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+    return _run_command(argv)
+
+
+class _StartUpSignal(Exception):
+    """SIGTERM/SIGINT during a command's start-up, before its device is opened."""
+
+
+def _start_up_signal(signum, _frame):
+    raise _StartUpSignal(signal.Signals(signum).name)
+
+
+def _start_up(argv) -> int:
+    from motorctl.app.warmup import say_if_cold
+    say_if_cold()         # before the parser's imports load numba: a cold start is not a hang
+    return _run_command(argv)
+
+
+def _run_command(argv) -> int:
     # not motorctl.config (its models load numba) nor motorctl.loop.rt or the run log (numpy,
     # pydantic): an operator command (status, hold, ...) imports only the client side
     from motorctl.inputs import ConfigError, InputError
-    words = sys.argv[1:] if argv is None else list(argv)
-    if words and words[0] in COMPILING_COMMANDS and not {"-h", "--help"} & set(words):
-        from motorctl.app.warmup import say_if_cold
-        say_if_cold()         # before the parser's imports load numba: a cold start is not a hang
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

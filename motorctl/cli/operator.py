@@ -49,6 +49,8 @@ def _wrap(handler):
 
 # --------------------------------------------------------------------------- handlers
 def cmd_daemon(args) -> int:
+    """``motorctl daemon``: a SIGTERM/SIGINT while it loads and builds is one line
+    (:func:`motorctl.cli.main`, then :func:`motorctl.app.daemon.run_daemon`'s own)."""
     from motorctl.app.warmup import say_if_cold
     say_if_cold()                                 # within a second, before numba is imported
     from motorctl.app.daemon import DaemonError, run_daemon
@@ -111,7 +113,27 @@ def cmd_fault_reset(args) -> int:
 
 
 def cmd_jog(args) -> int:
+    from motorctl.cli import UsageError
+    given = [k for k in ("to_m", "by", "velocity") if getattr(args, k) is not None] + (["stop"] if args.stop else [])
+    if len(given) != 1:
+        raise UsageError("jog: give one of TO_M, --by M, --velocity M_PER_S or --stop")
+    if given[0] != "to_m":                   # an axis in command mode (a move of the stream)
+        req = {"cmd": "jog", "axis": args.axis, given[0]: True if given[0] == "stop" else getattr(args, given[0])}
+        ans = _checked(args, req)
+        if given[0] == "stop":
+            sys.stdout.write(f"{args.axis}: jog stopping on the path\n")
+            return 0
+        k = _axis_index(ans, args.axis)
+        sys.stdout.write(f"{args.axis}: jogging {ans['from_m'][k]:.6f} -> {ans['to_m'][k]:.6f} m in "
+                         f"{ans['duration_s']:.3f} s "
+                         f"(command mode{'; jog --stop ends it' if given[0] == 'velocity' else ''})\n")
+        return _motion_wait(args, ans["duration_s"] * 10 + 30) if args.wait else 0
     ans = _checked(args, {"cmd": "jog", "axis": args.axis, "to_m": args.to_m, "speed": args.speed})
+    if "duration_s" in ans:                  # the axis was in command mode: a move of the stream
+        k = _axis_index(ans, args.axis)
+        sys.stdout.write(f"{args.axis}: jogging {ans['from_m'][k]:.6f} -> {ans['to_m'][k]:.6f} m in "
+                         f"{ans['duration_s']:.3f} s (command mode)\n")
+        return _motion_wait(args, ans["duration_s"] * 10 + 30) if args.wait else 0
     sys.stdout.write(f"{args.axis}: jogging {ans.get('from_m', float('nan')):.6f} -> {args.to_m:.6f} m "
                      f"in {ans.get('move_s', 0.0):.3f} s"
                      + (" (recovering from outside the soft limits)" if ans.get("recovery") else "")
@@ -130,6 +152,10 @@ def cmd_jog(args) -> int:
     raise DaemonUnreachable(f"axis {args.axis} did not finish the jog within {bound:.2f} s")
 
 
+def _axis_index(ans: dict, axis: str) -> int:
+    return list(ans.get("axes", [])).index(axis) if axis in ans.get("axes", []) else 0
+
+
 def cmd_inject(args) -> int:
     ans = _checked(args, {"cmd": "inject", "axis": args.axis, "kind": args.kind,
                           "cycles": args.cycles, "jump_m": args.jump_m, "force_N": args.force_n})
@@ -144,13 +170,15 @@ def progress_line(mo: dict) -> str:
 
 
 def _motion_wait(args, timeout_s: float, progress: bool = False) -> int:
-    """Until the daemon's motion is idle; the end position and why a program stopped early.
+    """Until the daemon's motion is idle and every axis in command mode is within its in-position
+    window (``limits.in_position_m``); the end position and why a program stopped early.
     progress: a progress line on stderr, rewritten in place (``--progress``)."""
     t0 = time.monotonic()
     while True:
         st = _checked(args, {"cmd": "status"})["status"]
         mo = st["motion"]
-        if mo["idle"]:
+        if mo["idle"] and (mo["stopped_because"] or all(
+                s.get("in_position", True) for s in st["axes"].values() if s["phase"] == "command")):
             break
         if progress:
             sys.stderr.write("\r" + progress_line(mo))
@@ -200,7 +228,10 @@ def cmd_gcode(args) -> int:
         except (OSError, UnicodeDecodeError) as exc:
             raise UsageError(f"{args.file}: cannot read: {getattr(exc, 'strerror', None) or exc}") from None
         name = args.file
-    ans = send_program(socket_path(args), text, name)
+    if args.from_line < 1:
+        raise UsageError(f"gcode: --from-line {args.from_line}: must be a line number >= 1")
+    ans = send_program(socket_path(args), text, name, from_line=args.from_line,
+                       single_block=args.single_block)
     if not ans.get("ok"):
         if ans.get("usage"):
             raise UsageError(ans.get("error", "refused"))
@@ -222,6 +253,8 @@ def cmd_motion(args) -> int:
     req = {"cmd": args.command}
     if args.command == "override":
         req["value"] = args.value
+    elif args.command == "optional-stop":
+        req["value"] = args.state == "on"
     mo = _checked(args, req)["motion"]
     sys.stdout.write(f"{args.command}: queue {mo['queue_depth']}, override {mo['override']:g}, "
                      f"feed scale {mo['feed_scale']:.3f}{', holding' if mo['hold'] else ''}\n")
@@ -403,10 +436,18 @@ def register(parser: argparse.ArgumentParser, sub) -> None:
     p.add_argument("--wait", action="store_true", help="return when the program has finished")
     p.add_argument("--progress", action="store_true",
                    help="show the line being run, the share done and the time left until it has finished")
+    p.add_argument("--from-line", type=int, default=1, metavar="N",
+                   help="run from line N (read from the start for the modal state; a rapid to where the "
+                        "program stands at that line, the outputs as it left them, then on)")
+    p.add_argument("--single-block", action="store_true",
+                   help="stop after every block; 'motorctl resume' runs the next")
 
     client("hold", "feed hold: decelerate on the path, then hold", cmd_motion)
     client("resume", "resume after a feed hold", cmd_motion)
     client("abort", "stop on the path, hold, clear the queue", cmd_motion)
+    p = client("optional-stop", "M1 pauses (on) or passes (off) from now on, the running program too",
+               cmd_motion)
+    p.add_argument("state", choices=("on", "off"), help="on: M1 pauses the program; off: it passes")
     p = client("override", "feed override (0.0 .. 1.5)", cmd_motion)
     p.add_argument("value", type=float, metavar="F", help="the feed override, 0.0 to 1.5 (1.0: as programmed)")
     p = client("home", "home an axis in command mode: search its switch, latch the index pulse, set "
@@ -433,9 +474,18 @@ def register(parser: argparse.ArgumentParser, sub) -> None:
     p.add_argument("--controller", choices=CONTROLLER_NAMES, required=True, help="the law to switch to")
 
     p = client("jog", "move a disabled axis to a position at reduced speed, then 0 V (also back "
-                      "inside its soft limits after a soft-limit fault)", cmd_jog)
+                      "inside its soft limits after a soft-limit fault); an axis in command mode: "
+                      "to a position, --by a distance or at --velocity until --stop", cmd_jog)
     p.add_argument("axis", help="the axis name, as in the config's axes")
-    p.add_argument("to_m", type=float, metavar="TO_M", help="target position [m], inside the soft limits")
+    p.add_argument("to_m", type=float, nargs="?", default=None, metavar="TO_M",
+                   help="target position [m], inside the soft limits")
+    p.add_argument("--by", type=float, default=None, metavar="M",
+                   help="command mode: move by this distance [m] (incremental jog)")
+    p.add_argument("--velocity", type=float, default=None, metavar="M_PER_S",
+                   help="command mode: move at this signed speed [m/s] toward the soft limit on its side "
+                        "until 'jog AXIS --stop' (continuous jog)")
+    p.add_argument("--stop", action="store_true", help="command mode: end a continuous jog (on the path)")
+    p.add_argument("--wait", action="store_true", help="command mode: return when in position")
     p.add_argument("--speed", type=float, default=0.1,
                    help="fraction of the axis's v_max and a_max (default 0.1, at most 0.5)")
 

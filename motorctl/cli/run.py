@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import sys
 import tempfile
 
@@ -24,30 +23,12 @@ def _load(path: str, check_budget: bool = True):
 EXIT_STOP_UNCONFIRMED = 3
 
 
-class _StartUpSignal(Exception):
-    """SIGTERM or SIGINT before the run's own handlers are in place (the config read, the
-    loop's compile): nothing has been opened, nothing driven."""
-
-
-def _stop_start_up(signum, _frame):
-    raise _StartUpSignal(signal.Signals(signum).name)
-
-
 def cmd_run(args) -> int:
     """``motorctl run``: a SIGTERM/SIGINT during start-up, before the device is opened, ends it
-    with one line (nothing was driven); from the device's opening on, the run's own stop
-    (:func:`motorctl.app.job.run_job`: 0 V confirmed by the device, the stop line)."""
-    old = {s: signal.signal(s, _stop_start_up) for s in (signal.SIGTERM, signal.SIGINT)}
-    try:
-        return _cmd_run(args)
-    except _StartUpSignal as exc:
-        sys.stdout.flush()
-        sys.stderr.write(f"motorctl: stopped by {exc} during start-up, before the device was opened: "
-                         f"nothing was driven\n")
-        return 1
-    finally:
-        for s, h in old.items():
-            signal.signal(s, h)
+    with one line (nothing was driven; :func:`motorctl.cli.main` catches it); from the device's
+    opening on, the run's own stop (:func:`motorctl.app.job.run_job`: 0 V confirmed by the
+    device, the stop line)."""
+    return _cmd_run(args)
 
 
 def _cmd_run(args) -> int:

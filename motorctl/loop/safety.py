@@ -381,6 +381,9 @@ class LimitsConfig(StrictModel):
     soft_max_m: Position_m = 1.0
     following_error_m: quantity(1e-7, 1.0, "m") = 0.002
     min_following_error_m: quantity(1e-7, 1.0, "m") = 0.0005
+    #: the in-position window: commanded motion has ended (``wait``, ``move --wait``) once its
+    #: planned motion is done and |x_d − y| is within this on every axis in command mode
+    in_position_m: quantity(1e-8, 0.01, "m") = 5e-6
     max_velocity_m_per_s: quantity(1e-6, 50.0, "m/s") = 3.0
     encoder_max_speed_m_per_s: quantity(1e-3, 1000.0, "m/s") = 10.0
     error_bucket_increment: Annotated[int, Field(ge=1)] = 10

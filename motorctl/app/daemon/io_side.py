@@ -14,6 +14,7 @@ with the reason; the end record goes into the header (reserved space) at the exi
 
 from __future__ import annotations
 
+import math
 import os
 import queue
 import secrets
@@ -28,7 +29,7 @@ import time
 from motorctl.app.build import approach_move
 from motorctl.app.daemon.motion_side import AxisLimits, MotionError, MotionSide
 from motorctl.app.daemon.notify import sd_notify, watchdog_ping_interval_s
-from motorctl.app.daemon.plan_side import AHEAD_WINDOWS, PLAN_NICE, PlannerLink
+from motorctl.app.program_planner import AHEAD_WINDOWS, PLAN_NICE, PlannerLink
 from motorctl.app.daemon.protocol import (
     LineBuffer,
     Mailbox,
@@ -68,7 +69,9 @@ CLIENT_IDLE_S = 5.0
 SCOPE_STATUS_S = 0.2
 #: after running out of file descriptors, accept nothing for this long [s]
 EMFILE_PAUSE_S = 0.1
-#: programs being sent in chunks at once; one without a chunk for UPLOAD_IDLE_S is dropped [s]
+#: the planner process is started again when it ends, this many times in all
+MAX_PLANNER_STARTS = 20
+#: programs being sent (or sent and not yet run) at once; one idle for UPLOAD_IDLE_S is dropped [s]
 MAX_UPLOADS, UPLOAD_IDLE_S = 4, 120.0
 
 
@@ -146,6 +149,7 @@ class IOSide:
         self.max_program_bytes = d.max_program_bytes
         self.spool = tempfile.mkdtemp(prefix="motorctl-programs-")
         self.uploads: dict[str, dict] = {}
+        self.raw: dict = {}                  # connection -> the upload whose bytes it sends
         self.job: dict | None = None
 
     # ------------------------------------------------------------------ requests
@@ -170,11 +174,20 @@ class IOSide:
         if self.ready is None:
             return {"ok": False, "error": "the loop is not running yet; retry in a moment"}
         if req.cmd == "upload":
-            return self.upload(req.motion)
+            return self.upload(conn, req.motion, self.buffers[conn].take_rest())
         if req.cmd == "gcode":
             return self.start_program(conn, req.motion)
-        if req.cmd in ("move", "hold", "resume", "abort", "override"):
+        if req.cmd in ("move", "hold", "resume", "abort", "override", "optional-stop"):
             return self.motion_request(req)
+        if req.cmd == "jog" and (req.jog["kind"] != "to" or self.axis_status(i)["phase"] == "command"):
+            try:                             # an axis in command mode: a move of the stream
+                j = req.jog
+                if j["kind"] == "to":
+                    v_max = self.plan.asm.loaded.axes[self.names[i]].trajectory.v_max
+                    return {"ok": True, **self.motion.jog(i, "to", j["to_m"], feed=j["speed"] * v_max)}
+                return {"ok": True, **self.motion.jog(i, j["kind"], j.get(j["kind"], 0.0))}
+            except MotionError as exc:
+                return {"ok": False, "error": str(exc), "usage": exc.usage}
         if req.cmd == "home":
             try:
                 return {"ok": True, **self.motion.home(i)}
@@ -235,6 +248,8 @@ class IOSide:
                 return {"ok": True, **mo.move(a["targets"], a["feed"])}
             if req.cmd == "override":
                 mo.set_override(a["value"])
+            elif req.cmd == "optional-stop":
+                mo.set_optional_stop(a["value"])
             else:
                 getattr(mo, req.cmd)()
         except MotionError as exc:
@@ -242,60 +257,104 @@ class IOSide:
         return {"ok": True, "motion": mo.status()}
 
     # ------------------------------------------------------------------ programs
-    def upload(self, a: dict) -> dict:
-        """One chunk of a program sent in chunks (:mod:`motorctl.app.daemon.protocol`),
-        appended to its spool file. A program beyond ``daemon.max_program_bytes`` is refused
-        by name and its chunks dropped."""
+    def upload(self, conn, a: dict, rest: bytes) -> dict | None:
+        """``upload`` (:mod:`motorctl.app.daemon.protocol`): a program's ``bytes`` follow on this
+        connection, into a spool file. Answers ``continue`` at once (the client then sends them),
+        the token once they are all in (:meth:`_upload_in`). A program beyond
+        ``daemon.max_program_bytes`` is refused by name before a byte of it is taken. None:
+        the answer comes later."""
         now = time.monotonic()
         for tok in [t for t, u in self.uploads.items() if now - u["t"] > UPLOAD_IDLE_S]:
             self._drop_upload(tok)
-        data = a["data"].encode("utf-8", "surrogatepass")
-        tok = a["upload"]
-        if tok is None:
-            if a["offset"] != 0:
-                return {"ok": False, "error": "upload: the first chunk starts at offset 0", "usage": True}
-            if len(self.uploads) >= MAX_UPLOADS:
-                return {"ok": False, "error": f"upload: {MAX_UPLOADS} programs are being sent already; "
-                                              f"retry when one is done", "usage": False}
-            tok = secrets.token_hex(8)
-            self.uploads[tok] = {"path": os.path.join(self.spool, tok + ".ngc"), "bytes": 0, "t": now}
+        n = a["bytes"]
+        if n > self.max_program_bytes:
+            return {"ok": False, "error": f"upload: the program ({n} bytes) is larger than "
+                                          f"daemon.max_program_bytes = {self.max_program_bytes} bytes; refused",
+                    "usage": True}
+        if len(self.uploads) >= MAX_UPLOADS:
+            return {"ok": False, "error": f"upload: {MAX_UPLOADS} programs are being sent already; retry "
+                                          f"when one is done", "usage": False}
+        tok = secrets.token_hex(8)
+        path = os.path.join(self.spool, tok + ".ngc")
+        try:
+            fh = open(path, "wb")
+        except OSError as exc:
+            return {"ok": False, "error": f"upload: cannot spool the program ({exc.strerror})", "usage": False}
+        self.uploads[tok] = {"path": path, "bytes": 0, "size": n, "t": now, "fh": fh, "conn": conn}
+        self.raw[conn] = tok
+        self.clients.pop(conn, None)         # not idle: UPLOAD_IDLE_S applies
+        try:
+            conn.send(encode_answer({"ok": True, "upload": tok, "continue": True}))
+        except OSError:
+            self._drop_upload(tok)
+            return None
+        if rest or n == 0:
+            self._upload_in(conn, rest)
+        return None
+
+    def _upload_in(self, conn, data: bytes | None = None) -> None:
+        """The bytes of an upload that arrived (None: read them from ``conn``)."""
+        tok = self.raw.get(conn)
         u = self.uploads.get(tok)
         if u is None:
-            return {"ok": False, "error": f"upload: no program being sent as {tok!r} (dropped after "
-                                          f"{UPLOAD_IDLE_S:g} s without a chunk, or already run)", "usage": True}
-        if a["offset"] != u["bytes"]:
-            return {"ok": False, "error": f"upload: chunk at offset {a['offset']}, the program has "
-                                          f"{u['bytes']} bytes", "usage": True}
-        if u["bytes"] + len(data) > self.max_program_bytes:
-            self._drop_upload(tok)
-            return {"ok": False, "error": f"upload: the program is larger than daemon.max_program_bytes = "
-                                          f"{self.max_program_bytes} bytes; refused", "usage": True}
-        try:
-            with open(u["path"], "ab") as fh:
-                fh.write(data)
-        except OSError as exc:
-            self._drop_upload(tok)
-            return {"ok": False, "error": f"upload: cannot spool the program ({exc.strerror})", "usage": False}
-        u["bytes"] += len(data)
-        u["t"] = now
-        return {"ok": True, "upload": tok, "bytes": u["bytes"]}
-
-    def _drop_upload(self, tok: str) -> None:
-        u = self.uploads.pop(tok, None)
-        if u is not None:
+            self.raw.pop(conn, None)
+            self.drop(conn)
+            return
+        if data is None:
             try:
-                os.unlink(u["path"])
+                data = conn.recv(1 << 20)
+            except (BlockingIOError, InterruptedError):
+                return
             except OSError:
-                pass
+                data = b""
+            if not data:                     # the client went away before the end
+                self._drop_upload(tok)
+                return
+        u["t"] = time.monotonic()
+        if u["bytes"] + len(data) > u["size"]:
+            self._drop_upload(tok, keep_conn=True)
+            self.respond(conn, {"ok": False, "error": f"upload: more than the {u['size']} bytes announced",
+                                "usage": True})
+            return
+        try:
+            u["fh"].write(data)
+        except OSError as exc:
+            self._drop_upload(tok, keep_conn=True)
+            self.respond(conn, {"ok": False, "error": f"upload: cannot spool the program ({exc.strerror})",
+                                "usage": False})
+            return
+        u["bytes"] += len(data)
+        if u["bytes"] == u["size"]:
+            u["fh"].close()
+            u["fh"] = u["conn"] = None
+            self.raw.pop(conn, None)
+            self.respond(conn, {"ok": True, "upload": tok, "bytes": u["bytes"]})
+
+    def _drop_upload(self, tok: str, keep_conn: bool = False) -> None:
+        """Forget an upload: its spool file, and its connection while it was still sending."""
+        u = self.uploads.pop(tok, None)
+        if u is None:
+            return
+        if u["fh"] is not None:
+            u["fh"].close()
+        if u["conn"] is not None:
+            self.raw.pop(u["conn"], None)
+            if not keep_conn:
+                self.drop(u["conn"])
+        try:
+            os.unlink(u["path"])
+        except OSError:
+            pass
 
     def start_program(self, conn, a: dict) -> dict | None:
         """``gcode``: hand the program to the planner process; answered when its first window
         is planned (or it is refused). None: the answer comes later."""
         mo = self.motion
         if a["upload"] is not None:
-            u = self.uploads.pop(a["upload"], None)
-            if u is None:
-                return {"ok": False, "error": f"gcode: no program sent as {a['upload']!r}", "usage": True}
+            u = self.uploads.get(a["upload"])
+            if u is None or u["fh"] is not None:
+                return {"ok": False, "error": f"gcode: no program sent whole as {a['upload']!r}", "usage": True}
+            self.uploads.pop(a["upload"])
             path = u["path"]
         else:
             if len(a["text"].encode("utf-8", "surrogatepass")) > self.max_program_bytes:
@@ -311,7 +370,8 @@ class IOSide:
             os.unlink(path)
             return {"ok": False, "error": "gcode: a program is still being checked; wait for it", "usage": False}
         try:
-            job = mo.program_job(a["filename"], path=path)
+            job = mo.program_job(a["filename"], path=path, from_line=a["from_line"],
+                                 single_block=a["single_block"])
         except MotionError as exc:
             os.unlink(path)
             return {"ok": False, "error": str(exc), "usage": exc.usage}
@@ -323,16 +383,30 @@ class IOSide:
         self.planner.send({"op": "plan", "job": job})
         return None
 
+    def start_planner(self) -> None:
+        """Start the planner process (again), at most :data:`MAX_PLANNER_STARTS` times: a
+        program is then refused with one line while it is not running."""
+        if self.planner.starts >= MAX_PLANNER_STARTS:
+            return
+        try:
+            rt_on = self.plan.asm.loaded.cfg.loop.realtime.policy != "off"
+            self.planner.start(PLAN_NICE if rt_on else 0)
+            self.sel.register(self.planner.rfd, selectors.EVENT_READ, "planner")
+        except OSError as exc:
+            sys.stderr.write(f"motorctl daemon: warning: no planner process ({exc}); G-code refused\n")
+
     def on_planner(self) -> None:
-        """The planner process's answers (:mod:`motorctl.app.daemon.plan_side`)."""
+        """The planner process's answers (:mod:`motorctl.app.program_planner`)."""
         msgs = self.planner.from_plan.recv()
-        if msgs is None:                     # the planner process ended
+        if msgs is None:                     # the planner process ended: a new one
             try:
                 self.sel.unregister(self.planner.rfd)
             except (KeyError, ValueError):
                 pass
-            self.planner.pid = 0
-            self._end_job("the planner process ended")
+            self.planner.stop()
+            self._end_job("the planner process ended; retry")
+            sys.stderr.write("motorctl daemon: the planner process ended; starting it again\n")
+            self.start_planner()
             return
         for m in msgs:
             jb = self.job
@@ -416,6 +490,8 @@ class IOSide:
         out["drive_fault"] = self.drive_reasons[i] if out["fault_bits"] else ""
         out["timing_since_start"] = self.drainer.axis_stats[i].summary()
         out["stop_bound_s"] = self.plan.stop_bound_s[i]
+        window = self.plan.asm.loaded.axes[self.names[i]].limits.in_position_m
+        out["in_position"] = bool(abs(out.get("x_d_m", math.nan) - out["y_m"]) <= window)
         return out
 
     def status(self) -> dict:
@@ -570,6 +646,8 @@ class IOSide:
     def expire_clients(self, now: float) -> None:
         for c in [c for c, t in self.clients.items() if now - t > CLIENT_IDLE_S]:
             self.drop(c)
+        for tok in [t for t, u in self.uploads.items() if now - u["t"] > UPLOAD_IDLE_S]:
+            self._drop_upload(tok)
 
     def respond(self, conn, obj: dict) -> None:
         try:
@@ -583,6 +661,9 @@ class IOSide:
             conn.close()
 
     def on_client(self, conn) -> None:
+        if conn in self.raw:
+            self._upload_in(conn)
+            return
         try:
             data = conn.recv(65536)
         except (BlockingIOError, InterruptedError):
@@ -606,7 +687,7 @@ class IOSide:
                                          f"carried out", "usage": False}
         if ans is not None:
             self.respond(conn, ans)
-        else:                              # the answer comes from the loop
+        elif conn not in self.raw:         # the answer comes later (the loop, the planner)
             self.forget(conn)
 
     # ------------------------------------------------------------------ the run
@@ -618,12 +699,7 @@ class IOSide:
         loop_gone = False
         ctl = self.plan.ring.ctl
         self.start_scope()
-        try:
-            rt_on = self.plan.asm.loaded.cfg.loop.realtime.policy != "off"
-            self.planner.start(PLAN_NICE if rt_on else 0)   # before any thread of this process runs
-            self.sel.register(self.planner.rfd, selectors.EVENT_READ, "planner")
-        except OSError as exc:
-            sys.stderr.write(f"motorctl daemon: warning: no planner process ({exc}); G-code refused\n")
+        self.start_planner()
         self.motion.start()
         while not loop_gone:
             ctl[CTL_REC_BEAT] = int(ctl[CTL_REC_BEAT]) + 1     # "the recorder is awake"

@@ -37,7 +37,7 @@ command mode) drops the program being run and the queue (``status`` says why); m
 waits for new commands. Every target is checked against the axes' soft limits before anything
 is queued.
 
-**Programs** are read, checked and planned by :mod:`motorctl.app.daemon.plan_side` (in the
+**Programs** are read, checked and planned by :mod:`motorctl.app.program_planner` (in the
 daemon, in a process of its own, a window at a time; :meth:`MotionSide.gcode` does the same
 passes in the calling thread for in-process callers). While a program still has windows to
 plan, :meth:`MotionSide.idle` is False; a window that is late only makes the path wait at rest
@@ -61,7 +61,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from motorctl.app.daemon.plan_side import PlanJob, plan_windows, preview
+from motorctl.app.program_planner import PlanJob, plan_windows, preview
 from motorctl.loop.cycle import STREAM
 from motorctl.loop.stream import SP_OUT_STOP, SetpointRing
 from motorctl.motion import gcode as G
@@ -192,7 +192,10 @@ class MotionSide:
         settings = gcode_settings or G.GcodeSettings()
         if "axes" not in settings.model_fields_set:          # the machine's axes, not X Y Z
             settings = settings.model_copy(update={"axes": [a for a in self.names if a in G.AXES]})
-        self.gcode_settings = settings
+        #: M1 pauses (the config's gcode.optional_stop, switched at run time by optional-stop);
+        #: programs are read with every M1 as a pause, the filler passes those it should not take
+        self.optional_stop = settings.optional_stop
+        self.gcode_settings = settings.model_copy(update={"optional_stop": True})
         #: the program being planned in windows (its job id, 0: none) and the axes it moves
         self.planning, self.planning_axes = 0, []
         self._jobs = 0
@@ -301,12 +304,15 @@ class MotionSide:
         except ValueError as exc:
             raise MotionError(f"move: {exc}") from None
         self.enqueue([traj], list(targets))
-        return {"duration_s": traj.duration, "from_m": start.tolist(), "to_m": goal.tolist()}
+        return {"duration_s": traj.duration, "axes": list(self.names), "from_m": start.tolist(),
+                "to_m": goal.tolist()}
 
-    def program_job(self, filename: str, text: str | None = None, path: str | None = None) -> PlanJob:
+    def program_job(self, filename: str, text: str | None = None, path: str | None = None,
+                    from_line: int = 1, single_block: bool = False) -> PlanJob:
         """A G-code program (``text``, or the file at ``path``) to read, check and plan from
-        where the axes are commanded now (:mod:`motorctl.app.daemon.plan_side`). Raises
-        MotionError: an axis not named X, Y or Z, motion that cannot take a program now."""
+        where the axes are commanded now (:mod:`motorctl.app.program_planner`; ``from_line``,
+        ``single_block``: :class:`PlanJob`). Raises MotionError: an axis not named X, Y or Z,
+        motion that cannot take a program now."""
         bad = [a for a in self.names if a not in G.AXES]
         if bad:
             raise MotionError(f"gcode: the axes must be named among {', '.join(G.AXES)} "
@@ -321,7 +327,8 @@ class MotionSide:
                        [float(x) for x in start], dict(self.work_offsets),
                        {a: (lim.soft_min, lim.soft_max) for a, lim in zip(self.names, self.limits)},
                        list(self.names), list(self._pva), self.dt, list(self.stream.outputs),
-                       {"share": RAMP_SHARE, "bin_s": CAP_BIN_S, "ahead_s": self.cap_ahead_s})
+                       {"share": RAMP_SHARE, "bin_s": CAP_BIN_S, "ahead_s": self.cap_ahead_s},
+                       from_line, single_block)
 
     def accept_checked(self, job: PlanJob, info: dict) -> list[int]:
         """The preview of ``job`` passed: check that the axes it moves may move now (command
@@ -357,6 +364,44 @@ class MotionSide:
         """Windows of program ``job_id`` queued and not yet begun."""
         with self.lock:
             return sum(1 for t in self.queue if getattr(t, "job", None) == job_id)
+
+    def set_optional_stop(self, on: bool) -> None:
+        """M1 pauses (True) or passes (False) from now on, in the program running too."""
+        with self.lock:
+            self.optional_stop = bool(on)
+
+    def _pauses(self, cur) -> list[float]:
+        """(lock held) The path times where ``cur`` pauses: its M0s, its M1s with the optional
+        stop on, single block's stops."""
+        return [t for t, p in cur.stops if not p.optional or self.optional_stop]
+
+    def jog(self, i: int, kind: str, value: float = 0.0, feed: float | None = None) -> dict:
+        """Jog axis i in command mode (LinuxCNC's jog of an enabled joint): ``by`` value [m]
+        from where it is commanded (incremental), ``velocity`` value [m/s] toward the soft
+        limit on its side until ``stop`` (continuous; an abort ends it on the path), or
+        ``to`` value [m] (at most ``feed`` [m/s]). Raises MotionError (nothing queued): not in command mode, motion
+        running, a target outside the soft limits."""
+        name = self.names[i]
+        if kind == "stop":
+            self.abort()
+            return {"jog": "stopping"}
+        self.check_axes([i], "jog")
+        if not self.idle():
+            raise MotionError(f"jog {name}: motion is running; wait for it or abort", usage=False)
+        here = float(self.where()[i])
+        lim = self.limits[i]
+        if kind == "by":
+            target = here + value
+        elif kind == "velocity":
+            target, feed = (lim.soft_max if value > 0 else lim.soft_min), abs(value)
+            if abs(value) > lim.v_max:
+                raise MotionError(f"jog {name}: velocity {value:g} m/s is above v_max {lim.v_max:g} m/s")
+        else:
+            target = value
+        if not lim.soft_min <= target <= lim.soft_max:
+            raise MotionError(f"jog {name}: {target:.6f} m is outside the soft limits "
+                              f"[{lim.soft_min:g}, {lim.soft_max:g}] m")
+        return self.move({i: target}, feed)
 
     def gcode(self, text: str, filename: str) -> dict:
         """Read, check and plan a G-code program (``motorctl.motion``: the subset LinuxCNC
@@ -488,6 +533,7 @@ class MotionSide:
                 "aborting": self.aborting, "ring_depth": self.stream.depth(), "planning": bool(self.planning),
                 "underruns": self.stream.underruns(), "braking": self.stream.braking(),
                 "stopped_because": self.reason, "homed": list(self.homed), "outputs": dict(self.outputs),
+                "optional_stop": self.optional_stop,
                 "homing": list(self.homing_state), "homing_configured": [h is not None for h in self.homing],
                 "idle": self.idle()}
 
@@ -880,7 +926,7 @@ class MotionSide:
                     if moved.size:
                         s_cap = (b0 + int(moved[0])) * cur.cap_dt
                         m = max(1, min(m, int(np.searchsorted(ss[:m], s_cap, side="left"))))
-                limit = min([t for t, _ in cur.stops if t > self.s] + [cur.duration])
+                limit = min([t for t in self._pauses(cur) if t > self.s] + [cur.duration])
                 over = int(np.searchsorted(ss[:m], limit, side="left"))
                 hit = over < m
                 if hit:
@@ -909,7 +955,7 @@ class MotionSide:
                 else:
                     self.f, self.fd = _ramp(self.f, self.fd, target, self.f_rate, self.f_accel, dt)
                 s_new = self.s + self.f * dt
-                for t_stop, _ in cur.stops:  # a programmed pause (M0, M1): at rest there
+                for t_stop in self._pauses(cur):  # a programmed pause (M0, M1): at rest there
                     if self.s < t_stop <= s_new:
                         s_new = t_stop
                         self.f, self.fd, self.holding = 0.0, 0.0, True

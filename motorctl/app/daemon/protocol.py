@@ -12,16 +12,23 @@ Socket requests (``motorctl.cli.operator`` is the client)::
     {"cmd": "start", "axis": "X", "mode": "command"}          (command mode: follows commanded motion)
     {"cmd": "move", "targets": {"X": 0.12, "Y": 0.05}, "feed": 0.1?}   ([m], [m/s])
     {"cmd": "gcode", "text": "G1 X10 F600\n...", "filename": "part.ngc"}
-    {"cmd": "upload", "upload": null | "token", "offset": 0, "data": "G1 X10 ..."}
-    {"cmd": "gcode", "upload": "token", "filename": "part.ngc"}   (a program sent in chunks)
+    {"cmd": "upload", "bytes": 123456}   then, after the answer {"ok": true, "continue": true,
+                                         "upload": "token"}, the program's bytes on the same connection
+    {"cmd": "gcode", "upload": "token", "filename": "part.ngc"}   (a program sent by upload)
+        gcode's options: "from_line": N (run from that line; the way there a move),
+        "single_block": true (a pause after every block; resume runs the next)
+    {"cmd": "optional-stop", "value": true}                    (M1 pauses or not, from now on)
+    {"cmd": "jog", "axis": "X", "by": 0.001 | "velocity": 0.01 | "stop": true}
+        (an axis in command mode: a move by that much, toward its soft limit until stopped)
     {"cmd": "hold" | "resume" | "abort"}
     {"cmd": "override", "value": 0.8}                          (0.0 .. 1.5)
     {"cmd": "home", "axis": "X"}
 
-A program longer than one request (:data:`MAX_REQUEST_BYTES`) is sent in chunks: the first
-``upload`` (``"upload": null``, offset 0) opens a spooled program and answers its token, every
-next one gives the token and the offset it continues at (the bytes received so far, UTF-8),
-then ``gcode`` names the token instead of giving the text (``motorctl.client.send_program``).
+A program longer than one request (:data:`MAX_REQUEST_BYTES`) is sent by ``upload``: the request
+line announces its size in bytes (UTF-8), the daemon answers ``continue`` with a token (or
+refuses: too large, too many uploads), the client sends the bytes on the same connection and the
+daemon answers once they are all in; then ``gcode`` names the token instead of giving the text
+(``motorctl.client.send_program``). Every request line stays within the bound.
 
 Answers: ``{"ok": true, ...}`` or ``{"ok": false, "error": "...", "usage": bool}`` (``usage``:
 the request itself was wrong, exit code 2 in the client).
@@ -33,17 +40,17 @@ import grp
 import json
 import math
 import os
-import pickle
 import socket
-import struct
 from dataclasses import dataclass
 from pathlib import Path
+
+from motorctl.app.pipes import Mailbox  # noqa: F401 - the pipes' wire format, named beside the socket's
 
 #: the longest request line accepted [bytes]; a longer one is refused and the connection closed
 MAX_REQUEST_BYTES = 65536
 #: commands of the socket protocol
 COMMANDS = ("status", "start", "stop", "switch", "fault-reset", "inject", "jog", "move", "gcode", "upload",
-            "hold", "resume", "abort", "override", "home")
+            "hold", "resume", "abort", "override", "optional-stop", "home")
 #: commands that need an axis
 AXIS_COMMANDS = ("start", "stop", "switch", "fault-reset", "inject", "jog", "home")
 #: the axis modes of ``start``
@@ -86,7 +93,7 @@ def parse_request(line: bytes, axis_names: list, controllers: list) -> Request:
     if cmd not in COMMANDS:
         raise RequestError(f"unknown command {cmd!r}; allowed: {', '.join(COMMANDS)}")
     a = req.get("axis")
-    if cmd in ("move", "gcode", "override", "upload"):
+    if cmd in ("move", "gcode", "override", "upload", "optional-stop"):
         return Request(cmd, None, motion=_motion_request(cmd, req, axis_names))
     if a is None and cmd not in AXIS_COMMANDS:
         return Request(cmd, None)
@@ -107,7 +114,9 @@ def parse_request(line: bytes, axis_names: list, controllers: list) -> Request:
         except (TypeError, ValueError) as exc:
             raise RequestError(f"bad inject request: {exc}") from None
     jog = None
-    if cmd == "jog":
+    if cmd == "jog" and ("by" in req or "velocity" in req or "stop" in req):
+        jog = _command_jog(req)
+    elif cmd == "jog":
         try:
             to_m, speed = float(req["to_m"]), float(req.get("speed", 0.1))
         except (KeyError, TypeError, ValueError):
@@ -115,11 +124,28 @@ def parse_request(line: bytes, axis_names: list, controllers: list) -> Request:
         if not math.isfinite(to_m) or not 0.0 < speed <= MAX_JOG_SPEED:
             raise RequestError(f"jog: to_m must be finite and speed within (0, {MAX_JOG_SPEED}] "
                                f"(got {to_m}, {speed})")
-        jog = {"to_m": to_m, "speed": speed}
+        jog = {"kind": "to", "to_m": to_m, "speed": speed}
     mode = req.get("mode", "program")
     if mode not in MODES or (mode != "program" and cmd != "start"):
         raise RequestError(f"mode {mode!r} is allowed with start only; modes: {', '.join(MODES)}")
     return Request(cmd, i, ctrl, inject, jog, mode)
+
+
+def _command_jog(req: dict) -> dict:
+    """A jog of an axis in command mode: ``by`` [m] (incremental), ``velocity`` [m/s] (toward
+    the soft limit on its side until ``stop``), or ``stop`` (true)."""
+    kinds = [k for k in ("by", "velocity", "stop") if k in req]
+    if len(kinds) != 1:
+        raise RequestError("jog in command mode takes one of 'by' (m), 'velocity' (m/s) or 'stop'")
+    k = kinds[0]
+    if k == "stop":
+        if req["stop"] is not True:
+            raise RequestError("jog: 'stop' must be true")
+        return {"kind": "stop"}
+    v = req[k]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v == 0:
+        raise RequestError(f"jog: '{k}' must be a finite number other than 0 (got {v!r})")
+    return {"kind": k, k: float(v)}
 
 
 def _motion_request(cmd: str, req: dict, axis_names: list) -> dict:
@@ -134,21 +160,29 @@ def _motion_request(cmd: str, req: dict, axis_names: list) -> dict:
         return x
     if cmd == "override":
         return {"value": number(req.get("value"), "value")}
+    if cmd == "optional-stop":
+        if not isinstance(req.get("value"), bool):
+            raise RequestError("optional-stop needs 'value': true or false")
+        return {"value": req["value"]}
     if cmd == "gcode":
         text, name, token = req.get("text"), req.get("filename", "-"), req.get("upload")
         if (text is None) == (token is None) or not isinstance(name, str) or not isinstance(
                 text if token is None else token, str):
             raise RequestError("gcode needs 'filename' and either 'text' (the program) or 'upload' "
                                "(the token of a program sent in chunks), strings")
-        return {"text": text, "upload": token, "filename": name}
+        from_line, single = req.get("from_line", 1), req.get("single_block", False)
+        if isinstance(from_line, bool) or not isinstance(from_line, int) or from_line < 1:
+            raise RequestError(f"gcode: 'from_line' must be a line number >= 1 (got {from_line!r})")
+        if not isinstance(single, bool):
+            raise RequestError("gcode: 'single_block' must be true or false")
+        return {"text": text, "upload": token, "filename": name, "from_line": from_line,
+                "single_block": single}
     if cmd == "upload":
-        token, data, offset = req.get("upload"), req.get("data"), req.get("offset", 0)
-        if (token is not None and not isinstance(token, str)) or not isinstance(data, str) or not (
-                isinstance(offset, int) and not isinstance(offset, bool) and offset >= 0):
-            raise RequestError("upload needs 'data' (a chunk of the program, a string), 'offset' (the "
-                               "bytes sent before it, >= 0) and 'upload' (null for the first chunk, "
-                               "else the token it answered)")
-        return {"upload": token, "data": data, "offset": offset}
+        n = req.get("bytes")
+        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+            raise RequestError("upload needs 'bytes': the program's size in bytes (>= 0); its bytes follow "
+                               "the answer 'continue' on the same connection")
+        return {"bytes": n}
     targets = req.get("targets")
     if not isinstance(targets, dict) or not targets:
         raise RequestError("move needs 'targets': {axis: position in m, ...}")
@@ -175,6 +209,11 @@ class LineBuffer:
 
     def __init__(self):
         self._buf = b""
+
+    def take_rest(self) -> bytes:
+        """The bytes received after the line returned last (an upload's first bytes)."""
+        rest, self._buf = self._buf, b""
+        return rest
 
     def feed(self, data: bytes) -> bytes | None:
         """Add received bytes; the first complete line (without its newline) or None."""
@@ -253,42 +292,3 @@ def bind_control_socket(path: str, group=None, backlog: int = 64) -> socket.sock
     return s
 
 
-# --------------------------------------------------------------------------- the pipes
-_HDR = struct.Struct("<I")
-
-
-class Mailbox:
-    """Length-prefixed pickled messages over a pipe; the read side is non-blocking."""
-
-    def __init__(self, rfd: int | None = None, wfd: int | None = None):
-        self.rfd, self.wfd = rfd, wfd
-        self._buf = b""
-        if rfd is not None:
-            os.set_blocking(rfd, False)
-
-    def send(self, obj) -> None:
-        data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
-        os.write(self.wfd, _HDR.pack(len(data)) + data)
-
-    def recv(self) -> list | None:
-        """Messages available now ([] if none); None when the writer has closed the pipe."""
-        eof = False
-        while True:
-            try:
-                chunk = os.read(self.rfd, 65536)
-            except BlockingIOError:
-                break
-            if not chunk:
-                eof = True
-                break
-            self._buf += chunk
-        out = []
-        while len(self._buf) >= 4:
-            (n,) = _HDR.unpack_from(self._buf)
-            if len(self._buf) < 4 + n:
-                break
-            out.append(pickle.loads(self._buf[4:4 + n]))
-            self._buf = self._buf[4 + n:]
-        if eof and not out:
-            return None
-        return out

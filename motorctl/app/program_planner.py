@@ -43,9 +43,11 @@ import os
 import select
 import signal
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
-from motorctl.app.daemon.protocol import Mailbox
+import numpy as np
+
+from motorctl.app.pipes import Mailbox
 from motorctl.app.lifetime import die_with_parent
 from motorctl.motion import gcode as G
 from motorctl.motion import planner as P
@@ -73,6 +75,10 @@ class PlanJob:
     offsets before it. soft: axis → (soft_min, soft_max) [m]. names: the machine's axes.
     limits: their v/a/j (:class:`motorctl.motion.planner.AxisLimits`). period: the loop's [s].
     outputs: the outputs the setpoint ring carries. cap: override_cap's keyword arguments.
+    from_line: run from this source line (LinuxCNC's run from line: the program read from its
+    start for the modal state, the motion from the line on, the way there a straight rapid from
+    where the axes stand, then the machine words' outputs as the program left them before the
+    line). single_block: an exact stop and a pause after every block (resume runs the next).
     """
 
     id: int
@@ -89,6 +95,8 @@ class PlanJob:
     period: float
     outputs: list
     cap: dict = field(default_factory=dict)
+    from_line: int = 1
+    single_block: bool = False
 
     def lines(self):
         """The program's lines (a fresh pass)."""
@@ -131,11 +139,55 @@ def preview(job: PlanJob) -> dict:
     finally:
         if hasattr(src, "close"):
             src.close()
+    if job.from_line > reader.lines_read:
+        raise ValueError(f"{job.filename}: --from-line {job.from_line} is beyond the program's last line "
+                         f"({reader.lines_read})")
+    if job.from_line > 1:                # the way to the line may move every axis
+        moved.update(G.AXES.index(a) for a in job.names)
     prog = reader.program([])
     end = [float(prog.end[G.AXES.index(a)]) for a in job.names]
     return {"segments": moves, "lines": reader.lines_read, "warnings": prog.warnings,
             "moved": sorted(job.names.index(G.AXES[k]) for k in moved if G.AXES[k] in job.names),
             "end": end, "offsets": {k: v for k, v in prog.offsets.items() if k in G.SYSTEMS}}
+
+
+def from_line(batches, line: int, start3):
+    """The segments of ``batches`` from source ``line`` on (PlanJob.from_line): first a rapid
+    from ``start3`` (X Y Z [m]) to where the program stands at that line, then the last value
+    each machine output was given before it, then the program."""
+    pos = np.asarray(start3, dtype=float).copy()
+    last: dict = {}
+    begun = False
+    for batch in batches:
+        out = []
+        for seg in batch:
+            if not begun and seg.line < line:
+                if isinstance(seg, (G.Line, G.Arc)):
+                    pos = np.asarray(seg.end, dtype=float).copy()
+                elif isinstance(seg, G.Event) and seg.target is not None:
+                    last[seg.target] = replace(seg, synchronized=False)
+                continue
+            if not begun:
+                begun = True
+                if np.any(pos != np.asarray(start3, dtype=float)):
+                    out.append(G.Line(np.asarray(start3, dtype=float).copy(), pos.copy(), None, 0.0, line))
+                out.extend(last.values())
+            out.append(seg)
+        if out:
+            yield out
+
+
+def single_block(batches):
+    """Every move of ``batches`` in exact stop with a pause after it (PlanJob.single_block)."""
+    for batch in batches:
+        out = []
+        for seg in batch:
+            if isinstance(seg, (G.Line, G.Arc)):
+                out.append(replace(seg, tolerance=0.0))
+                out.append(G.Pause(False, seg.line))
+            else:
+                out.append(seg)
+        yield out
 
 
 def plan_windows(job: PlanJob):
@@ -145,8 +197,13 @@ def plan_windows(job: PlanJob):
     reader = G.ProgramReader(job.filename, job.settings, job.start3, job.offsets)
     start = [float(x) for x in job.start]
     src = job.lines()
+    batches = reader.batches(src, BATCH)
+    if job.from_line > 1:
+        batches = from_line(batches, job.from_line, job.start3)
+    if job.single_block:
+        batches = single_block(batches)
     try:
-        for segs, last in P.windows(reader.batches(src, BATCH), soft=WINDOW_SOFT, hard=WINDOW_HARD):
+        for segs, last in P.windows(batches, soft=WINDOW_SOFT, hard=WINDOW_HARD):
             prog = reader.program(segs)
             traj = P.plan(prog, job.names, job.limits, start=start, period=job.period)
             traj.cap = P.override_cap(traj, job.limits, period=job.period, **job.cap)
@@ -210,51 +267,34 @@ def plan_main(inbox: Mailbox, outbox: Mailbox, parent_pid: int) -> int:
 
 
 class PlannerLink:
-    """The I/O process's end of the planner process: fork (:meth:`start`, before any thread of
-    the I/O process runs), send a job, read its answers (:meth:`receive`)."""
+    """The I/O process's end of the planner process: start it (:meth:`start`: a fresh
+    interpreter, ``python -m motorctl.app.program_planner``, so that it may be started again
+    from the threaded I/O process when it died), send a job, read its answers."""
 
     def __init__(self):
         self.pid = 0
+        self.proc = None
+        self.nice = 0
+        self.starts = 0
         self.to_plan: Mailbox | None = None
         self.from_plan: Mailbox | None = None
 
     def start(self, nice: int = 0) -> None:
-        """Fork the planner process, at ``nice`` where permitted (else at normal priority).
+        """Start the planner process, at ``nice`` where permitted (else at normal priority).
         Raises OSError (no process or pipe to be had)."""
+        import subprocess
+        self.nice = nice
         r1, w1 = os.pipe()
         r2, w2 = os.pipe()
-        parent = os.getpid()
-        sys.stdout.flush()
-        sys.stderr.flush()
-        pid = os.fork()
-        if pid == 0:
-            code = 1
-            try:
-                os.close(w1)
-                os.close(r2)
-                keep = {r1, w2, 2}
-                for fd in range(3, 1024):
-                    if fd not in keep:
-                        try:
-                            os.close(fd)
-                        except OSError:
-                            pass
-                try:
-                    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-                    os.setpriority(os.PRIO_PROCESS, 0, nice)
-                except OSError:
-                    pass
-                code = plan_main(Mailbox(rfd=r1), Mailbox(wfd=w2), parent)
-            except BaseException as exc:     # noqa: BLE001 - last resort, one line
-                try:
-                    sys.stderr.write(f"motorctl daemon: the planner process ended: {type(exc).__name__}: {exc}\n")
-                except Exception:            # noqa: BLE001
-                    pass
-            finally:
-                os._exit(code)
-        os.close(r1)
-        os.close(w2)
-        self.pid = pid
+        try:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "motorctl.app.program_planner", str(r1), str(w2), str(nice)],
+                pass_fds=(r1, w2), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, close_fds=True)
+        finally:
+            os.close(r1)
+            os.close(w2)
+        self.pid = self.proc.pid
+        self.starts += 1
         self.to_plan = Mailbox(wfd=w1)
         self.from_plan = Mailbox(rfd=r2)
 
@@ -267,7 +307,7 @@ class PlannerLink:
 
     def stop(self) -> None:
         """Close the pipes and reap the process."""
-        if not self.pid:
+        if self.proc is None:
             return
         for fd in (self.to_plan.wfd, self.from_plan.rfd):
             try:
@@ -275,8 +315,22 @@ class PlannerLink:
             except OSError:
                 pass
         try:
-            os.kill(self.pid, signal.SIGKILL)
-            os.waitpid(self.pid, 0)
+            self.proc.kill()
+            self.proc.wait(5)
         except OSError:
             pass
-        self.pid = 0
+        self.proc, self.pid = None, 0
+
+
+def _main(argv: list[str]) -> int:
+    """``python -m motorctl.app.program_planner RFD WFD NICE`` (started by :class:`PlannerLink`)."""
+    rfd, wfd, nice = (int(a) for a in argv)
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, nice)
+    except OSError:
+        pass
+    return plan_main(Mailbox(rfd=rfd), Mailbox(wfd=wfd), os.getppid())
+
+
+if __name__ == "__main__":
+    sys.exit(_main(sys.argv[1:]))
