@@ -1,8 +1,8 @@
 """The live scope in a real browser: the daemon on the simulated gantry serves the page; headless
 Chromium (Debian's, driven by Playwright with that executable) shows the error trace moving
 and a fault injected with ``motorctl inject`` with its reason; the screenshot is kept
-(``$MOTORCTL_ARTEFACTS/scope.png`` when that is set). Skips only when /usr/bin/chromium is
-missing (``.ci/run`` installs it)."""
+(``$MOTORCTL_ARTEFACTS/scope.png`` when that is set). Skips only when no ``chromium`` is
+on PATH (``shutil.which``, the lookup ``.ci/run``'s ``command -v chromium`` makes; it installs it)."""
 
 from __future__ import annotations
 
@@ -18,12 +18,12 @@ import pytest
 from harness import free_port
 from test_daemon_helpers import ctl, running_daemon, status
 
-CHROMIUM = "/usr/bin/chromium"
+CHROMIUM = shutil.which("chromium")   # .ci/run: `command -v chromium`, else apt-get install
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
         "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 
-pytestmark = pytest.mark.skipif(not Path(CHROMIUM).exists(),
-                                reason=f"{CHROMIUM} is not installed (apt-get install chromium)")
+pytestmark = pytest.mark.skipif(CHROMIUM is None,
+                                reason="no chromium on PATH (apt-get install chromium)")
 
 
 def _wait(pred, timeout_s: float, what: str):
