@@ -1,8 +1,12 @@
 """The ISO 230-4 circular test (motorctl.motion.circle): the figures from known paths, and the
 test program planned on the gantry's limits."""
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
+from conftest import REPO
 
 from motorctl.motion import AxisLimits, GcodeSettings, parse, plan
 from motorctl.motion.circle import circle_program, circular_deviation, evaluate, fit_circle
@@ -56,3 +60,74 @@ def test_the_test_program_runs_both_directions_on_the_planner():
     assert res.G_b < 1e-6 and res.H < 1e-7
     with pytest.raises(ValueError, match="direction"):
         circle_program(0.02, 0.05, directions=["up"])
+
+
+# ------------------------------------------------------------------ motorctl circle-test as a record
+def _lsc_geometric(x, y):
+    """ISO 230-4's least-squares circle written here from its definition (the centre and radius
+    minimising the sum of squared radial deviations), by Gauss-Newton from the centroid: the
+    project's fit_circle is Kåsa's algebraic one, so this is a second computation, not a copy."""
+    c = np.array([x.mean(), y.mean()])
+    r = np.hypot(x - c[0], y - c[1]).mean()
+    for _ in range(50):
+        d = np.hypot(x - c[0], y - c[1])
+        res = d - r                                                   # radial deviations
+        jac = np.column_stack([-(x - c[0]) / d, -(y - c[1]) / d, -np.ones_like(d)])
+        step = np.linalg.lstsq(jac, -res, rcond=None)[0]
+        c, r = c + step[:2], r + step[2]
+        if np.abs(step).max() < 1e-15:
+            break
+    return c, r
+
+
+#: the independent fit reproduces G within this [m] (the two fits' centres differ by nanometres
+#: on a path of micrometre deviations; observed below 1e-9)
+G_FIT_TOL_M = 2e-9
+
+
+def test_the_circle_test_is_a_record_that_reproduces(tmp_path):
+    """`motorctl circle-test` run twice (in this process, then as the command with --json --plot
+    --log) gives the same figures bit for bit and the same measured positions; the run log's
+    positions, fitted here, give its G; --json prints one JSON document and nothing else."""
+    from harness import run_cli
+
+    from motorctl.app.circle_test import run_circle_test
+    from motorctl.config import load_config
+    from motorctl.recorder.runlog import read_log
+    cfg = REPO / "configs" / "gantry.yaml"
+    r = run_circle_test(load_config(cfg), 0.005, 0.05, "c2", log_path=str(tmp_path / "one.log"))
+    cp = run_cli(["circle-test", str(cfg), "--radius", "0.005", "--feed", "0.05", "--controller", "c2",
+                  "--json", "--plot", str(tmp_path / "plots"), "--log", str(tmp_path / "two.log")], timeout_s=120)
+    assert cp.returncode == 0, cp.stderr
+    doc = json.loads(cp.stdout)                                     # the JSON alone: it parses whole
+    assert len(doc) == 1
+    two = doc[0]
+    g = r.result
+    for key, val in (("G_cw_um", g.G_cw), ("G_ccw_um", g.G_ccw), ("G_b_um", g.G_b), ("H_um", g.H),
+                     ("F_max_um", g.F_max), ("F_min_um", g.F_min)):
+        assert two[key] == val * 1e6, key                           # bit for bit
+    assert Path(two["plot"]).is_file() and two["log"] == str(tmp_path / "two.log")
+    logs = [read_log(str(tmp_path / "one.log")), read_log(two["log"])]
+    for col in ("X.y", "Y.y", "X.x_d", "Y.x_d"):
+        np.testing.assert_array_equal(logs[0].col(col), logs[1].col(col))
+    lg = logs[1]
+    assert lg.header["kind"] == "circle-test" and lg.header["circle"]["figures_m"]["G_b"] == g.G_b
+    c0 = np.array(r.center)
+    spans = []
+    for d, g_dir in (("cw", g.G_cw), ("ccw", g.G_ccw)):
+        a, b = lg.header["circle"]["rows"][d]
+        x, y = lg.col("X.y")[a:b], lg.col("Y.y")[a:b]
+        # the rows are the test circle: its setpoints begin and end at its start point (+R, 0)
+        for k in (a, b - 1):
+            p = np.array([lg.col("X.x_d")[k], lg.col("Y.x_d")[k]]) - c0
+            assert np.hypot(p[0] - 0.005, p[1]) < 0.2e-3
+        assert (b - a) * lg.header["period_s"] > 2 * np.pi * 0.005 / 0.05 * 0.95   # a whole turn
+        c, _ = _lsc_geometric(x, y)
+        rad = np.hypot(x - c[0], y - c[1])
+        assert abs((rad.max() - rad.min()) - g_dir) <= G_FIT_TOL_M, d
+        spans.append((x, y))
+    x, y = np.concatenate([s[0] for s in spans]), np.concatenate([s[1] for s in spans])
+    c, _ = _lsc_geometric(x, y)
+    rad = np.hypot(x - c[0], y - c[1])
+    assert abs((rad.max() - rad.min()) - g.G_b) <= G_FIT_TOL_M
+    assert 0 < g.G_b < 30e-6
