@@ -150,6 +150,13 @@ class FoxgloveConfig(ScopeConfig):
     listen: str = "127.0.0.1:8765"
 
 
+class MetricsConfig(ScopeConfig):
+    """Prometheus metrics (docs/metrics.md): listen = "host:port" of the ``/metrics`` endpoint
+    (9464: the port OpenTelemetry's Prometheus exporter registered)."""
+
+    listen: str = "127.0.0.1:9464"
+
+
 class DaemonConfig(StrictModel):
     """The service (``motorctl daemon``): control socket, run logs, flight recorder, stop ramp.
 
@@ -163,6 +170,8 @@ class DaemonConfig(StrictModel):
     allow_fault_injection: accept ``motorctl inject`` (simulated driver only).
     scope: the live scope page served by the I/O process (:class:`ScopeConfig`; None: off).
     foxglove: the same channels to Foxglove (:class:`FoxgloveConfig`; None: off).
+    metrics: Prometheus ``/metrics`` from a process of its own (:class:`MetricsConfig`, the
+    ``metrics`` extra, docs/metrics.md; None: off).
     motion_lead_s: commanded motion's setpoints kept ahead of the loop [s] (the setpoint ring
     holds twice as much, at least 1 s): the longest the I/O process may be starved of the CPU
     before the loop runs dry and brakes to rest (an underrun, docs/motion.md); below the
@@ -191,6 +200,7 @@ class DaemonConfig(StrictModel):
     allow_fault_injection: bool = False
     scope: ScopeConfig | None = None
     foxglove: FoxgloveConfig | None = None
+    metrics: MetricsConfig | None = None
     motion_lead_s: Annotated[float, Field(ge=0.05, le=3.0)] = 0.5
     max_program_bytes: Annotated[int, Field(ge=1 << 16, le=1 << 40)] = 1 << 30
     log_segment_bytes: Annotated[int, Field(ge=1 << 20, le=1 << 40)] = 512 << 20

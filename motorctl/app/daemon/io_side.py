@@ -699,6 +699,10 @@ class IOSide:
         loop_gone = False
         ctl = self.plan.ring.ctl
         self.start_scope()
+        self.metrics = None                  # Prometheus /metrics (app/daemon/metrics.py)
+        if (mc := self.plan.asm.loaded.cfg.daemon.metrics) is not None:
+            from motorctl.app.daemon.metrics import start_metrics
+            self.metrics = start_metrics(mc.listen, self.layout, self.names, self.drainer)
         self.start_planner()
         self.motion.start()
         while not loop_gone:
@@ -745,6 +749,8 @@ class IOSide:
                 self.retention.maybe_prune(now)
             self.report_recorder()
             self.notify(now)
+            if self.metrics is not None:
+                self.metrics.poll(self, now)
             if self.scope is not None and now - self.last_scope_status >= SCOPE_STATUS_S:
                 self.last_scope_status = now
                 st = {"axes": {a: {k: v for k, v in self.axis_status(i).items()
@@ -758,6 +764,8 @@ class IOSide:
         shutil.rmtree(self.spool, ignore_errors=True)
         if self.views is not None:
             self.views.stop()
+        if self.metrics is not None:
+            self.metrics.stop()
         # the loop process ended (normally, or killed): keep everything it published
         try:
             dr = self.drainer

@@ -5,7 +5,8 @@ Status block (float64 per axis, :data:`ST_FIELDS` in order): the sequencing mode
 controller (its index in :data:`motorctl.control.CONTROLLER_NAMES`), the latched fault bits,
 the value and the limit at the fault, the I/O error count, the following-error peak and the
 cycle of the last start, the home switch (1: active) and the index latch [m] (NaN: none) of
-a driver with homing inputs (the simulated one).
+a driver with homing inputs (the simulated one), the I²t level (the accumulator over its trip
+level: 1 trips FAULT_I2T).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from motorctl.loop.safety import FAULT_RECORDER, describe_faults
 from motorctl.loop.servo import IDLE, MODE_NAMES
 
 ST_FIELDS = ("mode", "controller", "fault", "value", "limit", "io_errors", "fe_peak", "started_k",
-             "home_switch", "index_latch")
+             "home_switch", "index_latch", "i2t")
 ST = {name: j for j, name in enumerate(ST_FIELDS)}
 ST_SIZE = len(ST_FIELDS)
 
@@ -54,6 +55,8 @@ class StatusPublisher:
             mv[b + ST["started_k"]] = float(self.started_k[i])
             mv[b + ST["home_switch"]] = float(sw[i]) if sw is not None else 0.0
             mv[b + ST["index_latch"]] = float(latch[i]) if latch is not None else math.nan
+            lim = sup.i2t_limit[i]
+            mv[b + ST["i2t"]] = sup.i2t[i] / lim if lim > 0 else 0.0
 
     def fault_changed(self) -> bool:
         """True when a fault latched or cleared since the last :meth:`publish`."""
@@ -94,4 +97,5 @@ def axis_status(i: int, name: str, status_row, row, layout: RecordLayout, record
         out.update(y_m=float("nan"), following_error_m=float("nan"))
     out["following_error_peak_m"] = float(status_row[ST["fe_peak"]])
     out["io_errors"] = int(status_row[ST["io_errors"]])
+    out["i2t_level"] = float(status_row[ST["i2t"]])
     return out
