@@ -215,3 +215,18 @@ def test_the_cam_program_plans_within_limits_and_tolerance():
     assert contour_error(prog, out[::40, 0]).max() <= 1e-5 + 1e-9     # every 8 ms of a 99 s program
     torch = [(t, e.value) for t, e in tr.events if e.output == "torch"]
     assert [v for _, v in torch] == [1.0, 0.0] * (len(torch) // 2)
+
+
+def test_a_2mm_arc_at_f5000_runs_at_twice_the_uncompensated_speed_within_the_tolerance():
+    """A 2 mm lead-in arc between two lines at F5000, G64 P0.01: the filters' radial shrink is
+    compensated (the arc planned on the radius they shrink back onto R), so the arc speed rule
+    allows √(12·R·P/((T1² + T2²)·0.25)) = 34.6 mm/s (the uncompensated rule: 17.3 mm/s); the
+    setpoints stay within P of the programmed path and every axis within its limits."""
+    prog = parse("G21 G90 G64 P0.01\nG0 X0 Y0\nG1 X10 Y0 F5000\nG3 X12 Y2 I0 J2\nG1 X12 Y10\nM2\n", "a.ngc", XY)
+    out = _run(plan(prog, ["X", "Y"], LIMITS))
+    _assert_within_limits(out)
+    assert contour_error(prog, out[:, 0]).max() <= 1e-5
+    rel = out[:, 0] - [0.010, 0.002]                                # about the arc's centre
+    on = (rel[:, 0] > 0) & (rel[:, 1] < 0)                          # the setpoints in the arc's quadrant
+    speed = np.hypot(out[on, 1, 0], out[on, 1, 1])
+    assert on.sum() > 100 and speed.min() >= 0.034                  # observed 34.59 mm/s at its slowest

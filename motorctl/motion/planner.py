@@ -42,6 +42,17 @@ ACCEL_SHARE = 0.5
 #: the arc tolerance used where G61 (exact stop) asks for none: the filters always round an arc
 #: a little (its radius shrinks by v²(T1² + T2²)/(24 R))
 EXACT_ARC_TOL_M = 1e-6
+#: the filters' radial shrink of an arc is compensated: the arc is planned on the radius the
+#: two moving averages shrink back onto the programmed one (PathTrajectory._shrink), the
+#: enlargement faded in and out at the arc's ends over ARC_FADE of a filter window's path
+#: (vp·(T1 + T2)), at most half the arc. Measured (benchmarks/bench_contour.py): 0.1 keeps the
+#: cut path's lead-ins within P 0.01 mm at ARC_RESIDUAL 0.25 (8.8 µm), 0.3 does not (12.4 µm)
+ARC_COMPENSATE = True
+ARC_FADE = 0.1
+#: the part of the uncompensated shrink v²(T1² + T2²)/(24 R) left once compensated (the fades,
+#: speed changes on the arc) that the arc speed rule plans for: v ≤ √(12·R·P/((T1² + T2²)·0.25)),
+#: twice the uncompensated rule's speed (measured, docs/motion.md "The planner")
+ARC_RESIDUAL = 0.25
 #: the rounding of program arithmetic (mm → m, centre + radius) a soft limit forgives [m]
 ROUND_M = 1e-12
 
@@ -268,7 +279,7 @@ class _Piece:
     tol: float
     rest: float = 0.0         # a rest's duration [s]
     acc_alone: float = 0.0    # a line's path acceleration between two rests (no corner step near)
-    arc: tuple[float, ...] = (0.0,) * 6   # an arc's cx, cy, r0, r1, phi0, sweep [m, rad]
+    arc: tuple[float, ...] = (0.0,) * 7   # an arc's cx, cy, r0, r1, phi0, sweep [m, rad], taper [1]
 
 
 def _tangents(p: _Piece, ix: int, iy: int) -> tuple[np.ndarray, np.ndarray]:
@@ -276,7 +287,7 @@ def _tangents(p: _Piece, ix: int, iy: int) -> tuple[np.ndarray, np.ndarray]:
     if p.kind == 0:
         return p.u, p.u
     out = []
-    _, _, r0, r1, phi0, sweep = p.arc
+    _, _, r0, r1, phi0, sweep = p.arc[:6]
     sgn = 1.0 if sweep > 0 else -1.0
     for phi in (phi0, phi0 + sweep):
         t = p.u * p.length                     # non-XY axes: their displacement
@@ -306,6 +317,23 @@ class PathTrajectory(Trajectory):
         self.start, self.end = start, end
         self.events, self.stops = events, stops
 
+    def _shrink(self, om: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(g, dg/dω): the relative radius 1/S(ω) − 1 that the two moving averages of n1 and n2
+        grid samples shrink back to 0 on a circle run at angular rate ω [rad/s], S the product
+        of their gains sin(n ω h/2) / (n sin(ω h/2)) (Biagiotti & Melchiorri 2012: a moving
+        average's frequency response); its derivative by central difference."""
+        def g(w):
+            s = np.ones_like(w)
+            for n in (self.n1, self.n2):
+                x = 0.5 * w * self.period
+                small = np.abs(x) < 1e-9
+                xs = np.where(small, 1.0, x)
+                s = s * np.where(small, 1.0, np.sin(n * xs) / (n * np.sin(xs)))
+            return 1.0 / s - 1.0
+        om = np.asarray(om, dtype=float)
+        e = 1e-3 + 1e-6 * np.abs(om)
+        return g(om), (g(om + e) - g(om - e)) / (2 * e)
+
     # the unfiltered profile at times t (any shape) -> x, v of shape t.shape + (n_axes,)
     def _raw(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t = np.asarray(t, dtype=float)
@@ -330,19 +358,31 @@ class PathTrajectory(Trajectory):
         v = sd[..., None] * u
         arc = self._kind[k] == 1
         if np.any(arc):
-            cx, cy, r0, r1, phi0, sweep = (self._arc[k, i] for i in range(6))
+            cx, cy, r0, r1, phi0, sweep, ft = (self._arc[k, i] for i in range(7))
             safe = np.where(length > 0, length, 1.0)
             f = s / safe
             phi = phi0 + sweep * f
             r = r0 + (r1 - r0) * f
             dphi = sweep / safe
             dr = (r1 - r0) / safe
+            # the filters' radial shrink compensated (docs/motion.md, "The planner"): the arc is
+            # planned on the radius r + delta that the two moving averages shrink back onto r at
+            # the path speed sd, delta faded in and out over a fraction ft of the arc at its ends
+            sdd = np.where(tau < ta, acc, np.where((tau > ta + tc) & ~done, -acc, 0.0))
+            wr = np.where(ft > 0, np.clip(np.minimum(f, 1.0 - f) / np.where(ft > 0, ft, 1.0), 0.0, 1.0), 0.0)
+            dw = np.where((ft > 0) & (wr > 0) & (wr < 1), np.where(f < 0.5, 1.0, -1.0) / np.where(ft > 0, ft, 1.0),
+                          0.0)
+            rs = np.where(r > 0, r, 1.0)
+            g, dg = self._shrink(sd / rs)
+            delta = np.where(arc, r * g * wr, 0.0)
+            ddelta = np.where(arc, g * r * dw * sd / safe + r * wr * dg * sdd / rs, 0.0)
+            r = r + delta
             c, sn = np.cos(phi), np.sin(phi)
             ax, ay = self._ix, self._iy
             x[..., ax] = np.where(arc, cx + r * c, x[..., ax])
             x[..., ay] = np.where(arc, cy + r * sn, x[..., ay])
-            v[..., ax] = np.where(arc, sd * (dr * c - r * dphi * sn), v[..., ax])
-            v[..., ay] = np.where(arc, sd * (dr * sn + r * dphi * c), v[..., ay])
+            v[..., ax] = np.where(arc, sd * (dr * c - r * dphi * sn) + ddelta * c, v[..., ax])
+            v[..., ay] = np.where(arc, sd * (dr * sn + r * dphi * c) + ddelta * sn, v[..., ay])
         x = np.where(done[..., None], self._p1[k], x)
         return x, v
 
@@ -524,10 +564,10 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
             # centripetal v²/R within half the share (ACCEL_SHARE); the filters' radial shrink v²(T1² + T2²)/(24 R) within half the tolerance
             vmax = min(vmax, math.sqrt(0.5 * ACCEL_SHARE * a_min * r))
             if math.isfinite(tol):
-                vmax = min(vmax, math.sqrt(12.0 * r * tol / (t1 * t1 + t2 * t2)))
+                vmax = min(vmax, math.sqrt(12.0 * r * tol / ((t1 * t1 + t2 * t2) * ARC_RESIDUAL)))
             phi0 = math.atan2(seg.start[1] - seg.center[1], seg.start[0] - seg.center[0])
             pc = _Piece(1, seg.line, p0, p1, u, length, vmax, 0.5 * ACCEL_SHARE * a_min, seg.tolerance,
-                        arc=(float(seg.center[0]), float(seg.center[1]), r0, r1, phi0, seg.sweep))
+                        arc=(float(seg.center[0]), float(seg.center[1]), r0, r1, phi0, seg.sweep, 0.0))
             pieces.append(pc)
             stop_after.append(seg.tolerance == 0.0)
             cur = p1.copy()
@@ -621,7 +661,7 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
     tab = {key: np.zeros(npc) for key in ("t0", "ta", "tc", "td", "v0", "vp", "acc", "la", "lc", "len", "kind")}
     na = len(axes)
     p0s, p1s, us = np.zeros((npc, na)), np.zeros((npc, na)), np.zeros((npc, na))
-    arcs = np.zeros((npc, 6))
+    arcs = np.zeros((npc, 7))
     t = 0.0
     v0 = 0.0
     t_end = np.zeros(npc)
@@ -648,6 +688,8 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
         p0s[k], p1s[k], us[k] = p.p0, p.p1, p.u
         if p.kind == 1:
             arcs[k] = p.arc
+            if ARC_COMPENSATE and p.length > 0:        # the fade of the compensation: a filter window's path
+                arcs[k, 6] = min(0.5, ARC_FADE * vp * tw / p.length)
         t += ta + tc + td
         t_end[k] = t
         v0 = v1
