@@ -175,11 +175,79 @@ def pytest_configure(config):
     config.addinivalue_line("markers", "own_jit_cache: the file's processes compile into a numba cache "
                                        "of their own (a plugin's): its tests do not wait for the session's "
                                        "compile of the main cache (warm_numba_cache)")
-    if hasattr(config, "workerinput") or config.option.collectonly:
+    if hasattr(config, "workerinput"):
+        return
+    config.pluginmanager.register(SkipRule(config), "motorctl-skip-rule")
+    if config.option.collectonly:
         return
     if sys.flags.dont_write_bytecode or os.environ.get("PYTHONDONTWRITEBYTECODE"):
         _compile_bytecode()
     config.stash[_WARMUP_KEY] = _EarlyWarmup()
+
+
+#: where the skips allowed on CI are stated (docs/testing.md, section "The skip table")
+SKIP_TABLE_DOC = REPO / "docs" / "testing.md"
+SKIP_TABLE_HEADING = "## The skip table"
+
+
+def allowed_skips(doc: Path = SKIP_TABLE_DOC) -> list[tuple[str, str]]:
+    """The rows of docs/testing.md's skip table: (test, condition), each cell in backticks. A
+    skip is allowed when its test's node id starts with ``test`` (a file or one test) and its
+    reason contains ``condition``.
+
+    Raises:
+        pytest.UsageError: no such section, or a row that is not two backticked cells and a why.
+    """
+    lines = doc.read_text().splitlines()
+    try:
+        i = lines.index(SKIP_TABLE_HEADING) + 1
+    except ValueError:
+        raise pytest.UsageError(f"{doc}: no section {SKIP_TABLE_HEADING!r} (the skips allowed on CI)") from None
+    rows = []
+    while i < len(lines) and not lines[i].startswith("## "):
+        ln = lines[i].strip()
+        i += 1
+        if not ln.startswith("|") or set(ln) <= set("|-: ") or ln.startswith("| test |"):
+            continue
+        cells = [c.strip() for c in ln.strip("|").split("|")]
+        if len(cells) != 3 or not all(len(c) > 2 and c[0] == c[-1] == "`" for c in cells[:2]) or not cells[2]:
+            raise pytest.UsageError(f"{doc}: a skip table row is | `test` | `condition` | why |: {ln}")
+        rows.append((cells[0][1:-1], cells[1][1:-1]))
+    return rows
+
+
+class SkipRule:
+    """Skips are for what the machine lacks (docs/testing.md): every skip of the run is checked
+    against the skip table (:func:`allowed_skips`); those not in it are listed at the end of the
+    summary, and with ``CI=true`` (as CI runs ``.ci/run``) they fail the run (exit 1). In the
+    controlling process only (xdist's workers' reports come to it)."""
+
+    def __init__(self, config):
+        self.ci = os.environ.get("CI") == "true"
+        self.allowed = allowed_skips()
+        self.refused: list[tuple[str, str]] = []
+
+    def pytest_runtest_logreport(self, report):
+        if not report.skipped or hasattr(report, "wasxfail"):
+            return
+        lr = report.longrepr
+        reason = lr[2] if isinstance(lr, tuple) and len(lr) == 3 else str(lr)
+        reason = reason.removeprefix("Skipped: ")
+        if not any(report.nodeid.startswith(t) and c in reason for t, c in self.allowed):
+            self.refused.append((report.nodeid, reason))
+
+    def pytest_sessionfinish(self, session, exitstatus):
+        if self.ci and self.refused and session.exitstatus == pytest.ExitCode.OK:
+            session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+    def pytest_terminal_summary(self, terminalreporter):
+        if not self.refused:
+            return
+        tr = terminalreporter
+        verdict = "fail this run (CI=true)" if self.ci else "would fail CI (CI=true)"
+        tr.section(f"skips not in docs/testing.md's skip table: they {verdict}", sep="=", red=True)
+        for nodeid, reason in self.refused:
+            tr.line(f"SKIPPED {nodeid}: {reason}")
 
 
 #: the folders of the modules the suite's processes import from this checkout

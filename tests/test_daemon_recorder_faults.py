@@ -70,14 +70,18 @@ def _start_both(sock):
              "X and Y tracking")
 
 
-def _mount_tmpfs(path: Path, size: str) -> bool:
+def _mount_tmpfs(path: Path, size: str) -> str:
+    """Mount a tmpfs of ``size`` at ``path`` (the machine's capability, tried before the daemon
+    starts): '' when mounted, else why not."""
     path.mkdir(parents=True, exist_ok=True)
+    if os.geteuid() != 0:
+        return "mounting a tmpfs needs root"
     try:
         r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)],
-                           capture_output=True, timeout=10)
-    except (OSError, subprocess.TimeoutExpired):
-        return False
-    return r.returncode == 0
+                           capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return f"mount -t tmpfs: {exc}"
+    return "" if r.returncode == 0 else f"mount -t tmpfs refused here: {r.stderr.strip()[-200:]}"
 
 
 @pytest.mark.parametrize("disk", ["tmpfs", "simulated"])
@@ -86,8 +90,9 @@ def test_full_disk_latches_every_axis_keeps_answering_and_ends_the_header(tmp_pa
     cfg = _config(tmp_path)
     flag = tmp_path / "disk-full"
     if disk == "tmpfs":
-        if os.geteuid() != 0 or not _mount_tmpfs(logs, "3m"):
-            pytest.skip("mounting a tmpfs needs root")
+        lacks = _mount_tmpfs(logs, "3m")
+        if lacks:
+            pytest.skip(lacks)
         d = Daemon(cfg, tmp_path / "motorctl.sock")
     else:
         d = _SimulatedFullDisk(cfg, tmp_path / "motorctl.sock", flag)
