@@ -21,10 +21,14 @@ GANTRY = yaml.safe_load(open(os.path.join(os.path.dirname(__file__), "..", "conf
 
 
 def _cli(capsys, *argv):
-    t0 = time.monotonic()
+    """The command in this process: (exit code, stdout, stderr, its CPU time [s]). CPU time
+    (``time.process_time``: this process's threads), not the host's wall time: what a loaded
+    host's other processes take does not count, work that never ends (a parse that goes on
+    and on) does; a read that blocks forever never returns at all (CI's time limit)."""
+    t0 = time.process_time()
     code = main([str(a) for a in argv])
     cap = capsys.readouterr()
-    return code, cap.out, cap.err, time.monotonic() - t0
+    return code, cap.out, cap.err, time.process_time() - t0
 
 
 def _one_line_error(code, err):
@@ -199,7 +203,7 @@ _values = st.one_of(
     st.dictionaries(st.text(max_size=5), st.integers(), max_size=3))
 
 
-@settings(max_examples=examples(150), deadline=5000, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(150), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(path=st.sampled_from(_LEAVES), value=_values)
 def test_mutated_configs_exit_0_or_2_with_one_line(tmp_path, capsys, path, value):
     d = _set(copy.deepcopy(GANTRY), path, value)

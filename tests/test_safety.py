@@ -119,22 +119,26 @@ def test_fault_drops_the_operator_request_so_reset_never_moves_the_axis(gantry_y
 
 
 def test_overrun_policy_ramp_holds_then_ramps_to_zero_and_latches(gantry_yaml):
-    ld, drv, sup, lp = _loop(gantry_yaml, clock="wall", policy="ramp")
+    """On the loop's own clock (virtual: no host overrun can come before or between): after
+    cycle 199 the wake of cycle 200 is 15 periods late, as the pacer reports it to the loop
+    (``ServoLoop._overran(late // period)``, what the wall clock's run calls; the pacer's own
+    arithmetic is tests/test_pacing.py's). The policy's rows are then exact: cycle 200 the
+    first held, 5 held, 50 ramping, the fault latched at 254."""
+    ld, drv, sup, lp = _loop(gantry_yaml, clock="virtual", policy="ramp")
     tc = ld.axes["X"].trajectory
     lp.start_axis(0, Move(float(drv.position_m[0]), 0.0, tc.v_max, tc.a_max, tc.j_max))
-    state = {"n": 0}
 
-    def stall(loop):
-        state["n"] += 1
-        if state["n"] == 200:
-            time.sleep(0.003)                  # 15 periods late: an overrun for sure
+    def late_wake(loop):
+        if loop.k == 200:
+            loop._overran(15)                  # the wake of cycle 200: 15 periods late
 
-    lp.on_slack = stall
+    lp.on_slack = late_wake
     lp.run(400)
-    assert lp.overruns >= 1
+    assert lp.overruns == 15
     u, en, fb = _col(lp, "X.u"), _col(lp, "X.enabled"), _col(lp, "X.fault_bits")
     ovr = _col(lp, "overruns")
-    k = int(np.flatnonzero(ovr > 0)[0])         # the first late cycle (ours or the machine's)
+    k = int(np.flatnonzero(ovr > 0)[0])
+    assert k == 200 and not fb[:k].any() and u[k - 1] != 0.0
     assert np.all(u[k:k + 5] == u[k - 1]), "hold the last output"
     ramp = u[k + 5:k + 55]
     assert abs(ramp[-1]) <= abs(u[k - 1]) / 50 + 1e-12

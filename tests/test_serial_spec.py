@@ -223,7 +223,7 @@ def test_a_device_written_from_the_spec_closes_the_loop_over_a_pty(tmp_path):
         assert drv.counters["exceptions"] == 1 and drv.counters["bad_frames"] >= 1, drv.counters
         assert errs <= 2, (errs, drv.counters)                      # the two injected
         # the watchdog: stop commanding, the device faults both channels; a disabled command resets
-        time.sleep(1.3)
+        _latched(dev)
         assert "watchdog tripped" in dev.log and all(dev.fault.values())
         drv.timeout_s = GOOD_ANSWER_WAIT_S
         drv.write(np.zeros(2), np.ones(2, dtype=bool))
@@ -297,8 +297,16 @@ def test_each_run_starts_from_what_the_last_one_left(spec_device):
         assert drv.stop_attempts >= 2, drv.stop_attempts
         assert checks[0].held == "node 1 status 0x00: amplifier off, 0 V", checks
         assert dev.on == {1: False, 2: False} and dev.u == {1: 0.0, 2: 0.0}
-        time.sleep(1.3)                                              # idle: the watchdog latches
+        _latched(dev)                                    # idle: the watchdog latches
         assert all(dev.fault.values()), dev.log
+
+
+def _latched(dev, bound_s: float = 10.0) -> None:
+    """Idle until the device's thread has latched every channel on its watchdog (1 s; bounded:
+    a hang), not a fixed sleep (1.3 s) its thread may be starved past on a loaded host."""
+    end = time.monotonic() + bound_s
+    while not all(dev.fault.values()) and time.monotonic() < end:
+        time.sleep(0.02)
 
 
 def test_an_error_frame_at_set_up_is_the_devices_error_at_once(spec_device):
