@@ -141,3 +141,39 @@ def test_a_bad_metrics_address_is_one_line_and_exit_2(tmp_path, capsys):
     assert main(["check-config", str(cfg)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "daemon.metrics.listen" in err and str(cfg) in err, err
+
+
+def test_a_view_process_behind_handles_a_bounded_number_of_messages_per_wake():
+    """The view process's reader takes at most LINK_MESSAGES_PER_WAKE messages of the link per
+    wake, so requests get their turn however much waits (docs/daemon.md, Views are guests)."""
+    import pickle
+    import socket
+
+    from motorctl.app.daemon.views import LINK_MESSAGES_PER_WAKE, VIEW_NICE, Views
+
+    class _Scope:
+        def meta(self):
+            return {}
+
+    class _Loop:
+        stopped = False
+
+        def stop(self):
+            self.stopped = True
+
+    assert VIEW_NICE == 0
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    with a, b:
+        n = 3 * LINK_MESSAGES_PER_WAKE + 5
+        for j in range(n):
+            a.send(pickle.dumps(("frame", {"seq": j})))
+        b.setblocking(False)
+        v, loop = Views(_Scope()), _Loop()
+        seen = []
+        v.on_frame = seen.append
+        calls = 0
+        while len(seen) < n:
+            v.on_readable(b, loop)
+            calls += 1
+            assert len(seen) <= calls * LINK_MESSAGES_PER_WAKE
+        assert calls == 4 and [f["seq"] for f in seen] == list(range(n)) and not loop.stopped

@@ -10,8 +10,11 @@ Two processes (three with a live view), so that nothing can block the loop (docs
   the control socket, the run log and event logs, ``status``, systemd's notify protocol
   (:mod:`.io_side`). Wire formats: :mod:`.protocol`; the status block: :mod:`.status`.
 * with a scope or Foxglove configured, the **view process** (forked by the I/O process,
-  nice +10, ending with it): the scope page and Foxglove server, fed frames without waiting
-  (:mod:`.views`).
+  nice 0 with bounded work per wake, ending with it): the scope page and Foxglove server, fed
+  frames without waiting (:mod:`.views`).
+* with ``daemon.metrics`` configured, the **metrics process** (forked by the I/O process, nice
+  0, ending with it): Prometheus ``/metrics`` from a snapshot the I/O process sends every second
+  (:mod:`.metrics`).
 
 Every axis starts disabled (0 V, amplifier off) and only an operator's ``start`` enables it,
 so a restart by systemd never re-enables an axis. SIGTERM/SIGINT: a stop of category 1

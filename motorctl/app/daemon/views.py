@@ -2,7 +2,11 @@
 
 The daemon's I/O process drains the ring to the run log; a viewer must never slow that down.
 So the live views run in a process of their own, forked from the I/O process at its start,
-niced (+10: the I/O process wins the CPU), ending with its parent (``PR_SET_PDEATHSIG``).
+ending with its parent (``PR_SET_PDEATHSIG``), at the I/O process's niceness (0,
+:data:`VIEW_NICE`) with bounded work per wake (:data:`LINK_MESSAGES_PER_WAKE`): at +10, beside
+CPU-bound processes at normal priority, its CPU share was a tenth of theirs and it took 23 s to
+listen beside 4 of them (its start-up, aiohttp's import and set-up, is 0.6 s of CPU) and up to
+75 s beside 12-15 (docs/benchmarks.md, 2026-11-27 late evening).
 The I/O process makes the scope's frames (:class:`motorctl.app.daemon.scope.Scope`, cheap
 numpy envelopes) and sends each one over a non-blocking ``SOCK_SEQPACKET`` socket pair
 (:class:`ViewLink`): when the view process does not keep up, the frame is dropped and counted,
@@ -35,8 +39,13 @@ from motorctl.app.lifetime import die_with_parent
 PAGE_QUEUE_FRAMES = 128
 #: a page is sent its queued frames this often [s]
 SEND_EVERY_S = 0.05
-#: the view process's niceness (above the I/O process's 0)
-VIEW_NICE = 10
+#: the view process's niceness: the I/O process's own (0). Its work is bounded (a wake handles at
+#: most LINK_MESSAGES_PER_WAKE messages of the link, a request answers from memory), so it cannot
+#: take more than its share from the drain; at +10 a loaded host starved it for minutes
+VIEW_NICE = 0
+#: messages of the link handled per wake of the event loop before the requests get their turn
+#: (the rest waits for the next wake; the link drops what does not fit, counted)
+LINK_MESSAGES_PER_WAKE = 16
 #: the socket pair's send buffer [bytes] (the kernel caps it at net.core.wmem_max)
 LINK_BUFFER = 1 << 20
 
@@ -195,7 +204,7 @@ def view_main(sock: socket.socket, scope, serve_scope: bool, foxglove_listen: st
         signal.signal(s, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     try:
-        os.nice(VIEW_NICE)
+        os.setpriority(os.PRIO_PROCESS, 0, VIEW_NICE)
     except OSError:
         pass
     loop = asyncio.new_event_loop()
@@ -253,10 +262,13 @@ class Views:
         self.link_dropped = 0
         self.foxglove = None
         self.runner = None
+        self.static: dict[str, bytes] = {}
 
     # ------------------------------------------------------------------ from the I/O process
     def on_readable(self, sock: socket.socket, loop) -> None:
-        while True:
+        """At most :data:`LINK_MESSAGES_PER_WAKE` messages, then the event loop's other work:
+        a link that always has data (a view process behind) never starves the requests."""
+        for _ in range(LINK_MESSAGES_PER_WAKE):
             try:
                 data = sock.recv(1 << 20)
             except (BlockingIOError, InterruptedError):
@@ -321,10 +333,13 @@ class Views:
 
     async def _static_file(self, name: str, kind: str):
         from aiohttp import web
-        try:
-            body = resources.files("motorctl.app.daemon").joinpath("scope_static", name).read_bytes()
-        except (FileNotFoundError, IsADirectoryError):
-            raise web.HTTPNotFound() from None
+        body = self.static.get(name)
+        if body is None:
+            try:
+                body = resources.files("motorctl.app.daemon").joinpath("scope_static", name).read_bytes()
+            except (FileNotFoundError, IsADirectoryError):
+                raise web.HTTPNotFound() from None
+            self.static[name] = body          # a handful of vendored files: read once
         return web.Response(body=body, content_type=kind,
                             charset="utf-8" if kind != "application/javascript" else None)
 
