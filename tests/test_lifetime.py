@@ -59,11 +59,12 @@ def test_kill_9_of_the_daemon_ends_its_io_and_view_processes(tmp_path):
     d = Daemon(cfg, tmp_path / "motorctl.sock", preexec=os.setsid)
     try:
         d.wait_ready()
-        wait_for(lambda: len(_session(d.proc.pid)) == 3, 30, "the loop, I/O and view processes")
+        wait_for(lambda: len(_session(d.proc.pid)) == 4, 30, "the loop, I/O, view and planner processes",
+                 detail=lambda: _session(d.proc.pid))
         os.kill(d.proc.pid, signal.SIGKILL)
         d.proc.wait(10)
         t0 = time.monotonic()
-        wait_for(lambda: not _session(d.proc.pid), 2.0, "the I/O and view processes to end",
+        wait_for(lambda: not _session(d.proc.pid), 2.0, "the I/O, view and planner processes to end",
                  detail=lambda: _session(d.proc.pid))
         assert time.monotonic() - t0 < 2.0
     finally:

@@ -227,6 +227,7 @@ class JobResult:
     notices: list = field(default_factory=list)   # the driver's set-up notices
     lost_rows: int = 0                            # rows the ring overwrote before the drain took them
     program_start_s: float | None = None          # when the programs started (after the approaches)
+    program_end_s: float | None = None            # when the run's duration ended (its stop began)
     approach: dict = field(default_factory=dict)  # name -> {"from_m", "to_m", "duration_s"}
     rest: dict = field(default_factory=dict)      # name -> {"at_m": last reading [m], "category": 0 | 1}
 
@@ -371,6 +372,7 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
         result.stopped_by_signal = stopped[0] if stopped else ""
         if "k_prog" in plan:
             result.program_start_s = plan["k_prog"] * loaded.period_s
+            result.program_end_s = plan["end"] * loaded.period_s
             result.approach = {a: {"from_m": mv.start, "to_m": mv.end, "duration_s": mv.duration}
                                for a, mv in zip(names, plan["moves"])}
         if drain is not None:
@@ -423,7 +425,8 @@ def _finish_log(path: str, k: int, asm, result: JobResult) -> None:
                                    stop=[{"axis": c.axis, "confirmed": c.confirmed, "held": c.held}
                                          for c in result.stop],
                                    notices=result.notices, program_start_s=result.program_start_s,
-                                   approach=result.approach, rest=result.rest))
+                                   program_end_s=result.program_end_s, approach=result.approach,
+                                   rest=result.rest))
     finally:
         w.close()
     if not fits:

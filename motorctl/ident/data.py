@@ -200,8 +200,12 @@ def _read_runlog(path: str, axis: str | None) -> Record:
                        f"t, {name}.y, {name}.u and {name}.enabled")
     if log.data.shape[0] == 0:
         raise LogError(f"{path}: the run log has no records")
-    # keep the cycles where the amplifier was enabled (the start-up/shut-down cycles are not dynamics)
+    # keep the cycles where the amplifier was enabled (the start-up/shut-down cycles are not dynamics),
+    # up to the run's duration (a run's end is a controlled stop: its tail is not the program's)
     on = a["enabled"] > 0.5
+    end = log.header.get("program_end_s")
+    if isinstance(end, (int, float)) and not isinstance(end, bool):
+        on &= t < end
     if on.sum() < MIN_SAMPLES:
         raise LogError(f"{path}: axis {name!r} has only {int(on.sum())} enabled cycles "
                        f"(column '{name}.enabled'); at least {MIN_SAMPLES} are needed")
