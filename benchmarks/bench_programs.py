@@ -215,6 +215,10 @@ def run_program(dm: Daemon, text: str, end_mm, name: str, override_flip: bool = 
     time.sleep(0.3)
     st = c.status()
     y = np.array([st["axes"][a]["y_m"] for a in ("X", "Y")])
+    if not st["motion"]["idle"]:             # paused (an underrun): dropped before the next run
+        c.abort()
+        while not c.status()["motion"]["idle"]:
+            time.sleep(0.1)
     err = float(np.max(np.abs(y - np.array(end_mm) * 1e-3))) * 1e6
     return {"name": name, "faults": [f"{a}: {s['fault']}" for a, s in st["axes"].items() if s["fault"]],
             "underruns": st["motion"]["underruns"] - u0, "end_um": err, "answer_s": t_answer,

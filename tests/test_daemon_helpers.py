@@ -186,3 +186,46 @@ def running_daemon(tmp: Path, **config_kw):
         yield d
     finally:
         d.kill()
+
+
+def to_command_mode(sock) -> None:
+    """Every axis of the daemon at ``sock`` enabled in command mode without a fault (a fault
+    reset, an axis in another phase stopped and started again), motion idle (an abort)."""
+    if not status(sock)["motion"]["idle"]:
+        assert ctl(sock, "abort").returncode == 0
+        wait_for(lambda: status(sock)["motion"]["idle"], 20, "the abort", detail=lambda: status(sock)["motion"])
+    for a, s in status(sock)["axes"].items():
+        if s["fault"]:
+            assert ctl(sock, "fault-reset", a).returncode == 0
+        if s["phase"] != "command":
+            if s["state"] == "enabled":
+                assert ctl(sock, "stop", a).returncode == 0
+            r = ctl(sock, "start", a, "--mode", "command")
+            assert r.returncode == 0, r.stderr
+    wait_for(lambda: all(s["phase"] == "command" for s in status(sock)["axes"].values()), 10, "command mode")
+
+
+@contextlib.contextmanager
+def command_mode_daemon(cfg: Path):
+    """``motorctl daemon`` of ``cfg`` (its socket beside it) with every axis in command mode;
+    killed after."""
+    dmn = Daemon(cfg, cfg.parent / "motorctl.sock")
+    try:
+        dmn.wait_ready()
+        to_command_mode(dmn.sock)
+        yield dmn
+    finally:
+        dmn.kill()
+
+
+def positions(sock) -> "np.ndarray":
+    """(X, Y) where the axes stand [m]."""
+    import numpy as np
+    ax = status(sock)["axes"]
+    return np.array([ax["X"]["y_m"], ax["Y"]["y_m"]])
+
+
+def no_fault(sock) -> None:
+    """Every axis enabled in command mode without a fault."""
+    for a, s in status(sock)["axes"].items():
+        assert s["state"] == "enabled" and s["phase"] == "command" and not s["fault"], (a, s)

@@ -14,7 +14,8 @@ import time
 import numpy as np
 import pytest
 import yaml
-from test_daemon_helpers import REPO, Daemon, cli, ctl, make_config, status, wait_for
+from test_daemon_helpers import (REPO, Daemon, cli, command_mode_daemon, ctl, make_config, no_fault, positions,
+                                 status, to_command_mode, wait_for)
 
 from motorctl.loop.cycle import STREAM
 from motorctl.loop.stream import SP_OUT_SEQ, SP_UNDERRUNS, SetpointRing, brake_step, stream_step
@@ -117,19 +118,11 @@ def ready(request):
         return
     sock = request.getfixturevalue("gantry").sock
     mo = status(sock)["motion"]
-    if not mo["idle"] or mo["hold"] or mo["queue_depth"]:
+    if mo["hold"] or mo["queue_depth"]:
         assert ctl(sock, "abort").returncode == 0
-        wait_for(lambda: status(sock)["motion"]["idle"], 20, "the abort", detail=lambda: status(sock)["motion"])
     if mo["override"] != 1.0:
         assert ctl(sock, "override", "1.0").returncode == 0
-    for a, s in status(sock)["axes"].items():
-        if s["fault"]:
-            assert ctl(sock, "fault-reset", a).returncode == 0
-        if s["phase"] != "command":
-            if s["state"] == "enabled":
-                assert ctl(sock, "stop", a).returncode == 0
-            assert ctl(sock, "start", a, "--mode", "command").returncode == 0
-    wait_for(lambda: all(s["phase"] == "command" for s in status(sock)["axes"].values()), 10, "command mode")
+    to_command_mode(sock)
     if not status(sock)["motion"]["homed"][0]:
         r = ctl(sock, "home", "X", "--timeout", "30")
         assert r.returncode == 0, r.stdout + r.stderr
@@ -141,43 +134,13 @@ def ready(request):
     yield
 
 
-@contextlib.contextmanager
 def _command_mode(cfg, d: dict):
     """The daemon of config ``d`` (written to ``cfg``) with X and Y in command mode; killed after."""
     cfg.write_text(yaml.safe_dump(d))
-    dmn = Daemon(cfg, cfg.parent / "motorctl.sock")
-    try:
-        dmn.wait_ready()
-        for a in ("X", "Y"):
-            r = ctl(dmn.sock, "start", a, "--mode", "command")
-            assert r.returncode == 0, r.stderr
-        wait_for(lambda: all(s["phase"] == "command" for s in status(dmn.sock)["axes"].values()), 10,
-                 "command mode")
-        yield dmn
-    finally:
-        dmn.kill()
+    return command_mode_daemon(cfg)
 
 
-def test_homing_finds_the_index_and_sets_the_position(gantry):
-    """Motion is refused until X is homed; homing ends with the index pulse (raw -2 mm) at
-    0.0: the carriage stopped a fraction of a millimetre past the pulse reads that much above 0."""
-    assert gantry.refused.returncode == 1 and "not homed" in gantry.refused.stderr, gantry.refused.stderr
-    assert gantry.homing.returncode == 0 and "homed" in gantry.homing.stdout, gantry.homing.stdout
-    st = status(gantry.sock)
-    assert st["motion"]["homed"] == [True, False] and st["motion"]["homing"][0] == "homed"
-    assert st["motion"]["homing_configured"] == [True, False] and gantry.homing.stdout.startswith("X: homed")
-    r = ctl(gantry.sock, "home")                          # neither an axis nor --all
-    assert r.returncode == 2 and "--all" in r.stderr and "Traceback" not in r.stderr, r.stderr
-    assert 0.0 < gantry.homed_at < 0.001                  # off the index by the hold's reaction (< LEAD_S)
-    _no_fault(gantry.sock)
-    r = ctl(gantry.sock, "move", "X=0.0", "--wait")
-    assert r.returncode == 0, r.stdout + r.stderr
-    _settled(gantry.sock, np.array([0.0, status(gantry.sock)["axes"]["Y"]["y_m"]]), timeout=5.0)
-
-
-def _y(sock) -> np.ndarray:
-    ax = status(sock)["axes"]
-    return np.array([ax["X"]["y_m"], ax["Y"]["y_m"]])
+_y = positions
 
 
 def _settled(sock, goal, tol=10e-6, timeout=5.0) -> np.ndarray:
@@ -186,9 +149,7 @@ def _settled(sock, goal, tol=10e-6, timeout=5.0) -> np.ndarray:
     return _y(sock)
 
 
-def _no_fault(sock):
-    for a, s in status(sock)["axes"].items():
-        assert s["state"] == "enabled" and s["phase"] == "command" and not s["fault"], (a, s)
+_no_fault = no_fault
 
 
 def test_move_ends_on_its_target(gantry):

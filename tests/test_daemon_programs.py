@@ -18,7 +18,8 @@ import yaml
 from conftest import examples
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_daemon_helpers import Daemon, ctl, make_config, status, wait_for
+from test_daemon_helpers import (command_mode_daemon, ctl, make_config, no_fault, positions, status,
+                                 to_command_mode, wait_for)
 
 from motorctl.client import call
 
@@ -33,18 +34,8 @@ def machine(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("programs")
     cfg = make_config(tmp, extra_daemon={"max_program_bytes": MAX_PROGRAM})
     assert "gcode" not in yaml.safe_load(cfg.read_text())
-    dmn = Daemon(cfg, tmp / "motorctl.sock")
-    try:
-        dmn.wait_ready()
-        for a in ("X", "Y"):
-            r = ctl(dmn.sock, "start", a, "--mode", "command")
-            assert r.returncode == 0, r.stderr
-        wait_for(lambda: all(s["phase"] == "command" for s in status(dmn.sock)["axes"].values()), 10,
-                 "command mode")
-        dmn.tmp = tmp
+    with command_mode_daemon(cfg) as dmn:
         yield dmn
-    finally:
-        dmn.kill()
 
 
 @pytest.fixture(autouse=True)
@@ -55,29 +46,12 @@ def ready(request):
         yield
         return
     sock = request.getfixturevalue("machine").sock
-    if not status(sock)["motion"]["idle"]:
-        call(str(sock), {"cmd": "abort"})
-        wait_for(lambda: status(sock)["motion"]["idle"], 20, "the abort")
+    to_command_mode(sock)
     call(str(sock), {"cmd": "optional-stop", "value": False})
-    for a, s in status(sock)["axes"].items():
-        if s["fault"]:
-            assert ctl(sock, "fault-reset", a).returncode == 0
-        if s["phase"] != "command":
-            if s["state"] == "enabled":
-                assert ctl(sock, "stop", a).returncode == 0
-            assert ctl(sock, "start", a, "--mode", "command").returncode == 0
-    wait_for(lambda: all(s["phase"] == "command" for s in status(sock)["axes"].values()), 10, "command mode")
     yield
 
 
-def _y(sock) -> np.ndarray:
-    ax = status(sock)["axes"]
-    return np.array([ax["X"]["y_m"], ax["Y"]["y_m"]])
-
-
-def _no_fault(sock) -> None:
-    for a, s in status(sock)["axes"].items():
-        assert s["state"] == "enabled" and s["phase"] == "command" and not s["fault"], (a, s)
+_y, _no_fault = positions, no_fault
 
 
 def _steps(n: int, x0: float = 50.0, y0: float = 50.0, bad_last: bool = False) -> tuple[str, np.ndarray]:
@@ -226,7 +200,7 @@ def test_a_dead_planner_is_started_again(machine, tmp_path):
     sock = machine.sock
     pid = status(sock)["process"]["planner_pid"]
     os.kill(pid, signal.SIGKILL)
-    wait_for(lambda: status(sock)["process"]["planner_pid"] not in (None, pid), 10, "a new planner")
+    wait_for(lambda: status(sock)["process"]["planner_pid"] not in (None, pid), 60, "a new planner")
     prog = tmp_path / "p.ngc"
     prog.write_text("G21 G90\nG1 X60 Y60 F3000\nM2\n")
     r = ctl(sock, "gcode", str(prog), "--wait")

@@ -61,7 +61,7 @@ AHEAD_WINDOWS = 3
 #: segments read per batch of a pass
 BATCH = 2000
 #: the planner process's nice value where the real-time set-up is on
-PLAN_NICE = -5
+PLAN_NICE = -8
 
 
 @dataclass

@@ -394,9 +394,10 @@ class _Reader:
             return False                     # the general way says why
         self.f_word = f_word
         self.motion = motion
-        if moves:
-            t = self.pos.copy()
-            base = self.offset() if self.absolute else self.pos
+        if moves:                            # Python floats, one array (positions are never
+            p = self.pos.tolist()            # changed in place: a Line may share them)
+            t = list(p)
+            base = (self.cs[self.active] + self.g92).tolist() if self.absolute else p
             u = self.unit
             if x is not None:
                 t[0] = base[0] + float(x) * u
@@ -404,7 +405,10 @@ class _Reader:
                 t[1] = base[1] + float(y) * u
             if z is not None:
                 t[2] = base[2] + float(z) * u
-            self._move(n, t, None if motion == 0 else self.feed)
+            if t != p:
+                end = np.array(t)
+                self.segments.append(Line(self.pos, end, None if motion == 0 else self.feed, self.tol, n))
+                self.pos = end
         return True
 
     def _stray(self, n: int, text: str, a: int, b: int) -> None:

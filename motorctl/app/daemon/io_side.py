@@ -55,6 +55,13 @@ from motorctl.recorder.segments import SegmentWriter
 #: the motion filler thread runs SCHED_FIFO this many priority levels below the loop (with
 #: loop.realtime.policy not off), so that a busy host does not starve the setpoint stream
 FILLER_PRIORITY_BELOW = 40
+#: the I/O process's nice value with the real-time set-up on: its threads share one interpreter
+#: lock, and the SCHED_FIFO filler waits for it while the main thread (socket, recorder drain)
+#: holds it; at nice 0 beside CPU-bound work the main thread was preempted holding it long enough
+#: for the 0.125 s of setpoints a feed-override rewrite leaves ahead to run dry (an underrun with
+#: the override flipped 0.5/1.5 beside 4 CPU-bound processes). The planner process (nice -8) and
+#: the views (nice 0) come after it
+IO_NICE = -10
 #: a command the loop has not answered within this time is answered with an error [s]
 LOOP_ANSWER_S = 2.0
 #: how often the I/O process wakes when nothing happens [s]
@@ -908,11 +915,14 @@ class IOSide:
 
 def io_main(plan, lsock, writer: SegmentWriter, cmds: Mailbox, replies: Mailbox) -> int:
     """Entry of the I/O process: ignore the signals (the loop process says when to go),
-    SCHED_OTHER, serve until the loop process ends."""
+    SCHED_OTHER (at nice :data:`IO_NICE` with the real-time set-up on), serve until the loop
+    process ends."""
     for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
         signal.signal(s, signal.SIG_IGN)
     try:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        if plan.asm.loaded.cfg.loop.realtime.policy != "off":
+            os.setpriority(os.PRIO_PROCESS, 0, IO_NICE)     # before its threads: they inherit it
     except OSError:
         pass
     return IOSide(plan, lsock, writer, cmds, replies).run()

@@ -379,8 +379,8 @@ class MotionSide:
         """Jog axis i in command mode (LinuxCNC's jog of an enabled joint): ``by`` value [m]
         from where it is commanded (incremental), ``velocity`` value [m/s] toward the soft
         limit on its side until ``stop`` (continuous; an abort ends it on the path), or
-        ``to`` value [m] (at most ``feed`` [m/s]). Raises MotionError (nothing queued): not in command mode, motion
-        running, a target outside the soft limits."""
+        ``to`` value [m] (at most ``feed`` [m/s]). Raises MotionError (nothing queued): not in
+        command mode, motion running, a target outside the soft limits."""
         name = self.names[i]
         if kind == "stop":
             self.abort()
@@ -1017,7 +1017,14 @@ class MotionSide:
             traj.sample_into(float(s[0]), ds, g[:m])
             rows[:] = g[:m].transpose(0, 2, 1)
             return
-        n_g = min(int(math.ceil((s[-1] - s[0]) / ds)) + 1, g.shape[0])
+        h = getattr(traj, "period", None)
+        if h:                                # a planned path: on its own grid (the fast path of
+            ds = float(h)                    # sample_into: a ramp's rows at f·Ts apart took 70 ms
+            n_g = int(math.ceil((s[-1] - s[0]) / ds)) + 2   # a block off it, 1.5 ms on it)
+            if n_g > g.shape[0]:
+                g = np.empty((n_g, 3, self.n))
+        else:
+            n_g = min(int(math.ceil((s[-1] - s[0]) / ds)) + 1, g.shape[0])
         traj.sample_into(float(s[0]), ds, g[:n_g])
         u = np.clip((s - s[0]) / ds, 0.0, n_g - 1 - 1e-12)
         k = np.minimum(u.astype(np.int64), n_g - 2)
