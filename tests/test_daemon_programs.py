@@ -30,10 +30,12 @@ MAX_PROGRAM = 200_000
 
 @pytest.fixture(scope="module")
 def machine(tmp_path_factory):
-    """One daemon on configs/gantry.yaml (paths, realtime off and the program bound changed;
+    """One daemon on configs/gantry.yaml (paths, realtime off, the program bound and the lead changed;
     no gcode: section, so the G-code axes are the machine's, X Y), both axes in command mode."""
     tmp = tmp_path_factory.mktemp("programs")
-    cfg = make_config(tmp, extra_daemon={"max_program_bytes": MAX_PROGRAM})
+    # the lead of test_daemon_motion's daemon (1.5 s): without the real-time set-up (tests run
+    # with policy off) the filler is starved on a loaded host; 0.5 s underran once under the suite
+    cfg = make_config(tmp, extra_daemon={"max_program_bytes": MAX_PROGRAM, "motion_lead_s": 1.5})
     assert "gcode" not in yaml.safe_load(cfg.read_text())
     with command_mode_daemon(cfg) as dmn:
         yield dmn
