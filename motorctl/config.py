@@ -157,6 +157,27 @@ class MetricsConfig(ScopeConfig):
     listen: str = "127.0.0.1:9464"
 
 
+class OpcuaConfig(StrictModel):
+    """The OPC UA server (docs/opcua.md, the ``opcua`` extra): endpoint = its opc.tcp URL;
+    anonymous: what a session without a user may do ('read': browse, read, subscribe; 'off':
+    nothing); security: the policies offered ('None', 'Basic256Sha256' with Sign or
+    SignAndEncrypt); certificate / private_key: the server's X.509 PEM files (None: a
+    self-signed pair made in the daemon's log_dir at first start)."""
+
+    endpoint: str = "opc.tcp://127.0.0.1:4840/motorctl"
+    anonymous: Literal["read", "off"] = "read"
+    security: list[Literal["None", "Basic256Sha256"]] = ["None", "Basic256Sha256"]
+    certificate: str | None = None
+    private_key: str | None = None
+
+    @field_validator("endpoint")
+    @classmethod
+    def _opc_tcp(cls, v: str) -> str:
+        if not v.startswith("opc.tcp://"):
+            raise ValueError(f"{v!r} is not an opc.tcp:// URL; allowed: e.g. opc.tcp://127.0.0.1:4840/motorctl")
+        return v
+
+
 class DaemonConfig(StrictModel):
     """The service (``motorctl daemon``): control socket, run logs, flight recorder, stop ramp.
 
@@ -172,6 +193,10 @@ class DaemonConfig(StrictModel):
     foxglove: the same channels to Foxglove (:class:`FoxgloveConfig`; None: off).
     metrics: Prometheus ``/metrics`` from a process of its own (:class:`MetricsConfig`, the
     ``metrics`` extra, docs/metrics.md; None: off).
+    opcua: the OPC UA server (:class:`OpcuaConfig`, the ``opcua`` extra; None: off).
+    users_file: the operators' accounts (YAML of hashed passwords and roles,
+    :mod:`motorctl.app.users`) that the OPC UA server and the operator page check; None: no
+    logins (read-only views).
     motion_lead_s: commanded motion's setpoints kept ahead of the loop [s] (the setpoint ring
     holds twice as much, at least 1 s): the longest the I/O process may be starved of the CPU
     before the loop runs dry and brakes to rest (an underrun, docs/motion.md); below the
@@ -201,6 +226,8 @@ class DaemonConfig(StrictModel):
     scope: ScopeConfig | None = None
     foxglove: FoxgloveConfig | None = None
     metrics: MetricsConfig | None = None
+    opcua: OpcuaConfig | None = None
+    users_file: str | None = None
     motion_lead_s: Annotated[float, Field(ge=0.05, le=3.0)] = 0.5
     max_program_bytes: Annotated[int, Field(ge=1 << 16, le=1 << 40)] = 1 << 30
     log_segment_bytes: Annotated[int, Field(ge=1 << 20, le=1 << 40)] = 512 << 20
@@ -264,6 +291,9 @@ AxisName = Annotated[str, StringConstraints(pattern=r"^[A-Za-z][A-Za-z0-9_]{0,31
 
 
 class GantryConfig(StrictModel):
+    #: the machine's name in its run logs' headers (a fleet's logs are grouped by it); None: the
+    #: host name
+    machine_id: Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")] | None = None
     loop: LoopConfig = LoopConfig()
     daemon: DaemonConfig = DaemonConfig()
     driver: DriverSection = DriverSection()

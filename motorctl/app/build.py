@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import math
+import socket
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 
@@ -320,6 +321,7 @@ def log_header(asm: Assembly, **extra) -> dict:
         "format": LOG_FORMAT,
         "software": f"motorctl {software_version()}",
         "started": asm.started,
+        "machine_id": loaded.cfg.machine_id or socket.gethostname(),
         "config_file": str(loaded.path),
         "config": loaded.cfg.model_dump(mode="json"),
         "driver_type": loaded.cfg.driver.type,

@@ -37,7 +37,8 @@ COMMAND_GROUP = "motorctl.commands"
 #: a command that needs one which is missing says so in one line naming the extra (exit 2)
 EXTRA_OF = {"matplotlib": "plot", "aiohttp": "scope", "foxglove": "foxglove", "mcap": "mcap",
             "can": "can", "canopen": "can", "msgpack": "can", "serial": "serial", "pymodbus": "modbus",
-            "pysoem": "ethercat", "pooch": "data"}
+            "pysoem": "ethercat", "pooch": "data", "asyncua": "opcua",
+            "dask": "fleet", "distributed": "fleet", "pyarrow": "fleet", "fsspec": "fleet"}
 
 
 class UsageError(Exception):
