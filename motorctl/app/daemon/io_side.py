@@ -822,7 +822,8 @@ class IOSide:
         if not serve_scope and not fox:
             return
         try:
-            self.views = start_views(self.scope, serve_scope, fox)
+            self.views = start_views(self.scope, serve_scope, fox, {   # + the operator page
+                "socket": self.plan.socket_path, "users_file": self.plan.asm.loaded.cfg.daemon.users_file})
         except Exception as exc:               # noqa: BLE001 - no view is worth the drain
             sys.stderr.write(f"motorctl: warning: views not served ({type(exc).__name__}: {exc})\n")
             return

@@ -163,8 +163,11 @@ def _reap(pid: int, timeout_s: float) -> None:
         time.sleep(0.01)
 
 
-def start_views(scope, serve_scope: bool, foxglove_listen: str | None) -> ViewLink:
-    """Fork the view process (call with no thread running). Returns the I/O process's link."""
+def start_views(scope, serve_scope: bool, foxglove_listen: str | None,
+                operator: dict | None = None) -> ViewLink:
+    """Fork the view process (call with no thread running). Returns the I/O process's link.
+    ``operator``: {"socket": the control socket's path, "users_file": daemon.users_file or
+    None}: the operator page (:mod:`motorctl.app.daemon.operator_page`) beside the scope's."""
     mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     for s in (mine, theirs):
         try:
@@ -183,7 +186,7 @@ def start_views(scope, serve_scope: bool, foxglove_listen: str | None) -> ViewLi
             keep = theirs.fileno()            # nothing of the I/O process's: socket, pipes, log
             os.closerange(3, keep)
             os.closerange(keep + 1, os.sysconf("SC_OPEN_MAX"))
-            code = view_main(theirs, scope, serve_scope, foxglove_listen, parent)
+            code = view_main(theirs, scope, serve_scope, foxglove_listen, parent, operator)
         except BaseException as exc:            # noqa: BLE001 - last resort, one line
             try:
                 sys.stderr.write(f"motorctl: warning: the view process ended: {type(exc).__name__}: {exc}\n")
@@ -197,7 +200,7 @@ def start_views(scope, serve_scope: bool, foxglove_listen: str | None) -> ViewLi
 
 
 def view_main(sock: socket.socket, scope, serve_scope: bool, foxglove_listen: str | None,
-              parent_pid: int) -> int:
+              parent_pid: int, operator: dict | None = None) -> int:
     """The view process: serve what is configured until the link closes or the parent dies."""
     die_with_parent(parent_pid, signal.SIGKILL)
     for s in (signal.SIGINT, signal.SIGHUP):
@@ -209,7 +212,7 @@ def view_main(sock: socket.socket, scope, serve_scope: bool, foxglove_listen: st
         pass
     loop = asyncio.new_event_loop()
     asyncio.set_event_loop(loop)
-    views = Views(scope)
+    views = Views(scope, operator)
     report = {"scope": None, "foxglove": None}
     if serve_scope:
         try:
@@ -254,8 +257,9 @@ class _Page:
 class Views:
     """The view process's state: the pages' queues, the last status, the Foxglove publisher."""
 
-    def __init__(self, scope):
+    def __init__(self, scope, operator: dict | None = None):
         self.scope = scope
+        self.operator = operator
         self.meta = json.dumps({"meta": scope.meta()})
         self.pages: set[_Page] = set()
         self.status_json = "{}"
@@ -306,6 +310,10 @@ class Views:
         app.router.add_get("/ws", self._ws)
         app.router.add_get("/meta", self._meta)
         app.router.add_get("/static/{name}", self._static)
+        if self.operator is not None:     # the operator page: a client of the control socket
+            from motorctl.app.daemon.operator_page import OperatorPage
+            OperatorPage(self.operator["socket"], self.operator.get("users_file"), self.scope.names,
+                         self._static_bytes).add_routes(app)
         self.runner = web.AppRunner(app, access_log=None)
         await self.runner.setup()
         await web.TCPSite(self.runner, self.scope.host, self.scope.port).start()
@@ -331,15 +339,21 @@ class Views:
             raise web.HTTPNotFound()
         return await self._static_file(name, kind)
 
-    async def _static_file(self, name: str, kind: str):
-        from aiohttp import web
+    def _static_bytes(self, name: str) -> bytes:
+        """A file of ``scope_static`` (read once). Raises aiohttp's HTTPNotFound."""
         body = self.static.get(name)
         if body is None:
             try:
                 body = resources.files("motorctl.app.daemon").joinpath("scope_static", name).read_bytes()
             except (FileNotFoundError, IsADirectoryError):
+                from aiohttp import web
                 raise web.HTTPNotFound() from None
             self.static[name] = body          # a handful of vendored files: read once
+        return body
+
+    async def _static_file(self, name: str, kind: str):
+        from aiohttp import web
+        body = self._static_bytes(name)
         return web.Response(body=body, content_type=kind,
                             charset="utf-8" if kind != "application/javascript" else None)
 
