@@ -12,7 +12,7 @@ from test_daemon_helpers import ctl, running_daemon, status, wait_for
 
 from motorctl.recorder.runlog import read_log
 from motorctl.loop.safety import (FAULT_AMP_FAULT, FAULT_FOLLOWING_ERROR, FAULT_IO_ERROR, FAULT_NAN,
-                             FAULT_SOFT_LIMIT)
+                                  FAULT_I2T, FAULT_SOFT_LIMIT)
 
 # (injection args, fault bit, reason in status, what blocks the reset until it is gone)
 FAULTS = [
@@ -91,3 +91,34 @@ def test_injected_faults_latch_zero_volts_and_reset(fault_daemon):
         assert ev.header["event"]["cycle"] == k
         t = ev.col("t")
         assert t[0] < k * log.header["period_s"] < t[-1], "the window holds before and after"
+
+
+
+def test_a_force_held_above_the_continuous_rating_trips_i2t_through_the_daemon(tmp_path):
+    """X held at rest against a 100 N push (u about 1.25 V) with an I²t model rated 0.5 V
+    continuous, 1 V for 0.1 s (docs/protection.md: trips after (1 - 0.25)·0.1 / (1.56 - 0.25)
+    = 57 ms): the loop's I²t check trips, status names it, u is 0 V and the amplifier off from
+    that row of the log on, the other axis untouched, and a fault reset takes it (the
+    accumulator cleared; the axis stays disabled)."""
+    with running_daemon(tmp_path, fault_axis=True, limits_x={"i2t_continuous_V": 0.5, "i2t_peak_V": 1.0,
+                                                             "i2t_peak_time_s": 0.1}) as d:
+        sock = d.sock
+        x = lambda: status(sock)["axes"]["X"]  # noqa: E731
+        log_path = status(sock)["log"]["path"]
+        assert ctl(sock, "start", "X").returncode == 0
+        wait_for(lambda: x()["phase"] == "tracking" and x()["state"] == "enabled", 20, "X tracking")
+        assert ctl(sock, "inject", "X", "push", "--force-n", "100", "--cycles", "1000").returncode == 0
+        st = wait_for(lambda: (s := x())["state"] == "fault" and s, 20, "the I2t trip", detail=lambda: x())
+        assert "i2t" in st["fault"] and st["fault_bits"] & FAULT_I2T, st
+        assert not st["amplifier_enabled"] and st["u_V"] == 0.0
+        assert status(sock)["axes"]["Y"]["fault"] == ""
+        r = ctl(sock, "fault-reset", "X")
+        assert r.returncode == 0 and "stays disabled" in r.stdout, r.stdout + r.stderr
+        assert x()["i2t_level"] == 0.0
+        code, _, _ = d.terminate()
+        assert code == 0
+    log = read_log(log_path)
+    fb, u, en = log.col("X.fault_bits"), log.col("X.u"), log.col("X.enabled")
+    k = int(np.flatnonzero(fb.astype(np.int64) & FAULT_I2T)[0])
+    assert en[k - 1] == 1.0 and abs(u[k - 1]) > 1.0, "driven against the push before"
+    assert u[k] == 0.0 and en[k] == 0.0, "0 V and amplifier off in the cycle of the trip"

@@ -24,12 +24,13 @@ FLUSH_S = 1.0
 
 def make_config(tmp: Path, *, fault_axis: bool = False, watchdog_s: float = 0.0,
                 policy: str = "off", extra_daemon: dict | None = None, name: str = "cfg.yaml",
-                busy_y: bool = False) -> Path:
+                busy_y: bool = False, limits_x: dict | None = None) -> Path:
     """A copy of configs/gantry.yaml for tests: realtime off, socket and logs under tmp,
     fault injection on, short recorder windows. ``busy_y``: Y's program is mostly moving.
     ``fault_axis``: X holds at 0 with a soft
     minimum 0.5 mm below it and a 1 mm following-error floor (push → soft limit or following
-    error), and no offset force (so it does not creep while disabled)."""
+    error), and no offset force (so it does not creep while disabled). ``limits_x``: keys of X's
+    limits section replaced."""
     d = yaml.safe_load(GANTRY.read_text())
     d["loop"]["realtime"]["policy"] = policy
     d["driver"]["watchdog_s"] = watchdog_s
@@ -48,6 +49,8 @@ def make_config(tmp: Path, *, fault_axis: bool = False, watchdog_s: float = 0.0,
         x["driver"]["offset_N"] = 0.0
         x["trajectory"] = {"points": [0.0]}
         x["limits"].update(soft_min_m=-0.0005, min_following_error_m=0.001, following_error_m=0.002)
+    if limits_x:
+        d["axes"]["X"]["limits"].update(limits_x)
     p = tmp / name
     p.write_text(yaml.safe_dump(d))
     return p
