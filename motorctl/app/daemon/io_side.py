@@ -517,6 +517,7 @@ class IOSide:
             "process": {k: ready.get(k) for k in ("loop_pid", "python_threads", "native_threads",
                                                   "cpu_affinity", "switch_interval_s")}
                        | {"io_pid": os.getpid(), "planner_pid": self.planner.pid or None,
+                          "opcua_pid": getattr(getattr(self, "opcua", None), "pid", None),
                           "uptime_s": time.monotonic() - self.started},
             "log": {"path": self.writer.path, "run": self.plan.log_path,
                     "segment": self.writer.index, "rows": self.writer.rows_written,
@@ -710,6 +711,10 @@ class IOSide:
         if (mc := self.plan.asm.loaded.cfg.daemon.metrics) is not None:
             from motorctl.app.daemon.metrics import start_metrics
             self.metrics = start_metrics(mc.listen, self.layout, self.names, self.drainer)
+        self.opcua = None                    # OPC UA server (app/daemon/opcua_server.py)
+        if self.plan.asm.loaded.cfg.daemon.opcua is not None:
+            from motorctl.app.daemon.opcua_server import start_opcua
+            self.opcua = start_opcua(self)
         self.start_planner()
         self.motion.start()
         while not loop_gone:
@@ -758,6 +763,8 @@ class IOSide:
             self.notify(now)
             if self.metrics is not None:
                 self.metrics.poll(self, now)
+            if self.opcua is not None:
+                self.opcua.poll(self, now)
             if self.scope is not None and now - self.last_scope_status >= SCOPE_STATUS_S:
                 self.last_scope_status = now
                 st = {"axes": {a: {k: v for k, v in self.axis_status(i).items()
@@ -773,6 +780,8 @@ class IOSide:
             self.views.stop()
         if self.metrics is not None:
             self.metrics.stop()
+        if self.opcua is not None:
+            self.opcua.stop()
         # the loop process ended (normally, or killed): keep everything it published
         try:
             dr = self.drainer

@@ -1,0 +1,796 @@
+"""The daemon's OPC UA server (docs/opcua.md), after OPC 40502 (OPC UA for CNC Systems), in a
+process of its own.
+
+Address space (OPC 10000-3 objects and variables; the companion specification's BrowseNames
+in the namespace :data:`CNC_NS`; the official NodeSet is not loaded, the types are made here
+with the same names)::
+
+    Objects/CncInterface                      (CncInterfaceType)
+        CncChannelList/CncChannel             (CncChannelType): program, line, status,
+                                              override, work offset; the methods
+        CncAxisList/<axis>                    (CncAxisType), one per configured axis:
+                                              ActPos, CmdPos, ActSpeed, IsReferenced, ...
+
+How the values get here. The I/O process (:mod:`motorctl.app.daemon.io_side`) hands this
+process a *snapshot* of figures it already holds (the newest row of the shared ring, the
+status block, the motion filler's progress) every :data:`SNAPSHOT_EVERY_S` over a
+non-blocking socket pair (:class:`OpcuaLink`, as :mod:`motorctl.app.daemon.metrics` does). A
+send that would wait is dropped and counted, so a slow server or a slow client costs the I/O
+process nothing; the server, not the I/O process, answers every OPC UA request. The
+alternative, polling the control socket's ``status`` at 20 Hz and more, was not taken: a
+``status`` builds the whole status (timing percentiles over 40 000-bin histograms per axis,
+the log's figures, JSON) and costs a connection per poll in the process that drains the
+recorder; the snapshot is a few dozen floats (one pickle of about 1 kB, tens of microseconds,
+benchmarks/bench_opcua.py), the slower figures (turnaround percentiles, work offsets) only
+every :data:`SLOW_EVERY_S`.
+
+Commands (the channel's methods, OPC 10000-4 5.11 Call) go the other way through the
+daemon's Unix control socket (:mod:`motorctl.client`), as the operator's command line does:
+the same checks by the I/O process and the loop, the same answers. A method is callable only
+by a session of a user with the ``operator`` role (:mod:`motorctl.app.users`, checked at
+ActivateSession, OPC 10000-4 5.6.3); an anonymous session (``daemon.opcua.anonymous: read``)
+or a ``viewer`` may browse, read and subscribe, and a Call is answered BadUserAccessDenied.
+
+Security (OPC 10000-4 6, OPC 10000-7): the policies of ``daemon.opcua.security``: None and
+Basic256Sha256 with Sign and with SignAndEncrypt; without a configured certificate a
+self-signed one (RSA 2048, asyncua's helpers over ``cryptography``) is made in
+``LOG_DIR/opcua/`` at the first start and kept. A password sent on an unencrypted channel is
+encrypted with the server's certificate (the user token policy asks for it).
+
+Timestamps: a value's SourceTimestamp is the loop's own time of the row it comes from (the
+master's clock, mapped onto UTC at the first snapshot), its ServerTimestamp the server's wall
+clock.
+
+The process runs at nice :data:`OPCUA_NICE` (0), follows the I/O process off the loop's CPU,
+and ends with the I/O process (EOF on the link, ``PR_SET_PDEATHSIG``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import datetime as _dt
+import logging
+import math
+import os
+import pickle
+import signal
+import socket
+import sys
+import time
+
+import numpy as np
+
+from motorctl.app.lifetime import die_with_parent
+
+#: the namespace of the CNC objects (OPC 40502's namespace URI)
+CNC_NS = "http://opcfoundation.org/UA/CNC/"
+#: the I/O process sends a snapshot at most this often [s] (it wakes every 20 ms: 25-50 Hz)
+SNAPSHOT_EVERY_S = 0.02
+#: the slow figures (turnaround percentiles, work offsets) this often [s]
+SLOW_EVERY_S = 1.0
+#: the OPC UA process's niceness (the I/O process's own)
+OPCUA_NICE = 0
+#: snapshots the server reads per wake at most (the newest wins; the rest is skipped)
+LINK_MESSAGES_PER_WAKE = 64
+#: programs LoadProgram keeps at once (the oldest goes)
+MAX_LOADED_PROGRAMS = 16
+#: a command through the control socket is given up after this long [s]
+COMMAND_TIMEOUT_S = 10.0
+
+#: CncChannelProgramStatus (OPC 40502): Stopped, Running, Waiting, Interrupted, Canceled
+PROG_STOPPED, PROG_RUNNING, PROG_WAITING, PROG_INTERRUPTED, PROG_CANCELED = range(5)
+#: CncChannelStatus (OPC 40502): Active, Interrupted, Reset
+CH_ACTIVE, CH_INTERRUPTED, CH_RESET = range(3)
+#: CncAxisStatus (OPC 40502): InPosition, Moving, Parked
+AX_IN_POSITION, AX_MOVING, AX_PARKED = range(3)
+
+
+class OpcuaConfigError(ValueError):
+    """daemon.opcua or daemon.users_file cannot be served: one line naming the key."""
+
+
+# ---------------------------------------------------------------------------- I/O process side
+def check_config(cfg, config_dir: str = ".") -> tuple:
+    """Check what the server needs beyond the schema: the users file (loaded and checked), the
+    certificate pair (both or neither, readable). Returns ``(users or None, cert, key)``
+    (absolute paths or None). Raises OpcuaConfigError (one line)."""
+    from motorctl.app.users import UsersError, load_users
+    d = cfg.daemon
+    oc = d.opcua
+    users = None
+    if d.users_file is not None:
+        path = d.users_file if os.path.isabs(d.users_file) else os.path.join(config_dir, d.users_file)
+        try:
+            users = load_users(path)
+        except UsersError as exc:
+            raise OpcuaConfigError(f"daemon.users_file: {exc}") from None
+    cert, key = oc.certificate, oc.private_key
+    if (cert is None) != (key is None):
+        raise OpcuaConfigError("daemon.opcua: certificate and private_key go together; allowed: both "
+                               "(PEM or DER files) or neither (a self-signed pair is made)")
+    out = []
+    for name, p in (("certificate", cert), ("private_key", key)):
+        if p is None:
+            out.append(None)
+            continue
+        p = p if os.path.isabs(p) else os.path.join(config_dir, p)
+        if not os.access(p, os.R_OK):
+            raise OpcuaConfigError(f"daemon.opcua.{name}: {p}: not a readable file")
+        out.append(p)
+    if oc.anonymous == "off" and users is None:
+        raise OpcuaConfigError("daemon.opcua.anonymous: off without daemon.users_file lets nobody in; "
+                               "allowed: a users_file, or anonymous: read")
+    return users, out[0], out[1]
+
+
+class _Columns:
+    """Column indices of the fields a snapshot takes from a ring row."""
+
+    def __init__(self, layout, names):
+        ix = layout.index
+        self.y = np.asarray([ix(f"{a}.y") for a in names])
+        self.xd = np.asarray([ix(f"{a}.x_d") for a in names])
+        self.v = np.asarray([ix(f"{a}.x2") for a in names])
+        self.vd = np.asarray([ix(f"{a}.xd_dot") for a in names])
+        self.e = np.asarray([ix(f"{a}.e") for a in names])
+        self.en = np.asarray([ix(f"{a}.enabled") for a in names])
+        self.t = layout.cycle("t")
+
+
+def snapshot(io, cols: _Columns, slow: bool) -> dict:
+    """The figures the server shows, from the I/O process's own state (``io``: its
+    :class:`~motorctl.app.daemon.io_side.IOSide`); nothing is read from the loop but the status
+    block and the newest row. Units: metres, m/s, seconds, µs; ``slow``: also the turnaround
+    percentiles and the work offsets. Raises nothing the caller does not catch."""
+    from motorctl.app.daemon.status import ST, fault_text
+    from motorctl.loop.safety import with_drive_reason
+    from motorctl.recorder.flight import CTL_REC_LATCHED, REC_REASONS
+
+    ring, mo = io.plan.ring, io.motion
+    row = ring.latest()
+    st = ring.status
+    n = len(io.names)
+    bits = [int(b) for b in st[:, ST["fault"]]]
+    modes = [int(m) for m in st[:, ST["mode"]]]
+    nan = [math.nan] * n
+    if row is None:
+        t, y, xd, v, vd, e, en = 0.0, nan, nan, nan, nan, nan, [False] * n
+    else:
+        t = float(row[cols.t])
+        y, xd, v = row[cols.y].tolist(), row[cols.xd].tolist(), row[cols.v].tolist()
+        vd, e = row[cols.vd].tolist(), row[cols.e].tolist()
+        en = [bool(x > 0) for x in row[cols.en]]
+    faults = []
+    rec = REC_REASONS.get(int(ring.ctl[CTL_REC_LATCHED]), "")
+    for i in range(n):
+        if bits[i]:
+            text = fault_text(bits[i], st[i, ST["value"]], st[i, ST["limit"]], rec)
+            faults.append(with_drive_reason(text, io.drive_reasons[i]))
+        else:
+            faults.append("")
+    line, done, left = mo.progress()
+    job = io.job
+    snap = {"t": t, "cycles": int(ring.published()), "y": y, "x_d": xd, "v": v, "xd_dot": vd,
+            "e": e, "enabled": en, "modes": modes, "fault_bits": bits, "faults": faults,
+            "homed": [bool(h) for h in mo.homed], "line": int(line), "done": float(done),
+            "left_s": float(left), "override": float(mo.override), "hold": bool(mo.holding),
+            "aborting": bool(mo.aborting), "idle": bool(mo.idle()), "feed_m_s": float(mo.feed_m_s),
+            "stopped_because": str(mo.reason),
+            "program": job["job"].filename if job is not None else None}
+    if slow:
+        snap["turnaround"] = [{k: float(v) for k, v in io.drainer.axis_stats[i].summary().items()
+                               if k.startswith("turnaround")} for i in range(n)]
+        g54 = mo.work_offsets.get("G54")
+        snap["zero_offset"] = [0.0] * n if g54 is None else [
+            float(g54["XYZ".index(a)]) if a in "XYZ" and len(a) == 1 else 0.0 for a in io.names]
+    return snap
+
+
+class OpcuaLink:
+    """The I/O process's end of the OPC UA process.
+
+    Attributes:
+        pid: the OPC UA process. sent, dropped: snapshots handed over / dropped (the server was
+        behind). alive: False once it has ended. build_s: the time the last snapshot took to
+        build and send [s].
+    """
+
+    def __init__(self, sock: socket.socket, pid: int, endpoint: str, cols: _Columns):
+        self.sock, self.pid, self.endpoint, self.cols = sock, pid, endpoint, cols
+        self.sent = self.dropped = 0
+        self.alive = True
+        self.last = self.last_slow = 0.0
+        self.placed = False
+        self.build_s = 0.0
+
+    def poll(self, io, now: float) -> None:
+        """Each wake of the I/O process: the server's reports (one stderr line each), and a
+        snapshot every :data:`SNAPSHOT_EVERY_S`. Never blocks, never raises."""
+        try:
+            self._reports()
+            if not self.placed and io.ready is not None:
+                self.placed = True           # the I/O process has left the loop's CPU: follow it
+                os.sched_setaffinity(self.pid, os.sched_getaffinity(0))
+            if self.alive and now - self.last >= SNAPSHOT_EVERY_S:
+                t0 = time.perf_counter()
+                self.last = now
+                slow = now - self.last_slow >= SLOW_EVERY_S
+                if slow:
+                    self.last_slow = now
+                data = pickle.dumps(snapshot(io, self.cols, slow), protocol=pickle.HIGHEST_PROTOCOL)
+                try:
+                    self.sock.send(data)
+                    self.sent += 1
+                except (BlockingIOError, InterruptedError):
+                    self.dropped += 1
+                    if slow:
+                        self.last_slow = 0.0  # the next one carries them
+                self.build_s = time.perf_counter() - t0
+        except Exception:                    # noqa: BLE001 - the drain goes on whatever happens here
+            self.alive = False
+
+    def _reports(self) -> None:
+        while True:
+            try:
+                data = self.sock.recv(1 << 12)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                data = b""
+            if not data:
+                self.alive = False
+                return
+            text = data.decode(errors="replace")
+            if text == "ok":
+                sys.stderr.write(f"motorctl: OPC UA on {self.endpoint}\n")
+            else:
+                sys.stderr.write(f"motorctl: warning: daemon.opcua {self.endpoint}: {text}\n")
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        """Close the link (the server ends on EOF) and reap it (SIGKILL after the bound)."""
+        from motorctl.app.daemon.views import _reap
+        self.alive = False
+        try:
+            self.sock.close()
+        except OSError:
+            pass
+        _reap(self.pid, timeout_s)
+
+
+def start_opcua(io) -> OpcuaLink | None:
+    """Fork the OPC UA process (I/O process ``io``, before its threads start); None with one
+    line on stderr when the ``opcua`` extra is missing, the users file or the certificate is
+    wrong, or the fork fails. The line saying it serves comes later (:meth:`OpcuaLink.poll`)."""
+    from motorctl.app.daemon.views import missing_extra
+    loaded = io.plan.asm.loaded
+    oc = loaded.cfg.daemon.opcua
+    line = missing_extra("asyncua", "opcua", "OPC UA server")
+    if line:
+        sys.stderr.write(line + "\n")
+        return None
+    try:
+        users, cert, key = check_config(loaded.cfg, os.path.dirname(os.path.abspath(str(loaded.path))))
+    except OpcuaConfigError as exc:
+        sys.stderr.write(f"motorctl: error: {loaded.path}: {exc}; OPC UA not served\n")
+        return None
+    cert_dir = os.path.join(os.path.dirname(os.path.abspath(io.plan.log_path)), "opcua")
+    axes = [{"name": a, "rotational": False} for a in io.names]
+    try:
+        mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        parent = os.getpid()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        pid = os.fork()
+    except OSError as exc:
+        sys.stderr.write(f"motorctl: warning: OPC UA not served ({exc})\n")
+        return None
+    if pid == 0:
+        code = 1
+        try:
+            mine.close()
+            keep = theirs.fileno()
+            os.closerange(3, keep)
+            os.closerange(keep + 1, os.sysconf("SC_OPEN_MAX"))
+            code = opcua_main(theirs, oc, users, cert, key, cert_dir, io.plan.socket_path, axes,
+                              loaded.cfg.daemon.max_program_bytes, parent)
+        except BaseException as exc:        # noqa: BLE001 - last resort, one line
+            try:
+                sys.stderr.write(f"motorctl: warning: the OPC UA process ended: {exc!r}\n")
+            except Exception:              # noqa: BLE001
+                pass
+        finally:
+            os._exit(code)
+    theirs.close()
+    mine.setblocking(False)
+    return OpcuaLink(mine, pid, oc.endpoint, _Columns(io.layout, io.names))
+
+
+# ---------------------------------------------------------------------------- the OPC UA process
+def opcua_main(sock: socket.socket, oc, users, cert, key, cert_dir: str, control: str, axes: list,
+               max_program_bytes: int, parent_pid: int) -> int:
+    """The OPC UA process: serve ``oc.endpoint`` until the link closes. Returns 0."""
+    die_with_parent(parent_pid, signal.SIGKILL)
+    for s in (signal.SIGINT, signal.SIGHUP):
+        signal.signal(s, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, OPCUA_NICE)
+    except OSError:
+        pass
+    logging.basicConfig(level=logging.CRITICAL)
+    logging.getLogger("asyncua").setLevel(logging.CRITICAL)
+    srv = CncServer(oc, users, cert, key, cert_dir, control, axes, max_program_bytes)
+    return asyncio.run(srv.run(sock))
+
+
+def _role_user(users, anonymous: bool):
+    """asyncua's user manager over :class:`motorctl.app.users.Users` (OPC 10000-4 5.6.3):
+    operator -> UserRole.User (may Call), viewer -> UserRole.Anonymous with its name (reads),
+    no name -> anonymous when allowed; None (BadUserAccessDenied / BadIdentityTokenRejected)
+    otherwise."""
+    from asyncua.crypto.permission_rules import User, UserRole
+    from asyncua.server.user_managers import UserManager
+
+    class Users(UserManager):
+        def get_user(self, iserver, username=None, password=None, certificate=None):
+            if username is None:
+                # (certificate: the channel's client certificate, not an X509 identity token)
+                return User(role=UserRole.Anonymous) if anonymous else None
+            roles = users.roles(username, password) if users is not None else None
+            if roles is None:
+                return None
+            return User(role=UserRole.User if "operator" in roles else UserRole.Anonymous, name=username)
+
+    return Users()
+
+
+def _ruleset():
+    """Anonymous and viewer sessions: sessions, browse, read, subscriptions; an operator's also
+    Call; nobody writes or changes the address space (OPC 10000-4 5.10.4, 5.7)."""
+    from asyncua import ua
+    from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, UserRole
+
+    call = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
+    write = ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary)
+    read = {ua.NodeId(t) for t in USER_TYPES} - {call, write}
+
+    class Rules(PermissionRuleset):
+        def check_validity(self, user, action_type_id, body):
+            if action_type_id in read:
+                return True
+            if action_type_id == call:
+                return user is not None and user.role == UserRole.User
+            return False
+
+    return Rules()
+
+
+class CncServer:
+    """The asyncua server and the CNC objects (module docstring). ``axes``: [{name,
+    rotational}] in loop order; ``control``: the daemon's control socket."""
+
+    def __init__(self, oc, users, cert, key, cert_dir, control, axes, max_program_bytes):
+        self.oc, self.users, self.cert, self.key, self.cert_dir = oc, users, cert, key, cert_dir
+        self.control, self.axes, self.max_program_bytes = control, axes, max_program_bytes
+        self.names = [a["name"] for a in axes]
+        self.vars: dict = {}                 # key -> (node id, variant type)
+        self.last: dict = {}                 # key -> the value written last
+        self.programs: dict[str, str] = {}   # LoadProgram's programs by name
+        self.program = ""                    # the program run last (name)
+        self.base: float | None = None       # UTC [s] of loop time 0
+        self.snapshots = 0
+
+    # ------------------------------------------------------------------ set-up
+    async def _certificate(self):
+        """The (certificate, key) files: the configured pair, or the self-signed one in
+        cert_dir (made at the first start)."""
+        if self.cert is not None:
+            return self.cert, self.key
+        from pathlib import Path
+
+        from asyncua.crypto.cert_gen import setup_self_signed_certificate
+        from cryptography.x509.oid import ExtendedKeyUsageOID
+        os.makedirs(self.cert_dir, mode=0o700, exist_ok=True)
+        key, cert = Path(self.cert_dir, "server_key.pem"), Path(self.cert_dir, "server_cert.der")
+        host = socket.gethostname()
+        await setup_self_signed_certificate(key, cert, self.app_uri, host,
+                                            [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH],
+                                            {"commonName": "motorctl", "organizationName": "motorctl"})
+        return str(cert), str(key)
+
+    async def setup(self):
+        from asyncua import Server, ua
+        self.app_uri = f"urn:{socket.gethostname()}:motorctl"
+        anon = self.oc.anonymous == "read"
+        s = self.server = Server(user_manager=_role_user(self.users, anon))
+        await s.init()
+        s.set_endpoint(self.oc.endpoint)
+        s.set_server_name("motorctl")
+        await s.set_application_uri(self.app_uri)
+        s.product_uri = "urn:motorctl"
+        s.manufacturer_name = "motorctl"
+        policies = []
+        if "None" in self.oc.security:
+            policies.append(ua.SecurityPolicyType.NoSecurity)
+        if "Basic256Sha256" in self.oc.security:
+            policies += [ua.SecurityPolicyType.Basic256Sha256_Sign,
+                         ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt]
+            cert, key = await self._certificate()
+            await s.load_certificate(cert)
+            await s.load_private_key(key)
+        s.set_security_policy(policies, permission_ruleset=_ruleset())
+        s.set_identity_tokens(([ua.AnonymousIdentityToken] if anon else []) + [ua.UserNameIdentityToken])
+        self.ns = await s.register_namespace(CNC_NS)
+        await self._build()
+
+    async def _type(self, name: str, base):
+        return await base.add_object_type(ua_nodeid(self.ns, name), ua_qn(self.ns, name))
+
+    async def _var(self, parent, path: str, name: str, value, vtype, desc: str = ""):
+        from asyncua import ua
+        nid = ua.NodeId(f"{path}.{name}", self.ns)
+        node = await parent.add_variable(nid, ua.QualifiedName(name, self.ns), ua.Variant(value, vtype))
+        if desc:
+            await node.write_attribute(ua.AttributeIds.Description,
+                                       ua.DataValue(ua.Variant(ua.LocalizedText(desc), ua.VariantType.LocalizedText)))
+        self.vars[f"{path}.{name}"] = (nid, vtype)
+        self.last[f"{path}.{name}"] = value
+        return node
+
+    async def _build(self):
+        from asyncua import ua
+        s, ns = self.server, self.ns
+        base = s.nodes.base_object_type
+        t_iface = await self._type("CncInterfaceType", base)
+        t_list = await self._type("CncAxisListType", base)
+        t_clist = await self._type("CncChannelListType", base)
+        t_axis = await self._type("CncAxisType", base)
+        t_chan = await self._type("CncChannelType", base)
+        D, B, S, I32, U32, U64 = (ua.VariantType.Double, ua.VariantType.Boolean, ua.VariantType.String,
+                                  ua.VariantType.Int32, ua.VariantType.UInt32, ua.VariantType.UInt64)
+        iface = await s.nodes.objects.add_object(ua.NodeId("CncInterface", ns), ua.QualifiedName("CncInterface", ns),
+                                                 objecttype=t_iface.nodeid)
+        await self._var(iface, "CncInterface", "CncTypeName", "motorctl", S)
+        await self._var(iface, "CncInterface", "LoopTime", 0.0, D,
+                        "the loop's time of the newest snapshot [s] (motorctl)")
+        await self._var(iface, "CncInterface", "LoopCycles", 0, U64, "cycles the loop has published (motorctl)")
+        alist = await iface.add_object(ua.NodeId("CncInterface.CncAxisList", ns),
+                                       ua.QualifiedName("CncAxisList", ns), objecttype=t_list.nodeid)
+        clist = await iface.add_object(ua.NodeId("CncInterface.CncChannelList", ns),
+                                       ua.QualifiedName("CncChannelList", ns), objecttype=t_clist.nodeid)
+        for j, ax in enumerate(self.axes):
+            a = ax["name"]
+            p = f"CncInterface.CncAxisList.{a}"
+            node = await alist.add_object(ua.NodeId(p, ns), ua.QualifiedName(a, ns), objecttype=t_axis.nodeid)
+            for name, value, vt, desc in (
+                    ("Id", j + 1, U32, ""),
+                    ("ActPos", math.nan, D, "measured position [m]"),
+                    ("CmdPos", math.nan, D, "commanded (setpoint) position [m]"),
+                    ("ActSpeed", math.nan, D, "velocity estimate [m/s]"),
+                    ("CmdSpeed", math.nan, D, "commanded velocity [m/s]"),
+                    ("FollowingError", math.nan, D, "measured - commanded position [m] (motorctl)"),
+                    ("ActStatus", AX_PARKED, I32, "CncAxisStatus: 0 InPosition, 1 Moving, 2 Parked"),
+                    ("IsReferenced", False, B, "homed"),
+                    ("IsRotational", bool(ax["rotational"]), B, ""),
+                    ("ZeroOffset", 0.0, D, "G54 work offset of this axis [m]"),
+                    ("Enabled", False, B, "amplifier enabled (motorctl)"),
+                    ("Phase", "", S, "the sequencer's mode (motorctl)"),
+                    ("IsFaulted", False, B, "a fault is latched (motorctl)"),
+                    ("FaultReason", "", S, "the latched fault in words (motorctl)"),
+                    ("FaultBits", 0, U32, "latched fault bits (motorctl)"),
+                    ("TurnaroundP50", math.nan, D, "loop turnaround median [us] (motorctl)"),
+                    ("TurnaroundP99", math.nan, D, "loop turnaround 99th percentile [us] (motorctl)"),
+                    ("TurnaroundMax", math.nan, D, "loop turnaround maximum [us] (motorctl)")):
+                await self._var(node, p, name, value, vt, desc)
+        p = "CncInterface.CncChannelList.CncChannel"
+        ch = await clist.add_object(ua.NodeId(p, ns), ua.QualifiedName("CncChannel", ns), objecttype=t_chan.nodeid)
+        for name, value, vt, desc in (
+                ("Id", 1, U32, ""),
+                ("ActProgramName", "", S, "the program running or run last"),
+                ("ActMainProgramName", "", S, "as ActProgramName (no subprograms)"),
+                ("ActProgramLine", 0, U32, "source line of the motion the loop runs (0: none)"),
+                ("ActProgramStatus", PROG_STOPPED, I32,
+                 "CncChannelProgramStatus: 0 Stopped, 1 Running, 2 Waiting, 3 Interrupted, 4 Canceled"),
+                ("ChannelStatus", CH_RESET, I32, "CncChannelStatus: 0 Active, 1 Interrupted, 2 Reset"),
+                ("FeedOverride", 100.0, D, "feed override [%]"),
+                ("FeedHold", False, B, "feed hold"),
+                ("ActFeedrate", 0.0, D, "programmed path feed [m/s]"),
+                ("ActModalOffsetFunction", 54, U32, "work offset system programs start in (G54)"),
+                ("ProgramDone", 1.0, D, "share of the program done 0..1 (motorctl)"),
+                ("TimeLeft", 0.0, D, "time left at the current override [s] (motorctl)"),
+                ("StoppedBecause", "", S, "why the last program ended early (motorctl)"),
+                ("LastCommandError", "", S, "the daemon's answer to the last refused method (motorctl)")):
+            await self._var(ch, p, name, value, vt, desc)
+        await self._methods(ch, p)
+
+    async def _methods(self, ch, p):
+        from asyncua import ua
+        S, D = ua.VariantType.String, ua.VariantType.Double
+
+        def arg(name, vt, desc):
+            a = ua.Argument()
+            a.Name, a.DataType, a.ValueRank = name, ua.NodeId(vt.value), -1
+            a.Description = ua.LocalizedText(desc)
+            return a
+
+        out = [arg("Result", S, "the daemon's answer (JSON)")]
+        axis = arg("Axis", S, f"axis name ({', '.join(self.names)}); empty: every axis")
+        for name, fn, ins in (
+                ("Start", self.m_start, [arg("Program", S, "a name given to LoadProgram, or a file path on "
+                                                           "the daemon's host")]),
+                ("LoadProgram", self.m_load, [arg("Name", S, "the program's name"),
+                                              arg("Text", S, "G-code")]),
+                ("Stop", self.m_stop, []), ("Hold", self.m_simple("hold"), []),
+                ("Resume", self.m_simple("resume"), []), ("Abort", self.m_simple("abort"), []),
+                ("Home", self.m_axis("home", False), [axis]),
+                ("FaultReset", self.m_axis("fault-reset", True), [axis]),
+                ("Enable", self.m_enable, [axis]),
+                ("SetFeedOverride", self.m_override, [arg("Percent", D, "0 .. 150")])):
+            await ch.add_method(ua.NodeId(f"{p}.{name}", self.ns), ua.QualifiedName(name, self.ns), fn, ins, out)
+
+    # ------------------------------------------------------------------ methods
+    async def _cmd(self, req: dict, timeout_s: float = COMMAND_TIMEOUT_S, program: tuple | None = None) -> dict:
+        """One request through the control socket (a thread: the server goes on meanwhile)."""
+        from motorctl.client import DaemonUnreachable, call, send_program
+        try:
+            if program is not None:
+                ans = await asyncio.to_thread(send_program, self.control, program[1], program[0], timeout_s)
+            else:
+                ans = await asyncio.to_thread(call, self.control, req, timeout_s)
+        except DaemonUnreachable as exc:
+            ans = {"ok": False, "error": str(exc), "usage": False}
+        return ans
+
+    async def _answer(self, ans: dict):
+        """The method's output, or its refusal as a status code (the reason in LastCommandError)."""
+        import json
+
+        from asyncua import ua
+        if not ans.get("ok"):
+            await self._write("CncInterface.CncChannelList.CncChannel.LastCommandError", ans.get("error", "refused"))
+            raise ua.UaStatusCodeError(ua.StatusCodes.BadInvalidArgument if ans.get("usage")
+                                       else ua.StatusCodes.BadInvalidState)
+        ans.pop("status", None)
+        return [ua.Variant(json.dumps(ans, default=str), ua.VariantType.String)]
+
+    async def m_load(self, parent, name, text):
+        from asyncua import ua
+        name, text = str(name.Value or ""), str(text.Value or "")
+        if not name or len(text.encode("utf-8", "surrogatepass")) > self.max_program_bytes:
+            raise ua.UaStatusCodeError(ua.StatusCodes.BadInvalidArgument)
+        self.programs.pop(name, None)
+        self.programs[name] = text
+        while len(self.programs) > MAX_LOADED_PROGRAMS:
+            self.programs.pop(next(iter(self.programs)))
+        return [ua.Variant(f'{{"ok": true, "loaded": {len(text)}}}', ua.VariantType.String)]
+
+    async def m_start(self, parent, prog):
+        from asyncua import ua
+        name = str(prog.Value or "")
+        if name in self.programs:
+            text = self.programs[name]
+        else:
+            try:
+                if os.path.getsize(name) > self.max_program_bytes:
+                    raise ua.UaStatusCodeError(ua.StatusCodes.BadInvalidArgument)
+                with open(name, encoding="utf-8", errors="surrogateescape") as fh:
+                    text = fh.read()
+            except OSError as exc:
+                await self._write("CncInterface.CncChannelList.CncChannel.LastCommandError",
+                                  f"Start: {name!r}: no program loaded by that name, and not a readable "
+                                  f"file ({exc.strerror})")
+                raise ua.UaStatusCodeError(ua.StatusCodes.BadNotFound) from None
+            name = os.path.basename(name)
+        ans = await self._cmd({}, 30.0, program=(name, text))
+        if ans.get("ok"):
+            self.program = name
+        return await self._answer(ans)
+
+    def m_simple(self, cmd: str):
+        async def m(parent):
+            return await self._answer(await self._cmd({"cmd": cmd}))
+        return m
+
+    def _axes_of(self, v) -> list[str]:
+        from asyncua import ua
+        name = str(v.Value or "")
+        if not name:
+            return list(self.names)
+        if name not in self.names:
+            raise ua.UaStatusCodeError(ua.StatusCodes.BadInvalidArgument)
+        return [name]
+
+    def m_axis(self, cmd: str, faulted_only: bool):
+        async def m(parent, axis):
+            names = self._axes_of(axis)
+            if faulted_only and len(names) > 1:
+                names = [a for a in names if self.last.get(f"CncInterface.CncAxisList.{a}.IsFaulted")] or names
+            ans = {"ok": True}
+            for a in names:
+                ans = await self._cmd({"cmd": cmd, "axis": a})
+                if not ans.get("ok"):
+                    break
+            return await self._answer(ans)
+        return m
+
+    async def m_enable(self, parent, axis):
+        ans = {"ok": True}
+        for a in self._axes_of(axis):
+            if self.last.get(f"CncInterface.CncAxisList.{a}.Phase") == "command":
+                continue
+            ans = await self._cmd({"cmd": "start", "axis": a, "mode": "command"})
+            if not ans.get("ok"):
+                break
+        return await self._answer(ans)
+
+    async def m_stop(self, parent):
+        ans = {"ok": True}
+        for a in self.names:
+            if self.last.get(f"CncInterface.CncAxisList.{a}.Enabled") or \
+                    self.last.get(f"CncInterface.CncAxisList.{a}.Phase") not in ("disabled", ""):
+                ans = await self._cmd({"cmd": "stop", "axis": a})
+                if not ans.get("ok"):
+                    break
+        return await self._answer(ans)
+
+    async def m_override(self, parent, pct):
+        return await self._answer(await self._cmd({"cmd": "override", "value": float(pct.Value) / 100.0}))
+
+    # ------------------------------------------------------------------ values
+    async def _write(self, key: str, value, ts=None, always: bool = False) -> None:
+        from asyncua import ua
+        if not always and self.last.get(key) == value and not (isinstance(value, float) and math.isnan(value)):
+            return
+        self.last[key] = value
+        nid, vt = self.vars[key]
+        dv = ua.DataValue(ua.Variant(value, vt), SourceTimestamp=ts,
+                          ServerTimestamp=_dt.datetime.now(_dt.timezone.utc))
+        await self.server.write_attribute_value(nid, dv)
+
+    async def apply(self, snap: dict) -> None:
+        """Write one snapshot's values: the live figures every time (their SourceTimestamp is
+        the row's loop time), the others when they changed."""
+        from motorctl.loop.servo import MODE_NAMES
+        if self.base is None:
+            self.base = time.time() - snap["t"]
+        ts = _dt.datetime.fromtimestamp(self.base + snap["t"], _dt.timezone.utc)
+        w = self._write
+        await w("CncInterface.LoopTime", snap["t"], ts, True)
+        await w("CncInterface.LoopCycles", snap["cycles"], ts)
+        for i, a in enumerate(self.names):
+            p = f"CncInterface.CncAxisList.{a}."
+            for key, field in (("ActPos", "y"), ("CmdPos", "x_d"), ("ActSpeed", "v"),
+                               ("CmdSpeed", "xd_dot"), ("FollowingError", "e")):
+                await w(p + key, float(snap[field][i]), ts, True)
+            mode, en = snap["modes"][i], snap["enabled"][i]
+            moving = abs(snap["xd_dot"][i]) > 0.0
+            await w(p + "ActStatus", AX_PARKED if not en else (AX_MOVING if moving else AX_IN_POSITION), ts)
+            await w(p + "IsReferenced", snap["homed"][i], ts)
+            await w(p + "Enabled", en, ts)
+            await w(p + "Phase", MODE_NAMES.get(mode, "?"), ts)
+            await w(p + "IsFaulted", bool(snap["fault_bits"][i]), ts)
+            await w(p + "FaultBits", snap["fault_bits"][i], ts)
+            await w(p + "FaultReason", snap["faults"][i], ts)
+            if "turnaround" in snap:
+                tr = snap["turnaround"][i]
+                await w(p + "TurnaroundP50", tr["turnaround_p50_us"], ts)
+                await w(p + "TurnaroundP99", tr["turnaround_p99_us"], ts)
+                await w(p + "TurnaroundMax", tr["turnaround_max_us"], ts)
+                await w(p + "ZeroOffset", snap["zero_offset"][i], ts)
+        c = "CncInterface.CncChannelList.CncChannel."
+        if snap["program"]:
+            self.program = snap["program"]
+        running = not snap["idle"]
+        if snap["hold"] and running:
+            prog, chan = PROG_INTERRUPTED, CH_INTERRUPTED
+        elif running:
+            prog, chan = (PROG_CANCELED if snap["aborting"] else PROG_RUNNING), CH_ACTIVE
+        else:
+            prog, chan = (PROG_CANCELED if snap["stopped_because"] else PROG_STOPPED), CH_RESET
+        await w(c + "ActProgramName", self.program, ts)
+        await w(c + "ActMainProgramName", self.program, ts)
+        await w(c + "ActProgramLine", snap["line"], ts)
+        await w(c + "ActProgramStatus", prog, ts)
+        await w(c + "ChannelStatus", chan, ts)
+        await w(c + "FeedOverride", snap["override"] * 100.0, ts)
+        await w(c + "FeedHold", snap["hold"], ts)
+        await w(c + "ActFeedrate", snap["feed_m_s"], ts)
+        await w(c + "ProgramDone", snap["done"], ts)
+        await w(c + "TimeLeft", snap["left_s"], ts)
+        await w(c + "StoppedBecause", snap["stopped_because"], ts)
+        self.snapshots += 1
+
+    # ------------------------------------------------------------------ the run
+    async def run(self, sock: socket.socket) -> int:
+        loop = asyncio.get_running_loop()
+        try:
+            await self.setup()
+            await self.server.start()
+        except BaseException as exc:          # noqa: BLE001 - one line, no server
+            sock.send((f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__).encode()[:4000])
+            return 0
+        sock.send(b"ok")
+        sock.setblocking(False)
+        done = loop.create_future()
+        pending: list = []
+        wake = asyncio.Event()
+
+        def readable():
+            for _ in range(LINK_MESSAGES_PER_WAKE):
+                try:
+                    data = sock.recv(1 << 20)
+                except (BlockingIOError, InterruptedError):
+                    break
+                except OSError:
+                    data = b""
+                if not data:
+                    if not done.done():
+                        done.set_result(None)
+                    break
+                pending[:] = [data]          # the newest wins
+            wake.set()
+
+        loop.add_reader(sock.fileno(), readable)
+        try:
+            while not done.done():
+                try:
+                    await asyncio.wait_for(wake.wait(), 1.0)
+                except asyncio.TimeoutError:
+                    continue
+                wake.clear()
+                if pending:
+                    data = pending.pop()
+                    try:
+                        await self.apply(pickle.loads(data))
+                    except Exception as exc:  # noqa: BLE001 - a bad snapshot is skipped
+                        logging.getLogger(__name__).debug("snapshot skipped: %r", exc)
+        finally:
+            loop.remove_reader(sock.fileno())
+            try:
+                await asyncio.wait_for(self.server.stop(), 2.0)
+            except BaseException:             # noqa: BLE001
+                pass
+        return 0
+
+
+def ua_nodeid(ns: int, name: str):
+    from asyncua import ua
+    return ua.NodeId(name, ns)
+
+
+def ua_qn(ns: int, name: str):
+    from asyncua import ua
+    return ua.QualifiedName(name, ns)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m motorctl.app.daemon.opcua_server CONFIG``: check daemon.opcua and the users
+    file of CONFIG as the daemon will (exit 0), or one line and exit 2."""
+    from motorctl.config import ConfigError, load_config
+    argv = sys.argv[1:] if argv is None else argv
+    if len(argv) != 1:
+        sys.stderr.write("usage: python -m motorctl.app.daemon.opcua_server CONFIG\n")
+        return 2
+    try:
+        loaded = load_config(argv[0])
+    except ConfigError as exc:
+        sys.stderr.write(f"motorctl: error: {exc}\n")
+        return 2
+    if loaded.cfg.daemon.opcua is None:
+        sys.stdout.write(f"{argv[0]}: daemon.opcua is off\n")
+        return 0
+    try:
+        check_config(loaded.cfg, os.path.dirname(os.path.abspath(argv[0])))
+    except OpcuaConfigError as exc:
+        sys.stderr.write(f"motorctl: error: {argv[0]}: {exc}\n")
+        return 2
+    sys.stdout.write(f"{argv[0]}: daemon.opcua ok ({loaded.cfg.daemon.opcua.endpoint})\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
+
+
+__all__ = ["OpcuaLink", "CncServer", "snapshot", "start_opcua", "check_config", "OpcuaConfigError",
+           "CNC_NS", "SNAPSHOT_EVERY_S"]
