@@ -10,6 +10,7 @@ tests/test_estimator.py tests/test_inversion.py`` (a failure prints the
 
 import json
 import os
+import subprocess
 import sys
 import sysconfig
 from pathlib import Path
@@ -85,6 +86,25 @@ FILE_SECONDS: dict = json.loads((REPO / "tests" / "file_seconds.json").read_text
 #: where a file not in :data:`FILE_SECONDS` (a new one) goes: among the long ones, where a long
 #: file costs the least and a short one nothing (at the end a long one keeps one worker busy alone)
 UNMEASURED_SECONDS = 100.0
+
+
+#: CPU-bound processes the ``load`` tests start beside the daemon, and the longest each lives [s]
+HOGS, HOG_LIFE_S = 3, 120.0
+
+
+@pytest.fixture
+def cpu_hogs():
+    """HOGS CPU-bound processes at normal priority for the test's duration (the busy PC of the
+    ``load`` group: docs/testing.md); each ends by itself after HOG_LIFE_S, and is killed at the
+    test's end."""
+    code = f"import time\nt = time.monotonic() + {HOG_LIFE_S}\nwhile time.monotonic() < t: pass\n"
+    procs = [subprocess.Popen([sys.executable, "-c", code]) for _ in range(HOGS)]
+    try:
+        yield procs
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait(10)
 
 
 @pytest.hookimpl(trylast=True)
