@@ -34,6 +34,9 @@ from motorctl.control.signals import SIG_THETA, SIG_V, SIG_X2  # noqa: F401
 #: LAW_PY: a law whose :meth:`Controller.update` the cycle calls from Python (any law without a
 #: compiled step)
 LAW_PY, LAW_DCDIARC, LAW_PID, LAW_DCDIARC_COMP = 0, 1, 2, 3
+#: the coupled pair law (GTCF, :mod:`motorctl.control.gtcf`): C2 per axis whose robust feedback
+#: is set in the task frame of two axes; the cycle hands it the partner axis's sample as well
+LAW_GTCF = 4
 
 
 

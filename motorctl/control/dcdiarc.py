@@ -155,7 +155,7 @@ def _matrix(buf, at, rows, cols):
 
 
 @njit
-def dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig, F, I, L):
+def dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig, F, I, L, v_fb):
     """One sample of the DCDIARC law (docs/control-law.md, Order of operations) on one axis's
     state block; returns u [V]. State arrays updated in place.
 
@@ -178,6 +178,8 @@ def dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_de
             position over the interval just ended (estimator) and at xf (v / g_des is inverted).
         sig (N_SIGNALS,): the published signals (motorctl.control.signals.CONTROLLER_SIGNALS),
             written at the end of the sample; θ̂ entries beyond n_θ stay as they are (NaN).
+        v_fb [V]: a feedback term added to v beside −k_s p (0 for C1/C2; the coupled pair law
+            GTCF, :mod:`motorctl.control.gtcf`, passes its task-frame feedback minus −k_s p).
     The block's views: st (N_STATE,): law state (S_* indices; S_DC: the d̂_eff held with S_U;
     S_RI: ring index); prm (10,): law parameters (P_* indices); span (n,): θ_max − θ_min (then
     β_max − β_min) (theory-mode k_s2); ring (2, m): the last m = 1 + round(τ/Ts) outputs (u,
@@ -255,7 +257,7 @@ def dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_de
     else:
         ks = prm[P_KS]
     st[S_KS] = ks
-    v = va1 - d0 - ks * p
+    v = va1 - d0 - ks * p + v_fb
     ulim = prm[P_ULIM]
     w = v / g_des if g_des != 1.0 else v                                 # F = F_m(u)(1 + r)
     if n == 6:
@@ -318,7 +320,7 @@ def dcdiarc_comp_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, F, I, L):
         if thrust:
             g_meas = 1.0 + comp_thrust(tab, xm)
             g_des = 1.0 + comp_thrust(tab, xf)
-    return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig, F, I, L)
+    return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig, F, I, L, 0.0)
 
 
 @njit
@@ -427,7 +429,7 @@ class DCDIARC(Controller):
         # compile (or load the cached machine code) now, on copies of the state, so that the
         # first servo cycle never pays for it
         dcdiarc_block_step(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, self.signals.copy(), self._F.copy(),
-                           self._I.copy(), self._L)
+                           self._I.copy(), self._L, 0.0)
         if self._compiled_comp:
             dcdiarc_comp_step(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, self.signals.copy(), self._F.copy(),
                               self._I.copy(), self._L)
@@ -537,7 +539,7 @@ class DCDIARC(Controller):
         # the compiled step for these arrays, called from update() without numba's type resolution
         if not self._compiled_comp:
             self._step = entry(dcdiarc_block_step, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0,
-                               self.signals, self._F, self._I, self._L)
+                               self.signals, self._F, self._I, self._L, 0.0)
         else:
             self._step = entry(dcdiarc_comp_step, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, self.signals,
                                self._F, self._I, self._L)
@@ -617,7 +619,7 @@ class DCDIARC(Controller):
             self.reset(y)
         if self.compensation is None:
             return self._step(y, x_d, xd_dot, xd_ddot, x_d, xd_dot, xd_ddot, 0.0, 1.0, 1.0,
-                              self.signals, self._F, self._I, self._L)
+                              self.signals, self._F, self._I, self._L, 0.0)
         tau = self.preview_s
         if tau > 0.0:
             if self._pv_set:
@@ -651,7 +653,7 @@ class DCDIARC(Controller):
                 g_meas = 1.0 + comp.thrust(xm)
                 g_des = 1.0 + comp.thrust(xf)
         return self._step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, self.signals, self._F,
-                          self._I, self._L)
+                          self._I, self._L, 0.0)
 
     # outputs of the last sample (float reads of the state vector)
     u = property(lambda self: float(self._st[S_U]))

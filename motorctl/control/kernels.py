@@ -20,15 +20,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from motorctl.control.base import LAW_DCDIARC, LAW_DCDIARC_COMP, LAW_PID, LAW_PY
+from motorctl.control.base import LAW_DCDIARC, LAW_DCDIARC_COMP, LAW_GTCF, LAW_PID, LAW_PY
 from motorctl.control.dcdiarc import B_CT, N_LAYOUT, dcdiarc_block_reset, dcdiarc_block_step, dcdiarc_comp_step
+from motorctl.control.gtcf import gtcf_reset
 from motorctl.control.pid import N_PRM as PID_N_PRM
 from motorctl.control.pid import N_STATE as PID_N_STATE
 from motorctl.control.pid import pid_reset, pid_step
 from motorctl.effects.compensation import T_PREVIEW
 from motorctl.jit import borrow, njit
 
-__all__ = ["LAW_DCDIARC", "LAW_DCDIARC_COMP", "LAW_KERNELS", "LAW_PID", "LAW_PY", "N_LAYOUT", "check_law_code",
+__all__ = ["LAW_DCDIARC", "LAW_DCDIARC_COMP", "LAW_GTCF", "LAW_KERNELS", "LAW_PID", "LAW_PY", "N_LAYOUT", "check_law_code",
            "law_preview", "law_reset", "law_step"]
 
 #: law code -> what the servo cycle runs for it: the compiled step of :func:`law_step` (and
@@ -38,6 +39,7 @@ LAW_KERNELS: dict[int, str] = {
     LAW_DCDIARC: "dcdiarc_block_step",
     LAW_DCDIARC_COMP: "dcdiarc_comp_step (with the compensation's compiled terms)",
     LAW_PID: "pid_step",
+    LAW_GTCF: "gtcf_step (a pair: the cycle passes the partner axis's sample, motorctl.loop.cycle)",
 }
 
 
@@ -69,7 +71,7 @@ def law_step(law, y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, f, ii, lay):
     compensation's terms for LAW_DCDIARC_COMP, LinuxCNC's pid for LAW_PID), the signals written
     into sig."""
     if law == LAW_DCDIARC:
-        return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, x_d, xd_dot, xd_ddot, 0.0, 1.0, 1.0, sig, f, ii, lay)
+        return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, x_d, xd_dot, xd_ddot, 0.0, 1.0, 1.0, sig, f, ii, lay, 0.0)
     if law == LAW_DCDIARC_COMP:
         return dcdiarc_comp_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, f, ii, lay)
     if law == LAW_PID:
@@ -85,3 +87,5 @@ def law_reset(law, y0, f, lay):
         dcdiarc_block_reset(y0, f, lay)
     elif law == LAW_PID:
         pid_reset(y0, borrow(f[:PID_N_STATE]))
+    elif law == LAW_GTCF:
+        gtcf_reset(y0, f, lay)

@@ -33,7 +33,8 @@ from __future__ import annotations
 import numpy as np
 from numba.experimental.structref import StructRefProxy
 
-from motorctl.control.kernels import LAW_PY, law_preview, law_reset, law_step
+from motorctl.control.gtcf import gtcf_partner, gtcf_step
+from motorctl.control.kernels import LAW_GTCF, LAW_PY, law_preview, law_reset, law_step
 from motorctl.jit import BundleType, borrow, bundle, copy_into, define_bundle, njit
 from motorctl.control.signals import N_SIGNALS, SIG_E
 from motorctl.loop.safety import FAULT_OVERRUN, SI_FAULT, sup_check_input, sup_check_output, sup_rest, sup_trip
@@ -257,8 +258,15 @@ def servo_cycle(phase, k, st):
                     xf, vf, af = desired(i, k, tau, ax, axf, prog, move, ts)
                 else:
                     xf, vf, af = xd, vd, ad
-                u = law_step(law, y, xd, vd, ad, xf, vf, af, k * ts, borrow(sig[i]), borrow(cf[i]), borrow(ci[i]),
-                             borrow(cl[i]))
+                if law == LAW_GTCF:            # a pair: the partner's measurement and desired sample too
+                    j = gtcf_partner(borrow(cf[i]), borrow(cl[i]))
+                    xj, vj, _aj = desired(j, k, 0.0, ax, axf, prog, move, ts)
+                    u = gtcf_step(y, xd, vd, ad, pos[j], xj, vj, ax[j, A_LAW] == law and ax[j, A_RUNNING] != 0,
+                                  borrow(sig[i]), borrow(cf[i]), borrow(ci[i]), borrow(cl[i]), borrow(cf[j]),
+                                  borrow(cl[j]))
+                else:
+                    u = law_step(law, y, xd, vd, ad, xf, vf, af, k * ts, borrow(sig[i]), borrow(cf[i]),
+                                 borrow(ci[i]), borrow(cl[i]))
                 u, ok = _output(i, u, vd, ax, axf, si, sf, sig, lp)
         _finish(i, ok, u, k, y, xd, vd, ad, ax, axf, si, sf, sig, uo, en, row, offs, lp)
     return pending

@@ -289,6 +289,8 @@ class ServoLoop:
             nf, ni = c.state_size()
             if nf > self._cf.shape[1] or ni > self._ci.shape[1]:
                 self._grow(max(nf, self._cf.shape[1]), max(ni, self._ci.shape[1]))
+            if hasattr(c, "link_axes"):        # a pair law (gtcf): its partner's index in these rows
+                c.link_axes(self.axis_names, i)
             c.attach(self._sig[i], self._cf[i], self._ci[i], self._cl[i])
         self.controllers[i] = c
         self.ax[i, C.A_LAW] = law

@@ -1,0 +1,260 @@
+"""GTCF: the global task coordinate frame ARC law for a pair of axes (Hu, Yao & Wang 2011),
+built on C2 (the DCDIARC law of Chen, Yao & Wang 2013) per axis.
+
+Hu, Yao & Wang, "Global Task Coordinate Frame-Based Contouring Control of Linear-Motor-Driven
+Biaxial Systems With Accurate Parameter Estimations", IEEE Trans. Ind. Electron. 58(11), 2011,
+express the two axes' tracking errors in a frame that moves with the desired point: the
+tangential and the normal direction of the desired path, so that the normal component is the
+contour error (to first order), and set the ARC law's robust feedback with a higher gain on the
+normal (contour) direction than on the tangential one. Here (docs/control-law.md, "GTCF: the
+contouring law of a pair of axes")::
+
+    t = (ẋ_d, ẏ_d) / |(ẋ_d, ẏ_d)|,  n = t rotated by +90°       the task frame at the desired point
+    T(θ) = [tᵀ; nᵀ]  (2×2, orthonormal),   ε = T e              (Hu 2011 eq. 5-6: the GTCF errors)
+    p_i = ė_i + k1_i e_i                    per axis, as C2's eq. (11) (ė: backward difference)
+    q = D^½ p,  D = diag(k_s,X, k_s,Y)      the axes' own C2 gains as the scale
+    v_s = −D^½ Tᵀ diag(g_t, g_n) T D^½ p    the robust feedback set in the task frame
+        = −D^½ (g_n q + (g_t − g_n) t (tᵀ q))
+    u_i = C2's law of axis i with v_s,i in place of −k_s,i p_i  (model compensation v_a1 eq. 13,
+          d̂0 eq. 18-19, the projection-type LS estimator eq. 25-28, the inversion eq. 9: per axis)
+
+With g_t = g_n = 1 this is C2 on each axis. Below ``v_min`` of desired speed (at rest, no
+contour direction) the gains blend linearly to 1 (C2): g(s) = 1 + min(1, s/v_min)(g − 1).
+
+The pair runs in the compiled servo cycle (:mod:`motorctl.loop.cycle`): each axis of the pair
+has this law (``LAW_GTCF``); the cycle hands each one's step its partner's measured position and
+desired sample of the same cycle (:func:`gtcf_step`), and the partner's C2 gains come from the
+partner's own rows. When the partner does not run GTCF, is not running, or its sample is not a
+number (IDLE), the step is C2 alone (v_fb = 0) for that cycle.
+
+Settings: a ``gtcf:`` mapping in both axes' ``controller:`` sections (the C2 keys of the section
+are the per-axis law's; compensation and theory mode are refused)::
+
+    gtcf: {partner: Y, gain_t: 1.0, gain_n: 2.0, v_min: 0.002}
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from motorctl.control.base import LAW_GTCF, Controller
+from motorctl.control.dcdiarc import (
+    B_CT,
+    B_PRM,
+    B_ST,
+    DCDIARC,
+    P_K1,
+    P_KS,
+    P_TS,
+    S_Y_PREV,
+    dcdiarc_block_reset,
+    dcdiarc_block_step,
+)
+from motorctl.control.params import ControllerConfig
+from motorctl.effects.compensation import T_HEAD
+from motorctl.jit import njit
+from motorctl.schema import StrictModel, quantity
+
+__all__ = ["GTCF", "GtcfConfig", "gtcf_feedback", "gtcf_partner", "gtcf_reset", "gtcf_step"]
+
+# GTCF's numbers, after the (empty) compensation table's head at B_CT of the C2 block:
+# partner axis index, g_t, g_n, v_min, the partner's y[k−1] (NaN: none yet), the last v_fb, the
+# last ε_n (the task-frame normal error from this axis's view)
+G_PARTNER, G_GT, G_GN, G_VMIN, G_YJ, G_VFB, G_EN = range(7)
+N_G = 7
+
+
+class GtcfConfig(StrictModel):
+    """The ``gtcf:`` mapping of an axis's ``controller:`` section.
+
+    Attributes:
+        partner: the other axis of the pair (its section must configure ``gtcf`` naming this one).
+        gain_t, gain_n: the task-frame gains on the tangential and the normal (contour)
+            direction, as multiples of the axes' own C2 k_s (1, 1: C2).
+        v_min [m/s]: below this desired speed the gains blend to 1 (no contour direction at rest).
+    """
+
+    partner: str
+    gain_t: quantity(1e-2, 100.0, "") = 1.0
+    gain_n: quantity(1e-2, 100.0, "") = 2.0
+    v_min: quantity(1e-6, 10.0, "m/s") = 0.002
+
+
+@njit
+def gtcf_feedback(p_i, p_j, v_i, v_j, ks_i, ks_j, g_t, g_n, v_min):
+    """The task-frame robust feedback of axis i minus C2's own −k_s,i p_i [V] (module docstring):
+    −√k_s,i (g_n' q_i + (g_t' − g_n') t_i (t_i q_i + t_j q_j)) + k_s,i p_i, q = √k_s p, t = v/|v|,
+    g' = 1 + min(1, |v|/v_min)(g − 1). p [m/s], v (ẋ_d) [m/s], k_s [V s/m]. Symmetric in the two
+    axes (axis j's is this with i and j swapped). Hu, Yao & Wang 2011 eq. 5-6 (T), eq. 20-22 (the
+    robust feedback in the task frame), simplified as docs/control-law.md says."""
+    s = math.sqrt(v_i * v_i + v_j * v_j)
+    w = s / v_min
+    if w > 1.0:
+        w = 1.0
+    gt = 1.0 + w * (g_t - 1.0)
+    gn = 1.0 + w * (g_n - 1.0)
+    ti = 0.0
+    tj = 0.0
+    if s > 0.0:
+        ti = v_i / s
+        tj = v_j / s
+    ri = math.sqrt(ks_i)
+    # −√k_s,i (g_n' q_i + (g_t' − g_n') t_i (tᵀq)) + k_s,i p_i, written without the cancellation of
+    # the two k_s,i p_i terms: exactly 0 when g_t' = g_n' = 1 (at rest, or gains of 1: C2)
+    return -(gn - 1.0) * ks_i * p_i - ri * (gt - gn) * ti * (ti * ri * p_i + tj * math.sqrt(ks_j) * p_j)
+
+
+@njit
+def gtcf_partner(F, L):
+    """The partner axis's index (into the cycle's rows) of a GTCF block."""
+    return int(F[L[B_CT] + T_HEAD + G_PARTNER])
+
+
+@njit
+def gtcf_step(y, x_d, xd_dot, xd_ddot, y_j, x_dj, xd_dot_j, coupled, sig, F, I, L, Fj, Lj):
+    """One sample of GTCF on axis i's block (F, I, L; the C2 block of
+    :func:`motorctl.control.dcdiarc.dcdiarc_block_step` with GTCF's numbers after it); returns
+    u [V], |u| ≤ u_lim.
+
+    Args:
+        y [m], x_d [m], xd_dot [m/s], xd_ddot [m/s²]: axis i's measurement and desired sample.
+        y_j [m], x_dj [m], xd_dot_j [m/s]: the partner's of the same cycle.
+        coupled: the partner runs GTCF (its block Fj, Lj holds its k1, k_s, Ts); False: C2 alone.
+        sig (N_SIGNALS,): axis i's published signals.
+    The partner's p_j = (y_j − y_j[k−1])/Ts − ẋ_dj + k1_j (y_j − x_dj), with y_j[k−1] kept in
+    this block (so neither axis depends on which of the two the cycle runs first); a NaN p_j (the
+    first sample, an IDLE partner) gives v_fb = 0. Axis i's own p is computed with the same
+    operations as the C2 step's (eq. 11).
+    """
+    g = L[B_CT] + T_HEAD
+    st = L[B_ST]
+    prm = L[B_PRM]
+    y_jp = F[g + G_YJ]
+    F[g + G_YJ] = y_j
+    v_fb = 0.0
+    e_n = np.nan
+    if coupled:
+        pj_ = Lj[B_PRM]
+        p_j = ((y_j - y_jp) / Fj[pj_ + P_TS] - xd_dot_j) + Fj[pj_ + P_K1] * (y_j - x_dj)
+        if p_j == p_j and abs(p_j) < math.inf:
+            p_i = ((y - F[st + S_Y_PREV]) / F[prm + P_TS] - xd_dot) + F[prm + P_K1] * (y - x_d)
+            v_fb = gtcf_feedback(p_i, p_j, xd_dot, xd_dot_j, F[prm + P_KS], Fj[pj_ + P_KS], F[g + G_GT],
+                                 F[g + G_GN], F[g + G_VMIN])
+            s = math.sqrt(xd_dot * xd_dot + xd_dot_j * xd_dot_j)
+            if s > 0.0:   # ε_n = n·e with n = t rotated +90° in (i, j) order
+                e_n = (xd_dot * (y_j - x_dj) - xd_dot_j * (y - x_d)) / s
+    F[g + G_VFB] = v_fb
+    F[g + G_EN] = e_n
+    return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, x_d, xd_dot, xd_ddot, 0.0, 1.0, 1.0, sig, F, I, L, v_fb)
+
+
+@njit
+def gtcf_reset(y0, F, L):
+    """Restart the block from y0 [m] as C2 does (:func:`dcdiarc_block_reset`); the partner's
+    y[k−1] forgotten (the first sample after is C2 alone)."""
+    dcdiarc_block_reset(y0, F, L)
+    g = L[B_CT] + T_HEAD
+    F[g + G_YJ] = np.nan
+    F[g + G_VFB] = 0.0
+
+
+class GTCF(DCDIARC):
+    """One axis of the GTCF pair (module docstring): C2 of the axis's section with the robust
+    feedback set in the task frame of the axis and its ``partner``.
+
+    Args:
+        config: the axis's ``controller:`` section; it configures C2 (the per-axis law: k_s, k1,
+            γ_d, θ box, Γ(0), ...) and ``gtcf:`` (:class:`GtcfConfig`).
+        ts: sample period [s].
+    Raises:
+        ValueError: the section does not configure C2 or gtcf, C2 in theory mode, a compensation
+            (GTCF has none yet).
+    The partner's index is set by the servo loop (:meth:`link_axes`) before the law is attached;
+    :meth:`update` from Python (no partner there) is C2 alone.
+    """
+
+    name = "gtcf"
+    Settings = GtcfConfig
+    shared_keys = False
+    records = ("v", "e", "p", "x2", "theta_hat1", "theta_hat2", "theta_hat3", "theta_hat4",
+               "theta_hat5", "theta_hat6", "d_hat0")
+    tuned_keys = ()
+
+    def __init__(self, config: ControllerConfig, ts: float, kind: str = "c2"):
+        problems = self.check(config.settings("gtcf"), config)
+        if problems:
+            raise ValueError("gtcf: " + "; ".join(f"{k}: {why}" for k, why in problems))
+        super().__init__(config, ts, "c2")
+        self.name = "gtcf"
+        self.gtcf = config.settings("gtcf")
+        self.partner_name = self.gtcf.partner
+        g = np.zeros(N_G)
+        g[G_PARTNER] = -1.0
+        g[G_GT], g[G_GN], g[G_VMIN] = self.gtcf.gain_t, self.gtcf.gain_n, self.gtcf.v_min
+        g[G_YJ] = np.nan
+        self._ctab = np.concatenate([np.zeros(T_HEAD), g])   # no compensation: its empty head, then GTCF's
+        self._bind()
+        # compile (or load) the step now, on copies, so that the first cycle never pays for it
+        gtcf_step(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, True, self.signals.copy(), self._F.copy(), self._I.copy(),
+                  self._L, self._F.copy(), self._L)
+        gtcf_reset(0.0, self._F.copy(), self._L)
+
+    @classmethod
+    def from_config(cls, section: ControllerConfig, ts: float) -> "GTCF":
+        return cls(section, ts)
+
+    @classmethod
+    def check(cls, settings: GtcfConfig, section: ControllerConfig) -> list[tuple[str, str]]:
+        """C2 configured in experiment mode (the task-frame gains scale its constant k_s), no
+        compensation, C2's own checks (Γ(0), Assumption 2)."""
+        if not section.configures("c2"):
+            return [("gtcf", "gtcf runs C2 per axis: configure C2's keys (k_s, k1, gamma0, ...) in the section")]
+        c2 = section.settings("c2")
+        out = list(DCDIARC.check(c2, section))
+        if c2.mode != "experiment":
+            out.append(("mode", "gtcf needs C2's experiment mode (constant k_s scaled by gain_t, gain_n)"))
+        if not section.compensation.is_empty():
+            out.append(("compensation", "gtcf has no identified-effect compensation yet; remove it or use c2"))
+        return out
+
+    @classmethod
+    def gain_family(cls, theta1, settings, omegas, zetas=None):
+        """None: autotune tunes C2 (whose k_s, k1, γ_d GTCF uses) and leaves gain_t, gain_n."""
+        return []
+
+    @classmethod
+    def scaled(cls, gains, s):
+        raise NotImplementedError("controller 'gtcf' has no loop-gain knob (tune c2)")
+
+    @property
+    def law_code(self) -> int:
+        """LAW_GTCF: the cycle runs :func:`gtcf_step` with the partner's sample."""
+        return LAW_GTCF
+
+    def link_axes(self, axis_names, i: int) -> None:
+        """Set the partner's index from the loop's axis names (called by the servo loop before
+        :meth:`attach`, between cycles). Raises ValueError: the partner is not one of the loop's
+        axes or is this axis ``axis_names[i]``."""
+        names = list(axis_names)
+        if self.partner_name not in names or names.index(self.partner_name) == i:
+            raise ValueError(f"gtcf on axis {names[i]!r}: partner {self.partner_name!r} must be another axis of "
+                             f"this loop ({', '.join(names)})")
+        j = names.index(self.partner_name)
+        self._F[self._L[B_CT] + T_HEAD + G_PARTNER] = float(j)
+
+    def reset(self, y0: float, keep_theta: bool = True) -> None:
+        super().reset(y0, keep_theta)
+        self._F[self._L[B_CT] + T_HEAD + G_YJ] = np.nan
+
+    @property
+    def v_fb(self) -> float:
+        """The last sample's task-frame feedback beyond C2's −k_s p [V]."""
+        return float(self._F[self._L[B_CT] + T_HEAD + G_VFB])
+
+    @property
+    def e_n(self) -> float:
+        """The last sample's normal (contour) error ε_n [m] (NaN: uncoupled)."""
+        return float(self._F[self._L[B_CT] + T_HEAD + G_EN])
+
