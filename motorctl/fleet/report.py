@@ -1,0 +1,428 @@
+"""The fleet's report: ``motorctl fleet report``. Each machine's and axis's parameters over
+time, their trend, the changes that are wear and not noise, and the machines outside the
+fleet's spread.
+
+The series (:func:`series_of`): per machine and axis, the nominal parameters of the dataset
+(:data:`motorctl.fleet.jobs.PARAMETERS`, each with its 95 % interval) and the amplitude of each
+named effect (an effect parameter whose name has ``amplitude`` in it, the first harmonic:
+``cogging.amplitudes_N[0]``, ...); a window where the effect is not named counts as 0 (below
+what the identification can tell), with no interval of its own.
+
+**Noise** of a point i: v_i = σ_i² + s², with σ_i the fit's own standard deviation (its interval
+/ 2·1.96) and s the larger of (a) the series' own scatter, 1.4826·MAD of its first differences
+/ √2 (robust to one step and to a steady trend), (b) the fleet's scatter: the median of (a)
+over the fleet's machines and axes for that parameter, (c) :data:`REL_FLOOR` of the series'
+typical magnitude (the median |value| of its non-zero points).
+
+**Change points** (:func:`change_point`): two-segment weighted least squares (weights 1/v_i)
+over every split τ at the points' times leaving :data:`MIN_SEG` points on each side, two
+shapes: a **step** y = a + b·[t ≥ τ] (a cogging force that appears, a changed payload) and a
+**hinge** y = a + b·max(0, t − τ) (wear that grows from an onset: friction, an encoder's
+error). The shape and τ with the least weighted squared residual win; the change Δ is b (step)
+or b·(t_last − τ) (hinge, the growth so far), its standard error from (XᵀWX)⁻¹ with the
+v_i above (not rescaled), z = |Δ|/se. The scan over τ is a multiple test, hence the high
+:data:`Z_ALARM`.
+
+**Alarm** (wear, not noise), all of: z ≥ :data:`Z_ALARM`; |Δ| ≥ :data:`K_FLEET` × the fleet's
+scatter of that parameter; |Δ| ≥ :data:`MIN_REL_CHANGE` of the series' typical magnitude; for
+an effect's amplitude, the effect named in at least :data:`MIN_SEG` windows and
+:data:`MIN_NAMED_SHARE` of those after τ (a one-off phantom effect is not wear).
+
+**Trend**: the Theil–Sen slope (the median of the pairwise slopes; H. Theil 1950, P. K. Sen
+1968) with its 95 % confidence interval (``scipy.stats.theilslopes``), per day, over the whole
+series and, for an alarm of the hinge shape, from τ on: reported, never an alarm on its own.
+
+**Outside the fleet's spread** (:func:`fleet_outliers`): a machine whose median value of a
+nominal parameter lies more than :data:`Z_FLEET` robust standard deviations (1.4826·MAD over
+the machines) from the fleet's median, with at least :data:`MIN_FLEET` machines: a plant that
+differs, reported beside the alarms, not one of them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+
+from motorctl.fleet.jobs import PARAMETERS, Z95
+from motorctl.inputs import InputError
+
+#: fewest points on each side of a change
+MIN_SEG = 2
+#: the change's z (|Δ| over its standard error) from which it is an alarm
+Z_ALARM = 6.0
+#: |Δ| at least this many times the fleet's scatter of the parameter
+K_FLEET = 4.0
+#: |Δ| at least this share of the series' typical magnitude (a nominal parameter moving less
+#: than 2 % is no wear worth a visit)
+MIN_REL_CHANGE = 0.02
+#: the series' noise floor: this share of its typical magnitude
+REL_FLOOR = 0.005
+#: an effect must be named in this share of the windows after τ
+MIN_NAMED_SHARE = 2.0 / 3.0
+#: robust z beyond which a machine is outside the fleet's spread, and the fewest machines for it
+Z_FLEET = 3.5
+MIN_FLEET = 5
+#: confidence of the Theil–Sen interval
+TREND_CONFIDENCE = 0.95
+DAY_S = 86400.0
+
+_AMPLITUDE = re.compile(r"amplitude[^\[]*(\[0\])?$")
+
+
+def monitored_effect(parameter: str) -> bool:
+    """An effect parameter followed over time: an amplitude, its first harmonic when a list."""
+    return bool(_AMPLITUDE.search(parameter)) and ("[" not in parameter or parameter.endswith("[0]"))
+
+
+# ---------------------------------------------------------------------------- the series
+def load_rows(out_dir) -> list[dict]:
+    """The dataset's rows (dicts, :func:`motorctl.fleet.jobs.schema`). Raises InputError: no
+    such folder, or no dataset in it."""
+    from motorctl.fleet.jobs import read_dataset
+    d = Path(out_dir)
+    if not d.is_dir():
+        raise InputError(f"{out_dir}: no such folder (the --out of `motorctl fleet identify`)")
+    t = read_dataset(d)
+    if t is None or t.num_rows == 0:
+        raise InputError(f"{out_dir}: no fleet dataset here (part-*.parquet); run `motorctl fleet identify` first")
+    return t.to_pylist()
+
+
+def series_of(rows: list[dict]) -> dict:
+    """{(machine, axis): {"t": days (n,), "time": datetimes, "logs": paths, "params":
+    {name: {"y": (n,), "sigma": (n,) (NaN: none), "named": (n,) bool or None}}}}, points in time
+    order; days count from the fleet's first window."""
+    if not rows:
+        return {}
+    t0 = min(r["time"] for r in rows)
+    effects = sorted({f"{e['name']}.{e['parameter']}" for r in rows for e in (r["effects"] or [])
+                      if monitored_effect(e["parameter"])})
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault((r["machine"], r["axis"]), []).append(r)
+    out = {}
+    for key, rs in sorted(groups.items()):
+        rs.sort(key=lambda r: (r["time"], r["log_path"]))
+        s = {"t": np.array([(r["time"] - t0).total_seconds() / DAY_S for r in rs]),
+             "time": [r["time"] for r in rs], "logs": [r["log_path"] for r in rs],
+             "unit": rs[0]["force_unit"], "params": {}}
+        for name, _ in PARAMETERS:
+            y = np.array([r[name] for r in rs], float)
+            sig = np.array([(r[f"{name}_hi"] - r[f"{name}_lo"]) / (2 * Z95) for r in rs], float)
+            s["params"][name] = {"y": y, "sigma": sig, "named": None}
+        for eff in effects:
+            fam, par = eff.split(".", 1)
+            y, named = np.zeros(len(rs)), np.zeros(len(rs), bool)
+            for i, r in enumerate(rs):
+                for e in r["effects"] or []:
+                    if e["name"] == fam and e["parameter"] == par:
+                        y[i], named[i] = e["value"], True
+            if named.any():
+                s["params"][eff] = {"y": y, "sigma": np.full(len(rs), np.nan), "named": named}
+        out[key] = s
+    return out
+
+
+def own_scatter(y: np.ndarray) -> float:
+    """1.4826·MAD of the first differences / √2 (y (n,)): a point's scatter, robust to one step
+    and to a steady trend; 0 for fewer than 3 points."""
+    if len(y) < 3:
+        return 0.0
+    d = np.diff(y)
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2))
+
+
+def typical(y: np.ndarray) -> float:
+    nz = np.abs(y[y != 0])
+    return float(np.median(nz)) if nz.size else 0.0
+
+
+def fleet_scatter(series: dict) -> dict:
+    """{parameter: the median over machines and axes of :func:`own_scatter`} (0 where every
+    series is flat)."""
+    per: dict = {}
+    for s in series.values():
+        for name, p in s["params"].items():
+            per.setdefault(name, []).append(own_scatter(p["y"]))
+    return {name: float(np.median(v)) for name, v in per.items()}
+
+
+# ---------------------------------------------------------------------------- the tests
+def _wls(X: np.ndarray, y: np.ndarray, w: np.ndarray):
+    A = X.T @ (w[:, None] * X)
+    cov = np.linalg.inv(A)
+    beta = cov @ (X.T @ (w * y))
+    r = y - X @ beta
+    return beta, cov, float(np.sum(w * r * r))
+
+
+def change_point(t: np.ndarray, y: np.ndarray, v: np.ndarray, min_seg: int = MIN_SEG) -> dict | None:
+    """The best two-segment model of a series (module docstring, "Change points").
+
+    Args:
+        t: times [days] (n,), increasing. y: values (n,). v: each point's variance (n,) [y²].
+        min_seg: fewest points on each side.
+    Returns:
+        {"shape": "step"|"hinge", "k": index of the first point after the change, "tau" [days],
+        "delta" (the change, y's unit), "se", "z", "before" (the fitted value before),
+        "after" (the fitted value at the last point), "chi2"}, or None (too few points).
+    """
+    n = len(t)
+    if n < 2 * min_seg:
+        return None
+    w = 1.0 / v
+    best = None
+    one = np.ones(n)
+    for k in range(min_seg, n - min_seg + 1):
+        step = (np.arange(n) >= k).astype(float)
+        tau_h = t[k - 1]                       # the hinge starts at the last point before
+        hinge = np.maximum(0.0, t - tau_h)
+        for shape, z_col, tau in (("step", step, t[k]), ("hinge", hinge, tau_h)):
+            if shape == "hinge" and np.count_nonzero(hinge) < min_seg:
+                continue
+            X = np.column_stack([one, z_col])
+            try:
+                beta, cov, chi2 = _wls(X, y, w)
+            except np.linalg.LinAlgError:
+                continue
+            scale = 1.0 if shape == "step" else float(t[-1] - tau)
+            delta, se = beta[1] * scale, math.sqrt(max(cov[1, 1], 0.0)) * abs(scale)
+            if best is None or chi2 < best["chi2"] - 1e-12:
+                best = {"shape": shape, "k": k, "tau": float(tau), "delta": float(delta), "se": float(se),
+                        "z": float(abs(delta) / se) if se > 0 else math.inf, "before": float(beta[0]),
+                        "after": float(beta[0] + delta), "chi2": chi2}
+    return best
+
+
+def theil_sen(t: np.ndarray, y: np.ndarray, confidence: float = TREND_CONFIDENCE) -> dict | None:
+    """Theil–Sen slope per day with its confidence interval (``scipy.stats.theilslopes``;
+    Theil 1950, Sen 1968). t [days] (n,), y (n,). None for fewer than 3 points or no spread
+    in time."""
+    from scipy.stats import theilslopes
+    if len(t) < 3 or np.ptp(t) <= 0:
+        return None
+    r = theilslopes(y, t, alpha=confidence)
+    return {"slope_per_day": float(r.slope), "lo": float(r.low_slope), "hi": float(r.high_slope),
+            "intercept": float(r.intercept), "confidence": confidence}
+
+
+def analyse(rows: list[dict]) -> dict:
+    """The whole fleet's findings from the dataset's rows.
+
+    Returns:
+        {"series": :func:`series_of`, "fleet_scatter", "findings": [one per machine, axis and
+        parameter: {"machine", "axis", "parameter", "n", "noise", "trend", "change", "alarm"
+        (bool), "why" (the rule that held it back, or ""), "when" (ISO time of the first point
+        after the change), "logs" (those after the change)}], "outliers":
+        :func:`fleet_outliers`}.
+    """
+    series = series_of(rows)
+    fleet = fleet_scatter(series)
+    findings = []
+    for (machine, axis), s in series.items():
+        t = s["t"]
+        for name, p in s["params"].items():
+            y, sig = p["y"], p["sigma"]
+            scale = typical(y)
+            s_extra = max(own_scatter(y), fleet.get(name, 0.0), REL_FLOOR * scale)
+            if s_extra == 0.0:
+                s_extra = 1e-12 * max(scale, 1.0)
+            v = np.where(np.isfinite(sig), sig, 0.0) ** 2 + s_extra ** 2
+            cp = change_point(t, y, v)
+            f = {"machine": machine, "axis": axis, "parameter": name, "unit": s["unit"], "n": int(len(y)),
+                 "noise": s_extra, "fit_sigma": float(np.nanmedian(sig)) if np.isfinite(sig).any() else None,
+                 "trend": theil_sen(t, y), "change": cp, "alarm": False, "why": "", "when": None, "logs": [],
+                 "trend_after": None}
+            if cp is not None:
+                reasons = []
+                if cp["z"] < Z_ALARM:
+                    reasons.append(f"z {cp['z']:.1f} < {Z_ALARM:g}")
+                if abs(cp["delta"]) < K_FLEET * fleet.get(name, 0.0):
+                    reasons.append(f"|change| below {K_FLEET:g}x the fleet's scatter")
+                if abs(cp["delta"]) < MIN_REL_CHANGE * scale:
+                    reasons.append(f"|change| below {100 * MIN_REL_CHANGE:g} % of the value")
+                if p["named"] is not None:
+                    after = p["named"][cp["k"]:]
+                    if after.sum() < MIN_SEG or after.mean() < MIN_NAMED_SHARE:
+                        reasons.append(f"named in {int(after.sum())} of {after.size} windows after the change")
+                f["alarm"] = not reasons
+                f["why"] = "; ".join(reasons)
+                k = cp["k"] if cp["shape"] == "step" else max(cp["k"] - 1, 0)
+                f["when"] = (s["time"][cp["k"]] if cp["shape"] == "step" else s["time"][k]).isoformat()
+                f["logs"] = list(dict.fromkeys(s["logs"][cp["k"]:]))
+                if cp["shape"] == "hinge":
+                    f["trend_after"] = theil_sen(t[k:], y[k:])
+            findings.append(f)
+    return {"series": series, "fleet_scatter": fleet, "findings": findings, "outliers": fleet_outliers(series)}
+
+
+def fleet_outliers(series: dict) -> list[dict]:
+    """Machines (and axes) whose median of a nominal parameter is more than :data:`Z_FLEET`
+    robust standard deviations from the fleet's median (at least :data:`MIN_FLEET` series):
+    [{"machine", "axis", "parameter", "median", "fleet_median", "z"}]."""
+    out = []
+    for name, _ in PARAMETERS:
+        meds = {k: float(np.median(s["params"][name]["y"])) for k, s in series.items()}
+        if len(meds) < MIN_FLEET:
+            continue
+        vals = np.array(list(meds.values()))
+        mid = float(np.median(vals))
+        mad = 1.4826 * float(np.median(np.abs(vals - mid)))
+        if mad <= 0:
+            continue
+        for (machine, axis), m in meds.items():
+            z = (m - mid) / mad
+            if abs(z) > Z_FLEET:
+                out.append({"machine": machine, "axis": axis, "parameter": name, "median": m,
+                            "fleet_median": mid, "z": z})
+    return out
+
+
+# ---------------------------------------------------------------------------- writing
+def _num(x: float) -> str:
+    if x == 0 or not math.isfinite(x):
+        return f"{x:g}"
+    return f"{x:.4g}" if 1e-3 <= abs(x) < 1e5 else f"{x:.3e}"
+
+
+def summary_markdown(res: dict, out_dir) -> str:
+    """The Markdown summary: alarms (what changed, when, by how much, the logs), held-back
+    changes, trends, machines outside the fleet's spread, the quiet machines."""
+    series, findings = res["series"], res["findings"]
+    n_rows = sum(len(s["t"]) for s in series.values())
+    machines = sorted({m for m, _ in series})
+    lines = [f"# Fleet report: {out_dir}", "",
+             f"{len(machines)} machines, {len(series)} machine axes, {n_rows} windows"
+             + (f", {min(min(s['time']) for s in series.values()):%Y-%m-%d} to "
+                f"{max(max(s['time']) for s in series.values()):%Y-%m-%d}" if series else "") + ".",
+             "", f"Rules: a change is an alarm when z ≥ {Z_ALARM:g} against each fit's own interval and the "
+             f"series' noise, |change| ≥ {K_FLEET:g}× the fleet's scatter and ≥ {100 * MIN_REL_CHANGE:g} % of the "
+             "value (docs/fleet.md).", "", "## Alarms", ""]
+    alarms = [f for f in findings if f["alarm"]]
+    if not alarms:
+        lines.append("None: no parameter of any machine changed beyond its noise and the fleet's spread.")
+    else:
+        lines += ["| machine | axis | parameter | shape | from | before | now | change | z | logs |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
+        for f in alarms:
+            c = f["change"]
+            rel = f" ({100 * c['delta'] / abs(c['before']):+.1f} %)" if c["before"] else ""
+            logs = f["logs"]
+            shown = ", ".join(Path(p).name for p in logs[:3]) + (f" … {Path(logs[-1]).name} ({len(logs)} logs)"
+                                                                  if len(logs) > 3 else "")
+            lines.append(f"| {f['machine']} | {f['axis']} | {f['parameter']} | {c['shape']} | {f['when'][:10]} | "
+                         f"{_num(c['before'])} | {_num(c['after'])} | {_num(c['delta'])}{rel} | {c['z']:.1f} | {shown} |")
+        lines.append("")
+        for f in alarms:
+            ta = f["trend_after"]
+            if ta:
+                lines.append(f"- {f['machine']} {f['axis']} {f['parameter']}: since {f['when'][:10]} "
+                             f"{_num(ta['slope_per_day'])}/day (Theil–Sen, 95 % CI {_num(ta['lo'])} .. {_num(ta['hi'])})")
+    held = [f for f in findings if not f["alarm"] and f["change"] and f["change"]["z"] >= Z_ALARM]
+    lines += ["", "## Changes held back as noise", ""]
+    if not held:
+        lines.append("None.")
+    for f in held:
+        lines.append(f"- {f['machine']} {f['axis']} {f['parameter']}: {_num(f['change']['delta'])} "
+                     f"(z {f['change']['z']:.1f}) from {f['when'][:10]}: {f['why']}")
+    lines += ["", "## Trends (Theil–Sen, 95 % CI excluding zero; not alarms by themselves)", ""]
+    trends = [f for f in findings if f["trend"] and (f["trend"]["lo"] > 0 or f["trend"]["hi"] < 0)]
+    if not trends:
+        lines.append("None.")
+    for f in trends:
+        tr = f["trend"]
+        lines.append(f"- {f['machine']} {f['axis']} {f['parameter']}: {_num(tr['slope_per_day'])}/day "
+                     f"(CI {_num(tr['lo'])} .. {_num(tr['hi'])})" + (" — alarm" if f["alarm"] else ""))
+    lines += ["", "## Outside the fleet's spread", ""]
+    if not res["outliers"]:
+        lines.append(f"None (or fewer than {MIN_FLEET} machine axes to judge).")
+    for o in res["outliers"]:
+        lines.append(f"- {o['machine']} {o['axis']} {o['parameter']}: median {_num(o['median'])}, fleet "
+                     f"{_num(o['fleet_median'])} (robust z {o['z']:+.1f})")
+    quiet = sorted({(f["machine"], f["axis"]) for f in findings} - {(f["machine"], f["axis"]) for f in alarms})
+    lines += ["", "## Quiet", "", ", ".join(f"{m} {a}" for m, a in quiet) or "None.", ""]
+    return "\n".join(lines)
+
+
+def plot_machine(res: dict, machine: str, path) -> None:
+    """One PNG: each parameter of the machine's axes over time with its 95 % intervals, the
+    Theil–Sen line and, for a change, its two-segment fit (red when an alarm)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    keys = [k for k in res["series"] if k[0] == machine]
+    names = []
+    for k in keys:
+        names += [n for n in res["series"][k]["params"] if n not in names]
+    by = {(f["machine"], f["axis"], f["parameter"]): f for f in res["findings"]}
+    fig, axs = plt.subplots(len(names), 1, figsize=(7, 1.9 * len(names) + 0.6), sharex=True, squeeze=False)
+    for ax, name in zip(axs[:, 0], names):
+        for k in keys:
+            s = res["series"][k]
+            if name not in s["params"]:
+                continue
+            p, t = s["params"][name], s["t"]
+            err = np.where(np.isfinite(p["sigma"]), Z95 * p["sigma"], 0.0)
+            ax.errorbar(t, p["y"], yerr=err, fmt="o", ms=3, lw=0.8, label=f"axis {k[1]}")
+            f = by.get((machine, k[1], name))
+            if f and f["trend"]:
+                tr = f["trend"]
+                ax.plot(t, tr["intercept"] + tr["slope_per_day"] * t, "--", color="grey", lw=0.8)
+            if f and f["change"]:
+                c = f["change"]
+                if c["shape"] == "step":
+                    fit = np.where(t >= c["tau"], c["after"], c["before"])
+                else:
+                    fit = c["before"] + (c["after"] - c["before"]) * np.maximum(0, t - c["tau"]) / max(t[-1] - c["tau"], 1e-12)
+                ax.plot(t, fit, color="red" if f["alarm"] else "tab:green", lw=1.2)
+                if f["alarm"]:
+                    ax.axvline(c["tau"], color="red", lw=0.8, ls=":")
+        ax.set_ylabel(name, fontsize=7)
+        ax.tick_params(labelsize=7)
+    axs[-1, 0].set_xlabel("days since the fleet's first log")
+    axs[0, 0].set_title(f"{machine}: parameters over time (95 % intervals; red: alarm)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def _jsonable(f: dict) -> dict:
+    return {k: v for k, v in f.items()}
+
+
+def write_report(out_dir, report_dir=None, plots: bool = True) -> dict:
+    """Analyse the dataset in ``out_dir`` and write ``summary.md``, ``findings.json`` and one
+    ``<machine>.png`` per machine to ``report_dir`` (default ``out_dir/report``).
+
+    Returns:
+        {"summary": path, "findings": path, "plots": [paths], "alarms": [the alarm findings]}.
+    Raises:
+        InputError: no dataset in ``out_dir``, a report folder that cannot be written.
+    """
+    from motorctl.inputs import writable_dir
+    rows = load_rows(out_dir)
+    rdir = writable_dir(report_dir if report_dir is not None else Path(out_dir) / "report", "fleet report")
+    res = analyse(rows)
+    (rdir / "summary.md").write_text(summary_markdown(res, out_dir), encoding="utf-8")
+    findings = [_jsonable(f) for f in res["findings"]]
+    (rdir / "findings.json").write_text(json.dumps({"findings": findings, "outliers": res["outliers"],
+                                                    "fleet_scatter": res["fleet_scatter"]},
+                                                   indent=1, default=str), encoding="utf-8")
+    pngs = []
+    if plots:
+        for machine in sorted({m for m, _ in res["series"]}):
+            path = rdir / f"{machine}.png"
+            plot_machine(res, machine, path)
+            pngs.append(str(path))
+    return {"summary": str(rdir / "summary.md"), "findings": str(rdir / "findings.json"), "plots": pngs,
+            "alarms": [f for f in res["findings"] if f["alarm"]], "result": res}
+
+
+__all__ = ["K_FLEET", "MIN_FLEET", "MIN_NAMED_SHARE", "MIN_REL_CHANGE", "MIN_SEG", "REL_FLOOR", "TREND_CONFIDENCE",
+           "Z_ALARM", "Z_FLEET", "analyse", "change_point", "fleet_outliers", "fleet_scatter", "load_rows",
+           "monitored_effect", "own_scatter", "plot_machine", "series_of", "summary_markdown", "theil_sen",
+           "typical", "write_report"]
