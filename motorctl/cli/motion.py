@@ -1,5 +1,6 @@
 """``motorctl circle-test``: the ISO 230-4 circular test of the simulated gantry on the
-daemon's motion path (:mod:`motorctl.app.circle_test`), C1, C2 and PID+FF at the given feeds; with
+daemon's motion path (:mod:`motorctl.app.circle_test`), C1, C2, PID+FF (and the GTCF pair when
+configured on X and Y) at the given feeds; with
 ``--log`` each run's log, with ``--plot`` each run's polar plot; ``--json``: one JSON list on
 stdout and nothing else (the log and plot paths in it).
 Exit codes: 0 done; 1 a fault or an underrun during a run; 2 bad input."""
@@ -30,7 +31,7 @@ def cmd_circle_test(args) -> int:
     if not args.radius > 0 or any(not f > 0 for f in args.feed):
         raise UsageError("circle-test: --radius and --feed must be > 0 (m, m/s)")
     loaded = load_config(args.config)
-    controllers = args.controller or ("c1", "c2", "pid")
+    controllers = args.controller or ("c1", "c2", "pid") + (("gtcf",) if "gtcf" in _configured(loaded) else ())
     for c in controllers:
         if c not in _configured(loaded):
             raise UsageError(f"circle-test: controller {c!r} is not configured for X and Y in {args.config}")
@@ -91,8 +92,8 @@ def register(parser, sub) -> None:
     p.add_argument("config", nargs="?", default=DEFAULT_CONFIG, help="the config YAML (default: %(default)s)")
     p.add_argument("--radius", type=float, default=0.05, help="circle radius [m] (default 0.05)")
     p.add_argument("--feed", type=float, action="append", help="feed [m/s], repeatable (default 0.05 and 0.1)")
-    p.add_argument("--controller", action="append", choices=("c1", "c2", "pid"),
-                   help="repeatable (default: c1, c2 and pid)")
+    p.add_argument("--controller", action="append", choices=("c1", "c2", "pid", "gtcf"),
+                   help="repeatable (default: c1, c2, pid, and gtcf when the config configures it on X and Y)")
     p.add_argument("--json", action="store_true",
                    help="one JSON list and nothing else (each run's figures, its log and plot paths)")
     p.add_argument("--log", metavar="PATH", default=None,
