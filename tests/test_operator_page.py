@@ -178,3 +178,111 @@ def test_operator_page_jogs_runs_a_program_and_refuses_viewers(tmp_path):
         if f.is_file():
             data = f.read_bytes()
             assert OP_PASSWORD.encode() not in data and VIEW_PASSWORD.encode() not in data, f
+
+
+def _fake_daemon(path: str, got: list):
+    """A control socket answering as the daemon does (upload, gcode, jog, status): for the page's
+    own bounds without a loop. ``got``: the requests, and each upload's byte count."""
+    import asyncio
+
+    async def handle(reader, writer):
+        req = json.loads(await reader.readline())
+        got.append(req)
+        if req["cmd"] == "upload":
+            writer.write(b'{"ok": true, "continue": true, "upload": "t1"}\n')
+            await writer.drain()
+            n = 0
+            while n < req["bytes"]:
+                chunk = await reader.read(1 << 16)
+                assert chunk
+                n += len(chunk)
+            got.append({"uploaded": n})
+            ans = {"ok": True, "upload": "t1", "bytes": n}
+        elif req["cmd"] == "status":
+            ans = {"ok": True, "status": {"axes": {"X": {"y_m": 0.001, "state": "enabled"}}, "motion": {"idle": True}}}
+        elif req["cmd"] == "gcode":
+            ans = {"ok": False, "error": "big.ngc:70000:1: G1: X 900 mm is beyond the soft limit", "usage": True}
+        else:
+            ans = {"ok": True}
+        writer.write((json.dumps(ans) + "\n").encode())
+        await writer.drain()
+        writer.close()
+    return asyncio.start_unix_server(handle, path)
+
+
+def test_a_large_program_is_streamed_and_a_held_jog_not_kept_alive_stops(tmp_path):
+    """Against a fake control socket (no browser): a 3 MB program (beyond aiohttp's 1 MiB body
+    bound and the daemon's 64 KiB request line) goes to the socket as one ``upload`` of all its
+    bytes, then ``gcode`` naming it, and the daemon's refusal comes back as the page's answer
+    (409); a continuous jog nobody keeps alive is stopped within JOG_DEADMAN_S and a poll; a
+    session's POST without its CSRF token is 403."""
+    import asyncio
+
+    from aiohttp import web
+    from aiohttp.test_utils import TestClient, TestServer
+
+    from motorctl.app.daemon.operator_page import JOG_DEADMAN_S, OperatorPage
+    users = _users_file(tmp_path)
+    sock = str(tmp_path / "fake.sock")
+    got: list = []
+
+    async def main():
+        srv = await _fake_daemon(sock, got)
+        page = OperatorPage(sock, str(users), ["X"], lambda name: b"<html></html>")
+        app = web.Application()
+        page.add_routes(app)
+        try:
+            async with TestClient(TestServer(app, host="127.0.0.1")) as c:
+                r = await c.post("/operator/cmd/abort", json={})
+                assert r.status == 403
+                r = await c.post("/login", json={"name": "op", "password": OP_PASSWORD})
+                assert r.status == 200, await r.text()
+                csrf = (await r.json())["csrf"]
+                assert (await c.post("/operator/cmd/abort", json={})).status == 403   # no token
+                h = {"X-CSRF-Token": csrf}
+                body = b"G1 X1 Y1 F600\n" * 220_000                                  # 3.1 MB
+                r = await c.post("/operator/program?name=big.ngc", data=body, headers=h)
+                ans = await r.json()
+                assert r.status == 409 and ans["error"].startswith("big.ngc:70000:1: "), ans
+                assert {"uploaded": len(body)} in got
+                assert {"cmd": "gcode", "upload": "t1", "filename": "big.ngc"} in got
+                st = await (await c.get("/operator/status")).json()
+                assert st["axes"]["X"]["y_m"] == 0.001
+                r = await c.post("/operator/cmd/jog", json={"axis": "X", "velocity": 0.01}, headers=h)
+                assert r.status == 200
+                t0 = time.monotonic()
+                while {"cmd": "jog", "axis": "X", "stop": True} not in got:
+                    assert time.monotonic() - t0 < JOG_DEADMAN_S + 2.0, got
+                    await asyncio.sleep(0.02)
+                assert time.monotonic() - t0 >= JOG_DEADMAN_S * 0.9
+        finally:
+            srv.close()
+    asyncio.run(asyncio.wait_for(main(), 30))
+
+
+def test_users_add_writes_a_hash_the_page_accepts(tmp_path, monkeypatch, capsys):
+    """``motorctl users add NAME --role operator --password-stdin`` (motorctl.cli.users): the file
+    holds the scrypt hash only (mode 0600), load_users gives the role; adding the name again
+    without --replace is refused; remove takes it out."""
+    import io
+
+    from motorctl.app.users import load_users
+    from motorctl.cli import Parser, UsageError
+    from motorctl.cli import users as users_cli
+    p = Parser(prog="motorctl")
+    users_cli.register(p, p.add_subparsers(dest="command"))
+    path = tmp_path / "u.yaml"
+
+    def run(*argv, stdin=""):
+        monkeypatch.setattr("sys.stdin", io.StringIO(stdin))
+        args = p.parse_args(["users", *argv, "--file", str(path)])
+        return args.func(args)
+    assert run("add", "alice", "--role", "operator", "--password-stdin", stdin="correct horse\n") == 0
+    assert path.stat().st_mode & 0o777 == 0o600 and "correct horse" not in path.read_text()
+    assert load_users(str(path)).roles("alice", "correct horse") == frozenset({"operator"})
+    with pytest.raises(UsageError, match="exists"):
+        run("add", "alice", "--password-stdin", stdin="another one\n")
+    assert run("add", "bob", "--password-stdin", stdin="bobs password\n") == 0
+    assert run("remove", "alice") == 0
+    assert run("list") == 0
+    assert capsys.readouterr().out.splitlines()[-1] == "bob\tviewer"

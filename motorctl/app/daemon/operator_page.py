@@ -250,10 +250,12 @@ class OperatorPage:
 
     @staticmethod
     def cross_site(request) -> bool:
-        """The browser says the request came from another origin (``Origin`` other than this
-        host, or ``Sec-Fetch-Site`` other than same-origin / none)."""
+        """The browser says the request came from another origin (``Origin`` naming another
+        host:port than the request's ``Host``, or ``Sec-Fetch-Site`` other than same-origin /
+        none). The scheme is not compared: behind a TLS proxy the page is https, this server http."""
+        from urllib.parse import urlsplit
         origin = request.headers.get("Origin")
-        if origin is not None and origin != f"{request.scheme}://{request.host}":
+        if origin is not None and (origin == "null" or urlsplit(origin).netloc != request.host):
             return True
         site = request.headers.get("Sec-Fetch-Site")
         return site is not None and site not in ("same-origin", "none")
@@ -314,12 +316,12 @@ class OperatorPage:
             self._logins_waiting -= 1
         del password
         if roles is None:
-            _log(f"login refused for {name!r}")
+            _log(f"login refused for {name[:64]!r}")
             await asyncio.sleep(LOGIN_FAIL_DELAY_S)
             return _json({"ok": False, "error": "wrong name or password"}, 403)
         tok = self._new_session(name, roles)
         s = self.sessions[tok]
-        _log(f"{name!r} logged in ({', '.join(sorted(roles))})")
+        _log(f"{name[:64]!r} logged in ({', '.join(sorted(roles))})")
         resp = _json({"ok": True, "user": name, "roles": sorted(roles), "operator": s.operator,
                       "csrf": s.csrf})
         resp.set_cookie(SESSION_COOKIE, tok, httponly=True, samesite="Strict", path="/",
