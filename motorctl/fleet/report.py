@@ -310,7 +310,8 @@ def summary_markdown(res: dict, out_dir) -> str:
                   "|---|---|---|---|---|---|---|---|---|---|"]
         for f in alarms:
             c = f["change"]
-            rel = f" ({100 * c['delta'] / abs(c['before']):+.1f} %)" if c["before"] else ""
+            rel = (f" ({100 * c['delta'] / abs(c['before']):+.1f} %)"
+                   if abs(c["before"]) > 0.05 * abs(c["after"]) else " (from none)")
             logs = f["logs"]
             shown = ", ".join(Path(p).name for p in logs[:3]) + (f" … {Path(logs[-1]).name} ({len(logs)} logs)"
                                                                   if len(logs) > 3 else "")
@@ -390,10 +391,6 @@ def plot_machine(res: dict, machine: str, path) -> None:
     plt.close(fig)
 
 
-def _jsonable(f: dict) -> dict:
-    return {k: v for k, v in f.items()}
-
-
 def write_report(out_dir, report_dir=None, plots: bool = True) -> dict:
     """Analyse the dataset in ``out_dir`` and write ``summary.md``, ``findings.json`` and one
     ``<machine>.png`` per machine to ``report_dir`` (default ``out_dir/report``).
@@ -408,7 +405,7 @@ def write_report(out_dir, report_dir=None, plots: bool = True) -> dict:
     rdir = writable_dir(report_dir if report_dir is not None else Path(out_dir) / "report", "fleet report")
     res = analyse(rows)
     (rdir / "summary.md").write_text(summary_markdown(res, out_dir), encoding="utf-8")
-    findings = [_jsonable(f) for f in res["findings"]]
+    findings = res["findings"]
     (rdir / "findings.json").write_text(json.dumps({"findings": findings, "outliers": res["outliers"],
                                                     "fleet_scatter": res["fleet_scatter"]},
                                                    indent=1, default=str), encoding="utf-8")
