@@ -514,7 +514,8 @@ class CncServer:
             return a
 
         out = [arg("Result", S, "the daemon's answer (JSON)")]
-        axis = arg("Axis", S, f"axis name ({', '.join(self.names)}); empty: every axis")
+        axis = arg("Axis", S, f"axis name ({', '.join(self.names)}); empty: every axis (Enable), "
+                              "every faulted axis (FaultReset)")
         for name, fn, ins in (
                 ("Start", self.m_start, [arg("Program", S, "a name given to LoadProgram, or a file path on "
                                                            "the daemon's host")]),
@@ -601,10 +602,15 @@ class CncServer:
         return [name]
 
     def m_axis(self, cmd: str, faulted_only: bool):
+        """Home (one axis: homing one runs at a time) or FaultReset ("" = every faulted axis)."""
+        from asyncua import ua
+
         async def m(parent, axis):
             names = self._axes_of(axis)
-            if faulted_only and len(names) > 1:
-                names = [a for a in names if self.last.get(f"CncInterface.CncAxisList.{a}.IsFaulted")] or names
+            if len(names) > 1:
+                if not faulted_only:
+                    raise ua.UaStatusCodeError(ua.StatusCodes.BadInvalidArgument)
+                names = [a for a in names if self.last.get(f"CncInterface.CncAxisList.{a}.IsFaulted")]
             ans = {"ok": True}
             for a in names:
                 ans = await self._cmd({"cmd": cmd, "axis": a})

@@ -1,0 +1,214 @@
+"""The OPC UA server (docs/opcua.md, OPC 40502): one daemon on the simulated gantry with
+``daemon.opcua`` on a free loopback port and a users file (an operator, a viewer); checked with
+asyncua's own client and its command-line tools (uals, uaread) run by this interpreter. Rates
+are counted on the master's clock (the values' SourceTimestamp is the loop's time), never
+raced against the wall; every wait is bounded."""
+
+from __future__ import annotations
+
+import asyncio
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from harness import free_port
+from test_daemon_helpers import make_config, running_daemon, status, to_command_mode, wait_for
+
+asyncua = pytest.importorskip("asyncua")
+from asyncua import Client, ua  # noqa: E402
+
+from motorctl.app.daemon.opcua_server import CNC_NS, main as check_main  # noqa: E402
+from motorctl.app.users import hash_password  # noqa: E402
+
+OPERATOR, VIEWER = ("olga", "op-secret"), ("victor", "view-secret")
+AXES = "CncInterface.CncAxisList"
+CHANNEL = "CncInterface.CncChannelList.CncChannel"
+#: the server is up once it answers; this many connection attempts at most (0.2 s apart)
+MAX_CONNECTS = 100
+#: notifications counted per axis for the rate
+N_UPDATES = 40
+#: a client request's bound [s]
+UA_TIMEOUT_S = 10
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("opcua")
+    users = tmp / "users.yaml"
+    users.write_text(yaml.safe_dump({"users": {
+        OPERATOR[0]: {"password": hash_password(OPERATOR[1]), "roles": ["operator"]},
+        VIEWER[0]: {"password": hash_password(VIEWER[1]), "roles": ["viewer"]}}}))
+    port = free_port()
+    url = f"opc.tcp://127.0.0.1:{port}/motorctl"
+    with running_daemon(tmp, extra_daemon={"opcua": {"endpoint": url, "anonymous": "read"},
+                                           "users_file": str(users), "motion_lead_s": 1.5}) as d:
+        d.url, d.tmp = url, tmp
+        wait_for(lambda: status(d.sock)["process"].get("opcua_pid"), 20, "the OPC UA process")
+        _run(_until_served(url))
+        to_command_mode(d.sock)              # both axes held by the servo: positions steady
+        # the tools' subprocesses start now (interpreter and asyncua imports take seconds on a
+        # loaded host) and are read by the first test, while the others run
+        d.uals = _tool("uals", url, "-n", f"ns=2;s={AXES}", "-l", "-d", "2")
+        d.uaread = _tool("uaread", url, "-n", f"ns=2;s={AXES}.X.ActPos")
+        yield d
+        for p in (d.uals, d.uaread):
+            if p.poll() is None:
+                p.kill()
+            p.communicate(timeout=10)
+
+
+def _tool(name: str, url: str, *args) -> subprocess.Popen:
+    """asyncua's command-line tool ``name`` run by this interpreter (never through PATH)."""
+    return subprocess.Popen([sys.executable, "-c", f"from asyncua.tools import {name}; {name}()",
+                             "-u", url, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _run(coro):
+    return asyncio.run(asyncio.wait_for(coro, 60))
+
+
+async def _until_served(url: str) -> None:
+    for _ in range(MAX_CONNECTS):
+        try:
+            async with Client(url, timeout=UA_TIMEOUT_S) as c:
+                ns = await c.get_namespace_index(CNC_NS)
+                assert ns == 2                 # the tools' node ids say ns=2
+                if (await c.get_node(f"ns=2;s={CHANNEL}.Id").read_value()) == 1:
+                    v = await c.get_node(f"ns=2;s=CncInterface.LoopCycles").read_value()
+                    if v:
+                        return
+        except (OSError, asyncio.TimeoutError, ua.UaError):
+            pass
+        await asyncio.sleep(0.2)
+    raise AssertionError(f"the OPC UA server did not answer in {MAX_CONNECTS} attempts")
+
+
+def _client(url: str, user: tuple | None = None) -> Client:
+    c = Client(url, timeout=UA_TIMEOUT_S)
+    if user is not None:
+        c.set_user(user[0])
+        c.set_password(user[1])
+    return c
+
+
+def test_the_tools_browse_the_cnc_objects_and_read_a_position(daemon):
+    out, err = daemon.uals.communicate(timeout=60)
+    assert daemon.uals.returncode == 0, err
+    for name in ("X", "Y", "ActPos", "CmdPos", "ActSpeed", "IsReferenced", "FaultReason", "TurnaroundP99"):
+        assert f"2:{name}" in out, out
+    out, err = daemon.uaread.communicate(timeout=60)
+    assert daemon.uaread.returncode == 0, err
+    x = float(out.strip())
+    assert abs(x - status(daemon.sock)["axes"]["X"]["y_m"]) < 2e-5     # the axis held at rest
+
+
+def test_both_positions_at_20_hz_and_more_on_the_masters_clock(daemon):
+    """Subscribe to X's and Y's ActPos (a notification per update: the trigger includes the
+    timestamp); N_UPDATES of each span at most N_UPDATES / 20 s of the loop's time."""
+    async def go():
+        got: dict = {"X": [], "Y": []}
+
+        class Handler:
+            def datachange_notification(self, node, val, data):
+                got[node.nodeid.Identifier.split(".")[-2]].append(data.monitored_item.Value.SourceTimestamp)
+
+        async with _client(daemon.url) as c:
+            sub = await c.create_subscription(10, Handler())
+            nodes = [c.get_node(f"ns=2;s={AXES}.{a}.ActPos") for a in ("X", "Y")]
+            flt = ua.DataChangeFilter(Trigger=ua.DataChangeTrigger.StatusValueTimestamp)
+            await sub._subscribe(nodes, mfilter=flt, queuesize=1000)
+            for _ in range(200):                       # 20 s at most
+                if min(len(v) for v in got.values()) > N_UPDATES:
+                    break
+                await asyncio.sleep(0.1)
+            await sub.delete()
+        return got
+
+    got = _run(go())
+    for a, ts in got.items():
+        assert len(ts) > N_UPDATES, (a, len(ts))
+        ts = ts[1:N_UPDATES + 1]                        # the first is the value at subscription
+        span = (ts[-1] - ts[0]).total_seconds()
+        assert all(t1 > t0 for t0, t1 in zip(ts, ts[1:])), a
+        rate = (len(ts) - 1) / span
+        assert rate >= 20.0, (a, rate)
+
+
+def test_an_operator_runs_a_program_through_the_methods(daemon):
+    prog = "G21 G90\nG0 X5 Y5\nG1 X15 F3000\nG1 Y12\nG1 X10 Y8\nM2\n"
+
+    async def go():
+        async with _client(daemon.url, OPERATOR) as c:
+            ch = c.get_node(f"ns=2;s={CHANNEL}")
+            m = {n: c.get_node(f"ns=2;s={CHANNEL}.{n}") for n in ("Enable", "LoadProgram", "Start")}
+            await ch.call_method(m["Enable"], "")
+            for _ in range(100):
+                if all([await c.get_node(f"ns=2;s={AXES}.{a}.Phase").read_value() == "command"
+                        for a in ("X", "Y")]):
+                    break
+                await asyncio.sleep(0.1)
+            await ch.call_method(m["LoadProgram"], "square.ngc", prog)
+            await ch.call_method(m["Start"], "square.ngc")
+            seen, st = set(), None
+            for _ in range(300):                           # 30 s at most
+                st = await c.get_node(f"ns=2;s={CHANNEL}.ActProgramStatus").read_value()
+                seen.add(st)
+                if 1 in seen and st == 0:
+                    break
+                await asyncio.sleep(0.1)
+            name = await c.get_node(f"ns=2;s={CHANNEL}.ActProgramName").read_value()
+            x = await c.get_node(f"ns=2;s={AXES}.X.ActPos").read_value()
+            y = await c.get_node(f"ns=2;s={AXES}.Y.ActPos").read_value()
+            return seen, st, name, x, y
+
+    seen, st, name, x, y = _run(go())
+    assert 1 in seen and st == 0, seen                      # Running, then Stopped
+    assert name == "square.ngc"
+    wait_for(lambda: status(daemon.sock)["motion"]["idle"], 10, "the program's end")
+    ax = status(daemon.sock)["axes"]
+    assert abs(ax["X"]["y_m"] - 0.010) < 5e-6 and abs(ax["Y"]["y_m"] - 0.008) < 5e-6, ax
+    assert abs(x - 0.010) < 2e-5 and abs(y - 0.008) < 2e-5
+    assert not ax["X"]["fault"] and not ax["Y"]["fault"]
+
+
+@pytest.mark.parametrize("who", ["anonymous", "viewer"])
+def test_anonymous_and_viewer_may_read_but_not_call(daemon, who):
+    async def go():
+        async with _client(daemon.url, VIEWER if who == "viewer" else None) as c:
+            v = await c.get_node(f"ns=2;s={AXES}.Y.ActPos").read_value()
+            ch = c.get_node(f"ns=2;s={CHANNEL}")
+            with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                await ch.call_method(c.get_node(f"ns=2;s={CHANNEL}.Hold"))
+            with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                await ch.call_method(c.get_node(f"ns=2;s={CHANNEL}.Start"), "square.ngc")
+            return v
+
+    assert isinstance(_run(go()), float)
+    assert status(daemon.sock)["motion"]["hold"] is False
+
+
+def test_a_wrong_password_is_refused(daemon):
+    async def go():
+        with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+            async with _client(daemon.url, (OPERATOR[0], "not-it")):
+                pass
+
+    _run(go())
+
+
+def test_a_bad_users_file_is_one_line_and_exit_2(tmp_path, capsys):
+    bad = tmp_path / "users.yaml"
+    bad.write_text("users: {olga: {password: plain, roles: [operator]}}\n")
+    cfg = make_config(tmp_path, extra_daemon={"opcua": {}, "users_file": str(bad)})
+    assert check_main([str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "daemon.users_file" in err and "password" in err, err
+    d = yaml.safe_load(cfg.read_text())
+    d["daemon"]["users_file"] = None
+    d["daemon"]["opcua"] = {"anonymous": "off"}
+    cfg.write_text(yaml.safe_dump(d))
+    assert check_main([str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "anonymous" in err, err
