@@ -289,7 +289,7 @@ def dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_de
 
 
 @njit
-def dcdiarc_comp_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, F, I, L):
+def dcdiarc_comp_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, F, I, L, v_fb):
     """One sample of C1/C2 with its compensation (module docstring), on its state block; returns
     u [V].
 
@@ -300,7 +300,8 @@ def dcdiarc_comp_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, F, I, L):
     on (xf, ẋ_r, t + τ) with the reference velocity ẋ_r = vf − k1 e (e = y − x_d, so that
     p = ẋ − ẋ_r, eq. 11; :mod:`motorctl.effects.compensation`); an adapted basis on the interval
     just ended (mean position, mean velocity, mid time) for the estimator and on (xf, ẋ_r, t + τ)
-    for v_a1; the ripple factor at the mean and at the desired position.
+    for v_a1; the ripple factor at the mean and at the desired position. v_fb [V]: passed on to
+    :func:`dcdiarc_block_step` (0 for C1/C2; GTCF's task-frame feedback).
     """
     tab = borrow(F[L[B_CT]:])
     tf = t + tab[T_PREVIEW]
@@ -320,7 +321,7 @@ def dcdiarc_comp_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, F, I, L):
         if thrust:
             g_meas = 1.0 + comp_thrust(tab, xm)
             g_des = 1.0 + comp_thrust(tab, xf)
-    return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig, F, I, L, 0.0)
+    return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp, g_meas, g_des, sig, F, I, L, v_fb)
 
 
 @njit
@@ -432,7 +433,7 @@ class DCDIARC(Controller):
                            self._I.copy(), self._L, 0.0)
         if self._compiled_comp:
             dcdiarc_comp_step(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, self.signals.copy(), self._F.copy(),
-                              self._I.copy(), self._L)
+                              self._I.copy(), self._L, 0.0)
         dcdiarc_block_reset(0.0, self._F.copy(), self._L)
 
     @classmethod
@@ -542,7 +543,7 @@ class DCDIARC(Controller):
                                self.signals, self._F, self._I, self._L, 0.0)
         else:
             self._step = entry(dcdiarc_comp_step, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, self.signals,
-                               self._F, self._I, self._L)
+                               self._F, self._I, self._L, 0.0)
 
     @property
     def law_code(self) -> int:
@@ -635,7 +636,7 @@ class DCDIARC(Controller):
         else:
             xf, vf, af = x_d, xd_dot, xd_ddot
         if self._compiled_comp:
-            return self._step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, self.signals, self._F, self._I, self._L)
+            return self._step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, self.signals, self._F, self._I, self._L, 0.0)
         # a Python term (no kernel): the same evaluation as dcdiarc_comp_step, from Python
         comp = self.compensation
         tf = t + tau

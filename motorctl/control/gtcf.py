@@ -28,7 +28,7 @@ partner's own rows. When the partner does not run GTCF, is not running, or its s
 number (IDLE), the step is C2 alone (v_fb = 0) for that cycle.
 
 Settings: a ``gtcf:`` mapping in both axes' ``controller:`` sections (the C2 keys of the section
-are the per-axis law's; compensation and theory mode are refused)::
+are the per-axis law's, its compensation C2's; theory mode is refused)::
 
     gtcf: {partner: Y, gain_t: 1.0, gain_n: 2.0, v_min: 0.002}
 """
@@ -39,10 +39,11 @@ import math
 
 import numpy as np
 
-from motorctl.control.base import LAW_GTCF, Controller
+from motorctl.control.base import LAW_GTCF, LAW_PY
 from motorctl.control.dcdiarc import (
-    B_CT,
+    B_N,
     B_PRM,
+    B_SPAN,
     B_ST,
     DCDIARC,
     P_K1,
@@ -51,19 +52,20 @@ from motorctl.control.dcdiarc import (
     S_Y_PREV,
     dcdiarc_block_reset,
     dcdiarc_block_step,
+    dcdiarc_comp_step,
 )
 from motorctl.control.params import ControllerConfig
-from motorctl.effects.compensation import T_HEAD
 from motorctl.jit import njit
 from motorctl.schema import StrictModel, quantity
 
 __all__ = ["GTCF", "GtcfConfig", "gtcf_feedback", "gtcf_partner", "gtcf_reset", "gtcf_step"]
 
-# GTCF's numbers, after the (empty) compensation table's head at B_CT of the C2 block:
-# partner axis index, g_t, g_n, v_min, the partner's y[k−1] (NaN: none yet), the last v_fb, the
-# last ε_n (the task-frame normal error from this axis's view)
-G_PARTNER, G_GT, G_GN, G_VMIN, G_YJ, G_VFB, G_EN = range(7)
-N_G = 7
+# GTCF's numbers, in the C2 block after its span of θ_max − θ_min (B_SPAN, n entries; read by
+# the theory mode only, which GTCF refuses): partner axis index, g_t, g_n, v_min, the partner's
+# y[k−1] (NaN: none yet), the last v_fb, the last ε_n (the task-frame normal error from this
+# axis's view), 1.0 when the block has a compiled compensation (dcdiarc_comp_step) else 0.0
+G_PARTNER, G_GT, G_GN, G_VMIN, G_YJ, G_VFB, G_EN, G_COMP = range(8)
+N_G = 8
 
 
 class GtcfConfig(StrictModel):
@@ -109,17 +111,19 @@ def gtcf_feedback(p_i, p_j, v_i, v_j, ks_i, ks_j, g_t, g_n, v_min):
 @njit
 def gtcf_partner(F, L):
     """The partner axis's index (into the cycle's rows) of a GTCF block."""
-    return int(F[L[B_CT] + T_HEAD + G_PARTNER])
+    return int(F[L[B_SPAN] + L[B_N] + G_PARTNER])
 
 
 @njit
-def gtcf_step(y, x_d, xd_dot, xd_ddot, y_j, x_dj, xd_dot_j, coupled, sig, F, I, L, Fj, Lj):
+def gtcf_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, y_j, x_dj, xd_dot_j, coupled, sig, F, I, L, Fj, Lj):
     """One sample of GTCF on axis i's block (F, I, L; the C2 block of
     :func:`motorctl.control.dcdiarc.dcdiarc_block_step` with GTCF's numbers after it); returns
     u [V], |u| ≤ u_lim.
 
     Args:
         y [m], x_d [m], xd_dot [m/s], xd_ddot [m/s²]: axis i's measurement and desired sample.
+        xf, vf, af, t: the desired sample at t + τ and the time [s], for a compensation
+            (:func:`motorctl.control.dcdiarc.dcdiarc_comp_step`; unused without one).
         y_j [m], x_dj [m], xd_dot_j [m/s]: the partner's of the same cycle.
         coupled: the partner runs GTCF (its block Fj, Lj holds its k1, k_s, Ts); False: C2 alone.
         sig (N_SIGNALS,): axis i's published signals.
@@ -128,7 +132,7 @@ def gtcf_step(y, x_d, xd_dot, xd_ddot, y_j, x_dj, xd_dot_j, coupled, sig, F, I, 
     first sample, an IDLE partner) gives v_fb = 0. Axis i's own p is computed with the same
     operations as the C2 step's (eq. 11).
     """
-    g = L[B_CT] + T_HEAD
+    g = L[B_SPAN] + L[B_N]
     st = L[B_ST]
     prm = L[B_PRM]
     y_jp = F[g + G_YJ]
@@ -147,6 +151,8 @@ def gtcf_step(y, x_d, xd_dot, xd_ddot, y_j, x_dj, xd_dot_j, coupled, sig, F, I, 
                 e_n = (xd_dot * (y_j - x_dj) - xd_dot_j * (y - x_d)) / s
     F[g + G_VFB] = v_fb
     F[g + G_EN] = e_n
+    if F[g + G_COMP] != 0.0:
+        return dcdiarc_comp_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, F, I, L, v_fb)
     return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, x_d, xd_dot, xd_ddot, 0.0, 1.0, 1.0, sig, F, I, L, v_fb)
 
 
@@ -155,7 +161,7 @@ def gtcf_reset(y0, F, L):
     """Restart the block from y0 [m] as C2 does (:func:`dcdiarc_block_reset`); the partner's
     y[k−1] forgotten (the first sample after is C2 alone)."""
     dcdiarc_block_reset(y0, F, L)
-    g = L[B_CT] + T_HEAD
+    g = L[B_SPAN] + L[B_N]
     F[g + G_YJ] = np.nan
     F[g + G_VFB] = 0.0
 
@@ -169,10 +175,11 @@ class GTCF(DCDIARC):
             γ_d, θ box, Γ(0), ...) and ``gtcf:`` (:class:`GtcfConfig`).
         ts: sample period [s].
     Raises:
-        ValueError: the section does not configure C2 or gtcf, C2 in theory mode, a compensation
-            (GTCF has none yet).
+        ValueError: the section does not configure C2 or gtcf, C2 in theory mode.
     The partner's index is set by the servo loop (:meth:`link_axes`) before the law is attached;
-    :meth:`update` from Python (no partner there) is C2 alone.
+    :meth:`update` from Python (no partner there) is C2 alone. The section's compensation is C2's
+    (compiled: :func:`dcdiarc_comp_step` under the task-frame feedback); one with a term that has
+    no compiled kernel makes the law run from Python (LAW_PY) as C2 alone, uncoupled.
     """
 
     name = "gtcf"
@@ -194,11 +201,12 @@ class GTCF(DCDIARC):
         g[G_PARTNER] = -1.0
         g[G_GT], g[G_GN], g[G_VMIN] = self.gtcf.gain_t, self.gtcf.gain_n, self.gtcf.v_min
         g[G_YJ] = np.nan
-        self._ctab = np.concatenate([np.zeros(T_HEAD), g])   # no compensation: its empty head, then GTCF's
+        g[G_COMP] = 1.0 if self._compiled_comp else 0.0
+        self._span = np.concatenate([self._span, g])        # GTCF's numbers after the span (module comment)
         self._bind()
         # compile (or load) the step now, on copies, so that the first cycle never pays for it
-        gtcf_step(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, True, self.signals.copy(), self._F.copy(), self._I.copy(),
-                  self._L, self._F.copy(), self._L)
+        gtcf_step(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, True, self.signals.copy(), self._F.copy(),
+                  self._I.copy(), self._L, self._F.copy(), self._L)
         gtcf_reset(0.0, self._F.copy(), self._L)
 
     @classmethod
@@ -207,16 +215,14 @@ class GTCF(DCDIARC):
 
     @classmethod
     def check(cls, settings: GtcfConfig, section: ControllerConfig) -> list[tuple[str, str]]:
-        """C2 configured in experiment mode (the task-frame gains scale its constant k_s), no
-        compensation, C2's own checks (Γ(0), Assumption 2)."""
+        """C2 configured in experiment mode (the task-frame gains scale its constant k_s), C2's own
+        checks (Γ(0), Assumption 2)."""
         if not section.configures("c2"):
             return [("gtcf", "gtcf runs C2 per axis: configure C2's keys (k_s, k1, gamma0, ...) in the section")]
         c2 = section.settings("c2")
         out = list(DCDIARC.check(c2, section))
         if c2.mode != "experiment":
             out.append(("mode", "gtcf needs C2's experiment mode (constant k_s scaled by gain_t, gain_n)"))
-        if not section.compensation.is_empty():
-            out.append(("compensation", "gtcf has no identified-effect compensation yet; remove it or use c2"))
         return out
 
     @classmethod
@@ -230,7 +236,10 @@ class GTCF(DCDIARC):
 
     @property
     def law_code(self) -> int:
-        """LAW_GTCF: the cycle runs :func:`gtcf_step` with the partner's sample."""
+        """LAW_GTCF: the cycle runs :func:`gtcf_step` with the partner's sample; LAW_PY (C2 alone,
+        from Python) with a compensation term that has no compiled kernel."""
+        if self.compensation is not None and not self._compiled_comp:
+            return LAW_PY
         return LAW_GTCF
 
     def link_axes(self, axis_names, i: int) -> None:
@@ -242,19 +251,23 @@ class GTCF(DCDIARC):
             raise ValueError(f"gtcf on axis {names[i]!r}: partner {self.partner_name!r} must be another axis of "
                              f"this loop ({', '.join(names)})")
         j = names.index(self.partner_name)
-        self._F[self._L[B_CT] + T_HEAD + G_PARTNER] = float(j)
+        self._F[self._g0() + G_PARTNER] = float(j)
+
+    def _g0(self) -> int:
+        """Where GTCF's numbers start in the block (module comment)."""
+        return int(self._L[B_SPAN] + self._L[B_N])
 
     def reset(self, y0: float, keep_theta: bool = True) -> None:
         super().reset(y0, keep_theta)
-        self._F[self._L[B_CT] + T_HEAD + G_YJ] = np.nan
+        self._F[self._g0() + G_YJ] = np.nan
 
     @property
     def v_fb(self) -> float:
         """The last sample's task-frame feedback beyond C2's −k_s p [V]."""
-        return float(self._F[self._L[B_CT] + T_HEAD + G_VFB])
+        return float(self._F[self._g0() + G_VFB])
 
     @property
     def e_n(self) -> float:
         """The last sample's normal (contour) error ε_n [m] (NaN: uncoupled)."""
-        return float(self._F[self._L[B_CT] + T_HEAD + G_EN])
+        return float(self._F[self._g0() + G_EN])
 

@@ -58,7 +58,7 @@ def check_law_code(code: int, law: str) -> int:
 @njit
 def law_preview(law, f, lay):
     """How far ahead [s] law ``law`` wants the desired trajectory (its input delay τ; 0: never)."""
-    if law == LAW_DCDIARC_COMP:
+    if law == LAW_DCDIARC_COMP or law == LAW_GTCF:
         return f[lay[B_CT] + T_PREVIEW]
     return 0.0
 
@@ -73,7 +73,7 @@ def law_step(law, y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, f, ii, lay):
     if law == LAW_DCDIARC:
         return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, x_d, xd_dot, xd_ddot, 0.0, 1.0, 1.0, sig, f, ii, lay, 0.0)
     if law == LAW_DCDIARC_COMP:
-        return dcdiarc_comp_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, f, ii, lay)
+        return dcdiarc_comp_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, sig, f, ii, lay, 0.0)
     if law == LAW_PID:
         return pid_step(y, x_d, xd_dot, xd_ddot, sig, borrow(f[:PID_N_STATE]),
                         borrow(f[PID_N_STATE:PID_N_STATE + PID_N_PRM]))

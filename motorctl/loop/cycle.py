@@ -261,9 +261,9 @@ def servo_cycle(phase, k, st):
                 if law == LAW_GTCF:            # a pair: the partner's measurement and desired sample too
                     j = gtcf_partner(borrow(cf[i]), borrow(cl[i]))
                     xj, vj, _aj = desired(j, k, 0.0, ax, axf, prog, move, ts)
-                    u = gtcf_step(y, xd, vd, ad, pos[j], xj, vj, ax[j, A_LAW] == law and ax[j, A_RUNNING] != 0,
-                                  borrow(sig[i]), borrow(cf[i]), borrow(ci[i]), borrow(cl[i]), borrow(cf[j]),
-                                  borrow(cl[j]))
+                    u = gtcf_step(y, xd, vd, ad, xf, vf, af, k * ts, pos[j], xj, vj,
+                                  ax[j, A_LAW] == law and ax[j, A_RUNNING] != 0, borrow(sig[i]), borrow(cf[i]),
+                                  borrow(ci[i]), borrow(cl[i]), borrow(cf[j]), borrow(cl[j]))
                 else:
                     u = law_step(law, y, xd, vd, ad, xf, vf, af, k * ts, borrow(sig[i]), borrow(cf[i]),
                                  borrow(ci[i]), borrow(cl[i]))

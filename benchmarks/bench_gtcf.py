@@ -1,0 +1,154 @@
+"""GTCF (the contouring pair law, motorctl.control.gtcf) against per-axis C2 on the simulated gantry.
+
+    .venv/bin/python benchmarks/bench_gtcf.py [--config configs/gantry.yaml] [--out DIR] [--skip-cut]
+
+1. The ISO 230-4 circle, R 50 mm at 50 and 100 mm/s, by the user's command:
+   ``motorctl circle-test CONFIG --controller c2 --controller gtcf --feed 0.05 --feed 0.1 --json
+   --log DIR/circle.log`` (a subprocess, bounded by a timeout). From its JSON: G (worse of cw/ccw)
+   and G(b). From each run log, independently of motorctl's evaluation: the test circles' rows
+   (the header's ``circle.rows``), an algebraic least-squares circle fit (Kåsa) of the measured
+   X.y, Y.y per direction, and the largest |r − R_fit| (the largest contour error about the
+   fitted circle); the saturated samples (|u| ≥ u_lim − 1 mV) and the largest |u| of both axes.
+2. A plasma cut path with lead-in arcs (benchmarks/bench_contour.py's CUT: lead-ins of 1-2 mm,
+   R 3 mm corners, a slot, an R 8 mm hole; F5000) streamed through the same daemon motion path
+   as the circle test (:func:`motorctl.app.circle_test.run_circle_test` with the program swapped
+   for the cut path), the run log written; from the log: the largest distance of the measured
+   path from the programmed path (:func:`motorctl.motion.path.contour_error`) while the
+   setpoint moves, the saturation as above.
+
+Prints a Markdown table with the change of GTCF against C2 (negative: lower). Deterministic (the
+virtual clock, the simulated driver's seed): the same figures every run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+LAWS = ("c2", "gtcf")
+FEEDS = (0.05, 0.1)
+U_LIM = 10.0
+
+
+def fit_circle(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
+    """Kåsa's algebraic least-squares circle: (cx, cy, R) [m] minimising Σ(x² + y² + D x + E y + F)²."""
+    A = np.column_stack([x, y, np.ones_like(x)])
+    b = -(x * x + y * y)
+    (D, E, F), *_ = np.linalg.lstsq(A, b, rcond=None)
+    cx, cy = -D / 2.0, -E / 2.0
+    return cx, cy, float(np.sqrt(cx * cx + cy * cy - F))
+
+
+def saturation(log) -> tuple[int, float]:
+    """(samples with |u| ≥ u_lim − 1 mV on either axis, the largest |u| [V]) of a run log."""
+    u = np.column_stack([log.col(f"{a}.u") for a in ("X", "Y")])
+    return int(np.sum(np.any(np.abs(u) >= U_LIM - 1e-3, axis=1))), float(np.max(np.abs(u)))
+
+
+def circles(config: str, out: Path, timeout_s: float) -> list[dict]:
+    from motorctl.recorder.runlog import read_log
+    base = out / "circle.log"
+    cmd = [sys.executable, "-m", "motorctl", "circle-test", config, "--json", "--log", str(base)]
+    for c in LAWS:
+        cmd += ["--controller", c]
+    for f in FEEDS:
+        cmd += ["--feed", str(f)]
+    print("$ " + " ".join(cmd[2:]).replace("-m motorctl", "motorctl"), file=sys.stderr)
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, cwd=REPO)
+    if res.returncode != 0:
+        raise SystemExit(f"circle-test failed ({res.returncode}): {res.stderr[-2000:]}")
+    rows = []
+    for r in json.loads(res.stdout):
+        log = read_log(r["log"])
+        xs, ys = log.col("X.y"), log.col("Y.y")
+        worst = 0.0
+        for d, (a, b) in log.header["circle"]["rows"].items():
+            x, y = xs[a:b], ys[a:b]
+            cx, cy, R = fit_circle(x, y)
+            worst = max(worst, float(np.max(np.abs(np.hypot(x - cx, y - cy) - R))))
+        sat, umax = saturation(log)
+        rows.append({"path": f"circle R50 {r['feed_m_s'] * 1e3:.0f} mm/s", "law": r["controller"],
+                     "G": max(r["G_cw_um"], r["G_ccw_um"]), "Gb": r["G_b_um"], "emax": worst * 1e6,
+                     "sat": sat, "umax": umax})
+    return rows
+
+
+def cut_path(config: str, out: Path) -> list[dict]:
+    import motorctl.app.circle_test as ct
+    from motorctl.config import load_config
+    from motorctl.motion import GcodeSettings, parse
+    from motorctl.motion.path import contour_error
+    from motorctl.recorder.runlog import read_log
+    spec = importlib.util.spec_from_file_location("bench_contour", REPO / "benchmarks" / "bench_contour.py")
+    bc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bc)
+    # the torch words (M3/M5) left out: the gantry's config maps no outputs (motion is the same)
+    text = "\n".join(ln for ln in bc.CUT.splitlines() if ln.strip() not in ("M3", "M5")) + "\n"
+    lines = text.splitlines()
+    hole = next(i for i, ln in enumerate(lines) if ln.startswith("G2 X58 Y50 I-8")) + 1
+    orig = ct.circle_program
+    ct.circle_program = lambda radius, feed, center: (text, {"cw": hole, "ccw": hole})
+    rows = []
+    try:
+        loaded = load_config(config)
+        gs = GcodeSettings(axes=["X", "Y"], words={"M3": "torch", "M5": "torch", "S": "ignore"})
+        for c in LAWS:
+            lp = out / f"cut_{c}.log"
+            ct.run_circle_test(loaded, 0.008, 5000 / 60e3, c, center=(0.05, 0.05), log_path=str(lp))
+            log = read_log(str(lp))
+            # the program as the daemon planned it: from where the axes stood
+            prog = parse(text, "cut", gs, start=(float(log.col("X.y")[0]), float(log.col("Y.y")[0])))
+            moving = np.hypot(log.col("X.xd_dot"), log.col("Y.xd_dot")) > 1e-3
+            pts = np.column_stack([log.col("X.y"), log.col("Y.y")])[moving]
+            err = contour_error(prog, pts)
+            sat, umax = saturation(log)
+            rows.append({"path": "cut path, lead-ins 1-2 mm, F5000", "law": c, "G": float("nan"),
+                         "Gb": float("nan"), "emax": float(err.max()) * 1e6, "sat": sat, "umax": umax})
+    finally:
+        ct.circle_program = orig
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--config", default="configs/gantry.yaml")
+    ap.add_argument("--out", default=None, help="where the run logs go (default: a temporary folder)")
+    ap.add_argument("--skip-cut", action="store_true", help="the circles only")
+    ap.add_argument("--timeout", type=float, default=1800.0, help="circle-test's time bound [s]")
+    args = ap.parse_args(argv)
+    out = Path(args.out or tempfile.mkdtemp(prefix="bench_gtcf_"))
+    out.mkdir(parents=True, exist_ok=True)
+    rows = circles(args.config, out, args.timeout)
+    if not args.skip_cut:
+        rows += cut_path(args.config, out)
+    print(f"GTCF against per-axis C2 ({args.config}, simulated, virtual clock; logs in {out})\n")
+    print("| path | law | G um | G(b) um | largest contour error um (from the log) | saturated samples | max abs u V |")
+    print("|---|---|---|---|---|---|---|")
+    base = {}
+    for r in rows:
+        if r["law"] == "c2":
+            base[r["path"]] = r
+
+        def rel(key):
+            b = base.get(r["path"], {}).get(key)
+            if r["law"] == "c2" or b is None or not np.isfinite(r[key]) or b == 0:
+                return ""
+            return f" ({(r[key] / b - 1) * 100:+.0f} %)"
+        g = "–" if not np.isfinite(r["G"]) else f"{r['G']:.2f}{rel('G')}"
+        gb = "–" if not np.isfinite(r["Gb"]) else f"{r['Gb']:.2f}{rel('Gb')}"
+        print(f"| {r['path']} | {r['law']} | {g} | {gb} | {r['emax']:.2f}{rel('emax')} | {r['sat']} | {r['umax']:.2f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,149 @@
+"""GTCF, the contouring law of a pair of axes (motorctl.control.gtcf; docs/control-law.md, "GTCF:
+the contouring law of a pair of axes"), against a plain numpy reference of its equations.
+
+The reference builds the task frame as an explicit rotation matrix T = [tᵀ; nᵀ] and the
+feedback as the matrix product −D^½ Tᵀ diag(g_t, g_n) T D^½ p (numpy, no numba, nothing of
+the law's arithmetic); the law computes it as a scalar formula in compiled code. Everything
+else of a GTCF sample is C2's per-axis law, checked against its own reference in
+tests/test_law_reference.py, so one GTCF sample is compared with one C2 sample from the same
+state: v must differ by the reference's feedback minus C2's −k_s p, and e, p, d̂0, θ̂ must be
+C2's. Tolerance as there: RTOL times the sum of the magnitudes of the terms.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from conftest import examples
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from motorctl.control.dcdiarc import C2, P_K1, P_KS, S_Y_PREV  # the law's layout (to set a state), no arithmetic
+from motorctl.control.gtcf import G_GN, G_GT, G_VMIN, G_YJ, GTCF, gtcf_feedback, gtcf_step
+from motorctl.control.params import ControllerConfig
+from motorctl.control.signals import SIG_D0, SIG_E, SIG_P, SIG_THETA, SIG_V
+
+TS = 2e-4
+RTOL = 1e-9
+X_MIN = [0.05, 0.08, 0.05, -0.5, -0.015, -0.002]
+X_MAX = [0.3, 0.5, 0.5, 0.5, 0.0, 0.0]
+
+
+def _section(partner: str, g_t: float = 1.0, g_n: float = 3.0, v_min: float = 0.002) -> ControllerConfig:
+    return ControllerConfig.model_validate(dict(
+        type="gtcf", u_lim=10.0, theta_min=X_MIN, theta_max=X_MAX, theta_hat0=[0.2, 0.2, 0.1, 0.0, -0.01, -0.001],
+        gamma0=[2.0, 50.0, 100.0, 500.0, 0.05, 0.005], k_s=50.0, k1=500.0, gamma_d=500.0, d_hat_max=1.0,
+        gtcf=dict(partner=partner, gain_t=g_t, gain_n=g_n, v_min=v_min)))
+
+
+def reference_feedback(p, v, ks, g_t, g_n, v_min):
+    """−D^½ Tᵀ diag(g_t', g_n') T D^½ p (2,) with T the rotation to (t, n), t = v/|v|, the gains
+    blended to 1 below v_min [V]."""
+    s = float(np.hypot(v[0], v[1]))
+    w = min(1.0, s / v_min)
+    gt, gn = 1.0 + w * (g_t - 1.0), 1.0 + w * (g_n - 1.0)
+    t = np.asarray(v, float) / s if s > 0 else np.array([1.0, 0.0])
+    T = np.array([[t[0], t[1]], [-t[1], t[0]]])          # rows: t, n = t rotated +90°
+    Dh = np.diag(np.sqrt(ks))
+    K = Dh @ T.T @ np.diag([gt, gn]) @ T @ Dh
+    return -K @ np.asarray(p, float), np.abs(K) @ np.abs(p)
+
+
+@pytest.fixture(scope="module")
+def laws():
+    gx = GTCF.from_config(_section("Y"), TS)
+    gy = GTCF.from_config(_section("X"), TS)
+    gx.link_axes(["X", "Y"], 0)
+    gy.link_axes(["X", "Y"], 1)
+    c2 = C2.from_config(_section("Y"), TS)
+    return gx, gy, c2
+
+
+finite = dict(allow_nan=False, allow_infinity=False)
+
+
+@settings(max_examples=examples(60), deadline=None)
+@given(y=st.lists(st.floats(-0.02, 0.42, **finite), min_size=2, max_size=2),
+       dy=st.lists(st.floats(-2e-4, 2e-4, **finite), min_size=2, max_size=2),
+       err=st.lists(st.floats(-1e-4, 1e-4, **finite), min_size=2, max_size=2),
+       v=st.lists(st.floats(-1.0, 1.0, **finite), min_size=2, max_size=2),
+       ad=st.floats(-10.0, 10.0, **finite),
+       ks=st.lists(st.floats(5.0, 500.0, **finite), min_size=2, max_size=2),
+       k1=st.lists(st.floats(50.0, 2000.0, **finite), min_size=2, max_size=2),
+       g=st.lists(st.floats(0.2, 8.0, **finite), min_size=2, max_size=2),
+       v_min=st.sampled_from([1e-3, 0.002, 0.5]))
+def test_one_sample_against_reference(laws, y, dy, err, v, ad, ks, k1, g, v_min):
+    """One GTCF sample from a drawn state: v = C2's v + (reference feedback + k_s p), the rest C2's."""
+    gx, gy, c2 = laws
+    yp = [y[0] - dy[0], y[1] - dy[1]]
+    xd = [y[0] - err[0], y[1] - err[1]]
+    for c in (gx, c2):
+        c.reset(yp[0], keep_theta=False)
+        c._prm[P_KS] = ks[0]
+        c._prm[P_K1] = k1[0]
+    gy._prm[P_KS] = ks[1]
+    gy._prm[P_K1] = k1[1]
+    tab = gx._span[6:]                              # GTCF's numbers follow the span of the θ box
+    tab[G_GT], tab[G_GN], tab[G_VMIN] = g[0], g[1], v_min
+    tab[G_YJ] = yp[1]
+    u = gtcf_step(y[0], xd[0], v[0], ad, xd[0], v[0], ad, 0.0, y[1], xd[1], v[1], True, gx.signals, gx._F, gx._I,
+                  gx._L, gy._F, gy._L)
+    u_c2 = c2.update(y[0], xd[0], v[0], ad)
+    p = [(y[i] - yp[i]) / TS - v[i] + k1[i] * (y[i] - xd[i]) for i in range(2)]
+    ref, scale = reference_feedback(p, v, np.array(ks), g[0], g[1], v_min)
+    want = c2.v + ref[0] + ks[0] * p[0]
+    tol = RTOL * (abs(c2.v) + 2.0 * ks[0] * abs(p[0]) + scale[0]) + 1e-300
+    assert abs(gx.signals[SIG_V] - want) <= tol, (gx.signals[SIG_V], want)
+    assert abs(gx.v_fb - (ref[0] + ks[0] * p[0])) <= tol
+    for s in (SIG_E, SIG_P, SIG_D0):
+        assert gx.signals[s] == c2.signals[s]
+    assert np.array_equal(gx.signals[SIG_THETA:SIG_THETA + 6], c2.signals[SIG_THETA:SIG_THETA + 6])
+    assert abs(u) <= 10.0 and abs(u_c2) <= 10.0
+
+
+def test_uncoupled_sample_is_c2(laws):
+    """A partner that does not run GTCF (coupled False) or has no y[k−1] yet (NaN): C2's sample."""
+    gx, gy, c2 = laws
+    for coupled, yjp in ((False, 0.1), (True, math.nan)):
+        for c in (gx, c2):
+            c.reset(0.1, keep_theta=False)
+        gx._span[6 + G_YJ] = yjp
+        u = gtcf_step(0.10001, 0.1, 0.05, 1.0, 0.1, 0.05, 1.0, 0.0, 0.2, 0.2, 0.05, coupled, gx.signals, gx._F, gx._I,
+                      gx._L, gy._F, gy._L)
+        assert u == c2.update(0.10001, 0.1, 0.05, 1.0)
+        assert gx.v_fb == 0.0
+
+
+@pytest.mark.parametrize("phi", np.linspace(0.0, 2 * np.pi, 9)[:-1] + 0.3)
+def test_task_frame_rotation(phi):
+    """On a circle, equal k_s: a purely radial (normal) error gives only the contour gain's force
+    −g_n k_s p, a purely tangential one only −g_t k_s p; both directions, both axes."""
+    ks, gt, gn, v_min = 80.0, 0.7, 4.0, 1e-3
+    t = np.array([-math.sin(phi), math.cos(phi)])      # CCW: the desired velocity's direction
+    n = np.array([math.cos(phi), math.sin(phi)])       # radial
+    vd = 0.1 * t
+    for d, gain in ((n, gn), (t, gt)):
+        p = 3e-3 * d
+        total = [-ks * p[i] + gtcf_feedback(p[i], p[1 - i], vd[i], vd[1 - i], ks, ks, gt, gn, v_min)
+                 for i in range(2)]
+        np.testing.assert_allclose(total, -gain * ks * p, rtol=1e-12, atol=1e-15)
+    # at rest the gains blend to 1: C2's −k_s p in every direction
+    p = np.array([1e-3, -2e-3])
+    assert all(gtcf_feedback(p[i], p[1 - i], 0.0, 0.0, ks, ks, gt, gn, v_min) == 0.0 for i in range(2))
+
+
+def test_closed_loop_circle_beats_c2():
+    """A short circle (R 10 mm, 100 mm/s) through circle-test's own path on the simulated gantry,
+    virtual clock: GTCF's largest radial deviation and G(b) are below C2's, no fault."""
+    from motorctl.app.circle_test import run_circle_test
+    from motorctl.config import load_config
+    from conftest import REPO
+    loaded = load_config(str(REPO / "configs" / "gantry.yaml"))
+    res = {c: run_circle_test(loaded, 0.01, 0.1, c) for c in ("c2", "gtcf")}
+    for r in res.values():
+        assert r.underruns == 0
+    f = {c: max(r.result.F_max, -r.result.F_min) for c, r in res.items()}
+    assert f["gtcf"] < f["c2"], f
+    assert res["gtcf"].result.G_b < res["c2"].result.G_b
