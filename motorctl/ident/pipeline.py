@@ -69,8 +69,13 @@ def summarise(idf: Identifier) -> dict:
     out["input_saturation"] = idf.saturation
     if rec.gain:
         th = nom.fit.coef
+        # the offset in both conventions: F_offset_N as published for EMPS (Janot, Gautier & Brunot
+        # 2019: M ÿ + Fv ẏ + Fc sign(ẏ) + F_offset = A1 u, the force the motor holds against), and
+        # offset_N = θ4·A1 as the plant's driver.offset_N (a force on the carriage, model.py's
+        # θ1 ẍ = u − … + θ4): the same number with the opposite sign
         out["nominal"]["physical"] = {"mass_kg": g * th[0], "viscous_N_s_per_m": g * th[1],
-                                      "coulomb_N": g * th[2], "offset_N": g * th[3]}
+                                      "coulomb_N": g * th[2], "F_offset_N": -g * th[3],
+                                      "offset_N": g * th[3]}
     th, _ = idf.coef_split(idf.final, idf.terms)
     src = values_from(idf)
     th_v, betas = src.coef_split(src.final, src.terms)
@@ -114,6 +119,10 @@ def summarise(idf: Identifier) -> dict:
                            if idf.steps and len(idf.terms) >= MAX_EFFECTS else [])
     out["residual"] = idf.verdict(idf.final, idf.terms, g, unit)
     add_refused(out["residual"], idf.verdict_step, chosen, idf)
+    # effects the record cannot tell from a structure the selection refused: named neither,
+    # compensated neither (motorctl.ident.ambiguity)
+    from motorctl.ident.ambiguity import summaries
+    out["ambiguous"] = summaries(idf, getattr(idf, "ambiguous", []), rec.gain, unit)
     return out
 
 
@@ -191,14 +200,30 @@ def _finding(against: str, share: float, where: str, explained_by: str | None = 
 
 
 def validation(idf: Identifier, rec2) -> dict:
-    """Residual RMS on a second record of the nominal and the augmented model fitted on DATA."""
+    """The models fitted on DATA judged on a second record ``rec2`` (a record of
+    :func:`motorctl.ident.data.load_record`, e.g. EMPS's ``DATA_EMPS_PULSES.mat``), nothing
+    fitted again there: the nominal model and the augmented one (the found effects).
+
+    Returns:
+        ``{"source", "residual_rms_before", "residual_rms_after"}`` (N with a gain, else V: the
+        residual of the force equation on rec2's decimated samples) and
+        ``relative_error_percent_before`` / ``_after``: 100·‖residual‖/‖A1 u‖ on the same
+        samples, the cross-test validation's "relative error" of the EMPS description
+        (Script_IDIM_LS_CTV.m: 100·norm(error)/norm(force), decimated).
+    Raises:
+        ValueError, numpy.linalg.LinAlgError: rec2 too short or degenerate for the filters.
+    """
     other = Identifier(rec2, n_theta=idf.n_theta, friction=idf.friction, zoh_delay=idf.zoh,
                        current_loop=idf.current_loop)
     g = idf.rec.gain or 1.0
     r0 = idf.predict_on(other, [], idf.nominal)
     r1 = idf.predict_on(other, idf.terms, idf.final)
+    _, target = other.design([])
+    ref = float(np.linalg.norm(target)) or math.nan
     return {"source": rec2.source, "residual_rms_before": g * float(np.sqrt(np.mean(r0 ** 2))),
-            "residual_rms_after": g * float(np.sqrt(np.mean(r1 ** 2)))}
+            "residual_rms_after": g * float(np.sqrt(np.mean(r1 ** 2))),
+            "relative_error_percent_before": 100 * float(np.linalg.norm(r0)) / ref,
+            "relative_error_percent_after": 100 * float(np.linalg.norm(r1)) / ref}
 
 
 # ---------------------------------------------------------------------------- fit -> controller
@@ -422,7 +447,12 @@ def text_report(s: dict) -> str:
     for name, v, sd in zip(n["theta_names"], n["theta"], n["theta_std"]):
         lines.append(f"  {name} = {v:.6g} +- {sd:.2g}")
     if "physical" in n:
-        lines.append("  physical: " + ", ".join(f"{k} {v:.4g}" for k, v in n["physical"].items()))
+        ph = n["physical"]
+        lines.append("  physical: " + ", ".join(f"{k} {v:.4g}" for k, v in ph.items() if "offset" not in k))
+        if "F_offset_N" in ph:
+            lines.append(f"  offset: F_offset {ph['F_offset_N']:+.4g} N as published (M y'' + Fv y' + Fc S(y') "
+                         f"+ F_offset = A1 u); a force {ph['offset_N']:+.4g} N on the carriage "
+                         f"(theta4 * A1, the plant's driver.offset_N)")
     lines.append(f"  residual RMS {n['residual_rms']:.4g} {u}; held-out RMS {n['heldout_rms']:.4g} {u}")
     note = saturation_note(s.get("input_saturation"))
     if note:
@@ -445,6 +475,9 @@ def text_report(s: dict) -> str:
             lines.append(f"  NOTE: this record cannot tell it from {r['name']} (held-out gain "
                          f"{e['heldout_gain_percent']:.1f} % against {r['heldout_gain_percent']:.1f} %): "
                          f"both are named as possible; a slow constant-speed move or a breakaway test separates them")
+    if s.get("ambiguous"):
+        from motorctl.ident.ambiguity import text_lines
+        lines.extend(text_lines(s["ambiguous"]))
     a = s["augmented"]
     lines.append(f"augmented model: residual RMS {a['residual_rms']:.4g} {u}, held-out RMS {a['heldout_rms']:.4g} {u}")
     if s.get("refit"):
@@ -470,8 +503,11 @@ def text_report(s: dict) -> str:
             lines.append(f"  step {i + 1}: {c['name']:28s} held-out gain {c['heldout_gain_percent']:7.2f} % {verdict}")
     if s.get("validation"):
         v = s["validation"]
-        lines.append(f"validation on {v['source']}: residual RMS {v['residual_rms_before']:.4g} -> "
-                     f"{v['residual_rms_after']:.4g} {u}")
+        lines.append(f"validation on {v['source']} (the models fitted here, not fitted again): residual RMS "
+                     f"{v['residual_rms_before']:.4g} -> {v['residual_rms_after']:.4g} {u}"
+                     + (f"; relative error {v['relative_error_percent_before']:.2f} % -> "
+                        f"{v['relative_error_percent_after']:.2f} % (100 |residual| / |force|)"
+                        if v.get("relative_error_percent_before") is not None else ""))
     cl = s.get("closed_loop")
     if cl:
         b, f = cl["before"], cl["after"]

@@ -227,6 +227,9 @@ class Identifier:
         #: the last selection step's candidates on the final model (:meth:`_on_final`), which
         #: the residual verdict reads (:func:`motorctl.ident.pipeline.add_refused`)
         self.verdict_step: list = []
+        #: effects the record cannot tell from a refused structure (:meth:`_ambiguities`):
+        #: named neither, compensated neither
+        self.ambiguous: list = []
         #: in a motorctl run log u_k is written after y_k is read and held over the period (ZOH):
         #: seen from the central-difference acceleration at t_k it acts half a sample late
         #: (u_{k-1}, u_k weigh equally). Other files: timing unknown, 0 unless told.
@@ -816,7 +819,7 @@ class Identifier:
             return self
         keep = {k: getattr(self, k) for k in ("zoh", "zoh_source", "n_theta", "n_theta_reason", "nominal",
                                                "final", "terms", "steps", "accepted", "eliminated",
-                                               "researched")}
+                                               "researched", "ambiguous")}
         fu = self.p.fu
         self.zoh, self.n_theta, self.n_theta_reason, self.p.fu = hold, n_theta0, reason0, None
         self._run_selection(max_effects)
@@ -930,6 +933,7 @@ class Identifier:
         if doubted:
             fresh = self._on_final(last, step_base, base, current)
         eliminated += doubted
+        base, accepted, current, fresh = self._ambiguities(base, accepted, current, fresh, last, step_base)
         base, current = self._refit_thrust_shape(base, current)
         if pool:
             pool.shutdown()
@@ -937,6 +941,34 @@ class Identifier:
         self.eliminated = eliminated
         self.nominal, self.final, self.terms, self.steps, self.accepted = nominal, current, base, steps, accepted
         return self
+
+    def _ambiguities(self, base: list, accepted: list, current: Evaluated, fresh: list, last: list,
+                     step_base: list):
+        """A name only where the record can tell (:mod:`motorctl.ident.ambiguity`): each selected
+        effect that adds less than :data:`MIN_HELDOUT_GAIN` beside a structure refused on its
+        physics (the residual verdict's) is taken out of the model and kept in ``ambiguous``
+        with both fits; beside a refused time-periodic line at a harmonic of the program's
+        period the force-of-position families are searched as its rivals too. Sets
+        ``self.ambiguous`` ([:class:`~motorctl.ident.ambiguity.Ambiguity`]). Returns (terms,
+        accepted, final, the last step's candidates on the final model)."""
+        from motorctl.ident import ambiguity as amb
+
+        def refused(step):
+            lines = amb.harmonic_lines(self, current, base)
+            known = [c for c in step if refused_on_physics(c) and not any(c.term is t for t in base)]
+            # a line the verdict finds where a refused time-periodic candidate already is (within
+            # the record's resolution 1/L): one structure
+            res = 1.0 / float(np.ptp(self.p.t_d))
+            return known + [c for c in lines if not any(k.term.family == amb.TIME_FAMILY
+                                                        and abs(float(k.term.h) - float(c.term.h)) < res
+                                                        for k in known)]
+        base, accepted, shared = amb.shared_evidence(self, base, accepted, refused(fresh), MIN_HELDOUT_GAIN,
+                                                     exempt=_found_in_measurement)
+        if shared:
+            current = self.evaluate(base)
+            fresh = self._on_final(last, step_base, base, current)
+        self.ambiguous = shared + amb.harmonic_rivals(self, base, refused(fresh), MIN_HELDOUT_GAIN, shared)
+        return base, accepted, current, fresh
 
     def _refit_thrust_shape(self, base: list, current: Evaluated):
         """The thrust shape f_u(u) of the selected effects whose columns carry it
