@@ -89,7 +89,7 @@ UNMEASURED_SECONDS = 100.0
 
 
 #: CPU-bound processes the ``load`` tests start beside the daemon, and the longest each lives [s]
-HOGS, HOG_LIFE_S = 3, 120.0
+HOGS, HOG_LIFE_S = 2, 120.0
 
 
 @pytest.fixture
