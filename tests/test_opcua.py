@@ -47,16 +47,14 @@ def daemon(tmp_path_factory):
         d.url, d.tmp = url, tmp
         wait_for(lambda: status(d.sock)["process"].get("opcua_pid"), 20, "the OPC UA process")
         _run(_until_served(url))
-        to_command_mode(d.sock)              # both axes held by the servo: positions steady
-        # the tools' subprocesses start now (interpreter and asyncua imports take seconds on a
-        # loaded host) and are read by the first test, while the others run
+        # uals starts now (interpreter and asyncua imports take seconds on a loaded host) and is
+        # read by the last test, while the others run
         d.uals = _tool("uals", url, "-n", f"ns=2;s={AXES}", "-l", "-d", "2")
-        d.uaread = _tool("uaread", url, "-n", f"ns=2;s={AXES}.X.ActPos")
+        to_command_mode(d.sock)              # both axes held by the servo: positions steady
         yield d
-        for p in (d.uals, d.uaread):
-            if p.poll() is None:
-                p.kill()
-            p.communicate(timeout=10)
+        if d.uals.poll() is None:
+            d.uals.kill()
+        d.uals.communicate(timeout=10)
 
 
 def _tool(name: str, url: str, *args) -> subprocess.Popen:
@@ -91,17 +89,6 @@ def _client(url: str, user: tuple | None = None) -> Client:
         c.set_user(user[0])
         c.set_password(user[1])
     return c
-
-
-def test_the_tools_browse_the_cnc_objects_and_read_a_position(daemon):
-    out, err = daemon.uals.communicate(timeout=60)
-    assert daemon.uals.returncode == 0, err
-    for name in ("X", "Y", "ActPos", "CmdPos", "ActSpeed", "IsReferenced", "FaultReason", "TurnaroundP99"):
-        assert f"2:{name}" in out, out
-    out, err = daemon.uaread.communicate(timeout=60)
-    assert daemon.uaread.returncode == 0, err
-    x = float(out.strip())
-    assert abs(x - status(daemon.sock)["axes"]["X"]["y_m"]) < 2e-5     # the axis held at rest
 
 
 def test_both_positions_at_20_hz_and_more_on_the_masters_clock(daemon):
@@ -205,10 +192,55 @@ def test_a_bad_users_file_is_one_line_and_exit_2(tmp_path, capsys):
     assert check_main([str(cfg)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "daemon.users_file" in err and "password" in err, err
-    d = yaml.safe_load(cfg.read_text())
-    d["daemon"]["users_file"] = None
-    d["daemon"]["opcua"] = {"anonymous": "off"}
-    cfg.write_text(yaml.safe_dump(d))
-    assert check_main([str(cfg)]) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "anonymous" in err, err
+    # anonymous off without a users file: nobody could log in (the same check on the model)
+    from motorctl.app.daemon.opcua_server import OpcuaConfigError, check_config
+    from motorctl.config import OpcuaConfig, load_config
+    c = load_config(cfg).cfg
+    c = c.model_copy(update={"daemon": c.daemon.model_copy(
+        update={"users_file": None, "opcua": OpcuaConfig(anonymous="off")})})
+    with pytest.raises(OpcuaConfigError, match="anonymous: off"):
+        check_config(c)
+
+def test_basic256sha256_sign_and_encrypt_with_the_self_signed_certificate(daemon, tmp_path):
+    """GetEndpoints offers None and Basic256Sha256 Sign and SignAndEncrypt, all with the
+    certificate the server made at its first start (LOG_DIR/opcua); an operator reads and calls
+    on a SignAndEncrypt session (a client certificate made for the test)."""
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    made = daemon.tmp / "logs" / "opcua" / "server_cert.der"
+    assert made.is_file() and (daemon.tmp / "logs" / "opcua" / "server_key.pem").is_file()
+
+    async def go():
+        key, cert = tmp_path / "client_key.pem", tmp_path / "client_cert.der"
+        await setup_self_signed_certificate(key, cert, "urn:motorctl:test", "localhost",
+                                            [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "test"})
+        async with _client(daemon.url) as c:
+            eps = await c.get_endpoints()
+        c = _client(daemon.url, OPERATOR)
+        await c.set_security_string(f"Basic256Sha256,SignAndEncrypt,{cert},{key}")
+        async with c:
+            x = await c.get_node(f"ns=2;s={AXES}.X.ActPos").read_value()
+            ch = c.get_node(f"ns=2;s={CHANNEL}")
+            await ch.call_method(c.get_node(f"ns=2;s={CHANNEL}.SetFeedOverride"), 100.0)
+        return eps, x
+
+    eps, x = _run(go())
+    got = {(e.SecurityPolicyUri.rsplit("#", 1)[-1], e.SecurityMode.name) for e in eps}
+    assert got == {("None", "None_"), ("Basic256Sha256", "Sign"), ("Basic256Sha256", "SignAndEncrypt")}, got
+    assert all(e.ServerCertificate == made.read_bytes() for e in eps if e.SecurityMode.name != "None_")
+    assert isinstance(x, float)
+
+
+def test_the_tools_browse_the_cnc_objects_and_read_a_position(daemon):
+    out, err = daemon.uals.communicate(timeout=60)
+    assert daemon.uals.returncode == 0, err
+    for name in ("X", "Y", "ActPos", "CmdPos", "ActSpeed", "IsReferenced", "FaultReason", "TurnaroundP99"):
+        assert f"2:{name}" in out, out
+    wait_for(lambda: status(daemon.sock)["motion"]["idle"], 10, "no motion")
+    r = subprocess.run([sys.executable, "-c", "from asyncua.tools import uaread; uaread()", "-u",
+                        daemon.url, "-n", f"ns=2;s={AXES}.X.ActPos"], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0, r.stderr
+    x = float(r.stdout.strip())
+    assert abs(x - status(daemon.sock)["axes"]["X"]["y_m"]) < 2e-5     # the axis held at rest
