@@ -1,0 +1,214 @@
+"""The OPC UA server on a busy PC: how long does a read of a position take beside CPU-bound
+processes, and what does the server cost the I/O process and the loop?
+
+The daemon on configs/gantry.yaml (simulated gantry, wall clock, the config's real-time policy;
+socket and log_dir in a temporary folder), ``--hogs`` CPU-bound processes at nice 0
+(multiprocessing spinners, started before the daemon), Y running its program. Two daemons in
+turn:
+
+1. without ``daemon.opcua``: ``--seconds`` of the loop beside the hogs;
+2. with ``daemon.opcua`` (anonymous read, security None and Basic256Sha256) on a loopback
+   port: the time from the daemon's start to the first answer, then one asyncua client reads
+   X's ActPos back to back for ``--seconds`` (at most ``--reads`` reads) on a None session, and
+   the same on a Basic256Sha256 SignAndEncrypt session (a client certificate made for the run).
+
+Prints the read latency (median, p99, max) per session; per daemon the CPU seconds per second
+of the I/O process and of the OPC UA process over the measured window, the loop's turnaround
+p99.9 and max (the run log's ``turnaround_ns``), missed periods and rows lost.
+
+    python benchmarks/bench_opcua.py                    # 4 hogs, 20 s per daemon
+    python benchmarks/bench_opcua.py --hogs 0 --seconds 5
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import multiprocessing as mp
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+from bench_views import _port, _spin, turnaround  # noqa: E402
+
+from motorctl.client import Client, DaemonUnreachable  # noqa: E402
+
+TICK = os.sysconf("SC_CLK_TCK")
+NODE = "ns=2;s=CncInterface.CncAxisList.X.ActPos"
+
+
+def cpu_s(pid: int | None) -> float:
+    """User + system CPU seconds of a process (NaN: gone)."""
+    try:
+        f = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+    except (OSError, TypeError):
+        return float("nan")
+    return (int(f[11]) + int(f[12])) / TICK
+
+
+class Daemon:
+    def __init__(self, tmp: Path, opcua: bool):
+        d = yaml.safe_load((REPO / "configs" / "gantry.yaml").read_text())
+        d["daemon"].update(socket=str(tmp / "motorctl.sock"), log_dir=str(tmp / "logs"))
+        self.url = None
+        if opcua:
+            self.url = f"opc.tcp://127.0.0.1:{_port()}/motorctl"
+            d["daemon"]["opcua"] = {"endpoint": self.url, "anonymous": "read",
+                                    "security": ["None", "Basic256Sha256"]}
+        self.cfg = tmp / "gantry.yaml"
+        self.cfg.write_text(yaml.safe_dump(d))
+        self.sock = str(tmp / "motorctl.sock")
+        self.err_path = tmp / "daemon.err"
+        self.err = open(self.err_path, "w")
+        self.t0 = time.monotonic()
+        self.proc = subprocess.Popen([sys.executable, "-m", "motorctl", "daemon", str(self.cfg)],
+                                     stdout=self.err, stderr=self.err, cwd=REPO)
+        self.c = Client(self.sock, timeout_s=30.0)
+        end = time.monotonic() + 300
+        while True:
+            try:
+                if self.c.status()["realtime_summary"] != "pending":
+                    break
+            except DaemonUnreachable:
+                pass
+            if time.monotonic() > end or self.proc.poll() is not None:
+                self.proc.kill()
+                raise SystemExit(f"the daemon did not start: {self.err_path.read_text()[-2000:]}")
+            time.sleep(0.2)
+        self.ready_s = time.monotonic() - self.t0
+        self.c.start("Y")
+
+    def stop(self) -> None:
+        self.proc.terminate()
+        try:
+            self.proc.wait(30)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+
+
+async def first_answer(url: str, t0: float, bound_s: float = 300.0) -> float:
+    """Seconds from t0 to the first value of NODE (NaN: none within bound_s)."""
+    from asyncua import Client as UaClient
+    while time.monotonic() - t0 < bound_s:
+        try:
+            async with UaClient(url, timeout=30) as c:
+                await c.get_node(NODE).read_value()
+                return time.monotonic() - t0
+        except Exception:                    # noqa: BLE001 - not up yet
+            await asyncio.sleep(0.1)
+    return float("nan")
+
+
+async def client_cert(tmp: Path) -> tuple[str, str]:
+    """A client certificate and key for the run (asyncua's helper)."""
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+    key, cert = tmp / "client_key.pem", tmp / "client_cert.der"
+    await setup_self_signed_certificate(key, cert, "urn:bench:client", "localhost",
+                                        [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "bench"})
+    return str(cert), str(key)
+
+
+async def reads(url: str, seconds: float, max_reads: int, security: str | None) -> list[float]:
+    """Back-to-back reads of NODE for ``seconds`` (at most max_reads): their latencies [s]."""
+    from asyncua import Client as UaClient
+    c = UaClient(url, timeout=30)
+    if security:
+        await c.set_security_string(security)
+    out = []
+    async with c:
+        node = c.get_node(NODE)
+        end = time.monotonic() + seconds
+        while len(out) < max_reads and time.monotonic() < end:
+            t = time.perf_counter()
+            await node.read_value()
+            out.append(time.perf_counter() - t)
+    return out
+
+
+def measure(tmp: Path, opcua: bool, a) -> dict:
+    dm = Daemon(tmp, opcua)
+    out = {"ready_s": dm.ready_s}
+    try:
+        st0 = dm.c.status()
+        io_pid, ua_pid = st0["process"]["io_pid"], st0["process"].get("opcua_pid")
+        if opcua:
+            out["first_s"] = asyncio.run(first_answer(dm.url, dm.t0))
+            cert, key = asyncio.run(client_cert(tmp))
+            st0 = dm.c.status()
+        c0, u0, t0 = cpu_s(io_pid), cpu_s(ua_pid), time.monotonic()
+        if opcua:
+            half = a.seconds / 2
+            out["reads"] = {
+                "None": asyncio.run(reads(dm.url, half, a.reads, None)),
+                "Basic256Sha256 SignAndEncrypt": asyncio.run(
+                    reads(dm.url, half, a.reads, f"Basic256Sha256,SignAndEncrypt,{cert},{key}"))}
+        else:
+            time.sleep(a.seconds)
+        wall = time.monotonic() - t0
+        out["io_cpu"] = (cpu_s(io_pid) - c0) / wall
+        out["ua_cpu"] = (cpu_s(ua_pid) - u0) / wall if opcua else float("nan")
+        st1 = dm.c.status()
+        out["lost_rows"] = st1["log"]["lost_rows"]
+        out["faults"] = {ax: s["fault"] for ax, s in st1["axes"].items() if s["fault"]}
+        k0, k1 = st0["loop"]["cycles"], st1["loop"]["cycles"]
+        run = st1["log"]["run"]
+    finally:
+        dm.stop()
+    out["p999_us"], out["max_us"], out["missed"] = turnaround(run, k0, k1)
+    out["cycles"] = k1 - k0
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--hogs", type=int, default=4, help="CPU-bound processes at nice 0")
+    ap.add_argument("--seconds", type=float, default=20.0, help="measured time per daemon [s]")
+    ap.add_argument("--reads", type=int, default=2000, help="reads per session at most")
+    a = ap.parse_args()
+    hogs = [mp.Process(target=_spin, daemon=True) for _ in range(a.hogs)]
+    for h in hogs:
+        h.start()
+    try:
+        res = {}
+        for opcua in (False, True):
+            with tempfile.TemporaryDirectory(prefix="bench-opcua-") as tmp:
+                res[opcua] = measure(Path(tmp), opcua, a)
+    finally:
+        for h in hogs:
+            h.kill()
+    print(f"host: {os.cpu_count()} CPUs, {a.hogs} hogs at nice 0, {a.seconds:g} s per daemon; "
+          f"load average {os.getloadavg()[0]:.1f}")
+    w = res[True]
+    print(f"with OPC UA: daemon ready {w['ready_s']:.1f} s; first read answered {w['first_s']:.1f} s "
+          f"after the daemon's start")
+    for name, lat in w["reads"].items():
+        if lat:
+            ms = np.asarray(lat) * 1e3
+            print(f"  read ActPos, {name:30s} {len(ms):5d} reads: median {statistics.median(ms):.2f} ms, "
+                  f"p99 {np.percentile(ms, 99):.2f} ms, max {ms.max():.1f} ms")
+        else:
+            print(f"  read ActPos, {name}: no read")
+    for opcua in (False, True):
+        r = res[opcua]
+        print(f"{'with' if opcua else 'without':7s} OPC UA: I/O process {r['io_cpu']:.3f} CPU s/s, "
+              f"OPC UA process {r['ua_cpu']:.3f} CPU s/s; turnaround p99.9 {r['p999_us']:.1f} us, "
+              f"max {r['max_us']:.1f} us over {r['cycles']} cycles; missed periods {r['missed']}; "
+              f"rows lost {r['lost_rows']}; faults {r['faults'] or 'none'}")
+    print("rerun: python benchmarks/bench_opcua.py [--hogs N] [--seconds S] [--reads N]")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
