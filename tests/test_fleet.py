@@ -14,6 +14,7 @@ import shutil
 import signal
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from pathlib import Path
 
@@ -37,7 +38,6 @@ JOB_TIMEOUT_S = 120
 def setup(tmp_path_factory):
     """The fleet's logs (2 local processes) written while the cluster starts, then identified."""
     import logging
-    from concurrent.futures import ThreadPoolExecutor
 
     from distributed import Client, LocalCluster
     d = tmp_path_factory.mktemp("fleet")
@@ -121,7 +121,9 @@ def test_a_worker_killed_mid_task_does_not_lose_the_job(fleet, client, tmp_path)
     try:
         logs = sorted(fleet["logs"].glob("m03/*.mclog"))[:2]
         marker = tmp_path / "killed"
-        s = jobs.run_fleet(logs, tmp_path / "out", client=client, task=partial(_kill_once, str(marker)))
+        with ThreadPoolExecutor(1) as ex:          # bounded: a hung job fails the test, not the run
+            s = ex.submit(jobs.run_fleet, logs, tmp_path / "out", client=client,
+                          task=partial(_kill_once, str(marker))).result(timeout=JOB_TIMEOUT_S)
     finally:
         cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
     assert marker.read_text() == "killed"

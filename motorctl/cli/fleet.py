@@ -71,11 +71,12 @@ def register(parser, subparsers) -> None:
     pr.set_defaults(func=cmd_report)
     ps = sub.add_parser("simulate", help="write a simulated fleet's run logs with injected wear")
     ps.add_argument("out", metavar="OUT", help="folder for the logs and fleet_truth.json")
-    ps.add_argument("--machines", type=_positive_int, default=5)
-    ps.add_argument("--days", type=_positive_int, default=10)
-    ps.add_argument("--logs-per-day", type=_positive_int, default=1)
-    ps.add_argument("--duration", type=_positive_float, default=3.0, help="program seconds per log")
-    ps.add_argument("--seed", type=int, default=0)
+    ps.add_argument("--machines", type=_positive_int, default=5, help="machines (default 5; the first three worn)")
+    ps.add_argument("--days", type=_positive_int, default=10, help="days (default 10; wear from a third on)")
+    ps.add_argument("--logs-per-day", type=_positive_int, default=1, help="logs per machine and day (default 1)")
+    ps.add_argument("--duration", type=_positive_float, default=3.0,
+                    help="program seconds per log (default 3; 2 s is too short to tell cogging)")
+    ps.add_argument("--seed", type=int, default=0, help="the fleet's seed (each machine's plant and each log's noise)")
     ps.add_argument("--workers", type=_positive_int, default=1, help="processes")
     ps.set_defaults(func=cmd_simulate)
 
