@@ -5,16 +5,18 @@ and ``status`` follow), runs a program sent from a file to its end and sees a wr
 with the daemon's line; as a viewer and logged out the jog button is disabled and a direct POST
 is refused (403), as is a POST without the CSRF token or from another origin. Skips only when no
 ``chromium`` is on PATH, as tests/test_scope.py (``.ci/run`` installs it; the skip table allows no
-skip on CI)."""
+skip on CI). The screenshot after the program goes to ``$MOTORCTL_ARTEFACTS/operator.png`` when set."""
 
 from __future__ import annotations
 
 import contextlib
 import json
+import os
 import shutil
 import time
 import urllib.error
 import urllib.request
+from pathlib import Path
 
 import pytest
 import yaml
@@ -150,6 +152,10 @@ def test_operator_page_jogs_runs_a_program_and_refuses_viewers(tmp_path):
         page.wait_for_function(
             "Math.abs(parseFloat(document.getElementById('pos-X').textContent) - 25) < 0.05",
             timeout=WAIT_MS)
+        if os.environ.get("MOTORCTL_ARTEFACTS"):          # the page as the operator saw it
+            dest = Path(os.environ["MOTORCTL_ARTEFACTS"])
+            dest.mkdir(parents=True, exist_ok=True)
+            page.screenshot(path=str(dest / "operator.png"), full_page=True)
         # a program the daemon refuses: its one line on the page, nothing moves
         page.set_input_files("#program-file", str(bad))
         page.click("#program-run")

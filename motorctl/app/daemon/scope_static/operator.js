@@ -44,6 +44,7 @@ function showAnswer(ans, what) {
 async function cmd(name, body) {
   const ans = await post("/operator/cmd/" + name, body || {});
   showAnswer(ans, name + (body && body.axis ? " " + body.axis : ""));
+  if (ans.httpStatus === 403) loadSession();      // the session ended (idle, logged out, restart)
   return ans;
 }
 
@@ -153,6 +154,7 @@ $("program-run").onclick = async () => {
   $("program-state").textContent = ans.ok ? f.name + ": running (" + ans.lines + " lines)" : ans.error;
   $("program-state").className = ans.ok ? "" : "err";
   showAnswer(ans, "program " + f.name);
+  if (ans.httpStatus === 403) loadSession();
 };
 
 for (const name of ["hold", "resume", "abort"]) $(name).onclick = () => cmd(name);
