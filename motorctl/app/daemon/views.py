@@ -14,6 +14,11 @@ the send never waits. In the view process every page has its own bounded queue o
 :data:`PAGE_QUEUE_FRAMES` frames (a slow page loses its oldest frames, counted and shown on the
 page); each frame is encoded to JSON once, whatever the number of pages.
 
+Beside the scope, the same server serves the operator page (``/operator``,
+:mod:`motorctl.app.daemon.operator_page`) when :func:`start_views` is given the control socket's
+path: it commands the daemon as a client of that socket, as the command line does, never through
+the link (which only carries frames and states to this process).
+
 Start-up is reported back over the same socket (``started``: what is served, what failed and
 why); the I/O process prints one line per view and never waits for it.
 """
