@@ -1,6 +1,7 @@
 """``motorctl tune``: run → identify → tuned config → run again → compare, on the config's driver.
 
     motorctl tune CONFIG --axis A [--duration S] [--out DIR] [--virtual-clock] [--json]
+                  [--no-speed-experiment]
 
 1. **before**: the axis's program on CONFIG (:func:`motorctl.app.job.run_job`, the config's
    clock), log ``DIR/before.mclog``;
@@ -28,6 +29,15 @@
    program periods (with L2[e] in motion / at standstill and u's noise at rest), the damage
    removed (L2_before − L2_after)/(L2_before − L2_floor) and whether e_M got worse;
    ``DIR/compare_runs_<A>.png`` when matplotlib is installed.
+
+7. on the simulated driver, when the before log's identification reports a time-periodic line
+   at a harmonic of the program's period ambiguous with a force of position
+   (:mod:`motorctl.ident.ambiguity`: named neither, compensated neither), **other speed**: the
+   same program at 0.7 x the speed (:func:`motorctl.ident.ambiguity.speed_experiment`),
+   ``DIR/other_speed_<k>.mclog``, identified: a line that keeps its frequency in Hz is named the
+   time-periodic disturbance, one whose frequency scales with the speed the force of position
+   (``speed_experiments`` in the JSON; skipped with ``--no-speed-experiment``). Nothing of it
+   goes into ``tuned.yaml``: it names, it does not compensate.
 
 The runs are :func:`motorctl.commission.tune.tune`'s; this module parses the arguments and prints.
 
@@ -57,6 +67,9 @@ def register(parser, subparsers) -> None:
     p.add_argument("--virtual-clock", action="store_true",
                    help="run as fast as possible (as `run --virtual-clock`; default: the config's clock)")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout and nothing else")
+    p.add_argument("--no-speed-experiment", action="store_true",
+                   help="on a simulated plant, do not run the program again at another speed to tell a "
+                        "time-periodic line at a program harmonic from a force of position")
     p.set_defaults(func=cmd_tune)
 
 
@@ -99,7 +112,41 @@ def text_report(res: dict) -> str:
         lines.append(f"e_M not worse: {'yes' if res['e_M_not_worse'] else 'no'}; L2[e] not worse: "
                      f"{'yes' if r['after']['L2_um'] <= r['before']['L2_um'] else 'no'}")
         lines.extend(f"figure: {p}" for p in res["figures"])
+    for e in res.get("speed_experiments") or []:
+        lines.append(f"{e['ambiguous']}: the program at {e['scale']:g} x the speed ({e['log']}): "
+                     + (f"named {e['named']}: " if e.get("named") else "") + e["why"])
     return "\n".join(lines) + "\n"
+
+
+def speed_experiments(res: dict, progress=None) -> list:
+    """The other-speed runs of step 7 (module docstring) for ``res`` (:func:`motorctl.commission.
+    tune.tune`'s result): on a simulated plant with a before log, each time-periodic line at a
+    program harmonic that the before log's identification reports ambiguous
+    (:func:`motorctl.ident.ambiguity.speed_experiment`). Returns [{"ambiguous" (its text), and
+    speed_experiment's keys}], or [{"ambiguous", "error"}] for one that could not run; [] when
+    none applies."""
+    before = res.get("files", {}).get("before")
+    if res.get("floor_effects_off") is None or not before or res.get("faults", {}).get("before"):
+        return []
+    from motorctl.config import load_yaml
+    from motorctl.ident.ambiguity import speed_experiment
+    from motorctl.ident.data import load_record
+    from motorctl.ident.pipeline import identify_record
+    _, s = identify_record(load_record(before, None, None, res["axis"]))
+    out = []
+    for k, e in enumerate(a for a in s.get("ambiguous", []) if a.get("harmonic")):
+        log = Path(res["out"]) / f"other_speed_{k + 1}.mclog"
+        if progress:
+            progress(f"other speed: {e['text']}: the program at 0.7 x the speed -> {log}")
+        try:
+            r = speed_experiment(load_yaml(res["config"]), res["axis"], e, log, res["duration_s"],
+                                 source=res["config"])
+        except Exception as exc:        # noqa: BLE001 - reported, the tune's result stands
+            out.append({"ambiguous": e["text"], "error": f"{type(exc).__name__}: {exc}"[:300],
+                        "scale": 0.7, "log": str(log), "named": None, "why": "not run"})
+            continue
+        out.append({"ambiguous": e["text"], **r})
+    return out
 
 
 def cmd_tune(args) -> int:
@@ -112,6 +159,8 @@ def cmd_tune(args) -> int:
     from motorctl.commission.tune import tune
     res = tune(args.config, args.axis, out, args.duration, "virtual" if args.virtual_clock else None,
                None if args.json else progress)
+    res["speed_experiments"] = ([] if args.no_speed_experiment else
+                                speed_experiments(res, None if args.json else progress))
     if args.json:
         from motorctl.ident.pipeline import json_default
         sys.stdout.write(json.dumps(res, default=json_default) + "\n")
@@ -120,4 +169,4 @@ def cmd_tune(args) -> int:
     return 1 if any(res["faults"].values()) else 0
 
 
-__all__ = ["cmd_tune", "default_out", "register", "text_report"]
+__all__ = ["cmd_tune", "default_out", "register", "speed_experiments", "text_report"]
