@@ -8,13 +8,18 @@
    and G(b). From each run log, independently of motorctl's evaluation: the test circles' rows
    (the header's ``circle.rows``), an algebraic least-squares circle fit (Kåsa) of the measured
    X.y, Y.y per direction, and the largest |r − R_fit| (the largest contour error about the
-   fitted circle); the saturated samples (|u| ≥ u_lim − 1 mV) and the largest |u| of both axes.
+   fitted circle); the saturated samples (|u| ≥ u_lim − 1 mV, either axis) in the test circles'
+   rows and in the whole run (its rapid approach included), the largest |u| in the test circles.
 2. A plasma cut path with lead-in arcs (benchmarks/bench_contour.py's CUT: lead-ins of 1-2 mm,
    R 3 mm corners, a slot, an R 8 mm hole; F5000) streamed through the same daemon motion path
    as the circle test (:func:`motorctl.app.circle_test.run_circle_test` with the program swapped
    for the cut path), the run log written; from the log: the largest distance of the measured
-   path from the programmed path (:func:`motorctl.motion.path.contour_error`) while the
-   setpoint moves, the saturation as above.
+   path from the programmed path (:func:`motorctl.motion.path.contour_error`), separately while
+   cutting (the setpoint moving at no more than F5000) and on the G0 rapids between the
+   contours, the saturation as above in those rows; and the servo's own part, the distance of
+   the measured path from the setpoints' path (the log's x_d, a polyline; the programmed path
+   less the planner's G64 P0.01 blending, which alone departs up to ~9 µm from it:
+   benchmarks/bench_contour.py).
 
 Prints a Markdown table with the change of GTCF against C2 (negative: lower). Deterministic (the
 virtual clock, the simulated driver's seed): the same figures every run.
@@ -49,10 +54,13 @@ def fit_circle(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
     return cx, cy, float(np.sqrt(cx * cx + cy * cy - F))
 
 
-def saturation(log) -> tuple[int, float]:
-    """(samples with |u| ≥ u_lim − 1 mV on either axis, the largest |u| [V]) of a run log."""
+def saturation(log, mask=None) -> tuple[int, float, int]:
+    """(samples with |u| ≥ u_lim − 1 mV on either axis and the largest |u| [V] among the rows of
+    ``mask`` (None: all), the saturated samples of the whole run) of a run log."""
     u = np.column_stack([log.col(f"{a}.u") for a in ("X", "Y")])
-    return int(np.sum(np.any(np.abs(u) >= U_LIM - 1e-3, axis=1))), float(np.max(np.abs(u)))
+    sat = np.any(np.abs(u) >= U_LIM - 1e-3, axis=1)
+    m = np.ones(len(u), bool) if mask is None else mask
+    return int(sat[m].sum()), float(np.max(np.abs(u[m]))), int(sat.sum())
 
 
 def circles(config: str, out: Path, timeout_s: float) -> list[dict]:
@@ -72,15 +80,37 @@ def circles(config: str, out: Path, timeout_s: float) -> list[dict]:
         log = read_log(r["log"])
         xs, ys = log.col("X.y"), log.col("Y.y")
         worst = 0.0
+        mask = np.zeros(len(xs), bool)
         for d, (a, b) in log.header["circle"]["rows"].items():
+            mask[a:b] = True
             x, y = xs[a:b], ys[a:b]
             cx, cy, R = fit_circle(x, y)
             worst = max(worst, float(np.max(np.abs(np.hypot(x - cx, y - cy) - R))))
-        sat, umax = saturation(log)
+        sat, umax, sat_all = saturation(log, mask)
         rows.append({"path": f"circle R50 {r['feed_m_s'] * 1e3:.0f} mm/s", "law": r["controller"],
                      "G": max(r["G_cw_um"], r["G_ccw_um"]), "Gb": r["G_b_um"], "emax": worst * 1e6,
-                     "sat": sat, "umax": umax})
+                     "sat": sat, "umax": umax, "sat_all": sat_all})
     return rows
+
+
+def setpoint_contour_error(pos: np.ndarray, des: np.ndarray, window: int = 250) -> np.ndarray:
+    """The distance [m] of each measured point pos[k] (N, 2) from the setpoints' path des (N, 2),
+    a polyline, searched over its segments within ``window`` samples of k: the servo's own
+    contour error (the setpoints' departure from the programmed path, the planner's G64 P
+    blending, left out)."""
+    n = len(pos)
+    best = np.full(n, np.inf)
+    k = np.arange(n)
+    for o in range(-window, window):
+        a = np.clip(k + o, 0, n - 1)
+        b = np.clip(k + o + 1, 0, n - 1)
+        seg = des[b] - des[a]
+        ll = np.einsum("ij,ij->i", seg, seg)
+        t = np.where(ll > 0, np.einsum("ij,ij->i", pos - des[a], seg) / np.where(ll > 0, ll, 1.0), 0.0)
+        t = np.clip(t, 0.0, 1.0)
+        d = np.hypot(*(pos - des[a] - t[:, None] * seg).T)
+        np.minimum(best, d, out=best)
+    return best
 
 
 def cut_path(config: str, out: Path) -> list[dict]:
@@ -107,13 +137,23 @@ def cut_path(config: str, out: Path) -> list[dict]:
             ct.run_circle_test(loaded, 0.008, 5000 / 60e3, c, center=(0.05, 0.05), log_path=str(lp))
             log = read_log(str(lp))
             # the program as the daemon planned it: from where the axes stood
-            prog = parse(text, "cut", gs, start=(float(log.col("X.y")[0]), float(log.col("Y.y")[0])))
-            moving = np.hypot(log.col("X.xd_dot"), log.col("Y.xd_dot")) > 1e-3
-            pts = np.column_stack([log.col("X.y"), log.col("Y.y")])[moving]
-            err = contour_error(prog, pts)
-            sat, umax = saturation(log)
-            rows.append({"path": "cut path, lead-ins 1-2 mm, F5000", "law": c, "G": float("nan"),
-                         "Gb": float("nan"), "emax": float(err.max()) * 1e6, "sat": sat, "umax": umax})
+            prog = parse(text, "cut", gs, start=(float(log.col("X.y")[0]), float(log.col("Y.y")[0]), 0.0))
+            speed = np.hypot(log.col("X.xd_dot"), log.col("Y.xd_dot"))
+            # the cut: the setpoint moving at no more than the programmed feed (the G0 rapids,
+            # up to the axes' v_max, are the other moving rows)
+            cutting = (speed > 1e-3) & (speed <= 5000 / 60e3 + 1e-6)
+            pos = np.column_stack([log.col("X.y"), log.col("Y.y")])
+            des = np.column_stack([log.col("X.x_d"), log.col("Y.x_d")])
+            e_sp = setpoint_contour_error(pos, des)
+            for what, m in (("cutting", cutting), ("rapids", speed > 5000 / 60e3 + 1e-6)):
+                e_prog = contour_error(prog, pos[m])
+                sat, umax, sat_all = saturation(log, m)
+                rows.append({"path": f"cut path F5000, {what}: from the setpoints' path", "law": c,
+                             "G": float("nan"), "Gb": float("nan"), "emax": float(e_sp[m].max()) * 1e6, "sat": sat,
+                             "umax": umax, "sat_all": sat_all})
+                rows.append({"path": f"cut path F5000, {what}: from the programmed path", "law": c,
+                             "G": float("nan"), "Gb": float("nan"), "emax": float(e_prog.max()) * 1e6, "sat": sat,
+                             "umax": umax, "sat_all": sat_all})
     finally:
         ct.circle_program = orig
     return rows
@@ -132,7 +172,8 @@ def main(argv=None) -> int:
     if not args.skip_cut:
         rows += cut_path(args.config, out)
     print(f"GTCF against per-axis C2 ({args.config}, simulated, virtual clock; logs in {out})\n")
-    print("| path | law | G um | G(b) um | largest contour error um (from the log) | saturated samples | max abs u V |")
+    print("| path | law | G um | G(b) um | largest contour error um (from the log) | saturated samples: "
+          "measured rows / whole run | max abs u V, measured rows |")
     print("|---|---|---|---|---|---|---|")
     base = {}
     for r in rows:
@@ -146,7 +187,7 @@ def main(argv=None) -> int:
             return f" ({(r[key] / b - 1) * 100:+.0f} %)"
         g = "–" if not np.isfinite(r["G"]) else f"{r['G']:.2f}{rel('G')}"
         gb = "–" if not np.isfinite(r["Gb"]) else f"{r['Gb']:.2f}{rel('Gb')}"
-        print(f"| {r['path']} | {r['law']} | {g} | {gb} | {r['emax']:.2f}{rel('emax')} | {r['sat']} | {r['umax']:.2f} |")
+        print(f"| {r['path']} | {r['law']} | {g} | {gb} | {r['emax']:.2f}{rel('emax')} | {r['sat']} / {r['sat_all']} | {r['umax']:.2f} |")
     return 0
 
 

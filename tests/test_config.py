@@ -123,5 +123,5 @@ def test_a_laws_settings_are_parsed_once_from_yaml_to_the_controller(monkeypatch
     assert ctl.law is section.settings("c2")
     faster = section.model_copy(update={"u_lim": 5.0})
     assert faster.settings("c2") is not section.settings("c2") and len(parsed) == 2 * len(loaded.axes) + 1
-    with pytest.raises(KeyError, match="unknown controller 'nope'; allowed: c1, c2, pid"):
+    with pytest.raises(KeyError, match="unknown controller 'nope'; allowed: c1, c2, gtcf, pid"):
         make_controller(section, "nope", loaded.period_s)
