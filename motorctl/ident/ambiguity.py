@@ -63,7 +63,7 @@ class Ambiguity:
     beside ``structure`` [-]; ``structure_reasons``: why the structure was refused;
     ``harmonic``: (k, T [s]) when the structure is a time-periodic line at the k-th harmonic of
     the program's period T; ``was_named``: ``named`` had been selected (else it was searched
-    as the harmonic line's rival)."""
+    as the harmonic line's rival); ``others``: the other selected terms both fits share."""
 
     named: object
     structure: object
