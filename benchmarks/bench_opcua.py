@@ -164,6 +164,10 @@ def measure(tmp: Path, opcua: bool, a) -> dict:
         out["faults"] = {ax: s["fault"] for ax, s in st1["axes"].items() if s["fault"]}
         k0, k1 = st0["loop"]["cycles"], st1["loop"]["cycles"]
         run = st1["log"]["run"]
+    except BaseException:
+        dm.stop()
+        sys.stderr.write(f"the daemon's output:\n{dm.err_path.read_text()[-3000:]}\n")
+        raise
     finally:
         dm.stop()
     out["p999_us"], out["max_us"], out["missed"] = turnaround(run, k0, k1)

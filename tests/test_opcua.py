@@ -25,8 +25,9 @@ from motorctl.app.users import hash_password  # noqa: E402
 OPERATOR, VIEWER = ("olga", "op-secret"), ("victor", "view-secret")
 AXES = "CncInterface.CncAxisList"
 CHANNEL = "CncInterface.CncChannelList.CncChannel"
-#: the server is up once it answers; this many connection attempts at most (0.2 s apart)
-MAX_CONNECTS = 100
+#: the server is up once it answers; this many connection attempts at most (0.2 s apart: its
+#: start, asyncua's standard address space, takes 2-10 s of a loaded 2-core host)
+MAX_CONNECTS = 300
 #: notifications counted per axis for the rate
 N_UPDATES = 40
 #: a client request's bound [s]
@@ -136,6 +137,10 @@ def test_an_operator_runs_a_program_through_the_methods(daemon):
                         for a in ("X", "Y")]):
                     break
                 await asyncio.sleep(0.1)
+            with pytest.raises(ua.uaerrors.BadNotFound):          # only G-code files by path
+                await ch.call_method(m["Start"], "/etc/hostname")
+            why = await c.get_node(f"ns=2;s={CHANNEL}.LastCommandError").read_value()
+            assert "not a G-code file" in why, why
             await ch.call_method(m["LoadProgram"], "square.ngc", prog)
             await ch.call_method(m["Start"], "square.ngc")
             seen, st = set(), None

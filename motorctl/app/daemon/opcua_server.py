@@ -20,9 +20,10 @@ process nothing; the server, not the I/O process, answers every OPC UA request. 
 alternative, polling the control socket's ``status`` at 20 Hz and more, was not taken: a
 ``status`` builds the whole status (timing percentiles over 40 000-bin histograms per axis,
 the log's figures, JSON) and costs a connection per poll in the process that drains the
-recorder; the snapshot is a few dozen floats (one pickle of about 1 kB, tens of microseconds,
-benchmarks/bench_opcua.py), the slower figures (turnaround percentiles, work offsets) only
-every :data:`SLOW_EVERY_S`.
+recorder; the snapshot is a few dozen numbers (a pickle of 0.4 kB for two axes: 26 µs to
+pickle on a 2-core host at load 12, that is 1.3 ms of CPU per second at 50 Hz; the I/O
+process's CPU with and without the server: benchmarks/bench_opcua.py, docs/opcua.md), the
+slower figures (turnaround percentiles, work offsets) only every :data:`SLOW_EVERY_S`.
 
 Commands (the channel's methods, OPC 10000-4 5.11 Call) go the other way through the
 daemon's Unix control socket (:mod:`motorctl.client`), as the operator's command line does:
@@ -74,6 +75,8 @@ OPCUA_NICE = 0
 LINK_MESSAGES_PER_WAKE = 64
 #: programs LoadProgram keeps at once (the oldest goes)
 MAX_LOADED_PROGRAMS = 16
+#: the files Start takes by path (nothing else on the daemon's host is read)
+PROGRAM_SUFFIXES = (".ngc", ".nc", ".gcode", ".tap")
 #: a command through the control socket is given up after this long [s]
 COMMAND_TIMEOUT_S = 10.0
 
@@ -365,6 +368,22 @@ def _ruleset():
     return Rules()
 
 
+def _status_of(fn):
+    """A method whose refusal (a raised UaStatusCodeError) is the call's StatusCode (asyncua
+    answers any exception BadUnexpectedError); wrong arguments are BadInvalidArgument."""
+    from asyncua import ua
+
+    async def method(parent, *args):
+        try:
+            return await fn(parent, *args)
+        except ua.UaStatusCodeError as exc:
+            return ua.StatusCode(exc.code)
+        except (TypeError, ValueError, AttributeError):
+            return ua.StatusCode(ua.StatusCodes.BadInvalidArgument)
+
+    return method
+
+
 class CncServer:
     """The asyncua server and the CNC objects (module docstring). ``axes``: [{name,
     rotational}] in loop order; ``control``: the daemon's control socket."""
@@ -527,7 +546,8 @@ class CncServer:
                 ("FaultReset", self.m_axis("fault-reset", True), [axis]),
                 ("Enable", self.m_enable, [axis]),
                 ("SetFeedOverride", self.m_override, [arg("Percent", D, "0 .. 150")])):
-            await ch.add_method(ua.NodeId(f"{p}.{name}", self.ns), ua.QualifiedName(name, self.ns), fn, ins, out)
+            await ch.add_method(ua.NodeId(f"{p}.{name}", self.ns), ua.QualifiedName(name, self.ns),
+                                _status_of(fn), ins, out)
 
     # ------------------------------------------------------------------ methods
     async def _cmd(self, req: dict, timeout_s: float = COMMAND_TIMEOUT_S, program: tuple | None = None) -> dict:
@@ -571,6 +591,11 @@ class CncServer:
         if name in self.programs:
             text = self.programs[name]
         else:
+            if not name.lower().endswith(PROGRAM_SUFFIXES):
+                await self._write("CncInterface.CncChannelList.CncChannel.LastCommandError",
+                                  f"Start: {name!r}: no program loaded by that name, and not a G-code "
+                                  f"file ({', '.join(PROGRAM_SUFFIXES)})")
+                raise ua.UaStatusCodeError(ua.StatusCodes.BadNotFound)
             try:
                 if os.path.getsize(name) > self.max_program_bytes:
                     raise ua.UaStatusCodeError(ua.StatusCodes.BadInvalidArgument)
