@@ -82,7 +82,7 @@ def test_console_script_compare_json_short(gantry_yaml):
     obj = json.loads(p.stdout)
     assert set(obj) == {"X", "Y"}
     for ax in obj.values():
-        assert set(ax) == {"c1", "c2", "gtcf", "pid"}      # every controller configured on both axes
+        assert set(ax) == {"c1", "c2", "pid"}      # every controller configured on both axes
         for r in ax.values():
             assert set(r) == {"e_M_um", "e_F_um", "L2_um", "u_peak_V"}
 

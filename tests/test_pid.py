@@ -213,7 +213,7 @@ def _run(asm, n):
 
 def test_gantry_config_configures_pid_from_the_catalogue(gantry):
     from motorctl.cli.run import compared_controllers
-    assert compared_controllers(gantry) == ["c1", "c2", "gtcf", "pid"]
+    assert compared_controllers(gantry) == ["c1", "c2", "pid"]
     for a in ("X", "Y"):
         sec = gantry.axes[a].controller
         assert sec.settings("pid").FF2 == sec.theta_hat0[0] and sec.settings("pid").FF1 == sec.theta_hat0[1]
