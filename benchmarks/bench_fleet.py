@@ -7,6 +7,7 @@ Rerun:
     python benchmarks/bench_fleet.py                                  # 20 machines x 30 days x 1 log
     python benchmarks/bench_fleet.py --machines 20 --days 30 --logs-per-day 4   # the target, >= 2000 logs
     python benchmarks/bench_fleet.py --dir /tmp/fleet-bench --keep    # the logs kept for another run
+    python benchmarks/bench_fleet.py --dir /tmp/fleet-bench --reuse --timing-only   # timings again on them
 
 Steps (each timed, wall and the load average printed, as other processes inflate wall time):
 
@@ -17,7 +18,9 @@ Steps (each timed, wall and the load average printed, as other processes inflate
    :func:`motorctl.ident.pipeline.identify_record`, as ``motorctl identify --no-closed-loop``
    after its start-up) on ``--sample`` logs: the median seconds per log;
 3. ``--sample`` logs through ``run_fleet`` with 1, then 2, local workers (a fresh output
-   folder each): logs/s of the job (after the cluster is up) and the cluster's start-up;
+   folder each, the workers' imports done first): logs/s of the job, the workers' CPU seconds
+   per log (``time.process_time`` of each worker process, before and after), the cluster's
+   start-up;
 4. the whole fleet with 2 workers, then the report: each worn machine's alarm (parameter, the
    change point's date against the onset) and, day by day from the onset, the first day at
    which the report on the logs up to that day raises it; alarms on the clean machines.
@@ -52,9 +55,11 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--dir", default=None, help="working folder (default: a temporary one)")
     ap.add_argument("--keep", action="store_true", help="keep the logs and the dataset")
+    ap.add_argument("--reuse", action="store_true", help="use the logs already in --dir (its fleet_truth.json)")
+    ap.add_argument("--timing-only", action="store_true", help="steps 1-3 only (no whole-fleet run, no report)")
     a = ap.parse_args(argv)
 
-    from motorctl.fleet.jobs import run_fleet
+    from motorctl.fleet.jobs import fleet_client, run_fleet
     from motorctl.fleet.report import analyse, load_rows, write_report
     from motorctl.fleet.simulate import WEAR_PARAMETER, simulate_fleet
 
@@ -63,10 +68,16 @@ def main(argv=None) -> int:
     print(f"# bench_fleet: {a.machines} machines x {a.days} days x {a.logs_per_day} logs of {a.duration:g} s; "
           f"{os.cpu_count()} cores; {_load()}", flush=True)
     t = time.monotonic()
-    truth = simulate_fleet(logs_dir, a.machines, a.days, a.logs_per_day, duration_s=a.duration, seed=a.seed,
-                           workers=2)
+    if a.reuse:
+        import json
+        truth = json.loads((logs_dir / "fleet_truth.json").read_text())
+        a.days = truth["days"]
+    else:
+        truth = simulate_fleet(logs_dir, a.machines, a.days, a.logs_per_day, duration_s=a.duration, seed=a.seed,
+                               workers=2)
     logs = truth["logs"]
-    print(f"simulated {len(logs)} logs in {time.monotonic() - t:.1f} s (2 processes); {_load()}", flush=True)
+    print(f"{'reused' if a.reuse else 'simulated'} {len(logs)} logs in {time.monotonic() - t:.1f} s (2 processes); "
+          f"{_load()}", flush=True)
 
     # the per-log cost of identify's pipeline alone (in this process, after its imports)
     from motorctl.ident.data import load_record
@@ -74,29 +85,36 @@ def main(argv=None) -> int:
     step = max(1, len(logs) // a.sample)
     sample = logs[::step][: a.sample]
     identify_record(load_record(sample[0]))            # imports and first-call costs out of the timing
-    per = []
+    per, cpu = [], []
     for p in sample:
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         identify_record(load_record(p))
         per.append(time.perf_counter() - t)
-    ident_s = statistics.median(per)
-    print(f"identify alone: median {ident_s:.3f} s/log over {len(per)} logs "
-          f"({1 / ident_s:.2f} logs/s on one core); {_load()}", flush=True)
+        cpu.append(time.process_time() - c)
+    ident_s, ident_cpu = statistics.median(per), statistics.median(cpu)
+    print(f"identify alone: median {ident_s:.3f} s/log wall, {ident_cpu:.3f} CPU-s/log, over {len(per)} logs "
+          f"({1 / ident_s:.2f} logs/s); {_load()}", flush=True)
 
-    rates = {}
+    rates, cpus = {}, {}
     for w in (1, 2):
         out = work / f"out-{w}w"
         shutil.rmtree(out, ignore_errors=True)
         t = time.monotonic()
-        s = run_fleet(sample, out, workers=w)
-        total = time.monotonic() - t
+        with fleet_client(workers=w) as client:
+            up = time.monotonic() - t
+            # the workers' imports out of the timing, as identify alone's first call is
+            client.run(lambda: __import__("motorctl.ident.pipeline"))
+            c0 = sum(client.run(time.process_time).values())
+            s = run_fleet(sample, out, client=client)
+            cpus[w] = (sum(client.run(time.process_time).values()) - c0) / max(s["identified"], 1)
         rates[w] = s["identified"] / s["seconds"]
-        print(f"fleet identify, {w} worker(s): {s['identified']} logs in {s['seconds']:.1f} s = {rates[w]:.2f} logs/s "
-              f"({s['seconds'] * w / max(s['identified'], 1):.3f} worker-s/log, {total - s['seconds']:.1f} s cluster "
-              f"start/stop); {_load()}", flush=True)
+        print(f"fleet identify, {w} worker(s): {s['identified']} logs in {s['seconds']:.1f} s = {rates[w]:.2f} logs/s, "
+              f"{cpus[w]:.3f} worker CPU-s/log ({up:.1f} s cluster start); {_load()}", flush=True)
     print(f"speed-up 2 vs 1 worker: {rates[2] / rates[1]:.2f}x; per-log cost on 1 worker vs identify alone: "
-          f"{(1 / rates[1]) / ident_s:.2f}x", flush=True)
+          f"{(1 / rates[1]) / ident_s:.2f}x wall, {cpus[1] / ident_cpu:.2f}x CPU", flush=True)
 
+    if a.timing_only:
+        return 0
     out = work / "out"
     shutil.rmtree(out, ignore_errors=True)
     t = time.monotonic()
