@@ -320,6 +320,8 @@ def opcua_main(sock: socket.socket, oc, users, cert, key, cert_dir: str, control
         os.setpriority(os.PRIO_PROCESS, 0, OPCUA_NICE)
     except OSError:
         pass
+    import gc
+    gc.enable()              # the I/O process runs with it off; asyncio and asyncua make cycles
     logging.basicConfig(level=logging.CRITICAL)
     logging.getLogger("asyncua").setLevel(logging.CRITICAL)
     srv = CncServer(oc, users, cert, key, cert_dir, control, axes, max_program_bytes)
