@@ -124,6 +124,10 @@ def build(loaded: LoadedConfig, axes=None, controller: str | None = None, *, clo
             bank.append({k: make_controller(section, k, loaded.period_s) for k in kinds})
         except ValueError as exc:
             raise ConfigError(loaded.path, f"axes.{a}.controller", str(exc)) from None
+        partner = getattr(bank[i][active[i]], "partner_name", None)   # a pair law (gtcf) needs its partner
+        if partner is not None and (partner not in names or partner == a):
+            raise ConfigError(loaded.path, f"axes.{a}.controller.{active[i]}.partner",
+                              f"{partner!r} must be another axis of this run ({', '.join(names)})")
     programs = [loaded.axes[a].trajectory.program() for a in names]
     sup = Supervisor([loaded.axes[a].limits for a in names], tb.period_s)
     lc = cfg.loop
