@@ -315,8 +315,9 @@ def summary_markdown(res: dict, out_dir) -> str:
             logs = f["logs"]
             shown = ", ".join(Path(p).name for p in logs[:3]) + (f" … {Path(logs[-1]).name} ({len(logs)} logs)"
                                                                   if len(logs) > 3 else "")
+            before = c["before"] if abs(c["before"]) > 1e-9 * abs(c["after"]) else 0.0    # round-off of a zero
             lines.append(f"| {f['machine']} | {f['axis']} | {f['parameter']} | {c['shape']} | {f['when'][:10]} | "
-                         f"{_num(c['before'])} | {_num(c['after'])} | {_num(c['delta'])}{rel} | {c['z']:.1f} | {shown} |")
+                         f"{_num(before)} | {_num(c['after'])} | {_num(c['delta'])}{rel} | {c['z']:.1f} | {shown} |")
         lines.append("")
         for f in alarms:
             ta = f["trend_after"]
