@@ -10,13 +10,14 @@ normal (contour) direction than on the tangential one. Here (docs/control-law.md
 contouring law of a pair of axes")::
 
     t = (ẋ_d, ẏ_d) / |(ẋ_d, ẏ_d)|,  n = t rotated by +90°       the task frame at the desired point
-    T(θ) = [tᵀ; nᵀ]  (2×2, orthonormal),   ε = T e              (Hu 2011 eq. 5-6: the GTCF errors)
+    T(θ) = [tᵀ; nᵀ]  (2×2, orthonormal),   ε = T e              (Hu 2011: the GTCF errors)
     p_i = ė_i + k1_i e_i                    per axis, as C2's eq. (11) (ė: backward difference)
     q = D^½ p,  D = diag(k_s,X, k_s,Y)      the axes' own C2 gains as the scale
     v_s = −D^½ Tᵀ diag(g_t, g_n) T D^½ p    the robust feedback set in the task frame
         = −D^½ (g_n q + (g_t − g_n) t (tᵀ q))
-    u_i = C2's law of axis i with v_s,i in place of −k_s,i p_i  (model compensation v_a1 eq. 13,
-          d̂0 eq. 18-19, the projection-type LS estimator eq. 25-28, the inversion eq. 9: per axis)
+    u_i = C2's law of axis i with v_s,i in place of −k_s,i p_i  (the 2013 paper's model
+          compensation v_a1 eq. 13, d̂0 eq. 18-19, the projection-type LS estimator eq. 25-28,
+          the inversion eq. 9: per axis)
 
 With g_t = g_n = 1 this is C2 on each axis. Below ``v_min`` of desired speed (at rest, no
 contour direction) the gains blend linearly to 1 (C2): g(s) = 1 + min(1, s/v_min)(g − 1).
@@ -89,8 +90,9 @@ def gtcf_feedback(p_i, p_j, v_i, v_j, ks_i, ks_j, g_t, g_n, v_min):
     """The task-frame robust feedback of axis i minus C2's own −k_s,i p_i [V] (module docstring):
     −√k_s,i (g_n' q_i + (g_t' − g_n') t_i (t_i q_i + t_j q_j)) + k_s,i p_i, q = √k_s p, t = v/|v|,
     g' = 1 + min(1, |v|/v_min)(g − 1). p [m/s], v (ẋ_d) [m/s], k_s [V s/m]. Symmetric in the two
-    axes (axis j's is this with i and j swapped). Hu, Yao & Wang 2011 eq. 5-6 (T), eq. 20-22 (the
-    robust feedback in the task frame), simplified as docs/control-law.md says."""
+    axes (axis j's is this with i and j swapped). Hu, Yao & Wang 2011: the task frame T and the
+    robust feedback set in it (their equation numbers not cross-checked here), simplified as
+    docs/control-law.md, "GTCF", says; per axis the 2013 paper's eq. (11), (13)."""
     s = math.sqrt(v_i * v_i + v_j * v_j)
     w = s / v_min
     if w > 1.0:
@@ -130,7 +132,7 @@ def gtcf_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, y_j, x_dj, xd_dot_j, coupl
     The partner's p_j = (y_j − y_j[k−1])/Ts − ẋ_dj + k1_j (y_j − x_dj), with y_j[k−1] kept in
     this block (so neither axis depends on which of the two the cycle runs first); a NaN p_j (the
     first sample, an IDLE partner) gives v_fb = 0. Axis i's own p is computed with the same
-    operations as the C2 step's (eq. 11).
+    operations as the C2 step's (the 2013 paper's eq. 11).
     """
     g = L[B_SPAN] + L[B_N]
     st = L[B_ST]
