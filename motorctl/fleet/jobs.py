@@ -404,8 +404,10 @@ def fleet_client(scheduler: str | None = None, workers: int | None = None, proce
     n = int(workers or default_workers())
     if n < 1:
         raise InputError(f"--workers {n}: at least 1")
+    # processes: TCP on 127.0.0.1 only; threads (processes=False): in-process transport, no socket
+    where = {"host": "127.0.0.1"} if processes else {}
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes, memory_limit=memory_limit,
-                           host="127.0.0.1", dashboard_address=None, silence_logs=logging.ERROR)
+                           dashboard_address=None, silence_logs=logging.ERROR, **where)
     client = Client(cluster)
     try:
         yield client
