@@ -7,6 +7,7 @@ raced against the wall; every wait is bounded."""
 from __future__ import annotations
 
 import asyncio
+import os
 import subprocess
 import sys
 
@@ -181,13 +182,26 @@ def test_anonymous_and_viewer_may_read_but_not_call(daemon, who):
     assert status(daemon.sock)["motion"]["hold"] is False
 
 
-def test_a_wrong_password_is_refused(daemon):
+def test_a_wrong_password_is_refused_and_a_user_added_to_the_file_logs_in(daemon):
+    """The users file is read again when its modification time changes (no restart)."""
+    users = daemon.tmp / "users.yaml"
+    d = yaml.safe_load(users.read_text())
+    d["users"]["nina"] = {"password": hash_password("nina-secret"), "roles": ["viewer"]}
+
     async def go():
         with pytest.raises(ua.uaerrors.BadUserAccessDenied):
             async with _client(daemon.url, (OPERATOR[0], "not-it")):
                 pass
+        with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+            async with _client(daemon.url, ("nina", "nina-secret")):
+                pass
+        st = users.stat()
+        users.write_text(yaml.safe_dump(d))
+        os.utime(users, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))   # a new mtime, surely
+        async with _client(daemon.url, ("nina", "nina-secret")) as c:
+            return await c.get_node(f"ns=2;s={AXES}.X.ActPos").read_value()
 
-    _run(go())
+    assert isinstance(_run(go()), float)
 
 
 def test_a_bad_users_file_is_one_line_and_exit_2(tmp_path, capsys):

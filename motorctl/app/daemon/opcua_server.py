@@ -93,18 +93,18 @@ class OpcuaConfigError(ValueError):
 
 
 # ---------------------------------------------------------------------------- I/O process side
-def check_config(cfg, config_dir: str = ".") -> tuple:
+def check_config(cfg) -> tuple:
     """Check what the server needs beyond the schema: the users file (loaded and checked), the
-    certificate pair (both or neither, readable). Returns ``(users or None, cert, key)``
-    (absolute paths or None). Raises OpcuaConfigError (one line)."""
+    certificate pair (both or neither, readable). Paths as given (a relative one from the
+    daemon's working directory, as the operator page reads ``daemon.users_file``). Returns
+    ``(users or None, cert, key)``. Raises OpcuaConfigError (one line)."""
     from motorctl.app.users import UsersError, load_users
     d = cfg.daemon
     oc = d.opcua
     users = None
     if d.users_file is not None:
-        path = d.users_file if os.path.isabs(d.users_file) else os.path.join(config_dir, d.users_file)
         try:
-            users = load_users(path)
+            users = load_users(d.users_file)
         except UsersError as exc:
             raise OpcuaConfigError(f"daemon.users_file: {exc}") from None
     cert, key = oc.certificate, oc.private_key
@@ -116,7 +116,6 @@ def check_config(cfg, config_dir: str = ".") -> tuple:
         if p is None:
             out.append(None)
             continue
-        p = p if os.path.isabs(p) else os.path.join(config_dir, p)
         if not os.access(p, os.R_OK):
             raise OpcuaConfigError(f"daemon.opcua.{name}: {p}: not a readable file")
         out.append(p)
@@ -272,7 +271,7 @@ def start_opcua(io) -> OpcuaLink | None:
         sys.stderr.write(line + "\n")
         return None
     try:
-        users, cert, key = check_config(loaded.cfg, os.path.dirname(os.path.abspath(str(loaded.path))))
+        users, cert, key = check_config(loaded.cfg)
     except OpcuaConfigError as exc:
         sys.stderr.write(f"motorctl: error: {loaded.path}: {exc}; OPC UA not served\n")
         return None
@@ -336,17 +335,47 @@ def _role_user(users, anonymous: bool):
     from asyncua.crypto.permission_rules import User, UserRole
     from asyncua.server.user_managers import UserManager
 
+    from motorctl.app.users import UsersError, load_users
+
     class Users(UserManager):
+        def __init__(self):
+            self.users = users
+            self.path = users.path if users is not None else None
+            self.mtime = _mtime(self.path)
+
+        def current(self):
+            """The users file, read again when its modification time changed (a file that has
+            become wrong: no logins, one line on stderr)."""
+            if self.path is None:
+                return None
+            m = _mtime(self.path)
+            if m != self.mtime:
+                self.mtime = m
+                try:
+                    self.users = load_users(self.path)
+                except UsersError as exc:
+                    self.users = None
+                    sys.stderr.write(f"motorctl: warning: OPC UA logins off: {exc}\n")
+            return self.users
+
         def get_user(self, iserver, username=None, password=None, certificate=None):
             if username is None:
                 # (certificate: the channel's client certificate, not an X509 identity token)
                 return User(role=UserRole.Anonymous) if anonymous else None
-            roles = users.roles(username, password) if users is not None else None
+            now = self.current()
+            roles = now.roles(username, password) if now is not None else None
             if roles is None:
                 return None
             return User(role=UserRole.User if "operator" in roles else UserRole.Anonymous, name=username)
 
     return Users()
+
+
+def _mtime(path: str | None) -> int | None:
+    try:
+        return os.stat(path).st_mtime_ns if path else None
+    except OSError:
+        return None
 
 
 def _ruleset():
@@ -813,7 +842,7 @@ def main(argv: list[str] | None = None) -> int:
         sys.stdout.write(f"{argv[0]}: daemon.opcua is off\n")
         return 0
     try:
-        check_config(loaded.cfg, os.path.dirname(os.path.abspath(argv[0])))
+        check_config(loaded.cfg)
     except OpcuaConfigError as exc:
         sys.stderr.write(f"motorctl: error: {argv[0]}: {exc}\n")
         return 2
