@@ -232,6 +232,8 @@ def test_run_from_line_single_block_and_the_optional_stop(machine, tmp_path):
     ``wait`` returning in position (every axis within limits.in_position_m)."""
     sock = machine.sock
     square = "G21 G90 G64 P0.01\nG0 X20 Y20\nG1 X40 Y20 F6000\nG1 X40 Y40\nG1 X60 Y40\nM2\n"
+    # from beyond X 40 whatever ran before (the rapid to line 5's point then stays at X >= 40)
+    assert ctl(sock, "move", "X=0.070", "Y=0.050", "--wait").returncode == 0
     r = _run(sock, tmp_path, "from.ngc", square, "--from-line", "5")
     assert r.returncode == 0, r.stderr
     xs = []
