@@ -128,13 +128,13 @@ def speed_experiments(res: dict, progress=None) -> list:
     before = res.get("files", {}).get("before")
     if res.get("floor_effects_off") is None or not before or res.get("faults", {}).get("before"):
         return []
+    harmonic = [a for a in res.get("ambiguous", []) if a.get("harmonic")]   # the before log's identification
+    if not harmonic:
+        return []
     from motorctl.config import load_yaml
     from motorctl.ident.ambiguity import speed_experiment
-    from motorctl.ident.data import load_record
-    from motorctl.ident.pipeline import identify_record
-    _, s = identify_record(load_record(before, None, None, res["axis"]))
     out = []
-    for k, e in enumerate(a for a in s.get("ambiguous", []) if a.get("harmonic")):
+    for k, e in enumerate(harmonic):
         log = Path(res["out"]) / f"other_speed_{k + 1}.mclog"
         if progress:
             progress(f"other speed: {e['text']}: the program at 0.7 x the speed -> {log}")

@@ -160,7 +160,7 @@ def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None =
         progress: called with one line of text before each step (None: silent).
     Returns:
         {"config", "axis", "driver", "clock", "duration_s", "out", "files": {step: path written},
-        "faults": {run: reason or ""}, "effects" (identify's summary), "compensation",
+        "faults": {run: reason or ""}, "effects" (identify's summary), "ambiguous" (its ambiguities), "compensation",
         "not_compensable", "kept" (the compensated families kept in tuned.yaml), "dropped"
         ({family: why}), "theta_hat0" (which θ̂(0) tuned.yaml carries and why: the fitted one or
         the config's own; None when it stopped before), "verdict" (None, or that no effect was
@@ -226,7 +226,7 @@ def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None =
     idf, s = _identify(files["before"], axis)
     comp, _theta, skipped = compensation_from_fit(idf)
     res.update(effects=s["effects"], compensation=comp, not_compensable=skipped,
-               input_saturation=s["input_saturation"])
+               input_saturation=s["input_saturation"], ambiguous=s.get("ambiguous", []))
     if not s["effects"]:
         res["stopped"] = "no effect found (no candidate passed held-out gain, BIC and plausibility)"
         return res
