@@ -836,6 +836,8 @@ class IOSide:
         except Exception as exc:               # noqa: BLE001 - no view is worth the drain
             sys.stderr.write(f"motorctl: warning: views not served ({type(exc).__name__}: {exc})\n")
             return
+        if self.views is None:                 # the fork failed (said in one line)
+            return
         self.fox_listen = fox
         self.sel.register(self.views.sock, selectors.EVENT_READ, "views")
         self.scope.listeners.append(self.views.on_frame)

@@ -32,6 +32,7 @@ import time
 
 import numpy as np
 
+from motorctl.app.daemon.forked import SnapshotLink, fork_helper
 from motorctl.app.lifetime import die_with_parent
 
 #: the I/O process sends a snapshot this often [s]
@@ -185,68 +186,21 @@ def families(snap: dict) -> list:
     return out
 
 
-class MetricsLink:
-    """The I/O process's end of the metrics process.
-
-    Attributes:
-        pid: the metrics process. sent, dropped: snapshots handed over / dropped (the
-        metrics process was behind). alive: False once it has ended.
-    """
+class MetricsLink(SnapshotLink):
+    """The I/O process's end of the metrics process (:class:`.forked.SnapshotLink`: pid, sent,
+    dropped, alive)."""
 
     def __init__(self, sock: socket.socket, pid: int, listen: str, tap: RowTap):
-        self.sock, self.pid, self.listen, self.tap = sock, pid, listen, tap
-        self.sent = self.dropped = 0
-        self.alive = True
-        self.last = 0.0
-        self.placed = False
+        super().__init__(sock, pid, SNAPSHOT_EVERY_S)
+        self.listen, self.tap = listen, tap
 
-    def poll(self, io, now: float) -> None:
-        """Each wake of the I/O process: its reports (one stderr line each), and a snapshot
-        every :data:`SNAPSHOT_EVERY_S`. Never blocks, never raises."""
-        try:
-            self._reports()
-            if not self.placed and io.ready is not None:
-                # the I/O process has left the loop's CPU by now (IOSide.on_reply): follow it
-                self.placed = True
-                os.sched_setaffinity(self.pid, os.sched_getaffinity(0))
-            if self.alive and now - self.last >= SNAPSHOT_EVERY_S:
-                self.last = now
-                data = pickle.dumps(snapshot(io, self.tap), protocol=pickle.HIGHEST_PROTOCOL)
-                try:
-                    self.sock.send(data)
-                    self.sent += 1
-                except (BlockingIOError, InterruptedError):
-                    self.dropped += 1
-        except Exception:               # noqa: BLE001 - the drain goes on whatever happens here
-            self.alive = False
+    def snapshot(self, io, now: float) -> dict:
+        return snapshot(io, self.tap)
 
-    def _reports(self) -> None:
-        while True:
-            try:
-                data = self.sock.recv(1 << 12)
-            except (BlockingIOError, InterruptedError):
-                return
-            except OSError:
-                data = b""
-            if not data:
-                self.alive = False
-                return
-            err = data.decode(errors="replace")
-            if err == "ok":
-                sys.stderr.write(f"motorctl: metrics on http://{self.listen}/metrics\n")
-            else:
-                sys.stderr.write(f"motorctl: warning: daemon.metrics.listen {self.listen}: "
-                                 f"not served ({err})\n")
-
-    def stop(self, timeout_s: float = 2.0) -> None:
-        """Close the link (the metrics process ends on EOF) and reap it (SIGKILL after the bound)."""
-        from motorctl.app.daemon.views import _reap
-        self.alive = False
-        try:
-            self.sock.close()
-        except OSError:
-            pass
-        _reap(self.pid, timeout_s)
+    def report_line(self, text: str) -> str:
+        if text == "ok":
+            return f"motorctl: metrics on http://{self.listen}/metrics"
+        return f"motorctl: warning: daemon.metrics.listen {self.listen}: not served ({text})"
 
 
 def start_metrics(listen: str, layout, names, drainer) -> MetricsLink | None:
@@ -262,35 +216,12 @@ def start_metrics(listen: str, layout, names, drainer) -> MetricsLink | None:
     host, port = parse_listen(listen)
     if line := exposure_warning("daemon.metrics.listen", host):
         sys.stderr.write(line + "\n")
-    try:
-        mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-        parent = os.getpid()
-        sys.stdout.flush()
-        sys.stderr.flush()
-        pid = os.fork()
-    except OSError as exc:
-        sys.stderr.write(f"motorctl: warning: metrics not served ({exc})\n")
+    forked = fork_helper("metrics", lambda sock, parent: metrics_main(sock, host, port, parent))
+    if forked is None:
         return None
-    if pid == 0:
-        code = 1
-        try:
-            mine.close()
-            keep = theirs.fileno()
-            os.closerange(3, keep)
-            os.closerange(keep + 1, os.sysconf("SC_OPEN_MAX"))
-            code = metrics_main(theirs, host, port, parent)
-        except BaseException as exc:            # noqa: BLE001 - last resort, one line
-            try:
-                sys.stderr.write(f"motorctl: warning: the metrics process ended: {exc!r}\n")
-            except Exception:                  # noqa: BLE001
-                pass
-        finally:
-            os._exit(code)
-    theirs.close()
-    mine.setblocking(False)
     tap = RowTap(layout, names)
     drainer.taps.append(tap)
-    return MetricsLink(mine, pid, listen, tap)
+    return MetricsLink(*forked, listen, tap)
 
 
 class _Collector:

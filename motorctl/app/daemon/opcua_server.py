@@ -61,6 +61,7 @@ import time
 
 import numpy as np
 
+from motorctl.app.daemon.forked import SnapshotLink, fork_helper
 from motorctl.app.lifetime import die_with_parent
 
 #: the namespace of the CNC objects (OPC 40502's namespace URI)
@@ -188,75 +189,30 @@ def snapshot(io, cols: _Columns, slow: bool) -> dict:
     return snap
 
 
-class OpcuaLink:
-    """The I/O process's end of the OPC UA process.
-
-    Attributes:
-        pid: the OPC UA process. sent, dropped: snapshots handed over / dropped (the server was
-        behind). alive: False once it has ended. build_s: the time the last snapshot took to
-        build and send [s].
-    """
+class OpcuaLink(SnapshotLink):
+    """The I/O process's end of the OPC UA process (:class:`.forked.SnapshotLink`: pid, sent,
+    dropped, alive, build_s); the slow figures ride on one snapshot every :data:`SLOW_EVERY_S`."""
 
     def __init__(self, sock: socket.socket, pid: int, endpoint: str, cols: _Columns):
-        self.sock, self.pid, self.endpoint, self.cols = sock, pid, endpoint, cols
-        self.sent = self.dropped = 0
-        self.alive = True
-        self.last = self.last_slow = 0.0
-        self.placed = False
-        self.build_s = 0.0
+        super().__init__(sock, pid, SNAPSHOT_EVERY_S)
+        self.endpoint, self.cols = endpoint, cols
+        self.last_slow = 0.0
 
-    def poll(self, io, now: float) -> None:
-        """Each wake of the I/O process: the server's reports (one stderr line each), and a
-        snapshot every :data:`SNAPSHOT_EVERY_S`. Never blocks, never raises."""
-        try:
-            self._reports()
-            if not self.placed and io.ready is not None:
-                self.placed = True           # the I/O process has left the loop's CPU: follow it
-                os.sched_setaffinity(self.pid, os.sched_getaffinity(0))
-            if self.alive and now - self.last >= SNAPSHOT_EVERY_S:
-                t0 = time.perf_counter()
-                self.last = now
-                slow = now - self.last_slow >= SLOW_EVERY_S
-                if slow:
-                    self.last_slow = now
-                data = pickle.dumps(snapshot(io, self.cols, slow), protocol=pickle.HIGHEST_PROTOCOL)
-                try:
-                    self.sock.send(data)
-                    self.sent += 1
-                except (BlockingIOError, InterruptedError):
-                    self.dropped += 1
-                    if slow:
-                        self.last_slow = 0.0  # the next one carries them
-                self.build_s = time.perf_counter() - t0
-        except Exception:                    # noqa: BLE001 - the drain goes on whatever happens here
-            self.alive = False
+    def snapshot(self, io, now: float) -> dict:
+        slow = now - self.last_slow >= SLOW_EVERY_S
+        if slow:
+            self.last_slow = now
+        self._slow = slow
+        return snapshot(io, self.cols, slow)
 
-    def _reports(self) -> None:
-        while True:
-            try:
-                data = self.sock.recv(1 << 12)
-            except (BlockingIOError, InterruptedError):
-                return
-            except OSError:
-                data = b""
-            if not data:
-                self.alive = False
-                return
-            text = data.decode(errors="replace")
-            if text == "ok":
-                sys.stderr.write(f"motorctl: OPC UA on {self.endpoint}\n")
-            else:
-                sys.stderr.write(f"motorctl: warning: daemon.opcua {self.endpoint}: {text}\n")
+    def dropped_one(self) -> None:
+        if self._slow:
+            self.last_slow = 0.0             # the next one carries them
 
-    def stop(self, timeout_s: float = 2.0) -> None:
-        """Close the link (the server ends on EOF) and reap it (SIGKILL after the bound)."""
-        from motorctl.app.daemon.views import _reap
-        self.alive = False
-        try:
-            self.sock.close()
-        except OSError:
-            pass
-        _reap(self.pid, timeout_s)
+    def report_line(self, text: str) -> str:
+        if text == "ok":
+            return f"motorctl: OPC UA on {self.endpoint}"
+        return f"motorctl: warning: daemon.opcua {self.endpoint}: {text}"
 
 
 def start_opcua(io) -> OpcuaLink | None:
@@ -277,34 +233,12 @@ def start_opcua(io) -> OpcuaLink | None:
         return None
     cert_dir = os.path.join(os.path.dirname(os.path.abspath(io.plan.log_path)), "opcua")
     axes = [{"name": a, "rotational": False} for a in io.names]
-    try:
-        mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-        parent = os.getpid()
-        sys.stdout.flush()
-        sys.stderr.flush()
-        pid = os.fork()
-    except OSError as exc:
-        sys.stderr.write(f"motorctl: warning: OPC UA not served ({exc})\n")
+    forked = fork_helper("OPC UA", lambda sock, parent: opcua_main(
+        sock, oc, users, cert, key, cert_dir, io.plan.socket_path, axes, loaded.cfg.daemon.max_program_bytes,
+        parent))
+    if forked is None:
         return None
-    if pid == 0:
-        code = 1
-        try:
-            mine.close()
-            keep = theirs.fileno()
-            os.closerange(3, keep)
-            os.closerange(keep + 1, os.sysconf("SC_OPEN_MAX"))
-            code = opcua_main(theirs, oc, users, cert, key, cert_dir, io.plan.socket_path, axes,
-                              loaded.cfg.daemon.max_program_bytes, parent)
-        except BaseException as exc:        # noqa: BLE001 - last resort, one line
-            try:
-                sys.stderr.write(f"motorctl: warning: the OPC UA process ended: {exc!r}\n")
-            except Exception:              # noqa: BLE001
-                pass
-        finally:
-            os._exit(code)
-    theirs.close()
-    mine.setblocking(False)
-    return OpcuaLink(mine, pid, oc.endpoint, _Columns(io.layout, io.names))
+    return OpcuaLink(*forked, oc.endpoint, _Columns(io.layout, io.names))
 
 
 # ---------------------------------------------------------------------------- the OPC UA process

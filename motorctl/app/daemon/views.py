@@ -38,6 +38,7 @@ import sys
 import time
 from importlib import resources
 
+from motorctl.app.daemon.forked import fork_helper, reap
 from motorctl.app.lifetime import die_with_parent
 
 #: frames queued per page before its oldest are dropped (about 2.5 s at the I/O process's 20 ms)
@@ -146,62 +147,18 @@ class ViewLink:
             self.sock.close()
         except OSError:
             pass
-        _reap(self.pid, timeout_s)
-
-
-def _reap(pid: int, timeout_s: float) -> None:
-    end = time.monotonic() + timeout_s
-    while True:
-        try:
-            got, _ = os.waitpid(pid, os.WNOHANG)
-        except ChildProcessError:
-            return
-        if got:
-            return
-        if time.monotonic() > end:
-            try:
-                os.kill(pid, signal.SIGKILL)
-                os.waitpid(pid, 0)
-            except (ProcessLookupError, ChildProcessError):
-                pass
-            return
-        time.sleep(0.01)
+        reap(self.pid, timeout_s)
 
 
 def start_views(scope, serve_scope: bool, foxglove_listen: str | None,
-                operator: dict | None = None) -> ViewLink:
-    """Fork the view process (call with no thread running). Returns the I/O process's link.
+                operator: dict | None = None) -> ViewLink | None:
+    """Fork the view process (call with no thread running). Returns the I/O process's link (None
+    with one warning line when the fork fails).
     ``operator``: {"socket": the control socket's path, "users_file": daemon.users_file or
     None}: the operator page (:mod:`motorctl.app.daemon.operator_page`) beside the scope's."""
-    mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-    for s in (mine, theirs):
-        try:
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, LINK_BUFFER)
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, LINK_BUFFER)
-        except OSError:
-            pass
-    parent = os.getpid()
-    sys.stdout.flush()
-    sys.stderr.flush()
-    pid = os.fork()
-    if pid == 0:
-        code = 1
-        try:
-            mine.close()
-            keep = theirs.fileno()            # nothing of the I/O process's: socket, pipes, log
-            os.closerange(3, keep)
-            os.closerange(keep + 1, os.sysconf("SC_OPEN_MAX"))
-            code = view_main(theirs, scope, serve_scope, foxglove_listen, parent, operator)
-        except BaseException as exc:            # noqa: BLE001 - last resort, one line
-            try:
-                sys.stderr.write(f"motorctl: warning: the view process ended: {type(exc).__name__}: {exc}\n")
-            except Exception:                  # noqa: BLE001
-                pass
-        finally:
-            os._exit(code)
-    theirs.close()
-    mine.setblocking(False)
-    return ViewLink(mine, pid)
+    forked = fork_helper("view", lambda sock, parent: view_main(sock, scope, serve_scope, foxglove_listen, parent,
+                                                                operator), LINK_BUFFER)
+    return None if forked is None else ViewLink(*forked)
 
 
 def view_main(sock: socket.socket, scope, serve_scope: bool, foxglove_listen: str | None,
