@@ -33,7 +33,7 @@
 7. on the simulated driver, when the before log's identification reports a time-periodic line
    at a harmonic of the program's period ambiguous with a force of position
    (:mod:`motorctl.ident.ambiguity`: named neither, compensated neither), **other speed**: the
-   same program at 0.7 x the speed (:func:`motorctl.ident.ambiguity.speed_experiment`),
+   same program at 0.7 x the speed (:func:`motorctl.commission.tune.speed_experiment`),
    ``DIR/other_speed_<k>.mclog``, identified: a line that keeps its frequency in Hz is named the
    time-periodic disturbance, one whose frequency scales with the speed the force of position
    (``speed_experiments`` in the JSON; skipped with ``--no-speed-experiment``). Nothing of it
@@ -118,37 +118,6 @@ def text_report(res: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def speed_experiments(res: dict, progress=None) -> list:
-    """The other-speed runs of step 7 (module docstring) for ``res`` (:func:`motorctl.commission.
-    tune.tune`'s result): on a simulated plant with a before log, each time-periodic line at a
-    program harmonic that the before log's identification reports ambiguous
-    (:func:`motorctl.ident.ambiguity.speed_experiment`). Returns [{"ambiguous" (its text), and
-    speed_experiment's keys}], or [{"ambiguous", "error"}] for one that could not run; [] when
-    none applies."""
-    before = res.get("files", {}).get("before")
-    if res.get("floor_effects_off") is None or not before or res.get("faults", {}).get("before"):
-        return []
-    harmonic = [a for a in res.get("ambiguous", []) if a.get("harmonic")]   # the before log's identification
-    if not harmonic:
-        return []
-    from motorctl.config import load_yaml
-    from motorctl.ident.ambiguity import speed_experiment
-    out = []
-    for k, e in enumerate(harmonic):
-        log = Path(res["out"]) / f"other_speed_{k + 1}.mclog"
-        if progress:
-            progress(f"other speed: {e['text']}: the program at 0.7 x the speed -> {log}")
-        try:
-            r = speed_experiment(load_yaml(res["config"]), res["axis"], e, log, res["duration_s"],
-                                 source=res["config"])
-        except Exception as exc:        # noqa: BLE001 - reported, the tune's result stands
-            out.append({"ambiguous": e["text"], "error": f"{type(exc).__name__}: {exc}"[:300],
-                        "scale": 0.7, "log": str(log), "named": None, "why": "not run"})
-            continue
-        out.append({"ambiguous": e["text"], **r})
-    return out
-
-
 def cmd_tune(args) -> int:
     out = args.out or default_out(args.config, args.axis)
 
@@ -156,7 +125,7 @@ def cmd_tune(args) -> int:
         sys.stdout.write(line + "\n")
         sys.stdout.flush()
 
-    from motorctl.commission.tune import tune
+    from motorctl.commission.tune import speed_experiments, tune
     res = tune(args.config, args.axis, out, args.duration, "virtual" if args.virtual_clock else None,
                None if args.json else progress)
     res["speed_experiments"] = ([] if args.no_speed_experiment else
@@ -169,4 +138,4 @@ def cmd_tune(args) -> int:
     return 1 if any(res["faults"].values()) else 0
 
 
-__all__ = ["cmd_tune", "default_out", "register", "speed_experiments", "text_report"]
+__all__ = ["cmd_tune", "default_out", "register", "text_report"]

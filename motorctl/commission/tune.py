@@ -27,6 +27,7 @@ from pathlib import Path
 
 from motorctl.config import LoadedConfig, config_from_dict
 from motorctl.effects import FAMILIES
+from motorctl.ident.ambiguity import SPEED_SCALE
 from motorctl.inputs import InputError
 
 #: e_M may grow by this much and still count as not worse [µm]: one count of the 0.5 µm encoder
@@ -413,5 +414,102 @@ def _compare(res: dict, files: dict) -> None:
     res["compare"] = public(cmp)["axes"][axis]
 
 
+
+# ----------------------------------------------------------- the other-speed experiment
+def other_speed(cfg: dict, axis: str, scale: float = SPEED_SCALE) -> dict:
+    """A copy of config dict ``cfg`` whose axis ``axis`` runs the same program at ``scale``
+    times the speed: the same points, the move times and the period divided by ``scale``, v_max
+    times scale, a_max times scale², j_max times scale³ (the path as a function of scale·t).
+    Raises KeyError: the axis has no ``trajectory`` with those keys."""
+    import copy
+    d = copy.deepcopy(cfg)
+    tr = d["axes"][axis]["trajectory"]
+    tr["move_times_s"] = [float(t) / scale for t in tr["move_times_s"]]
+    tr["period_s"] = float(tr["period_s"]) / scale
+    for key, k in (("v_max", 1), ("a_max", 2), ("j_max", 3)):
+        if key in tr:
+            tr[key] = float(tr[key]) * scale ** k
+    return d
+
+
+def speed_experiment(cfg: dict, axis: str, entry: dict, log_path, duration_s: float,
+                     scale: float = SPEED_SCALE, source: str = "<config>") -> dict:
+    """The experiment that separates a time-periodic line from a force of position (an entry of
+    :func:`summaries` with a ``harmonic``), run on a simulated plant: the same program at
+    ``scale`` times the speed (:func:`other_speed`) for ``duration_s / scale`` seconds on the
+    virtual clock, logged to ``log_path``, identified with the default options.
+
+    The time-periodic hypothesis predicts the line at the same f [Hz]; a force of position
+    predicts it at scale·f (its period in metres kept). Named: ``periodic_disturbance`` when the
+    record names it within its resolution 1/L of f, or reports a line (a fit of the family in
+    an ambiguity) there; the position family when the record names it, or its line is at
+    scale·f; else none ("not resolved").
+
+    Returns:
+        {"scale", "log", "named" (family or None), "why", "effects" (the second record's named
+        families), "ambiguous" (its ambiguity texts)}.
+    Raises:
+        KeyError: the axis has no trajectory to scale. ConfigError: the scaled config is not
+        valid. LogError: the second record cannot be identified.
+    """
+    from motorctl.app.job import run_job
+    from motorctl.ident.ambiguity import TIME_FAMILY
+    from motorctl.ident.data import load_record
+    from motorctl.ident.pipeline import identify_record
+
+    time_fam, pos_fam = entry["families"]
+    f1 = float(entry["fits"][0]["parameters"]["frequency_Hz"])
+    d = other_speed(cfg, axis, scale)
+    run_job(config_from_dict(d, f"{source} at {scale:g} x the speed"), duration_s=duration_s / scale,
+            clock="virtual", log_path=str(log_path))
+    _, s = identify_record(load_record(str(log_path), None, None, axis))
+    res = 1.0 / (duration_s / scale)
+    lines = [float(e["parameters"]["frequency_Hz"]) for e in s["effects"] if e["name"] == TIME_FAMILY]
+    lines += [float(f["parameters"]["frequency_Hz"]) for a in s["ambiguous"] for f in a["fits"]
+              if f["name"] == TIME_FAMILY and "frequency_Hz" in f["parameters"]]
+    named = {e["name"] for e in s["effects"]}
+    out = {"scale": scale, "log": str(log_path), "effects": sorted(named),
+           "ambiguous": [a["text"] for a in s["ambiguous"]]}
+    if any(abs(f - f1) <= res for f in lines):
+        out.update(named=TIME_FAMILY, why=f"at {scale:g} x the speed the line stays at {f1:.4g} Hz: a force in time")
+    elif pos_fam in named or any(abs(f - scale * f1) <= res for f in lines):
+        out.update(named=pos_fam, why=f"at {scale:g} x the speed the line moves to {scale * f1:.4g} Hz "
+                                      f"({scale:g} x {f1:.4g} Hz), its period in metres kept: a force of position")
+    else:
+        out.update(named=None, why=f"not resolved: at {scale:g} x the speed neither a line at {f1:.4g} Hz "
+                                   f"nor one at {scale * f1:.4g} Hz, nor {pos_fam} named")
+    return out
+
+
+def speed_experiments(res: dict, progress=None) -> list:
+    """The other-speed runs of step 7 (module docstring) for ``res`` (:func:`motorctl.commission.
+    tune.tune`'s result): on a simulated plant with a before log, each time-periodic line at a
+    program harmonic that the before log's identification reports ambiguous
+    (:func:`speed_experiment`). Returns [{"ambiguous" (its text), and
+    speed_experiment's keys}], or [{"ambiguous", "error"}] for one that could not run; [] when
+    none applies."""
+    before = res.get("files", {}).get("before")
+    if res.get("floor_effects_off") is None or not before or res.get("faults", {}).get("before"):
+        return []
+    harmonic = [a for a in res.get("ambiguous", []) if a.get("harmonic")]   # the before log's identification
+    if not harmonic:
+        return []
+    from motorctl.config import load_yaml
+    out = []
+    for k, e in enumerate(harmonic):
+        log = Path(res["out"]) / f"other_speed_{k + 1}.mclog"
+        if progress:
+            progress(f"other speed: {e['text']}: the program at 0.7 x the speed -> {log}")
+        try:
+            r = speed_experiment(load_yaml(res["config"]), res["axis"], e, log, res["duration_s"],
+                                 source=res["config"])
+        except Exception as exc:        # noqa: BLE001 - reported, the tune's result stands
+            out.append({"ambiguous": e["text"], "error": f"{type(exc).__name__}: {exc}"[:300],
+                        "scale": 0.7, "log": str(log), "named": None, "why": "not run"})
+            continue
+        out.append({"ambiguous": e["text"], **r})
+    return out
+
+
 __all__ = ["E_M_SLACK_UM", "FILES", "SIM_DRIVER", "U_REST_SLACK", "better", "damage_removed", "effect_free",
-           "effects_on", "is_simulated", "make_log", "tune"]
+           "effects_on", "is_simulated", "make_log", "tune", "other_speed", "speed_experiment", "speed_experiments"]

@@ -279,75 +279,9 @@ def text_lines(entries: list) -> list:
     return lines
 
 
-#: the other speed of :func:`speed_experiment`, as a share of the program's
+#: the other speed of :func:`motorctl.commission.tune.speed_experiment`, as a share of the program's
 SPEED_SCALE = 0.7
 
 
-def other_speed(cfg: dict, axis: str, scale: float = SPEED_SCALE) -> dict:
-    """A copy of config dict ``cfg`` whose axis ``axis`` runs the same program at ``scale``
-    times the speed: the same points, the move times and the period divided by ``scale``, v_max
-    times scale, a_max times scale², j_max times scale³ (the path as a function of scale·t).
-    Raises KeyError: the axis has no ``trajectory`` with those keys."""
-    import copy
-    d = copy.deepcopy(cfg)
-    tr = d["axes"][axis]["trajectory"]
-    tr["move_times_s"] = [float(t) / scale for t in tr["move_times_s"]]
-    tr["period_s"] = float(tr["period_s"]) / scale
-    for key, k in (("v_max", 1), ("a_max", 2), ("j_max", 3)):
-        if key in tr:
-            tr[key] = float(tr[key]) * scale ** k
-    return d
-
-
-def speed_experiment(cfg: dict, axis: str, entry: dict, log_path, duration_s: float,
-                     scale: float = SPEED_SCALE, source: str = "<config>") -> dict:
-    """The experiment that separates a time-periodic line from a force of position (an entry of
-    :func:`summaries` with a ``harmonic``), run on a simulated plant: the same program at
-    ``scale`` times the speed (:func:`other_speed`) for ``duration_s / scale`` seconds on the
-    virtual clock, logged to ``log_path``, identified with the default options.
-
-    The time-periodic hypothesis predicts the line at the same f [Hz]; a force of position
-    predicts it at scale·f (its period in metres kept). Named: ``periodic_disturbance`` when the
-    record names it within its resolution 1/L of f, or reports a line (a fit of the family in
-    an ambiguity) there; the position family when the record names it, or its line is at
-    scale·f; else none ("not resolved").
-
-    Returns:
-        {"scale", "log", "named" (family or None), "why", "effects" (the second record's named
-        families), "ambiguous" (its ambiguity texts)}.
-    Raises:
-        KeyError: the axis has no trajectory to scale. ConfigError: the scaled config is not
-        valid. LogError: the second record cannot be identified.
-    """
-    from motorctl.app.job import run_job
-    from motorctl.config import config_from_dict
-    from motorctl.ident.data import load_record
-    from motorctl.ident.pipeline import identify_record
-
-    time_fam, pos_fam = entry["families"]
-    f1 = float(entry["fits"][0]["parameters"]["frequency_Hz"])
-    d = other_speed(cfg, axis, scale)
-    run_job(config_from_dict(d, f"{source} at {scale:g} x the speed"), duration_s=duration_s / scale,
-            clock="virtual", log_path=str(log_path))
-    _, s = identify_record(load_record(str(log_path), None, None, axis))
-    res = 1.0 / (duration_s / scale)
-    lines = [float(e["parameters"]["frequency_Hz"]) for e in s["effects"] if e["name"] == TIME_FAMILY]
-    lines += [float(f["parameters"]["frequency_Hz"]) for a in s["ambiguous"] for f in a["fits"]
-              if f["name"] == TIME_FAMILY and "frequency_Hz" in f["parameters"]]
-    named = {e["name"] for e in s["effects"]}
-    out = {"scale": scale, "log": str(log_path), "effects": sorted(named),
-           "ambiguous": [a["text"] for a in s["ambiguous"]]}
-    if any(abs(f - f1) <= res for f in lines):
-        out.update(named=TIME_FAMILY, why=f"at {scale:g} x the speed the line stays at {f1:.4g} Hz: a force in time")
-    elif pos_fam in named or any(abs(f - scale * f1) <= res for f in lines):
-        out.update(named=pos_fam, why=f"at {scale:g} x the speed the line moves to {scale * f1:.4g} Hz "
-                                      f"({scale:g} x {f1:.4g} Hz), its period in metres kept: a force of position")
-    else:
-        out.update(named=None, why=f"not resolved: at {scale:g} x the speed neither a line at {f1:.4g} Hz "
-                                   f"nor one at {scale * f1:.4g} Hz, nor {pos_fam} named")
-    return out
-
-
 __all__ = ["Ambiguity", "OTHER_EXPERIMENT", "POSITION_FAMILIES", "SPEED_EXPERIMENT", "TIME_FAMILY",
-           "SPEED_SCALE", "harmonic_rivals", "other_speed", "shared_evidence", "speed_experiment", "summaries",
-           "text_lines"]
+           "SPEED_SCALE", "harmonic_rivals", "shared_evidence", "summaries", "text_lines"]
