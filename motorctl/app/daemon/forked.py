@@ -84,7 +84,30 @@ def reap(pid: int, timeout_s: float) -> None:
         time.sleep(0.01)
 
 
-class SnapshotLink:
+class HelperLink:
+    """The I/O process's end of a helper process (:func:`fork_helper`'s pair and pid).
+
+    Attributes:
+        pid: the helper. sent, dropped: messages handed over / dropped (the helper was behind).
+        alive: False once it has ended (nothing is sent any more).
+    """
+
+    def __init__(self, sock: socket.socket, pid: int):
+        self.sock, self.pid = sock, pid
+        self.sent = self.dropped = 0
+        self.alive = True
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        """Close the link (the helper ends on EOF) and reap it (SIGKILL after the bound)."""
+        self.alive = False
+        try:
+            self.sock.close()
+        except OSError:
+            pass
+        reap(self.pid, timeout_s)
+
+
+class SnapshotLink(HelperLink):
     """The I/O process's end of a helper fed a snapshot every ``every_s`` [s].
 
     A subclass gives :meth:`snapshot` (the picklable message) and :meth:`report_line` (the
@@ -96,9 +119,8 @@ class SnapshotLink:
     """
 
     def __init__(self, sock: socket.socket, pid: int, every_s: float):
-        self.sock, self.pid, self.every_s = sock, pid, every_s
-        self.sent = self.dropped = 0
-        self.alive = True
+        super().__init__(sock, pid)
+        self.every_s = every_s
         self.last = 0.0
         self.placed = False
         self.build_s = 0.0
@@ -147,12 +169,3 @@ class SnapshotLink:
                 self.alive = False
                 return
             sys.stderr.write(self.report_line(data.decode(errors="replace")) + "\n")
-
-    def stop(self, timeout_s: float = 2.0) -> None:
-        """Close the link (the helper ends on EOF) and reap it (SIGKILL after the bound)."""
-        self.alive = False
-        try:
-            self.sock.close()
-        except OSError:
-            pass
-        reap(self.pid, timeout_s)

@@ -38,7 +38,7 @@ import sys
 import time
 from importlib import resources
 
-from motorctl.app.daemon.forked import fork_helper, reap
+from motorctl.app.daemon.forked import HelperLink, fork_helper
 from motorctl.app.lifetime import die_with_parent
 
 #: frames queued per page before its oldest are dropped (about 2.5 s at the I/O process's 20 ms)
@@ -76,18 +76,13 @@ def exposure_warning(key: str, host: str) -> str:
             f"authentication (anyone who reaches it sees the machine live)")
 
 
-class ViewLink:
+class ViewLink(HelperLink):
     """The I/O process's end of the view process: a listener of the scope (:meth:`on_frame`).
 
     Attributes:
         sent, dropped: frames handed over / dropped because the view process was behind.
         pid: the view process. alive: False once it has ended (nothing is sent any more).
     """
-
-    def __init__(self, sock: socket.socket, pid: int):
-        self.sock, self.pid = sock, pid
-        self.sent = self.dropped = 0
-        self.alive = True
 
     def _send(self, obj) -> bool:
         if not self.alive:
@@ -139,15 +134,6 @@ class ViewLink:
                 break
             out.append(pickle.loads(data))
         return out
-
-    def stop(self, timeout_s: float = 2.0) -> None:
-        """Close the link (the view process ends on EOF), then reap it (SIGKILL after the bound)."""
-        self.alive = False
-        try:
-            self.sock.close()
-        except OSError:
-            pass
-        reap(self.pid, timeout_s)
 
 
 def start_views(scope, serve_scope: bool, foxglove_listen: str | None,
