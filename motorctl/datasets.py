@@ -130,28 +130,26 @@ def sha256_of(path: Path) -> str:
     return h.hexdigest()
 
 
-def verified_path(name: str) -> Path:
-    """The local file of data set ``name``, present and with the pinned SHA-256. Raises
-    :class:`DataError` when it is absent or its bytes differ (saying to fetch it)."""
-    d, path = dataset(name), local_path(name)
+def _verified(path: Path, sha256: str, name: str) -> Path:
+    """``path`` when present with the pinned ``sha256``; else DataError saying to fetch ``name``."""
     if not path.is_file():
         raise DataError(f"{path}: not fetched yet: motorctl data fetch {name}")
-    if sha256_of(path) != d.sha256:
+    if sha256_of(path) != sha256:
         raise DataError(f"{path}: SHA-256 differs from the pinned one (a changed or partial copy): "
                         f"motorctl data fetch {name}")
     return path
+
+
+def verified_path(name: str) -> Path:
+    """The local file of data set ``name``, present and with the pinned SHA-256. Raises
+    :class:`DataError` when it is absent or its bytes differ (saying to fetch it)."""
+    return _verified(local_path(name), dataset(name).sha256, name)
 
 
 def verified_extra_path(name: str, role: str) -> Path:
     """:func:`verified_path` for the further file ``role`` of data set ``name``. Raises
     :class:`DataError` when it is absent, its bytes differ, or the set has no such file."""
-    f, path = extra_file(name, role), extra_path(name, role)
-    if not path.is_file():
-        raise DataError(f"{path}: not fetched yet: motorctl data fetch {name}")
-    if sha256_of(path) != f.sha256:
-        raise DataError(f"{path}: SHA-256 differs from the pinned one (a changed or partial copy): "
-                        f"motorctl data fetch {name}")
-    return path
+    return _verified(extra_path(name, role), extra_file(name, role).sha256, name)
 
 
 def fetch(name: str, url: str | None = None, timeout_s: float = 60.0) -> tuple[Path, bool]:
