@@ -22,6 +22,8 @@ import socket
 import sys
 import time
 
+from motorctl.app.lifetime import die_with_parent
+
 
 def fork_helper(what: str, main, buffer_bytes: int | None = None) -> tuple[socket.socket, int] | None:
     """Fork a helper that runs ``main(sock, parent_pid)`` (its end of the pair) and exits with
@@ -62,6 +64,20 @@ def fork_helper(what: str, main, buffer_bytes: int | None = None) -> tuple[socke
     theirs.close()
     mine.setblocking(False)
     return mine, pid
+
+
+def helper_started(parent_pid: int, nice: int) -> None:
+    """First thing in a helper: SIGKILL when the I/O process ``parent_pid`` dies, SIGINT and
+    SIGHUP ignored (the daemon's own, sent to the process group), SIGTERM ends it, niceness
+    ``nice`` (kept where it is not permitted)."""
+    die_with_parent(parent_pid, signal.SIGKILL)
+    for s in (signal.SIGINT, signal.SIGHUP):
+        signal.signal(s, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, nice)
+    except OSError:
+        pass
 
 
 def reap(pid: int, timeout_s: float) -> None:

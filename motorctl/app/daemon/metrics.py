@@ -24,7 +24,6 @@ from __future__ import annotations
 import math
 import os
 import pickle
-import signal
 import socket
 import sys
 import threading
@@ -32,8 +31,7 @@ import time
 
 import numpy as np
 
-from motorctl.app.daemon.forked import SnapshotLink, fork_helper
-from motorctl.app.lifetime import die_with_parent
+from motorctl.app.daemon.forked import SnapshotLink, fork_helper, helper_started
 
 #: the I/O process sends a snapshot this often [s]
 SNAPSHOT_EVERY_S = 1.0
@@ -236,14 +234,7 @@ class _Collector:
 
 def metrics_main(sock: socket.socket, host: str, port: int, parent_pid: int) -> int:
     """The metrics process: serve ``/metrics`` on host:port until the link closes."""
-    die_with_parent(parent_pid, signal.SIGKILL)
-    for s in (signal.SIGINT, signal.SIGHUP):
-        signal.signal(s, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    try:
-        os.setpriority(os.PRIO_PROCESS, 0, METRICS_NICE)
-    except OSError:
-        pass
+    helper_started(parent_pid, METRICS_NICE)
     collector = _Collector()
     try:
         from prometheus_client import CollectorRegistry, start_http_server

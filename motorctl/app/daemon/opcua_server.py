@@ -54,15 +54,13 @@ import logging
 import math
 import os
 import pickle
-import signal
 import socket
 import sys
 import time
 
 import numpy as np
 
-from motorctl.app.daemon.forked import SnapshotLink, fork_helper
-from motorctl.app.lifetime import die_with_parent
+from motorctl.app.daemon.forked import SnapshotLink, fork_helper, helper_started
 
 #: the namespace of the CNC objects (OPC 40502's namespace URI)
 CNC_NS = "http://opcfoundation.org/UA/CNC/"
@@ -245,14 +243,7 @@ def start_opcua(io) -> OpcuaLink | None:
 def opcua_main(sock: socket.socket, oc, users, cert, key, cert_dir: str, control: str, axes: list,
                max_program_bytes: int, parent_pid: int) -> int:
     """The OPC UA process: serve ``oc.endpoint`` until the link closes. Returns 0."""
-    die_with_parent(parent_pid, signal.SIGKILL)
-    for s in (signal.SIGINT, signal.SIGHUP):
-        signal.signal(s, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    try:
-        os.setpriority(os.PRIO_PROCESS, 0, OPCUA_NICE)
-    except OSError:
-        pass
+    helper_started(parent_pid, OPCUA_NICE)
     import gc
     gc.enable()              # the I/O process runs with it off; asyncio and asyncua make cycles
     logging.basicConfig(level=logging.CRITICAL)

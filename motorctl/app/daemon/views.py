@@ -32,14 +32,12 @@ import ipaddress
 import json
 import os
 import pickle
-import signal
 import socket
 import sys
 import time
 from importlib import resources
 
-from motorctl.app.daemon.forked import HelperLink, fork_helper
-from motorctl.app.lifetime import die_with_parent
+from motorctl.app.daemon.forked import HelperLink, fork_helper, helper_started
 
 #: frames queued per page before its oldest are dropped (about 2.5 s at the I/O process's 20 ms)
 PAGE_QUEUE_FRAMES = 128
@@ -150,14 +148,7 @@ def start_views(scope, serve_scope: bool, foxglove_listen: str | None,
 def view_main(sock: socket.socket, scope, serve_scope: bool, foxglove_listen: str | None,
               parent_pid: int, operator: dict | None = None) -> int:
     """The view process: serve what is configured until the link closes or the parent dies."""
-    die_with_parent(parent_pid, signal.SIGKILL)
-    for s in (signal.SIGINT, signal.SIGHUP):
-        signal.signal(s, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    try:
-        os.setpriority(os.PRIO_PROCESS, 0, VIEW_NICE)
-    except OSError:
-        pass
+    helper_started(parent_pid, VIEW_NICE)
     loop = asyncio.new_event_loop()
     asyncio.set_event_loop(loop)
     views = Views(scope, operator)
