@@ -27,22 +27,20 @@ import asyncio
 import multiprocessing as mp
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
+from bench_views import Daemon as ViewsDaemon  # noqa: E402
 from bench_views import _port, _spin, turnaround  # noqa: E402
 
-from motorctl.client import Client, DaemonUnreachable  # noqa: E402
 
 TICK = os.sysconf("SC_CLK_TCK")
 NODE = "ns=2;s=CncInterface.CncAxisList.X.ActPos"
@@ -57,44 +55,13 @@ def cpu_s(pid: int | None) -> float:
     return (int(f[11]) + int(f[12])) / TICK
 
 
-class Daemon:
-    def __init__(self, tmp: Path, opcua: bool):
-        d = yaml.safe_load((REPO / "configs" / "gantry.yaml").read_text())
-        d["daemon"].update(socket=str(tmp / "motorctl.sock"), log_dir=str(tmp / "logs"))
-        self.url = None
-        if opcua:
-            self.url = f"opc.tcp://127.0.0.1:{_port()}/motorctl"
-            d["daemon"]["opcua"] = {"endpoint": self.url, "anonymous": "read",
-                                    "security": ["None", "Basic256Sha256"]}
-        self.cfg = tmp / "gantry.yaml"
-        self.cfg.write_text(yaml.safe_dump(d))
-        self.sock = str(tmp / "motorctl.sock")
-        self.err_path = tmp / "daemon.err"
-        self.err = open(self.err_path, "w")
-        self.t0 = time.monotonic()
-        self.proc = subprocess.Popen([sys.executable, "-m", "motorctl", "daemon", str(self.cfg)],
-                                     stdout=self.err, stderr=self.err, cwd=REPO)
-        self.c = Client(self.sock, timeout_s=30.0)
-        end = time.monotonic() + 300
-        while True:
-            try:
-                if self.c.status()["realtime_summary"] != "pending":
-                    break
-            except DaemonUnreachable:
-                pass
-            if time.monotonic() > end or self.proc.poll() is not None:
-                self.proc.kill()
-                raise SystemExit(f"the daemon did not start: {self.err_path.read_text()[-2000:]}")
-            time.sleep(0.2)
-        self.ready_s = time.monotonic() - self.t0
-        self.c.start("Y")
+class Daemon(ViewsDaemon):
+    """bench_views's daemon, with (``opcua``) the OPC UA server on a free loopback port."""
 
-    def stop(self) -> None:
-        self.proc.terminate()
-        try:
-            self.proc.wait(30)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
+    def __init__(self, tmp: Path, opcua: bool):
+        self.url = f"opc.tcp://127.0.0.1:{_port()}/motorctl" if opcua else None
+        super().__init__(tmp, False, {"opcua": {"endpoint": self.url, "anonymous": "read",
+                                                "security": ["None", "Basic256Sha256"]}} if opcua else None)
 
 
 async def first_answer(url: str, t0: float, bound_s: float = 300.0) -> float:

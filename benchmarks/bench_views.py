@@ -59,7 +59,10 @@ def _port() -> int:
 
 
 class Daemon:
-    def __init__(self, tmp: Path, views: bool):
+    """``motorctl daemon`` on configs/gantry.yaml in ``tmp`` (``views``: the scope and /metrics on
+    free loopback ports; ``extra``: further keys of its ``daemon`` section), ready, Y started."""
+
+    def __init__(self, tmp: Path, views: bool, extra: dict | None = None):
         d = yaml.safe_load((REPO / "configs" / "gantry.yaml").read_text())
         d["daemon"].update(socket=str(tmp / "motorctl.sock"), log_dir=str(tmp / "logs"))
         self.scope_port = self.metrics_port = None
@@ -67,6 +70,7 @@ class Daemon:
             self.scope_port, self.metrics_port = _port(), _port()
             d["daemon"]["scope"] = {"listen": f"127.0.0.1:{self.scope_port}"}
             d["daemon"]["metrics"] = {"listen": f"127.0.0.1:{self.metrics_port}"}
+        d["daemon"].update(extra or {})
         self.cfg = tmp / "gantry.yaml"
         self.cfg.write_text(yaml.safe_dump(d))
         self.sock = str(tmp / "motorctl.sock")
