@@ -82,16 +82,30 @@ def cmd_stop(args) -> int:
     if args.no_wait or ans.get("was") == "disabled":
         sys.stdout.write(f"{args.axis}: {'already disabled' if ans.get('was') == 'disabled' else 'stopping'}\n")
         return 0
+    st, took_s = _until_disabled(args, bound + 1.0, "come to rest", ans.get("cycle"))
+    what = "0 V, amplifier off" if st["state"] == "disabled" else f"fault: {st['fault']}"
+    sys.stdout.write(f"{args.axis}: stopped in {took_s:.3f} s ({what})\n")
+    return 0 if st["state"] == "disabled" else 1
+
+
+def _until_disabled(args, bound_s: float, what: str, c0: int | None) -> tuple[dict, float]:
+    """Poll the axis until it is no longer enabled: (its status, the seconds it took on the loop's
+    clock since cycle c0, the loop's count when the request took effect; None: the first
+    status's). The bound is judged on the loop's cycle count, not this host's clock: on a busy PC a
+    status answer can take seconds while the loop runs on time; a wall bound of 10x only
+    catches a daemon whose loop no longer advances. Raises DaemonUnreachable past the bound."""
     t0 = time.monotonic()
-    deadline = t0 + bound + 1.0
-    while time.monotonic() < deadline:
-        st = _checked(args, {"cmd": "status", "axis": args.axis})["status"]["axes"][args.axis]
+    while time.monotonic() < t0 + 10.0 * bound_s + 30.0:
+        whole = _checked(args, {"cmd": "status", "axis": args.axis})["status"]
+        st, loop = whole["axes"][args.axis], whole["loop"]
+        c0 = loop["cycles"] if c0 is None else c0
+        took_s = (loop["cycles"] - c0) / loop["rate_hz"]
         if st["state"] != "enabled":
-            what = "0 V, amplifier off" if st["state"] == "disabled" else f"fault: {st['fault']}"
-            sys.stdout.write(f"{args.axis}: stopped in {time.monotonic() - t0:.3f} s ({what})\n")
-            return 0 if st["state"] == "disabled" else 1
+            return st, took_s
+        if took_s > bound_s:
+            break
         time.sleep(0.01)
-    raise DaemonUnreachable(f"axis {args.axis} did not come to rest within {bound + 1.0:.2f} s")
+    raise DaemonUnreachable(f"axis {args.axis} did not {what} within {bound_s:.2f} s of the loop's clock")
 
 
 def cmd_switch(args) -> int:
@@ -138,25 +152,13 @@ def cmd_jog(args) -> int:
                      f"in {ans.get('move_s', 0.0):.3f} s"
                      + (" (recovering from outside the soft limits)" if ans.get("recovery") else "")
                      + "\n")
-    # the bound is judged on the loop's clock (its cycle count), not this host's: on a busy PC a
-    # status answer can take seconds while the loop runs on time; the wall bound (10x) only
-    # catches a daemon whose loop no longer advances
-    bound = float(ans.get("move_s", 0.0)) + float(ans.get("bound_s", 1.0)) + 1.0
-    t0, c0 = time.monotonic(), None
-    while time.monotonic() < t0 + 10.0 * bound + 30.0:
-        whole = _checked(args, {"cmd": "status", "axis": args.axis})["status"]
-        st, loop = whole["axes"][args.axis], whole["loop"]
-        if st["state"] != "enabled":
-            if st["state"] == "fault":
-                sys.stdout.write(f"{args.axis}: fault during the jog: {st['fault']}\n")
-                return 1
-            sys.stdout.write(f"{args.axis}: at {st['y_m']:.6f} m, 0 V, amplifier off\n")
-            return 0
-        c0 = loop["cycles"] if c0 is None else c0
-        if (loop["cycles"] - c0) / loop["rate_hz"] > bound:
-            break
-        time.sleep(0.02)
-    raise DaemonUnreachable(f"axis {args.axis} did not finish the jog within {bound:.2f} s of the loop's clock")
+    st, _ = _until_disabled(args, float(ans.get("move_s", 0.0)) + float(ans.get("bound_s", 1.0)) + 1.0,
+                            "finish the jog", ans.get("cycle"))
+    if st["state"] == "fault":
+        sys.stdout.write(f"{args.axis}: fault during the jog: {st['fault']}\n")
+        return 1
+    sys.stdout.write(f"{args.axis}: at {st['y_m']:.6f} m, 0 V, amplifier off\n")
+    return 0
 
 
 def _axis_index(ans: dict, axis: str) -> int:

@@ -187,6 +187,7 @@ class LoopSide:
             elif op == "stop":
                 r["was"] = MODE_NAMES[loop.mode[i]]
                 loop.stop_axis(i)
+                r["cycle"] = loop.k          # the stop's start on the loop's clock (the CLI's wait)
             elif op == "switch":
                 r["from"] = self.asm.active[i]
                 self._switch(i, m["controller"])
@@ -224,6 +225,7 @@ class LoopSide:
                     return {**r, "ok": False, "error": f"jog {names[i]} refused: target "
                                                       f"{mv.end:.6f} m is outside the soft limits"}
                 loop.jog_axis(i, mv)
+                r["cycle"] = loop.k
             elif op == "arm_index":
                 self.asm.driver.arm_index(i)
             elif op == "set_position":
