@@ -74,7 +74,7 @@ def project_box(z, th, tmin, tmax, gam, piv, coef, vec, pividx, active):
     for the set A of closed faces. A face is closed when the step would leave the box through it
     and its multiplier has the outward sign (λ_i ≥ 0 on an upper face, ≤ 0 on a lower face): the
     KKT conditions of the projection onto the tangent cone in the Γ⁻¹ metric. This is what makes
-    P2, θ̃ᵀ(Γ⁻¹Proj(Γτ) − τ) ≤ 0, hold at corners too; the add-only rule of docs/control-law.md, Box projection can close
+    P2, θ̃ᵀ(Γ⁻¹Proj(Γτ) − τ) ≤ 0, hold at corners too; an add-only rule can close
     a face whose multiplier has the wrong sign when Γ couples two bounded parameters.
 
     Primal active set: start empty; eliminate the closed faces one at a time on (Γ, ζ) (block
