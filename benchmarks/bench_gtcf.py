@@ -1,7 +1,14 @@
-"""GTCF (the contouring pair law, motorctl.control.gtcf) against per-axis C2 on the simulated gantry.
+"""GTCF (the contouring pair law, motorctl.control.gtcf) against per-axis C2 on the simulated gantry,
+each with the gains ``motorctl autotune`` writes for it.
 
     .venv/bin/python benchmarks/bench_gtcf.py [--config configs/gantry.yaml] [--out DIR] [--skip-cut]
+                                              [--no-autotune]
 
+0. (default) ``motorctl autotune CONFIG --axis X --axis Y --law c2 --virtual-clock --json --out
+   DIR/autotune`` on a copy of the config (a subprocess): both axes' C2 gains by the rule, then
+   GTCF's gain_t, gain_n on them by the same rule (motorctl.commission.gtcf_tune), written to
+   DIR/autotune/autotuned.yaml; the rest runs that file, C2 and GTCF alike. ``--no-autotune``:
+   the config's own gains.
 1. The ISO 230-4 circle, R 50 mm at 50 and 100 mm/s, by the user's command:
    ``motorctl circle-test CONFIG --controller c2 --controller gtcf --feed 0.05 --feed 0.1 --json
    --log DIR/circle.log`` (a subprocess, bounded by a timeout). From its JSON: G (worse of cw/ccw)
@@ -9,7 +16,9 @@
    (the header's ``circle.rows``), an algebraic least-squares circle fit (Kåsa) of the measured
    X.y, Y.y per direction, and the largest |r − R_fit| (the largest contour error about the
    fitted circle); the saturated samples (|u| ≥ u_lim − 1 mV, either axis) in the test circles'
-   rows and in the whole run (its rapid approach included), the largest |u| in the test circles.
+   rows and in the whole run (its rapid approach included) and their share of the run, the
+   largest |u| in the test circles, the u RMS at rest (the dwells; the worse axis,
+   motorctl.metrics.u_rest_rms), a fault (circle-test's exit).
 2. A plasma cut path with lead-in arcs (benchmarks/bench_contour.py's CUT: lead-ins of 1-2 mm,
    R 3 mm corners, a slot, an R 8 mm hole; F5000) streamed through the same daemon motion path
    as the circle test (:func:`motorctl.app.circle_test.run_circle_test` with the program swapped
@@ -21,8 +30,9 @@
    less the planner's G64 P0.01 blending, which alone departs up to ~9 µm from it:
    benchmarks/bench_contour.py).
 
-Prints a Markdown table with the change of GTCF against C2 (negative: lower). Deterministic (the
-virtual clock, the simulated driver's seed): the same figures every run.
+Prints the autotuned gains and a Markdown table with the ratio GTCF / C2 (below 0.70: the ≥ 30 %
+target). Deterministic (the virtual clock, the simulated driver's seed): the same figures every
+run.
 """
 
 from __future__ import annotations
@@ -30,6 +40,8 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import math
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -63,6 +75,20 @@ def saturation(log, mask=None) -> tuple[int, float, int]:
     return int(sat[m].sum()), float(np.max(np.abs(u[m]))), int(sat.sum())
 
 
+def rest_noise(log) -> float:
+    """The larger of the two axes' u RMS at rest [V] over a run log's enabled rows
+    (:func:`motorctl.metrics.u_rest_rms`: u about its mean where the command has not moved for
+    0.3 s); nan with no rest."""
+    from motorctl.metrics import REST_AFTER_S, rest_mask, u_rest_rms
+    out = []
+    ts = float(log.col("t")[1] - log.col("t")[0]) if len(log.col("t")) > 1 else 2e-4
+    for a in ("X", "Y"):
+        on = log.col(f"{a}.enabled") > 0.5
+        rest = rest_mask(log.col(f"{a}.xd_dot")[on], log.col(f"{a}.xd_ddot")[on], ts, REST_AFTER_S)
+        out.append(u_rest_rms(log.col(f"{a}.u")[on], rest))
+    return max(out) if all(v == v for v in out) else math.nan
+
+
 def circles(config: str, out: Path, timeout_s: float) -> list[dict]:
     from motorctl.recorder.runlog import read_log
     base = out / "circle.log"
@@ -89,7 +115,8 @@ def circles(config: str, out: Path, timeout_s: float) -> list[dict]:
         sat, umax, sat_all = saturation(log, mask)
         rows.append({"path": f"circle R50 {r['feed_m_s'] * 1e3:.0f} mm/s", "law": r["controller"],
                      "G": max(r["G_cw_um"], r["G_ccw_um"]), "Gb": r["G_b_um"], "emax": worst * 1e6,
-                     "sat": sat, "umax": umax, "sat_all": sat_all})
+                     "sat": sat, "umax": umax, "sat_all": sat_all, "share": sat_all / len(xs),
+                     "rest": rest_noise(log), "fault": "-"})
     return rows
 
 
@@ -134,7 +161,11 @@ def cut_path(config: str, out: Path) -> list[dict]:
         gs = GcodeSettings(axes=["X", "Y"], words={"M3": "torch", "M5": "torch", "S": "ignore"})
         for c in LAWS:
             lp = out / f"cut_{c}.log"
-            ct.run_circle_test(loaded, 0.008, 5000 / 60e3, c, center=(0.05, 0.05), log_path=str(lp))
+            fault = "-"
+            try:
+                ct.run_circle_test(loaded, 0.008, 5000 / 60e3, c, center=(0.05, 0.05), log_path=str(lp))
+            except ValueError as exc:            # a fault: the log keeps the rows up to it
+                fault = str(exc)
             log = read_log(str(lp))
             # the program as the daemon planned it: from where the axes stood
             prog = parse(text, "cut", gs, start=(float(log.col("X.y")[0]), float(log.col("Y.y")[0]), 0.0))
@@ -145,18 +176,34 @@ def cut_path(config: str, out: Path) -> list[dict]:
             pos = np.column_stack([log.col("X.y"), log.col("Y.y")])
             des = np.column_stack([log.col("X.x_d"), log.col("Y.x_d")])
             e_sp = setpoint_contour_error(pos, des)
+            extra = {"share": saturation(log)[2] / len(pos), "rest": rest_noise(log), "fault": fault}
             for what, m in (("cutting", cutting), ("rapids", speed > 5000 / 60e3 + 1e-6)):
                 e_prog = contour_error(prog, pos[m])
                 sat, umax, sat_all = saturation(log, m)
                 rows.append({"path": f"cut path F5000, {what}: from the setpoints' path", "law": c,
                              "G": float("nan"), "Gb": float("nan"), "emax": float(e_sp[m].max()) * 1e6, "sat": sat,
-                             "umax": umax, "sat_all": sat_all})
+                             "umax": umax, "sat_all": sat_all} | extra)
                 rows.append({"path": f"cut path F5000, {what}: from the programmed path", "law": c,
                              "G": float("nan"), "Gb": float("nan"), "emax": float(e_prog.max()) * 1e6, "sat": sat,
-                             "umax": umax, "sat_all": sat_all})
+                             "umax": umax, "sat_all": sat_all} | extra)
     finally:
         ct.circle_program = orig
     return rows
+
+
+def autotune(config: str, out: Path, timeout_s: float) -> tuple[str, dict]:
+    """``motorctl autotune`` of X and Y (C2, then the GTCF pair) on a copy of ``config`` in
+    ``out``; (the autotuned config's path, its JSON summary)."""
+    src = out / Path(config).name
+    shutil.copyfile(REPO / config if not Path(config).is_absolute() else config, src)
+    cmd = [sys.executable, "-m", "motorctl", "autotune", str(src), "--axis", "X", "--axis", "Y", "--law", "c2",
+           "--virtual-clock", "--json", "--out", str(out / "autotune")]
+    print("$ " + " ".join(cmd[2:]).replace("-m motorctl", "motorctl"), file=sys.stderr)
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, cwd=REPO)
+    if res.returncode != 0:
+        raise SystemExit(f"autotune failed ({res.returncode}): {res.stderr[-2000:]}")
+    got = json.loads(res.stdout)
+    return got["config"], got
 
 
 def main(argv=None) -> int:
@@ -164,17 +211,36 @@ def main(argv=None) -> int:
     ap.add_argument("--config", default="configs/gantry.yaml")
     ap.add_argument("--out", default=None, help="where the run logs go (default: a temporary folder)")
     ap.add_argument("--skip-cut", action="store_true", help="the circles only")
-    ap.add_argument("--timeout", type=float, default=1800.0, help="circle-test's time bound [s]")
+    ap.add_argument("--no-autotune", action="store_true", help="the config's own gains (no autotune first)")
+    ap.add_argument("--timeout", type=float, default=1800.0, help="circle-test's and autotune's time bound [s]")
     args = ap.parse_args(argv)
     out = Path(args.out or tempfile.mkdtemp(prefix="bench_gtcf_"))
     out.mkdir(parents=True, exist_ok=True)
-    rows = circles(args.config, out, args.timeout)
+    config = args.config
+    if not args.no_autotune:
+        config, got = autotune(args.config, out, args.timeout)
+        print(f"autotuned ({config}):")
+        for a, s in got["axes"].items():
+            g, m = s["gains"].get("c2", {}), s["margins"].get("c2", {})
+            print(f"  {a} c2: k_s {g.get('k_s', math.nan):.4g} V s/m, k1 {g.get('k1', math.nan):.4g} 1/s, gamma_d "
+                  f"{g.get('gamma_d', math.nan):.4g}: GM {m.get('gm_db') or math.inf:.1f} dB, PM "
+                  f"{m.get('pm_deg', math.nan):.1f} deg, |S| {m.get('ms_db', math.nan):.1f} dB")
+        for tp in got["gtcf"]:
+            print(f"  gtcf {'-'.join(tp['pair'])}: gain_t {tp['gains']['gain_t']:g}, gain_n {tp['gains']['gain_n']:g}; "
+                  + "; ".join(f"{a} GM {m['gm_db']:.1f} dB, PM {m['pm_deg']:.1f} deg, |S| {m['ms_db']:.1f} dB"
+                              for a, m in tp["margins"].items()))
+            for r in tp["runs"]:
+                print(f"    {r['run']} gain_t {r['gain_t']:g} gain_n {r['gain_n']:g} at {r['scale']:.0%}: "
+                      f"{r['verdict']}")
+        print()
+    rows = circles(config, out, args.timeout)
     if not args.skip_cut:
-        rows += cut_path(args.config, out)
-    print(f"GTCF against per-axis C2 ({args.config}, simulated, virtual clock; logs in {out})\n")
+        rows += cut_path(config, out)
+    print(f"GTCF against per-axis C2 ({config}, simulated, virtual clock; logs in {out})\n")
     print("| path | law | G um | G(b) um | largest contour error um (from the log) | saturated samples: "
-          "measured rows / whole run | max abs u V, measured rows |")
-    print("|---|---|---|---|---|---|---|")
+          "measured rows / whole run (share of the run) | max abs u V, measured rows | u RMS at rest mV "
+          "(worse axis) | fault |")
+    print("|---|---|---|---|---|---|---|---|---|")
     base = {}
     for r in rows:
         if r["law"] == "c2":
@@ -184,10 +250,12 @@ def main(argv=None) -> int:
             b = base.get(r["path"], {}).get(key)
             if r["law"] == "c2" or b is None or not np.isfinite(r[key]) or b == 0:
                 return ""
-            return f" ({(r[key] / b - 1) * 100:+.0f} %)"
+            return f" (x{r[key] / b:.2f})"
         g = "–" if not np.isfinite(r["G"]) else f"{r['G']:.2f}{rel('G')}"
         gb = "–" if not np.isfinite(r["Gb"]) else f"{r['Gb']:.2f}{rel('Gb')}"
-        print(f"| {r['path']} | {r['law']} | {g} | {gb} | {r['emax']:.2f}{rel('emax')} | {r['sat']} / {r['sat_all']} | {r['umax']:.2f} |")
+        rest = "–" if not np.isfinite(r["rest"]) else f"{r['rest'] * 1e3:.0f}"
+        print(f"| {r['path']} | {r['law']} | {g} | {gb} | {r['emax']:.2f}{rel('emax')} | {r['sat']} / "
+              f"{r['sat_all']} ({r['share'] * 100:.3f} %) | {r['umax']:.2f} | {rest} | {r['fault']} |")
     return 0
 
 

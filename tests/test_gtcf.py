@@ -147,3 +147,93 @@ def test_closed_loop_circle_beats_c2():
     f = {c: max(r.result.F_max, -r.result.F_min) for c, r in res.items()}
     assert f["gtcf"] < f["c2"], f
     assert res["gtcf"].result.G_b < res["c2"].result.G_b
+
+
+# ---------------------------------------------------------------- autotune of the pair's gains
+def _measured(loaded, raw, axis):
+    """An axis's result of autotune's steps 1-2 (:func:`motorctl.commission.autotune.autotune`
+    with measure_only) as a noise-free measurement would give it: the "measured" response is the
+    simulated plant's own model (its driver section: mass, force constant, viscous friction, the
+    structural mode, the current loop, the delay; :func:`motorctl.commission.loopshape.plant_model_frf`)
+    and the rest spectrum the encoder's white noise. The measurement and the fit are
+    tests/test_autotune.py's; here only the GTCF step, deterministic and fast."""
+    from motorctl.commission.choose import grid_w
+    from motorctl.commission.loopshape import plant_model_frf
+    from motorctl.commission.rule import RULE
+    d = raw["axes"][axis]["driver"]
+    sec = loaded.axes[axis].controller
+    ts = loaded.period_s
+    model = {"theta1": d["mass_kg"] / d["a1_N_per_V"], "theta2": d["viscous_N_s_per_m"] / d["a1_N_per_V"],
+             "load_fraction": d["mode_load_fraction"], "mode_hz": d["mode_hz"], "mode_damping": d["mode_damping"],
+             "current_loop_hz": d["current_loop_hz"], "delay_s": d["current_loop_delay_s"],
+             "theta3": d["coulomb_N"] / d["a1_N_per_V"], "theta4": d["offset_N"] / d["a1_N_per_V"]}
+    model["sigma"] = {k: 0.0 for k in model}
+    w = grid_w(ts)
+    G = plant_model_frf(model, ts, w)
+    f = np.fft.rfftfreq(1024, ts)
+    rest_psd = (f, np.full(f.size, 2.0 * d["encoder_noise_m"] ** 2 * ts))
+    return {"axis": axis, "measure": {"rest_psd": rest_psd}, "model": model,
+            "theta_hat0": [float(x) for x in sec.theta_hat0], "w": w, "G_fit": G, "G_w": G, "choice": {},
+            "verify": {}, "reference": None, "gains": {}, "extra": {}, "ts": ts, "section": sec, "rule": RULE}
+
+
+def test_autotune_writes_the_pairs_gains_by_the_rule(tmp_path, monkeypatch):
+    """autotune's GTCF step on configs/gantry.yaml (its gtcf blocks; the configured C2 gains, the
+    plant's own response as measured, a short test contour R 10 mm at 100 mm/s): gain_t, gain_n of the grid
+    written in both blocks (partner and v_min kept), the margins reported at least the rule's on
+    both axes (and found again from the measured response at gain_n at 100/75/50 %), every
+    candidate of higher contour gain tried before it failed a run; the same margins and the same
+    figures of the chosen gains' contour run a second time."""
+    import yaml
+    from motorctl.commission import gtcf_tune
+    from motorctl.commission.autotune import write_config
+    from motorctl.commission.loopshape import c_frf, loop_margins
+    from motorctl.commission.rule import GM_MIN_DB, MS_MAX_DB, PM_MIN_DEG, RULE, SCALES
+    from motorctl.config import config_from_dict, load_yaml
+    from conftest import REPO
+    src = str(REPO / "configs" / "gantry.yaml")
+    raw = load_yaml(src)
+    loaded = config_from_dict(raw, src)
+    res = [_measured(loaded, raw, a) for a in ("X", "Y")]
+    monkeypatch.setattr(gtcf_tune, "SIDE_S", 0.35)      # the rectangle's edges: 0.35 s (0.05 s of rest), for time
+    kw = dict(full_periods=0, radius=0.01, feed=0.1, max_runs=5)
+    tp = gtcf_tune.tune_pair(loaded, raw, *res, **kw)
+    new = write_config(raw, res, src, tmp_path / "autotuned.yaml", [tp])
+    g = tp["gains"]
+    assert g["gain_n"] in gtcf_tune.GAIN_N and g["gain_t"] in gtcf_tune.GAIN_T + (1.0,)
+    assert g["gain_t"] <= g["gain_n"]
+    text = (tmp_path / "autotuned.yaml").read_text()
+    back = yaml.safe_load(text)
+    assert "# " in text and f"gtcf X-Y: gain_t {g['gain_t']:g}, gain_n {g['gain_n']:g}" in text
+    for a, b in (("X", "Y"), ("Y", "X")):
+        blk = back["axes"][a]["controller"]["gtcf"]
+        assert blk == new["axes"][a]["controller"]["gtcf"]
+        assert (blk["gain_t"], blk["gain_n"]) == (g["gain_t"], g["gain_n"])
+        assert blk["partner"] == b and blk["v_min"] == raw["axes"][a]["controller"]["gtcf"]["v_min"]
+    for r in res:
+        m = tp["margins"][r["axis"]]
+        assert m["gm_db"] >= GM_MIN_DB and m["pm_deg"] >= PM_MIN_DEG and m["ms_db"] <= MS_MAX_DB, m
+        c2 = gtcf_tune.c2_gains(r)
+        L = c_frf("c2", dict(c2, k_s=c2["k_s"] * g["gain_n"]), r["ts"], r["w"], r["theta_hat0"]) * r["G_w"]
+        f = r["w"] / (2 * np.pi)
+        assert all(RULE.holds(loop_margins(s * L, f)) for s in SCALES)
+    # the choice is the first candidate (highest gain_n first) whose runs passed
+    tried = [(t, n) for t, n, *_ in tp["runs"]]
+    failed = {(t, n) for t, n, _, _, _, why in tp["runs"] if why}
+    order = tp["admissible"]
+    if (g["gain_t"], g["gain_n"]) != (1.0, 1.0):
+        assert (g["gain_t"], g["gain_n"]) in order and (g["gain_t"], g["gain_n"]) not in failed
+        assert set(order[:order.index((g["gain_t"], g["gain_n"]))]) <= failed
+    assert set(tried) <= set(order)
+    # deterministic: the margins and the chosen's run on the test contour come out the same again
+    pair = ("X", "Y")
+    c2 = {r["axis"]: gtcf_tune.c2_gains(r) for r in res}
+    for r in res:
+        assert gtcf_tune.axis_margins(r, c2[r["axis"]], g["gain_t"], g["gain_n"])[0] == tp["margins"][r["axis"]]
+    if tp["chosen"].get("contour") is not None:
+        again = gtcf_tune.contour_run(gtcf_tune.with_gains(raw, pair, c2, g["gain_t"], g["gain_n"]), src, pair, "gtcf",
+                                      0.01, 0.1)
+        for a in pair:
+            for k in ("saturated", "u_rest_rms_V", "u_peak_V", "osc_ratio", "fault"):
+                x, y = again[a][k], tp["chosen"]["contour"][a][k]
+                assert x == y or (x != x and y != y), (a, k, x, y)

@@ -1,5 +1,6 @@
 """``motorctl autotune``: measured frequency response → fitted model → gains by one rule →
-verified on the machine → ``DIR/autotuned.yaml`` and ``DIR/bode_<A>.png``
+verified on the machine → ``DIR/autotuned.yaml`` and ``DIR/bode_<A>.png`` (a GTCF pair's
+gain_t, gain_n too when both its axes are tuned with C2)
 (:mod:`motorctl.commission.autotune` has the procedure and the rule).
 
     motorctl autotune CONFIG --axis A [--axis B] [--out DIR] [--virtual-clock] [--verify-seconds S]
@@ -139,10 +140,15 @@ def cmd_autotune(args) -> int:
                              f"(kept as configured)\n")
             failed = True
     path = out / "autotuned.yaml"
+    pairs = []
     if not args.measure_only:
-        write_config(raw, results, args.config, path)
+        from motorctl.commission.autotune import autotune_pairs
+        pairs = autotune_pairs(loaded, raw, results, clock, say, rule, full_periods)
+        write_config(raw, results, args.config, path, pairs)
     if args.json:
-        print(json.dumps({"config": None if args.measure_only else str(path), "axes": summary}, default=float))
+        from motorctl.commission.gtcf_tune import summary as gtcf_summary
+        print(json.dumps({"config": None if args.measure_only else str(path), "axes": summary,
+                          "gtcf": [gtcf_summary(tp) for tp in pairs]}, default=float))
     else:
         for a, s in summary.items():
             m = s["model"]
@@ -152,6 +158,12 @@ def cmd_autotune(args) -> int:
             for law, mg in s["margins"].items():
                 print(f"  {law}: GM {mg['gm_db'] or math.inf:.1f} dB, PM {mg['pm_deg']:.1f} deg, |S| {mg['ms_db']:.1f} dB, "
                       f"crossover {mg['wc_hz']:.0f} Hz")
+        for tp in pairs:
+            g = tp["gains"]
+            print(f"gtcf {'-'.join(tp['pair'])}: gain_t {g['gain_t']:g}, gain_n {g['gain_n']:g} (contour direction: "
+                  f"k_s x {g['gain_n']:g}); " + "; ".join(
+                      f"{a} GM {m['gm_db']:.1f} dB, PM {m['pm_deg']:.1f} deg, |S| {m['ms_db']:.1f} dB"
+                      for a, m in tp["margins"].items()) + " (the worst over [gain_t, gain_n])")
         written = ([] if args.measure_only else [str(path)]) + [s["bode"] for s in summary.values() if s.get("bode")]
         print("wrote " + ", ".join(written))
     return 1 if failed else 0

@@ -110,7 +110,12 @@ Steps (any driver; the simulated one by default):
       100, 75 and 50 % of the raised gains, each screened on a short run and confirmed as in
       e.; the first step that fails or does not lower L2[e] ends it.
 
-5. **write** (:func:`write_config`, :func:`plot_bode`): ``DIR/autotuned.yaml`` (the gains,
+5. **a GTCF pair** (:func:`autotune_pairs`): when two tuned axes configure the contouring pair
+   law (``gtcf`` blocks naming each other) and C2 was tuned on both, its task-frame gains
+   ``gain_t``, ``gain_n`` by the same rule on those C2 gains
+   (:func:`motorctl.commission.gtcf_tune.tune_pair`).
+
+6. **write** (:func:`write_config`, :func:`plot_bode`): ``DIR/autotuned.yaml`` (the gains,
    commented with the margins that chose them) and ``DIR/bode_<A>.png``.
 """
 
@@ -223,6 +228,24 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
     return done | {"choice": choice, "verify": ver, "reference": ref, "gains": gains, "extra": extra}
 
 
+def autotune_pairs(loaded: LoadedConfig, raw: dict, results: list, clock: str = "virtual", progress=None,
+                   rule: Rule = RULE, full_periods: int = FULL_PERIODS) -> list:
+    """Step 5: GTCF's ``gain_t``, ``gain_n`` for every pair of ``results``' axes that configures
+    it (each ``gtcf.partner`` the other) and had C2 tuned here on both
+    (:func:`motorctl.commission.gtcf_tune.tune_pair`; ``full_periods``: program periods of its
+    program runs). Returns [tune_pair's result, ...] (empty: no such pair)."""
+    from motorctl.commission.gtcf_tune import pairs, tune_pair
+    by = {r["axis"]: r for r in results}
+    out = []
+    for a, b in pairs(loaded, list(by)):
+        if not all("c2" in by[x]["choice"] for x in (a, b)):
+            if progress:
+                progress(f"rule gtcf {a}-{b}: not tuned (c2 was not tuned on both axes)")
+            continue
+        out.append(tune_pair(loaded, raw, by[a], by[b], clock, progress, rule, full_periods))
+    return out
+
+
 def _fmt_gains(law: str, g: dict) -> str:
     return " ".join(f"{k} {g[k]:.4g}" for k in controller_class(law).tuned_keys if k in g)
 
@@ -234,10 +257,12 @@ def final_margins(res: dict) -> dict:
             for law, g in res["gains"].items()}
 
 
-def write_config(raw: dict, results: list, source: str, path) -> dict:
-    """Step 5: ``raw`` with every autotuned axis's gains (each law in its own mapping of the
-    ``controller:`` section), checked as check-config does, written to ``path`` with a comment
-    block per axis (model, rule, margins, verification).
+def write_config(raw: dict, results: list, source: str, path, pairs: list = ()) -> dict:
+    """Step 6: ``raw`` with every autotuned axis's gains (each law in its own mapping of the
+    ``controller:`` section) and each GTCF pair's ``gain_t``, ``gain_n`` (``pairs``:
+    :func:`autotune_pairs`' results, in both axes' ``gtcf`` blocks), checked as check-config
+    does, written to ``path`` with a comment block per axis (model, rule, margins,
+    verification) and per pair.
 
     Raises:
         ConfigError: the result does not pass the checks (nothing written). OSError.
@@ -276,6 +301,10 @@ def write_config(raw: dict, results: list, source: str, path) -> dict:
             if ex:                      # a law's settings from the fitted model (PID: its feedforward)
                 lines.append(f"#     from the fitted theta1 {mdl['theta1']:.4g}, theta2 {mdl['theta2']:.4g}, theta4 "
                              f"{mdl['theta4']:.4g}: " + ", ".join(f"{k} {float(x):.4g}" for k, x in ex.items()))
+    from motorctl.commission.gtcf_tune import apply_pair, comment_lines
+    for tp in pairs:
+        new = apply_pair(new, tp)
+        lines += comment_lines(tp)
     config_from_dict(new, str(path), check_budget=False)
     text = "\n".join(lines) + "\n" + yaml.safe_dump(new, sort_keys=False, default_flow_style=None)
     Path(path).write_text(text, encoding="utf-8")
@@ -290,7 +319,7 @@ def _phase_deg(H: np.ndarray) -> np.ndarray:
 
 
 def plot_bode(res: dict, path) -> str:
-    """Step 5: the Bode plot as PNG, over the measured band only (the first to the last line of
+    """Step 6: the Bode plot as PNG, over the measured band only (the first to the last line of
     the multisine), five panels sharing the frequency axis: |G| (the measured lines, those of
     coherence < :data:`COH_USED` drawn light: the rule takes the model there, and the fitted
     model), G's phase, the coherence r → e with that threshold, |L| of each law's written
