@@ -24,6 +24,19 @@ import time
 
 from motorctl.app.lifetime import die_with_parent
 
+#: each helper in a session of its own (``setsid``). With the kernel's autogroup
+#: (``CONFIG_SCHED_AUTOGROUP``, ``/proc/sys/kernel/sched_autogroup_enabled``) the scheduler shares
+#: the CPUs between sessions first and between a session's processes second: a helper left in
+#: the daemon's session shared one group's time with every CPU-bound process started from that
+#: session. Beside 4 such processes on 2 cores (and other sessions' work) the view and OPC UA
+#: processes waited for a CPU about 30 times as long as they ran (0.93 and 0.88 s per second
+#: against 0.03) and answered in up to 6.6 and 10 s; in sessions of their own every page, read
+#: and scrape answered within 0.71 s (benchmarks/bench_factory.py, docs/benchmarks.md
+#: 2026-11-28). Without autogroup, or under a systemd unit's cgroup (which the scheduler groups
+#: by instead), it changes nothing. A helper still ends with the I/O process (EOF on its link,
+#: ``PR_SET_PDEATHSIG``) and ignores the signals a process group would get.
+OWN_SESSION = True
+
 
 def fork_helper(what: str, main, buffer_bytes: int | None = None) -> tuple[socket.socket, int] | None:
     """Fork a helper that runs ``main(sock, parent_pid)`` (its end of the pair) and exits with
@@ -68,12 +81,17 @@ def fork_helper(what: str, main, buffer_bytes: int | None = None) -> tuple[socke
 
 def helper_started(parent_pid: int, nice: int) -> None:
     """First thing in a helper: SIGKILL when the I/O process ``parent_pid`` dies, SIGINT and
-    SIGHUP ignored (the daemon's own, sent to the process group), SIGTERM ends it, niceness
-    ``nice`` (kept where it is not permitted)."""
+    SIGHUP ignored (the daemon's own, sent to the process group), SIGTERM ends it, a session of
+    its own (:data:`OWN_SESSION`), niceness ``nice`` (kept where it is not permitted)."""
     die_with_parent(parent_pid, signal.SIGKILL)
     for s in (signal.SIGINT, signal.SIGHUP):
         signal.signal(s, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if OWN_SESSION:
+        try:
+            os.setsid()
+        except OSError:
+            pass
     try:
         os.setpriority(os.PRIO_PROCESS, 0, nice)
     except OSError:
