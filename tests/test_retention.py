@@ -215,7 +215,8 @@ def test_daemon_rotates_within_its_budget_keeps_every_event_and_reports_it(tmp_p
     assert peak <= budget and _dir_bytes(logs) <= budget, (peak, budget)
     assert ret["budget_bytes"] == budget and 0 < ret["kept_bytes"] <= budget
     assert ret["dropped_segments"] >= 5 and ret["kept_events"] >= 2
-    assert 0.5 < ret["bytes_per_s"] / ret["row_bytes_per_s"] < 2.0, ret
+    # per second of the run's own time: the rows' bytes and the segments' headers, whatever the host
+    assert 1.0 <= ret["bytes_per_s"] / ret["row_bytes_per_s"] < 1.5, ret
     # 8-byte floats, one row of the daemon's axes' record per cycle at 5 kHz
     assert ret["row_bytes_per_s"] == 8 * len(columns_for(list(st["axes"]))) * 5000
     assert ret["days_at_budget"] == pytest.approx(

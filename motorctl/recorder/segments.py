@@ -346,12 +346,16 @@ class Retention:
             self.prune()
 
     def figures(self) -> dict:
-        """For ``status``: the rate the run writes [bytes/s, measured], the records' rate
-        [bytes/s], what is kept against the budget [bytes], and how many days of routine
-        rows the budget holds at the records' rate next to the event logs kept now
-        (``days_at_budget``, at most ``max_age_s``)."""
+        """For ``status``: the rate the run writes [bytes/s, measured: the bytes written over
+        the run's time, its rows at the records' rate, so that the start-up and a loaded host
+        do not move it], the records' rate [bytes/s], what is kept against the budget [bytes],
+        and how many days of routine rows the budget holds at the records' rate next to the
+        event logs kept now (``days_at_budget``, at most ``max_age_s``)."""
         w = self.writer
-        up = max(time.monotonic() - self.started, 1e-9)
+        if w is not None and self.row_bytes_per_s > 0:
+            up = max(w.rows_written * w.rec / self.row_bytes_per_s, 1e-9)
+        else:
+            up = max(time.monotonic() - self.started, 1e-9)
         room = max(self.budget_bytes - self.kept_event_bytes, self.segment_bytes)
         days = (min(room / self.row_bytes_per_s, self.max_age_s) / 86400.0
                 if self.row_bytes_per_s > 0 else 0.0)
