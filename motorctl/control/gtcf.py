@@ -229,7 +229,8 @@ class GTCF(DCDIARC):
 
     @classmethod
     def gain_family(cls, theta1, settings, omegas, zetas=None):
-        """None: autotune tunes C2 (whose k_s, k1, γ_d GTCF uses) and leaves gain_t, gain_n."""
+        """None: autotune tunes C2 per axis (whose k_s, k1, γ_d GTCF uses); the pair's gain_t, gain_n
+        are chosen after both axes by :mod:`motorctl.commission.gtcf_tune` (C2's rule)."""
         return []
 
     @classmethod
