@@ -62,9 +62,11 @@ def sat_dispersion(sat: np.ndarray) -> float:
     return float(np.sum(c * c) / np.sum(c)) if c.size else 1.0
 
 
-def run_metrics(log_path: str, loaded: LoadedConfig, axis: str) -> dict:
+def run_metrics(log_path: str, loaded: LoadedConfig, axis: str, program_only: bool = True) -> dict:
     """The commissioning's figures of one axis from a run log, over its enabled cycles of the
-    program (:meth:`motorctl.recorder.runlog.RunLog.program_rows`: not the approach).
+    program (:meth:`motorctl.recorder.runlog.RunLog.program_rows`: not the approach), or over
+    every enabled cycle with ``program_only`` False (a circle-test's log: the hold, the G0
+    approach, the circles and the dwells).
 
     Returns:
         {"saturated": samples at |u| = u_lim, "sat_dispersion" (:func:`sat_dispersion`),
@@ -73,14 +75,15 @@ def run_metrics(log_path: str, loaded: LoadedConfig, axis: str) -> dict:
         "u_rest_first_V" and "u_rest_later_V" (u RMS at rest over the
         first program period and over the others: an adaptive law's first period, θ̂ still
         moving, is noisier; nan with none), "osc_ratio",
-        "osc_hz" (:func:`oscillation_ratio`), "e_psd": (f (M,) [Hz], S_ee (M,) [m²/Hz])}.
+        "osc_hz" (:func:`oscillation_ratio`), "e_psd": (f (M,) [Hz], S_ee (M,) [m²/Hz]),
+        and with ``program_only`` False "u_peak_V" [V]}.
     Raises:
         LogError: the log cannot be read. KeyError: the axis is not in it.
     """
     log = read_log(log_path)
     a = log.axis(axis)
     on = a["enabled"] > 0.5 if "enabled" in a else np.ones(a["e"].size, bool)
-    prog = log.program_rows(axis)
+    prog = log.program_rows(axis) if program_only else None
     if prog is not None:
         on &= prog
     e, u = a["e"][on], a["u"][on]
@@ -90,6 +93,8 @@ def run_metrics(log_path: str, loaded: LoadedConfig, axis: str) -> dict:
     sat = np.abs(u) >= u_lim * (1.0 - 1e-12)
     out = {"saturated": int(np.sum(sat)), "sat_dispersion": sat_dispersion(sat), "samples": int(e.size),
            "u_rest_rms_V": u_rest_rms(u, rest)}
+    if not program_only:             # (a job's u_peak_V is its own, over the whole run)
+        out["u_peak_V"] = float(np.max(np.abs(u))) if u.size else math.nan
     n1 = int(round(loaded.axes[axis].trajectory.period_s / ts)) or e.size
     out["period_samples"] = n1
     out["sat_first"] = int(np.sum(sat[:n1]))

@@ -51,7 +51,6 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from scipy import signal
 
 from motorctl.commission.choose import _sensitivity2, margins_hold, rest_noise
 from motorctl.commission.loopshape import c_frf, loop_margins
@@ -141,28 +140,13 @@ def axis_margins(res: dict, g_c2: dict, g_t: float, g_n: float, rule: Rule = RUL
 
 
 def contour_metrics(log_path: str, loaded: LoadedConfig, axis: str) -> dict:
-    """The commissioning's figures of one axis from a circle-test log (its every enabled row:
-    the hold, the G0 approach, the circles and the dwells), as
-    :func:`motorctl.commission.evaluate.run_metrics` gives them for a program run: "saturated"
-    (samples at |u| = u_lim), "sat_dispersion", "samples", "u_rest_rms_V" (u RMS about its mean
-    at rest, nan with none), "osc_ratio", "osc_hz", "e_psd" (f (M,) [Hz], S_ee (M,) [m²/Hz]),
-    "u_peak_V" [V]. Raises LogError, KeyError as run_metrics."""
-    from motorctl.commission.evaluate import e_segment, oscillation_ratio, sat_dispersion
-    from motorctl.metrics import REST_AFTER_S, rest_mask, u_rest_rms
-    from motorctl.recorder.runlog import read_log
-    log = read_log(log_path)
-    a = log.axis(axis)
-    on = a["enabled"] > 0.5 if "enabled" in a else np.ones(a["e"].size, bool)
-    e, u = a["e"][on], a["u"][on]
-    ts = loaded.period_s
-    rest = rest_mask(a["xd_dot"][on], a["xd_ddot"][on], ts, REST_AFTER_S)
-    u_lim = loaded.axes[axis].controller.u_lim
-    sat = np.abs(u) >= u_lim * (1.0 - 1e-12)
-    out = {"saturated": int(np.sum(sat)), "sat_dispersion": sat_dispersion(sat), "samples": int(e.size),
-           "u_rest_rms_V": u_rest_rms(u, rest), "u_peak_V": float(np.max(np.abs(u))) if u.size else math.nan}
-    out["osc_ratio"], out["osc_hz"] = oscillation_ratio(u, rest, ts)
-    out["e_psd"] = signal.welch(e, fs=1.0 / ts, nperseg=e_segment(e.size), detrend="linear")
-    return out
+    """The commissioning's figures of one axis from a circle-test log, over its every enabled
+    row (the hold, the G0 approach, the circles and the dwells):
+    :func:`motorctl.commission.evaluate.run_metrics` with ``program_only`` False ("saturated",
+    "sat_dispersion", "samples", "u_rest_rms_V", "osc_ratio", "osc_hz", "e_psd", "u_peak_V" [V],
+    ...). Raises LogError, KeyError as run_metrics."""
+    from motorctl.commission.evaluate import run_metrics
+    return run_metrics(log_path, loaded, axis, program_only=False)
 
 
 def with_gains(raw: dict, pair, g_c2: dict, g_t: float, g_n: float, scale: float = 1.0) -> dict:
