@@ -53,7 +53,8 @@ from motorctl.inputs import InputError
 #: the nominal parameters written (physical name, index in θ): values g·θ with g the force gain
 #: A1 [N/V] when the log's header gives it (else 1, the values in V: ``force_unit``)
 PARAMETERS = (("mass_kg", 0), ("viscous_N_s_per_m", 1), ("coulomb_N", 2), ("offset_N", 3))
-#: the two-sided 95 % normal quantile: a parameter's interval is value ± Z95·σ̂ of its fit
+#: the two-sided 95 % normal quantile: a parameter's interval is value ± Z95·σ̂, σ̂ identify's Newey-West
+#: theta_std of the fit (motorctl.ident.uncertainty)
 Z95 = 1.959963984540054
 #: run-log file names looked for in a folder
 LOG_SUFFIXES = (".mclog", ".log")
@@ -262,7 +263,7 @@ def identify_window(url: str, sha256: str, machine: str, started: str, axis: str
         return {"url": url, "error": _one_line(exc, url)}
     src = values_from(idf)
     nt = idf.n_theta
-    coef, std = np.asarray(src.final.fit.coef[:nt], float), np.asarray(src.final.fit.std[:nt], float)
+    coef, std = np.asarray(src.final.fit.coef[:nt], float), np.asarray(s["augmented"]["theta_std"], float)  # Newey-West σ
     g = float(rec.gain) if rec.gain else 1.0
     start = _iso_utc(started)
     offset = float(rec.t[0]) if t0 is None else float(t0)

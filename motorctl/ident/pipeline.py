@@ -19,6 +19,7 @@ from threadpoolctl import threadpool_limits
 from motorctl.ident import effects as fx
 from motorctl.ident.idim import RAIL_MIN_S
 from motorctl.ident.select import MAX_EFFECTS, Identifier, refused_on_physics
+from motorctl.ident.uncertainty import fit_uncertainty
 from motorctl.model import THETA_NAMES
 from motorctl.recorder.runlog import LogError
 
@@ -45,6 +46,9 @@ def summarise(idf: Identifier) -> dict:
     unit = "N" if rec.gain else "V"
     nt = idf.n_theta
     nom = idf.nominal
+    # the σ of every value from the residual's own correlation (Newey-West; the white formula's
+    # σ̂²(ΦᵀΦ)⁻¹ kept beside it as theta_std_white): motorctl.ident.uncertainty
+    nom_unc = _uncertainty(idf, nom, [], None)
     out = {
         "source": rec.source,
         "axis": rec.axis or None,
@@ -57,7 +61,9 @@ def summarise(idf: Identifier) -> dict:
         "gain_N_per_V": rec.gain,
         "nominal": {
             "theta": [float(v) for v in nom.fit.coef[:nt]],
-            "theta_std": [float(v) for v in nom.fit.std[:nt]],
+            "theta_std": [float(v) for v in nom_unc["theta_std"]],
+            "theta_ci95": nom_unc["theta_ci95"],
+            "theta_std_white": nom_unc["theta_std_white"],
             "theta_names": list(THETA_NAMES[:nt]),
             "n_theta": nt,
             "n_theta_reason": idf.n_theta_reason,
@@ -79,20 +85,34 @@ def summarise(idf: Identifier) -> dict:
     th, _ = idf.coef_split(idf.final, idf.terms)
     src = values_from(idf)
     th_v, betas = src.coef_split(src.final, src.terms)
+
+    def params_of(term, h, beta):
+        return fx.parameters(term.family, h, beta, rec.gain, src.p.fs, theta=th_v, p=src.p, ctx=src)
+    unc = _uncertainty(src, src.final, src.terms, params_of)
     effects = []
-    for (ev, before), term, beta in zip(idf.accepted, src.terms, betas):
+    for (ev, before), term, beta, eu in zip(idf.accepted, src.terms, betas, unc["effects"]):
         effects.append({
             "name": term.family,
-            "parameters": fx.parameters(term.family, term.h, beta, rec.gain, src.p.fs, theta=th_v,
-                                        p=src.p, ctx=src),
+            "parameters": params_of(term, term.h, beta),
+            # σ and 95 % interval of each named parameter (those a number; delta method on the
+            # Newey-West covariance of β and the searched h: motorctl.ident.uncertainty)
+            "parameters_std": eu["std"],
+            "parameters_ci95": eu["ci95"],
             "heldout_rms_before": g * before,
             "heldout_rms_after": g * ev.heldout_rms,
             "heldout_gain_percent": 100 * ev.gain,
             "cannot_be_told_from": [{"name": n, "heldout_gain_percent": 100 * gn} for n, gn in ev.rivals],
         })
     out["effects"] = effects
+    # theta_std / theta_ci95: of the values the effects' parameters come from (values_from)
     out["augmented"] = {"theta": [float(v) for v in th], "residual_rms": g * idf.final.fit.rms,
-                        "heldout_rms": g * idf.final.heldout_rms}
+                        "heldout_rms": g * idf.final.heldout_rms,
+                        "theta_values": [float(v) for v in th_v],
+                        "theta_std": unc["theta_std"], "theta_ci95": unc["theta_ci95"],
+                        "theta_std_white": unc["theta_std_white"]}
+    out["uncertainty"] = {"method": "Newey-West HAC covariance (Bartlett kernel, Andrews' AR(1) bandwidth); "
+                                    "95 % interval = value -+ 1.96 sigma; a bias of the model is not covered",
+                          "lag_samples": unc["lag_samples"], "nominal_lag_samples": nom_unc["lag_samples"]}
     # the effects' values (and the compensation's) taken again on the declared current loop's model
     out["refit"] = None if src is idf else {
         "families": src.refit_families,
@@ -111,6 +131,11 @@ def summarise(idf: Identifier) -> dict:
           "accepted": c.ok, "selected": any(c is e for e in chosen), "reasons": c.reasons} for c in step]
         for step in idf.steps]
     out["eliminated"] = [{"name": n, "reason": why} for n, why in getattr(idf, "eliminated", [])]
+    # searched parameters the joint refit after the selection moved (select.Identifier.joint_refit)
+    out["joint_refit"] = [{"name": n, "searched_before": _r(h0), "searched_after": _r(h1)}
+                          for n, h0, h1 in getattr(idf, "joint_moved", [])]
+    out["harmonics_cut"] = [{"name": n, "harmonics_kept": k, "heldout_gain_percent": 100 * gn}
+                            for n, k, gn in getattr(idf, "harmonics_cut", [])]
     # failed in the final model, searched again there and kept with another searched parameter
     out["researched"] = [{"name": n, "reason": why, "searched_before": _r(h0), "searched_after": _r(h1)}
                          for n, why, h0, h1 in getattr(idf, "researched", [])]
@@ -124,6 +149,20 @@ def summarise(idf: Identifier) -> dict:
     from motorctl.ident.ambiguity import summaries
     out["ambiguous"] = summaries(idf, getattr(idf, "ambiguous", []), rec.gain, unit)
     return out
+
+
+def _uncertainty(idf: Identifier, ev, terms: list, params_of) -> dict:
+    """:func:`~motorctl.ident.uncertainty.fit_uncertainty` of a fit; a regressor it cannot take
+    (degenerate) gives the white formula's σ for θ and no effect intervals, lag_samples None."""
+    try:
+        return fit_uncertainty(idf, ev, terms, params_of)
+    except (ValueError, np.linalg.LinAlgError):
+        from motorctl.ident.uncertainty import ci95
+        nt = idf.n_theta
+        sd = [float(v) for v in ev.fit.std[:nt]]
+        return {"theta_std": sd, "theta_std_white": sd, "lag_samples": None,
+                "theta_ci95": [ci95(float(v), s) for v, s in zip(ev.fit.coef[:nt], sd)],
+                "effects": [{"std": {}, "ci95": {}} for _ in terms]}
 
 
 def values_from(idf: Identifier) -> Identifier:
@@ -433,6 +472,15 @@ def saturation_note(sat: dict | None) -> str | None:
             "moves the amplifier can follow (a lower trajectory a_max or j_max).")
 
 
+def _interval(ci) -> str:
+    """A [lo, hi] pair, or a list of them, as text."""
+    if ci and isinstance(ci[0], (list, tuple)):
+        return "[" + ", ".join(_interval(c) for c in ci) + "]"
+    if not ci or ci[0] is None:
+        return "-"
+    return f"[{ci[0]:.5g}, {ci[1]:.5g}]"
+
+
 def text_report(s: dict) -> str:
     u = s["residual_unit"]
     n = s["nominal"]
@@ -444,8 +492,8 @@ def text_report(s: dict) -> str:
              f"({s['filters'].get('zoh_source', '')})",
              f"nominal model: {n['n_theta_reason']}",
              f"  condition number {n['condition_number']:.1f}"]
-    for name, v, sd in zip(n["theta_names"], n["theta"], n["theta_std"]):
-        lines.append(f"  {name} = {v:.6g} +- {sd:.2g}")
+    for name, v, sd, ci in zip(n["theta_names"], n["theta"], n["theta_std"], n["theta_ci95"]):
+        lines.append(f"  {name} = {v:.6g} +- {sd:.2g} (95 %: {_interval(ci)})")
     if "physical" in n:
         ph = n["physical"]
         lines.append("  physical: " + ", ".join(f"{k} {v:.4g}" for k, v in ph.items() if "offset" not in k))
@@ -466,10 +514,18 @@ def text_report(s: dict) -> str:
                  f"; searched parameter {e['searched_before']:.4g} -> {e['searched_after']:.4g}")
         lines.append(f"  selected, then searched again with the later effects in the model and kept: {e['name']} "
                      f"({e['reason']}{moved})")
+    for e in s.get("joint_refit", []):
+        lines.append(f"  refitted jointly with the other effects: {e['name']} (searched parameter "
+                     f"{e['searched_before']:.5g} -> {e['searched_after']:.5g})")
+    for e in s.get("harmonics_cut", []):
+        lines.append(f"  {e['name']}: harmonics above the first left out (they lower the held-out RMS by "
+                     f"{e['heldout_gain_percent']:.2f} %, under 1 %)")
     if s.get("cut_by_limit"):
         lines.append(f"  not taken, the limit of {MAX_EFFECTS} effects reached: " + ", ".join(s["cut_by_limit"]))
     for e in s["effects"]:
         lines.append(f"effect found: {e['name']}: " + ", ".join(f"{k} {v}" for k, v in e["parameters"].items()))
+        if e.get("parameters_ci95"):
+            lines.append("  95 % intervals: " + ", ".join(f"{k} {_interval(v)}" for k, v in e["parameters_ci95"].items()))
         lines.append(f"  held-out RMS {e['heldout_rms_before']:.4g} -> {e['heldout_rms_after']:.4g} {u}")
         for r in e.get("cannot_be_told_from", []):
             lines.append(f"  NOTE: this record cannot tell it from {r['name']} (held-out gain "
@@ -480,6 +536,11 @@ def text_report(s: dict) -> str:
         lines.extend(text_lines(s["ambiguous"]))
     a = s["augmented"]
     lines.append(f"augmented model: residual RMS {a['residual_rms']:.4g} {u}, held-out RMS {a['heldout_rms']:.4g} {u}")
+    if a.get("theta_ci95"):
+        lines.append("  " + ", ".join(f"{name} {v:.6g} +- {sd:.2g} (95 %: {_interval(ci)})" for name, v, sd, ci in
+                                      zip(n["theta_names"], a["theta_values"], a["theta_std"], a["theta_ci95"])))
+        lines.append("  (sigma from the residual's own correlation, Newey-West; a bias of the model, the same on "
+                     "every record, is not in it: docs/identification.md, \"Uncertainty\")")
     if s.get("refit"):
         r = s["refit"]
         how = []
@@ -556,6 +617,9 @@ def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
         with quiet():
             idf = Identifier(rec, n_theta=n_theta, friction=friction, zoh_delay=zoh_delay,
                              on_nominal=on_nominal, current_loop=current_loop).run()
+            # the selected effects' searched parameters taken again jointly, each with all the
+            # others in the model (select.Identifier.joint_refit)
+            idf.joint_refit()
             # the selected effects' values on the declared current loop's model (None: not needed),
             # and those the more exact model does not confirm dropped
             idf.refitted = idf.refit()

@@ -1,0 +1,148 @@
+"""``motorctl identify``'s intervals (motorctl.ident.uncertainty) and the joint refit of the
+selected effects (Identifier.joint_refit; docs/identification.md, "Uncertainty" and "Two effects
+at once").
+
+One 20 s log of the default plant (configs/gantry.yaml: mode, current loop, stiction, noise) with
+two undeclared effects, cogging of one harmonic at a 17 mm period and a drifting force constant,
+identified once per module; the estimator itself on a regression with an AR(1) error. Seeds fixed.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from motorctl.commission.tune import make_log
+from motorctl.ident.data import load_record
+from motorctl.ident.pipeline import identify_record, text_report, values_from
+from motorctl.ident.uncertainty import Z95, fit_uncertainty, hac_covariance, white_covariance
+from motorctl.ident import effects as fx
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT = str(ROOT / "configs" / "gantry.yaml")
+PAIR = {"cogging": {"amplitudes_N": [12.0], "period_m": 0.017, "phases_rad": [0.3]},
+        "force_constant_drift": {"drift_per_s": -0.01}}
+#: the default plant's X axis: M/A1, B/A1, Af/A1, offset/A1 (configs/gantry.yaml)
+THETA_TRUE = (12.8 / 80.0, 17.6 / 80.0, 20.0 / 80.0, -4.0 / 80.0)
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    log = tmp_path_factory.mktemp("coverage") / "cogging17_drift.mclog"
+    make_log(str(log), PAIR, duration_s=20.0, seed=1, axis="X", noise_N=None, base=DEFAULT)
+    rec = load_record(str(log), axis="X")
+    idf, s = identify_record(rec)
+    return rec, idf, s
+
+
+def _effect(s, name):
+    return next((e for e in s["effects"] if e["name"] == name), None)
+
+
+# ---------------------------------------------------------------------------- the estimator
+def _ar1_fits(n_rep=200, m=2000, rho=0.95, seed=7):
+    """(errors, white σ, HAC σ) of the slope of y = 1 + 0.5 sin(2π t / 4) + e, e AR(1)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(m) / 250.0
+    phi = np.column_stack([np.ones(m), np.sin(2 * np.pi * t / 4.0)])
+    err, sw, sh = [], [], []
+    for _ in range(n_rep):
+        w = rng.standard_normal(m)
+        e = np.empty(m)
+        e[0] = w[0]
+        for i in range(1, m):
+            e[i] = rho * e[i - 1] + w[i]
+        y = phi @ np.array([1.0, 0.5]) + e
+        coef = np.linalg.lstsq(phi, y, rcond=None)[0]
+        r = y - phi @ coef
+        err.append(coef[1] - 0.5)
+        sw.append(np.sqrt(white_covariance(phi, r)[1, 1]))
+        sh.append(np.sqrt(hac_covariance(phi, r, 250.0)[0][1, 1]))
+    return np.array(err), np.array(sw), np.array(sh)
+
+
+def test_hac_covers_a_coloured_residual_the_white_formula_does_not():
+    err, sw, sh = _ar1_fits()
+    white = np.mean(np.abs(err) <= Z95 * sw)
+    hac = np.mean(np.abs(err) <= Z95 * sh)
+    assert white < 0.6, white            # σ²(ΦᵀΦ)⁻¹ ignores the correlation
+    assert hac >= 0.85, hac
+    # on fits where the white interval misses the truth, the HAC one holds it on most
+    missed = np.abs(err) > Z95 * sw
+    assert missed.sum() > 50
+    assert np.mean(np.abs(err[missed]) <= Z95 * sh[missed]) >= 0.75
+
+
+def test_hac_does_not_inflate_a_white_residual():
+    rng = np.random.default_rng(3)
+    m = 3000
+    phi = np.column_stack([np.ones(m), np.sin(np.arange(m) / 40.0), rng.standard_normal(m)])
+    r = rng.standard_normal(m)
+    ratio = np.sqrt(np.diag(hac_covariance(phi, r, 250.0)[0]) / np.diag(white_covariance(phi, r)))
+    assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
+
+
+def test_hac_rejects_mismatched_lengths():
+    with pytest.raises(ValueError):
+        hac_covariance(np.ones((10, 2)), np.ones(9), 100.0)
+
+
+# ---------------------------------------------------------------------------- on a log
+def test_json_and_text_carry_the_intervals(pair):
+    _, _, s = pair
+    s = json.loads(json.dumps(s, default=float))
+    for part in (s["nominal"], s["augmented"]):
+        n = len(part["theta_std"])
+        assert len(part["theta_ci95"]) == n == len(part["theta_std_white"])
+        vals = part["theta"] if part is s["nominal"] else part["theta_values"]
+        for v, sd, (lo, hi) in zip(vals, part["theta_std"], part["theta_ci95"]):
+            assert sd > 0 and lo < v < hi
+            assert hi - lo == pytest.approx(2 * Z95 * sd, rel=1e-9)
+    cog = _effect(s, "cogging")
+    assert cog is not None
+    lo, hi = cog["parameters_ci95"]["period_m"]
+    assert lo < cog["parameters"]["period_m"] < hi
+    assert set(cog["parameters_std"]) == set(cog["parameters_ci95"])
+    assert s["uncertainty"]["lag_samples"] >= 1
+    text = text_report(s)
+    assert "(95 %: [" in text and "95 % intervals: period_m [" in text
+
+
+def test_new_interval_holds_the_truth_where_the_white_one_did_not(pair):
+    rec, idf, s = pair
+    src = values_from(idf)
+    th_v = src.coef_split(src.final, src.terms)[0]
+
+    def params_of(t, h, b):
+        return fx.parameters(t.family, h, b, rec.gain, src.p.fs, theta=th_v, p=src.p, ctx=src)
+    white = fit_uncertainty(src, src.final, src.terms, params_of, white=True)
+    a = s["augmented"]
+    rows = [(f"theta{i + 1}", THETA_TRUE[i], a["theta_ci95"][i],
+             [a["theta_values"][i] - Z95 * a["theta_std_white"][i], a["theta_values"][i] + Z95 * a["theta_std_white"][i]])
+            for i in range(1, 4)]          # θ1 is left out: the drift changes what it means over the record
+    k = [t.family for t in src.terms].index("cogging")
+    rows.append(("cogging amplitude", 12.0, _effect(s, "cogging")["parameters_ci95"]["amplitudes_N"][0],
+                 white["effects"][k]["ci95"]["amplitudes_N"][0]))
+
+    def inside(ci, v):
+        return ci[0] <= v <= ci[1]
+    gained = [name for name, v, new, old in rows if inside(new, v) and not inside(old, v)]
+    lost = [name for name, v, new, old in rows if inside(old, v) and not inside(new, v)]
+    assert gained, rows
+    assert not lost, rows
+
+
+def test_two_effects_fitted_jointly_within_ten_percent(pair):
+    _, _, s = pair
+    cog, drift = _effect(s, "cogging"), _effect(s, "force_constant_drift")
+    assert cog is not None and drift is not None, [e["name"] for e in s["effects"]]
+    assert cog["parameters"]["period_m"] == pytest.approx(0.017, rel=0.01)      # not a side lobe (17.80 mm)
+    assert cog["parameters"]["amplitudes_N"][0] == pytest.approx(12.0, rel=0.10)
+    assert drift["parameters"]["drift_per_s"] == pytest.approx(-0.01, rel=0.10)
+    # one harmonic injected: the second is not kept where the held-out data does not support it
+    assert len(cog["parameters"]["amplitudes_N"]) == 1
+    assert any(e["name"] == "cogging" for e in s["harmonics_cut"])
+    assert any(e["name"] == "cogging" for e in s["joint_refit"])
