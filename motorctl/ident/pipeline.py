@@ -515,8 +515,10 @@ def text_report(s: dict) -> str:
         lines.append(f"  selected, then searched again with the later effects in the model and kept: {e['name']} "
                      f"({e['reason']}{moved})")
     for e in s.get("joint_refit", []):
-        lines.append(f"  refitted jointly with the other effects: {e['name']} (searched parameter "
-                     f"{e['searched_before']:.5g} -> {e['searched_after']:.5g})")
+        h0, h1 = e["searched_before"], e["searched_after"]
+        how = ("its column's shape taken again" if h0 is None or h1 is None or h0 == h1
+               else f"searched parameter {h0:.5g} -> {h1:.5g}")
+        lines.append(f"  refitted jointly with the other effects: {e['name']} ({how})")
     for e in s.get("harmonics_cut", []):
         lines.append(f"  {e['name']}: harmonics above the first left out (they lower the held-out RMS by "
                      f"{e['heldout_gain_percent']:.2f} %, under 1 %)")
