@@ -91,9 +91,8 @@ def one(plant: str, fragment: dict, label: str, seed: int, out: str) -> dict:
     """Log, identify and compare one fit; returns its rows (parameter, truth, value, old and
     new interval) and identify's CPU time."""
     from motorctl.commission.tune import make_log
-    from motorctl.ident import effects as fx
     from motorctl.ident.data import load_record
-    from motorctl.ident.pipeline import identify_record, values_from
+    from motorctl.ident.pipeline import identify_record, values_and_parameters
     from motorctl.ident.uncertainty import ci95, fit_uncertainty
     from motorctl.recorder.runlog import LogError
 
@@ -108,11 +107,7 @@ def one(plant: str, fragment: dict, label: str, seed: int, out: str) -> dict:
         return {"plant": plant, "label": label, "seed": seed, "rows": [], "error": str(exc), "cpu_s": 0.0,
                 "effects": []}
     cpu = time.process_time() - t0
-    src = values_from(idf)
-    th_v = src.coef_split(src.final, src.terms)[0]
-
-    def params_of(term, h, beta):
-        return fx.parameters(term.family, h, beta, rec.gain, src.p.fs, theta=th_v, p=src.p, ctx=src)
+    src, params_of = values_and_parameters(idf, rec.gain)
     white = fit_uncertainty(src, src.final, src.terms, params_of, white=True)
     a = s["augmented"]
     truth = true_theta(config)

@@ -17,9 +17,8 @@ import pytest
 
 from motorctl.commission.tune import make_log
 from motorctl.ident.data import load_record
-from motorctl.ident.pipeline import identify_record, text_report, values_from
+from motorctl.ident.pipeline import identify_record, text_report, values_and_parameters
 from motorctl.ident.uncertainty import Z95, fit_uncertainty, hac_covariance, white_covariance
-from motorctl.ident import effects as fx
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT = str(ROOT / "configs" / "gantry.yaml")
@@ -113,11 +112,7 @@ def test_json_and_text_carry_the_intervals(pair):
 
 def test_new_interval_holds_the_truth_where_the_white_one_did_not(pair):
     rec, idf, s = pair
-    src = values_from(idf)
-    th_v = src.coef_split(src.final, src.terms)[0]
-
-    def params_of(t, h, b):
-        return fx.parameters(t.family, h, b, rec.gain, src.p.fs, theta=th_v, p=src.p, ctx=src)
+    src, params_of = values_and_parameters(idf, rec.gain)
     white = fit_uncertainty(src, src.final, src.terms, params_of, white=True)
     a = s["augmented"]
     rows = [(f"theta{i + 1}", THETA_TRUE[i], a["theta_ci95"][i],

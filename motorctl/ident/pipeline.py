@@ -83,11 +83,8 @@ def summarise(idf: Identifier) -> dict:
                                       "coulomb_N": g * th[2], "F_offset_N": -g * th[3],
                                       "offset_N": g * th[3]}
     th, _ = idf.coef_split(idf.final, idf.terms)
-    src = values_from(idf)
+    src, params_of = values_and_parameters(idf, rec.gain)
     th_v, betas = src.coef_split(src.final, src.terms)
-
-    def params_of(term, h, beta):
-        return fx.parameters(term.family, h, beta, rec.gain, src.p.fs, theta=th_v, p=src.p, ctx=src)
     unc = _uncertainty(src, src.final, src.terms, params_of)
     effects = []
     for (ev, before), term, beta, eu in zip(idf.accepted, src.terms, betas, unc["effects"]):
@@ -171,6 +168,19 @@ def values_from(idf: Identifier) -> Identifier:
     refit` ran (``idf.refitted``), else ``idf`` itself. Selection, held-out gains and the
     residual verdict are always ``idf``'s."""
     return idf if idf.refitted is None else idf.refitted
+
+
+def values_and_parameters(idf: Identifier, gain: float):
+    """(:func:`values_from` of ``idf``, its ``params_of(term, h, beta)``: an effect's named
+    parameters in physical units, :func:`motorctl.effects.parameters` on the values' fit, with
+    the record's ``gain`` [N/V])); what :func:`~motorctl.ident.uncertainty.fit_uncertainty`
+    takes as ``params_of``."""
+    src = values_from(idf)
+    th_v = src.coef_split(src.final, src.terms)[0]
+
+    def params_of(term, h, beta):
+        return fx.parameters(term.family, h, beta, gain, src.p.fs, theta=th_v, p=src.p, ctx=src)
+    return src, params_of
 
 
 def add_refused(verdict: dict, last_step: list, chosen: list, idf: Identifier | None = None) -> None:
@@ -698,4 +708,4 @@ def json_default(o):
 
 __all__ = ["BOX_MARGIN", "SATURATION_NOTE_SHARE", "SIM_WINDOW_S", "check_physical", "compensation_from_fit", "fig",
            "identify_record", "json_default", "saturation_note", "set_theta0", "summarise", "text_report",
-           "tuned_config", "validation", "values_from", "write_tuned_config"]
+           "tuned_config", "validation", "values_and_parameters", "values_from", "write_tuned_config"]
