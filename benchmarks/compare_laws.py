@@ -111,7 +111,7 @@ def search(raw, source, seconds, reference):
         sec = loaded.axes[axis].controller
         ts = loaded.period_s
         meas = measure_frf(config_from_dict(ref_raw, reference), ref_raw, axis)
-        model = fit_plant(meas["f_hz"], meas["G"], meas["coherence"], ts, sec.theta_hat0)
+        model = fit_plant(meas["f_hz"], meas["G"], meas["coherence"], ts, sec.theta_hat0, meas.get("u_cov"))
         w, _, G_w = loop_frf(meas, model, ts)
         ref = evaluate(ref_raw, reference, axis, ref_raw["axes"][axis]["controller"].get("type", "c2"),
                        seconds)

@@ -162,7 +162,7 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
         why = meas["fault"] or ("the excitation guard fired (|e| reached "
                                 f"{meas['guard_m'] * 1e6:.0f} um)" if meas["tripped"] else "too short")
         raise AutotuneError(f"axis {axis}: the measurement stopped: {why}")
-    model = fit_plant(meas["f_hz"], meas["G"], meas["coherence"], ts, sec.theta_hat0)
+    model = fit_plant(meas["f_hz"], meas["G"], meas["coherence"], ts, sec.theta_hat0, meas.get("u_cov"))
     fric = measure_friction(loaded, raw, axis, model["theta1"], clock, progress)
     if fric["fault"] or "theta2" not in fric:
         raise AutotuneError(f"axis {axis}: the friction passes stopped: {fric['fault'] or 'too short'}")
@@ -178,7 +178,9 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
                  f"{fric['theta3']:.4g} +- {sg['theta3']:.2g} V, theta4 {fric['theta4']:.4g} +- "
                  f"{sg['theta4']:.2g} V from {len(fric['passes'])} constant-velocity passes "
                  f"({fric['duration_s']:.1f} s)")
-        progress(f"fit {axis}: theta1 {model['theta1']:.4g} +- {sg['theta1']:.2g} V s^2/m (theta_hat1(0) "
+        kappa = (f"input nonlinearity's gain {model['input_gain']:.3f} taken out" if model["input_gain"] != 1.0
+                 else "no input nonlinearity declared in theta_hat0: its gain at this amplitude is in it")
+        progress(f"fit {axis}: theta1 {model['theta1']:.4g} +- {sg['theta1']:.2g} V s^2/m ({kappa}; theta_hat1(0) "
                  f"{sec.theta_hat0[0]:.4g}), theta2 (multisine) {model['theta2_frf']:.3g} +- "
                  f"{sg['theta2_frf']:.2g} V s/m, mode "
                  f"{model['mode_hz']:.1f} +- {sg.get('mode_hz', 0.0):.2g} Hz zeta {model['mode_damping']:.3f} load "

@@ -32,11 +32,14 @@ def loop_frf(meas: dict, model: dict, ts: float, periods: int = PERIODS):
     the model alone below the first and above the last such line. On a rigid axis the lines of
     coherence 0.5-0.9 (30-60 Hz on configs/gantry-rigid.yaml Y) scatter ±10 % and ±7° about
     the model: taken as measured, one of them set the peak sensitivity of the 50 % rung
-    (18.0 dB against 12.5 dB on the model) and the margins' edge went up and down with ω."""
+    (18.0 dB against 12.5 dB on the model) and the margins' edge went up and down with ω.
+    The measured FRF is taken divided by the model's "input_gain" κ (:func:`motorctl.commission.
+    fit.input_gain`): the plant at u ≈ 0, where the force gain f_u'(0) = 1 is its highest for
+    θ5, θ6 ≤ 0 (the multisine's own amplitude measured it κ times lower), as the model is."""
     w = grid_w(ts)
     G_fit = plant_model_frf(model, ts, w)
     G_w = G_fit.copy()
-    fm, Gm, ch = meas["f_hz"], meas["G"], meas["coherence"]
+    fm, Gm, ch = meas["f_hz"], meas["G"] / model.get("input_gain", 1.0), meas["coherence"]
     good = ch >= COH_USED
     f_w = w / (2.0 * math.pi)
     if good.sum() > 10:

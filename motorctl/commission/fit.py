@@ -27,11 +27,33 @@ def _initial_mode(f: np.ndarray, G: np.ndarray, th1: float):
     return float(f[i_pk]), float(min(max(frac, 0.05), 0.9))
 
 
-def fit_plant(f: np.ndarray, G: np.ndarray, coh: np.ndarray, ts: float, theta_hat0) -> dict:
-    """Step 2 (module docstring). Returns the fitted model (:data:`motorctl.commission.loopshape.MODEL_KEYS`) plus "cost",
-    "cost_rigid" (the rigid model's cost), "mode": True when the mode is kept.
+def input_gain(theta_hat0, u_cov: dict | None) -> float:
+    """The best linear gain κ of the input nonlinearity v = f_u(u) = u + θ5 u|u| + θ6 u³ (paper
+    eq. 9) over the measured input: κ = cov(f_u(u), u) / var(u) = 1 + (θ5 cov(u|u|, u) + θ6
+    cov(u³, u)) / var(u) (Bussgang, "Crosscorrelation functions of amplitude-distorted Gaussian
+    signals", MIT RLE TR-216, 1952; the best linear approximation of Pintelon & Schoukens,
+    System Identification, 2nd ed., 2012, ch. 3). A response measured from u sees the force
+    gain A1 κ, not A1: the fitted θ1 = M/(A1 κ).
 
-    Args: f (L,) [Hz], G (L,) [m/V], coh (L,) coherence r → e, ts [s], theta_hat0 (6,).
+    Args: theta_hat0: the config's θ̂(0), (4,) or (6,) (θ5 [1/V], θ6 [1/V²]: 0 when absent);
+    u_cov: measure_frf's "u_cov" ({"var" [V²], "abs2" [V³], "cube" [V⁴]}) or None.
+    Returns: κ (1.0 without u_cov or with var(u) = 0)."""
+    th = list(theta_hat0)
+    if not u_cov or len(th) < 6 or not u_cov.get("var", 0.0) > 0.0:
+        return 1.0
+    return float(1.0 + (th[4] * u_cov["abs2"] + th[5] * u_cov["cube"]) / u_cov["var"])
+
+
+def fit_plant(f: np.ndarray, G: np.ndarray, coh: np.ndarray, ts: float, theta_hat0,
+              u_cov: dict | None = None) -> dict:
+    """Step 2 (module docstring). Returns the fitted model (:data:`motorctl.commission.loopshape.MODEL_KEYS`) plus "cost",
+    "cost_rigid" (the rigid model's cost), "mode": True when the mode is kept, "input_gain" κ
+    (:func:`input_gain`): θ1 and θ2 (and their σ) are the fit's × κ, the model's M/A1 and
+    B/A1 with A1 the linear force coefficient of eq. 9 (the response itself, for the
+    margins, is the measured one).
+
+    Args: f (L,) [Hz], G (L,) [m/V], coh (L,) coherence r → e, ts [s], theta_hat0 (6,),
+    u_cov: measure_frf's "u_cov" (None: κ = 1).
     """
     w = 2.0 * math.pi * f
     # weights from the coherence smoothed over ±10 lines: a line's own coherence is high
@@ -94,19 +116,22 @@ def fit_plant(f: np.ndarray, G: np.ndarray, coh: np.ndarray, ts: float, theta_ha
             out.update(cost=float(best.cost), cost_rigid=float(best_rigid.cost), mode=True)
             sigma = _sigma(best, out)
     out = {k: float(v) if not isinstance(v, bool) else v for k, v in out.items()}
+    kappa = input_gain(theta_hat0, u_cov)
+    out["input_gain"] = kappa
+    for k in ("theta1", "theta2"):
+        out[k] *= kappa
+        sigma[k] *= kappa
     out["sigma"] = sigma
     out["sigma_scope"] = SIGMA_SCOPE
     return out
 
 
-#: what the σ of :func:`fit_plant` covers, for the report: the fit's variance, not its bias.
-#: Default plant (configs/gantry.yaml), X, the driver seeds 1 and 2: θ1 0.1714 and 0.1716 V s²/m
-#: against M/A1 = 0.16 (+7.1 %, +7.3 %), σ 0.00036 each: the two seeds agree within σ and both
-#: miss by 31σ, an error the same on every measurement (the FRF of the loop with its mode and
-#: current loop against the model's), which no σ from the residual covers
-#: (docs/identification.md, "Uncertainty": autotune)
-SIGMA_SCOPE = ("sigma from the fit's residual: the spread of repeated measurements, not the model's bias "
-               "(theta1 from the FRF came out 7 % high on the default plant on two seeds that agreed within sigma)")
+#: what the σ of :func:`fit_plant` covers, for the report: the fit's variance, not a bias of
+#: the model. (θ1 from the FRF alone came out 7 % high on the default plant, X, on two driver
+#: seeds that agreed within σ: 31σ; the cause was the input nonlinearity's linear gain κ =
+#: 0.931 at the multisine's 2.2 V RMS, now taken out by :func:`input_gain`.)
+SIGMA_SCOPE = ("sigma from the fit's residual: the spread of repeated measurements, not a bias of the "
+               "model (theta1, theta2 are corrected for the input nonlinearity's gain, input_gain)")
 
 
 def _sigma(sol, params: dict) -> dict:

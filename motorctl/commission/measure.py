@@ -188,7 +188,8 @@ def measure_frf(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtua
 
     Returns:
         {"f_hz" (L,), "G" (L,) complex [m/V], "coherence" (L,), "coherence_u" (L,),
-        "rest_psd": (f (M,), S_yy (M,) [m²/Hz]) of y at rest, "excitation_rms_V",
+        "rest_psd": (f (M,), S_yy (M,) [m²/Hz]) of y at rest, "u_cov" (the analysed window's
+        var(u) [V²], cov(u|u|, u) [V³], cov(u³, u) [V⁴]: :func:`motorctl.commission.fit.input_gain`), "excitation_rms_V",
         "excitation_peak_V", "e_max_m", "guard_m", "stroke_m": (min y, max y) during the run,
         "soft_limits_m", "fault" ('' when none), "tripped" (the excitation guard fired),
         "pass": (x_a, x_b, v)}.
@@ -271,8 +272,12 @@ def measure_frf(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtua
     _, c_re = signal.coherence(rs, es, **kw)
     _, c_ru = signal.coherence(rs, us, **kw)
     G = s_re / s_ru
+    # the covariances the input nonlinearity's best linear gain needs (fit.input_gain)
+    ud = us - np.mean(us)
     out.update(f_hz=fr[lines], G=G[lines], coherence=c_re[lines],
-               coherence_u=c_ru[lines])
+               coherence_u=c_ru[lines],
+               u_cov={"var": float(np.mean(ud * ud)), "abs2": float(np.mean(ud * (us * np.abs(us)))),
+                      "cube": float(np.mean(ud * us ** 3))})
     return out
 
 
