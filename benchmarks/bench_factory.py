@@ -49,6 +49,7 @@ on the shared 2-core VM): run it from a copy of the tree then.
     python benchmarks/bench_factory.py                      # 4 hogs, 50 clients, 30 s per daemon
     python benchmarks/bench_factory.py --seconds 10 --clients http=4,ua=4,metrics=2
     python benchmarks/bench_factory.py --runs 3 --seconds 20   # three runs with views (a stall hunt)
+    python benchmarks/bench_factory.py --seconds 60 --loop-cpu 1   # the loop pinned to CPU 1
 
 ``--runs N`` repeats the daemon with views N times (the daemon without views once).
 """
@@ -108,10 +109,10 @@ class Daemon(ViewsDaemon):
     """bench_views's daemon, with (``views``) the scope/operator page, /metrics and the OPC UA
     server (bench_opcua's section) on free loopback ports; X and Y in command mode."""
 
-    def __init__(self, tmp: Path, views: bool):
+    def __init__(self, tmp: Path, views: bool, loop_cpu: int | None = None):
         self.url = f"opc.tcp://127.0.0.1:{_port()}/motorctl" if views else None
         super().__init__(tmp, views, {"opcua": {"endpoint": self.url, "anonymous": "read",
-                                                "security": ["None"]}} if views else None)
+                                                "security": ["None"]}} if views else None, loop_cpu=loop_cpu)
         # the base class started Y on its YAML program: a G-code program needs command mode
         self.c.stop("Y")
         end = time.monotonic() + 60
@@ -578,7 +579,7 @@ def measure(tmp: Path, views: bool, split: dict, a) -> dict:
     watcher = mp.Process(target=_watch_beat, args=(str(tmp / "gantry.yaml"), wq, wstop, wio), daemon=True)
     watcher.start()
     try:
-        dm = Daemon(tmp, views)
+        dm = Daemon(tmp, views, a.loop_cpu)
     except BaseException:
         wstop.set()
         watcher.kill()
@@ -804,6 +805,9 @@ def main() -> int:
                          "kernel's autogroup, a scheduling group of its own, as a remote client "
                          "would be); bench: in the bench's session with the hogs and the daemon")
     ap.add_argument("--steps", type=int, default=20_000, help="0.1 mm steps of the G-code program")
+    ap.add_argument("--loop-cpu", type=int, default=None,
+                    help="loop.realtime.cpu of both daemons: the loop pinned there, the I/O process, "
+                         "planner and views kept off it (default: as configs/gantry.yaml, not pinned)")
     ap.add_argument("--bound", type=float, default=1800.0, help="the hogs end after this long at most [s]")
     a = ap.parse_args()
     if not 1.0 <= a.seconds <= 600.0 or not 0 <= a.hogs <= 32 or not 1 <= a.runs <= 5:

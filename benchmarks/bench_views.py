@@ -60,11 +60,14 @@ def _port() -> int:
 
 class Daemon:
     """``motorctl daemon`` on configs/gantry.yaml in ``tmp`` (``views``: the scope and /metrics on
-    free loopback ports; ``extra``: further keys of its ``daemon`` section), ready, Y started."""
+    free loopback ports; ``extra``: further keys of its ``daemon`` section; ``loop_cpu``: its
+    ``loop.realtime.cpu``), ready, Y started."""
 
-    def __init__(self, tmp: Path, views: bool, extra: dict | None = None):
+    def __init__(self, tmp: Path, views: bool, extra: dict | None = None, loop_cpu: int | None = None):
         d = yaml.safe_load((REPO / "configs" / "gantry.yaml").read_text())
         d["daemon"].update(socket=str(tmp / "motorctl.sock"), log_dir=str(tmp / "logs"))
+        if loop_cpu is not None:                    # loop.realtime.cpu: the loop pinned there
+            d["loop"].setdefault("realtime", {})["cpu"] = loop_cpu
         self.scope_port = self.metrics_port = None
         if views:
             self.scope_port, self.metrics_port = _port(), _port()

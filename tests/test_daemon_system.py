@@ -189,3 +189,38 @@ def test_the_ethercat_drop_in_grants_raw_frames_and_nothing_else(tmp_path):
     m = re.search(r"Overall exposure level for \S+: ([0-9.]+)", out)
     assert m and float(m.group(1)) <= 3.0, out
     assert "AF_PACKET" in out
+
+
+def _cpus_allowed(pid: int) -> set[int]:
+    """The CPUs ``pid`` may run on (/proc/PID/status Cpus_allowed_list)."""
+    text = open(f"/proc/{pid}/status").read()
+    spec = re.search(r"^Cpus_allowed_list:\s*(\S+)", text, re.M).group(1)
+    out = set()
+    for part in spec.split(","):
+        lo, _, hi = part.partition("-")
+        out |= set(range(int(lo), int(hi or lo) + 1))
+    return out
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="one CPU: nothing to keep off the loop's")
+def test_a_pinned_loop_keeps_the_io_process_and_the_planner_off_its_cpu(tmp_path):
+    """``loop.realtime.cpu``: the loop process runs there alone; the I/O process, and the planner
+    it forks, may run on every other CPU and never on the loop's."""
+    import yaml
+    cpu = max(os.sched_getaffinity(0))
+    cfg = make_config(tmp_path, policy="best_effort")
+    d = yaml.safe_load(cfg.read_text())
+    d["loop"]["realtime"]["cpu"] = cpu
+    cfg.write_text(yaml.safe_dump(d))
+    dm = Daemon(cfg, tmp_path / "motorctl.sock")
+    try:
+        dm.wait_ready()
+        st = wait_for(lambda: (s := status(dm.sock))["realtime_summary"] != "pending" and s["process"]["planner_pid"]
+                      and s, 30, "the loop's real-time set-up and the planner")
+        pr = st["process"]
+        assert _cpus_allowed(pr["loop_pid"]) == {cpu}, st["realtime"]
+        for who in ("io_pid", "planner_pid"):
+            allowed = _cpus_allowed(pr[who])
+            assert allowed and cpu not in allowed, (who, allowed)
+    finally:
+        dm.kill()

@@ -39,6 +39,7 @@ from motorctl.app.daemon.protocol import (
     parse_request,
 )
 from motorctl.app.daemon.status import ST, axis_status, fault_text
+from motorctl.loop.rt import keep_off, loop_cpu
 from motorctl.loop.safety import with_drive_reason
 from motorctl.loop.trajectory import Move
 from motorctl.recorder.flight import (
@@ -927,14 +928,19 @@ class IOSide:
 
 def io_main(plan, lsock, writer: SegmentWriter, cmds: Mailbox, replies: Mailbox) -> int:
     """Entry of the I/O process: ignore the signals (the loop process says when to go),
-    SCHED_OTHER (at nice :data:`IO_NICE` with the real-time set-up on), serve until the loop
-    process ends."""
+    SCHED_OTHER (at nice :data:`IO_NICE` with the real-time set-up on), off the loop's CPU
+    when the loop is pinned to one (:func:`motorctl.loop.rt.keep_off`: the planner and the
+    views it forks inherit it, so their work and their sockets' interrupts stay off the
+    loop's CPU), serve until the loop process ends."""
     for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
         signal.signal(s, signal.SIG_IGN)
+    rt = plan.asm.loaded.cfg.loop.realtime
     try:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        if plan.asm.loaded.cfg.loop.realtime.policy != "off":
+        if rt.policy != "off":
             os.setpriority(os.PRIO_PROCESS, 0, IO_NICE)     # before its threads: they inherit it
     except OSError:
         pass
+    if rt.policy != "off":
+        keep_off(loop_cpu(rt.cpu))
     return IOSide(plan, lsock, writer, cmds, replies).run()
