@@ -826,9 +826,12 @@ class MotionSide:
             self._ev_i = sum(1 for t, _ in self.cur.events if t <= self.s)
         self._bev.clear()
         self._defer_clear = ""
-        # a short block first (the loop must not reach the cut while it is generated); fill()
-        # tops the ring up to LEAD_S afterwards as usual
-        n = self._generate(min(self._chunk, cap - (cut - r0)))
+        # half the lead at once (at least a block; ~1.5 ms for 0.25 s of rows): the loop must
+        # not reach the cut while it is generated (else the guard doubles and this is tried
+        # again), and what the rewrite leaves ahead must outlast a filler kept off the CPU for
+        # a while (one block, 0.125 s, left a SCHED_OTHER filler beside CPU hogs to run dry on
+        # a flipped override); fill() tops the ring up to the lead afterwards as usual
+        n = self._generate(min(max(self._chunk, self.lead // 2), cap - (cut - r0)))
         why, self._defer_clear = self._defer_clear, None
         if ring.retract(cut) is None:        # the loop came too close: as before, retry wider
             self._restore(before)
