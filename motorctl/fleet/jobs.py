@@ -48,14 +48,12 @@ from contextlib import contextmanager
 from pathlib import Path
 from urllib.parse import urlsplit
 
+from motorctl.ident.uncertainty import Z95  # a parameter's interval: value ± Z95·σ̂, σ̂ identify's Newey-West theta_std
 from motorctl.inputs import InputError
 
 #: the nominal parameters written (physical name, index in θ): values g·θ with g the force gain
 #: A1 [N/V] when the log's header gives it (else 1, the values in V: ``force_unit``)
 PARAMETERS = (("mass_kg", 0), ("viscous_N_s_per_m", 1), ("coulomb_N", 2), ("offset_N", 3))
-#: the two-sided 95 % normal quantile: a parameter's interval is value ± Z95·σ̂, σ̂ identify's Newey-West
-#: theta_std of the fit (motorctl.ident.uncertainty)
-Z95 = 1.959963984540054
 #: run-log file names looked for in a folder
 LOG_SUFFIXES = (".mclog", ".log")
 #: rows (windows) gathered before a part file is written, and the longest wait [s] between two
