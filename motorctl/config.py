@@ -422,6 +422,7 @@ def _check_laws(path: Path, c: ControllerConfig, pre: str) -> None:
 
 
 def _cross_checks(path: Path, cfg: GantryConfig) -> None:
+    sections = {n: a.controller for n, a in cfg.axes.items()}
     for name, ax in cfg.axes.items():
         c = ax.controller
         pre = f"axes.{name}.controller"
@@ -439,6 +440,8 @@ def _cross_checks(path: Path, cfg: GantryConfig) -> None:
                               f"theta1 = M/A1 must be bounded away from 0 (got {c.theta_min[0]}); allowed: > 0")
         for law in configured_controllers(c):
             for key, why in controller_class(law).check(c.settings(law), c):
+                raise ConfigError(path, f"{pre}.{key}", why)
+            for key, why in controller_class(law).check_axes(name, c.settings(law), sections, 1.0 / cfg.loop.rate_hz):
                 raise ConfigError(path, f"{pre}.{key}", why)
         t = ax.trajectory
         tpre = f"axes.{name}.trajectory"

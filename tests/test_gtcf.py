@@ -2,8 +2,9 @@
 the contouring law of a pair of axes"), against a plain numpy reference of its equations.
 
 The reference builds the task frame as an explicit rotation matrix T = [tᵀ; nᵀ] and the
-feedback as the matrix product −D^½ Tᵀ diag(g_t, g_n) T D^½ p (numpy, no numba, nothing of
-the law's arithmetic); the law computes it as a scalar formula in compiled code. Everything
+feedback as the matrix product −D^½ (g_t t tᵀ + N^½ n nᵀ N^½) D^½ p, N = diag(g_n,X, g_n,Y)
+(numpy, no numba, nothing of the law's arithmetic); the law computes it as a scalar formula in
+compiled code. Everything
 else of a GTCF sample is C2's per-axis law, checked against its own reference in
 tests/test_law_reference.py, so one GTCF sample is compared with one C2 sample from the same
 state: v must differ by the reference's feedback minus C2's −k_s p, and e, p, d̂0, θ̂ must be
@@ -21,7 +22,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from motorctl.control.dcdiarc import C2, P_K1, P_KS, S_Y_PREV  # the law's layout (to set a state), no arithmetic
-from motorctl.control.gtcf import G_GN, G_GT, G_VMIN, G_YJ, GTCF, gtcf_feedback, gtcf_step
+from motorctl.control.gtcf import G_ALPHA, G_GN, G_GT, G_VFB, G_VMIN, G_YJ, GTCF, gtcf_feedback, gtcf_step
 from motorctl.control.params import ControllerConfig
 from motorctl.control.signals import SIG_D0, SIG_E, SIG_P, SIG_THETA, SIG_V
 
@@ -39,15 +40,16 @@ def _section(partner: str, g_t: float = 1.0, g_n: float = 3.0, v_min: float = 0.
 
 
 def reference_feedback(p, v, ks, g_t, g_n, v_min):
-    """−D^½ Tᵀ diag(g_t', g_n') T D^½ p (2,) with T the rotation to (t, n), t = v/|v|, the gains
-    blended to 1 below v_min [V]."""
+    """−D^½ (g_t' t tᵀ + N'^½ n nᵀ N'^½) D^½ p (2,), t = v/|v|, n = t rotated +90°, N' =
+    diag(g_n') (g_n: both axes'), the gains blended to 1 below v_min [V]."""
     s = float(np.hypot(v[0], v[1]))
     w = min(1.0, s / v_min)
-    gt, gn = 1.0 + w * (g_t - 1.0), 1.0 + w * (g_n - 1.0)
+    gt, gn = 1.0 + w * (g_t - 1.0), 1.0 + w * (np.asarray(g_n, float) - 1.0)
     t = np.asarray(v, float) / s if s > 0 else np.array([1.0, 0.0])
-    T = np.array([[t[0], t[1]], [-t[1], t[0]]])          # rows: t, n = t rotated +90°
+    n = np.array([-t[1], t[0]])
+    Nh = np.diag(np.sqrt(gn))
     Dh = np.diag(np.sqrt(ks))
-    K = Dh @ T.T @ np.diag([gt, gn]) @ T @ Dh
+    K = Dh @ (gt * np.outer(t, t) + Nh @ np.outer(n, n) @ Nh) @ Dh
     return -K @ np.asarray(p, float), np.abs(K) @ np.abs(p)
 
 
@@ -72,10 +74,11 @@ finite = dict(allow_nan=False, allow_infinity=False)
        ad=st.floats(-10.0, 10.0, **finite),
        ks=st.lists(st.floats(5.0, 500.0, **finite), min_size=2, max_size=2),
        k1=st.lists(st.floats(50.0, 2000.0, **finite), min_size=2, max_size=2),
-       g=st.lists(st.floats(0.2, 8.0, **finite), min_size=2, max_size=2),
+       g=st.lists(st.floats(0.2, 8.0, **finite), min_size=3, max_size=3),
        v_min=st.sampled_from([1e-3, 0.002, 0.5]))
 def test_one_sample_against_reference(laws, y, dy, err, v, ad, ks, k1, g, v_min):
-    """One GTCF sample from a drawn state: v = C2's v + (reference feedback + k_s p), the rest C2's."""
+    """One GTCF sample from a drawn state (g: g_t, X's g_n, Y's g_n): v = C2's v + (reference
+    feedback + k_s p), the rest C2's."""
     gx, gy, c2 = laws
     yp = [y[0] - dy[0], y[1] - dy[1]]
     xd = [y[0] - err[0], y[1] - err[1]]
@@ -88,11 +91,12 @@ def test_one_sample_against_reference(laws, y, dy, err, v, ad, ks, k1, g, v_min)
     tab = gx._span[6:]                              # GTCF's numbers follow the span of the θ box
     tab[G_GT], tab[G_GN], tab[G_VMIN] = g[0], g[1], v_min
     tab[G_YJ] = yp[1]
+    gy._span[6 + G_GN] = g[2]                       # the partner's contour gain comes from its block
     u = gtcf_step(y[0], xd[0], v[0], ad, xd[0], v[0], ad, 0.0, y[1], xd[1], v[1], True, gx.signals, gx._F, gx._I,
                   gx._L, gy._F, gy._L)
     u_c2 = c2.update(y[0], xd[0], v[0], ad)
     p = [(y[i] - yp[i]) / TS - v[i] + k1[i] * (y[i] - xd[i]) for i in range(2)]
-    ref, scale = reference_feedback(p, v, np.array(ks), g[0], g[1], v_min)
+    ref, scale = reference_feedback(p, v, np.array(ks), g[0], g[1:], v_min)
     want = c2.v + ref[0] + ks[0] * p[0]
     tol = RTOL * (abs(c2.v) + 2.0 * ks[0] * abs(p[0]) + scale[0]) + 1e-300
     assert abs(gx.signals[SIG_V] - want) <= tol, (gx.signals[SIG_V], want)
@@ -126,12 +130,56 @@ def test_task_frame_rotation(phi):
     vd = 0.1 * t
     for d, gain in ((n, gn), (t, gt)):
         p = 3e-3 * d
-        total = [-ks * p[i] + gtcf_feedback(p[i], p[1 - i], vd[i], vd[1 - i], ks, ks, gt, gn, v_min)
+        total = [-ks * p[i] + gtcf_feedback(p[i], p[1 - i], vd[i], vd[1 - i], ks, ks, gt, gn, gn, v_min)
                  for i in range(2)]
         np.testing.assert_allclose(total, -gain * ks * p, rtol=1e-12, atol=1e-15)
     # at rest the gains blend to 1: C2's −k_s p in every direction
     p = np.array([1e-3, -2e-3])
-    assert all(gtcf_feedback(p[i], p[1 - i], 0.0, 0.0, ks, ks, gt, gn, v_min) == 0.0 for i in range(2))
+    assert all(gtcf_feedback(p[i], p[1 - i], 0.0, 0.0, ks, ks, gt, gn, 2.0, v_min) == 0.0 for i in range(2))
+
+
+@pytest.mark.parametrize("phi", [0.0, 0.5 * math.pi, math.pi, 1.5 * math.pi, 0.7])
+def test_contour_gain_per_axis(phi):
+    """Each axis its own contour gain: on a circle (CCW, equal k_s) where the normal is an axis
+    (the other axis's reversal), a radial error meets that axis's g_n alone; between, a radial
+    p = |p| n meets −k_s a |p| N^½ n, a = nᵀ N^½ n = √g_nX n_X² + √g_nY n_Y² (so nᵀ of it is
+    −k_s a² |p|, and with unequal gains a part along the path: N^½ n is not n)."""
+    ks, gt, gx, gy, v_min = 60.0, 1.0, 2.5, 1.5, 1e-3
+    t = np.array([-math.sin(phi), math.cos(phi)])
+    n = np.array([math.cos(phi), math.sin(phi)])
+    vd = 0.1 * t
+    p = 2e-3 * n
+    g = (gx, gy)
+    total = np.array([-ks * p[i] + gtcf_feedback(p[i], p[1 - i], vd[i], vd[1 - i], ks, ks, gt, g[i], g[1 - i], v_min)
+                      for i in range(2)])
+    a = math.sqrt(gx) * n[0] ** 2 + math.sqrt(gy) * n[1] ** 2
+    assert float(n @ total) == pytest.approx(-ks * a * a * 2e-3, rel=1e-12)
+    np.testing.assert_allclose(total, -ks * a * 2e-3 * np.array([math.sqrt(gx) * n[0], math.sqrt(gy) * n[1]]),
+                               rtol=1e-12, atol=1e-15)
+    if abs(n[1]) < 1e-12:                                        # X's reversal: the normal is X
+        assert total[0] == pytest.approx(-gx * ks * p[0], rel=1e-12)
+
+
+def test_lowpass_on_the_task_frame_feedback(laws):
+    """With ``lowpass_hz`` the feedback beyond C2's is the first-order low-pass of the raw one:
+    v_fb[k] = v_fb[k−1] + α (raw − v_fb[k−1]), α = 1 − exp(−2π f_c Ts); the same sample with
+    α = 1 gives the raw feedback."""
+    gx, gy, c2 = laws
+    gy._span[6 + G_GN] = 2.0
+    args = (0.10001, 0.1, 0.05, 0.0, 0.1, 0.05, 0.0, 0.0, 0.2, 0.2, 0.05, True)
+    raw = []
+    for alpha in (1.0, 1.0 - math.exp(-2 * math.pi * 500.0 * TS)):
+        gx.reset(0.1, keep_theta=False)
+        tab = gx._span[6:]                               # (the reset rebinds the block)
+        tab[G_GT], tab[G_GN], tab[G_VMIN] = 1.0, 2.0, 1e-3
+        tab[G_ALPHA] = alpha
+        tab[G_YJ] = 0.2
+        tab[G_VFB] = 0.3                                 # the filter's state from a sample before
+        gtcf_step(*args, gx.signals, gx._F, gx._I, gx._L, gy._F, gy._L)
+        raw.append(gx.v_fb)
+    assert raw[0] != 0.0
+    assert raw[1] == pytest.approx(0.3 + (1.0 - math.exp(-2 * math.pi * 500.0 * TS)) * (raw[0] - 0.3), rel=1e-12)
+    tab[G_ALPHA] = 1.0
 
 
 def test_closed_loop_circle_beats_c2():
@@ -179,11 +227,12 @@ def _measured(loaded, raw, axis):
 
 def test_autotune_writes_the_pairs_gains_by_the_rule(tmp_path, monkeypatch):
     """autotune's GTCF step on configs/gantry.yaml (its gtcf blocks; the configured C2 gains, the
-    plant's own response as measured, a short test contour R 10 mm at 100 mm/s): gain_t, gain_n of the grid
-    written in both blocks (partner and v_min kept), the margins reported at least the rule's on
-    both axes (and found again from the measured response at gain_n at 100/75/50 %), every
-    candidate of higher contour gain tried before it failed a run; the same margins and the same
-    figures of the chosen gains' contour run a second time."""
+    plant's own response as measured, a short test contour R 10 mm at 100 mm/s): each axis's
+    gain_n of the grid written in its block with gain_t 1 and the low-pass (partner and v_min
+    kept); the margins reported at least the rule's on both axes (and found again from the
+    measured response at each axis's gain_n at 100/75/50 %); the search started at each axis's
+    highest admissible gain and stepped down only the axis a failed run named; the same margins
+    and the same figures of the chosen gains' contour run a second time."""
     import yaml
     from motorctl.commission import gtcf_tune
     from motorctl.commission.autotune import write_config
@@ -200,40 +249,70 @@ def test_autotune_writes_the_pairs_gains_by_the_rule(tmp_path, monkeypatch):
     tp = gtcf_tune.tune_pair(loaded, raw, *res, **kw)
     new = write_config(raw, res, src, tmp_path / "autotuned.yaml", [tp])
     g = tp["gains"]
-    assert g["gain_n"] in gtcf_tune.GAIN_N and g["gain_t"] in gtcf_tune.GAIN_T + (1.0,)
-    assert g["gain_t"] <= g["gain_n"]
+    assert g["gain_t"] == 1.0 and g["lowpass_hz"] == gtcf_tune.LOWPASS_HZ
+    assert all(g["gain_n"][a] in gtcf_tune.GAIN_N for a in ("X", "Y"))
     text = (tmp_path / "autotuned.yaml").read_text()
     back = yaml.safe_load(text)
-    assert "# " in text and f"gtcf X-Y: gain_t {g['gain_t']:g}, gain_n {g['gain_n']:g}" in text
+    assert "# " in text and f"gtcf X-Y: gain_t 1, gain_n X {g['gain_n']['X']:g}, Y {g['gain_n']['Y']:g}" in text
     for a, b in (("X", "Y"), ("Y", "X")):
         blk = back["axes"][a]["controller"]["gtcf"]
         assert blk == new["axes"][a]["controller"]["gtcf"]
-        assert (blk["gain_t"], blk["gain_n"]) == (g["gain_t"], g["gain_n"])
+        assert (blk["gain_t"], blk["gain_n"], blk["lowpass_hz"]) == (1.0, g["gain_n"][a], g["lowpass_hz"])
         assert blk["partner"] == b and blk["v_min"] == raw["axes"][a]["controller"]["gtcf"]["v_min"]
+    config_from_dict(back, str(tmp_path / "autotuned.yaml"))          # the written file is a valid config
     for r in res:
-        m = tp["margins"][r["axis"]]
+        a = r["axis"]
+        m = tp["margins"][a]
         assert m["gm_db"] >= GM_MIN_DB and m["pm_deg"] >= PM_MIN_DEG and m["ms_db"] <= MS_MAX_DB, m
         c2 = gtcf_tune.c2_gains(r)
-        L = c_frf("c2", dict(c2, k_s=c2["k_s"] * g["gain_n"]), r["ts"], r["w"], r["theta_hat0"]) * r["G_w"]
+        L = c_frf("gtcf", gtcf_tune.gtcf_gains(c2, g["gain_n"][a]), r["ts"], r["w"], r["theta_hat0"]) * r["G_w"]
         f = r["w"] / (2 * np.pi)
         assert all(RULE.holds(loop_margins(s * L, f)) for s in SCALES)
-    # the choice is the first candidate (highest gain_n first) whose runs passed
-    tried = [(t, n) for t, n, *_ in tp["runs"]]
-    failed = {(t, n) for t, n, _, _, _, why in tp["runs"] if why}
-    order = tp["admissible"]
-    if (g["gain_t"], g["gain_n"]) != (1.0, 1.0):
-        assert (g["gain_t"], g["gain_n"]) in order and (g["gain_t"], g["gain_n"]) not in failed
-        assert set(order[:order.index((g["gain_t"], g["gain_n"]))]) <= failed
-    assert set(tried) <= set(order)
+        assert g["gain_n"][a] in tp["admissible"][a]
+    # the search: from each axis's highest admissible gain, one axis stepped down after each failure
+    cands = []
+    for n, *_ in tp["runs"]:
+        if not cands or cands[-1] != n:
+            cands.append(n)
+    if cands:
+        assert cands[0] == {a: tp["admissible"][a][0] for a in ("X", "Y")}
+        for prev, nxt in zip(cands, cands[1:]):
+            why = next(w for n, _, _, _, w in tp["runs"] if n == prev and w)
+            named = why.split(":")[0]
+            moved = [a for a in prev if prev[a] != nxt[a]]
+            assert len(moved) == 1 and nxt[moved[0]] < prev[moved[0]]
+            assert moved[0] == named or prev[named] == 1.0
+        if g["gain_n"] != {"X": 1.0, "Y": 1.0}:
+            assert cands[-1] == g["gain_n"] and not any(w for n, _, _, _, w in tp["runs"] if n == g["gain_n"])
     # deterministic: the margins and the chosen's run on the test contour come out the same again
     pair = ("X", "Y")
     c2 = {r["axis"]: gtcf_tune.c2_gains(r) for r in res}
     for r in res:
-        assert gtcf_tune.axis_margins(r, c2[r["axis"]], g["gain_t"], g["gain_n"])[0] == tp["margins"][r["axis"]]
+        assert gtcf_tune.axis_margins(r, c2[r["axis"]], 1.0, g["gain_n"][r["axis"]])[0] == tp["margins"][r["axis"]]
     if tp["chosen"].get("contour") is not None:
-        again = gtcf_tune.contour_run(gtcf_tune.with_gains(raw, pair, c2, g["gain_t"], g["gain_n"]), src, pair, "gtcf",
+        again = gtcf_tune.contour_run(gtcf_tune.with_gains(raw, pair, c2, 1.0, g["gain_n"]), src, pair, "gtcf",
                                       0.01, 0.1)
         for a in pair:
             for k in ("saturated", "u_rest_rms_V", "u_peak_V", "osc_ratio", "fault"):
                 x, y = again[a][k], tp["chosen"]["contour"][a][k]
                 assert x == y or (x != x and y != y), (a, k, x, y)
+
+
+def test_a_pair_with_two_tangential_gains_is_refused(tmp_path):
+    """The pair's two gtcf blocks with different gain_t: `motorctl circle-test` exits 2 with the
+    key and why, and starts nothing (no log written)."""
+    import subprocess
+    import sys
+
+    import yaml
+    from conftest import REPO
+    raw = yaml.safe_load((REPO / "configs" / "gantry.yaml").read_text())
+    raw["axes"]["Y"]["controller"]["gtcf"]["gain_t"] = 1.5
+    cfg = tmp_path / "g.yaml"
+    cfg.write_text(yaml.safe_dump(raw))
+    log = tmp_path / "c.log"
+    r = subprocess.run([sys.executable, "-m", "motorctl", "circle-test", str(cfg), "--controller", "gtcf",
+                        "--radius", "0.01", "--log", str(log)], capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    assert "gtcf" in r.stderr and "gain_t" in r.stderr and "Traceback" not in r.stderr
+    assert not any(tmp_path.glob("c*.log"))

@@ -115,6 +115,14 @@ class Controller(abc.ABC):
         return []
 
     @classmethod
+    def check_axes(cls, axis: str, settings, sections: Mapping[str, Any], period_s: float) -> list[tuple[str, str]]:
+        """Cross-checks of axis ``axis``'s ``settings`` with the other axes' ``controller:``
+        sections (``sections``: axis name -> section) and the loop's period ``period_s`` [s]
+        (a pair law's two halves; a filter below the Nyquist frequency). Returns as
+        :meth:`check`. Default: none."""
+        return []
+
+    @classmethod
     def linearise(cls, gains: Mapping[str, Any], ts: float, w: np.ndarray, theta_hat=None,
                   u0: float = 0.0) -> np.ndarray:
         """The law's small-signal transfer function C(e^{jωTs}) from −y to u at the operating

@@ -13,25 +13,40 @@ contouring law of a pair of axes")::
     T(θ) = [tᵀ; nᵀ]  (2×2, orthonormal),   ε = T e              (Hu 2011: the GTCF errors)
     p_i = ė_i + k1_i e_i                    per axis, as C2's eq. (11) (ė: backward difference)
     q = D^½ p,  D = diag(k_s,X, k_s,Y)      the axes' own C2 gains as the scale
-    v_s = −D^½ Tᵀ diag(g_t, g_n) T D^½ p    the robust feedback set in the task frame
-        = −D^½ (g_n q + (g_t − g_n) t (tᵀ q))
+    K = g_t t tᵀ + N^½ n nᵀ N^½,  N = diag(g_n,X, g_n,Y)
+    v_s = −D^½ K D^½ p                      the robust feedback set in the task frame
     u_i = C2's law of axis i with v_s,i in place of −k_s,i p_i  (the 2013 paper's model
           compensation v_a1 eq. 13, d̂0 eq. 18-19, the projection-type LS estimator eq. 25-28,
           the inversion eq. 9: per axis)
 
-With g_t = g_n = 1 this is C2 on each axis. Below ``v_min`` of desired speed (at rest, no
-contour direction) the gains blend linearly to 1 (C2): g(s) = 1 + min(1, s/v_min)(g − 1).
+With one contour gain (g_n,X = g_n,Y = g_n), K = Tᵀ diag(g_t, g_n) T: the 2011 paper's
+diagonal task-frame gain. Each axis's own ``gain_n`` is its stiffness when the contour
+direction is its own (on a circle, at the other axis's reversal): the axes' loops bear
+different gains (their margins, their rest noise), and the contour gain of each can be as high
+as its own loop allows. K is symmetric and positive definite for positive gains, so the robust
+feedback keeps the ARC law's −pᵀ D^½ K D^½ p ≤ 0. With g_t = g_n = 1 this is C2 on each axis.
+Below ``v_min`` of desired speed (at rest, no contour direction) the gains blend linearly to 1
+(C2): g(s) = 1 + min(1, s/v_min)(g − 1).
+
+The feedback beyond C2's own, v_fb,i = v_s,i + k_s,i p_i, passes through a first-order low-pass
+of corner ``lowpass_hz`` (none: unfiltered, the 2011 paper's law): v_fb[k] = v_fb[k−1] +
+α (v_fb,raw − v_fb[k−1]), α = 1 − exp(−2π f_c Ts). The contour's errors (a reversal's
+transient, 20-200 Hz) meet the task-frame gains; the encoder's quantisation through the
+backward difference (0.5 µm a count at 5 kHz is 2.5 mm/s: most of an axis's u at rest lies
+above 1 kHz) meets C2's gain alone.
 
 The pair runs in the compiled servo cycle (:mod:`motorctl.loop.cycle`): each axis of the pair
 has this law (``LAW_GTCF``); the cycle hands each one's step its partner's measured position and
-desired sample of the same cycle (:func:`gtcf_step`), and the partner's C2 gains come from the
-partner's own rows. When the partner does not run GTCF, is not running, or its sample is not a
-number (IDLE), the step is C2 alone (v_fb = 0) for that cycle.
+desired sample of the same cycle (:func:`gtcf_step`), and the partner's C2 gains and g_n come
+from the partner's own rows. When the partner does not run GTCF, is not running, or its sample
+is not a number (IDLE), the step is C2 alone (v_fb = 0) for that cycle.
 
 Settings: a ``gtcf:`` mapping in both axes' ``controller:`` sections (the C2 keys of the section
 are the per-axis law's, its compensation C2's; theory mode is refused)::
 
-    gtcf: {partner: Y, gain_t: 1.0, gain_n: 2.0, v_min: 0.002}
+    gtcf: {partner: Y, gain_t: 1.0, gain_n: 2.0, v_min: 0.002, lowpass_hz: 500}
+
+The pair's two sections name each other and give the same ``gain_t``; each its own ``gain_n``.
 """
 
 from __future__ import annotations
@@ -62,11 +77,12 @@ from motorctl.schema import StrictModel, quantity
 __all__ = ["GTCF", "GtcfConfig", "gtcf_feedback", "gtcf_partner", "gtcf_reset", "gtcf_step"]
 
 # GTCF's numbers, in the C2 block after its span of θ_max − θ_min (B_SPAN, n entries; read by
-# the theory mode only, which GTCF refuses): partner axis index, g_t, g_n, v_min, the partner's
-# y[k−1] (NaN: none yet), the last v_fb, the last ε_n (the task-frame normal error from this
-# axis's view), 1.0 when the block has a compiled compensation (dcdiarc_comp_step) else 0.0
-G_PARTNER, G_GT, G_GN, G_VMIN, G_YJ, G_VFB, G_EN, G_COMP = range(8)
-N_G = 8
+# the theory mode only, which GTCF refuses): partner axis index, g_t, g_n (this axis's), v_min,
+# the partner's y[k−1] (NaN: none yet), the last v_fb (the low-pass's state), the last ε_n (the
+# task-frame normal error from this axis's view), 1.0 when the block has a compiled compensation
+# (dcdiarc_comp_step) else 0.0, the low-pass's α (1: none)
+G_PARTNER, G_GT, G_GN, G_VMIN, G_YJ, G_VFB, G_EN, G_COMP, G_ALPHA = range(9)
+N_G = 9
 
 
 class GtcfConfig(StrictModel):
@@ -74,40 +90,64 @@ class GtcfConfig(StrictModel):
 
     Attributes:
         partner: the other axis of the pair (its section must configure ``gtcf`` naming this one).
-        gain_t, gain_n: the task-frame gains on the tangential and the normal (contour)
-            direction, as multiples of the axes' own C2 k_s (1, 1: C2).
+        gain_t: the task-frame gain on the tangential direction, as a multiple of the axes' own
+            C2 k_s (the pair's: the partner's section gives the same).
+        gain_n: this axis's gain when the contour (normal) direction is its own, as a multiple of
+            its C2 k_s (1, 1: C2).
         v_min [m/s]: below this desired speed the gains blend to 1 (no contour direction at rest).
+        lowpass_hz [Hz]: the corner of the first-order low-pass on the feedback beyond C2's
+            (None: unfiltered); below the Nyquist frequency 1/(2 Ts).
     """
 
     partner: str
     gain_t: quantity(1e-2, 100.0, "") = 1.0
     gain_n: quantity(1e-2, 100.0, "") = 2.0
     v_min: quantity(1e-6, 10.0, "m/s") = 0.002
+    lowpass_hz: quantity(0.0, 1e6, "Hz", open_lo=True) | None = None
 
 
 @njit
-def gtcf_feedback(p_i, p_j, v_i, v_j, ks_i, ks_j, g_t, g_n, v_min):
-    """The task-frame robust feedback of axis i minus C2's own −k_s,i p_i [V] (module docstring):
-    −√k_s,i (g_n' q_i + (g_t' − g_n') t_i (t_i q_i + t_j q_j)) + k_s,i p_i, q = √k_s p, t = v/|v|,
-    g' = 1 + min(1, |v|/v_min)(g − 1). p [m/s], v (ẋ_d) [m/s], k_s [V s/m]. Symmetric in the two
-    axes (axis j's is this with i and j swapped). Hu, Yao & Wang 2011: the task frame T and the
-    robust feedback set in it (their equation numbers not cross-checked here), simplified as
-    docs/control-law.md, "GTCF", says; per axis the 2013 paper's eq. (11), (13)."""
+def gtcf_feedback(p_i, p_j, v_i, v_j, ks_i, ks_j, g_t, g_ni, g_nj, v_min):
+    """The task-frame robust feedback of axis i minus C2's own −k_s,i p_i [V], unfiltered (module
+    docstring): −√k_s,i (g_t' t_i (tᵀq) + √g_ni' n_i (nᵀ N'^½ q)) + k_s,i p_i, q = √k_s p, t = v/|v|,
+    n = t rotated +90° in (i, j) order, g' = 1 + min(1, |v|/v_min)(g − 1); g_ni, g_nj the two
+    axes' contour gains. p [m/s], v (ẋ_d) [m/s], k_s [V s/m]. Symmetric in the two axes (axis j's
+    is this with i and j swapped). Hu, Yao & Wang 2011: the task frame T and the robust feedback
+    set in it, with a contour gain per axis (docs/control-law.md, "GTCF"); per axis the 2013
+    paper's eq. (11), (13)."""
     s = math.sqrt(v_i * v_i + v_j * v_j)
     w = s / v_min
     if w > 1.0:
         w = 1.0
     gt = 1.0 + w * (g_t - 1.0)
-    gn = 1.0 + w * (g_n - 1.0)
+    gni = 1.0 + w * (g_ni - 1.0)
+    gnj = 1.0 + w * (g_nj - 1.0)
     ti = 0.0
     tj = 0.0
     if s > 0.0:
         ti = v_i / s
         tj = v_j / s
     ri = math.sqrt(ks_i)
-    # −√k_s,i (g_n' q_i + (g_t' − g_n') t_i (tᵀq)) + k_s,i p_i, written without the cancellation of
-    # the two k_s,i p_i terms: exactly 0 when g_t' = g_n' = 1 (at rest, or gains of 1: C2)
-    return -(gn - 1.0) * ks_i * p_i - ri * (gt - gn) * ti * (ti * ri * p_i + tj * math.sqrt(ks_j) * p_j)
+    qi = ri * p_i
+    qj = math.sqrt(ks_j) * p_j
+    # with t tᵀ + n nᵀ = I, −k_s,i p_i = −√k_s,i (t_i tᵀq + n_i nᵀq), so the difference is written
+    # without the cancellation of the two k_s,i p_i terms: exactly 0 when every gain is 1 (at
+    # rest, or gains of 1: C2); n_i = −t_j, n_j = t_i
+    ni = -tj
+    return -ri * ((gt - 1.0) * ti * (ti * qi + tj * qj)
+                  + ni * (ni * (gni - 1.0) * qi + ti * (math.sqrt(gni * gnj) - 1.0) * qj))
+
+
+def lowpass_alpha(lowpass_hz: float | None, ts: float) -> float:
+    """α = 1 − exp(−2π f_c Ts) of the first-order low-pass of corner ``lowpass_hz`` [Hz] sampled
+    at ``ts`` [s] (the pole of the continuous filter mapped by z = e^{sTs}); 1.0 for None (no
+    filter). Raises ValueError: a corner at or above the Nyquist frequency 1/(2 Ts)."""
+    if lowpass_hz is None:
+        return 1.0
+    if not 0.0 < lowpass_hz < 0.5 / ts:
+        raise ValueError(f"lowpass_hz: {lowpass_hz:g} Hz must be above 0 and below the Nyquist frequency "
+                         f"{0.5 / ts:g} Hz of the {ts * 1e3:g} ms period")
+    return 1.0 - math.exp(-2.0 * math.pi * lowpass_hz * ts)
 
 
 @njit
@@ -146,8 +186,11 @@ def gtcf_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, y_j, x_dj, xd_dot_j, coupl
         p_j = ((y_j - y_jp) / Fj[pj_ + P_TS] - xd_dot_j) + Fj[pj_ + P_K1] * (y_j - x_dj)
         if p_j == p_j and abs(p_j) < math.inf:
             p_i = ((y - F[st + S_Y_PREV]) / F[prm + P_TS] - xd_dot) + F[prm + P_K1] * (y - x_d)
+            gj = Lj[B_SPAN] + Lj[B_N]
             v_fb = gtcf_feedback(p_i, p_j, xd_dot, xd_dot_j, F[prm + P_KS], Fj[pj_ + P_KS], F[g + G_GT],
-                                 F[g + G_GN], F[g + G_VMIN])
+                                 F[g + G_GN], Fj[gj + G_GN], F[g + G_VMIN])
+            if F[g + G_ALPHA] < 1.0:                     # the low-pass (module docstring)
+                v_fb = F[g + G_VFB] + F[g + G_ALPHA] * (v_fb - F[g + G_VFB])
             s = math.sqrt(xd_dot * xd_dot + xd_dot_j * xd_dot_j)
             if s > 0.0:   # ε_n = n·e with n = t rotated +90° in (i, j) order
                 e_n = (xd_dot * (y_j - x_dj) - xd_dot_j * (y - x_d)) / s
@@ -204,6 +247,10 @@ class GTCF(DCDIARC):
         g[G_GT], g[G_GN], g[G_VMIN] = self.gtcf.gain_t, self.gtcf.gain_n, self.gtcf.v_min
         g[G_YJ] = np.nan
         g[G_COMP] = 1.0 if self._compiled_comp else 0.0
+        try:
+            g[G_ALPHA] = lowpass_alpha(self.gtcf.lowpass_hz, ts)
+        except ValueError as exc:
+            raise ValueError(f"gtcf: {exc}") from None
         self._span = np.concatenate([self._span, g])        # GTCF's numbers after the span (module comment)
         self._bind()
         # compile (or load) the step now, on copies, so that the first cycle never pays for it
@@ -236,6 +283,40 @@ class GTCF(DCDIARC):
     @classmethod
     def scaled(cls, gains, s):
         raise NotImplementedError("controller 'gtcf' has no loop-gain knob (tune c2)")
+
+    @classmethod
+    def linearise(cls, gains, ts, w, theta_hat=None, u0=0.0):
+        """One axis's loop at a task-frame gain g on its own term (a point of the span the axis
+        passes through as the path turns, g_t to its g_n; the partner's cross term left out):
+        C2's linearisation (:meth:`motorctl.control.dcdiarc.DCDIARC.linearise`) with k_s replaced
+        by k_s (1 + (g − 1) F(z)), F(z) = α / (1 − (1 − α) z⁻¹) the low-pass of ``lowpass_hz``
+        (F = 1 without). ``gains``: C2's {"k_s", "k1", "gamma_d"} and "g", "lowpass_hz" (None:
+        none). w (K,) [rad/s] -> complex (K,). Raises ValueError as :func:`lowpass_alpha`."""
+        from motorctl.control.dcdiarc import C2
+        a = lowpass_alpha(gains.get("lowpass_hz"), ts)
+        z1 = np.exp(-1j * np.asarray(w) * ts)
+        F = a / (1.0 - (1.0 - a) * z1)
+        k_s = gains["k_s"] * (1.0 + (float(gains.get("g", 1.0)) - 1.0) * F)
+        return C2.linearise(dict(gains, k_s=k_s), ts, w, theta_hat, u0)
+
+    @classmethod
+    def check_axes(cls, axis, settings: GtcfConfig, sections, period_s: float) -> list[tuple[str, str]]:
+        """A partner that configures GTCF naming this axis gives the same ``gain_t`` (the pair's
+        tangential gain; each axis its own ``gain_n``); ``lowpass_hz`` below the Nyquist
+        frequency of ``period_s``. (A partner that is not an axis of the run is refused when the
+        loop is built; one on another law makes this axis's step C2 alone.)"""
+        out = []
+        other = sections.get(settings.partner)
+        if other is not None and other.configures("gtcf"):
+            o = other.settings("gtcf")
+            if o.partner == axis and o.gain_t != settings.gain_t:
+                out.append(("gtcf.gain_t", f"{settings.gain_t:g} differs from axis {settings.partner}'s "
+                            f"{o.gain_t:g} (the tangential gain is the pair's: give both the same)"))
+        try:
+            lowpass_alpha(settings.lowpass_hz, period_s)
+        except ValueError as exc:
+            out.append(("gtcf.lowpass_hz", str(exc).split(": ", 1)[1]))
+        return out
 
     @property
     def law_code(self) -> int:
