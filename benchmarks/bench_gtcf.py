@@ -2,11 +2,11 @@
 each with the gains ``motorctl autotune`` writes for it.
 
     .venv/bin/python benchmarks/bench_gtcf.py [--config configs/gantry.yaml] [--out DIR] [--skip-cut]
-                                              [--no-autotune]
+                                              [--no-autotune] [--sweep 1.5,2,2.5/1.5]
 
 0. (default) ``motorctl autotune CONFIG --axis X --axis Y --law c2 --virtual-clock --json --out
    DIR/autotune`` on a copy of the config (a subprocess): both axes' C2 gains by the rule, then
-   GTCF's gain_t, gain_n on them by the same rule (motorctl.commission.gtcf_tune), written to
+   GTCF's gain_n per axis on them by the same rule (motorctl.commission.gtcf_tune), written to
    DIR/autotune/autotuned.yaml; the rest runs that file, C2 and GTCF alike. ``--no-autotune``:
    the config's own gains.
 1. The ISO 230-4 circle, R 50 mm at 50 and 100 mm/s, by the user's command:
@@ -29,6 +29,12 @@ each with the gains ``motorctl autotune`` writes for it.
    the measured path from the setpoints' path (the log's x_d, a polyline; the programmed path
    less the planner's G64 P0.01 blending, which alone departs up to ~9 µm from it:
    benchmarks/bench_contour.py).
+
+3. ``--sweep``: GTCF again with each listed gain_n (X's/Y's; one number: both; gain_t and the
+   low-pass as chosen) on the same circles and cut path, admitted by the rule or not, and a table of what each buys (the ratios of 1.) and
+   costs: each axis's u RMS at rest on the circle and the cut (the cut's straight edges hold one
+   axis still while the other moves: that axis is the contour direction, under gain_n), the
+   saturated samples, and whether autotune found the margins holding for it.
 
 Prints the autotuned gains and a Markdown table with the ratio GTCF / C2 (below 0.70: the ≥ 30 %
 target). Deterministic (the virtual clock, the simulated driver's seed): the same figures every
@@ -75,25 +81,32 @@ def saturation(log, mask=None) -> tuple[int, float, int]:
     return int(sat[m].sum()), float(np.max(np.abs(u[m]))), int(sat.sum())
 
 
-def rest_noise(log) -> float:
-    """The larger of the two axes' u RMS at rest [V] over a run log's enabled rows
-    (:func:`motorctl.metrics.u_rest_rms`: u about its mean where the command has not moved for
-    0.3 s); nan with no rest."""
+def rest_by_axis(log) -> dict:
+    """Each axis's u RMS at rest [V] over a run log's enabled rows ({"X": .., "Y": ..}):
+    :func:`motorctl.metrics.u_rest_rms`, u about its mean where the axis's command has not moved
+    for 0.3 s (on the rectangle's and the cut's straight edges too, where the partner moves); nan
+    with no rest."""
     from motorctl.metrics import REST_AFTER_S, rest_mask, u_rest_rms
-    out = []
+    out = {}
     ts = float(log.col("t")[1] - log.col("t")[0]) if len(log.col("t")) > 1 else 2e-4
     for a in ("X", "Y"):
         on = log.col(f"{a}.enabled") > 0.5
         rest = rest_mask(log.col(f"{a}.xd_dot")[on], log.col(f"{a}.xd_ddot")[on], ts, REST_AFTER_S)
-        out.append(u_rest_rms(log.col(f"{a}.u")[on], rest))
+        out[a] = u_rest_rms(log.col(f"{a}.u")[on], rest)
+    return out
+
+
+def rest_noise(log) -> float:
+    """The larger of the two axes' u RMS at rest [V] (:func:`rest_by_axis`); nan with no rest."""
+    out = list(rest_by_axis(log).values())
     return max(out) if all(v == v for v in out) else math.nan
 
 
-def circles(config: str, out: Path, timeout_s: float) -> list[dict]:
+def circles(config: str, out: Path, timeout_s: float, laws=LAWS) -> list[dict]:
     from motorctl.recorder.runlog import read_log
     base = out / "circle.log"
     cmd = [sys.executable, "-m", "motorctl", "circle-test", config, "--json", "--log", str(base)]
-    for c in LAWS:
+    for c in laws:
         cmd += ["--controller", c]
     for f in FEEDS:
         cmd += ["--feed", str(f)]
@@ -116,7 +129,7 @@ def circles(config: str, out: Path, timeout_s: float) -> list[dict]:
         rows.append({"path": f"circle R50 {r['feed_m_s'] * 1e3:.0f} mm/s", "law": r["controller"],
                      "G": max(r["G_cw_um"], r["G_ccw_um"]), "Gb": r["G_b_um"], "emax": worst * 1e6,
                      "sat": sat, "umax": umax, "sat_all": sat_all, "share": sat_all / len(xs),
-                     "rest": rest_noise(log), "fault": "-"})
+                     "rest": rest_noise(log), "rest_axes": rest_by_axis(log), "fault": "-"})
     return rows
 
 
@@ -140,7 +153,7 @@ def setpoint_contour_error(pos: np.ndarray, des: np.ndarray, window: int = 250) 
     return best
 
 
-def cut_path(config: str, out: Path) -> list[dict]:
+def cut_path(config: str, out: Path, laws=LAWS) -> list[dict]:
     import motorctl.app.circle_test as ct
     from motorctl.config import load_config
     from motorctl.motion import GcodeSettings, parse
@@ -159,7 +172,7 @@ def cut_path(config: str, out: Path) -> list[dict]:
     try:
         loaded = load_config(config)
         gs = GcodeSettings(axes=["X", "Y"], words={"M3": "torch", "M5": "torch", "S": "ignore"})
-        for c in LAWS:
+        for c in laws:
             lp = out / f"cut_{c}.log"
             fault = "-"
             try:
@@ -176,7 +189,8 @@ def cut_path(config: str, out: Path) -> list[dict]:
             pos = np.column_stack([log.col("X.y"), log.col("Y.y")])
             des = np.column_stack([log.col("X.x_d"), log.col("Y.x_d")])
             e_sp = setpoint_contour_error(pos, des)
-            extra = {"share": saturation(log)[2] / len(pos), "rest": rest_noise(log), "fault": fault}
+            extra = {"share": saturation(log)[2] / len(pos), "rest": rest_noise(log), "rest_axes": rest_by_axis(log),
+                     "fault": fault}
             for what, m in (("cutting", cutting), ("rapids", speed > 5000 / 60e3 + 1e-6)):
                 e_prog = contour_error(prog, pos[m])
                 sat, umax, sat_all = saturation(log, m)
@@ -213,10 +227,21 @@ def main(argv=None) -> int:
     ap.add_argument("--skip-cut", action="store_true", help="the circles only")
     ap.add_argument("--no-autotune", action="store_true", help="the config's own gains (no autotune first)")
     ap.add_argument("--timeout", type=float, default=1800.0, help="circle-test's and autotune's time bound [s]")
+    ap.add_argument("--sweep", default="", metavar="GX[/GY][,...]",
+                    help="then GTCF again with these gain_n (X's/Y's; one number: both) on the same circles and "
+                         "cut path, whether or not the rule admits them: what more contour gain buys, and what it costs")
     args = ap.parse_args(argv)
+    try:
+        parts = [v.split("/") for v in args.sweep.split(",") if v.strip()]
+        sweep = [tuple(float(x) for x in (p * 2)[:2]) for p in parts]          # one number: both axes
+        if any(len(p) > 2 for p in parts) or any(min(g) <= 0 for g in sweep):
+            raise ValueError
+    except ValueError:
+        ap.error(f"--sweep: {args.sweep!r} is not a comma-separated list of GX/GY or G (positive numbers)")
     out = Path(args.out or tempfile.mkdtemp(prefix="bench_gtcf_"))
     out.mkdir(parents=True, exist_ok=True)
     config = args.config
+    got = None
     if not args.no_autotune:
         config, got = autotune(args.config, out, args.timeout)
         print(f"autotuned ({config}):")
@@ -226,12 +251,14 @@ def main(argv=None) -> int:
                   f"{g.get('gamma_d', math.nan):.4g}: GM {m.get('gm_db') or math.inf:.1f} dB, PM "
                   f"{m.get('pm_deg', math.nan):.1f} deg, |S| {m.get('ms_db', math.nan):.1f} dB")
         for tp in got["gtcf"]:
-            print(f"  gtcf {'-'.join(tp['pair'])}: gain_t {tp['gains']['gain_t']:g}, gain_n {tp['gains']['gain_n']:g}; "
-                  + "; ".join(f"{a} GM {m['gm_db']:.1f} dB, PM {m['pm_deg']:.1f} deg, |S| {m['ms_db']:.1f} dB"
+            g = tp["gains"]
+            print(f"  gtcf {'-'.join(tp['pair'])}: gain_t {g['gain_t']:g}, low-pass {g['lowpass_hz']} Hz; "
+                  + "; ".join(f"{a} gain_n {g['gain_n'][a]:g} (margins hold up to {tp['admissible'][a][0]:g}): GM "
+                              f"{m['gm_db']:.1f} dB, PM {m['pm_deg']:.1f} deg, |S| {m['ms_db']:.1f} dB"
                               for a, m in tp["margins"].items()))
             for r in tp["runs"]:
-                print(f"    {r['run']} gain_t {r['gain_t']:g} gain_n {r['gain_n']:g} at {r['scale']:.0%}: "
-                      f"{r['verdict']}")
+                print(f"    {r['run']} gain_n {', '.join(f'{a} {v:g}' for a, v in r['gain_n'].items())} at "
+                      f"{r['scale']:.0%}: {r['verdict']}")
         print()
     rows = circles(config, out, args.timeout)
     if not args.skip_cut:
@@ -256,7 +283,64 @@ def main(argv=None) -> int:
         rest = "–" if not np.isfinite(r["rest"]) else f"{r['rest'] * 1e3:.0f}"
         print(f"| {r['path']} | {r['law']} | {g} | {gb} | {r['emax']:.2f}{rel('emax')} | {r['sat']} / "
               f"{r['sat_all']} ({r['share'] * 100:.3f} %) | {r['umax']:.2f} | {rest} | {r['fault']} |")
+    if sweep:
+        print_sweep(config, out, rows, sweep, got, args)
     return 0
+
+
+def print_sweep(config: str, out: Path, rows: list, sweep: list, got: dict | None, args) -> None:
+    """GTCF with each (g_n,X, g_n,Y) of ``sweep`` in the gtcf blocks (gain_t and the low-pass as
+    configured) on the circles and the cut path, as a Markdown table against per-axis C2's rows
+    of ``rows``: the ratios of G, G(b), the largest contour error (the circles: the worse of the
+    two feeds; the cut: from the setpoints' path while cutting), each axis's u RMS at rest on the
+    circles' and the cut's runs (the contour direction's noise: on the cut's straight edges one
+    axis stands still while the other moves), the whole runs' saturated samples, and whether
+    autotune found each axis's margins holding for it ("?" without autotune)."""
+    import yaml
+    adm = {a: set(v) for tp in (got or {}).get("gtcf", []) for a, v in tp["admissible"].items()}
+    raw = yaml.safe_load(Path(config).read_text())
+    blk = {a: raw["axes"][a]["controller"]["gtcf"] for a in ("X", "Y")}
+    chosen = tuple(float(blk[a].get("gain_n", 2.0)) for a in ("X", "Y"))
+    table = {chosen: [r for r in rows if r["law"] == "gtcf"]}
+    for gn in sweep:
+        if gn in table:
+            continue
+        for a, g in zip(("X", "Y"), gn):
+            blk[a]["gain_n"] = g
+        d = out / f"sweep_gain_n_{gn[0]:g}_{gn[1]:g}"
+        d.mkdir(exist_ok=True)
+        cfg = d / "config.yaml"
+        cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
+        table[gn] = circles(str(cfg), d, args.timeout, ("gtcf",)) + ([] if args.skip_cut else cut_path(str(cfg), d, ("gtcf",)))
+    base = {r["path"]: r for r in rows if r["law"] == "c2"}
+    cut = "cut path F5000, cutting: from the setpoints' path"
+    circ = [p for p in base if p.startswith("circle")]
+
+    def worst(rs, key):
+        return max((rs[p][key] / base[p][key] for p in circ if p in rs), default=math.nan)
+
+    def rests(r):
+        return " / ".join(f"{r['rest_axes'][a] * 1e3:.0f}" for a in ("X", "Y"))
+    print(f"\nGTCF's contour gains swept (gain_t {blk['X'].get('gain_t', 1.0):g}, low-pass "
+          f"{blk['X'].get('lowpass_hz')} Hz; x: GTCF / per-axis C2, the worse of the circles at "
+          f"{', '.join(p.split()[-2] for p in circ)} mm/s)\n")
+    print("| gain_n X / Y | margins hold (autotune's rule) X / Y | G | G(b) | largest contour error, circles | cut, "
+          "from the setpoints' path | u RMS at rest X / Y mV, circle 50 mm/s | the same, cut | saturated, whole runs "
+          "| fault |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    c2c = base.get(circ[0]) if circ else None
+    print(f"| c2 | – | 1 | 1 | 1 | 1 | {rests(c2c) if c2c else '–'} | {rests(base[cut]) if cut in base else '–'} | "
+          f"{sum(r['sat_all'] for p, r in base.items() if p in circ or p == cut)} | – |")
+    for gn in sorted(table):
+        rs = {r["path"]: r for r in table[gn]}
+        held = "?" if got is None else " / ".join("yes" if g in adm.get(a, ()) or g == 1.0 else "no"
+                                                   for a, g in zip(("X", "Y"), gn))
+        ce = f"x{rs[cut]['emax'] / base[cut]['emax']:.2f}" if cut in rs and cut in base else "–"
+        faults = sorted({r["fault"] for r in table[gn] if r["fault"] != "-"}) or ["-"]
+        print(f"| {gn[0]:g} / {gn[1]:g}{' (chosen)' if gn == chosen else ''} | {held} | x{worst(rs, 'G'):.2f} | "
+              f"x{worst(rs, 'Gb'):.2f} | x{worst(rs, 'emax'):.2f} | {ce} | "
+              f"{rests(rs[circ[0]]) if circ and circ[0] in rs else '–'} | {rests(rs[cut]) if cut in rs else '–'} | "
+              f"{sum(r['sat_all'] for p, r in rs.items() if p in circ or p == cut)} | {'; '.join(faults)} |")
 
 
 if __name__ == "__main__":

@@ -160,10 +160,10 @@ def cmd_autotune(args) -> int:
                       f"crossover {mg['wc_hz']:.0f} Hz")
         for tp in pairs:
             g = tp["gains"]
-            print(f"gtcf {'-'.join(tp['pair'])}: gain_t {g['gain_t']:g}, gain_n {g['gain_n']:g} (contour direction: "
-                  f"k_s x {g['gain_n']:g}); " + "; ".join(
-                      f"{a} GM {m['gm_db']:.1f} dB, PM {m['pm_deg']:.1f} deg, |S| {m['ms_db']:.1f} dB"
-                      for a, m in tp["margins"].items()) + " (the worst over [gain_t, gain_n])")
+            print(f"gtcf {'-'.join(tp['pair'])}: gain_t {g['gain_t']:g}, low-pass {g['lowpass_hz']} Hz; " + "; ".join(
+                f"{a} gain_n {g['gain_n'][a]:g} (contour direction its own: k_s x {g['gain_n'][a]:g}): GM "
+                f"{m['gm_db']:.1f} dB, PM {m['pm_deg']:.1f} deg, |S| {m['ms_db']:.1f} dB"
+                for a, m in tp["margins"].items()) + " (the worst over [gain_t, gain_n])")
         written = ([] if args.measure_only else [str(path)]) + [s["bode"] for s in summary.values() if s.get("bode")]
         print("wrote " + ", ".join(written))
     return 1 if failed else 0

@@ -1,27 +1,30 @@
-"""``motorctl autotune`` for the contouring pair law GTCF (:mod:`motorctl.control.gtcf`): its
-task-frame gains ``gain_t``, ``gain_n`` chosen by the rule per-axis C2 is chosen by
+"""``motorctl autotune`` for the contouring pair law GTCF (:mod:`motorctl.control.gtcf`): each
+axis's contour gain ``gain_n`` chosen by the rule per-axis C2 is chosen by
 (:mod:`motorctl.commission.autotune`), after both axes' C2 gains are chosen.
 
 GTCF is C2 on each axis with the robust feedback −k_s p set in the task frame of the desired
 path (Hu, Yao & Wang, IEEE TIE 58(11), 2011; docs/control-law.md, "GTCF"): an error normal to
-the path meets g_n k_s, one along it g_t k_s, on each axis's own k_s and k1 (the autotuned
-C2 gains of the pair). Axis i's own term of that feedback is −k_s,i (g_n + (g_t − g_n) t_i²) p_i:
-as the path turns, each axis's loop is C2's with its k_s scaled by every factor between g_t and
-g_n. The pair's two loops are coupled through the cross term (g_t − g_n) t_i t_j √(k_s,i k_s,j)
-p_j, and the margins here are per axis (SISO), with the task-frame gain as the loop-gain scale:
-what the rule can read off one axis's measured response.
+the path meets √(g_n,X g_n,Y)-weighted gains, one along it g_t k_s, on each axis's own k_s and
+k1 (the autotuned C2 gains of the pair). Axis i's own term of that feedback is
+−k_s,i (g_t t_i² + g_n,i n_i²) p_i: as the path turns, each axis's loop is C2's with its k_s
+scaled by every factor between g_t and its own g_n,i, the part beyond C2's through the law's
+low-pass (``lowpass_hz``, :data:`LOWPASS_HZ` written). The pair's two loops are coupled
+through the cross term, and the margins here are per axis (SISO), with the task-frame gain as
+the loop-gain scale: what the rule can read off one axis's measured response. g_t is 1 (the
+tangential stiffness the per-axis autotune chose); each axis's g_n is searched.
 
 The rule (the same lines as per-axis C2's, :mod:`motorctl.commission.rule`; nothing judged by
 the contour error):
 
-1. *margins* on each axis's measured FRF (:func:`motorctl.commission.choose.loop_frf`): C2's
-   linearisation with k_s × g for g on :data:`SPAN_POINTS` points from min(g_t, g_n) to
-   max(g_t, g_n), every one at 100, 75 and 50 % of its loop gain
-   (:func:`motorctl.commission.choose.margins_hold`): GM ≥ 6 dB, PM ≥ 10°, |S| ≤ 16 dB (the
-   rule's :class:`~motorctl.commission.rule.Rule`). The rest noise such a loop would have at
-   standstill (the measured rest spectrum of y through |C| at g_n k_s) is predicted and
+1. *margins* on each axis's measured FRF (:func:`motorctl.commission.choose.loop_frf`): GTCF's
+   linearisation (:meth:`motorctl.control.gtcf.GTCF.linearise`) at every g on
+   :data:`SPAN_POINTS` points from 1 to the axis's g_n, every one at 100, 75 and 50 % of its
+   loop gain (:func:`motorctl.commission.choose.margins_hold`): GM ≥ 6 dB, PM ≥ 10°,
+   |S| ≤ 16 dB (the rule's :class:`~motorctl.commission.rule.Rule`). Each axis's admissible
+   g_n of :data:`GAIN_N` follow from its own response. The rest noise such a loop would have at
+   standstill (the measured rest spectrum of y through |C| at its g_n) is predicted and
    reported, judged on the machine (2.): an axis whose command stands still while its partner
-   moves is the contour direction and has g_n k_s (GTCF blends to C2 only when both stand).
+   moves is the contour direction and has its g_n (GTCF blends to C2 only when both stand).
 2. *on the machine*: the *test contour* (:func:`contour_program`: ``motorctl circle-test``'s
    ISO 230-4 circle, R :data:`CONTOUR_RADIUS` at :data:`CONTOUR_FEED`, then a rectangle with
    R 3 mm corners at the same feed, its G0 moves at the axes' limits, dwells of 0.5 s: the
@@ -37,10 +40,11 @@ the contour error):
    ``full_periods`` periods: C2's confirmation runs) are not a contour: they are run once with
    the chosen gains and reported with the verdict the same judge gives them against per-axis
    C2 (``judge_programs``: judged, every candidate's ladder on them too).
-3. *choice*: the candidates whose margins hold, by contour-direction stiffness g_n, highest
-   first; for each g_n at most :data:`GT_TRIES` tangential gains, nearest to 1 first (1: the
-   tangential stiffness the per-axis autotune chose); the first that passes 2. is written. None
-   passing: g_t = g_n = 1 (GTCF is then C2). At most ``max_runs`` machine runs.
+3. *choice*: both axes start at their highest admissible g_n; a run that fails names the axis
+   whose figures failed, and that axis's g_n steps down to its next admissible one (when it is
+   at 1 already, the partner's steps down: the coupling is the partner's gain); the first pair
+   that passes 2. is written. Reaching 1, 1: GTCF is C2, written so. At most ``max_runs``
+   machine runs.
 """
 
 from __future__ import annotations
@@ -58,14 +62,16 @@ from motorctl.commission.rule import RULE, SCALES, Rule
 from motorctl.commission.verify import admissible, apply_gains
 from motorctl.config import LoadedConfig, config_from_dict
 
-#: the contour-direction gains g_n searched (multiples of each axis's C2 k_s; 1: C2)
+#: the contour-direction gains g_n searched per axis (multiples of its C2 k_s; 1: C2)
 GAIN_N = (1.0, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0)
-#: the tangential gains g_t searched
-GAIN_T = (0.5, 0.75, 1.0, 1.25, 1.5, 2.0)
+#: the tangential gain written: C2's stiffness along the path (the per-axis autotune's)
+GAIN_T = 1.0
+#: the low-pass corner written on the feedback beyond C2's [Hz] (motorctl.control.gtcf): above the
+#: contour's errors (a reversal's transient, 20-200 Hz), below the band of the encoder's
+#: quantisation through the backward difference (most of an axis's u at rest, above 1 kHz)
+LOWPASS_HZ = 500.0
 #: points of the gain range [min(g_t, g_n), max(g_t, g_n)] whose margins must hold (log-spaced)
 SPAN_POINTS = 5
-#: tangential gains tried on the machine per contour gain, at most
-GT_TRIES = 2
 #: the test contour: circle-test's circle [m], [m/s]
 CONTOUR_RADIUS = 0.05
 CONTOUR_FEED = 0.1
@@ -109,14 +115,22 @@ def span(g_t: float, g_n: float) -> np.ndarray:
     return np.array([lo]) if hi == lo else np.geomspace(lo, hi, SPAN_POINTS)
 
 
-def axis_margins(res: dict, g_c2: dict, g_t: float, g_n: float, rule: Rule = RULE) -> tuple[dict, bool]:
+def gtcf_gains(g_c2: dict, g: float, lowpass_hz: float | None = LOWPASS_HZ) -> dict:
+    """The gains of :meth:`motorctl.control.gtcf.GTCF.linearise` for one axis: its C2 gains
+    ``g_c2`` at task-frame gain ``g`` through the low-pass of ``lowpass_hz`` [Hz]."""
+    return dict(g_c2, g=float(g), lowpass_hz=lowpass_hz)
+
+
+def axis_margins(res: dict, g_c2: dict, g_t: float, g_n: float, lowpass_hz: float | None = LOWPASS_HZ,
+                 rule: Rule = RULE) -> tuple[dict, bool]:
     """The margins of one axis's loop under GTCF on its measured FRF (``res``: the axis's autotune
-    result, :func:`motorctl.commission.autotune.autotune`; g_c2: its C2 gains).
+    result, :func:`motorctl.commission.autotune.autotune`; g_c2: its C2 gains; g_n: its own
+    contour gain; lowpass_hz: the law's low-pass).
 
     Returns:
         ({"gm_db", "pm_deg", "ms_db": the worst over :func:`span` at 100 % [dB, deg, dB], "gm_at",
-        "pm_at", "ms_at": the scale g where each is taken, "wc_hz": crossover at g_n k_s [Hz],
-        "rest_pred_V": predicted u RMS at standstill at g_n k_s [V]}, whether the rule holds at
+        "pm_at", "ms_at": the scale g where each is taken, "wc_hz": crossover at g_n [Hz],
+        "rest_pred_V": predicted u RMS at standstill at g_n [V]}, whether the rule holds at
         every scale of the span, each at 100, 75 and 50 % of its loop gain).
     """
     ts, w, G_w, th = res["ts"], res["w"], res["G_w"], res["theta_hat0"]
@@ -124,7 +138,7 @@ def axis_margins(res: dict, g_c2: dict, g_t: float, g_n: float, rule: Rule = RUL
     out = {"gm_db": math.inf, "pm_deg": math.inf, "ms_db": -math.inf, "gm_at": g_n, "pm_at": g_n, "ms_at": g_n}
     ok = True
     for g in span(g_t, g_n):
-        mg, holds = margins_hold("c2", dict(g_c2, k_s=g_c2["k_s"] * g), ts, w, G_w, th, rule)
+        mg, holds = margins_hold("gtcf", gtcf_gains(g_c2, g, lowpass_hz), ts, w, G_w, th, rule)
         ok &= holds
         if mg.gm_db < out["gm_db"]:
             out["gm_db"], out["gm_at"] = mg.gm_db, float(g)
@@ -132,10 +146,10 @@ def axis_margins(res: dict, g_c2: dict, g_t: float, g_n: float, rule: Rule = RUL
             out["pm_deg"], out["pm_at"] = mg.pm_deg, float(g)
         if mg.ms_db > out["ms_db"]:
             out["ms_db"], out["ms_at"] = mg.ms_db, float(g)
-    gn = dict(g_c2, k_s=g_c2["k_s"] * g_n)
-    out["wc_hz"] = loop_margins(c_frf("c2", gn, ts, w, th) * G_w, f).wc_hz
+    gn = gtcf_gains(g_c2, g_n, lowpass_hz)
+    out["wc_hz"] = loop_margins(c_frf("gtcf", gn, ts, w, th) * G_w, f).wc_hz
     rp = res["measure"]["rest_psd"]
-    out["rest_pred_V"] = rest_noise(c_frf("c2", gn, ts, np.maximum(2.0 * math.pi * rp[0], 1e-9), th), rp)
+    out["rest_pred_V"] = rest_noise(c_frf("gtcf", gn, ts, np.maximum(2.0 * math.pi * rp[0], 1e-9), th), rp)
     return out, bool(ok)
 
 
@@ -149,14 +163,16 @@ def contour_metrics(log_path: str, loaded: LoadedConfig, axis: str) -> dict:
     return run_metrics(log_path, loaded, axis, program_only=False)
 
 
-def with_gains(raw: dict, pair, g_c2: dict, g_t: float, g_n: float, scale: float = 1.0) -> dict:
-    """A copy of the config dict with each axis's C2 gains ``g_c2[axis]`` (k_s × ``scale``) and
-    the pair's ``gain_t``, ``gain_n`` in both ``gtcf`` blocks (partner and v_min as configured)."""
+def with_gains(raw: dict, pair, g_c2: dict, g_t: float, g_n: dict, scale: float = 1.0,
+               lowpass_hz: float | None = LOWPASS_HZ) -> dict:
+    """A copy of the config dict with each axis's C2 gains ``g_c2[axis]`` (k_s × ``scale``), the
+    pair's ``gain_t``, each axis's ``gain_n[axis]`` and ``lowpass_hz`` in its ``gtcf`` block
+    (partner and v_min as configured)."""
     new = copy.deepcopy(raw)
     for a in pair:
         new = apply_gains(new, a, "c2", dict(g_c2[a], k_s=g_c2[a]["k_s"] * scale))
         blk = new["axes"][a]["controller"]["gtcf"]
-        blk["gain_t"], blk["gain_n"] = float(g_t), float(g_n)
+        blk["gain_t"], blk["gain_n"], blk["lowpass_hz"] = float(g_t), float(g_n[a]), lowpass_hz
     return new
 
 
@@ -234,10 +250,11 @@ def program_run(raw: dict, source: str, pair, law: str | None, seconds: float, c
 
 def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: str = "virtual",
               progress=None, rule: Rule = RULE, full_periods: int = 10, radius: float = CONTOUR_RADIUS,
-              feed: float = CONTOUR_FEED, max_runs: int = MAX_RUNS, judge_programs: bool = False) -> dict:
-    """Choose GTCF's ``gain_t``, ``gain_n`` for the pair of ``res_a``, ``res_b`` (the two axes'
+              feed: float = CONTOUR_FEED, max_runs: int = MAX_RUNS, judge_programs: bool = False,
+              lowpass_hz: float | None = LOWPASS_HZ) -> dict:
+    """Choose each axis's GTCF ``gain_n`` for the pair of ``res_a``, ``res_b`` (the two axes'
     :func:`motorctl.commission.autotune.autotune` results, measured FRF and chosen C2 gains) by
-    the rule of the module docstring.
+    the rule of the module docstring; ``gain_t`` :data:`GAIN_T`, the law's low-pass ``lowpass_hz``.
 
     Args:
         loaded, raw: the config (checked, and its dict). clock: the program runs' clock (the
@@ -245,15 +262,15 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
             program runs (0: none). judge_programs: the program runs are part of the rule
             (each candidate's ladder on them too); False: run once with the chosen gains and
             reported with the verdict they would get, not judged. radius [m], feed [m/s]: the test
-            contour. max_runs: machine runs at most.
+            contour. max_runs: machine runs at most. lowpass_hz [Hz]: written and linearised.
     Returns:
-        {"pair": (A, B), "gains": {"gain_t", "gain_n"} (1, 1 when nothing above passes),
-        "c2": {axis: C2 gains used}, "margins": {axis: :func:`axis_margins` of the chosen},
-        "admissible": [(g_t, g_n) whose margins hold, in the order tried], "grid": (GAIN_T, GAIN_N),
-        "reference": {"contour": {axis: figures}, "program": {...} or None},
-        "chosen": {"contour", "program": {axis: figures}, "program_verdict"} (the chosen's runs
-        at 100 %; empty for 1, 1), "runs": [(g_t, g_n, "contour" | "program", scale, {axis:
-        figures}, verdict '' or why)], "rule", "contour": (radius, feed), "program_s"}.
+        {"pair": (A, B), "gains": {"gain_t", "gain_n": {axis: g_n} (1 each when nothing above
+        passes), "lowpass_hz"}, "c2": {axis: C2 gains used}, "margins": {axis:
+        :func:`axis_margins` of the chosen}, "admissible": {axis: [g_n whose margins hold, highest
+        first]}, "grid": GAIN_N, "reference": {"contour": {axis: figures}, "program": {...} or
+        None}, "chosen": {"contour", "program": {axis: figures}, "program_verdict"} (the chosen's
+        runs at 100 %; empty for 1, 1), "runs": [({axis: g_n}, "contour" | "program", scale,
+        {axis: figures}, verdict '' or why)], "rule", "contour": (radius, feed), "program_s"}.
     Raises:
         ValueError: the two results are not a GTCF pair of ``loaded``. OSError, ConfigError:
             as :func:`motorctl.app.job.run_job` (a run that cannot start).
@@ -265,18 +282,13 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
     by = {res_a["axis"]: res_a, res_b["axis"]: res_b}
     g_c2 = {a: c2_gains(by[a]) for a in pair}
     source = str(loaded.path)
-    cands = []
-    for g_n in sorted(GAIN_N, reverse=True):
-        row = []
-        for g_t in sorted(GAIN_T, key=lambda x: (abs(math.log(x)), -x)):
-            if g_t > g_n:
-                continue
-            mg = {a: axis_margins(by[a], g_c2[a], g_t, g_n, rule) for a in pair}
-            if all(ok for _, ok in mg.values()):
-                row.append((g_t, g_n, {a: m for a, (m, _) in mg.items()}))
-        cands += row[:GT_TRIES]
-    say(f"rule gtcf {pair[0]}-{pair[1]}: margins hold for {len(cands)} (gain_t, gain_n) tried of the grid, "
-        f"the highest gain_n {cands[0][1] if cands else 1:g}")
+    g_t = GAIN_T
+    # each axis's admissible contour gains, highest first, from its own measured response; 1 (C2
+    # on that axis's own term) always closes the list
+    adm = {a: [g for g in sorted(GAIN_N, reverse=True)
+               if g > 1.0 and axis_margins(by[a], g_c2[a], g_t, g, lowpass_hz, rule)[1]] + [1.0] for a in pair}
+    say(f"rule gtcf {pair[0]}-{pair[1]}: margins hold up to gain_n "
+        + ", ".join(f"{a} {adm[a][0]:g}" for a in pair) + f" (gain_t {g_t:g}, low-pass {lowpass_hz} Hz)")
     seconds = full_periods * max(loaded.axes[a].trajectory.period_s for a in pair) if full_periods else 0.0
     # the reference: per-axis C2 with the pair's (autotuned) C2 gains at 100 % on the same runs
     # (the law GTCF replaces), every rung judged against it as C2's rule judges its rungs against
@@ -285,7 +297,7 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
 
     def ref(what: str) -> dict:
         if what not in refs:
-            cfg = with_gains(raw, pair, g_c2, 1.0, 1.0)
+            cfg = with_gains(raw, pair, g_c2, 1.0, {a: 1.0 for a in pair}, 1.0, lowpass_hz)
             refs[what] = (contour_run(cfg, source, pair, "c2", radius, feed) if what == "contour" else
                           program_run(cfg, source, pair, "c2", seconds, clock))
             say(f"verify gtcf: per-axis c2 (the pair's c2 gains) on {_where(what, seconds)}: " + "; ".join(
@@ -293,20 +305,22 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
                 + (f", L2 {refs[what][a]['L2_um']:.3f} um" if what == "program" else "") for a in pair))
         return refs[what]
 
-    def trial(what: str, g_t: float, g_n: float, s: float) -> tuple[dict, str]:
-        cfg = with_gains(raw, pair, g_c2, g_t, g_n, s)
+    def trial(what: str, g_n: dict, s: float) -> tuple[dict, str]:
+        cfg = with_gains(raw, pair, g_c2, g_t, g_n, s, lowpass_hz)
         r = (contour_run(cfg, source, pair, "gtcf", radius, feed) if what == "contour" else
              program_run(cfg, source, pair, "gtcf", seconds, clock))
-        why = _judge(r, ref(what), by, g_c2, g_t, g_n, s, loaded)
-        runs.append((g_t, g_n, what, s, r, why))
+        why = _judge(r, ref(what), by, g_c2, g_t, g_n, s, lowpass_hz, loaded)
+        runs.append((dict(g_n), what, s, r, why))
         l2 = ", ".join(f"{a} {r[a]['L2_um']:.3f}" for a in pair) if what == "program" else ""
-        say(f"verify gtcf gain_t {g_t:g} gain_n {g_n:g} at {s:.0%} on {_where(what, seconds)}: {why or 'ok'}"
+        say(f"verify gtcf gain_n {_gn(g_n)} at {s:.0%} on {_where(what, seconds)}: {why or 'ok'}"
             + (f" (L2 {l2} um)" if l2 else ""))
         return r, why
 
     runs, n_runs, chosen = [], 0, None
-    for g_t, g_n, mg in cands:
-        if g_t == 1.0 and g_n == 1.0:
+    at = {a: 0 for a in pair}
+    while True:
+        g_n = {a: adm[a][at[a]] for a in pair}
+        if all(g == 1.0 for g in g_n.values()):
             break
         if n_runs >= max_runs:
             say(f"verify gtcf: {max_runs} runs made; the search stops")
@@ -316,46 +330,56 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
         if seconds and judge_programs:
             steps += [("program", s) for s in sorted(SCALES, reverse=True)]
         for what, s in steps:
-            r, why = trial(what, g_t, g_n, s)
+            r, why = trial(what, g_n, s)
             n_runs += 1
             if s == 1.0:
                 got[what] = r
             if why:
                 break
         if not why:
-            chosen = (g_t, g_n, mg, got)
+            chosen = (g_n, got)
             break
+        # step down the axis the verdict names; at 1 already, its partner's (the coupling)
+        a = why.split(":", 1)[0]
+        a = a if a in pair and g_n[a] > 1.0 else next(b for b in pair if g_n[b] > 1.0)
+        at[a] += 1
     if chosen is None:
-        mg1 = {a: axis_margins(by[a], g_c2[a], 1.0, 1.0, rule)[0] for a in pair}
-        chosen = (1.0, 1.0, mg1, {})
+        chosen = ({a: 1.0 for a in pair}, {})
     elif seconds and not judge_programs:
         # reported, not judged: the axes' own point-to-point programs with the chosen gains
-        chosen[3]["program"], why = trial("program", chosen[0], chosen[1], 1.0)
-        chosen[3]["program_verdict"] = why
-    g_t, g_n, mg, got = chosen
-    return {"pair": pair, "gains": {"gain_t": g_t, "gain_n": g_n}, "c2": g_c2, "margins": mg,
-            "admissible": [(t, n) for t, n, _ in cands], "grid": (GAIN_T, GAIN_N),
+        chosen[1]["program"], why = trial("program", chosen[0], 1.0)
+        chosen[1]["program_verdict"] = why
+    g_n, got = chosen
+    mg = {a: axis_margins(by[a], g_c2[a], g_t, g_n[a], lowpass_hz, rule)[0] for a in pair}
+    return {"pair": pair, "gains": {"gain_t": g_t, "gain_n": g_n, "lowpass_hz": lowpass_hz}, "c2": g_c2,
+            "margins": mg, "admissible": adm, "grid": GAIN_N,
             "reference": {what: refs.get(what) for what in ("contour", "program")}, "chosen": got,
             "runs": runs, "rule": rule, "contour": (radius, feed), "program_s": seconds}
+
+
+def _gn(g_n: dict) -> str:
+    return ", ".join(f"{a} {g:g}" for a, g in g_n.items())
 
 
 def _where(what: str, seconds: float) -> str:
     return "the test contour" if what == "contour" else f"the programs ({seconds:g} s)"
 
 
-def _judge(run: dict, ref: dict, by: dict, g_c2: dict, g_t: float, g_n: float, scale: float,
-           loaded: LoadedConfig) -> str:
+def _judge(run: dict, ref: dict, by: dict, g_c2: dict, g_t: float, g_n: dict, scale: float,
+           lowpass_hz: float | None, loaded: LoadedConfig) -> str:
     """'' when every axis's figures of ``run`` meet :func:`motorctl.commission.verify.admissible`
     against the reference run ``ref`` (per-axis C2 with gains ``g_c2``), else 'AXIS: why'. The
     error-spectrum ratio is taken beyond the one the sensitivities predict at the extreme gains
-    of the span (|S|² at k_s × g × scale against at k_s)."""
+    of the axis's span (|S|² of GTCF's linearisation at k_s × scale, g_t and its g_n, against
+    C2's at k_s)."""
     for a, r in run.items():
         res = by[a]
 
         def expect(f_hz, a=a, res=res):
             base = _sensitivity2("c2", g_c2[a], res["ts"], res["w"], res["G_w"], res["theta_hat0"], f_hz)
-            return np.max([_sensitivity2("c2", dict(g_c2[a], k_s=g_c2[a]["k_s"] * g * scale), res["ts"], res["w"],
-                                         res["G_w"], res["theta_hat0"], f_hz) for g in (g_t, g_n)], axis=0) / base
+            scaled = dict(g_c2[a], k_s=g_c2[a]["k_s"] * scale)
+            return np.max([_sensitivity2("gtcf", gtcf_gains(scaled, g, lowpass_hz), res["ts"], res["w"],
+                                         res["G_w"], res["theta_hat0"], f_hz) for g in (g_t, g_n[a])], axis=0) / base
         why = admissible(r, loaded.axes[a].controller.u_lim, ref[a], expect=expect)
         if why:
             return f"{a}: {why}"
@@ -368,17 +392,19 @@ def comment_lines(tp: dict) -> list[str]:
     g = tp["gains"]
     rule = tp["rule"]
     r_, f_ = tp["contour"]
-    lines = [f"#   gtcf {a}-{b}: gain_t {g['gain_t']:g}, gain_n {g['gain_n']:g}: the largest contour-direction gain of "
-             f"{{{', '.join(f'{x:g}' for x in tp['grid'][1])}}}",
-             f"#     whose margins hold on both axes' measured response at k_s x every gain in [gain_t, gain_n] "
-             f"({rule.text()} at 100/75/50 %)",
-             f"#     and whose runs on the test contour (circle R {r_ * 1e3:g} mm, then a rectangle, at {f_ * 1e3:g} "
-             f"mm/s) pass at 100/75/50 % against per-axis c2",
+    lines = [f"#   gtcf {a}-{b}: gain_t {g['gain_t']:g}, gain_n {_gn(g['gain_n'])}, low-pass {g['lowpass_hz']} Hz: "
+             f"each axis's contour gain of {{{', '.join(f'{x:g}' for x in tp['grid'])}}}",
+             f"#     whose margins hold on its measured response at k_s x every gain in [gain_t, gain_n] "
+             f"({rule.text()} at 100/75/50 %), highest first, stepped down on the axis a run failed on,",
+             f"#     the first whose runs on the test contour (circle R {r_ * 1e3:g} mm, then a rectangle, at "
+             f"{f_ * 1e3:g} mm/s) pass at 100/75/50 % against per-axis c2",
              "#     with the gains above at 100 % (no fault, saturation, rest noise, oscillation as above)"]
     for ax in tp["pair"]:
         m = tp["margins"][ax]
-        lines.append(f"#     {ax} (c2 k_s {tp['c2'][ax]['k_s']:.4g} x [{min(g['gain_t'], g['gain_n']):g}, "
-                     f"{max(g['gain_t'], g['gain_n']):g}]): GM {m['gm_db']:.1f} dB (at x{m['gm_at']:g}), PM "
+        gn = g["gain_n"][ax]
+        lines.append(f"#     {ax} (c2 k_s {tp['c2'][ax]['k_s']:.4g} x [{min(g['gain_t'], gn):g}, "
+                     f"{max(g['gain_t'], gn):g}]; margins hold up to {tp['admissible'][ax][0]:g}): GM "
+                     f"{m['gm_db']:.1f} dB (at x{m['gm_at']:g}), PM "
                      f"{m['pm_deg']:.1f} deg (x{m['pm_at']:g}), |S|max {m['ms_db']:.1f} dB (x{m['ms_at']:g}), "
                      f"crossover {m['wc_hz']:.0f} Hz at gain_n, u at rest {m['rest_pred_V'] * 1e3:.0f} mV "
                      f"predicted at gain_n")
@@ -397,12 +423,13 @@ def comment_lines(tp: dict) -> list[str]:
 
 
 def apply_pair(raw: dict, tp: dict) -> dict:
-    """A copy of the config dict with the pair's chosen ``gain_t``, ``gain_n`` in both axes'
-    ``gtcf`` blocks (partner and v_min kept)."""
+    """A copy of the config dict with the pair's chosen ``gain_t``, each axis's ``gain_n`` and the
+    ``lowpass_hz`` in both axes' ``gtcf`` blocks (partner and v_min kept)."""
     new = copy.deepcopy(raw)
+    g = tp["gains"]
     for a in tp["pair"]:
         blk = dict(new["axes"][a]["controller"].get("gtcf") or {})
-        blk["gain_t"], blk["gain_n"] = float(tp["gains"]["gain_t"]), float(tp["gains"]["gain_n"])
+        blk["gain_t"], blk["gain_n"], blk["lowpass_hz"] = float(g["gain_t"]), float(g["gain_n"][a]), g["lowpass_hz"]
         new["axes"][a]["controller"]["gtcf"] = blk
     return new
 
@@ -413,12 +440,12 @@ def summary(tp: dict) -> dict:
         return v if isinstance(v, (int, str)) or (isinstance(v, float) and math.isfinite(v)) else None
     return {"pair": list(tp["pair"]), "gains": tp["gains"],
             "margins": {a: {k: fin(v) for k, v in m.items()} for a, m in tp["margins"].items()},
-            "admissible": [list(x) for x in tp["admissible"]],
-            "runs": [{"gain_t": t, "gain_n": n, "run": what, "scale": s, "verdict": why or "ok",
+            "admissible": tp["admissible"],
+            "runs": [{"gain_n": n, "run": what, "scale": s, "verdict": why or "ok",
                       **{a: {k: fin(r[a][k]) for k in ("saturated", "u_rest_rms_V", "u_peak_V", "fault")
                              if k in r[a]} for a in tp["pair"]}}
-                     for t, n, what, s, r, why in tp["runs"]]}
+                     for n, what, s, r, why in tp["runs"]]}
 
 
-__all__ = ["GAIN_N", "GAIN_T", "apply_pair", "axis_margins", "comment_lines", "contour_metrics",
-           "pairs", "summary", "tune_pair"]
+__all__ = ["GAIN_N", "GAIN_T", "LOWPASS_HZ", "apply_pair", "axis_margins", "comment_lines", "contour_metrics",
+           "gtcf_gains", "pairs", "summary", "tune_pair"]
