@@ -252,13 +252,14 @@ def main(argv=None) -> int:
                   f"{m.get('pm_deg', math.nan):.1f} deg, |S| {m.get('ms_db', math.nan):.1f} dB")
         for tp in got["gtcf"]:
             g = tp["gains"]
-            print(f"  gtcf {'-'.join(tp['pair'])}: gain_t {g['gain_t']:g}, low-pass {g['lowpass_hz']} Hz; "
-                  + "; ".join(f"{a} gain_n {g['gain_n'][a]:g} (margins hold up to {tp['admissible'][a][0]:g}): GM "
-                              f"{m['gm_db']:.1f} dB, PM {m['pm_deg']:.1f} deg, |S| {m['ms_db']:.1f} dB"
-                              for a, m in tp["margins"].items()))
+            print(f"  gtcf {'-'.join(tp['pair'])}: gain_t {g['gain_t']:g}; "
+                  + "; ".join(f"{a} gain_n {g['gain_n'][a]:g}, low-pass {g['lowpass_hz'][a]} Hz (margins hold up to "
+                              f"{tp['admissible'][a][0][0]:g}): GM {m['gm_db']:.1f} dB, PM {m['pm_deg']:.1f} deg, "
+                              f"|S| {m['ms_db']:.1f} dB" for a, m in tp["margins"].items()))
             for r in tp["runs"]:
-                print(f"    {r['run']} gain_n {', '.join(f'{a} {v:g}' for a, v in r['gain_n'].items())} at "
-                      f"{r['scale']:.0%}: {r['verdict']}")
+                print(f"    {r['run']} gain_n " + ", ".join(f"{a} {v:g} (low-pass {r['lowpass_hz'][a]} Hz)"
+                                                         for a, v in r['gain_n'].items())
+                      + f" at {r['scale']:.0%}: {r['verdict']}")
         print()
     rows = circles(config, out, args.timeout)
     if not args.skip_cut:
@@ -295,11 +296,14 @@ def print_sweep(config: str, out: Path, rows: list, sweep: list, got: dict | Non
     two feeds; the cut: from the setpoints' path while cutting), each axis's u RMS at rest on the
     circles' and the cut's runs (the contour direction's noise: on the cut's straight edges one
     axis stands still while the other moves), the whole runs' saturated samples, and whether
-    autotune found each axis's margins holding for it ("?" without autotune)."""
+    autotune found each axis's margins holding for it with its configured low-pass ("?" without
+    autotune)."""
     import yaml
-    adm = {a: set(v) for tp in (got or {}).get("gtcf", []) for a, v in tp["admissible"].items()}
     raw = yaml.safe_load(Path(config).read_text())
     blk = {a: raw["axes"][a]["controller"]["gtcf"] for a in ("X", "Y")}
+    adm = {a: {g for g, fc in v if fc == blk[a].get("lowpass_hz")} for tp in (got or {}).get("gtcf", [])
+           for a, v in tp["admissible"].items()}
+
     chosen = tuple(float(blk[a].get("gain_n", 2.0)) for a in ("X", "Y"))
     table = {chosen: [r for r in rows if r["law"] == "gtcf"]}
     for gn in sweep:
@@ -321,8 +325,9 @@ def print_sweep(config: str, out: Path, rows: list, sweep: list, got: dict | Non
 
     def rests(r):
         return " / ".join(f"{r['rest_axes'][a] * 1e3:.0f}" for a in ("X", "Y"))
-    print(f"\nGTCF's contour gains swept (gain_t {blk['X'].get('gain_t', 1.0):g}, low-pass "
-          f"{blk['X'].get('lowpass_hz')} Hz; x: GTCF / per-axis C2, the worse of the circles at "
+    print(f"\nGTCF's contour gains swept (gain_t {blk['X'].get('gain_t', 1.0):g}, low-pass X / Y "
+          f"{blk['X'].get('lowpass_hz')} / {blk['Y'].get('lowpass_hz')} Hz as configured; x: GTCF / per-axis C2, "
+          f"the worse of the circles at "
           f"{', '.join(p.split()[-2] for p in circ)} mm/s)\n")
     print("| gain_n X / Y | margins hold (autotune's rule) X / Y | G | G(b) | largest contour error, circles | cut, "
           "from the setpoints' path | u RMS at rest X / Y mV, circle 50 mm/s | the same, cut | saturated, whole runs "

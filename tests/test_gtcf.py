@@ -228,11 +228,12 @@ def _measured(loaded, raw, axis):
 def test_autotune_writes_the_pairs_gains_by_the_rule(tmp_path, monkeypatch):
     """autotune's GTCF step on configs/gantry.yaml (its gtcf blocks; the configured C2 gains, the
     plant's own response as measured, a short test contour R 10 mm at 100 mm/s): each axis's
-    gain_n of the grid written in its block with gain_t 1 and the low-pass (partner and v_min
-    kept); the margins reported at least the rule's on both axes (and found again from the
-    measured response at each axis's gain_n at 100/75/50 %); the search started at each axis's
-    highest admissible gain and stepped down only the axis a failed run named; the same margins
-    and the same figures of the chosen gains' contour run a second time."""
+    gain_n of the grid and its low-pass (none or LOWPASS_HZ) written in its block with gain_t 1
+    (partner and v_min kept); the margins reported at least the rule's on both axes (and found
+    again from the measured response at each axis's choice at 100/75/50 %); the search started
+    at each axis's first admissible option and moved only the axis a failed run named, to its
+    next option; the same margins and the same figures of the chosen gains' contour run a second
+    time."""
     import yaml
     from motorctl.commission import gtcf_tune
     from motorctl.commission.autotune import write_config
@@ -249,15 +250,16 @@ def test_autotune_writes_the_pairs_gains_by_the_rule(tmp_path, monkeypatch):
     tp = gtcf_tune.tune_pair(loaded, raw, *res, **kw)
     new = write_config(raw, res, src, tmp_path / "autotuned.yaml", [tp])
     g = tp["gains"]
-    assert g["gain_t"] == 1.0 and g["lowpass_hz"] == gtcf_tune.LOWPASS_HZ
-    assert all(g["gain_n"][a] in gtcf_tune.GAIN_N for a in ("X", "Y"))
+    opt = {a: (g["gain_n"][a], g["lowpass_hz"][a]) for a in ("X", "Y")}
+    assert g["gain_t"] == 1.0
+    assert all(opt[a][0] in gtcf_tune.GAIN_N and opt[a][1] in (None, gtcf_tune.LOWPASS_HZ) for a in opt)
     text = (tmp_path / "autotuned.yaml").read_text()
     back = yaml.safe_load(text)
-    assert "# " in text and f"gtcf X-Y: gain_t 1, gain_n X {g['gain_n']['X']:g}, Y {g['gain_n']['Y']:g}" in text
+    assert "# " in text and f"gtcf X-Y: gain_t 1, gain_n {gtcf_tune._opts(opt)}" in text
     for a, b in (("X", "Y"), ("Y", "X")):
         blk = back["axes"][a]["controller"]["gtcf"]
         assert blk == new["axes"][a]["controller"]["gtcf"]
-        assert (blk["gain_t"], blk["gain_n"], blk["lowpass_hz"]) == (1.0, g["gain_n"][a], g["lowpass_hz"])
+        assert (blk["gain_t"], blk["gain_n"], blk["lowpass_hz"]) == (1.0, *opt[a])
         assert blk["partner"] == b and blk["v_min"] == raw["axes"][a]["controller"]["gtcf"]["v_min"]
     config_from_dict(back, str(tmp_path / "autotuned.yaml"))          # the written file is a valid config
     for r in res:
@@ -265,11 +267,11 @@ def test_autotune_writes_the_pairs_gains_by_the_rule(tmp_path, monkeypatch):
         m = tp["margins"][a]
         assert m["gm_db"] >= GM_MIN_DB and m["pm_deg"] >= PM_MIN_DEG and m["ms_db"] <= MS_MAX_DB, m
         c2 = gtcf_tune.c2_gains(r)
-        L = c_frf("gtcf", gtcf_tune.gtcf_gains(c2, g["gain_n"][a]), r["ts"], r["w"], r["theta_hat0"]) * r["G_w"]
+        L = c_frf("gtcf", gtcf_tune.gtcf_gains(c2, *opt[a]), r["ts"], r["w"], r["theta_hat0"]) * r["G_w"]
         f = r["w"] / (2 * np.pi)
         assert all(RULE.holds(loop_margins(s * L, f)) for s in SCALES)
-        assert g["gain_n"][a] in tp["admissible"][a]
-    # the search: from each axis's highest admissible gain, one axis stepped down after each failure
+        assert opt[a] in tp["admissible"][a]
+    # the search: from each axis's first admissible option, one axis to its next after each failure
     cands = []
     for n, *_ in tp["runs"]:
         if not cands or cands[-1] != n:
@@ -280,18 +282,18 @@ def test_autotune_writes_the_pairs_gains_by_the_rule(tmp_path, monkeypatch):
             why = next(w for n, _, _, _, w in tp["runs"] if n == prev and w)
             named = why.split(":")[0]
             moved = [a for a in prev if prev[a] != nxt[a]]
-            assert len(moved) == 1 and nxt[moved[0]] < prev[moved[0]]
-            assert moved[0] == named or prev[named] == 1.0
-        if g["gain_n"] != {"X": 1.0, "Y": 1.0}:
-            assert cands[-1] == g["gain_n"] and not any(w for n, _, _, _, w in tp["runs"] if n == g["gain_n"])
+            adm = tp["admissible"]
+            assert len(moved) == 1 and adm[moved[0]].index(nxt[moved[0]]) == adm[moved[0]].index(prev[moved[0]]) + 1
+            assert moved[0] == named or prev[named][0] == 1.0
+        if opt != {"X": (1.0, None), "Y": (1.0, None)}:
+            assert cands[-1] == opt and not any(w for n, _, _, _, w in tp["runs"] if n == opt)
     # deterministic: the margins and the chosen's run on the test contour come out the same again
     pair = ("X", "Y")
     c2 = {r["axis"]: gtcf_tune.c2_gains(r) for r in res}
     for r in res:
-        assert gtcf_tune.axis_margins(r, c2[r["axis"]], 1.0, g["gain_n"][r["axis"]])[0] == tp["margins"][r["axis"]]
+        assert gtcf_tune.axis_margins(r, c2[r["axis"]], 1.0, *opt[r["axis"]])[0] == tp["margins"][r["axis"]]
     if tp["chosen"].get("contour") is not None:
-        again = gtcf_tune.contour_run(gtcf_tune.with_gains(raw, pair, c2, 1.0, g["gain_n"]), src, pair, "gtcf",
-                                      0.01, 0.1)
+        again = gtcf_tune.contour_run(gtcf_tune.with_gains(raw, pair, c2, 1.0, opt), src, pair, "gtcf", 0.01, 0.1)
         for a in pair:
             for k in ("saturated", "u_rest_rms_V", "u_peak_V", "osc_ratio", "fault"):
                 x, y = again[a][k], tp["chosen"]["contour"][a][k]

@@ -160,8 +160,9 @@ def cmd_autotune(args) -> int:
                       f"crossover {mg['wc_hz']:.0f} Hz")
         for tp in pairs:
             g = tp["gains"]
-            print(f"gtcf {'-'.join(tp['pair'])}: gain_t {g['gain_t']:g}, low-pass {g['lowpass_hz']} Hz; " + "; ".join(
-                f"{a} gain_n {g['gain_n'][a]:g} (contour direction its own: k_s x {g['gain_n'][a]:g}): GM "
+            print(f"gtcf {'-'.join(tp['pair'])}: gain_t {g['gain_t']:g}; " + "; ".join(
+                f"{a} gain_n {g['gain_n'][a]:g} (contour direction its own: k_s x {g['gain_n'][a]:g}"
+                + (f", low-pass {g['lowpass_hz'][a]:g} Hz" if g["lowpass_hz"][a] else "") + f"): GM "
                 f"{m['gm_db']:.1f} dB, PM {m['pm_deg']:.1f} deg, |S| {m['ms_db']:.1f} dB"
                 for a, m in tp["margins"].items()) + " (the worst over [gain_t, gain_n])")
         written = ([] if args.measure_only else [str(path)]) + [s["bode"] for s in summary.values() if s.get("bode")]

@@ -7,11 +7,12 @@ path (Hu, Yao & Wang, IEEE TIE 58(11), 2011; docs/control-law.md, "GTCF"): an er
 the path meets √(g_n,X g_n,Y)-weighted gains, one along it g_t k_s, on each axis's own k_s and
 k1 (the autotuned C2 gains of the pair). Axis i's own term of that feedback is
 −k_s,i (g_t t_i² + g_n,i n_i²) p_i: as the path turns, each axis's loop is C2's with its k_s
-scaled by every factor between g_t and its own g_n,i, the part beyond C2's through the law's
-low-pass (``lowpass_hz``, :data:`LOWPASS_HZ` written). The pair's two loops are coupled
+scaled by every factor between g_t and its own g_n,i, the part beyond C2's unfiltered or
+through the law's low-pass (``lowpass_hz``: :data:`LOWPASS_HZ`, less of the encoder's noise,
+less phase margin: each axis's own choice). The pair's two loops are coupled
 through the cross term, and the margins here are per axis (SISO), with the task-frame gain as
 the loop-gain scale: what the rule can read off one axis's measured response. g_t is 1 (the
-tangential stiffness the per-axis autotune chose); each axis's g_n is searched.
+tangential stiffness the per-axis autotune chose); each axis's g_n and low-pass are searched.
 
 The rule (the same lines as per-axis C2's, :mod:`motorctl.commission.rule`; nothing judged by
 the contour error):
@@ -21,7 +22,8 @@ the contour error):
    :data:`SPAN_POINTS` points from 1 to the axis's g_n, every one at 100, 75 and 50 % of its
    loop gain (:func:`motorctl.commission.choose.margins_hold`): GM ≥ 6 dB, PM ≥ 10°,
    |S| ≤ 16 dB (the rule's :class:`~motorctl.commission.rule.Rule`). Each axis's admissible
-   g_n of :data:`GAIN_N` follow from its own response. The rest noise such a loop would have at
+   options follow from its own response: for each g_n of :data:`GAIN_N`, highest first, the
+   unfiltered feedback, then the low-pass, where the margins hold. The rest noise such a loop would have at
    standstill (the measured rest spectrum of y through |C| at its g_n) is predicted and
    reported, judged on the machine (2.): an axis whose command stands still while its partner
    moves is the contour direction and has its g_n (GTCF blends to C2 only when both stand).
@@ -40,10 +42,10 @@ the contour error):
    ``full_periods`` periods: C2's confirmation runs) are not a contour: they are run once with
    the chosen gains and reported with the verdict the same judge gives them against per-axis
    C2 (``judge_programs``: judged, every candidate's ladder on them too).
-3. *choice*: both axes start at their highest admissible g_n; a run that fails names the axis
-   whose figures failed, and that axis's g_n steps down to its next admissible one (when it is
-   at 1 already, the partner's steps down: the coupling is the partner's gain); the first pair
-   that passes 2. is written. Reaching 1, 1: GTCF is C2, written so. At most ``max_runs``
+3. *choice*: both axes start at their first admissible option; a run that fails names the axis
+   whose figures failed, and that axis steps to its next option (the same g_n with the
+   low-pass, then the next lower g_n; when it is at 1 already, the partner steps: the coupling
+   is the partner's gain); the first pair that passes 2. is written. Reaching 1, 1: GTCF is C2, written so. At most ``max_runs``
    machine runs.
 """
 
@@ -115,17 +117,17 @@ def span(g_t: float, g_n: float) -> np.ndarray:
     return np.array([lo]) if hi == lo else np.geomspace(lo, hi, SPAN_POINTS)
 
 
-def gtcf_gains(g_c2: dict, g: float, lowpass_hz: float | None = LOWPASS_HZ) -> dict:
+def gtcf_gains(g_c2: dict, g: float, lowpass_hz: float | None = None) -> dict:
     """The gains of :meth:`motorctl.control.gtcf.GTCF.linearise` for one axis: its C2 gains
     ``g_c2`` at task-frame gain ``g`` through the low-pass of ``lowpass_hz`` [Hz]."""
     return dict(g_c2, g=float(g), lowpass_hz=lowpass_hz)
 
 
-def axis_margins(res: dict, g_c2: dict, g_t: float, g_n: float, lowpass_hz: float | None = LOWPASS_HZ,
+def axis_margins(res: dict, g_c2: dict, g_t: float, g_n: float, lowpass_hz: float | None = None,
                  rule: Rule = RULE) -> tuple[dict, bool]:
     """The margins of one axis's loop under GTCF on its measured FRF (``res``: the axis's autotune
     result, :func:`motorctl.commission.autotune.autotune`; g_c2: its C2 gains; g_n: its own
-    contour gain; lowpass_hz: the law's low-pass).
+    contour gain; lowpass_hz: the law's low-pass [Hz], None: unfiltered).
 
     Returns:
         ({"gm_db", "pm_deg", "ms_db": the worst over :func:`span` at 100 % [dB, deg, dB], "gm_at",
@@ -163,16 +165,15 @@ def contour_metrics(log_path: str, loaded: LoadedConfig, axis: str) -> dict:
     return run_metrics(log_path, loaded, axis, program_only=False)
 
 
-def with_gains(raw: dict, pair, g_c2: dict, g_t: float, g_n: dict, scale: float = 1.0,
-               lowpass_hz: float | None = LOWPASS_HZ) -> dict:
+def with_gains(raw: dict, pair, g_c2: dict, g_t: float, opt: dict, scale: float = 1.0) -> dict:
     """A copy of the config dict with each axis's C2 gains ``g_c2[axis]`` (k_s × ``scale``), the
-    pair's ``gain_t``, each axis's ``gain_n[axis]`` and ``lowpass_hz`` in its ``gtcf`` block
-    (partner and v_min as configured)."""
+    pair's ``gain_t`` and each axis's option ``opt[axis]`` = (gain_n, lowpass_hz or None) in its
+    ``gtcf`` block (partner and v_min as configured)."""
     new = copy.deepcopy(raw)
     for a in pair:
         new = apply_gains(new, a, "c2", dict(g_c2[a], k_s=g_c2[a]["k_s"] * scale))
         blk = new["axes"][a]["controller"]["gtcf"]
-        blk["gain_t"], blk["gain_n"], blk["lowpass_hz"] = float(g_t), float(g_n[a]), lowpass_hz
+        blk["gain_t"], blk["gain_n"], blk["lowpass_hz"] = float(g_t), float(opt[a][0]), opt[a][1]
     return new
 
 
@@ -250,11 +251,10 @@ def program_run(raw: dict, source: str, pair, law: str | None, seconds: float, c
 
 def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: str = "virtual",
               progress=None, rule: Rule = RULE, full_periods: int = 10, radius: float = CONTOUR_RADIUS,
-              feed: float = CONTOUR_FEED, max_runs: int = MAX_RUNS, judge_programs: bool = False,
-              lowpass_hz: float | None = LOWPASS_HZ) -> dict:
-    """Choose each axis's GTCF ``gain_n`` for the pair of ``res_a``, ``res_b`` (the two axes'
-    :func:`motorctl.commission.autotune.autotune` results, measured FRF and chosen C2 gains) by
-    the rule of the module docstring; ``gain_t`` :data:`GAIN_T`, the law's low-pass ``lowpass_hz``.
+              feed: float = CONTOUR_FEED, max_runs: int = MAX_RUNS, judge_programs: bool = False) -> dict:
+    """Choose each axis's GTCF ``gain_n`` and ``lowpass_hz`` for the pair of ``res_a``, ``res_b``
+    (the two axes' :func:`motorctl.commission.autotune.autotune` results, measured FRF and chosen
+    C2 gains) by the rule of the module docstring; ``gain_t`` :data:`GAIN_T`.
 
     Args:
         loaded, raw: the config (checked, and its dict). clock: the program runs' clock (the
@@ -262,15 +262,16 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
             program runs (0: none). judge_programs: the program runs are part of the rule
             (each candidate's ladder on them too); False: run once with the chosen gains and
             reported with the verdict they would get, not judged. radius [m], feed [m/s]: the test
-            contour. max_runs: machine runs at most. lowpass_hz [Hz]: written and linearised.
+            contour. max_runs: machine runs at most.
     Returns:
         {"pair": (A, B), "gains": {"gain_t", "gain_n": {axis: g_n} (1 each when nothing above
-        passes), "lowpass_hz"}, "c2": {axis: C2 gains used}, "margins": {axis:
-        :func:`axis_margins` of the chosen}, "admissible": {axis: [g_n whose margins hold, highest
-        first]}, "grid": GAIN_N, "reference": {"contour": {axis: figures}, "program": {...} or
-        None}, "chosen": {"contour", "program": {axis: figures}, "program_verdict"} (the chosen's
-        runs at 100 %; empty for 1, 1), "runs": [({axis: g_n}, "contour" | "program", scale,
-        {axis: figures}, verdict '' or why)], "rule", "contour": (radius, feed), "program_s"}.
+        passes), "lowpass_hz": {axis: [Hz] or None}}, "c2": {axis: C2 gains used}, "margins":
+        {axis: :func:`axis_margins` of the chosen}, "admissible": {axis: [(g_n, lowpass_hz) whose
+        margins hold, in the order tried]}, "grid": GAIN_N, "reference": {"contour": {axis:
+        figures}, "program": {...} or None}, "chosen": {"contour", "program": {axis: figures},
+        "program_verdict"} (the chosen's runs at 100 %; empty for 1, 1), "runs": [({axis: (g_n,
+        lowpass_hz)}, "contour" | "program", scale, {axis: figures}, verdict '' or why)], "rule",
+        "contour": (radius, feed), "program_s"}.
     Raises:
         ValueError: the two results are not a GTCF pair of ``loaded``. OSError, ConfigError:
             as :func:`motorctl.app.job.run_job` (a run that cannot start).
@@ -283,12 +284,12 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
     g_c2 = {a: c2_gains(by[a]) for a in pair}
     source = str(loaded.path)
     g_t = GAIN_T
-    # each axis's admissible contour gains, highest first, from its own measured response; 1 (C2
-    # on that axis's own term) always closes the list
-    adm = {a: [g for g in sorted(GAIN_N, reverse=True)
-               if g > 1.0 and axis_margins(by[a], g_c2[a], g_t, g, lowpass_hz, rule)[1]] + [1.0] for a in pair}
+    # each axis's admissible options (g_n, low-pass), highest g_n first, unfiltered before the
+    # low-pass, from its own measured response; (1, none), C2 on its own term, closes the list
+    adm = {a: [(g, fc) for g in sorted(GAIN_N, reverse=True) if g > 1.0 for fc in (None, LOWPASS_HZ)
+               if axis_margins(by[a], g_c2[a], g_t, g, fc, rule)[1]] + [(1.0, None)] for a in pair}
     say(f"rule gtcf {pair[0]}-{pair[1]}: margins hold up to gain_n "
-        + ", ".join(f"{a} {adm[a][0]:g}" for a in pair) + f" (gain_t {g_t:g}, low-pass {lowpass_hz} Hz)")
+        + ", ".join(f"{a} {adm[a][0][0]:g}" for a in pair) + f" (gain_t {g_t:g})")
     seconds = full_periods * max(loaded.axes[a].trajectory.period_s for a in pair) if full_periods else 0.0
     # the reference: per-axis C2 with the pair's (autotuned) C2 gains at 100 % on the same runs
     # (the law GTCF replaces), every rung judged against it as C2's rule judges its rungs against
@@ -297,7 +298,7 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
 
     def ref(what: str) -> dict:
         if what not in refs:
-            cfg = with_gains(raw, pair, g_c2, 1.0, {a: 1.0 for a in pair}, 1.0, lowpass_hz)
+            cfg = with_gains(raw, pair, g_c2, 1.0, {a: (1.0, None) for a in pair}, 1.0)
             refs[what] = (contour_run(cfg, source, pair, "c2", radius, feed) if what == "contour" else
                           program_run(cfg, source, pair, "c2", seconds, clock))
             say(f"verify gtcf: per-axis c2 (the pair's c2 gains) on {_where(what, seconds)}: " + "; ".join(
@@ -305,22 +306,22 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
                 + (f", L2 {refs[what][a]['L2_um']:.3f} um" if what == "program" else "") for a in pair))
         return refs[what]
 
-    def trial(what: str, g_n: dict, s: float) -> tuple[dict, str]:
-        cfg = with_gains(raw, pair, g_c2, g_t, g_n, s, lowpass_hz)
+    def trial(what: str, opt: dict, s: float) -> tuple[dict, str]:
+        cfg = with_gains(raw, pair, g_c2, g_t, opt, s)
         r = (contour_run(cfg, source, pair, "gtcf", radius, feed) if what == "contour" else
              program_run(cfg, source, pair, "gtcf", seconds, clock))
-        why = _judge(r, ref(what), by, g_c2, g_t, g_n, s, lowpass_hz, loaded)
-        runs.append((dict(g_n), what, s, r, why))
+        why = _judge(r, ref(what), by, g_c2, g_t, opt, s, loaded)
+        runs.append((dict(opt), what, s, r, why))
         l2 = ", ".join(f"{a} {r[a]['L2_um']:.3f}" for a in pair) if what == "program" else ""
-        say(f"verify gtcf gain_n {_gn(g_n)} at {s:.0%} on {_where(what, seconds)}: {why or 'ok'}"
+        say(f"verify gtcf gain_n {_opts(opt)} at {s:.0%} on {_where(what, seconds)}: {why or 'ok'}"
             + (f" (L2 {l2} um)" if l2 else ""))
         return r, why
 
     runs, n_runs, chosen = [], 0, None
     at = {a: 0 for a in pair}
     while True:
-        g_n = {a: adm[a][at[a]] for a in pair}
-        if all(g == 1.0 for g in g_n.values()):
+        opt = {a: adm[a][at[a]] for a in pair}
+        if all(o[0] == 1.0 for o in opt.values()):
             break
         if n_runs >= max_runs:
             say(f"verify gtcf: {max_runs} runs made; the search stops")
@@ -330,56 +331,59 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
         if seconds and judge_programs:
             steps += [("program", s) for s in sorted(SCALES, reverse=True)]
         for what, s in steps:
-            r, why = trial(what, g_n, s)
+            r, why = trial(what, opt, s)
             n_runs += 1
             if s == 1.0:
                 got[what] = r
             if why:
                 break
         if not why:
-            chosen = (g_n, got)
+            chosen = (opt, got)
             break
-        # step down the axis the verdict names; at 1 already, its partner's (the coupling)
+        # the axis the verdict names takes its next option; at 1 already, its partner (the coupling)
         a = why.split(":", 1)[0]
-        a = a if a in pair and g_n[a] > 1.0 else next(b for b in pair if g_n[b] > 1.0)
+        a = a if a in pair and opt[a][0] > 1.0 else next(b for b in pair if opt[b][0] > 1.0)
         at[a] += 1
     if chosen is None:
-        chosen = ({a: 1.0 for a in pair}, {})
+        chosen = ({a: (1.0, None) for a in pair}, {})
     elif seconds and not judge_programs:
         # reported, not judged: the axes' own point-to-point programs with the chosen gains
         chosen[1]["program"], why = trial("program", chosen[0], 1.0)
         chosen[1]["program_verdict"] = why
-    g_n, got = chosen
-    mg = {a: axis_margins(by[a], g_c2[a], g_t, g_n[a], lowpass_hz, rule)[0] for a in pair}
-    return {"pair": pair, "gains": {"gain_t": g_t, "gain_n": g_n, "lowpass_hz": lowpass_hz}, "c2": g_c2,
+    opt, got = chosen
+    mg = {a: axis_margins(by[a], g_c2[a], g_t, *opt[a], rule)[0] for a in pair}
+    return {"pair": pair, "gains": {"gain_t": g_t, "gain_n": {a: opt[a][0] for a in pair},
+                                    "lowpass_hz": {a: opt[a][1] for a in pair}}, "c2": g_c2,
             "margins": mg, "admissible": adm, "grid": GAIN_N,
             "reference": {what: refs.get(what) for what in ("contour", "program")}, "chosen": got,
             "runs": runs, "rule": rule, "contour": (radius, feed), "program_s": seconds}
 
 
-def _gn(g_n: dict) -> str:
-    return ", ".join(f"{a} {g:g}" for a, g in g_n.items())
+def _opts(opt: dict) -> str:
+    """'X 2 (low-pass 500 Hz), Y 1.5' of {axis: (g_n, lowpass_hz)}."""
+    return ", ".join(f"{a} {g:g}" + (f" (low-pass {fc:g} Hz)" if fc else "") for a, (g, fc) in opt.items())
 
 
 def _where(what: str, seconds: float) -> str:
     return "the test contour" if what == "contour" else f"the programs ({seconds:g} s)"
 
 
-def _judge(run: dict, ref: dict, by: dict, g_c2: dict, g_t: float, g_n: dict, scale: float,
-           lowpass_hz: float | None, loaded: LoadedConfig) -> str:
+def _judge(run: dict, ref: dict, by: dict, g_c2: dict, g_t: float, opt: dict, scale: float,
+           loaded: LoadedConfig) -> str:
     """'' when every axis's figures of ``run`` meet :func:`motorctl.commission.verify.admissible`
     against the reference run ``ref`` (per-axis C2 with gains ``g_c2``), else 'AXIS: why'. The
     error-spectrum ratio is taken beyond the one the sensitivities predict at the extreme gains
-    of the axis's span (|S|² of GTCF's linearisation at k_s × scale, g_t and its g_n, against
-    C2's at k_s)."""
+    of the axis's span (|S|² of GTCF's linearisation at k_s × scale, g_t and its g_n with its
+    low-pass, ``opt[axis]`` = (g_n, lowpass_hz), against C2's at k_s)."""
     for a, r in run.items():
         res = by[a]
 
         def expect(f_hz, a=a, res=res):
             base = _sensitivity2("c2", g_c2[a], res["ts"], res["w"], res["G_w"], res["theta_hat0"], f_hz)
             scaled = dict(g_c2[a], k_s=g_c2[a]["k_s"] * scale)
-            return np.max([_sensitivity2("gtcf", gtcf_gains(scaled, g, lowpass_hz), res["ts"], res["w"],
-                                         res["G_w"], res["theta_hat0"], f_hz) for g in (g_t, g_n[a])], axis=0) / base
+            return np.max([_sensitivity2("gtcf", gtcf_gains(scaled, g, opt[a][1]), res["ts"], res["w"],
+                                         res["G_w"], res["theta_hat0"], f_hz) for g in (g_t, opt[a][0])],
+                          axis=0) / base
         why = admissible(r, loaded.axes[a].controller.u_lim, ref[a], expect=expect)
         if why:
             return f"{a}: {why}"
@@ -392,10 +396,11 @@ def comment_lines(tp: dict) -> list[str]:
     g = tp["gains"]
     rule = tp["rule"]
     r_, f_ = tp["contour"]
-    lines = [f"#   gtcf {a}-{b}: gain_t {g['gain_t']:g}, gain_n {_gn(g['gain_n'])}, low-pass {g['lowpass_hz']} Hz: "
-             f"each axis's contour gain of {{{', '.join(f'{x:g}' for x in tp['grid'])}}}",
+    opt = {ax: (g["gain_n"][ax], g["lowpass_hz"][ax]) for ax in tp["pair"]}
+    lines = [f"#   gtcf {a}-{b}: gain_t {g['gain_t']:g}, gain_n {_opts(opt)}: "
+             f"each axis's contour gain of {{{', '.join(f'{x:g}' for x in tp['grid'])}}}, unfiltered or low-passed,",
              f"#     whose margins hold on its measured response at k_s x every gain in [gain_t, gain_n] "
-             f"({rule.text()} at 100/75/50 %), highest first, stepped down on the axis a run failed on,",
+             f"({rule.text()} at 100/75/50 %), highest first, the axis a run failed on stepped down,"
              f"#     the first whose runs on the test contour (circle R {r_ * 1e3:g} mm, then a rectangle, at "
              f"{f_ * 1e3:g} mm/s) pass at 100/75/50 % against per-axis c2",
              "#     with the gains above at 100 % (no fault, saturation, rest noise, oscillation as above)"]
@@ -403,7 +408,7 @@ def comment_lines(tp: dict) -> list[str]:
         m = tp["margins"][ax]
         gn = g["gain_n"][ax]
         lines.append(f"#     {ax} (c2 k_s {tp['c2'][ax]['k_s']:.4g} x [{min(g['gain_t'], gn):g}, "
-                     f"{max(g['gain_t'], gn):g}]; margins hold up to {tp['admissible'][ax][0]:g}): GM "
+                     f"{max(g['gain_t'], gn):g}]; margins hold up to {tp['admissible'][ax][0][0]:g}): GM "
                      f"{m['gm_db']:.1f} dB (at x{m['gm_at']:g}), PM "
                      f"{m['pm_deg']:.1f} deg (x{m['pm_at']:g}), |S|max {m['ms_db']:.1f} dB (x{m['ms_at']:g}), "
                      f"crossover {m['wc_hz']:.0f} Hz at gain_n, u at rest {m['rest_pred_V'] * 1e3:.0f} mV "
@@ -423,13 +428,14 @@ def comment_lines(tp: dict) -> list[str]:
 
 
 def apply_pair(raw: dict, tp: dict) -> dict:
-    """A copy of the config dict with the pair's chosen ``gain_t``, each axis's ``gain_n`` and the
+    """A copy of the config dict with the pair's chosen ``gain_t``, each axis's ``gain_n`` and
     ``lowpass_hz`` in both axes' ``gtcf`` blocks (partner and v_min kept)."""
     new = copy.deepcopy(raw)
     g = tp["gains"]
     for a in tp["pair"]:
         blk = dict(new["axes"][a]["controller"].get("gtcf") or {})
-        blk["gain_t"], blk["gain_n"], blk["lowpass_hz"] = float(g["gain_t"]), float(g["gain_n"][a]), g["lowpass_hz"]
+        blk["gain_t"], blk["gain_n"], blk["lowpass_hz"] = (float(g["gain_t"]), float(g["gain_n"][a]),
+                                                           g["lowpass_hz"][a])
         new["axes"][a]["controller"]["gtcf"] = blk
     return new
 
@@ -440,8 +446,9 @@ def summary(tp: dict) -> dict:
         return v if isinstance(v, (int, str)) or (isinstance(v, float) and math.isfinite(v)) else None
     return {"pair": list(tp["pair"]), "gains": tp["gains"],
             "margins": {a: {k: fin(v) for k, v in m.items()} for a, m in tp["margins"].items()},
-            "admissible": tp["admissible"],
-            "runs": [{"gain_n": n, "run": what, "scale": s, "verdict": why or "ok",
+            "admissible": {a: [list(o) for o in v] for a, v in tp["admissible"].items()},
+            "runs": [{"gain_n": {a: o[0] for a, o in n.items()}, "lowpass_hz": {a: o[1] for a, o in n.items()},
+                      "run": what, "scale": s, "verdict": why or "ok",
                       **{a: {k: fin(r[a][k]) for k in ("saturated", "u_rest_rms_V", "u_peak_V", "fault")
                              if k in r[a]} for a in tp["pair"]}}
                      for n, what, s, r, why in tp["runs"]]}
