@@ -253,11 +253,11 @@ def main(argv=None) -> int:
         for tp in got["gtcf"]:
             g = tp["gains"]
             print(f"  gtcf {'-'.join(tp['pair'])}: gain_t {g['gain_t']:g}; "
-                  + "; ".join(f"{a} gain_n {g['gain_n'][a]:g}, low-pass {g['lowpass_hz'][a]} Hz (margins hold up to "
+                  + "; ".join(f"{a} gain_n {g['gain_n'][a]:g}, {_lp(g['lowpass_hz'][a])} (margins hold up to "
                               f"{tp['admissible'][a][0][0]:g}): GM {m['gm_db']:.1f} dB, PM {m['pm_deg']:.1f} deg, "
                               f"|S| {m['ms_db']:.1f} dB" for a, m in tp["margins"].items()))
             for r in tp["runs"]:
-                print(f"    {r['run']} gain_n " + ", ".join(f"{a} {v:g} (low-pass {r['lowpass_hz'][a]} Hz)"
+                print(f"    {r['run']} gain_n " + ", ".join(f"{a} {v:g} ({_lp(r['lowpass_hz'][a])})"
                                                          for a, v in r['gain_n'].items())
                       + f" at {r['scale']:.0%}: {r['verdict']}")
         print()
@@ -287,6 +287,10 @@ def main(argv=None) -> int:
     if sweep:
         print_sweep(config, out, rows, sweep, got, args)
     return 0
+
+
+def _lp(fc) -> str:
+    return "unfiltered" if fc is None else f"low-pass {fc:g} Hz"
 
 
 def print_sweep(config: str, out: Path, rows: list, sweep: list, got: dict | None, args) -> None:
@@ -325,8 +329,8 @@ def print_sweep(config: str, out: Path, rows: list, sweep: list, got: dict | Non
 
     def rests(r):
         return " / ".join(f"{r['rest_axes'][a] * 1e3:.0f}" for a in ("X", "Y"))
-    print(f"\nGTCF's contour gains swept (gain_t {blk['X'].get('gain_t', 1.0):g}, low-pass X / Y "
-          f"{blk['X'].get('lowpass_hz')} / {blk['Y'].get('lowpass_hz')} Hz as configured; x: GTCF / per-axis C2, "
+    print(f"\nGTCF's contour gains swept (gain_t {blk['X'].get('gain_t', 1.0):g}; X {_lp(blk['X'].get('lowpass_hz'))}, "
+          f"Y {_lp(blk['Y'].get('lowpass_hz'))}, as configured; x: GTCF / per-axis C2, "
           f"the worse of the circles at "
           f"{', '.join(p.split()[-2] for p in circ)} mm/s)\n")
     print("| gain_n X / Y | margins hold (autotune's rule) X / Y | G | G(b) | largest contour error, circles | cut, "

@@ -400,15 +400,17 @@ def comment_lines(tp: dict) -> list[str]:
     lines = [f"#   gtcf {a}-{b}: gain_t {g['gain_t']:g}, gain_n {_opts(opt)}: "
              f"each axis's contour gain of {{{', '.join(f'{x:g}' for x in tp['grid'])}}}, unfiltered or low-passed,",
              f"#     whose margins hold on its measured response at k_s x every gain in [gain_t, gain_n] "
-             f"({rule.text()} at 100/75/50 %), highest first, the axis a run failed on stepped down,"
+             f"({rule.text()} at 100/75/50 %), highest first, the axis a run failed on stepped down,",
              f"#     the first whose runs on the test contour (circle R {r_ * 1e3:g} mm, then a rectangle, at "
              f"{f_ * 1e3:g} mm/s) pass at 100/75/50 % against per-axis c2",
              "#     with the gains above at 100 % (no fault, saturation, rest noise, oscillation as above)"]
     for ax in tp["pair"]:
         m = tp["margins"][ax]
         gn = g["gain_n"][ax]
+        fc = g["lowpass_hz"][ax]
         lines.append(f"#     {ax} (c2 k_s {tp['c2'][ax]['k_s']:.4g} x [{min(g['gain_t'], gn):g}, "
-                     f"{max(g['gain_t'], gn):g}]; margins hold up to {tp['admissible'][ax][0][0]:g}): GM "
+                     f"{max(g['gain_t'], gn):g}]{f', low-pass {fc:g} Hz' if fc else ''}; margins hold up to "
+                     f"{tp['admissible'][ax][0][0]:g}): GM "
                      f"{m['gm_db']:.1f} dB (at x{m['gm_at']:g}), PM "
                      f"{m['pm_deg']:.1f} deg (x{m['pm_at']:g}), |S|max {m['ms_db']:.1f} dB (x{m['ms_at']:g}), "
                      f"crossover {m['wc_hz']:.0f} Hz at gain_n, u at rest {m['rest_pred_V'] * 1e3:.0f} mV "
