@@ -63,6 +63,8 @@ def summarise(idf: Identifier) -> dict:
             "theta": [float(v) for v in nom.fit.coef[:nt]],
             "theta_std": [float(v) for v in nom_unc["theta_std"]],
             "theta_ci95": nom_unc["theta_ci95"],
+            "theta_std_sampling": nom_unc["theta_std_sampling"],
+            "theta_model_error": nom_unc["theta_model_error"],
             "theta_std_white": nom_unc["theta_std_white"],
             "theta_names": list(THETA_NAMES[:nt]),
             "n_theta": nt,
@@ -95,6 +97,8 @@ def summarise(idf: Identifier) -> dict:
             # Newey-West covariance of β and the searched h: motorctl.ident.uncertainty)
             "parameters_std": eu["std"],
             "parameters_ci95": eu["ci95"],
+            "parameters_std_sampling": eu.get("std_sampling", {}),
+            "parameters_model_error": eu.get("model_error", {}),
             "heldout_rms_before": g * before,
             "heldout_rms_after": g * ev.heldout_rms,
             "heldout_gain_percent": 100 * ev.gain,
@@ -106,10 +110,16 @@ def summarise(idf: Identifier) -> dict:
                         "heldout_rms": g * idf.final.heldout_rms,
                         "theta_values": [float(v) for v in th_v],
                         "theta_std": unc["theta_std"], "theta_ci95": unc["theta_ci95"],
+                        "theta_std_sampling": unc["theta_std_sampling"],
+                        "theta_model_error": unc["theta_model_error"],
                         "theta_std_white": unc["theta_std_white"]}
-    out["uncertainty"] = {"method": "Newey-West HAC covariance (Bartlett kernel, Andrews' AR(1) bandwidth); "
-                                    "95 % interval = value -+ 1.96 sigma; a bias of the model is not covered",
-                          "lag_samples": unc["lag_samples"], "nominal_lag_samples": nom_unc["lag_samples"]}
+    out["uncertainty"] = {"method": "sigma = sqrt(s^2 + b^2): s the Newey-West HAC standard deviation (Bartlett "
+                                    "kernel, Andrews' AR(1) bandwidth), b the model error the record shows (the fit "
+                                    "on the low band and on the samples in motion against the fit on all, beyond "
+                                    "its sampling variance, where significant at 5 %); 95 % interval = value -+ "
+                                    "1.96 sigma",
+                          "lag_samples": unc["lag_samples"], "nominal_lag_samples": nom_unc["lag_samples"],
+                          "splits": unc.get("splits", []), "nominal_splits": nom_unc.get("splits", [])}
     # the effects' values (and the compensation's) taken again on the declared current loop's model
     out["refit"] = None if src is idf else {
         "families": src.refit_families,
@@ -157,7 +167,8 @@ def _uncertainty(idf: Identifier, ev, terms: list, params_of) -> dict:
         from motorctl.ident.uncertainty import ci95
         nt = idf.n_theta
         sd = [float(v) for v in ev.fit.std[:nt]]
-        return {"theta_std": sd, "theta_std_white": sd, "lag_samples": None,
+        return {"theta_std": sd, "theta_std_white": sd, "lag_samples": None, "theta_std_sampling": sd,
+                "theta_model_error": [0.0] * nt, "splits": [],
                 "theta_ci95": [ci95(float(v), s) for v, s in zip(ev.fit.coef[:nt], sd)],
                 "effects": [{"std": {}, "ci95": {}} for _ in terms]}
 
@@ -502,8 +513,10 @@ def text_report(s: dict) -> str:
              f"({s['filters'].get('zoh_source', '')})",
              f"nominal model: {n['n_theta_reason']}",
              f"  condition number {n['condition_number']:.1f}"]
-    for name, v, sd, ci in zip(n["theta_names"], n["theta"], n["theta_std"], n["theta_ci95"]):
-        lines.append(f"  {name} = {v:.6g} +- {sd:.2g} (95 %: {_interval(ci)})")
+    errs = n.get("theta_model_error") or [0.0] * len(n["theta"])
+    for name, v, sd, ci, b in zip(n["theta_names"], n["theta"], n["theta_std"], n["theta_ci95"], errs):
+        part = f", of it model error {b:.2g}" if b else ""
+        lines.append(f"  {name} = {v:.6g} +- {sd:.2g} (95 %: {_interval(ci)}{part})")
     if "physical" in n:
         ph = n["physical"]
         lines.append("  physical: " + ", ".join(f"{k} {v:.4g}" for k, v in ph.items() if "offset" not in k))
@@ -551,8 +564,9 @@ def text_report(s: dict) -> str:
     if a.get("theta_ci95"):
         lines.append("  " + ", ".join(f"{name} {v:.6g} +- {sd:.2g} (95 %: {_interval(ci)})" for name, v, sd, ci in
                                       zip(n["theta_names"], a["theta_values"], a["theta_std"], a["theta_ci95"])))
-        lines.append("  (sigma from the residual's own correlation, Newey-West; a bias of the model, the same on "
-                     "every record, is not in it: docs/identification.md, \"Uncertainty\")")
+        lines.append("  (sigma: the residual's own correlation, Newey-West, and the model's error the record shows, "
+                     "the fits on the low band and in motion against the fit on all; a bias neither shows is not "
+                     "in it: docs/identification.md, \"Uncertainty\")")
     if s.get("refit"):
         r = s["refit"]
         how = []

@@ -26,13 +26,29 @@ and the others the share of it they carry. The named parameters of an effect (am
 phases, forces in N) are functions of (β, h) (:func:`motorctl.ident.effects.parameters`); their
 covariance is J Cov Jᵀ with J the numerical Jacobian of that function (the delta method).
 
-The interval is value ± 1.96 σ (a normal approximation: asymptotically exact for the sandwich,
-Newey & West 1987, Thm. 2). What no resampling and no sandwich covers is a *bias*: an error of
-the model the residual does not show (the same on every seed, e.g. a lag the model represents
-as a delay) shifts θ̂ without widening its spread; docs/identification.md, "Uncertainty", gives
-the coverage measured on the simulated plants and where that is the case.
+What no resampling and no sandwich covers is a *bias*: an error of the model the residual's
+variance does not show (the same on every record, e.g. a current loop's lag the model
+represents as a delay) shifts θ̂ without widening its spread. Part of it the record shows as a
+disagreement between fits the correct model would make agree (a specification test in the
+manner of Hausman 1978): the same model fitted on the low band of the decimated record (below
+:data:`LOW_BAND_SHARE` of the band kept; dynamics the model lacks, a lag or a structural mode,
+act more the higher the frequency) and on the samples in motion (the identifier's
+``moving``, |ẋ| above 2 % of its largest: what the model gets wrong near zero velocity, the
+steep Coulomb column S_f of a quantised velocity, weighs at rest), each against the fit on all. For a split P the difference
+d = θ̂_P − θ̂ is exact from the full fit's residual and its covariance V_d under a correct model
+is the Newey-West covariance of its scores (:func:`split_difference`); the model error of a
+value is b = sqrt(d² − V_d) where the difference is significant at 5 % (|d| > 1.96 sqrt(V_d)),
+else 0, the largest over the splits (:func:`model_error`; named parameters through the same
+delta method). The stated standard deviation is sqrt(σ² + b²), σ the sandwich's, and the
+interval value ± 1.96 of it (a normal approximation: asymptotically exact for the sandwich,
+Newey & West 1987, Thm. 2). Its assumption: the low band's fit, or the fit in motion, is the
+less biased, so that the full fit's bias is about its difference from it. A bias both share
+(an error of the model at every frequency and speed, the same in every subset) is not
+covered; docs/identification.md, "Uncertainty", gives the coverage measured on the simulated
+plants and where that is the case.
 
-References: W. K. Newey, K. D. West, "A simple, positive semi-definite, heteroskedasticity and
+References: J. A. Hausman, "Specification tests in econometrics", Econometrica 46(6),
+1251-1271, 1978. W. K. Newey, K. D. West, "A simple, positive semi-definite, heteroskedasticity and
 autocorrelation consistent covariance matrix", Econometrica 55(3), 703-708, 1987. D. W. K.
 Andrews, "Heteroskedasticity and autocorrelation consistent covariance matrix estimation",
 Econometrica 59(3), 817-858, 1991 (§6, the AR(1) plug-in). G. H. Golub, V. Pereyra, "The
@@ -98,14 +114,105 @@ def hac_covariance(phi: np.ndarray, residual: np.ndarray, fs_d: float) -> tuple[
     a = phi / sc
     bread = np.linalg.pinv(a.T @ a)
     z = a * r[:, None]
+    lag = bandwidth(z, fs_d)
+    cov = bread @ _hac_sum(z, lag) @ bread * (m / max(m - p, 1))
+    return cov / np.outer(sc, sc), lag
+
+
+def bandwidth(z: np.ndarray, fs_d: float) -> int:
+    """The Bartlett bandwidth [samples] of the score series ``z`` (M, p) at the decimated rate
+    ``fs_d`` [Hz]: :func:`andrews_bandwidth`, at least :data:`MIN_LAG_S`, at most
+    :data:`MAX_LAG_SHARE` of M."""
+    m = z.shape[0]
     lag = andrews_bandwidth(z)
-    lag = int(min(max(math.ceil(lag), math.ceil(MIN_LAG_S * fs_d)), max(1, int(MAX_LAG_SHARE * m))))
+    return int(min(max(math.ceil(lag), math.ceil(MIN_LAG_S * fs_d)), max(1, int(MAX_LAG_SHARE * m))))
+
+
+def _hac_sum(z: np.ndarray, lag: int) -> np.ndarray:
+    """Ŝ = Γ₀ + Σ_{l=1..L} (1 − l/(L+1)) (Γ_l + Γ_lᵀ) of the scores ``z`` (M, p) (Newey & West
+    1987, the Bartlett kernel)."""
     s = z.T @ z
     for l in range(1, lag + 1):
         g = z[l:].T @ z[:-l]
         s += (1.0 - l / (lag + 1.0)) * (g + g.T)
-    cov = bread @ s @ bread * (m / max(m - p, 1))
-    return cov / np.outer(sc, sc), lag
+    return s
+
+
+#: the low band of the band-split specification test: frequencies below this share of the
+#: decimated band's kept part (the parallel decimation keeps up to 0.8 of the decimated
+#: Nyquist frequency, :func:`motorctl.ident.idim.parallel_decimate`)
+LOW_BAND_SHARE = 0.25
+#: a column is compared in a split only when the split keeps at least this share of its
+#: squared norm; else the split is not made (a stiction's hold columns, zero in motion)
+MIN_SPLIT_SHARE = 1e-3
+#: largest condition number of the split's normal equations (columns scaled to unit norm)
+MAX_SPLIT_COND = 1e10
+
+
+def low_band(m: int, share: float | None = None):
+    """The orthogonal projection (a callable on (M,) or (M, k) arrays) onto the frequencies
+    below ``share`` (default :data:`LOW_BAND_SHARE`) × 0.8 × the decimated Nyquist frequency of
+    an M-sample decimated series (the DFT bins kept, the others zeroed: symmetric and
+    idempotent on R^M)."""
+    share = LOW_BAND_SHARE if share is None else share
+    keep = max(2, int(round(share * 0.8 * (m // 2 + 1))))
+
+    def proj(a):
+        spec = np.fft.rfft(a, axis=0)
+        spec[keep:] = 0.0
+        return np.fft.irfft(spec, n=m, axis=0)
+    return proj
+
+
+def split_difference(a: np.ndarray, r: np.ndarray, proj, lag: int,
+                     coef: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The difference d = θ̂_P − θ̂ (p,) between the least-squares fit of the regressor ``a``
+    (M, p) restricted by the orthogonal projection ``proj`` (a subset of the samples, a band of
+    frequencies) and the fit on all of it, and its covariance V_d (p, p) if the model were right.
+
+    With y = aθ̂ + r (``r`` the full fit's residual), θ̂_P = (aᵀPa)⁻¹aᵀPy gives
+    d = (aᵀPa)⁻¹ Σ_t (Pa)_t r_t exactly; under a correct model both estimate θ and
+    d = Σ_t ψ_t e_t, ψ_t = (aᵀPa)⁻¹(Pa)_t − (aᵀa)⁻¹a_t, whose Newey-West covariance (the
+    Bartlett bandwidth ``lag`` [samples], the residual for e) is V_d (Hausman 1978, the
+    difference of two estimators consistent under the model; its HAC form as in
+    :func:`hac_covariance`). Columns of any scale (scaled to unit norm inside; d and V_d in the
+    columns' own units).
+
+    A column the projection keeps less than :data:`MIN_SPLIT_SHARE` of (a stiction's columns,
+    zero in motion) has no estimate in the split: with the full fit's coefficients ``coef``
+    (p,) the split is fitted without it (its force a_D θ̂_D taken as known,
+    d_R = (a_RᵀPa_R)⁻¹a_RᵀP(a_D θ̂_D + r)) and its d and V_d are 0; without ``coef``, None.
+    None as well when the normal equations of the split are worse than :data:`MAX_SPLIT_COND`.
+    """
+    m, p = a.shape
+    sc = np.sqrt(np.einsum("ij,ij->j", a, a))
+    sc[sc == 0] = 1.0
+    u = a / sc
+    pu = proj(u)
+    keep = np.einsum("ij,ij->j", pu, pu) >= MIN_SPLIT_SHARE
+    if not keep.all() and (coef is None or not keep.any()):
+        return None
+    target = r if keep.all() else r + u[:, ~keep] @ (np.asarray(coef, dtype=float)[~keep] * sc[~keep])
+    uk, puk = u[:, keep], pu[:, keep]
+    gp = uk.T @ puk
+    lam = np.linalg.eigvalsh(0.5 * (gp + gp.T))
+    if not lam[0] > 0 or lam[-1] / lam[0] > MAX_SPLIT_COND:
+        return None
+    gpi = np.linalg.inv(gp)
+    d, vd = np.zeros(p), np.zeros((p, p))
+    d[keep] = gpi @ (puk.T @ target)
+    psi = puk @ gpi.T - (u @ np.linalg.pinv(u.T @ u).T)[:, keep]
+    vd[np.ix_(keep, keep)] = _hac_sum(psi * r[:, None], lag) * (m / max(m - p, 1))
+    return d / sc, vd / np.outer(sc, sc)
+
+
+def model_error(d: float, vd: float) -> float:
+    """The bias a split's difference ``d`` shows beyond its sampling variance ``vd`` (both of
+    one value): sqrt(d² − V_d) when |d| exceeds :data:`Z95`·sqrt(V_d) (the Hausman statistic
+    d²/V_d beyond the 95 % point of χ²₁), else 0."""
+    if not (math.isfinite(d) and math.isfinite(vd)) or vd < 0:
+        return 0.0
+    return math.sqrt(d * d - vd) if d * d > Z95 * Z95 * vd else 0.0
 
 
 def ci95(value: float, std: float) -> list:
@@ -145,7 +252,7 @@ def white_covariance(phi: np.ndarray, residual: np.ndarray) -> np.ndarray:
     return s2 * np.linalg.pinv(a.T @ a) / np.outer(sc, sc)
 
 
-def fit_uncertainty(idf, ev, terms, params_of, white: bool = False) -> dict:
+def fit_uncertainty(idf, ev, terms, params_of, white: bool = False, specification: bool = True) -> dict:
     """The HAC standard deviations and 95 % intervals of a fit's nominal θ and of each effect's
     named parameters.
 
@@ -157,11 +264,14 @@ def fit_uncertainty(idf, ev, terms, params_of, white: bool = False) -> dict:
             :func:`motorctl.ident.effects.parameters` gives them for the summary, in N with a
             gain); None when ``terms`` is empty.
     Returns:
-        {"theta_std": (n_theta,) HAC σ, "theta_ci95": [[lo, hi], ...], "theta_std_white": the
-        white formula's σ, "lag_samples": L, "effects": [{"std": {name: σ or [σ, ...]},
-        "ci95": {name: [lo, hi] or [[lo, hi], ...]}} per term]}; σ in the units of the values.
-        ``white``: the same with the white covariance (:func:`white_covariance`) in place of
-        the HAC one (lag_samples 0), for comparison.
+        {"theta_std": (n_theta,) the stated σ, sqrt(σ_HAC² + b²), "theta_ci95": [[lo, hi], ...]
+        (value ∓ 1.96 of it), "theta_std_sampling": σ_HAC, "theta_model_error": b (0 where no
+        split shows one), "theta_std_white": the white formula's σ, "lag_samples": L, "splits":
+        the names of the splits made ("low_band", "moving"), "effects": [{"std", "ci95",
+        "std_sampling", "model_error": {name: value or [value, ...]}} per term]}; σ, b in the
+        units of the values. ``white``: the white covariance (:func:`white_covariance`) in
+        place of the HAC one (lag_samples 0) and no model error, for comparison;
+        ``specification`` False: no model error (b = 0).
     Raises:
         ValueError: ``ev`` is not the fit of ``terms`` on ``idf`` (its coefficients and the
         regressor differ in number).
@@ -197,27 +307,50 @@ def fit_uncertainty(idf, ev, terms, params_of, white: bool = False) -> dict:
     else:
         cov, lag = hac_covariance(full, ev.fit.residual, fs_d)
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    out = {"theta_std": [float(v) for v in sd[:nt]],
-           "theta_ci95": [ci95(float(coef[j]), float(sd[j])) for j in range(nt)],
+    # the model's error the record shows: the fit on the low band and on the samples in motion
+    # against the fit on all (split_difference); not for the white comparison
+    splits = {}
+    if not white and specification:
+        r = np.asarray(ev.fit.residual, dtype=float)
+        moving = getattr(idf, "moving", None)
+        cands = [("low_band", low_band(len(r)))]
+        if moving is not None and len(moving) == len(r) and 0 < int(np.sum(moving)) < len(r):
+            mv = np.asarray(moving, dtype=float)
+            cands.append(("moving", lambda a, mv=mv: a * (mv[:, None] if a.ndim > 1 else mv)))
+        cf = np.concatenate([coef, np.zeros(full.shape[1] - len(coef))])
+        for name, proj in cands:
+            got = split_difference(full, r, proj, lag, cf)
+            if got is not None:
+                splits[name] = got
+    bias = np.zeros(len(sd))
+    for d, vd in splits.values():
+        bias = np.maximum(bias, [model_error(float(d[j]), float(vd[j, j])) for j in range(len(sd))])
+    tot = np.sqrt(sd ** 2 + bias ** 2)
+    out = {"theta_std": [float(v) for v in tot[:nt]],
+           "theta_ci95": [ci95(float(coef[j]), float(tot[j])) for j in range(nt)],
+           "theta_std_sampling": [float(v) for v in sd[:nt]],
+           "theta_model_error": [float(v) for v in bias[:nt]],
            "theta_std_white": [float(v) for v in ev.fit.std[:nt]],
-           "lag_samples": int(lag), "effects": []}
+           "lag_samples": int(lag), "splits": sorted(splits), "effects": []}
     hcol = {i: phi.shape[1] + k for k, (i, _) in enumerate(extra)}
     j0 = nt
     for i, (t, b) in enumerate(zip(terms, betas)):
         k = len(b)
         idx = list(range(j0, j0 + k)) + ([hcol[i]] if i in hcol else [])
         j0 += k
-        out["effects"].append(_effect_interval(t, np.asarray(b, float), idx, cov, i in hcol, params_of))
+        out["effects"].append(_effect_interval(t, np.asarray(b, float), idx, cov, i in hcol, params_of,
+                                               list(splits.values())))
     return out
 
 
-def _effect_interval(t, b, idx, cov, with_h, params_of) -> dict:
+def _effect_interval(t, b, idx, cov, with_h, params_of, splits=()) -> dict:
     """σ and [lo, hi] of each named parameter of one effect by the delta method (module
     docstring): J (numerical, central differences in β and h) times the covariance block of
-    (β, h) ``idx`` of ``cov``."""
+    (β, h) ``idx`` of ``cov``; the model's error of each from the splits' (d, V_d) through the
+    same J (:func:`model_error`, the largest over ``splits``)."""
     base = _flat(params_of(t, t.h, b))
     if not base or not idx:
-        return {"std": {}, "ci95": {}}
+        return {"std": {}, "ci95": {}, "std_sampling": {}, "model_error": {}}
     n = len(idx)
     jac = np.zeros((len(base), n))
     for c in range(n):
@@ -249,20 +382,30 @@ def _effect_interval(t, b, idx, cov, with_h, params_of) -> dict:
     # a parameter the fitted (β, h) do not move is computed from more of the record than this
     # fit (asymmetric friction's, fitted again on the samples in motion): no σ from here
     var[~np.any(jac != 0.0, axis=1)] = np.nan
-    std, ci = {}, {}
-    for (name, pos, v), s2 in zip(base, var):
+    bias = np.zeros(len(base))
+    for d, vd in splits:
+        db = jac @ d[idx]
+        vb = np.einsum("ij,jk,ik->i", jac, vd[np.ix_(idx, idx)], jac)
+        bias = np.maximum(bias, [model_error(float(x), float(y)) for x, y in zip(db, vb)])
+    std, ci, samp, err = {}, {}, {}, {}
+    for (name, pos, v), s2, b2 in zip(base, var, bias):
         s = math.sqrt(s2) if math.isfinite(s2) and s2 >= 0 else math.nan
+        tot = math.sqrt(s * s + b2 * b2) if math.isfinite(s) else math.nan
+        e = b2 if math.isfinite(s) else math.nan
         if pos is None:
-            std[name], ci[name] = _num(s), ci95(v, s)
+            std[name], ci[name], samp[name], err[name] = _num(tot), ci95(v, tot), _num(s), _num(e)
         else:
-            std.setdefault(name, []).append(_num(s))
-            ci.setdefault(name, []).append(ci95(v, s))
-    return {"std": std, "ci95": ci}
+            std.setdefault(name, []).append(_num(tot))
+            ci.setdefault(name, []).append(ci95(v, tot))
+            samp.setdefault(name, []).append(_num(s))
+            err.setdefault(name, []).append(_num(e))
+    return {"std": std, "ci95": ci, "std_sampling": samp, "model_error": err}
 
 
 def _num(x: float):
     return float(x) if math.isfinite(x) else None
 
 
-__all__ = ["MAX_LAG_SHARE", "MIN_LAG_S", "REL_STEP", "Z95", "andrews_bandwidth", "ci95", "fit_uncertainty",
-           "hac_covariance", "white_covariance"]
+__all__ = ["LOW_BAND_SHARE", "MAX_LAG_SHARE", "MAX_SPLIT_COND", "MIN_LAG_S", "MIN_SPLIT_SHARE", "REL_STEP", "Z95",
+           "andrews_bandwidth", "bandwidth", "ci95", "fit_uncertainty", "hac_covariance", "low_band", "model_error",
+           "split_difference", "white_covariance"]
