@@ -118,7 +118,8 @@ def one(plant: str, fragment: dict, label: str, seed: int, out: str) -> dict:
     for i, v in enumerate(a["theta_values"]):
         if i in skip:
             continue
-        rows.append((f"theta{i + 1}", truth[i], v, ci95(v, a["theta_std_white"][i]), a["theta_ci95"][i]))
+        rows.append((f"theta{i + 1}", truth[i], v, ci95(v, a["theta_std_white"][i]), a["theta_ci95"][i],
+                     ci95(v, a.get("theta_std_sampling", a["theta_std"])[i])))
     by_name = {t.family: k for k, t in enumerate(src.terms)}
     for name, opts in fragment.items():
         found = next((e for e in s["effects"] if e["name"] == name), None)
@@ -129,9 +130,10 @@ def one(plant: str, fragment: dict, label: str, seed: int, out: str) -> dict:
             key = _key(found["parameters"], pname)
             new = _at(found["parameters_ci95"].get(key), pname)
             old = _at(white["effects"][k]["ci95"].get(key), pname) if k is not None else None
-            if new is None or old is None or new[0] is None:
+            samp = _at(found.get("parameters_std_sampling", found["parameters_std"]).get(key), pname)
+            if new is None or old is None or new[0] is None or samp is None:
                 continue
-            rows.append((f"{name}.{pname}", tv, fv, old, new))
+            rows.append((f"{name}.{pname}", tv, fv, old, new, ci95(fv, samp)))
     return {"plant": plant, "label": label, "seed": seed, "rows": rows, "cpu_s": cpu,
             "effects": [e["name"] for e in s["effects"]], "lag": s["uncertainty"]["lag_samples"]}
 
@@ -223,29 +225,34 @@ def main(argv=None) -> int:
     per: dict = {}
     cases: dict = {}              # (plant, parameter) -> {case label: [(error, σ new)] over the seeds}
     for r in done:
-        for name, tv, fv, old, new in r["rows"]:
-            per.setdefault((r["plant"], name), []).append((tv, fv, old, new))
+        for name, tv, fv, old, new, samp in r["rows"]:
+            per.setdefault((r["plant"], name), []).append((tv, fv, old, new, samp))
             cases.setdefault((r["plant"], name), {}).setdefault(r["label"], []).append(
-                (fv - tv, (new[1] - new[0]) / (2.0 * 1.959963984540054)))
+                (fv - tv, (samp[1] - samp[0]) / (2.0 * 1.959963984540054)))
     print(f"identify's 95 % intervals against the truth: {len(done)} fits "
           f"({', '.join(args.plant)} plant; none + {', '.join(EFFECTS)} at x{', x'.join(f'{f:g}' for f in args.sizes)}; "
           f"seeds 1-{args.seeds}; 20 s logs); load average {os.getloadavg()[0]:.2f}\n")
-    print("| plant | parameter | fits | old (white) covers | new (Newey-West) covers | median abs(error)/σ old | "
-          "median abs(error)/σ new | seeds' spread / σ new | abs(bias) / σ new | median new width / abs(value) |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
-    tot_old = tot_new = tot = 0
+    print("| plant | parameter | fits | white covers | Newey-West covers | stated (Newey-West + model error) covers | "
+          "median abs(error)/σ white | median abs(error)/σ Newey-West | median abs(error)/σ stated | "
+          "seeds' spread / σ NW | abs(bias) / σ NW | median stated width / abs(value) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    tot_old = tot_new = tot_nw = tot = 0
     for (plant, name), rows in sorted(per.items()):
         tv = np.array([r[0] for r in rows])
         fv = np.array([r[1] for r in rows])
         old = np.array([r[2] for r in rows], dtype=float)
         new = np.array([r[3] for r in rows], dtype=float)
+        nw = np.array([r[4] for r in rows], dtype=float)
         c_old = np.mean((old[:, 0] <= tv) & (tv <= old[:, 1]))
         c_new = np.mean((new[:, 0] <= tv) & (tv <= new[:, 1]))
+        c_nw = np.mean((nw[:, 0] <= tv) & (tv <= nw[:, 1]))
         z_old = np.abs(fv - tv) / np.maximum((old[:, 1] - old[:, 0]) / 3.919927969, 1e-300)
         z_new = np.abs(fv - tv) / np.maximum((new[:, 1] - new[:, 0]) / 3.919927969, 1e-300)
+        z_nw = np.abs(fv - tv) / np.maximum((nw[:, 1] - nw[:, 0]) / 3.919927969, 1e-300)
         width = np.median((new[:, 1] - new[:, 0]) / np.maximum(np.abs(fv), 1e-300))
         tot_old += int(round(c_old * len(rows)))
         tot_new += int(round(c_new * len(rows)))
+        tot_nw += int(round(c_nw * len(rows)))
         tot += len(rows)
         # per case (plant, effect, size) over its seeds: the spread of the errors and their mean
         # (the bias: the same on every seed), each against the case's median σ
@@ -258,13 +265,21 @@ def main(argv=None) -> int:
                 bias.append(abs(float(np.mean(e))) / sd)
         sp = f"{np.median(spread):.2f}" if spread else "-"
         bi = f"{np.median(bias):.1f}" if bias else "-"
-        print(f"| {plant} | {name} | {len(rows)} | {100 * c_old:.0f} % | {100 * c_new:.0f} % | "
-              f"{np.median(z_old):.1f} | {np.median(z_new):.1f} | {sp} | {bi} | {100 * width:.3g} % |")
+        print(f"| {plant} | {name} | {len(rows)} | {100 * c_old:.0f} % | {100 * c_nw:.0f} % | {100 * c_new:.0f} % | "
+              f"{np.median(z_old):.1f} | {np.median(z_nw):.1f} | {np.median(z_new):.1f} | {sp} | {bi} | "
+              f"{100 * width:.3g} % |")
     errs = [r for r in done if r.get("error")]
     cpu = [r["cpu_s"] for r in done if not r.get("error")]
     lags = [r["lag"] for r in done if r.get("lag") is not None]
-    print(f"\nall parameters: old {tot_old}/{tot} ({100 * tot_old / max(tot, 1):.0f} %), new {tot_new}/{tot} "
-          f"({100 * tot_new / max(tot, 1):.0f} %); {len(errs)} fits refused; identify {min(cpu):.1f}-{max(cpu):.1f} s "
+    for plant in args.plant:
+        pr = [(k, v) for k, v in per.items() if k[0] == plant]
+        n_p = sum(len(v) for _, v in pr)
+        cov_p = {j: sum(int(np.sum([(r[j][0] <= r[0] <= r[j][1]) for r in v])) for _, v in pr) for j in (2, 4, 3)}
+        print(f"\n{plant}: white {cov_p[2]}/{n_p} ({100 * cov_p[2] / max(n_p, 1):.0f} %), Newey-West {cov_p[4]}/{n_p} "
+              f"({100 * cov_p[4] / max(n_p, 1):.0f} %), stated {cov_p[3]}/{n_p} ({100 * cov_p[3] / max(n_p, 1):.0f} %)", end="")
+    print(f"\nall parameters: white {tot_old}/{tot} ({100 * tot_old / max(tot, 1):.0f} %), Newey-West {tot_nw}/{tot} "
+          f"({100 * tot_nw / max(tot, 1):.0f} %), stated {tot_new}/{tot} "
+          f"({100 * tot_new / max(tot, 1):.0f} %); {len(errs)} fits refused; identify {min(cpu):.1f}-{max(cpu):.1f} s (median {np.median(cpu):.2f} s) "
           f"CPU per log; Newey-West bandwidth {min(lags)}-{max(lags)} decimated samples; {wall:.0f} s wall")
     print("rerun: python benchmarks/ident_coverage.py --jobs 2 [--seeds 5] [--plant rigid] [--sizes 0.5,1]")
     return 0
