@@ -39,9 +39,10 @@ the contour error):
    samples), u RMS at rest ≤ 1.5 × C2's, no line in u at rest, no error spectrum 100 × C2's
    beyond what the sensitivities predict.
    The axes' own point-to-point programs (``motorctl run --controller gtcf``, both axes,
-   ``full_periods`` periods: C2's confirmation runs) are not a contour: they are run once with
-   the chosen gains and reported with the verdict the same judge gives them against per-axis
-   C2 (``judge_programs``: judged, every candidate's ladder on them too).
+   ``full_periods`` periods: C2's confirmation runs, the 40 s constraints) are judged the same
+   way against per-axis C2 on them, at each rung after the contour's: a contour gain that the
+   contour takes can still saturate an axis that stands while its partner makes its 40 m/s²
+   moves (``judge_programs`` False: run once with the chosen gains and reported, not judged).
 3. *choice*: both axes start at their first admissible option; a run that fails names the axis
    whose figures failed, and that axis steps to its next option (the same g_n with the
    low-pass, then the next lower g_n; when it is at 1 already, the partner steps: the coupling
@@ -251,7 +252,7 @@ def program_run(raw: dict, source: str, pair, law: str | None, seconds: float, c
 
 def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: str = "virtual",
               progress=None, rule: Rule = RULE, full_periods: int = 10, radius: float = CONTOUR_RADIUS,
-              feed: float = CONTOUR_FEED, max_runs: int = MAX_RUNS, judge_programs: bool = False) -> dict:
+              feed: float = CONTOUR_FEED, max_runs: int = MAX_RUNS, judge_programs: bool = True) -> dict:
     """Choose each axis's GTCF ``gain_n`` and ``lowpass_hz`` for the pair of ``res_a``, ``res_b``
     (the two axes' :func:`motorctl.commission.autotune.autotune` results, measured FRF and chosen
     C2 gains) by the rule of the module docstring; ``gain_t`` :data:`GAIN_T`.
@@ -260,8 +261,8 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
         loaded, raw: the config (checked, and its dict). clock: the program runs' clock (the
             contour runs: virtual, as circle-test). full_periods: program periods of the
             program runs (0: none). judge_programs: the program runs are part of the rule
-            (each candidate's ladder on them too); False: run once with the chosen gains and
-            reported with the verdict they would get, not judged. radius [m], feed [m/s]: the test
+            (each candidate's ladder on them too, each rung after the contour's); False: run
+            once with the chosen gains and reported with the verdict they would get, not judged. radius [m], feed [m/s]: the test
             contour. max_runs: machine runs at most.
     Returns:
         {"pair": (A, B), "gains": {"gain_t", "gain_n": {axis: g_n} (1 each when nothing above
@@ -327,9 +328,8 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
             say(f"verify gtcf: {max_runs} runs made; the search stops")
             break
         why, got = "", {}
-        steps = [("contour", s) for s in sorted(SCALES, reverse=True)]
-        if seconds and judge_programs:
-            steps += [("program", s) for s in sorted(SCALES, reverse=True)]
+        steps = [(what, s) for s in sorted(SCALES, reverse=True)
+                 for what in (("contour", "program") if seconds and judge_programs else ("contour",))]
         for what, s in steps:
             r, why = trial(what, opt, s)
             n_runs += 1
@@ -402,7 +402,9 @@ def comment_lines(tp: dict) -> list[str]:
              f"#     whose margins hold on its measured response at k_s x every gain in [gain_t, gain_n] "
              f"({rule.text()} at 100/75/50 %), highest first, the axis a run failed on stepped down,",
              f"#     the first whose runs on the test contour (circle R {r_ * 1e3:g} mm, then a rectangle, at "
-             f"{f_ * 1e3:g} mm/s) pass at 100/75/50 % against per-axis c2",
+             f"{f_ * 1e3:g} mm/s)" + (f" and on the axes' programs ({tp['program_s']:g} s)"
+                                      if tp["chosen"].get("program") is not None and "program_verdict" not in tp["chosen"]
+                                      else "") + " pass at 100/75/50 % against per-axis c2",
              "#     with the gains above at 100 % (no fault, saturation, rest noise, oscillation as above)"]
     for ax in tp["pair"]:
         m = tp["margins"][ax]
@@ -420,8 +422,9 @@ def comment_lines(tp: dict) -> list[str]:
         if ch.get(what) is None or ref.get(what) is None:
             continue
         label = ("test contour" if what == "contour" else
-                 f"the axes' programs, {tp['program_s']:g} s (reported, not judged"
-                 + (f": {ch['program_verdict']}" if ch.get("program_verdict") else ": would pass") + ")")
+                 f"the axes' programs, {tp['program_s']:g} s" + ("" if "program_verdict" not in ch else
+                 " (reported, not judged" + (f": {ch['program_verdict']}" if ch["program_verdict"] else ": would pass")
+                 + ")"))
         lines.append(f"#     {label}, gtcf / c2: " + "; ".join(
             f"{ax} {ch[what][ax]['saturated']} / {ref[what][ax]['saturated']} saturated, u at rest "
             f"{ch[what][ax]['u_rest_rms_V'] * 1e3:.0f} / {ref[what][ax]['u_rest_rms_V'] * 1e3:.0f} mV"
