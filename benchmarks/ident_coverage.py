@@ -1,7 +1,9 @@
 """Coverage of ``motorctl identify``'s 95 % intervals: the share of fits whose interval contains
-the truth, per parameter, for the Newey-West intervals identify reports (theta_ci95,
-parameters_ci95; motorctl.ident.uncertainty) and for the white least-squares formula's
-σ̂²(ΦᵀΦ)⁻¹ ± 1.96σ on the same fits.
+the truth, per parameter, for the stated intervals identify reports (theta_ci95,
+parameters_ci95: the Newey-West σ and the model error the record shows in quadrature;
+motorctl.ident.uncertainty), for the Newey-West sandwich's σ alone (theta_std_sampling,
+parameters_std_sampling) and for the white least-squares formula's σ̂²(ΦᵀΦ)⁻¹ ± 1.96σ on the
+same fits.
 
 Rerun:
     python benchmarks/ident_coverage.py --jobs 2                 # 2 plants x 6 cases x 2 sizes x 5 seeds, ~6 min
@@ -20,12 +22,13 @@ M/A1, B/A1, Af/A1, offset/A1, A2/A1, A3/A1 (not where the added effect changes w
 :data:`THETA_SKIP`), and each named effect's simulator options identify reports under the same
 name (:func:`ident_families.compared`; phases and references left out), when the effect is named.
 
-Prints per plant and parameter: fits, coverage of the old (white) and the new (Newey-West)
-interval, the median error / σ of each, the seeds' spread and the bias against the new σ (per
-case, the standard deviation and the mean of the error over the seeds, divided by the case's
-median σ, then the median over the cases: a spread / σ near or below 1 with a bias / σ well
-above 2 is an error the same on every seed, which no interval from the record's own residual
-covers), and the median width of the new interval relative to the value; then the totals.
+Prints per plant and parameter: fits, coverage of the white, the Newey-West and the stated
+interval, the median error / σ of each, the seeds' spread and the bias against the Newey-West σ
+(per case, the standard deviation and the mean of the error over the seeds, divided by the
+case's median σ, then the median over the cases: a spread / σ near or below 1 with a bias / σ
+well above 2 is an error the same on every seed, which no variance from the record's own
+residual covers), and the median width of the stated interval relative to the value; then the
+totals per plant and over all, and identify's CPU time per log.
 Exit 0 always (a measurement).
 """
 
