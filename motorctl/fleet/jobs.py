@@ -48,7 +48,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from urllib.parse import urlsplit
 
-from motorctl.ident.uncertainty import Z95  # a parameter's interval: value ± Z95·σ̂, σ̂ identify's Newey-West theta_std
+# a parameter's interval: value ± Z95·σ̂, σ̂ identify's stated theta_std (sampling and model error)
+from motorctl.ident.uncertainty import Z95
 from motorctl.inputs import InputError
 
 #: the nominal parameters written (physical name, index in θ): values g·θ with g the force gain
@@ -261,7 +262,7 @@ def identify_window(url: str, sha256: str, machine: str, started: str, axis: str
         return {"url": url, "error": _one_line(exc, url)}
     src = values_from(idf)
     nt = idf.n_theta
-    coef, std = np.asarray(src.final.fit.coef[:nt], float), np.asarray(s["augmented"]["theta_std"], float)  # Newey-West σ
+    coef, std = np.asarray(src.final.fit.coef[:nt], float), np.asarray(s["augmented"]["theta_std"], float)
     g = float(rec.gain) if rec.gain else 1.0
     start = _iso_utc(started)
     offset = float(rec.t[0]) if t0 is None else float(t0)
