@@ -36,8 +36,9 @@ the contour error):
    :func:`motorctl.commission.verify.admissible` against per-axis C2 with the autotuned gains
    at 100 % on the same contour (the law GTCF replaces; one reference for every rung, as C2's
    rule has): no fault, saturated samples ≤ 1.5 × max(C2's, 5e-5 of the
-   samples), u RMS at rest ≤ 1.5 × C2's, no line in u at rest, no error spectrum 100 × C2's
-   beyond what the sensitivities predict.
+   samples) (at 100 %; at 75 and 50 % reported, not judged, as C2's confirmation), u RMS at
+   rest ≤ 1.5 × C2's, no line in u at rest, no error spectrum 100 × C2's beyond what the
+   sensitivities predict.
    The axes' own point-to-point programs (``motorctl run --controller gtcf``, both axes,
    ``full_periods`` periods: C2's confirmation runs, the 40 s constraints) are judged the same
    way against per-axis C2 on them, at each rung after the contour's: a contour gain that the
@@ -384,7 +385,10 @@ def _judge(run: dict, ref: dict, by: dict, g_c2: dict, g_t: float, opt: dict, sc
             return np.max([_sensitivity2("gtcf", gtcf_gains(scaled, g, opt[a][1]), res["ts"], res["w"],
                                          res["G_w"], res["theta_hat0"], f_hz) for g in (g_t, opt[a][0])],
                           axis=0) / base
-        why = admissible(r, loaded.axes[a].controller.u_lim, ref[a], expect=expect)
+        # at 75 and 50 % the saturation is reported, not judged, as C2's confirmation does (a
+        # softer loop's larger error drives u into its limit more often)
+        why = admissible(r if scale >= 1.0 else {**r, "saturated": 0}, loaded.axes[a].controller.u_lim, ref[a],
+                         expect=expect)
         if why:
             return f"{a}: {why}"
     return ""
