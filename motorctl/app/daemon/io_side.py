@@ -27,6 +27,7 @@ import threading
 import time
 
 from motorctl.app.build import approach_move
+from motorctl.app.daemon.forked import own_session
 from motorctl.app.daemon.motion_side import AxisLimits, MotionError, MotionSide
 from motorctl.app.daemon.notify import sd_notify, watchdog_ping_interval_s
 from motorctl.app.program_planner import AHEAD_WINDOWS, PLAN_NICE, PlannerLink
@@ -931,9 +932,12 @@ def io_main(plan, lsock, writer: SegmentWriter, cmds: Mailbox, replies: Mailbox)
     SCHED_OTHER (at nice :data:`IO_NICE` with the real-time set-up on), off the loop's CPU
     when the loop is pinned to one (:func:`motorctl.loop.rt.keep_off`: the planner and the
     views it forks inherit it, so their work and their sockets' interrupts stay off the
-    loop's CPU), serve until the loop process ends."""
+    loop's CPU), in a session of its own (:func:`motorctl.app.daemon.forked.own_session`: with
+    the kernel's autogroup, not in one CPU share with what else its starter's session runs),
+    serve until the loop process ends."""
     for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
         signal.signal(s, signal.SIG_IGN)
+    own_session()
     rt = plan.asm.loaded.cfg.loop.realtime
     try:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
