@@ -9,49 +9,69 @@ socket and log_dir in a temporary folder; bench_views.Daemon with bench_opcua's 
 ``--hogs`` CPU-bound processes at nice 0 (each ends by itself after ``--bound`` s at the latest),
 X and Y in command mode running a G-code program through the client API (bench_programs's
 0.1 mm zig-zag steps at F6000, sent again whenever it ends) so that the planner, the setpoint
-filler and the recorder all work. Two daemons in turn, beside the same hogs and the same program:
+filler and the recorder all work. ``--pairs`` pairs of windows of ``--seconds`` each, every
+window a daemon of its own, beside the same hogs and the same program:
 
-1. with ``daemon.scope`` (the operator page), ``daemon.metrics`` and ``daemon.opcua`` on loopback
-   ports: the time from the daemon's start to each view's first answer; then ``--clients``
-   (default ``http=20,ua=20,metrics=10``: 50) for ``--seconds``, in three client processes (one
-   per kind, asyncio each, so one kind's client work does not delay another's answers; each in
-   a session of its own unless ``--clients-session bench``: with the kernel's autogroup a
-   remote client's CPU is not the daemon's session's; how late each one's own event loop was
-   is printed, so a slow client is not taken for a slow server), connected before the window:
+* with views: ``daemon.scope`` (the operator page), ``daemon.metrics`` and ``daemon.opcua`` on
+  loopback ports: the time from the daemon's start to each view's first answer; then
+  ``--clients`` (default ``http=20,ua=20,metrics=10``: 50) for ``--seconds``, in three client
+  processes (one per kind, asyncio each, so one kind's client work does not delay another's
+  answers; each in a session of its own unless ``--clients-session bench``: with the kernel's
+  autogroup a remote client's CPU is not the daemon's session's; how late each one's own event
+  loop was is printed, so a slow client is not taken for a slow server), connected before the
+  window:
 
-   * http: one in five a scope WebSocket (``/ws``: the gap between its frames, sent every 50 ms),
-     the others poll ``GET /operator/status`` every ``--http-period`` (0.2 s, the page's own
-     refresh) and ``GET /operator`` (the page) every tenth time;
-   * ua (asyncua, None session, anonymous): half read X's and Y's ActPos and the channel's
-     ActProgramLine in one Read every ``--ua-period`` (0.1 s); half subscribe to X's and Y's
-     ActPos (publishing interval 50 ms, trigger StatusValueTimestamp so that each snapshot is
-     notified, at rest too: the gap between notifications);
-   * metrics: ``GET /metrics`` every ``--metrics-period`` (1 s) each.
+  * http: one in five a scope WebSocket (``/ws``: the gap between its frames, sent every 50 ms),
+    the others poll ``GET /operator/status`` every ``--http-period`` (0.2 s, the page's own
+    refresh) and ``GET /operator`` (the page) every tenth time;
+  * ua (asyncua, None session, anonymous): half read X's and Y's ActPos and the channel's
+    ActProgramLine in one Read every ``--ua-period`` (0.1 s); half subscribe to X's and Y's
+    ActPos (publishing interval 50 ms, trigger StatusValueTimestamp so that each snapshot is
+    notified, at rest too: the gap between notifications);
+  * metrics: ``GET /metrics`` every ``--metrics-period`` (1 s) each.
 
-2. without views and without clients: ``--seconds`` of the same.
+* without views: a daemon whose config has no ``scope``, ``metrics`` or ``opcua`` at all (no
+  view process, no server, no snapshot built), and no clients.
 
-Per kind: answers, failures, median, p99, max and the share above 1 s (a failure counts as
-above). Per daemon: the loop's turnaround p99.9 and max over the measured window (the run log's
-``turnaround_ns``, cycles from the ``status`` before to the one after, bench_views.turnaround),
-missed periods, faults (and the daemon's fault lines), rows lost (the recorder's counter, and
-the run log read back: rows in the log against the cycles its end record says the loop
-published), the recorder's longest gap between two fdatasync, the I/O process's longest wait
-between two wakes (its wake counter ``ctl[CTL_REC_BEAT]``, on which the loop latches "recorder
-stalled" after 2 s, watched from outside through ``/proc/PID/map_files``: root only; with the
-I/O process's state while it stands), and per process (I/O, view, metrics, OPC UA, planner,
-clients) the CPU seconds per second and the seconds per second it waited runnable for a CPU
-(``/proc/PID/task/*/schedstat``) and its niceness. Then the ratio of the two p99.9.
+Why windows in pairs, and why "without" is a daemon without the servers: the loop's
+turnaround p99.9 without views moved between 16 and 40 us from one run to the next on the
+shared VM (other sessions' load, the hypervisor), so one window with views against one
+without, minutes apart, compared the host's drift more than the views. The windows alternate
+(A B, B A, A B, ...: each kind first in half the pairs, so that a drift over a pair's minutes
+weighs on both alike), and the figures are each pair's ratio, their median, and the p99.9 of
+all windows of a kind pooled. A daemon with the servers configured but no clients would leave
+the servers' own cost (the snapshots sent every period, the processes' wakes) on both sides of
+the ratio; the requirement is against no views at all, so each window starts its own daemon
+(with ``motorctl warmup`` run first, a start compiles nothing: 3-30 s beside the hogs).
+
+With ``--loop-cpu C`` the loop is pinned to CPU C (``loop.realtime.cpu``; the daemon keeps its
+I/O process, planner and views off it) and the bench's client processes and its beat watcher
+keep off it too (``--clients-on-loop-cpu``: not): the clients stand for machines on the
+factory network, not processes of the PC, and loopback's interrupts and softirqs run on the
+sender's and the receiver's CPU.
+
+Per kind over all windows with views: answers, failures, median, p99, max and the share above
+1 s (a failure counts as above). Per window: the loop's turnaround p99.9 and max (the run log's
+``turnaround_ns``, cycles from the ``status`` before to the one after), missed periods, faults
+(and the daemon's fault lines), rows lost (the recorder's counter, and the run log read back:
+rows in the log against the cycles its end record says the loop published), the recorder's
+longest gap between two fdatasync, the I/O process's longest wait between two wakes (its wake
+counter ``ctl[CTL_REC_BEAT]``, on which the loop latches "recorder stalled" after 2 s, watched
+from outside through ``/proc/PID/map_files``: root only; with the I/O process's state while it
+stands), and per process (I/O, view, metrics, OPC UA, planner, clients, the bench) the CPU
+seconds per second and the seconds per second it waited runnable for a CPU
+(``/proc/PID/task/*/schedstat``), the CPUs it may use, its niceness and session. Then per pair
+the two p99.9 and their ratio, the median ratio, the pooled p99.9 and their ratio; the
+requirement is met when every answer came within 1 s, no row was lost, no fault, and both the
+median and the pooled ratio are within 1.2.
 
 The servo cycle is compiled (``motorctl warmup``) before the hogs start. On a tree others edit
 meanwhile the numba cache's key changes and a daemon compiles again beside the hogs (over 300 s
-on the shared 2-core VM): run it from a copy of the tree then.
+on the shared 2-core VM): run it from a copy of the tree then. 4 pairs of 30 s take 7-9 min.
 
-    python benchmarks/bench_factory.py                      # 4 hogs, 50 clients, 30 s per daemon
-    python benchmarks/bench_factory.py --seconds 10 --clients http=4,ua=4,metrics=2
-    python benchmarks/bench_factory.py --runs 3 --seconds 20   # three runs with views (a stall hunt)
-    python benchmarks/bench_factory.py --seconds 60 --loop-cpu 1   # the loop pinned to CPU 1
-
-``--runs N`` repeats the daemon with views N times (the daemon without views once).
+    python benchmarks/bench_factory.py                      # 4 hogs, 50 clients, 4 pairs of 30 s
+    python benchmarks/bench_factory.py --loop-cpu 1         # the loop pinned to CPU 1
+    python benchmarks/bench_factory.py --pairs 1 --seconds 5 --hogs 1 --clients http=2,ua=2,metrics=1
 """
 
 from __future__ import annotations
@@ -79,7 +99,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 from bench_opcua import first_answer as ua_first_answer  # noqa: E402
 from bench_programs import steps_program  # noqa: E402
 from bench_views import Daemon as ViewsDaemon  # noqa: E402
-from bench_views import _port, turnaround  # noqa: E402
+from bench_views import _port  # noqa: E402
 from bench_views import first_answer as http_first_answer  # noqa: E402
 
 from motorctl.client import DaemonUnreachable, Refused  # noqa: E402
@@ -150,6 +170,52 @@ def sched_s(pid: int | None) -> tuple[float, float]:
     return run / 1e9, wait / 1e9
 
 
+def cpu_counts() -> dict[str, np.ndarray]:
+    """Interrupts and softirqs so far per CPU ({name: counts, shape (CPUs,)}; /proc/interrupts,
+    /proc/softirqs: a device's line by its name, softirqs as "softirq NAME")."""
+    n = os.cpu_count() or 1
+    out: dict[str, np.ndarray] = {}
+    for path, prefix in (("/proc/interrupts", ""), ("/proc/softirqs", "softirq ")):
+        try:
+            lines = open(path).read().splitlines()[1:]
+        except OSError:
+            continue
+        for ln in lines:
+            f = ln.split()
+            if len(f) < n + 1 or not all(x.isdigit() for x in f[1:n + 1]):
+                continue
+            name = prefix + (f[-1] if f[0].rstrip(":").isdigit() else f[0].rstrip(":"))
+            out[name] = out.get(name, 0) + np.asarray(f[1:n + 1], np.int64)
+    return out
+
+
+def cpus_allowed(pid: int) -> str:
+    """The CPUs ``pid`` may run on (/proc/PID/status Cpus_allowed_list; "?": gone)."""
+    try:
+        return re.search(r"^Cpus_allowed_list:\s*(\S+)", open(f"/proc/{pid}/status").read(), re.M).group(1)
+    except (OSError, AttributeError):
+        return "?"
+
+
+def sid_of(pid: int) -> int | None:
+    """The session of ``pid`` (None: gone)."""
+    try:
+        return os.getsid(pid)
+    except OSError:
+        return None
+
+
+def turnaround_us(run_path: str, k0: int, k1: int) -> tuple[np.ndarray, int]:
+    """The loop's turnaround [us] of each cycle k0..k1 of the run log (``turnaround_ns``; shape
+    (cycles,)), and the missed periods among them."""
+    from motorctl.recorder.segments import read_run
+    log = read_run(run_path)
+    t = log.col("t")
+    sel = (t >= k0 / 5000) & (t < k1 / 5000)
+    ovr = log.col("overruns")[sel]
+    return log.col("turnaround_ns")[sel] / 1e3, int(ovr[-1] - ovr[0])
+
+
 def nice_of(pid: int) -> int | None:
     try:
         return int(open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[16])
@@ -198,14 +264,16 @@ class Program:
 
 
 # ------------------------------------------------------------------------------------ the beat
-def _watch_beat(cfg: str, q, stop, io, period: float = 0.005) -> None:  # pragma: no cover (a child)
+def _watch_beat(cfg: str, q, stop, io, avoid_cpu: int | None, period: float = 0.005) -> None:  # pragma: no cover (a child)
     """Watch the I/O process's wake counter (``ctl[CTL_REC_BEAT]`` of the shared ring, the one
     the loop latches "recorder stalled" on) from outside: find the daemon started on ``cfg``,
     map its ring read only (``/proc/PID/map_files``, root), sample every ``period`` until
     ``stop``; ``io``: the I/O process's pid once known (0 before), whose state is sampled while
-    its counter stands. Puts {gaps: [(gap s, its end, monotonic)], self_late_s, states, found}."""
+    its counter stands; ``avoid_cpu``: the loop's CPU, kept off (the watcher is the bench's, not
+    the daemon's). Puts {gaps: [(gap s, its end, monotonic)], self_late_s, states, found}."""
     import mmap as _mmap
     from motorctl.recorder.flight import CTL_HEARTBEAT, CTL_REC_BEAT
+    keep_off_cpu(avoid_cpu)
     try:
         os.setpriority(os.PRIO_PROCESS, 0, -10)   # the observer must not be the one late
     except OSError:
@@ -478,12 +546,24 @@ async def metrics_clients(url: str, n: int, period: float, started) -> dict:
     return tally.out()
 
 
-def _client_process(q, go, times, what: str, args: tuple, own_session: bool) -> None:  # pragma: no cover  (a child)
+def keep_off_cpu(cpu: int | None) -> None:
+    """The calling process on every CPU but ``cpu`` (None, or no other CPU: unchanged)."""
+    if cpu is None:
+        return
+    allowed = set(range(os.cpu_count() or 1)) - {cpu}
+    if allowed:
+        os.sched_setaffinity(0, allowed)
+
+
+def _client_process(q, go, times, what: str, args: tuple, own_session: bool,
+                    avoid_cpu: int | None) -> None:  # pragma: no cover  (a child)
     """One kind's clients: import and connect first, say so, wait for ``go`` (then the
-    window's start and end are in ``times``), run, put the tally on ``q``."""
+    window's start and end are in ``times``), run, put the tally on ``q``. ``avoid_cpu``: the
+    loop's CPU, which the clients (remote machines on the factory network, in reality) keep off."""
     import logging
     if own_session:
         os.setsid()      # an autogroup of its own: the hogs beside the daemon do not slow the client
+    keep_off_cpu(avoid_cpu)
     logging.basicConfig(level=logging.CRITICAL)
     logging.getLogger("asyncua").setLevel(logging.CRITICAL)
     import aiohttp  # noqa: F401  (imported before the window: seconds of CPU beside the hogs)
@@ -524,7 +604,8 @@ def run_clients(dm: Daemon, split: dict, a, on_start, on_end) -> dict:
             "ua": (dm.url, split["ua"], a.ua_period),
             "metrics": (murl, split["metrics"], a.metrics_period)}
     q, go, times = mp.Queue(), mp.Event(), mp.Array("d", 2)
-    procs = [mp.Process(target=_client_process, args=(q, go, times, k, v, a.clients_session == "own"), daemon=True)
+    procs = [mp.Process(target=_client_process, daemon=True,
+                        args=(q, go, times, k, v, a.clients_session == "own", a.loop_cpu if a.clients_off_loop else None))
              for k, v in jobs.items() if v[1] > 0]
     for p in procs:
         p.start()
@@ -576,7 +657,8 @@ def read_back(run: str) -> dict:
 
 def measure(tmp: Path, views: bool, split: dict, a) -> dict:
     wq, wstop, wio = mp.Queue(), mp.Event(), mp.Value("i", 0)
-    watcher = mp.Process(target=_watch_beat, args=(str(tmp / "gantry.yaml"), wq, wstop, wio), daemon=True)
+    watcher = mp.Process(target=_watch_beat, daemon=True,
+                         args=(str(tmp / "gantry.yaml"), wq, wstop, wio, a.loop_cpu if a.clients_off_loop else None))
     watcher.start()
     try:
         dm = Daemon(tmp, views, a.loop_cpu)
@@ -614,12 +696,17 @@ def measure(tmp: Path, views: bool, split: dict, a) -> dict:
             pids["bench"] = os.getpid()
             mark["c0"] = {k: sched_s(p) for k, p in pids.items()}
             mark["st0"] = dm.c.status()
+            mark["irq0"] = cpu_counts()
             mark["t0"] = time.monotonic()
 
         def on_end():
             mark["st1"] = dm.c.status()
             mark["wall"] = time.monotonic() - mark["t0"]
+            mark["irq1"] = cpu_counts()
             mark["c1"] = {k: sched_s(p) for k, p in pids.items()}
+            mark["cpus"] = {k: cpus_allowed(p) for k, p in pids.items()}
+            mark["nice"] = {k: nice_of(p) for k, p in pids.items()}
+            mark["sid"] = {k: sid_of(p) for k, p in pids.items()}
 
         if views:
             ans = run_clients(dm, split, a, on_start, on_end)
@@ -634,7 +721,8 @@ def measure(tmp: Path, views: bool, split: dict, a) -> dict:
         out["cpu"] = {k: (mark["c1"][k][0] - mark["c0"][k][0]) / wall for k in pids}
         out["wait"] = {k: (mark["c1"][k][1] - mark["c0"][k][1]) / wall for k in pids}
         out["status_s"] = prog.status_s[:]
-        out["nice"] = {k: nice_of(p) for k, p in pids.items()}
+        out["cpus"], out["nice"], out["sid"] = mark["cpus"], mark["nice"], mark["sid"]
+        out["irq_per_s"] = {k: (v - mark["irq0"][k]) / wall for k, v in mark["irq1"].items() if k in mark["irq0"]}
         prog.stop()
         out["programs"], out["ended_early"] = prog.sent, prog.ended_early[:5]
         st2 = dm.c.status()
@@ -664,7 +752,8 @@ def measure(tmp: Path, views: bool, split: dict, a) -> dict:
             watcher.kill()
     err = dm.err_path.read_text()
     out["fault_lines"] = [ln for ln in err.splitlines() if re.search(r"fault at|stalled|cannot write|latched", ln)][:6]
-    out["p999_us"], out["max_us"], out["missed"] = turnaround(run, k0, k1)
+    out["ta_us"], out["missed"] = turnaround_us(run, k0, k1)
+    out["p999_us"], out["max_us"] = float(np.percentile(out["ta_us"], 99.9)), float(out["ta_us"].max())
     out["cycles"] = k1 - k0
     out["log"] = read_back(run)
     return out
@@ -681,100 +770,133 @@ def kind_row(kind: str, times: list[float], fails: int) -> str:
             f"{np.percentile(ms, 99):.1f} | {ms.max():.1f} | {over:.4f} |")
 
 
-def report(res_v: list[dict], res_0: dict, split: dict, a) -> int:
-    print(f"\nhost: {os.cpu_count()} CPUs, {a.hogs} hogs at nice 0, clients {split} "
-          f"({sum(split.values())}), {a.seconds:g} s measured per daemon; load average "
-          f"{os.getloadavg()[0]:.1f}")
-    worst = True
-    for j, w in enumerate(res_v):
-        print(f"\nwith views, run {j + 1}: daemon ready {w['ready_s']:.1f} s; first answer after the "
-              f"daemon's start: " + ", ".join(f"{k} {v:.1f} s" for k, v in w["first_s"].items())
-              + f"; clients connected in {w['setup_s']:.1f} s")
-        print("| kind | answers | failed | median ms | p99 ms | max ms | > 1 s |")
-        print("|---|---|---|---|---|---|---|")
-        allt: dict[str, list[float]] = {}
-        allf: dict[str, int] = {}
+def answers_table(wins: list[dict]) -> bool:
+    """The answers of the windows with views, per kind over all of them. True: every one within
+    the bound, none failed, no client process crashed."""
+    ok = True
+    print("| kind | answers | failed | median ms | p99 ms | max ms | > 1 s |")
+    print("|---|---|---|---|---|---|---|")
+    allt: dict[str, list[float]] = {}
+    allf: dict[str, int] = {}
+    for w in wins:
         for what, ans in w["answers"].items():
             if "crash" in ans:
-                print(f"| {what} clients | crashed: {ans['crash']} | | | | | |")
-                worst = False
+                ok = False
                 continue
             for k, v in ans["t"].items():
                 allt.setdefault(k, []).extend(v)
             for k, v in ans["fail"].items():
                 allf[k] = allf.get(k, 0) + v
-        for k in KINDS:
-            if k in allt or k in allf:
-                print(kind_row(k, allt.get(k, []), allf.get(k, 0)))
-                tt = np.asarray(allt.get(k, []))
-                if allf.get(k, 0) or (tt.size and tt.max() > BOUND_S) or not tt.size:
-                    worst = False
+    for k in KINDS:
+        if k in allt or k in allf:
+            print(kind_row(k, allt.get(k, []), allf.get(k, 0)))
+            tt = np.asarray(allt.get(k, []))
+            if allf.get(k, 0) or (tt.size and tt.max() > BOUND_S) or not tt.size:
+                ok = False
+    return ok
+
+
+def window_lines(name: str, w: dict, r: dict, a) -> bool:
+    """The lines of one window (with views: first answers, clients; then the loop, the recorder
+    and the processes). True: no row lost, no fault."""
+    if "answers" in w:
+        print(f"{name}: daemon ready {w['ready_s']:.1f} s; first answer after the daemon's start: "
+              + ", ".join(f"{k} {v:.1f} s" for k, v in w["first_s"].items())
+              + f"; clients connected in {w['setup_s']:.1f} s")
         for what, ans in w["answers"].items():
             if "crash" in ans:
+                print(f"  {what} clients crashed: {ans['crash']}")
                 continue
             lg = np.asarray(ans.get("lag") or [math.nan]) * 1e3
-            print(f"  {what} client process: its own event loop late by median {np.median(lg):.1f} ms, "
-                  f"p99 {np.percentile(lg, 99):.1f} ms, max {lg.max():.1f} ms")
-            if ans["connect"] or ans["connect_fail"]:
-                cc = np.asarray(ans["connect"]) if ans["connect"] else np.asarray([math.nan])
-                print(f"  {what}: {len(ans['connect'])} connections (median {np.median(cc):.2f} s, "
-                      f"max {cc.max():.2f} s), {ans['connect_fail']} failed")
+            cc = np.asarray(ans["connect"]) if ans["connect"] else np.asarray([math.nan])
+            print(f"  {what} client process: own event loop late by median {np.median(lg):.1f} ms, "
+                  f"max {lg.max():.1f} ms; {len(ans['connect'])} connections (max {cc.max():.2f} s), "
+                  f"{ans['connect_fail']} failed")
             for k, e in ans["errors"].items():
                 print(f"  {what}: first failure of {k}: {e}")
             if ans.get("big_gaps"):
                 print(f"  {what}: notification gaps above {BOUND_S:g} s (s from the window's start, gap s, "
-                      f"session, node): {ans['big_gaps'][:40]}")
-    print()
-    for name, r in [("without views", res_0)] + [(f"with views {j + 1}", w) for j, w in enumerate(res_v)]:
-        lg = r["log"]
-        print(f"{name:14s}: turnaround p99.9 {r['p999_us']:.1f} us, max {r['max_us']:.1f} us over "
-              f"{r['cycles']} cycles; missed periods {r['missed']}; rows lost {r['lost_rows']} "
-              f"(log: {lg['rows']} rows, end record {lg['ended_cycles']} cycles, "
-              f"{lg['ended_lost']} lost, {lg['gaps']} gaps in t); faults {r['faults'] or 'none'}; "
-              f"longest fdatasync gap {r['max_flush_gap_s']:.2f} s; programs sent {r['programs']}, "
-              f"underruns {r['underruns']}")
-        bt = r["beat"]
-        if bt["found"]:
-            w0, w1 = r["window_t"]
-            inside = [g for g, t in bt["gaps"] if w0 <= t <= w1 + 1]
-            print(f"{'':14s}  I/O process's wake counter (the loop's stall watch, bound 2 s): longest "
-                  f"gap {bt['gaps'][0][0] if bt['gaps'] else 0:.3f} s over the daemon's life, "
-                  f"{max(inside) if inside else 0:.3f} s in the window; {bt['n_100ms']} gaps > 0.1 s; "
-                  f"the watcher itself late by {bt['self_late_s'] * 1e3:.0f} ms at most "
-                  f"({bt['self_late_at'] - w0:+.0f} s from the window's start)")
-            for name, sel in (("in the window", lambda t: w0 <= t <= w1),
-                              ("before or after it", lambda t: not w0 <= t <= w1)):
-                n: dict[str, int] = {}
-                for t, key in bt["states"]:
-                    if sel(t):
-                        n[key] = n.get(key, 0) + 1
-                print(f"{'':14s}  the I/O process's state while its counter stood > 0.2 s, {name} "
-                      f"(samples every 5 ms; R: runnable, waiting for a CPU): {n or '-'}")
-        else:
-            print(f"{'':14s}  I/O process's wake counter: not watched (the ring was not found)")
-        print(f"{'':14s}  per process, CPU s/s and waiting for a CPU s/s (schedstat): " + ", ".join(
-            f"{k} {r['cpu'][k]:.3f}/{r['wait'][k]:.3f}" for k in r["cpu"]) + f"; nice {r['nice']}")
-        ss = np.asarray(r["status_s"]) * 1e3
-        if ss.size:
-            print(f"{'':14s}  the bench's status requests (control socket, every 0.5 s): median "
-                  f"{np.median(ss):.1f} ms, max {ss.max():.1f} ms ({ss.size})")
-        if r["fault_lines"]:
-            print(f"{'':14s}  daemon: " + " / ".join(r["fault_lines"]))
-        if r["ended_early"]:
-            print(f"{'':14s}  programs ended early: {r['ended_early']}")
-        lost = r["lost_rows"] or (lg["ended_lost"] or 0) or (
-            lg["ended_cycles"] is not None and lg["rows"] != lg["ended_cycles"]) or lg["gaps"]
-        if lost or r["faults"]:
-            worst = False
-    for j, w in enumerate(res_v):
-        ratio = w["p999_us"] / res_0["p999_us"]
-        print(f"p99.9 with views {j + 1} / without: {w['p999_us']:.1f} / {res_0['p999_us']:.1f} us "
-              f"= {ratio:.2f} (bound 1.2)")
-        worst = worst and ratio <= 1.2
-    print(f"\nrequirement (every answer within {BOUND_S:g} s, 0 rows lost, no fault, p99.9 ratio "
-          f"<= 1.2): {'met' if worst else 'NOT met'}")
-    print("rerun: python benchmarks/bench_factory.py [--seconds S] [--hogs N] "
-          "[--clients http=20,ua=20,metrics=10] [--runs N]")
+                      f"session, node): {ans['big_gaps'][:20]}")
+    else:
+        print(f"{name}: daemon ready {w['ready_s']:.1f} s")
+    lg = r["log"]
+    print(f"  loop: turnaround p99.9 {r['p999_us']:.1f} us, max {r['max_us']:.1f} us over {r['cycles']} "
+          f"cycles; missed periods {r['missed']}; rows lost {r['lost_rows']} (log: {lg['rows']} rows, "
+          f"end record {lg['ended_cycles']} cycles, {lg['ended_lost']} lost, {lg['gaps']} gaps in t); "
+          f"faults {r['faults'] or 'none'}; longest fdatasync gap {r['max_flush_gap_s']:.2f} s; "
+          f"programs sent {r['programs']}, underruns {r['underruns']}")
+    bt = r["beat"]
+    if bt["found"]:
+        w0, w1 = r["window_t"]
+        inside = [g for g, t in bt["gaps"] if w0 <= t <= w1 + 1]
+        states: dict[str, int] = {}
+        for t, key in bt["states"]:
+            if w0 <= t <= w1:
+                states[key] = states.get(key, 0) + 1
+        print(f"  I/O process's wake counter (stall bound 2 s): longest gap "
+              f"{bt['gaps'][0][0] if bt['gaps'] else 0:.3f} s over the daemon's life, "
+              f"{max(inside) if inside else 0:.3f} s in the window; {bt['n_100ms']} gaps > 0.1 s; "
+              f"the watcher late by {bt['self_late_s'] * 1e3:.0f} ms at most; the I/O process's state "
+              f"while it stood > 0.2 s in the window (R: waiting for a CPU): {states or '-'}")
+    else:
+        print("  I/O process's wake counter: not watched (the ring was not found)")
+    print("  per process, CPU s/s and waiting for a CPU s/s (schedstat): " + ", ".join(
+        f"{k} {r['cpu'][k]:.3f}/{r['wait'][k]:.3f}" for k in r["cpu"]))
+    print(f"  CPUs allowed {r['cpus']}; nice {r['nice']}; session {r['sid']}")
+    ta = r["ta_us"]
+    print(f"  turnaround median {np.median(ta):.1f} us, p99 {np.percentile(ta, 99):.1f} us, p99.9 "
+          f"{r['p999_us']:.1f} us")
+    for c in range(os.cpu_count() or 1):
+        rates = sorted(((v[c], k) for k, v in r["irq_per_s"].items() if v[c] >= 1.0), reverse=True)[:9]
+        print(f"  CPU {c}{' (the loop)' if c == a.loop_cpu else ''} per s: "
+              + ", ".join(f"{k} {v:.0f}" for v, k in rates))
+    ss = np.asarray(r["status_s"]) * 1e3
+    if ss.size:
+        print(f"  the bench's status requests (control socket, every 0.5 s): median "
+              f"{np.median(ss):.1f} ms, max {ss.max():.1f} ms ({ss.size})")
+    if r["fault_lines"]:
+        print("  daemon: " + " / ".join(r["fault_lines"]))
+    if r["ended_early"]:
+        print(f"  programs ended early: {r['ended_early']}")
+    lost = r["lost_rows"] or (lg["ended_lost"] or 0) or (
+        lg["ended_cycles"] is not None and lg["rows"] != lg["ended_cycles"]) or lg["gaps"]
+    return not (lost or r["faults"])
+
+
+def report(pairs: list[dict], split: dict, a) -> int:
+    """pairs: [{"views": window with views, "none": without, "first": which ran first}]."""
+    print(f"\nhost: {os.cpu_count()} CPUs, {a.hogs} hogs at nice 0, clients {split} "
+          f"({sum(split.values())}), {len(pairs)} pairs of {a.seconds:g} s windows, loop CPU "
+          f"{a.loop_cpu if a.loop_cpu is not None else 'not pinned'}"
+          + (" (clients and watcher off it)" if a.loop_cpu is not None and a.clients_off_loop else "")
+          + f"; load average {os.getloadavg()[0]:.1f}")
+    good = True
+    for j, pr in enumerate(pairs):
+        print()
+        for kind in (("views", "none") if pr["first"] == "views" else ("none", "views")):
+            name = f"pair {j + 1}, {'with views' if kind == 'views' else 'without views'}"
+            good = window_lines(name, pr[kind], pr[kind], a) and good
+    print(f"\nanswers over all {len(pairs)} windows with views:")
+    good = answers_table([pr["views"] for pr in pairs]) and good
+    print("\n| pair | first | p99.9 with views us | p99.9 without us | ratio | max with us | max without us |")
+    print("|---|---|---|---|---|---|---|")
+    ratios = []
+    for j, pr in enumerate(pairs):
+        v, n = pr["views"], pr["none"]
+        ratios.append(v["p999_us"] / n["p999_us"])
+        print(f"| {j + 1} | {pr['first']} | {v['p999_us']:.1f} | {n['p999_us']:.1f} | {ratios[-1]:.2f} | "
+              f"{v['max_us']:.0f} | {n['max_us']:.0f} |")
+    pooled_v = float(np.percentile(np.concatenate([pr["views"]["ta_us"] for pr in pairs]), 99.9))
+    pooled_n = float(np.percentile(np.concatenate([pr["none"]["ta_us"] for pr in pairs]), 99.9))
+    med = float(statistics.median(ratios))
+    print(f"\nmedian of the pair ratios: {med:.2f}; pooled over all windows of each kind: p99.9 "
+          f"{pooled_v:.1f} us with views, {pooled_n:.1f} us without: ratio {pooled_v / pooled_n:.2f} "
+          f"(bound 1.2)")
+    good = good and med <= 1.2 and pooled_v / pooled_n <= 1.2
+    print(f"\nrequirement (every answer within {BOUND_S:g} s, 0 rows lost, no fault, median pair "
+          f"ratio and pooled ratio of the p99.9 <= 1.2): {'met' if good else 'NOT met'}")
+    print("rerun: python benchmarks/bench_factory.py [--pairs N] [--seconds S] [--hogs N] "
+          "[--clients http=20,ua=20,metrics=10] [--loop-cpu C]")
     return 0
 
 
@@ -793,10 +915,11 @@ def parse_split(text: str) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--hogs", type=int, default=4, help="CPU-bound processes at nice 0 (default 4)")
-    ap.add_argument("--seconds", type=float, default=30.0, help="measured time per daemon [s] (default 30)")
+    ap.add_argument("--seconds", type=float, default=30.0, help="measured time per window [s] (default 30)")
+    ap.add_argument("--pairs", type=int, default=4,
+                    help="pairs of windows, with views and without, interleaved (default 4)")
     ap.add_argument("--clients", type=parse_split, default=parse_split("http=20,ua=20,metrics=10"),
                     help="clients per kind (default http=20,ua=20,metrics=10)")
-    ap.add_argument("--runs", type=int, default=1, help="daemons with views, one after the other (default 1)")
     ap.add_argument("--http-period", type=float, default=0.2, help="a page poller's period [s]")
     ap.add_argument("--ua-period", type=float, default=0.1, help="an OPC UA reader's period [s]")
     ap.add_argument("--metrics-period", type=float, default=1.0, help="a scraper's period [s]")
@@ -806,12 +929,18 @@ def main() -> int:
                          "would be); bench: in the bench's session with the hogs and the daemon")
     ap.add_argument("--steps", type=int, default=20_000, help="0.1 mm steps of the G-code program")
     ap.add_argument("--loop-cpu", type=int, default=None,
-                    help="loop.realtime.cpu of both daemons: the loop pinned there, the I/O process, "
-                         "planner and views kept off it (default: as configs/gantry.yaml, not pinned)")
-    ap.add_argument("--bound", type=float, default=1800.0, help="the hogs end after this long at most [s]")
+                    help="loop.realtime.cpu of every daemon: the loop pinned there, the I/O process, "
+                         "planner and views kept off it, and the bench's clients and watcher too "
+                         "(default: as configs/gantry.yaml, not pinned)")
+    ap.add_argument("--clients-on-loop-cpu", dest="clients_off_loop", action="store_false",
+                    help="with --loop-cpu: the clients and the watcher may run on the loop's CPU too")
+    ap.add_argument("--save", type=Path, default=None,
+                    help="also write each window's turnarounds [us] to this .npz (with_1, without_1, ...)")
+    ap.add_argument("--bound", type=float, default=None,
+                    help="the hogs end after this long at most [s] (default: 2 x pairs x (seconds + 240))")
     a = ap.parse_args()
-    if not 1.0 <= a.seconds <= 600.0 or not 0 <= a.hogs <= 32 or not 1 <= a.runs <= 5:
-        ap.error("allowed: --seconds 1..600, --hogs 0..32, --runs 1..5")
+    if not 1.0 <= a.seconds <= 600.0 or not 0 <= a.hogs <= 32 or not 1 <= a.pairs <= 10:
+        ap.error("allowed: --seconds 1..600, --hogs 0..32, --pairs 1..10")
     split = a.clients
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))   # the hogs and daemons stopped on the way out
     # the servo cycle's compile (a cold numba cache: another checkout's sources) before the
@@ -820,23 +949,31 @@ def main() -> int:
     subprocess.run([sys.executable, "-m", "motorctl", "warmup", str(REPO / "configs" / "gantry.yaml")],
                    cwd=REPO, timeout=900, capture_output=True)
     print(f"warmup (numba cache) {time.monotonic() - t:.0f} s", flush=True)
-    until = time.monotonic() + a.bound
+    until = time.monotonic() + (a.bound or 2 * a.pairs * (a.seconds + 240))
     hogs = [mp.Process(target=_hog, args=(until,), daemon=True) for _ in range(a.hogs)]
     for h in hogs:
         h.start()
+    pairs = []
     try:
-        res_v = []
-        for j in range(a.runs):
-            with tempfile.TemporaryDirectory(prefix="bench-factory-") as tmp:
-                res_v.append(measure(Path(tmp), True, split, a))
-            print(f"with views, run {j + 1}: done (p99.9 {res_v[-1]['p999_us']:.1f} us, faults "
-                  f"{res_v[-1]['faults'] or 'none'})", flush=True)
-        with tempfile.TemporaryDirectory(prefix="bench-factory-") as tmp:
-            res_0 = measure(Path(tmp), False, split, a)
+        for j in range(a.pairs):
+            # A B, B A, A B, ...: each kind first in half the pairs, so that a drift of the host
+            # over a pair's minutes weighs on both kinds alike
+            first = "views" if j % 2 == 0 else "none"
+            pr = {"first": first}
+            for kind in ((first, "none" if first == "views" else "views")):
+                with tempfile.TemporaryDirectory(prefix="bench-factory-") as tmp:
+                    pr[kind] = measure(Path(tmp), kind == "views", split, a)
+                print(f"pair {j + 1}, {'with' if kind == 'views' else 'without'} views: done (p99.9 "
+                      f"{pr[kind]['p999_us']:.1f} us, faults {pr[kind]['faults'] or 'none'}, "
+                      f"rows lost {pr[kind]['lost_rows']})", flush=True)
+            pairs.append(pr)
     finally:
         for h in hogs:
             h.kill()
-    return report(res_v, res_0, split, a)
+    if a.save is not None:
+        np.savez_compressed(a.save, **{f"{'with' if k == 'views' else 'without'}_{j + 1}": pr[k]["ta_us"]
+                                       for j, pr in enumerate(pairs) for k in ("views", "none")})
+    return report(pairs, split, a)
 
 
 if __name__ == "__main__":
