@@ -94,6 +94,8 @@ def test_kill_9_of_the_daemon_ends_its_io_and_view_processes(tmp_path):
         family = wait_for(lambda: len(f := _descendants(d.proc.pid)) == 3 and f, 30,
                           "the I/O, view and planner processes under the loop process",
                           detail=lambda: _descendants(d.proc.pid))
+        # none shares the loop's session (the kernel's autogroup: a CPU share of its own each)
+        assert all(os.getsid(pid) != os.getsid(d.proc.pid) for pid, _ in family), family
         os.kill(d.proc.pid, signal.SIGKILL)
         d.proc.wait(10)
         wait_for(lambda: not _alive(family), 2.0, "the I/O, view and planner processes to end",
