@@ -441,8 +441,6 @@ def _cross_checks(path: Path, cfg: GantryConfig) -> None:
         for law in configured_controllers(c):
             for key, why in controller_class(law).check(c.settings(law), c):
                 raise ConfigError(path, f"{pre}.{key}", why)
-            for key, why in controller_class(law).check_axes(name, c.settings(law), sections, 1.0 / cfg.loop.rate_hz):
-                raise ConfigError(path, f"{pre}.{key}", why)
         t = ax.trajectory
         tpre = f"axes.{name}.trajectory"
         if len(t.points) > 1 and len(t.move_times_s) != len(t.points):
@@ -466,6 +464,12 @@ def _cross_checks(path: Path, cfg: GantryConfig) -> None:
         if not lim.i2t_continuous_V < lim.i2t_peak_V:
             raise ConfigError(path, f"{lpre}.i2t_continuous_V",
                               f"{lim.i2t_continuous_V:g} V must be below i2t_peak_V ({lim.i2t_peak_V:g} V)")
+    # checks across axes, once every axis's own sections are known good (a pair law's halves)
+    for name, ax in cfg.axes.items():
+        c = ax.controller
+        for law in configured_controllers(c):
+            for key, why in controller_class(law).check_axes(name, c.settings(law), sections, 1.0 / cfg.loop.rate_hz):
+                raise ConfigError(path, f"axes.{name}.controller.{key}", why)
 
 
 def load_config(path: str | Path, check_budget: bool = True) -> LoadedConfig:
