@@ -20,7 +20,6 @@ import pytest
 from motorctl.commission.tune import make_log
 from motorctl.ident.data import load_record
 from motorctl.ident.pipeline import identify_record, text_report, values_and_parameters
-from motorctl.ident.idim import second_difference
 from motorctl.ident.uncertainty import (Z95, fit_uncertainty, hac_covariance, low_band, model_error, split_difference,
                                         white_covariance)
 
@@ -144,39 +143,6 @@ def test_split_refused_where_a_column_vanishes():
     phi = np.column_stack([np.ones(m), np.r_[np.ones(200), np.zeros(200)]])
     keep = np.r_[np.zeros(200), np.ones(200)]
     assert split_difference(phi, np.ones(m), lambda a: a * keep[:, None], 3) is None
-
-
-def test_second_difference_sees_the_held_input_half_a_sample_late():
-    """A double integrator under a held input: the three-point difference of its sampled
-    position is (u_{k−1} + u_k)/2 exactly, the hold's half sample the input columns carry;
-    numpy.gradient twice is not."""
-    rng = np.random.default_rng(2)
-    ts, n = 2e-4, 400
-    u = rng.standard_normal(n)
-    x, v = np.zeros(n), 0.0
-    for k in range(n - 1):
-        x[k + 1] = x[k] + v * ts + 0.5 * u[k] * ts * ts
-        v += u[k] * ts
-    acc = second_difference(x, ts)
-    half = 0.5 * (u[:-1] + u[1:])
-    assert np.max(np.abs(acc[1:-1] - half[:-1])) < 1e-6 * np.max(np.abs(u))
-    grad2 = np.gradient(np.gradient(x, ts), ts)
-    assert np.max(np.abs(grad2[2:-2] - half[1:-2])) > 0.1
-
-
-def test_rigid_plant_without_noise_fits_its_theta(tmp_path):
-    """The paper's plant with neither force noise nor quantisation: the nominal θ within the
-    discretisation (θ5, θ6 came out −1.6 % and +1.1 % with the stride-two acceleration)."""
-    log = tmp_path / "clean.mclog"
-    make_log(str(log), {"encoder_resolution_m": 1e-12}, duration_s=20.0, seed=1, axis="X", noise_N=0.0,
-             base=str(ROOT / "configs" / "gantry-rigid.yaml"))
-    from motorctl.ident.select import Identifier
-    idf = Identifier(load_record(str(log), axis="X"))
-    th = idf.evaluate([]).fit.coef
-    true = np.array([0.16, 0.22, 0.25, -0.05, -0.013, -0.0015])
-    rel = np.abs(th - true) / np.abs(true)
-    assert np.all(rel[:4] < 5e-4), rel
-    assert np.all(rel[4:] < 5e-3), rel
 
 
 def test_hac_rejects_mismatched_lengths():

@@ -230,28 +230,6 @@ class Prepared:
         return decimation_gain(self.fs, self.nd, np.minimum(np.abs(f_Hz), self.fs / 2.0))
 
 
-def second_difference(x: np.ndarray, ts: float) -> np.ndarray:
-    """Acceleration [m/s²] (N,) of the position ``x`` [m] (N,) sampled every ``ts`` [s]: the
-    three-point central difference (x_{k+1} − 2 x_k + x_{k−1})/Ts² (the ends: ``numpy.gradient``
-    of ``numpy.gradient``, one-sided).
-
-    This is the difference the zero-order hold's half sample is derived for: under an input
-    u_k held over [t_k, t_k + Ts) it sees (u_{k−1} + u_k)/2 exactly, the half-sample delay the
-    input columns carry (:func:`motorctl.effects.input_delay.held_lag_response`: (0.5, 0.5)).
-    ``numpy.gradient`` applied twice is the difference of stride two, (x_{k+2} − 2 x_k +
-    x_{k−2})/(4 Ts²), which sees (u_{k+1} + 3 u_k + 3 u_{k−1} + u_{k−2})/8: against the input
-    delayed by half a sample its gain falls by (ωTs)²/4 more (0.1 % at 50 Hz and 5 kHz), and on
-    the rigid simulated plant without noise or quantisation the fit came out θ1 −0.06 %,
-    θ5 −1.6 %, θ6 +1.1 % with it, within 0.05 % with this one (docs/identification.md,
-    "Uncertainty")."""
-    x = np.asarray(x, dtype=float)
-    if len(x) < 3:
-        return np.gradient(np.gradient(x, ts), ts) if len(x) > 1 else np.zeros_like(x)
-    acc = np.gradient(np.gradient(x, ts), ts)
-    acc[1:-1] = (x[2:] - 2.0 * x[1:-1] + x[:-2]) / (ts * ts)
-    return acc
-
-
 def prepare(t, y, u, fq: float | None = None, nd: int | None = None) -> Prepared:
     """Zero-phase Butterworth (order 4) on y, central differences, decimation set-up.
 
@@ -272,7 +250,7 @@ def prepare(t, y, u, fq: float | None = None, nd: int | None = None) -> Prepared
     b, a_ = butter(4, fq / (fs / 2))
     x = filtfilt(b, a_, y - y[0]) + y[0]
     v = np.gradient(x, ts)          # central differences (one-sided at the ends)
-    acc = second_difference(x, ts)
+    acc = np.gradient(v, ts)
     n_dec = -(-len(t) // nd)
     edge = int(np.ceil(EDGE_S * fs / nd)) + 2
     keep = slice(edge, n_dec - edge)
