@@ -308,16 +308,16 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
                 + (f", L2 {refs[what][a]['L2_um']:.3f} um" if what == "program" else "") for a in pair))
         return refs[what]
 
-    def trial(what: str, opt: dict, s: float) -> tuple[dict, str]:
+    def trial(what: str, opt: dict, s: float) -> tuple[dict, str | None, str]:
         cfg = with_gains(raw, pair, g_c2, g_t, opt, s)
         r = (contour_run(cfg, source, pair, "gtcf", radius, feed) if what == "contour" else
              program_run(cfg, source, pair, "gtcf", seconds, clock))
-        why = _judge(r, ref(what), by, g_c2, g_t, opt, s, loaded)
+        failed, why = _judge(r, ref(what), by, g_c2, g_t, opt, s, loaded)
         runs.append((dict(opt), what, s, r, why))
         l2 = ", ".join(f"{a} {r[a]['L2_um']:.3f}" for a in pair) if what == "program" else ""
         say(f"verify gtcf gain_n {_opts(opt)} at {s:.0%} on {_where(what, seconds)}: {why or 'ok'}"
             + (f" (L2 {l2} um)" if l2 else ""))
-        return r, why
+        return r, failed, why
 
     runs, n_runs, chosen = [], 0, None
     at = {a: 0 for a in pair}
@@ -332,7 +332,7 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
         steps = [(what, s) for s in sorted(SCALES, reverse=True)
                  for what in (("contour", "program") if seconds and judge_programs else ("contour",))]
         for what, s in steps:
-            r, why = trial(what, opt, s)
+            r, failed, why = trial(what, opt, s)
             n_runs += 1
             if s == 1.0:
                 got[what] = r
@@ -342,14 +342,13 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
             chosen = (opt, got)
             break
         # the axis the verdict names takes its next option; at 1 already, its partner (the coupling)
-        a = why.split(":", 1)[0]
-        a = a if a in pair and opt[a][0] > 1.0 else next(b for b in pair if opt[b][0] > 1.0)
+        a = failed if opt[failed][0] > 1.0 else next(b for b in pair if opt[b][0] > 1.0)
         at[a] += 1
     if chosen is None:
         chosen = ({a: (1.0, None) for a in pair}, {})
     elif seconds and not judge_programs:
         # reported, not judged: the axes' own point-to-point programs with the chosen gains
-        chosen[1]["program"], why = trial("program", chosen[0], 1.0)
+        chosen[1]["program"], _, why = trial("program", chosen[0], 1.0)
         chosen[1]["program_verdict"] = why
     opt, got = chosen
     mg = {a: axis_margins(by[a], g_c2[a], g_t, *opt[a], rule)[0] for a in pair}
@@ -370,9 +369,10 @@ def _where(what: str, seconds: float) -> str:
 
 
 def _judge(run: dict, ref: dict, by: dict, g_c2: dict, g_t: float, opt: dict, scale: float,
-           loaded: LoadedConfig) -> str:
-    """'' when every axis's figures of ``run`` meet :func:`motorctl.commission.verify.admissible`
-    against the reference run ``ref`` (per-axis C2 with gains ``g_c2``), else 'AXIS: why'. The
+           loaded: LoadedConfig) -> tuple[str | None, str]:
+    """(None, '') when every axis's figures of ``run`` meet
+    :func:`motorctl.commission.verify.admissible` against the reference run ``ref`` (per-axis C2
+    with gains ``g_c2``), else (the first axis that failed, 'AXIS: why'). The
     error-spectrum ratio is taken beyond the one the sensitivities predict at the extreme gains
     of the axis's span (|S|² of GTCF's linearisation at k_s × scale, g_t and its g_n with its
     low-pass, ``opt[axis]`` = (g_n, lowpass_hz), against C2's at k_s)."""
@@ -390,8 +390,8 @@ def _judge(run: dict, ref: dict, by: dict, g_c2: dict, g_t: float, opt: dict, sc
         why = admissible(r if scale >= 1.0 else {**r, "saturated": 0}, loaded.axes[a].controller.u_lim, ref[a],
                          expect=expect)
         if why:
-            return f"{a}: {why}"
-    return ""
+            return a, f"{a}: {why}"
+    return None, ""
 
 
 def comment_lines(tp: dict) -> list[str]:

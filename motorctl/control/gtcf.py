@@ -145,7 +145,7 @@ def lowpass_alpha(lowpass_hz: float | None, ts: float) -> float:
     if lowpass_hz is None:
         return 1.0
     if not 0.0 < lowpass_hz < 0.5 / ts:
-        raise ValueError(f"lowpass_hz: {lowpass_hz:g} Hz must be above 0 and below the Nyquist frequency "
+        raise ValueError(f"{lowpass_hz:g} Hz must be above 0 and below the Nyquist frequency "
                          f"{0.5 / ts:g} Hz of the {ts * 1e3:g} ms period")
     return 1.0 - math.exp(-2.0 * math.pi * lowpass_hz * ts)
 
@@ -250,7 +250,7 @@ class GTCF(DCDIARC):
         try:
             g[G_ALPHA] = lowpass_alpha(self.gtcf.lowpass_hz, ts)
         except ValueError as exc:
-            raise ValueError(f"gtcf: {exc}") from None
+            raise ValueError(f"gtcf: lowpass_hz: {exc}") from None
         self._span = np.concatenate([self._span, g])        # GTCF's numbers after the span (module comment)
         self._bind()
         # compile (or load) the step now, on copies, so that the first cycle never pays for it
@@ -315,7 +315,7 @@ class GTCF(DCDIARC):
         try:
             lowpass_alpha(settings.lowpass_hz, period_s)
         except ValueError as exc:
-            out.append(("gtcf.lowpass_hz", str(exc).split(": ", 1)[1]))
+            out.append(("gtcf.lowpass_hz", str(exc)))
         return out
 
     @property
