@@ -106,12 +106,18 @@ def circle_program(radius: float, feed: float, center: Sequence[float] = (0.0, 0
                    dwell: float = 0.5) -> tuple[str, dict[str, int]]:
     """The G-code of the test (ISO 230-4, 5.2: the full circle entered and left on tangential
     half-circle arcs of radius R/2 from and to the centre, so the test circle starts and ends
-    at feed, without a reversal at its start point).
+    at feed, without a reversal at its start point), with an overshoot arc of 90° on the test
+    circle before and after the measured full circle, as a ballbar test runs them: where the
+    R/2 arc joins the circle the curvature steps from 2/R to 1/R, and the planner's jerk-limited
+    blend there (within the G64 tolerance) bends the setpoint off the circle for a few tens of
+    ms (1.85 µm inside at R 50 mm, 100 mm/s); the overshoot arcs keep that join and the servo's
+    settling after it out of the measured circle, which starts and ends at 90° (CCW) or −90°
+    (CW), on the circle's own curvature both ways.
 
     radius [m], feed [m/s] (the path speed of the test), center (x, y) [m] (machine = program
     coordinates, G54 at 0), directions: "ccw" (G3) and/or "cw" (G2), run in that order with a
     ``dwell`` [s] between; tolerance: G64 P [m]. Returns (text, {direction: source line of its
-    full circle}). Raises ValueError on a radius or feed ≤ 0 or an unknown direction."""
+    measured full circle}). Raises ValueError on a radius or feed ≤ 0 or an unknown direction."""
     if not radius > 0 or not feed > 0:
         raise ValueError(f"circle test: radius {radius} m and feed {feed} m/s must be > 0")
     mm = 1e3
@@ -122,11 +128,13 @@ def circle_program(radius: float, feed: float, center: Sequence[float] = (0.0, 0
     for d in directions:
         if d not in ("cw", "ccw"):
             raise ValueError(f"circle test: direction {d!r}: allowed cw, ccw")
-        g = "G2" if d == "cw" else "G3"
-        lines.append(f"{g} X{cx + r:.4f} Y{cy:.4f} I{r / 2:.4f} J0")          # lead-in
-        lines.append(f"{g} X{cx + r:.4f} Y{cy:.4f} I{-r:.4f} J0")             # the test circle
+        g, s = ("G2", -1.0) if d == "cw" else ("G3", 1.0)       # s: the side the circle turns to
+        lines.append(f"{g} X{cx + r:.4f} Y{cy:.4f} I{r / 2:.4f} J0")              # lead-in, to 0°
+        lines.append(f"{g} X{cx:.4f} Y{cy + s * r:.4f} I{-r:.4f} J0")            # overshoot, to ±90°
+        lines.append(f"{g} X{cx:.4f} Y{cy + s * r:.4f} I0 J{-s * r:.4f}")        # the test circle
         where[d] = len(lines)
-        lines.append(f"{g} X{cx:.4f} Y{cy:.4f} I{-r / 2:.4f} J0")            # lead-out
+        lines.append(f"{g} X{cx - r:.4f} Y{cy:.4f} I0 J{-s * r:.4f}")            # overshoot, to 180°
+        lines.append(f"{g} X{cx:.4f} Y{cy:.4f} I{r / 2:.4f} J0")                 # lead-out
         if dwell > 0:
             lines.append(f"G4 P{dwell:g}")
     lines += ["M2", "%"]

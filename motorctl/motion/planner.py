@@ -279,7 +279,7 @@ class _Piece:
     tol: float
     rest: float = 0.0         # a rest's duration [s]
     acc_alone: float = 0.0    # a line's path acceleration between two rests (no corner step near)
-    arc: tuple[float, ...] = (0.0,) * 7   # an arc's cx, cy, r0, r1, phi0, sweep [m, rad], taper [1]
+    arc: tuple[float, ...] = (0.0,) * 8   # an arc's cx, cy, r0, r1, phi0, sweep [m, rad], fades in, out [1]
 
 
 def _tangents(p: _Piece, ix: int, iy: int) -> tuple[np.ndarray, np.ndarray]:
@@ -296,6 +296,20 @@ def _tangents(p: _Piece, ix: int, iy: int) -> tuple[np.ndarray, np.ndarray]:
         t[iy] = math.cos(phi) * sgn * planar
         out.append(t / np.linalg.norm(t))
     return out[0], out[1]
+
+
+def _same_circle(a: _Piece, b: _Piece, tol_m: float = 1e-9) -> bool:
+    """Whether arc piece ``b`` continues arc piece ``a`` on the same circle: both arcs, the same
+    centre and radius within ``tol_m`` [m] (a's end radius, b's start radius), the same turning
+    direction, b starting where a ends, no non-XY axis moving (a helix's pitch may change)."""
+    if a.kind != 1 or b.kind != 1 or a.length == 0.0 or b.length == 0.0:
+        return False
+    ca, cb = a.arc, b.arc
+    if abs(ca[0] - cb[0]) > tol_m or abs(ca[1] - cb[1]) > tol_m or abs(ca[3] - cb[2]) > tol_m:
+        return False
+    if ca[5] * cb[5] <= 0 or np.any(a.u != 0.0) or np.any(b.u != 0.0):
+        return False
+    return bool(np.all(np.abs(a.p1 - b.p0) <= tol_m))
 
 
 class PathTrajectory(Trajectory):
@@ -358,7 +372,7 @@ class PathTrajectory(Trajectory):
         v = sd[..., None] * u
         arc = self._kind[k] == 1
         if np.any(arc):
-            cx, cy, r0, r1, phi0, sweep, ft = (self._arc[k, i] for i in range(7))
+            cx, cy, r0, r1, phi0, sweep, fi, fo = (self._arc[k, i] for i in range(8))
             safe = np.where(length > 0, length, 1.0)
             f = s / safe
             phi = phi0 + sweep * f
@@ -367,11 +381,14 @@ class PathTrajectory(Trajectory):
             dr = (r1 - r0) / safe
             # the filters' radial shrink compensated (docs/motion.md, "The planner"): the arc is
             # planned on the radius r + delta that the two moving averages shrink back onto r at
-            # the path speed sd, delta faded in and out over a fraction ft of the arc at its ends
+            # the path speed sd, delta faded in over a fraction fi of the arc at its start and out
+            # over fo at its end (0: no fade there, the next arc is the same circle; inf: none)
             sdd = np.where(tau < ta, acc, np.where((tau > ta + tc) & ~done, -acc, 0.0))
-            wr = np.where(ft > 0, np.clip(np.minimum(f, 1.0 - f) / np.where(ft > 0, ft, 1.0), 0.0, 1.0), 0.0)
-            dw = np.where((ft > 0) & (wr > 0) & (wr < 1), np.where(f < 0.5, 1.0, -1.0) / np.where(ft > 0, ft, 1.0),
-                          0.0)
+            ri = np.where(fi > 0, f / np.where(fi > 0, fi, 1.0), np.inf)
+            ro = np.where(fo > 0, (1.0 - f) / np.where(fo > 0, fo, 1.0), np.inf)
+            wr = np.clip(np.minimum(ri, ro), 0.0, 1.0)
+            dw = np.where((wr > 0) & (wr < 1), np.where(ri < ro, 1.0 / np.where(fi > 0, fi, 1.0),
+                                                        -1.0 / np.where(fo > 0, fo, 1.0)), 0.0)
             rs = np.where(r > 0, r, 1.0)
             g, dg = self._shrink(sd / rs)
             delta = np.where(arc, r * g * wr, 0.0)
@@ -567,7 +584,7 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
                 vmax = min(vmax, math.sqrt(12.0 * r * tol / ((t1 * t1 + t2 * t2) * ARC_RESIDUAL)))
             phi0 = math.atan2(seg.start[1] - seg.center[1], seg.start[0] - seg.center[0])
             pc = _Piece(1, seg.line, p0, p1, u, length, vmax, 0.5 * ACCEL_SHARE * a_min, seg.tolerance,
-                        arc=(float(seg.center[0]), float(seg.center[1]), r0, r1, phi0, seg.sweep, 0.0))
+                        arc=(float(seg.center[0]), float(seg.center[1]), r0, r1, phi0, seg.sweep, math.inf, math.inf))
             pieces.append(pc)
             stop_after.append(seg.tolerance == 0.0)
             cur = p1.copy()
@@ -661,7 +678,7 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
     tab = {key: np.zeros(npc) for key in ("t0", "ta", "tc", "td", "v0", "vp", "acc", "la", "lc", "len", "kind")}
     na = len(axes)
     p0s, p1s, us = np.zeros((npc, na)), np.zeros((npc, na)), np.zeros((npc, na))
-    arcs = np.zeros((npc, 7))
+    arcs = np.zeros((npc, 8))
     t = 0.0
     v0 = 0.0
     t_end = np.zeros(npc)
@@ -689,10 +706,17 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
         if p.kind == 1:
             arcs[k] = p.arc
             if ARC_COMPENSATE and p.length > 0:        # the fade of the compensation: a filter window's path
-                arcs[k, 6] = min(0.5, ARC_FADE * vp * tw / p.length)
+                arcs[k, 6] = arcs[k, 7] = min(0.5, ARC_FADE * vp * tw / p.length)
         t += ta + tc + td
         t_end[k] = t
         v0 = v1
+    # an arc that goes on as the same circle (the same centre and radius, turning the same way,
+    # no stop between: a ballbar test's overshoot arcs, a circle programmed in parts) keeps its
+    # compensation across the join: no fade out and in again, which would dip the setpoint inside
+    # the circle there by the shrink itself
+    for k in range(npc - 1):
+        if _same_circle(pieces[k], pieces[k + 1]) and not rest_after[k] and vj[k] > 0:
+            arcs[k, 7] = arcs[k + 1, 6] = 0.0
     table = (tab["t0"], tab["ta"], tab["tc"], tab["td"], tab["v0"], tab["vp"], tab["acc"], tab["la"],
              tab["lc"], tab["len"], tab["kind"].astype(int), p0s, p1s, us, arcs)
     m = n1 + n2 - 2
