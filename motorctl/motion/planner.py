@@ -715,7 +715,7 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
     # compensation across the join: no fade out and in again, which would dip the setpoint inside
     # the circle there by the shrink itself
     for k in range(npc - 1):
-        if _same_circle(pieces[k], pieces[k + 1]) and not rest_after[k] and vj[k] > 0:
+        if _same_circle(pieces[k], pieces[k + 1]) and vj[k] > 0:        # (a stop: a rest piece between)
             arcs[k, 7] = arcs[k + 1, 6] = 0.0
     table = (tab["t0"], tab["ta"], tab["tc"], tab["td"], tab["v0"], tab["vp"], tab["acc"], tab["la"],
              tab["lc"], tab["len"], tab["kind"].astype(int), p0s, p1s, us, arcs)
