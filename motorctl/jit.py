@@ -76,7 +76,15 @@ def load() -> SimpleNamespace:
         from numba.extending import intrinsic
         if folder is not None:
             # numba read NUMBA_CACHE_DIR at its import (before motorctl's, or without a plugin
-            # folder): a kernel's cache locator reads the setting when the kernel is created
+            # folder): a kernel's cache locator reads the setting when the kernel is created.
+            # numba's compiler re-reads the environment at every compile when a NUMBA_ variable
+            # changed since numba last read it (numba.core.config.reload_config), and would put
+            # the environment's folder back: when numba was imported before
+            # jitcache.configure set NUMBA_CACHE_DIR, a plugin process cached its first kernel
+            # in the plugin folder and every later one (the plant's and the cycle's dispatch
+            # over its kernel tables) in the plain install's, where plain processes then
+            # loaded them. Read the environment now, then set the folder.
+            config.reload_config()
             config.CACHE_DIR = folder
         if bool(config.DISABLE_JIT) != DISABLED:
             raise RuntimeError(f"numba's DISABLE_JIT is {config.DISABLE_JIT} but NUMBA_DISABLE_JIT in the "

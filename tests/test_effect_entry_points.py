@@ -139,6 +139,36 @@ def test_a_family_from_another_package_runs_compiled(plugin_env, repo, drag_tune
     assert got["cold"] is False, got
 
 
+#: a plugin process that imports numba before motorctl (as a plugin's own module may), then
+#: compiles the plant's dispatch over its kernel table (the first kernel compiled re-reads
+#: numba's environment: motorctl.jit.load)
+FIRST_NUMBA = """
+import json, os, sys
+import numba                                  # before motorctl.jitcache sets NUMBA_CACHE_DIR
+import numpy as np
+from motorctl.effects import plant
+from motorctl.model import s_f_scalar
+plant.force(0.0, 0.1, 0.2, 0.0, s_f_scalar(0.2), np.zeros(0, np.int64), np.zeros((0, 1)), np.zeros(0, np.int64))
+plant.mass(1.0, 0.0, np.zeros(0, np.int64), np.zeros((0, 1)), np.zeros(0, np.int64))
+root = sys.argv[1]
+print(json.dumps(sorted({os.path.relpath(d, root) for d, _, fs in os.walk(root) for f in fs if f.endswith(".nbi")})))
+"""
+
+
+def test_a_plugin_process_caches_every_kernel_apart(plugin_env, repo, tmp_path):
+    """Every kernel a plugin process compiles lies in its own cache folder
+    (``motorctl-plugins-<key>``), none in the plain install's, where a plain process would
+    load a dispatch compiled over the plugin's table (it failed there on the plugin's module,
+    and a plugin process that loaded the plain table ran its plant to NaN): also when numba was
+    imported before motorctl, whose first compile re-reads numba's environment."""
+    cache = tmp_path / "cache"
+    r = _run({**plugin_env, "XDG_CACHE_HOME": str(cache)}, "-c", FIRST_NUMBA, str(cache), cwd=repo, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    folders = json.loads(r.stdout.strip().splitlines()[-1])
+    assert any("effects_" in f for f in folders), folders
+    assert all("motorctl-plugins-" in f for f in folders), folders
+
+
 def _eps(*pairs):
     return lambda group: [EntryPoint(n, v, group) for n, v in pairs]
 
