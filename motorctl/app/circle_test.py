@@ -1,7 +1,8 @@
 """The ISO 230-4 circular test of the simulated gantry on the daemon's motion path.
 
 The test program (:func:`motorctl.motion.circle.circle_program`: CCW then CW full circles in XY,
-entered and left on tangential half circles) is read, checked and planned by the daemon's
+entered and left on tangential half circles, with 90° overshoot arcs of the circle before and
+after each measured turn) is read, checked and planned by the daemon's
 :class:`~motorctl.app.daemon.motion_side.MotionSide`, streamed through the setpoint ring into
 the compiled cycle's STREAM mode (:mod:`motorctl.loop.stream`) with both axes in command mode,
 all in one process on the virtual clock (the simulated plant advances one period per cycle, so
