@@ -162,7 +162,10 @@ def test_a_plugin_process_caches_every_kernel_apart(plugin_env, repo, tmp_path):
     and a plugin process that loaded the plain table ran its plant to NaN): also when numba was
     imported before motorctl, whose first compile re-reads numba's environment."""
     cache = tmp_path / "cache"
-    r = _run({**plugin_env, "XDG_CACHE_HOME": str(cache)}, "-c", FIRST_NUMBA, str(cache), cwd=repo, timeout=300)
+    # a cache of its own: not the session's (NUMBA_CACHE_DIR, set by the session's own compile,
+    # would be taken as the user's choice, and the plugin folder nested in it)
+    env = {k: v for k, v in plugin_env.items() if k not in ("NUMBA_CACHE_DIR", "MOTORCTL_CACHE_DIR")}
+    r = _run({**env, "XDG_CACHE_HOME": str(cache)}, "-c", FIRST_NUMBA, str(cache), cwd=repo, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     folders = json.loads(r.stdout.strip().splitlines()[-1])
     assert any("effects_" in f for f in folders), folders
