@@ -25,6 +25,7 @@ from motorctl.ident.uncertainty import (Z95, fit_uncertainty, hac_covariance, lo
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT = str(ROOT / "configs" / "gantry.yaml")
+RIGID = str(ROOT / "configs" / "gantry-rigid.yaml")
 PAIR = {"cogging": {"amplitudes_N": [12.0], "period_m": 0.017, "phases_rad": [0.3]},
         "force_constant_drift": {"drift_per_s": -0.01}}
 #: the default plant's X axis: M/A1, B/A1, Af/A1, offset/A1 (configs/gantry.yaml)
@@ -205,3 +206,19 @@ def test_two_effects_fitted_jointly_within_ten_percent(pair):
     assert len(cog["parameters"]["amplitudes_N"]) == 1
     assert any(e["name"] == "cogging" for e in s["harmonics_cut"])
     assert any(e["name"] == "cogging" for e in s["joint_refit"])
+
+
+def test_asymmetric_friction_beside_cogging_within_ten_percent(tmp_path):
+    """Rigid plant (no noise), cogging 12 + 4 N at 32 mm and an asymmetric friction of 10 N +
+    20 N·s/m: the input held at rest at both ends of the stroke also holds the cogging force
+    there; its offset is taken with the cogging's input taken off (ΔF_c was 14.9 N)."""
+    log = tmp_path / "cogging_asymmetric.mclog"
+    frag = {"cogging": {"amplitudes_N": [12.0, 4.0], "period_m": 0.032, "phases_rad": [0.3, 1.0]},
+            "asymmetric_friction": {"coulomb_N": 10.0, "viscous_N_s_per_m": 20.0}}
+    make_log(str(log), frag, duration_s=20.0, seed=1, axis="X", noise_N=None, base=RIGID)
+    _, s = identify_record(load_record(str(log), axis="X"))
+    af, cog = _effect(s, "asymmetric_friction"), _effect(s, "cogging")
+    assert af is not None and cog is not None, [e["name"] for e in s["effects"]]
+    assert af["parameters"]["coulomb_N"] == pytest.approx(10.0, rel=0.10)
+    assert af["parameters"]["viscous_N_s_per_m"] == pytest.approx(20.0, rel=0.10)
+    assert cog["parameters"]["amplitudes_N"] == pytest.approx([12.0, 4.0], rel=0.10)

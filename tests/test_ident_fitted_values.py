@@ -51,6 +51,22 @@ def test_held_offset_ignores_a_stop_transient_and_one_sample_extreme():
     assert held_offset(p, theta3=20.0 / A1) == pytest.approx(-4.0 / A1, abs=0.1 / A1)
 
 
+def test_held_offset_takes_off_the_other_effects_input_at_the_rest_positions():
+    """Held at two rest positions where another effect (cogging) pushes +7 N and −1 N, the
+    input spans the breakaway band shifted by that force at each: the middle of the plain
+    extremes is off by half the difference (3 N); with the other effects' input u_other taken
+    off it is F_0. A hold that does not see the other force (the simulator's stiction without
+    ``stiction_with_effects``): u itself, whose span is the narrower, is kept."""
+    p = _held_record(f0_n=-4.0, rest_s=4.0)
+    n = int(4.0 * FS)
+    force = np.where(np.arange(len(p.u)) < n // 2, 7.0, -1.0)           # F_other at x [N]
+    u_other = -force / A1
+    seen = SimpleNamespace(v=p.v, u=p.u + u_other, fs=FS)
+    assert held_offset(seen, 20.0 / A1) == pytest.approx(-(4.0 - 3.0) / A1, abs=0.05 / A1)
+    assert held_offset(seen, 20.0 / A1, other=u_other) == pytest.approx(-4.0 / A1, abs=0.01 / A1)
+    assert held_offset(p, 20.0 / A1, other=u_other) == pytest.approx(-4.0 / A1, abs=0.01 / A1)
+
+
 @pytest.mark.parametrize("case", ["one side only", "span below 2 theta3", "too short at rest"])
 def test_held_offset_refuses_a_record_that_cannot_tell(case):
     p = {"one side only": _held_record(both=False),
@@ -106,17 +122,15 @@ def _moves_ctx(slow_pull_v=0.0):
 
 def test_asymmetric_friction_levels_are_fitted_in_motion():
     """ΔB and ΔF_c − 2θ4 from the fit on the moving samples: the slow samples' pull (0.3 V,
-    24 N, where the stick and slip happens) leaves them; the spring's part that is the same
-    both ways (k·x̄ = 2 N) is counted in the offset, as the input held at rest counts it."""
+    24 N, where the stick and slip happens) leaves them; θ4 is the fit's own, the spring's
+    k·x beside it (the input held at rest is compared with it once the other effects' input
+    there is taken off, :func:`~motorctl.effects.asymmetric_friction.other_input`)."""
     from motorctl.effects.asymmetric_friction import levels_in_motion
     ctx = _moves_ctx(slow_pull_v=0.3)
     th4, beta = levels_in_motion(ctx, "asymmetric_friction")
     assert A1 * beta[1] == pytest.approx(10.0, abs=0.05)
-    # F_0 = −4 N and the spring at the mean position of the moves, 10 N/m · x̄ (x̄ ≈ 0.2 m)
-    x, v, m = ctx.terms[1].cols[:, 0], ctx.p.v_d, ctx.moving
-    x_bar = 0.5 * (x[m & (v > 0)].mean() + x[m & (v < 0)].mean())
-    assert x_bar == pytest.approx(0.2, abs=0.01)
-    assert A1 * (beta[0] - 2.0 * th4) == pytest.approx(5.0 - 2.0 * (-4.0 - 10.0 * x_bar), abs=0.05)
+    # F_0 = −4 N, the spring's force in its own column
+    assert A1 * (beta[0] - 2.0 * th4) == pytest.approx(5.0 - 2.0 * (-4.0), abs=0.05)
     # the joint fit on every sample is pulled by the slow ones (what the fit in motion avoids)
     phi, y = ctx.design(ctx.terms)
     joint = np.linalg.lstsq(phi, y, rcond=None)[0]
@@ -125,11 +139,11 @@ def test_asymmetric_friction_levels_are_fitted_in_motion():
     # through the family: ΔB in motion; ΔF_c the joint β when the record cannot tell the held
     # offset (nothing in motion tells it from the offset), the levels' sum + 2 θ4_held when it can
     fam = FAMILIES["asymmetric_friction"]
-    beta_joint, theta = np.array([7.0, 9.0]) / A1, np.array([0.16, 0.22, 20.0 / A1, 1.0 / A1])
+    beta_joint, theta = np.array([7.0, 9.0]) / A1, np.array([0.16, 0.22, 20.0 / A1, -4.0 / A1])
     blind = fam.parameters(None, beta_joint, A1, FS, theta=theta, p=_held_record(both=False), ctx=ctx)
     assert blind["coulomb_N"] == pytest.approx(7.0) and blind["viscous_N_s_per_m"] == pytest.approx(10.0, abs=0.05)
     held = fam.parameters(None, beta_joint, A1, FS, theta=theta, p=_held_record(f0_n=-4.0), ctx=ctx)
-    assert held["coulomb_N"] == pytest.approx(5.0 + 2.0 * 10.0 * x_bar, abs=0.1)
+    assert held["coulomb_N"] == pytest.approx(5.0, abs=0.1)
 
 
 def test_stribeck_hump_is_built_on_the_wide_band_velocity_and_s_f_on_the_one_given():

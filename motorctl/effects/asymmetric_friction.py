@@ -62,21 +62,35 @@ REST_MARGIN_S = 2e-3
 EXTREME_S = 5e-3
 
 
-def held_offset(p, theta3: float) -> float | None:
+def held_offset(p, theta3: float, theta4: float | None = None, other: np.ndarray | None = None) -> float | None:
     """The offset θ4 [V] (θ4·A1 = F_0, the constant force on the carriage) from the input held
     at rest, or None when the record cannot tell it.
 
-    A carriage held by static friction (Karnopp) stays while |A1 u + F_0| ≤ F_s, so the input
-    held at rest spans [(−F_s − F_0)/A1, (F_s − F_0)/A1], symmetric about −θ4, when the loop
-    pushes it to the breakaway both ways (C2 hunting at rest does). Taken on the samples at
-    rest (|ẋ| < :data:`REST_V`, :data:`REST_MARGIN_S` away from motion) when there are at least
-    :data:`MIN_REST_S` of them, the held input takes both signs and its span reaches 2θ3 (static
-    friction is at least the kinetic level): θ4 = −(hi + lo)/2 with hi, lo the means of the
-    :data:`EXTREME_S` highest and lowest held inputs.
+    A carriage held by static friction (Karnopp) stays while |A1 u + F_0 + F_other(x)| ≤ F_s,
+    F_other the other effects' force at its rest position x (cogging's, a spring's), so the
+    input held at rest less the input that force takes, u − u_other with u_other = −F_other/A1,
+    spans [(−F_s − F_0)/A1, (F_s − F_0)/A1], symmetric about −θ4, when the loop pushes it to
+    the breakaway both ways (C2 hunting at rest does). Taken on the samples at rest (|ẋ| <
+    :data:`REST_V`, :data:`REST_MARGIN_S` away from motion) when there are at least
+    :data:`MIN_REST_S` of them, the held input takes both signs and its span reaches twice the
+    Coulomb level (static friction is at least the kinetic level): θ4 = −(hi + lo)/2 with hi,
+    lo the means of the :data:`EXTREME_S` highest and lowest held inputs. Taken on u itself
+    beside cogging, the extremes fall at the rest positions where its force helps most each
+    way, and their middle is off by the cogging force there (rigid plant, cogging 12 + 4 N at
+    rest at x = 0 and 0.4 m: θ4 −0.0066 V, with u_other −0.0473 V, true −0.05 V). With
+    ``other`` the extremes of u − u_other are taken when their span is the narrower: the held
+    input lies in one band only with the forces the hold really sees (the simulator's
+    stiction, ``stiction_N``, sees the effects' forces only with ``stiction_with_effects``;
+    without, u itself spans the band and u − u_other spans it widened by u_other's range).
 
     Args:
         p: the prepared record (full-rate v [m/s], u [V] (N,), fs [Hz]). theta3: the Coulomb
-            level θ3 [V] of the fit.
+            level θ3 [V] of the fit. theta4: the fit's offset θ4 [V], or None. Given, the span
+            is checked against the Coulomb level the fit's backward level θ3 + θ4 leaves with
+            the held offset, θ3 + θ4 − θ4_held: beside a forward-only Coulomb column the fit
+            fixes θ3 + θ4, not θ3 and θ4 apart (:meth:`AsymmetricFrictionFamily.parameters`).
+            other: u_other [V] (N,), the input the other effects take at each sample
+            (:func:`other_input`), or None.
     """
     rest = np.abs(np.asarray(p.v)) < REST_V
     margin = int(round(REST_MARGIN_S * p.fs))
@@ -88,12 +102,51 @@ def held_offset(p, theta3: float) -> float | None:
         rest = (c[np.minimum(i + margin + 1, n)] - c[np.maximum(i - margin, 0)]) == 0
     if rest.sum() < MIN_REST_S * p.fs:
         return None
-    held = np.sort(np.asarray(p.u)[rest])
     k = max(1, int(round(EXTREME_S * p.fs)))
-    lo, hi = float(np.mean(held[:k])), float(np.mean(held[-k:]))
-    if not (lo < 0.0 < hi and hi - lo >= 2.0 * theta3 > 0.0):
+    u = np.asarray(p.u)[rest]
+    lo, hi = _extremes(u, k)
+    if other is not None:
+        lo_o, hi_o = _extremes(u - np.asarray(other)[rest], k)
+        if hi_o - lo_o < hi - lo:
+            lo, hi = lo_o, hi_o
+    th4 = -0.5 * (lo + hi)
+    level = theta3 if theta4 is None else theta3 + theta4 - th4
+    if not (lo < 0.0 < hi and hi - lo >= 2.0 * level > 0.0):
         return None
-    return -0.5 * (lo + hi)
+    return th4
+
+
+def _extremes(u: np.ndarray, k: int) -> tuple[float, float]:
+    """(lo, hi): the means of the k lowest and the k highest of u (n,)."""
+    part = np.partition(u, (k - 1, len(u) - k))
+    return float(np.mean(part[:k])), float(np.mean(part[-k:]))
+
+
+def other_input(ctx, name: str) -> np.ndarray | None:
+    """u_other [V] (N,): the input the effects of the identifier's final model (``ctx.terms``,
+    β of ``ctx.final``) other than ``name`` take at each sample of the record ``ctx.p``, Σ C_k
+    β_k on the full-rate columns; None when ``ctx`` has no final model or no such effect.
+
+    Left out: the terms without columns (a delay of the input) and those of a family that
+    holds the carriage at rest (stiction's ``other_weight``): their columns there are the held
+    input itself, not a force on the carriage.
+    """
+    terms = list(getattr(ctx, "terms", None) or [])
+    if getattr(ctx, "final", None) is None or not terms:
+        return None
+    from motorctl.effects import family
+    betas = ctx.coef_split(ctx.final, terms)[1]
+    out = None
+    for t, b in zip(terms, betas):
+        fam = family(t.family)
+        if t.family == name or t.cols is None or fam.other_weight(t) is not None:
+            continue
+        cols = fam.columns(t.h, ctx.p)
+        if cols is None:
+            continue
+        f = np.asarray(cols, dtype=float).reshape(len(ctx.p.u), -1) @ np.asarray(b, dtype=float)
+        out = f if out is None else out + f
+    return out
 
 
 def levels_in_motion(ctx, name: str) -> tuple[float, np.ndarray] | None:
@@ -108,12 +161,13 @@ def levels_in_motion(ctx, name: str) -> tuple[float, np.ndarray] | None:
     N·s/m and ΔF_c − 2F_0 14.8 N on all samples, 9.9 and 13.05 N on the moving ones; truth 10
     and 13). Columns that vanish in motion (stiction's) are left out; the offset and the
     forward Coulomb column are nearly collinear there, which leaves ΔF_c − 2θ4 and ΔB well
-    determined (least squares, minimum norm). The constant force includes the part of the
-    other effects that is the same both ways (½ (mean forward + mean backward) of their force:
-    a spring's k·x̄), as the input held at rest does (:func:`held_offset`).
+    determined (least squares, minimum norm). The constant force is the fit's own θ4, the
+    other effects' columns beside it (a spring's k·x, cogging's harmonics): what the input held
+    at rest is compared with once those effects' input there is taken off it
+    (:func:`held_offset` with :func:`other_input`).
 
     Returns:
-        (θ4 − that part [V], β (2,) [V, V·s/m]).
+        (θ4 [V], β (2,) [V, V·s/m]).
     """
     terms = list(getattr(ctx, "terms", None) or [])
     idx = next((i for i, t in enumerate(terms) if t.family == name), None)
@@ -124,20 +178,14 @@ def levels_in_motion(ctx, name: str) -> tuple[float, np.ndarray] | None:
     widths = [0 if t.cols is None else t.cols.shape[1] for t in terms]
     start = nt + sum(widths[:idx])
     sel = ctx.moving
+    if not ((sel & (ctx.p.v_d > 0)).any() and (sel & (ctx.p.v_d < 0)).any()):
+        return None
     a, b = phi[sel], y[sel]
     norms = np.sqrt(np.einsum("ij,ij->j", a, a))
     live = norms > 1e-9 * norms.max()
     coef = np.zeros(phi.shape[1])
     coef[live] = np.linalg.lstsq(a[:, live] / norms[live], b, rcond=None)[0] / norms[live]
-    others = np.ones(phi.shape[1], dtype=bool)
-    others[:nt] = False
-    others[start:start + widths[idx]] = False
-    force = phi[:, others] @ coef[others]
-    fwd, bwd = sel & (ctx.p.v_d > 0), sel & (ctx.p.v_d < 0)
-    if not (fwd.any() and bwd.any()):
-        return None
-    even = 0.5 * (force[fwd].mean() + force[bwd].mean())
-    return float(coef[3]) - float(even), coef[start:start + 2]
+    return float(coef[3]), coef[start:start + 2]
 
 
 class AsymmetricFriction(StrictModel):
@@ -195,7 +243,8 @@ class AsymmetricFrictionFamily(EffectFamily):
         θ3 + θ4 (backward), not β and θ4 apart, and a carriage held at rest shows neither (its
         input there is unconstrained). When the record's input held at rest spans the breakaway
         both ways (:func:`held_offset`), θ4 is taken from there and ΔF_c = β − 2θ4 + 2θ4_held
-        (β, θ4 of the fit in motion; of the joint fit ``beta``, ``theta`` without ``ctx``).
+        (β, θ4 of the fit in motion; of the joint fit ``beta``, ``theta`` without ``ctx``), the
+        held input taken less the other effects' input at rest (:func:`other_input`) with ``ctx``.
         Without the held offset ΔF_c is the joint fit's β: in motion alone nothing tells it from
         the offset, near rest the joint fit has S_f's transitions (EMPS, sign friction: 9.2 N
         against 16.4 N from the fit in motion; the description's −0.48 N)."""
@@ -204,7 +253,8 @@ class AsymmetricFrictionFamily(EffectFamily):
         if theta is not None and p is not None and len(theta) > 3:
             th4 = float(theta[3])
             moving = levels_in_motion(ctx, self.name) if ctx is not None else None
-            held = held_offset(p, float(theta[2]))
+            held = held_offset(p, float(theta[2]), float(theta[3]),
+                               other_input(ctx, self.name) if ctx is not None else None)
             if moving is not None:
                 th4_m, beta_m = moving
                 db = float(beta_m[1])
