@@ -143,8 +143,7 @@ def cmd_autotune(args) -> int:
     pairs = []
     if not args.measure_only:
         from motorctl.commission.autotune import autotune_pairs
-        from motorctl.commission.autotune import with_theta_hat0
-        pairs = autotune_pairs(loaded, with_theta_hat0(raw, results), results, clock, say, rule, full_periods)
+        pairs = autotune_pairs(loaded, raw, results, clock, say, rule, full_periods)
         write_config(raw, results, args.config, path, pairs)
     if args.json:
         from motorctl.commission.gtcf_tune import summary as gtcf_summary
@@ -155,10 +154,7 @@ def cmd_autotune(args) -> int:
             m = s["model"]
             print(f"{a}: fitted theta1 = M/A1 {m['theta1']:.4g} V s^2/m (theta_hat1(0) {s['theta_hat0'][0]:.4g}), "
                   f"mode {m['mode_hz']:.1f} Hz, current loop {m['current_loop_hz']:.0f} Hz, delay "
-                  f"{m['delay_s'] * 1e6:.1f} us" + (
-                      f"; measured theta5 {m['theta5']:.3g} +- {m['sigma']['theta5']:.2g} /V, theta6 "
-                      f"{m['theta6']:.3g} +- {m['sigma']['theta6']:.2g} /V^2, theta1 +- "
-                      f"{m['sigma']['theta1']:.2g}" if "theta5" in m else ""))
+                  f"{m['delay_s'] * 1e6:.1f} us")
             for law, mg in s["margins"].items():
                 print(f"  {law}: GM {mg['gm_db'] or math.inf:.1f} dB, PM {mg['pm_deg']:.1f} deg, |S| {mg['ms_db']:.1f} dB, "
                       f"crossover {mg['wc_hz']:.0f} Hz")

@@ -21,11 +21,7 @@ Steps (any driver; the simulated one by default):
    load share), the current-loop bandwidth and a transport delay, by scipy.optimize.least_squares
    on log(P_model/P_measured) weighted by the coherence, with the ZOH and its aliases
    (:func:`motorctl.commission.loopshape.plant_model_frf`); a rigid model is kept when the mode does not
-   lower the cost by 30 %. θ1, θ2 are the fit's × κ, the input nonlinearity's best linear gain
-   at the multisine's amplitude (:func:`motorctl.commission.fit.input_gain`), from the θ5, θ6
-   θ̂(0) declares; where it declares none, the response is measured again at half the
-   amplitude and θ1, θ5, θ6 are fitted to the two (:func:`measure_input_nonlinearity`; written
-   into θ̂(0)). The friction is not taken from the multisine (above 10 Hz θ2 ẋ is a
+   lower the cost by 30 %. The friction is not taken from the multisine (above 10 Hz θ2 ẋ is a
    few per cent of θ1 ẍ): :func:`~motorctl.commission.measure.measure_friction` runs constant-velocity
    passes at three speeds both ways inside the stroke (holding PID on the fitted θ1; X of
    configs/gantry.yaml 9.5 s, Y 17.3 s on the machine) and fits θ2 (viscous), θ3 (Coulomb) and θ4
@@ -134,10 +130,10 @@ import yaml
 
 from motorctl.commission.choose import choose_gains, family_zetas, loop_frf, tunable_laws
 from motorctl.commission.evaluate import evaluate
-from motorctl.commission.fit import fit_plant, input_nonlinearity
+from motorctl.commission.fit import fit_plant
 from motorctl.commission.loopshape import c_frf, loop_margins
 from motorctl.commission.measure import measure_friction, measure_frf
-from motorctl.commission.rule import (COH_USED, FULL_PERIODS, NL_PERIODS, NL_SCALE, PERIODS, REST_FACTOR, RULE, SAT_FACTOR, SAT_FLOOR_SHARE,
+from motorctl.commission.rule import (COH_USED, FULL_PERIODS, PERIODS, REST_FACTOR, RULE, SAT_FACTOR, SAT_FLOOR_SHARE,
                                       SEARCH_BUDGET, AutotuneError, Rule)
 from motorctl.commission.verify import apply_gains, verify
 from motorctl.config import LoadedConfig, config_from_dict
@@ -154,21 +150,20 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
     program periods of a confirmation run). Returns
     {"measure", "model", "theta_hat0", "w", "G_fit", "G_w", "choice": {law: ...}, "verify":
     {law: ...}, "reference" (None when measure_only), "gains": {law: gains written}, "extra":
-    {law: settings written with them}, "theta_hat0_written": θ̂(0) (6,) of the written config
-    (the measured θ5, θ6 when measured: :func:`measure_input_nonlinearity`)}.
+    {law: settings written with them}}.
 
     Raises:
         AutotuneError: the measurement faulted or tripped its guard, or no law could be tuned.
     """
     sec = loaded.axes[axis].controller
     ts = loaded.period_s
-    meas = _measured(measure_frf(loaded, raw, axis, clock, progress, periods), axis)
+    meas = measure_frf(loaded, raw, axis, clock, progress, periods)
+    if meas["fault"] or meas["tripped"] or "G" not in meas:
+        why = meas["fault"] or ("the excitation guard fired (|e| reached "
+                                f"{meas['guard_m'] * 1e6:.0f} um)" if meas["tripped"] else "too short")
+        raise AutotuneError(f"axis {axis}: the measurement stopped: {why}")
     model = fit_plant(meas["f_hz"], meas["G"], meas["coherence"], ts, sec.theta_hat0, meas.get("u_cov"))
-    th = np.asarray(sec.theta_hat0, dtype=float)
-    if not any(th[4:6]):
-        measure_input_nonlinearity(loaded, raw, axis, meas, model, clock, progress, periods)
-    fric = measure_friction(loaded, raw, axis, model["theta1"], clock, progress,
-                            (model["theta5"], model["theta6"]) if "theta5" in model else None)
+    fric = measure_friction(loaded, raw, axis, model["theta1"], clock, progress)
     if fric["fault"] or "theta2" not in fric:
         raise AutotuneError(f"axis {axis}: the friction passes stopped: {fric['fault'] or 'too short'}")
     meas["friction"] = fric
@@ -183,9 +178,7 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
                  f"{fric['theta3']:.4g} +- {sg['theta3']:.2g} V, theta4 {fric['theta4']:.4g} +- "
                  f"{sg['theta4']:.2g} V from {len(fric['passes'])} constant-velocity passes "
                  f"({fric['duration_s']:.1f} s)")
-        kappa = (f"input nonlinearity's gain {model['input_gain']:.3f} "
-                 + ("measured at two amplitudes and " if "theta5" in model else "") + "taken out"
-                 if model["input_gain"] != 1.0
+        kappa = (f"input nonlinearity's gain {model['input_gain']:.3f} taken out" if model["input_gain"] != 1.0
                  else "no input nonlinearity declared in theta_hat0: its gain at this amplitude is in it")
         progress(f"fit {axis}: theta1 {model['theta1']:.4g} +- {sg['theta1']:.2g} V s^2/m ({kappa}; theta_hat1(0) "
                  f"{sec.theta_hat0[0]:.4g}), theta2 (multisine) {model['theta2_frf']:.3g} +- "
@@ -195,18 +188,15 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
                  f"{sg['current_loop_hz']:.2g} Hz, delay {model['delay_s'] * 1e6:.1f} +- {sg['delay_s'] * 1e6:.2g} us "
                  f"(+- one standard deviation of the fit)")
     w, G_fit, G_w = loop_frf(meas, model, ts, periods)
-    written = _theta_hat0_written(sec, model)
+    th = np.asarray(sec.theta_hat0, dtype=float)
     fitted = th.copy()              # θ1 from the FRF, θ2..θ4 (viscous, Coulomb, offset) from the
-    fitted[0] = model["theta1"]     # passes, θ5, θ6 (force curve) as configured or measured
+    fitted[0] = model["theta1"]     # passes, θ5, θ6 (force curve) as configured
     fitted[1:4] = model["theta2"], model["theta3"], model["theta4"]
-    fitted[4:6] = written[4:6]
     done = {"axis": axis, "measure": meas, "model": model, "theta_hat0": th.tolist(), "w": w,
             "G_fit": G_fit, "G_w": G_w, "choice": {}, "verify": {}, "reference": None,
-            "gains": {}, "extra": {}, "ts": ts, "section": sec, "rule": rule,
-            "theta_hat0_written": written}
+            "gains": {}, "extra": {}, "ts": ts, "section": sec, "rule": rule}
     if measure_only:
         return done
-    raw_v = with_theta_hat0(raw, [done])      # the laws run (and are written) with the measured θ5, θ6
     period = loaded.axes[axis].trajectory.period_s
     vs = verify_s if verify_s is not None else max(2.0 * period, 1.0)
     ref = evaluate(raw, str(loaded.path), axis, sec.type, vs, clock)
@@ -231,91 +221,13 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
                      f"{ch_['u_rest_pred_V'] * 1e3:.0f} mV predicted ({ch_['candidates']} passed "
                      f"in {len(ch_['admissible'])} shapes)")
         extra[law] = controller_class(law).model_settings(fitted) or None
-        ver[law] = verify(raw_v, str(loaded.path), axis, law, ch_, vs, clock, ref, extra[law], progress,
+        ver[law] = verify(raw, str(loaded.path), axis, law, ch_, vs, clock, ref, extra[law], progress,
                           search_runs, full_s, full_ref)
         if ver[law]["gains"] is not None:
             gains[law] = ver[law]["gains"]
     if not choice or all(c is None for c in choice.values()):
         raise AutotuneError(f"axis {axis}: no gains of any law meet the rule on the measured response")
     return done | {"choice": choice, "verify": ver, "reference": ref, "gains": gains, "extra": extra}
-
-
-def _measured(meas: dict, axis: str) -> dict:
-    """``meas`` (:func:`measure_frf`'s) when it holds a response.
-
-    Raises:
-        AutotuneError: the measurement faulted, tripped its guard or was too short."""
-    if meas["fault"] or meas["tripped"] or "G" not in meas:
-        why = meas["fault"] or ("the excitation guard fired (|e| reached "
-                                f"{meas['guard_m'] * 1e6:.0f} um)" if meas["tripped"] else "too short")
-        raise AutotuneError(f"axis {axis}: the measurement stopped: {why}")
-    return meas
-
-
-def measure_input_nonlinearity(loaded: LoadedConfig, raw: dict, axis: str, meas: dict, model: dict,
-                               clock: str = "virtual", progress=None, periods: int = PERIODS) -> dict:
-    """The input nonlinearity θ5, θ6 of eq. 9 for an axis whose θ̂(0) declares none: the
-    response measured again at :data:`NL_SCALE` of the multisine's amplitude over
-    min(``periods``, :data:`NL_PERIODS`) periods (:func:`measure_frf`: the same pass inside the
-    soft limits, the same guard), θ1 fitted on it (:func:`fit_plant`, κ = 1), and θ1, θ5, θ6
-    from the two θ1 and the two runs' u covariances
-    (:func:`motorctl.commission.fit.input_nonlinearity`: Bussgang's gain κ(A); two amplitudes
-    do not tell θ5 from θ6, their midpoint is stated with the model error between the two
-    one-term fits in its σ).
-
-    Updates ``model`` (:func:`fit_plant`'s, κ = 1) in place: "theta1" and its σ the combined
-    fit's, "theta2" and its σ × κ, "input_gain" κ = θ1/θ1_measured at the full amplitude,
-    "theta5" [1/V], "theta6" [1/V²] and their σ, "input_nonlinearity" (the fit's dict with
-    "low_measure": the second run's excitation, stroke and e_max). Returns ``model``.
-
-    Raises:
-        AutotuneError: the second measurement stopped (fault, guard). OSError: the driver.
-    """
-    low = _measured(measure_frf(loaded, raw, axis, clock, progress, min(periods, NL_PERIODS), NL_SCALE), axis)
-    th0 = loaded.axes[axis].controller.theta_hat0
-    low_fit = fit_plant(low["f_hz"], low["G"], low["coherence"], loaded.period_s, th0, None)
-    nl = input_nonlinearity([model["theta1"], low_fit["theta1"]],
-                            [model["sigma"]["theta1"], low_fit["sigma"]["theta1"]],
-                            [meas["u_cov"], low["u_cov"]])
-    nl["low_measure"] = {k: low[k] for k in ("excitation_rms_V", "excitation_peak_V", "e_max_m", "stroke_m")}
-    kappa = nl["theta1"] / model["theta1"]
-    model["theta2"] *= kappa
-    model["sigma"]["theta2"] *= kappa
-    model.update(theta1=nl["theta1"], theta5=nl["theta5"], theta6=nl["theta6"], input_gain=kappa,
-                 input_nonlinearity=nl)
-    model["sigma"].update(nl["sigma"])
-    if progress:
-        u = nl["u_rms_V"]
-        progress(f"fit {axis}: input nonlinearity from theta1 {nl['theta1_measured'][0]:.4g} and "
-                 f"{nl['theta1_measured'][1]:.4g} V s^2/m at u {u[0]:.2f} and {u[1]:.2f} V RMS: theta5 "
-                 f"{nl['theta5']:.3g} +- {nl['sigma']['theta5']:.2g} /V, theta6 {nl['theta6']:.3g} +- "
-                 f"{nl['sigma']['theta6']:.2g} /V^2, theta1 {nl['theta1']:.4g} +- {nl['sigma']['theta1']:.2g} "
-                 + ("(theta6 resolved)" if nl["theta6_identified"] else
-                    "(two amplitudes do not tell theta5 from theta6: the midpoint of the fits with "
-                    f"theta6 = 0 and theta5 = 0, their half-difference, {nl['model_error']['theta1']:.2g} "
-                    "on theta1, in each +-)"))
-    return model
-
-
-def _theta_hat0_written(sec, model: dict) -> list:
-    """θ̂(0) (6,) of the autotuned config: the section's, with the measured θ5, θ6 of
-    ``model`` (when measured) clipped to [theta_min, theta_max]."""
-    th = [float(x) for x in sec.theta_hat0]
-    if "theta5" in model:
-        for i, k in ((4, "theta5"), (5, "theta6")):
-            th[i] = min(max(model[k], float(sec.theta_min[i])), float(sec.theta_max[i]))
-    return th
-
-
-def with_theta_hat0(raw: dict, results: list) -> dict:
-    """A copy of the config dict with each result's "theta_hat0_written" (:func:`autotune`)
-    as its axis's ``controller.theta_hat0`` where it differs from the configured one."""
-    new = copy.deepcopy(raw)
-    for res in results:
-        w = res.get("theta_hat0_written")
-        if w is not None and list(w) != list(res["theta_hat0"]):
-            new["axes"][res["axis"]]["controller"]["theta_hat0"] = [float(x) for x in w]
-    return new
 
 
 def autotune_pairs(loaded: LoadedConfig, raw: dict, results: list, clock: str = "virtual", progress=None,
@@ -357,7 +269,7 @@ def write_config(raw: dict, results: list, source: str, path, pairs: list = ()) 
     Raises:
         ConfigError: the result does not pass the checks (nothing written). OSError.
     """
-    new = with_theta_hat0(raw, results)
+    new = copy.deepcopy(raw)
     lines = [f"# motorctl autotune of {source}: per law, among the gains whose margins on the measured",
              f"# frequency response hold ({(results[0]['rule'] if results else RULE).text()} at 100/75/50 %), "
              f"the least L2[e] of a run",
@@ -391,13 +303,6 @@ def write_config(raw: dict, results: list, source: str, path, pairs: list = ()) 
             if ex:                      # a law's settings from the fitted model (PID: its feedforward)
                 lines.append(f"#     from the fitted theta1 {mdl['theta1']:.4g}, theta2 {mdl['theta2']:.4g}, theta4 "
                              f"{mdl['theta4']:.4g}: " + ", ".join(f"{k} {float(x):.4g}" for k, x in ex.items()))
-        if "theta5" in mdl:
-            nl = mdl["input_nonlinearity"]
-            lines.append(f"#   input nonlinearity (multisine at u {nl['u_rms_V'][0]:.2f} and {nl['u_rms_V'][1]:.2f} V RMS): "
-                         f"theta5 {mdl['theta5']:.3g} +- {sg['theta5']:.2g} /V, theta6 {mdl['theta6']:.3g} +- "
-                         f"{sg['theta6']:.2g} /V^2" + ("" if nl["theta6_identified"] else
-                                                        " (not told apart: the midpoint)")
-                         + f"; theta_hat0 {[round(x, 6) for x in res['theta_hat0_written']]}")
     from motorctl.commission.gtcf_tune import apply_pair, comment_lines
     for tp in pairs:
         new = apply_pair(new, tp)

@@ -44,87 +44,6 @@ def input_gain(theta_hat0, u_cov: dict | None) -> float:
     return float(1.0 + (th[4] * u_cov["abs2"] + th[5] * u_cov["cube"]) / u_cov["var"])
 
 
-def _wls(X: np.ndarray, y: np.ndarray, sy: np.ndarray):
-    """(p (n,), Cov (n, n)) of y ≈ X p, X (K, n), by least squares weighted with the known
-    standard deviations sy (K,) of y: Cov = (XᵀWX)⁺, W = diag(1/sy²) (not scaled by the
-    residual: with K = n there is none)."""
-    A = X / sy[:, None]
-    p = np.linalg.lstsq(A, y / sy, rcond=None)[0]
-    return p, np.linalg.pinv(A.T @ A)
-
-
-def input_nonlinearity(theta1_meas, sigma1, u_covs) -> dict:
-    """θ1 = M/A1 and the input nonlinearity θ5, θ6 of eq. 9 from θ1 fitted (by :func:`fit_plant`,
-    κ = 1) at K ≥ 2 multisine amplitudes. Each sees θ1_meas(A) = θ1/κ(A; θ5, θ6), κ the best
-    linear gain of :func:`input_gain` over that run's u (Bussgang 1952; Pintelon & Schoukens,
-    System Identification, 2012, ch. 3), so 1/θ1_meas = 1/θ1 + (θ5/θ1) x5 + (θ6/θ1) x6 with
-    x5 = cov(u|u|, u)/var(u) [V], x6 = cov(u³, u)/var(u) [V²]: linear in (1/θ1, θ5/θ1, θ6/θ1),
-    fitted by weighted least squares (σ of 1/θ1_meas = σ1/θ1_meas²), θ's σ by the delta method.
-
-    Two amplitudes give two equations: θ5 and θ6 are not told apart (x5 ∝ A, x6 ∝ A² for a
-    Gaussian u, both grow with A). Two one-term models fit the record exactly: "theta5" (θ6 =
-    0) and "theta6" (θ5 = 0); every mixture on the line between them fits it as well, and θ1
-    moves with it (X of configs/gantry.yaml, seed 1, at 2.2 and 1.1 V RMS: 0.1567 and 0.1614
-    either side of M/A1 = 0.16). The values stated are the two fits' midpoint, each with
-    σ = sqrt(s² + b²): b = half their difference (the model error the record cannot resolve, as
-    identify's Hausman-type term, docs/identification.md "Uncertainty"), s = the mean of their
-    sampling σ (the σ of a mean of two fits of the same data, at most). With K ≥ 3 the
-    three-term fit is stated instead where it resolves θ6 (its 95 % interval of θ6 narrower than
-    the bracket's range of θ6; on X with 1, 0.5, 0.25 of the amplitude over 32 periods each it
-    did not: σ(θ6) 0.0017 /V² against the truth's 0.0015).
-
-    Args:
-        theta1_meas (K,) [V s²/m]: fit_plant's θ1 with κ = 1, one per amplitude.
-        sigma1 (K,) [V s²/m]: their σ. u_covs: K of measure_frf's "u_cov" ({"var" [V²],
-        "abs2" [V³], "cube" [V⁴]}).
-    Returns:
-        {"theta1" [V s²/m], "theta5" [1/V], "theta6" [1/V²], "sigma": {same keys: σ},
-        "sampling": {same keys: s}, "model_error": {same keys: b}, "theta6_identified": bool,
-        "fits": {"theta5": (θ1, θ5, θ6) of the θ6 = 0 fit, "theta6": that of θ5 = 0, "both":
-        the three-term fit's or None}, "u_rms_V" (K,), "theta1_measured" (K,)}.
-    Raises:
-        ValueError: fewer than 2 amplitudes, a var(u) ≤ 0 or a θ1 ≤ 0.
-    """
-    t = np.asarray(theta1_meas, dtype=float)
-    s1 = np.asarray(sigma1, dtype=float)
-    if t.size < 2 or len(u_covs) != t.size or np.any(t <= 0.0):
-        raise ValueError(f"input_nonlinearity: needs >= 2 amplitudes with theta1 > 0, got {t.tolist()}")
-    var = np.array([c["var"] for c in u_covs], dtype=float)
-    if np.any(var <= 0.0):
-        raise ValueError("input_nonlinearity: var(u) <= 0 in a run")
-    X = np.column_stack([np.ones(t.size), [c["abs2"] for c in u_covs] / var,
-                         [c["cube"] for c in u_covs] / var])
-    y, sy = 1.0 / t, np.maximum(s1, 1e-12 * t) / t ** 2
-    keys = ("theta1", "theta5", "theta6")
-
-    def fit(cols):
-        p, C = _wls(X[:, cols], y, sy)
-        full, cov = np.zeros(3), np.zeros((3, 3))
-        full[cols] = p
-        cov[np.ix_(cols, cols)] = C
-        a = full[0]                          # θ = (1/a, b/a, c/a); its Jacobian in (a, b, c)
-        J = np.array([[-1.0 / a ** 2, 0.0, 0.0], [-full[1] / a ** 2, 1.0 / a, 0.0],
-                      [-full[2] / a ** 2, 0.0, 1.0 / a]])
-        return np.array([1.0 / a, full[1] / a, full[2] / a]), np.sqrt(np.maximum(np.diag(J @ cov @ J.T), 0.0))
-
-    (v5, s5), (v6, s6) = fit([0, 1]), fit([0, 2])
-    val, samp, err = 0.5 * (v5 + v6), 0.5 * (s5 + s6), 0.5 * np.abs(v5 - v6)
-    sig = np.hypot(samp, err)
-    both = fit([0, 1, 2]) if t.size >= 3 else None
-    # resolved: its 95 % interval of θ6 narrower than the range the bracket leaves, [θ6 of θ5 = 0, 0]
-    identified = both is not None and 2.0 * 1.96 * both[1][2] < abs(v6[2])
-    if identified:
-        val, samp, err, sig = both[0], both[1], np.zeros(3), both[1]
-    return {**{k: float(v) for k, v in zip(keys, val)},
-            "sigma": {k: float(v) for k, v in zip(keys, sig)},
-            "sampling": {k: float(v) for k, v in zip(keys, samp)},
-            "model_error": {k: float(v) for k, v in zip(keys, err)},
-            "theta6_identified": bool(identified),
-            "fits": {"theta5": v5.tolist(), "theta6": v6.tolist(),
-                     "both": None if both is None else both[0].tolist()},
-            "u_rms_V": np.sqrt(var).tolist(), "theta1_measured": t.tolist()}
-
-
 def fit_plant(f: np.ndarray, G: np.ndarray, coh: np.ndarray, ts: float, theta_hat0,
               u_cov: dict | None = None) -> dict:
     """Step 2 (module docstring). Returns the fitted model (:data:`motorctl.commission.loopshape.MODEL_KEYS`) plus "cost",
@@ -212,9 +131,7 @@ def fit_plant(f: np.ndarray, G: np.ndarray, coh: np.ndarray, ts: float, theta_ha
 #: seeds that agreed within σ: 31σ; the cause was the input nonlinearity's linear gain κ =
 #: 0.931 at the multisine's 2.2 V RMS, now taken out by :func:`input_gain`.)
 SIGMA_SCOPE = ("sigma from the fit's residual: the spread of repeated measurements, not a bias of the "
-               "model (theta1, theta2 are corrected for the input nonlinearity's gain, input_gain; where "
-               "theta5, theta6 were measured at two amplitudes, theta1's sigma also holds the model error "
-               "between the fits with theta6 = 0 and theta5 = 0: input_nonlinearity)")
+               "model (theta1, theta2 are corrected for the input nonlinearity's gain, input_gain)")
 
 
 def _sigma(sol, params: dict) -> dict:

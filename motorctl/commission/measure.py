@@ -182,11 +182,9 @@ def _held(loaded2: LoadedConfig, axis: str, clock: str, capacity: int):
 
 
 def measure_frf(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
-                progress=None, periods: int = PERIODS, scale: float = 1.0) -> dict:
+                progress=None, periods: int = PERIODS) -> dict:
     """Step 1 (module docstring) on the config's driver; ``periods`` measured periods (even:
-    ``periods``/2 realisations of two periods, the first of each its transient); ``scale``
-    (0, 1]: the multisine's amplitude as a share of :func:`multisine`'s (a lower amplitude
-    stays within its limits; the pass is the same, inside the soft limits).
+    ``periods``/2 realisations of two periods, the first of each its transient).
 
     Returns:
         {"f_hz" (L,), "G" (L,) complex [m/V], "coherence" (L,), "coherence_u" (L,),
@@ -196,8 +194,7 @@ def measure_frf(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtua
         "soft_limits_m", "fault" ('' when none), "tripped" (the excitation guard fired),
         "pass": (x_a, x_b, v)}.
     Raises:
-        AutotuneError: no soft limits. ValueError: ``scale`` outside (0, 1]. OSError: the
-        driver cannot reach its device.
+        AutotuneError: no soft limits. OSError: the driver cannot reach its device.
     """
     sec = loaded.axes[axis].controller
     lim = loaded.axes[axis].limits
@@ -207,10 +204,7 @@ def measure_frf(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtua
     raw["axes"][axis]["controller"]["pid"] = hold_gains(sec.theta_hat0)
     raw["axes"][axis]["controller"]["type"] = "pid"
     fe_min = min(lim.min_following_error_m, lim.following_error_m)
-    if not 0.0 < scale <= 1.0:
-        raise ValueError(f"scale {scale!r}: allowed (0, 1]")
     r, lines = multisine(ts, float(sec.theta_hat0[0]), sec.u_lim, fe_min, periods // 2 + 1, 2)
-    r *= scale
     n_per = int(round(PERIOD_S / ts))
     r[:n_per] *= np.linspace(0.0, 1.0, n_per, endpoint=False)     # amplitude ramp
     r1 = r[n_per:]
@@ -306,7 +300,7 @@ def friction_plan(loaded: LoadedConfig, axis: str):
 
 
 def measure_friction(loaded: LoadedConfig, raw: dict, axis: str, theta1: float, clock: str = "virtual",
-                     progress=None, theta56=None) -> dict:
+                     progress=None) -> dict:
     """The friction of the axis from constant-velocity passes: steady-state force against speed
     (paper eq. 4 at ẍ ≈ 0: u + θ5 u|u| + θ6 u³ = θ1 ẍ + θ2 ẋ + θ3 S_f(ẋ) − θ4), the standard
     test of a servo axis's friction (Armstrong-Hélouvry, Dupont, Canudas de Wit, "A survey of
@@ -318,15 +312,13 @@ def measure_friction(loaded: LoadedConfig, raw: dict, axis: str, theta1: float, 
     :func:`friction_plan` (jerk-limited moves, all between x_a and x_b: inside the soft limits,
     the supervisor's following-error and limit checks armed). On each pass's cruise, from
     :data:`FRICTION_SKIP_S` after it starts to 50 ms before it ends, the mean of u (θ5, θ6 of the
-    section's θ̂(0) or ``theta56``: the force curve of eq. 3) and the velocity and acceleration of a parabola
+    section's θ̂(0): the force curve of eq. 3) and the velocity and acceleration of a parabola
     fitted to y give one row of :func:`motorctl.model.idim_regressor`; θ1 ẍ is taken off with
     the fitted θ1 and (θ2, θ3, θ4) fitted to the rows by linear least squares, with the
     standard deviation of each from the residual variance (σ² (AᵀA)⁻¹).
 
     Args:
-        theta1: fitted M/A1 [V s²/m]. clock: 'virtual' | 'wall'. theta56: (θ5 [1/V], θ6 [1/V²])
-        of the force curve (measured: :func:`motorctl.commission.fit.input_nonlinearity`);
-        None: the section's θ̂(0).
+        theta1: fitted M/A1 [V s²/m]. clock: 'virtual' | 'wall'.
     Returns:
         {"theta2" [V s/m], "theta3" [V], "theta4" [V], "sigma": {same keys}, "passes": [(v [m/s],
         u [V]) per pass], "duration_s" (the passes' time on the machine), "fault" ('' when
@@ -341,8 +333,6 @@ def measure_friction(loaded: LoadedConfig, raw: dict, axis: str, theta1: float, 
     tb, ts = loaded.timebase, loaded.period_s
     th = np.asarray(sec.theta_hat0, dtype=float).copy()
     th[0] = theta1
-    if theta56 is not None:
-        th[4:6] = theta56
     raw = copy.deepcopy(raw)
     raw["axes"][axis]["controller"]["pid"] = hold_gains(th)
     raw["axes"][axis]["controller"]["type"] = "pid"

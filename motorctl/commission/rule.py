@@ -74,11 +74,6 @@ GUARD_SHARE = 0.5        #: |e| ≥ this share of the smallest FE limit switches
 STROKE_MARGIN = 0.1      #: the pass keeps this share of the stroke from each soft limit
 REST_S = 0.6             #: rest at the start of the pass (encoder noise at rest) [s]
 PERIODS = 32             #: measured multisine periods (after one ramp and one settling period)
-#: an axis whose θ̂(0) declares no input nonlinearity (θ5 = θ6 = 0) is measured again at this share
-#: of the multisine's amplitude, over at most NL_PERIODS periods: θ1's change with the amplitude
-#: measures the force curve (:func:`motorctl.commission.fit.input_nonlinearity`)
-NL_SCALE = 0.5
-NL_PERIODS = 8
 #: the constant-velocity passes of the friction fit: speeds as shares of the top speed, each
 #: one pass up and one down the stroke (steady-state force against speed, both directions)
 FRICTION_SPEEDS = (1.0 / 3.0, 2.0 / 3.0, 1.0)
