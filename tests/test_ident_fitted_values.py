@@ -75,6 +75,26 @@ def test_held_offset_refuses_a_record_that_cannot_tell(case):
     assert held_offset(p, theta3=20.0 / A1) is None
 
 
+def test_other_input_takes_a_term_whose_harmonics_the_selection_cut():
+    """The other effects' input at each sample (:func:`other_input`) of a cogging term whose
+    second harmonic the selection cut (its β one sin/cos pair, its family's columns two pairs):
+    the first pair's columns times β, as the simulation fit takes it (``EffectFamily.fitted``)."""
+    from motorctl.effects import family
+    from motorctl.effects.asymmetric_friction import other_input
+    from motorctl.effects.base import Signals
+    from motorctl.ident.select import Term
+    x = np.linspace(0.0, 0.4, 2001)
+    p = Signals(x, np.full_like(x, 0.1), np.zeros_like(x), np.zeros_like(x), x / 0.1, None)
+    cog = family("cogging")
+    full = cog.columns(0.032, p)
+    assert full.shape[1] > 2                       # the family's columns hold more than one pair
+    beta = np.array([0.05, -0.02])
+    terms = [Term("cogging", 0.032, np.zeros((10, 2))), Term("asymmetric_friction", None, np.zeros((10, 2)))]
+    ctx = SimpleNamespace(terms=terms, final=object(), p=p,
+                          coef_split=lambda ev, ts: (None, [beta, np.array([0.1, 0.2])]))
+    np.testing.assert_allclose(other_input(ctx, "asymmetric_friction"), full[:, :2] @ beta, rtol=1e-12)
+
+
 def test_asymmetric_friction_coulomb_part_takes_the_held_offset():
     fam = FAMILIES["asymmetric_friction"]
     beta = np.array([7.64, 0.0]) / A1

@@ -141,10 +141,9 @@ def other_input(ctx, name: str) -> np.ndarray | None:
         fam = family(t.family)
         if t.family == name or t.cols is None or fam.other_weight(t) is not None:
             continue
-        cols = fam.columns(t.h, ctx.p)
-        if cols is None:
+        f = fam.fitted(t.h, ctx.p, b)
+        if f is None:
             continue
-        f = np.asarray(cols, dtype=float).reshape(len(ctx.p.u), -1) @ np.asarray(b, dtype=float)
         out = f if out is None else out + f
     return out
 

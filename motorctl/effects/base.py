@@ -451,6 +451,18 @@ class EffectFamily:
         ``p`` (:class:`Signals` or a prepared record); None when the family adds no columns."""
         raise NotImplementedError(f"effect family {self.name!r} has no regressor columns")
 
+    def fitted(self, h, p, beta) -> np.ndarray | None:
+        """The term's value C(h) β (N,) [input units] on the signals of ``p`` with a fit's
+        coefficients ``beta`` (k',); the columns cut to the first k' (a selection that keeps
+        fewer harmonics than :meth:`columns` gives holds the first ones' coefficients only).
+        None when the family adds no columns."""
+        cols = self.columns(h, p)
+        if cols is None:
+            return None
+        b = np.asarray(beta, dtype=float)
+        c = np.asarray(cols, dtype=float).reshape(len(cols), -1)
+        return c[:, :len(b)] @ b
+
     def search(self, ctx: SearchContext, base: list, residual: np.ndarray):
         """The best term of this family given the already selected ``base`` terms.
 

@@ -78,10 +78,7 @@ def simulation_fit(idf, terms: list, ev, window_s: float = 0.2) -> float | None:
             val = phi @ th
             q = Signals(x, v, a_val, uk, p.t[idx], fu)
             for fam, t, b in forces:
-                c = fam.columns(t.h, q)
-                if c.ndim == 2 and c.shape[1] > len(b):      # harmonics cut (select._prune_harmonics)
-                    c = c[:, :len(b)]
-                val = val + c @ b
+                val = val + fam.fitted(t.h, q, b)      # harmonics cut: select._prune_harmonics
             rest_cols.append(val)
         m_eff = rest_cols[1] - rest_cols[0]
         acc = (uk - rest_cols[0]) / np.where(np.abs(m_eff) > 1e-12, m_eff, 1e-12)
