@@ -384,11 +384,11 @@ class PathTrajectory(Trajectory):
             # the path speed sd, delta faded in over a fraction fi of the arc at its start and out
             # over fo at its end (0: no fade there, the next arc is the same circle; inf: none)
             sdd = np.where(tau < ta, acc, np.where((tau > ta + tc) & ~done, -acc, 0.0))
-            ri = np.where(fi > 0, f / np.where(fi > 0, fi, 1.0), np.inf)
-            ro = np.where(fo > 0, (1.0 - f) / np.where(fo > 0, fo, 1.0), np.inf)
+            fi1, fo1 = np.where(fi > 0, fi, 1.0), np.where(fo > 0, fo, 1.0)
+            ri = np.where(fi > 0, f / fi1, np.inf)
+            ro = np.where(fo > 0, (1.0 - f) / fo1, np.inf)
             wr = np.clip(np.minimum(ri, ro), 0.0, 1.0)
-            dw = np.where((wr > 0) & (wr < 1), np.where(ri < ro, 1.0 / np.where(fi > 0, fi, 1.0),
-                                                        -1.0 / np.where(fo > 0, fo, 1.0)), 0.0)
+            dw = np.where((wr > 0) & (wr < 1), np.where(ri < ro, 1.0 / fi1, -1.0 / fo1), 0.0)
             rs = np.where(r > 0, r, 1.0)
             g, dg = self._shrink(sd / rs)
             delta = np.where(arc, r * g * wr, 0.0)
