@@ -55,7 +55,11 @@ def test_autotune_fits_the_default_plant(repo, default_plant, axis):
         assert abs(model["theta1"] / (plant["mass_kg"] / plant["a1_N_per_V"]) - 1.0) < 0.02
         assert 0.85 < model["input_gain"] < 0.99
     else:
+        # none declared (X): θ1 is M/(A1 κ) at the multisine's amplitude, and M/A1 is stated
+        # as a range (κ over the bounds of θ5, θ6, ± 2σ) that holds the plant's
         assert model["input_gain"] == 1.0
+        lo, hi = model["theta1_small_signal_range"]
+        assert lo <= plant["mass_kg"] / plant["a1_N_per_V"] <= hi < 1.02 * model["theta1"]
     assert abs(model["mode_hz"] / plant["mode_hz"] - 1.0) < 0.10
     assert abs(model["current_loop_hz"] / plant["current_loop_hz"] - 1.0) < 0.10
 

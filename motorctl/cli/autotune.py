@@ -152,7 +152,11 @@ def cmd_autotune(args) -> int:
     else:
         for a, s in summary.items():
             m = s["model"]
-            print(f"{a}: fitted theta1 = M/A1 {m['theta1']:.4g} V s^2/m (theta_hat1(0) {s['theta_hat0'][0]:.4g}), "
+            rng = m.get("theta1_small_signal_range")
+            print(f"{a}: fitted theta1 = " + ("M/(A1 kappa) at the multisine's amplitude " if rng else "M/A1 ")
+                  + f"{m['theta1']:.4g} V s^2/m " + (f"(M/A1 within [{rng[0]:.4g}, {rng[1]:.4g}] for theta5, "
+                                                     "theta6 within the bounds) " if rng else "")
+                  + f"(theta_hat1(0) {s['theta_hat0'][0]:.4g}), "
                   f"mode {m['mode_hz']:.1f} Hz, current loop {m['current_loop_hz']:.0f} Hz, delay "
                   f"{m['delay_s'] * 1e6:.1f} us")
             for law, mg in s["margins"].items():

@@ -130,7 +130,7 @@ import yaml
 
 from motorctl.commission.choose import choose_gains, family_zetas, loop_frf, tunable_laws
 from motorctl.commission.evaluate import evaluate
-from motorctl.commission.fit import fit_plant
+from motorctl.commission.fit import fit_plant, input_gain_range
 from motorctl.commission.loopshape import c_frf, loop_margins
 from motorctl.commission.measure import measure_friction, measure_frf
 from motorctl.commission.rule import (COH_USED, FULL_PERIODS, PERIODS, REST_FACTOR, RULE, SAT_FACTOR, SAT_FLOOR_SHARE,
@@ -163,6 +163,13 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
                                 f"{meas['guard_m'] * 1e6:.0f} um)" if meas["tripped"] else "too short")
         raise AutotuneError(f"axis {axis}: the measurement stopped: {why}")
     model = fit_plant(meas["f_hz"], meas["G"], meas["coherence"], ts, sec.theta_hat0, meas.get("u_cov"))
+    if model["input_gain"] == 1.0 and meas.get("u_cov"):
+        # θ̂(0) declares no input nonlinearity: θ1 is M/(A1 κ) at the multisine's amplitude,
+        # κ unknown; M/A1 is known only within κ's range over the bounds of θ5, θ6 (± 2σ)
+        k_lo, k_hi = input_gain_range(sec.theta_min, sec.theta_max, meas["u_cov"])
+        t1, s1 = model["theta1"], model["sigma"]["theta1"]
+        model["input_gain_range"] = [k_lo, k_hi]
+        model["theta1_small_signal_range"] = [(t1 - 2.0 * s1) * k_lo, (t1 + 2.0 * s1) * k_hi]
     fric = measure_friction(loaded, raw, axis, model["theta1"], clock, progress)
     if fric["fault"] or "theta2" not in fric:
         raise AutotuneError(f"axis {axis}: the friction passes stopped: {fric['fault'] or 'too short'}")
@@ -179,7 +186,10 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
                  f"{sg['theta4']:.2g} V from {len(fric['passes'])} constant-velocity passes "
                  f"({fric['duration_s']:.1f} s)")
         kappa = (f"input nonlinearity's gain {model['input_gain']:.3f} taken out" if model["input_gain"] != 1.0
-                 else "no input nonlinearity declared in theta_hat0: its gain at this amplitude is in it")
+                 else "no input nonlinearity declared in theta_hat0: its gain at this amplitude is in it"
+                 + (f"; M/A1 within [{model['theta1_small_signal_range'][0]:.4g}, "
+                    f"{model['theta1_small_signal_range'][1]:.4g}] for theta5, theta6 within the bounds, "
+                    "one amplitude cannot tell them" if "theta1_small_signal_range" in model else ""))
         progress(f"fit {axis}: theta1 {model['theta1']:.4g} +- {sg['theta1']:.2g} V s^2/m ({kappa}; theta_hat1(0) "
                  f"{sec.theta_hat0[0]:.4g}), theta2 (multisine) {model['theta2_frf']:.3g} +- "
                  f"{sg['theta2_frf']:.2g} V s/m, mode "
@@ -280,7 +290,12 @@ def write_config(raw: dict, results: list, source: str, path, pairs: list = ()) 
     for res in results:
         a, mdl = res["axis"], res["model"]
         sg = mdl["sigma"]
-        lines.append(f"# axis {a}: fitted theta1 = M/A1 {mdl['theta1']:.4g} +- {sg['theta1']:.2g} V s^2/m "
+        rng = mdl.get("theta1_small_signal_range")
+        lines.append(f"# axis {a}: fitted theta1 = " + ("M/(A1 kappa) at the multisine's amplitude "
+                                                       if rng else "M/A1 ") +
+                     f"{mdl['theta1']:.4g} +- {sg['theta1']:.2g} V s^2/m "
+                     + (f"(M/A1 within [{rng[0]:.4g}, {rng[1]:.4g}] for theta5, theta6 within the bounds) "
+                        if rng else "") +
                      f"(config theta_hat1(0) {res['theta_hat0'][0]:.4g}; multisine), mode "
                      f"{mdl['mode_hz']:.1f} Hz (zeta {mdl['mode_damping']:.3f}, load "
                      f"{mdl['load_fraction']:.2f}), current loop {mdl['current_loop_hz']:.0f} Hz, delay "
