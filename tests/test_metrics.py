@@ -107,7 +107,9 @@ def test_metrics_parse_and_agree_with_status(daemon):
     assert m[("motorctl_recorder_lag_seconds",)] == pytest.approx(lag / st["loop"]["rate_hz"])
 
     # the turnaround histogram: cumulative, +Inf = count = the cycles drained (<= published);
-    # its p50 bucket brackets status's turnaround_p50_us
+    # status's turnaround_p50_us (read after the scrape, over N >= n cycles) lies in the buckets
+    # of the scrape's quantiles (0.5 N - (N - n)) / n and 0.5 N / n: the p50 of N samples, n of
+    # them the scrape's, whatever the other N - n were
     h = sorted(((float(dict(k[1:])["le"]), v) for k, v in m.items()
                 if k[0] == "motorctl_loop_turnaround_seconds_bucket"))
     assert h[-1][0] == float("inf") and len(h) >= 10
@@ -117,10 +119,12 @@ def test_metrics_parse_and_agree_with_status(daemon):
     assert counts[-1] == n and 0 < n <= cycles
     mean = m[("motorctl_loop_turnaround_seconds_sum",)] / n
     assert 0 < mean < 1.0 / st["loop"]["rate_hz"] * 10
-    p50 = st["loop"]["turnaround_p50_us"] * 1e-6
-    first_le = next(le for le, c in h if c >= 0.5 * n)
-    below = [le for le, _ in h if le < first_le]
-    assert p50 <= first_le * (1 + 1e-9) and (not below or p50 > below[-1] * 0.9)
+    p50, n_st = st["loop"]["turnaround_p50_us"] * 1e-6, st["loop"]["cycles"]
+    assert n <= n_st
+    hi_le = next(le for le, c in h if c >= 0.5 * n_st)
+    lo_le = next(le for le, c in h if c >= 0.5 * n_st - (n_st - n))
+    below = [le for le, _ in h if le < lo_le]
+    assert p50 <= hi_le * (1 + 1e-9) and (not below or p50 > below[-1] * 0.9)
 
     # per axis: Y tracks (an RMS error below its peak), X faulted (no enabled cycle: NaN)
     rms_y = m[("motorctl_following_error_rms_meters", ("axis", "Y"))]
