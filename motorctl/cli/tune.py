@@ -1,7 +1,7 @@
 """``motorctl tune``: run → identify → tuned config → run again → compare, on the config's driver.
 
     motorctl tune CONFIG --axis A [--duration S] [--out DIR] [--virtual-clock] [--json]
-                  [--no-speed-experiment]
+                  [--no-speed-experiment] [--no-pass-experiment]
 
 1. **before**: the axis's program on CONFIG (:func:`motorctl.app.job.run_job`, the config's
    clock), log ``DIR/before.mclog``;
@@ -38,6 +38,13 @@
    time-periodic disturbance, one whose frequency scales with the speed the force of position
    (``speed_experiments`` in the JSON; skipped with ``--no-speed-experiment``). Nothing of it
    goes into ``tuned.yaml``: it names, it does not compensate.
+8. on the simulated driver, when the before log's identification reports a spring ambiguous
+   with another family (a hold at rest: stiction, a dead-zone, a coarse or noisy encoder's flat
+   reading), **slow passes**: the axis back and forth over 80 % of its stroke at a slow constant
+   speed (:func:`motorctl.commission.tune.pass_experiment`), ``DIR/slow_passes_<k>.mclog``; the
+   input's slope over the position names the spring when it is the fitted stiffness, the other
+   family when it is not there (``pass_experiments`` in the JSON; skipped with
+   ``--no-pass-experiment``). It names, it does not compensate.
 
 The runs are :func:`motorctl.commission.tune.tune`'s; this module parses the arguments and prints.
 
@@ -70,6 +77,9 @@ def register(parser, subparsers) -> None:
     p.add_argument("--no-speed-experiment", action="store_true",
                    help="on a simulated plant, do not run the program again at another speed to tell a "
                         "time-periodic line at a program harmonic from a force of position")
+    p.add_argument("--no-pass-experiment", action="store_true",
+                   help="on a simulated plant, do not run slow constant-velocity passes to tell a spring "
+                        "from a hold at rest")
     p.set_defaults(func=cmd_tune)
 
 
@@ -115,6 +125,9 @@ def text_report(res: dict) -> str:
     for e in res.get("speed_experiments") or []:
         lines.append(f"{e['ambiguous']}: the program at {e['scale']:g} x the speed ({e['log']}): "
                      + (f"named {e['named']}: " if e.get("named") else "") + e["why"])
+    for e in res.get("pass_experiments") or []:
+        lines.append(f"{e['ambiguous']}: slow passes ({e['log']}): "
+                     + (f"named {e['named']}: " if e.get("named") else "") + e["why"])
     return "\n".join(lines) + "\n"
 
 
@@ -125,11 +138,13 @@ def cmd_tune(args) -> int:
         sys.stdout.write(line + "\n")
         sys.stdout.flush()
 
-    from motorctl.commission.tune import speed_experiments, tune
+    from motorctl.commission.tune import pass_experiments, speed_experiments, tune
     res = tune(args.config, args.axis, out, args.duration, "virtual" if args.virtual_clock else None,
                None if args.json else progress)
     res["speed_experiments"] = ([] if args.no_speed_experiment else
                                 speed_experiments(res, None if args.json else progress))
+    res["pass_experiments"] = ([] if args.no_pass_experiment else
+                               pass_experiments(res, None if args.json else progress))
     if args.json:
         from motorctl.ident.pipeline import json_default
         sys.stdout.write(json.dumps(res, default=json_default) + "\n")

@@ -227,7 +227,8 @@ def tune(config: str, axis: str, out_dir: str | Path, duration_s: float | None =
     idf, s = _identify(files["before"], axis)
     comp, _theta, skipped = compensation_from_fit(idf)
     res.update(effects=s["effects"], compensation=comp, not_compensable=skipped,
-               input_saturation=s["input_saturation"], ambiguous=s.get("ambiguous", []))
+               input_saturation=s["input_saturation"], ambiguous=s.get("ambiguous", []),
+               gain_N_per_V=s.get("gain_N_per_V"))
     if not s["effects"]:
         res["stopped"] = "no effect found (no candidate passed held-out gain, BIC and plausibility)"
         return res
@@ -511,5 +512,150 @@ def speed_experiments(res: dict, progress=None) -> list:
     return out
 
 
+# ----------------------------------------------------------- the slow-pass experiment
+#: the spring's family name: a force of the position, told from a hold at rest by slow passes
+SPRING = "spring"
+#: the passes' stroke: this share of the program's stroke, centred on it
+PASS_SPAN = 0.8
+#: the passes' speed: this share of the program's v_max, at most PASS_SPEED_MAX [m/s]
+PASS_SPEED_SHARE, PASS_SPEED_MAX = 0.05, 0.05
+#: passes each way, and the position bins each pass is averaged in
+PASS_COUNT, PASS_BINS = 2, 8
+#: a cruise's first rows left out (the loop settling after the acceleration) [s]
+PASS_SETTLE_S = 0.2
+
+
+def pass_program(cfg: dict, axis: str) -> tuple[dict, float]:
+    """A copy of config dict ``cfg`` whose axis ``axis`` moves back and forth over
+    :data:`PASS_SPAN` of its program's stroke at a slow constant speed (:data:`PASS_SPEED_SHARE`
+    of its v_max, at most :data:`PASS_SPEED_MAX`), its a_max and j_max as configured, 0.5 s at
+    rest at each end. Returns (the config dict, the run's length [s]: :data:`PASS_COUNT` periods).
+    Raises: KeyError: the axis has no ``trajectory``; ValueError: its program holds one position."""
+    import copy
+    from motorctl.loop.trajectory import Move
+    d = copy.deepcopy(cfg)
+    tr = d["axes"][axis]["trajectory"]
+    lo, hi = min(tr["points"]), max(tr["points"])
+    if not hi > lo:
+        raise ValueError(f"axis {axis}: its program holds one position; no stroke to pass over")
+    mid, half = 0.5 * (lo + hi), 0.5 * PASS_SPAN * (hi - lo)
+    v = min(PASS_SPEED_SHARE * float(tr.get("v_max", 1.0)), PASS_SPEED_MAX)
+    a_max, j_max = float(tr.get("a_max", 10.0)), float(tr.get("j_max", 1000.0))
+    move = Move(mid - half, mid + half, v, a_max, j_max).duration
+    tr.update(points=[mid - half, mid + half], move_times_s=[0.5, move + 1.0], period_s=2.0 * move + 1.0,
+              v_max=v)
+    return d, PASS_COUNT * tr["period_s"]
+
+
+def pass_forces(log_path, axis: str, bins: int = PASS_BINS) -> list[dict]:
+    """The input over each constant-velocity stretch of ``axis`` in a run log (ẋ_d at its
+    largest magnitude, after :data:`PASS_SETTLE_S`), averaged in ``bins`` equal position bins
+    of the stretch: [{"x" (the bin's mean position) [m], "direction" (±1), "u" (its mean) [V]}]."""
+    import numpy as np
+    from motorctl.recorder.runlog import read_log
+    log = read_log(str(log_path))
+    prog = log.program_rows(axis)
+    y, v, u, t = log.col(f"{axis}.y"), log.col(f"{axis}.xd_dot"), log.col(f"{axis}.u"), log.col("t")
+    vmax = float(np.max(np.abs(v))) if v.size else 0.0
+    cruise = np.abs(np.abs(v) - vmax) <= 1e-9 * max(vmax, 1e-12)
+    if prog is not None:
+        cruise &= prog
+    out, i, n = [], 0, len(v)
+    while i < n:
+        if not cruise[i]:
+            i += 1
+            continue
+        j = i
+        while j < n and cruise[j] and np.sign(v[j]) == np.sign(v[i]):
+            j += 1
+        k = int(np.searchsorted(t[i:j], t[i] + PASS_SETTLE_S)) + i
+        if j - k >= 4 * bins:
+            for part in np.array_split(np.arange(k, j), bins):
+                out.append({"x": float(np.mean(y[part])), "direction": int(np.sign(v[i])),
+                            "u": float(np.mean(u[part]))})
+        i = j
+    return out
+
+
+def pass_experiment(cfg: dict, axis: str, entry: dict, log_path, gain_N_per_V: float | None,
+                    source: str = "<config>") -> dict:
+    """The experiment that tells a spring from a look-alike at rest (an ambiguity between
+    ``spring`` and another family: stiction, a dead-zone, what a coarse or noisy encoder's flat
+    reading at rest leaves), run on a simulated plant: slow constant-velocity passes both ways
+    (:func:`pass_program`) on the virtual clock, logged to ``log_path``; the input averaged in
+    position bins (:func:`pass_forces`) and fitted by least squares as u = c + a·direction +
+    s·x. In motion at one speed the friction is a constant each way (a, with the viscous part in
+    it) and nothing holds at a band's edge: what changes with the position is s.
+
+    A spring of stiffness k needs u = k/A1·(x − x_0) + const: s near the fitted k/A1 (within 3σ
+    or 30 %) and above 3σ names the spring. s below half of k/A1 and below it by 3σ: not a
+    spring, the other family named. Anything else: not resolved.
+
+    Args: entry: the ambiguity (``families`` holds "spring" and one other; its fits the
+    spring's stiffness, in N/m with ``gain_N_per_V`` [N/V] or in V/m). Returns {"log",
+    "speed_m_per_s", "bins" (pass_forces'), "slope_V_per_m", "slope_std", "direction_V",
+    "spring_V_per_m" (the fit's), "named" (family or None), "why"}.
+    Raises: KeyError: the axis has no trajectory, or the entry no spring fit. ValueError: no
+    stroke, or fewer than two passes in the run. ConfigError: the pass config is not valid.
+    """
+    import numpy as np
+    from motorctl.app.job import run_job
+    other = next(f for f in entry["families"] if f != SPRING)
+    prm = next(f["parameters"] for f in entry["fits"] if f["name"] == SPRING)
+    k_fit = (float(prm["stiffness_N_per_m"]) / float(gain_N_per_V) if "stiffness_N_per_m" in prm
+             else float(prm["stiffness_V_per_m"]))
+    d, duration = pass_program(cfg, axis)
+    run_job(config_from_dict(d, f"{source} in slow passes"), axes=[axis], duration_s=duration,
+            clock="virtual", log_path=str(log_path))
+    rows = pass_forces(log_path, axis)
+    if len({(r["direction"]) for r in rows}) < 2:
+        raise ValueError("the slow passes gave no constant-velocity stretch both ways")
+    A = np.array([[1.0, r["direction"], r["x"]] for r in rows])
+    y = np.array([r["u"] for r in rows])
+    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    s2 = float(np.sum((y - A @ coef) ** 2)) / max(1, len(y) - 3)
+    std = np.sqrt(np.maximum(np.diag(np.linalg.pinv(A.T @ A)) * s2, 0.0))
+    sl, ss = float(coef[2]), float(std[2])
+    out = {"log": str(log_path), "speed_m_per_s": float(d["axes"][axis]["trajectory"]["v_max"]), "bins": rows,
+           "slope_V_per_m": sl, "slope_std": ss, "direction_V": float(coef[1]), "spring_V_per_m": k_fit}
+    span = f"the input's slope over the position {sl:.4g} +- {ss:.2g} V/m against the spring's {k_fit:.4g} V/m"
+    if sl > 3.0 * ss and abs(sl - k_fit) <= max(3.0 * ss, 0.3 * abs(k_fit)):
+        out.update(named=SPRING, why=f"a force of the position in slow passes: {span}")
+    elif abs(sl) < 0.5 * abs(k_fit) and abs(sl) + 3.0 * ss < abs(k_fit):
+        out.update(named=other, why=f"not a spring: {span}; {other} is left")
+    else:
+        out.update(named=None, why=f"not resolved: {span}")
+    return out
+
+
+def pass_experiments(res: dict, progress=None) -> list:
+    """The slow-pass runs of step 8 (:mod:`motorctl.cli.tune`) for ``res`` (:func:`tune`'s
+    result): on a simulated plant with a before log, each ambiguity between a spring and one
+    other family that the before log's identification reports (:func:`pass_experiment`).
+    Returns [{"ambiguous" (its text), and pass_experiment's keys}], or [{"ambiguous", "error",
+    "log", "named": None, "why"}] for one that could not run; [] when none applies."""
+    before = res.get("files", {}).get("before")
+    if res.get("floor_effects_off") is None or not before or res.get("faults", {}).get("before"):
+        return []
+    pairs = [a for a in res.get("ambiguous", []) if not a.get("harmonic")
+             and SPRING in a.get("families", []) and len(set(a["families"])) == 2]
+    from motorctl.config import load_yaml
+    out = []
+    for k, e in enumerate(pairs):
+        log = Path(res["out"]) / f"slow_passes_{k + 1}.mclog"
+        if progress:
+            progress(f"slow passes: {e['text']}: both ways at a constant speed -> {log}")
+        try:
+            r = pass_experiment(load_yaml(res["config"]), res["axis"], e, log, res.get("gain_N_per_V"),
+                                source=res["config"])
+        except Exception as exc:        # noqa: BLE001 - reported, the tune's result stands
+            out.append({"ambiguous": e["text"], "error": f"{type(exc).__name__}: {exc}"[:300],
+                        "log": str(log), "named": None, "why": "not run"})
+            continue
+        out.append({"ambiguous": e["text"], **r})
+    return out
+
+
 __all__ = ["E_M_SLACK_UM", "FILES", "SIM_DRIVER", "U_REST_SLACK", "better", "damage_removed", "effect_free",
-           "effects_on", "is_simulated", "make_log", "tune", "other_speed", "speed_experiment", "speed_experiments"]
+           "effects_on", "is_simulated", "make_log", "tune", "other_speed", "speed_experiment", "speed_experiments",
+           "pass_program", "pass_forces", "pass_experiment", "pass_experiments"]
