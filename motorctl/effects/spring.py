@@ -82,6 +82,15 @@ class SpringFamily(EffectFamily):
         """x, (N, 1); h unused."""
         return p.x[:, None]
 
+    def plausible(self, ctx, term, beta, theta, base):
+        """A spring restores: k > 0 (the input holds +k_V (x − x_0) against −k (x − x_0)). A
+        fitted k ≤ 0 is a force pushing away from the middle of the stroke, which a thrust lost
+        towards both ends of a back-and-forth program (a linear motor's end effect) also gives,
+        since there the input's sign goes with the end: no spring."""
+        if not beta[0] > 0.0:
+            return ["negative stiffness: a force pushing away from the rest position is not a spring"]
+        return []
+
     def parameters(self, h, beta, gain, fs):
         g, unit = (gain, "N") if gain else (1.0, "V")
         return {f"stiffness_{unit}_per_m": float(g * beta[0])}
