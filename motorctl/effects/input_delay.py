@@ -323,16 +323,16 @@ class InputDelayFamily(EffectFamily):
         return np.abs(ctx.p.v_d) > V_HELD
 
     @staticmethod
-    def bands(fs_d: float) -> tuple[tuple[float, float], tuple[float, float]] | None:
-        """The two frequency bands [Hz] a delay's phase slope is compared on: from
-        :data:`BAND_LOW_HZ` to the geometric mean with the decimation filter's cut-off
-        0.4·fs_d, and from there to the cut-off (15-39 and 39-100 Hz at fs_d = 250 Hz); None
-        when the record's band is too narrow."""
+    def bands(fs_d: float) -> tuple[tuple[float, float], tuple[float, float]]:
+        """The two frequency bands [Hz] a delay's phase slope is compared on: from lo to the
+        geometric mean with the decimation filter's cut-off hi = 0.4·fs_d, and from there to
+        hi; lo = :data:`BAND_LOW_HZ`, or a quarter of hi where that is lower (15-39 and 39-100
+        Hz at fs_d = 250 Hz, a 5 kHz run log; 10-20 and 20-40 Hz at fs_d = 100 Hz, a 1 kHz
+        record, where a fixed 15 Hz left no upper band and a play's lag was named a delay)."""
         hi = 0.4 * fs_d
-        if hi < 4.0 * BAND_LOW_HZ:
-            return None
-        mid = (BAND_LOW_HZ * hi) ** 0.5
-        return (BAND_LOW_HZ, mid), (mid, hi)
+        lo = min(BAND_LOW_HZ, hi / 4.0)
+        mid = (lo * hi) ** 0.5
+        return (lo, mid), (mid, hi)
 
     def not_transport(self, ctx, base, dmax: int) -> str | None:
         """A transport delay is a phase −ωτ at every frequency: the delay that fits the lower
@@ -342,8 +342,6 @@ class InputDelayFamily(EffectFamily):
         longer delay in the upper band. Returns the reason, or None."""
         p = ctx.p
         bands = self.bands(p.fs / p.nd)
-        if bands is None:
-            return None
         grid = np.arange(0.0, dmax + 1e-9, BAND_STEP)
         taus = [parabolic_min(grid, ctx.delay_sses(base, grid, band=b)) for b in bands]
         if abs(taus[1] - taus[0]) <= MAX_BAND_SPREAD:
