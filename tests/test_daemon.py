@@ -146,7 +146,10 @@ def test_operator_session_start_stop_switch_sigterm(daemon, tmp_path):
         row = int(np.searchsorted(t, c * TS - TS / 2))
         jump = np.max(du[row - 2:row + 3])
         assert jump < max(0.5, 3 * steady), f"switch at cycle {c}: output step {jump:.3f} V"
-        assert np.max(np.abs(log.col("Y.e")[row:row + 2500])) < 5e-4
+        # and the 0.5 s after it tracks within make_config's following-error floor for Y (1 mm:
+        # C1 follows within about 0.3 mm at the ends of Y's moves, and where the 0.3 s between
+        # switches falls on the program is the host's timing; 0.50 mm was seen once)
+        assert np.max(np.abs(log.col("Y.e")[row:row + 2500])) < 1e-3
 
 
 def test_malformed_config_refused(tmp_path):
