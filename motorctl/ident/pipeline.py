@@ -120,12 +120,17 @@ def summarise(idf: Identifier) -> dict:
                                     "1.96 sigma",
                           "lag_samples": unc["lag_samples"], "nominal_lag_samples": nom_unc["lag_samples"],
                           "splits": unc.get("splits", []), "nominal_splits": nom_unc.get("splits", [])}
-    # the effects' values (and the compensation's) taken again on the declared current loop's model
+    # the effects' values (and the compensation's) taken again on the declared current loop's
+    # model, with the stick state measured, and/or with a structural mode's force above the band
     out["refit"] = None if src is idf else {
         "families": src.refit_families,
         "on_current_loop": src.loop_refit,
         "current_loop_modelled": src.loop_filter is not None,
         "stick_state_measured": src.stick_measured,
+        "mode_above_band": None if src.band_mode is None else {
+            "columns_at_Hz": src.band_mode["columns_at_Hz"],
+            "heldout_gain_percent": 100.0 * src.band_mode["heldout_gain"],
+            "load_fraction_at_columns": src.band_mode["load_fraction"]},
         "theta": [float(v) for v in th_v], "residual_rms": g * src.final.fit.rms,
         "heldout_rms": g * src.final.heldout_rms}
     from motorctl.ident.simfit import simulation_fit
@@ -575,8 +580,14 @@ def text_report(s: dict) -> str:
                        if r["current_loop_modelled"] else "no current loop declared")
         if r.get("stick_state_measured"):
             how.append("stiction's stick state measured from the encoder's reading")
-        lines.append(f"  the effects' values and compensation fitted again on the low-speed model ({'; '.join(how)}; "
-                     f"searched again: {', '.join(r['families'])}): held-out RMS {r['heldout_rms']:.4g} {u}")
+        if r.get("mode_above_band"):
+            m = r["mode_above_band"]
+            how.append(f"a structural mode above the record's band in the model, its force m_l s^2 a / w_a^2 "
+                       f"(columns at f_a {m['columns_at_Hz']:.4g} Hz, not named: f_a is not identifiable there; "
+                       f"held-out RMS -{m['heldout_gain_percent']:.1f} %)")
+        again = f"; searched again: {', '.join(r['families'])}" if r["families"] else ""
+        lines.append(f"  the effects' values and compensation fitted again on a more exact model ({'; '.join(how)}"
+                     f"{again}): held-out RMS {r['heldout_rms']:.4g} {u}")
     if s.get("residual"):
         lines.append(("WARNING: " if s["residual"]["structured"] else "residual: ") + s["residual"]["text"])
     if n.get("simulation_fit_percent") is not None:

@@ -39,7 +39,10 @@ d = θ̂_P − θ̂ is exact from the full fit's residual and its covariance V_d
 is the Newey-West covariance of its scores (:func:`split_difference`); the model error of a
 value is b = sqrt(d² − V_d) where the difference is significant at 5 % (|d| > 1.96 sqrt(V_d)),
 else 0, the largest over the splits (:func:`model_error`; named parameters through the same
-delta method). The stated standard deviation is sqrt(σ² + b²), σ the sandwich's, and the
+delta method). When the values' model holds columns for a structure the record cannot resolve
+(the identifier's ``nuisance``: a structural mode above the record's band, its antiresonance
+assumed), the values' shift against the model without them is a third such difference
+(:func:`omitted_difference`). The stated standard deviation is sqrt(σ² + b²), σ the sandwich's, and the
 interval value ± 1.96 of it (a normal approximation: asymptotically exact for the sandwich,
 Newey & West 1987, Thm. 2). Its assumption: the low band's fit, or the fit in motion, is the
 less biased, so that the full fit's bias is about its difference from it. A bias both share
@@ -206,6 +209,36 @@ def split_difference(a: np.ndarray, r: np.ndarray, proj, lag: int,
     return d / sc, vd / np.outer(sc, sc)
 
 
+def omitted_difference(a: np.ndarray, cov: np.ndarray, idx, coef: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The difference d (p,) between the fit of the regressor ``a`` (M, p) and the fit without
+    its columns ``idx`` (a sequence of k indexes), and its covariance V_d (p, p) from the fit's
+    covariance ``cov`` (p, p); ``coef`` (p,) the fit's coefficients.
+
+    With y = a_K b_K + a_N γ̂ + r (K the other columns, r orthogonal to all), the fit without
+    a_N gives b_K + A γ̂, A = (a_Kᵀa_K)⁻¹a_Kᵀa_N (k columns regressed on the others), so
+    d_K = −A γ̂ exactly (a linear function of γ̂ alone: V_d = A Cov(γ̂) Aᵀ); d_N = γ̂ with
+    Cov(γ̂). A value's shift between the two models beyond its sampling variance is a model
+    error the record shows (:func:`model_error`): what the values owe to the columns ``idx``,
+    which stand for a structure the record cannot resolve (a structural mode above its band,
+    whose antiresonance the columns assume). Columns of any scale; d and V_d in their units.
+    """
+    p = a.shape[1]
+    nidx = np.asarray(list(idx), dtype=int)
+    keep = np.setdiff1d(np.arange(p), nidx)
+    sc = np.sqrt(np.einsum("ij,ij->j", a, a))
+    sc[sc == 0] = 1.0
+    u = a / sc
+    amat = np.linalg.lstsq(u[:, keep], u[:, nidx], rcond=None)[0] * sc[nidx][None, :] / sc[keep][:, None]
+    g = np.asarray(coef, dtype=float)[nidx]
+    cg = cov[np.ix_(nidx, nidx)]
+    d, vd = np.zeros(p), np.zeros((p, p))
+    d[keep] = -amat @ g
+    vd[np.ix_(keep, keep)] = amat @ cg @ amat.T
+    d[nidx] = g
+    vd[np.ix_(nidx, nidx)] = cg
+    return d, vd
+
+
 def model_error(d: float, vd: float) -> float:
     """The bias a split's difference ``d`` shows beyond its sampling variance ``vd`` (both of
     one value): sqrt(d² − V_d) when |d| exceeds :data:`Z95`·sqrt(V_d) (the Hausman statistic
@@ -322,6 +355,12 @@ def fit_uncertainty(idf, ev, terms, params_of, white: bool = False, specificatio
             got = split_difference(full, r, proj, lag, cf)
             if got is not None:
                 splits[name] = got
+        # the values' shift against the model without the identifier's nuisance columns (the
+        # last of its regressor: a structural mode above the band, Identifier.mode_above_band)
+        nz = getattr(idf, "nuisance", None)
+        if nz is not None:
+            k_n = nz.shape[1] if nz.ndim == 2 else 1
+            splits["nuisance"] = omitted_difference(full, cov, range(phi.shape[1] - k_n, phi.shape[1]), cf)
     bias = np.zeros(len(sd))
     for d, vd in splits.values():
         bias = np.maximum(bias, [model_error(float(d[j]), float(vd[j, j])) for j in range(len(sd))])
