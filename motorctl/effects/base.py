@@ -415,6 +415,15 @@ class EffectFamily:
     #: beside each look-alike contender (:attr:`look_alike`), on that contender's residual
     line_from_residual: ClassVar[bool] = False
 
+    def above_band(self, p) -> float | None:
+        """The searched value h [the family's unit] at which this family's columns stand for a
+        force above the band of the prepared record ``p``, whatever the effect's own h there (a
+        structural mode's antiresonance at the top of its grid: its columns are then the load's
+        inertia rising with frequency, m_l s²ẍ/ω_a²), for the values' model
+        (:meth:`motorctl.ident.select.Identifier.mode_above_band`); None (default): the family
+        has no such columns, or the record's band is too narrow for them."""
+        return None
+
     def __repr__(self) -> str:
         return f"<effect family {self.name}>"
 

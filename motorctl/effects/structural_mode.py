@@ -193,6 +193,12 @@ class StructuralModeFamily(EffectFamily):
     #: m_l δ̈ is part of the inertial force, not bounded by the input range
     force_bounded_by_input = False
 
+    def above_band(self, p):
+        """The grid's top :func:`f_max` [Hz] (above the band the columns are m_l s²ẍ/ω_a² whatever
+        f_a); None when the band is too narrow for a grid (f_max ≤ 2 :data:`F_MIN_HZ`)."""
+        top = f_max(p)
+        return top if top > 2.0 * F_MIN_HZ else None
+
     # simulator: the two-mass plant of the simulated driver (axis-level keys)
     def sim_config(self, axis_options):
         """(mode_hz, mode_damping, mode_load_fraction) of the axis, or None without a mode."""

@@ -139,9 +139,6 @@ JOINT_LOBES = 3
 JOINT_LOBE_POINTS = 20
 #: least relative fall of the SSE for the joint refit to take a new searched parameter
 JOINT_MIN_DROP = 1e-6
-#: the family whose broadband force above the record's band the values' model takes
-#: (:meth:`Identifier.mode_above_band`)
-MODE_FAMILY = "structural_mode"
 #: least held-out gain (relative fall of the held-out RMS) for a position-periodic effect's
 #: harmonics above the first to be kept (:meth:`Identifier._prune_harmonics`)
 MIN_HARMONIC_GAIN = 0.01
@@ -1519,7 +1516,7 @@ class Identifier:
             ctx = copy.copy(self)         # the same record and model: caches shared
             ctx._local = threading.local()
         if mode:
-            ctx.nuisance = ctx.dec_cols(MODE_FAMILY, mode["columns_at_Hz"])
+            ctx.nuisance = ctx.dec_cols(mode["family"], mode["columns_at_Hz"])
             ctx.band_mode = mode
 
         def built(i, h):
@@ -1571,19 +1568,21 @@ class Identifier:
 
         Returns:
             None (the family not searched or already selected, no final model, too few samples
-            in motion, no gain, a load ≤ 0); else {"columns_at_Hz": f_a of the columns [Hz],
+            in motion, no gain, a load ≤ 0); else {"family": the family whose
+            :meth:`~motorctl.effects.base.EffectFamily.above_band` columns these are (the
+            structural mode's), "columns_at_Hz": f_a of the columns [Hz],
             "heldout_gain": the relative fall of the held-out RMS [-], "load_fraction": β_G/θ1
             at the columns' f_e [-] (m_l/M·(f_e/f_a)² with f_a the mode's own antiresonance,
             which the record does not tell)}.
         """
-        from motorctl.effects.structural_mode import F_MIN_HZ, f_max
-        if MODE_FAMILY not in self.families or any(t.family == MODE_FAMILY for t in self.terms):
+        fam = next((f for f in self.families if effect_family(f).above_band(self.p) is not None), None)
+        if fam is None or any(t.family == fam for t in self.terms):
             return None
         final = getattr(self, "final", None)
-        top = f_max(self.p)
-        if final is None or top <= 2.0 * F_MIN_HZ or self.moving.sum() < 50:
+        top = effect_family(fam).above_band(self.p)
+        if final is None or self.moving.sum() < 50:
             return None
-        term = self.term(MODE_FAMILY, top)
+        term = self.term(fam, top)
         if term.cols is None:
             return None
         ev = self.evaluate(list(self.terms) + [term])
@@ -1591,7 +1590,8 @@ class Identifier:
         coef = ev.fit.coef
         if not gain >= MIN_HELDOUT_GAIN or not coef[-2] > 0.0 or not coef[0] > 0.0:
             return None
-        return {"columns_at_Hz": float(top), "heldout_gain": float(gain), "load_fraction": float(coef[-2] / coef[0])}
+        return {"family": fam, "columns_at_Hz": float(top), "heldout_gain": float(gain),
+                "load_fraction": float(coef[-2] / coef[0])}
 
     @staticmethod
     def _refit_jointly(ctx, fams: list, terms: list, again: list, built) -> list:
