@@ -27,7 +27,7 @@ from pathlib import Path
 
 from motorctl.config import LoadedConfig, config_from_dict
 from motorctl.effects import FAMILIES
-from motorctl.ident.ambiguity import SPEED_SCALE
+from motorctl.ident.ambiguity import SPEED_SCALE, SPRING_FAMILY as SPRING
 from motorctl.inputs import InputError
 
 #: e_M may grow by this much and still count as not worse [µm]: one count of the 0.5 µm encoder
@@ -489,32 +489,43 @@ def speed_experiments(res: dict, progress=None) -> list:
     (:func:`speed_experiment`). Returns [{"ambiguous" (its text), and
     speed_experiment's keys}], or [{"ambiguous", "error"}] for one that could not run; [] when
     none applies."""
+    return _experiments(res, lambda a: a.get("harmonic"), "other_speed",
+                        "other speed: {text}: the program at 0.7 x the speed -> {log}",
+                        lambda cfg, e, log: speed_experiment(cfg, res["axis"], e, log, res["duration_s"],
+                                                             source=res["config"]),
+                        progress, {"scale": 0.7})
+
+
+def _experiments(res: dict, applies, stem: str, say: str, run, progress=None, not_run: dict | None = None) -> list:
+    """The second experiments of ``res`` (:func:`tune`'s result) on a simulated plant with a
+    before log: for each of its ambiguities for which ``applies(entry)`` holds, ``run(config
+    dict, entry, log path)`` with the log ``DIR/<stem>_<k>.mclog``, after ``progress(say)``
+    (``say`` formatted with ``text``, ``log``). Returns [{"ambiguous" (its text), and run's
+    keys}], or [{"ambiguous", "error", "log", "named": None, "why", and ``not_run``'s keys}] for
+    one that could not run; [] when none applies."""
     before = res.get("files", {}).get("before")
     if res.get("floor_effects_off") is None or not before or res.get("faults", {}).get("before"):
         return []
-    harmonic = [a for a in res.get("ambiguous", []) if a.get("harmonic")]   # the before log's identification
-    if not harmonic:
+    entries = [a for a in res.get("ambiguous", []) if applies(a)]     # the before log's identification
+    if not entries:
         return []
     from motorctl.config import load_yaml
     out = []
-    for k, e in enumerate(harmonic):
-        log = Path(res["out"]) / f"other_speed_{k + 1}.mclog"
+    for k, e in enumerate(entries):
+        log = Path(res["out"]) / f"{stem}_{k + 1}.mclog"
         if progress:
-            progress(f"other speed: {e['text']}: the program at 0.7 x the speed -> {log}")
+            progress(say.format(text=e["text"], log=log))
         try:
-            r = speed_experiment(load_yaml(res["config"]), res["axis"], e, log, res["duration_s"],
-                                 source=res["config"])
+            r = run(load_yaml(res["config"]), e, log)
         except Exception as exc:        # noqa: BLE001 - reported, the tune's result stands
             out.append({"ambiguous": e["text"], "error": f"{type(exc).__name__}: {exc}"[:300],
-                        "scale": 0.7, "log": str(log), "named": None, "why": "not run"})
+                        **(not_run or {}), "log": str(log), "named": None, "why": "not run"})
             continue
         out.append({"ambiguous": e["text"], **r})
     return out
 
 
 # ----------------------------------------------------------- the slow-pass experiment
-#: the spring's family name: a force of the position, told from a hold at rest by slow passes
-SPRING = "spring"
 #: the passes' stroke: this share of the program's stroke, centred on it
 PASS_SPAN = 0.8
 #: the passes' speed: this share of the program's v_max, at most PASS_SPEED_MAX [m/s]
@@ -634,26 +645,12 @@ def pass_experiments(res: dict, progress=None) -> list:
     other family that the before log's identification reports (:func:`pass_experiment`).
     Returns [{"ambiguous" (its text), and pass_experiment's keys}], or [{"ambiguous", "error",
     "log", "named": None, "why"}] for one that could not run; [] when none applies."""
-    before = res.get("files", {}).get("before")
-    if res.get("floor_effects_off") is None or not before or res.get("faults", {}).get("before"):
-        return []
-    pairs = [a for a in res.get("ambiguous", []) if not a.get("harmonic")
-             and SPRING in a.get("families", []) and len(set(a["families"])) == 2]
-    from motorctl.config import load_yaml
-    out = []
-    for k, e in enumerate(pairs):
-        log = Path(res["out"]) / f"slow_passes_{k + 1}.mclog"
-        if progress:
-            progress(f"slow passes: {e['text']}: both ways at a constant speed -> {log}")
-        try:
-            r = pass_experiment(load_yaml(res["config"]), res["axis"], e, log, res.get("gain_N_per_V"),
-                                source=res["config"])
-        except Exception as exc:        # noqa: BLE001 - reported, the tune's result stands
-            out.append({"ambiguous": e["text"], "error": f"{type(exc).__name__}: {exc}"[:300],
-                        "log": str(log), "named": None, "why": "not run"})
-            continue
-        out.append({"ambiguous": e["text"], **r})
-    return out
+    return _experiments(res, lambda a: not a.get("harmonic") and SPRING in a.get("families", [])
+                        and len(set(a["families"])) == 2, "slow_passes",
+                        "slow passes: {text}: both ways at a constant speed -> {log}",
+                        lambda cfg, e, log: pass_experiment(cfg, res["axis"], e, log, res.get("gain_N_per_V"),
+                                                            source=res["config"]),
+                        progress)
 
 
 __all__ = ["E_M_SLACK_UM", "FILES", "SIM_DRIVER", "U_REST_SLACK", "better", "damage_removed", "effect_free",

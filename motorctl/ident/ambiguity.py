@@ -41,6 +41,9 @@ POSITION_FAMILIES = ("cogging", "force_ripple", "periodic_friction", "position_f
 #: the time-periodic family whose line at a program harmonic the position families are searched
 #: against (:func:`harmonic_rivals`)
 TIME_FAMILY = "periodic_disturbance"
+#: the force of position that a hold at rest (stiction, a dead-zone, a coarse reading) can stand
+#: for, told apart by slow constant-velocity passes (motorctl.commission.tune.pass_experiment)
+SPRING_FAMILY = "spring"
 
 #: what separates a time-periodic line from a force of position (the text of the report)
 SPEED_EXPERIMENT = ("run the same program at another speed (e.g. a feed override of 0.7): a time-periodic "
