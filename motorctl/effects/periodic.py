@@ -56,6 +56,19 @@ MIN_TAIL_KEPT = 0.5
 #: the start of that reason: it says the evidence is a few samples, not that the physics does
 #: not fit (the residual verdict does not count it as a structure, nor as too little to be one)
 FEW_SAMPLES = "seen only at the largest thrusts"
+#: the least share of what a position-periodic force explains of the whole record's residual
+#: that it must explain of the moving samples' (:meth:`PositionPeriodic.motion_check`): a period
+#: of about a millimetre on a 1 kHz record passes the band only at the moves' ends, and there
+#: it can take any value at the few positions the carriage rests at (an independent PID loop's
+#: records, benchmarks/ident_unmodelled.py: a 1.1-1.3 mm cogging explained 19-94 % of the
+#: residual and 2-10 % of the moving samples' on clean and LuGre records; the true ones
+#: keep about all of it)
+MIN_MOVING_KEPT = 0.5
+#: the start of that reason: its evidence is the force held at rest, not a structure in motion
+AT_REST_ONLY = "seen only where the carriage rests"
+#: reasons that say a candidate's evidence is a few samples, not that its physics does not fit:
+#: the residual verdict does not make a structure of them
+NOT_A_STRUCTURE = (FEW_SAMPLES, AT_REST_ONLY)
 #: Points of a report figure's curve.
 SHAPE_POINTS = 2000
 
@@ -383,7 +396,22 @@ class PositionPeriodic(EffectFamily):
                        "depend on the direction of motion")
         out += self.speed_check(ctx, term, base)
         out += self.thrust_check(ctx, term, base)
+        out += self.motion_check(ctx, term, base)
         return out
+
+    def motion_check(self, ctx, term, base) -> list[str]:
+        """A force of position acts in motion as at rest: the reason against a term that
+        explains less than :data:`MIN_MOVING_KEPT` of its share of the whole record's residual
+        on the moving samples (both fitted jointly with the nominal θ, :meth:`~motorctl.ident.
+        select.Identifier.explained_shares`), else []. What it explained is the force the loop
+        holds at the positions the carriage rests at (a hold the model's friction does not
+        describe), which a short period fits at those few positions (:data:`AT_REST_ONLY`: not
+        a structure for the residual verdict)."""
+        full, moving = ctx.explained_shares(term, base, np.ones(len(ctx.moving), dtype=bool), ctx.moving)
+        if full > 0 and moving < MIN_MOVING_KEPT * full:
+            return [f"{AT_REST_ONLY}: it explains {100 * full:.1f} % of the record's residual, {100 * moving:.1f} % "
+                    f"of the moving samples' (< {MIN_MOVING_KEPT:g} of it; a force of position acts in motion too)"]
+        return []
 
     def thrust_check(self, ctx, term, base) -> list[str]:
         """A force of position acts at every thrust: the reason against a term that explains

@@ -53,7 +53,7 @@ from motorctl.effects import FAMILIES, family as effect_family
 from motorctl.effects.base import EffectFamily
 from motorctl.effects.input_delay import (HOLD_TOLERANCE, FoundDelay, amplifier_loop, current_loop_filter,
                                           delayed, loop_lag)
-from motorctl.effects.periodic import FEW_SAMPLES, REFINE_SPAN, REFINE_TOL, PositionPeriodic
+from motorctl.effects.periodic import NOT_A_STRUCTURE, REFINE_SPAN, REFINE_TOL, PositionPeriodic
 from motorctl.ident.data import Record
 from motorctl.ident.idim import Prepared, choose_n_theta, input_reach, input_saturation, ls, prepare, unit_columns
 from motorctl.ident.verdict import REST_SPEED_SHARE, residual_verdict
@@ -1763,9 +1763,9 @@ def refused_on_physics(c) -> bool:
     """A candidate (:class:`~motorctl.ident.select.Evaluated`) that explains at least
     :data:`REFUSED_GAIN` of the held-out residual and was refused only because its physics does
     not fit (no reason of :data:`_WEAK`). A reason that its evidence is a few samples at the
-    largest thrusts (:data:`~motorctl.effects.periodic.FEW_SAMPLES`) is neither: it does not make
+    largest thrusts or at the rest positions alone (:data:`~motorctl.effects.periodic.NOT_A_STRUCTURE`) is neither: it does not make
     a structure of the candidate, and it does not hide the structure its other reasons show."""
-    reasons = [r for r in c.reasons if not r.startswith(FEW_SAMPLES)]
+    reasons = [r for r in c.reasons if not r.startswith(NOT_A_STRUCTURE)]
     if c.ok or getattr(c, "gain", 0.0) < REFUSED_GAIN or not reasons:
         return False
     return not any(r.startswith(_WEAK) for r in reasons)
