@@ -83,7 +83,7 @@ def _summary(res: dict) -> dict:
 
 
 def cmd_autotune(args) -> int:
-    from motorctl.commission.autotune import autotune, plot_bode, write_config
+    from motorctl.commission.autotune import autotune, plot_bode, theta1_meaning, write_config
     from motorctl.commission.rule import FULL_PERIODS, PERIODS, RULE, SEARCH_BUDGET, AutotuneError, Rule
     from motorctl.cli import UsageError
     from motorctl.config import config_from_dict, load_yaml
@@ -152,10 +152,8 @@ def cmd_autotune(args) -> int:
     else:
         for a, s in summary.items():
             m = s["model"]
-            rng = m.get("theta1_small_signal_range")
-            print(f"{a}: fitted theta1 = " + ("M/(A1 kappa) at the multisine's amplitude " if rng else "M/A1 ")
-                  + f"{m['theta1']:.4g} V s^2/m " + (f"(M/A1 within [{rng[0]:.4g}, {rng[1]:.4g}] for theta5, "
-                                                     "theta6 within the bounds) " if rng else "")
+            what, rng = theta1_meaning(m)
+            print(f"{a}: fitted theta1 = {what} {m['theta1']:.4g} V s^2/m " + (f"({rng}) " if rng else "")
                   + f"(theta_hat1(0) {s['theta_hat0'][0]:.4g}), "
                   f"mode {m['mode_hz']:.1f} Hz, current loop {m['current_loop_hz']:.0f} Hz, delay "
                   f"{m['delay_s'] * 1e6:.1f} us")

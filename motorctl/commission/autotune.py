@@ -185,11 +185,10 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
                  f"{fric['theta3']:.4g} +- {sg['theta3']:.2g} V, theta4 {fric['theta4']:.4g} +- "
                  f"{sg['theta4']:.2g} V from {len(fric['passes'])} constant-velocity passes "
                  f"({fric['duration_s']:.1f} s)")
+        rng = theta1_meaning(model)[1]
         kappa = (f"input nonlinearity's gain {model['input_gain']:.3f} taken out" if model["input_gain"] != 1.0
                  else "no input nonlinearity declared in theta_hat0: its gain at this amplitude is in it"
-                 + (f"; M/A1 within [{model['theta1_small_signal_range'][0]:.4g}, "
-                    f"{model['theta1_small_signal_range'][1]:.4g}] for theta5, theta6 within the bounds, "
-                    "one amplitude cannot tell them" if "theta1_small_signal_range" in model else ""))
+                 + (f"; {rng}, one amplitude cannot tell them" if rng else ""))
         progress(f"fit {axis}: theta1 {model['theta1']:.4g} +- {sg['theta1']:.2g} V s^2/m ({kappa}; theta_hat1(0) "
                  f"{sec.theta_hat0[0]:.4g}), theta2 (multisine) {model['theta2_frf']:.3g} +- "
                  f"{sg['theta2_frf']:.2g} V s/m, mode "
@@ -258,6 +257,18 @@ def autotune_pairs(loaded: LoadedConfig, raw: dict, results: list, clock: str = 
     return out
 
 
+def theta1_meaning(model: dict) -> tuple[str, str]:
+    """(what the fitted θ1 of ``model`` (:func:`autotune`'s) is, the text of its M/A1 range or
+    ""), for the reports: "M/A1" where the input nonlinearity's gain is taken out or none is
+    declared and measured; where θ̂(0) declares none, θ1 at the multisine's amplitude and the
+    range of M/A1 over the bounds of θ5, θ6 ("theta1_small_signal_range")."""
+    rng = model.get("theta1_small_signal_range")
+    if not rng:
+        return "M/A1", ""
+    return ("M/(A1 kappa) at the multisine's amplitude",
+            f"M/A1 within [{rng[0]:.4g}, {rng[1]:.4g}] for theta5, theta6 within the bounds")
+
+
 def _fmt_gains(law: str, g: dict) -> str:
     return " ".join(f"{k} {g[k]:.4g}" for k in controller_class(law).tuned_keys if k in g)
 
@@ -290,12 +301,9 @@ def write_config(raw: dict, results: list, source: str, path, pairs: list = ()) 
     for res in results:
         a, mdl = res["axis"], res["model"]
         sg = mdl["sigma"]
-        rng = mdl.get("theta1_small_signal_range")
-        lines.append(f"# axis {a}: fitted theta1 = " + ("M/(A1 kappa) at the multisine's amplitude "
-                                                       if rng else "M/A1 ") +
-                     f"{mdl['theta1']:.4g} +- {sg['theta1']:.2g} V s^2/m "
-                     + (f"(M/A1 within [{rng[0]:.4g}, {rng[1]:.4g}] for theta5, theta6 within the bounds) "
-                        if rng else "") +
+        what, rng = theta1_meaning(mdl)
+        lines.append(f"# axis {a}: fitted theta1 = {what} {mdl['theta1']:.4g} +- {sg['theta1']:.2g} V s^2/m "
+                     + (f"({rng}) " if rng else "") +
                      f"(config theta_hat1(0) {res['theta_hat0'][0]:.4g}; multisine), mode "
                      f"{mdl['mode_hz']:.1f} Hz (zeta {mdl['mode_damping']:.3f}, load "
                      f"{mdl['load_fraction']:.2f}), current loop {mdl['current_loop_hz']:.0f} Hz, delay "
