@@ -122,12 +122,11 @@ def text_report(res: dict) -> str:
         lines.append(f"e_M not worse: {'yes' if res['e_M_not_worse'] else 'no'}; L2[e] not worse: "
                      f"{'yes' if r['after']['L2_um'] <= r['before']['L2_um'] else 'no'}")
         lines.extend(f"figure: {p}" for p in res["figures"])
-    for e in res.get("speed_experiments") or []:
-        lines.append(f"{e['ambiguous']}: the program at {e['scale']:g} x the speed ({e['log']}): "
-                     + (f"named {e['named']}: " if e.get("named") else "") + e["why"])
-    for e in res.get("pass_experiments") or []:
-        lines.append(f"{e['ambiguous']}: slow passes ({e['log']}): "
-                     + (f"named {e['named']}: " if e.get("named") else "") + e["why"])
+    for key, run in (("speed_experiments", lambda e: f"the program at {e['scale']:g} x the speed"),
+                     ("pass_experiments", lambda e: "slow passes")):
+        for e in res.get(key) or []:
+            lines.append(f"{e['ambiguous']}: {run(e)} ({e['log']}): "
+                         + (f"named {e['named']}: " if e.get("named") else "") + e["why"])
     return "\n".join(lines) + "\n"
 
 

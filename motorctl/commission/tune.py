@@ -607,7 +607,8 @@ def pass_experiment(cfg: dict, axis: str, entry: dict, log_path, gain_N_per_V: f
     "speed_m_per_s", "bins" (pass_forces'), "slope_V_per_m", "slope_std", "direction_V",
     "spring_V_per_m" (the fit's), "named" (family or None), "why"}.
     Raises: KeyError: the axis has no trajectory, or the entry no spring fit. ValueError: no
-    stroke, or fewer than two passes in the run. ConfigError: the pass config is not valid.
+    stroke, or no constant-velocity stretch each way in the run. ConfigError: the pass config
+    is not valid.
     """
     import numpy as np
     from motorctl.app.job import run_job

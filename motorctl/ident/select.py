@@ -1575,12 +1575,10 @@ class Identifier:
             at the columns' f_e [-] (m_l/M·(f_e/f_a)² with f_a the mode's own antiresonance,
             which the record does not tell)}.
         """
-        fam = next((f for f in self.families if effect_family(f).above_band(self.p) is not None), None)
-        if fam is None or any(t.family == fam for t in self.terms):
-            return None
+        fam, top = next(((f, h) for f in self.families if (h := effect_family(f).above_band(self.p)) is not None),
+                        (None, None))
         final = getattr(self, "final", None)
-        top = effect_family(fam).above_band(self.p)
-        if final is None or self.moving.sum() < 50:
+        if fam is None or any(t.family == fam for t in self.terms) or final is None or self.moving.sum() < 50:
             return None
         term = self.term(fam, top)
         if term.cols is None:
@@ -1763,8 +1761,9 @@ def refused_on_physics(c) -> bool:
     """A candidate (:class:`~motorctl.ident.select.Evaluated`) that explains at least
     :data:`REFUSED_GAIN` of the held-out residual and was refused only because its physics does
     not fit (no reason of :data:`_WEAK`). A reason that its evidence is a few samples at the
-    largest thrusts or at the rest positions alone (:data:`~motorctl.effects.periodic.NOT_A_STRUCTURE`) is neither: it does not make
-    a structure of the candidate, and it does not hide the structure its other reasons show."""
+    largest thrusts or at the rest positions alone (:data:`~motorctl.effects.periodic.
+    NOT_A_STRUCTURE`) is neither: it does not make a structure of the candidate, and it does
+    not hide the structure its other reasons show."""
     reasons = [r for r in c.reasons if not r.startswith(NOT_A_STRUCTURE)]
     if c.ok or getattr(c, "gain", 0.0) < REFUSED_GAIN or not reasons:
         return False
