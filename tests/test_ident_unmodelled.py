@@ -58,3 +58,27 @@ def test_a_clean_record_names_no_millimetre_cogging(bench, tmp_path):
     holds at the few positions the carriage rests at, which so short a period fits there."""
     s = _identify(bench, "clean", 2, tmp_path)
     assert "cogging" not in {e["name"] for e in s["effects"]}, s["effects"]
+
+
+def test_presliding_friction_is_warned_against_the_travel_since_a_reversal(bench, tmp_path):
+    """Dahl/LuGre friction with a presliding distance of 120 µm (seed 1): the friction builds
+    up over the travel after each reversal, the model's within a few mm/s, so the residual is
+    about −12 N in the first 15 µm of every move; against velocity it fell in the slowest bins
+    with the samples at rest (9 % of the power, counted as stiction's) and nothing was said. The
+    residual against the travel since the reversal tells it, with where."""
+    s = _identify(bench, "lugre120um", 1, tmp_path)
+    assert {e["name"] for e in s["effects"]} <= {"stiction", "stribeck"}, s["effects"]
+    assert s["residual"]["structured"], s["residual"]["text"]
+    found = [f for f in s["residual"]["findings"] if f["against"] == "travel"]
+    assert found and found[0]["mean"] < -6.0, s["residual"]["findings"]
+    assert "µm of travel since the motion reversed" in found[0]["where"]
+
+
+def test_a_clean_record_has_no_deficit_after_a_reversal(bench, tmp_path):
+    """Nothing injected (seed 1): the sign-shaped Coulomb friction against the model's smooth
+    S_f and a fitted Stribeck hump leave 0.7 N (6 % of the Coulomb level) in the first 40 µm
+    after a reversal: tested, not a structure."""
+    s = _identify(bench, "clean", 1, tmp_path)
+    travel = [t for t in s["residual"]["tested"] if t["against"] == "travel"]
+    assert travel and not travel[0]["structured"], travel
+    assert not s["residual"]["structured"], s["residual"]["text"]

@@ -49,7 +49,7 @@ def test_an_effect_without_family_is_reported_unexplained(verdicts):
 def test_the_same_loop_without_it_leaves_no_structure(verdicts):
     res = verdicts["clean"]["residual"]
     assert not res["structured"], res["findings"]
-    assert {t["against"] for t in res["tested"]} == {"velocity", "input", "position", "time", "spectrum"}
+    assert {t["against"] for t in res["tested"]} == {"velocity", "input", "position", "time", "travel", "spectrum"}
 
 
 def test_a_candidate_refused_on_its_physics_is_reported_unexplained():

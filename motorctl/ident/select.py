@@ -1084,8 +1084,9 @@ class Identifier:
         (``acts_at_rest``) explains what is left there; a structure smaller than an effect
         would be named at (:meth:`least_size`) is not one."""
         at_rest = next((t.family for t in terms if effect_family(t.family).acts_at_rest), None)
+        coulomb = float(self.coef_split(current, terms)[0][2])
         return residual_verdict(current.fit.residual, self.p, gain, unit, at_rest_by=at_rest,
-                                min_size=self.least_size())
+                                min_size=self.least_size(), coulomb=coulomb)
 
     def least_size(self) -> float:
         """The least size of a force worth naming [V]: :data:`MIN_SIZE_SHARE` of the RMS input

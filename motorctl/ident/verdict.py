@@ -19,6 +19,28 @@ count). It is structured when
 
 The most deviating bin (its mean in standard errors, z) is where the structure is said to live.
 
+The travel since the motion last reversed (:func:`travel_since_reversal`, from the raw reading)
+is a fifth variable, for a force of that travel rather than of the speed: presliding
+(hysteretic) friction, whose bristles deflect elastically over a distance δ = F_c/σ₀ after each
+reversal before the friction reaches its sliding level (dF/dx = σ₀ (1 − sgn(ẋ) F/F_c), P. R.
+Dahl, "A solid friction model", The Aerospace Corporation, TOR-0158(3107-18)-1, 1968; the LuGre
+model of C. Canudas de Wit, H. Olsson, K. J. Åström, P. Lischinsky, "A new model for control of
+systems with friction", IEEE Trans. Automatic Control 40(3), 1995), or a play the motor crosses
+before it takes up its load. The model's friction reaches its level within a few mm/s of speed,
+so such a force is left right after each reversal; averaged over velocity bins it falls in the
+slowest bins with the samples at rest (a selected stiction's, by the rule above) and the
+accelerating and decelerating branches partly cancel. The residual, signed by the direction of
+motion, is averaged in log-spaced bins of the travel (:data:`N_TRAVEL_BINS` from the reversal's
+detection threshold to the longest travel, merged until each holds :data:`MIN_TRAVEL_COUNT`
+samples); it is structured with the share and noise rules above and when, within the first
+:data:`MAX_TRAVEL_SHARE` of the longest travel, a bin's mean is a deficit (less force against
+the motion than the model's) of at least :data:`MIN_TRAVEL_COULOMB` of the Coulomb level θ3
+(and ``min_size``). The sign is the physics: while the bristles deflect the friction is below
+its sliding level (|F| ≤ F_c in Dahl's model) and across a play the motor moves without its
+load, so both leave less force than the model, whose friction reaches θ3 within a few mm/s; a
+sign-shaped (Karnopp) Coulomb friction against the model's smooth S_f leaves more (or a few per
+cent of θ3 less where a fitted Stribeck hump overshoots it).
+
 The spectrum (Welch, scipy.signal) is structured when a line stands :data:`MIN_PEAK_RATIO`
 times above the median of the spectrum above 0.5 Hz, holds at least :data:`MIN_LINE_SHARE` of
 the power and its amplitude √(2·power) is at least ``min_size``. Each finding says where the structure lives ("near zero velocity (|v| < 3.2 mm/s)",
@@ -40,6 +62,24 @@ REST_SPEED_SHARE = 0.05
 NOISE_FACTOR = 4.0     #: the share must be this many times what noise alone would give
 MIN_PEAK_RATIO = 30.0  #: a spectral line this far above the spectrum's median
 MIN_LINE_SHARE = 0.08  #: and holding this share of the residual's power (clean logs: 2.5-3.4 %)
+#: bins of the travel since the last reversal (log-spaced, :func:`_travel_binned`)
+N_TRAVEL_BINS = 12
+#: least samples (decimated) in a bin of the travel; smaller bins are merged into the next
+#: (a 12 s record of 7.5 back-and-forth periods has one sample per reversal in the first bins)
+MIN_TRAVEL_COUNT = 5
+#: the deficit after a reversal must reach this share of the Coulomb level θ3. Measured (deficit /
+#: θ3): clean records 0.02-0.06 (benchmarks/ident_unmodelled.py clean and encoder5um seeds 1-6:
+#: a fitted Stribeck hump overshooting the sign-shaped Coulomb friction), 0.00-0.04 on
+#: benchmarks/ident_verdict.py's clean, encoder and mode logs of the default, rigid and
+#: half-mode plants; Dahl/LuGre friction with a presliding distance of 40 and 120 µm 0.74 and
+#: 1.06 (seeds 1-6); EMPS (a real axis) 0.41-0.45, 8.2-8.4 N in its first 46 µm
+MIN_TRAVEL_COULOMB = 0.3
+#: the deficit is looked for within this share of the longest travel: presliding lasts tens to
+#: hundreds of µm, a play its width; beyond, on a back-and-forth program the travel since the
+#: reversal is the distance from the stroke's end, a function of position (tested as such: a
+#: force constant falling 20 % towards the stroke's ends left a deficit of 0.26 θ3 at 41-111 mm
+#: of a 300 mm travel, and an excess of up to 0.29 θ3 at 3-10 mm)
+MAX_TRAVEL_SHARE = 0.1
 
 
 def _binned(r: np.ndarray, x: np.ndarray, n_eff_ratio: float):
@@ -62,6 +102,115 @@ def _binned(r: np.ndarray, x: np.ndarray, n_eff_ratio: float):
     noise = (float(ok.sum()) - 1.0) / max(r.size * n_eff_ratio, 1.0)
     return {"share": share, "noise": noise, "size": size, "z": float(z[j]), "lo": float(edges[j]),
             "hi": float(edges[j + 1]), "mean": float(m[j])}
+
+
+def reversal_threshold(p) -> float:
+    """The travel [m] that tells a reversal of the motion from the reading's noise: two counts
+    of a quantized reading (:func:`motorctl.effects.stiction.encoder_count`; a reading at rest
+    flickers by one), else four robust standard deviations (1.4826 MAD) of the raw reading
+    about the filtered position, y − x. p: prepared signals with ``y``, ``x`` (N,) [m]."""
+    from motorctl.effects.stiction import encoder_count
+
+    q = encoder_count(p.y)
+    if q > 0.0:
+        return 2.0 * q
+    e = np.asarray(p.y, dtype=float) - np.asarray(p.x, dtype=float)
+    return 4.0 * 1.4826 * float(np.median(np.abs(e - np.median(e))))
+
+
+def travel_since_reversal(y: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """The travel since the motion last reversed, from the raw reading y (N,) [m]: the distance
+    [m] (N,) from the last turning point (the reading's extreme before it moved back by more
+    than ``threshold`` [m]), and the direction of motion since then (N,) in {−1, +1}; 0 (both)
+    before the reading first moved by ``threshold``. A start from rest in the same direction
+    is not a reversal: Dahl's bristles keep their deflection at rest (dz/dt = 0 when ẋ = 0)."""
+    y = np.asarray(y, dtype=float)
+    s = np.zeros(y.size)
+    d = np.zeros(y.size)
+    lo = hi = ext = turn = float(y[0]) if y.size else 0.0
+    sgn = 0
+    for i, yi in enumerate(y.tolist()):
+        if sgn == 0:
+            lo, hi = min(lo, yi), max(hi, yi)
+            if hi - lo > threshold:
+                sgn = 1 if yi == hi else -1
+                turn, ext = (lo if sgn > 0 else hi), yi
+        elif sgn * (yi - ext) > 0.0:
+            ext = yi
+        elif sgn * (ext - yi) > threshold:
+            sgn, turn, ext = -sgn, ext, yi
+        if sgn:
+            s[i], d[i] = abs(yi - turn), sgn
+    return s, d
+
+
+def _travel_binned(r: np.ndarray, p, n_eff_ratio: float):
+    """The residual r (M,) signed by the direction of motion, in log-spaced bins of the travel
+    since the last reversal at the decimated instants (:data:`N_TRAVEL_BINS` from the reversal
+    threshold to the longest travel, each merged into the next until it holds
+    :data:`MIN_TRAVEL_COUNT` samples): the share of r's power their means explain, its noise
+    level, the deficit (``size``: minus the most negative bin mean among the bins within
+    :data:`MAX_TRAVEL_SHARE` of the longest travel, 0 when none is negative) and its bin (else
+    the most deviating bin); None without a reversal."""
+    if not all(hasattr(p, k) for k in ("y", "x", "t")):
+        return None
+    cache = getattr(p, "derived", None)
+    got = cache.get("travel_since_reversal") if isinstance(cache, dict) else None
+    if got is None:                         # the verdict runs several times on one record
+        thr = reversal_threshold(p)
+        s_full, d_full = travel_since_reversal(p.y, thr) if thr > 0.0 else (np.zeros(0), np.zeros(0))
+        k = np.clip(np.searchsorted(p.t, p.t_d), 0, len(p.t) - 1)
+        got = (thr, s_full[k], d_full[k]) if thr > 0.0 else (thr, None, None)
+        if isinstance(cache, dict):
+            cache["travel_since_reversal"] = got
+    thr, s, d = got
+    if s is None or s.size != r.size:
+        return None
+    use = d != 0
+    if use.sum() < 2 * MIN_TRAVEL_COUNT or not s[use].max() > thr:
+        return None
+    rs, s = (r * d)[use], s[use]
+    edges = np.geomspace(thr, s.max() * (1.0 + 1e-9), N_TRAVEL_BINS + 1)
+    edges[0] = 0.0
+    idx = np.clip(np.searchsorted(edges, s, side="right") - 1, 0, N_TRAVEL_BINS - 1)
+    n = np.bincount(idx, minlength=N_TRAVEL_BINS)
+    keep, acc = [0], 0                      # merge each bin short of MIN_TRAVEL_COUNT into the next
+    for b in range(N_TRAVEL_BINS - 1):
+        acc += n[b]
+        if acc >= MIN_TRAVEL_COUNT:
+            keep.append(b + 1)
+            acc = 0
+    if acc + n[-1] < MIN_TRAVEL_COUNT and len(keep) > 1:
+        keep.pop()                          # the last bin is too small: into the one before
+    edges = np.append(edges[keep], edges[-1])
+    if edges.size < 3:
+        return None
+    idx = np.clip(np.searchsorted(edges, s, side="right") - 1, 0, edges.size - 2)
+    n = np.bincount(idx, minlength=edges.size - 1).astype(float)
+    m = np.bincount(idx, weights=rs, minlength=edges.size - 1) / np.maximum(n, 1.0)
+    se = float(np.std(r)) / np.sqrt(np.maximum(n * n_eff_ratio, 1.0))
+    z = np.abs(m) / np.maximum(se, 1e-300)
+    short = edges[1:] <= MAX_TRAVEL_SHARE * s.max()
+    # the deficit: the most negative mean in the first tenth of the travel (else the most deviating bin)
+    j = int(np.argmin(np.where(short, m, np.inf))) if short.any() else int(np.argmax(z))
+    if not (short[j] and m[j] < 0.0):
+        j = int(np.argmax(z))
+    deficit = float(-m[j]) if short[j] and m[j] < 0.0 else 0.0
+    return {"share": float(np.sum(n * m * m) / max(float(r @ r), 1e-300)),
+            "noise": (float((n > 0).sum()) - 1.0) / max(r.size * n_eff_ratio, 1.0),
+            "size": deficit, "z": float(z[j]), "lo": float(edges[j]),
+            "hi": float(edges[j + 1]), "mean": float(m[j]), "from": thr}
+
+
+def _where_travel(b: dict) -> str:
+    """Where a structure against the travel lives (:func:`_travel_binned`'s bin), in µm or mm."""
+    lo, hi = max(b["lo"], b["from"]), b["hi"]
+    unit, k = ("µm", 1e6) if hi < 1e-3 else ("mm", 1e3)
+    if b["size"] > 0.0:
+        return (f"at {k * lo:.3g}-{k * hi:.3g} {unit} of travel since the motion reversed, less force "
+                f"against the motion than the model's friction: a force of the travel, not of the speed "
+                f"(presliding friction, a play)")
+    return f"at {k * lo:.3g}-{k * hi:.3g} {unit} of travel since the motion reversed"
 
 
 def _where(name: str, b: dict, span: float) -> str:
@@ -92,7 +241,7 @@ def _at_rest(name: str, b: dict, span: float) -> bool:
 
 
 def residual_verdict(r: np.ndarray, p, gain: float = 1.0, unit: str = "V", at_rest_by: str | None = None,
-                     min_size: float = 0.0) -> dict:
+                     min_size: float = 0.0, coulomb: float | None = None) -> dict:
     """The structure left in a residual.
 
     Args:
@@ -103,6 +252,9 @@ def residual_verdict(r: np.ndarray, p, gain: float = 1.0, unit: str = "V", at_re
             structure there is counted as its, ``explained_by``), or None.
         min_size: least size of a structure [V]: its bin means' 99th percentile over the
             samples, or a line's amplitude (0: any size).
+        coulomb: the model's Coulomb level θ3 [V]; with it and the full-rate reading (``p.y``,
+            ``p.x``, ``p.t`` (N,)) the residual is also tested against the travel since the last
+            reversal (size: its deficit, at least :data:`MIN_TRAVEL_COULOMB` |θ3|).
     Returns:
         {"structured": bool, "findings": [{"against", "share", "z", "where", "mean", "size"}]
         (the structured ones first), "tested": [every variable with its share, z, size (in
@@ -124,6 +276,13 @@ def residual_verdict(r: np.ndarray, p, gain: float = 1.0, unit: str = "V", at_re
         tested.append({"against": name, "share": b["share"], "noise_share": b["noise"], "z": b["z"],
                        "where": _where(name, b, span), "mean": gain * b["mean"], "size": gain * b["size"],
                        "structured": big and explained is None, "explained_by": explained})
+    b = _travel_binned(r, p, ratio) if coulomb is not None else None
+    if b is not None:
+        big = (b["share"] >= max(MIN_SHARE, NOISE_FACTOR * b["noise"])
+               and b["size"] >= max(min_size, MIN_TRAVEL_COULOMB * abs(float(coulomb))))
+        tested.append({"against": "travel", "share": b["share"], "noise_share": b["noise"], "z": b["z"],
+                       "where": _where_travel(b), "mean": gain * b["mean"], "size": gain * b["size"],
+                       "structured": big, "explained_by": None})
     fs = 1.0 / float(np.median(np.diff(p.t_d)))
     f, psd = signal.welch(r, fs=fs, nperseg=min(1024, r.size), detrend="constant")
     band = f > 0.5
@@ -141,7 +300,8 @@ def residual_verdict(r: np.ndarray, p, gain: float = 1.0, unit: str = "V", at_re
     text = ("unexplained structured residual remains: " + "; ".join(
         f"{t['where']} ({100 * t['share']:.0f} % of the residual's power"
         + (f", mean {t['mean']:+.3g} {unit} there" if math.isfinite(t["mean"]) else "") + ")" for t in found)
-        if found else "the residual shows no structure (against velocity, input, position, time, spectrum)")
+        if found else "the residual shows no structure (against velocity, input, position, time, "
+        + ("travel since a reversal, " if any(t["against"] == "travel" for t in tested) else "") + "spectrum)")
     text += "".join(f"; {t['where']} ({100 * t['share']:.0f} % of the residual's power) counted as "
                     f"{t['explained_by']}'s" for t in tested if t.get("explained_by"))
     return {"structured": bool(found), "findings": found, "tested": tested, "text": text}
