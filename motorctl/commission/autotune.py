@@ -163,13 +163,6 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
                                 f"{meas['guard_m'] * 1e6:.0f} um)" if meas["tripped"] else "too short")
         raise AutotuneError(f"axis {axis}: the measurement stopped: {why}")
     model = fit_plant(meas["f_hz"], meas["G"], meas["coherence"], ts, sec.theta_hat0, meas.get("u_cov"))
-    if model["input_gain"] == 1.0 and meas.get("u_cov"):
-        # θ̂(0) declares no input nonlinearity: θ1 is M/(A1 κ) at the multisine's amplitude,
-        # κ unknown; M/A1 is known only within κ's range over the bounds of θ5, θ6 (± 2σ)
-        k_lo, k_hi = input_gain_range(sec.theta_min, sec.theta_max, meas["u_cov"])
-        t1, s1 = model["theta1"], model["sigma"]["theta1"]
-        model["input_gain_range"] = [k_lo, k_hi]
-        model["theta1_small_signal_range"] = [(t1 - 2.0 * s1) * k_lo, (t1 + 2.0 * s1) * k_hi]
     fric = measure_friction(loaded, raw, axis, model["theta1"], clock, progress)
     if fric["fault"] or "theta2" not in fric:
         raise AutotuneError(f"axis {axis}: the friction passes stopped: {fric['fault'] or 'too short'}")
@@ -179,6 +172,13 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
     model["theta2_frf"] = model["theta2"]
     model.update(theta2=fric["theta2"], theta3=fric["theta3"], theta4=fric["theta4"])
     model["sigma"] = dict(model["sigma"], theta2_frf=model["sigma"]["theta2"], **fric["sigma"])
+    k_range = input_gain_range(sec.theta_min, sec.theta_max, meas.get("u_cov"))
+    model["ci95"] = model_intervals(model, fric, k_range)
+    if model["input_gain"] == 1.0 and meas.get("u_cov"):
+        # θ̂(0) declares no input nonlinearity: θ1 is M/(A1 κ) at the multisine's amplitude,
+        # κ unknown; M/A1 is known only within κ's range over the bounds of θ5, θ6
+        model["input_gain_range"] = list(k_range)
+        model["theta1_small_signal_range"] = model["ci95"]["theta1"]
     if progress:
         sg = model["sigma"]
         progress(f"fit {axis}: friction theta2 {fric['theta2']:.4g} +- {sg['theta2']:.2g} V s/m, theta3 "
@@ -254,6 +254,40 @@ def autotune_pairs(loaded: LoadedConfig, raw: dict, results: list, clock: str = 
                 progress(f"rule gtcf {a}-{b}: not tuned (c2 was not tuned on both axes)")
             continue
         out.append(tune_pair(loaded, raw, by[a], by[b], clock, progress, rule, full_periods))
+    return out
+
+
+#: the dynamic parameters of the multisine's fit whose 95 % interval is its own ± 1.96 σ
+FRF_KEYS = ("current_loop_hz", "delay_s", "mode_hz", "mode_damping", "load_fraction")
+
+
+def model_intervals(model: dict, fric: dict, k_range: tuple[float, float]) -> dict:
+    """The 95 % interval of each fitted parameter of ``model`` (:func:`autotune`'s), over what
+    the measurement cannot tell: {name: [lo, hi]} in the parameter's unit.
+
+    * θ1 = M/A1: the multisine sees M/(A1 κ), κ the input nonlinearity's gain at its amplitude
+      (:func:`motorctl.commission.fit.input_gain`); with θ5, θ6 anywhere in the bounds' box
+      (Ω_θ, eq. 5) κ lies in :func:`~motorctl.commission.fit.input_gain_range`, so M/A1 lies in
+      (θ1/κ ∓ 1.96 σ/κ)·[κ_lo, κ_hi], θ1/κ the fit before the correction;
+    * θ2, θ3, θ4: the passes' "ci95" (:func:`motorctl.commission.measure.measure_friction`: the
+      friction's shape and θ5, θ6 in the box);
+    * the dynamic parameters (:data:`FRF_KEYS`, those the fit holds: a mode only when kept):
+      ± 1.96 σ of the fit (the sandwich σ of :func:`motorctl.commission.fit.fit_plant`: the
+      sampling spread; a bias of the linear model against a nonlinear axis at the multisine's
+      amplitude is not in it: ``benchmarks/autotune_coverage.py`` measures how often these
+      intervals hold the plant's values).
+
+    Args: model: :func:`autotune`'s model (fitted values, "sigma", "input_gain", "mode"); fric:
+    measure_friction's result; k_range: (κ_lo, κ_hi) of input_gain_range."""
+    z = 1.959964
+    out = {}
+    k_lo, k_hi = k_range
+    t1, s1 = model["theta1"] / model["input_gain"], model["sigma"]["theta1"] / model["input_gain"]
+    out["theta1"] = [(t1 - z * s1) * k_lo, (t1 + z * s1) * k_hi]
+    out.update({k: list(v) for k, v in fric["ci95"].items()})
+    for k in FRF_KEYS:
+        if k in model["sigma"] and (model["mode"] or k not in ("mode_hz", "mode_damping", "load_fraction")):
+            out[k] = [model[k] - z * model["sigma"][k], model[k] + z * model["sigma"][k]]
     return out
 
 

@@ -150,24 +150,41 @@ def fit_plant(f: np.ndarray, G: np.ndarray, coh: np.ndarray, ts: float, theta_ha
 #: seeds that agreed within σ: 31σ; the cause was the input nonlinearity's linear gain κ =
 #: 0.931 at the multisine's 2.2 V RMS, now taken out by :func:`input_gain`.)
 SIGMA_SCOPE = ("sigma from the fit's residual: the spread of repeated measurements, not a bias of the "
-               "model (theta1, theta2 are corrected for the input nonlinearity's gain, input_gain)")
+               "model (theta1, theta2 are corrected for the input nonlinearity's gain, input_gain); ci95 "
+               "holds also what the measurement cannot tell for theta1..theta4 (theta5, theta6 within "
+               "their bounds, the friction's shape)")
 
 
 def _sigma(sol, params: dict) -> dict:
     """The standard deviation of each fitted parameter of the model ``params`` from the least
-    squares solution ``sol`` (scipy.optimize.least_squares): the covariance (JᵀJ)⁺ s², s² the
-    residual variance 2·cost/(m − n) (Gauss-Newton linearisation at the solution, residuals
-    weighted by the coherence as the fit's). {parameter: σ in its unit} for the parameters
-    the solution holds, in their order (:data:`motorctl.commission.loopshape.MODEL_KEYS`).
+    squares solution ``sol`` (scipy.optimize.least_squares): the Newey-West sandwich (JᵀJ)⁻¹ S
+    (JᵀJ)⁻¹, S = Σ_l w_l Σ_i g_i g_{i+l}ᵀ (+ its transpose), g_i = J_i r_i, Bartlett weights
+    w_l = 1 − l/(L+1) over L = ⌊4 (m/100)^(2/9)⌋ neighbouring lines (W. K. Newey, K. D. West,
+    "Automatic lag selection in covariance matrix estimation", Rev. Econ. Stud. 61(4), 1994),
+    within the real and within the imaginary parts (each in frequency order), scaled by m/(m − n);
+    never below the Gauss-Newton σ, (JᵀJ)⁻¹ s² with s² = 2·cost/(m − n). The weighted residual's
+    spread changes across the band (it is the coherence's estimate of the noise, not the noise):
+    on the default plant's Y the sandwich's σ of the mode frequency is twice the Gauss-Newton one.
+    {parameter: σ in its unit} for the parameters the solution holds, in their order
+    (:data:`motorctl.commission.loopshape.MODEL_KEYS`).
 
-    It is the spread of the fit over repeated measurements, and on the simulated default plant
-    that is what it is: θ1 on the driver seeds 1 and 2 agreed within one σ. Their error against
-    the truth (+7 %, 31σ) is a bias of the model against the loop's FRF, the same on every
-    seed, which no σ of this fit can cover (:data:`SIGMA_SCOPE`); it is not inflated."""
-    J = sol.jac
+    It is the spread of the fit over repeated measurements: a bias of the model against a
+    nonlinear axis at the multisine's amplitude is not in it (:data:`SIGMA_SCOPE`;
+    ``benchmarks/autotune_coverage.py`` measures how often θ ± 1.96 σ holds the plant's value)."""
+    J, r = sol.jac, sol.fun
     m, n = J.shape
-    s2 = 2.0 * sol.cost / max(m - n, 1)
-    cov = np.linalg.pinv(J.T @ J) * s2
+    ja = np.linalg.pinv(J.T @ J)
+    cov_gn = ja * 2.0 * sol.cost / max(m - n, 1)
+    h = m // 2
+    lags = int(4.0 * (h / 100.0) ** (2.0 / 9.0))
+    S = np.zeros((n, n))
+    for part in (slice(0, h), slice(h, m)):
+        g = J[part] * r[part, None]
+        S += g.T @ g
+        for lag in range(1, lags + 1):
+            c = g[:-lag].T @ g[lag:]
+            S += (1.0 - lag / (lags + 1.0)) * (c + c.T)
+    cov = np.maximum(np.diag(ja @ S @ ja) * m / max(m - n, 1), np.diag(cov_gn))
     keys = [k for k in ("theta1", "theta2", "current_loop_hz", "delay_s", "mode_hz", "mode_damping",
                         "load_fraction")][:n]
-    return {k: float(math.sqrt(max(cov[j, j], 0.0))) for j, k in enumerate(keys)}
+    return {k: float(math.sqrt(max(cov[j], 0.0))) for j, k in enumerate(keys)}

@@ -9,7 +9,7 @@ import copy
 import math
 
 import numpy as np
-from scipy import signal
+from scipy import signal, stats
 
 from motorctl.app.build import build, shutdown, start
 from motorctl.commission.rule import AutotuneError, F_LO, F_SHAPE, HOLD_HZ, HOLD_R, HOLD_ZETA, DISP_SHARE, EXC_SHARE, F_BOOST, F_HI_SHARE, GUARD_SHARE, LINE_SPACING, PERIODS, PERIOD_S, REST_S, STROKE_MARGIN
@@ -317,10 +317,17 @@ def measure_friction(loaded: LoadedConfig, raw: dict, axis: str, theta1: float, 
     the fitted θ1 and (θ2, θ3, θ4) fitted to the rows by linear least squares, with the
     standard deviation of each from the residual variance (σ² (AᵀA)⁻¹).
 
+    The passes cannot tell the friction's shape at their speeds (the paper's S_f, eq. 4, is
+    0.993 at 0.1 m/s, a Coulomb friction's sign is 1) nor θ5, θ6 (one force level per speed): the
+    95 % interval "ci95" spans the fits with S_f and with the sign, each at the corners of the
+    bounds' box of θ5, θ6 (Ω_θ, eq. 5), each widened by its Student-t quantile (P − 3 degrees of
+    freedom) times its σ.
+
     Args:
         theta1: fitted M/A1 [V s²/m]. clock: 'virtual' | 'wall'.
     Returns:
-        {"theta2" [V s/m], "theta3" [V], "theta4" [V], "sigma": {same keys}, "passes": [(v [m/s],
+        {"theta2" [V s/m], "theta3" [V], "theta4" [V], "sigma": {same keys}, "ci95": {same keys:
+        [lo, hi]: the 95 % interval over what the passes cannot tell (below)}, "passes": [(v [m/s],
         u [V]) per pass], "duration_s" (the passes' time on the machine), "fault" ('' when
         none), "stroke_m": (min y, max y)}; no "theta2" when the passes faulted.
     Raises:
@@ -386,11 +393,41 @@ def measure_friction(loaded: LoadedConfig, raw: dict, axis: str, theta1: float, 
         b.append(um - theta1 * row[0] - row[4:6] @ th[4:6])
         out["passes"].append((float(c1), um))
     A, b = np.asarray(phi), np.asarray(b)
-    x, res, _, _ = np.linalg.lstsq(A, b, rcond=None)
-    dof = max(A.shape[0] - A.shape[1], 1)
-    s2 = float(np.sum((A @ x - b) ** 2)) / dof
-    sd = np.sqrt(np.maximum(np.diag(np.linalg.pinv(A.T @ A)) * s2, 0.0))
     keys = ("theta2", "theta3", "theta4")
+    x, sd, dof = _friction_fit(A, b)
     out.update({k: float(v) for k, v in zip(keys, x)})
     out["sigma"] = {k: float(v) for k, v in zip(keys, sd)}
+    # what the passes cannot tell: the friction's shape (the model's S_f or a sign at the
+    # passes' speeds) and θ5, θ6 anywhere in the bounds' box (Ω_θ, eq. 5); the 95 % interval
+    # holds each variant's own Student-t interval
+    q = float(stats.t.ppf(0.975, dof))
+    uu = np.asarray([p_[1] for p_ in out["passes"]])             # each pass's mean u [V]
+    nl = np.column_stack([-uu * np.abs(uu), -uu ** 3])          # eq. 4's θ5, θ6 columns
+    th56_0 = _theta56_box(sec, declared=True)[0]
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for th56 in _theta56_box(sec):
+        for shape in (A, np.column_stack([A[:, 0], np.sign(A[:, 1]), A[:, 2]])):
+            xv, sv, _ = _friction_fit(shape, b + nl @ (th56_0 - th56))
+            lo, hi = np.minimum(lo, xv - q * sv), np.maximum(hi, xv + q * sv)
+    out["ci95"] = {k: [float(a_), float(b_)] for k, a_, b_ in zip(keys, lo, hi)}
     return out
+
+
+def _friction_fit(A: np.ndarray, b: np.ndarray):
+    """Least squares of the passes' rows A (P, 3) [θ2, θ3, θ4 columns] on b (P,) [V]: (θ (3,),
+    σ (3,) from the residual variance σ² (AᵀA)⁻¹, degrees of freedom P − 3 (at least 1))."""
+    x = np.linalg.lstsq(A, b, rcond=None)[0]
+    dof = max(A.shape[0] - A.shape[1], 1)
+    s2 = float(np.sum((A @ x - b) ** 2)) / dof
+    return x, np.sqrt(np.maximum(np.diag(np.linalg.pinv(A.T @ A)) * s2, 0.0)), dof
+
+
+def _theta56_box(sec, declared: bool = False) -> list:
+    """The corners of the box θ5 ∈ [θ5_min, θ5_max], θ6 ∈ [θ6_min, θ6_max] of a controller
+    section's bounds (the paper's Ω_θ, eq. 5), each (2,) [1/V, 1/V²]; θ̂(0)'s own θ5, θ6 alone
+    (0 where it has four entries) where the section has fewer than six bounds or ``declared``."""
+    lo, hi = list(sec.theta_min), list(sec.theta_max)
+    if declared or len(lo) < 6 or len(hi) < 6:
+        th = list(sec.theta_hat0)[:6] + [0.0] * (6 - len(list(sec.theta_hat0)[:6]))
+        return [np.asarray(th[4:6], dtype=float)]
+    return [np.array([t5, t6]) for t5 in (lo[4], hi[4]) for t6 in (lo[5], hi[5])]
