@@ -71,8 +71,9 @@ MIN_TRAVEL_COUNT = 5
 #: θ3): clean records 0.02-0.06 (benchmarks/ident_unmodelled.py clean and encoder5um seeds 1-6:
 #: a fitted Stribeck hump overshooting the sign-shaped Coulomb friction), 0.00-0.04 on
 #: benchmarks/ident_verdict.py's clean, encoder and mode logs of the default, rigid and
-#: half-mode plants; Dahl/LuGre friction with a presliding distance of 40 and 120 µm 0.74 and
-#: 1.06 (seeds 1-6); EMPS (a real axis) 0.41-0.45, 8.2-8.4 N in its first 46 µm
+#: half-mode plants (0.05-0.06 with a 400 Hz current loop); Dahl/LuGre friction with a
+#: presliding distance of 40 and 120 µm 0.74 and 1.06 (seeds 1-6); EMPS (a real axis)
+#: 0.41-0.45, 8.2-8.4 N in its first 46 µm
 MIN_TRAVEL_COULOMB = 0.3
 #: the deficit is looked for within this share of the longest travel: presliding lasts tens to
 #: hundreds of µm, a play its width; beyond, on a back-and-forth program the travel since the
