@@ -75,6 +75,27 @@ def line_force(f, x, v, t, sf, p):
     return f - p[0] * (x - p[1]) * sf
 
 
+#: largest share of what a friction of position explains that fitting it on each direction of
+#: motion apart may add (:meth:`motorctl.ident.select.Identifier.direction_split_gain`).
+#: Measured: the families' own shapes on the default plant (×0.5, ×1, ×2, seeds 1-2) 0.000-0.007;
+#: a 10 kg load through ±100 µm of play (benchmarks/ident_unmodelled.py backlash100 seed 3,
+#: taken as a 12-segment friction shape: the load's push, mirrored about mid-stroke out and back)
+#: 0.080
+MAX_DIRECTION_SPLIT = 0.04
+
+
+def direction_check(ctx, term, base) -> list[str]:
+    """The reason a friction of position (this family's or position_friction_shape's ``term``)
+    is refused when it is not one force whichever way the carriage passes (:data:`MAX_DIRECTION_SPLIT`),
+    else none."""
+    g = ctx.direction_split_gain(term, base)
+    if g > MAX_DIRECTION_SPLIT:
+        return [f"not one friction both ways: fitted on each direction of motion apart it explains "
+                f"{100 * g:.0f} % more (> {100 * MAX_DIRECTION_SPLIT:g} %); a friction of position has one "
+                "magnitude at a position whichever way the carriage passes it"]
+    return []
+
+
 class PositionDependentFrictionFamily(EffectFamily):
     name = "position_dependent_friction"
     search_cost = 0.002
@@ -99,7 +120,7 @@ class PositionDependentFrictionFamily(EffectFamily):
         x = ctx.p.x_d
         if min(theta[2] + beta[0] * x.min(), theta[2] + beta[0] * x.max()) < 0:
             return ["Coulomb level would turn negative over the stroke"]
-        return []
+        return direction_check(ctx, term, base)
 
     def parameters(self, h, beta, gain, fs):
         g, unit = (gain, "N") if gain else (1.0, "V")

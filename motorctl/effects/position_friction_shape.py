@@ -52,7 +52,7 @@ from pydantic import Field, model_validator
 
 from motorctl.effects.base import CompTerm, EffectFamily, PlantTerm
 from motorctl.effects.periodic import SHAPE_POINTS
-from motorctl.effects.position_dependent_friction import FAMILY as LINEAR
+from motorctl.effects.position_dependent_friction import FAMILY as LINEAR, direction_check
 from motorctl.jit import njit
 from motorctl.model import s_f
 from motorctl.schema import Pos, StrictModel
@@ -491,7 +491,7 @@ class PositionFrictionShapeFamily(EffectFamily):
                 reasons.append(f"not told from a friction that varies with the speed: the same basis over |v| "
                                f"explains {100 * d_speed / max(d_fric, 1e-300):.0f} % as much "
                                f"(> {100 * MAX_SPEED_SHARE:g} %)")
-        return reasons
+        return reasons + direction_check(ctx, term, base)
 
     def parameters(self, h, beta, gain, fs):
         """The knot grid (segments, spacing [m]) and the size of the shape: the peak-to-peak value

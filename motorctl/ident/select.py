@@ -768,6 +768,23 @@ class Identifier:
         den = np.linalg.norm(bp) + np.linalg.norm(bm)
         return float(1.0 - np.linalg.norm(bp - bm) / den) if den > 0 else 0.0
 
+    def direction_split_gain(self, term: Term, base: list) -> float:
+        """What the effect's columns explain beyond their joint fit when fitted on each direction
+        of motion with their own coefficients (the columns × [ẋ > 0] and × [ẋ < 0] in place of
+        them, jointly with the nominal θ), as a share of what they explain: (SSE(base + term) −
+        SSE(split)) / (SSE(base) − SSE(base + term)). About 0 for a force that is one function
+        of the state whichever way the carriage moves (a friction of position: its columns carry
+        S_f(ẋ)); large for a force that differs with the direction (a play taken up at other
+        positions going out and back). NaN when the term explains nothing."""
+        phi, y = self.design(base + [term])
+        k = term.cols.shape[1]
+        s_with = _sse_of(phi, y)
+        s0 = _sse_of(*self.design(base))
+        fwd = (self.p.v_d > 0)[:, None]
+        split = np.hstack([phi[:, :-k], phi[:, -k:] * fwd, phi[:, -k:] * ~fwd])
+        gain = s0 - s_with
+        return float((s_with - _sse_of(split, y)) / gain) if gain > 0 else math.nan
+
     def speed_growth(self, term: Term, base: list, period: float) -> float:
         """‖β_fast‖/‖β_slow‖ for the effect's coefficients fitted jointly with the nominal θ
         (θ1 taken from the whole record, the other columns fitted on each half) on
@@ -1709,6 +1726,12 @@ def _cov(phi: np.ndarray, residual: np.ndarray) -> np.ndarray:
     """σ̂² (ΦᵀΦ)⁻¹ of an LS fit (p, p)."""
     m, k = phi.shape
     return float(residual @ residual) / max(m - k, 1) * np.linalg.pinv(phi.T @ phi)
+
+
+def _sse_of(phi: np.ndarray, y: np.ndarray) -> float:
+    """SSE of the LS fit of y (M,) on phi (M, p) (:func:`_coef`)."""
+    r = y - phi @ _coef(phi, y)
+    return float(r @ r)
 
 
 def _coef(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
