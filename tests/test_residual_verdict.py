@@ -65,7 +65,7 @@ def test_a_candidate_refused_on_its_physics_is_reported_unexplained():
     resonance = "the loop itself oscillates at 67.75 Hz (...): a resonance of the loop or the structure"
     step = [cand("periodic_disturbance", 0.10, resonance),
             cand("cogging", 0.20, "not the same force in both directions", "held-out gain 2.0 % < 3 %"),
-            cand("stribeck", 0.04, "Stribeck force must be positive"),
+            cand("stribeck", 0.03, "Stribeck force must be positive"),
             cand("spring", 0.30, ok=True)]
     clean = {"structured": False, "findings": [],
              "text": "the residual shows no structure (against velocity, input, position, time, spectrum)"}
