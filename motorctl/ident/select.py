@@ -482,9 +482,7 @@ class Identifier:
         the new columns' products are computed (M·k·(p + k) instead of M·(p + k)²)."""
         last = terms[-1] if terms else None
         if last is None or last.cols is None or last.delay or effect_family(last.family).other_weight(last) is not None:
-            phi, y = self.design(terms)
-            r = y - phi @ _coef(phi, y)
-            return float(r @ r)
+            return _sse_of(*self.design(terms))
         a0, y, weight, g, b = self._partial(terms[:-1])
         c = last.cols if weight is None else last.cols * weight[:, None]
         a1 = unit_columns(c)[0]
@@ -778,8 +776,7 @@ class Identifier:
         positions going out and back). NaN when the term explains nothing."""
         phi, y = self.design(base + [term])
         k = term.cols.shape[1]
-        s_with = _sse_of(phi, y)
-        s0 = _sse_of(*self.design(base))
+        s_with, s0 = self.sse(base + [term]), self.sse(base)
         fwd = (self.p.v_d > 0)[:, None]
         split = np.hstack([phi[:, :-k], phi[:, -k:] * fwd, phi[:, -k:] * ~fwd])
         gain = s0 - s_with
