@@ -309,3 +309,24 @@ def test_the_bracket_finds_the_lower_damping_that_tracks_within_the_saturation_l
     failed = [(c[0], c[1]) for c, r in zip(calls, v.runs) if r[3] and c[2] == 40.0]
     tried = [c[:2] for c, r in zip(calls, v.runs) if r[0].startswith("bracket")]
     assert all(not (k >= fk and k1 >= fk1) for k, k1 in tried for fk, fk1 in failed if (k, k1) != (fk, fk1))
+
+
+def test_the_fits_sigma_holds_for_parameters_of_any_scale():
+    """The model's parameters span ten decades (delay_s ~1e-5 s, current_loop_hz ~1e3 Hz): the
+    pseudo-inverse of the raw JᵀJ cut the small directions to a zero variance (a current loop of
+    2139.29 Hz stated within ±0.005 Hz on a plant of 2000 Hz); the σ is each parameter's own
+    whatever its unit: rescaling a parameter by 1e8 rescales its σ by 1e8 and leaves the others'."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from motorctl.commission.fit import _sigma
+
+    rng = np.random.default_rng(7)
+    J = rng.normal(size=(400, 3))
+    r = rng.normal(size=400)
+    base = _sigma(SimpleNamespace(jac=J, fun=r, cost=0.5 * float(r @ r)), {})
+    scaled = _sigma(SimpleNamespace(jac=J * np.array([1e-8, 1.0, 1e6]), fun=r, cost=0.5 * float(r @ r)), {})
+    got = [scaled[k] for k in ("theta1", "theta2", "current_loop_hz")]
+    want = [base["theta1"] * 1e8, base["theta2"], base["current_loop_hz"] * 1e-6]
+    assert np.allclose(got, want, rtol=1e-6), (got, want)

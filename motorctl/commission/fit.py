@@ -171,9 +171,16 @@ def _sigma(sol, params: dict) -> dict:
     It is the spread of the fit over repeated measurements: a bias of the model against a
     nonlinear axis at the multisine's amplitude is not in it (:data:`SIGMA_SCOPE`;
     ``benchmarks/autotune_coverage.py`` measures how often θ ± 1.96 σ holds the plant's value)."""
-    J, r = sol.jac, sol.fun
+    r = sol.fun
+    # the parameters' scales differ by ten decades (delay_s ~1e-5 s, current_loop_hz ~1e3 Hz):
+    # (JᵀJ)⁺ of the raw Jacobian truncates the small directions to a zero variance; of the
+    # Jacobian with unit columns, scaled back, it does not
+    sc = np.linalg.norm(sol.jac, axis=0)
+    sc = np.where(sc > 0.0, sc, 1.0)
+    J = sol.jac / sc
     m, n = J.shape
-    ja = np.linalg.pinv(J.T @ J)
+    ja = np.linalg.pinv(J.T @ J) / np.outer(sc, sc)
+    J = sol.jac
     cov_gn = ja * 2.0 * sol.cost / max(m - n, 1)
     h = m // 2
     lags = int(4.0 * (h / 100.0) ** (2.0 / 9.0))
