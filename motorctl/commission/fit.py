@@ -175,12 +175,11 @@ def _sigma(sol, params: dict) -> dict:
     # the parameters' scales differ by ten decades (delay_s ~1e-5 s, current_loop_hz ~1e3 Hz):
     # (JᵀJ)⁺ of the raw Jacobian truncates the small directions to a zero variance; of the
     # Jacobian with unit columns, scaled back, it does not
-    sc = np.linalg.norm(sol.jac, axis=0)
-    sc = np.where(sc > 0.0, sc, 1.0)
-    J = sol.jac / sc
-    m, n = J.shape
-    ja = np.linalg.pinv(J.T @ J) / np.outer(sc, sc)
     J = sol.jac
+    m, n = J.shape
+    sc = np.linalg.norm(J, axis=0)
+    sc = np.where(sc > 0.0, sc, 1.0)
+    ja = np.linalg.pinv((J / sc).T @ (J / sc)) / np.outer(sc, sc)      # (JᵀJ)⁻¹
     cov_gn = ja * 2.0 * sol.cost / max(m - n, 1)
     h = m // 2
     lags = int(4.0 * (h / 100.0) ** (2.0 / 9.0))
