@@ -90,19 +90,25 @@ def _binned(r: np.ndarray, x: np.ndarray, n_eff_ratio: float):
     if edges.size < 3:
         return None
     idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, edges.size - 2)
-    n = np.bincount(idx, minlength=edges.size - 1).astype(float)
-    s = np.bincount(idx, weights=r, minlength=edges.size - 1)
-    ok = n > 0
-    m = np.where(ok, s / np.maximum(n, 1.0), 0.0)
+    m, share, noise, z = _bin_means(r, r, idx, edges.size - 1, n_eff_ratio)
     size = float(np.percentile(np.abs(m[idx]), 99))
-    share = float(np.sum(n * m * m) / max(float(r @ r), 1e-300))
-    sd = float(np.std(r))
-    se = sd / np.sqrt(np.maximum(n * n_eff_ratio, 1.0))
-    z = np.where(ok, np.abs(m) / np.maximum(se, 1e-300), 0.0)
     j = int(np.argmax(z))
-    noise = (float(ok.sum()) - 1.0) / max(r.size * n_eff_ratio, 1.0)
     return {"share": share, "noise": noise, "size": size, "z": float(z[j]), "lo": float(edges[j]),
             "hi": float(edges[j + 1]), "mean": float(m[j])}
+
+
+def _bin_means(r: np.ndarray, w: np.ndarray, idx: np.ndarray, bins: int, n_eff_ratio: float):
+    """The means m (bins,) of ``w`` (K,) over its bins ``idx`` (K,) (0 in an empty bin), the
+    share of the residual r's (M,) power they explain Σ n_b m_b² / Σ r², that share's level for
+    noise alone ((bins holding samples − 1)/n_eff, n_eff = M · ``n_eff_ratio``) and each mean in
+    standard errors of r (z, (bins,)). ``w`` is r or a part of it (signed, e.g. by the direction
+    of motion)."""
+    n = np.bincount(idx, minlength=bins).astype(float)
+    m = np.bincount(idx, weights=w, minlength=bins) / np.maximum(n, 1.0)
+    share = float(np.sum(n * m * m) / max(float(r @ r), 1e-300))
+    noise = (float((n > 0).sum()) - 1.0) / max(r.size * n_eff_ratio, 1.0)
+    se = float(np.std(r)) / np.sqrt(np.maximum(n * n_eff_ratio, 1.0))
+    return m, share, noise, np.abs(m) / np.maximum(se, 1e-300)
 
 
 def reversal_threshold(p) -> float:
@@ -152,18 +158,17 @@ def _travel_binned(r: np.ndarray, p, n_eff_ratio: float):
     :data:`MIN_TRAVEL_COUNT` samples): the share of r's power their means explain, its noise
     level, the deficit (``size``: minus the most negative bin mean among the bins within
     :data:`MAX_TRAVEL_SHARE` of the longest travel, 0 when none is negative) and its bin (else
-    the most deviating bin); None without a reversal."""
-    if not all(hasattr(p, k) for k in ("y", "x", "t")):
-        return None
-    cache = getattr(p, "derived", None)
-    got = cache.get("travel_since_reversal") if isinstance(cache, dict) else None
+    the most deviating bin); None without a reversal. p: the record's
+    :class:`~motorctl.ident.idim.Prepared` (the travel is kept in its ``derived``)."""
+    got = p.derived.get("travel_since_reversal")
     if got is None:                         # the verdict runs several times on one record
         thr = reversal_threshold(p)
-        s_full, d_full = travel_since_reversal(p.y, thr) if thr > 0.0 else (np.zeros(0), np.zeros(0))
-        k = np.clip(np.searchsorted(p.t, p.t_d), 0, len(p.t) - 1)
-        got = (thr, s_full[k], d_full[k]) if thr > 0.0 else (thr, None, None)
-        if isinstance(cache, dict):
-            cache["travel_since_reversal"] = got
+        got = (thr, None, None)
+        if thr > 0.0:
+            s_full, d_full = travel_since_reversal(p.y, thr)
+            k = np.clip(np.searchsorted(p.t, p.t_d), 0, len(p.t) - 1)
+            got = (thr, s_full[k], d_full[k])
+        p.derived["travel_since_reversal"] = got
     thr, s, d = got
     if s is None or s.size != r.size:
         return None
@@ -187,19 +192,14 @@ def _travel_binned(r: np.ndarray, p, n_eff_ratio: float):
     if edges.size < 3:
         return None
     idx = np.clip(np.searchsorted(edges, s, side="right") - 1, 0, edges.size - 2)
-    n = np.bincount(idx, minlength=edges.size - 1).astype(float)
-    m = np.bincount(idx, weights=rs, minlength=edges.size - 1) / np.maximum(n, 1.0)
-    se = float(np.std(r)) / np.sqrt(np.maximum(n * n_eff_ratio, 1.0))
-    z = np.abs(m) / np.maximum(se, 1e-300)
+    m, share, noise, z = _bin_means(r, rs, idx, edges.size - 1, n_eff_ratio)
     short = edges[1:] <= MAX_TRAVEL_SHARE * s.max()
     # the deficit: the most negative mean in the first tenth of the travel (else the most deviating bin)
     j = int(np.argmin(np.where(short, m, np.inf))) if short.any() else int(np.argmax(z))
     if not (short[j] and m[j] < 0.0):
         j = int(np.argmax(z))
     deficit = float(-m[j]) if short[j] and m[j] < 0.0 else 0.0
-    return {"share": float(np.sum(n * m * m) / max(float(r @ r), 1e-300)),
-            "noise": (float((n > 0).sum()) - 1.0) / max(r.size * n_eff_ratio, 1.0),
-            "size": deficit, "z": float(z[j]), "lo": float(edges[j]),
+    return {"share": share, "noise": noise, "size": deficit, "z": float(z[j]), "lo": float(edges[j]),
             "hi": float(edges[j + 1]), "mean": float(m[j]), "from": thr}
 
 
