@@ -44,23 +44,29 @@ def input_gain(theta_hat0, u_cov: dict | None) -> float:
     return float(1.0 + (th[4] * u_cov["abs2"] + th[5] * u_cov["cube"]) / u_cov["var"])
 
 
-def input_gain_range(theta_min, theta_max, u_cov: dict | None) -> tuple[float, float]:
-    """The range of :func:`input_gain` κ over the box θ5 ∈ [θ5_min, θ5_max], θ6 ∈ [θ6_min,
-    θ6_max] of the config's bounds (the paper's Ω_θ, Assumption 1, eq. 5: the set the true θ is
-    assumed in). κ is linear in (θ5, θ6), so its extremes are at the box's corners.
+def theta56_corners(theta_min, theta_max) -> list:
+    """The corners of the box θ5 ∈ [θ5_min, θ5_max], θ6 ∈ [θ6_min, θ6_max] of the config's
+    bounds (the paper's Ω_θ, Assumption 1, eq. 5: the set the true θ is assumed in), each (θ5
+    [1/V], θ6 [1/V²]); [] with fewer than six bounds. A quantity linear in (θ5, θ6) has its
+    extremes over the box at these four points."""
+    if len(list(theta_min)) < 6 or len(list(theta_max)) < 6:
+        return []
+    return [(t5, t6) for t5 in (theta_min[4], theta_max[4]) for t6 in (theta_min[5], theta_max[5])]
 
-    Used where θ̂(0) declares no input nonlinearity: a response measured at one amplitude gives
-    M/(A1 κ) with κ unknown, and M/A1 is then only known to lie within θ1·[κ_lo, κ_hi] (one
-    amplitude cannot tell κ; two would: Pintelon & Schoukens, ch. 3).
+
+def input_gain_range(theta_min, theta_max, u_cov: dict | None) -> tuple[float, float]:
+    """The range of :func:`input_gain` κ over the box of θ5, θ6 (:func:`theta56_corners`; κ is
+    linear in them).
+
+    A response measured at one amplitude gives M/(A1 κ), and with θ5, θ6 known only to lie in
+    the box M/A1 is only known to lie within θ1·[κ_lo, κ_hi] (one amplitude cannot tell κ; two
+    would: Pintelon & Schoukens, ch. 3).
 
     Args: theta_min, theta_max: the config's bounds, (6,) (θ5 [1/V], θ6 [1/V²]); u_cov as
     :func:`input_gain`. Returns: (κ_lo, κ_hi); (1.0, 1.0) without u_cov or with fewer than six
     bounds."""
-    if len(list(theta_min)) < 6 or len(list(theta_max)) < 6:
-        return 1.0, 1.0
-    ks = [input_gain([0, 0, 0, 0, t5, t6], u_cov)
-          for t5 in (theta_min[4], theta_max[4]) for t6 in (theta_min[5], theta_max[5])]
-    return float(min(ks)), float(max(ks))
+    ks = [input_gain([0, 0, 0, 0, t5, t6], u_cov) for t5, t6 in theta56_corners(theta_min, theta_max)]
+    return (float(min(ks)), float(max(ks))) if ks else (1.0, 1.0)
 
 
 def fit_plant(f: np.ndarray, G: np.ndarray, coh: np.ndarray, ts: float, theta_hat0,

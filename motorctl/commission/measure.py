@@ -12,6 +12,7 @@ import numpy as np
 from scipy import signal, stats
 
 from motorctl.app.build import build, shutdown, start
+from motorctl.commission.fit import theta56_corners
 from motorctl.commission.rule import AutotuneError, F_LO, F_SHAPE, HOLD_HZ, HOLD_R, HOLD_ZETA, DISP_SHARE, EXC_SHARE, F_BOOST, F_HI_SHARE, GUARD_SHARE, LINE_SPACING, PERIODS, PERIOD_S, REST_S, STROKE_MARGIN
 from motorctl.commission.rule import (FRICTION_A_MAX, FRICTION_A_SHARE, FRICTION_CRUISE, FRICTION_SKIP_S,
                                       FRICTION_SPEEDS, FRICTION_V_SHARE)
@@ -403,9 +404,9 @@ def measure_friction(loaded: LoadedConfig, raw: dict, axis: str, theta1: float, 
     q = float(stats.t.ppf(0.975, dof))
     uu = np.asarray([p_[1] for p_ in out["passes"]])             # each pass's mean u [V]
     nl = np.column_stack([-uu * np.abs(uu), -uu ** 3])          # eq. 4's θ5, θ6 columns
-    th56_0 = _theta56_box(sec, declared=True)[0]
+    th56_0 = th[4:6]                                             # as b was taken
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-    for th56 in _theta56_box(sec):
+    for th56 in np.asarray(theta56_corners(sec.theta_min, sec.theta_max) or [th56_0], dtype=float):
         for shape in (A, np.column_stack([A[:, 0], np.sign(A[:, 1]), A[:, 2]])):
             xv, sv, _ = _friction_fit(shape, b + nl @ (th56_0 - th56))
             lo, hi = np.minimum(lo, xv - q * sv), np.maximum(hi, xv + q * sv)
@@ -420,14 +421,3 @@ def _friction_fit(A: np.ndarray, b: np.ndarray):
     dof = max(A.shape[0] - A.shape[1], 1)
     s2 = float(np.sum((A @ x - b) ** 2)) / dof
     return x, np.sqrt(np.maximum(np.diag(np.linalg.pinv(A.T @ A)) * s2, 0.0)), dof
-
-
-def _theta56_box(sec, declared: bool = False) -> list:
-    """The corners of the box θ5 ∈ [θ5_min, θ5_max], θ6 ∈ [θ6_min, θ6_max] of a controller
-    section's bounds (the paper's Ω_θ, eq. 5), each (2,) [1/V, 1/V²]; θ̂(0)'s own θ5, θ6 alone
-    (0 where it has four entries) where the section has fewer than six bounds or ``declared``."""
-    lo, hi = list(sec.theta_min), list(sec.theta_max)
-    if declared or len(lo) < 6 or len(hi) < 6:
-        th = list(sec.theta_hat0)[:6] + [0.0] * (6 - len(list(sec.theta_hat0)[:6]))
-        return [np.asarray(th[4:6], dtype=float)]
-    return [np.array([t5, t6]) for t5 in (lo[4], hi[4]) for t6 in (lo[5], hi[5])]
