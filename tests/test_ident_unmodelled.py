@@ -35,9 +35,11 @@ def bench():
     return mod
 
 
-def _identify(bench, case: str, seed: int, tmp_path) -> dict:
-    path = bench.simulate(bench.CASES[case][0], seed, tmp_path / f"{case}.csv")
-    return summarise(Identifier(load_record(path, None, str(bench.A1))).run())
+def _identify(bench, case: str, seed: int, tmp_path, sim: str = "a") -> dict:
+    """identify's summary of simulation ``sim``'s record of ``case`` at ``seed``."""
+    b = bench.SIMS[sim]
+    path = b["simulate"](b["cases"][case][0], seed, tmp_path / f"{case}.csv")
+    return summarise(Identifier(load_record(path, None, str(b["gain"]))).run())
 
 
 def test_thrust_lost_at_the_stroke_ends_is_warned_and_named_no_spring(bench, tmp_path):
@@ -104,7 +106,6 @@ def test_a_delay_the_record_cannot_confirm_is_warned_not_left_unsaid(bench, tmp_
     still explained 4.2 % and was refused on its physics, below the 6 % a refused candidate then
     needed to be reported: the record was called clean. A refusal of what would be named (at
     least 4 %) is now the warning."""
-    path = bench.simulate_b(bench.CASES_B["delay1500us"][0], 1, tmp_path / "delay.csv")
-    s = summarise(Identifier(load_record(path, None, str(bench.B_K0))).run())
+    s = _identify(bench, "delay1500us", 1, tmp_path, sim="b")
     assert s["residual"]["structured"], s["residual"]["text"]
     assert "input_delay" in s["residual"]["text"], s["residual"]["text"]
