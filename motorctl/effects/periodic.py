@@ -11,6 +11,7 @@ Brent search to 1/30 of that); a peak whose period lowers the SSE by less than
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 from collections import OrderedDict
@@ -69,6 +70,29 @@ AT_REST_ONLY = "seen only where the carriage rests"
 #: reasons that say a candidate's evidence is a few samples, not that its physics does not fit:
 #: the residual verdict does not make a structure of them
 NOT_A_STRUCTURE = (FEW_SAMPLES, AT_REST_ONLY)
+#: Largest relative distance from a term's period P (and from P/2) at which the harmonic check
+#: (:meth:`PositionPeriodic.harmonic_check`) refines each harmonic on its own: the SSE's main
+#: lobe, ±P/stroke, up to this share (two forces whose periods lie farther from P are not
+#: both taken by one locked pair). Independent simulation B (a 0.205 m stroke): 22.08 mm
+#: locked, 23 mm true (4.2 %; its lobe ±10.8 %)
+HARMONIC_SPAN = 0.12
+#: Least phase slip [cycles over the stroke] between the second harmonic, refined on its own,
+#: and twice the fundamental, refined on its own (stroke·|2/P1 − 1/P2|): below it the two
+#: periods are one period and its harmonic to within half the record's resolution (one cycle
+#: over the stroke: the Rayleigh resolution), and a better locked period, not two forces, is
+#: what the unlocked pair finds. Measured (:meth:`PositionPeriodic.harmonic_check` at every
+#: call of a selection): 3 N at 11 mm + 2.5 N at 23 mm (simulation B, seeds 1-3) 0.78-0.81
+#: beside stiction; true cogging, force ripple and periodic friction 0.00-0.64 (the largest
+#: where the plant has one harmonic and the second is noise, its period free: B's 19 mm
+#: cogging), which the drop below tells apart
+MIN_HARMONIC_SLIP = 0.5
+#: ... and the least share of the SSE the locked pair leaves that the unlocked pair must explain
+#: beyond it: two forces, not one period. Measured: simulation B's two periods 0.86-0.88 beside
+#: stiction (0.04 at the first step, before it: not refused there); a true 29 mm cogging beside an
+#: unmodelled 17 mm force (simulation A, seeds 1-3) 0.13; the true cogging (×0.5, ×1, 32 mm, 2
+#: harmonics), force ripple and periodic friction of ``benchmarks/ident_families.py --seed 1``
+#: and B's 19 mm cogging 0.00-0.03; other candidates 0.00-0.04
+MIN_UNLOCKED_DROP = 0.25
 #: Points of a report figure's curve.
 SHAPE_POINTS = 2000
 
@@ -397,7 +421,63 @@ class PositionPeriodic(EffectFamily):
         out += self.speed_check(ctx, term, base)
         out += self.thrust_check(ctx, term, base)
         out += self.motion_check(ctx, term, base)
+        if not out:
+            # last, and only when nothing else refused it: a reason of its own would make a
+            # structure of a candidate refused for a few samples (NOT_A_STRUCTURE)
+            out += self.harmonic_check(ctx, term, base)
         return out
+
+    def harmonic_check(self, ctx, term, base) -> list[str]:
+        """The harmonics of a term are harmonics of one period: the reason against a term whose
+        fundamental and second harmonic, each refined on its own, are two periods, else [].
+
+        The term's columns hold k = 1, 2 at one period P (:data:`N_HARMONICS`); two forces of
+        position whose periods are near a 2:1 ratio are fitted by it as a compromise (simulation
+        B's 23 and 11 mm: P = 22.08 mm, its second harmonic at 11.04 mm takes the 11 mm force).
+        The fundamental's sin/cos pair is refined alone within ±min(P/stroke,
+        :data:`HARMONIC_SPAN`) of P with the second harmonic (at P/2) in the model beside
+        ``base``, then the second harmonic's pair alone within ±min(P/(2·stroke),
+        :data:`HARMONIC_SPAN`) of P/2 beside that fundamental (bounded Brent, to
+        :data:`REFINE_TOL` of each half-width). Refused when the two refined periods P1, P2
+        slip by at least :data:`MIN_HARMONIC_SLIP` cycles over the stroke (stroke·|2/P1 − 1/P2|)
+        and the unlocked pair explains at least :data:`MIN_UNLOCKED_DROP` of the SSE the locked
+        term leaves. Terms of one harmonic (pruned): nothing to check. About 25 fits of one
+        harmonic's columns; run only on a term no other check refused."""
+        cols = term.cols
+        if cols is None or cols.ndim != 2 or cols.shape[1] < 4 or ctx.stroke <= 0:
+            return []
+        from scipy.optimize import minimize_scalar
+
+        period = float(term.h)
+
+        def pair(h, c=None):
+            # the first harmonic's sin/cos columns at period h [m] (its own term, no other harmonic)
+            c = ctx.dec_cols(term.family, h) if c is None else c
+            return dataclasses.replace(term, h=float(h), cols=np.ascontiguousarray(c[:, :2]))
+
+        def refine(centre, other):
+            half = min(HARMONIC_SPAN, centre / ctx.stroke)
+            with_other = base + [other]
+            res = minimize_scalar(lambda h: ctx.sse(with_other + [pair(h)]),
+                                  bounds=(centre * (1.0 - half), centre * (1.0 + half)),
+                                  method="bounded", options={"xatol": REFINE_TOL * half * centre})
+            return pair(res.x)
+
+        first = refine(period, pair(0.5 * period, cols[:, 2:4]))
+        second = refine(0.5 * period, first)
+        p1, p2 = first.h, second.h
+        slip = ctx.stroke * abs(2.0 / p1 - 1.0 / p2)
+        if slip < MIN_HARMONIC_SLIP:
+            return []
+        locked = ctx.sse(base + [term])
+        unlocked = ctx.sse(base + [first, second])
+        drop = (locked - unlocked) / locked if locked > 0 else 0.0
+        if drop < MIN_UNLOCKED_DROP:
+            return []
+        return [f"its harmonics are two periods ({1e3 * p1:.1f} and {1e3 * p2:.1f} mm, ratio {p1 / p2:.2f}, not 2: "
+                f"{slip:.2f} cycles apart over the stroke, >= {MIN_HARMONIC_SLIP:g}; fitted apart they explain "
+                f"{100 * drop:.0f} % of what the {1e3 * period:.2f} mm pair leaves, >= {100 * MIN_UNLOCKED_DROP:g} %): "
+                "two forces of position, not one periodic force and its harmonic"]
 
     def motion_check(self, ctx, term, base) -> list[str]:
         """A force of position acts in motion as at rest: the reason against a term that
