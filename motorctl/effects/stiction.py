@@ -48,6 +48,22 @@ HELD_RANGE = (0.7, 1.3)
 #: holds at most 0.51-0.53 of θ3, 0.43-0.46 where a Stribeck hump, a position-dependent
 #: friction or an encoder error raises θ3 before it is modelled, 0.30 beside a 0.6 ms delay)
 MIN_HELD_COULOMB = 0.35
+#: ... unless the reading shows a friction holding the carriage (:func:`dwell_spread`): the mean
+#: input of the stretches the reading stands still differs from one dwell to the next at one
+#: position by at least this share of θ3 (RMS). A carriage the loop holds in place (no static
+#: friction: the rigid plant, its 0.5 and 5 µm encoders) needs the same force in every dwell,
+#: the one that balances the constant forces there: 0.001 and 0.007-0.008 of θ3; a dead-zone
+#: without stiction (the loop holds at the band's edge) 0.017; a friction holds what the loop
+#: applied when it stopped, anything up to the breakaway: 0.20-0.21 on the default plant, 0.075-0.094
+#: on a plant whose loop holds only 0.2 θ3 at rest (12/15 N Coulomb/static, a +2 N offset;
+#: docs/identification.md, "Stiction: the hold the reading shows")
+MIN_DWELL_SPREAD = 0.035
+#: least duration of a dwell [s] (:func:`dwell_spread`) and the least degrees of freedom of
+#: the spread (dwells beyond the first at each position)
+MIN_DWELL_S, MIN_DWELL_DOF = 0.05, 3
+#: dwells within this distance [m] of each other are at one position (a program's dwells
+#: repeat their positions to within the stop's error, µm)
+DWELL_POSITION_TOL = 1e-3
 
 
 def weight(v: np.ndarray, h: float) -> np.ndarray:
@@ -110,6 +126,39 @@ def held_by_reading(y: np.ndarray, window: int) -> np.ndarray:
     spread = maximum_filter1d(y, size, mode="nearest") - minimum_filter1d(y, size, mode="nearest")
     flat = (spread <= 1.5 * q).astype(float)
     return maximum_filter1d(flat, size, mode="nearest")
+
+
+def dwell_spread(p) -> float:
+    """The RMS difference [V] of the mean input u between dwells at one position: the stretches
+    of at least :data:`MIN_DWELL_S` where the raw reading stands still (:func:`held_by_reading`,
+    half-window :data:`STICK_WINDOW`), grouped by position (:data:`DWELL_POSITION_TOL`), each
+    dwell's mean u less its group's mean, pooled over the groups (n − 1 per group); NaN with fewer
+    than :data:`MIN_DWELL_DOF` degrees of freedom or an unquantized reading. p: a prepared record
+    (full-rate ``t`` [s], ``y`` [m], ``u`` [V], (N,)); kept in ``p.derived``.
+
+    A carriage held by the loop alone needs the same force at every dwell at one position (the
+    one that balances what acts there: an offset, a spring, cogging), so its dwells' means
+    differ by the noise; one held by a friction keeps whatever the loop applied when it
+    stopped, anything within the breakaway force (Karnopp), so they differ by a share of it."""
+    got = p.derived.get("dwell_spread")
+    if got is not None:
+        return got
+    held = held_by_reading(p.y, STICK_WINDOW) > 0.5
+    edge = np.diff(np.concatenate([[0], held.astype(np.int8), [0]]))
+    fs = 1.0 / float(np.median(np.diff(p.t)))
+    dwells = [(float(np.mean(p.y[a:b])), float(np.mean(p.u[a:b])))
+              for a, b in zip(np.flatnonzero(edge == 1), np.flatnonzero(edge == -1)) if (b - a) >= MIN_DWELL_S * fs]
+    dwells.sort()
+    dev, dof, group = 0.0, 0, []
+    for i, d in enumerate(dwells + [(math.inf, 0.0)]):
+        if group and d[0] - group[-1][0] > DWELL_POSITION_TOL:
+            m = np.array([u for _, u in group])
+            dev += float(np.sum((m - m.mean()) ** 2))
+            dof += len(m) - 1
+            group = []
+        group.append(d)
+    got = p.derived["dwell_spread"] = math.sqrt(dev / dof) if dof >= MIN_DWELL_DOF else math.nan
+    return got
 
 
 #: the measured stick state must hold at least this share of the samples the velocity weight
@@ -203,8 +252,13 @@ class StictionFamily(EffectFamily):
                        "(stiction holds what is applied, no more)")
         held = float(np.percentile(np.abs(term.cols @ beta), 99))   # decimated, as the fit sees it
         if held < MIN_HELD_COULOMB * theta[2]:
-            out.append(f"holds at most {held:.3g} V at rest, below {MIN_HELD_COULOMB:g} x the Coulomb level "
-                       f"theta3 {theta[2]:.3g} V: a static friction holds at least about that much")
+            spread = dwell_spread(ctx.p)
+            if not spread >= MIN_DWELL_SPREAD * theta[2]:
+                out.append(f"holds at most {held:.3g} V at rest, below {MIN_HELD_COULOMB:g} x the Coulomb level "
+                           f"theta3 {theta[2]:.3g} V: a static friction holds at least about that much; and the input "
+                           f"held differs between dwells at one position by {spread:.3g} V RMS, below "
+                           f"{MIN_DWELL_SPREAD:g} x theta3: the reading does not show a friction holding what the loop "
+                           "applied either")
         return out
 
     def parameters(self, h, beta, gain, fs):
