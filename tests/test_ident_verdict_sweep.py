@@ -233,3 +233,54 @@ def test_a_line_at_a_harmonic_of_the_program_is_not_told_from_the_moves():
     assert program_period(drifting) is None and program_harmonic(drifting, 2.25) is None
     short = SimpleNamespace(t_d=t[t < 10.0], x_d=x[t < 10.0])               # 2.5 periods
     assert program_period(short) is None
+
+
+def _dwells(rng, means, n_each=2000, noise=0.01):
+    """A full-rate record (5 kHz) of dwells alternating between 0 and 0.4 m, each holding the
+    mean input of ``means`` (V) with white noise, the reading flickering by a 0.5 µm count,
+    joined by 0.1 s moves."""
+    ys, us = [], []
+    for k, m in enumerate(means):
+        x0, x1 = (0.0, 0.4) if k % 2 == 0 else (0.4, 0.0)
+        ys += [x0 + 0.5e-6 * (rng.random(n_each) < 0.1), np.linspace(x0, x1, 500)]
+        us += [m + rng.normal(0.0, noise, n_each), np.full(500, 2.0 * np.sign(x1 - x0))]
+    y = np.round(np.concatenate(ys) / 0.5e-6) * 0.5e-6
+    u = np.concatenate(us)
+    return SimpleNamespace(t=np.arange(len(y)) / 5000.0, y=y, u=u, derived={})
+
+
+def test_the_dwells_show_a_friction_holding_what_the_loop_applied():
+    """A friction keeps whatever input the loop applied when the carriage stopped: the dwells'
+    mean inputs at one position differ (here by 20 mV RMS); a carriage held by the loop alone
+    needs the same input at every dwell there (1 mV apart is noise). A different force at each
+    position (0.4 V apart: a spring, an offset of the stroke's end) is not a spread."""
+    from motorctl.effects.stiction import dwell_spread
+    rng = np.random.default_rng(5)
+    held = rng.normal(0.0, 0.02, 12) + np.tile([0.0, 0.4], 6)
+    loop = rng.normal(0.0, 0.001, 12) + np.tile([0.0, 0.4], 6)
+    assert dwell_spread(_dwells(rng, held)) == pytest.approx(0.02, rel=0.4)
+    assert dwell_spread(_dwells(rng, loop)) < 0.002
+    assert np.isnan(dwell_spread(_dwells(rng, held[:3])))     # one dwell beyond the first at each position
+
+
+def test_a_loop_holding_little_at_rest_names_its_stiction_not_a_dead_zone(tmp_path):
+    """A clean plant none of the configs has (configs/gantry.yaml's X with 12 N Coulomb and 15 N
+    static friction, a +2 N offset, a 250 Hz mode and a 2 kHz current loop; 20 s, seed 1): the
+    loop holds at most 0.2 θ3 at rest, so stiction was refused on the held force (it asks for
+    0.35 θ3) and a 0.14 V amplifier dead-zone took the hold, beside a warning. The dwells show
+    the friction (the held input differs between dwells at one position by 0.09 θ3): stiction,
+    the plant's own, is named, nothing else beyond the plant's current-loop delay, no warning."""
+    from motorctl.app.job import run_job
+    from motorctl.config import config_from_dict
+    from motorctl.ident.pipeline import identify_record
+    from motorctl.ident.synth import gantry_dict
+    from pathlib import Path
+    plant = {"viscous_N_s_per_m": 25.0, "coulomb_N": 12.0, "offset_N": 2.0, "stiction_N": 15.0, "mode_hz": 250.0,
+             "mode_damping": 0.05, "mode_load_fraction": 0.3, "current_loop_hz": 2000.0, "current_loop_delay_s": 3e-5}
+    d = gantry_dict("X", plant, 1, None, None, None, Path(__file__).resolve().parents[1] / "configs" / "gantry.yaml")
+    path = tmp_path / "low_hold.mclog"
+    run_job(config_from_dict(d, "<low hold>"), duration_s=20.0, clock="virtual", log_path=str(path))
+    _, s = identify_record(load_record(str(path), None, None, axis="X"))
+    assert {e["name"] for e in s["effects"]} <= {"stiction", "input_delay"}, s["effects"]
+    assert "stiction" in {e["name"] for e in s["effects"]}
+    assert not s["ambiguous"] and not s["residual"]["structured"], s["residual"]["text"]
