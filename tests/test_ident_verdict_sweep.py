@@ -263,6 +263,26 @@ def test_the_dwells_show_a_friction_holding_what_the_loop_applied():
     assert np.isnan(dwell_spread(_dwells(rng, held[:3])))     # one dwell beyond the first at each position
 
 
+def test_stiction_holding_little_passes_on_its_dwells_for_a_narrow_band_only():
+    """A hold below 0.35 θ3 passes when the dwells show a friction holding it, for a band below
+    1 mm/s; a band of mm/s (part of a low-speed friction) keeps the held-force rule alone, and a
+    loop-held carriage's dwells do not pass it."""
+    from motorctl.effects.stiction import FAMILY, WIDE_BAND
+    rng = np.random.default_rng(6)
+    theta = [0.16, 0.2, 0.4, 0.0]          # the held-force rule asks for 0.14 V, the dwells' for 0.014 V
+
+    def reasons(means, h):
+        p = _dwells(rng, means)
+        w = (np.abs(np.gradient(p.y)) < 1e-6).astype(float)       # 1 at the dwells, 0 in the moves
+        term = SimpleNamespace(h=h, cols=np.column_stack([p.u * w, w]))
+        return FAMILY.plausible(SimpleNamespace(p=p), term, np.array([1.0, 0.0]), theta, [])
+    friction = rng.normal(0.0, 0.02, 12) + np.tile([0.0, 0.03], 6)
+    loop = rng.normal(0.0, 0.001, 12) + np.tile([0.0, 0.03], 6)
+    assert reasons(friction, 3e-4) == []
+    assert "holds at most" in " ".join(reasons(friction, 2.0 * WIDE_BAND))
+    assert "holds at most" in " ".join(reasons(loop, 3e-4))
+
+
 def test_a_loop_holding_little_at_rest_names_its_stiction_not_a_dead_zone(tmp_path):
     """A clean plant none of the configs has (configs/gantry.yaml's X with 12 N Coulomb and 15 N
     static friction, a +2 N offset, a 250 Hz mode and a 2 kHz current loop; 20 s, seed 1): the
