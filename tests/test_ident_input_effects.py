@@ -351,3 +351,25 @@ def test_thrust_curve_columns_are_of_the_held_input():
     assert np.mean(cols[mid, 2]) == pytest.approx(np.mean(held[mid, 2]), rel=1e-3)   # 252, not 219.5
     assert np.mean(cols[mid, 1]) == pytest.approx(np.mean(held[mid, 1]), rel=1e-3)
     assert np.mean(cols[mid, 0]) == pytest.approx(6.0, rel=1e-3)
+
+
+def test_an_effect_too_small_in_the_values_model_is_not_confirmed():
+    """Every effect's values are the refit's (:meth:`Identifier.refit`): one whose force there is
+    below the size an effect is named at is not confirmed and is dropped with that reason, even
+    of a family whose values are not taken on the loop's or the stick state's model (a clean
+    plant with a 269 Hz mode: a 3.8 N/m spring on the rigid model, 0.27 N/m with the mode's
+    force above the band in the values' model). Here a spring put into the model of a plant
+    that has none, its refit's stiffness ~0."""
+    import copy
+    idf = Identifier(_simulate(duration_s=4.0)).run()
+    spring = idf.term("spring", None)
+    idf.terms = idf.terms + [spring]
+    idf.final = idf.evaluate(idf.terms)
+    idf.accepted = idf.accepted + [(idf.final, idf.final.heldout_rms)]
+    ref = copy.copy(idf)
+    ref.loop_refit, ref.stick_measured, ref.band_mode = False, False, {"columns_at_Hz": 150.0}
+    idf.refitted = ref
+    idf.confirm_values()
+    assert "spring" not in [t.family for t in idf.terms]
+    why = dict(idf.eliminated)["spring"]
+    assert "not confirmed by the refit's model" in why and "too small to name" in why, why
