@@ -153,7 +153,7 @@ def dwell_spread(p) -> float:
               for a, b in zip(np.flatnonzero(edge == 1), np.flatnonzero(edge == -1)) if (b - a) >= MIN_DWELL_S * fs]
     dwells.sort()
     dev, dof, group = 0.0, 0, []
-    for i, d in enumerate(dwells + [(math.inf, 0.0)]):
+    for d in dwells + [(math.inf, 0.0)]:
         if group and d[0] - group[-1][0] > DWELL_POSITION_TOL:
             m = np.array([u for _, u in group])
             dev += float(np.sum((m - m.mean()) ** 2))
@@ -259,11 +259,12 @@ class StictionFamily(EffectFamily):
             # low-speed friction too (WIDE_BAND): such a band keeps the held-force rule alone
             spread = dwell_spread(ctx.p) if float(term.h) < WIDE_BAND else math.nan
             if not spread >= MIN_DWELL_SPREAD * theta[2]:
+                dwells = ("" if math.isnan(spread) else
+                          f"; and the input held differs between dwells at one position by {spread:.3g} V RMS, below "
+                          f"{MIN_DWELL_SPREAD:g} x theta3: the reading does not show a friction holding what the loop "
+                          "applied either")
                 out.append(f"holds at most {held:.3g} V at rest, below {MIN_HELD_COULOMB:g} x the Coulomb level "
-                           f"theta3 {theta[2]:.3g} V: a static friction holds at least about that much; and the input "
-                           f"held differs between dwells at one position by {spread:.3g} V RMS, below "
-                           f"{MIN_DWELL_SPREAD:g} x theta3: the reading does not show a friction holding what the loop "
-                           "applied either")
+                           f"theta3 {theta[2]:.3g} V: a static friction holds at least about that much{dwells}")
         return out
 
     def parameters(self, h, beta, gain, fs):
