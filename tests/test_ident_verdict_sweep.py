@@ -246,7 +246,7 @@ def _dwells(rng, means, n_each=2000, noise=0.01):
         us += [m + rng.normal(0.0, noise, n_each), np.full(500, 2.0 * np.sign(x1 - x0))]
     y = np.round(np.concatenate(ys) / 0.5e-6) * 0.5e-6
     u = np.concatenate(us)
-    return SimpleNamespace(t=np.arange(len(y)) / 5000.0, y=y, u=u, derived={})
+    return SimpleNamespace(fs=5000.0, y=y, u=u, derived={})
 
 
 def test_the_dwells_show_a_friction_holding_what_the_loop_applied():

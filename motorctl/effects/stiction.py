@@ -33,6 +33,7 @@ import numpy as np
 
 from motorctl.effects.base import EffectFamily
 from motorctl.effects.stribeck import velocity_grid
+from motorctl.metrics import runs
 
 #: searched velocity band h [m/s]: "at rest" is a fraction of a millimetre per second of the
 #: filtered velocity; a band of several mm/s is low-speed friction (Stribeck's), not a carriage held
@@ -137,7 +138,7 @@ def dwell_spread(p) -> float:
     half-window :data:`STICK_WINDOW`), grouped by position (:data:`DWELL_POSITION_TOL`), each
     dwell's mean u less its group's mean, pooled over the groups (n − 1 per group); NaN with fewer
     than :data:`MIN_DWELL_DOF` degrees of freedom or an unquantized reading. p: a prepared record
-    (full-rate ``t`` [s], ``y`` [m], ``u`` [V], (N,)); kept in ``p.derived``.
+    (full-rate ``y`` [m], ``u`` [V], (N,), sampled at ``fs`` [Hz]); kept in ``p.derived``.
 
     A carriage held by the loop alone needs the same force at every dwell at one position (the
     one that balances what acts there: an offset, a spring, cogging), so its dwells' means
@@ -146,11 +147,8 @@ def dwell_spread(p) -> float:
     got = p.derived.get("dwell_spread")
     if got is not None:
         return got
-    held = held_by_reading(p.y, STICK_WINDOW) > 0.5
-    edge = np.diff(np.concatenate([[0], held.astype(np.int8), [0]]))
-    fs = 1.0 / float(np.median(np.diff(p.t)))
     dwells = [(float(np.mean(p.y[a:b])), float(np.mean(p.u[a:b])))
-              for a, b in zip(np.flatnonzero(edge == 1), np.flatnonzero(edge == -1)) if (b - a) >= MIN_DWELL_S * fs]
+              for a, b in zip(*runs(held_by_reading(p.y, STICK_WINDOW) > 0.5)) if (b - a) >= MIN_DWELL_S * p.fs]
     dwells.sort()
     dev, dof, group = 0.0, 0, []
     for d in dwells + [(math.inf, 0.0)]:
