@@ -162,13 +162,20 @@ def test_the_clean_plant_names_no_mode_and_leaves_nothing_unexplained(found):
     assert not s["residual"]["structured"], s["residual"]["text"]
 
 
+def _band_limit(res: dict) -> list:
+    """The residual verdict's entries for a structural mode above the band: warned (findings)
+    or told as the plant's own bandwidth limit (tested, explained by the family)."""
+    return [f for f in res["findings"] + res["tested"] if f["against"] == "structural_mode"]
+
+
 def test_a_mode_above_the_band_is_told_as_a_bandwidth_limit(tmp_path):
     """Rigid plant, mode at 200 Hz (f_a = 200·√0.7 = 167 Hz, above the searched 150 Hz), 8 s:
     the residual has no line a mode makes in the band, yet the load a mode term at the grid's
     top fits is 11 % of the inertia at the band's edge (the clean default plant's 350 Hz mode:
     5-7 %), so the family is searched, lands on the edge and is refused; the verdict names it
     a bandwidth limit and gives the load the band sees, m_l/M = (f_a/f_M)², f_M =
-    f_a/√(m_l/M) = 305 Hz (within 5 %). Nothing periodic is named."""
+    f_a/√(m_l/M) = 305 Hz (within 5 %). Nothing periodic is named. With the mode's force in the
+    model the residual shows no structure: the plant's own mode, no warning (it was one)."""
     from motorctl.commission.tune import make_log
     from motorctl.ident.data import load_record
     from motorctl.ident.pipeline import identify_record
@@ -178,9 +185,10 @@ def test_a_mode_above_the_band_is_told_as_a_bandwidth_limit(tmp_path):
     named = {e["name"] for e in s["effects"]}
     assert not PERIODIC & named, named
     res = s["residual"]
-    assert res["structured"], res["text"]
-    found = [f for f in res["findings"] if f["against"] == "structural_mode"]
+    assert not res["structured"], res["text"]
+    found = _band_limit(res)
     assert found and "bandwidth limit" in found[0]["where"], res["text"]
+    assert found[0]["explained_by"] == "structural_mode" and "the plant's own mode" in res["text"]
     f_m = float(re.search(r"m_l/M = \(f_a / ([0-9.]+) Hz\)", found[0]["where"]).group(1))
     assert f_m == pytest.approx(200.0 * math.sqrt(0.7 / 0.3), rel=0.05)
 
@@ -200,7 +208,7 @@ def test_the_bandwidth_limit_states_an_interval_that_holds_the_antiresonance(tmp
     make_log(str(path), EXAMPLES["stribeck"], duration_s=20.0, seed=1, noise_N=None,
              base=str(ROOT / "configs" / "gantry-half-mode.yaml"))
     _, s = identify_record(load_record(str(path), None, None, axis="X"))
-    found = [f for f in s["residual"]["findings"] if f["against"] == "structural_mode"]
+    found = _band_limit(s["residual"])
     assert found and "bandwidth limit" in found[0]["where"], s["residual"]["text"]
     lo, hi = map(float, re.search(r"f_a between the band's edge ([0-9.]+) Hz and ([0-9.]+) Hz",
                                   found[0]["where"]).groups())

@@ -424,6 +424,12 @@ class EffectFamily:
         has no such columns, or the record's band is too narrow for them."""
         return None
 
+    def beyond_band(self, p, h) -> bool:
+        """True when this family's searched value ``h`` in the prepared record ``p`` stands for
+        a force above the record's band (:meth:`above_band`'s columns: the top of the grid),
+        not an effect the band can locate; False (default) for a family without such columns."""
+        return False
+
     def __repr__(self) -> str:
         return f"<effect family {self.name}>"
 

@@ -129,6 +129,13 @@ def edge_share(ctx, base: list) -> float:
     return edge_load(ctx, base) / BAND_FACTOR ** 2
 
 
+def _grid(top: float) -> np.ndarray:
+    """The antiresonances searched [Hz]: a log grid of steps :data:`GRID_STEP` from
+    :data:`F_MIN_HZ` that ends at ``top`` itself (:meth:`StructuralModeFamily._grid`)."""
+    grid = np.exp(np.arange(math.log(F_MIN_HZ), math.log(top), GRID_STEP))
+    return np.append(grid, top) if top > grid[-1] * (1.0 + 0.25 * GRID_STEP) else grid
+
+
 def mode_columns(acc: np.ndarray, fs: float, f_a: float) -> np.ndarray:
     """(N, 2): −G(s)ẍ and −ω_a s/(s² + 2ζω_a s + ω_a²)·ẍ (ζ = :data:`COLUMN_DAMPING`) filtered
     causally (bilinear transform at fs of the filters' zeros, poles and gain,
@@ -221,6 +228,12 @@ class StructuralModeFamily(EffectFamily):
             return np.zeros((a.shape[0], 2))
         return mode_columns(a, float(fs), float(h))
 
+    def beyond_band(self, p, h) -> bool:
+        """True when f_a = ``h`` [Hz] is the top of the grid of the prepared record ``p``: the
+        columns there are a mode above the band's force, m_l s²ẍ/ω_a², whatever f_a."""
+        top = self.above_band(p)
+        return top is not None and float(h) >= _grid(top)[-1] * (1.0 - 1e-9)
+
     def search(self, ctx, base, residual):
         """None when the current ``residual`` has no resonance line (:func:`resonance_line`: none
         :data:`MIN_LINE_RATIO` times above its spectrum's median above :data:`LINE_MIN_HZ`: the
@@ -246,10 +259,7 @@ class StructuralModeFamily(EffectFamily):
         grid ends at :func:`f_max` itself: ending one step short of it (140.9 of 150 Hz at 5
         kHz) made a mode of the searched range (the half-mode plant's, f_a 136 Hz, fitted at
         139-144 Hz) an edge case, refused and left to phantoms (a 52-73 mm ripple)."""
-        top = f_max(ctx.p)
-        grid = np.exp(np.arange(math.log(F_MIN_HZ), math.log(top), GRID_STEP))
-        if top > grid[-1] * (1.0 + 0.25 * GRID_STEP):
-            grid = np.append(grid, top)
+        grid = _grid(f_max(ctx.p))
         term, _ = ctx.best_over(self.name, grid, base)
         i = int(np.argmin(np.abs(grid - term.h)))
         if 0 < i < len(grid) - 1:
