@@ -291,8 +291,7 @@ def _band_limit(idf: Identifier | None, c) -> bool:
     beside them, and its warning."""
     if idf is None or not fx.family(c.term.family).beyond_band(idf.p, c.term.h):
         return False
-    terms = list(idf.terms) + [c.term]
-    return not idf.verdict(idf.evaluate(terms), terms)["structured"]
+    return _no_structure_beside(idf, c.term)
 
 
 def _values_mode(idf: Identifier):
@@ -304,8 +303,14 @@ def _values_mode(idf: Identifier):
     if m is None:
         return None
     term = idf.term(m["family"], m["columns_at_Hz"])
+    return term if _no_structure_beside(idf, term) else None
+
+
+def _no_structure_beside(idf: Identifier, term) -> bool:
+    """True when the final model with ``term`` leaves a residual without structure
+    (:meth:`~motorctl.ident.select.Identifier.verdict`)."""
     terms = list(idf.terms) + [term]
-    return None if idf.verdict(idf.evaluate(terms), terms)["structured"] else term
+    return not idf.verdict(idf.evaluate(terms), terms)["structured"]
 
 
 def _gain_beside(idf: Identifier, mode, c) -> float:
