@@ -229,9 +229,7 @@ def add_refused(verdict: dict, last_step: list, chosen: list, idf: Identifier | 
     takes less than REFUSED_GAIN of the held-out residual beside that mode's force
     (:func:`_gain_beside`) shared its evidence and is counted as the mode's (on clean 20 s logs
     of the Y axis with a mode at 150-200 Hz, a force ripple "not the same both ways" at 5-7 %
-    fell to -4 to 0 % beside it). Without such a candidate, the same with the force the values'
-    model takes for a mode above the band (:func:`_values_mode`; a 367 Hz mode beside a 928 Hz
-    current loop on X: a ripple "falling with the speed" 9.3 %, beside it 0.02 %)."""
+    fell to -4 to 0 % beside it)."""
     held = idf is not None and any(t.family == "stiction" for t in idf.terms)
     extra, counted, limit = [], [], []
     named = set() if idf is None else {t.family for t in idf.terms}
@@ -243,10 +241,6 @@ def add_refused(verdict: dict, last_step: list, chosen: list, idf: Identifier | 
     refused = [c for c in last_step if not any(c is e for e in chosen) and refused_on_physics(c)
                and not any(e["against"] == c.term.family for e in extra)]
     band = next((c for c in refused if _band_limit(idf, c)), None)
-    # the force of a mode above the band beside which the refused candidates are judged again:
-    # the refused mode's own term, or the values' model's (a mode too light for its family's
-    # search, whose columns still take what the rigid model leaves at the moves' high frequencies)
-    mode = band.term if band is not None else (_values_mode(idf) if refused and idf is not None else None)
     for c in refused:
         where = (f"what {c.term.family} would explain ({100 * c.gain:.0f} % of the held-out residual), "
                  f"refused: {'; '.join(c.reasons)}")
@@ -256,10 +250,10 @@ def add_refused(verdict: dict, last_step: list, chosen: list, idf: Identifier | 
         if held and idf.rest_share(c) > 0.5:
             counted.append(_finding(c.term.family, float(c.gain), where + ", near zero velocity", "stiction"))
             continue
-        beside = None if mode is None else _gain_beside(idf, mode, c)
+        beside = None if band is None else _gain_beside(idf, band, c)
         if beside is not None and beside < REFUSED_GAIN:
             counted.append(_finding(c.term.family, float(c.gain), where + f"; {100 * beside:.0f} % beside the "
-                                    "force of a mode above the band", mode.family))
+                                    "force of the mode above the band", band.term.family))
             continue
         extra.append(_finding(c.term.family, float(c.gain), where))
     if counted:
@@ -291,33 +285,15 @@ def _band_limit(idf: Identifier | None, c) -> bool:
     beside them, and its warning."""
     if idf is None or not fx.family(c.term.family).beyond_band(idf.p, c.term.h):
         return False
-    return _no_structure_beside(idf, c.term)
-
-
-def _values_mode(idf: Identifier):
-    """The term of the broadband force of a mode above the band that the values' model takes
-    (:meth:`~motorctl.ident.select.Identifier.mode_above_band`: it lowers the final model's
-    held-out RMS by the selection's own margin, with a positive load), when the final model with
-    it leaves a residual without structure; else None."""
-    m = idf.mode_above_band()
-    if m is None:
-        return None
-    term = idf.term(m["family"], m["columns_at_Hz"])
-    return term if _no_structure_beside(idf, term) else None
-
-
-def _no_structure_beside(idf: Identifier, term) -> bool:
-    """True when the final model with ``term`` leaves a residual without structure
-    (:meth:`~motorctl.ident.select.Identifier.verdict`)."""
-    terms = list(idf.terms) + [term]
+    terms = list(idf.terms) + [c.term]
     return not idf.verdict(idf.evaluate(terms), terms)["structured"]
 
 
-def _gain_beside(idf: Identifier, mode, c) -> float:
+def _gain_beside(idf: Identifier, band, c) -> float:
     """What the refused candidate ``c`` takes of the held-out residual of the final model with
-    the force of a mode above the band (its term ``mode``) in it [-]: below
+    the force of the mode above the band (``band``'s term) in it [-]: below
     :data:`~motorctl.ident.select.REFUSED_GAIN`, its evidence was the mode's."""
-    base = list(idf.terms) + [mode]
+    base = list(idf.terms) + [band.term]
     return 1.0 - idf.evaluate(base + [c.term]).heldout_rms / idf.evaluate(base).heldout_rms
 
 
