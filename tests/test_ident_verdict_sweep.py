@@ -349,3 +349,34 @@ def test_a_mode_above_the_band_that_leaves_no_structure_is_the_plant_s_and_takes
     assert v["structured"] and [f["against"] for f in v["findings"]] == ["force_ripple"], v["text"]
     v = verdict_of(0.50, -0.003, True)
     assert v["structured"] and {f["against"] for f in v["findings"]} == {"structural_mode", "force_ripple"}, v["text"]
+
+
+def test_a_lost_motion_beside_a_force_of_the_travel_is_a_play_not_a_dead_zone():
+    """A play of 150 µm on a 10 kg load (the default plant, 20 s, seed 1) was named an amplifier
+    dead-zone beside the warning "at 0.632-1.85 mm of travel since the motion reversed, less force
+    against the motion than the model's friction": the dead-zone fitted the play's lost motion at
+    the reversal and left its force of the travel. A dead-zone of the input leaves no such force.
+    The dead-zone is not named (eliminated, with the verdict's finding); without that finding, or
+    beside an effect that is not a lost motion, nothing changes."""
+    from types import SimpleNamespace
+
+    from motorctl.ident.select import Identifier, Term
+
+    travel = {"against": "travel", "where": "at 0.632-1.85 mm of travel since the motion reversed"}
+
+    def run(families, findings):
+        terms = [Term(f, 0.1, None) for f in families]
+        fake = SimpleNamespace(terms=terms, accepted=[(f, 1.0) for f in families], final="final", verdict_step=[],
+                               eliminated=[], verdict=lambda current, terms: {"findings": findings},
+                               evaluate=lambda terms: tuple(t.family for t in terms),
+                               _on_final=lambda step, before, terms, final: step, refit=lambda: None)
+        Identifier.travel_shared(fake)
+        return fake
+
+    got = run(["amplifier_dead_zone", "input_delay"], [travel])
+    assert [t.family for t in got.terms] == ["input_delay"] and got.final == ("input_delay",)
+    assert got.accepted == [("input_delay", 1.0)]
+    assert [n for n, _ in got.eliminated] == ["amplifier_dead_zone"] and "play" in got.eliminated[0][1]
+    assert [t.family for t in run(["amplifier_dead_zone"], [{"against": "input", "where": "x"}]).terms] == \
+        ["amplifier_dead_zone"]
+    assert [t.family for t in run(["stiction"], [travel]).terms] == ["stiction"]

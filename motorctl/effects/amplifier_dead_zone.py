@@ -124,6 +124,7 @@ class AmplifierDeadZoneFamily(EffectFamily):
     size_options: ClassVar[tuple[str, ...]] = ("dead_zone_V",)
     look_alike: ClassVar[tuple[str, ...]] = ("stiction",)
     acts_at_rest = True
+    lost_motion = True
     values_on_stick_state = True
     before_current_loop = True
 

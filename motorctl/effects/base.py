@@ -378,6 +378,11 @@ class EffectFamily:
     #: dead-zone): the residual verdict counts what is left near zero velocity and at small
     #: inputs as this effect's, not as an unexplained structure, once it is selected
     acts_at_rest: ClassVar[bool] = False
+    #: the effect is a lost motion of the input at each reversal (a dead-zone's band): a play in
+    #: the drive, which no family models, shows the same lost motion and, beside it, a force of
+    #: the travel since the reversal; where the residual verdict reports that force beside the
+    #: effect, the effect is not named (:meth:`motorctl.ident.select.Identifier.travel_shared`)
+    lost_motion: ClassVar[bool] = False
     #: the family's columns carry the drive's input before the amplifier's current loop (a
     #: dead-zone's lost band, the input stiction holds at rest): where identify models a
     #: declared current loop (:meth:`motorctl.ident.select.Identifier.input_columns`) they go

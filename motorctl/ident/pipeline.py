@@ -703,6 +703,8 @@ def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
             # and those the more exact model does not confirm dropped
             idf.refitted = idf.refit()
             idf.confirm_values()
+            # a lost motion beside the travel's force of a play the verdict reports: not named
+            idf.travel_shared()
     except (np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
         if isinstance(exc, LogError):
             raise
