@@ -370,6 +370,7 @@ def test_a_lost_motion_beside_a_force_of_the_travel_is_a_play_not_a_dead_zone():
                                eliminated=[], verdict=lambda current, terms: {"findings": findings},
                                evaluate=lambda terms: tuple(t.family for t in terms),
                                _on_final=lambda step, before, terms, final: step, refit=lambda: None)
+        fake._drop_after = lambda dropped: Identifier._drop_after(fake, dropped)
         Identifier.travel_shared(fake)
         return fake
 

@@ -1452,15 +1452,22 @@ class Identifier:
                                               ("the stick state measured", ref.stick_measured),
                                               ("a structural mode's force above the band in the model",
                                                getattr(ref, "band_mode", None) is not None)) if on)
-        keep = [i for i, t in enumerate(self.terms) if t.family not in bad]
+        return self._drop_after([(name, f"not confirmed by the refit's model ({model}): " + "; ".join(why))
+                                 for name, why in bad.items()])
+
+    def _drop_after(self, dropped: list) -> "Identifier":
+        """Take the selected effects of ``dropped`` ([(family, reason)]) out after the selection:
+        the final model made again without them, the verdict's candidates as it sees them, each
+        in ``eliminated`` with its reason, and the refit made again (:meth:`refit`). Returns self."""
+        names = {n for n, _ in dropped}
+        keep = [i for i, t in enumerate(self.terms) if t.family not in names]
         before = self.terms
         self.terms = [self.terms[i] for i in keep]
         self.accepted = [self.accepted[i] for i in keep]
         self.final = self.evaluate(self.terms)
         # the verdict's candidates as the new final model sees them
         self.verdict_step = self._on_final(self.verdict_step, before, self.terms, self.final)
-        self.eliminated = self.eliminated + [
-            (name, f"not confirmed by the refit's model ({model}): " + "; ".join(why)) for name, why in bad.items()]
+        self.eliminated = self.eliminated + list(dropped)
         self.refitted = self.refit()
         return self
 
@@ -1473,25 +1480,17 @@ class Identifier:
         fitted, the travel's force what it left. A dead-zone of the input leaves no such force
         (the default plant's dead-zones at two sizes: no warning). The effect is dropped
         (``eliminated``, with the verdict's finding) and the final model and the refit are made
-        again without it, as :meth:`confirm_values` does; the verdict then reports what it had
-        taken. Plays of 50-200 µm on the load's coupling were named an amplifier dead-zone beside
+        again without it (:meth:`_drop_after`, as :meth:`confirm_values` does); the verdict then
+        reports what it had taken. Plays of 50-200 µm on the load's coupling were named an amplifier dead-zone beside
         that warning (plants with their mode at 226 and 241 Hz; the default plant's 100 and 150 µm
         plays on a 10 kg load). Returns self."""
         travel = next((f for f in self.verdict(self.final, self.terms)["findings"] if f["against"] == "travel"), None)
         bad = [t.family for t in self.terms if effect_family(t.family).lost_motion] if travel else []
         if not bad:
             return self
-        before = self.terms
-        keep = [i for i, t in enumerate(self.terms) if t.family not in bad]
-        self.terms = [self.terms[i] for i in keep]
-        self.accepted = [self.accepted[i] for i in keep]
-        self.final = self.evaluate(self.terms)
-        self.verdict_step = self._on_final(self.verdict_step, before, self.terms, self.final)
-        self.eliminated = self.eliminated + [
-            (name, f"a lost motion beside a force of the travel since a reversal ({travel['where']}): a play in "
-                   "the drive, which no family models, shows both") for name in bad]
-        self.refitted = self.refit()
-        return self
+        return self._drop_after([(name, f"a lost motion beside a force of the travel since a reversal "
+                                       f"({travel['where']}): a play in the drive, which no family models, "
+                                       "shows both") for name in bad])
 
     def refit(self) -> "Identifier | None":
         """The selected effects' values taken again on a more exact model (a new identifier, or
