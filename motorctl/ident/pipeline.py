@@ -226,12 +226,11 @@ def add_refused(verdict: dict, last_step: list, chosen: list, idf: Identifier | 
     With ``idf``: a candidate that stands for a mode above the record's band and leaves no
     structure beside it (:func:`_band_limit`) is the plant's own bandwidth limit: added to
     ``tested``, explained by its family, not a warning; and every other refused candidate that
-    takes less than REFUSED_GAIN of the held-out residual beside that mode's force
-    (:func:`_gain_beside`) shared its evidence and is counted as the mode's (on clean 20 s logs
-    of the Y axis with a mode at 150-200 Hz, a force ripple "not the same both ways" at 5-7 %
-    fell to -4 to 0 % beside it)."""
+    takes less than REFUSED_GAIN of the held-out residual beside that mode's force shared its
+    evidence and is counted as the mode's (on clean 20 s logs of the Y axis with a mode at
+    150-200 Hz, a force ripple "not the same both ways" at 5-7 % fell to -4 to 0 % beside it)."""
     held = idf is not None and any(t.family == "stiction" for t in idf.terms)
-    extra, counted, limit = [], [], []
+    extra, counted = [], []
     named = set() if idf is None else {t.family for t in idf.terms}
     for name in ([] if idf is None else idf.families):
         seen = None if name in named else fx.family(name).unnamed_evidence(idf)
@@ -240,29 +239,32 @@ def add_refused(verdict: dict, last_step: list, chosen: list, idf: Identifier | 
             extra.append(_finding(name, math.nan, seen + (f" ({'; '.join(why)})" if why else "")))
     refused = [c for c in last_step if not any(c is e for e in chosen) and refused_on_physics(c)
                and not any(e["against"] == c.term.family for e in extra)]
-    band = next((c for c in refused if _band_limit(idf, c)), None)
+    band, with_band = _band_limit(idf, refused)
+
+    def where(c):
+        return (f"what {c.term.family} would explain ({100 * c.gain:.0f} % of the held-out residual), "
+                f"refused: {'; '.join(c.reasons)}")
     for c in refused:
-        where = (f"what {c.term.family} would explain ({100 * c.gain:.0f} % of the held-out residual), "
-                 f"refused: {'; '.join(c.reasons)}")
         if c is band:
-            limit.append(_finding(c.term.family, float(c.gain), where, c.term.family))
             continue
         if held and idf.rest_share(c) > 0.5:
-            counted.append(_finding(c.term.family, float(c.gain), where + ", near zero velocity", "stiction"))
+            counted.append(_finding(c.term.family, float(c.gain), where(c) + ", near zero velocity", "stiction"))
             continue
-        beside = None if band is None else _gain_beside(idf, band, c)
-        if beside is not None and beside < REFUSED_GAIN:
-            counted.append(_finding(c.term.family, float(c.gain), where + f"; {100 * beside:.0f} % beside the "
-                                    "force of the mode above the band", band.term.family))
-            continue
-        extra.append(_finding(c.term.family, float(c.gain), where))
+        if band is not None:
+            beside = 1.0 - idf.evaluate(list(idf.terms) + [band.term, c.term]).heldout_rms / with_band.heldout_rms
+            if beside < REFUSED_GAIN:
+                counted.append(_finding(c.term.family, float(c.gain), where(c) + f"; {100 * beside:.0f} % beside "
+                                        "the force of the mode above the band", band.term.family))
+                continue
+        extra.append(_finding(c.term.family, float(c.gain), where(c)))
     if counted:
         verdict["tested"] = verdict["tested"] + counted
         verdict["text"] += "".join(f"; {e['where']}, counted as {e['explained_by']}'s" for e in counted)
-    if limit:
-        verdict["tested"] = verdict["tested"] + limit
-        verdict["text"] += "".join(f"; {e['where']}: with its force in the model the residual shows no "
-                                   "structure, the plant's own mode above the record's band" for e in limit)
+    if band is not None:
+        verdict["tested"] = verdict["tested"] + [_finding(band.term.family, float(band.gain), where(band),
+                                                          band.term.family)]
+        verdict["text"] += (f"; {where(band)}: with its force in the model the residual shows no structure, the "
+                            "plant's own mode above the record's band")
     if not extra:
         return
     lead = "unexplained structured residual remains: "
@@ -275,26 +277,23 @@ def add_refused(verdict: dict, last_step: list, chosen: list, idf: Identifier | 
     verdict["structured"] = True
 
 
-def _band_limit(idf: Identifier | None, c) -> bool:
-    """True when the refused candidate ``c`` stands for a force above the record's band
+def _band_limit(idf: Identifier | None, refused: list):
+    """The first refused candidate that stands for a force above the record's band
     (:meth:`~motorctl.effects.base.EffectFamily.beyond_band`: a structural mode whose
-    antiresonance the band cannot locate) and the final model with it leaves a residual without
-    structure (:meth:`~motorctl.ident.select.Identifier.verdict`): what remains is the plant's
-    own mode, told as its bandwidth limit, not a structure no family models. A play, a hysteresis
-    or another unmodelled force that the mode's columns explain in part keeps its structure
-    beside them, and its warning."""
-    if idf is None or not fx.family(c.term.family).beyond_band(idf.p, c.term.h):
-        return False
-    terms = list(idf.terms) + [c.term]
-    return not idf.verdict(idf.evaluate(terms), terms)["structured"]
-
-
-def _gain_beside(idf: Identifier, band, c) -> float:
-    """What the refused candidate ``c`` takes of the held-out residual of the final model with
-    the force of the mode above the band (``band``'s term) in it [-]: below
-    :data:`~motorctl.ident.select.REFUSED_GAIN`, its evidence was the mode's."""
-    base = list(idf.terms) + [band.term]
-    return 1.0 - idf.evaluate(base + [c.term]).heldout_rms / idf.evaluate(base).heldout_rms
+    antiresonance the band cannot locate) with which the final model leaves a residual without
+    structure (:meth:`~motorctl.ident.select.Identifier.verdict`), and that model evaluated:
+    what remains is the plant's own mode, told as its bandwidth limit, not a structure no family
+    models; (None, None) when there is none. A play, a hysteresis or another unmodelled force
+    that the mode's columns explain in part keeps its structure beside them, and its warning.
+    Beside that model each other refused candidate is judged again (:func:`add_refused`): what
+    it takes of the held-out residual there, below REFUSED_GAIN, was the mode's evidence."""
+    for c in ([] if idf is None else refused):
+        if fx.family(c.term.family).beyond_band(idf.p, c.term.h):
+            terms = list(idf.terms) + [c.term]
+            ev = idf.evaluate(terms)
+            if not idf.verdict(ev, terms)["structured"]:
+                return c, ev
+    return None, None
 
 
 def _finding(against: str, share: float, where: str, explained_by: str | None = None) -> dict:

@@ -1481,9 +1481,9 @@ class Identifier:
         (the default plant's dead-zones at two sizes: no warning). The effect is dropped
         (``eliminated``, with the verdict's finding) and the final model and the refit are made
         again without it (:meth:`_drop_after`, as :meth:`confirm_values` does); the verdict then
-        reports what it had taken. Plays of 50-200 µm on the load's coupling were named an amplifier dead-zone beside
-        that warning (plants with their mode at 226 and 241 Hz; the default plant's 100 and 150 µm
-        plays on a 10 kg load). Returns self."""
+        reports what it had taken. Plays of 50-200 µm on the load's coupling were named an
+        amplifier dead-zone beside that warning (plants with their mode at 226 and 241 Hz; the
+        default plant's 100 and 150 µm plays on a 10 kg load). Returns self."""
         travel = next((f for f in self.verdict(self.final, self.terms)["findings"] if f["against"] == "travel"), None)
         bad = [t.family for t in self.terms if effect_family(t.family).lost_motion] if travel else []
         if not bad:
