@@ -18,7 +18,7 @@ from test_daemon_helpers import (REPO, Daemon, cli, command_mode_daemon, ctl, ma
                                  status, to_command_mode, wait_for)
 
 from motorctl.loop.cycle import STREAM
-from motorctl.loop.stream import SP_OUT_SEQ, SP_UNDERRUNS, SetpointRing, brake_step, stream_step
+from motorctl.loop.stream import SP_OUT_SEQ, SP_READ, SP_UNDERRUNS, SetpointRing, brake_step, stream_step
 from motorctl.recorder.runlog import open_log
 
 TS = 2e-4
@@ -55,6 +55,23 @@ def test_the_ring_is_bounded_and_counts_what_it_holds():
     assert ring.push(block, ring.epoch()) == 4          # full: the rest waits
     assert ring.depth() == 4 and ring.free() == 0
     assert ring.underruns() == 0 and int(ring.ctl[SP_UNDERRUNS]) == 0
+
+
+def test_a_rewrite_puts_the_new_rows_beyond_the_cut_and_publishes_them_in_one_step():
+    """SetpointRing.replace (a hold's or an override's rewrite): refused with nothing changed while
+    the loop is within two rows of the cut; else the rows from the cut on are the new ones (as
+    far as the ring holds them), the rows the loop has still to take before the cut untouched, and
+    the write index is the new rows' end when the call returns: there is no moment at which the
+    ring ends at the cut (a retract followed by a push left the loop two rows there)."""
+    ring = SetpointRing(8, 1, shared=False, outputs=("torch",))
+    ring.push(np.full((6, 1, 3), 1.0), ring.epoch())
+    ring.ctl[SP_READ] = 2                              # the loop has taken rows 0 and 1
+    assert ring.replace(3, np.full((4, 1, 3), 2.0), ring.epoch(), np.ones((4, 1))) is None
+    assert ring.written() == 6 and np.all(ring.rows[:6, 1:4] == 1.0) and np.all(ring.rows[:6, 4] == 0.0)
+    assert ring.replace(4, np.full((9, 1, 3), 2.0), ring.epoch(), np.ones((9, 1))) == 6   # 8 - (4 - 2) fit
+    assert ring.written() == 10 and ring.depth() == 8
+    assert [float(ring.setpoint(r)[0, 0]) for r in range(2, 10)] == [1.0] * 2 + [2.0] * 6
+    assert [float(ring.row_outputs(r)[0]) for r in range(2, 10)] == [0.0] * 2 + [1.0] * 6
 
 
 def test_the_loop_applies_a_rows_outputs_and_switches_the_stop_outputs_off_when_it_brakes():

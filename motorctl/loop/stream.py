@@ -139,22 +139,21 @@ class SetpointRing:
         """Rows the loop has taken (or dropped) since the ring was made."""
         return int(load_acquire(self.ctl, SP_READ))
 
-    def retract(self, cut: int) -> int | None:
-        """Producer: take back the rows from index ``cut`` on, so that they can be written again
-        (a feed hold acts on the setpoints the loop has not taken yet). The write index is
-        lowered first (a release store), then the read index checked: the loop takes one row a
-        cycle and only below the write index it loaded, so a row at least two past the read
-        index seen after the store is never being read. Returns ``cut``, or None (nothing taken
-        back, the write index as it was) when ``cut`` is not below the write index or the loop
-        is within two rows of it."""
-        w = int(self.ctl[SP_WRITE])
-        if cut >= w or self.consumed() + 2 > cut:
-            return None
-        store_release(self.ctl, SP_WRITE, cut)
-        if self.consumed() + 2 > cut:                # the loop raced us: leave the rows as they were
-            store_release(self.ctl, SP_WRITE, w)
-            return None
-        return cut
+    def replace(self, cut: int, block: np.ndarray, epoch: int, outs: np.ndarray) -> int | None:
+        """Producer: the rows from index ``cut`` on replaced by ``block`` ((n, n_axes, 3)
+        float64) tagged with ``epoch``, with ``outs`` ((n, n_outputs)), in one compiled step
+        (a feed hold or an override acts on the setpoints the loop has not taken yet): the write
+        index lowered to ``cut`` (a release store), the read index checked (the loop takes one
+        row a cycle and only below the write index it loaded, so a row at least two past the
+        read index seen after the store is never being read), the new rows written and ``cut +
+        n`` published. No interpreter runs between the lowering and the publication, so the
+        loop never finds the ring empty there (a retract and a later push left it two rows, 0.4
+        ms, while the push took as long again: an underrun beside CPU hogs). Returns the rows
+        written, or None (nothing changed) when ``cut`` is not below the write index or the
+        loop is within two rows of it."""
+        n = _replace_rows(self.ctl, self.rows, int(cut), block.reshape(block.shape[0], self.out0 - 1),
+                          float(epoch), outs)
+        return None if n < 0 else int(n)
 
     def underruns(self) -> int:
         return int(self.ctl[SP_UNDERRUNS])
@@ -165,6 +164,39 @@ class SetpointRing:
     def dry_row(self) -> int:
         """The index of the last row the loop followed before its last underrun (-1: none)."""
         return int(self.ctl[SP_DRY]) - 1
+
+
+@njit
+def _replace_rows(ctl, rows, cut, block, epoch, outs):
+    """:meth:`SetpointRing.replace` compiled: the rows written (-1: none, nothing changed)."""
+    cap = rows.shape[0] - 1
+    w = ctl[SP_WRITE]
+    if cut >= w or load_acquire(ctl, SP_READ) + 2 > cut:
+        return -1
+    store_release(ctl, SP_WRITE, cut)
+    r = load_acquire(ctl, SP_READ)
+    if r + 2 > cut:                            # the loop raced us: the rows as they were
+        store_release(ctl, SP_WRITE, w)
+        return -1
+    n = min(block.shape[0], cap - (cut - r))
+    o0 = 1 + block.shape[1]
+    for q in range(n):
+        row = rows[(cut + q) % cap]
+        row[0] = epoch
+        for c in range(block.shape[1]):
+            row[1 + c] = block[q, c]
+        for c in range(outs.shape[1]):
+            row[o0 + c] = outs[q, c]
+    store_release(ctl, SP_WRITE, cut + n)
+    return n
+
+
+def warm_up() -> None:
+    """Compile (or load the cached code of) the producer's compiled step now, so that the first
+    feed hold or override does not pay for it while the loop runs on the lead."""
+    ring = SetpointRing(8, 1, shared=False, outputs=("o",))
+    ring.push(np.zeros((4, 1, 3)), 0)
+    ring.replace(3, np.zeros((2, 1, 3)), 0, np.zeros((2, 1)))
 
 
 @njit

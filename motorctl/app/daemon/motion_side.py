@@ -63,7 +63,7 @@ import numpy as np
 
 from motorctl.app.program_planner import PlanJob, plan_windows, preview
 from motorctl.loop.cycle import STREAM
-from motorctl.loop.stream import SP_OUT_STOP, SetpointRing
+from motorctl.loop.stream import SP_OUT_STOP, SetpointRing, warm_up as stream_warm_up
 from motorctl.motion import gcode as G
 from motorctl.motion import planner as P
 
@@ -184,7 +184,7 @@ class MotionSide:
         self._hdone = np.zeros(cap, dtype=np.int64)
         self._hist_from = stream.written()
         self._rewrite = False            # a hold/resume/abort/override asks to rewrite the ring
-        self._guard_now = self.guard     # the guard of the next rewrite (doubled after a miss)
+        self._guard_now = self.guard     # the guard of the next rewrite (widened after a miss)
         self._defer_clear: str | None = None
         self._off_pending = False        # an abort's stop outputs still to switch off
         self.rewrites = 0
@@ -611,6 +611,7 @@ class MotionSide:
 
     # ---------------------------------------------------------------- the filler
     def start(self) -> None:
+        stream_warm_up()                     # the rewrite's compiled step, before any motion
         self._thread = threading.Thread(target=self._run, name="motorctl-motion", daemon=True)
         self._thread.start()
 
@@ -749,26 +750,37 @@ class MotionSide:
             self._clear(f"axis {gone[0]} left command mode")
         return bool(gone)
 
-    def _push(self, n: int, ep: int) -> None:
-        """(lock held) The block's first n rows into the ring at its write index, with the
-        filler's state after each (for a rewrite) and the block's events tied to their rows."""
-        if not n:
-            return
+    def _push(self, n: int, ep: int, cut: int | None = None) -> bool:
+        """(lock held) The block's first n rows into the ring at its write index (``cut``: in
+        place of the ring's rows from index ``cut`` on, :meth:`SetpointRing.replace`), with the
+        filler's state after each (for a rewrite) and the block's events tied to their rows.
+        False (nothing changed) when the loop came within two rows of ``cut``."""
+        if not n and cut is None:
+            return True
         ring = self.stream
-        w = ring.written()
-        self.pending.extend((w + q, ev) for q, ev in self._bev)
         outs = self._bout[:n]
         outs[:] = self._out
         for q, ev in self._bev:              # in row order: each switches its output from its row on
             if ev.target is not None:
                 outs[q:, ring.outputs.index(ev.target)] = ev.value
-        self._out[:] = outs[n - 1]
-        ring.push(self._block[:n], ep, outs)
+        if cut is None:
+            w = ring.written()
+            ring.push(self._block[:n], ep, outs)
+        else:
+            if ring.replace(cut, self._block[:n], ep, outs) is None:
+                return False
+            w = cut
+            while self.pending and self.pending[-1][0] >= cut:
+                self.pending.pop()
+        self.pending.extend((w + q, ev) for q, ev in self._bev)
+        if n:
+            self._out[:] = outs[n - 1]
         k = (w + np.arange(n)) % ring.capacity
         self._hs[k], self._hf[k], self._hfd[k] = self._bs[:n], self._bf[:n], self._bfd[:n]
         self._hdone[k] = self.done_programs
         for q in range(n):
             self._htraj[k[q]] = self._btraj[q]
+        return True
 
     def _state(self) -> tuple:
         return (self.cur, self.s, self.f, self.fd, list(self.queue), self.done_programs, self._ev_i,
@@ -788,11 +800,12 @@ class MotionSide:
         """(lock held) Rewrite the ring's rows beyond the next ``guard`` cycles for a new hold,
         resume, abort or override: the filler's state is put back to the last row kept (its
         trajectory, path time, feed scale and rate; the trajectories begun after it back in
-        front of the queue), the rows from there generated, then the ring's write index lowered
-        to the cut (SetpointRing.retract) and the new rows pushed at once: the loop never waits
+        front of the queue), the rows from there generated, then put in place of the ring's
+        rows from the cut on in one compiled step (SetpointRing.replace): the loop never waits
         for the generation. When the loop came within two rows of the cut meanwhile, nothing is
-        changed and the next wake tries again with twice the guard. Returns the rows written,
-        or None (nothing to rewrite: the caller tops up as usual)."""
+        changed and it is tried again at once with a guard of at least twice the rows the loop
+        took while the rows were generated. Returns the rows written, or None (nothing to
+        rewrite: the caller tops up as usual)."""
         ring = self.stream
         w, r0 = ring.written(), ring.consumed()
         cut = r0 + self._guard_now
@@ -833,16 +846,14 @@ class MotionSide:
         # a flipped override); fill() tops the ring up to the lead afterwards as usual
         n = self._generate(min(max(self._chunk, self.lead // 2), cap - (cut - r0)))
         why, self._defer_clear = self._defer_clear, None
-        if ring.retract(cut) is None:        # the loop came too close: as before, retry wider
+        if not self._push(n, ep, cut):       # the loop came too close: retry wider, at once
             self._restore(before)
-            self._guard_now = min(2 * self._guard_now, self.lead // 2)
-            self._wake.set()                 # at once, not at the next period
+            taken = ring.consumed() - r0     # the rows the loop took while this was generated
+            self._guard_now = min(max(2 * self._guard_now, 2 * taken), self.lead // 2)
+            self._wake.set()
             return 0
         self._rewrite = False
         self._guard_now = self.guard
-        while self.pending and self.pending[-1][0] >= cut:
-            self.pending.pop()
-        self._push(n, ep)
         if why:
             self._clear(why)
         self.rewrites += 1
