@@ -89,6 +89,7 @@ class SetpointRing:
         self.ctl = buf[:8 * SP_CTL].view(np.int64)
         self.rows = buf[8 * SP_CTL:].view(np.float64).reshape(self.capacity + 1, self.width)
         self.ctl[SP_OUT_STOP] = sum(1 << self.outputs.index(o) for o in set(stop_outputs))
+        warm_up()
 
     # ---------------------------------------------------------------- producer side
     def depth(self) -> int:
@@ -192,11 +193,12 @@ def _replace_rows(ctl, rows, cut, block, epoch, outs):
 
 
 def warm_up() -> None:
-    """Compile (or load the cached code of) the producer's compiled step now, so that the first
-    feed hold or override does not pay for it while the loop runs on the lead."""
-    ring = SetpointRing(8, 1, shared=False, outputs=("o",))
-    ring.push(np.zeros((4, 1, 3)), 0)
-    ring.replace(3, np.zeros((2, 1, 3)), 0, np.zeros((2, 1)))
+    """Compile (or load the cached code of) the producer's compiled step now (every ring does at
+    its making: the daemon's before the fork), so that the first feed hold or override does not
+    pay for it while the loop runs on the lead."""
+    ctl = np.zeros(SP_CTL, dtype=np.int64)
+    ctl[SP_WRITE] = 4
+    _replace_rows(ctl, np.zeros((9, 4)), 3, np.zeros((2, 3)), 0.0, np.zeros((2, 0)))
 
 
 @njit

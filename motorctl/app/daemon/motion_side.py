@@ -63,7 +63,7 @@ import numpy as np
 
 from motorctl.app.program_planner import PlanJob, plan_windows, preview
 from motorctl.loop.cycle import STREAM
-from motorctl.loop.stream import SP_OUT_STOP, SetpointRing, warm_up as stream_warm_up
+from motorctl.loop.stream import SP_OUT_STOP, SetpointRing
 from motorctl.motion import gcode as G
 from motorctl.motion import planner as P
 
@@ -611,7 +611,6 @@ class MotionSide:
 
     # ---------------------------------------------------------------- the filler
     def start(self) -> None:
-        stream_warm_up()                     # the rewrite's compiled step, before any motion
         self._thread = threading.Thread(target=self._run, name="motorctl-motion", daemon=True)
         self._thread.start()
 
