@@ -67,7 +67,7 @@ def main() -> None:
     outs, stop = output_names(SETTINGS)
     ring = SetpointRing(int(0.5 / DT), 2, shared=False, outputs=outs, stop_outputs=stop)
     ms = M.MotionSide(ring, lambda: np.zeros(4), ["X.x_d", "X.xd_dot", "Y.x_d", "Y.xd_dot"], ["X", "Y"],
-                      LIMITS, lambda: np.array([STREAM, STREAM]), DT, gcode_settings=SETTINGS)
+                      LIMITS, lambda: np.array([STREAM, STREAM]), DT, gcode_settings=SETTINGS, lead_s=0.5)
     # the loop's per-axis arrays as the compiled cycle has them: mode, stop; x, v, a, a_max, j_max
     ax = np.zeros((2, 2), dtype=np.int64)
     ax[:, 0] = STREAM

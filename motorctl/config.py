@@ -228,7 +228,7 @@ class DaemonConfig(StrictModel):
     metrics: MetricsConfig | None = None
     opcua: OpcuaConfig | None = None
     users_file: str | None = None
-    motion_lead_s: Annotated[float, Field(ge=0.05, le=3.0)] = 0.5
+    motion_lead_s: Annotated[float, Field(ge=0.05, le=3.0)] = 1.0
     max_program_bytes: Annotated[int, Field(ge=1 << 16, le=1 << 40)] = 1 << 30
     log_segment_bytes: Annotated[int, Field(ge=1 << 20, le=1 << 40)] = 512 << 20
     log_segment_s: Annotated[float, Field(ge=1.0, le=7 * 86400.0)] = 3600.0

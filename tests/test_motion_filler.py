@@ -31,7 +31,7 @@ class Rig:
         self.ring = SetpointRing(int(0.5 / DT), 2, shared=False, outputs=outs, stop_outputs=stop)
         self.ms = M.MotionSide(self.ring, lambda: np.zeros(4), ["X.x_d", "X.xd_dot", "Y.x_d", "Y.xd_dot"],
                                ["X", "Y"], LIMITS, lambda: np.array([STREAM, STREAM]), DT,
-                               gcode_settings=settings)
+                               gcode_settings=settings, lead_s=0.5)
         self.cycle = 0
         self.rows: list[np.ndarray] = []
         self.outs: list[np.ndarray] = []     # the outputs each row taken carries

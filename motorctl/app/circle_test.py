@@ -97,7 +97,7 @@ def run_circle_test(loaded: LoadedConfig, radius: float, feed: float, controller
         for i, a in enumerate(names):
             lp.command_axis(i, axis_limits[i].a_max, axis_limits[i].j_max)
         motion = MotionSide(ring, lambda: lp.buf[(lp.k - 1) % lp.capacity], lp.layout, names, axis_limits,
-                            lambda: lp.mode, tb.period_s)
+                            lambda: lp.mode, tb.period_s, lead_s=RING_S / 2)
         motion.trace = []
         iy = [lp.layout.index(f"{a}.y") for a in names]
         ys: list = []

@@ -4,7 +4,7 @@ A filler thread of the I/O process keeps ``lead_s`` (the config's ``daemon.motio
 default :data:`LEAD_S`) of setpoints (x_d, ẋ_d, ẍ_d per axis per cycle) ahead in the loop's
 setpoint ring (:mod:`motorctl.loop.stream`), from a queue of planned trajectories (a ``move``:
 Ruckig's time-optimal jerk-limited point-to-point with synchronised arrival; a G-code program:
-``motorctl.motion``'s planner), in blocks of at most LEAD_S / BLOCKS_PER_LEAD.
+``motorctl.motion``'s planner), in blocks of at most :data:`BLOCK_S`.
 
 The trajectories are sampled on a path time s that advances by the feed scale f per cycle
 (time scaling: x = p(s), ẋ = p'(s)·ḟ... precisely ẋ = p'(s)·f, ẍ = p''(s)·f² + p'(s)·ḟ), so
@@ -67,13 +67,20 @@ from motorctl.loop.stream import SP_OUT_STOP, SetpointRing
 from motorctl.motion import gcode as G
 from motorctl.motion import planner as P
 
-#: seconds of setpoints kept ahead of the loop
-LEAD_S = 0.5
+#: seconds of setpoints kept ahead of the loop (the config's default): the longest the filler
+#: may be held off before the loop runs dry. 0.5 s was not enough on the 2-core VM beside CPU
+#: hogs: the filler, real-time or not, was held off 0.3-0.9 s at times, several daemons' at the
+#: same moment (the VM's CPU steal; docs/benchmarks.md)
+LEAD_S = 1.0
 #: the filler's wake period [s]
 FILL_EVERY_S = 0.01
-#: the ring is topped up in blocks of at least LEAD_S / BLOCKS_PER_LEAD: a trajectory's block
-#: sample has a fixed cost (the planner's filter windows, about 1.5 ms a call here), so a few
-#: large blocks a second cost a few per cent of a core where 50-row blocks took 40 %
+#: the ring is topped up in blocks of BLOCK_S (of a lead's 1/BLOCKS_PER_LEAD where that is
+#: less): a trajectory's block sample has a fixed cost (the planner's filter windows, about 1.5
+#: ms a call here), so a few large blocks a second cost a few per cent of a core where 50-row
+#: blocks took 40 %; and no more, so that one block holds the lock and the interpreter for
+#: milliseconds, not the whole lead (a 2 s block took 0.8-3 s and latched "recorder stalled"
+#: on a loaded host)
+BLOCK_S = 0.125
 BLOCKS_PER_LEAD = 4
 #: the highest feed override
 MAX_OVERRIDE = 1.5
@@ -86,7 +93,7 @@ RAMP_SHARE = 0.25
 #: the override cap's bins of path time [s] (planner.override_cap)
 CAP_BIN_S = 0.01
 #: rows the loop may still take after a hold, resume, abort or override change: the rows beyond
-#: them are written again at once (the ring keeps LEAD_S ahead; this is the reaction time) [s]
+#: them are written again at once (the ring keeps the lead ahead; this is the reaction time) [s]
 GUARD_S = 0.004
 
 
@@ -171,11 +178,8 @@ class MotionSide:
         self.cap_ahead_s = 1.2 * MAX_OVERRIDE * ((MAX_OVERRIDE - 1.0) / self.f_rate_hi
                                                  + 2.0 * self.f_rate_hi / self.f_accel_hi)
         self.guard = max(4, int(round(GUARD_S / period_s)))
-        #: the most rows one fill (or a rewrite's first block) generates, whatever the lead
-        #: (LEAD_S / BLOCKS_PER_LEAD): the lock and the interpreter are held that long at most
-        #: (tens of ms), so that the I/O process's drain and socket never wait for a whole lead
-        #: (a 2 s block took 0.8-3 s and latched "recorder stalled" on a loaded host)
-        self._chunk = max(1, min(self.lead, int(round(LEAD_S / period_s))) // BLOCKS_PER_LEAD)
+        #: the most rows one fill generates, whatever the lead (BLOCK_S)
+        self._chunk = max(1, min(self.lead // BLOCKS_PER_LEAD, int(round(BLOCK_S / period_s))))
         cap = stream.capacity
         #: the filler's state after each ring row (by row index % capacity): path time, feed
         #: scale and its rate, trajectory, programs done; rows below _hist_from are not ours
@@ -241,7 +245,7 @@ class MotionSide:
         self._steps = np.arange(1.0, self.lead + 1.0)
         self._grid = np.zeros((self.lead + 2, 3, self.n))   # sample_into's layout (k, x/v/a, axis)
         #: SCHED_FIFO priority of the filler thread (0: none), below the loop's: a busy host must
-        #: not starve the planner for longer than LEAD_S (set by the daemon where real-time is on)
+        #: not starve the planner for longer than the lead (set by the daemon where real-time is on)
         self.fifo_priority = 0
         self.trace: list | None = None   # the source line of every row streamed (when a list)
         self._stop = threading.Event()
@@ -505,7 +509,7 @@ class MotionSide:
 
     def progress(self) -> tuple[int, float, float]:
         """(source line, share done 0..1, time left [s]) of the motion the loop runs now: the
-        row it took last (not the filler's, LEAD_S ahead), the planned durations of it and of the
+        row it took last (not the filler's, the lead ahead), the planned durations of it and of the
         queue, the time left at the current override (the planner's prediction; a hold stops it).
         (0, 1.0, 0.0) when nothing runs."""
         with self.lock:
@@ -838,11 +842,11 @@ class MotionSide:
             self._ev_i = sum(1 for t, _ in self.cur.events if t <= self.s)
         self._bev.clear()
         self._defer_clear = ""
-        # half the lead at once (at least a block; ~1.5 ms for 0.25 s of rows): the loop must
-        # not reach the cut while it is generated (else the guard doubles and this is tried
-        # again), and what the rewrite leaves ahead must outlast a filler kept off the CPU for
-        # a while (one block, 0.125 s, left a SCHED_OTHER filler beside CPU hogs to run dry on
-        # a flipped override); fill() tops the ring up to the lead afterwards as usual
+        # half the lead at once (at least a block; 3-10 ms for 0.25 s of an override's ramp):
+        # what the rewrite leaves ahead must outlast a filler kept off the CPU for a while (one
+        # block, 0.125 s, left a SCHED_OTHER filler beside CPU hogs to run dry on a flipped
+        # override); the loop may reach the cut while it is generated (then it is tried again
+        # with a wider guard); fill() tops the ring up to the lead afterwards as usual
         n = self._generate(min(max(self._chunk, self.lead // 2), cap - (cut - r0)))
         why, self._defer_clear = self._defer_clear, None
         if not self._push(n, ep, cut):       # the loop came too close: retry wider, at once
