@@ -842,12 +842,13 @@ class MotionSide:
             self._ev_i = sum(1 for t, _ in self.cur.events if t <= self.s)
         self._bev.clear()
         self._defer_clear = ""
-        # half the lead at once (at least a block; 3-10 ms for 0.25 s of an override's ramp):
-        # what the rewrite leaves ahead must outlast a filler kept off the CPU for a while (one
-        # block, 0.125 s, left a SCHED_OTHER filler beside CPU hogs to run dry on a flipped
-        # override); the loop may reach the cut while it is generated (then it is tried again
-        # with a wider guard); fill() tops the ring up to the lead afterwards as usual
-        n = self._generate(min(max(self._chunk, self.lead // 2), cap - (cut - r0)))
+        # two blocks at once (0.25 s, half a lead of 0.5 s or less; 3-10 ms for an override's
+        # ramp beside CPU hogs): what the rewrite leaves ahead must outlast a filler kept off the
+        # CPU for a while (one block left a SCHED_OTHER filler beside CPU hogs to run dry on a
+        # flipped override), and its generation, whatever the lead, is what the guard must
+        # cover (else it is tried again with a wider guard); fill() tops the ring up to the
+        # lead afterwards as usual
+        n = self._generate(min(2 * self._chunk, cap - (cut - r0)))
         why, self._defer_clear = self._defer_clear, None
         if not self._push(n, ep, cut):       # the loop came too close: retry wider, at once
             self._restore(before)
