@@ -69,8 +69,8 @@ from motorctl.motion import planner as P
 
 #: seconds of setpoints kept ahead of the loop (the config's default): the longest the filler
 #: may be held off before the loop runs dry. 0.5 s was not enough on the 2-core VM beside CPU
-#: hogs: the filler, real-time or not, was held off 0.3-0.9 s at times, several daemons' at the
-#: same moment (the VM's CPU steal; docs/benchmarks.md)
+#: hogs: the filler, real-time or not, was held off 0.2-1.0 s at times, several daemons' at the
+#: same moment (the VM's CPU steal, by every sign; docs/benchmarks.md)
 LEAD_S = 1.0
 #: the filler's wake period [s]
 FILL_EVERY_S = 0.01
