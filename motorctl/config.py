@@ -201,7 +201,10 @@ class DaemonConfig(StrictModel):
     holds twice as much, at least 1 s): the longest the I/O process may be starved of the CPU
     before the loop runs dry and brakes to rest (an underrun, docs/motion.md); below the
     recorder's stall bound 2·flush_s + 1 s; a hold, an abort or an override rewrites the rows
-    beyond a 4 ms guard whatever the lead (wider when the rewrite's 0.25 s take longer to generate). max_program_bytes: the largest G-code program the daemon takes
+    beyond a 4 ms guard whatever the lead (wider when the rewrite's 0.25 s take longer to generate).
+    The default 1 s: 0.5 s was not enough on the 2-core VM beside CPU hogs, where the filler,
+    real-time or not, was held off 0.2-1.0 s at times, several daemons' at the same moment (the
+    VM's CPU steal, by every sign; docs/benchmarks.md). max_program_bytes: the largest G-code program the daemon takes
     (sent in chunks; a larger one is refused by name before anything is planned) [bytes].
 
     Retention of ``log_dir`` (docs/daemon.md): log_segment_bytes: largest run-log segment

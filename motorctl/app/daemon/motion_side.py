@@ -62,16 +62,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from motorctl.app.program_planner import PlanJob, plan_windows, preview
+from motorctl.config import DaemonConfig
 from motorctl.loop.cycle import STREAM
 from motorctl.loop.stream import SP_OUT_STOP, SetpointRing
 from motorctl.motion import gcode as G
 from motorctl.motion import planner as P
 
-#: seconds of setpoints kept ahead of the loop (the config's default): the longest the filler
-#: may be held off before the loop runs dry. 0.5 s was not enough on the 2-core VM beside CPU
-#: hogs: the filler, real-time or not, was held off 0.2-1.0 s at times, several daemons' at the
-#: same moment (the VM's CPU steal, by every sign; docs/benchmarks.md)
-LEAD_S = 1.0
+#: seconds of setpoints kept ahead of the loop: the config's default (``daemon.motion_lead_s``)
+LEAD_S = float(DaemonConfig.model_fields["motion_lead_s"].default)
 #: the filler's wake period [s]
 FILL_EVERY_S = 0.01
 #: the ring is topped up in blocks of BLOCK_S (of a lead's 1/BLOCKS_PER_LEAD where that is
