@@ -109,14 +109,10 @@ class SetpointRing:
         the applied outputs), as far as it fits. Returns the rows written."""
         n = min(block.shape[0], self.free())
         w = int(self.ctl[SP_WRITE])
-        a = w % self.capacity
-        first = min(n, self.capacity - a)          # up to the end of the ring, then from its start
-        o0 = self.out0
-        for dst, lo, hi in ((self.rows[a:a + first], 0, first), (self.rows[:n - first], first, n)):
-            if hi > lo:
-                dst[:, 0] = epoch
-                dst[:, 1:o0] = block[lo:hi].reshape(hi - lo, o0 - 1)
-                dst[:, o0:] = self.applied() if outs is None else outs[lo:hi]
+        if outs is None:
+            outs = np.repeat(self.applied()[None, :], n, axis=0)
+        _put_rows(self.rows, w, np.ascontiguousarray(block[:n], dtype=np.float64).reshape(n, self.out0 - 1),
+                  float(epoch), np.ascontiguousarray(outs[:n], dtype=np.float64))
         store_release(self.ctl, SP_WRITE, w + n)
         return n
 
@@ -180,25 +176,34 @@ def _replace_rows(ctl, rows, cut, block, epoch, outs):
         store_release(ctl, SP_WRITE, w)
         return -1
     n = min(block.shape[0], cap - (cut - r))
+    _put_rows(rows, cut, block[:n], epoch, outs[:n])
+    store_release(ctl, SP_WRITE, cut + n)
+    return n
+
+
+@njit
+def _put_rows(rows, w, block, epoch, outs):
+    """The rows of ring indices w, w+1, ... (at their index modulo the capacity) set to ``epoch``,
+    ``block``'s (k, 3·n_axes) setpoints and ``outs``' (k, n_outputs) outputs; nothing published."""
+    cap = rows.shape[0] - 1
     o0 = 1 + block.shape[1]
-    for q in range(n):
-        row = rows[(cut + q) % cap]
+    for q in range(block.shape[0]):
+        row = rows[(w + q) % cap]
         row[0] = epoch
         for c in range(block.shape[1]):
             row[1 + c] = block[q, c]
         for c in range(outs.shape[1]):
             row[o0 + c] = outs[q, c]
-    store_release(ctl, SP_WRITE, cut + n)
-    return n
 
 
 def warm_up() -> None:
-    """Compile (or load the cached code of) the producer's compiled step now (every ring does at
-    its making: the daemon's before the fork), so that the first feed hold or override does not
-    pay for it while the loop runs on the lead."""
+    """Compile (or load the cached code of) the producer's compiled steps now (every ring does at
+    its making: the daemon's before the fork), so that the first push, feed hold or override does
+    not pay for it while the loop runs on the lead."""
     ctl = np.zeros(SP_CTL, dtype=np.int64)
     ctl[SP_WRITE] = 4
     _replace_rows(ctl, np.zeros((9, 4)), 3, np.zeros((2, 3)), 0.0, np.zeros((2, 0)))
+    _put_rows(np.zeros((9, 4)), 0, np.zeros((2, 3)), 0.0, np.zeros((2, 0)))
 
 
 @njit
