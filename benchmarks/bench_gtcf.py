@@ -266,11 +266,13 @@ def main(argv=None) -> int:
         for tp in got["gtcf"]:
             g = tp["gains"]
             print(f"  gtcf {'-'.join(tp['pair'])}: gain_t {g['gain_t']:g}; "
-                  + "; ".join(f"{a} gain_n {g['gain_n'][a]:g}, {_lp(g['lowpass_hz'][a])} (margins hold up to "
+                  + "; ".join(f"{a} gain_n {g['gain_n'][a]:g}, lambda_n {g['lambda_n'][a]:g}, "
+                              f"{_lp(g['lowpass_hz'][a])} (margins hold up to "
                               f"{tp['admissible'][a][0][0]:g}): GM {m['gm_db']:.1f} dB, PM {m['pm_deg']:.1f} deg, "
                               f"|S| {m['ms_db']:.1f} dB" for a, m in tp["margins"].items()))
             for r in tp["runs"]:
-                print(f"    {r['run']} gain_n " + ", ".join(f"{a} {v:g} ({_lp(r['lowpass_hz'][a])})"
+                print(f"    {r['run']} gain_n " + ", ".join(f"{a} {v:g} (lambda_n {r['lambda_n'][a]:g}, "
+                                                         f"{_lp(r['lowpass_hz'][a])})"
                                                          for a, v in r['gain_n'].items())
                       + f" at {r['scale']:.0%}: {r['verdict']}")
         print()

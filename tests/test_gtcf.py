@@ -22,7 +22,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from motorctl.control.dcdiarc import C2, P_K1, P_KS, S_Y_PREV  # the law's layout (to set a state), no arithmetic
-from motorctl.control.gtcf import G_ALPHA, G_GN, G_GT, G_VFB, G_VMIN, G_YJ, GTCF, gtcf_feedback, gtcf_step
+from motorctl.control.gtcf import G_ALPHA, G_GN, G_GT, G_LN, G_VFB, G_VMIN, G_YJ, GTCF, gtcf_feedback, gtcf_step
 from motorctl.control.params import ControllerConfig
 from motorctl.control.signals import SIG_D0, SIG_E, SIG_P, SIG_THETA, SIG_V
 
@@ -182,6 +182,52 @@ def test_lowpass_on_the_task_frame_feedback(laws):
     tab[G_ALPHA] = 1.0
 
 
+@pytest.mark.parametrize("phi", [0.0, 0.5 * math.pi, 0.7, 4.0])
+def test_contour_error_gain_in_the_sliding_variable(laws, phi):
+    """λ_n: with ė = ẋ_d (p = k1 e), equal k_s and k1 and one g_n, a position error δ along the
+    normal meets −g_n λ_n k_s k1 δ (the contour entry of Λ is λ_n k1), one along the tangent
+    −g_t k_s k1 δ, as without λ_n; beyond the band b (5 µm), −g_n k_s k1 (δ + (λ_n − 1) b). The
+    samples' v_fb are the totals less C2's −k_s p."""
+    gx, gy, c2 = laws
+    ks, k1, gt, gn, lam, v_min, d = 50.0, 500.0, 1.0, 2.0, 1.5, 1e-3, 2e-6
+    t = np.array([-math.sin(phi), math.cos(phi)])
+    n = np.array([math.cos(phi), math.sin(phi)])
+    vd = 0.1 * t
+    xd = np.array([0.1, 0.2])
+    try:
+        for a in (gx, gy):
+            a.reset(0.0, keep_theta=False)
+            a._span[6 + G_GT], a._span[6 + G_GN], a._span[6 + G_VMIN], a._span[6 + G_LN] = gt, gn, v_min, lam
+            a._prm[P_KS], a._prm[P_K1] = ks, k1
+        big = 4e-5                                            # beyond the 5 µm band: λ_n's part stops there
+        for dirn, d, want in ((n, d, -gn * lam * ks * k1 * d), (t, d, -gt * ks * k1 * d),
+                              (n, big, -gn * ks * k1 * (big + (lam - 1.0) * 5e-6))):
+            y = xd + d * dirn
+            yp = y - vd * TS                                  # (y − y[k−1]) / Ts = ẋ_d: p = k1 e
+            tot = []
+            for i, (a, b) in enumerate(((gx, gy), (gy, gx))):
+                a._st[S_Y_PREV] = yp[i]
+                a._span[6 + G_YJ] = yp[1 - i]
+                gtcf_step(y[i], xd[i], vd[i], 0.0, xd[i], vd[i], 0.0, 0.0, y[1 - i], xd[1 - i], vd[1 - i], True,
+                          a.signals, a._F, a._I, a._L, b._F, b._L)
+                tot.append(a.v_fb - ks * k1 * d * dirn[i])
+            np.testing.assert_allclose(tot, want * dirn, rtol=1e-9, atol=1e-12)
+    finally:
+        for a in (gx, gy):
+            a._span[6 + G_LN] = 1.0
+
+
+def test_contour_error_gain_in_the_linearisation():
+    """GTCF.linearise with λ_n: C2's loop at k_s (1 + (g − 1) F) plus F k_s g (λ_n − 1) k1
+    (unfiltered: F = 1), λ_n = 1 the same as without."""
+    gains = {"k_s": 48.0, "k1": 1067.0, "gamma_d": 500.0, "g": 2.0, "lowpass_hz": None}
+    w = np.array([10.0, 600.0, 3000.0])
+    base = GTCF.linearise(gains, TS, w)
+    assert np.array_equal(GTCF.linearise(dict(gains, lambda_n=1.0), TS, w), base)
+    np.testing.assert_allclose(GTCF.linearise(dict(gains, lambda_n=1.5), TS, w) - base,
+                               48.0 * 2.0 * 0.5 * 1067.0, rtol=1e-12)
+
+
 def test_closed_loop_circle_beats_c2():
     """A short circle (R 10 mm, 100 mm/s) through circle-test's own path on the simulated gantry,
     virtual clock: GTCF's largest radial deviation and G(b) are below C2's, no fault."""
@@ -232,8 +278,9 @@ def test_autotune_writes_the_pairs_gains_by_the_rule(tmp_path, monkeypatch):
     (partner and v_min kept); the margins reported at least the rule's on both axes (and found
     again from the measured response at each axis's choice at 100/75/50 %); the search started
     at each axis's first admissible option and moved only the axis a failed run named, to its
-    next option (its low-pass after a failure on its rest noise, else its next lower g_n); the
-    same margins and the same figures of the chosen gains' contour run a second time."""
+    next option (its low-pass after a failure on its rest noise, else its next lower g_n); then
+    on that choice only an axis's λ_n raised, kept where its runs passed; the same margins and
+    the same figures of the chosen gains' contour run a second time.""" 
     import yaml
     from motorctl.commission import gtcf_tune
     from motorctl.commission.autotune import write_config
@@ -250,16 +297,17 @@ def test_autotune_writes_the_pairs_gains_by_the_rule(tmp_path, monkeypatch):
     tp = gtcf_tune.tune_pair(loaded, raw, *res, **kw)
     new = write_config(raw, res, src, tmp_path / "autotuned.yaml", [tp])
     g = tp["gains"]
-    opt = {a: (g["gain_n"][a], g["lowpass_hz"][a]) for a in ("X", "Y")}
+    opt = {a: (g["gain_n"][a], g["lowpass_hz"][a], g["lambda_n"][a]) for a in ("X", "Y")}
     assert g["gain_t"] == 1.0
-    assert all(opt[a][0] in gtcf_tune.GAIN_N and opt[a][1] in (None, gtcf_tune.LOWPASS_HZ) for a in opt)
+    assert all(opt[a][0] in gtcf_tune.GAIN_N and opt[a][1] in (None, gtcf_tune.LOWPASS_HZ)
+               and opt[a][2] in gtcf_tune.LAMBDA_N for a in opt)
     text = (tmp_path / "autotuned.yaml").read_text()
     back = yaml.safe_load(text)
     assert "# " in text and f"gtcf X-Y: gain_t 1, gain_n {gtcf_tune._opts(opt)}" in text
     for a, b in (("X", "Y"), ("Y", "X")):
         blk = back["axes"][a]["controller"]["gtcf"]
         assert blk == new["axes"][a]["controller"]["gtcf"]
-        assert (blk["gain_t"], blk["gain_n"], blk["lowpass_hz"]) == (1.0, *opt[a])
+        assert (blk["gain_t"], blk["gain_n"], blk["lowpass_hz"], blk["lambda_n"]) == (1.0, *opt[a])
         assert blk["partner"] == b and blk["v_min"] == raw["axes"][a]["controller"]["gtcf"]["v_min"]
     config_from_dict(back, str(tmp_path / "autotuned.yaml"))          # the written file is a valid config
     for r in res:
@@ -270,12 +318,13 @@ def test_autotune_writes_the_pairs_gains_by_the_rule(tmp_path, monkeypatch):
         L = c_frf("gtcf", gtcf_tune.gtcf_gains(c2, *opt[a]), r["ts"], r["w"], r["theta_hat0"]) * r["G_w"]
         f = r["w"] / (2 * np.pi)
         assert all(RULE.holds(loop_margins(s * L, f)) for s in SCALES)
-        assert opt[a] in tp["admissible"][a]
+        assert (*opt[a][:2], 1.0) in tp["admissible"][a]
     # the search: from each axis's first admissible option, one axis to its next after each failure
-    cands = []
+    cands, raised = [], []
     for n, *_ in tp["runs"]:
-        if not cands or cands[-1] != n:
-            cands.append(n)
+        to = raised if any(o[2] != 1.0 for o in n.values()) else cands
+        if not to or to[-1] != n:
+            to.append(n)
     if cands:
         assert cands[0] == {a: tp["admissible"][a][0] for a in ("X", "Y")}
         for prev, nxt in zip(cands, cands[1:]):
@@ -290,8 +339,14 @@ def test_autotune_writes_the_pairs_gains_by_the_rule(tmp_path, monkeypatch):
             lower = next(k for k in range(i + 1, len(adm)) if adm[k][0] < adm[i][0])
             assert j == lower or (j == i + 1 and f"{named}: u at rest" in why), (prev, nxt, why)
             assert moved[0] == named or prev[named][0] == 1.0
-        if opt != {"X": (1.0, None), "Y": (1.0, None)}:
-            assert cands[-1] == opt and not any(w for n, _, _, _, w in tp["runs"] if n == opt)
+        base = cands[-1]
+        if opt != {"X": (1.0, None, 1.0), "Y": (1.0, None, 1.0)}:
+            assert {a: o[:2] for a, o in base.items()} == {a: o[:2] for a, o in opt.items()}
+            assert not any(w for n, _, _, _, w in tp["runs"] if n == opt)
+        # λ_n's step: each candidate the choice with one more axis's λ_n raised
+        for n in raised:
+            assert {a: o[:2] for a, o in n.items()} == {a: o[:2] for a, o in base.items()}
+            assert any(n[a][2] > 1.0 and base[a][2] == 1.0 for a in n)
     # deterministic: the margins and the chosen's run on the test contour come out the same again
     pair = ("X", "Y")
     c2 = {r["axis"]: gtcf_tune.c2_gains(r) for r in res}

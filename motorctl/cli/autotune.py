@@ -164,6 +164,7 @@ def cmd_autotune(args) -> int:
             g = tp["gains"]
             print(f"gtcf {'-'.join(tp['pair'])}: gain_t {g['gain_t']:g}; " + "; ".join(
                 f"{a} gain_n {g['gain_n'][a]:g} (contour direction its own: k_s x {g['gain_n'][a]:g}"
+                + (f", contour error x {g['lambda_n'][a]:g} in p" if g["lambda_n"][a] != 1.0 else "")
                 + (f", low-pass {g['lowpass_hz'][a]:g} Hz" if g["lowpass_hz"][a] else "") + f"): GM "
                 f"{m['gm_db']:.1f} dB, PM {m['pm_deg']:.1f} deg, |S| {m['ms_db']:.1f} dB"
                 for a, m in tp["margins"].items()) + " (the worst over [gain_t, gain_n])")

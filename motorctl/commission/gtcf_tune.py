@@ -49,8 +49,10 @@ the contour error):
    low-pass when the run failed on that axis's u at rest alone (what the low-pass is for),
    else the next lower g_n (a fault, saturation or a line: the filter's phase would not cure
    them); when it is at 1 already, the partner steps (the coupling is the partner's gain).
-   The first pair that passes 2. is written. Reaching 1, 1: GTCF is C2, written so. At most ``max_runs``
-   machine runs.
+   The first pair that passes 2. is taken. Then, on it, each axis in turn its contour error's
+   gain λ_n (:data:`LAMBDA_N`, highest first; the law's ``lambda_n``): where the margins hold
+   with it over the span (:func:`span_lambda`) and its runs pass 2., it is kept; else the axis
+   keeps λ_n 1. Reaching 1, 1: GTCF is C2, written so. At most ``max_runs`` machine runs.
 """
 
 from __future__ import annotations
@@ -70,6 +72,9 @@ from motorctl.config import LoadedConfig, config_from_dict
 
 #: the contour-direction gains g_n searched per axis (multiples of its C2 k_s; 1: C2)
 GAIN_N = (1.0, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0)
+#: the contour error's gain in the sliding variable searched per axis with each g_n (multiples of
+#: its C2 k1; 1: C2's p), highest first (motorctl.control.gtcf: p̃ = p + (λ_n − 1) k1 n ε_n)
+LAMBDA_N = (1.5, 1.25, 1.0)
 #: the tangential gain written: C2's stiffness along the path (the per-axis autotune's)
 GAIN_T = 1.0
 #: the low-pass corner written on the feedback beyond C2's [Hz] (motorctl.control.gtcf): above the
@@ -121,17 +126,29 @@ def span(g_t: float, g_n: float) -> np.ndarray:
     return np.array([lo]) if hi == lo else np.geomspace(lo, hi, SPAN_POINTS)
 
 
-def gtcf_gains(g_c2: dict, g: float, lowpass_hz: float | None = None) -> dict:
+def gtcf_gains(g_c2: dict, g: float, lowpass_hz: float | None = None, lambda_n: float = 1.0) -> dict:
     """The gains of :meth:`motorctl.control.gtcf.GTCF.linearise` for one axis: its C2 gains
-    ``g_c2`` at task-frame gain ``g`` through the low-pass of ``lowpass_hz`` [Hz]."""
-    return dict(g_c2, g=float(g), lowpass_hz=lowpass_hz)
+    ``g_c2`` at task-frame gain ``g`` and contour-error gain ``lambda_n`` through the low-pass of
+    ``lowpass_hz`` [Hz]."""
+    return dict(g_c2, g=float(g), lowpass_hz=lowpass_hz, lambda_n=float(lambda_n))
+
+
+def span_lambda(g: float, g_t: float, g_n: float, lambda_n: float) -> float:
+    """The contour-error gain λ' at the point of the span where the axis's own task-frame gain is
+    ``g``: its own term is k_s (g_t (1 − s) + g_n s) p + k_s g_n (λ_n − 1) s k1 e with s = n_i² the
+    share of the contour direction that is the axis's own, so g (λ' − 1) = g_n (λ_n − 1) s."""
+    if lambda_n == 1.0 or g_n == g_t:
+        return lambda_n
+    s = (g - g_t) / (g_n - g_t)
+    return 1.0 + g_n * (lambda_n - 1.0) * s / g
 
 
 def axis_margins(res: dict, g_c2: dict, g_t: float, g_n: float, lowpass_hz: float | None = None,
-                 rule: Rule = RULE) -> tuple[dict, bool]:
+                 lambda_n: float = 1.0, rule: Rule = RULE) -> tuple[dict, bool]:
     """The margins of one axis's loop under GTCF on its measured FRF (``res``: the axis's autotune
     result, :func:`motorctl.commission.autotune.autotune`; g_c2: its C2 gains; g_n: its own
-    contour gain; lowpass_hz: the law's low-pass [Hz], None: unfiltered).
+    contour gain; lowpass_hz: the law's low-pass [Hz], None: unfiltered; lambda_n: its
+    contour-error gain, taken along the span by :func:`span_lambda`).
 
     Returns:
         ({"gm_db", "pm_deg", "ms_db": the worst over :func:`span` at 100 % [dB, deg, dB], "gm_at",
@@ -144,7 +161,8 @@ def axis_margins(res: dict, g_c2: dict, g_t: float, g_n: float, lowpass_hz: floa
     out = {"gm_db": math.inf, "pm_deg": math.inf, "ms_db": -math.inf, "gm_at": g_n, "pm_at": g_n, "ms_at": g_n}
     ok = True
     for g in span(g_t, g_n):
-        mg, holds = margins_hold("gtcf", gtcf_gains(g_c2, g, lowpass_hz), ts, w, G_w, th, rule)
+        mg, holds = margins_hold("gtcf", gtcf_gains(g_c2, g, lowpass_hz, span_lambda(g, g_t, g_n, lambda_n)),
+                                 ts, w, G_w, th, rule)
         ok &= holds
         if mg.gm_db < out["gm_db"]:
             out["gm_db"], out["gm_at"] = mg.gm_db, float(g)
@@ -152,7 +170,7 @@ def axis_margins(res: dict, g_c2: dict, g_t: float, g_n: float, lowpass_hz: floa
             out["pm_deg"], out["pm_at"] = mg.pm_deg, float(g)
         if mg.ms_db > out["ms_db"]:
             out["ms_db"], out["ms_at"] = mg.ms_db, float(g)
-    gn = gtcf_gains(g_c2, g_n, lowpass_hz)
+    gn = gtcf_gains(g_c2, g_n, lowpass_hz, lambda_n)
     out["wc_hz"] = loop_margins(c_frf("gtcf", gn, ts, w, th) * G_w, f).wc_hz
     rp = res["measure"]["rest_psd"]
     out["rest_pred_V"] = rest_noise(c_frf("gtcf", gn, ts, np.maximum(2.0 * math.pi * rp[0], 1e-9), th), rp)
@@ -171,13 +189,14 @@ def contour_metrics(log_path: str, loaded: LoadedConfig, axis: str) -> dict:
 
 def with_gains(raw: dict, pair, g_c2: dict, g_t: float, opt: dict, scale: float = 1.0) -> dict:
     """A copy of the config dict with each axis's C2 gains ``g_c2[axis]`` (k_s × ``scale``), the
-    pair's ``gain_t`` and each axis's option ``opt[axis]`` = (gain_n, lowpass_hz or None) in its
-    ``gtcf`` block (partner and v_min as configured)."""
+    pair's ``gain_t`` and each axis's option ``opt[axis]`` = (gain_n, lowpass_hz or None,
+    lambda_n) in its ``gtcf`` block (partner and v_min as configured)."""
     new = copy.deepcopy(raw)
     for a in pair:
         new = apply_gains(new, a, "c2", dict(g_c2[a], k_s=g_c2[a]["k_s"] * scale))
         blk = new["axes"][a]["controller"]["gtcf"]
         blk["gain_t"], blk["gain_n"], blk["lowpass_hz"] = float(g_t), float(opt[a][0]), opt[a][1]
+        blk["lambda_n"] = float(opt[a][2])
     return new
 
 
@@ -288,10 +307,11 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
     g_c2 = {a: c2_gains(by[a]) for a in pair}
     source = str(loaded.path)
     g_t = GAIN_T
-    # each axis's admissible options (g_n, low-pass), highest g_n first, unfiltered before the
-    # low-pass, from its own measured response; (1, none), C2 on its own term, closes the list
-    adm = {a: [(g, fc) for g in sorted(GAIN_N, reverse=True) if g > 1.0 for fc in (None, LOWPASS_HZ)
-               if axis_margins(by[a], g_c2[a], g_t, g, fc, rule)[1]] + [(1.0, None)] for a in pair}
+    # each axis's admissible options (g_n, low-pass, λ_n 1), highest g_n first, unfiltered before
+    # the low-pass, from its own measured response; (1, none, 1), C2 on its own term, closes the
+    # list. λ_n is raised after (below), on the chosen g_n
+    adm = {a: [(g, fc, 1.0) for g in sorted(GAIN_N, reverse=True) if g > 1.0 for fc in (None, LOWPASS_HZ)
+               if axis_margins(by[a], g_c2[a], g_t, g, fc, 1.0, rule)[1]] + [(1.0, None, 1.0)] for a in pair}
     say(f"rule gtcf {pair[0]}-{pair[1]}: margins hold up to gain_n "
         + ", ".join(f"{a} {adm[a][0][0]:g}" for a in pair) + f" (gain_t {g_t:g})")
     seconds = full_periods * max(loaded.axes[a].trajectory.period_s for a in pair) if full_periods else 0.0
@@ -304,7 +324,7 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
 
     def ref(what: str, s: float = 1.0) -> dict:
         if (what, s) not in refs:
-            cfg = with_gains(raw, pair, g_c2, 1.0, {a: (1.0, None) for a in pair}, s)
+            cfg = with_gains(raw, pair, g_c2, 1.0, {a: (1.0, None, 1.0) for a in pair}, s)
             refs[what, s] = r = (contour_run(cfg, source, pair, "c2", radius, feed) if what == "contour" else
                                  program_run(cfg, source, pair, "c2", seconds, clock))
             say(f"verify gtcf: per-axis c2 (the pair's c2 gains) at {s:.0%} on {_where(what, seconds)}: "
@@ -324,6 +344,23 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
         return r, (failed, noise), why
 
     runs, n_runs, chosen = [], 0, None
+    steps = [(what, s) for s in sorted(SCALES, reverse=True)
+             for what in (("contour", "program") if seconds and judge_programs else ("contour",))]
+
+    def ladder(opt: dict) -> tuple[str, dict, tuple]:
+        """The runs of one candidate, 100 % to 50 %, to the first that fails: (why or '', the
+        runs at 100 %, the failed axis and whether on its rest noise alone)."""
+        nonlocal n_runs
+        why, got, failed = "", {}, (None, False)
+        for what, s in steps:
+            r, failed, why = trial(what, opt, s)
+            n_runs += 1
+            if s == 1.0:
+                got[what] = r
+            if why:
+                break
+        return why, got, failed
+
     at = {a: 0 for a in pair}
     while True:
         opt = {a: adm[a][at[a]] for a in pair}
@@ -332,16 +369,7 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
         if n_runs >= max_runs:
             say(f"verify gtcf: {max_runs} runs made; the search stops")
             break
-        why, got, failed = "", {}, (None, False)
-        steps = [(what, s) for s in sorted(SCALES, reverse=True)
-                 for what in (("contour", "program") if seconds and judge_programs else ("contour",))]
-        for what, s in steps:
-            r, failed, why = trial(what, opt, s)
-            n_runs += 1
-            if s == 1.0:
-                got[what] = r
-            if why:
-                break
+        why, got, failed = ladder(opt)
         if not why:
             chosen = (opt, got)
             break
@@ -355,8 +383,23 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
         at[a] += 1
         while not noise and adm[a][at[a]][0] == opt[a][0]:
             at[a] += 1
+    # on the chosen g_n, each axis in turn (the pair's first first) its highest λ_n whose margins
+    # hold and whose ladder passes; one that fails leaves the axis at λ_n 1
+    for a in (pair if chosen is not None else ()):
+        opt = chosen[0]
+        for lam in (v for v in LAMBDA_N if v > 1.0):
+            if opt[a][0] <= 1.0 or n_runs >= max_runs:
+                break
+            cand = dict(opt, **{a: (opt[a][0], opt[a][1], lam)})
+            if not axis_margins(by[a], g_c2[a], g_t, *cand[a], rule)[1]:
+                say(f"rule gtcf {a}: margins do not hold with lambda_n {lam:g} at gain_n {opt[a][0]:g}")
+                continue
+            why, got, _ = ladder(cand)
+            if not why:
+                chosen = (cand, got)
+                break
     if chosen is None:
-        chosen = ({a: (1.0, None) for a in pair}, {})
+        chosen = ({a: (1.0, None, 1.0) for a in pair}, {})
     elif seconds and not judge_programs:
         # reported, not judged: the axes' own point-to-point programs with the chosen gains
         chosen[1]["program"], _, why = trial("program", chosen[0], 1.0)
@@ -364,15 +407,18 @@ def tune_pair(loaded: LoadedConfig, raw: dict, res_a: dict, res_b: dict, clock: 
     opt, got = chosen
     mg = {a: axis_margins(by[a], g_c2[a], g_t, *opt[a], rule)[0] for a in pair}
     return {"pair": pair, "gains": {"gain_t": g_t, "gain_n": {a: opt[a][0] for a in pair},
-                                    "lowpass_hz": {a: opt[a][1] for a in pair}}, "c2": g_c2,
+                                    "lowpass_hz": {a: opt[a][1] for a in pair},
+                                    "lambda_n": {a: opt[a][2] for a in pair}}, "c2": g_c2,
             "margins": mg, "admissible": adm, "grid": GAIN_N,
             "reference": {what: refs.get((what, 1.0)) for what in ("contour", "program")}, "chosen": got,
             "runs": runs, "rule": rule, "contour": (radius, feed), "program_s": seconds}
 
 
 def _opts(opt: dict) -> str:
-    """'X 2 (low-pass 500 Hz), Y 1.5' of {axis: (g_n, lowpass_hz)}."""
-    return ", ".join(f"{a} {g:g}" + (f" (low-pass {fc:g} Hz)" if fc else "") for a, (g, fc) in opt.items())
+    """'X 2 (lambda_n 1.5), Y 1.5 (low-pass 500 Hz)' of {axis: (g_n, lowpass_hz, lambda_n)}."""
+    return ", ".join(f"{a} {g:g}" + "".join(f" ({x})" for x in ((f"lambda_n {lam:g}" if lam != 1.0 else ""),
+                                                                  (f"low-pass {fc:g} Hz" if fc else "")) if x)
+                     for a, (g, fc, lam) in opt.items())
 
 
 def _where(what: str, seconds: float) -> str:
@@ -387,16 +433,17 @@ def _judge(run: dict, ref: dict, by: dict, g_c2: dict, g_t: float, opt: dict, sc
     'AXIS: why', whether it failed on its u at rest alone: it would pass with a quiet rest).
     The error-spectrum ratio is taken beyond the one the sensitivities predict at the extreme
     gains of the axis's span (|S|² of GTCF's linearisation at k_s × scale, g_t and its g_n
-    with its low-pass, ``opt[axis]`` = (g_n, lowpass_hz), against C2's at the same k_s)."""
+    with its low-pass and λ_n, ``opt[axis]`` = (g_n, lowpass_hz, lambda_n), against C2's at the
+    same k_s)."""
     for a, r in run.items():
         res = by[a]
 
         def expect(f_hz, a=a, res=res):
             scaled = dict(g_c2[a], k_s=g_c2[a]["k_s"] * scale)
             base = _sensitivity2("c2", scaled, res["ts"], res["w"], res["G_w"], res["theta_hat0"], f_hz)
-            return np.max([_sensitivity2("gtcf", gtcf_gains(scaled, g, opt[a][1]), res["ts"], res["w"],
-                                         res["G_w"], res["theta_hat0"], f_hz) for g in (g_t, opt[a][0])],
-                          axis=0) / base
+            return np.max([_sensitivity2("gtcf", gtcf_gains(scaled, g, opt[a][1], lam), res["ts"], res["w"],
+                                         res["G_w"], res["theta_hat0"], f_hz)
+                           for g, lam in ((g_t, 1.0), (opt[a][0], opt[a][2]))], axis=0) / base
         # at 75 and 50 % the saturation is reported, not judged, as C2's confirmation does (a
         # softer loop's larger error drives u into its limit more often)
         judged = r if scale >= 1.0 else {**r, "saturated": 0}
@@ -414,9 +461,10 @@ def comment_lines(tp: dict) -> list[str]:
     g = tp["gains"]
     rule = tp["rule"]
     r_, f_ = tp["contour"]
-    opt = {ax: (g["gain_n"][ax], g["lowpass_hz"][ax]) for ax in tp["pair"]}
+    opt = {ax: (g["gain_n"][ax], g["lowpass_hz"][ax], g["lambda_n"][ax]) for ax in tp["pair"]}
     lines = [f"#   gtcf {a}-{b}: gain_t {g['gain_t']:g}, gain_n {_opts(opt)}: "
-             f"each axis's contour gain of {{{', '.join(f'{x:g}' for x in tp['grid'])}}}, unfiltered or low-passed,",
+             f"each axis's contour gain of {{{', '.join(f'{x:g}' for x in tp['grid'])}}} with lambda_n "
+             f"{{{', '.join(f'{x:g}' for x in LAMBDA_N)}}}, unfiltered or low-passed,",
              f"#     whose margins hold on its measured response at k_s x every gain in [gain_t, gain_n] "
              f"({rule.text()} at 100/75/50 %), highest first, the axis a run failed on stepped down,",
              f"#     the first whose runs on the test contour (circle R {r_ * 1e3:g} mm, then a rectangle, at "
@@ -428,8 +476,10 @@ def comment_lines(tp: dict) -> list[str]:
         m = tp["margins"][ax]
         gn = g["gain_n"][ax]
         fc = g["lowpass_hz"][ax]
+        lam = g["lambda_n"][ax]
         lines.append(f"#     {ax} (c2 k_s {tp['c2'][ax]['k_s']:.4g} x [{min(g['gain_t'], gn):g}, "
-                     f"{max(g['gain_t'], gn):g}]{f', low-pass {fc:g} Hz' if fc else ''}; margins hold up to "
+                     f"{max(g['gain_t'], gn):g}]{f', lambda_n {lam:g}' if lam != 1.0 else ''}"
+                     f"{f', low-pass {fc:g} Hz' if fc else ''}; margins hold up to "
                      f"{tp['admissible'][ax][0][0]:g}): GM "
                      f"{m['gm_db']:.1f} dB (at x{m['gm_at']:g}), PM "
                      f"{m['pm_deg']:.1f} deg (x{m['pm_at']:g}), |S|max {m['ms_db']:.1f} dB (x{m['ms_at']:g}), "
@@ -451,14 +501,15 @@ def comment_lines(tp: dict) -> list[str]:
 
 
 def apply_pair(raw: dict, tp: dict) -> dict:
-    """A copy of the config dict with the pair's chosen ``gain_t``, each axis's ``gain_n`` and
-    ``lowpass_hz`` in both axes' ``gtcf`` blocks (partner and v_min kept)."""
+    """A copy of the config dict with the pair's chosen ``gain_t``, each axis's ``gain_n``,
+    ``lowpass_hz`` and ``lambda_n`` in both axes' ``gtcf`` blocks (partner and v_min kept)."""
     new = copy.deepcopy(raw)
     g = tp["gains"]
     for a in tp["pair"]:
         blk = dict(new["axes"][a]["controller"].get("gtcf") or {})
         blk["gain_t"], blk["gain_n"], blk["lowpass_hz"] = (float(g["gain_t"]), float(g["gain_n"][a]),
                                                            g["lowpass_hz"][a])
+        blk["lambda_n"] = float(g["lambda_n"][a])
         new["axes"][a]["controller"]["gtcf"] = blk
     return new
 
@@ -471,11 +522,12 @@ def summary(tp: dict) -> dict:
             "margins": {a: {k: fin(v) for k, v in m.items()} for a, m in tp["margins"].items()},
             "admissible": {a: [list(o) for o in v] for a, v in tp["admissible"].items()},
             "runs": [{"gain_n": {a: o[0] for a, o in n.items()}, "lowpass_hz": {a: o[1] for a, o in n.items()},
+                      "lambda_n": {a: o[2] for a, o in n.items()},
                       "run": what, "scale": s, "verdict": why or "ok",
                       **{a: {k: fin(r[a][k]) for k in ("saturated", "u_rest_rms_V", "u_peak_V", "fault")
                              if k in r[a]} for a in tp["pair"]}}
                      for n, what, s, r, why in tp["runs"]]}
 
 
-__all__ = ["GAIN_N", "GAIN_T", "LOWPASS_HZ", "apply_pair", "axis_margins", "comment_lines", "contour_metrics",
+__all__ = ["GAIN_N", "GAIN_T", "LAMBDA_N", "LOWPASS_HZ", "apply_pair", "axis_margins", "comment_lines", "contour_metrics",
            "gtcf_gains", "pairs", "summary", "tune_pair"]

@@ -465,11 +465,16 @@ class DCDIARC(Controller):
         slope of its inversion f_u(u) = u + θ̂5 u|u| + θ̂6 u³ (eq. 9) at u0 [V] (θ̂ (6,); default
         θ̂5 = θ̂6 = 0) and C1 by 1. w (K,) [rad/s] -> complex (K,)."""
         z1 = np.exp(-1j * np.asarray(w) * ts)
-        slope = 1.0
-        if cls.name == "c2" and theta_hat is not None:
-            slope = 1.0 + 2.0 * float(theta_hat[4]) * abs(u0) + 3.0 * float(theta_hat[5]) * u0 * u0
         return ((gains["k_s"] + gains["gamma_d"] * ts / (1.0 - z1)) * (gains["k1"] + (1.0 - z1) / ts)
-                / slope)
+                / cls.inversion_slope(theta_hat, u0))
+
+    @classmethod
+    def inversion_slope(cls, theta_hat=None, u0=0.0) -> float:
+        """f_u'(u0) = 1 + 2 θ̂5 |u0| + 3 θ̂6 u0² of C2's inversion (eq. 9) at u0 [V] (θ̂ (6,); 1.0
+        for C1 or without θ̂): what :meth:`linearise` divides the feedback by."""
+        if cls.name == "c2" and theta_hat is not None:
+            return 1.0 + 2.0 * float(theta_hat[4]) * abs(u0) + 3.0 * float(theta_hat[5]) * u0 * u0
+        return 1.0
 
     @classmethod
     def gain_family(cls, theta1, settings, omegas, zetas=None):

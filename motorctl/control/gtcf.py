@@ -12,9 +12,10 @@ contouring law of a pair of axes")::
     t = (ẋ_d, ẏ_d) / |(ẋ_d, ẏ_d)|,  n = t rotated by +90°       the task frame at the desired point
     T(θ) = [tᵀ; nᵀ]  (2×2, orthonormal),   ε = T e              (Hu 2011: the GTCF errors)
     p_i = ė_i + k1_i e_i                    per axis, as C2's eq. (11) (ė: backward difference)
+    p̃_i = p_i + (λ_n,i − 1) k1_i n_i sat(ε_n)   the contour error's own gain in p, sat: ±lambda_band
     q = D^½ p,  D = diag(k_s,X, k_s,Y)      the axes' own C2 gains as the scale
     K = g_t t tᵀ + N^½ n nᵀ N^½,  N = diag(g_n,X, g_n,Y)
-    v_s = −D^½ K D^½ p                      the robust feedback set in the task frame
+    v_s = −D^½ K D^½ p̃                      the robust feedback set in the task frame
     u_i = C2's law of axis i with v_s,i in place of −k_s,i p_i  (the 2013 paper's model
           compensation v_a1 eq. 13, d̂0 eq. 18-19, the projection-type LS estimator eq. 25-28,
           the inversion eq. 9: per axis)
@@ -26,7 +27,9 @@ different gains (their margins, their rest noise), and the contour gain of each 
 as its own loop allows. K is symmetric and positive definite for positive gains, so the robust
 feedback keeps the ARC law's −pᵀ D^½ K D^½ p ≤ 0. With g_t = g_n = 1 this is C2 on each axis.
 Below ``v_min`` of desired speed (at rest, no contour direction) the gains blend linearly to 1
-(C2): g(s) = 1 + min(1, s/v_min)(g − 1).
+(C2): g(s) = 1 + min(1, s/v_min)(g − 1), λ_n alike. λ_n is the contour entry of the 2011 paper's
+diagonal Λ in s = ε̇ + Λ ε (the tangential entry is k1): stiffness against a contour error
+without the quantisation flicker a larger k_s carries. d̂0 and the estimator keep C2's p.
 
 The feedback beyond C2's own, v_fb,i = v_s,i + k_s,i p_i, passes through a first-order low-pass
 of corner ``lowpass_hz`` (none: unfiltered, the 2011 paper's law): v_fb[k] = v_fb[k−1] +
@@ -44,9 +47,10 @@ is not a number (IDLE), the step is C2 alone (v_fb = 0) for that cycle.
 Settings: a ``gtcf:`` mapping in both axes' ``controller:`` sections (the C2 keys of the section
 are the per-axis law's, its compensation C2's; theory mode is refused)::
 
-    gtcf: {partner: Y, gain_t: 1.0, gain_n: 2.0, v_min: 0.002, lowpass_hz: 500}
+    gtcf: {partner: Y, gain_t: 1.0, gain_n: 2.0, v_min: 0.002, lowpass_hz: 500, lambda_n: 1.5}
 
-The pair's two sections name each other and give the same ``gain_t``; each its own ``gain_n``.
+The pair's two sections name each other and give the same ``gain_t``; each its own ``gain_n``
+and ``lambda_n``.
 """
 
 from __future__ import annotations
@@ -80,9 +84,9 @@ __all__ = ["GTCF", "GtcfConfig", "gtcf_feedback", "gtcf_partner", "gtcf_reset", 
 # the theory mode only, which GTCF refuses): partner axis index, g_t, g_n (this axis's), v_min,
 # the partner's y[k−1] (NaN: none yet), the last v_fb (the low-pass's state), the last ε_n (the
 # task-frame normal error from this axis's view), 1.0 when the block has a compiled compensation
-# (dcdiarc_comp_step) else 0.0, the low-pass's α (1: none)
-G_PARTNER, G_GT, G_GN, G_VMIN, G_YJ, G_VFB, G_EN, G_COMP, G_ALPHA = range(9)
-N_G = 9
+# (dcdiarc_comp_step) else 0.0, the low-pass's α (1: none), λ_n, its band [m]
+G_PARTNER, G_GT, G_GN, G_VMIN, G_YJ, G_VFB, G_EN, G_COMP, G_ALPHA, G_LN, G_LB = range(11)
+N_G = 11
 
 
 class GtcfConfig(StrictModel):
@@ -95,6 +99,11 @@ class GtcfConfig(StrictModel):
         gain_n: this axis's gain when the contour (normal) direction is its own, as a multiple of
             its C2 k_s (1, 1: C2).
         v_min [m/s]: below this desired speed the gains blend to 1 (no contour direction at rest).
+        lambda_n: this axis's gain on the contour error in its sliding variable, as a multiple of
+            its C2 k1 (1: C2's p; the contour entry of the 2011 paper's Λ).
+        lambda_band [m]: the contour error beyond which λ_n adds no more (ε_n clipped to ±it):
+            a reversal's stick is a few µm; a fast move's transient error of tens of µm meets
+            C2's stiffness, and λ_n's extra force is at most k_s g_n (λ_n − 1) k1 lambda_band.
         lowpass_hz [Hz]: the corner of the first-order low-pass on the feedback beyond C2's
             (None: unfiltered); below the Nyquist frequency 1/(2 Ts).
     """
@@ -104,6 +113,8 @@ class GtcfConfig(StrictModel):
     gain_n: quantity(1e-2, 100.0, "") = 2.0
     v_min: quantity(1e-6, 10.0, "m/s") = 0.002
     lowpass_hz: quantity(0.0, 1e6, "Hz", open_lo=True) | None = None
+    lambda_n: quantity(1.0, 100.0, "") = 1.0
+    lambda_band: quantity(0.0, 1.0, "m", open_lo=True) = 5e-6
 
 
 @njit
@@ -187,13 +198,21 @@ def gtcf_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, y_j, x_dj, xd_dot_j, coupl
         if p_j == p_j and abs(p_j) < math.inf:
             p_i = ((y - F[st + S_Y_PREV]) / F[prm + P_TS] - xd_dot) + F[prm + P_K1] * (y - x_d)
             gj = Lj[B_SPAN] + Lj[B_N]
-            v_fb = gtcf_feedback(p_i, p_j, xd_dot, xd_dot_j, F[prm + P_KS], Fj[pj_ + P_KS], F[g + G_GT],
-                                 F[g + G_GN], Fj[gj + G_GN], F[g + G_VMIN])
-            if F[g + G_ALPHA] < 1.0:                     # the low-pass (module docstring)
-                v_fb = F[g + G_VFB] + F[g + G_ALPHA] * (v_fb - F[g + G_VFB])
             s = math.sqrt(xd_dot * xd_dot + xd_dot_j * xd_dot_j)
+            dp_i = 0.0
             if s > 0.0:   # ε_n = n·e with n = t rotated +90° in (i, j) order
                 e_n = (xd_dot * (y_j - x_dj) - xd_dot_j * (y - x_d)) / s
+                w = min(1.0, s / F[g + G_VMIN])
+                # the contour error's own gain: p̃ = p + (λ_n' − 1) k1 n sat(ε_n) per axis (n_i = −t_j,
+                # n_j = t_i), ε_n clipped to each axis's ±lambda_band
+                b = F[g + G_LB]
+                dp_i = (F[g + G_LN] - 1.0) * w * F[prm + P_K1] * (-xd_dot_j / s) * min(max(e_n, -b), b)
+                b = Fj[gj + G_LB]
+                p_j += (Fj[gj + G_LN] - 1.0) * w * Fj[pj_ + P_K1] * (xd_dot / s) * min(max(e_n, -b), b)
+            v_fb = gtcf_feedback(p_i + dp_i, p_j, xd_dot, xd_dot_j, F[prm + P_KS], Fj[pj_ + P_KS], F[g + G_GT],
+                                 F[g + G_GN], Fj[gj + G_GN], F[g + G_VMIN]) - F[prm + P_KS] * dp_i
+            if F[g + G_ALPHA] < 1.0:                     # the low-pass (module docstring)
+                v_fb = F[g + G_VFB] + F[g + G_ALPHA] * (v_fb - F[g + G_VFB])
     F[g + G_VFB] = v_fb
     F[g + G_EN] = e_n
     if F[g + G_COMP] != 0.0:
@@ -246,6 +265,8 @@ class GTCF(DCDIARC):
         g[G_PARTNER] = -1.0
         g[G_GT], g[G_GN], g[G_VMIN] = self.gtcf.gain_t, self.gtcf.gain_n, self.gtcf.v_min
         g[G_YJ] = np.nan
+        g[G_LN] = self.gtcf.lambda_n
+        g[G_LB] = self.gtcf.lambda_band
         g[G_COMP] = 1.0 if self._compiled_comp else 0.0
         try:
             g[G_ALPHA] = lowpass_alpha(self.gtcf.lowpass_hz, ts)
@@ -290,14 +311,17 @@ class GTCF(DCDIARC):
         passes through as the path turns, g_t to its g_n; the partner's cross term left out):
         C2's linearisation (:meth:`motorctl.control.dcdiarc.DCDIARC.linearise`) with k_s replaced
         by k_s (1 + (g − 1) F(z)), F(z) = α / (1 − (1 − α) z⁻¹) the low-pass of ``lowpass_hz``
-        (F = 1 without). ``gains``: C2's {"k_s", "k1", "gamma_d"} and "g", "lowpass_hz" (None:
-        none). w (K,) [rad/s] -> complex (K,). Raises ValueError as :func:`lowpass_alpha`."""
+        (F = 1 without), plus the contour error's own term F(z) k_s g (λ_n − 1) k1 / f_u'(u0).
+        ``gains``: C2's {"k_s", "k1", "gamma_d"} and "g", "lowpass_hz" (None: none), "lambda_n"
+        (default 1). w (K,) [rad/s] -> complex (K,). Raises ValueError as :func:`lowpass_alpha`."""
         from motorctl.control.dcdiarc import C2
         a = lowpass_alpha(gains.get("lowpass_hz"), ts)
         z1 = np.exp(-1j * np.asarray(w) * ts)
         F = a / (1.0 - (1.0 - a) * z1)
-        k_s = gains["k_s"] * (1.0 + (float(gains.get("g", 1.0)) - 1.0) * F)
-        return C2.linearise(dict(gains, k_s=k_s), ts, w, theta_hat, u0)
+        g = float(gains.get("g", 1.0))
+        k_s = gains["k_s"] * (1.0 + (g - 1.0) * F)
+        extra = gains["k_s"] * g * (float(gains.get("lambda_n", 1.0)) - 1.0) * gains["k1"] * F
+        return C2.linearise(dict(gains, k_s=k_s), ts, w, theta_hat, u0) + extra / C2.inversion_slope(theta_hat, u0)
 
     @classmethod
     def check_axes(cls, axis, settings: GtcfConfig, sections, period_s: float) -> list[tuple[str, str]]:
