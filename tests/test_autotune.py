@@ -330,3 +330,38 @@ def test_the_fits_sigma_holds_for_parameters_of_any_scale():
     got = [scaled[k] for k in ("theta1", "theta2", "current_loop_hz")]
     want = [base["theta1"] * 1e8, base["theta2"], base["current_loop_hz"] * 1e-6]
     assert np.allclose(got, want, rtol=1e-6), (got, want)
+
+
+def test_the_model_error_is_what_the_bands_disagree_on():
+    """fit._model_error: a straight line fitted to a curve (the model lacks the x² term) on all
+    points and on each half: the halves' slopes disagree with the full fit's far beyond their
+    noise, and the slope's model error is about that disagreement, so the stated σ (√(σ² + b²))
+    holds the slope the upper half sees; the same line fitted to a straight line with the same
+    noise (seeded): no model error."""
+    from types import SimpleNamespace
+
+    import numpy as np
+    from scipy import optimize
+
+    from motorctl.commission.fit import _model_error, _sigma
+
+    x = np.linspace(0.0, 1.0, 400)
+    noise = np.random.default_rng(3).normal(scale=0.01, size=x.size)
+    lb, ub = [-10.0, -10.0], [10.0, 10.0]
+
+    def fits(y):
+        def res(p, part=slice(None)):
+            r = (p[0] + p[1] * x - y)[part]
+            return np.concatenate([r[0::2], r[1::2]])            # two halves, as the lines' re/im
+        full = optimize.least_squares(res, [0.0, 0.0], bounds=(lb, ub))
+        parts = [optimize.least_squares(res, full.x, args=(x >= 0.5,), bounds=(lb, ub)),
+                 optimize.least_squares(res, full.x, args=(x < 0.5,), bounds=(lb, ub))]
+        sg = _sigma(full, {})
+        return full, sg, parts, _model_error(full, sg, parts, {}, lb, ub)
+
+    full, sg, parts, b = fits(1.0 + 2.0 * x + 0.5 * x * x + noise)
+    d = abs(parts[0].x[1] - full.x[1])
+    assert d > 10 * sg["theta2"] and b["theta2"] > 0.9 * d
+    assert abs(parts[0].x[1] - full.x[1]) <= 1.96 * np.hypot(sg["theta2"], b["theta2"])
+    _, _, _, b0 = fits(1.0 + 2.0 * x + noise)
+    assert b0 == {"theta1": 0.0, "theta2": 0.0}
