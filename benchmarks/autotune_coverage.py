@@ -7,6 +7,12 @@ Run (about 9 s a run of both axes on 2 shared cores; 3 plants x 6 seeds: under 3
     python benchmarks/autotune_coverage.py                          # 3 plants, seeds 1-6
     python benchmarks/autotune_coverage.py --seeds 1-10 --config configs/gantry.yaml
     python benchmarks/autotune_coverage.py --jobs 1 --keep /tmp/atc  # keep each run's JSON
+    python benchmarks/autotune_coverage.py --random 6 --seeds 1-3    # 6 plants no config has
+
+``--random K``: K plants drawn as ``benchmarks/ident_random_plants.py`` draws them (X: its seed 11,
+modes 150-500 Hz; Y: its seed 31, modes 80-200 Hz; Coulomb, static, offset, viscous, mode and
+current loop each), the k-th X and Y draws in a copy of configs/gantry.yaml (its masses, force
+constants, input nonlinearity, load fractions, encoder and noise), written beside the runs.
 
 The user's path: each run is ``sys.executable -m motorctl autotune CFG --axis X --axis Y
 --virtual-clock --measure-only --json`` in a subprocess on a copy of the config whose
@@ -83,6 +89,26 @@ def interval(model: dict, name: str) -> tuple[float, float] | None:
     return v - Z95 * s, v + Z95 * s
 
 
+def random_configs(k: int, folder: Path) -> list[str]:
+    """``k`` copies of configs/gantry.yaml with X's and Y's driver sections drawn as
+    ``benchmarks/ident_random_plants.py`` draws them (module docstring), written to ``folder``."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("ident_random_plants", REPO / "benchmarks" / "ident_random_plants.py")
+    rp = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(rp)
+    xs, ys = rp.draws(11, k, (150.0, 500.0)), rp.draws(31, k, (80.0, 200.0))
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for i in range(k):
+        cfg = yaml.safe_load((REPO / "configs" / "gantry.yaml").read_text())
+        cfg["axes"]["X"]["driver"].update(xs[i])
+        cfg["axes"]["Y"]["driver"].update(ys[i])
+        path = folder / f"random_{i + 1}.yaml"
+        path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+        out.append(str(path))
+    return out
+
+
 def run_one(job: tuple[str, int, str | None]) -> dict:
     """Autotune's measurement of both axes of ``config`` at driver seed ``seed``; the rows."""
     config, seed, keep = job
@@ -119,8 +145,12 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="1-6", help="driver seeds: N, N-M or a comma list (default 1-6)")
     ap.add_argument("--jobs", type=int, default=2, help="processes (default 2)")
     ap.add_argument("--keep", help="keep each run's JSON in this folder")
+    ap.add_argument("--random", type=int, default=0, metavar="K",
+                    help="K plants no config has instead (module docstring; configs written to --keep or a temporary folder)")
     a = ap.parse_args(argv)
     configs = a.config or CONFIGS
+    if a.random:
+        configs = random_configs(a.random, Path(a.keep or tempfile.mkdtemp(prefix="atc-random-")))
     jobs = [(c, s, a.keep) for c in configs for s in _seeds(a.seeds)]
     with Pool(max(1, a.jobs)) as pool:
         results = pool.map(run_one, jobs)
