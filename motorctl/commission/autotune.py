@@ -195,7 +195,7 @@ def autotune(loaded: LoadedConfig, raw: dict, axis: str, clock: str = "virtual",
                  f"{model['mode_hz']:.1f} +- {sg.get('mode_hz', 0.0):.2g} Hz zeta {model['mode_damping']:.3f} load "
                  f"{model['load_fraction']:.2f}, current loop {model['current_loop_hz']:.0f} +- "
                  f"{sg['current_loop_hz']:.2g} Hz, delay {model['delay_s'] * 1e6:.1f} +- {sg['delay_s'] * 1e6:.2g} us "
-                 f"(+- one standard deviation of the fit)")
+                 f"(+- one standard deviation: the fit's spread and the model error its band's halves show)")
     w, G_fit, G_w = loop_frf(meas, model, ts, periods)
     th = np.asarray(sec.theta_hat0, dtype=float)
     fitted = th.copy()              # θ1 from the FRF, θ2..θ4 (viscous, Coulomb, offset) from the
