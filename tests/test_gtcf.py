@@ -217,6 +217,35 @@ def test_contour_error_gain_in_the_sliding_variable(laws, phi):
             a._span[6 + G_LN] = 1.0
 
 
+@pytest.mark.parametrize("phi", [0.3, 0.9, 1.3])
+def test_the_margins_take_lambda_at_the_share_the_axis_carries(laws, phi):
+    """autotune's margins at a point of the span (gtcf_tune.span_lambda): where the contour
+    direction's share of X is s = n_X², X's own stiffness in the law (X's error alone, Y's λ_n 1)
+    is k_s g k1 λ' with g = g_t + (g_n − g_t) s and λ' = span_lambda(g, g_t, g_n, λ_n)."""
+    from motorctl.commission.gtcf_tune import span_lambda
+    gx, gy, c2 = laws
+    ks, k1, gn, lam, d = 50.0, 500.0, 2.0, 1.5, 1e-6
+    t = np.array([-math.sin(phi), math.cos(phi)])
+    vd = 0.1 * t
+    xd = np.array([0.1, 0.2])
+    try:
+        for a, la in ((gx, lam), (gy, 1.0)):
+            a.reset(0.0, keep_theta=False)
+            a._span[6 + G_GT], a._span[6 + G_GN], a._span[6 + G_VMIN], a._span[6 + G_LN] = 1.0, gn, 1e-3, la
+            a._prm[P_KS], a._prm[P_K1] = ks, k1
+        y = xd + np.array([d, 0.0])
+        yp = y - vd * TS
+        gx._st[S_Y_PREV], gx._span[6 + G_YJ] = yp[0], yp[1]
+        gtcf_step(y[0], xd[0], vd[0], 0.0, xd[0], vd[0], 0.0, 0.0, y[1], xd[1], vd[1], True,
+                  gx.signals, gx._F, gx._I, gx._L, gy._F, gy._L)
+        s = math.cos(phi) ** 2
+        g = 1.0 + (gn - 1.0) * s
+        assert gx.v_fb - ks * k1 * d == pytest.approx(-ks * g * k1 * span_lambda(g, 1.0, gn, lam) * d, rel=1e-9)
+    finally:
+        for a in (gx, gy):
+            a._span[6 + G_LN] = 1.0
+
+
 def test_contour_error_gain_in_the_linearisation():
     """GTCF.linearise with λ_n: C2's loop at k_s (1 + (g − 1) F) plus F k_s g (λ_n − 1) k1
     (unfiltered: F = 1), λ_n = 1 the same as without."""
@@ -280,7 +309,7 @@ def test_autotune_writes_the_pairs_gains_by_the_rule(tmp_path, monkeypatch):
     at each axis's first admissible option and moved only the axis a failed run named, to its
     next option (its low-pass after a failure on its rest noise, else its next lower g_n); then
     on that choice only an axis's λ_n raised, kept where its runs passed; the same margins and
-    the same figures of the chosen gains' contour run a second time.""" 
+    the same figures of the chosen gains' contour run a second time."""
     import yaml
     from motorctl.commission import gtcf_tune
     from motorctl.commission.autotune import write_config

@@ -72,8 +72,8 @@ from motorctl.config import LoadedConfig, config_from_dict
 
 #: the contour-direction gains g_n searched per axis (multiples of its C2 k_s; 1: C2)
 GAIN_N = (1.0, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0)
-#: the contour error's gain in the sliding variable searched per axis with each g_n (multiples of
-#: its C2 k1; 1: C2's p), highest first (motorctl.control.gtcf: p̃ = p + (λ_n − 1) k1 n ε_n)
+#: the contour error's gain in the sliding variable tried per axis on its chosen g_n (multiples of
+#: its C2 k1; 1: C2's p), highest first (motorctl.control.gtcf: p̃ = p + (λ_n − 1) k1 n sat(ε_n))
 LAMBDA_N = (1.5, 1.25, 1.0)
 #: the tangential gain written: C2's stiffness along the path (the per-axis autotune's)
 GAIN_T = 1.0
@@ -135,12 +135,12 @@ def gtcf_gains(g_c2: dict, g: float, lowpass_hz: float | None = None, lambda_n: 
 
 def span_lambda(g: float, g_t: float, g_n: float, lambda_n: float) -> float:
     """The contour-error gain λ' at the point of the span where the axis's own task-frame gain is
-    ``g``: its own term is k_s (g_t (1 − s) + g_n s) p + k_s g_n (λ_n − 1) s k1 e with s = n_i² the
-    share of the contour direction that is the axis's own, so g (λ' − 1) = g_n (λ_n − 1) s."""
+    ``g``: with s = n_i² the share of the contour direction that is the axis's own, its own
+    term is k_s g (p + (λ_n − 1) s k1 e), g = g_t (1 − s) + g_n s (the task-frame feedback on
+    p̃_i = p_i + (λ_n − 1) k1 n_i ε_n, ε_n's own part n_i e_i), so λ' = 1 + (λ_n − 1) s."""
     if lambda_n == 1.0 or g_n == g_t:
         return lambda_n
-    s = (g - g_t) / (g_n - g_t)
-    return 1.0 + g_n * (lambda_n - 1.0) * s / g
+    return 1.0 + (lambda_n - 1.0) * (g - g_t) / (g_n - g_t)
 
 
 def axis_margins(res: dict, g_c2: dict, g_t: float, g_n: float, lowpass_hz: float | None = None,
