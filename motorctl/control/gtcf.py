@@ -162,6 +162,13 @@ def lowpass_alpha(lowpass_hz: float | None, ts: float) -> float:
 
 
 @njit
+def _contour_dp(lambda_n, band, k1, n_i, w, e_n):
+    """The term the contour error's gain adds to axis i's p [m/s]: (λ' − 1) k1 n_i sat(ε_n),
+    λ' = 1 + w (λ_n − 1), sat clipping ε_n [m] to ±``band`` [m] (module docstring)."""
+    return (lambda_n - 1.0) * w * k1 * n_i * min(max(e_n, -band), band)
+
+
+@njit
 def gtcf_partner(F, L):
     """The partner axis's index (into the cycle's rows) of a GTCF block."""
     return int(F[L[B_SPAN] + L[B_N] + G_PARTNER])
@@ -203,12 +210,9 @@ def gtcf_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, t, y_j, x_dj, xd_dot_j, coupl
             if s > 0.0:   # ε_n = n·e with n = t rotated +90° in (i, j) order
                 e_n = (xd_dot * (y_j - x_dj) - xd_dot_j * (y - x_d)) / s
                 w = min(1.0, s / F[g + G_VMIN])
-                # the contour error's own gain: p̃ = p + (λ_n' − 1) k1 n sat(ε_n) per axis (n_i = −t_j,
-                # n_j = t_i), ε_n clipped to each axis's ±lambda_band
-                b = F[g + G_LB]
-                dp_i = (F[g + G_LN] - 1.0) * w * F[prm + P_K1] * (-xd_dot_j / s) * min(max(e_n, -b), b)
-                b = Fj[gj + G_LB]
-                p_j += (Fj[gj + G_LN] - 1.0) * w * Fj[pj_ + P_K1] * (xd_dot / s) * min(max(e_n, -b), b)
+                # the contour error's own gain, each axis's λ_n and band (n_i = −t_j, n_j = t_i)
+                dp_i = _contour_dp(F[g + G_LN], F[g + G_LB], F[prm + P_K1], -xd_dot_j / s, w, e_n)
+                p_j += _contour_dp(Fj[gj + G_LN], Fj[gj + G_LB], Fj[pj_ + P_K1], xd_dot / s, w, e_n)
             v_fb = gtcf_feedback(p_i + dp_i, p_j, xd_dot, xd_dot_j, F[prm + P_KS], Fj[pj_ + P_KS], F[g + G_GT],
                                  F[g + G_GN], Fj[gj + G_GN], F[g + G_VMIN]) - F[prm + P_KS] * dp_i
             if F[g + G_ALPHA] < 1.0:                     # the low-pass (module docstring)
