@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,6 +23,7 @@ from hypothesis import strategies as st
 from test_daemon_helpers import (GANTRY, command_mode_daemon, ctl, make_config, no_fault, positions, status,
                                  to_command_mode, wait_for)
 
+from motorctl.app.daemon.io_side import spool_beside
 from motorctl.client import call
 
 #: the module's daemon.max_program_bytes [bytes]: above one request (64 KiB), below the big one
@@ -87,6 +89,20 @@ def test_a_program_longer_than_a_request_runs_to_its_end(machine, tmp_path):
     wait_for(lambda: np.all(np.abs(_y(sock) - end) < 5e-6), 5, "the end point", detail=lambda: _y(sock) - end)
     assert status(sock)["motion"]["underruns"] == u0
     _no_fault(sock)
+    spool = Path(str(sock) + ".programs")             # beside the socket, the run's file gone
+    assert spool.is_dir() and not any(spool.iterdir())
+
+
+def test_the_spool_left_by_a_killed_daemon_is_removed(tmp_path):
+    """A daemon started on a socket whose last daemon was killed takes over its spool folder
+    empty (nothing of the dead one's uploads left), mode 0700."""
+    sock = tmp_path / "ctl.sock"
+    left = tmp_path / "ctl.sock.programs"
+    left.mkdir()
+    (left / "dead.ngc").write_text("G1 X1\n")
+    assert spool_beside(str(sock)) == str(left)
+    assert not any(left.iterdir())
+    assert left.stat().st_mode & 0o777 == 0o700
 
 
 def test_a_program_refused_whole_moves_nothing(machine, tmp_path):

@@ -22,7 +22,6 @@ import selectors
 import shutil
 import signal
 import sys
-import tempfile
 import threading
 import time
 
@@ -156,7 +155,7 @@ class IOSide:
         #: programs: the planner process, the spool of programs sent in chunks, the job planned
         self.planner = PlannerLink()
         self.max_program_bytes = d.max_program_bytes
-        self.spool = tempfile.mkdtemp(prefix="motorctl-programs-")
+        self.spool = spool_beside(self.plan.socket_path)
         self.uploads: dict[str, dict] = {}
         self.raw: dict = {}                  # connection -> the upload whose bytes it sends
         self.job: dict | None = None
@@ -925,6 +924,21 @@ class IOSide:
         if self.notified_ready and now - self.last_status >= STATUS_LINE_S:
             sd_notify("STATUS=" + self.summary_line())
             self.last_status = now
+
+
+def spool_beside(socket_path: str) -> str:
+    """The folder that programs sent in chunks are spooled to: ``<socket_path>.programs``,
+    mode 0700, beside the control socket this daemon has just bound (so under systemd in its
+    RuntimeDirectory, removed with it). A folder left there by a daemon that was killed on the
+    same socket is removed first: the socket is this daemon's now, so is the folder.
+
+    Raises:
+        OSError: the folder cannot be made (the socket's directory was writable a moment ago).
+    """
+    path = socket_path + ".programs"
+    shutil.rmtree(path, ignore_errors=True)
+    os.mkdir(path, 0o700)
+    return path
 
 
 def io_main(plan, lsock, writer: SegmentWriter, cmds: Mailbox, replies: Mailbox) -> int:
