@@ -253,3 +253,51 @@ def test_rows_off_the_grid_are_the_path_at_their_own_times(f0, f1):
     assert np.max(np.abs(rows[:, :, 0] - exact[:, :, 0])) < 1e-9
     assert np.max(np.abs(rows[:, :, 1] - exact[:, :, 1])) < 1e-6
     assert np.max(np.abs(rows[:, :, 2] - exact[:, :, 2])) < 2e-3
+
+
+def _ramp_rows_reference(f, fd, s, holding, override, cap, cap_dt, lo, hi, pauses, duration, n):
+    """The feed scale's rows as the filler made them in Python, one row at a time (the rule of
+    MotionSide._target and _ramp, uncompiled)."""
+    rows = []
+    while len(rows) < n:
+        if f == 0.0 and fd == 0.0 and holding:
+            break
+        target = 0.0 if holding else override
+        if target > 1.0:
+            target = min(target, max(1.0, float(cap[min(int(s / cap_dt), len(cap) - 1)])))
+        if rows and f == target and fd == 0.0 and target > 0.0:
+            break
+        f, fd = M._ramp.py_func(f, fd, target, *(hi if target > 1.0 or f > 1.0 else lo), DT)
+        s_new = s + f * DT
+        for t in pauses:
+            if s < t <= s_new:
+                s_new, f, fd, holding = t, 0.0, 0.0, True
+                break
+        s = s_new
+        rows.append((s, f, fd))
+        if s >= duration:
+            break
+    return np.array(rows), (f, fd, s, holding)
+
+
+@pytest.mark.parametrize("start, holding, override, pauses", [
+    ((1.0, 0.0, 0.2), False, 2.0, []),            # up past 1 to the cap of its bins, 1.6
+    ((2.0, 0.0, 0.2), False, 0.4, []),            # down from above 1 at the high rate, below at the low
+    ((1.0, 0.0, 0.2), True, 1.0, []),             # a hold: to rest
+    ((0.5, 0.0, 0.2), False, 1.0, [0.3, 0.5]),    # a programmed pause on the way: at rest there
+])
+def test_the_ramps_compiled_rows_are_the_rules(start, holding, override, pauses):
+    """_ramp_rows (the filler's compiled ramp) row for row the rule written out in Python: the
+    override's cap per bin, the high rate above 1, a hold to rest, a pause ending a row at it."""
+    cap = np.array([3.0, 3.0, 1.6, 1.6, 1.6, 1.6])
+    lo, hi = (1.0, 4.0), (0.5, 2.0)
+    want, end = _ramp_rows_reference(*start, holding, override, cap, 0.1, lo, hi, pauses, 0.6, 4000)
+    ss, ff, ffd = np.zeros(4000), np.zeros(4000), np.zeros(4000)
+    m, f, fd, s, hold, paused, ended, settled = M._ramp_rows(
+        *start, holding, override, cap, 0.1, *lo, *hi, DT, np.array(pauses, dtype=float), 0.6, ss, ff, ffd, 0, 4000,
+        True)
+    assert m == len(want) > 10
+    assert np.array_equal(np.column_stack([ss[:m], ff[:m], ffd[:m]]), want)
+    assert (f, fd, s, hold) == end
+    assert paused == bool(pauses) and hold == (holding or bool(pauses))
+    assert settled == (not hold and not ended)

@@ -63,6 +63,7 @@ import numpy as np
 
 from motorctl.app.program_planner import PlanJob, plan_windows, preview
 from motorctl.config import DaemonConfig
+from motorctl.jit import njit
 from motorctl.loop.cycle import STREAM
 from motorctl.loop.stream import SP_OUT_STOP, SetpointRing
 from motorctl.motion import gcode as G
@@ -115,6 +116,7 @@ class AxisLimits:
     soft_max: float
 
 
+@njit
 def _ramp(f: float, fd: float, target: float, rate: float, accel: float, dt: float):
     """f one step of dt toward ``target`` with |ḟ| ≤ rate and |f̈| ≤ accel (the bang-bang rule
     of an accel-limited approach). Returns (f, ḟ)."""
@@ -130,6 +132,60 @@ def _ramp(f: float, fd: float, target: float, rate: float, accel: float, dt: flo
     if (target - f_new) * e < 0:          # no overshoot
         return target, 0.0
     return f_new, fd
+
+
+@njit
+def _ramp_rows(f, fd, s, holding, override, cap, cap_dt, rate, accel, rate_hi, accel_hi, dt, pauses,
+               duration, ss, ff, ffd, m, n, may_settle):
+    """The rows of the feed scale's ramp, compiled: from row ``m`` up to row ``n`` (exclusive) of
+    ``ss``, ``ff``, ``ffd`` (path time [s], f, ḟ [1/s]), f stepped by :func:`_ramp` toward its
+    target (0 in a hold; else the override, above 1 capped by ``cap`` per bin of ``cap_dt``
+    [s] of path time, never below 1: :meth:`MotionSide._target`), at the high rate and
+    acceleration while f or its target is above 1; a programmed pause (``pauses`` [s], in order)
+    within a row's step ends it there, at rest, in a hold. Stops early: at rest in a hold,
+    at ``duration`` (the row that reaches it), or, with ``may_settle`` and a row made, once f
+    has settled on a positive target (the vectorised case again).
+    Returns (m, f, ḟ, s, holding, paused, ended, settled)."""
+    paused = False
+    ended = False
+    settled = False
+    n_cap = cap.shape[0]
+    while m < n:
+        if f == 0.0 and fd == 0.0 and holding:
+            break                                   # at rest on the path: the loop holds the last row
+        if holding:
+            target = 0.0
+        else:
+            target = override
+            if target > 1.0:
+                c = cap[min(int(s / cap_dt), n_cap - 1)]
+                target = min(target, max(1.0, c))
+        if m > 0 and may_settle and f == target and fd == 0.0 and target > 0.0:
+            settled = True
+            break
+        if target > 1.0 or f > 1.0:
+            f, fd = _ramp(f, fd, target, rate_hi, accel_hi, dt)
+        else:
+            f, fd = _ramp(f, fd, target, rate, accel, dt)
+        s_new = s + f * dt
+        for q in range(pauses.shape[0]):
+            t_stop = pauses[q]
+            if s < t_stop <= s_new:
+                s_new = t_stop
+                f = 0.0
+                fd = 0.0
+                holding = True
+                paused = True
+                break
+        s = s_new
+        ss[m] = s_new
+        ff[m] = f
+        ffd[m] = fd
+        m += 1
+        if s_new >= duration:
+            ended = True
+            break
+    return m, f, fd, s, holding, paused, ended, settled
 
 
 class MotionSide:
@@ -241,6 +297,9 @@ class MotionSide:
         self._block = np.zeros((self.lead, self.n, 3))
         self._s, self._f, self._fd = np.zeros(self.lead), np.zeros(self.lead), np.zeros(self.lead)
         self._steps = np.arange(1.0, self.lead + 1.0)
+        # the ramp's compiled rows: compiled (or loaded) now, not at the first override or hold
+        _ramp_rows(1.0, 0.0, 0.0, False, 1.0, np.ones(1), 1.0, 1.0, 1.0, 1.0, 1.0, self.dt, np.zeros(0), 1.0,
+                   self._s, self._f, self._fd, 0, 1, True)
         self._grid = np.zeros((self.lead + 2, 3, self.n))   # sample_into's layout (k, x/v/a, axis)
         #: SCHED_FIFO priority of the filler thread (0: none), below the loop's: a busy host must
         #: not starve the planner for longer than the lead (set by the daemon where real-time is on)
@@ -959,30 +1018,15 @@ class MotionSide:
                     self.f, self.fd, self.holding = 0.0, 0.0, True
                     self.reason = "paused (M0/M1); resume goes on"
                     ff[m - 1] = 0.0
-            while j + m < need and not ended:
-                if self.f == 0.0 and self.fd == 0.0 and self.holding:
-                    break                    # at rest on the path: the loop holds the last row
-                target = self._target(cur, self.s)
-                if m and step == 0.0 and self.f == target and self.fd == 0.0 and target > 0.0:
-                    steady = True            # the ramp is over: the vectorised case again
-                    break
-                if target > 1.0 or self.f > 1.0:
-                    self.f, self.fd = _ramp(self.f, self.fd, target, self.f_rate_hi, self.f_accel_hi, dt)
-                else:
-                    self.f, self.fd = _ramp(self.f, self.fd, target, self.f_rate, self.f_accel, dt)
-                s_new = self.s + self.f * dt
-                for t_stop in self._pauses(cur):  # a programmed pause (M0, M1): at rest there
-                    if self.s < t_stop <= s_new:
-                        s_new = t_stop
-                        self.f, self.fd, self.holding = 0.0, 0.0, True
-                        self.reason = "paused (M0/M1); resume goes on"
-                        break
-                self.s = s_new
-                ss[m], ff[m], ffd[m] = s_new, self.f, self.fd
-                m += 1
-                if s_new >= cur.duration:
-                    ended = True
-                    break
+            if j + m < need and not ended:
+                # the ramp's rows (an override's change, a hold, a resume), compiled; a programmed
+                # pause (M0, M1) within them: at rest there, in a hold
+                m, self.f, self.fd, self.s, self.holding, paused, ended, steady = _ramp_rows(
+                    self.f, self.fd, self.s, self.holding, self.override, cur.cap, cur.cap_dt, self.f_rate,
+                    self.f_accel, self.f_rate_hi, self.f_accel_hi, dt, np.array(self._pauses(cur), dtype=float),
+                    cur.duration, ss, ff, ffd, m, need - j, step == 0.0)
+                if paused:
+                    self.reason = "paused (M0/M1); resume goes on"
             if m:
                 rows = out[j:j + m]
                 if uniform:                  # s0 + k·f·Ts by construction
