@@ -135,12 +135,25 @@ def _ramp(f: float, fd: float, target: float, rate: float, accel: float, dt: flo
 
 
 @njit
+def _feed_target(holding, override, cap, cap_dt, s):
+    """The feed scale's target at path time ``s`` [s]: 0 in a hold; else the override, above 1
+    capped by ``cap`` (per bin of ``cap_dt`` [s] of path time: where the trajectory, planned at
+    the full limits, would pass them; planner.override_cap), never below 1."""
+    if holding:
+        return 0.0
+    t = override
+    if t > 1.0:
+        c = cap[min(int(s / cap_dt), cap.shape[0] - 1)]
+        t = min(t, max(1.0, c))
+    return t
+
+
+@njit
 def _ramp_rows(f, fd, s, holding, override, cap, cap_dt, rate, accel, rate_hi, accel_hi, dt, pauses,
                duration, ss, ff, ffd, m, n, may_settle):
     """The rows of the feed scale's ramp, compiled: from row ``m`` up to row ``n`` (exclusive) of
     ``ss``, ``ff``, ``ffd`` (path time [s], f, ḟ [1/s]), f stepped by :func:`_ramp` toward its
-    target (0 in a hold; else the override, above 1 capped by ``cap`` per bin of ``cap_dt``
-    [s] of path time, never below 1: :meth:`MotionSide._target`), at the high rate and
+    target (:func:`_feed_target`), at the high rate and
     acceleration while f or its target is above 1; a programmed pause (``pauses`` [s], in order)
     within a row's step ends it there, at rest, in a hold. Stops early: at rest in a hold,
     at ``duration`` (the row that reaches it), or, with ``may_settle`` and a row made, once f
@@ -149,17 +162,10 @@ def _ramp_rows(f, fd, s, holding, override, cap, cap_dt, rate, accel, rate_hi, a
     paused = False
     ended = False
     settled = False
-    n_cap = cap.shape[0]
     while m < n:
         if f == 0.0 and fd == 0.0 and holding:
             break                                   # at rest on the path: the loop holds the last row
-        if holding:
-            target = 0.0
-        else:
-            target = override
-            if target > 1.0:
-                c = cap[min(int(s / cap_dt), n_cap - 1)]
-                target = min(target, max(1.0, c))
+        target = _feed_target(holding, override, cap, cap_dt, s)
         if m > 0 and may_settle and f == target and fd == 0.0 and target > 0.0:
             settled = True
             break
@@ -300,6 +306,7 @@ class MotionSide:
         # the ramp's compiled rows: compiled (or loaded) now, not at the first override or hold
         _ramp_rows(1.0, 0.0, 0.0, False, 1.0, np.ones(1), 1.0, 1.0, 1.0, 1.0, 1.0, self.dt, np.zeros(0), 1.0,
                    self._s, self._f, self._fd, 0, 1, True)
+        _feed_target(False, 1.0, np.ones(1), 1.0, 0.0)          # and the target, as _target calls it
         self._grid = np.zeros((self.lead + 2, 3, self.n))   # sample_into's layout (k, x/v/a, axis)
         #: SCHED_FIFO priority of the filler thread (0: none), below the loop's: a busy host must
         #: not starve the planner for longer than the lead (set by the daemon where real-time is on)
@@ -941,16 +948,8 @@ class MotionSide:
         return done
 
     def _target(self, cur, s: float) -> float:
-        """The feed scale's target at path time s of ``cur``: 0 in a hold; else the override,
-        above 1 capped where the trajectory, planned at the full limits, would pass them
-        (planner.override_cap; never below 1)."""
-        if self.holding:
-            return 0.0
-        t = self.override
-        if t > 1.0:
-            cap = cur.cap[min(int(s / cur.cap_dt), len(cur.cap) - 1)]
-            t = min(t, max(1.0, float(cap)))
-        return t
+        """The feed scale's target at path time s of ``cur`` (:func:`_feed_target`)."""
+        return float(_feed_target(self.holding, self.override, cur.cap, cur.cap_dt, s))
 
     def _clear_or_defer(self, why: str) -> None:
         """(lock held) _clear, or, while a rewrite generates, after its rows are pushed."""
