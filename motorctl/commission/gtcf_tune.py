@@ -194,10 +194,22 @@ def with_gains(raw: dict, pair, g_c2: dict, g_t: float, opt: dict, scale: float 
     new = copy.deepcopy(raw)
     for a in pair:
         new = apply_gains(new, a, "c2", dict(g_c2[a], k_s=g_c2[a]["k_s"] * scale))
-        blk = new["axes"][a]["controller"]["gtcf"]
-        blk["gain_t"], blk["gain_n"], blk["lowpass_hz"] = float(g_t), float(opt[a][0]), opt[a][1]
-        blk["lambda_n"] = float(opt[a][2])
+        ctl = new["axes"][a]["controller"]
+        ctl["gtcf"] = _block(ctl["gtcf"], g_t, opt[a])
     return new
+
+
+def _block(blk: dict | None, g_t: float, opt_a: tuple) -> dict:
+    """A copy of an axis's ``gtcf`` block (None: none yet) with the pair's ``gain_t`` and the
+    axis's option ``opt_a`` = (gain_n, lowpass_hz or None, lambda_n); its other keys kept."""
+    return dict(blk or {}, gain_t=float(g_t), gain_n=float(opt_a[0]), lowpass_hz=opt_a[1],
+                lambda_n=float(opt_a[2]))
+
+
+def _chosen(tp: dict) -> dict:
+    """{axis: (gain_n, lowpass_hz, lambda_n)} of :func:`tune_pair`'s choice ``tp``."""
+    g = tp["gains"]
+    return {a: (g["gain_n"][a], g["lowpass_hz"][a], g["lambda_n"][a]) for a in tp["pair"]}
 
 
 def contour_program(radius: float, feed: float, center) -> tuple[str, dict]:
@@ -461,7 +473,7 @@ def comment_lines(tp: dict) -> list[str]:
     g = tp["gains"]
     rule = tp["rule"]
     r_, f_ = tp["contour"]
-    opt = {ax: (g["gain_n"][ax], g["lowpass_hz"][ax], g["lambda_n"][ax]) for ax in tp["pair"]}
+    opt = _chosen(tp)
     lines = [f"#   gtcf {a}-{b}: gain_t {g['gain_t']:g}, gain_n {_opts(opt)}: "
              f"each axis's contour gain of {{{', '.join(f'{x:g}' for x in tp['grid'])}}} with lambda_n "
              f"{{{', '.join(f'{x:g}' for x in LAMBDA_N)}}}, unfiltered or low-passed,",
@@ -504,13 +516,9 @@ def apply_pair(raw: dict, tp: dict) -> dict:
     """A copy of the config dict with the pair's chosen ``gain_t``, each axis's ``gain_n``,
     ``lowpass_hz`` and ``lambda_n`` in both axes' ``gtcf`` blocks (partner and v_min kept)."""
     new = copy.deepcopy(raw)
-    g = tp["gains"]
-    for a in tp["pair"]:
-        blk = dict(new["axes"][a]["controller"].get("gtcf") or {})
-        blk["gain_t"], blk["gain_n"], blk["lowpass_hz"] = (float(g["gain_t"]), float(g["gain_n"][a]),
-                                                           g["lowpass_hz"][a])
-        blk["lambda_n"] = float(g["lambda_n"][a])
-        new["axes"][a]["controller"]["gtcf"] = blk
+    for a, opt_a in _chosen(tp).items():
+        ctl = new["axes"][a]["controller"]
+        ctl["gtcf"] = _block(ctl.get("gtcf"), tp["gains"]["gain_t"], opt_a)
     return new
 
 
