@@ -9,9 +9,7 @@ from scipy import optimize
 
 from motorctl.commission.loopshape import plant_model_frf
 from motorctl.commission.rule import F_LO
-
-#: the two-sided 95 % normal quantile
-Z95 = 1.959963984540054
+from motorctl.ident.uncertainty import Z95
 
 
 # ================================================================ fit
