@@ -3,6 +3,7 @@ each with the gains ``motorctl autotune`` writes for it.
 
     .venv/bin/python benchmarks/bench_gtcf.py [--config configs/gantry.yaml] [--out DIR] [--skip-cut]
                                               [--no-autotune] [--sweep 1.5,2,2.5/1.5] [--seeds 2,3,4,5]
+                                              [--plant X.stiction_N=20,Y.stiction_N=16]
 
 0. (default) ``motorctl autotune CONFIG --axis X --axis Y --law c2 --virtual-clock --json --out
    DIR/autotune`` on a copy of the config (a subprocess): both axes' C2 gains by the rule, then
@@ -41,6 +42,13 @@ each with the gains ``motorctl autotune`` writes for it.
    stiction (1.25 × its Coulomb friction) holds an axis until the loop has built the breakaway
    force; whether that stick-slip happens at a given reversal comes and goes with the noise,
    for C2 more than for GTCF, so one seed's ratio is one draw.
+5. The encoder's floor: G of each test circle's own setpoints (the C2 log's x_d) as the config's
+   simulated encoders read them (resolution, noise, interpolation error; 10 draws): the G of a
+   motion without any error, which no law goes below on measured positions.
+6. ``--plant``: the circles, the cut and the seeds on the simulated plant changed so (driver keys
+   per axis; the gains as tuned on the config's plant): e.g. the breakaway force set to the
+   Coulomb friction (no stick at the reversals), or the encoder without noise and interpolation
+   error, to see which of the plant's effects a figure rests on.
 
 Prints the autotuned gains and a Markdown table with the ratio GTCF / C2 (below 0.70: the ≥ 30 %
 target). Deterministic (the virtual clock, the simulated driver's seed): the same figures every
@@ -135,8 +143,39 @@ def circles(config: str, out: Path, timeout_s: float, laws=LAWS) -> list[dict]:
         rows.append({"path": f"circle R50 {r['feed_m_s'] * 1e3:.0f} mm/s", "law": r["controller"],
                      "G": max(r["G_cw_um"], r["G_ccw_um"]), "Gb": r["G_b_um"], "emax": worst * 1e6,
                      "sat": sat, "umax": umax, "sat_all": sat_all, "share": sat_all / len(xs),
-                     "rest": rest_noise(log), "rest_axes": rest_by_axis(log), "fault": "-"})
+                     "rest": rest_noise(log), "rest_axes": rest_by_axis(log), "fault": "-", "log": r["log"]})
     return rows
+
+
+def encoder_floor(config: str, log_path: str, seeds=range(1, 11)) -> list[float]:
+    """G [um] of the test circles' own setpoints (the log's X.x_d, Y.x_d in the header's
+    ``circle.rows``, the worse of cw and ccw) as the config's simulated encoders read them, one
+    per seed: a motion without any error, measured by the model of motorctl_drivers/sim.py
+    (module docstring, "encoder errors": x + a sin(2 pi x / P) + N(0, sigma), rounded to the
+    resolution; each axis's ``encoder_*`` keys), its Kasa circle and its roundness as G is
+    taken. What no law removes from a G computed on measured positions."""
+    import yaml
+    from motorctl.recorder.runlog import read_log
+    from motorctl_drivers.sim import SimAxisOptions
+    raw = yaml.safe_load(Path(config).read_text())
+    enc = {a: SimAxisOptions(**raw["axes"][a]["driver"]) for a in ("X", "Y")}
+    log = read_log(log_path)
+    out = []
+    for seed in seeds:
+        rng = np.random.default_rng(seed)
+        g = 0.0
+        for a, b in log.header["circle"]["rows"].values():
+            m = []
+            for ax in ("X", "Y"):
+                o, x = enc[ax], log.col(f"{ax}.x_d")[a:b]
+                x = (x + o.encoder_interpolation_m * np.sin(2.0 * np.pi * x / o.encoder_signal_period_m)
+                     + o.encoder_noise_m * rng.standard_normal(len(x)))
+                m.append(o.encoder_resolution_m * np.rint(x / o.encoder_resolution_m))
+            cx, cy, _ = fit_circle(*m)
+            r = np.hypot(m[0] - cx, m[1] - cy)
+            g = max(g, float(r.max() - r.min()) * 1e6)
+        out.append(g)
+    return out
 
 
 def setpoint_contour_error(pos: np.ndarray, des: np.ndarray, window: int = 250) -> np.ndarray:
@@ -239,7 +278,19 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="", metavar="S[,S...]",
                     help="then the circles again with the simulated driver's seed set to each of these (the "
                          "noise realisation; the same gains): per seed and feed the ratios GTCF / C2, and their median")
+    ap.add_argument("--plant", default="", metavar="AXIS.KEY=V[,...]",
+                    help="the simulated plant changed so (the axes' driver keys, e.g. X.stiction_N=20) for the circles, "
+                         "the cut and the seeds, after autotune (the gains tuned on the config's plant)")
     args = ap.parse_args(argv)
+    try:
+        plant = [(k.split(".", 1)[0], k.split(".", 1)[1], float(v))
+                 for k, v in (p.split("=", 1) for p in args.plant.split(",") if p.strip())]
+    except (ValueError, IndexError):
+        ap.error(f"--plant: {args.plant!r} is not a comma-separated list of AXIS.KEY=NUMBER")
+    from motorctl_drivers.sim import SimAxisOptions
+    for ax, key, _ in plant:
+        if key not in SimAxisOptions.model_fields:
+            ap.error(f"--plant: {ax}.{key}: the simulated driver has no key {key!r}")
     try:
         seeds = [int(v) for v in args.seeds.split(",") if v.strip()]
     except ValueError:
@@ -276,6 +327,8 @@ def main(argv=None) -> int:
                                                          for a, v in r['gain_n'].items())
                       + f" at {r['scale']:.0%}: {r['verdict']}")
         print()
+    if plant:
+        config = changed_plant(config, out, plant)
     rows = circles(config, out, args.timeout)
     if not args.skip_cut:
         rows += cut_path(config, out)
@@ -299,11 +352,31 @@ def main(argv=None) -> int:
         rest = "–" if not np.isfinite(r["rest"]) else f"{r['rest'] * 1e3:.0f}"
         print(f"| {r['path']} | {r['law']} | {g} | {gb} | {r['emax']:.2f}{rel('emax')} | {r['sat']} / "
               f"{r['sat_all']} ({r['share'] * 100:.3f} %) | {r['umax']:.2f} | {rest} | {r['fault']} |")
+    floors = {r["path"]: encoder_floor(config, r["log"]) for r in rows if r["law"] == "c2" and "log" in r}
+    print("\nThe encoder's floor: G of each test circle's setpoints as the simulated encoders read them (no "
+          "motion error; 10 draws): " + ", ".join(f"{p} median {np.median(v):.2f} um ({min(v):.2f}-{max(v):.2f})"
+                                                  for p, v in floors.items()))
     if sweep:
         print_sweep(config, out, rows, sweep, got, args)
     if seeds:
         print_seeds(config, out, seeds, args.timeout)
     return 0
+
+
+def changed_plant(config: str, out: Path, plant: list) -> str:
+    """A copy of ``config`` in ``out`` with each (axis, driver key, value) of ``plant`` set (the
+    simulated plant changed, the gains kept); its path. Raises SystemExit: an axis the config
+    does not have."""
+    import yaml
+    raw = yaml.safe_load(Path(config).read_text())
+    for ax, key, v in plant:
+        if ax not in raw["axes"]:
+            raise SystemExit(f"--plant: {ax}.{key}: the config has no axis {ax!r}")
+        raw["axes"][ax]["driver"][key] = v
+    cfg = out / ("plant_" + Path(config).name)
+    cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
+    print("the plant changed: " + ", ".join(f"{a}.{k} = {v:g}" for a, k, v in plant))
+    return str(cfg)
 
 
 def print_seeds(config: str, out: Path, seeds: list, timeout_s: float) -> None:
