@@ -3,7 +3,7 @@ each with the gains ``motorctl autotune`` writes for it.
 
     .venv/bin/python benchmarks/bench_gtcf.py [--config configs/gantry.yaml] [--out DIR] [--skip-cut]
                                               [--no-autotune] [--sweep 1.5,2,2.5/1.5] [--seeds 2,3,4,5]
-                                              [--plant X.stiction_N=20,Y.stiction_N=16]
+                                              [--plant X.stiction_N=20,Y.stiction_N=16] [--grid]
 
 0. (default) ``motorctl autotune CONFIG --axis X --axis Y --law c2 --virtual-clock --json --out
    DIR/autotune`` on a copy of the config (a subprocess): both axes' C2 gains by the rule, then
@@ -44,11 +44,15 @@ each with the gains ``motorctl autotune`` writes for it.
    for C2 more than for GTCF, so one seed's ratio is one draw.
 5. The encoder's floor: G of each test circle's own setpoints (the C2 log's x_d) as the config's
    simulated encoders read them (resolution, noise, interpolation error; 10 draws): the G of a
-   motion without any error, which no law goes below on measured positions.
+   motion without any error: what the measured positions show of a perfect law.
 6. ``--plant``: the circles, the cut and the seeds on the simulated plant changed so (driver keys
    per axis; the gains as tuned on the config's plant): e.g. the breakaway force set to the
    Coulomb friction (no stick at the reversals), or the encoder without noise and interpolation
    error, to see which of the plant's effects a figure rests on.
+7. ``--grid``: GTCF's circles with each of 60 settings (X gain_n 1.5-3 x lambda_n 1-2, Y gain_n
+   1-2 x low-pass 500 Hz or none) on the config's seed and ``--seeds``, judged by G alone
+   (autotune's rule not asked): the least G the law's settings reach on each draw (about 10
+   minutes for five draws).
 
 Prints the autotuned gains and a Markdown table with the ratio GTCF / C2 (below 0.70: the ≥ 30 %
 target). Deterministic (the virtual clock, the simulated driver's seed): the same figures every
@@ -153,7 +157,8 @@ def encoder_floor(config: str, log_path: str, seeds=range(1, 11)) -> list[float]
     per seed: a motion without any error, measured by the model of motorctl_drivers/sim.py
     (module docstring, "encoder errors": x + a sin(2 pi x / P) + N(0, sigma), rounded to the
     resolution; each axis's ``encoder_*`` keys), its Kasa circle and its roundness as G is
-    taken. What no law removes from a G computed on measured positions."""
+    taken. What a G computed on measured positions shows of a perfect law (a loop can take
+    out only the part of the encoder's error inside its bandwidth, near the reversals)."""
     import yaml
     from motorctl.recorder.runlog import read_log
     from motorctl_drivers.sim import SimAxisOptions
@@ -281,6 +286,9 @@ def main(argv=None) -> int:
     ap.add_argument("--plant", default="", metavar="AXIS.KEY=V[,...]",
                     help="the simulated plant changed so (the axes' driver keys, e.g. X.stiction_N=20) for the circles, "
                          "the cut and the seeds, after autotune (the gains tuned on the config's plant)")
+    ap.add_argument("--grid", action="store_true",
+                    help="then GTCF's circles over a grid of its settings (X gain_n x lambda_n, Y gain_n x low-pass) "
+                         "on the config's seed and --seeds, judged by G alone: the least G any setting reaches per draw")
     args = ap.parse_args(argv)
     try:
         plant = [(k.split(".", 1)[0], k.split(".", 1)[1], float(v))
@@ -360,6 +368,8 @@ def main(argv=None) -> int:
         print_sweep(config, out, rows, sweep, got, args)
     if seeds:
         print_seeds(config, out, seeds, args.timeout)
+    if args.grid:
+        print_grid(config, out, seeds, args.timeout)
     return 0
 
 
@@ -417,6 +427,64 @@ def print_seeds(config: str, out: Path, seeds: list, timeout_s: float) -> None:
         print(f"\n{path}: median ratio over {len(qs)} seeds G x{med[0]:.2f}, G(b) x{med[1]:.2f}, largest x{med[2]:.2f}; "
               f"the worst seed's x{worst[0]:.2f} / x{worst[1]:.2f} / x{worst[2]:.2f}", end="")
     print()
+
+
+GRID = {"X": [{"gain_n": g, "lambda_n": lam} for g in (1.5, 2.0, 2.5, 3.0) for lam in (1.0, 1.5, 2.0)],
+        "Y": [{"gain_n": g, "lowpass_hz": fc} for g in (1.0, 1.5, 2.0) for fc in (500.0, None)
+              if not (g == 1.0 and fc is None)]}
+
+
+def print_grid(config: str, out: Path, seeds: list, timeout_s: float) -> None:
+    """GTCF's circles (:func:`circles`, GTCF alone) with each combination of :data:`GRID`'s X and Y
+    settings in the gtcf blocks (the rest as ``config``'s), on ``config``'s driver seed and each
+    of ``seeds``, against per-axis C2 on the same draw; whether autotune's rule admits a setting
+    is not asked (saturation, rest noise, margins): what the law's settings can do for G at
+    best. Prints per setting the ratio GTCF / C2 of G per draw and feed, sorted by the worst,
+    and per draw and feed the least GTCF G of any setting against the 0.7 x C2's a 30 % needs.
+    Two circle-tests at a time (subprocesses)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import yaml
+    raw = yaml.safe_load(Path(config).read_text())
+    draws = list(dict.fromkeys([int(raw["driver"].get("seed", 0))] + list(seeds)))
+    combos = [(x, y) for x in GRID["X"] for y in GRID["Y"]]
+
+    def one(job):
+        seed, k = job
+        d = out / "grid" / f"seed{seed}" / ("c2" if k is None else f"v{k}")
+        d.mkdir(parents=True, exist_ok=True)
+        c = yaml.safe_load(Path(config).read_text())
+        c["driver"]["seed"] = seed
+        if k is not None:
+            for ax, kv in zip(("X", "Y"), combos[k]):
+                c["axes"][ax]["controller"]["gtcf"].update(kv)
+        cfg = d / "config.yaml"
+        cfg.write_text(yaml.safe_dump(c, sort_keys=False))
+        return job, {r["path"]: r["G"] for r in circles(str(cfg), d, timeout_s, ("c2",) if k is None else ("gtcf",))}
+
+    jobs = [(s, None) for s in draws] + [(s, k) for k in range(len(combos)) for s in draws]
+    with ThreadPoolExecutor(2) as ex:
+        got = dict(ex.map(one, jobs))
+    paths = list(got[(draws[0], None)])
+    cols = [(s, p) for s in draws for p in paths]
+    ratio = {k: [got[(s, k)][p] / got[(s, None)][p] for s, p in cols] for k in range(len(combos))}
+
+    def name(k):
+        x, y = combos[k]
+        return (f"X {x['gain_n']:g} (lambda_n {x['lambda_n']:g}) / Y {y['gain_n']:g} "
+                f"({_lp(y['lowpass_hz'])})")
+    print(f"\nGTCF's settings over a grid ({len(combos)}), G / C2's G per draw (seed) and circle, "
+          "worst first:\n")
+    print("| X gain_n (lambda_n) / Y gain_n (low-pass) | worst | "
+          + " | ".join(f"seed {s}, {p.split()[-2]} mm/s" for s, p in cols) + " |")
+    print("|---|---|" + "---|" * len(cols))
+    for k in sorted(ratio, key=lambda k: max(ratio[k])):
+        print(f"| {name(k)} | x{max(ratio[k]):.2f} | " + " | ".join(f"x{q:.2f}" for q in ratio[k]) + " |")
+    print("\nThe least G of any setting per draw and circle, against 0.7 x C2's (um):")
+    for s, p in cols:
+        least = min(range(len(combos)), key=lambda k: got[(s, k)][p])
+        print(f"  seed {s}, {p}: {got[(s, least)][p]:.2f} ({name(least)}) against {0.7 * got[(s, None)][p]:.2f}"
+              f" (C2 {got[(s, None)][p]:.2f})")
 
 
 def _lp(fc) -> str:
