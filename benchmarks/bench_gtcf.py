@@ -154,17 +154,20 @@ def circles(config: str, out: Path, timeout_s: float, laws=LAWS) -> list[dict]:
 def encoder_floor(config: str, log_path: str, seeds=range(1, 11)) -> list[float]:
     """G [um] of the test circles' own setpoints (the log's X.x_d, Y.x_d in the header's
     ``circle.rows``, the worse of cw and ccw) as the config's simulated encoders read them, one
-    per seed: a motion without any error, measured by the model of motorctl_drivers/sim.py
-    (module docstring, "encoder errors": x + a sin(2 pi x / P) + N(0, sigma), rounded to the
-    resolution; each axis's ``encoder_*`` keys), its Kasa circle and its roundness as G is
-    taken. What a G computed on measured positions shows of a perfect law (a loop can take
-    out only the part of the encoder's error inside its bandwidth, near the reversals)."""
+    per seed: a motion without any error, each sample read by the simulated axis's own
+    :meth:`motorctl_drivers.sim.AxisPlant.measured` (the carriage put at the setpoint, the
+    period's encoder noise drawn as the driver draws it: 0.5 um steps, noise, interpolation
+    error, each axis's ``encoder_*`` keys), its Kasa circle and its roundness as G is taken.
+    What a G computed on measured positions shows of a perfect law (a loop can take out only
+    the part of the encoder's error inside its bandwidth, near the reversals)."""
     import yaml
     from motorctl.recorder.runlog import read_log
-    from motorctl_drivers.sim import SimAxisOptions
+    from motorctl_drivers.sim import AxisPlant, SimAxisOptions
     raw = yaml.safe_load(Path(config).read_text())
-    enc = {a: SimAxisOptions(**raw["axes"][a]["driver"]) for a in ("X", "Y")}
     log = read_log(log_path)
+    ts = float(log.col("t")[1] - log.col("t")[0])
+    plants = {a: AxisPlant(SimAxisOptions(**raw["axes"][a]["driver"]), ts, np.random.default_rng(0), 1)
+              for a in ("X", "Y")}
     out = []
     for seed in seeds:
         rng = np.random.default_rng(seed)
@@ -172,10 +175,13 @@ def encoder_floor(config: str, log_path: str, seeds=range(1, 11)) -> list[float]
         for a, b in log.header["circle"]["rows"].values():
             m = []
             for ax in ("X", "Y"):
-                o, x = enc[ax], log.col(f"{ax}.x_d")[a:b]
-                x = (x + o.encoder_interpolation_m * np.sin(2.0 * np.pi * x / o.encoder_signal_period_m)
-                     + o.encoder_noise_m * rng.standard_normal(len(x)))
-                m.append(o.encoder_resolution_m * np.rint(x / o.encoder_resolution_m))
+                plant, x = plants[ax], log.col(f"{ax}.x_d")[a:b]
+                noise = plant.enc_sigma * rng.standard_normal(len(x))
+                read = np.empty(len(x))
+                for k in range(len(x)):
+                    plant.x, plant.enc_noise = x[k], noise[k]
+                    read[k] = plant.measured()
+                m.append(read)
             cx, cy, _ = fit_circle(*m)
             r = np.hypot(m[0] - cx, m[1] - cy)
             g = max(g, float(r.max() - r.min()) * 1e6)
@@ -442,6 +448,7 @@ def print_grid(config: str, out: Path, seeds: list, timeout_s: float) -> None:
     best. Prints per setting the ratio GTCF / C2 of G per draw and feed, sorted by the worst,
     and per draw and feed the least GTCF G of any setting against the 0.7 x C2's a 30 % needs.
     Two circle-tests at a time (subprocesses)."""
+    import copy
     from concurrent.futures import ThreadPoolExecutor
 
     import yaml
@@ -453,7 +460,7 @@ def print_grid(config: str, out: Path, seeds: list, timeout_s: float) -> None:
         seed, k = job
         d = out / "grid" / f"seed{seed}" / ("c2" if k is None else f"v{k}")
         d.mkdir(parents=True, exist_ok=True)
-        c = yaml.safe_load(Path(config).read_text())
+        c = copy.deepcopy(raw)
         c["driver"]["seed"] = seed
         if k is not None:
             for ax, kv in zip(("X", "Y"), combos[k]):
