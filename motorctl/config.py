@@ -162,13 +162,16 @@ class OpcuaConfig(StrictModel):
     anonymous: what a session without a user may do ('read': browse, read, subscribe; 'off':
     nothing); security: the policies offered ('None', 'Basic256Sha256' with Sign or
     SignAndEncrypt); certificate / private_key: the server's X.509 PEM files (None: a
-    self-signed pair made in the daemon's log_dir at first start)."""
+    self-signed pair made in the daemon's log_dir at first start); pki_dir: the client
+    certificates' trust list, PKI_DIR/trusted (accepted) and PKI_DIR/rejected (refused ones kept
+    for the operator to accept, ``motorctl opcua trust``) (None: LOG_DIR/opcua)."""
 
     endpoint: str = "opc.tcp://127.0.0.1:4840/motorctl"
     anonymous: Literal["read", "off"] = "read"
     security: list[Literal["None", "Basic256Sha256"]] = ["None", "Basic256Sha256"]
     certificate: str | None = None
     private_key: str | None = None
+    pki_dir: str | None = None
 
     @field_validator("endpoint")
     @classmethod
@@ -196,7 +199,9 @@ class DaemonConfig(StrictModel):
     opcua: the OPC UA server (:class:`OpcuaConfig`, the ``opcua`` extra; None: off).
     users_file: the operators' accounts (YAML of hashed passwords and roles,
     :mod:`motorctl.app.users`) that the OPC UA server and the operator page check; None: no
-    logins (read-only views).
+    logins (read-only views). login_lockout_s: how long a user name stays locked after its 6th
+    failed login within a minute (both surfaces, :mod:`motorctl.app.login`; ``motorctl users
+    unlock`` clears it) [s].
     motion_lead_s: commanded motion's setpoints kept ahead of the loop [s] (the setpoint ring
     holds twice as much, at least 1 s): the longest the I/O process may be starved of the CPU
     before the loop runs dry and brakes to rest (an underrun, docs/motion.md); below the
@@ -231,6 +236,7 @@ class DaemonConfig(StrictModel):
     metrics: MetricsConfig | None = None
     opcua: OpcuaConfig | None = None
     users_file: str | None = None
+    login_lockout_s: Annotated[float, Field(ge=1.0, le=7 * 86400.0)] = 900.0
     motion_lead_s: Annotated[float, Field(ge=0.05, le=3.0)] = 1.0
     max_program_bytes: Annotated[int, Field(ge=1 << 16, le=1 << 40)] = 1 << 30
     log_segment_bytes: Annotated[int, Field(ge=1 << 20, le=1 << 40)] = 512 << 20
