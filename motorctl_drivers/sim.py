@@ -413,7 +413,7 @@ def _plant_measured(s, p):
 
 #: the fields of :class:`SimIO`, in constructor order
 SIM_FIELDS = ("pos", "read_error", "amp_fault", "amp_enabled", "applied_u", "S", "P", "DL", "NZ", "inj", "jump",
-              "push", "TC", "TT", "TL", "NT", "u_cmd", "en_cmd")
+              "push", "TC", "TT", "TL", "NT", "u_cmd", "en_cmd", "true_pos")
 
 
 class SimIOType(BundleType):
@@ -429,7 +429,8 @@ class SimIO(StructRefProxy):
     :func:`motorctl.effects.plant.rows`, zero-padded), the command the write applies (u_cmd [V],
     en_cmd: (n,); the loop's own output arrays once the driver has checked them, so that a
     cycle's write passes no array from Python: numba allocates a wrapper for each array it
-    unboxes); passed to the compiled read and write as one argument (:func:`motorctl.jit.bundle`)."""
+    unboxes), the carriages' true positions at the read (true_pos [m]: (n,)); passed to the
+    compiled read and write as one argument (:func:`motorctl.jit.bundle`)."""
 
 
 define_bundle(SimIOType, SimIO, SIM_FIELDS)
@@ -437,19 +438,21 @@ define_bundle(SimIOType, SimIO, SIM_FIELDS)
 
 @njit
 def _make_sim_io(pos, read_error, amp_fault, amp_enabled, applied_u, S, P, DL, NZ, inj, jump, push, TC, TT, TL, NT,
-                 u_cmd, en_cmd):
+                 u_cmd, en_cmd, true_pos):
     return SimIO(pos, read_error, amp_fault, amp_enabled, applied_u, S, P, DL, NZ, inj, jump, push, TC, TT, TL, NT,
-                 u_cmd, en_cmd)
+                 u_cmd, en_cmd, true_pos)
 
 
 @njit
 def _sim_read(io, bitten):
     """:meth:`SimDriver.read` of every axis on the :class:`SimIO` ``io``: injected read errors,
-    NaN readings and amplifier faults, else the encoder reading plus an injected jump [m]."""
+    NaN readings and amplifier faults, else the encoder reading plus an injected jump [m]; and,
+    whatever the encoder does, each carriage's true position (io.true_pos [m])."""
     # borrowed views (motorctl.jit.borrow): the bundle holds the arrays through the call
     pos, read_error, amp_fault = borrow(io.pos), borrow(io.read_error), borrow(io.amp_fault)
-    S, P, inj, jump = borrow(io.S), borrow(io.P), borrow(io.inj), borrow(io.jump)
+    S, P, inj, jump, true_pos = borrow(io.S), borrow(io.P), borrow(io.inj), borrow(io.jump), borrow(io.true_pos)
     for i in range(pos.shape[0]):
+        true_pos[i] = S[i, PS_X]
         if inj[i, INJ_READ] > 0:
             inj[i, INJ_READ] -= 1
             read_error[i] = True
@@ -528,6 +531,7 @@ def _sim_refresh(io, scratch):
     copy_into(scratch.NT, io.NT)
     copy_into(scratch.u_cmd, io.u_cmd)
     copy_into(scratch.en_cmd, io.en_cmd)
+    copy_into(scratch.true_pos, io.true_pos)
 
 
 @njit
@@ -941,6 +945,12 @@ class SimDriver(Driver):
             if p.period_compiled:       # (any other plant draws its first block at its first step,
                 p.refill_noise()        # one with Python hooks one draw at a time)
         self.applied_u = np.zeros(n)   # voltage at the amplifier output [V]
+        #: each carriage's true position at the last read [m] (n,): the plant's x, which the
+        #: encoder reads with its steps, noise and interpolation error (and an injected jump),
+        #: in machine coordinates (homing's offset added): a simulated ballbar or interferometer
+        #: (ISO 230-4's instrument apart from the machine's feedback). Real drives have no such
+        #: attribute; :mod:`motorctl.app.circle_test` evaluates it beside the encoders
+        self.true_position_m = np.zeros(n)
         self._u_cmd, self._en_cmd = np.zeros(n), np.zeros(n, dtype=bool)   # commands of other arrays
         self._io = self._sim_io()
         # the compiled read and write, compiled (or loaded from the cache) now and run on copies
@@ -964,6 +974,7 @@ class SimDriver(Driver):
         self._period_ns = int(round(period_s * 1e9))
         for i, p in enumerate(self.plants):
             self.position_m[i] = p.measured()
+            self.true_position_m[i] = p.x
         # homing inputs: the switch, the index latch (NaN until it latched once armed), the
         # offset homing set (added to the encoder's reading)
         self._switch_m = [axis_options[a].home_switch_m for a in self.axis_names]
@@ -1012,7 +1023,7 @@ class SimDriver(Driver):
         read its command from (default: the driver's own)."""
         arrays = (self.position_m, self.read_error, self.amp_fault, self.amp_enabled, self.applied_u, self._S,
                   self._P, self._DL, self._NZ, self._inject, self._jump_m, self._push_N, self._TC, self._TT,
-                  self._TL, self._NT) + (command or (self._u_cmd, self._en_cmd))
+                  self._TL, self._NT) + (command or (self._u_cmd, self._en_cmd)) + (self.true_position_m,)
         return tuple(a.copy() for a in arrays) if copies else arrays
 
     def _sim_io(self, copies: bool = False, command: tuple | None = None) -> SimIO:
@@ -1067,6 +1078,7 @@ class SimDriver(Driver):
         self._read(self._io_ok, bitten)      # the bundle the write and the rehearsal use (the same arrays)
         if self._offset_on:                  # homed: the reading in machine coordinates
             self.position_m += self.position_offset_m
+            self.true_position_m += self.position_offset_m
 
     def write(self, u_V: np.ndarray, enable: np.ndarray) -> None:
         # a command that arrives after the watchdog expired finds the amplifier already off.
