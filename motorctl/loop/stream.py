@@ -162,6 +162,29 @@ class SetpointRing:
         """The index of the last row the loop followed before its last underrun (-1: none)."""
         return int(self.ctl[SP_DRY]) - 1
 
+    # ---------------------------------------------------------------- consumer side
+    def drain(self, brake: bool) -> int:
+        """Consumer, between cycles (the loop's own thread): every row not yet taken dropped
+        (the read index set to the write index), the epoch bumped (rows the producer is still
+        writing for the old one are dropped as they come, and the producer sees that the loop
+        stopped following it), the stop outputs off, and with ``brake`` the brake of the axes
+        still streaming started (they come to rest jerk-limited and hold; not counted as an
+        underrun). What a fault, an axis's stop or a start in command mode calls for: no stale
+        setpoint is ever followed. Returns the rows dropped. Nothing allocates."""
+        return int(_drain(self.rows, self.ctl, brake, self.out0))
+
+
+@njit
+def _drain(sp, spc, brake, o0):
+    """:meth:`SetpointRing.drain` compiled (``o0``: the first output column): the rows dropped."""
+    w = load_acquire(spc, SP_WRITE)
+    dropped = w - spc[SP_READ]
+    spc[SP_EPOCH] += 1
+    store_release(spc, SP_READ, w)
+    spc[SP_BRAKING] = 1 if brake else 0
+    _outputs_off(sp, spc, sp.shape[0] - 1, o0)
+    return dropped
+
 
 @njit
 def _replace_rows(ctl, rows, cut, block, epoch, outs):
@@ -204,6 +227,7 @@ def warm_up() -> None:
     ctl[SP_WRITE] = 4
     _replace_rows(ctl, np.zeros((9, 4)), 3, np.zeros((2, 3)), 0.0, np.zeros((2, 0)))
     _put_rows(np.zeros((9, 4)), 0, np.zeros((2, 3)), 0.0, np.zeros((2, 0)))
+    _drain(np.zeros((9, 4)), ctl, False, 4)
 
 
 @njit

@@ -112,23 +112,23 @@ def helper_started(parent_pid: int, nice: int) -> None:
         pass
 
 
-def reap(pid: int, timeout_s: float) -> None:
-    """Wait for the helper ``pid`` to end, SIGKILL after ``timeout_s`` [s]."""
+def reap(pid: int, timeout_s: float) -> int | None:
+    """Wait for the helper ``pid`` to end, SIGKILL after ``timeout_s`` [s]. Returns its wait
+    status (None: it had been reaped already)."""
     end = time.monotonic() + timeout_s
     while True:
         try:
-            got, _ = os.waitpid(pid, os.WNOHANG)
+            got, st = os.waitpid(pid, os.WNOHANG)
         except ChildProcessError:
-            return
+            return None
         if got:
-            return
+            return st
         if time.monotonic() > end:
             try:
                 os.kill(pid, signal.SIGKILL)
-                os.waitpid(pid, 0)
+                return os.waitpid(pid, 0)[1]
             except (ProcessLookupError, ChildProcessError):
-                pass
-            return
+                return None
         time.sleep(0.01)
 
 
@@ -145,14 +145,15 @@ class HelperLink:
         self.sent = self.dropped = 0
         self.alive = True
 
-    def stop(self, timeout_s: float = 2.0) -> None:
-        """Close the link (the helper ends on EOF) and reap it (SIGKILL after the bound)."""
+    def stop(self, timeout_s: float = 2.0) -> int | None:
+        """Close the link (the helper ends on EOF) and reap it (SIGKILL after the bound). Returns
+        its wait status (None: reaped already)."""
         self.alive = False
         try:
             self.sock.close()
         except OSError:
             pass
-        reap(self.pid, timeout_s)
+        return reap(self.pid, timeout_s)
 
 
 class SnapshotLink(HelperLink):

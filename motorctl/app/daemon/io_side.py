@@ -27,6 +27,7 @@ import time
 
 from motorctl.app.build import approach_move
 from motorctl.app.daemon.forked import own_session
+from motorctl.app.daemon.machine import MachineState, Observed, axis_state, machine_state, refusal
 from motorctl.app.daemon.motion_side import AxisLimits, MotionError, MotionSide
 from motorctl.app.daemon.notify import sd_notify, watchdog_ping_interval_s
 from motorctl.app.program_planner import AHEAD_WINDOWS, PLAN_NICE, PlannerLink
@@ -41,6 +42,7 @@ from motorctl.app.daemon.protocol import (
 from motorctl.app.daemon.status import ST, axis_status, fault_text
 from motorctl.loop.rt import keep_off, loop_cpu
 from motorctl.loop.safety import with_drive_reason
+from motorctl.loop.servo import JOG, MODE_NAMES
 from motorctl.loop.trajectory import Move
 from motorctl.recorder.flight import (
     CTL_CMD_SEQ,
@@ -79,6 +81,9 @@ SCOPE_STATUS_S = 0.2
 EMFILE_PAUSE_S = 0.1
 #: the planner process is started again when it ends, this many times in all
 MAX_PLANNER_STARTS = 20
+#: a helper process (views, metrics, OPC UA) that ends is started again after HELPER_RETRY_S [s],
+#: HELPER_STARTS times in all (the first start included)
+HELPER_STARTS, HELPER_RETRY_S = 6, 1.0
 #: programs being sent (or sent and not yet run) at once; one idle for UPLOAD_IDLE_S is dropped [s]
 MAX_UPLOADS, UPLOAD_IDLE_S = 4, 120.0
 
@@ -159,6 +164,10 @@ class IOSide:
         self.uploads: dict[str, dict] = {}
         self.raw: dict = {}                  # connection -> the upload whose bytes it sends
         self.job: dict | None = None
+        #: each axis's latched fault bits at the last wake (a new fault: :meth:`react_to_faults`)
+        self.fault_seen = [0] * len(self.names)
+        self.helpers: dict = {}              # the watched helper processes (run(), supervise())
+        self.planner_ended = ""
 
     # ------------------------------------------------------------------ requests
     def to_loop(self, conn, msg: dict, post=None) -> None:
@@ -181,6 +190,14 @@ class IOSide:
             return {"ok": True, "status": st}
         if self.ready is None:
             return {"ok": False, "error": "the loop is not running yet; retry in a moment"}
+        self.react_to_faults()               # a fault latched since the last wake acts first
+        ob = self.observed()
+        state = machine_state(ob)
+        why = refusal(state, self.rule_of(req), ob, self.names)
+        if why:
+            return {"ok": False, "error": why, "usage": False, "state": state.value}
+        if req.cmd == "abort":
+            self.abort_all()
         if req.cmd == "upload":
             return self.upload(conn, req.motion, self.buffers[conn].take_rest())
         if req.cmd == "gcode":
@@ -233,6 +250,63 @@ class IOSide:
                          post={"from_m": y0, "move_s": mv.duration,
                                "bound_s": self.plan.stop_bound_s[i]})
         return None
+
+    # ------------------------------------------------------------------ the machine state
+    def rule_of(self, req: Request) -> str:
+        """The name :mod:`.machine`'s table rules ``req`` by (a jog of a disabled axis is the
+        loop's own jog; a jog's ``stop`` is an abort)."""
+        if req.cmd != "jog":
+            return req.cmd
+        if req.jog["kind"] == "stop":
+            return "abort"
+        streamed = req.jog["kind"] != "to" or self.axis_status(req.axis)["phase"] == "command"
+        return "jog" if streamed else "jog-disabled"
+
+    def observed(self) -> Observed:
+        """What the machine state is computed from now (:class:`.machine.Observed`)."""
+        st, mo = self.plan.ring.status, self.motion
+        rec = REC_REASONS.get(int(self.plan.ring.ctl[CTL_REC_LATCHED]), "")
+        modes = tuple(MODE_NAMES.get(int(st[i, ST["mode"]]), "?") for i in range(len(self.names)))
+        faults = tuple(fault_text(int(st[i, ST["fault"]]), st[i, ST["value"]], st[i, ST["limit"]], rec)
+                       for i in range(len(self.names)))
+        busy = not mo.idle() or mo.homing_runs() or self.job is not None
+        return Observed(modes, faults, busy, mo.held(), bool(mo.aborting), mo.stream.depth(),
+                        mo.stream.braking())
+
+    def machine_status(self) -> dict:
+        """``status``' ``machine`` block: the PackML state and each axis's CiA 402 state."""
+        ob = self.observed()
+        return {"state": machine_state(ob).value,
+                "axes": {a: axis_state(m, f) for a, m, f in zip(self.names, ob.modes, ob.faults)}}
+
+    def react_to_faults(self) -> None:
+        """At every wake and before every request: a fault newly latched on any axis ends the
+        commanded motion at once (:meth:`MotionSide.fault_stop`: the queue, the program being
+        planned or checked and homing dropped; the loop has drained the ring in the cycle it saw
+        the fault), its cause is ``stopped_because``, the client waiting for a program's start
+        is answered with it, and the machine is then ``aborted`` until ``fault-reset``."""
+        st = self.plan.ring.status
+        bits = [int(st[i, ST["fault"]]) for i in range(len(self.names))]
+        new = [i for i, b in enumerate(bits) if b & ~self.fault_seen[i]]
+        self.fault_seen = bits
+        if not new:
+            return
+        i = new[0]
+        rec = REC_REASONS.get(int(self.plan.ring.ctl[CTL_REC_LATCHED]), "")
+        cause = f"fault: axis {self.names[i]}: {fault_text(bits[i], st[i, ST['value']], st[i, ST['limit']], rec)}"
+        self.motion.fault_stop(cause)
+        if self.job is not None:
+            self._end_job(cause)
+
+    def abort_all(self) -> None:
+        """``abort`` beyond the commanded motion (which :meth:`MotionSide.abort` stops): a program
+        still being checked is dropped (its client answered), and every axis on a jog of the
+        loop's own is stopped (its jerk-limited stop, then 0 V)."""
+        if self.job is not None:
+            self._end_job("gcode: aborted before it started")
+        for i in range(len(self.names)):
+            if int(self.plan.ring.status[i, ST["mode"]]) == JOG:
+                self.to_loop(None, {"op": "stop", "axis": i}, post=(threading.Event(), {}))
 
     def internal_request(self, msg: dict, timeout_s: float = LOOP_ANSWER_S) -> dict:
         """From another thread (homing): a command to the loop through the I/O process's own
@@ -413,6 +487,7 @@ class IOSide:
                 pass
             self.planner.stop()
             self._end_job("the planner process ended; retry")
+            self.planner_ended = "its pipe closed"
             sys.stderr.write("motorctl daemon: the planner process ended; starting it again\n")
             self.start_planner()
             return
@@ -508,11 +583,13 @@ class IOSide:
         ready = self.ready or {}
         return {
             "axes": {a: self.axis_status(i) for i, a in enumerate(self.names)},
-            "loop": {"rate_hz": 1.0 / self.plan.asm.loaded.period_s, "cycles": ring.published(),
+            "loop": {**{("cycles_timed" if k == "cycles" else k): v
+                        for k, v in dr.loop_stats.summary().items()},
+                     "rate_hz": 1.0 / self.plan.asm.loaded.period_s, "cycles": ring.published(),
                      "overruns": dr.overruns, "state": int(ring.ctl[CTL_STATE]),
                      "phase_max_us": {k: v / 1000.0 for k, v in zip(("read", "control", "write"),
-                                                                    dr.phase_max_ns)},
-                     **dr.loop_stats.summary()},
+                                                                    dr.phase_max_ns)}},
+            "machine": self.machine_status(),
             "realtime": ready.get("realtime", {}),
             "realtime_summary": ready.get("realtime_summary", "pending"),
             "process": {k: ready.get(k) for k in ("loop_pid", "python_threads", "native_threads",
@@ -536,6 +613,7 @@ class IOSide:
                         "max": MAX_CLIENTS},
             "views": ({"pid": self.views.pid, "frames_sent": self.views.sent,
                        "frames_dropped": self.views.dropped} if self.views is not None else None),
+            "helpers": self.helpers_status(),
         }
 
     def summary_line(self) -> str:
@@ -707,15 +785,17 @@ class IOSide:
         self.sel.register(self._wake_r, selectors.EVENT_READ, "wake")
         loop_gone = False
         ctl = self.plan.ring.ctl
-        self.start_scope()
-        self.metrics = None                  # Prometheus /metrics (app/daemon/metrics.py)
-        if (mc := self.plan.asm.loaded.cfg.daemon.metrics) is not None:
-            from motorctl.app.daemon.metrics import start_metrics
-            self.metrics = start_metrics(mc.listen, self.layout, self.names, self.drainer)
-        self.opcua = None                    # OPC UA server (app/daemon/opcua_server.py)
-        if self.plan.asm.loaded.cfg.daemon.opcua is not None:
-            from motorctl.app.daemon.opcua_server import start_opcua
-            self.opcua = start_opcua(self)
+        d = self.plan.asm.loaded.cfg.daemon
+        self.metrics = self.opcua = None
+        # the helpers the I/O process watches (started again when they end, HELPER_STARTS in all)
+        self.helpers = {name: {"pid": None, "starts": 0, "ended": "", "retry_at": 0.0}
+                        for name, on in (("views", self.scope is not None),
+                                         ("metrics", d.metrics is not None),
+                                         ("opcua", d.opcua is not None)) if on}
+        for name in self.helpers:
+            self.start_helper(name)
+            ctl[CTL_REC_BEAT] = int(ctl[CTL_REC_BEAT]) + 1   # awake between two starts
+            self.drainer.poll()
         self.start_planner()
         self.motion.start()
         while not loop_gone:
@@ -755,6 +835,7 @@ class IOSide:
                     self.respond(conn, {"ok": False, "error": f"the loop did not answer within "
                                                               f"{LOOP_ANSWER_S:g} s"})
             self.drainer.poll()
+            self.react_to_faults()
             self.report_faults()
             self.drainer.cut_events()
             self.drainer.maybe_flush()
@@ -766,6 +847,7 @@ class IOSide:
                 self.metrics.poll(self, now)
             if self.opcua is not None:
                 self.opcua.poll(self, now)
+            self.supervise(now)
             if self.scope is not None and now - self.last_scope_status >= SCOPE_STATUS_S:
                 self.last_scope_status = now
                 st = {"axes": {a: {k: v for k, v in self.axis_status(i).items()
@@ -804,6 +886,67 @@ class IOSide:
             except OSError:
                 pass
         return 0
+
+    # ------------------------------------------------------------------ helper processes
+    def start_helper(self, name: str) -> None:
+        """Start the helper process ``name`` ("views", "metrics", "opcua"); its pid is noted for
+        ``status`` (a start that fails is said in one line and tried again later)."""
+        h = self.helpers[name]
+        h["starts"] += 1
+        if name == "views":
+            self.start_scope()
+        elif name == "metrics":
+            from motorctl.app.daemon.metrics import start_metrics
+            self.metrics = start_metrics(self.plan.asm.loaded.cfg.daemon.metrics.listen, self.layout,
+                                         self.names, self.drainer)
+        else:
+            from motorctl.app.daemon.opcua_server import start_opcua
+            self.opcua = start_opcua(self)
+        link = getattr(self, name)
+        h["pid"] = link.pid if link is not None else None
+
+    def supervise(self, now: float) -> None:
+        """Each wake: a helper process that ended (killed, crashed, exited) is reaped (no zombie),
+        named in the journal and in ``status``' ``helpers``, and started again after
+        :data:`HELPER_RETRY_S`, :data:`HELPER_STARTS` times in all. The loop and the recorder
+        never wait for it."""
+        for name, h in self.helpers.items():
+            link = getattr(self, name)
+            if link is None:
+                if h["starts"] < HELPER_STARTS and h["retry_at"] and now >= h["retry_at"]:
+                    h["retry_at"] = 0.0
+                    self.start_helper(name)
+                continue
+            ended = ""
+            if link.alive:
+                try:
+                    got, st = os.waitpid(link.pid, os.WNOHANG)
+                except ChildProcessError:
+                    got, st = link.pid, None
+                if not got:
+                    continue
+                ended = exit_text(st) if st is not None else "reaped elsewhere"
+            st = self.drop_views() if name == "views" else link.stop(0.5)
+            if name != "views":
+                setattr(self, name, None)
+            h["ended"] = ended or (exit_text(st) if st is not None else "its link closed")
+            h["pid"] = None
+            more = h["starts"] < HELPER_STARTS
+            h["retry_at"] = now + HELPER_RETRY_S if more else 0.0
+            sys.stderr.write(f"motorctl daemon: the {name} process (pid {link.pid}) ended ({h['ended']}); "
+                             + (f"starting it again in {HELPER_RETRY_S:g} s (start {h['starts'] + 1} of "
+                                f"{HELPER_STARTS})\n" if more else
+                                f"not started again ({HELPER_STARTS} starts)\n"))
+
+    def helpers_status(self) -> dict:
+        """``status``' ``helpers``: per helper process its pid (None while it is not running),
+        starts, how it last ended; the planner process's too."""
+        out = {name: {"pid": h["pid"], "running": getattr(self, name) is not None,
+                      "starts": h["starts"], "last_end": h["ended"]}
+               for name, h in self.helpers.items()}
+        out["planner"] = {"pid": self.planner.pid or None, "running": bool(self.planner.pid),
+                          "starts": self.planner.starts, "last_end": self.planner_ended}
+        return out
 
     def start_scope(self) -> None:
         """Fork the view process for the scope page and the Foxglove channels (where
@@ -862,15 +1005,22 @@ class IOSide:
                 else:
                     sys.stderr.write(f"motorctl: {what} on {url}\n")
         if not v.alive:
-            try:
-                self.sel.unregister(v.sock)
-            except (KeyError, ValueError):
-                pass
+            self.supervise(time.monotonic())
+
+    def drop_views(self) -> int | None:
+        """The view process has ended: its link out of the selector, the scope and the drain;
+        reaped (its wait status, None when reaped already)."""
+        v = self.views
+        try:
+            self.sel.unregister(v.sock)
+        except (KeyError, ValueError):
+            pass
+        if v.on_frame in self.scope.listeners:
             self.scope.listeners.remove(v.on_frame)
-            if self.scope.tap in self.drainer.taps:
-                self.drainer.taps.remove(self.scope.tap)
-            v.stop(0.5)
-            self.views = None
+        if self.scope.tap in self.drainer.taps:
+            self.drainer.taps.remove(self.scope.tap)
+        self.views = None
+        return v.stop(0.5)
 
     def write_end_record(self) -> None:
         """The header with ``ended`` into the segment being written (in place, reserved
@@ -924,6 +1074,16 @@ class IOSide:
         if self.notified_ready and now - self.last_status >= STATUS_LINE_S:
             sd_notify("STATUS=" + self.summary_line())
             self.last_status = now
+
+
+def exit_text(status: int) -> str:
+    """A wait status in words: "exit code N" or "killed by SIGNAME"."""
+    if os.WIFSIGNALED(status):
+        try:
+            return f"killed by {signal.Signals(os.WTERMSIG(status)).name}"
+        except ValueError:
+            return f"killed by signal {os.WTERMSIG(status)}"
+    return f"exit code {os.WEXITSTATUS(status)}" if os.WIFEXITED(status) else f"wait status {status}"
 
 
 def spool_beside(socket_path: str) -> str:

@@ -124,6 +124,7 @@ class LoopSide:
         self.can_reconnect = True
         self.drive_text = [""] * len(self.names)
         self.resets: list = []           # fault resets waiting for a drive: (axis, answer, was)
+        self.n_stream = 0                # axes in command mode at the last check_stream
         # SIGTERM/SIGINT: a category-1 stop of the driven axes, bounded; a second signal cuts
         self.signals = 0
         self.stop_end = -1               # the cycle by which the signal's stop must be done
@@ -166,6 +167,8 @@ class LoopSide:
                 if m.get("mode") == "command":   # hold where it stands, follow the stream
                     k = m.get("controller") or self.asm.active[i]
                     self._switch(i, k)
+                    if not any(loop.mode[j] == STREAM for j in range(len(names))):
+                        loop.stream.drain(False)   # nothing left from before is followed
                     loop.command_axis(i, m["a_max"], m["j_max"])
                     self.status.started_k[i] = loop.k
                     r["controller"] = k
@@ -276,14 +279,33 @@ class LoopSide:
             if self.tail == 0:
                 lp.request_stop()
         if self.status.fault_changed():
-            self.status.publish()             # a new fault is published at once ...
+            self.check_stream(lp)             # the setpoints of a faulted axis dropped at once ...
+            self.status.publish()             # ... a new fault is published at once ...
             self.send_drive_reasons(lp)       # ... with what the drive says about it
         elif k % self.publish_every == 0:
             self.status.publish()
         if k % self.check_every == self.check_every // 2:
             self.check_recorder(lp)
+            self.check_stream(lp)
         if k % self.link_every == 0 and self.can_reconnect and not self.term:
             self.check_link(lp)
+
+    def check_stream(self, lp) -> None:
+        """Between cycles (at a fault change and every :data:`RECORDER_CHECK_S`): when an axis
+        has left command mode (a fault, a stop) the setpoint ring is drained
+        (:meth:`SetpointRing.drain`: the rows not taken dropped, the stop outputs off), the axes
+        still in command mode braking to rest on their own a_max/j_max (category 1); when no axis
+        is in command mode, rows the I/O side still wrote are dropped likewise. So no stale
+        setpoint is left to follow at the next start, and the commanded motion's ``idle`` comes
+        true within a few cycles of the fault."""
+        n = 0
+        for i in range(len(self.names)):
+            if lp.mode[i] == STREAM:
+                n += 1
+        stream = lp.stream
+        if n < self.n_stream or (n == 0 and stream.depth() > 0):
+            stream.drain(n > 0)
+        self.n_stream = n
 
     def _answer(self, ans: dict | None) -> None:
         """Send one command's answer (non-blocking; None: it comes later)."""

@@ -226,6 +226,9 @@ class MotionSide:
         self.homing_state = [""] * self.n
         self.inputs, self.to_loop = inputs, to_loop
         self._homing_thread: threading.Thread | None = None
+        #: set by an abort or a fault: the homing sequence ends at its next step, whenever it comes
+        #: (before its first move is queued too)
+        self._homing_abort = threading.Event()
         self.lead = max(BLOCKS_PER_LEAD, int(round(lead_s / period_s)))
         if self.lead > stream.capacity:
             raise ValueError(f"a lead of {lead_s:g} s is {self.lead} rows; the setpoint ring holds "
@@ -371,7 +374,7 @@ class MotionSide:
             traj = P.point_to_point(start, goal, self._pva, feed=feed, axes=self.names)
         except ValueError as exc:
             raise MotionError(f"move: {exc}") from None
-        self.enqueue([traj], list(targets))
+        self.enqueue([traj], list(targets), homing=_homing)
         return {"duration_s": traj.duration, "axes": list(self.names), "from_m": start.tolist(),
                 "to_m": goal.tolist()}
 
@@ -488,14 +491,19 @@ class MotionSide:
         return {"duration_s": float(sum(t.duration for t in trajs)), "segments": info["segments"],
                 "end_m": [float(x) for x in trajs[-1].end], "warnings": list(info["warnings"])}
 
-    def enqueue(self, trajs: list, axes: list[int]) -> None:
-        """Queue planned trajectories moving ``axes`` (checked already)."""
+    def enqueue(self, trajs: list, axes: list[int], homing: bool = False) -> None:
+        """Queue planned trajectories moving ``axes`` (checked already). ``homing``: a move of
+        the homing sequence, refused (MotionError) once an abort or a fault has ended homing:
+        checked under the lock an abort takes, so no abort can fall between the check and the
+        queueing."""
         for traj in trajs:                   # the override's cap along it (planner.override_cap)
             if getattr(traj, "cap", None) is None:
                 traj.cap = P.override_cap(traj, self._pva, share=RAMP_SHARE, period=self.dt, bin_s=CAP_BIN_S,
                                           ahead_s=self.cap_ahead_s)
                 traj.cap_dt = max(1, int(round(CAP_BIN_S / self.dt))) * self.dt
         with self.lock:
+            if homing and self._homing_abort.is_set():
+                raise MotionError("aborted", usage=False)
             self.used = sorted(set(self.used) | set(axes)) if (self.cur or self.queue) else list(axes)
             self.queue.extend(trajs)
             self.queued_programs += 1
@@ -547,6 +555,15 @@ class MotionSide:
         self.cur, self.s, self.f, self.fd = None, 0.0, self.override, 0.0
 
     def abort(self) -> None:
+        """Stop every commanded motion: a feed hold on the path, then the queue, the program being
+        planned and homing dropped (module docstring); whenever it comes, also before homing
+        has queued its first move."""
+        self._homing_abort.set()
+        self._stop_on_path()
+
+    def _stop_on_path(self) -> None:
+        """The motion held on the path and the queue dropped once at rest (homing's own stop at
+        the switch or the index, and :meth:`abort`'s)."""
         with self.lock:
             self.aborting = self.holding = True
             # nothing left to plan may still be in the ring (a move shorter than the lead):
@@ -563,6 +580,26 @@ class MotionSide:
             if self.cur is None:             # nothing running: the next move starts at it
                 self.f, self.fd = self.override, 0.0
             self._asap()
+
+    def fault_stop(self, why: str) -> None:
+        """A fault latched on an axis (the loop has put it at 0 V and drained the setpoint ring):
+        the commanded motion ends at once whatever it was doing (streaming, held, paused after an
+        underrun, being planned, homing), ``stopped_because`` is ``why``; the stop outputs go off
+        (the loop has switched them off already)."""
+        with self.lock:
+            self._homing_abort.set()
+            self._clear(why)
+            self._rewrite = False
+            self._off_pending = False
+
+    def homing_runs(self) -> bool:
+        """The homing sequence's thread is running."""
+        return self._homing_thread is not None and self._homing_thread.is_alive()
+
+    def held(self) -> bool:
+        """The commanded motion is held: a feed hold, a programmed pause, an underrun's pause."""
+        with self.lock:
+            return self.holding or self._dry is not None or self.reason.startswith("paused")
 
     def idle(self) -> bool:
         """Nothing queued or streaming, and the ring drained."""
@@ -621,6 +658,7 @@ class MotionSide:
         if not self.idle() or (self._homing_thread is not None and self._homing_thread.is_alive()):
             raise MotionError("home: motion or homing is running; wait for it", usage=False)
         self.homed[i] = False
+        self._homing_abort.clear()
         self.homing_state[i] = "searching"
         self._homing_thread = threading.Thread(target=self._home, args=(i,), name="motorctl-homing", daemon=True)
         self._homing_thread.start()
@@ -642,20 +680,26 @@ class MotionSide:
         hit = False
         end = time.monotonic() + info["duration_s"] * 2 + 5.0
         while time.monotonic() < end:
+            if self._homing_abort.is_set():
+                break
             if pred():
                 hit = True
-                self.abort()
+                self._stop_on_path()
                 break
             if self.idle():
                 break
             time.sleep(0.001)
         self._until(self.idle, f"{what}: the axis at rest", 10.0)
+        if self._homing_abort.is_set():
+            raise MotionError("aborted", usage=False)
         return hit or pred()
 
     def _home(self, i: int) -> None:
         cfg = self.homing[i]
         d = cfg.direction
         try:
+            if self._homing_abort.is_set():
+                raise MotionError("aborted", usage=False)
             y0 = float(self.where()[i])
             if not self.inputs(i)[0] and not self._run_until(
                     i, y0 + d * cfg.search_distance_m, cfg.search_speed_m_per_s,
@@ -668,6 +712,8 @@ class MotionSide:
                                    lambda: math.isfinite(self.inputs(i)[1]), "latch"):
                 raise MotionError(f"no index pulse within {cfg.back_off_m:g} m off the switch")
             latch = self.inputs(i)[1]
+            if self._homing_abort.is_set():
+                raise MotionError("aborted", usage=False)
             ans = self.to_loop({"op": "set_position", "axis": i, "delta_m": cfg.position_m - latch})
             if not ans.get("ok"):
                 raise MotionError(ans.get("error", "set position refused"))

@@ -31,6 +31,10 @@ AXIS_CHANNELS = ("y", "x_d", "e", "u", "p", "theta_hat1", "theta_hat2", "theta_h
 CYCLE_CHANNELS = {"turnaround_ns": ("turnaround_us", 1e-3), "lateness_ns": ("lateness_us", 1e-3)}
 BUCKET_S = 0.002         #: one envelope point per this much loop time [s] (500 per second)
 BACKLOG_FRAMES = 256     #: frames kept for slow pages (about 5 s at the I/O process's 20 ms)
+#: the most loop time one frame covers [s]: a larger batch (the drain catching up a backlog) is
+#: shown by its newest TAP_MAX_S only, so that no frame outgrows the view link's message
+#: (views.LINK_BUFFER); the run log keeps every row (a live view shows now, not the past)
+TAP_MAX_S = 0.5
 
 
 class Scope:
@@ -50,6 +54,9 @@ class Scope:
         self.names = list(names)
         self.period_s = float(period_s)
         self.bucket = max(1, int(round(BUCKET_S / period_s)))
+        self.max_rows = max(self.bucket, int(round(TAP_MAX_S / period_s)))
+        #: rows of drained batches left out of the frames (a backlog beyond TAP_MAX_S)
+        self.rows_skipped = 0
         self.cols, self.labels, self.units, self.scales = [], [], [], []
         for name in self.names:
             for f in AXIS_CHANNELS:
@@ -92,6 +99,10 @@ class Scope:
     def _tap(self, rows: np.ndarray) -> None:
         if rows.shape[0] == 0:
             return
+        if rows.shape[0] > self.max_rows:   # a backlog: its newest TAP_MAX_S only
+            self.rows_skipped += rows.shape[0] - self.max_rows
+            rows = rows[-self.max_rows:]
+            self._carry = None
         events = self._events(rows)
         if self._carry is not None:
             rows = np.concatenate([self._carry, rows])

@@ -52,6 +52,10 @@ VIEW_NICE = 0
 LINK_MESSAGES_PER_WAKE = 16
 #: the socket pair's send buffer [bytes] (the kernel caps it at net.core.wmem_max)
 LINK_BUFFER = 1 << 20
+#: the largest message sent over the link [bytes]: the view process reads LINK_BUFFER at a time,
+#: and a SOCK_SEQPACKET message longer than the read would be cut; a larger one is dropped
+#: (counted) instead (the scope's frames stay far below it: scope.TAP_MAX_S)
+LINK_MESSAGE_MAX = LINK_BUFFER // 2
 
 
 def missing_extra(module: str, extra: str, what: str) -> str:
@@ -85,8 +89,11 @@ class ViewLink(HelperLink):
     def _send(self, obj) -> bool:
         if not self.alive:
             return False
+        data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+        if len(data) > LINK_MESSAGE_MAX:   # never a truncated message: dropped, counted
+            return False
         try:
-            self.sock.send(pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL))
+            self.sock.send(data)
             return True
         except (BlockingIOError, InterruptedError):
             return False
@@ -213,7 +220,7 @@ class Views:
         a link that always has data (a view process behind) never starves the requests."""
         for _ in range(LINK_MESSAGES_PER_WAKE):
             try:
-                data = sock.recv(1 << 20)
+                data = sock.recv(LINK_BUFFER)
             except (BlockingIOError, InterruptedError):
                 return
             except OSError:
