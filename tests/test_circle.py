@@ -88,13 +88,22 @@ def _lsc_geometric(x, y):
 G_FIT_TOL_M = 2e-9
 
 
+#: the simulated encoder's largest departure from the carriage's true position [m]: half a step
+#: (0.25 um), the interpolation error's amplitude (0.15 um) and six standard deviations of its
+#: noise (0.6 um) in configs/gantry.yaml
+ENCODER_BOUND_M = 1.0e-6
+
+
 def test_the_circle_test_is_a_record_that_reproduces(tmp_path):
     """`motorctl circle-test` run twice (in this process, then as the command with --json --plot
     --log) gives the same figures bit for bit and the same measured positions; the run log's
-    positions, fitted here, give its G; --json prints one JSON document and nothing else."""
+    positions, fitted here, give its G and its largest contour error; --json prints one JSON
+    document and nothing else. The simulated ballbar (the carriages' true positions) reads the
+    same test circles, within the encoder's own error of what the encoders read, and its
+    figures are in the log's header beside the encoders'."""
     from harness import run_cli
 
-    from motorctl.app.circle_test import run_circle_test
+    from motorctl.app.circle_test import figures, run_circle_test
     from motorctl.config import load_config
     from motorctl.recorder.runlog import read_log
     cfg = REPO / "configs" / "gantry.yaml"
@@ -106,17 +115,17 @@ def test_the_circle_test_is_a_record_that_reproduces(tmp_path):
     assert len(doc) == 1
     two = doc[0]
     g = r.result
-    for key, val in (("G_cw_um", g.G_cw), ("G_ccw_um", g.G_ccw), ("G_b_um", g.G_b), ("H_um", g.H),
-                     ("F_max_um", g.F_max), ("F_min_um", g.F_min)):
-        assert two[key] == val * 1e6, key                           # bit for bit
     assert Path(two["plot"]).is_file() and two["log"] == str(tmp_path / "two.log")
     logs = [read_log(str(tmp_path / "one.log")), read_log(two["log"])]
     for col in ("X.y", "Y.y", "X.x_d", "Y.x_d"):
         np.testing.assert_array_equal(logs[0].col(col), logs[1].col(col))
     lg = logs[1]
-    assert lg.header["kind"] == "circle-test" and lg.header["circle"]["figures_m"]["G_b"] == g.G_b
+    assert lg.header["kind"] == "circle-test"
+    for k in ("encoder", "ballbar"):                                # the command's, bit for bit
+        assert lg.header["circle"]["figures_m"][k] == figures(r.readings[k]), k
+    assert lg.header["circle"]["no_ballbar"] == "" and r.no_ballbar == ""
     c0 = np.array(r.center)
-    spans = []
+    spans, e_max = [], []
     for d, g_dir in (("cw", g.G_cw), ("ccw", g.G_ccw)):
         a, b = lg.header["circle"]["rows"][d]
         x, y = lg.col("X.y")[a:b], lg.col("Y.y")[a:b]
@@ -127,12 +136,45 @@ def test_the_circle_test_is_a_record_that_reproduces(tmp_path):
             p = np.array([lg.col("X.x_d")[k], lg.col("Y.x_d")[k]]) - c0
             assert np.hypot(p[0], p[1] - s * 0.005) < 0.2e-3
         assert (b - a) * lg.header["period_s"] > 2 * np.pi * 0.005 / 0.05 * 0.95   # a whole turn
-        c, _ = _lsc_geometric(x, y)
+        c, r_fit = _lsc_geometric(x, y)
         rad = np.hypot(x - c[0], y - c[1])
         assert abs((rad.max() - rad.min()) - g_dir) <= G_FIT_TOL_M, d
+        e_max.append(np.abs(rad - r_fit).max())
         spans.append((x, y))
+        # the ballbar: the same rows' true positions, within the encoder's error of its reading
+        bx, by = r.readings["ballbar"].paths[d]
+        assert bx.shape == x.shape
+        dev = np.abs(np.concatenate([x - bx, y - by]))
+        assert 0.1e-6 < dev.max() <= ENCODER_BOUND_M, (d, dev.max())
+    assert abs(max(e_max) - r.readings["encoder"].e_max) <= G_FIT_TOL_M
     x, y = np.concatenate([s[0] for s in spans]), np.concatenate([s[1] for s in spans])
     c, _ = _lsc_geometric(x, y)
     rad = np.hypot(x - c[0], y - c[1])
     assert abs((rad.max() - rad.min()) - g.G_b) <= G_FIT_TOL_M
     assert 0 < g.G_b < 30e-6
+
+
+def test_a_driver_without_a_true_position_gives_no_ballbar():
+    """A driver that reads no true position (a real drive) gives no ballbar reading, and says so;
+    the table shows the ballbar's row as none, the JSON summary null with the reason."""
+    from dataclasses import replace
+
+    from motorctl.app.circle_test import ENCODER, CircleRun, Reading, ballbar_of, summary, table
+
+    class Drive:                                  # a bus driver: positions from its encoders only
+        position_m = np.zeros(2)
+
+    truth, why = ballbar_of(Drive(), 2)
+    assert truth is None and "Drive" in why and "encoder" in why
+    sim = type("Sim", (), {"true_position_m": np.zeros(2)})()
+    assert ballbar_of(sim, 2) == (sim.true_position_m, "")
+    x, y = _circle(0.0, 0.0, 0.01, n=400)
+    paths = {"cw": (x, y), "ccw": (x, y)}
+    rd = Reading(ENCODER, evaluate(paths["cw"], paths["ccw"], (0.0, 0.0), 0.01), 0.0, paths)
+    run = CircleRun("c2", 0.05, 0.01, (0.0, 0.0), {ENCODER: rd}, 0, no_ballbar=why)
+    rows = table([run, replace(run, readings={ENCODER: rd, "ballbar": replace(rd, instrument="ballbar")},
+                               no_ballbar="")])
+    assert [row[2] for row in rows[1:]] == ["encoder", "ballbar: none", "encoder", "ballbar"]
+    assert rows[2][3:-1] == ["-"] * 7 and rows[4][3] == "0.00"
+    doc = summary(run)
+    assert doc["ballbar"] is None and doc["no_ballbar"] == why and doc["encoder"]["G_b_um"] == rd.result.G_b * 1e6
