@@ -366,6 +366,23 @@ class Driver(abc.ABC):
         own (the default)."""
         return False
 
+    def drive_state(self, i: int) -> str:
+        """The state of axis ``i``'s drive as last read, whatever it is, one line for the
+        operator (e.g. "canopen node 1 (axis X) is in Switch on disabled (statusword 0x0250)"):
+        what ``motorctl fault-reset`` reports after the drive's reset. The default: the
+        :meth:`fault_state` while the drive reports a fault, '' otherwise (a device with no
+        state of its own beyond the fault bit). Called outside the cycle; may build strings."""
+        return self.fault_state(i) if self.amp_fault[i] else ""
+
+    def _notice_drive_fault(self, i: int, state: str) -> None:
+        """Set-up found axis ``i``'s drive in a fault it latched (an earlier run's fault, its
+        own watchdog when an earlier host went away): a warning notice naming ``state`` (the
+        drive's words, e.g. its CiA 402 state, statusword and error code) and how the operator
+        clears it. A driver never resets it on its own: the first cycle faults the axis and
+        ``motorctl run`` is refused (:func:`drive_fault_refusal`)."""
+        self._notice(f"axis {self.axis_names[i]}: set-up found the drive in its fault ({state}); it stays "
+                     f"there until the operator's 'motorctl fault-reset'", warning=True)
+
     def fault_state(self, i: int) -> str:
         """The state of axis ``i``'s drive while it reports a fault, one line for the operator
         (e.g. a CiA 402 drive's power state and statusword, a Modbus fault input), '' when the
@@ -379,6 +396,28 @@ class Driver(abc.ABC):
         code and its meaning, a Modbus exception), '' when it says nothing. Called outside the
         cycle (the run table, the daemon's status); may build strings."""
         return ""
+
+
+def fault_reset_command(axis: str, config: str | None = None) -> str:
+    """How the operator clears the fault axis ``axis``'s drive latched, for a refusal or a
+    set-up notice: the daemon client's ``motorctl fault-reset AXIS`` and, with no daemon holding
+    the bus, ``motorctl fault-reset --config CONFIG AXIS`` (``config`` None: the word CONFIG)."""
+    return (f"'motorctl fault-reset --config {config or 'CONFIG'} {axis}' (no daemon running) or "
+            f"'motorctl fault-reset {axis}' (through the daemon)")
+
+
+def drive_fault_refusal(driver: Driver, names: list[str] | None = None, config: str | None = None) -> str:
+    """One line naming every axis whose drive reports a fault it latched now (``amp_fault``),
+    with the drive's state (:meth:`Driver.fault_state`: e.g. its CiA 402 state, statusword,
+    error code, AL status code) and the command that clears it (:func:`fault_reset_command`);
+    '' when none does. ``names``: the axes to look at (default: every axis of the driver)."""
+    lines = []
+    for i, a in enumerate(driver.axis_names):
+        if (names is None or a in names) and driver.amp_fault[i]:
+            state = driver.fault_state(i) or "the device reports an amplifier fault"
+            lines.append(f"axis {a}'s drive is in its fault ({state}); it stays there until the operator "
+                         f"resets it: {fault_reset_command(a, config)}")
+    return "; ".join(lines)
 
 
 def available_drivers() -> dict[str, object]:

@@ -19,7 +19,10 @@ that runs only while it is needed):
      given), ``full_scale_permille`` against the max torque 0x6072 (the drive would clip above);
   7. the first reading (statusword and position by SDO), then ``round_trip_exchanges`` timed
      SDO uploads of the statusword: their median/max is the measured round trip
-     (``describe()``, and the budget when ``round_trip_s`` is not set).
+     (``describe()``, and the budget when ``round_trip_s`` is not set). A drive found in Fault
+     stays in Fault: its error code 0x603F is read and named (a set-up warning,
+     :meth:`fault_reason`), the first cycle faults the axis, and only the operator's
+     ``motorctl fault-reset`` resets it (CiA 402 transition 15, :meth:`reset_fault`).
 
 ``activate()``: heartbeat consumer 0x1016 sub 1 = (``host_node_id`` << 16) | ``heartbeat_consumer_ms``
 (read back), NMT start, wait for the drive's heartbeat to say Operational, then the notifier
@@ -403,6 +406,7 @@ class CanopenDriver(SplitPhaseDriver):
         self._nmt_named = [0] * n            # the NMT state a heartbeat said, not Operational (0: none)
         self._hb_named = [0.0] * n           # the heartbeat's silence when it was found lost [s] (0: none)
         self._was_fault = [False] * n
+        self._setup_code = [0] * n           # error code 0x603F of a drive found in Fault at set-up (0: none)
         # the statusword trace per axis: preallocated ring of (statusword) at each state change
         self._trace = [[0] * TRACE_LEN for _ in range(n)]
         self._trace_n = [0] * n
@@ -702,8 +706,9 @@ class CanopenDriver(SplitPhaseDriver):
                 self._emcy_axis.pop(0x80 + a.node_id, None)
                 self._emcy_axis[cid & 0x7FF] = i
         sw = self._read_uint(i, cia402.STATUSWORD)
+        self._setup_code[i] = 0
         if cia402.decode_state(sw) in (cia402.FAULT, cia402.FAULT_REACTION_ACTIVE):
-            sw = self._fault_reset(i, sw)
+            self._found_in_fault(i, sw)
         pos = self._read_uint(i, cia402.POSITION_ACTUAL, signed=True)
         self._statusword[i] = sw
         self._sm[i].step(sw, False)
@@ -765,30 +770,22 @@ class CanopenDriver(SplitPhaseDriver):
                 "cob_id": f"0x{cob:03X}", "map": [f"0x{x:04X}:{s:02X}/{b}" for x, s, b in got],
                 "transmission_type": m.trans_type}
 
-    def _fault_reset(self, i: int, sw: int) -> int:
-        """A drive found in Fault at set-up (e.g. its heartbeat consumer acted when an earlier
-        host died): the CiA 402 fault reset, a rising edge of controlword bit 7 written by SDO
-        (0x0000, 0x0080, 0x0000), then the statusword again. Reported in :attr:`notices`; a
-        drive still in Fault stays so (the first cycle faults the axis, with
-        :meth:`fault_reason`). Returns the statusword after the reset."""
+    def _found_in_fault(self, i: int, sw: int) -> None:
+        """A drive found in Fault at set-up (an earlier run's fault, its heartbeat consumer
+        when an earlier host died) stays in Fault: the host never resets a drive's fault on its
+        own. Its error code 0x603F (where it has one) is read by SDO and named with the state
+        and statusword by :meth:`fault_reason` and a set-up warning; the first cycle faults the
+        axis, and only the operator's ``motorctl fault-reset`` (:meth:`reset_fault`: CiA 402
+        transition 15) takes it out."""
         raw = self._try_upload(i, cia402.ERROR_CODE)
-        code = None if raw is None else int.from_bytes(raw[:2], "little")
-        for cw in (0x0000, cia402.CW_FAULT_RESET, 0x0000):
-            self._write(i, cia402.CONTROLWORD, 0, cw.to_bytes(2, "little"), check=False)
-        deadline = time.monotonic() + self.options.nmt_timeout_s
-        after = self._read_uint(i, cia402.STATUSWORD)
-        while cia402.decode_state(after) in (cia402.FAULT, cia402.FAULT_REACTION_ACTIVE) and \
-                time.monotonic() < deadline:
-            time.sleep(0.01)
-            after = self._read_uint(i, cia402.STATUSWORD)
-        what = f"error code 0x603F = {cia402.describe_error(code)}" if code else "no error code 0x603F"
-        if cia402.decode_state(after) in (cia402.FAULT, cia402.FAULT_REACTION_ACTIVE):
-            self._notice(f"{self._where(i)} is in Fault ({what}) and stays there after a fault reset "
-                         f"(statusword 0x{after:04X})", warning=True)
-        else:
-            self._notice(f"{self._where(i)}: cleared the Fault it was in at set-up ({what}; statusword "
-                         f"0x{sw:04X} -> 0x{after:04X}) with a fault reset (controlword bit 7)")
-        return after
+        self._setup_code[i] = 0 if raw is None else int.from_bytes(raw[:2], "little")
+        self._statusword[i] = sw
+        self._notice_drive_fault(i, self._found_text(i, sw))
+
+    def _found_text(self, i: int, sw: int) -> str:
+        code = self._setup_code[i]
+        return (f"{self._where(i)} is in {cia402.STATE_NAMES[cia402.decode_state(sw)]} (statusword 0x{sw:04X}"
+                + (f", error code 0x603F = {cia402.describe_error(code)}" if code else "") + ")")
 
     def _check_fixed_pdos(self, i: int) -> None:
         """A drive with a fixed mapping (``fixed_pdos``): where it has the PDO parameter
@@ -978,6 +975,8 @@ class CanopenDriver(SplitPhaseDriver):
             en = bool(enable[i])
             sm = sms[i]
             cw = sm.step(self._statusword[i], en)
+            if self._setup_code[i] and not sm.fault:
+                self._setup_code[i] = 0             # out of the Fault set-up found: no longer its reason
             if not en and not sm.fault and self._emcy_latched[i]:
                 self._emcy_latched[i] = False       # disabled and out of Fault: the latch is reset
             elif en and sm.enabled and (self._emcy_named[i] or self._nmt_named[i] or self._hb_named[i]):
@@ -1132,8 +1131,17 @@ class CanopenDriver(SplitPhaseDriver):
             return (f"{self._where(i)} left NMT Operational: its heartbeat says "
                     f"{NMT_STATE_NAMES.get(state, f'state 0x{state:02X}')} (0x{state:02X})")
         if self._sm[i].fault or self.amp_fault[i]:
+            if self._setup_code[i]:
+                return (f"error code 0x603F = {cia402.describe_error(self._setup_code[i])} "
+                        f"(the drive was in Fault at set-up)")
             return f"{self._where(i)} in {cia402.STATE_NAMES[self._sm[i].state]} (statusword 0x{self._statusword[i]:04X})"
         return ""
+
+    def drive_state(self, i: int) -> str:
+        """Axis i's drive's CiA 402 power state and statusword (0x6041) as last read, whatever
+        it is, e.g. "canopen node 1 (axis X) is in Switch on disabled (statusword 0x0250)"."""
+        sw = self._statusword[i]
+        return f"{self._where(i)} is in {cia402.STATE_NAMES[cia402.decode_state(sw)]} (statusword 0x{sw:04X})"
 
     def statusword_trace(self, i: int) -> list[tuple[int, str]]:
         """The statuswords at each state change of axis i since configure (first 32), with names."""

@@ -453,3 +453,45 @@ def test_a_drive_that_stays_in_fault_refuses_the_reset_naming_its_state_after_th
             assert asm.supervisor.fault[0]
         finally:
             shutdown(asm)
+
+
+def test_a_drive_fault_stays_latched_across_runs_until_the_operators_reset_without_a_daemon(tmp_path):
+    """X's drive faults (EMCY 0x2310) in one session and is left in Fault. The next set-up does not
+    reset it (before, it wrote controlword 0x0080 and said "cleared the Fault it was in at
+    set-up"): it warns, and ``motorctl run`` is refused in one line naming the drive's CiA 402
+    state, statusword, error code 0x603F and the command that clears it, nothing driven, the drive
+    still in Fault. ``reset_drive_faults`` (``motorctl fault-reset --config CONFIG X``, no daemon)
+    sends transition 15, reports Switch on disabled after, and the next set-up finds no fault."""
+    from motorctl.app.build import StartRefused
+    from motorctl.app.fault_reset import reset_drive_faults
+    loaded = config_from_dict(_config(tmp_path), "<co>", check_budget=False)
+    with _drives(loaded, [FaultSpec.parse("emcy=0x2310:X:20")]) as (dev, drv):
+        drv.open()
+        for _ in range(40):
+            exchange(drv, [1.0, 1.0], [True, True])
+            if drv.amp_fault[0]:
+                break
+        assert drv.amp_fault[0]
+        drv.close()                                                    # the session ends, X in Fault
+        assert dev.drives[0].state == cia402.FAULT
+        notices = []
+        with pytest.raises(StartRefused) as exc:
+            run_job(loaded, duration_s=0.2, clock="virtual", on_notice=notices.append)
+        why = str(exc.value)
+        assert "\n" not in why and why.startswith("axis X's drive is in its fault (canopen node 1 (axis X) is in "
+                                                  "Fault (statusword 0x"), why
+        assert "error code 0x603F = 0x2310 continuous over-current" in why and "axis Y" not in why, why
+        assert "'motorctl fault-reset --config <co> X' (no daemon running) or 'motorctl fault-reset X'" in why, why
+        assert why.endswith("nothing was driven"), why
+        assert any(n.startswith("warning: axis X: set-up found the drive in its fault") for n in notices), notices
+        assert not any("cleared" in n for n in notices), notices
+        assert dev.drives[0].state == cia402.FAULT                      # the set-up left it there
+        rep = reset_drive_faults(loaded, ["X"])
+        (x,) = rep.axes
+        assert x.sent and x.cleared and "is in Fault (statusword 0x" in x.was and "0x2310" in x.was, x
+        assert x.now.startswith("canopen node 1 (axis X) is in Switch on disabled (statusword 0x"), x
+        assert rep.stop_confirmed and dev.drives[0].state == cia402.SWITCH_ON_DISABLED
+        drv = loaded.make_driver()                                      # the next set-up finds no fault
+        drv.open()
+        exchange(drv, [0.0, 0.0], [False, False], n=5)
+        assert not drv.amp_fault.any() and not any("found the drive" in n for n in drv.notices), drv.notices

@@ -48,6 +48,7 @@ from motorctl.app.build import (START_STILL_WAIT_S, StartRefused, approach_all, 
                                 record_layout, shutdown, start, stop_bound_s)
 from motorctl.app.lifetime import parent_gone
 from motorctl.config import LoadedConfig
+from motorctl.driver import drive_fault_refusal
 from motorctl.inputs import InputError
 from motorctl.loop.records import MODE_PROGRAM, RecordLayout
 from motorctl.loop.rt import keep_off, loop_cpu
@@ -259,7 +260,9 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
     ``duration_s`` of the programs (module docstring).
     Raises:
         StartRefused: an axis stands outside its soft limits (or faulted on its first
-            reading): refused after the idle cycle, nothing driven (its row is in the log).
+            reading; a drive in a fault it latched is named with its state and the command that
+            resets it, :func:`motorctl.driver.drive_fault_refusal`): refused after the idle
+            cycles, nothing driven (their rows are in the log).
         RealtimeError: ``realtime: required`` refused (before the driver is opened).
         ConfigError: ``controller`` is not configured for an axis.
         InputError: the duration is shorter than one period.
@@ -320,7 +323,12 @@ def run_job(loaded: LoadedConfig, axes: list | None = None, controller: str | No
                 plan["end"], plan["refused"] = 0, StartRefused(
                     f"{', '.join(moving)} still moving after {START_STILL_WAIT_S:g} s at 0 V; nothing was driven")
             elif not moving:
+                # a drive in a fault it latched (found so at set-up, or since): refused naming the
+                # drive's state and the operator's command that resets it; no driver resets it
+                held = drive_fault_refusal(asm.driver, names, str(loaded.path))
                 try:
+                    if held:
+                        raise StartRefused(f"{held}; nothing was driven")
                     k_prog, moves = approach_all(asm)
                 except StartRefused as exc:
                     plan["end"], plan["refused"] = 0, exc

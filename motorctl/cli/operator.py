@@ -7,6 +7,11 @@ The client commands talk to ``motorctl daemon`` over its Unix control socket (de
 decide who may command the machine. Exit codes: 0 done; 1 the daemon refused or is not
 reachable (not running, permission denied, axis in fault, stop not finished in time);
 2 bad input (unknown axis or controller, unreadable log). Errors are one line on stderr.
+
+``fault-reset --config CONFIG AXIS...`` needs no daemon: it opens the config's driver and sends
+the drives' own fault reset (:mod:`motorctl.app.fault_reset`; refused, exit 1, while a daemon
+answers on its socket; exit 1 when a drive stays in its fault, 3 when the stop after it is not
+confirmed by the device).
 """
 
 from __future__ import annotations
@@ -115,15 +120,44 @@ def cmd_switch(args) -> int:
 
 
 def cmd_fault_reset(args) -> int:
-    ans = call(socket_path(args), {"cmd": "fault-reset", "axis": args.axis})
-    if not ans.get("ok"):
-        from motorctl.cli import UsageError
-        if ans.get("usage"):
-            raise UsageError(ans["error"])
-        raise DaemonUnreachable(f"fault-reset {args.axis} refused: {ans.get('error')}")
-    was = ans.get("was") or "no fault was latched"
-    sys.stdout.write(f"{args.axis}: fault cleared ({was}); the axis stays disabled\n")
+    """``fault-reset AXIS...`` through the daemon; ``fault-reset --config CONFIG AXIS...`` with no
+    daemon: the drives' own reset from the config's driver (:mod:`motorctl.app.fault_reset`)."""
+    if args.config:
+        return _fault_reset_without_daemon(args)
+    for axis in args.axis:
+        ans = call(socket_path(args), {"cmd": "fault-reset", "axis": axis})
+        if not ans.get("ok"):
+            from motorctl.cli import UsageError
+            if ans.get("usage"):
+                raise UsageError(ans["error"])
+            raise DaemonUnreachable(f"fault-reset {axis} refused: {ans.get('error')}")
+        was = ans.get("was") or "no fault was latched"
+        sys.stdout.write(f"{axis}: fault cleared ({was}); the axis stays disabled\n")
     return 0
+
+
+def _fault_reset_without_daemon(args) -> int:
+    from motorctl.app.fault_reset import reset_drive_faults
+    from motorctl.config import load_config
+    loaded = load_config(args.config, check_budget=False)
+    sockets = [p for p in (getattr(args, "socket", None), os.environ.get("MOTORCTL_SOCKET")) if p]
+    rep = reset_drive_faults(loaded, args.axis, sockets)
+    out = sys.stdout
+    for r in rep.axes:
+        if not r.was:
+            out.write(f"{r.axis}: no fault to reset; the drive: {r.now or 'no fault reported'}\n")
+        elif r.cleared:
+            out.write(f"{r.axis}: the drive's fault is reset: was {r.was}; now {r.now or 'no fault reported'}\n")
+        elif not r.sent:
+            out.write(f"{r.axis}: the device has no fault reset of its own (its own reset input, a power "
+                      f"cycle): {r.now}\n")
+        else:
+            out.write(f"{r.axis}: the drive did not leave its fault within its reset's bound: {r.now}\n")
+    for line in rep.stop:
+        (out if rep.stop_confirmed else sys.stderr).write(line + "\n")
+    if not rep.stop_confirmed:
+        return 3
+    return 0 if all(r.cleared for r in rep.axes) else 1
 
 
 def cmd_jog(args) -> int:
@@ -475,8 +509,13 @@ def register(parser: argparse.ArgumentParser, sub) -> None:
     p.add_argument("axis", nargs="?", help="only this axis (default: every axis)")
     p.add_argument("--json", action="store_true", help="one JSON object")
 
-    p = client("fault-reset", "clear an axis's latched fault (only when its cause is gone)", cmd_fault_reset)
-    p.add_argument("axis", help="the axis name, as in the config's axes")
+    p = client("fault-reset", "clear an axis's latched fault (only when its cause is gone) and reset its "
+                              "drive's own fault; through the daemon, or with --config and no daemon",
+               cmd_fault_reset)
+    p.add_argument("axis", nargs="+", help="the axis name(s), as in the config's axes")
+    p.add_argument("--config", default=None, metavar="CONFIG",
+                   help="no daemon: open the driver of this config, send each named drive's own fault "
+                        "reset, report its state after, close (refused while a daemon answers)")
 
     p = client("switch", "switch an axis's controller at a cycle boundary", cmd_switch)
     p.add_argument("axis", help="the axis name, as in the config's axes")
