@@ -15,6 +15,10 @@ Wear kinds (:data:`WEAR_KINDS`), from ``onset_day`` on (day d counts from 0):
 * ``cogging``: a cogging force of amplitude ``amplitude_N`` (6 N, period 32 mm) appears;
 * ``encoder``: an encoder interpolation error of rate·(d − onset + 1) (0.4 µm/day, signal
   period 2 mm).
+
+Bad days (:data:`BAD_DAY_PARAMETERS`): on one day only, a plant parameter of a machine is
+multiplied by a factor (every log of that day; the next day the machine is back), e.g. Coulomb
+friction × 1.25 on a cold morning: an outlier the report must not take for wear.
 """
 
 from __future__ import annotations
@@ -33,6 +37,9 @@ WEAR_KINDS = {"coulomb": {"rate_per_day": 0.01}, "cogging": {"amplitude_N": 6.0}
 #: the identified parameter each kind of wear shows in (the report's names, motorctl.fleet.jobs)
 WEAR_PARAMETER = {"coulomb": "coulomb_N", "cogging": "cogging.amplitudes_N[0]",
                   "encoder": "encoder_interpolation.amplitudes_m[0]"}
+#: the plant parameters a bad day may scale, and the default factor of each
+#: (:func:`default_bad_days`: Coulomb friction +25 %, viscous friction +25 %, a payload of +10 % mass)
+BAD_DAY_PARAMETERS = {"coulomb_N": 1.25, "viscous_N_s_per_m": 1.25, "mass_kg": 1.10}
 #: the plant's spread between machines: relative std of mass, viscous and Coulomb friction, and
 #: the std of the force offset [N]
 SPREAD = {"mass_kg": 0.02, "viscous_N_s_per_m": 0.05, "coulomb_N": 0.05, "offset_N": 0.3}
@@ -53,10 +60,34 @@ def default_wear(machines: int, days: int) -> list[dict]:
             for i, k in zip(range(machines), WEAR_KINDS)]
 
 
-def plant_of(machine: int, day: int, seed: int, wear: list[dict], base: dict) -> tuple[dict, dict]:
+def default_bad_days(machines: int, days: int) -> list[dict]:
+    """The benchmark's bad days: the clean machines after the three worn ones of
+    :func:`default_wear` (m04, m05, m06, as many as there are) get one bad day each, one kind
+    of :data:`BAD_DAY_PARAMETERS` each, on days at 1/2, 2/3 and 5/6 of the period (so the
+    replay sees each machine back after it)."""
+    at = (days // 2, (2 * days) // 3, (5 * days) // 6)
+    return [{"machine": machine_name(i), "day": d, "parameter": p, "factor": f}
+            for i, d, (p, f) in zip(range(len(WEAR_KINDS), machines), at, BAD_DAY_PARAMETERS.items())]
+
+
+def check_bad_days(bad_days: list[dict]) -> None:
+    """Raises ValueError: a bad day's parameter not one of :data:`BAD_DAY_PARAMETERS`, or its
+    factor not a positive number."""
+    for b in bad_days:
+        if b.get("parameter") not in BAD_DAY_PARAMETERS:
+            raise ValueError(f"bad day {b}: unknown parameter {b.get('parameter')!r}; "
+                             f"parameters: {', '.join(BAD_DAY_PARAMETERS)}")
+        f = b.get("factor", BAD_DAY_PARAMETERS[b["parameter"]])
+        if not (isinstance(f, (int, float)) and not isinstance(f, bool) and 0 < f < float("inf")):
+            raise ValueError(f"bad day {b}: the factor must be a positive number")
+
+
+def plant_of(machine: int, day: int, seed: int, wear: list[dict], base: dict,
+             bad_days: list[dict] = ()) -> tuple[dict, dict]:
     """The simulated driver's axis section for machine index ``machine`` on ``day``: the base
-    plant with the machine's spread (drawn from ``seed`` and the machine) and its wear. Returns
-    (driver dict, the truth: {"wear": [...], "plant": {...}})."""
+    plant with the machine's spread (drawn from ``seed`` and the machine), its wear and its bad
+    day (``bad_days``: [{"machine", "day", "parameter", "factor"}]). Returns (driver dict, the
+    truth: {"wear": [...], "bad_day": [...], "plant": {...}})."""
     rng = np.random.default_rng([int(seed), int(machine)])
     drv = dict(base)
     for key, s in SPREAD.items():
@@ -82,19 +113,25 @@ def plant_of(machine: int, day: int, seed: int, wear: list[dict], base: dict) ->
         else:
             raise ValueError(f"unknown wear kind {k!r}; kinds: {', '.join(WEAR_KINDS)}")
         applied.append({"kind": k, "onset_day": int(w["onset_day"]), "days_since": since})
+    bad = []
+    for b in bad_days:
+        if b["machine"] == name and int(b["day"]) == day:
+            f = float(b.get("factor", BAD_DAY_PARAMETERS[b["parameter"]]))
+            drv[b["parameter"]] *= f
+            bad.append({"parameter": b["parameter"], "factor": f})
     plant = {k: drv[k] for k in SPREAD}
-    return drv, {"wear": applied, "plant": plant}
+    return drv, {"wear": applied, "bad_day": bad, "plant": plant}
 
 
 def _one_log(args) -> str:
-    path, machine, day, k, seed, wear, duration_s, started = args
+    path, machine, day, k, seed, wear, bad_days, duration_s, started = args
     from motorctl.app.job import run_job
     from motorctl.config import config_from_dict
     from motorctl.ident.synth import gantry_dict
     from motorctl.recorder.runlog import LogWriter
     d = gantry_dict("X", None, seed=int(seed) * 100003 + machine * 1009 + day * 31 + k, noise_N=1.0)
     d["machine_id"] = machine_name(machine)
-    drv, truth = plant_of(machine, day, seed, wear, d["axes"]["X"]["driver"])
+    drv, truth = plant_of(machine, day, seed, wear, d["axes"]["X"]["driver"], bad_days)
     d["axes"]["X"]["driver"] = drv
     loaded = config_from_dict(d, f"<fleet {machine_name(machine)} day {day}>")
     run_job(loaded, duration_s=duration_s, clock="virtual", log_path=str(path))
@@ -111,7 +148,7 @@ def _one_log(args) -> str:
 
 def simulate_fleet(out_dir, machines: int = 3, days: int = 4, logs_per_day: int = 1,
                    wear: list[dict] | None = None, duration_s: float = 2.0, seed: int = 0,
-                   workers: int = 1, progress=None) -> dict:
+                   workers: int = 1, progress=None, bad_days: list[dict] | None = None) -> dict:
     """Write a simulated fleet's run logs: ``out_dir/<machine>/<machine>-d<day>-<k>.mclog``, and
     the truth as ``out_dir/fleet_truth.json``.
 
@@ -120,14 +157,19 @@ def simulate_fleet(out_dir, machines: int = 3, days: int = 4, logs_per_day: int 
         wear: [{"machine": "m01", "kind": "coulomb"|"cogging"|"encoder", "onset_day": d, and
             optionally the kind's rate or size of :data:`WEAR_KINDS`}] (None:
             :func:`default_wear`; [] none).
+        bad_days: [{"machine": "m04", "day": d, "parameter": one of :data:`BAD_DAY_PARAMETERS`,
+            "factor": f}]: that machine's plant parameter × f on day d only (None:
+            :func:`default_bad_days`; [] none).
         duration_s: program seconds per log (the approach comes on top). seed: the fleet's seed
             (each machine's spread and each log's noise derive from it). workers: processes.
         progress: called with (logs written, total) (None: silent).
     Returns:
-        {"logs": [paths], "wear": [...], "machines": [names], "days", "logs_per_day", "seed",
-        "start", "duration_s"} (also written to fleet_truth.json).
+        {"logs": [paths], "wear": [...], "bad_days": [...], "machines": [names], "days",
+        "logs_per_day", "seed", "start", "duration_s", "parameters"} (also written to
+        fleet_truth.json).
     Raises:
-        ValueError: a count below 1 or an unknown wear kind. OSError: a log cannot be written.
+        ValueError: a count below 1, an unknown wear kind or bad-day parameter. OSError: a log
+        cannot be written.
     """
     if min(machines, days, logs_per_day) < 1:
         raise ValueError("machines, days and logs_per_day must be at least 1")
@@ -135,6 +177,8 @@ def simulate_fleet(out_dir, machines: int = 3, days: int = 4, logs_per_day: int 
     for w in wear:
         if w["kind"] not in WEAR_KINDS:
             raise ValueError(f"unknown wear kind {w['kind']!r}; kinds: {', '.join(WEAR_KINDS)}")
+    bad_days = default_bad_days(machines, days) if bad_days is None else list(bad_days)
+    check_bad_days(bad_days)
     out = Path(out_dir)
     t0 = _dt.datetime.fromisoformat(START).replace(tzinfo=_dt.timezone.utc)
     jobs = []
@@ -144,7 +188,7 @@ def simulate_fleet(out_dir, machines: int = 3, days: int = 4, logs_per_day: int 
             for k in range(logs_per_day):
                 started = (t0 + _dt.timedelta(days=day, hours=8 + k)).isoformat(timespec="seconds")
                 path = out / machine_name(m) / f"{machine_name(m)}-d{day:03d}-{k}.mclog"
-                jobs.append((str(path), m, day, k, seed, wear, float(duration_s), started))
+                jobs.append((str(path), m, day, k, seed, wear, bad_days, float(duration_s), started))
     logs = []
     if workers <= 1:
         for j in jobs:
@@ -157,7 +201,7 @@ def simulate_fleet(out_dir, machines: int = 3, days: int = 4, logs_per_day: int 
                 logs.append(p)
                 if progress:
                     progress(len(logs), len(jobs))
-    truth = {"logs": logs, "wear": wear, "machines": [machine_name(m) for m in range(machines)],
+    truth = {"logs": logs, "wear": wear, "bad_days": bad_days, "machines": [machine_name(m) for m in range(machines)],
              "days": days, "logs_per_day": logs_per_day, "seed": seed, "start": START,
              "duration_s": float(duration_s),
              "parameters": {w["machine"]: WEAR_PARAMETER[w["kind"]] for w in wear}}
@@ -167,5 +211,5 @@ def simulate_fleet(out_dir, machines: int = 3, days: int = 4, logs_per_day: int 
     return truth
 
 
-__all__ = ["SPREAD", "START", "WEAR_KINDS", "WEAR_PARAMETER", "default_wear", "machine_name", "plant_of",
-           "simulate_fleet"]
+__all__ = ["BAD_DAY_PARAMETERS", "SPREAD", "START", "WEAR_KINDS", "WEAR_PARAMETER", "check_bad_days",
+           "default_bad_days", "default_wear", "machine_name", "plant_of", "simulate_fleet"]
