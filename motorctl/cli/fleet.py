@@ -66,12 +66,13 @@ def register(parser, subparsers) -> None:
     pr = sub.add_parser("report", help="trends, change points and outliers of a fleet dataset")
     pr.add_argument("dir", metavar="DIR", help="the --out of `motorctl fleet identify`")
     pr.add_argument("--out", default=None, metavar="REPORT_DIR", help="where summary.md, findings.json and "
-                                                                      "the PNGs go (default DIR/report)")
+                                                                      "the PNGs go (default DIR/_report)")
     pr.add_argument("--no-plots", action="store_true", help="no PNG per machine")
     pr.set_defaults(func=cmd_report)
     ps = sub.add_parser("simulate", help="write a simulated fleet's run logs with injected wear")
     ps.add_argument("out", metavar="OUT", help="folder for the logs and fleet_truth.json")
-    ps.add_argument("--machines", type=_positive_int, default=5, help="machines (default 5; the first three worn)")
+    ps.add_argument("--machines", type=_positive_int, default=5,
+                    help="machines (default 5; the first three worn, the next three one bad day each)")
     ps.add_argument("--days", type=_positive_int, default=10, help="days (default 10; wear from a third on)")
     ps.add_argument("--logs-per-day", type=_positive_int, default=1, help="logs per machine and day (default 1)")
     ps.add_argument("--duration", type=_positive_float, default=3.0,
@@ -110,9 +111,14 @@ def cmd_identify(args) -> int:
                   window_s=args.window_s, memory_limit=args.memory_limit, progress=_Progress())
     for url, msg in s["failed"]:
         sys.stderr.write(f"motorctl fleet: skipped {url}: {msg}\n")
+    for url, whole, n, n_whole in s["cut"]:
+        sys.stdout.write(f"cut log {url}: {n} of the {n_whole} records of the run in {whole}; not counted again\n")
+    for old, new, n, n_new in s["superseded"]:
+        sys.stdout.write(f"superseded {old} ({n} records): the same run, longer, in {new} ({n_new} records)\n")
+    c = s["compaction"]
     sys.stdout.write(f"{s['logs']} logs: {s['identified']} identified, {s['skipped']} skipped (already in "
-                     f"{args.out}), {len(s['failed'])} failed; {s['rows']} rows in {len(s['files'])} new "
-                     f"part files; {s['seconds']:.1f} s\n")
+                     f"{args.out}, or cut), {len(s['failed'])} failed; {s['rows']} rows; {c['files_after']} part "
+                     f"files ({c['partitions']} partitions compacted); {s['seconds']:.1f} s\n")
     return 1 if s["failed"] else 0
 
 
@@ -135,6 +141,9 @@ def cmd_simulate(args) -> int:
                        duration_s=args.duration, seed=args.seed, workers=args.workers)
     sys.stdout.write(f"{len(t['logs'])} logs in {args.out}; wear: "
                      + (", ".join(f"{w['machine']} {w['kind']} from day {w['onset_day']}" for w in t["wear"]) or "none")
+                     + "; bad days: "
+                     + (", ".join(f"{b['machine']} {b['parameter']} x{b['factor']:g} on day {b['day']}"
+                                  for b in t["bad_days"]) or "none")
                      + "\n")
     return 0
 

@@ -5,9 +5,12 @@ The job, for SOURCES (run logs or folders of them, local paths or fsspec URLs):
 1. :func:`collect_sources` lists the logs (a folder: every ``*.mclog`` and ``*.log`` file under
    it, recursively, in sorted order).
 2. One **scan** task per log (:func:`scan_log`): the file's SHA-256 (its content hash, read in
-   1 MiB blocks), its header (``machine_id``, ``started``, the axes) and its windows. A log
-   whose hash is already in the output folder (or seen earlier in the same run) is skipped
-   there: the job is idempotent.
+   1 MiB blocks), its header (``machine_id``, ``started``, the axes), its run (:func:`run_id`:
+   the header's machine, start and axes with the hash of its first records) and its windows.
+   A log whose hash is already in the output folder (or seen earlier in the same run) is
+   skipped: the job is idempotent. Of the logs of one run (a log cut mid-run, copied before
+   its end, beside the whole one) only the one with the most records counts: a cut copy of a
+   run already counted is skipped, and a longer log of a run supersedes the shorter one's rows.
 3. One **window** task per axis and window of each new log (:func:`identify_window`): the
    record of ``motorctl identify`` (:func:`motorctl.ident.data.load_record`), cut to the
    window, through the same pipeline (:func:`motorctl.ident.pipeline.identify_record`), verdict
@@ -16,10 +19,18 @@ The job, for SOURCES (run logs or folders of them, local paths or fsspec URLs):
    least ``window_s`` long, shorter than 2·window_s), so an hour-long log gives many points in
    time and many tasks.
 4. Results come back as they complete (``distributed.as_completed``); a log's rows are kept
-   until all its windows are done, then written together with the other finished logs' as one
-   Parquet file ``part-*.parquet`` (pyarrow; written to a temporary name and renamed, so a
-   reader never sees half a file) every :data:`FLUSH_ROWS` rows or :data:`FLUSH_S` seconds,
-   and at the end. A log is either wholly in the dataset or not at all.
+   until all its windows are done, then written together with the other finished logs' every
+   :data:`FLUSH_ROWS` rows or :data:`FLUSH_S` seconds, and at the end: one Parquet file per
+   partition, ``machine=<machine>/month=<YYYY-MM>/part-*.parquet`` (hive style; written to a
+   temporary name and renamed, so a reader never sees half a file). A log is either wholly in
+   the dataset or not at all.
+5. At the end the job compacts each partition that holds more than one file, or rows of a
+   superseded log, into one file (:func:`compact`).
+
+The dataset reads as ``pyarrow.dataset.dataset(DIR, partitioning="hive")`` (the report folder
+``_report`` and temporary files, named with a leading ``_`` or ``.``, are not part of it) or
+:func:`read_dataset`, which also leaves out a superseded log's rows (a crash between a write
+and the compaction leaves them on disk) and an exact repeat of a row.
 
 Failures: a log that cannot be read or identified (a damaged file, a fit refused by the
 pipeline: :class:`~motorctl.recorder.runlog.LogError`, :class:`~motorctl.inputs.InputError`,
@@ -42,6 +53,7 @@ import datetime as _dt
 import hashlib
 import math
 import os
+import secrets
 import tempfile
 import time
 from contextlib import contextmanager
@@ -64,6 +76,11 @@ FLUSH_S = 10.0
 RETRIES = 2
 #: URL schemes accepted for --scheduler
 SCHEDULER_SCHEMES = ("tcp", "tls")
+#: records hashed into a log's run (:func:`run_id`): a log cut within its first 256 cycles
+#: (50 ms at 5 kHz) has fewer and counts as a run of its own (too short to identify anyway)
+HEAD_RECORDS = 256
+#: the hive partitions of the dataset, each a string: the machine and the month (UTC) of the row's time
+PARTITIONS = ("machine", "month")
 
 
 # ---------------------------------------------------------------------------- the schema
@@ -86,8 +103,17 @@ def schema():
         ("verdict_structured", pa.bool_()), ("verdict", pa.string()),
         ("heldout_rms_nominal", pa.float64()), ("heldout_rms", pa.float64()),
         ("log_path", pa.string()), ("log_sha256", pa.string()),
+        ("run_id", pa.string()), ("log_records", pa.int64()),
     ]
     return pa.schema(fields)
+
+
+def partitioning():
+    """The dataset's hive partitioning (``machine=.../month=...``), both keys strings (a
+    machine named ``17`` stays the string "17")."""
+    import pyarrow as pa
+    import pyarrow.dataset as ds
+    return ds.partitioning(pa.schema([(k, pa.string()) for k in PARTITIONS]), flavor="hive")
 
 
 # ---------------------------------------------------------------------------- sources
@@ -184,18 +210,35 @@ def windows_of(header: dict, n_rows: int, window_s: float | None) -> list[tuple[
     return [(t0 + i * w, t0 + (i + 1) * w) for i in range(n)]
 
 
+def run_id(machine: str, started: str, axes: list, head: bytes) -> str:
+    """The identity of a run (SHA-256, hex): the header's machine, ``started`` (as written) and
+    axes, and the bytes of its first :data:`HEAD_RECORDS` records. Two logs with the same run
+    are one run at two lengths: records are only appended, so a log copied or cut mid-run has
+    the whole log's first records, while its header (rewritten at the end) and its content
+    hash differ."""
+    h = hashlib.sha256()
+    h.update(repr((str(machine), str(started), [str(a) for a in axes])).encode())
+    h.update(head)
+    return h.hexdigest()
+
+
 def scan_log(url: str, window_s: float | None = None) -> dict:
-    """Task: a log's content hash, machine, start time, axes and windows (:func:`windows_of`).
+    """Task: a log's content hash, machine, start time, axes, run (:func:`run_id`), whole
+    records and windows (:func:`windows_of`).
 
     Returns:
-        {"url", "sha256", "machine", "started" (ISO, UTC), "axes", "windows": [(t0, t1)]} or
-        {"url", "error"} when the file cannot be read or is not a run log.
+        {"url", "sha256", "machine", "started" (ISO, UTC), "axes", "run_id", "records",
+        "windows": [(t0, t1)]} or {"url", "error"} when the file cannot be read or is not a
+        run log.
     """
     from motorctl.recorder.runlog import LogError, open_log
     try:
         sha = content_hash(url)
         with local_copy(url) as path:
             lf = open_log(path)
+            with open(path, "rb") as fh:
+                fh.seek(lf.data_offset)
+                head = fh.read(8 * len(lf.columns) * min(lf.n_rows, HEAD_RECORDS))
     except (LogError, InputError, OSError) as exc:
         return {"url": url, "error": _one_line(exc, url)}
     h = lf.header
@@ -206,7 +249,8 @@ def scan_log(url: str, window_s: float | None = None) -> dict:
     if not lf.axes:
         return {"url": url, "error": f"{url}: the header lists no axes"}
     return {"url": url, "sha256": sha, "machine": str(machine), "started": started.isoformat(),
-            "axes": list(lf.axes), "windows": windows_of(h, lf.n_rows, window_s)}
+            "axes": list(lf.axes), "run_id": run_id(str(machine), h.get("started"), lf.axes, head),
+            "records": int(lf.n_rows), "windows": windows_of(h, lf.n_rows, window_s)}
 
 
 def _one_line(exc: BaseException, url: str) -> str:
@@ -232,7 +276,8 @@ def identify_window(url: str, sha256: str, machine: str, started: str, axis: str
     """Task: identify one axis and window of a log with ``motorctl identify``'s pipeline.
 
     Args:
-        url: the log. sha256: its content hash. machine, started (ISO): from its header.
+        url: the log. sha256: its content hash. machine, started (ISO): from its header
+            (the job adds the log's run and records to the row, :func:`scan_log`).
         axis: the axis. window: the window's index; t0, t1: its span [s of the log's time]
             (None: the whole record).
     Returns:
@@ -287,46 +332,127 @@ def identify_window(url: str, sha256: str, machine: str, started: str, axis: str
 
 # ---------------------------------------------------------------------------- the dataset
 def part_files(out_dir) -> list[Path]:
-    return sorted(Path(out_dir).glob("part-*.parquet"))
+    """The dataset's Parquet files: ``machine=*/month=*/part-*.parquet``, and the top-level
+    ``part-*.parquet`` of a dataset written before it was partitioned (moved into the
+    partitions by the next job's :func:`compact`)."""
+    d = Path(out_dir)
+    return sorted(d.glob("machine=*/month=*/part-*.parquet")) + sorted(d.glob("part-*.parquet"))
 
 
-def read_dataset(out_dir, columns=None):
+def partition_dir(out_dir, machine: str, time: _dt.datetime) -> Path:
+    """The folder of a row's partition: ``machine=<machine>/month=<YYYY-MM>`` (the machine
+    percent-encoded, as ``pyarrow.dataset``'s hive partitioning decodes it; the month of
+    ``time`` in UTC)."""
+    from urllib.parse import quote
+    month = time.astimezone(_dt.timezone.utc).strftime("%Y-%m")
+    return Path(out_dir) / f"machine={quote(str(machine), safe='')}" / f"month={month}"
+
+
+def _read_part(f: Path):
+    """One part file as a Table of :func:`schema`: ``machine`` from its partition's path, a
+    column a part written by an older version lacks as nulls. Raises InputError naming it."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    from urllib.parse import unquote
+    sc = schema()
+    try:
+        t = pq.read_table(f)
+        cols = {name: t.column(name) for name in t.column_names}
+        if f.parent.name.startswith("month="):
+            cols["machine"] = pa.array([unquote(f.parent.parent.name.split("=", 1)[1])] * t.num_rows, pa.string())
+        return pa.table([cols[n] if n in cols else pa.nulls(t.num_rows, sc.field(n).type) for n in sc.names],
+                        names=sc.names).cast(sc)
+    except (OSError, pa.ArrowException) as exc:
+        raise InputError(f"{f}: not a readable Parquet part of a fleet dataset "
+                         f"({' '.join(str(exc).split())[:200]})") from None
+
+
+def _best_logs(runs, records, hashes) -> set:
+    """The content hashes of the logs that count: of the logs of one run (``runs``, None: a
+    log of its own), the one with the most ``records`` (ties: the smallest hash)."""
+    best: dict = {}
+    for run, n, sha in zip(runs, records, hashes):
+        key = run if run is not None else ("log", sha)
+        cand = (-(n if n is not None else 0), sha)
+        if key not in best or cand < best[key]:
+            best[key] = cand
+    return {sha for _, sha in best.values()}
+
+
+def _counted(t, keep: set | None = None):
+    """The rows of Table ``t`` that count: those of the logs in ``keep`` (default: the
+    :func:`_best_logs` of ``t``), each (log, axis, window) once."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+    hashes = t.column("log_sha256").to_pylist()
+    if keep is None:
+        keep = _best_logs(t.column("run_id").to_pylist(), t.column("log_records").to_pylist(), hashes)
+    seen, mask = set(), []
+    for key in zip(hashes, t.column("axis").to_pylist(), t.column("window").to_pylist()):
+        mask.append(key[0] in keep and key not in seen)
+        seen.add(key)
+    del pc
+    return t if all(mask) else t.filter(pa.array(mask, pa.bool_()))
+
+
+def read_dataset(out_dir, counted: bool = True):
     """The dataset in ``out_dir`` as one pyarrow Table (:func:`schema`), or None when it holds
-    no part file.
+    no part file. ``counted``: only the rows that count (a log superseded by a longer log of
+    its run, or a row repeated, left out); else every row on disk.
 
     Raises:
         InputError: a part file that cannot be read (one line naming it).
     """
     import pyarrow as pa
-    import pyarrow.parquet as pq
     files = part_files(out_dir)
     if not files:
         return None
-    tables = []
-    for f in files:
-        try:
-            tables.append(pq.read_table(f, columns=columns, schema=schema()))
-        except (OSError, pa.ArrowException) as exc:
-            raise InputError(f"{f}: not a readable Parquet part of a fleet dataset ({exc})") from None
-    return pa.concat_tables(tables)
+    t = pa.concat_tables([_read_part(f) for f in files])
+    return _counted(t) if counted else t
+
+
+def known_logs(out_dir) -> dict:
+    """What the dataset in ``out_dir`` holds: {"hashes": content hashes of its logs, "runs":
+    {run_id: (records, log_path)} of the logs that count}."""
+    t = read_dataset(out_dir, counted=False)
+    if t is None:
+        return {"hashes": set(), "runs": {}}
+    cols = [t.column(c).to_pylist() for c in ("log_sha256", "run_id", "log_records", "log_path")]
+    keep = _best_logs(cols[1], cols[2], cols[0])
+    runs = {run: (n or 0, path) for sha, run, n, path in zip(*cols) if run is not None and sha in keep}
+    return {"hashes": set(cols[0]), "runs": runs}
 
 
 def done_hashes(out_dir) -> set:
     """Content hashes of the logs already in the dataset in ``out_dir``."""
-    t = read_dataset(out_dir, columns=["log_sha256"])
-    return set() if t is None else set(t.column("log_sha256").to_pylist())
+    return known_logs(out_dir)["hashes"]
+
+
+def _write_part(table, folder: Path, name: str) -> Path:
+    """Write ``table`` (:func:`schema`) as ``folder/name`` without its ``machine`` column:
+    under a temporary name, then renamed."""
+    import pyarrow.parquet as pq
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / name
+    tmp = folder / f".{name}.tmp"
+    pq.write_table(table.drop_columns(["machine"]), tmp)
+    os.replace(tmp, path)
+    return path
 
 
 class PartWriter:
     """Rows to Parquet part files in ``out_dir``: :meth:`add` gathers a finished log's rows,
-    :meth:`flush` writes them as one file (temporary name, then renamed)."""
+    :meth:`flush` writes them as one file per partition (:func:`partition_dir`; temporary name,
+    then renamed)."""
 
     def __init__(self, out_dir, flush_rows: int = FLUSH_ROWS, flush_s: float = FLUSH_S):
         self.dir = Path(out_dir)
         self.rows: list[dict] = []
         self.flush_rows, self.flush_s = int(flush_rows), float(flush_s)
         self.last = time.monotonic()
-        self.stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S") + f"-{os.getpid()}"
+        # unique among writers, also two in one process and second (a job's and its compaction's)
+        self.stamp = (_dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S")
+                      + f"-{os.getpid()}-{secrets.token_hex(3)}")
         self.n = 0
         self.written = 0
         self.files: list[str] = []
@@ -336,21 +462,73 @@ class PartWriter:
         if len(self.rows) >= self.flush_rows or time.monotonic() - self.last >= self.flush_s:
             self.flush()
 
+    def name(self) -> str:
+        self.n += 1
+        return f"part-{self.stamp}-{self.n - 1:05d}.parquet"
+
+    def write(self, table, folder: Path) -> None:
+        self.files.append(str(_write_part(table, folder, self.name())))
+
     def flush(self) -> None:
         import pyarrow as pa
-        import pyarrow.parquet as pq
         self.last = time.monotonic()
         if not self.rows:
             return
-        table = pa.Table.from_pylist(self.rows, schema=schema())
-        name = self.dir / f"part-{self.stamp}-{self.n:05d}.parquet"
-        tmp = self.dir / f".{name.name}.tmp"
-        pq.write_table(table, tmp)
-        os.replace(tmp, name)
-        self.n += 1
+        groups: dict = {}
+        for r in self.rows:
+            groups.setdefault(partition_dir(self.dir, r["machine"], r["time"]), []).append(r)
+        for folder, rows in sorted(groups.items()):
+            self.write(pa.Table.from_pylist(rows, schema=schema()), folder)
         self.written += len(self.rows)
-        self.files.append(str(name))
         self.rows = []
+
+
+def compact(out_dir, writer: PartWriter | None = None) -> dict:
+    """Compact the dataset in ``out_dir``: each partition holding more than one part file, or
+    rows that do not count (a superseded log, a repeated row: :func:`read_dataset`), is
+    rewritten as one file of its counted rows in time order (written, then the old files
+    removed: a crash in between leaves rows twice on disk, which :func:`read_dataset` counts
+    once). Parts from before the partitions: the whole dataset is rewritten into partitions.
+
+    Returns:
+        {"partitions": partitions written, "files_before", "files_after", "rows_dropped"}.
+    Raises:
+        InputError: a part file that cannot be read.
+    """
+    import pyarrow as pa
+    d = Path(out_dir)
+    writer = writer or PartWriter(d)
+    files = part_files(d)
+    tables = {f: _read_part(f) for f in files}
+    every = pa.concat_tables(tables.values()) if tables else None
+    keep = set() if every is None else _best_logs(every.column("run_id").to_pylist(),
+                                                  every.column("log_records").to_pylist(),
+                                                  every.column("log_sha256").to_pylist())
+    by_dir: dict = {}
+    for f in files:
+        by_dir.setdefault(f.parent, []).append(f)
+    legacy = d in by_dir
+    old = []
+    for folder, fs in by_dir.items():
+        n = sum(tables[f].num_rows for f in fs)
+        if legacy or len(fs) > 1 or _counted(pa.concat_tables([tables[f] for f in fs]), keep).num_rows < n:
+            old += fs
+    if not old:
+        return {"partitions": 0, "files_before": len(files), "files_after": len(files), "rows_dropped": 0}
+    rows = _counted(pa.concat_tables([tables[f] for f in old]), keep)
+    rows = rows.sort_by([("time", "ascending"), ("axis", "ascending"), ("window", "ascending")])
+    groups: dict = {}
+    for i, (m, t) in enumerate(zip(rows.column("machine").to_pylist(), rows.column("time").to_pylist())):
+        groups.setdefault(partition_dir(d, m, t), []).append(i)
+    n_before = len(writer.files)
+    for folder, idx in sorted(groups.items()):
+        writer.write(rows.take(pa.array(idx)), folder)
+    written = set(writer.files[n_before:])
+    for f in old:
+        if str(f) not in written:
+            f.unlink(missing_ok=True)
+    return {"partitions": len(groups), "files_before": len(files), "files_after": len(part_files(d)),
+            "rows_dropped": int(sum(tables[f].num_rows for f in old) - rows.num_rows)}
 
 
 # ---------------------------------------------------------------------------- the job
@@ -434,8 +612,11 @@ def run_fleet(sources, out_dir, scheduler: str | None = None, workers: int | Non
         task: the window task (default :func:`identify_window`; same signature).
         client: a ``distributed.Client`` to use instead of making one.
     Returns:
-        {"logs", "identified", "skipped", "failed": [(url, message)], "rows", "files",
-        "seconds"}.
+        {"logs", "identified", "skipped" (already in the dataset, or cut), "failed": [(url,
+        message)], "cut": [(url, the log of its run that counts, its records, that log's)],
+        "superseded": [(a log in the dataset, the longer log of its run now counted, records,
+        records)], "rows" (written), "files" (the part files written and still there after the
+        compaction), "compaction" (:func:`compact`), "seconds"}.
     Raises:
         InputError: a missing source, an output folder that cannot be written or holds an
         unreadable part, a bad or unreachable scheduler, a window_s that is not a positive
@@ -448,7 +629,7 @@ def run_fleet(sources, out_dir, scheduler: str | None = None, workers: int | Non
         check_scheduler(scheduler)
     urls = collect_sources(sources)
     out = writable_dir(out_dir, "fleet output")
-    known = done_hashes(out)
+    known = known_logs(out)
     if client is None:
         with fleet_client(scheduler, workers, processes, memory_limit) as c:
             return _run(c, urls, out, known, window_s, retries, progress, task or identify_window,
@@ -462,10 +643,7 @@ def _run(client, urls, out, known, window_s, retries, progress, task, flush_rows
     from distributed.client import FutureCancelledError
     t_start = time.monotonic()
     writer = PartWriter(out, flush_rows, flush_s)
-    stats = {"logs": len(urls), "identified": 0, "skipped": 0, "failed": []}
-    what: dict = {}                        # future key -> ("scan", url) | ("window", url)
-    pending: dict = {}                     # url -> {"left": n, "rows": [], "error": None}
-    seen = set(known)
+    stats = {"logs": len(urls), "identified": 0, "skipped": 0, "failed": [], "cut": [], "superseded": []}
 
     def tick():
         if progress:
@@ -479,41 +657,79 @@ def _run(client, urls, out, known, window_s, retries, progress, task, flush_rows
         stats["failed"].append((url, msg))
         tick()
 
-    ac = as_completed()
-    for url in urls:
-        f = client.submit(scan_log, url, window_s, retries=retries, pure=False)
-        what[f.key] = ("scan", url)
-        ac.add(f)
-    for fut in ac:
-        kind, url = what.pop(fut.key)
+    def outcome(fut, url):
         try:
             res = fut.result()
         except (Exception, FutureCancelledError) as exc:       # retries spent, or a killed worker
             res = {"url": url, "error": f"{url}: {type(exc).__name__}: {' '.join(str(exc).split())[:200]}"}
         fut.release()
-        if kind == "scan":
-            if "error" in res:
-                fail(url, res["error"])
-                continue
-            if res["sha256"] in seen:
-                stats["skipped"] += 1
-                tick()
-                continue
-            seen.add(res["sha256"])
-            jobs = [(ax, i, w0, w1) for ax in res["axes"] for i, (w0, w1) in enumerate(res["windows"])]
-            pending[url] = {"left": len(jobs), "rows": [], "error": None}
-            for ax, i, w0, w1 in jobs:
-                f = client.submit(task, url, res["sha256"], res["machine"], res["started"], ax, i, w0, w1,
-                                  retries=retries, pure=False)
-                what[f.key] = ("window", url)
-                ac.add(f)
+        return res
+
+    # every log scanned first: of the logs of one run, only the longest is identified
+    scans: dict = {}                       # url -> scan_log's result
+    ac = as_completed()
+    keyed = {}
+    for url in urls:
+        f = client.submit(scan_log, url, window_s, retries=retries, pure=False)
+        keyed[f.key] = url
+        ac.add(f)
+    for fut in ac:
+        url = keyed.pop(fut.key)
+        res = outcome(fut, url)
+        if "error" in res:
+            fail(url, res["error"])
+        else:
+            scans[url] = res
+    seen = set(known["hashes"])
+    best = {run: {"records": n, "url": path, "new": False} for run, (n, path) in known["runs"].items()}
+    for url in urls:
+        res = scans.get(url)
+        if res is None:
             continue
+        if res["sha256"] in seen:
+            stats["skipped"] += 1
+            del scans[url]
+            continue
+        seen.add(res["sha256"])
+        prev = best.get(res["run_id"])
+        if prev is not None and prev["records"] >= res["records"]:
+            stats["cut"].append((url, prev["url"], res["records"], prev["records"]))
+            stats["skipped"] += 1
+            del scans[url]
+            continue
+        if prev is not None:
+            if prev["new"]:
+                stats["cut"].append((prev["url"], url, prev["records"], res["records"]))
+                stats["skipped"] += 1
+                del scans[prev["url"]]
+            else:
+                stats["superseded"].append((prev["url"], url, prev["records"], res["records"]))
+        best[res["run_id"]] = {"records": res["records"], "url": url, "new": True}
+    tick()
+
+    ac = as_completed()
+    what: dict = {}                        # future key -> url
+    pending: dict = {}                     # url -> {"left": n, "rows": [], "error": None}
+    for url in urls:
+        res = scans.get(url)
+        if res is None:
+            continue
+        jobs = [(ax, i, w0, w1) for ax in res["axes"] for i, (w0, w1) in enumerate(res["windows"])]
+        pending[url] = {"left": len(jobs), "rows": [], "error": None}
+        for ax, i, w0, w1 in jobs:
+            f = client.submit(task, url, res["sha256"], res["machine"], res["started"], ax, i, w0, w1,
+                              retries=retries, pure=False)
+            what[f.key] = url
+            ac.add(f)
+    for fut in ac:
+        url = what.pop(fut.key)
+        res = outcome(fut, url)
         p = pending[url]
         p["left"] -= 1
         if "error" in res:
             p["error"] = p["error"] or res["error"]
         else:
-            p["rows"].append(res)
+            p["rows"].append(res | {"run_id": scans[url]["run_id"], "log_records": scans[url]["records"]})
         if p["left"] == 0:
             del pending[url]
             if p["error"]:
@@ -523,10 +739,14 @@ def _run(client, urls, out, known, window_s, retries, progress, task, flush_rows
                 stats["identified"] += 1
                 tick()
     writer.flush()
-    stats.update(rows=writer.written, files=writer.files, seconds=time.monotonic() - t_start)
+    written = writer.written
+    stats["compaction"] = compact(out, writer)
+    stats.update(rows=written, files=[f for f in writer.files if os.path.exists(f)],
+                 seconds=time.monotonic() - t_start)
     return stats
 
 
-__all__ = ["FLUSH_ROWS", "FLUSH_S", "LOG_SUFFIXES", "PARAMETERS", "PartWriter", "RETRIES", "Z95", "check_scheduler",
-           "collect_sources", "content_hash", "default_workers", "done_hashes", "fleet_client", "identify_window",
-           "local_copy", "part_files", "read_dataset", "run_fleet", "scan_log", "schema", "windows_of"]
+__all__ = ["FLUSH_ROWS", "FLUSH_S", "HEAD_RECORDS", "LOG_SUFFIXES", "PARAMETERS", "PARTITIONS", "PartWriter", "RETRIES",
+           "Z95", "check_scheduler", "collect_sources", "compact", "content_hash", "default_workers", "done_hashes",
+           "fleet_client", "identify_window", "known_logs", "local_copy", "part_files", "partition_dir",
+           "partitioning", "read_dataset", "run_fleet", "run_id", "scan_log", "schema", "windows_of"]
