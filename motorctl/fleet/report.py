@@ -14,19 +14,29 @@ what the identification can tell), with no interval of its own.
 over the fleet's machines and axes for that parameter, (c) :data:`REL_FLOOR` of the series'
 typical magnitude (the median |value| of its non-zero points).
 
-**Change points** (:func:`change_point`): two-segment weighted least squares (weights 1/v_i)
-over every split τ at the points' times leaving :data:`MIN_SEG` points on each side, two
-shapes: a **step** y = a + b·[t ≥ τ] (a cogging force that appears, a changed payload) and a
-**hinge** y = a + b·max(0, t − τ) (wear that grows from an onset: friction, an encoder's
-error). The shape and τ with the least weighted squared residual win; the change Δ is b (step)
-or b·(t_last − τ) (hinge, the growth so far), its standard error from (XᵀWX)⁻¹ with the
-v_i above (not rescaled), z = |Δ|/se. The scan over τ is a multiple test, hence the high
+**Change points** (:func:`change_point`): a two-segment fit over every split τ at the points'
+times leaving :data:`MIN_SEG` points on each side, two shapes: a **step** y = a + b·[t ≥ τ] (a
+cogging force that appears, a changed payload) and a **hinge** y = a + b·max(0, t − τ) (wear
+that grows from an onset: friction, an encoder's error). Each is fitted by Huber's M-estimator
+(P. J. Huber, "Robust estimation of a location parameter", Ann. Math. Statist. 35, 1964;
+iteratively reweighted least squares, weights h_i/v_i with h_i = min(1, c/|r_i/√v_i|),
+c = :data:`HUBER_C`), so that a bad day's points weigh as a few σ and do not drag a level as
+they drag a mean. The shape and τ with the least Huber loss Σρ(r_i/√v_i) win; the change Δ is b
+(step) or b·(t_last − τ) (hinge, the growth so far), its standard error from (XᵀWX)⁻¹ with the
+final weights (not rescaled), z = |Δ|/se. The scan over τ is a multiple test, hence the high
 :data:`Z_ALARM`.
 
+**Persistence** (:func:`days_held`): a point holds the new level when its interval (± Z95·√v_i:
+the fit's own widened by the series' noise) lies wholly beyond the level before the change, in
+the change's direction; a day holds it when the median of its points' margins does. One bad
+day holds it on one day only.
+
 **Alarm** (wear, not noise), all of: z ≥ :data:`Z_ALARM`; |Δ| ≥ :data:`K_FLEET` × the fleet's
-scatter of that parameter; |Δ| ≥ :data:`MIN_REL_CHANGE` of the series' typical magnitude; for
-an effect's amplitude, the effect named in at least :data:`MIN_SEG` windows and
-:data:`MIN_NAMED_SHARE` of those after τ (a one-off phantom effect is not wear).
+scatter of that parameter; |Δ| ≥ :data:`MIN_REL_CHANGE` of the series' typical magnitude; the new
+level held on at least :data:`MIN_DAYS_HELD` days after τ, the latest day among them (wear that
+stays, on a machine that is not back); for an effect's amplitude, the effect named in at least
+:data:`MIN_SEG` windows and :data:`MIN_NAMED_SHARE` of those after τ (a one-off phantom effect
+is not wear).
 
 **Trend**: the Theil–Sen slope (the median of the pairwise slopes; H. Theil 1950, P. K. Sen
 1968) with its 95 % confidence interval (``scipy.stats.theilslopes``), per day, over the whole
@@ -40,6 +50,7 @@ differs, reported beside the alarms, not one of them.
 
 from __future__ import annotations
 
+import datetime as _dt
 import json
 import math
 import re
@@ -63,6 +74,13 @@ MIN_REL_CHANGE = 0.02
 REL_FLOOR = 0.005
 #: an effect must be named in this share of the windows after τ
 MIN_NAMED_SHARE = 2.0 / 3.0
+#: the new level must be held on at least this many days after the change, the latest among them
+MIN_DAYS_HELD = 2
+#: Huber's constant [standard deviations]: 95 % efficiency at Gaussian noise (Huber 1964)
+HUBER_C = 1.345
+#: iterations of the reweighted fit at most, and the change in a weight below which it stops
+HUBER_ITER = 50
+HUBER_TOL = 1e-6
 #: robust z beyond which a machine is outside the fleet's spread, and the fewest machines for it
 Z_FLEET = 3.5
 MIN_FLEET = 5
@@ -88,17 +106,19 @@ def load_rows(out_dir) -> list[dict]:
         raise InputError(f"{out_dir}: no such folder (the --out of `motorctl fleet identify`)")
     t = read_dataset(d)
     if t is None or t.num_rows == 0:
-        raise InputError(f"{out_dir}: no fleet dataset here (part-*.parquet); run `motorctl fleet identify` first")
+        raise InputError(f"{out_dir}: no fleet dataset here (machine=*/month=*/part-*.parquet); run `motorctl fleet identify` first")
     return t.to_pylist()
 
 
 def series_of(rows: list[dict]) -> dict:
-    """{(machine, axis): {"t": days (n,), "time": datetimes, "logs": paths, "params":
-    {name: {"y": (n,), "sigma": (n,) (NaN: none), "named": (n,) bool or None}}}}, points in time
-    order; days count from the fleet's first window."""
+    """{(machine, axis): {"t": days (n,), "day": calendar days (n,) int, "time": datetimes,
+    "logs": paths, "params": {name: {"y": (n,), "sigma": (n,) (NaN: none), "named": (n,) bool
+    or None}}}}, points in time order; t counts days from the fleet's first window, day the
+    UTC calendar days from its date."""
     if not rows:
         return {}
     t0 = min(r["time"] for r in rows)
+    d0 = t0.astimezone(_dt.timezone.utc).date()
     effects = sorted({f"{e['name']}.{e['parameter']}" for r in rows for e in (r["effects"] or [])
                       if monitored_effect(e["parameter"])})
     groups: dict = {}
@@ -108,6 +128,7 @@ def series_of(rows: list[dict]) -> dict:
     for key, rs in sorted(groups.items()):
         rs.sort(key=lambda r: (r["time"], r["log_path"]))
         s = {"t": np.array([(r["time"] - t0).total_seconds() / DAY_S for r in rs]),
+             "day": np.array([(r["time"].astimezone(_dt.timezone.utc).date() - d0).days for r in rs], int),
              "time": [r["time"] for r in rs], "logs": [r["log_path"] for r in rs],
              "unit": rs[0]["force_unit"], "params": {}}
         for name, _ in PARAMETERS:
@@ -152,16 +173,15 @@ def fleet_scatter(series: dict) -> dict:
 
 
 # ---------------------------------------------------------------------------- the tests
-def _wls(X: np.ndarray, y: np.ndarray, w: np.ndarray):
-    A = X.T @ (w[:, None] * X)
-    cov = np.linalg.inv(A)
-    beta = cov @ (X.T @ (w * y))
-    r = y - X @ beta
-    return beta, cov, float(np.sum(w * r * r))
+def _huber_rho(u: np.ndarray) -> np.ndarray:
+    """Huber's loss of standardized residuals u: u²/2 within ±c, c·|u| − c²/2 beyond."""
+    a = np.abs(u)
+    return np.where(a <= HUBER_C, 0.5 * u * u, HUBER_C * a - 0.5 * HUBER_C * HUBER_C)
 
 
 def change_point(t: np.ndarray, y: np.ndarray, v: np.ndarray, min_seg: int = MIN_SEG) -> dict | None:
-    """The best two-segment model of a series (module docstring, "Change points").
+    """The best two-segment model of a series, fitted by Huber's M-estimator (module docstring,
+    "Change points"). Every split and shape is fitted at once (arrays of splits × points).
 
     Args:
         t: times [days] (n,), increasing. y: values (n,). v: each point's variance (n,) [y²].
@@ -169,33 +189,66 @@ def change_point(t: np.ndarray, y: np.ndarray, v: np.ndarray, min_seg: int = MIN
     Returns:
         {"shape": "step"|"hinge", "k": index of the first point after the change, "tau" [days],
         "delta" (the change, y's unit), "se", "z", "before" (the fitted value before),
-        "after" (the fitted value at the last point), "chi2"}, or None (too few points).
+        "after" (the fitted value at the last point), "loss" (Huber's), "downweighted"
+        (points with a Huber weight below 1/2)}, or None (too few points).
     """
+    t, y, v = (np.asarray(x, float) for x in (t, y, v))
     n = len(t)
     if n < 2 * min_seg:
         return None
-    w = 1.0 / v
-    best = None
-    one = np.ones(n)
-    for k in range(min_seg, n - min_seg + 1):
-        step = (np.arange(n) >= k).astype(float)
-        tau_h = t[k - 1]                       # the hinge starts at the last point before
-        hinge = np.maximum(0.0, t - tau_h)
-        for shape, z_col, tau in (("step", step, t[k]), ("hinge", hinge, tau_h)):
-            if shape == "hinge" and np.count_nonzero(hinge) < min_seg:
-                continue
-            X = np.column_stack([one, z_col])
-            try:
-                beta, cov, chi2 = _wls(X, y, w)
-            except np.linalg.LinAlgError:
-                continue
-            scale = 1.0 if shape == "step" else float(t[-1] - tau)
-            delta, se = beta[1] * scale, math.sqrt(max(cov[1, 1], 0.0)) * abs(scale)
-            if best is None or chi2 < best["chi2"] - 1e-12:
-                best = {"shape": shape, "k": k, "tau": float(tau), "delta": float(delta), "se": float(se),
-                        "z": float(abs(delta) / se) if se > 0 else math.inf, "before": float(beta[0]),
-                        "after": float(beta[0] + delta), "chi2": chi2}
-    return best
+    ks = np.arange(min_seg, n - min_seg + 1)
+    step = (np.arange(n)[None, :] >= ks[:, None]).astype(float)
+    tau_h = t[ks - 1]                          # the hinge starts at the last point before
+    hinge = np.maximum(0.0, t[None, :] - tau_h[:, None])
+    Z = np.concatenate([step, hinge])          # (2K, n): the second column of each fit's X
+    shapes = ["step"] * len(ks) + ["hinge"] * len(ks)
+    taus = np.concatenate([t[ks], tau_h])
+    valid = np.concatenate([np.ones(len(ks), bool), np.count_nonzero(hinge, axis=1) >= min_seg])
+    w0, sw = 1.0 / v, 1.0 / np.sqrt(v)
+    h = np.ones_like(Z)
+    for _ in range(HUBER_ITER):
+        w = w0[None, :] * h
+        wz = w * Z
+        s0, s1, s11 = w.sum(1), wz.sum(1), (wz * Z).sum(1)
+        sy, s1y = w @ y, wz @ y
+        det = s0 * s11 - s1 * s1
+        ok = valid & (det > 1e-12 * s0 * s11)
+        det = np.where(ok, det, 1.0)
+        a, b = (s11 * sy - s1 * s1y) / det, (s0 * s1y - s1 * sy) / det
+        u = (y[None, :] - a[:, None] - b[:, None] * Z) * sw[None, :]
+        h_new = np.minimum(1.0, HUBER_C / np.maximum(np.abs(u), 1e-300))
+        done = float(np.max(np.abs(h_new - h))) < HUBER_TOL
+        h = h_new
+        if done:
+            break
+    loss = np.where(ok, _huber_rho(u).sum(1), np.inf)
+    if not np.isfinite(loss).any():
+        return None
+    j = int(np.argmin(loss))
+    scale = 1.0 if shapes[j] == "step" else float(t[-1] - taus[j])
+    delta = float(b[j] * scale)
+    se = math.sqrt(max(float(s0[j] / det[j]), 0.0)) * abs(scale)
+    return {"shape": shapes[j], "k": int(ks[j % len(ks)]), "tau": float(taus[j]), "delta": delta, "se": se,
+            "z": abs(delta) / se if se > 0 else math.inf, "before": float(a[j]), "after": float(a[j]) + delta,
+            "loss": float(loss[j]), "downweighted": int(np.count_nonzero(h[j] < 0.5))}
+
+
+def days_held(day: np.ndarray, y: np.ndarray, v: np.ndarray, cp: dict) -> dict:
+    """Whether the change ``cp`` (:func:`change_point`) persists (module docstring,
+    "Persistence").
+
+    Args:
+        day: each point's calendar day (n,) int. y: values (n,). v: each point's variance (n,).
+        cp: the change.
+    Returns:
+        {"held": days after the change that hold the new level, "days": days after the change,
+        "latest": whether the latest day holds it}.
+    """
+    after = np.arange(len(y)) >= cp["k"]
+    margin = np.sign(cp["delta"]) * (y - cp["before"]) - Z95 * np.sqrt(v)
+    days = np.unique(day[after])
+    holds = [bool(np.median(margin[after & (day == d)]) > 0) for d in days]
+    return {"held": int(sum(holds)), "days": int(len(days)), "latest": bool(holds and holds[-1])}
 
 
 def theil_sen(t: np.ndarray, y: np.ndarray, confidence: float = TREND_CONFIDENCE) -> dict | None:
@@ -233,10 +286,11 @@ def analyse(rows: list[dict]) -> dict:
                 s_extra = 1e-12 * max(scale, 1.0)
             v = np.where(np.isfinite(sig), sig, 0.0) ** 2 + s_extra ** 2
             cp = change_point(t, y, v)
+            held = days_held(s["day"], y, v, cp) if cp is not None else None
             f = {"machine": machine, "axis": axis, "parameter": name, "unit": s["unit"], "n": int(len(y)),
                  "noise": s_extra, "fit_sigma": float(np.nanmedian(sig)) if np.isfinite(sig).any() else None,
                  "trend": theil_sen(t, y), "change": cp, "alarm": False, "why": "", "when": None, "logs": [],
-                 "trend_after": None}
+                 "trend_after": None, "held": held}
             if cp is not None:
                 reasons = []
                 if cp["z"] < Z_ALARM:
@@ -245,6 +299,9 @@ def analyse(rows: list[dict]) -> dict:
                     reasons.append(f"|change| below {K_FLEET:g}x the fleet's scatter")
                 if abs(cp["delta"]) < MIN_REL_CHANGE * scale:
                     reasons.append(f"|change| below {100 * MIN_REL_CHANGE:g} % of the value")
+                if held["held"] < MIN_DAYS_HELD or not held["latest"]:
+                    reasons.append(f"new level held on {held['held']} of {held['days']} days after the change "
+                                   f"({MIN_DAYS_HELD} needed, the latest among them)")
                 if p["named"] is not None:
                     after = p["named"][cp["k"]:]
                     if after.sum() < MIN_SEG or after.mean() < MIN_NAMED_SHARE:
@@ -299,9 +356,10 @@ def summary_markdown(res: dict, out_dir) -> str:
              f"{len(machines)} machines, {len(series)} machine axes, {n_rows} windows"
              + (f", {min(min(s['time']) for s in series.values()):%Y-%m-%d} to "
                 f"{max(max(s['time']) for s in series.values()):%Y-%m-%d}" if series else "") + ".",
-             "", f"Rules: a change is an alarm when z ≥ {Z_ALARM:g} against each fit's own interval and the "
-             f"series' noise, |change| ≥ {K_FLEET:g}× the fleet's scatter and ≥ {100 * MIN_REL_CHANGE:g} % of the "
-             "value (docs/fleet.md).", "", "## Alarms", ""]
+             "", f"Rules: a change (Huber's robust two-segment fit) is an alarm when z ≥ {Z_ALARM:g} against "
+             f"each fit's own interval and the series' noise, |change| ≥ {K_FLEET:g}× the fleet's scatter and "
+             f"≥ {100 * MIN_REL_CHANGE:g} % of the value, and the new level is held beyond the points' intervals "
+             f"on ≥ {MIN_DAYS_HELD} days, the latest among them (docs/fleet.md).", "", "## Alarms", ""]
     alarms = [f for f in findings if f["alarm"]]
     if not alarms:
         lines.append("None: no parameter of any machine changed beyond its noise and the fleet's spread.")
@@ -394,7 +452,8 @@ def plot_machine(res: dict, machine: str, path) -> None:
 
 def write_report(out_dir, report_dir=None, plots: bool = True) -> dict:
     """Analyse the dataset in ``out_dir`` and write ``summary.md``, ``findings.json`` and one
-    ``<machine>.png`` per machine to ``report_dir`` (default ``out_dir/report``).
+    ``<machine>.png`` per machine to ``report_dir`` (default ``out_dir/_report``: a leading ``_``,
+    so that ``pyarrow.dataset`` does not take it for part of the dataset).
 
     Returns:
         {"summary": path, "findings": path, "plots": [paths], "alarms": [the alarm findings]}.
@@ -403,7 +462,7 @@ def write_report(out_dir, report_dir=None, plots: bool = True) -> dict:
     """
     from motorctl.inputs import writable_dir
     rows = load_rows(out_dir)
-    rdir = writable_dir(report_dir if report_dir is not None else Path(out_dir) / "report", "fleet report")
+    rdir = writable_dir(report_dir if report_dir is not None else Path(out_dir) / "_report", "fleet report")
     res = analyse(rows)
     (rdir / "summary.md").write_text(summary_markdown(res, out_dir), encoding="utf-8")
     findings = res["findings"]
@@ -420,7 +479,8 @@ def write_report(out_dir, report_dir=None, plots: bool = True) -> dict:
             "alarms": [f for f in res["findings"] if f["alarm"]], "result": res}
 
 
-__all__ = ["K_FLEET", "MIN_FLEET", "MIN_NAMED_SHARE", "MIN_REL_CHANGE", "MIN_SEG", "REL_FLOOR", "TREND_CONFIDENCE",
-           "Z_ALARM", "Z_FLEET", "analyse", "change_point", "fleet_outliers", "fleet_scatter", "load_rows",
+__all__ = ["HUBER_C", "HUBER_ITER", "HUBER_TOL", "K_FLEET", "MIN_DAYS_HELD", "MIN_FLEET", "MIN_NAMED_SHARE",
+           "MIN_REL_CHANGE", "MIN_SEG", "REL_FLOOR", "TREND_CONFIDENCE", "Z_ALARM", "Z_FLEET", "analyse",
+           "change_point", "days_held", "fleet_outliers", "fleet_scatter", "load_rows",
            "monitored_effect", "own_scatter", "plot_machine", "series_of", "summary_markdown", "theil_sen",
            "typical", "write_report"]
