@@ -1,6 +1,8 @@
 """``motorctl fleet``: identification over a simulated fleet's run logs on Dask, the Parquet
-dataset, idempotence, a corrupt log skipped by name, a worker killed mid-run survived, the
-report's alarm on the worn machine only, and the CLI's exit codes (docs/fleet.md).
+dataset (hive partitions by machine and month, compacted), idempotence, a log cut mid-run not
+counted as a second run, a corrupt log skipped by name, a worker killed mid-run survived, the
+report's alarm on the worn machine only, robust to single bad days (on rows made here, no
+simulation), and the CLI's exit codes (docs/fleet.md).
 
 One small fleet for the whole file: 3 machines × 4 days × 1 log of 3 s, seeded, m02 with a
 cogging force from day 2 on (written by 2 local processes while the cluster starts); one
@@ -9,6 +11,7 @@ LocalCluster of 2 single-thread worker processes on 127.0.0.1.
 
 from __future__ import annotations
 
+import datetime as dt
 import os
 import shutil
 import signal
@@ -23,10 +26,13 @@ import pytest
 pytest.importorskip("distributed")
 pytest.importorskip("pyarrow")
 
+import numpy as np  # noqa: E402
+
 from motorctl.cli import main  # noqa: E402
 from motorctl.fleet import jobs  # noqa: E402
-from motorctl.fleet.report import write_report  # noqa: E402
-from motorctl.fleet.simulate import simulate_fleet  # noqa: E402
+from motorctl.fleet.report import analyse, change_point, write_report  # noqa: E402
+from motorctl.fleet.simulate import default_bad_days, plant_of, simulate_fleet  # noqa: E402
+from motorctl.recorder.runlog import open_log  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 WEAR = [{"machine": "m02", "kind": "cogging", "onset_day": 2}]
@@ -78,6 +84,13 @@ def test_every_log_is_a_row_with_its_intervals_effects_and_hash(fleet):
             assert r[f"{name}_lo"] < r[name] < r[f"{name}_hi"], (name, r["log_path"])
         assert 12.0 < r["mass_kg"] < 13.6          # the plant's 12.8 kg ± its spread
         assert isinstance(r["verdict"], str) and r["verdict"]
+    # hive partitions machine=/month=, one file each after the job's compaction
+    import pyarrow.dataset as ds
+    t = ds.dataset(fleet["out"], partitioning="hive").to_table()
+    assert t.num_rows == 12 and set(t.column("month").to_pylist()) == {"2026-10"}
+    assert sorted(set(t.column("machine").to_pylist())) == ["m01", "m02", "m03"]
+    assert sorted(p.parent.relative_to(fleet["out"]).as_posix() for p in jobs.part_files(fleet["out"])) == [
+        f"machine={m}/month=2026-10" for m in ("m01", "m02", "m03")]
     worn = sorted((r["time"], r["effects_named"]) for r in rows if r["machine"] == "m02")
     assert ["cogging" in e for _, e in worn] == [False, False, True, True]
     amp = [e["value"] for r in rows if r["machine"] == "m02" for e in r["effects"]
@@ -105,6 +118,28 @@ def test_a_corrupt_log_is_named_and_skipped_the_others_written(fleet, client, tm
     assert all(Path(u).name in msg for u, msg in s["failed"])
     rows = jobs.read_dataset(tmp_path / "out").to_pylist()
     assert [Path(r["log_path"]).name for r in rows] == ["good.mclog"]
+
+
+def test_a_log_cut_mid_run_is_one_run_with_the_whole_log_not_a_second(fleet, client, tmp_path):
+    whole = sorted(fleet["logs"].glob("m01/*.mclog"))[0]
+    data = whole.read_bytes()
+    n = open_log(str(whole)).n_rows
+    cut, cut2 = tmp_path / "a" / "cut.mclog", tmp_path / "b" / "cut-shorter.mclog"
+    for p, share in ((cut, 0.7), (cut2, 0.5)):
+        p.parent.mkdir()
+        p.write_bytes(data[: int(len(data) * share) + 5])           # mid-record: a partial record at the end
+    out = tmp_path / "out"
+    first = jobs.run_fleet([cut], out, client=client)            # the copy taken mid-run comes first
+    assert (first["identified"], first["cut"], first["failed"]) == (1, [], [])
+    (tmp_path / "c").mkdir()
+    shutil.copy(whole, tmp_path / "c" / "whole.mclog")
+    s = jobs.run_fleet([tmp_path / "c", cut2], out, client=client)
+    assert (s["identified"], s["skipped"], s["failed"]) == (1, 1, [])
+    assert [(Path(u).name, Path(w).name, m == n) for u, w, _, m in s["cut"]] == [("cut-shorter.mclog", "whole.mclog", True)]
+    assert [(Path(u).name, Path(w).name) for u, w, _, _ in s["superseded"]] == [("cut.mclog", "whole.mclog")]
+    rows = jobs.read_dataset(out).to_pylist()
+    assert [(Path(r["log_path"]).name, r["log_records"]) for r in rows] == [("whole.mclog", n)]
+    assert len(jobs.read_dataset(out, counted=False)) == 1 and len(jobs.part_files(out)) == 1   # compacted
 
 
 def _kill_once(marker, *args):
@@ -143,6 +178,64 @@ def test_the_report_flags_the_worn_machine_with_the_right_parameter_and_nothing_
     assert "m02-d002-0.mclog" in md and "cogging.amplitudes_N[0]" in md and "m01 X, m03 X" in md
     assert sorted(Path(p).name for p in r["plots"]) == ["m01.png", "m02.png", "m03.png"]
     assert all(Path(p).read_bytes()[:4] == b"\x89PNG" for p in r["plots"])
+
+
+def _rows(coulomb, days=12, per_day=2, seed=3):
+    """Dataset rows of identified fits without a simulation: {machine: day -> Coulomb factor}
+    over 20 N, each parameter with noise of 0.4 % + 0.01 and its interval."""
+    rng = np.random.default_rng(seed)
+    base = {"mass_kg": 12.8, "viscous_N_s_per_m": 40.0, "coulomb_N": 20.0, "offset_N": 0.1}
+    t0 = dt.datetime(2026, 10, 1, 8, tzinfo=dt.timezone.utc)
+    out = []
+    for m, factor in coulomb.items():
+        for d in range(days):
+            for k in range(per_day):
+                r = {"machine": m, "axis": "X", "time": t0 + dt.timedelta(days=d, hours=k), "force_unit": "N",
+                     "log_path": f"/{m}-d{d}-{k}.mclog", "effects": []}
+                for name, _ in jobs.PARAMETERS:
+                    sig = 0.004 * base[name] + 0.01
+                    val = base[name] * (factor(d) if name == "coulomb_N" else 1.0) + sig * rng.standard_normal()
+                    r[name], r[f"{name}_lo"], r[f"{name}_hi"] = val, val - 1.96 * sig, val + 1.96 * sig
+                out.append(r)
+    return out
+
+
+def test_single_bad_days_raise_no_alarm_while_wear_still_does():
+    coulomb = {"m01": lambda d: 1 + 0.02 * max(0, d - 6),          # wear: +2 %/day from day 6
+               "m02": lambda d: 1.25 if d == 5 else 1.0,            # a bad day, then back
+               "m03": lambda d: 1.25 if d == 9 else 1.0,            # a bad day two days before the end
+               "m04": lambda d: 1.25 if d == 11 else 1.0,           # a bad last day: held on one day only
+               "m05": lambda d: 1.0, "m06": lambda d: 1.0}
+    rows = _rows(coulomb)
+    for last in (8, 9, 10, 11):                                     # the report on the logs up to each day
+        res = analyse([r for r in rows if (r["time"] - rows[0]["time"]).days <= last])
+        alarms = {(f["machine"], f["parameter"]) for f in res["findings"] if f["alarm"]}
+        assert alarms <= {("m01", "coulomb_N")}, (last, alarms)
+    assert alarms == {("m01", "coulomb_N")}
+    by = {f["machine"]: f for f in res["findings"] if f["parameter"] == "coulomb_N"}
+    assert by["m01"]["change"]["shape"] == "hinge" and by["m01"]["held"]["latest"]
+    assert "held on 1 of 1 days" in by["m04"]["why"]
+
+
+def test_huber_change_point_is_not_dragged_by_one_bad_day():
+    t = np.repeat(np.arange(12.0), 2)
+    y = np.full(24, 20.0) + 0.05 * np.random.default_rng(1).standard_normal(24)
+    y[10:12] *= 1.25                                                # two readings of one day
+    cp = change_point(t, y, np.full(24, 0.05 ** 2))
+    assert abs(cp["delta"]) < 0.1 and cp["z"] < 6 and cp["downweighted"] >= 2
+    y[16:] += 2.0                                                   # a real step on day 8
+    cp = change_point(t, y, np.full(24, 0.05 ** 2))
+    assert (cp["shape"], cp["k"]) == ("step", 16) and abs(cp["delta"] - 2.0) < 0.1
+
+
+def test_a_bad_day_scales_its_parameter_on_that_day_only():
+    bad = default_bad_days(machines=8, days=20)
+    assert [(b["machine"], b["parameter"], b["day"]) for b in bad] == [
+        ("m04", "coulomb_N", 10), ("m05", "viscous_N_s_per_m", 13), ("m06", "mass_kg", 16)]
+    base = {"mass_kg": 12.8, "viscous_N_s_per_m": 40.0, "coulomb_N": 20.0, "offset_N": 0.0}
+    (on, truth), (after, _) = (plant_of(3, d, 1, [], base, bad) for d in (10, 11))
+    assert on["coulomb_N"] == pytest.approx(1.25 * after["coulomb_N"]) and on["mass_kg"] == after["mass_kg"]
+    assert truth["bad_day"] == [{"parameter": "coulomb_N", "factor": 1.25}]
 
 
 def _cli(*words):
