@@ -5,13 +5,14 @@ sim driver is in tests/test_emulator_e2e.py (500 Hz: classic CAN 1 Mbit/s, SYNC 
 475 us + the loopback round trip 445 us). Here:
 
 * an EMCY injected into X mid-move latches an amplifier fault that names its code (the run
-  report's log header), the drive goes through Fault reaction active into Fault and is reset by a
-  rising edge of controlword bit 7 once the axis is disabled; Y keeps running; the statusword
+  report's log header), the drive goes through Fault reaction active into Fault and stays there (the
+  host sends no reset of its own); Y keeps running; the statusword
   sequence of the enable is Switch on disabled → Ready to switch on → Switched on → Operation
   enabled, each step asked for by the controlword and confirmed by the statusword;
 * SIGKILL of ``motorctl run`` stops the torque on the drive side: its heartbeat consumer (0x1016,
   set from ``heartbeat_consumer_ms``) expires and the abort connection option (0x6007 = 1, fault)
-  sets the torque to 0.
+  sets the torque to 0; the drives stay in Fault across the next ``motorctl run`` (refused, naming
+  their state and the command) until ``motorctl fault-reset --config CONFIG X Y``.
 """
 
 from __future__ import annotations
@@ -138,26 +139,27 @@ def test_sigkill_of_the_host_stops_the_torque_through_the_drives_heartbeat_consu
                 run.wait(timeout=10)
         assert wait_for(lambda: emu.stderr().count("heartbeat consumer") >= 2, 5.0), emu.stderr()
         err = emu.stderr()
-        # the next runs start from what the killed one left: both drives in Fault (EMCY 0x8130), the
-        # carriages where they coasted to. Where that is depends on the motion the kill cut (the
-        # drives hold the last torque for the consumer time): inside the stroke, `run` approaches
-        # and runs; outside it (the emulated plant has no end stops), `run` refuses with the
-        # position and drives nothing. Either way the drives' faults are cleared at set-up and no
-        # amplifier fault is among the reasons
-        for k in range(2):
-            r = run_cli(["run", str(cfg), "--duration", "0.3"], prefix=ns.prefix, timeout_s=60)
-            if "outside its soft limits" in r.stderr:
-                assert r.returncode == 1 and "nothing was driven" in r.stderr, r.stdout + r.stderr
-                assert "amplifier fault" not in r.stderr, r.stderr
-            else:
-                table = parse_run_table(r.stdout)
-                assert set(table) == {"X", "Y"}, r.stdout + r.stderr
-                assert not any("amplifier fault" in table[a]["fault"] for a in "XY"), r.stdout + r.stderr
-                assert "X, Y at 0 V, amplifiers off (confirmed by the device" in r.stdout, r.stdout
-            cleared = [ln for ln in r.stderr.splitlines() if "cleared the Fault it was in at set-up" in ln]
-            assert len(cleared) == (2 if k == 0 else 0), r.stderr      # only the first found them in Fault
-            if k == 0:
-                assert all("0x8130" in ln for ln in cleared), cleared
+        # the next run starts from what the killed one left: both drives in Fault (EMCY 0x8130). The
+        # set-up leaves them there (before, it wrote controlword 0x0080 and "cleared the Fault it
+        # was in at set-up"): the run is refused in one line naming each drive's state, statusword,
+        # error code and the command that resets it; nothing was driven
+        r = run_cli(["run", str(cfg), "--duration", "0.3"], prefix=ns.prefix, timeout_s=60)
+        assert r.returncode == 1 and "the run is refused: axis X's drive is in its fault (canopen node 1 (axis X) " \
+            "is in Fault (statusword 0x" in r.stderr, r.stdout + r.stderr
+        refusal = [ln for ln in r.stderr.splitlines() if "the run is refused" in ln][0]
+        assert refusal.count("error code 0x603F = 0x8130 life guard error or heartbeat error") == 2, refusal
+        assert f"'motorctl fault-reset --config {cfg} Y' (no daemon running)" in refusal, refusal
+        assert "cleared" not in r.stderr and "0x0080" not in emu.stderr(), r.stderr
+        # the operator's reset with no daemon: CiA 402 transition 15 in the RPDOs, both drives out of Fault
+        r = run_cli(["fault-reset", "--config", str(cfg), "X", "Y"], prefix=ns.prefix, timeout_s=60)
+        assert r.returncode == 0, r.stdout + r.stderr
+        for node, a in ((1, "X"), (2, "Y")):
+            assert re.search(rf"^{a}: the drive's fault is reset: was canopen node {node} \(axis {a}\) is in Fault "
+                             rf"\(statusword 0x[0-9A-F]{{4}}\); error code 0x603F = 0x8130 .*; now canopen node "
+                             rf"{node} \(axis {a}\) is in Switch on disabled", r.stdout, re.M), r.stdout
+            assert re.search(rf"^{a}: Fault -> Switch on disabled \(controlword 0x0080", emu.stderr(), re.M)
+        assert "X, Y at 0 V, amplifiers off (confirmed by the device" in r.stdout, r.stdout
+        print(f"after the kill: {refusal}\n{r.stdout}")
         out = emu.stop()
     trips = re.findall(rf"^heartbeat consumer (\w): no heartbeat from node 127 for {KILL_CONSUMER_S * 1e3:g} ms "
                        r"\(last at t=([\d.]+), now t=([\d.]+)\): abort connection option 1 \(fault signal\): "
