@@ -12,8 +12,11 @@ each with the gains ``motorctl autotune`` writes for it.
    the config's own gains.
 1. The ISO 230-4 circle, R 50 mm at 50 and 100 mm/s, by the user's command:
    ``motorctl circle-test CONFIG --controller c2 --controller gtcf --feed 0.05 --feed 0.1 --json
-   --log DIR/circle.log`` (a subprocess, bounded by a timeout). From its JSON: G (worse of cw/ccw)
-   and G(b). From each run log, independently of motorctl's evaluation: the test circles' rows
+   --log DIR/circle.log`` (a subprocess, bounded by a timeout). From each run log's header
+   (``circle.figures_m``), per instrument: G (worse of cw/ccw), G(b) and, for the simulated
+   ballbar (the plant's true carriage positions, which the simulated driver reads beside its
+   encoders: no encoder floor), the largest contour error. From each run log's encoder rows,
+   independently of motorctl's evaluation: the test circles' rows
    (the header's ``circle.rows``), an algebraic least-squares circle fit (Kåsa) of the measured
    X.y, Y.y per direction, and the largest |r − R_fit| (the largest contour error about the
    fitted circle); the saturated samples (|u| ≥ u_lim − 1 mV, either axis) in the test circles'
@@ -38,7 +41,12 @@ each with the gains ``motorctl autotune`` writes for it.
    saturated samples, and whether autotune found the margins holding for it.
 4. ``--seeds``: the circles again with the simulated driver's seed set to each listed value (the
    encoder's and the force noise's realisation; the same gains, no new autotune), per seed the
-   ratios of 1. and their median. The largest figures are the axes' reversals, where the plant's
+   ratios of 1. and their median, by the encoders and by the ballbar, and the verdict: on how
+   many draws and feeds GTCF's G and G(b) by the ballbar are ≥ 30 % below C2's; on a draw where
+   they are not, C2's and GTCF's G against the 0.70 × C2 it needed and, as what bounds it, the
+   part of GTCF's G(b) the reversals leave out (the test circles' radial spread away from the
+   axes' reversals, ±10° about 0°, 90°, 180°, 270°, by the ballbar: the loop's own scatter, which
+   a contour gain does not take out). The largest figures are the axes' reversals, where the plant's
    stiction (1.25 × its Coulomb friction) holds an axis until the loop has built the breakaway
    force; whether that stick-slip happens at a given reversal comes and goes with the noise,
    for C2 more than for GTCF, so one seed's ratio is one draw.
@@ -135,6 +143,8 @@ def circles(config: str, out: Path, timeout_s: float, laws=LAWS) -> list[dict]:
     rows = []
     for r in json.loads(res.stdout):
         log = read_log(r["log"])
+        figs = log.header["circle"]["figures_m"]
+        enc, bb = figs["encoder"], figs["ballbar"]
         xs, ys = log.col("X.y"), log.col("Y.y")
         worst = 0.0
         mask = np.zeros(len(xs), bool)
@@ -145,7 +155,9 @@ def circles(config: str, out: Path, timeout_s: float, laws=LAWS) -> list[dict]:
             worst = max(worst, float(np.max(np.abs(np.hypot(x - cx, y - cy) - R))))
         sat, umax, sat_all = saturation(log, mask)
         rows.append({"path": f"circle R50 {r['feed_m_s'] * 1e3:.0f} mm/s", "law": r["controller"],
-                     "G": max(r["G_cw_um"], r["G_ccw_um"]), "Gb": r["G_b_um"], "emax": worst * 1e6,
+                     "G": max(enc["G_cw"], enc["G_ccw"]) * 1e6, "Gb": enc["G_b"] * 1e6, "emax": worst * 1e6,
+                     "bb": None if bb is None else {"G": max(bb["G_cw"], bb["G_ccw"]) * 1e6, "Gb": bb["G_b"] * 1e6,
+                                                    "emax": bb["e_max"] * 1e6},
                      "sat": sat, "umax": umax, "sat_all": sat_all, "share": sat_all / len(xs),
                      "rest": rest_noise(log), "rest_axes": rest_by_axis(log), "fault": "-", "log": r["log"]})
     return rows
@@ -186,6 +198,36 @@ def encoder_floor(config: str, log_path: str, seeds=range(1, 11)) -> list[float]
             r = np.hypot(m[0] - cx, m[1] - cy)
             g = max(g, float(r.max() - r.min()) * 1e6)
         out.append(g)
+    return out
+
+
+#: the band about each axis's reversal on the test circle (0°, 90°, 180°, 270°: where X's or Y's
+#: velocity changes sign) that :func:`reversal_split` sets apart [rad]
+REVERSAL_BAND = math.radians(10.0)
+
+
+def reversal_split(config: str, feed: float, law: str) -> dict:
+    """Where the simulated ballbar's G(b) of one circle test is made (R 50 mm at ``feed`` [m/s]
+    with ``law``, run in this process by :func:`motorctl.app.circle_test.run_circle_test`, the
+    command's own runner): the radial deviations [um] of both test circles about their
+    bidirectional least-squares circle, as (largest, smallest) in three regions: "X" within
+    :data:`REVERSAL_BAND` of X's reversals (0°, 180°: X's velocity changes sign, the normal is
+    X), "Y" of Y's (90°, 270°), "off" the rest (the loop's own scatter, which a contour gain at
+    the reversals does not take out); and "all", G(b) [um]."""
+    from motorctl.app.circle_test import run_circle_test
+    from motorctl.config import load_config
+    from motorctl.motion.circle import radial
+    run = run_circle_test(load_config(config), 0.05, feed, law)
+    bb = run.readings["ballbar"]
+    xc, yc = bb.result.center_lsc
+    ang, rad = [np.concatenate(v) for v in zip(*(radial(*bb.paths[d], (xc, yc)) for d in ("cw", "ccw")))]
+    dev = (rad - bb.result.radius_lsc) * 1e6
+    qx = np.abs((ang + np.pi / 2) % np.pi - np.pi / 2)           # the angle to X's nearest reversal
+    qy = np.abs(ang % np.pi - np.pi / 2)                         # ... to Y's
+    out = {"all": bb.result.G_b * 1e6}
+    for name, m in (("X", qx <= REVERSAL_BAND), ("Y", qy <= REVERSAL_BAND),
+                    ("off", (qx > REVERSAL_BAND) & (qy > REVERSAL_BAND))):
+        out[name] = (float(dev[m].max()), float(dev[m].min()))
     return out
 
 
@@ -347,10 +389,10 @@ def main(argv=None) -> int:
     if not args.skip_cut:
         rows += cut_path(config, out)
     print(f"GTCF against per-axis C2 ({config}, simulated, virtual clock; logs in {out})\n")
-    print("| path | law | G um | G(b) um | largest contour error um (from the log) | saturated samples: "
-          "measured rows / whole run (share of the run) | max abs u V, measured rows | u RMS at rest mV "
-          "(worse axis) | fault |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| path | law | G um | G(b) um | largest contour error um (from the log) | ballbar: G / G(b) / largest "
+          "contour error um | saturated samples: measured rows / whole run (share of the run) | max abs u V, "
+          "measured rows | u RMS at rest mV (worse axis) | fault |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     base = {}
     for r in rows:
         if r["law"] == "c2":
@@ -364,7 +406,13 @@ def main(argv=None) -> int:
         g = "–" if not np.isfinite(r["G"]) else f"{r['G']:.2f}{rel('G')}"
         gb = "–" if not np.isfinite(r["Gb"]) else f"{r['Gb']:.2f}{rel('Gb')}"
         rest = "–" if not np.isfinite(r["rest"]) else f"{r['rest'] * 1e3:.0f}"
-        print(f"| {r['path']} | {r['law']} | {g} | {gb} | {r['emax']:.2f}{rel('emax')} | {r['sat']} / "
+        bb, bb0 = r.get("bb"), base.get(r["path"], {}).get("bb")
+        if bb is None:
+            bbs = "–"
+        else:
+            bbs = " / ".join(f"{bb[k]:.2f}" + ("" if r["law"] == "c2" or not bb0 else f" (x{bb[k] / bb0[k]:.2f})")
+                             for k in ("G", "Gb", "emax"))
+        print(f"| {r['path']} | {r['law']} | {g} | {gb} | {r['emax']:.2f}{rel('emax')} | {bbs} | {r['sat']} / "
               f"{r['sat_all']} ({r['share'] * 100:.3f} %) | {r['umax']:.2f} | {rest} | {r['fault']} |")
     floors = {r["path"]: encoder_floor(config, r["log"]) for r in rows if r["law"] == "c2" and "log" in r}
     print("\nThe encoder's floor: G of each test circle's setpoints as the simulated encoders read them (no "
@@ -373,7 +421,7 @@ def main(argv=None) -> int:
     if sweep:
         print_sweep(config, out, rows, sweep, got, args)
     if seeds:
-        print_seeds(config, out, seeds, args.timeout)
+        print_seeds(config, out, seeds, args.timeout, rows)
     if args.grid:
         print_grid(config, out, seeds, args.timeout)
     return 0
@@ -395,9 +443,10 @@ def changed_plant(config: str, out: Path, plant: list) -> str:
     return str(cfg)
 
 
-def print_seeds(config: str, out: Path, seeds: list, timeout_s: float) -> None:
+def print_seeds(config: str, out: Path, seeds: list, timeout_s: float, rows: list | None = None) -> None:
     """The circles (:func:`circles`) on copies of ``config`` whose ``driver.seed`` is each of
-    ``seeds`` (the simulated encoder's and force noise's realisation; gains as ``config``'s), a
+    ``seeds`` (the simulated encoder's and force noise's realisation; gains as ``config``'s), and
+    ``rows``, :func:`circles`'s of ``config`` itself, as the draw of its own seed (first), a
     Markdown table of G, G(b) and the largest contour error of C2 and GTCF per seed and feed with
     the ratio GTCF / C2, and the median ratio per feed. A reversal's stick-slip (the plant's
     stiction above its Coulomb friction) comes and goes with the noise: one seed's ratio is one
@@ -406,33 +455,62 @@ def print_seeds(config: str, out: Path, seeds: list, timeout_s: float) -> None:
 
     import yaml
     raw = yaml.safe_load(Path(config).read_text())
+    own = int(raw["driver"].get("seed", 0))
+    draws = list(dict.fromkeys(([own] if rows is not None else []) + list(seeds)))
     ratios: dict = {}
-    print("\nThe circles on other noise realisations (driver.seed), the same gains:\n")
-    print("| seed | circle | C2: G / G(b) / largest contour error um | GTCF: G / G(b) / largest contour error um "
-          "| ratio G / G(b) / largest |")
-    print("|---|---|---|---|---|")
-    for seed in seeds:
-        d = out / f"seed{seed}"
-        d.mkdir(parents=True, exist_ok=True)
-        cfg = d / Path(config).name
-        raw["driver"]["seed"] = seed
-        cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
-        rows = circles(str(cfg), d, timeout_s)
-        by = {(r["path"], r["law"]): r for r in rows}
-        for path in dict.fromkeys(r["path"] for r in rows):
+    verdict: list = []
+    print("\nThe circles on other noise realisations (driver.seed), the same gains; each by the encoders "
+          "and by the simulated ballbar (the carriages' true positions):\n")
+    print("| seed | circle | instrument | C2: G / G(b) / largest contour error um | GTCF: G / G(b) / largest contour "
+          "error um | ratio G / G(b) / largest |")
+    print("|---|---|---|---|---|---|")
+    for seed in draws:
+        if seed == own and rows is not None:
+            got = [r for r in rows if r["path"].startswith("circle")]
+        else:
+            d = out / f"seed{seed}"
+            d.mkdir(parents=True, exist_ok=True)
+            cfg = d / Path(config).name
+            raw["driver"]["seed"] = seed
+            cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
+            got = circles(str(cfg), d, timeout_s)
+        by = {(r["path"], r["law"]): r for r in got}
+        for path in dict.fromkeys(r["path"] for r in got):
             c, g = by.get((path, "c2")), by.get((path, "gtcf"))
             if c is None or g is None:
                 continue
-            q = [g[k] / c[k] for k in ("G", "Gb", "emax")]
-            ratios.setdefault(path, []).append(q)
-            print(f"| {seed} | {path} | {c['G']:.2f} / {c['Gb']:.2f} / {c['emax']:.2f} | {g['G']:.2f} / "
-                  f"{g['Gb']:.2f} / {g['emax']:.2f} | x{q[0]:.2f} / x{q[1]:.2f} / x{q[2]:.2f} |")
-    for path, qs in ratios.items():
+            for inst, cc, gg in (("encoder", c, g), ("ballbar", c.get("bb"), g.get("bb"))):
+                if cc is None or gg is None:
+                    print(f"| {seed} | {path} | {inst} | – | – | – |")
+                    continue
+                q = [gg[k] / cc[k] for k in ("G", "Gb", "emax")]
+                ratios.setdefault((path, inst), []).append(q)
+                if inst == "ballbar":
+                    verdict.append((seed, path, cc, gg, q))
+                print(f"| {seed} | {path} | {inst} | {cc['G']:.2f} / {cc['Gb']:.2f} / {cc['emax']:.2f} | {gg['G']:.2f} "
+                      f"/ {gg['Gb']:.2f} / {gg['emax']:.2f} | x{q[0]:.2f} / x{q[1]:.2f} / x{q[2]:.2f} |")
+    for (path, inst), qs in ratios.items():
         med = [statistics.median(q[i] for q in qs) for i in range(3)]
         worst = [max(q[i] for q in qs) for i in range(3)]
-        print(f"\n{path}: median ratio over {len(qs)} seeds G x{med[0]:.2f}, G(b) x{med[1]:.2f}, largest x{med[2]:.2f}; "
-              f"the worst seed's x{worst[0]:.2f} / x{worst[1]:.2f} / x{worst[2]:.2f}", end="")
+        print(f"\n{path}, by the {inst}: median ratio over {len(qs)} seeds G x{med[0]:.2f}, G(b) x{med[1]:.2f}, "
+              f"largest x{med[2]:.2f}; the worst seed's x{worst[0]:.2f} / x{worst[1]:.2f} / x{worst[2]:.2f}", end="")
     print()
+    if verdict:
+        held = [v for v in verdict if v[4][0] <= 0.70 and v[4][1] <= 0.70]
+        print(f"\nBy the ballbar, GTCF's G and G(b) >= 30 % below per-axis C2's on {len(held)} of {len(verdict)} "
+              "draws (seed x feed)" + ("." if len(held) == len(verdict) else "; not on:"))
+        for seed, path, cc, gg, q in verdict:
+            if not (q[0] <= 0.70 and q[1] <= 0.70):
+                print(f"  seed {seed}, {path}: G {gg['G']:.2f} against {0.7 * cc['G']:.2f} (C2 {cc['G']:.2f}), "
+                      f"G(b) {gg['Gb']:.2f} against {0.7 * cc['Gb']:.2f} (C2 {cc['Gb']:.2f})")
+                cfg = out / f"seed{seed}" / Path(config).name if seed != own else Path(config)
+                feed = float(path.split()[-2]) * 1e-3
+                sp = {law: reversal_split(str(cfg), feed, law) for law in LAWS}
+                print(f"    where G(b) is made (the ballbar's radial deviation about the least-squares circle, "
+                      f"largest / smallest um, within {math.degrees(REVERSAL_BAND):g} deg of X's reversals, of Y's, "
+                      "elsewhere): " + "; ".join(f"{law} " + ", ".join(f"{k} {v[k][0]:+.2f} / {v[k][1]:+.2f}"
+                                                                        for k in ("X", "Y", "off"))
+                                                   for law, v in sp.items()))
 
 
 GRID = {"X": [{"gain_n": g, "lambda_n": lam} for g in (1.5, 2.0, 2.5, 3.0) for lam in (1.0, 1.5, 2.0)],
