@@ -12,8 +12,8 @@ test circle (the rows whose setpoint belongs to its G-code line) is evaluated by
 circular hysteresis H, radial deviation F about the nominal centre; and the largest contour
 error, the largest radial distance of either test circle from its own least-squares circle.
 
-Two instruments read the test circles (ISO 230-4, 6.1: the test measures the tool's path with an
-instrument apart from the machine's own feedback):
+Two instruments read the test circles (ISO 230-4 measures the path with an instrument apart from
+the machine's own feedback, a ballbar):
 
 - ``encoder``: the axes' own encoders (the log's ``AXIS.y``, what the loop controls on). Their
   steps, noise and interpolation error are in every figure: on the simulated gantry (0.5 µm
