@@ -636,38 +636,22 @@ class ModbusDriver(SplitPhaseDriver):
             self._first_reading(self.CONFIGURE_TIMEOUT_S)
             if self.options.fc23 == "auto":   # its write (0 V, disabled) arms the device's watchdog
                 self._probe_fc23()
-            self._clear_latched()
+            self._found_latched()
         except BaseException:
             self._close()
             raise
 
-    def _clear_latched(self) -> None:
-        """A fault the device reports at set-up (the ``fault`` bit, e.g. latched by its own
-        communication watchdog after an earlier host stopped) is reset where the map has a
-        ``fault_reset`` bit: one cycle with every axis disabled and the reset bit set, one with
-        it clear, then the position and fault are read again. What was cleared goes to
-        :attr:`notices`; a fault still reported stays in :attr:`amp_fault` (the first cycle
-        faults the axis, with :meth:`fault_reason`).
-
-        Raises:
-            ConnectionError: the device does not answer the reset cycles.
-        """
-        before = [bool(f) for f in self.amp_fault]
-        resettable = [i for i, f in enumerate(before) if f and self._ax[i].fault_reset is not None]
-        if not resettable:
-            return
-        n = len(self.axis_names)
-        for _ in range(2):                     # the reset bit set, then clear (a rising edge)
-            self._reset_count[:] = [0] * n
-            self.write(np.zeros(n), np.zeros(n, dtype=bool))
-            if not self.exchange_blocking(self.CONFIGURE_TIMEOUT_S):
-                raise ConnectionError(f"modbus: no answer to the fault reset within {self.CONFIGURE_TIMEOUT_S:g} s")
-            self.amp_fault[:] = False          # the next write sends the reset bit clear
-        self._query_once(self.CONFIGURE_TIMEOUT_S)
-        cleared = [self.axis_names[i] for i in resettable if not self._fault_raw[i]]
-        if cleared:
-            self._notice(f"modbus: cleared the fault the device reported on {', '.join(cleared)} at set-up "
-                         f"(a pulse of fault_reset with the amplifier disabled)")
+    def _found_latched(self) -> None:
+        """A fault the device reports at set-up (the ``fault`` bit, e.g. an earlier run's fault
+        or its own communication watchdog when an earlier host stopped) stays: the host never
+        pulses ``fault_reset`` on its own. A set-up warning names it and the command that
+        clears it; the first cycle faults the axis; only the operator's ``motorctl
+        fault-reset`` pulses the reset bit (:meth:`reset_fault`)."""
+        for i in range(len(self.axis_names)):
+            if self.amp_fault[i]:
+                how = "" if self._ax[i].fault_reset is not None else \
+                    "; the map has no fault_reset bit: the device's own reset clears it"
+                self._notice_drive_fault(i, (self.fault_state(i) or "the device's fault bit is active") + how)
 
     def _read_back_stop(self, answered: np.ndarray, deadline: float) -> list[StopCheck]:
         """Read back every register and coil the cycle writes (FC03 / FC01, one request at a

@@ -35,7 +35,10 @@ class ModbusDevice(Device):
     broken MBAP length on TCP), stale (the
     previous answer again), exception (exception 0x04, server device failure; the command is not
     applied), disconnect (TCP: close the connection), bus_off (as drop). With ``fc23: no`` in
-    the driver config the device has no FC23 (exception 01).
+    the driver config the device has no FC23 (exception 01). An axis whose map has a
+    ``fault_reset`` bit keeps a latched fault (its watchdog's, an injected one) until that bit's
+    rising edge with the amplifier disabled (:class:`PlantBank`'s reset input), across hosts;
+    one without clears it on a command with the amplifier disabled.
 
     Raises:
         ValueError: the register map cannot be served (the driver's checks).
@@ -56,6 +59,8 @@ class ModbusDevice(Device):
             for k in range(a.voltage.nregs):
                 self.by_voltage[(self.plan.devices[self.plan.dev_of[i]][2], a.voltage.address + k)] = i
         self.pending = [None] * len(self.ax)      # the fault drawn for an axis's unapplied command
+        for i, a in enumerate(self.ax):
+            bank.reset_input[i] = a.fault_reset is not None
         self.late = LateAnswers(bank)             # keyed by the unit
         self.tcp = options.transport == "tcp"
         self.ep = StreamEndpoint(f"tcp://{options.host}:{options.port}" if self.tcp else options.serial_port)
@@ -100,7 +105,8 @@ class ModbusDevice(Device):
             bits = 16 * a.voltage.nregs
             raw = raw - (1 << bits) if raw >= 1 << (bits - 1) else raw
         u = raw * a.voltage_scale() + a.voltage.offset
-        self.bank.command(i, u, self._bit(a.enable), self._periods)
+        self.bank.command(i, u, self._bit(a.enable), self._periods,
+                          reset=a.fault_reset is not None and bool(self._bit(a.fault_reset)))
         self._feedback(i)
 
     def _step_if_read(self, unit: int, table: str, address: int, count: int) -> None:

@@ -16,8 +16,15 @@ holds until its watchdog), so a command the master sent and the device never rec
 no plant time. A repeated number steps nothing.
 
 Watchdog (a drive's command timeout: LinuxCNC hm2 ``timeout_ns``, CiA 402 0x6007): no valid
-command for ``watchdog_s`` → 0 V and an amplifier fault, latched until a command with the
-amplifier disabled (a drive's fault reset).
+command for ``watchdog_s`` → 0 V and an amplifier fault, latched until the device's fault reset.
+
+The fault reset: where the protocol has none of its own (serial, CAN: docs/serial-protocol.md),
+a command with the amplifier disabled clears a latched fault. A device with a reset input of its
+own (``reset_input[i]``, a Modbus map's ``fault_reset`` bit) clears it only on that input's
+rising edge with the amplifier disabled, as a drive with a fault-reset input does: its fault
+stays latched across hosts until an operator resets it; its watchdog latches a fault only on
+an amplifier that was enabled when the commands stopped (a disabled one holds 0 V, off already:
+nothing was lost, so a host that ended its run cleanly leaves no fault behind).
 """
 
 from __future__ import annotations
@@ -153,6 +160,9 @@ class PlantBank:
         self.late_s = float(late_s)
         n = len(self.names)
         self.amp_fault = [False] * n
+        #: per axis: the device has a fault-reset input of its own (module docstring)
+        self.reset_input = [False] * n
+        self._reset_prev = [False] * n
         self.applied_V = [0.0] * n
         self.enabled = [False] * n
         self.commands = [0] * n          # valid commands applied per axis
@@ -190,11 +200,18 @@ class PlantBank:
         watchdog time in loop periods."""
         return MasterTime(modulo, round(self.watchdog_s / self.period_s))
 
-    def command(self, i: int, u_V: float, enable: bool, periods: int = 1) -> None:
+    def command(self, i: int, u_V: float, enable: bool, periods: int = 1, reset: bool = False) -> None:
         """Apply one valid command to axis i that comes ``periods`` periods of the master's time
         after the last (:class:`MasterTime`): the plant first coasts ``periods - 1`` periods on
         what the amplifier held, then holds u_V [V] for one period (0 V when disabled or
-        faulted). ``periods`` 0 (a repeated command) steps nothing."""
+        faulted). ``periods`` 0 (a repeated command) steps nothing. ``reset``: the state of the
+        axis's fault-reset input in this command (where ``reset_input[i]``; module docstring)."""
+        if self.reset_input[i]:
+            rising = reset and not self._reset_prev[i]
+            self._reset_prev[i] = bool(reset)
+            if rising and not enable and self.amp_fault[i]:
+                self.amp_fault[i] = False
+                self.log(f"fault reset {self.names[i]}: the reset input's rising edge, amplifier disabled")
         if periods <= 0:
             return
         for _ in range(periods - 1):
@@ -203,8 +220,8 @@ class PlantBank:
         if self.commands[i] == 0:
             self.log(f"first command {self.names[i]}")
         self.commands[i] += 1
-        if not enable:
-            self.amp_fault[i] = False   # a disabled command resets a latched fault, as a drive's reset
+        if not enable and not self.reset_input[i]:
+            self.amp_fault[i] = False   # a disabled command resets a latched fault: the protocol's reset
         on = enable and not self.amp_fault[i]
         u = u_V if on and u_V == u_V else 0.0
         self.enabled[i] = on
@@ -228,7 +245,9 @@ class PlantBank:
                 continue
             left = t + wd - now
             if left <= 0:
-                if not self.amp_fault[i] or self.applied_V[i] != 0.0:
+                if self.reset_input[i] and not self.enabled[i] and self.applied_V[i] == 0.0:
+                    pass                # disabled at 0 V already: nothing to stop, nothing latched
+                elif not self.amp_fault[i] or self.applied_V[i] != 0.0:
                     self.amp_fault[i] = True
                     self.applied_V[i] = 0.0
                     self.enabled[i] = False

@@ -170,6 +170,20 @@ def test_emulator_watchdog_zeroes_output_when_the_driver_is_killed(transport, tm
         if transport == "can":            # the next run clears the latched fault at set-up (enable low) and runs
             r = run_cli(["run", str(cfg), "--duration", "0.2"], prefix=prefix, timeout_s=60)
             assert r.returncode == 0 and "cleared the amplifier fault latched on X, Y" in r.stderr, r.stdout + r.stderr
+        elif transport == "modbus":       # a device with a fault_reset bit keeps it latched across masters
+            from motorctl.app.fault_reset import reset_drive_faults
+            from motorctl.config import load_config
+            loaded = load_config(cfg, check_budget=False)
+            drv = loaded.make_driver()
+            drv.open()
+            try:
+                assert drv.amp_fault.all() and not any("cleared" in n for n in drv.notices), drv.notices
+                assert sum("set-up found the drive in its fault" in n for n in drv.notices) == 2, drv.notices
+            finally:
+                drv.close()
+            rep = reset_drive_faults(loaded, ["X", "Y"])            # the operator's, no daemon: the reset bits
+            assert [(x.sent, x.cleared) for x in rep.axes] == [(True, True)] * 2 and rep.stop_confirmed, rep
+            assert emu.stderr().count("fault reset ") == 2, emu.stderr()
         else:                             # a fresh master clears the latched fault at set-up and says so
             from motorctl.config import load_config
             drv = load_config(cfg, check_budget=False).make_driver()

@@ -79,6 +79,8 @@ class PlantBehind:
 
     def __init__(self, bank, axes, no_fc23: bool = False, stall=(0, 0.0), fault_at: int = 0):
         self.bank, self.axes, self.no_fc23, self.stall, self.fault_at = bank, axes, no_fc23, stall, fault_at
+        for i, o in axes:               # a fault stays latched until the fault_reset bit's rising edge
+            bank.reset_input[i] = o.fault_reset is not None
         self.hold: dict[int, int] = {}
         self.coil: dict[int, bool] = {}
         self.requests: dict[int, int] = {}
@@ -93,9 +95,8 @@ class PlantBehind:
     def _apply(self, i, o) -> None:
         v = o.voltage
         raw = _decode([self.hold.get(v.address + k, 0) for k in range(v.nregs)], v.type, v.word_order, v.byte_order)
-        self.bank.command(i, raw * o.voltage_scale() + v.offset, self._bit(o.enable))
-        if o.fault_reset is not None and self._bit(o.fault_reset):
-            self.bank.amp_fault[i] = False
+        self.bank.command(i, raw * o.voltage_scale() + v.offset, self._bit(o.enable),
+                          reset=o.fault_reset is not None and self._bit(o.fault_reset))
 
     async def __call__(self, fc, start, address, count, registers, values):
         from pymodbus.constants import ExcCodes
@@ -415,7 +416,11 @@ def test_the_device_holds_0V_and_enable_off_after_motorctl_run(how, tmp_path):
 def test_registers_written_per_axis_unit_and_the_fc23_probe_falls_back(tmp_path):
     """Map A on a device without FC23: the probe's exception 01 turns the plan into FC16 + FC03.
     Y on unit 2 with FC06/FC05/FC03. pymodbus's client reads back what the driver wrote.
-    Lockstep with a 0.5 s read timeout: a loaded host's slow answer is not a read error."""
+    Lockstep with a 0.5 s read timeout: a loaded host's slow answer is not a read error. X's
+    device fault (its map has fault_reset) stays latched across disabled cycles and a new
+    set-up until the operator's reset with no daemon (:func:`reset_drive_faults`)."""
+    from motorctl.app.fault_reset import reset_drive_faults
+    from motorctl.driver import drive_fault_refusal
     d = map_a(200.0, round_trip_s=0.0006, timeout_s=0.5, wait="spin", watchdog={"address": 200, "value": 150},
               sequence_register=2)
     d["loop"]["clock"] = "virtual"
@@ -450,14 +455,31 @@ def test_registers_written_per_axis_unit_and_the_fc23_probe_falls_back(tmp_path)
             write_register(port, 2, FAULT_REGISTER, 2)                 # Y's too: discrete input 5 low
             exchange(drv, [0, 0], [True, True], 3, sleep_s=0.004)
             assert drv.amp_fault.all()
-            for _ in range(20):                                        # disabled and faulted: reset pulses
-                exchange(drv, [0, 0], [False, True], 1, sleep_s=0.004)
-                if not drv.amp_fault[0]:
-                    break
-            assert not drv.amp_fault[0] and drv.amp_fault[1]          # bit 7 was pulsed: X's device reset
+            exchange(drv, [0, 0], [False, True], 20, sleep_s=0.004)    # disabled: X's fault stays latched
+            assert drv.amp_fault[0] and read_back(port, 1, "holding", 1, 1)[0] & 0x80 == 0   # no reset pulsed
             assert read_back(port, 1, "holding", 1, 1)[0] & 1 == 0     # X's enable bit off meanwhile
         finally:
             drv.close()
+        # a new set-up leaves it latched too (before, it pulsed fault_reset and said "cleared the
+        # fault the device reported"): a warning, and the refusal names the bit and the command
+        drv = loaded.make_driver()
+        try:
+            drv.open()
+            exchange(drv, [0, 0], [False, False], 5, sleep_s=0.004)
+            assert drv.amp_fault[0] and not drv.amp_fault[1], drv.notices      # Y (no fault_reset) cleared
+            assert any(n.startswith("warning: axis X: set-up found the drive in its fault (the device's fault "
+                                    "bit (holding 102 bit 0) is active)") for n in drv.notices), drv.notices
+            assert drive_fault_refusal(drv, config=str(cfg)) == (
+                f"axis X's drive is in its fault (the device's fault bit (holding 102 bit 0) is active); it stays "
+                f"there until the operator resets it: 'motorctl fault-reset --config {cfg} X' (no daemon "
+                f"running) or 'motorctl fault-reset X' (through the daemon)")
+        finally:
+            drv.close()
+        # the operator's reset with no daemon (motorctl fault-reset --config CONFIG X): bit 7 pulsed
+        rep = reset_drive_faults(loaded, ["X"])
+        (x,) = rep.axes
+        assert x.sent and x.cleared and x.was == "the device's fault bit (holding 102 bit 0) is active", x
+        assert rep.stop_confirmed, rep.stop
 
 
 def test_a_garbage_reply_is_counted_and_the_tcp_stream_recovers(tmp_path):
