@@ -55,12 +55,28 @@ class Users:
 
     def roles(self, name: str, password: str) -> frozenset[str] | None:
         """The roles of ``name`` when ``password`` is right, else None (unknown name or wrong
-        password alike; the comparison is constant-time)."""
-        entry = self.accounts.get(name)
-        if entry is None or not isinstance(password, str):
+        password alike). The same work whatever the name: an unknown name is checked against a
+        dummy hash with the cost parameters of the file's first account (one scrypt, as for a
+        known name), so the time of a refusal does not tell whether the name exists; the
+        comparison is constant-time (:func:`hmac.compare_digest`)."""
+        if not isinstance(password, str):
+            return None
+        entry = self.accounts.get(name) if isinstance(name, str) else None
+        if entry is None:
+            _verify(self._dummy(), password)
             return None
         stored, roles = entry
         return frozenset(roles) if _verify(stored, password) else None
+
+    def _dummy(self) -> str:
+        """A hash no password matches, with the cost (N, r, p, salt and hash lengths) of the
+        file's first account (the module's defaults for an empty file)."""
+        first = next(iter(self.accounts.values()), None)
+        if first is None:
+            b = base64.b64encode
+            return f"scrypt${SCRYPT_N}${SCRYPT_R}${SCRYPT_P}${b(bytes(16)).decode()}${b(bytes(32)).decode()}"
+        _, n, r, p, salt, want = first[0].split("$")
+        return f"scrypt${n}${r}${p}${salt}${base64.b64encode(bytes(len(base64.b64decode(want)))).decode()}"
 
 
 def load_users(path: str) -> Users:

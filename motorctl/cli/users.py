@@ -1,5 +1,7 @@
-"""``motorctl users add|remove|list``: the accounts of the users file (``daemon.users_file``,
-:mod:`motorctl.app.users`) that the operator page and the OPC UA server check.
+"""``motorctl users add|remove|list|unlock``: the accounts of the users file
+(``daemon.users_file``, :mod:`motorctl.app.users`) that the operator page and the OPC UA server
+check, and the lockouts of their logins (:mod:`motorctl.app.login`: ``unlock NAME`` clears a
+name locked after failed logins; ``list`` shows the locked ones).
 
 A password is never an argument (the process list shows arguments): it is asked on the
 terminal (twice) or read as the first line of stdin (``--password-stdin``), and only its scrypt
@@ -24,9 +26,10 @@ def register(parser, subparsers) -> None:
     """Add the ``users`` subcommand (called by :func:`motorctl.cli.build_parser`)."""
     p = subparsers.add_parser("users", help="add, remove or list the operator page's accounts "
                                             "(the users file: scrypt-hashed passwords, roles)")
-    p.add_argument("action", choices=("add", "remove", "list"), help="add (or with --replace: change) a user, "
-                                                                     "remove one, or list them")
-    p.add_argument("name", nargs="?", default=None, help="the user's name (add, remove)")
+    p.add_argument("action", choices=("add", "remove", "list", "unlock"),
+                   help="add (or with --replace: change) a user, remove one, list them (and the locked "
+                        "names), or unlock a name locked after failed logins")
+    p.add_argument("name", nargs="?", default=None, help="the user's name (add, remove, unlock)")
     p.add_argument("--role", action="append", choices=("operator", "viewer"), default=None,
                    help="the user's role (repeatable; default viewer): operator may command")
     p.add_argument("--file", default=None, metavar="USERS_YAML",
@@ -52,6 +55,21 @@ def users_path(args) -> str:
     if not path:
         raise UsageError(f"{args.config}: daemon.users_file is not set; give --file USERS_YAML")
     return str(path)
+
+
+def login_guard(args):
+    """The log-in guard of the daemon (its state file beside its control socket: the global
+    ``--socket``, else ``$MOTORCTL_SOCKET``, else ``daemon.socket`` of ``--config``). Raises
+    UsageError (one line)."""
+    from motorctl.app.login import LoginGuard, state_path
+    sock = getattr(args, "socket", None) or os.environ.get("MOTORCTL_SOCKET")
+    if not sock:
+        from motorctl.config import ConfigError, load_config
+        try:
+            sock = load_config(args.config).cfg.daemon.socket
+        except ConfigError as exc:
+            raise UsageError(f"{exc}; or give --socket PATH") from None
+    return LoginGuard(state_path(sock))
 
 
 def _read(path: str) -> dict:
@@ -101,13 +119,24 @@ def _password(args) -> str:
 
 def cmd_users(args) -> int:
     """The ``users`` command: exit 0, or 2 with one line (UsageError)."""
+    if args.action == "unlock":
+        if not args.name:
+            raise UsageError("users unlock: the NAME to unlock is needed")
+        try:
+            was = login_guard(args).unlock(args.name)
+        except OSError as exc:
+            raise UsageError(f"users unlock: the daemon's login state: {exc.strerror or exc}") from None
+        print(f"{args.name}: unlocked" if was else f"{args.name}: was not locked (failed logins cleared)")
+        return 0
     path = users_path(args)
     data = _read(path)
     users = data.setdefault("users", {}) or {}
     data["users"] = users
     if args.action == "list":
+        locked = _locked(args)
         for name, entry in sorted(users.items()):
-            print(f"{name}\t{','.join(entry.get('roles', ['viewer']))}")
+            lock = f"\tlocked until {_utc(locked[name])}" if name in locked else ""
+            print(f"{name}\t{','.join(entry.get('roles', ['viewer']))}{lock}")
         return 0
     if not args.name or any(c.isspace() for c in args.name):
         raise UsageError(f"users {args.action}: a NAME without spaces is needed")
@@ -125,3 +154,17 @@ def cmd_users(args) -> int:
     _write(path, data)
     print(f"{path}: {args.name} ({', '.join(roles)})")
     return 0
+
+
+def _locked(args) -> dict:
+    """The locked names of the daemon of ``--config`` ({} when the config or its state cannot
+    be read: ``list`` of a bare ``--file`` shows the accounts only)."""
+    try:
+        return login_guard(args).locked()
+    except (UsageError, OSError):
+        return {}
+
+
+def _utc(t: float) -> str:
+    import time
+    return time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(t))

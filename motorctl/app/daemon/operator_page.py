@@ -24,13 +24,17 @@ Routes (``GET`` read only, everything else ``POST`` with a session):
   comes back as the answer's ``error``
 
 Logins: the users file (``daemon.users_file``, :mod:`motorctl.app.users`, scrypt hashes; read
-again when its modification time changes). A login gives a random session token (256 bits) in an
+again when its modification time changes), checked through :class:`motorctl.app.login.LoginGuard`
+as the OPC UA server checks them: the same time for an unknown name as for a known one, a
+back-off per name and per client address, a name locked after its 6th failed login within a
+minute (``daemon.login_lockout_s``; ``motorctl users unlock``), every refusal in the journal.
+A login gives a random session token (256 bits) in an
 HttpOnly, SameSite=Strict cookie; a session idle :data:`SESSION_IDLE_S` ends. Without a session,
 or with the ``viewer`` role only, every command answers 403. Every ``POST`` but ``/login`` needs
 the session's CSRF token in the ``X-CSRF-Token`` header, and a request whose ``Origin`` (or
 ``Sec-Fetch-Site``) says it came from another site is refused (403) before anything else.
-Passwords are never logged, stored or sent on: one line per login (the name and the outcome) goes
-to the daemon's stderr.
+Passwords are never logged, stored or sent on: one line per login (the name, the address and the
+outcome) goes to the daemon's stderr.
 
 A continuous jog (``jog`` with ``velocity``) is held by the page: it sends ``jog-alive`` while
 the button is held down, and an axis not kept alive for :data:`JOG_DEADMAN_S` is stopped by this
@@ -114,7 +118,11 @@ class OperatorPage:
         read_static: name -> bytes of a file of ``scope_static`` (the views' cache).
     """
 
-    def __init__(self, socket_path: str, users_file: str | None, axes, read_static):
+    def __init__(self, socket_path: str, users_file: str | None, axes, read_static, lockout_s: float | None = None):
+        from motorctl.app.login import LOCKOUT_S, LoginGuard, journal_to_stderr, state_path
+        journal_to_stderr()
+        self.guard = LoginGuard(state_path(socket_path), LOCKOUT_S if lockout_s is None else lockout_s,
+                                "operator page")
         self.socket_path = socket_path
         self.users_file = users_file
         self.axes = list(axes)
@@ -311,17 +319,24 @@ class OperatorPage:
         self._logins_waiting += 1
         try:
             async with self._login_check:       # one scrypt check (16 MiB, tens of ms) at a time
-                roles = await asyncio.get_running_loop().run_in_executor(None, users.roles, name, password)
+                v = await asyncio.get_running_loop().run_in_executor(
+                    None, self.guard.attempt, users, name, password, request.remote or "?")
+        except OSError as exc:
+            _log(f"login refused for {name[:64]!r}: the login state {self.guard.path}: {exc.strerror or exc}")
+            return _json({"ok": False, "error": "logins are unavailable (the daemon's login state); retry"}, 503)
         finally:
             self._logins_waiting -= 1
         del password
-        if roles is None:
-            _log(f"login refused for {name[:64]!r}")
+        if v.why == "wrong":
             await asyncio.sleep(LOGIN_FAIL_DELAY_S)
             return _json({"ok": False, "error": "wrong name or password"}, 403)
+        if not v.ok:
+            retry = max(1, round(v.retry_s))
+            return _json({"ok": False, "error": f"too many failed logins for this name or address; retry in "
+                                                f"{retry} s"}, 429, {"Retry-After": str(retry)})
+        roles = v.roles
         tok = self._new_session(name, roles)
         s = self.sessions[tok]
-        _log(f"{name[:64]!r} logged in ({', '.join(sorted(roles))})")
         resp = _json({"ok": True, "user": name, "roles": sorted(roles), "operator": s.operator,
                       "csrf": s.csrf})
         resp.set_cookie(SESSION_COOKIE, tok, httponly=True, samesite="Strict", path="/",
@@ -489,9 +504,9 @@ _PAGE_HEADERS = {"X-Frame-Options": "DENY", "Content-Security-Policy": "frame-an
                  "X-Content-Type-Options": "nosniff", "Cache-Control": "no-store"}
 
 
-def _json(obj: dict, status: int = 200):
+def _json(obj: dict, status: int = 200, headers: dict | None = None):
     from aiohttp import web
-    return web.json_response(obj, status=status, headers={"Cache-Control": "no-store"})
+    return web.json_response(obj, status=status, headers={"Cache-Control": "no-store", **(headers or {})})
 
 
 def _forbidden():
