@@ -220,35 +220,105 @@ def test_a_bad_users_file_is_one_line_and_exit_2(tmp_path, capsys):
     with pytest.raises(OpcuaConfigError, match="anonymous: off"):
         check_config(c)
 
-def test_basic256sha256_sign_and_encrypt_with_the_self_signed_certificate(daemon, tmp_path):
+def test_basic256sha256_needs_a_trusted_client_certificate(daemon, tmp_path, capsys):
     """GetEndpoints offers None and Basic256Sha256 Sign and SignAndEncrypt, all with the
-    certificate the server made at its first start (LOG_DIR/opcua); an operator reads and calls
-    on a SignAndEncrypt session (a client certificate made for the test)."""
+    certificate the server made at its first start (LOG_DIR/opcua). A client certificate not in
+    the trust list is refused (BadCertificateUntrusted) and kept in rejected/, where `motorctl
+    opcua list` shows it; once `motorctl opcua trust THUMBPRINT` accepted it, an operator reads
+    and calls on a SignAndEncrypt session."""
     from asyncua.crypto.cert_gen import setup_self_signed_certificate
     from cryptography.x509.oid import ExtendedKeyUsageOID
 
-    made = daemon.tmp / "logs" / "opcua" / "server_cert.der"
-    assert made.is_file() and (daemon.tmp / "logs" / "opcua" / "server_key.pem").is_file()
+    from motorctl.cli import main as cli
 
-    async def go():
-        key, cert = tmp_path / "client_key.pem", tmp_path / "client_cert.der"
+    pki = daemon.tmp / "logs" / "opcua"
+    made = pki / "server_cert.der"
+    assert made.is_file() and (pki / "server_key.pem").is_file()
+    key, cert = tmp_path / "client_key.pem", tmp_path / "client_cert.der"
+
+    async def refused():
         await setup_self_signed_certificate(key, cert, "urn:motorctl:test", "localhost",
                                             [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "test"})
         async with _client(daemon.url) as c:
             eps = await c.get_endpoints()
         c = _client(daemon.url, OPERATOR)
         await c.set_security_string(f"Basic256Sha256,SignAndEncrypt,{cert},{key}")
+        with pytest.raises(ua.uaerrors.BadCertificateUntrusted):
+            async with c:
+                pass
+        return eps
+
+    async def accepted():
+        c = _client(daemon.url, OPERATOR)
+        await c.set_security_string(f"Basic256Sha256,SignAndEncrypt,{cert},{key}")
         async with c:
             x = await c.get_node(f"ns=2;s={AXES}.X.ActPos").read_value()
             ch = c.get_node(f"ns=2;s={CHANNEL}")
             await ch.call_method(c.get_node(f"ns=2;s={CHANNEL}.SetFeedOverride"), 100.0)
-        return eps, x
+        return x
 
-    eps, x = _run(go())
+    eps = _run(refused())
     got = {(e.SecurityPolicyUri.rsplit("#", 1)[-1], e.SecurityMode.name) for e in eps}
     assert got == {("None", "None_"), ("Basic256Sha256", "Sign"), ("Basic256Sha256", "SignAndEncrypt")}, got
     assert all(e.ServerCertificate == made.read_bytes() for e in eps if e.SecurityMode.name != "None_")
-    assert isinstance(x, float)
+    # every endpoint asks for the password encrypted with the server's certificate
+    assert {t.SecurityPolicyUri.rsplit("#", 1)[-1] for e in eps for t in e.UserIdentityTokens
+            if t.TokenType == ua.UserTokenType.UserName} == {"Basic256Sha256"}
+    capsys.readouterr()
+    assert cli(["opcua", "list", "--pki-dir", str(pki)]) == 0
+    rejected = [ln.split("\t") for ln in capsys.readouterr().out.splitlines() if ln.startswith("rejected")]
+    assert len(rejected) == 1 and "CN=test" in rejected[0][2] and rejected[0][3] == "urn:motorctl:test", rejected
+    assert cli(["opcua", "trust", rejected[0][1][:16], "--pki-dir", str(pki)]) == 0
+    assert not list((pki / "rejected").iterdir())
+    assert isinstance(_run(accepted()), float)
+    assert cli(["opcua", "trust", "nothing-like-it", "--pki-dir", str(pki)]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_a_password_in_clear_is_refused(daemon):
+    """A client that sends the password unencrypted on the None channel (the token policy asks
+    for Basic256Sha256) is refused before the password is checked, the right password too."""
+    class PlainClient(Client):
+        def _add_user_auth(self, params, username, password):
+            params.UserIdentityToken = ua.UserNameIdentityToken(
+                UserName=username, Password=password.encode(), PolicyId="username")
+
+    async def go():
+        c = PlainClient(daemon.url, timeout=UA_TIMEOUT_S)
+        c.set_user(OPERATOR[0])
+        c.set_password(OPERATOR[1])
+        with pytest.raises(ua.uaerrors.BadIdentityTokenRejected):
+            async with c:
+                pass
+
+    _run(go())
+
+
+def test_a_locked_name_is_refused_until_the_operator_unlocks_it(daemon, capsys):
+    """Six wrong passwords within a minute (written through the daemon's own login state, on a
+    clock of the test's: no waiting out the back-off) lock the name on the server: its right
+    password is refused until `motorctl users unlock NAME`."""
+    from motorctl.app.login import LOCK_AFTER, LoginGuard, state_path
+    from motorctl.app.users import load_users
+    from motorctl.cli import main as cli
+
+    users = load_users(str(daemon.tmp / "users.yaml"))
+    t = [__import__("time").time()]
+    guard = LoginGuard(state_path(str(daemon.sock)), 3600.0, "test", clock=lambda: t[0])
+    for i in range(LOCK_AFTER):
+        t[0] += 9.0                                   # 6 failures in 54 s, beyond each back-off
+        v = guard.attempt(users, VIEWER[0], "wrong", f"192.0.2.{i}")
+    assert v.why == "locked", v
+
+    async def login():
+        async with _client(daemon.url, VIEWER) as c:
+            return await c.get_node(f"ns=2;s={AXES}.X.ActPos").read_value()
+
+    with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+        _run(login())
+    assert cli(["--socket", str(daemon.sock), "users", "unlock", VIEWER[0]]) == 0
+    assert "unlocked" in capsys.readouterr().out
+    assert isinstance(_run(login()), float)
 
 
 def test_the_tools_browse_the_cnc_objects_and_read_a_position(daemon):

@@ -30,7 +30,7 @@ DEFAULT_CONFIG = "configs/gantry.yaml"
 COMPILING_COMMANDS = ("run", "daemon", "warmup")
 COMMAND_MODULES = ("motorctl.cli.run", "motorctl.cli.operator", "motorctl.cli.identify", "motorctl.cli.runs",
                    "motorctl.cli.tune", "motorctl.cli.autotune", "motorctl.cli.data",
-                   "motorctl.cli.motion", "motorctl.cli.fleet", "motorctl.cli.users")
+                   "motorctl.cli.motion", "motorctl.cli.fleet", "motorctl.cli.users", "motorctl.cli.opcua")
 COMMAND_GROUP = "motorctl.commands"
 
 #: the optional-dependency group (pyproject.toml) that installs each optional top-level module:

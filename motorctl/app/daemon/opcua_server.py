@@ -35,8 +35,15 @@ or a ``viewer`` may browse, read and subscribe, and a Call is answered BadUserAc
 Security (OPC 10000-4 6, OPC 10000-7): the policies of ``daemon.opcua.security``: None and
 Basic256Sha256 with Sign and with SignAndEncrypt; without a configured certificate a
 self-signed one (RSA 2048, asyncua's helpers over ``cryptography``) is made in
-``LOG_DIR/opcua/`` at the first start and kept. A password sent on an unencrypted channel is
-encrypted with the server's certificate (the user token policy asks for it).
+``LOG_DIR/opcua/`` at the first start and kept. A user name token must carry its password
+encrypted with the server's certificate (OPC 10000-4 7.36.3; every endpoint's user token
+policy says Basic256Sha256): a password in clear is refused (BadIdentityTokenRejected) before
+it is looked at, whatever the channel. A channel's client certificate (Sign, SignAndEncrypt)
+must be in the trust list (:class:`TrustList`, ``PKI_DIR/trusted``; ``motorctl opcua trust``):
+an untrusted one is refused at ActivateSession (BadCertificateUntrusted), kept in
+``PKI_DIR/rejected`` for the operator to accept, and journaled. Logins go through
+:class:`motorctl.app.login.LoginGuard` (the operator page's check: constant time whatever the
+name, back-off per name and address, lockout, journal).
 
 Timestamps: a value's SourceTimestamp is the loop's own time of the row it comes from (the
 master's clock, mapped onto UTC at the first snapshot), its ServerTimestamp the server's wall
@@ -79,6 +86,9 @@ PROGRAM_SUFFIXES = (".ngc", ".nc", ".gcode", ".tap")
 #: a command through the control socket is given up after this long [s]
 COMMAND_TIMEOUT_S = 10.0
 
+#: refused client certificates kept in PKI_DIR/rejected at most (the oldest go)
+MAX_REJECTED = 64
+
 #: CncChannelProgramStatus (OPC 40502): Stopped, Running, Waiting, Interrupted, Canceled
 PROG_STOPPED, PROG_RUNNING, PROG_WAITING, PROG_INTERRUPTED, PROG_CANCELED = range(5)
 #: CncChannelStatus (OPC 40502): Active, Interrupted, Reset
@@ -89,6 +99,166 @@ AX_IN_POSITION, AX_MOVING, AX_PARKED = range(3)
 
 class OpcuaConfigError(ValueError):
     """daemon.opcua or daemon.users_file cannot be served: one line naming the key."""
+
+
+def pki_dir(cfg, log_dir: str | None = None) -> str:
+    """The trust list's folder: ``daemon.opcua.pki_dir``, else ``LOG_DIR/opcua`` (``log_dir``:
+    the daemon's, when it was given on its command line)."""
+    oc = cfg.daemon.opcua
+    if oc is not None and oc.pki_dir:
+        return oc.pki_dir
+    return os.path.join(log_dir or cfg.daemon.log_dir, "opcua")
+
+
+class TrustList:
+    """The client certificates the server accepts (OPC 10000-4 6.1.3, 10000-12 7.3 "trust
+    list"): ``PKI_DIR/trusted/`` holds them (DER or PEM, one per file; a certificate is trusted
+    itself, not through an issuer), ``PKI_DIR/rejected/`` the ones refused, kept (at most
+    :data:`MAX_REJECTED`, as ``<thumbprint>.der``) for the operator to accept. Thumbprints are
+    the SHA-1 of the DER bytes in hex (OPC 10000-6 6.2.3, as UaExpert shows them). The folder is
+    read again when ``trusted/`` changes: no restart."""
+
+    def __init__(self, pki: str):
+        self.pki = pki
+        self.trusted_dir = os.path.join(pki, "trusted")
+        self.rejected_dir = os.path.join(pki, "rejected")
+        self._mtime = None
+        self._thumbs: set[str] = set()
+
+    @staticmethod
+    def thumbprint(der: bytes) -> str:
+        import hashlib
+        return hashlib.sha1(der).hexdigest()
+
+    @staticmethod
+    def load(data: bytes):
+        """An X.509 certificate from DER or PEM bytes. Raises ValueError."""
+        from cryptography import x509
+        if data.lstrip().startswith(b"-----BEGIN"):
+            return x509.load_pem_x509_certificate(data)
+        return x509.load_der_x509_certificate(data)
+
+    def _files(self, folder: str):
+        try:
+            names = sorted(os.listdir(folder))
+        except OSError:
+            return
+        for n in names:
+            path = os.path.join(folder, n)
+            try:
+                with open(path, "rb") as f:
+                    cert = self.load(f.read())
+            except (OSError, ValueError):
+                continue
+            yield path, cert
+
+    def trusted(self) -> set[str]:
+        """The thumbprints of the trusted certificates (read again when the folder changed)."""
+        from cryptography.hazmat.primitives.serialization import Encoding
+        try:
+            m = os.stat(self.trusted_dir).st_mtime_ns
+        except OSError:
+            m = None
+        if m != self._mtime:
+            self._mtime = m
+            self._thumbs = {self.thumbprint(c.public_bytes(Encoding.DER)) for _, c in self._files(self.trusted_dir)}
+        return self._thumbs
+
+    def refusal(self, der: bytes) -> str:
+        """Why a client certificate (DER) is refused: "" when it is trusted and within its
+        validity, else "untrusted", "expired" or "not yet valid"."""
+        import datetime as dt
+        if self.thumbprint(der) not in self.trusted():
+            return "untrusted"
+        cert = self.load(der)
+        now = dt.datetime.now(dt.timezone.utc)
+        if now > cert.not_valid_after_utc:
+            return "expired"
+        if now < cert.not_valid_before_utc:
+            return "not yet valid"
+        return ""
+
+    def reject(self, der: bytes) -> str:
+        """Keep a refused certificate in ``rejected/`` (the oldest beyond MAX_REJECTED go).
+        Returns its path ("" when it cannot be written)."""
+        try:
+            os.makedirs(self.rejected_dir, mode=0o700, exist_ok=True)
+            path = os.path.join(self.rejected_dir, self.thumbprint(der) + ".der")
+            if not os.path.exists(path):
+                with open(path, "wb") as f:
+                    f.write(der)
+            else:
+                os.utime(path)
+            old = sorted(os.listdir(self.rejected_dir),
+                         key=lambda n: os.stat(os.path.join(self.rejected_dir, n)).st_mtime_ns)
+            for n in old[:max(0, len(old) - MAX_REJECTED)]:
+                os.unlink(os.path.join(self.rejected_dir, n))
+            return path
+        except OSError:
+            return ""
+
+    def listing(self) -> list[dict]:
+        """Every certificate of ``trusted/`` and ``rejected/``: {state, thumbprint, subject,
+        uri (the application URI of its subjectAltName), not_after, path}."""
+        from cryptography import x509
+        from cryptography.hazmat.primitives.serialization import Encoding
+        out = []
+        for state, folder in (("trusted", self.trusted_dir), ("rejected", self.rejected_dir)):
+            for path, c in self._files(folder):
+                try:
+                    uris = c.extensions.get_extension_for_class(x509.SubjectAlternativeName).value \
+                        .get_values_for_type(x509.UniformResourceIdentifier)
+                except x509.ExtensionNotFound:
+                    uris = []
+                out.append({"state": state, "thumbprint": self.thumbprint(c.public_bytes(Encoding.DER)),
+                            "subject": c.subject.rfc4514_string(), "uri": uris[0] if uris else "",
+                            "not_after": c.not_valid_after_utc.strftime("%Y-%m-%d"), "path": path})
+        return out
+
+    def trust(self, what: str) -> dict:
+        """Trust a certificate: ``what`` is a file (DER or PEM) or the thumbprint (or its first
+        8+ hex digits) of a rejected one. It is written to ``trusted/<thumbprint>.der`` and
+        leaves ``rejected/``. Returns its :meth:`listing` entry. Raises ValueError (one line)."""
+        der = self._resolve(what, self.rejected_dir, "rejected")
+        os.makedirs(self.trusted_dir, mode=0o700, exist_ok=True)
+        t = self.thumbprint(der)
+        path = os.path.join(self.trusted_dir, t + ".der")
+        with open(path, "wb") as f:
+            f.write(der)
+        try:
+            os.unlink(os.path.join(self.rejected_dir, t + ".der"))
+        except OSError:
+            pass
+        return next(e for e in self.listing() if e["thumbprint"] == t and e["state"] == "trusted")
+
+    def untrust(self, what: str) -> int:
+        """Remove a certificate (file or thumbprint) from ``trusted/``: the files removed.
+        Raises ValueError (one line)."""
+        t = self.thumbprint(self._resolve(what, self.trusted_dir, "trusted"))
+        gone = [e["path"] for e in self.listing() if e["state"] == "trusted" and e["thumbprint"] == t]
+        for p in gone:
+            os.unlink(p)
+        return len(gone)
+
+    def _resolve(self, what: str, folder: str, state: str) -> bytes:
+        from cryptography.hazmat.primitives.serialization import Encoding
+        if os.path.isfile(what):
+            try:
+                with open(what, "rb") as f:
+                    return self.load(f.read()).public_bytes(Encoding.DER)
+            except (OSError, ValueError) as exc:
+                raise ValueError(f"{what}: not an X.509 certificate (DER or PEM): {exc}") from None
+        w = what.lower().replace(":", "")
+        if len(w) < 8 or any(c not in "0123456789abcdef" for c in w):
+            raise ValueError(f"{what}: neither a certificate file nor a thumbprint (8 or more hex digits) "
+                             f"of a {state} certificate")
+        hits = {e["thumbprint"]: e["path"] for e in self.listing()
+                if e["state"] == state and e["thumbprint"].startswith(w)}
+        if len(hits) != 1:
+            raise ValueError(f"{what}: {'no' if not hits else 'more than one'} {state} certificate with that "
+                             f"thumbprint in {folder}; `motorctl opcua list` shows them")
+        with open(next(iter(hits.values())), "rb") as f:
+            return self.load(f.read()).public_bytes(Encoding.DER)
 
 
 # ---------------------------------------------------------------------------- I/O process side
@@ -230,10 +400,12 @@ def start_opcua(io) -> OpcuaLink | None:
         sys.stderr.write(f"motorctl: error: {loaded.path}: {exc}; OPC UA not served\n")
         return None
     cert_dir = os.path.join(os.path.dirname(os.path.abspath(io.plan.log_path)), "opcua")
+    pki = oc.pki_dir or cert_dir
     axes = [{"name": a, "rotational": False} for a in io.names]
+    d = loaded.cfg.daemon
     forked = fork_helper("OPC UA", lambda sock, parent: opcua_main(
-        sock, oc, users, cert, key, cert_dir, io.plan.socket_path, axes, loaded.cfg.daemon.max_program_bytes,
-        parent))
+        sock, oc, users, cert, key, cert_dir, io.plan.socket_path, axes, d.max_program_bytes,
+        parent, pki, d.login_lockout_s))
     if forked is None:
         return None
     return OpcuaLink(*forked, oc.endpoint, _Columns(io.layout, io.names))
@@ -241,25 +413,34 @@ def start_opcua(io) -> OpcuaLink | None:
 
 # ---------------------------------------------------------------------------- the OPC UA process
 def opcua_main(sock: socket.socket, oc, users, cert, key, cert_dir: str, control: str, axes: list,
-               max_program_bytes: int, parent_pid: int) -> int:
+               max_program_bytes: int, parent_pid: int, pki: str | None = None,
+               lockout_s: float | None = None) -> int:
     """The OPC UA process: serve ``oc.endpoint`` until the link closes. Returns 0."""
     helper_started(parent_pid, OPCUA_NICE)
     import gc
     gc.enable()              # the I/O process runs with it off; asyncio and asyncua make cycles
     logging.basicConfig(level=logging.CRITICAL)
     logging.getLogger("asyncua").setLevel(logging.CRITICAL)
-    srv = CncServer(oc, users, cert, key, cert_dir, control, axes, max_program_bytes)
+    from motorctl.app.login import journal_to_stderr
+    journal_to_stderr()
+    srv = CncServer(oc, users, cert, key, cert_dir, control, axes, max_program_bytes, pki, lockout_s)
     return asyncio.run(srv.run(sock))
 
 
-def _role_user(users, anonymous: bool):
+def _role_user(users, anonymous: bool, guard=None, trust: TrustList | None = None):
     """asyncua's user manager over :class:`motorctl.app.users.Users` (OPC 10000-4 5.6.3):
     operator -> UserRole.User (may Call), viewer -> UserRole.Anonymous with its name (reads),
     no name -> anonymous when allowed; None (BadUserAccessDenied / BadIdentityTokenRejected)
-    otherwise."""
+    otherwise. Names and passwords go through ``guard`` (:class:`motorctl.app.login.LoginGuard`:
+    back-off, lockout, journal) with the client's address that :func:`_guard_tokens` noted; a
+    channel's client certificate not in ``trust`` is refused (BadCertificateUntrusted), kept in
+    its ``rejected/`` and journaled."""
+    from asyncua import ua
+    from asyncua.common.utils import ServiceError
     from asyncua.crypto.permission_rules import User, UserRole
     from asyncua.server.user_managers import UserManager
 
+    from motorctl.app.login import JOURNAL
     from motorctl.app.users import UsersError, load_users
 
     class Users(UserManager):
@@ -267,6 +448,25 @@ def _role_user(users, anonymous: bool):
             self.users = users
             self.path = users.path if users is not None else None
             self.mtime = _mtime(self.path)
+            self.peer = "?"                  # the address of the session being activated
+
+        def check_certificate(self, der: bytes) -> None:
+            """Raise ServiceError unless the channel's client certificate is trusted."""
+            why = trust.refusal(der) if trust is not None else ""
+            if not why:
+                return
+            try:
+                c = TrustList.load(der)
+                subject = c.subject.rfc4514_string()
+            except ValueError:
+                subject = "?"
+            kept = trust.reject(der) if why == "untrusted" else ""
+            JOURNAL.warning("OPC UA: client certificate refused (%s) from %s: %s, thumbprint %s%s", why,
+                            self.peer, subject, TrustList.thumbprint(der),
+                            f"; kept as {kept}: `motorctl opcua trust {TrustList.thumbprint(der)[:16]}` "
+                            "accepts it" if kept else "")
+            raise ServiceError(ua.StatusCodes.BadCertificateUntrusted if why == "untrusted"
+                               else ua.StatusCodes.BadCertificateTimeInvalid)
 
         def current(self):
             """The users file, read again when its modification time changed (a file that has
@@ -284,16 +484,80 @@ def _role_user(users, anonymous: bool):
             return self.users
 
         def get_user(self, iserver, username=None, password=None, certificate=None):
+            peer, self.peer = self.peer, "?"
+            if certificate:
+                # the channel's client certificate (None on a None channel: _Factory), not an
+                # X509 identity token (not offered)
+                self.peer = peer
+                self.check_certificate(certificate)
             if username is None:
-                # (certificate: the channel's client certificate, not an X509 identity token)
                 return User(role=UserRole.Anonymous) if anonymous else None
             now = self.current()
-            roles = now.roles(username, password) if now is not None else None
-            if roles is None:
+            if now is None or guard is None:
+                JOURNAL.warning("login refused: %r from %s (OPC UA): logins are off", str(username)[:64], peer)
                 return None
-            return User(role=UserRole.User if "operator" in roles else UserRole.Anonymous, name=username)
+            try:
+                v = guard.attempt(now, username, password, peer)
+            except OSError as exc:
+                JOURNAL.warning("login refused: %r from %s (OPC UA): the login state %s: %s", str(username)[:64],
+                                peer, guard.path, exc.strerror or exc)
+                return None
+            if not v.ok:
+                return None
+            return User(role=UserRole.User if "operator" in v.roles else UserRole.Anonymous, name=username)
 
     return Users()
+
+
+def _guard_tokens(iserver, um) -> None:
+    """Refuse a user name token whose password is not encrypted (OPC 10000-4 7.36.3: the token
+    policy says Basic256Sha256, so a conforming client encrypts it with the server's
+    certificate; a password in clear has crossed the network readable): BadIdentityTokenRejected
+    before the name or the password is looked at, journaled. Notes the client's address for the
+    user manager ``um`` (ActivateSession runs the two one after the other, without a wait)."""
+    from asyncua import ua
+    from asyncua.common.utils import ServiceError
+
+    from motorctl.app.login import JOURNAL
+    decrypt = iserver.decrypt_user_token
+
+    def checked(isession, token):
+        peer = isession.name[0] if isinstance(isession.name, tuple) and isession.name else str(isession.name)
+        um.peer = str(peer)
+        if not token.EncryptionAlgorithm:
+            JOURNAL.warning("login refused: %r from %s (OPC UA): the password was sent in clear (not encrypted "
+                            "with the server's certificate, as the user token policy asks)",
+                            str(token.UserName)[:64], um.peer)
+            raise ServiceError(ua.StatusCodes.BadIdentityTokenRejected)
+        return decrypt(isession, token)
+
+    iserver.decrypt_user_token = checked
+
+
+def _server_class():
+    """asyncua's Server with two changes to its endpoints, made where it builds them: every
+    user name token policy asks for the password encrypted with the server's certificate
+    (Basic256Sha256; asyncua offers it in clear on a SignAndEncrypt channel), and a None
+    channel carries no client certificate (OPC 10000-4 7.1: ignored with SecurityPolicy None),
+    so the user manager sees one only on Sign and SignAndEncrypt channels."""
+    from asyncua import Server, ua
+    from asyncua.crypto import security_policies as sp
+
+    class _Factory(sp.SecurityPolicyFactory):
+        def create(self, peer_certificate):
+            return super().create(None if self.mode == ua.MessageSecurityMode.None_ else peer_certificate)
+
+    class CncUaServer(Server):
+        async def _setup_server_nodes(self):
+            await super()._setup_server_nodes()
+            self._policies[:] = [_Factory(f.cls, f.mode, f.certificate, f.private_key, f.permission_ruleset)
+                                 for f in self._policies]
+            for edp in self.iserver.endpoints:
+                for tok in edp.UserIdentityTokens:
+                    if tok.TokenType == ua.UserTokenType.UserName:
+                        tok.SecurityPolicyUri = sp.SecurityPolicyBasic256Sha256.URI
+
+    return CncUaServer
 
 
 def _mtime(path: str | None) -> int | None:
@@ -344,8 +608,12 @@ class CncServer:
     """The asyncua server and the CNC objects (module docstring). ``axes``: [{name,
     rotational}] in loop order; ``control``: the daemon's control socket."""
 
-    def __init__(self, oc, users, cert, key, cert_dir, control, axes, max_program_bytes):
+    def __init__(self, oc, users, cert, key, cert_dir, control, axes, max_program_bytes, pki=None,
+                 lockout_s=None):
+        from motorctl.app.login import LOCKOUT_S, LoginGuard, state_path
         self.oc, self.users, self.cert, self.key, self.cert_dir = oc, users, cert, key, cert_dir
+        self.trust = TrustList(pki or cert_dir)
+        self.guard = LoginGuard(state_path(control), LOCKOUT_S if lockout_s is None else lockout_s, "OPC UA")
         self.control, self.axes, self.max_program_bytes = control, axes, max_program_bytes
         self.names = [a["name"] for a in axes]
         self.vars: dict = {}                 # key -> (node id, variant type)
@@ -374,11 +642,13 @@ class CncServer:
         return str(cert), str(key)
 
     async def setup(self):
-        from asyncua import Server, ua
+        from asyncua import ua
         self.app_uri = f"urn:{socket.gethostname()}:motorctl"
         anon = self.oc.anonymous == "read"
-        s = self.server = Server(user_manager=_role_user(self.users, anon))
+        um = _role_user(self.users, anon, self.guard, self.trust)
+        s = self.server = _server_class()(user_manager=um)
         await s.init()
+        _guard_tokens(s.iserver, um)
         s.set_endpoint(self.oc.endpoint)
         s.set_server_name("motorctl")
         await s.set_application_uri(self.app_uri)
@@ -390,9 +660,9 @@ class CncServer:
         if "Basic256Sha256" in self.oc.security:
             policies += [ua.SecurityPolicyType.Basic256Sha256_Sign,
                          ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt]
-            cert, key = await self._certificate()
-            await s.load_certificate(cert)
-            await s.load_private_key(key)
+        cert, key = await self._certificate()      # on None too: passwords are encrypted with it
+        await s.load_certificate(cert)
+        await s.load_private_key(key)
         s.set_security_policy(policies, permission_ruleset=_ruleset())
         s.set_identity_tokens(([ua.AnonymousIdentityToken] if anon else []) + [ua.UserNameIdentityToken])
         self.ns = await s.register_namespace(CNC_NS)
