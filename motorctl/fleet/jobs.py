@@ -423,11 +423,6 @@ def known_logs(out_dir) -> dict:
     return {"hashes": set(cols[0]), "runs": runs}
 
 
-def done_hashes(out_dir) -> set:
-    """Content hashes of the logs already in the dataset in ``out_dir``."""
-    return known_logs(out_dir)["hashes"]
-
-
 def _write_part(table, folder: Path, name: str) -> Path:
     """Write ``table`` (:func:`schema`) as ``folder/name`` without its ``machine`` column:
     under a temporary name, then renamed."""
@@ -747,6 +742,6 @@ def _run(client, urls, out, known, window_s, retries, progress, task, flush_rows
 
 
 __all__ = ["FLUSH_ROWS", "FLUSH_S", "HEAD_RECORDS", "LOG_SUFFIXES", "PARAMETERS", "PARTITIONS", "PartWriter", "RETRIES",
-           "Z95", "check_scheduler", "collect_sources", "compact", "content_hash", "default_workers", "done_hashes",
+           "Z95", "check_scheduler", "collect_sources", "compact", "content_hash", "default_workers",
            "fleet_client", "identify_window", "known_logs", "local_copy", "part_files", "partition_dir",
            "partitioning", "read_dataset", "run_fleet", "run_id", "scan_log", "schema", "windows_of"]
