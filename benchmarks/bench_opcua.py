@@ -16,8 +16,20 @@ Prints the read latency (median, p99, max) per session; per daemon the CPU secon
 of the I/O process and of the OPC UA process over the measured window, the loop's turnaround
 p99.9 and max (the run log's ``turnaround_ns``), missed periods and rows lost.
 
+``--logins N``: instead, the time of a refused login for a known name (a wrong password) and
+for an unknown one, N of each, interleaved, on both surfaces served by one process of their own
+(the OPC UA server, :class:`~motorctl.app.daemon.opcua_server.CncServer`, and the operator
+page, :class:`~motorctl.app.daemon.operator_page.OperatorPage`; no daemon: a login does not ask
+it), ``--hogs`` CPU-bound processes beside them: OPC UA's ActivateSession on a None channel
+(asyncua's client, the password encrypted with the server's certificate; the channel and the
+session opened before the clock starts), the page's ``POST /login`` (its 0.5 s delay of a
+refusal included). The login state is cleared before each attempt (as ``motorctl users
+unlock`` does), so every attempt is checked rather than backed off. Prints the medians, their
+ratio and the spread.
+
     python benchmarks/bench_opcua.py                    # 4 hogs, 20 s per daemon
     python benchmarks/bench_opcua.py --hogs 0 --seconds 5
+    python benchmarks/bench_opcua.py --logins 20 --hogs 0
 """
 
 from __future__ import annotations
@@ -142,15 +154,131 @@ def measure(tmp: Path, opcua: bool, a) -> dict:
     return out
 
 
+KNOWN, PASSWORD, UNKNOWN = "olga", "op-secret-4711", "nobody"
+
+
+def _serve_logins(tmp: str, ua_url: str, http_port: int, ready) -> None:
+    """The child: the OPC UA server and the operator page on loopback, one users file."""
+    import logging
+
+    from aiohttp import web
+
+    from motorctl.app.daemon.opcua_server import CncServer
+    from motorctl.app.daemon.operator_page import OperatorPage
+    from motorctl.config import OpcuaConfig
+    from motorctl.app.users import load_users
+    logging.basicConfig(level=logging.CRITICAL)
+    logging.getLogger("motorctl.login").disabled = True       # the journal: not measured here
+
+    async def go():
+        srv = CncServer(OpcuaConfig(endpoint=ua_url), load_users(f"{tmp}/users.yaml"), None, None,
+                        f"{tmp}/opcua", f"{tmp}/m.sock", [{"name": "X", "rotational": False}], 1 << 20)
+        await srv.setup()
+        await srv.server.start()
+        app = web.Application()
+        OperatorPage(f"{tmp}/m.sock", f"{tmp}/users.yaml", ["X"], lambda n: b"").add_routes(app)
+        runner = web.AppRunner(app, access_log=None)
+        await runner.setup()
+        await web.TCPSite(runner, "127.0.0.1", http_port).start()
+        ready.set()
+        await asyncio.sleep(3600)
+    asyncio.run(go())
+
+
+async def _ua_refusal(url: str, name: str) -> float:
+    """The time of one refused ActivateSession [s] (channel and session opened before)."""
+    from asyncua import Client as UaClient
+    c = UaClient(url, timeout=30)
+    await c.connect_socket()
+    try:
+        await c.send_hello()
+        await c.open_secure_channel()
+        await c.create_session()
+        t = time.perf_counter()
+        try:
+            await c.activate_session(name, "not-the-password")
+            raise AssertionError(f"{name}: logged in with a wrong password")
+        except Exception as exc:                    # noqa: BLE001 - BadUserAccessDenied expected
+            if "BadUserAccessDenied" not in type(exc).__name__ + str(exc):
+                raise
+        return time.perf_counter() - t
+    finally:
+        c.disconnect_socket()
+
+
+async def _page_refusal(base: str, name: str) -> float:
+    import aiohttp
+    async with aiohttp.ClientSession() as s:
+        t = time.perf_counter()
+        async with s.post(base + "/login", json={"name": name, "password": "not-the-password"}) as r:
+            await r.read()
+            assert r.status == 403, (name, r.status)
+        return time.perf_counter() - t
+
+
+def logins(a) -> int:
+    """``--logins N``: the refusal times of a known and an unknown name on both surfaces."""
+    import yaml
+
+    import logging
+
+    from motorctl.app.login import state_path
+    from motorctl.app.users import hash_password
+    logging.getLogger("asyncua").setLevel(logging.CRITICAL)     # each refusal is a ServiceFault
+    with tempfile.TemporaryDirectory(prefix="bench-logins-") as tmp:
+        Path(tmp, "users.yaml").write_text(yaml.safe_dump({"users": {
+            KNOWN: {"password": hash_password(PASSWORD), "roles": ["operator"]}}}))
+        state = state_path(f"{tmp}/m.sock")
+        ua_url, port = f"opc.tcp://127.0.0.1:{_port()}/motorctl", _port()
+        ready = mp.Event()
+        child = mp.Process(target=_serve_logins, args=(tmp, ua_url, port, ready), daemon=True)
+        child.start()
+        try:
+            if not ready.wait(300):
+                raise SystemExit("the servers did not start within 300 s")
+            times = {}
+            for surface, one in (("OPC UA", lambda n: asyncio.run(_ua_refusal(ua_url, n))),
+                                 ("operator page", lambda n: asyncio.run(_page_refusal(f"http://127.0.0.1:{port}", n)))):
+                got = {KNOWN: [], UNKNOWN: []}
+                for i in range(a.logins + 2):                 # 2 of each to warm up, not counted
+                    for name in ((KNOWN, UNKNOWN) if i % 2 else (UNKNOWN, KNOWN)):
+                        if os.path.exists(state):
+                            os.unlink(state)
+                        t = one(name)
+                        if i >= 2:
+                            got[name].append(t)
+                times[surface] = got
+        finally:
+            child.kill()
+    print(f"host: {os.cpu_count()} CPUs, {a.hogs} hogs at nice 0; load average {os.getloadavg()[0]:.1f}; "
+          f"{a.logins} refusals per name and surface, interleaved")
+    for surface, got in times.items():
+        k, u = (np.asarray(got[n]) * 1e3 for n in (KNOWN, UNKNOWN))
+        mk, mu = statistics.median(k), statistics.median(u)
+        print(f"  {surface:13s} known name (wrong password): median {mk:7.1f} ms (p10 {np.percentile(k, 10):.1f}, "
+              f"p90 {np.percentile(k, 90):.1f}); unknown name: median {mu:7.1f} ms (p10 {np.percentile(u, 10):.1f}, "
+              f"p90 {np.percentile(u, 90):.1f}); unknown / known {mu / mk:.3f}")
+    print(f"rerun: python benchmarks/bench_opcua.py --logins {a.logins} --hogs {a.hogs}")
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--hogs", type=int, default=4, help="CPU-bound processes at nice 0")
     ap.add_argument("--seconds", type=float, default=20.0, help="measured time per daemon [s]")
     ap.add_argument("--reads", type=int, default=2000, help="reads per session at most")
+    ap.add_argument("--logins", type=int, default=0, metavar="N",
+                    help="instead: N refused logins of a known and of an unknown name on each surface")
     a = ap.parse_args()
     hogs = [mp.Process(target=_spin, daemon=True) for _ in range(a.hogs)]
     for h in hogs:
         h.start()
+    if a.logins:
+        try:
+            return logins(a)
+        finally:
+            for h in hogs:
+                h.kill()
     try:
         res = {}
         for opcua in (False, True):
