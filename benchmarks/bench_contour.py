@@ -1,32 +1,31 @@
-"""Contouring: the planner's time and contour error against the time-optimal bound.
+"""Contouring: the planner's time and its distance from the programmed path against the
+time-optimal bound, on the ISO 230-4 circle and CAM programs of short segments.
 
-    python benchmarks/bench_contour.py [--grid 4000]
+    python benchmarks/bench_contour.py [--grid 0.2] [--program FILE ...]
 
-For each path (the ISO 230-4 test program of R 50 mm at 50 and 100 mm/s; a plasma cut path of
-this file with lead-in arcs of 1-2 mm, rounded corners of 3 mm, a slot of 3 mm ends and a hole of
-8 mm, M3/M5, F5000, G64 P0.01) on configs/gantry.yaml's limits (X: 2 m/s, 40 m/s², 4000 m/s³;
-Y: 1 m/s, 10 m/s², 1000 m/s³):
+Per program on configs/gantry.yaml's limits (X: 2 m/s, 40 m/s², 4000 m/s³; Y: 1 m/s, 10 m/s²,
+1000 m/s³), G64 P as programmed:
 
-* **planned**: the time :func:`motorctl.motion.plan` spends moving (its duration less its rests
-  and the filters' delay (T1 + T2)/2 + one period);
-* **TOPP-RA**: the time-optimal time of the same geometric path (H. Pham, Q.-C. Pham, "A new
-  approach to time-optimal path parameterization based on reachability analysis", IEEE
-  Trans. Robotics 34(3) 2018; the ``toppra`` package), acceleration-limited (each axis's a_max,
-  no jerk limit: a lower bound the jerk-limited planner cannot reach), each axis's v_max and the
-  programmed feed (a third coordinate s with v_max = feed). The path is cut where its tangent
-  turns (a sharp corner: the exact path stops there) and at the machine words (the planner
-  stops there too); each piece from rest to rest, a cubic spline of the path sampled every
-  0.05 mm along its length (lines and arcs exactly at their ends);
-* **contour error**: the largest distance of the planned setpoints (every 0.2 ms) from the
-  programmed path (:func:`motorctl.motion.path.contour_error`) against the G64 P tolerance;
-* per arc of the cut path: the planned path speed on it (the top of its profile before the
-  filters), TOPP-RA's, and the centripetal bound √(a_max,Y·R) (Y's 10 m/s²: the axis that limits
-  a circle).
+* **planned**: the setpoints' time from the first motion to the end of the last (every 0.2 ms:
+  the rests at exact stops, machine words and dwells included);
+* **TOPP-RA**: the time-optimal time on the same path with every line-line corner replaced by
+  the largest tangent arc within P (its ends within half of each line: LinuxCNC's blend), each
+  axis's v_max and a_max and the programmed feed (H. Pham, Q.-C. Pham, "A new approach to
+  time-optimal path parameterization based on reachability analysis", IEEE Trans. Robotics
+  34(3) 2018; the ``toppra`` package). Acceleration-limited, no jerk limit: a lower bound the
+  jerk-limited planner cannot reach. The path is cut into chains from rest to rest where the
+  program stops (a machine word, a dwell, a pause, G61, a rapid's ends) or turns at a join no
+  blend rounds (more than 1 mrad where an arc meets); each chain a cubic spline through points
+  of the path every ``--grid`` mm or closer (a blend arc in 8 points at least); the program's
+  dwells added;
+* **distance**: the setpoints' largest distance from the programmed path (the program's lines
+  and arcs as :func:`motorctl.motion.gcode.parse` reads them, not the planner's blended path;
+  :func:`motorctl.motion.path.contour_error`) on every sample, against P.
 
-``--uncompensated`` plans with the rule before 2026-11 (no compensation of the filters' radial
-shrink, v ≤ √(12·R·P/(T1² + T2²))) for the comparison.
-
-Prints two tables (Markdown). Needs ``toppra`` (``pip install 'motorctl[bench]'``).
+Programs: the ISO 230-4 test of R 50 mm at 50 and 100 mm/s; configs/cut_path.ngc (lead-in arcs
+1-3 mm, sharp corners, 0.5 mm chords, F5000/F3000); configs/dxf2gcode_lid_wing.ngc (DXF2GCODE's
+output, 220 moves: scaled data, its header says from where); configs/plate_0932.ngc (346 moves of
+a plasma post's format). Needs ``toppra`` (``pip install 'motorctl[bench]'``).
 """
 
 from __future__ import annotations
@@ -39,7 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 
 from motorctl.motion import AxisLimits, GcodeSettings, contour_error, parse, plan  # noqa: E402
 from motorctl.motion.circle import circle_program  # noqa: E402
@@ -48,187 +48,169 @@ from motorctl.motion.gcode import Arc, Dwell, Event, Line, Pause  # noqa: E402
 LIMITS = [AxisLimits(2.0, 40.0, 4000.0), AxisLimits(1.0, 10.0, 1000.0)]
 SETTINGS = GcodeSettings(axes=["X", "Y"], words={"M3": "torch", "M5": "torch", "S": "ignore"})
 H = 2e-4
-
-#: the cut path: a plate 100 x 60 mm with corners rounded R 3 mm entered on a 2 mm lead-in arc,
-#: a slot with R 3 mm ends on a 1.5 mm lead-in, an R 8 mm hole on a 1 mm lead-in
-CUT = """%
-(bench_contour: a plasma cut path, lead-in arcs 1-2 mm)
-G17 G21 G90 G94 G64 P0.01
-G0 X68 Y22
-M3
-G3 X70 Y20 I2 J0 F5000
-G1 X117 Y20
-G3 X120 Y23 I0 J3
-G1 X120 Y77
-G3 X117 Y80 I-3 J0
-G1 X23 Y80
-G3 X20 Y77 I0 J-3
-G1 X20 Y23
-G3 X23 Y20 I3 J0
-G1 X72 Y20
-G3 X74 Y22 I0 J2
-M5
-G0 X88.5 Y48.5
-M3
-G3 X90 Y47 I1.5 J0 F5000
-G1 X100 Y47
-G3 X100 Y53 I0 J3
-G1 X80 Y53
-G3 X80 Y47 I0 J-3
-G1 X92 Y47
-G3 X93.5 Y48.5 I0 J1.5
-M5
-G0 X57 Y51
-M3
-G2 X58 Y50 I0 J-1 F5000
-G2 X58 Y50 I-8 J0
-G2 X57 Y49 I-1 J0
-M5
-M2
-%
-"""
+PROGRAMS = ["configs/cut_path.ngc", "configs/dxf2gcode_lid_wing.ngc", "configs/plate_0932.ngc"]
 
 
-def _points(seg, step: float) -> np.ndarray:
-    """Points along one move every ~step [m], both ends included: shape (n, 2)."""
-    if isinstance(seg, Line):
-        n = max(2, int(math.ceil(np.linalg.norm(seg.end[:2] - seg.start[:2]) / step)) + 1)
-        f = np.linspace(0, 1, n)[:, None]
-        return seg.start[:2] + f * (seg.end[:2] - seg.start[:2])
-    c, sw = seg.center[:2], seg.sweep
-    r = seg.radius
-    phi0 = math.atan2(seg.start[1] - c[1], seg.start[0] - c[0])
-    n = max(3, int(math.ceil(abs(sw) * r / step)) + 1)
-    phi = phi0 + np.linspace(0, sw, n)
-    return np.column_stack([c[0] + r * np.cos(phi), c[1] + r * np.sin(phi)])
+# ---------------------------------------------------------------- the reference path (TOPP-RA's)
+class _Seg:
+    """A line (c None) or an arc of the reference path in XY [m]."""
+
+    def __init__(self, a, b, feed, c=None, sweep=0.0, r=0.0):
+        self.a, self.b, self.feed, self.c, self.sweep, self.r = np.asarray(a, float), np.asarray(b, float), feed, c, sweep, r
+
+    @property
+    def length(self):
+        return float(np.linalg.norm(self.b - self.a)) if self.c is None else abs(self.sweep) * self.r
+
+    def tangent(self, at_end):
+        if self.c is None:
+            d = self.b - self.a
+            return d / np.linalg.norm(d)
+        p = (self.b if at_end else self.a) - self.c
+        t = np.array([-p[1], p[0]]) if self.sweep > 0 else np.array([p[1], -p[0]])
+        return t / np.linalg.norm(t)
+
+    def points(self, step):
+        if self.c is None:
+            n = max(2, int(math.ceil(self.length / step)) + 1)
+            return self.a + np.linspace(0, 1, n)[:, None] * (self.b - self.a)
+        phi0 = math.atan2(self.a[1] - self.c[1], self.a[0] - self.c[0])
+        n = max(8, int(math.ceil(self.length / step)) + 1)
+        phi = phi0 + np.linspace(0, self.sweep, n)
+        return np.column_stack([self.c[0] + self.r * np.cos(phi), self.c[1] + self.r * np.sin(phi)])
 
 
-def _tangent(seg, at_end: bool) -> np.ndarray:
-    if isinstance(seg, Line):
-        d = seg.end[:2] - seg.start[:2]
-        return d / np.linalg.norm(d)
-    p = (seg.end if at_end else seg.start)[:2] - seg.center[:2]
-    t = np.array([-p[1], p[0]]) if seg.sweep > 0 else np.array([p[1], -p[0]])
-    return t / np.linalg.norm(t)
-
-
-def _pieces(program) -> list[list]:
-    """The moves cut into chains from rest to rest: at a machine word, a dwell, a pause, a rapid
-    and where the tangent turns by more than 1e-6 rad (the exact path stops there)."""
-    out, cur, prev = [], [], None
+def _chains(program):
+    """The program's feed moves in chains from rest to rest, the line-line corners blended within
+    the tolerance by the largest tangent arc whose ends lie within half of each line; and the
+    program's dwell seconds."""
+    chains, cur, dwell = [], [], 0.0
+    prev = None
     for seg in program.segments:
-        if isinstance(seg, (Dwell, Pause, Event)) or (isinstance(seg, Line) and seg.feed is None):
+        stop = isinstance(seg, (Dwell, Pause)) or (isinstance(seg, Event) and not seg.synchronized)
+        if isinstance(seg, Dwell):
+            dwell += seg.seconds
+        if stop or (isinstance(seg, Line) and seg.feed is None) or (isinstance(seg, (Line, Arc)) and prev is not None
+                                                                    and prev.tolerance == 0.0):
             if cur:
-                out.append(cur)
+                chains.append(cur)
             cur, prev = [], None
-            continue
+            if not isinstance(seg, (Line, Arc)) or seg.feed is None:
+                if isinstance(seg, Line):          # a rapid: its own chain at the axes' limits
+                    chains.append([_Seg(seg.start[:2], seg.end[:2], math.inf)])
+                continue
         if not isinstance(seg, (Line, Arc)):
             continue
-        if prev is not None and np.linalg.norm(_tangent(prev, True) - _tangent(seg, False)) > 1e-6:
-            out.append(cur)
-            cur = []
-        cur.append(seg)
+        if isinstance(seg, Line):
+            s = _Seg(seg.start[:2], seg.end[:2], seg.feed)
+        else:
+            s = _Seg(seg.start[:2], seg.end[:2], seg.feed, seg.center[:2].copy(), seg.sweep, seg.radius)
+        s.room_a = s.room_b = 0.5 * s.length
+        if cur:
+            p = cur[-1]
+            ta, tb = p.tangent(True), s.tangent(False)
+            theta = math.acos(float(np.clip(ta @ tb, -1, 1)))
+            tol = prev.tolerance
+            if theta > 1e-3 and p.c is None and s.c is None and math.pi - theta > 1e-3:
+                half = theta / 2
+                r = min(p.room_b, s.room_a) / math.tan(half)
+                if math.isfinite(tol):
+                    r = min(r, tol / (1 / math.cos(half) - 1))
+                lt = r * math.tan(half)
+                v = p.b.copy()
+                p.b = v - ta * lt
+                s.a = v + tb * lt
+                sgn = 1.0 if ta[0] * tb[1] - ta[1] * tb[0] > 0 else -1.0
+                c = p.b + r * sgn * np.array([-ta[1], ta[0]])
+                cur.append(_Seg(p.b, s.a, min(p.feed, s.feed), c, sgn * theta, r))
+            elif theta > 1e-3:
+                chains.append(cur)
+                cur = []
+        cur.append(s)
         prev = seg
     if cur:
-        out.append(cur)
-    return out
+        chains.append(cur)
+    return chains, dwell
 
 
-def toppra_time(chain: list, limits, grid: int) -> tuple[float, list[float]]:
-    """TOPP-RA's time [s] over one chain of moves (from rest to rest) and each move's top speed
-    [m/s] on it. Raises RuntimeError when TOPP-RA finds no parameterisation."""
+def toppra_time(chain, limits, grid_m: float) -> float:
+    """TOPP-RA's time [s] over one chain of moves from rest to rest. Raises RuntimeError when
+    TOPP-RA finds no parameterisation."""
     import toppra as ta
     import toppra.algorithm as algo
     import toppra.constraint as constraint
     ta.setup_logging("WARNING")
-    pts, bounds = [], [0.0]
+    pts = []
     for seg in chain:
-        p = _points(seg, 5e-5)
+        if seg.length <= 0:
+            continue
+        p = seg.points(min(grid_m, seg.length / 8 if seg.c is not None else grid_m))
         pts.append(p if not pts else p[1:])
     xy = np.concatenate(pts)
     ds = np.linalg.norm(np.diff(xy, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(ds)])
-    for seg in chain:
-        bounds.append(bounds[-1] + (seg.length))
+    keep = np.concatenate([[True], ds > 1e-12])
+    xy = xy[keep]
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
     feed = max(seg.feed for seg in chain)
-    way = np.column_stack([xy, s])                      # the third coordinate: s (feed limit)
+    feed = min(feed, 1e3)
+    way = np.column_stack([xy, s])                      # the third coordinate: s (the feed's limit)
     path = ta.SplineInterpolator(s, way)
     vlim = np.array([[-lim.v_max, lim.v_max] for lim in limits] + [[-feed, feed]])
     alim = np.array([[-lim.a_max, lim.a_max] for lim in limits] + [[-1e6, 1e6]])
     cons = [constraint.JointVelocityConstraint(vlim), constraint.JointAccelerationConstraint(alim)]
-    n = max(grid, int(s[-1] / 2e-4))
-    grid_s = np.linspace(0, s[-1], n + 1)
-    inst = algo.TOPPRA(cons, path, gridpoints=grid_s, parametrizer="ParametrizeConstAccel")
+    inst = algo.TOPPRA(cons, path, gridpoints=s, parametrizer="ParametrizeConstAccel")
     inst.compute_parameterization(0.0, 0.0)
     sd = inst.problem_data.sd_vec
     if sd is None or not np.all(np.isfinite(sd)):
         raise RuntimeError(f"TOPP-RA: no parameterisation ({inst.problem_data.return_code})")
-    # constant path acceleration between grid points (the parametrizer's): Δt = 2 Δs / (ṡ0 + ṡ1)
-    t = float(np.sum(2 * np.diff(grid_s) / np.maximum(sd[1:] + sd[:-1], 1e-12)))
-    tops = [float(sd[(grid_s >= a) & (grid_s <= b)].max()) for a, b in zip(bounds[:-1], bounds[1:])]
-    return t, tops
+    return float(np.sum(2 * np.diff(s) / np.maximum(sd[1:] + sd[:-1], 1e-12)))
 
 
-def planned_moving_time(traj) -> float:
-    """The planner's duration less its rests (pieces of length 0) and the filters' delay."""
-    rest = float(np.sum(np.where(traj._len == 0.0, traj._ta + traj._tc + traj._td, 0.0)))
-    return traj.duration - rest - (traj._m + 1) * traj.period
+def planned_time(out: np.ndarray) -> float:
+    """The setpoints' time [s] from the first sample that moves to the last (rests included)."""
+    moving = np.flatnonzero(np.any(np.abs(out[:, 1]) > 0, axis=1))
+    return (moving[-1] - moving[0] + 1) * H if moving.size else 0.0
 
 
-def setpoints(traj) -> np.ndarray:
-    n = int(math.ceil(traj.duration / H)) + 2
-    out = np.empty((n, 3, len(traj.axes)))
-    traj.sample_into(0.0, H, out)
-    return out
-
-
-def bench(name: str, text: str, tol: float, grid: int, arcs_table: list | None = None) -> dict:
+def bench(name: str, text: str, grid_m: float) -> dict:
     prog = parse(text, name, SETTINGS)
     t0 = time.perf_counter()
     tr = plan(prog, ["X", "Y"], LIMITS)
     t_plan = time.perf_counter() - t0
-    sp = setpoints(tr)
-    err = contour_error(prog, sp[:, 0])
-    t_top, tops = 0.0, {}
-    for chain in _pieces(prog):
-        t, tp = toppra_time(chain, LIMITS, grid)
-        t_top += t
-        tops.update({seg.line: v for seg, v in zip(chain, tp)})
-    if arcs_table is not None:
-        vp = {int(ln): float(v) for ln, v, kind in zip(tr._lines, tr._vp, tr._kind) if kind == 1}
-        for seg in prog.moves:
-            if isinstance(seg, Arc) and seg.radius < 5e-3:
-                arcs_table.append((name, seg.line, seg.radius, abs(seg.sweep), vp[seg.line], tops[seg.line],
-                                   math.sqrt(LIMITS[1].a_max * seg.radius), seg.feed))
-    return {"name": name, "planned": planned_moving_time(tr), "toppra": t_top, "err": float(err.max()),
-            "tol": tol, "plan_s": t_plan}
+    n = int(math.ceil(tr.duration / H)) + 2
+    out = np.empty((n, 3, 2))
+    tr.sample_into(0.0, H, out)
+    err = contour_error(prog, out[:, 0])
+    chains, dwell = _chains(prog)
+    t_top = dwell + sum(toppra_time(c, LIMITS, grid_m) for c in chains if sum(s.length for s in c) > 0)
+    tol = min((s.tolerance for s in prog.moves if s.feed is not None), default=math.inf)
+    j = np.abs(np.diff(out[:, 2], axis=0)).max(axis=0) / H
+    return {"name": name, "moves": len(prog.moves), "planned": planned_time(out), "toppra": t_top,
+            "err": float(err.max()), "tol": tol, "plan_s": t_plan,
+            "limits": (np.abs(out[:, 1]).max(axis=0), np.abs(out[:, 2]).max(axis=0), j)}
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--grid", type=int, default=4000, help="TOPP-RA grid points per piece, at least (default 4000)")
-    ap.add_argument("--uncompensated", action="store_true",
-                    help="the former arc rule: no shrink compensation, v <= sqrt(12 R P / (T1^2 + T2^2))")
+    ap.add_argument("--grid", type=float, default=0.2, help="TOPP-RA's points along the path [mm] (default 0.2)")
+    ap.add_argument("--program", action="append", help="a program instead of the default set (repeatable)")
     args = ap.parse_args(argv)
-    if args.uncompensated:
-        from motorctl.motion import planner
-        planner.ARC_COMPENSATE, planner.ARC_RESIDUAL = False, 1.0
-    rows, arcs = [], []
-    for feed in (0.05, 0.1):
-        text, _ = circle_program(0.05, feed, center=(0.2, 0.2))
-        rows.append(bench(f"ISO 230-4 R 50 mm F{feed * 6e4:.0f}", text, 1e-5, args.grid))
-    rows.append(bench("cut path (lead-ins 1-2 mm, F5000)", CUT, 1e-5, args.grid, arcs))
-    print("| path | planned s | TOPP-RA s | planned / TOPP-RA | contour error µm | G64 P µm |")
-    print("|---|---|---|---|---|---|")
+    rows = []
+    if not args.program:
+        for feed in (0.05, 0.1):
+            text, _ = circle_program(0.05, feed, center=(0.2, 0.2))
+            rows.append(bench(f"ISO 230-4 R 50 mm F{feed * 6e4:.0f}", text, args.grid * 1e-3))
+    for p in args.program or PROGRAMS:
+        path = Path(p) if Path(p).is_absolute() else ROOT / p
+        rows.append(bench(p, path.read_text(), args.grid * 1e-3))
+    print("| program | moves | planned s | TOPP-RA s | planned / TOPP-RA | largest distance µm | G64 P µm | "
+          "largest v X/Y mm/s, a m/s², j m/s³ | planned in s |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['name']} | {r['planned']:.3f} | {r['toppra']:.3f} | {r['planned'] / r['toppra']:.2f} | "
-              f"{r['err'] * 1e6:.2f} | {r['tol'] * 1e6:.0f} |")
-    print()
-    print("| arc (line) | R mm | sweep ° | planned mm/s | TOPP-RA top mm/s | √(a_Y·R) mm/s | feed mm/s |")
-    print("|---|---|---|---|---|---|---|")
-    for name, line, r, sw, v, vt, vc, f in arcs:
-        print(f"| {line} | {r * 1e3:g} | {math.degrees(sw):.0f} | {v * 1e3:.1f} | {vt * 1e3:.1f} | {vc * 1e3:.1f} | "
-              f"{f * 1e3:.1f} |")
+        v, a, j = r["limits"]
+        print(f"| {r['name']} | {r['moves']} | {r['planned']:.3f} | {r['toppra']:.3f} | {r['planned'] / r['toppra']:.3f} | "
+              f"{r['err'] * 1e6:.2f} | {r['tol'] * 1e6:.0f} | {v[0] * 1e3:.0f}/{v[1] * 1e3:.0f}, {a[0]:.1f}/{a[1]:.1f}, "
+              f"{j[0]:.0f}/{j[1]:.0f} | {r['plan_s']:.2f} |")
     return 0
 
 

@@ -11,8 +11,8 @@ Accepted (semantics of the LinuxCNC G-code reference, "G Codes" and "M Codes" ch
 - ``G0`` ``G1`` ``G2`` ``G3`` (arcs in the XY plane, centre by ``I J`` (incremental, ``G91.1``; or
   absolute ``G90.1``) or radius ``R`` (negative R: the arc over 180°), ``P`` turns, ``Z`` helix),
   ``G4 P`` (dwell, seconds), ``G17``, ``G20``/``G21``, ``G90``/``G91``, ``G94``, ``G61``/``G61.1``
-  (exact stop), ``G64 [P] [Q]`` (blend tolerance P; Q, LinuxCNC's naive-CAM merging tolerance, is
-  read and has no effect here), ``G53`` (this line in machine coordinates), ``G54``-``G59``,
+  (exact stop), ``G64 [P] [Q]`` (blend tolerance P; Q, LinuxCNC's naive-CAM tolerance, P when not
+  given: ``Line.naive_cam``), ``G53`` (this line in machine coordinates), ``G54``-``G59``,
   ``G59.1``-``G59.3``, ``G10 L2 P`` (set a work offset), ``G92``/``G92.1``, ``G28`` (through the
   given point to the configured reference point), ``G40``/``G49``/``G80`` (cancel words: nothing
   they cancel can be active here), ``F``, ``N``, ``%`` lines, comments ``( )`` and ``;``, upper and
@@ -141,6 +141,8 @@ class Line:
 
     feed: path speed [m/s]; None for a rapid (G0: each axis's own limits). tolerance: the blend
     tolerance at its end [m] (0: exact stop, G61; inf: G64 without P). line: source line (1-based).
+    naive_cam: G64's Q [m], LinuxCNC's naive-CAM tolerance: consecutive straight feed moves whose
+    points lie within it of one line may be run as that line (0: none; Q defaults to P).
     """
 
     start: np.ndarray
@@ -148,6 +150,7 @@ class Line:
     feed: float | None
     tolerance: float
     line: int
+    naive_cam: float = 0.0
 
     @property
     def length(self) -> float:
@@ -335,6 +338,7 @@ class _Reader:
         self.f_word = 0.0                # the F number, in the active units per minute (rs274ngc keeps
                                          # the number across G20/G21)
         self.tol = math.inf              # G64 without P at start (LinuxCNC default G64)
+        self.q = 0.0                     # G64 Q (naive-CAM tolerance; P when Q is not given)
         self.ref = np.array([settings.reference_point_m.get(a, 0.0) for a in AXES])
         self.segments: list[Segment] = []
         self.warnings: list[str] = []
@@ -407,7 +411,8 @@ class _Reader:
                 t[2] = base[2] + float(z) * u
             if t != p:
                 end = np.array(t)
-                self.segments.append(Line(self.pos, end, None if motion == 0 else self.feed, self.tol, n))
+                self.segments.append(Line(self.pos, end, None if motion == 0 else self.feed, self.tol, n,
+                                          0.0 if motion == 0 else self.q))
                 self.pos = end
         return True
 
@@ -546,10 +551,15 @@ class _Reader:
                     used.add("P")
                 else:
                     self.tol = math.inf
+                self.q = self.tol if math.isfinite(self.tol) else 0.0
                 if "Q" in vals:
+                    if vals["Q"].value < 0:
+                        raise self.err(n, vals["Q"], "negative naive-CAM tolerance")
+                    self.q = vals["Q"].value * self.unit
                     used.add("Q")
             else:
                 self.tol = 0.0
+                self.q = 0.0
         if "Q" in vals and "Q" not in used:
             raise self.err(n, vals["Q"], "Q is read only with G64 (its naive-CAM tolerance)")
         # 17 distance modes
@@ -685,7 +695,8 @@ class _Reader:
     def _move(self, n: int, target: np.ndarray, feed: float | None) -> None:
         if target.tolist() == self.pos.tolist():
             return
-        self.segments.append(Line(self.pos.copy(), target.copy(), feed, self.tol, n))
+        self.segments.append(Line(self.pos.copy(), target.copy(), feed, self.tol, n,
+                                  0.0 if feed is None else self.q))
         self.pos = target
 
     def _arc(self, n: int, w: _Word, target: np.ndarray, vals: dict[str, _Word]) -> None:

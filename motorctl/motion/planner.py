@@ -31,28 +31,29 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from motorctl.motion import blend as _bl
+from motorctl.motion.blend import Geo
 from motorctl.motion.gcode import AXES, Arc, Dwell, Event, Line, Pause, Program
 
 #: the loop's period [s] (5 kHz): the default grid of the filters
 PERIOD_S = 2e-4
-#: share of each axis's a_max the path-speed profile uses; the rest absorbs the corners'
-#: velocity steps. On an arc, half of the share is the path acceleration and half the centripetal
-#: v²/R, so a corner step next to an arc still finds the other half free
+#: share of each axis's a_max (along the tangent) the path-speed profile uses on a curve and
+#: around a join (the rest: the normal acceleration v²/R); a line's own zone uses all of it
 ACCEL_SHARE = 0.5
-#: the arc tolerance used where G61 (exact stop) asks for none: the filters always round an arc
-#: a little (its radius shrinks by v²(T1² + T2²)/(24 R))
+#: share of each axis's j_max a join's curvature step and kink take (spread over T2 by the second
+#: moving average); the rest is the path acceleration's ramps and, on a curve, the jerk of moving
+#: on it (3·s̈·ṡ·κ + ṡ³κ²). A line alone takes all of it for its ramps
+JERK_STEP = 0.5
+#: the second moving average's length T2 [s]: it spreads a join's curvature step over T2
+SMOOTH_S = 2e-3
+#: a join or a blend the path could pass only below this share of its neighbours' speed is an
+#: exact stop instead (stopping costs less than crawling through the widened speed zone)
+STOP_SHARE = 0.35
+#: a line shorter than this between two blends [m] is passed within one period at any speed
+#: where its curvature steps would matter (docs/motion.md, "The planner")
+REMNANT_M = 5e-7
+#: the arc tolerance used where G61 (exact stop) asks for none [m]
 EXACT_ARC_TOL_M = 1e-6
-#: the filters' radial shrink of an arc is compensated: the arc is planned on the radius the
-#: two moving averages shrink back onto the programmed one (PathTrajectory._shrink), the
-#: enlargement faded in and out at the arc's ends over ARC_FADE of a filter window's path
-#: (vp·(T1 + T2)), at most half the arc. Measured (benchmarks/bench_contour.py): 0.1 keeps the
-#: cut path's lead-ins within P 0.01 mm at ARC_RESIDUAL 0.25 (8.8 µm), 0.3 does not (12.4 µm)
-ARC_COMPENSATE = True
-ARC_FADE = 0.1
-#: the part of the uncompensated shrink v²(T1² + T2²)/(24 R) left once compensated (the fades,
-#: speed changes on the arc) that the arc speed rule plans for: v ≤ √(12·R·P/((T1² + T2²)·0.25)),
-#: twice the uncompensated rule's speed (measured, docs/motion.md "The planner")
-ARC_RESIDUAL = 0.25
 #: the rounding of program arithmetic (mm → m, centre + radius) a soft limit forgives [m]
 ROUND_M = 1e-12
 
@@ -264,45 +265,39 @@ def point_to_point(start: Sequence[float], goal: Sequence[float], limits: Sequen
 
 
 # ------------------------------------------------------------------------------ path programs
-@dataclass
-class _Piece:
-    """One stretch of the unfiltered profile: a line, an arc, or a rest (length 0)."""
-
-    kind: int                 # 0 line / rest, 1 arc
-    line: int
-    p0: np.ndarray            # start (n_axes,)
-    p1: np.ndarray            # end
-    u: np.ndarray             # line: unit tangent; arc: the non-XY axes' displacement per metre
-    length: float
-    vmax: float
-    acc: float
-    tol: float
-    rest: float = 0.0         # a rest's duration [s]
-    acc_alone: float = 0.0    # a line's path acceleration between two rests (no corner step near)
-    arc: tuple[float, ...] = (0.0,) * 8   # an arc's cx, cy, r0, r1, phi0, sweep [m, rad], fades in, out [1]
+def _curve_speed(kappa: float, a_n: float, j_curve: float, tol_left: float, smooth_s: float) -> float:
+    """The highest path speed [m/s] on a piece of curvature ``kappa`` [1/m] (> 0): the normal
+    acceleration v²κ within ``a_n``; the short filter's deviation from the curve (the chord of
+    a window of path v·T_c: κ(v·T_c)²/8) within ``tol_left`` [m]; of the jerk of moving on a
+    curve, s⃛·t + 3·s̈·ṡ·κ·n − ṡ³κ²·t (the derivative of s̈·t + ṡ²κ·n), the term v³κ² within
+    half of ``j_curve`` (the path acceleration a is then lowered so that 3·a·v·κ + v³κ² stays
+    within it)."""
+    v = math.sqrt(a_n / kappa)
+    if math.isfinite(tol_left):
+        v = min(v, math.sqrt(8.0 * max(tol_left, 0.0) / kappa) / smooth_s)
+    return min(v, (0.5 * j_curve / (kappa * kappa)) ** (1.0 / 3.0))
 
 
-def _tangents(p: _Piece, ix: int, iy: int) -> tuple[np.ndarray, np.ndarray]:
-    """Unit tangents at the start and the end of a piece."""
-    if p.kind == 0:
-        return p.u, p.u
-    out = []
-    _, _, r0, r1, phi0, sweep = p.arc[:6]
-    sgn = 1.0 if sweep > 0 else -1.0
-    for phi in (phi0, phi0 + sweep):
-        t = p.u * p.length                     # non-XY axes: their displacement
-        planar = abs(sweep) * 0.5 * (r0 + r1)
-        t[ix] = -math.sin(phi) * sgn * planar
-        t[iy] = math.cos(phi) * sgn * planar
-        out.append(t / np.linalg.norm(t))
-    return out[0], out[1]
+def _join_speed(dkappa: float, kink: float, j_step: float, smooth_s: float, period: float) -> float:
+    """The highest speed [m/s] through a join of two pieces whose curvature steps by ``dkappa``
+    [1/m] and whose tangent turns by ``kink`` [rad]: the short filter of length T_c spreads the
+    normal acceleration's step v²Δκ over T_c (jerk v²Δκ/T_c) and the velocity's step v·α over
+    T_c (an acceleration step v·α/T_c in one period h: jerk v·α/(T_c·h)); their sum within
+    ``j_step``."""
+    a = dkappa / smooth_s
+    b = kink / (smooth_s * period)
+    if a <= 0 and b <= 0:
+        return math.inf
+    if a <= 0:
+        return j_step / b
+    return (-b + math.sqrt(b * b + 4 * a * j_step)) / (2 * a)
 
 
-def _same_circle(a: _Piece, b: _Piece, tol_m: float = 1e-9) -> bool:
-    """Whether arc piece ``b`` continues arc piece ``a`` on the same circle: both arcs, the same
-    centre and radius within ``tol_m`` [m] (a's end radius, b's start radius), the same turning
-    direction, b starting where a ends, no non-XY axis moving (a helix's pitch may change)."""
-    if a.kind != 1 or b.kind != 1 or a.length == 0.0 or b.length == 0.0:
+def _same_circle(a: Geo, b: Geo, tol_m: float = 1e-9) -> bool:
+    """Whether arc ``b`` continues arc ``a`` on the same circle: both arcs, the same centre and
+    radius within ``tol_m`` [m] (a's end radius, b's start radius), the same turning direction,
+    b starting where a ends, no other axis moving."""
+    if a.kind != 1 or b.kind != 1:
         return False
     ca, cb = a.arc, b.arc
     if abs(ca[0] - cb[0]) > tol_m or abs(ca[1] - cb[1]) > tol_m or abs(ca[3] - cb[2]) > tol_m:
@@ -313,122 +308,131 @@ def _same_circle(a: _Piece, b: _Piece, tol_m: float = 1e-9) -> bool:
 
 
 class PathTrajectory(Trajectory):
-    """A planned program: the unfiltered pieces and the two moving averages (module docstring)."""
+    """A planned program: the blended path, the path-speed profile and its two moving averages
+    (module docstring)."""
 
-    def __init__(self, axes, pieces_table, lines, ix, iy, n1, n2, period, start, end, events, stops):
+    def __init__(self, axes, prof, geo, ix, iy, n1, n2, period, start, end, events, stops):
         self.axes = tuple(axes)
         (self._t0, self._ta, self._tc, self._td, self._v0, self._vp, self._acc, self._la, self._lc,
-         self._len, self._kind, self._p0, self._p1, self._u, self._arc) = pieces_table
-        self._lines = lines
+         self._len, self._s0, self._lines) = prof
+        (self._gs0, self._glen, self._kind, self._p0, self._p1, self._u, self._arc) = geo
         self._ix, self._iy = ix, iy
         self.n1, self.n2, self.period = n1, n2, period
         self._m = n1 + n2 - 2
         self.delay = 0.5 * self._m * period
-        w = np.convolve(np.ones(n1), np.ones(n2)) / (n1 * n2)
-        self._w = w
         self.t_profile = float(self._t0[-1] + self._ta[-1] + self._tc[-1] + self._td[-1]) if len(self._t0) else 0.0
-        self.duration = self.t_profile + (self._m + 1) * period
+        self.duration = self.t_profile + (n1 + n2 + 1) * period
         self.start, self.end = start, end
         self.events, self.stops = events, stops
 
-    def _shrink(self, om: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(g, dg/dω): the relative radius 1/S(ω) − 1 that the two moving averages of n1 and n2
-        grid samples shrink back to 0 on a circle run at angular rate ω [rad/s], S the product
-        of their gains sin(n ω h/2) / (n sin(ω h/2)) (Biagiotti & Melchiorri 2012: a moving
-        average's frequency response); its derivative by central difference."""
-        def g(w):
-            s = np.ones_like(w)
-            for n in (self.n1, self.n2):
-                x = 0.5 * w * self.period
-                small = np.abs(x) < 1e-9
-                xs = np.where(small, 1.0, x)
-                s = s * np.where(small, 1.0, np.sin(n * xs) / (n * np.sin(xs)))
-            return 1.0 / s - 1.0
-        om = np.asarray(om, dtype=float)
-        e = 1e-3 + 1e-6 * np.abs(om)
-        return g(om), (g(om + e) - g(om - e)) / (2 * e)
+    def _shrink(self, om: np.ndarray) -> np.ndarray:
+        """1/S(ω) − 1: the relative radius the short moving average of n2 samples shrinks back
+        to 0 on a circle run at angular rate ω [rad/s], S its gain sin(n ω h/2)/(n sin(ω h/2))
+        (a moving average's frequency response)."""
+        x = 0.5 * np.asarray(om, dtype=float) * self.period
+        small = np.abs(x) < 1e-9
+        xs = np.where(small, 1.0, x)
+        s = np.where(small, 1.0, np.sin(self.n2 * xs) / (self.n2 * np.sin(xs)))
+        return 1.0 / s - 1.0
 
-    # the unfiltered profile at times t (any shape) -> x, v of shape t.shape + (n_axes,)
-    def _raw(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        t = np.asarray(t, dtype=float)
+    def _profile(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The unfiltered path-speed profile: (s [m], ṡ [m/s]) at times t (any shape)."""
         k = np.clip(np.searchsorted(self._t0, t, side="right") - 1, 0, len(self._t0) - 1)
         tau = np.clip(t - self._t0[k], 0.0, None)
         ta, tc, td = self._ta[k], self._tc[k], self._td[k]
-        v0, vp, acc, la, lc = self._v0[k], self._vp[k], self._acc[k], self._la[k], self._lc[k]
+        v0, vp, acc = self._v0[k], self._vp[k], self._acc[k]
         t1 = np.minimum(tau, ta)
         s = v0 * t1 + 0.5 * acc * t1 * t1
         sd = np.where(tau < ta, v0 + acc * t1, vp)
-        t2 = np.clip(tau - ta, 0.0, tc)
-        s = s + vp * t2
+        s = s + vp * np.clip(tau - ta, 0.0, tc)
         t3 = np.clip(tau - ta - tc, 0.0, td)
-        s = s + np.where(tau > ta + tc, vp * t3 - 0.5 * acc * t3 * t3, 0.0)
-        sd = np.where(tau > ta + tc, np.maximum(vp - acc * t3, 0.0), sd)
+        dec = tau > ta + tc
+        s = s + np.where(dec, vp * t3 - 0.5 * acc * t3 * t3, 0.0)
+        sd = np.where(dec, np.maximum(vp - acc * t3, 0.0), sd)
         done = tau >= ta + tc + td
         sd = np.where(done, 0.0, sd)
         length = self._len[k]
         s = np.where(done, length, np.minimum(s, length))
-        p0, u = self._p0[k], self._u[k]
-        x = p0 + s[..., None] * u
+        return self._s0[k] + s, sd
+
+    def _path(self, s: np.ndarray, sd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The blended path's point and velocity at path length s moving at ṡ (shapes s.shape +
+        (n_axes,)); arcs on the radius the short filter shrinks back onto theirs."""
+        k = np.clip(np.searchsorted(self._gs0, s, side="right") - 1, 0, len(self._gs0) - 1)
+        length = self._glen[k]
+        sig = np.clip(s - self._gs0[k], 0.0, length)
+        u = self._u[k]
+        x = self._p0[k] + sig[..., None] * u
         v = sd[..., None] * u
         arc = self._kind[k] == 1
         if np.any(arc):
             cx, cy, r0, r1, phi0, sweep, fi, fo = (self._arc[k, i] for i in range(8))
             safe = np.where(length > 0, length, 1.0)
-            f = s / safe
+            f = sig / safe
             phi = phi0 + sweep * f
             r = r0 + (r1 - r0) * f
             dphi = sweep / safe
             dr = (r1 - r0) / safe
-            # the filters' radial shrink compensated (docs/motion.md, "The planner"): the arc is
-            # planned on the radius r + delta that the two moving averages shrink back onto r at
-            # the path speed sd, delta faded in over a fraction fi of the arc at its start and out
-            # over fo at its end (0: no fade there, the next arc is the same circle; inf: none)
-            sdd = np.where(tau < ta, acc, np.where((tau > ta + tc) & ~done, -acc, 0.0))
-            fi1, fo1 = np.where(fi > 0, fi, 1.0), np.where(fo > 0, fo, 1.0)
-            ri = np.where(fi > 0, f / fi1, np.inf)
-            ro = np.where(fo > 0, (1.0 - f) / fo1, np.inf)
-            wr = np.clip(np.minimum(ri, ro), 0.0, 1.0)
-            dw = np.where((wr > 0) & (wr < 1), np.where(ri < ro, 1.0 / fi1, -1.0 / fo1), 0.0)
             rs = np.where(r > 0, r, 1.0)
-            g, dg = self._shrink(sd / rs)
-            delta = np.where(arc, r * g * wr, 0.0)
-            ddelta = np.where(arc, g * r * dw * sd / safe + r * wr * dg * sdd / rs, 0.0)
-            r = r + delta
+            g = np.where(arc, self._shrink(sd * np.abs(dphi)), 0.0)
+            # the compensation faded in over fi of path at the arc's start and out over fo at
+            # its end (0: none there, the same circle goes on)
+            # (a smoothstep of the path: the radial velocity it adds starts and ends at 0)
+            wi = np.where(fi > 0, sig / np.where(fi > 0, fi, 1.0), np.inf)
+            wo = np.where(fo > 0, (length - sig) / np.where(fo > 0, fo, 1.0), np.inf)
+            u_ = np.clip(np.minimum(wi, wo), 0.0, 1.0)
+            du = np.where((u_ > 0) & (u_ < 1), np.where(wi < wo, 1.0 / np.where(fi > 0, fi, 1.0),
+                                                       -1.0 / np.where(fo > 0, fo, 1.0)), 0.0)
+            w = u_ * u_ * (3.0 - 2.0 * u_)
+            dw = 6.0 * u_ * (1.0 - u_) * du
+            g = np.where((fi < 0) | (fo < 0), 0.0, g)      # an arc too short to compensate
+            rr = r + rs * g * w
             c, sn = np.cos(phi), np.sin(phi)
+            radial = sd * (dr + rs * g * dw)
             ax, ay = self._ix, self._iy
-            x[..., ax] = np.where(arc, cx + r * c, x[..., ax])
-            x[..., ay] = np.where(arc, cy + r * sn, x[..., ay])
-            v[..., ax] = np.where(arc, sd * (dr * c - r * dphi * sn) + ddelta * c, v[..., ax])
-            v[..., ay] = np.where(arc, sd * (dr * sn + r * dphi * c) + ddelta * sn, v[..., ay])
-        x = np.where(done[..., None], self._p1[k], x)
+            x[..., ax] = np.where(arc, cx + rr * c, x[..., ax])
+            x[..., ay] = np.where(arc, cy + rr * sn, x[..., ay])
+            v[..., ax] = np.where(arc, radial * c - sd * rr * dphi * sn, v[..., ax])
+            v[..., ay] = np.where(arc, radial * sn + sd * rr * dphi * c, v[..., ay])
         return x, v
+
+    def _filtered(self, t: np.ndarray, n_out: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """x, v, a (each (rows, n_out, n_axes)) at the last n_out of each row of grid times t
+        (shape (rows, n_out + n1 + n2), spaced by the period): s and ṡ through the moving
+        average of n1, the path at s, then x and v through the moving average of n2, a the
+        backward difference of v."""
+        n1, n2, h = self.n1, self.n2, self.period
+        s, sd = self._profile(t)
+        ref = s[:, :1]
+        z = np.zeros((s.shape[0], 1))
+        c = np.cumsum(np.concatenate([z, s - ref], axis=1), axis=1)
+        sf = (c[:, n1:] - c[:, :-n1]) / n1 + ref
+        c = np.cumsum(np.concatenate([z, sd], axis=1), axis=1)
+        sdf = (c[:, n1:] - c[:, :-n1]) / n1
+        xr, vr = self._path(sf, sdf)                              # (rows, n_out + n2 + 1, na)
+        xref = xr[:, :1]
+        z = np.zeros((xr.shape[0], 1, xr.shape[2]))
+        c = np.cumsum(np.concatenate([z, xr - xref], axis=1), axis=1)
+        x = (c[:, n2:] - c[:, :-n2]) / n2 + xref
+        c = np.cumsum(np.concatenate([z, vr], axis=1), axis=1)
+        v = (c[:, n2:] - c[:, :-n2]) / n2
+        a = (vr[:, n2:] - vr[:, :-n2]) / (n2 * h)
+        return x[:, -n_out:], v[:, -n_out:], a[:, -n_out:]
 
     def sample_into(self, t0: float, dt: float, out: np.ndarray) -> None:
         n = out.shape[0]
-        h, m, n1, n2 = self.period, self._m, self.n1, self.n2
+        h, n1, n2 = self.period, self.n1, self.n2
         if abs(dt - h) <= 1e-12 * h:
-            g = t0 + (np.arange(-(m + 1), n)) * h                 # n + m + 1 grid points
-            xg, vg = self._raw(g)
-            c = np.cumsum(np.concatenate([np.zeros((1, xg.shape[1])), xg[1:]]), axis=0)
-            x1 = (c[n1:] - c[:-n1]) / n1
-            c = np.cumsum(np.concatenate([np.zeros((1, xg.shape[1])), x1]), axis=0)
-            out[:, 0] = ((c[n2:] - c[:-n2]) / n2)[-n:]
-            c = np.cumsum(np.concatenate([np.zeros((1, vg.shape[1])), vg[1:]]), axis=0)
-            v1 = (c[n1:] - c[:-n1]) / n1
-            c = np.cumsum(np.concatenate([np.zeros((1, vg.shape[1])), v1]), axis=0)
-            out[:, 1] = ((c[n2:] - c[:-n2]) / n2)[-n:]
-            a1 = (vg[n1:] - vg[:-n1]) / (n1 * h)
-            c = np.cumsum(np.concatenate([np.zeros((1, vg.shape[1])), a1]), axis=0)
-            out[:, 2] = ((c[n2:] - c[:-n2]) / n2)[-n:]
+            g = t0 + np.arange(-(n1 + n2), n) * h
+            x, v, a = self._filtered(g[None, :], n)
+            out[:, 0], out[:, 1], out[:, 2] = x[0], v[0], a[0]
         else:
             t = t0 + np.arange(n) * dt
-            g = t[:, None] - np.arange(m + 1) * h                     # (n, m + 1)
-            xg, vg = self._raw(g)
-            out[:, 0] = np.einsum("m,nma->na", self._w, xg)
-            out[:, 1] = np.einsum("m,nma->na", self._w, vg)
-            gb = t[:, None] - (np.arange(n2) + n1) * h
-            _, vb = self._raw(gb)
-            out[:, 2] = (vg[:, :n2].sum(axis=1) - vb.sum(axis=1)) / (n1 * n2 * h)
+            for lo in range(0, n, 256):                      # the filters anchored at each t
+                tt = t[lo:lo + 256]
+                g = tt[:, None] + np.arange(-(n1 + n2), 1) * h
+                x, v, a = self._filtered(g, 1)
+                out[lo:lo + len(tt), 0], out[lo:lo + len(tt), 1], out[lo:lo + len(tt), 2] = x[:, 0], v[:, 0], a[:, 0]
         t = t0 + np.arange(n) * dt
         late = t >= self.duration
         if np.any(late):
@@ -482,17 +486,51 @@ class PathTrajectory(Trajectory):
 
 
 def _filter_lengths(limits: Sequence[AxisLimits], period: float) -> tuple[int, int]:
-    """(N1, N2) samples of the two moving averages: T2 = max 2 a_max/j_max, T1 = T2."""
-    t2 = max(2.0 * lim.a_max / lim.j_max for lim in limits)
-    n2 = max(2, math.ceil(t2 / period - 1e-9))
-    return n2, n2
+    """(N1, N2) samples of the two moving averages: T1 (of the path speed) = 2·max(a_max/j_max),
+    so that a line's path acceleration ramps between ±a_max within each axis's j_max (the
+    moving average of a velocity whose slope steps by 2a has the jerk 2a/T1); T2 (of the
+    setpoints) = SMOOTH_S."""
+    ratio = max(lim.a_max / lim.j_max for lim in limits)
+    n1 = max(2, math.ceil(2.0 * ratio / period - 1e-9))
+    n2 = max(2, int(round(SMOOTH_S / period)))
+    return n1, n2
+
+
+def _speed_zones(starts, ends, vs, accs, breaks, total):
+    """The smallest speed and acceleration over zones [starts, ends] (arrays) on each elementary
+    interval between the sorted points ``breaks`` (the zones' ends and the pieces' joins within
+    [0, total]): (lo, hi, v, acc) per interval."""
+    import heapq
+    pts = np.unique(np.clip(np.concatenate([breaks, starts, ends]), 0.0, total))
+    order = np.argsort(starts, kind="stable")
+    hv: list = []
+    ha: list = []
+    out_v = np.empty(len(pts) - 1)
+    out_a = np.empty(len(pts) - 1)
+    j = 0
+    nz = len(order)
+    for i in range(len(pts) - 1):
+        lo, hi = pts[i], pts[i + 1]
+        while j < nz and starts[order[j]] <= lo:
+            z = order[j]
+            heapq.heappush(hv, (vs[z], ends[z]))
+            heapq.heappush(ha, (accs[z], ends[z]))
+            j += 1
+        while hv and hv[0][1] < hi:
+            heapq.heappop(hv)
+        while ha and ha[0][1] < hi:
+            heapq.heappop(ha)
+        out_v[i] = hv[0][0] if hv else math.inf
+        out_a[i] = ha[0][0] if ha else math.inf
+    return pts[:-1], pts[1:], out_v, out_a
 
 
 def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
          feed_scale: float = 1.0, start: Sequence[float] | None = None,
          period: float = PERIOD_S) -> Trajectory:
     """Plan a parsed program for the machine's ``axes`` (letters among X Y Z, in the order of the
-    arrays) with each axis's ``limits`` (module docstring: look-ahead, then two moving averages).
+    arrays) with each axis's ``limits`` (module docstring: the blended path, the look-ahead, the
+    two moving averages).
 
     feed_scale: multiplies every programmed feed (feed override; the axis limits still hold).
     start: the axes' positions [m] before the program (None: the program's start; a difference
@@ -507,45 +545,37 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
     other = [i for i in range(3) if i not in idx]
     ix = axes.index("X") if "X" in axes else -1
     iy = axes.index("Y") if "Y" in axes else -1
+    na = len(axes)
     n1, n2 = _filter_lengths(limits, period)
-    t1, t2 = n1 * period, n2 * period
-    tw = t1 + t2
+    t_c = n2 * period
+    t_s = n1 * period
+    tw = (n1 + n2 + 1) * period                         # a rest: both windows held in it
     vlim = np.array([lim.v_max for lim in limits])
     alim = np.array([lim.a_max for lim in limits])
+    jlim = np.array([lim.j_max for lim in limits])
+    a_min, j_min = float(alim.min()), float(jlim.min())
+    a_n = (1.0 - ACCEL_SHARE) * a_min
+    a_curve = ACCEL_SHARE * a_min
+    t_s0 = _filter_lengths(limits, period)[0] * period
+    a_join = min(a_curve, 0.5 * (1.0 - JERK_STEP) * j_min * t_s0)   # ramps 2a/T1 beside a join's step
 
     def proj(p):
         return np.asarray(p, dtype=float)[idx].copy()
 
     pos0 = proj(program.start) if start is None else np.asarray(start, dtype=float).copy()
-    # ---- pieces, and "stops" (forced v = 0) between them
-    pieces: list[_Piece] = []
-    stop_after: list[bool] = []
-    pending: list[tuple[str, object]] = []        # events/pauses after the piece index
-    marks: list[tuple[int, object]] = []          # (piece index it follows, segment)
+    # ---- the programmed moves, and what follows each: (kind, seconds, segment)
+    moves: list[Geo] = []
+    after: dict[int, list] = {}
     cur = pos0.copy()
 
-    def add_rest(seconds: float, line: int):
-        pieces.append(_Piece(0, line, cur.copy(), cur.copy(), np.zeros(len(axes)), 0.0, 0.0, 0.0, 0.0,
-                             rest=seconds))
-        stop_after.append(True)
+    def act(kind, seconds, seg):
+        after.setdefault(len(moves) - 1, []).append((kind, seconds, seg))
 
-    def add_line(p1, feed, tol, line):
+    def add(g):
         nonlocal cur
-        d = p1 - cur
-        length = float(np.linalg.norm(d))
-        if length <= 0.0:
-            return
-        u = d / length
-        au = np.abs(u)
-        with np.errstate(divide="ignore"):
-            vmax = float(np.min(np.where(au > 0, vlim / np.where(au > 0, au, 1), np.inf)))
-            amax = float(np.min(np.where(au > 0, alim / np.where(au > 0, au, 1), np.inf)))
-        if feed is not None:
-            vmax = min(vmax, feed * feed_scale)
-        pieces.append(_Piece(0, line, cur.copy(), p1.copy(), u, length, vmax, ACCEL_SHARE * amax, tol,
-                             acc_alone=amax))
-        stop_after.append(tol == 0.0)
-        cur = p1.copy()
+        if g is not None:
+            moves.append(g)
+            cur = g.p1.copy()
 
     for seg in program.segments:
         if isinstance(seg, (Line, Arc)):
@@ -553,186 +583,309 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
                 if seg.end[i] != seg.start[i]:
                     raise ValueError(f"{program.filename}:{seg.line}: the program moves {AXES[i]}, "
                                      f"not an axis of this machine ({' '.join(axes)})")
+            if not moves and np.any(proj(seg.start) != cur):
+                add(_bl.line_geo(cur, proj(seg.start), seg.line, None, 0.0, -1))
         if isinstance(seg, Line):
-            p1 = proj(seg.end)
-            if not pieces and np.any(proj(seg.start) != cur):
-                add_line(proj(seg.start), None, 0.0, seg.line)
-            add_line(p1, seg.feed, seg.tolerance, seg.line)
+            feed = None if seg.feed is None else seg.feed * feed_scale
+            add(_bl.line_geo(cur, proj(seg.end), seg.line, feed, seg.tolerance, len(moves),
+                             getattr(seg, "naive_cam", 0.0)))
         elif isinstance(seg, Arc):
             if ix < 0 or iy < 0:
                 raise ValueError(f"{program.filename}:{seg.line}: an arc needs axes X and Y "
                                  f"(this machine: {' '.join(axes)})")
-            if not pieces and np.any(proj(seg.start) != cur):
-                add_line(proj(seg.start), None, 0.0, seg.line)
             p0, p1 = proj(seg.start), proj(seg.end)
-            length = seg.length
-            r0 = seg.radius
-            r1 = float(math.hypot(seg.end[0] - seg.center[0], seg.end[1] - seg.center[1]))
             dz = p1 - p0
             dz[ix] = dz[iy] = 0.0
-            u = dz / length
-            a_min = float(min(alim[ix], alim[iy]))
-            vmax = min(seg.feed * feed_scale, float(min(vlim[ix], vlim[iy])))
-            for i in range(len(axes)):
-                if u[i] != 0.0:
-                    vmax = min(vmax, vlim[i] / abs(u[i]))
-            r = min(r0, r1)
-            tol = seg.tolerance if seg.tolerance > 0 else EXACT_ARC_TOL_M
-            # centripetal v²/R within half the share (ACCEL_SHARE); the filters' radial shrink v²(T1² + T2²)/(24 R) within half the tolerance
-            vmax = min(vmax, math.sqrt(0.5 * ACCEL_SHARE * a_min * r))
-            if math.isfinite(tol):
-                vmax = min(vmax, math.sqrt(12.0 * r * tol / ((t1 * t1 + t2 * t2) * ARC_RESIDUAL)))
+            r1 = float(math.hypot(seg.end[0] - seg.center[0], seg.end[1] - seg.center[1]))
             phi0 = math.atan2(seg.start[1] - seg.center[1], seg.start[0] - seg.center[0])
-            pc = _Piece(1, seg.line, p0, p1, u, length, vmax, 0.5 * ACCEL_SHARE * a_min, seg.tolerance,
-                        arc=(float(seg.center[0]), float(seg.center[1]), r0, r1, phi0, seg.sweep, math.inf, math.inf))
-            pieces.append(pc)
-            stop_after.append(seg.tolerance == 0.0)
-            cur = p1.copy()
+            add(Geo(1, p0, p1, dz / seg.length, seg.length, seg.line, seg.feed * feed_scale, seg.tolerance,
+                    len(moves), arc=(float(seg.center[0]), float(seg.center[1]), seg.radius, r1, phi0, seg.sweep)))
         elif isinstance(seg, Dwell):
-            add_rest(tw + seg.seconds, seg.line)
+            act("rest", seg.seconds, seg)
         elif isinstance(seg, Pause):
-            add_rest(tw, seg.line)
-            marks.append((len(pieces) - 1, seg))
+            act("pause", 0.0, seg)
         elif isinstance(seg, Event):
-            if seg.synchronized:
-                marks.append((len(pieces) - 1, seg))
+            act("event" if seg.synchronized else "word", 0.0, seg)
+    for k, g in enumerate(moves):
+        g.src = k
+    stop_after = [g.tol == 0.0 or any(a[0] != "event" for a in after.get(k, ())) for k, g in enumerate(moves)]
+    barrier = [stop_after[k] or k in after for k in range(len(moves))]
+    geos = _bl.merge_collinear(moves, barrier)
+
+    # ---- each piece's own limits
+    def base(g: Geo) -> tuple[float, float]:
+        """(speed, path acceleration) of one piece."""
+        v = math.inf if g.feed is None else g.feed
+        au = np.abs(g.u)
+        if g.kind == 0:
+            nz = au > 0
+            v = min(v, float(np.min(vlim[nz] / au[nz])))
+            return v, float(np.min(alim[nz] / au[nz]))        # no normal acceleration on a line
+        v = min(v, float(min(vlim[ix], vlim[iy])))
+        for i in range(na):
+            if au[i] > 0:
+                v = min(v, vlim[i] / au[i])
+        kappa = 1.0 / max(min(g.arc[2], g.arc[3]), 1e-12)
+        tol = g.tol if g.tol > 0 else EXACT_ARC_TOL_M
+        j_c = (1.0 - JERK_STEP) * j_min
+        v = min(v, _curve_speed(kappa, a_n, j_c, tol - g.dev, t_c))
+        # the path acceleration's ramps 2·a/T1 and the curve's 3·a·v·κ + v³κ² share j_c
+        return v, min(a_curve, (j_c - v ** 3 * kappa * kappa) / (2.0 / t_s + 3.0 * v * kappa))
+
+    # ---- corners: a blend arc between two lines within the tolerance, a join where the tangent
+    # goes on (a curvature step, a kink small enough for the short filter), else an exact stop
+    path: list[Geo] = []
+    join_v: list[float] = []              # join_v[k]: the speed through the join after path[k]; 0: stop
+    room = {}
+    for g in geos:
+        if g.kind == 0:
+            room[id(g)] = 0.5 * g.length
+    for g in geos:
+        if not path:
+            path.append(g)
+            continue
+        a = path[-1]
+        stop = a.tol == 0.0 or stop_after[a.src] or (a.blend and stop_after[path[-2].src])
+        if stop:
+            join_v.append(0.0)
+            path.append(g)
+            continue
+        ta, tb = a.tangents(ix, iy)[1], g.tangents(ix, iy)[0]
+        kink = 2.0 * math.asin(min(1.0, 0.5 * float(np.linalg.norm(tb - ta))))
+        va, vb = base(a)[0], base(g)[0]
+        v_near = min(va, vb)
+        if kink <= _bl.TANGENT_RAD:
+            vj = _join_speed(abs(g.curvature() - a.curvature()), 0.0, JERK_STEP * j_min, t_c, period)
+            join_v.append(vj if vj >= STOP_SHARE * v_near else 0.0)
+            path.append(g)
+            continue
+        vk = _join_speed(abs(g.curvature() - a.curvature()), kink, JERK_STEP * j_min, t_c, period)
+        if vk >= STOP_SHARE * v_near:     # a kink the short filter rounds at that speed
+            join_v.append(vk)
+            path.append(g)
+            continue
+        done = False
+        if a.kind == 0 and g.kind == 0 and a.tol > 0:
+            tol = _bl.BLEND_SHARE * (a.tol - max(a.dev, g.dev)) if math.isfinite(a.tol) else math.inf
+            bl = _bl.corner_blend(a, g, tol, room[id(a)], room[id(g)], ix, iy) if tol > 0 else None
+            if bl is not None:
+                arc, dev, lt = bl
+                arc.tol = a.tol                   # the program's P (the blend used a share of it)
+                kappa = 1.0 / arc.arc[2]
+                v_arc = min(base(arc)[0], _join_speed(kappa, 0.0, JERK_STEP * j_min, t_c, period))
+                if v_arc >= STOP_SHARE * v_near:
+                    a.p1 = arc.p0.copy()
+                    a.length = float(np.linalg.norm(a.p1 - a.p0))
+                    g.p0 = arc.p1.copy()
+                    g.length = float(np.linalg.norm(g.p1 - g.p0))
+                    join_v.append(_join_speed(kappa, 0.0, JERK_STEP * j_min, t_c, period))
+                    path.append(arc)
+                    join_v.append(_join_speed(kappa, 0.0, JERK_STEP * j_min, t_c, period))
+                    path.append(g)
+                    done = True
+        if not done:
+            join_v.append(0.0)
+            path.append(g)
+    # a line left shorter than REMNANT_M between two pieces (two blends' ends nearly meeting) lies
+    # between two samples at any speed where it matters: its joins are one step, from the piece
+    # before it to the piece after
+    for k in range(1, len(path) - 1):
+        g = path[k]
+        if g.kind == 0 and g.length < REMNANT_M and join_v[k - 1] > 0 and join_v[k] > 0:
+            vj = _join_speed(abs(path[k + 1].curvature() - path[k - 1].curvature()), 0.0, JERK_STEP * j_min,
+                             t_c, period)
+            join_v[k - 1] = join_v[k] = max(min(join_v[k - 1], join_v[k]), vj)
+
+    # drop pieces a blend left without length (their joins merge: the smaller speed)
+    keep_p, keep_j = [], []
+    last_of: dict[int, int] = {}          # programmed move -> the path piece it ends with
+    for k, g in enumerate(path):
+        drop = (g.length <= 1e-12 and g.kind == 0 and 0 < k < len(path) - 1 and join_v[k - 1] > 0
+                and join_v[k] > 0)
+        if drop:
+            keep_j[-1] = min(keep_j[-1], join_v[k])
+        else:
+            keep_p.append(g)
+            if k < len(join_v):
+                keep_j.append(join_v[k])
+        if not g.blend:
+            for src in (g.merged or [g.src]):
+                last_of[src] = len(keep_p) - 1
+    path, join_v = keep_p, keep_j
+    # ---- the speed zones: each piece's limits on its length, each join's at its point, each
+    # widened by v·(T1 + T2) on both sides: the moving averages then never carry a faster part
+    # of the profile into it (the path length their windows span at speed v)
+    npth = len(path)
+    gs0 = np.zeros(npth)
+    for k in range(1, npth):
+        gs0[k] = gs0[k - 1] + path[k - 1].length
+    total = float(gs0[-1] + path[-1].length) if npth else 0.0
+    zs, ze, zv, za = [], [], [], []
+    for k, g in enumerate(path):
+        v, acc = base(g)
+        d = v * tw if math.isfinite(v) else total
+        zs.append(gs0[k] - d)
+        ze.append(gs0[k] + g.length + d)
+        zv.append(v)
+        za.append(acc)
+    for k, vj in enumerate(join_v):
+        if vj > 0 and math.isfinite(vj):
+            s = gs0[k + 1]
+            zs.append(s - vj * tw)
+            ze.append(s + vj * tw)
+            zv.append(vj)
+            za.append(a_join)                 # the join's step takes JERK_STEP: the path's ramps the rest
+    # a stop's rest holds both windows: nothing is carried across it, the zones end there
+    stops_s = np.array([0.0] + [gs0[k + 1] for k in range(npth - 1) if join_v[k] == 0.0] + [total])
+    if zs:
+        za_s, ze_s = np.array(zs), np.array(ze)
+        home = np.array([gs0[k] for k in range(npth)] + [gs0[k + 1] for k, vj in enumerate(join_v)
+                                                          if vj > 0 and math.isfinite(vj)])
+        i_lo = np.searchsorted(stops_s, home, side="right") - 1
+        i_hi = np.searchsorted(stops_s, home + np.array([g.length for g in path] + [0.0] * (len(home) - npth)),
+                               side="left")
+        zs = list(np.maximum(za_s, stops_s[np.clip(i_lo, 0, len(stops_s) - 1)]))
+        ze = list(np.minimum(ze_s, stops_s[np.clip(i_hi, 0, len(stops_s) - 1)]))
+    if npth:
+        lo, hi, iv, ia = _speed_zones(np.array(zs), np.array(ze), np.array(zv), np.array(za),
+                                      np.concatenate([gs0, [total]]), total)
+    else:
+        lo = hi = iv = ia = np.zeros(0)
+    # ---- the profile's pieces: the intervals, and rests where the path stops
+    stop_at = {}                            # path index k -> rest actions after it
+    for k in range(npth - 1):
+        if join_v[k] == 0.0:
+            stop_at[k] = []
+    events_after: dict[int, list] = {}
+    for src, acts in after.items():
+        k = last_of.get(src, -1) if src >= 0 else -1
+        for kind, sec, seg in acts:
+            if kind == "event":
+                events_after.setdefault(k, []).append(seg)
             else:
-                if not (pieces and pieces[-1].length == 0.0 and marks and marks[-1][0] == len(pieces) - 1
-                        and isinstance(marks[-1][1], Event) and not marks[-1][1].synchronized):
-                    add_rest(tw, seg.line)
-                marks.append((len(pieces) - 1, seg))
-    if not pieces:
-        add_rest(0.0, 0)
-    # ---- junction speeds: vj[k] between piece k and k+1; the end at rest. A corner the filters
-    # cannot round within its tolerance becomes an exact stop with a rest of the filters' length
-    # (their window then never holds both legs: the corner is kept exactly).
-    npc = len(pieces)
+                stop_at.setdefault(k, []).append((kind, sec, seg))
+    P_len, P_v, P_acc, P_rest, P_s0, P_line = [], [], [], [], [], []
+    marks: list[tuple[int, object]] = []
+    synced: list[tuple[int, object]] = []
+
+    def rest(seconds, line, s):
+        P_len.append(0.0); P_v.append(0.0); P_acc.append(0.0); P_rest.append(seconds)
+        P_s0.append(s); P_line.append(line)
+
+    def rests_at(k, s, line):
+        prev_word = False
+        for kind, sec, seg in stop_at.get(k, []):
+            if kind == "word":
+                if not prev_word:
+                    rest(tw, seg.line, s)
+                prev_word = True
+            else:
+                rest(tw + sec, seg.line, s)
+                prev_word = False
+            if kind != "rest":
+                marks.append((len(P_len) - 1, seg))
+        if not stop_at.get(k) and k in stop_at:
+            rest(tw, line, s)
+
+    rests_at(-1, 0.0, path[0].line if npth else 0)
+    for seg in events_after.get(-1, []):
+        synced.append((len(P_len) - 1, seg))
+    gi = 0
+    for i in range(len(lo)):
+        while gi + 1 < npth and gs0[gi + 1] <= lo[i]:
+            gi += 1
+        P_len.append(float(hi[i] - lo[i])); P_v.append(float(iv[i])); P_acc.append(float(ia[i]))
+        P_rest.append(0.0); P_s0.append(float(lo[i])); P_line.append(path[gi].line)
+        at_end = gi + 1 < npth and abs(gs0[gi + 1] - hi[i]) <= 0.0 or (gi == npth - 1 and i == len(lo) - 1)
+        if at_end:
+            for seg in events_after.get(gi, []):
+                synced.append((len(P_len) - 1, seg))
+            if gi in stop_at:
+                rests_at(gi, float(hi[i]), path[gi].line)
+    if not P_len:
+        rest(0.0, 0, 0.0)
+    npc = len(P_len)
+    L = np.array(P_len)
+    V = np.array(P_v)
+    A = np.array(P_acc)
+    # junction speeds: vj[k] after piece k: 0 at rests and the end; else the smaller side
     vj = np.zeros(npc)
-    rest_after = [False] * npc
     for k in range(npc - 1):
-        a, b = pieces[k], pieces[k + 1]
-        if a.length == 0.0 or b.length == 0.0:
-            continue
-        if stop_after[k]:
-            rest_after[k] = True
-            continue
-        ua = _tangents(a, ix, iy)[1]
-        ub = _tangents(b, ix, iy)[0]
-        du = ub - ua
-        dn = float(np.linalg.norm(du))
-        v = min(a.vmax, b.vmax)
-        if dn > 1e-12:
-            theta = 2.0 * math.asin(min(1.0, dn / 2.0))          # |du| = 2 sin(theta/2)
-            g = math.sin(theta) if theta < math.pi / 2 else 1.0
-            if math.isfinite(a.tol):
-                # the filtered corner stays within g·(v_j·tw/2 + a·tw²/8) of the path (the legs'
-                # points in the window, weighted): half the tolerance to each term
-                a_corner = 0.5 * a.tol * 8.0 / (g * tw * tw)
-                if a_corner < 0.5 * min(a.acc, b.acc):   # slower than stopping: stop
-                    rest_after[k] = True
-                    continue
-                a.acc = min(a.acc, a_corner)
-                b.acc = min(b.acc, a_corner)
-                v = min(v, 0.5 * a.tol * 2.0 / (g * tw))
-            # each axis's velocity step, with the corners of short neighbours in the same window,
-            # within the acceleration share left by the path profile: v|du|(1 + v T1/l) <= (1-s) a T1
-            ell = max(min(a.length, b.length), 1e-12)
-            for i in range(len(axes)):
-                di = abs(du[i])
-                if di > 0:
-                    cap = (1 - ACCEL_SHARE) * alim[i] * t1
-                    qa, qb = di * t1 / ell, di
-                    v = min(v, (-qb + math.sqrt(qb * qb + 4 * qa * cap)) / (2 * qa))
-        vj[k] = v
-    if any(rest_after):
-        new_pieces: list[_Piece] = []
-        where = []
-        for k, p in enumerate(pieces):
-            new_pieces.append(p)
-            where.append(len(new_pieces) - 1)
-            if rest_after[k]:
-                new_pieces.append(_Piece(0, p.line, p.p1.copy(), p.p1.copy(), np.zeros(len(axes)), 0.0, 0.0,
-                                         0.0, 0.0, rest=tw))
-        vj_new = np.zeros(len(new_pieces))
-        for k in range(npc):
-            if not rest_after[k]:
-                vj_new[where[k]] = vj[k]
-        marks = [(where[k] if k >= 0 else k, seg) for k, seg in marks]
-        pieces, vj, npc = new_pieces, vj_new, len(new_pieces)
-    # a line between rests (or the ends) has no velocity step within a filter window of it: the
-    # whole of each axis's a_max is its own
-    for k, p in enumerate(pieces):
-        if p.acc_alone > 0 and (k == 0 or pieces[k - 1].length == 0.0) and (
-                k == npc - 1 or pieces[k + 1].length == 0.0):
-            p.acc = p.acc_alone
+        if L[k] > 0 and L[k + 1] > 0:
+            vj[k] = min(V[k], V[k + 1])
     # backward and forward passes (look-ahead over the whole program)
     for k in range(npc - 2, -1, -1):
-        b = pieces[k + 1]
-        vj[k] = min(vj[k], math.sqrt(vj[k + 1] ** 2 + 2 * b.acc * b.length))
+        if L[k + 1] > 0:
+            vj[k] = min(vj[k], math.sqrt(vj[k + 1] ** 2 + 2 * A[k + 1] * L[k + 1]))
     vin = 0.0
     for k in range(npc):
-        p = pieces[k]
-        vj[k] = min(vj[k], math.sqrt(vin * vin + 2 * p.acc * p.length))
-        vin = vj[k]
+        if L[k] > 0:
+            vj[k] = min(vj[k], math.sqrt(vin * vin + 2 * A[k] * L[k]))
+        vin = vj[k] if L[k] > 0 else 0.0
     # ---- per-piece trapezoids
-    tab = {key: np.zeros(npc) for key in ("t0", "ta", "tc", "td", "v0", "vp", "acc", "la", "lc", "len", "kind")}
-    na = len(axes)
-    p0s, p1s, us = np.zeros((npc, na)), np.zeros((npc, na)), np.zeros((npc, na))
-    arcs = np.zeros((npc, 8))
+    t0s, tas, tcs, tds, v0s, vps = (np.zeros(npc) for _ in range(6))
+    las, lcs = np.zeros(npc), np.zeros(npc)
     t = 0.0
     v0 = 0.0
     t_end = np.zeros(npc)
-    for k, p in enumerate(pieces):
+    for k in range(npc):
         v1 = vj[k]
-        if p.length == 0.0:
-            ta = td = 0.0
-            vp = la = lc = 0.0
+        if L[k] == 0.0:
+            ta = td = vp = la = lc = 0.0
+            v0 = 0.0
             # a rest ends on the grid: a pause's stop time is then a grid point (exact setpoints)
-            tc = max(math.ceil((t + p.rest) / period - 1e-9) * period - t, 0.0)
+            tc = max(math.ceil((t + P_rest[k]) / period - 1e-9) * period - t, 0.0)
         else:
-            a = p.acc
-            vp = min(p.vmax, math.sqrt(max((2 * a * p.length + v0 * v0 + v1 * v1) / 2, 0.0)))
+            a = A[k]
+            vp = min(V[k], math.sqrt(max((2 * a * L[k] + v0 * v0 + v1 * v1) / 2, 0.0)))
             vp = max(vp, v0, v1)
             ta = (vp - v0) / a
             td = (vp - v1) / a
             la = (vp * vp - v0 * v0) / (2 * a)
             ld = (vp * vp - v1 * v1) / (2 * a)
-            lc = max(p.length - la - ld, 0.0)
+            lc = max(L[k] - la - ld, 0.0)
             tc = lc / vp if vp > 0 else 0.0
-        for key, val in (("t0", t), ("ta", ta), ("tc", tc), ("td", td), ("v0", v0), ("vp", vp),
-                         ("acc", p.acc), ("la", la), ("lc", lc), ("len", p.length), ("kind", p.kind)):
-            tab[key][k] = val
-        p0s[k], p1s[k], us[k] = p.p0, p.p1, p.u
-        if p.kind == 1:
-            arcs[k] = p.arc
-            if ARC_COMPENSATE and p.length > 0:        # the fade of the compensation: a filter window's path
-                arcs[k, 6] = arcs[k, 7] = min(0.5, ARC_FADE * vp * tw / p.length)
+        t0s[k], tas[k], tcs[k], tds[k], v0s[k], vps[k], las[k], lcs[k] = t, ta, tc, td, v0, vp, la, lc
         t += ta + tc + td
         t_end[k] = t
         v0 = v1
-    # an arc that goes on as the same circle (the same centre and radius, turning the same way,
-    # no stop between: a ballbar test's overshoot arcs, a circle programmed in parts) keeps its
-    # compensation across the join: no fade out and in again, which would dip the setpoint inside
-    # the circle there by the shrink itself
-    for k in range(npc - 1):
-        if _same_circle(pieces[k], pieces[k + 1]) and vj[k] > 0:        # (a stop: a rest piece between)
-            arcs[k, 7] = arcs[k + 1, 6] = 0.0
-    table = (tab["t0"], tab["ta"], tab["tc"], tab["td"], tab["v0"], tab["vp"], tab["acc"], tab["la"],
-             tab["lc"], tab["len"], tab["kind"].astype(int), p0s, p1s, us, arcs)
+    # ---- the geometry table; arcs' compensation faded over 2·v·T2 of path where the circle changes
+    G = np.zeros((npth, 8))
+    kinds = np.zeros(npth, dtype=int)
+    p0s, p1s, us = np.zeros((npth, na)), np.zeros((npth, na)), np.zeros((npth, na))
+    for k, g in enumerate(path):
+        kinds[k], p0s[k], p1s[k], us[k] = g.kind, g.p0, g.p1, g.u
+        if g.kind == 1:
+            fade = 2.0 * min(base(g)[0], 1e3) * t_c
+            fi = 0.0 if k > 0 and join_v[k - 1] > 0 and _same_circle(path[k - 1], g) else fade
+            fo = 0.0 if k < npth - 1 and join_v[k] > 0 and _same_circle(g, path[k + 1]) else fade
+            if fi + fo > g.length:        # too short to fade in and out: not compensated (its
+                fi = fo = -1.0            # shrink is within the speed rule's chord, _curve_speed)
+            G[k] = (*g.arc, fi, fo)
     m = n1 + n2 - 2
     events: list[tuple[float, Event]] = []
     stops: list[tuple[float, Pause]] = []
     for k, seg in marks:
         te = t_end[k] if k >= 0 else 0.0
         if isinstance(seg, Pause):
-            stops.append((te, seg))       # the window holds only the rest: at rest exactly
-        elif seg.synchronized:
-            events.append((te + 0.5 * m * period, seg))
+            stops.append((te, seg))       # the windows hold only the rest: at rest exactly
         else:
             events.append((te, seg))
+    for k, seg in synced:
+        events.append(((t_end[k] if k >= 0 else 0.0) + 0.5 * m * period, seg))
     events.sort(key=lambda e: e[0])
-    return PathTrajectory(axes, table, np.array([p.line for p in pieces]), ix, iy, n1, n2, period,
-                          pos0, pieces[-1].p1.copy(), events, stops)
+    prof = (t0s, tas, tcs, tds, v0s, vps, A, las, lcs, L, np.array(P_s0), np.array(P_line))
+    if not npth:
+        G, kinds = np.zeros((1, 8)), np.zeros(1, dtype=int)
+        p0s = p1s = pos0[None, :].copy()
+        us = np.zeros((1, na))
+        gs0 = np.zeros(1)
+        glen = np.zeros(1)
+    else:
+        glen = np.array([g.length for g in path])
+    geo = (gs0, glen, kinds, p0s, p1s, us, G)
+    end = path[-1].p1.copy() if npth else pos0.copy()
+    return PathTrajectory(axes, prof, geo, ix, iy, n1, n2, period, pos0, end, events, stops)
 
 
 def _arc_extremes(seg: Arc) -> list[tuple[int, float]]:
