@@ -1,0 +1,378 @@
+"""The daemon, as shipped, driven through its state machine by random requests with faults injected.
+
+One daemon on ``configs/gantry.yaml`` as shipped (the real-time set-up too), changed only in its
+paths, a loopback port for ``/metrics``, fault injection switched on, and no CPU latency request
+(on this project's virtual machines that request stalls the whole VM now and then:
+docs/daemon.md). A hypothesis ``RuleBasedStateMachine`` (derandomized: the same steps on every
+run) sends move, gcode, jog, home, hold, resume, abort, override, stop, start and fault-reset,
+interleaved with injected faults: a drive fault (the amplifier reports one), a following-error
+trip (a push on the carriage), an underrun and a recorder stall (the I/O process stopped by
+SIGSTOP for longer than the setpoint lead, and for longer than the recorder's stall bound), a
+killed helper (the metrics process). After every step it checks the invariants of
+docs/daemon.md's table: no commanded motion in a faulted or stopped state, the ring empty and
+``idle`` true once a fault or an abort has come to rest, every waiter answered (``wait``
+returns), nothing beyond the soft limits, the state the table names for what is observed, and at
+the end the run log's rows equal to the loop's count. How many steps: ``STEPS`` (CI); the
+benchmark ``benchmarks/soak_stateful.py`` runs the same machine for longer.
+
+The cases the state machine was built for are named regression tests below it."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import time
+
+import pytest
+import yaml
+from hypothesis import HealthCheck, settings
+from hypothesis import strategies as st
+from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
+from test_daemon_helpers import REPO, Daemon, wait_for
+
+from motorctl.app.daemon.machine import ACCEPTS, MachineState
+from motorctl.cli.operator import call
+
+#: steps of the state machine in the suite: examples x steps each
+EXAMPLES = int(os.environ.get("MOTORCTL_STATEFUL_EXAMPLES", "5"))
+STEPS = int(os.environ.get("MOTORCTL_STATEFUL_STEPS", "40"))
+#: the axes' soft limits in configs/gantry.yaml [m] (both axes), and how far a reading may stand
+#: beyond them after a brake (the encoder's step and noise) [m]
+SOFT = (-0.02, 0.42)
+SOFT_TOL = 2e-6
+#: a fault or an abort must have come to rest (ring empty, idle) within this much time [s]
+SETTLE_S = 5.0
+SQUARE = "G21 G90\nG1 X{x0:.3f} Y{y0:.3f} F3000\nG1 X{x1:.3f}\nG1 Y{y1:.3f}\nG1 X{x0:.3f}\nM2\n"
+
+
+def shipped_config(tmp, metrics_port: int):
+    """configs/gantry.yaml with paths, a /metrics port, fault injection on and no CPU latency
+    request: nothing else changed."""
+    d = yaml.safe_load((REPO / "configs" / "gantry.yaml").read_text())
+    d["loop"]["realtime"]["cpu_latency_us"] = None
+    d["daemon"].update(socket=str(tmp / "motorctl.sock"), log_dir=str(tmp / "logs"),
+                       allow_fault_injection=True, metrics={"listen": f"127.0.0.1:{metrics_port}"})
+    p = tmp / "gantry-shipped.yaml"
+    p.write_text(yaml.safe_dump(d))
+    return p
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def shipped(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("stateful")
+    cfg = shipped_config(tmp, free_port())
+    dmn = Daemon(cfg, tmp / "motorctl.sock")
+    try:
+        dmn.wait_ready(120)
+        yield dmn
+    finally:
+        dmn.kill()
+
+
+def req(sock, **r) -> dict:
+    return call(str(sock), r, timeout_s=10.0)
+
+
+def status(sock) -> dict:
+    ans = req(sock, cmd="status")
+    assert ans["ok"], ans
+    return ans["status"]
+
+
+def settled(sock) -> dict:
+    """The status once nothing brakes, aborts or stops any more (bounded by SETTLE_S)."""
+    def calm():
+        s = status(sock)
+        mo = s["motion"]
+        stopping = any(a["phase"] == "stopping" for a in s["axes"].values())
+        return s if (not mo["braking"] and not mo["aborting"] and not stopping
+                     and s["machine"]["state"] not in ("aborting", "stopping")) else None
+    return wait_for(calm, SETTLE_S, "the machine to settle", interval=0.02)
+
+
+def ended(sock) -> dict:
+    """The status once an abort or a fault has ended every motion, homing included: the machine
+    idle, stopped or aborted, the motion idle (bounded by SETTLE_S)."""
+    def done():
+        s = status(sock)
+        return s if (s["machine"]["state"] in ("idle", "stopped", "aborted") and s["motion"]["idle"]
+                     and not any(h in ("searching", "latching") for h in s["motion"]["homing"])) else None
+    return wait_for(done, SETTLE_S, "every motion to end", interval=0.02, detail=lambda: status(sock))
+
+
+def check_invariants(s: dict) -> None:
+    """The invariants of docs/daemon.md's table on one status."""
+    mo, machine = s["motion"], s["machine"]
+    state = MachineState(machine["state"])
+    faulted = [a for a, x in s["axes"].items() if x["fault"]]
+    for a, x in s["axes"].items():
+        assert (machine["axes"][a] == "fault") == bool(x["fault"]), (a, machine, x["fault"])
+        assert SOFT[0] <= x["x_d_m"] <= SOFT[1], (a, x["x_d_m"])       # nothing commanded beyond
+        if not x["fault"]:                                            # (a push may carry it)
+            assert SOFT[0] - SOFT_TOL <= x["y_m"] <= SOFT[1] + SOFT_TOL, (a, x["y_m"])
+    if faulted:
+        assert state in (MachineState.ABORTED, MachineState.ABORTING), (state, faulted)
+    if state in (MachineState.ABORTED, MachineState.STOPPED):
+        # no commanded motion: nothing queued, being planned or held, and the ring empty once
+        # the brake is over
+        assert mo["queue_depth"] == 0 and not mo["planning"], mo
+        if not mo["braking"]:
+            assert mo["ring_depth"] == 0 and mo["idle"], mo
+    if state is MachineState.IDLE:
+        assert mo["idle"], mo
+
+
+class DaemonMachine(RuleBasedStateMachine):
+    """Random requests and injected faults against the shipped daemon (module docstring)."""
+
+    dmn: Daemon = None           # set by the test before the run
+    tmp = None
+
+    @initialize()
+    def begin(self):
+        self.sock = self.dmn.sock
+        self.steps = 0
+        self.prog = self.tmp / "square.ngc"
+        # every example starts from a known state: motion aborted, faults reset, both axes in
+        # command mode
+        req(self.sock, cmd="abort")
+        ended(self.sock)
+        for a, x in status(self.sock)["axes"].items():
+            if x["fault"]:
+                self.reset_until_clear(a)
+            if x["phase"] not in ("command", "disabled"):
+                req(self.sock, cmd="stop", axis=a)
+        wait_for(lambda: all(x["phase"] in ("command", "disabled")
+                             for x in status(self.sock)["axes"].values()), 10, "the axes stopped")
+        for a, x in status(self.sock)["axes"].items():
+            if x["phase"] == "disabled":
+                ans = req(self.sock, cmd="start", axis=a, mode="command")
+                assert ans["ok"], ans
+
+    def reset_until_clear(self, axis: str) -> None:
+        """fault-reset until the cause is gone (an injected drive fault reports for its cycles)."""
+        end = time.monotonic() + SETTLE_S
+        while status(self.sock)["axes"][axis]["fault"] and time.monotonic() < end:
+            req(self.sock, cmd="fault-reset", axis=axis)
+            time.sleep(0.05)
+
+    def expect(self, ans: dict, request: str) -> None:
+        """An answer against the table: a refusal names its state; a state that accepts the
+        request never refuses it for the state."""
+        if not ans["ok"] and "state" in ans:
+            assert request not in ACCEPTS[MachineState(ans["state"])], ans
+            assert "refused in state" in ans["error"], ans
+
+    @rule(x=st.floats(0.0, 0.4), y=st.floats(0.0, 0.4), feed=st.sampled_from([None, 0.05, 0.2]))
+    def move(self, x, y, feed):
+        r = {"cmd": "move", "targets": {"X": x, "Y": y}}
+        if feed is not None:
+            r["feed"] = feed
+        self.expect(req(self.sock, **r), "move")
+
+    @rule(x0=st.floats(0.0, 0.3), y0=st.floats(0.0, 0.3), size=st.floats(0.005, 0.05))
+    def gcode(self, x0, y0, size):
+        text = SQUARE.format(x0=x0 * 1e3, y0=y0 * 1e3, x1=(x0 + size) * 1e3, y1=(y0 + size) * 1e3)
+        self.expect(req(self.sock, cmd="gcode", text=text, filename="square.ngc"), "gcode")
+
+    @rule(axis=st.sampled_from(["X", "Y"]), by=st.floats(-0.01, 0.01))
+    def jog(self, axis, by):
+        self.expect(req(self.sock, cmd="jog", axis=axis, by=by), "jog")
+
+    @rule(axis=st.sampled_from(["X", "Y"]))
+    def home(self, axis):
+        self.expect(req(self.sock, cmd="home", axis=axis), "home")
+
+    @rule()
+    def hold(self):
+        self.expect(req(self.sock, cmd="hold"), "hold")
+
+    @rule()
+    def resume(self):
+        self.expect(req(self.sock, cmd="resume"), "resume")
+
+    @rule()
+    def abort(self):
+        ans = req(self.sock, cmd="abort")
+        assert ans["ok"], ans
+        mo = ended(self.sock)["motion"]
+        assert mo["ring_depth"] == 0 and mo["queue_depth"] == 0, mo
+
+    @rule(value=st.sampled_from([0.0, 0.5, 1.0, 1.5]))
+    def override(self, value):
+        assert req(self.sock, cmd="override", value=value)["ok"]
+
+    @rule(axis=st.sampled_from(["X", "Y"]))
+    def stop(self, axis):
+        self.expect(req(self.sock, cmd="stop", axis=axis), "stop")
+
+    @rule(axis=st.sampled_from(["X", "Y"]))
+    def start(self, axis):
+        self.expect(req(self.sock, cmd="start", axis=axis, mode="command"), "start")
+
+    @rule(axis=st.sampled_from(["X", "Y"]))
+    def fault_reset(self, axis):
+        self.expect(req(self.sock, cmd="fault-reset", axis=axis), "fault-reset")
+
+    # ----------------------------------------------------------------- injected faults (every 5th step)
+    def fault_due(self):
+        return self.steps % 5 == 4
+
+    @precondition(fault_due)
+    @rule(axis=st.sampled_from(["X", "Y"]),
+          kind=st.sampled_from(["amp_fault", "push", "read_error"]))
+    def inject(self, axis, kind):
+        r = {"cmd": "inject", "axis": axis, "kind": kind,
+             "cycles": 20 if kind != "amp_fault" else 3}
+        if kind == "push":                    # toward the middle of the travel
+            r["force_N"] = 600.0 if status(self.sock)["axes"][axis]["y_m"] < 0.2 else -600.0
+        assert req(self.sock, **r)["ok"]
+        self.after_fault()
+
+    @precondition(fault_due)
+    @rule(seconds=st.sampled_from([1.5, 3.2]))
+    def stop_the_io_process(self, seconds):
+        """An underrun (longer than the 1 s lead) or a recorder stall (beyond 2 s)."""
+        io = status(self.sock)["process"]["io_pid"]
+        os.kill(io, signal.SIGSTOP)
+        try:
+            time.sleep(seconds)
+        finally:
+            os.kill(io, signal.SIGCONT)
+        self.after_fault()
+
+    @precondition(fault_due)
+    @rule()
+    def kill_a_helper(self):
+        h = status(self.sock)["helpers"]["metrics"]
+        if h["pid"] is None or h["starts"] >= 5:
+            return
+        os.kill(h["pid"], signal.SIGKILL)
+        back = wait_for(lambda: (m := status(self.sock)["helpers"]["metrics"])["pid"] not in (None, h["pid"])
+                        and m, 5.0, "the metrics process back", interval=0.05)
+        assert back["last_end"] == "killed by SIGKILL" and back["starts"] == h["starts"] + 1, back
+
+    def after_fault(self):
+        """Whatever the fault did, every waiter is answered: ``wait`` returns within the bound."""
+        s = settled(self.sock)
+        if any(a["fault"] for a in s["axes"].values()):
+            s = ended(self.sock)
+            mo = s["motion"]
+            assert mo["idle"] and mo["ring_depth"] == 0 and mo["queue_depth"] == 0, mo
+            assert s["machine"]["state"] == "aborted", s["machine"]
+
+    @invariant()
+    def holds(self):
+        self.steps += 1
+        check_invariants(status(self.sock))
+
+
+def test_random_requests_and_faults_keep_the_machine_in_its_table(shipped, tmp_path):
+    DaemonMachine.dmn, DaemonMachine.tmp = shipped, tmp_path
+    DaemonMachine.TestCase.settings = settings(max_examples=EXAMPLES, stateful_step_count=STEPS,
+                                               deadline=None, suppress_health_check=list(HealthCheck))
+    DaemonMachine.TestCase().runTest()
+    s = status(shipped.sock)
+    assert s["log"]["lost_rows"] == 0, s["log"]
+
+
+# ------------------------------------------------------------------ the named cases
+@pytest.fixture
+def ready(shipped):
+    """Both axes in command mode, no fault, motion idle, at rest inside the limits."""
+    sock = shipped.sock
+    req(sock, cmd="abort")
+    ended(sock)
+    for a, x in status(sock)["axes"].items():
+        if x["fault"]:
+            end = time.monotonic() + SETTLE_S
+            while status(sock)["axes"][a]["fault"] and time.monotonic() < end:
+                req(sock, cmd="fault-reset", axis=a)
+                time.sleep(0.05)
+        if status(sock)["axes"][a]["phase"] == "disabled":
+            assert req(sock, cmd="start", axis=a, mode="command")["ok"]
+    req(sock, cmd="override", value=1.0)
+    ans = req(sock, cmd="move", targets={"X": 0.1, "Y": 0.1})
+    assert ans["ok"], ans
+    wait_for(lambda: status(sock)["motion"]["idle"], 20, "at the start point")
+    return sock
+
+
+def test_an_abort_right_after_home_stops_the_homing_before_its_first_move(ready):
+    sock = ready
+    y0 = status(sock)["axes"]["Y"]["x_d_m"]
+    ans = req(sock, cmd="home", axis="Y")
+    assert ans["ok"], ans
+    assert req(sock, cmd="abort")["ok"]
+    s = ended(sock)                 # the homing thread ends at its next step, whenever it runs
+    assert s["motion"]["homing"][1] == "failed: aborted", s["motion"]
+    assert abs(s["axes"]["Y"]["x_d_m"] - y0) < 1e-3, (y0, s["axes"]["Y"])
+    assert s["motion"]["idle"] and s["machine"]["state"] == "idle"
+
+
+def test_a_fault_while_paused_after_an_underrun_ends_the_program_and_answers_the_waiter(ready):
+    sock = ready
+    text = "G21 G90\nG1 X100 Y100 F3000\nG1 X400 Y380 F3000\nM2\n"
+    assert req(sock, cmd="gcode", text=text, filename="long.ngc")["ok"]
+    time.sleep(0.3)
+    io = status(sock)["process"]["io_pid"]
+    os.kill(io, signal.SIGSTOP)
+    try:
+        time.sleep(1.5)                       # longer than the 1 s lead, within the stall bound
+    finally:
+        os.kill(io, signal.SIGCONT)
+    wait_for(lambda: status(sock)["motion"]["stopped_because"].startswith("paused: underrun"), 10,
+             "the underrun's pause", detail=lambda: status(sock)["motion"])
+    assert status(sock)["machine"]["state"] == "held"
+    assert req(sock, cmd="inject", axis="X", kind="amp_fault", cycles=3)["ok"]
+    s = settled(sock)
+    mo = s["motion"]
+    assert mo["idle"] and mo["ring_depth"] == 0 and mo["queue_depth"] == 0, mo
+    assert mo["stopped_because"].startswith("fault: axis X: amplifier fault"), mo
+    assert s["machine"]["state"] == "aborted"
+    ans = req(sock, cmd="resume")
+    assert not ans["ok"] and "refused in state aborted" in ans["error"] and "fault-reset X" in ans["error"]
+
+
+def test_after_a_recorder_stall_mid_program_reset_and_start_resume_clean(ready):
+    sock = ready
+    text = "G21 G90\nG1 X100 Y100 F3000\nG1 X400 Y380 F3000\nM2\n"
+    assert req(sock, cmd="gcode", text=text, filename="long.ngc")["ok"]
+    time.sleep(0.3)
+    io = status(sock)["process"]["io_pid"]
+    os.kill(io, signal.SIGSTOP)
+    try:
+        time.sleep(3.2)                       # beyond the stall bound (2·flush_s + 1 s = 2 s)
+    finally:
+        os.kill(io, signal.SIGCONT)
+    s = settled(sock)
+    assert all("recorder" in a["fault"] for a in s["axes"].values()), s["axes"]
+    assert s["motion"]["ring_depth"] == 0 and s["motion"]["idle"], s["motion"]
+    for a in ("X", "Y"):
+        assert req(sock, cmd="fault-reset", axis=a)["ok"]
+        assert req(sock, cmd="start", axis=a, mode="command")["ok"]
+    time.sleep(0.5)
+    s = status(sock)
+    assert not any(a["fault"] for a in s["axes"].values()), s["axes"]
+    assert req(sock, cmd="move", targets={"X": 0.12, "Y": 0.12})["ok"]
+    wait_for(lambda: status(sock)["motion"]["idle"], 20, "the move after the stall")
+    assert not any(a["fault"] for a in status(sock)["axes"].values())
+
+
+def test_a_killed_helper_is_named_and_back_and_the_counts_agree(ready):
+    sock = ready
+    h = status(sock)["helpers"]["metrics"]
+    os.kill(h["pid"], signal.SIGKILL)
+    back = wait_for(lambda: (m := status(sock)["helpers"]["metrics"])["pid"] not in (None, h["pid"]) and m,
+                    5.0, "the metrics process back")
+    assert back["last_end"] == "killed by SIGKILL"
+    assert not os.path.exists(f"/proc/{h['pid']}")     # reaped by the I/O process: no zombie
+    s = status(sock)
+    assert s["loop"]["cycles"] >= s["log"]["rows"] and s["log"]["lost_rows"] == 0
