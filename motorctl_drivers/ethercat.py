@@ -827,9 +827,18 @@ class EthercatDriver(Driver):
         said = self.fault_reason(i)
         if self._sm[i] is None:
             return said
+        said = said.rsplit("; now ", 1)[0]             # the state comes first here
+        return self.drive_state(i) + (f"; {said}" if said else "")
+
+    def drive_state(self, i: int) -> str:
+        """Axis i's drive's CiA 402 power state and statusword (0x6041) as last read, whatever
+        it is ("EtherCAT slave 1 (CiA 402 drive, axis X) is in Switch on disabled (statusword
+        0x0250)"); the I/O profile: its slaves out of OP with their AL status codes, '' in OP."""
+        if self._sm[i] is None:
+            return self._al_text(i) if self._al_fault[i] else ""
         sw = self._statusword[i]
-        return (f"axis {self.axis_names[i]}'s drive is in {cia402.STATE_NAMES[cia402.decode_state(sw)]} "
-                f"(statusword 0x{sw:04X})" + (f"; {said}" if said else ""))
+        return (f"{self._where(self._ax[i].slave)} is in {cia402.STATE_NAMES[cia402.decode_state(sw)]} "
+                f"(statusword 0x{sw:04X})")
 
     def fault_reason(self, i: int) -> str:
         """Why axis ``i`` faults, one line: its slaves that left OP with their AL status codes

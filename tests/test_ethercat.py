@@ -184,7 +184,16 @@ def test_a_short_working_counter_latches_a_fault_that_names_it(tmp_path):
 
 @needs_netns
 def test_an_emergency_of_the_drive_latches_its_code_and_meaning(tmp_path):
-    r, err = _run(tmp_path, 0.6, faults=["emcy=0x2310:X:1000"])
+    """The drive faults (EMCY 0x2310) mid-run: X latches, named by 0x603F. The drive stays in
+    Fault: a new master's set-up finds it there (``motorctl run`` would be refused naming its state
+    and the command, :func:`motorctl.driver.drive_fault_refusal`; before: "amplifier fault (value 1,
+    limit 0)" alone), and ``motorctl fault-reset --config CONFIG X`` (no daemon) sends transition
+    15 over the process data."""
+    def after(ns):
+        return run_cli(["fault-reset", "--config", str(tmp_path / "ethercat.yaml"), "X"], prefix=ns.prefix,
+                       timeout_s=120)
+
+    r, err, reset = _run(tmp_path, 0.6, faults=["emcy=0x2310:X:1000"], after=after)
     table = parse_run_table(r.stdout)
     assert r.returncode == 1 and "amplifier fault" in table["X"]["fault"] and table["Y"]["fault"] == "", \
         f"{r.stdout}\n{r.stderr}\n{err}"
@@ -192,6 +201,13 @@ def test_an_emergency_of_the_drive_latches_its_code_and_meaning(tmp_path):
     assert "X: fault 0x2310 continuous over-current (injected)" in err
     # collected through pysoem's emergency callback, not its deprecated exception (FutureWarning)
     assert "FutureWarning" not in r.stderr, r.stderr
+    assert reset.returncode == 0, reset.stdout + reset.stderr
+    assert re.search(r"^X: the drive's fault is reset: was EtherCAT slave 1 \(CiA 402 drive, axis X\) is in Fault "
+                     r"\(statusword 0x[0-9A-F]{4}\); EtherCAT slave 1 \(CiA 402 drive, axis X\): error code 0x603F = "
+                     r"0x2310 continuous over-current; now EtherCAT slave 1 \(CiA 402 drive, axis X\) is in Switch on "
+                     r"disabled", reset.stdout, re.M), reset.stdout
+    assert "X, Y at 0 V, amplifiers off (confirmed by the device" in reset.stdout, reset.stdout
+    print(reset.stdout)
 
 
 def _signalled(cfg: Path, steps, stop_emulator: bool = False, log: Path | None = None):
