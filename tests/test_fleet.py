@@ -142,6 +142,17 @@ def test_a_log_cut_mid_run_is_one_run_with_the_whole_log_not_a_second(fleet, cli
     assert len(jobs.read_dataset(out, counted=False)) == 1 and len(jobs.part_files(out)) == 1   # compacted
 
 
+def test_a_flat_dataset_from_before_the_partitions_is_read_and_moved_into_them(fleet, tmp_path):
+    import pyarrow.dataset as ds
+    import pyarrow.parquet as pq
+    flat = jobs.read_dataset(fleet["out"]).drop_columns(["run_id", "log_records"])     # as written before
+    pq.write_table(flat, tmp_path / "part-20261127T000000-1-00000.parquet")
+    assert jobs.read_dataset(tmp_path).column("log_sha256").to_pylist() == flat.column("log_sha256").to_pylist()
+    c = jobs.compact(tmp_path)
+    assert (c["files_before"], c["files_after"], c["rows_dropped"]) == (1, 3, 0)
+    assert ds.dataset(tmp_path, partitioning="hive").to_table().num_rows == 12
+
+
 def _kill_once(marker, *args):
     """The window task, except that the first call kills its own worker process."""
     if not os.path.exists(marker):
