@@ -495,3 +495,36 @@ def test_a_drive_fault_stays_latched_across_runs_until_the_operators_reset_witho
         drv.open()
         exchange(drv, [0.0, 0.0], [False, False], n=5)
         assert not drv.amp_fault.any() and not any("found the drive" in n for n in drv.notices), drv.notices
+
+
+def test_the_reset_without_a_daemon_is_refused_while_a_daemon_answers_on_its_socket(tmp_path):
+    """``motorctl fault-reset --config CONFIG X`` must not open a bus a daemon holds: a control
+    socket that answers (here a stand-in answering one status request) refuses it in one line
+    naming the daemon's command, before the driver is made; a socket file nobody answers on (a
+    dead daemon's) does not."""
+    import json
+    import socket
+    import threading
+
+    from motorctl.app.fault_reset import BusHeld, daemon_answering, reset_drive_faults
+    path = str(tmp_path / "d.sock")
+    srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    srv.bind(path)
+    srv.listen(1)
+
+    def answer():
+        conn, _ = srv.accept()
+        with conn:
+            conn.recv(4096)
+            conn.sendall((json.dumps({"ok": True, "status": {}}) + "\n").encode())
+
+    th = threading.Thread(target=answer, daemon=True)
+    th.start()
+    loaded = config_from_dict(_config(tmp_path), "<co>", check_budget=False)
+    with pytest.raises(BusHeld) as exc:
+        reset_drive_faults(loaded, ["X", "Y"], [path])
+    th.join(timeout=5)
+    assert str(exc.value) == (f"a daemon answers on {path}: it holds the bus, nothing was opened; reset through "
+                              f"it: 'motorctl --socket {path} fault-reset X Y'")
+    srv.close()                                                  # the file stays, nobody answers
+    assert daemon_answering([path]) is None
