@@ -194,8 +194,12 @@ def _detection(a, truth, logs_dir, work) -> bool:
         first = next((d for d in range(max(w["onset_day"], 1), a.days) if (m, want) in raised[d]), None)
         late = None if first is None else first - w["onset_day"]
         ok &= late is not None and late <= 5
+        kept = [d for d in raised if first is not None and d >= first]
+        on = sum((m, want) in raised[d] for d in kept)
+        early = sorted(d for d in raised if d < w["onset_day"] and any(mm == m for mm, _ in raised[d]))
         print(f"{m} {w['kind']}: alarm on {want} ({got[0]['change']['shape']}, z {got[0]['change']['z']:.0f}), change "
-              f"point day {day:.1f} (onset {w['onset_day']}); first raised on day {first} = onset + {late} days; "
+              f"point day {day:.1f} (onset {w['onset_day']}); first raised on day {first} = onset + {late} days, "
+              f"then on {on} of the {len(kept)} days from it; alarms before the onset: {early or 'none'}; "
               f"other alarms on it: {other or 'none'}")
     clean = sorted(set(truth["machines"]) - set(worn))
     print(f"clean machines with an alarm in the final report: "

@@ -224,7 +224,7 @@ def test_single_bad_days_raise_no_alarm_while_wear_still_does():
         assert alarms <= {("m01", "coulomb_N")}, (last, alarms)
     assert alarms == {("m01", "coulomb_N")}
     by = {f["machine"]: f for f in res["findings"] if f["parameter"] == "coulomb_N"}
-    assert by["m01"]["change"]["shape"] == "hinge" and by["m01"]["held"]["latest"]
+    assert by["m01"]["change"]["shape"] == "hinge" and by["m01"]["held"]["recent"]
     assert "held on 1 of 1 days" in by["m04"]["why"]
 
 

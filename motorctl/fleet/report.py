@@ -33,8 +33,9 @@ day holds it on one day only.
 
 **Alarm** (wear, not noise), all of: z ≥ :data:`Z_ALARM`; |Δ| ≥ :data:`K_FLEET` × the fleet's
 scatter of that parameter; |Δ| ≥ :data:`MIN_REL_CHANGE` of the series' typical magnitude; the new
-level held on at least :data:`MIN_DAYS_HELD` days after τ, the latest day among them (wear that
-stays, on a machine that is not back); for an effect's amplitude, the effect named in at least
+level held on at least :data:`MIN_DAYS_HELD` days after τ, one of them among the latest
+:data:`MIN_DAYS_HELD` days (wear that stays: one bad day neither raises an alarm nor, as one
+dip, clears it; a machine back for that many days does); for an effect's amplitude, the effect named in at least
 :data:`MIN_SEG` windows and :data:`MIN_NAMED_SHARE` of those after τ (a one-off phantom effect
 is not wear).
 
@@ -74,7 +75,8 @@ MIN_REL_CHANGE = 0.02
 REL_FLOOR = 0.005
 #: an effect must be named in this share of the windows after τ
 MIN_NAMED_SHARE = 2.0 / 3.0
-#: the new level must be held on at least this many days after the change, the latest among them
+#: the new level must be held on at least this many days after the change, one of them among
+#: this many latest days
 MIN_DAYS_HELD = 2
 #: Huber's constant [standard deviations]: 95 % efficiency at Gaussian noise (Huber 1964)
 HUBER_C = 1.345
@@ -242,13 +244,13 @@ def days_held(day: np.ndarray, y: np.ndarray, v: np.ndarray, cp: dict) -> dict:
         cp: the change.
     Returns:
         {"held": days after the change that hold the new level, "days": days after the change,
-        "latest": whether the latest day holds it}.
+        "recent": whether one of the latest :data:`MIN_DAYS_HELD` days after the change holds it}.
     """
     after = np.arange(len(y)) >= cp["k"]
     margin = np.sign(cp["delta"]) * (y - cp["before"]) - Z95 * np.sqrt(v)
     days = np.unique(day[after])
     holds = [bool(np.median(margin[after & (day == d)]) > 0) for d in days]
-    return {"held": int(sum(holds)), "days": int(len(days)), "latest": bool(holds and holds[-1])}
+    return {"held": int(sum(holds)), "days": int(len(days)), "recent": any(holds[-MIN_DAYS_HELD:])}
 
 
 def theil_sen(t: np.ndarray, y: np.ndarray, confidence: float = TREND_CONFIDENCE) -> dict | None:
@@ -299,9 +301,9 @@ def analyse(rows: list[dict]) -> dict:
                     reasons.append(f"|change| below {K_FLEET:g}x the fleet's scatter")
                 if abs(cp["delta"]) < MIN_REL_CHANGE * scale:
                     reasons.append(f"|change| below {100 * MIN_REL_CHANGE:g} % of the value")
-                if held["held"] < MIN_DAYS_HELD or not held["latest"]:
+                if held["held"] < MIN_DAYS_HELD or not held["recent"]:
                     reasons.append(f"new level held on {held['held']} of {held['days']} days after the change "
-                                   f"({MIN_DAYS_HELD} needed, the latest among them)")
+                                   f"({MIN_DAYS_HELD} needed, one among the latest {MIN_DAYS_HELD})")
                 if p["named"] is not None:
                     after = p["named"][cp["k"]:]
                     if after.sum() < MIN_SEG or after.mean() < MIN_NAMED_SHARE:
@@ -359,7 +361,7 @@ def summary_markdown(res: dict, out_dir) -> str:
              "", f"Rules: a change (Huber's robust two-segment fit) is an alarm when z ≥ {Z_ALARM:g} against "
              f"each fit's own interval and the series' noise, |change| ≥ {K_FLEET:g}× the fleet's scatter and "
              f"≥ {100 * MIN_REL_CHANGE:g} % of the value, and the new level is held beyond the points' intervals "
-             f"on ≥ {MIN_DAYS_HELD} days, the latest among them (docs/fleet.md).", "", "## Alarms", ""]
+             f"on ≥ {MIN_DAYS_HELD} days, one among the latest {MIN_DAYS_HELD} (docs/fleet.md).", "", "## Alarms", ""]
     alarms = [f for f in findings if f["alarm"]]
     if not alarms:
         lines.append("None: no parameter of any machine changed beyond its noise and the fleet's spread.")
