@@ -321,6 +321,47 @@ def test_a_locked_name_is_refused_until_the_operator_unlocks_it(daemon, capsys):
     assert isinstance(_run(login()), float)
 
 
+def test_a_generic_client_finds_the_cnc_objects_by_the_nodesets_type_nodeids(daemon):
+    """As an OPC 40502 client knows them (the OPC Foundation's Opc.Ua.CNC.NodeSet.xml: namespace
+    http://opcfoundation.org/UA/CNC, CncInterfaceType i=1007, CncAxisListType i=1008,
+    CncSpindleListType i=1009, CncChannelListType i=1010, CncAxisType i=1004 under CncDriveType
+    i=1003 under CncComponentType i=1001, CncPositionVariableType i=2001, CncAxisStatus i=3004):
+    the objects are found by their type definitions alone, the positions under PosDirect with
+    their EngineeringUnits (metre), the status variables of the enumeration DataTypes."""
+    async def go():
+        async with _client(daemon.url) as c:
+            ns = await c.get_namespace_index("http://opcfoundation.org/UA/CNC")
+
+            async def typed(parent, num):
+                return [o for o in await parent.get_children()
+                        if await o.read_type_definition() == ua.NodeId(num, ns)]
+
+            iface, = await typed(c.nodes.objects, 1007)
+            lists = {n: await typed(iface, n) for n in (1008, 1009, 1010)}
+            axes = await typed(lists[1008][0], 1004)
+            spindles = await typed(lists[1009][0], 1005)
+            chans = await typed(lists[1010][0], 1002)
+            supers, n = [], c.get_node(ua.NodeId(1004, ns))
+            while n.nodeid != ua.NodeId(ua.ObjectIds.BaseObjectType):
+                n = c.get_node((await n.get_references(ua.ObjectIds.HasSubtype, ua.BrowseDirection.Inverse))[0].NodeId)
+                supers.append(n.nodeid)
+            x = axes[0]
+            pos, = [p for p in await typed(x, 2001) if (await p.read_browse_name()).Name == "PosDirect"]
+            act = await pos.get_child(f"{ns}:ActPos")
+            eu = await (await pos.get_child("0:EngineeringUnits")).read_value()
+            status = await x.get_child(f"{ns}:ActStatus")
+            return (len(lists[1008]), len(lists[1009]), len(lists[1010]), [(await a.read_browse_name()).Name for a in axes],
+                    len(spindles), len(chans), supers, (await pos.read_browse_name()).Name, await act.read_value(),
+                    eu.UnitId, await status.read_data_type(), await (await x.get_child(f"{ns}:ActPos")).read_value())
+
+    (n_axl, n_spl, n_chl, axes, n_sp, n_ch, supers, pos_name, act, unit, status_dt, act_axis) = _run(go())
+    assert (n_axl, n_spl, n_chl) == (1, 1, 1) and axes == ["X", "Y"] and n_sp == 0 and n_ch == 1
+    assert supers[:2] == [ua.NodeId(1003, 2), ua.NodeId(1001, 2)], supers
+    assert pos_name == "PosDirect" and unit == 5067858            # UNECE MTR: metre
+    assert abs(act - act_axis) < 1e-4                             # the same measured position
+    assert status_dt == ua.NodeId(3004, 2)
+
+
 def test_the_tools_browse_the_cnc_objects_and_read_a_position(daemon):
     out, err = daemon.uals.communicate(timeout=60)
     assert daemon.uals.returncode == 0, err

@@ -1,15 +1,19 @@
 """The daemon's OPC UA server (docs/opcua.md), after OPC 40502 (OPC UA for CNC Systems), in a
 process of its own.
 
-Address space (OPC 10000-3 objects and variables; the companion specification's BrowseNames
-in the namespace :data:`CNC_NS`; the official NodeSet is not loaded, the types are made here
-with the same names)::
+Address space (OPC 10000-3 objects and variables) on OPC 40502's own types, made here with the
+NodeIds, BrowseNames, DataTypes and hierarchy of the OPC Foundation's published NodeSet
+(Opc.Ua.CNC.NodeSet.xml 1.0.0: :data:`CNC_OBJECT_TYPES`, :data:`CNC_ENUMS`,
+CncPositionVariableType) in its namespace :data:`CNC_NS`; the NodeSet file is not loaded::
 
-    Objects/CncInterface                      (CncInterfaceType)
-        CncChannelList/CncChannel             (CncChannelType): program, line, status,
+    Objects/CncInterface                      (CncInterfaceType i=1007)
+        CncChannelList/CncChannel             (CncChannelType i=1002): program, line, status,
                                               override, work offset; the methods
-        CncAxisList/<axis>                    (CncAxisType), one per configured axis:
-                                              ActPos, CmdPos, ActSpeed, IsReferenced, ...
+        CncAxisList/<axis>                    (CncAxisType i=1004), one per configured axis:
+                                              PosDirect, PosIndirect (CncPositionVariableType
+                                              i=2001: ActPos, CmdPos, RemDist [m]), ActStatus
+                                              (CncAxisStatus i=3004), IsReferenced, ...
+        CncSpindleList                        (CncSpindleListType i=1009), empty
 
 How the values get here. The I/O process (:mod:`motorctl.app.daemon.io_side`) hands this
 process a *snapshot* of figures it already holds (the newest row of the shared ring, the
@@ -69,8 +73,31 @@ import numpy as np
 
 from motorctl.app.daemon.forked import SnapshotLink, fork_helper, helper_started
 
-#: the namespace of the CNC objects (OPC 40502's namespace URI)
-CNC_NS = "http://opcfoundation.org/UA/CNC/"
+#: the namespace of the CNC types and objects (OPC 40502's namespace URI, as its NodeSet has it)
+CNC_NS = "http://opcfoundation.org/UA/CNC"
+#: OPC 40502's ObjectTypes: (numeric NodeId in CNC_NS, BrowseName, supertype: a NodeId number
+#: in CNC_NS, or "base" for BaseObjectType i=58, abstract), as the OPC Foundation's published
+#: NodeSet (Opc.Ua.CNC.NodeSet.xml, 1.0.0 of 2017-06-19) defines them, supertypes first
+CNC_OBJECT_TYPES = ((1001, "CncComponentType", "base", True), (1003, "CncDriveType", 1001, True),
+                    (1004, "CncAxisType", 1003, False), (1005, "CncSpindleType", 1003, False),
+                    (1002, "CncChannelType", 1001, False), (1007, "CncInterfaceType", "base", False),
+                    (1008, "CncAxisListType", "base", False), (1009, "CncSpindleListType", "base", False),
+                    (1010, "CncChannelListType", "base", False))
+#: CncPositionVariableType (a BaseDataVariableType of DataType CncPositionDataType, a Structure)
+CNC_POSITION_VARIABLE_TYPE, CNC_POSITION_DATA_TYPE = 2001, 3007
+#: OPC 40502's enumeration DataTypes (NodeId number in CNC_NS, BrowseName, the values 0, 1, ...)
+CNC_ENUMS = ((3001, "CncSpindleTurnDirection", ("None", "CW", "CCW")),
+             (3002, "CncChannelProgramStatus", ("Stopped", "Running", "Waiting", "Interrupted", "Canceled")),
+             (3003, "CncChannelStatus", ("Active", "Interrupted", "Reset")),
+             (3004, "CncAxisStatus", ("InPosition", "Moving", "Parked")),
+             (3005, "CncSpindleStatus", ("Stopped", "InTargetArea", "Accelerating", "Decelerating", "Parked")),
+             (3006, "CncOperationMode", ("Manual", "MDA", "Automatic")))
+#: EngineeringUnits (OPC 10000-8 5.6.3: UNECE Recommendation 20 common codes as UnitId):
+#: (UnitId, DisplayName, Description)
+EU_METRE = (5067858, "m", "metre")                 # MTR
+EU_METRE_PER_SECOND = (5067859, "m/s", "metre per second")   # MTS
+EU_PERCENT = (20529, "%", "percent")               # P1
+EU_SECOND = (5457219, "s", "second")               # SEC
 #: the I/O process sends a snapshot at most this often [s] (it wakes every 20 ms: 25-50 Hz)
 SNAPSHOT_EVERY_S = 0.02
 #: the slow figures (turnaround percentiles, work offsets) this often [s]
@@ -668,13 +695,75 @@ class CncServer:
         self.ns = await s.register_namespace(CNC_NS)
         await self._build()
 
-    async def _type(self, name: str, base):
-        return await base.add_object_type(ua_nodeid(self.ns, name), ua_qn(self.ns, name))
+    async def _types(self) -> dict:
+        """OPC 40502's types with the NodeSet's NodeIds, BrowseNames and hierarchy
+        (:data:`CNC_OBJECT_TYPES`, :data:`CNC_ENUMS`, CncPositionVariableType). Returns
+        BrowseName -> NodeId."""
+        from asyncua import ua
+        from asyncua.common.structures104 import new_enum, new_enum_field, new_struct, new_struct_field
+        s, ns = self.server, self.ns
+        ids = {}
+        for num, name, sup, abstract in CNC_OBJECT_TYPES:
+            base = s.nodes.base_object_type if sup == "base" else s.get_node(ua.NodeId(sup, ns))
+            t = await base.add_object_type(ua.NodeId(num, ns), ua.QualifiedName(name, ns))
+            if abstract:
+                await t.write_attribute(ua.AttributeIds.IsAbstract, ua.DataValue(ua.Variant(True, ua.VariantType.Boolean)))
+            ids[name] = t.nodeid
+        for num, name, values in CNC_ENUMS:
+            dt = await new_enum(s, ua.NodeId(num, ns), ua.QualifiedName(name, ns), [new_enum_field(v) for v in values])
+            evs = [ua.EnumValueType(Value=i, DisplayName=ua.LocalizedText(v)) for i, v in enumerate(values)]
+            await dt.add_property(0, "EnumValues", ua.Variant(evs, ua.VariantType.ExtensionObject))
+            ids[name] = dt.nodeid
+        d = ua.VariantType.Double
+        pos, _ = await new_struct(s, ua.NodeId(CNC_POSITION_DATA_TYPE, ns), ua.QualifiedName("CncPositionDataType", ns),
+                                  [new_struct_field(f, d) for f in ("ActPos", "CmdPos", "RemDist")])
+        ids["CncPositionDataType"] = pos.nodeid
+        vt = await s.get_node(ua.NodeId(ua.ObjectIds.BaseDataVariableType)).add_variable_type(
+            ua.NodeId(CNC_POSITION_VARIABLE_TYPE, ns), ua.QualifiedName("CncPositionVariableType", ns), pos.nodeid)
+        ids["CncPositionVariableType"] = vt.nodeid
+        return ids
+
+    async def _eu(self, node, unit: tuple) -> None:
+        """The EngineeringUnits property of ``node`` (OPC 10000-8 5.6.3 EUInformation)."""
+        from asyncua import ua
+        eu = ua.EUInformation(NamespaceUri="http://www.opcfoundation.org/UA/units/un/cefact", UnitId=unit[0],
+                              DisplayName=ua.LocalizedText(unit[1]), Description=ua.LocalizedText(unit[2]))
+        await node.add_property(0, "EngineeringUnits", ua.Variant(eu, ua.VariantType.ExtensionObject))
+
+    async def _position(self, axis, p: str, name: str, desc: str):
+        """A CncPositionVariable (PosDirect, PosIndirect) with its ActPos, CmdPos, RemDist [m]
+        and EngineeringUnits (metre)."""
+        from asyncua import ua
+        ns = self.ns
+        var = await axis.add_variable(ua.NodeId(f"{p}.{name}", ns), ua.QualifiedName(name, ns), None,
+                                      varianttype=ua.VariantType.ExtensionObject, datatype=self.types["CncPositionDataType"])
+        await var.add_reference(self.types["CncPositionVariableType"], ua.ObjectIds.HasTypeDefinition, True, False)
+        await var.delete_reference(ua.NodeId(ua.ObjectIds.BaseDataVariableType), ua.ObjectIds.HasTypeDefinition,
+                                   forward=True, bidirectional=False)
+        await var.write_attribute(ua.AttributeIds.Description,
+                                  ua.DataValue(ua.Variant(ua.LocalizedText(desc), ua.VariantType.LocalizedText)))
+        for child, value, d in (("ActPos", math.nan, "measured position [m]"),
+                                ("CmdPos", math.nan, "commanded position [m]"),
+                                ("RemDist", 0.0, "distance left to the commanded position [m]")):
+            await self._var(var, f"{p}.{name}", child, value, ua.VariantType.Double, d)
+        await self._eu(var, EU_METRE)
+
+    #: the EngineeringUnits of the variables by BrowseName
+    UNITS = {"ActPos": EU_METRE, "CmdPos": EU_METRE, "FollowingError": EU_METRE, "ZeroOffset": EU_METRE,
+             "ActSpeed": EU_METRE_PER_SECOND, "CmdSpeed": EU_METRE_PER_SECOND, "ActFeedrate": EU_METRE_PER_SECOND,
+             "FeedOverride": EU_PERCENT, "LoopTime": EU_SECOND, "TimeLeft": EU_SECOND}
+    #: the enumeration DataType of the variables by BrowseName (within their parent's type)
+    ENUM_OF = {"CncAxisList": {"ActStatus": "CncAxisStatus"},
+               "CncChannelList": {"ActStatus": "CncChannelStatus", "ActProgramStatus": "CncChannelProgramStatus"}}
 
     async def _var(self, parent, path: str, name: str, value, vtype, desc: str = ""):
         from asyncua import ua
         nid = ua.NodeId(f"{path}.{name}", self.ns)
-        node = await parent.add_variable(nid, ua.QualifiedName(name, self.ns), ua.Variant(value, vtype))
+        enum = next((e.get(name) for k, e in self.ENUM_OF.items() if f".{k}." in f".{path}."), None)
+        node = await parent.add_variable(nid, ua.QualifiedName(name, self.ns), ua.Variant(value, vtype),
+                                         datatype=self.types[enum] if enum else None)
+        if name in self.UNITS and path.rsplit(".", 1)[-1] not in ("PosDirect", "PosIndirect"):
+            await self._eu(node, self.UNITS[name])
         if desc:
             await node.write_attribute(ua.AttributeIds.Description,
                                        ua.DataValue(ua.Variant(ua.LocalizedText(desc), ua.VariantType.LocalizedText)))
@@ -685,28 +774,33 @@ class CncServer:
     async def _build(self):
         from asyncua import ua
         s, ns = self.server, self.ns
-        base = s.nodes.base_object_type
-        t_iface = await self._type("CncInterfaceType", base)
-        t_list = await self._type("CncAxisListType", base)
-        t_clist = await self._type("CncChannelListType", base)
-        t_axis = await self._type("CncAxisType", base)
-        t_chan = await self._type("CncChannelType", base)
+        self.types = ty = await self._types()
+        t_iface, t_list, t_clist, t_slist = (ty[n] for n in ("CncInterfaceType", "CncAxisListType",
+                                                               "CncChannelListType", "CncSpindleListType"))
+        t_axis, t_chan = ty["CncAxisType"], ty["CncChannelType"]
         D, B, S, I32, U32, U64 = (ua.VariantType.Double, ua.VariantType.Boolean, ua.VariantType.String,
                                   ua.VariantType.Int32, ua.VariantType.UInt32, ua.VariantType.UInt64)
         iface = await s.nodes.objects.add_object(ua.NodeId("CncInterface", ns), ua.QualifiedName("CncInterface", ns),
-                                                 objecttype=t_iface.nodeid)
+                                                 objecttype=t_iface)
         await self._var(iface, "CncInterface", "CncTypeName", "motorctl", S)
         await self._var(iface, "CncInterface", "LoopTime", 0.0, D,
                         "the loop's time of the newest snapshot [s] (motorctl)")
         await self._var(iface, "CncInterface", "LoopCycles", 0, U64, "cycles the loop has published (motorctl)")
+        for name, value in (("VendorName", "motorctl"), ("VendorRevision", ""), ("Version", "1.0.0")):
+            await iface.add_property(ua.NodeId(f"CncInterface.{name}", ns), ua.QualifiedName(name, ns),
+                                     ua.Variant(value, S))
         alist = await iface.add_object(ua.NodeId("CncInterface.CncAxisList", ns),
-                                       ua.QualifiedName("CncAxisList", ns), objecttype=t_list.nodeid)
+                                       ua.QualifiedName("CncAxisList", ns), objecttype=t_list)
         clist = await iface.add_object(ua.NodeId("CncInterface.CncChannelList", ns),
-                                       ua.QualifiedName("CncChannelList", ns), objecttype=t_clist.nodeid)
+                                       ua.QualifiedName("CncChannelList", ns), objecttype=t_clist)
+        await iface.add_object(ua.NodeId("CncInterface.CncSpindleList", ns),     # no spindles: empty
+                               ua.QualifiedName("CncSpindleList", ns), objecttype=t_slist)
         for j, ax in enumerate(self.axes):
             a = ax["name"]
             p = f"CncInterface.CncAxisList.{a}"
-            node = await alist.add_object(ua.NodeId(p, ns), ua.QualifiedName(a, ns), objecttype=t_axis.nodeid)
+            node = await alist.add_object(ua.NodeId(p, ns), ua.QualifiedName(a, ns), objecttype=t_axis)
+            await self._position(node, p, "PosDirect", "the axis's position from its own (linear) encoder")
+            await self._position(node, p, "PosIndirect", "as PosDirect: the drive has no second measuring system")
             for name, value, vt, desc in (
                     ("Id", j + 1, U32, ""),
                     ("ActPos", math.nan, D, "measured position [m]"),
@@ -728,7 +822,7 @@ class CncServer:
                     ("TurnaroundMax", math.nan, D, "loop turnaround maximum [us] (motorctl)")):
                 await self._var(node, p, name, value, vt, desc)
         p = "CncInterface.CncChannelList.CncChannel"
-        ch = await clist.add_object(ua.NodeId(p, ns), ua.QualifiedName("CncChannel", ns), objecttype=t_chan.nodeid)
+        ch = await clist.add_object(ua.NodeId(p, ns), ua.QualifiedName("CncChannel", ns), objecttype=t_chan)
         for name, value, vt, desc in (
                 ("Id", 1, U32, ""),
                 ("ActProgramName", "", S, "the program running or run last"),
@@ -736,7 +830,7 @@ class CncServer:
                 ("ActProgramLine", 0, U32, "source line of the motion the loop runs (0: none)"),
                 ("ActProgramStatus", PROG_STOPPED, I32,
                  "CncChannelProgramStatus: 0 Stopped, 1 Running, 2 Waiting, 3 Interrupted, 4 Canceled"),
-                ("ChannelStatus", CH_RESET, I32, "CncChannelStatus: 0 Active, 1 Interrupted, 2 Reset"),
+                ("ActStatus", CH_RESET, I32, "CncChannelStatus: 0 Active, 1 Interrupted, 2 Reset"),
                 ("FeedOverride", 100.0, D, "feed override [%]"),
                 ("FeedHold", False, B, "feed hold"),
                 ("ActFeedrate", 0.0, D, "programmed path feed [m/s]"),
@@ -919,6 +1013,10 @@ class CncServer:
             for key, field in (("ActPos", "y"), ("CmdPos", "x_d"), ("ActSpeed", "v"),
                                ("CmdSpeed", "xd_dot"), ("FollowingError", "e")):
                 await w(p + key, float(snap[field][i]), ts, True)
+            for pos in ("PosDirect.", "PosIndirect."):
+                await w(p + pos + "ActPos", float(snap["y"][i]), ts, True)
+                await w(p + pos + "CmdPos", float(snap["x_d"][i]), ts, True)
+                await w(p + pos + "RemDist", -float(snap["e"][i]), ts)
             mode, en = snap["modes"][i], snap["enabled"][i]
             moving = abs(snap["xd_dot"][i]) > 0.0
             await w(p + "ActStatus", AX_PARKED if not en else (AX_MOVING if moving else AX_IN_POSITION), ts)
@@ -948,7 +1046,7 @@ class CncServer:
         await w(c + "ActMainProgramName", self.program, ts)
         await w(c + "ActProgramLine", snap["line"], ts)
         await w(c + "ActProgramStatus", prog, ts)
-        await w(c + "ChannelStatus", chan, ts)
+        await w(c + "ActStatus", chan, ts)
         await w(c + "FeedOverride", snap["override"] * 100.0, ts)
         await w(c + "FeedHold", snap["hold"], ts)
         await w(c + "ActFeedrate", snap["feed_m_s"], ts)
