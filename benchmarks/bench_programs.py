@@ -6,6 +6,7 @@ CLI as a child process).
     python benchmarks/bench_programs.py                      # 4 hogs, 5 runs of each program
     python benchmarks/bench_programs.py --repeat 1 --hogs 0  # a quick look at rest
     python benchmarks/bench_programs.py --million            # also the 1 000 000-line program
+    python benchmarks/bench_programs.py --contour --repeat 1 # benchmarks/bench_contour.py's five programs
 
 Prints, per program and run: faults, underruns, the end point's distance from the program's end
 [um], rows lost, the run's time; then the loop's turnaround p99.9 while streaming against at rest
@@ -17,7 +18,10 @@ growth while it runs (all its processes: loop, I/O, planner).
 
 The programs are made here: ``cam_program`` (plasma parts: rapid to a pierce point, M3 S, a 1-3 mm
 lead-in arc, the contour of lines and arcs, a lead-out, M5; ~700 segments), ``steps_program``
-(0.1 mm steps at F6000 in rows), ``million_program`` (1 000 000 lines of 0.05 mm steps).
+(0.1 mm steps at F6000 in rows), ``million_program`` (1 000 000 lines of 0.05 mm steps). With
+``--contour`` instead: the five programs benchmarks/bench_contour.py times against TOPP-RA (the
+ISO 230-4 circle R 50 mm at 50 and 100 mm/s, configs/cut_path.ngc, configs/dxf2gcode_lid_wing.ngc,
+configs/plate_0932.ngc).
 """
 
 from __future__ import annotations
@@ -123,6 +127,20 @@ def million_program(path: Path, n: int = 1_000_000, bad_last: bool = False) -> N
                 x += d * 0.05
             fh.write(f"G1 X{x:.3f} Y{y:.4f}\n")
         fh.write("G1 X500\n" if bad_last else "M2\n")
+
+
+def contour_programs() -> list[tuple[str, tuple[float, float], str]]:
+    """benchmarks/bench_contour.py's programs: (text, end point (X, Y) [mm], name) each."""
+    from motorctl.motion import GcodeSettings, parse
+    from motorctl.motion.circle import circle_program
+    settings = GcodeSettings(axes=["X", "Y"], words={"M3": "torch", "M5": "torch", "S": "ignore"})
+    out = []
+    for feed in (0.05, 0.1):
+        text, _ = circle_program(0.05, feed, center=(0.2, 0.2))
+        out.append((text, f"circle_F{feed * 6e4:.0f}"))
+    for name in ("cut_path.ngc", "dxf2gcode_lid_wing.ngc", "plate_0932.ngc"):
+        out.append(((REPO / "configs" / name).read_text(), name))
+    return [(text, tuple(parse(text, name, settings).end[:2] * 1e3), name) for text, name in out]
 
 
 # ------------------------------------------------------------------------------------ the daemon
@@ -258,6 +276,8 @@ def main() -> int:
     ap.add_argument("--repeat", type=int, default=5, help="runs of each program (default 5)")
     ap.add_argument("--million", action="store_true", help="also the 1 000 000-line program")
     ap.add_argument("--realtime", default="best_effort", choices=("off", "best_effort", "required"))
+    ap.add_argument("--contour", action="store_true",
+                    help="run benchmarks/bench_contour.py's five programs instead (no override run)")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_programs-"))
     cam, cam_end = cam_program()
@@ -276,17 +296,20 @@ def main() -> int:
         busy = status_times(dm.sock, 10)
         rows = []
         for k in range(args.repeat):
-            for text, end, name in ((cam, cam_end, "cam_program"), (steps, steps_end, "steps_program")):
+            progs = (contour_programs() if args.contour else
+                     ((cam, cam_end, "cam_program"), (steps, steps_end, "steps_program")))
+            for text, end, name in progs:
                 r = run_program(dm, text, end, name)
                 rows.append(r)
                 print(f"  {name:14s} run {k + 1}: {r['segments']} segments, faults {r['faults'] or 0}, underruns "
                       f"{r['underruns']}, end {r['end_um']:.2f} um, rows lost {r['lost_rows']}, answered in "
                       f"{r['answer_s']:.2f} s, {r['run_s']:.1f} s in all{'; ' + r['why'] if r['why'] else ''}",
                       flush=True)
-        r = run_program(dm, cam, cam_end, "cam_program", override_flip=True)
-        print(f"  override 0.5/1.5 every 2 s through cam_program ({r['flips']} changes): faults "
-              f"{r['faults'] or 0}, underruns {r['underruns']}, end {r['end_um']:.2f} um, rows lost "
-              f"{r['lost_rows']}", flush=True)
+        r = None if args.contour else run_program(dm, cam, cam_end, "cam_program", override_flip=True)
+        if r:
+            print(f"  override 0.5/1.5 every 2 s through cam_program ({r['flips']} changes): faults "
+                  f"{r['faults'] or 0}, underruns {r['underruns']}, end {r['end_um']:.2f} um, rows lost "
+                  f"{r['lost_rows']}", flush=True)
         if args.million:
             bad, good = tmp / "million_bad.ngc", tmp / "million.ngc"
             million_program(bad, bad_last=True)

@@ -165,3 +165,23 @@ def test_the_fast_path_reads_as_the_general_path(lines):
         return ([(s.start.tolist(), s.end.tolist(), s.feed, s.tolerance, s.line) for s in r.segments],
                 r.f_word, r.motion)
     assert read(True) == read(False)
+
+
+def test_g64_q_is_the_naive_cam_tolerance_of_feed_lines():
+    """LinuxCNC's G64 P Q: Q [program units] is each straight feed move's naive-CAM tolerance
+    (Line.naive_cam, metres), P when Q is not given, 0 for rapids and under G61; a negative Q
+    is refused by line and column."""
+    prog = parse("G21 G64 P0.01\nG1 X1 F600\nG0 X2\nG64 P0.02 Q0.005\nG1 X3\nG20 G64 P0.001 Q0.0004\nG1 X4\n"
+                 "G61\nG1 X5\n", "q.ngc", GcodeSettings())
+    assert [m.naive_cam for m in prog.moves] == pytest.approx([1e-5, 0.0, 5e-6, 0.0004 * 25.4e-3, 0.0])
+    with pytest.raises(GcodeError, match=r"q.ngc:1:.*Q-0.1.*negative naive-CAM tolerance"):
+        parse("G64 P0.01 Q-0.1\n", "q.ngc", GcodeSettings())
+
+
+def test_the_contour_benchmark_programs_parse():
+    """configs/cut_path.ngc and configs/dxf2gcode_lid_wing.ngc (benchmarks/bench_contour.py):
+    hundreds of short moves, read whole, each with the G64 P of its header."""
+    for name, moves in (("cut_path.ngc", 300), ("dxf2gcode_lid_wing.ngc", 200)):
+        prog = parse((REPO / "configs" / name).read_text(), name, CAM)
+        feeds = [m for m in prog.moves if m.feed is not None]
+        assert len(prog.moves) >= moves and {m.tolerance for m in feeds} == {1e-5}
