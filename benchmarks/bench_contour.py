@@ -17,7 +17,7 @@ Per program on configs/gantry.yaml's limits (X: 2 m/s, 40 m/s², 4000 m/s³; Y: 
   program stops (a machine word, a dwell, a pause, G61, a rapid's ends) or turns at a join no
   blend rounds (more than 1 mrad where an arc meets); each chain a cubic spline through points
   of the path every ``--grid`` mm or closer (a blend arc in 8 points at least); the program's
-  dwells added;
+  dwells between its moves added;
 * **distance**: the setpoints' largest distance from the programmed path (the program's lines
   and arcs as :func:`motorctl.motion.gcode.parse` reads them, not the planner's blended path;
   :func:`motorctl.motion.path.contour_error`) on every sample, against P.
@@ -86,9 +86,10 @@ def _chains(program):
     program's dwell seconds."""
     chains, cur, dwell = [], [], 0.0
     prev = None
-    for seg in program.segments:
+    last_move = max((k for k, seg in enumerate(program.segments) if isinstance(seg, (Line, Arc))), default=-1)
+    for k, seg in enumerate(program.segments):
         stop = isinstance(seg, (Dwell, Pause)) or (isinstance(seg, Event) and not seg.synchronized)
-        if isinstance(seg, Dwell):
+        if isinstance(seg, Dwell) and k < last_move:         # (the planned time ends with the motion)
             dwell += seg.seconds
         if stop or (isinstance(seg, Line) and seg.feed is None) or (isinstance(seg, (Line, Arc)) and prev is not None
                                                                     and prev.tolerance == 0.0):

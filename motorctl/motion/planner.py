@@ -1,21 +1,25 @@
 """The look-ahead path planner: a :class:`~motorctl.motion.gcode.Program` → a jerk-limited
 :class:`Trajectory` of every axis, and Ruckig's point-to-point moves (docs/motion.md).
 
-Path programs are planned in two stages, the scheme of FIR-filter interpolators (L. Biagiotti,
-C. Melchiorri, "FIR filters for online trajectory planning with time- and frequency-domain
-specifications", Control Engineering Practice 20 (2012) 1385-1399):
+Path programs are planned in three steps (docs/motion.md, "The planner"):
 
-1. a *look-ahead* over the whole program: each line or arc gets its top path speed (the feed, each
-   axis's v_max over its share of the tangent, the arc's centripetal budget), each corner its
-   junction speed (0 at an exact stop G61, a dwell, a pause or a machine word; else bounded by the
-   G64 tolerance and by the velocity step each axis can absorb), and a backward then a forward
-   pass give an acceleration-limited (trapezoidal) path-speed profile through the corners;
-2. every axis of that profile is passed through two moving averages of lengths T1 and T2
-   (T2 = max over axes of 2 a_max/j_max): the result has |a| ≤ a_max because any T1 window of the
-   profile changes the velocity by at most a_max·T1, and |j| ≤ 2 a_max/T2 ≤ j_max. The filter
-   rounds each corner inside the convex hull of the path within (T1 + T2)·v of it, which is how
-   the G64 tolerance bounds the junction speed; it delays the motion by (T1 + T2)/2 and ends at the
-   program's end point exactly.
+1. the *blended path* (:mod:`motorctl.motion.blend`): LinuxCNC's naive-CAM merge within G64 Q and
+   a tangent arc at every line-line corner within G64 P; its lines and arcs are within P of the
+   programmed moves by construction;
+2. a *look-ahead* over the whole program: each piece limits the path speed and acceleration
+   (the feed, each axis's v_max and a_max along the tangent, on an arc the normal acceleration
+   v²κ, the jerk of moving on a curve 3·s̈·ṡ·κ + ṡ³κ², the second filter's chord), each join the
+   speed through it (its curvature step and kink spread over T2 within JERK_STEP of j_max);
+   each limit holds on a zone widened by v·(T1 + T2 + h) of path up to the nearest stop, and a
+   backward then a forward pass give an acceleration-limited (trapezoidal) path-speed profile;
+3. two moving averages (the scheme of FIR-filter interpolators: L. Biagiotti, C. Melchiorri,
+   "FIR filters for online trajectory planning with time- and frequency-domain
+   specifications", Control Engineering Practice 20 (2012) 1385-1399): the path length and
+   speed through one of T1 = 2·max(a_max/j_max) (the path acceleration's ramps within j_max),
+   the blended path at that length, the setpoints through one of T2 = SMOOTH_S (the joins'
+   curvature steps spread over T2; an arc long enough is planned on the radius the average
+   shrinks back onto its own). The motion is delayed by (T1 + T2)/2 and ends at the program's
+   end point exactly.
 
 The filters act on the planner's grid (period ``period``, the loop's by default): setpoints on that
 grid are the filtered profile exactly; :meth:`Trajectory.sample_into` at that period takes a fast
