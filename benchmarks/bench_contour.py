@@ -14,8 +14,8 @@ Per program on configs/gantry.yaml's limits (X: 2 m/s, 40 m/s², 4000 m/s³; Y: 
   time-optimal path parameterization based on reachability analysis", IEEE Trans. Robotics
   34(3) 2018; the ``toppra`` package). Acceleration-limited, no jerk limit: a lower bound the
   jerk-limited planner cannot reach. The path is cut into chains from rest to rest where the
-  program stops (a machine word, a dwell, a pause, G61, a rapid's ends) or turns at a join no
-  blend rounds (more than 1 mrad where an arc meets); each chain a cubic spline through points
+  program stops (a machine word, a dwell, a pause, G61, a rapid's ends) or turns where an arc
+  meets a move by more than the spline below rounds within P (θ·grid/4 > P); each chain a cubic spline through points
   of the path every ``--grid`` mm or closer (a blend arc in 8 points at least); the program's
   dwells between its moves added;
 * **distance**: the setpoints' largest distance from the programmed path (the program's lines
@@ -80,7 +80,7 @@ class _Seg:
         return np.column_stack([self.c[0] + self.r * np.cos(phi), self.c[1] + self.r * np.sin(phi)])
 
 
-def _chains(program):
+def _chains(program, grid_m: float):
     """The program's feed moves in chains from rest to rest, the line-line corners blended within
     the tolerance by the largest tangent arc whose ends lie within half of each line; and the
     program's dwell seconds."""
@@ -124,8 +124,8 @@ def _chains(program):
                 sgn = 1.0 if ta[0] * tb[1] - ta[1] * tb[0] > 0 else -1.0
                 c = p.b + r * sgn * np.array([-ta[1], ta[0]])
                 cur.append(_Seg(p.b, s.a, min(p.feed, s.feed), c, sgn * theta, r))
-            elif theta > 1e-3:
-                chains.append(cur)
+            elif theta * grid_m / 4 > tol:     # the spline through points grid_m apart rounds a kink
+                chains.append(cur)                # by about theta·grid/4: within P, TOPP-RA passes it
                 cur = []
         cur.append(s)
         prev = seg
@@ -182,7 +182,7 @@ def bench(name: str, text: str, grid_m: float) -> dict:
     out = np.empty((n, 3, 2))
     tr.sample_into(0.0, H, out)
     err = contour_error(prog, out[:, 0])
-    chains, dwell = _chains(prog)
+    chains, dwell = _chains(prog, grid_m)
     t_top = dwell + sum(toppra_time(c, LIMITS, grid_m) for c in chains if sum(s.length for s in c) > 0)
     tol = min((s.tolerance for s in prog.moves if s.feed is not None), default=math.inf)
     j = np.abs(np.diff(out[:, 2], axis=0)).max(axis=0) / H
