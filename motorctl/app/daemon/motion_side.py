@@ -706,7 +706,11 @@ class MotionSide:
                     lambda: self.inputs(i)[0], "search"):
                 raise MotionError(f"no home switch within {cfg.search_distance_m:g} m")
             self.homing_state[i] = "latching"
-            self.to_loop({"op": "arm_index", "axis": i})
+            ans = self.to_loop({"op": "arm_index", "axis": i})
+            if not ans.get("ok"):
+                raise MotionError(f"the index latch not armed: {ans.get('error', 'refused')}")
+            # a latch of before (the last homing's) must not be taken for this one's
+            self._until(lambda: not math.isfinite(self.inputs(i)[1]), "the index latch cleared", 2.0)
             y1 = float(self.where()[i])
             if not self._run_until(i, y1 - d * cfg.back_off_m, cfg.latch_speed_m_per_s,
                                    lambda: math.isfinite(self.inputs(i)[1]), "latch"):
@@ -714,7 +718,14 @@ class MotionSide:
             latch = self.inputs(i)[1]
             if self._homing_abort.is_set():
                 raise MotionError("aborted", usage=False)
-            ans = self.to_loop({"op": "set_position", "axis": i, "delta_m": cfg.position_m - latch})
+            delta = cfg.position_m - latch
+            here = float(self.where()[i]) + delta
+            lim = self.limits[i]
+            if not lim.soft_min <= here <= lim.soft_max:
+                raise MotionError(f"the index latched at {latch:.6f} m would put the axis at {here:.6f} m, "
+                                  f"outside its soft limits [{lim.soft_min:g}, {lim.soft_max:g}] m; "
+                                  f"position not set")
+            ans = self.to_loop({"op": "set_position", "axis": i, "delta_m": delta})
             if not ans.get("ok"):
                 raise MotionError(ans.get("error", "set position refused"))
             time.sleep(0.02)                   # a few cycles: the newest setpoint is shifted
