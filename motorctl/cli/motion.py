@@ -1,8 +1,10 @@
 """``motorctl circle-test``: the ISO 230-4 circular test of the simulated gantry on the
 daemon's motion path (:mod:`motorctl.app.circle_test`), C1, C2, PID+FF (and the GTCF pair when
 configured on X and Y) at the given feeds; with
-``--log`` each run's log, with ``--plot`` each run's polar plot; ``--json``: one JSON list on
-stdout and nothing else (the log and plot paths in it).
+``--log`` each run's log, with ``--plot`` each run's polar plot; each run's figures by the
+encoders and by the simulated ballbar (the driver's true carriage positions; none on a real
+drive, and the output says so); ``--json``: one JSON list on stdout and nothing else (the log and
+plot paths in it).
 Exit codes: 0 done; 1 a fault or an underrun during a run; 2 bad input."""
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ def log_paths(base: str, runs: list[tuple[str, float]]) -> list[str]:
 
 
 def cmd_circle_test(args) -> int:
-    from motorctl.app.circle_test import run_circle_test
+    from motorctl.app.circle_test import INSTRUMENTS, run_circle_test, summary, table
     from motorctl.config import load_config
     from motorctl.inputs import writable_file
     args.feed = args.feed or [0.05, 0.1]
@@ -55,23 +57,15 @@ def cmd_circle_test(args) -> int:
         from motorctl.plots import plot_circle_tests
         plots = plot_circle_tests(runs, args.plot)
     if args.json:
-        sys.stdout.write(json.dumps([{"controller": r.controller, "feed_m_s": r.feed, "radius_m": r.radius,
-                                      "center_m": list(r.center),
-                                      "G_cw_um": r.result.G_cw * 1e6, "G_ccw_um": r.result.G_ccw * 1e6,
-                                      "G_b_um": r.result.G_b * 1e6, "H_um": r.result.H * 1e6,
-                                      "F_max_um": r.result.F_max * 1e6, "F_min_um": r.result.F_min * 1e6,
-                                      "underruns": r.underruns, "log": r.log_path, "plot": pl}
-                                     for r, pl in zip(runs, plots)]) + "\n")
+        sys.stdout.write(json.dumps([summary(r) | {"plot": pl} for r, pl in zip(runs, plots)]) + "\n")
     else:
-        rows = [["controller", "feed mm/s", "G cw um", "G ccw um", "G(b) um", "H um", "F max um", "F min um",
-                 "underruns"]]
-        for r in runs:
-            g = r.result
-            rows.append([r.controller, f"{r.feed * 1e3:.0f}"] + [f"{x * 1e6:.2f}" for x in
-                        (g.G_cw, g.G_ccw, g.G_b, g.H, g.F_max, g.F_min)] + [str(r.underruns)])
         sys.stdout.write(f"ISO 230-4 circular test, R {args.radius * 1e3:g} mm about the middle of the soft "
                          f"limits, CCW then CW ({args.config}, simulated, virtual clock)\n")
-        print_table(rows, sys.stdout)
+        print_table(table(runs), sys.stdout)
+        for k, what in INSTRUMENTS.items():
+            sys.stdout.write(f"{k}: {what}\n")
+        for why in dict.fromkeys(r.no_ballbar for r in runs if r.no_ballbar):
+            sys.stdout.write(f"{why}\n")
         for r, pl in zip(runs, plots):
             for what, path in (("log", r.log_path), ("plot", pl)):
                 if path:
@@ -87,8 +81,9 @@ def _configured(loaded) -> list[str]:
 
 
 def register(parser, sub) -> None:
-    p = sub.add_parser("circle-test", help="the ISO 230-4 circular test (G, H, F) of the simulated gantry on "
-                                           "the daemon's motion path, per controller and feed")
+    p = sub.add_parser("circle-test", help="the ISO 230-4 circular test (G, H, F, the largest contour error) of "
+                                           "the simulated gantry on the daemon's motion path, per controller and "
+                                           "feed, by the encoders and by a simulated ballbar")
     p.add_argument("config", nargs="?", default=DEFAULT_CONFIG, help="the config YAML (default: %(default)s)")
     p.add_argument("--radius", type=float, default=0.05, help="circle radius [m] (default 0.05)")
     p.add_argument("--feed", type=float, action="append", help="feed [m/s], repeatable (default 0.05 and 0.1)")
