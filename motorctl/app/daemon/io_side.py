@@ -976,7 +976,8 @@ class IOSide:
             return
         try:
             self.views = start_views(self.scope, serve_scope, fox, {   # + the operator page
-                "socket": self.plan.socket_path, "users_file": self.plan.asm.loaded.cfg.daemon.users_file})
+                "socket": self.plan.socket_path, "users_file": self.plan.asm.loaded.cfg.daemon.users_file,
+                "lockout_s": self.plan.asm.loaded.cfg.daemon.login_lockout_s})
         except Exception as exc:               # noqa: BLE001 - no view is worth the drain
             sys.stderr.write(f"motorctl: warning: views not served ({type(exc).__name__}: {exc})\n")
             return

@@ -259,7 +259,7 @@ class Views:
         if self.operator is not None:     # the operator page: a client of the control socket
             from motorctl.app.daemon.operator_page import OperatorPage
             OperatorPage(self.operator["socket"], self.operator.get("users_file"), self.scope.names,
-                         self._static_bytes).add_routes(app)
+                         self._static_bytes, lockout_s=self.operator.get("lockout_s")).add_routes(app)
         self.runner = web.AppRunner(app, access_log=None)
         await self.runner.setup()
         await web.TCPSite(self.runner, self.scope.host, self.scope.port).start()
