@@ -366,6 +366,13 @@ class Driver(abc.ABC):
         own (the default)."""
         return False
 
+    def other_master(self) -> str:
+        """Before :meth:`configure` (the driver unconfigured): another master driving this bus
+        now, one line naming what was seen (e.g. a CANopen SYNC on the channel), '' when none is
+        seen or the driver cannot tell (the default). ``motorctl fault-reset --config`` asks it
+        before it opens a bus a daemon or a run may hold. May block for a few heartbeat times."""
+        return ""
+
     def drive_state(self, i: int) -> str:
         """The state of axis ``i``'s drive as last read, whatever it is, one line for the
         operator (e.g. "canopen node 1 (axis X) is in Switch on disabled (statusword 0x0250)"):

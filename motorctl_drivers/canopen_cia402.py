@@ -440,6 +440,25 @@ class CanopenDriver(SplitPhaseDriver):
         self._lag_prev = [0] * n           # the same at the end of the read before (0: fresh or none)
 
     # ------------------------------------------------------------------ transport
+    def other_master(self) -> str:
+        """A master already on the bus: its SYNC (``sync_cob_id``) or its heartbeat (0x700 +
+        ``host_node_id``) heard within three host heartbeat times (CiA 301: a running master
+        sends both); '' when the bus is quiet. Opens and releases the bus (unconfigured only)."""
+        self._require("other_master", "unconfigured")
+        o = self.options
+        ids = {o.sync_cob_id: "SYNC", 0x700 + o.host_node_id: "host heartbeat"}
+        bus = open_bus(o)
+        try:
+            deadline = time.monotonic() + 3 * o.host_heartbeat_ms * 1e-3 + 0.02
+            while (left := deadline - time.monotonic()) > 0:
+                msg = bus.recv(timeout=left)
+                if msg is not None and msg.arbitration_id in ids:
+                    return (f"a {ids[msg.arbitration_id]} (0x{msg.arbitration_id:03X}) on CAN {o.interface} "
+                            f"{o.channel}: another master drives this bus")
+        finally:
+            bus.shutdown()
+        return ""
+
     def _open_transport(self) -> None:
         import canopen
         self.bus = open_bus(self.options)

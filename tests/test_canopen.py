@@ -528,3 +528,22 @@ def test_the_reset_without_a_daemon_is_refused_while_a_daemon_answers_on_its_soc
                               f"it: 'motorctl --socket {path} fault-reset X Y'")
     srv.close()                                                  # the file stays, nobody answers
     assert daemon_answering([path]) is None
+    # a master on the bus whose socket is not known (a daemon started with another --socket, a
+    # run): its SYNC is heard before anything is sent
+    import can
+    stop = threading.Event()
+
+    def master():
+        with can.Bus(interface="virtual", channel=loaded.driver_options.channel) as bus:
+            while not stop.is_set():
+                bus.send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))
+                time.sleep(0.002)
+
+    th = threading.Thread(target=master, daemon=True)
+    th.start()
+    try:
+        with pytest.raises(BusHeld, match=r"^a SYNC \(0x080\) on CAN virtual co-\S+: another master drives this bus"):
+            reset_drive_faults(loaded, ["X"])
+    finally:
+        stop.set()
+        th.join(timeout=5)

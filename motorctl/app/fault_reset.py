@@ -14,8 +14,9 @@ drive has left its fault (at most :data:`RESET_WAIT_S`), reads the state after, 
 driver with its confirmed stop. It never enables an amplifier.
 
 A daemon holds the bus while it runs: where its control socket answers (the config's
-``daemon.socket``, ``--socket``, ``$MOTORCTL_SOCKET``) the reset is refused (:class:`BusHeld`)
-and names the daemon's command instead.
+``daemon.socket``, ``--socket``, ``$MOTORCTL_SOCKET``), or the driver hears another master on
+the bus (:meth:`motorctl.driver.Driver.other_master`: a CANopen SYNC or host heartbeat), the
+reset is refused (:class:`BusHeld`) and names the daemon's command instead.
 """
 
 from __future__ import annotations
@@ -92,7 +93,8 @@ def reset_drive_faults(loaded, axes: list[str], socket_paths=()) -> ResetReport:
         a :class:`ResetReport`.
     Raises:
         InputError: an axis is not in the config (the message lists its axes).
-        BusHeld: a daemon answers on one of the sockets (nothing was opened).
+        BusHeld: a daemon answers on one of the sockets, or the driver hears another master on
+            the bus (nothing was opened).
         OSError, ConnectionError: the driver cannot reach its device.
     """
     from motorctl.inputs import InputError
@@ -105,6 +107,10 @@ def reset_drive_faults(loaded, axes: list[str], socket_paths=()) -> ResetReport:
         raise BusHeld(f"a daemon answers on {held}: it holds the bus, nothing was opened; reset through it: "
                       f"'motorctl --socket {held} fault-reset {' '.join(axes)}'")
     drv = loaded.make_driver()
+    seen = drv.other_master()
+    if seen:
+        raise BusHeld(f"{seen} (a daemon or a run holds it): nothing was opened; reset through the daemon "
+                      f"('motorctl --socket SOCKET fault-reset {' '.join(axes)}') or once it has stopped")
     report = ResetReport()
     try:
         drv.open()
