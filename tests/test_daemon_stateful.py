@@ -402,3 +402,24 @@ def test_a_killed_helper_is_named_and_back_and_the_counts_agree(ready):
     rate = s["loop"]["rate_hz"]
     assert s["loop"]["cycles"] - 5 * rate <= scraped <= s2["loop"]["cycles"], (scraped, s["loop"], s2["loop"])
     assert s["log"]["rows"] + s["log"]["lost_rows"] <= s["loop"]["cycles"]
+
+
+def test_a_program_still_being_checked_gives_way_to_the_next_one(ready):
+    """A large program whose check takes a while (a few MB of short moves, sent in chunks) does
+    not block the next program: the next one supersedes it (its client answered so, the
+    planner process restarted) and runs."""
+    import threading
+
+    from motorctl.client import send_program
+    sock = ready
+    big = "G21 G90\n" + "".join(f"G1 X{100 + (k % 200) * 0.5:.1f} Y100 F3000\n" for k in range(150_000)) + "M2\n"
+    first: dict = {}
+    t = threading.Thread(target=lambda: first.update(send_program(str(sock), big, "big.ngc", 60.0)))
+    t.start()
+    wait_for(lambda: status(sock)["machine"]["state"] == "execute", 30, "the big program's check under way")
+    ans = send_program(str(sock), "G21 G90\nG1 X120 Y120 F3000\nM2\n", "small.ngc", 30.0)
+    t.join(60)
+    assert not first["ok"] and "superseded" in first["error"], first
+    assert ans["ok"], ans
+    s = wait_for(lambda: (x := status(sock))["motion"]["idle"] and x, 30, "the small program's end")
+    assert abs(s["axes"]["X"]["x_d_m"] - 0.120) < 1e-9 and not s["motion"]["stopped_because"], s["motion"]

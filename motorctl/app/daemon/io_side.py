@@ -81,6 +81,9 @@ SCOPE_STATUS_S = 0.2
 EMFILE_PAUSE_S = 0.1
 #: the planner process is started again when it ends, this many times in all
 MAX_PLANNER_STARTS = 20
+#: a program's check (read whole against LinuxCNC's subset and the soft limits) taking longer than
+#: this is cancelled and the program refused [s]
+CHECK_LIMIT_S = 600.0
 #: a helper process (views, metrics, OPC UA) that ends is started again after HELPER_RETRY_S [s],
 #: HELPER_STARTS times in all (the first start included)
 HELPER_STARTS, HELPER_RETRY_S = 6, 1.0
@@ -296,14 +299,20 @@ class IOSide:
         cause = f"fault: axis {self.names[i]}: {fault_text(bits[i], st[i, ST['value']], st[i, ST['limit']], rec)}"
         self.motion.fault_stop(cause)
         if self.job is not None:
-            self._end_job(cause)
+            if self.job["info"] is None:
+                self.cancel_check(cause)
+            else:
+                self._end_job(cause)
 
     def abort_all(self) -> None:
         """``abort`` beyond the commanded motion (which :meth:`MotionSide.abort` stops): a program
         still being checked is dropped (its client answered), and every axis on a jog of the
         loop's own is stopped (its jerk-limited stop, then 0 V)."""
         if self.job is not None:
-            self._end_job("gcode: aborted before it started")
+            if self.job["info"] is None:
+                self.cancel_check("gcode: aborted before it started")
+            else:
+                self._end_job("gcode: aborted before it started")
         for i in range(len(self.names)):
             if int(self.plan.ring.status[i, ST["mode"]]) == JOG:
                 self.to_loop(None, {"op": "stop", "axis": i}, post=(threading.Event(), {}))
@@ -448,9 +457,14 @@ class IOSide:
                     fh.write(a["text"])
             except OSError as exc:
                 return {"ok": False, "error": f"gcode: cannot spool the program ({exc.strerror})", "usage": False}
+        if self.job is not None and self.job["info"] is None:
+            # the program still being checked (nothing of it runs) gives way to the new one: its
+            # client is answered, the planner process, which may be deep in its check, restarted
+            self.cancel_check("gcode: superseded by a newer program before its check ended")
         if self.job is not None:
             os.unlink(path)
-            return {"ok": False, "error": "gcode: a program is still being checked; wait for it", "usage": False}
+            return {"ok": False, "error": "gcode: a program is still being planned; wait for it or abort",
+                    "usage": False}
         try:
             job = mo.program_job(a["filename"], path=path, from_line=a["from_line"],
                                  single_block=a["single_block"])
@@ -461,9 +475,21 @@ class IOSide:
             os.unlink(path)
             return {"ok": False, "error": "gcode: the planner process is not running", "usage": False}
         self.job = {"job": job, "conn": conn, "info": None, "axes": [], "clears": mo.clears,
-                    "asked": 0, "got": 0, "path": path}
+                    "asked": 0, "got": 0, "path": path, "t0": time.monotonic()}
         self.planner.send({"op": "plan", "job": job})
         return None
+
+    def cancel_check(self, why: str) -> None:
+        """The program being checked is dropped (its client answered ``why``) and the planner
+        process restarted: a check deep in a large program is not waited for (the next program's
+        check never queues behind it)."""
+        self._end_job(why)
+        try:
+            self.sel.unregister(self.planner.rfd)
+        except (KeyError, ValueError, OSError):
+            pass
+        self.planner.stop()
+        self.start_planner()
 
     def start_planner(self) -> None:
         """Start the planner process (again), at most :data:`MAX_PLANNER_STARTS` times: a
@@ -554,6 +580,10 @@ class IOSide:
         """Each wake: a program dropped meanwhile (abort, stop, fault) is cancelled in the
         planner; else one more window is asked for while fewer than AHEAD_WINDOWS wait."""
         jb = self.job
+        if jb is not None and jb["info"] is None and time.monotonic() - jb["t0"] > CHECK_LIMIT_S:
+            self.cancel_check(f"gcode: the program's check took longer than {CHECK_LIMIT_S:g} s; refused "
+                              f"(split the program, or send it from a faster disk)")
+            return
         if jb is None or jb["info"] is None:
             return
         mo = self.motion
