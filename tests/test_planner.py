@@ -266,12 +266,12 @@ def test_short_chords_are_blended_within_the_tolerance_at_the_feed():
 
 
 def test_naive_cam_merges_a_jittered_line_within_q():
-    """100 moves of 0.1 mm along X whose points zigzag by 1 µm (a CAM post's rounding), G64 P0.01
+    """50 moves of 0.1 mm along X whose points zigzag by 1 µm (a CAM post's rounding), G64 P0.01
     (Q = P): run as one line at the feed (LinuxCNC's naive-CAM merge), within P of the
     programmed moves. With Q0 they are blended one by one, also within P, but the blends' turns
     alternate (a curvature step of 2/r at each join) and the jerk bounds the speed below the
     feed."""
-    pts = "".join(f"G1 X{0.1 * k:.4f} Y{0.001 * (k % 2):.4f}\n" for k in range(1, 101))
+    pts = "".join(f"G1 X{0.1 * k:.4f} Y{0.001 * (k % 2):.4f}\n" for k in range(1, 51))
     top = {}
     for mode in ("G64 P0.01", "G64 P0.01 Q0"):
         prog = parse(f"G21 G90 {mode}\nG1 X0 Y0 F6000\n{pts}M2\n", "q.ngc", XY)

@@ -369,35 +369,37 @@ class PathTrajectory(Trajectory):
         x = self._p0[k] + sig[..., None] * u
         v = sd[..., None] * u
         arc = self._kind[k] == 1
-        if np.any(arc):
-            cx, cy, r0, r1, phi0, sweep, fi, fo = (self._arc[k, i] for i in range(8))
-            safe = np.where(length > 0, length, 1.0)
-            f = sig / safe
+        if np.any(arc):                                    # the arcs' points only
+            sel = np.nonzero(arc)
+            ka, sg, sda, la = k[sel], sig[sel], sd[sel], length[sel]
+            cx, cy, r0, r1, phi0, sweep, fi, fo = (self._arc[ka, i] for i in range(8))
+            safe = np.where(la > 0, la, 1.0)
+            f = sg / safe
             phi = phi0 + sweep * f
             r = r0 + (r1 - r0) * f
             dphi = sweep / safe
             dr = (r1 - r0) / safe
             rs = np.where(r > 0, r, 1.0)
-            g = np.where(arc, self._shrink(sd * np.abs(dphi)), 0.0)
+            g = self._shrink(sda * np.abs(dphi))
             # the compensation faded in over fi of path at the arc's start and out over fo at
-            # its end (0: none there, the same circle goes on)
-            # (a smoothstep of the path: the radial velocity it adds starts and ends at 0)
-            wi = np.where(fi > 0, sig / np.where(fi > 0, fi, 1.0), np.inf)
-            wo = np.where(fo > 0, (length - sig) / np.where(fo > 0, fo, 1.0), np.inf)
+            # its end (0: none there, the same circle goes on; < 0: not compensated), by a
+            # smoothstep of the path (the radial velocity it adds starts and ends at 0)
+            wi = np.where(fi > 0, sg / np.where(fi > 0, fi, 1.0), np.inf)
+            wo = np.where(fo > 0, (la - sg) / np.where(fo > 0, fo, 1.0), np.inf)
             u_ = np.clip(np.minimum(wi, wo), 0.0, 1.0)
             du = np.where((u_ > 0) & (u_ < 1), np.where(wi < wo, 1.0 / np.where(fi > 0, fi, 1.0),
                                                        -1.0 / np.where(fo > 0, fo, 1.0)), 0.0)
             w = u_ * u_ * (3.0 - 2.0 * u_)
             dw = 6.0 * u_ * (1.0 - u_) * du
-            g = np.where((fi < 0) | (fo < 0), 0.0, g)      # an arc too short to compensate
+            g = np.where((fi < 0) | (fo < 0), 0.0, g)
             rr = r + rs * g * w
             c, sn = np.cos(phi), np.sin(phi)
-            radial = sd * (dr + rs * g * dw)
+            radial = sda * (dr + rs * g * dw)
             ax, ay = self._ix, self._iy
-            x[..., ax] = np.where(arc, cx + rr * c, x[..., ax])
-            x[..., ay] = np.where(arc, cy + rr * sn, x[..., ay])
-            v[..., ax] = np.where(arc, radial * c - sd * rr * dphi * sn, v[..., ax])
-            v[..., ay] = np.where(arc, radial * sn + sd * rr * dphi * c, v[..., ay])
+            x[sel + (ax,)] = cx + rr * c
+            x[sel + (ay,)] = cy + rr * sn
+            v[sel + (ax,)] = radial * c - sda * rr * dphi * sn
+            v[sel + (ay,)] = radial * sn + sda * rr * dphi * c
         return x, v
 
     def _filtered(self, t: np.ndarray, n_out: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
