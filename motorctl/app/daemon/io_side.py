@@ -947,20 +947,27 @@ class IOSide:
                     h["retry_at"] = 0.0
                     self.start_helper(name)
                 continue
-            ended = ""
+            st = None
             if link.alive:
                 try:
                     got, st = os.waitpid(link.pid, os.WNOHANG)
                 except ChildProcessError:
-                    got, st = link.pid, None
+                    got = link.pid
                 if not got:
                     continue
-                ended = exit_text(st) if st is not None else "reaped elsewhere"
-            st = self.drop_views() if name == "views" else link.stop(0.5)
+            st2 = self.drop_views() if name == "views" else link.stop(0.5)
+            st = st if st is not None else st2
             if name != "views":
                 setattr(self, name, None)
-            h["ended"] = ended or (exit_text(st) if st is not None else "its link closed")
+            h["ended"] = exit_text(st) if st is not None else "its link closed"
             h["pid"] = None
+            # exit code 0: it ended by itself (nothing it could serve, each said in a line): not again
+            clean = st is not None and os.WIFEXITED(st) and os.WEXITSTATUS(st) == 0
+            if clean:
+                h["retry_at"] = 0.0
+                sys.stderr.write(f"motorctl daemon: the {name} process (pid {link.pid}) ended by itself "
+                                 f"(exit code 0); not started again\n")
+                continue
             more = h["starts"] < HELPER_STARTS
             h["retry_at"] = now + HELPER_RETRY_S if more else 0.0
             sys.stderr.write(f"motorctl daemon: the {name} process (pid {link.pid}) ended ({h['ended']}); "

@@ -37,7 +37,7 @@ from motorctl.app.daemon.notify import sd_notify
 from motorctl.app.daemon.protocol import Mailbox
 from motorctl.app.daemon.status import StatusPublisher
 from motorctl.loop.rt import RealtimeError
-from motorctl.loop.safety import FAULT_RECORDER, FAULT_SHUTDOWN
+from motorctl.loop.safety import FAULT_RECORDER, FAULT_SHUTDOWN, with_drive_reason
 from motorctl.loop.servo import IDLE, MODE_NAMES, STREAM
 from motorctl.loop.trajectory import Move
 from motorctl.recorder.flight import (
@@ -159,7 +159,10 @@ class LoopSide:
         try:
             if op == "start":
                 if sup.fault[i]:
-                    return {**r, "ok": False, "error": f"axis {names[i]} is in fault: {sup.reason(i)}; "
+                    drv = self.asm.driver
+                    why = with_drive_reason(sup.reason(i), drv.fault_state(i) if drv.amp_fault[i]
+                                            else drv.fault_reason(i))
+                    return {**r, "ok": False, "error": f"axis {names[i]} is in fault: {why}; "
                                                       f"run 'motorctl fault-reset {names[i]}' first"}
                 if loop.mode[i] != IDLE:
                     return {**r, "ok": False, "error": f"axis {names[i]} is already enabled "
