@@ -212,6 +212,7 @@ class AsymmetricFrictionComp(Adaptable):
 
 class AsymmetricFrictionFamily(EffectFamily):
     name = "asymmetric_friction"
+    size_parameters = ("coulomb_", "viscous_")
     search_cost = 0.003
     kernels = (("force", plant_force), ("add", comp_add), ("fill", comp_fill))
     plant_force = "−(ΔF_c S_f(ẋ) + ΔB ẋ), ẋ > 0 only"

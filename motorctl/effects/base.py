@@ -276,6 +276,10 @@ class SearchContext(Protocol):
     def sse(self, terms: list) -> float:
         """SSE of the joint LS fit of the nominal model plus ``terms``."""
 
+    def heldout_with(self, terms: list, cols: np.ndarray) -> float:
+        """Held-out residual RMS [V] of the nominal model plus ``terms`` plus the decimated
+        columns ``cols`` (M, k) that are no family's term (a simpler account to compare with)."""
+
     def heldout_rms(self, terms: list) -> float:
         """Held-out residual RMS [V] of the nominal model plus ``terms`` (the identifier's
         folds: what the decision rule compares)."""
@@ -370,6 +374,11 @@ class EffectFamily:
     #: options of :attr:`example` that set the effect's size besides those in force units
     #: (what ``benchmarks/tune_families.py`` scales; e.g. a delay)
     size_options: ClassVar[tuple[str, ...]] = ()
+    #: the names (prefixes) of :meth:`parameters`' keys that give the effect's size (a force, a
+    #: stiffness, a mass, a rate; not where or when it acts): the effect is named only when the
+    #: 95 % interval of at least one of them excludes 0 (:func:`motorctl.ident.judge.holds_zero`).
+    #: Empty (default): no such check
+    size_parameters: ClassVar[tuple[str, ...]] = ()
     #: families whose force looks alike in tracking data (stiction and an amplifier dead-zone
     #: both hold the carriage at small input): when one of them is selected and the other
     #: explains nearly as much, the report says the record cannot tell them apart

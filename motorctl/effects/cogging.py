@@ -75,6 +75,7 @@ class FourierPosition(FourierAdaptable):
 
 class CoggingFamily(PositionPeriodic):
     name = "cogging"
+    size_parameters = ("amplitudes_",)
     search_cost = 0.076
     kernels = (("force", plant_force), ("add", fourier_add), ("fill", fourier_fill))
     plant_force = "Σ A_k sin(2πkx/P + φ_k)"

@@ -70,6 +70,7 @@ class ForceConstantDrift(StrictModel):
 
 class ForceConstantDriftFamily(EffectFamily):
     name = "force_constant_drift"
+    size_parameters = ("drift_per_s",)
     search_cost = 0.015
     kernels = (("thrust", plant_thrust),)
     plant_force = "κ t A1 f_u(u)"

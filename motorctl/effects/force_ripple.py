@@ -72,6 +72,7 @@ class RippleComp(StrictModel):
 
 class ForceRippleFamily(PositionPeriodic):
     name = "force_ripple"
+    size_parameters = ("fractions",)
     search_cost = 0.072
     kernels = (("thrust", plant_thrust), ("add", fourier_add))
     plant_force = "F_m(u)·Σ r_k sin(2πkx/P + φ_k)"

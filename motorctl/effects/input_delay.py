@@ -77,6 +77,18 @@ WHOLE_TOLERANCE = 1e-6
 #: a total input delay (hold + found) within this distance of half a sample is the zero-order
 #: hold of a sampled-data loop, not an effect [samples] (motorctl.ident.select.HOLD_TOLERANCE)
 HOLD_TOLERANCE = 0.15
+#: the delays compared with the hold in these units of a sample (:func:`is_hold`): the grids'
+#: steps of 0.05 land on whole hundredths, which binary floats do not (0.65 - 0.5 =
+#: 0.15000000000000002)
+HOLD_RESOLUTION = 1e-6
+
+
+def is_hold(delay_samples: float) -> bool:
+    """True when an input-to-acceleration delay [samples] is the half sample of a zero-order hold
+    (a sampled-data loop: u written after y is read and held over the period), within
+    :data:`HOLD_TOLERANCE` inclusive; compared in whole units of :data:`HOLD_RESOLUTION` so that a
+    delay on the tolerance's edge (0.35 or 0.65) is the hold whichever side of 0.5 it lies."""
+    return round(abs(float(delay_samples) - 0.5) / HOLD_RESOLUTION) <= round(HOLD_TOLERANCE / HOLD_RESOLUTION)
 #: lowest frequency of the bands a delay's phase is compared on [Hz] (below: the program's own
 #: moves, whose phase hardly depends on τ)
 BAND_LOW_HZ = 15.0
@@ -287,7 +299,7 @@ class InputDelayFamily(EffectFamily):
         if i == 0:
             return term(0.0), "best delay is 0 samples beyond the zero-order hold"
         total = ctx.zoh + d
-        if abs(total - 0.5) <= HOLD_TOLERANCE:
+        if is_hold(total):
             return term(d), (f"total input delay {total:.2f} sample is the zero-order hold of a "
                              "sampled-data loop (half a sample), not an effect")
         note = f"delay {d:g} samples at the edge of the searched range" if i == len(grid) - 1 else None

@@ -341,21 +341,30 @@ def period_grid(stroke: float) -> np.ndarray:
     return np.exp(np.arange(math.log(lo), math.log(hi), 0.002))
 
 
-def time_periodogram(t, r, freqs):
-    """|DFT|² of r (uniform time t [s], (M,)) at ``freqs`` [Hz] (K,) (zero-padded FFT of the
-    Hann-windowed, mean-removed r, linearly interpolated). Returns (K,)."""
-    ts = (t[-1] - t[0]) / (len(t) - 1)
-    df = freqs[1] - freqs[0]
-    nfft = int(2 ** math.ceil(math.log2(max(len(r), 1.0 / (ts * df)))))
-    spec = np.abs(np.fft.rfft((r - r.mean()) * np.hanning(len(r)), nfft)) ** 2
-    f = np.fft.rfftfreq(nfft, ts)
-    return np.interp(freqs, f, spec)
-
-
-def local_peaks(pw: np.ndarray, n: int) -> np.ndarray:
-    """Indices of the ``n`` highest local maxima of ``pw`` (K,), highest first."""
-    loc = np.flatnonzero((pw[1:-1] > pw[:-2]) & (pw[1:-1] >= pw[2:])) + 1
-    return loc[np.argsort(pw[loc])[::-1]][:n]
+def spectral_lines(t_d: np.ndarray, r: np.ndarray, n: int, f_lo: float, f_hi: float) -> list[float]:
+    """The frequencies [Hz] of the ``n`` strongest lines of ``r`` (M,) at the uniform instants
+    ``t_d`` (M,) [s] between ``f_lo`` and ``f_hi`` [Hz], strongest first: the highest local
+    maxima (:func:`scipy.signal.find_peaks`) of its periodogram (:func:`scipy.signal.periodogram`,
+    Hann window, mean removed, zero-padded to 8 times its length), each refined by a parabola
+    through the log-power of its bin and their neighbours. Empty when the band holds none."""
+    from scipy.signal import find_peaks, periodogram
+    m = len(r)
+    if m < 16 or not float(t_d[-1] - t_d[0]) > 0:
+        return []
+    fs = (m - 1) / float(t_d[-1] - t_d[0])
+    nfft = 1 << int(math.ceil(math.log2(8 * m)))
+    f, pw = periodogram(r, fs=fs, window="hann", nfft=nfft, detrend="constant")
+    idx = np.flatnonzero((f >= f_lo) & (f <= f_hi))
+    if idx.size < 3:
+        return []
+    peaks = find_peaks(pw[idx])[0]
+    peaks = idx[peaks[np.argsort(pw[idx][peaks])[::-1]][:n]]
+    out = []
+    for k in peaks:
+        lo, mid, hi = (math.log(max(float(pw[j]), 1e-300)) for j in (k - 1, k, k + 1))
+        den = lo - 2.0 * mid + hi
+        out.append(float(f[k] + (0.5 * (lo - hi) / den if den < 0 else 0.0) * (f[1] - f[0])))
+    return out
 
 
 # ---------------------------------------------------------------------------- position-periodic

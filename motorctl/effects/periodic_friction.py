@@ -78,6 +78,7 @@ class PeriodicFrictionComp(FourierAdaptable):
 
 class PeriodicFrictionFamily(PositionPeriodic):
     name = "periodic_friction"
+    size_parameters = ("amplitudes_",)
     search_cost = 0.009
     kernels = (("force", friction_force), ("add", comp_add), ("fill", comp_fill))
     plant_force = "−Σ A_k sin(2πkx/P + φ_k) S_f(ẋ)"

@@ -98,6 +98,7 @@ def direction_check(ctx, term, base) -> list[str]:
 
 class PositionDependentFrictionFamily(EffectFamily):
     name = "position_dependent_friction"
+    size_parameters = ("coulomb_slope_",)
     search_cost = 0.002
     kernels = (("force", line_force), ("add", comp_add), ("fill", comp_fill))
     plant_force = "−c (x − x_ref) S_f(ẋ)"

@@ -65,6 +65,7 @@ class SpringComp(Adaptable):
 
 class SpringFamily(EffectFamily):
     name = "spring"
+    size_parameters = ("stiffness_",)
     search_cost = 0.002
     kernels = (("force", plant_force), ("add", comp_add), ("fill", comp_fill))
     plant_force = "−k (x − x_0)"

@@ -166,8 +166,10 @@ def harmonic_rivals(ctx, base: list, refused: list, gain_min: float, already: li
             if fam not in ctx.families or any(t.family == fam for t in base) or (TIME_FAMILY, fam) in seen:
                 continue
             ev = ctx.search(fam, base, none.fit.residual)
-            if ev is None or not _usable(ev.term) or not ctx.judge(ev, none, base).ok:
-                continue            # not a name the record would give it on its own
+            # not a name the record would give it on its own (the line, its rival here, not
+            # asked as its simpler account)
+            if ev is None or not _usable(ev.term) or not ctx.judge(ev, none, base, skip_accounts=("line",)).ok:
+                continue
             a = _pair(ctx, base, ev.term, c.term, gain_min)
             if a is None or a.gain_named < gain_min:
                 continue

@@ -18,6 +18,7 @@ from threadpoolctl import threadpool_limits
 
 from motorctl.ident import effects as fx
 from motorctl.ident.idim import RAIL_MIN_S
+from motorctl.ident.judge import unsupported
 from motorctl.ident.select import MAX_EFFECTS, REFUSED_GAIN, Identifier, refused_on_physics
 from motorctl.ident.uncertainty import fit_uncertainty
 from motorctl.model import THETA_NAMES
@@ -176,6 +177,21 @@ def _uncertainty(idf: Identifier, ev, terms: list, params_of) -> dict:
                 "theta_model_error": [0.0] * nt, "splits": [],
                 "theta_ci95": [ci95(float(v), s) for v, s in zip(ev.fit.coef[:nt], sd)],
                 "effects": [{"std": {}, "ci95": {}} for _ in terms]}
+
+
+def drop_unsupported(idf: Identifier, gain: float | None) -> Identifier:
+    """Take out of ``idf``'s model each selected effect whose size is not told from zero on the
+    values' fit (:func:`motorctl.ident.judge.unsupported` on the intervals of
+    :func:`_uncertainty`), until none is left (``eliminated`` gets the reason). Returns ``idf``."""
+    for _ in range(len(idf.terms)):
+        src, params_of = values_and_parameters(idf, gain)
+        if not src.terms:
+            break
+        bad = unsupported(src.terms, _uncertainty(src, src.final, src.terms, params_of)["effects"])
+        if not bad:
+            break
+        idf.drop_after(bad)
+    return idf
 
 
 def values_from(idf: Identifier) -> Identifier:
@@ -704,6 +720,8 @@ def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
             idf.confirm_values()
             # a lost motion beside the travel's force of a play the verdict reports: not named
             idf.travel_shared()
+            # an effect whose size's 95 % interval holds 0: not named (motorctl.ident.judge)
+            drop_unsupported(idf, rec.gain)
     except (np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
         if isinstance(exc, LogError):
             raise

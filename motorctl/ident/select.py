@@ -51,9 +51,10 @@ from scipy.signal import lfilter
 
 from motorctl.effects import FAMILIES, family as effect_family
 from motorctl.effects.base import EffectFamily
-from motorctl.effects.input_delay import (HOLD_TOLERANCE, FoundDelay, amplifier_loop, current_loop_filter,
-                                          delayed, loop_lag)
+from motorctl.effects.input_delay import (HOLD_TOLERANCE, FoundDelay, amplifier_loop, current_loop_filter,  # noqa: F401
+                                          delayed, is_hold, loop_lag)
 from motorctl.effects.periodic import NOT_A_STRUCTURE, REFINE_SPAN, REFINE_TOL, PositionPeriodic
+from motorctl.ident.accounts import accounts, explained_as_much
 from motorctl.ident.data import Record
 from motorctl.ident.idim import Prepared, choose_n_theta, input_reach, input_saturation, ls, prepare, unit_columns
 from motorctl.ident.verdict import REST_SPEED_SHARE, residual_verdict
@@ -142,12 +143,6 @@ JOINT_MIN_DROP = 1e-6
 #: least held-out gain (relative fall of the held-out RMS) for a position-periodic effect's
 #: harmonics above the first to be kept (:meth:`Identifier._prune_harmonics`)
 MIN_HARMONIC_GAIN = 0.01
-
-
-def is_hold(delay_samples: float) -> bool:
-    """True when an input-to-acceleration delay [samples] is consistent with the half sample of a
-    zero-order hold (a sampled-data loop, u held over the period; motorctl.effects.input_delay)."""
-    return abs(delay_samples - 0.5) <= HOLD_TOLERANCE
 
 
 @dataclass
@@ -483,8 +478,14 @@ class Identifier:
         last = terms[-1] if terms else None
         if last is None or last.cols is None or last.delay or effect_family(last.family).other_weight(last) is not None:
             return _sse_of(*self.design(terms))
-        a0, y, weight, g, b = self._partial(terms[:-1])
-        c = last.cols if weight is None else last.cols * weight[:, None]
+        return self.sse_with(terms[:-1], last.cols)
+
+    def sse_with(self, terms: list, cols: np.ndarray) -> float:
+        """SSE of the joint LS fit of the nominal model plus ``terms`` plus the decimated columns
+        ``cols`` (M, k), weighed like a term's by a holding family's weight (:meth:`design`):
+        the normal equations of ``terms`` (:meth:`_partial`) bordered with ``cols``."""
+        a0, y, weight, g, b = self._partial(terms)
+        c = cols if weight is None else cols * weight[:, None]
         a1 = unit_columns(c)[0]
         cross = a0.T @ a1
         n0 = g.shape[0]
@@ -494,7 +495,7 @@ class Identifier:
         try:
             coef = np.linalg.solve(gram, rhs)
         except np.linalg.LinAlgError:
-            full, y = self.design(terms)
+            full = np.column_stack([a0, a1])
             coef = np.linalg.lstsq(full, y, rcond=None)[0]
             r = y - full @ coef
             return float(r @ r)
@@ -521,6 +522,32 @@ class Identifier:
             cache.pop(next(iter(cache)))
         cache[key] = ([(t, t.cols) for t in base], out)
         return out
+
+    def heldout_with(self, terms: list, cols: np.ndarray) -> float:
+        """Held-out RMS (:meth:`heldout`) of the nominal model plus ``terms`` plus the decimated
+        columns ``cols`` (M, k), weighed like a term's (:meth:`sse_with`): an account that is
+        not a family's term (:mod:`motorctl.ident.accounts`) judged as a candidate is."""
+        phi, y = self.design(terms)
+        weight = self.hold_weight(terms)
+        c = cols if weight is None else cols * weight[:, None]
+        return self.heldout(np.column_stack([phi, c]), y)
+
+    def hold_weight(self, terms: list) -> np.ndarray | None:
+        """The weight (M,) a holding family among ``terms`` puts on the other columns
+        (:meth:`design`), None when none holds the carriage."""
+        return _hold(terms)[0]
+
+    def accounts_of(self, base: list, current: "Evaluated") -> list:
+        """The simpler accounts (:func:`motorctl.ident.accounts.accounts`) of the residual of
+        ``current``, the model of ``base``; kept per base (the step's candidates share them)."""
+        key = (self.zoh, self.n_theta, id(self.p.fu), id(self.nuisance)) + tuple(id(t) for t in base)
+        cache = self.__dict__.setdefault("_accounts", {})
+        hit = cache.get(key)
+        if hit is None or hit[0] is not current.fit:
+            if len(cache) > 64:
+                cache.clear()
+            hit = cache[key] = (current.fit, list(base), accounts(self, base, current.fit.residual))
+        return hit[2]
 
     def heldout_rms(self, terms) -> float:
         """2-fold cross-validated residual RMS (:meth:`heldout`, decimated, V) of the joint LS fit
@@ -833,13 +860,21 @@ class Identifier:
         se = r * math.hypot(rel[0], rel[1])
         return r, r - 2.0 * se, r + 2.0 * se
 
-    def judge(self, ev: Evaluated, current: Evaluated, base: list) -> Evaluated:
+    def judge(self, ev: Evaluated, current: Evaluated, base: list, skip_accounts: tuple = ()) -> Evaluated:
+        """The decision rule on candidate ``ev`` against ``current``, the model of ``base``:
+        plausible (:meth:`plausible`), the held-out gain and the BIC drop, and no simpler account
+        (:mod:`motorctl.ident.accounts`; those of the kinds in ``skip_accounts`` not asked: a
+        rival judged as if that account were not there). Sets ``ok``, ``reasons``, ``gain``."""
         gain = 1.0 - ev.heldout_rms / current.heldout_rms
         reasons = self.plausible(ev, base, current)
         if gain < MIN_HELDOUT_GAIN:
             reasons.append(f"held-out gain {100 * gain:.1f} % < {100 * MIN_HELDOUT_GAIN:g} %")
         if current.bic - ev.bic < MIN_BIC_DROP:
             reasons.append(f"BIC drop {current.bic - ev.bic:.1f} < {MIN_BIC_DROP:g}")
+        if not reasons and not _found_in_measurement(ev.term):
+            # significant on its own: named only when no simpler account explains as much
+            found = [a for a in self.accounts_of(base, current) if a.kind not in skip_accounts]
+            reasons = explained_as_much(ev.term.family, ev.heldout_rms, found)
         ev.reasons = reasons
         ev.ok = not reasons
         ev.gain = gain
@@ -1454,6 +1489,12 @@ class Identifier:
                                                getattr(ref, "band_mode", None) is not None)) if on)
         return self._drop_after([(name, f"not confirmed by the refit's model ({model}): " + "; ".join(why))
                                  for name, why in bad.items()])
+
+    def drop_after(self, dropped: list) -> "Identifier":
+        """Take the selected effects of ``dropped`` ([(family, reason)]) out after the selection
+        (:meth:`_drop_after`: the final model, the verdict's candidates and the refit made again
+        without them; ``eliminated`` gets each reason). Returns self."""
+        return self._drop_after(dropped)
 
     def _drop_after(self, dropped: list) -> "Identifier":
         """Take the selected effects of ``dropped`` ([(family, reason)]) out after the selection:
