@@ -122,6 +122,24 @@ def ended(sock) -> dict:
     return wait_for(done, SETTLE_S, "every motion to end", interval=0.02, detail=lambda: status(sock))
 
 
+def stop_the_io_process(sock, seconds: float) -> None:
+    """The I/O process (the recorder and the setpoint filler) stopped by SIGSTOP for ``seconds``."""
+    io = status(sock)["process"]["io_pid"]
+    os.kill(io, signal.SIGSTOP)
+    try:
+        time.sleep(seconds)
+    finally:
+        os.kill(io, signal.SIGCONT)
+
+
+def cut_then_stop_the_io_process(sock, seconds: float) -> None:
+    """A long cut (0.4 m at 3 m/min) started, then the I/O process stopped for ``seconds``."""
+    text = "G21 G90\nG1 X100 Y100 F3000\nG1 X400 Y380 F3000\nM2\n"
+    assert req(sock, cmd="gcode", text=text, filename="long.ngc")["ok"]
+    time.sleep(0.3)
+    stop_the_io_process(sock, seconds)
+
+
 def check_invariants(s: dict) -> None:
     """The invariants of docs/daemon.md's table on one status."""
     mo, machine = s["motion"], s["machine"]
@@ -255,12 +273,7 @@ class DaemonMachine(RuleBasedStateMachine):
     @rule(seconds=st.sampled_from([1.5, 2.5]))
     def stop_the_io_process(self, seconds):
         """An underrun (longer than the 1 s lead) or a recorder stall (beyond 2 s)."""
-        io = status(self.sock)["process"]["io_pid"]
-        os.kill(io, signal.SIGSTOP)
-        try:
-            time.sleep(seconds)
-        finally:
-            os.kill(io, signal.SIGCONT)
+        stop_the_io_process(self.sock, seconds)
         self.after_fault()
 
     @precondition(fault_due)
@@ -332,15 +345,7 @@ def test_an_abort_right_after_home_stops_the_homing_before_its_first_move(ready)
 
 def test_a_fault_while_paused_after_an_underrun_ends_the_program_and_answers_the_waiter(ready):
     sock = ready
-    text = "G21 G90\nG1 X100 Y100 F3000\nG1 X400 Y380 F3000\nM2\n"
-    assert req(sock, cmd="gcode", text=text, filename="long.ngc")["ok"]
-    time.sleep(0.3)
-    io = status(sock)["process"]["io_pid"]
-    os.kill(io, signal.SIGSTOP)
-    try:
-        time.sleep(1.5)                       # longer than the 1 s lead, within the stall bound
-    finally:
-        os.kill(io, signal.SIGCONT)
+    cut_then_stop_the_io_process(sock, 1.5)   # longer than the 1 s lead, within the stall bound
     wait_for(lambda: status(sock)["motion"]["stopped_because"].startswith("paused: underrun"), 10,
              "the underrun's pause", detail=lambda: status(sock)["motion"])
     assert status(sock)["machine"]["state"] == "held"
@@ -356,15 +361,7 @@ def test_a_fault_while_paused_after_an_underrun_ends_the_program_and_answers_the
 
 def test_after_a_recorder_stall_mid_program_reset_and_start_resume_clean(ready):
     sock = ready
-    text = "G21 G90\nG1 X100 Y100 F3000\nG1 X400 Y380 F3000\nM2\n"
-    assert req(sock, cmd="gcode", text=text, filename="long.ngc")["ok"]
-    time.sleep(0.3)
-    io = status(sock)["process"]["io_pid"]
-    os.kill(io, signal.SIGSTOP)
-    try:
-        time.sleep(2.5)                       # beyond the stall bound (2·flush_s + 1 s = 2 s)
-    finally:
-        os.kill(io, signal.SIGCONT)
+    cut_then_stop_the_io_process(sock, 2.5)   # beyond the stall bound (2·flush_s + 1 s = 2 s)
     s = settled(sock)
     assert all("recorder" in a["fault"] for a in s["axes"].values()), s["axes"]
     assert s["motion"]["ring_depth"] == 0 and s["motion"]["idle"], s["motion"]
