@@ -25,6 +25,7 @@ import socket
 import time
 import urllib.request
 
+import numpy as np
 import pytest
 import yaml
 from hypothesis import HealthCheck, settings
@@ -420,3 +421,32 @@ def test_a_program_still_being_checked_gives_way_to_the_next_one(ready):
     assert ans["ok"], ans
     s = wait_for(lambda: (x := status(sock))["motion"]["idle"] and x, 30, "the small program's end")
     assert abs(s["axes"]["X"]["x_d_m"] - 0.120) < 1e-9 and not s["motion"]["stopped_because"], s["motion"]
+
+
+def test_an_abort_brings_a_move_to_rest_within_the_feed_holds_time_on_the_loops_clock(ready):
+    """An abort during a move: on the loop's own clock (the run log's rows from the cycle the
+    abort was taken at), every axis's setpoint at rest within the feed hold's ramp (the feed scale
+    from 1 to 0 at its bounded rate and rate of change, motion_side's F_RATE_PER_S and
+    F_ACCEL_PER_S2 for the slowest axis) plus the rewrite's guard and 10 ms; held there."""
+    from motorctl.app.daemon import motion_side as M
+    sock = ready
+    ratio = min(40.0 / 2.0, 10.0 / 1.0)                # configs/gantry.yaml: a_max / v_max of X, Y
+    rate, accel = M.F_RATE_PER_S * ratio, M.F_ACCEL_PER_S2 * ratio * ratio
+    bound_s = 1.0 / rate + rate / accel + M.GUARD_S + 0.010
+    assert req(sock, cmd="move", targets={"X": 0.4, "Y": 0.35}, feed=0.2)["ok"]
+    wait_for(lambda: abs(status(sock)["axes"]["X"]["x_d_m"] - 0.1) > 0.02, 10, "the move under way")
+    ans = req(sock, cmd="abort")
+    assert ans["ok"], ans
+    k_abort = ans["cycle"]
+    ended(sock)
+    s = status(sock)
+    rest_k = k_abort + int(round(2 * bound_s * s["loop"]["rate_hz"]))
+    wait_for(lambda: status(sock)["log"]["rows_flushed"] > rest_k + 100, 20, "the rows on disk")
+    log = open_run(status(sock)["log"]["run"]).read()
+    t = log.col("t")                                   # the loop's clock: cycle k at k·Ts
+    ts = 1.0 / s["loop"]["rate_hz"]
+    i0 = int(np.searchsorted(t, k_abort * ts - 0.5 * ts))
+    moving = (np.abs(log.col("X.xd_dot")[i0:]) > 0) | (np.abs(log.col("Y.xd_dot")[i0:]) > 0)
+    last = int(np.flatnonzero(moving[: int(round(2 * bound_s / ts))])[-1]) if moving.any() else 0
+    assert last * ts <= bound_s, (last * ts, bound_s)
+    assert not moving[last + 1: last + 1 + int(round(0.5 / ts))].any()     # held at rest after

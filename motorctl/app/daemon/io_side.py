@@ -345,7 +345,8 @@ class IOSide:
                 getattr(mo, req.cmd)()
         except MotionError as exc:
             return {"ok": False, "error": str(exc), "usage": exc.usage}
-        return {"ok": True, "motion": mo.status()}
+        # the loop's count when it was taken: where its effect is found in the run log
+        return {"ok": True, "motion": mo.status(), "cycle": self.plan.ring.published()}
 
     # ------------------------------------------------------------------ programs
     def upload(self, conn, a: dict, rest: bytes) -> dict | None:
@@ -866,6 +867,7 @@ class IOSide:
                                                               f"{LOOP_ANSWER_S:g} s"})
             self.drainer.poll()
             self.react_to_faults()
+            self.motion.settle_abort()
             self.report_faults()
             self.drainer.cut_events()
             self.drainer.maybe_flush()

@@ -592,6 +592,19 @@ class MotionSide:
             self._rewrite = False
             self._off_pending = False
 
+    def settle_abort(self) -> bool:
+        """An abort whose motion has come to rest is over: nothing streams or is queued, the ring
+        is drained and the loop's brake is done, so the queue is cleared and the abort ended
+        (``stopped_because`` 'aborted'), whether or not the filler's rewrite ended it (the I/O
+        process asks at every wake). True when it ended one."""
+        with self.lock:
+            if not (self.aborting and self.cur is None and not self.queue and not self.planning
+                    and self.stream.depth() == 0 and not self.stream.braking()):
+                return False
+            self._clear("aborted")
+            self._rewrite = False
+            return True
+
     def homing_runs(self) -> bool:
         """The homing sequence's thread is running."""
         return self._homing_thread is not None and self._homing_thread.is_alive()
@@ -640,6 +653,7 @@ class MotionSide:
                 "stopped_because": self.reason, "homed": list(self.homed), "outputs": dict(self.outputs),
                 "optional_stop": self.optional_stop,
                 "homing": list(self.homing_state), "homing_configured": [h is not None for h in self.homing],
+                "filler_alive": self._thread is not None and self._thread.is_alive(),
                 "idle": self.idle()}
 
     # ---------------------------------------------------------------- homing
