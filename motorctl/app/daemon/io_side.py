@@ -268,13 +268,17 @@ class IOSide:
     def observed(self) -> Observed:
         """What the machine state is computed from now (:class:`.machine.Observed`)."""
         st, mo = self.plan.ring.status, self.motion
-        rec = REC_REASONS.get(int(self.plan.ring.ctl[CTL_REC_LATCHED]), "")
         modes = tuple(MODE_NAMES.get(int(st[i, ST["mode"]]), "?") for i in range(len(self.names)))
-        faults = tuple(fault_text(int(st[i, ST["fault"]]), st[i, ST["value"]], st[i, ST["limit"]], rec)
-                       for i in range(len(self.names)))
+        faults = tuple(self.fault_line(i) for i in range(len(self.names)))
         busy = not mo.idle() or mo.homing_runs() or self.job is not None
         return Observed(modes, faults, busy, mo.held(), bool(mo.aborting), mo.stream.depth(),
                         mo.stream.braking())
+
+    def fault_line(self, i: int) -> str:
+        """Axis i's latched fault in one line from the status block ('' when none)."""
+        st = self.plan.ring.status[i]
+        return fault_text(int(st[ST["fault"]]), st[ST["value"]], st[ST["limit"]],
+                          REC_REASONS.get(int(self.plan.ring.ctl[CTL_REC_LATCHED]), ""))
 
     def machine_status(self) -> dict:
         """``status``' ``machine`` block: the PackML state and each axis's CiA 402 state."""
@@ -295,8 +299,7 @@ class IOSide:
         if not new:
             return
         i = new[0]
-        rec = REC_REASONS.get(int(self.plan.ring.ctl[CTL_REC_LATCHED]), "")
-        cause = f"fault: axis {self.names[i]}: {fault_text(bits[i], st[i, ST['value']], st[i, ST['limit']], rec)}"
+        cause = f"fault: axis {self.names[i]}: {self.fault_line(i)}"
         self.motion.fault_stop(cause)
         if self.job is not None:
             if self.job["info"] is None:
