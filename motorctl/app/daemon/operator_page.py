@@ -73,6 +73,8 @@ MAX_LOGINS_WAITING = 8
 LOGIN_FAIL_DELAY_S = 0.5
 #: a continuous jog not kept alive (jog-alive) this long is stopped [s]
 JOG_DEADMAN_S = 0.6
+#: a refused program's connection is closed this long after its answer, its body unread [s]
+REFUSED_BODY_CLOSE_S = 2.0
 #: the largest login or command body [bytes]
 MAX_SMALL_BODY = 8192
 #: the reply stream's line limit for the daemon's answers (a status is a few kB) [bytes]
@@ -423,29 +425,38 @@ class OperatorPage:
         return {"cmd": "jog", "axis": axis, k: float(v)}
 
     async def _program(self, request):
-        """The request's body streamed to the daemon as an ``upload``, then ``gcode`` naming it."""
+        """The request's body streamed to the daemon as an ``upload``, then ``gcode`` naming it.
+        A program the daemon refuses before taking it (beyond ``daemon.max_program_bytes``: 413;
+        too many uploads: 409) or a body without a Content-Length (411) is answered at once and
+        its body not read (:func:`_refuse_unread`)."""
         s = self._allowed(request)
         if s is None:
             return _forbidden()
         n = request.content_length
         if n is None:
-            return _json({"ok": False, "error": "program: the request needs a Content-Length", "usage": True}, 411)
+            return await _refuse_unread(request, {"ok": False, "error": "program: the request needs a Content-Length",
+                                                  "usage": True}, 411)
         filename = request.query.get("name", "program.ngc")[:200] or "program.ngc"
         send_s = PROGRAM_TIMEOUT_S + PROGRAM_S_PER_10MB * n / 10e6
+        sent = [0]
         async with self._calls:
             try:
-                ans = await asyncio.wait_for(self._upload(request, n), send_s)
+                ans = await asyncio.wait_for(self._upload(request, n, sent), send_s)
             except asyncio.TimeoutError:
                 ans = _unreachable(f"program: not sent within {send_s:.0f} s")
             except (OSError, ValueError, asyncio.IncompleteReadError) as exc:
                 ans = _unreachable(f"program: cannot send it to the daemon: {getattr(exc, 'strerror', None) or exc}")
         if not ans.get("ok"):
+            if sent[0] == 0 and n > 0:
+                too_large = "max_program_bytes" in str(ans.get("error", ""))
+                return await _refuse_unread(request, ans, 413 if too_large else None)
             return _answer_response(ans)
         ans = await self.call({"cmd": "gcode", "upload": ans["upload"], "filename": filename}, send_s)
         self._stale()
         return _answer_response(ans)
 
-    async def _upload(self, request, n: int) -> dict:
+    async def _upload(self, request, n: int, sent: list) -> dict:
+        """``upload`` of the body's ``n`` bytes; ``sent[0]``: the bytes read from the request."""
         reader, writer = await asyncio.open_unix_connection(self.socket_path, limit=ANSWER_LIMIT)
         try:
             writer.write((json.dumps({"cmd": "upload", "bytes": n}) + "\n").encode())
@@ -453,14 +464,13 @@ class OperatorPage:
             ans = _answer(await reader.readline())
             if not ans.get("ok"):
                 return ans
-            sent = 0
-            while sent < n:
-                chunk = await request.content.read(min(1 << 16, n - sent))
+            while sent[0] < n:
+                chunk = await request.content.read(min(1 << 16, n - sent[0]))
                 if not chunk:
-                    return {"ok": False, "error": f"program: the page sent {sent} of {n} bytes", "usage": True}
+                    return {"ok": False, "error": f"program: the page sent {sent[0]} of {n} bytes", "usage": True}
                 writer.write(chunk)
                 await writer.drain()          # the daemon's pace: memory stays bounded
-                sent += len(chunk)
+                sent[0] += len(chunk)
             return _answer(await reader.readline())
         finally:
             writer.close()
@@ -507,6 +517,24 @@ _PAGE_HEADERS = {"X-Frame-Options": "DENY", "Content-Security-Policy": "frame-an
 def _json(obj: dict, status: int = 200, headers: dict | None = None):
     from aiohttp import web
     return web.json_response(obj, status=status, headers={"Cache-Control": "no-store", **(headers or {})})
+
+
+async def _refuse_unread(request, ans: dict, status: int | None):
+    """Answer a request whose body is refused unread (``status``: the HTTP status; None: as
+    :func:`_answer_response`), at once, and close its connection :data:`REFUSED_BODY_CLOSE_S`
+    later without reading the body: reading is paused, so a client sending gigabytes is held by
+    TCP's window instead of being read and discarded (aiohttp would read on for up to 10 s at
+    the network's speed), and has that long to read the answer."""
+    resp = _answer_response(ans) if status is None else _json(
+        {"ok": False, "error": ans.get("error", "refused"), "usage": bool(ans.get("usage"))}, status)
+    resp.force_close()
+    await resp.prepare(request)
+    await resp.write_eof()
+    tr = request.transport
+    if tr is not None and not tr.is_closing():
+        tr.pause_reading()
+        asyncio.get_running_loop().call_later(REFUSED_BODY_CLOSE_S, tr.close)
+    return resp
 
 
 def _forbidden():
