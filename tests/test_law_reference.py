@@ -15,18 +15,36 @@ way:
   corners), found by trying every set of closed faces, not by an active-set iteration;
 * the input inversion of eq. (9) by bisection, not by Newton or a closed-form root.
 
-What is compared is the compiled step the servo loop runs (``dcdiarc_block_step``, ``pid_step``)
-called through the public :class:`motorctl.control.base.Controller` interface, ``update``: a
-controller is built from a ``controller:`` section (so the config -> law mapping is checked as
-well), its state is set (θ̂, Γ, the H_f states through their live arrays; y[k−1], u[k−1], d̂0
-through the law's state vector, the only thing imported from the law's module besides the
-class), one sample is run and every output of the sample (u, v, e, p, x2, d̂0, θ̂, Γ, ε, the
+What is compared is the compiled step the servo loop runs (``dcdiarc_block_step``,
+``dcdiarc_comp_step``, ``pid_step``) called through the public
+:class:`motorctl.control.base.Controller` interface, ``update`` (GTCF's ``gtcf_step`` directly,
+as the cycle calls it with the partner's block): a controller is built from a ``controller:``
+section (so the config -> law mapping is checked as well), its state is set (θ̂, Γ, the H_f
+states through their live arrays; y[k−1], u[k−1], d̂0, the input ring, GTCF's partner position
+and low-pass state through the law's state vector and block layout, the only things imported
+from the laws' modules besides the classes and the pair's step), one sample is run and every output of the sample (u, v, e, p, x2, d̂0, θ̂, Γ, ε, the
 freeze, k_s) is compared with the reference's. The states and parameter sets are drawn by
 hypothesis (derandomized: tests/conftest.py) and by branch: parameters on the faces, edges and
 corners of the box with a diagonal and a coupled Γ, the freeze of Γ, d̂0 at its bound, θ̂5 =
 θ̂6 = 0, θ̂6 = 0 ≠ θ̂5, the saturated inversion, theory mode. A closed-loop run on a simulated
 plant checks every sample of a realistic state sequence against the reference from the law's
 state before it.
+
+The compiled step's other branches, each switched on by the ``controller:`` section, are
+modelled too, from the docs of the families and of the laws (motorctl/effects/*.py's docstrings,
+motorctl/control/dcdiarc.py's, docs/control-law.md "GTCF"), not from their kernels: the
+identified-effect compensation (fixed terms, cogging, spring, Stribeck on the reference velocity
+ẋ_r = ẋ_d − k1 e and a time-periodic term, evaluated at the desired point, subtracted in v_a1 and
+added to the estimator's input u; adapted terms, their columns at the interval's mean position,
+velocity and mid time for the estimator and at the desired point for v_a1, β̂ in θ̂ with its box,
+on C1 and C2 and in theory mode), the force ripple (v divided by 1 + r̂(x_d), the thrust channels
+times 1 + r̂ at the measured mean), the input delay (v_a1 and d̂_eff at t + τ from the preview, the
+estimator fed the input applied over the interval from a chronological history) and GTCF (the
+task-frame feedback in the docs' matrix form v_s = −D^½ K D^½ p̃, K = g_t' t tᵀ + N'^½ n nᵀ N'^½,
+the contour error's λ_n within and beyond its band, the blend below v_min, the low-pass, the
+uncoupled and first-sample cases, over a compensation), the pair's step called as the servo
+cycle calls it (``gtcf_step`` with the partner's block). Each branch: a few samples one after
+the other, each checked against the reference from the law's state before it.
 
 Tolerance (RTOL): a quantity may differ from the reference by RTOL = 1e-9 times the sum of the
 magnitudes of the terms that make it up (a floating-point error bound, not a pinned value). The
@@ -38,8 +56,9 @@ for worse-conditioned Γ blocks, while a wrong sign or gain in any term moves th
 sizable fraction of that term, many orders beyond it.
 
 Mutation check (docs/control-law.md): ``.venv/bin/python tests/test_law_reference.py --mutants``
-runs this file against copies of the law with one term made wrong at a time (:data:`MUTANTS`)
-and reports which the file catches.
+runs this file against copies of the law with one term made wrong at a time (:data:`MUTANTS`,
+at least one per branch above) and reports which the file catches (``--nojit``: the kernels as
+Python; ``--jobs=N``: N mutants at once; ``--only=TEXT``: the mutants whose term holds TEXT).
 """
 
 from __future__ import annotations
@@ -56,11 +75,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import examples
-from hypothesis import given, settings
+from hypothesis import Phase, given, settings
 from hypothesis import strategies as st
 
 from motorctl.control.dcdiarc import DCDIARC
-from motorctl.control.dcdiarc import S_D0, S_U, S_Y_PREV  # the law's state layout (to set a state), no arithmetic
+# the law's state layout (to set a state; B_*: where GTCF keeps its numbers), no arithmetic
+from motorctl.control.dcdiarc import B_N, B_SPAN, S_D0, S_DC, S_RI, S_U, S_Y_PREV
+from motorctl.control.gtcf import G_VFB, G_YJ, GTCF, gtcf_step
 from motorctl.control.params import ControllerConfig
 from motorctl.control.pid import PID
 from motorctl.control.signals import SIG
@@ -72,6 +93,9 @@ G_MAX = 1800.0 / math.pi     # bound of S_f's slope, g in eq. (12)-(16)
 X_MIN = np.array([0.05, 0.08, 0.05, -0.5, -0.015, -0.002])
 X_MAX = np.array([0.3, 0.5, 0.5, 0.5, 0.0, 0.0])
 X_GAMMA0 = np.array([2.0, 50.0, 100.0, 500.0, 0.05, 0.005])
+#: hypothesis's phases: in a mutant's run (:func:`run_mutants`) the first failing example is
+#: enough (no shrinking)
+PHASES = tuple(p for p in Phase if p is not Phase.shrink) if os.environ.get("LAW_REFERENCE_MUTANT") else tuple(Phase)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -186,33 +210,52 @@ def theory_ks1(tmin, tmax, k1: float, k2: float) -> float:
     return worst
 
 
-def reference_step(prm: dict, state: dict, y: float, xd: float, vd: float, ad: float, freeze=None) -> dict:
+def reference_step(prm: dict, state: dict, y: float, xd: float, vd: float, ad: float, freeze=None, *,
+                   comp: "RefComp | None" = None, t: float = 0.0, ahead=None, v_fb: float = 0.0,
+                   v_fb_scale: float = 0.0) -> dict:
     """One sample k of C1 (n = 4) or C2 (n = 6) in the order of docs/control-law.md (spec §5.2).
 
     prm: the law's settings (kind, k1, k_s, gamma_d, d_hat_max, u_lim, omega_f, mu, nu, rho_M,
     mode, k2, eta, delta_d, k_s1, tmin, tmax). state (before the sample): y_prev, u_prev [V],
     d0, theta (n,), gamma (n, n), zf, zd (n,) the H_f states of the channels (x2, S_f(x2), 1, u,
     u|u|, u³) (C1: the first four). freeze: None (decide by eq. 27) or True/False (forced: for a
-    sample whose λ_max is within rounding of ρ_M). Returns the outputs and what was hit."""
-    n = 6 if prm["kind"] == "c2" else 4
-    tmin, tmax = prm["tmin"][:n], prm["tmax"][:n]
+    sample whose λ_max is within rounding of ρ_M). Returns the outputs and what was hit.
+
+    With an identified-effect compensation ``comp`` (:class:`RefComp`, module motorctl.effects'
+    docs): θ (n + k,) then holds β̂, Γ and the H_f states the k basis channels; the state has d_prev
+    (d̂_eff held with u[k−1]) and, with an input delay, hist: the last m (u, d̂_eff) pairs, oldest
+    first. t [s]: the sample's time; ahead: (x_d, ẋ_d, ẍ_d) at t + τ (the preview; None: this
+    sample's). v_fb [V]: GTCF's feedback beyond −k_s p (v_fb_scale: the magnitude of its terms)."""
+    nn = 6 if prm["kind"] == "c2" else 4
+    k = comp.k if comp is not None else 0
+    n = nn + k
+    tmin = np.concatenate([prm["tmin"][:nn], comp.beta_min if k else []])
+    tmax = np.concatenate([prm["tmax"][:nn], comp.beta_max if k else []])
     th = state["theta"].astype(float).copy()
     gam = state["gamma"].astype(float).copy()
     out: dict = {}
+    xf, vf, af = (xd, vd, ad) if ahead is None else ahead
+    tau = comp.tau if comp is not None else 0.0
 
     # 1. the velocity: backward difference of two readings (spec §5.1)
     x2 = (y - state["y_prev"]) / TS
 
     # 2. the estimator with time-aligned inputs: the pair (x2[k], u[k−1]) of the interval just ended
-    up = state["u_prev"]
-    inp = np.array([x2, s_f(x2), 1.0, up, up * abs(up), up ** 3])[:n]
+    # (with an input delay τ = n Ts the input applied over it, u[k−1−n]; with a compensation the
+    # model's input is u + d̂_eff, the thrust channels times 1 + r̂(x) at the interval's mean position)
+    hist = state.get("hist")
+    up, dp = (state["u_prev"], state.get("d_prev", 0.0)) if hist is None else hist[0]
+    xm = 0.5 * (y + state["y_prev"])
+    gm = 1.0 + comp.ripple(xm) if comp is not None else 1.0
+    cols_m = comp.columns(xm, x2, t - 0.5 * TS) if k else np.zeros(0)
+    inp = np.concatenate([[x2, s_f(x2), 1.0, gm * up + dp, gm * up * abs(up), gm * up ** 3][:nn], cols_m])
     a, b = hf_zoh(prm["omega_f"], TS)
     zf = a[0, 0] * state["zf"] + a[0, 1] * state["zd"] + b[0] * inp
     zd = a[1, 0] * state["zf"] + a[1, 1] * state["zd"] + b[1] * inp
     out["zf_scale"] = np.abs(a[0, 0] * state["zf"]) + np.abs(a[0, 1] * state["zd"]) + np.abs(b[0] * inp)
     out["zd_scale"] = np.abs(a[1, 0] * state["zf"]) + np.abs(a[1, 1] * state["zd"]) + np.abs(b[1] * inp)
-    # eq. (25): u_f = −φ_fᵀθ, φ_f = [−ẋ2f, −x2f, −S_ff, 1_f, (u|u|)_f, (u³)_f]
-    phi = np.array([-zd[0], -zf[0], -zf[1], zf[2]] + ([zf[4], zf[5]] if n == 6 else []))
+    # eq. (25): u_f = −φ_fᵀθ, φ_f = [−ẋ2f, −x2f, −S_ff, 1_f, (u|u|)_f, (u³)_f], then the basis's c_f
+    phi = np.array([-zd[0], -zf[0], -zf[1], zf[2]] + ([zf[4], zf[5]] if nn == 6 else []) + list(zf[nn:]))
     u_f = zf[3]
     eps = float(-phi @ th - u_f)                               # eq. (26): ε = û_f − u_f
     out["eps_scale"] = float(np.abs(phi * th).sum() + abs(u_f))
@@ -232,8 +275,8 @@ def reference_step(prm: dict, state: dict, y: float, xd: float, vd: float, ad: f
         out["gamma_scale"] = np.abs(gam)
     else:
         out["gamma_scale"] = np.abs(gp) + TS / nk * np.abs(gpp) / den
-    tau = phi * eps / nk                                       # eq. (28)
-    zeta = g_new @ tau
+    tau_ = phi * eps / nk                                      # eq. (28)
+    zeta = g_new @ tau_
     z, closed, lam = tangent_cone_projection(zeta, th, tmin, tmax, g_new)   # eq. (7)-(8)
     out["kkt_differs"] = bool(np.abs(z - add_only_projection(zeta, th, tmin, tmax, g_new)).max()
                               > 1e-6 * (1.0 + np.abs(zeta).max()))
@@ -251,38 +294,49 @@ def reference_step(prm: dict, state: dict, y: float, xd: float, vd: float, ad: f
     out["d0_clipped"] = d0 != d0_raw
     out["d0_scale"] = abs(state["d0"]) + TS * prm["gamma_d"] * abs(p)
 
-    # 5. v = v_a1 + v_a2 + v_s (eq. 13, 18, 22): model compensation on the DESIRED trajectory
-    sfd = s_f(vd)
-    va1 = th[0] * ad + th[1] * vd + th[2] * sfd - th[3]
+    # 5. v = v_a1 + v_a2 + v_s (eq. 13, 18, 22): model compensation on the DESIRED trajectory (at
+    # t + τ with an input delay), less the effects' d̂_eff on (x_d, ẋ_r = ẋ_d − k1 e, t + τ)
+    sfd = s_f(vf)
+    vr = vf - prm["k1"] * e
+    d_eff = comp.fixed(xf, vr, t + tau) if comp is not None else 0.0
+    cols_d = comp.columns(xf, vr, t + tau) if k else np.zeros(0)
+    va1 = th[0] * af + th[1] * vf + th[2] * sfd - th[3] - d_eff - float(th[nn:] @ cols_d)
     if prm["mode"] == "theory":
         # v_s = −(k_s1 + k_s2) p, k_s2 = (d̂_max + Σ θ_Mi |φ_di| + δ_d)²/(4η) (eq. 22), the
-        # componentwise bound; φ_d = [−ẍ_d, −ẋ_d, −S_f(ẋ_d), 1, u|u|, u³] with the last u
+        # componentwise bound; φ_d = [−ẍ_d, −ẋ_d, −S_f(ẋ_d), 1, u|u|, u³, c(x_d)] with the last u
         span = tmax - tmin
-        phid = np.array([-ad, -vd, -sfd, 1.0, up * abs(up), up ** 3])[:n]
+        u_last = state["u_prev"]
+        phid = np.concatenate([[-af, -vf, -sfd, 1.0, u_last * abs(u_last), u_last ** 3][:nn], cols_d])
         h = prm["d_hat_max"] + float(span @ np.abs(phid)) + prm["delta_d"]
         ks1 = prm["k_s1"] if prm["k_s1"] is not None else theory_ks1(tmin, tmax, prm["k1"], prm["k2"])
         ks = ks1 + h * h / (4.0 * prm["eta"])
     else:
         ks = prm["k_s"]                                        # experiment mode: v_s = −k_s p
-    v = va1 - d0 - ks * p
+    v = va1 - d0 - ks * p + v_fb
     ts_ = out["theta_scale"]
-    v_scale = (ts_[0] * abs(ad) + ts_[1] * abs(vd) + ts_[2] * abs(sfd) + ts_[3] + abs(d0) + abs(ks * p)
-               + out["d0_scale"])
+    v_scale = (ts_[0] * abs(af) + ts_[1] * abs(vf) + ts_[2] * abs(sfd) + ts_[3] + abs(d0) + abs(ks * p)
+               + out["d0_scale"] + abs(d_eff) + float(ts_[nn:] @ np.abs(cols_d)) + v_fb_scale)
 
-    # 6. u from v: C2 by the inversion of eq. (9), C1 u = v; then the actuator's ±u_lim
-    if n == 6:
-        u, case = invert(v, th[4], th[5], prm["u_lim"])
+    # 6. u from v: C2 by the inversion of eq. (9) of v / (1 + r̂(x_d)) (the thrust F_m(u)(1 + r)),
+    # C1 u = v / (1 + r̂); then the actuator's ±u_lim
+    gd = 1.0 + comp.ripple(xf) if comp is not None else 1.0
+    w = v / gd
+    if nn == 6:
+        u, case = invert(w, th[4], th[5], prm["u_lim"])
         slope = 1.0 + 2.0 * th[4] * abs(u) + 3.0 * th[5] * u * u
-        u_scale = (v_scale + ts_[4] * u * u + ts_[5] * abs(u) ** 3) / slope
+        u_scale = (v_scale / gd + ts_[4] * u * u + ts_[5] * abs(u) ** 3) / slope
     else:
-        u, case = v, "none"
-        u_scale = v_scale
+        u, case = w, "none"
+        u_scale = v_scale / gd
     u_clip = min(max(u, -prm["u_lim"]), prm["u_lim"])
     out["u_clipped"] = u_clip != u
+    if hist is not None:
+        out["hist"] = hist[1:] + [(u_clip, d_eff)]
     out.update(u=u_clip, v=v, e=e, p=p, x2=x2, d0=d0, theta=th, gamma=g_new, eps=eps, frozen=frozen,
                ks=ks, zf=zf, zd=zd, closed=closed, inversion=case, v_scale=v_scale, u_scale=u_scale,
                p_scale=abs(x2) + abs(vd) + prm["k1"] * abs(e), e_scale=abs(y) + abs(xd),
-               x2_scale=(abs(y) + abs(state["y_prev"])) / TS)
+               x2_scale=(abs(y) + abs(state["y_prev"])) / TS, d_eff=d_eff, cols_m=cols_m, cols_d=cols_d,
+               g_meas=gm, g_des=gd, delayed=(up, dp))
     return out
 
 
@@ -290,48 +344,77 @@ def reference_step(prm: dict, state: dict, y: float, xd: float, vd: float, ad: f
 # the law under test, through its Controller interface
 # ---------------------------------------------------------------------------------------------
 
-def section(prm: dict, theta0=None) -> ControllerConfig:
-    """The axis's ``controller:`` section of the settings ``prm``."""
+def section(prm: dict, theta0=None, **more) -> ControllerConfig:
+    """The axis's ``controller:`` section of the settings ``prm`` (``more``: further keys, e.g.
+    ``compensation``, ``gtcf``)."""
     data = dict(type=prm["kind"], u_lim=prm["u_lim"], theta_min=list(prm["tmin"]), theta_max=list(prm["tmax"]),
                 theta_hat0=list(theta0 if theta0 is not None else 0.5 * (prm["tmin"] + prm["tmax"])),
                 gamma0=list(prm["gamma0"]), k_s=prm["k_s"], k1=prm["k1"], gamma_d=prm["gamma_d"],
                 d_hat_max=prm["d_hat_max"], filter={"omega_f": prm["omega_f"]}, mu=prm["mu"], nu=prm["nu"],
                 rho_M=prm["rho_M"], mode=prm["mode"],
-                theory={"k2": prm["k2"], "eta": prm["eta"], "delta_d": prm["delta_d"], "k_s1": prm["k_s1"]})
+                theory={"k2": prm["k2"], "eta": prm["eta"], "delta_d": prm["delta_d"], "k_s1": prm["k_s1"]},
+                **more)
     return ControllerConfig.model_validate(data)
 
 
+def ring_history(c: DCDIARC) -> list[tuple[float, float]]:
+    """The law's input ring (an input delay's (u, d̂_eff) pairs) as a history, oldest first."""
+    m, ri = c._ring.shape[1], int(c._st[S_RI])
+    return [(float(c._ring[0, (ri + j) % m]), float(c._ring[1, (ri + j) % m])) for j in range(m)]
+
+
 def snapshot(c: DCDIARC, y_prev: float) -> dict:
-    """The state of the law before its next sample, read from the controller."""
+    """The state of the law before its next sample, read from the controller (θ̂ with β̂; with
+    a compensation the d̂_eff held with u, with an input delay the ring as a history, oldest first)."""
     est = c.estimator
-    return dict(y_prev=y_prev, u_prev=c.u, d0=c.d_hat0, theta=c.theta_hat.copy(),
-                gamma=est.gamma.copy(), zf=est.zf.copy(), zd=est.zd.copy())
+    out = dict(y_prev=y_prev, u_prev=c.u, d0=c.d_hat0, theta=est.theta_hat.copy(),
+               gamma=est.gamma.copy(), zf=est.zf.copy(), zd=est.zd.copy(), d_prev=float(c._st[S_DC]))
+    if c._ring.shape[1] > 1:
+        out["hist"] = ring_history(c)
+    return out
 
 
 def law_outputs(c: DCDIARC, u: float) -> dict:
     est = c.estimator
     n = c.n_theta
     sig = c.signals
-    return dict(u=u, v=c.v, e=c.e, p=c.p, x2=c.x2, d0=c.d_hat0, theta=c.theta_hat.copy(), gamma=est.gamma.copy(),
-                eps=est.epsilon, frozen=est.frozen, ks=c.k_s_eff, zf=est.zf.copy(), zd=est.zd.copy(),
-                sig_v=sig[SIG["v"]], sig_d0=sig[SIG["d_hat0"]], sig_p=sig[SIG["p"]],
-                sig_theta=sig[SIG["theta_hat1"]:SIG["theta_hat1"] + n].copy())
+    out = dict(u=u, v=c.v, e=c.e, p=c.p, x2=c.x2, d0=c.d_hat0, theta=est.theta_hat.copy(), gamma=est.gamma.copy(),
+               eps=est.epsilon, frozen=est.frozen, ks=c.k_s_eff, zf=est.zf.copy(), zd=est.zd.copy(),
+               sig_v=sig[SIG["v"]], sig_d0=sig[SIG["d_hat0"]], sig_p=sig[SIG["p"]],
+               sig_theta=sig[SIG["theta_hat1"]:SIG["theta_hat1"] + n].copy(), d_eff=float(c._st[S_DC]),
+               cols_m=est.cols.copy(), cols_d=c._cd.copy())
+    if c._ring.shape[1] > 1:
+        out["hist"] = ring_history(c)
+    return out
 
 
-def run_law(prm: dict, state: dict, y: float, xd: float, vd: float, ad: float, c: DCDIARC | None = None) -> dict:
-    """One sample of the project's law from ``state``: a controller built from the section (or
-    ``c``, built from it before), reset at y[k−1], its state set, then ``update``."""
-    if c is None:
-        c = DCDIARC(section(prm), TS, prm["kind"])
+def set_state(c: DCDIARC, state: dict) -> None:
+    """Reset ``c`` at y[k−1] and set the law's state to ``state`` (:func:`snapshot`'s keys)."""
     c.reset(state["y_prev"])
     c._st[S_Y_PREV] = state["y_prev"]
     c._st[S_U] = state["u_prev"]
     c._st[S_D0] = state["d0"]
-    c.theta_hat[:] = state["theta"]
+    c._st[S_DC] = state.get("d_prev", 0.0)
+    c.estimator.theta_hat[:] = state["theta"]
     c.estimator.gamma[:] = state["gamma"]
     c.estimator.zf[:] = state["zf"]
     c.estimator.zd[:] = state["zd"]
-    return law_outputs(c, c.update(y, xd, vd, ad))
+    if "hist" in state:                      # the ring, oldest first from index 0
+        c._ring[:] = np.array(state["hist"]).T
+        c._st[S_RI] = 0.0
+
+
+def run_law(prm: dict, state: dict, y: float, xd: float, vd: float, ad: float, c: DCDIARC | None = None,
+            t: float = 0.0, ahead=None) -> dict:
+    """One sample of the project's law from ``state``: a controller built from the section (or
+    ``c``, built from it before), reset at y[k−1], its state set, then ``update`` (after
+    ``preview`` with ``ahead``, the desired sample at t + τ, when given)."""
+    if c is None:
+        c = DCDIARC(section(prm), TS, prm["kind"])
+    set_state(c, state)
+    if ahead is not None:
+        c.preview(*ahead)
+    return law_outputs(c, c.update(y, xd, vd, ad, t))
 
 
 def _close(name, got, want, scale, where=""):
@@ -354,13 +437,21 @@ def compare(law: dict, ref: dict, where: str = "") -> None:
                                             f"reference {ref['frozen']}")
     _close("Gamma (eq. 27)", law["gamma"], ref["gamma"], ref["gamma_scale"], where)
     _close("theta_hat (eq. 7-8, 28)", law["theta"], ref["theta"], ref["theta_scale"], where)
-    _close("theta_hat signals", law["sig_theta"], ref["theta"], ref["theta_scale"], where)
+    nn = len(law["sig_theta"])
+    _close("theta_hat signals", law["sig_theta"], ref["theta"][:nn], ref["theta_scale"][:nn], where)
     _close("d_hat0 (eq. 19)", law["d0"], ref["d0"], ref["d0_scale"], where)
     _close("d_hat0 signal", law["sig_d0"], ref["d0"], ref["d0_scale"], where)
     _close("k_s", law["ks"], ref["ks"], abs(ref["ks"]), where)
     _close("v (eq. 13, 18, 22)", law["v"], ref["v"], ref["v_scale"], where)
     _close("v signal", law["sig_v"], ref["v"], ref["v_scale"], where)
     _close("u (eq. 9)", law["u"], ref["u"], ref["u_scale"], where)
+    if len(ref["cols_m"]):
+        _close("adapted basis at the interval's mean", law["cols_m"], ref["cols_m"], 1.0, where)
+        _close("adapted basis at the desired point", law["cols_d"], ref["cols_d"], 1.0, where)
+    _close("d_eff held with u", law["d_eff"], ref["d_eff"], abs(ref["d_eff"]), where)
+    if "hist" in ref:
+        _close("input ring (u, d_eff), oldest first", law["hist"], ref["hist"],
+               np.abs(ref["hist"]) + ref["u_scale"], where)
 
 
 def check(prm, state, y, xd, vd, ad, c: DCDIARC | None = None, where: str = "") -> dict:
@@ -510,7 +601,7 @@ def state_flags(draw, kind):
 
 
 @pytest.mark.parametrize("kind", ["c1", "c2"])
-@settings(max_examples=examples(60), deadline=None)
+@settings(max_examples=examples(60), deadline=None, phases=PHASES)
 @given(seed=st.integers(0, 2 ** 32 - 1), theory=st.sampled_from([False, False, False, True]), data=st.data())
 def test_one_sample_matches_the_reference(kind, seed, theory, data):
     """Random parameter sets (hypothesis), each with STATES_PER_SET random states: u, v, e, p, d̂0,
@@ -639,6 +730,452 @@ def test_every_sample_of_a_closed_loop_run_matches(kind):
 
 
 # ---------------------------------------------------------------------------------------------
+# the compiled step's other branches: identified-effect compensation (fixed and adapted terms),
+# force ripple, input delay (motorctl/control/dcdiarc.py's module docstring, the families'
+# docstrings in motorctl/effects/, docs/control-law.md) and the GTCF pair (docs/control-law.md,
+# "GTCF: the contouring law of a pair of axes")
+# ---------------------------------------------------------------------------------------------
+
+class RefComp:
+    """A ``compensation:`` mapping as the families' docs write it, evaluated in plain Python:
+
+    * cogging: d(x) = Σ_k a_k sin(2πk x/P) + b_k cos(2πk x/P) [V]; adapted: the columns
+      sin(2πk x/P) (k = 1..), then cos(...), β = (a, b);
+    * spring: d(x) = −k (x − x_0); adapted: the column x_0 − x, β = k;
+    * stribeck: d(v) = −F exp(−(v/v_s)²) S_f(v); adapted: the column −exp(−(v/v_s)²) S_f(v), β = F;
+    * periodic_disturbance: Σ_k a_k sin(2πk f t) + b_k cos(2πk f t); adapted as cogging, on t;
+    * force_ripple: the thrust fraction r(x) = Σ_k a_k sin(2πk x/P) + b_k cos(2πk x/P);
+    * input_delay: τ [s], m = 1 + round(τ/Ts) (the ring of the inputs held).
+
+    ``names``: the law's β names ("family.key[j]", :attr:`DCDIARC.beta_names`), which fix the
+    order of the adapted coefficients in θ̂ (the reference maps each name to its own column)."""
+
+    def __init__(self, spec: dict, names: list[str]):
+        self.spec = spec
+        self.names = list(names)
+        self.k = len(self.names)
+        adapted = {f for f, o in spec.items() if o.get("adapt")}
+        assert {n.split(".")[0] for n in self.names} == adapted, (self.names, adapted)
+        lo, hi = [], []
+        for name in self.names:
+            fam, key, j = self._parse(name)
+            o = spec[fam]
+            at = self._beta_keys(fam).index((key, j))
+            lo.append(o["beta_min"][at])
+            hi.append(o["beta_max"][at])
+        self.beta_min, self.beta_max = np.array(lo), np.array(hi)
+        self.tau = spec.get("input_delay", {}).get("delay_s", 0.0)
+        self.m = 1 + int(round(self.tau / TS))
+
+    @staticmethod
+    def _parse(name):
+        fam, rest = name.split(".", 1)
+        key, j = (rest[:-1].split("[") if rest.endswith("]") else (rest, "0"))
+        return fam, key, int(j)
+
+    def _beta_keys(self, fam):
+        o = self.spec[fam]
+        if fam in ("cogging", "periodic_disturbance"):
+            n = max(len(o.get("sin_V", [])), len(o.get("cos_V", [])))
+            return [("sin_V", j) for j in range(n)] + [("cos_V", j) for j in range(n)]
+        return [({"spring": "stiffness_V_per_m", "stribeck": "force_V"}[fam], 0)]
+
+    @staticmethod
+    def value(o: dict, key: str, j: int) -> float:
+        """Coefficient j of an entry's key (a list padded with zeros, or a number)."""
+        v = o[key]
+        return (v[j] if j < len(v) else 0.0) if isinstance(v, list) else v
+
+    def beta0(self) -> np.ndarray:
+        """β of the entries as configured, in the order of ``names``."""
+        return np.array([self.value(self.spec[fam], key, j) for fam, key, j in map(self._parse, self.names)])
+
+    @staticmethod
+    def _fourier(a, b, w, z):
+        return sum(a[j] * math.sin((j + 1) * w * z) for j in range(len(a))) + \
+            sum(b[j] * math.cos((j + 1) * w * z) for j in range(len(b)))
+
+    def _term(self, fam, x, v, t):
+        o = self.spec[fam]
+        if fam == "cogging":
+            return self._fourier(o.get("sin_V", []), o.get("cos_V", []), 2 * math.pi / o["period_m"], x)
+        if fam == "periodic_disturbance":
+            return self._fourier(o.get("sin_V", []), o.get("cos_V", []), 2 * math.pi * o["frequency_Hz"], t)
+        if fam == "spring":
+            return -o["stiffness_V_per_m"] * (x - o.get("rest_position_m", 0.0))
+        if fam == "stribeck":
+            return -o["force_V"] * math.exp(-(v / o["velocity_m_per_s"]) ** 2) * s_f(v)
+        raise KeyError(fam)
+
+    def fixed(self, x, v, t) -> float:
+        """d̂_eff [V] of the fixed (not adapted) terms at x [m], v [m/s], t [s]."""
+        return sum(self._term(f, x, v, t) for f, o in self.spec.items()
+                   if f in ("cogging", "spring", "stribeck", "periodic_disturbance") and not o.get("adapt"))
+
+    def columns(self, x, v, t) -> np.ndarray:
+        """The adapted terms' columns c (k,) at x, v, t, in the order of ``names``."""
+        out = []
+        for name in self.names:
+            fam, key, j = self._parse(name)
+            o = self.spec[fam]
+            if fam in ("cogging", "periodic_disturbance"):
+                z, w = (x, 2 * math.pi / o["period_m"]) if fam == "cogging" else (t, 2 * math.pi * o["frequency_Hz"])
+                out.append((math.sin if key == "sin_V" else math.cos)((j + 1) * w * z))
+            elif fam == "spring":
+                out.append(o.get("rest_position_m", 0.0) - x)
+            else:
+                out.append(-math.exp(-(v / o["velocity_m_per_s"]) ** 2) * s_f(v))
+        return np.array(out)
+
+    def ripple(self, x) -> float:
+        o = self.spec.get("force_ripple")
+        return 0.0 if o is None else self._fourier(o.get("sin", []), o.get("cos", []), 2 * math.pi / o["period_m"], x)
+
+
+def draw_compensation(rng, fixed=(), adapted=(), ripple=False, delay=False, beta_face=False) -> dict:
+    """A ``compensation:`` mapping: the families of ``fixed`` with fixed amplitudes, of ``adapted``
+    adapted (β box and Γ(0) given; β̂ on a face of its box with ``beta_face``), a force ripple, an
+    input delay of 1-4 samples (not a whole number of them: τ/Ts rounds)."""
+    spec: dict = {}
+    for fam in list(fixed) + list(adapted):
+        if fam == "cogging":
+            o = dict(period_m=rng.uniform(0.004, 0.05), sin_V=list(rng.uniform(-0.3, 0.3, 2)),
+                     cos_V=list(rng.uniform(-0.3, 0.3, int(rng.integers(1, 3)))))
+        elif fam == "periodic_disturbance":
+            o = dict(frequency_Hz=rng.uniform(5.0, 120.0), sin_V=list(rng.uniform(-0.3, 0.3, 1)),
+                     cos_V=list(rng.uniform(-0.3, 0.3, 2)))
+        elif fam == "spring":
+            o = dict(stiffness_V_per_m=rng.uniform(0.5, 5.0), rest_position_m=rng.uniform(-0.1, 0.1))
+        else:
+            o = dict(force_V=rng.uniform(0.05, 0.5), velocity_m_per_s=rng.uniform(0.002, 0.03))
+        if fam in adapted:
+            b = RefComp({fam: o}, [])._beta_keys(fam)
+            vals = [RefComp.value(o, key, j) for key, j in b]
+            w = [rng.uniform(0.05, 0.5) for _ in vals]
+            o.update(adapt=True, beta_min=[v - a for v, a in zip(vals, w)], beta_max=[v + a for v, a in zip(vals, w)],
+                     gamma0=[float(g) for g in rng.uniform(1.0, 50.0, len(vals))])
+            if beta_face:                    # the entries on a face: β(0) = β_min or β_max
+                for j, (key, i) in enumerate(b):
+                    edge = o["beta_max"][j] if rng.random() < 0.5 else o["beta_min"][j]
+                    if isinstance(o[key], list):
+                        o[key] = list(o[key]) + [0.0] * (i + 1 - len(o[key]))
+                        o[key][i] = edge
+                    else:
+                        o[key] = edge
+        spec[fam] = o
+    if ripple:
+        spec["force_ripple"] = dict(period_m=rng.uniform(0.01, 0.05), sin=list(rng.uniform(-0.12, 0.12, 2)),
+                                    cos=list(rng.uniform(-0.12, 0.12, 1)))
+    if delay:
+        spec["input_delay"] = dict(delay_s=TS * (int(rng.integers(1, 5)) + rng.uniform(-0.4, 0.4)))
+    return spec
+
+
+def feature_state(rng, prm: dict, comp: RefComp, state: dict) -> dict:
+    """``state`` (:func:`draw_state`'s) extended by the compensation's: β̂ (its θ̂(0) or inside
+    its box), Γ with the β rows (coupled to θ), the basis channels' H_f states, the d̂_eff held
+    with u[k−1] and the input ring's history."""
+    n0, k = len(state["theta"]), comp.k
+    st_ = dict(state)
+    if k:
+        inside = rng.random() < 0.5
+        beta = rng.uniform(comp.beta_min, comp.beta_max) if inside else comp.beta0()
+        st_["theta"] = np.concatenate([state["theta"], beta])
+        gam = np.zeros((n0 + k, n0 + k))
+        gam[:n0, :n0] = state["gamma"]
+        d = rng.uniform(1.0, 50.0, k)
+        gam[n0:, n0:] = np.diag(d)
+        c = rng.uniform(-0.3, 0.3, (k, n0)) * np.sqrt(np.outer(d, np.diag(state["gamma"])))
+        gam[n0:, :n0], gam[:n0, n0:] = c, c.T
+        lam = np.linalg.eigvalsh(gam)
+        if lam.min() <= 1e-9 * lam.max():    # keep it SPD: pull the coupling in
+            gam[n0:, :n0] *= 0.3
+            gam[:n0, n0:] *= 0.3
+        lmax = float(np.linalg.eigvalsh(gam).max())
+        if lmax > 0.8 * prm["rho_M"]:
+            gam *= 0.8 * prm["rho_M"] / lmax
+        st_["gamma"] = gam
+        st_["zf"] = np.concatenate([state["zf"], rng.uniform(-1, 1, k)])
+        st_["zd"] = np.concatenate([state["zd"], rng.normal(0, 0.3 * prm["omega_f"], k)])
+    st_["d_prev"] = comp.fixed(state["y_prev"], rng.uniform(-0.02, 0.02), rng.uniform(0, 5)) if comp.spec else 0.0
+    if comp.m > 1:
+        u_lim = prm["u_lim"]
+        st_["hist"] = [(float(rng.uniform(-u_lim, u_lim)), float(rng.uniform(-0.5, 0.5))) for _ in range(comp.m - 1)]
+        st_["hist"].append((state["u_prev"], st_["d_prev"]))
+    return st_
+
+
+def feature_inputs(rng, prm: dict, state: dict, slow: bool, steps: int):
+    """``steps`` samples after ``state``: (y, x_d, ẋ_d, ẍ_d, t, the desired sample at t + τ),
+    the velocities small with ``slow`` (where a Stribeck term and ẋ_r matter), the desired
+    trajectory a smooth one."""
+    u_lim, ks = prm["u_lim"], (prm["k_s"] if prm["mode"] == "experiment" else 2e3)
+    th1 = float(state["theta"][0])
+    y_prev = state["y_prev"]
+    x2 = rng.uniform(-0.02, 0.02) if slow else rng.uniform(-1.0, 1.0)
+    t = rng.uniform(0.0, 10.0)
+    out = []
+    for _ in range(steps):
+        x2 += rng.normal(0, 0.004 if slow else 0.05)
+        y = y_prev + x2 * TS
+        e = rng.normal(0, 2e-5)
+        p = rng.normal(0, 0.1 * u_lim / ks)
+        vd = x2 - (p - prm["k1"] * e)
+        ad = rng.normal(0, 0.2 * u_lim / th1)
+        t += TS
+        ahead = (y - e + rng.normal(0, 1e-5), vd + rng.normal(0, 0.002 if slow else 0.02), ad + rng.normal(0, 0.5))
+        out.append((y, y - e, vd, ad, t, ahead))
+        y_prev = y
+    return out
+
+
+#: the compensation's branches of the compiled step (dcdiarc_comp_step, dcdiarc_block_step,
+#: ls_update): the families of each case (fixed, adapted), a ripple, a delay, the law, and the
+#: reference's word that the branch was hit over the samples
+FEATURES = {
+    "fixed terms (cogging, spring, Stribeck on the reference velocity, time-periodic): v_a1 and u + d_eff":
+        (dict(kind="c2", fixed=("cogging", "spring", "stribeck", "periodic_disturbance"), slow=True),
+         lambda rs: all(abs(r["d_eff"]) > 1e-3 for r in rs)),
+    "adapted terms (C2): beta in theta_hat, columns at the interval's mean and at the desired point":
+        (dict(kind="c2", adapted=("cogging", "spring", "stribeck", "periodic_disturbance"), slow=True),
+         lambda rs: all(np.abs(r["cols_m"]).max() > 1e-3 for r in rs)),
+    "adapted terms (C1): their channels after the fourth, with a fixed term":
+        (dict(kind="c1", fixed=("cogging",), adapted=("spring", "periodic_disturbance")), lambda rs: True),
+    "adapted coefficients on the faces of their box (projection with beta)":
+        (dict(kind="c2", adapted=("cogging", "spring"), beta_face=True),
+         lambda rs: any(any(i >= 6 for i in r["closed"]) for r in rs)),
+    "adapted terms in theory mode (beta's span in k_s2, eq. 22)":
+        (dict(kind="c2", theory=True, adapted=("spring", "stribeck"), slow=True), lambda rs: True),
+    "force ripple: v / (1 + r(x_d)), the thrust channels times 1 + r(x)":
+        (dict(kind="c2", ripple=True), lambda rs: all(abs(r["g_des"] - 1.0) > 1e-3 for r in rs)),
+    "force ripple with a fixed term (d_eff not scaled), C1":
+        (dict(kind="c1", ripple=True, fixed=("spring",)), lambda rs: True),
+    "input delay: v_a1 and d_eff at t + tau, the estimator on u[k-1-n]":
+        (dict(kind="c2", delay=True, fixed=("periodic_disturbance", "stribeck"), slow=True),
+         lambda rs: all("hist" in r for r in rs) and len(rs) > len(rs[0]["hist"])),   # the ring wrapped
+    "input delay, ripple, adapted and fixed terms together":
+        (dict(kind="c2", delay=True, ripple=True, adapted=("cogging",), fixed=("spring",)), lambda rs: True),
+}
+FEATURE_STEPS = 6
+
+
+def feature_case(name: str, seed: int):
+    """Parameters, the compensation's mapping and the law built from its section, a state and
+    the samples of ``FEATURES[name]`` from ``seed``."""
+    flags = dict(FEATURES[name][0])
+    kind, slow = flags.pop("kind"), flags.pop("slow", False)
+    theory = flags.pop("theory", False)
+    rng = np.random.default_rng(seed)
+    prm = draw_params(rng, kind, theory)
+    spec = draw_compensation(rng, **flags)
+    c = DCDIARC(section(prm, compensation=spec), TS, kind)
+    comp = RefComp(spec, c.beta_names)
+    assert c.preview_s == comp.tau and c._ring.shape[1] == comp.m, "the law's delay is not the documented one"
+    state, _ = draw_state(rng, prm, bounds=("in",) * 6 if kind == "c2" else ("in",) * 4, coupled=rng.random() < 0.5,
+                          freeze=False, hold56=False, d0_edge=False, big=False)
+    state = feature_state(rng, prm, comp, state)
+    return prm, comp, c, state, feature_inputs(rng, prm, state, slow, FEATURE_STEPS)
+
+
+def feature_run(prm, comp, c, state, samples) -> list[dict]:
+    """The samples one after the other on the law from ``state``; each compared with the
+    reference from the law's own state before it. Returns the references."""
+    set_state(c, state)
+    refs = []
+    y_prev = state["y_prev"]
+    for j, (y, xd, vd, ad, t, ahead) in enumerate(samples):
+        before = snapshot(c, y_prev) if j else state
+        c.preview(*ahead)
+        law = law_outputs(c, c.update(y, xd, vd, ad, t))
+        ref = reference_step(prm, before, y, xd, vd, ad, comp=comp, t=t, ahead=ahead if comp.tau > 0 else None)
+        if ref["freeze_ambiguous"] and law["frozen"] != ref["frozen"]:
+            ref = reference_step(prm, before, y, xd, vd, ad, freeze=law["frozen"], comp=comp, t=t,
+                                 ahead=ahead if comp.tau > 0 else None)
+        compare(law, ref, f" at sample {j + 1}")
+        refs.append(ref)
+        y_prev = y
+    return refs
+
+
+FEATURE_SEEDS = 40
+
+
+@pytest.mark.parametrize("name", list(FEATURES))
+def test_each_compensation_branch_is_visited_and_matches(name):
+    """Each of the compensation's branches (fixed and adapted terms, on C1 and C2, in theory mode,
+    on the faces of β's box; force ripple; input delay; all together) on a law built from a
+    section that configures it: FEATURE_STEPS samples one after the other, each against the
+    reference from the law's state before it; the first of FEATURE_SEEDS draws that hits the
+    branch counts (none: the draws lost it)."""
+    want = FEATURES[name][1]
+    for seed in range(FEATURE_SEEDS):
+        refs = feature_run(*feature_case(name, 30_000 + seed))
+        if want(refs):
+            return
+    raise AssertionError(f"no draw of {FEATURE_SEEDS} hits {name!r}")
+
+
+def reference_gtcf(gi: dict, gj: dict, p_i: float, p_j: float, e_i: float, e_j: float, vd_i: float, vd_j: float,
+                   vfb_prev: float) -> dict:
+    """GTCF's feedback for axis i beyond C2's own −k_s,i p_i (docs/control-law.md, "GTCF"), in the
+    docs' matrix form: the task frame t = ẋ_d/|ẋ_d|, n = t turned +90°, ε_n = nᵀe;
+    p̃ = p + (λ' − 1) k1 n sat_b(ε_n) per axis; K = g_t' t tᵀ + N'^½ n nᵀ N'^½; v_s = −D^½ K D^½ p̃,
+    D = diag(k_s); v_fb,raw = v_s,i + k_s,i p_i; g' = 1 + min(1, |ẋ_d|/v_min)(g − 1), λ' alike;
+    then the first-order low-pass v_fb = v_fb[k−1] + α (v_fb,raw − v_fb[k−1]) (α < 1).
+
+    gi: axis i's {ks, k1, g_t, g_n, v_min, lam, band, alpha}; gj: the partner's {ks, k1, g_n, lam,
+    band}. Returns v_fb [V], its terms' magnitude, ε_n [m] (NaN at rest: no path direction)."""
+    s = math.hypot(vd_i, vd_j)
+    w = min(1.0, s / gi["v_min"])
+    if s > 0.0:
+        t = np.array([vd_i, vd_j]) / s
+        e_n = float(np.array([-t[1], t[0]]) @ np.array([e_i, e_j]))
+    else:                                   # at rest every gain is 1: K = I in any frame
+        t, e_n = np.array([1.0, 0.0]), math.nan
+    nrm = np.array([-t[1], t[0]])
+    pt = np.array([p_i, p_j], dtype=float)
+    if s > 0.0:
+        for a, g in enumerate((gi, gj)):
+            lam = 1.0 + w * (g["lam"] - 1.0)
+            pt[a] += (lam - 1.0) * g["k1"] * nrm[a] * min(max(e_n, -g["band"]), g["band"])
+    blend = lambda g: 1.0 + w * (g - 1.0)   # noqa: E731
+    nh = np.sqrt([blend(gi["g_n"]), blend(gj["g_n"])])
+    K = blend(gi["g_t"]) * np.outer(t, t) + np.outer(nh * nrm, nh * nrm)
+    dh = np.sqrt([gi["ks"], gj["ks"]])
+    terms = -dh[0] * K[0] * dh * pt
+    raw = float(terms.sum()) + gi["ks"] * p_i
+    scale = float(np.abs(terms).sum()) + abs(gi["ks"] * p_i)
+    if gi["alpha"] < 1.0:
+        v_fb = vfb_prev + gi["alpha"] * (raw - vfb_prev)
+        scale = abs(vfb_prev) + gi["alpha"] * (scale + abs(vfb_prev))
+    else:
+        v_fb = raw
+    return dict(v_fb=v_fb, scale=scale, e_n=e_n, w=w, ptilde=pt)
+
+
+def gtcf_settings(rng, flags: dict) -> tuple[dict, dict]:
+    """The pair's ``gtcf:`` mappings (X, Y): g_t shared, g_n, λ_n, band per axis; X low-passed
+    with ``lowpass``; λ_n > 1 with ``lam``, its band wide with ``wide_band``."""
+    g_t = rng.uniform(0.5, 2.0)
+    out = []
+    for ax, partner in (("X", "Y"), ("Y", "X")):
+        b = dict(partner=partner, gain_t=g_t, gain_n=rng.uniform(1.0, 4.0), v_min=rng.uniform(0.001, 0.01),
+                 lambda_n=rng.uniform(1.2, 2.5) if flags.get("lam") else 1.0,
+                 lambda_band=rng.uniform(2e-4, 1e-3) if flags.get("wide_band") else rng.uniform(1e-6, 8e-6))
+        if ax == "X" and flags.get("lowpass"):
+            b["lowpass_hz"] = rng.uniform(100.0, 2000.0)
+        out.append(b)
+    return out[0], out[1]
+
+
+#: GTCF's branches (gtcf_step): the draw's flags and the reference's word that the branch was hit
+GTCF_BRANCHES = {
+    "uncoupled (the partner not on GTCF): C2 alone": (dict(coupled=False), lambda rs: True),
+    "the partner's first sample (its y[k-1] NaN): C2 alone": (dict(yj_nan=True), lambda rs: True),
+    "at rest (no path direction): every gain 1, the low-pass decays": (dict(rest=True, lowpass=True),
+                                                                        lambda rs: all(r["w"] == 0.0 for r in rs)),
+    "below v_min: the gains and lambda_n blended": (dict(slow=True, lam=True, wide_band=True),
+                                                    lambda rs: all(0.0 < r["w"] < 1.0 for r in rs)),
+    "the task frame: g_t, each axis's g_n and their cross term": (dict(), lambda rs: all(r["w"] == 1.0 for r in rs)),
+    "lambda_n within its band": (dict(lam=True, wide_band=True),
+                                 lambda rs: any(abs(r["e_n"]) < 2e-4 and r["w"] == 1.0 for r in rs)),
+    "lambda_n beyond its band (the contour error saturated)": (dict(lam=True),
+                                                               lambda rs: any(abs(r["e_n"]) > 8e-6 for r in rs)),
+    "low-pass on the feedback beyond C2's": (dict(lowpass=True, lam=True), lambda rs: True),
+    "GTCF over a compiled compensation (dcdiarc_comp_step under v_fb)": (
+        dict(comp=True, lam=True), lambda rs: all(abs(r["d_eff"]) > 1e-3 for r in rs)),
+}
+
+
+def gtcf_case(name: str, seed: int):
+    """Axis i (X) and its partner j (Y) of a GTCF pair built from their sections, i's state and
+    the samples of both for ``GTCF_BRANCHES[name]`` from ``seed``."""
+    flags = GTCF_BRANCHES[name][0]
+    rng = np.random.default_rng(seed)
+    prm_i, prm_j = draw_params(rng, "c2", False), draw_params(rng, "c2", False)
+    gx, gy = gtcf_settings(rng, flags)
+    spec = draw_compensation(rng, fixed=("cogging", "stribeck"), delay=True) if flags.get("comp") else {}
+    ci = GTCF(section(prm_i, gtcf=gx, compensation=spec), TS)
+    cj = GTCF(section(prm_j, gtcf=gy), TS)
+    comp = RefComp(spec, ci.beta_names)
+    state, _ = draw_state(rng, prm_i, bounds=("in",) * 6, coupled=rng.random() < 0.5, freeze=False,
+                          hold56=False, d0_edge=False, big=False)
+    state = feature_state(rng, prm_i, comp, state)
+    state["yj_prev"] = math.nan if flags.get("yj_nan") else rng.uniform(-0.3, 0.3)
+    state["vfb_prev"] = rng.uniform(-1.0, 1.0) if flags.get("lowpass") else 0.0
+    slow, rest = flags.get("slow"), flags.get("rest")
+    mine = feature_inputs(rng, prm_i, state, False, FEATURE_STEPS)
+    yj = state["yj_prev"] if state["yj_prev"] == state["yj_prev"] else 0.0
+    part = feature_inputs(rng, prm_j, dict(theta=prm_j["tmin"], y_prev=yj), False, FEATURE_STEPS)
+    samples = []
+    for (y, xd, vd, ad, t, ahead), (y_j, xd_j, vd_j, *_) in zip(mine, part):
+        if rest:
+            vd = vd_j = ad = 0.0
+        elif slow:
+            f = gx["v_min"] * rng.uniform(0.2, 0.9) / math.hypot(vd, vd_j)
+            vd, vd_j = vd * f, vd_j * f
+        samples.append((y, xd, vd, ad, t, ahead, y_j, xd_j, vd_j))
+    pair = [{"ks": prm["k_s"], "k1": prm["k1"], "g_t": g["gain_t"], "g_n": g["gain_n"], "v_min": g["v_min"],
+             "lam": g["lambda_n"], "band": g["lambda_band"],
+             "alpha": 1.0 - math.exp(-2 * math.pi * g["lowpass_hz"] * TS) if g.get("lowpass_hz") else 1.0}
+            for prm, g in ((prm_i, gx), (prm_j, gy))]
+    return prm_i, comp, ci, cj, pair, state, samples, flags.get("coupled", True)
+
+
+def gtcf_run(prm, comp, ci, cj, pair, state, samples, coupled) -> list[dict]:
+    """The samples one after the other on axis i's compiled step (gtcf_step, as the servo cycle
+    calls it, with the partner's block), each compared with the reference (GTCF's feedback, then
+    C2's sample with it) from the law's own state before it. Returns the references."""
+    set_state(ci, state)
+    g0 = ci._L[B_SPAN] + ci._L[B_N]          # GTCF's numbers after the span (gtcf.py's layout)
+    ci._F[g0 + G_YJ] = state["yj_prev"]
+    ci._F[g0 + G_VFB] = state["vfb_prev"]
+    refs = []
+    y_prev = state["y_prev"]
+    for j, (y, xd, vd, ad, t, ahead, y_j, xd_j, vd_j) in enumerate(samples):
+        before = snapshot(ci, y_prev) if j else state
+        yj_prev, vfb_prev = float(ci._F[g0 + G_YJ]), float(ci._F[g0 + G_VFB])
+        u = gtcf_step(y, xd, vd, ad, *(ahead if comp.tau > 0 else (xd, vd, ad)), t, y_j, xd_j, vd_j, coupled,
+                      ci.signals, ci._F, ci._I, ci._L, cj._F, cj._L)
+        law = law_outputs(ci, u)
+        p_i = (y - y_prev) / TS - vd + prm["k1"] * (y - xd)
+        p_j = (y_j - yj_prev) / TS - vd_j + pair[1]["k1"] * (y_j - xd_j)
+        if coupled and math.isfinite(p_j):
+            g = reference_gtcf(pair[0], pair[1], p_i, p_j, y - xd, y_j - xd_j, vd, vd_j, vfb_prev)
+        else:                                # C2 alone for the sample
+            g = dict(v_fb=0.0, scale=0.0, e_n=math.nan, w=math.nan)
+        ref = reference_step(prm, before, y, xd, vd, ad, comp=comp if comp.spec else None, t=t,
+                             ahead=ahead if comp.tau > 0 else None, v_fb=g["v_fb"], v_fb_scale=g["scale"])
+        if ref["freeze_ambiguous"] and law["frozen"] != ref["frozen"]:
+            ref = reference_step(prm, before, y, xd, vd, ad, freeze=law["frozen"], comp=comp if comp.spec else None,
+                                 t=t, ahead=ahead if comp.tau > 0 else None, v_fb=g["v_fb"], v_fb_scale=g["scale"])
+        where = f" at sample {j + 1}"
+        _close("GTCF's feedback beyond C2's (v_fb)", ci.v_fb, g["v_fb"], g["scale"], where)
+        assert (ci.e_n != ci.e_n) == (g["e_n"] != g["e_n"]), f"contour error{where}: law {ci.e_n}, reference {g['e_n']}"
+        if g["e_n"] == g["e_n"]:
+            _close("contour error e_n", ci.e_n, g["e_n"], abs(y - xd) + abs(y_j - xd_j), where)
+        compare(law, ref, where)
+        refs.append({**ref, **g})
+        y_prev = y
+    return refs
+
+
+@pytest.mark.parametrize("name", list(GTCF_BRANCHES))
+def test_each_gtcf_branch_is_visited_and_matches(name):
+    """GTCF's branches (uncoupled, the partner's first sample, at rest, below v_min, the task
+    frame with per-axis gains, λ_n within and beyond its band, the low-pass, over a compensation)
+    on the compiled pair step with the partner's block: FEATURE_STEPS samples one after the other,
+    each against the reference (the docs' matrix form of the task-frame feedback, then C2's sample)
+    from the law's state before it."""
+    want = GTCF_BRANCHES[name][1]
+    for seed in range(FEATURE_SEEDS):
+        refs = gtcf_run(*gtcf_case(name, 40_000 + seed))
+        if want(refs):
+            return
+    raise AssertionError(f"no draw of {FEATURE_SEEDS} hits {name!r}")
+
+
+# ---------------------------------------------------------------------------------------------
 # PID + feedforward against LinuxCNC's pid component
 # ---------------------------------------------------------------------------------------------
 
@@ -747,7 +1284,7 @@ def pid_check(g, u_lim, y0, seq) -> list[dict]:
     return out
 
 
-@settings(max_examples=examples(100), deadline=None)
+@settings(max_examples=examples(100), deadline=None, phases=PHASES)
 @given(seed=st.integers(0, 2 ** 32 - 1), deadband=st.booleans(), maxerror=st.booleans(),
        maxerror_i=st.booleans(), maxoutput=st.booleans())
 def test_pid_matches_linuxcnc_pid(seed, deadband, maxerror, maxerror_i, maxoutput):
@@ -782,128 +1319,207 @@ def test_pid_limits_are_visited_and_match(branch):
 # the mutation check: `python tests/test_law_reference.py --mutants`
 # ---------------------------------------------------------------------------------------------
 
-#: (term, file, the line's text, the wrong text): one deliberate error in the law at a time
+#: where each mutant's term is checked first (a -k expression of this file's tests; the whole file
+#: after, when those pass): the law's core, the PID, the compensation's branches, GTCF's
+CORE = "one_sample or each_branch or closed_loop"
+AREA_PID = "pid"
+AREA_COMP = "compensation_branch"
+AREA_GTCF = "gtcf_branch"
+DC, EST, INV, PIDF, GT = ("motorctl/control/dcdiarc.py", "motorctl/control/estimator.py",
+                          "motorctl/control/inversion.py", "motorctl/control/pid.py", "motorctl/control/gtcf.py")
+
+#: (term, file, the line's text, the wrong text, where it is checked first): one deliberate error
+#: in the law at a time
 MUTANTS = [
-    ("u_a: sign of theta1 xdd_d", "motorctl/control/dcdiarc.py",
-     "va1 = th[0] * af + th[1] * vf", "va1 = -th[0] * af + th[1] * vf"),
-    ("u_a: gain x2 on theta2 xd_d", "motorctl/control/dcdiarc.py",
-     "va1 = th[0] * af + th[1] * vf", "va1 = th[0] * af + 2.0 * th[1] * vf"),
-    ("u_a: S_f(x2) for S_f(xd_d)", "motorctl/control/dcdiarc.py",
-     "sfd = s_f_jit(vf)", "sfd = s_f_jit(x2)"),
-    ("u_a: sign of theta4", "motorctl/control/dcdiarc.py",
-     "th[2] * sfd - th[3] - v_comp", "th[2] * sfd + th[3] - v_comp"),
-    ("u_s1: sign of k_s p", "motorctl/control/dcdiarc.py",
-     "v = va1 - d0 - ks * p", "v = va1 - d0 + ks * p"),
-    ("u_s1: sign of k1 e in p", "motorctl/control/dcdiarc.py",
-     "p = (x2 - xd_dot) + prm[P_K1] * e", "p = (x2 - xd_dot) - prm[P_K1] * e"),
-    ("u_s1: theory k_s2 /2", "motorctl/control/dcdiarc.py",
-     "ks = prm[P_KS1] + hb * hb / prm[P_ETA4]", "ks = prm[P_KS1] + hb * hb / (2.0 * prm[P_ETA4])"),
-    ("d0: sign of gamma_d p", "motorctl/control/dcdiarc.py",
-     "d0 = st[S_D0] + ts * prm[P_GD] * p", "d0 = st[S_D0] - ts * prm[P_GD] * p"),
-    ("d0: sign in v", "motorctl/control/dcdiarc.py",
-     "v = va1 - d0 - ks * p", "v = va1 + d0 - ks * p"),
-    ("d0: no clip at -d_max", "motorctl/control/dcdiarc.py",
+    ("u_a: sign of theta1 xdd_d", DC, "va1 = th[0] * af + th[1] * vf", "va1 = -th[0] * af + th[1] * vf", CORE),
+    ("u_a: gain x2 on theta2 xd_d", DC,
+     "va1 = th[0] * af + th[1] * vf", "va1 = th[0] * af + 2.0 * th[1] * vf", CORE),
+    ("u_a: S_f(x2) for S_f(xd_d)", DC, "sfd = s_f_jit(vf)", "sfd = s_f_jit(x2)", CORE),
+    ("u_a: sign of theta4", DC, "th[2] * sfd - th[3] - v_comp", "th[2] * sfd + th[3] - v_comp", CORE),
+    ("u_s1: sign of k_s p", DC, "v = va1 - d0 - ks * p", "v = va1 - d0 + ks * p", CORE),
+    ("u_s1: sign of k1 e in p", DC,
+     "p = (x2 - xd_dot) + prm[P_K1] * e", "p = (x2 - xd_dot) - prm[P_K1] * e", CORE),
+    ("u_s1: theory k_s2 /2", DC,
+     "ks = prm[P_KS1] + hb * hb / prm[P_ETA4]", "ks = prm[P_KS1] + hb * hb / (2.0 * prm[P_ETA4])", CORE),
+    ("d0: sign of gamma_d p", DC,
+     "d0 = st[S_D0] + ts * prm[P_GD] * p", "d0 = st[S_D0] - ts * prm[P_GD] * p", CORE),
+    ("d0: sign in v", DC, "v = va1 - d0 - ks * p", "v = va1 + d0 - ks * p", CORE),
+    ("d0: no clip at -d_max", DC,
      "    elif d0 < -dmax:\n        d0 = -dmax\n    st[S_D0] = d0",
-     "    elif d0 < -dmax:\n        d0 = d0\n    st[S_D0] = d0"),
-    ("adaptation: sign of epsilon", "motorctl/control/estimator.py",
-     "eps = pred - u_f", "eps = u_f - pred"),
-    ("adaptation: rate x2 (Ts)", "motorctl/control/estimator.py",
-     "val = th[i] + ts * z[i]", "val = th[i] + 2.0 * ts * z[i]"),
-    ("adaptation: Gamma downdate sign", "motorctl/control/estimator.py",
-     "val = scale * gam[i, j] - cgi * g[j]", "val = scale * gam[i, j] + cgi * g[j]"),
-    ("adaptation: tau without 1/n_k", "motorctl/control/estimator.py",
-     "    k = eps / nk\n", "    k = eps\n"),
-    ("adaptation: forgetting squared", "motorctl/control/estimator.py",
-     "c = h * scale * scale / (1.0 + h * scale * quad)", "c = h * scale / (1.0 + h * scale * quad)"),
-    ("adaptation: phi_1 sign (xdd_2f)", "motorctl/control/estimator.py",
-     "phi[0] = -zd[0]", "phi[0] = zd[0]"),
-    ("adaptation: u|u| channel as u^2", "motorctl/control/estimator.py",
-     "inp[4] = u_prev * abs(u_prev)", "inp[4] = u_prev * u_prev"),
-    ("adaptation: freeze never", "motorctl/control/estimator.py",
-     "frozen = lambda_max_exceeds(gam, g, scale, c, rho, piv)", "frozen = False"),
-    ("projection: none (clip only)", "motorctl/control/estimator.py",
-     "    project_box(z, th, tmin, tmax, gam, piv, coef, vec, pividx, active)\n",
-     "    pass\n"),
-    ("projection: wrong multiplier sign test", "motorctl/control/estimator.py",
-     "bad = -lam[mm] if th[j] >= tmax[j] else lam[mm]", "bad = lam[mm] if th[j] >= tmax[j] else -lam[mm]"),
-    ("projection: faces never opened (add-only)", "motorctl/control/estimator.py",
+     "    elif d0 < -dmax:\n        d0 = d0\n    st[S_D0] = d0", CORE),
+    ("adaptation: sign of epsilon", EST, "eps = pred - u_f", "eps = u_f - pred", CORE),
+    ("adaptation: rate x2 (Ts)", EST, "val = th[i] + ts * z[i]", "val = th[i] + 2.0 * ts * z[i]", CORE),
+    ("adaptation: Gamma downdate sign", EST,
+     "val = scale * gam[i, j] - cgi * g[j]", "val = scale * gam[i, j] + cgi * g[j]", CORE),
+    ("adaptation: tau without 1/n_k", EST, "    k = eps / nk\n", "    k = eps\n", CORE),
+    ("adaptation: forgetting squared", EST,
+     "c = h * scale * scale / (1.0 + h * scale * quad)", "c = h * scale / (1.0 + h * scale * quad)", CORE),
+    ("adaptation: phi_1 sign (xdd_2f)", EST, "phi[0] = -zd[0]", "phi[0] = zd[0]", CORE),
+    ("adaptation: u|u| channel as u^2", EST,
+     "inp[4] = u_prev * abs(u_prev)", "inp[4] = u_prev * u_prev", CORE),
+    ("adaptation: freeze never", EST,
+     "frozen = lambda_max_exceeds(gam, g, scale, c, rho, piv)", "frozen = False", CORE),
+    ("projection: none (clip only)", EST,
+     "    project_box(z, th, tmin, tmax, gam, piv, coef, vec, pividx, active)\n", "    pass\n", CORE),
+    ("projection: wrong multiplier sign test", EST,
+     "bad = -lam[mm] if th[j] >= tmax[j] else lam[mm]", "bad = lam[mm] if th[j] >= tmax[j] else -lam[mm]", CORE),
+    ("projection: faces never opened (add-only)", EST,
      "        if worst >= 0:\n            active[worst] = False\n            continue\n",
-     "        worst = -1\n"),
-    ("projection: Gamma-weighting dropped", "motorctl/control/estimator.py",
-     "                z[a] -= piv[m, a] * f\n", "                z[a] -= (piv[m, a] * f if a == j else 0.0)\n"),
-    ("inversion: sign of theta5 in Newton", "motorctl/control/inversion.py",
-     "g = r + theta5 * r * r + theta6 * r * r * r - w", "g = r - theta5 * r * r + theta6 * r * r * r - w"),
-    ("inversion: quadratic root 4 -> 2", "motorctl/control/inversion.py",
-     "disc = 1.0 + 4.0 * theta5 * w", "disc = 1.0 + 2.0 * theta5 * w"),
-    ("inversion: saturates at 0.9 f(u_M)", "motorctl/control/inversion.py",
-     "    if w >= f_max:\n        return s * u_max\n", "    if w >= 0.9 * f_max:\n        return s * u_max\n"),
-    ("inversion: odd symmetry lost", "motorctl/control/inversion.py",
-     "        s = -1.0\n        w = -v", "        s = 1.0\n        w = -v"),
-    ("pid: FF2 on xd_dot", "motorctl/control/pid.py",
-     "prm[P_FF2] * xd_ddot", "prm[P_FF2] * xd_dot"),
-    ("pid: anti-windup reversed", "motorctl/control/pid.py",
-     "if t * st[S_LIMIT] <= 0.0:", "if t * st[S_LIMIT] >= 0.0:"),
-    ("pid: deadband zeroes only", "motorctl/control/pid.py",
-     "    if t > db:\n        t -= db\n", "    if t > db:\n        t = t\n"),
-    ("pid: D on the feedback only", "motorctl/control/pid.py",
-     "ed = xd_dot - x2", "ed = -x2"),
+     "        worst = -1\n", CORE),
+    ("projection: Gamma-weighting dropped", EST,
+     "                z[a] -= piv[m, a] * f\n", "                z[a] -= (piv[m, a] * f if a == j else 0.0)\n", CORE),
+    ("inversion: sign of theta5 in Newton", INV,
+     "g = r + theta5 * r * r + theta6 * r * r * r - w", "g = r - theta5 * r * r + theta6 * r * r * r - w", CORE),
+    ("inversion: quadratic root 4 -> 2", INV, "disc = 1.0 + 4.0 * theta5 * w", "disc = 1.0 + 2.0 * theta5 * w", CORE),
+    ("inversion: saturates at 0.9 f(u_M)", INV,
+     "    if w >= f_max:\n        return s * u_max\n", "    if w >= 0.9 * f_max:\n        return s * u_max\n", CORE),
+    ("inversion: odd symmetry lost", INV, "        s = -1.0\n        w = -v", "        s = 1.0\n        w = -v", CORE),
+    ("pid: FF2 on xd_dot", PIDF, "prm[P_FF2] * xd_ddot", "prm[P_FF2] * xd_dot", AREA_PID),
+    ("pid: anti-windup reversed", PIDF, "if t * st[S_LIMIT] <= 0.0:", "if t * st[S_LIMIT] >= 0.0:", AREA_PID),
+    ("pid: deadband zeroes only", PIDF, "    if t > db:\n        t -= db\n", "    if t > db:\n        t = t\n", AREA_PID),
+    ("pid: D on the feedback only", PIDF, "ed = xd_dot - x2", "ed = -x2", AREA_PID),
+    # the compensation's fixed terms (dcdiarc_comp_step, dcdiarc_block_step, ls_update)
+    ("fixed: +d_eff in v_a1", DC, "th[3] - v_comp  ", "th[3] + v_comp  ", AREA_COMP),
+    ("fixed: d_eff not held with u (estimator on u alone)", DC, "    st[S_DC] = v_comp\n", "    st[S_DC] = 0.0\n",
+     AREA_COMP),
+    ("fixed: the estimator's input u without d_eff", EST, "inp[3] = u_prev + d_prev", "inp[3] = u_prev", AREA_COMP),
+    ("fixed: d_eff on xd_dot, not the reference velocity", DC,
+     "vr = vf - F[L[B_PRM] + P_K1] * (y - x_d)", "vr = vf", AREA_COMP),
+    # adapted terms
+    ("adapted: +beta c in v_a1", DC, "va1 -= th[n + j] * cd[j]", "va1 += th[n + j] * cd[j]", AREA_COMP),
+    ("adapted: columns at the interval's end, not its mean", DC,
+     "\n        xm = 0.5 * (y + y_prev)", "\n        xm = y", AREA_COMP),
+    ("adapted: columns at the sample's time, not mid-interval", DC,
+     "L[B_CM] + k]), xm, (y - y_prev) / ts, t - 0.5 * ts)", "L[B_CM] + k]), xm, (y - y_prev) / ts, t)", AREA_COMP),
+    ("adapted: sign of the basis in phi", EST, "phi[nn + j] = zf[nn + j]", "phi[nn + j] = -zf[nn + j]", AREA_COMP),
+    ("adapted: theory k_s2 without beta's span", DC,
+     "hb += span[n + j] * abs(cd[j])", "hb += 0.0 * abs(cd[j])", AREA_COMP),
+    # force ripple
+    ("ripple: v times 1 + r, not divided", DC,
+     "w = v / g_des if g_des != 1.0 else v", "w = v * g_des if g_des != 1.0 else v", AREA_COMP),
+    ("ripple: the estimator's factor at x_d, not the measured mean", DC,
+     "g_meas = 1.0 + comp_thrust(tab, xm)", "g_meas = 1.0 + comp_thrust(tab, xf)", AREA_COMP),
+    ("ripple: u|u| channel not scaled", EST, "inp[4] = ug * abs(u_prev)", "inp[4] = u_prev * abs(u_prev)",
+     AREA_COMP),
+    ("ripple: d_eff scaled with u", EST, "inp[3] = ug + d_prev", "inp[3] = (u_prev + d_prev) * g_prev", AREA_COMP),
+    # input delay
+    ("delay: the estimator on u[k-1], not the input applied", DC,
+     "ls_update(x2, ring[0, ri], ring[1, ri],", "ls_update(x2, st[S_U], st[S_DC],", AREA_COMP),
+    ("delay: the ring's index not advanced", DC, "st[S_RI] = float((ri + 1) % m)", "st[S_RI] = float(ri)", AREA_COMP),
+    ("delay: v_a1 on this sample, not t + tau", DC,
+     "return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, xf, vf, af, v_comp,",
+     "return dcdiarc_block_step(y, x_d, xd_dot, xd_ddot, x_d, xd_dot, xd_ddot, v_comp,", AREA_COMP),
+    ("delay: d_eff at t, not t + tau", DC, "tf = t + tab[T_PREVIEW]", "tf = t", AREA_COMP),
+    # GTCF (gtcf_step, gtcf_feedback)
+    ("gtcf: sign of the contour error", GT, "e_n = (xd_dot * (y_j - x_dj) - xd_dot_j * (y - x_d)) / s",
+     "e_n = (xd_dot_j * (y - x_d) - xd_dot * (y_j - x_dj)) / s", AREA_GTCF),
+    ("gtcf: g_t's term with t_j q_j of the wrong sign", GT,
+     "(gt - 1.0) * ti * (ti * qi + tj * qj)", "(gt - 1.0) * ti * (ti * qi - tj * qj)", AREA_GTCF),
+    ("gtcf: cross term with this axis's g_n alone", GT, "math.sqrt(gni * gnj)", "gni", AREA_GTCF),
+    ("gtcf: the blend not held at 1 above v_min", GT, "    if w > 1.0:\n        w = 1.0\n",
+     "    if w > 1.0:\n        w = w\n", AREA_GTCF),
+    ("gtcf: lambda_n not blended below v_min", GT, "(lambda_n - 1.0) * w * k1", "(lambda_n - 1.0) * k1", AREA_GTCF),
+    ("gtcf: the contour error not held to its band", GT, "min(max(e_n, -band), band)", "e_n", AREA_GTCF),
+    ("gtcf: C2's k_s times lambda_n's term kept in v_fb", GT,
+     "- F[prm + P_KS] * dp_i", "+ F[prm + P_KS] * dp_i", AREA_GTCF),
+    ("gtcf: the partner's lambda_n from this axis's block", GT,
+     "p_j += _contour_dp(Fj[gj + G_LN], Fj[gj + G_LB]", "p_j += _contour_dp(F[g + G_LN], F[g + G_LB]", AREA_GTCF),
+    ("gtcf: low-pass without its state", GT,
+     "v_fb = F[g + G_VFB] + F[g + G_ALPHA] * (v_fb - F[g + G_VFB])", "v_fb = F[g + G_ALPHA] * v_fb", AREA_GTCF),
+    ("gtcf: low-pass skipped when the feedback is 0 (at rest)", GT,
+     "if F[g + G_ALPHA] < 1.0:", "if F[g + G_ALPHA] < 1.0 and v_fb != 0.0:", AREA_GTCF),
+    ("gtcf: the partner's y[k-1] read after it is replaced", GT,
+     "    y_jp = F[g + G_YJ]\n    F[g + G_YJ] = y_j\n", "    F[g + G_YJ] = y_j\n    y_jp = F[g + G_YJ]\n", AREA_GTCF),
+    ("gtcf: coupled when the partner is not on GTCF", GT, "    if coupled:\n", "    if True:\n", AREA_GTCF),
+    ("gtcf: a NaN partner sample not refused", GT, "if p_j == p_j and abs(p_j) < math.inf:", "if True:", AREA_GTCF),
+    ("gtcf: the compensation dropped under GTCF", GT, "if F[g + G_COMP] != 0.0:", "if False:", AREA_GTCF),
 ]
 
 
-def run_mutants(jit: bool = True) -> int:
+def run_mutants(jit: bool = True, jobs: int = 1, only: str = "") -> int:
     """Copy the law into a scratch tree, make one term wrong at a time (:data:`MUTANTS`), run
-    this file there, and report whether it fails (caught) or passes (missed). The repository is
-    not touched; numba's cache of the copies lives in the scratch tree and goes with it.
-    Returns 0 when every mutant is caught and the unmutated copy passes."""
+    this file there, and report whether it fails (caught) or passes (missed): first the tests of
+    the mutant's area (its -k expression), then, when those pass, the whole file. Hypothesis does
+    not shrink a failure here (``LAW_REFERENCE_MUTANT``: the first failing example is enough).
+    The repository is not touched; numba's cache of each copy lives in its scratch tree and goes
+    with it (a mutant compiles the kernels afresh: 1-3 min each on 2 cores; ``jit`` False runs
+    them as Python, NUMBA_DISABLE_JIT). ``jobs``: mutants run at once (a scratch tree each);
+    ``only``: the mutants whose term contains it. Prints a line per mutant, then the counts and
+    the time. Returns 0 when every mutant is caught and the unmutated copy passes."""
+    import time
+    from concurrent.futures import ThreadPoolExecutor
     repo = Path(__file__).resolve().parents[1]
-    scratch = Path(tempfile.mkdtemp(prefix="law-mutants-"))
-    rows = []
-    try:
+    t0 = time.monotonic()
+    chosen = [m for m in MUTANTS if only in m[0]]
+
+    def tree() -> Path:
+        scratch = Path(tempfile.mkdtemp(prefix="law-mutants-"))
         for part in ("motorctl", "motorctl_drivers", "tests", "pyproject.toml"):
             src = repo / part
             if src.is_dir():
                 shutil.copytree(src, scratch / part, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
             else:
                 shutil.copy2(src, scratch / part)
-        env = dict(os.environ, PYTHONPATH=str(scratch), MOTORCTL_CACHE_DIR=str(scratch / ".cache"))
+        return scratch
+
+    def env_of(scratch: Path) -> dict:
+        env = dict(os.environ, PYTHONPATH=str(scratch), MOTORCTL_CACHE_DIR=str(scratch / ".cache"),
+                   LAW_REFERENCE_MUTANT="1")
+        env.pop("NUMBA_DISABLE_JIT", None)
         env.pop("NUMBA_CACHE_DIR", None)
         if not jit:
             env["NUMBA_DISABLE_JIT"] = "1"
+        return env
+
+    def run(scratch: Path, area: str | None) -> tuple[int, str]:
         argv = [sys.executable, "-m", "pytest", "-q", "-x", "-n", "0", "--noconftest", "-p", "no:cacheprovider",
-                "tests/test_law_reference.py"]
-        which = subprocess.run([sys.executable, "-c", "import motorctl; print(motorctl.__file__)"], cwd=scratch,
-                               env=env, capture_output=True, text=True).stdout.strip()
-        assert which.startswith(str(scratch)), f"the copy is not the one imported: {which}"
+                "-p", "no:randomly", "tests/test_law_reference.py"] + (["-k", area] if area else [])
+        p = subprocess.run(argv, cwd=scratch, env=env_of(scratch), capture_output=True, text=True)
+        failed = [ln for ln in p.stdout.splitlines() if ln.startswith(("FAILED", "ERROR"))]
+        return p.returncode, (failed[0] if failed else (p.stdout.strip().splitlines() or ["(no output)"])[-1])
 
-        def run() -> tuple[int, str]:
-            p = subprocess.run(argv, cwd=scratch, env=env, capture_output=True, text=True)
-            failed = [ln for ln in p.stdout.splitlines() if ln.startswith(("FAILED", "ERROR"))]
-            return p.returncode, (failed[0] if failed else p.stdout.strip().splitlines()[-1])
-
-        rc, last = run()
-        rows.append(("(none: the law as it is)", "passes" if rc == 0 else f"FAILS: {last}"))
-        print(f"{'(none)':45s} {rows[-1][1]}", flush=True)
-        ok = rc == 0
-        for term, rel, old, new in MUTANTS:
+    def one(mutant) -> tuple[str, bool, str]:
+        term, rel, old, new, area = mutant
+        scratch = tree()
+        try:
             path = scratch / rel
             orig = path.read_text()
-            assert orig.count(old) == 1, f"{rel}: the mutant's text for {term!r} is not there once"
+            if orig.count(old) != 1:
+                return term, False, f"NOT APPLIED: the mutant's text is in {rel} {orig.count(old)} times, not once"
             path.write_text(orig.replace(old, new))
-            try:
-                rc, last = run()
-            finally:
-                path.write_text(orig)
+            rc, last = run(scratch, area)
+            if rc == 0:                      # its area's tests pass: the whole file
+                rc, last = run(scratch, None)
             caught = rc != 0 and "FAILED" in last
-            ok &= caught
-            rows.append((term, f"caught: {last}" if caught else f"MISSED (rc {rc}): {last}"))
-            print(f"{term:45s} {rows[-1][1]}", flush=True)
+            return term, caught, (f"caught: {last}" if caught else f"MISSED (rc {rc}): {last}")
+        finally:
+            shutil.rmtree(scratch, ignore_errors=True)
+
+    base = tree()
+    try:
+        which = subprocess.run([sys.executable, "-c", "import motorctl; print(motorctl.__file__)"], cwd=base,
+                               env=env_of(base), capture_output=True, text=True).stdout.strip()
+        assert which.startswith(str(base)), f"the copy is not the one imported: {which}"
+        rc, last = run(base, None)
     finally:
-        shutil.rmtree(scratch, ignore_errors=True)
+        shutil.rmtree(base, ignore_errors=True)
+    ok = rc == 0
+    print(f"{'(none: the law as it is)':62s} {'passes' if ok else 'FAILS: ' + last}", flush=True)
+    caught = 0
+    with ThreadPoolExecutor(max(1, jobs)) as ex:
+        for term, hit, line in ex.map(one, chosen):
+            caught += hit
+            ok &= hit
+            print(f"{term:62s} {line}", flush=True)
+    print(f"\n{len(chosen)} mutants, {caught} caught, {len(chosen) - caught} missed; "
+          f"{time.monotonic() - t0:.0f} s ({'compiled' if jit else 'NUMBA_DISABLE_JIT'}, {max(1, jobs)} at a time)")
     return 0 if ok else 1
 
 
 if __name__ == "__main__":
     if "--mutants" in sys.argv:
         sys.path.insert(0, str(Path(__file__).resolve().parent))
-        raise SystemExit(run_mutants(jit="--nojit" not in sys.argv))
+        jobs = next((int(a.split("=", 1)[1]) for a in sys.argv if a.startswith("--jobs=")), 1)
+        only = next((a.split("=", 1)[1] for a in sys.argv if a.startswith("--only=")), "")
+        raise SystemExit(run_mutants(jit="--nojit" not in sys.argv, jobs=jobs, only=only))
     raise SystemExit(pytest.main(["-q", "-n", "0", __file__]))
