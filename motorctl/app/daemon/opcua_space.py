@@ -96,6 +96,7 @@ class Space:
         pos, _ = await new_struct(s, ua.NodeId(CNC_POSITION_DATA_TYPE, ns), ua.QualifiedName("CncPositionDataType", ns),
                                   [new_struct_field(f, d) for f in ("ActPos", "CmdPos", "RemDist")])
         ids["CncPositionDataType"] = pos.nodeid
+        await s.load_data_type_definitions()             # ua.CncPositionDataType, for the values
         vt = await s.get_node(ua.NodeId(ua.ObjectIds.BaseDataVariableType)).add_variable_type(
             ua.NodeId(CNC_POSITION_VARIABLE_TYPE, ns), ua.QualifiedName("CncPositionVariableType", ns), pos.nodeid)
         ids["CncPositionVariableType"] = vt.nodeid
@@ -229,6 +230,12 @@ class Space:
         await node.write_value(ua.Variant(ua.Range(float(low), float(high)), ua.VariantType.ExtensionObject))
 
     # ------------------------------------------------------------------ values
+    @staticmethod
+    def position(act: float, cmd: float, rem: float):
+        """A CncPositionDataType value (ActPos, CmdPos, RemDist [m])."""
+        from asyncua import ua
+        return ua.CncPositionDataType(ActPos=act, CmdPos=cmd, RemDist=rem)
+
     async def write(self, key: str, value, ts=None, always: bool = False) -> None:
         """Write a variable's value (SourceTimestamp ``ts``); skipped when it equals the last
         one unless ``always``."""

@@ -208,8 +208,8 @@ class Figures:
                 if coord in self.tcp:
                     await s.set_range(key, *self.axes[self.tcp[coord]]["soft_m"])
                     continue
-                for child in ("ActPos", "CmdPos", "RemDist"):
-                    await s.write_bad(f"{key}.{child}", BAD_NOT_SUPPORTED)
+                for child in ("", ".ActPos", ".CmdPos", ".RemDist"):
+                    await s.write_bad(key + child, BAD_NOT_SUPPORTED)
 
     async def apply(self, snap: dict) -> None:
         """Write one snapshot's values: the live figures every time (their SourceTimestamp is
@@ -226,10 +226,8 @@ class Figures:
             for key, field in (("ActPos", "y"), ("CmdPos", "x_d"), ("ActSpeed", "v"),
                                ("CmdSpeed", "xd_dot"), ("FollowingError", "e")):
                 await w(p + key, float(snap[field][i]), ts, True)
-            for pos in ("PosDirect.", "PosIndirect."):
-                await w(p + pos + "ActPos", float(snap["y"][i]), ts, True)
-                await w(p + pos + "CmdPos", float(snap["x_d"][i]), ts, True)
-                await w(p + pos + "RemDist", -float(snap["e"][i]), ts)
+            for pos in ("PosDirect", "PosIndirect"):
+                await self._position(p + pos, float(snap["y"][i]), float(snap["x_d"][i]), ts, True)
             en = snap["enabled"][i]
             moving = abs(snap["xd_dot"][i]) > 0.0
             await w(p + "ActStatus", AX_PARKED if not en else (AX_MOVING if moving else AX_IN_POSITION), ts)
@@ -286,10 +284,16 @@ class Figures:
             y, xd = float(snap["y"][i]), float(snap["x_d"][i])
             g54 = offsets.get(f"{AXES}{coord}.ZeroOffset") or 0.0
             for frame, off in (("Bcs", 0.0), ("Wcs", g54 / MM)):
-                key = f"{c}PosTcp{frame}{coord}."
-                await w(key + "ActPos", y - off, ts)
-                await w(key + "CmdPos", xd - off, ts)
-                await w(key + "RemDist", xd - y, ts)
+                await self._position(f"{c}PosTcp{frame}{coord}", y - off, xd - off, ts)
+
+    async def _position(self, key: str, act: float, cmd: float, ts, always: bool = False) -> None:
+        """A CncPositionVariable: its ActPos, CmdPos (written every time when ``always``),
+        RemDist = commanded - measured [m], and its own value, the CncPositionDataType of them."""
+        w = self.space.write
+        await w(f"{key}.ActPos", act, ts, always)
+        await w(f"{key}.CmdPos", cmd, ts, always)
+        await w(f"{key}.RemDist", cmd - act, ts)
+        await w(key, self.space.position(act, cmd, cmd - act), ts)
 
 
 __all__ = ["Columns", "snapshot", "axes_info", "Figures", "NOT_SUPPORTED", "BAD_NOT_SUPPORTED"]
