@@ -22,9 +22,9 @@ YAML (``driver:``)::
 per axis (``axes.NAME.driver``)::
 
     command:  {id: 0x200, voltage: {offset: 0, size: 2, byteorder: little},
-               enable: {byte: 4, bit: 0}, sequence_byte: 5}
+               enable: {byte: 4, bit: 0}, fault_reset: {byte: 4, bit: 2}, sequence_byte: 5}
     feedback: {id: 0x180, counts: {offset: 0, size: 4, byteorder: little},
-               fault: {byte: 8, bit: 0}, sequence_byte: 9}
+               fault: {byte: 8, bit: 0}, explicit_reset: {byte: 8, bit: 2}, sequence_byte: 9}
     voltage_full_scale_V: 10.0     # ±full-scale count of the voltage field ↔ ±this [V]
     encoder_m_per_count: 0.5e-6    # [m]; the counts field wraps at 2^(8 size), unwrapped here
 
@@ -36,6 +36,14 @@ recognised. Frame length is the end of the last field, rounded up to a valid CAN
 the device answers without stepping the plant. An error frame on the bus counts as an error
 answer. Frame formats and bit counts: ISO 11898-1:2015 (classic CAN and CAN FD).
 
+Faults (docs/drivers.md, "CAN", revision 2 of these frames): ``fault`` is the drive's latched
+amplifier fault; a drive of revision 2 keeps it until the rising edge of the command's
+``fault_reset`` bit with the enable low, which the driver sends only on the operator's
+``motorctl fault-reset`` (:meth:`CanDriver.reset_fault`), and sets ``explicit_reset`` in every
+feedback frame to say so. A drive whose feedback leaves ``explicit_reset`` clear (or a layout
+without it) is of revision 1: its command with the enable low clears the fault, and set-up says
+the fault cannot stay latched.
+
 The voltage limit of an axis (its ``voltage_out`` interface) is ``voltage_full_scale_V``.
 """
 
@@ -45,7 +53,7 @@ import math
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from motorctl.driver import BusBudget
 from motorctl.schema import StrictModel
@@ -77,16 +85,24 @@ class BitRef(StrictModel):
 
 
 class CommandLayout(StrictModel):
+    """An axis's command fields: ``voltage``, ``enable`` (the amplifier), ``fault_reset``
+    (revision 2: the operator's reset request, taken on its rising edge with the enable low)."""
+
     id: Annotated[int, Field(ge=0, le=0x1FFFFFFF)]
     voltage: IntField
     enable: BitRef
+    fault_reset: BitRef | None = None
     sequence_byte: Annotated[int, Field(ge=0, le=63)] | None = None
 
 
 class FeedbackLayout(StrictModel):
+    """An axis's feedback fields: ``counts``, ``fault`` (latched amplifier fault),
+    ``explicit_reset`` (set by a drive of revision 2: its fault stays until ``fault_reset``)."""
+
     id: Annotated[int, Field(ge=0, le=0x1FFFFFFF)]
     counts: IntField
     fault: BitRef
+    explicit_reset: BitRef | None = None
     sequence_byte: Annotated[int, Field(ge=0, le=63)] | None = None
 
 
@@ -109,6 +125,13 @@ class CanAxisOptions(StrictModel):
     feedback: FeedbackLayout
     voltage_full_scale_V: Annotated[float, Field(gt=0)] = 10.0
     encoder_m_per_count: Annotated[float, Field(gt=0)] = 0.5e-6
+
+    @model_validator(mode="after")
+    def _reset_pair(self):
+        if self.feedback.explicit_reset is not None and self.command.fault_reset is None:
+            raise ValueError("feedback.explicit_reset (a drive of revision 2) needs command.fault_reset, "
+                             "the bit its fault is reset by")
+        return self
 
 
 def frame_length(n_bytes: int, fd: bool) -> int:
@@ -168,10 +191,10 @@ class Frame:
 
 def build_frames(names, axis_options, kind: str, fd: bool) -> list[Frame]:
     """Group the axes by the ID of their ``kind`` ('command' or 'feedback') frame; check that
-    fields do not overlap and that axes sharing a frame share its sequence byte.
+    fields and bits do not overlap and that axes sharing a frame share its sequence byte.
 
     Raises:
-        ValueError: overlapping fields, disagreeing sequence bytes, a frame too long.
+        ValueError: overlapping fields or bits, disagreeing sequence bytes, a frame too long.
     """
     by_id: dict[int, list[int]] = {}
     for i, a in enumerate(names):
@@ -179,6 +202,7 @@ def build_frames(names, axis_options, kind: str, fd: bool) -> list[Frame]:
     frames = []
     for fid, idx in by_id.items():
         used: dict[int, str] = {}
+        used_bits: dict[tuple[int, int], str] = {}
         seqs = {getattr(axis_options[names[i]], kind).sequence_byte for i in idx}
         if len(seqs) > 1:
             raise ValueError(f"{kind} frame 0x{fid:X}: axes disagree on sequence_byte ({sorted(s for s in seqs if s is not None)})")
@@ -187,17 +211,27 @@ def build_frames(names, axis_options, kind: str, fd: bool) -> list[Frame]:
         for i in idx:
             lay = getattr(axis_options[names[i]], kind)
             f = lay.voltage if kind == "command" else lay.counts
-            bit = lay.enable if kind == "command" else lay.fault
+            roles = ("enable", "fault_reset") if kind == "command" else ("fault", "explicit_reset")
             spans = [(f.offset, f.size, f"{names[i]} {'voltage' if kind == 'command' else 'counts'}")]
             for off, size, what in spans:
                 for b in range(off, off + size):
                     if b in used:
                         raise ValueError(f"{kind} frame 0x{fid:X}: byte {b} used by {used[b]} and {what}")
                     used[b] = what
-            end = max(end, f.offset + f.size, bit.byte + 1)
-            if bit.byte in used and not used[bit.byte].startswith("bits"):
-                raise ValueError(f"{kind} frame 0x{fid:X}: byte {bit.byte} used by {used[bit.byte]} and a status bit")
-            used.setdefault(bit.byte, "bits")
+            end = max(end, f.offset + f.size)
+            for role in roles:
+                bit = getattr(lay, role)
+                if bit is None:
+                    continue
+                what = f"{names[i]} {role}"
+                if (bit.byte, bit.bit) in used_bits:
+                    raise ValueError(f"{kind} frame 0x{fid:X}: byte {bit.byte} bit {bit.bit} used by "
+                                     f"{used_bits[bit.byte, bit.bit]} and {what}")
+                used_bits[bit.byte, bit.bit] = what
+                end = max(end, bit.byte + 1)
+                if bit.byte in used and not used[bit.byte].startswith("bits"):
+                    raise ValueError(f"{kind} frame 0x{fid:X}: byte {bit.byte} used by {used[bit.byte]} and {what}")
+                used.setdefault(bit.byte, "bits")
         if seq is not None:
             if seq in used:
                 raise ValueError(f"{kind} frame 0x{fid:X}: sequence byte {seq} used by {used[seq]}")
@@ -235,8 +269,8 @@ class CanDriver(SplitPhaseDriver):
 
     Options = CanOptions
     AxisOptions = CanAxisOptions
-    #: a drive's usual reset of a fault it latched (its own command timeout included): the
-    #: enable low; the emulated device does the same
+    #: revision 1's reset of a fault the drive latched (its own command timeout included): the
+    #: enable low (a drive of revision 2 takes only the ``fault_reset`` bit)
     FAULT_RESET = "a command with enable 0"
 
     def __init__(self, options: CanOptions, axis_options: dict, period_s: float):
@@ -250,6 +284,7 @@ class CanDriver(SplitPhaseDriver):
         self._m_per_count = [o.encoder_m_per_count for o in self._lay]
         self.bus = None
         self._msgs = []
+        self._explicit = [False] * len(names)     # the feedback's explicit_reset bit, last seen
 
     def _message(self, fid: int, length: int, remote: bool = False):
         import can
@@ -288,6 +323,7 @@ class CanDriver(SplitPhaseDriver):
     def _transmit(self, seq: int, u_V: np.ndarray, enable: np.ndarray) -> None:
         lay = self._lay
         bus = self.bus
+        amp, pulses = self.amp_fault, self._pulses
         for f, msg in zip(self.cmd_frames, self._msgs):
             data = msg.data
             data[:] = bytes(len(data))
@@ -298,6 +334,8 @@ class CanDriver(SplitPhaseDriver):
                                                          8 * c.voltage.size) if en else 0)
                 if en:
                     data[c.enable.byte] |= 1 << c.enable.bit
+                if pulses.bit(i, en, amp[i]) and c.fault_reset is not None:
+                    data[c.fault_reset.byte] |= 1 << c.fault_reset.bit
             if f.seq_byte is not None:
                 data[f.seq_byte] = seq
             try:
@@ -329,6 +367,37 @@ class CanDriver(SplitPhaseDriver):
             for i in f.axes:
                 fl = lay[i].feedback
                 self._accept(i, seq, unpack_uint(data, fl.counts), bool(data[fl.fault.byte] >> fl.fault.bit & 1))
+                if fl.explicit_reset is not None:
+                    self._explicit[i] = bool(data[fl.explicit_reset.byte] >> fl.explicit_reset.bit & 1)
+
+    # --- the drive's fault
+    def _clears_on_disable(self, i: int) -> bool:
+        """Revision 1: axis i's last feedback left ``explicit_reset`` clear, or the layout has none."""
+        return not self._explicit[i]
+
+    def _old_revision(self, names: list[str]) -> str:
+        why = []
+        for a in names:
+            fl = self._lay[self.axis_names.index(a)].feedback
+            b = fl.explicit_reset
+            why.append(f"{a} (the layout names no feedback explicit_reset bit)" if b is None else
+                       f"{a} (its drive leaves feedback 0x{fl.id:X} byte {b.byte} bit {b.bit}, explicit_reset, clear)")
+        return (f"{self._device_name()}: the drives of {', '.join(why)} are of revision 1 of the CAN frames: a "
+                f"command with the enable low clears a latched amplifier fault, so a fault a drive latched (its "
+                f"command timeout after a host went away, an over-current) cannot stay latched until the "
+                f"operator's 'motorctl fault-reset'; revision 2 keeps it (docs/drivers.md, CAN)")
+
+    def drive_state(self, i: int) -> str:
+        """Axis i's fault bit in the drive's last feedback frame, whatever it is."""
+        fl = self._lay[i].feedback
+        on = bool(self.amp_fault[i])
+        return (f"{self._device_name()} feedback 0x{fl.id:X} (axis {self.axis_names[i]}): "
+                f"{'amplifier fault latched' if on else 'no fault'} (byte {fl.fault.byte} bit {fl.fault.bit} "
+                f"{'set' if on else 'clear'})")
+
+    def fault_reason(self, i: int) -> str:
+        """The drive's fault bit while axis i reports an amplifier fault ('' otherwise)."""
+        return self.drive_state(i) if self.amp_fault[i] else ""
 
     def budget(self, rate_hz: float) -> BusBudget:
         """Bits on the wire for one cycle: every command frame and every feedback frame once,
@@ -374,5 +443,7 @@ class CanDriver(SplitPhaseDriver):
         o = self.options
         d.update(transport="can", interface=o.interface, channel=o.channel, fd=o.fd,
                  bitrate=o.bitrate, data_bitrate=o.data_bitrate if o.fd else None,
-                 command_ids=[f.id for f in self.cmd_frames], feedback_ids=[f.id for f in self.fb_frames])
+                 command_ids=[f.id for f in self.cmd_frames], feedback_ids=[f.id for f in self.fb_frames],
+                 protocol_revision=None if not self.round_trip["n"] else
+                 {a: 1 if self._clears_on_disable(i) else 2 for i, a in enumerate(self.axis_names)})
         return d

@@ -2,16 +2,21 @@
 
 Frames (our layout; multi-byte fields little-endian, CRC big-endian)::
 
-    command  A5 | addr | seq | n | n × (node, flags, u int16) | CRC-16   flags bit0 = amplifier enable
+    command  A5 | addr | seq | n | n × (node, flags, u int16) | CRC-16   flags bit0 = amplifier enable,
+                                                                   bit1 = fault reset (rising edge, enable 0)
     query    A6 | addr | seq | n | n × (node)                 | CRC-16   (positions only, no plant step)
     reply    5A | addr | seq | n | n × (node, status, counts int32) | CRC-16   status bit0 = amp
-                                                                       fault, bit1 = amplifier on
+                                       fault, bit1 = amplifier on, bit2 = revision 2 (keeps its fault)
     error    5B | addr | seq | n | code |                 CRC-16     (the device refused the command)
     config   A7 | addr | seq | 1 | watchdog uint16 |      CRC-16     watchdog in units of 100 us
     ack      5C | addr | seq | 1 | watchdog uint16 |      CRC-16     the watchdog the device applies
 
-The protocol byte by byte, with line settings, RS-485 direction, when counts are latched and
-the watchdog: docs/serial-protocol.md (firmware can be written from it alone).
+The protocol byte by byte, with line settings, RS-485 direction, when counts are latched, the
+watchdog and the two revisions: docs/serial-protocol.md (firmware can be written from it alone).
+Revision 2 keeps a latched amplifier fault until the host's fault-reset request (flags bit 1,
+sent only on the operator's ``motorctl fault-reset``: :meth:`SerialDriver.reset_fault`) and
+says so in every reply (status bit 2); a device whose replies leave bit 2 clear is of revision
+1, whose command with enable 0 clears the fault: set-up says the fault cannot stay latched.
 
 CRC-16/CCITT-FALSE (polynomial 0x1021, initial value 0xFFFF, no reflection) over every byte
 before it, via :func:`binascii.crc_hqx`. ``seq`` is the cycle counter mod 256: the reply carries
@@ -65,6 +70,12 @@ from motorctl_drivers.split_phase import (
 )
 
 CMD, QUERY, REPLY, ERROR, CONFIG, ACK = 0xA5, 0xA6, 0x5A, 0x5B, 0xA7, 0x5C
+#: command flags (docs/serial-protocol.md): amplifier enable; fault reset (revision 2: the
+#: channel's latched fault is cleared on this bit's rising edge in a command with enable 0)
+FLAG_ENABLE, FLAG_FAULT_RESET = 0x01, 0x02
+#: reply status bits: amplifier fault latched; amplifier on (driving); revision 2 (the device
+#: keeps a latched fault until the fault-reset request; revision 1 devices send 0 here)
+STATUS_FAULT, STATUS_ON, STATUS_REVISION_2 = 0x01, 0x02, 0x04
 #: error codes of an error frame (docs/serial-protocol.md)
 ERROR_CODES = {1: "bad request (unknown node or item count)", 2: "value out of range",
                3: "not allowed now", 4: "device failure"}
@@ -95,11 +106,12 @@ def _seal(buf: bytearray) -> bytes:
 
 
 def encode_command(address: int, seq: int, items) -> bytes:
-    """Command frame. ``items``: per axis (node, enable: bool, u_counts: int16)."""
+    """Command frame. ``items``: per axis (node, flags: int (:data:`FLAG_ENABLE`,
+    :data:`FLAG_FAULT_RESET`; a bool is the enable alone), u_counts: int16)."""
     buf = bytearray(frame_length(CMD, len(items)))
     buf[0:4] = bytes((CMD, address, seq & 0xFF, len(items)))
-    for k, (node, en, c) in enumerate(items):
-        _CMD_ITEM.pack_into(buf, _HEAD + k * _CMD_ITEM.size, node, 1 if en else 0, c)
+    for k, (node, flags, c) in enumerate(items):
+        _CMD_ITEM.pack_into(buf, _HEAD + k * _CMD_ITEM.size, node, int(flags) & 0xFF, c)
     return _seal(buf)
 
 
@@ -136,11 +148,10 @@ def encode_config(address: int, seq: int, watchdog_units: int, kind: int = CONFI
 
 
 def decode_body(kind: int, n: int, frame: bytes) -> list:
-    """Items of a checked frame: CMD → [(node, enable, u_counts)], REPLY → [(node, status,
+    """Items of a checked frame: CMD → [(node, flags, u_counts)], REPLY → [(node, status,
     counts_u32)], QUERY → [node], ERROR → [code]."""
     if kind == CMD:
-        return [(nd, bool(f & 1), c) for nd, f, c in
-                (_CMD_ITEM.unpack_from(frame, _HEAD + k * _CMD_ITEM.size) for k in range(n))]
+        return [_CMD_ITEM.unpack_from(frame, _HEAD + k * _CMD_ITEM.size) for k in range(n)]
     if kind == REPLY:
         return [_REPLY_ITEM.unpack_from(frame, _HEAD + k * _REPLY_ITEM.size) for k in range(n)]
     if kind == QUERY:
@@ -270,7 +281,7 @@ class SerialDriver(SplitPhaseDriver):
         self._set_wait_fd(self.port.fileno())
         self.parser = FrameParser((REPLY, ERROR, ACK))
 
-    #: docs/serial-protocol.md: a command with enable 0 clears a latched fault
+    #: docs/serial-protocol.md, revision 1: a command with enable 0 clears a latched fault
     FAULT_RESET = "a command with enable 0"
 
     def _set_up_device(self) -> None:
@@ -304,11 +315,28 @@ class SerialDriver(SplitPhaseDriver):
         return out
 
     def fault_reason(self, i: int) -> str:
-        """The device's status while axis i reports an amplifier fault ('' otherwise)."""
-        if not self.amp_fault[i]:
-            return ""
-        return (f"serial device {self.options.address} node {self._nodes[i]}: amplifier fault latched "
-                f"(status 0x{self._status[i]:02X})")
+        """The device's status while axis i reports an amplifier fault ('' otherwise), e.g.
+        ``serial device 1 node 1: amplifier fault latched, amplifier off (status 0x05)``."""
+        return self.drive_state(i) if self.amp_fault[i] else ""
+
+    def drive_state(self, i: int) -> str:
+        """The status of axis i's channel in the device's last reply, whatever it is, decoded
+        (docs/serial-protocol.md, reply)."""
+        st = self._status[i]
+        return (f"serial device {self.options.address} node {self._nodes[i]}: "
+                f"{'amplifier fault latched' if st & STATUS_FAULT else 'no fault'}, "
+                f"amplifier {'on' if st & STATUS_ON else 'off'} (status 0x{st:02X})")
+
+    def _clears_on_disable(self, i: int) -> bool:
+        """Revision 1: the device's last reply leaves status bit 2 clear."""
+        return not self._status[i] & STATUS_REVISION_2
+
+    def _old_revision(self, names: list[str]) -> str:
+        return (f"serial device {self.options.address} is of protocol revision 1 (its replies leave status "
+                f"bit 2 clear): a command with enable 0 clears its latched amplifier fault, so a fault it "
+                f"latched ({', '.join(names)}: its watchdog after a host went away, an over-current) cannot "
+                f"stay latched until the operator's 'motorctl fault-reset'; revision 2 keeps it "
+                f"(docs/serial-protocol.md, Revisions)")
 
     def _set_watchdog(self, seconds: float) -> None:
         units = max(1, min(0xFFFF, round(seconds / WATCHDOG_UNIT_S)))
@@ -347,9 +375,11 @@ class SerialDriver(SplitPhaseDriver):
         fs = self.options.voltage_full_scale_V
         items = self._items
         nodes = self._nodes
+        amp, pulses = self.amp_fault, self._pulses
         for i in range(len(items)):
             en = bool(enable[i])
-            items[i] = (nodes[i], en, volts_to_counts(float(u_V[i]), fs, 16) if en else 0)
+            flags = FLAG_FAULT_RESET if pulses.bit(i, en, amp[i]) else (FLAG_ENABLE if en else 0)
+            items[i] = (nodes[i], flags, volts_to_counts(float(u_V[i]), fs, 16) if en else 0)
         self.port.write(encode_command(self.options.address, seq, items))
 
     def _receive(self) -> None:
@@ -404,5 +434,7 @@ class SerialDriver(SplitPhaseDriver):
     def describe(self) -> dict:
         d = super().describe()
         d.update(transport="serial", port=self.options.port, baudrate=self.options.baudrate,
-                 low_latency=self.low_latency, watchdog=self.watchdog)
+                 low_latency=self.low_latency, watchdog=self.watchdog,
+                 protocol_revision=None if not self.round_trip["n"] else
+                 1 if any(self._clears_on_disable(i) for i in range(len(self._nodes))) else 2)
         return d

@@ -20,6 +20,9 @@
   advice for a transient packet loss is to stand in for the feedback; the supervisor's leaky
   bucket still counts the cycle and faults the axis when losses persist). A failed send sets
   ``write_error``. Nothing raises inside the cycle.
+* :class:`ResetPulses`: the operator's fault reset as a request bit pulsed in the cyclic
+  commands (serial flags bit 1, a CAN layout's ``fault_reset`` bit, a Modbus map's
+  ``fault_reset``); the host never sends it on its own.
 """
 
 from __future__ import annotations
@@ -176,6 +179,49 @@ def open_error(what: str, where: str, exc: BaseException) -> OSError:
     return OSError(f"{what} {where}: {why}")
 
 
+# --------------------------------------------------------------------------- the operator's reset
+class ResetPulses:
+    """The operator's reset of a device's latched fault as a request bit in the cyclic commands,
+    one per axis: after :meth:`request` (``motorctl fault-reset``, between cycles), :meth:`bit`
+    is True in one command of every :attr:`EVERY` (a rising edge each time, after commands with
+    the bit clear) while the axis is disabled and its device reports the fault, at most
+    :attr:`TRIES` times, and False otherwise: never on the host's own account, never with the
+    amplifier enabled. A device takes the reset on the bit's rising edge with the enable low, as
+    a CiA 402 drive takes controlword bit 7 (CiA 402 §6.3.2, transition 15): a request the
+    device misses (a lost command) is sent again :attr:`EVERY` cycles later. Allocation-free.
+
+    Args:
+        n: number of axes.
+    """
+
+    #: cycles between two pulses of a disabled, faulted axis
+    EVERY = 8
+    #: pulses one operator's reset sends at most
+    TRIES = 3
+
+    def __init__(self, n: int):
+        self._left = [0] * n                 # cycles of the operator's reset still to send
+        self._count = [0] * n
+
+    def request(self, i: int) -> None:
+        """The operator's reset of axis ``i`` (outside the cycle): pulse from the next command on."""
+        self._count[i] = 0
+        self._left[i] = self.TRIES * self.EVERY
+
+    def bit(self, i: int, enable: bool, fault: bool) -> bool:
+        """The reset request of axis ``i`` in this cycle's command, its amplifier ``enable`` and
+        the ``fault`` its device reported last. A device that no longer reports the fault ends
+        the request."""
+        if not enable and fault and self._left[i] > 0:
+            self._left[i] -= 1
+            self._count[i] = (self._count[i] + 1) % self.EVERY
+            return self._count[i] == 1
+        if not fault:
+            self._left[i] = 0
+        self._count[i] = 0
+        return False
+
+
 # --------------------------------------------------------------------------- the driver
 class SplitPhaseDriver(Driver):
     """Base of the bus drivers (see the module docstring for the cycle).
@@ -219,8 +265,9 @@ class SplitPhaseDriver(Driver):
     STOP_RETRY_S = 0.05
     #: the link counts as down (:attr:`link_down`) when no axis has answered for this long [s]
     LINK_DOWN_S = 0.2
-    #: the protocol's fault reset in words, for the notices (None: it has none; a fault the
-    #: device latched stays and faults the first cycle); :meth:`_reset_latched` sends it
+    #: the old protocol revision's fault reset in words (serial and CAN revision 1: a command
+    #: with enable 0), for the axes whose device clears a latched fault on it
+    #: (:meth:`_clears_on_disable`); :meth:`_reset_latched` sends it. None: no such revision
     FAULT_RESET: str | None = None
 
     def __init__(self, options, axis_options, period_s):
@@ -246,6 +293,7 @@ class SplitPhaseDriver(Driver):
         self.round_trip = round_trip_stats(())      # measured by configure()
         self.counters = {"timeouts": 0, "stale": 0, "bad_frames": 0, "exceptions": 0, "send_errors": 0}
         self._reset_at_setup = False         # configure() sent the fault reset (it starts the watchdog)
+        self._pulses = ResetPulses(n)        # the operator's reset request (reset_fault)
 
     def _set_wait_fd(self, fd) -> None:
         """Called by ``_open_transport()`` with the transport's file descriptor (None: none, spin)."""
@@ -269,9 +317,10 @@ class SplitPhaseDriver(Driver):
 
     # --- lifecycle hooks
     def _configure(self) -> None:
-        """Open the transport, set the device up (:meth:`_set_up_device`), clear what an
-        earlier host left latched (:meth:`_reset_latched`, where the protocol has a fault reset)
-        and check that every axis answers (:meth:`_first_reading`).
+        """Open the transport, set the device up (:meth:`_set_up_device`), check that every
+        axis answers (:meth:`_first_reading`), then say what the device reports latched
+        (:meth:`_found_latched`: a fault stays latched until the operator's reset, but on a
+        device of the old protocol revision).
 
         Raises:
             OSError: the link cannot be opened; the device refuses its set-up.
@@ -282,11 +331,53 @@ class SplitPhaseDriver(Driver):
         self.connected = True
         try:
             self._set_up_device()
-            self._reset_latched("set-up")
             self._first_reading(self.CONFIGURE_TIMEOUT_S)
+            self._found_latched()
         except BaseException:
             self._close()
             raise
+
+    def _clears_on_disable(self, i: int) -> bool:
+        """Hook: axis i's device is of the old protocol revision, whose command with the enable
+        low clears a fault it latched (:data:`FAULT_RESET`), as its last answer says (default
+        False: the device keeps its fault until the operator's reset request)."""
+        return False
+
+    def _old_revision(self, names: list[str]) -> str:
+        """Hook: the set-up warning for the axes ``names`` whose device is of the old revision
+        (:meth:`_clears_on_disable`): which device, how the driver told, and that a fault it
+        latched cannot stay latched until the operator's reset."""
+        return (f"{self._device_name()}: the device of {', '.join(names)} clears a latched fault on "
+                f"{self.FAULT_RESET} (the old protocol revision): a fault it latched cannot stay latched "
+                f"until the operator's 'motorctl fault-reset'")
+
+    def _found_latched(self) -> None:
+        """What set-up does with the faults its first reading found latched in the device (a
+        fault of an earlier run, its command watchdog after an earlier host went away while it
+        drove). A device that keeps its fault until the operator's reset request: nothing is
+        sent, a warning names the device's state (:meth:`Driver._notice_drive_fault`); the first
+        cycle faults the axis and ``motorctl run`` is refused
+        (:func:`motorctl.driver.drive_fault_refusal`). A device of the old revision
+        (:meth:`_clears_on_disable`) would clear it with the first disabled command of the run:
+        a warning says it cannot keep a fault latched, and its reset is sent at once, as before
+        (:meth:`_reset_latched`)."""
+        old = [self._clears_on_disable(i) for i in range(len(self.axis_names))]
+        if any(old):
+            self._notice(self._old_revision([a for a, o in zip(self.axis_names, old) if o]), warning=True)
+        for i, o in enumerate(old):
+            if self.amp_fault[i] and not o:
+                self._notice_drive_fault(i, self.fault_state(i) or "the device reports an amplifier fault")
+        self._reset_latched("set-up")
+
+    def reset_fault(self, i: int) -> bool:
+        """The operator's reset of axis i's device fault (:meth:`Driver.reset_fault`): the
+        protocol's reset request, pulsed in the next commands while the axis is disabled and
+        its device reports the fault (:class:`ResetPulses`). On a device of the old revision
+        (:meth:`_clears_on_disable`) every disabled command is its reset, and the cycles send
+        those anyway: True, nothing more to send."""
+        if not self._clears_on_disable(i):
+            self._pulses.request(i)
+        return True
 
     def _set_up_device(self) -> None:
         """The protocol's set-up messages after the transport is open (default: none)."""
@@ -296,12 +387,14 @@ class SplitPhaseDriver(Driver):
         return type(self).__name__
 
     def _reset_latched(self, when: str) -> None:
-        """The protocol's fault reset (:data:`FAULT_RESET`: a command with enable 0 and 0 V to
-        every axis) where a position query shows a latched fault, at set-up (``when``
-        'set-up') and again at ``activate()`` ('start': the reset starts the device's command
-        watchdog, which may latch again before the first cycle). A fault it cleared is a
-        notice; one still latched stays in :attr:`amp_fault` (the supervisor faults the axis
-        at the first cycle, with :meth:`fault_reason`). Nothing without a fault reset.
+        """The old revision's fault reset (:data:`FAULT_RESET`: a command with enable 0 and 0 V
+        to every axis) where a position query shows a latched fault on an axis whose device is of
+        that revision (:meth:`_clears_on_disable`), at set-up (``when`` 'set-up') and again at
+        ``activate()`` ('start': the reset starts the device's command watchdog, which may
+        latch again before the first cycle). A fault it cleared is a notice; one still latched
+        stays in :attr:`amp_fault` (the supervisor faults the axis at the first cycle, with
+        :meth:`fault_reason`). Nothing on a device that keeps its fault (the operator's reset
+        alone clears it).
 
         Raises:
             ConnectionError: the device does not answer the reset, or answers with an error.
@@ -310,8 +403,11 @@ class SplitPhaseDriver(Driver):
             return
         if when == "set-up":
             self._reset_at_setup = False
+        old = [self._clears_on_disable(i) for i in range(len(self.axis_names))]
+        if not any(old):
+            return
         self._query_once(self.CONFIGURE_TIMEOUT_S)
-        before = self.amp_fault.copy()
+        before = self.amp_fault & np.array(old)
         if not before.any():
             return                      # nothing latched: no command (it would start the watchdog)
         n = len(self.axis_names)
@@ -333,13 +429,13 @@ class SplitPhaseDriver(Driver):
         if cleared:
             self._notice(f"{self._device_name()}: at {when}, cleared the amplifier fault latched on "
                          f"{', '.join(cleared)} (a watchdog or a fault of an earlier run) with the "
-                         f"protocol's reset, {self.FAULT_RESET}")
+                         f"old protocol revision's reset, {self.FAULT_RESET}")
 
     def _activate(self) -> None:
-        """Start the cycle from rest: clear what the device latched since ``configure()``
-        (:meth:`_reset_latched`), then nothing outstanding, no extrapolation carried over from
-        an earlier activation. The protocols have nothing else to start on the device: the
-        amplifier enable travels in every command."""
+        """Start the cycle from rest: on a device of the old revision, clear what it latched
+        since ``configure()`` (:meth:`_reset_latched`), then nothing outstanding, no
+        extrapolation carried over from an earlier activation. The protocols have nothing else
+        to start on the device: the amplifier enable travels in every command."""
         self._reset_latched("start")
         n = len(self.axis_names)
         self._outstanding = False

@@ -26,6 +26,14 @@ class CanDevice(Device):
     than the layout), stale (the previous feedback again), exception (an error frame instead of
     the answer), disconnect and bus_off (the node is silent: it neither applies nor answers).
 
+    Revision 2 (the default, on every axis whose layout has ``command.fault_reset`` and
+    ``feedback.explicit_reset``): the drive keeps a latched amplifier fault until the rising
+    edge of ``fault_reset`` with the enable low, sets ``explicit_reset`` in every feedback
+    frame, and its command timeout latches only an amplifier that was on (the bank's reset
+    input, :class:`~motorctl_emulators.plant_bank.PlantBank`). Revision 1
+    (:meth:`play_revision`, or a layout without those bits): a command with the enable low
+    clears the fault.
+
     Raises:
         ValueError: the layout does not build (as the driver's). can.CanError, OSError: the bus
         cannot be opened.
@@ -42,6 +50,16 @@ class CanDevice(Device):
         self.last = {}
         self.late = LateAnswers(bank)      # keyed by the command frame's ID
         self.clocks = {}                   # command frame id -> MasterTime (its sequence byte)
+        self.play_revision(2)
+
+    def play_revision(self, revision: int) -> None:
+        """Answer as drives of ``revision`` (1 or 2) of the CAN frames (docs/drivers.md, CAN):
+        revision 2 only on the axes whose layout has the bits it needs."""
+        if revision not in (1, 2):
+            raise ValueError(f"CAN frames revision {revision!r}: 1 or 2")
+        self.rev2 = [revision == 2 and o.command.fault_reset is not None and o.feedback.explicit_reset is not None
+                     for o in self.lay]
+        self.bank.reset_input = list(self.rev2)
 
     def _feedback(self, f: Frame, seq: int):
         import can
@@ -52,6 +70,8 @@ class CanDevice(Device):
             pack_int(data, fl.counts, b.counts(i, self.lay[i].encoder_m_per_count))
             if b.amp_fault[i]:
                 data[fl.fault.byte] |= 1 << fl.fault.bit
+            if self.rev2[i]:
+                data[fl.explicit_reset.byte] |= 1 << fl.explicit_reset.bit
         if f.seq_byte is not None:
             data[f.seq_byte] = seq
         fd = self.options.fd
@@ -91,7 +111,8 @@ class CanDevice(Device):
             c = self.lay[i].command
             bits = 8 * c.voltage.size
             u = counts_to_volts(to_signed(unpack_uint(data, c.voltage), bits), self.lay[i].voltage_full_scale_V, bits)
-            b.command(i, u, bool(data[c.enable.byte] >> c.enable.bit & 1), periods)
+            reset = c.fault_reset is not None and bool(data[c.fault_reset.byte] >> c.fault_reset.bit & 1)
+            b.command(i, u, bool(data[c.enable.byte] >> c.enable.bit & 1), periods, reset=reset)
         if fault == "drop":
             return
         done = set()

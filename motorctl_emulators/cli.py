@@ -12,8 +12,9 @@ as an encoder-counter plus amplifier-input module paced by its master would; a r
 emulator meets the same plant and noise as a run of PLANT's sim driver at that rate.
 
 Watchdog: no valid command for ``--watchdog`` seconds (default: PLANT's ``driver.watchdog_s``
-when > 0, else 0.05 s) → 0 V and an amplifier fault (reported in every answer, latched until a
-command with the amplifier disabled).
+when > 0, else 0.05 s) → 0 V and an amplifier fault (reported in every answer, latched until the
+device's reset: serial and CAN revision 2, a Modbus map's ``fault_reset``: the reset request's
+rising edge with the amplifier disabled; otherwise a command with the amplifier disabled).
 
 Fault injection: ``--fault KIND[:AXIS[:START[:COUNT]]]`` (repeatable), KIND one of drop, late
 (answer after ``--late`` seconds and never before the host's next command to that device,

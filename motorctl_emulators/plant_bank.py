@@ -18,10 +18,11 @@ no plant time. A repeated number steps nothing.
 Watchdog (a drive's command timeout: LinuxCNC hm2 ``timeout_ns``, CiA 402 0x6007): no valid
 command for ``watchdog_s`` → 0 V and an amplifier fault, latched until the device's fault reset.
 
-The fault reset: where the protocol has none of its own (serial, CAN: docs/serial-protocol.md),
-a command with the amplifier disabled clears a latched fault. A device with a reset input of its
-own (``reset_input[i]``, a Modbus map's ``fault_reset`` bit) clears it only on that input's
-rising edge with the amplifier disabled, as a drive with a fault-reset input does: its fault
+The fault reset: where the protocol has none of its own (serial and CAN revision 1:
+docs/serial-protocol.md, "Revisions"), a command with the amplifier disabled clears a latched
+fault. A device with a reset input of its own (``reset_input[i]``: serial flags bit 1 and a CAN
+layout's ``fault_reset`` bit, revision 2; a Modbus map's ``fault_reset`` bit) clears it only on
+that input's rising edge with the amplifier disabled, as a drive with a fault-reset input does: its fault
 stays latched across hosts until an operator resets it; its watchdog latches a fault only on
 an amplifier that was enabled when the commands stopped (a disabled one holds 0 V, off already:
 nothing was lost, so a host that ended its run cleanly leaves no fault behind).

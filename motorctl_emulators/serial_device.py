@@ -1,6 +1,8 @@
 """The emulated drive group behind a serial link (``motorctl emulate --transport serial``).
 
-Frames and CRC are the driver's (:mod:`motorctl_drivers.serial_link`).
+Frames and CRC are the driver's (:mod:`motorctl_drivers.serial_link`). The device speaks
+revision 2 of docs/serial-protocol.md (a latched amplifier fault stays until the fault-reset
+request, status bit 2 in every reply) and can play revision 1 (:meth:`SerialDevice.play_revision`).
 """
 
 from __future__ import annotations
@@ -9,7 +11,12 @@ from motorctl_drivers.serial_link import (
     ACK,
     CMD,
     CONFIG,
+    FLAG_ENABLE,
+    FLAG_FAULT_RESET,
     QUERY,
+    STATUS_FAULT,
+    STATUS_ON,
+    STATUS_REVISION_2,
     WATCHDOG_UNIT_S,
     FrameParser,
     SerialOptions,
@@ -32,6 +39,12 @@ class SerialDevice(Device):
     CRC), stale (the previous reply), exception (an error frame, the command not applied),
     disconnect (close the connection).
 
+    Revision 2 (the default): a channel's latched amplifier fault is cleared only by the
+    rising edge of the command's fault-reset flag with the enable low, and the watchdog
+    latches only a channel whose amplifier was on (the bank's reset input,
+    :class:`~motorctl_emulators.plant_bank.PlantBank`); revision 1: any command with the
+    enable low clears it and the watchdog latches every commanded channel.
+
     Raises:
         OSError: the endpoint cannot be opened.
     """
@@ -45,14 +58,22 @@ class SerialDevice(Device):
         self._last_reply = None
         self.late = LateAnswers(bank)
         self.clock = bank.master_time(256)      # the master's time from the frames' seq
+        self.play_revision(2)
+
+    def play_revision(self, revision: int) -> None:
+        """Answer as a device of protocol ``revision`` (1 or 2, docs/serial-protocol.md)."""
+        if revision not in (1, 2):
+            raise ValueError(f"serial protocol revision {revision!r}: 1 or 2")
+        self.revision = revision
+        self.bank.reset_input = [revision == 2] * len(self.bank.names)
 
     def _reply(self, seq: int, nodes) -> bytes:
         b = self.bank
         items = []
         for nd in nodes:
             i = self.index[nd]
-            items.append((nd, (1 if b.amp_fault[i] else 0) | (2 if b.enabled[i] else 0),
-                          b.counts(i, self.m_per_count[i])))
+            items.append((nd, (STATUS_FAULT if b.amp_fault[i] else 0) | (STATUS_ON if b.enabled[i] else 0)
+                          | (STATUS_REVISION_2 if self.revision == 2 else 0), b.counts(i, self.m_per_count[i])))
         return encode_reply(self.options.address, seq, items)
 
     def poll(self, timeout_s: float) -> None:
@@ -98,8 +119,9 @@ class SerialDevice(Device):
                 self.ep.disconnect()
                 return
             periods = self.clock.periods(seq)
-            for nd, en, c in items:
-                b.command(self.index[nd], counts_to_volts(c, self.options.voltage_full_scale_V, 16), en, periods)
+            for nd, flags, c in items:
+                b.command(self.index[nd], counts_to_volts(c, self.options.voltage_full_scale_V, 16),
+                          bool(flags & FLAG_ENABLE), periods, reset=bool(flags & FLAG_FAULT_RESET))
             reply = self._reply(seq, nodes)
             if fault in ("drop", "bus_off"):
                 pass
