@@ -36,27 +36,25 @@ from dataclasses import dataclass
 import numpy as np
 
 from motorctl.motion import blend as _bl
+from motorctl.motion import profile as _prof
+from motorctl.motion import rules as _rules
 from motorctl.motion.blend import Geo
 from motorctl.motion.gcode import AXES, Arc, Dwell, Event, Line, Pause, Program
+from motorctl.motion.path_trajectory import PathTrajectory
+from motorctl.motion.rules import ACCEL_SHARE, JERK_STEP  # noqa: F401  (the rules' shares, re-exported)
+from motorctl.motion.trajectory import Trajectory
 
 #: the loop's period [s] (5 kHz): the default grid of the filters
 PERIOD_S = 2e-4
-#: share of each axis's a_max (along the tangent) the path-speed profile uses on a curve and
-#: around a join (the rest: the normal acceleration v²/R); a line's own zone uses all of it
-ACCEL_SHARE = 0.5
-#: share of each axis's j_max a join's curvature step and kink take (spread over T2 by the second
-#: moving average); the rest is the path acceleration's ramps and, on a curve, the jerk of moving
-#: on it (3·s̈·ṡ·κ + ṡ³κ²). A line alone takes all of it for its ramps
-JERK_STEP = 0.5
 #: the second moving average's length T2 [s]: it spreads a join's curvature step over T2
 SMOOTH_S = 2e-3
 #: a join or a blend the path could pass only below this share of its neighbours' speed is an
 #: exact stop instead (stopping costs less than crawling through the widened speed zone)
 STOP_SHARE = 0.35
-#: a line shorter than this between two blends [m] is passed within one period at any speed
-#: where its curvature steps would matter (docs/motion.md, "The planner")
-REMNANT_M = 5e-7
-#: the arc tolerance used where G61 (exact stop) asks for none [m]
+#: the first moving average's length over max(a_max/j_max): 1 with the profile's accelerations of
+#: opposite signs T1 apart (profile.flat_peaks), 2 without (any acceleration step 2·a_max)
+RAMP = 1.0
+#: the arc tolerance used where G61 or G64 without P (exact path) asks for none [m]
 EXACT_ARC_TOL_M = 1e-6
 #: the rounding of program arithmetic (mm → m, centre + radius) a soft limit forgives [m]
 ROUND_M = 1e-12
@@ -78,40 +76,6 @@ class AxisLimits:
     v_max: float
     a_max: float
     j_max: float
-
-
-class Trajectory:
-    """Setpoints of n_axes axes over [0, duration].
-
-    duration [s]; axes: the axis names (len n_axes); events: [(t [s], Event)] in time order (the
-    time its output is set); stops: [(t [s], Pause)] (the trajectory is at rest at t: the caller
-    holds its clock there until resume); start, end: the first and final positions, shape
-    (n_axes,) [m].
-    """
-
-    axes: tuple[str, ...]
-    duration: float
-    start: np.ndarray
-    end: np.ndarray
-    events: list[tuple[float, Event]]
-    stops: list[tuple[float, Pause]]
-
-    def sample(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(x [m], v [m/s], a [m/s²]) at time t [s], each shape (n_axes,); before 0 the start at
-        rest, after ``duration`` the end at rest."""
-        out = np.empty((1, 3, len(self.axes)))
-        self.sample_into(t, 1.0, out)
-        return out[0, 0].copy(), out[0, 1].copy(), out[0, 2].copy()
-
-    def sample_into(self, t0: float, dt: float, out: np.ndarray) -> None:
-        """Fill out[k, 0:3, i] = (x, v, a) of axis i at t0 + k·dt for k < out.shape[0]
-        (out shape (n, 3, n_axes), float64); the work is proportional to the block, not to the
-        program."""
-        raise NotImplementedError
-
-    def line_at(self, t: float) -> int:
-        """The source line of the segment being run at time t [s] (0 before the first)."""
-        return 0
 
 
 # ------------------------------------------------------------------------------ point to point
@@ -269,34 +233,6 @@ def point_to_point(start: Sequence[float], goal: Sequence[float], limits: Sequen
 
 
 # ------------------------------------------------------------------------------ path programs
-def _curve_speed(kappa: float, a_n: float, j_curve: float, tol_left: float, smooth_s: float) -> float:
-    """The highest path speed [m/s] on a piece of curvature ``kappa`` [1/m] (> 0): the normal
-    acceleration v²κ within ``a_n``; the short filter's deviation from the curve (the chord of
-    a window of path v·T_c: κ(v·T_c)²/8) within ``tol_left`` [m]; of the jerk of moving on a
-    curve, s⃛·t + 3·s̈·ṡ·κ·n − ṡ³κ²·t (the derivative of s̈·t + ṡ²κ·n), the term v³κ² within
-    half of ``j_curve`` (the path acceleration a is then lowered so that 3·a·v·κ + v³κ² stays
-    within it)."""
-    v = math.sqrt(a_n / kappa)
-    if math.isfinite(tol_left):
-        v = min(v, math.sqrt(8.0 * max(tol_left, 0.0) / kappa) / smooth_s)
-    return min(v, (0.5 * j_curve / (kappa * kappa)) ** (1.0 / 3.0))
-
-
-def _join_speed(dkappa: float, kink: float, j_step: float, smooth_s: float, period: float) -> float:
-    """The highest speed [m/s] through a join of two pieces whose curvature steps by ``dkappa``
-    [1/m] and whose tangent turns by ``kink`` [rad]: the short filter of length T_c spreads the
-    normal acceleration's step v²Δκ over T_c (jerk v²Δκ/T_c) and the velocity's step v·α over
-    T_c (an acceleration step v·α/T_c in one period h: jerk v·α/(T_c·h)); their sum within
-    ``j_step``."""
-    a = dkappa / smooth_s
-    b = kink / (smooth_s * period)
-    if a <= 0 and b <= 0:
-        return math.inf
-    if a <= 0:
-        return j_step / b
-    return (-b + math.sqrt(b * b + 4 * a * j_step)) / (2 * a)
-
-
 def _same_circle(a: Geo, b: Geo, tol_m: float = 1e-9) -> bool:
     """Whether arc ``b`` continues arc ``a`` on the same circle: both arcs, the same centre and
     radius within ``tol_m`` [m] (a's end radius, b's start radius), the same turning direction,
@@ -311,224 +247,34 @@ def _same_circle(a: Geo, b: Geo, tol_m: float = 1e-9) -> bool:
     return bool(np.all(np.abs(a.p1 - b.p0) <= tol_m))
 
 
-class PathTrajectory(Trajectory):
-    """A planned program: the blended path, the path-speed profile and its two moving averages
-    (module docstring)."""
-
-    def __init__(self, axes, prof, geo, ix, iy, n1, n2, period, start, end, events, stops):
-        self.axes = tuple(axes)
-        (self._t0, self._ta, self._tc, self._td, self._v0, self._vp, self._acc, self._la, self._lc,
-         self._len, self._s0, self._lines) = prof
-        (self._gs0, self._glen, self._kind, self._p0, self._p1, self._u, self._arc) = geo
-        self._ix, self._iy = ix, iy
-        self.n1, self.n2, self.period = n1, n2, period
-        self._m = n1 + n2 - 2
-        self.delay = 0.5 * self._m * period
-        self.t_profile = float(self._t0[-1] + self._ta[-1] + self._tc[-1] + self._td[-1]) if len(self._t0) else 0.0
-        self.duration = self.t_profile + (n1 + n2 + 1) * period
-        self.start, self.end = start, end
-        self.events, self.stops = events, stops
-
-    def _shrink(self, om: np.ndarray) -> np.ndarray:
-        """1/S(ω) − 1: the relative radius the short moving average of n2 samples shrinks back
-        to 0 on a circle run at angular rate ω [rad/s], S its gain sin(n ω h/2)/(n sin(ω h/2))
-        (a moving average's frequency response)."""
-        x = 0.5 * np.asarray(om, dtype=float) * self.period
-        small = np.abs(x) < 1e-9
-        xs = np.where(small, 1.0, x)
-        s = np.where(small, 1.0, np.sin(self.n2 * xs) / (self.n2 * np.sin(xs)))
-        return 1.0 / s - 1.0
-
-    def _profile(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The unfiltered path-speed profile: (s [m], ṡ [m/s]) at times t (any shape)."""
-        k = np.clip(np.searchsorted(self._t0, t, side="right") - 1, 0, len(self._t0) - 1)
-        tau = np.clip(t - self._t0[k], 0.0, None)
-        ta, tc, td = self._ta[k], self._tc[k], self._td[k]
-        v0, vp, acc = self._v0[k], self._vp[k], self._acc[k]
-        t1 = np.minimum(tau, ta)
-        s = v0 * t1 + 0.5 * acc * t1 * t1
-        sd = np.where(tau < ta, v0 + acc * t1, vp)
-        s = s + vp * np.clip(tau - ta, 0.0, tc)
-        t3 = np.clip(tau - ta - tc, 0.0, td)
-        dec = tau > ta + tc
-        s = s + np.where(dec, vp * t3 - 0.5 * acc * t3 * t3, 0.0)
-        sd = np.where(dec, np.maximum(vp - acc * t3, 0.0), sd)
-        done = tau >= ta + tc + td
-        sd = np.where(done, 0.0, sd)
-        length = self._len[k]
-        s = np.where(done, length, np.minimum(s, length))
-        return self._s0[k] + s, sd
-
-    def _path(self, s: np.ndarray, sd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The blended path's point and velocity at path length s moving at ṡ (shapes s.shape +
-        (n_axes,)); arcs on the radius the short filter shrinks back onto theirs."""
-        k = np.clip(np.searchsorted(self._gs0, s, side="right") - 1, 0, len(self._gs0) - 1)
-        length = self._glen[k]
-        sig = np.clip(s - self._gs0[k], 0.0, length)
-        u = self._u[k]
-        x = self._p0[k] + sig[..., None] * u
-        v = sd[..., None] * u
-        arc = self._kind[k] == 1
-        if np.any(arc):                                    # the arcs' points only
-            sel = np.nonzero(arc)
-            ka, sg, sda, la = k[sel], sig[sel], sd[sel], length[sel]
-            cx, cy, r0, r1, phi0, sweep, fi, fo = (self._arc[ka, i] for i in range(8))
-            safe = np.where(la > 0, la, 1.0)
-            f = sg / safe
-            phi = phi0 + sweep * f
-            r = r0 + (r1 - r0) * f
-            dphi = sweep / safe
-            dr = (r1 - r0) / safe
-            rs = np.where(r > 0, r, 1.0)
-            g = self._shrink(sda * np.abs(dphi))
-            # the compensation faded in over fi of path at the arc's start and out over fo at
-            # its end (0: none there, the same circle goes on; < 0: not compensated), by a
-            # smoothstep of the path (the radial velocity it adds starts and ends at 0)
-            wi = np.where(fi > 0, sg / np.where(fi > 0, fi, 1.0), np.inf)
-            wo = np.where(fo > 0, (la - sg) / np.where(fo > 0, fo, 1.0), np.inf)
-            u_ = np.clip(np.minimum(wi, wo), 0.0, 1.0)
-            du = np.where((u_ > 0) & (u_ < 1), np.where(wi < wo, 1.0 / np.where(fi > 0, fi, 1.0),
-                                                       -1.0 / np.where(fo > 0, fo, 1.0)), 0.0)
-            w = u_ * u_ * (3.0 - 2.0 * u_)
-            dw = 6.0 * u_ * (1.0 - u_) * du
-            g = np.where((fi < 0) | (fo < 0), 0.0, g)
-            rr = r + rs * g * w
-            c, sn = np.cos(phi), np.sin(phi)
-            radial = sda * (dr + rs * g * dw)
-            ax, ay = self._ix, self._iy
-            x[sel + (ax,)] = cx + rr * c
-            x[sel + (ay,)] = cy + rr * sn
-            v[sel + (ax,)] = radial * c - sda * rr * dphi * sn
-            v[sel + (ay,)] = radial * sn + sda * rr * dphi * c
-        return x, v
-
-    def _filtered(self, t: np.ndarray, n_out: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """x, v, a (each (rows, n_out, n_axes)) at the last n_out of each row of grid times t
-        (shape (rows, n_out + n1 + n2), spaced by the period): s and ṡ through the moving
-        average of n1, the path at s, then x and v through the moving average of n2, a the
-        backward difference of v."""
-        n1, n2, h = self.n1, self.n2, self.period
-        s, sd = self._profile(t)
-        ref = s[:, :1]
-        z = np.zeros((s.shape[0], 1))
-        c = np.cumsum(np.concatenate([z, s - ref], axis=1), axis=1)
-        sf = (c[:, n1:] - c[:, :-n1]) / n1 + ref
-        c = np.cumsum(np.concatenate([z, sd], axis=1), axis=1)
-        sdf = (c[:, n1:] - c[:, :-n1]) / n1
-        xr, vr = self._path(sf, sdf)                              # (rows, n_out + n2 + 1, na)
-        xref = xr[:, :1]
-        z = np.zeros((xr.shape[0], 1, xr.shape[2]))
-        c = np.cumsum(np.concatenate([z, xr - xref], axis=1), axis=1)
-        x = (c[:, n2:] - c[:, :-n2]) / n2 + xref
-        c = np.cumsum(np.concatenate([z, vr], axis=1), axis=1)
-        v = (c[:, n2:] - c[:, :-n2]) / n2
-        a = (vr[:, n2:] - vr[:, :-n2]) / (n2 * h)
-        return x[:, -n_out:], v[:, -n_out:], a[:, -n_out:]
-
-    def sample_into(self, t0: float, dt: float, out: np.ndarray) -> None:
-        n = out.shape[0]
-        h, n1, n2 = self.period, self.n1, self.n2
-        if abs(dt - h) <= 1e-12 * h:
-            g = t0 + np.arange(-(n1 + n2), n) * h
-            x, v, a = self._filtered(g[None, :], n)
-            out[:, 0], out[:, 1], out[:, 2] = x[0], v[0], a[0]
-        else:
-            t = t0 + np.arange(n) * dt
-            for lo in range(0, n, 256):                      # the filters anchored at each t
-                tt = t[lo:lo + 256]
-                g = tt[:, None] + np.arange(-(n1 + n2), 1) * h
-                x, v, a = self._filtered(g, 1)
-                out[lo:lo + len(tt), 0], out[lo:lo + len(tt), 1], out[lo:lo + len(tt), 2] = x[:, 0], v[:, 0], a[:, 0]
-        t = t0 + np.arange(n) * dt
-        late = t >= self.duration
-        if np.any(late):
-            out[late, 0] = self.end
-            out[late, 1:3] = 0.0
-
-    #: grid points computed at once by :meth:`sample` (the cache a streaming caller walks through)
-    CACHE = 256
-
-    def sample(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(x, v, a) at t [s] (each shape (n_axes,)): on the planner's grid (within 1e-6 of a
-        period) the grid's setpoints exactly; between two grid points x and v interpolated by
-        cubic Hermite polynomials (from x, v and v, a at both ends) and a linearly. Grid points
-        are computed a block of :data:`CACHE` at a time (the fast path of :meth:`sample_into`),
-        so a caller walking forward pays about 1 µs a call."""
-        if t >= self.duration:
-            z = np.zeros(len(self.axes))
-            return self.end.copy(), z, z.copy()
-        h = self.period
-        q = t / h
-        k = math.floor(q)
-        frac = q - k
-        if frac > 1.0 - 1e-6:
-            k, frac = k + 1, 0.0
-        elif frac < 1e-6:
-            frac = 0.0
-        c = getattr(self, "_cache", None)
-        need_hi = k + (1 if frac else 0)
-        if c is None or not (self._c0 <= k and need_hi < self._c0 + self.CACHE):
-            if c is None:
-                c = self._cache = np.empty((self.CACHE, 3, len(self.axes)))
-            self._c0 = k
-            self.sample_into(k * h, h, c)
-        i = k - self._c0
-        if frac == 0.0:
-            return c[i, 0].copy(), c[i, 1].copy(), c[i, 2].copy()
-        x0, v0, a0 = c[i]
-        x1, v1, a1 = c[i + 1]
-        s = frac
-        h00, h10, h01, h11 = (2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2)
-        x = h00 * x0 + h10 * h * v0 + h01 * x1 + h11 * h * v1
-        v = h00 * v0 + h10 * h * a0 + h01 * v1 + h11 * h * a1
-        return x, v, a0 + (a1 - a0) * s
-
-    def line_at(self, t: float) -> int:
-        tu = t - self.delay
-        if tu < 0 or not len(self._t0):
-            return 0
-        k = int(np.searchsorted(self._t0, tu, side="right") - 1)
-        return int(self._lines[min(k, len(self._lines) - 1)])
-
-
 def _filter_lengths(limits: Sequence[AxisLimits], period: float) -> tuple[int, int]:
-    """(N1, N2) samples of the two moving averages: T1 (of the path speed) = 2·max(a_max/j_max),
-    so that a line's path acceleration ramps between ±a_max within each axis's j_max (the
-    moving average of a velocity whose slope steps by 2a has the jerk 2a/T1); T2 (of the
-    setpoints) = SMOOTH_S."""
+    """(N1, N2) samples of the two moving averages: T1 (of the path speed) = max(a_max/j_max)
+    (the path acceleration steps by at most a_max within T1: accelerations of opposite signs
+    are T1 apart, profile.flat_peaks, so its ramps keep j_max); T2 (of the setpoints) =
+    SMOOTH_S."""
     ratio = max(lim.a_max / lim.j_max for lim in limits)
-    n1 = max(2, math.ceil(2.0 * ratio / period - 1e-9))
+    n1 = max(2, math.ceil(RAMP * ratio / period - 1e-9))
     n2 = max(2, int(round(SMOOTH_S / period)))
     return n1, n2
 
 
-def _speed_zones(starts, ends, vs, accs, breaks, total):
-    """The smallest speed and acceleration over zones [starts, ends] (arrays) on each elementary
-    interval between the sorted points ``breaks`` (the zones' ends and the pieces' joins within
-    [0, total]): (lo, hi, v, acc) per interval."""
-    import heapq
-    pts = np.unique(np.clip(np.concatenate([breaks, starts, ends]), 0.0, total))
-    order = np.argsort(starts, kind="stable")
-    hv: list = []
-    ha: list = []
-    out_v = np.empty(len(pts) - 1)
-    out_a = np.empty(len(pts) - 1)
-    j = 0
-    nz = len(order)
-    for i in range(len(pts) - 1):
-        lo, hi = pts[i], pts[i + 1]
-        while j < nz and starts[order[j]] <= lo:
-            z = order[j]
-            heapq.heappush(hv, (vs[z], ends[z]))
-            heapq.heappush(ha, (accs[z], ends[z]))
-            j += 1
-        while hv and hv[0][1] < hi:
-            heapq.heappop(hv)
-        while ha and ha[0][1] < hi:
-            heapq.heappop(ha)
-        out_v[i] = hv[0][0] if hv else math.inf
-        out_a[i] = ha[0][0] if ha else math.inf
-    return pts[:-1], pts[1:], out_v, out_a
+def _curvature_range(kappa: np.ndarray, lengths: np.ndarray, w: float) -> float:
+    """max − min [1/m] of the curvature averaged over every stretch of path ``w`` [m] long within
+    consecutive pieces of curvature ``kappa`` and ``lengths`` [m] (shape (n,) each); the pieces'
+    own range when w is 0."""
+    b = np.concatenate([[0.0], np.cumsum(lengths)])
+    if not w > 0.0 or w >= b[-1]:
+        return float(kappa.max() - kappa.min()) if w <= 0.0 else 0.0
+    F = np.concatenate([[0.0], np.cumsum(kappa * lengths)])
+    x = np.clip(np.concatenate([b, b - w]), 0.0, b[-1] - w)
+    avg = (np.interp(x + w, b, F) - np.interp(x, b, F)) / w
+    return float(avg.max() - avg.min())
+
+
+def _blend_tol(g: Geo) -> float:
+    """The G64 P a piece may use [m]: 0 under G61, and under G64 without P (no tolerance given:
+    the path is followed exactly, corners stop)."""
+    return g.tol if 0.0 < g.tol < math.inf else 0.0
 
 
 def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
@@ -553,17 +299,11 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
     iy = axes.index("Y") if "Y" in axes else -1
     na = len(axes)
     n1, n2 = _filter_lengths(limits, period)
-    t_c = n2 * period
-    t_s = n1 * period
+    t1, t2 = n1 * period, n2 * period
     tw = (n1 + n2 + 1) * period                         # a rest: both windows held in it
-    vlim = np.array([lim.v_max for lim in limits])
-    alim = np.array([lim.a_max for lim in limits])
-    jlim = np.array([lim.j_max for lim in limits])
-    a_min, j_min = float(alim.min()), float(jlim.min())
-    a_n = (1.0 - ACCEL_SHARE) * a_min
-    a_curve = ACCEL_SHARE * a_min
-    t_s0 = _filter_lengths(limits, period)[0] * period
-    a_join = min(a_curve, 0.5 * (1.0 - JERK_STEP) * j_min * t_s0)   # ramps 2a/T1 beside a join's step
+    vlim = [float(lim.v_max) for lim in limits]
+    alim = [float(lim.a_max) for lim in limits]
+    jlim = [float(lim.j_max) for lim in limits]
 
     def proj(p):
         return np.asarray(p, dtype=float)[idx].copy()
@@ -604,8 +344,12 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
             dz[ix] = dz[iy] = 0.0
             r1 = float(math.hypot(seg.end[0] - seg.center[0], seg.end[1] - seg.center[1]))
             phi0 = math.atan2(seg.start[1] - seg.center[1], seg.start[0] - seg.center[0])
-            add(Geo(1, p0, p1, dz / seg.length, seg.length, seg.line, seg.feed * feed_scale, seg.tolerance,
-                    len(moves), arc=(float(seg.center[0]), float(seg.center[1]), seg.radius, r1, phi0, seg.sweep)))
+            sweep = seg.sweep
+            # the length along the turn and the radius's change (radii that differ: a spiral)
+            length = math.hypot(math.hypot(abs(sweep) * 0.5 * (seg.radius + r1), r1 - seg.radius),
+                                float(np.linalg.norm(dz)))
+            add(Geo(1, p0, p1, dz / length, length, seg.line, seg.feed * feed_scale, seg.tolerance,
+                    len(moves), arc=(float(seg.center[0]), float(seg.center[1]), seg.radius, r1, phi0, sweep)))
         elif isinstance(seg, Dwell):
             act("rest", seg.seconds, seg)
         elif isinstance(seg, Pause):
@@ -614,38 +358,47 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
             act("event" if seg.synchronized else "word", 0.0, seg)
     for k, g in enumerate(moves):
         g.src = k
+        if not _blend_tol(g) > 0.0:
+            g.q = 0.0                    # no tolerance: nothing merged either
     stop_after = [g.tol == 0.0 or any(a[0] != "event" for a in after.get(k, ())) for k, g in enumerate(moves)]
     barrier = [stop_after[k] or k in after for k in range(len(moves))]
     geos = _bl.merge_collinear(moves, barrier)
+    room = {id(g): 0.5 * g.length for g in geos if g.kind == 0}
+    # ---- a short arc between two lines rounding their corner (a kerf arc): the corner's blend
+    for k in range(1, len(geos) - 1):
+        a, g, b = geos[k - 1], geos[k], geos[k + 1]
+        if g.kind != 1 or a.kind != 0 or b.kind != 0 or barrier[a.src] or barrier[g.src]:
+            continue
+        tol = min(_blend_tol(a), _blend_tol(g))
+        if tol > 0.0:
+            new = _bl.reblend_arc(a, g, b, _bl.BLEND_SHARE * (tol - max(a.dev, b.dev)), ix, iy)
+            if new is not None:
+                a.p1 = new.p0.copy()
+                a.length = float(np.linalg.norm(a.p1 - a.p0))
+                b.p0 = new.p1.copy()
+                b.length = float(np.linalg.norm(b.p1 - b.p0))
+                new.tol = g.tol
+                geos[k] = new
 
-    # ---- each piece's own limits
+    # ---- each piece's own limits (rules.py), once per piece
+    limits_of: dict[int, tuple[Geo, tuple[float, float]]] = {}     # id -> (the piece, kept alive; its limits)
+
     def base(g: Geo) -> tuple[float, float]:
-        """(speed, path acceleration) of one piece."""
-        v = math.inf if g.feed is None else g.feed
-        au = np.abs(g.u)
-        if g.kind == 0:
-            nz = au > 0
-            v = min(v, float(np.min(vlim[nz] / au[nz])))
-            return v, float(np.min(alim[nz] / au[nz]))        # no normal acceleration on a line
-        v = min(v, float(min(vlim[ix], vlim[iy])))
-        for i in range(na):
-            if au[i] > 0:
-                v = min(v, vlim[i] / au[i])
-        kappa = 1.0 / max(min(g.arc[2], g.arc[3]), 1e-12)
-        tol = g.tol if g.tol > 0 else EXACT_ARC_TOL_M
-        j_c = (1.0 - JERK_STEP) * j_min
-        v = min(v, _curve_speed(kappa, a_n, j_c, tol - g.dev, t_c))
-        # the path acceleration's ramps 2·a/T1 and the curve's 3·a·v·κ + v³κ² share j_c
-        return v, min(a_curve, (j_c - v ** 3 * kappa * kappa) / (2.0 / t_s + 3.0 * v * kappa))
+        got = limits_of.get(id(g))
+        if got is None:
+            tol = _blend_tol(g) if _blend_tol(g) > 0 else EXACT_ARC_TOL_M
+            got = limits_of[id(g)] = (g, _rules.piece_limits(g, vlim, alim, jlim, ix, iy, tol_left=tol - g.dev,
+                                                             t1=t1, t2=t2, ramp=RAMP))
+        return got[1]
+
+    def through(a: Geo, b: Geo, dkappa=None) -> float:
+        dev_left = min((_blend_tol(g) if _blend_tol(g) > 0 else EXACT_ARC_TOL_M) - g.dev for g in (a, b))
+        return _rules.join_speed(a, b, jlim, ix, iy, t2=t2, period=period, dev_left=dev_left, dkappa=dkappa)
 
     # ---- corners: a blend arc between two lines within the tolerance, a join where the tangent
     # goes on (a curvature step, a kink small enough for the short filter), else an exact stop
     path: list[Geo] = []
     join_v: list[float] = []              # join_v[k]: the speed through the join after path[k]; 0: stop
-    room = {}
-    for g in geos:
-        if g.kind == 0:
-            room[id(g)] = 0.5 * g.length
     for g in geos:
         if not path:
             path.append(g)
@@ -656,51 +409,67 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
             join_v.append(0.0)
             path.append(g)
             continue
-        ta, tb = a.tangents(ix, iy)[1], g.tangents(ix, iy)[0]
-        kink = 2.0 * math.asin(min(1.0, 0.5 * float(np.linalg.norm(tb - ta))))
-        va, vb = base(a)[0], base(g)[0]
-        v_near = min(va, vb)
-        if kink <= _bl.TANGENT_RAD:
-            vj = _join_speed(abs(g.curvature() - a.curvature()), 0.0, JERK_STEP * j_min, t_c, period)
-            join_v.append(vj if vj >= STOP_SHARE * v_near else 0.0)
-            path.append(g)
-            continue
-        vk = _join_speed(abs(g.curvature() - a.curvature()), kink, JERK_STEP * j_min, t_c, period)
-        if vk >= STOP_SHARE * v_near:     # a kink the short filter rounds at that speed
-            join_v.append(vk)
-            path.append(g)
-            continue
-        done = False
-        if a.kind == 0 and g.kind == 0 and a.tol > 0:
-            tol = _bl.BLEND_SHARE * (a.tol - max(a.dev, g.dev)) if math.isfinite(a.tol) else math.inf
+        v_near = min(base(a)[0], base(g)[0])
+        vk = through(a, g)                # tangent, or a kink the short filter rounds at that speed
+        blend = None
+        tol_a = _blend_tol(a)
+        if (vk < v_near and a.kind == 0 and g.kind == 0 and tol_a > 0
+                and _rules.join_frame(a, g, ix, iy)[2] > _bl.TANGENT_RAD):
+            tol = _bl.BLEND_SHARE * (tol_a - max(a.dev, g.dev))
             bl = _bl.corner_blend(a, g, tol, room[id(a)], room[id(g)], ix, iy) if tol > 0 else None
             if bl is not None:
-                arc, dev, lt = bl
+                arc = bl[0]
                 arc.tol = a.tol                   # the program's P (the blend used a share of it)
                 kappa = 1.0 / arc.arc[2]
-                v_arc = min(base(arc)[0], _join_speed(kappa, 0.0, JERK_STEP * j_min, t_c, period))
-                if v_arc >= STOP_SHARE * v_near:
-                    a.p1 = arc.p0.copy()
-                    a.length = float(np.linalg.norm(a.p1 - a.p0))
-                    g.p0 = arc.p1.copy()
-                    g.length = float(np.linalg.norm(g.p1 - g.p0))
-                    join_v.append(_join_speed(kappa, 0.0, JERK_STEP * j_min, t_c, period))
-                    path.append(arc)
-                    join_v.append(_join_speed(kappa, 0.0, JERK_STEP * j_min, t_c, period))
-                    path.append(g)
-                    done = True
-        if not done:
+                v_in, v_out = through(a, arc, kappa), through(arc, g, kappa)
+                blend = (min(base(arc)[0], v_in, v_out), arc, v_in, v_out)
+        if blend is not None and blend[0] > vk and blend[0] >= STOP_SHARE * v_near:
+            _, arc, v_in, v_out = blend
+            a.p1 = arc.p0.copy()
+            a.length = float(np.linalg.norm(a.p1 - a.p0))
+            g.p0 = arc.p1.copy()
+            g.length = float(np.linalg.norm(g.p1 - g.p0))
+            join_v += [v_in, v_out]
+            path += [arc, g]
+        elif vk >= STOP_SHARE * v_near:
+            join_v.append(vk)
+            path.append(g)
+        else:                             # slower than this share of the feed: a stop costs less
             join_v.append(0.0)
             path.append(g)
-    # a line left shorter than REMNANT_M between two pieces (two blends' ends nearly meeting) lies
-    # between two samples at any speed where it matters: its joins are one step, from the piece
-    # before it to the piece after
-    for k in range(1, len(path) - 1):
-        g = path[k]
-        if g.kind == 0 and g.length < REMNANT_M and join_v[k - 1] > 0 and join_v[k] > 0:
-            vj = _join_speed(abs(path[k + 1].curvature() - path[k - 1].curvature()), 0.0, JERK_STEP * j_min,
-                             t_c, period)
-            join_v[k - 1] = join_v[k] = max(min(join_v[k - 1], join_v[k]), vj)
+    # a join's curvature step as the second average sees it: each sample's direction turns by the
+    # curvature averaged over the path between two samples (v·h), the average over T2 spreads the
+    # changes of that; where pieces shorter than v·(T2 + h) follow, the range of the averaged
+    # curvature over the window about the join (a short piece between two joins puts both steps
+    # into one window: blends of alternating turn; a line shorter than v·h between two arcs of one
+    # circle hardly shows), the speed the largest v whose range at v·h keeps the join's jerk
+    kap = np.array([g.curvature() for g in path])
+    lens = np.array([g.length for g in path])
+    for k, vj in enumerate(join_v):
+        if not vj > 0.0:
+            continue
+        v_hi = min(base(path[k])[0], base(path[k + 1])[0])
+        d = v_hi * (t2 + period)
+        lo_k, hi_k, left, right = k, k + 1, lens[k], lens[k + 1]
+        while left < d and lo_k > 0 and join_v[lo_k - 1] > 0.0:
+            lo_k -= 1
+            left += lens[lo_k]
+        while right < d and hi_k < len(path) - 1 and join_v[hi_k] > 0.0:
+            hi_k += 1
+            right += lens[hi_k]
+        if hi_k - lo_k < 2:
+            continue
+        kk, ll = kap[lo_k:hi_k + 1], lens[lo_k:hi_k + 1]
+        v_top = through(path[k], path[k + 1], _curvature_range(kk, ll, v_hi * period))
+        if v_top >= v_hi:
+            join_v[k] = v_top
+            continue
+        lo_v, hi_v = 0.0, v_hi
+        while hi_v - lo_v > 1e-3 * hi_v:
+            mid = 0.5 * (lo_v + hi_v)
+            ok = through(path[k], path[k + 1], _curvature_range(kk, ll, mid * period)) >= mid
+            lo_v, hi_v = (mid, hi_v) if ok else (lo_v, mid)
+        join_v[k] = lo_v if lo_v >= STOP_SHARE * v_hi else 0.0    # slower: an exact stop costs less
 
     # drop pieces a blend left without length (their joins merge: the smaller speed)
     keep_p, keep_j = [], []
@@ -719,7 +488,7 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
                 last_of[src] = len(keep_p) - 1
     path, join_v = keep_p, keep_j
     # ---- the speed zones: each piece's limits on its length, each join's at its point, each
-    # widened by v·(T1 + T2) on both sides: the moving averages then never carry a faster part
+    # widened by v·(T1 + T2 + h) on both sides: the moving averages then never carry a faster part
     # of the profile into it (the path length their windows span at speed v)
     npth = len(path)
     gs0 = np.zeros(npth)
@@ -734,34 +503,32 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
         ze.append(gs0[k] + g.length + d)
         zv.append(v)
         za.append(acc)
-    for k, vj in enumerate(join_v):
-        if vj > 0 and math.isfinite(vj):
-            s = gs0[k + 1]
-            zs.append(s - vj * tw)
-            ze.append(s + vj * tw)
-            zv.append(vj)
-            za.append(a_join)                 # the join's step takes JERK_STEP: the path's ramps the rest
+    join_k = [k for k, vj in enumerate(join_v) if vj > 0 and math.isfinite(vj)]
+    for k in join_k:
+        # the speed about a join is within its pieces' (their zones reach over it): its zone's
+        # acceleration is that of the slower of the join and the pieces
+        vj, s = min(join_v[k], base(path[k])[0], base(path[k + 1])[0]), gs0[k + 1]
+        zs.append(s - vj * tw)
+        ze.append(s + vj * tw)
+        zv.append(vj)
+        za.append(_rules.join_accel(path[k], path[k + 1], vj, alim, jlim, ix, iy, t1=t1, t2=t2, ramp=RAMP))
     # a stop's rest holds both windows: nothing is carried across it, the zones end there
     stops_s = np.array([0.0] + [gs0[k + 1] for k in range(npth - 1) if join_v[k] == 0.0] + [total])
     if zs:
-        za_s, ze_s = np.array(zs), np.array(ze)
-        home = np.array([gs0[k] for k in range(npth)] + [gs0[k + 1] for k, vj in enumerate(join_v)
-                                                          if vj > 0 and math.isfinite(vj)])
-        i_lo = np.searchsorted(stops_s, home, side="right") - 1
-        i_hi = np.searchsorted(stops_s, home + np.array([g.length for g in path] + [0.0] * (len(home) - npth)),
-                               side="left")
-        zs = list(np.maximum(za_s, stops_s[np.clip(i_lo, 0, len(stops_s) - 1)]))
-        ze = list(np.minimum(ze_s, stops_s[np.clip(i_hi, 0, len(stops_s) - 1)]))
+        home = np.concatenate([gs0, gs0[np.array(join_k, dtype=int) + 1]])
+        home_end = np.concatenate([gs0 + np.array([g.length for g in path]), gs0[np.array(join_k, dtype=int) + 1]])
+        i_lo = np.clip(np.searchsorted(stops_s, home, side="right") - 1, 0, len(stops_s) - 1)
+        i_hi = np.clip(np.searchsorted(stops_s, home_end, side="left"), 0, len(stops_s) - 1)
+        zs = np.maximum(np.array(zs), stops_s[i_lo])
+        ze = np.minimum(np.array(ze), stops_s[i_hi])
     if npth:
-        lo, hi, iv, ia = _speed_zones(np.array(zs), np.array(ze), np.array(zv), np.array(za),
-                                      np.concatenate([gs0, [total]]), total)
+        lo, hi, iv, ia = _prof.speed_zones(np.asarray(zs, dtype=float), np.asarray(ze, dtype=float), np.array(zv),
+                                           np.array(za), np.concatenate([gs0, [total]]), total)
     else:
         lo = hi = iv = ia = np.zeros(0)
-    # ---- the profile's pieces: the intervals, and rests where the path stops
-    stop_at = {}                            # path index k -> rest actions after it
-    for k in range(npth - 1):
-        if join_v[k] == 0.0:
-            stop_at[k] = []
+    # ---- the intervals and the rests where the path stops: at a stop the first rest holds both
+    # windows (tw); what follows at rest there adds only its own time (a dwell's seconds)
+    stop_at: dict[int, list] = {k: [] for k in range(npth - 1) if join_v[k] == 0.0}
     events_after: dict[int, list] = {}
     for src, acts in after.items():
         k = last_of.get(src, -1) if src >= 0 else -1
@@ -770,126 +537,77 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
                 events_after.setdefault(k, []).append(seg)
             else:
                 stop_at.setdefault(k, []).append((kind, sec, seg))
-    P_len, P_v, P_acc, P_rest, P_s0, P_line = [], [], [], [], [], []
-    marks: list[tuple[int, object]] = []
-    synced: list[tuple[int, object]] = []
+    I_len, I_v, I_acc, I_rest, I_line = [], [], [], [], []
+    marks: list[tuple[int, object]] = []              # (interval index of a rest, Pause or Event)
+    synced: list[tuple[float, object]] = []           # (path length, Event)
 
-    def rest(seconds, line, s):
-        P_len.append(0.0); P_v.append(0.0); P_acc.append(0.0); P_rest.append(seconds)
-        P_s0.append(s); P_line.append(line)
+    def rest(seconds, line):
+        I_len.append(0.0); I_v.append(0.0); I_acc.append(0.0); I_rest.append(seconds); I_line.append(line)
 
-    def rests_at(k, s, line):
-        prev_word = False
+    def rests_at(k, line, held):
         for kind, sec, seg in stop_at.get(k, []):
-            if kind == "word":
-                if not prev_word:
-                    rest(tw, seg.line, s)
-                prev_word = True
-            else:
-                rest(tw + sec, seg.line, s)
-                prev_word = False
+            rest((0.0 if held else tw) + (sec if kind == "rest" else 0.0), seg.line)
+            held = True
             if kind != "rest":
-                marks.append((len(P_len) - 1, seg))
-        if not stop_at.get(k) and k in stop_at:
-            rest(tw, line, s)
+                marks.append((len(I_len) - 1, seg))
+        if not held:
+            rest(tw, line)
 
-    rests_at(-1, 0.0, path[0].line if npth else 0)
+    rests_at(-1, path[0].line if npth else 0, True)  # before the first move: at rest already
     for seg in events_after.get(-1, []):
-        synced.append((len(P_len) - 1, seg))
+        synced.append((0.0, seg))
     gi = 0
     for i in range(len(lo)):
         while gi + 1 < npth and gs0[gi + 1] <= lo[i]:
             gi += 1
-        P_len.append(float(hi[i] - lo[i])); P_v.append(float(iv[i])); P_acc.append(float(ia[i]))
-        P_rest.append(0.0); P_s0.append(float(lo[i])); P_line.append(path[gi].line)
-        at_end = gi + 1 < npth and abs(gs0[gi + 1] - hi[i]) <= 0.0 or (gi == npth - 1 and i == len(lo) - 1)
+        I_len.append(float(hi[i] - lo[i])); I_v.append(float(iv[i])); I_acc.append(float(ia[i]))
+        I_rest.append(0.0); I_line.append(path[gi].line)
+        at_end = (gi + 1 < npth and gs0[gi + 1] == hi[i]) or (gi == npth - 1 and i == len(lo) - 1)
         if at_end:
             for seg in events_after.get(gi, []):
-                synced.append((len(P_len) - 1, seg))
+                synced.append((float(hi[i]), seg))
             if gi in stop_at:
-                rests_at(gi, float(hi[i]), path[gi].line)
-    if not P_len:
-        rest(0.0, 0, 0.0)
-    npc = len(P_len)
-    L = np.array(P_len)
-    V = np.array(P_v)
-    A = np.array(P_acc)
-    # junction speeds: vj[k] after piece k: 0 at rests and the end; else the smaller side
-    vj = np.zeros(npc)
-    for k in range(npc - 1):
-        if L[k] > 0 and L[k + 1] > 0:
-            vj[k] = min(V[k], V[k + 1])
-    # backward and forward passes (look-ahead over the whole program)
-    for k in range(npc - 2, -1, -1):
-        if L[k + 1] > 0:
-            vj[k] = min(vj[k], math.sqrt(vj[k + 1] ** 2 + 2 * A[k + 1] * L[k + 1]))
-    vin = 0.0
-    for k in range(npc):
-        if L[k] > 0:
-            vj[k] = min(vj[k], math.sqrt(vin * vin + 2 * A[k] * L[k]))
-        vin = vj[k] if L[k] > 0 else 0.0
-    # ---- per-piece trapezoids
-    t0s, tas, tcs, tds, v0s, vps = (np.zeros(npc) for _ in range(6))
-    las, lcs = np.zeros(npc), np.zeros(npc)
-    t = 0.0
-    v0 = 0.0
-    t_end = np.zeros(npc)
-    for k in range(npc):
-        v1 = vj[k]
-        if L[k] == 0.0:
-            ta = td = vp = la = lc = 0.0
-            v0 = 0.0
-            # a rest ends on the grid: a pause's stop time is then a grid point (exact setpoints)
-            tc = max(math.ceil((t + P_rest[k]) / period - 1e-9) * period - t, 0.0)
-        else:
-            a = A[k]
-            vp = min(V[k], math.sqrt(max((2 * a * L[k] + v0 * v0 + v1 * v1) / 2, 0.0)))
-            vp = max(vp, v0, v1)
-            ta = (vp - v0) / a
-            td = (vp - v1) / a
-            la = (vp * vp - v0 * v0) / (2 * a)
-            ld = (vp * vp - v1 * v1) / (2 * a)
-            lc = max(L[k] - la - ld, 0.0)
-            tc = lc / vp if vp > 0 else 0.0
-        t0s[k], tas[k], tcs[k], tds[k], v0s[k], vps[k], las[k], lcs[k] = t, ta, tc, td, v0, vp, la, lc
-        t += ta + tc + td
-        t_end[k] = t
-        v0 = v1
+                rests_at(gi, path[gi].line, False)
+    if not I_len:
+        rest(0.0, 0)
+    L, V, A = np.array(I_len), np.array(I_v), np.array(I_acc)
+    vj = _prof.junction_speeds(L, V, A)
+    phases, _ = _prof.trapezoids(L, V, A, vj, I_rest, I_line)
+    if RAMP < 2.0:
+        _prof.flat_peaks(phases, t1)
+    # the rests, in order, are the phases at rest (flat_peaks moves the others)
+    rest_phase = dict(zip((k for k in range(len(I_len)) if I_len[k] == 0.0),
+                          (k for k, (d, v0) in enumerate(zip(phases[1], phases[2])) if d == 0.0 and v0 == 0.0)))
+    prof = _prof.Phases(*phases, period=period)
     # ---- the geometry table; arcs' compensation faded over 2·v·T2 of path where the circle changes
-    G = np.zeros((npth, 8))
-    kinds = np.zeros(npth, dtype=int)
-    p0s, p1s, us = np.zeros((npth, na)), np.zeros((npth, na)), np.zeros((npth, na))
+    G = np.zeros((max(npth, 1), 8))
+    kinds = np.zeros(max(npth, 1), dtype=int)
+    p0s, p1s, us = (np.zeros((max(npth, 1), na)) for _ in range(3))
     for k, g in enumerate(path):
         kinds[k], p0s[k], p1s[k], us[k] = g.kind, g.p0, g.p1, g.u
         if g.kind == 1:
-            fade = 2.0 * min(base(g)[0], 1e3) * t_c
+            fade = 2.0 * min(base(g)[0], 1e3) * t2
             fi = 0.0 if k > 0 and join_v[k - 1] > 0 and _same_circle(path[k - 1], g) else fade
             fo = 0.0 if k < npth - 1 and join_v[k] > 0 and _same_circle(g, path[k + 1]) else fade
             if fi + fo > g.length:        # too short to fade in and out: not compensated (its
-                fi = fo = -1.0            # shrink is within the speed rule's chord, _curve_speed)
+                fi = fo = -1.0            # shrink is within the speed rule's chord, rules.piece_limits)
             G[k] = (*g.arc, fi, fo)
-    m = n1 + n2 - 2
+    if not npth:
+        p0s[0] = p1s[0] = pos0
+    delay = 0.5 * (n1 + n2 - 2) * period
     events: list[tuple[float, Event]] = []
     stops: list[tuple[float, Pause]] = []
     for k, seg in marks:
-        te = t_end[k] if k >= 0 else 0.0
+        te = float(prof.t0[rest_phase[k] + 1])
         if isinstance(seg, Pause):
             stops.append((te, seg))       # the windows hold only the rest: at rest exactly
         else:
             events.append((te, seg))
-    for k, seg in synced:
-        events.append(((t_end[k] if k >= 0 else 0.0) + 0.5 * m * period, seg))
+    for s, seg in synced:
+        events.append((prof.time_at(s) + delay, seg))
     events.sort(key=lambda e: e[0])
-    prof = (t0s, tas, tcs, tds, v0s, vps, A, las, lcs, L, np.array(P_s0), np.array(P_line))
-    if not npth:
-        G, kinds = np.zeros((1, 8)), np.zeros(1, dtype=int)
-        p0s = p1s = pos0[None, :].copy()
-        us = np.zeros((1, na))
-        gs0 = np.zeros(1)
-        glen = np.zeros(1)
-    else:
-        glen = np.array([g.length for g in path])
-    geo = (gs0, glen, kinds, p0s, p1s, us, G)
+    glen = np.array([g.length for g in path]) if npth else np.zeros(1)
+    geo = (gs0 if npth else np.zeros(1), glen, kinds, p0s, p1s, us, G)
     end = path[-1].p1.copy() if npth else pos0.copy()
     return PathTrajectory(axes, prof, geo, ix, iy, n1, n2, period, pos0, end, events, stops)
 

@@ -1,0 +1,152 @@
+"""The planner's speed rules, axis by axis: the highest path speed and path acceleration each
+piece of the blended path allows, and the highest speed through each join between two pieces
+(docs/motion.md, "The planner").
+
+Every rule is a limit of one axis projected on the path: on a piece whose unit tangent is t and
+whose normal (towards the centre of its curvature κ) is n, axis i moves with
+
+    ẋ_i = ṡ·t_i,    ẍ_i = s̈·t_i + ṡ²κ·n_i,    x⃛_i = (s⃛ − ṡ³κ²)·t_i + 3·s̈·ṡ·κ·n_i
+
+(the Frenet frame of a curve of constant curvature), so a rule asks, for every axis i, that its
+share of the tangent or the normal keeps within v_max_i, a_max_i and j_max_i. On an arc t and n
+turn; each axis takes the largest |t_i| and |n_i| over the arc's sweep (:func:`extent`). A join's
+curvature step v²·Δκ and kink v·Δt are spread by the second moving average over T2 (jerk
+v²·Δκ·|n_i|/T2 and v·|Δt_i|/(T2·h)) within ``JERK_STEP`` of each axis's j_max. The path
+acceleration's own ramps, |Δs̈|/T1 through the first moving average (``ramp`` = |Δs̈|/s̈ ≤ 2, or 1
+where the profile's accelerations of opposite signs are T1 apart), take the rest with the
+curve's terms.
+
+Per axis: ``vlim``, ``alim``, ``jlim`` (sequences of n_axes floats) [m/s, m/s², m/s³]; ``ix``,
+``iy`` the indexes of X and Y among the axes (−1: absent).
+"""
+
+from __future__ import annotations
+
+import math
+
+from motorctl.motion.blend import Geo
+
+#: share of each axis's a_max (along the tangent) the path acceleration takes on a curve whose
+#: speed its normal acceleration v²κ bounds (the rest: v²κ); where the feed bounds the speed
+#: instead, the path acceleration takes all that v²κ leaves
+ACCEL_SHARE = 0.5
+#: share of each axis's j_max a join's curvature step and kink take (spread over T2 by the second
+#: moving average); the rest is the path acceleration's ramps and, on a curve, the jerk of moving
+#: on it (3·s̈·ṡ·κ + ṡ³κ²). A line alone takes all of it for its ramps
+JERK_STEP = 0.5
+
+
+def _max_abs_cos(a: float, b: float) -> float:
+    """max |cos φ| for φ between a and b [rad] (either order)."""
+    lo, hi = min(a, b), max(a, b)
+    if math.floor(hi / math.pi) >= math.ceil(lo / math.pi):
+        return 1.0
+    return max(abs(math.cos(lo)), abs(math.cos(hi)))
+
+
+def extent(g: Geo, ix: int, iy: int) -> tuple[list[float], list[float]]:
+    """(largest |t_i|, largest |n_i|) over the piece, per axis (lists of n_axes floats): a line's
+    tangent is its direction (no normal); an arc's turn over its sweep (with the radius's change
+    where its radii differ), its other axes moving along it (a helix)."""
+    mt = [abs(float(x)) for x in g.u]
+    mn = [0.0] * len(mt)
+    if g.kind == 0:
+        return mt, mn
+    _, _, r0, r1, phi0, sweep = g.arc
+    mc = _max_abs_cos(phi0, phi0 + sweep)
+    ms = _max_abs_cos(phi0 - 0.5 * math.pi, phi0 + sweep - 0.5 * math.pi)
+    length = g.length if g.length > 0 else 1.0
+    turn = max(r0, r1) * abs(sweep) / length     # the path's d/ds: r·φ' along the circle,
+    out = abs(r1 - r0) / length                   # r' outwards (radii that differ)
+    mt[ix], mt[iy] = turn * ms + out * mc, turn * mc + out * ms   # t = r·φ'·(−sin φ, cos φ) + r'·(cos φ, sin φ)
+    mn[ix], mn[iy] = mc, ms                       # n = −(cos φ, sin φ)
+    return mt, mn
+
+
+def _min_ratio(num, den) -> float:
+    """min over the axes of num_i/den_i where den_i > 0 (inf when no axis has den_i > 0)."""
+    out = math.inf
+    for n, d in zip(num, den):
+        if d > 0:
+            out = min(out, n / d)
+    return out
+
+
+def piece_limits(g: Geo, vlim, alim, jlim, ix: int, iy: int, *,
+                 tol_left: float, t1: float, t2: float, ramp: float) -> tuple[float, float]:
+    """(path speed [m/s], path acceleration [m/s²]) a piece allows: the feed, each axis's v_max
+    over its share of the tangent; a line's acceleration each a_max over |t_i|. On an arc of
+    curvature κ also: the normal acceleration v²κ·|n_i| within (1 − ACCEL_SHARE)·a_max_i, the
+    second average's chord κ(v·T2)²/8 within ``tol_left`` [m] (what the blends left of P), the
+    curve's jerk v³κ²·|t_i| within half of (1 − JERK_STEP)·j_max_i; its acceleration what v²κ
+    leaves of each a_max_i and what the ramps (ramp/T1 per unit of s̈) and 3·s̈·v·κ·|n_i| leave
+    of (1 − JERK_STEP)·j_max_i at that speed. ``vlim``, ``alim``, ``jlim``: per axis."""
+    mt, mn = extent(g, ix, iy)
+    v = math.inf if g.feed is None else g.feed
+    v = min(v, _min_ratio(vlim, mt))
+    if g.kind == 0:
+        return v, _min_ratio(alim, mt)
+    kappa = 1.0 / max(min(g.arc[2], g.arc[3]), 1e-12)
+    v = min(v, math.sqrt(_min_ratio([(1.0 - ACCEL_SHARE) * a for a in alim], mn) / kappa))
+    if math.isfinite(tol_left):
+        v = min(v, math.sqrt(8.0 * max(tol_left, 0.0) / kappa) / t2)
+    j_c = [(1.0 - JERK_STEP) * j for j in jlim]
+    v = min(v, (_min_ratio([0.5 * j for j in j_c], mt) / (kappa * kappa)) ** (1.0 / 3.0))
+    acc = _min_ratio([a - v * v * kappa * n for a, n in zip(alim, mn)], mt)
+    acc = min(acc, _min_ratio([j - v ** 3 * kappa * kappa * t for j, t in zip(j_c, mt)],
+                              [ramp / t1 * t + 3.0 * v * kappa * n for t, n in zip(mt, mn)]))
+    return v, max(acc, 0.0)
+
+
+def join_frame(a: Geo, b: Geo, ix: int, iy: int) -> tuple[list[float], list[float], float]:
+    """At the join a → b: (|n_i| of the normal, |Δt_i| of the tangent's step, per axis, and the
+    kink [rad])."""
+    ta, tb = a.tangents(ix, iy)[1], b.tangents(ix, iy)[0]
+    dt = [float(q - p) for p, q in zip(ta, tb)]
+    kink = 2.0 * math.asin(min(1.0, 0.5 * math.sqrt(sum(d * d for d in dt))))
+    n = [0.0] * len(dt)
+    if ix >= 0 and iy >= 0:
+        mx, my = float(ta[ix] + tb[ix]), float(ta[iy] + tb[iy])
+        h = math.hypot(mx, my)
+        if h > 0:
+            n[ix], n[iy] = abs(my) / h, abs(mx) / h
+    return n, [abs(d) for d in dt], kink
+
+
+def join_speed(a: Geo, b: Geo, jlim, ix: int, iy: int, *, t2: float, period: float, dev_left: float,
+               dkappa: float | None = None) -> float:
+    """The highest speed [m/s] through the join a → b: its curvature step Δκ (``dkappa``, else
+    the two pieces' own) spread over T2 (jerk v²·Δκ·|n_i|/T2) and its kink α's velocity step
+    spread over T2 (an acceleration step v·|Δt_i|/T2 within one period h: jerk v·|Δt_i|/(T2·h)),
+    their sum within JERK_STEP·j_max_i for every axis i; and the second average's distance from
+    the path there within ``dev_left`` [m]: v·T2·α/8 across the kink (the window's centroid
+    inside the corner), v²·Δκ·T2²/24 across the step."""
+    n, dt, kink = join_frame(a, b, ix, iy)
+    dk = abs(b.curvature() - a.curvature()) if dkappa is None else dkappa
+    out = math.inf
+    if math.isfinite(dev_left):
+        if kink > 0:
+            out = 8.0 * max(dev_left, 0.0) / (t2 * kink)
+        if dk > 0:
+            out = min(out, math.sqrt(24.0 * max(dev_left, 0.0) / (dk * t2 * t2)))
+    for ni, di, ji in zip(n, dt, jlim):
+        qa, qb, qj = dk * ni / t2, di / (t2 * period), JERK_STEP * ji
+        if qa > 0:
+            out = min(out, (-qb + math.sqrt(qb * qb + 4 * qa * qj)) / (2 * qa))
+        elif qb > 0:
+            out = min(out, qj / qb)
+    return out
+
+
+def join_accel(a: Geo, b: Geo, v: float, alim, jlim, ix: int, iy: int, *,
+               t1: float, t2: float, ramp: float) -> float:
+    """The path acceleration [m/s²] about the join a → b passed at ``v``: what the kink's
+    acceleration v·|Δt_i|/T2 and the larger curvature's v²κ·|n_i| leave of each a_max_i along
+    the tangent, and the ramps (ramp·s̈/T1·|t_i|) within (1 − JERK_STEP)·j_max_i."""
+    n, dt, _ = join_frame(a, b, ix, iy)
+    t = [max(p, q) for p, q in zip(extent(a, ix, iy)[0], extent(b, ix, iy)[0])]
+    kappa = max(abs(a.curvature()), abs(b.curvature()))
+    if not math.isfinite(v):
+        v = 0.0
+    acc = _min_ratio([al - v * d / t2 - v * v * kappa * ni for al, d, ni in zip(alim, dt, n)], t)
+    return max(0.0, min(acc, _min_ratio([(1.0 - JERK_STEP) * j * t1 / ramp for j in jlim], t)))
