@@ -66,6 +66,19 @@ PAIRS = (("cogging", "asymmetric_friction"), ("cogging", "force_constant_drift")
 COGGING_17 = {"cogging": {"amplitudes_N": [12.0], "period_m": 0.017, "phases_rad": [0.3]}}
 
 
+def run_all(fn, items: list, jobs: int) -> list:
+    """``fn(*item)`` for each tuple of ``items``, in order, in ``jobs`` processes (1: here)."""
+    if jobs > 1 and items:
+        with ProcessPoolExecutor(max_workers=jobs) as ex:
+            return list(ex.map(fn, *zip(*items)))
+    return [fn(*item) for item in items]
+
+
+def covered(ci: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """(n,) bool: the intervals ``ci`` (n, 2) that hold ``truth`` (n,)."""
+    return (ci[:, 0] <= truth) & (truth <= ci[:, 1])
+
+
 def true_theta(config: str) -> list[float]:
     """θ1..θ6 of the X axis of ``config``: M/A1, B/A1, Af/A1, offset/A1, A2/A1, A3/A1."""
     from motorctl.config import load_yaml
@@ -206,13 +219,7 @@ def main(argv=None) -> int:
         out = args.out or tmp
         Path(out).mkdir(parents=True, exist_ok=True)
         items = pair_work(args) if args.pairs else work(args)
-        fn = pair_errors if args.pairs else one
-        cols = list(zip(*items)) + [[out] * len(items)]
-        if args.jobs > 1:
-            with ProcessPoolExecutor(max_workers=args.jobs) as ex:
-                done = list(ex.map(fn, *cols))
-        else:
-            done = [fn(*c) for c in zip(*cols)]
+        done = run_all(pair_errors if args.pairs else one, [(*item, out) for item in items], args.jobs)
     wall = time.perf_counter() - t0
     if args.pairs:
         print("| plant | seed | effects | value: true → fitted (error) | also named |\n|---|---|---|---|---|")
@@ -246,9 +253,7 @@ def main(argv=None) -> int:
         old = np.array([r[2] for r in rows], dtype=float)
         new = np.array([r[3] for r in rows], dtype=float)
         nw = np.array([r[4] for r in rows], dtype=float)
-        c_old = np.mean((old[:, 0] <= tv) & (tv <= old[:, 1]))
-        c_new = np.mean((new[:, 0] <= tv) & (tv <= new[:, 1]))
-        c_nw = np.mean((nw[:, 0] <= tv) & (tv <= nw[:, 1]))
+        c_old, c_new, c_nw = (np.mean(covered(ci, tv)) for ci in (old, new, nw))
         z_old = np.abs(fv - tv) / np.maximum((old[:, 1] - old[:, 0]) / 3.919927969, 1e-300)
         z_new = np.abs(fv - tv) / np.maximum((new[:, 1] - new[:, 0]) / 3.919927969, 1e-300)
         z_nw = np.abs(fv - tv) / np.maximum((nw[:, 1] - nw[:, 0]) / 3.919927969, 1e-300)

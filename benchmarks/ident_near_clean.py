@@ -23,13 +23,18 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
 import numpy as np
 
 from motorctl.ident.pipeline import identify_record
 from motorctl.ident.synth import NUMPY_AXIS, numpy_axis, numpy_axis_theta
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from ident_coverage import covered, run_all  # noqa: E402
 
 THETA = ("theta1", "theta2", "theta3", "theta4")
 
@@ -59,13 +64,8 @@ def main(argv=None) -> int:
     ap.add_argument("--duration", type=float, default=5.0, help="record length [s] (default 5)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    cols = (range(1, args.fits + 1), [args.force_noise] * args.fits, [args.spread] * args.fits,
-            [args.duration] * args.fits)
-    if args.jobs > 1:
-        with ProcessPoolExecutor(max_workers=args.jobs) as ex:
-            done = list(ex.map(one, *cols))
-    else:
-        done = [one(*c) for c in zip(*cols)]
+    done = run_all(one, [(seed, args.force_noise, args.spread, args.duration) for seed in range(1, args.fits + 1)],
+                   args.jobs)
     wall = time.perf_counter() - t0
     tv = np.array([d["true"] for d in done])
     fv = np.array([d["value"] for d in done])
@@ -78,8 +78,7 @@ def main(argv=None) -> int:
           "median abs(error)/abs(value) | median stated half-width/abs(value) |\n|---|---|---|---|---|---|---|")
     cov_tot = n_tot = 0
     for j, name in enumerate(THETA):
-        c_st = (st[:, j, 0] <= tv[:, j]) & (tv[:, j] <= st[:, j, 1])
-        c_nw = (nw[:, j, 0] <= tv[:, j]) & (tv[:, j] <= nw[:, j, 1])
+        c_st, c_nw = covered(st[:, j], tv[:, j]), covered(nw[:, j], tv[:, j])
         sig = (st[:, j, 1] - st[:, j, 0]) / (2 * 1.959963984540054)
         z = np.median(np.abs(fv[:, j] - tv[:, j]) / np.maximum(sig, 1e-300))
         rel = np.median(np.abs(fv[:, j] - tv[:, j]) / np.abs(tv[:, j]))

@@ -63,13 +63,15 @@ def test_an_effect_not_told_from_a_look_alike_is_not_compensated(found):
     idf = found["force_idf"]
     comp, _, skipped = compensation_from_fit(idf)
     assert "cogging" in comp and "cogging" not in skipped
-    ev = next(ev for ev, _ in idf.accepted if ev.term.family == "cogging")
-    saved = ev.rivals
+    from dataclasses import replace
+    sel = idf.selection
+    marked = tuple((replace(ev, rivals=(("encoder_interpolation", 0.2),)) if ev.term.family == "cogging" else ev, b)
+                   for ev, b in sel.accepted)
     try:
-        ev.rivals = [("encoder_interpolation", 0.2)]
+        idf.selection = replace(sel, accepted=marked)
         comp, _, skipped = compensation_from_fit(idf)
     finally:
-        ev.rivals = saved
+        idf.selection = sel
     assert "cogging" not in comp and "cogging" in skipped
 
 
@@ -159,11 +161,12 @@ def test_a_weak_effect_beside_an_unexplained_structure_is_dropped(fast_run, monk
     terms = list(idf.terms) + [idf.term("spring", None)]
     current = idf.evaluate(terms)
     accepted = [(current, current.heldout_rms)] * len(terms)
-    monkeypatch.setattr(Identifier, "unexplained", lambda self, cur, t, last: True)
+    from motorctl.ident.checks import Judge
+    monkeypatch.setattr(Judge, "unexplained", lambda self, cur, t, last: True)
     kept, acc, _, dropped = idf._doubt(terms, accepted, current, [])
     assert [d[0] for d in dropped] == ["spring"], dropped
     assert "encoder_interpolation" in [t.family for t in kept] and len(acc) == len(kept)
-    monkeypatch.setattr(Identifier, "unexplained", lambda self, cur, t, last: False)
+    monkeypatch.setattr(Judge, "unexplained", lambda self, cur, t, last: False)
     assert idf._doubt(terms, accepted, current, [])[3] == []
 
 

@@ -16,6 +16,7 @@ import pytest
 from motorctl.effects import FAMILIES
 from motorctl.effects.asymmetric_friction import held_offset
 from motorctl.ident.idim import prepare
+from motorctl.ident.probes import rows_std
 from motorctl.model import s_f
 
 A1 = 80.0
@@ -91,9 +92,9 @@ def test_other_input_takes_a_term_whose_harmonics_the_selection_cut():
     assert full.shape[1] > 2                       # the family's columns hold more than one pair
     beta = np.array([0.05, -0.02])
     terms = [Term("cogging", 0.032, np.zeros((10, 2))), Term("asymmetric_friction", None, np.zeros((10, 2)))]
-    ctx = SimpleNamespace(terms=terms, final=object(), p=p,
-                          coef_split=lambda ev, ts: (None, [beta, np.array([0.1, 0.2])]))
-    np.testing.assert_allclose(other_input(ctx, "asymmetric_friction"), full[:, :2] @ beta, rtol=1e-12)
+    fitted = SimpleNamespace(terms=terms, final=object(), fits=SimpleNamespace(
+        p=p, coef_split=lambda ev, ts: (None, [beta, np.array([0.1, 0.2])])))
+    np.testing.assert_allclose(other_input(fitted, "asymmetric_friction"), full[:, :2] @ beta, rtol=1e-12)
 
 
 def test_asymmetric_friction_coulomb_part_takes_the_held_offset():
@@ -111,7 +112,7 @@ def test_asymmetric_friction_coulomb_part_takes_the_held_offset():
 
 
 def _moves_ctx(slow_pull_v=0.0):
-    """An identifier-like context (decimated, 250 Hz): forward and backward trapezoid moves
+    """A values' model-like record (``terms`` and ``fits``, decimated, 250 Hz): forward and backward trapezoid moves
     (0.4 m, 2 m/s, 40 m/s²) with rests between, u from the nominal model (M 12.8 kg, B 17.6
     N·s/m, F_c 20 N, F_0 −4 N), a spring of 10 N/m, an asymmetric friction of 5 N + 10 N·s/m,
     and ``slow_pull_v`` [V] more input on the first and last sample of each move (0 < |ẋ| < 0.2
@@ -136,9 +137,10 @@ def _moves_ctx(slow_pull_v=0.0):
     cols = {"stiction": np.column_stack([u * w, w]), "spring": x[:, None],
             "asymmetric_friction": np.column_stack([s_f(v) * fwd, v * fwd])}
     terms = [SimpleNamespace(family=k, cols=c) for k, c in cols.items()]
-    return SimpleNamespace(
-        terms=terms, n_theta=4, moving=np.abs(v) > 0.2, p=SimpleNamespace(v_d=v),
-        design=lambda ts: (np.column_stack([nominal] + [q.cols for q in ts]), u))
+    fits = SimpleNamespace(n_theta=4, moving=np.abs(v) > 0.2, p=SimpleNamespace(v_d=v, fs=fs, nd=1),
+                           design=lambda ts: (np.column_stack([nominal] + [q.cols for q in ts]), u))
+    fits.rows_std = lambda phi, y, rows, combos: rows_std(fits, phi, y, rows, combos)
+    return SimpleNamespace(terms=terms, fits=fits)
 
 
 def test_asymmetric_friction_levels_are_fitted_in_motion():
@@ -148,12 +150,17 @@ def test_asymmetric_friction_levels_are_fitted_in_motion():
     there is taken off, :func:`~motorctl.effects.asymmetric_friction.other_input`)."""
     from motorctl.effects.asymmetric_friction import levels_in_motion
     ctx = _moves_ctx(slow_pull_v=0.3)
-    th4, beta = levels_in_motion(ctx, "asymmetric_friction")
+    th4, beta, _ = levels_in_motion(ctx, "asymmetric_friction")
     assert A1 * beta[1] == pytest.approx(10.0, abs=0.05)
     # F_0 = −4 N, the spring's force in its own column
     assert A1 * (beta[0] - 2.0 * th4) == pytest.approx(5.0 - 2.0 * (-4.0), abs=0.05)
+    # the same values with their σ (Newey-West and the model error against the fit on all
+    # samples, which the slow samples pull): ΔB's interval holds the truth and is not wide
+    th4_s, beta_s, (sd_b, sd_c) = levels_in_motion(ctx, "asymmetric_friction", with_std=True)
+    assert th4_s == th4 and np.array_equal(beta_s, beta)
+    assert 0.0 < A1 * sd_b < 1.0 and abs(A1 * beta[1] - 10.0) < 1.96 * A1 * sd_b and np.isfinite(sd_c)
     # the joint fit on every sample is pulled by the slow ones (what the fit in motion avoids)
-    phi, y = ctx.design(ctx.terms)
+    phi, y = ctx.fits.design(ctx.terms)
     joint = np.linalg.lstsq(phi, y, rcond=None)[0]
     assert abs(A1 * joint[-1] - 10.0) > 0.5
     assert levels_in_motion(SimpleNamespace(terms=ctx.terms[:2]), "asymmetric_friction") is None
@@ -161,10 +168,16 @@ def test_asymmetric_friction_levels_are_fitted_in_motion():
     # offset (nothing in motion tells it from the offset), the levels' sum + 2 θ4_held when it can
     fam = FAMILIES["asymmetric_friction"]
     beta_joint, theta = np.array([7.0, 9.0]) / A1, np.array([0.16, 0.22, 20.0 / A1, -4.0 / A1])
-    blind = fam.parameters(None, beta_joint, A1, FS, theta=theta, p=_held_record(both=False), ctx=ctx)
+    blind = fam.parameters(None, beta_joint, A1, FS, theta=theta, p=_held_record(both=False), fitted=ctx)
     assert blind["coulomb_N"] == pytest.approx(7.0) and blind["viscous_N_s_per_m"] == pytest.approx(10.0, abs=0.05)
-    held = fam.parameters(None, beta_joint, A1, FS, theta=theta, p=_held_record(f0_n=-4.0), ctx=ctx)
+    held = fam.parameters(None, beta_joint, A1, FS, theta=theta, p=_held_record(f0_n=-4.0), fitted=ctx)
     assert held["coulomb_N"] == pytest.approx(5.0, abs=0.1)
+    # the σ of what the fit in motion gives: ΔB's always (the joint β does not move it), ΔF_c's
+    # when it comes from there too (the held offset known)
+    assert set(fam.refitted_std(None, beta_joint, A1, theta=theta, p=_held_record(both=False), fitted=ctx)) == \
+        {"viscous_N_s_per_m"}
+    assert set(fam.refitted_std(None, beta_joint, A1, theta=theta, p=_held_record(f0_n=-4.0), fitted=ctx)) == \
+        {"viscous_N_s_per_m", "coulomb_N"}
 
 
 def test_stribeck_hump_is_built_on_the_wide_band_velocity_and_s_f_on_the_one_given():

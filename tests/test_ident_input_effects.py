@@ -264,24 +264,35 @@ def test_dead_zone_values_taken_again_with_the_stick_state_from_the_reading(dead
     there: width and offset of d = 0.15 V, o = 20 mV within 10 %; the selection unchanged.
     An unquantized reading has no stick state to measure: no refit."""
     idf, st, dz, _ = dead_zone_run
-    idf.terms = [st, dz]
-    ref = idf.refit()
-    assert ref is not None and ref.stick_measured and not ref.current_loop
+    ref = _refit(idf.judge, [st, dz])
+    assert ref is not None and ref.stick_measured and not ref.on_current_loop
     assert [t.family for t in ref.terms] == ["stiction", "amplifier_dead_zone"]
-    assert idf.terms[1].h is dz.h                            # this identifier unchanged
     got = ref.terms[1].h
     assert float(got) == pytest.approx(0.15, rel=0.1)
     assert got.offset == pytest.approx(0.02, rel=0.1)
-    assert ref.refit_families == ["amplifier_dead_zone", "stiction"]
+    assert ref.families == ("amplifier_dead_zone", "stiction")
     # a reading that is not quantized shows no stick state: the selection's values stay
-    import copy
     import dataclasses
-    unquantized = copy.copy(idf)
-    unquantized.p = dataclasses.replace(idf.p, y=idf.p.y + 1e-8 * np.sin(np.arange(len(idf.p.y))))
-    assert unquantized.refit() is None
+
+    from motorctl.ident.checks import Judge
+    from motorctl.ident.columns import Columns
+    from motorctl.ident.fit import Fits
+    p = idf.setup.p
+    unquantized = dataclasses.replace(idf.setup, p=dataclasses.replace(p, y=p.y + 1e-8 * np.sin(np.arange(len(p.y)))))
+    assert _refit(Judge(Fits(Columns(unquantized, idf.structure))), [st, dz]) is None
 
 
 # ------------------------------------------------------------------------------- the refit
+def _refit(judge, terms):
+    """The values' model :func:`motorctl.ident.values.refit` gives for a selection of ``terms``
+    (no final model: no mode above the band looked for)."""
+    from motorctl.ident.records import Selection
+    from motorctl.ident.values import refit
+    sel = Selection(structure=judge.fits.structure, nominal=None, final=None, terms=tuple(terms), accepted=(),
+                    steps=())
+    return refit(judge, sel)
+
+
 @pytest.fixture(scope="module")
 def stribeck_run():
     """10 N / 0.05 m/s Stribeck friction behind a 1 kHz current loop the header declares,
@@ -302,7 +313,7 @@ def test_stribeck_velocity_is_taken_again_on_the_declared_current_loop(stribeck_
     keeps the selection and takes v_s again there (0.053 m/s), the loop explaining the delay."""
     idf = stribeck_run
     ref = idf.refit()
-    assert ref is not None and ref.current_loop
+    assert ref is not None and ref.on_current_loop and ref.fits.current_loop
     assert [t.family for t in ref.terms] == [t.family for t in idf.terms]
     assert "stribeck" in [t.family for t in idf.terms]
     assert _v_s(ref) == pytest.approx(0.05, rel=0.10)
@@ -328,11 +339,9 @@ def test_stribeck_velocity_is_taken_again_on_the_declared_current_loop(stribeck_
 def test_refit_only_when_stribeck_is_selected_and_the_loop_not_yet_modelled(stribeck_run):
     idf = stribeck_run
     declared = Identifier(idf.rec)
-    declared.terms = [t for t in idf.terms if t.family != "stribeck"]
-    assert declared.refit() is None                         # nothing that takes it selected
+    assert _refit(declared.judge, [t for t in idf.terms if t.family != "stribeck"]) is None   # nothing that takes it
     modelled = Identifier(idf.rec, current_loop=True)
-    modelled.terms = idf.terms
-    assert modelled.refit() is None                         # the loop modelled already
+    assert _refit(modelled.judge, idf.terms) is None        # the loop modelled already
 
 
 def test_thrust_curve_columns_are_of_the_held_input():
@@ -360,16 +369,18 @@ def test_an_effect_too_small_in_the_values_model_is_not_confirmed():
     plant with a 269 Hz mode: a 3.8 N/m spring on the rigid model, 0.27 N/m with the mode's
     force above the band in the values' model). Here a spring put into the model of a plant
     that has none, its refit's stiffness ~0."""
-    import copy
+    from dataclasses import replace
+
+    from motorctl.ident.judge import confirm_values
+    from motorctl.ident.values import ValuesModel
     idf = Identifier(_simulate(duration_s=4.0)).run()
-    spring = idf.term("spring", None)
-    idf.terms = idf.terms + [spring]
-    idf.final = idf.evaluate(idf.terms)
-    idf.accepted = idf.accepted + [(idf.final, idf.final.heldout_rms)]
-    ref = copy.copy(idf)
-    ref.loop_refit, ref.stick_measured, ref.band_mode = False, False, {"columns_at_Hz": 150.0}
-    idf.refitted = ref
-    idf.confirm_values()
-    assert "spring" not in [t.family for t in idf.terms]
-    why = dict(idf.eliminated)["spring"]
+    terms = idf.terms + [idf.term("spring", None)]
+    final = idf.evaluate(terms)
+    sel = replace(idf.selection, terms=tuple(terms), final=final,
+                  accepted=idf.accepted + ((final, final.heldout_rms),))
+    values = ValuesModel(fits=idf.fits, terms=sel.terms, final=final, band_mode={"columns_at_Hz": 150.0},
+                         refitted=True)
+    sel, _ = confirm_values(idf.judge, sel, values)
+    assert "spring" not in [t.family for t in sel.terms]
+    why = dict(sel.eliminated)["spring"]
     assert "not confirmed by the refit's model" in why and "too small to name" in why, why

@@ -19,7 +19,9 @@ from motorctl.effects import family
 from motorctl.effects.periodic import fourier
 from motorctl.ident.data import load_record
 from motorctl.ident.effects import parameters
-from motorctl.ident.select import Identifier, Term, _coef
+from motorctl.ident.idim import ls_coef as _coef
+from motorctl.ident.records import Term
+from motorctl.ident.select import Identifier
 from motorctl.ident.synth import EXAMPLES
 
 DURATION_S = 5.0
@@ -65,16 +67,15 @@ def test_sse_from_the_cached_base_is_the_joint_fit(record):
     terms = [stiction, idf.term("cogging", 0.032)]
     assert again.sse([again.term("stiction", 5e-4), again.term("cogging", 0.032)]) == pytest.approx(
         idf.sse(terms), rel=1e-12)
-    # a candidate whose columns change after a first fit on the same base: its own SSE
+    # a candidate of other columns after a first fit on the same base: its own SSE
     t = Term("cogging", 0.032, idf.dec_cols("cogging", 0.032))
     first = idf.sse([stiction, t])
-    t.cols = idf.dec_cols("cogging", 0.045)
-    assert idf.sse([stiction, t]) != first
+    assert idf.sse([stiction, Term("cogging", 0.032, idf.dec_cols("cogging", 0.045))]) != first
 
 
 def _delay_sses_one_by_one(idf, base, grid, band=None, rows=None):
     """The input-delay SSEs the long way: for each delay its own shifted columns and joint fit
-    (:func:`~motorctl.ident.select._coef`, as every fit of the identifier)."""
+    (:func:`~motorctl.ident.idim.ls_coef`, as every fit of the identifier)."""
     p = idf.p
     ud = p.dec(idf.input_columns(idf.zoh))
     m = ud.shape[0]
@@ -104,21 +105,21 @@ def _delay_sses_one_by_one(idf, base, grid, band=None, rows=None):
 
 
 def test_input_delay_sses_of_a_whole_grid_at_once_are_each_delay_s_own_fit(record, monkeypatch):
-    """:meth:`Identifier.delay_sses` shifts and fits every delay of the grid at once, the columns
+    """:func:`motorctl.ident.probes.delay_sses` shifts and fits every delay of the grid at once, the columns
     that do not move with the delay factored once: each SSE is that delay's own joint fit, with
     θ1..θ4 and θ1..θ6, a base that weighs the others (stiction), on the moving rows, on a band,
     and with the grid split into chunks."""
-    import motorctl.ident.select as select
-    idf = Identifier(record)
-    base = [idf.term("stiction", 5e-4), idf.term("cogging", 0.032)]
+    import motorctl.ident.probes as probes
+    first = Identifier(record).fits
+    base = [first.term("stiction", 5e-4), first.term("cogging", 0.032)]
     grid = np.arange(0.0, 12.0, 0.7)
-    moving = np.abs(idf.p.v_d) > 1e-3
+    moving = np.abs(first.p.v_d) > 1e-3
     for n_theta in (6, 4):
-        idf.n_theta = n_theta
+        idf = first.with_structure(n_theta=n_theta)
         for kw in ({}, {"rows": moving}, {"band": (15.0, 39.0)}):
             ref = _delay_sses_one_by_one(idf, base, grid, **kw)
             assert idf.delay_sses(base, grid, **kw) == pytest.approx(ref, rel=1e-10), (n_theta, kw)
-    monkeypatch.setattr(select, "DELAY_CHUNK_ELEMENTS", 3 * len(idf.p.t_d) * 4)     # 4 delays a chunk
+    monkeypatch.setattr(probes, "DELAY_CHUNK_ELEMENTS", 3 * len(idf.p.t_d) * 4)     # 4 delays a chunk
     assert idf.delay_sses([], grid) == pytest.approx(_delay_sses_one_by_one(idf, [], grid), rel=1e-10)
 
 

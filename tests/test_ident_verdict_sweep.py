@@ -6,6 +6,7 @@ reported as unexplained."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -13,6 +14,7 @@ import pytest
 
 from motorctl.effects import FAMILIES
 from motorctl.ident.data import load_record
+from motorctl.ident.prune import look_ahead
 from motorctl.ident.select import Identifier
 from motorctl.ident.verdict import residual_verdict
 from harness import LOOP_A1, fast_moves_xd, loop_csv
@@ -55,18 +57,15 @@ def test_an_error_found_in_the_reading_is_chosen_over_its_force_look_alikes(tmp_
     (a 4 mm error at 2 m/s on the default plant: 19.4 % against 15.4 %), the step takes the
     reading's error (a force of position cannot put an error into y − x) and names cogging as
     the rival the record cannot tell it from."""
-    from motorctl.ident.select import Evaluated
     rec = load_record(loop_csv(tmp_path / "enc.csv", fast_moves_xd(duration=4.0), 2e-4, y_noise_m=5e-8,
                                u_noise_V=0.01, enc_m=3e-6, period_m=2e-3), None, str(LOOP_A1))
     idf = Identifier(rec)
-    fit, _ = FAMILIES["encoder_interpolation"].reading(idf)
+    fit, _ = FAMILIES["encoder_interpolation"].reading(idf.fits)
     cands = []
     for family, h, gain in (("cogging", 2e-3, 0.194), ("encoder_interpolation", fit, 0.154)):
-        ev = idf.evaluate([idf.term(family, h)])
-        ev.ok, ev.gain = True, gain
-        cands.append(ev)
-    cands[0].heldout_rms = 0.95 * cands[1].heldout_rms     # cogging leaves the lower held-out RMS
-    chosen = idf._look_ahead(cands[0], cands, cands, [])
+        cands.append(replace(idf.evaluate([idf.term(family, h)]), ok=True, gain=gain))
+    cands[0] = replace(cands[0], heldout_rms=0.95 * cands[1].heldout_rms)     # cogging leaves the lower held-out RMS
+    chosen = look_ahead(idf.judge, cands[0], cands, cands, [])
     assert chosen.term.family == "encoder_interpolation"
     assert [n for n, _ in chosen.rivals] == ["cogging"]
 
@@ -78,10 +77,8 @@ REFUSED = ["cogging", "periodic_friction", "spring", "encoder_interpolation", "p
 def _candidate(family, rms, h=None, ok=True, gain=0.0, residual=None):
     """A step's candidate as the look-ahead reads it: held-out RMS, pass, held-out gain and the
     residual of its fit (the partners' search runs on it)."""
-    from motorctl.ident.select import Evaluated, Term
-    e = Evaluated(Term(family, h, None), rms, SimpleNamespace(residual=residual), 0.0, ok=ok)
-    e.gain = gain
-    return e
+    from motorctl.ident.records import Evaluated, Term
+    return Evaluated(Term(family, h, None), rms, SimpleNamespace(residual=residual), 0.0, ok=ok, gain=gain)
 
 
 def _look_alike_rms(table):
@@ -104,18 +101,18 @@ def test_a_look_alike_pair_is_decided_by_what_two_more_effects_leave_beside_each
         "amplifier_dead_zone input_delay": 22.3, "stiction input_delay": 18.1,
         "amplifier_dead_zone force_ripple input_delay": 17.3, "stiction force_ripple input_delay": 4.5,
     })
-    fake = SimpleNamespace(evaluate=lambda terms: SimpleNamespace(
-        heldout_rms=rms.get(frozenset(t.family for t in terms), 90.0)))
+    fake = SimpleNamespace(fits=SimpleNamespace(evaluate=lambda terms: SimpleNamespace(
+        heldout_rms=rms.get(frozenset(t.family for t in terms), 90.0))))
     dz, st = ev("amplifier_dead_zone", 22.3, gain=0.717), ev("stiction", 25.3, gain=0.679)
     # the lag is the fifth candidate by gain, beyond LOOK_AHEAD: a partner as a passing one
     fillers = [ev(f, 90.0, ok=False, gain=0.05 - 0.01 * i) for i, f in enumerate(REFUSED[:LOOK_AHEAD])]
     ripple, lag = ev("force_ripple", 30.0, gain=0.048), ev("input_delay", 30.6, ok=True, gain=0.025)
     cands = [dz, st] + fillers + [ripple, lag]
-    chosen = Identifier._look_ahead(fake, dz, [c for c in cands if c.ok], cands, [])
-    assert chosen is st and [n for n, _ in chosen.rivals] == ["amplifier_dead_zone"]
+    chosen = look_ahead(fake, dz, [c for c in cands if c.ok], cands, [])
+    assert chosen.term is st.term and [n for n, _ in chosen.rivals] == ["amplifier_dead_zone"]
     # one partner only (the old rule): the dead-zone
     rms[frozenset(("stiction", "force_ripple", "input_delay"))] = 90.0
-    assert Identifier._look_ahead(fake, dz, [c for c in cands if c.ok], cands, []) is dz
+    assert look_ahead(fake, dz, [c for c in cands if c.ok], cands, []).term is dz.term
 
 
 def test_a_line_the_step_s_residual_hides_is_searched_again_beside_each_contender():
@@ -143,20 +140,20 @@ def test_a_line_the_step_s_residual_hides_is_searched_again_beside_each_contende
         line = 7.3 if residual == "stiction's" else 0.505     # hidden beside the dead-zone
         return ev(family, 90.0, h=line)
 
-    fake = SimpleNamespace(search=search, evaluate=lambda terms: SimpleNamespace(
-        heldout_rms=rms.get(frozenset(key(t) for t in terms), 90.0)))
+    fake = SimpleNamespace(search=search, fits=SimpleNamespace(evaluate=lambda terms: SimpleNamespace(
+        heldout_rms=rms.get(frozenset(key(t) for t in terms), 90.0))))
     dz = ev("amplifier_dead_zone", 22.3, gain=0.716, residual="the dead-zone's")
     st = ev("stiction", 25.3, gain=0.646, residual="stiction's")
     fillers = [ev(f, 90.0, ok=False, gain=0.09 - 0.01 * i) for i, f in enumerate(REFUSED[:LOOK_AHEAD - 1])]
     line = ev("periodic_disturbance", 90.0, h=0.505, ok=False, gain=0.03)
     lag = ev("input_delay", 30.6, ok=True, gain=0.023)
     cands = [dz, st] + fillers + [line, lag]
-    chosen = Identifier._look_ahead(fake, dz, [dz, st], cands, [])
-    assert chosen is st and [n for n, _ in chosen.rivals] == ["amplifier_dead_zone"]
+    chosen = look_ahead(fake, dz, [dz, st], cands, [])
+    assert chosen.term is st.term and [n for n, _ in chosen.rivals] == ["amplifier_dead_zone"]
     assert sorted(r for f, r in searched if f == "periodic_disturbance") == ["stiction's", "the dead-zone's"]
     # the step's own candidate taken as it is (searched on the step's residual): the dead-zone
     fake.search = lambda family, base, residual: line
-    assert Identifier._look_ahead(fake, dz, [dz, st], cands, []) is dz
+    assert look_ahead(fake, dz, [dz, st], cands, []).term is dz.term
 
 
 def test_the_carriage_motion_that_chases_the_reading_is_not_taken_for_its_error(tmp_path):
@@ -168,7 +165,7 @@ def test_the_carriage_motion_that_chases_the_reading_is_not_taken_for_its_error(
     rec = load_record(loop_csv(tmp_path / "enc.csv", fast_moves_xd(duration=4.0), 2e-4, y_noise_m=5e-8,
                                u_noise_V=0.01, enc_m=3e-6, period_m=2e-3, d_on_reading=True), None, str(LOOP_A1))
     idf = Identifier(rec)
-    fit, _ = FAMILIES["encoder_interpolation"].reading(idf)
+    fit, _ = FAMILIES["encoder_interpolation"].reading(idf.fits)
     assert float(fit) == pytest.approx(2e-3, rel=1e-3)
     assert np.hypot(*fit.coef[:2]) == pytest.approx(3e-6, rel=0.01)
     raw, _ = search_reading(idf.p, 1e-3, 0.01)
@@ -183,12 +180,12 @@ def test_the_verdict_reads_the_last_step_as_the_final_model_sees_it():
     left for the verdict to report. A step searched on the final model's terms themselves is
     read as it is."""
     from motorctl.ident.pipeline import add_refused
-    from motorctl.ident.select import Evaluated, Term, refused_on_physics
+    from motorctl.ident.records import Evaluated, Term
+    from motorctl.ident.rules import refused_on_physics
+    from motorctl.ident.stepwise import on_final
 
     def ev(family, gain, reasons):
-        e = Evaluated(Term(family, 1.0, None), 1.0, None, 0.0, ok=not reasons, reasons=list(reasons))
-        e.gain = gain
-        return e
+        return Evaluated(Term(family, 1.0, None), 1.0, None, 0.0, ok=not reasons, reasons=tuple(reasons), gain=gain)
 
     both_ways = ["not the same force in both directions (agreement 0.50 < 0.5)"]
     band, stiction, delay = Term("amplifier_dead_zone", 0.149, None), Term("stiction", 1e-3, None), \
@@ -200,19 +197,19 @@ def test_the_verdict_reads_the_last_step_as_the_final_model_sees_it():
     def search(family, base, residual):
         searched.append(family)
         return ev(family, 0.002, both_ways)
-    fake = SimpleNamespace(search=search, judge=lambda e, current, base: e,
-                           final=SimpleNamespace(fit=SimpleNamespace(residual=None)))
+    fake = SimpleNamespace(search=search, judge=lambda e, current, base: e)
+    final = SimpleNamespace(fit=SimpleNamespace(residual=None))
     verdict = {"structured": False, "text": "the residual shows no structure (against velocity)", "findings": []}
-    add_refused(verdict, last, [])
+    verdict = add_refused(verdict, last, [])
     assert verdict["structured"] and "what force_ripple would explain (6 %" in verdict["text"]  # as it was
 
-    fresh = Identifier._on_final(fake, last, [band, stiction, delay], [polished, stiction, delay], fake.final)
+    fresh = on_final(fake, last, [band, stiction, delay], [polished, stiction, delay], final)
     assert searched == ["force_ripple"]           # the one share >= REFUSED_GAIN
     assert not any(refused_on_physics(c) for c in fresh)
     verdict = {"structured": False, "text": "the residual shows no structure (against velocity)", "findings": []}
-    add_refused(verdict, fresh, [])
+    verdict = add_refused(verdict, fresh, [])
     assert not verdict["structured"]
-    assert Identifier._on_final(fake, last, [band, stiction, delay], [delay, band, stiction], fake.final) is last
+    assert on_final(fake, last, [band, stiction, delay], [delay, band, stiction], final) is last
 
 
 def test_a_line_at_a_harmonic_of_the_program_is_not_told_from_the_moves():
@@ -317,12 +314,10 @@ def test_a_mode_above_the_band_that_leaves_no_structure_is_the_plant_s_and_takes
     from types import SimpleNamespace
 
     from motorctl.ident.pipeline import add_refused
-    from motorctl.ident.select import Evaluated, Term
+    from motorctl.ident.records import Evaluated, Term
 
     def ev(family, h, gain, reasons):
-        e = Evaluated(Term(family, h, None), 1.0, None, 0.0, ok=False, reasons=list(reasons))
-        e.gain = gain
-        return e
+        return Evaluated(Term(family, h, None), 1.0, None, 0.0, ok=False, reasons=tuple(reasons), gain=gain)
 
     edge = ["antiresonance 150 Hz at the edge of the searched range (15-150 Hz): a mode above the record's band "
             "is a bandwidth limit"]
@@ -332,13 +327,14 @@ def test_a_mode_above_the_band_that_leaves_no_structure_is_the_plant_s_and_takes
     def verdict_of(mode_gain, ripple_beside, structure_left):
         mode, ripple = ev("structural_mode", 150.0, mode_gain, edge), ev("force_ripple", 0.05, 0.07, both_ways)
         rms = {("stiction", "structural_mode"): 1.0, ("stiction", "structural_mode", "force_ripple"): 1.0 - ripple_beside}
-        idf = SimpleNamespace(
-            p=SimpleNamespace(fs=5000.0, nd=20), terms=[stiction], families=[],
-            evaluate=lambda terms: SimpleNamespace(heldout_rms=rms[tuple(t.family for t in terms)]),
-            verdict=lambda current, terms: {"structured": structure_left}, rest_share=lambda c: 0.0)
+        judge = SimpleNamespace(
+            fits=SimpleNamespace(p=SimpleNamespace(fs=5000.0, nd=20), families=[],
+                                 evaluate=lambda terms: SimpleNamespace(heldout_rms=rms[tuple(t.family for t in terms)])),
+            verdict=lambda current, terms: SimpleNamespace(structured=structure_left),
+            rest_share=lambda final, c: 0.0)
+        sel = SimpleNamespace(terms=(stiction,), final=None)
         v = {"structured": False, "findings": [], "tested": [], "text": "the residual shows no structure (...)"}
-        add_refused(v, [mode, ripple], [], idf)
-        return v
+        return add_refused(v, [mode, ripple], [], judge, sel)
 
     v = verdict_of(0.50, -0.003, False)
     assert not v["structured"], v["text"]
@@ -360,23 +356,25 @@ def test_a_lost_motion_beside_a_force_of_the_travel_is_a_play_not_a_dead_zone():
     beside an effect that is not a lost motion, nothing changes."""
     from types import SimpleNamespace
 
-    from motorctl.ident.select import Identifier, Term
+    from motorctl.ident import judge as after
+    from motorctl.ident.records import Selection, Term
 
     travel = {"against": "travel", "where": "at 0.632-1.85 mm of travel since the motion reversed"}
 
     def run(families, findings):
-        terms = [Term(f, 0.1, None) for f in families]
-        fake = SimpleNamespace(terms=terms, accepted=[(f, 1.0) for f in families], final="final", verdict_step=[],
-                               eliminated=[], verdict=lambda current, terms: {"findings": findings},
-                               evaluate=lambda terms: tuple(t.family for t in terms),
-                               _on_final=lambda step, before, terms, final: step, refit=lambda: None)
-        fake._drop_after = lambda dropped: Identifier._drop_after(fake, dropped)
-        Identifier.travel_shared(fake)
-        return fake
+        terms = tuple(Term(f, 0.1, None) for f in families)
+        sel = Selection(structure=None, nominal=None, final="final", terms=terms,
+                        accepted=tuple((f, 1.0) for f in families), steps=())
+        judge = SimpleNamespace(verdict=lambda current, terms: SimpleNamespace(findings=findings),
+                                fits=SimpleNamespace(evaluate=lambda terms: tuple(t.family for t in terms)))
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(after, "values_of", lambda judge, sel: None)
+            sel, _ = after.travel_shared(judge, sel, None)
+        return sel
 
     got = run(["amplifier_dead_zone", "input_delay"], [travel])
     assert [t.family for t in got.terms] == ["input_delay"] and got.final == ("input_delay",)
-    assert got.accepted == [("input_delay", 1.0)]
+    assert got.accepted == (("input_delay", 1.0),)
     assert [n for n, _ in got.eliminated] == ["amplifier_dead_zone"] and "play" in got.eliminated[0][1]
     assert [t.family for t in run(["amplifier_dead_zone"], [{"against": "input", "where": "x"}]).terms] == \
         ["amplifier_dead_zone"]

@@ -10,6 +10,8 @@ Logs and closed-loop runs are made once per module on two worker processes (virt
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import math
 import os
@@ -325,8 +327,7 @@ def test_a_shape_that_the_straight_line_does_as_well_is_replaced_by_it(runs):
     _, idf = runs["linear"]
     grid = pfs.KnotGrid(float(idf.p.x.min()), float(idf.p.x.max()), 8)
     shape = idf.term(NAME, grid)
-    ev = idf.evaluate([shape])
-    ev.term, ev.gain, ev.rivals = shape, 0.5, []
+    ev = dataclasses.replace(idf.evaluate([shape]), term=shape, gain=0.5, rivals=())
     terms, accepted, final, replaced = idf._simplify([shape], [(ev, idf.nominal.heldout_rms)], ev)
     assert [t.family for t in terms] == [LINEAR] and [n for n, _ in replaced] == [NAME], replaced
     assert final.heldout_rms <= ev.heldout_rms / (1 - MIN_HELDOUT_GAIN)

@@ -69,12 +69,12 @@ def test_a_candidate_refused_on_its_physics_is_reported_unexplained():
             cand("spring", 0.30, ok=True)]
     clean = {"structured": False, "findings": [],
              "text": "the residual shows no structure (against velocity, input, position, time, spectrum)"}
-    add_refused(clean, step, [step[3]])
+    clean = add_refused(clean, step, [step[3]])
     assert clean["structured"] and [f["against"] for f in clean["findings"]] == ["periodic_disturbance"]
     assert clean["text"].startswith("unexplained structured residual remains: what periodic_disturbance "
                                     "would explain (10 % of the held-out residual), refused: the loop itself")
     quiet = {"structured": False, "findings": [], "text": "the residual shows no structure (against x)"}
-    add_refused(quiet, step[1:], [])
+    quiet = add_refused(quiet, step[1:], [])
     assert not quiet["structured"] and quiet["text"] == "the residual shows no structure (against x)"
 
 

@@ -35,7 +35,7 @@ columns with f_u = u left o 45 % low to 29 % high on 20 s logs of the default pl
 mis-modelled as f_u = u there also made a phantom asymmetric friction of the force the band
 takes at large |u| (d·f_u'(u), half of d at 8 V).
 The values reported are taken again with stiction's stick state measured from the encoder's
-reading (:meth:`motorctl.ident.select.Identifier.refit`, stiction's ``StickState``): the samples
+reading (:func:`motorctl.ident.values.refit`, stiction's ``StickState``): the samples
 crossing the band at each stop and breakaway, which fix o, are weighed by whether the carriage
 is held, and Karnopp stiction holds it exactly still (the reading within one count), where the
 selection's smooth velocity weight moved o with its band (20 mV: 23.9 mV on that weight, 19.8 mV

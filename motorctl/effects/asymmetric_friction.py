@@ -11,6 +11,7 @@ d̂_eff(ẋ_d) = −(ΔF_V S_f(ẋ_d) + ΔB_V ẋ_d) for ẋ_d > 0 [V].
 
 from __future__ import annotations
 
+import math
 from typing import ClassVar
 
 import numpy as np
@@ -122,36 +123,37 @@ def _extremes(u: np.ndarray, k: int) -> tuple[float, float]:
     return float(np.mean(part[:k])), float(np.mean(part[-k:]))
 
 
-def other_input(ctx, name: str) -> np.ndarray | None:
-    """u_other [V] (N,): the input the effects of the identifier's final model (``ctx.terms``,
-    β of ``ctx.final``) other than ``name`` take at each sample of the record ``ctx.p``, Σ C_k
-    β_k on the full-rate columns; None when ``ctx`` has no final model or no such effect.
+def other_input(fitted, name: str) -> np.ndarray | None:
+    """u_other [V] (N,): the input the effects of the identification's values' model
+    (``fitted.terms``, β of ``fitted.final``, on the record ``fitted.fits.p``) other than
+    ``name`` take at each sample, Σ C_k β_k on the full-rate columns; None when ``fitted`` has no
+    final model or no such effect.
 
     Left out: the terms without columns (a delay of the input) and those of a family that
     holds the carriage at rest (stiction's ``other_weight``): their columns there are the held
     input itself, not a force on the carriage.
     """
-    terms = list(getattr(ctx, "terms", None) or [])
-    if getattr(ctx, "final", None) is None or not terms:
+    terms = list(getattr(fitted, "terms", None) or [])
+    if getattr(fitted, "final", None) is None or not terms:
         return None
     from motorctl.effects import family
-    betas = ctx.coef_split(ctx.final, terms)[1]
+    betas = fitted.fits.coef_split(fitted.final, terms)[1]
     out = None
     for t, b in zip(terms, betas):
         fam = family(t.family)
         if t.family == name or t.cols is None or fam.other_weight(t) is not None:
             continue
-        f = fam.fitted(t.h, ctx.p, b)
+        f = fam.fitted(t.h, fitted.fits.p, b)
         if f is None:
             continue
         out = f if out is None else out + f
     return out
 
 
-def levels_in_motion(ctx, name: str) -> tuple[float, np.ndarray] | None:
-    """The constant force θ4 in motion [V] and the term ``name``'s β of the identifier's final
-    model (``ctx.terms``) fitted again on the samples in motion only (``ctx.moving``), or None
-    when ``ctx`` has no such term or the record does not move both ways.
+def levels_in_motion(fitted, name: str, with_std: bool = False) -> tuple[float, np.ndarray, tuple | None] | None:
+    """The constant force θ4 in motion [V] and the term ``name``'s β of the values' model
+    (``fitted.terms``) fitted again on the samples in motion only (``fitted.fits.moving``), or
+    None when ``fitted`` has no such term or the record does not move both ways.
 
     The friction levels and slopes of each direction are properties of motion; the samples near
     rest follow the Karnopp stick and slip of each start and stop, which the model's columns
@@ -166,25 +168,34 @@ def levels_in_motion(ctx, name: str) -> tuple[float, np.ndarray] | None:
     (:func:`held_offset` with :func:`other_input`).
 
     Returns:
-        (θ4 [V], β (2,) [V, V·s/m]).
+        (θ4 [V], β (2,) [V, V·s/m], with ``with_std`` (σ of ΔB [V·s/m], σ of ΔF_c − 2θ4 [V]) of
+        that fit, its Newey-West σ and the model error the record shows against the fit on all
+        samples, ``fitted.fits.rows_std``; else None).
     """
-    terms = list(getattr(ctx, "terms", None) or [])
+    terms = list(getattr(fitted, "terms", None) or [])
     idx = next((i for i, t in enumerate(terms) if t.family == name), None)
     if idx is None:
         return None
-    phi, y = ctx.design(terms)
-    nt = ctx.n_theta
+    fits = fitted.fits
+    phi, y = fits.design(terms)
+    nt = fits.n_theta
     widths = [0 if t.cols is None else t.cols.shape[1] for t in terms]
     start = nt + sum(widths[:idx])
-    sel = ctx.moving
-    if not ((sel & (ctx.p.v_d > 0)).any() and (sel & (ctx.p.v_d < 0)).any()):
+    sel = fits.moving
+    if not ((sel & (fits.p.v_d > 0)).any() and (sel & (fits.p.v_d < 0)).any()):
         return None
+    if with_std:
+        combos = np.zeros((2, phi.shape[1]))
+        combos[0, start + 1] = 1.0                              # ΔB
+        combos[1, start], combos[1, 3] = 1.0, -2.0              # ΔF_c − 2θ4
+        coef, std = fits.rows_std(phi, y, sel, combos)
+        return float(coef[3]), coef[start:start + 2], (float(std[0]), float(std[1]))
     a, b = phi[sel], y[sel]
     norms = np.sqrt(np.einsum("ij,ij->j", a, a))
     live = norms > 1e-9 * norms.max()
     coef = np.zeros(phi.shape[1])
     coef[live] = np.linalg.lstsq(a[:, live] / norms[live], b, rcond=None)[0] / norms[live]
-    return float(coef[3]), coef[start:start + 2]
+    return float(coef[3]), coef[start:start + 2], None
 
 
 class AsymmetricFriction(StrictModel):
@@ -233,36 +244,63 @@ class AsymmetricFrictionFamily(EffectFamily):
         pos = (v > 0).astype(float)
         return np.column_stack([s_f(v) * pos, v * pos])
 
-    def parameters(self, h, beta, gain, fs, theta=None, p=None, ctx=None):
+    def parameters(self, h, beta, gain, fs, theta=None, p=None, fitted=None):
         """ΔF_c and ΔB [N, N·s/m; V, V·s/m without the gain].
 
-        With the identifier ``ctx`` (its final model), ΔB and ΔF_c − 2θ4 come from that model
-        fitted again on the samples in motion (:func:`levels_in_motion`). In motion a constant
-        offset force (θ4's column −1) and the forward-only Coulomb column S_f(ẋ)·[ẋ > 0] =
-        (S_f + |S_f|)/2 are collinear: the fit fixes the two levels θ3 + β − θ4 (forward) and
+        With the identification's values' model ``fitted``, ΔB and ΔF_c − 2θ4 come from that
+        model fitted again on the samples in motion (:func:`levels_in_motion`). In motion a
+        constant offset force (θ4's column −1) and the forward-only Coulomb column S_f(ẋ)·[ẋ > 0]
+        = (S_f + |S_f|)/2 are collinear: the fit fixes the two levels θ3 + β − θ4 (forward) and
         θ3 + θ4 (backward), not β and θ4 apart, and a carriage held at rest shows neither (its
         input there is unconstrained). When the record's input held at rest spans the breakaway
         both ways (:func:`held_offset`), θ4 is taken from there and ΔF_c = β − 2θ4 + 2θ4_held
-        (β, θ4 of the fit in motion; of the joint fit ``beta``, ``theta`` without ``ctx``), the
-        held input taken less the other effects' input at rest (:func:`other_input`) with ``ctx``.
-        Without the held offset ΔF_c is the joint fit's β: in motion alone nothing tells it from
-        the offset, near rest the joint fit has S_f's transitions (EMPS, sign friction: 9.2 N
-        against 16.4 N from the fit in motion; the description's −0.48 N)."""
+        (β, θ4 of the fit in motion; of the joint fit ``beta``, ``theta`` without ``fitted``),
+        the held input taken less the other effects' input at rest (:func:`other_input`) with
+        ``fitted``. Without the held offset ΔF_c is the joint fit's β: in motion alone nothing
+        tells it from the offset, near rest the joint fit has S_f's transitions (EMPS, sign
+        friction: 9.2 N against 16.4 N from the fit in motion; the description's −0.48 N)."""
+        return self._levels(beta, gain, theta, p, fitted, False)[0]
+
+    def refitted_std(self, h, beta, gain, theta=None, p=None, fitted=None):
+        """σ of what :meth:`parameters` takes from the fit in motion (:func:`levels_in_motion`:
+        its Newey-West σ and the model error the record shows against the fit on all samples):
+        ΔB always, ΔF_c = β − 2θ4 + 2θ4_held when the held offset is known (θ4_held, from the
+        extremes of the held input, taken as exact)."""
+        return self._levels(beta, gain, theta, p, fitted, True)[1]
+
+    def _levels(self, beta, gain, theta, p, fitted, with_std: bool) -> tuple[dict, dict]:
+        """(the parameters, {name: σ} of those from the fit in motion, with ``with_std``)
+        (:meth:`parameters`)."""
         g, unit = (gain, "N") if gain else (1.0, "V")
         dfc, db = float(beta[0]), float(beta[1])
+        names = (f"coulomb_{unit}", f"viscous_{unit}_s_per_m")
+        std = {}
         if theta is not None and p is not None and len(theta) > 3:
             th4 = float(theta[3])
-            moving = levels_in_motion(ctx, self.name) if ctx is not None else None
+            moving = levels_in_motion(fitted, self.name, with_std) if fitted is not None else None
             held = held_offset(p, float(theta[2]), float(theta[3]),
-                               other_input(ctx, self.name) if ctx is not None else None)
+                               other_input(fitted, self.name) if fitted is not None else None)
             if moving is not None:
-                th4_m, beta_m = moving
+                th4_m, beta_m, sd = moving
                 db = float(beta_m[1])
+                if sd is not None:
+                    std[names[1]] = g * sd[0]
                 if held is not None:
                     dfc, th4 = float(beta_m[0]), th4_m
+                    if sd is not None:
+                        std[names[0]] = g * sd[1]
             if held is not None:
                 dfc += 2.0 * (held - th4)
-        return {f"coulomb_{unit}": float(g * dfc), f"viscous_{unit}_s_per_m": float(g * db)}
+        return {names[0]: float(g * dfc), names[1]: float(g * db)}, {k: v for k, v in std.items() if math.isfinite(v)}
+
+    def named_by(self, standing):
+        """"asymmetric viscous friction" when only ΔB stands, "asymmetric Coulomb friction" when
+        only ΔF_c does."""
+        if all(n.startswith("viscous_") for n in standing):
+            return "asymmetric viscous friction"
+        if all(n.startswith("coulomb_") for n in standing):
+            return "asymmetric Coulomb friction"
+        return self.name
 
     # compensation
     def compensation(self, h, beta, signals=None, beta_std=None):

@@ -248,7 +248,7 @@ class Signals:
 
 class SearchContext(Protocol):
     """What a family's search, plausibility check and report shape may use of the identifier
-    (:class:`motorctl.ident.select.Identifier` provides it; families never import it).
+    (:class:`motorctl.ident.fit.Fits`, the fit stage, provides it; families never import it).
 
     Attributes:
         p: the prepared record: full rate x, v, a, u, t (N,) and fu; decimated x_d, v_d, a_d,
@@ -376,7 +376,8 @@ class EffectFamily:
     size_options: ClassVar[tuple[str, ...]] = ()
     #: the names (prefixes) of :meth:`parameters`' keys that give the effect's size (a force, a
     #: stiffness, a mass, a rate; not where or when it acts): the effect is named only when the
-    #: 95 % interval of at least one of them excludes 0 (:func:`motorctl.ident.judge.holds_zero`).
+    #: 95 % interval of at least one of them excludes 0 (:func:`motorctl.ident.judge.holds_zero`;
+    #: those whose interval holds 0 are then not claimed, :meth:`named_by`).
     #: Empty (default): no such check
     size_parameters: ClassVar[tuple[str, ...]] = ()
     #: families whose force looks alike in tracking data (stiction and an amplifier dead-zone
@@ -390,11 +391,11 @@ class EffectFamily:
     #: the effect is a lost motion of the input at each reversal (a dead-zone's band): a play in
     #: the drive, which no family models, shows the same lost motion and, beside it, a force of
     #: the travel since the reversal; where the residual verdict reports that force beside the
-    #: effect, the effect is not named (:meth:`motorctl.ident.select.Identifier.travel_shared`)
+    #: effect, the effect is not named (:func:`motorctl.ident.judge.travel_shared`)
     lost_motion: ClassVar[bool] = False
     #: the family's columns carry the drive's input before the amplifier's current loop (a
     #: dead-zone's lost band, the input stiction holds at rest): where identify models a
-    #: declared current loop (:meth:`motorctl.ident.select.Identifier.input_columns`) they go
+    #: declared current loop (:meth:`motorctl.ident.columns.Columns.input_columns`) they go
     #: through the loop as the input does
     before_current_loop: ClassVar[bool] = False
     #: a family whose model is this one's special case (a straight line is a friction shape
@@ -403,7 +404,7 @@ class EffectFamily:
     #: held-out gain above (None: no such family)
     simpler: ClassVar[str | None] = None
     #: selected, the effects' values are fitted again on the declared current loop's model
-    #: (:meth:`motorctl.ident.select.Identifier.refit`): this family's values depend on the
+    #: (:func:`motorctl.ident.values.refit`): this family's values depend on the
     #: few ms after each start, where the loop's first-order lag fitted as a pure delay leaves
     #: a difference it takes up (Stribeck's hump); the selection and the verdict stay as found
     values_on_current_loop: ClassVar[bool] = False
@@ -412,7 +413,7 @@ class EffectFamily:
     searched_on_current_loop: ClassVar[bool] = False
     #: this family's columns carry the identifier's thrust shape f_u(u) = u + θ5 u|u| + θ6 u³
     #: (``Prepared.fu``): the nominal fit's θ5, θ6 during the selection, the final model's after
-    #: it (:meth:`motorctl.ident.select.Identifier._refit_thrust_shape`)
+    #: it (:func:`motorctl.ident.stepwise.refit_thrust_shape`)
     columns_on_thrust_shape: ClassVar[bool] = False
     #: selected beside a family that holds the carriage and whose hold the encoder's reading
     #: shows (:meth:`stick_state`), this family's values are taken again with the stick state
@@ -434,7 +435,7 @@ class EffectFamily:
         force above the band of the prepared record ``p``, whatever the effect's own h there (a
         structural mode's antiresonance at the top of its grid: its columns are then the load's
         inertia rising with frequency, m_l s²ẍ/ω_a²), for the values' model
-        (:meth:`motorctl.ident.select.Identifier.mode_above_band`); None (default): the family
+        (:func:`motorctl.ident.values.mode_above_band`); None (default): the family
         has no such columns, or the record's band is too narrow for them."""
         return None
 
@@ -508,7 +509,7 @@ class EffectFamily:
 
     def joint_values(self, h) -> np.ndarray | None:
         """Values of this family's searched parameter to try in the current loop's refit
-        (:meth:`motorctl.ident.select.Identifier.refit`) instead of the selected ``h``, the
+        (:func:`motorctl.ident.values.refit`) instead of the selected ``h``, the
         ``values_on_current_loop`` families searched beside each, before the refit's sweeps:
         where two effects act at low speed their SSE can have two valleys, and the sweeps stay
         in the one the selection started in. Default: None (none tried)."""
@@ -569,6 +570,19 @@ class EffectFamily:
         """Physical parameters of a fitted term, names ending in their unit: forces in N when
         the gain A1 [N/V] is known, else in V (force / A1). fs: sample rate [Hz]."""
         raise NotImplementedError
+
+    def refitted_std(self, h, beta: np.ndarray, gain: float | None, theta=None, p=None, fitted=None) -> dict:
+        """{name: σ} of the :meth:`parameters` this family fits again on part of the record
+        (with ``fitted``, the identification's values' model: its ``terms``, ``final`` and
+        ``fits``), in their units: the fitted β and h do not move them, so their interval comes
+        from that fit. Default: none."""
+        return {}
+
+    def named_by(self, standing: list) -> str:
+        """The name the effect is reported by when only some of its size parameters stand on
+        their own (``standing``: the names of :attr:`size_parameters`' entries whose 95 %
+        interval excludes 0; the others are not claimed). Default: the family's name."""
+        return self.name
 
     def decimated_columns(self, h, p) -> np.ndarray | None:
         """The decimated columns (M, k) at h computed without filtering the full-rate ones, when

@@ -386,7 +386,7 @@ class EncoderInterpolationFamily(PositionPeriodic):
         stroke/3) on the identifier's record, the held-out share over its blocks' folds, the
         carriage's own motion the input drives (:func:`carriage_motion`, θ1 of the nominal fit)
         taken from y − x; once per identifier (the reading does not depend on the effects)."""
-        cached = getattr(ctx, "_encoder_reading", None)
+        cached = ctx.memo.get("encoder_reading")
         if cached is not None:
             return cached
         hi = min(PERIOD_MAX_M, ctx.stroke / 3.0)
@@ -404,7 +404,7 @@ class EncoderInterpolationFamily(PositionPeriodic):
             theta1 = float(ctx.evaluate([]).fit.coef[0])
             carriage = carriage_motion(ctx.delayed_u(ctx.zoh), p.fs, p.fq, theta1) if theta1 > 0 else None
             out = search_reading(p, PERIOD_MIN_M, hi, fold_of, carriage)
-        ctx._encoder_reading = out
+        ctx.memo["encoder_reading"] = out
         return out
 
     def unnamed_evidence(self, ctx):
@@ -436,7 +436,7 @@ class EncoderInterpolationFamily(PositionPeriodic):
         if grid.size < 3:
             return None
         p = ctx.p
-        cheap = ctx.__dict__.setdefault("_encoder_cheap", {})     # the same grid at every step
+        cheap = ctx.memo.setdefault("encoder_cheap", {})     # the same grid at every step
 
         def cols(h):
             c = cheap.get(h)

@@ -13,7 +13,7 @@ frequency bands say differ (:meth:`InputDelayFamily.not_transport`: a transport 
 −ωτ at every frequency, a load held with play lags only part of the force). The amplifier's
 current loop the run log's config declares (``current_loop_hz``, ``current_loop_delay_s`` of the
 axis's driver) is part of the nominal model, every input column filtered through it
-(:func:`current_loop_filter`; :meth:`motorctl.ident.select.Identifier.input_columns`): a
+(:func:`current_loop_filter`; :meth:`motorctl.ident.columns.Columns.input_columns`): a
 first-order lag is a delay of 1/(2π f_c) in the band the fit sees, but not in the few ms after
 each start, where a pure delay fitted for it left a difference the friction at low speed took up.
 What is found is the lag beyond the hold and the declared loop: the report's ``delay_s``;
@@ -75,7 +75,7 @@ WHOLE_TOLERANCE = 1e-6
 
 
 #: a total input delay (hold + found) within this distance of half a sample is the zero-order
-#: hold of a sampled-data loop, not an effect [samples] (motorctl.ident.select.HOLD_TOLERANCE)
+#: hold of a sampled-data loop, not an effect [samples] (re-exported as motorctl.ident.select.HOLD_TOLERANCE)
 HOLD_TOLERANCE = 0.15
 #: the delays compared with the hold in these units of a sample (:func:`is_hold`): the grids'
 #: steps of 0.05 land on whole hundredths, which binary floats do not (0.65 - 0.5 =

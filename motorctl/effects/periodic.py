@@ -491,8 +491,8 @@ class PositionPeriodic(EffectFamily):
     def motion_check(self, ctx, term, base) -> list[str]:
         """A force of position acts in motion as at rest: the reason against a term that
         explains less than :data:`MIN_MOVING_KEPT` of its share of the whole record's residual
-        on the moving samples (both fitted jointly with the nominal θ, :meth:`~motorctl.ident.
-        select.Identifier.explained_shares`), else []. What it explained is the force the loop
+        on the moving samples (both fitted jointly with the nominal θ, :func:`~motorctl.ident.
+        probes.explained_shares`), else []. What it explained is the force the loop
         holds at the positions the carriage rests at (a hold the model's friction does not
         describe), which a short period fits at those few positions (:data:`AT_REST_ONLY`: not
         a structure for the residual verdict)."""
@@ -506,7 +506,7 @@ class PositionPeriodic(EffectFamily):
         """A force of position acts at every thrust: the reason against a term that explains
         less than :data:`MIN_TAIL_KEPT` of its share of the moving samples' residual once the
         :data:`THRUST_TAIL` of the record's samples with the largest |u| are left out (both
-        fitted jointly with the nominal θ, :meth:`~motorctl.ident.select.Identifier.
+        fitted jointly with the nominal θ, :func:`~motorctl.ident.probes.
         explained_shares`), else []. What it explained sits where the amplifier saturates and
         the thrust shape is least sure: a few samples at the program's hardest accelerations,
         at fixed positions, which a period fits (a clean plant whose viscous friction drives u
@@ -529,7 +529,7 @@ class PositionPeriodic(EffectFamily):
         error looks so: the encoder_interpolation family) or less than 1/MAX_SPEED_GROWTH
         times (what the load's play leaves at the ends of the moves fitted at a long period),
         beyond the ratio's ±2σ interval
-        (:meth:`~motorctl.ident.select.Identifier.speed_growth_interval`: a small effect's
+        (:func:`~motorctl.ident.probes.speed_growth_interval`: a small effect's
         halves are noisy; a 3.6 N cogging measured ×2.15), else []. Measured ratios of the true
         effects (default and rigid plants, examples ×0.5, ×1): cogging 0.95-1.68, force ripple
         0.77-0.96, periodic friction 0.78-1.20.

@@ -76,7 +76,7 @@ def line_force(f, x, v, t, sf, p):
 
 
 #: largest share of what a friction of position explains that fitting it on each direction of
-#: motion apart may add (:meth:`motorctl.ident.select.Identifier.direction_split_gain`).
+#: motion apart may add (:func:`motorctl.ident.probes.direction_split_gain`).
 #: Measured: the families' own shapes on the default plant (×0.5, ×1, ×2, seeds 1-2) 0.000-0.007;
 #: a 10 kg load through ±100 µm of play (benchmarks/ident_unmodelled.py backlash100 seed 3,
 #: taken as a 12-segment friction shape: the load's push, mirrored about mid-stroke out and back)

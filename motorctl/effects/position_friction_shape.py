@@ -24,7 +24,7 @@ identifier's held-out rule (:meth:`PositionFrictionShapeFamily.search`):
   above), so forward selection takes it; when the linear family was selected first, the grid
   also leaves out the last B-spline (``drop_linear``), whose direction x·S_f(ẋ) then has.
 
-The search uses ``ctx.heldout_rms(terms)`` (:meth:`motorctl.ident.select.Identifier.heldout_rms`),
+The search uses ``ctx.heldout_rms(terms)`` (:meth:`motorctl.ident.fit.Fits.heldout_rms`),
 the identifier's own 2-fold block cross-validation.
 
 Plausibility: the Coulomb level θ3 + g(x) stays positive over the range, and the shape is
@@ -63,7 +63,7 @@ from motorctl.schema import Pos, StrictModel
 #: by one fold, so finer grids cannot be judged (their held-out RMS blows up)
 SEGMENTS = (1, 2, 3, 4, 6, 8, 12)
 #: least relative drop of the held-out residual RMS for a larger segment count to be kept
-#: (equal to ``motorctl.ident.select.MIN_HELDOUT_GAIN``; checked by the tests)
+#: (equal to ``motorctl.ident.rules.MIN_HELDOUT_GAIN``; checked by the tests)
 TERM_GAIN = 0.03
 #: largest SSE reduction of the same basis as a direction-independent force, relative to the
 #: friction shape's, for the friction shape to be plausible

@@ -17,7 +17,7 @@ against. Plausible when β1 is near 1 and the largest force held at rest (99th p
 While stiction is in the model the other effects' columns are weighed by 1 − w(ẋ): the
 carriage held at rest feels no other force either (a periodic disturbance below the breakaway
 force leaves no trace in the input at rest), so they are fitted on the samples in motion.
-For the values only (a dead-zone selected beside it: :meth:`motorctl.ident.select.Identifier.
+For the values only (a dead-zone selected beside it: :func:`motorctl.ident.values.
 refit`), w(ẋ) is multiplied by the stick state measured from the encoder's reading
 (:class:`StickState`, :func:`held_by_reading`).
 Not compensable here: stiction is fought with the robust feedback (or a dither / breakaway kick

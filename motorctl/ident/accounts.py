@@ -15,7 +15,7 @@ the effects already in the model (IDIM-LS, the same regressor and held-out folds
   on :func:`scipy.signal.periodogram` of the decimated residual, Hann window) between
   :data:`LINE_LOW_HZ` and 0.35 of the decimated rate.
 
-A candidate whose held-out RMS (the selection's measure, :meth:`Identifier.heldout_with`) is not
+A candidate whose held-out RMS (the selection's measure, :meth:`motorctl.ident.fit.Fits.heldout_with`) is not
 below an account's is refused with the account named ("a force step of ... explains as much").
 The time-periodic family is not judged against the line (the line is its own account), nor a
 family against an account it contains. Data in and out are plain records (:class:`Account`).
@@ -111,7 +111,7 @@ def best_step(phi: np.ndarray, residual: np.ndarray, weight: np.ndarray | None, 
 def accounts(ctx, base: list, residual: np.ndarray) -> list[Account]:
     """The simpler accounts (:class:`Account`: step, drift, line) of ``residual`` (M,), the
     residual of the nominal model plus ``base``, each fitted beside them. ``ctx``: the
-    identifier (``design``, ``hold_weight``, :meth:`~motorctl.ident.select.Identifier.heldout_with`,
+    identifier (``design``, ``hold_weight``, :meth:`~motorctl.ident.fit.Fits.heldout_with`,
     ``p``)."""
     p = ctx.p
     t_d = p.t_d

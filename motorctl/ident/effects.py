@@ -53,16 +53,16 @@ def columns_fast(name: str, h, p) -> np.ndarray | None:
 
 
 def parameters(name: str, h, beta: np.ndarray, gain: float | None, fs: float, theta=None, p=None,
-               ctx=None) -> dict:
+               fitted=None) -> dict:
     """Physical parameters of a fitted term, names ending in their unit: forces in N when the
     gain A1 [N/V] is known, otherwise in V (force / A1). fs: sample rate [Hz]. theta: the
     nominal θ̂ of the same fit (n_theta,), for a family whose parameters need it (a reading's
     error: β = −θ1·e); None: not given. p: the prepared record
     (:class:`motorctl.ident.idim.Prepared`), for a family whose parameters need more of the
-    record than its fit (asymmetric friction: the input held at rest); None: not given. ctx:
-    the identifier after its run (:class:`motorctl.effects.base.SearchContext`, its final model
-    in ``terms``), for a family that fits its parameters again on part of the record
-    (asymmetric friction: the samples in motion); None: not given.
+    record than its fit (asymmetric friction: the input held at rest); None: not given. fitted:
+    the values' model (:class:`motorctl.ident.values.ValuesModel`: ``terms``, ``final``, ``fits``),
+    for a family that fits its parameters again on part of the record (asymmetric friction: the
+    samples in motion); None: not given.
 
     Raises:
         ValueError: unknown family.
@@ -74,8 +74,8 @@ def parameters(name: str, h, beta: np.ndarray, gain: float | None, fs: float, th
         kw["theta"] = theta
     if p is not None and "p" in takes:
         kw["p"] = p
-    if ctx is not None and "ctx" in takes:
-        kw["ctx"] = ctx
+    if fitted is not None and "fitted" in takes:
+        kw["fitted"] = fitted
     return fam.parameters(h, beta, gain, fs, **kw)
 
 

@@ -1,17 +1,23 @@
-"""Stage *explain*: what ``motorctl identify`` says of a fit. The residual verdict's findings
-completed with the last step's candidates refused on their physics (:func:`add_refused`), and the
-text report of a summary (:func:`text_report`, the JSON of
-:func:`motorctl.ident.pipeline.summarise`)."""
+"""Stage *explain*: what ``motorctl identify`` says of a fit. The summary of an identification
+(:func:`summarise`, the JSON of ``identify``): the nominal and augmented models with their
+intervals, each named effect (by what stands of it, :func:`motorctl.ident.judge.claims`), the
+candidates of every step, the residual verdict completed with the last step's candidates
+refused on their physics (:func:`add_refused`) and the ambiguities; and the text report of a
+summary (:func:`text_report`)."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 from motorctl.ident import effects as fx
 from motorctl.ident.idim import RAIL_MIN_S
-from motorctl.ident.select import MAX_EFFECTS, REFUSED_GAIN, refused_on_physics
+from motorctl.ident.rules import MAX_EFFECTS, REFUSED_GAIN, refused_on_physics
+from motorctl.ident.verdict import Verdict
+from motorctl.model import THETA_NAMES
 
-
+#: Horizon of the simulated-position fit % (motorctl.ident.simfit) [s].
+SIM_WINDOW_S = 0.2
 #: the share of the samples at the input's limit (:func:`motorctl.ident.idim.input_saturation`)
 #: from which the report says the values may be off. Default plant, X, 20 s, the program's
 #: a_max raised from 40 to 41-47 m/s²: up to 1.3 % at the limit cogging came within 2.4 % and
@@ -19,49 +25,192 @@ from motorctl.ident.select import MAX_EFFECTS, REFUSED_GAIN, refused_on_physics
 #: springs and warnings, at 4.5 % cogging and the encoder's error missed
 #: (docs/identification.md, "Input saturation")
 SATURATION_NOTE_SHARE = 0.01
+#: the uncertainty's method, as the summary states it
+UNCERTAINTY_METHOD = ("sigma = sqrt(s^2 + b^2): s the Newey-West HAC standard deviation (Bartlett kernel, Andrews' "
+                      "AR(1) bandwidth), b the model error the record shows (the fit on the low band and on the "
+                      "samples in motion against the fit on all, beyond its sampling variance, where significant "
+                      "at 5 %); 95 % interval = value -+ 1.96 sigma")
 
 
-def add_refused(verdict: dict, last_step: list, chosen: list, idf: Identifier | None = None) -> None:
-    """Add to the residual verdict (:func:`motorctl.ident.verdict.residual_verdict`) the
+def _r(x):
+    return float(x) if x is not None and math.isfinite(float(x)) else None
+
+
+def summarise(idf) -> dict:
+    """The JSON object of ``identify`` for an identification (the driver
+    :class:`~motorctl.ident.pipeline.Identifier` after its stages: its ``fits``, ``judge``,
+    ``selection``, ``refined`` and values' model); residuals in N when a gain is known."""
+    from motorctl.ident.ambiguity import summaries
+    from motorctl.ident.judge import claims, parameters_of, values_of
+    from motorctl.ident.simfit import simulation_fit
+    from motorctl.ident.uncertainty import stated_uncertainty
+    rec, fits, sel, judge = idf.rec, idf.fits, idf.selection, idf.judge
+    values = idf.values if idf.values is not None else values_of(judge, sel)
+    g = rec.gain or 1.0
+    unit = "N" if rec.gain else "V"
+    nt = fits.n_theta
+    nom = sel.nominal
+    # the σ of every value from the residual's own correlation (Newey-West; the white formula's
+    # σ̂²(ΦᵀΦ)⁻¹ kept beside it as theta_std_white): motorctl.ident.uncertainty
+    nom_unc = stated_uncertainty(fits, nom, [], None)
+    st = fits.structure
+    out = {
+        "source": rec.source,
+        "axis": rec.axis or None,
+        "samples": int(rec.n),
+        "period_s": rec.period_s,
+        "filters": {"position_lowpass_Hz": fits.p.fq, "decimation": fits.p.nd, "zoh_delay_samples": st.zoh,
+                    "zoh_source": st.zoh_source, "block_s": 0.25, "friction_shape": fits.friction},
+        "residual_unit": unit,
+        "gain_N_per_V": rec.gain,
+        "nominal": {
+            "theta": [float(v) for v in nom.fit.coef[:nt]],
+            "theta_std": [float(v) for v in nom_unc["theta_std"]],
+            "theta_ci95": nom_unc["theta_ci95"],
+            "theta_std_sampling": nom_unc["theta_std_sampling"],
+            "theta_model_error": nom_unc["theta_model_error"],
+            "theta_std_white": nom_unc["theta_std_white"],
+            "theta_names": list(THETA_NAMES[:nt]),
+            "n_theta": nt,
+            "n_theta_reason": st.n_theta_reason,
+            "condition_number": nom.fit.cond,
+            "residual_rms": g * nom.fit.rms,
+            "heldout_rms": g * nom.heldout_rms,
+        },
+    }
+    out["input_saturation"] = idf.saturation
+    if rec.gain:
+        th = nom.fit.coef
+        # the offset in both conventions: F_offset_N as published for EMPS (Janot, Gautier & Brunot
+        # 2019: M ÿ + Fv ẏ + Fc sign(ẏ) + F_offset = A1 u, the force the motor holds against), and
+        # offset_N = θ4·A1 as the plant's driver.offset_N (a force on the carriage, model.py's
+        # θ1 ẍ = u − … + θ4): the same number with the opposite sign
+        out["nominal"]["physical"] = {"mass_kg": g * th[0], "viscous_N_s_per_m": g * th[1],
+                                      "coulomb_N": g * th[2], "F_offset_N": -g * th[3],
+                                      "offset_N": g * th[3]}
+    th, _ = fits.coef_split(sel.final, sel.terms)
+    params_of = parameters_of(values, rec.gain)
+    th_v, betas = values.coef_split(values.final, values.terms)
+    unc = stated_uncertainty(values.fits, values.final, values.terms, params_of)
+    effects = []
+    for (ev, before), term, beta, eu in zip(sel.accepted, values.terms, betas, unc["effects"]):
+        named_as, unclaimed = claims(term.family, eu["ci95"])
+        effects.append({
+            "name": term.family,
+            # the name by what stands of it, and the size parameters it does not claim (their
+            # 95 % interval holds 0): motorctl.ident.judge.claims
+            "named_as": named_as,
+            "not_claimed": [{"parameter": n, "ci95": [lo, hi]} for n, lo, hi in unclaimed],
+            "parameters": params_of(term, term.h, beta),
+            # σ and 95 % interval of each named parameter (those a number; delta method on the
+            # Newey-West covariance of β and the searched h: motorctl.ident.uncertainty)
+            "parameters_std": eu["std"],
+            "parameters_ci95": eu["ci95"],
+            "parameters_std_sampling": eu.get("std_sampling", {}),
+            "parameters_model_error": eu.get("model_error", {}),
+            "heldout_rms_before": g * before,
+            "heldout_rms_after": g * ev.heldout_rms,
+            "heldout_gain_percent": 100 * ev.gain,
+            "cannot_be_told_from": [{"name": n, "heldout_gain_percent": 100 * gn} for n, gn in ev.rivals],
+        })
+    out["effects"] = effects
+    # theta_std / theta_ci95: of the values the effects' parameters come from (the values' model)
+    out["augmented"] = {"theta": [float(v) for v in th], "residual_rms": g * sel.final.fit.rms,
+                        "heldout_rms": g * sel.final.heldout_rms,
+                        "theta_values": [float(v) for v in th_v],
+                        "theta_std": unc["theta_std"], "theta_ci95": unc["theta_ci95"],
+                        "theta_std_sampling": unc["theta_std_sampling"],
+                        "theta_model_error": unc["theta_model_error"],
+                        "theta_std_white": unc["theta_std_white"]}
+    out["uncertainty"] = {"method": UNCERTAINTY_METHOD,
+                          "lag_samples": unc["lag_samples"], "nominal_lag_samples": nom_unc["lag_samples"],
+                          "splits": unc.get("splits", []), "nominal_splits": nom_unc.get("splits", [])}
+    # the effects' values (and the compensation's) taken again on the declared current loop's
+    # model, with the stick state measured, and/or with a structural mode's force above the band
+    out["refit"] = None if not values.refitted else {
+        "families": list(values.families),
+        "on_current_loop": values.on_current_loop,
+        "current_loop_modelled": values.fits.loop_filter is not None,
+        "stick_state_measured": values.stick_measured,
+        "mode_above_band": None if values.band_mode is None else {
+            "columns_at_Hz": values.band_mode["columns_at_Hz"],
+            "heldout_gain_percent": 100.0 * values.band_mode["heldout_gain"],
+            "load_fraction_at_columns": values.band_mode["load_fraction"]},
+        "theta": [float(v) for v in th_v], "residual_rms": g * values.final.fit.rms,
+        "heldout_rms": g * values.final.heldout_rms}
+    out["nominal"]["simulation_fit_percent"] = simulation_fit(fits, [], nom, SIM_WINDOW_S)
+    out["augmented"]["simulation_fit_percent"] = simulation_fit(fits, list(sel.terms), sel.final, SIM_WINDOW_S)
+    out["simulation_window_s"] = SIM_WINDOW_S
+    chosen = [ev for ev, _ in sel.accepted]
+    out["candidates"] = [
+        [{"name": c.term.family, "searched": _r(c.term.h), "heldout_gain_percent": 100 * c.gain,
+          "accepted": c.ok, "selected": any(c is e for e in chosen), "reasons": list(c.reasons)} for c in step]
+        for step in sel.steps]
+    out["eliminated"] = [{"name": n, "reason": why} for n, why in sel.eliminated]
+    # searched parameters the joint refit after the selection moved (motorctl.ident.refine)
+    out["joint_refit"] = [{"name": n, "searched_before": _r(h0), "searched_after": _r(h1)}
+                          for n, h0, h1 in idf.refined.moved]
+    out["harmonics_cut"] = [{"name": n, "harmonics_kept": k, "heldout_gain_percent": 100 * gn}
+                            for n, k, gn in idf.refined.harmonics_cut]
+    # failed in the final model, searched again there and kept with another searched parameter
+    out["researched"] = [{"name": n, "reason": why, "searched_before": _r(h0), "searched_after": _r(h1)}
+                         for n, why, h0, h1 in sel.researched]
+    # passed in the last step but not taken, when the effect limit ended the selection
+    out["cut_by_limit"] = ([c.term.family for c in sel.steps[-1] if c.ok and not any(c is e for e in chosen)]
+                           if sel.steps and len(sel.terms) >= MAX_EFFECTS else [])
+    verdict = add_refused(judge.verdict(sel.final, sel.terms, g, unit), sel.verdict_step, chosen, judge, sel)
+    out["residual"] = verdict.as_dict()
+    # effects the record cannot tell from a structure the selection refused: named neither,
+    # compensated neither (motorctl.ident.ambiguity)
+    out["ambiguous"] = summaries(fits, sel.ambiguous, rec.gain, unit)
+    return out
+
+
+def add_refused(verdict, last_step, chosen, judge=None, sel=None) -> Verdict:
+    """The residual verdict (:class:`~motorctl.ident.verdict.Verdict`, or its dict) with the
     candidates of the last selection step that explain a share of the held-out residual
-    (≥ :data:`~motorctl.ident.select.REFUSED_GAIN`) with significant coefficients and were
+    (≥ :data:`~motorctl.ident.rules.REFUSED_GAIN`) with significant coefficients and were
     refused only because their physics does not fit (a line the loop itself oscillates at, a
     periodic force not the same both ways): the residual has a structure there that no family
-    models. Each goes to
-    ``findings`` (against "family", the family's columns, the reasons), ``structured`` becomes
-    true and the text names them.
+    models. Each goes to ``findings`` (against "family", the family's columns, the reasons),
+    ``structured`` becomes true and the text names them. Returns the new verdict.
 
-    With ``idf`` (the identifier, after its run) and stiction selected: a candidate that
-    explains mostly samples near zero velocity (:meth:`~motorctl.ident.select.Identifier.
-    rest_share` above one half) is counted as stiction's, the stick and slip beyond its band
-    that its model leaves (a Stribeck hump at the search's 2 mm/s edge with a negative force,
-    11-27 % on clean logs of the default config's Y axis). Not for a dead-zone holding the
-    carriage: beside a play named a dead-zone, such a candidate was the play's only warning
-    (docs/benchmarks.md, 2026-11-27).
+    With the selection's ``judge`` and ``sel`` (its :class:`~motorctl.ident.records.Selection`)
+    and stiction selected: a candidate that explains mostly samples near zero velocity
+    (:meth:`~motorctl.ident.checks.Judge.rest_share` above one half) is counted as stiction's,
+    the stick and slip beyond its band that its model leaves (a Stribeck hump at the search's
+    2 mm/s edge with a negative force, 11-27 % on clean logs of the default config's Y axis).
+    Not for a dead-zone holding the carriage: beside a play named a dead-zone, such a candidate
+    was the play's only warning (docs/benchmarks.md, 2026-11-27).
 
-    With ``idf``: a family the selection did not name that the record shows on its own, outside
+    With them: a family the selection did not name that the record shows on its own, outside
     the force model (:meth:`~motorctl.effects.base.EffectFamily.unnamed_evidence`: the
     encoder's error in the raw minus the filtered position, too fast for its force to show),
     is reported the same way, with its last-step reasons; its candidate is not reported
     twice.
 
-    With ``idf``: a candidate that stands for a mode above the record's band and leaves no
+    With them: a candidate that stands for a mode above the record's band and leaves no
     structure beside it (:func:`_band_limit`) is the plant's own bandwidth limit: added to
     ``tested``, explained by its family, not a warning; and every other refused candidate that
     takes less than REFUSED_GAIN of the held-out residual beside that mode's force shared its
     evidence and is counted as the mode's (on clean 20 s logs of the Y axis with a mode at
     150-200 Hz, a force ripple "not the same both ways" at 5-7 % fell to -4 to 0 % beside it)."""
-    held = idf is not None and any(t.family == "stiction" for t in idf.terms)
+    if not isinstance(verdict, Verdict):
+        verdict = Verdict(structured=bool(verdict["structured"]), findings=tuple(verdict["findings"]),
+                          tested=tuple(verdict.get("tested", ())), text=verdict["text"])
+    known = judge is not None and sel is not None
+    terms = list(sel.terms) if known else []
+    held = known and any(t.family == "stiction" for t in terms)
     extra, counted = [], []
-    named = set() if idf is None else {t.family for t in idf.terms}
-    for name in ([] if idf is None else idf.families):
-        seen = None if name in named else fx.family(name).unnamed_evidence(idf)
+    named = {t.family for t in terms}
+    for name in (judge.fits.families if known else []):
+        seen = None if name in named else fx.family(name).unnamed_evidence(judge.fits)
         if seen:
             why = next((c.reasons for c in last_step if c.term.family == name and c.reasons), [])
             extra.append(_finding(name, math.nan, seen + (f" ({'; '.join(why)})" if why else "")))
     refused = [c for c in last_step if not any(c is e for e in chosen) and refused_on_physics(c)
                and not any(e["against"] == c.term.family for e in extra)]
-    band, with_band = _band_limit(idf, refused)
+    band, with_band = _band_limit(judge, terms, refused) if known else (None, None)
 
     def where(c):
         return (f"what {c.term.family} would explain ({100 * c.gain:.0f} % of the held-out residual), "
@@ -69,51 +218,52 @@ def add_refused(verdict: dict, last_step: list, chosen: list, idf: Identifier | 
     for c in refused:
         if c is band:
             continue
-        if held and idf.rest_share(c) > 0.5:
+        if held and judge.rest_share(sel.final, c) > 0.5:
             counted.append(_finding(c.term.family, float(c.gain), where(c) + ", near zero velocity", "stiction"))
             continue
         if band is not None:
-            beside = 1.0 - idf.evaluate(list(idf.terms) + [band.term, c.term]).heldout_rms / with_band.heldout_rms
+            beside = 1.0 - judge.fits.evaluate(terms + [band.term, c.term]).heldout_rms / with_band.heldout_rms
             if beside < REFUSED_GAIN:
                 counted.append(_finding(c.term.family, float(c.gain), where(c) + f"; {100 * beside:.0f} % beside "
                                         "the force of the mode above the band", band.term.family))
                 continue
         extra.append(_finding(c.term.family, float(c.gain), where(c)))
+    tested, text = verdict.tested, verdict.text
     if counted:
-        verdict["tested"] = verdict["tested"] + counted
-        verdict["text"] += "".join(f"; {e['where']}, counted as {e['explained_by']}'s" for e in counted)
+        tested = tested + tuple(counted)
+        text += "".join(f"; {e['where']}, counted as {e['explained_by']}'s" for e in counted)
     if band is not None:
-        verdict["tested"] = verdict["tested"] + [_finding(band.term.family, float(band.gain), where(band),
-                                                          band.term.family)]
-        verdict["text"] += (f"; {where(band)}: with its force in the model the residual shows no structure, the "
-                            "plant's own mode above the record's band")
+        tested = tested + (_finding(band.term.family, float(band.gain), where(band), band.term.family),)
+        text += (f"; {where(band)}: with its force in the model the residual shows no structure, the "
+                 "plant's own mode above the record's band")
+    verdict = replace(verdict, tested=tested, text=text)
     if not extra:
-        return
+        return verdict
     lead = "unexplained structured residual remains: "
     body = "; ".join(e["where"] for e in extra)
-    if verdict["structured"]:
-        verdict["text"] = verdict["text"] + "; " + body
+    if verdict.structured:
+        text = verdict.text + "; " + body
     else:
-        verdict["text"] = lead + body + verdict["text"][verdict["text"].find(")") + 1:]
-    verdict["findings"] = verdict["findings"] + extra
-    verdict["structured"] = True
+        text = lead + body + verdict.text[verdict.text.find(")") + 1:]
+    return replace(verdict, text=text, findings=verdict.findings + tuple(extra), structured=True)
 
 
-def _band_limit(idf: Identifier | None, refused: list):
+def _band_limit(judge, terms: list, refused: list):
     """The first refused candidate that stands for a force above the record's band
     (:meth:`~motorctl.effects.base.EffectFamily.beyond_band`: a structural mode whose
-    antiresonance the band cannot locate) with which the final model leaves a residual without
-    structure (:meth:`~motorctl.ident.select.Identifier.verdict`), and that model evaluated:
-    what remains is the plant's own mode, told as its bandwidth limit, not a structure no family
-    models; (None, None) when there is none. A play, a hysteresis or another unmodelled force
-    that the mode's columns explain in part keeps its structure beside them, and its warning.
-    Beside that model each other refused candidate is judged again (:func:`add_refused`): what
-    it takes of the held-out residual there, below REFUSED_GAIN, was the mode's evidence."""
-    for c in ([] if idf is None else refused):
-        if fx.family(c.term.family).beyond_band(idf.p, c.term.h):
-            terms = list(idf.terms) + [c.term]
-            ev = idf.evaluate(terms)
-            if not idf.verdict(ev, terms)["structured"]:
+    antiresonance the band cannot locate) with which the final model (of ``terms``) leaves a
+    residual without structure (:meth:`~motorctl.ident.checks.Judge.verdict`), and that model
+    evaluated: what remains is the plant's own mode, told as its bandwidth limit, not a
+    structure no family models; (None, None) when there is none. A play, a hysteresis or
+    another unmodelled force that the mode's columns explain in part keeps its structure beside
+    them, and its warning. Beside that model each other refused candidate is judged again
+    (:func:`add_refused`): what it takes of the held-out residual there, below REFUSED_GAIN,
+    was the mode's evidence."""
+    for c in refused:
+        if fx.family(c.term.family).beyond_band(judge.fits.p, c.term.h):
+            model = terms + [c.term]
+            ev = judge.fits.evaluate(model)
+            if not judge.verdict(ev, model).structured:
                 return c, ev
     return None, None
 
@@ -209,7 +359,11 @@ def text_report(s: dict) -> str:
     if s.get("cut_by_limit"):
         lines.append(f"  not taken, the limit of {MAX_EFFECTS} effects reached: " + ", ".join(s["cut_by_limit"]))
     for e in s["effects"]:
-        lines.append(f"effect found: {e['name']}: " + ", ".join(f"{k} {v}" for k, v in e["parameters"].items()))
+        named = e.get("named_as", e["name"])
+        lines.append(f"effect found: {e['name']}" + (f" ({named})" if named != e["name"] else "") + ": "
+                     + ", ".join(f"{k} {v}" for k, v in e["parameters"].items()))
+        for nc in e.get("not_claimed", []):
+            lines.append(f"  not claimed: {nc['parameter']} (its 95 % interval {_interval(nc['ci95'])} holds 0)")
         if e.get("parameters_ci95"):
             lines.append("  95 % intervals: " + ", ".join(f"{k} {_interval(v)}" for k, v in e["parameters_ci95"].items()))
         lines.append(f"  held-out RMS {e['heldout_rms_before']:.4g} -> {e['heldout_rms_after']:.4g} {u}")

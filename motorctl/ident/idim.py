@@ -272,7 +272,7 @@ def nominal_columns(p: Prepared, n_theta: int, u_full: np.ndarray | None = None)
     return p.dec(idim_regressor(p.a, p.v, u, n_theta))
 
 
-@dataclass
+@dataclass(frozen=True, eq=False)
 class LSFit:
     """Ordinary LS on decimated data: coefficients, std, residual, condition number."""
 
@@ -292,6 +292,28 @@ def unit_columns(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     sc = np.sqrt(np.einsum("ij,ij->j", phi, phi))
     sc[sc == 0] = 1.0
     return phi / sc, sc
+
+
+def ls_coef(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """LS coefficients (p,) of y (M,) on phi (M, p) by column-scaled normal equations (the fast
+    path of the selection's many small fits; :func:`numpy.linalg.lstsq` when singular)."""
+    a, sc = unit_columns(phi)
+    try:
+        return np.linalg.solve(a.T @ a, a.T @ y) / sc
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(phi, y, rcond=None)[0]
+
+
+def ls_sse(phi: np.ndarray, y: np.ndarray) -> float:
+    """SSE of the LS fit of y (M,) on phi (M, p) (:func:`ls_coef`)."""
+    r = y - phi @ ls_coef(phi, y)
+    return float(r @ r)
+
+
+def ls_cov(phi: np.ndarray, residual: np.ndarray) -> np.ndarray:
+    """σ̂² (ΦᵀΦ)⁻¹ (p, p) of an LS fit on phi (M, p) with its residual (M,) (EMPS eq. 10)."""
+    m, k = phi.shape
+    return float(residual @ residual) / max(m - k, 1) * np.linalg.pinv(phi.T @ phi)
 
 
 def ls(phi: np.ndarray, target: np.ndarray) -> LSFit:

@@ -1,8 +1,16 @@
 """The identification pipeline of ``motorctl identify`` and ``motorctl tune``, on a loaded
-record: fit and trace the residual (:func:`identify_record`), summarise it (:func:`summarise`,
-the JSON of ``identify``), validate on a second record, turn the found effects into a
-controller's compensation and θ̂(0) (:func:`compensation_from_fit`), write the tuned config
-(:func:`tuned_config`, :func:`write_tuned_config`) and the text report (:func:`text_report`).
+record: the stages run in order by a thin driver (:class:`Identifier`, :func:`identify_record`),
+the summary (:func:`~motorctl.ident.explain.summarise`, the JSON of ``identify``), the
+validation on a second record (:func:`validation`); what a fit gives the controller
+(:mod:`motorctl.ident.tuned`) and the text report (:mod:`motorctl.ident.explain`) are
+re-exported here.
+
+The stages (docs/identification.md, "The stages in the code"), each a module with one job,
+the records between them frozen dataclasses (:mod:`motorctl.ident.records`)::
+
+    Record ─ fit.start ─► Fits (Setup + Structure) ─ select.run ─► Selection ─ refine.joint_refit ─►
+    Selection + Refined ─ judge (values_of, confirm_values, travel_shared, drop_unsupported) ─►
+    Selection + ValuesModel ─ explain.summarise ─► summary (dict) ─ explain.text_report ─► text
 
 No run happens here (the closed-loop before/after is :class:`motorctl.commission.closed_loop.ClosedLoop`),
 and nothing here parses arguments (the CLI is :mod:`motorctl.cli.identify`).
@@ -11,182 +19,198 @@ and nothing here parses arguments (the CLI is :mod:`motorctl.cli.identify`).
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from motorctl.ident.explain import (SATURATION_NOTE_SHARE, add_refused, fig,  # noqa: F401
-                                    saturation_note, text_report)
-from motorctl.ident.judge import unsupported
-from motorctl.ident.select import MAX_EFFECTS, Identifier
+from motorctl.ident import judge as after
+from motorctl.ident import probes, prune, refine, select
+from motorctl.ident.checks import Judge
+from motorctl.ident.columns import thrust_shape
+from motorctl.ident.explain import (SATURATION_NOTE_SHARE, SIM_WINDOW_S, add_refused, fig,  # noqa: F401
+                                    saturation_note, summarise, text_report)
+from motorctl.ident.fit import start
+from motorctl.ident.records import Refined
+from motorctl.ident.rules import MAX_EFFECTS
 from motorctl.ident.tuned import (BOX_MARGIN, compensation_from_fit, set_theta0, tuned_config,  # noqa: F401
                                   values_and_parameters, values_from, write_tuned_config)
-from motorctl.ident.uncertainty import fit_uncertainty
-from motorctl.model import THETA_NAMES
 from motorctl.recorder.runlog import LogError
 
 
-#: Horizon of the simulated-position fit % (motorctl.ident.simfit) [s].
-SIM_WINDOW_S = 0.2
+class Identifier:
+    """The driver of the identification's stages on one record: it holds the records each stage
+    returns and hands them to the next; all the work is the stages'.
 
+    Args (the record opened by :func:`motorctl.ident.fit.start`):
+        rec: a checked :class:`~motorctl.ident.data.Record`.
+        n_theta: 4 or 6 to force the nominal structure (default: chosen from the input range).
+        friction: 'sf' (the paper's S_f(ẋ) = (2/π)atan(900ẋ)) or 'sign' (the EMPS reference
+            model's sign(ẋ)) for the Coulomb column.
+        fq, nd: position cut-off [Hz] and decimation factor (default: idim.default_filters).
+        families: effect family names to search (default: all of the registry, in its order).
+        seed: the draw of the held-out folds' blocks.
+        zoh_delay: delay [samples] between the logged input and the acceleration it causes
+            (default 0.5 for motorctl run logs, whose input is a zero-order hold; for other
+            files found in the data).
+        on_nominal: called with the nominal θ̂ (n_theta,) each time the nominal model is
+            fitted, before the effect search starts (e.g. to start a closed-loop run with it
+            meanwhile); None: nothing.
+        current_loop: model the amplifier's current loop the run log's config declares in every
+            input column (off, default: the loop is fitted as an input delay, and when Stribeck
+            is selected its values are taken on the loop's model, :func:`motorctl.ident.values.refit`).
 
-def _r(x):
-    return float(x) if x is not None and math.isfinite(float(x)) else None
+    Raises:
+        ValueError: unknown friction shape or effect family.
 
+    Attributes:
+        fits: the fit stage at the current structure (:class:`~motorctl.ident.fit.Fits`).
+        judge: the judge on it (:class:`~motorctl.ident.checks.Judge`). selection: the
+            :class:`~motorctl.ident.records.Selection` (None before :meth:`run`). refined: the
+            joint refit's :class:`~motorctl.ident.records.Refined`. values: the values' model
+            (:class:`~motorctl.ident.values.ValuesModel`, None before :meth:`find_values`).
 
-def summarise(idf: Identifier) -> dict:
-    """The JSON object of ``identify``; residuals in N when a gain is known."""
-    rec = idf.rec
-    g = rec.gain or 1.0
-    unit = "N" if rec.gain else "V"
-    nt = idf.n_theta
-    nom = idf.nominal
-    # the σ of every value from the residual's own correlation (Newey-West; the white formula's
-    # σ̂²(ΦᵀΦ)⁻¹ kept beside it as theta_std_white): motorctl.ident.uncertainty
-    nom_unc = _uncertainty(idf, nom, [], None)
-    out = {
-        "source": rec.source,
-        "axis": rec.axis or None,
-        "samples": int(rec.n),
-        "period_s": rec.period_s,
-        "filters": {"position_lowpass_Hz": idf.p.fq, "decimation": idf.p.nd, "zoh_delay_samples": idf.zoh,
-                    "zoh_source": idf.zoh_source,
-                    "block_s": 0.25, "friction_shape": idf.friction},
-        "residual_unit": unit,
-        "gain_N_per_V": rec.gain,
-        "nominal": {
-            "theta": [float(v) for v in nom.fit.coef[:nt]],
-            "theta_std": [float(v) for v in nom_unc["theta_std"]],
-            "theta_ci95": nom_unc["theta_ci95"],
-            "theta_std_sampling": nom_unc["theta_std_sampling"],
-            "theta_model_error": nom_unc["theta_model_error"],
-            "theta_std_white": nom_unc["theta_std_white"],
-            "theta_names": list(THETA_NAMES[:nt]),
-            "n_theta": nt,
-            "n_theta_reason": idf.n_theta_reason,
-            "condition_number": nom.fit.cond,
-            "residual_rms": g * nom.fit.rms,
-            "heldout_rms": g * nom.heldout_rms,
-        },
-    }
-    out["input_saturation"] = idf.saturation
-    if rec.gain:
-        th = nom.fit.coef
-        # the offset in both conventions: F_offset_N as published for EMPS (Janot, Gautier & Brunot
-        # 2019: M ÿ + Fv ẏ + Fc sign(ẏ) + F_offset = A1 u, the force the motor holds against), and
-        # offset_N = θ4·A1 as the plant's driver.offset_N (a force on the carriage, model.py's
-        # θ1 ẍ = u − … + θ4): the same number with the opposite sign
-        out["nominal"]["physical"] = {"mass_kg": g * th[0], "viscous_N_s_per_m": g * th[1],
-                                      "coulomb_N": g * th[2], "F_offset_N": -g * th[3],
-                                      "offset_N": g * th[3]}
-    th, _ = idf.coef_split(idf.final, idf.terms)
-    src, params_of = values_and_parameters(idf, rec.gain)
-    th_v, betas = src.coef_split(src.final, src.terms)
-    unc = _uncertainty(src, src.final, src.terms, params_of)
-    effects = []
-    for (ev, before), term, beta, eu in zip(idf.accepted, src.terms, betas, unc["effects"]):
-        effects.append({
-            "name": term.family,
-            "parameters": params_of(term, term.h, beta),
-            # σ and 95 % interval of each named parameter (those a number; delta method on the
-            # Newey-West covariance of β and the searched h: motorctl.ident.uncertainty)
-            "parameters_std": eu["std"],
-            "parameters_ci95": eu["ci95"],
-            "parameters_std_sampling": eu.get("std_sampling", {}),
-            "parameters_model_error": eu.get("model_error", {}),
-            "heldout_rms_before": g * before,
-            "heldout_rms_after": g * ev.heldout_rms,
-            "heldout_gain_percent": 100 * ev.gain,
-            "cannot_be_told_from": [{"name": n, "heldout_gain_percent": 100 * gn} for n, gn in ev.rivals],
-        })
-    out["effects"] = effects
-    # theta_std / theta_ci95: of the values the effects' parameters come from (values_from)
-    out["augmented"] = {"theta": [float(v) for v in th], "residual_rms": g * idf.final.fit.rms,
-                        "heldout_rms": g * idf.final.heldout_rms,
-                        "theta_values": [float(v) for v in th_v],
-                        "theta_std": unc["theta_std"], "theta_ci95": unc["theta_ci95"],
-                        "theta_std_sampling": unc["theta_std_sampling"],
-                        "theta_model_error": unc["theta_model_error"],
-                        "theta_std_white": unc["theta_std_white"]}
-    out["uncertainty"] = {"method": "sigma = sqrt(s^2 + b^2): s the Newey-West HAC standard deviation (Bartlett "
-                                    "kernel, Andrews' AR(1) bandwidth), b the model error the record shows (the fit "
-                                    "on the low band and on the samples in motion against the fit on all, beyond "
-                                    "its sampling variance, where significant at 5 %); 95 % interval = value -+ "
-                                    "1.96 sigma",
-                          "lag_samples": unc["lag_samples"], "nominal_lag_samples": nom_unc["lag_samples"],
-                          "splits": unc.get("splits", []), "nominal_splits": nom_unc.get("splits", [])}
-    # the effects' values (and the compensation's) taken again on the declared current loop's
-    # model, with the stick state measured, and/or with a structural mode's force above the band
-    out["refit"] = None if src is idf else {
-        "families": src.refit_families,
-        "on_current_loop": src.loop_refit,
-        "current_loop_modelled": src.loop_filter is not None,
-        "stick_state_measured": src.stick_measured,
-        "mode_above_band": None if src.band_mode is None else {
-            "columns_at_Hz": src.band_mode["columns_at_Hz"],
-            "heldout_gain_percent": 100.0 * src.band_mode["heldout_gain"],
-            "load_fraction_at_columns": src.band_mode["load_fraction"]},
-        "theta": [float(v) for v in th_v], "residual_rms": g * src.final.fit.rms,
-        "heldout_rms": g * src.final.heldout_rms}
-    from motorctl.ident.simfit import simulation_fit
-    out["nominal"]["simulation_fit_percent"] = simulation_fit(idf, [], idf.nominal, SIM_WINDOW_S)
-    out["augmented"]["simulation_fit_percent"] = simulation_fit(idf, idf.terms, idf.final, SIM_WINDOW_S)
-    out["simulation_window_s"] = SIM_WINDOW_S
-    chosen = [ev for ev, _ in idf.accepted]
-    out["candidates"] = [
-        [{"name": c.term.family, "searched": _r(c.term.h), "heldout_gain_percent": 100 * c.gain,
-          "accepted": c.ok, "selected": any(c is e for e in chosen), "reasons": c.reasons} for c in step]
-        for step in idf.steps]
-    out["eliminated"] = [{"name": n, "reason": why} for n, why in getattr(idf, "eliminated", [])]
-    # searched parameters the joint refit after the selection moved (select.Identifier.joint_refit)
-    out["joint_refit"] = [{"name": n, "searched_before": _r(h0), "searched_after": _r(h1)}
-                          for n, h0, h1 in getattr(idf, "joint_moved", [])]
-    out["harmonics_cut"] = [{"name": n, "harmonics_kept": k, "heldout_gain_percent": 100 * gn}
-                            for n, k, gn in getattr(idf, "harmonics_cut", [])]
-    # failed in the final model, searched again there and kept with another searched parameter
-    out["researched"] = [{"name": n, "reason": why, "searched_before": _r(h0), "searched_after": _r(h1)}
-                         for n, why, h0, h1 in getattr(idf, "researched", [])]
-    # passed in the last step but not taken, when the effect limit ended the selection
-    out["cut_by_limit"] = ([c.term.family for c in idf.steps[-1] if c.ok and not any(c is e for e in chosen)]
-                           if idf.steps and len(idf.terms) >= MAX_EFFECTS else [])
-    out["residual"] = idf.verdict(idf.final, idf.terms, g, unit)
-    add_refused(out["residual"], idf.verdict_step, chosen, idf)
-    # effects the record cannot tell from a structure the selection refused: named neither,
-    # compensated neither (motorctl.ident.ambiguity)
-    from motorctl.ident.ambiguity import summaries
-    out["ambiguous"] = summaries(idf, getattr(idf, "ambiguous", []), rec.gain, unit)
-    return out
+    The fit stage's methods (``evaluate``, ``coef_split``, ``term``, ``design``, ...) and the
+    judge's (``verdict``, ``implausible_in``, ...) are reached through it as before.
+    """
 
+    def __init__(self, rec, n_theta: int | None = None, friction: str = "sf", fq: float | None = None,
+                 nd: int | None = None, families=None, seed: int = 0, zoh_delay: float | None = None,
+                 on_nominal=None, current_loop: bool = False):
+        self.fits = start(rec, n_theta=n_theta, friction=friction, fq=fq, nd=nd, families=families, seed=seed,
+                          zoh_delay=zoh_delay, current_loop=current_loop)
+        self.judge = Judge(self.fits)
+        self.on_nominal = on_nominal
+        self.selection = None
+        self.refined = Refined()
+        self.values = None
 
-def _uncertainty(idf: Identifier, ev, terms: list, params_of) -> dict:
-    """:func:`~motorctl.ident.uncertainty.fit_uncertainty` of a fit; a regressor it cannot take
-    (degenerate) gives the white formula's σ for θ and no effect intervals, lag_samples None."""
-    try:
-        return fit_uncertainty(idf, ev, terms, params_of)
-    except (ValueError, np.linalg.LinAlgError):
-        from motorctl.ident.uncertainty import ci95
-        nt = idf.n_theta
-        sd = [float(v) for v in ev.fit.std[:nt]]
-        return {"theta_std": sd, "theta_std_white": sd, "lag_samples": None, "theta_std_sampling": sd,
-                "theta_model_error": [0.0] * nt, "splits": [],
-                "theta_ci95": [ci95(float(v), s) for v, s in zip(ev.fit.coef[:nt], sd)],
-                "effects": [{"std": {}, "ci95": {}} for _ in terms]}
+    # the stages, in order
+    def run(self, max_effects: int = MAX_EFFECTS) -> "Identifier":
+        """Stage *select* (:func:`motorctl.ident.select.run`). Returns self."""
+        self.selection, self.judge = select.run(self.fits, max_effects, self.on_nominal)
+        self.fits = self.judge.fits
+        return self
 
+    def joint_refit(self) -> "Identifier":
+        """The searched parameters refitted jointly (:func:`motorctl.ident.refine.joint_refit`)."""
+        self.selection, self.refined = refine.joint_refit(self.judge, self.selection)
+        return self
 
-def drop_unsupported(idf: Identifier, gain: float | None) -> Identifier:
-    """Take out of ``idf``'s model each selected effect whose size is not told from zero on the
-    values' fit (:func:`motorctl.ident.judge.unsupported` on the intervals of
-    :func:`_uncertainty`), until none is left (``eliminated`` gets the reason). Returns ``idf``."""
-    for _ in range(len(idf.terms)):
-        src, params_of = values_and_parameters(idf, gain)
-        if not src.terms:
-            break
-        bad = unsupported(src.terms, _uncertainty(src, src.final, src.terms, params_of)["effects"])
-        if not bad:
-            break
-        idf.drop_after(bad)
-    return idf
+    def refit(self):
+        """The values' model a refit gives (:func:`motorctl.ident.values.refit`), or None."""
+        from motorctl.ident.values import refit
+        return refit(self.judge, self.selection)
+
+    def find_values(self) -> "Identifier":
+        """The values' model (:func:`motorctl.ident.judge.values_of`)."""
+        self.values = after.values_of(self.judge, self.selection)
+        return self
+
+    def confirm_values(self) -> "Identifier":
+        """:func:`motorctl.ident.judge.confirm_values`."""
+        self.selection, self.values = after.confirm_values(self.judge, self.selection, self._values())
+        return self
+
+    def travel_shared(self) -> "Identifier":
+        """:func:`motorctl.ident.judge.travel_shared`."""
+        self.selection, self.values = after.travel_shared(self.judge, self.selection, self._values())
+        return self
+
+    def drop_unsupported(self) -> "Identifier":
+        """:func:`motorctl.ident.judge.drop_unsupported`."""
+        self.selection, self.values = after.drop_unsupported(self.judge, self.selection, self._values(),
+                                                             self.rec.gain)
+        return self
+
+    def drop_after(self, dropped: list) -> "Identifier":
+        """:func:`motorctl.ident.judge.drop_after` of ``dropped`` ([(family, reason)])."""
+        self.selection, self.values = after.drop_after(self.judge, self.selection, dropped)
+        return self
+
+    def _values(self):
+        return self.values if self.values is not None else after.values_of(self.judge, self.selection)
+
+    # what the records hold, read through the driver
+    rec = property(lambda self: self.fits.rec)
+    setup = property(lambda self: self.fits.setup)
+    structure = property(lambda self: self.fits.structure)
+    n_theta_reason = property(lambda self: self.fits.structure.n_theta_reason)
+    zoh_source = property(lambda self: self.fits.structure.zoh_source)
+    u_reach = property(lambda self: self.fits.setup.u_reach)
+    nominal = property(lambda self: self.selection.nominal)
+    steps = property(lambda self: self.selection.steps)
+    accepted = property(lambda self: self.selection.accepted)
+    eliminated = property(lambda self: self.selection.eliminated)
+    researched = property(lambda self: self.selection.researched)
+    ambiguous = property(lambda self: self.selection.ambiguous)
+    verdict_step = property(lambda self: self.selection.verdict_step)
+    joint_moved = property(lambda self: self.refined.moved)
+    harmonics_cut = property(lambda self: self.refined.harmonics_cut)
+
+    @property
+    def families(self) -> list:
+        return list(self.fits.families)
+
+    @property
+    def terms(self) -> list:
+        return list(self.selection.terms)
+
+    @terms.setter
+    def terms(self, terms) -> None:
+        from dataclasses import replace
+        self.selection = replace(self.selection, terms=tuple(terms))
+
+    @property
+    def final(self):
+        return self.selection.final
+
+    @final.setter
+    def final(self, ev) -> None:
+        from dataclasses import replace
+        self.selection = replace(self.selection, final=ev)
+
+    @property
+    def refitted(self):
+        """The values' model when it is a refit's (else None)."""
+        return self.values if self.values is not None and self.values.refitted else None
+
+    @refitted.setter
+    def refitted(self, values) -> None:
+        self.values = values
+
+    @functools.cached_property
+    def saturation(self) -> dict | None:
+        """Where the input sits at its limit (:func:`~motorctl.ident.idim.input_saturation`;
+        None: nowhere): reported, the fit unchanged."""
+        from motorctl.ident.idim import input_saturation
+        return input_saturation(self.p.u, self.p.fs, self.rec.u_limit)
+
+    def thrust_shape(self, u: np.ndarray, theta: np.ndarray) -> np.ndarray | None:
+        """:func:`motorctl.ident.columns.thrust_shape` at this record's structure."""
+        return thrust_shape(self.n_theta, self.u_reach, u, theta)
+
+    explained_shares = probes.explained_shares
+
+    def _doubt(self, base, accepted, current, last_step):
+        """:func:`motorctl.ident.prune.doubt` with this identifier's judge."""
+        return prune.doubt(self.judge, list(base), list(accepted), current, last_step)
+
+    def _simplify(self, base, accepted, current):
+        """:func:`motorctl.ident.prune.simplify` with this identifier's judge."""
+        return prune.simplify(self.judge, list(base), list(accepted), current)
+
+    def __getattr__(self, name: str):
+        # the fit stage's read-outs and the judge's, as the identifier offered them before
+        if name.startswith("__") or name in ("fits", "judge"):
+            raise AttributeError(name)
+        for part in (self.fits, self.judge):
+            try:
+                return getattr(part, name)
+            except AttributeError:
+                pass
+        raise AttributeError(f"{type(self).__name__!s} has no attribute {name!r}")
 
 
 def validation(idf: Identifier, rec2) -> dict:
@@ -203,11 +227,11 @@ def validation(idf: Identifier, rec2) -> dict:
     Raises:
         ValueError, numpy.linalg.LinAlgError: rec2 too short or degenerate for the filters.
     """
-    other = Identifier(rec2, n_theta=idf.n_theta, friction=idf.friction, zoh_delay=idf.zoh,
-                       current_loop=idf.current_loop)
+    other = start(rec2, n_theta=idf.n_theta, friction=idf.friction, zoh_delay=idf.zoh,
+                  current_loop=idf.current_loop)
     g = idf.rec.gain or 1.0
-    r0 = idf.predict_on(other, [], idf.nominal)
-    r1 = idf.predict_on(other, idf.terms, idf.final)
+    r0 = idf.fits.residual_on(other, [], idf.nominal)
+    r1 = idf.fits.residual_on(other, idf.terms, idf.final)
     _, target = other.design([])
     ref = float(np.linalg.norm(target)) or math.nan
     return {"source": rec2.source, "residual_rms_before": g * float(np.sqrt(np.mean(r0 ** 2))),
@@ -228,9 +252,9 @@ def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
         after_fit: called with the identifier once the fit is checked, before the summary
             (e.g. to start the closed-loop runs meanwhile); None: nothing.
         on_nominal: called with the nominal θ̂ (n_theta,) each time the nominal model is fitted,
-            before the effect search (:class:`~motorctl.ident.select.Identifier`); None: nothing.
+            before the effect search (:class:`Identifier`); None: nothing.
         current_loop: model the current loop the run log's config declares in the nominal
-            fit (:class:`~motorctl.ident.select.Identifier`; off: fitted as an input delay).
+            fit (:class:`Identifier`; off: fitted as an input delay).
     Returns:
         (the identifier after its run, the summary of :func:`summarise`; no validation or
         closed loop yet).
@@ -239,7 +263,7 @@ def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
         position fit below 0 %), with the likely cause.
     """
     # numpy's overflow/invalid warnings would add lines to stderr on a degenerate record; the
-    # results are checked for finiteness and physical meaning instead (_check_physical). BLAS on
+    # results are checked for finiteness and physical meaning instead (check_physical). BLAS on
     # one thread: the effect search runs its own threads (select.SEARCH_THREADS), and OpenBLAS's
     # threads inside their many small (M, k) products only contend with them for the cores
     # (benchmarks/bench_ident.py: run() 1.81 -> 1.69 s wall, 3.04 -> 2.74 s CPU)
@@ -250,19 +274,14 @@ def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
 
     try:
         with quiet():
-            idf = Identifier(rec, n_theta=n_theta, friction=friction, zoh_delay=zoh_delay,
-                             on_nominal=on_nominal, current_loop=current_loop).run()
-            # the selected effects' searched parameters taken again jointly, each with all the
-            # others in the model (select.Identifier.joint_refit)
-            idf.joint_refit()
-            # the selected effects' values on the declared current loop's model (None: not needed),
-            # and those the more exact model does not confirm dropped
-            idf.refitted = idf.refit()
-            idf.confirm_values()
-            # a lost motion beside the travel's force of a play the verdict reports: not named
-            idf.travel_shared()
-            # an effect whose size's 95 % interval holds 0: not named (motorctl.ident.judge)
-            drop_unsupported(idf, rec.gain)
+            # select; the selected effects' searched parameters taken again jointly, each with
+            # all the others in the model; the values' model (a refit on the declared current
+            # loop's, the stick state's or a mode's model when needed); then the judge after the
+            # selection: effects the more exact model does not confirm, a lost motion beside the
+            # travel's force of a play, an effect whose size's 95 % interval holds 0
+            idf = (Identifier(rec, n_theta=n_theta, friction=friction, zoh_delay=zoh_delay,
+                              on_nominal=on_nominal, current_loop=current_loop)
+                   .run().joint_refit().find_values().confirm_values().travel_shared().drop_unsupported())
     except (np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
         if isinstance(exc, LogError):
             raise
@@ -277,8 +296,9 @@ def identify_record(rec, n_theta: int | None = None, friction: str = "sf",
     with quiet():
         s = summarise(idf)
     check_physical(rec, max(s["nominal"]["theta"][0], s["augmented"]["theta"][0]),
-                    (s["nominal"].get("simulation_fit_percent"), s["augmented"].get("simulation_fit_percent")))
+                   (s["nominal"].get("simulation_fit_percent"), s["augmented"].get("simulation_fit_percent")))
     return idf, s
+
 
 _CAUSES = ("check the sign of u (a positive u must push y positive), the units of y (m) and u "
            "(V, or N without --gain) and the time base (t in s)")
@@ -286,8 +306,9 @@ _CAUSES = ("check the sign of u (a positive u must push y positive), the units o
 
 def check_physical(rec, theta1, sim_fits) -> None:
     """Refuse (LogError, exit 2) a fit without physical meaning: θ1 = M/A1 <= 0 (a negative or
-    zero mass; the caller passes the larger of the nominal and the augmented fit's), or a simulated position fit below 0 % for both the nominal and the augmented
-    model (worse than a constant). ``sim_fits``: (nominal %, augmented %) or None (not yet)."""
+    zero mass; the caller passes the larger of the nominal and the augmented fit's), or a
+    simulated position fit below 0 % for both the nominal and the augmented model (worse than
+    a constant). ``sim_fits``: (nominal %, augmented %) or None (not yet)."""
     th1 = float(theta1)
     if not (math.isfinite(th1) and th1 > 0):
         raise LogError(f"{rec.source}: the fit gives theta1 = {th1:.4g} <= 0 (a mass that is not positive), "
@@ -312,6 +333,7 @@ def json_default(o):
     raise TypeError(type(o).__name__)
 
 
-__all__ = ["BOX_MARGIN", "SATURATION_NOTE_SHARE", "SIM_WINDOW_S", "check_physical", "compensation_from_fit", "fig",
-           "identify_record", "json_default", "saturation_note", "set_theta0", "summarise", "text_report",
-           "tuned_config", "validation", "values_and_parameters", "values_from", "write_tuned_config"]
+__all__ = ["BOX_MARGIN", "Identifier", "SATURATION_NOTE_SHARE", "SIM_WINDOW_S", "add_refused", "check_physical",
+           "compensation_from_fit", "fig", "identify_record", "json_default", "saturation_note", "set_theta0",
+           "summarise", "text_report", "tuned_config", "validation", "values_and_parameters", "values_from",
+           "write_tuned_config"]

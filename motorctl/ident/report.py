@@ -83,8 +83,8 @@ def write_report(idf, summary: dict, out_dir: str, text: str) -> list:
         plt.close(fig)
         paths.append(p)
     if idf.terms:
-        from motorctl.ident.pipeline import values_from
-        src = values_from(idf)          # the values the report prints (a refit's, when one ran)
+        # the values the report prints (a refit's, when one ran)
+        src = idf.refitted or idf
         _, betas = src.coef_split(src.final, src.terms)
         n = len(src.terms)
         fig, axes = plt.subplots(n, 1, figsize=(8, 3.2 * n), squeeze=False)

@@ -23,22 +23,22 @@ from motorctl.effects.base import Signals
 from motorctl.model import idim_regressor
 
 
-def simulation_fit(idf, terms: list, ev, window_s: float = 0.2) -> float | None:
+def simulation_fit(fits, terms: list, ev, window_s: float = 0.2) -> float | None:
     """Fit % (see the module docstring) of the model (nominal + ``terms``, fit ``ev``).
 
     Args:
-        idf: a run :class:`~motorctl.ident.select.Identifier`. terms: its selected terms (or []).
-        ev: the matching fit (``idf.final`` or ``idf.nominal``). window_s: horizon [s].
+        fits: the fit stage of the model (:class:`~motorctl.ident.fit.Fits`). terms: its terms (or []).
+        ev: the matching fit (the selection's final or nominal). window_s: horizon [s].
     Returns:
         The fit in %, or None when the record is shorter than two windows.
     """
-    p = idf.p
-    nt = idf.n_theta
-    th, betas = idf.coef_split(ev, terms)
-    delay = idf.zoh + sum(t.delay for t in terms)
+    p = fits.p
+    nt = fits.n_theta
+    th, betas = fits.coef_split(ev, terms)
+    delay = fits.zoh + sum(t.delay for t in terms)
     # u, u|u|, u³ as the fit saw them: the force curve of the held input, then the delay
-    # (Identifier.input_columns), not the curve of an interpolated input
-    uc = idf.input_columns(delay)
+    # (motorctl.ident.columns.Columns.input_columns), not the curve of an interpolated input
+    uc = fits.input_columns(delay)
     n = len(p.t)
     length = int(round(window_s * p.fs))
     edge = int(round(0.1 * p.fs))
@@ -65,7 +65,7 @@ def simulation_fit(idf, terms: list, ev, window_s: float = 0.2) -> float | None:
         err2.append(p.y[idx] - y_hat)      # Δy − Δŷ with Δ from the measured start y0
         zero = np.zeros_like(x)
         phi = idim_regressor(zero, v, uk, nt)      # at ẍ = 0; the row at ẍ = 1 differs in column 0
-        if idf.friction == "sign":
+        if fits.friction == "sign":
             phi[:, 2] = np.sign(v)
         fu = None
         if fu_coef:

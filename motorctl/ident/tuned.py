@@ -11,28 +11,26 @@ from motorctl.ident import effects as fx
 from motorctl.ident.explain import _flow, fig, saturation_note
 
 
-def values_from(idf: Identifier) -> Identifier:
-    """The identifier whose joint fit gives the found effects' values and compensation: the
-    refit on the declared current loop's model when :meth:`~motorctl.ident.select.Identifier.
-    refit` ran (``idf.refitted``), else ``idf`` itself. Selection, held-out gains and the
-    residual verdict are always ``idf``'s."""
-    return idf if idf.refitted is None else idf.refitted
+def values_from(idf):
+    """The values' model (:class:`~motorctl.ident.values.ValuesModel`) whose joint fit gives the
+    found effects' values and compensation: the refit's when one was needed
+    (:func:`motorctl.ident.values.refit`), else the selection's own. Selection, held-out gains
+    and the residual verdict are always the selection's."""
+    from motorctl.ident.judge import values_of
+    return idf.values if idf.values is not None else values_of(idf.judge, idf.selection)
 
 
-def values_and_parameters(idf: Identifier, gain: float):
+def values_and_parameters(idf, gain: float):
     """(:func:`values_from` of ``idf``, its ``params_of(term, h, beta)``: an effect's named
     parameters in physical units, :func:`motorctl.effects.parameters` on the values' fit, with
     the record's ``gain`` [N/V])); what :func:`~motorctl.ident.uncertainty.fit_uncertainty`
-    takes as ``params_of``."""
+    takes as ``params_of`` (:func:`motorctl.ident.judge.parameters_of`)."""
+    from motorctl.ident.judge import parameters_of
     src = values_from(idf)
-    th_v = src.coef_split(src.final, src.terms)[0]
-
-    def params_of(term, h, beta):
-        return fx.parameters(term.family, h, beta, gain, src.p.fs, theta=th_v, p=src.p, ctx=src)
-    return src, params_of
+    return src, parameters_of(src, gain)
 
 
-def _split_std(idf: Identifier, ev, terms) -> list:
+def _split_std(idf, ev, terms) -> list:
     """The fit's standard deviations of each term's β (the layout of ``coef_split``)."""
     i, out = idf.n_theta, []
     for t in terms:
@@ -42,12 +40,11 @@ def _split_std(idf: Identifier, ev, terms) -> list:
     return out
 
 
-def compensation_from_fit(idf: Identifier, final=None, terms=None) -> tuple[dict, np.ndarray, list]:
+def compensation_from_fit(idf, final=None, terms=None) -> tuple[dict, np.ndarray, list]:
     """The ``controller.compensation`` of the found effects and the θ̂(0) that goes with it.
 
-    ``final`` and ``terms``: the evaluated model and its effect terms (default: the
-    identifier's final ones, ``idf.final`` and ``idf.terms``, or its refit's on the declared
-    current loop's model when one ran: :func:`values_from`).
+    ``final`` and ``terms``: the evaluated model and its effect terms (default: those of the
+    values' model, :func:`values_from`: the selection's, or its refit's when one ran).
 
     An adaptable family's entry carries ``adapt: false`` and its projection box from the fit's
     confidence interval (β ∓ 3σ, at least the default margin): a user only flips ``adapt``.
@@ -85,7 +82,7 @@ def compensation_from_fit(idf: Identifier, final=None, terms=None) -> tuple[dict
 BOX_MARGIN = 0.2
 
 
-def tuned_config(idf: Identifier, s: dict, base: dict, axis: str, base_name: str) -> tuple[dict, str]:
+def tuned_config(idf, s: dict, base: dict, axis: str, base_name: str) -> tuple[dict, str]:
     """The config ``base`` with axis ``axis`` tuned from the identification, and its YAML text.
 
     Changes, each commented in the text with its figure: ``controller.compensation`` = the found
@@ -209,7 +206,7 @@ def _changed(base: dict, axis: str, key: str, new: list) -> str:
     return f"  # motorctl identify: was {_flow(old)} (the fit lies outside)"
 
 
-def write_tuned_config(idf: Identifier, s: dict, base: dict, axis: str, base_name: str, path) -> dict:
+def write_tuned_config(idf, s: dict, base: dict, axis: str, base_name: str, path) -> dict:
     """Write the tuned config of :func:`tuned_config` to ``path`` after checking it as
     ``motorctl check-config`` does (the bus budget aside), and note it in ``s``
     (``written_config``).

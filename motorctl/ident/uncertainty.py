@@ -285,17 +285,20 @@ def white_covariance(phi: np.ndarray, residual: np.ndarray) -> np.ndarray:
     return s2 * np.linalg.pinv(a.T @ a) / np.outer(sc, sc)
 
 
-def fit_uncertainty(idf, ev, terms, params_of, white: bool = False, specification: bool = True) -> dict:
+def fit_uncertainty(fits, ev, terms, params_of, white: bool = False, specification: bool = True) -> dict:
     """The HAC standard deviations and 95 % intervals of a fit's nominal θ and of each effect's
     named parameters.
 
     Args:
-        idf: the identifier whose model was fitted (:class:`~motorctl.ident.select.Identifier`:
-            ``design``, ``term``, ``coef_split``, ``n_theta``, ``p``).
+        fits: the fit stage the model was fitted by (:class:`~motorctl.ident.fit.Fits`:
+            ``design``, ``term``, ``coef_split``, ``n_theta``, ``p``, ``moving``, ``nuisance``).
         ev: the evaluated model (``ev.fit``: coef, std, residual). terms: its effect terms.
         params_of: ``params_of(term, h, beta) -> dict`` (the effect's named parameters, as
             :func:`motorctl.ident.effects.parameters` gives them for the summary, in N with a
-            gain); None when ``terms`` is empty.
+            gain); None when ``terms`` is empty. Its attribute ``std`` (optional),
+            ``params_of.std(term, h, beta) -> {name: σ}``, gives the σ of the parameters a
+            family fits again on part of the record (the fitted β and h do not move them):
+            they get that σ (no model error) instead of none.
     Returns:
         {"theta_std": (n_theta,) the stated σ, sqrt(σ_HAC² + b²), "theta_ci95": [[lo, hi], ...]
         (value ∓ 1.96 of it), "theta_std_sampling": σ_HAC, "theta_model_error": b (0 where no
@@ -306,22 +309,22 @@ def fit_uncertainty(idf, ev, terms, params_of, white: bool = False, specificatio
         place of the HAC one (lag_samples 0) and no model error, for comparison;
         ``specification`` False: no model error (b = 0).
     Raises:
-        ValueError: ``ev`` is not the fit of ``terms`` on ``idf`` (its coefficients and the
+        ValueError: ``ev`` is not the fit of ``terms`` on ``fits`` (its coefficients and the
         regressor differ in number).
     """
-    nt = idf.n_theta
-    phi, y = idf.design(terms)
+    nt = fits.n_theta
+    phi, y = fits.design(terms)
     coef = np.asarray(ev.fit.coef, dtype=float)
     # the Gauss-Newton columns of the searched parameters (those the columns depend on smoothly)
     extra = []
-    th, betas = idf.coef_split(ev, terms)
+    th, betas = fits.coef_split(ev, terms)
     for i, (t, b) in enumerate(zip(terms, betas)):
         if t.cols is None or t.delay or not _searched_float(t.h) or not len(b):
             continue
         dh = REL_STEP * abs(float(t.h))
         try:
-            cp = idf.term(t.family, float(t.h) + dh).cols
-            cm = idf.term(t.family, float(t.h) - dh).cols
+            cp = fits.term(t.family, float(t.h) + dh).cols
+            cm = fits.term(t.family, float(t.h) - dh).cols
         except (ValueError, ArithmeticError):
             continue
         if cp is not None and cm is not None and cp.ndim == 2 and cp.shape[1] > t.cols.shape[1]:
@@ -334,7 +337,7 @@ def fit_uncertainty(idf, ev, terms, params_of, white: bool = False, specificatio
     full = np.column_stack([phi] + [c for _, c in extra]) if extra else phi
     if phi.shape[1] != len(coef) or phi.shape[0] != len(ev.fit.residual):
         raise ValueError(f"the fit has {len(coef)} coefficients, its model's regressor {phi.shape}")
-    fs_d = idf.p.fs / idf.p.nd
+    fs_d = fits.p.fs / fits.p.nd
     if white:
         cov, lag = white_covariance(full, ev.fit.residual), 0
     else:
@@ -345,7 +348,7 @@ def fit_uncertainty(idf, ev, terms, params_of, white: bool = False, specificatio
     splits = {}
     if not white and specification:
         r = np.asarray(ev.fit.residual, dtype=float)
-        moving = getattr(idf, "moving", None)
+        moving = getattr(fits, "moving", None)
         cands = [("low_band", low_band(len(r)))]
         if moving is not None and len(moving) == len(r) and 0 < int(np.sum(moving)) < len(r):
             mv = np.asarray(moving, dtype=float)
@@ -355,9 +358,9 @@ def fit_uncertainty(idf, ev, terms, params_of, white: bool = False, specificatio
             got = split_difference(full, r, proj, lag, cf)
             if got is not None:
                 splits[name] = got
-        # the values' shift against the model without the identifier's nuisance columns (the
-        # last of its regressor: a structural mode above the band, Identifier.mode_above_band)
-        nz = getattr(idf, "nuisance", None)
+        # the values' shift against the model without the structure's nuisance columns (the
+        # last of its regressor: a structural mode above the band, motorctl.ident.values.mode_above_band)
+        nz = getattr(fits, "nuisance", None)
         if nz is not None:
             k_n = nz.shape[1] if nz.ndim == 2 else 1
             splits["nuisance"] = omitted_difference(full, cov, range(phi.shape[1] - k_n, phi.shape[1]), cf)
@@ -377,16 +380,32 @@ def fit_uncertainty(idf, ev, terms, params_of, white: bool = False, specificatio
         k = len(b)
         idx = list(range(j0, j0 + k)) + ([hcol[i]] if i in hcol else [])
         j0 += k
+        own = getattr(params_of, "std", None)
         out["effects"].append(_effect_interval(t, np.asarray(b, float), idx, cov, i in hcol, params_of,
-                                               list(splits.values())))
+                                               list(splits.values()), own(t, t.h, np.asarray(b, float)) if own else {}))
     return out
 
 
-def _effect_interval(t, b, idx, cov, with_h, params_of, splits=()) -> dict:
+def stated_uncertainty(fits, ev, terms, params_of) -> dict:
+    """:func:`fit_uncertainty` of a fit; a regressor it cannot take (degenerate) gives the white
+    formula's σ for θ and no effect intervals, lag_samples None."""
+    try:
+        return fit_uncertainty(fits, ev, terms, params_of)
+    except (ValueError, np.linalg.LinAlgError):
+        nt = fits.n_theta
+        sd = [float(v) for v in ev.fit.std[:nt]]
+        return {"theta_std": sd, "theta_std_white": sd, "lag_samples": None, "theta_std_sampling": sd,
+                "theta_model_error": [0.0] * nt, "splits": [],
+                "theta_ci95": [ci95(float(v), s) for v, s in zip(ev.fit.coef[:nt], sd)],
+                "effects": [{"std": {}, "ci95": {}} for _ in terms]}
+
+
+def _effect_interval(t, b, idx, cov, with_h, params_of, splits=(), own=None) -> dict:
     """σ and [lo, hi] of each named parameter of one effect by the delta method (module
     docstring): J (numerical, central differences in β and h) times the covariance block of
     (β, h) ``idx`` of ``cov``; the model's error of each from the splits' (d, V_d) through the
-    same J (:func:`model_error`, the largest over ``splits``)."""
+    same J (:func:`model_error`, the largest over ``splits``). A parameter the fitted (β, h) do
+    not move takes its σ from ``own`` ({name: σ}, the family's own fit of it) when given there."""
     base = _flat(params_of(t, t.h, b))
     if not base or not idx:
         return {"std": {}, "ci95": {}, "std_sampling": {}, "model_error": {}}
@@ -419,8 +438,13 @@ def _effect_interval(t, b, idx, cov, with_h, params_of, splits=()) -> dict:
     block = cov[np.ix_(idx, idx)]
     var = np.einsum("ij,jk,ik->i", jac, block, jac)
     # a parameter the fitted (β, h) do not move is computed from more of the record than this
-    # fit (asymmetric friction's, fitted again on the samples in motion): no σ from here
+    # fit (asymmetric friction's, fitted again on the samples in motion): no σ from here, only
+    # the one its family gives of its own fit (own)
     var[~np.any(jac != 0.0, axis=1)] = np.nan
+    for r, (name, pos, _) in enumerate(base):
+        s_own = (own or {}).get(name)
+        if not math.isfinite(var[r]) and s_own is not None and pos is None and math.isfinite(float(s_own)):
+            var[r] = float(s_own) ** 2
     bias = np.zeros(len(base))
     for d, vd in splits:
         db = jac @ d[idx]
@@ -447,4 +471,4 @@ def _num(x: float):
 
 __all__ = ["LOW_BAND_SHARE", "MAX_LAG_SHARE", "MAX_SPLIT_COND", "MIN_LAG_S", "MIN_SPLIT_SHARE", "REL_STEP", "Z95",
            "andrews_bandwidth", "bandwidth", "ci95", "fit_uncertainty", "hac_covariance", "low_band", "model_error",
-           "split_difference", "white_covariance"]
+           "split_difference", "stated_uncertainty", "white_covariance"]

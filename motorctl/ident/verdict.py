@@ -50,6 +50,7 @@ the power and its amplitude √(2·power) is at least ``min_size``. Each finding
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import signal
@@ -241,8 +242,43 @@ def _at_rest(name: str, b: dict, span: float) -> bool:
     return False
 
 
+@dataclass(frozen=True, eq=False)
+class Verdict:
+    """The structure left in a residual (:func:`residual_verdict`), a plain record.
+
+    Attributes:
+        structured: the residual keeps a structure no selected effect explains.
+        findings: the structured entries (dicts: ``against``, ``share``, ``noise_share``, ``z``,
+            ``where``, ``mean``, ``size``, ``structured``, ``explained_by``), the largest share first.
+        tested: every entry tested, structured or not. text: the report's sentence.
+
+    Read like the summary's ``residual`` dict too (``v["structured"]``); :meth:`as_dict` is it.
+    """
+
+    structured: bool
+    findings: tuple
+    tested: tuple
+    text: str
+
+    def __getitem__(self, key: str):
+        if key not in ("structured", "findings", "tested", "text"):
+            raise KeyError(key)
+        return getattr(self, key)
+
+    def get(self, key: str, default=None):
+        try:
+            return self[key]
+        except KeyError:
+            return default
+
+    def as_dict(self) -> dict:
+        """{"structured", "findings", "tested", "text"}: the summary's ``residual``."""
+        return {"structured": self.structured, "findings": list(self.findings), "tested": list(self.tested),
+                "text": self.text}
+
+
 def residual_verdict(r: np.ndarray, p, gain: float = 1.0, unit: str = "V", at_rest_by: str | None = None,
-                     min_size: float = 0.0, coulomb: float | None = None) -> dict:
+                     min_size: float = 0.0, coulomb: float | None = None) -> Verdict:
     """The structure left in a residual.
 
     Args:
@@ -257,10 +293,10 @@ def residual_verdict(r: np.ndarray, p, gain: float = 1.0, unit: str = "V", at_re
             ``p.x``, ``p.t`` (N,)) the residual is also tested against the travel since the last
             reversal (size: its deficit, at least :data:`MIN_TRAVEL_COULOMB` |θ3|).
     Returns:
-        {"structured": bool, "findings": [{"against", "share", "z", "where", "mean", "size"}]
-        (the structured ones first), "tested": [every variable with its share, z, size (in
-        the report's unit) and, when a selected effect accounts for it, ``explained_by``],
-        "text"}.
+        A :class:`Verdict`: ``structured``, ``findings`` ({"against", "share", "z", "where",
+        "mean", "size"}, the structured ones first), ``tested`` (every variable with its share,
+        z, size (in the report's unit) and, when a selected effect accounts for it,
+        ``explained_by``), ``text``.
     """
     r = np.asarray(r, dtype=float)
     r = r - r.mean()
@@ -305,4 +341,4 @@ def residual_verdict(r: np.ndarray, p, gain: float = 1.0, unit: str = "V", at_re
         + ("travel since a reversal, " if any(t["against"] == "travel" for t in tested) else "") + "spectrum)")
     text += "".join(f"; {t['where']} ({100 * t['share']:.0f} % of the residual's power) counted as "
                     f"{t['explained_by']}'s" for t in tested if t.get("explained_by"))
-    return {"structured": bool(found), "findings": found, "tested": tested, "text": text}
+    return Verdict(structured=bool(found), findings=tuple(found), tested=tuple(tested), text=text)
