@@ -39,13 +39,15 @@ def _r(x):
 def summarise(idf) -> dict:
     """The JSON object of ``identify`` for an identification (the driver
     :class:`~motorctl.ident.pipeline.Identifier` after its stages: its ``fits``, ``judge``,
-    ``selection``, ``refined`` and values' model); residuals in N when a gain is known."""
+    ``selection``, ``refined`` and values' model, :func:`~motorctl.ident.tuned.values_from`);
+    residuals in N when a gain is known."""
     from motorctl.ident.ambiguity import summaries
-    from motorctl.ident.judge import claims, parameters_of, values_of
+    from motorctl.ident.judge import claims, parameters_of
     from motorctl.ident.simfit import simulation_fit
+    from motorctl.ident.tuned import values_from
     from motorctl.ident.uncertainty import stated_uncertainty
     rec, fits, sel, judge = idf.rec, idf.fits, idf.selection, idf.judge
-    values = idf.values if idf.values is not None else values_of(judge, sel)
+    values = values_from(idf)
     g = rec.gain or 1.0
     unit = "N" if rec.gain else "V"
     nt = fits.n_theta

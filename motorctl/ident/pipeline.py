@@ -39,6 +39,16 @@ from motorctl.ident.tuned import (BOX_MARGIN, compensation_from_fit, set_theta0,
 from motorctl.recorder.runlog import LogError
 
 
+def _read(*path: str) -> property:
+    """A read-only attribute of the driver: the record at ``path`` (attribute names) from it."""
+    def get(self):
+        out = self
+        for name in path:
+            out = getattr(out, name)
+        return out
+    return property(get)
+
+
 class Identifier:
     """The driver of the identification's stages on one record: it holds the records each stage
     returns and hands them to the next; all the work is the stages'.
@@ -130,24 +140,18 @@ class Identifier:
         return self
 
     def _values(self):
-        return self.values if self.values is not None else after.values_of(self.judge, self.selection)
+        """The values' model: the one :meth:`find_values` set, else the selection's own."""
+        from motorctl.ident.values import of_selection
+        return self.values if self.values is not None else of_selection(self.judge, self.selection)
 
-    # what the records hold, read through the driver
-    rec = property(lambda self: self.fits.rec)
-    setup = property(lambda self: self.fits.setup)
-    structure = property(lambda self: self.fits.structure)
-    n_theta_reason = property(lambda self: self.fits.structure.n_theta_reason)
-    zoh_source = property(lambda self: self.fits.structure.zoh_source)
-    u_reach = property(lambda self: self.fits.setup.u_reach)
-    nominal = property(lambda self: self.selection.nominal)
-    steps = property(lambda self: self.selection.steps)
-    accepted = property(lambda self: self.selection.accepted)
-    eliminated = property(lambda self: self.selection.eliminated)
-    researched = property(lambda self: self.selection.researched)
-    ambiguous = property(lambda self: self.selection.ambiguous)
-    verdict_step = property(lambda self: self.selection.verdict_step)
-    joint_moved = property(lambda self: self.refined.moved)
-    harmonics_cut = property(lambda self: self.refined.harmonics_cut)
+    # what the records hold, read through the driver (the fit stage's own, rec, setup,
+    # structure, p, n_theta, zoh, ..., through __getattr__)
+    n_theta_reason, zoh_source = (_read("fits", "structure", n) for n in ("n_theta_reason", "zoh_source"))
+    u_reach = _read("fits", "setup", "u_reach")
+    nominal, steps, accepted, eliminated, researched, ambiguous, verdict_step = (
+        _read("selection", n) for n in ("nominal", "steps", "accepted", "eliminated", "researched", "ambiguous",
+                                        "verdict_step"))
+    joint_moved, harmonics_cut = _read("refined", "moved"), _read("refined", "harmonics_cut")
 
     @property
     def families(self) -> list:

@@ -13,11 +13,12 @@ from motorctl.ident.explain import _flow, fig, saturation_note
 
 def values_from(idf):
     """The values' model (:class:`~motorctl.ident.values.ValuesModel`) whose joint fit gives the
-    found effects' values and compensation: the refit's when one was needed
-    (:func:`motorctl.ident.values.refit`), else the selection's own. Selection, held-out gains
-    and the residual verdict are always the selection's."""
-    from motorctl.ident.judge import values_of
-    return idf.values if idf.values is not None else values_of(idf.judge, idf.selection)
+    found effects' values and compensation: the one the identification found
+    (``idf.values``: the refit's when one was needed, :func:`motorctl.ident.values.refit`), else
+    (the stages after the selection not run) the selection's own. Selection, held-out gains and
+    the residual verdict are always the selection's."""
+    from motorctl.ident.values import of_selection
+    return idf.values if idf.values is not None else of_selection(idf.judge, idf.selection)
 
 
 def values_and_parameters(idf, gain: float):
