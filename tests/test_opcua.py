@@ -53,7 +53,8 @@ O6_PYTHON = os.environ.get("MOTORCTL_O6_PYTHON") or str(REPO / ".venv" / "o6" / 
 O6_MISSING = "" if os.path.isfile(O6_PYTHON) and (
     "MOTORCTL_O6_PYTHON" in os.environ or list((REPO / ".venv" / "o6" / "lib").glob("python3*/site-packages/o6"))) \
     else f"no open62541 client: {O6_PYTHON} with the o6 wheel (python3 -m venv .venv/o6; .venv/o6/bin/pip install o6)"
-#: the client's three attempts, each answered as one JSON line; the third after a line on stdin
+#: the client's three attempts, each answered as one JSON line: the first two after a line on
+#: stdin, the third after another
 O6_CLIENT = r"""
 import asyncio, json, sys
 import o6
@@ -80,6 +81,7 @@ async def attempt(name, plain=False, **kw):
     print(json.dumps({name: out}, default=str), flush=True)
 
 async def main():
+    sys.stdin.readline()
     await attempt("plain", plain=True, securityMode=1, allowNonePolicyPassword=True)
     await attempt("untrusted", securityMode=3, securityPolicy=B256)
     sys.stdin.readline()
@@ -142,6 +144,19 @@ def daemon(tmp_path_factory):
         if d.uals.poll() is None:
             d.uals.kill()
         d.uals.communicate(timeout=10)
+
+
+def _o6_client(url: str, tmp: Path) -> subprocess.Popen:
+    """open62541's client (O6_CLIENT) with a client certificate of its own made in ``tmp``,
+    started: its attempts wait for a line on its stdin."""
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+    _run(setup_self_signed_certificate(tmp / "o6_key.pem", tmp / "o6_cert.der", "urn:motorctl:o6test",
+                                       "localhost", [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "o6test"}))
+    with open(tmp / "o6.err", "w") as err:           # its log lines: not read while it runs
+        return subprocess.Popen([O6_PYTHON, "-c", O6_CLIENT, url, str(tmp), *OPERATOR,
+                                 str(tmp / "logs" / "opcua" / "server_cert.der")], stdin=subprocess.PIPE,
+                                stdout=subprocess.PIPE, stderr=err, text=True)
 
 
 def _tool(name: str, url: str, *args) -> subprocess.Popen:
@@ -566,45 +581,43 @@ def test_a_program_beyond_the_limit_is_refused_at_once_and_the_next_one_runs(dae
 
 
 @pytest.mark.skipif(bool(O6_MISSING), reason=O6_MISSING)
-def test_open62541s_client_needs_an_encrypted_password_and_a_trusted_certificate(daemon, tmp_path):
-    """open62541's client (o6, its own interpreter): a password in clear on the None channel is
-    not logged in (the client finds no token policy for it and sends nothing), a Basic256Sha256
-    SignAndEncrypt session with a client certificate the server does not trust is refused and
-    the certificate kept in rejected/; once `motorctl opcua trust` accepted it, the same client
-    logs in and reads X's position."""
-    from asyncua.crypto.cert_gen import setup_self_signed_certificate
-    from cryptography.x509.oid import ExtendedKeyUsageOID
-
+def test_open62541s_client_needs_an_encrypted_password_and_a_trusted_certificate(daemon):
+    """open62541's client (o6, its own interpreter): a password sent in clear on the None channel
+    (the client told to: authSecurityPolicyUri None, allowNonePolicyPassword) is refused,
+    BadIdentityTokenRejected; a Basic256Sha256 SignAndEncrypt session with a client certificate
+    the server does not trust is refused, BadCertificateUntrusted, the certificate kept in
+    rejected/; once `motorctl opcua trust` accepted it, the same client logs in and reads X's
+    position."""
     from motorctl.app.daemon.opcua_trust import TrustList
     from motorctl.cli import main as cli
-    _run(setup_self_signed_certificate(tmp_path / "o6_key.pem", tmp_path / "o6_cert.der", "urn:motorctl:o6test",
-                                       "localhost", [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "o6test"}))
-    pki = daemon.tmp / "logs" / "opcua"
-    thumb = TrustList.thumbprint((tmp_path / "o6_cert.der").read_bytes())
-    p = subprocess.Popen([O6_PYTHON, "-c", O6_CLIENT, daemon.url, str(tmp_path), *OPERATOR,
-                          str(pki / "server_cert.der")], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
+    pki, p = daemon.tmp / "logs" / "opcua", _o6_client(daemon.url, daemon.tmp)
+    thumb = TrustList.thumbprint((daemon.tmp / "o6_cert.der").read_bytes())
+
     def answer() -> dict:                 # the client's next JSON line (o6 prints a banner first)
         for line in p.stdout:
             if line.startswith("{"):
                 return json.loads(line)
         return {}
 
+    def go() -> None:
+        p.stdin.write("go\n")
+        p.stdin.flush()
+
     try:
+        go()
         got = {**answer(), **answer()}
         rejected = (pki / "rejected" / f"{thumb}.der").is_file()
         assert cli(["opcua", "trust", thumb[:16], "--pki-dir", str(pki)]) == 0
-        p.stdin.write("go\n")
-        p.stdin.flush()
+        go()
         got.update(answer())
         p.wait(60)
     finally:
         if p.poll() is None:
             p.kill()
-        err = p.stderr.read()
-    assert set(got) == {"plain", "untrusted", "trusted"}, (got, err[-2000:])
-    assert not got["plain"]["ok"], got
-    assert not got["untrusted"]["ok"] and rejected, got
+    assert set(got) == {"plain", "untrusted", "trusted"}, (got, (daemon.tmp / "o6.err").read_text()[-2000:])
+    assert not got["plain"]["ok"] and str(ua.StatusCodes.BadIdentityTokenRejected) in got["plain"]["error"], got
+    assert not got["untrusted"]["ok"] and str(ua.StatusCodes.BadCertificateUntrusted) in got["untrusted"]["error"], got
+    assert rejected
     assert got["trusted"]["ok"] and isinstance(got["trusted"]["x"], float), got
 
 
