@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from motorctl.motion import (AxisLimits, GcodeSettings, LimitError, check_limits, contour_error, headroom, parse,
                              plan, point_to_point)
-from motorctl.motion.planner import PERIOD_S
+from motorctl.motion.planner import EXACT_ARC_TOL_M, PERIOD_S
 
 #: configs/gantry.yaml's X and Y
 LIMITS = [AxisLimits(2.0, 40.0, 4000.0), AxisLimits(1.0, 10.0, 1000.0)]
@@ -66,9 +66,9 @@ def test_planned_programs_keep_limits_end_point_and_tolerance(points, feed, tol,
     np.testing.assert_array_equal(out[-1, 1:], 0.0)
     x, _, _ = tr.sample(tr.duration)
     np.testing.assert_array_equal(x, prog.end[:2])
-    if tol is not None:                   # G64 without P: as fast as the limits allow
-        dev = contour_error(prog, out[:, 0])
-        assert dev.max() <= max(tol * 1e-3, 1e-6) + 1e-9
+    # G64 without P and G61: the path exactly (arcs within EXACT_ARC_TOL_M of 1 µm), corners stop
+    dev = contour_error(prog, out[:, 0])
+    assert dev.max() <= (tol * 1e-3 if tol else EXACT_ARC_TOL_M) + 1e-9
 
 
 def test_square_and_circle_ends_at_its_last_point_within_the_tolerance():
@@ -245,7 +245,8 @@ def test_short_chords_are_blended_within_the_tolerance_at_the_feed():
     corner is blended (LinuxCNC's tangent arc within P, its ends within half of each chord), so
     the path runs at the feed with no stop on the polygon, every setpoint within P of the
     programmed chords, every axis within its limits. Under G61 the same program stops at every
-    vertex (the speed comes to 0 there, the path the chords exactly)."""
+    vertex (the speed comes to 0 there, the path the chords exactly) and takes over twice as
+    long."""
     text, n = _polygon(3.6, 0.5, 5000)
     prog = parse(text, "p.ngc", XY)
     tr = plan(prog, ["X", "Y"], LIMITS)
@@ -262,7 +263,9 @@ def test_short_chords_are_blended_within_the_tolerance_at_the_feed():
     out61 = _run(tr61)
     _assert_within_limits(out61)
     assert contour_error(exact, out61[:, 0]).max() <= 1e-9
-    assert tr61.duration > 3 * tr.duration
+    stands = np.hypot(out61[:, 1, 0], out61[:, 1, 1]) == 0.0
+    stops = np.count_nonzero(stands[1:] & ~stands[:-1])              # moving, then at rest
+    assert stops >= n + 1 and tr61.duration > 2 * tr.duration
 
 
 def test_naive_cam_merges_a_jittered_line_within_q():
@@ -280,3 +283,99 @@ def test_naive_cam_merges_a_jittered_line_within_q():
         assert contour_error(prog, out[:, 0]).max() <= 1e-5 + 1e-9
         top[mode] = np.hypot(out[:, 1, 0], out[:, 1, 1]).max()
     assert top["G64 P0.01"] == pytest.approx(0.1) and top["G64 P0.01 Q0"] < 0.09
+
+
+@pytest.mark.parametrize("text", [
+    "G21 G90\nG1 X120 Y120 F3000\nM2\n",                                      # from elsewhere: a first rapid
+    "G21 G90 G64 P0.01\nG1 X10 Y0 F5000\nG3 X12 Y2 I0 J2\nG1 X12.3 Y9.7\nG1 X20 Y10\nM2\n",
+    "G21 G90 G64 P0.01\nG1 X10 Y3 F9000\nG2 X14 Y3 I2 J0\nM2\n",           # ends on an arc
+])
+def test_a_programs_last_setpoint_is_its_end_point_exactly(text):
+    """The setpoints a filler takes a block at a time (50 rows, each call going on where the
+    last ended) end at the programmed end point exactly, the velocity and acceleration 0; the
+    rows before, once at rest, within 1e-15 m of it."""
+    prog = parse(text, "e.ngc", XY)
+    tr = plan(prog, ["X", "Y"], LIMITS, start=[0.031, 0.047])
+    n = int(np.ceil(tr.duration / H)) + 1
+    out = np.empty((n + 49 - (n - 1) % 50, 3, 2))
+    for k in range(0, len(out), 50):
+        tr.sample_into(k * H, H, out[k:k + 50])
+    np.testing.assert_array_equal(out[-1, 0], prog.end[:2])
+    np.testing.assert_array_equal(out[-1, 1:], 0.0)
+    rest = np.flatnonzero(np.any(out[:, 1] != 0.0, axis=1))[-1] + 1          # the first row at rest for good
+    assert np.abs(out[rest:, 0] - prog.end[:2]).max() <= 1e-15
+
+
+def test_a_fill_that_goes_on_where_the_last_ended_is_the_same_as_one_fill():
+    prog = parse((REPO / "configs" / "plate_0932.ngc").read_text(), "plate_0932.ngc",
+                 GcodeSettings(axes=["X", "Y"], words={"M3": "torch", "M5": "torch", "S": "ignore"}))
+    tr = plan(prog, ["X", "Y"], LIMITS)
+    one = np.empty((6000, 3, 2))
+    tr.sample_into(1.5, H, one)
+    blocks = np.empty_like(one)
+    for k in range(0, 6000, 50):
+        tr.sample_into(1.5 + k * H, H, blocks[k:k + 50])
+    np.testing.assert_allclose(blocks, one, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(blocks[:, 0], one[:, 0], rtol=0, atol=1e-13)
+
+
+def test_kerf_arcs_between_chords_are_blended_at_the_feed_within_the_tolerance():
+    """A curve of 2 mm chords joined by 0.3 mm arcs turning with them (a DXF2GCODE kerf arc at
+    each vertex), F3000, G64 P0.01: each small arc is run as the larger blend of its corner
+    within P (its curvature step at 0.3 mm would hold the path to about 17 mm/s), so the curve
+    runs at the feed, every setpoint within P of the programmed chords and arcs."""
+    lines, x, y, hd = ["G21 G90 G64 P0.01 Q0", "G0 X20 Y20", "G1 F3000"], 20.0, 20.0, 0.0
+    for _ in range(12):
+        x, y = x + 2 * np.cos(hd), y + 2 * np.sin(hd)
+        lines.append(f"G1 X{x:.4f} Y{y:.4f}")
+        cx, cy = x - 0.3 * np.sin(hd), y + 0.3 * np.cos(hd)
+        hd += 0.12
+        x, y = cx + 0.3 * np.sin(hd), cy - 0.3 * np.cos(hd)
+        lines.append(f"G3 X{x:.4f} Y{y:.4f} I{cx - float(lines[-1].split('X')[1].split()[0]):.4f} "
+                     f"J{cy - float(lines[-1].split('Y')[1]):.4f}")
+    prog = parse("\n".join(lines + ["M2"]) + "\n", "k.ngc", XY)
+    out = _run(plan(prog, ["X", "Y"], LIMITS))
+    _assert_within_limits(out)
+    assert contour_error(prog, out[:, 0]).max() <= 1e-5 + 1e-9
+    speed = np.hypot(out[:, 1, 0], out[:, 1, 1])
+    moving = np.flatnonzero(speed > 0)
+    core = speed[moving[len(moving) // 4]:moving[3 * len(moving) // 4]]
+    assert core.min() >= 0.98 * 0.05
+
+
+def test_g64_without_p_stops_at_every_corner_and_follows_the_path():
+    """G64 without P (no tolerance given): the path exactly, an exact stop at each corner of a
+    square, none where its lead-in arc meets it tangentially; every setpoint within
+    EXACT_ARC_TOL_M of the program (LinuxCNC would blend the corners with no bound)."""
+    text = ("G21 G90 G64\nG0 X10 Y5\nG3 X15 Y0 I5 J0 F6000\nG1 X40\nG1 Y25\nG1 X15\nG1 Y0\nM2\n")
+    prog = parse(text, "s.ngc", XY)
+    out = _run(plan(prog, ["X", "Y"], LIMITS))
+    _assert_within_limits(out)
+    assert contour_error(prog, out[:, 0]).max() <= EXACT_ARC_TOL_M + 1e-9
+    stands = np.hypot(out[:, 1, 0], out[:, 1, 1]) == 0.0
+    at = out[1:][stands[1:] & ~stands[:-1], 0]                          # where the motion comes to rest
+    np.testing.assert_allclose(at, [[0.010, 0.005], [0.040, 0.0], [0.040, 0.025], [0.015, 0.025], [0.015, 0.0]],
+                               rtol=0, atol=1e-12)
+
+
+def test_a_dwell_after_a_machine_word_adds_only_its_seconds():
+    """At a stop the first rest holds both moving averages (T1 + T2 + h); a dwell after M3 at the
+    same point adds its own seconds, not a second such rest."""
+    base = "G21 G90 G64 P0.01\nG1 X10 F3000\nM3\n{}G1 X20\nM2\n"
+    t = [plan(parse(base.format(d), "d.ngc", XY), ["X", "Y"], LIMITS).duration for d in ("", "G4 P0.05\n")]
+    assert t[1] - t[0] == pytest.approx(0.05, abs=H)
+
+
+def test_a_curvature_step_is_passed_within_the_jerk_of_the_axis_it_loads():
+    """The same line into a R 2 mm arc, once with the step's normal acceleration on X (j_max 4000
+    m/s³), once on Y (1000): X's join is passed twice as fast (√(j_X/j_Y)), both within limits."""
+    top = []
+    for text in ("G21 G90 G64 P0.01\nG1 X20 Y10 F6000\nG1 X20 Y20\nG2 X24 Y20 I2 J0\n",     # normal +X
+                 "G21 G90 G64 P0.01\nG1 X10 Y20 F6000\nG1 X20 Y20\nG3 X20 Y24 I0 J2\n"):    # normal +Y
+        prog = parse(text, "c.ngc", XY)
+        tr = plan(prog, ["X", "Y"], LIMITS)
+        out = _run(tr)
+        _assert_within_limits(out)
+        join = np.argmin(np.hypot(out[:, 0, 0] - 0.020, out[:, 0, 1] - 0.020))
+        top.append(np.hypot(*out[join, 1]))
+    assert top[0] == pytest.approx(2 * top[1], rel=0.05)

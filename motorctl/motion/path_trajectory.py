@@ -39,8 +39,7 @@ class PathTrajectory(Trajectory):
     def __init__(self, axes, phases: Phases, geo, ix, iy, n1, n2, period, start, end, events, stops):
         self.axes = tuple(axes)
         self._ph = phases
-        (self._gs0, self._glen, self._kind, self._p0, self._p1, self._u, self._arc) = geo
-        self._any_arc = bool(np.any(self._kind == 1))
+        (self._gs0, self._glen, self._kind, self._p0, self._p1, self._u, arc) = geo
         self._ix, self._iy = ix, iy
         self.n1, self.n2, self.period = n1, n2, period
         self._m = n1 + n2 - 2
@@ -49,7 +48,18 @@ class PathTrajectory(Trajectory):
         self.duration = self.t_profile + (n1 + n2 + 1) * period
         self.start, self.end = start, end
         self.events, self.stops = events, stops
-        self._tail = None                 # (next grid index, s, ṡ, x, v tails) of the last call
+        self._tail = None                 # (next time, s, ṡ, x, v tails) of the last grid call
+        self._k1 = np.full(n1, 1.0 / n1)
+        # the arcs per piece (0 on lines): centre, radius and angle at the start and their rates
+        # per metre of path; the shrink's compensation (0: none) and the rates of its fades in
+        # and out with an offset (0 and 2 where it does not fade: the same circle goes on)
+        self._any_arc = bool(np.any(self._kind == 1))
+        cx, cy, r0, r1, phi0, sweep, fi, fo = arc.T
+        safe = np.where(self._glen > 0, self._glen, 1.0)
+        self._arc_tab = (cx, cy, r0, (r1 - r0) / safe, phi0, sweep / safe, np.abs(sweep) / safe,
+                         ((fi >= 0) & (fo >= 0)).astype(float),
+                         np.where(fi > 0, 1.0 / np.where(fi > 0, fi, 1.0), 0.0), np.where(fi > 0, 0.0, 2.0),
+                         np.where(fo > 0, 1.0 / np.where(fo > 0, fo, 1.0), 0.0), np.where(fo > 0, 0.0, 2.0))
 
     def __getstate__(self):
         d = dict(self.__dict__)
@@ -57,112 +67,89 @@ class PathTrajectory(Trajectory):
         d.pop("_cache", None)
         return d
 
-    def _shrink(self, om: np.ndarray) -> np.ndarray:
-        """1/S(ω) − 1: the relative radius the short moving average of n2 samples shrinks back
-        to 0 on a circle run at angular rate ω [rad/s], S its gain sin(n ω h/2)/(n sin(ω h/2))
-        (a moving average's frequency response)."""
-        x = 0.5 * np.asarray(om, dtype=float) * self.period
-        small = np.abs(x) < 1e-9
-        xs = np.where(small, 1.0, x)
-        s = np.where(small, 1.0, np.sin(self.n2 * xs) / (self.n2 * np.sin(xs)))
-        return 1.0 / s - 1.0
-
     def _path(self, s: np.ndarray, sd: np.ndarray, lead: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The blended path's point and velocity at path length s moving at ṡ (shape (k,) each;
         returns shape (k, n_axes) each); arcs on the radius the short filter shrinks back onto
-        theirs. ``lead``: the unfiltered path length at the newest sample of each point's window
-        (shape (k,)): at a join (within BOUNDARY_M, the averages' rounding) the point is on the
-        piece it is leaving while that is not beyond the join, else on the next one (arriving at a
-        stop the velocity keeps the direction it came from, to its last sample)."""
-        gs0 = self._gs0
+        theirs (the radius over S(ω), S the moving average's gain sin(n₂ωh/2)/(n₂ sin(ωh/2)) at
+        the angular rate ω, faded in and out by a smoothstep of the path where the circle changes).
+        ``lead``: the unfiltered path length at the newest sample of each point's window (shape
+        (k,)): at a join (within BOUNDARY_M, the averages' rounding) the point is on the piece it
+        is leaving while that is not beyond the join, else on the next one (arriving at a stop the
+        velocity keeps the direction it came from, to its last sample)."""
+        gs0, glen = self._gs0, self._glen
         k = np.searchsorted(gs0, s, side="right") - 1
-        np.clip(k, 0, len(gs0) - 1, out=k)
-        if len(gs0) > 1:
-            at = (s - gs0[k] <= self.BOUNDARY_M) & (k > 0)
-            back = at & (lead <= gs0[k] + self.BOUNDARY_M)
+        np.maximum(k, 0, out=k)
+        d0 = s - gs0[k]
+        lk = glen[k]
+        eps = self.BOUNDARY_M
+        near = (d0 <= eps) | (lk - d0 <= eps)
+        if len(gs0) > 1 and near.any():
+            last = len(gs0) - 1
+            back = (d0 <= eps) & (k > 0) & (lead <= gs0[k] + eps)
             k[back] -= 1
-            kn = np.minimum(k + 1, len(gs0) - 1)
-            ahead = (k + 1 < len(gs0)) & (gs0[kn] - s <= self.BOUNDARY_M) & (lead > gs0[kn] + self.BOUNDARY_M)
+            kn = np.minimum(k + 1, last)
+            ahead = (k < last) & (gs0[kn] - s <= eps) & (lead > gs0[kn] + eps)
             k[ahead] += 1
-        length = self._glen[k]
-        sig = np.clip(s - self._gs0[k], 0.0, length)
+            d0 = s - gs0[k]
+            lk = glen[k]
+        sig = np.minimum(np.maximum(d0, 0.0), lk)
         u = self._u[k]
         x = self._p0[k] + sig[:, None] * u
         v = sd[:, None] * u
-        if not self._any_arc:
-            return x, v
-        sel = np.flatnonzero(self._kind[k] == 1)
-        if sel.size:                                       # the arcs' points only
-            ka, sg, sda, la = k[sel], sig[sel], sd[sel], length[sel]
-            cx, cy, r0, r1, phi0, sweep, fi, fo = self._arc[ka].T
-            safe = np.where(la > 0, la, 1.0)
-            f = sg / safe
-            phi = phi0 + sweep * f
-            r = r0 + (r1 - r0) * f
-            dphi = sweep / safe
-            dr = (r1 - r0) / safe
-            rs = np.where(r > 0, r, 1.0)
-            g = self._shrink(sda * np.abs(dphi))
-            # the compensation faded in over fi of path at the arc's start and out over fo at
-            # its end (0: none there, the same circle goes on; < 0: not compensated), by a
-            # smoothstep of the path (the radial velocity it adds starts and ends at 0)
-            fi_s = np.where(fi > 0, fi, 1.0)
-            fo_s = np.where(fo > 0, fo, 1.0)
-            wi = np.where(fi > 0, sg / fi_s, np.inf)
-            wo = np.where(fo > 0, (la - sg) / fo_s, np.inf)
-            u_ = np.clip(np.minimum(wi, wo), 0.0, 1.0)
-            du = np.where((u_ > 0) & (u_ < 1), np.where(wi < wo, 1.0 / fi_s, -1.0 / fo_s), 0.0)
-            w = u_ * u_ * (3.0 - 2.0 * u_)
-            dw = 6.0 * u_ * (1.0 - u_) * du
-            g = np.where((fi < 0) | (fo < 0), 0.0, g)
-            rr = r + rs * g * w
-            c, sn = np.cos(phi), np.sin(phi)
-            radial = sda * (dr + rs * g * dw)
-            ax, ay = self._ix, self._iy
-            x[sel, ax] = cx + rr * c
-            x[sel, ay] = cy + rr * sn
-            v[sel, ax] = radial * c - sda * rr * dphi * sn
-            v[sel, ay] = radial * sn + sda * rr * dphi * c
+        if self._any_arc:
+            sel = np.flatnonzero(self._kind[k])
+            if sel.size:
+                self._arcs(sel, k[sel], sig[sel], sd[sel], lk[sel], x, v)
         return x, v
 
-    def _grid(self, i0: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """x, v, a (each (n, n_axes)) at grid points i0 .. i0 + n − 1 (time i·h): s and ṡ through
-        the moving average of n1, the path at s, x and v through the moving average of n2, a the
-        backward difference of v over n2. Keeps the windows' tails for a call that goes on at
-        i0 + n."""
+    def _arcs(self, sel, ka, sg, sda, la, x, v) -> None:
+        """The arcs' rows ``sel`` of x and v (in place): pieces ka at sg along them at ṡ sda."""
+        cx, cy, r0, drds, phi0, dphids, adphi, comp, fi_inv, fi_off, fo_inv, fo_off = (c[ka] for c in self._arc_tab)
+        phi = phi0 + dphids * sg
+        r = r0 + drds * sg
+        xh = (0.5 * self.period) * sda * adphi + 1e-300
+        g = comp * (self.n2 * np.sin(xh) / np.sin(self.n2 * xh) - 1.0)      # 1/S − 1
+        wi = sg * fi_inv + fi_off
+        wo = (la - sg) * fo_inv + fo_off
+        w = np.minimum(np.minimum(wi, wo), 1.0)
+        dw = np.where(w < 1.0, np.where(wi < wo, fi_inv, -fo_inv), 0.0) * (6.0 * w * (1.0 - w))
+        w *= w * (3.0 - 2.0 * w)
+        gw = g * w
+        rr = r * (1.0 + gw)
+        radial = sda * (drds * (1.0 + gw) + r * g * dw)
+        tang = sda * rr * dphids
+        c, sn = np.cos(phi), np.sin(phi)
+        ax, ay = self._ix, self._iy
+        x[sel, ax] = cx + rr * c
+        x[sel, ay] = cy + rr * sn
+        v[sel, ax] = radial * c - tang * sn
+        v[sel, ay] = radial * sn + tang * c
+
+    def _grid(self, t0: float, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """x, v, a (each (n, n_axes)) at t0 + i·h, i < n: s and ṡ through the moving average of
+        n1, the path at s, x and v through the moving average of n2, a the backward difference
+        of v over n2. Keeps the windows' tails for a call that goes on at t0 + n·h."""
         n1, n2, h = self.n1, self.n2, self.period
         tail = self._tail
-        if tail is not None and tail[0] == i0:
+        k1 = self._k1
+        if tail is not None and abs(tail[0] - t0) <= 1e-9 * h:
             _, s_t, sd_t, x_t, v_t = tail
-            t = (i0 + np.arange(n)) * h
-            s_new, sd_new = self._ph.at(t)
+            s_new, sd_new = self._ph.at(t0 + np.arange(n) * h)
             s = np.concatenate([s_t, s_new])                 # n1 + n2 + n samples of the profile
             sd = np.concatenate([sd_t, sd_new])
-            ref = s[0]
-            c = np.cumsum(np.concatenate([[0.0], s - ref]))
-            sf = (c[n1:] - c[:-n1])[-n:] / n1 + ref          # the n1-averages ending at the new points
-            c = np.cumsum(np.concatenate([[0.0], sd]))
-            sdf = (c[n1:] - c[:-n1])[-n:] / n1
-            xn, vn = self._path(sf, sdf, s[-n:])
+            sl, sdl = s[n2 + 1:], sd[n2 + 1:]                # the windows ending at the new points
+            xn, vn = self._path(np.convolve(sl, k1, "valid"), np.convolve(sdl, k1, "valid"), s_new)
             xr = np.concatenate([x_t, xn])                   # n2 + 1 + n samples of the path
             vr = np.concatenate([v_t, vn])
         else:
-            t = (i0 + np.arange(-(n1 + n2), n)) * h
-            s, sd = self._ph.at(t)
-            ref = s[0]
-            c = np.cumsum(np.concatenate([[0.0], s - ref]))
-            sf = (c[n1:] - c[:-n1]) / n1 + ref               # n + n2 + 1
-            c = np.cumsum(np.concatenate([[0.0], sd]))
-            sdf = (c[n1:] - c[:-n1]) / n1
-            xr, vr = self._path(sf, sdf, s[n1 - 1:])
-        xref = xr[0]
-        c = np.cumsum(np.concatenate([np.zeros((1, xr.shape[1])), xr - xref]), axis=0)
-        x = (c[n2:] - c[:-n2])[-n:] / n2 + xref
-        c = np.cumsum(np.concatenate([np.zeros((1, vr.shape[1])), vr]), axis=0)
-        v = (c[n2:] - c[:-n2])[-n:] / n2
-        a = (vr[n2:] - vr[:-n2])[-n:] / (n2 * h)
-        self._tail = (i0 + n, s[-(n1 + n2):].copy(), sd[-(n1 + n2):].copy(), xr[-(n2 + 1):].copy(),
-                      vr[-(n2 + 1):].copy())
+            s, sd = self._ph.at(t0 + np.arange(-(n1 + n2), n) * h)
+            xr, vr = self._path(np.convolve(s, k1, "valid"), np.convolve(sd, k1, "valid"), s[n1 - 1:])
+        c = np.cumsum(xr - xr[0], axis=0)                  # the n2-averages ending at the n points
+        x = (c[n2 + 1:] - c[1:-n2]) / n2 + xr[0]
+        c = np.cumsum(vr, axis=0)
+        v = (c[n2 + 1:] - c[1:-n2]) / n2
+        a = (vr[n2 + 1:] - vr[1:-n2]) / (n2 * h)
+        self._tail = (t0 + n * h, s[-(n1 + n2):], sd[-(n1 + n2):], xr[-(n2 + 1):], vr[-(n2 + 1):])
         return x, v, a
 
     def _window(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -186,23 +173,22 @@ class PathTrajectory(Trajectory):
         return x, v, a
 
     def sample_into(self, t0: float, dt: float, out: np.ndarray) -> None:
-        """Fill out[k, 0:3, i] = (x, v, a) of axis i at t0 + k·dt (out shape (n, 3, n_axes))."""
+        """Fill out[k, 0:3, i] = (x, v, a) of axis i at t0 + k·dt (out shape (n, 3, n_axes)):
+        at the planner's period the filters on the grid through t0 (a block at a time, the
+        windows of a call that goes on where the last ended reused), at another the filters
+        anchored at each time."""
         n = out.shape[0]
         h = self.period
-        q = t0 / h
-        i0 = round(q)
-        if abs(dt - h) <= 1e-12 * h and abs(q - i0) <= 1e-9:
+        if abs(dt - h) <= 1e-12 * h:
             for lo in range(0, n, self.BLOCK):
                 m = min(self.BLOCK, n - lo)
-                x, v, a = self._grid(int(i0) + lo, m)
-                out[lo:lo + m, 0], out[lo:lo + m, 1], out[lo:lo + m, 2] = x, v, a
+                out[lo:lo + m, 0], out[lo:lo + m, 1], out[lo:lo + m, 2] = self._grid(t0 + lo * h, m)
         else:
             t = t0 + np.arange(n) * dt
             for lo in range(0, n, 256):
                 x, v, a = self._window(t[lo:lo + 256])
                 out[lo:lo + len(x), 0], out[lo:lo + len(x), 1], out[lo:lo + len(x), 2] = x, v, a
-        t_last = t0 + (n - 1) * dt
-        if t_last >= self.duration:
+        if t0 + (n - 1) * dt >= self.duration:
             late = t0 + np.arange(n) * dt >= self.duration
             out[late, 0] = self.end
             out[late, 1:3] = 0.0
