@@ -3,7 +3,7 @@ each with the gains ``motorctl autotune`` writes for it.
 
     .venv/bin/python benchmarks/bench_gtcf.py [--config configs/gantry.yaml] [--out DIR] [--skip-cut]
                                               [--no-autotune] [--sweep 1.5,2,2.5/1.5] [--seeds 2,3,4,5]
-                                              [--plant X.stiction_N=20,Y.stiction_N=16] [--grid]
+                                              [--plant X.stiction_N=20,Y.stiction_N=16] [--grid] [--no-causes]
 
 0. (default) ``motorctl autotune CONFIG --axis X --axis Y --law c2 --virtual-clock --json --out
    DIR/autotune`` on a copy of the config (a subprocess): both axes' C2 gains by the rule, then
@@ -43,13 +43,16 @@ each with the gains ``motorctl autotune`` writes for it.
    encoder's and the force noise's realisation; the same gains, no new autotune), per seed the
    ratios of 1. and their median, by the encoders and by the ballbar, and the verdict: on how
    many draws and feeds GTCF's G and G(b) by the ballbar are ≥ 30 % below C2's; on a draw where
-   they are not, C2's and GTCF's G against the 0.70 × C2 it needed and, as what bounds it, the
-   part of GTCF's G(b) the reversals leave out (the test circles' radial spread away from the
-   axes' reversals, ±10° about 0°, 90°, 180°, 270°, by the ballbar: the loop's own scatter, which
-   a contour gain does not take out). The largest figures are the axes' reversals, where the plant's
-   stiction (1.25 × its Coulomb friction) holds an axis until the loop has built the breakaway
-   force; whether that stick-slip happens at a given reversal comes and goes with the noise,
-   for C2 more than for GTCF, so one seed's ratio is one draw.
+   they are not, C2's and GTCF's G against the 0.70 × C2 it needed and what bounds it: G(b) by
+   the ballbar of both laws on that draw decomposed by cause (:func:`causes`: the circle again
+   with each of :data:`CAUSES` removed from the plant alone, the stick (breakaway = Coulomb
+   friction), the encoder's noise and interpolation error inside the loop, the force noise, and
+   all three together: the loop's deterministic error), each with where G(b) is made (the
+   radial deviation within ±10° of X's reversals, of Y's, elsewhere; 10 circle runs a missed
+   draw, ``--no-causes``: the split alone). The largest figures are the axes' reversals, where the
+   plant's stiction (1.25 × its Coulomb friction) holds an axis until the loop has built the
+   breakaway force; the noise dithers that stick (and the Coulomb friction's reversal), C2's
+   more than GTCF's, so one seed's ratio is one draw.
 5. The encoder's floor: G of each test circle's own setpoints (the C2 log's x_d) as the config's
    simulated encoders read them (resolution, noise, interpolation error; 10 draws): the G of a
    motion without any error: what the measured positions show of a perfect law.
@@ -231,6 +234,73 @@ def reversal_split(config: str, feed: float, law: str) -> dict:
     return out
 
 
+#: the causes of a circle's G(b) that :func:`causes` removes from the simulated plant, one at a
+#: time on the same draw: (what it is, the axis's driver keys that remove it, from the axis's
+#: driver mapping). A noise's deviation is set to 1e-15 (1 fm, 1 fN: the least the config takes),
+#: not 0, so that the plant still draws it and the other noise keeps its realisation (the draws of
+#: one Generator, interleaved)
+CAUSES = {
+    "stick": ("the breakaway above the Coulomb friction (stiction_N = coulomb_N): the stick at a "
+              "reversal, which the law's friction model theta3 S_f(xd_d) has not",
+              lambda d: {"stiction_N": float(d.get("coulomb_N", 0.0))} if d.get("stiction_N") else {}),
+    "encoder": ("the encoder's noise and interpolation error inside the loop",
+                lambda d: ({"encoder_noise_m": 1e-15} if d.get("encoder_noise_m") else {})
+                | ({"encoder_interpolation_m": 0.0} if d.get("encoder_interpolation_m") else {})),
+    "force": ("the force noise", lambda d: {"force_noise_N": 1e-15} if d.get("force_noise_N") else {}),
+}
+
+
+def causes(config: str, feed: float, out: Path) -> dict:
+    """What the simulated ballbar's G(b) of one draw is made of: C2's and GTCF's circle (R 50 mm at
+    ``feed`` [m/s]) on ``config``'s plant as configured and with each of :data:`CAUSES` removed
+    alone and all together ("all": the loop's own deterministic error, what no contour gain of the
+    law's removes), copies of the config in ``out`` (the gains and the seed kept); each run's G(b)
+    [um] and where it is made (:func:`reversal_split`). Returns {law: {"as configured", a cause or
+    "all": reversal_split's dict}}."""
+    import yaml
+    variants = {"as configured": config}
+    for name in [*CAUSES, "all"]:
+        c = yaml.safe_load(Path(config).read_text())
+        changed = False
+        for ax in c["axes"].values():
+            for cause in (CAUSES if name == "all" else [name]):
+                ch = CAUSES[cause][1](ax.get("driver", {}))
+                ax.setdefault("driver", {}).update(ch)
+                changed |= bool(ch)
+        if changed:
+            out.mkdir(parents=True, exist_ok=True)
+            p = out / f"without_{name}.yaml"
+            p.write_text(yaml.safe_dump(c, sort_keys=False))
+            variants[name] = str(p)
+    return {law: {v: reversal_split(cfg, feed, law) for v, cfg in variants.items()} for law in LAWS}
+
+
+def print_causes(got: dict, need: float) -> None:
+    """:func:`causes`'s runs of one draw as a Markdown table (G(b) by the ballbar and its largest /
+    smallest radial deviation at X's reversals, at Y's and elsewhere, per law and variant), then
+    the bound: GTCF's G(b) against the 0.7 x C2's a 30 % needs (``need``), as configured and with
+    each cause removed."""
+    variants = list(got["c2"])
+    print("    G(b) by the ballbar, each cause removed alone on this draw (um; in brackets the radial deviation, "
+          f"largest / smallest, within {math.degrees(REVERSAL_BAND):g} deg of X's reversals, of Y's, elsewhere):\n")
+    print("    | law | " + " | ".join(v if v == "as configured" else f"without {v}" for v in variants) + " |")
+    print("    |---|" + "---|" * len(variants))
+    for law in LAWS:
+        cells = [f"{s['all']:.2f} (X {s['X'][0]:+.2f} / {s['X'][1]:+.2f}, Y {s['Y'][0]:+.2f} / {s['Y'][1]:+.2f}, "
+                 f"off {s['off'][0]:+.2f} / {s['off'][1]:+.2f})" for s in (got[law][v] for v in variants)]
+        print(f"    | {law} | " + " | ".join(cells) + " |")
+    g, c = got["gtcf"], got["c2"]
+    parts = []
+    for v in variants[1:]:
+        parts.append(f"without {v}: GTCF {g[v]['all']:.2f} / C2 {c[v]['all']:.2f} = x{g[v]['all'] / c[v]['all']:.2f} "
+                     f"(its part of G(b): C2 {c['as configured']['all'] - c[v]['all']:+.2f}, GTCF "
+                     f"{g['as configured']['all'] - g[v]['all']:+.2f})")
+    print(f"\n    the bound: GTCF's G(b) {g['as configured']['all']:.2f} against the {need:.2f} a 30 % needs; "
+          + "; ".join(parts))
+    for v in variants[1:]:
+        print(f"      {v}: " + (CAUSES[v][0] if v in CAUSES else "every cause above removed"))
+
+
 def setpoint_contour_error(pos: np.ndarray, des: np.ndarray, window: int = 250) -> np.ndarray:
     """The distance [m] of each measured point pos[k] (N, 2) from the setpoints' path des (N, 2),
     a polyline, searched over its segments within ``window`` samples of k: the servo's own
@@ -334,6 +404,10 @@ def main(argv=None) -> int:
     ap.add_argument("--plant", default="", metavar="AXIS.KEY=V[,...]",
                     help="the simulated plant changed so (the axes' driver keys, e.g. X.stiction_N=20) for the circles, "
                          "the cut and the seeds, after autotune (the gains tuned on the config's plant)")
+    ap.add_argument("--no-causes", action="store_true",
+                    help="with --seeds, on a draw that misses the 30 %%: only where G(b) is made, not its "
+                         "decomposition by cause (10 circle runs a missed draw: each cause removed alone and all "
+                         "together, both laws; 40 min in all for five missed draws beside other jobs)")
     ap.add_argument("--grid", action="store_true",
                     help="then GTCF's circles over a grid of its settings (X gain_n x lambda_n, Y gain_n x low-pass) "
                          "on the config's seed and --seeds, judged by G alone: the least G any setting reaches per draw")
@@ -421,7 +495,7 @@ def main(argv=None) -> int:
     if sweep:
         print_sweep(config, out, rows, sweep, got, args)
     if seeds:
-        print_seeds(config, out, seeds, args.timeout, rows)
+        print_seeds(config, out, seeds, args.timeout, rows, with_causes=not args.no_causes)
     if args.grid:
         print_grid(config, out, seeds, args.timeout)
     return 0
@@ -443,7 +517,8 @@ def changed_plant(config: str, out: Path, plant: list) -> str:
     return str(cfg)
 
 
-def print_seeds(config: str, out: Path, seeds: list, timeout_s: float, rows: list | None = None) -> None:
+def print_seeds(config: str, out: Path, seeds: list, timeout_s: float, rows: list | None = None,
+                with_causes: bool = True) -> None:
     """The circles (:func:`circles`) on copies of ``config`` whose ``driver.seed`` is each of
     ``seeds`` (the simulated encoder's and force noise's realisation; gains as ``config``'s), and
     ``rows``, :func:`circles`'s of ``config`` itself, as the draw of its own seed (first), a
@@ -505,6 +580,10 @@ def print_seeds(config: str, out: Path, seeds: list, timeout_s: float, rows: lis
                       f"G(b) {gg['Gb']:.2f} against {0.7 * cc['Gb']:.2f} (C2 {cc['Gb']:.2f})")
                 cfg = out / f"seed{seed}" / Path(config).name if seed != own else Path(config)
                 feed = float(path.split()[-2]) * 1e-3
+                if with_causes:
+                    print_causes(causes(str(cfg), feed, out / f"causes_seed{seed}_{path.split()[-2]}"),
+                                 0.7 * cc["Gb"])
+                    continue
                 sp = {law: reversal_split(str(cfg), feed, law) for law in LAWS}
                 print(f"    where G(b) is made (the ballbar's radial deviation about the least-squares circle, "
                       f"largest / smallest um, within {math.degrees(REVERSAL_BAND):g} deg of X's reversals, of Y's, "
