@@ -38,6 +38,7 @@ import numpy as np
 from motorctl.motion import blend as _bl
 from motorctl.motion import profile as _prof
 from motorctl.motion import rules as _rules
+from motorctl.motion import ruckig_profile
 from motorctl.motion.blend import Geo
 from motorctl.motion.gcode import AXES, Arc, Dwell, Event, Line, Pause, Program
 from motorctl.motion.path_trajectory import PathTrajectory
@@ -94,6 +95,19 @@ class RuckigTrajectory(Trajectory):
         self.events, self.stops = [], []
 
     def sample_into(self, t0: float, dt: float, out: np.ndarray) -> None:
+        if ruckig_profile.evaluable(self._t):       # all samples at once from the profiles
+            t = t0 + np.arange(out.shape[0]) * dt
+            p, v, a = ruckig_profile.states(self._t, t)
+            if self._u is None:
+                out[:, 0], out[:, 1], out[:, 2] = p, v, a
+            else:
+                out[:, 0] = self.start + p[:, :1] * self._u
+                out[:, 1] = v[:, :1] * self._u
+                out[:, 2] = a[:, :1] * self._u
+            late = t >= self.duration
+            out[late, 0] = self.end
+            out[late, 1:3] = 0.0
+            return
         for k in range(out.shape[0]):
             t = t0 + k * dt
             if t >= self.duration:
