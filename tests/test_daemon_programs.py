@@ -297,7 +297,8 @@ def test_jog_of_an_axis_in_command_mode(machine):
     r = ctl(sock, "jog", "X", "--by", "1.0")
     assert r.returncode == 2 and "outside the soft limits" in r.stderr, r.stderr
     x1 = _y(sock)[0]
-    assert ctl(sock, "jog", "X", "--velocity", "0.02").returncode == 0
+    r = ctl(sock, "jog", "X", "--velocity", "0.02")
+    assert r.returncode == 0, r.stdout + r.stderr
     wait_for(lambda: _y(sock)[0] > x1 + 0.003, 10, "the continuous jog",
              detail=lambda: (status(sock)["motion"], {a: (s["state"], s["phase"], s["fault"])
                                                       for a, s in status(sock)["axes"].items()}))

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import yaml
 from conftest import RIGID_PLANT
-from test_daemon_helpers import FLUSH_S, Daemon, ctl, status, wait_for
+from test_daemon_helpers import Daemon, as_test_daemon, ctl, status, wait_for
 
 from harness import Emulator, loopback_e2e_config
 
@@ -25,14 +25,11 @@ DEVICE_WATCHDOG_S = 5.0
 
 def _config(tmp: Path) -> tuple[Path, Path]:
     d, cfg, _rate = loopback_e2e_config("serial", CONFIGS, tmp)
-    d["loop"]["realtime"]["policy"] = "off"
     # the device's command watchdog (set by the driver in configure()) far beyond a loaded
     # host's stall: the host never dies here, and at 0.2 s a stall of the daemon (wall clock)
     # faulted the tracking axis through the device, a verdict of the host's load
     d["driver"]["watchdog_s"] = DEVICE_WATCHDOG_S
-    sock = tmp / "motorctl.sock"
-    d["daemon"].update(socket=str(sock), log_dir=str(tmp / "logs"), flush_s=FLUSH_S,
-                       event_before_s=0.2, event_after_s=0.1, stop_settle_s=0.05)
+    sock = as_test_daemon(d, tmp)
     # the loopback on a loaded machine loses bursts, and a starved emulator loses plant time (1 mm
     # a cycle at 2 m/s, 2 kHz): the subject here is the link. The bucket (+10 an error, -1 an
     # exchange) holds 300 lost exchanges in a row, a 0.15 s stall of the emulator (at 300, 30 of

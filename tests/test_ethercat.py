@@ -496,15 +496,13 @@ def test_an_unplugged_segment_faults_with_the_working_counter_and_the_daemon_rec
     nothing re-enabled; fault-reset and start work and X tracks again."""
     import pysoem  # noqa: F401 - the test extra installs it: missing is an error, never a skip
     from conftest import RIGID_PLANT
-    from test_daemon_helpers import FLUSH_S, Daemon, ctl, status, wait_for
+    from test_daemon_helpers import Daemon, as_test_daemon, ctl, status, wait_for
 
     d = yaml.safe_load(CONFIG.read_text())
     d["loop"].update(rate_hz=1000, clock="wall")       # the Python segment keeps up on a loaded VM
     d["loop"]["realtime"]["policy"] = "off"
     d["driver"].update(ifname=VETH[0], sync0=False, watchdog_ms=200.0, timeout_s=0.0005)
-    sock = tmp_path / "motorctl.sock"
-    d["daemon"].update(socket=str(sock), log_dir=str(tmp_path / "logs"), flush_s=FLUSH_S, event_before_s=0.2,
-                       event_after_s=0.1, stop_settle_s=0.05)
+    sock = as_test_daemon(d, tmp_path)
     for ax in d["axes"].values():
         ax["limits"]["following_error_m"] = 0.01       # the subject here is the link
     cfg = tmp_path / "ethercat-daemon.yaml"
