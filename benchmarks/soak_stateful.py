@@ -29,12 +29,14 @@ def main() -> int:
     ap.add_argument("--hogs", type=int, default=0, help="CPU-bound processes beside it (default 0)")
     a = ap.parse_args()
     examples = max(1, a.steps // a.per_example)
+    # hypothesis draws each example's length up to --per-example: the floor is a third of --steps
     env = dict(os.environ, MOTORCTL_STATEFUL_EXAMPLES=str(examples),
-               MOTORCTL_STATEFUL_STEPS=str(a.per_example))
+               MOTORCTL_STATEFUL_STEPS=str(a.per_example),
+               MOTORCTL_STATEFUL_MIN_STEPS=str(a.steps // 3))
     hogs = [subprocess.Popen([sys.executable, "-c", HOG.format(s=24 * 3600)]) for _ in range(a.hogs)]
     t0 = time.monotonic()
     try:
-        p = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:randomly",
+        p = subprocess.run([sys.executable, "-m", "pytest", "-q", "-s", "-n", "0", "-p", "no:randomly",
                             "tests/test_daemon_stateful.py::test_random_requests_and_faults_keep_the_machine_in_its_table"],
                            cwd=REPO, env=env, capture_output=True, text=True)
     finally:
@@ -42,8 +44,9 @@ def main() -> int:
             h.kill()
     wall = time.monotonic() - t0
     tail = "\n".join(p.stdout.strip().splitlines()[-3:])
-    print(f"state machine soak: {examples} examples x {a.per_example} steps = {examples * a.per_example} "
-          f"steps, {a.hogs} CPU hogs beside, {wall:.0f} s ({examples * a.per_example / wall:.1f} steps/s); "
+    taken = next((int(ln.split()[2]) for ln in p.stdout.splitlines() if ln.startswith("state machine: ")), 0)
+    print(f"state machine soak: {examples} examples of at most {a.per_example} steps: {taken} steps taken, "
+          f"{a.hogs} CPU hogs beside, {wall:.0f} s ({taken / wall:.1f} steps/s); "
           f"verdict: {'0 invariant violations' if p.returncode == 0 else 'FAILED'}")
     if p.returncode:
         print(p.stdout[-6000:])

@@ -12,13 +12,17 @@ killed helper (the metrics process). After every step it checks the invariants o
 docs/daemon.md's table: no commanded motion in a faulted or stopped state, the ring empty and
 ``idle`` true once a fault or an abort has come to rest, every waiter answered (``wait``
 returns), nothing beyond the soft limits, the state the table names for what is observed, and at
-the end the run log's rows equal to the loop's count. How many steps: ``STEPS`` (CI); the
-benchmark ``benchmarks/soak_stateful.py`` runs the same machine for longer.
+the end the run log's rows equal to the loop's count. Hypothesis's swarm testing switches rules
+on and off per example, so the run is many short examples (``EXAMPLES`` of at most ``STEPS``),
+and it fails unless it took ``MIN_STEPS`` steps in all and every request and injected fault at
+least once. The benchmark ``benchmarks/soak_stateful.py`` runs the same machine for longer.
 
 The cases the state machine was built for are named regression tests below it."""
 
 from __future__ import annotations
 
+import collections
+import functools
 import os
 import signal
 import socket
@@ -31,15 +35,23 @@ import yaml
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
-from test_daemon_helpers import REPO, Daemon, wait_for
+from test_daemon_helpers import REPO, Daemon, as_test_daemon, wait_for
 
 from motorctl.app.daemon.machine import ACCEPTS, MachineState
 from motorctl.cli.operator import call
 from motorctl.recorder.segments import open_run
 
-#: steps of the state machine in the suite: examples x steps each
-EXAMPLES = int(os.environ.get("MOTORCTL_STATEFUL_EXAMPLES", "5"))
-STEPS = int(os.environ.get("MOTORCTL_STATEFUL_STEPS", "40"))
+#: the state machine in the suite: examples x at most STEPS steps each (hypothesis draws each
+#: example's length; derandomized, the same steps on every run), and the fewest steps the run
+#: must have taken in all (the test fails below it: a change of the rules that shortens the run
+#: is seen, not silently accepted)
+EXAMPLES = int(os.environ.get("MOTORCTL_STATEFUL_EXAMPLES", "40"))
+STEPS = int(os.environ.get("MOTORCTL_STATEFUL_STEPS", "60"))
+MIN_STEPS = int(os.environ.get("MOTORCTL_STATEFUL_MIN_STEPS", "2000"))
+#: a SIGSTOP of the I/O process (it holds the test 1.5-2.5 s and the recovery after) may come
+#: only at every STALL_EVERY-th step of an example (a budget across examples would be state
+#: outside the example, which hypothesis refuses)
+STALL_EVERY = int(os.environ.get("MOTORCTL_STATEFUL_STALL_EVERY", "10"))
 #: the axes' soft limits in configs/gantry.yaml [m] (both axes), and how far a reading may stand
 #: beyond them after a brake (the encoder's step and noise) [m]
 SOFT = (-0.02, 0.42)
@@ -60,9 +72,8 @@ def shipped_config(tmp, metrics_port: int):
     """configs/gantry.yaml with paths, a /metrics port, fault injection on and no CPU latency
     request: nothing else changed."""
     d = yaml.safe_load((REPO / "configs" / "gantry.yaml").read_text())
-    d["loop"]["realtime"]["cpu_latency_us"] = None
-    d["daemon"].update(socket=str(tmp / "motorctl.sock"), log_dir=str(tmp / "logs"),
-                       allow_fault_injection=True, metrics={"listen": f"127.0.0.1:{metrics_port}"})
+    as_test_daemon(d, tmp, flush_s=None)           # the shipped 0.5 s: a 2 s stall bound
+    d["daemon"]["metrics"] = {"listen": f"127.0.0.1:{metrics_port}"}
     p = tmp / "gantry-shipped.yaml"
     p.write_text(yaml.safe_dump(d))
     return p
@@ -166,6 +177,21 @@ def check_invariants(s: dict) -> None:
         assert mo["idle"], mo
 
 
+#: what the run did, over all its examples: steps, and how often each rule ran
+RAN: collections.Counter = collections.Counter()
+
+
+def counted(f):
+    """A rule counted in :data:`RAN` under its name (and ``kind`` for an injected fault)."""
+    @functools.wraps(f)
+    def rule_(self, *args, **kw):
+        RAN[f.__name__] += 1
+        if "kind" in kw:
+            RAN[f"inject:{kw['kind']}"] += 1
+        return f(self, *args, **kw)
+    return rule_
+
+
 class DaemonMachine(RuleBasedStateMachine):
     """Random requests and injected faults against the shipped daemon (module docstring)."""
 
@@ -208,6 +234,7 @@ class DaemonMachine(RuleBasedStateMachine):
             assert "refused in state" in ans["error"], ans
 
     @rule(x=st.floats(0.0, 0.4), y=st.floats(0.0, 0.4), feed=st.sampled_from([None, 0.05, 0.2]))
+    @counted
     def move(self, x, y, feed):
         r = {"cmd": "move", "targets": {"X": x, "Y": y}}
         if feed is not None:
@@ -215,27 +242,33 @@ class DaemonMachine(RuleBasedStateMachine):
         self.expect(req(self.sock, **r), "move")
 
     @rule(x0=st.floats(0.0, 0.3), y0=st.floats(0.0, 0.3), size=st.floats(0.005, 0.05))
+    @counted
     def gcode(self, x0, y0, size):
         text = SQUARE.format(x0=x0 * 1e3, y0=y0 * 1e3, x1=(x0 + size) * 1e3, y1=(y0 + size) * 1e3)
         self.expect(req(self.sock, cmd="gcode", text=text, filename="square.ngc"), "gcode")
 
     @rule(axis=st.sampled_from(["X", "Y"]), by=st.floats(-0.01, 0.01))
+    @counted
     def jog(self, axis, by):
         self.expect(req(self.sock, cmd="jog", axis=axis, by=by), "jog")
 
     @rule(axis=st.sampled_from(["X", "Y"]))
+    @counted
     def home(self, axis):
         self.expect(req(self.sock, cmd="home", axis=axis), "home")
 
     @rule()
+    @counted
     def hold(self):
         self.expect(req(self.sock, cmd="hold"), "hold")
 
     @rule()
+    @counted
     def resume(self):
         self.expect(req(self.sock, cmd="resume"), "resume")
 
     @rule()
+    @counted
     def abort(self):
         ans = req(self.sock, cmd="abort")
         assert ans["ok"], ans
@@ -243,18 +276,22 @@ class DaemonMachine(RuleBasedStateMachine):
         assert mo["ring_depth"] == 0 and mo["queue_depth"] == 0, mo
 
     @rule(value=st.sampled_from([0.0, 0.5, 1.0, 1.5]))
+    @counted
     def override(self, value):
         assert req(self.sock, cmd="override", value=value)["ok"]
 
     @rule(axis=st.sampled_from(["X", "Y"]))
+    @counted
     def stop(self, axis):
         self.expect(req(self.sock, cmd="stop", axis=axis), "stop")
 
     @rule(axis=st.sampled_from(["X", "Y"]))
+    @counted
     def start(self, axis):
         self.expect(req(self.sock, cmd="start", axis=axis, mode="command"), "start")
 
     @rule(axis=st.sampled_from(["X", "Y"]))
+    @counted
     def fault_reset(self, axis):
         self.expect(req(self.sock, cmd="fault-reset", axis=axis), "fault-reset")
 
@@ -263,8 +300,8 @@ class DaemonMachine(RuleBasedStateMachine):
         return self.steps % 5 == 4
 
     @precondition(fault_due)
-    @rule(axis=st.sampled_from(["X", "Y"]),
-          kind=st.sampled_from(["amp_fault", "push", "read_error"]))
+    @rule(axis=st.sampled_from(["X", "Y"]), kind=st.sampled_from(["amp_fault", "push", "read_error"]))
+    @counted
     def inject(self, axis, kind):
         r = {"cmd": "inject", "axis": axis, "kind": kind,
              "cycles": 20 if kind != "amp_fault" else 3}
@@ -273,8 +310,9 @@ class DaemonMachine(RuleBasedStateMachine):
         assert req(self.sock, **r)["ok"]
         self.after_fault()
 
-    @precondition(fault_due)
+    @precondition(lambda self: self.steps % STALL_EVERY == STALL_EVERY - 1)
     @rule(seconds=st.sampled_from([1.5, 2.5]))
+    @counted
     def stop_the_io_process(self, seconds):
         """An underrun (longer than the 1 s lead) or a recorder stall (beyond 2 s)."""
         stop_the_io_process(self.sock, seconds)
@@ -282,6 +320,7 @@ class DaemonMachine(RuleBasedStateMachine):
 
     @precondition(fault_due)
     @rule()
+    @counted
     def kill_a_helper(self):
         h = status(self.sock)["helpers"]["metrics"]
         if h["pid"] is None or h["starts"] >= 5:
@@ -303,14 +342,23 @@ class DaemonMachine(RuleBasedStateMachine):
     @invariant()
     def holds(self):
         self.steps += 1
+        RAN["steps"] += 1
         check_invariants(status(self.sock))
 
 
 def test_random_requests_and_faults_keep_the_machine_in_its_table(shipped, tmp_path):
+    """The state machine run, then what it covered: at least MIN_STEPS steps, every request and
+    every injected fault taken at least once."""
     DaemonMachine.dmn, DaemonMachine.tmp = shipped, tmp_path
     DaemonMachine.TestCase.settings = settings(max_examples=EXAMPLES, stateful_step_count=STEPS,
                                                deadline=None, suppress_health_check=list(HealthCheck))
+    RAN.clear()
     DaemonMachine.TestCase().runTest()
+    print(f"state machine: {RAN['steps']} steps; rules {dict(sorted(RAN.items()))}")
+    assert RAN["steps"] >= MIN_STEPS, dict(RAN)
+    rules = [n for n, v in vars(DaemonMachine).items() if hasattr(v, "hypothesis_stateful_rule")]
+    kinds = [f"inject:{k}" for k in ("amp_fault", "push", "read_error")]
+    assert all(RAN[n] > 0 for n in rules + kinds), {n: RAN[n] for n in rules + kinds}
 
 
 # ------------------------------------------------------------------ the named cases
