@@ -387,7 +387,11 @@ def test_the_circular_test_reports_the_iso_figures():
     g = r.result
     assert r.underruns == 0
     assert min(len(r.paths["cw"][0]), len(r.paths["ccw"][0])) > 0.9 * 2 * np.pi * 0.01 / 0.05 / TS
-    assert 0.0 < g.G_cw <= g.G_b < 30e-6 and 0.0 < g.G_ccw <= g.G_b
+    # G(b) is the range of both paths about their common least-squares centre, each G about its
+    # own: a least-squares centre does not minimise the range, so G may pass G(b) by a hair
+    # (0.6 nm seen); beyond the encoder's resolution it would be a wrong figure
+    hair = 10e-9
+    assert 0.0 < g.G_cw <= g.G_b + hair and g.G_b < 30e-6 and 0.0 < g.G_ccw <= g.G_b + hair
     assert 0.0 <= g.H <= g.G_b
     assert g.F_min < g.F_max and abs(g.radius_lsc - 0.01) < 20e-6
 
