@@ -9,7 +9,8 @@ Per program on configs/gantry.yaml's limits (X: 2 m/s, 40 m/s², 4000 m/s³; Y: 
 * **planned**: the setpoints' time from the first motion to the end of the last (every 0.2 ms:
   the rests at exact stops, machine words and dwells included);
 * **TOPP-RA**: the time-optimal time on the same path with every line-line corner replaced by
-  the largest tangent arc within P (its ends within half of each line: LinuxCNC's blend), each
+  the largest tangent arc within P (its ends within half of each line: LinuxCNC's blend; under
+  G64 without P none, the corners stop as the planner's do), each
   axis's v_max and a_max and the programmed feed (H. Pham, Q.-C. Pham, "A new approach to
   time-optimal path parameterization based on reachability analysis", IEEE Trans. Robotics
   34(3) 2018; the ``toppra`` package). Acceleration-limited, no jerk limit: a lower bound the
@@ -44,6 +45,7 @@ sys.path.insert(0, str(ROOT))
 from motorctl.motion import AxisLimits, GcodeSettings, contour_error, parse, plan  # noqa: E402
 from motorctl.motion.circle import circle_program  # noqa: E402
 from motorctl.motion.gcode import Arc, Dwell, Event, Line, Pause  # noqa: E402
+from motorctl.motion.planner import EXACT_ARC_TOL_M  # noqa: E402
 
 LIMITS = [AxisLimits(2.0, 40.0, 4000.0), AxisLimits(1.0, 10.0, 1000.0)]
 SETTINGS = GcodeSettings(axes=["X", "Y"], words={"M3": "torch", "M5": "torch", "S": "ignore"})
@@ -111,12 +113,13 @@ def _chains(program, grid_m: float):
             p = cur[-1]
             ta, tb = p.tangent(True), s.tangent(False)
             theta = math.acos(float(np.clip(ta @ tb, -1, 1)))
-            tol = prev.tolerance
-            if theta > 1e-3 and p.c is None and s.c is None and math.pi - theta > 1e-3:
+            # G64 without P: the path exactly as the planner follows it (corners stop, its
+            # arcs within EXACT_ARC_TOL_M); no blend
+            tol = prev.tolerance if math.isfinite(prev.tolerance) else EXACT_ARC_TOL_M
+            blends = math.isfinite(prev.tolerance)
+            if blends and theta > 1e-3 and p.c is None and s.c is None and math.pi - theta > 1e-3:
                 half = theta / 2
-                r = min(p.room_b, s.room_a) / math.tan(half)
-                if math.isfinite(tol):
-                    r = min(r, tol / (1 / math.cos(half) - 1))
+                r = min(min(p.room_b, s.room_a) / math.tan(half), tol / (1 / math.cos(half) - 1))
                 lt = r * math.tan(half)
                 v = p.b.copy()
                 p.b = v - ta * lt

@@ -7,6 +7,7 @@ CLI as a child process).
     python benchmarks/bench_programs.py --repeat 1 --hogs 0  # a quick look at rest
     python benchmarks/bench_programs.py --million            # also the 1 000 000-line program
     python benchmarks/bench_programs.py --contour --repeat 1 # benchmarks/bench_contour.py's five programs
+    python benchmarks/bench_programs.py --real               # the real CAM programs and the cut path
 
 Prints, per program and run: faults, underruns, the end point's distance from the program's end
 [um], rows lost, the run's time; then the loop's turnaround p99.9 while streaming against at rest
@@ -21,7 +22,9 @@ lead-in arc, the contour of lines and arcs, a lead-out, M5; ~700 segments), ``st
 (0.1 mm steps at F6000 in rows), ``million_program`` (1 000 000 lines of 0.05 mm steps). With
 ``--contour`` instead: the five programs benchmarks/bench_contour.py times against TOPP-RA (the
 ISO 230-4 circle R 50 mm at 50 and 100 mm/s, configs/cut_path.ngc, configs/dxf2gcode_lid_wing.ngc,
-configs/plate_0932.ngc).
+configs/plate_0932.ngc). With ``--real``: configs/plate_0932.ngc (a plasma post's program),
+configs/dxf2gcode_lid_wing.ngc (DXF2GCODE output) and configs/cut_path.ngc, and the override run
+through plate_0932.ngc. The verdict counts the override run too.
 """
 
 from __future__ import annotations
@@ -129,16 +132,22 @@ def million_program(path: Path, n: int = 1_000_000, bad_last: bool = False) -> N
         fh.write("G1 X500\n" if bad_last else "M2\n")
 
 
-def contour_programs() -> list[tuple[str, tuple[float, float], str]]:
-    """benchmarks/bench_contour.py's programs: (text, end point (X, Y) [mm], name) each."""
+#: the real CAM programs and the cut path (``--real``)
+REAL = ("plate_0932.ngc", "dxf2gcode_lid_wing.ngc", "cut_path.ngc")
+
+
+def contour_programs(circles: bool = True, names=("cut_path.ngc", "dxf2gcode_lid_wing.ngc", "plate_0932.ngc")
+                     ) -> list[tuple[str, tuple[float, float], str]]:
+    """benchmarks/bench_contour.py's programs (the circles when ``circles``, then ``names`` of
+    configs/): (text, end point (X, Y) [mm], name) each."""
     from motorctl.motion import GcodeSettings, parse
     from motorctl.motion.circle import circle_program
     settings = GcodeSettings(axes=["X", "Y"], words={"M3": "torch", "M5": "torch", "S": "ignore"})
     out = []
-    for feed in (0.05, 0.1):
+    for feed in (0.05, 0.1) if circles else ():
         text, _ = circle_program(0.05, feed, center=(0.2, 0.2))
         out.append((text, f"circle_F{feed * 6e4:.0f}"))
-    for name in ("cut_path.ngc", "dxf2gcode_lid_wing.ngc", "plate_0932.ngc"):
+    for name in names:
         out.append(((REPO / "configs" / name).read_text(), name))
     return [(text, tuple(parse(text, name, settings).end[:2] * 1e3), name) for text, name in out]
 
@@ -157,18 +166,22 @@ class Daemon:
         self.proc = subprocess.Popen([sys.executable, "-m", "motorctl", "daemon", str(self.cfg)],
                                      stdout=self.err, stderr=self.err, cwd=REPO)
         self.c = Client(self.sock, timeout_s=10.0)
-        end = time.monotonic() + 300
-        while True:
-            try:
-                if self.c.status()["realtime_summary"] != "pending":
-                    break
-            except DaemonUnreachable:
-                pass
-            if time.monotonic() > end or self.proc.poll() is not None:
-                raise SystemExit(f"the daemon did not start; see {tmp / 'daemon.err'}")
-            time.sleep(0.2)
-        for a in ("X", "Y"):
-            self.c.start(a, mode="command")
+        try:
+            end = time.monotonic() + 300
+            while True:
+                try:
+                    if self.c.status()["realtime_summary"] != "pending":
+                        break
+                except DaemonUnreachable:
+                    pass
+                if time.monotonic() > end or self.proc.poll() is not None:
+                    raise SystemExit(f"the daemon did not start; see {tmp / 'daemon.err'}")
+                time.sleep(0.2)
+            for a in ("X", "Y"):
+                self.c.start(a, mode="command")
+        except BaseException:
+            self.stop()                  # a daemon that did not come up is not left running
+            raise
         time.sleep(0.5)
 
     def pids(self) -> list[int]:
@@ -278,6 +291,9 @@ def main() -> int:
     ap.add_argument("--realtime", default="best_effort", choices=("off", "best_effort", "required"))
     ap.add_argument("--contour", action="store_true",
                     help="run benchmarks/bench_contour.py's five programs instead (no override run)")
+    ap.add_argument("--real", action="store_true",
+                    help="run the real CAM programs and the cut path instead (configs/plate_0932.ngc, "
+                         "dxf2gcode_lid_wing.ngc, cut_path.ngc), the override run on plate_0932.ngc")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_programs-"))
     cam, cam_end = cam_program()
@@ -296,7 +312,7 @@ def main() -> int:
         busy = status_times(dm.sock, 10)
         rows = []
         for k in range(args.repeat):
-            progs = (contour_programs() if args.contour else
+            progs = (contour_programs() if args.contour else contour_programs(False, REAL) if args.real else
                      ((cam, cam_end, "cam_program"), (steps, steps_end, "steps_program")))
             for text, end, name in progs:
                 r = run_program(dm, text, end, name)
@@ -305,9 +321,11 @@ def main() -> int:
                       f"{r['underruns']}, end {r['end_um']:.2f} um, rows lost {r['lost_rows']}, answered in "
                       f"{r['answer_s']:.2f} s, {r['run_s']:.1f} s in all{'; ' + r['why'] if r['why'] else ''}",
                       flush=True)
-        r = None if args.contour else run_program(dm, cam, cam_end, "cam_program", override_flip=True)
+        flip = contour_programs(False, REAL[:1])[0] if args.real else (cam, cam_end, "cam_program")
+        r = None if args.contour else run_program(dm, *flip, override_flip=True)
         if r:
-            print(f"  override 0.5/1.5 every 2 s through cam_program ({r['flips']} changes): faults "
+            rows.append(r)
+            print(f"  override 0.5/1.5 every 2 s through {flip[2]} ({r['flips']} changes): faults "
                   f"{r['faults'] or 0}, underruns {r['underruns']}, end {r['end_um']:.2f} um, rows lost "
                   f"{r['lost_rows']}", flush=True)
         if args.million:

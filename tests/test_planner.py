@@ -367,15 +367,16 @@ def test_a_dwell_after_a_machine_word_adds_only_its_seconds():
 
 
 def test_a_curvature_step_is_passed_within_the_jerk_of_the_axis_it_loads():
-    """The same line into a R 2 mm arc, once with the step's normal acceleration on X (j_max 4000
-    m/s³), once on Y (1000): X's join is passed twice as fast (√(j_X/j_Y)), both within limits."""
+    """The same line into a R 2 mm arc at F12000, once with the step's normal acceleration on X
+    (j_max 4000 m/s³), once on Y (1000): X's join is passed about twice as fast (√(j_X/j_Y), less
+    the curve's own jerk there), both within limits."""
     top = []
-    for text in ("G21 G90 G64 P0.01\nG1 X20 Y10 F6000\nG1 X20 Y20\nG2 X24 Y20 I2 J0\n",     # normal +X
-                 "G21 G90 G64 P0.01\nG1 X10 Y20 F6000\nG1 X20 Y20\nG3 X20 Y24 I0 J2\n"):    # normal +Y
+    for text in ("G21 G90 G64 P0.01\nG1 X20 Y10 F12000\nG1 X20 Y20\nG2 X24 Y20 I2 J0\n",     # normal +X
+                 "G21 G90 G64 P0.01\nG1 X10 Y20 F12000\nG1 X20 Y20\nG3 X20 Y24 I0 J2\n"):   # normal +Y
         prog = parse(text, "c.ngc", XY)
         tr = plan(prog, ["X", "Y"], LIMITS)
         out = _run(tr)
         _assert_within_limits(out)
         join = np.argmin(np.hypot(out[:, 0, 0] - 0.020, out[:, 0, 1] - 0.020))
         top.append(np.hypot(*out[join, 1]))
-    assert top[0] == pytest.approx(2 * top[1], rel=0.05)
+    assert 1.8 * top[1] <= top[0] <= 2.0 * top[1]

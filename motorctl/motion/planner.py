@@ -42,16 +42,13 @@ from motorctl.motion import ruckig_profile
 from motorctl.motion.blend import Geo
 from motorctl.motion.gcode import AXES, Arc, Dwell, Event, Line, Pause, Program
 from motorctl.motion.path_trajectory import PathTrajectory
-from motorctl.motion.rules import ACCEL_SHARE, JERK_STEP  # noqa: F401  (the rules' shares, re-exported)
+from motorctl.motion.rules import CURVE_SHARE, JERK_STEP, NORMAL_SHARE  # noqa: F401  (the rules' shares)
 from motorctl.motion.trajectory import Trajectory
 
 #: the loop's period [s] (5 kHz): the default grid of the filters
 PERIOD_S = 2e-4
 #: the second moving average's length T2 [s]: it spreads a join's curvature step over T2
 SMOOTH_S = 2e-3
-#: a join or a blend the path could pass only below this share of its neighbours' speed is an
-#: exact stop instead (stopping costs less than crawling through the widened speed zone)
-STOP_SHARE = 0.35
 #: the first moving average's length over max(a_max/j_max): 1 with the profile's accelerations of
 #: opposite signs T1 apart (profile.flat_peaks), 2 without (any acceleration step 2·a_max)
 RAMP = 1.0
@@ -272,17 +269,38 @@ def _filter_lengths(limits: Sequence[AxisLimits], period: float) -> tuple[int, i
     return n1, n2
 
 
-def _curvature_range(kappa: np.ndarray, lengths: np.ndarray, w: float) -> float:
+def _curvature_range(kappa: np.ndarray, lengths: np.ndarray, turns: np.ndarray, w: float) -> float:
     """max − min [1/m] of the curvature averaged over every stretch of path ``w`` [m] long within
-    consecutive pieces of curvature ``kappa`` and ``lengths`` [m] (shape (n,) each); the pieces'
-    own range when w is 0."""
+    consecutive pieces of curvature ``kappa`` [1/m] and ``lengths`` [m] (shape (n,) each) whose
+    joins turn by ``turns`` [rad] (shape (n − 1,), signed as the curvature: a kink is a turn
+    within no length, its averaged curvature α/w); the pieces' own range when w is 0."""
     b = np.concatenate([[0.0], np.cumsum(lengths)])
-    if not w > 0.0 or w >= b[-1]:
-        return float(kappa.max() - kappa.min()) if w <= 0.0 else 0.0
+    if not w > 0.0:
+        return float(kappa.max() - kappa.min())
+    if w >= b[-1]:
+        return 0.0
     F = np.concatenate([[0.0], np.cumsum(kappa * lengths)])
-    x = np.clip(np.concatenate([b, b - w]), 0.0, b[-1] - w)
-    avg = (np.interp(x + w, b, F) - np.interp(x, b, F)) / w
+    eps = 1e-9 * w
+    x = np.clip(np.concatenate([b - eps, b + eps, b - w - eps, b - w + eps]), 0.0, b[-1] - w)
+    cj = np.concatenate([[0.0], np.cumsum(turns)])
+
+    def integral(y):
+        return np.interp(y, b, F) + cj[np.searchsorted(b[1:-1], y, side="right")]
+
+    avg = (integral(x + w) - integral(x)) / w
     return float(avg.max() - avg.min())
+
+
+def _stop_speed(v: float, acc: float, rest_s: float) -> float:
+    """Below this speed [m/s] a join costs more passed than stopped at: passing at v_j loses
+    (v − v_j)²/(A·v) braking to it and speeding up again and 2·rest·(1 − v_j/v) in its zone
+    (widened by v_j·rest on each side), a stop loses v/A and the rest; equal at the smaller root
+    of v_j² − 2·(v + A·rest)·v_j + A·v·rest (about A·rest/2). v: the neighbours' speed [m/s], acc
+    their path acceleration [m/s²], rest_s the rest at a stop [s]."""
+    if not (math.isfinite(v) and v > 0 and acc > 0):
+        return 0.0
+    b = v + acc * rest_s
+    return b - math.sqrt(max(b * b - acc * v * rest_s, 0.0))
 
 
 def _blend_tol(g: Geo) -> float:
@@ -405,9 +423,10 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
                                                              t1=t1, t2=t2, ramp=RAMP))
         return got[1]
 
-    def through(a: Geo, b: Geo, dkappa=None) -> float:
+    def through(a: Geo, b: Geo, dkappa=None, kink=True) -> float:
         dev_left = min((_blend_tol(g) if _blend_tol(g) > 0 else EXACT_ARC_TOL_M) - g.dev for g in (a, b))
-        return _rules.join_speed(a, b, jlim, ix, iy, t2=t2, period=period, dev_left=dev_left, dkappa=dkappa)
+        return _rules.join_speed(a, b, jlim, ix, iy, t2=t2, period=period, dev_left=dev_left, dkappa=dkappa,
+                                 kink=kink)
 
     # ---- corners: a blend arc between two lines within the tolerance, a join where the tangent
     # goes on (a curvature step, a kink small enough for the short filter), else an exact stop
@@ -424,6 +443,7 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
             path.append(g)
             continue
         v_near = min(base(a)[0], base(g)[0])
+        v_stop = _stop_speed(v_near, min(base(a)[1], base(g)[1]), tw)
         vk = through(a, g)                # tangent, or a kink the short filter rounds at that speed
         blend = None
         tol_a = _blend_tol(a)
@@ -437,7 +457,7 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
                 kappa = 1.0 / arc.arc[2]
                 v_in, v_out = through(a, arc, kappa), through(arc, g, kappa)
                 blend = (min(base(arc)[0], v_in, v_out), arc, v_in, v_out)
-        if blend is not None and blend[0] > vk and blend[0] >= STOP_SHARE * v_near:
+        if blend is not None and blend[0] > vk and blend[0] >= v_stop:
             _, arc, v_in, v_out = blend
             a.p1 = arc.p0.copy()
             a.length = float(np.linalg.norm(a.p1 - a.p0))
@@ -445,20 +465,40 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
             g.length = float(np.linalg.norm(g.p1 - g.p0))
             join_v += [v_in, v_out]
             path += [arc, g]
-        elif vk >= STOP_SHARE * v_near:
+        elif vk >= v_stop:
             join_v.append(vk)
             path.append(g)
-        else:                             # slower than this share of the feed: a stop costs less
+        else:                             # slower: a stop costs less (_stop_speed)
             join_v.append(0.0)
             path.append(g)
+    # drop pieces a blend left without length (their joins become one)
+    keep_p, keep_j = [], []
+    last_of: dict[int, int] = {}          # programmed move -> the path piece it ends with
+    for k, g in enumerate(path):
+        drop = (g.length <= 1e-12 and g.kind == 0 and 0 < k < len(path) - 1 and join_v[k - 1] > 0
+                and join_v[k] > 0)
+        if drop:                          # the pieces about it now meet: their own step and kink
+            keep_j[-1] = through(keep_p[-1], path[k + 1])
+        else:
+            keep_p.append(g)
+            if k < len(join_v):
+                keep_j.append(join_v[k])
+        if not g.blend:
+            for src in (g.merged or [g.src]):
+                last_of[src] = len(keep_p) - 1
+    path, join_v = keep_p, keep_j
     # a join's curvature step as the second average sees it: each sample's direction turns by the
-    # curvature averaged over the path between two samples (v·h), the average over T2 spreads the
-    # changes of that; where pieces shorter than v·(T2 + h) follow, the range of the averaged
-    # curvature over the window about the join (a short piece between two joins puts both steps
-    # into one window: blends of alternating turn; a line shorter than v·h between two arcs of one
-    # circle hardly shows), the speed the largest v whose range at v·h keeps the join's jerk
+    # curvature averaged over the path between two samples (v·h; a kink α there: α/(v·h)), the
+    # average over T2 spreads the changes of that; where pieces shorter than v·(T2 + h) follow, the
+    # range of the averaged curvature, kinks included, over the window about the join (a short
+    # piece between two joins puts both into one window: blends of alternating turn, chords
+    # zigzagging; a line shorter than v·h between two arcs of one circle hardly shows), the speed
+    # the largest v whose range at v·h keeps the join's jerk
     kap = np.array([g.curvature() for g in path])
     lens = np.array([g.length for g in path])
+    turn = np.array([_rules.join_turn(path[k], path[k + 1], ix, iy) for k in range(len(join_v))])
+    join_dk = [abs(kap[k + 1] - kap[k]) for k in range(len(join_v))]    # the step each join is judged by
+    join_kinks = [False] * len(join_v)          # True: its step holds the window's kinks too
     for k, vj in enumerate(join_v):
         if not vj > 0.0:
             continue
@@ -473,34 +513,21 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
             right += lens[hi_k]
         if hi_k - lo_k < 2:
             continue
-        kk, ll = kap[lo_k:hi_k + 1], lens[lo_k:hi_k + 1]
-        v_top = through(path[k], path[k + 1], _curvature_range(kk, ll, v_hi * period))
+        kk, ll, tt = kap[lo_k:hi_k + 1], lens[lo_k:hi_k + 1], turn[lo_k:hi_k]
+        join_kinks[k] = True
+        dk = _curvature_range(kk, ll, tt, v_hi * period)
+        v_top = through(path[k], path[k + 1], dk, kink=False)
         if v_top >= v_hi:
-            join_v[k] = v_top
+            join_v[k], join_dk[k] = v_top, dk
             continue
         lo_v, hi_v = 0.0, v_hi
         while hi_v - lo_v > 1e-3 * hi_v:
             mid = 0.5 * (lo_v + hi_v)
-            ok = through(path[k], path[k + 1], _curvature_range(kk, ll, mid * period)) >= mid
+            ok = through(path[k], path[k + 1], _curvature_range(kk, ll, tt, mid * period), kink=False) >= mid
             lo_v, hi_v = (mid, hi_v) if ok else (lo_v, mid)
-        join_v[k] = lo_v if lo_v >= STOP_SHARE * v_hi else 0.0    # slower: an exact stop costs less
+        join_v[k] = lo_v if lo_v >= _stop_speed(v_hi, min(base(path[k])[1], base(path[k + 1])[1]), tw) else 0.0
+        join_dk[k] = _curvature_range(kk, ll, tt, lo_v * period)
 
-    # drop pieces a blend left without length (their joins merge: the smaller speed)
-    keep_p, keep_j = [], []
-    last_of: dict[int, int] = {}          # programmed move -> the path piece it ends with
-    for k, g in enumerate(path):
-        drop = (g.length <= 1e-12 and g.kind == 0 and 0 < k < len(path) - 1 and join_v[k - 1] > 0
-                and join_v[k] > 0)
-        if drop:
-            keep_j[-1] = min(keep_j[-1], join_v[k])
-        else:
-            keep_p.append(g)
-            if k < len(join_v):
-                keep_j.append(join_v[k])
-        if not g.blend:
-            for src in (g.merged or [g.src]):
-                last_of[src] = len(keep_p) - 1
-    path, join_v = keep_p, keep_j
     # ---- the speed zones: each piece's limits on its length, each join's at its point, each
     # widened by v·(T1 + T2 + h) on both sides: the moving averages then never carry a faster part
     # of the profile into it (the path length their windows span at speed v)
@@ -525,7 +552,8 @@ def plan(program: Program, axes: Sequence[str], limits: Sequence[AxisLimits], *,
         zs.append(s - vj * tw)
         ze.append(s + vj * tw)
         zv.append(vj)
-        za.append(_rules.join_accel(path[k], path[k + 1], vj, alim, jlim, ix, iy, t1=t1, t2=t2, ramp=RAMP))
+        za.append(_rules.join_accel(path[k], path[k + 1], vj, alim, jlim, ix, iy, t1=t1, t2=t2, period=period,
+                                    ramp=RAMP, dkappa=join_dk[k], kink=not join_kinks[k]))
     # a stop's rest holds both windows: nothing is carried across it, the zones end there
     stops_s = np.array([0.0] + [gs0[k + 1] for k in range(npth - 1) if join_v[k] == 0.0] + [total])
     if zs:
