@@ -366,8 +366,7 @@ def test_a_shape_is_told_from_a_friction_of_the_speed(case):
         rec = _one_speed_record(lambda x, v: pfs.bump_value(x, 0.2, 0.08, 15.0))
     idf = Identifier(rec, zoh_delay=0.0)
     term = idf.term(NAME, pfs.KnotGrid(float(idf.p.x.min()), float(idf.p.x.max()), 8))
-    ev = idf.evaluate([term])
-    ev.term = term
+    ev = idf.evaluate([term])              # its term is the last of the model's
     k = term.cols.shape[1]
     reasons = FAMILIES[NAME].plausible(idf, term, ev.fit.coef[-k:], ev.fit.coef[:idf.n_theta], [])
     told = [r for r in reasons if r.startswith("not told from a friction that varies with the speed")]

@@ -15,9 +15,9 @@ import numpy as np
 
 from motorctl.effects import family as effect_family
 from motorctl.ident.accounts import accounts, explained_as_much
-from motorctl.ident.records import Evaluated, Term, force_text, found_in_measurement, hold, without
+from motorctl.ident.records import Evaluated, force_text, found_in_measurement, hold, without
 from motorctl.ident.rules import (MAX_HELD_SHARE, MIN_BIC_DROP, MIN_HELDOUT_GAIN, MIN_SIZE_N, MIN_SIZE_SHARE,
-                                  MIN_WALD, refused_on_physics)
+                                  MIN_WALD, outcome)
 from motorctl.ident.verdict import REST_SPEED_SHARE, Verdict, residual_verdict
 
 
@@ -205,10 +205,11 @@ class Judge:
     def unexplained(self, current: Evaluated, terms, last_step) -> bool:
         """The residual of ``current`` (the model of ``terms``) keeps a structure no family
         explains: the residual verdict (:meth:`verdict`) or a candidate of ``last_step`` refused
-        on its physics only (:func:`refused_on_physics`)."""
+        on its physics only (:func:`~motorctl.ident.rules.outcome` 'unexplained')."""
         if self.verdict(current, terms).structured:
             return True
-        return any(refused_on_physics(c) for c in last_step if not any(c.term is t for t in terms))
+        return any(outcome(passed=False, refused=c) == "unexplained" for c in last_step
+                   if not any(c.term is t for t in terms))
 
 
 __all__ = ["Judge", "fall_share"]

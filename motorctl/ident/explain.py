@@ -12,7 +12,7 @@ from dataclasses import replace
 
 from motorctl.ident import effects as fx
 from motorctl.ident.idim import RAIL_MIN_S
-from motorctl.ident.rules import MAX_EFFECTS, REFUSED_GAIN, refused_on_physics
+from motorctl.ident.rules import MAX_EFFECTS, REFUSED_GAIN, outcome
 from motorctl.ident.verdict import Verdict
 from motorctl.model import THETA_NAMES
 
@@ -210,7 +210,8 @@ def add_refused(verdict, last_step, chosen, judge=None, sel=None) -> Verdict:
         if seen:
             why = next((c.reasons for c in last_step if c.term.family == name and c.reasons), [])
             extra.append(_finding(name, math.nan, seen + (f" ({'; '.join(why)})" if why else "")))
-    refused = [c for c in last_step if not any(c is e for e in chosen) and refused_on_physics(c)
+    refused = [c for c in last_step if not any(c is e for e in chosen)
+               and outcome(passed=False, refused=c) == "unexplained"
                and not any(e["against"] == c.term.family for e in extra)]
     band, with_band = _band_limit(judge, terms, refused) if known else (None, None)
 

@@ -124,7 +124,7 @@ def stands(found: list) -> tuple[list, list]:
 
 
 def outcome(*, passed: bool, shares_with: str | None = None, size_intervals: list | None = None,
-            refused_physics_gain: float | None = None) -> str:
+            refused=None) -> str:
     """The decision rule in one statement: what the report says of an effect family on a record.
 
     * **named**: the candidate passed the selection's judge (significant on its own: held-out
@@ -136,16 +136,16 @@ def outcome(*, passed: bool, shares_with: str | None = None, size_intervals: lis
       holds 0 are not claimed, and with none standing it is not named);
     * **ambiguous**: it passed, but adds less than :data:`MIN_HELDOUT_GAIN` beside a structure
       refused on its physics (``shares_with``): the record cannot tell the two apart;
-    * **unexplained**: a candidate refused only on its physics explains at least
-      :data:`REFUSED_GAIN` of the held-out residual (:func:`refused_on_physics`), or the residual
-      verdict finds a structure: the report warns and names nothing for it;
+    * **unexplained**: a candidate refused only on its physics that explains at least
+      :data:`REFUSED_GAIN` of the held-out residual (:func:`refused_on_physics`; the residual
+      verdict's own findings are the others): the report warns and names nothing for it;
     * **not named**: anything else.
 
     Args:
         passed: the selection's judge accepted it. shares_with: the refused structure it shares
             its evidence with, or None. size_intervals: [(name, lo, hi)] of its size
-            parameters' 95 % intervals (None: not known). refused_physics_gain: for a refused
-            candidate refused on its physics only, the share of the held-out residual it explains.
+            parameters' 95 % intervals (None or empty: none known). refused: the candidate
+            itself when it was refused (its ``ok``, ``gain``, ``reasons``), for *unexplained*.
     Returns:
         'named', 'ambiguous', 'unexplained' or 'not named'.
     """
@@ -155,6 +155,6 @@ def outcome(*, passed: bool, shares_with: str | None = None, size_intervals: lis
         if size_intervals and not stands(size_intervals)[0]:
             return "not named"
         return "named"
-    if refused_physics_gain is not None and refused_physics_gain >= REFUSED_GAIN:
+    if refused is not None and refused_on_physics(refused):
         return "unexplained"
     return "not named"
