@@ -265,24 +265,27 @@ class IOSide:
         streamed = req.jog["kind"] != "to" or self.axis_status(req.axis)["phase"] == "command"
         return "jog" if streamed else "jog-disabled"
 
-    def observed(self) -> Observed:
-        """What the machine state is computed from now (:class:`.machine.Observed`)."""
-        st, mo = self.plan.ring.status, self.motion
+    def observed(self, st=None) -> Observed:
+        """What the machine state is computed from now (:class:`.machine.Observed`); ``st``: the
+        status block (n, len(ST_FIELDS)) to read (default: the live one the loop writes)."""
+        st, mo = self.plan.ring.status if st is None else st, self.motion
         modes = tuple(MODE_NAMES.get(int(st[i, ST["mode"]]), "?") for i in range(len(self.names)))
-        faults = tuple(self.fault_line(i) for i in range(len(self.names)))
+        faults = tuple(self.fault_line(i, st) for i in range(len(self.names)))
         busy = not mo.idle() or mo.homing_runs() or self.job is not None
         return Observed(modes, faults, busy, mo.held(), bool(mo.aborting), mo.stream.depth(),
                         mo.stream.braking())
 
-    def fault_line(self, i: int) -> str:
-        """Axis i's latched fault in one line from the status block ('' when none)."""
-        st = self.plan.ring.status[i]
+    def fault_line(self, i: int, st=None) -> str:
+        """Axis i's latched fault in one line from the status block ``st`` (default: the live
+        one; '' when none)."""
+        st = (self.plan.ring.status if st is None else st)[i]
         return fault_text(int(st[ST["fault"]]), st[ST["value"]], st[ST["limit"]],
                           REC_REASONS.get(int(self.plan.ring.ctl[CTL_REC_LATCHED]), ""))
 
-    def machine_status(self) -> dict:
-        """``status``' ``machine`` block: the PackML state and each axis's CiA 402 state."""
-        ob = self.observed()
+    def machine_status(self, st=None) -> dict:
+        """``status``' ``machine`` block: the PackML state and each axis's CiA 402 state, from
+        the status block ``st`` (default: the live one)."""
+        ob = self.observed(st)
         return {"state": machine_state(ob).value,
                 "axes": {a: axis_state(m, f) for a, m, f in zip(self.names, ob.modes, ob.faults)}}
 
@@ -599,9 +602,11 @@ class IOSide:
             self.planner.send({"op": "more", "id": jb["job"].id})
 
     # ------------------------------------------------------------------ status
-    def axis_status(self, i: int) -> dict:
+    def axis_status(self, i: int, st=None) -> dict:
+        """Axis i's block of ``status`` from the status block ``st`` (default: the live one)."""
         ring = self.plan.ring
-        out = axis_status(i, self.names[i], ring.status[i], ring.latest(), self.layout,
+        st = ring.status if st is None else st
+        out = axis_status(i, self.names[i], st[i], ring.latest(), self.layout,
                           REC_REASONS.get(int(ring.ctl[CTL_REC_LATCHED]), ""))
         out["fault"] = with_drive_reason(out["fault"], self.drive_reasons[i])
         out["drive_fault"] = self.drive_reasons[i] if out["fault_bits"] else ""
@@ -615,15 +620,18 @@ class IOSide:
         dr = self.drainer
         ring = self.plan.ring
         ready = self.ready or {}
+        # one copy of the status block for the axes and the machine state: the loop may latch a
+        # fault between two reads of the live one
+        st = ring.status.copy()
         return {
-            "axes": {a: self.axis_status(i) for i, a in enumerate(self.names)},
+            "axes": {a: self.axis_status(i, st) for i, a in enumerate(self.names)},
             "loop": {**{("cycles_timed" if k == "cycles" else k): v
                         for k, v in dr.loop_stats.summary().items()},
                      "rate_hz": 1.0 / self.plan.asm.loaded.period_s, "cycles": ring.published(),
                      "overruns": dr.overruns, "state": int(ring.ctl[CTL_STATE]),
                      "phase_max_us": {k: v / 1000.0 for k, v in zip(("read", "control", "write"),
                                                                     dr.phase_max_ns)}},
-            "machine": self.machine_status(),
+            "machine": self.machine_status(st),
             "realtime": ready.get("realtime", {}),
             "realtime_summary": ready.get("realtime_summary", "pending"),
             "process": {k: ready.get(k) for k in ("loop_pid", "python_threads", "native_threads",
