@@ -358,6 +358,24 @@ def test_g64_without_p_stops_at_every_corner_and_follows_the_path():
                                rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("offset", [0.0, 2e-6, 5e-6, 1e-5, 1.3e-5, 5e-5])
+def test_leaving_a_stop_off_the_grid_moves_only_the_next_pieces_axes(offset):
+    """Sampled off the planner's grid (a feed override moves the path time off it), the first
+    sample leaving an exact stop has moved by less than the joins' rounding (A·δ²/2 < 1 nm):
+    it is on the next piece all the same, so the axis that stopped does not move again and the
+    one that starts keeps its jerk (a point kept on the last piece put X at 2.6e-7 m/s after its
+    stop and Y's jerk 0.7 % above j_max)."""
+    prog = parse("G21 G90 G61\nG1 X10 F6000\nG1 Y20\nM2\n", "l.ngc", XY)
+    tr = plan(prog, ["X", "Y"], LIMITS)
+    n = int(np.ceil(tr.duration / H)) + 2
+    out = np.empty((n, 3, 2))
+    tr.sample_into(offset, H, out)
+    _assert_within_limits(out)
+    y_moves = np.flatnonzero(out[:, 1, 1] != 0.0)[0]
+    assert np.all(out[y_moves:, 1, 0] == 0.0) and np.all(out[y_moves:, 2, 0] == 0.0)
+    np.testing.assert_allclose(out[y_moves:, 0, 0], 0.010, rtol=0, atol=1e-12)
+
+
 def test_a_dwell_after_a_machine_word_adds_only_its_seconds():
     """At a stop the first rest holds both moving averages (T1 + T2 + h); a dwell after M3 at the
     same point adds its own seconds, not a second such rest."""

@@ -67,15 +67,19 @@ class PathTrajectory(Trajectory):
         d.pop("_cache", None)
         return d
 
-    def _path(self, s: np.ndarray, sd: np.ndarray, lead: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _path(self, s: np.ndarray, sd: np.ndarray, lead: np.ndarray,
+              rising: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The blended path's point and velocity at path length s moving at ṡ (shape (k,) each;
         returns shape (k, n_axes) each); arcs on the radius the short filter shrinks back onto
         theirs (the radius over S(ω), S the moving average's gain sin(n₂ωh/2)/(n₂ sin(ωh/2)) at
         the angular rate ω, faded in and out by a smoothstep of the path where the circle changes).
-        ``lead``: the unfiltered path length at the newest sample of each point's window (shape
-        (k,)): at a join (within BOUNDARY_M, the averages' rounding) the point is on the piece it
-        is leaving while that is not beyond the join, else on the next one (arriving at a stop the
-        velocity keeps the direction it came from, to its last sample)."""
+        ``lead``: the unfiltered path length at the newest sample of each point's window, and
+        ``rising``: whether the unfiltered speed rises there (shape (k,) each): at a join (within
+        BOUNDARY_M, the averages' rounding) the point is on the piece it is leaving while the
+        newest sample is not beyond the join and not speeding up from it, else on the next one
+        (arriving at a stop the velocity keeps the direction it came from, to its last sample;
+        leaving a stop it takes the next piece's from the first sample that moves, however little
+        that sample has moved: a point kept on the last piece there moves the wrong axis)."""
         gs0, glen = self._gs0, self._glen
         k = np.searchsorted(gs0, s, side="right") - 1
         np.maximum(k, 0, out=k)
@@ -85,10 +89,11 @@ class PathTrajectory(Trajectory):
         near = (d0 <= eps) | (lk - d0 <= eps)
         if len(gs0) > 1 and near.any():
             last = len(gs0) - 1
-            back = (d0 <= eps) & (k > 0) & (lead <= gs0[k] + eps)
+            back = (d0 <= eps) & (k > 0) & (lead <= gs0[k] + eps) & ~rising
             k[back] -= 1
             kn = np.minimum(k + 1, last)
-            ahead = (k < last) & (gs0[kn] - s <= eps) & (lead > gs0[kn] + eps)
+            ahead = (k < last) & (gs0[kn] - s <= eps) & ((lead > gs0[kn] + eps)
+                                                         | (rising & (lead >= gs0[kn] - eps)))
             k[ahead] += 1
             d0 = s - gs0[k]
             lk = glen[k]
@@ -138,12 +143,14 @@ class PathTrajectory(Trajectory):
             s = np.concatenate([s_t, s_new])                 # n1 + n2 + n samples of the profile
             sd = np.concatenate([sd_t, sd_new])
             sl, sdl = s[n2 + 1:], sd[n2 + 1:]                # the windows ending at the new points
-            xn, vn = self._path(np.convolve(sl, k1, "valid"), np.convolve(sdl, k1, "valid"), s_new)
+            xn, vn = self._path(np.convolve(sl, k1, "valid"), np.convolve(sdl, k1, "valid"), s_new,
+                                sd_new > sd[-n - 1:-1])
             xr = np.concatenate([x_t, xn])                   # n2 + 1 + n samples of the path
             vr = np.concatenate([v_t, vn])
         else:
             s, sd = self._ph.at(t0 + np.arange(-(n1 + n2), n) * h)
-            xr, vr = self._path(np.convolve(s, k1, "valid"), np.convolve(sd, k1, "valid"), s[n1 - 1:])
+            xr, vr = self._path(np.convolve(s, k1, "valid"), np.convolve(sd, k1, "valid"), s[n1 - 1:],
+                                sd[n1 - 1:] > sd[n1 - 2:-1])
         c = np.cumsum(xr - xr[0], axis=0)                  # the n2-averages ending at the n points
         x = (c[n2 + 1:] - c[1:-n2]) / n2 + xr[0]
         c = np.cumsum(vr, axis=0)
@@ -163,7 +170,8 @@ class PathTrajectory(Trajectory):
         sf = (c[:, n1:] - c[:, :-n1]) / n1 + ref                     # (rows, n2 + 2)
         c = np.cumsum(np.concatenate([z, sd], axis=1), axis=1)
         sdf = (c[:, n1:] - c[:, :-n1]) / n1
-        xr, vr = self._path(sf.ravel(), sdf.ravel(), s[:, n1 - 1:].ravel())
+        xr, vr = self._path(sf.ravel(), sdf.ravel(), s[:, n1 - 1:].ravel(),
+                            (sd[:, n1 - 1:] > sd[:, n1 - 2:-1]).ravel())
         na = xr.shape[1]
         xr = xr.reshape(len(t), n2 + 2, na)
         vr = vr.reshape(len(t), n2 + 2, na)
