@@ -39,12 +39,12 @@ def _r(x):
 def summarise(idf) -> dict:
     """The JSON object of ``identify`` for an identification (the driver
     :class:`~motorctl.ident.pipeline.Identifier` after its stages: its ``fits``, ``judge``,
-    ``selection``, ``refined`` and values' model, :func:`~motorctl.ident.tuned.values_from`);
+    ``selection``, ``refined`` and values' model, :func:`~motorctl.ident.values.values_from`);
     residuals in N when a gain is known."""
     from motorctl.ident.ambiguity import summaries
     from motorctl.ident.judge import claims, parameters_of
     from motorctl.ident.simfit import simulation_fit
-    from motorctl.ident.tuned import values_from
+    from motorctl.ident.values import values_from
     from motorctl.ident.uncertainty import stated_uncertainty
     rec, fits, sel, judge = idf.rec, idf.fits, idf.selection, idf.judge
     values = values_from(idf)

@@ -1,5 +1,6 @@
 """The identification pipeline of ``motorctl identify`` and ``motorctl tune``, on a loaded
-record: the stages run in order by a thin driver (:class:`Identifier`, :func:`identify_record`),
+record: the stages run in order by a thin driver (:class:`~motorctl.ident.select.Identifier`,
+:func:`identify_record`),
 the summary (:func:`~motorctl.ident.explain.summarise`, the JSON of ``identify``), the
 validation on a second record (:func:`validation`); what a fit gives the controller
 (:mod:`motorctl.ident.tuned`) and the text report (:mod:`motorctl.ident.explain`) are
@@ -8,7 +9,7 @@ re-exported here.
 The stages (docs/identification.md, "The stages in the code"), each a module with one job,
 the records between them frozen dataclasses (:mod:`motorctl.ident.records`)::
 
-    Record ─ fit.start ─► Fits (Setup + Structure) ─ select.run ─► Selection ─ refine.joint_refit ─►
+    Record ─ fit.start ─► Fits (Setup + Structure) ─ selection.run ─► Selection ─ refine.joint_refit ─►
     Selection + Refined ─ judge (values_of, confirm_values, travel_shared, drop_unsupported) ─►
     Selection + ValuesModel ─ explain.summarise ─► summary (dict) ─ explain.text_report ─► text
 
@@ -19,202 +20,18 @@ and nothing here parses arguments (the CLI is :mod:`motorctl.cli.identify`).
 from __future__ import annotations
 
 import contextlib
-import functools
 import math
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from motorctl.ident import judge as after
-from motorctl.ident import probes, prune, refine, select
-from motorctl.ident.checks import Judge
-from motorctl.ident.columns import thrust_shape
 from motorctl.ident.explain import (SATURATION_NOTE_SHARE, SIM_WINDOW_S, add_refused, fig,  # noqa: F401
                                     saturation_note, summarise, text_report)
 from motorctl.ident.fit import start
-from motorctl.ident.records import Refined
-from motorctl.ident.rules import MAX_EFFECTS
+from motorctl.ident.select import Identifier
 from motorctl.ident.tuned import (BOX_MARGIN, compensation_from_fit, set_theta0, tuned_config,  # noqa: F401
                                   values_and_parameters, values_from, write_tuned_config)
 from motorctl.recorder.runlog import LogError
-
-
-def _read(*path: str) -> property:
-    """A read-only attribute of the driver: the record at ``path`` (attribute names) from it."""
-    def get(self):
-        out = self
-        for name in path:
-            out = getattr(out, name)
-        return out
-    return property(get)
-
-
-class Identifier:
-    """The driver of the identification's stages on one record: it holds the records each stage
-    returns and hands them to the next; all the work is the stages'.
-
-    Args (the record opened by :func:`motorctl.ident.fit.start`):
-        rec: a checked :class:`~motorctl.ident.data.Record`.
-        n_theta: 4 or 6 to force the nominal structure (default: chosen from the input range).
-        friction: 'sf' (the paper's S_f(ẋ) = (2/π)atan(900ẋ)) or 'sign' (the EMPS reference
-            model's sign(ẋ)) for the Coulomb column.
-        fq, nd: position cut-off [Hz] and decimation factor (default: idim.default_filters).
-        families: effect family names to search (default: all of the registry, in its order).
-        seed: the draw of the held-out folds' blocks.
-        zoh_delay: delay [samples] between the logged input and the acceleration it causes
-            (default 0.5 for motorctl run logs, whose input is a zero-order hold; for other
-            files found in the data).
-        on_nominal: called with the nominal θ̂ (n_theta,) each time the nominal model is
-            fitted, before the effect search starts (e.g. to start a closed-loop run with it
-            meanwhile); None: nothing.
-        current_loop: model the amplifier's current loop the run log's config declares in every
-            input column (off, default: the loop is fitted as an input delay, and when Stribeck
-            is selected its values are taken on the loop's model, :func:`motorctl.ident.values.refit`).
-
-    Raises:
-        ValueError: unknown friction shape or effect family.
-
-    Attributes:
-        fits: the fit stage at the current structure (:class:`~motorctl.ident.fit.Fits`).
-        judge: the judge on it (:class:`~motorctl.ident.checks.Judge`). selection: the
-            :class:`~motorctl.ident.records.Selection` (None before :meth:`run`). refined: the
-            joint refit's :class:`~motorctl.ident.records.Refined`. values: the values' model
-            (:class:`~motorctl.ident.values.ValuesModel`, None before :meth:`find_values`).
-
-    The fit stage's methods (``evaluate``, ``coef_split``, ``term``, ``design``, ...) and the
-    judge's (``verdict``, ``implausible_in``, ...) are reached through it as before.
-    """
-
-    def __init__(self, rec, n_theta: int | None = None, friction: str = "sf", fq: float | None = None,
-                 nd: int | None = None, families=None, seed: int = 0, zoh_delay: float | None = None,
-                 on_nominal=None, current_loop: bool = False):
-        self.fits = start(rec, n_theta=n_theta, friction=friction, fq=fq, nd=nd, families=families, seed=seed,
-                          zoh_delay=zoh_delay, current_loop=current_loop)
-        self.judge = Judge(self.fits)
-        self.on_nominal = on_nominal
-        self.selection = None
-        self.refined = Refined()
-        self.values = None
-
-    # the stages, in order
-    def run(self, max_effects: int = MAX_EFFECTS) -> "Identifier":
-        """Stage *select* (:func:`motorctl.ident.select.run`). Returns self."""
-        self.selection, self.judge = select.run(self.fits, max_effects, self.on_nominal)
-        self.fits = self.judge.fits
-        return self
-
-    def joint_refit(self) -> "Identifier":
-        """The searched parameters refitted jointly (:func:`motorctl.ident.refine.joint_refit`)."""
-        self.selection, self.refined = refine.joint_refit(self.judge, self.selection)
-        return self
-
-    def refit(self):
-        """The values' model a refit gives (:func:`motorctl.ident.values.refit`), or None."""
-        from motorctl.ident.values import refit
-        return refit(self.judge, self.selection)
-
-    def find_values(self) -> "Identifier":
-        """The values' model (:func:`motorctl.ident.judge.values_of`)."""
-        self.values = after.values_of(self.judge, self.selection)
-        return self
-
-    def confirm_values(self) -> "Identifier":
-        """:func:`motorctl.ident.judge.confirm_values`."""
-        self.selection, self.values = after.confirm_values(self.judge, self.selection, self._values())
-        return self
-
-    def travel_shared(self) -> "Identifier":
-        """:func:`motorctl.ident.judge.travel_shared`."""
-        self.selection, self.values = after.travel_shared(self.judge, self.selection, self._values())
-        return self
-
-    def drop_unsupported(self) -> "Identifier":
-        """:func:`motorctl.ident.judge.drop_unsupported`."""
-        self.selection, self.values = after.drop_unsupported(self.judge, self.selection, self._values(),
-                                                             self.rec.gain)
-        return self
-
-    def drop_after(self, dropped: list) -> "Identifier":
-        """:func:`motorctl.ident.judge.drop_after` of ``dropped`` ([(family, reason)])."""
-        self.selection, self.values = after.drop_after(self.judge, self.selection, dropped)
-        return self
-
-    def _values(self):
-        """The values' model: the one :meth:`find_values` set, else the selection's own."""
-        from motorctl.ident.values import of_selection
-        return self.values if self.values is not None else of_selection(self.judge, self.selection)
-
-    # what the records hold, read through the driver (the fit stage's own, rec, setup,
-    # structure, p, n_theta, zoh, ..., through __getattr__)
-    n_theta_reason, zoh_source = (_read("fits", "structure", n) for n in ("n_theta_reason", "zoh_source"))
-    u_reach = _read("fits", "setup", "u_reach")
-    nominal, steps, accepted, eliminated, researched, ambiguous, verdict_step = (
-        _read("selection", n) for n in ("nominal", "steps", "accepted", "eliminated", "researched", "ambiguous",
-                                        "verdict_step"))
-    joint_moved, harmonics_cut = _read("refined", "moved"), _read("refined", "harmonics_cut")
-
-    @property
-    def families(self) -> list:
-        return list(self.fits.families)
-
-    @property
-    def terms(self) -> list:
-        return list(self.selection.terms)
-
-    @terms.setter
-    def terms(self, terms) -> None:
-        from dataclasses import replace
-        self.selection = replace(self.selection, terms=tuple(terms))
-
-    @property
-    def final(self):
-        return self.selection.final
-
-    @final.setter
-    def final(self, ev) -> None:
-        from dataclasses import replace
-        self.selection = replace(self.selection, final=ev)
-
-    @property
-    def refitted(self):
-        """The values' model when it is a refit's (else None)."""
-        return self.values if self.values is not None and self.values.refitted else None
-
-    @refitted.setter
-    def refitted(self, values) -> None:
-        self.values = values
-
-    @functools.cached_property
-    def saturation(self) -> dict | None:
-        """Where the input sits at its limit (:func:`~motorctl.ident.idim.input_saturation`;
-        None: nowhere): reported, the fit unchanged."""
-        from motorctl.ident.idim import input_saturation
-        return input_saturation(self.p.u, self.p.fs, self.rec.u_limit)
-
-    def thrust_shape(self, u: np.ndarray, theta: np.ndarray) -> np.ndarray | None:
-        """:func:`motorctl.ident.columns.thrust_shape` at this record's structure."""
-        return thrust_shape(self.n_theta, self.u_reach, u, theta)
-
-    explained_shares = probes.explained_shares
-
-    def _doubt(self, base, accepted, current, last_step):
-        """:func:`motorctl.ident.prune.doubt` with this identifier's judge."""
-        return prune.doubt(self.judge, list(base), list(accepted), current, last_step)
-
-    def _simplify(self, base, accepted, current):
-        """:func:`motorctl.ident.prune.simplify` with this identifier's judge."""
-        return prune.simplify(self.judge, list(base), list(accepted), current)
-
-    def __getattr__(self, name: str):
-        # the fit stage's read-outs and the judge's, as the identifier offered them before
-        if name.startswith("__") or name in ("fits", "judge"):
-            raise AttributeError(name)
-        for part in (self.fits, self.judge):
-            try:
-                return getattr(part, name)
-            except AttributeError:
-                pass
-        raise AttributeError(f"{type(self).__name__!s} has no attribute {name!r}")
 
 
 def validation(idf: Identifier, rec2) -> dict:

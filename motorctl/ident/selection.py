@@ -33,14 +33,12 @@ columns, search over its parameter and its own plausibility checks are in its mo
 (``motorctl/effects/<name>.py``), handed the fit stage (:class:`motorctl.ident.fit.Fits`) as
 their :class:`~motorctl.effects.base.SearchContext`.
 
-The driver of all the stages is :class:`motorctl.ident.pipeline.Identifier` (also importable
-from here).
+The driver of all the stages is :class:`motorctl.ident.select.Identifier`.
 """
 
 from __future__ import annotations
 
 import math
-import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -48,25 +46,20 @@ from dataclasses import replace
 import numpy as np
 
 from motorctl.effects import family as effect_family
-from motorctl.effects.input_delay import HOLD_TOLERANCE, is_hold  # noqa: F401  (re-exported)
+from motorctl.effects.input_delay import is_hold
 from motorctl.ident import prune, stepwise
 from motorctl.ident.checks import Judge
 from motorctl.ident.idim import ls_cov
-from motorctl.ident.records import Evaluated, Selection, Term, searchable  # noqa: F401  (re-exported)
-from motorctl.ident.rules import *  # noqa: F401,F403  (the decision rule's thresholds, re-exported)
-from motorctl.ident.rules import HOLD_GRID, MAX_EFFECTS, MIN_HELDOUT_GAIN, STEPWISE_ROUNDS
-
-#: threads searching the families of one selection step (each family's search is independent
-#: of the others' and its numpy/scipy work releases the GIL, so the result does not depend on it;
-#: the searches are handed out longest first, by the CPU time of each family's last search or,
-#: at the first step, by its :attr:`~motorctl.effects.base.EffectFamily.search_cost`)
-SEARCH_THREADS = min(2, os.cpu_count() or 1)
+from motorctl.ident.records import Selection, searchable
+from motorctl.ident.rules import (BLOCK_S, HOLD_GRID, LOOK_ALIKE_SHARE, MAX_EFFECTS, MIN_BIC_DROP,  # noqa: F401
+                                  MIN_HELDOUT_GAIN, MIN_SIZE_N, MIN_SIZE_SHARE, MIN_WALD, STEPWISE_ROUNDS)
 
 
-def run(fits, max_effects: int = MAX_EFFECTS, on_nominal=None) -> tuple[Selection, Judge]:
+def run(fits, max_effects: int = MAX_EFFECTS, on_nominal=None, threads: int = 1) -> tuple[Selection, Judge]:
     """The selection on the record of ``fits`` (:class:`~motorctl.ident.fit.Fits` at the
     structure the record starts with), with the nominal structure and the hold decided on the
-    way. Returns (the :class:`~motorctl.ident.records.Selection`, the judge at its structure).
+    way. ``threads``: threads searching the families of one step (the result does not depend on
+    it). Returns (the :class:`~motorctl.ident.records.Selection`, the judge at its structure).
 
     θ5, θ6 are kept only when, with the selected effects, they lower the held-out residual
     by at least :data:`MIN_HELDOUT_GAIN` and are not significantly positive (the paper's force
@@ -80,7 +73,7 @@ def run(fits, max_effects: int = MAX_EFFECTS, on_nominal=None) -> tuple[Selectio
     residual is lower.
     """
     start = fits.structure
-    sel, judge = _with_structure(fits, max_effects, on_nominal)
+    sel, judge = _with_structure(fits, max_effects, on_nominal, threads)
     if not fits.setup.hold_estimated:
         return sel, judge
     base = [t for t in sel.terms if not t.delay]
@@ -88,7 +81,7 @@ def run(fits, max_effects: int = MAX_EFFECTS, on_nominal=None) -> tuple[Selectio
     hold = 0.5 if is_hold(best) else 0.0
     if hold == judge.fits.zoh:
         return sel, judge
-    again, judge2 = _with_structure(judge.fits.at(replace(start, zoh=hold)), max_effects, on_nominal)
+    again, judge2 = _with_structure(judge.fits.at(replace(start, zoh=hold)), max_effects, on_nominal, threads)
     if again.final.heldout_rms < sel.final.heldout_rms:
         source = (f"estimated with the effects: the best input delay of the model with "
                   f"{', '.join(t.family for t in base) or 'no effect'} is {best:.2f} sample, "
@@ -99,9 +92,9 @@ def run(fits, max_effects: int = MAX_EFFECTS, on_nominal=None) -> tuple[Selectio
     return sel, judge
 
 
-def _with_structure(fits, max_effects: int, on_nominal) -> tuple[Selection, Judge]:
+def _with_structure(fits, max_effects: int, on_nominal, threads: int) -> tuple[Selection, Judge]:
     """The selection at the structure of ``fits``, θ5, θ6 kept or left out on the way (:func:`run`)."""
-    sel, judge = select(fits, max_effects, on_nominal)
+    sel, judge = select(fits, max_effects, on_nominal, threads)
     st = judge.fits.structure
     if st.n_theta != 6 or st.n_theta_forced:
         return sel, judge
@@ -128,12 +121,16 @@ def _with_structure(fits, max_effects: int, on_nominal) -> tuple[Selection, Judg
     else:
         return sel, judge
     return select(judge.fits.at(replace(st, n_theta=4, n_theta_reason=st.n_theta_reason + reason, fu=None)),
-                  max_effects, on_nominal)
+                  max_effects, on_nominal, threads)
 
 
-def select(fits, max_effects: int = MAX_EFFECTS, on_nominal=None) -> tuple[Selection, Judge]:
+def select(fits, max_effects: int = MAX_EFFECTS, on_nominal=None, threads: int = 1) -> tuple[Selection, Judge]:
     """One stepwise selection at the structure of ``fits``: forward steps (the families of a
-    step searched in :data:`SEARCH_THREADS` threads), backward elimination, simplification,
+    step searched in ``threads`` threads, handed out longest first: by the CPU time of each
+    family's last search or, at the first step, by its
+    :attr:`~motorctl.effects.base.EffectFamily.search_cost`; each family's search is independent
+    of the others' and its numpy/scipy work releases the GIL, so the result does not depend on
+    it), backward elimination, simplification,
     polish, doubt beside an unexplained structure, ambiguities and the thrust shape on the
     final model. ``on_nominal``: called with the nominal θ̂ (n_theta,) before the search
     starts (None: nothing). Returns (the Selection, the judge at its final structure)."""
@@ -148,7 +145,7 @@ def select(fits, max_effects: int = MAX_EFFECTS, on_nominal=None) -> tuple[Selec
     researched: list = []
     steps = []
     accepted = []
-    pool = ThreadPoolExecutor(max_workers=SEARCH_THREADS) if SEARCH_THREADS > 1 else None
+    pool = ThreadPoolExecutor(max_workers=threads) if threads > 1 else None
     eliminated: list = []
     searched_with: dict = {}     # id(term) -> the terms selected when it was searched
     families = list(fits.families)
@@ -218,10 +215,3 @@ def select(fits, max_effects: int = MAX_EFFECTS, on_nominal=None) -> tuple[Selec
                     researched=tuple(researched), ambiguous=tuple(ambiguous), verdict_step=tuple(fresh))
     return sel, judge
 
-
-def __getattr__(name):
-    # the driver of the stages, importable from here as before (a lazy import: it imports this)
-    if name == "Identifier":
-        from motorctl.ident.pipeline import Identifier
-        return Identifier
-    raise AttributeError(name)

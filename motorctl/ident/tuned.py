@@ -1,5 +1,5 @@
 """What a fit gives the controller: the identifier whose fit gives the effects' values
-(:func:`values_from`), the compensation and θ̂(0) of the found effects
+(:func:`~motorctl.ident.values.values_from`, re-exported here), the compensation and θ̂(0) of the found effects
 (:func:`compensation_from_fit`) and the tuned config (:func:`tuned_config`,
 :func:`write_tuned_config`)."""
 
@@ -9,16 +9,7 @@ import numpy as np
 
 from motorctl.ident import effects as fx
 from motorctl.ident.explain import _flow, fig, saturation_note
-
-
-def values_from(idf):
-    """The values' model (:class:`~motorctl.ident.values.ValuesModel`) whose joint fit gives the
-    found effects' values and compensation: the one the identification found
-    (``idf.values``: the refit's when one was needed, :func:`motorctl.ident.values.refit`), else
-    (the stages after the selection not run) the selection's own. Selection, held-out gains and
-    the residual verdict are always the selection's."""
-    from motorctl.ident.values import of_selection
-    return idf.values if idf.values is not None else of_selection(idf.judge, idf.selection)
+from motorctl.ident.values import values_from
 
 
 def values_and_parameters(idf, gain: float):

@@ -227,4 +227,13 @@ def _refit_jointly(ctx, fams: list, terms: list, again: list, built) -> list:
     return terms
 
 
-__all__ = ["ValuesModel", "mode_above_band", "of_selection", "refit"]
+def values_from(idf):
+    """The values' model (:class:`~motorctl.ident.values.ValuesModel`) whose joint fit gives the
+    found effects' values and compensation: the one the identification found
+    (``idf.values``: the refit's when one was needed, :func:`motorctl.ident.values.refit`), else
+    (the stages after the selection not run) the selection's own. Selection, held-out gains and
+    the residual verdict are always the selection's."""
+    return idf.values if idf.values is not None else of_selection(idf.judge, idf.selection)
+
+
+__all__ = ["ValuesModel", "mode_above_band", "of_selection", "refit", "values_from"]
