@@ -83,7 +83,9 @@ def piece_limits(g: Geo, vlim, alim, jlim, ix: int, iy: int, *,
     average's chord κ(v·T2)²/8 within ``tol_left`` [m] (what the blends left of P), the curve's
     jerk v³κ²·|t_i| within CURVE_SHARE·j_max_i; its acceleration what v²κ leaves of each
     a_max_i and what the ramps (ramp/T1 per unit of s̈) and 3·s̈·v·κ·|n_i| leave of j_max_i
-    besides v³κ²·|t_i|, at that speed. ``vlim``, ``alim``, ``jlim``: per axis."""
+    besides v³κ²·|t_i|, at that speed (X and Y, in the arc's plane, by the larger of the sum of
+    the tangent's and the normal's shares and their root sum of squares, t ⊥ n). ``vlim``,
+    ``alim``, ``jlim``: per axis."""
     mt, mn = extent(g, ix, iy)
     v = math.inf if g.feed is None else g.feed
     v = min(v, _min_ratio(vlim, mt))
@@ -94,9 +96,22 @@ def piece_limits(g: Geo, vlim, alim, jlim, ix: int, iy: int, *,
     if math.isfinite(tol_left):
         v = min(v, math.sqrt(8.0 * max(tol_left, 0.0) / kappa) / t2)
     v = min(v, (_min_ratio([CURVE_SHARE * j for j in jlim], mt) / (kappa * kappa)) ** (1.0 / 3.0))
-    acc = _min_ratio([a - v * v * kappa * n for a, n in zip(alim, mn)], mt)
-    acc = min(acc, _min_ratio([j - v ** 3 * kappa * kappa * t for j, t in zip(jlim, mt)],
-                              [ramp / t1 * t + 3.0 * v * kappa * n for t, n in zip(mt, mn)]))
+    a_n, j_n = v * v * kappa, v ** 3 * kappa * kappa          # normal acceleration, the curve's jerk
+    acc = math.inf
+    for i, (a, j, t, n) in enumerate(zip(alim, jlim, mt, mn)):
+        # |A·t_i + a_n·n_i| ≤ A·|t_i| + a_n·|n_i|, and in the plane of the arc (t ⊥ n, t_i² + n_i²
+        # ≤ 1) also ≤ √(A² + a_n²): the larger acceleration either bound allows; the jerk alike,
+        # (ramp·A/T1 + ṡ³κ²) along t and 3·A·ṡ·κ along n
+        a_sum = (a - a_n * n) / t if t > 0 else math.inf
+        qa, qb = ramp / t1, 3.0 * v * kappa
+        j_sum = (j - j_n * t) / (qa * t + qb * n) if qa * t + qb * n > 0 else math.inf
+        if i in (ix, iy):
+            a_sum = max(a_sum, math.sqrt(max(a * a - a_n * a_n, 0.0)))
+            q2 = qa * qa + qb * qb
+            disc = (qa * j_n) ** 2 - q2 * (j_n * j_n - j * j)
+            if disc > 0:
+                j_sum = max(j_sum, (-qa * j_n + math.sqrt(disc)) / q2)
+        acc = min(acc, a_sum, j_sum)
     return v, max(acc, 0.0)
 
 
