@@ -10,10 +10,15 @@ limits, refuses a chunk larger than the receive buffer when its header arrives (
 body is taken: BadTcpMessageTooLarge) and closes a connection whose message grew beyond the
 message limit (BadRequestTooLarge, asyncua's chunk count), so that a client streaming a message
 of gigabytes is answered at the limit and costs the server no more than the limit's memory.
+A refused connection is closed as HTTP servers close one whose client is still sending (a
+"lingering close"): the answer sent, the server's side shut (FIN), what still comes read and
+dropped for at most :data:`LINGER_S`, then closed; a close with unread data would send a TCP reset
+that can destroy the answer before the client has read it.
 """
 
 from __future__ import annotations
 
+import asyncio
 import copy
 import math
 import os
@@ -28,6 +33,8 @@ CHUNK_BYTES = 65535
 MESSAGE_OVERHEAD = 1 << 16
 #: Bad_TcpMessageTooLarge (OPC 10000-4 7.34.2): a chunk beyond the receive buffer
 BAD_TCP_MESSAGE_TOO_LARGE = 0x80080000
+#: how long a refused connection's incoming data is still read and dropped [s] (module docstring)
+LINGER_S = 2.0
 
 
 def _mtime(path: str | None) -> int | None:
@@ -165,6 +172,7 @@ def server_class(max_message_bytes: int):
         def __init__(self, *args, limits, **kw):
             super().__init__(*args, limits=copy.copy(limits), **kw)
             self.too_large = False
+            self.lingering = False
 
         def connection_made(self, transport):
             super().connection_made(transport)
@@ -181,28 +189,36 @@ def server_class(max_message_bytes: int):
             conn.receive_from_header_and_body = bounded
 
         def data_received(self, data):
-            if self.transport is None or self.transport.is_closing():
-                return
+            if self.lingering or self.transport is None or self.transport.is_closing():
+                return                               # dropped (module docstring)
             super().data_received(data)              # takes the whole chunks
             if len(self._buffer) >= 8 and int.from_bytes(self._buffer[4:8], "little") > self.limits.max_recv_buffer:
                 self._buffer = b""
-                refuse(self.transport, BAD_TCP_MESSAGE_TOO_LARGE,
-                       f"a chunk larger than the receive buffer ({self.limits.max_recv_buffer} bytes)")
+                from asyncua.ua.ua_binary import uatcp_to_binary
+                why = f"a chunk larger than the receive buffer ({self.limits.max_recv_buffer} bytes)"
+                self.transport.write(uatcp_to_binary(ua.MessageType.Error, ua.ErrorMessage(
+                    ua.StatusCode(BAD_TCP_MESSAGE_TOO_LARGE), why)))
+                self.linger()
 
         async def _process_one_msg(self, header, buf):
             await super()._process_one_msg(header, buf)
-            if self.too_large and not self.transport.is_closing():
-                self.transport.close()
+            if self.too_large and not self.lingering and not self.transport.is_closing():
+                self.linger()
+
+        def linger(self) -> None:
+            """The answer written: the server's side shut, the client's data dropped until it
+            closes or LINGER_S has passed, then the connection closed (module docstring)."""
+            self.lingering = True
+            tr = self.transport
+            self._buffer = b""
+            if tr.can_write_eof():
+                tr.write_eof()
+            asyncio.get_running_loop().call_later(LINGER_S, tr.abort)
 
     class Binary(bsa.BinaryServer):
         def _make_protocol(self):
             return Protocol(iserver=self.iserver, policies=self._policies, clients=self.clients,
                             closing_tasks=self.closing_tasks, limits=self.limits)
-
-    def refuse(transport, code: int, why: str) -> None:
-        from asyncua.ua.ua_binary import uatcp_to_binary
-        transport.write(uatcp_to_binary(ua.MessageType.Error, ua.ErrorMessage(ua.StatusCode(code), why)))
-        transport.close()
 
     class CncUaServer(Server):
         def __init__(self, *args, **kw):
