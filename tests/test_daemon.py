@@ -191,6 +191,31 @@ sys.exit(D.run_daemon(cfg, sock))
 """
 
 
+_COMPILED_BEFORE_THE_FORK = """
+import sys
+import motorctl.app.daemon as D
+from motorctl.app.daemon import motion_side as M
+D.plan_daemon(*sys.argv[1:4])
+print(len(M._ramp_rows.signatures), len(M._feed_target.signatures))
+"""
+
+
+def test_the_io_sides_compiled_steps_are_compiled_before_the_fork(tmp_path):
+    """The daemon's plan (before it forks the I/O process) compiles the feed scale's steps the
+    I/O process runs: compiled after the fork, with the cache cold after an install or an edit,
+    they held the I/O process for seconds while the loop ran (1.4 s on a quiet host), beyond
+    the recorder's stall bound on a loaded one ("recorder stalled" at start)."""
+    import subprocess
+    import sys
+
+    cfg = make_config(tmp_path)
+    r = subprocess.run([sys.executable, "-c", _COMPILED_BEFORE_THE_FORK, str(cfg), str(tmp_path / "s.sock"),
+                        str(tmp_path / "logs")], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    ramp, target = map(int, r.stdout.split())
+    assert ramp >= 1 and target >= 1, r.stdout
+
+
 @pytest.mark.parametrize("where", ["plan", "start"])
 def test_sigterm_during_start_up_is_one_line_and_the_device_at_0V(tmp_path, where):
     """SIGTERM while the daemon starts: during the build, one line (nothing was opened); once the

@@ -95,14 +95,16 @@ def say_if_cold(out=sys.stderr) -> bool:
 
 
 def warmup(loaded, cycles: int = 20) -> dict:
-    """Compile what ``loaded`` (a checked config) runs: every configured controller of every
-    axis and, when the driver is the simulator, the servo cycle (``cycles`` virtual-clock
+    """Compile what ``loaded`` (a checked config) runs: the daemon's feed scale steps, every
+    configured controller of every axis and, when the driver is the simulator, the servo cycle (``cycles`` virtual-clock
     cycles, no log, no real time). A hardware driver is never opened: its servo cycle compiles
     at the first start.
 
     Returns: {"seconds": wall time [s], "cycle": whether the servo cycle was compiled}.
     """
+    from motorctl.app.daemon.motion_side import warm_up as motion_warm_up
     t0 = time.monotonic()
+    motion_warm_up()                  # the daemon's feed scale steps (its I/O process)
     for ax in loaded.axes.values():
         for kind in configured_controllers(ax.controller):
             make_controller(ax.controller, kind, loaded.period_s)

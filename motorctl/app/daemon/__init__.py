@@ -46,6 +46,7 @@ from pathlib import Path
 
 from motorctl.app.build import Assembly, build, log_header, record_layout, stop_bound_s
 from motorctl.app.daemon.io_side import io_main
+from motorctl.app.daemon.motion_side import warm_up as motion_warm_up
 from motorctl.app.daemon.loop_side import LoopSide
 from motorctl.app.daemon.notify import sd_notify
 from motorctl.app.daemon.protocol import DaemonError, Mailbox, bind_control_socket
@@ -113,6 +114,7 @@ def plan_daemon(config_path: str, socket_path: str | None, log_dir: str | None) 
                           outputs=outputs, stop_outputs=stop_outputs)
     asm = build(loaded, names, clock="wall", capacity=ring.capacity, buffer=ring.rows,
                 heartbeat=ring, operated=True, all_controllers=True, stream=stream)
+    motion_warm_up()                 # the I/O side's compiled steps too, before the fork
     stop_bound = [stop_bound_s(prog, d.stop_settle_s) + STOP_MARGIN_S for prog in asm.programs]
     header = log_header(asm, kind="daemon run log", realtime="pending")
     return DaemonPlan(asm, ring, socket_path or d.socket, log_path, header, stop_bound)

@@ -194,6 +194,17 @@ def _ramp_rows(f, fd, s, holding, override, cap, cap_dt, rate, accel, rate_hi, a
     return m, f, fd, s, holding, paused, ended, settled
 
 
+def warm_up() -> None:
+    """Compile (or load the cached code of) the feed scale's compiled steps now, not at the first
+    override or hold: the daemon calls it before it forks its I/O process (a compile there, with
+    the cache cold after an install or an edit, held the I/O process for seconds while the loop
+    ran, and the loop latched "recorder stalled"); ``motorctl warmup`` calls it too."""
+    s, f, fd = np.zeros(1), np.zeros(1), np.zeros(1)
+    _ramp_rows(1.0, 0.0, 0.0, False, 1.0, np.ones(1), 1.0, 1.0, 1.0, 1.0, 1.0, 2e-4, np.zeros(0), 1.0,
+               s, f, fd, 0, 1, True)
+    _feed_target(False, 1.0, np.ones(1), 1.0, 0.0)          # and the target, as _target calls it
+
+
 class MotionSide:
     """The commanded motion of the daemon's axes (module docstring).
 
@@ -306,10 +317,7 @@ class MotionSide:
         self._block = np.zeros((self.lead, self.n, 3))
         self._s, self._f, self._fd = np.zeros(self.lead), np.zeros(self.lead), np.zeros(self.lead)
         self._steps = np.arange(1.0, self.lead + 1.0)
-        # the ramp's compiled rows: compiled (or loaded) now, not at the first override or hold
-        _ramp_rows(1.0, 0.0, 0.0, False, 1.0, np.ones(1), 1.0, 1.0, 1.0, 1.0, 1.0, self.dt, np.zeros(0), 1.0,
-                   self._s, self._f, self._fd, 0, 1, True)
-        _feed_target(False, 1.0, np.ones(1), 1.0, 0.0)          # and the target, as _target calls it
+        warm_up()                        # (a no-op where the daemon compiled it before its fork)
         self._grid = np.zeros((self.lead + 2, 3, self.n))   # sample_into's layout (k, x/v/a, axis)
         #: SCHED_FIFO priority of the filler thread (0: none), below the loop's: a busy host must
         #: not starve the planner for longer than the lead (set by the daemon where real-time is on)
