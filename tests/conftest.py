@@ -75,7 +75,7 @@ def default_yaml(repo) -> Path:
 
 
 #: the test files' own time [s] in a full run (tests/file_seconds.json): the sum of their tests'
-#: set-up, call and tear-down (``--durations=0``; a fresh clone, cold cache, 2 cores beside other work, 2026-11-28:
+#: set-up, call and tear-down (``--durations=0``; a fresh clone, cold cache, 2 cores, 2026-11-29:
 #: only their order counts; test_autotune's without the wait for the session's compile its first
 #: set-up held). xdist hands out whole files (``--dist loadfile``) in the collection's order
 #: (``--no-loadscope-reorder``): the longest first, so that the two workers end together instead
