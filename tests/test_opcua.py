@@ -645,3 +645,25 @@ def test_the_tools_browse_the_cnc_objects_and_read_a_position(daemon):
     assert r.returncode == 0, r.stderr
     x = float(r.stdout.strip())
     assert abs(x - status(daemon.sock)["axes"]["X"]["y_m"]) < 2e-5     # the axis held at rest
+
+
+def test_start_by_path_reads_a_regular_file_up_to_the_limit_only(tmp_path):
+    """Start's file: read up to daemon.max_program_bytes and no further (a file larger, or grown
+    since, is refused with the limit's name), and only a regular file (a FIFO named .ngc is
+    refused at once instead of blocking the read; a missing one is an OSError)."""
+    from motorctl.app.daemon.opcua_methods import read_program
+    ok = tmp_path / "a.ngc"
+    ok.write_text("G0 X1\nM2\n")
+    assert read_program(str(ok), 100) == "G0 X1\nM2\n"
+    big = tmp_path / "b.ngc"
+    big.write_bytes(b"G0 X1\n" * 100)
+    with pytest.raises(ValueError, match="max_program_bytes = 599"):
+        read_program(str(big), 599)
+    assert len(read_program(str(big), 600)) == 600
+    fifo = tmp_path / "c.ngc"
+    os.mkfifo(fifo)
+    with pytest.raises(ValueError, match="not a regular file"):
+        read_program(str(fifo), 100)
+    with pytest.raises(OSError):
+        read_program(str(tmp_path / "missing.ngc"), 100)
+

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import stat
 
 from motorctl.app.daemon.opcua_space import AXES, CHANNEL
 
@@ -27,6 +28,22 @@ PROGRAM_SUFFIXES = (".ngc", ".nc", ".gcode", ".tap")
 COMMAND_TIMEOUT_S = 10.0
 #: a program's answer (the daemon checks it whole first) [s]
 PROGRAM_TIMEOUT_S = 30.0
+
+
+def read_program(path: str, max_bytes: int) -> str:
+    """The text of the G-code file ``path`` for Start, at most ``max_bytes`` read whatever the
+    file does meanwhile (a file that grows past the limit after its size was seen is refused,
+    not read whole). Raises OSError (no such file, unreadable) and ValueError (not a regular
+    file: a FIFO would block the read, a device never end; larger than ``max_bytes``: the
+    words say daemon.max_program_bytes)."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)       # (a FIFO's open would wait for a writer)
+    with open(fd, "rb") as fh:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise ValueError("not a regular file")
+        data = fh.read(max_bytes + 1)
+    if len(data) > max_bytes:
+        raise ValueError(f"the program is larger than daemon.max_program_bytes = {max_bytes}")
+    return data.decode("utf-8", errors="surrogateescape")
 
 
 def program_limit(max_program_bytes: int) -> int:
@@ -145,13 +162,10 @@ class Methods:
                                                    f"a G-code file ({', '.join(PROGRAM_SUFFIXES)})")
                 raise ua.UaStatusCodeError(ua.StatusCodes.BadNotFound)
             try:
-                size = os.path.getsize(name)
-                if size > self.max_program_bytes:
-                    await self.space.write(LAST_ERROR, f"Start: {name!r}: the program ({size} bytes) is larger "
-                                                       f"than daemon.max_program_bytes = {self.max_program_bytes}")
-                    raise ua.UaStatusCodeError(ua.StatusCodes.BadInvalidArgument)
-                with open(name, encoding="utf-8", errors="surrogateescape") as fh:
-                    text = fh.read()
+                text = await asyncio.to_thread(read_program, name, self.max_program_bytes)
+            except ValueError as exc:
+                await self.space.write(LAST_ERROR, f"Start: {name!r}: {exc}")
+                raise ua.UaStatusCodeError(ua.StatusCodes.BadInvalidArgument) from None
             except OSError as exc:
                 await self.space.write(LAST_ERROR, f"Start: {name!r}: no program loaded by that name, and not "
                                                    f"a readable file ({exc.strerror})")
