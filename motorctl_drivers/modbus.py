@@ -84,6 +84,7 @@ from motorctl.schema import StrictModel
 from motorctl_drivers.split_phase import (
     CommonOptions,
     EncoderUnwrap,
+    ResetPulses,
     SplitPhaseDriver,
     make_budget,
     open_error,
@@ -530,10 +531,6 @@ class ModbusDriver(SplitPhaseDriver):
     Options = ModbusOptions
     AxisOptions = ModbusAxisOptions
     DEFAULT_ROUND_TRIP_S = 400e-6
-    #: cycles between two fault-reset pulses of a disabled, faulted axis
-    RESET_EVERY = 8
-    #: pulses one operator's fault reset sends at most
-    RESET_TRIES = 3
 
     def __init__(self, options: ModbusOptions, axis_options: dict, period_s: float):
         super().__init__(options, axis_options, period_s)
@@ -550,8 +547,7 @@ class ModbusDriver(SplitPhaseDriver):
         self._vscale = [o.voltage_scale() for o in self._ax]
         self._pos_words = [[0] * o.position.nregs for o in self._ax]
         self._fault_raw = [False] * n
-        self._reset_count = [0] * n
-        self._reset_left = [0] * n          # cycles of the operator's fault reset still to send
+        self._pulses = ResetPulses(n)       # the operator's fault reset, pulsed on fault_reset
         self._enable_now = [False] * n
         self._reset_now = [False] * n
         self.exception_counts: dict[int, int] = {}
@@ -832,15 +828,7 @@ class ModbusDriver(SplitPhaseDriver):
         for i in range(len(en)):
             e = bool(enable[i])
             en[i] = e
-            if not e and amp[i] and self._reset_left[i] > 0:     # only on the operator's reset
-                self._reset_left[i] -= 1
-                self._reset_count[i] = (self._reset_count[i] + 1) % self.RESET_EVERY
-                rs[i] = self._reset_count[i] == 1
-            else:
-                if not amp[i]:
-                    self._reset_left[i] = 0
-                self._reset_count[i] = 0
-                rs[i] = False
+            rs[i] = self._pulses.bit(i, e, bool(amp[i]))       # only on the operator's reset
         done = self._done
         for k in range(len(done)):
             done[k] = False
@@ -1052,14 +1040,13 @@ class ModbusDriver(SplitPhaseDriver):
 
     # --- reports
     def reset_fault(self, i: int) -> bool:
-        """The operator's fault reset of axis i: a pulse of its ``fault_reset`` bit (one cycle
-        in :attr:`RESET_EVERY`, at most :attr:`RESET_TRIES`) while the axis is disabled and the
-        device's fault bit is active; never pulsed otherwise. False when the map has no
-        ``fault_reset``."""
+        """The operator's fault reset of axis i: a pulse of its ``fault_reset`` bit
+        (:class:`~motorctl_drivers.split_phase.ResetPulses`: one cycle in EVERY, at most TRIES)
+        while the axis is disabled and the device's fault bit is active; never pulsed otherwise.
+        False when the map has no ``fault_reset``."""
         if self._ax[i].fault_reset is None:
             return False
-        self._reset_count[i] = 0
-        self._reset_left[i] = self.RESET_TRIES * self.RESET_EVERY
+        self._pulses.request(i)
         return True
 
     def fault_reason(self, i: int) -> str:
