@@ -109,14 +109,18 @@ def cpu_hogs():
 
 @pytest.hookimpl(trylast=True)
 def pytest_collection_modifyitems(config, items):
-    """The test files longest first (:data:`FILE_SECONDS`); each file's tests in their order."""
+    """The test files longest first (:data:`FILE_SECONDS`), those marked ``own_jit_cache``
+    before all (they need not wait for the session's compile: one worker runs them while the
+    compile takes the other core, where both workers had waited for it); each file's tests in
+    their order."""
     first = {}
     for i, item in enumerate(items):
         first.setdefault(item.nodeid.split("::", 1)[0], i)
 
     def key(item):
         f = item.nodeid.split("::", 1)[0]
-        return -FILE_SECONDS.get(f, UNMEASURED_SECONDS), first[f]
+        return (item.get_closest_marker("own_jit_cache") is None, -FILE_SECONDS.get(f, UNMEASURED_SECONDS),
+                first[f])
     items.sort(key=key)
 
 
