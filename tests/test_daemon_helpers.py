@@ -137,12 +137,15 @@ class Daemon:
     """``motorctl daemon CONFIG`` as a subprocess (``prefix``: e.g. a network namespace's
     nsenter); :meth:`kill` in teardown, always."""
 
-    def __init__(self, config: Path, sock: Path, extra_args=(), env=None, preexec=None, prefix=()):
+    def __init__(self, config: Path, sock: Path, extra_args=(), env=None, preexec=None, prefix=(),
+                 output=subprocess.PIPE):
+        """``output``: where the daemon's stdout and stderr go (default: pipes :meth:`terminate`
+        reads at the end; a descriptor: there)."""
         self.config, self.sock = config, sock
         self.proc = subprocess.Popen(
             [*prefix, *MOTORCTL, "daemon", str(config), "--socket", str(sock),
              *extra_args],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=str(REPO),
+            stdout=output, stderr=output, text=True, cwd=str(REPO),
             env=env, preexec_fn=preexec)
         self.io_pid = None
 

@@ -22,6 +22,7 @@ import socket
 import sys
 import time
 
+from motorctl.app.daemon.journal import plain_stderr
 from motorctl.app.lifetime import die_with_parent
 
 #: each helper, and the I/O process itself (:func:`own_session`), in a session of its own
@@ -80,6 +81,7 @@ def fork_helper(what: str, main, buffer_bytes: int | None = None) -> tuple[socke
     if pid == 0:
         code = 1
         try:
+            plain_stderr()                    # (the I/O process's journal thread is not forked)
             mine.close()
             keep = theirs.fileno()            # nothing of the I/O process's: socket, pipes, log
             os.closerange(3, keep)

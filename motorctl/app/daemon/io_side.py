@@ -27,6 +27,7 @@ import time
 
 from motorctl.app.build import approach_move
 from motorctl.app.daemon.forked import own_session
+from motorctl.app.daemon.journal import install as install_journal
 from motorctl.app.daemon.machine import MachineState, Observed, axis_state, machine_state, refusal
 from motorctl.app.daemon.motion_side import AxisLimits, MotionError, MotionSide
 from motorctl.app.daemon.notify import sd_notify, watchdog_ping_interval_s
@@ -67,6 +68,8 @@ FILLER_PRIORITY_BELOW = 40
 IO_NICE = -10
 #: a command the loop has not answered within this time is answered with an error [s]
 LOOP_ANSWER_S = 2.0
+#: at the I/O process's end, how long the journal's queued lines may take to be written [s]
+JOURNAL_DRAIN_S = 2.0
 #: how often the I/O process wakes when nothing happens [s]
 IDLE_WAKE_S = 0.02
 #: STATUS= line to systemd at most this often [s]
@@ -647,6 +650,7 @@ class IOSide:
                     "events_pending": len(dr.pending), "events_dropped": dr.events_dropped,
                     "recorder_fault": REC_REASONS.get(dr.fault, ""), "error": dr.error,
                     "write_errors": dr.write_errors, "rows_unwritten": dr.drained - dr.written,
+                    "journal_dropped": getattr(sys.stderr, "dropped", 0),
                     "retention": self.retention.figures() if self.retention else {}},
             "link": dict(self.link),
             "motion": self.motion.status(),
@@ -1159,7 +1163,8 @@ def io_main(plan, lsock, writer: SegmentWriter, cmds: Mailbox, replies: Mailbox)
     views it forks inherit it, so their work and their sockets' interrupts stay off the
     loop's CPU), in a session of its own (:func:`motorctl.app.daemon.forked.own_session`: with
     the kernel's autogroup, not in one CPU share with what else its starter's session runs),
-    serve until the loop process ends."""
+    its stderr a :class:`~motorctl.app.daemon.journal.Journal` (a line never blocks the main
+    thread, which drains the run log), serve until the loop process ends."""
     for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
         signal.signal(s, signal.SIG_IGN)
     own_session()
@@ -1172,4 +1177,8 @@ def io_main(plan, lsock, writer: SegmentWriter, cmds: Mailbox, replies: Mailbox)
         pass
     if rt.policy != "off":
         keep_off(loop_cpu(rt.cpu))
-    return IOSide(plan, lsock, writer, cmds, replies).run()
+    journal = install_journal()          # no line on stderr ever waits for its reader here
+    try:
+        return IOSide(plan, lsock, writer, cmds, replies).run()
+    finally:
+        journal.drain(JOURNAL_DRAIN_S)
