@@ -268,15 +268,22 @@ class IOSide:
         streamed = req.jog["kind"] != "to" or self.axis_status(req.axis)["phase"] == "command"
         return "jog" if streamed else "jog-disabled"
 
-    def observed(self, st=None) -> Observed:
+    def observed(self, st=None, motion: dict | None = None) -> Observed:
         """What the machine state is computed from now (:class:`.machine.Observed`); ``st``: the
-        status block (n, len(ST_FIELDS)) to read (default: the live one the loop writes)."""
-        st, mo = self.plan.ring.status if st is None else st, self.motion
+        status block (n, len(ST_FIELDS)) to read (default: the live one the loop writes);
+        ``motion``: the motion block of the same ``status`` (:meth:`MotionSide.status`; default:
+        the motion side read now)."""
+        st = self.plan.ring.status if st is None else st
         modes = tuple(MODE_NAMES.get(int(st[i, ST["mode"]]), "?") for i in range(len(self.names)))
         faults = tuple(self.fault_line(i, st) for i in range(len(self.names)))
-        busy = not mo.idle() or mo.homing_runs() or self.job is not None
-        return Observed(modes, faults, busy, mo.held(), bool(mo.aborting), mo.stream.depth(),
-                        mo.stream.braking())
+        if motion is None:
+            mo = self.motion
+            busy = not mo.idle() or mo.homing_runs() or self.job is not None
+            return Observed(modes, faults, busy, mo.held(), bool(mo.aborting), mo.stream.depth(),
+                            mo.stream.braking())
+        busy = not motion["idle"] or motion["homing_runs"] or self.job is not None
+        return Observed(modes, faults, busy, motion["held"], bool(motion["aborting"]), motion["ring_depth"],
+                        motion["braking"])
 
     def fault_line(self, i: int, st=None) -> str:
         """Axis i's latched fault in one line from the status block ``st`` (default: the live
@@ -285,10 +292,10 @@ class IOSide:
         return fault_text(int(st[ST["fault"]]), st[ST["value"]], st[ST["limit"]],
                           REC_REASONS.get(int(self.plan.ring.ctl[CTL_REC_LATCHED]), ""))
 
-    def machine_status(self, st=None) -> dict:
+    def machine_status(self, st=None, motion: dict | None = None) -> dict:
         """``status``' ``machine`` block: the PackML state and each axis's CiA 402 state, from
-        the status block ``st`` (default: the live one)."""
-        ob = self.observed(st)
+        the status block ``st`` and the motion block ``motion`` (default: both read now)."""
+        ob = self.observed(st, motion)
         return {"state": machine_state(ob).value,
                 "axes": {a: axis_state(m, f) for a, m, f in zip(self.names, ob.modes, ob.faults)}}
 
@@ -623,9 +630,11 @@ class IOSide:
         dr = self.drainer
         ring = self.plan.ring
         ready = self.ready or {}
-        # one copy of the status block for the axes and the machine state: the loop may latch a
-        # fault between two reads of the live one
+        # one copy of the status block and one read of the motion side for the axes, the motion
+        # and the machine state: the loop may latch a fault, and the motion side end a motion,
+        # between two reads
         st = ring.status.copy()
+        motion = self.motion.status()
         return {
             "axes": {a: self.axis_status(i, st) for i, a in enumerate(self.names)},
             "loop": {**{("cycles_timed" if k == "cycles" else k): v
@@ -634,7 +643,7 @@ class IOSide:
                      "overruns": dr.overruns, "state": int(ring.ctl[CTL_STATE]),
                      "phase_max_us": {k: v / 1000.0 for k, v in zip(("read", "control", "write"),
                                                                     dr.phase_max_ns)}},
-            "machine": self.machine_status(st),
+            "machine": self.machine_status(st, motion),
             "realtime": ready.get("realtime", {}),
             "realtime_summary": ready.get("realtime_summary", "pending"),
             "process": {k: ready.get(k) for k in ("loop_pid", "python_threads", "native_threads",
@@ -653,7 +662,7 @@ class IOSide:
                     "journal_dropped": getattr(sys.stderr, "dropped", 0),
                     "retention": self.retention.figures() if self.retention else {}},
             "link": dict(self.link),
-            "motion": self.motion.status(),
+            "motion": motion,
             "socket": self.plan.socket_path,
             "clients": {"open": len(self.clients), "refused": self.clients_refused,
                         "max": MAX_CLIENTS},

@@ -650,19 +650,28 @@ class MotionSide:
         return int(traj.line_at(s)), (s / total if total > 0 else 1.0), left / rate
 
     def status(self) -> dict:
+        """``status``' ``motion`` block, one instant of it: what is queued, held and streamed
+        read under one hold of the lock, the ring's depth and brake read once, ``idle`` and
+        ``held`` (:meth:`idle`, :meth:`held`) from those same values (the machine state is
+        computed from this block: two reads had let it say idle beside a motion that was not)."""
         line, done, left = self.progress()
         with self.lock:
             depth = len(self.queue) + (self.cur is not None) + (self._dry is not None)
-        return {"queue_depth": depth, "line": line, "done": done, "time_left_s": left,
-                "feed_m_s": self.feed_m_s,
-                "override": self.override, "feed_scale": self.f, "hold": self.holding,
-                "aborting": self.aborting, "ring_depth": self.stream.depth(), "planning": bool(self.planning),
-                "underruns": self.stream.underruns(), "braking": self.stream.braking(),
-                "stopped_because": self.reason, "homed": list(self.homed), "outputs": dict(self.outputs),
-                "optional_stop": self.optional_stop,
-                "homing": list(self.homing_state), "homing_configured": [h is not None for h in self.homing],
-                "filler_alive": self._thread is not None and self._thread.is_alive(),
-                "idle": self.idle()}
+            busy = self.cur is not None or bool(self.queue) or bool(self.planning) or self._dry is not None
+            held = self.holding or self._dry is not None or self.reason.startswith("paused")
+            ring_depth, braking = self.stream.depth(), self.stream.braking()
+            out = {"queue_depth": depth, "line": line, "done": done, "time_left_s": left,
+                   "feed_m_s": self.feed_m_s,
+                   "override": self.override, "feed_scale": self.f, "hold": self.holding, "held": held,
+                   "aborting": self.aborting, "ring_depth": ring_depth, "planning": bool(self.planning),
+                   "underruns": self.stream.underruns(), "braking": braking,
+                   "stopped_because": self.reason, "homed": list(self.homed), "outputs": dict(self.outputs),
+                   "optional_stop": self.optional_stop,
+                   "homing": list(self.homing_state), "homing_configured": [h is not None for h in self.homing],
+                   "homing_runs": self.homing_runs(),
+                   "filler_alive": self._thread is not None and self._thread.is_alive(),
+                   "idle": not busy and ring_depth == 0 and not braking}
+        return out
 
     # ---------------------------------------------------------------- homing
     def home(self, i: int) -> dict:
