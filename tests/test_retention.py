@@ -187,9 +187,14 @@ def test_retention_keys_are_bounded(gantry_yaml):
 
 
 def test_daemon_rotates_within_its_budget_keeps_every_event_and_reports_it(tmp_path):
+    """Segments of 1 MiB against a budget of 8 MiB: the oldest routine segments go, the three
+    fault event logs stay. Their window is 0.3 s here (0.54 MB each): at the shipped 3 s (5.4 MB
+    each) two could not both fit in what the budget leaves beside two segments, and the test had
+    passed only where the faults came close enough for one log to take the next (1 kept in a CI
+    run)."""
     seg, budget = 1 << 20, 8 << 20
-    with running_daemon(tmp_path, extra_daemon={"log_segment_bytes": seg,
-                                                "log_budget_bytes": budget}) as d:
+    with running_daemon(tmp_path, extra_daemon={"log_segment_bytes": seg, "log_budget_bytes": budget,
+                                                "event_before_s": 0.2, "event_after_s": 0.1}) as d:
         sock, logs = d.sock, tmp_path / "logs"
         peak = 0
         for _ in range(3):                           # three fault event logs on X
@@ -214,7 +219,7 @@ def test_daemon_rotates_within_its_budget_keeps_every_event_and_reports_it(tmp_p
         assert code == 0, err
     assert peak <= budget and _dir_bytes(logs) <= budget, (peak, budget)
     assert ret["budget_bytes"] == budget and 0 < ret["kept_bytes"] <= budget
-    assert ret["dropped_segments"] >= 5 and ret["kept_events"] >= 2
+    assert ret["dropped_segments"] >= 5 and ret["kept_events"] >= 3, ret
     # per second of the run's own time: the rows' bytes and the segments' headers, whatever the host
     assert 1.0 <= ret["bytes_per_s"] / ret["row_bytes_per_s"] < 1.5, ret
     # 8-byte floats, one row of the daemon's axes' record per cycle at 5 kHz
