@@ -44,23 +44,12 @@ class Identifier:
     """The driver of the identification's stages on one record: it holds the records each stage
     returns and hands them to the next; all the work is the stages'.
 
-    Args (the record opened by :func:`motorctl.ident.fit.start`):
-        rec: a checked :class:`~motorctl.ident.data.Record`.
-        n_theta: 4 or 6 to force the nominal structure (default: chosen from the input range).
-        friction: 'sf' (the paper's S_f(ẋ) = (2/π)atan(900ẋ)) or 'sign' (the EMPS reference
-            model's sign(ẋ)) for the Coulomb column.
-        fq, nd: position cut-off [Hz] and decimation factor (default: idim.default_filters).
-        families: effect family names to search (default: all of the registry, in its order).
-        seed: the draw of the held-out folds' blocks.
-        zoh_delay: delay [samples] between the logged input and the acceleration it causes
-            (default 0.5 for motorctl run logs, whose input is a zero-order hold; for other
-            files found in the data).
+    Args:
+        rec, n_theta, friction, fq, nd, families, seed, zoh_delay, current_loop: the record and
+            how it is opened and fitted, as :func:`motorctl.ident.fit.start` takes them.
         on_nominal: called with the nominal θ̂ (n_theta,) each time the nominal model is
             fitted, before the effect search starts (e.g. to start a closed-loop run with it
             meanwhile); None: nothing.
-        current_loop: model the amplifier's current loop the run log's config declares in every
-            input column (off, default: the loop is fitted as an input delay, and when Stribeck
-            is selected its values are taken on the loop's model, :func:`motorctl.ident.values.refit`).
 
     Raises:
         ValueError: unknown friction shape or effect family.
