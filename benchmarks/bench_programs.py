@@ -167,16 +167,10 @@ class Daemon:
                                      stdout=self.err, stderr=self.err, cwd=REPO)
         self.c = Client(self.sock, timeout_s=10.0)
         try:
-            end = time.monotonic() + 300
-            while True:
-                try:
-                    if self.c.status()["realtime_summary"] != "pending":
-                        break
-                except DaemonUnreachable:
-                    pass
-                if time.monotonic() > end or self.proc.poll() is not None:
-                    raise SystemExit(f"the daemon did not start; see {tmp / 'daemon.err'}")
-                time.sleep(0.2)
+            try:
+                self.c.wait_started(300, alive=lambda: self.proc.poll() is None)
+            except DaemonUnreachable as exc:
+                raise SystemExit(f"{exc}; see {tmp / 'daemon.err'}") from None
             for a in ("X", "Y"):
                 self.c.start(a, mode="command")
         except BaseException:

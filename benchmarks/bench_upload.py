@@ -251,7 +251,7 @@ class Setup:
         from bench_views import _port
 
         from motorctl.app.users import hash_password
-        from motorctl.client import DaemonUnreachable, call
+        from motorctl.client import Client as Control, DaemonUnreachable
         users = tmp / "users.yaml"
         users.write_text(yaml.safe_dump({"users": {OPERATOR[0]: {"password": hash_password(OPERATOR[1]),
                                                                  "roles": ["operator"]}}}))
@@ -268,17 +268,11 @@ class Setup:
         self.sock, self.err_path = str(tmp / "motorctl.sock"), tmp / "daemon.err"
         self.proc = subprocess.Popen([sys.executable, "-m", "motorctl", "daemon", str(cfg)],
                                      stdout=open(self.err_path, "w"), stderr=subprocess.STDOUT, cwd=REPO)
-        deadline = time.monotonic() + 300
-        while True:
-            try:
-                if call(self.sock, {"cmd": "status"}, 10.0)["status"]["realtime_summary"] != "pending":
-                    break
-            except DaemonUnreachable:
-                pass
-            if time.monotonic() > deadline or self.proc.poll() is not None:
-                self.stop()
-                raise SystemExit(f"the daemon did not start: {self.err_path.read_text()[-2000:]}")
-            time.sleep(0.2)
+        try:
+            Control(self.sock, timeout_s=10.0).wait_started(300, alive=lambda: self.proc.poll() is None)
+        except DaemonUnreachable as exc:
+            self.stop()
+            raise SystemExit(f"{exc}: {self.err_path.read_text()[-2000:]}") from None
 
     def stop(self) -> None:
         self.proc.terminate()

@@ -83,17 +83,11 @@ class Daemon:
         self.proc = subprocess.Popen([sys.executable, "-m", "motorctl", "daemon", str(self.cfg)],
                                      stdout=self.err, stderr=self.err, cwd=REPO)
         self.c = Client(self.sock, timeout_s=30.0)
-        end = time.monotonic() + 300
-        while True:
-            try:
-                if self.c.status()["realtime_summary"] != "pending":
-                    break
-            except DaemonUnreachable:
-                pass
-            if time.monotonic() > end or self.proc.poll() is not None:
-                self.proc.kill()
-                raise SystemExit(f"the daemon did not start: {self.err_path.read_text()[-2000:]}")
-            time.sleep(0.2)
+        try:
+            self.c.wait_started(300, alive=lambda: self.proc.poll() is None)
+        except DaemonUnreachable as exc:
+            self.proc.kill()
+            raise SystemExit(f"{exc}: {self.err_path.read_text()[-2000:]}") from None
         self.ready_s = time.monotonic() - self.t0
         self.c.start("Y")
 

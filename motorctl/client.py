@@ -202,6 +202,26 @@ class Client:
     def home(self, axis: str) -> dict:
         return self.request({"cmd": "home", "axis": axis})
 
+    def wait_started(self, timeout_s: float = 300.0, alive=None, poll_s: float = 0.2) -> dict:
+        """Until the daemon answers with its real-time set-up done (``status()["realtime_summary"]``
+        no longer "pending"): what a script that has just started ``motorctl daemon`` waits for.
+        ``alive``: called between tries, False when the daemon's process has ended (then no
+        more waiting). Returns that status. Raises DaemonUnreachable: not started within
+        ``timeout_s`` [s], or ``alive()`` False."""
+        end = time.monotonic() + timeout_s
+        while True:
+            try:
+                st = self.status()
+                if st["realtime_summary"] != "pending":
+                    return st
+            except DaemonUnreachable:
+                pass
+            if alive is not None and not alive():
+                raise DaemonUnreachable("the daemon's process ended before it started")
+            if time.monotonic() > end:
+                raise DaemonUnreachable(f"the daemon did not start within {timeout_s:g} s")
+            time.sleep(poll_s)
+
     def wait(self, timeout_s: float = 60.0, poll_s: float = 0.02) -> dict:
         """Until nothing is queued or streamed and every axis in command mode is within its
         in-position window (or ``timeout_s``: DaemonUnreachable). Returns the last status. A program cut short (underrun, abort, fault) ends the wait too: see
