@@ -272,15 +272,11 @@ class IOSide:
         """What the machine state is computed from now (:class:`.machine.Observed`); ``st``: the
         status block (n, len(ST_FIELDS)) to read (default: the live one the loop writes);
         ``motion``: the motion block of the same ``status`` (:meth:`MotionSide.status`; default:
-        the motion side read now)."""
+        read now)."""
         st = self.plan.ring.status if st is None else st
+        motion = self.motion.status() if motion is None else motion
         modes = tuple(MODE_NAMES.get(int(st[i, ST["mode"]]), "?") for i in range(len(self.names)))
         faults = tuple(self.fault_line(i, st) for i in range(len(self.names)))
-        if motion is None:
-            mo = self.motion
-            busy = not mo.idle() or mo.homing_runs() or self.job is not None
-            return Observed(modes, faults, busy, mo.held(), bool(mo.aborting), mo.stream.depth(),
-                            mo.stream.braking())
         busy = not motion["idle"] or motion["homing_runs"] or self.job is not None
         return Observed(modes, faults, busy, motion["held"], bool(motion["aborting"]), motion["ring_depth"],
                         motion["braking"])
@@ -292,9 +288,9 @@ class IOSide:
         return fault_text(int(st[ST["fault"]]), st[ST["value"]], st[ST["limit"]],
                           REC_REASONS.get(int(self.plan.ring.ctl[CTL_REC_LATCHED]), ""))
 
-    def machine_status(self, st=None, motion: dict | None = None) -> dict:
+    def machine_status(self, st, motion: dict) -> dict:
         """``status``' ``machine`` block: the PackML state and each axis's CiA 402 state, from
-        the status block ``st`` and the motion block ``motion`` (default: both read now)."""
+        the status block ``st`` and the motion block ``motion`` of the same ``status``."""
         ob = self.observed(st, motion)
         return {"state": machine_state(ob).value,
                 "axes": {a: axis_state(m, f) for a, m, f in zip(self.names, ob.modes, ob.faults)}}

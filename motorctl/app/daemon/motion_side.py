@@ -617,16 +617,18 @@ class MotionSide:
         """The homing sequence's thread is running."""
         return self._homing_thread is not None and self._homing_thread.is_alive()
 
-    def held(self) -> bool:
-        """The commanded motion is held: a feed hold, a programmed pause, an underrun's pause."""
-        with self.lock:
-            return self.holding or self._dry is not None or self.reason.startswith("paused")
+    def _busy(self) -> bool:
+        """(lock held) Something is queued, streamed, being planned, or paused after an underrun."""
+        return self.cur is not None or bool(self.queue) or bool(self.planning) or self._dry is not None
+
+    def _held(self) -> bool:
+        """(lock held) A feed hold, a programmed pause, an underrun's pause."""
+        return self.holding or self._dry is not None or self.reason.startswith("paused")
 
     def idle(self) -> bool:
         """Nothing queued or streaming, and the ring drained."""
         with self.lock:
-            busy = (self.cur is not None or bool(self.queue) or bool(self.planning)
-                    or self._dry is not None)
+            busy = self._busy()
         return not busy and self.stream.depth() == 0 and not self.stream.braking()
 
     def progress(self) -> tuple[int, float, float]:
@@ -651,14 +653,14 @@ class MotionSide:
 
     def status(self) -> dict:
         """``status``' ``motion`` block, one instant of it: what is queued, held and streamed
-        read under one hold of the lock, the ring's depth and brake read once, ``idle`` and
-        ``held`` (:meth:`idle`, :meth:`held`) from those same values (the machine state is
-        computed from this block: two reads had let it say idle beside a motion that was not)."""
+        read under one hold of the lock, the ring's depth and brake read once, ``idle`` (as
+        :meth:`idle` says) and ``held`` (a feed hold, a programmed pause, an underrun's pause)
+        from those same values (the machine state is computed from this block: two reads had
+        let it say idle beside a motion that was not)."""
         line, done, left = self.progress()
         with self.lock:
             depth = len(self.queue) + (self.cur is not None) + (self._dry is not None)
-            busy = self.cur is not None or bool(self.queue) or bool(self.planning) or self._dry is not None
-            held = self.holding or self._dry is not None or self.reason.startswith("paused")
+            busy, held = self._busy(), self._held()
             ring_depth, braking = self.stream.depth(), self.stream.braking()
             out = {"queue_depth": depth, "line": line, "done": done, "time_left_s": left,
                    "feed_m_s": self.feed_m_s,
