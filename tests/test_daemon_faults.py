@@ -77,7 +77,11 @@ def test_injected_faults_latch_zero_volts_and_reset(fault_daemon):
     # the 5 injected faults and the shutdown latch of SIGTERM on a disabled axis: none
     assert len(onsets) == len(FAULTS)
     for k, (_, bit, _, _) in zip(onsets, FAULTS):
-        assert int(fb[k]) & bit
+        # the fault's own bit among those latched until its reset (a push out of the soft
+        # limits trips the following error first: the reading trips beyond the limit widened
+        # by min_following_error_m)
+        rows = fb[k:k + int(np.argmax(fb[k:] == 0))] if (fb[k:] == 0).any() else fb[k:]
+        assert np.bitwise_or.reduce(rows.astype(np.int64)) & bit
         assert en[k - 1] == 1.0, "the axis was driven the cycle before"
         assert u[k] == 0.0 and en[k] == 0.0, "0 V and amplifier off in the cycle of the fault"
     events = [e for e in log.header["events"] if e["kind"] == "fault-X"]

@@ -11,8 +11,8 @@ import yaml
 
 from motorctl.config import config_from_dict
 from motorctl.app.build import build
-from motorctl.loop.safety import (FAULT_ENCODER_JUMP, FAULT_FOLLOWING_ERROR, FAULT_OVERRUN, Supervisor,
-                             describe_faults)
+from motorctl.loop.safety import (FAULT_ENCODER_JUMP, FAULT_FOLLOWING_ERROR, FAULT_OVERRUN, FAULT_SOFT_LIMIT,
+                                  Supervisor, describe_faults)
 from motorctl.loop.servo import APPROACH, HOLD, IDLE, PROGRAM
 from motorctl.loop.trajectory import Move
 
@@ -64,6 +64,24 @@ def test_supervisor_encoder_jump_and_reset_refused_while_cause_persists(gantry_y
     assert "not finite" in sup.reset(0, float("nan"), False)[1]
     assert sup.reset(0, 0.1, False) == (True, "")
     assert describe_faults(0) == "none"
+
+
+def test_the_reading_trips_beyond_the_soft_limits_widened_by_the_following_error_at_rest(gantry_yaml):
+    """A commanded target is judged by the soft limits themselves; the reading by the soft limits
+    widened by min_following_error_m (a move that ends on a limit settles a count beyond it), and
+    the reset by the same window as the trip."""
+    ld = config_from_dict(yaml.safe_load(open(gantry_yaml)))
+    lim = ld.axes["X"].limits
+    lo, tol = lim.soft_min_m, lim.min_following_error_m
+    sup = Supervisor([lim], ld.period_s)
+    assert not sup.inside(0, lo - 5e-7) and sup.stands_inside(0, lo - 5e-7)
+    for y in np.linspace(lo + 1e-3, lo - 0.999 * tol, 50):          # a count, ..., almost tol beyond
+        assert sup.check_input(0, float(y), False, False), y
+    assert not sup.check_input(0, lo - 1.001 * tol, False, False)
+    assert sup.fault[0] == FAULT_SOFT_LIMIT and sup.limit_at_fault[0] == lo - tol
+    assert "outside the soft limits" in sup.reset(0, lo - 1.001 * tol, False)[1]
+    assert sup.reset(0, lo - 0.5 * tol, False) == (True, "")         # where the trip would not fire
+    assert sup.check_input(0, lo - 0.6 * tol, False, False)
 
 
 def test_axis_starts_disabled_then_bumpless_approach_program_and_stop(gantry_yaml):

@@ -209,7 +209,7 @@ def approach_all(asm: Assembly) -> tuple[int, list]:
     bad = []
     for i, a in enumerate(asm.names):
         lo, hi = asm.loaded.axes[a].limits.soft_min_m, asm.loaded.axes[a].limits.soft_max_m
-        if not sup.inside(i, ys[i]):
+        if not sup.stands_inside(i, ys[i]):
             bad.append(f"axis {a} stands at {ys[i]:.6f} m, outside its soft limits [{lo:g}, {hi:g}] m "
                        f"(jog it back inside with the daemon's 'motorctl jog')")
         elif sup.fault[i]:

@@ -8,7 +8,11 @@ Checks per axis (see ``LimitsConfig``):
     −decrement per clean one, fault at the limit;
   * encoder sanity: a change of the reading faster than ``encoder_max_speed_m_per_s`` over the
     cycles since the last good reading (lost answers widen the allowance, any loop rate);
-  * soft position limits;
+  * soft position limits: every commanded target is checked against them before anything
+    moves (the planner, a jog); the reading trips beyond them widened by the following error
+    allowed at rest (``min_following_error_m``): a move that ends at a limit may settle a count
+    or two beyond it, a carriage further out is not following its command (a push, a coast at
+    0 V after a fault at speed);
   * velocity-scaled following error: limit = max(min_fe, fe·|ẋ_d|/v_max) (motion/control.c);
   * amplifier fault reported by the drive;
   * I²t of the output (:func:`sup_check_thermal`): the drive's thermal protection of the coil;
@@ -120,15 +124,17 @@ def sup_check_input(si, sf, i, y, io_error, amp_fault):
     sf[i, SF_YLAST] = y
     lo = sf[i, SF_LO]
     hi = sf[i, SF_HI]
+    rlo = sf[i, SF_SOFTLO] - sf[i, SF_FEMIN]     # the reading's window (module docstring)
+    rhi = sf[i, SF_SOFTHI] + sf[i, SF_FEMIN]
     if y < lo:
         sup_trip(si, sf, i, FAULT_SOFT_LIMIT, y, lo)
     elif y > hi:
         sup_trip(si, sf, i, FAULT_SOFT_LIMIT, y, hi)
-    elif lo != sf[i, SF_SOFTLO] or hi != sf[i, SF_SOFTHI]:
+    elif lo != rlo or hi != rhi:
         # recovering: the window follows the axis in, never out (RECOVERY_MARGIN_M slack)
         m = RECOVERY_MARGIN_M
-        sf[i, SF_LO] = max(lo, min(y - m, sf[i, SF_SOFTLO]))
-        sf[i, SF_HI] = min(hi, max(y + m, sf[i, SF_SOFTHI]))
+        sf[i, SF_LO] = max(lo, min(y - m, rlo))
+        sf[i, SF_HI] = min(hi, max(y + m, rhi))
     return si[i, SI_FAULT] == 0
 
 
@@ -263,13 +269,15 @@ class Supervisor:
             si[i, SI_DEC] = lim.error_bucket_decrement
             si[i, SI_BLIM] = lim.error_bucket_limit
             sf[i, SF_YLAST] = math.nan
-            # the window the position is checked against (SF_LO, SF_HI): the soft limits,
-            # widened to where the axis stands during a recovery (begin_recovery) and
-            # narrowing as it comes back in
-            sf[i, SF_LO] = sf[i, SF_SOFTLO] = lim.soft_min_m
-            sf[i, SF_HI] = sf[i, SF_SOFTHI] = lim.soft_max_m
+            # the window the reading is checked against (SF_LO, SF_HI): the soft limits
+            # (SF_SOFTLO, SF_SOFTHI) widened by the following error allowed at rest (module
+            # docstring), and further to where the axis stands during a recovery
+            # (begin_recovery), narrowing as it comes back in
+            sf[i, SF_SOFTLO], sf[i, SF_SOFTHI] = lim.soft_min_m, lim.soft_max_m
             sf[i, SF_FE] = lim.following_error_m
             sf[i, SF_FEMIN] = lim.min_following_error_m
+            sf[i, SF_LO] = lim.soft_min_m - lim.min_following_error_m
+            sf[i, SF_HI] = lim.soft_max_m + lim.min_following_error_m
             sf[i, SF_VMAX] = lim.max_velocity_m_per_s
             sf[i, SF_JUMP] = lim.encoder_max_speed_m_per_s * period_s     # per cycle
             sf[i, SF_TS] = period_s
@@ -319,19 +327,30 @@ class Supervisor:
     def reset(self, i: int, y: float, amp_fault: bool) -> tuple[bool, str]:
         """Clear axis i's latched fault if its cause is gone (outside the cycle).
 
-        Returns (cleared, why_not). Refused while the position is NaN or outside the soft
-        limits, or the amplifier still reports a fault.
+        Returns (cleared, why_not). Refused while the position is NaN or stands outside the
+        soft limits (:meth:`stands_inside`), or the amplifier still reports a fault.
         """
         if not (y - y == 0.0):
             return False, "position reading is not finite"
-        lo, hi = float(self.sf[i, SF_SOFTLO]), float(self.sf[i, SF_SOFTHI])
-        if y < lo or y > hi:
+        if not self.stands_inside(i, y):
+            lo, hi = float(self.sf[i, SF_SOFTLO]), float(self.sf[i, SF_SOFTHI])
             return False, f"position {y:.6f} m is outside the soft limits [{lo}, {hi}] m"
         if amp_fault:
             return False, "the amplifier still reports a fault"
         self._clear(i, y)
-        self.sf[i, SF_LO], self.sf[i, SF_HI] = lo, hi
+        self.sf[i, SF_LO], self.sf[i, SF_HI] = self._reading_window(i)
         return True, ""
+
+    def _reading_window(self, i: int) -> tuple[float, float]:
+        tol = float(self.sf[i, SF_FEMIN])
+        return float(self.sf[i, SF_SOFTLO]) - tol, float(self.sf[i, SF_SOFTHI]) + tol
+
+    def stands_inside(self, i: int, y: float) -> bool:
+        """True when a reading y [m] of axis i stands inside its soft limits as the reading is
+        judged: widened by the following error allowed at rest (``min_following_error_m``;
+        module docstring). A commanded target is judged by :meth:`inside`."""
+        lo, hi = self._reading_window(i)
+        return bool(lo <= y <= hi)
 
     def _clear(self, i: int, y: float) -> None:
         self.fault[i] = 0
@@ -341,7 +360,7 @@ class Supervisor:
         self.i2t[i] = 0.0            # a reset is the operator's word that the coil has cooled
 
     def inside(self, i: int, x: float) -> bool:
-        """True when position x [m] lies within axis i's soft limits."""
+        """True when a commanded position x [m] lies within axis i's soft limits."""
         return bool(self.sf[i, SF_SOFTLO] <= x <= self.sf[i, SF_SOFTHI])
 
     def begin_recovery(self, i: int, y: float, target: float, amp_fault: bool) -> tuple[bool, str]:
@@ -363,7 +382,8 @@ class Supervisor:
             return False, "the amplifier still reports a fault"
         self._clear(i, y)
         m = RECOVERY_MARGIN_M
-        self.sf[i, SF_LO], self.sf[i, SF_HI] = min(lo, y - m), max(hi, y + m)
+        rlo, rhi = self._reading_window(i)
+        self.sf[i, SF_LO], self.sf[i, SF_HI] = min(rlo, y - m), max(rhi, y + m)
         return True, ""
 
 

@@ -26,6 +26,7 @@ itself and removes the socket). ``fault-reset`` is refused while the cause persi
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import sys
@@ -71,6 +72,8 @@ LINK_CHECK_S = 0.05
 STATUS_PUBLISH_S = 0.005
 #: cycles recorded after a SIGTERM before the loop ends (the 0 V rows reach the log)
 SHUTDOWN_TAIL_CYCLES = 10
+#: how far inside its soft limits the jog a refused fault reset names takes the axis [m]
+WAY_OUT_INSIDE_M = 0.001
 #: a signal's category-1 stop may take this much beyond its bound (the longest move of a
 #: program or a stream's brake from v_max, plus daemon.stop_settle_s) before the power is cut [s]
 SIGNAL_STOP_MARGIN_S = 0.05
@@ -208,7 +211,7 @@ class LoopSide:
                 if pending:              # the drive's reset is sent: answered once it left its fault
                     self.resets.append((i, {**r, "was": was}))
                     return None
-                r.update(ok=ok, error=why, was=was)
+                r.update(ok=ok, error=self.way_out(i, why), was=was)
             elif op == "jog":
                 mv = m["move"]
                 y = float(self.asm.driver.position_m[i])
@@ -331,9 +334,21 @@ class LoopSide:
             if not done:
                 left.append((i, r))
                 continue
-            self._answer({**r, "ok": ok, "error": why, "cycle": lp.k})
+            self._answer({**r, "ok": ok, "error": self.way_out(i, why), "cycle": lp.k})
             self.status.publish()
         self.resets = left
+
+    def way_out(self, i: int, why: str) -> str:
+        """A fault reset's refusal ``why`` ("" when none) with the way out when axis i stands
+        outside its soft limits (a drive fault at speed lets the carriage coast on, past them):
+        the jog of the disabled axis back inside, which the loop takes in a fault too
+        (:meth:`Supervisor.begin_recovery`), to the nearest point 1 mm inside."""
+        y = float(self.asm.driver.position_m[i])
+        if not why or not math.isfinite(y) or self.loop.supervisor.stands_inside(i, y):
+            return why
+        lim = self.asm.loaded.axes[self.names[i]].limits
+        to = min(max(y, lim.soft_min_m + WAY_OUT_INSIDE_M), lim.soft_max_m - WAY_OUT_INSIDE_M)
+        return f"{why}; jog it back inside first: motorctl jog {self.names[i]} {to:.4f}"
 
     def stop_on_signal(self, lp, k: int) -> None:
         """Between cycles after SIGTERM/SIGINT: a stop of category 1 (IEC 60204-1 §9.2.2) of every
