@@ -97,8 +97,9 @@ MAX_UPLOADS, UPLOAD_IDLE_S = 4, 120.0
 class IOSide:
     """The I/O process after the fork. ``plan`` is the daemon's :class:`DaemonPlan`."""
 
-    def __init__(self, plan, lsock, writer: SegmentWriter, cmds: Mailbox, replies: Mailbox):
+    def __init__(self, plan, lsock, writer: SegmentWriter, cmds: Mailbox, replies: Mailbox, journal=None):
         self.plan, self.lsock, self.cmds, self.replies = plan, lsock, cmds, replies
+        self.journal = journal             # the stderr Journal (its dropped lines in status)
         asm = plan.asm
         self.names = asm.names
         self.layout = asm.loop.layout
@@ -655,7 +656,7 @@ class IOSide:
                     "events_pending": len(dr.pending), "events_dropped": dr.events_dropped,
                     "recorder_fault": REC_REASONS.get(dr.fault, ""), "error": dr.error,
                     "write_errors": dr.write_errors, "rows_unwritten": dr.drained - dr.written,
-                    "journal_dropped": getattr(sys.stderr, "dropped", 0),
+                    "journal_dropped": self.journal.dropped if self.journal is not None else 0,
                     "retention": self.retention.figures() if self.retention else {}},
             "link": dict(self.link),
             "motion": motion,
@@ -1184,6 +1185,6 @@ def io_main(plan, lsock, writer: SegmentWriter, cmds: Mailbox, replies: Mailbox)
         keep_off(loop_cpu(rt.cpu))
     journal = install_journal()          # no line on stderr ever waits for its reader here
     try:
-        return IOSide(plan, lsock, writer, cmds, replies).run()
+        return IOSide(plan, lsock, writer, cmds, replies, journal).run()
     finally:
         journal.drain(JOURNAL_DRAIN_S)
