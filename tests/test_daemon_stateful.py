@@ -577,23 +577,37 @@ def test_a_program_still_being_checked_gives_way_to_the_next_one(ready):
     assert abs(s["axes"]["X"]["x_d_m"] - 0.120) < 1e-5 and not s["motion"]["stopped_because"], s["motion"]
 
 
-def test_an_abort_brings_a_move_to_rest_within_the_feed_holds_time_on_the_loops_clock(ready):
-    """An abort during a move: on the loop's own clock (the run log's rows from the cycle the
-    abort was taken at), every axis's setpoint at rest within the feed hold's ramp (the feed scale
-    from 1 to 0 at its bounded rate and rate of change, motion_side's F_RATE_PER_S and
-    F_ACCEL_PER_S2 for the slowest axis: 0.225 s here) plus REACTION_S for the rewrite to take
-    (its guard, 4 ms, widened when a loaded host delays the filler); held there."""
+#: each commanded motion an abort must end: its request, and the axis that moves (from 0.1 m)
+MOTIONS = {
+    "move": ({"cmd": "move", "targets": {"X": 0.4, "Y": 0.35}, "feed": 0.2}, "X"),
+    "jog": ({"cmd": "jog", "axis": "X", "by": 0.25}, "X"),
+    "program": ({"cmd": "gcode", "text": "G21 G90\nG1 X350 Y300 F6000\nM2\n", "filename": "line.ngc"}, "X"),
+    "homing": ({"cmd": "home", "axis": "Y"}, "Y"),            # the search at 20 mm/s toward the switch
+}
+
+
+@pytest.mark.parametrize("kind", list(MOTIONS))
+def test_an_abort_brings_every_motion_to_rest_within_the_feed_holds_time_on_the_loops_clock(ready, kind):
+    """An abort during a move, a jog, a program or a homing search: on the loop's own clock (the
+    run log's rows from the cycle the abort was taken at), every axis's setpoint at rest within
+    the feed hold's ramp (the feed scale from 1 to 0 at its bounded rate and rate of change,
+    motion_side's F_RATE_PER_S and F_ACCEL_PER_S2 for the slowest axis: 0.225 s here) plus
+    REACTION_S for the rewrite to take (its guard, 4 ms, widened when a loaded host delays the
+    filler); held there."""
     from motorctl.app.daemon import motion_side as M
     sock = ready
     ratio = min(40.0 / 2.0, 10.0 / 1.0)                # configs/gantry.yaml: a_max / v_max of X, Y
     rate, accel = M.F_RATE_PER_S * ratio, M.F_ACCEL_PER_S2 * ratio * ratio
     bound_s = 1.0 / rate + rate / accel + REACTION_S
-    assert req(sock, cmd="move", targets={"X": 0.4, "Y": 0.35}, feed=0.2)["ok"]
-    wait_for(lambda: abs(status(sock)["axes"]["X"]["x_d_m"] - 0.1) > 0.02, 10, "the move under way")
+    request, axis = MOTIONS[kind]
+    assert req(sock, **request)["ok"]
+    wait_for(lambda: abs(status(sock)["axes"][axis]["x_d_m"] - 0.1) > 0.01, 10, f"the {kind} under way")
     ans = req(sock, cmd="abort")
     assert ans["ok"], ans
     k_abort = ans["cycle"]
-    ended(sock)
+    s = ended(sock)
+    if kind == "homing":
+        assert s["motion"]["homing"][1] == "failed: aborted", s["motion"]
     s = status(sock)
     rest_k = k_abort + int(round(2 * bound_s * s["loop"]["rate_hz"]))
     wait_for(lambda: status(sock)["log"]["rows_flushed"] > rest_k + 100, 20, "the rows on disk")
