@@ -27,7 +27,7 @@ import time
 
 from motorctl.app.build import approach_move
 from motorctl.app.daemon.forked import own_session
-from motorctl.app.daemon.journal import install as install_journal
+from motorctl.app.daemon.journal import Journal, install as install_journal
 from motorctl.app.daemon.machine import MachineState, Observed, axis_state, machine_state, refusal
 from motorctl.app.daemon.motion_side import AxisLimits, MotionError, MotionSide
 from motorctl.app.daemon.notify import sd_notify, watchdog_ping_interval_s
@@ -97,7 +97,7 @@ MAX_UPLOADS, UPLOAD_IDLE_S = 4, 120.0
 class IOSide:
     """The I/O process after the fork. ``plan`` is the daemon's :class:`DaemonPlan`."""
 
-    def __init__(self, plan, lsock, writer: SegmentWriter, cmds: Mailbox, replies: Mailbox, journal=None):
+    def __init__(self, plan, lsock, writer: SegmentWriter, cmds: Mailbox, replies: Mailbox, journal: Journal):
         self.plan, self.lsock, self.cmds, self.replies = plan, lsock, cmds, replies
         self.journal = journal             # the stderr Journal (its dropped lines in status)
         asm = plan.asm
@@ -656,7 +656,7 @@ class IOSide:
                     "events_pending": len(dr.pending), "events_dropped": dr.events_dropped,
                     "recorder_fault": REC_REASONS.get(dr.fault, ""), "error": dr.error,
                     "write_errors": dr.write_errors, "rows_unwritten": dr.drained - dr.written,
-                    "journal_dropped": self.journal.dropped if self.journal is not None else 0,
+                    "journal_dropped": self.journal.dropped,
                     "retention": self.retention.figures() if self.retention else {}},
             "link": dict(self.link),
             "motion": motion,
