@@ -139,6 +139,33 @@ def test_model_error_term_stays_out_of_a_correct_model():
     assert zero >= 80, zero              # the 5 % test on three values: about 86 of 100 clean
 
 
+def test_ungated_model_error_is_the_positive_part_of_the_excess():
+    # |d| = 1.5 sqrt(V_d): not significant at 5 %, so the gated term is 0; the ungated one keeps
+    # sqrt(d² - V_d); a difference within its own spread gives 0 either way
+    assert model_error(1.5, 1.0) == 0.0
+    assert model_error(1.5, 1.0, gated=False) == pytest.approx(np.sqrt(1.25))
+    assert model_error(0.5, 1.0, gated=False) == 0.0
+    assert model_error(3.0, 1.0) == model_error(3.0, 1.0, gated=False) == pytest.approx(np.sqrt(8.0))
+
+
+def test_a_disturbance_frequency_off_by_the_rest_samples_is_inside_its_interval(tmp_path):
+    # the default plant stands 87 % of this record (stiction holds the carriage, the 7.3 Hz line
+    # does not reach the input there): the frequency came out 1.9e-4 Hz low, its interval
+    # +-3.7e-5 Hz (the fit in motion's difference, 1.7e-4 Hz, not significant on its 13 % of
+    # the samples); the searched parameter takes that difference beyond its spread
+    log = tmp_path / "periodic.mclog"
+    make_log(str(log), {"periodic_disturbance": {"amplitude_N": 6.0, "frequency_Hz": 7.3, "phase_rad": 0.4}},
+             duration_s=20.0, seed=4, axis="X", noise_N=None, base=DEFAULT)
+    _, s = identify_record(load_record(str(log), axis="X"))
+    line = _effect(s, "periodic_disturbance")
+    assert line is not None, [e["name"] for e in s["effects"]]
+    lo, hi = line["parameters_ci95"]["frequency_Hz"]
+    assert lo <= 7.3 <= hi, (line["parameters"]["frequency_Hz"], lo, hi)
+    # the size's interval is not widened by the ungated rule: the gated term, or none
+    a_lo, a_hi = line["parameters_ci95"]["amplitude_N"]
+    assert a_lo > 0.0
+
+
 def test_split_refused_where_a_column_vanishes():
     m = 400
     phi = np.column_stack([np.ones(m), np.r_[np.ones(200), np.zeros(200)]])

@@ -42,7 +42,14 @@ else 0, the largest over the splits (:func:`model_error`; named parameters throu
 delta method). When the values' model holds columns for a structure the record cannot resolve
 (the identifier's ``nuisance``: a structural mode above the record's band, its antiresonance
 assumed), the values' shift against the model without them is a third such difference
-(:func:`omitted_difference`). The stated standard deviation is sqrt(σ² + b²), σ the sandwich's, and the
+(:func:`omitted_difference`). A searched parameter (a frequency, a period, a Stribeck velocity:
+the value of a Gauss-Newton column, never a size whose interval decides whether an effect is
+named) takes the positive part sqrt(max(d² − V_d, 0)) without the significance test: a split
+of few samples has little power, and the pre-test then sets a bias it cannot prove to 0. (On
+the default plant a 7.3 Hz disturbance's frequency, fitted over records at rest 87 % of the
+time, where stiction holds the carriage and the line does not reach the input, came out 1-8e-4
+Hz off against a sampling σ of 1-4e-5 Hz; the fit on the samples in motion is within 3e-5 Hz
+of the truth, but its difference was significant on 6 of 10 records.) The stated standard deviation is sqrt(σ² + b²), σ the sandwich's, and the
 interval value ± 1.96 of it (a normal approximation: asymptotically exact for the sandwich,
 Newey & West 1987, Thm. 2). Its assumption: the low band's fit, or the fit in motion, is the
 less biased, so that the full fit's bias is about its difference from it. A bias both share
@@ -239,12 +246,17 @@ def omitted_difference(a: np.ndarray, cov: np.ndarray, idx, coef: np.ndarray) ->
     return d, vd
 
 
-def model_error(d: float, vd: float) -> float:
+def model_error(d: float, vd: float, gated: bool = True) -> float:
     """The bias a split's difference ``d`` shows beyond its sampling variance ``vd`` (both of
     one value): sqrt(d² − V_d) when |d| exceeds :data:`Z95`·sqrt(V_d) (the Hausman statistic
-    d²/V_d beyond the 95 % point of χ²₁), else 0."""
+    d²/V_d beyond the 95 % point of χ²₁), else 0. ``gated`` False: the positive part
+    sqrt(max(d² − V_d, 0)) whether significant or not (E[d²] = b² + V_d: the estimate of b²
+    without the pre-test, which sets an insignificant bias to 0 and so covers less where the
+    split has little power)."""
     if not (math.isfinite(d) and math.isfinite(vd)) or vd < 0:
         return 0.0
+    if not gated:
+        return math.sqrt(max(d * d - vd, 0.0))
     return math.sqrt(d * d - vd) if d * d > Z95 * Z95 * vd else 0.0
 
 
@@ -366,7 +378,8 @@ def fit_uncertainty(fits, ev, terms, params_of, white: bool = False, specificati
             splits["nuisance"] = omitted_difference(full, cov, range(phi.shape[1] - k_n, phi.shape[1]), cf)
     bias = np.zeros(len(sd))
     for d, vd in splits.values():
-        bias = np.maximum(bias, [model_error(float(d[j]), float(vd[j, j])) for j in range(len(sd))])
+        bias = np.maximum(bias, [model_error(float(d[j]), float(vd[j, j]), gated=j < phi.shape[1])
+                                 for j in range(len(sd))])
     tot = np.sqrt(sd ** 2 + bias ** 2)
     out = {"theta_std": [float(v) for v in tot[:nt]],
            "theta_ci95": [ci95(float(coef[j]), float(tot[j])) for j in range(nt)],
@@ -446,10 +459,13 @@ def _effect_interval(t, b, idx, cov, with_h, params_of, splits=(), own=None) -> 
         if not math.isfinite(var[r]) and s_own is not None and pos is None and math.isfinite(float(s_own)):
             var[r] = float(s_own) ** 2
     bias = np.zeros(len(base))
+    # a parameter of h alone (the frequency, the period: never a size whose interval decides a
+    # name) takes the ungated model error (module docstring)
+    h_only = (np.all(jac[:, :-1] == 0.0, axis=1) & (jac[:, -1] != 0.0)) if with_h else np.zeros(len(base), bool)
     for d, vd in splits:
         db = jac @ d[idx]
         vb = np.einsum("ij,jk,ik->i", jac, vd[np.ix_(idx, idx)], jac)
-        bias = np.maximum(bias, [model_error(float(x), float(y)) for x, y in zip(db, vb)])
+        bias = np.maximum(bias, [model_error(float(x), float(y), gated=not ho) for x, y, ho in zip(db, vb, h_only)])
     std, ci, samp, err = {}, {}, {}, {}
     for (name, pos, v), s2, b2 in zip(base, var, bias):
         s = math.sqrt(s2) if math.isfinite(s2) and s2 >= 0 else math.nan
