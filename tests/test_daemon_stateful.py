@@ -32,7 +32,7 @@ import urllib.request
 import numpy as np
 import pytest
 import yaml
-from hypothesis import HealthCheck, settings
+from hypothesis import HealthCheck, seed, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
 from test_daemon_helpers import REPO, Daemon, as_test_daemon, wait_for
@@ -396,6 +396,15 @@ class DaemonMachine(RuleBasedStateMachine):
             check_invariants(s)
         except AssertionError as exc:
             raise AssertionError(f"{exc}\nthe last steps:\n" + "\n".join(TRAIL)) from None
+
+
+#: the derandomized run's seed, pinned. Unpinned, hypothesis seeds it from the source of
+#: DaemonMachine, so any edit of the class (a helper merged, a comment) draws other examples,
+#: and MIN_STEPS was measured on this draw (2 091 steps in CI; another took 1 905). This is the
+#: seed that source gave (int of its sha384 digest). The explore profile keeps fresh draws.
+STATEFUL_SEED = 0xaae9ee389a9635765c97b4d8a941e311e5316fb90b43e90ff61ac635342e0588f128a082ca84619c1d5d78dd8436cce
+if settings.default.derandomize:
+    DaemonMachine = seed(STATEFUL_SEED)(DaemonMachine)
 
 
 def test_random_requests_and_faults_keep_the_machine_in_its_table(shipped, tmp_path):
