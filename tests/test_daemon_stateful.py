@@ -228,6 +228,24 @@ def counted(f):
     return rule_
 
 
+def command_mode(sock) -> None:
+    """Motion aborted and ended, each fault cleared the operator's way (:func:`clear_fault`),
+    both axes in command mode (an axis in another mode stopped, a disabled one started)."""
+    req(sock, cmd="abort")
+    ended(sock)
+    for a, x in status(sock)["axes"].items():
+        if x["fault"]:
+            clear_fault(sock, a)
+        if x["phase"] not in ("command", "disabled"):
+            req(sock, cmd="stop", axis=a)
+    wait_for(lambda: all(x["phase"] in ("command", "disabled") for x in status(sock)["axes"].values()),
+             10, "the axes stopped")
+    for a, x in status(sock)["axes"].items():
+        if x["phase"] == "disabled":
+            ans = req(sock, cmd="start", axis=a, mode="command")
+            assert ans["ok"], ans
+
+
 class DaemonMachine(RuleBasedStateMachine):
     """Random requests and injected faults against the shipped daemon (module docstring)."""
 
@@ -239,21 +257,7 @@ class DaemonMachine(RuleBasedStateMachine):
         self.sock = self.dmn.sock
         self.steps = 0
         self.prog = self.tmp / "square.ngc"
-        # every example starts from a known state: motion aborted, faults reset, both axes in
-        # command mode
-        req(self.sock, cmd="abort")
-        ended(self.sock)
-        for a, x in status(self.sock)["axes"].items():
-            if x["fault"]:
-                clear_fault(self.sock, a)
-            if x["phase"] not in ("command", "disabled"):
-                req(self.sock, cmd="stop", axis=a)
-        wait_for(lambda: all(x["phase"] in ("command", "disabled")
-                             for x in status(self.sock)["axes"].values()), 10, "the axes stopped")
-        for a, x in status(self.sock)["axes"].items():
-            if x["phase"] == "disabled":
-                ans = req(self.sock, cmd="start", axis=a, mode="command")
-                assert ans["ok"], ans
+        command_mode(self.sock)       # every example starts from this known state
 
     def expect(self, ans: dict, request: str) -> None:
         """An answer against the table: a refusal names its state; a state that accepts the
@@ -427,13 +431,7 @@ def test_random_requests_and_faults_keep_the_machine_in_its_table(shipped, tmp_p
 def ready(shipped):
     """Both axes in command mode, no fault, motion idle, at rest inside the limits."""
     sock = shipped.sock
-    req(sock, cmd="abort")
-    ended(sock)
-    for a, x in status(sock)["axes"].items():
-        if x["fault"]:
-            clear_fault(sock, a)
-        if status(sock)["axes"][a]["phase"] == "disabled":
-            assert req(sock, cmd="start", axis=a, mode="command")["ok"]
+    command_mode(sock)
     req(sock, cmd="override", value=1.0)
     ans = req(sock, cmd="move", targets={"X": 0.1, "Y": 0.1})
     assert ans["ok"], ans
