@@ -49,7 +49,9 @@ of few samples has little power, and the pre-test then sets a bias it cannot pro
 the default plant a 7.3 Hz disturbance's frequency, fitted over records at rest 87 % of the
 time, where stiction holds the carriage and the line does not reach the input, came out 1-8e-4
 Hz off against a sampling σ of 1-4e-5 Hz; the fit on the samples in motion is within 3e-5 Hz
-of the truth, but its difference was significant on 6 of 10 records.) The stated standard deviation is sqrt(σ² + b²), σ the sandwich's, and the
+of the truth, but its difference was significant on 6 of 10 records. The price: under a correct
+model d² > V_d in about a third of records, P(|z| > 1), and the searched parameter's interval
+is wider there than its sampling σ asks.) The stated standard deviation is sqrt(σ² + b²), σ the sandwich's, and the
 interval value ± 1.96 of it (a normal approximation: asymptotically exact for the sandwich,
 Newey & West 1987, Thm. 2). Its assumption: the low band's fit, or the fit in motion, is the
 less biased, so that the full fit's bias is about its difference from it. A bias both share
