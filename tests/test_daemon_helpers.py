@@ -164,6 +164,38 @@ class Daemon:
         self.io_pid = st["process"]["io_pid"]
         return st
 
+    def diagnosis(self) -> str:
+        """What a failure in a fixture needs to be traced afterwards: the scheduler state and
+        kernel wait channel of the loop and I/O processes (/proc), the load, whether the daemon
+        answers a status within 10 s now (and what it says of the loop, the recorder, the axes)
+        and the daemon's stderr so far (non-blocking)."""
+        parts = [f"load {os.getloadavg()}"]
+        for what, pid in (("loop", self.proc.pid), ("io", self.io_pid)):
+            try:
+                stat = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()
+                wchan = Path(f"/proc/{pid}/wchan").read_text()
+                parts.append(f"{what} pid {pid}: state {stat[0]}, wchan {wchan or '-'}, "
+                             f"utime {stat[11]} stime {stat[12]} ticks")
+            except (OSError, IndexError, TypeError):
+                parts.append(f"{what} pid {pid}: not readable")
+        t0 = time.monotonic()
+        try:
+            from motorctl.client import call
+            st = call(str(self.sock), {"cmd": "status"}, timeout_s=10.0)["status"]
+            parts.append(f"status answered after {time.monotonic() - t0:.2f} s: loop {st.get('loop')}, "
+                         f"log {({k: st['log'].get(k) for k in ('max_flush_gap_s', 'recorder_fault', 'error')})}, motion "
+                         f"{({k: st['motion'].get(k) for k in ('idle', 'stopped_because', 'filler_alive')})}, axes "
+                         f"{ {a: (x['state'], x['phase'], x['fault']) for a, x in st['axes'].items()} }")
+        except Exception as exc:  # noqa: BLE001 - a diagnosis never raises
+            parts.append(f"status: {type(exc).__name__}: {exc} after {time.monotonic() - t0:.2f} s")
+        if self.proc.stderr is not None:
+            try:
+                os.set_blocking(self.proc.stderr.fileno(), False)
+                parts.append("stderr: " + (self.proc.stderr.read() or "")[-2000:])
+            except (OSError, TypeError, ValueError):
+                pass
+        return "\n".join(parts)
+
     def terminate(self, timeout: float = 20.0) -> tuple[int, str, str]:
         self.proc.send_signal(signal.SIGTERM)
         out, err = self.proc.communicate(timeout=timeout)
@@ -237,7 +269,10 @@ def command_mode_daemon(cfg: Path):
     dmn = Daemon(cfg, cfg.parent / "motorctl.sock")
     try:
         dmn.wait_ready()
-        to_command_mode(dmn.sock)
+        try:
+            to_command_mode(dmn.sock)
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}\n{dmn.diagnosis()}") from None
         yield dmn
     finally:
         dmn.kill()
