@@ -23,19 +23,31 @@ GANTRY = REPO / "configs" / "gantry-rigid.yaml"   # the rigid plant the threshol
 #: latched under benchmarks/suite_under_load.py's two spinners); the stall's own tests state
 #: their bound from it
 FLUSH_S = 1.0
+#: loop.realtime.spin_us of the tests' daemons, with warm_caches off (shipped: 60 µs and the
+#: rehearsal). As shipped a daemon's loop busy-waits about 65 % of a core at SCHED_FIFO on this
+#: project's 2-CPU virtual machines (the tail, the rehearsal's earlier wake, the sleep's
+#: overshoot); the suite runs up to three daemons at once (a test's own beside its module's,
+#: and the other worker's), and their spinning starved every SCHED_OTHER process: an I/O
+#: process that did not answer `start` within 5 s, a 0.5 s lead run dry, "recorder stalled".
+#: On a gantry PC one daemon owns its core; the pacing itself is tested without a daemon
+#: (tests/test_pacing.py, tests/test_compiled_cycle.py)
+TEST_SPIN_US = 10.0
 
 
 def as_test_daemon(d: dict, tmp: Path, flush_s: float | None = FLUSH_S) -> Path:
     """What a daemon test changes of a shipped config, and nothing else: the control socket and
     the run logs under ``tmp``, fault injection switched on, the run log's flush period
-    ``flush_s`` (None: as shipped), and no CPU wake-up latency request
-    (on this project's virtual machines a daemon holding /dev/cpu_dma_latency beside CPU hogs
-    froze the whole VM for seconds now and then: every daemon of both workers stalled 3.0 s at
-    the same instant, docs/daemon.md; no daemon test is about it). The real-time set-up (SCHED_FIFO,
-    mlockall, the spin tail) stays as shipped. Returns the socket's path."""
+    ``flush_s`` (None: as shipped), no CPU wake-up latency request (on this project's virtual
+    machines a daemon holding /dev/cpu_dma_latency beside CPU hogs froze the whole VM for
+    seconds now and then: every daemon of both workers stalled 3.0 s at the same instant,
+    docs/daemon.md), and a short busy-wait tail without the rehearsal (:data:`TEST_SPIN_US`;
+    no daemon test is about either). SCHED_FIFO and mlockall stay as shipped. Returns the
+    socket's path."""
     sock = tmp / "motorctl.sock"
-    if d["loop"].get("realtime", {}).get("cpu_latency_us") is not None:
-        d["loop"]["realtime"]["cpu_latency_us"] = None
+    rt = d["loop"].setdefault("realtime", {})
+    if rt.get("cpu_latency_us") is not None:
+        rt["cpu_latency_us"] = None
+    rt.update(spin_us=TEST_SPIN_US, warm_caches=False)
     d["daemon"].update(socket=str(sock), log_dir=str(tmp / "logs"), allow_fault_injection=True)
     if flush_s is not None:
         d["daemon"]["flush_s"] = flush_s
