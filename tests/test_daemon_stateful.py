@@ -1,9 +1,10 @@
 """The daemon, as shipped, driven through its state machine by random requests with faults injected.
 
-One daemon on ``configs/gantry.yaml`` as shipped (the real-time set-up too), changed only in its
-paths, a loopback port for ``/metrics``, fault injection switched on, and no CPU latency request
+One daemon on ``configs/gantry.yaml`` as shipped (SCHED_FIFO and mlockall too), changed only in
+its paths, a loopback port for ``/metrics``, fault injection switched on, no CPU latency request
 (on this project's virtual machines that request stalls the whole VM now and then:
-docs/daemon.md). A hypothesis ``RuleBasedStateMachine`` (derandomized: the same steps on every
+docs/daemon.md) and the tests' short spin tail (``test_daemon_helpers.TEST_SPIN_US``: three
+spinning daemons starve a 2-CPU machine). A hypothesis ``RuleBasedStateMachine`` (derandomized: the same steps on every
 run) sends move, gcode, jog, home, hold, resume, abort, override, stop, start and fault-reset,
 interleaved with injected faults: a drive fault (the amplifier reports one), a following-error
 trip (a push on the carriage), an underrun and a recorder stall (the I/O process stopped by
@@ -73,8 +74,9 @@ METRICS: list = []
 
 
 def shipped_config(tmp, metrics_port: int):
-    """configs/gantry.yaml with paths, a /metrics port, fault injection on and no CPU latency
-    request: nothing else changed."""
+    """configs/gantry.yaml with paths, a /metrics port, fault injection on, no CPU latency
+    request and the tests' spin tail (:func:`test_daemon_helpers.as_test_daemon`): nothing else
+    changed."""
     d = yaml.safe_load((REPO / "configs" / "gantry.yaml").read_text())
     as_test_daemon(d, tmp, flush_s=None)           # the shipped 0.5 s: a 2 s stall bound
     d["daemon"]["metrics"] = {"listen": f"127.0.0.1:{metrics_port}"}
