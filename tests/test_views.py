@@ -157,3 +157,34 @@ def _get(port: int) -> bool:
         return urllib.request.urlopen(f"http://127.0.0.1:{port}/meta", timeout=2).status == 200
     except OSError:
         return False
+
+
+def test_a_view_process_reaped_in_the_wake_its_report_came_still_has_its_line(capsys):
+    """The view process reports a view it could not serve and ends by itself; the I/O process's
+    supervision reaps it in the same wake, before the selector has handed it the report. The
+    report is read before the link is dropped: the broken view's line is written. (Before, the
+    link went with the report unread, and a CI run lost the foxglove line.)"""
+    import pickle
+    import selectors
+    import socket
+    from types import SimpleNamespace
+
+    from motorctl.app.daemon.io_side import IOSide
+    from motorctl.app.daemon.views import ViewLink
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    ours.setblocking(False)
+    pid = os.fork()
+    if pid == 0:                                 # the view process: its report, then its end
+        theirs.send(pickle.dumps(("started", {"foxglove": "RuntimeError: broken build"})))
+        os._exit(0)
+    theirs.close()
+    wait_for(lambda: open(f"/proc/{pid}/stat").read().split(")")[-1].split()[0] == "Z", 10, "the child's end")
+    io = SimpleNamespace(views=ViewLink(ours, pid), fox_listen="127.0.0.1:1", sel=selectors.DefaultSelector(),
+                         scope=SimpleNamespace(listeners=[], tap=None), drainer=SimpleNamespace(taps=[]),
+                         helpers={"views": {"pid": pid, "starts": 1, "retry_at": 0.0, "ended": ""}})
+    io.report_views = lambda: IOSide.report_views(io)
+    io.drop_views = lambda: IOSide.drop_views(io)
+    IOSide.supervise(io, time.monotonic())
+    err = capsys.readouterr().err
+    assert io.views is None and "ended by itself" in err, err
+    assert "daemon.foxglove.listen 127.0.0.1:1: not served (RuntimeError: broken build)" in err, err

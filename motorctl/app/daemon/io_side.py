@@ -978,6 +978,10 @@ class IOSide:
                     got = link.pid
                 if not got:
                     continue
+            if name == "views":
+                # what it reported before it ended is read first: reaped in the same wake as its
+                # report came, the report would go with the link (a broken view's line lost)
+                self.report_views()
             st2 = self.drop_views() if name == "views" else link.stop(0.5)
             st = st if st is not None else st2
             if name != "views":
@@ -1049,7 +1053,13 @@ class IOSide:
         self.drainer.taps.append(self.scope.tap)
 
     def on_views(self) -> None:
-        """The view process's reports: one line per view served or not; its end."""
+        """The view process's reports (:meth:`report_views`); its end."""
+        self.report_views()
+        if not self.views.alive:
+            self.supervise(time.monotonic())
+
+    def report_views(self) -> None:
+        """The view process's reports waiting on its link: one line per view served or not."""
         v = self.views
         for kind, rep in v.receive():
             if kind != "started":
@@ -1065,8 +1075,6 @@ class IOSide:
                     sys.stderr.write(f"motorctl: warning: daemon.{what}.listen {where}: not served ({err})\n")
                 else:
                     sys.stderr.write(f"motorctl: {what} on {url}\n")
-        if not v.alive:
-            self.supervise(time.monotonic())
 
     def drop_views(self) -> int | None:
         """The view process has ended: its link out of the selector, the scope and the drain;
