@@ -189,6 +189,10 @@ class IOSide:
         """Answer now (a dict) or forward to the loop (None: the answer comes later)."""
         if self.fatal:
             return {"ok": False, "error": self.fatal}
+        # a fault latched since the last wake acts first, for a status too: one that said the
+        # fault beside the motion it ends (still queued) let the state machine test see
+        # "aborted" with a queue when a loaded host delayed the I/O process's wake
+        self.react_to_faults()
         i = req.axis
         if req.cmd == "status":
             st = self.status()
@@ -197,7 +201,6 @@ class IOSide:
             return {"ok": True, "status": st}
         if self.ready is None:
             return {"ok": False, "error": "the loop is not running yet; retry in a moment"}
-        self.react_to_faults()               # a fault latched since the last wake acts first
         ob = self.observed()
         state = machine_state(ob)
         why = refusal(state, self.rule_of(req), ob, self.names)
